@@ -1,0 +1,15 @@
+//! sfpmap: small, fast, level-sliceable visual-localization maps.
+//!
+//! The crate with `default-features = false` is only the map format ([`format`]): an mmap
+//! zero-copy reader and a deterministic writer. Features add the rest of the pipeline:
+//! `colmap` (COLMAP models and databases), `localize` (geometry and the localizer), `cli`.
+#![deny(unsafe_code)]
+
+pub mod format;
+pub mod progress;
+
+#[cfg(feature = "colmap")]
+pub mod colmap;
+
+#[cfg(feature = "localize")]
+pub mod localize;

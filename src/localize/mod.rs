@@ -1,0 +1,1 @@
+//! Geometry and the hierarchical localizer.
