@@ -1,1 +1,45 @@
-//! The sfpmap file format.
+//! The sfpmap file format (`spec/format.md` is the source of truth).
+//!
+//! A map is one file: a 64-byte header, a section table, a JSON metadata block, then
+//! 64-byte-aligned sections holding arrays (points, per-level descriptors split into
+//! `short` and `rest` blocks, images, visibility). [`Map`] opens it with one mmap and
+//! validates the index; sections are checked on first access. [`MapWriter`] writes it.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), sfpmap::format::Error> {
+//! let map = sfpmap::format::Map::open("building.sfpm")?;
+//! let level = map.level(2)?;
+//! let short = level.desc_short()?; // &[f16] borrowed from the mapping
+//! assert_eq!(short.len(), level.len() * level.dim_short());
+//! # Ok(()) }
+//! ```
+
+mod error;
+pub mod fuzzing;
+mod layout;
+mod metadata;
+mod mmap;
+mod reader;
+mod slice;
+mod views;
+mod writer;
+
+pub use error::{Error, SectionRef};
+pub use layout::{
+    align_up, checksum, Codec, Dtype, Header, RawEntry, SectionKind, ALIGN, ENDIAN_CHECK,
+    ENTRY_LEN, HEADER_LEN, MAGIC, MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED,
+    VERSION_MAJOR, VERSION_MINOR,
+};
+pub use metadata::{CameraInfo, LevelInfo, Metadata, Provenance, SourceFile};
+pub use reader::{decode_cap, Map, Section};
+pub use slice::{slice, SliceOptions, SliceSummary};
+pub use views::{Images, Level, Visibility};
+pub use writer::{Descriptors, MapWriter};
+
+/// Re-exported so users need not depend on `half` to name descriptor elements.
+pub use half::f16;
+
+/// XXH3-64 of a file's bytes, as provenance stores it (hex).
+pub fn file_hash(bytes: &[u8]) -> String {
+    format!("{:016x}", checksum(bytes))
+}

@@ -1,0 +1,396 @@
+//! On-disk structures of the format: the fixed header, the section table entries and the
+//! codes they use. These are the raw records of `spec/format.md`; the friendly API lives in
+//! `reader`/`views`. All integers are little-endian.
+
+use super::error::Error;
+
+/// The 8 magic bytes every map starts with (PNG-style: a high byte, the name, CR LF, SUB).
+pub const MAGIC: [u8; 8] = *b"\x89SFPM\r\n\x1a";
+/// The major version this crate reads and writes. A different major is an error.
+pub const VERSION_MAJOR: u16 = 1;
+/// The minor version this crate writes. Readers accept any minor of their major.
+pub const VERSION_MINOR: u16 = 0;
+/// Written as a `u32` LE; a reader that sees other bytes has the wrong byte order.
+pub const ENDIAN_CHECK: u32 = 0x1A2B_3C4D;
+/// Size of the fixed header in bytes.
+pub const HEADER_LEN: usize = 64;
+/// Size of one section-table entry written by this version. Readers accept larger entries
+/// (a later minor may append fields) and read the first `ENTRY_LEN` bytes.
+pub const ENTRY_LEN: usize = 64;
+/// Every section starts at a multiple of this, so arrays cast zero-copy from the mapping.
+pub const ALIGN: u64 = 64;
+/// Cap on the metadata JSON; checked before anything is parsed.
+pub const METADATA_MAX_BYTES: u64 = 16 << 20;
+/// Cap on the number of sections, so the table is bounded too.
+pub const MAX_SECTIONS: u32 = 1 << 16;
+/// `level` value of sections that belong to no level.
+pub const NO_LEVEL: u16 = u16::MAX;
+
+/// Section entry flag: a reader that does not know the section's kind must fail.
+pub const SECTION_REQUIRED: u8 = 1 << 0;
+
+/// Element type of a section's array.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[repr(u8)]
+pub enum Dtype {
+    U8 = 1,
+    U16 = 2,
+    U32 = 3,
+    U64 = 4,
+    F16 = 5,
+    F32 = 6,
+    F64 = 7,
+}
+
+impl Dtype {
+    pub fn from_code(code: u8) -> Option<Dtype> {
+        Some(match code {
+            1 => Dtype::U8,
+            2 => Dtype::U16,
+            3 => Dtype::U32,
+            4 => Dtype::U64,
+            5 => Dtype::F16,
+            6 => Dtype::F32,
+            7 => Dtype::F64,
+            _ => return None,
+        })
+    }
+
+    /// Bytes per element.
+    pub fn size(self) -> u64 {
+        match self {
+            Dtype::U8 => 1,
+            Dtype::U16 | Dtype::F16 => 2,
+            Dtype::U32 | Dtype::F32 => 4,
+            Dtype::U64 | Dtype::F64 => 8,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Dtype::U8 => "u8",
+            Dtype::U16 => "u16",
+            Dtype::U32 => "u32",
+            Dtype::U64 => "u64",
+            Dtype::F16 => "f16",
+            Dtype::F32 => "f32",
+            Dtype::F64 => "f64",
+        }
+    }
+}
+
+/// How a section's bytes are stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+#[repr(u8)]
+pub enum Codec {
+    /// The array's bytes as they are: viewable zero-copy.
+    #[default]
+    Raw = 0,
+    /// One zstd frame holding the array's bytes.
+    Zstd = 1,
+}
+
+impl Codec {
+    pub fn from_code(code: u8) -> Option<Codec> {
+        match code {
+            0 => Some(Codec::Raw),
+            1 => Some(Codec::Zstd),
+            _ => None,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Codec::Raw => "raw",
+            Codec::Zstd => "zstd",
+        }
+    }
+}
+
+/// What a section holds. Codes are stable; a minor version may add new ones.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum SectionKind {
+    /// f32 [points × 3]: xyz relative to the metadata `origin`.
+    PointPositions,
+    /// u8 [points × 3]: RGB.
+    PointColors,
+    /// u64 [points × 1]: the source's point ids (COLMAP `point3D_id`).
+    PointIds,
+    /// u32 [n_L × 1]: strictly increasing global point indices held by a level.
+    LevelPoints,
+    /// f16 [n_L × d_short]: the first `d_short` dimensions of each level point's descriptor.
+    LevelDescShort,
+    /// f16 [n_L × (d_full − d_short)]: the remaining dimensions.
+    LevelDescRest,
+    /// f32 [d_full × d_in]: orthonormal rows mapping an extractor descriptor into the stored basis.
+    LevelProjection,
+    /// f64 [images × 7]: `cam_from_world` as qw qx qy qz tx ty tz (COLMAP).
+    ImagePoses,
+    /// u32 [images × 1]: index into the metadata `cameras`.
+    ImageCameras,
+    /// u32 [images × 1]: the source's image ids (COLMAP `image_id`).
+    ImageIds,
+    /// u64 [images + 1 × 1]: byte offsets into `ImageNames`.
+    ImageNameOffsets,
+    /// u8 [bytes × 1]: UTF-8 image names, concatenated.
+    ImageNames,
+    /// f16 [images × d_g]: L2-normalised global descriptors for retrieval.
+    ImageGlobal,
+    /// u64 [images + 1 × 1]: CSR row offsets into `VisibilityPoints`.
+    VisibilityOffsets,
+    /// u32 [observations × 1]: point indices seen by each image, image by image.
+    VisibilityPoints,
+    /// f32 [observations × 2]: the pixel (x, y) of each visibility entry.
+    VisibilityKeypoints,
+    /// A kind this version does not know.
+    Unknown(u16),
+}
+
+impl SectionKind {
+    const KNOWN: [(u16, SectionKind, &'static str); 16] = [
+        (1, SectionKind::PointPositions, "point_positions"),
+        (2, SectionKind::PointColors, "point_colors"),
+        (3, SectionKind::PointIds, "point_ids"),
+        (16, SectionKind::LevelPoints, "level_points"),
+        (17, SectionKind::LevelDescShort, "level_desc_short"),
+        (18, SectionKind::LevelDescRest, "level_desc_rest"),
+        (19, SectionKind::LevelProjection, "level_projection"),
+        (32, SectionKind::ImagePoses, "image_poses"),
+        (33, SectionKind::ImageCameras, "image_cameras"),
+        (34, SectionKind::ImageIds, "image_ids"),
+        (35, SectionKind::ImageNameOffsets, "image_name_offsets"),
+        (36, SectionKind::ImageNames, "image_names"),
+        (37, SectionKind::ImageGlobal, "image_global"),
+        (48, SectionKind::VisibilityOffsets, "visibility_offsets"),
+        (49, SectionKind::VisibilityPoints, "visibility_points"),
+        (50, SectionKind::VisibilityKeypoints, "visibility_keypoints"),
+    ];
+
+    pub fn from_code(code: u16) -> SectionKind {
+        Self::KNOWN
+            .iter()
+            .find(|(c, _, _)| *c == code)
+            .map(|(_, k, _)| *k)
+            .unwrap_or(SectionKind::Unknown(code))
+    }
+
+    pub fn code(self) -> u16 {
+        match self {
+            SectionKind::Unknown(c) => c,
+            known => Self::KNOWN
+                .iter()
+                .find(|(_, k, _)| *k == known)
+                .map(|(c, _, _)| *c)
+                .expect("every known kind is in the table"),
+        }
+    }
+
+    /// The spec's name of the kind (`unknown` for kinds this version does not know).
+    pub fn name(self) -> &'static str {
+        Self::KNOWN
+            .iter()
+            .find(|(_, k, _)| *k == self)
+            .map(|(_, _, n)| *n)
+            .unwrap_or("unknown")
+    }
+
+    /// The dtype and column count the spec fixes for a known kind (`None` = any columns).
+    pub fn expected_layout(self) -> Option<(Dtype, Option<u64>)> {
+        use SectionKind::*;
+        Some(match self {
+            PointPositions => (Dtype::F32, Some(3)),
+            PointColors => (Dtype::U8, Some(3)),
+            PointIds => (Dtype::U64, Some(1)),
+            LevelPoints => (Dtype::U32, Some(1)),
+            LevelDescShort | LevelDescRest | ImageGlobal => (Dtype::F16, None),
+            LevelProjection => (Dtype::F32, None),
+            ImagePoses => (Dtype::F64, Some(7)),
+            ImageCameras | ImageIds => (Dtype::U32, Some(1)),
+            ImageNameOffsets | VisibilityOffsets => (Dtype::U64, Some(1)),
+            ImageNames => (Dtype::U8, Some(1)),
+            VisibilityPoints => (Dtype::U32, Some(1)),
+            VisibilityKeypoints => (Dtype::F32, Some(2)),
+            Unknown(_) => return None,
+        })
+    }
+
+    /// Whether sections of this kind carry a level id (others use [`NO_LEVEL`]).
+    pub fn is_per_level(self) -> bool {
+        matches!(
+            self,
+            SectionKind::LevelPoints
+                | SectionKind::LevelDescShort
+                | SectionKind::LevelDescRest
+                | SectionKind::LevelProjection
+        )
+    }
+}
+
+impl std::fmt::Display for SectionKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SectionKind::Unknown(c) => write!(f, "unknown kind {c}"),
+            k => f.write_str(k.name()),
+        }
+    }
+}
+
+/// The fixed header, decoded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Header {
+    pub major: u16,
+    pub minor: u16,
+    pub flags: u64,
+    pub section_count: u32,
+    pub entry_len: u32,
+    pub metadata_offset: u64,
+    pub metadata_len: u64,
+    pub file_len: u64,
+    pub index_checksum: u64,
+}
+
+impl Header {
+    /// Decodes the header, checking only what is needed to find the rest of the index.
+    pub fn decode(bytes: &[u8]) -> Result<Header, Error> {
+        if bytes.len() < HEADER_LEN {
+            if bytes.len() < MAGIC.len() || bytes[..MAGIC.len()] == MAGIC {
+                return Err(Error::Truncated {
+                    what: "header",
+                    needed: HEADER_LEN as u64,
+                    file_len: bytes.len() as u64,
+                });
+            }
+            return Err(Error::BadMagic);
+        }
+        if bytes[..8] != MAGIC {
+            return Err(Error::BadMagic);
+        }
+        let major = le_u16(bytes, 8);
+        let minor = le_u16(bytes, 10);
+        if major != VERSION_MAJOR {
+            return Err(Error::VersionMismatch {
+                expected: VERSION_MAJOR,
+                found: major,
+                minor,
+            });
+        }
+        let endian = le_u32(bytes, 12);
+        if endian != ENDIAN_CHECK {
+            return Err(Error::BadEndianCheck { found: endian });
+        }
+        Ok(Header {
+            major,
+            minor,
+            flags: le_u64(bytes, 16),
+            section_count: le_u32(bytes, 24),
+            entry_len: le_u32(bytes, 28),
+            metadata_offset: le_u64(bytes, 32),
+            metadata_len: le_u64(bytes, 40),
+            file_len: le_u64(bytes, 48),
+            index_checksum: le_u64(bytes, 56),
+        })
+    }
+
+    pub fn encode(&self) -> [u8; HEADER_LEN] {
+        let mut b = [0u8; HEADER_LEN];
+        b[..8].copy_from_slice(&MAGIC);
+        b[8..10].copy_from_slice(&self.major.to_le_bytes());
+        b[10..12].copy_from_slice(&self.minor.to_le_bytes());
+        b[12..16].copy_from_slice(&ENDIAN_CHECK.to_le_bytes());
+        b[16..24].copy_from_slice(&self.flags.to_le_bytes());
+        b[24..28].copy_from_slice(&self.section_count.to_le_bytes());
+        b[28..32].copy_from_slice(&self.entry_len.to_le_bytes());
+        b[32..40].copy_from_slice(&self.metadata_offset.to_le_bytes());
+        b[40..48].copy_from_slice(&self.metadata_len.to_le_bytes());
+        b[48..56].copy_from_slice(&self.file_len.to_le_bytes());
+        b[56..64].copy_from_slice(&self.index_checksum.to_le_bytes());
+        b
+    }
+}
+
+/// One section-table entry, decoded but not yet validated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RawEntry {
+    pub kind: u16,
+    pub level: u16,
+    pub dtype: u8,
+    pub codec: u8,
+    pub flags: u8,
+    pub reserved: u8,
+    pub rows: u64,
+    pub cols: u64,
+    pub offset: u64,
+    pub stored_len: u64,
+    pub raw_len: u64,
+    pub checksum: u64,
+    pub reserved2: u64,
+}
+
+impl RawEntry {
+    pub fn decode(b: &[u8]) -> RawEntry {
+        RawEntry {
+            kind: le_u16(b, 0),
+            level: le_u16(b, 2),
+            dtype: b[4],
+            codec: b[5],
+            flags: b[6],
+            reserved: b[7],
+            rows: le_u64(b, 8),
+            cols: le_u64(b, 16),
+            offset: le_u64(b, 24),
+            stored_len: le_u64(b, 32),
+            raw_len: le_u64(b, 40),
+            checksum: le_u64(b, 48),
+            reserved2: le_u64(b, 56),
+        }
+    }
+
+    pub fn encode(&self) -> [u8; ENTRY_LEN] {
+        let mut b = [0u8; ENTRY_LEN];
+        b[0..2].copy_from_slice(&self.kind.to_le_bytes());
+        b[2..4].copy_from_slice(&self.level.to_le_bytes());
+        b[4] = self.dtype;
+        b[5] = self.codec;
+        b[6] = self.flags;
+        b[7] = self.reserved;
+        b[8..16].copy_from_slice(&self.rows.to_le_bytes());
+        b[16..24].copy_from_slice(&self.cols.to_le_bytes());
+        b[24..32].copy_from_slice(&self.offset.to_le_bytes());
+        b[32..40].copy_from_slice(&self.stored_len.to_le_bytes());
+        b[40..48].copy_from_slice(&self.raw_len.to_le_bytes());
+        b[48..56].copy_from_slice(&self.checksum.to_le_bytes());
+        b[56..64].copy_from_slice(&self.reserved2.to_le_bytes());
+        b
+    }
+}
+
+/// The checksum used everywhere in the format: XXH3-64 with seed 0.
+pub fn checksum(bytes: &[u8]) -> u64 {
+    xxhash_rust::xxh3::xxh3_64(bytes)
+}
+
+/// Checksum of the index: header bytes 0..56, then the section table, then the metadata.
+pub fn index_checksum(header_prefix: &[u8], table: &[u8], metadata: &[u8]) -> u64 {
+    let mut h = xxhash_rust::xxh3::Xxh3::new();
+    h.update(header_prefix);
+    h.update(table);
+    h.update(metadata);
+    h.digest()
+}
+
+/// Rounds `n` up to the next multiple of [`ALIGN`], or `None` on overflow.
+pub fn align_up(n: u64) -> Option<u64> {
+    n.checked_add(ALIGN - 1).map(|v| v & !(ALIGN - 1))
+}
+
+fn le_u16(b: &[u8], at: usize) -> u16 {
+    u16::from_le_bytes([b[at], b[at + 1]])
+}
+
+fn le_u32(b: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(b[at..at + 4].try_into().expect("4 bytes"))
+}
+
+fn le_u64(b: &[u8], at: usize) -> u64 {
+    u64::from_le_bytes(b[at..at + 8].try_into().expect("8 bytes"))
+}

@@ -1,0 +1,124 @@
+//! The metadata JSON: everything small that describes the arrays (cameras, levels, origin,
+//! provenance). Unknown keys are kept in `extra` so a newer minor's keys survive a slice.
+
+use serde::{Deserialize, Serialize};
+use serde_json::{Map as JsonMap, Value};
+
+/// The metadata `format` value.
+pub const FORMAT_NAME: &str = "sfpmap";
+/// The coordinate convention every map uses (see spec, "Metadata").
+pub const CONVENTION: &str = "colmap";
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Metadata {
+    /// Always `"sfpmap"`.
+    pub format: String,
+    /// Length unit of positions and translations (`"model"` for SfM maps of arbitrary scale).
+    pub units: String,
+    /// `"colmap"`: right-handed world, poses are `cam_from_world`, camera looks along +z,
+    /// the top-left pixel's centre is (0.5, 0.5).
+    pub convention: String,
+    /// Added to every stored f32 point position to get the world position in f64.
+    pub origin: [f64; 3],
+    /// True when the map holds no descriptors (converted from a model without features).
+    #[serde(default)]
+    pub geometry_only: bool,
+    /// Cameras; `image_cameras` indexes this list.
+    #[serde(default)]
+    pub cameras: Vec<CameraInfo>,
+    /// The levels, sorted by `level`.
+    #[serde(default)]
+    pub levels: Vec<LevelInfo>,
+    #[serde(default)]
+    pub provenance: Provenance,
+    /// Keys this version does not know, kept as they are.
+    #[serde(flatten)]
+    pub extra: JsonMap<String, Value>,
+}
+
+impl Default for Metadata {
+    fn default() -> Self {
+        Metadata {
+            format: FORMAT_NAME.to_string(),
+            units: "model".to_string(),
+            convention: CONVENTION.to_string(),
+            origin: [0.0; 3],
+            geometry_only: false,
+            cameras: Vec::new(),
+            levels: Vec::new(),
+            provenance: Provenance::default(),
+            extra: JsonMap::new(),
+        }
+    }
+}
+
+/// A camera in COLMAP terms.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraInfo {
+    /// The source's camera id (COLMAP `camera_id`), if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<u32>,
+    /// COLMAP model name, e.g. `SIMPLE_RADIAL`.
+    pub model: String,
+    pub width: u64,
+    pub height: u64,
+    /// COLMAP parameter order for the model.
+    pub params: Vec<f64>,
+}
+
+/// One level of the pyramid: its keypoint stride and descriptor layout.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LevelInfo {
+    pub level: u16,
+    /// Feature-map stride in pixels (SFP) or the nominal scale of the level's bucket (SIFT).
+    pub stride: f64,
+    /// Descriptor kind: `sfp-v1`, `sift`, ...
+    pub descriptor: String,
+    /// Dimensions of the full descriptor (`short` + `rest`).
+    pub dim_full: u32,
+    /// Dimensions of the `short` block (a prefix of the full descriptor in the stored basis).
+    pub dim_short: u32,
+    /// How descriptors are normalised: `l2` (full vector unit length).
+    pub normalization: String,
+    /// Keys this version does not know (e.g. the rule that assigned points to the level).
+    #[serde(flatten)]
+    pub extra: JsonMap<String, Value>,
+}
+
+/// Where the map came from.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Provenance {
+    /// `sfpmap <version>`.
+    #[serde(default)]
+    pub tool: String,
+    #[serde(default)]
+    pub sources: Vec<SourceFile>,
+    /// Extractor model, if descriptors came from one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<SourceFile>,
+    /// The parameters of the operation that wrote the map.
+    #[serde(default)]
+    pub parameters: JsonMap<String, Value>,
+    /// Earlier operations (e.g. the convert before a slice), oldest first.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub history: Vec<Value>,
+}
+
+/// A file that went into the map, with its size and XXH3-64 hash.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SourceFile {
+    pub path: String,
+    pub bytes: u64,
+    pub xxh3: String,
+}
+
+impl Metadata {
+    pub fn level(&self, level: u16) -> Option<&LevelInfo> {
+        self.levels.iter().find(|l| l.level == level)
+    }
+
+    /// The tool string this crate writes into provenance.
+    pub fn tool_string() -> String {
+        format!("sfpmap {}", env!("CARGO_PKG_VERSION"))
+    }
+}

@@ -1,0 +1,493 @@
+//! `Map`: opens a map from a file (mmap) or from bytes, validates its index once, and hands
+//! out sections. Section bytes are checksummed (and decoded, and their contents checked) on
+//! first access; `verify` does that for all of them.
+
+use super::error::{Error, SectionRef};
+use super::layout::{
+    align_up, checksum, index_checksum, Codec, Dtype, Header, RawEntry, SectionKind, ALIGN,
+    ENTRY_LEN, HEADER_LEN, MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED,
+};
+use super::metadata::Metadata;
+use std::borrow::Cow;
+use std::path::Path;
+use std::sync::OnceLock;
+
+/// A validated section-table entry.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Section {
+    /// Position in the section table.
+    pub index: usize,
+    pub kind: SectionKind,
+    /// The level for per-level kinds, `None` otherwise.
+    pub level: Option<u16>,
+    pub dtype: Dtype,
+    pub codec: Codec,
+    pub required: bool,
+    pub rows: u64,
+    pub cols: u64,
+    pub offset: u64,
+    pub stored_len: u64,
+    pub raw_len: u64,
+    pub checksum: u64,
+}
+
+impl Section {
+    pub fn reference(&self) -> SectionRef {
+        SectionRef {
+            index: self.index,
+            kind: self.kind,
+            level: self.level,
+        }
+    }
+}
+
+enum Backing<'a> {
+    Mmap(memmap2::Mmap),
+    Borrowed(&'a [u8]),
+}
+
+/// Decoded bytes of a zstd section, held in `u64`s so every dtype casts aligned.
+struct Decoded {
+    words: Vec<u64>,
+    len: usize,
+}
+
+impl Decoded {
+    fn bytes(&self) -> &[u8] {
+        &bytemuck::cast_slice(&self.words)[..self.len]
+    }
+}
+
+/// An open map. Cheap to open whatever its size: only the header, the section table and the
+/// metadata are read and checked. `Send + Sync`: share one `Map` between threads.
+pub struct Map<'a> {
+    backing: Backing<'a>,
+    header: Header,
+    metadata: Metadata,
+    sections: Vec<Section>,
+    /// Per section: `Ok(None)` once checked (raw), `Ok(Some)` once checked and decoded (zstd).
+    ready: Vec<OnceLock<Result<Option<Decoded>, Error>>>,
+    n_points: u64,
+    n_images: u64,
+}
+
+impl std::fmt::Debug for Map<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Map")
+            .field("version", &self.version())
+            .field("file_len", &self.file_len())
+            .field("points", &self.n_points)
+            .field("images", &self.n_images)
+            .field("sections", &self.sections.len())
+            .finish()
+    }
+}
+
+impl Map<'static> {
+    /// Memory-maps and validates the map at `path`. Errors name the path.
+    pub fn open(path: impl AsRef<Path>) -> Result<Map<'static>, Error> {
+        let path = path.as_ref();
+        let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        let mmap = super::mmap::map_file(&file).map_err(|e| Error::io(path, e))?;
+        Map::from_backing(Backing::Mmap(mmap))
+    }
+}
+
+impl<'a> Map<'a> {
+    /// Validates a map held in memory, borrowing it (no copy).
+    pub fn from_bytes(bytes: &'a [u8]) -> Result<Map<'a>, Error> {
+        Map::from_backing(Backing::Borrowed(bytes))
+    }
+
+    fn from_backing(backing: Backing<'a>) -> Result<Map<'a>, Error> {
+        let bytes: &[u8] = match &backing {
+            Backing::Mmap(m) => m,
+            Backing::Borrowed(b) => b,
+        };
+        let index = validate_index(bytes)?;
+        let ready = (0..index.sections.len()).map(|_| OnceLock::new()).collect();
+        Ok(Map {
+            backing,
+            header: index.header,
+            metadata: index.metadata,
+            sections: index.sections,
+            ready,
+            n_points: index.n_points,
+            n_images: index.n_images,
+        })
+    }
+
+    /// The whole file.
+    pub fn bytes(&self) -> &[u8] {
+        match &self.backing {
+            Backing::Mmap(m) => m,
+            Backing::Borrowed(b) => b,
+        }
+    }
+
+    pub fn header(&self) -> &Header {
+        &self.header
+    }
+
+    /// `major.minor` of the file.
+    pub fn version(&self) -> String {
+        format!("{}.{}", self.header.major, self.header.minor)
+    }
+
+    pub fn file_len(&self) -> u64 {
+        self.header.file_len
+    }
+
+    pub fn metadata(&self) -> &Metadata {
+        &self.metadata
+    }
+
+    /// Every section in the table, in file order, unknown optional ones included.
+    pub fn sections(&self) -> &[Section] {
+        &self.sections
+    }
+
+    /// Optional sections of kinds this reader does not know; they are skipped.
+    pub fn unknown_sections(&self) -> impl Iterator<Item = &Section> {
+        self.sections
+            .iter()
+            .filter(|s| matches!(s.kind, SectionKind::Unknown(_)))
+    }
+
+    pub fn n_points(&self) -> u64 {
+        self.n_points
+    }
+
+    pub fn n_images(&self) -> u64 {
+        self.n_images
+    }
+
+    /// The section of `kind` (and `level`), if present.
+    pub fn find(&self, kind: SectionKind, level: Option<u16>) -> Option<&Section> {
+        self.sections
+            .iter()
+            .find(|s| s.kind == kind && s.level == level)
+    }
+
+    /// The stored bytes of a section, as they are in the file (compressed for zstd).
+    /// Not checksummed: callers that copy them must check or recompute.
+    pub fn stored_bytes(&self, section: &Section) -> &[u8] {
+        let start = section.offset as usize;
+        &self.bytes()[start..start + section.stored_len as usize]
+    }
+
+    /// The decoded bytes of a section, checked (checksum, length, contents) on first access.
+    pub fn section_bytes(&self, section: &Section) -> Result<&[u8], Error> {
+        let ready = self.ready[section.index].get_or_init(|| self.prepare(section));
+        match ready {
+            Ok(None) => Ok(self.stored_bytes(section)),
+            Ok(Some(decoded)) => Ok(decoded.bytes()),
+            Err(e) => Err(e.clone()),
+        }
+    }
+
+    /// A section's array as `T` (which must match its dtype in size), borrowed from the
+    /// mapping when aligned, copied when the caller's buffer is not.
+    pub fn section_array<T: bytemuck::Pod>(&self, section: &Section) -> Result<Cow<'_, [T]>, Error> {
+        let bytes = self.section_bytes(section)?;
+        Ok(cast(bytes))
+    }
+
+    /// Checks every section: checksums, decoding and contents. Stops at the first error.
+    pub fn verify(&self) -> Result<(), Error> {
+        for section in &self.sections {
+            self.section_bytes(section)?;
+        }
+        super::views::check_cross_sections(self)
+    }
+
+    fn prepare(&self, section: &Section) -> Result<Option<Decoded>, Error> {
+        let stored = self.stored_bytes(section);
+        let found = checksum(stored);
+        if found != section.checksum {
+            return Err(Error::ChecksumMismatch {
+                section: section.reference(),
+                expected: section.checksum,
+                found,
+            });
+        }
+        let decoded = match section.codec {
+            Codec::Raw => None,
+            Codec::Zstd => Some(decode_zstd(section, stored, self.file_len())?),
+        };
+        let bytes = decoded.as_ref().map_or(stored, |d| d.bytes());
+        super::views::check_contents(self, section, bytes)?;
+        Ok(decoded)
+    }
+}
+
+/// The cap on a zstd section's declared raw length, derived from the file length, so a
+/// forged length cannot make the reader allocate without bound. The writer stores a
+/// section raw rather than exceed it.
+pub fn decode_cap(file_len: u64) -> u64 {
+    file_len.saturating_mul(256).max(1 << 20)
+}
+
+fn decode_zstd(section: &Section, stored: &[u8], file_len: u64) -> Result<Decoded, Error> {
+    let cap = decode_cap(file_len);
+    if section.raw_len > cap {
+        return Err(Error::DecodedTooLarge {
+            section: section.reference(),
+            raw_len: section.raw_len,
+            cap,
+        });
+    }
+    let len = section.raw_len as usize;
+    let mut words = vec![0u64; len.div_ceil(8)];
+    let out: &mut [u8] = &mut bytemuck::cast_slice_mut(&mut words)[..len];
+    let decode_err = |message: String| Error::Decode {
+        section: section.reference(),
+        message,
+    };
+    // A single frame that fills `out` exactly; `decompress_to_buffer` errors if the frame
+    // is larger than `out`, and we check it is not smaller.
+    let written =
+        zstd::bulk::decompress_to_buffer(stored, out).map_err(|e| decode_err(e.to_string()))?;
+    if written != len {
+        return Err(decode_err(format!(
+            "decoded {written} bytes, the table declares {len}"
+        )));
+    }
+    Ok(Decoded { words, len })
+}
+
+/// Casts bytes to `T`s without copying when aligned; copies otherwise (never UB).
+pub(crate) fn cast<T: bytemuck::Pod>(bytes: &[u8]) -> Cow<'_, [T]> {
+    match bytemuck::try_cast_slice(bytes) {
+        Ok(slice) => Cow::Borrowed(slice),
+        Err(_) => Cow::Owned(bytemuck::pod_collect_to_vec(bytes)),
+    }
+}
+
+struct Index {
+    header: Header,
+    metadata: Metadata,
+    sections: Vec<Section>,
+    n_points: u64,
+    n_images: u64,
+}
+
+/// Everything `open` checks: the header, table bounds, each entry, exact tiling with zero
+/// padding, the index checksum, the metadata and the sections' shapes against each other.
+fn validate_index(bytes: &[u8]) -> Result<Index, Error> {
+    let header = Header::decode(bytes)?;
+    let file_len = bytes.len() as u64;
+    if file_len < header.file_len {
+        return Err(Error::Truncated {
+            what: "file",
+            needed: header.file_len,
+            file_len,
+        });
+    }
+    if file_len > header.file_len {
+        return Err(Error::TrailingBytes {
+            expected: header.file_len,
+            file_len,
+        });
+    }
+    if header.section_count > MAX_SECTIONS {
+        return Err(Error::BadIndex {
+            what: "section count over the cap of 65536",
+        });
+    }
+    if (header.entry_len as usize) < ENTRY_LEN || header.entry_len % 8 != 0 {
+        return Err(Error::BadIndex {
+            what: "section entry length is below 64 or not a multiple of 8",
+        });
+    }
+    // Both factors are capped above, so this cannot overflow.
+    let table_end = HEADER_LEN as u64 + u64::from(header.section_count) * u64::from(header.entry_len);
+    if table_end > file_len {
+        return Err(Error::Truncated {
+            what: "section table",
+            needed: table_end,
+            file_len,
+        });
+    }
+    if header.metadata_offset != table_end {
+        return Err(Error::BadIndex {
+            what: "metadata does not start right after the section table",
+        });
+    }
+    if header.metadata_len > METADATA_MAX_BYTES {
+        return Err(Error::MetadataTooLarge {
+            len: header.metadata_len,
+            max: METADATA_MAX_BYTES,
+        });
+    }
+    let metadata_end = table_end + header.metadata_len;
+    if metadata_end > file_len {
+        return Err(Error::Truncated {
+            what: "metadata",
+            needed: metadata_end,
+            file_len,
+        });
+    }
+    let table = &bytes[HEADER_LEN..table_end as usize];
+    let metadata_bytes = &bytes[table_end as usize..metadata_end as usize];
+    let found = index_checksum(&bytes[..56], table, metadata_bytes);
+    if found != header.index_checksum {
+        return Err(Error::IndexChecksumMismatch {
+            expected: header.index_checksum,
+            found,
+        });
+    }
+    let metadata: Metadata =
+        serde_json::from_slice(metadata_bytes).map_err(|e| Error::BadMetadata {
+            message: e.to_string(),
+        })?;
+
+    let mut sections = Vec::with_capacity(header.section_count as usize);
+    for (index, entry_bytes) in table.chunks_exact(header.entry_len as usize).enumerate() {
+        let raw = RawEntry::decode(&entry_bytes[..ENTRY_LEN]);
+        sections.push(validate_entry(index, &raw, file_len)?);
+    }
+    check_tiling(bytes, &sections, metadata_end)?;
+
+    let (n_points, n_images) = super::views::check_shapes(&metadata, &sections)?;
+    Ok(Index {
+        header,
+        metadata,
+        sections,
+        n_points,
+        n_images,
+    })
+}
+
+fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section, Error> {
+    let kind = SectionKind::from_code(raw.kind);
+    let reference = SectionRef {
+        index,
+        kind,
+        level: (raw.level != NO_LEVEL).then_some(raw.level),
+    };
+    let bad = |what: String| Error::BadEntry {
+        section: reference,
+        what,
+    };
+    let dtype = Dtype::from_code(raw.dtype).ok_or_else(|| bad(format!("unknown dtype code {}", raw.dtype)))?;
+    let codec = Codec::from_code(raw.codec).ok_or_else(|| bad(format!("unknown codec code {}", raw.codec)))?;
+    if raw.reserved != 0 || raw.reserved2 != 0 {
+        return Err(bad("reserved fields are not zero".into()));
+    }
+    if raw.flags & !SECTION_REQUIRED != 0 {
+        return Err(bad(format!("unknown section flags 0x{:02x}", raw.flags)));
+    }
+    let expected_raw = raw
+        .rows
+        .checked_mul(raw.cols)
+        .and_then(|n| n.checked_mul(dtype.size()));
+    if expected_raw != Some(raw.raw_len) {
+        return Err(Error::SizeMismatch {
+            section: reference,
+            rows: raw.rows,
+            cols: raw.cols,
+            raw_len: raw.raw_len,
+        });
+    }
+    if codec == Codec::Raw && raw.stored_len != raw.raw_len {
+        return Err(bad(format!(
+            "raw section stores {} bytes but its array has {}",
+            raw.stored_len, raw.raw_len
+        )));
+    }
+    if raw.offset % ALIGN != 0 {
+        return Err(Error::Misaligned {
+            section: reference,
+            offset: raw.offset,
+        });
+    }
+    match raw.offset.checked_add(raw.stored_len) {
+        Some(end) if end <= file_len => {}
+        _ => {
+            return Err(Error::SectionOutOfBounds {
+                section: reference,
+                offset: raw.offset,
+                len: raw.stored_len,
+                file_len,
+            })
+        }
+    }
+    let required = raw.flags & SECTION_REQUIRED != 0;
+    match kind.expected_layout() {
+        None if required => return Err(Error::UnknownRequiredSection { section: reference }),
+        None => {}
+        Some((want_dtype, want_cols)) => {
+            if dtype != want_dtype || want_cols.is_some_and(|c| c != raw.cols) {
+                let cols = want_cols.map_or("any".to_string(), |c| c.to_string());
+                return Err(Error::WrongLayout {
+                    section: reference,
+                    expected: format!("{} x {cols}", want_dtype.name()),
+                    found: format!("{} x {}", dtype.name(), raw.cols),
+                });
+            }
+            if kind.is_per_level() == (raw.level == NO_LEVEL) {
+                return Err(bad(format!("level field {} is wrong for this kind", raw.level)));
+            }
+        }
+    }
+    Ok(Section {
+        index,
+        kind,
+        level: reference.level,
+        dtype,
+        codec,
+        required,
+        rows: raw.rows,
+        cols: raw.cols,
+        offset: raw.offset,
+        stored_len: raw.stored_len,
+        raw_len: raw.raw_len,
+        checksum: raw.checksum,
+    })
+}
+
+/// Sections follow the metadata in table order, each at the next multiple of 64 after the
+/// previous region, with zero bytes between; the last one ends the file. So every byte of
+/// the file is either index, section data or checked padding.
+fn check_tiling(bytes: &[u8], sections: &[Section], metadata_end: u64) -> Result<(), Error> {
+    let mut previous_end = metadata_end;
+    for section in sections {
+        let expected = align_up(previous_end).ok_or(Error::BadIndex {
+            what: "region end overflows",
+        })?;
+        if section.offset < expected {
+            return Err(Error::Overlap {
+                section: section.reference(),
+                offset: section.offset,
+                previous_end,
+            });
+        }
+        if section.offset > expected {
+            return Err(Error::BadIndex {
+                what: "gap between sections larger than the alignment padding",
+            });
+        }
+        check_padding(bytes, previous_end, section.offset)?;
+        previous_end = section.offset + section.stored_len;
+    }
+    let file_len = bytes.len() as u64;
+    if previous_end != file_len {
+        return Err(Error::TrailingBytes {
+            expected: previous_end,
+            file_len,
+        });
+    }
+    Ok(())
+}
+
+fn check_padding(bytes: &[u8], start: u64, end: u64) -> Result<(), Error> {
+    let pad = &bytes[start as usize..end as usize];
+    if pad.iter().any(|&b| b != 0) {
+        return Err(Error::BadPadding {
+            offset: start,
+            len: end - start,
+        });
+    }
+    Ok(())
+}

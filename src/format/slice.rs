@@ -1,0 +1,209 @@
+//! Cutting a map down to some of its levels, optionally without the `rest` descriptor blocks.
+
+use super::error::Error;
+use super::layout::{Codec, Dtype, SectionKind, NO_LEVEL};
+use super::metadata::Metadata;
+use super::reader::{Map, Section};
+use super::writer::MapWriter;
+use std::borrow::Cow;
+
+/// What to keep.
+#[derive(Debug, Clone, Default)]
+pub struct SliceOptions {
+    /// Level ids to keep; must exist in the map.
+    pub levels: Vec<u16>,
+    /// Drop the `rest` descriptor blocks (keep `short` only).
+    pub short: bool,
+    /// Re-encode every kept section with this codec; `None` keeps each section's codec
+    /// (and its stored bytes, copied without decoding).
+    pub codec: Option<Codec>,
+    pub zstd_level: i32,
+}
+
+/// What a slice kept and dropped.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct SliceSummary {
+    pub points_before: u64,
+    pub points_after: u64,
+    /// Sections whose stored bytes were copied without decoding.
+    pub sections_copied: usize,
+    /// Sections that were rebuilt (remapped indices or a codec change).
+    pub sections_rebuilt: usize,
+    /// Unknown optional sections that were dropped (their meaning, so their remapping, is unknown).
+    pub unknown_dropped: usize,
+}
+
+/// Builds a writer holding the slice of `map`. Points no kept level references are dropped
+/// and every point index (levels, visibility) is remapped.
+pub fn slice<'m>(map: &'m Map<'_>, options: &SliceOptions) -> Result<(MapWriter<'m>, SliceSummary), Error> {
+    if options.levels.is_empty() {
+        return Err(Error::invalid("slice needs at least one level"));
+    }
+    // Slicing reads nearly everything anyway; checking all of it first means a corrupt
+    // section is never copied into the new map.
+    map.verify()?;
+    let mut keep_levels = options.levels.clone();
+    keep_levels.sort_unstable();
+    keep_levels.dedup();
+    for &l in &keep_levels {
+        map.level(l)?;
+    }
+
+    // Old point index → new index, u32::MAX for dropped points.
+    let n_points = map.n_points() as usize;
+    let mut keep = vec![false; n_points];
+    for &l in &keep_levels {
+        for &p in map.level(l)?.points()?.iter() {
+            keep[p as usize] = true;
+        }
+    }
+    let mut remap = vec![u32::MAX; n_points];
+    let mut kept = 0u32;
+    for (old, k) in keep.iter().enumerate() {
+        if *k {
+            remap[old] = kept;
+            kept += 1;
+        }
+    }
+
+    let mut metadata: Metadata = map.metadata().clone();
+    metadata.levels.retain(|l| keep_levels.contains(&l.level));
+    let previous = std::mem::take(&mut metadata.provenance.parameters);
+    metadata
+        .provenance
+        .history
+        .push(serde_json::json!({ "tool": metadata.provenance.tool, "parameters": previous }));
+    metadata.provenance.tool = Metadata::tool_string();
+    metadata.provenance.parameters = serde_json::json!({
+        "operation": "slice",
+        "levels": keep_levels,
+        "short": options.short,
+    })
+    .as_object()
+    .cloned()
+    .unwrap_or_default();
+
+    let mut writer = MapWriter::new(metadata);
+    if let Some(codec) = options.codec {
+        writer.set_codec(codec, options.zstd_level);
+    }
+    let mut summary = SliceSummary {
+        points_before: map.n_points(),
+        points_after: u64::from(kept),
+        ..SliceSummary::default()
+    };
+
+    for section in map.sections() {
+        let keep_section = match section.kind {
+            SectionKind::Unknown(_) => {
+                summary.unknown_dropped += 1;
+                false
+            }
+            SectionKind::LevelDescRest if options.short => false,
+            k if k.is_per_level() => keep_levels.contains(&section.level.unwrap_or(NO_LEVEL)),
+            _ => true,
+        };
+        if !keep_section {
+            continue;
+        }
+        let rebuilt: Option<Cow<'m, [u8]>> = match section.kind {
+            SectionKind::PointPositions | SectionKind::PointColors | SectionKind::PointIds => {
+                Some(gather_rows(map.section_bytes(section)?, section, &keep))
+            }
+            SectionKind::LevelPoints => {
+                let points = map.section_array::<u32>(section)?;
+                let v: Vec<u32> = points.iter().map(|&p| remap[p as usize]).collect();
+                Some(Cow::Owned(bytemuck::cast_slice(&v).to_vec()))
+            }
+            // Visibility is rebuilt below as a whole.
+            SectionKind::VisibilityOffsets | SectionKind::VisibilityPoints | SectionKind::VisibilityKeypoints => continue,
+            _ => None,
+        };
+        let rows = match &rebuilt {
+            Some(bytes) if section.kind != SectionKind::LevelPoints => bytes.len() as u64 / (section.cols * section.dtype.size()),
+            _ => section.rows,
+        };
+        add_section(&mut writer, map, section, rows, rebuilt, options.codec, &mut summary)?;
+    }
+
+    if let Some(vis) = map.visibility()? {
+        let mut offsets = Vec::with_capacity(vis.offsets.len());
+        let mut points = Vec::new();
+        let mut keypoints = vis.keypoints.as_ref().map(|_| Vec::new());
+        offsets.push(0u64);
+        for image in 0..vis.offsets.len() - 1 {
+            let range = vis.offsets[image] as usize..vis.offsets[image + 1] as usize;
+            for i in range {
+                let new = remap[vis.points[i] as usize];
+                if new != u32::MAX {
+                    points.push(new);
+                    if let (Some(out), Some(k)) = (keypoints.as_mut(), vis.keypoints.as_ref()) {
+                        out.push(k[i]);
+                    }
+                }
+            }
+            offsets.push(points.len() as u64);
+        }
+        let as_bytes = |b: &[u8]| Some(Cow::Owned(b.to_vec()));
+        let table = |kind| map.find(kind, None).expect("visibility sections exist");
+        add_section(&mut writer, map, table(SectionKind::VisibilityOffsets), offsets.len() as u64, as_bytes(bytemuck::cast_slice(&offsets)), options.codec, &mut summary)?;
+        add_section(&mut writer, map, table(SectionKind::VisibilityPoints), points.len() as u64, as_bytes(bytemuck::cast_slice(&points)), options.codec, &mut summary)?;
+        if let Some(k) = keypoints {
+            add_section(&mut writer, map, table(SectionKind::VisibilityKeypoints), k.len() as u64, as_bytes(bytemuck::cast_slice(&k)), options.codec, &mut summary)?;
+        }
+    }
+    Ok((writer, summary))
+}
+
+/// Keeps the rows of a per-point section whose point is kept.
+fn gather_rows<'m>(bytes: &[u8], section: &Section, keep: &[bool]) -> Cow<'m, [u8]> {
+    let row_len = (section.cols * section.dtype.size()) as usize;
+    let mut out = Vec::with_capacity(bytes.len());
+    for (row, k) in bytes.chunks_exact(row_len.max(1)).zip(keep) {
+        if *k {
+            out.extend_from_slice(row);
+        }
+    }
+    Cow::Owned(out)
+}
+
+/// Adds one kept section: its stored bytes as they are when nothing changes, else the array.
+fn add_section<'m>(
+    writer: &mut MapWriter<'m>,
+    map: &'m Map<'_>,
+    section: &Section,
+    rows: u64,
+    rebuilt: Option<Cow<'m, [u8]>>,
+    codec: Option<Codec>,
+    summary: &mut SliceSummary,
+) -> Result<(), Error> {
+    let level = section.level.unwrap_or(NO_LEVEL);
+    let dtype: Dtype = section.dtype;
+    match rebuilt {
+        None if codec.is_none_or(|c| c == section.codec) => {
+            // Checked before copying so a corrupt section is not passed on silently.
+            map.section_bytes(section)?;
+            writer.add_stored_section(
+                section.kind,
+                level,
+                dtype,
+                section.rows,
+                section.cols,
+                section.required,
+                section.codec,
+                section.raw_len,
+                map.stored_bytes(section),
+            );
+            summary.sections_copied += 1;
+        }
+        rebuilt => {
+            let bytes = match rebuilt {
+                Some(b) => b,
+                None => Cow::Borrowed(map.section_bytes(section)?),
+            };
+            writer.add_raw_section(section.kind, level, dtype, rows, section.cols, section.required, bytes, codec.or(Some(section.codec)))?;
+            summary.sections_rebuilt += 1;
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,452 @@
+//! Typed views of a map's sections, and the checks that tie sections and metadata together.
+
+use super::error::Error;
+use super::layout::SectionKind;
+use super::metadata::{LevelInfo, Metadata};
+use super::reader::{cast, Map, Section};
+use half::f16;
+use std::borrow::Cow;
+use std::collections::HashSet;
+
+/// Checks, from the table and metadata alone, that the sections fit together. Returns the
+/// point and image counts.
+pub(crate) fn check_shapes(metadata: &Metadata, sections: &[Section]) -> Result<(u64, u64), Error> {
+    if metadata.format != super::metadata::FORMAT_NAME {
+        return Err(Error::BadMetadata {
+            message: format!("format is {:?}, expected \"sfpmap\"", metadata.format),
+        });
+    }
+    let mut seen = HashSet::new();
+    for s in sections {
+        if !seen.insert((s.kind, s.level)) {
+            return Err(Error::DuplicateSection {
+                section: s.reference(),
+            });
+        }
+    }
+    let find = |kind, level| sections.iter().find(|s| s.kind == kind && s.level == level);
+    let need = |kind, level| find(kind, level).ok_or(Error::MissingSection { kind, level });
+    let rows_must = |s: Option<&Section>, rows: u64, what: &str| match s {
+        Some(s) if s.rows != rows => Err(Error::inconsistent(format!(
+            "{} has {} rows, expected {rows} ({what})",
+            s.reference(),
+            s.rows
+        ))),
+        _ => Ok(()),
+    };
+
+    let n_points = need(SectionKind::PointPositions, None)?.rows;
+    if n_points > u64::from(u32::MAX) {
+        return Err(Error::inconsistent("more points than u32 indices can address"));
+    }
+    rows_must(find(SectionKind::PointColors, None), n_points, "one per point")?;
+    rows_must(find(SectionKind::PointIds, None), n_points, "one per point")?;
+
+    let mut previous = None;
+    for level in &metadata.levels {
+        if previous.is_some_and(|p| p >= level.level) || level.level == super::layout::NO_LEVEL {
+            return Err(Error::BadMetadata {
+                message: "levels must be sorted by id, unique and below 65535".into(),
+            });
+        }
+        previous = Some(level.level);
+        if level.dim_short > level.dim_full {
+            return Err(Error::BadMetadata {
+                message: format!("level {}: dim_short > dim_full", level.level),
+            });
+        }
+        let l = Some(level.level);
+        let n = need(SectionKind::LevelPoints, l)?.rows;
+        let short = find(SectionKind::LevelDescShort, l);
+        let rest = find(SectionKind::LevelDescRest, l);
+        if !metadata.geometry_only {
+            let short = need(SectionKind::LevelDescShort, l)?;
+            rows_must(Some(short), n, "one per level point")?;
+            if short.cols != u64::from(level.dim_short) {
+                return Err(Error::inconsistent(format!(
+                    "{} has {} columns, metadata says dim_short {}",
+                    short.reference(),
+                    short.cols,
+                    level.dim_short
+                )));
+            }
+        } else if short.is_some() || rest.is_some() {
+            return Err(Error::inconsistent(format!(
+                "geometry-only map has descriptors for level {}",
+                level.level
+            )));
+        }
+        if let Some(rest) = rest {
+            rows_must(Some(rest), n, "one per level point")?;
+            if rest.cols != u64::from(level.dim_full - level.dim_short) {
+                return Err(Error::inconsistent(format!(
+                    "{} has {} columns, metadata says dim_full - dim_short = {}",
+                    rest.reference(),
+                    rest.cols,
+                    level.dim_full - level.dim_short
+                )));
+            }
+        }
+        rows_must(
+            find(SectionKind::LevelProjection, l),
+            u64::from(level.dim_full),
+            "one per stored dimension",
+        )?;
+    }
+    for s in sections.iter().filter(|s| s.kind.is_per_level()) {
+        let level = s.level.unwrap_or(super::layout::NO_LEVEL);
+        if metadata.level(level).is_none() {
+            return Err(Error::inconsistent(format!(
+                "{} belongs to a level the metadata does not list",
+                s.reference()
+            )));
+        }
+    }
+
+    let image_kinds = [
+        SectionKind::ImageCameras,
+        SectionKind::ImageIds,
+        SectionKind::ImageNameOffsets,
+        SectionKind::ImageNames,
+        SectionKind::ImageGlobal,
+        SectionKind::VisibilityOffsets,
+    ];
+    let n_images = match find(SectionKind::ImagePoses, None) {
+        Some(poses) => poses.rows,
+        None => {
+            if let Some(s) = image_kinds.iter().find_map(|&k| find(k, None)) {
+                return Err(Error::inconsistent(format!(
+                    "{} present without image_poses",
+                    s.reference()
+                )));
+            }
+            0
+        }
+    };
+    if n_images > 0 || find(SectionKind::ImagePoses, None).is_some() {
+        rows_must(Some(need(SectionKind::ImageCameras, None)?), n_images, "one per image")?;
+        rows_must(Some(need(SectionKind::ImageNameOffsets, None)?), n_images + 1, "images + 1")?;
+        need(SectionKind::ImageNames, None)?;
+        rows_must(find(SectionKind::ImageIds, None), n_images, "one per image")?;
+        rows_must(find(SectionKind::ImageGlobal, None), n_images, "one per image")?;
+    }
+    match (
+        find(SectionKind::VisibilityOffsets, None),
+        find(SectionKind::VisibilityPoints, None),
+    ) {
+        (Some(offsets), Some(points)) => {
+            rows_must(Some(offsets), n_images + 1, "images + 1")?;
+            rows_must(
+                find(SectionKind::VisibilityKeypoints, None),
+                points.rows,
+                "one per visibility entry",
+            )?;
+        }
+        (None, None) => {
+            if let Some(k) = find(SectionKind::VisibilityKeypoints, None) {
+                return Err(Error::inconsistent(format!(
+                    "{} present without visibility",
+                    k.reference()
+                )));
+            }
+        }
+        (Some(_), None) => return Err(Error::MissingSection { kind: SectionKind::VisibilityPoints, level: None }),
+        (None, Some(_)) => return Err(Error::MissingSection { kind: SectionKind::VisibilityOffsets, level: None }),
+    }
+    Ok((n_points, n_images))
+}
+
+/// Checks what one section's decoded contents must satisfy (indices in range, offsets
+/// monotonic). Runs once per section, on first access.
+pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> Result<(), Error> {
+    let bad = |what: String| Err(Error::inconsistent(format!("{}: {what}", section.reference())));
+    match section.kind {
+        SectionKind::LevelPoints => {
+            let points = cast::<u32>(bytes);
+            if let Some(w) = points.windows(2).find(|w| w[0] >= w[1]) {
+                return bad(format!("indices not strictly increasing ({} then {})", w[0], w[1]));
+            }
+            if let Some(&last) = points.last() {
+                if u64::from(last) >= map.n_points() {
+                    return bad(format!("index {last} out of range for {} points", map.n_points()));
+                }
+            }
+        }
+        SectionKind::VisibilityPoints => {
+            let points = cast::<u32>(bytes);
+            if let Some(&p) = points.iter().find(|&&p| u64::from(p) >= map.n_points()) {
+                return bad(format!("index {p} out of range for {} points", map.n_points()));
+            }
+        }
+        SectionKind::ImageCameras => {
+            let n = map.metadata().cameras.len() as u64;
+            if let Some(&c) = cast::<u32>(bytes).iter().find(|&&c| u64::from(c) >= n) {
+                return bad(format!("camera index {c} out of range for {n} cameras"));
+            }
+        }
+        SectionKind::ImageNameOffsets | SectionKind::VisibilityOffsets => {
+            let target = if section.kind == SectionKind::ImageNameOffsets {
+                SectionKind::ImageNames
+            } else {
+                SectionKind::VisibilityPoints
+            };
+            let end = map.find(target, None).map_or(0, |s| s.rows);
+            let offsets = cast::<u64>(bytes);
+            if offsets.first().is_some_and(|&o| o != 0) {
+                return bad("offsets do not start at 0".into());
+            }
+            if offsets.windows(2).any(|w| w[0] > w[1]) {
+                return bad("offsets decrease".into());
+            }
+            if offsets.last().is_some_and(|&o| o != end) {
+                return bad(format!("offsets end at {}, expected {end}", offsets[offsets.len() - 1]));
+            }
+        }
+        _ => {}
+    }
+    Ok(())
+}
+
+/// Checks that need two sections at once (image names are UTF-8 between their offsets).
+pub(crate) fn check_cross_sections(map: &Map<'_>) -> Result<(), Error> {
+    if let Some(images) = map.images()? {
+        for i in 0..images.len() {
+            images.name(i)?;
+        }
+    }
+    Ok(())
+}
+
+/// The map's database images.
+#[derive(Debug, Clone)]
+pub struct Images<'m> {
+    /// `cam_from_world` per image: qw qx qy qz tx ty tz.
+    pub poses: Cow<'m, [[f64; 7]]>,
+    /// Index into the metadata's cameras per image.
+    pub cameras: Cow<'m, [u32]>,
+    /// Source ids (COLMAP `image_id`), if stored.
+    pub ids: Option<Cow<'m, [u32]>>,
+    name_offsets: Cow<'m, [u64]>,
+    names: &'m [u8],
+}
+
+impl<'m> Images<'m> {
+    pub fn len(&self) -> usize {
+        self.poses.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.poses.is_empty()
+    }
+
+    /// The name of image `i`.
+    pub fn name(&self, i: usize) -> Result<&'m str, Error> {
+        // Offsets were checked monotonic and ending at names.len() on access.
+        let (start, end) = (self.name_offsets[i] as usize, self.name_offsets[i + 1] as usize);
+        std::str::from_utf8(&self.names[start..end])
+            .map_err(|_| Error::inconsistent(format!("image {i}: name is not UTF-8")))
+    }
+}
+
+/// Image → point ids, in CSR form.
+#[derive(Debug, Clone)]
+pub struct Visibility<'m> {
+    pub offsets: Cow<'m, [u64]>,
+    pub points: Cow<'m, [u32]>,
+    /// The pixel of each entry, if stored.
+    pub keypoints: Option<Cow<'m, [[f32; 2]]>>,
+}
+
+impl Visibility<'_> {
+    /// The points image `i` sees.
+    pub fn points_of(&self, i: usize) -> &[u32] {
+        &self.points[self.offsets[i] as usize..self.offsets[i + 1] as usize]
+    }
+
+    /// The pixels at which image `i` sees its points, if stored.
+    pub fn keypoints_of(&self, i: usize) -> Option<&[[f32; 2]]> {
+        let k = self.keypoints.as_ref()?;
+        Some(&k[self.offsets[i] as usize..self.offsets[i + 1] as usize])
+    }
+}
+
+/// One level of a map: its points and descriptor blocks.
+#[derive(Debug, Clone, Copy)]
+pub struct Level<'m> {
+    map: &'m Map<'m>,
+    info: &'m LevelInfo,
+    points: &'m Section,
+    short: Option<&'m Section>,
+    rest: Option<&'m Section>,
+    projection: Option<&'m Section>,
+}
+
+impl<'m> Level<'m> {
+    pub fn id(&self) -> u16 {
+        self.info.level
+    }
+
+    pub fn info(&self) -> &'m LevelInfo {
+        self.info
+    }
+
+    /// Number of points the level holds.
+    pub fn len(&self) -> usize {
+        self.points.rows as usize
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.points.rows == 0
+    }
+
+    pub fn dim_short(&self) -> usize {
+        self.info.dim_short as usize
+    }
+
+    pub fn dim_full(&self) -> usize {
+        self.info.dim_full as usize
+    }
+
+    pub fn has_descriptors(&self) -> bool {
+        self.short.is_some()
+    }
+
+    /// Whether the `rest` block is present (a `--short` slice drops it).
+    pub fn has_rest(&self) -> bool {
+        self.rest.is_some()
+    }
+
+    /// Global point indices of the level's rows, strictly increasing.
+    pub fn points(&self) -> Result<Cow<'m, [u32]>, Error> {
+        self.map.section_array(self.points)
+    }
+
+    /// `[len × dim_short]` row-major f16.
+    pub fn desc_short(&self) -> Result<Cow<'m, [f16]>, Error> {
+        let s = self.short.ok_or(Error::MissingSection {
+            kind: SectionKind::LevelDescShort,
+            level: Some(self.id()),
+        })?;
+        self.map.section_array(s)
+    }
+
+    /// `[len × (dim_full − dim_short)]` row-major f16, if present.
+    pub fn desc_rest(&self) -> Result<Option<Cow<'m, [f16]>>, Error> {
+        self.rest.map(|s| self.map.section_array(s)).transpose()
+    }
+
+    /// `[dim_full × d_in]` row-major f32: row k maps an extractor descriptor to stored dim k.
+    pub fn projection(&self) -> Result<Option<Cow<'m, [f32]>>, Error> {
+        self.projection.map(|s| self.map.section_array(s)).transpose()
+    }
+
+    /// Input dimension of the projection (`d_in`), if stored.
+    pub fn projection_input_dim(&self) -> Option<usize> {
+        self.projection.map(|s| s.cols as usize)
+    }
+
+    /// The sections of this level: points, short, rest, projection.
+    pub fn sections(&self) -> impl Iterator<Item = &'m Section> {
+        [Some(self.points), self.short, self.rest, self.projection]
+            .into_iter()
+            .flatten()
+    }
+}
+
+impl<'a> Map<'a> {
+    fn required(&self, kind: SectionKind) -> Result<&Section, Error> {
+        self.find(kind, None)
+            .ok_or(Error::MissingSection { kind, level: None })
+    }
+
+    fn optional<T: bytemuck::Pod>(&self, kind: SectionKind) -> Result<Option<Cow<'_, [T]>>, Error> {
+        self.find(kind, None).map(|s| self.section_array(s)).transpose()
+    }
+
+    /// Point positions relative to the metadata origin.
+    pub fn point_positions(&self) -> Result<Cow<'_, [[f32; 3]]>, Error> {
+        self.section_array(self.required(SectionKind::PointPositions)?)
+    }
+
+    /// World position of a stored (origin-relative) position.
+    pub fn to_world(&self, p: [f32; 3]) -> [f64; 3] {
+        let o = self.metadata().origin;
+        [o[0] + f64::from(p[0]), o[1] + f64::from(p[1]), o[2] + f64::from(p[2])]
+    }
+
+    pub fn point_colors(&self) -> Result<Option<Cow<'_, [[u8; 3]]>>, Error> {
+        self.optional(SectionKind::PointColors)
+    }
+
+    pub fn point_ids(&self) -> Result<Option<Cow<'_, [u64]>>, Error> {
+        self.optional(SectionKind::PointIds)
+    }
+
+    /// The database images, if the map has any image sections.
+    pub fn images(&self) -> Result<Option<Images<'_>>, Error> {
+        let Some(poses) = self.find(SectionKind::ImagePoses, None) else {
+            return Ok(None);
+        };
+        Ok(Some(Images {
+            poses: self.section_array(poses)?,
+            cameras: self.section_array(self.required(SectionKind::ImageCameras)?)?,
+            ids: self.optional(SectionKind::ImageIds)?,
+            name_offsets: self.section_array(self.required(SectionKind::ImageNameOffsets)?)?,
+            names: self.section_bytes(self.required(SectionKind::ImageNames)?)?,
+        }))
+    }
+
+    /// Global descriptors `[images × dim]` and `dim`, if stored.
+    pub fn image_global(&self) -> Result<Option<(Cow<'_, [f16]>, usize)>, Error> {
+        match self.find(SectionKind::ImageGlobal, None) {
+            Some(s) => Ok(Some((self.section_array(s)?, s.cols as usize))),
+            None => Ok(None),
+        }
+    }
+
+    pub fn visibility(&self) -> Result<Option<Visibility<'_>>, Error> {
+        let Some(offsets) = self.find(SectionKind::VisibilityOffsets, None) else {
+            return Ok(None);
+        };
+        Ok(Some(Visibility {
+            offsets: self.section_array(offsets)?,
+            points: self.section_array(self.required(SectionKind::VisibilityPoints)?)?,
+            keypoints: self.optional(SectionKind::VisibilityKeypoints)?,
+        }))
+    }
+
+    /// Level ids in the map, ascending.
+    pub fn level_ids(&self) -> Vec<u16> {
+        self.metadata().levels.iter().map(|l| l.level).collect()
+    }
+
+    /// The levels, ascending by id.
+    pub fn levels(&self) -> impl Iterator<Item = Level<'_>> {
+        self.metadata()
+            .levels
+            .iter()
+            .map(|info| self.make_level(info))
+    }
+
+    pub fn level(&self, level: u16) -> Result<Level<'_>, Error> {
+        let info = self.metadata().level(level).ok_or_else(|| Error::NoSuchLevel {
+            level,
+            available: self.level_ids(),
+        })?;
+        Ok(self.make_level(info))
+    }
+
+    fn make_level<'m>(&'m self, info: &'m LevelInfo) -> Level<'m> {
+        let l = Some(info.level);
+        Level {
+            map: self,
+            info,
+            points: self
+                .find(SectionKind::LevelPoints, l)
+                .expect("open checked every listed level has level_points"),
+            short: self.find(SectionKind::LevelDescShort, l),
+            rest: self.find(SectionKind::LevelDescRest, l),
+            projection: self.find(SectionKind::LevelProjection, l),
+        }
+    }
+}

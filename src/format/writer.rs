@@ -1,0 +1,463 @@
+//! `MapWriter`: collects arrays and metadata, then writes a map deterministically (same
+//! input, same bytes) to a temp file in the target folder, fsyncs it and renames it.
+
+use super::error::Error;
+use super::layout::{
+    align_up, checksum, index_checksum, Codec, Dtype, Header, RawEntry, SectionKind, ENTRY_LEN,
+    HEADER_LEN, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED, VERSION_MAJOR, VERSION_MINOR,
+};
+use super::metadata::{CameraInfo, LevelInfo, Metadata};
+use super::reader::decode_cap;
+use crate::progress::{Reporter, Silent};
+use half::f16;
+use std::borrow::Cow;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+/// Descriptors handed to [`MapWriter::add_level`], row-major `[points × dim_full]`.
+#[derive(Debug, Clone)]
+pub enum Descriptors<'a> {
+    /// Converted to f16 with round-to-nearest-even.
+    F32(&'a [f32]),
+    F16(Cow<'a, [f16]>),
+}
+
+/// One section as it will be written.
+#[derive(Debug, Clone)]
+struct PendingSection<'a> {
+    kind: SectionKind,
+    level: u16,
+    dtype: Dtype,
+    rows: u64,
+    cols: u64,
+    required: bool,
+    content: Content<'a>,
+}
+
+#[derive(Debug, Clone)]
+enum Content<'a> {
+    /// The array's little-endian bytes, stored with the writer's codec unless `codec` is set.
+    Array { bytes: Cow<'a, [u8]>, codec: Option<Codec> },
+    /// Bytes already encoded with `codec` (copied from another map, byte for byte).
+    Stored { bytes: Cow<'a, [u8]>, codec: Codec, raw_len: u64 },
+}
+
+/// Builds a map. See the crate docs and `spec/format.md` for what each section means.
+#[derive(Debug, Clone)]
+pub struct MapWriter<'a> {
+    metadata: Metadata,
+    sections: Vec<PendingSection<'a>>,
+    codec: Codec,
+    zstd_level: i32,
+}
+
+impl Default for MapWriter<'_> {
+    fn default() -> Self {
+        MapWriter::new(Metadata::default())
+    }
+}
+
+fn le_bytes<T: bytemuck::Pod>(values: &[T]) -> Cow<'_, [u8]> {
+    // The format is little-endian; every supported target is too (checked at compile time).
+    const _: () = assert!(cfg!(target_endian = "little"), "sfpmap needs a little-endian target");
+    Cow::Borrowed(bytemuck::cast_slice(values))
+}
+
+fn owned_bytes<T: bytemuck::Pod>(values: Vec<T>) -> Cow<'static, [u8]> {
+    Cow::Owned(bytemuck::cast_slice(&values).to_vec())
+}
+
+impl<'a> MapWriter<'a> {
+    pub fn new(metadata: Metadata) -> Self {
+        MapWriter {
+            metadata,
+            sections: Vec::new(),
+            codec: Codec::Raw,
+            zstd_level: 3,
+        }
+    }
+
+    /// The codec for every section added without one (default raw) and the zstd level.
+    pub fn set_codec(&mut self, codec: Codec, zstd_level: i32) -> &mut Self {
+        self.codec = codec;
+        self.zstd_level = zstd_level;
+        self
+    }
+
+    pub fn metadata(&self) -> &Metadata {
+        &self.metadata
+    }
+
+    pub fn metadata_mut(&mut self) -> &mut Metadata {
+        &mut self.metadata
+    }
+
+    /// Adds a camera and returns its index (what `add_images` refers to).
+    pub fn add_camera(&mut self, camera: CameraInfo) -> u32 {
+        self.metadata.cameras.push(camera);
+        (self.metadata.cameras.len() - 1) as u32
+    }
+
+    fn push(&mut self, kind: SectionKind, level: u16, dtype: Dtype, rows: u64, cols: u64, content: Content<'a>) {
+        self.sections.retain(|s| !(s.kind == kind && s.level == level));
+        self.sections.push(PendingSection {
+            kind,
+            level,
+            dtype,
+            rows,
+            cols,
+            required: true,
+            content,
+        });
+    }
+
+    fn push_array(&mut self, kind: SectionKind, level: u16, dtype: Dtype, rows: usize, cols: usize, bytes: Cow<'a, [u8]>) {
+        self.push(kind, level, dtype, rows as u64, cols as u64, Content::Array { bytes, codec: None });
+    }
+
+    /// Point positions in world coordinates: stored as f32 relative to `origin`, the
+    /// rounded mean of the points, so large world coordinates keep f32 precision.
+    pub fn set_points_world(&mut self, positions: &[[f64; 3]]) -> &mut Self {
+        let n = positions.len().max(1) as f64;
+        let mut origin = [0.0; 3];
+        for p in positions {
+            for k in 0..3 {
+                origin[k] += p[k] / n;
+            }
+        }
+        // Round so the origin itself is a short, exact number in the metadata.
+        let origin = origin.map(|o| (o * 1024.0).round() / 1024.0);
+        let relative: Vec<[f32; 3]> = positions
+            .iter()
+            .map(|p| [(p[0] - origin[0]) as f32, (p[1] - origin[1]) as f32, (p[2] - origin[2]) as f32])
+            .collect();
+        self.metadata.origin = origin;
+        self.push_array(SectionKind::PointPositions, NO_LEVEL, Dtype::F32, relative.len(), 3, owned_bytes(relative));
+        self
+    }
+
+    /// Point positions already relative to the metadata origin.
+    pub fn set_points(&mut self, relative: &'a [[f32; 3]]) -> &mut Self {
+        self.push_array(SectionKind::PointPositions, NO_LEVEL, Dtype::F32, relative.len(), 3, le_bytes(relative));
+        self
+    }
+
+    pub fn set_point_colors(&mut self, colors: &'a [[u8; 3]]) -> &mut Self {
+        self.push_array(SectionKind::PointColors, NO_LEVEL, Dtype::U8, colors.len(), 3, le_bytes(colors));
+        self
+    }
+
+    pub fn set_point_ids(&mut self, ids: &'a [u64]) -> &mut Self {
+        self.push_array(SectionKind::PointIds, NO_LEVEL, Dtype::U64, ids.len(), 1, le_bytes(ids));
+        self
+    }
+
+    /// Database images: names, camera indices, `cam_from_world` (qw qx qy qz tx ty tz) and
+    /// optionally the source's ids.
+    pub fn set_images(
+        &mut self,
+        names: &[impl AsRef<str>],
+        cameras: &'a [u32],
+        cam_from_world: &'a [[f64; 7]],
+        ids: Option<&'a [u32]>,
+    ) -> Result<&mut Self, Error> {
+        let n = names.len();
+        if cameras.len() != n || cam_from_world.len() != n || ids.is_some_and(|i| i.len() != n) {
+            return Err(Error::invalid("image names, cameras, poses and ids differ in length"));
+        }
+        let mut offsets = Vec::with_capacity(n + 1);
+        let mut joined = Vec::new();
+        offsets.push(0u64);
+        for name in names {
+            joined.extend_from_slice(name.as_ref().as_bytes());
+            offsets.push(joined.len() as u64);
+        }
+        let joined_len = joined.len();
+        self.push_array(SectionKind::ImagePoses, NO_LEVEL, Dtype::F64, n, 7, le_bytes(cam_from_world));
+        self.push_array(SectionKind::ImageCameras, NO_LEVEL, Dtype::U32, n, 1, le_bytes(cameras));
+        self.push_array(SectionKind::ImageNameOffsets, NO_LEVEL, Dtype::U64, n + 1, 1, owned_bytes(offsets));
+        self.push_array(SectionKind::ImageNames, NO_LEVEL, Dtype::U8, joined_len, 1, Cow::Owned(joined));
+        if let Some(ids) = ids {
+            self.push_array(SectionKind::ImageIds, NO_LEVEL, Dtype::U32, n, 1, le_bytes(ids));
+        }
+        Ok(self)
+    }
+
+    /// Global descriptors `[images × dim]`, row-major, converted to f16.
+    pub fn set_image_global(&mut self, dim: usize, descriptors: &[f32]) -> Result<&mut Self, Error> {
+        if dim == 0 || descriptors.len() % dim != 0 {
+            return Err(Error::invalid("global descriptors are not a whole number of rows"));
+        }
+        let values: Vec<f16> = descriptors.iter().map(|&v| f16::from_f32(v)).collect();
+        self.push_array(SectionKind::ImageGlobal, NO_LEVEL, Dtype::F16, values.len() / dim, dim, owned_bytes(values));
+        Ok(self)
+    }
+
+    /// Visibility in CSR form: image i sees `points[offsets[i]..offsets[i + 1]]`, optionally
+    /// at the pixels `keypoints[...]` (kept so a map can be exported back to COLMAP).
+    pub fn set_visibility(
+        &mut self,
+        offsets: &'a [u64],
+        points: &'a [u32],
+        keypoints: Option<&'a [[f32; 2]]>,
+    ) -> Result<&mut Self, Error> {
+        if offsets.last().copied().unwrap_or(0) != points.len() as u64 {
+            return Err(Error::invalid("visibility offsets do not end at the number of entries"));
+        }
+        if keypoints.is_some_and(|k| k.len() != points.len()) {
+            return Err(Error::invalid("visibility keypoints differ in length from points"));
+        }
+        self.push_array(SectionKind::VisibilityOffsets, NO_LEVEL, Dtype::U64, offsets.len(), 1, le_bytes(offsets));
+        self.push_array(SectionKind::VisibilityPoints, NO_LEVEL, Dtype::U32, points.len(), 1, le_bytes(points));
+        if let Some(k) = keypoints {
+            self.push_array(SectionKind::VisibilityKeypoints, NO_LEVEL, Dtype::F32, k.len(), 2, le_bytes(k));
+        }
+        Ok(self)
+    }
+
+    /// Adds a level: its point indices (strictly increasing) and, unless the map is
+    /// geometry-only, its descriptors `[points × dim_full]`, split into `short` and `rest`
+    /// at `info.dim_short`. `with_rest = false` stores only `short`.
+    pub fn add_level(
+        &mut self,
+        info: LevelInfo,
+        points: &'a [u32],
+        descriptors: Option<Descriptors<'_>>,
+        with_rest: bool,
+    ) -> Result<&mut Self, Error> {
+        if points.windows(2).any(|w| w[0] >= w[1]) {
+            return Err(Error::invalid(format!("level {}: point indices not strictly increasing", info.level)));
+        }
+        if info.dim_short > info.dim_full || info.level == NO_LEVEL {
+            return Err(Error::invalid(format!("level {}: bad level id or dim_short > dim_full", info.level)));
+        }
+        let level = info.level;
+        let (n, full, short) = (points.len(), info.dim_full as usize, info.dim_short as usize);
+        if let Some(descriptors) = descriptors {
+            let values: Cow<'_, [f16]> = match descriptors {
+                Descriptors::F32(v) => Cow::Owned(v.iter().map(|&x| f16::from_f32(x)).collect()),
+                Descriptors::F16(v) => v,
+            };
+            if values.len() != n * full {
+                return Err(Error::invalid(format!(
+                    "level {level}: {} descriptor values for {n} points × {full} dims",
+                    values.len()
+                )));
+            }
+            let mut short_block = Vec::with_capacity(n * short);
+            let mut rest_block = Vec::with_capacity(n * (full - short));
+            for row in values.chunks_exact(full.max(1)).take(n) {
+                short_block.extend_from_slice(&row[..short]);
+                rest_block.extend_from_slice(&row[short..]);
+            }
+            self.push_array(SectionKind::LevelDescShort, level, Dtype::F16, n, short, owned_bytes(short_block));
+            if with_rest {
+                self.push_array(SectionKind::LevelDescRest, level, Dtype::F16, n, full - short, owned_bytes(rest_block));
+            }
+        }
+        self.push_array(SectionKind::LevelPoints, level, Dtype::U32, n, 1, le_bytes(points));
+        self.metadata.levels.retain(|l| l.level != level);
+        self.metadata.levels.push(info);
+        self.metadata.levels.sort_by_key(|l| l.level);
+        Ok(self)
+    }
+
+    /// The level's descriptor basis: `[dim_full × d_in]` row-major f32.
+    pub fn set_level_projection(&mut self, level: u16, d_in: usize, matrix: Vec<f32>) -> Result<&mut Self, Error> {
+        if d_in == 0 || matrix.len() % d_in != 0 {
+            return Err(Error::invalid("projection is not a whole number of rows"));
+        }
+        let rows = matrix.len() / d_in;
+        self.push_array(SectionKind::LevelProjection, level, Dtype::F32, rows, d_in, owned_bytes(matrix));
+        Ok(self)
+    }
+
+    /// Adds any section from its little-endian array bytes (for kinds a newer minor defines,
+    /// and for tests). `codec = None` uses the writer's codec.
+    #[allow(clippy::too_many_arguments)]
+    pub fn add_raw_section(
+        &mut self,
+        kind: SectionKind,
+        level: u16,
+        dtype: Dtype,
+        rows: u64,
+        cols: u64,
+        required: bool,
+        bytes: Cow<'a, [u8]>,
+        codec: Option<Codec>,
+    ) -> Result<&mut Self, Error> {
+        if rows.checked_mul(cols).and_then(|n| n.checked_mul(dtype.size())) != Some(bytes.len() as u64) {
+            return Err(Error::invalid(format!("{kind}: {rows}x{cols} {} does not match {} bytes", dtype.name(), bytes.len())));
+        }
+        self.push(kind, level, dtype, rows, cols, Content::Array { bytes, codec });
+        if let Some(s) = self.sections.last_mut() {
+            s.required = required;
+        }
+        Ok(self)
+    }
+
+    /// Adds a section exactly as another map stores it (copied byte for byte, no decode).
+    #[allow(clippy::too_many_arguments)]
+    pub fn add_stored_section(
+        &mut self,
+        kind: SectionKind,
+        level: u16,
+        dtype: Dtype,
+        rows: u64,
+        cols: u64,
+        required: bool,
+        codec: Codec,
+        raw_len: u64,
+        bytes: &'a [u8],
+    ) -> &mut Self {
+        self.push(kind, level, dtype, rows, cols, Content::Stored { bytes: Cow::Borrowed(bytes), codec, raw_len });
+        if let Some(s) = self.sections.last_mut() {
+            s.required = required;
+        }
+        self
+    }
+
+    /// Writes the map to `path`: a temp file in the same folder, fsync, rename. An existing
+    /// `path` is replaced only once the new file is complete.
+    pub fn write(&self, path: &Path, reporter: &dyn Reporter) -> Result<u64, Error> {
+        let encoded = self.encode(reporter)?;
+        let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        let file_name = path.file_name().ok_or_else(|| Error::invalid(format!("{} is not a file path", path.display())))?;
+        let tmp: PathBuf = dir.join(format!(".{}.tmp{}", file_name.to_string_lossy(), std::process::id()));
+        let result = (|| -> std::io::Result<()> {
+            let file = std::fs::File::create(&tmp)?;
+            let mut out = std::io::BufWriter::with_capacity(1 << 20, file);
+            reporter.start("writing", Some(encoded.file_len));
+            encoded.write_to(&mut out, reporter)?;
+            let file = out.into_inner().map_err(|e| e.into_error())?;
+            file.sync_all()?;
+            drop(file);
+            std::fs::rename(&tmp, path)?;
+            reporter.finish();
+            Ok(())
+        })();
+        if let Err(e) = result {
+            let _ = std::fs::remove_file(&tmp);
+            return Err(Error::io(path, e));
+        }
+        Ok(encoded.file_len)
+    }
+
+    /// The map's bytes in memory.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, Error> {
+        let encoded = self.encode(&Silent)?;
+        let mut out = Vec::with_capacity(encoded.file_len as usize);
+        encoded
+            .write_to(&mut out, &Silent)
+            .map_err(|e| Error::io(Path::new("<memory>"), e))?;
+        Ok(out)
+    }
+
+    /// Encodes every section and lays out the file.
+    fn encode(&self, reporter: &dyn Reporter) -> Result<Encoded<'_>, Error> {
+        let mut order: Vec<&PendingSection<'a>> = self.sections.iter().collect();
+        // Canonical order, so the bytes do not depend on the order of the calls.
+        order.sort_by_key(|s| (s.kind.code(), s.level));
+        reporter.start("encoding", Some(order.len() as u64));
+        let mut blocks = Vec::with_capacity(order.len());
+        for s in order {
+            let (bytes, codec, raw_len) = match &s.content {
+                Content::Stored { bytes, codec, raw_len } => (Cow::Borrowed(&bytes[..]), *codec, *raw_len),
+                Content::Array { bytes, codec } => {
+                    let raw_len = bytes.len() as u64;
+                    match codec.unwrap_or(self.codec) {
+                        Codec::Raw => (Cow::Borrowed(&bytes[..]), Codec::Raw, raw_len),
+                        Codec::Zstd => {
+                            let z = zstd::bulk::compress(bytes, self.zstd_level)
+                                .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
+                            // A reader refuses raw lengths past decode_cap(file_len); the
+                            // file is at least as long as this section, so staying under
+                            // decode_cap(z.len()) keeps every map we write readable.
+                            if raw_len > decode_cap(z.len() as u64) {
+                                (Cow::Borrowed(&bytes[..]), Codec::Raw, raw_len)
+                            } else {
+                                (Cow::Owned(z), Codec::Zstd, raw_len)
+                            }
+                        }
+                    }
+                }
+            };
+            blocks.push((s, bytes, codec, raw_len));
+            reporter.advance(1);
+        }
+        reporter.finish();
+
+        let mut metadata = serde_json::to_vec(&self.metadata).map_err(|e| Error::invalid(e.to_string()))?;
+        metadata.shrink_to_fit();
+        if metadata.len() as u64 > METADATA_MAX_BYTES {
+            return Err(Error::MetadataTooLarge { len: metadata.len() as u64, max: METADATA_MAX_BYTES });
+        }
+        let table_end = (HEADER_LEN + blocks.len() * ENTRY_LEN) as u64;
+        let metadata_end = table_end + metadata.len() as u64;
+        let mut cursor = metadata_end;
+        let mut table = Vec::with_capacity(blocks.len() * ENTRY_LEN);
+        let mut sections = Vec::with_capacity(blocks.len());
+        for (s, bytes, codec, raw_len) in blocks {
+            let offset = align_up(cursor).ok_or_else(|| Error::invalid("file too large"))?;
+            let entry = RawEntry {
+                kind: s.kind.code(),
+                level: s.level,
+                dtype: s.dtype as u8,
+                codec: codec as u8,
+                flags: if s.required { SECTION_REQUIRED } else { 0 },
+                reserved: 0,
+                rows: s.rows,
+                cols: s.cols,
+                offset,
+                stored_len: bytes.len() as u64,
+                raw_len,
+                checksum: checksum(&bytes),
+                reserved2: 0,
+            };
+            table.extend_from_slice(&entry.encode());
+            cursor = offset + bytes.len() as u64;
+            sections.push((offset, bytes));
+        }
+        let mut header = Header {
+            major: VERSION_MAJOR,
+            minor: VERSION_MINOR,
+            flags: 0,
+            section_count: sections.len() as u32,
+            entry_len: ENTRY_LEN as u32,
+            metadata_offset: table_end,
+            metadata_len: metadata.len() as u64,
+            file_len: cursor,
+            index_checksum: 0,
+        };
+        header.index_checksum = index_checksum(&header.encode()[..56], &table, &metadata);
+        Ok(Encoded { header, table, metadata, sections, file_len: cursor })
+    }
+}
+
+struct Encoded<'w> {
+    header: Header,
+    table: Vec<u8>,
+    metadata: Vec<u8>,
+    sections: Vec<(u64, Cow<'w, [u8]>)>,
+    file_len: u64,
+}
+
+impl Encoded<'_> {
+    fn write_to(&self, out: &mut impl Write, reporter: &dyn Reporter) -> std::io::Result<()> {
+        const ZEROS: [u8; 64] = [0; 64];
+        out.write_all(&self.header.encode())?;
+        out.write_all(&self.table)?;
+        out.write_all(&self.metadata)?;
+        let mut pos = self.header.metadata_offset + self.header.metadata_len;
+        for (offset, bytes) in &self.sections {
+            out.write_all(&ZEROS[..(offset - pos) as usize])?;
+            // Write in chunks so progress moves on large sections.
+            for chunk in bytes.chunks(8 << 20) {
+                out.write_all(chunk)?;
+                reporter.advance(chunk.len() as u64);
+            }
+            pos = offset + bytes.len() as u64;
+        }
+        out.flush()
+    }
+}
