@@ -1,1 +1,194 @@
-//! COLMAP models (binary and text) and database.db.
+//! COLMAP models (binary and text) and `database.db`.
+//!
+//! - [`read_model`] reads a model folder (`sparse/0`), `.bin` or `.txt`, into a validated
+//!   [`Reconstruction`]; [`bin`] and [`text`] parse the same files from bytes and write them.
+//! - [`Database`] reads cameras, images, keypoints and descriptors from a COLMAP
+//!   `database.db`, opened read-only and immutable so the user's file is never touched.
+//!
+//! Conventions are COLMAP's: `cam_from_world` poses, scalar-first quaternions, `point3D` ids
+//! are `u64` with `u64::MAX` (text: `-1`) meaning none, the top-left pixel's centre is at
+//! (0.5, 0.5). The library never prints.
+
+pub mod bin;
+mod camera;
+mod database;
+mod error;
+mod model;
+pub mod text;
+
+use std::path::{Path, PathBuf};
+
+pub use camera::CameraModel;
+pub use database::{
+    Database, DbCamera, DbImage, Descriptors, ImageFeatures, ImageFeaturesIter, Keypoint,
+    KeypointLayout, Keypoints,
+};
+pub use error::{Error, Result};
+pub use model::{
+    Camera, Image, Point2D, Point3D, Reconstruction, ReconstructionBuilder, Rigid3, TrackElement,
+};
+
+/// The file names of a model, in reading order.
+const STEMS: [&str; 3] = ["cameras", "images", "points3D"];
+
+/// Which encoding a model folder holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum ModelFormat {
+    /// `cameras.bin`, `images.bin`, `points3D.bin`.
+    Binary,
+    /// `cameras.txt`, `images.txt`, `points3D.txt`.
+    Text,
+    /// Both sets; [`read_model`] reads both, checks they agree and returns the binary one.
+    Both,
+}
+
+/// The model files found in a folder.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ModelFiles {
+    pub format: ModelFormat,
+    /// Every model file that [`read_model`] reads (3 or 6), for provenance (sizes, hashes).
+    /// `rigs.bin` / `frames.bin` are not listed: they are not read.
+    pub paths: Vec<PathBuf>,
+}
+
+fn files_with(dir: &Path, ext: &str) -> [PathBuf; 3] {
+    STEMS.map(|stem| dir.join(format!("{stem}.{ext}")))
+}
+
+/// Finds the model files in `dir`: errors if there are none, or if a set is incomplete.
+pub fn model_files(dir: &Path) -> Result<ModelFiles> {
+    let mut found = Vec::new();
+    for ext in ["bin", "txt"] {
+        let paths = files_with(dir, ext);
+        let present = paths.iter().filter(|p| p.is_file()).count();
+        if present == 0 {
+            continue;
+        }
+        if let Some(missing) = paths.iter().find(|p| !p.is_file()) {
+            return Err(Error::MissingFile {
+                path: missing.clone(),
+            });
+        }
+        found.push((ext, paths));
+    }
+    let format = match found.as_slice() {
+        [] => {
+            // A missing folder deserves the I/O error, not "no model".
+            if let Err(source) = std::fs::read_dir(dir) {
+                return Err(Error::Io {
+                    path: dir.to_path_buf(),
+                    source,
+                });
+            }
+            return Err(Error::NoModel {
+                dir: dir.to_path_buf(),
+            });
+        }
+        [(ext, _)] if *ext == "bin" => ModelFormat::Binary,
+        [_] => ModelFormat::Text,
+        _ => ModelFormat::Both,
+    };
+    let paths = found.into_iter().flat_map(|(_, p)| p).collect();
+    Ok(ModelFiles { format, paths })
+}
+
+fn read_file(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|source| Error::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// Reads the binary model in `dir` (`cameras.bin`, `images.bin`, `points3D.bin`).
+pub fn read_model_bin(dir: &Path) -> Result<Reconstruction> {
+    read_with(dir, "bin", bin::parse_model)
+}
+
+/// Reads the text model in `dir` (`cameras.txt`, `images.txt`, `points3D.txt`).
+pub fn read_model_text(dir: &Path) -> Result<Reconstruction> {
+    read_with(dir, "txt", text::parse_model)
+}
+
+type ParseModel = fn((&[u8], &Path), (&[u8], &Path), (&[u8], &Path)) -> Result<Reconstruction>;
+
+fn read_with(dir: &Path, ext: &str, parse: ParseModel) -> Result<Reconstruction> {
+    let [c, i, p] = files_with(dir, ext);
+    // Read one file at a time and drop its bytes once parsed, so peak memory holds at most
+    // one raw file next to the parsed model.
+    let cameras = read_file(&c)?;
+    let images = read_file(&i)?;
+    let points = read_file(&p)?;
+    parse((&cameras, &c), (&images, &i), (&points, &p))
+}
+
+/// Reads the model in `dir`, binary or text, whichever is there.
+///
+/// If both are there, both are read and must agree (camera, image and point ids, and the
+/// number of observations); the binary one is returned, having full precision.
+pub fn read_model(dir: &Path) -> Result<Reconstruction> {
+    match model_files(dir)?.format {
+        ModelFormat::Binary => read_model_bin(dir),
+        ModelFormat::Text => read_model_text(dir),
+        _ => {
+            let from_bin = read_model_bin(dir)?;
+            let from_txt = read_model_text(dir)?;
+            compare(&from_bin, &from_txt).map_err(|what| Error::ModelsDisagree {
+                bin: dir.join("*.bin"),
+                txt: dir.join("*.txt"),
+                what,
+            })?;
+            Ok(from_bin)
+        }
+    }
+}
+
+/// Whether two models have the same ids and structure; the message says the first difference.
+fn compare(a: &Reconstruction, b: &Reconstruction) -> Result<(), String> {
+    fn ids<T, K: PartialEq + std::fmt::Display>(
+        kind: &str,
+        a: &[T],
+        b: &[T],
+        key: impl Fn(&T) -> K,
+    ) -> Result<(), String> {
+        if a.len() != b.len() {
+            return Err(format!("{} vs. {} {kind}s", a.len(), b.len()));
+        }
+        match a.iter().zip(b).find(|(x, y)| key(x) != key(y)) {
+            Some((x, y)) => Err(format!("{kind} ids differ ({} vs. {})", key(x), key(y))),
+            None => Ok(()),
+        }
+    }
+    ids("camera", a.cameras(), b.cameras(), |c| c.id)?;
+    ids("image", a.images(), b.images(), |i| i.id)?;
+    ids("point3D", a.points3d(), b.points3d(), |p| p.id)?;
+    for (x, y) in a.images().iter().zip(b.images()) {
+        if x.name != y.name || x.points2d.len() != y.points2d.len() {
+            return Err(format!("image {} differs (name or number of points2D)", x.id));
+        }
+    }
+    if a.num_observations() != b.num_observations() {
+        return Err(format!(
+            "{} vs. {} observations",
+            a.num_observations(),
+            b.num_observations()
+        ));
+    }
+    Ok(())
+}
+
+/// Fuzz entry point: parses `data` as each binary model file. Never panics (that is the test).
+pub fn fuzz_read_bin(data: &[u8]) {
+    let path = Path::new("fuzz.bin");
+    let _ = bin::parse_cameras(data, path);
+    let _ = bin::parse_images(data, path);
+    let _ = bin::parse_model((&[0u8; 8], path), (&[0u8; 8], path), (data, path));
+}
+
+/// Fuzz entry point: parses `data` as each text model file. Never panics (that is the test).
+pub fn fuzz_read_txt(data: &[u8]) {
+    let path = Path::new("fuzz.txt");
+    let _ = text::parse_cameras(data, path);
+    let _ = text::parse_images(data, path);
+    let _ = text::parse_model((b"", path), (b"", path), (data, path));
+}

@@ -34,11 +34,19 @@ pub enum Error {
     /// The file does not start with the sfpmap magic.
     BadMagic,
     /// The file's major version is not one this reader understands.
-    VersionMismatch { expected: u16, found: u16, minor: u16 },
+    VersionMismatch {
+        expected: u16,
+        found: u16,
+        minor: u16,
+    },
     /// The endianness check field holds other bytes than expected.
     BadEndianCheck { found: u32 },
     /// The file ends before something the index says is there.
-    Truncated { what: &'static str, needed: u64, file_len: u64 },
+    Truncated {
+        what: &'static str,
+        needed: u64,
+        file_len: u64,
+    },
     /// The file is longer than the index accounts for.
     TrailingBytes { expected: u64, file_len: u64 },
     /// The header's table or metadata description is impossible.
@@ -52,29 +60,61 @@ pub enum Error {
     /// A table entry has an unknown dtype or codec code, or nonzero reserved fields.
     BadEntry { section: SectionRef, what: String },
     /// rows × cols × dtype size overflows or disagrees with the raw length.
-    SizeMismatch { section: SectionRef, rows: u64, cols: u64, raw_len: u64 },
+    SizeMismatch {
+        section: SectionRef,
+        rows: u64,
+        cols: u64,
+        raw_len: u64,
+    },
     /// A known section kind has another dtype or column count than the spec fixes.
-    WrongLayout { section: SectionRef, expected: String, found: String },
+    WrongLayout {
+        section: SectionRef,
+        expected: String,
+        found: String,
+    },
     /// A section reaches past the end of the file.
-    SectionOutOfBounds { section: SectionRef, offset: u64, len: u64, file_len: u64 },
+    SectionOutOfBounds {
+        section: SectionRef,
+        offset: u64,
+        len: u64,
+        file_len: u64,
+    },
     /// A section does not start on the format's alignment.
     Misaligned { section: SectionRef, offset: u64 },
     /// Two regions of the file overlap (or are not in file order).
-    Overlap { section: SectionRef, offset: u64, previous_end: u64 },
+    Overlap {
+        section: SectionRef,
+        offset: u64,
+        previous_end: u64,
+    },
     /// Bytes between regions are not the zero padding the layout requires.
     BadPadding { offset: u64, len: u64 },
     /// A required section of a kind this reader does not know.
     UnknownRequiredSection { section: SectionRef },
     /// A section the metadata or another section needs is absent.
-    MissingSection { kind: SectionKind, level: Option<u16> },
+    MissingSection {
+        kind: SectionKind,
+        level: Option<u16>,
+    },
     /// The same kind (and level) appears twice.
     DuplicateSection { section: SectionRef },
     /// The stored bytes' checksum does not match the table.
-    ChecksumMismatch { section: SectionRef, expected: u64, found: u64 },
+    ChecksumMismatch {
+        section: SectionRef,
+        expected: u64,
+        found: u64,
+    },
     /// A compressed section does not decode to its declared raw length.
-    Decode { section: SectionRef, message: String },
+    Decode {
+        section: SectionRef,
+        message: String,
+    },
     /// A compressed section declares a raw length beyond the cap derived from the file length.
-    DecodedTooLarge { section: SectionRef, raw_len: u64, cap: u64 },
+    DecodedTooLarge {
+        section: SectionRef,
+        raw_len: u64,
+        cap: u64,
+    },
     /// Section contents or metadata contradict each other.
     Inconsistent { what: String },
     /// A level was asked for that the map does not hold.

@@ -5,7 +5,9 @@ use super::{slice, Map, SliceOptions};
 
 /// Open + validate, then touch every view. Must never panic.
 pub fn open_and_read(data: &[u8]) {
-    let Ok(map) = Map::from_bytes(data) else { return };
+    let Ok(map) = Map::from_bytes(data) else {
+        return;
+    };
     let _ = map.point_positions();
     let _ = map.point_colors();
     let _ = map.point_ids();
@@ -32,7 +34,9 @@ pub fn open_and_read(data: &[u8]) {
 
 /// Decode every section directly (raw and zstd paths), in table order.
 pub fn decode_sections(data: &[u8]) {
-    let Ok(map) = Map::from_bytes(data) else { return };
+    let Ok(map) = Map::from_bytes(data) else {
+        return;
+    };
     for section in map.sections() {
         let _ = map.section_bytes(section);
     }
@@ -40,7 +44,9 @@ pub fn decode_sections(data: &[u8]) {
 
 /// Slice in memory to each single level (short and full) and re-open the result.
 pub fn slice_in_memory(data: &[u8]) {
-    let Ok(map) = Map::from_bytes(data) else { return };
+    let Ok(map) = Map::from_bytes(data) else {
+        return;
+    };
     let levels = map.level_ids();
     for (i, &level) in levels.iter().enumerate().take(4) {
         let options = SliceOptions {
@@ -50,7 +56,9 @@ pub fn slice_in_memory(data: &[u8]) {
             zstd_level: 1,
         };
         if let Ok((writer, _)) = slice(&map, &options) {
-            let bytes = writer.to_bytes().expect("slicing a verified map gives valid input");
+            let bytes = writer
+                .to_bytes()
+                .expect("slicing a verified map gives valid input");
             Map::from_bytes(&bytes)
                 .and_then(|m| m.verify())
                 .expect("a slice of a readable map must be valid");

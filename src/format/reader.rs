@@ -188,7 +188,10 @@ impl<'a> Map<'a> {
 
     /// A section's array as `T` (which must match its dtype in size), borrowed from the
     /// mapping when aligned, copied when the caller's buffer is not.
-    pub fn section_array<T: bytemuck::Pod>(&self, section: &Section) -> Result<Cow<'_, [T]>, Error> {
+    pub fn section_array<T: bytemuck::Pod>(
+        &self,
+        section: &Section,
+    ) -> Result<Cow<'_, [T]>, Error> {
         let bytes = self.section_bytes(section)?;
         Ok(cast(bytes))
     }
@@ -301,7 +304,8 @@ fn validate_index(bytes: &[u8]) -> Result<Index, Error> {
         });
     }
     // Both factors are capped above, so this cannot overflow.
-    let table_end = HEADER_LEN as u64 + u64::from(header.section_count) * u64::from(header.entry_len);
+    let table_end =
+        HEADER_LEN as u64 + u64::from(header.section_count) * u64::from(header.entry_len);
     if table_end > file_len {
         return Err(Error::Truncated {
             what: "section table",
@@ -370,8 +374,10 @@ fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section
         section: reference,
         what,
     };
-    let dtype = Dtype::from_code(raw.dtype).ok_or_else(|| bad(format!("unknown dtype code {}", raw.dtype)))?;
-    let codec = Codec::from_code(raw.codec).ok_or_else(|| bad(format!("unknown codec code {}", raw.codec)))?;
+    let dtype = Dtype::from_code(raw.dtype)
+        .ok_or_else(|| bad(format!("unknown dtype code {}", raw.dtype)))?;
+    let codec = Codec::from_code(raw.codec)
+        .ok_or_else(|| bad(format!("unknown codec code {}", raw.codec)))?;
     if raw.reserved != 0 || raw.reserved2 != 0 {
         return Err(bad("reserved fields are not zero".into()));
     }
@@ -427,7 +433,10 @@ fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section
                 });
             }
             if kind.is_per_level() == (raw.level == NO_LEVEL) {
-                return Err(bad(format!("level field {} is wrong for this kind", raw.level)));
+                return Err(bad(format!(
+                    "level field {} is wrong for this kind",
+                    raw.level
+                )));
             }
         }
     }

@@ -35,7 +35,10 @@ pub struct SliceSummary {
 
 /// Builds a writer holding the slice of `map`. Points no kept level references are dropped
 /// and every point index (levels, visibility) is remapped.
-pub fn slice<'m>(map: &'m Map<'_>, options: &SliceOptions) -> Result<(MapWriter<'m>, SliceSummary), Error> {
+pub fn slice<'m>(
+    map: &'m Map<'_>,
+    options: &SliceOptions,
+) -> Result<(MapWriter<'m>, SliceSummary), Error> {
     if options.levels.is_empty() {
         return Err(Error::invalid("slice needs at least one level"));
     }
@@ -116,14 +119,26 @@ pub fn slice<'m>(map: &'m Map<'_>, options: &SliceOptions) -> Result<(MapWriter<
                 Some(Cow::Owned(bytemuck::cast_slice(&v).to_vec()))
             }
             // Visibility is rebuilt below as a whole.
-            SectionKind::VisibilityOffsets | SectionKind::VisibilityPoints | SectionKind::VisibilityKeypoints => continue,
+            SectionKind::VisibilityOffsets
+            | SectionKind::VisibilityPoints
+            | SectionKind::VisibilityKeypoints => continue,
             _ => None,
         };
         let rows = match &rebuilt {
-            Some(bytes) if section.kind != SectionKind::LevelPoints => bytes.len() as u64 / (section.cols * section.dtype.size()),
+            Some(bytes) if section.kind != SectionKind::LevelPoints => {
+                bytes.len() as u64 / (section.cols * section.dtype.size())
+            }
             _ => section.rows,
         };
-        add_section(&mut writer, map, section, rows, rebuilt, options.codec, &mut summary)?;
+        add_section(
+            &mut writer,
+            map,
+            section,
+            rows,
+            rebuilt,
+            options.codec,
+            &mut summary,
+        )?;
     }
 
     if let Some(vis) = map.visibility()? {
@@ -146,10 +161,34 @@ pub fn slice<'m>(map: &'m Map<'_>, options: &SliceOptions) -> Result<(MapWriter<
         }
         let as_bytes = |b: &[u8]| Some(Cow::Owned(b.to_vec()));
         let table = |kind| map.find(kind, None).expect("visibility sections exist");
-        add_section(&mut writer, map, table(SectionKind::VisibilityOffsets), offsets.len() as u64, as_bytes(bytemuck::cast_slice(&offsets)), options.codec, &mut summary)?;
-        add_section(&mut writer, map, table(SectionKind::VisibilityPoints), points.len() as u64, as_bytes(bytemuck::cast_slice(&points)), options.codec, &mut summary)?;
+        add_section(
+            &mut writer,
+            map,
+            table(SectionKind::VisibilityOffsets),
+            offsets.len() as u64,
+            as_bytes(bytemuck::cast_slice(&offsets)),
+            options.codec,
+            &mut summary,
+        )?;
+        add_section(
+            &mut writer,
+            map,
+            table(SectionKind::VisibilityPoints),
+            points.len() as u64,
+            as_bytes(bytemuck::cast_slice(&points)),
+            options.codec,
+            &mut summary,
+        )?;
         if let Some(k) = keypoints {
-            add_section(&mut writer, map, table(SectionKind::VisibilityKeypoints), k.len() as u64, as_bytes(bytemuck::cast_slice(&k)), options.codec, &mut summary)?;
+            add_section(
+                &mut writer,
+                map,
+                table(SectionKind::VisibilityKeypoints),
+                k.len() as u64,
+                as_bytes(bytemuck::cast_slice(&k)),
+                options.codec,
+                &mut summary,
+            )?;
         }
     }
     Ok((writer, summary))
@@ -201,7 +240,16 @@ fn add_section<'m>(
                 Some(b) => b,
                 None => Cow::Borrowed(map.section_bytes(section)?),
             };
-            writer.add_raw_section(section.kind, level, dtype, rows, section.cols, section.required, bytes, codec.or(Some(section.codec)))?;
+            writer.add_raw_section(
+                section.kind,
+                level,
+                dtype,
+                rows,
+                section.cols,
+                section.required,
+                bytes,
+                codec.or(Some(section.codec)),
+            )?;
             summary.sections_rebuilt += 1;
         }
     }

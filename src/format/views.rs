@@ -37,9 +37,15 @@ pub(crate) fn check_shapes(metadata: &Metadata, sections: &[Section]) -> Result<
 
     let n_points = need(SectionKind::PointPositions, None)?.rows;
     if n_points > u64::from(u32::MAX) {
-        return Err(Error::inconsistent("more points than u32 indices can address"));
+        return Err(Error::inconsistent(
+            "more points than u32 indices can address",
+        ));
     }
-    rows_must(find(SectionKind::PointColors, None), n_points, "one per point")?;
+    rows_must(
+        find(SectionKind::PointColors, None),
+        n_points,
+        "one per point",
+    )?;
     rows_must(find(SectionKind::PointIds, None), n_points, "one per point")?;
 
     let mut previous = None;
@@ -124,11 +130,23 @@ pub(crate) fn check_shapes(metadata: &Metadata, sections: &[Section]) -> Result<
         }
     };
     if n_images > 0 || find(SectionKind::ImagePoses, None).is_some() {
-        rows_must(Some(need(SectionKind::ImageCameras, None)?), n_images, "one per image")?;
-        rows_must(Some(need(SectionKind::ImageNameOffsets, None)?), n_images + 1, "images + 1")?;
+        rows_must(
+            Some(need(SectionKind::ImageCameras, None)?),
+            n_images,
+            "one per image",
+        )?;
+        rows_must(
+            Some(need(SectionKind::ImageNameOffsets, None)?),
+            n_images + 1,
+            "images + 1",
+        )?;
         need(SectionKind::ImageNames, None)?;
         rows_must(find(SectionKind::ImageIds, None), n_images, "one per image")?;
-        rows_must(find(SectionKind::ImageGlobal, None), n_images, "one per image")?;
+        rows_must(
+            find(SectionKind::ImageGlobal, None),
+            n_images,
+            "one per image",
+        )?;
     }
     match (
         find(SectionKind::VisibilityOffsets, None),
@@ -150,8 +168,18 @@ pub(crate) fn check_shapes(metadata: &Metadata, sections: &[Section]) -> Result<
                 )));
             }
         }
-        (Some(_), None) => return Err(Error::MissingSection { kind: SectionKind::VisibilityPoints, level: None }),
-        (None, Some(_)) => return Err(Error::MissingSection { kind: SectionKind::VisibilityOffsets, level: None }),
+        (Some(_), None) => {
+            return Err(Error::MissingSection {
+                kind: SectionKind::VisibilityPoints,
+                level: None,
+            })
+        }
+        (None, Some(_)) => {
+            return Err(Error::MissingSection {
+                kind: SectionKind::VisibilityOffsets,
+                level: None,
+            })
+        }
     }
     Ok((n_points, n_images))
 }
@@ -159,23 +187,37 @@ pub(crate) fn check_shapes(metadata: &Metadata, sections: &[Section]) -> Result<
 /// Checks what one section's decoded contents must satisfy (indices in range, offsets
 /// monotonic). Runs once per section, on first access.
 pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> Result<(), Error> {
-    let bad = |what: String| Err(Error::inconsistent(format!("{}: {what}", section.reference())));
+    let bad = |what: String| {
+        Err(Error::inconsistent(format!(
+            "{}: {what}",
+            section.reference()
+        )))
+    };
     match section.kind {
         SectionKind::LevelPoints => {
             let points = cast::<u32>(bytes);
             if let Some(w) = points.windows(2).find(|w| w[0] >= w[1]) {
-                return bad(format!("indices not strictly increasing ({} then {})", w[0], w[1]));
+                return bad(format!(
+                    "indices not strictly increasing ({} then {})",
+                    w[0], w[1]
+                ));
             }
             if let Some(&last) = points.last() {
                 if u64::from(last) >= map.n_points() {
-                    return bad(format!("index {last} out of range for {} points", map.n_points()));
+                    return bad(format!(
+                        "index {last} out of range for {} points",
+                        map.n_points()
+                    ));
                 }
             }
         }
         SectionKind::VisibilityPoints => {
             let points = cast::<u32>(bytes);
             if let Some(&p) = points.iter().find(|&&p| u64::from(p) >= map.n_points()) {
-                return bad(format!("index {p} out of range for {} points", map.n_points()));
+                return bad(format!(
+                    "index {p} out of range for {} points",
+                    map.n_points()
+                ));
             }
         }
         SectionKind::ImageCameras => {
@@ -199,7 +241,10 @@ pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> 
                 return bad("offsets decrease".into());
             }
             if offsets.last().is_some_and(|&o| o != end) {
-                return bad(format!("offsets end at {}, expected {end}", offsets[offsets.len() - 1]));
+                return bad(format!(
+                    "offsets end at {}, expected {end}",
+                    offsets[offsets.len() - 1]
+                ));
             }
         }
         _ => {}
@@ -242,7 +287,10 @@ impl<'m> Images<'m> {
     /// The name of image `i`.
     pub fn name(&self, i: usize) -> Result<&'m str, Error> {
         // Offsets were checked monotonic and ending at names.len() on access.
-        let (start, end) = (self.name_offsets[i] as usize, self.name_offsets[i + 1] as usize);
+        let (start, end) = (
+            self.name_offsets[i] as usize,
+            self.name_offsets[i + 1] as usize,
+        );
         std::str::from_utf8(&self.names[start..end])
             .map_err(|_| Error::inconsistent(format!("image {i}: name is not UTF-8")))
     }
@@ -337,7 +385,9 @@ impl<'m> Level<'m> {
 
     /// `[dim_full × d_in]` row-major f32: row k maps an extractor descriptor to stored dim k.
     pub fn projection(&self) -> Result<Option<Cow<'m, [f32]>>, Error> {
-        self.projection.map(|s| self.map.section_array(s)).transpose()
+        self.projection
+            .map(|s| self.map.section_array(s))
+            .transpose()
     }
 
     /// Input dimension of the projection (`d_in`), if stored.
@@ -360,7 +410,9 @@ impl<'a> Map<'a> {
     }
 
     fn optional<T: bytemuck::Pod>(&self, kind: SectionKind) -> Result<Option<Cow<'_, [T]>>, Error> {
-        self.find(kind, None).map(|s| self.section_array(s)).transpose()
+        self.find(kind, None)
+            .map(|s| self.section_array(s))
+            .transpose()
     }
 
     /// Point positions relative to the metadata origin.
@@ -371,7 +423,11 @@ impl<'a> Map<'a> {
     /// World position of a stored (origin-relative) position.
     pub fn to_world(&self, p: [f32; 3]) -> [f64; 3] {
         let o = self.metadata().origin;
-        [o[0] + f64::from(p[0]), o[1] + f64::from(p[1]), o[2] + f64::from(p[2])]
+        [
+            o[0] + f64::from(p[0]),
+            o[1] + f64::from(p[1]),
+            o[2] + f64::from(p[2]),
+        ]
     }
 
     pub fn point_colors(&self) -> Result<Option<Cow<'_, [[u8; 3]]>>, Error> {
@@ -429,10 +485,13 @@ impl<'a> Map<'a> {
     }
 
     pub fn level(&self, level: u16) -> Result<Level<'_>, Error> {
-        let info = self.metadata().level(level).ok_or_else(|| Error::NoSuchLevel {
-            level,
-            available: self.level_ids(),
-        })?;
+        let info = self
+            .metadata()
+            .level(level)
+            .ok_or_else(|| Error::NoSuchLevel {
+                level,
+                available: self.level_ids(),
+            })?;
         Ok(self.make_level(info))
     }
 

@@ -37,9 +37,16 @@ struct PendingSection<'a> {
 #[derive(Debug, Clone)]
 enum Content<'a> {
     /// The array's little-endian bytes, stored with the writer's codec unless `codec` is set.
-    Array { bytes: Cow<'a, [u8]>, codec: Option<Codec> },
+    Array {
+        bytes: Cow<'a, [u8]>,
+        codec: Option<Codec>,
+    },
     /// Bytes already encoded with `codec` (copied from another map, byte for byte).
-    Stored { bytes: Cow<'a, [u8]>, codec: Codec, raw_len: u64 },
+    Stored {
+        bytes: Cow<'a, [u8]>,
+        codec: Codec,
+        raw_len: u64,
+    },
 }
 
 /// Builds a map. See the crate docs and `spec/format.md` for what each section means.
@@ -59,7 +66,10 @@ impl Default for MapWriter<'_> {
 
 fn le_bytes<T: bytemuck::Pod>(values: &[T]) -> Cow<'_, [u8]> {
     // The format is little-endian; every supported target is too (checked at compile time).
-    const _: () = assert!(cfg!(target_endian = "little"), "sfpmap needs a little-endian target");
+    const _: () = assert!(
+        cfg!(target_endian = "little"),
+        "sfpmap needs a little-endian target"
+    );
     Cow::Borrowed(bytemuck::cast_slice(values))
 }
 
@@ -98,8 +108,17 @@ impl<'a> MapWriter<'a> {
         (self.metadata.cameras.len() - 1) as u32
     }
 
-    fn push(&mut self, kind: SectionKind, level: u16, dtype: Dtype, rows: u64, cols: u64, content: Content<'a>) {
-        self.sections.retain(|s| !(s.kind == kind && s.level == level));
+    fn push(
+        &mut self,
+        kind: SectionKind,
+        level: u16,
+        dtype: Dtype,
+        rows: u64,
+        cols: u64,
+        content: Content<'a>,
+    ) {
+        self.sections
+            .retain(|s| !(s.kind == kind && s.level == level));
         self.sections.push(PendingSection {
             kind,
             level,
@@ -111,8 +130,23 @@ impl<'a> MapWriter<'a> {
         });
     }
 
-    fn push_array(&mut self, kind: SectionKind, level: u16, dtype: Dtype, rows: usize, cols: usize, bytes: Cow<'a, [u8]>) {
-        self.push(kind, level, dtype, rows as u64, cols as u64, Content::Array { bytes, codec: None });
+    fn push_array(
+        &mut self,
+        kind: SectionKind,
+        level: u16,
+        dtype: Dtype,
+        rows: usize,
+        cols: usize,
+        bytes: Cow<'a, [u8]>,
+    ) {
+        self.push(
+            kind,
+            level,
+            dtype,
+            rows as u64,
+            cols as u64,
+            Content::Array { bytes, codec: None },
+        );
     }
 
     /// Point positions in world coordinates: stored as f32 relative to `origin`, the
@@ -129,26 +163,60 @@ impl<'a> MapWriter<'a> {
         let origin = origin.map(|o| (o * 1024.0).round() / 1024.0);
         let relative: Vec<[f32; 3]> = positions
             .iter()
-            .map(|p| [(p[0] - origin[0]) as f32, (p[1] - origin[1]) as f32, (p[2] - origin[2]) as f32])
+            .map(|p| {
+                [
+                    (p[0] - origin[0]) as f32,
+                    (p[1] - origin[1]) as f32,
+                    (p[2] - origin[2]) as f32,
+                ]
+            })
             .collect();
         self.metadata.origin = origin;
-        self.push_array(SectionKind::PointPositions, NO_LEVEL, Dtype::F32, relative.len(), 3, owned_bytes(relative));
+        self.push_array(
+            SectionKind::PointPositions,
+            NO_LEVEL,
+            Dtype::F32,
+            relative.len(),
+            3,
+            owned_bytes(relative),
+        );
         self
     }
 
     /// Point positions already relative to the metadata origin.
     pub fn set_points(&mut self, relative: &'a [[f32; 3]]) -> &mut Self {
-        self.push_array(SectionKind::PointPositions, NO_LEVEL, Dtype::F32, relative.len(), 3, le_bytes(relative));
+        self.push_array(
+            SectionKind::PointPositions,
+            NO_LEVEL,
+            Dtype::F32,
+            relative.len(),
+            3,
+            le_bytes(relative),
+        );
         self
     }
 
     pub fn set_point_colors(&mut self, colors: &'a [[u8; 3]]) -> &mut Self {
-        self.push_array(SectionKind::PointColors, NO_LEVEL, Dtype::U8, colors.len(), 3, le_bytes(colors));
+        self.push_array(
+            SectionKind::PointColors,
+            NO_LEVEL,
+            Dtype::U8,
+            colors.len(),
+            3,
+            le_bytes(colors),
+        );
         self
     }
 
     pub fn set_point_ids(&mut self, ids: &'a [u64]) -> &mut Self {
-        self.push_array(SectionKind::PointIds, NO_LEVEL, Dtype::U64, ids.len(), 1, le_bytes(ids));
+        self.push_array(
+            SectionKind::PointIds,
+            NO_LEVEL,
+            Dtype::U64,
+            ids.len(),
+            1,
+            le_bytes(ids),
+        );
         self
     }
 
@@ -163,7 +231,9 @@ impl<'a> MapWriter<'a> {
     ) -> Result<&mut Self, Error> {
         let n = names.len();
         if cameras.len() != n || cam_from_world.len() != n || ids.is_some_and(|i| i.len() != n) {
-            return Err(Error::invalid("image names, cameras, poses and ids differ in length"));
+            return Err(Error::invalid(
+                "image names, cameras, poses and ids differ in length",
+            ));
         }
         let mut offsets = Vec::with_capacity(n + 1);
         let mut joined = Vec::new();
@@ -173,23 +243,71 @@ impl<'a> MapWriter<'a> {
             offsets.push(joined.len() as u64);
         }
         let joined_len = joined.len();
-        self.push_array(SectionKind::ImagePoses, NO_LEVEL, Dtype::F64, n, 7, le_bytes(cam_from_world));
-        self.push_array(SectionKind::ImageCameras, NO_LEVEL, Dtype::U32, n, 1, le_bytes(cameras));
-        self.push_array(SectionKind::ImageNameOffsets, NO_LEVEL, Dtype::U64, n + 1, 1, owned_bytes(offsets));
-        self.push_array(SectionKind::ImageNames, NO_LEVEL, Dtype::U8, joined_len, 1, Cow::Owned(joined));
+        self.push_array(
+            SectionKind::ImagePoses,
+            NO_LEVEL,
+            Dtype::F64,
+            n,
+            7,
+            le_bytes(cam_from_world),
+        );
+        self.push_array(
+            SectionKind::ImageCameras,
+            NO_LEVEL,
+            Dtype::U32,
+            n,
+            1,
+            le_bytes(cameras),
+        );
+        self.push_array(
+            SectionKind::ImageNameOffsets,
+            NO_LEVEL,
+            Dtype::U64,
+            n + 1,
+            1,
+            owned_bytes(offsets),
+        );
+        self.push_array(
+            SectionKind::ImageNames,
+            NO_LEVEL,
+            Dtype::U8,
+            joined_len,
+            1,
+            Cow::Owned(joined),
+        );
         if let Some(ids) = ids {
-            self.push_array(SectionKind::ImageIds, NO_LEVEL, Dtype::U32, n, 1, le_bytes(ids));
+            self.push_array(
+                SectionKind::ImageIds,
+                NO_LEVEL,
+                Dtype::U32,
+                n,
+                1,
+                le_bytes(ids),
+            );
         }
         Ok(self)
     }
 
     /// Global descriptors `[images × dim]`, row-major, converted to f16.
-    pub fn set_image_global(&mut self, dim: usize, descriptors: &[f32]) -> Result<&mut Self, Error> {
+    pub fn set_image_global(
+        &mut self,
+        dim: usize,
+        descriptors: &[f32],
+    ) -> Result<&mut Self, Error> {
         if dim == 0 || descriptors.len() % dim != 0 {
-            return Err(Error::invalid("global descriptors are not a whole number of rows"));
+            return Err(Error::invalid(
+                "global descriptors are not a whole number of rows",
+            ));
         }
         let values: Vec<f16> = descriptors.iter().map(|&v| f16::from_f32(v)).collect();
-        self.push_array(SectionKind::ImageGlobal, NO_LEVEL, Dtype::F16, values.len() / dim, dim, owned_bytes(values));
+        self.push_array(
+            SectionKind::ImageGlobal,
+            NO_LEVEL,
+            Dtype::F16,
+            values.len() / dim,
+            dim,
+            owned_bytes(values),
+        );
         Ok(self)
     }
 
@@ -202,15 +320,40 @@ impl<'a> MapWriter<'a> {
         keypoints: Option<&'a [[f32; 2]]>,
     ) -> Result<&mut Self, Error> {
         if offsets.last().copied().unwrap_or(0) != points.len() as u64 {
-            return Err(Error::invalid("visibility offsets do not end at the number of entries"));
+            return Err(Error::invalid(
+                "visibility offsets do not end at the number of entries",
+            ));
         }
         if keypoints.is_some_and(|k| k.len() != points.len()) {
-            return Err(Error::invalid("visibility keypoints differ in length from points"));
+            return Err(Error::invalid(
+                "visibility keypoints differ in length from points",
+            ));
         }
-        self.push_array(SectionKind::VisibilityOffsets, NO_LEVEL, Dtype::U64, offsets.len(), 1, le_bytes(offsets));
-        self.push_array(SectionKind::VisibilityPoints, NO_LEVEL, Dtype::U32, points.len(), 1, le_bytes(points));
+        self.push_array(
+            SectionKind::VisibilityOffsets,
+            NO_LEVEL,
+            Dtype::U64,
+            offsets.len(),
+            1,
+            le_bytes(offsets),
+        );
+        self.push_array(
+            SectionKind::VisibilityPoints,
+            NO_LEVEL,
+            Dtype::U32,
+            points.len(),
+            1,
+            le_bytes(points),
+        );
         if let Some(k) = keypoints {
-            self.push_array(SectionKind::VisibilityKeypoints, NO_LEVEL, Dtype::F32, k.len(), 2, le_bytes(k));
+            self.push_array(
+                SectionKind::VisibilityKeypoints,
+                NO_LEVEL,
+                Dtype::F32,
+                k.len(),
+                2,
+                le_bytes(k),
+            );
         }
         Ok(self)
     }
@@ -226,13 +369,23 @@ impl<'a> MapWriter<'a> {
         with_rest: bool,
     ) -> Result<&mut Self, Error> {
         if points.windows(2).any(|w| w[0] >= w[1]) {
-            return Err(Error::invalid(format!("level {}: point indices not strictly increasing", info.level)));
+            return Err(Error::invalid(format!(
+                "level {}: point indices not strictly increasing",
+                info.level
+            )));
         }
         if info.dim_short > info.dim_full || info.level == NO_LEVEL {
-            return Err(Error::invalid(format!("level {}: bad level id or dim_short > dim_full", info.level)));
+            return Err(Error::invalid(format!(
+                "level {}: bad level id or dim_short > dim_full",
+                info.level
+            )));
         }
         let level = info.level;
-        let (n, full, short) = (points.len(), info.dim_full as usize, info.dim_short as usize);
+        let (n, full, short) = (
+            points.len(),
+            info.dim_full as usize,
+            info.dim_short as usize,
+        );
         if let Some(descriptors) = descriptors {
             let values: Cow<'_, [f16]> = match descriptors {
                 Descriptors::F32(v) => Cow::Owned(v.iter().map(|&x| f16::from_f32(x)).collect()),
@@ -250,12 +403,33 @@ impl<'a> MapWriter<'a> {
                 short_block.extend_from_slice(&row[..short]);
                 rest_block.extend_from_slice(&row[short..]);
             }
-            self.push_array(SectionKind::LevelDescShort, level, Dtype::F16, n, short, owned_bytes(short_block));
+            self.push_array(
+                SectionKind::LevelDescShort,
+                level,
+                Dtype::F16,
+                n,
+                short,
+                owned_bytes(short_block),
+            );
             if with_rest {
-                self.push_array(SectionKind::LevelDescRest, level, Dtype::F16, n, full - short, owned_bytes(rest_block));
+                self.push_array(
+                    SectionKind::LevelDescRest,
+                    level,
+                    Dtype::F16,
+                    n,
+                    full - short,
+                    owned_bytes(rest_block),
+                );
             }
         }
-        self.push_array(SectionKind::LevelPoints, level, Dtype::U32, n, 1, le_bytes(points));
+        self.push_array(
+            SectionKind::LevelPoints,
+            level,
+            Dtype::U32,
+            n,
+            1,
+            le_bytes(points),
+        );
         self.metadata.levels.retain(|l| l.level != level);
         self.metadata.levels.push(info);
         self.metadata.levels.sort_by_key(|l| l.level);
@@ -263,12 +437,24 @@ impl<'a> MapWriter<'a> {
     }
 
     /// The level's descriptor basis: `[dim_full × d_in]` row-major f32.
-    pub fn set_level_projection(&mut self, level: u16, d_in: usize, matrix: Vec<f32>) -> Result<&mut Self, Error> {
+    pub fn set_level_projection(
+        &mut self,
+        level: u16,
+        d_in: usize,
+        matrix: Vec<f32>,
+    ) -> Result<&mut Self, Error> {
         if d_in == 0 || matrix.len() % d_in != 0 {
             return Err(Error::invalid("projection is not a whole number of rows"));
         }
         let rows = matrix.len() / d_in;
-        self.push_array(SectionKind::LevelProjection, level, Dtype::F32, rows, d_in, owned_bytes(matrix));
+        self.push_array(
+            SectionKind::LevelProjection,
+            level,
+            Dtype::F32,
+            rows,
+            d_in,
+            owned_bytes(matrix),
+        );
         Ok(self)
     }
 
@@ -286,10 +472,25 @@ impl<'a> MapWriter<'a> {
         bytes: Cow<'a, [u8]>,
         codec: Option<Codec>,
     ) -> Result<&mut Self, Error> {
-        if rows.checked_mul(cols).and_then(|n| n.checked_mul(dtype.size())) != Some(bytes.len() as u64) {
-            return Err(Error::invalid(format!("{kind}: {rows}x{cols} {} does not match {} bytes", dtype.name(), bytes.len())));
+        if rows
+            .checked_mul(cols)
+            .and_then(|n| n.checked_mul(dtype.size()))
+            != Some(bytes.len() as u64)
+        {
+            return Err(Error::invalid(format!(
+                "{kind}: {rows}x{cols} {} does not match {} bytes",
+                dtype.name(),
+                bytes.len()
+            )));
         }
-        self.push(kind, level, dtype, rows, cols, Content::Array { bytes, codec });
+        self.push(
+            kind,
+            level,
+            dtype,
+            rows,
+            cols,
+            Content::Array { bytes, codec },
+        );
         if let Some(s) = self.sections.last_mut() {
             s.required = required;
         }
@@ -310,7 +511,18 @@ impl<'a> MapWriter<'a> {
         raw_len: u64,
         bytes: &'a [u8],
     ) -> &mut Self {
-        self.push(kind, level, dtype, rows, cols, Content::Stored { bytes: Cow::Borrowed(bytes), codec, raw_len });
+        self.push(
+            kind,
+            level,
+            dtype,
+            rows,
+            cols,
+            Content::Stored {
+                bytes: Cow::Borrowed(bytes),
+                codec,
+                raw_len,
+            },
+        );
         if let Some(s) = self.sections.last_mut() {
             s.required = required;
         }
@@ -321,9 +533,18 @@ impl<'a> MapWriter<'a> {
     /// `path` is replaced only once the new file is complete.
     pub fn write(&self, path: &Path, reporter: &dyn Reporter) -> Result<u64, Error> {
         let encoded = self.encode(reporter)?;
-        let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-        let file_name = path.file_name().ok_or_else(|| Error::invalid(format!("{} is not a file path", path.display())))?;
-        let tmp: PathBuf = dir.join(format!(".{}.tmp{}", file_name.to_string_lossy(), std::process::id()));
+        let dir = path
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        let file_name = path
+            .file_name()
+            .ok_or_else(|| Error::invalid(format!("{} is not a file path", path.display())))?;
+        let tmp: PathBuf = dir.join(format!(
+            ".{}.tmp{}",
+            file_name.to_string_lossy(),
+            std::process::id()
+        ));
         let result = (|| -> std::io::Result<()> {
             let file = std::fs::File::create(&tmp)?;
             let mut out = std::io::BufWriter::with_capacity(1 << 20, file);
@@ -362,7 +583,11 @@ impl<'a> MapWriter<'a> {
         let mut blocks = Vec::with_capacity(order.len());
         for s in order {
             let (bytes, codec, raw_len) = match &s.content {
-                Content::Stored { bytes, codec, raw_len } => (Cow::Borrowed(&bytes[..]), *codec, *raw_len),
+                Content::Stored {
+                    bytes,
+                    codec,
+                    raw_len,
+                } => (Cow::Borrowed(&bytes[..]), *codec, *raw_len),
                 Content::Array { bytes, codec } => {
                     let raw_len = bytes.len() as u64;
                     match codec.unwrap_or(self.codec) {
@@ -387,10 +612,14 @@ impl<'a> MapWriter<'a> {
         }
         reporter.finish();
 
-        let mut metadata = serde_json::to_vec(&self.metadata).map_err(|e| Error::invalid(e.to_string()))?;
+        let mut metadata =
+            serde_json::to_vec(&self.metadata).map_err(|e| Error::invalid(e.to_string()))?;
         metadata.shrink_to_fit();
         if metadata.len() as u64 > METADATA_MAX_BYTES {
-            return Err(Error::MetadataTooLarge { len: metadata.len() as u64, max: METADATA_MAX_BYTES });
+            return Err(Error::MetadataTooLarge {
+                len: metadata.len() as u64,
+                max: METADATA_MAX_BYTES,
+            });
         }
         let table_end = (HEADER_LEN + blocks.len() * ENTRY_LEN) as u64;
         let metadata_end = table_end + metadata.len() as u64;
@@ -430,7 +659,13 @@ impl<'a> MapWriter<'a> {
             index_checksum: 0,
         };
         header.index_checksum = index_checksum(&header.encode()[..56], &table, &metadata);
-        Ok(Encoded { header, table, metadata, sections, file_len: cursor })
+        Ok(Encoded {
+            header,
+            table,
+            metadata,
+            sections,
+            file_len: cursor,
+        })
     }
 }
 

@@ -1,0 +1,47 @@
+//! Argument definitions (clap derive) and dispatch; each subcommand runs in its own file.
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+mod info;
+mod progress;
+mod slice;
+mod verify;
+
+pub use progress::Bars;
+
+/// sfpmap: small, fast, level-sliceable visual-localization maps.
+#[derive(Debug, Parser)]
+#[command(name = "sfpmap", version, about, propagate_version = true)]
+pub struct Cli {
+    /// Print nothing but errors (no progress bars, no warnings).
+    #[arg(long, short, global = true)]
+    pub quiet: bool,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    Info(info::Args),
+    Verify(verify::Args),
+    Slice(slice::Args),
+}
+
+pub fn run() -> anyhow::Result<ExitCode> {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Info(args) => info::run(args, cli.quiet),
+        Command::Verify(args) => verify::run(args, cli.quiet),
+        Command::Slice(args) => slice::run(args, cli.quiet),
+    }
+}
+
+/// Prints a JSON value on stdout, one line.
+pub fn print_json(value: &serde_json::Value) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    serde_json::to_writer(&mut out, value)?;
+    writeln!(out)?;
+    Ok(())
+}

@@ -1,0 +1,32 @@
+//! `sfpmap verify`: check every byte of a map.
+
+use anyhow::Context;
+use sfpmap::format::Map;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Check a map completely: index, every section's checksum, decoding and contents.
+///
+/// Exits 0 when the map is valid; otherwise prints one line naming the problem and exits 1.
+/// Example: `sfpmap verify building.sfpm`
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The map file.
+    pub map: PathBuf,
+}
+
+pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    let path = &args.map;
+    let map = Map::open(path).with_context(|| path.display().to_string())?;
+    map.verify().with_context(|| path.display().to_string())?;
+    if !quiet {
+        println!(
+            "{}: ok (sfpmap {}, {} sections, {} bytes)",
+            path.display(),
+            map.version(),
+            map.sections().len(),
+            map.file_len()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,313 @@
+//! COLMAP binary models: `cameras.bin`, `images.bin`, `points3D.bin`.
+//!
+//! All little-endian, no header or version (COLMAP's `reconstruction_io`):
+//!
+//! - `cameras.bin`: `u64 n`, then per camera `u32 id, i32 model_id, u64 width, u64 height,
+//!   f64 params[num_params(model)]`.
+//! - `images.bin`: `u64 n`, then per image `u32 id, f64 qw qx qy qz, f64 tx ty tz,
+//!   u32 camera_id, name bytes, 0u8, u64 num_points2D`, then per 2D point
+//!   `f64 x, f64 y, u64 point3D_id` (`u64::MAX` = none).
+//! - `points3D.bin`: `u64 n`, then per point `u64 id, f64 x y z, u8 r g b, f64 error,
+//!   u64 track_length`, then per element `u32 image_id, u32 point2D_idx`.
+//!
+//! COLMAP ≥ 3.12 adds `rigs.bin` and `frames.bin`; the three files above keep their layout, so
+//! the rig files are not read.
+
+use std::path::Path;
+
+use super::camera::CameraModel;
+use super::error::{Error, Result};
+use super::model::{
+    Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, Rigid3, TrackElement,
+};
+
+/// COLMAP's invalid `point3D_t`.
+const INVALID_POINT3D_ID: u64 = u64::MAX;
+
+/// Smallest encoded size of a record, used to cap preallocation from an untrusted count.
+const MIN_CAMERA: usize = 4 + 4 + 8 + 8;
+const MIN_IMAGE: usize = 4 + 7 * 8 + 4 + 1 + 8;
+const POINT2D: usize = 8 + 8 + 8;
+const MIN_POINT3D: usize = 8 + 3 * 8 + 3 + 8 + 8;
+const TRACK_ELEMENT: usize = 4 + 4;
+
+/// A bounds-checked little-endian reader over a byte slice.
+struct Reader<'a> {
+    data: &'a [u8],
+    pos: usize,
+    path: &'a Path,
+}
+
+impl<'a> Reader<'a> {
+    fn new(data: &'a [u8], path: &'a Path) -> Self {
+        Reader { data, pos: 0, path }
+    }
+
+    fn remaining(&self) -> usize {
+        self.data.len().saturating_sub(self.pos)
+    }
+
+    fn take(&mut self, n: usize, what: &'static str) -> Result<&'a [u8]> {
+        let bytes = self
+            .pos
+            .checked_add(n)
+            .and_then(|end| self.data.get(self.pos..end))
+            .ok_or_else(|| self.truncated(n as u64, what))?;
+        self.pos += n;
+        Ok(bytes)
+    }
+
+    fn truncated(&self, needed: u64, what: &'static str) -> Error {
+        Error::Truncated {
+            path: self.path.to_path_buf(),
+            offset: self.pos as u64,
+            needed,
+            len: self.data.len() as u64,
+            what,
+        }
+    }
+
+    fn array<const N: usize>(&mut self, what: &'static str) -> Result<[u8; N]> {
+        let bytes = self.take(N, what)?;
+        let mut out = [0u8; N];
+        out.copy_from_slice(bytes);
+        Ok(out)
+    }
+
+    fn u32(&mut self, what: &'static str) -> Result<u32> {
+        Ok(u32::from_le_bytes(self.array(what)?))
+    }
+
+    fn i32(&mut self, what: &'static str) -> Result<i32> {
+        Ok(i32::from_le_bytes(self.array(what)?))
+    }
+
+    fn u64(&mut self, what: &'static str) -> Result<u64> {
+        Ok(u64::from_le_bytes(self.array(what)?))
+    }
+
+    fn f64(&mut self, what: &'static str) -> Result<f64> {
+        Ok(f64::from_le_bytes(self.array(what)?))
+    }
+
+    fn f64s<const N: usize>(&mut self, what: &'static str) -> Result<[f64; N]> {
+        let mut out = [0f64; N];
+        for v in &mut out {
+            *v = self.f64(what)?;
+        }
+        Ok(out)
+    }
+
+    /// A record count; also returns how many records to preallocate: never more than the
+    /// remaining bytes could hold, so a forged count cannot make us allocate gigabytes.
+    fn count(&mut self, record: usize, what: &'static str) -> Result<(u64, usize)> {
+        let n = self.u64(what)?;
+        let fits = self.remaining() / record.max(1);
+        Ok((n, usize::try_from(n).unwrap_or(usize::MAX).min(fits)))
+    }
+
+    fn finish(&self) -> Result<()> {
+        if self.pos == self.data.len() {
+            Ok(())
+        } else {
+            Err(Error::TrailingBytes {
+                path: self.path.to_path_buf(),
+                offset: self.pos as u64,
+                len: self.data.len() as u64,
+            })
+        }
+    }
+}
+
+/// Parses `cameras.bin`; `path` only names the file in errors.
+pub fn parse_cameras(data: &[u8], path: &Path) -> Result<Vec<Camera>> {
+    let mut r = Reader::new(data, path);
+    let (n, cap) = r.count(MIN_CAMERA, "camera count")?;
+    let mut cameras = Vec::with_capacity(cap);
+    for _ in 0..n {
+        let id = r.u32("camera id")?;
+        let model_id = r.i32("camera model id")?;
+        let model = CameraModel::from_id(model_id).ok_or_else(|| Error::UnknownCameraModelId {
+            path: path.to_path_buf(),
+            camera_id: id,
+            model_id: i64::from(model_id),
+        })?;
+        let width = r.u64("camera width")?;
+        let height = r.u64("camera height")?;
+        let mut params = Vec::with_capacity(model.num_params());
+        for _ in 0..model.num_params() {
+            params.push(r.f64("camera parameters")?);
+        }
+        cameras.push(Camera {
+            id,
+            model,
+            width,
+            height,
+            params,
+        });
+    }
+    r.finish()?;
+    Ok(cameras)
+}
+
+/// Parses `images.bin`.
+pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
+    let mut r = Reader::new(data, path);
+    let (n, cap) = r.count(MIN_IMAGE, "image count")?;
+    let mut images = Vec::with_capacity(cap);
+    for _ in 0..n {
+        let id = r.u32("image id")?;
+        let rotation = r.f64s::<4>("image rotation")?;
+        let translation = r.f64s::<3>("image translation")?;
+        let camera_id = r.u32("image camera id")?;
+        let name_start = r.pos;
+        let rest = data.get(name_start..).unwrap_or(&[]);
+        let name_len = rest
+            .iter()
+            .position(|&b| b == 0)
+            .ok_or_else(|| r.truncated(rest.len() as u64 + 1, "image name"))?;
+        let name_bytes = r.take(name_len + 1, "image name")?;
+        let name = std::str::from_utf8(&name_bytes[..name_len])
+            .map_err(|_| Error::BadValue {
+                path: path.to_path_buf(),
+                offset: name_start as u64,
+                what: format!("image {id}: name is not valid utf-8"),
+            })?
+            .to_string();
+        let (num_points2d, cap) = r.count(POINT2D, "image point2D count")?;
+        let mut points2d = Vec::with_capacity(cap);
+        for _ in 0..num_points2d {
+            let xy = r.f64s::<2>("point2D")?;
+            let point3d_id = r.u64("point2D point3D id")?;
+            points2d.push(Point2D {
+                xy,
+                point3d_id: (point3d_id != INVALID_POINT3D_ID).then_some(point3d_id),
+            });
+        }
+        images.push(Image {
+            id,
+            name,
+            camera_id,
+            cam_from_world: Rigid3 {
+                rotation,
+                translation,
+            },
+            points2d,
+        });
+    }
+    r.finish()?;
+    Ok(images)
+}
+
+/// Parses `points3D.bin` into `builder`.
+pub(crate) fn parse_points3d_into(
+    data: &[u8],
+    path: &Path,
+    builder: &mut ReconstructionBuilder,
+) -> Result<()> {
+    let mut r = Reader::new(data, path);
+    let (n, cap) = r.count(MIN_POINT3D, "point3D count")?;
+    // Typical tracks are a few elements long; reserving 4 per point avoids most regrowth
+    // without trusting the file's count beyond what its length can hold.
+    let track_cap = (r.remaining().saturating_sub(cap * MIN_POINT3D) / TRACK_ELEMENT).min(cap * 8);
+    builder.reserve_points3d(cap, track_cap);
+    for _ in 0..n {
+        let id = r.u64("point3D id")?;
+        let xyz = r.f64s::<3>("point3D position")?;
+        let rgb = r.array::<3>("point3D color")?;
+        let error = r.f64("point3D error")?;
+        let len = r.u64("point3D track length")?;
+        let start = builder.begin_point3d();
+        // The take() per element bounds the loop by the file length, whatever `len` says.
+        for _ in 0..len {
+            let image_id = r.u32("point3D track element")?;
+            let point2d_idx = r.u32("point3D track element")?;
+            builder.push_track(TrackElement {
+                image_id,
+                point2d_idx,
+            });
+        }
+        builder.end_point3d(start, id, xyz, rgb, error)?;
+    }
+    r.finish()
+}
+
+/// Parses and validates the three files of a binary model given as bytes.
+pub fn parse_model(
+    cameras: (&[u8], &Path),
+    images: (&[u8], &Path),
+    points3d: (&[u8], &Path),
+) -> Result<Reconstruction> {
+    let mut builder = ReconstructionBuilder::new().paths(cameras.1, images.1, points3d.1);
+    for camera in parse_cameras(cameras.0, cameras.1)? {
+        builder.add_camera(camera);
+    }
+    for image in parse_images(images.0, images.1)? {
+        builder.add_image(image);
+    }
+    parse_points3d_into(points3d.0, points3d.1, &mut builder)?;
+    builder.build()
+}
+
+/// Encodes `cameras.bin`.
+pub fn write_cameras(model: &Reconstruction) -> Vec<u8> {
+    let mut out = Vec::new();
+    out.extend_from_slice(&(model.cameras().len() as u64).to_le_bytes());
+    for c in model.cameras() {
+        out.extend_from_slice(&c.id.to_le_bytes());
+        out.extend_from_slice(&c.model.id().to_le_bytes());
+        out.extend_from_slice(&c.width.to_le_bytes());
+        out.extend_from_slice(&c.height.to_le_bytes());
+        for p in &c.params {
+            out.extend_from_slice(&p.to_le_bytes());
+        }
+    }
+    out
+}
+
+/// Encodes `images.bin`.
+pub fn write_images(model: &Reconstruction) -> Vec<u8> {
+    let mut out = Vec::new();
+    out.extend_from_slice(&(model.images().len() as u64).to_le_bytes());
+    for image in model.images() {
+        out.extend_from_slice(&image.id.to_le_bytes());
+        let pose = &image.cam_from_world;
+        for v in pose.rotation.iter().chain(&pose.translation) {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&image.camera_id.to_le_bytes());
+        out.extend_from_slice(image.name.as_bytes());
+        out.push(0);
+        out.extend_from_slice(&(image.points2d.len() as u64).to_le_bytes());
+        for p in &image.points2d {
+            out.extend_from_slice(&p.xy[0].to_le_bytes());
+            out.extend_from_slice(&p.xy[1].to_le_bytes());
+            let id = p.point3d_id.unwrap_or(INVALID_POINT3D_ID);
+            out.extend_from_slice(&id.to_le_bytes());
+        }
+    }
+    out
+}
+
+/// Encodes `points3D.bin`.
+pub fn write_points3d(model: &Reconstruction) -> Vec<u8> {
+    let mut out = Vec::with_capacity(
+        8 + model.points3d().len() * MIN_POINT3D + model.num_observations() * TRACK_ELEMENT,
+    );
+    out.extend_from_slice(&(model.points3d().len() as u64).to_le_bytes());
+    for p in model.points3d() {
+        out.extend_from_slice(&p.id.to_le_bytes());
+        for v in &p.xyz {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&p.rgb);
+        out.extend_from_slice(&p.error.to_le_bytes());
+        let track = model.track(p);
+        out.extend_from_slice(&(track.len() as u64).to_le_bytes());
+        for e in track {
+            out.extend_from_slice(&e.image_id.to_le_bytes());
+            out.extend_from_slice(&e.point2d_idx.to_le_bytes());
+        }
+    }
+    out
+}

@@ -1,0 +1,136 @@
+//! COLMAP camera models: ids, names and parameter counts.
+//!
+//! Ids and counts follow COLMAP 4 (`src/colmap/sensor/models/base.h`, the `CameraModelId`
+//! enum, and the per-model `*_CAMERA_MODEL_DEFINITIONS` in `sensor/models/*.h`). The id is what
+//! `cameras.bin` and `database.db` store; the name is what `cameras.txt` stores.
+
+/// A COLMAP camera model. The discriminant is COLMAP's model id.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[non_exhaustive]
+pub enum CameraModel {
+    /// `f, cx, cy`
+    SimplePinhole = 0,
+    /// `fx, fy, cx, cy`
+    Pinhole = 1,
+    /// `f, cx, cy, k`
+    SimpleRadial = 2,
+    /// `f, cx, cy, k1, k2`
+    Radial = 3,
+    /// `fx, fy, cx, cy, k1, k2, p1, p2`
+    OpenCv = 4,
+    /// `fx, fy, cx, cy, k1, k2, k3, k4`
+    OpenCvFisheye = 5,
+    /// `fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6`
+    FullOpenCv = 6,
+    /// `fx, fy, cx, cy, omega`
+    Fov = 7,
+    /// `f, cx, cy, k`
+    SimpleRadialFisheye = 8,
+    /// `f, cx, cy, k1, k2`
+    RadialFisheye = 9,
+    /// `fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, sx1, sy1`
+    ThinPrismFisheye = 10,
+    /// `fx, fy, cx, cy, k0..k5, p0, p1, s0..s3`
+    RadTanThinPrismFisheye = 11,
+    /// `f, cx, cy, k`
+    SimpleDivision = 12,
+    /// `fx, fy, cx, cy, k`
+    Division = 13,
+    /// `f, cx, cy`
+    SimpleFisheye = 14,
+    /// `fx, fy, cx, cy`
+    Fisheye = 15,
+    /// `fx, fy, cx, cy, alpha, beta`
+    Eucm = 16,
+    /// `w, h` (an omnidirectional panorama: the params are image dimensions, not a focal length)
+    Equirectangular = 17,
+}
+
+/// Every model in id order, with its name and parameter count; the one table the methods read.
+const MODELS: [(CameraModel, &str, usize); 18] = [
+    (CameraModel::SimplePinhole, "SIMPLE_PINHOLE", 3),
+    (CameraModel::Pinhole, "PINHOLE", 4),
+    (CameraModel::SimpleRadial, "SIMPLE_RADIAL", 4),
+    (CameraModel::Radial, "RADIAL", 5),
+    (CameraModel::OpenCv, "OPENCV", 8),
+    (CameraModel::OpenCvFisheye, "OPENCV_FISHEYE", 8),
+    (CameraModel::FullOpenCv, "FULL_OPENCV", 12),
+    (CameraModel::Fov, "FOV", 5),
+    (CameraModel::SimpleRadialFisheye, "SIMPLE_RADIAL_FISHEYE", 4),
+    (CameraModel::RadialFisheye, "RADIAL_FISHEYE", 5),
+    (CameraModel::ThinPrismFisheye, "THIN_PRISM_FISHEYE", 12),
+    (
+        CameraModel::RadTanThinPrismFisheye,
+        "RAD_TAN_THIN_PRISM_FISHEYE",
+        16,
+    ),
+    (CameraModel::SimpleDivision, "SIMPLE_DIVISION", 4),
+    (CameraModel::Division, "DIVISION", 5),
+    (CameraModel::SimpleFisheye, "SIMPLE_FISHEYE", 3),
+    (CameraModel::Fisheye, "FISHEYE", 4),
+    (CameraModel::Eucm, "EUCM", 6),
+    (CameraModel::Equirectangular, "EQUIRECTANGULAR", 2),
+];
+
+impl CameraModel {
+    /// All models in id order.
+    pub const ALL: [CameraModel; 18] = {
+        let mut all = [CameraModel::SimplePinhole; 18];
+        let mut i = 0;
+        while i < MODELS.len() {
+            all[i] = MODELS[i].0;
+            i += 1;
+        }
+        all
+    };
+
+    /// COLMAP's model id, as stored in `cameras.bin` and `database.db`.
+    pub const fn id(self) -> i32 {
+        self as i32
+    }
+
+    /// COLMAP's model name, as stored in `cameras.txt` (`"SIMPLE_RADIAL"`).
+    pub const fn name(self) -> &'static str {
+        MODELS[self as usize].1
+    }
+
+    /// The number of parameters COLMAP stores for this model.
+    pub const fn num_params(self) -> usize {
+        MODELS[self as usize].2
+    }
+
+    /// The model with COLMAP id `id`, or `None` for an id this crate does not know.
+    pub fn from_id(id: i32) -> Option<Self> {
+        let index = usize::try_from(id).ok()?;
+        MODELS.get(index).map(|m| m.0)
+    }
+
+    /// The model with COLMAP name `name` (exact, upper case as COLMAP writes it).
+    pub fn from_name(name: &str) -> Option<Self> {
+        MODELS.iter().find(|m| m.1 == name).map(|m| m.0)
+    }
+}
+
+impl std::fmt::Display for CameraModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn table_is_in_id_order_and_round_trips() {
+        for (i, (model, name, _)) in MODELS.iter().enumerate() {
+            assert_eq!(model.id() as usize, i);
+            assert_eq!(CameraModel::ALL[i], *model);
+            assert_eq!(CameraModel::from_id(model.id()), Some(*model));
+            assert_eq!(CameraModel::from_name(name), Some(*model));
+        }
+        assert_eq!(CameraModel::from_id(-1), None);
+        assert_eq!(CameraModel::from_id(18), None);
+        assert_eq!(CameraModel::from_name("simple_radial"), None);
+    }
+}

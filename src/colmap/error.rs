@@ -1,0 +1,299 @@
+//! The one error type of the COLMAP reader.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// Everything that can go wrong reading a COLMAP model or database.
+///
+/// Every variant names the file it is about (`path`), so the one-line message is enough for a
+/// user to find the problem. Messages are lowercase and have no trailing period. The I/O and
+/// SQLite causes are not repeated in the message but returned by `source()`, so that a chain
+/// printer (`anyhow`'s `{:#}`) shows each once.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum Error {
+    /// Reading a file failed.
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// A folder has neither `cameras.bin` … nor `cameras.txt` ….
+    NoModel { dir: PathBuf },
+    /// One file of a model is present but another is not (`images.bin` without `points3D.bin`).
+    MissingFile { path: PathBuf },
+    /// A binary file ends inside a record.
+    Truncated {
+        path: PathBuf,
+        /// Byte offset where the read started.
+        offset: u64,
+        /// Bytes the read needed.
+        needed: u64,
+        /// The file's length.
+        len: u64,
+        /// What was being read (`"point3D track element"`).
+        what: &'static str,
+    },
+    /// A binary file has bytes after its last record.
+    TrailingBytes { path: PathBuf, offset: u64, len: u64 },
+    /// A text file has a line that does not parse.
+    BadLine {
+        path: PathBuf,
+        /// 1-based line number.
+        line: u64,
+        what: String,
+    },
+    /// A binary file has a value that is not valid (not a length problem).
+    BadValue {
+        path: PathBuf,
+        offset: u64,
+        what: String,
+    },
+    /// A camera has a model id this crate does not know.
+    UnknownCameraModelId {
+        path: PathBuf,
+        camera_id: u32,
+        model_id: i64,
+    },
+    /// A camera has a model name this crate does not know.
+    UnknownCameraModelName {
+        path: PathBuf,
+        line: u64,
+        name: String,
+    },
+    /// A camera has the wrong number of parameters for its model.
+    ParamCount {
+        path: PathBuf,
+        camera_id: u32,
+        model: &'static str,
+        expected: usize,
+        found: usize,
+    },
+    /// The same id appears twice (`kind` is `"camera"`, `"image"` or `"point3D"`).
+    DuplicateId {
+        path: PathBuf,
+        kind: &'static str,
+        id: u64,
+    },
+    /// An image refers to a camera that does not exist.
+    MissingCamera {
+        path: PathBuf,
+        image_id: u32,
+        camera_id: u32,
+    },
+    /// A 3D point's track refers to an image that does not exist.
+    TrackImageMissing {
+        path: PathBuf,
+        point3d_id: u64,
+        image_id: u32,
+    },
+    /// A 3D point's track refers to a 2D point index past the end of the image's points.
+    TrackPoint2DOutOfRange {
+        path: PathBuf,
+        point3d_id: u64,
+        image_id: u32,
+        point2d_idx: u32,
+        num_points2d: usize,
+    },
+    /// A track element's 2D point does not point back at the 3D point (COLMAP's
+    /// `point2D.point3D_id == point3D_id` check).
+    TrackMismatch {
+        path: PathBuf,
+        point3d_id: u64,
+        image_id: u32,
+        point2d_idx: u32,
+        /// The `point3D_id` stored on the 2D point (`None`: the 2D point has none).
+        found: Option<u64>,
+    },
+    /// The same (image, point2D) appears twice in tracks.
+    DuplicateTrackElement {
+        path: PathBuf,
+        point3d_id: u64,
+        image_id: u32,
+        point2d_idx: u32,
+    },
+    /// A 2D point refers to a 3D point whose track does not contain it (or that does not exist).
+    Point2DNotInTrack {
+        path: PathBuf,
+        image_id: u32,
+        point2d_idx: u32,
+        point3d_id: u64,
+        /// Whether the 3D point exists at all.
+        point3d_exists: bool,
+    },
+    /// `.bin` and `.txt` models in one folder disagree.
+    ModelsDisagree {
+        bin: PathBuf,
+        txt: PathBuf,
+        what: String,
+    },
+    /// A file is not an SQLite database.
+    NotADatabase { path: PathBuf },
+    /// A database lacks a table COLMAP always creates.
+    MissingTable { path: PathBuf, table: &'static str },
+    /// A database table lacks a column.
+    MissingColumn {
+        path: PathBuf,
+        table: &'static str,
+        column: &'static str,
+    },
+    /// A database row holds a value that does not fit its schema.
+    BadRow {
+        path: PathBuf,
+        table: &'static str,
+        /// The row's key (`image_id` or `camera_id`).
+        id: i64,
+        what: String,
+    },
+    /// The database has no row for an image the caller asked for.
+    ImageNotInDatabase { path: PathBuf, image_id: u32 },
+    /// An SQLite call failed.
+    Sqlite {
+        path: PathBuf,
+        source: rusqlite::Error,
+    },
+}
+
+/// The `Result` of this module.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+fn show(path: &Path) -> std::path::Display<'_> {
+    path.display()
+}
+
+fn opt_id(id: Option<u64>) -> String {
+    match id {
+        Some(id) => id.to_string(),
+        None => "none".to_string(),
+    }
+}
+
+impl fmt::Display for Error {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Error::Io { path, .. } => write!(f, "cannot read {}", show(path)),
+            Error::NoModel { dir } => write!(
+                f,
+                "{}: no COLMAP model (neither cameras.bin, images.bin, points3D.bin nor the .txt files)",
+                show(dir)
+            ),
+            Error::MissingFile { path } => {
+                write!(f, "{}: missing (the other files of the model are present)", show(path))
+            }
+            Error::Truncated { path, offset, needed, len, what } => write!(
+                f,
+                "{}: truncated: {what} at byte {offset} needs {needed} bytes, the file has {len}",
+                show(path)
+            ),
+            Error::TrailingBytes { path, offset, len } => write!(
+                f,
+                "{}: {} unexpected bytes after the last record at byte {offset}",
+                show(path),
+                len.saturating_sub(*offset)
+            ),
+            Error::BadLine { path, line, what } => write!(f, "{}:{line}: {what}", show(path)),
+            Error::BadValue { path, offset, what } => {
+                write!(f, "{}: at byte {offset}: {what}", show(path))
+            }
+            Error::UnknownCameraModelId { path, camera_id, model_id } => write!(
+                f,
+                "{}: camera {camera_id}: unknown camera model id {model_id}",
+                show(path)
+            ),
+            Error::UnknownCameraModelName { path, line, name } => {
+                write!(f, "{}:{line}: unknown camera model {name:?}", show(path))
+            }
+            Error::ParamCount { path, camera_id, model, expected, found } => write!(
+                f,
+                "{}: camera {camera_id}: model {model} takes {expected} parameters, found {found}",
+                show(path)
+            ),
+            Error::DuplicateId { path, kind, id } => {
+                write!(f, "{}: {kind} id {id} appears more than once", show(path))
+            }
+            Error::MissingCamera { path, image_id, camera_id } => write!(
+                f,
+                "{}: image {image_id} refers to camera {camera_id}, which does not exist",
+                show(path)
+            ),
+            Error::TrackImageMissing { path, point3d_id, image_id } => write!(
+                f,
+                "{}: point3D {point3d_id}: track refers to image {image_id}, which does not exist",
+                show(path)
+            ),
+            Error::TrackPoint2DOutOfRange { path, point3d_id, image_id, point2d_idx, num_points2d } => {
+                write!(
+                    f,
+                    "{}: point3D {point3d_id}: track refers to point2D {point2d_idx} of image \
+                     {image_id}, which has only {num_points2d} points2D",
+                    show(path)
+                )
+            }
+            Error::TrackMismatch { path, point3d_id, image_id, point2d_idx, found } => write!(
+                f,
+                "{}: inconsistent track: point3D {point3d_id} lists point2D {point2d_idx} of image \
+                 {image_id}, but that point2D's point3D_id is {} ({} vs. {point3d_id})",
+                show(path),
+                opt_id(*found),
+                opt_id(*found)
+            ),
+            Error::DuplicateTrackElement { path, point3d_id, image_id, point2d_idx } => write!(
+                f,
+                "{}: point3D {point3d_id}: point2D {point2d_idx} of image {image_id} appears twice in tracks",
+                show(path)
+            ),
+            Error::Point2DNotInTrack { path, image_id, point2d_idx, point3d_id, point3d_exists } => {
+                if *point3d_exists {
+                    write!(
+                        f,
+                        "{}: inconsistent track: point2D {point2d_idx} of image {image_id} refers \
+                         to point3D {point3d_id}, whose track does not list it",
+                        show(path)
+                    )
+                } else {
+                    write!(
+                        f,
+                        "{}: point2D {point2d_idx} of image {image_id} refers to point3D \
+                         {point3d_id}, which does not exist",
+                        show(path)
+                    )
+                }
+            }
+            Error::ModelsDisagree { bin, txt, what } => write!(
+                f,
+                "{} and {} disagree: {what}",
+                show(bin),
+                show(txt)
+            ),
+            Error::NotADatabase { path } => {
+                write!(f, "{}: not an SQLite database", show(path))
+            }
+            Error::MissingTable { path, table } => write!(
+                f,
+                "{}: not a COLMAP database: no table {table:?}",
+                show(path)
+            ),
+            Error::MissingColumn { path, table, column } => write!(
+                f,
+                "{}: not a COLMAP database: table {table:?} has no column {column:?}",
+                show(path)
+            ),
+            Error::BadRow { path, table, id, what } => {
+                write!(f, "{}: table {table}, id {id}: {what}", show(path))
+            }
+            Error::ImageNotInDatabase { path, image_id } => {
+                write!(f, "{}: no image with id {image_id}", show(path))
+            }
+            Error::Sqlite { path, .. } => write!(f, "{}: sqlite query failed", show(path)),
+        }
+    }
+}
+
+impl std::error::Error for Error {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            Error::Io { source, .. } => Some(source),
+            Error::Sqlite { source, .. } => Some(source),
+            _ => None,
+        }
+    }
+}

@@ -1,0 +1,410 @@
+//! The in-memory COLMAP reconstruction and its consistency checks.
+//!
+//! Layout: cameras, images and 3D points are `Vec`s sorted by id (lookups binary-search them),
+//! and all tracks live in one flat array that each [`Point3D`] indexes into. Why: a converted
+//! model can have a million points with tracks of ~5, and one `Vec` per track would be a million
+//! small allocations; the flat array is one allocation and 8 bytes per observation.
+
+use std::path::{Path, PathBuf};
+
+use super::camera::CameraModel;
+use super::error::{Error, Result};
+
+/// A camera: intrinsics in COLMAP's parameter order for its model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Camera {
+    pub id: u32,
+    pub model: CameraModel,
+    pub width: u64,
+    pub height: u64,
+    /// `model.num_params()` values; the reader checks the count.
+    pub params: Vec<f64>,
+}
+
+/// A rigid transform; COLMAP's `cam_from_world` maps world points into the camera frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Rigid3 {
+    /// Unit quaternion, scalar first: `[qw, qx, qy, qz]` as in `images.txt`.
+    pub rotation: [f64; 4],
+    /// `[tx, ty, tz]`.
+    pub translation: [f64; 3],
+}
+
+/// A 2D feature observation in an image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Point2D {
+    /// Pixel coordinates; COLMAP puts the centre of the top-left pixel at (0.5, 0.5).
+    pub xy: [f64; 2],
+    /// The 3D point this observation belongs to, `None` if it is not triangulated (stored as
+    /// `u64::MAX` in `.bin` files and `-1` in `.txt` files).
+    pub point3d_id: Option<u64>,
+}
+
+/// A registered image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Image {
+    pub id: u32,
+    pub name: String,
+    pub camera_id: u32,
+    pub cam_from_world: Rigid3,
+    /// Index `i` here is the `point2D_idx` of track elements (and, for COLMAP-written models,
+    /// the keypoint row in `database.db`).
+    pub points2d: Vec<Point2D>,
+}
+
+/// One observation of a 3D point: the `point2d_idx`-th 2D point of image `image_id`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct TrackElement {
+    pub image_id: u32,
+    pub point2d_idx: u32,
+}
+
+/// A 3D point. Its track is [`Reconstruction::track`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Point3D {
+    pub id: u64,
+    pub xyz: [f64; 3],
+    pub rgb: [u8; 3],
+    /// Mean reprojection error in pixels, as COLMAP stored it.
+    pub error: f64,
+    track_start: usize,
+    track_len: u32,
+}
+
+impl Point3D {
+    /// Number of observations.
+    pub fn track_len(&self) -> usize {
+        self.track_len as usize
+    }
+}
+
+/// A validated COLMAP reconstruction (cameras, registered images, 3D points with tracks).
+///
+/// Built by the readers or by [`ReconstructionBuilder`]; every instance has passed
+/// [`ReconstructionBuilder::build`]'s checks, so tracks and 2D points agree.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Reconstruction {
+    cameras: Vec<Camera>,
+    images: Vec<Image>,
+    points3d: Vec<Point3D>,
+    tracks: Vec<TrackElement>,
+}
+
+impl Reconstruction {
+    /// Cameras sorted by id.
+    pub fn cameras(&self) -> &[Camera] {
+        &self.cameras
+    }
+
+    /// Images sorted by id.
+    pub fn images(&self) -> &[Image] {
+        &self.images
+    }
+
+    /// 3D points sorted by id.
+    pub fn points3d(&self) -> &[Point3D] {
+        &self.points3d
+    }
+
+    /// The track of `point` (a point of this reconstruction).
+    pub fn track(&self, point: &Point3D) -> &[TrackElement] {
+        // The builder checked every range, so this only fails for a point from another
+        // reconstruction; an empty track is the harmless answer then.
+        let end = point.track_start.saturating_add(point.track_len as usize);
+        self.tracks.get(point.track_start..end).unwrap_or(&[])
+    }
+
+    /// Total number of observations (sum of track lengths).
+    pub fn num_observations(&self) -> usize {
+        self.tracks.len()
+    }
+
+    /// The camera with id `id`.
+    pub fn camera(&self, id: u32) -> Option<&Camera> {
+        let i = self.cameras.binary_search_by_key(&id, |c| c.id).ok()?;
+        self.cameras.get(i)
+    }
+
+    /// The image with id `id`.
+    pub fn image(&self, id: u32) -> Option<&Image> {
+        self.image_index(id).and_then(|i| self.images.get(i))
+    }
+
+    /// Position of image `id` in [`images`](Self::images).
+    pub fn image_index(&self, id: u32) -> Option<usize> {
+        self.images.binary_search_by_key(&id, |c| c.id).ok()
+    }
+
+    /// The 3D point with id `id`.
+    pub fn point3d(&self, id: u64) -> Option<&Point3D> {
+        self.point3d_index(id).and_then(|i| self.points3d.get(i))
+    }
+
+    /// Position of 3D point `id` in [`points3d`](Self::points3d).
+    pub fn point3d_index(&self, id: u64) -> Option<usize> {
+        self.points3d.binary_search_by_key(&id, |p| p.id).ok()
+    }
+
+    /// An empty builder to assemble a reconstruction by hand (tests, generators, exporters).
+    pub fn builder() -> ReconstructionBuilder {
+        ReconstructionBuilder::new()
+    }
+}
+
+/// Collects cameras, images and points in any order, then sorts and validates them.
+#[derive(Debug, Clone)]
+pub struct ReconstructionBuilder {
+    cameras: Vec<Camera>,
+    images: Vec<Image>,
+    points3d: Vec<Point3D>,
+    tracks: Vec<TrackElement>,
+    cameras_path: PathBuf,
+    images_path: PathBuf,
+    points3d_path: PathBuf,
+}
+
+impl Default for ReconstructionBuilder {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl ReconstructionBuilder {
+    /// An empty builder; errors name the files `cameras`, `images` and `points3D`.
+    pub fn new() -> Self {
+        ReconstructionBuilder {
+            cameras: Vec::new(),
+            images: Vec::new(),
+            points3d: Vec::new(),
+            tracks: Vec::new(),
+            cameras_path: PathBuf::from("cameras"),
+            images_path: PathBuf::from("images"),
+            points3d_path: PathBuf::from("points3D"),
+        }
+    }
+
+    /// Sets the file names that validation errors report.
+    pub fn paths(mut self, cameras: &Path, images: &Path, points3d: &Path) -> Self {
+        self.cameras_path = cameras.to_path_buf();
+        self.images_path = images.to_path_buf();
+        self.points3d_path = points3d.to_path_buf();
+        self
+    }
+
+    /// Reserves room for `points` 3D points with `observations` track elements in total.
+    pub fn reserve_points3d(&mut self, points: usize, observations: usize) {
+        self.points3d.reserve(points);
+        self.tracks.reserve(observations);
+    }
+
+    pub fn add_camera(&mut self, camera: Camera) {
+        self.cameras.push(camera);
+    }
+
+    pub fn add_image(&mut self, image: Image) {
+        self.images.push(image);
+    }
+
+    /// Adds a 3D point with its track.
+    pub fn add_point3d(
+        &mut self,
+        id: u64,
+        xyz: [f64; 3],
+        rgb: [u8; 3],
+        error: f64,
+        track: &[TrackElement],
+    ) -> Result<()> {
+        let start = self.begin_point3d();
+        self.tracks.extend_from_slice(track);
+        self.end_point3d(start, id, xyz, rgb, error)
+    }
+
+    /// Starts a point whose track the caller pushes with [`push_track`](Self::push_track);
+    /// returns the track start to give [`end_point3d`](Self::end_point3d). Lets the parsers
+    /// append track elements straight into the flat array.
+    pub(crate) fn begin_point3d(&self) -> usize {
+        self.tracks.len()
+    }
+
+    pub(crate) fn push_track(&mut self, element: TrackElement) {
+        self.tracks.push(element);
+    }
+
+    pub(crate) fn end_point3d(
+        &mut self,
+        track_start: usize,
+        id: u64,
+        xyz: [f64; 3],
+        rgb: [u8; 3],
+        error: f64,
+    ) -> Result<()> {
+        let len = self.tracks.len().saturating_sub(track_start);
+        let track_len = u32::try_from(len).map_err(|_| Error::BadValue {
+            path: self.points3d_path.clone(),
+            offset: 0,
+            what: format!("point3D {id}: track of {len} elements is too long"),
+        })?;
+        self.points3d.push(Point3D {
+            id,
+            xyz,
+            rgb,
+            error,
+            track_start,
+            track_len,
+        });
+        Ok(())
+    }
+
+    /// Sorts by id and checks the model the way COLMAP does when it loads one, plus the
+    /// reverse direction: ids are unique; parameter counts match the camera model; images
+    /// refer to existing cameras; every track element names an existing image and 2D point
+    /// whose `point3D_id` is the point's id, at most once; every 2D point with a `point3D_id`
+    /// is in that point's track. The first problem (in input order) is the error.
+    pub fn build(mut self) -> Result<Reconstruction> {
+        self.cameras.sort_by_key(|c| c.id);
+        if let Some(w) = self.cameras.windows(2).find(|w| w[0].id == w[1].id) {
+            return Err(Error::DuplicateId {
+                path: self.cameras_path,
+                kind: "camera",
+                id: u64::from(w[0].id),
+            });
+        }
+        for camera in &self.cameras {
+            if camera.params.len() != camera.model.num_params() {
+                return Err(Error::ParamCount {
+                    path: self.cameras_path,
+                    camera_id: camera.id,
+                    model: camera.model.name(),
+                    expected: camera.model.num_params(),
+                    found: camera.params.len(),
+                });
+            }
+        }
+        for image in &self.images {
+            if self.cameras.binary_search_by_key(&image.camera_id, |c| c.id).is_err() {
+                return Err(Error::MissingCamera {
+                    path: self.images_path,
+                    image_id: image.id,
+                    camera_id: image.camera_id,
+                });
+            }
+        }
+        self.images.sort_by_key(|i| i.id);
+        if let Some(w) = self.images.windows(2).find(|w| w[0].id == w[1].id) {
+            return Err(Error::DuplicateId {
+                path: self.images_path,
+                kind: "image",
+                id: u64::from(w[0].id),
+            });
+        }
+        self.check_tracks()?;
+        self.points3d.sort_unstable_by_key(|p| p.id);
+        if let Some(w) = self.points3d.windows(2).find(|w| w[0].id == w[1].id) {
+            return Err(Error::DuplicateId {
+                path: self.points3d_path,
+                kind: "point3D",
+                id: w[0].id,
+            });
+        }
+        Ok(Reconstruction {
+            cameras: self.cameras,
+            images: self.images,
+            points3d: self.points3d,
+            tracks: self.tracks,
+        })
+    }
+
+    /// Track → 2D point direction, in input order so the first error matches COLMAP's.
+    fn check_tracks(&self) -> Result<()> {
+        // One bit per 2D point of every image (in sorted image order) marks "seen in a track".
+        let mut offsets = Vec::with_capacity(self.images.len());
+        let mut total = 0usize;
+        for image in &self.images {
+            offsets.push(total);
+            total = total.saturating_add(image.points2d.len());
+        }
+        let mut seen = vec![0u64; total.div_ceil(64)];
+        let mut last_image: Option<usize> = None;
+        for point in &self.points3d {
+            let end = point.track_start.saturating_add(point.track_len as usize);
+            let track = self.tracks.get(point.track_start..end).unwrap_or(&[]);
+            for element in track {
+                // Tracks usually list one image many times in a row; skip the search then.
+                let index = match last_image {
+                    Some(i) if self.images[i].id == element.image_id => i,
+                    _ => self
+                        .images
+                        .binary_search_by_key(&element.image_id, |i| i.id)
+                        .map_err(|_| Error::TrackImageMissing {
+                            path: self.points3d_path.clone(),
+                            point3d_id: point.id,
+                            image_id: element.image_id,
+                        })?,
+                };
+                last_image = Some(index);
+                let image = &self.images[index];
+                let idx = element.point2d_idx as usize;
+                let Some(point2d) = image.points2d.get(idx) else {
+                    return Err(Error::TrackPoint2DOutOfRange {
+                        path: self.points3d_path.clone(),
+                        point3d_id: point.id,
+                        image_id: element.image_id,
+                        point2d_idx: element.point2d_idx,
+                        num_points2d: image.points2d.len(),
+                    });
+                };
+                if point2d.point3d_id != Some(point.id) {
+                    return Err(Error::TrackMismatch {
+                        path: self.points3d_path.clone(),
+                        point3d_id: point.id,
+                        image_id: element.image_id,
+                        point2d_idx: element.point2d_idx,
+                        found: point2d.point3d_id,
+                    });
+                }
+                let bit = offsets[index] + idx;
+                let (word, mask) = (bit / 64, 1u64 << (bit % 64));
+                if seen[word] & mask != 0 {
+                    return Err(Error::DuplicateTrackElement {
+                        path: self.points3d_path.clone(),
+                        point3d_id: point.id,
+                        image_id: element.image_id,
+                        point2d_idx: element.point2d_idx,
+                    });
+                }
+                seen[word] |= mask;
+            }
+        }
+        // Every track element matched a distinct 2D point carrying its id, so the two
+        // directions agree exactly when the counts do; only on a mismatch find the culprit.
+        let referenced: usize = self
+            .images
+            .iter()
+            .map(|i| i.points2d.iter().filter(|p| p.point3d_id.is_some()).count())
+            .sum();
+        if referenced == self.tracks.len() {
+            return Ok(());
+        }
+        for (index, image) in self.images.iter().enumerate() {
+            for (idx, point2d) in image.points2d.iter().enumerate() {
+                let bit = offsets[index] + idx;
+                if let Some(id) = point2d.point3d_id {
+                    if seen[bit / 64] & (1u64 << (bit % 64)) == 0 {
+                        return Err(self.not_in_track(image.id, idx, id));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn not_in_track(&self, image_id: u32, idx: usize, point3d_id: u64) -> Error {
+        Error::Point2DNotInTrack {
+            path: self.images_path.clone(),
+            image_id,
+            point2d_idx: u32::try_from(idx).unwrap_or(u32::MAX),
+            point3d_id,
+            point3d_exists: self.points3d.iter().any(|p| p.id == point3d_id),
+        }
+    }
+}

@@ -1,0 +1,367 @@
+//! COLMAP text models: `cameras.txt`, `images.txt`, `points3D.txt`.
+//!
+//! Lines starting with `#` and blank lines are comments, except that in `images.txt` the line
+//! after an image line is always that image's 2D points, even when empty (as COLMAP reads it).
+//!
+//! - `cameras.txt`: `CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]` (`MODEL` is a name).
+//! - `images.txt`: `IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`, then `(X Y POINT3D_ID)*` with
+//!   `POINT3D_ID = -1` for none.
+//! - `points3D.txt`: `POINT3D_ID X Y Z R G B ERROR (IMAGE_ID POINT2D_IDX)*`.
+
+use std::fmt::Write as _;
+use std::path::Path;
+use std::str::FromStr;
+
+use super::camera::CameraModel;
+use super::error::{Error, Result};
+use super::model::{
+    Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, Rigid3, TrackElement,
+};
+
+/// Lines with their 1-based numbers, `\r\n` tolerated.
+struct Lines<'a> {
+    rest: &'a [u8],
+    number: u64,
+}
+
+impl<'a> Lines<'a> {
+    fn new(data: &'a [u8]) -> Self {
+        Lines {
+            rest: data,
+            number: 0,
+        }
+    }
+
+    /// The next raw line (trimmed), comments included.
+    fn next_raw(&mut self) -> Option<(u64, &'a [u8])> {
+        if self.rest.is_empty() {
+            return None;
+        }
+        let (line, rest) = match self.rest.iter().position(|&b| b == b'\n') {
+            Some(i) => (&self.rest[..i], &self.rest[i + 1..]),
+            None => (self.rest, &[][..]),
+        };
+        self.rest = rest;
+        self.number += 1;
+        Some((self.number, line.trim_ascii()))
+    }
+
+    /// The next line that is neither blank nor a comment.
+    fn next_data(&mut self) -> Option<(u64, &'a [u8])> {
+        while let Some((n, line)) = self.next_raw() {
+            if !line.is_empty() && line[0] != b'#' {
+                return Some((n, line));
+            }
+        }
+        None
+    }
+}
+
+/// Whitespace-separated tokens of one line, with errors naming file and line.
+struct Tokens<'a> {
+    rest: &'a [u8],
+    path: &'a Path,
+    line: u64,
+}
+
+impl<'a> Tokens<'a> {
+    fn new(line: &'a [u8], path: &'a Path, number: u64) -> Self {
+        Tokens {
+            rest: line,
+            path,
+            line: number,
+        }
+    }
+
+    fn error(&self, what: String) -> Error {
+        Error::BadLine {
+            path: self.path.to_path_buf(),
+            line: self.line,
+            what,
+        }
+    }
+
+    fn next_token(&mut self) -> Option<&'a [u8]> {
+        let rest = self.rest.trim_ascii_start();
+        if rest.is_empty() {
+            self.rest = rest;
+            return None;
+        }
+        let end = rest
+            .iter()
+            .position(|b| b.is_ascii_whitespace())
+            .unwrap_or(rest.len());
+        self.rest = &rest[end..];
+        Some(&rest[..end])
+    }
+
+    /// The rest of the line, trimmed.
+    fn rest(&self) -> &'a [u8] {
+        self.rest.trim_ascii()
+    }
+
+    fn has_more(&self) -> bool {
+        !self.rest.trim_ascii_start().is_empty()
+    }
+
+    fn count_rest(&self) -> usize {
+        self.rest
+            .split(|b| b.is_ascii_whitespace())
+            .filter(|t| !t.is_empty())
+            .count()
+    }
+
+    fn parse<T: FromStr>(&mut self, what: &str) -> Result<T> {
+        let token = self
+            .next_token()
+            .ok_or_else(|| self.error(format!("missing {what}")))?;
+        std::str::from_utf8(token)
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .ok_or_else(|| {
+                self.error(format!(
+                    "bad {what} {:?}",
+                    String::from_utf8_lossy(&token[..token.len().min(40)])
+                ))
+            })
+    }
+
+    fn parse_f64s<const N: usize>(&mut self, what: &str) -> Result<[f64; N]> {
+        let mut out = [0f64; N];
+        for v in &mut out {
+            *v = self.parse(what)?;
+        }
+        Ok(out)
+    }
+
+    /// A `POINT3D_ID` where COLMAP writes `-1` for none.
+    fn point3d_id(&mut self) -> Result<Option<u64>> {
+        let token = self
+            .next_token()
+            .ok_or_else(|| self.error("missing point3D id".to_string()))?;
+        if token == b"-1" {
+            return Ok(None);
+        }
+        let id: u64 = std::str::from_utf8(token)
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .ok_or_else(|| {
+                self.error(format!(
+                    "bad point3D id {:?}",
+                    String::from_utf8_lossy(&token[..token.len().min(40)])
+                ))
+            })?;
+        Ok((id != u64::MAX).then_some(id))
+    }
+}
+
+/// Parses `cameras.txt`; `path` only names the file in errors.
+pub fn parse_cameras(data: &[u8], path: &Path) -> Result<Vec<Camera>> {
+    let mut lines = Lines::new(data);
+    let mut cameras = Vec::new();
+    while let Some((number, line)) = lines.next_data() {
+        let mut t = Tokens::new(line, path, number);
+        let id: u32 = t.parse("camera id")?;
+        let name = t
+            .next_token()
+            .ok_or_else(|| t.error("missing camera model".to_string()))?;
+        let model = std::str::from_utf8(name)
+            .ok()
+            .and_then(CameraModel::from_name)
+            .ok_or_else(|| Error::UnknownCameraModelName {
+                path: path.to_path_buf(),
+                line: number,
+                name: String::from_utf8_lossy(&name[..name.len().min(40)]).into_owned(),
+            })?;
+        let width: u64 = t.parse("camera width")?;
+        let height: u64 = t.parse("camera height")?;
+        let found = t.count_rest();
+        if found != model.num_params() {
+            return Err(t.error(format!(
+                "camera {id}: model {model} takes {} parameters, found {found}",
+                model.num_params()
+            )));
+        }
+        let mut params = Vec::with_capacity(found);
+        for _ in 0..found {
+            params.push(t.parse("camera parameter")?);
+        }
+        cameras.push(Camera {
+            id,
+            model,
+            width,
+            height,
+            params,
+        });
+    }
+    Ok(cameras)
+}
+
+/// Parses `images.txt`.
+pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
+    let mut lines = Lines::new(data);
+    let mut images = Vec::new();
+    while let Some((number, line)) = lines.next_data() {
+        let mut t = Tokens::new(line, path, number);
+        let id: u32 = t.parse("image id")?;
+        let rotation = t.parse_f64s::<4>("image rotation")?;
+        let translation = t.parse_f64s::<3>("image translation")?;
+        let camera_id: u32 = t.parse("image camera id")?;
+        // The name is the rest of the line, so names with spaces survive.
+        let name = std::str::from_utf8(t.rest())
+            .map_err(|_| t.error(format!("image {id}: name is not valid utf-8")))?;
+        if name.is_empty() {
+            return Err(t.error(format!("image {id}: missing name")));
+        }
+        let name = name.to_string();
+        // The points line follows unconditionally; a file ending right after the image line
+        // means no points.
+        let mut points2d = Vec::new();
+        if let Some((number, line)) = lines.next_raw() {
+            let mut t = Tokens::new(line, path, number);
+            let n = t.count_rest();
+            if n % 3 != 0 {
+                return Err(t.error(format!(
+                    "image {id}: points2D line has {n} values, not a multiple of 3 (X Y POINT3D_ID)"
+                )));
+            }
+            points2d.reserve_exact(n / 3);
+            while t.has_more() {
+                let xy = t.parse_f64s::<2>("point2D coordinate")?;
+                let point3d_id = t.point3d_id()?;
+                points2d.push(Point2D { xy, point3d_id });
+            }
+        }
+        images.push(Image {
+            id,
+            name,
+            camera_id,
+            cam_from_world: Rigid3 {
+                rotation,
+                translation,
+            },
+            points2d,
+        });
+    }
+    Ok(images)
+}
+
+/// Parses `points3D.txt` into `builder`.
+pub(crate) fn parse_points3d_into(
+    data: &[u8],
+    path: &Path,
+    builder: &mut ReconstructionBuilder,
+) -> Result<()> {
+    let mut lines = Lines::new(data);
+    while let Some((number, line)) = lines.next_data() {
+        let mut t = Tokens::new(line, path, number);
+        let id: u64 = t.parse("point3D id")?;
+        let xyz = t.parse_f64s::<3>("point3D coordinate")?;
+        let rgb = [
+            t.parse::<u8>("point3D color")?,
+            t.parse::<u8>("point3D color")?,
+            t.parse::<u8>("point3D color")?,
+        ];
+        let error: f64 = t.parse("point3D error")?;
+        let n = t.count_rest();
+        if n % 2 != 0 {
+            return Err(t.error(format!(
+                "point3D {id}: track has {n} values, not a multiple of 2 (IMAGE_ID POINT2D_IDX)"
+            )));
+        }
+        let start = builder.begin_point3d();
+        while t.has_more() {
+            let image_id: u32 = t.parse("track image id")?;
+            let point2d_idx: u32 = t.parse("track point2D index")?;
+            builder.push_track(TrackElement {
+                image_id,
+                point2d_idx,
+            });
+        }
+        builder.end_point3d(start, id, xyz, rgb, error)?;
+    }
+    Ok(())
+}
+
+/// Parses and validates the three files of a text model given as bytes.
+pub fn parse_model(
+    cameras: (&[u8], &Path),
+    images: (&[u8], &Path),
+    points3d: (&[u8], &Path),
+) -> Result<Reconstruction> {
+    let mut builder = ReconstructionBuilder::new().paths(cameras.1, images.1, points3d.1);
+    for camera in parse_cameras(cameras.0, cameras.1)? {
+        builder.add_camera(camera);
+    }
+    for image in parse_images(images.0, images.1)? {
+        builder.add_image(image);
+    }
+    parse_points3d_into(points3d.0, points3d.1, &mut builder)?;
+    builder.build()
+}
+
+// Writers. `{}` on f64 prints the shortest text that parses back to the same bits, so a
+// text model written here reads back exactly.
+
+/// Encodes `cameras.txt`.
+pub fn write_cameras(model: &Reconstruction) -> String {
+    let mut out = String::new();
+    out.push_str("# Camera list with one line of data per camera:\n");
+    out.push_str("#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
+    let _ = writeln!(out, "# Number of cameras: {}", model.cameras().len());
+    for c in model.cameras() {
+        let _ = write!(out, "{} {} {} {}", c.id, c.model.name(), c.width, c.height);
+        for p in &c.params {
+            let _ = write!(out, " {p}");
+        }
+        out.push('\n');
+    }
+    out
+}
+
+/// Encodes `images.txt`.
+pub fn write_images(model: &Reconstruction) -> String {
+    let mut out = String::new();
+    out.push_str("# Image list with two lines of data per image:\n");
+    out.push_str("#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n");
+    out.push_str("#   POINTS2D[] as (X, Y, POINT3D_ID)\n");
+    let _ = writeln!(out, "# Number of images: {}", model.images().len());
+    for image in model.images() {
+        let [qw, qx, qy, qz] = image.cam_from_world.rotation;
+        let [tx, ty, tz] = image.cam_from_world.translation;
+        let _ = writeln!(
+            out,
+            "{} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {} {}",
+            image.id, image.camera_id, image.name
+        );
+        for (i, p) in image.points2d.iter().enumerate() {
+            if i > 0 {
+                out.push(' ');
+            }
+            let _ = match p.point3d_id {
+                Some(id) => write!(out, "{} {} {id}", p.xy[0], p.xy[1]),
+                None => write!(out, "{} {} -1", p.xy[0], p.xy[1]),
+            };
+        }
+        out.push('\n');
+    }
+    out
+}
+
+/// Encodes `points3D.txt`.
+pub fn write_points3d(model: &Reconstruction) -> String {
+    let mut out = String::new();
+    out.push_str("# 3D point list with one line of data per point:\n");
+    out.push_str("#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n");
+    let _ = writeln!(out, "# Number of points: {}", model.points3d().len());
+    for p in model.points3d() {
+        let [x, y, z] = p.xyz;
+        let [r, g, b] = p.rgb;
+        let _ = write!(out, "{} {x} {y} {z} {r} {g} {b} {}", p.id, p.error);
+        for e in model.track(p) {
+            let _ = write!(out, " {} {}", e.image_id, e.point2d_idx);
+        }
+        out.push('\n');
+    }
+    out
+}

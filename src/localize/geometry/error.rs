@@ -1,0 +1,111 @@
+//! The one error type of the geometry module.
+
+use std::fmt;
+
+use super::camera::CameraModel;
+
+/// Everything that can go wrong in camera parsing, pose estimation and refinement.
+///
+/// Variants carry the values that caused them so callers (the localizer, the CLI) can report a
+/// failed query precisely without parsing messages.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum GeometryError {
+    /// A camera model name that is not one of the supported COLMAP models.
+    UnknownCameraModel { name: String },
+    /// The number of intrinsic parameters does not match the model.
+    WrongParamCount {
+        model: CameraModel,
+        expected: usize,
+        found: usize,
+    },
+    /// A camera description string could not be parsed.
+    ParseCamera { input: String, reason: String },
+    /// Intrinsics that cannot describe a camera (zero size, non-positive focal, NaN).
+    InvalidCamera { reason: &'static str },
+    /// The pixel and point slices (or a mask) have different lengths.
+    LengthMismatch {
+        what: &'static str,
+        expected: usize,
+        found: usize,
+    },
+    /// Fewer correspondences than the estimator needs.
+    TooFewCorrespondences { found: usize, required: usize },
+    /// A NaN or infinite value in the input.
+    NonFinite { what: &'static str, index: usize },
+    /// The input cannot determine a pose (coincident or collinear points, coincident pixels).
+    Degenerate { reason: &'static str },
+    /// RANSAC ran its iterations without any minimal sample producing a pose.
+    NoModel { iterations: usize },
+    /// The best pose is supported by fewer inliers than required.
+    TooFewInliers {
+        found: usize,
+        required: usize,
+        iterations: usize,
+    },
+    /// Options outside their valid range.
+    InvalidOptions {
+        field: &'static str,
+        reason: &'static str,
+    },
+    /// The pose refinement produced a non-finite pose or could not start.
+    RefinementFailed { reason: &'static str },
+}
+
+impl fmt::Display for GeometryError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::UnknownCameraModel { name } => write!(
+                f,
+                "unknown camera model {name:?} (supported: SIMPLE_PINHOLE, PINHOLE, \
+                 SIMPLE_RADIAL, RADIAL, OPENCV)"
+            ),
+            Self::WrongParamCount {
+                model,
+                expected,
+                found,
+            } => write!(
+                f,
+                "camera model {} takes {expected} parameters ({}), found {found}",
+                model.name(),
+                model.param_names()
+            ),
+            Self::ParseCamera { input, reason } => {
+                write!(f, "cannot parse camera {input:?}: {reason}")
+            }
+            Self::InvalidCamera { reason } => write!(f, "invalid camera: {reason}"),
+            Self::LengthMismatch {
+                what,
+                expected,
+                found,
+            } => write!(f, "{what}: expected {expected} entries, found {found}"),
+            Self::TooFewCorrespondences { found, required } => write!(
+                f,
+                "too few correspondences: {found}, at least {required} required"
+            ),
+            Self::NonFinite { what, index } => {
+                write!(f, "non-finite value in {what} at index {index}")
+            }
+            Self::Degenerate { reason } => write!(f, "degenerate input: {reason}"),
+            Self::NoModel { iterations } => write!(
+                f,
+                "no pose hypothesis found in {iterations} ransac iterations"
+            ),
+            Self::TooFewInliers {
+                found,
+                required,
+                iterations,
+            } => write!(
+                f,
+                "best pose has {found} inliers, at least {required} required \
+                 ({iterations} ransac iterations)"
+            ),
+            Self::InvalidOptions { field, reason } => {
+                write!(f, "invalid option {field}: {reason}")
+            }
+            Self::RefinementFailed { reason } => write!(f, "pose refinement failed: {reason}"),
+        }
+    }
+}
+
+impl std::error::Error for GeometryError {}

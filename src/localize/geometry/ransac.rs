@@ -1,0 +1,449 @@
+//! LO-RANSAC for absolute pose from 2D–3D correspondences.
+//!
+//! Hypotheses come from P3P on random minimal samples of bearings; each is scored by MSAC
+//! (`Σ min(e², τ²)` over pixel reprojection errors `e` through the camera model, so distortion
+//! is honoured and the threshold `τ` means pixels everywhere). Whenever a hypothesis beats the
+//! best score, local optimisation refits it on its inliers with Levenberg–Marquardt and keeps
+//! the refit while it improves the score (Chum, Matas & Kittler 2003; Lebeda et al. 2012). The
+//! iteration count adapts to the best inlier ratio `w`: `N = ln(1 − confidence) / ln(1 − w³)`,
+//! clamped to `[min_iterations, max_iterations]`.
+//!
+//! Sampling uses a seeded SplitMix64, so a given input and seed always gives the same pose.
+
+use nalgebra::{Matrix2, Matrix3, SymmetricEigen, Vector2, Vector3};
+
+use super::camera::Camera;
+use super::error::GeometryError;
+use super::p3p;
+use super::pose::Pose;
+use super::refine::{refine_indexed, RefineOptions};
+use super::rng::SplitMix64;
+
+/// Options of [`estimate_absolute_pose`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct RansacOptions {
+    /// Inlier threshold on the reprojection error, in pixels.
+    pub max_error_px: f64,
+    /// Probability of having drawn at least one all-inlier sample when stopping.
+    pub confidence: f64,
+    pub min_iterations: usize,
+    /// Upper bound on iterations; at 90 % outliers the adaptive count needs ~9,200 at
+    /// confidence 0.9999, so the default allows that.
+    pub max_iterations: usize,
+    /// Fewer inliers than this is a failure, not a pose.
+    pub min_inliers: usize,
+    pub seed: u64,
+    /// Refit each new best hypothesis on its inliers (the LO in LO-RANSAC).
+    pub local_optimization: bool,
+    /// LM options of the local refits; few iterations suffice because the sample is refit
+    /// again whenever it improves.
+    pub local_refine: RefineOptions,
+    /// A final LM refinement on all inliers of the best pose; `None` returns the LO-RANSAC pose.
+    pub final_refine: Option<RefineOptions>,
+}
+
+impl Default for RansacOptions {
+    /// 12 px and the inlier minimum follow pycolmap's `estimate_absolute_pose` defaults.
+    fn default() -> Self {
+        Self {
+            max_error_px: 12.0,
+            confidence: 0.9999,
+            min_iterations: 100,
+            max_iterations: 10_000,
+            min_inliers: 6,
+            seed: 0x5EED_0F_5F9A,
+            local_optimization: true,
+            local_refine: RefineOptions {
+                max_iterations: 10,
+                ..RefineOptions::default()
+            },
+            final_refine: Some(RefineOptions::default()),
+        }
+    }
+}
+
+impl RansacOptions {
+    fn validate(&self) -> Result<(), GeometryError> {
+        let invalid = |field, reason| Err(GeometryError::InvalidOptions { field, reason });
+        if !(self.max_error_px.is_finite() && self.max_error_px > 0.0) {
+            return invalid("max_error_px", "must be finite and positive");
+        }
+        if !(self.confidence > 0.0 && self.confidence < 1.0) {
+            return invalid("confidence", "must be in (0, 1)");
+        }
+        if self.max_iterations == 0 {
+            return invalid("max_iterations", "must be at least 1");
+        }
+        if self.min_iterations > self.max_iterations {
+            return invalid("min_iterations", "must not exceed max_iterations");
+        }
+        if self.min_inliers < SAMPLE_SIZE {
+            return invalid("min_inliers", "must be at least 3");
+        }
+        self.local_refine.validate()?;
+        if let Some(final_refine) = &self.final_refine {
+            final_refine.validate()?;
+        }
+        Ok(())
+    }
+}
+
+/// The result of [`estimate_absolute_pose`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct PoseEstimate {
+    /// `cam_from_world`.
+    pub pose: Pose,
+    /// One entry per correspondence: reprojection error below the threshold.
+    pub inliers: Vec<bool>,
+    pub num_inliers: usize,
+    /// RANSAC iterations (minimal samples drawn).
+    pub iterations: usize,
+    /// Mean reprojection error of the inliers, in pixels.
+    pub mean_inlier_error_px: f64,
+}
+
+const SAMPLE_SIZE: usize = 3;
+
+/// Fewer correspondences than this cannot tell P3P's up to four solutions apart.
+pub const MIN_CORRESPONDENCES: usize = 4;
+
+/// Estimates `cam_from_world` from pixels (COLMAP convention) and their 3D points with
+/// LO-RANSAC over P3P, then (by default) refines it on all inliers.
+///
+/// Errors rather than a bad pose: mismatched lengths, fewer than four correspondences, NaN or
+/// infinite input, all points coincident or collinear, all pixels coincident, no hypothesis, or
+/// fewer than `min_inliers` inliers.
+pub fn estimate_absolute_pose(
+    pixels: &[Vector2<f64>],
+    points: &[Vector3<f64>],
+    camera: &Camera,
+    options: &RansacOptions,
+) -> Result<PoseEstimate, GeometryError> {
+    options.validate()?;
+    validate_input(pixels, points)?;
+
+    // Bearings are only needed for sampling; scoring projects the 3D points instead, so a
+    // pixel whose undistortion fails is merely never sampled.
+    let bearings: Vec<Vector3<f64>> = pixels.iter().map(|p| camera.bearing(p)).collect();
+    let usable: Vec<usize> = (0..pixels.len())
+        .filter(|&i| bearings[i].iter().all(|c| c.is_finite()))
+        .collect();
+    if usable.len() < MIN_CORRESPONDENCES {
+        return Err(GeometryError::Degenerate {
+            reason: "too few pixels can be undistorted",
+        });
+    }
+
+    let scorer = Scorer {
+        pixels,
+        points,
+        camera,
+        threshold2: options.max_error_px * options.max_error_px,
+    };
+    let mut rng = SplitMix64::new(options.seed);
+    let mut best: Option<(Pose, f64)> = None;
+    let mut inlier_indices = Vec::with_capacity(pixels.len());
+    let mut required = options.max_iterations;
+    let mut iterations = 0;
+
+    while iterations
+        < options
+            .max_iterations
+            .min(required.max(options.min_iterations))
+    {
+        iterations += 1;
+        let sample = draw_sample(&mut rng, &usable);
+        let solutions = p3p::solve(&sample.map(|i| bearings[i]), &sample.map(|i| points[i]));
+        for hypothesis in solutions.as_slice() {
+            let bound = best.as_ref().map_or(f64::INFINITY, |(_, score)| *score);
+            let Some(score) = scorer.score(hypothesis, bound) else {
+                continue;
+            };
+            let mut candidate = (*hypothesis, score);
+            if options.local_optimization {
+                candidate = local_optimization(
+                    &scorer,
+                    candidate,
+                    &options.local_refine,
+                    &mut inlier_indices,
+                );
+            }
+            best = Some(candidate);
+            let best_inliers = scorer.inliers_into(&candidate.0, &mut inlier_indices);
+            required = required_iterations(
+                best_inliers as f64 / pixels.len() as f64,
+                options.confidence,
+            );
+        }
+    }
+
+    let Some((mut pose, score)) = best else {
+        return Err(GeometryError::NoModel { iterations });
+    };
+    if let Some(final_refine) = &options.final_refine {
+        scorer.inliers_into(&pose, &mut inlier_indices);
+        if inlier_indices.len() >= SAMPLE_SIZE {
+            let refined =
+                refine_indexed(pixels, points, &inlier_indices, camera, &pose, final_refine);
+            // The refinement minimizes a robust cost, not MSAC; keep it unless it clearly
+            // lost support (which would mean it slid to a different minimum).
+            if refined.pose.is_finite()
+                && scorer
+                    .score(&refined.pose, f64::INFINITY)
+                    .is_some_and(|s| s <= score * 1.05 + 1e-9)
+            {
+                pose = refined.pose;
+            }
+        }
+    }
+
+    let mut inliers = vec![false; pixels.len()];
+    let mut num_inliers = 0;
+    let mut error_sum = 0.0;
+    for (i, inlier) in inliers.iter_mut().enumerate() {
+        if let Some(e2) = scorer.squared_error(&pose, i) {
+            if e2 < scorer.threshold2 {
+                *inlier = true;
+                num_inliers += 1;
+                error_sum += e2.sqrt();
+            }
+        }
+    }
+    if num_inliers < options.min_inliers.max(SAMPLE_SIZE) || !pose.is_finite() {
+        return Err(GeometryError::TooFewInliers {
+            found: num_inliers,
+            required: options.min_inliers,
+            iterations,
+        });
+    }
+    Ok(PoseEstimate {
+        pose,
+        inliers,
+        num_inliers,
+        iterations,
+        mean_inlier_error_px: error_sum / num_inliers as f64,
+    })
+}
+
+/// Iterations needed so that with probability `confidence` one sample was all inliers.
+pub fn required_iterations(inlier_ratio: f64, confidence: f64) -> usize {
+    let all_inliers = inlier_ratio.clamp(0.0, 1.0).powi(SAMPLE_SIZE as i32);
+    if all_inliers >= 1.0 - f64::EPSILON {
+        return 0;
+    }
+    if !(all_inliers > 0.0) {
+        return usize::MAX;
+    }
+    // ln_1p keeps precision when w³ is tiny (high outlier ratios).
+    let n = (1.0 - confidence).ln() / (-all_inliers).ln_1p();
+    if n.is_finite() && n < usize::MAX as f64 {
+        n.ceil().max(0.0) as usize
+    } else {
+        usize::MAX
+    }
+}
+
+fn draw_sample(rng: &mut SplitMix64, usable: &[usize]) -> [usize; SAMPLE_SIZE] {
+    let n = usable.len();
+    let a = rng.below(n);
+    let mut b = rng.below(n);
+    while b == a {
+        b = rng.below(n);
+    }
+    let mut c = rng.below(n);
+    while c == a || c == b {
+        c = rng.below(n);
+    }
+    [usable[a], usable[b], usable[c]]
+}
+
+/// Refits on inliers while the MSAC score improves.
+fn local_optimization(
+    scorer: &Scorer<'_>,
+    start: (Pose, f64),
+    refine: &RefineOptions,
+    inlier_indices: &mut Vec<usize>,
+) -> (Pose, f64) {
+    const MAX_ROUNDS: usize = 4;
+    let mut best = start;
+    for _ in 0..MAX_ROUNDS {
+        if scorer.inliers_into(&best.0, inlier_indices) < SAMPLE_SIZE {
+            break;
+        }
+        let refined = refine_indexed(
+            scorer.pixels,
+            scorer.points,
+            inlier_indices,
+            scorer.camera,
+            &best.0,
+            refine,
+        );
+        match scorer.score(&refined.pose, best.1) {
+            Some(score) if score < best.1 && refined.pose.is_finite() => {
+                let gain = best.1 - score;
+                best = (refined.pose, score);
+                if gain <= 1e-6 * score {
+                    break;
+                }
+            }
+            _ => break,
+        }
+    }
+    best
+}
+
+/// Pixel-space scoring of hypotheses.
+struct Scorer<'a> {
+    pixels: &'a [Vector2<f64>],
+    points: &'a [Vector3<f64>],
+    camera: &'a Camera,
+    threshold2: f64,
+}
+
+impl Scorer<'_> {
+    /// Squared pixel error, `None` if the point is behind the camera.
+    #[inline]
+    fn squared_error(&self, pose: &Pose, i: usize) -> Option<f64> {
+        let p_cam = pose.transform(&self.points[i]);
+        self.camera
+            .project(&p_cam)
+            .map(|pixel| (pixel - self.pixels[i]).norm_squared())
+    }
+
+    /// MSAC score, or `None` as soon as it cannot beat `bound` (most hypotheses are bad, and
+    /// stopping early saves most of their cost).
+    fn score(&self, pose: &Pose, bound: f64) -> Option<f64> {
+        let rotation: Matrix3<f64> = pose.rotation.to_rotation_matrix().into_inner();
+        let mut score = 0.0;
+        for (pixel, point) in self.pixels.iter().zip(self.points) {
+            let p_cam = rotation * point + pose.translation;
+            let e2 = match self.camera.project(&p_cam) {
+                Some(projected) => (projected - pixel).norm_squared().min(self.threshold2),
+                None => self.threshold2,
+            };
+            score += e2;
+            if score >= bound {
+                return None;
+            }
+        }
+        score.is_finite().then_some(score)
+    }
+
+    /// Collects inlier indices; returns their number.
+    fn inliers_into(&self, pose: &Pose, out: &mut Vec<usize>) -> usize {
+        out.clear();
+        let rotation: Matrix3<f64> = pose.rotation.to_rotation_matrix().into_inner();
+        for (i, (pixel, point)) in self.pixels.iter().zip(self.points).enumerate() {
+            let p_cam = rotation * point + pose.translation;
+            if let Some(projected) = self.camera.project(&p_cam) {
+                if (projected - pixel).norm_squared() < self.threshold2 {
+                    out.push(i);
+                }
+            }
+        }
+        out.len()
+    }
+}
+
+fn validate_input(pixels: &[Vector2<f64>], points: &[Vector3<f64>]) -> Result<(), GeometryError> {
+    if pixels.len() != points.len() {
+        return Err(GeometryError::LengthMismatch {
+            what: "points",
+            expected: pixels.len(),
+            found: points.len(),
+        });
+    }
+    if pixels.len() < MIN_CORRESPONDENCES {
+        return Err(GeometryError::TooFewCorrespondences {
+            found: pixels.len(),
+            required: MIN_CORRESPONDENCES,
+        });
+    }
+    if let Some(index) = pixels
+        .iter()
+        .position(|p| !(p.x.is_finite() && p.y.is_finite()))
+    {
+        return Err(GeometryError::NonFinite {
+            what: "pixels",
+            index,
+        });
+    }
+    if let Some(index) = points.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+        return Err(GeometryError::NonFinite {
+            what: "points",
+            index,
+        });
+    }
+    check_point_spread(points)?;
+    check_pixel_spread(pixels)
+}
+
+/// Coincident or collinear 3D points leave the rotation about their line undetermined.
+fn check_point_spread(points: &[Vector3<f64>]) -> Result<(), GeometryError> {
+    let n = points.len() as f64;
+    let centroid = points.iter().sum::<Vector3<f64>>() / n;
+    let covariance = points
+        .iter()
+        .map(|p| {
+            let d = p - centroid;
+            d * d.transpose()
+        })
+        .sum::<Matrix3<f64>>()
+        / n;
+    let mut eigenvalues: Vec<f64> = SymmetricEigen::new(covariance)
+        .eigenvalues
+        .iter()
+        .copied()
+        .collect();
+    eigenvalues.sort_by(|a, b| b.total_cmp(a));
+    // Relative to the centroid's magnitude: far from the origin, f64 rounding alone spreads
+    // coincident points by ~1e-16 of their coordinates.
+    let magnitude = 1.0 + centroid.norm_squared();
+    if !(eigenvalues[0] > 1e-20 * magnitude) {
+        return Err(GeometryError::Degenerate {
+            reason: "all 3d points coincide",
+        });
+    }
+    if !(eigenvalues[1] > 1e-12 * eigenvalues[0]) {
+        return Err(GeometryError::Degenerate {
+            reason: "all 3d points are collinear",
+        });
+    }
+    Ok(())
+}
+
+fn check_pixel_spread(pixels: &[Vector2<f64>]) -> Result<(), GeometryError> {
+    let n = pixels.len() as f64;
+    let centroid = pixels.iter().sum::<Vector2<f64>>() / n;
+    let covariance = pixels
+        .iter()
+        .map(|p| {
+            let d = p - centroid;
+            d * d.transpose()
+        })
+        .sum::<Matrix2<f64>>()
+        / n;
+    if !(covariance.trace() > 1e-12) {
+        return Err(GeometryError::Degenerate {
+            reason: "all pixels coincide",
+        });
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn iteration_count_follows_the_formula() {
+        assert_eq!(required_iterations(1.0, 0.99), 0);
+        assert_eq!(required_iterations(0.0, 0.99), usize::MAX);
+        // w = 0.5: ln(0.01) / ln(0.875) = 34.5
+        assert_eq!(required_iterations(0.5, 0.99), 35);
+        // w = 0.1 at 0.9999: ~9,206, below the default cap of 10,000.
+        let n = required_iterations(0.1, 0.9999);
+        assert!((9_190..9_220).contains(&n), "{n}");
+        assert!(n <= RansacOptions::default().max_iterations);
+    }
+}
