@@ -337,7 +337,8 @@ impl Camera {
             && pixel.y < f64::from(self.height)
     }
 
-    pub(crate) fn intrinsics(&self) -> &Intrinsics {
+    #[cfg(test)]
+    fn intrinsics(&self) -> &Intrinsics {
         &self.intrinsics
     }
 

@@ -1,0 +1,175 @@
+//! Camera models: parsing, projection, iterative undistortion.
+#![cfg(feature = "localize")]
+
+use nalgebra::{Vector2, Vector3};
+use proptest::prelude::*;
+use sfpmap::localize::geometry::{Camera, CameraModel, GeometryError};
+
+/// One camera per model, with distortion strong enough to matter at the image corners.
+fn cameras() -> Vec<Camera> {
+    [
+        "SIMPLE_PINHOLE 1024 768 800 512 384",
+        "PINHOLE 1024 768 800 820 510.5 380.2",
+        "SIMPLE_RADIAL 1024 768 800 512 384 -0.08",
+        "RADIAL 1024 768 800 512 384 -0.1 0.02",
+        "OPENCV 1024 768 800 820 510.5 380.2 -0.12 0.03 0.001 -0.0015",
+    ]
+    .iter()
+    .map(|s| Camera::parse(s).unwrap())
+    .collect()
+}
+
+#[test]
+fn parses_every_model_with_colmap_parameter_order() {
+    let cameras = cameras();
+    let models: Vec<CameraModel> = cameras.iter().map(Camera::model).collect();
+    assert_eq!(models, CameraModel::ALL);
+    for camera in &cameras {
+        assert_eq!(camera.params().len(), camera.model().num_params());
+        assert_eq!((camera.width(), camera.height()), (1024, 768));
+        assert_eq!(
+            CameraModel::from_colmap_id(camera.model().colmap_id()),
+            Some(camera.model())
+        );
+    }
+    // Principal point is taken as given, no half-pixel shift.
+    assert_eq!(cameras[1].principal_point(), Vector2::new(510.5, 380.2));
+    let on_axis = cameras[1].project(&Vector3::new(0.0, 0.0, 3.0)).unwrap();
+    assert_eq!(on_axis, Vector2::new(510.5, 380.2));
+    // PINHOLE is fx, fy, cx, cy.
+    let p = cameras[1].project(&Vector3::new(1.0, 1.0, 10.0)).unwrap();
+    assert!((p - Vector2::new(510.5 + 80.0, 380.2 + 82.0)).norm() < 1e-12);
+}
+
+#[test]
+fn distortion_formulas_match_colmap() {
+    // SIMPLE_RADIAL: u·(1 + k·r²), r² = u² + v².
+    let camera = Camera::parse("SIMPLE_RADIAL 100 100 100 50 50 0.1").unwrap();
+    let p = camera.project(&Vector3::new(0.3, 0.4, 1.0)).unwrap();
+    let factor = 1.0 + 0.1 * 0.25;
+    assert!(
+        (p - Vector2::new(50.0 + 100.0 * 0.3 * factor, 50.0 + 100.0 * 0.4 * factor)).norm() < 1e-12
+    );
+    // OPENCV: radial k1 r² + k2 r⁴, tangential 2·p1·uv + p2·(r² + 2u²), 2·p2·uv + p1·(r² + 2v²).
+    let camera = Camera::parse("OPENCV 100 100 100 110 50 60 0.1 0.01 0.002 0.003").unwrap();
+    let (u, v) = (0.3, -0.2);
+    let r2: f64 = u * u + v * v;
+    let radial = 0.1 * r2 + 0.01 * r2 * r2;
+    let du = u * radial + 2.0 * 0.002 * u * v + 0.003 * (r2 + 2.0 * u * u);
+    let dv = v * radial + 2.0 * 0.003 * u * v + 0.002 * (r2 + 2.0 * v * v);
+    let p = camera
+        .project(&Vector3::new(u * 2.0, v * 2.0, 2.0))
+        .unwrap();
+    assert!((p - Vector2::new(50.0 + 100.0 * (u + du), 60.0 + 110.0 * (v + dv))).norm() < 1e-12);
+}
+
+#[test]
+fn unproject_inverts_project_across_the_image() {
+    for camera in cameras() {
+        for row in 0..=16 {
+            for col in 0..=16 {
+                let pixel = Vector2::new(
+                    f64::from(camera.width()) * f64::from(col) / 16.0,
+                    f64::from(camera.height()) * f64::from(row) / 16.0,
+                );
+                let xy = camera.unproject(&pixel);
+                let back = camera.project(&Vector3::new(xy.x, xy.y, 1.0)).unwrap();
+                assert!(
+                    (back - pixel).norm() < 1e-9,
+                    "{} at {pixel}: {back}",
+                    camera.model()
+                );
+                let bearing = camera.bearing(&pixel);
+                assert!((bearing.norm() - 1.0).abs() < 1e-12);
+                let back = camera.project(&(bearing * 7.5)).unwrap();
+                assert!((back - pixel).norm() < 1e-9);
+            }
+        }
+    }
+}
+
+#[test]
+fn points_behind_the_camera_do_not_project() {
+    for camera in cameras() {
+        assert_eq!(camera.project(&Vector3::new(0.1, 0.1, -1.0)), None);
+        assert_eq!(camera.project(&Vector3::new(0.1, 0.1, 0.0)), None);
+        assert_eq!(camera.project(&Vector3::new(f64::NAN, 0.1, 1.0)), None);
+    }
+}
+
+#[test]
+fn parse_errors_are_specific() {
+    assert!(matches!(
+        Camera::parse("FISHEYE 10 10 1 2 3"),
+        Err(GeometryError::UnknownCameraModel { name }) if name == "FISHEYE"
+    ));
+    assert_eq!(
+        Camera::parse("SIMPLE_RADIAL 1024 768 800 512 384"),
+        Err(GeometryError::WrongParamCount {
+            model: CameraModel::SimpleRadial,
+            expected: 4,
+            found: 3,
+        })
+    );
+    assert!(matches!(
+        Camera::parse(""),
+        Err(GeometryError::ParseCamera { .. })
+    ));
+    assert!(matches!(
+        Camera::parse("PINHOLE 10"),
+        Err(GeometryError::ParseCamera { .. })
+    ));
+    assert!(matches!(
+        Camera::parse("PINHOLE 10 10 1 1 x 5"),
+        Err(GeometryError::ParseCamera { .. })
+    ));
+    assert!(matches!(
+        Camera::parse("PINHOLE 10 10 -1 1 5 5"),
+        Err(GeometryError::InvalidCamera { .. })
+    ));
+    assert!(matches!(
+        Camera::parse("PINHOLE 0 10 1 1 5 5"),
+        Err(GeometryError::InvalidCamera { .. })
+    ));
+    assert!(matches!(
+        Camera::parse("PINHOLE 10 10 1 NaN 5 5"),
+        Err(GeometryError::InvalidCamera { .. })
+    ));
+    let message = Camera::parse("RADIAL 10 10 1 2 3").unwrap_err().to_string();
+    assert_eq!(
+        message,
+        "camera model RADIAL takes 5 parameters (f, cx, cy, k1, k2), found 3"
+    );
+}
+
+#[test]
+fn parses_hloc_query_lines() {
+    let (name, camera) = Camera::parse_query_line(
+        "query/night/IMG_001.jpg SIMPLE_RADIAL 1600 1200 1469.2 800 600 -0.0353\n",
+    )
+    .unwrap();
+    assert_eq!(name, "query/night/IMG_001.jpg");
+    assert_eq!(camera.model(), CameraModel::SimpleRadial);
+    assert_eq!(camera.params(), &[1469.2, 800.0, 600.0, -0.0353]);
+    assert!(Camera::parse_query_line("lonely.jpg").is_err());
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(256))]
+
+    #[test]
+    fn project_unproject_round_trip(
+        model in 0usize..5,
+        x in -0.6f64..0.6,
+        y in -0.45f64..0.45,
+        depth in 0.1f64..100.0,
+    ) {
+        let camera = &cameras()[model];
+        let p_cam = Vector3::new(x * depth, y * depth, depth);
+        let pixel = camera.project(&p_cam).unwrap();
+        let xy = camera.unproject(&pixel);
+        prop_assert!((xy - Vector2::new(x, y)).norm() < 1e-10, "{xy} vs ({x}, {y})");
+        let bearing = camera.bearing(&pixel);
+        prop_assert!((bearing - p_cam.normalize()).norm() < 1e-10);
+    }
+}
