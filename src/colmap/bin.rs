@@ -207,7 +207,7 @@ pub(crate) fn parse_points3d_into(
 ) -> Result<()> {
     let mut r = Reader::new(data, path);
     let (n, cap) = r.count(MIN_POINT3D, "point3D count")?;
-    // Typical tracks are a few elements long; reserving 4 per point avoids most regrowth
+    // Typical tracks are a few elements long; reserving up to 8 per point avoids most regrowth
     // without trusting the file's count beyond what its length can hold.
     let track_cap = (r.remaining().saturating_sub(cap * MIN_POINT3D) / TRACK_ELEMENT).min(cap * 8);
     builder.reserve_points3d(cap, track_cap);

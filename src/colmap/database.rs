@@ -120,7 +120,8 @@ impl Keypoints {
 
     fn row(&self, i: usize) -> Option<&[f32]> {
         let cols = self.layout.cols();
-        self.data.get(i.checked_mul(cols)?..i.checked_add(1)?.checked_mul(cols)?)
+        self.data
+            .get(i.checked_mul(cols)?..i.checked_add(1)?.checked_mul(cols)?)
     }
 
     /// Location of keypoint `i` (COLMAP pixel convention: top-left pixel centre at 0.5, 0.5).
@@ -209,6 +210,14 @@ pub struct ImageFeatures {
     pub image: DbImage,
     pub keypoints: Option<Keypoints>,
     pub descriptors: Option<Descriptors>,
+}
+
+/// A `(rows, cols, data)` matrix row, its blob size checked.
+struct RawMatrix {
+    rows: usize,
+    cols: usize,
+    type_id: Option<i64>,
+    data: Vec<u8>,
 }
 
 /// A COLMAP database, open read-only.
@@ -329,8 +338,10 @@ impl Database {
         }
     }
 
-    fn id_u32(&self, table: &'static str, id: i64, what: &str) -> Result<u32> {
-        u32::try_from(id).map_err(|_| self.bad_row(table, id, format!("{what} out of range")))
+    /// `value`, a u32 id column of row `row_id`, checked.
+    fn id_u32(&self, table: &'static str, row_id: i64, value: i64, what: &str) -> Result<u32> {
+        u32::try_from(value)
+            .map_err(|_| self.bad_row(table, row_id, format!("{what} {value} out of range")))
     }
 
     /// All cameras, sorted by id, parameter counts checked against the model.
@@ -349,7 +360,7 @@ impl Database {
             let width: i64 = row.get(2).map_err(|e| self.err(e))?;
             let height: i64 = row.get(3).map_err(|e| self.err(e))?;
             let params: Option<Vec<u8>> = row.get(4).map_err(|e| self.err(e))?;
-            let camera_id = self.id_u32("cameras", id, "camera_id")?;
+            let camera_id = self.id_u32("cameras", id, id, "camera_id")?;
             let model = i32::try_from(model_id)
                 .ok()
                 .and_then(CameraModel::from_id)
@@ -406,11 +417,10 @@ impl Database {
             let name: String = row.get(1).map_err(|e| self.err(e))?;
             let camera_id: i64 = row.get(2).map_err(|e| self.err(e))?;
             images.push(DbImage {
-                id: self.id_u32("images", id, "image_id")?,
+                id: self.id_u32("images", id, id, "image_id")?,
                 name,
-                camera_id: self.id_u32("images", id, "camera_id")?,
+                camera_id: self.id_u32("images", id, camera_id, "camera_id")?,
             });
-            let _ = camera_id;
         }
         Ok(images)
     }
@@ -432,8 +442,7 @@ impl Database {
             Some((name, camera_id)) => Ok(Some(DbImage {
                 id: image_id,
                 name,
-                camera_id: self.id_u32("images", i64::from(image_id), "camera_id")
-                    .and_then(|_| self.id_u32("images", camera_id, "camera_id"))?,
+                camera_id: self.id_u32("images", i64::from(image_id), camera_id, "camera_id")?,
             })),
         }
     }
@@ -450,9 +459,8 @@ impl Database {
             .optional()
             .map_err(|e| self.err(e))?;
         rows.map(|r| {
-            u64::try_from(r).map_err(|_| {
-                self.bad_row("keypoints", i64::from(image_id), "negative rows".into())
-            })
+            u64::try_from(r)
+                .map_err(|_| self.bad_row("keypoints", i64::from(image_id), "negative rows".into()))
         })
         .transpose()
     }
@@ -464,7 +472,7 @@ impl Database {
         sql: &str,
         image_id: u32,
         elem: usize,
-    ) -> Result<Option<(usize, usize, Option<i64>, Vec<u8>)>> {
+    ) -> Result<Option<RawMatrix>> {
         let mut stmt = self.conn.prepare_cached(sql).map_err(|e| self.err(e))?;
         let row = stmt
             .query_row([image_id], |row| {
@@ -490,9 +498,7 @@ impl Database {
             return Err(self.bad_row(table, id, format!("bad shape {rows} x {cols}")));
         };
         let data = data.unwrap_or_default();
-        let expected = rows_u
-            .checked_mul(cols_u)
-            .and_then(|n| n.checked_mul(elem));
+        let expected = rows_u.checked_mul(cols_u).and_then(|n| n.checked_mul(elem));
         if expected != Some(data.len()) {
             return Err(self.bad_row(
                 table,
@@ -503,29 +509,34 @@ impl Database {
                 ),
             ));
         }
-        Ok(Some((rows_u, cols_u, kind, data)))
+        Ok(Some(RawMatrix {
+            rows: rows_u,
+            cols: cols_u,
+            type_id: kind,
+            data,
+        }))
     }
 
     /// The keypoints of image `image_id`; `None` if it has no keypoints row.
     pub fn keypoints(&self, image_id: u32) -> Result<Option<Keypoints>> {
         let sql = "SELECT rows, cols, data FROM keypoints WHERE image_id = ?1";
-        let Some((rows, cols, _, data)) = self.matrix("keypoints", sql, image_id, 4)? else {
+        let Some(RawMatrix {
+            rows, cols, data, ..
+        }) = self.matrix("keypoints", sql, image_id, 4)?
+        else {
             return Ok(None);
         };
-        // COLMAP writes 0 columns for an image with no keypoints.
-        if rows == 0 {
-            return Ok(Some(Keypoints {
-                layout: KeypointLayout::Affine,
-                data: Vec::new(),
-            }));
-        }
-        let layout = KeypointLayout::from_cols(cols as i64).ok_or_else(|| {
-            self.bad_row(
-                "keypoints",
-                i64::from(image_id),
-                format!("{cols} columns; COLMAP keypoints have 2, 4 or 6"),
-            )
-        })?;
+        // An image without keypoints may be stored as 0 x 0; any layout describes it.
+        let layout = KeypointLayout::from_cols(cols as i64);
+        let layout = layout
+            .or((rows == 0).then_some(KeypointLayout::Affine))
+            .ok_or_else(|| {
+                self.bad_row(
+                    "keypoints",
+                    i64::from(image_id),
+                    format!("{cols} columns; COLMAP keypoints have 2, 4 or 6"),
+                )
+            })?;
         let data = data
             .chunks_exact(4)
             .map(|c| f32::from_le_bytes(c.try_into().unwrap_or([0; 4])))
@@ -540,11 +551,15 @@ impl Database {
         } else {
             "SELECT rows, cols, data FROM descriptors WHERE image_id = ?1"
         };
-        let Some((rows, cols, type_id, data)) = self.matrix("descriptors", sql, image_id, 1)?
+        let Some(RawMatrix {
+            cols,
+            type_id,
+            data,
+            ..
+        }) = self.matrix("descriptors", sql, image_id, 1)?
         else {
             return Ok(None);
         };
-        let _ = rows;
         Ok(Some(Descriptors {
             cols,
             type_id,
@@ -555,18 +570,27 @@ impl Database {
     /// Image `image_id` with its keypoints and descriptors; an error if the image is not in
     /// the database or its keypoint and descriptor counts differ.
     pub fn features(&self, image_id: u32) -> Result<ImageFeatures> {
-        let image = self.image(image_id)?.ok_or_else(|| Error::ImageNotInDatabase {
-            path: self.path.clone(),
-            image_id,
-        })?;
+        let image = self
+            .image(image_id)?
+            .ok_or_else(|| Error::ImageNotInDatabase {
+                path: self.path.clone(),
+                image_id,
+            })?;
         self.features_of(image)
     }
 
     fn features_of(&self, image: DbImage) -> Result<ImageFeatures> {
         let keypoints = self.keypoints(image.id)?;
-        let descriptors = self.descriptors(image.id)?;
+        let mut descriptors = self.descriptors(image.id)?;
+        // An empty descriptors row next to keypoints is how some tools leave an image whose
+        // descriptors were never computed: report it as missing, not as a mismatch.
+        if descriptors.as_ref().is_some_and(|d| d.is_empty())
+            && keypoints.as_ref().is_some_and(|k| !k.is_empty())
+        {
+            descriptors = None;
+        }
         if let (Some(k), Some(d)) = (&keypoints, &descriptors) {
-            if k.len() != d.len() && !d.data.is_empty() {
+            if k.len() != d.len() {
                 return Err(self.bad_row(
                     "descriptors",
                     i64::from(image.id),

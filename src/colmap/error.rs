@@ -34,7 +34,11 @@ pub enum Error {
         what: &'static str,
     },
     /// A binary file has bytes after its last record.
-    TrailingBytes { path: PathBuf, offset: u64, len: u64 },
+    TrailingBytes {
+        path: PathBuf,
+        offset: u64,
+        len: u64,
+    },
     /// A text file has a line that does not parse.
     BadLine {
         path: PathBuf,

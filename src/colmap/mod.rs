@@ -20,8 +20,8 @@ use std::path::{Path, PathBuf};
 
 pub use camera::CameraModel;
 pub use database::{
-    Database, DbCamera, DbImage, Descriptors, ImageFeatures, ImageFeaturesIter, Keypoint,
-    KeypointLayout, Keypoints,
+    Database, DbImage, Descriptors, ImageFeatures, ImageFeaturesIter, Keypoint, KeypointLayout,
+    Keypoints,
 };
 pub use error::{Error, Result};
 pub use model::{
@@ -164,7 +164,10 @@ fn compare(a: &Reconstruction, b: &Reconstruction) -> Result<(), String> {
     ids("point3D", a.points3d(), b.points3d(), |p| p.id)?;
     for (x, y) in a.images().iter().zip(b.images()) {
         if x.name != y.name || x.points2d.len() != y.points2d.len() {
-            return Err(format!("image {} differs (name or number of points2D)", x.id));
+            return Err(format!(
+                "image {} differs (name or number of points2D)",
+                x.id
+            ));
         }
     }
     if a.num_observations() != b.num_observations() {

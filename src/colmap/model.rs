@@ -281,7 +281,11 @@ impl ReconstructionBuilder {
             }
         }
         for image in &self.images {
-            if self.cameras.binary_search_by_key(&image.camera_id, |c| c.id).is_err() {
+            if self
+                .cameras
+                .binary_search_by_key(&image.camera_id, |c| c.id)
+                .is_err()
+            {
                 return Err(Error::MissingCamera {
                     path: self.images_path,
                     image_id: image.id,
