@@ -1,0 +1,402 @@
+//! Test fixtures shared by the format tests: a small synthetic scene the tests generate
+//! themselves, its expected decoded JSON, and a patcher for hand-made corrupt bytes.
+#![allow(dead_code)]
+
+use serde_json::{json, Value};
+use sfpmap::format::{
+    checksum, f16, CameraInfo, Codec, Descriptors, Header, LevelInfo, Map, MapWriter, RawEntry,
+    SectionKind, ENTRY_LEN, HEADER_LEN,
+};
+use std::borrow::Cow;
+
+/// Deterministic pseudo-random numbers (SplitMix64), so fixtures are the same everywhere.
+pub struct Rng(pub u64);
+
+impl Rng {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [-1, 1).
+    pub fn unit(&mut self) -> f32 {
+        (self.next_u64() >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+    }
+}
+
+pub struct LevelData {
+    pub info: LevelInfo,
+    pub points: Vec<u32>,
+    /// `[points × dim_full]`, L2-normalised rows.
+    pub descriptors: Vec<f32>,
+    pub projection: Option<(usize, Vec<f32>)>,
+}
+
+/// Everything a map can hold, owned, so a writer can borrow it.
+pub struct Scene {
+    pub positions: Vec<[f64; 3]>,
+    pub colors: Vec<[u8; 3]>,
+    pub ids: Vec<u64>,
+    pub cameras: Vec<CameraInfo>,
+    pub image_names: Vec<String>,
+    pub image_cameras: Vec<u32>,
+    pub image_poses: Vec<[f64; 7]>,
+    pub image_ids: Vec<u32>,
+    pub global: Option<(usize, Vec<f32>)>,
+    pub vis_offsets: Vec<u64>,
+    pub vis_points: Vec<u32>,
+    pub vis_keypoints: Vec<[f32; 2]>,
+    pub levels: Vec<LevelData>,
+    pub with_rest: bool,
+}
+
+pub fn level_info(level: u16, stride: f64, dim_full: u32, dim_short: u32) -> LevelInfo {
+    LevelInfo {
+        level,
+        stride,
+        descriptor: "sfp-v1".into(),
+        dim_full,
+        dim_short,
+        normalization: "l2".into(),
+        extra: Default::default(),
+    }
+}
+
+impl Scene {
+    /// `n_points` points, `n_images` images, the given levels as (id, stride, full, short);
+    /// each level holds a pseudo-random subset of the points.
+    pub fn new(
+        seed: u64,
+        n_points: usize,
+        n_images: usize,
+        levels: &[(u16, f64, u32, u32)],
+    ) -> Scene {
+        let mut rng = Rng(seed);
+        let positions: Vec<[f64; 3]> = (0..n_points)
+            .map(|_| {
+                [
+                    f64::from(rng.unit()) * 50.0 + 1000.0,
+                    f64::from(rng.unit()) * 5.0,
+                    f64::from(rng.unit()) * 20.0,
+                ]
+            })
+            .collect();
+        let colors = (0..n_points)
+            .map(|i| [i as u8, (i * 7) as u8, (i * 13) as u8])
+            .collect();
+        let ids = (0..n_points as u64).map(|i| i * 3 + 1).collect();
+        let cameras = vec![CameraInfo {
+            id: Some(1),
+            model: "SIMPLE_RADIAL".into(),
+            width: 640,
+            height: 480,
+            params: vec![500.0, 320.0, 240.0, 0.01],
+        }];
+        let image_names = (0..n_images).map(|i| format!("img_{i:03}.jpg")).collect();
+        let image_cameras = vec![0; n_images];
+        let image_poses = (0..n_images)
+            .map(|i| [1.0, 0.0, 0.0, 0.0, i as f64, -(i as f64) * 0.5, 2.0])
+            .collect();
+        let image_ids = (0..n_images as u32).map(|i| i + 1).collect();
+        let mut vis_offsets = vec![0u64];
+        let mut vis_points = Vec::new();
+        let mut vis_keypoints = Vec::new();
+        for _ in 0..n_images {
+            for p in 0..n_points as u32 {
+                if rng.next_u64() % 3 == 0 {
+                    vis_points.push(p);
+                    vis_keypoints.push([rng.unit() * 300.0 + 320.0, rng.unit() * 200.0 + 240.0]);
+                }
+            }
+            vis_offsets.push(vis_points.len() as u64);
+        }
+        let levels = levels
+            .iter()
+            .map(|&(level, stride, full, short)| {
+                let points: Vec<u32> = (0..n_points as u32)
+                    .filter(|_| rng.next_u64() % 2 == 0)
+                    .collect();
+                let mut descriptors = Vec::with_capacity(points.len() * full as usize);
+                for _ in &points {
+                    let row: Vec<f32> = (0..full).map(|_| rng.unit()).collect();
+                    let norm = row.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-6);
+                    descriptors.extend(row.iter().map(|v| v / norm));
+                }
+                let projection = (0..full as usize * full as usize)
+                    .map(|i| {
+                        if i % (full as usize + 1) == 0 {
+                            1.0
+                        } else {
+                            0.0
+                        }
+                    })
+                    .collect();
+                LevelData {
+                    info: level_info(level, stride, full, short),
+                    points,
+                    descriptors,
+                    projection: Some((full as usize, projection)),
+                }
+            })
+            .collect();
+        Scene {
+            positions,
+            colors,
+            ids,
+            cameras,
+            image_names,
+            image_cameras,
+            image_poses,
+            image_ids,
+            global: (n_images > 0).then(|| {
+                (
+                    4,
+                    (0..n_images * 4)
+                        .map(|i| if i % 4 == 0 { 1.0 } else { 0.0 })
+                        .collect(),
+                )
+            }),
+            vis_offsets,
+            vis_points,
+            vis_keypoints,
+            levels,
+            with_rest: true,
+        }
+    }
+
+    /// The scene cut to one level, as `slice --level L --short` must produce it.
+    pub fn sliced(&self, level: u16) -> Scene {
+        let l = self.levels.iter().find(|l| l.info.level == level).unwrap();
+        let mut remap = vec![u32::MAX; self.positions.len()];
+        for (new, &old) in l.points.iter().enumerate() {
+            remap[old as usize] = new as u32;
+        }
+        let mut vis_offsets = vec![0u64];
+        let (mut vis_points, mut vis_keypoints) = (Vec::new(), Vec::new());
+        for i in 0..self.image_names.len() {
+            for e in self.vis_offsets[i] as usize..self.vis_offsets[i + 1] as usize {
+                let new = remap[self.vis_points[e] as usize];
+                if new != u32::MAX {
+                    vis_points.push(new);
+                    vis_keypoints.push(self.vis_keypoints[e]);
+                }
+            }
+            vis_offsets.push(vis_points.len() as u64);
+        }
+        let pick = |i: &u32| *i as usize;
+        Scene {
+            positions: l.points.iter().map(|i| self.positions[pick(i)]).collect(),
+            colors: l.points.iter().map(|i| self.colors[pick(i)]).collect(),
+            ids: l.points.iter().map(|i| self.ids[pick(i)]).collect(),
+            cameras: self.cameras.clone(),
+            image_names: self.image_names.clone(),
+            image_cameras: self.image_cameras.clone(),
+            image_poses: self.image_poses.clone(),
+            image_ids: self.image_ids.clone(),
+            global: self.global.clone(),
+            vis_offsets,
+            vis_points,
+            vis_keypoints,
+            levels: vec![LevelData {
+                info: l.info.clone(),
+                points: (0..l.points.len() as u32).collect(),
+                descriptors: l.descriptors.clone(),
+                projection: l.projection.clone(),
+            }],
+            with_rest: false,
+        }
+    }
+
+    pub fn writer(&self, codec: Codec) -> MapWriter<'_> {
+        let mut w = MapWriter::default();
+        w.set_codec(codec, 3);
+        w.metadata_mut().provenance.tool = "sfpmap test fixture".into();
+        for c in &self.cameras {
+            w.add_camera(c.clone());
+        }
+        w.set_points_world(&self.positions);
+        w.set_point_colors(&self.colors);
+        w.set_point_ids(&self.ids);
+        if !self.image_names.is_empty() {
+            w.set_images(
+                &self.image_names,
+                &self.image_cameras,
+                &self.image_poses,
+                Some(&self.image_ids),
+            )
+            .unwrap();
+            w.set_visibility(
+                &self.vis_offsets,
+                &self.vis_points,
+                Some(&self.vis_keypoints),
+            )
+            .unwrap();
+        }
+        if let Some((dim, g)) = &self.global {
+            w.set_image_global(*dim, g).unwrap();
+        }
+        for l in &self.levels {
+            w.add_level(
+                l.info.clone(),
+                &l.points,
+                Some(Descriptors::F32(&l.descriptors)),
+                self.with_rest,
+            )
+            .unwrap();
+            if let Some((d_in, p)) = &l.projection {
+                w.set_level_projection(l.info.level, *d_in, p.clone())
+                    .unwrap();
+            }
+        }
+        w
+    }
+
+    /// The decoded content a reader must find, computed from the inputs (f16 rounding
+    /// applied), in the schema of `decoded_json`.
+    pub fn expected_json(&self, origin: [f64; 3]) -> Value {
+        let rel =
+            |p: &[f64; 3]| -> Vec<f32> { (0..3).map(|k| (p[k] - origin[k]) as f32).collect() };
+        let round = |v: &f32| f16::from_f32(*v).to_f32();
+        json!({
+            "points": self.positions.len(),
+            "positions": self.positions.iter().map(rel).collect::<Vec<_>>(),
+            "colors": self.colors,
+            "point_ids": self.ids,
+            "cameras": self.cameras.len(),
+            "images": self.image_names.iter().enumerate().map(|(i, n)| json!({
+                "name": n, "camera": self.image_cameras[i], "cam_from_world": self.image_poses[i], "id": self.image_ids[i],
+            })).collect::<Vec<_>>(),
+            "visibility": if self.image_names.is_empty() { Value::Null } else { json!({ "offsets": self.vis_offsets, "points": self.vis_points }) },
+            "levels": self.levels.iter().map(|l| {
+                let (full, short) = (l.info.dim_full as usize, l.info.dim_short as usize);
+                let rows: Vec<&[f32]> = l.descriptors.chunks(full.max(1)).collect();
+                json!({
+                    "level": l.info.level,
+                    "points": l.points,
+                    "dim_full": full,
+                    "dim_short": short,
+                    "has_rest": self.with_rest,
+                    "short": rows.iter().map(|r| r[..short].iter().map(round).collect::<Vec<_>>()).collect::<Vec<_>>(),
+                    "rest": if self.with_rest { json!(rows.iter().map(|r| r[short..].iter().map(round).collect::<Vec<_>>()).collect::<Vec<_>>()) } else { Value::Null },
+                })
+            }).collect::<Vec<_>>(),
+        })
+    }
+}
+
+/// What a reader decodes from a map, in the schema of the vectors' `.json` files.
+pub fn decoded_json(map: &Map<'_>) -> Value {
+    let images = map.images().unwrap();
+    let levels: Vec<Value> = map
+        .levels()
+        .map(|l| {
+            let short = l.desc_short().unwrap();
+            let rest = l.desc_rest().unwrap();
+            let rows = |v: &[f16], d: usize| -> Vec<Vec<f32>> {
+                if d == 0 {
+                    return vec![vec![]; l.len()];
+                }
+                v.chunks(d).map(|r| r.iter().map(|x| x.to_f32()).collect()).collect()
+            };
+            json!({
+                "level": l.id(),
+                "points": *l.points().unwrap(),
+                "dim_full": l.dim_full(),
+                "dim_short": l.dim_short(),
+                "has_rest": l.has_rest(),
+                "short": rows(&short, l.dim_short()),
+                "rest": rest.map(|r| json!(rows(&r, l.dim_full() - l.dim_short()))).unwrap_or(Value::Null),
+            })
+        })
+        .collect();
+    let vis = map.visibility().unwrap();
+    json!({
+        "points": map.n_points(),
+        "positions": *map.point_positions().unwrap(),
+        "colors": map.point_colors().unwrap().map(|c| c.to_vec()),
+        "point_ids": map.point_ids().unwrap().map(|c| c.to_vec()),
+        "cameras": map.metadata().cameras.len(),
+        "images": images.as_ref().map_or(vec![], |im| (0..im.len()).map(|i| json!({
+            "name": im.name(i).unwrap(), "camera": im.cameras[i], "cam_from_world": im.poses[i],
+            "id": im.ids.as_ref().map(|ids| ids[i]),
+        })).collect::<Vec<_>>()),
+        "visibility": vis.map(|v| json!({ "offsets": *v.offsets, "points": *v.points })),
+        "levels": levels,
+    })
+}
+
+/// Re-encodes header and table of `bytes` after `edit`, recomputing the index checksum,
+/// so a test can make one precise corruption that the checksum does not catch first.
+pub fn patch(bytes: &[u8], edit: impl FnOnce(&mut Header, &mut Vec<RawEntry>)) -> Vec<u8> {
+    let mut out = bytes.to_vec();
+    let mut header = Header::decode(bytes).unwrap();
+    let table_end = HEADER_LEN + header.section_count as usize * ENTRY_LEN;
+    let mut entries: Vec<RawEntry> = bytes[HEADER_LEN..table_end]
+        .chunks(ENTRY_LEN)
+        .map(RawEntry::decode)
+        .collect();
+    edit(&mut header, &mut entries);
+    assert_eq!(
+        entries.len(),
+        header.section_count as usize,
+        "patch keeps the table length"
+    );
+    for (i, e) in entries.iter().enumerate() {
+        out[HEADER_LEN + i * ENTRY_LEN..HEADER_LEN + (i + 1) * ENTRY_LEN]
+            .copy_from_slice(&e.encode());
+    }
+    let meta = &bytes
+        [header.metadata_offset as usize..(header.metadata_offset + header.metadata_len) as usize];
+    let mut h = concat_checksum(&header.encode()[..56], &out[HEADER_LEN..table_end], meta);
+    std::mem::swap(&mut header.index_checksum, &mut h);
+    out[..HEADER_LEN].copy_from_slice(&header.encode());
+    out
+}
+
+/// The index checksum (XXH3 of header prefix, table, metadata), computed independently of
+/// the reader's streaming hasher: the one-shot hash of the concatenation.
+fn concat_checksum(prefix: &[u8], table: &[u8], meta: &[u8]) -> u64 {
+    let mut all = Vec::with_capacity(prefix.len() + table.len() + meta.len());
+    all.extend_from_slice(prefix);
+    all.extend_from_slice(table);
+    all.extend_from_slice(meta);
+    checksum(&all)
+}
+
+/// A minimal valid map: two points, nothing else.
+pub fn minimal() -> Vec<u8> {
+    let positions = [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]];
+    let mut w = MapWriter::default();
+    w.metadata_mut().provenance.tool = "sfpmap test fixture".into();
+    w.set_points_world(&positions);
+    w.to_bytes().unwrap()
+}
+
+/// A map with an extra section of `kind` added as raw bytes.
+pub fn with_extra_section(
+    kind: SectionKind,
+    level: u16,
+    required: bool,
+    codec: Option<Codec>,
+) -> Vec<u8> {
+    let positions = [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]];
+    let mut w = MapWriter::default();
+    w.metadata_mut().provenance.tool = "sfpmap test fixture".into();
+    w.set_points_world(&positions);
+    let values: Vec<u16> = (0..12).collect();
+    w.add_raw_section(
+        kind,
+        level,
+        sfpmap::format::Dtype::U16,
+        4,
+        3,
+        required,
+        Cow::Owned(bytemuck::cast_slice(&values).to_vec()),
+        codec,
+    )
+    .unwrap();
+    w.to_bytes().unwrap()
+}

@@ -1,0 +1,416 @@
+//! The conformance vectors in `spec/vectors/`: generated here (run with
+//! `SFPMAP_REGEN_VECTORS=1` to rewrite them), and every committed vector checked against
+//! its `.json`. The generator also proves the writer is deterministic: regenerating must
+//! reproduce the committed bytes exactly.
+
+mod common;
+
+use common::{decoded_json, minimal, patch, with_extra_section, Scene};
+use serde_json::{json, Value};
+use sfpmap::format::{slice, Codec, Dtype, Map, SectionKind, SliceOptions, NO_LEVEL};
+use std::borrow::Cow;
+use std::path::{Path, PathBuf};
+
+fn vectors_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("spec/vectors")
+}
+
+fn scene() -> Scene {
+    Scene::new(
+        7,
+        24,
+        3,
+        &[(0, 16.0, 16, 4), (1, 8.0, 8, 4), (2, 4.0, 8, 2)],
+    )
+}
+
+fn valid_expected(description: &str, bytes: &[u8], content: Value, unknown: Value) -> Value {
+    json!({
+        "description": description,
+        "version": "1.0",
+        "file_bytes": bytes.len(),
+        "content": content,
+        "unknown_sections": unknown,
+    })
+}
+
+fn origin_of(bytes: &[u8]) -> [f64; 3] {
+    Map::from_bytes(bytes).unwrap().metadata().origin
+}
+
+/// (name, bytes, expected json) of every valid vector.
+fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
+    let mut out = Vec::new();
+
+    let min = minimal();
+    let content = json!({
+        "points": 2, "positions": [[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]], "colors": null, "point_ids": null,
+        "cameras": 0, "images": [], "visibility": null, "levels": [],
+    });
+    out.push((
+        "minimal",
+        min.clone(),
+        valid_expected("two points, no images, no levels", &min, content, json!([])),
+    ));
+
+    let s = scene();
+    let levels = s.writer(Codec::Raw).to_bytes().unwrap();
+    let content = s.expected_json(origin_of(&levels));
+    out.push((
+        "levels",
+        levels.clone(),
+        valid_expected(
+            "3 levels with short+rest descriptors, projections, images, visibility",
+            &levels,
+            content,
+            json!([]),
+        ),
+    ));
+
+    let map = Map::from_bytes(&levels).unwrap();
+    let options = SliceOptions {
+        levels: vec![2],
+        short: true,
+        codec: None,
+        zstd_level: 3,
+    };
+    let short = slice(&map, &options).unwrap().0.to_bytes().unwrap();
+    let content = s.sliced(2).expected_json(origin_of(&levels));
+    out.push((
+        "short_only",
+        short.clone(),
+        valid_expected(
+            "the levels vector sliced to level 2, short",
+            &short,
+            content,
+            json!([]),
+        ),
+    ));
+
+    let zstd = s.writer(Codec::Zstd).to_bytes().unwrap();
+    let content = s.expected_json(origin_of(&zstd));
+    out.push((
+        "zstd",
+        zstd.clone(),
+        valid_expected(
+            "the levels vector with every section zstd",
+            &zstd,
+            content,
+            json!([]),
+        ),
+    ));
+
+    let unknown = with_extra_section(
+        SectionKind::Unknown(0x7F01),
+        NO_LEVEL,
+        false,
+        Some(Codec::Raw),
+    );
+    let content = json!({
+        "points": 2, "positions": [[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]], "colors": null, "point_ids": null,
+        "cameras": 0, "images": [], "visibility": null, "levels": [],
+    });
+    let listed = json!([{ "kind_code": 0x7F01, "dtype": "u16", "rows": 4, "cols": 3 }]);
+    out.push((
+        "unknown_optional",
+        unknown.clone(),
+        valid_expected(
+            "minimal plus an optional section of an unknown kind (skipped)",
+            &unknown,
+            content,
+            listed,
+        ),
+    ));
+
+    // Every dtype: u8 colours, u32 indices, u64 ids/offsets, f16 descriptors, f32 positions,
+    // f64 poses, plus optional u16 and f64 sections of unknown kinds, zstd and raw mixed.
+    let mixed_scene = Scene::new(11, 10, 2, &[(3, 2.0, 6, 3)]);
+    let mut w = mixed_scene.writer(Codec::Raw);
+    let u16s: Vec<u16> = (0..10).map(|i| i * 1000).collect();
+    let f64s: Vec<f64> = vec![0.5, -1.25, 1e100, -0.0];
+    w.add_raw_section(
+        SectionKind::Unknown(0x7F02),
+        NO_LEVEL,
+        Dtype::U16,
+        10,
+        1,
+        false,
+        Cow::Owned(bytemuck::cast_slice(&u16s).to_vec()),
+        Some(Codec::Zstd),
+    )
+    .unwrap();
+    w.add_raw_section(
+        SectionKind::Unknown(0x7F03),
+        3,
+        Dtype::F64,
+        2,
+        2,
+        false,
+        Cow::Owned(bytemuck::cast_slice(&f64s).to_vec()),
+        None,
+    )
+    .unwrap();
+    let mixed = w.to_bytes().unwrap();
+    let content = mixed_scene.expected_json(origin_of(&mixed));
+    let listed = json!([
+        { "kind_code": 0x7F02, "dtype": "u16", "rows": 10, "cols": 1 },
+        { "kind_code": 0x7F03, "dtype": "f64", "rows": 2, "cols": 2 },
+    ]);
+    out.push((
+        "mixed_dtypes",
+        mixed.clone(),
+        valid_expected(
+            "all seven dtypes, raw and zstd sections mixed",
+            &mixed,
+            content,
+            listed,
+        ),
+    ));
+
+    let geo = Scene::new(5, 6, 2, &[]);
+    let mut w = geo.writer(Codec::Raw);
+    w.metadata_mut().geometry_only = true;
+    let geometry = w.to_bytes().unwrap();
+    let content = geo.expected_json(origin_of(&geometry));
+    out.push((
+        "geometry_only",
+        geometry.clone(),
+        valid_expected(
+            "points, images and visibility without descriptors",
+            &geometry,
+            content,
+            json!([]),
+        ),
+    ));
+    out
+}
+
+/// (name, bytes, expected error kind, stage where it must be found).
+fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)> {
+    let good = scene().writer(Codec::Raw).to_bytes().unwrap();
+    let mut out = Vec::new();
+
+    let mut b = good.clone();
+    b[1] = b'X';
+    out.push(("bad_magic", b, "bad_magic", "open"));
+
+    let mut b = good.clone();
+    b[8] = 2;
+    out.push(("unknown_major", b, "version_mismatch", "open"));
+
+    let file_len = good.len() as u64;
+    out.push((
+        "section_out_of_bounds",
+        patch(&good, |_, e| e[2].offset = (file_len + 64) & !63),
+        "section_out_of_bounds",
+        "open",
+    ));
+
+    out.push((
+        "overlapping_sections",
+        patch(&good, |_, e| e[3].offset = e[2].offset),
+        "overlap",
+        "open",
+    ));
+
+    let mut b = good.clone();
+    let last = *b.last().unwrap();
+    *b.last_mut().unwrap() = last ^ 0x01;
+    out.push(("bad_checksum", b, "checksum_mismatch", "verify"));
+
+    out.push((
+        "size_overflow",
+        patch(&good, |_, e| {
+            e[0].rows = u64::MAX / 2;
+            e[0].cols = 4
+        }),
+        "size_mismatch",
+        "open",
+    ));
+
+    out.push((
+        "truncated",
+        good[..good.len() / 2].to_vec(),
+        "truncated",
+        "open",
+    ));
+
+    let mut b = good.clone();
+    let first = Map::from_bytes(&good).unwrap().sections()[0].offset as usize;
+    b[first - 1] = 0xFF;
+    out.push(("bad_padding", patch(&b, |_, _| {}), "bad_padding", "open"));
+
+    let b = with_extra_section(
+        SectionKind::Unknown(0x7F01),
+        NO_LEVEL,
+        true,
+        Some(Codec::Raw),
+    );
+    out.push(("unknown_required", b, "unknown_required_section", "open"));
+
+    // A zstd section whose table claims a huge (but self-consistent) array.
+    let z = with_extra_section(
+        SectionKind::Unknown(0x7F01),
+        NO_LEVEL,
+        false,
+        Some(Codec::Zstd),
+    );
+    out.push((
+        "decode_bomb",
+        patch(&z, |_, e| {
+            e[1].rows = 1 << 40;
+            e[1].raw_len = (1 << 40) * 3 * 2
+        }),
+        "decoded_too_large",
+        "verify",
+    ));
+    out
+}
+
+fn read_file(path: &Path) -> Vec<u8> {
+    std::fs::read(path)
+        .unwrap_or_else(|e| panic!("{}: {e} (run with SFPMAP_REGEN_VECTORS=1)", path.display()))
+}
+
+#[test]
+fn committed_vectors_equal_the_generator() {
+    let dir = vectors_dir();
+    let regen = std::env::var_os("SFPMAP_REGEN_VECTORS").is_some();
+    for (name, bytes, expected) in valid_vectors() {
+        let (bin, js) = (
+            dir.join(format!("valid/{name}.sfpm")),
+            dir.join(format!("valid/{name}.json")),
+        );
+        if regen {
+            std::fs::write(&bin, &bytes).unwrap();
+            std::fs::write(&js, serde_json::to_string_pretty(&expected).unwrap() + "\n").unwrap();
+        }
+        assert_eq!(
+            read_file(&bin),
+            bytes,
+            "{name}: writer output differs from the committed vector"
+        );
+        let committed: Value = serde_json::from_slice(&read_file(&js)).unwrap();
+        assert_eq!(committed, expected, "{name}: expected json differs");
+    }
+    for (name, bytes, error, stage) in invalid_vectors() {
+        let (bin, js) = (
+            dir.join(format!("invalid/{name}.sfpm")),
+            dir.join(format!("invalid/{name}.json")),
+        );
+        let expected = json!({ "error": error, "stage": stage });
+        if regen {
+            std::fs::write(&bin, &bytes).unwrap();
+            std::fs::write(&js, serde_json::to_string_pretty(&expected).unwrap() + "\n").unwrap();
+        }
+        assert_eq!(
+            read_file(&bin),
+            bytes,
+            "{name}: generator differs from the committed vector"
+        );
+    }
+}
+
+fn committed(kind: &str) -> Vec<(PathBuf, Vec<u8>, Value)> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(vectors_dir().join(kind))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "sfpm"))
+        .collect();
+    files.sort();
+    assert!(files.len() >= 6, "at least 6 {kind} vectors");
+    files
+        .into_iter()
+        .map(|p| {
+            let json: Value =
+                serde_json::from_slice(&read_file(&p.with_extension("json"))).unwrap();
+            let bytes = read_file(&p);
+            (p, bytes, json)
+        })
+        .collect()
+}
+
+#[test]
+fn valid_vectors_decode_to_their_json() {
+    for (path, bytes, expected) in committed("valid") {
+        let map = Map::from_bytes(&bytes).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        map.verify()
+            .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        assert_eq!(map.version(), expected["version"], "{}", path.display());
+        assert_eq!(map.file_len(), expected["file_bytes"], "{}", path.display());
+        assert_eq!(
+            decoded_json(&map),
+            expected["content"],
+            "{}",
+            path.display()
+        );
+        let unknown: Vec<Value> = map
+            .unknown_sections()
+            .map(|s| json!({ "kind_code": s.kind.code(), "dtype": s.dtype.name(), "rows": s.rows, "cols": s.cols }))
+            .collect();
+        assert_eq!(
+            json!(unknown),
+            expected["unknown_sections"],
+            "{}",
+            path.display()
+        );
+        // The same through the mmap path.
+        let mapped = Map::open(&path).unwrap();
+        assert_eq!(decoded_json(&mapped), expected["content"]);
+    }
+}
+
+#[test]
+fn invalid_vectors_fail_with_their_error() {
+    for (path, bytes, expected) in committed("invalid") {
+        let result = Map::from_bytes(&bytes);
+        let (stage, err) = match result {
+            Err(e) => ("open", e),
+            Ok(map) => (
+                "verify",
+                map.verify()
+                    .expect_err(&format!("{} verifies", path.display())),
+            ),
+        };
+        assert_eq!(
+            err.kind_name(),
+            expected["error"],
+            "{}: {err}",
+            path.display()
+        );
+        assert_eq!(stage, expected["stage"], "{}: {err}", path.display());
+    }
+}
+
+#[test]
+fn every_byte_flip_of_a_valid_vector_fails_verify() {
+    for (path, bytes, _) in committed("valid") {
+        let mut copy = bytes.clone();
+        for i in 0..bytes.len() {
+            for mask in [0x01u8, 0x80] {
+                copy[i] ^= mask;
+                let outcome = Map::from_bytes(&copy).and_then(|m| m.verify());
+                assert!(
+                    outcome.is_err(),
+                    "{}: flipping bit {mask:#x} of byte {i} passes verify",
+                    path.display()
+                );
+                copy[i] ^= mask;
+            }
+        }
+    }
+}
+
+#[test]
+fn every_truncation_of_a_valid_vector_fails() {
+    for (path, bytes, _) in committed("valid") {
+        for len in 0..bytes.len() {
+            let outcome = Map::from_bytes(&bytes[..len]).and_then(|m| m.verify());
+            assert!(
+                outcome.is_err(),
+                "{}: truncated to {len} bytes passes",
+                path.display()
+            );
+        }
+    }
+}
