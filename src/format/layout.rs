@@ -252,18 +252,16 @@ pub struct Header {
 impl Header {
     /// Decodes the header, checking only what is needed to find the rest of the index.
     pub fn decode(bytes: &[u8]) -> Result<Header, Error> {
-        if bytes.len() < HEADER_LEN {
-            if bytes.len() < MAGIC.len() || bytes[..MAGIC.len()] == MAGIC {
-                return Err(Error::Truncated {
-                    what: "header",
-                    needed: HEADER_LEN as u64,
-                    file_len: bytes.len() as u64,
-                });
-            }
+        let present = bytes.len().min(MAGIC.len());
+        if bytes[..present] != MAGIC[..present] {
             return Err(Error::BadMagic);
         }
-        if bytes[..8] != MAGIC {
-            return Err(Error::BadMagic);
+        if bytes.len() < HEADER_LEN {
+            return Err(Error::Truncated {
+                what: "header",
+                needed: HEADER_LEN as u64,
+                file_len: bytes.len() as u64,
+            });
         }
         let major = le_u16(bytes, 8);
         let minor = le_u16(bytes, 10);

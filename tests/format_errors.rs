@@ -1,0 +1,441 @@
+//! One test per `format::Error` variant, each from hand-made bytes.
+
+mod common;
+
+use common::{level_info, minimal, patch, with_extra_section, Scene};
+use sfpmap::format::{
+    checksum, Codec, Dtype, Error, Map, MapWriter, SectionKind, HEADER_LEN, METADATA_MAX_BYTES,
+    NO_LEVEL,
+};
+use std::borrow::Cow;
+
+fn open_err(bytes: &[u8]) -> Error {
+    Map::from_bytes(bytes).expect_err("must not open")
+}
+
+fn verify_err(bytes: &[u8]) -> Error {
+    let map = Map::from_bytes(bytes).expect("opens");
+    map.verify().expect_err("must not verify")
+}
+
+fn levels_map(codec: Codec) -> Vec<u8> {
+    Scene::new(3, 12, 2, &[(0, 8.0, 8, 4), (2, 4.0, 4, 2)])
+        .writer(codec)
+        .to_bytes()
+        .unwrap()
+}
+
+#[test]
+fn io() {
+    let err = Map::open("/nonexistent/dir/x.sfpm").unwrap_err();
+    assert!(matches!(err, Error::Io { .. }));
+    assert!(err.to_string().contains("/nonexistent/dir/x.sfpm"), "{err}");
+}
+
+#[test]
+fn bad_magic() {
+    let mut b = minimal();
+    b[0] = 0;
+    assert!(matches!(open_err(&b), Error::BadMagic));
+    assert!(matches!(open_err(b"hello"), Error::BadMagic));
+}
+
+#[test]
+fn version_mismatch() {
+    let mut b = minimal();
+    b[8] = 9;
+    assert!(matches!(
+        open_err(&b),
+        Error::VersionMismatch {
+            expected: 1,
+            found: 9,
+            ..
+        }
+    ));
+}
+
+#[test]
+fn bad_endian_check() {
+    let mut b = minimal();
+    b[12..16].copy_from_slice(&0x1A2B_3C4Du32.to_be_bytes());
+    assert!(matches!(open_err(&b), Error::BadEndianCheck { .. }));
+}
+
+#[test]
+fn truncated() {
+    let b = minimal();
+    assert!(matches!(
+        open_err(&b[..b.len() - 1]),
+        Error::Truncated { what: "file", .. }
+    ));
+    assert!(matches!(
+        open_err(&b[..20]),
+        Error::Truncated { what: "header", .. }
+    ));
+    let huge_table = patch(&b, |h, _| h.file_len = 1 << 40);
+    assert!(matches!(open_err(&huge_table), Error::Truncated { .. }));
+}
+
+#[test]
+fn trailing_bytes() {
+    let mut b = minimal();
+    b.extend_from_slice(&[0; 64]);
+    assert!(matches!(open_err(&b), Error::TrailingBytes { .. }));
+    // The header's file_len agrees, but the last section ends before it.
+    let mut b = minimal();
+    let n = b.len() as u64;
+    b.extend_from_slice(&[0; 64]);
+    let b = patch(&b, |h, _| h.file_len = n + 64);
+    assert!(matches!(open_err(&b), Error::TrailingBytes { .. }));
+}
+
+#[test]
+fn bad_index() {
+    let b = minimal();
+    assert!(matches!(
+        open_err(&patch(&b, |h, _| h.entry_len = 32)),
+        Error::BadIndex { .. }
+    ));
+    assert!(matches!(
+        open_err(&patch(&b, |h, _| h.metadata_offset += 8)),
+        Error::BadIndex { .. }
+    ));
+    let b = levels_map(Codec::Raw);
+    let gap = patch(&b, |_, e| {
+        let last = e.len() - 1;
+        e[last].offset += 64;
+    });
+    assert!(matches!(
+        open_err(&gap),
+        Error::SectionOutOfBounds { .. } | Error::BadIndex { .. }
+    ));
+    let two = patch(&b, |h, _| h.section_count = 1 << 20);
+    assert!(matches!(open_err(&two), Error::BadIndex { .. }));
+}
+
+#[test]
+fn index_checksum_mismatch() {
+    let mut b = minimal();
+    let meta_at = HEADER_LEN + 64 + 2; // inside the metadata JSON
+    b[meta_at] ^= 0x20;
+    assert!(matches!(open_err(&b), Error::IndexChecksumMismatch { .. }));
+}
+
+#[test]
+fn metadata_too_large() {
+    let b = patch(&minimal(), |h, _| h.metadata_len = METADATA_MAX_BYTES + 1);
+    assert!(matches!(open_err(&b), Error::MetadataTooLarge { .. }));
+}
+
+#[test]
+fn bad_metadata() {
+    let mut w = MapWriter::default();
+    w.metadata_mut().format = "not-sfpmap".into();
+    w.set_points_world(&[[0.0; 3]]);
+    assert!(matches!(
+        open_err(&w.to_bytes().unwrap()),
+        Error::BadMetadata { .. }
+    ));
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3]]);
+    w.metadata_mut().levels.push(level_info(1, 4.0, 4, 8));
+    assert!(matches!(
+        open_err(&w.to_bytes().unwrap()),
+        Error::BadMetadata { .. }
+    ));
+}
+
+#[test]
+fn bad_entry() {
+    let b = minimal();
+    assert!(matches!(
+        open_err(&patch(&b, |_, e| e[0].dtype = 99)),
+        Error::BadEntry { .. }
+    ));
+    assert!(matches!(
+        open_err(&patch(&b, |_, e| e[0].codec = 7)),
+        Error::BadEntry { .. }
+    ));
+    assert!(matches!(
+        open_err(&patch(&b, |_, e| e[0].reserved = 1)),
+        Error::BadEntry { .. }
+    ));
+    assert!(matches!(
+        open_err(&patch(&b, |_, e| e[0].flags |= 0x80)),
+        Error::BadEntry { .. }
+    ));
+    assert!(matches!(
+        open_err(&patch(&b, |_, e| e[0].level = 3)),
+        Error::BadEntry { .. }
+    ));
+}
+
+#[test]
+fn size_mismatch() {
+    let b = minimal();
+    let overflow = patch(&b, |_, e| {
+        e[0].rows = u64::MAX / 3;
+        e[0].cols = 3;
+    });
+    assert!(matches!(open_err(&overflow), Error::SizeMismatch { .. }));
+    assert!(matches!(
+        open_err(&patch(&b, |_, e| e[0].rows = 3)),
+        Error::SizeMismatch { .. }
+    ));
+}
+
+#[test]
+fn wrong_layout() {
+    let mut w = MapWriter::default();
+    let xyz: Vec<f64> = vec![0.0; 6];
+    w.add_raw_section(
+        SectionKind::PointPositions,
+        NO_LEVEL,
+        Dtype::F64,
+        2,
+        3,
+        true,
+        Cow::Owned(bytemuck::cast_slice(&xyz).to_vec()),
+        None,
+    )
+    .unwrap();
+    assert!(matches!(
+        open_err(&w.to_bytes().unwrap()),
+        Error::WrongLayout { .. }
+    ));
+}
+
+#[test]
+fn section_out_of_bounds() {
+    let b = minimal();
+    let far = patch(&b, |_, e| e[0].offset = 1 << 20);
+    assert!(matches!(open_err(&far), Error::SectionOutOfBounds { .. }));
+    let wrap = patch(&b, |_, e| e[0].offset = u64::MAX & !63);
+    assert!(matches!(open_err(&wrap), Error::SectionOutOfBounds { .. }));
+}
+
+#[test]
+fn misaligned() {
+    let b = patch(&minimal(), |_, e| e[0].offset += 8);
+    assert!(matches!(open_err(&b), Error::Misaligned { .. }));
+}
+
+#[test]
+fn overlap() {
+    let b = levels_map(Codec::Raw);
+    let b = patch(&b, |_, e| e[1].offset = e[0].offset);
+    assert!(matches!(open_err(&b), Error::Overlap { .. }));
+}
+
+#[test]
+fn bad_padding() {
+    let b = minimal();
+    let map = Map::from_bytes(&b).unwrap();
+    let at = map.sections()[0].offset as usize - 1;
+    let mut b = b.clone();
+    b[at] = 1;
+    assert!(matches!(open_err(&b), Error::BadPadding { .. }));
+}
+
+#[test]
+fn unknown_required_section() {
+    let b = with_extra_section(SectionKind::Unknown(0x7000), NO_LEVEL, true, None);
+    assert!(matches!(open_err(&b), Error::UnknownRequiredSection { .. }));
+    // The same section marked optional is skipped and listed.
+    let b = with_extra_section(SectionKind::Unknown(0x7000), NO_LEVEL, false, None);
+    let map = Map::from_bytes(&b).unwrap();
+    assert_eq!(map.unknown_sections().count(), 1);
+    map.verify().unwrap();
+}
+
+#[test]
+fn missing_section() {
+    let w = MapWriter::default();
+    assert!(matches!(
+        open_err(&w.to_bytes().unwrap()),
+        Error::MissingSection {
+            kind: SectionKind::PointPositions,
+            ..
+        }
+    ));
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3]]);
+    w.metadata_mut().levels.push(level_info(1, 4.0, 4, 2));
+    assert!(matches!(
+        open_err(&w.to_bytes().unwrap()),
+        Error::MissingSection {
+            kind: SectionKind::LevelPoints,
+            level: Some(1)
+        }
+    ));
+}
+
+#[test]
+fn duplicate_section() {
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3]]);
+    let two: Vec<u16> = vec![1, 2];
+    w.add_raw_section(
+        SectionKind::Unknown(0x7001),
+        NO_LEVEL,
+        Dtype::U16,
+        2,
+        1,
+        false,
+        Cow::Owned(bytemuck::cast_slice(&two).to_vec()),
+        None,
+    )
+    .unwrap();
+    w.add_raw_section(
+        SectionKind::Unknown(0x7002),
+        NO_LEVEL,
+        Dtype::U16,
+        2,
+        1,
+        false,
+        Cow::Owned(bytemuck::cast_slice(&two).to_vec()),
+        None,
+    )
+    .unwrap();
+    let b = patch(&w.to_bytes().unwrap(), |_, e| e[2].kind = 0x7001);
+    assert!(matches!(open_err(&b), Error::DuplicateSection { .. }));
+}
+
+#[test]
+fn checksum_mismatch() {
+    let mut b = minimal();
+    let last = b.len() - 1;
+    b[last] ^= 1;
+    let err = verify_err(&b);
+    assert!(matches!(err, Error::ChecksumMismatch { .. }));
+    assert!(err.to_string().contains("point_positions"), "{err}");
+}
+
+#[test]
+fn decode() {
+    // Corrupt a zstd frame but fix the checksum, so only decoding can notice.
+    let b = levels_map(Codec::Zstd);
+    let map = Map::from_bytes(&b).unwrap();
+    let s = *map
+        .sections()
+        .iter()
+        .find(|s| s.codec == Codec::Zstd && s.stored_len > 16)
+        .unwrap();
+    let mut bad = b.clone();
+    let start = s.offset as usize;
+    bad[start..start + 4].copy_from_slice(&[0xde, 0xad, 0xbe, 0xef]);
+    let sum = checksum(&bad[start..start + s.stored_len as usize]);
+    let bad = patch(&bad, |_, e| e[s.index].checksum = sum);
+    assert!(matches!(verify_err(&bad), Error::Decode { .. }));
+    // A frame that decodes to fewer bytes than declared.
+    let mut short = with_extra_section(
+        SectionKind::Unknown(0x7000),
+        NO_LEVEL,
+        false,
+        Some(Codec::Zstd),
+    );
+    short = patch(&short, |_, e| {
+        e[1].rows = 5;
+        e[1].raw_len = 5 * 3 * 2;
+    });
+    assert!(matches!(verify_err(&short), Error::Decode { .. }));
+}
+
+#[test]
+fn decoded_too_large() {
+    let b = with_extra_section(
+        SectionKind::Unknown(0x7000),
+        NO_LEVEL,
+        false,
+        Some(Codec::Zstd),
+    );
+    let b = patch(&b, |_, e| {
+        e[1].rows = 1 << 50;
+        e[1].raw_len = (1 << 50) * 6;
+    });
+    assert!(matches!(verify_err(&b), Error::DecodedTooLarge { .. }));
+}
+
+#[test]
+fn inconsistent() {
+    // Level points out of order, written around the writer's own check.
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3], [1.0; 3]]);
+    w.metadata_mut().geometry_only = true;
+    w.metadata_mut().levels.push(level_info(0, 4.0, 4, 2));
+    let pts: Vec<u32> = vec![1, 0];
+    w.add_raw_section(
+        SectionKind::LevelPoints,
+        0,
+        Dtype::U32,
+        2,
+        1,
+        true,
+        Cow::Owned(bytemuck::cast_slice(&pts).to_vec()),
+        None,
+    )
+    .unwrap();
+    let b = w.to_bytes().unwrap();
+    assert!(matches!(verify_err(&b), Error::Inconsistent { .. }));
+    let map = Map::from_bytes(&b).unwrap();
+    assert!(matches!(
+        map.level(0).unwrap().points(),
+        Err(Error::Inconsistent { .. })
+    ));
+    // Row counts that disagree are caught at open.
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3], [1.0; 3]]);
+    w.set_point_colors(&[[1, 2, 3]]);
+    assert!(matches!(
+        open_err(&w.to_bytes().unwrap()),
+        Error::Inconsistent { .. }
+    ));
+}
+
+#[test]
+fn no_such_level() {
+    let b = levels_map(Codec::Raw);
+    let map = Map::from_bytes(&b).unwrap();
+    let err = map.level(1).unwrap_err();
+    assert_eq!(
+        err,
+        Error::NoSuchLevel {
+            level: 1,
+            available: vec![0, 2]
+        }
+    );
+}
+
+#[test]
+fn invalid_input() {
+    let mut w = MapWriter::default();
+    assert!(matches!(
+        w.set_visibility(&[0, 5], &[1, 2], None),
+        Err(Error::InvalidInput { .. })
+    ));
+    assert!(matches!(
+        w.add_level(level_info(0, 4.0, 4, 2), &[2, 1], None, true),
+        Err(Error::InvalidInput { .. })
+    ));
+    assert!(matches!(
+        w.set_image_global(3, &[0.0; 4]),
+        Err(Error::InvalidInput { .. })
+    ));
+}
+
+#[test]
+fn messages_are_one_lowercase_line() {
+    let mut b = minimal();
+    b[0] = 0;
+    for err in [
+        open_err(&b),
+        Error::NoSuchLevel {
+            level: 1,
+            available: vec![],
+        },
+    ] {
+        let msg = err.to_string();
+        assert!(!msg.contains('\n'));
+        assert!(msg.chars().next().unwrap().is_lowercase(), "{msg}");
+    }
+}
