@@ -1,0 +1,163 @@
+//! Property tests: writer → reader round trips against an f32 reference, and slices.
+
+mod common;
+
+use common::{decoded_json, Scene};
+use proptest::prelude::*;
+use sfpmap::format::{f16, slice, Codec, Descriptors, Map, MapWriter, SliceOptions};
+
+/// |f16(x) − x| for |x| ≤ 1 is at most half an ulp: 2^-11 relative, 2^-25 absolute near 0.
+fn within_f16(reference: f32, stored: f32) -> bool {
+    (reference - stored).abs() <= reference.abs() * (1.0 / 2048.0) + 1.0 / (1 << 24) as f32
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, .. ProptestConfig::default() })]
+
+    #[test]
+    fn descriptors_round_trip_within_f16_precision(
+        seed in any::<u64>(),
+        n_points in 1usize..60,
+        n_images in 0usize..4,
+        dims in prop::collection::vec((1u32..40, 0u32..40), 1..4),
+        zstd in any::<bool>(),
+    ) {
+        let levels: Vec<(u16, f64, u32, u32)> = dims
+            .iter()
+            .enumerate()
+            .map(|(i, &(full, short))| (i as u16, 4.0 * (1 << i) as f64, full, short.min(full)))
+            .collect();
+        let scene = Scene::new(seed, n_points, n_images, &levels);
+        let codec = if zstd { Codec::Zstd } else { Codec::Raw };
+        let bytes = scene.writer(codec).to_bytes().unwrap();
+        let map = Map::from_bytes(&bytes).unwrap();
+        map.verify().unwrap();
+        for (level, data) in map.levels().zip(&scene.levels) {
+            let (full, short) = (level.dim_full(), level.dim_short());
+            let s = level.desc_short().unwrap();
+            let r = level.desc_rest().unwrap().unwrap();
+            prop_assert_eq!(&*level.points().unwrap(), &data.points[..]);
+            for (row, reference) in data.descriptors.chunks(full).enumerate() {
+                for (k, &x) in reference.iter().enumerate() {
+                    let stored = if k < short { s[row * short + k] } else { r[row * (full - short) + k - short] };
+                    prop_assert!(within_f16(x, stored.to_f32()), "{} vs {}", x, stored);
+                }
+            }
+        }
+        // Positions: f32 relative to the origin, within f32 precision of the f64 input.
+        let positions = map.point_positions().unwrap();
+        for (p, q) in positions.iter().zip(&scene.positions) {
+            let w = map.to_world(*p);
+            for k in 0..3 {
+                prop_assert!((w[k] - q[k]).abs() <= 1e-5 * q[k].abs().max(1.0));
+            }
+        }
+        // The writer is deterministic.
+        prop_assert_eq!(scene.writer(codec).to_bytes().unwrap(), bytes);
+    }
+
+    #[test]
+    fn slice_equals_the_reference_slice(
+        seed in any::<u64>(),
+        n_points in 1usize..50,
+        n_images in 1usize..4,
+        keep in 0usize..3,
+        codec in prop::sample::select(vec![None, Some(Codec::Raw), Some(Codec::Zstd)]),
+    ) {
+        let scene = Scene::new(seed, n_points, n_images, &[(0, 16.0, 12, 3), (1, 8.0, 8, 4), (2, 4.0, 6, 2)]);
+        let bytes = scene.writer(Codec::Raw).to_bytes().unwrap();
+        let map = Map::from_bytes(&bytes).unwrap();
+        let options = SliceOptions { levels: vec![keep as u16], short: true, codec, zstd_level: 1 };
+        let sliced = slice(&map, &options).unwrap().0.to_bytes().unwrap();
+        let out = Map::from_bytes(&sliced).unwrap();
+        out.verify().unwrap();
+        prop_assert_eq!(decoded_json(&out), scene.sliced(keep as u16).expected_json(map.metadata().origin));
+        prop_assert!(sliced.len() < bytes.len());
+    }
+}
+
+#[test]
+fn f32_descriptors_round_to_nearest_even() {
+    // 1 + 2^-11 lies exactly between two f16 values: ties go to even (1.0).
+    let values = [1.0 + 1.0 / 2048.0, 1.0 + 3.0 / 2048.0, 0.1, -0.3];
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3]]);
+    w.add_level(
+        common::level_info(0, 4.0, 4, 2),
+        &[0],
+        Some(Descriptors::F32(&values)),
+        true,
+    )
+    .unwrap();
+    let bytes = w.to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    let level = map.level(0).unwrap();
+    let short = level.desc_short().unwrap();
+    assert_eq!(short[0], f16::from_f32(1.0));
+    assert_eq!(short[1], f16::from_f32(1.0 + 4.0 / 2048.0));
+    assert_eq!(level.desc_rest().unwrap().unwrap()[0], f16::from_f32(0.1));
+}
+
+#[test]
+fn raw_sections_are_borrowed_from_the_mapping() {
+    let scene = Scene::new(1, 30, 2, &[(0, 8.0, 8, 4)]);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.sfpm");
+    scene
+        .writer(Codec::Raw)
+        .write(&path, &sfpmap::progress::Silent)
+        .unwrap();
+    let map = Map::open(&path).unwrap();
+    let short = map.level(0).unwrap().desc_short().unwrap();
+    assert!(
+        matches!(short, std::borrow::Cow::Borrowed(_)),
+        "raw f16 must be zero-copy"
+    );
+    let range = map.bytes().as_ptr_range();
+    assert!(range.contains(&(short.as_ptr() as *const u8)));
+}
+
+#[test]
+fn map_is_send_and_sync_and_shared_by_threads() {
+    fn assert_send_sync<T: Send + Sync>() {}
+    assert_send_sync::<Map<'static>>();
+    let scene = Scene::new(2, 40, 2, &[(0, 8.0, 8, 4), (1, 4.0, 4, 4)]);
+    let bytes = scene.writer(Codec::Zstd).to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    std::thread::scope(|s| {
+        for _ in 0..4 {
+            s.spawn(|| {
+                for level in map.levels() {
+                    assert_eq!(
+                        level.desc_short().unwrap().len(),
+                        level.len() * level.dim_short()
+                    );
+                }
+            });
+        }
+    });
+}
+
+#[test]
+fn write_replaces_atomically_and_leaves_no_temp_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.sfpm");
+    std::fs::write(&path, b"old").unwrap();
+    let scene = Scene::new(4, 5, 1, &[]);
+    scene
+        .writer(Codec::Raw)
+        .write(&path, &sfpmap::progress::Silent)
+        .unwrap();
+    Map::open(&path).unwrap().verify().unwrap();
+    let names: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(names.len(), 1, "{names:?}");
+    // A write into a folder that does not exist fails and creates nothing.
+    let err = scene.writer(Codec::Raw).write(
+        &dir.path().join("no/such/m.sfpm"),
+        &sfpmap::progress::Silent,
+    );
+    assert!(err.is_err());
+}
