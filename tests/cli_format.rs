@@ -1,0 +1,218 @@
+//! The real `sfpmap` binary on temp copies of the conformance vectors.
+#![cfg(feature = "cli")]
+
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn sfpmap(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+        .args(args)
+        .output()
+        .expect("run sfpmap")
+}
+
+fn vector(kind: &str, name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("spec/vectors/{kind}/{name}.sfpm"))
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn info_json(path: &Path) -> Value {
+    let o = sfpmap(&["info", path.to_str().unwrap(), "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+#[test]
+fn info_json_has_the_documented_keys() {
+    let info = info_json(&vector("valid", "levels"));
+    assert_eq!(info["version"], "1.0");
+    assert_eq!(
+        info["file_bytes"],
+        std::fs::metadata(vector("valid", "levels")).unwrap().len()
+    );
+    assert_eq!(info["points"], 24);
+    assert_eq!(info["images"], 3);
+    let levels = info["levels"].as_array().unwrap();
+    assert_eq!(levels.len(), 3);
+    for l in levels {
+        for key in ["level", "points", "dim_full", "dim_short", "has_rest"] {
+            assert!(l.get(key).is_some(), "{key} missing in {l}");
+        }
+        assert_eq!(l["has_rest"], true);
+    }
+    let text = sfpmap(&["info", vector("valid", "levels").to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&text.stdout).contains("level 2: 10 points"));
+}
+
+#[test]
+fn verify_accepts_valid_and_rejects_invalid_with_one_line() {
+    for name in [
+        "minimal",
+        "levels",
+        "zstd",
+        "short_only",
+        "unknown_optional",
+        "mixed_dtypes",
+        "geometry_only",
+    ] {
+        let o = sfpmap(&["verify", vector("valid", name).to_str().unwrap()]);
+        assert!(o.status.success(), "{name}: {}", stderr(&o));
+    }
+    for entry in std::fs::read_dir(vector("invalid", "x").parent().unwrap()).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_none_or(|e| e != "sfpm") {
+            continue;
+        }
+        let o = sfpmap(&["verify", path.to_str().unwrap()]);
+        assert!(!o.status.success(), "{} verifies", path.display());
+        let err = stderr(&o);
+        assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+        assert!(
+            err.starts_with("error: ") && err.contains(path.to_str().unwrap()),
+            "{err}"
+        );
+    }
+}
+
+#[test]
+fn slice_keeps_one_short_level_and_is_smaller() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("l2.sfpm");
+    let input = vector("valid", "levels");
+    let o = sfpmap(&[
+        "slice",
+        input.to_str().unwrap(),
+        "--level",
+        "2",
+        "--short",
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("bytes ->"));
+    let info = info_json(&out);
+    let levels = info["levels"].as_array().unwrap();
+    assert_eq!(levels.len(), 1);
+    assert_eq!(levels[0]["level"], 2);
+    assert_eq!(levels[0]["has_rest"], false);
+    assert_eq!(info["points"], levels[0]["points"]);
+    assert!(info["file_bytes"].as_u64().unwrap() < std::fs::metadata(&input).unwrap().len());
+    assert!(sfpmap(&["verify", out.to_str().unwrap()]).status.success());
+
+    // zstd re-encoding, two levels, JSON report.
+    let z = dir.path().join("z.sfpm");
+    let o = sfpmap(&[
+        "slice",
+        input.to_str().unwrap(),
+        "--level",
+        "0",
+        "--level",
+        "2",
+        "--codec",
+        "zstd",
+        "-o",
+        z.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(report["output_bytes"].as_u64().unwrap() > 0);
+    assert_eq!(info_json(&z)["levels"].as_array().unwrap().len(), 2);
+}
+
+#[test]
+fn slice_refuses_to_lose_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("in.sfpm");
+    std::fs::copy(vector("valid", "levels"), &input).unwrap();
+    let before = std::fs::read(&input).unwrap();
+    let i = input.to_str().unwrap();
+
+    let o = sfpmap(&["slice", i, "--level", "2", "-o", i]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("input"),
+        "{}",
+        stderr(&o)
+    );
+    let same_via_dot = dir.path().join(".").join("in.sfpm");
+    let o = sfpmap(&[
+        "slice",
+        i,
+        "--level",
+        "2",
+        "-o",
+        same_via_dot.to_str().unwrap(),
+        "--force",
+    ]);
+    assert!(!o.status.success());
+
+    let out = dir.path().join("out.sfpm");
+    std::fs::write(&out, b"precious").unwrap();
+    let o = sfpmap(&["slice", i, "--level", "2", "-o", out.to_str().unwrap()]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("--force"),
+        "{}",
+        stderr(&o)
+    );
+    assert_eq!(std::fs::read(&out).unwrap(), b"precious");
+    let o = sfpmap(&[
+        "slice",
+        i,
+        "--level",
+        "2",
+        "-o",
+        out.to_str().unwrap(),
+        "--force",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+
+    let o = sfpmap(&[
+        "slice",
+        i,
+        "--level",
+        "7",
+        "-o",
+        dir.path().join("x.sfpm").to_str().unwrap(),
+    ]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("no level 7"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!dir.path().join("x.sfpm").exists());
+    assert_eq!(std::fs::read(&input).unwrap(), before);
+
+    let o = sfpmap(&[
+        "slice",
+        i,
+        "-o",
+        dir.path().join("y.sfpm").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success(), "--level is required");
+}
+
+#[test]
+fn a_byte_flipped_copy_fails_verify() {
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = std::fs::read(vector("valid", "zstd")).unwrap();
+    for at in [0, 9, 70, bytes.len() / 3, bytes.len() / 2, bytes.len() - 1] {
+        let mut b = bytes.clone();
+        b[at] ^= 0xA5;
+        let p = dir.path().join(format!("f{at}.sfpm"));
+        std::fs::write(&p, &b).unwrap();
+        let o = sfpmap(&["verify", p.to_str().unwrap()]);
+        assert!(!o.status.success(), "flip at {at} passes");
+        assert!(!stderr(&o).contains("panicked"));
+    }
+}
+
+#[test]
+fn missing_file_names_the_path() {
+    let o = sfpmap(&["info", "/no/such/map.sfpm"]);
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("/no/such/map.sfpm"));
+}
