@@ -60,7 +60,9 @@ pub struct TrackElement {
 }
 
 /// A 3D point. Its track is [`Reconstruction::track`].
-#[derive(Debug, Clone, Copy, PartialEq)]
+///
+/// Equality compares the public fields and the track length, not where the track is stored.
+#[derive(Debug, Clone, Copy)]
 pub struct Point3D {
     pub id: u64,
     pub xyz: [f64; 3],
@@ -69,6 +71,16 @@ pub struct Point3D {
     pub error: f64,
     track_start: usize,
     track_len: u32,
+}
+
+impl PartialEq for Point3D {
+    fn eq(&self, other: &Self) -> bool {
+        self.id == other.id
+            && self.xyz == other.xyz
+            && self.rgb == other.rgb
+            && self.error == other.error
+            && self.track_len == other.track_len
+    }
 }
 
 impl Point3D {
@@ -82,12 +94,27 @@ impl Point3D {
 ///
 /// Built by the readers or by [`ReconstructionBuilder`]; every instance has passed
 /// [`ReconstructionBuilder::build`]'s checks, so tracks and 2D points agree.
-#[derive(Debug, Clone, PartialEq)]
+///
+/// Equality compares content (each point's track, not the flat array's order).
+#[derive(Debug, Clone)]
 pub struct Reconstruction {
     cameras: Vec<Camera>,
     images: Vec<Image>,
     points3d: Vec<Point3D>,
     tracks: Vec<TrackElement>,
+}
+
+impl PartialEq for Reconstruction {
+    fn eq(&self, other: &Self) -> bool {
+        self.cameras == other.cameras
+            && self.images == other.images
+            && self.points3d == other.points3d
+            && self
+                .points3d
+                .iter()
+                .zip(&other.points3d)
+                .all(|(a, b)| self.track(a) == other.track(b))
+    }
 }
 
 impl Reconstruction {
