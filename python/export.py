@@ -21,7 +21,7 @@ CONTRACT = "sfp-extractor/1"
 OPSET = 17
 
 
-def contract_metadata(net: SFP, extra: dict | None = None) -> dict[str, str]:
+def contract_metadata(net: SFP, extra: dict | None = None, threshold: float = 0.5) -> dict[str, str]:
     dims = list(net.dims)
     full = [sum(dims[i:]) for i in range(len(dims))]
     md = {
@@ -50,6 +50,9 @@ def contract_metadata(net: SFP, extra: dict | None = None) -> dict[str, str]:
         "sfp.descriptor_norm": "l2",
         "sfp.descriptor_sampling": "bilinear, align_corners=true in cell coordinates (x / stride)",
         "sfp.outputs": ",".join(output_names(len(dims))),
+        "sfp.default_threshold": str(threshold),
+        "sfp.default_nms_radius": "1",
+        "sfp.default_max_keypoints": "2000,1000,500,250",
     }
     if extra:
         md.update({k: str(v) for k, v in extra.items()})
@@ -119,13 +122,14 @@ def main():
     ap.add_argument("ckpt")
     ap.add_argument("-o", "--out", default="models/sfp-v1.onnx")
     ap.add_argument("--no-verify", action="store_true")
+    ap.add_argument("--threshold", type=float, default=0.5, help="default keypoint score threshold (metadata)")
     args = ap.parse_args()
     net, ck = load_net(args.ckpt)
     extra = {"sfp.train_steps": ck.get("step", ""),
              "sfp.train_minutes": round(float(ck.get("minutes", 0)), 1),
              "sfp.train_loss": ck.get("args", {}).get("loss", "")}
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    export(net, args.out, contract_metadata(net, extra))
+    export(net, args.out, contract_metadata(net, extra, args.threshold))
     if not args.no_verify:
         verify(net, args.out)
     h = hashlib.sha256(open(args.out, "rb").read()).hexdigest()

@@ -11,6 +11,7 @@ Loss ("sfp", default):
 + w_rel * BCE(p at sampled cells, [descriptor matched correctly])   reliability
 + w_glob * InfoNCE(global A vs global B across the batch)
 Loss "paper": reconstruction + lam * compression only (the ablation).
+Loss "rate": "paper" + the per-level rate targets (anti-collapse alone, no homography-pair terms).
 
 Example:  nice -n 10 python3 python/train.py --out python/runs/main --minutes 70
 """
@@ -89,13 +90,19 @@ def peaky(p, k=5):
 
 def compute_losses(net, A, B, H, V, args, step, cfg):
     S = A.shape[-1]
-    if args.loss == "paper":
+    if args.loss in ("paper", "rate"):
         out = net(A)
         rec = (out["recon"] - A).abs().mean()
         Dsum = float(sum(net.dims))
         comp = sum((d / Dsum) * p.mean() for d, p in zip(net.dims, out["probs"]))
         total = args.w_rec * rec + args.lam * comp
-        return total, dict(rec=rec.item(), comp=comp.item()), out
+        logs = dict(rec=rec.item(), comp=comp.item())
+        if args.loss == "rate":  # paper loss + per-level rate targets (anti-collapse only, no pair terms)
+            warm = min(1.0, step / max(args.warmup, 1))
+            rate = sum((p.mean() - t) ** 2 for p, t in zip(out["probs"], args.targets))
+            total = total + warm * args.w_rate * rate
+            logs["rate"] = rate.item()
+        return total, logs, out
     x = torch.cat([A, B], 0)
     out = net(x)
     N = A.shape[0]
@@ -208,7 +215,7 @@ def validate(net, val_batches):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", required=True)
-    ap.add_argument("--loss", choices=["sfp", "paper"], default="sfp")
+    ap.add_argument("--loss", choices=["sfp", "paper", "rate"], default="sfp")
     ap.add_argument("--minutes", type=float, default=70)
     ap.add_argument("--max-steps", type=int, default=10 ** 9)
     ap.add_argument("--batch", type=int, default=6)
