@@ -257,8 +257,9 @@ impl Database {
     ///
     /// `immutable=1` tells SQLite the file cannot change: it takes no locks and never
     /// creates `-wal`/`-shm`/journal files, so the user's database is left byte-identical
-    /// (a plain read-only open of a WAL database would create them). Consequence: changes
-    /// still in a `-wal` file next to the database are not seen.
+    /// (a plain read-only open of a WAL database would create them). Consequence: SQLite
+    /// ignores a `-wal` file then, so a non-empty one is an error ([`Error::PendingWal`])
+    /// rather than a silently stale read.
     pub fn open(path: &Path) -> Result<Database> {
         let io = |source| Error::Io {
             path: path.to_path_buf(),
@@ -267,6 +268,15 @@ impl Database {
         let meta = std::fs::metadata(path).map_err(io)?;
         if !meta.is_file() {
             return Err(io(std::io::Error::other("not a file")));
+        }
+        let mut wal = path.as_os_str().to_owned();
+        wal.push("-wal");
+        let wal = PathBuf::from(wal);
+        if std::fs::metadata(&wal).is_ok_and(|m| m.len() > 0) {
+            return Err(Error::PendingWal {
+                path: path.to_path_buf(),
+                wal,
+            });
         }
         let absolute = std::path::absolute(path).map_err(io)?;
         let uri = format!("file:{}?mode=ro&immutable=1", uri_path(&absolute));

@@ -130,6 +130,9 @@ pub enum Error {
         txt: PathBuf,
         what: String,
     },
+    /// A database has a non-empty `-wal` file next to it: changes an immutable open would not
+    /// see (SQLite ignores the write-ahead log then), so reading would silently miss them.
+    PendingWal { path: PathBuf, wal: PathBuf },
     /// A file is not an SQLite database.
     NotADatabase { path: PathBuf },
     /// A database lacks a table COLMAP always creates.
@@ -267,6 +270,13 @@ impl fmt::Display for Error {
                 "{} and {} disagree: {what}",
                 show(bin),
                 show(txt)
+            ),
+            Error::PendingWal { path, wal } => write!(
+                f,
+                "{}: {} holds changes not yet in the database file, which a read-only open \
+                 cannot see; let the program writing it finish (or checkpoint it) first",
+                show(path),
+                show(wal)
             ),
             Error::NotADatabase { path } => {
                 write!(f, "{}: not an SQLite database", show(path))

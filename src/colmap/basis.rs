@@ -1,0 +1,162 @@
+//! The descriptor basis stored with each level: an uncentred PCA, so that a prefix of the
+//! projected dimensions (`short`) carries as much of the descriptors' energy as possible.
+//!
+//! Why uncentred: matching uses dot products. With an orthonormal basis `P`,
+//! `(P a) · (P b) = a · b`, so the full projected descriptor matches exactly like the
+//! original; centring would change every dot product by the mean.
+
+/// An orthonormal basis, rows sorted by decreasing eigenvalue of the second-moment matrix.
+#[derive(Debug, Clone)]
+pub struct Basis {
+    pub dim: usize,
+    /// `[dim × dim]` row-major; row k is the k-th principal direction.
+    pub rows: Vec<f32>,
+    /// Eigenvalues (energy per direction), descending.
+    pub energy: Vec<f64>,
+}
+
+impl Basis {
+    /// The basis of `descriptors` (`[n × dim]` row-major).
+    pub fn fit(descriptors: &[f32], dim: usize) -> Basis {
+        let mut m = vec![0.0f64; dim * dim];
+        for row in descriptors.chunks_exact(dim) {
+            for i in 0..dim {
+                let ri = f64::from(row[i]);
+                if ri == 0.0 {
+                    continue;
+                }
+                let out = &mut m[i * dim..(i + 1) * dim];
+                for (o, &rj) in out.iter_mut().zip(row).skip(i) {
+                    *o += ri * f64::from(rj);
+                }
+            }
+        }
+        for i in 0..dim {
+            for j in 0..i {
+                m[i * dim + j] = m[j * dim + i];
+            }
+        }
+        let (values, vectors) = symmetric_eigen(&mut m, dim);
+        let mut order: Vec<usize> = (0..dim).collect();
+        order.sort_by(|&a, &b| values[b].total_cmp(&values[a]).then(a.cmp(&b)));
+        let mut rows = Vec::with_capacity(dim * dim);
+        for &k in &order {
+            // Column k of `vectors`; the sign is fixed so the largest component is positive,
+            // which makes the basis deterministic.
+            let col: Vec<f64> = (0..dim).map(|i| vectors[i * dim + k]).collect();
+            let pivot = col.iter().copied().fold(0.0f64, |a, v| if v.abs() > a.abs() { v } else { a });
+            let sign = if pivot < 0.0 { -1.0 } else { 1.0 };
+            rows.extend(col.iter().map(|v| (v * sign) as f32));
+        }
+        Basis {
+            dim,
+            rows,
+            energy: order.iter().map(|&k| values[k].max(0.0)).collect(),
+        }
+    }
+
+    /// Share of the energy in the first `k` directions.
+    pub fn energy_kept(&self, k: usize) -> f64 {
+        let total: f64 = self.energy.iter().sum();
+        if total <= 0.0 {
+            return 0.0;
+        }
+        self.energy.iter().take(k).sum::<f64>() / total
+    }
+
+    /// `out = P · v`.
+    pub fn project(&self, v: &[f32], out: &mut [f32]) {
+        for (o, row) in out.iter_mut().zip(self.rows.chunks_exact(self.dim)) {
+            *o = row.iter().zip(v).map(|(a, b)| a * b).sum();
+        }
+    }
+}
+
+/// Eigen-decomposition of a symmetric matrix by cyclic Jacobi rotations: returns the
+/// eigenvalues and the eigenvectors as columns of a row-major matrix. `a` is destroyed.
+/// Jacobi is slow for big matrices but exact and simple for descriptor sizes (≤ 256).
+fn symmetric_eigen(a: &mut [f64], n: usize) -> (Vec<f64>, Vec<f64>) {
+    let mut v = vec![0.0; n * n];
+    for i in 0..n {
+        v[i * n + i] = 1.0;
+    }
+    let scale: f64 = a.iter().map(|x| x * x).sum::<f64>().sqrt();
+    for _sweep in 0..60 {
+        let off: f64 = (0..n)
+            .flat_map(|i| (0..n).filter(move |&j| j != i).map(move |j| (i, j)))
+            .map(|(i, j)| a[i * n + j] * a[i * n + j])
+            .sum::<f64>()
+            .sqrt();
+        if off <= 1e-14 * scale.max(f64::MIN_POSITIVE) {
+            break;
+        }
+        for p in 0..n {
+            for q in p + 1..n {
+                let apq = a[p * n + q];
+                if apq.abs() <= f64::MIN_POSITIVE {
+                    continue;
+                }
+                let (app, aqq) = (a[p * n + p], a[q * n + q]);
+                let theta = (aqq - app) / (2.0 * apq);
+                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+                let t = if theta == 0.0 { 1.0 } else { t };
+                let c = 1.0 / (t * t + 1.0).sqrt();
+                let s = t * c;
+                for k in 0..n {
+                    let (akp, akq) = (a[k * n + p], a[k * n + q]);
+                    a[k * n + p] = c * akp - s * akq;
+                    a[k * n + q] = s * akp + c * akq;
+                }
+                for k in 0..n {
+                    let (apk, aqk) = (a[p * n + k], a[q * n + k]);
+                    a[p * n + k] = c * apk - s * aqk;
+                    a[q * n + k] = s * apk + c * aqk;
+                }
+                for k in 0..n {
+                    let (vkp, vkq) = (v[k * n + p], v[k * n + q]);
+                    v[k * n + p] = c * vkp - s * vkq;
+                    v[k * n + q] = s * vkp + c * vkq;
+                }
+            }
+        }
+    }
+    ((0..n).map(|i| a[i * n + i]).collect(), v)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn basis_is_orthonormal_and_sorted_and_preserves_dots() {
+        // Energy concentrated on a known direction mix.
+        let dim = 8;
+        let mut data = Vec::new();
+        let mut s = 1u64;
+        for _ in 0..200 {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let a = ((s >> 33) as f32 / (1u64 << 31) as f32) - 0.5;
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let b = ((s >> 33) as f32 / (1u64 << 31) as f32) - 0.5;
+            let row = [3.0 * a, 3.0 * a, b, 0.1 * b, 0.0, 0.01 * a, 0.0, 0.0];
+            data.extend_from_slice(&row);
+        }
+        let basis = Basis::fit(&data, dim);
+        for i in 0..dim {
+            for j in 0..dim {
+                let dot: f32 = (0..dim).map(|k| basis.rows[i * dim + k] * basis.rows[j * dim + k]).sum();
+                let want = if i == j { 1.0 } else { 0.0 };
+                assert!((dot - want).abs() < 1e-5, "rows {i},{j}: {dot}");
+            }
+        }
+        assert!(basis.energy.windows(2).all(|w| w[0] >= w[1]));
+        assert!(basis.energy_kept(1) > 0.9, "{}", basis.energy_kept(1));
+        assert!((basis.energy_kept(dim) - 1.0).abs() < 1e-9);
+        let (a, b) = (&data[0..dim], &data[dim..2 * dim]);
+        let (mut pa, mut pb) = (vec![0.0; dim], vec![0.0; dim]);
+        basis.project(a, &mut pa);
+        basis.project(b, &mut pb);
+        let dot = |x: &[f32], y: &[f32]| x.iter().zip(y).map(|(p, q)| p * q).sum::<f32>();
+        assert!((dot(a, b) - dot(&pa, &pb)).abs() < 1e-5);
+    }
+}
