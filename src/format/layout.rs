@@ -17,6 +17,8 @@ pub const HEADER_LEN: usize = 64;
 /// Size of one section-table entry written by this version. Readers accept larger entries
 /// (a later minor may append fields) and read the first `ENTRY_LEN` bytes.
 pub const ENTRY_LEN: usize = 64;
+/// Cap on the entry length, so the table (hashed at open) stays small whatever the file.
+pub const MAX_ENTRY_LEN: u32 = 1024;
 /// Every section starts at a multiple of this, so arrays cast zero-copy from the mapping.
 pub const ALIGN: u64 = 64;
 /// Cap on the metadata JSON; checked before anything is parsed.

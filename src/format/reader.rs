@@ -5,7 +5,8 @@
 use super::error::{Error, SectionRef};
 use super::layout::{
     align_up, checksum, index_checksum, Codec, Dtype, Header, RawEntry, SectionKind, ALIGN,
-    ENTRY_LEN, HEADER_LEN, MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED,
+    ENTRY_LEN, HEADER_LEN, MAX_ENTRY_LEN, MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL,
+    SECTION_REQUIRED,
 };
 use super::metadata::Metadata;
 use std::borrow::Cow;
@@ -298,9 +299,12 @@ fn validate_index(bytes: &[u8]) -> Result<Index, Error> {
             what: "section count over the cap of 65536",
         });
     }
-    if (header.entry_len as usize) < ENTRY_LEN || header.entry_len % 8 != 0 {
+    if (header.entry_len as usize) < ENTRY_LEN
+        || header.entry_len > MAX_ENTRY_LEN
+        || header.entry_len % 8 != 0
+    {
         return Err(Error::BadIndex {
-            what: "section entry length is below 64 or not a multiple of 8",
+            what: "section entry length is not a multiple of 8 between 64 and 1024",
         });
     }
     // Both factors are capped above, so this cannot overflow.
