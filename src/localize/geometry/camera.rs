@@ -167,6 +167,18 @@ impl Intrinsics {
         (x + dx, y + dy)
     }
 
+    /// Pixel of a camera-frame point in plain scalars, `None` behind the camera. This is the
+    /// RANSAC inner loop; scalars keep it fast even in unoptimized test builds.
+    #[inline(always)]
+    pub fn project_scalar(&self, x: f64, y: f64, z: f64) -> Option<(f64, f64)> {
+        if !(z > MIN_DEPTH) {
+            return None;
+        }
+        let inv_z = 1.0 / z;
+        let (xd, yd) = self.distort(x * inv_z, y * inv_z);
+        Some((self.fx * xd + self.cx, self.fy * yd + self.cy))
+    }
+
     /// Jacobian of [`Self::distort`] with respect to the undistorted coordinates.
     #[inline]
     pub fn distort_jacobian(&self, x: f64, y: f64) -> Matrix2<f64> {
@@ -201,7 +213,7 @@ pub struct Camera {
 }
 
 /// Points closer to the camera plane than this (in camera units along +z) do not project.
-const MIN_DEPTH: f64 = 1e-12;
+pub(crate) const MIN_DEPTH: f64 = 1e-12;
 
 impl Camera {
     /// A camera from a model and its parameters in COLMAP order.
@@ -337,8 +349,7 @@ impl Camera {
             && pixel.y < f64::from(self.height)
     }
 
-    #[cfg(test)]
-    fn intrinsics(&self) -> &Intrinsics {
+    pub(crate) fn intrinsics(&self) -> &Intrinsics {
         &self.intrinsics
     }
 
@@ -346,11 +357,8 @@ impl Camera {
     /// plane, where a pixel would be meaningless.
     #[inline]
     pub fn project(&self, p_cam: &Vector3<f64>) -> Option<Vector2<f64>> {
-        if !(p_cam.z > MIN_DEPTH) {
-            return None;
-        }
-        let pixel = self.normalized_to_pixel(&Vector2::new(p_cam.x / p_cam.z, p_cam.y / p_cam.z));
-        (pixel.x.is_finite() && pixel.y.is_finite()).then_some(pixel)
+        let (u, v) = self.intrinsics.project_scalar(p_cam.x, p_cam.y, p_cam.z)?;
+        (u.is_finite() && v.is_finite()).then_some(Vector2::new(u, v))
     }
 
     /// Pixel of an undistorted normalized image point `(X/Z, Y/Z)`.
@@ -392,7 +400,7 @@ impl Camera {
     pub fn unproject(&self, pixel: &Vector2<f64>) -> Vector2<f64> {
         let k = &self.intrinsics;
         let target = Vector2::new((pixel.x - k.cx) / k.fx, (pixel.y - k.cy) / k.fy);
-        if !k.distorted || !(target.x.is_finite() && target.y.is_finite()) {
+        if !(k.distorted && target.x.is_finite() && target.y.is_finite()) {
             return target;
         }
         const MAX_ITERATIONS: usize = 100;

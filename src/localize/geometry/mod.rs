@@ -9,6 +9,10 @@
 //! Nothing here panics on bad input or returns a non-finite pose: every public entry point
 //! validates its input once and reports a [`GeometryError`].
 
+// `!(x > limit)` is deliberate throughout: it sends NaN down the rejecting branch, which
+// `x <= limit` would not.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 mod camera;
 mod error;
 mod p3p;

@@ -12,7 +12,7 @@
 
 use nalgebra::{Matrix2, Matrix3, SymmetricEigen, Vector2, Vector3};
 
-use super::camera::Camera;
+use super::camera::{Camera, Intrinsics};
 use super::error::GeometryError;
 use super::p3p;
 use super::pose::Pose;
@@ -51,7 +51,7 @@ impl Default for RansacOptions {
             min_iterations: 100,
             max_iterations: 10_000,
             min_inliers: 6,
-            seed: 0x5EED_0F_5F9A,
+            seed: 0x5EED_5F9A_0000_0001,
             local_optimization: true,
             local_refine: RefineOptions {
                 max_iterations: 10,
@@ -300,28 +300,73 @@ struct Scorer<'a> {
     threshold2: f64,
 }
 
+/// A pose unrolled into scalars for the scoring loops.
+struct Unrolled {
+    r: [f64; 9],
+    t: [f64; 3],
+}
+
+impl Unrolled {
+    fn new(pose: &Pose) -> Self {
+        let m = pose.rotation.to_rotation_matrix().into_inner();
+        Self {
+            r: [
+                m[(0, 0)],
+                m[(0, 1)],
+                m[(0, 2)],
+                m[(1, 0)],
+                m[(1, 1)],
+                m[(1, 2)],
+                m[(2, 0)],
+                m[(2, 1)],
+                m[(2, 2)],
+            ],
+            t: [pose.translation.x, pose.translation.y, pose.translation.z],
+        }
+    }
+
+    /// Squared pixel error of one correspondence, infinite behind the camera or if NaN.
+    #[inline(always)]
+    fn squared_error(&self, k: &Intrinsics, pixel: &Vector2<f64>, point: &Vector3<f64>) -> f64 {
+        let (r, t) = (&self.r, &self.t);
+        let (px, py, pz) = (point.x, point.y, point.z);
+        let x = r[0] * px + r[1] * py + r[2] * pz + t[0];
+        let y = r[3] * px + r[4] * py + r[5] * pz + t[1];
+        let z = r[6] * px + r[7] * py + r[8] * pz + t[2];
+        match k.project_scalar(x, y, z) {
+            Some((u, v)) => {
+                let (du, dv) = (u - pixel.x, v - pixel.y);
+                let e2 = du * du + dv * dv;
+                if e2.is_nan() {
+                    f64::INFINITY
+                } else {
+                    e2
+                }
+            }
+            None => f64::INFINITY,
+        }
+    }
+}
+
 impl Scorer<'_> {
     /// Squared pixel error, `None` if the point is behind the camera.
-    #[inline]
     fn squared_error(&self, pose: &Pose, i: usize) -> Option<f64> {
-        let p_cam = pose.transform(&self.points[i]);
-        self.camera
-            .project(&p_cam)
-            .map(|pixel| (pixel - self.pixels[i]).norm_squared())
+        let e2 = Unrolled::new(pose).squared_error(
+            self.camera.intrinsics(),
+            &self.pixels[i],
+            &self.points[i],
+        );
+        e2.is_finite().then_some(e2)
     }
 
     /// MSAC score, or `None` as soon as it cannot beat `bound` (most hypotheses are bad, and
     /// stopping early saves most of their cost).
     fn score(&self, pose: &Pose, bound: f64) -> Option<f64> {
-        let rotation: Matrix3<f64> = pose.rotation.to_rotation_matrix().into_inner();
+        let unrolled = Unrolled::new(pose);
+        let k = self.camera.intrinsics();
         let mut score = 0.0;
         for (pixel, point) in self.pixels.iter().zip(self.points) {
-            let p_cam = rotation * point + pose.translation;
-            let e2 = match self.camera.project(&p_cam) {
-                Some(projected) => (projected - pixel).norm_squared().min(self.threshold2),
-                None => self.threshold2,
-            };
-            score += e2;
+            score += unrolled.squared_error(k, pixel, point).min(self.threshold2);
             if score >= bound {
                 return None;
             }
@@ -332,13 +377,11 @@ impl Scorer<'_> {
     /// Collects inlier indices; returns their number.
     fn inliers_into(&self, pose: &Pose, out: &mut Vec<usize>) -> usize {
         out.clear();
-        let rotation: Matrix3<f64> = pose.rotation.to_rotation_matrix().into_inner();
+        let unrolled = Unrolled::new(pose);
+        let k = self.camera.intrinsics();
         for (i, (pixel, point)) in self.pixels.iter().zip(self.points).enumerate() {
-            let p_cam = rotation * point + pose.translation;
-            if let Some(projected) = self.camera.project(&p_cam) {
-                if (projected - pixel).norm_squared() < self.threshold2 {
-                    out.push(i);
-                }
+            if unrolled.squared_error(k, pixel, point) < self.threshold2 {
+                out.push(i);
             }
         }
         out.len()

@@ -1,0 +1,524 @@
+//! P3P, LO-RANSAC and LM refinement on synthetic correspondences.
+#![cfg(feature = "localize")]
+
+use nalgebra::{UnitQuaternion, Vector2, Vector3};
+use proptest::prelude::*;
+use sfpmap::localize::geometry::{
+    estimate_absolute_pose, p3p, refine_pose, refine_pose_masked, Camera, GeometryError, Pose,
+    RansacOptions, RefineOptions, RobustLoss, SplitMix64,
+};
+
+struct Scene {
+    camera: Camera,
+    truth: Pose,
+    pixels: Vec<Vector2<f64>>,
+    points: Vec<Vector3<f64>>,
+    is_inlier: Vec<bool>,
+}
+
+fn gaussian(rng: &mut SplitMix64) -> f64 {
+    // Box–Muller; 1 − u avoids ln(0).
+    let (u, v) = (1.0 - rng.next_f64(), rng.next_f64());
+    (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
+}
+
+fn random_pose(rng: &mut SplitMix64) -> Pose {
+    let axis = Vector3::new(gaussian(rng), gaussian(rng), gaussian(rng)).normalize();
+    let angle = rng.next_f64() * std::f64::consts::PI;
+    let rotation = UnitQuaternion::from_scaled_axis(axis * angle);
+    let center = Vector3::new(gaussian(rng), gaussian(rng), gaussian(rng)) * 5.0;
+    Pose::new(rotation, -(rotation * center))
+}
+
+/// Points seen at random pixels and depths 2–20, pixel noise `noise_px` (σ), and a fraction
+/// of outliers whose pixel is replaced by a random one (a wrong match).
+fn scene(seed: u64, camera: &str, n: usize, outlier_ratio: f64, noise_px: f64) -> Scene {
+    let mut rng = SplitMix64::new(seed);
+    let camera = Camera::parse(camera).unwrap();
+    let truth = random_pose(&mut rng);
+    let world_from_cam = truth.inverse();
+    let (w, h) = (f64::from(camera.width()), f64::from(camera.height()));
+    let num_outliers = (n as f64 * outlier_ratio).round() as usize;
+    let mut scene = Scene {
+        camera,
+        truth,
+        pixels: Vec::with_capacity(n),
+        points: Vec::with_capacity(n),
+        is_inlier: Vec::with_capacity(n),
+    };
+    for i in 0..n {
+        let pixel = Vector2::new(rng.next_f64() * w, rng.next_f64() * h);
+        let depth = 2.0 + 18.0 * rng.next_f64();
+        let xy = scene.camera.unproject(&pixel);
+        let p_cam = Vector3::new(xy.x, xy.y, 1.0) * depth;
+        scene.points.push(world_from_cam.transform(&p_cam));
+        let inlier = i >= num_outliers;
+        let observed = if inlier {
+            pixel + Vector2::new(gaussian(&mut rng), gaussian(&mut rng)) * noise_px
+        } else {
+            Vector2::new(rng.next_f64() * w, rng.next_f64() * h)
+        };
+        scene.pixels.push(observed);
+        scene.is_inlier.push(inlier);
+    }
+    scene
+}
+
+const SIMPLE_RADIAL: &str = "SIMPLE_RADIAL 1024 768 800 512 384 -0.05";
+const OPENCV: &str = "OPENCV 1024 768 800 805 515 380 -0.1 0.02 0.0005 -0.0007";
+
+fn best_error(solutions: &[Pose], truth: &Pose) -> (f64, f64) {
+    solutions
+        .iter()
+        .map(|s| (s.rotation_error_deg(truth), s.center_distance(truth)))
+        .min_by(|a, b| (a.0 + a.1).total_cmp(&(b.0 + b.1)))
+        .unwrap_or((f64::INFINITY, f64::INFINITY))
+}
+
+#[test]
+fn p3p_recovers_exact_poses() {
+    for seed in 0..200 {
+        let s = scene(seed, SIMPLE_RADIAL, 3, 0.0, 0.0);
+        let bearings = [0, 1, 2].map(|i| s.camera.bearing(&s.pixels[i]));
+        let points = [s.points[0], s.points[1], s.points[2]];
+        let solutions = p3p(&bearings, &points);
+        assert!(solutions.len() <= 4);
+        let (rot, pos) = best_error(&solutions, &s.truth);
+        assert!(rot < 1e-6 && pos < 1e-6, "seed {seed}: {rot}° {pos}");
+        // Every returned solution explains the three correspondences.
+        for pose in &solutions {
+            for i in 0..3 {
+                let b = pose.transform(&points[i]).normalize();
+                assert!((b - bearings[i]).norm() < 1e-6, "seed {seed}");
+            }
+        }
+    }
+}
+
+fn check_ransac(
+    seed: u64,
+    camera: &str,
+    n: usize,
+    outliers: f64,
+    noise: f64,
+    options: &RansacOptions,
+) {
+    let s = scene(seed, camera, n, outliers, noise);
+    let estimate = estimate_absolute_pose(&s.pixels, &s.points, &s.camera, options).unwrap();
+    let rot = estimate.pose.rotation_error_deg(&s.truth);
+    let pos = estimate.pose.center_distance(&s.truth);
+    // Points are 2–20 units away; 2 cm at 1 px noise is a few tenths of a pixel of parallax.
+    assert!(
+        rot < 0.5 && pos < 0.05,
+        "seed {seed}, {outliers}: {rot}° {pos} ({} iterations)",
+        estimate.iterations
+    );
+    let true_inliers = s.is_inlier.iter().filter(|&&b| b).count();
+    let recovered = estimate
+        .inliers
+        .iter()
+        .zip(&s.is_inlier)
+        .filter(|(a, b)| **a && **b)
+        .count();
+    assert!(
+        recovered as f64 >= 0.95 * true_inliers as f64,
+        "seed {seed}: {recovered}/{true_inliers}"
+    );
+    assert_eq!(
+        estimate.num_inliers,
+        estimate.inliers.iter().filter(|&&b| b).count()
+    );
+    assert!(estimate.mean_inlier_error_px < 2.0 * noise + 0.5);
+    assert!(estimate.iterations <= options.max_iterations);
+}
+
+fn test_options() -> RansacOptions {
+    RansacOptions {
+        max_error_px: 4.0,
+        ..RansacOptions::default()
+    }
+}
+
+#[test]
+fn ransac_50_percent_outliers() {
+    for seed in 0..3 {
+        check_ransac(seed, SIMPLE_RADIAL, 1000, 0.5, 1.0, &test_options());
+    }
+}
+
+#[test]
+fn ransac_70_percent_outliers() {
+    for seed in 10..13 {
+        check_ransac(seed, OPENCV, 500, 0.7, 0.5, &test_options());
+    }
+}
+
+#[test]
+fn ransac_90_percent_outliers() {
+    check_ransac(20, SIMPLE_RADIAL, 300, 0.9, 0.5, &test_options());
+    check_ransac(21, OPENCV, 300, 0.9, 1.0, &test_options());
+}
+
+#[test]
+fn ransac_is_deterministic_for_a_seed() {
+    let s = scene(30, SIMPLE_RADIAL, 300, 0.6, 1.0);
+    let options = test_options();
+    let a = estimate_absolute_pose(&s.pixels, &s.points, &s.camera, &options).unwrap();
+    let b = estimate_absolute_pose(&s.pixels, &s.points, &s.camera, &options).unwrap();
+    assert_eq!(a, b);
+}
+
+#[test]
+fn adaptive_iterations_stop_early_without_outliers() {
+    let s = scene(31, SIMPLE_RADIAL, 200, 0.0, 0.5);
+    let options = RansacOptions {
+        min_iterations: 10,
+        ..test_options()
+    };
+    let estimate = estimate_absolute_pose(&s.pixels, &s.points, &s.camera, &options).unwrap();
+    assert!(estimate.iterations <= 20, "{}", estimate.iterations);
+    assert!(estimate.num_inliers >= 195);
+}
+
+#[test]
+fn exactly_four_correspondences_suffice() {
+    let s = scene(32, SIMPLE_RADIAL, 4, 0.0, 0.0);
+    let options = RansacOptions {
+        min_inliers: 4,
+        ..test_options()
+    };
+    let estimate = estimate_absolute_pose(&s.pixels, &s.points, &s.camera, &options).unwrap();
+    assert!(estimate.pose.rotation_error_deg(&s.truth) < 1e-4);
+    assert_eq!(estimate.num_inliers, 4);
+}
+
+fn perturb(pose: &Pose, degrees: f64, shift: f64) -> Pose {
+    let delta = UnitQuaternion::from_scaled_axis(
+        Vector3::new(1.0, -2.0, 0.5).normalize() * degrees.to_radians(),
+    );
+    Pose::new(
+        delta * pose.rotation,
+        pose.translation + Vector3::new(shift, -shift, 0.5 * shift),
+    )
+}
+
+#[test]
+fn refinement_improves_a_perturbed_pose() {
+    let s = scene(40, OPENCV, 400, 0.0, 0.5);
+    let start = perturb(&s.truth, 2.0, 0.2);
+    for loss in [
+        RobustLoss::Trivial,
+        RobustLoss::Huber { scale: 2.0 },
+        RobustLoss::Cauchy { scale: 1.0 },
+    ] {
+        let options = RefineOptions {
+            loss,
+            ..RefineOptions::default()
+        };
+        let r = refine_pose(&s.pixels, &s.points, &s.camera, &start, &options).unwrap();
+        assert!(r.final_cost < r.initial_cost);
+        let rot = r.pose.rotation_error_deg(&s.truth);
+        let pos = r.pose.center_distance(&s.truth);
+        assert!(rot < 0.05 && pos < 0.01, "{loss:?}: {rot}° {pos}");
+        assert!(r.iterations > 0 && r.iterations < 50, "{}", r.iterations);
+    }
+}
+
+#[test]
+fn robust_refinement_resists_outliers() {
+    let s = scene(41, SIMPLE_RADIAL, 400, 0.3, 0.5);
+    let start = perturb(&s.truth, 0.5, 0.05);
+    let options = RefineOptions {
+        loss: RobustLoss::Cauchy { scale: 1.0 },
+        ..RefineOptions::default()
+    };
+    let r = refine_pose(&s.pixels, &s.points, &s.camera, &start, &options).unwrap();
+    assert!(r.pose.rotation_error_deg(&s.truth) < 0.1);
+    // The mask restricts the residuals to the true inliers.
+    let trivial = RefineOptions {
+        loss: RobustLoss::Trivial,
+        ..RefineOptions::default()
+    };
+    let r = refine_pose_masked(
+        &s.pixels,
+        &s.points,
+        &s.is_inlier,
+        &s.camera,
+        &start,
+        &trivial,
+    )
+    .unwrap();
+    assert!(r.pose.rotation_error_deg(&s.truth) < 0.05);
+}
+
+#[test]
+fn degenerate_inputs_are_errors() {
+    let s = scene(50, SIMPLE_RADIAL, 50, 0.0, 0.5);
+    let camera = &s.camera;
+    let options = test_options();
+    let run = |pixels: &[Vector2<f64>], points: &[Vector3<f64>]| {
+        estimate_absolute_pose(pixels, points, camera, &options)
+    };
+
+    assert_eq!(
+        run(&s.pixels[..3], &s.points[..3]),
+        Err(GeometryError::TooFewCorrespondences {
+            found: 3,
+            required: 4
+        })
+    );
+    assert!(matches!(
+        run(&s.pixels[..10], &s.points[..9]),
+        Err(GeometryError::LengthMismatch { .. })
+    ));
+    assert!(matches!(
+        run(&[], &[]),
+        Err(GeometryError::TooFewCorrespondences { found: 0, .. })
+    ));
+
+    let mut pixels = s.pixels.clone();
+    pixels[7].x = f64::NAN;
+    assert_eq!(
+        run(&pixels, &s.points),
+        Err(GeometryError::NonFinite {
+            what: "pixels",
+            index: 7
+        })
+    );
+    let mut points = s.points.clone();
+    points[3].z = f64::INFINITY;
+    assert_eq!(
+        run(&s.pixels, &points),
+        Err(GeometryError::NonFinite {
+            what: "points",
+            index: 3
+        })
+    );
+
+    let coincident = vec![Vector3::new(1.0, 2.0, 3.0); 50];
+    assert!(matches!(
+        run(&s.pixels, &coincident),
+        Err(GeometryError::Degenerate { .. })
+    ));
+    let collinear: Vec<Vector3<f64>> = (0..50)
+        .map(|i| Vector3::new(1.0, 2.0, 3.0) + Vector3::new(0.3, -0.1, 0.7) * f64::from(i))
+        .collect();
+    assert!(matches!(
+        run(&s.pixels, &collinear),
+        Err(GeometryError::Degenerate { .. })
+    ));
+    let same_pixel = vec![Vector2::new(100.0, 100.0); 50];
+    assert!(matches!(
+        run(&same_pixel, &s.points),
+        Err(GeometryError::Degenerate { .. })
+    ));
+
+    // Pure noise: no pose has enough support.
+    let mut rng = SplitMix64::new(9);
+    let noise: Vec<Vector2<f64>> = (0..50)
+        .map(|_| Vector2::new(rng.next_f64() * 1024.0, rng.next_f64() * 768.0))
+        .collect();
+    let strict = RansacOptions {
+        min_inliers: 15,
+        max_error_px: 2.0,
+        max_iterations: 500,
+        ..options.clone()
+    };
+    assert!(matches!(
+        estimate_absolute_pose(&noise, &s.points, camera, &strict),
+        Err(GeometryError::TooFewInliers { .. })
+    ));
+
+    let bad = RansacOptions {
+        confidence: 1.0,
+        ..options.clone()
+    };
+    assert!(matches!(
+        run_with(&s, &bad),
+        Err(GeometryError::InvalidOptions {
+            field: "confidence",
+            ..
+        })
+    ));
+    let bad = RansacOptions {
+        max_error_px: f64::NAN,
+        ..options.clone()
+    };
+    assert!(matches!(
+        run_with(&s, &bad),
+        Err(GeometryError::InvalidOptions { .. })
+    ));
+
+    // Refinement rejects the same inputs.
+    let r = RefineOptions::default();
+    assert!(matches!(
+        refine_pose(&s.pixels[..2], &s.points[..2], camera, &s.truth, &r),
+        Err(GeometryError::TooFewCorrespondences { .. })
+    ));
+    assert!(matches!(
+        refine_pose(&pixels, &s.points, camera, &s.truth, &r),
+        Err(GeometryError::NonFinite { .. })
+    ));
+    let behind = Pose::new(
+        s.truth.rotation,
+        s.truth.translation - Vector3::new(0.0, 0.0, 1e3),
+    );
+    assert!(matches!(
+        refine_pose(&s.pixels, &s.points, camera, &behind, &r),
+        Err(GeometryError::RefinementFailed { .. })
+    ));
+    let nan_pose = Pose::new(s.truth.rotation, Vector3::new(f64::NAN, 0.0, 0.0));
+    assert!(matches!(
+        refine_pose(&s.pixels, &s.points, camera, &nan_pose, &r),
+        Err(GeometryError::NonFinite { .. })
+    ));
+    assert!(matches!(
+        refine_pose_masked(&s.pixels, &s.points, &[true; 3], camera, &s.truth, &r),
+        Err(GeometryError::LengthMismatch { what: "mask", .. })
+    ));
+}
+
+fn run_with(
+    s: &Scene,
+    options: &RansacOptions,
+) -> Result<sfpmap::localize::geometry::PoseEstimate, GeometryError> {
+    estimate_absolute_pose(&s.pixels, &s.points, &s.camera, options)
+}
+
+#[test]
+fn error_messages_are_lowercase() {
+    let errors = [
+        GeometryError::TooFewCorrespondences {
+            found: 3,
+            required: 4,
+        },
+        GeometryError::Degenerate {
+            reason: "all 3d points are collinear",
+        },
+        GeometryError::NoModel { iterations: 10 },
+        GeometryError::NonFinite {
+            what: "pixels",
+            index: 2,
+        },
+    ];
+    for e in errors {
+        let message = e.to_string();
+        assert!(message.starts_with(|c: char| c.is_lowercase()), "{message}");
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    /// P3P on random poses and triangles finds the true pose among its solutions.
+    #[test]
+    fn p3p_random_poses(seed in any::<u64>()) {
+        let s = scene(seed, OPENCV, 3, 0.0, 0.0);
+        let bearings = [0, 1, 2].map(|i| s.camera.bearing(&s.pixels[i]));
+        let points = [s.points[0], s.points[1], s.points[2]];
+        let solutions = p3p(&bearings, &points);
+        let (rot, pos) = best_error(&solutions, &s.truth);
+        // Nearly-degenerate triangles (almost collinear in view) may lose digits, not the pose.
+        prop_assert!(rot < 1e-4 && pos < 1e-4, "{rot}° {pos}");
+        for pose in &solutions {
+            prop_assert!(pose.is_finite());
+        }
+    }
+
+    /// Arbitrary (possibly degenerate) inputs never panic and never give a non-finite pose.
+    #[test]
+    fn p3p_never_returns_nan(values in proptest::collection::vec(-10.0f64..10.0, 18)) {
+        let v = |i: usize| Vector3::new(values[i], values[i + 1], values[i + 2]);
+        let solutions = p3p(&[v(0), v(3), v(6)], &[v(9), v(12), v(15)]);
+        prop_assert!(solutions.len() <= 4);
+        for pose in &solutions {
+            prop_assert!(pose.is_finite());
+        }
+    }
+
+    /// RANSAC with noise and outliers over random poses; small sizes keep the test fast.
+    #[test]
+    fn ransac_random_poses(seed in any::<u64>(), outliers in 0.0f64..0.6) {
+        let s = scene(seed, SIMPLE_RADIAL, 120, outliers, 0.7);
+        let options = RansacOptions { seed, ..test_options() };
+        let estimate = estimate_absolute_pose(&s.pixels, &s.points, &s.camera, &options).unwrap();
+        prop_assert!(estimate.pose.rotation_error_deg(&s.truth) < 0.5);
+        prop_assert!(estimate.pose.center_distance(&s.truth) < 0.1);
+    }
+
+    /// Refinement from a perturbed pose never increases the cost and stays finite.
+    #[test]
+    fn refinement_never_worsens(seed in any::<u64>(), degrees in 0.0f64..5.0, shift in 0.0f64..0.5) {
+        let s = scene(seed, OPENCV, 60, 0.2, 1.0);
+        let start = perturb(&s.truth, degrees, shift);
+        let r = refine_pose(&s.pixels, &s.points, &s.camera, &start, &RefineOptions::default()).unwrap();
+        prop_assert!(r.final_cost <= r.initial_cost);
+        prop_assert!(r.pose.is_finite());
+    }
+}
+
+/// Timings for the report; run with
+/// `cargo test --release --no-default-features --features localize --test geometry_pose -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn timing_report() {
+    use std::time::Instant;
+    let s = scene(60, SIMPLE_RADIAL, 1000, 0.0, 0.0);
+    let bearings: Vec<Vector3<f64>> = s.pixels.iter().map(|p| s.camera.bearing(p)).collect();
+    let start = Instant::now();
+    let mut solutions = 0;
+    let runs = 200_000;
+    for i in 0..runs {
+        let j = (i * 3) % 997;
+        solutions += p3p(
+            &[bearings[j], bearings[j + 1], bearings[j + 2]],
+            &[s.points[j], s.points[j + 1], s.points[j + 2]],
+        )
+        .len();
+    }
+    let p3p_ns = start.elapsed().as_nanos() as f64 / f64::from(runs as u32);
+    println!(
+        "p3p: {p3p_ns:.0} ns/solve, {:.2} solutions/solve",
+        solutions as f64 / f64::from(runs as u32)
+    );
+    for (n, outliers, noise) in [
+        (1000, 0.5, 1.0),
+        (1000, 0.7, 1.0),
+        (300, 0.9, 1.0),
+        (1000, 0.9, 1.0),
+    ] {
+        let s = scene(61, SIMPLE_RADIAL, n, outliers, noise);
+        let options = test_options();
+        let reps = 5;
+        let start = Instant::now();
+        let mut estimate = None;
+        for _ in 0..reps {
+            estimate =
+                Some(estimate_absolute_pose(&s.pixels, &s.points, &s.camera, &options).unwrap());
+        }
+        let ms = start.elapsed().as_secs_f64() * 1e3 / f64::from(reps);
+        let e = estimate.unwrap();
+        println!(
+            "ransac n={n} outliers={outliers}: {ms:.2} ms, {} iterations, {} inliers, rot {:.4}°, pos {:.5}",
+            e.iterations,
+            e.num_inliers,
+            e.pose.rotation_error_deg(&s.truth),
+            e.pose.center_distance(&s.truth)
+        );
+    }
+    let start = Instant::now();
+    let r = refine_pose_masked(
+        &s.pixels,
+        &s.points,
+        &s.is_inlier,
+        &s.camera,
+        &perturb(&s.truth, 1.0, 0.1),
+        &RefineOptions::default(),
+    )
+    .unwrap();
+    println!(
+        "refine 100 inliers: {:.3} ms, {} iterations",
+        start.elapsed().as_secs_f64() * 1e3,
+        r.iterations
+    );
+}
