@@ -3,6 +3,8 @@
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
+#[cfg(feature = "colmap")]
+mod convert;
 mod info;
 mod progress;
 mod slice;
@@ -23,6 +25,8 @@ pub struct Cli {
 
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    #[cfg(feature = "colmap")]
+    Convert(convert::Args),
     Info(info::Args),
     Verify(verify::Args),
     Slice(slice::Args),
@@ -31,6 +35,8 @@ pub enum Command {
 pub fn run() -> anyhow::Result<ExitCode> {
     let cli = Cli::parse();
     match cli.command {
+        #[cfg(feature = "colmap")]
+        Command::Convert(args) => convert::run(args, cli.quiet),
         Command::Info(args) => info::run(args, cli.quiet),
         Command::Verify(args) => verify::run(args, cli.quiet),
         Command::Slice(args) => slice::run(args, cli.quiet),

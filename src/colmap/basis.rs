@@ -44,7 +44,10 @@ impl Basis {
             // Column k of `vectors`; the sign is fixed so the largest component is positive,
             // which makes the basis deterministic.
             let col: Vec<f64> = (0..dim).map(|i| vectors[i * dim + k]).collect();
-            let pivot = col.iter().copied().fold(0.0f64, |a, v| if v.abs() > a.abs() { v } else { a });
+            let pivot = col
+                .iter()
+                .copied()
+                .fold(0.0f64, |a, v| if v.abs() > a.abs() { v } else { a });
             let sign = if pivot < 0.0 { -1.0 } else { 1.0 };
             rows.extend(col.iter().map(|v| (v * sign) as f32));
         }
@@ -134,9 +137,13 @@ mod tests {
         let mut data = Vec::new();
         let mut s = 1u64;
         for _ in 0..200 {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             let a = ((s >> 33) as f32 / (1u64 << 31) as f32) - 0.5;
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             let b = ((s >> 33) as f32 / (1u64 << 31) as f32) - 0.5;
             let row = [3.0 * a, 3.0 * a, b, 0.1 * b, 0.0, 0.01 * a, 0.0, 0.0];
             data.extend_from_slice(&row);
@@ -144,7 +151,9 @@ mod tests {
         let basis = Basis::fit(&data, dim);
         for i in 0..dim {
             for j in 0..dim {
-                let dot: f32 = (0..dim).map(|k| basis.rows[i * dim + k] * basis.rows[j * dim + k]).sum();
+                let dot: f32 = (0..dim)
+                    .map(|k| basis.rows[i * dim + k] * basis.rows[j * dim + k])
+                    .sum();
                 let want = if i == j { 1.0 } else { 0.0 };
                 assert!((dot - want).abs() < 1e-5, "rows {i},{j}: {dot}");
             }

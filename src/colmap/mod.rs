@@ -9,8 +9,10 @@
 //! are `u64` with `u64::MAX` (text: `-1`) meaning none, the top-left pixel's centre is at
 //! (0.5, 0.5). The library never prints.
 
+mod basis;
 pub mod bin;
 mod camera;
+pub mod convert;
 mod database;
 mod error;
 mod model;
@@ -102,24 +104,43 @@ fn read_file(path: &Path) -> Result<Vec<u8>> {
 
 /// Reads the binary model in `dir` (`cameras.bin`, `images.bin`, `points3D.bin`).
 pub fn read_model_bin(dir: &Path) -> Result<Reconstruction> {
-    read_with(dir, "bin", bin::parse_model)
+    read_with(dir, true)
 }
 
 /// Reads the text model in `dir` (`cameras.txt`, `images.txt`, `points3D.txt`).
 pub fn read_model_text(dir: &Path) -> Result<Reconstruction> {
-    read_with(dir, "txt", text::parse_model)
+    read_with(dir, false)
 }
 
-type ParseModel = fn((&[u8], &Path), (&[u8], &Path), (&[u8], &Path)) -> Result<Reconstruction>;
-
-fn read_with(dir: &Path, ext: &str, parse: ParseModel) -> Result<Reconstruction> {
-    let [c, i, p] = files_with(dir, ext);
-    // Read one file at a time and drop its bytes once parsed, so peak memory holds at most
-    // one raw file next to the parsed model.
-    let cameras = read_file(&c)?;
-    let images = read_file(&i)?;
-    let points = read_file(&p)?;
-    parse((&cameras, &c), (&images, &i), (&points, &p))
+fn read_with(dir: &Path, binary: bool) -> Result<Reconstruction> {
+    let [c, i, p] = files_with(dir, if binary { "bin" } else { "txt" });
+    let mut builder = ReconstructionBuilder::new().paths(&c, &i, &p);
+    // One file at a time, its bytes dropped once parsed: peak memory is the parsed model
+    // plus one raw file, not plus all three.
+    let data = read_file(&c)?;
+    let cameras = if binary {
+        bin::parse_cameras(&data, &c)?
+    } else {
+        text::parse_cameras(&data, &c)?
+    };
+    drop(data);
+    cameras.into_iter().for_each(|x| builder.add_camera(x));
+    let data = read_file(&i)?;
+    let images = if binary {
+        bin::parse_images(&data, &i)?
+    } else {
+        text::parse_images(&data, &i)?
+    };
+    drop(data);
+    images.into_iter().for_each(|x| builder.add_image(x));
+    let data = read_file(&p)?;
+    if binary {
+        bin::parse_points3d_into(&data, &p, &mut builder)?;
+    } else {
+        text::parse_points3d_into(&data, &p, &mut builder)?;
+    }
+    drop(data);
+    builder.build()
 }
 
 /// Reads the model in `dir`, binary or text, whichever is there.

@@ -1,0 +1,142 @@
+//! `sfpmap convert`: a COLMAP model (+ database.db) into a map.
+
+use super::slice::CodecArg;
+use anyhow::bail;
+use serde_json::json;
+use sfpmap::colmap::convert::{convert, Aggregate, ConvertOptions};
+use sfpmap::format::Codec;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum AggregateArg {
+    Mean,
+    Medoid,
+}
+
+/// Convert a COLMAP model (binary or text) and optionally its database.db into a map.
+///
+/// Each 3D point gets its track's aggregated SIFT descriptor; points are split into 3 levels
+/// by keypoint scale; each level's descriptors are stored in a PCA basis so that `short`
+/// (the first --short-dims dims) keeps most of the variance. Without --database the map is
+/// geometry only. Example:
+/// `sfpmap convert --colmap sparse/0 --database database.db -o building.sfpm`
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The model folder (cameras, images, points3D as .bin or .txt).
+    #[arg(long)]
+    pub colmap: PathBuf,
+    /// The COLMAP database with the model's keypoints and descriptors (opened read-only).
+    #[arg(long)]
+    pub database: Option<PathBuf>,
+    /// Output map.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Dimensions of the short descriptor block (default: a quarter of the full dimension).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    pub short_dims: Option<u32>,
+    #[arg(long, value_enum, default_value = "raw")]
+    pub codec: CodecArg,
+    /// zstd level when `--codec zstd`.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(i32).range(1..=22))]
+    pub zstd_level: i32,
+    /// How a point's descriptor is made from its track's.
+    #[arg(long, value_enum, default_value = "mean")]
+    pub aggregate: AggregateArg,
+    /// Fail if an image's features are missing from the database (default: warn and go on).
+    #[arg(long)]
+    pub strict: bool,
+    /// Overwrite OUTPUT if it exists.
+    #[arg(long)]
+    pub force: bool,
+    /// Print one JSON object: points, images, input_bytes, output_bytes, ratio, seconds, levels.
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    let start = Instant::now();
+    if args.output.exists() && !args.force {
+        bail!(
+            "{}: exists; pass --force to overwrite",
+            args.output.display()
+        );
+    }
+    if let Some(db) = &args.database {
+        if super::slice::same_file(db, &args.output) {
+            bail!(
+                "{}: output is the database; choose another -o",
+                args.output.display()
+            );
+        }
+    }
+    let options = ConvertOptions {
+        database: args.database.clone(),
+        short_dims: args.short_dims,
+        codec: Codec::from(args.codec),
+        zstd_level: args.zstd_level,
+        aggregate: match args.aggregate {
+            AggregateArg::Mean => Aggregate::Mean,
+            AggregateArg::Medoid => Aggregate::Medoid,
+        },
+        strict: args.strict,
+    };
+    let bars = super::Bars::new(quiet, args.json);
+    // Errors name the file at fault themselves.
+    let summary = convert(&args.colmap, &options, &args.output, &bars)?;
+    let seconds = start.elapsed().as_secs_f64();
+    let ratio = summary.input_bytes as f64 / summary.output_bytes.max(1) as f64;
+    let levels: Vec<_> = summary
+        .levels
+        .iter()
+        .map(|l| {
+            json!({
+                "level": l.level, "points": l.points, "dim_full": l.dim_full, "dim_short": l.dim_short,
+                "variance_short": l.variance_short, "scale_range": l.scale_range,
+            })
+        })
+        .collect();
+    if args.json {
+        super::print_json(&json!({
+            "output": args.output.display().to_string(),
+            "points": summary.points,
+            "images": summary.images,
+            "observations": summary.observations,
+            "input_bytes": summary.input_bytes,
+            "output_bytes": summary.output_bytes,
+            "ratio": ratio,
+            "seconds": seconds,
+            "geometry_only": summary.geometry_only,
+            "levels": levels,
+            "images_without_features": summary.images_without_features,
+            "points_without_descriptors": summary.points_without_descriptors,
+        }))?;
+    } else if !quiet {
+        println!(
+            "{}: {} points, {} images, {} observations; {} bytes in -> {} bytes out ({ratio:.2}x) in {seconds:.2} s",
+            args.output.display(),
+            summary.points,
+            summary.images,
+            summary.observations,
+            summary.input_bytes,
+            summary.output_bytes
+        );
+        for l in &summary.levels {
+            println!(
+                "level {}: {} points, scales {:.1}-{:.1} px, short {}/{} dims keeps {:.1} % of the variance",
+                l.level,
+                l.points,
+                l.scale_range[0],
+                l.scale_range[1],
+                l.dim_short,
+                l.dim_full,
+                100.0 * l.variance_short
+            );
+        }
+        if summary.geometry_only {
+            println!("geometry only (no --database): no levels, no descriptors");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}

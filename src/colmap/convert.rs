@@ -1,0 +1,608 @@
+//! `convert`: a COLMAP model (and optionally its `database.db`) into an sfpmap map.
+//!
+//! Each 3D point's descriptor aggregates its track's SIFT descriptors (normalised mean or
+//! medoid). Points are assigned to 3 levels by the median keypoint scale of their
+//! observations (tertiles; level 0 = smallest scale = finest, level 2 = largest = deepest,
+//! matching the SFP extractor's convention that deeper levels have larger ids). Each level
+//! stores its descriptors in its own uncentred-PCA basis so a prefix (`short`) is meaningful.
+
+use super::basis::Basis;
+use super::{model_files, read_model, Database, Error as ColmapError, Reconstruction};
+use crate::format::{
+    self, CameraInfo, Codec, Descriptors, LevelInfo, MapWriter, Metadata, SourceFile,
+};
+use crate::progress::Reporter;
+use serde_json::json;
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// How a point's descriptor is made from its observations'.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Aggregate {
+    /// Mean of the L2-normalised descriptors, re-normalised.
+    #[default]
+    Mean,
+    /// The observation descriptor with the highest summed similarity to the others.
+    Medoid,
+}
+
+impl Aggregate {
+    pub fn name(self) -> &'static str {
+        match self {
+            Aggregate::Mean => "mean",
+            Aggregate::Medoid => "medoid",
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct ConvertOptions {
+    /// `database.db` with the model's keypoints and descriptors; `None` = geometry only.
+    pub database: Option<PathBuf>,
+    /// Dimensions of the `short` block; `None` = a quarter of the descriptor dimension.
+    pub short_dims: Option<u32>,
+    pub codec: Codec,
+    pub zstd_level: i32,
+    pub aggregate: Aggregate,
+    /// Fail when an image's features are missing from the database (default: warn, skip).
+    pub strict: bool,
+}
+
+impl Default for ConvertOptions {
+    fn default() -> Self {
+        ConvertOptions {
+            database: None,
+            short_dims: None,
+            codec: Codec::Raw,
+            zstd_level: 3,
+            aggregate: Aggregate::Mean,
+            strict: false,
+        }
+    }
+}
+
+/// What one level of the converted map holds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LevelSummary {
+    pub level: u16,
+    pub points: usize,
+    pub dim_full: u32,
+    pub dim_short: u32,
+    /// Share of the descriptors' energy the `short` block keeps.
+    pub variance_short: f64,
+    /// Smallest and largest median keypoint scale (pixels) of the level's points.
+    pub scale_range: [f32; 2],
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConvertSummary {
+    pub points: usize,
+    pub images: usize,
+    pub observations: usize,
+    /// Model files plus database, in bytes.
+    pub input_bytes: u64,
+    pub output_bytes: u64,
+    pub geometry_only: bool,
+    pub levels: Vec<LevelSummary>,
+    /// Images whose keypoints or descriptors are missing from the database.
+    pub images_without_features: usize,
+    /// Points none of whose observations has a descriptor (kept, but in no level).
+    pub points_without_descriptors: usize,
+}
+
+/// What can stop a conversion.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum ConvertError {
+    Colmap(ColmapError),
+    Format(format::Error),
+    /// The database's image `image_id` has another name than the model's.
+    NameMismatch {
+        database: PathBuf,
+        image_id: u32,
+        model: String,
+        found: String,
+    },
+    /// An observation's keypoint row does not exist in the database.
+    KeypointOutOfRange {
+        database: PathBuf,
+        image: String,
+        point2d_idx: usize,
+        keypoints: usize,
+    },
+    /// An image has no features in the database and `strict` is set.
+    MissingFeatures {
+        database: PathBuf,
+        image: String,
+    },
+    /// Descriptor lengths differ between images.
+    DescriptorDim {
+        database: PathBuf,
+        image: String,
+        expected: usize,
+        found: usize,
+    },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+}
+
+impl fmt::Display for ConvertError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ConvertError::Colmap(e) => e.fmt(f),
+            ConvertError::Format(e) => e.fmt(f),
+            ConvertError::NameMismatch { database, image_id, model, found } => write!(
+                f,
+                "{}: image {image_id} is {found:?} in the database but {model:?} in the model (a database of another reconstruction?)",
+                database.display()
+            ),
+            ConvertError::KeypointOutOfRange { database, image, point2d_idx, keypoints } => write!(
+                f,
+                "{}: image {image:?} has {keypoints} keypoints but the model observes point2D {point2d_idx}",
+                database.display()
+            ),
+            ConvertError::MissingFeatures { database, image } => write!(
+                f,
+                "{}: image {image:?} has no keypoints or descriptors (without --strict it would be skipped)",
+                database.display()
+            ),
+            ConvertError::DescriptorDim { database, image, expected, found } => write!(
+                f,
+                "{}: image {image:?} has {found}-byte descriptors, others have {expected}",
+                database.display()
+            ),
+            ConvertError::Io { path, source } => write!(f, "{}: {source}", path.display()),
+        }
+    }
+}
+
+impl std::error::Error for ConvertError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            ConvertError::Colmap(e) => e.source(),
+            _ => None,
+        }
+    }
+}
+
+impl From<ColmapError> for ConvertError {
+    fn from(e: ColmapError) -> Self {
+        ConvertError::Colmap(e)
+    }
+}
+
+impl From<format::Error> for ConvertError {
+    fn from(e: format::Error) -> Self {
+        ConvertError::Format(e)
+    }
+}
+
+/// Per-observation features gathered from the database, flat and sorted by point.
+struct Observations {
+    dim: usize,
+    /// (point index, keypoint scale), one per observation with a descriptor.
+    scales: Vec<(u32, f32)>,
+    /// Mean: `[points × dim]` sums of normalised descriptors.
+    sums: Vec<f32>,
+    counts: Vec<u32>,
+    /// Medoid: every observation's normalised descriptor, with its point.
+    all: Vec<(u32, Vec<f32>)>,
+    images_without_features: usize,
+}
+
+fn source_file(path: &Path) -> Result<SourceFile, ConvertError> {
+    let bytes = std::fs::read(path).map_err(|source| ConvertError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    Ok(SourceFile {
+        path: path.display().to_string(),
+        bytes: bytes.len() as u64,
+        xxh3: format::file_hash(&bytes),
+    })
+}
+
+/// Converts the model in `model_dir` and writes the map to `output` (temp file + rename).
+pub fn convert(
+    model_dir: &Path,
+    options: &ConvertOptions,
+    output: &Path,
+    reporter: &dyn Reporter,
+) -> Result<ConvertSummary, ConvertError> {
+    let files = model_files(model_dir)?;
+    reporter.start("reading model", None);
+    let model = read_model(model_dir)?;
+    reporter.finish();
+    let mut sources = files
+        .paths
+        .iter()
+        .map(|p| source_file(p))
+        .collect::<Result<Vec<_>, _>>()?;
+
+    let point_index = |id: u64| model.point3d_index(id).map(|i| i as u32);
+    // Visibility: image → observed points, with the observing pixel.
+    let mut vis_offsets = Vec::with_capacity(model.images().len() + 1);
+    let mut vis_points = Vec::with_capacity(model.num_observations());
+    let mut vis_keypoints = Vec::with_capacity(model.num_observations());
+    vis_offsets.push(0u64);
+    for image in model.images() {
+        for p in &image.points2d {
+            if let Some(index) = p.point3d_id.and_then(point_index) {
+                vis_points.push(index);
+                vis_keypoints.push([p.xy[0] as f32, p.xy[1] as f32]);
+            }
+        }
+        vis_offsets.push(vis_points.len() as u64);
+    }
+
+    let observations = match &options.database {
+        Some(db_path) => {
+            sources.push(source_file(db_path)?);
+            Some(gather(&model, db_path, options, reporter)?)
+        }
+        None => None,
+    };
+    let input_bytes = sources.iter().map(|s| s.bytes).sum();
+
+    let mut metadata = Metadata::default();
+    metadata.geometry_only = observations.is_none();
+    metadata.provenance.tool = Metadata::tool_string();
+    metadata.provenance.sources = sources;
+    metadata.provenance.parameters = json!({
+        "operation": "convert",
+        "colmap": model_dir.display().to_string(),
+        "database": options.database.as_ref().map(|p| p.display().to_string()),
+        "aggregate": options.aggregate.name(),
+        "short_dims": options.short_dims,
+        "codec": options.codec.name(),
+    })
+    .as_object()
+    .cloned()
+    .unwrap_or_default();
+    let mut writer = MapWriter::new(metadata);
+    writer.set_codec(options.codec, options.zstd_level);
+
+    let camera_index = |id: u32| {
+        model
+            .cameras()
+            .iter()
+            .position(|c| c.id == id)
+            .map(|i| i as u32)
+    };
+    for c in model.cameras() {
+        writer.add_camera(CameraInfo {
+            id: Some(c.id),
+            model: c.model.name().to_string(),
+            width: c.width,
+            height: c.height,
+            params: c.params.clone(),
+        });
+    }
+    let positions: Vec<[f64; 3]> = model.points3d().iter().map(|p| p.xyz).collect();
+    let colors: Vec<[u8; 3]> = model.points3d().iter().map(|p| p.rgb).collect();
+    let ids: Vec<u64> = model.points3d().iter().map(|p| p.id).collect();
+    let names: Vec<&str> = model.images().iter().map(|i| i.name.as_str()).collect();
+    let image_cameras: Vec<u32> = model
+        .images()
+        .iter()
+        .map(|i| camera_index(i.camera_id).expect("the reader checked every image's camera exists"))
+        .collect();
+    let poses: Vec<[f64; 7]> = model
+        .images()
+        .iter()
+        .map(|i| {
+            let (q, t) = (i.cam_from_world.rotation, i.cam_from_world.translation);
+            [q[0], q[1], q[2], q[3], t[0], t[1], t[2]]
+        })
+        .collect();
+    let image_ids: Vec<u32> = model.images().iter().map(|i| i.id).collect();
+    writer.set_points_world(&positions);
+    writer.set_point_colors(&colors);
+    writer.set_point_ids(&ids);
+    writer.set_images(&names, &image_cameras, &poses, Some(&image_ids))?;
+    writer.set_visibility(&vis_offsets, &vis_points, Some(&vis_keypoints))?;
+
+    let mut summaries = Vec::new();
+    let mut points_without_descriptors = 0;
+    let mut images_without_features = 0;
+    let built_levels = match &observations {
+        Some(obs) => {
+            images_without_features = obs.images_without_features;
+            reporter.start("aggregating descriptors", Some(positions.len() as u64));
+            let (descriptors, has) = aggregate(obs, positions.len(), options.aggregate);
+            reporter.finish();
+            points_without_descriptors = has.iter().filter(|h| !**h).count();
+            build_levels(obs, &descriptors, &has, options.short_dims, reporter)?
+        }
+        None => Vec::new(),
+    };
+    for l in &built_levels {
+        writer.add_level(
+            l.info.clone(),
+            &l.points,
+            Some(Descriptors::F32(&l.descriptors)),
+            true,
+        )?;
+        writer.set_level_projection(l.info.level, l.basis.dim, l.basis.rows.clone())?;
+        summaries.push(l.summary.clone());
+    }
+    let output_bytes = writer.write(output, reporter)?;
+    Ok(ConvertSummary {
+        points: positions.len(),
+        images: names.len(),
+        observations: vis_points.len(),
+        input_bytes,
+        output_bytes,
+        geometry_only: observations.is_none(),
+        levels: summaries,
+        images_without_features,
+        points_without_descriptors,
+    })
+}
+
+/// Reads every model image's features and gathers, per observation of a 3D point, its
+/// normalised descriptor and keypoint scale.
+fn gather(
+    model: &Reconstruction,
+    db_path: &Path,
+    options: &ConvertOptions,
+    reporter: &dyn Reporter,
+) -> Result<Observations, ConvertError> {
+    let db = Database::open(db_path)?;
+    let n_points = model.points3d().len();
+    let mut obs = Observations {
+        dim: 0,
+        scales: Vec::with_capacity(model.num_observations()),
+        sums: Vec::new(),
+        counts: vec![0; n_points],
+        all: Vec::new(),
+        images_without_features: 0,
+    };
+    reporter.start("reading features", Some(model.images().len() as u64));
+    let mut normalised = Vec::new();
+    for image in model.images() {
+        let features = db.features(image.id)?;
+        if features.image.name != image.name {
+            return Err(ConvertError::NameMismatch {
+                database: db_path.to_path_buf(),
+                image_id: image.id,
+                model: image.name.clone(),
+                found: features.image.name,
+            });
+        }
+        let (Some(keypoints), Some(descriptors)) = (features.keypoints, features.descriptors)
+        else {
+            if options.strict {
+                return Err(ConvertError::MissingFeatures {
+                    database: db_path.to_path_buf(),
+                    image: image.name.clone(),
+                });
+            }
+            obs.images_without_features += 1;
+            reporter.warn(&format!(
+                "{}: image {:?} has no features; its observations get no descriptor",
+                db_path.display(),
+                image.name
+            ));
+            reporter.advance(1);
+            continue;
+        };
+        if obs.dim == 0 {
+            obs.dim = descriptors.cols;
+            if options.aggregate == Aggregate::Mean {
+                obs.sums = vec![0.0; n_points * obs.dim];
+            }
+        } else if descriptors.cols != obs.dim {
+            return Err(ConvertError::DescriptorDim {
+                database: db_path.to_path_buf(),
+                image: image.name.clone(),
+                expected: obs.dim,
+                found: descriptors.cols,
+            });
+        }
+        let dim = obs.dim;
+        for (idx, p) in image.points2d.iter().enumerate() {
+            let Some(point) = p.point3d_id.and_then(|id| model.point3d_index(id)) else {
+                continue;
+            };
+            let (Some(row), Some(scale)) = (descriptors.row(idx), keypoints.scale(idx)) else {
+                return Err(ConvertError::KeypointOutOfRange {
+                    database: db_path.to_path_buf(),
+                    image: image.name.clone(),
+                    point2d_idx: idx,
+                    keypoints: keypoints.len(),
+                });
+            };
+            normalised.clear();
+            normalised.extend(row.iter().map(|&b| f32::from(b)));
+            normalise(&mut normalised);
+            obs.scales.push((point as u32, scale));
+            obs.counts[point] += 1;
+            match options.aggregate {
+                Aggregate::Mean => {
+                    for (s, v) in obs.sums[point * dim..(point + 1) * dim]
+                        .iter_mut()
+                        .zip(&normalised)
+                    {
+                        *s += v;
+                    }
+                }
+                Aggregate::Medoid => obs.all.push((point as u32, normalised.clone())),
+            }
+        }
+        reporter.advance(1);
+    }
+    reporter.finish();
+    if obs.images_without_features > 0 {
+        reporter.warn(&format!(
+            "{} of {} images have no features in {}",
+            obs.images_without_features,
+            model.images().len(),
+            db_path.display()
+        ));
+    }
+    Ok(obs)
+}
+
+fn normalise(v: &mut [f32]) {
+    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    if norm > 0.0 {
+        v.iter_mut().for_each(|x| *x /= norm);
+    }
+}
+
+/// One descriptor per point (`[points × dim]`) and whether the point has one.
+fn aggregate(obs: &Observations, n_points: usize, how: Aggregate) -> (Vec<f32>, Vec<bool>) {
+    let dim = obs.dim;
+    let has: Vec<bool> = obs.counts.iter().map(|&c| c > 0).collect();
+    match how {
+        Aggregate::Mean => {
+            let mut out = obs.sums.clone();
+            out.resize(n_points * dim, 0.0);
+            for row in out.chunks_exact_mut(dim.max(1)) {
+                normalise(row);
+            }
+            (out, has)
+        }
+        Aggregate::Medoid => {
+            let mut out = vec![0.0; n_points * dim];
+            let mut by_point: Vec<&(u32, Vec<f32>)> = obs.all.iter().collect();
+            by_point.sort_by_key(|(p, _)| *p);
+            for group in by_point.chunk_by(|a, b| a.0 == b.0) {
+                let best = (0..group.len())
+                    .max_by(|&i, &j| {
+                        let score = |k: usize| -> f32 {
+                            group.iter().map(|(_, d)| dot(&group[k].1, d)).sum()
+                        };
+                        score(i).total_cmp(&score(j)).then(j.cmp(&i))
+                    })
+                    .unwrap_or(0);
+                let p = group[0].0 as usize;
+                out[p * dim..(p + 1) * dim].copy_from_slice(&group[best].1);
+            }
+            (out, has)
+        }
+    }
+}
+
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+struct BuiltLevel {
+    info: LevelInfo,
+    points: Vec<u32>,
+    descriptors: Vec<f32>,
+    basis: Basis,
+    summary: LevelSummary,
+}
+
+/// The rule, as recorded in each level's metadata.
+const LEVEL_RULE: &str = "median keypoint scale of the point's observations, split at the map's tertiles; level 0 = smallest scales (finest), level 2 = largest (deepest)";
+
+fn build_levels(
+    obs: &Observations,
+    descriptors: &[f32],
+    has: &[bool],
+    short_dims: Option<u32>,
+    reporter: &dyn Reporter,
+) -> Result<Vec<BuiltLevel>, ConvertError> {
+    let dim = obs.dim;
+    if dim == 0 {
+        return Ok(Vec::new());
+    }
+    // Median scale per point.
+    let mut scales = obs.scales.clone();
+    scales.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    let mut median = vec![f32::NAN; has.len()];
+    for group in scales.chunk_by(|a, b| a.0 == b.0) {
+        median[group[0].0 as usize] = group[group.len() / 2].1;
+    }
+    let mut sorted: Vec<f32> = median.iter().copied().filter(|m| m.is_finite()).collect();
+    sorted.sort_by(f32::total_cmp);
+    let quantile = |q: f64| sorted[((sorted.len() as f64 * q) as usize).min(sorted.len() - 1)];
+    let (t1, t2) = if sorted.is_empty() {
+        (0.0, 0.0)
+    } else {
+        (quantile(1.0 / 3.0), quantile(2.0 / 3.0))
+    };
+    let level_of = |m: f32| -> u16 {
+        if m <= t1 {
+            0
+        } else if m <= t2 {
+            1
+        } else {
+            2
+        }
+    };
+    let short = short_dims
+        .map_or(dim as u32 / 4, |s| s.min(dim as u32))
+        .max(1);
+    let mut levels = Vec::new();
+    reporter.start("descriptor bases", Some(3));
+    for level in 0..3u16 {
+        let points: Vec<u32> = (0..has.len())
+            .filter(|&p| has[p] && median[p].is_finite() && level_of(median[p]) == level)
+            .map(|p| p as u32)
+            .collect();
+        if points.is_empty() {
+            reporter.advance(1);
+            continue;
+        }
+        let mut raw = Vec::with_capacity(points.len() * dim);
+        for &p in &points {
+            raw.extend_from_slice(&descriptors[p as usize * dim..(p as usize + 1) * dim]);
+        }
+        let basis = Basis::fit(&raw, dim);
+        let mut projected = vec![0.0; raw.len()];
+        for (src, dst) in raw.chunks_exact(dim).zip(projected.chunks_exact_mut(dim)) {
+            basis.project(src, dst);
+        }
+        let level_scales: Vec<f32> = points.iter().map(|&p| median[p as usize]).collect();
+        let lo = level_scales.iter().copied().fold(f32::INFINITY, f32::min);
+        let hi = level_scales
+            .iter()
+            .copied()
+            .fold(f32::NEG_INFINITY, f32::max);
+        let mut mid = level_scales.clone();
+        mid.sort_by(f32::total_cmp);
+        let variance_short = basis.energy_kept(short as usize);
+        let mut info = LevelInfo {
+            level,
+            stride: f64::from(mid[mid.len() / 2]),
+            descriptor: if dim == 128 {
+                "sift".into()
+            } else {
+                format!("colmap-{dim}")
+            },
+            dim_full: dim as u32,
+            dim_short: short,
+            normalization: "l2".into(),
+            extra: Default::default(),
+        };
+        info.extra.insert("scale_range".into(), json!([lo, hi]));
+        info.extra.insert("assignment".into(), json!(LEVEL_RULE));
+        info.extra.insert("basis".into(), json!("uncentred pca"));
+        info.extra
+            .insert("variance_short".into(), json!(variance_short));
+        levels.push(BuiltLevel {
+            summary: LevelSummary {
+                level,
+                points: points.len(),
+                dim_full: dim as u32,
+                dim_short: short,
+                variance_short,
+                scale_range: [lo, hi],
+            },
+            info,
+            points,
+            descriptors: projected,
+            basis,
+        });
+        reporter.advance(1);
+    }
+    reporter.finish();
+    Ok(levels)
+}
