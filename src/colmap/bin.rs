@@ -106,6 +106,17 @@ impl<'a> Reader<'a> {
         Ok((n, usize::try_from(n).unwrap_or(usize::MAX).min(fits)))
     }
 
+    /// `n` records of `size` bytes as one slice; a count the file cannot hold is a
+    /// truncation (the count itself may be any u64).
+    fn block(&mut self, n: u64, size: usize, what: &'static str) -> Result<&'a [u8]> {
+        let bytes = usize::try_from(n)
+            .ok()
+            .and_then(|n| n.checked_mul(size))
+            .filter(|&b| b <= self.remaining())
+            .ok_or_else(|| self.truncated(n.saturating_mul(size as u64), what))?;
+        self.take(bytes, what)
+    }
+
     fn finish(&self) -> Result<()> {
         if self.pos == self.data.len() {
             Ok(())
@@ -117,6 +128,20 @@ impl<'a> Reader<'a> {
             })
         }
     }
+}
+
+// Callers pass slices of exactly the right length (from `chunks_exact`), so the conversions
+// cannot fail; the fallback keeps them panic-free anyway.
+fn le_u32(b: &[u8]) -> u32 {
+    u32::from_le_bytes(b.try_into().unwrap_or_default())
+}
+
+fn le_u64(b: &[u8]) -> u64 {
+    u64::from_le_bytes(b.try_into().unwrap_or_default())
+}
+
+fn le_f64(b: &[u8]) -> f64 {
+    f64::from_le_bytes(b.try_into().unwrap_or_default())
 }
 
 /// Parses `cameras.bin`; `path` only names the file in errors.
@@ -174,16 +199,19 @@ pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
                 what: format!("image {id}: name is not valid utf-8"),
             })?
             .to_string();
-        let (num_points2d, cap) = r.count(POINT2D, "image point2D count")?;
-        let mut points2d = Vec::with_capacity(cap);
-        for _ in 0..num_points2d {
-            let xy = r.f64s::<2>("point2D")?;
-            let point3d_id = r.u64("point2D point3D id")?;
-            points2d.push(Point2D {
-                xy,
-                point3d_id: (point3d_id != INVALID_POINT3D_ID).then_some(point3d_id),
-            });
-        }
+        let num_points2d = r.u64("image point2D count")?;
+        // One bounds check for the whole block, then fixed-size records.
+        let block = r.block(num_points2d, POINT2D, "image points2D")?;
+        let points2d = block
+            .chunks_exact(POINT2D)
+            .map(|c| {
+                let point3d_id = le_u64(&c[16..24]);
+                Point2D {
+                    xy: [le_f64(&c[0..8]), le_f64(&c[8..16])],
+                    point3d_id: (point3d_id != INVALID_POINT3D_ID).then_some(point3d_id),
+                }
+            })
+            .collect();
         images.push(Image {
             id,
             name,
@@ -217,14 +245,12 @@ pub(crate) fn parse_points3d_into(
         let rgb = r.array::<3>("point3D color")?;
         let error = r.f64("point3D error")?;
         let len = r.u64("point3D track length")?;
+        let block = r.block(len, TRACK_ELEMENT, "point3D track")?;
         let start = builder.begin_point3d();
-        // The take() per element bounds the loop by the file length, whatever `len` says.
-        for _ in 0..len {
-            let image_id = r.u32("point3D track element")?;
-            let point2d_idx = r.u32("point3D track element")?;
+        for c in block.chunks_exact(TRACK_ELEMENT) {
             builder.push_track(TrackElement {
-                image_id,
-                point2d_idx,
+                image_id: le_u32(&c[0..4]),
+                point2d_idx: le_u32(&c[4..8]),
             });
         }
         builder.end_point3d(start, id, xyz, rgb, error)?;
