@@ -6,6 +6,7 @@
 #![deny(unsafe_code)]
 
 pub mod format;
+pub mod io;
 pub mod progress;
 
 #[cfg(feature = "colmap")]

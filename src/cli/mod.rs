@@ -5,6 +5,7 @@ use std::process::ExitCode;
 
 #[cfg(feature = "colmap")]
 mod convert;
+mod export_colmap;
 mod info;
 mod progress;
 mod slice;
@@ -27,6 +28,7 @@ pub struct Cli {
 pub enum Command {
     #[cfg(feature = "colmap")]
     Convert(convert::Args),
+    ExportColmap(export_colmap::Args),
     Info(info::Args),
     Verify(verify::Args),
     Slice(slice::Args),
@@ -37,6 +39,7 @@ pub fn run() -> anyhow::Result<ExitCode> {
     match cli.command {
         #[cfg(feature = "colmap")]
         Command::Convert(args) => convert::run(args, cli.quiet),
+        Command::ExportColmap(args) => export_colmap::run(args, cli.quiet),
         Command::Info(args) => info::run(args, cli.quiet),
         Command::Verify(args) => verify::run(args, cli.quiet),
         Command::Slice(args) => slice::run(args, cli.quiet),

@@ -1,0 +1,3 @@
+//! Getting maps out to other tools: a COLMAP text model.
+
+pub mod colmap_export;
