@@ -436,6 +436,12 @@ proptest! {
         }
     }
 
+}
+
+proptest! {
+    // RANSAC cases are the slow ones in unoptimized test builds.
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
     /// RANSAC with noise and outliers over random poses; small sizes keep the test fast.
     #[test]
     fn ransac_random_poses(seed in any::<u64>(), outliers in 0.0f64..0.6) {

@@ -35,6 +35,11 @@ pub struct RansacOptions {
     pub seed: u64,
     /// Refit each new best hypothesis on its inliers (the LO in LO-RANSAC).
     pub local_optimization: bool,
+    /// Abandon hypotheses early with Wald's sequential probability ratio test (Matas & Chum
+    /// 2008): a bad pose is typically rejected after a few dozen points instead of scoring all
+    /// of them, several times faster at high outlier ratios. The iteration count accounts for
+    /// the small chance of rejecting a good pose.
+    pub sprt: bool,
     /// LM options of the local refits; few iterations suffice because the sample is refit
     /// again whenever it improves.
     pub local_refine: RefineOptions,
@@ -49,10 +54,11 @@ impl Default for RansacOptions {
             max_error_px: 12.0,
             confidence: 0.9999,
             min_iterations: 100,
-            max_iterations: 10_000,
+            max_iterations: 20_000,
             min_inliers: 6,
             seed: 0x5EED_5F9A_0000_0001,
             local_optimization: true,
+            sprt: true,
             local_refine: RefineOptions {
                 max_iterations: 10,
                 ..RefineOptions::default()
@@ -134,13 +140,11 @@ pub fn estimate_absolute_pose(
         });
     }
 
-    let scorer = Scorer {
-        pixels,
-        points,
-        camera,
-        threshold2: options.max_error_px * options.max_error_px,
-    };
     let mut rng = SplitMix64::new(options.seed);
+    let scorer = Scorer::new(pixels, points, camera, options.max_error_px, &mut rng);
+    let mut sprt = options
+        .sprt
+        .then(|| Sprt::new(pixels.len(), options.min_inliers));
     let mut best: Option<(Pose, f64)> = None;
     let mut inlier_indices = Vec::with_capacity(pixels.len());
     let mut required = options.max_iterations;
@@ -156,8 +160,15 @@ pub fn estimate_absolute_pose(
         let solutions = p3p::solve(&sample.map(|i| bearings[i]), &sample.map(|i| points[i]));
         for hypothesis in solutions.as_slice() {
             let bound = best.as_ref().map_or(f64::INFINITY, |(_, score)| *score);
-            let Some(score) = scorer.score(hypothesis, bound) else {
-                continue;
+            let score = match scorer.evaluate(hypothesis, bound, sprt.as_ref()) {
+                Evaluation::Score(score) => score,
+                Evaluation::Bounded => continue,
+                Evaluation::Rejected { consistent, tested } => {
+                    if let Some(sprt) = sprt.as_mut() {
+                        sprt.record_rejection(consistent, tested);
+                    }
+                    continue;
+                }
             };
             let mut candidate = (*hypothesis, score);
             if options.local_optimization {
@@ -169,11 +180,17 @@ pub fn estimate_absolute_pose(
                 );
             }
             best = Some(candidate);
-            let best_inliers = scorer.inliers_into(&candidate.0, &mut inlier_indices);
-            required = required_iterations(
-                best_inliers as f64 / pixels.len() as f64,
-                options.confidence,
-            );
+            let inlier_ratio =
+                scorer.inliers_into(&candidate.0, &mut inlier_indices) as f64 / pixels.len() as f64;
+            let good_sample_kept = match sprt.as_mut() {
+                Some(sprt) => {
+                    sprt.set_inlier_ratio(inlier_ratio);
+                    sprt.acceptance_probability()
+                }
+                None => 1.0,
+            };
+            required =
+                required_iterations(inlier_ratio * good_sample_kept.cbrt(), options.confidence);
         }
     }
 
@@ -183,8 +200,14 @@ pub fn estimate_absolute_pose(
     if let Some(final_refine) = &options.final_refine {
         scorer.inliers_into(&pose, &mut inlier_indices);
         if inlier_indices.len() >= SAMPLE_SIZE {
-            let refined =
-                refine_indexed(pixels, points, &inlier_indices, camera, &pose, final_refine);
+            let refined = refine_indexed(
+                &scorer.pixels,
+                &scorer.points,
+                &inlier_indices,
+                camera,
+                &pose,
+                final_refine,
+            );
             // The refinement minimizes a robust cost, not MSAC; keep it unless it clearly
             // lost support (which would mean it slid to a different minimum).
             if refined.pose.is_finite()
@@ -200,13 +223,13 @@ pub fn estimate_absolute_pose(
     let mut inliers = vec![false; pixels.len()];
     let mut num_inliers = 0;
     let mut error_sum = 0.0;
+    let unrolled = Unrolled::new(&pose);
     for (i, inlier) in inliers.iter_mut().enumerate() {
-        if let Some(e2) = scorer.squared_error(&pose, i) {
-            if e2 < scorer.threshold2 {
-                *inlier = true;
-                num_inliers += 1;
-                error_sum += e2.sqrt();
-            }
+        let e2 = unrolled.squared_error(camera.intrinsics(), &pixels[i], &points[i]);
+        if e2 < scorer.threshold2 {
+            *inlier = true;
+            num_inliers += 1;
+            error_sum += e2.sqrt();
         }
     }
     if num_inliers < options.min_inliers.max(SAMPLE_SIZE) || !pose.is_finite() {
@@ -271,8 +294,8 @@ fn local_optimization(
             break;
         }
         let refined = refine_indexed(
-            scorer.pixels,
-            scorer.points,
+            &scorer.pixels,
+            &scorer.points,
             inlier_indices,
             scorer.camera,
             &best.0,
@@ -292,12 +315,24 @@ fn local_optimization(
     best
 }
 
-/// Pixel-space scoring of hypotheses.
+/// Pixel-space scoring of hypotheses, on the correspondences in a random order: early
+/// termination (the score bound and SPRT) judges a hypothesis by the points it sees first, so
+/// these must not be, say, all the outliers of a sorted match list.
 struct Scorer<'a> {
-    pixels: &'a [Vector2<f64>],
-    points: &'a [Vector3<f64>],
+    pixels: Vec<Vector2<f64>>,
+    points: Vec<Vector3<f64>>,
     camera: &'a Camera,
     threshold2: f64,
+}
+
+/// Outcome of scoring one hypothesis.
+enum Evaluation {
+    /// MSAC score over all points.
+    Score(f64),
+    /// Stopped because the score cannot beat the best.
+    Bounded,
+    /// Stopped by SPRT after `tested` points of which `consistent` were inliers.
+    Rejected { consistent: usize, tested: usize },
 }
 
 /// A pose unrolled into scalars for the scoring loops.
@@ -348,43 +383,176 @@ impl Unrolled {
     }
 }
 
-impl Scorer<'_> {
-    /// Squared pixel error, `None` if the point is behind the camera.
-    fn squared_error(&self, pose: &Pose, i: usize) -> Option<f64> {
-        let e2 = Unrolled::new(pose).squared_error(
-            self.camera.intrinsics(),
-            &self.pixels[i],
-            &self.points[i],
-        );
-        e2.is_finite().then_some(e2)
+impl<'a> Scorer<'a> {
+    fn new(
+        pixels: &[Vector2<f64>],
+        points: &[Vector3<f64>],
+        camera: &'a Camera,
+        max_error_px: f64,
+        rng: &mut SplitMix64,
+    ) -> Self {
+        let mut order: Vec<usize> = (0..pixels.len()).collect();
+        for i in (1..order.len()).rev() {
+            order.swap(i, rng.below(i + 1));
+        }
+        Self {
+            pixels: order.iter().map(|&i| pixels[i]).collect(),
+            points: order.iter().map(|&i| points[i]).collect(),
+            camera,
+            threshold2: max_error_px * max_error_px,
+        }
     }
 
     /// MSAC score, or `None` as soon as it cannot beat `bound` (most hypotheses are bad, and
     /// stopping early saves most of their cost).
     fn score(&self, pose: &Pose, bound: f64) -> Option<f64> {
-        let unrolled = Unrolled::new(pose);
-        let k = self.camera.intrinsics();
-        let mut score = 0.0;
-        for (pixel, point) in self.pixels.iter().zip(self.points) {
-            score += unrolled.squared_error(k, pixel, point).min(self.threshold2);
-            if score >= bound {
-                return None;
-            }
+        match self.evaluate(pose, bound, None) {
+            Evaluation::Score(score) => Some(score),
+            _ => None,
         }
-        score.is_finite().then_some(score)
     }
 
-    /// Collects inlier indices; returns their number.
+    fn evaluate(&self, pose: &Pose, bound: f64, sprt: Option<&Sprt>) -> Evaluation {
+        let unrolled = Unrolled::new(pose);
+        let k = self.camera.intrinsics();
+        let (consistent_step, inconsistent_step, decision) = match sprt {
+            Some(sprt) => sprt.steps(),
+            None => (1.0, 1.0, f64::INFINITY),
+        };
+        let mut score = 0.0;
+        let mut likelihood_ratio = 1.0;
+        let mut consistent = 0;
+        for (j, (pixel, point)) in self.pixels.iter().zip(&self.points).enumerate() {
+            let e2 = unrolled.squared_error(k, pixel, point);
+            if e2 < self.threshold2 {
+                score += e2;
+                consistent += 1;
+                likelihood_ratio *= consistent_step;
+            } else {
+                score += self.threshold2;
+                likelihood_ratio *= inconsistent_step;
+            }
+            if score >= bound {
+                return Evaluation::Bounded;
+            }
+            if likelihood_ratio > decision {
+                return Evaluation::Rejected {
+                    consistent,
+                    tested: j + 1,
+                };
+            }
+        }
+        if score.is_finite() {
+            Evaluation::Score(score)
+        } else {
+            Evaluation::Bounded
+        }
+    }
+
+    /// Collects inlier indices (into the shuffled arrays); returns their number.
     fn inliers_into(&self, pose: &Pose, out: &mut Vec<usize>) -> usize {
         out.clear();
         let unrolled = Unrolled::new(pose);
         let k = self.camera.intrinsics();
-        for (i, (pixel, point)) in self.pixels.iter().zip(self.points).enumerate() {
+        for (i, (pixel, point)) in self.pixels.iter().zip(&self.points).enumerate() {
             if unrolled.squared_error(k, pixel, point) < self.threshold2 {
                 out.push(i);
             }
         }
         out.len()
+    }
+}
+
+/// State of Wald's SPRT: `ε` the inlier ratio of a good pose (the best so far), `δ` the
+/// fraction of points a bad pose happens to explain (estimated from rejected poses), and the
+/// decision threshold `A` on the likelihood ratio.
+struct Sprt {
+    epsilon: f64,
+    delta: f64,
+    decision: f64,
+    /// Points consistent with / tested against rejected poses, with a prior of δ = 1 % over
+    /// 200 points so the first few rejections cannot swing δ wildly.
+    delta_consistent: f64,
+    delta_tested: f64,
+}
+
+impl Sprt {
+    /// Time to compute P3P's poses in units of scoring one point (~0.8 µs vs ~8 ns), and the
+    /// mean number of poses per sample: the cost model behind the decision threshold.
+    const MODEL_COST: f64 = 100.0;
+    const MODELS_PER_SAMPLE: f64 = 1.8;
+
+    fn new(num_points: usize, min_inliers: usize) -> Self {
+        // Before any pose is found, assume the lowest useful inlier ratio: a too-low ε only
+        // makes the test slower to reject, a too-high one rejects good poses.
+        let epsilon = (min_inliers as f64 / num_points as f64).clamp(0.02, 0.1);
+        let mut sprt = Self {
+            epsilon,
+            delta: 0.01,
+            decision: f64::INFINITY,
+            delta_consistent: 2.0,
+            delta_tested: 200.0,
+        };
+        sprt.update_decision();
+        sprt
+    }
+
+    /// Likelihood-ratio factors for a consistent and an inconsistent point, and `A`.
+    fn steps(&self) -> (f64, f64, f64) {
+        (
+            self.delta / self.epsilon,
+            (1.0 - self.delta) / (1.0 - self.epsilon),
+            self.decision,
+        )
+    }
+
+    fn set_inlier_ratio(&mut self, inlier_ratio: f64) {
+        self.epsilon = inlier_ratio.clamp(0.02, 0.95);
+        self.update_decision();
+    }
+
+    fn record_rejection(&mut self, consistent: usize, tested: usize) {
+        self.delta_consistent += consistent as f64;
+        self.delta_tested += tested as f64;
+        let delta = (self.delta_consistent / self.delta_tested).clamp(1e-4, 0.5);
+        // Re-derive A only on a real change; the fixed point below is not free.
+        if (delta / self.delta - 1.0).abs() > 0.1 {
+            self.delta = delta;
+            self.update_decision();
+        }
+    }
+
+    /// `A = K + 1 + ln A` with `K = t_M · C / m_S` (Matas & Chum 2008, eq. 11), where `C` is
+    /// the expected log-likelihood gain per point of a bad pose. A test that cannot tell good
+    /// from bad (δ close to ε) is switched off.
+    fn update_decision(&mut self) {
+        let (delta, epsilon) = (self.delta, self.epsilon);
+        if delta >= 0.5 * epsilon {
+            self.decision = f64::INFINITY;
+            return;
+        }
+        let c =
+            (1.0 - delta) * ((1.0 - delta) / (1.0 - epsilon)).ln() + delta * (delta / epsilon).ln();
+        let k = Self::MODEL_COST * c / Self::MODELS_PER_SAMPLE;
+        let mut a = k + 1.0;
+        for _ in 0..10 {
+            a = k + 1.0 + a.ln();
+        }
+        // Below 10 the test rejects good poses too often for little gain.
+        self.decision = if a.is_finite() {
+            a.max(10.0)
+        } else {
+            f64::INFINITY
+        };
+    }
+
+    /// Probability that a good pose survives the test, `1 − 1/A`.
+    fn acceptance_probability(&self) -> f64 {
+        if self.decision.is_finite() {
+            1.0 - 1.0 / self.decision
+        } else {
+            1.0
+        }
     }
 }
 
