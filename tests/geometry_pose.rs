@@ -528,3 +528,58 @@ fn timing_report() {
         r.iterations
     );
 }
+
+fn wild_f64() -> impl Strategy<Value = f64> {
+    prop_oneof![
+        -1e3f64..1e3,
+        -1e300f64..1e300,
+        Just(0.0),
+        Just(f64::MIN_POSITIVE),
+        Just(f64::NAN),
+        Just(f64::INFINITY),
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(128))]
+
+    /// Whatever the input, estimation returns an error or a finite pose; it never panics.
+    #[test]
+    fn estimation_never_panics_or_returns_nan(
+        pixel_values in proptest::collection::vec(wild_f64(), 0..40),
+        point_values in proptest::collection::vec(wild_f64(), 0..60),
+    ) {
+        let pixels: Vec<Vector2<f64>> =
+            pixel_values.chunks_exact(2).map(|c| Vector2::new(c[0], c[1])).collect();
+        let points: Vec<Vector3<f64>> =
+            point_values.chunks_exact(3).map(|c| Vector3::new(c[0], c[1], c[2])).collect();
+        let n = pixels.len().min(points.len());
+        let camera = Camera::parse(OPENCV).unwrap();
+        let options = RansacOptions { max_iterations: 200, ..test_options() };
+        if let Ok(estimate) = estimate_absolute_pose(&pixels[..n], &points[..n], &camera, &options) {
+            prop_assert!(estimate.pose.is_finite());
+        }
+        let start = Pose::identity();
+        if let Ok(refined) = refine_pose(&pixels[..n], &points[..n], &camera, &start, &RefineOptions::default()) {
+            prop_assert!(refined.pose.is_finite());
+        }
+    }
+}
+
+#[test]
+fn huge_coordinates_fail_cleanly() {
+    let s = scene(70, SIMPLE_RADIAL, 50, 0.0, 0.5);
+    let huge: Vec<Vector3<f64>> = s.points.iter().map(|p| p * 1e307).collect();
+    let result = estimate_absolute_pose(&s.pixels, &huge, &s.camera, &test_options());
+    assert!(result.is_err() || result.unwrap().pose.is_finite());
+    // Far from the origin but well-conditioned: a city-scale map in metres.
+    let offset = Vector3::new(4.0e5, 5.4e6, 120.0);
+    let shifted: Vec<Vector3<f64>> = s.points.iter().map(|p| p + offset).collect();
+    let truth = Pose::new(
+        s.truth.rotation,
+        s.truth.translation - s.truth.rotation * offset,
+    );
+    let estimate = estimate_absolute_pose(&s.pixels, &shifted, &s.camera, &test_options()).unwrap();
+    assert!(estimate.pose.rotation_error_deg(&truth) < 0.5);
+    assert!(estimate.pose.center_distance(&truth) < 0.05);
+}

@@ -10,7 +10,7 @@
 //!
 //! Sampling uses a seeded SplitMix64, so a given input and seed always gives the same pose.
 
-use nalgebra::{Matrix2, Matrix3, SymmetricEigen, Vector2, Vector3};
+use nalgebra::{Matrix2, Vector2, Vector3};
 
 use super::camera::{Camera, Intrinsics};
 use super::error::GeometryError;
@@ -590,32 +590,40 @@ fn validate_input(pixels: &[Vector2<f64>], points: &[Vector3<f64>]) -> Result<()
 }
 
 /// Coincident or collinear 3D points leave the rotation about their line undetermined.
+///
+/// Closed form rather than an eigen-decomposition: nalgebra's iterative solver has no iteration
+/// cap by default, and overflowing coordinates must fail fast, not spin.
 fn check_point_spread(points: &[Vector3<f64>]) -> Result<(), GeometryError> {
     let n = points.len() as f64;
     let centroid = points.iter().sum::<Vector3<f64>>() / n;
-    let covariance = points
-        .iter()
-        .map(|p| {
-            let d = p - centroid;
-            d * d.transpose()
-        })
-        .sum::<Matrix3<f64>>()
-        / n;
-    let mut eigenvalues: Vec<f64> = SymmetricEigen::new(covariance)
-        .eigenvalues
-        .iter()
-        .copied()
-        .collect();
-    eigenvalues.sort_by(|a, b| b.total_cmp(a));
+    let (mut far, mut far_distance2) = (centroid, 0.0);
+    for p in points {
+        let d2 = (p - centroid).norm_squared();
+        if d2 > far_distance2 {
+            (far, far_distance2) = (*p, d2);
+        }
+    }
+    if !(centroid.iter().all(|c| c.is_finite()) && far_distance2.is_finite()) {
+        return Err(GeometryError::Degenerate {
+            reason: "3d coordinates overflow",
+        });
+    }
     // Relative to the centroid's magnitude: far from the origin, f64 rounding alone spreads
     // coincident points by ~1e-16 of their coordinates.
-    let magnitude = 1.0 + centroid.norm_squared();
-    if !(eigenvalues[0] > 1e-20 * magnitude) {
+    if !(far_distance2 > 1e-24 * (1.0 + centroid.norm_squared())) {
         return Err(GeometryError::Degenerate {
             reason: "all 3d points coincide",
         });
     }
-    if !(eigenvalues[1] > 1e-12 * eigenvalues[0]) {
+    let axis = (far - centroid) / far_distance2.sqrt();
+    let off_axis2 = points
+        .iter()
+        .map(|p| {
+            let d = p - centroid;
+            (d - axis * d.dot(&axis)).norm_squared()
+        })
+        .fold(0.0, f64::max);
+    if !(off_axis2 > 1e-16 * far_distance2) {
         return Err(GeometryError::Degenerate {
             reason: "all 3d points are collinear",
         });
