@@ -80,6 +80,10 @@ fn fixtures_load_with_the_documented_counts() {
         for p in model.points3d().iter().step_by(97) {
             assert_eq!(model.point3d(p.id), Some(p));
         }
+        for (index, image) in model.images().iter().enumerate() {
+            assert_eq!(model.image_index(image.id), Some(index));
+        }
+        assert_eq!(model.point3d(u64::MAX), None);
     }
 }
 
@@ -350,6 +354,14 @@ fn synthetic_model_round_trips_through_bin_and_txt() {
         [1, 2, 3]
     );
     assert_eq!(model.point3d(0).map(|p| model.track(p).len()), Some(2));
+    // Images have dense ids (table lookups), points sparse ones (binary search).
+    assert_eq!(model.image_index(2), Some(1));
+    assert_eq!(
+        (model.image(0), model.image(4), model.image(u32::MAX)),
+        (None, None, None)
+    );
+    assert_eq!(model.point3d_index(u64::MAX - 1), Some(2));
+    assert_eq!((model.point3d(4), model.point3d(u64::MAX)), (None, None));
     let tmp = tempfile::tempdir().unwrap();
     write_model(tmp.path(), &model);
     assert_eq!(
