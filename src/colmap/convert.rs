@@ -522,7 +522,9 @@ fn build_levels(
     }
     let mut sorted: Vec<f32> = median.iter().copied().filter(|m| m.is_finite()).collect();
     sorted.sort_by(f32::total_cmp);
-    let quantile = |q: f64| sorted[((sorted.len() as f64 * q) as usize).min(sorted.len() - 1)];
+    // The value below which a share `q` of the points lies (nearest rank).
+    let quantile =
+        |q: f64| sorted[((sorted.len() as f64 * q).ceil() as usize).clamp(1, sorted.len()) - 1];
     let (t1, t2) = if sorted.is_empty() {
         (0.0, 0.0)
     } else {
