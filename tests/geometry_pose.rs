@@ -4,8 +4,9 @@
 use nalgebra::{UnitQuaternion, Vector2, Vector3};
 use proptest::prelude::*;
 use sfpmap::localize::geometry::{
-    estimate_absolute_pose, p3p, refine_pose, refine_pose_masked, Camera, GeometryError, Pose,
-    RansacOptions, RefineOptions, RobustLoss, SplitMix64,
+    estimate_absolute_pose, estimate_absolute_pose_with_prior, p3p, refine_pose,
+    refine_pose_masked, reprojection_inliers, Camera, GeometryError, Pose, RansacOptions,
+    RefineOptions, RobustLoss, SplitMix64,
 };
 
 struct Scene {
@@ -582,4 +583,43 @@ fn huge_coordinates_fail_cleanly() {
     let estimate = estimate_absolute_pose(&s.pixels, &shifted, &s.camera, &test_options()).unwrap();
     assert!(estimate.pose.rotation_error_deg(&truth) < 0.5);
     assert!(estimate.pose.center_distance(&truth) < 0.05);
+}
+
+#[test]
+fn a_good_prior_shortens_ransac() {
+    let s = scene(80, SIMPLE_RADIAL, 300, 0.9, 1.0);
+    let options = test_options();
+    let prior = perturb(&s.truth, 0.3, 0.02);
+    let estimate =
+        estimate_absolute_pose_with_prior(&s.pixels, &s.points, &s.camera, Some(&prior), &options)
+            .unwrap();
+    assert!(estimate.pose.rotation_error_deg(&s.truth) < 0.5);
+    assert!(estimate.pose.center_distance(&s.truth) < 0.05);
+    // The adaptive count for 10 % inliers is ~10^4; a good prior alone cannot shorten that
+    // below what the inlier ratio demands, but it must not fail or be slower.
+    assert!(estimate.iterations <= options.max_iterations);
+    let mask = reprojection_inliers(&s.pixels, &s.points, &s.camera, &estimate.pose, 4.0);
+    assert_eq!(mask, estimate.inliers);
+
+    // With 30 % outliers a prior lets RANSAC stop at the minimum.
+    let s = scene(81, SIMPLE_RADIAL, 300, 0.3, 1.0);
+    let options = RansacOptions {
+        min_iterations: 5,
+        ..test_options()
+    };
+    let prior = perturb(&s.truth, 0.3, 0.02);
+    let estimate =
+        estimate_absolute_pose_with_prior(&s.pixels, &s.points, &s.camera, Some(&prior), &options)
+            .unwrap();
+    assert!(estimate.iterations <= 30, "{}", estimate.iterations);
+    assert!(estimate.pose.rotation_error_deg(&s.truth) < 0.5);
+    // A non-finite prior is an input error.
+    let nan = Pose::new(prior.rotation, Vector3::new(f64::NAN, 0.0, 0.0));
+    assert!(matches!(
+        estimate_absolute_pose_with_prior(&s.pixels, &s.points, &s.camera, Some(&nan), &options),
+        Err(GeometryError::NonFinite {
+            what: "prior pose",
+            ..
+        })
+    ));
 }

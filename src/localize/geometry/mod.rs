@@ -26,7 +26,8 @@ pub use error::GeometryError;
 pub use p3p::p3p;
 pub use pose::Pose;
 pub use ransac::{
-    estimate_absolute_pose, required_iterations, PoseEstimate, RansacOptions, MIN_CORRESPONDENCES,
+    estimate_absolute_pose, estimate_absolute_pose_with_prior, reprojection_inliers,
+    required_iterations, PoseEstimate, RansacOptions, MIN_CORRESPONDENCES,
 };
 pub use refine::{refine_pose, refine_pose_masked, RefineOptions, Refinement, RobustLoss};
 pub use rng::SplitMix64;

@@ -34,6 +34,13 @@ impl Solutions {
         }
     }
 
+    /// A single pose, so a prior can go through the same scoring path as P3P's solutions.
+    pub fn single(pose: Pose) -> Self {
+        let mut solutions = Self::new();
+        solutions.push(pose);
+        solutions
+    }
+
     fn push(&mut self, pose: Pose) {
         if self.len < 4 {
             self.poses[self.len] = pose;

@@ -27,8 +27,9 @@ pub struct RansacOptions {
     /// Probability of having drawn at least one all-inlier sample when stopping.
     pub confidence: f64,
     pub min_iterations: usize,
-    /// Upper bound on iterations; at 90 % outliers the adaptive count needs ~9,200 at
-    /// confidence 0.9999, so the default allows that.
+    /// Upper bound on iterations. At 90 % outliers the adaptive count needs ~9,200 at
+    /// confidence 0.9999 (~10,300 with SPRT's occasional rejection of a good pose); the
+    /// default leaves room for that.
     pub max_iterations: usize,
     /// Fewer inliers than this is a failure, not a pose.
     pub min_inliers: usize,
@@ -125,8 +126,27 @@ pub fn estimate_absolute_pose(
     camera: &Camera,
     options: &RansacOptions,
 ) -> Result<PoseEstimate, GeometryError> {
+    estimate_absolute_pose_with_prior(pixels, points, camera, None, options)
+}
+
+/// [`estimate_absolute_pose`] that first scores a prior pose (e.g. from a coarser level) as if
+/// a sample had produced it. A good prior sets a high inlier ratio at once, so the adaptive
+/// count stops after `min_iterations`; a bad one costs one scoring pass.
+pub fn estimate_absolute_pose_with_prior(
+    pixels: &[Vector2<f64>],
+    points: &[Vector3<f64>],
+    camera: &Camera,
+    prior: Option<&Pose>,
+    options: &RansacOptions,
+) -> Result<PoseEstimate, GeometryError> {
     options.validate()?;
     validate_input(pixels, points)?;
+    if prior.is_some_and(|p| !p.is_finite()) {
+        return Err(GeometryError::NonFinite {
+            what: "prior pose",
+            index: 0,
+        });
+    }
 
     // Bearings are only needed for sampling; scoring projects the 3D points instead, so a
     // pixel whose undistortion fails is merely never sampled.
@@ -150,15 +170,21 @@ pub fn estimate_absolute_pose(
     let mut required = options.max_iterations;
     let mut iterations = 0;
 
+    let mut pending_prior = prior.copied();
     while iterations
         < options
             .max_iterations
             .min(required.max(options.min_iterations))
     {
-        iterations += 1;
-        let sample = draw_sample(&mut rng, &usable);
-        let solutions = p3p::solve(&sample.map(|i| bearings[i]), &sample.map(|i| points[i]));
-        for hypothesis in solutions.as_slice() {
+        let hypotheses = match pending_prior.take() {
+            Some(prior) => p3p::Solutions::single(prior),
+            None => {
+                iterations += 1;
+                let sample = draw_sample(&mut rng, &usable);
+                p3p::solve(&sample.map(|i| bearings[i]), &sample.map(|i| points[i]))
+            }
+        };
+        for hypothesis in hypotheses.as_slice() {
             let bound = best.as_ref().map_or(f64::INFINITY, |(_, score)| *score);
             let score = match scorer.evaluate(hypothesis, bound, sprt.as_ref()) {
                 Evaluation::Score(score) => score,
@@ -246,6 +272,26 @@ pub fn estimate_absolute_pose(
         iterations,
         mean_inlier_error_px: error_sum / num_inliers as f64,
     })
+}
+
+/// Which correspondences reproject within `max_error_px` pixels under `pose` (false behind the
+/// camera or for non-finite input).
+pub fn reprojection_inliers(
+    pixels: &[Vector2<f64>],
+    points: &[Vector3<f64>],
+    camera: &Camera,
+    pose: &Pose,
+    max_error_px: f64,
+) -> Vec<bool> {
+    let unrolled = Unrolled::new(pose);
+    let threshold2 = max_error_px * max_error_px;
+    pixels
+        .iter()
+        .zip(points)
+        .map(|(pixel, point)| {
+            unrolled.squared_error(camera.intrinsics(), pixel, point) < threshold2
+        })
+        .collect()
 }
 
 /// Iterations needed so that with probability `confidence` one sample was all inliers.
