@@ -6,7 +6,8 @@
 //! ```
 //!
 //! `generate` writes a synthetic binary model of 1 M points × track length 5 (1000 images of
-//! 5000 points2D each) to `$SFPMAP_COLMAP_PERF_DIR`; `read` reads it back and prints the time.
+//! 5000 points2D each) to `$SFPMAP_COLMAP_PERF_DIR` (and as text to its `txt/`); `read` and
+//! `read_text` read it back and print the time.
 //! Run `read` alone under `/usr/bin/time -v` for its peak memory.
 #![cfg(feature = "colmap")]
 
@@ -14,7 +15,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use sfpmap::colmap::TrackElement;
-use sfpmap::colmap::{self, bin, Camera, CameraModel, Image, Point2D, Reconstruction, Rigid3};
+use sfpmap::colmap::{
+    self, bin, text, Camera, CameraModel, Image, Point2D, Reconstruction, Rigid3,
+};
 
 const POINTS: u64 = 1_000_000;
 const TRACK: u64 = 5;
@@ -91,18 +94,38 @@ fn generate() {
     std::fs::write(dir.join("cameras.bin"), bin::write_cameras(&model)).unwrap();
     std::fs::write(dir.join("images.bin"), bin::write_images(&model)).unwrap();
     std::fs::write(dir.join("points3D.bin"), bin::write_points3d(&model)).unwrap();
+    let txt = dir.join("txt");
+    std::fs::create_dir_all(&txt).unwrap();
+    std::fs::write(txt.join("cameras.txt"), text::write_cameras(&model)).unwrap();
+    std::fs::write(txt.join("images.txt"), text::write_images(&model)).unwrap();
+    std::fs::write(txt.join("points3D.txt"), text::write_points3d(&model)).unwrap();
 }
 
 #[test]
 #[ignore]
 fn read() {
     let Some(dir) = perf_dir() else { return };
-    let bytes: u64 = ["cameras.bin", "images.bin", "points3D.bin"]
+    read_and_report(&dir, "bin");
+}
+
+#[test]
+#[ignore]
+fn read_text() {
+    let Some(dir) = perf_dir() else { return };
+    read_and_report(&dir.join("txt"), "txt");
+}
+
+fn read_and_report(dir: &std::path::Path, ext: &str) {
+    let bytes: u64 = ["cameras", "images", "points3D"]
         .iter()
-        .map(|f| std::fs::metadata(dir.join(f)).unwrap().len())
+        .map(|f| {
+            std::fs::metadata(dir.join(format!("{f}.{ext}")))
+                .unwrap()
+                .len()
+        })
         .sum();
     let start = Instant::now();
-    let model = colmap::read_model(&dir).unwrap();
+    let model = colmap::read_model(dir).unwrap();
     let seconds = start.elapsed().as_secs_f64();
     assert_eq!(model.points3d().len() as u64, POINTS);
     assert_eq!(model.num_observations() as u64, POINTS * TRACK);

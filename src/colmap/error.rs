@@ -188,7 +188,7 @@ impl fmt::Display for Error {
             }
             Error::Truncated { path, offset, needed, len, what } => write!(
                 f,
-                "{}: truncated: {what} at byte {offset} needs {needed} bytes, the file has {len}",
+                "{}: truncated: {what} at byte {offset} needs {needed} bytes, the file ends at byte {len}",
                 show(path)
             ),
             Error::TrailingBytes { path, offset, len } => write!(

@@ -59,18 +59,28 @@ impl<'a> Lines<'a> {
 
 /// Whitespace-separated tokens of one line, with errors naming file and line.
 struct Tokens<'a> {
-    rest: &'a [u8],
+    rest: &'a str,
     path: &'a Path,
     line: u64,
 }
 
+/// At most this much of a bad token goes into an error message.
+const SHOWN: usize = 40;
+
 impl<'a> Tokens<'a> {
-    fn new(line: &'a [u8], path: &'a Path, number: u64) -> Self {
-        Tokens {
-            rest: line,
+    /// Checks the line is UTF-8 once, so tokens need no further checks (a name that is not
+    /// UTF-8 could not be stored anyway).
+    fn new(line: &'a [u8], path: &'a Path, number: u64) -> Result<Self> {
+        let rest = std::str::from_utf8(line).map_err(|e| Error::BadLine {
+            path: path.to_path_buf(),
+            line: number,
+            what: format!("not valid utf-8 after byte {}", e.valid_up_to()),
+        })?;
+        Ok(Tokens {
+            rest,
             path,
             line: number,
-        }
+        })
     }
 
     fn error(&self, what: String) -> Error {
@@ -81,22 +91,20 @@ impl<'a> Tokens<'a> {
         }
     }
 
-    fn next_token(&mut self) -> Option<&'a [u8]> {
+    fn next_token(&mut self) -> Option<&'a str> {
         let rest = self.rest.trim_ascii_start();
-        if rest.is_empty() {
-            self.rest = rest;
-            return None;
-        }
+        // ASCII whitespace is one byte, so `end` is a char boundary.
         let end = rest
-            .iter()
+            .bytes()
             .position(|b| b.is_ascii_whitespace())
             .unwrap_or(rest.len());
-        self.rest = &rest[end..];
-        Some(&rest[..end])
+        let (token, rest) = rest.split_at(end);
+        self.rest = rest;
+        (!token.is_empty()).then_some(token)
     }
 
     /// The rest of the line, trimmed.
-    fn rest(&self) -> &'a [u8] {
+    fn rest(&self) -> &'a str {
         self.rest.trim_ascii()
     }
 
@@ -105,25 +113,19 @@ impl<'a> Tokens<'a> {
     }
 
     fn count_rest(&self) -> usize {
-        self.rest
-            .split(|b| b.is_ascii_whitespace())
-            .filter(|t| !t.is_empty())
-            .count()
+        self.rest.split_ascii_whitespace().count()
+    }
+
+    fn bad(&self, what: &str, token: &str) -> Error {
+        let shown: String = token.chars().take(SHOWN).collect();
+        self.error(format!("bad {what} {shown:?}"))
     }
 
     fn parse<T: FromStr>(&mut self, what: &str) -> Result<T> {
         let token = self
             .next_token()
             .ok_or_else(|| self.error(format!("missing {what}")))?;
-        std::str::from_utf8(token)
-            .ok()
-            .and_then(|s| s.parse().ok())
-            .ok_or_else(|| {
-                self.error(format!(
-                    "bad {what} {:?}",
-                    String::from_utf8_lossy(&token[..token.len().min(40)])
-                ))
-            })
+        token.parse().map_err(|_| self.bad(what, token))
     }
 
     fn parse_f64s<const N: usize>(&mut self, what: &str) -> Result<[f64; N]> {
@@ -139,18 +141,10 @@ impl<'a> Tokens<'a> {
         let token = self
             .next_token()
             .ok_or_else(|| self.error("missing point3D id".to_string()))?;
-        if token == b"-1" {
+        if token == "-1" {
             return Ok(None);
         }
-        let id: u64 = std::str::from_utf8(token)
-            .ok()
-            .and_then(|s| s.parse().ok())
-            .ok_or_else(|| {
-                self.error(format!(
-                    "bad point3D id {:?}",
-                    String::from_utf8_lossy(&token[..token.len().min(40)])
-                ))
-            })?;
+        let id: u64 = token.parse().map_err(|_| self.bad("point3D id", token))?;
         Ok((id != u64::MAX).then_some(id))
     }
 }
@@ -160,19 +154,16 @@ pub fn parse_cameras(data: &[u8], path: &Path) -> Result<Vec<Camera>> {
     let mut lines = Lines::new(data);
     let mut cameras = Vec::new();
     while let Some((number, line)) = lines.next_data() {
-        let mut t = Tokens::new(line, path, number);
+        let mut t = Tokens::new(line, path, number)?;
         let id: u32 = t.parse("camera id")?;
         let name = t
             .next_token()
             .ok_or_else(|| t.error("missing camera model".to_string()))?;
-        let model = std::str::from_utf8(name)
-            .ok()
-            .and_then(CameraModel::from_name)
-            .ok_or_else(|| Error::UnknownCameraModelName {
-                path: path.to_path_buf(),
-                line: number,
-                name: String::from_utf8_lossy(&name[..name.len().min(40)]).into_owned(),
-            })?;
+        let model = CameraModel::from_name(name).ok_or_else(|| Error::UnknownCameraModelName {
+            path: path.to_path_buf(),
+            line: number,
+            name: name.chars().take(SHOWN).collect(),
+        })?;
         let width: u64 = t.parse("camera width")?;
         let height: u64 = t.parse("camera height")?;
         let found = t.count_rest();
@@ -202,14 +193,13 @@ pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
     let mut lines = Lines::new(data);
     let mut images = Vec::new();
     while let Some((number, line)) = lines.next_data() {
-        let mut t = Tokens::new(line, path, number);
+        let mut t = Tokens::new(line, path, number)?;
         let id: u32 = t.parse("image id")?;
         let rotation = t.parse_f64s::<4>("image rotation")?;
         let translation = t.parse_f64s::<3>("image translation")?;
         let camera_id: u32 = t.parse("image camera id")?;
         // The name is the rest of the line, so names with spaces survive.
-        let name = std::str::from_utf8(t.rest())
-            .map_err(|_| t.error(format!("image {id}: name is not valid utf-8")))?;
+        let name = t.rest();
         if name.is_empty() {
             return Err(t.error(format!("image {id}: missing name")));
         }
@@ -218,7 +208,7 @@ pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
         // means no points.
         let mut points2d = Vec::new();
         if let Some((number, line)) = lines.next_raw() {
-            let mut t = Tokens::new(line, path, number);
+            let mut t = Tokens::new(line, path, number)?;
             let n = t.count_rest();
             if n % 3 != 0 {
                 return Err(t.error(format!(
@@ -254,7 +244,7 @@ pub(crate) fn parse_points3d_into(
 ) -> Result<()> {
     let mut lines = Lines::new(data);
     while let Some((number, line)) = lines.next_data() {
-        let mut t = Tokens::new(line, path, number);
+        let mut t = Tokens::new(line, path, number)?;
         let id: u64 = t.parse("point3D id")?;
         let xyz = t.parse_f64s::<3>("point3D coordinate")?;
         let rgb = [
