@@ -608,3 +608,22 @@ fn fuzz_entry_points_take_anything() {
         }
     }
 }
+
+#[test]
+fn types_cross_threads() {
+    fn send_sync<T: Send + Sync + 'static>() {}
+    fn send<T: Send + 'static>() {}
+    send_sync::<Error>();
+    send_sync::<Reconstruction>();
+    // rusqlite connections are Send but not Sync: one database per thread.
+    send::<colmap::Database>();
+    // The error converts into boxed errors (and so into anyhow in the CLI).
+    let boxed: Box<dyn std::error::Error + Send + Sync> = Error::NoModel {
+        dir: PathBuf::from("x"),
+    }
+    .into();
+    assert_eq!(
+        boxed.to_string(),
+        "x: no COLMAP model (neither cameras.bin, images.bin, points3D.bin nor the .txt files)"
+    );
+}

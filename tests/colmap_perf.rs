@@ -137,3 +137,67 @@ fn read_and_report(dir: &std::path::Path, ext: &str) {
         bytes as f64 / 1e6 / seconds
     );
 }
+
+/// A longer run of the fuzz entry points on mutated real files (`SFPMAP_SOAK_ITERS`, default
+/// 200000 per file): byte flips, insertions, deletions and splices. Panics are the failure.
+#[test]
+#[ignore]
+fn mutation_soak() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/colmap");
+    if !root.is_dir() {
+        println!("note: {} is absent", root.display());
+        return;
+    }
+    let iters: u64 = std::env::var("SFPMAP_SOAK_ITERS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(200_000);
+    let mut seed = 0x2545f4914f6cdd1du64;
+    let mut next = move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        seed
+    };
+    let files = [
+        "yding121_video_frames/sparse/0/cameras.bin",
+        "yding121_video_frames/sparse/0/images.bin",
+        "yding121_video_frames/sparse/0/points3D.bin",
+        "kapture_maupertuis/reconstruction/cameras.txt",
+        "kapture_maupertuis/reconstruction/images.txt",
+        "kapture_maupertuis/reconstruction/points3D.txt",
+    ];
+    let start = Instant::now();
+    for file in files {
+        let base = std::fs::read(root.join(file)).unwrap();
+        // Short inputs keep each try cheap; the headers and first records are where the
+        // interesting lengths and counts are.
+        let base = &base[..base.len().min(4096)];
+        for _ in 0..iters {
+            let mut data = base.to_vec();
+            for _ in 0..1 + next() % 8 {
+                let at = (next() % (data.len() as u64 + 1)) as usize;
+                match next() % 4 {
+                    0 if at < data.len() => data[at] = next() as u8,
+                    1 => data.insert(at, next() as u8),
+                    2 if at < data.len() => {
+                        data.remove(at);
+                    }
+                    _ => {
+                        let len = (next() % 16) as usize;
+                        let from = (next() % base.len() as u64) as usize;
+                        let end = (from + len).min(base.len());
+                        data.splice(at..at, base[from..end].iter().copied());
+                    }
+                }
+            }
+            colmap::fuzz_read_bin(&data);
+            colmap::fuzz_read_txt(&data);
+        }
+    }
+    println!(
+        "{} mutated inputs in {:.1} s, no panic",
+        iters * files.len() as u64,
+        start.elapsed().as_secs_f64()
+    );
+}

@@ -8,6 +8,31 @@
 //! Conventions are COLMAP's: `cam_from_world` poses, scalar-first quaternions, `point3D` ids
 //! are `u64` with `u64::MAX` (text: `-1`) meaning none, the top-left pixel's centre is at
 //! (0.5, 0.5). The library never prints.
+//!
+//! ```no_run
+//! use std::path::Path;
+//! use sfpmap::colmap::{read_model, Database};
+//!
+//! let model = read_model(Path::new("sparse/0"))?;
+//! let db = Database::open(Path::new("database.db"))?;
+//! // One image's features in memory at a time.
+//! for features in db.iter_features()? {
+//!     let features = features?;
+//!     let Some(image) = model.image(features.image.id) else { continue };
+//!     let (Some(keypoints), Some(descriptors)) = (features.keypoints, features.descriptors)
+//!     else {
+//!         continue;
+//!     };
+//!     for (idx, point2d) in image.points2d.iter().enumerate() {
+//!         let Some(point) = point2d.point3d_id.and_then(|id| model.point3d(id)) else {
+//!             continue;
+//!         };
+//!         let (scale, descriptor) = (keypoints.scale(idx), descriptors.row(idx));
+//!         let _ = (point.xyz, scale, descriptor);
+//!     }
+//! }
+//! # Ok::<(), sfpmap::colmap::Error>(())
+//! ```
 
 mod basis;
 pub mod bin;
