@@ -623,3 +623,36 @@ fn a_good_prior_shortens_ransac() {
         })
     ));
 }
+
+/// Accuracy statistics of P3P over many random configurations, for the report; run with
+/// `cargo test --release --no-default-features --features localize --test geometry_pose -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn p3p_accuracy_report() {
+    for (label, camera) in [
+        ("wide", SIMPLE_RADIAL),
+        ("narrow", "PINHOLE 1024 768 8000 8000 512 384"),
+    ] {
+        let trials = 100_000;
+        let (mut none, mut bad, mut worst) = (0, 0, 0.0f64);
+        let mut counts = [0usize; 5];
+        for seed in 0..trials {
+            let s = scene(seed, camera, 3, 0.0, 0.0);
+            let bearings = [0, 1, 2].map(|i| s.camera.bearing(&s.pixels[i]));
+            let solutions = p3p(&bearings, &[s.points[0], s.points[1], s.points[2]]);
+            counts[solutions.len()] += 1;
+            let (rot, pos) = best_error(&solutions, &s.truth);
+            if solutions.is_empty() {
+                none += 1;
+            } else if rot > 1e-6 || pos > 1e-6 {
+                bad += 1;
+                worst = worst.max(rot);
+            } else {
+                worst = worst.max(rot);
+            }
+        }
+        println!(
+            "p3p {label}: {trials} trials, no solution {none}, error > 1e-6 {bad}, worst rotation {worst:.2e}°, solutions per count {counts:?}"
+        );
+    }
+}

@@ -309,13 +309,15 @@ impl Equations {
         )
     }
 
-    /// Gauss–Newton on the depths; the closed form loses digits when the cubic's roots are
-    /// close, and a few steps recover full precision. Keeps the input if a step does not help.
+    /// Newton's method on the depths; the closed form loses digits when the configuration is
+    /// nearly degenerate (thin triangles, narrow fields of view), and a few steps recover full
+    /// precision. The Jacobian is then nearly singular too, so each step backtracks until the
+    /// residual falls; the input is kept if nothing helps.
     fn refine(&self, lambda: &mut Vector3<f64>) {
         let [b12, b13, b23] = self.b;
         let mut residual = self.residual(lambda);
         let mut error = residual.norm_squared();
-        for _ in 0..5 {
+        for _ in 0..8 {
             if error < 1e-28 {
                 break;
             }
@@ -331,18 +333,27 @@ impl Equations {
                 2.0 * (l.y - b23 * l.z),
                 2.0 * (l.z - b23 * l.y),
             );
-            let Some(step) = jacobian.lu().solve(&residual) else {
+            let Some(step) = jacobian.try_inverse().map(|inverse| inverse * residual) else {
                 break;
             };
-            let next = l - step;
-            let next_residual = self.residual(&next);
-            let next_error = next_residual.norm_squared();
-            if !(next_error < error) {
+            let mut improved = false;
+            let mut scale = 1.0;
+            for _ in 0..12 {
+                let next = l - scale * step;
+                let next_residual = self.residual(&next);
+                let next_error = next_residual.norm_squared();
+                if next_error < error {
+                    *lambda = next;
+                    residual = next_residual;
+                    error = next_error;
+                    improved = true;
+                    break;
+                }
+                scale *= 0.5;
+            }
+            if !improved {
                 break;
             }
-            *lambda = next;
-            residual = next_residual;
-            error = next_error;
         }
     }
 }

@@ -1,0 +1,163 @@
+//! Descriptor matching: query × map similarity through a blocked GEMM (matrixmultiply's
+//! sgemm), keeping per query the best and second-best map rows and per map row its best
+//! query, for the ratio test and the mutual-nearest-neighbour check. No O(N·M) scalar loop:
+//! the inner products all go through the GEMM kernel.
+
+/// Options of [`match_descriptors`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MatchOptions {
+    /// Lowe's ratio on distances between unit vectors: keep a match when
+    /// `d(best) < ratio · d(second)`, with `d = sqrt(2 − 2·similarity)`. 1.0 disables it.
+    pub ratio: f32,
+    /// Keep only mutual nearest neighbours.
+    pub mutual: bool,
+    /// Keep only matches with at least this similarity (cosine).
+    pub min_similarity: f32,
+}
+
+impl Default for MatchOptions {
+    fn default() -> Self {
+        MatchOptions {
+            ratio: 0.9,
+            mutual: true,
+            min_similarity: 0.0,
+        }
+    }
+}
+
+/// A match: query row, map row, cosine similarity.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Match {
+    pub query: u32,
+    pub map: u32,
+    pub similarity: f32,
+}
+
+/// Map rows per GEMM block: bounds the score buffer at `queries × BLOCK` floats.
+const BLOCK: usize = 2048;
+
+/// Matches unit-norm `query` rows (`[n_q × dim]`) against unit-norm `map` rows
+/// (`[n_m × dim]`), both row-major f32.
+pub fn match_descriptors(query: &[f32], map: &[f32], dim: usize, options: &MatchOptions) -> Vec<Match> {
+    if dim == 0 {
+        return Vec::new();
+    }
+    let n_q = query.len() / dim;
+    let n_m = map.len() / dim;
+    if n_q == 0 || n_m == 0 {
+        return Vec::new();
+    }
+    let mut best = vec![(f32::NEG_INFINITY, u32::MAX); n_q];
+    let mut second = vec![f32::NEG_INFINITY; n_q];
+    let mut best_query_of_map = vec![(f32::NEG_INFINITY, u32::MAX); n_m];
+    let mut scores = vec![0.0f32; n_q * BLOCK.min(n_m)];
+    for start in (0..n_m).step_by(BLOCK) {
+        let rows = BLOCK.min(n_m - start);
+        let block = &map[start * dim..(start + rows) * dim];
+        let out = &mut scores[..n_q * rows];
+        gemm_abt(query, block, out, n_q, rows, dim);
+        for (q, row) in out.chunks_exact(rows).enumerate() {
+            for (j, &s) in row.iter().enumerate() {
+                let m = start + j;
+                if s > best[q].0 {
+                    second[q] = best[q].0;
+                    best[q] = (s, m as u32);
+                } else if s > second[q] {
+                    second[q] = s;
+                }
+                if s > best_query_of_map[m].0 {
+                    best_query_of_map[m] = (s, q as u32);
+                }
+            }
+        }
+    }
+    let distance = |s: f32| (2.0 - 2.0 * s).max(0.0).sqrt();
+    let mut matches = Vec::new();
+    for (q, &(s, m)) in best.iter().enumerate() {
+        if m == u32::MAX || s < options.min_similarity {
+            continue;
+        }
+        if options.ratio < 1.0 && second[q].is_finite() && distance(s) >= options.ratio * distance(second[q]) {
+            continue;
+        }
+        if options.mutual && best_query_of_map[m as usize].1 != q as u32 {
+            continue;
+        }
+        matches.push(Match {
+            query: q as u32,
+            map: m,
+            similarity: s,
+        });
+    }
+    matches
+}
+
+/// `out[n × m] = a[n × k] · b[m × k]ᵀ`, row-major.
+pub fn gemm_abt(a: &[f32], b: &[f32], out: &mut [f32], n: usize, m: usize, k: usize) {
+    super::kernels::sgemm_abt(a, b, out, n, m, k);
+}
+
+/// L2-normalises each `dim`-row in place (zero rows stay zero).
+pub fn normalise_rows(v: &mut [f32], dim: usize) {
+    if dim == 0 {
+        return;
+    }
+    for row in v.chunks_exact_mut(dim) {
+        let n = row.iter().map(|x| x * x).sum::<f32>().sqrt();
+        if n > 0.0 {
+            row.iter_mut().for_each(|x| *x /= n);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit(v: &[f32]) -> Vec<f32> {
+        let mut v = v.to_vec();
+        normalise_rows(&mut v, v.len());
+        v
+    }
+
+    #[test]
+    fn gemm_matches_naive_product() {
+        let (n, m, k) = (5, 7, 3);
+        let a: Vec<f32> = (0..n * k).map(|i| (i as f32 * 0.37).sin()).collect();
+        let b: Vec<f32> = (0..m * k).map(|i| (i as f32 * 0.11).cos()).collect();
+        let mut out = vec![0.0; n * m];
+        gemm_abt(&a, &b, &mut out, n, m, k);
+        for i in 0..n {
+            for j in 0..m {
+                let want: f32 = (0..k).map(|t| a[i * k + t] * b[j * k + t]).sum();
+                assert!((out[i * m + j] - want).abs() < 1e-5);
+            }
+        }
+    }
+
+    #[test]
+    fn finds_mutual_ratio_matches_across_blocks() {
+        // 3000 map rows (two blocks); queries equal to rows 5 and 2500 plus an ambiguous one.
+        let dim = 4;
+        let mut map = Vec::new();
+        for i in 0..3000 {
+            let t = i as f32 * 0.001;
+            map.extend(unit(&[t.cos(), t.sin(), 0.2, (i % 7) as f32 * 0.01]));
+        }
+        let mut query = Vec::new();
+        query.extend_from_slice(&map[5 * dim..6 * dim]);
+        query.extend_from_slice(&map[2500 * dim..2501 * dim]);
+        let opts = MatchOptions { ratio: 1.0, mutual: true, min_similarity: 0.5 };
+        let found = match_descriptors(&query, &map, dim, &opts);
+        assert_eq!(found.iter().map(|m| (m.query, m.map)).collect::<Vec<_>>(), vec![(0, 5), (1, 2500)]);
+        // The rows are near-duplicates of their neighbours: a strict ratio test rejects them.
+        let strict = MatchOptions { ratio: 0.5, ..opts };
+        assert!(match_descriptors(&query, &map, dim, &strict).is_empty());
+    }
+
+    #[test]
+    fn empty_inputs_give_no_matches() {
+        assert!(match_descriptors(&[], &[1.0, 0.0], 2, &MatchOptions::default()).is_empty());
+        assert!(match_descriptors(&[1.0, 0.0], &[], 2, &MatchOptions::default()).is_empty());
+    }
+}
