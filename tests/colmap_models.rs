@@ -627,3 +627,23 @@ fn types_cross_threads() {
         "x: no COLMAP model (neither cameras.bin, images.bin, points3D.bin nor the .txt files)"
     );
 }
+
+#[test]
+fn text_with_crlf_and_bad_utf8() {
+    let Some(root) = data_root() else { return };
+    let dir = root.join("kapture_maupertuis/reconstruction");
+    let model = colmap::read_model(&dir).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    for name in ["cameras.txt", "images.txt", "points3D.txt"] {
+        let text = std::fs::read_to_string(dir.join(name)).unwrap();
+        std::fs::write(tmp.path().join(name), text.replace('\n', "\r\n")).unwrap();
+    }
+    assert_eq!(colmap::read_model(tmp.path()).unwrap(), model);
+
+    let err =
+        text::parse_images(b"1 1 0 0 0 0 0 0 1 caf\xe9.jpg\n\n", Path::new("i.txt")).unwrap_err();
+    assert_eq!(
+        err.to_string(),
+        "i.txt:1: invalid utf-8 at byte 21 of the line"
+    );
+}

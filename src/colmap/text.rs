@@ -74,7 +74,7 @@ impl<'a> Tokens<'a> {
         let rest = std::str::from_utf8(line).map_err(|e| Error::BadLine {
             path: path.to_path_buf(),
             line: number,
-            what: format!("not valid utf-8 after byte {}", e.valid_up_to()),
+            what: format!("invalid utf-8 at byte {} of the line", e.valid_up_to()),
         })?;
         Ok(Tokens {
             rest,
