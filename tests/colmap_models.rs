@@ -593,7 +593,16 @@ fn fuzz_entry_points_take_anything() {
         text::write_images(&model).into_bytes(),
         text::write_points3d(&model).into_bytes(),
     ];
-    for base in bins.iter().chain(&txts) {
+    // Whole models in the layout the entry points split: u16 BE lengths, then the files.
+    let whole = |files: &[Vec<u8>; 3]| {
+        let mut out = Vec::new();
+        out.extend_from_slice(&(files[0].len() as u16).to_be_bytes());
+        out.extend_from_slice(&(files[1].len() as u16).to_be_bytes());
+        files.iter().for_each(|f| out.extend_from_slice(f));
+        out
+    };
+    let wholes = [whole(&bins), whole(&txts)];
+    for base in bins.iter().chain(&txts).chain(&wholes) {
         for _ in 0..300 {
             let mut data = base.clone();
             for _ in 0..1 + next() % 4 {

@@ -226,18 +226,37 @@ fn compare(a: &Reconstruction, b: &Reconstruction) -> Result<(), String> {
     Ok(())
 }
 
-/// Fuzz entry point: parses `data` as each binary model file. Never panics (that is the test).
+/// Fuzz entry point: parses `data` as each binary model file, then as a whole model (so
+/// validation is fuzzed too) laid out as `u16 BE cameras_len, u16 BE images_len, cameras,
+/// images, points3D` (lengths are taken modulo what is left). Never panics (that is the test).
 pub fn fuzz_read_bin(data: &[u8]) {
     let path = Path::new("fuzz.bin");
     let _ = bin::parse_cameras(data, path);
     let _ = bin::parse_images(data, path);
     let _ = bin::parse_model((&[0u8; 8], path), (&[0u8; 8], path), (data, path));
+    let [c, i, p] = split3(data);
+    let _ = bin::parse_model((c, path), (i, path), (p, path));
 }
 
-/// Fuzz entry point: parses `data` as each text model file. Never panics (that is the test).
+/// Fuzz entry point: like [`fuzz_read_bin`] for the text files.
 pub fn fuzz_read_txt(data: &[u8]) {
     let path = Path::new("fuzz.txt");
     let _ = text::parse_cameras(data, path);
     let _ = text::parse_images(data, path);
     let _ = text::parse_model((b"", path), (b"", path), (data, path));
+    let [c, i, p] = split3(data);
+    let _ = text::parse_model((c, path), (i, path), (p, path));
+}
+
+/// Three consecutive parts of `data[4..]`, their lengths from `data[0..4]`.
+fn split3(data: &[u8]) -> [&[u8]; 3] {
+    let (head, rest) = data.split_at(data.len().min(4));
+    let mut lens = [0usize; 2];
+    for (len, pair) in lens.iter_mut().zip(head.chunks(2)) {
+        let n = pair.iter().fold(0usize, |n, &b| n << 8 | usize::from(b));
+        *len = n % (rest.len() + 1);
+    }
+    let (c, rest) = rest.split_at(lens[0].min(rest.len()));
+    let (i, p) = rest.split_at(lens[1].min(rest.len()));
+    [c, i, p]
 }
