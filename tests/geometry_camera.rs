@@ -13,6 +13,8 @@ fn cameras() -> Vec<Camera> {
         "SIMPLE_RADIAL 1024 768 800 512 384 -0.08",
         "RADIAL 1024 768 800 512 384 -0.1 0.02",
         "OPENCV 1024 768 800 820 510.5 380.2 -0.12 0.03 0.001 -0.0015",
+        "OPENCV_FISHEYE 1024 768 400 410 512 384 0.05 -0.01 0.002 -0.0005",
+        "FULL_OPENCV 1024 768 800 820 510.5 380.2 -0.12 0.03 0.001 -0.0015 0.01 0.02 0.005 0.001",
     ]
     .iter()
     .map(|s| Camera::parse(s).unwrap())
@@ -159,7 +161,7 @@ proptest! {
 
     #[test]
     fn project_unproject_round_trip(
-        model in 0usize..5,
+        model in 0usize..7,
         x in -0.6f64..0.6,
         y in -0.45f64..0.45,
         depth in 0.1f64..100.0,

@@ -10,9 +10,12 @@
 //! | SIMPLE_RADIAL  | 2  | f, cx, cy, k                     |
 //! | RADIAL         | 3  | f, cx, cy, k1, k2                |
 //! | OPENCV         | 4  | fx, fy, cx, cy, k1, k2, p1, p2   |
+//! | OPENCV_FISHEYE | 5  | fx, fy, cx, cy, k1, k2, k3, k4   |
+//! | FULL_OPENCV    | 6  | fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6 |
 //!
-//! Every model is a special case of OPENCV, so validation expands the parameters once into a
-//! flat [`Intrinsics`] and projection has a single code path (zeros switch terms off).
+//! The first five are special cases of OPENCV, so validation expands the parameters once into a
+//! flat [`Intrinsics`] and they share one code path (zeros switch terms off); the pinhole
+//! models skip distortion altogether.
 
 use std::fmt;
 use std::str::FromStr;
@@ -29,16 +32,20 @@ pub enum CameraModel {
     SimpleRadial,
     Radial,
     OpenCv,
+    OpenCvFisheye,
+    FullOpenCv,
 }
 
 impl CameraModel {
     /// All supported models, in COLMAP id order.
-    pub const ALL: [CameraModel; 5] = [
+    pub const ALL: [CameraModel; 7] = [
         Self::SimplePinhole,
         Self::Pinhole,
         Self::SimpleRadial,
         Self::Radial,
         Self::OpenCv,
+        Self::OpenCvFisheye,
+        Self::FullOpenCv,
     ];
 
     /// COLMAP's name, as written in `cameras.txt`.
@@ -49,6 +56,8 @@ impl CameraModel {
             Self::SimpleRadial => "SIMPLE_RADIAL",
             Self::Radial => "RADIAL",
             Self::OpenCv => "OPENCV",
+            Self::OpenCvFisheye => "OPENCV_FISHEYE",
+            Self::FullOpenCv => "FULL_OPENCV",
         }
     }
 
@@ -60,6 +69,8 @@ impl CameraModel {
             Self::SimpleRadial => 2,
             Self::Radial => 3,
             Self::OpenCv => 4,
+            Self::OpenCvFisheye => 5,
+            Self::FullOpenCv => 6,
         }
     }
 
@@ -86,6 +97,8 @@ impl CameraModel {
             Self::SimpleRadial => 4,
             Self::Radial => 5,
             Self::OpenCv => 8,
+            Self::OpenCvFisheye => 8,
+            Self::FullOpenCv => 12,
         }
     }
 
@@ -97,6 +110,8 @@ impl CameraModel {
             Self::SimpleRadial => "f, cx, cy, k",
             Self::Radial => "f, cx, cy, k1, k2",
             Self::OpenCv => "fx, fy, cx, cy, k1, k2, p1, p2",
+            Self::OpenCvFisheye => "fx, fy, cx, cy, k1, k2, k3, k4",
+            Self::FullOpenCv => "fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6",
         }
     }
 }
@@ -115,7 +130,22 @@ impl FromStr for CameraModel {
     }
 }
 
-/// The OPENCV-shaped expansion of any supported model.
+/// Which distortion function applies to normalized coordinates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum Distortion {
+    /// The pinhole models, or any model whose coefficients are all zero.
+    None,
+    /// OPENCV and its special cases: radial `k1·r² + k2·r⁴`, tangential `p1`, `p2`.
+    OpenCv,
+    /// FULL_OPENCV: the radial factor is rational,
+    /// `(1 + k1·r² + k2·r⁴ + k3·r⁶) / (1 + k4·r² + k5·r⁴ + k6·r⁶)`, plus `p1`, `p2`.
+    FullOpenCv { k3: f64, k4: f64, k5: f64, k6: f64 },
+    /// OPENCV_FISHEYE: equidistant, `θ_d = θ·(1 + k1·θ² + k2·θ⁴ + k3·θ⁶ + k4·θ⁸)` with
+    /// `θ = atan(r)`; not the identity even with zero coefficients.
+    Fisheye { k3: f64, k4: f64 },
+}
+
+/// The parameters of any supported model in one flat, OPENCV-like shape.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Intrinsics {
     pub fx: f64,
@@ -126,20 +156,53 @@ pub(crate) struct Intrinsics {
     pub k2: f64,
     pub p1: f64,
     pub p2: f64,
-    /// False for the pinhole models, so projection skips the polynomial entirely.
-    pub distorted: bool,
+    pub distortion: Distortion,
 }
 
 impl Intrinsics {
     fn from_params(model: CameraModel, p: &[f64]) -> Self {
-        let (fx, fy, cx, cy, k1, k2, p1, p2) = match model {
-            CameraModel::SimplePinhole => (p[0], p[0], p[1], p[2], 0.0, 0.0, 0.0, 0.0),
-            CameraModel::Pinhole => (p[0], p[1], p[2], p[3], 0.0, 0.0, 0.0, 0.0),
-            CameraModel::SimpleRadial => (p[0], p[0], p[1], p[2], p[3], 0.0, 0.0, 0.0),
-            CameraModel::Radial => (p[0], p[0], p[1], p[2], p[3], p[4], 0.0, 0.0),
-            CameraModel::OpenCv => (p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]),
+        let opencv = |k1: f64, k2: f64, p1: f64, p2: f64| {
+            if k1 == 0.0 && k2 == 0.0 && p1 == 0.0 && p2 == 0.0 {
+                Distortion::None
+            } else {
+                Distortion::OpenCv
+            }
         };
-        let distorted = k1 != 0.0 || k2 != 0.0 || p1 != 0.0 || p2 != 0.0;
+        let (fx, fy, cx, cy, k1, k2, p1, p2, distortion) = match model {
+            CameraModel::SimplePinhole => {
+                (p[0], p[0], p[1], p[2], 0.0, 0.0, 0.0, 0.0, Distortion::None)
+            }
+            CameraModel::Pinhole => (p[0], p[1], p[2], p[3], 0.0, 0.0, 0.0, 0.0, Distortion::None),
+            CameraModel::SimpleRadial => {
+                let d = opencv(p[3], 0.0, 0.0, 0.0);
+                (p[0], p[0], p[1], p[2], p[3], 0.0, 0.0, 0.0, d)
+            }
+            CameraModel::Radial => {
+                let d = opencv(p[3], p[4], 0.0, 0.0);
+                (p[0], p[0], p[1], p[2], p[3], p[4], 0.0, 0.0, d)
+            }
+            CameraModel::OpenCv => {
+                let d = opencv(p[4], p[5], p[6], p[7]);
+                (p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], d)
+            }
+            CameraModel::OpenCvFisheye => {
+                let d = Distortion::Fisheye { k3: p[6], k4: p[7] };
+                (p[0], p[1], p[2], p[3], p[4], p[5], 0.0, 0.0, d)
+            }
+            CameraModel::FullOpenCv => {
+                let d = if p[4..].iter().all(|&k| k == 0.0) {
+                    Distortion::None
+                } else {
+                    Distortion::FullOpenCv {
+                        k3: p[8],
+                        k4: p[9],
+                        k5: p[10],
+                        k6: p[11],
+                    }
+                };
+                (p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], d)
+            }
+        };
         Self {
             fx,
             fy,
@@ -149,22 +212,43 @@ impl Intrinsics {
             k2,
             p1,
             p2,
-            distorted,
+            distortion,
         }
+    }
+
+    pub fn is_distorted(&self) -> bool {
+        self.distortion != Distortion::None
     }
 
     /// Distorted normalized coordinates (COLMAP's `u + du, v + dv`).
     #[inline]
     pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
-        if !self.distorted {
-            return (x, y);
-        }
         let (xx, xy, yy) = (x * x, x * y, y * y);
         let r2 = xx + yy;
-        let radial = self.k1 * r2 + self.k2 * r2 * r2;
-        let dx = x * radial + 2.0 * self.p1 * xy + self.p2 * (r2 + 2.0 * xx);
-        let dy = y * radial + 2.0 * self.p2 * xy + self.p1 * (r2 + 2.0 * yy);
-        (x + dx, y + dy)
+        let radial = match self.distortion {
+            Distortion::None => return (x, y),
+            Distortion::OpenCv => 1.0 + self.k1 * r2 + self.k2 * r2 * r2,
+            Distortion::FullOpenCv { k3, k4, k5, k6 } => {
+                let (r4, r6) = (r2 * r2, r2 * r2 * r2);
+                (1.0 + self.k1 * r2 + self.k2 * r4 + k3 * r6) / (1.0 + k4 * r2 + k5 * r4 + k6 * r6)
+            }
+            Distortion::Fisheye { k3, k4 } => {
+                let r = r2.sqrt();
+                // θ_d / r → 1 at the centre; COLMAP also leaves tiny radii undistorted.
+                if r < f64::EPSILON {
+                    return (x, y);
+                }
+                let theta = r.atan();
+                let t2 = theta * theta;
+                let theta_d = theta * (1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (k3 + t2 * k4))));
+                let scale = theta_d / r;
+                return (x * scale, y * scale);
+            }
+        };
+        (
+            x * radial + 2.0 * self.p1 * xy + self.p2 * (r2 + 2.0 * xx),
+            y * radial + 2.0 * self.p2 * xy + self.p1 * (r2 + 2.0 * yy),
+        )
     }
 
     /// Pixel of a camera-frame point in plain scalars, `None` behind the camera. This is the
@@ -179,23 +263,40 @@ impl Intrinsics {
         Some((self.fx * xd + self.cx, self.fy * yd + self.cy))
     }
 
-    /// Jacobian of [`Self::distort`] with respect to the undistorted coordinates.
+    /// Jacobian of [`Self::distort`] with respect to the undistorted coordinates: analytic for
+    /// the OPENCV family (the common case, and the refinement's inner loop), central
+    /// differences for the rarer fisheye and rational models.
     #[inline]
     pub fn distort_jacobian(&self, x: f64, y: f64) -> Matrix2<f64> {
-        if !self.distorted {
-            return Matrix2::identity();
+        match self.distortion {
+            Distortion::None => Matrix2::identity(),
+            Distortion::OpenCv => {
+                let r2 = x * x + y * y;
+                let radial = self.k1 * r2 + self.k2 * r2 * r2;
+                // d(radial)/dx = 2x·(k1 + 2·k2·r2), likewise for y.
+                let dradial = 2.0 * (self.k1 + 2.0 * self.k2 * r2);
+                let (drx, dry) = (dradial * x, dradial * y);
+                Matrix2::new(
+                    1.0 + radial + x * drx + 2.0 * self.p1 * y + 6.0 * self.p2 * x,
+                    x * dry + 2.0 * self.p1 * x + 2.0 * self.p2 * y,
+                    y * drx + 2.0 * self.p2 * y + 2.0 * self.p1 * x,
+                    1.0 + radial + y * dry + 2.0 * self.p2 * x + 6.0 * self.p1 * y,
+                )
+            }
+            Distortion::FullOpenCv { .. } | Distortion::Fisheye { .. } => {
+                let (hx, hy) = (1e-6 * (1.0 + x.abs()), 1e-6 * (1.0 + y.abs()));
+                let (ax, ay) = self.distort(x + hx, y);
+                let (bx, by) = self.distort(x - hx, y);
+                let (cx, cy) = self.distort(x, y + hy);
+                let (dx, dy) = self.distort(x, y - hy);
+                Matrix2::new(
+                    (ax - bx) / (2.0 * hx),
+                    (cx - dx) / (2.0 * hy),
+                    (ay - by) / (2.0 * hx),
+                    (cy - dy) / (2.0 * hy),
+                )
+            }
         }
-        let r2 = x * x + y * y;
-        let radial = self.k1 * r2 + self.k2 * r2 * r2;
-        // d(radial)/dx = 2x·(k1 + 2·k2·r2), likewise for y.
-        let dradial = 2.0 * (self.k1 + 2.0 * self.k2 * r2);
-        let (drx, dry) = (dradial * x, dradial * y);
-        Matrix2::new(
-            1.0 + radial + x * drx + 2.0 * self.p1 * y + 6.0 * self.p2 * x,
-            x * dry + 2.0 * self.p1 * x + 2.0 * self.p2 * y,
-            y * drx + 2.0 * self.p2 * y + 2.0 * self.p1 * x,
-            1.0 + radial + y * dry + 2.0 * self.p2 * x + 6.0 * self.p1 * y,
-        )
     }
 }
 
@@ -400,7 +501,7 @@ impl Camera {
     pub fn unproject(&self, pixel: &Vector2<f64>) -> Vector2<f64> {
         let k = &self.intrinsics;
         let target = Vector2::new((pixel.x - k.cx) / k.fx, (pixel.y - k.cy) / k.fy);
-        if !(k.distorted && target.x.is_finite() && target.y.is_finite()) {
+        if !(k.is_distorted() && target.x.is_finite() && target.y.is_finite()) {
             return target;
         }
         const MAX_ITERATIONS: usize = 100;

@@ -58,7 +58,7 @@ impl fmt::Display for GeometryError {
             Self::UnknownCameraModel { name } => write!(
                 f,
                 "unknown camera model {name:?} (supported: SIMPLE_PINHOLE, PINHOLE, \
-                 SIMPLE_RADIAL, RADIAL, OPENCV)"
+                 SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE, FULL_OPENCV)"
             ),
             Self::WrongParamCount {
                 model,
