@@ -63,6 +63,36 @@ fn distortion_formulas_match_colmap() {
         .project(&Vector3::new(u * 2.0, v * 2.0, 2.0))
         .unwrap();
     assert!((p - Vector2::new(50.0 + 100.0 * (u + du), 60.0 + 110.0 * (v + dv))).norm() < 1e-12);
+    // FULL_OPENCV: rational radial factor, same tangential terms.
+    let camera = Camera::parse(
+        "FULL_OPENCV 100 100 100 110 50 60 0.1 0.01 0.002 0.003 0.001 0.05 0.02 0.004",
+    )
+    .unwrap();
+    let (r4, r6) = (r2 * r2, r2 * r2 * r2);
+    let radial =
+        (1.0 + 0.1 * r2 + 0.01 * r4 + 0.001 * r6) / (1.0 + 0.05 * r2 + 0.02 * r4 + 0.004 * r6);
+    let xd = u * radial + 2.0 * 0.002 * u * v + 0.003 * (r2 + 2.0 * u * u);
+    let yd = v * radial + 2.0 * 0.003 * u * v + 0.002 * (r2 + 2.0 * v * v);
+    let p = camera.project(&Vector3::new(u, v, 1.0)).unwrap();
+    assert!((p - Vector2::new(50.0 + 100.0 * xd, 60.0 + 110.0 * yd)).norm() < 1e-12);
+    // OPENCV_FISHEYE: θ = atan(r), θ_d = θ·(1 + k1θ² + k2θ⁴ + k3θ⁶ + k4θ⁸), scaled by θ_d / r;
+    // with zero coefficients it is the equidistant projection, not a pinhole.
+    let camera =
+        Camera::parse("OPENCV_FISHEYE 100 100 100 110 50 60 0.1 0.01 0.001 0.0001").unwrap();
+    let r = r2.sqrt();
+    let theta = r.atan();
+    let t2 = theta * theta;
+    let theta_d = theta
+        * (1.0 + 0.1 * t2 + 0.01 * t2 * t2 + 0.001 * t2 * t2 * t2 + 0.0001 * t2 * t2 * t2 * t2);
+    let p = camera.project(&Vector3::new(u, v, 1.0)).unwrap();
+    let expected = Vector2::new(
+        50.0 + 100.0 * u * theta_d / r,
+        60.0 + 110.0 * v * theta_d / r,
+    );
+    assert!((p - expected).norm() < 1e-12);
+    let equidistant = Camera::parse("OPENCV_FISHEYE 100 100 100 100 50 50 0 0 0 0").unwrap();
+    let p = equidistant.project(&Vector3::new(1.0, 0.0, 1.0)).unwrap();
+    assert!((p.x - (50.0 + 100.0 * std::f64::consts::FRAC_PI_4)).abs() < 1e-12);
 }
 
 #[test]
