@@ -175,6 +175,26 @@ fn parse_errors_are_specific() {
 }
 
 #[test]
+fn rescaling_follows_colmap() {
+    let camera = Camera::parse("SIMPLE_RADIAL 1600 1200 1469.2 800 600 -0.0353").unwrap();
+    let half = camera.rescaled(800, 600).unwrap();
+    assert_eq!(half.params(), &[734.6, 400.0, 300.0, -0.0353]);
+    // Anisotropic resize of a single-focal model: focal by the mean factor, as COLMAP.
+    let squashed = camera.rescaled(800, 1200).unwrap();
+    assert_eq!(squashed.params(), &[1469.2 * 0.75, 400.0, 600.0, -0.0353]);
+    let camera = Camera::parse("PINHOLE 1000 500 900 950 500 250").unwrap();
+    let resized = camera.rescaled(500, 1000).unwrap();
+    assert_eq!(resized.params(), &[450.0, 1900.0, 250.0, 500.0]);
+    assert_eq!((resized.width(), resized.height()), (500, 1000));
+    // The same ray lands on the scaled pixel (continuous coordinates scale exactly).
+    let p = Vector3::new(0.2, -0.1, 1.5);
+    let a = camera.project(&p).unwrap();
+    let b = resized.project(&p).unwrap();
+    assert!((Vector2::new(a.x * 0.5, a.y * 2.0) - b).norm() < 1e-9);
+    assert!(camera.rescaled(0, 10).is_err());
+}
+
+#[test]
 fn parses_hloc_query_lines() {
     let (name, camera) = Camera::parse_query_line(
         "query/night/IMG_001.jpg SIMPLE_RADIAL 1600 1200 1469.2 800 600 -0.0353\n",
@@ -203,5 +223,47 @@ proptest! {
         prop_assert!((xy - Vector2::new(x, y)).norm() < 1e-10, "{xy} vs ({x}, {y})");
         let bearing = camera.bearing(&pixel);
         prop_assert!((bearing - p_cam.normalize()).norm() < 1e-10);
+    }
+}
+
+/// The shared scenes' query lists and ground truth parse (skipped when the data is absent).
+#[test]
+fn parses_shared_scene_files() {
+    let scenes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes");
+    let Ok(entries) = std::fs::read_dir(&scenes) else {
+        return;
+    };
+    for scene in entries.flatten() {
+        if let Ok(text) = std::fs::read_to_string(scene.path().join("queries.txt")) {
+            for line in text
+                .lines()
+                .filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
+            {
+                let (name, camera) = Camera::parse_query_line(line).unwrap();
+                assert!(!name.is_empty());
+                let c = camera.principal_point();
+                assert!(camera.contains(&c), "{line}");
+            }
+        }
+        if let Ok(text) = std::fs::read_to_string(scene.path().join("gt_poses.txt")) {
+            for line in text
+                .lines()
+                .filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
+            {
+                let v: Vec<f64> = line
+                    .split_whitespace()
+                    .skip(1)
+                    .map(|t| t.parse().unwrap())
+                    .collect();
+                let pose = sfpmap::localize::geometry::Pose::from_colmap(
+                    v[0], v[1], v[2], v[3], v[4], v[5], v[6],
+                )
+                .unwrap();
+                let back = pose.to_colmap();
+                for (a, b) in back.iter().zip(&v) {
+                    assert!((a - b).abs() < 1e-9, "{line}");
+                }
+            }
+        }
     }
 }

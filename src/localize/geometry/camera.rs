@@ -415,6 +415,45 @@ impl Camera {
         Ok((name.to_owned(), Self::parse(rest)?))
     }
 
+    /// The camera for the same images resized to `new_width × new_height`, as COLMAP's
+    /// `Camera::Rescale`: principal point and focal lengths scale per axis (a single focal
+    /// length by the mean of both factors); distortion, defined on normalized coordinates,
+    /// is unchanged. Feature extractors that downsample need this to keep keypoints and
+    /// intrinsics in the same pixels.
+    pub fn rescaled(&self, new_width: u32, new_height: u32) -> Result<Self, GeometryError> {
+        if new_width == 0 || new_height == 0 {
+            return Err(GeometryError::InvalidCamera {
+                reason: "width and height must be positive",
+            });
+        }
+        let scale_x = f64::from(new_width) / f64::from(self.width);
+        let scale_y = f64::from(new_height) / f64::from(self.height);
+        let mut params = self.params.clone();
+        if self.has_single_focal() {
+            params[0] *= 0.5 * (scale_x + scale_y);
+            params[1] *= scale_x;
+            params[2] *= scale_y;
+        } else {
+            params[0] *= scale_x;
+            params[1] *= scale_y;
+            params[2] *= scale_x;
+            params[3] *= scale_y;
+        }
+        Self::new(self.model, new_width, new_height, params)
+    }
+
+    fn has_single_focal(&self) -> bool {
+        matches!(
+            self.model,
+            CameraModel::SimplePinhole | CameraModel::SimpleRadial | CameraModel::Radial
+        )
+    }
+
+    /// Focal lengths `(fx, fy)` in pixels (equal for the single-focal models).
+    pub fn focal_lengths(&self) -> (f64, f64) {
+        (self.intrinsics.fx, self.intrinsics.fy)
+    }
+
     pub fn model(&self) -> CameraModel {
         self.model
     }
