@@ -1,0 +1,254 @@
+//! The model contract `sfp-extractor/1` (`spec/extractor.md`), read from the model's ONNX
+//! `metadata_props`. Every number the extractor uses comes from here, never from constants.
+
+use super::ExtractError;
+use std::collections::BTreeMap;
+
+/// The only contract this extractor implements.
+pub const CONTRACT: &str = "sfp-extractor/1";
+
+/// What a model promises, parsed and checked for consistency.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Contract {
+    pub model_name: String,
+    /// Level ids as maps and the CLI use them, finest first (`sfp.level_ids`).
+    pub level_ids: Vec<u16>,
+    /// Stride in pixels per level.
+    pub strides: Vec<u32>,
+    /// Channels of `feat_i` per level (= short descriptor dims).
+    pub dims: Vec<usize>,
+    /// Full descriptor dims per level (`dims[i] + … + dims[L−1]`).
+    pub full_dims: Vec<usize>,
+    pub global_dim: usize,
+    pub input_name: String,
+    /// RGB → grey weights.
+    pub gray_weights: [f32; 3],
+    pub default_threshold: f32,
+    pub default_nms_radius: u32,
+    pub default_max_keypoints: Vec<usize>,
+    /// Every `sfp.*` key, for provenance.
+    pub raw: BTreeMap<String, String>,
+}
+
+fn list<T: std::str::FromStr>(value: &str) -> Option<Vec<T>> {
+    value.split(',').map(|v| v.trim().parse().ok()).collect()
+}
+
+impl Contract {
+    /// Parses the metadata of the model file `model` (named in errors). `get` returns a key's
+    /// value; `keys` lists the keys present (kept in [`Contract::raw`]).
+    pub fn from_metadata(
+        model: &str,
+        keys: &[String],
+        get: impl Fn(&str) -> Option<String>,
+    ) -> Result<Contract, ExtractError> {
+        let bad = |reason: String| ExtractError::Contract {
+            model: model.to_string(),
+            reason,
+        };
+        let req = |key: &str| get(key).ok_or_else(|| bad(format!("metadata key {key:?} missing")));
+        match get("sfp.contract") {
+            Some(c) if c == CONTRACT => {}
+            Some(c) => {
+                return Err(bad(format!(
+                    "contract {c:?} is not {CONTRACT:?}; this sfpmap cannot run it"
+                )))
+            }
+            None => {
+                return Err(bad(format!(
+                    "no sfp.contract in its metadata (not an SFP model for {CONTRACT:?})"
+                )))
+            }
+        }
+        fn parse<T: std::str::FromStr>(
+            key: &str,
+            value: &str,
+            bad: &dyn Fn(String) -> ExtractError,
+        ) -> Result<Vec<T>, ExtractError> {
+            list(value).ok_or_else(|| bad(format!("{key} = {value:?} is not a number list")))
+        }
+        let levels: usize = req("sfp.levels")?
+            .trim()
+            .parse()
+            .map_err(|_| bad("sfp.levels is not a number".into()))?;
+        let level_ids: Vec<u16> = parse("sfp.level_ids", &req("sfp.level_ids")?, &bad)?;
+        let strides: Vec<u32> = parse("sfp.strides", &req("sfp.strides")?, &bad)?;
+        let dims: Vec<usize> = parse("sfp.dims", &req("sfp.dims")?, &bad)?;
+        let short_dims: Vec<usize> = match get("sfp.short_dims") {
+            Some(v) => parse("sfp.short_dims", &v, &bad)?,
+            None => dims.clone(),
+        };
+        let full_dims: Vec<usize> = parse("sfp.full_dims", &req("sfp.full_dims")?, &bad)?;
+        let max_kp: Vec<usize> = parse(
+            "sfp.default_max_keypoints",
+            &req("sfp.default_max_keypoints")?,
+            &bad,
+        )?;
+        for (key, n) in [
+            ("sfp.level_ids", level_ids.len()),
+            ("sfp.strides", strides.len()),
+            ("sfp.dims", dims.len()),
+            ("sfp.short_dims", short_dims.len()),
+            ("sfp.full_dims", full_dims.len()),
+            ("sfp.default_max_keypoints", max_kp.len()),
+        ] {
+            if n != levels {
+                return Err(bad(format!(
+                    "{key} has {n} values for sfp.levels = {levels}"
+                )));
+            }
+        }
+        if levels == 0 {
+            return Err(bad("sfp.levels is 0".into()));
+        }
+        if level_ids.windows(2).any(|w| w[0] >= w[1]) || strides.windows(2).any(|w| w[0] >= w[1])
+        {
+            return Err(bad(
+                "sfp.level_ids and sfp.strides must increase (finest level first)".into(),
+            ));
+        }
+        if strides.contains(&0) || dims.contains(&0) {
+            return Err(bad("a stride or a dim is 0".into()));
+        }
+        if short_dims != dims {
+            return Err(bad("sfp.short_dims differ from sfp.dims".into()));
+        }
+        for i in 0..levels {
+            let expected: usize = dims[i..].iter().sum();
+            if full_dims[i] != expected {
+                return Err(bad(format!(
+                    "sfp.full_dims[{i}] = {} but the dims of levels {i}.. sum to {expected}",
+                    full_dims[i]
+                )));
+            }
+        }
+        for (key, want) in [
+            ("sfp.padding", "none"),
+            ("sfp.size_rule", "ceil"),
+            ("sfp.input_channels", "1"),
+            ("sfp.descriptor_norm", "l2"),
+        ] {
+            let v = req(key)?;
+            if v.trim() != want {
+                return Err(bad(format!("{key} = {v:?}, this extractor needs {want:?}")));
+            }
+        }
+        let weights: Vec<f32> = match get("sfp.input_gray_weights") {
+            Some(v) => parse("sfp.input_gray_weights", &v, &bad)?,
+            None => vec![0.299, 0.587, 0.114],
+        };
+        let gray_weights: [f32; 3] = weights
+            .try_into()
+            .map_err(|_| bad("sfp.input_gray_weights needs 3 values".into()))?;
+        let global_dim: usize = req("sfp.global_dim")?
+            .trim()
+            .parse()
+            .map_err(|_| bad("sfp.global_dim is not a number".into()))?;
+        let default_threshold: f32 = req("sfp.default_threshold")?
+            .trim()
+            .parse()
+            .map_err(|_| bad("sfp.default_threshold is not a number".into()))?;
+        let default_nms_radius: u32 = req("sfp.default_nms_radius")?
+            .trim()
+            .parse()
+            .map_err(|_| bad("sfp.default_nms_radius is not a number".into()))?;
+        let raw = keys
+            .iter()
+            .filter(|k| k.starts_with("sfp."))
+            .filter_map(|k| get(k).map(|v| (k.clone(), v)))
+            .collect();
+        Ok(Contract {
+            model_name: get("sfp.model_name").unwrap_or_else(|| "unnamed".into()),
+            level_ids,
+            strides,
+            dims,
+            full_dims,
+            global_dim,
+            input_name: get("sfp.input_name").unwrap_or_else(|| "image".into()),
+            gray_weights,
+            default_threshold,
+            default_nms_radius,
+            default_max_keypoints: max_kp,
+            raw,
+        })
+    }
+
+    pub fn levels(&self) -> usize {
+        self.level_ids.len()
+    }
+
+    /// The position of level id `level` in the contract's lists.
+    pub fn level_index(&self, level: u16) -> Option<usize> {
+        self.level_ids.iter().position(|&l| l == level)
+    }
+
+    /// Side of level `i`'s maps for an image side `n` (`sfp.size_rule = ceil`).
+    pub fn level_side(&self, i: usize, n: usize) -> usize {
+        n.div_ceil(self.strides[i] as usize)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sfp_v1() -> BTreeMap<String, String> {
+        [
+            ("sfp.contract", "sfp-extractor/1"),
+            ("sfp.model_name", "test"),
+            ("sfp.levels", "4"),
+            ("sfp.level_ids", "0,1,2,3"),
+            ("sfp.strides", "2,4,8,16"),
+            ("sfp.dims", "16,32,64,128"),
+            ("sfp.short_dims", "16,32,64,128"),
+            ("sfp.full_dims", "240,224,192,128"),
+            ("sfp.global_dim", "128"),
+            ("sfp.padding", "none"),
+            ("sfp.size_rule", "ceil"),
+            ("sfp.input_channels", "1"),
+            ("sfp.descriptor_norm", "l2"),
+            ("sfp.default_threshold", "0.5"),
+            ("sfp.default_nms_radius", "1"),
+            ("sfp.default_max_keypoints", "2000,1000,500,250"),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect()
+    }
+
+    fn parse(m: &BTreeMap<String, String>) -> Result<Contract, ExtractError> {
+        let keys: Vec<String> = m.keys().cloned().collect();
+        Contract::from_metadata("m.onnx", &keys, |k| m.get(k).cloned())
+    }
+
+    #[test]
+    fn parses_sfp_v1() {
+        let c = parse(&sfp_v1()).unwrap();
+        assert_eq!(c.level_ids, [0, 1, 2, 3]);
+        assert_eq!(c.strides, [2, 4, 8, 16]);
+        assert_eq!(c.full_dims, [240, 224, 192, 128]);
+        assert_eq!(c.level_side(2, 481), 61);
+        assert_eq!(c.level_index(2), Some(2));
+        assert_eq!(c.raw.len(), 16);
+    }
+
+    #[test]
+    fn refuses_other_contracts_and_inconsistent_metadata() {
+        let mut m = sfp_v1();
+        m.insert("sfp.contract".into(), "sfp-extractor/2".into());
+        let e = parse(&m).unwrap_err().to_string();
+        assert!(e.contains("m.onnx") && e.contains("sfp-extractor/2"), "{e}");
+        let mut m = sfp_v1();
+        m.remove("sfp.contract");
+        assert!(parse(&m).unwrap_err().to_string().contains("no sfp.contract"));
+        let mut m = sfp_v1();
+        m.insert("sfp.full_dims".into(), "240,224,190,128".into());
+        assert!(parse(&m).unwrap_err().to_string().contains("full_dims[2]"));
+        let mut m = sfp_v1();
+        m.insert("sfp.strides".into(), "2,4,8".into());
+        assert!(parse(&m).unwrap_err().to_string().contains("3 values"));
+        let mut m = sfp_v1();
+        m.insert("sfp.padding".into(), "multiple".into());
+        assert!(parse(&m).is_err());
+    }
+}

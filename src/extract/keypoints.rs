@@ -1,0 +1,282 @@
+//! Keypoints from a level's score map (NMS, threshold, top-k, sub-pixel) and descriptors from
+//! its dense features (bilinear, corner-aligned), as `spec/extractor.md` defines them.
+//!
+//! Positions here are in *cell coordinates* of one level: cell (row r, col c) is at (c, r).
+
+/// A row-major 2-D map (`score_i` of one image).
+#[derive(Debug, Clone, Copy)]
+pub struct ScoreMap<'a> {
+    pub height: usize,
+    pub width: usize,
+    pub values: &'a [f32],
+}
+
+/// A dense feature map `[channels × height × width]` (`feat_i` of one image).
+#[derive(Debug, Clone, Copy)]
+pub struct FeatureMap<'a> {
+    pub channels: usize,
+    pub height: usize,
+    pub width: usize,
+    pub values: &'a [f32],
+}
+
+/// A detected cell: refined position in cell coordinates and the score at the cell.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Peak {
+    pub x: f32,
+    pub y: f32,
+    pub score: f32,
+}
+
+impl ScoreMap<'_> {
+    fn at(&self, r: usize, c: usize) -> f32 {
+        self.values[r * self.width + c]
+    }
+}
+
+/// Cells that equal the maximum of their (2·radius+1)² neighbourhood (clipped to the map) and
+/// score above `threshold`, without the outermost ring of cells; the `max` best, highest score
+/// first (ties: row, then column, so the output is deterministic); each refined to sub-cell
+/// precision by [`subpixel`].
+pub fn detect(map: ScoreMap<'_>, radius: usize, threshold: f32, max: usize) -> Vec<Peak> {
+    let (h, w) = (map.height, map.width);
+    debug_assert_eq!(map.values.len(), h * w);
+    if h < 3 || w < 3 || max == 0 {
+        return Vec::new();
+    }
+    let row_max = sliding_max_rows(map, radius);
+    let mut peaks: Vec<(f32, usize, usize)> = Vec::new();
+    for r in 1..h - 1 {
+        for c in 1..w - 1 {
+            let v = map.at(r, c);
+            if v.is_nan() || v <= threshold {
+                continue;
+            }
+            let (r0, r1) = (r.saturating_sub(radius), (r + radius).min(h - 1));
+            let m = (r0..=r1)
+                .map(|rr| row_max[rr * w + c])
+                .fold(f32::NEG_INFINITY, f32::max);
+            if v >= m {
+                peaks.push((v, r, c));
+            }
+        }
+    }
+    peaks.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    peaks.truncate(max);
+    peaks
+        .into_iter()
+        .map(|(score, r, c)| {
+            let (dx, dy) = subpixel(map, r, c);
+            Peak {
+                x: c as f32 + dx,
+                y: r as f32 + dy,
+                score,
+            }
+        })
+        .collect()
+}
+
+/// The maximum over each cell's horizontal window of half-width `radius` (clipped).
+fn sliding_max_rows(map: ScoreMap<'_>, radius: usize) -> Vec<f32> {
+    let (h, w) = (map.height, map.width);
+    let mut out = vec![f32::NEG_INFINITY; h * w];
+    for r in 0..h {
+        let row = &map.values[r * w..(r + 1) * w];
+        for c in 0..w {
+            let (c0, c1) = (c.saturating_sub(radius), (c + radius).min(w - 1));
+            out[r * w + c] = row[c0..=c1].iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        }
+    }
+    out
+}
+
+/// The 1-D quadratic offset through (−1, m), (0, c), (+1, p), clipped to ±0.5; 0 when the
+/// curvature is ~0.
+pub fn quadratic_offset(m: f32, c: f32, p: f32) -> f32 {
+    let den = m - 2.0 * c + p;
+    if den.abs() <= 1e-9 {
+        return 0.0;
+    }
+    (0.5 * (m - p) / den).clamp(-0.5, 0.5)
+}
+
+/// Sub-cell offsets (dx, dy) of an interior cell, one quadratic fit per axis.
+pub fn subpixel(map: ScoreMap<'_>, r: usize, c: usize) -> (f32, f32) {
+    let v = map.at(r, c);
+    let dx = quadratic_offset(map.at(r, c - 1), v, map.at(r, c + 1));
+    let dy = quadratic_offset(map.at(r - 1, c), v, map.at(r + 1, c));
+    (dx, dy)
+}
+
+/// Bilinear sample of every channel at cell coordinates (x, y), clamped to the map
+/// (`align_corners = true`: integer coordinates hit cell centres). Appends `channels` values.
+pub fn sample_bilinear(map: FeatureMap<'_>, x: f32, y: f32, out: &mut Vec<f32>) {
+    let (h, w) = (map.height, map.width);
+    let plane = h * w;
+    let x = if x.is_nan() { 0.0 } else { x.clamp(0.0, (w - 1) as f32) };
+    let y = if y.is_nan() { 0.0 } else { y.clamp(0.0, (h - 1) as f32) };
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    let (ax, ay) = (x - x0 as f32, y - y0 as f32);
+    let (w00, w01, w10, w11) = (
+        (1.0 - ax) * (1.0 - ay),
+        ax * (1.0 - ay),
+        (1.0 - ax) * ay,
+        ax * ay,
+    );
+    let (i00, i01, i10, i11) = (y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1);
+    for ch in 0..map.channels {
+        let p = &map.values[ch * plane..(ch + 1) * plane];
+        out.push(p[i00] * w00 + p[i01] * w01 + p[i10] * w10 + p[i11] * w11);
+    }
+}
+
+/// Scales `v` to unit L2 norm (left as is when its norm is ~0).
+pub fn l2_normalise(v: &mut [f32]) {
+    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    if norm > 1e-12 {
+        v.iter_mut().for_each(|x| *x /= norm);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn map(h: usize, w: usize, f: impl Fn(usize, usize) -> f32) -> Vec<f32> {
+        (0..h * w).map(|i| f(i / w, i % w)).collect()
+    }
+
+    #[test]
+    fn nms_keeps_local_maxima_above_threshold_inside_the_border() {
+        // Two bumps, one on the border ring (dropped), one below the threshold.
+        let mut v = vec![0.1f32; 8 * 10];
+        v[3 * 10 + 4] = 0.9; // peak
+        v[3 * 10 + 5] = 0.8; // neighbour, suppressed
+        v[6 * 10 + 8] = 0.7; // second peak
+        v[10 + 8] = 0.3; // below threshold
+        v[9] = 0.95; // border ring
+        let peaks = detect(
+            ScoreMap {
+                height: 8,
+                width: 10,
+                values: &v,
+            },
+            1,
+            0.5,
+            10,
+        );
+        assert_eq!(peaks.len(), 2);
+        assert_eq!((peaks[0].score, peaks[1].score), (0.9, 0.7));
+        assert!((peaks[0].y - 3.0).abs() < 1e-6);
+        assert!(peaks[0].x > 4.0 && peaks[0].x <= 4.5, "{:?}", peaks[0]);
+        assert_eq!((peaks[1].x, peaks[1].y), (8.0, 6.0));
+        // The cap keeps the best.
+        let one = detect(
+            ScoreMap {
+                height: 8,
+                width: 10,
+                values: &v,
+            },
+            1,
+            0.5,
+            1,
+        );
+        assert_eq!(one.len(), 1);
+        assert_eq!(one[0].score, 0.9);
+    }
+
+    #[test]
+    fn nms_radius_two_suppresses_a_peak_two_cells_away() {
+        let mut v = vec![0.0f32; 9 * 9];
+        v[4 * 9 + 3] = 0.9;
+        v[4 * 9 + 5] = 0.8;
+        let s = ScoreMap {
+            height: 9,
+            width: 9,
+            values: &v,
+        };
+        assert_eq!(detect(s, 1, 0.1, 10).len(), 2);
+        assert_eq!(detect(s, 2, 0.1, 10).len(), 1);
+    }
+
+    #[test]
+    fn ties_are_kept_and_ordered_by_position() {
+        let mut v = vec![0.0f32; 7 * 7];
+        v[2 * 7 + 2] = 0.6;
+        v[2 * 7 + 3] = 0.6;
+        let p = detect(
+            ScoreMap {
+                height: 7,
+                width: 7,
+                values: &v,
+            },
+            1,
+            0.5,
+            10,
+        );
+        // Both plateau cells are kept; each refines towards the other (to x = 2.5).
+        assert_eq!(p.len(), 2);
+        assert_eq!((p[0].score, p[1].score), (0.6, 0.6));
+        assert_eq!((p[0].x, p[1].x), (2.5, 2.5));
+    }
+
+    #[test]
+    fn subpixel_recovers_the_vertex_of_a_parabola() {
+        // score = 1 - (x - 4.3)^2 / 10 - (y - 2.8)^2 / 10: quadratic, so the fit is exact.
+        let v = map(6, 9, |r, c| {
+            1.0 - ((c as f32 - 4.3).powi(2) + (r as f32 - 2.8).powi(2)) / 10.0
+        });
+        let p = detect(
+            ScoreMap {
+                height: 6,
+                width: 9,
+                values: &v,
+            },
+            1,
+            0.0,
+            1,
+        );
+        assert!((p[0].x - 4.3).abs() < 1e-4 && (p[0].y - 2.8).abs() < 1e-4, "{p:?}");
+        assert_eq!(quadratic_offset(1.0, 1.0, 1.0), 0.0);
+        assert!((quadratic_offset(0.0, 1.0, 0.5) - 1.0 / 6.0).abs() < 1e-6);
+        assert_eq!(quadratic_offset(0.0, 1.0, 0.99), 0.5 * 0.99 / 1.01);
+        assert_eq!(quadratic_offset(1.0, 0.0, 1.0), 0.0);
+    }
+
+    #[test]
+    fn bilinear_is_exact_on_planes_and_clamps() {
+        // Channel 0: 2x + 3y + 1; channel 1: constant 5.
+        let (h, w) = (4, 5);
+        let mut v = map(h, w, |r, c| 2.0 * c as f32 + 3.0 * r as f32 + 1.0);
+        v.extend(std::iter::repeat_n(5.0, h * w));
+        let f = FeatureMap {
+            channels: 2,
+            height: h,
+            width: w,
+            values: &v,
+        };
+        let mut out = Vec::new();
+        sample_bilinear(f, 1.25, 2.5, &mut out);
+        assert!((out[0] - (2.5 + 7.5 + 1.0)).abs() < 1e-5 && out[1] == 5.0, "{out:?}");
+        out.clear();
+        sample_bilinear(f, 3.0, 1.0, &mut out); // a cell centre exactly
+        assert_eq!(out[0], v[w + 3]);
+        out.clear();
+        sample_bilinear(f, -3.0, 99.0, &mut out); // clamped to (0, h-1)
+        assert_eq!(out[0], 10.0);
+        out.clear();
+        sample_bilinear(f, 4.0, 3.0, &mut out); // the last cell
+        assert_eq!(out[0], 18.0);
+    }
+
+    #[test]
+    fn normalise_unit_and_zero() {
+        let mut v = [3.0, 4.0];
+        l2_normalise(&mut v);
+        assert_eq!(v, [0.6, 0.8]);
+        let mut z = [0.0, 0.0];
+        l2_normalise(&mut z);
+        assert_eq!(z, [0.0, 0.0]);
+    }
+}

@@ -1,0 +1,507 @@
+//! The SFP extractor (feature `onnx`): an ONNX model of the `sfp-extractor/1` contract
+//! (`spec/extractor.md`) run with ONNX Runtime, turned into per-level keypoints, `short` and
+//! `full` descriptors and a global descriptor.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), sfpmap::extract::ExtractError> {
+//! use sfpmap::extract::{DetectOptions, Extractor, ExtractorOptions};
+//! let mut extractor = Extractor::new(&ExtractorOptions::default(), &sfpmap::progress::Silent)?;
+//! let input = sfpmap::extract::image::load(
+//!     "query.jpg".as_ref(), extractor.contract().gray_weights, None)?;
+//! let features = extractor.extract(&input, &DetectOptions::default())?;
+//! println!("{} keypoints on level 2", features.level(2).map_or(0, |l| l.len()));
+//! # Ok(()) }
+//! ```
+//!
+//! - [`runtime`]: finding/fetching `libonnxruntime.so.1.31.1`, one process-wide environment.
+//! - [`contract`]: the model's metadata, checked.
+//! - [`image`]: JPEG/PNG → grey input.
+//! - [`keypoints`]: NMS, sub-pixel refinement, bilinear sampling.
+//! - `sfp_map` (with `colmap`): SFP maps from a COLMAP model and its images.
+
+pub mod contract;
+pub mod image;
+pub mod keypoints;
+pub mod runtime;
+#[cfg(feature = "colmap")]
+pub mod sfp_map;
+
+use crate::format::f16;
+use crate::progress::Reporter;
+use self::contract::Contract;
+use self::image::GrayInput;
+use self::keypoints::{FeatureMap, ScoreMap};
+use ort::session::builder::GraphOptimizationLevel;
+use ort::session::Session;
+use ort::value::Tensor;
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// The default model, embedded so the CLI works from any folder without `--model`.
+pub static DEFAULT_MODEL: &[u8] = include_bytes!("../../models/sfp-v1.onnx");
+/// How the embedded model is named in errors and provenance.
+pub const DEFAULT_MODEL_NAME: &str = "models/sfp-v1.onnx (embedded)";
+
+/// What can go wrong while extracting.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum ExtractError {
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// ONNX Runtime is not where discovery looked.
+    RuntimeNotFound { searched: Vec<PathBuf> },
+    /// ONNX Runtime could not be fetched, loaded or started.
+    Runtime {
+        path: Option<PathBuf>,
+        reason: String,
+    },
+    /// The model file is not an ONNX model ORT can load.
+    Model { model: String, reason: String },
+    /// The model's metadata does not state a contract this extractor implements.
+    Contract { model: String, reason: String },
+    /// An image could not be decoded.
+    Image {
+        path: PathBuf,
+        source: ::image::ImageError,
+    },
+    /// Running the model failed, or it returned outputs that break its contract.
+    Inference { model: String, reason: String },
+}
+
+impl fmt::Display for ExtractError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ExtractError::Io { path, source } => write!(f, "{}: {source}", path.display()),
+            ExtractError::RuntimeNotFound { searched } => {
+                write!(
+                    f,
+                    "ONNX Runtime {} not found (looked at ORT_DYLIB_PATH",
+                    runtime::ORT_VERSION
+                )?;
+                for p in searched {
+                    write!(f, ", {}", p.display())?;
+                }
+                write!(
+                    f,
+                    "); run `sfpmap setup` (python3 -m pip download onnxruntime=={}) or set ORT_DYLIB_PATH to a {}",
+                    runtime::ORT_VERSION,
+                    runtime::LIB_NAME
+                )
+            }
+            ExtractError::Runtime {
+                path: Some(path),
+                reason,
+            } => write!(f, "ONNX Runtime {}: {reason}", path.display()),
+            ExtractError::Runtime { path: None, reason } => write!(f, "ONNX Runtime: {reason}"),
+            ExtractError::Model { model, reason } => {
+                write!(f, "{model}: not a loadable ONNX model: {reason}")
+            }
+            ExtractError::Contract { model, reason } => write!(f, "{model}: {reason}"),
+            ExtractError::Image { path, source } => write!(f, "{}: {source}", path.display()),
+            ExtractError::Inference { model, reason } => write!(f, "{model}: {reason}"),
+        }
+    }
+}
+
+impl std::error::Error for ExtractError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            ExtractError::Io { source, .. } => Some(source),
+            ExtractError::Image { source, .. } => Some(source),
+            _ => None,
+        }
+    }
+}
+
+/// How the extractor is built.
+#[derive(Debug, Clone)]
+pub struct ExtractorOptions {
+    /// A model file; `None` = the embedded [`DEFAULT_MODEL`].
+    pub model: Option<PathBuf>,
+    /// ONNX Runtime intra-op threads (spinning is off).
+    pub threads: usize,
+}
+
+impl Default for ExtractorOptions {
+    fn default() -> Self {
+        ExtractorOptions {
+            model: None,
+            threads: 2,
+        }
+    }
+}
+
+/// Keypoint selection; `None` fields take the model's defaults (`sfp.default_*`).
+#[derive(Debug, Clone, Default)]
+pub struct DetectOptions {
+    pub threshold: Option<f32>,
+    pub nms_radius: Option<u32>,
+    /// Cap per level, in level order; one value applies to every level.
+    pub max_keypoints: Option<Vec<usize>>,
+}
+
+/// The model file an extractor runs, for provenance.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ModelInfo {
+    /// The path given, or [`DEFAULT_MODEL_NAME`].
+    pub name: String,
+    pub bytes: u64,
+    /// XXH3-64 of the file, hex (as map provenance stores it).
+    pub xxh3: String,
+}
+
+/// One level's dense outputs for one image.
+#[derive(Debug, Clone)]
+pub struct DenseLevel {
+    pub stride: u32,
+    pub channels: usize,
+    pub height: usize,
+    pub width: usize,
+    /// `[channels × height × width]`.
+    pub feat: Vec<f32>,
+    /// `[height × width]`.
+    pub score: Vec<f32>,
+}
+
+impl DenseLevel {
+    pub fn feature_map(&self) -> FeatureMap<'_> {
+        FeatureMap {
+            channels: self.channels,
+            height: self.height,
+            width: self.width,
+            values: &self.feat,
+        }
+    }
+
+    pub fn score_map(&self) -> ScoreMap<'_> {
+        ScoreMap {
+            height: self.height,
+            width: self.width,
+            values: &self.score,
+        }
+    }
+
+    /// Appends the L2-normalised features at pixel (x, y) of the model input (pixel-index
+    /// convention: the first pixel's centre is 0).
+    pub fn descriptor_at(&self, x: f32, y: f32, out: &mut Vec<f32>) {
+        let start = out.len();
+        let s = self.stride as f32;
+        keypoints::sample_bilinear(self.feature_map(), x / s, y / s, out);
+        keypoints::l2_normalise(&mut out[start..]);
+    }
+
+    /// The score bilinearly sampled at pixel (x, y) of the model input (pixel-index convention).
+    pub fn score_at(&self, x: f32, y: f32) -> f32 {
+        let mut v = Vec::with_capacity(1);
+        let s = self.stride as f32;
+        let map = FeatureMap {
+            channels: 1,
+            height: self.height,
+            width: self.width,
+            values: &self.score,
+        };
+        keypoints::sample_bilinear(map, x / s, y / s, &mut v);
+        v[0]
+    }
+}
+
+/// The network's outputs for one image.
+#[derive(Debug, Clone)]
+pub struct Dense {
+    /// Size of the model input (after any resize).
+    pub input_size: [usize; 2],
+    /// Input pixel → original pixel factor per axis.
+    pub scale: [f32; 2],
+    pub levels: Vec<DenseLevel>,
+    /// L2-normalised global descriptor.
+    pub global: Vec<f32>,
+}
+
+impl Dense {
+    /// A COLMAP-convention pixel of the original image → pixel-index coordinates of the input.
+    pub fn input_pixel(&self, colmap_xy: [f32; 2]) -> [f32; 2] {
+        [
+            colmap_xy[0] / self.scale[0] - 0.5,
+            colmap_xy[1] / self.scale[1] - 0.5,
+        ]
+    }
+
+    /// The `full` descriptor of level `i` at input pixel (x, y): levels i.. sampled, each part
+    /// L2-normalised, concatenated and normalised again (`spec/extractor.md`).
+    pub fn full_descriptor_at(&self, i: usize, x: f32, y: f32, out: &mut Vec<f32>) {
+        let start = out.len();
+        for level in &self.levels[i..] {
+            level.descriptor_at(x, y, out);
+        }
+        keypoints::l2_normalise(&mut out[start..]);
+    }
+}
+
+/// One level's keypoints and descriptors.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LevelFeatures {
+    /// Level id (`sfp.level_ids`).
+    pub level: u16,
+    pub stride: u32,
+    /// (x, y) in the original image, COLMAP convention (top-left corner of the first pixel
+    /// is 0, its centre 0.5).
+    pub keypoints: Vec<[f32; 2]>,
+    pub scores: Vec<f32>,
+    pub dim_short: usize,
+    pub dim_full: usize,
+    /// `[keypoints × dim_short]`, L2-normalised.
+    pub short: Vec<f16>,
+    /// `[keypoints × dim_full]`, L2-normalised; its first `dim_short` values are `short`
+    /// times a constant.
+    pub full: Vec<f16>,
+}
+
+impl LevelFeatures {
+    pub fn len(&self) -> usize {
+        self.keypoints.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.keypoints.is_empty()
+    }
+}
+
+/// Everything extracted from one image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Features {
+    /// (width, height) of the image file.
+    pub image_size: [u32; 2],
+    pub levels: Vec<LevelFeatures>,
+    pub global: Vec<f32>,
+}
+
+impl Features {
+    pub fn level(&self, level: u16) -> Option<&LevelFeatures> {
+        self.levels.iter().find(|l| l.level == level)
+    }
+
+    pub fn num_keypoints(&self) -> usize {
+        self.levels.iter().map(LevelFeatures::len).sum()
+    }
+}
+
+/// A loaded model with its session.
+pub struct Extractor {
+    session: Session,
+    contract: Contract,
+    model: ModelInfo,
+    output_names: Vec<String>,
+}
+
+impl fmt::Debug for Extractor {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Extractor")
+            .field("model", &self.model)
+            .field("contract", &self.contract.model_name)
+            .finish_non_exhaustive()
+    }
+}
+
+fn read_model(path: Option<&Path>) -> Result<(std::borrow::Cow<'static, [u8]>, String), ExtractError> {
+    match path {
+        None => Ok((DEFAULT_MODEL.into(), DEFAULT_MODEL_NAME.to_string())),
+        Some(p) => {
+            let bytes = std::fs::read(p).map_err(|source| ExtractError::Io {
+                path: p.to_path_buf(),
+                source,
+            })?;
+            Ok((bytes.into(), p.display().to_string()))
+        }
+    }
+}
+
+impl Extractor {
+    /// Loads the runtime (fetching it on first need), the model, and checks its contract.
+    pub fn new(options: &ExtractorOptions, reporter: &dyn Reporter) -> Result<Self, ExtractError> {
+        let (bytes, name) = read_model(options.model.as_deref())?;
+        // A quick check before ORT: an ONNX ModelProto starts with field 1 (ir_version, varint).
+        if bytes.first() != Some(&0x08) {
+            return Err(ExtractError::Model {
+                model: name,
+                reason: "it does not start like an ONNX protobuf (ir_version)".into(),
+            });
+        }
+        let runtime = runtime::runtime(reporter)?;
+        let model_err = |e: ort::Error| ExtractError::Model {
+            model: name.clone(),
+            reason: e.to_string(),
+        };
+        let session = Session::builder(runtime.environment())
+            .map_err(model_err)?
+            .with_optimization_level(GraphOptimizationLevel::Level3)
+            .and_then(|b| b.with_intra_threads(options.threads.max(1)))
+            .and_then(|b| b.with_inter_threads(1))
+            .and_then(|b| b.with_intra_op_spinning(false))
+            .and_then(|b| b.with_inter_op_spinning(false))
+            .map_err(|e| model_err(e.into()))?
+            .commit_from_memory(&bytes)
+            .map_err(model_err)?;
+        let meta = session.metadata().map_err(model_err)?;
+        let keys = meta.custom_keys().map_err(model_err)?;
+        let contract = Contract::from_metadata(&name, &keys, |k| meta.custom(k))?;
+        drop(meta);
+        let output_names: Vec<String> = session.outputs().iter().map(|o| o.name().to_string()).collect();
+        for i in 0..contract.levels() {
+            for out in [format!("feat_{i}"), format!("score_{i}")] {
+                if !output_names.contains(&out) {
+                    return Err(ExtractError::Contract {
+                        model: name,
+                        reason: format!("the model has no output {out:?}"),
+                    });
+                }
+            }
+        }
+        if !output_names.iter().any(|n| n == "global") {
+            return Err(ExtractError::Contract {
+                model: name,
+                reason: "the model has no output \"global\"".into(),
+            });
+        }
+        let model = ModelInfo {
+            name,
+            bytes: bytes.len() as u64,
+            xxh3: crate::format::file_hash(&bytes),
+        };
+        Ok(Extractor {
+            session,
+            contract,
+            model,
+            output_names,
+        })
+    }
+
+    pub fn contract(&self) -> &Contract {
+        &self.contract
+    }
+
+    pub fn model(&self) -> &ModelInfo {
+        &self.model
+    }
+
+    /// Runs the network on one grey input.
+    pub fn run(&mut self, input: &GrayInput) -> Result<Dense, ExtractError> {
+        let (w, h) = (input.width, input.height);
+        let name = self.model.name.clone();
+        let infer = |reason: String| ExtractError::Inference {
+            model: name.clone(),
+            reason,
+        };
+        if w == 0 || h == 0 {
+            return Err(infer("empty image".into()));
+        }
+        let tensor = Tensor::from_array(([1usize, 1, h, w], input.values.clone()))
+            .map_err(|e| infer(e.to_string()))?;
+        let input_name = self.contract.input_name.clone();
+        let outputs = self
+            .session
+            .run(ort::inputs![input_name.as_str() => tensor])
+            .map_err(|e| infer(e.to_string()))?;
+        let mut levels = Vec::with_capacity(self.contract.levels());
+        for i in 0..self.contract.levels() {
+            let (lh, lw) = (self.contract.level_side(i, h), self.contract.level_side(i, w));
+            let c = self.contract.dims[i];
+            let take = |out: &str, channels: usize| -> Result<Vec<f32>, ExtractError> {
+                let value = outputs
+                    .get(out)
+                    .ok_or_else(|| infer(format!("no output {out:?}")))?;
+                let (shape, data) = value
+                    .try_extract_tensor::<f32>()
+                    .map_err(|e| infer(format!("{out}: {e}")))?;
+                let want = [1, channels as i64, lh as i64, lw as i64];
+                if **shape != want {
+                    return Err(infer(format!(
+                        "{out} has shape {:?}, the contract says {want:?} for a {w}x{h} input",
+                        &**shape
+                    )));
+                }
+                Ok(data.to_vec())
+            };
+            let feat = take(&format!("feat_{i}"), c)?;
+            let score = take(&format!("score_{i}"), 1)?;
+            levels.push(DenseLevel {
+                stride: self.contract.strides[i],
+                channels: c,
+                height: lh,
+                width: lw,
+                feat,
+                score,
+            });
+        }
+        let value = outputs
+            .get("global")
+            .ok_or_else(|| infer("no output \"global\"".into()))?;
+        let (shape, data) = value
+            .try_extract_tensor::<f32>()
+            .map_err(|e| infer(format!("global: {e}")))?;
+        if **shape != [1, self.contract.global_dim as i64] {
+            return Err(infer(format!("global has shape {:?}", &**shape)));
+        }
+        let global = data.to_vec();
+        debug_assert!(self.output_names.iter().any(|n| n == "global"));
+        Ok(Dense {
+            input_size: [w, h],
+            scale: input.scale(),
+            levels,
+            global,
+        })
+    }
+
+    /// Keypoints and descriptors of every level from the network's outputs.
+    pub fn features(&self, dense: &Dense, original_size: [u32; 2], options: &DetectOptions) -> Features {
+        let c = &self.contract;
+        let threshold = options.threshold.unwrap_or(c.default_threshold);
+        let radius = options.nms_radius.unwrap_or(c.default_nms_radius) as usize;
+        let mut levels = Vec::with_capacity(c.levels());
+        for (i, level) in dense.levels.iter().enumerate() {
+            let max = match options.max_keypoints.as_deref() {
+                Some([one]) => *one,
+                Some(list) => list.get(i).copied().unwrap_or(c.default_max_keypoints[i]),
+                None => c.default_max_keypoints[i],
+            };
+            let peaks = keypoints::detect(level.score_map(), radius, threshold, max);
+            let s = level.stride as f32;
+            let mut kps = Vec::with_capacity(peaks.len());
+            let mut short = Vec::with_capacity(peaks.len() * c.dims[i]);
+            let mut full = Vec::with_capacity(peaks.len() * c.full_dims[i]);
+            let mut buf = Vec::with_capacity(c.full_dims[i]);
+            for p in &peaks {
+                let (x, y) = (p.x * s, p.y * s);
+                buf.clear();
+                level.descriptor_at(x, y, &mut buf);
+                short.extend(buf.iter().map(|&v| f16::from_f32(v)));
+                buf.clear();
+                dense.full_descriptor_at(i, x, y, &mut buf);
+                full.extend(buf.iter().map(|&v| f16::from_f32(v)));
+                kps.push([(x + 0.5) * dense.scale[0], (y + 0.5) * dense.scale[1]]);
+            }
+            levels.push(LevelFeatures {
+                level: c.level_ids[i],
+                stride: c.strides[i],
+                scores: peaks.iter().map(|p| p.score).collect(),
+                keypoints: kps,
+                dim_short: c.dims[i],
+                dim_full: c.full_dims[i],
+                short,
+                full,
+            });
+        }
+        Features {
+            image_size: original_size,
+            levels,
+            global: dense.global.clone(),
+        }
+    }
+
+    /// [`Extractor::run`] then [`Extractor::features`].
+    pub fn extract(&mut self, input: &GrayInput, options: &DetectOptions) -> Result<Features, ExtractError> {
+        let dense = self.run(input)?;
+        Ok(self.features(&dense, input.original_size, options))
+    }
+}

@@ -1,0 +1,298 @@
+//! hloc-style `features.h5` (pure Rust, `hdf5-pure`): one group per image name, readable by
+//! hloc, h5py and the HDF5 C library. Layout in `spec/extractor.md`, "features.h5 layout".
+
+use crate::extract::{Features, LevelFeatures};
+use crate::format::f16;
+use hdf5_pure::{
+    AttrValue, Datatype, DatatypeByteOrder, FileBuilder, FinishedGroup, FloatingPointLayout,
+    GroupBuilder,
+};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// Keypoints in the file are in hloc's convention: the first pixel's centre is (0, 0), so
+/// COLMAP's coordinates are these + 0.5 (hloc adds it when it imports into COLMAP).
+pub const KEYPOINT_CONVENTION: &str = "pixel centre of the first pixel = (0, 0) (hloc); COLMAP = value + 0.5";
+
+/// What went wrong writing or reading a features file.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum H5Error {
+    Hdf5 { path: PathBuf, reason: String },
+    /// Two images map to the same group, or a name cannot be a group path.
+    BadName { name: String, reason: String },
+    Io { path: PathBuf, source: std::io::Error },
+}
+
+impl std::fmt::Display for H5Error {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            H5Error::Hdf5 { path, reason } => write!(f, "{}: hdf5: {reason}", path.display()),
+            H5Error::BadName { name, reason } => write!(f, "image name {name:?}: {reason}"),
+            H5Error::Io { path, source } => write!(f, "{}: {source}", path.display()),
+        }
+    }
+}
+
+impl std::error::Error for H5Error {}
+
+fn f16_type() -> Datatype {
+    Datatype::FloatingPoint {
+        size: 2,
+        byte_order: DatatypeByteOrder::LittleEndian,
+        layout: FloatingPointLayout {
+            bit_offset: 0,
+            bit_precision: 16,
+            exponent_location: 10,
+            exponent_size: 5,
+            mantissa_location: 0,
+            mantissa_size: 10,
+            exponent_bias: 15,
+        },
+    }
+}
+
+/// `[n × d]` row-major → `[d × n]` little-endian f16 bytes (hloc stores descriptors as
+/// `[D × N]`, the layout its networks output).
+fn transposed_f16(values: &[f16], n: usize, d: usize) -> Vec<u8> {
+    let mut out = Vec::with_capacity(n * d * 2);
+    for k in 0..d {
+        for i in 0..n {
+            out.extend_from_slice(&values[i * d + k].to_le_bytes());
+        }
+    }
+    out
+}
+
+/// Settings recorded in the file.
+#[derive(Debug, Clone)]
+pub struct H5Options {
+    /// The level whose keypoints/descriptors fill the hloc-standard datasets of each group.
+    pub main_level: u16,
+    /// Root attributes (model name, hash, contract …), as strings.
+    pub attributes: Vec<(String, String)>,
+}
+
+/// An image group being assembled: nested groups for names with `/`.
+#[derive(Default)]
+struct Node<'a> {
+    features: Option<&'a Features>,
+    children: BTreeMap<String, Node<'a>>,
+}
+
+/// Writes `images` (name, features) to `path` (temp file + rename).
+pub fn write(
+    path: &Path,
+    images: &[(String, Features)],
+    options: &H5Options,
+) -> Result<u64, H5Error> {
+    let mut root = Node::default();
+    for (name, features) in images {
+        let parts: Vec<&str> = name.split('/').filter(|p| !p.is_empty()).collect();
+        if parts.is_empty() || parts.iter().any(|p| *p == "." || *p == "..") {
+            return Err(H5Error::BadName {
+                name: name.clone(),
+                reason: "not a usable group path".into(),
+            });
+        }
+        let mut node = &mut root;
+        for p in parts {
+            node = node.children.entry(p.to_string()).or_default();
+        }
+        if node.features.is_some() || !node.children.is_empty() {
+            return Err(H5Error::BadName {
+                name: name.clone(),
+                reason: "two images map to the same group".into(),
+            });
+        }
+        node.features = Some(features);
+    }
+    let mut file = FileBuilder::new();
+    file.set_attr("sfp.main_level", AttrValue::I64(i64::from(options.main_level)));
+    file.set_attr(
+        "keypoint_convention",
+        AttrValue::String(KEYPOINT_CONVENTION.into()),
+    );
+    for (k, v) in &options.attributes {
+        file.set_attr(k, AttrValue::String(v.clone()));
+    }
+    for (name, node) in &root.children {
+        if node.features.is_some() && !node.children.is_empty() {
+            return Err(H5Error::BadName {
+                name: name.clone(),
+                reason: "is both an image and a folder of images".into(),
+            });
+        }
+        let group = build_group(file.create_group(name), node, options)?;
+        file.add_group(group);
+    }
+    let bytes = file.finish().map_err(|e| H5Error::Hdf5 {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    })?;
+    let tmp = path.with_extension(format!("h5.tmp{}", std::process::id()));
+    let io = |source| H5Error::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    std::fs::write(&tmp, &bytes).map_err(io)?;
+    std::fs::rename(&tmp, path).map_err(io)?;
+    Ok(bytes.len() as u64)
+}
+
+fn build_group(
+    mut group: GroupBuilder,
+    node: &Node<'_>,
+    options: &H5Options,
+) -> Result<FinishedGroup, H5Error> {
+    if let Some(f) = node.features {
+        let main = f
+            .level(options.main_level)
+            .or_else(|| f.levels.first())
+            .ok_or_else(|| H5Error::BadName {
+                name: String::new(),
+                reason: "features with no level".into(),
+            })?;
+        write_level(&mut group, main, "descriptors");
+        group
+            .create_dataset("image_size")
+            .with_i64_data(&[i64::from(f.image_size[0]), i64::from(f.image_size[1])]);
+        group
+            .create_dataset("global_descriptor")
+            .with_f32_data(&f.global);
+        group.set_attr("level", AttrValue::I64(i64::from(main.level)));
+        for level in &f.levels {
+            let mut sub = group.create_group(&format!("level_{}", level.level));
+            write_level(&mut sub, level, "descriptors");
+            let n = level.len();
+            sub.create_dataset("descriptors_short")
+                .with_raw_data(
+                    f16_type(),
+                    transposed_f16(&level.short, n, level.dim_short),
+                    (n * level.dim_short) as u64,
+                )
+                .with_shape(&[level.dim_short as u64, n as u64]);
+            sub.set_attr("stride", AttrValue::I64(i64::from(level.stride)));
+            group.add_group(sub.finish());
+        }
+    }
+    for (name, child) in &node.children {
+        if child.features.is_some() && !child.children.is_empty() {
+            return Err(H5Error::BadName {
+                name: name.clone(),
+                reason: "is both an image and a folder of images".into(),
+            });
+        }
+        let sub = build_group(group.create_group(name), child, options)?;
+        group.add_group(sub);
+    }
+    Ok(group.finish())
+}
+
+/// `keypoints` [N×2] f32 (hloc convention), `scores` [N] f32, `descriptors` [D×N] f16 (full).
+fn write_level(group: &mut GroupBuilder, level: &LevelFeatures, descriptors: &str) {
+    let n = level.len();
+    let kps: Vec<f32> = level
+        .keypoints
+        .iter()
+        .flat_map(|k| [k[0] - 0.5, k[1] - 0.5])
+        .collect();
+    group
+        .create_dataset("keypoints")
+        .with_f32_data(&kps)
+        .with_shape(&[n as u64, 2]);
+    group
+        .create_dataset("scores")
+        .with_f32_data(&level.scores)
+        .with_shape(&[n as u64]);
+    group
+        .create_dataset(descriptors)
+        .with_raw_data(
+            f16_type(),
+            transposed_f16(&level.full, n, level.dim_full),
+            (n * level.dim_full) as u64,
+        )
+        .with_shape(&[level.dim_full as u64, n as u64]);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn features(n: usize) -> Features {
+        let level = |id: u16, stride: u32, ds: usize, df: usize| LevelFeatures {
+            level: id,
+            stride,
+            keypoints: (0..n).map(|i| [i as f32 + 0.5, 2.0 * i as f32 + 0.5]).collect(),
+            scores: (0..n).map(|i| 0.5 + i as f32 / 100.0).collect(),
+            dim_short: ds,
+            dim_full: df,
+            short: (0..n * ds).map(|i| f16::from_f32(i as f32 / 8.0)).collect(),
+            full: (0..n * df).map(|i| f16::from_f32(i as f32 / 16.0)).collect(),
+        };
+        Features {
+            image_size: [64, 48],
+            levels: vec![level(0, 2, 2, 5), level(1, 4, 3, 3)],
+            global: vec![0.6, 0.8],
+        }
+    }
+
+    #[test]
+    fn round_trip_nested_names_and_transposed_descriptors() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("features.h5");
+        let images = vec![
+            ("a.jpg".to_string(), features(3)),
+            ("sub/b.png".to_string(), features(4)),
+        ];
+        let options = H5Options {
+            main_level: 1,
+            attributes: vec![("sfp.model".into(), "test".into())],
+        };
+        write(&path, &images, &options).unwrap();
+        let file = hdf5_pure::File::open(&path).unwrap();
+        let kp = file.dataset("sub/b.png/keypoints").unwrap();
+        assert_eq!(kp.shape().unwrap(), vec![4, 2]);
+        let v = kp.read_f32().unwrap();
+        assert_eq!(&v[..4], &[0.0, 0.0, 1.0, 2.0]);
+        let d = file.dataset("a.jpg/level_0/descriptors").unwrap();
+        assert_eq!(d.shape().unwrap(), vec![5, 3]);
+        let raw = d.read_raw().unwrap();
+        let vals: Vec<f32> = raw
+            .chunks_exact(2)
+            .map(|b| f16::from_le_bytes([b[0], b[1]]).to_f32())
+            .collect();
+        // Row k of the file = dimension k over the keypoints: [k, 5 + k, 10 + k] / 16.
+        assert_eq!(&vals[..3], &[0.0, 5.0 / 16.0, 10.0 / 16.0]);
+        let main = file.dataset("a.jpg/descriptors").unwrap();
+        assert_eq!(main.shape().unwrap(), vec![3, 3]);
+        let size = file.dataset("a.jpg/image_size").unwrap();
+        assert_eq!(size.shape().unwrap(), vec![2]);
+        assert!(write(
+            &path,
+            &[("x".into(), features(1)), ("x".into(), features(1))],
+            &options
+        )
+        .is_err());
+    }
+
+    #[test]
+    fn empty_levels_are_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("f.h5");
+        write(
+            &path,
+            &[("e.jpg".to_string(), features(0))],
+            &H5Options {
+                main_level: 0,
+                attributes: vec![],
+            },
+        )
+        .unwrap();
+        let file = hdf5_pure::File::open(&path).unwrap();
+        assert_eq!(
+            file.dataset("e.jpg/keypoints").unwrap().shape().unwrap(),
+            vec![0, 2]
+        );
+    }
+}
