@@ -8,6 +8,31 @@
 //!
 //! Nothing here panics on bad input or returns a non-finite pose: every public entry point
 //! validates its input once and reports a [`GeometryError`].
+//!
+//! ```
+//! use nalgebra::{UnitQuaternion, Vector2, Vector3};
+//! use sfpmap::localize::geometry::{estimate_absolute_pose, Camera, Pose, RansacOptions};
+//!
+//! let camera = Camera::parse("SIMPLE_RADIAL 1024 768 800 512 384 -0.05")?;
+//! let truth = Pose::new(
+//!     UnitQuaternion::from_scaled_axis(Vector3::new(0.1, -0.4, 0.05)),
+//!     Vector3::new(0.3, -0.2, 1.0),
+//! );
+//! // Points on a grid in front of the camera, seen through the model.
+//! let (mut pixels, mut points) = (Vec::new(), Vec::new());
+//! for i in 0..50 {
+//!     let pixel = Vector2::new(20.0 + 19.7 * f64::from(i % 50), 30.0 + 14.1 * f64::from(i % 7 * 7));
+//!     let xy = camera.unproject(&pixel);
+//!     let depth = 4.0 + f64::from(i % 5);
+//!     points.push(truth.inverse().transform(&(Vector3::new(xy.x, xy.y, 1.0) * depth)));
+//!     pixels.push(pixel);
+//! }
+//! let estimate = estimate_absolute_pose(&pixels, &points, &camera, &RansacOptions::default())?;
+//! assert!(estimate.pose.rotation_error_deg(&truth) < 1e-3);
+//! assert!(estimate.pose.center_distance(&truth) < 1e-3);
+//! assert_eq!(estimate.num_inliers, 50);
+//! # Ok::<(), sfpmap::localize::geometry::GeometryError>(())
+//! ```
 
 // `!(x > limit)` is deliberate throughout: it sends NaN down the rejecting branch, which
 // `x <= limit` would not.
