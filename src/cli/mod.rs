@@ -5,9 +5,17 @@ use std::process::ExitCode;
 
 #[cfg(feature = "colmap")]
 mod convert;
+#[cfg(feature = "localize")]
+mod eval;
 mod export_colmap;
+#[cfg(feature = "onnx")]
+mod extract;
 mod info;
+#[cfg(all(feature = "localize", feature = "colmap"))]
+mod localize;
 mod progress;
+#[cfg(feature = "onnx")]
+mod setup;
 mod slice;
 mod verify;
 
@@ -28,8 +36,16 @@ pub struct Cli {
 pub enum Command {
     #[cfg(feature = "colmap")]
     Convert(convert::Args),
+    #[cfg(feature = "localize")]
+    Eval(eval::Args),
     ExportColmap(export_colmap::Args),
+    #[cfg(feature = "onnx")]
+    Extract(extract::Args),
     Info(info::Args),
+    #[cfg(all(feature = "localize", feature = "colmap"))]
+    Localize(localize::Args),
+    #[cfg(feature = "onnx")]
+    Setup(setup::Args),
     Verify(verify::Args),
     Slice(slice::Args),
 }
@@ -39,8 +55,16 @@ pub fn run() -> anyhow::Result<ExitCode> {
     match cli.command {
         #[cfg(feature = "colmap")]
         Command::Convert(args) => convert::run(args, cli.quiet),
+        #[cfg(feature = "localize")]
+        Command::Eval(args) => eval::run(args, cli.quiet),
         Command::ExportColmap(args) => export_colmap::run(args, cli.quiet),
+        #[cfg(feature = "onnx")]
+        Command::Extract(args) => extract::run(args, cli.quiet),
         Command::Info(args) => info::run(args, cli.quiet),
+        #[cfg(all(feature = "localize", feature = "colmap"))]
+        Command::Localize(args) => localize::run(args, cli.quiet),
+        #[cfg(feature = "onnx")]
+        Command::Setup(args) => setup::run(args, cli.quiet),
         Command::Verify(args) => verify::run(args, cli.quiet),
         Command::Slice(args) => slice::run(args, cli.quiet),
     }

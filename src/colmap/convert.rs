@@ -407,7 +407,9 @@ fn gather(
             let Some(point) = p.point3d_id.and_then(|id| model.point3d_index(id)) else {
                 continue;
             };
-            let (Some(row), Some(scale)) = (descriptors.row(idx), keypoints.scale(idx)) else {
+            // Keypoints without a shape (x, y only) have no scale: one bucket for all.
+            let scale = if idx < keypoints.len() { keypoints.scale(idx).or(Some(1.0)) } else { None };
+            let (Some(row), Some(scale)) = (descriptors.row(idx), scale) else {
                 return Err(ConvertError::KeypointOutOfRange {
                     database: db_path.to_path_buf(),
                     image: image.name.clone(),

@@ -103,9 +103,15 @@ pub enum LocalizeError {
     /// The map has no descriptors (geometry only).
     NoDescriptors,
     /// Query features do not fit the map's descriptor space.
-    DescriptorMismatch { level: u16, expected: usize, found: usize },
+    DescriptorMismatch {
+        level: u16,
+        expected: usize,
+        found: usize,
+    },
     /// The query has no features for a level that is to be matched.
-    NoFeaturesForLevel { level: u16 },
+    NoFeaturesForLevel {
+        level: u16,
+    },
 }
 
 impl std::fmt::Display for LocalizeError {
@@ -160,7 +166,11 @@ impl<'m> Localizer<'m> {
         if map.metadata().geometry_only || map.level_ids().is_empty() {
             return Err(LocalizeError::NoDescriptors);
         }
-        let mut ids = if options.levels.is_empty() { map.level_ids() } else { options.levels.clone() };
+        let mut ids = if options.levels.is_empty() {
+            map.level_ids()
+        } else {
+            options.levels.clone()
+        };
         ids.sort_unstable_by(|a, b| b.cmp(a));
         ids.dedup();
         let n_points = map.n_points() as usize;
@@ -179,7 +189,11 @@ impl<'m> Localizer<'m> {
             for r in 0..level.len() {
                 descriptors.extend(short[r * ds..(r + 1) * ds].iter().map(|x| x.to_f32()));
                 if let Some(rest) = &rest {
-                    descriptors.extend(rest[r * (df - ds)..(r + 1) * (df - ds)].iter().map(|x| x.to_f32()));
+                    descriptors.extend(
+                        rest[r * (df - ds)..(r + 1) * (df - ds)]
+                            .iter()
+                            .map(|x| x.to_f32()),
+                    );
                 }
             }
             normalise_rows(&mut descriptors, dim);
@@ -194,16 +208,36 @@ impl<'m> Localizer<'m> {
                 }
                 None => (None, df),
             };
-            levels.push(LevelIndex { id, row_of_point, descriptors, dim, projection, d_in });
+            levels.push(LevelIndex {
+                id,
+                row_of_point,
+                descriptors,
+                dim,
+                projection,
+                d_in,
+            });
         }
-        let positions = map.point_positions()?.iter().map(|&p| Vector3::from(map.to_world(p))).collect();
+        let positions = map
+            .point_positions()?
+            .iter()
+            .map(|&p| Vector3::from(map.to_world(p)))
+            .collect();
         let global = map.image_global()?.map(|(g, dim)| {
             let mut v: Vec<f32> = g.iter().map(|x| x.to_f32()).collect();
             normalise_rows(&mut v, dim);
             (v, dim)
         });
-        let visibility = map.visibility()?.map(|v| (v.offsets.to_vec(), v.points.to_vec()));
-        Ok(Localizer { map, options, positions, levels, global, visibility })
+        let visibility = map
+            .visibility()?
+            .map(|v| (v.offsets.to_vec(), v.points.to_vec()));
+        Ok(Localizer {
+            map,
+            options,
+            positions,
+            levels,
+            global,
+            visibility,
+        })
     }
 
     pub fn options(&self) -> &LocalizeOptions {
@@ -217,7 +251,11 @@ impl<'m> Localizer<'m> {
 
     /// Localizes one query. Errors only for unusable input; a query that cannot be localized
     /// returns a `Localization` with `pose: None` and the reason.
-    pub fn localize(&self, query: &QueryFeatures, camera: &Camera) -> Result<Localization, LocalizeError> {
+    pub fn localize(
+        &self,
+        query: &QueryFeatures,
+        camera: &Camera,
+    ) -> Result<Localization, LocalizeError> {
         let t0 = Instant::now();
         let mut times = StageTimes::default();
         let candidates = self.candidate_points(query);
@@ -260,13 +298,27 @@ impl<'m> Localizer<'m> {
         }
         times.coarse_match_ms = ms(t1);
         let t2 = Instant::now();
-        let coarse_options = RansacOptions { max_error_px: self.options.coarse_error_px, min_inliers: self.options.min_inliers.min(pixels.len()).max(6), ..RansacOptions::default() };
-        let coarse = match estimate_absolute_pose_with_prior(&pixels, &points, camera, None, &coarse_options) {
+        let coarse_options = RansacOptions {
+            max_error_px: self.options.coarse_error_px,
+            min_inliers: self.options.min_inliers.min(pixels.len()).max(6),
+            ..RansacOptions::default()
+        };
+        let coarse = match estimate_absolute_pose_with_prior(
+            &pixels,
+            &points,
+            camera,
+            None,
+            &coarse_options,
+        ) {
             Ok(e) => e,
             Err(e) => {
                 times.coarse_ransac_ms = ms(t2);
                 times.total_ms = ms(t0);
-                return Ok(failed(format!("coarse pose: {e} ({} matches)", pixels.len()), pixels.len(), times));
+                return Ok(failed(
+                    format!("coarse pose: {e} ({} matches)", pixels.len()),
+                    pixels.len(),
+                    times,
+                ));
             }
         };
         times.coarse_ransac_ms = ms(t2);
@@ -286,8 +338,18 @@ impl<'m> Localizer<'m> {
                 self.guided_level(level, set, q, &pose, camera, &mut pixels, &mut points);
                 level_of.extend(std::iter::repeat_n(level.id, pixels.len() - before));
             }
-            let fine_options = RansacOptions { max_error_px: self.options.fine_error_px, min_inliers: self.options.min_inliers, ..RansacOptions::default() };
-            match estimate_absolute_pose_with_prior(&pixels, &points, camera, Some(&pose), &fine_options) {
+            let fine_options = RansacOptions {
+                max_error_px: self.options.fine_error_px,
+                min_inliers: self.options.min_inliers,
+                ..RansacOptions::default()
+            };
+            match estimate_absolute_pose_with_prior(
+                &pixels,
+                &points,
+                camera,
+                Some(&pose),
+                &fine_options,
+            ) {
                 Ok(e) => {
                     pose = e.pose;
                     result = Some((e, level_of, pixels.len()));
@@ -301,7 +363,11 @@ impl<'m> Localizer<'m> {
             // The coarse pose stands if guided matching could not improve it.
             let inliers = coarse.num_inliers;
             if inliers < self.options.min_inliers {
-                return Ok(failed(format!("only {inliers} inliers"), pixels.len(), times));
+                return Ok(failed(
+                    format!("only {inliers} inliers"),
+                    pixels.len(),
+                    times,
+                ));
             }
             return Ok(Localization {
                 pose: Some(coarse.pose),
@@ -358,7 +424,12 @@ impl<'m> Localizer<'m> {
                         seen[p as usize] = true;
                     }
                 }
-                ((0..seen.len() as u32).filter(|&p| seen[p as usize]).collect(), images.len())
+                (
+                    (0..seen.len() as u32)
+                        .filter(|&p| seen[p as usize])
+                        .collect(),
+                    images.len(),
+                )
             }
             _ => ((0..self.positions.len() as u32).collect(), images.len()),
         }
@@ -372,15 +443,26 @@ impl<'m> Localizer<'m> {
         match &level.projection {
             Some(p) => {
                 if set.dim != level.d_in {
-                    return Err(LocalizeError::DescriptorMismatch { level: level.id, expected: level.d_in, found: set.dim });
+                    return Err(LocalizeError::DescriptorMismatch {
+                        level: level.id,
+                        expected: level.d_in,
+                        found: set.dim,
+                    });
                 }
                 gemm_abt(&set.descriptors, p, &mut out, n, level.dim, set.dim);
             }
             None => {
                 if set.dim < level.dim || set.dim != level.d_in {
-                    return Err(LocalizeError::DescriptorMismatch { level: level.id, expected: level.d_in, found: set.dim });
+                    return Err(LocalizeError::DescriptorMismatch {
+                        level: level.id,
+                        expected: level.d_in,
+                        found: set.dim,
+                    });
                 }
-                for (row, src) in out.chunks_exact_mut(level.dim).zip(set.descriptors.chunks_exact(set.dim)) {
+                for (row, src) in out
+                    .chunks_exact_mut(level.dim)
+                    .zip(set.descriptors.chunks_exact(set.dim))
+                {
                     row.copy_from_slice(&src[..level.dim]);
                 }
             }
@@ -390,7 +472,15 @@ impl<'m> Localizer<'m> {
     }
 
     /// Global matching of a level's query descriptors against its candidate points.
-    fn match_level(&self, level: &LevelIndex, set: &FeatureSet, q: &[f32], candidates: &[u32], pixels: &mut Vec<Vector2<f64>>, points: &mut Vec<Vector3<f64>>) {
+    fn match_level(
+        &self,
+        level: &LevelIndex,
+        set: &FeatureSet,
+        q: &[f32],
+        candidates: &[u32],
+        pixels: &mut Vec<Vector2<f64>>,
+        points: &mut Vec<Vector3<f64>>,
+    ) {
         let rows: Vec<(u32, u32)> = candidates
             .iter()
             .filter_map(|&p| {
@@ -400,7 +490,9 @@ impl<'m> Localizer<'m> {
             .collect();
         let mut block = Vec::with_capacity(rows.len() * level.dim);
         for &(_, r) in &rows {
-            block.extend_from_slice(&level.descriptors[r as usize * level.dim..(r as usize + 1) * level.dim]);
+            block.extend_from_slice(
+                &level.descriptors[r as usize * level.dim..(r as usize + 1) * level.dim],
+            );
         }
         for m in match_descriptors(q, &block, level.dim, &self.options.matching) {
             let kp = set.keypoints[m.query as usize];
@@ -412,7 +504,16 @@ impl<'m> Localizer<'m> {
     /// Guided matching: every point of the level that projects into the image is a candidate
     /// for the query keypoints within `gate_px` of its projection.
     #[allow(clippy::too_many_arguments)]
-    fn guided_level(&self, level: &LevelIndex, set: &FeatureSet, q: &[f32], pose: &Pose, camera: &Camera, pixels: &mut Vec<Vector2<f64>>, points: &mut Vec<Vector3<f64>>) {
+    fn guided_level(
+        &self,
+        level: &LevelIndex,
+        set: &FeatureSet,
+        q: &[f32],
+        pose: &Pose,
+        camera: &Camera,
+        pixels: &mut Vec<Vector2<f64>>,
+        points: &mut Vec<Vector3<f64>>,
+    ) {
         let gate = self.options.gate_px.max(1.0);
         let (w, h) = (f64::from(camera.width()), f64::from(camera.height()));
         let cols = (w / gate).ceil() as usize + 1;
@@ -426,7 +527,9 @@ impl<'m> Localizer<'m> {
             if pc.z <= 0.0 {
                 continue;
             }
-            let Some(px) = camera.project(&pc) else { continue };
+            let Some(px) = camera.project(&pc) else {
+                continue;
+            };
             if !(px.x >= 0.0 && px.y >= 0.0 && px.x < w && px.y < h) {
                 continue;
             }
@@ -435,7 +538,8 @@ impl<'m> Localizer<'m> {
         }
         let dim = level.dim;
         // Each map point keeps its best query so a point is matched once.
-        let mut best_for_point: std::collections::HashMap<u32, (f32, usize)> = std::collections::HashMap::new();
+        let mut best_for_point: std::collections::HashMap<u32, (f32, usize)> =
+            std::collections::HashMap::new();
         let gate2 = (gate * gate) as f32;
         for (k, kp) in set.keypoints.iter().enumerate() {
             if !(kp[0] >= 0.0 && kp[1] >= 0.0 && kp[0] < w && kp[1] < h) {
@@ -455,7 +559,11 @@ impl<'m> Localizer<'m> {
                             continue;
                         }
                         let r = level.row_of_point[p as usize] as usize;
-                        let s: f32 = qd.iter().zip(&level.descriptors[r * dim..(r + 1) * dim]).map(|(a, b)| a * b).sum();
+                        let s: f32 = qd
+                            .iter()
+                            .zip(&level.descriptors[r * dim..(r + 1) * dim])
+                            .map(|(a, b)| a * b)
+                            .sum();
                         if s > best.0 {
                             second = best.0;
                             best = (s, p);
@@ -472,12 +580,17 @@ impl<'m> Localizer<'m> {
             if second.is_finite() && d(best.0) >= self.options.gate_ratio * d(second) {
                 continue;
             }
-            let entry = best_for_point.entry(best.1).or_insert((f32::NEG_INFINITY, usize::MAX));
+            let entry = best_for_point
+                .entry(best.1)
+                .or_insert((f32::NEG_INFINITY, usize::MAX));
             if best.0 > entry.0 {
                 *entry = (best.0, k);
             }
         }
-        let mut chosen: Vec<(u32, usize)> = best_for_point.into_iter().map(|(p, (_, k))| (p, k)).collect();
+        let mut chosen: Vec<(u32, usize)> = best_for_point
+            .into_iter()
+            .map(|(p, (_, k))| (p, k))
+            .collect();
         chosen.sort_unstable();
         for (p, k) in chosen {
             let kp = set.keypoints[k];

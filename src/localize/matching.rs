@@ -38,7 +38,12 @@ const BLOCK: usize = 2048;
 
 /// Matches unit-norm `query` rows (`[n_q × dim]`) against unit-norm `map` rows
 /// (`[n_m × dim]`), both row-major f32.
-pub fn match_descriptors(query: &[f32], map: &[f32], dim: usize, options: &MatchOptions) -> Vec<Match> {
+pub fn match_descriptors(
+    query: &[f32],
+    map: &[f32],
+    dim: usize,
+    options: &MatchOptions,
+) -> Vec<Match> {
     if dim == 0 {
         return Vec::new();
     }
@@ -77,7 +82,10 @@ pub fn match_descriptors(query: &[f32], map: &[f32], dim: usize, options: &Match
         if m == u32::MAX || s < options.min_similarity {
             continue;
         }
-        if options.ratio < 1.0 && second[q].is_finite() && distance(s) >= options.ratio * distance(second[q]) {
+        if options.ratio < 1.0
+            && second[q].is_finite()
+            && distance(s) >= options.ratio * distance(second[q])
+        {
             continue;
         }
         if options.mutual && best_query_of_map[m as usize].1 != q as u32 {
@@ -147,9 +155,16 @@ mod tests {
         let mut query = Vec::new();
         query.extend_from_slice(&map[5 * dim..6 * dim]);
         query.extend_from_slice(&map[2500 * dim..2501 * dim]);
-        let opts = MatchOptions { ratio: 1.0, mutual: true, min_similarity: 0.5 };
+        let opts = MatchOptions {
+            ratio: 1.0,
+            mutual: true,
+            min_similarity: 0.5,
+        };
         let found = match_descriptors(&query, &map, dim, &opts);
-        assert_eq!(found.iter().map(|m| (m.query, m.map)).collect::<Vec<_>>(), vec![(0, 5), (1, 2500)]);
+        assert_eq!(
+            found.iter().map(|m| (m.query, m.map)).collect::<Vec<_>>(),
+            vec![(0, 5), (1, 2500)]
+        );
         // The rows are near-duplicates of their neighbours: a strict ratio test rejects them.
         let strict = MatchOptions { ratio: 0.5, ..opts };
         assert!(match_descriptors(&query, &map, dim, &strict).is_empty());

@@ -9,3 +9,13 @@ pub use geometry::{
     estimate_absolute_pose, p3p, refine_pose, refine_pose_masked, Camera, CameraModel,
     GeometryError, Pose, PoseEstimate, RansacOptions, RefineOptions, Refinement, RobustLoss,
 };
+
+pub mod eval;
+mod kernels;
+pub mod localizer;
+pub mod matching;
+pub mod query;
+
+pub use localizer::{
+    FeatureSet, Localization, LocalizeError, LocalizeOptions, Localizer, QueryFeatures, StageTimes,
+};

@@ -1,0 +1,101 @@
+//! `sfpmap eval`: errors of estimated poses against ground truth.
+
+use anyhow::Context;
+use serde_json::json;
+use sfpmap::format::Map;
+use sfpmap::localize::eval::{evaluate, median_nearest_camera_distance, read_poses};
+use sfpmap::localize::geometry::Pose;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Compare estimated poses with ground truth: median translation and rotation errors, recall
+/// at thresholds, and (with --map) translation errors relative to the median distance between
+/// neighbouring map cameras, since SfM scale is arbitrary.
+///
+/// Example: `sfpmap eval --poses poses.txt --gt gt_poses.txt --map sb.sfpm --json`
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Estimated poses (`name qw qx qy qz tx ty tz`).
+    #[arg(long)]
+    pub poses: PathBuf,
+    /// Ground truth in the same format.
+    #[arg(long)]
+    pub gt: PathBuf,
+    /// The map, for relative errors and its size.
+    #[arg(long)]
+    pub map: Option<PathBuf>,
+    /// Recall thresholds `meters,degrees` (repeat); default 0.25,2 0.5,5 5,10 (map units).
+    #[arg(long = "threshold", value_parser = parse_threshold)]
+    pub thresholds: Vec<(f64, f64)>,
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn parse_threshold(s: &str) -> Result<(f64, f64), String> {
+    let (t, r) = s.split_once(',').ok_or("expected TRANSLATION,DEGREES")?;
+    Ok((
+        t.trim().parse().map_err(|_| "bad translation")?,
+        r.trim().parse().map_err(|_| "bad degrees")?,
+    ))
+}
+
+pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
+    let estimates = read_poses(&args.poses)?;
+    let gt = read_poses(&args.gt)?;
+    let thresholds = if args.thresholds.is_empty() {
+        vec![(0.25, 2.0), (0.5, 5.0), (5.0, 10.0)]
+    } else {
+        args.thresholds.clone()
+    };
+    let (scale, map_bytes) = match &args.map {
+        Some(path) => {
+            let map = Map::open(path).with_context(|| path.display().to_string())?;
+            let centres: Vec<[f64; 3]> = match map.images()? {
+                Some(images) => images
+                    .poses
+                    .iter()
+                    .filter_map(|q| {
+                        Pose::from_colmap(q[0], q[1], q[2], q[3], q[4], q[5], q[6]).ok()
+                    })
+                    .map(|p| p.center().into())
+                    .collect(),
+                None => Vec::new(),
+            };
+            (
+                median_nearest_camera_distance(&centres),
+                Some(map.file_len()),
+            )
+        }
+        None => (None, None),
+    };
+    let e = evaluate(&estimates, &gt, &thresholds, scale);
+    if args.json {
+        super::print_json(&json!({
+            "queries": e.queries,
+            "localized": e.localized,
+            "median_translation": e.median_translation,
+            "median_rotation_deg": e.median_rotation_deg,
+            "median_translation_rel": e.median_translation_rel,
+            "recall": e.recall.iter().map(|(t, r, v)| json!({ "translation": t, "rotation_deg": r, "recall": v })).collect::<Vec<_>>(),
+            "map_bytes": map_bytes,
+            "scale": e.scale,
+            "per_query": e.per_query.iter().map(|(n, err)| json!({ "name": n, "translation": err.map(|x| x.0), "rotation_deg": err.map(|x| x.1) })).collect::<Vec<_>>(),
+        }))?;
+        return Ok(ExitCode::SUCCESS);
+    }
+    let fmt =
+        |v: Option<f64>, digits: usize| v.map_or("inf".to_string(), |x| format!("{x:.digits$}"));
+    println!(
+        "queries {} | localized {} | median {} units, {} deg | relative {} | map {}",
+        e.queries,
+        e.localized,
+        fmt(e.median_translation, 3),
+        fmt(e.median_rotation_deg, 2),
+        fmt(e.median_translation_rel, 3),
+        map_bytes.map_or("-".to_string(), |b| format!("{:.2} MB", b as f64 / 1e6))
+    );
+    for (t, r, v) in &e.recall {
+        println!("recall ({t}, {r} deg): {:.1} %", 100.0 * v);
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,220 @@
+//! `sfpmap extract`: SFP keypoints and descriptors of images into an hloc-style features.h5.
+
+use anyhow::{bail, Context};
+use serde_json::json;
+use sfpmap::extract::{image, runtime, DetectOptions, Extractor, ExtractorOptions};
+use sfpmap::io::features_h5::{self, H5Options};
+use sfpmap::progress::Reporter;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+/// Extract per-level keypoints, short/full descriptors and a global descriptor from images.
+///
+/// Writes hloc's `features.h5` layout: one group per image name (relative to the folder given)
+/// with `keypoints` [N×2], `descriptors` [D×N] (f16), `scores`, `image_size` of the `--level`
+/// level, and `level_<id>/…` for every level (spec/extractor.md, "features.h5 layout"). The
+/// model is the embedded sfp-v1 unless `--model` is given; ONNX Runtime is fetched on first
+/// use (see `sfpmap setup`). Example: `sfpmap extract images/ -o features.h5`
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Image folders (searched recursively for .jpg/.jpeg/.png) and/or image files.
+    #[arg(required = true)]
+    pub inputs: Vec<PathBuf>,
+    /// Output features.h5.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// An ONNX model of the sfp-extractor/1 contract (default: the embedded sfp-v1).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// ONNX Runtime intra-op threads.
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub threads: u32,
+    /// Resize images so the longer side is at most this (keypoints are scaled back).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(16..))]
+    pub resize_max: Option<u32>,
+    /// Score threshold after NMS (default: the model's sfp.default_threshold).
+    #[arg(long)]
+    pub threshold: Option<f32>,
+    /// NMS radius in cells (default: the model's).
+    #[arg(long)]
+    pub nms_radius: Option<u32>,
+    /// Keypoints per level, finest first: one number for all levels, or one per level.
+    #[arg(long, value_delimiter = ',')]
+    pub max_keypoints: Option<Vec<usize>>,
+    /// The level whose features fill each group's hloc datasets (default: 2, else the middle one).
+    #[arg(long)]
+    pub level: Option<u16>,
+    /// Overwrite OUTPUT if it exists.
+    #[arg(long)]
+    pub force: bool,
+    /// Print one JSON object: images, keypoints per level, ms per image, output bytes.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn is_image(p: &Path) -> bool {
+    p.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "jpg" | "jpeg" | "png"))
+}
+
+fn walk(dir: &Path, root: &Path, out: &mut Vec<(String, PathBuf)>) -> anyhow::Result<()> {
+    let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| dir.display().to_string())?
+        .map(|e| e.map(|e| e.path()))
+        .collect::<Result<_, _>>()
+        .with_context(|| dir.display().to_string())?;
+    entries.sort();
+    for p in entries {
+        if p.is_dir() {
+            walk(&p, root, out)?;
+        } else if is_image(&p) {
+            let name = p
+                .strip_prefix(root)
+                .unwrap_or(&p)
+                .components()
+                .map(|c| c.as_os_str().to_string_lossy().into_owned())
+                .collect::<Vec<_>>()
+                .join("/");
+            out.push((name, p));
+        }
+    }
+    Ok(())
+}
+
+/// (name in the file, path) for every input image.
+pub fn collect_images(inputs: &[PathBuf]) -> anyhow::Result<Vec<(String, PathBuf)>> {
+    let mut images = Vec::new();
+    for input in inputs {
+        if input.is_dir() {
+            walk(input, input, &mut images)?;
+        } else if input.is_file() {
+            let name = input
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            images.push((name, input.clone()));
+        } else {
+            bail!("{}: no such file or folder", input.display());
+        }
+    }
+    if images.is_empty() {
+        bail!("no .jpg/.jpeg/.png images in the inputs given");
+    }
+    Ok(images)
+}
+
+pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    runtime::disable_telemetry();
+    if args.output.exists() && !args.force {
+        bail!("{}: exists; pass --force to overwrite", args.output.display());
+    }
+    let images = collect_images(&args.inputs)?;
+    let bars = super::Bars::new(quiet, args.json);
+    let mut extractor = Extractor::new(
+        &ExtractorOptions {
+            model: args.model.clone(),
+            threads: args.threads as usize,
+        },
+        &bars,
+    )?;
+    let contract = extractor.contract().clone();
+    let main_level = match args.level {
+        Some(l) if contract.level_index(l).is_some() => l,
+        Some(l) => bail!(
+            "--level {l}: the model's levels are {:?}",
+            contract.level_ids
+        ),
+        None if contract.level_index(2).is_some() => 2,
+        None => contract.level_ids[contract.levels() / 2],
+    };
+    let detect = DetectOptions {
+        threshold: args.threshold,
+        nms_radius: args.nms_radius,
+        max_keypoints: args.max_keypoints.clone(),
+    };
+    let mut results = Vec::with_capacity(images.len());
+    let mut ms = Vec::with_capacity(images.len());
+    bars.start("extracting", Some(images.len() as u64));
+    for (name, path) in &images {
+        let input = image::load(path, contract.gray_weights, args.resize_max)?;
+        let t = Instant::now();
+        let features = extractor.extract(&input, &detect)?;
+        ms.push(t.elapsed().as_secs_f64() * 1e3);
+        results.push((name.clone(), features));
+        bars.advance(1);
+    }
+    bars.finish();
+    let model = extractor.model().clone();
+    let mut attributes = vec![
+        ("sfp.model".to_string(), model.name.clone()),
+        ("sfp.model_xxh3".to_string(), model.xxh3.clone()),
+        ("sfp.model_name".to_string(), contract.model_name.clone()),
+        (
+            "sfp.contract".to_string(),
+            sfpmap::extract::contract::CONTRACT.to_string(),
+        ),
+        ("sfp.tool".to_string(), sfpmap::format::Metadata::tool_string()),
+    ];
+    attributes.push((
+        "sfp.level_ids".to_string(),
+        contract
+            .level_ids
+            .iter()
+            .map(|l| l.to_string())
+            .collect::<Vec<_>>()
+            .join(","),
+    ));
+    let bytes = features_h5::write(
+        &args.output,
+        &results,
+        &H5Options {
+            main_level,
+            attributes,
+        },
+    )?;
+    let mut sorted = ms.clone();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted[sorted.len() / 2];
+    let per_level: Vec<_> = contract
+        .level_ids
+        .iter()
+        .map(|&l| {
+            let n: usize = results
+                .iter()
+                .map(|(_, f)| f.level(l).map_or(0, |x| x.len()))
+                .sum();
+            (l, n)
+        })
+        .collect();
+    if args.json {
+        super::print_json(&json!({
+            "output": args.output.display().to_string(),
+            "output_bytes": bytes,
+            "images": results.len(),
+            "main_level": main_level,
+            "keypoints": per_level.iter().map(|(l, n)| json!({"level": l, "keypoints": n})).collect::<Vec<_>>(),
+            "ms_per_image": ms,
+            "ms_median": median,
+            "threads": args.threads,
+            "model": model.name,
+            "model_xxh3": model.xxh3,
+        }))?;
+    } else if !quiet {
+        println!(
+            "{}: {} images, {} bytes; median {median:.1} ms per image ({} threads)",
+            args.output.display(),
+            results.len(),
+            bytes,
+            args.threads
+        );
+        for (l, n) in per_level {
+            println!(
+                "level {l}: {n} keypoints ({:.0} per image)",
+                n as f64 / results.len() as f64
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,319 @@
+//! `sfpmap localize`: camera poses of query images in a map.
+
+use anyhow::{bail, Context};
+use serde_json::json;
+use sfpmap::format::Map;
+use sfpmap::localize::geometry::Camera;
+use sfpmap::localize::matching::MatchOptions;
+use sfpmap::localize::query::{read_query_list, DatabaseFeatures, Query};
+use sfpmap::localize::{Localization, LocalizeOptions, Localizer, QueryFeatures};
+use sfpmap::progress::Reporter;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+use std::time::Instant;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PoseFormat {
+    /// `name qw qx qy qz tx ty tz` (COLMAP cam_from_world), like gt_poses.txt.
+    Colmap,
+    /// `index tx ty tz qx qy qz qw` (TUM: the camera's pose in the world).
+    Tum,
+    /// One JSON object per query, in a list.
+    Json,
+}
+
+/// Localize query images in a map: retrieval, coarse matching on the deepest level, P3P
+/// LO-RANSAC, gated matching level by level, refinement.
+///
+/// Query intrinsics come from the query list (`name MODEL W H params...`, hloc style) or one
+/// `--camera` for all. Query features: for SIFT maps from a COLMAP database holding the
+/// queries' keypoints and descriptors (`--database queries.db`). Failed queries are written
+/// as `# failed NAME: reason` lines. Example:
+/// `sfpmap localize --map sb.sfpm --query-list queries.txt --database queries.db -o poses.txt`
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    #[arg(long)]
+    pub map: PathBuf,
+    /// Query list: `name MODEL W H params...` per line (or names only with --camera).
+    #[arg(long)]
+    pub query_list: PathBuf,
+    /// Folder with the query images (needed when features are extracted).
+    #[arg(long)]
+    pub images: Option<PathBuf>,
+    /// One camera for every query: "MODEL W H params...".
+    #[arg(long)]
+    pub camera: Option<String>,
+    /// COLMAP database with the queries' SIFT keypoints and descriptors.
+    #[arg(long)]
+    pub database: Option<PathBuf>,
+    /// Levels to use (repeat); default all. Coarse matching uses the deepest.
+    #[arg(long = "level")]
+    pub levels: Vec<u16>,
+    /// Match with the short descriptor block only.
+    #[arg(long)]
+    pub short: bool,
+    /// Database images retrieved per query (maps with global descriptors).
+    #[arg(long, default_value_t = 10)]
+    pub top_k: usize,
+    /// Lowe ratio for coarse matching.
+    #[arg(long, default_value_t = 0.9)]
+    pub ratio: f32,
+    /// Output poses.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    #[arg(long, value_enum, default_value = "colmap")]
+    pub format: PoseFormat,
+    /// Worker threads (queries run in parallel; the map is shared).
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    /// Print a JSON summary (counts, per-stage median times).
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    let start = Instant::now();
+    let camera = args
+        .camera
+        .as_deref()
+        .map(Camera::parse)
+        .transpose()
+        .context("--camera")?;
+    let queries = read_query_list(&args.query_list, camera.as_ref())?;
+    let map = Map::open(&args.map).with_context(|| args.map.display().to_string())?;
+    let descriptor = map
+        .metadata()
+        .levels
+        .first()
+        .map(|l| l.descriptor.clone())
+        .unwrap_or_default();
+    let features = match (&args.database, descriptor.as_str()) {
+        (Some(db), _) => DatabaseFeatures::open(db).with_context(|| db.display().to_string())?,
+        (None, "sift") => bail!(
+            "{}: a SIFT map; pass the queries' features with --database queries.db",
+            args.map.display()
+        ),
+        (None, "") => bail!(
+            "{}: the map has no descriptors (geometry only)",
+            args.map.display()
+        ),
+        (None, other) => bail!(
+            "{}: query features for {other:?} maps need --database (this build has no extractor)",
+            args.map.display()
+        ),
+    };
+    let options = LocalizeOptions {
+        levels: args.levels.clone(),
+        short: args.short,
+        top_k: args.top_k,
+        matching: MatchOptions {
+            ratio: args.ratio,
+            ..MatchOptions::default()
+        },
+        ..LocalizeOptions::default()
+    };
+    let localizer =
+        Localizer::new(&map, options).with_context(|| args.map.display().to_string())?;
+    let bars = super::Bars::new(quiet, args.json);
+    bars.start("localizing", Some(queries.len() as u64));
+    let results: Vec<Mutex<Option<Localization>>> =
+        queries.iter().map(|_| Mutex::new(None)).collect();
+    let next = AtomicUsize::new(0);
+    let features = Mutex::new(features);
+    let first_error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
+    std::thread::scope(|s| {
+        for _ in 0..args.threads.max(1) {
+            s.spawn(|| loop {
+                let i = next.fetch_add(1, Ordering::Relaxed);
+                let Some(q) = queries.get(i) else { break };
+                // SQLite connections are not shared between threads: reads take turns.
+                let f = features
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .features(&q.name);
+                let outcome = match f {
+                    Ok(Some(f)) => localize_one(&localizer, q, &f),
+                    Ok(None) => Ok(not_found(q)),
+                    Err(e) => Err(anyhow::Error::new(e)),
+                };
+                match outcome {
+                    Ok(l) => *results[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(l),
+                    Err(e) => {
+                        first_error
+                            .lock()
+                            .unwrap_or_else(|p| p.into_inner())
+                            .get_or_insert(e);
+                    }
+                }
+                bars.advance(1);
+            });
+        }
+    });
+    bars.finish();
+    if let Some(e) = first_error.into_inner().unwrap_or_else(|p| p.into_inner()) {
+        return Err(e);
+    }
+    let results: Vec<Localization> = results
+        .into_iter()
+        .map(|m| {
+            m.into_inner()
+                .unwrap_or_else(|p| p.into_inner())
+                .expect("every query ran")
+        })
+        .collect();
+    write_poses(&args.output, args.format, &queries, &results)?;
+    let localized = results.iter().filter(|r| r.pose.is_some()).count();
+    let failed: Vec<_> = queries
+        .iter()
+        .zip(&results)
+        .filter(|(_, r)| r.pose.is_none())
+        .map(|(q, r)| json!({ "name": q.name, "reason": r.failure }))
+        .collect();
+    let stage = |f: fn(&Localization) -> f64| median(results.iter().map(f).collect());
+    if args.json {
+        super::print_json(&json!({
+            "queries": queries.len(),
+            "localized": localized,
+            "failed": failed,
+            "output": args.output.display().to_string(),
+            "seconds": start.elapsed().as_secs_f64(),
+            "median_ms": {
+                "retrieval": stage(|r| r.times.retrieval_ms),
+                "coarse_match": stage(|r| r.times.coarse_match_ms),
+                "coarse_ransac": stage(|r| r.times.coarse_ransac_ms),
+                "fine": stage(|r| r.times.fine_ms),
+                "total": stage(|r| r.times.total_ms),
+            },
+            "median_inliers": median(results.iter().filter(|r| r.pose.is_some()).map(|r| r.inliers as f64).collect()),
+        }))?;
+    } else if !quiet {
+        println!(
+            "{}: {localized}/{} localized, median {:.1} ms per query (after features)",
+            args.output.display(),
+            queries.len(),
+            stage(|r| r.times.total_ms)
+        );
+        for f in &failed {
+            println!("failed: {} ({})", f["name"], f["reason"]);
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn localize_one(
+    localizer: &Localizer<'_>,
+    q: &Query,
+    f: &QueryFeatures,
+) -> anyhow::Result<Localization> {
+    Ok(localizer.localize(f, &q.camera)?)
+}
+
+fn not_found(q: &Query) -> Localization {
+    Localization {
+        pose: None,
+        failure: Some(format!("no features for {:?}", q.name)),
+        inliers_per_level: Vec::new(),
+        matches: 0,
+        inliers: 0,
+        retrieved_images: 0,
+        times: Default::default(),
+    }
+}
+
+/// Writes all results through a temp file + rename.
+fn write_poses(
+    path: &std::path::Path,
+    format: PoseFormat,
+    queries: &[Query],
+    results: &[Localization],
+) -> anyhow::Result<()> {
+    use std::fmt::Write as _;
+    let mut out = String::new();
+    match format {
+        PoseFormat::Colmap => {
+            out.push_str("# name qw qx qy qz tx ty tz (COLMAP cam_from_world)\n");
+            for (q, r) in queries.iter().zip(results) {
+                match &r.pose {
+                    Some(p) => {
+                        let v = p.to_colmap();
+                        writeln!(
+                            out,
+                            "{} {} {} {} {} {} {} {}",
+                            q.name, v[0], v[1], v[2], v[3], v[4], v[5], v[6]
+                        )?;
+                    }
+                    None => writeln!(
+                        out,
+                        "# failed {}: {}",
+                        q.name,
+                        r.failure.as_deref().unwrap_or("unknown")
+                    )?,
+                }
+            }
+        }
+        PoseFormat::Tum => {
+            out.push_str("# index tx ty tz qx qy qz qw (TUM: world_from_cam); query names in order of the list\n");
+            for (i, (q, r)) in queries.iter().zip(results).enumerate() {
+                match &r.pose {
+                    Some(p) => {
+                        let w = p.inverse().to_colmap();
+                        writeln!(
+                            out,
+                            "{i} {} {} {} {} {} {} {}",
+                            w[4], w[5], w[6], w[1], w[2], w[3], w[0]
+                        )?;
+                    }
+                    None => writeln!(
+                        out,
+                        "# failed {i} {}: {}",
+                        q.name,
+                        r.failure.as_deref().unwrap_or("unknown")
+                    )?,
+                }
+            }
+        }
+        PoseFormat::Json => {
+            let list: Vec<_> = queries
+                .iter()
+                .zip(results)
+                .map(|(q, r)| {
+                    json!({
+                        "name": q.name,
+                        "cam_from_world": r.pose.as_ref().map(|p| p.to_colmap()),
+                        "failure": r.failure,
+                        "inliers": r.inliers,
+                        "inliers_per_level": r.inliers_per_level,
+                        "matches": r.matches,
+                        "ms": r.times.total_ms,
+                    })
+                })
+                .collect();
+            out = serde_json::to_string_pretty(&list)? + "\n";
+        }
+    }
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(std::path::Path::new("."));
+    let tmp = dir.join(format!(
+        ".{}.tmp{}",
+        path.file_name()
+            .map(|f| f.to_string_lossy())
+            .unwrap_or_default(),
+        std::process::id()
+    ));
+    std::fs::write(&tmp, out)
+        .and_then(|_| std::fs::rename(&tmp, path))
+        .with_context(|| path.display().to_string())?;
+    Ok(())
+}

@@ -1,0 +1,213 @@
+//! Pose evaluation against ground truth: median errors, recall at thresholds, and errors
+//! relative to the map's median nearest-camera distance (SfM scale is arbitrary).
+
+use super::geometry::Pose;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// A poses file problem, naming the file and line.
+#[derive(Debug)]
+pub struct PosesError {
+    pub path: PathBuf,
+    pub line: Option<usize>,
+    pub message: String,
+}
+
+impl std::fmt::Display for PosesError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.line {
+            Some(l) => write!(f, "{}:{l}: {}", self.path.display(), self.message),
+            None => write!(f, "{}: {}", self.path.display(), self.message),
+        }
+    }
+}
+
+impl std::error::Error for PosesError {}
+
+/// Reads `name qw qx qy qz tx ty tz` lines (COLMAP `cam_from_world`); `#` lines are comments
+/// (the localizer lists failed queries as `# failed NAME: reason`).
+pub fn read_poses(path: &Path) -> Result<Vec<(String, Pose)>, PosesError> {
+    let text = std::fs::read_to_string(path).map_err(|e| PosesError {
+        path: path.into(),
+        line: None,
+        message: e.to_string(),
+    })?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let bad = |message: String| PosesError {
+            path: path.into(),
+            line: Some(i + 1),
+            message,
+        };
+        let tokens: Vec<&str> = line.split_whitespace().collect();
+        if tokens.len() != 8 {
+            return Err(bad(format!(
+                "expected `name qw qx qy qz tx ty tz`, found {} fields",
+                tokens.len()
+            )));
+        }
+        let v: Vec<f64> = tokens[1..]
+            .iter()
+            .map(|t| {
+                t.parse::<f64>()
+                    .map_err(|_| bad(format!("not a number: {t:?}")))
+            })
+            .collect::<Result<_, _>>()?;
+        let pose = Pose::from_colmap(v[0], v[1], v[2], v[3], v[4], v[5], v[6])
+            .map_err(|e| bad(e.to_string()))?;
+        out.push((tokens[0].to_string(), pose));
+    }
+    Ok(out)
+}
+
+/// Evaluation of a set of estimated poses.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Evaluation {
+    pub queries: usize,
+    pub localized: usize,
+    /// Medians over all ground-truth queries, failures counted as infinite error (so a median
+    /// is `None` when half or more failed).
+    pub median_translation: Option<f64>,
+    pub median_rotation_deg: Option<f64>,
+    pub median_translation_rel: Option<f64>,
+    /// (translation threshold, rotation threshold, share of queries within both).
+    pub recall: Vec<(f64, f64, f64)>,
+    /// Median distance from a map camera to its nearest other map camera, if a map was given.
+    pub scale: Option<f64>,
+    /// Per query: name, translation error, rotation error (`None` = not localized).
+    pub per_query: Vec<(String, Option<(f64, f64)>)>,
+}
+
+/// Median distance from each camera centre to its nearest other centre.
+pub fn median_nearest_camera_distance(centres: &[[f64; 3]]) -> Option<f64> {
+    if centres.len() < 2 {
+        return None;
+    }
+    let mut nearest: Vec<f64> = centres
+        .iter()
+        .enumerate()
+        .map(|(i, a)| {
+            centres
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, b)| {
+                    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+                })
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect();
+    nearest.sort_by(f64::total_cmp);
+    Some(nearest[nearest.len() / 2])
+}
+
+fn median(mut v: Vec<f64>) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let m = if v.len() % 2 == 1 {
+        v[v.len() / 2]
+    } else {
+        (v[v.len() / 2 - 1] + v[v.len() / 2]) / 2.0
+    };
+    m.is_finite().then_some(m)
+}
+
+/// Compares `estimates` to `ground_truth` (every ground-truth query counts; estimates of
+/// names without ground truth are ignored).
+pub fn evaluate(
+    estimates: &[(String, Pose)],
+    ground_truth: &[(String, Pose)],
+    thresholds: &[(f64, f64)],
+    scale: Option<f64>,
+) -> Evaluation {
+    let by_name: HashMap<&str, &Pose> = estimates.iter().map(|(n, p)| (n.as_str(), p)).collect();
+    let mut per_query = Vec::new();
+    for (name, gt) in ground_truth {
+        let err = by_name
+            .get(name.as_str())
+            .map(|p| (p.center_distance(gt), p.rotation_error_deg(gt)));
+        per_query.push((name.clone(), err));
+    }
+    let t: Vec<f64> = per_query
+        .iter()
+        .map(|(_, e)| e.map_or(f64::INFINITY, |e| e.0))
+        .collect();
+    let r: Vec<f64> = per_query
+        .iter()
+        .map(|(_, e)| e.map_or(f64::INFINITY, |e| e.1))
+        .collect();
+    let n = per_query.len().max(1) as f64;
+    let recall = thresholds
+        .iter()
+        .map(|&(tt, rt)| {
+            (
+                tt,
+                rt,
+                per_query
+                    .iter()
+                    .filter(|(_, e)| e.is_some_and(|e| e.0 <= tt && e.1 <= rt))
+                    .count() as f64
+                    / n,
+            )
+        })
+        .collect();
+    Evaluation {
+        queries: per_query.len(),
+        localized: per_query.iter().filter(|(_, e)| e.is_some()).count(),
+        median_translation: median(t.clone()),
+        median_rotation_deg: median(r),
+        median_translation_rel: scale.and_then(|s| median(t.iter().map(|x| x / s).collect())),
+        recall,
+        scale,
+        per_query,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn medians_count_failures_as_infinite() {
+        let gt: Vec<(String, Pose)> = (0..4)
+            .map(|i| {
+                (
+                    format!("q{i}"),
+                    Pose::from_colmap(1.0, 0.0, 0.0, 0.0, i as f64, 0.0, 0.0).unwrap(),
+                )
+            })
+            .collect();
+        let est = vec![
+            (
+                gt[0].0.clone(),
+                Pose::from_colmap(1.0, 0.0, 0.0, 0.0, 0.1, 0.0, 0.0).unwrap(),
+            ),
+            (
+                gt[1].0.clone(),
+                Pose::from_colmap(1.0, 0.0, 0.0, 0.0, 1.3, 0.0, 0.0).unwrap(),
+            ),
+            (gt[2].0.clone(), gt[2].1),
+        ];
+        let e = evaluate(&est, &gt, &[(0.25, 2.0), (0.5, 5.0)], Some(2.0));
+        assert_eq!((e.queries, e.localized), (4, 3));
+        // Errors 0.1, 0.3, 0, inf → median (0.1 + 0.3) / 2.
+        assert!((e.median_translation.unwrap() - 0.2).abs() < 1e-12);
+        assert!((e.median_translation_rel.unwrap() - 0.1).abs() < 1e-12);
+        assert_eq!(e.recall[0].2, 0.5);
+        assert_eq!(e.recall[1].2, 0.75);
+        let none = evaluate(&[], &gt, &[], None);
+        assert_eq!(none.median_translation, None);
+    }
+
+    #[test]
+    fn nearest_camera_distance() {
+        let c = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [5.0, 0.0, 0.0]];
+        assert_eq!(median_nearest_camera_distance(&c), Some(1.0));
+    }
+}

@@ -1,0 +1,127 @@
+//! Query inputs: hloc-style query lists with intrinsics, and SIFT features of queries read
+//! from a COLMAP database (`queries.db`).
+
+use super::geometry::Camera;
+use super::localizer::{FeatureSet, QueryFeatures};
+use std::path::{Path, PathBuf};
+
+/// One query: its image name and camera.
+#[derive(Debug, Clone)]
+pub struct Query {
+    pub name: String,
+    pub camera: Camera,
+}
+
+/// A problem with a query input, naming the file (and line).
+#[derive(Debug)]
+pub struct QueryError {
+    pub path: PathBuf,
+    pub line: Option<usize>,
+    pub message: String,
+}
+
+impl std::fmt::Display for QueryError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.line {
+            Some(line) => write!(f, "{}:{line}: {}", self.path.display(), self.message),
+            None => write!(f, "{}: {}", self.path.display(), self.message),
+        }
+    }
+}
+
+impl std::error::Error for QueryError {}
+
+/// Reads `name MODEL W H params...` lines (hloc's query list with intrinsics). With
+/// `camera`, lines may hold just a name and that camera is used for every query.
+pub fn read_query_list(path: &Path, camera: Option<&Camera>) -> Result<Vec<Query>, QueryError> {
+    let text = std::fs::read_to_string(path).map_err(|e| QueryError {
+        path: path.into(),
+        line: None,
+        message: e.to_string(),
+    })?;
+    let mut queries = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let bad = |message: String| QueryError {
+            path: path.into(),
+            line: Some(i + 1),
+            message,
+        };
+        let query = match camera {
+            // One camera for all: the first token is the name, the rest is ignored.
+            Some(c) => Query {
+                name: line
+                    .split_whitespace()
+                    .next()
+                    .unwrap_or_default()
+                    .to_string(),
+                camera: c.clone(),
+            },
+            None => {
+                let (name, camera) =
+                    Camera::parse_query_line(line).map_err(|e| bad(e.to_string()))?;
+                Query { name, camera }
+            }
+        };
+        queries.push(query);
+    }
+    if queries.is_empty() {
+        return Err(QueryError {
+            path: path.into(),
+            line: None,
+            message: "no queries".into(),
+        });
+    }
+    Ok(queries)
+}
+
+/// SIFT features of query images from a COLMAP database, looked up by image name.
+#[cfg(feature = "colmap")]
+pub struct DatabaseFeatures {
+    db: crate::colmap::Database,
+    ids: std::collections::HashMap<String, u32>,
+}
+
+#[cfg(feature = "colmap")]
+impl DatabaseFeatures {
+    pub fn open(path: &Path) -> Result<DatabaseFeatures, crate::colmap::Error> {
+        let db = crate::colmap::Database::open(path)?;
+        let ids = db.images()?.into_iter().map(|i| (i.name, i.id)).collect();
+        Ok(DatabaseFeatures { db, ids })
+    }
+
+    /// The query's keypoints and L2-normalised descriptors; `Ok(None)` if the database has no
+    /// such image or no features for it.
+    pub fn features(&self, name: &str) -> Result<Option<QueryFeatures>, crate::colmap::Error> {
+        let Some(&id) = self.ids.get(name) else {
+            return Ok(None);
+        };
+        let f = self.db.features(id)?;
+        let (Some(keypoints), Some(descriptors)) = (f.keypoints, f.descriptors) else {
+            return Ok(None);
+        };
+        let n = keypoints.len().min(descriptors.len());
+        let dim = descriptors.cols;
+        let mut set = FeatureSet {
+            level: None,
+            keypoints: Vec::with_capacity(n),
+            descriptors: Vec::with_capacity(n * dim),
+            dim,
+        };
+        for i in 0..n {
+            let (Some(xy), Some(row)) = (keypoints.xy(i), descriptors.row(i)) else {
+                continue;
+            };
+            set.keypoints.push([f64::from(xy[0]), f64::from(xy[1])]);
+            set.descriptors.extend(row.iter().map(|&b| f32::from(b)));
+        }
+        super::matching::normalise_rows(&mut set.descriptors, dim);
+        Ok(Some(QueryFeatures {
+            sets: vec![set],
+            global: None,
+        }))
+    }
+}
