@@ -2,6 +2,7 @@
 //! from a COLMAP database (`queries.db`).
 
 use super::geometry::Camera;
+#[cfg(feature = "colmap")]
 use super::localizer::{FeatureSet, QueryFeatures};
 use std::path::{Path, PathBuf};
 

@@ -1,0 +1,275 @@
+//! The localizer end to end on a synthetic map the test builds itself: known query pose,
+//! projected keypoints with noise, descriptor noise and outliers.
+#![cfg(feature = "localize")]
+
+use sfpmap::format::{slice, Descriptors, LevelInfo, Map, MapWriter, SliceOptions};
+use sfpmap::localize::geometry::{Camera, Pose};
+use sfpmap::localize::{FeatureSet, LocalizeError, LocalizeOptions, Localizer, QueryFeatures};
+
+const DIM: usize = 32;
+const N: usize = 3000;
+
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn normal(&mut self) -> f64 {
+        let (u, v) = (self.next().max(1e-12), self.next());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+}
+
+fn unit(v: &mut [f32]) {
+    let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    v.iter_mut().for_each(|x| *x /= n);
+}
+
+struct Scene {
+    points: Vec<[f64; 3]>,
+    descriptors: Vec<f32>,
+    camera: Camera,
+}
+
+fn scene() -> Scene {
+    let mut rng = Rng(42);
+    let points = (0..N)
+        .map(|_| {
+            [
+                rng.next() * 20.0 - 10.0,
+                rng.next() * 10.0 - 5.0,
+                10.0 + rng.next() * 20.0,
+            ]
+        })
+        .collect();
+    let mut descriptors = Vec::with_capacity(N * DIM);
+    for _ in 0..N {
+        let mut d: Vec<f32> = (0..DIM).map(|_| rng.normal() as f32).collect();
+        unit(&mut d);
+        descriptors.extend(d);
+    }
+    let camera = Camera::parse("SIMPLE_RADIAL 640 480 500 320 240 0.01").unwrap();
+    Scene {
+        points,
+        descriptors,
+        camera,
+    }
+}
+
+fn map_bytes(s: &Scene) -> Vec<u8> {
+    let mut w = MapWriter::default();
+    w.add_camera(sfpmap::format::CameraInfo {
+        id: Some(1),
+        model: "SIMPLE_RADIAL".into(),
+        width: 640,
+        height: 480,
+        params: vec![500.0, 320.0, 240.0, 0.01],
+    });
+    w.set_points_world(&s.points);
+    let names = ["db0.jpg", "db1.jpg"];
+    let cams = [0u32, 0];
+    let poses = [
+        [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0],
+    ];
+    w.set_images(&names, &cams, &poses, None).unwrap();
+    let all: Vec<u32> = (0..N as u32).collect();
+    let offsets = [0u64, N as u64, 2 * N as u64];
+    let vis: Vec<u32> = all.iter().chain(all.iter()).copied().collect();
+    let identity: Vec<f32> = (0..DIM * DIM)
+        .map(|i| if i % (DIM + 1) == 0 { 1.0 } else { 0.0 })
+        .collect();
+    let levels: Vec<Vec<u32>> = (0..3)
+        .map(|l| (l * 1000..(l + 1) * 1000).map(|p| p as u32).collect())
+        .collect();
+    let mut w2 = w;
+    for (l, pts) in levels.iter().enumerate() {
+        let desc: Vec<f32> = pts
+            .iter()
+            .flat_map(|&p| s.descriptors[p as usize * DIM..(p as usize + 1) * DIM].to_vec())
+            .collect();
+        let info = LevelInfo {
+            level: l as u16,
+            stride: 4.0 * (1 << l) as f64,
+            descriptor: "test".into(),
+            dim_full: DIM as u32,
+            dim_short: 16,
+            normalization: "l2".into(),
+            extra: Default::default(),
+        };
+        w2.add_level(info, pts, Some(Descriptors::F32(&desc)), true)
+            .unwrap();
+        w2.set_level_projection(l as u16, DIM, identity.clone())
+            .unwrap();
+    }
+    w2.set_visibility(&offsets, &vis, None).unwrap();
+    w2.to_bytes().unwrap()
+}
+
+fn truth() -> Pose {
+    Pose::from_colmap(0.995, 0.05, -0.07, 0.03, 0.4, -0.2, 1.5).unwrap()
+}
+
+/// Keypoints where the map's points project (0.5 px noise, descriptor noise) plus outliers.
+fn query(s: &Scene, pose: &Pose, outliers: usize, dim: usize) -> QueryFeatures {
+    let mut rng = Rng(7);
+    let mut set = FeatureSet {
+        level: None,
+        keypoints: Vec::new(),
+        descriptors: Vec::new(),
+        dim,
+    };
+    for (p, xyz) in s.points.iter().enumerate() {
+        let pc = pose.transform(&nalgebra::Vector3::from(*xyz));
+        let Some(px) = s.camera.project(&pc) else {
+            continue;
+        };
+        if !(px.x > 0.0 && px.y > 0.0 && px.x < 640.0 && px.y < 480.0) || rng.next() < 0.3 {
+            continue;
+        }
+        set.keypoints
+            .push([px.x + 0.5 * rng.normal(), px.y + 0.5 * rng.normal()]);
+        let mut d: Vec<f32> = (0..dim)
+            .map(|k| s.descriptors[p * DIM + k % DIM] + 0.08 * rng.normal() as f32)
+            .collect();
+        unit(&mut d);
+        set.descriptors.extend(d);
+    }
+    for _ in 0..outliers {
+        set.keypoints.push([rng.next() * 640.0, rng.next() * 480.0]);
+        let mut d: Vec<f32> = (0..dim).map(|_| rng.normal() as f32).collect();
+        unit(&mut d);
+        set.descriptors.extend(d);
+    }
+    QueryFeatures {
+        sets: vec![set],
+        global: None,
+    }
+}
+
+#[test]
+fn recovers_the_pose_with_all_levels_and_with_a_level_2_short_slice() {
+    let s = scene();
+    let bytes = map_bytes(&s);
+    let map = Map::from_bytes(&bytes).unwrap();
+    let q = query(&s, &truth(), 800, DIM);
+    let localizer = Localizer::new(&map, LocalizeOptions::default()).unwrap();
+    assert_eq!(localizer.level_order(), vec![2, 1, 0]);
+    let r = localizer.localize(&q, &s.camera).unwrap();
+    let pose = r.pose.unwrap_or_else(|| panic!("failed: {:?}", r.failure));
+    assert!(
+        pose.rotation_error_deg(&truth()) < 0.1,
+        "{}",
+        pose.rotation_error_deg(&truth())
+    );
+    assert!(
+        pose.center_distance(&truth()) < 0.02,
+        "{}",
+        pose.center_distance(&truth())
+    );
+    assert!(
+        r.inliers_per_level.iter().all(|&(_, n)| n > 50),
+        "{:?}",
+        r.inliers_per_level
+    );
+
+    let options = SliceOptions {
+        levels: vec![2],
+        short: true,
+        codec: None,
+        zstd_level: 3,
+    };
+    let sliced = slice(&map, &options).unwrap().0.to_bytes().unwrap();
+    let small = Map::from_bytes(&sliced).unwrap();
+    let localizer = Localizer::new(
+        &small,
+        LocalizeOptions {
+            short: true,
+            ..LocalizeOptions::default()
+        },
+    )
+    .unwrap();
+    let r = localizer.localize(&q, &s.camera).unwrap();
+    let pose = r.pose.unwrap_or_else(|| panic!("failed: {:?}", r.failure));
+    assert!(pose.rotation_error_deg(&truth()) < 0.2);
+    assert_eq!(r.inliers_per_level.len(), 1);
+}
+
+#[test]
+fn a_query_of_noise_fails_with_a_reason_not_a_panic() {
+    let s = scene();
+    let bytes = map_bytes(&s);
+    let map = Map::from_bytes(&bytes).unwrap();
+    let localizer = Localizer::new(&map, LocalizeOptions::default()).unwrap();
+    let mut q = query(&s, &truth(), 300, DIM);
+    // Keep only the outliers.
+    let n = q.sets[0].keypoints.len();
+    q.sets[0].keypoints.drain(..n - 300);
+    q.sets[0].descriptors.drain(..(n - 300) * DIM);
+    let r = localizer.localize(&q, &s.camera).unwrap();
+    assert!(r.pose.is_none() && r.failure.is_some());
+    let empty = QueryFeatures {
+        sets: vec![FeatureSet {
+            level: None,
+            keypoints: vec![],
+            descriptors: vec![],
+            dim: DIM,
+        }],
+        global: None,
+    };
+    assert!(localizer
+        .localize(&empty, &s.camera)
+        .unwrap()
+        .pose
+        .is_none());
+}
+
+#[test]
+fn wrong_descriptor_kind_and_geometry_only_maps_are_errors() {
+    let s = scene();
+    let bytes = map_bytes(&s);
+    let map = Map::from_bytes(&bytes).unwrap();
+    let localizer = Localizer::new(&map, LocalizeOptions::default()).unwrap();
+    let q = query(&s, &truth(), 0, 16);
+    assert!(matches!(
+        localizer.localize(&q, &s.camera),
+        Err(LocalizeError::DescriptorMismatch {
+            expected: 32,
+            found: 16,
+            ..
+        })
+    ));
+
+    let mut w = MapWriter::default();
+    w.metadata_mut().geometry_only = true;
+    w.set_points_world(&s.points);
+    let geo = w.to_bytes().unwrap();
+    let geo = Map::from_bytes(&geo).unwrap();
+    assert!(matches!(
+        Localizer::new(&geo, LocalizeOptions::default()),
+        Err(LocalizeError::NoDescriptors)
+    ));
+}
+
+#[test]
+fn threads_share_one_localizer() {
+    let s = scene();
+    let bytes = map_bytes(&s);
+    let map = Map::from_bytes(&bytes).unwrap();
+    let localizer = Localizer::new(&map, LocalizeOptions::default()).unwrap();
+    let q = query(&s, &truth(), 200, DIM);
+    let poses: Vec<_> = std::thread::scope(|sc| {
+        let handles: Vec<_> = (0..3)
+            .map(|_| sc.spawn(|| localizer.localize(&q, &s.camera).unwrap().pose.unwrap()))
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    assert!(
+        poses.windows(2).all(|w| w[0] == w[1]),
+        "deterministic across threads"
+    );
+}
