@@ -667,3 +667,78 @@ fn p3p_accuracy_report() {
         );
     }
 }
+
+/// P3P alone, for instruction counts under `perf stat`.
+#[test]
+#[ignore]
+fn p3p_speed() {
+    let s = scene(60, SIMPLE_RADIAL, 1000, 0.0, 0.0);
+    let bearings: Vec<Vector3<f64>> = s.pixels.iter().map(|p| s.camera.bearing(p)).collect();
+    let mut solutions = 0;
+    for i in 0..200_000usize {
+        let j = (i * 3) % 996;
+        solutions += p3p(
+            &[bearings[j], bearings[j + 1], bearings[j + 2]],
+            &[s.points[j], s.points[j + 1], s.points[j + 2]],
+        )
+        .len();
+    }
+    assert!(solutions > 200_000);
+}
+
+/// Reliability over many random scenes (models, sizes, noise, outlier ratios up to 90 %), for
+/// the report; release build recommended.
+#[test]
+#[ignore]
+fn ransac_reliability_report() {
+    let cameras = [
+        SIMPLE_RADIAL,
+        OPENCV,
+        FISHEYE,
+        "PINHOLE 640 480 500 500 320 240",
+    ];
+    let mut rng = SplitMix64::new(99);
+    let (mut failures, mut errors, trials) = (0, 0, 400);
+    let mut worst = (0.0f64, 0.0f64);
+    let mut total_ms = 0.0;
+    for trial in 0..trials {
+        let camera = cameras[rng.below(cameras.len())];
+        let n = 50 + rng.below(1950);
+        let outliers = [0.0, 0.3, 0.5, 0.7, 0.8, 0.9][rng.below(6)];
+        let noise = 2.0 * rng.next_f64();
+        let s = scene(1000 + trial, camera, n, outliers, noise);
+        let options = RansacOptions {
+            max_error_px: 3.0 * noise.max(0.5) + 1.0,
+            seed: trial,
+            ..RansacOptions::default()
+        };
+        let start = std::time::Instant::now();
+        let result = estimate_absolute_pose(&s.pixels, &s.points, &s.camera, &options);
+        total_ms += start.elapsed().as_secs_f64() * 1e3;
+        match result {
+            Ok(e) => {
+                let (rot, pos) = (
+                    e.pose.rotation_error_deg(&s.truth),
+                    e.pose.center_distance(&s.truth),
+                );
+                if rot > 0.5 || pos > 0.1 {
+                    failures += 1;
+                    println!("trial {trial}: {camera} n={n} outliers={outliers} noise={noise:.2}: {rot:.3}° {pos:.4}");
+                }
+                worst = (worst.0.max(rot), worst.1.max(pos));
+            }
+            Err(err) => {
+                errors += 1;
+                println!(
+                    "trial {trial}: {camera} n={n} outliers={outliers} noise={noise:.2}: {err}"
+                );
+            }
+        }
+    }
+    println!(
+        "reliability: {trials} scenes, {failures} wrong poses, {errors} errors, worst {:.3}° {:.4}, mean {:.2} ms",
+        worst.0,
+        worst.1,
+        total_ms / f64::from(trials as u32)
+    );
+}
