@@ -9,7 +9,7 @@ pub mod format;
 pub mod io;
 pub mod progress;
 
-#[cfg(feature = "colmap")]
+#[cfg(feature = "colmap-model")]
 pub mod colmap;
 
 #[cfg(feature = "localize")]

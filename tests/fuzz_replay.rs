@@ -42,3 +42,15 @@ fn format_targets_survive_their_corpus() {
         );
     }
 }
+
+#[cfg(feature = "colmap-model")]
+#[test]
+fn colmap_targets_survive_their_corpus() {
+    for (target, body) in [
+        ("colmap_bin", sfpmap::colmap::fuzz_read_bin as fn(&[u8])),
+        ("colmap_txt", sfpmap::colmap::fuzz_read_txt),
+    ] {
+        let n = replay(target, body);
+        assert!(n >= 3, "{target}: only {n} inputs");
+    }
+}

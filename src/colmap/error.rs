@@ -154,6 +154,7 @@ pub enum Error {
     /// The database has no row for an image the caller asked for.
     ImageNotInDatabase { path: PathBuf, image_id: u32 },
     /// An SQLite call failed.
+    #[cfg(feature = "colmap")]
     Sqlite {
         path: PathBuf,
         source: rusqlite::Error,
@@ -297,6 +298,7 @@ impl fmt::Display for Error {
             Error::ImageNotInDatabase { path, image_id } => {
                 write!(f, "{}: no image with id {image_id}", show(path))
             }
+            #[cfg(feature = "colmap")]
             Error::Sqlite { path, .. } => write!(f, "{}: sqlite query failed", show(path)),
         }
     }
@@ -306,6 +308,7 @@ impl std::error::Error for Error {
     fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
         match self {
             Error::Io { source, .. } => Some(source),
+            #[cfg(feature = "colmap")]
             Error::Sqlite { source, .. } => Some(source),
             _ => None,
         }

@@ -34,10 +34,13 @@
 //! # Ok::<(), sfpmap::colmap::Error>(())
 //! ```
 
+#[cfg(feature = "colmap")]
 mod basis;
 pub mod bin;
 mod camera;
+#[cfg(feature = "colmap")]
 pub mod convert;
+#[cfg(feature = "colmap")]
 mod database;
 mod error;
 mod model;
@@ -46,6 +49,7 @@ pub mod text;
 use std::path::{Path, PathBuf};
 
 pub use camera::CameraModel;
+#[cfg(feature = "colmap")]
 pub use database::{
     Database, DbImage, Descriptors, ImageFeatures, ImageFeaturesIter, Keypoint, KeypointLayout,
     Keypoints,
