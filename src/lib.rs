@@ -14,3 +14,6 @@ pub mod colmap;
 
 #[cfg(feature = "localize")]
 pub mod localize;
+
+#[cfg(feature = "onnx")]
+pub mod extract;

@@ -260,8 +260,8 @@ fn fetch_into(tmp: &Path, target: &Path, reporter: &dyn Reporter) -> Result<(), 
     })
 }
 
-/// A cheap check before `dlopen`: an ELF shared object that names the expected version.
-fn check_library_file(path: &Path) -> Result<(), ExtractError> {
+/// A check before `dlopen`: an ELF shared object that declares the expected release.
+fn check_library_file(path: &Path) -> Result<String, ExtractError> {
     let bytes = std::fs::read(path).map_err(|source| ExtractError::Io {
         path: path.to_path_buf(),
         source,
@@ -272,21 +272,42 @@ fn check_library_file(path: &Path) -> Result<(), ExtractError> {
             reason: "not an ONNX Runtime shared library (no ELF header or too small)".into(),
         });
     }
-    Ok(())
+    let version = declared_version(&bytes).ok_or_else(|| ExtractError::Runtime {
+        path: Some(path.to_path_buf()),
+        reason: "declares no ONNX Runtime release (no VERS_x.y.z symbol version)".into(),
+    })?;
+    if version != ORT_VERSION {
+        return Err(ExtractError::Runtime {
+            path: Some(path.to_path_buf()),
+            reason: format!("is ONNX Runtime {version}; sfpmap needs {ORT_VERSION}"),
+        });
+    }
+    Ok(version)
 }
 
-/// The version ONNX Runtime reports in its build string (`git-branch=rel-1.31.1`), if any.
-pub fn reported_version() -> Option<String> {
-    let info = ort::info();
-    let start = info.find("rel-")? + 4;
-    let rest = &info[start..];
-    let end = rest
-        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
-        .unwrap_or(rest.len());
-    Some(rest[..end].to_string())
+/// The release an ONNX Runtime library declares: its exported symbols carry the ELF symbol
+/// version `VERS_<release>` (ORT's linker version script). `ort` itself only checks that the
+/// API level is at least 31, and the build string names no release, so this is the exact check.
+pub fn declared_version(library: &[u8]) -> Option<String> {
+    const TAG: &[u8] = b"VERS_";
+    let mut from = 0;
+    while let Some(pos) = library[from..].windows(TAG.len()).position(|w| w == TAG) {
+        let start = from + pos + TAG.len();
+        let len = library[start..]
+            .iter()
+            .take_while(|b| b.is_ascii_digit() || **b == b'.')
+            .count();
+        let v = &library[start..start + len];
+        let dots = v.iter().filter(|b| **b == b'.').count();
+        if dots == 2 && library.get(start + len) == Some(&0) {
+            return String::from_utf8(v.to_vec()).ok();
+        }
+        from = start;
+    }
+    None
 }
 
-/// The loaded runtime: where it came from and the version it reports.
+/// The loaded runtime: where it came from and the release it declares.
 #[derive(Debug, Clone)]
 pub struct Runtime {
     pub location: RuntimeLocation,
@@ -337,21 +358,11 @@ pub fn runtime(reporter: &dyn Reporter) -> Result<&'static Runtime, ExtractError
         Err(e) => return Err(e),
     };
     let path = &location.path;
-    check_library_file(path)?;
+    let version = check_library_file(path)?;
     let builder = ort::init_from(path).map_err(|e| ExtractError::Runtime {
         path: Some(path.clone()),
         reason: e.to_string(),
     })?;
-    let version = reported_version().ok_or_else(|| ExtractError::Runtime {
-        path: Some(path.clone()),
-        reason: format!("reports no release version in {:?}", ort::info()),
-    })?;
-    if version != ORT_VERSION {
-        return Err(ExtractError::Runtime {
-            path: Some(path.clone()),
-            reason: format!("is ONNX Runtime {version}; sfpmap needs {ORT_VERSION}"),
-        });
-    }
     let environment = builder
         .with_name("sfpmap")
         .with_telemetry(false)
@@ -370,6 +381,16 @@ pub fn runtime(reporter: &dyn Reporter) -> Result<&'static Runtime, ExtractError
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn declared_version_reads_the_symbol_version() {
+        assert_eq!(
+            declared_version(b"\x7fELF..GLIBC_2.2\0VERS_1.31.1\0more").as_deref(),
+            Some("1.31.1")
+        );
+        assert_eq!(declared_version(b"VERS_x\0VERS_1.2\0"), None);
+        assert_eq!(declared_version(b"no version here"), None);
+    }
 
     #[test]
     fn runtime_names() {
