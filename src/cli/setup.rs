@@ -2,6 +2,7 @@
 
 use serde_json::json;
 use sfpmap::extract::runtime::{self, RuntimeSource, ORT_VERSION};
+use sfpmap::progress::Reporter;
 use std::process::ExitCode;
 
 /// Fetch ONNX Runtime 1.31.1 for `extract` and `convert --images` (once per machine).
