@@ -15,5 +15,8 @@ pub mod colmap;
 #[cfg(feature = "localize")]
 pub mod localize;
 
+#[cfg(feature = "capi")]
+pub mod ffi;
+
 #[cfg(feature = "onnx")]
 pub mod extract;

@@ -1,0 +1,961 @@
+//! The C ABI (feature `capi`): open a map, read its levels, descriptors, points, images and
+//! visibility without copying, and localize one query. `include/sfpmap.h` is generated from
+//! this file by cbindgen (`include/cbindgen.toml`); the doc comments below are the header's.
+//!
+//! Why handles are integers, not pointers: a freed pointer cannot be told apart from a live
+//! one, so a use after `sfpm_close` would be undefined behaviour. A handle is a slot index
+//! plus a generation counter in a process-wide registry; after close the generation moves on
+//! and every call with the old handle returns `SFPM_ERR_INVALID_HANDLE` (double close too).
+//!
+//! Every entry point catches panics (`catch_unwind`) and returns `SFPM_ERR_PANIC` instead of
+//! unwinding into C. All `unsafe` of the crate that is not in the format module lives here:
+//! each block is a dereference of a pointer the C caller passed in (checked non-null first;
+//! its validity and size are the caller's contract, stated per function) or the one lifetime
+//! extension in [`MapHandle::localizer`].
+
+#![allow(unsafe_code)]
+#![deny(unsafe_op_in_unsafe_fn)]
+
+use crate::format::{Error as FormatError, Map, SectionKind};
+use crate::localize::{Camera, FeatureSet, LocalizeOptions, Localizer, QueryFeatures};
+use std::any::Any;
+use std::borrow::Cow;
+use std::cell::RefCell;
+use std::collections::HashMap;
+use std::ffi::{c_char, CStr, CString};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::{Arc, Mutex, MutexGuard};
+
+/// An open map: `0` is never a valid handle. Handles are plain integers (a registry slot and a
+/// generation), so a handle used after `sfpm_close` is detected, never undefined behaviour.
+pub type SfpmMap = u64;
+
+/// The status every function returns: `SFPM_OK`, `SFPM_NOT_LOCALIZED` (from `sfpm_localize`
+/// only) or a negative error; `sfpm_last_error` gives the message of the last error.
+#[repr(i32)]
+#[allow(non_camel_case_types)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SfpmStatus {
+    /// Success.
+    SFPM_OK = 0,
+    /// `sfpm_localize` ran but found no pose (too few inliers, ...); `sfpm_last_error` says why.
+    SFPM_NOT_LOCALIZED = 1,
+    /// A required pointer argument was NULL.
+    SFPM_ERR_NULL = -1,
+    /// The handle is 0, was closed, or never came from `sfpm_open`.
+    SFPM_ERR_INVALID_HANDLE = -2,
+    /// An argument is out of range or malformed (index past the end, bad camera, not UTF-8, ...).
+    SFPM_ERR_ARGUMENT = -3,
+    /// The file could not be read.
+    SFPM_ERR_IO = -4,
+    /// The file is not a valid map, or a section failed its checks on first access.
+    SFPM_ERR_FORMAT = -5,
+    /// The map has no such level.
+    SFPM_ERR_NO_SUCH_LEVEL = -6,
+    /// The map does not hold what was asked for (no images, no `rest` block, no descriptors, ...).
+    SFPM_ERR_MISSING = -7,
+    /// The query cannot be matched against the map (descriptor dimension mismatch, ...).
+    SFPM_ERR_LOCALIZE = -8,
+    /// A bug in sfpmap: a panic was caught at the boundary. The handle stays usable.
+    SFPM_ERR_PANIC = -99,
+}
+
+use SfpmStatus::*;
+
+/// Dimensions and size of one level.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default)]
+pub struct SfpmLevelInfo {
+    pub level: u16,
+    /// Dimensions of the full descriptor (`short` + `rest`).
+    pub dim_full: u32,
+    /// Dimensions of the `short` block, a prefix of the full descriptor.
+    pub dim_short: u32,
+    /// Points (rows) the level holds.
+    pub points: u64,
+    /// 1 when the level has descriptors at all (0 for geometry-only maps).
+    pub has_descriptors: u8,
+    /// 1 when the `rest` block is present (a `--short` slice drops it).
+    pub has_rest: u8,
+}
+
+/// A camera in COLMAP terms, e.g. model "SIMPLE_RADIAL" with params f, cx, cy, k.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct SfpmCamera {
+    /// NUL-terminated COLMAP model name ("PINHOLE", "SIMPLE_RADIAL", "OPENCV", ...).
+    pub model: *const c_char,
+    pub width: u32,
+    pub height: u32,
+    /// `n_params` doubles in COLMAP order for the model.
+    pub params: *const f64,
+    pub n_params: usize,
+}
+
+/// Localizer settings; pass NULL to `sfpm_localize` for the defaults (all levels, full
+/// descriptors).
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct SfpmLocalizeOptions {
+    /// Levels to match (`n_levels` ids); NULL or `n_levels == 0` means every level of the map.
+    pub levels: *const u16,
+    pub n_levels: usize,
+    /// Non-zero: match with the `short` descriptor block only (faster, coarser).
+    pub short_only: u8,
+}
+
+/// What `sfpm_localize` found.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default)]
+pub struct SfpmLocalization {
+    /// `cam_from_world` as qw qx qy qz tx ty tz (COLMAP convention); zeros if not localized.
+    pub cam_from_world: [f64; 7],
+    /// Inliers of the final estimate (all levels).
+    pub inliers: u64,
+    /// Tentative matches the estimate was drawn from.
+    pub matches: u64,
+}
+
+struct FfiError {
+    code: SfpmStatus,
+    message: String,
+}
+
+impl FfiError {
+    fn new(code: SfpmStatus, message: impl Into<String>) -> Self {
+        FfiError {
+            code,
+            message: message.into(),
+        }
+    }
+
+    fn null(what: &str) -> Self {
+        FfiError::new(SFPM_ERR_NULL, format!("{what} is NULL"))
+    }
+}
+
+impl From<FormatError> for FfiError {
+    fn from(e: FormatError) -> Self {
+        let code = match &e {
+            FormatError::Io { .. } => SFPM_ERR_IO,
+            FormatError::NoSuchLevel { .. } => SFPM_ERR_NO_SUCH_LEVEL,
+            FormatError::MissingSection { .. } => SFPM_ERR_MISSING,
+            _ => SFPM_ERR_FORMAT,
+        };
+        FfiError::new(code, e.to_string())
+    }
+}
+
+type FfiResult<T = ()> = Result<T, FfiError>;
+
+thread_local! {
+    static LAST_ERROR: RefCell<CString> = RefCell::new(CString::default());
+}
+
+fn set_last_error(message: &str) {
+    // Interior NULs cannot be in a C string; they never occur in our messages, but a file
+    // name could hold one.
+    let c = CString::new(message.replace('\0', "\\0")).unwrap_or_default();
+    LAST_ERROR.with(|e| *e.borrow_mut() = c);
+}
+
+/// Runs an entry point: panics become `SFPM_ERR_PANIC`, errors set the thread's last error.
+fn guard(f: impl FnOnce() -> FfiResult<SfpmStatus>) -> SfpmStatus {
+    match catch_unwind(AssertUnwindSafe(f)) {
+        Ok(Ok(code)) => code,
+        Ok(Err(e)) => {
+            set_last_error(&e.message);
+            e.code
+        }
+        Err(panic) => {
+            let what = panic
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_default();
+            set_last_error(&format!("internal error (panic): {what}"));
+            SFPM_ERR_PANIC
+        }
+    }
+}
+
+/// Owns the map and whatever the handle lends out. Fields drop in declaration order: the
+/// localizers (which borrow `map`) and pinned copies go before the map itself.
+struct MapHandle {
+    localizers: Mutex<Vec<(LocalizerKey, Arc<Localizer<'static>>)>>,
+    /// Arrays the map could only give as owned copies (a buffer not aligned for the type),
+    /// kept so their pointers stay valid until close. With `sfpm_open` (mmap, page-aligned)
+    /// every section is borrowed and this stays empty.
+    pinned: Mutex<HashMap<(SectionKind, u16), Box<dyn Any + Send + Sync>>>,
+    map: Box<Map<'static>>,
+}
+
+#[derive(PartialEq, Eq)]
+struct LocalizerKey {
+    levels: Vec<u16>,
+    short: bool,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // A panic while holding the lock was already reported; the data is still consistent
+    // (every critical section here is a single insert or lookup).
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl MapHandle {
+    /// A pointer and length for an array of the map, valid until the handle is closed.
+    fn pin<T: bytemuck::Pod + Send + Sync>(
+        &self,
+        key: (SectionKind, u16),
+        data: Cow<'_, [T]>,
+    ) -> (*const T, usize) {
+        match data {
+            // Borrowed from the mmap or from the map's decoded-section cache: both live as
+            // long as `map`.
+            Cow::Borrowed(s) => (s.as_ptr(), s.len()),
+            Cow::Owned(v) => {
+                let mut pinned = lock(&self.pinned);
+                let entry = pinned.entry(key).or_insert_with(|| Box::new(v));
+                match entry.downcast_ref::<Vec<T>>() {
+                    Some(v) => (v.as_ptr(), v.len()),
+                    None => (std::ptr::null(), 0),
+                }
+            }
+        }
+    }
+
+    /// The localizer for these options, built on first use (it decodes the descriptors to
+    /// f32 once) and kept until close.
+    fn localizer(&self, key: LocalizerKey) -> FfiResult<Arc<Localizer<'static>>> {
+        let mut cache = lock(&self.localizers);
+        if let Some((_, l)) = cache.iter().find(|(k, _)| *k == key) {
+            return Ok(l.clone());
+        }
+        // SAFETY: `map` is boxed, never moved out of or mutated, and dropped only after
+        // `localizers` (field order) when the last `Arc<MapHandle>` goes. Every
+        // `Arc<Localizer>` handed out is held by a call that also holds the `Arc<MapHandle>`
+        // and drops the localizer first, so no localizer outlives the map it borrows.
+        let map: &'static Map<'static> = unsafe { &*(self.map.as_ref() as *const Map<'static>) };
+        let options = LocalizeOptions {
+            levels: key.levels.clone(),
+            short: key.short,
+            ..LocalizeOptions::default()
+        };
+        let localizer = Localizer::new(map, options)
+            .map_err(|e| FfiError::new(localize_error_code(&e), e.to_string()))?;
+        let localizer = Arc::new(localizer);
+        cache.push((key, localizer.clone()));
+        Ok(localizer)
+    }
+}
+
+fn localize_error_code(e: &crate::localize::LocalizeError) -> SfpmStatus {
+    use crate::localize::LocalizeError as E;
+    match e {
+        E::Format(FormatError::NoSuchLevel { .. }) => SFPM_ERR_NO_SUCH_LEVEL,
+        E::Format(_) => SFPM_ERR_FORMAT,
+        E::NoDescriptors => SFPM_ERR_MISSING,
+        _ => SFPM_ERR_LOCALIZE,
+    }
+}
+
+struct Slot {
+    generation: u32,
+    handle: Option<Arc<MapHandle>>,
+}
+
+static REGISTRY: Mutex<Vec<Slot>> = Mutex::new(Vec::new());
+
+fn register(handle: MapHandle) -> SfpmMap {
+    let mut slots = lock(&REGISTRY);
+    let index = match slots.iter().position(|s| s.handle.is_none()) {
+        Some(i) => i,
+        None => {
+            slots.push(Slot {
+                generation: 1,
+                handle: None,
+            });
+            slots.len() - 1
+        }
+    };
+    slots[index].handle = Some(Arc::new(handle));
+    (u64::from(slots[index].generation) << 32) | (index as u64 + 1)
+}
+
+fn split(map: SfpmMap) -> Option<(usize, u32)> {
+    let index = (map & 0xffff_ffff).checked_sub(1)? as usize;
+    Some((index, (map >> 32) as u32))
+}
+
+/// The live handle, or `SFPM_ERR_INVALID_HANDLE`. The `Arc` keeps the map alive for the call
+/// even if another thread closes the handle meanwhile.
+fn get(map: SfpmMap) -> FfiResult<Arc<MapHandle>> {
+    let invalid = || {
+        FfiError::new(
+            SFPM_ERR_INVALID_HANDLE,
+            format!("invalid map handle {map:#x} (closed, or not from sfpm_open)"),
+        )
+    };
+    let (index, generation) = split(map).ok_or_else(invalid)?;
+    let slots = lock(&REGISTRY);
+    match slots.get(index) {
+        Some(Slot {
+            generation: g,
+            handle: Some(h),
+        }) if *g == generation => Ok(h.clone()),
+        _ => Err(invalid()),
+    }
+}
+
+/// Writes `value` to a caller's out pointer.
+///
+/// # Safety
+/// `ptr` must be NULL (an error is returned) or valid for a write of one `T`.
+unsafe fn put<T>(ptr: *mut T, value: T, what: &str) -> FfiResult {
+    if ptr.is_null() {
+        return Err(FfiError::null(what));
+    }
+    // SAFETY: non-null, and valid for writes per this function's contract.
+    unsafe { ptr.write(value) };
+    Ok(())
+}
+
+/// Borrows `n` elements of a caller's input array (`n == 0` allows NULL).
+///
+/// # Safety
+/// `ptr` must be NULL or valid for reads of `n` elements of `T` for the call's duration.
+unsafe fn input<'a, T>(ptr: *const T, n: usize, what: &str) -> FfiResult<&'a [T]> {
+    if n == 0 {
+        return Ok(&[]);
+    }
+    if ptr.is_null() {
+        return Err(FfiError::null(what));
+    }
+    if n.checked_mul(std::mem::size_of::<T>())
+        .is_none_or(|b| b > isize::MAX as usize)
+    {
+        return Err(FfiError::new(
+            SFPM_ERR_ARGUMENT,
+            format!("{what}: length {n} too large"),
+        ));
+    }
+    // SAFETY: non-null, size checked against isize::MAX, valid for `n` reads per contract.
+    Ok(unsafe { std::slice::from_raw_parts(ptr, n) })
+}
+
+/// The library version, e.g. "0.1.0". Static storage: never free it.
+#[no_mangle]
+pub extern "C" fn sfpm_version() -> *const c_char {
+    concat!(env!("CARGO_PKG_VERSION"), "\0").as_ptr().cast()
+}
+
+/// The message of the last failed call on this thread (UTF-8, NUL-terminated; "" if none).
+/// The pointer is owned by the library and valid until the next failing call on the same
+/// thread. Each thread has its own last error, so threads never see each other's messages.
+#[no_mangle]
+pub extern "C" fn sfpm_last_error() -> *const c_char {
+    LAST_ERROR.with(|e| e.borrow().as_ptr())
+}
+
+/// Opens (memory-maps) and validates the map at `path` (NUL-terminated, UTF-8) and writes its
+/// handle to `*out`. Only the header, section table and metadata are read; sections are
+/// checked on first access. Close the handle with `sfpm_close`.
+///
+/// # Safety
+/// `path` must be a NUL-terminated string and `out` writable, or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_open(path: *const c_char, out: *mut SfpmMap) -> SfpmStatus {
+    guard(|| {
+        if path.is_null() {
+            return Err(FfiError::null("path"));
+        }
+        if out.is_null() {
+            return Err(FfiError::null("out"));
+        }
+        // SAFETY: non-null and NUL-terminated per contract.
+        let path = unsafe { CStr::from_ptr(path) };
+        let path = path
+            .to_str()
+            .map_err(|_| FfiError::new(SFPM_ERR_ARGUMENT, "path is not UTF-8"))?;
+        let map = Map::open(path)?;
+        let handle = register(MapHandle {
+            localizers: Mutex::new(Vec::new()),
+            pinned: Mutex::new(HashMap::new()),
+            map: Box::new(map),
+        });
+        // SAFETY: checked non-null above; writable per contract.
+        unsafe { put(out, handle, "out") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// Closes a map: unmaps it and frees what the handle lent out. Every pointer obtained from
+/// this handle becomes invalid; the handle itself becomes invalid, and using it again
+/// (including a second close) returns `SFPM_ERR_INVALID_HANDLE`. A call running on another
+/// thread with the same handle finishes safely first (the map is freed after it), but the
+/// pointers it returns are dangling once close has returned: do not close a map other threads
+/// still read.
+#[no_mangle]
+pub extern "C" fn sfpm_close(map: SfpmMap) -> SfpmStatus {
+    guard(|| {
+        let (index, generation) = split(map)
+            .ok_or_else(|| FfiError::new(SFPM_ERR_INVALID_HANDLE, "invalid map handle 0"))?;
+        let taken = {
+            let mut slots = lock(&REGISTRY);
+            match slots.get_mut(index) {
+                Some(slot) if slot.generation == generation && slot.handle.is_some() => {
+                    // Skip 0 on wrap-around so a handle is never 0.
+                    slot.generation = slot.generation.checked_add(1).unwrap_or(1);
+                    slot.handle.take()
+                }
+                _ => None,
+            }
+        };
+        match taken {
+            // Dropped outside the registry lock: unmapping may take a moment.
+            Some(handle) => {
+                drop(handle);
+                Ok(SFPM_OK)
+            }
+            None => Err(FfiError::new(
+                SFPM_ERR_INVALID_HANDLE,
+                format!("invalid map handle {map:#x} (already closed?)"),
+            )),
+        }
+    })
+}
+
+/// Number of levels in the map.
+///
+/// # Safety
+/// `out` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_level_count(map: SfpmMap, out: *mut usize) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        // SAFETY: per contract.
+        unsafe { put(out, h.map.metadata().levels.len(), "out") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// Writes up to `capacity` level ids (ascending) to `ids` and the number of levels to
+/// `*count`. Call with `ids == NULL, capacity == 0` to get the count first.
+///
+/// # Safety
+/// `ids` must be valid for `capacity` writes (or NULL with `capacity == 0`); `count` writable.
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_level_ids(
+    map: SfpmMap,
+    ids: *mut u16,
+    capacity: usize,
+    count: *mut usize,
+) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        let all = h.map.level_ids();
+        if capacity > 0 && ids.is_null() {
+            return Err(FfiError::null("ids"));
+        }
+        for (i, &id) in all.iter().take(capacity).enumerate() {
+            // SAFETY: `i < capacity` and `ids` is valid for `capacity` writes per contract.
+            unsafe { ids.add(i).write(id) };
+        }
+        // SAFETY: per contract.
+        unsafe { put(count, all.len(), "count") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// Dimensions and point count of `level`.
+///
+/// # Safety
+/// `out` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_level_info(
+    map: SfpmMap,
+    level: u16,
+    out: *mut SfpmLevelInfo,
+) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        let l = h.map.level(level)?;
+        let info = SfpmLevelInfo {
+            level,
+            dim_full: l.dim_full() as u32,
+            dim_short: l.dim_short() as u32,
+            points: l.len() as u64,
+            has_descriptors: u8::from(l.has_descriptors()),
+            has_rest: u8::from(l.has_rest()),
+        };
+        // SAFETY: per contract.
+        unsafe { put(out, info, "out") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// Global point indices of `level`'s rows (strictly increasing): `*len` `uint32_t`s at
+/// `*points`. Zero-copy; valid until `sfpm_close`.
+///
+/// # Safety
+/// `points` and `len` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_level_points(
+    map: SfpmMap,
+    level: u16,
+    points: *mut *const u32,
+    len: *mut usize,
+) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        let l = h.map.level(level)?;
+        let (ptr, n) = h.pin((SectionKind::LevelPoints, level), l.points()?);
+        // SAFETY: per contract.
+        unsafe { put(points, ptr, "points") }?;
+        // SAFETY: per contract.
+        unsafe { put(len, n, "len") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// The `short` descriptor block of `level`: `points × dim_short` IEEE half floats (binary16
+/// bit patterns as `uint16_t`), row-major, `*len` elements. Raw sections point into the
+/// mapped file; zstd sections are decoded once into a buffer owned by the handle. Either way
+/// the pointer is valid until `sfpm_close`. `SFPM_ERR_MISSING` for a geometry-only level.
+///
+/// # Safety
+/// `data` and `len` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_level_desc_short(
+    map: SfpmMap,
+    level: u16,
+    data: *mut *const u16,
+    len: *mut usize,
+) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        let l = h.map.level(level)?;
+        let desc = l.desc_short()?;
+        let (ptr, n) = h.pin((SectionKind::LevelDescShort, level), desc);
+        // SAFETY: per contract.
+        unsafe { put(data, ptr.cast::<u16>(), "data") }?;
+        // SAFETY: per contract.
+        unsafe { put(len, n, "len") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// The `rest` descriptor block of `level`: `points × (dim_full − dim_short)` half floats,
+/// row-major; row r's full descriptor is short row r followed by rest row r. Same lifetime
+/// as `sfpm_level_desc_short`. `SFPM_ERR_MISSING` when the level has no `rest` block.
+///
+/// # Safety
+/// `data` and `len` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_level_desc_rest(
+    map: SfpmMap,
+    level: u16,
+    data: *mut *const u16,
+    len: *mut usize,
+) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        let l = h.map.level(level)?;
+        let desc = l.desc_rest()?.ok_or_else(|| {
+            FfiError::new(SFPM_ERR_MISSING, format!("level {level} has no rest block"))
+        })?;
+        let (ptr, n) = h.pin((SectionKind::LevelDescRest, level), desc);
+        // SAFETY: per contract.
+        unsafe { put(data, ptr.cast::<u16>(), "data") }?;
+        // SAFETY: per contract.
+        unsafe { put(len, n, "len") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// Number of 3D points in the map.
+///
+/// # Safety
+/// `out` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_point_count(map: SfpmMap, out: *mut usize) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        // SAFETY: per contract.
+        unsafe { put(out, h.map.n_points() as usize, "out") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// Point positions: `*n_points` rows of 3 floats (x y z) relative to the map origin, which is
+/// written to `origin[0..3]` as doubles: world = origin + position (f32 keeps ~7 digits
+/// relative to the origin, f64 the rest). Zero-copy; valid until `sfpm_close`.
+///
+/// # Safety
+/// `positions` and `n_points` must be writable; `origin` must be valid for 3 doubles, or NULL
+/// to skip it.
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_point_positions(
+    map: SfpmMap,
+    positions: *mut *const f32,
+    n_points: *mut usize,
+    origin: *mut f64,
+) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        let (ptr, n) = h.pin((SectionKind::PointPositions, 0), h.map.point_positions()?);
+        // SAFETY: per contract.
+        unsafe { put(positions, ptr.cast::<f32>(), "positions") }?;
+        // SAFETY: per contract.
+        unsafe { put(n_points, n, "n_points") }?;
+        if !origin.is_null() {
+            for (i, &o) in h.map.metadata().origin.iter().enumerate() {
+                // SAFETY: non-null and valid for 3 doubles per contract.
+                unsafe { origin.add(i).write(o) };
+            }
+        }
+        Ok(SFPM_OK)
+    })
+}
+
+/// Number of database images (0 when the map stores none).
+///
+/// # Safety
+/// `out` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_image_count(map: SfpmMap, out: *mut usize) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        let n = h.map.images()?.map_or(0, |i| i.len());
+        // SAFETY: per contract.
+        unsafe { put(out, n, "out") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// Copies image `index`'s name into `buf` (at most `capacity` bytes including the NUL,
+/// truncated if needed) and writes the name's full length in bytes (without NUL) to
+/// `*needed` when `needed` is not NULL, like `snprintf`. `buf` may be NULL with
+/// `capacity == 0` to query the length.
+///
+/// # Safety
+/// `buf` must be valid for `capacity` writes (or NULL with `capacity == 0`); `needed` must be
+/// writable or NULL.
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_image_name(
+    map: SfpmMap,
+    index: usize,
+    buf: *mut c_char,
+    capacity: usize,
+    needed: *mut usize,
+) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        let images = h.map.images()?.ok_or_else(no_images)?;
+        if index >= images.len() {
+            return Err(out_of_range("image", index, images.len()));
+        }
+        let name = images.name(index)?.as_bytes();
+        if capacity > 0 {
+            if buf.is_null() {
+                return Err(FfiError::null("buf"));
+            }
+            let n = name.len().min(capacity - 1);
+            // SAFETY: `buf` is valid for `capacity` bytes per contract and `n + 1 <= capacity`;
+            // the source is our own slice, which cannot overlap a caller's buffer.
+            unsafe {
+                std::ptr::copy_nonoverlapping(name.as_ptr(), buf.cast::<u8>(), n);
+                buf.add(n).write(0);
+            }
+        }
+        if !needed.is_null() {
+            // SAFETY: non-null, writable per contract.
+            unsafe { needed.write(name.len()) };
+        }
+        Ok(SFPM_OK)
+    })
+}
+
+/// Image `index`'s pose `cam_from_world` as qw qx qy qz tx ty tz into `pose[0..7]`, and its
+/// camera's index in the map's camera list into `*camera` (if not NULL).
+///
+/// # Safety
+/// `pose` must be valid for 7 doubles; `camera` writable or NULL.
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_image_pose(
+    map: SfpmMap,
+    index: usize,
+    pose: *mut f64,
+    camera: *mut u32,
+) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        let images = h.map.images()?.ok_or_else(no_images)?;
+        if index >= images.len() {
+            return Err(out_of_range("image", index, images.len()));
+        }
+        if pose.is_null() {
+            return Err(FfiError::null("pose"));
+        }
+        for (i, &v) in images.poses[index].iter().enumerate() {
+            // SAFETY: non-null and valid for 7 doubles per contract.
+            unsafe { pose.add(i).write(v) };
+        }
+        if !camera.is_null() {
+            // SAFETY: non-null, writable per contract.
+            unsafe { camera.write(images.cameras[index]) };
+        }
+        Ok(SFPM_OK)
+    })
+}
+
+/// The image → point visibility in CSR form: image i sees
+/// `points[offsets[i] .. offsets[i + 1]]` (global point indices). `*n_offsets` is
+/// images + 1 and `*n_points` the total entries. Zero-copy; valid until `sfpm_close`.
+/// `SFPM_ERR_MISSING` when the map stores no visibility.
+///
+/// # Safety
+/// All four out pointers must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_visibility(
+    map: SfpmMap,
+    offsets: *mut *const u64,
+    n_offsets: *mut usize,
+    points: *mut *const u32,
+    n_points: *mut usize,
+) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        let vis = h
+            .map
+            .visibility()?
+            .ok_or_else(|| FfiError::new(SFPM_ERR_MISSING, "the map stores no visibility"))?;
+        let (op, on) = h.pin((SectionKind::VisibilityOffsets, 0), vis.offsets);
+        let (pp, pn) = h.pin((SectionKind::VisibilityPoints, 0), vis.points);
+        // SAFETY: per contract (each `put` checks for NULL).
+        unsafe {
+            put(offsets, op, "offsets")?;
+            put(n_offsets, on, "n_offsets")?;
+            put(points, pp, "points")?;
+            put(n_points, pn, "n_points")?;
+        }
+        Ok(SFPM_OK)
+    })
+}
+
+/// Localizes one query image against the map.
+///
+/// `keypoints` holds `n` pixel positions as x, y doubles (COLMAP convention: the top-left
+/// pixel's centre is (0.5, 0.5)); `descriptors` holds `n × dim` floats, row-major, in the
+/// extractor's space (the map's level projection is applied here; they need not be
+/// normalised). The same features serve every level. `options` may be NULL (defaults).
+///
+/// Returns `SFPM_OK` with the pose in `*out`, `SFPM_NOT_LOCALIZED` when the query ran but no
+/// pose was found (reason in `sfpm_last_error`; `*out` holds zeros and the match count), or
+/// an error code. The first call for a given set of options prepares the levels (decodes
+/// descriptors to f32, noticeable on a large map); later calls reuse that until close.
+/// Thread-safe: any number of threads may localize with the same handle at once.
+///
+/// # Safety
+/// `keypoints` must be valid for `2 × n` doubles, `descriptors` for `n × dim` floats (both
+/// may be NULL when `n == 0`), `camera` must point to a valid `SfpmCamera`, `options` to a
+/// valid `SfpmLocalizeOptions` or be NULL, and `out` must be writable.
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_localize(
+    map: SfpmMap,
+    keypoints: *const f64,
+    descriptors: *const f32,
+    n: usize,
+    dim: usize,
+    camera: *const SfpmCamera,
+    options: *const SfpmLocalizeOptions,
+    out: *mut SfpmLocalization,
+) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        if out.is_null() {
+            return Err(FfiError::null("out"));
+        }
+        if camera.is_null() {
+            return Err(FfiError::null("camera"));
+        }
+        if dim == 0 {
+            return Err(FfiError::new(SFPM_ERR_ARGUMENT, "dim is 0"));
+        }
+        let n2 = n
+            .checked_mul(2)
+            .ok_or_else(|| FfiError::new(SFPM_ERR_ARGUMENT, "n too large"))?;
+        let nd = n
+            .checked_mul(dim)
+            .ok_or_else(|| FfiError::new(SFPM_ERR_ARGUMENT, "n × dim too large"))?;
+        // SAFETY: per contract: `2n` doubles and `n × dim` floats.
+        let (xy, desc) = unsafe {
+            (
+                input(keypoints, n2, "keypoints")?,
+                input(descriptors, nd, "descriptors")?,
+            )
+        };
+        // SAFETY: non-null (checked), points to a valid SfpmCamera per contract.
+        let cam = unsafe { &*camera };
+        if cam.model.is_null() {
+            return Err(FfiError::null("camera.model"));
+        }
+        // SAFETY: non-null, NUL-terminated per contract.
+        let model = unsafe { CStr::from_ptr(cam.model) }
+            .to_str()
+            .map_err(|_| FfiError::new(SFPM_ERR_ARGUMENT, "camera.model is not UTF-8"))?;
+        // SAFETY: per contract: `n_params` doubles.
+        let params = unsafe { input(cam.params, cam.n_params, "camera.params")? };
+        let camera = Camera::from_model_name(model, cam.width, cam.height, params)
+            .map_err(|e| FfiError::new(SFPM_ERR_ARGUMENT, format!("camera: {e}")))?;
+        let key = if options.is_null() {
+            LocalizerKey {
+                levels: Vec::new(),
+                short: false,
+            }
+        } else {
+            // SAFETY: non-null, points to a valid SfpmLocalizeOptions per contract.
+            let o = unsafe { &*options };
+            // SAFETY: per contract: `n_levels` ids (NULL allowed when 0).
+            let levels = unsafe { input(o.levels, o.n_levels, "options.levels")? };
+            let mut levels = levels.to_vec();
+            levels.sort_unstable();
+            levels.dedup();
+            LocalizerKey {
+                levels,
+                short: o.short_only != 0,
+            }
+        };
+        if xy.iter().any(|v| !v.is_finite()) || desc.iter().any(|v| !v.is_finite()) {
+            return Err(FfiError::new(
+                SFPM_ERR_ARGUMENT,
+                "keypoints or descriptors hold NaN or infinity",
+            ));
+        }
+        let query = QueryFeatures {
+            sets: vec![FeatureSet {
+                level: None,
+                keypoints: xy.chunks_exact(2).map(|p| [p[0], p[1]]).collect(),
+                descriptors: desc.to_vec(),
+                dim,
+            }],
+            global: None,
+        };
+        let localizer = h.localizer(key)?;
+        let result = localizer
+            .localize(&query, &camera)
+            .map_err(|e| FfiError::new(localize_error_code(&e), e.to_string()))?;
+        let mut found = SfpmLocalization {
+            matches: result.matches as u64,
+            inliers: result.inliers as u64,
+            ..SfpmLocalization::default()
+        };
+        let code = match result.pose {
+            Some(pose) => {
+                found.cam_from_world = pose.to_colmap();
+                SFPM_OK
+            }
+            None => {
+                found.inliers = 0;
+                set_last_error(result.failure.as_deref().unwrap_or("not localized"));
+                SFPM_NOT_LOCALIZED
+            }
+        };
+        // SAFETY: checked non-null; writable per contract.
+        unsafe { put(out, found, "out") }?;
+        Ok(code)
+    })
+}
+
+fn no_images() -> FfiError {
+    FfiError::new(SFPM_ERR_MISSING, "the map stores no images")
+}
+
+fn out_of_range(what: &str, index: usize, len: usize) -> FfiError {
+    FfiError::new(
+        SFPM_ERR_ARGUMENT,
+        format!("{what} index {index} out of range (the map has {len})"),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn vector(name: &str) -> CString {
+        CString::new(format!(
+            "{}/spec/vectors/valid/{name}.sfpm",
+            env!("CARGO_MANIFEST_DIR")
+        ))
+        .unwrap()
+    }
+
+    #[test]
+    fn handles_detect_use_after_close() {
+        let path = vector("levels");
+        let mut map: SfpmMap = 0;
+        // SAFETY: valid C string and out pointer.
+        assert_eq!(unsafe { sfpm_open(path.as_ptr(), &mut map) }, SFPM_OK);
+        let mut n = 0usize;
+        // SAFETY: valid out pointer.
+        assert_eq!(unsafe { sfpm_level_count(map, &mut n) }, SFPM_OK);
+        assert_eq!(n, 3);
+        assert_eq!(sfpm_close(map), SFPM_OK);
+        assert_eq!(sfpm_close(map), SFPM_ERR_INVALID_HANDLE);
+        // SAFETY: valid out pointer.
+        assert_eq!(
+            unsafe { sfpm_level_count(map, &mut n) },
+            SFPM_ERR_INVALID_HANDLE
+        );
+        // A new map reusing the slot gets a new generation: the old handle stays dead.
+        let mut again: SfpmMap = 0;
+        // SAFETY: valid C string and out pointer.
+        assert_eq!(unsafe { sfpm_open(path.as_ptr(), &mut again) }, SFPM_OK);
+        assert_ne!(again, map);
+        // SAFETY: valid out pointer.
+        assert_eq!(
+            unsafe { sfpm_level_count(map, &mut n) },
+            SFPM_ERR_INVALID_HANDLE
+        );
+        assert_eq!(sfpm_close(again), SFPM_OK);
+        assert_eq!(sfpm_close(0), SFPM_ERR_INVALID_HANDLE);
+    }
+
+    #[test]
+    fn null_pointers_are_errors() {
+        let path = vector("levels");
+        // SAFETY: NULL is allowed and reported.
+        assert_eq!(
+            unsafe { sfpm_open(std::ptr::null(), std::ptr::null_mut()) },
+            SFPM_ERR_NULL
+        );
+        let mut map: SfpmMap = 0;
+        // SAFETY: valid C string and out pointer.
+        assert_eq!(unsafe { sfpm_open(path.as_ptr(), &mut map) }, SFPM_OK);
+        // SAFETY: NULL out pointers are reported.
+        unsafe {
+            assert_eq!(sfpm_level_count(map, std::ptr::null_mut()), SFPM_ERR_NULL);
+            assert_eq!(
+                sfpm_level_desc_short(map, 0, std::ptr::null_mut(), std::ptr::null_mut()),
+                SFPM_ERR_NULL
+            );
+            assert_eq!(
+                sfpm_localize(
+                    map,
+                    std::ptr::null(),
+                    std::ptr::null(),
+                    0,
+                    4,
+                    std::ptr::null(),
+                    std::ptr::null(),
+                    std::ptr::null_mut()
+                ),
+                SFPM_ERR_NULL
+            );
+        }
+        // SAFETY: sfpm_last_error returns a NUL-terminated string.
+        let msg = unsafe { CStr::from_ptr(sfpm_last_error()) };
+        assert!(msg.to_str().unwrap().contains("NULL"), "{msg:?}");
+        assert_eq!(sfpm_close(map), SFPM_OK);
+    }
+}
