@@ -193,10 +193,14 @@ struct Observations {
 }
 
 fn source_file(path: &Path) -> Result<SourceFile, ConvertError> {
-    let bytes = std::fs::read(path).map_err(|source| ConvertError::Io {
+    // Mapped, not read: the model was just parsed from the page cache, so hashing it again
+    // costs no copy and no allocation of its size.
+    let io = |source| ConvertError::Io {
         path: path.to_path_buf(),
         source,
-    })?;
+    };
+    let file = std::fs::File::open(path).map_err(io)?;
+    let bytes = format::map_file(&file).map_err(io)?;
     Ok(SourceFile {
         path: path.display().to_string(),
         bytes: bytes.len() as u64,

@@ -124,11 +124,15 @@ pub fn model_files(dir: &Path) -> Result<ModelFiles> {
     Ok(ModelFiles { format, paths })
 }
 
-fn read_file(path: &Path) -> Result<Vec<u8>> {
-    std::fs::read(path).map_err(|source| Error::Io {
+/// The file's bytes, memory-mapped: no copy of a model that may be hundreds of MB, and a
+/// second look (hashing for provenance) costs no second read.
+fn read_file(path: &Path) -> Result<impl std::ops::Deref<Target = [u8]>> {
+    let io = |source| Error::Io {
         path: path.to_path_buf(),
         source,
-    })
+    };
+    let file = std::fs::File::open(path).map_err(io)?;
+    crate::format::map_file(&file).map_err(io)
 }
 
 /// Reads the binary model in `dir` (`cameras.bin`, `images.bin`, `points3D.bin`).
@@ -144,31 +148,39 @@ pub fn read_model_text(dir: &Path) -> Result<Reconstruction> {
 fn read_with(dir: &Path, binary: bool) -> Result<Reconstruction> {
     let [c, i, p] = files_with(dir, if binary { "bin" } else { "txt" });
     let mut builder = ReconstructionBuilder::new().paths(&c, &i, &p);
-    // One file at a time, its bytes dropped once parsed: peak memory is the parsed model
-    // plus one raw file, not plus all three.
     let data = read_file(&c)?;
     let cameras = if binary {
         bin::parse_cameras(&data, &c)?
     } else {
         text::parse_cameras(&data, &c)?
     };
-    drop(data);
     cameras.into_iter().for_each(|x| builder.add_camera(x));
-    let data = read_file(&i)?;
-    let images = if binary {
-        bin::parse_images(&data, &i)?
-    } else {
-        text::parse_images(&data, &i)?
-    };
-    drop(data);
-    images.into_iter().for_each(|x| builder.add_image(x));
-    let data = read_file(&p)?;
-    if binary {
-        bin::parse_points3d_into(&data, &p, &mut builder)?;
-    } else {
-        text::parse_points3d_into(&data, &p, &mut builder)?;
-    }
-    drop(data);
+    // images and points3D are independent until validation: parse them on two threads.
+    let (images, points) = std::thread::scope(|s| {
+        let images = s.spawn(|| -> Result<Vec<Image>> {
+            let data = read_file(&i)?;
+            if binary {
+                bin::parse_images(&data, &i)
+            } else {
+                text::parse_images(&data, &i)
+            }
+        });
+        let points = (|| -> Result<ReconstructionBuilder> {
+            let data = read_file(&p)?;
+            let mut points = ReconstructionBuilder::new().paths(&c, &i, &p);
+            if binary {
+                bin::parse_points3d_into(&data, &p, &mut points)?;
+            } else {
+                text::parse_points3d_into(&data, &p, &mut points)?;
+            }
+            Ok(points)
+        })();
+        let images = images.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        (images, points)
+    });
+    // Errors in file order: cameras, then images, then points3D.
+    images?.into_iter().for_each(|x| builder.add_image(x));
+    builder.take_points3d(points?);
     builder.build()
 }
 

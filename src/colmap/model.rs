@@ -263,6 +263,16 @@ impl ReconstructionBuilder {
         self
     }
 
+    /// Moves the 3D points and tracks of `other` (a builder that parsed only points3D) in.
+    pub(crate) fn take_points3d(&mut self, other: ReconstructionBuilder) {
+        let offset = self.tracks.len();
+        self.tracks.extend(other.tracks);
+        self.points3d.extend(other.points3d.into_iter().map(|mut p| {
+            p.track_start += offset;
+            p
+        }));
+    }
+
     /// Reserves room for `points` 3D points with `observations` track elements in total.
     pub fn reserve_points3d(&mut self, points: usize, observations: usize) {
         self.points3d.reserve(points);
@@ -394,8 +404,66 @@ impl ReconstructionBuilder {
         })
     }
 
-    /// Track → 2D point direction, in input order so the first error matches COLMAP's.
+    /// Track → 2D point direction. A fast pass checks image by image (each image's 2D points
+    /// stay in cache instead of one random read per observation); only if it finds a problem
+    /// does the exact pass run, in input order, so the error reported matches COLMAP's.
     fn check_tracks(&self, image_slots: &IdIndex) -> Result<()> {
+        if self.tracks_consistent(image_slots) {
+            return Ok(());
+        }
+        self.check_tracks_in_order(image_slots)
+    }
+
+    /// Whether every track element names an existing image and 2D point carrying the point's
+    /// id, each 2D point at most once, and every 2D point with an id is in a track.
+    fn tracks_consistent(&self, image_slots: &IdIndex) -> bool {
+        let n_images = self.images.len();
+        let image_of = |id: u32| {
+            image_slots
+                .get(u64::from(id))
+                .unwrap_or_else(|| self.images.binary_search_by_key(&id, |i| i.id).ok())
+        };
+        // Counting sort of (point2D index, point3D id) by image.
+        let mut counts = vec![0usize; n_images + 1];
+        for e in &self.tracks {
+            match image_of(e.image_id) {
+                Some(i) => counts[i + 1] += 1,
+                None => return false,
+            }
+        }
+        for i in 0..n_images {
+            counts[i + 1] += counts[i];
+        }
+        let mut next = counts.clone();
+        let mut by_image = vec![(0u32, 0u64); self.tracks.len()];
+        for point in &self.points3d {
+            let end = point.track_start.saturating_add(point.track_len as usize);
+            for e in self.tracks.get(point.track_start..end).unwrap_or(&[]) {
+                let Some(i) = image_of(e.image_id) else { return false };
+                by_image[next[i]] = (e.point2d_idx, point.id);
+                next[i] += 1;
+            }
+        }
+        let mut seen = Vec::new();
+        for (i, image) in self.images.iter().enumerate() {
+            seen.clear();
+            seen.resize(image.points2d.len(), false);
+            for &(idx, id) in &by_image[counts[i]..counts[i + 1]] {
+                match image.points2d.get(idx as usize) {
+                    Some(p) if p.point3d_id == Some(id) && !seen[idx as usize] => seen[idx as usize] = true,
+                    _ => return false,
+                }
+            }
+            let referenced = image.points2d.iter().filter(|p| p.point3d_id.is_some()).count();
+            if referenced != counts[i + 1] - counts[i] {
+                return false;
+            }
+        }
+        true
+    }
+
+    /// Track → 2D point direction, in input order so the first error matches COLMAP's.
+    fn check_tracks_in_order(&self, image_slots: &IdIndex) -> Result<()> {
         // One bit per 2D point of every image (in sorted image order) marks "seen in a track".
         let mut offsets = Vec::with_capacity(self.images.len());
         let mut total = 0usize;

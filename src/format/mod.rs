@@ -36,6 +36,9 @@ pub use slice::{slice, SliceOptions, SliceSummary};
 pub use views::{Images, Level, Visibility};
 pub use writer::{Descriptors, MapWriter};
 
+/// Memory-maps a file read-only (see the safety note on sfpmap's own files in `mmap.rs`).
+pub(crate) use mmap::map_file;
+
 /// Re-exported so users need not depend on `half` to name descriptor elements.
 pub use half::f16;
 
