@@ -11,7 +11,8 @@ use std::path::PathBuf;
 
 /// A real scene image resized to 640×480 (falls back to a synthetic texture without the data).
 fn input(weights: [f32; 3]) -> image::GrayInput {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes/south-building/images");
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data/scenes/south-building/images");
     let first = std::fs::read_dir(&dir).ok().and_then(|entries| {
         let mut v: Vec<PathBuf> = entries.flatten().map(|e| e.path()).collect();
         v.sort();

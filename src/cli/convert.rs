@@ -22,6 +22,10 @@ pub enum AggregateArg {
 /// (the first --short-dims dims) keeps most of the variance. Without --database the map is
 /// geometry only. Example:
 /// `sfpmap convert --colmap sparse/0 --database database.db -o building.sfpm`
+///
+/// With --images instead of --database, the SFP extractor runs on every model image and each
+/// point gets the network's multi-level descriptors; points the network scores low on every
+/// level are dropped. Example: `sfpmap convert --colmap sparse/0 --images images -o sfp.sfpm`
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The model folder (cameras, images, points3D as .bin or .txt).
@@ -30,6 +34,31 @@ pub struct Args {
     /// The COLMAP database with the model's keypoints and descriptors (opened read-only).
     #[arg(long)]
     pub database: Option<PathBuf>,
+    /// The model's images: build an SFP map with the extractor instead of SIFT descriptors
+    /// (levels chosen by the network's scores; see spec/extractor.md).
+    #[cfg(feature = "onnx")]
+    #[arg(long, conflicts_with_all = ["database", "short_dims", "aggregate", "strict"])]
+    pub images: Option<PathBuf>,
+    /// With --images: an ONNX model of the sfp-extractor/1 contract (default: embedded sfp-v1).
+    #[cfg(feature = "onnx")]
+    #[arg(long, requires = "images")]
+    pub model: Option<PathBuf>,
+    /// With --images: skip model images whose file is missing (default: error naming them).
+    #[cfg(feature = "onnx")]
+    #[arg(long, requires = "images")]
+    pub allow_missing: bool,
+    /// With --images: ONNX Runtime intra-op threads.
+    #[cfg(feature = "onnx")]
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub threads: u32,
+    /// With --images: resize images so the longer side is at most this before the network.
+    #[cfg(feature = "onnx")]
+    #[arg(long, requires = "images", value_parser = clap::value_parser!(u32).range(16..))]
+    pub resize_max: Option<u32>,
+    /// With --images: a point joins level i when its track's mean level-i score is at least this.
+    #[cfg(feature = "onnx")]
+    #[arg(long, requires = "images", default_value_t = 0.5)]
+    pub score_threshold: f32,
     /// Output map.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -70,6 +99,10 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 args.output.display()
             );
         }
+    }
+    #[cfg(feature = "onnx")]
+    if let Some(images) = &args.images {
+        return run_sfp(&args, images, quiet, start);
     }
     let options = ConvertOptions {
         database: args.database.clone(),
@@ -136,6 +169,101 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         }
         if summary.geometry_only {
             println!("geometry only (no --database): no levels, no descriptors");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(feature = "onnx")]
+fn run_sfp(
+    args: &Args,
+    images: &std::path::Path,
+    quiet: bool,
+    start: Instant,
+) -> anyhow::Result<ExitCode> {
+    use sfpmap::extract::sfp_map::{convert_with_images, SfpMapOptions};
+    use sfpmap::extract::ExtractorOptions;
+    sfpmap::extract::runtime::disable_telemetry();
+    if !(0.0..=1.0).contains(&args.score_threshold) {
+        bail!(
+            "--score-threshold {}: scores are in [0, 1]",
+            args.score_threshold
+        );
+    }
+    let options = SfpMapOptions {
+        images: images.to_path_buf(),
+        extractor: ExtractorOptions {
+            model: args.model.clone(),
+            threads: args.threads as usize,
+        },
+        resize_max: args.resize_max,
+        score_threshold: Some(args.score_threshold),
+        allow_missing: args.allow_missing,
+        codec: Codec::from(args.codec),
+        zstd_level: args.zstd_level,
+    };
+    let bars = super::Bars::new(quiet, args.json);
+    let summary = convert_with_images(&args.colmap, &options, &args.output, &bars)?;
+    let seconds = start.elapsed().as_secs_f64();
+    let c = &summary.convert;
+    let ratio = c.input_bytes as f64 / c.output_bytes.max(1) as f64;
+    if args.json {
+        let levels: Vec<_> = c
+            .levels
+            .iter()
+            .map(|l| {
+                json!({
+                    "level": l.level, "points": l.points, "dim_full": l.dim_full,
+                    "dim_short": l.dim_short, "variance_short": l.variance_short,
+                    "stride": l.scale_range[0],
+                })
+            })
+            .collect();
+        super::print_json(&json!({
+            "output": args.output.display().to_string(),
+            "descriptors": "sfp",
+            "points": c.points,
+            "model_points": summary.model_points,
+            "dropped_points": summary.model_points - c.points,
+            "images": c.images,
+            "observations": c.observations,
+            "input_bytes": c.input_bytes,
+            "image_bytes": summary.image_bytes,
+            "output_bytes": c.output_bytes,
+            "ratio": ratio,
+            "seconds": seconds,
+            "ms_per_image": summary.ms_per_image,
+            "score_threshold": summary.score_threshold,
+            "model": summary.model.name,
+            "model_xxh3": summary.model.xxh3,
+            "missing_images": summary.missing_images,
+            "levels": levels,
+        }))?;
+    } else if !quiet {
+        println!(
+            "{}: {} of {} points kept, {} images, {} observations; model {} bytes -> map {} bytes ({ratio:.2}x) in {seconds:.1} s ({:.0} ms per image)",
+            args.output.display(),
+            c.points,
+            summary.model_points,
+            c.images,
+            c.observations,
+            c.input_bytes,
+            c.output_bytes,
+            summary.ms_per_image
+        );
+        for l in &c.levels {
+            println!(
+                "level {} (stride {}): {} points, short {}/{} dims ({:.1} % of the energy)",
+                l.level,
+                l.scale_range[0],
+                l.points,
+                l.dim_short,
+                l.dim_full,
+                100.0 * l.variance_short
+            );
+        }
+        if !summary.missing_images.is_empty() {
+            println!("{} images missing (skipped)", summary.missing_images.len());
         }
     }
     Ok(ExitCode::SUCCESS)

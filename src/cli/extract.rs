@@ -108,7 +108,10 @@ pub fn collect_images(inputs: &[PathBuf]) -> anyhow::Result<Vec<(String, PathBuf
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     runtime::disable_telemetry();
     if args.output.exists() && !args.force {
-        bail!("{}: exists; pass --force to overwrite", args.output.display());
+        bail!(
+            "{}: exists; pass --force to overwrite",
+            args.output.display()
+        );
     }
     let images = collect_images(&args.inputs)?;
     let bars = super::Bars::new(quiet, args.json);
@@ -155,7 +158,10 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "sfp.contract".to_string(),
             sfpmap::extract::contract::CONTRACT.to_string(),
         ),
-        ("sfp.tool".to_string(), sfpmap::format::Metadata::tool_string()),
+        (
+            "sfp.tool".to_string(),
+            sfpmap::format::Metadata::tool_string(),
+        ),
     ];
     attributes.push((
         "sfp.level_ids".to_string(),

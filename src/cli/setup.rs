@@ -35,7 +35,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         let rt = runtime::runtime(&bars)?;
         version = Some(rt.version.clone());
         active = Some(rt.location.path.display().to_string());
-        if rt.location.source != RuntimeSource::Cache && rt.location.source != RuntimeSource::Fetched
+        if rt.location.source != RuntimeSource::Cache
+            && rt.location.source != RuntimeSource::Fetched
         {
             bars.warn(&format!(
                 "the runtime in use is {} (ORT_DYLIB_PATH or beside the executable), not the cached one",
@@ -56,7 +57,11 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "{}: ONNX Runtime {ORT_VERSION}, {} bytes ({})",
             report.path.display(),
             report.bytes,
-            if report.fetched { "fetched" } else { "already there" }
+            if report.fetched {
+                "fetched"
+            } else {
+                "already there"
+            }
         );
         if let Some(v) = version {
             println!("loaded: reports version {v}");

@@ -192,7 +192,8 @@ struct Observations {
     images_without_features: usize,
 }
 
-fn source_file(path: &Path) -> Result<SourceFile, ConvertError> {
+/// A file's size and XXH3 for `provenance.sources`.
+pub(crate) fn source_file(path: &Path) -> Result<SourceFile, ConvertError> {
     // Mapped, not read: the model was just parsed from the page cache, so hashing it again
     // costs no copy and no allocation of its size.
     let io = |source| ConvertError::Io {
@@ -206,6 +207,142 @@ fn source_file(path: &Path) -> Result<SourceFile, ConvertError> {
         bytes: bytes.len() as u64,
         xxh3: format::file_hash(&bytes),
     })
+}
+
+/// A model's geometry as the map stores it: cameras, points (all or a subset, renumbered in
+/// model order), images with poses, and visibility with the observing pixels. Shared by the
+/// SIFT convert and the SFP convert (`crate::extract::sfp_map`).
+#[derive(Debug, Clone)]
+pub(crate) struct Geometry {
+    pub cameras: Vec<CameraInfo>,
+    pub positions: Vec<[f64; 3]>,
+    pub colors: Vec<[u8; 3]>,
+    pub ids: Vec<u64>,
+    pub names: Vec<String>,
+    pub image_cameras: Vec<u32>,
+    pub poses: Vec<[f64; 7]>,
+    pub image_ids: Vec<u32>,
+    pub vis_offsets: Vec<u64>,
+    pub vis_points: Vec<u32>,
+    pub vis_keypoints: Vec<[f32; 2]>,
+    /// Model point index → map point index (`u32::MAX` = not kept).
+    #[cfg_attr(not(feature = "onnx"), allow(dead_code))]
+    pub map_index: Vec<u32>,
+}
+
+impl Geometry {
+    /// `keep[i]` says whether model point `i` goes into the map (`None`: every point).
+    pub(crate) fn new(model: &Reconstruction, keep: Option<&[bool]>) -> Geometry {
+        let points = model.points3d();
+        let mut map_index = vec![u32::MAX; points.len()];
+        let mut next = 0u32;
+        for (i, slot) in map_index.iter_mut().enumerate() {
+            if keep.is_none_or(|k| k[i]) {
+                *slot = next;
+                next += 1;
+            }
+        }
+        let kept = |i: &usize| map_index[*i] != u32::MAX;
+        let positions = (0..points.len())
+            .filter(kept)
+            .map(|i| points[i].xyz)
+            .collect();
+        let colors = (0..points.len())
+            .filter(kept)
+            .map(|i| points[i].rgb)
+            .collect();
+        let ids = (0..points.len())
+            .filter(kept)
+            .map(|i| points[i].id)
+            .collect();
+        // Visibility: image → observed (kept) points, with the observing pixel.
+        let mut vis_offsets = Vec::with_capacity(model.images().len() + 1);
+        let mut vis_points = Vec::with_capacity(model.num_observations());
+        let mut vis_keypoints = Vec::with_capacity(model.num_observations());
+        vis_offsets.push(0u64);
+        for image in model.images() {
+            for p in &image.points2d {
+                let Some(index) = p.point3d_id.and_then(|id| model.point3d_index(id)) else {
+                    continue;
+                };
+                if map_index[index] != u32::MAX {
+                    vis_points.push(map_index[index]);
+                    vis_keypoints.push([p.xy[0] as f32, p.xy[1] as f32]);
+                }
+            }
+            vis_offsets.push(vis_points.len() as u64);
+        }
+        let camera_index = |id: u32| {
+            model
+                .cameras()
+                .iter()
+                .position(|c| c.id == id)
+                .map(|i| i as u32)
+        };
+        Geometry {
+            cameras: model
+                .cameras()
+                .iter()
+                .map(|c| CameraInfo {
+                    id: Some(c.id),
+                    model: c.model.name().to_string(),
+                    width: c.width,
+                    height: c.height,
+                    params: c.params.clone(),
+                })
+                .collect(),
+            positions,
+            colors,
+            ids,
+            names: model.images().iter().map(|i| i.name.clone()).collect(),
+            image_cameras: model
+                .images()
+                .iter()
+                .map(|i| {
+                    camera_index(i.camera_id)
+                        .expect("the reader checked every image's camera exists")
+                })
+                .collect(),
+            poses: model
+                .images()
+                .iter()
+                .map(|i| {
+                    let (q, t) = (i.cam_from_world.rotation, i.cam_from_world.translation);
+                    [q[0], q[1], q[2], q[3], t[0], t[1], t[2]]
+                })
+                .collect(),
+            image_ids: model.images().iter().map(|i| i.id).collect(),
+            vis_offsets,
+            vis_points,
+            vis_keypoints,
+            map_index,
+        }
+    }
+
+    /// Adds cameras, points, images and visibility to `writer`.
+    pub(crate) fn write_into<'a>(
+        &'a self,
+        writer: &mut MapWriter<'a>,
+    ) -> Result<(), format::Error> {
+        for c in &self.cameras {
+            writer.add_camera(c.clone());
+        }
+        writer.set_points_world(&self.positions);
+        writer.set_point_colors(&self.colors);
+        writer.set_point_ids(&self.ids);
+        writer.set_images(
+            &self.names,
+            &self.image_cameras,
+            &self.poses,
+            Some(&self.image_ids),
+        )?;
+        writer.set_visibility(
+            &self.vis_offsets,
+            &self.vis_points,
+            Some(&self.vis_keypoints),
+        )?;
+        Ok(())
+    }
 }
 
 /// Converts the model in `model_dir` and writes the map to `output` (temp file + rename).
@@ -225,22 +362,6 @@ pub fn convert(
         .map(|p| source_file(p))
         .collect::<Result<Vec<_>, _>>()?;
 
-    let point_index = |id: u64| model.point3d_index(id).map(|i| i as u32);
-    // Visibility: image → observed points, with the observing pixel.
-    let mut vis_offsets = Vec::with_capacity(model.images().len() + 1);
-    let mut vis_points = Vec::with_capacity(model.num_observations());
-    let mut vis_keypoints = Vec::with_capacity(model.num_observations());
-    vis_offsets.push(0u64);
-    for image in model.images() {
-        for p in &image.points2d {
-            if let Some(index) = p.point3d_id.and_then(point_index) {
-                vis_points.push(index);
-                vis_keypoints.push([p.xy[0] as f32, p.xy[1] as f32]);
-            }
-        }
-        vis_offsets.push(vis_points.len() as u64);
-    }
-
     let observations = match &options.database {
         Some(db_path) => {
             sources.push(source_file(db_path)?);
@@ -250,8 +371,10 @@ pub fn convert(
     };
     let input_bytes = sources.iter().map(|s| s.bytes).sum();
 
-    let mut metadata = Metadata::default();
-    metadata.geometry_only = observations.is_none();
+    let mut metadata = Metadata {
+        geometry_only: observations.is_none(),
+        ..Default::default()
+    };
     metadata.provenance.tool = Metadata::tool_string();
     metadata.provenance.sources = sources;
     metadata.provenance.parameters = json!({
@@ -268,45 +391,8 @@ pub fn convert(
     let mut writer = MapWriter::new(metadata);
     writer.set_codec(options.codec, options.zstd_level);
 
-    let camera_index = |id: u32| {
-        model
-            .cameras()
-            .iter()
-            .position(|c| c.id == id)
-            .map(|i| i as u32)
-    };
-    for c in model.cameras() {
-        writer.add_camera(CameraInfo {
-            id: Some(c.id),
-            model: c.model.name().to_string(),
-            width: c.width,
-            height: c.height,
-            params: c.params.clone(),
-        });
-    }
-    let positions: Vec<[f64; 3]> = model.points3d().iter().map(|p| p.xyz).collect();
-    let colors: Vec<[u8; 3]> = model.points3d().iter().map(|p| p.rgb).collect();
-    let ids: Vec<u64> = model.points3d().iter().map(|p| p.id).collect();
-    let names: Vec<&str> = model.images().iter().map(|i| i.name.as_str()).collect();
-    let image_cameras: Vec<u32> = model
-        .images()
-        .iter()
-        .map(|i| camera_index(i.camera_id).expect("the reader checked every image's camera exists"))
-        .collect();
-    let poses: Vec<[f64; 7]> = model
-        .images()
-        .iter()
-        .map(|i| {
-            let (q, t) = (i.cam_from_world.rotation, i.cam_from_world.translation);
-            [q[0], q[1], q[2], q[3], t[0], t[1], t[2]]
-        })
-        .collect();
-    let image_ids: Vec<u32> = model.images().iter().map(|i| i.id).collect();
-    writer.set_points_world(&positions);
-    writer.set_point_colors(&colors);
-    writer.set_point_ids(&ids);
-    writer.set_images(&names, &image_cameras, &poses, Some(&image_ids))?;
-    writer.set_visibility(&vis_offsets, &vis_points, Some(&vis_keypoints))?;
+    let geometry = Geometry::new(&model, None);
+    geometry.write_into(&mut writer)?;
 
     let mut summaries = Vec::new();
     let mut points_without_descriptors = 0;
@@ -314,8 +400,9 @@ pub fn convert(
     let built_levels = match &observations {
         Some(obs) => {
             images_without_features = obs.images_without_features;
-            reporter.start("aggregating descriptors", Some(positions.len() as u64));
-            let (descriptors, has) = aggregate(obs, positions.len(), options.aggregate);
+            let n_points = geometry.positions.len();
+            reporter.start("aggregating descriptors", Some(n_points as u64));
+            let (descriptors, has) = aggregate(obs, n_points, options.aggregate);
             reporter.finish();
             points_without_descriptors = has.iter().filter(|h| !**h).count();
             build_levels(obs, &descriptors, &has, options.short_dims, reporter)?
@@ -334,9 +421,9 @@ pub fn convert(
     }
     let output_bytes = writer.write(output, reporter)?;
     Ok(ConvertSummary {
-        points: positions.len(),
-        images: names.len(),
-        observations: vis_points.len(),
+        points: geometry.positions.len(),
+        images: geometry.names.len(),
+        observations: geometry.vis_points.len(),
         input_bytes,
         output_bytes,
         geometry_only: observations.is_none(),
@@ -412,7 +499,11 @@ fn gather(
                 continue;
             };
             // Keypoints without a shape (x, y only) have no scale: one bucket for all.
-            let scale = if idx < keypoints.len() { keypoints.scale(idx).or(Some(1.0)) } else { None };
+            let scale = if idx < keypoints.len() {
+                keypoints.scale(idx).or(Some(1.0))
+            } else {
+                None
+            };
             let (Some(row), Some(scale)) = (descriptors.row(idx), scale) else {
                 return Err(ConvertError::KeypointOutOfRange {
                     database: db_path.to_path_buf(),

@@ -101,8 +101,7 @@ impl Contract {
         if levels == 0 {
             return Err(bad("sfp.levels is 0".into()));
         }
-        if level_ids.windows(2).any(|w| w[0] >= w[1]) || strides.windows(2).any(|w| w[0] >= w[1])
-        {
+        if level_ids.windows(2).any(|w| w[0] >= w[1]) || strides.windows(2).any(|w| w[0] >= w[1]) {
             return Err(bad(
                 "sfp.level_ids and sfp.strides must increase (finest level first)".into(),
             ));
@@ -240,7 +239,10 @@ mod tests {
         assert!(e.contains("m.onnx") && e.contains("sfp-extractor/2"), "{e}");
         let mut m = sfp_v1();
         m.remove("sfp.contract");
-        assert!(parse(&m).unwrap_err().to_string().contains("no sfp.contract"));
+        assert!(parse(&m)
+            .unwrap_err()
+            .to_string()
+            .contains("no sfp.contract"));
         let mut m = sfp_v1();
         m.insert("sfp.full_dims".into(), "240,224,190,128".into());
         assert!(parse(&m).unwrap_err().to_string().contains("full_dims[2]"));

@@ -86,7 +86,11 @@ pub fn from_image(image: &DynamicImage, weights: [f32; 3], resize_max: Option<u3
     GrayInput {
         width: gray.width() as usize,
         height: gray.height() as usize,
-        values: gray.as_raw().iter().map(|&v| f32::from(v) / 255.0).collect(),
+        values: gray
+            .as_raw()
+            .iter()
+            .map(|&v| f32::from(v) / 255.0)
+            .collect(),
         original_size,
     }
 }
@@ -105,7 +109,11 @@ mod tests {
             let pil = ((r * 19595 + gg * 38470 + b * 7471 + 0x8000) >> 16) as u8;
             assert_eq!(q.0[0], pil);
         }
-        let input = from_image(&DynamicImage::ImageRgb8(img), [0.299, 0.587, 0.114], Some(10));
+        let input = from_image(
+            &DynamicImage::ImageRgb8(img),
+            [0.299, 0.587, 0.114],
+            Some(10),
+        );
         assert_eq!((input.width, input.height), (10, 5));
         assert_eq!(input.original_size, [40, 20]);
         assert_eq!(input.scale(), [4.0, 4.0]);

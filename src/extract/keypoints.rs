@@ -84,7 +84,10 @@ fn sliding_max_rows(map: ScoreMap<'_>, radius: usize) -> Vec<f32> {
         let row = &map.values[r * w..(r + 1) * w];
         for c in 0..w {
             let (c0, c1) = (c.saturating_sub(radius), (c + radius).min(w - 1));
-            out[r * w + c] = row[c0..=c1].iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            out[r * w + c] = row[c0..=c1]
+                .iter()
+                .copied()
+                .fold(f32::NEG_INFINITY, f32::max);
         }
     }
     out
@@ -113,8 +116,16 @@ pub fn subpixel(map: ScoreMap<'_>, r: usize, c: usize) -> (f32, f32) {
 pub fn sample_bilinear(map: FeatureMap<'_>, x: f32, y: f32, out: &mut Vec<f32>) {
     let (h, w) = (map.height, map.width);
     let plane = h * w;
-    let x = if x.is_nan() { 0.0 } else { x.clamp(0.0, (w - 1) as f32) };
-    let y = if y.is_nan() { 0.0 } else { y.clamp(0.0, (h - 1) as f32) };
+    let x = if x.is_nan() {
+        0.0
+    } else {
+        x.clamp(0.0, (w - 1) as f32)
+    };
+    let y = if y.is_nan() {
+        0.0
+    } else {
+        y.clamp(0.0, (h - 1) as f32)
+    };
     let (x0, y0) = (x.floor() as usize, y.floor() as usize);
     let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
     let (ax, ay) = (x - x0 as f32, y - y0 as f32);
@@ -237,7 +248,10 @@ mod tests {
             0.0,
             1,
         );
-        assert!((p[0].x - 4.3).abs() < 1e-4 && (p[0].y - 2.8).abs() < 1e-4, "{p:?}");
+        assert!(
+            (p[0].x - 4.3).abs() < 1e-4 && (p[0].y - 2.8).abs() < 1e-4,
+            "{p:?}"
+        );
         assert_eq!(quadratic_offset(1.0, 1.0, 1.0), 0.0);
         assert!((quadratic_offset(0.0, 1.0, 0.5) - 1.0 / 6.0).abs() < 1e-6);
         assert_eq!(quadratic_offset(0.0, 1.0, 0.99), 0.5 * 0.99 / 1.01);
@@ -258,7 +272,10 @@ mod tests {
         };
         let mut out = Vec::new();
         sample_bilinear(f, 1.25, 2.5, &mut out);
-        assert!((out[0] - (2.5 + 7.5 + 1.0)).abs() < 1e-5 && out[1] == 5.0, "{out:?}");
+        assert!(
+            (out[0] - (2.5 + 7.5 + 1.0)).abs() < 1e-5 && out[1] == 5.0,
+            "{out:?}"
+        );
         out.clear();
         sample_bilinear(f, 3.0, 1.0, &mut out); // a cell centre exactly
         assert_eq!(out[0], v[w + 3]);

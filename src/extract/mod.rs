@@ -26,11 +26,11 @@ pub mod runtime;
 #[cfg(feature = "colmap")]
 pub mod sfp_map;
 
-use crate::format::f16;
-use crate::progress::Reporter;
 use self::contract::Contract;
 use self::image::GrayInput;
 use self::keypoints::{FeatureMap, ScoreMap};
+use crate::format::f16;
+use crate::progress::Reporter;
 use ort::session::builder::GraphOptimizationLevel;
 use ort::session::Session;
 use ort::value::Tensor;
@@ -304,7 +304,9 @@ impl fmt::Debug for Extractor {
     }
 }
 
-fn read_model(path: Option<&Path>) -> Result<(std::borrow::Cow<'static, [u8]>, String), ExtractError> {
+fn read_model(
+    path: Option<&Path>,
+) -> Result<(std::borrow::Cow<'static, [u8]>, String), ExtractError> {
     match path {
         None => Ok((DEFAULT_MODEL.into(), DEFAULT_MODEL_NAME.to_string())),
         Some(p) => {
@@ -333,21 +335,35 @@ impl Extractor {
             model: name.clone(),
             reason: e.to_string(),
         };
+        let option_err =
+            |e: ort::Error<ort::session::builder::SessionBuilder>| ExtractError::Runtime {
+                path: Some(runtime.location.path.clone()),
+                reason: format!("session options: {e}"),
+            };
+        // Spinning off: the threads sleep between images instead of burning the 2 shared cores.
         let session = Session::builder(runtime.environment())
             .map_err(model_err)?
             .with_optimization_level(GraphOptimizationLevel::Level3)
-            .and_then(|b| b.with_intra_threads(options.threads.max(1)))
-            .and_then(|b| b.with_inter_threads(1))
-            .and_then(|b| b.with_intra_op_spinning(false))
-            .and_then(|b| b.with_inter_op_spinning(false))
-            .map_err(|e| model_err(e.into()))?
+            .map_err(option_err)?
+            .with_intra_threads(options.threads.max(1))
+            .map_err(option_err)?
+            .with_inter_threads(1)
+            .map_err(option_err)?
+            .with_intra_op_spinning(false)
+            .map_err(option_err)?
+            .with_inter_op_spinning(false)
+            .map_err(option_err)?
             .commit_from_memory(&bytes)
             .map_err(model_err)?;
         let meta = session.metadata().map_err(model_err)?;
         let keys = meta.custom_keys().map_err(model_err)?;
         let contract = Contract::from_metadata(&name, &keys, |k| meta.custom(k))?;
         drop(meta);
-        let output_names: Vec<String> = session.outputs().iter().map(|o| o.name().to_string()).collect();
+        let output_names: Vec<String> = session
+            .outputs()
+            .iter()
+            .map(|o| o.name().to_string())
+            .collect();
         for i in 0..contract.levels() {
             for out in [format!("feat_{i}"), format!("score_{i}")] {
                 if !output_names.contains(&out) {
@@ -405,7 +421,10 @@ impl Extractor {
             .map_err(|e| infer(e.to_string()))?;
         let mut levels = Vec::with_capacity(self.contract.levels());
         for i in 0..self.contract.levels() {
-            let (lh, lw) = (self.contract.level_side(i, h), self.contract.level_side(i, w));
+            let (lh, lw) = (
+                self.contract.level_side(i, h),
+                self.contract.level_side(i, w),
+            );
             let c = self.contract.dims[i];
             let take = |out: &str, channels: usize| -> Result<Vec<f32>, ExtractError> {
                 let value = outputs
@@ -454,7 +473,12 @@ impl Extractor {
     }
 
     /// Keypoints and descriptors of every level from the network's outputs.
-    pub fn features(&self, dense: &Dense, original_size: [u32; 2], options: &DetectOptions) -> Features {
+    pub fn features(
+        &self,
+        dense: &Dense,
+        original_size: [u32; 2],
+        options: &DetectOptions,
+    ) -> Features {
         let c = &self.contract;
         let threshold = options.threshold.unwrap_or(c.default_threshold);
         let radius = options.nms_radius.unwrap_or(c.default_nms_radius) as usize;
@@ -500,7 +524,11 @@ impl Extractor {
     }
 
     /// [`Extractor::run`] then [`Extractor::features`].
-    pub fn extract(&mut self, input: &GrayInput, options: &DetectOptions) -> Result<Features, ExtractError> {
+    pub fn extract(
+        &mut self,
+        input: &GrayInput,
+        options: &DetectOptions,
+    ) -> Result<Features, ExtractError> {
         let dense = self.run(input)?;
         Ok(self.features(&dense, input.original_size, options))
     }

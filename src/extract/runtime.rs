@@ -51,7 +51,10 @@ pub fn cache_dir() -> Option<PathBuf> {
                 .filter(|h| !h.is_empty())
                 .map(|h| PathBuf::from(h).join(".cache"))
         })?;
-    Some(base.join("sfpmap").join(format!("onnxruntime-{ORT_VERSION}")))
+    Some(
+        base.join("sfpmap")
+            .join(format!("onnxruntime-{ORT_VERSION}")),
+    )
 }
 
 /// Sets `ORT_DISABLE_TELEMETRY=1` for this process, once, before ONNX Runtime starts.
@@ -206,10 +209,7 @@ fn run(cmd: &mut Command, what: &str) -> Result<(), ExtractError> {
 }
 
 fn fetch_into(tmp: &Path, target: &Path, reporter: &dyn Reporter) -> Result<(), ExtractError> {
-    reporter.start(
-        &format!("pip download onnxruntime=={ORT_VERSION}"),
-        None,
-    );
+    reporter.start(&format!("pip download onnxruntime=={ORT_VERSION}"), None);
     let requirement = format!("onnxruntime=={ORT_VERSION}");
     let download = run(
         Command::new(python())

@@ -1,1 +1,401 @@
-#[cfg(test)] mod t {}
+//! SFP maps from a COLMAP model and its images (`sfpmap convert --images`).
+//!
+//! The network runs once per model image. At every 2D observation of every 3D point, every
+//! level's dense features are sampled bilinearly (and L2-normalised) and its score map is
+//! sampled too. Per point and level, the track's features are aggregated by normalised mean
+//! and the scores by mean. **Level assignment**: a point belongs to level i when its mean
+//! level-i score is at least the threshold (default 0.5: the score is the probability of the
+//! network's sparsity mask keeping that pixel, so ≥ 0.5 is the mask's more likely value).
+//! Points no level selects are dropped — the network's learned map compression.
+//!
+//! Each level stores the contract's `full` descriptor of its points (levels i.. parts, each
+//! normalised, concatenated, normalised), so `short` (the first `C_i` dims) is the level's own
+//! feature; descriptors stay in the extractor's basis (identity projection, no
+//! `level_projection` section), so query descriptors from [`Extractor`] match them directly.
+
+use super::{ExtractError, Extractor, ExtractorOptions, ModelInfo};
+use crate::colmap::convert::{source_file, ConvertError, ConvertSummary, Geometry, LevelSummary};
+use crate::colmap::{model_files, read_model};
+use crate::format::{self, Codec, Descriptors, LevelInfo, MapWriter, Metadata, SourceFile};
+use crate::progress::Reporter;
+use serde_json::json;
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The level rule, as recorded in each level's metadata.
+pub const LEVEL_RULE: &str = "a point is in level i when the mean of score_i (bilinear at its observations) over its track is >= score_threshold; points in no level are dropped";
+
+#[derive(Debug, Clone)]
+pub struct SfpMapOptions {
+    /// Folder the model's image names are relative to.
+    pub images: PathBuf,
+    pub extractor: ExtractorOptions,
+    /// Resize images so the longer side is at most this before the network.
+    pub resize_max: Option<u32>,
+    /// Level assignment threshold on the mean score (`None` = 0.5).
+    pub score_threshold: Option<f32>,
+    /// Skip model images whose file is missing (default: error).
+    pub allow_missing: bool,
+    pub codec: Codec,
+    pub zstd_level: i32,
+}
+
+impl SfpMapOptions {
+    pub fn new(images: impl Into<PathBuf>) -> Self {
+        SfpMapOptions {
+            images: images.into(),
+            extractor: ExtractorOptions::default(),
+            resize_max: None,
+            score_threshold: None,
+            allow_missing: false,
+            codec: Codec::Raw,
+            zstd_level: 3,
+        }
+    }
+}
+
+/// What an SFP conversion did, beyond the [`ConvertSummary`] every convert reports.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SfpMapSummary {
+    /// `input_bytes` = the COLMAP model files; `levels[..].scale_range` = the level's stride.
+    pub convert: ConvertSummary,
+    /// 3D points in the model; `convert.points` of them are kept.
+    pub model_points: usize,
+    /// Model images with no file (skipped with `allow_missing`).
+    pub missing_images: Vec<String>,
+    /// Bytes of the images read.
+    pub image_bytes: u64,
+    pub model: ModelInfo,
+    /// Median network + sampling time per image, ms.
+    pub ms_per_image: f64,
+    pub score_threshold: f32,
+}
+
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum SfpMapError {
+    Convert(ConvertError),
+    Extract(ExtractError),
+    /// Model images with no file under the images folder.
+    MissingImages {
+        images: PathBuf,
+        missing: Vec<String>,
+        total: usize,
+    },
+}
+
+impl fmt::Display for SfpMapError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            SfpMapError::Convert(e) => e.fmt(f),
+            SfpMapError::Extract(e) => e.fmt(f),
+            SfpMapError::MissingImages {
+                images,
+                missing,
+                total,
+            } => {
+                let shown: Vec<&str> = missing.iter().take(5).map(String::as_str).collect();
+                write!(
+                    f,
+                    "{}: {} of {total} model images missing ({}{}); pass --allow-missing to skip them",
+                    images.display(),
+                    missing.len(),
+                    shown.join(", "),
+                    if missing.len() > 5 { ", …" } else { "" }
+                )
+            }
+        }
+    }
+}
+
+impl std::error::Error for SfpMapError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            SfpMapError::Convert(e) => Some(e),
+            SfpMapError::Extract(e) => Some(e),
+            SfpMapError::MissingImages { .. } => None,
+        }
+    }
+}
+
+impl From<ConvertError> for SfpMapError {
+    fn from(e: ConvertError) -> Self {
+        SfpMapError::Convert(e)
+    }
+}
+
+impl From<ExtractError> for SfpMapError {
+    fn from(e: ExtractError) -> Self {
+        SfpMapError::Extract(e)
+    }
+}
+
+impl From<format::Error> for SfpMapError {
+    fn from(e: format::Error) -> Self {
+        SfpMapError::Convert(ConvertError::Format(e))
+    }
+}
+
+impl From<crate::colmap::Error> for SfpMapError {
+    fn from(e: crate::colmap::Error) -> Self {
+        SfpMapError::Convert(ConvertError::Colmap(e))
+    }
+}
+
+/// Per-point sums over the track: every level's normalised features, scores, counts.
+struct Tracks {
+    /// Offsets of each level's features within a point's row.
+    offsets: Vec<usize>,
+    width: usize,
+    levels: usize,
+    features: Vec<f32>,
+    scores: Vec<f32>,
+    counts: Vec<u32>,
+}
+
+/// Converts the COLMAP model in `model_dir` with the images in `options.images` into an SFP
+/// map at `output` (temp file + rename).
+pub fn convert_with_images(
+    model_dir: &Path,
+    options: &SfpMapOptions,
+    output: &Path,
+    reporter: &dyn Reporter,
+) -> Result<SfpMapSummary, SfpMapError> {
+    let files = model_files(model_dir)?;
+    reporter.start("reading model", None);
+    let model = read_model(model_dir)?;
+    reporter.finish();
+    let mut sources = files
+        .paths
+        .iter()
+        .map(|p| source_file(p))
+        .collect::<Result<Vec<_>, _>>()?;
+    let input_bytes = sources.iter().map(|s| s.bytes).sum();
+
+    let paths: Vec<PathBuf> = model
+        .images()
+        .iter()
+        .map(|i| options.images.join(&i.name))
+        .collect();
+    let missing: Vec<String> = model
+        .images()
+        .iter()
+        .zip(&paths)
+        .filter(|(_, p)| !p.is_file())
+        .map(|(i, _)| i.name.clone())
+        .collect();
+    if !missing.is_empty() {
+        if !options.allow_missing {
+            return Err(SfpMapError::MissingImages {
+                images: options.images.clone(),
+                missing,
+                total: paths.len(),
+            });
+        }
+        reporter.warn(&format!(
+            "{}: {} of {} model images missing; their observations get no features",
+            options.images.display(),
+            missing.len(),
+            paths.len()
+        ));
+    }
+
+    let mut extractor = Extractor::new(&options.extractor, reporter)?;
+    let contract = extractor.contract().clone();
+    let levels = contract.levels();
+    let threshold = options.score_threshold.unwrap_or(0.5);
+    let n_points = model.points3d().len();
+    let mut offsets = Vec::with_capacity(levels);
+    let mut width = 0;
+    for &d in &contract.dims {
+        offsets.push(width);
+        width += d;
+    }
+    let mut tracks = Tracks {
+        offsets,
+        width,
+        levels,
+        features: vec![0.0; n_points * width],
+        scores: vec![0.0; n_points * levels],
+        counts: vec![0; n_points],
+    };
+    let mut global = vec![0.0f32; model.images().len() * contract.global_dim];
+    let mut ms = Vec::new();
+    let mut image_bytes = 0;
+    let mut buf = Vec::with_capacity(width);
+    reporter.start("extracting", Some(model.images().len() as u64));
+    for (k, (image, path)) in model.images().iter().zip(&paths).enumerate() {
+        if !path.is_file() {
+            reporter.advance(1);
+            continue;
+        }
+        let source = source_file(path)?;
+        image_bytes += source.bytes;
+        sources.push(source);
+        let input = super::image::load(path, contract.gray_weights, options.resize_max)?;
+        let t = Instant::now();
+        let dense = extractor.run(&input)?;
+        global[k * contract.global_dim..(k + 1) * contract.global_dim]
+            .copy_from_slice(&dense.global);
+        for p in &image.points2d {
+            let Some(point) = p.point3d_id.and_then(|id| model.point3d_index(id)) else {
+                continue;
+            };
+            let [x, y] = dense.input_pixel([p.xy[0] as f32, p.xy[1] as f32]);
+            let row = &mut tracks.features[point * tracks.width..(point + 1) * tracks.width];
+            for (j, level) in dense.levels.iter().enumerate() {
+                buf.clear();
+                level.descriptor_at(x, y, &mut buf);
+                for (s, v) in row[tracks.offsets[j]..].iter_mut().zip(&buf) {
+                    *s += v;
+                }
+                tracks.scores[point * tracks.levels + j] += level.score_at(x, y);
+            }
+            tracks.counts[point] += 1;
+        }
+        ms.push(t.elapsed().as_secs_f64() * 1e3);
+        reporter.advance(1);
+    }
+    reporter.finish();
+
+    // Level membership by mean score; points in no level are dropped.
+    let mean_score =
+        |p: usize, j: usize| tracks.scores[p * levels + j] / tracks.counts[p].max(1) as f32;
+    let member = |p: usize, j: usize| tracks.counts[p] > 0 && mean_score(p, j) >= threshold;
+    let keep: Vec<bool> = (0..n_points)
+        .map(|p| (0..levels).any(|j| member(p, j)))
+        .collect();
+    let geometry = Geometry::new(&model, Some(&keep));
+
+    let model_info = extractor.model().clone();
+    let mut metadata = Metadata::default();
+    metadata.provenance.tool = Metadata::tool_string();
+    metadata.provenance.sources = sources;
+    metadata.provenance.model = Some(SourceFile {
+        path: model_info.name.clone(),
+        bytes: model_info.bytes,
+        xxh3: model_info.xxh3.clone(),
+    });
+    metadata.provenance.parameters = json!({
+        "operation": "convert",
+        "colmap": model_dir.display().to_string(),
+        "images": options.images.display().to_string(),
+        "descriptors": "sfp",
+        "model": model_info.name,
+        "model_xxh3": model_info.xxh3,
+        "contract": contract.raw,
+        "score_threshold": threshold,
+        "level_rule": LEVEL_RULE,
+        "aggregate": "mean of L2-normalised features per level, re-normalised",
+        "resize_max": options.resize_max,
+        "allow_missing": options.allow_missing,
+        "missing_images": missing,
+        "codec": options.codec.name(),
+    })
+    .as_object()
+    .cloned()
+    .unwrap_or_default();
+    let mut writer = MapWriter::new(metadata);
+    writer.set_codec(options.codec, options.zstd_level);
+    geometry.write_into(&mut writer)?;
+    writer.set_image_global(contract.global_dim, &global)?;
+
+    reporter.start("levels", Some(levels as u64));
+    let mut built = Vec::new();
+    for j in 0..levels {
+        let members: Vec<usize> = (0..n_points).filter(|&p| member(p, j)).collect();
+        if members.is_empty() {
+            reporter.advance(1);
+            continue;
+        }
+        let (dim_short, dim_full) = (contract.dims[j], contract.full_dims[j]);
+        let mut descriptors = Vec::with_capacity(members.len() * dim_full);
+        let mut energy_short = 0.0f64;
+        for &p in &members {
+            let row = &tracks.features[p * tracks.width..(p + 1) * tracks.width];
+            let start = descriptors.len();
+            for (i, &off) in tracks.offsets.iter().enumerate().skip(j) {
+                let part_start = descriptors.len();
+                descriptors.extend_from_slice(&row[off..off + contract.dims[i]]);
+                super::keypoints::l2_normalise(&mut descriptors[part_start..]);
+            }
+            super::keypoints::l2_normalise(&mut descriptors[start..]);
+            energy_short += descriptors[start..start + dim_short]
+                .iter()
+                .map(|v| f64::from(v * v))
+                .sum::<f64>();
+        }
+        let points: Vec<u32> = members.iter().map(|&p| geometry.map_index[p]).collect();
+        let scores: Vec<f32> = members.iter().map(|&p| mean_score(p, j)).collect();
+        let variance_short = energy_short / members.len() as f64;
+        let stride = contract.strides[j];
+        let mut info = LevelInfo {
+            level: contract.level_ids[j],
+            stride: f64::from(stride),
+            descriptor: contract.model_name.clone(),
+            dim_full: dim_full as u32,
+            dim_short: dim_short as u32,
+            normalization: "l2".into(),
+            extra: Default::default(),
+        };
+        let mean = scores.iter().map(|&s| f64::from(s)).sum::<f64>() / scores.len() as f64;
+        info.extra.insert("assignment".into(), json!(LEVEL_RULE));
+        info.extra
+            .insert("score_threshold".into(), json!(threshold));
+        info.extra.insert("mean_score".into(), json!(mean));
+        info.extra.insert(
+            "basis".into(),
+            json!("identity (the extractor's own; no level_projection)"),
+        );
+        info.extra.insert(
+            "full_layout".into(),
+            json!("levels i.. features, each L2-normalised, concatenated, L2-normalised; short = level i's part"),
+        );
+        info.extra
+            .insert("contract".into(), json!(super::contract::CONTRACT));
+        info.extra
+            .insert("variance_short".into(), json!(variance_short));
+        built.push((info, points, descriptors, variance_short));
+        reporter.advance(1);
+    }
+    reporter.finish();
+    let mut summaries = Vec::new();
+    for (info, points, descriptors, variance_short) in &built {
+        summaries.push(LevelSummary {
+            level: info.level,
+            points: points.len(),
+            dim_full: info.dim_full,
+            dim_short: info.dim_short,
+            variance_short: *variance_short,
+            scale_range: [info.stride as f32; 2],
+        });
+        writer.add_level(
+            info.clone(),
+            points,
+            Some(Descriptors::F32(descriptors)),
+            true,
+        )?;
+    }
+    let output_bytes = writer.write(output, reporter)?;
+    ms.sort_by(f64::total_cmp);
+    Ok(SfpMapSummary {
+        convert: ConvertSummary {
+            points: geometry.positions.len(),
+            images: geometry.names.len(),
+            observations: geometry.vis_points.len(),
+            input_bytes,
+            output_bytes,
+            geometry_only: false,
+            levels: summaries,
+            images_without_features: missing.len(),
+            points_without_descriptors: 0,
+        },
+        model_points: n_points,
+        missing_images: missing,
+        image_bytes,
+        model: model_info,
+        ms_per_image: ms.get(ms.len() / 2).copied().unwrap_or(0.0),
+        score_threshold: threshold,
+    })
+}

@@ -12,16 +12,26 @@ use std::path::{Path, PathBuf};
 
 /// Keypoints in the file are in hloc's convention: the first pixel's centre is (0, 0), so
 /// COLMAP's coordinates are these + 0.5 (hloc adds it when it imports into COLMAP).
-pub const KEYPOINT_CONVENTION: &str = "pixel centre of the first pixel = (0, 0) (hloc); COLMAP = value + 0.5";
+pub const KEYPOINT_CONVENTION: &str =
+    "pixel centre of the first pixel = (0, 0) (hloc); COLMAP = value + 0.5";
 
 /// What went wrong writing or reading a features file.
 #[derive(Debug)]
 #[non_exhaustive]
 pub enum H5Error {
-    Hdf5 { path: PathBuf, reason: String },
+    Hdf5 {
+        path: PathBuf,
+        reason: String,
+    },
     /// Two images map to the same group, or a name cannot be a group path.
-    BadName { name: String, reason: String },
-    Io { path: PathBuf, source: std::io::Error },
+    BadName {
+        name: String,
+        reason: String,
+    },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
 }
 
 impl std::fmt::Display for H5Error {
@@ -108,7 +118,10 @@ pub fn write(
         node.features = Some(features);
     }
     let mut file = FileBuilder::new();
-    file.set_attr("sfp.main_level", AttrValue::I64(i64::from(options.main_level)));
+    file.set_attr(
+        "sfp.main_level",
+        AttrValue::I64(i64::from(options.main_level)),
+    );
     file.set_attr(
         "keypoint_convention",
         AttrValue::String(KEYPOINT_CONVENTION.into()),
@@ -223,12 +236,16 @@ mod tests {
         let level = |id: u16, stride: u32, ds: usize, df: usize| LevelFeatures {
             level: id,
             stride,
-            keypoints: (0..n).map(|i| [i as f32 + 0.5, 2.0 * i as f32 + 0.5]).collect(),
+            keypoints: (0..n)
+                .map(|i| [i as f32 + 0.5, 2.0 * i as f32 + 0.5])
+                .collect(),
             scores: (0..n).map(|i| 0.5 + i as f32 / 100.0).collect(),
             dim_short: ds,
             dim_full: df,
             short: (0..n * ds).map(|i| f16::from_f32(i as f32 / 8.0)).collect(),
-            full: (0..n * df).map(|i| f16::from_f32(i as f32 / 16.0)).collect(),
+            full: (0..n * df)
+                .map(|i| f16::from_f32(i as f32 / 16.0))
+                .collect(),
         };
         Features {
             image_size: [64, 48],

@@ -1,0 +1,125 @@
+#!/usr/bin/env python3
+"""Python ONNX Runtime reference of the SFP extractor (spec/extractor.md), for tests/extract_reference.rs.
+
+Reads an image (optionally re-saving it as an RGB PNG first, so the Rust and Python decoders
+see the same pixels), runs the model with onnxruntime (CPU), and writes JSON with, per level,
+keypoints (COLMAP convention), scores, short and full descriptors, plus the global descriptor.
+Needs numpy, pillow, onnxruntime==1.31.1 (no OpenCV).
+
+  python3 tests/extract_reference.py --model models/sfp-v1.onnx --image in.jpg --png out.png --json ref.json
+"""
+
+import argparse
+import json
+
+import numpy as np
+import onnxruntime as ort
+from PIL import Image
+
+
+def sliding_max(score, r):
+    """Max over the (2r+1)^2 window, clipped at the borders."""
+    h, w = score.shape
+    pad = np.full((h + 2 * r, w + 2 * r), -np.inf, np.float32)
+    pad[r:r + h, r:r + w] = score
+    out = np.full((h, w), -np.inf, np.float32)
+    for dy in range(2 * r + 1):
+        for dx in range(2 * r + 1):
+            out = np.maximum(out, pad[dy:dy + h, dx:dx + w])
+    return out
+
+
+def quad(m, c, p):
+    den = m - 2 * c + p
+    safe = np.where(np.abs(den) > 1e-9, den, 1.0)
+    d = np.where(np.abs(den) > 1e-9, 0.5 * (m - p) / safe, 0.0)
+    return np.clip(d, -0.5, 0.5)
+
+
+def detect(score, radius, thr, k):
+    peak = (score >= sliding_max(score, radius)) & (score > thr)
+    peak[0, :] = peak[-1, :] = False
+    peak[:, 0] = peak[:, -1] = False
+    ys, xs = np.nonzero(peak)
+    v = score[ys, xs]
+    # highest score first, ties by row then column (what the Rust extractor does)
+    order = np.lexsort((xs, ys, -v))[:k]
+    ys, xs, v = ys[order], xs[order], v[order]
+    dx = quad(score[ys, xs - 1], score[ys, xs], score[ys, xs + 1])
+    dy = quad(score[ys - 1, xs], score[ys, xs], score[ys + 1, xs])
+    return np.stack([xs + dx, ys + dy], 1).astype(np.float32), v
+
+
+def bilinear(fmap, pts):
+    c, h, w = fmap.shape
+    x = np.clip(pts[:, 0], 0, w - 1)
+    y = np.clip(pts[:, 1], 0, h - 1)
+    x0 = np.floor(x).astype(int)
+    y0 = np.floor(y).astype(int)
+    x1 = np.minimum(x0 + 1, w - 1)
+    y1 = np.minimum(y0 + 1, h - 1)
+    ax = (x - x0)[:, None]
+    ay = (y - y0)[:, None]
+    f = fmap.transpose(1, 2, 0)
+    return (f[y0, x0] * (1 - ax) * (1 - ay) + f[y0, x1] * ax * (1 - ay)
+            + f[y1, x0] * (1 - ax) * ay + f[y1, x1] * ax * ay)
+
+
+def l2n(x):
+    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--model", required=True)
+    ap.add_argument("--image", required=True)
+    ap.add_argument("--png", help="re-save the image here as RGB PNG and use that")
+    ap.add_argument("--json", required=True)
+    ap.add_argument("--threads", type=int, default=2)
+    a = ap.parse_args()
+
+    img = Image.open(a.image).convert("RGB")
+    if a.png:
+        img.save(a.png)
+        img = Image.open(a.png).convert("RGB")
+    gray = np.asarray(img.convert("L"), dtype=np.float32) / 255.0
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = a.threads
+    so.inter_op_num_threads = 1
+    s = ort.InferenceSession(a.model, so, providers=["CPUExecutionProvider"])
+    md = s.get_modelmeta().custom_metadata_map
+    assert md["sfp.contract"] == "sfp-extractor/1", md.get("sfp.contract")
+    strides = [int(v) for v in md["sfp.strides"].split(",")]
+    ids = [int(v) for v in md["sfp.level_ids"].split(",")]
+    tops = [int(v) for v in md["sfp.default_max_keypoints"].split(",")]
+    thr = float(md["sfp.default_threshold"])
+    radius = int(md["sfp.default_nms_radius"])
+    names = [o.name for o in s.get_outputs()]
+    outs = dict(zip(names, s.run(None, {md.get("sfp.input_name", "image"): gray[None, None]})))
+    feats = [outs[f"feat_{i}"][0] for i in range(len(strides))]
+    levels = []
+    for i, st in enumerate(strides):
+        cells, v = detect(outs[f"score_{i}"][0, 0], radius, thr, tops[i])
+        px = cells * st
+        short = l2n(bilinear(feats[i], cells))
+        parts = [l2n(bilinear(feats[j], px / strides[j])) for j in range(i, len(strides))]
+        full = l2n(np.concatenate(parts, 1))
+        levels.append({
+            "level": ids[i],
+            "stride": st,
+            "keypoints": (px + 0.5).tolist(),
+            "scores": v.tolist(),
+            "short": short.tolist(),
+            "full": full.tolist(),
+        })
+    json.dump({
+        "image_size": [img.width, img.height],
+        "ort_version": ort.__version__,
+        "levels": levels,
+        "global": outs["global"][0].tolist(),
+    }, open(a.json, "w"))
+
+
+if __name__ == "__main__":
+    main()
