@@ -515,6 +515,7 @@ fn timing_report() {
             e.pose.center_distance(&s.truth)
         );
     }
+    let s = scene(62, SIMPLE_RADIAL, 500, 0.0, 1.0);
     let start_pose = perturb(&s.truth, 1.0, 0.1);
     let reps = 100;
     let start = Instant::now();
@@ -741,4 +742,25 @@ fn ransac_reliability_report() {
         worst.1,
         total_ms / f64::from(trials as u32)
     );
+}
+
+/// Refinement alone, for instruction counts under callgrind.
+#[test]
+#[ignore]
+fn refine_speed() {
+    let s = scene(62, SIMPLE_RADIAL, 500, 0.0, 1.0);
+    let start_pose = perturb(&s.truth, 1.0, 0.1);
+    let mut iterations = 0;
+    for _ in 0..20 {
+        iterations += refine_pose(
+            &s.pixels,
+            &s.points,
+            &s.camera,
+            &start_pose,
+            &RefineOptions::default(),
+        )
+        .unwrap()
+        .iterations;
+    }
+    assert!(iterations > 0);
 }
