@@ -267,3 +267,22 @@ fn parses_shared_scene_files() {
         }
     }
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(256))]
+
+    /// Undistortion far outside the image (where polynomial models fold back) must not panic
+    /// or produce NaN for finite pixels; it may be inexact there, as in COLMAP.
+    #[test]
+    fn unproject_is_finite_everywhere(
+        model in 0usize..7,
+        x in -1e5f64..1e5,
+        y in -1e5f64..1e5,
+    ) {
+        let camera = &cameras()[model];
+        let xy = camera.unproject(&Vector2::new(x, y));
+        prop_assert!(xy.x.is_finite() && xy.y.is_finite(), "{} at ({x}, {y}): {xy}", camera.model());
+        let bearing = camera.bearing(&Vector2::new(x, y));
+        prop_assert!(bearing.iter().all(|c| c.is_finite()));
+    }
+}

@@ -8,7 +8,14 @@
 //! iteration count adapts to the best inlier ratio `w`: `N = ln(1 − confidence) / ln(1 − w³)`,
 //! clamped to `[min_iterations, max_iterations]`.
 //!
-//! Sampling uses a seeded SplitMix64, so a given input and seed always gives the same pose.
+//! Most hypotheses are wrong, so scoring stops early: as soon as the MSAC score exceeds the
+//! best one, and (by default) when Wald's SPRT decides the pose is bad after a few dozen
+//! points (Matas & Chum 2008). Points are scored in a shuffled order so that early decisions
+//! do not depend on how the caller sorted its matches. With SPRT, `w³` above is multiplied by
+//! the probability that a good pose survives the test.
+//!
+//! Sampling and shuffling use a seeded SplitMix64, so a given input and seed always gives the
+//! same pose.
 
 use nalgebra::{Matrix2, Vector2, Vector3};
 
