@@ -1,0 +1,276 @@
+//! `sfpmap extract` and `sfpmap convert --images` end to end on the real sacre-coeur scene
+//! (10 images, ~1000 px): the real binary, the real runtime (found, or fetched by the binary
+//! itself on first use), the embedded model.
+#![cfg(all(feature = "onnx", feature = "colmap", feature = "cli"))]
+
+use serde_json::Value;
+use sfpmap::format::Map;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn scene() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes/sacre-coeur")
+}
+
+fn sfpmap(args: &[&std::ffi::OsStr]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+        .args(args)
+        .env("ORT_DISABLE_TELEMETRY", "1")
+        .output()
+        .expect("sfpmap runs")
+}
+
+fn ok(args: &[&std::ffi::OsStr]) -> Value {
+    let out = sfpmap(args);
+    assert!(
+        out.status.success(),
+        "sfpmap {args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap_or(Value::Null)
+}
+
+fn os<S: AsRef<std::ffi::OsStr> + ?Sized>(s: &S) -> &std::ffi::OsStr {
+    s.as_ref()
+}
+
+fn convert(images: &Path, out: &Path, extra: &[&str]) -> Output {
+    let model = scene().join("sparse-map");
+    let mut args = vec![
+        os("convert"),
+        os("--colmap"),
+        model.as_os_str(),
+        os("--images"),
+        images.as_os_str(),
+        os("-o"),
+        out.as_os_str(),
+        os("--json"),
+    ];
+    args.extend(extra.iter().map(os));
+    sfpmap(&args)
+}
+
+#[test]
+fn convert_images_builds_a_multilevel_map_that_slices_to_level_2_short() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("sfp.sfpm");
+    let run = convert(&scene().join("images"), &out, &[]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let summary: Value = serde_json::from_slice(&run.stdout).unwrap();
+    let model_points = summary["model_points"].as_u64().unwrap();
+    let points = summary["points"].as_u64().unwrap();
+    assert!(points > 0 && points <= model_points, "{summary}");
+    assert_eq!(
+        summary["dropped_points"].as_u64().unwrap(),
+        model_points - points
+    );
+    let levels = summary["levels"].as_array().unwrap();
+    assert!(
+        levels
+            .iter()
+            .filter(|l| l["points"].as_u64() > Some(0))
+            .count()
+            >= 3,
+        "{summary}"
+    );
+
+    ok(&[os("verify"), out.as_os_str()]);
+    let map = Map::open(&out).unwrap();
+    let meta = map.metadata();
+    let model = meta.provenance.model.as_ref().expect("model provenance");
+    assert_eq!(model.bytes, sfpmap::extract::DEFAULT_MODEL.len() as u64);
+    assert_eq!(
+        meta.provenance.parameters["contract"]["sfp.contract"],
+        "sfp-extractor/1"
+    );
+    assert_eq!(map.level_ids(), vec![0, 1, 2, 3]);
+    let (global, dim) = map.image_global().unwrap().expect("global descriptors");
+    assert_eq!((global.len() / dim, dim), (8, 128));
+    let level2 = map.level(2).unwrap();
+    assert_eq!((level2.dim_short(), level2.dim_full()), (64, 192));
+    assert_eq!(level2.info().stride, 8.0);
+    assert!(level2.info().extra["assignment"]
+        .as_str()
+        .unwrap()
+        .contains("mean of score_i"));
+    // Every point is in some level; every observation of the map refers to a kept point.
+    let mut in_level = vec![false; map.n_points() as usize];
+    for level in map.levels() {
+        for &p in level.points().unwrap().iter() {
+            in_level[p as usize] = true;
+        }
+    }
+    assert!(in_level.iter().all(|&b| b));
+    let full_short = level2.desc_short().unwrap().into_owned();
+    let full_rest = level2.desc_rest().unwrap().unwrap().into_owned();
+    // Full descriptors are unit vectors (f16 rounding aside).
+    for i in 0..level2.len() {
+        let norm: f32 = full_short[i * 64..(i + 1) * 64]
+            .iter()
+            .chain(&full_rest[i * 128..(i + 1) * 128])
+            .map(|v| v.to_f32() * v.to_f32())
+            .sum();
+        assert!((norm - 1.0).abs() < 5e-3, "point {i}: |full|^2 = {norm}");
+    }
+
+    let sliced = dir.path().join("l2.sfpm");
+    let s = sfpmap(&[
+        os("slice"),
+        out.as_os_str(),
+        os("--level"),
+        os("2"),
+        os("--short"),
+        os("-o"),
+        sliced.as_os_str(),
+    ]);
+    assert!(s.status.success(), "{}", String::from_utf8_lossy(&s.stderr));
+    ok(&[os("verify"), sliced.as_os_str()]);
+    let small = Map::open(&sliced).unwrap();
+    assert_eq!(small.level_ids(), vec![2]);
+    let l = small.level(2).unwrap();
+    assert!(!l.has_rest());
+    assert_eq!(l.len(), level2.len());
+    assert_eq!(l.desc_short().unwrap().into_owned(), full_short);
+    assert!(std::fs::metadata(&sliced).unwrap().len() < std::fs::metadata(&out).unwrap().len());
+
+    // Deterministic: the same inputs give the same bytes.
+    let again = dir.path().join("again.sfpm");
+    assert!(convert(&scene().join("images"), &again, &[])
+        .status
+        .success());
+    assert_eq!(std::fs::read(&out).unwrap(), std::fs::read(&again).unwrap());
+}
+
+#[test]
+fn missing_images_are_named_unless_allowed() {
+    let dir = tempfile::tempdir().unwrap();
+    let images = dir.path().join("images");
+    std::fs::create_dir(&images).unwrap();
+    let mut names: Vec<PathBuf> = std::fs::read_dir(scene().join("images"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    names.sort();
+    let dropped = names.remove(0);
+    for p in &names {
+        std::fs::copy(p, images.join(p.file_name().unwrap())).unwrap();
+    }
+    let out = dir.path().join("m.sfpm");
+    let run = convert(&images, &out, &[]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    let dropped_name = dropped.file_name().unwrap().to_string_lossy().into_owned();
+    // The dropped file may be a query image the map does not use; then the convert succeeds.
+    let model_uses_it = std::fs::read(scene().join("db_images.txt"))
+        .map(|b| String::from_utf8_lossy(&b).contains(&dropped_name))
+        .unwrap_or(true);
+    if model_uses_it {
+        assert!(!run.status.success());
+        assert!(
+            stderr.contains(&dropped_name) && stderr.contains("--allow-missing"),
+            "{stderr}"
+        );
+        assert!(!out.exists());
+        let run = convert(&images, &out, &["--allow-missing"]);
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let summary: Value = serde_json::from_slice(&run.stdout).unwrap();
+        assert_eq!(summary["missing_images"][0], dropped_name.as_str());
+    } else {
+        assert!(run.status.success(), "{stderr}");
+    }
+    ok(&[os("verify"), out.as_os_str()]);
+}
+
+#[test]
+fn bad_model_files_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.onnx");
+    std::fs::write(&bad, b"\x08\x07garbage").unwrap();
+    let out = dir.path().join("m.sfpm");
+    for model in [bad, dir.path().join("absent.onnx")] {
+        let run = convert(
+            &scene().join("images"),
+            &out,
+            &["--model", model.to_str().unwrap()],
+        );
+        assert!(!run.status.success());
+        let stderr = String::from_utf8_lossy(&run.stderr);
+        assert!(
+            stderr.contains(model.to_str().unwrap()) && !stderr.contains("panicked"),
+            "{stderr}"
+        );
+    }
+}
+
+#[test]
+fn extract_writes_hloc_features_h5() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("features.h5");
+    let images = scene().join("images");
+    let summary = ok(&[
+        os("extract"),
+        images.as_os_str(),
+        os("-o"),
+        out.as_os_str(),
+        os("--json"),
+    ]);
+    assert_eq!(summary["images"], 10);
+    assert_eq!(summary["main_level"], 2);
+    assert!(summary["ms_median"].as_f64().unwrap() > 0.0);
+    let file = hdf5_pure::File::open(&out).unwrap();
+    let mut names: Vec<String> = std::fs::read_dir(&images)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    for name in &names {
+        let kp = file.dataset(&format!("{name}/keypoints")).unwrap();
+        let shape = kp.shape().unwrap();
+        assert_eq!(shape[1], 2);
+        let n = shape[0];
+        assert!(n > 0, "{name}: no level-2 keypoints");
+        let desc = file.dataset(&format!("{name}/descriptors")).unwrap();
+        assert_eq!(desc.shape().unwrap(), vec![192, n]);
+        assert_eq!(
+            file.dataset(&format!("{name}/scores"))
+                .unwrap()
+                .shape()
+                .unwrap(),
+            vec![n]
+        );
+        let size = file.dataset(&format!("{name}/image_size")).unwrap();
+        assert_eq!(size.shape().unwrap(), vec![2]);
+        for (level, full, short) in [(0, 240, 16), (1, 224, 32), (2, 192, 64), (3, 128, 128)] {
+            let g = format!("{name}/level_{level}");
+            let n = file
+                .dataset(&format!("{g}/keypoints"))
+                .unwrap()
+                .shape()
+                .unwrap()[0];
+            assert_eq!(
+                file.dataset(&format!("{g}/descriptors"))
+                    .unwrap()
+                    .shape()
+                    .unwrap(),
+                vec![full, n]
+            );
+            assert_eq!(
+                file.dataset(&format!("{g}/descriptors_short"))
+                    .unwrap()
+                    .shape()
+                    .unwrap(),
+                vec![short, n]
+            );
+        }
+    }
+    // An existing output is not overwritten without --force.
+    let again = sfpmap(&[os("extract"), images.as_os_str(), os("-o"), out.as_os_str()]);
+    assert!(!again.status.success());
+}
