@@ -7,6 +7,10 @@ keypoints (COLMAP convention), scores, short and full descriptors, plus the glob
 Needs numpy, pillow, onnxruntime==1.31.1 (no OpenCV).
 
   python3 tests/extract_reference.py --model models/sfp-v1.onnx --image in.jpg --png out.png --json ref.json
+
+With --check-h5 FILE (needs h5py) it instead reads an `sfpmap extract` output the way hloc
+does and checks the layout of spec/extractor.md ("features.h5 layout"); with --image as well,
+it also checks that image's group against this reference (same keypoints, descriptors).
 """
 
 import argparse
@@ -69,14 +73,66 @@ def l2n(x):
     return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
 
 
+def check_h5(path, reference=None, name=None):
+    import h5py
+    with h5py.File(path, "r") as f:
+        assert f.attrs["sfp.contract"] in (b"sfp-extractor/1", "sfp-extractor/1"), dict(f.attrs)
+        main_level = int(f.attrs["sfp.main_level"])
+        groups = []
+        f.visititems(lambda n, o: groups.append(n) if isinstance(o, h5py.Group) and "keypoints" in o and "image_size" in o else None)
+        assert groups, "no image groups"
+        for g in groups:
+            grp = f[g]
+            kp, desc, sc = grp["keypoints"][()], grp["descriptors"][()], grp["scores"][()]
+            n = kp.shape[0]
+            assert kp.shape == (n, 2) and kp.dtype == np.float32, (g, kp.shape, kp.dtype)
+            assert desc.shape[1] == n and desc.dtype == np.float16, (g, desc.shape, desc.dtype)
+            assert sc.shape == (n,), (g, sc.shape)
+            assert int(grp.attrs["level"]) == main_level
+            w, h = grp["image_size"][()]
+            assert np.all(kp >= -0.5) and np.all(kp[:, 0] <= w) and np.all(kp[:, 1] <= h), g
+            if n:
+                norms = np.linalg.norm(desc.astype(np.float32), axis=0)
+                assert np.allclose(norms, 1, atol=5e-3), (g, norms.min(), norms.max())
+            levels = sorted(k for k in grp if k.startswith("level_"))
+            assert levels, g
+            for lv in levels:
+                sub = grp[lv]
+                m = sub["keypoints"].shape[0]
+                assert sub["descriptors"].shape[1] == m and sub["descriptors_short"].shape[1] == m
+        if reference is not None:
+            grp = f[name]
+            for lv in reference["levels"]:
+                sub = grp[f"level_{lv['level']}"]
+                ours = sub["keypoints"][()] + 0.5  # hloc convention -> COLMAP
+                ref = np.asarray(lv["keypoints"], np.float32).reshape(-1, 2)
+                assert abs(len(ours) - len(ref)) <= 1 + len(ref) // 200, (lv["level"], len(ours), len(ref))
+                if len(ref) and len(ours):
+                    d = np.abs(ours[:, None, :] - ref[None, :, :]).max(2)
+                    j = d.argmin(1)
+                    close = d[np.arange(len(ours)), j] < 1e-3 * lv["stride"]
+                    assert close.mean() >= 0.99, (lv["level"], close.mean())
+                    full = sub["descriptors"][()].astype(np.float32).T[close]
+                    sim = (full * np.asarray(lv["full"], np.float32)[j[close]]).sum(1)
+                    assert sim.min() > 0.999, (lv["level"], sim.min())
+        print(f"{path}: {len(groups)} image groups, hloc layout ok (h5py {h5py.__version__})")
+
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--model", required=True)
-    ap.add_argument("--image", required=True)
+    ap.add_argument("--check-h5", help="check an sfpmap extract output with h5py")
+    ap.add_argument("--name", help="with --check-h5 and --json: the group to compare")
+    ap.add_argument("--model")
+    ap.add_argument("--image")
     ap.add_argument("--png", help="re-save the image here as RGB PNG and use that")
-    ap.add_argument("--json", required=True)
+    ap.add_argument("--json")
     ap.add_argument("--threads", type=int, default=2)
     a = ap.parse_args()
+    if a.check_h5:
+        ref = json.load(open(a.json)) if a.json and a.name else None
+        check_h5(a.check_h5, ref, a.name)
+        return
+    assert a.model and a.image and a.json, "--model, --image and --json are required"
 
     img = Image.open(a.image).convert("RGB")
     if a.png:
