@@ -7,12 +7,15 @@ use std::process::ExitCode;
 mod convert;
 #[cfg(feature = "localize")]
 mod eval;
+mod export;
 mod export_colmap;
 #[cfg(feature = "onnx")]
 mod extract;
 mod info;
 #[cfg(all(feature = "localize", feature = "colmap"))]
 mod localize;
+#[cfg(feature = "localize")]
+mod plot;
 mod progress;
 #[cfg(feature = "onnx")]
 mod setup;
@@ -38,6 +41,7 @@ pub enum Command {
     Convert(convert::Args),
     #[cfg(feature = "localize")]
     Eval(eval::Args),
+    Export(export::Args),
     ExportColmap(export_colmap::Args),
     #[cfg(feature = "onnx")]
     Extract(extract::Args),
@@ -46,6 +50,8 @@ pub enum Command {
     Localize(localize::Args),
     #[cfg(feature = "onnx")]
     Setup(setup::Args),
+    #[cfg(feature = "localize")]
+    Plot(plot::Args),
     Verify(verify::Args),
     Slice(slice::Args),
 }
@@ -57,6 +63,7 @@ pub fn run() -> anyhow::Result<ExitCode> {
         Command::Convert(args) => convert::run(args, cli.quiet),
         #[cfg(feature = "localize")]
         Command::Eval(args) => eval::run(args, cli.quiet),
+        Command::Export(args) => export::run(args, cli.quiet),
         Command::ExportColmap(args) => export_colmap::run(args, cli.quiet),
         #[cfg(feature = "onnx")]
         Command::Extract(args) => extract::run(args, cli.quiet),
@@ -65,6 +72,8 @@ pub fn run() -> anyhow::Result<ExitCode> {
         Command::Localize(args) => localize::run(args, cli.quiet),
         #[cfg(feature = "onnx")]
         Command::Setup(args) => setup::run(args, cli.quiet),
+        #[cfg(feature = "localize")]
+        Command::Plot(args) => plot::run(args, cli.quiet),
         Command::Verify(args) => verify::run(args, cli.quiet),
         Command::Slice(args) => slice::run(args, cli.quiet),
     }

@@ -1,5 +1,10 @@
-//! Getting maps out to other tools: a COLMAP text model.
+//! Getting maps out to other tools: a COLMAP text model, a PLY point cloud, TUM / images.txt
+//! poses, and a top-down PNG plot (feature `plot`).
 
 pub mod colmap_export;
+pub mod ply;
+#[cfg(feature = "plot")]
+pub mod plot;
+pub mod poses;
 #[cfg(feature = "onnx")]
 pub mod features_h5;

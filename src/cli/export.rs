@@ -1,0 +1,162 @@
+//! `sfpmap export`: a map's points and poses to other tools (PLY, COLMAP text, TUM).
+
+use anyhow::{bail, Context};
+use serde_json::json;
+use sfpmap::format::Map;
+use sfpmap::io::colmap_export::export_colmap;
+use sfpmap::io::{ply, poses};
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+/// Export a map's points and database poses to other tools. At least one output is needed.
+///
+/// --ply writes a binary PLY (x y z as double world coordinates, red green blue, `level` =
+/// deepest level holding the point or -1, `level_mask`) that CloudCompare and MeshLab open.
+/// --colmap writes a COLMAP text model (same as `export-colmap`). --tum and --images-txt
+/// write the database images' poses as a TUM trajectory (world_from_cam) or a COLMAP
+/// images.txt (cam_from_world, no observations).
+///
+/// Example: `sfpmap export building.sfpm --ply building.ply --tum building-poses.txt`
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The map file.
+    pub map: PathBuf,
+    /// Points as a binary little-endian PLY.
+    #[arg(long, value_name = "OUT.ply")]
+    pub ply: Option<PathBuf>,
+    /// A COLMAP text model (cameras.txt, images.txt, points3D.txt) in this folder.
+    #[arg(long, value_name = "DIR")]
+    pub colmap: Option<PathBuf>,
+    /// Database image poses as a TUM trajectory (`timestamp tx ty tz qx qy qz qw`).
+    #[arg(long, value_name = "OUT.txt")]
+    pub tum: Option<PathBuf>,
+    /// Database image poses as a COLMAP images.txt without observations.
+    #[arg(long, value_name = "OUT.txt")]
+    pub images_txt: Option<PathBuf>,
+    /// Overwrite existing outputs.
+    #[arg(long)]
+    pub force: bool,
+    /// Print one JSON object with what was written.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn check_free(path: &Path, force: bool) -> anyhow::Result<()> {
+    if path.exists() && !force {
+        bail!("{}: exists; pass --force to overwrite", path.display());
+    }
+    Ok(())
+}
+
+/// Writes through a temp file in the same folder, renamed into place once complete.
+fn write_atomic(
+    path: &Path,
+    write: impl FnOnce(&mut BufWriter<std::fs::File>) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty());
+    let name = path.file_name().context("output has no file name")?;
+    let tmp = dir.unwrap_or(Path::new(".")).join(format!(
+        ".{}.tmp{}",
+        name.to_string_lossy(),
+        std::process::id()
+    ));
+    let result = (|| {
+        let file = std::fs::File::create(&tmp).with_context(|| format!("{}", tmp.display()))?;
+        let mut out = BufWriter::new(file);
+        write(&mut out)?;
+        let file = out.into_inner().map_err(|e| e.into_error())?;
+        file.sync_all()?;
+        std::fs::rename(&tmp, path).with_context(|| path.display().to_string())
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    if args.ply.is_none()
+        && args.colmap.is_none()
+        && args.tum.is_none()
+        && args.images_txt.is_none()
+    {
+        bail!("nothing to export: pass --ply, --colmap, --tum and/or --images-txt");
+    }
+    for p in [&args.ply, &args.tum, &args.images_txt]
+        .into_iter()
+        .flatten()
+    {
+        check_free(p, args.force)?;
+    }
+    if let Some(dir) = &args.colmap {
+        for f in ["cameras.txt", "images.txt", "points3D.txt"] {
+            check_free(&dir.join(f), args.force)?;
+        }
+    }
+    let map = Map::open(&args.map).with_context(|| args.map.display().to_string())?;
+    let source = args.map.display().to_string();
+    let mut report = serde_json::Map::new();
+    let mut lines = Vec::new();
+
+    if let Some(path) = &args.ply {
+        let mut summary = None;
+        write_atomic(path, |out| {
+            summary = Some(ply::write_ply(&map, out, &source)?);
+            Ok(())
+        })?;
+        let s = summary.context("PLY writer did not run")?;
+        report.insert(
+            "ply".into(),
+            json!({"path": path.display().to_string(), "points": s.points, "points_in_levels": s.points_in_levels}),
+        );
+        lines.push(format!(
+            "{}: {} points ({} in levels)",
+            path.display(),
+            s.points,
+            s.points_in_levels
+        ));
+    }
+    if let Some(dir) = &args.colmap {
+        let s = export_colmap(&map, dir).with_context(|| source.clone())?;
+        report.insert(
+            "colmap".into(),
+            json!({"path": dir.display().to_string(), "cameras": s.cameras, "images": s.images, "points": s.points, "observations": s.observations}),
+        );
+        lines.push(format!(
+            "{}: {} cameras, {} images, {} points, {} observations",
+            dir.display(),
+            s.cameras,
+            s.images,
+            s.points,
+            s.observations
+        ));
+    }
+    let n_images = map.images()?.map_or(0, |i| i.len());
+    for (path, text, key) in [
+        (&args.tum, poses::images_tum as fn(&Map<'_>) -> _, "tum"),
+        (&args.images_txt, poses::images_txt, "images_txt"),
+    ] {
+        let Some(path) = path else { continue };
+        let text = text(&map).with_context(|| source.clone())?;
+        write_atomic(path, |out| {
+            use std::io::Write;
+            out.write_all(text.as_bytes())?;
+            Ok(())
+        })?;
+        report.insert(
+            key.into(),
+            json!({"path": path.display().to_string(), "images": n_images}),
+        );
+        lines.push(format!("{}: {n_images} image poses", path.display()));
+    }
+
+    if args.json {
+        super::print_json(&serde_json::Value::Object(report))?;
+    } else if !quiet {
+        for line in lines {
+            println!("{line}");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,404 @@
+//! A top-down PNG of a map and trajectories (feature `plot`): points coloured by their level,
+//! database cameras, localized and ground-truth camera centres joined by error lines.
+//!
+//! Which view is "top-down": SfM worlds have no gravity axis, so the plot uses the two world
+//! axes along which the database camera centres spread most (people carry cameras over the
+//! ground, rarely up and down); the axis left out is the one looked along. For COLMAP models
+//! whose first camera was held upright that is usually x–z (y points down), and x to the
+//! right with z up is then a view from above, not a mirror image (x × z = −y). Both axes use
+//! one scale, and the extent is the points' 0.5–99.5 % range (SfM leaves a few far points)
+//! grown to hold every camera and pose.
+//!
+//! Text needs a font: plotters' `ab_glyph` backend draws with registered fonts only, so a
+//! Latin-1 subset of DejaVu Sans (`fonts/`, Bitstream Vera licence) is compiled in.
+
+use crate::format::{Error, Map};
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::style::{register_font, FontStyle};
+use std::path::Path;
+use std::sync::Once;
+
+/// The embedded font (see `fonts/LICENSE-DejaVu.txt`).
+const FONT: &[u8] = include_bytes!("fonts/DejaVuSans-subset.ttf");
+
+/// Colours per level id (cycled), from the Tableau 10 palette: distinct and colour-blind safe.
+const LEVEL_COLORS: [RGBColor; 8] = [
+    RGBColor(78, 121, 167),
+    RGBColor(242, 142, 43),
+    RGBColor(89, 161, 79),
+    RGBColor(176, 122, 161),
+    RGBColor(237, 201, 72),
+    RGBColor(118, 183, 178),
+    RGBColor(156, 117, 95),
+    RGBColor(255, 157, 167),
+];
+const NO_LEVEL: RGBColor = RGBColor(170, 170, 170);
+const CAMERA: RGBColor = RGBColor(40, 40, 40);
+const ESTIMATED: RGBColor = RGBColor(214, 39, 40);
+const GROUND_TRUTH: RGBColor = RGBColor(0, 128, 0);
+
+/// What to draw besides the map.
+#[derive(Debug, Clone)]
+pub struct PlotOptions {
+    pub width: u32,
+    pub height: u32,
+    /// Points beyond this are subsampled (every k-th point) to keep the PNG readable.
+    pub max_points: usize,
+    pub title: String,
+    /// Localized camera centres by query name.
+    pub estimated: Vec<(String, [f64; 3])>,
+    /// Ground-truth camera centres by query name; pairs with `estimated` get a line.
+    pub ground_truth: Vec<(String, [f64; 3])>,
+}
+
+impl Default for PlotOptions {
+    fn default() -> Self {
+        PlotOptions {
+            width: 1600,
+            height: 1200,
+            max_points: 200_000,
+            title: String::new(),
+            estimated: Vec::new(),
+            ground_truth: Vec::new(),
+        }
+    }
+}
+
+/// What was drawn.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlotSummary {
+    /// World axes shown, horizontal then vertical (0 = x, 1 = y, 2 = z).
+    pub axes: (usize, usize),
+    pub points_drawn: usize,
+    pub cameras: usize,
+    /// Estimated poses that had a ground-truth pose of the same name.
+    pub pairs: usize,
+}
+
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum PlotError {
+    Format(Error),
+    /// Plotters could not draw or encode the image.
+    Draw(String),
+    /// Nothing to plot (no points, cameras or poses).
+    Empty,
+}
+
+impl std::fmt::Display for PlotError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PlotError::Format(e) => e.fmt(f),
+            PlotError::Draw(e) => write!(f, "drawing the plot failed: {e}"),
+            PlotError::Empty => f.write_str("nothing to plot: the map has no points or cameras"),
+        }
+    }
+}
+
+impl std::error::Error for PlotError {}
+
+impl From<Error> for PlotError {
+    fn from(e: Error) -> Self {
+        PlotError::Format(e)
+    }
+}
+
+fn draw_err(e: impl std::fmt::Display) -> PlotError {
+    PlotError::Draw(e.to_string())
+}
+
+fn register_embedded_font() {
+    static ONCE: Once = Once::new();
+    ONCE.call_once(|| {
+        // The bytes are a valid TrueType font (checked by the plot test); ignore the
+        // impossible error rather than panic in a library.
+        let _ = register_font("sans-serif", FontStyle::Normal, FONT);
+    });
+}
+
+const AXIS_NAMES: [&str; 3] = ["x", "y", "z"];
+
+/// The two axes with the largest spread (variance) of `centres`, in ascending axis order.
+fn view_axes(centres: &[[f64; 3]]) -> (usize, usize) {
+    let n = centres.len() as f64;
+    let mut var = [0.0f64; 3];
+    for (k, v) in var.iter_mut().enumerate() {
+        let mean = centres.iter().map(|c| c[k]).sum::<f64>() / n;
+        *v = centres.iter().map(|c| (c[k] - mean).powi(2)).sum::<f64>() / n;
+    }
+    let dropped = (0..3)
+        .min_by(|&a, &b| var[a].total_cmp(&var[b]))
+        .unwrap_or(1);
+    match dropped {
+        0 => (1, 2),
+        1 => (0, 2),
+        _ => (0, 1),
+    }
+}
+
+fn percentile(sorted: &[f64], q: f64) -> f64 {
+    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+}
+
+/// Renders the plot to a PNG at `path`.
+pub fn plot_map(
+    map: &Map<'_>,
+    options: &PlotOptions,
+    path: &Path,
+) -> Result<PlotSummary, PlotError> {
+    register_embedded_font();
+    let positions = map.point_positions()?;
+    let (levels, _) = super::ply::point_levels(map)?;
+    // Centre and viewing direction (the optical axis in the world: Rᵀ·(0, 0, 1), the third
+    // row of R) of each database camera.
+    let cameras: Vec<([f64; 3], [f64; 3])> = match map.images()? {
+        Some(images) => images
+            .poses
+            .iter()
+            .map(|&p| {
+                let [w, x, y, z] = [p[0], p[1], p[2], p[3]];
+                let n = w * w + x * x + y * y + z * z;
+                let axis = [
+                    2.0 * (x * z - w * y) / n,
+                    2.0 * (y * z + w * x) / n,
+                    1.0 - 2.0 * (x * x + y * y) / n,
+                ];
+                (super::poses::camera_center(p), axis)
+            })
+            .collect(),
+        None => Vec::new(),
+    };
+    let step = positions.len().div_ceil(options.max_points.max(1)).max(1);
+    let world: Vec<([f64; 3], Option<u16>)> = positions
+        .iter()
+        .zip(&levels)
+        .step_by(step)
+        .map(|(&p, &l)| (map.to_world(p), l))
+        .collect();
+
+    let mut centres: Vec<[f64; 3]> = cameras.iter().map(|(c, _)| *c).collect();
+    if centres.len() < 2 {
+        centres.extend(options.ground_truth.iter().map(|(_, c)| *c));
+        centres.extend(options.estimated.iter().map(|(_, c)| *c));
+    }
+    if centres.len() < 2 {
+        centres.extend(world.iter().map(|(p, _)| *p));
+    }
+    if centres.is_empty() {
+        return Err(PlotError::Empty);
+    }
+    let (a, b) = view_axes(&centres);
+
+    // Extent: robust range of the points, grown to every camera and pose.
+    let mut lo = [f64::INFINITY; 2];
+    let mut hi = [f64::NEG_INFINITY; 2];
+    for (k, axis) in [a, b].into_iter().enumerate() {
+        let mut v: Vec<f64> = world
+            .iter()
+            .map(|(p, _)| p[axis])
+            .filter(|x| x.is_finite())
+            .collect();
+        if !v.is_empty() {
+            v.sort_by(f64::total_cmp);
+            lo[k] = percentile(&v, 0.005);
+            hi[k] = percentile(&v, 0.995);
+        }
+        let extra = cameras
+            .iter()
+            .map(|(c, _)| c)
+            .chain(options.estimated.iter().map(|(_, c)| c))
+            .chain(options.ground_truth.iter().map(|(_, c)| c));
+        for c in extra {
+            if c[axis].is_finite() {
+                lo[k] = lo[k].min(c[axis]);
+                hi[k] = hi[k].max(c[axis]);
+            }
+        }
+    }
+    if !(lo[0].is_finite() && lo[1].is_finite()) {
+        return Err(PlotError::Empty);
+    }
+
+    let root = BitMapBackend::new(path, (options.width, options.height)).into_drawing_area();
+    root.fill(&WHITE).map_err(draw_err)?;
+    let summary = draw(&root, map, options, (a, b), (lo, hi), &world, &cameras)?;
+    root.present().map_err(draw_err)?;
+    Ok(summary)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn draw(
+    root: &DrawingArea<BitMapBackend<'_>, Shift>,
+    map: &Map<'_>,
+    options: &PlotOptions,
+    (a, b): (usize, usize),
+    (mut lo, mut hi): ([f64; 2], [f64; 2]),
+    world: &[([f64; 3], Option<u16>)],
+    cameras: &[([f64; 3], [f64; 3])],
+) -> Result<PlotSummary, PlotError> {
+    let caption_size = (options.height / 32).clamp(14, 40);
+    let label_size = (options.height / 55).clamp(10, 24);
+    let (left, bottom) = (label_size * 5, label_size * 3);
+    // One scale on both axes: widen the range that is too narrow for the plotting area.
+    let plot_w = f64::from(options.width.saturating_sub(left + 30).max(1));
+    let plot_h = f64::from(
+        options
+            .height
+            .saturating_sub(bottom + caption_size * 2 + 20)
+            .max(1),
+    );
+    for k in 0..2 {
+        let pad = ((hi[k] - lo[k]) * 0.03).max(1e-9);
+        lo[k] -= pad;
+        hi[k] += pad;
+    }
+    let scale = ((hi[0] - lo[0]) / plot_w).max((hi[1] - lo[1]) / plot_h);
+    for (k, size) in [(0, plot_w), (1, plot_h)] {
+        let mid = (lo[k] + hi[k]) / 2.0;
+        lo[k] = mid - scale * size / 2.0;
+        hi[k] = mid + scale * size / 2.0;
+    }
+
+    let units = &map.metadata().units;
+    let mut chart = ChartBuilder::on(root)
+        .caption(&options.title, ("sans-serif", caption_size))
+        .margin(15)
+        .x_label_area_size(bottom)
+        .y_label_area_size(left)
+        .build_cartesian_2d(lo[0]..hi[0], lo[1]..hi[1])
+        .map_err(draw_err)?;
+    chart
+        .configure_mesh()
+        .x_desc(format!("{} ({units})", AXIS_NAMES[a]))
+        .y_desc(format!("{} ({units})", AXIS_NAMES[b]))
+        .label_style(("sans-serif", label_size))
+        .light_line_style(RGBColor(235, 235, 235))
+        .bold_line_style(RGBColor(215, 215, 215))
+        .draw()
+        .map_err(draw_err)?;
+
+    let in_view = |x: f64, y: f64| x >= lo[0] && x <= hi[0] && y >= lo[1] && y <= hi[1];
+    // Bigger dots for sparse maps, so a few thousand points still read as structure.
+    let dot = (options.width / 1000).max(1) + u32::from(world.len() < 20_000);
+    // Points in no level first, then levels ascending: the deepest (sparsest) on top.
+    let mut groups: Vec<Option<u16>> = vec![None];
+    groups.extend(map.level_ids().into_iter().map(Some));
+    let mut points_drawn = 0;
+    for group in groups {
+        let pts: Vec<(f64, f64)> = world
+            .iter()
+            .filter(|(_, l)| *l == group)
+            .map(|(p, _)| (p[a], p[b]))
+            .filter(|&(x, y)| in_view(x, y))
+            .collect();
+        if pts.is_empty() {
+            continue;
+        }
+        points_drawn += pts.len();
+        let color = match group {
+            Some(l) => LEVEL_COLORS[usize::from(l) % LEVEL_COLORS.len()],
+            None => NO_LEVEL,
+        };
+        let label = match group {
+            Some(l) => format!("level {l} ({} points)", pts.len()),
+            None => format!("no level ({} points)", pts.len()),
+        };
+        chart
+            .draw_series(
+                pts.into_iter()
+                    .map(|c| Circle::new(c, dot, color.mix(0.75).filled())),
+            )
+            .map_err(draw_err)?
+            .label(label)
+            .legend(move |(x, y)| Circle::new((x, y), 5, color.filled()));
+    }
+
+    if !cameras.is_empty() {
+        // A tick along each camera's viewing direction, 2.5 % of the view wide.
+        let tick = 0.025 * (hi[0] - lo[0]);
+        chart
+            .draw_series(cameras.iter().map(|(c, d)| {
+                let len = (d[a] * d[a] + d[b] * d[b]).sqrt().max(1e-12);
+                let end = (c[a] + tick * d[a] / len, c[b] + tick * d[b] / len);
+                PathElement::new(vec![(c[a], c[b]), end], CAMERA.stroke_width(1))
+            }))
+            .map_err(draw_err)?;
+        chart
+            .draw_series(
+                cameras
+                    .iter()
+                    .map(|(c, _)| TriangleMarker::new((c[a], c[b]), 4, CAMERA.filled())),
+            )
+            .map_err(draw_err)?
+            .label(format!(
+                "database cameras ({}), tick = viewing direction",
+                cameras.len()
+            ))
+            .legend(|(x, y)| TriangleMarker::new((x, y), 5, CAMERA.filled()));
+    }
+
+    // Error lines first so the markers sit on top of them.
+    let gt: std::collections::HashMap<&str, [f64; 3]> = options
+        .ground_truth
+        .iter()
+        .map(|(n, c)| (n.as_str(), *c))
+        .collect();
+    let pairs: Vec<([f64; 3], [f64; 3])> = options
+        .estimated
+        .iter()
+        .filter_map(|(n, e)| gt.get(n.as_str()).map(|g| (*e, *g)))
+        .collect();
+    if !pairs.is_empty() {
+        chart
+            .draw_series(pairs.iter().map(|(e, g)| {
+                PathElement::new(
+                    vec![(e[a], e[b]), (g[a], g[b])],
+                    ESTIMATED.mix(0.8).stroke_width(2),
+                )
+            }))
+            .map_err(draw_err)?
+            .label(format!("localization error ({} pairs)", pairs.len()))
+            .legend(|(x, y)| PathElement::new(vec![(x - 8, y), (x + 8, y)], ESTIMATED));
+    }
+    if !options.ground_truth.is_empty() {
+        chart
+            .draw_series(
+                options
+                    .ground_truth
+                    .iter()
+                    .map(|(_, c)| Circle::new((c[a], c[b]), 5, GROUND_TRUTH.stroke_width(2))),
+            )
+            .map_err(draw_err)?
+            .label(format!("ground truth ({})", options.ground_truth.len()))
+            .legend(|(x, y)| Circle::new((x, y), 5, GROUND_TRUTH.stroke_width(2)));
+    }
+    if !options.estimated.is_empty() {
+        chart
+            .draw_series(
+                options
+                    .estimated
+                    .iter()
+                    .map(|(_, c)| Cross::new((c[a], c[b]), 5, ESTIMATED.stroke_width(2))),
+            )
+            .map_err(draw_err)?
+            .label(format!("localized ({})", options.estimated.len()))
+            .legend(|(x, y)| Cross::new((x, y), 5, ESTIMATED.stroke_width(2)));
+    }
+
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .label_font(("sans-serif", label_size))
+        .background_style(WHITE.mix(0.85))
+        .border_style(RGBColor(120, 120, 120))
+        .draw()
+        .map_err(draw_err)?;
+
+    Ok(PlotSummary {
+        axes: (a, b),
+        points_drawn,
+        cameras: cameras.len(),
+        pairs: pairs.len(),
+    })
+}
