@@ -2,9 +2,9 @@
 //! poses, and a top-down PNG plot (feature `plot`).
 
 pub mod colmap_export;
-pub mod ply;
-#[cfg(feature = "plot")]
-pub mod plot;
-pub mod poses;
 #[cfg(feature = "onnx")]
 pub mod features_h5;
+#[cfg(feature = "plot")]
+pub mod plot;
+pub mod ply;
+pub mod poses;
