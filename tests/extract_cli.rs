@@ -274,3 +274,73 @@ fn extract_writes_hloc_features_h5() {
     let again = sfpmap(&[os("extract"), images.as_os_str(), os("-o"), out.as_os_str()]);
     assert!(!again.status.success());
 }
+
+/// A fresh machine: no runtime anywhere. The first command that needs it fetches it into the
+/// XDG cache (with a warning), `setup` then finds it there; a bad `ORT_DYLIB_PATH` is an error.
+#[test]
+fn runtime_is_fetched_on_first_use_and_discovery_order_holds() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().join("cache");
+    let run = |envs: &[(&str, &std::ffi::OsStr)], args: &[&std::ffi::OsStr]| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_sfpmap"));
+        cmd.args(args).env_remove("ORT_DYLIB_PATH");
+        for (k, v) in envs {
+            cmd.env(k, v);
+        }
+        cmd.output().expect("sfpmap runs")
+    };
+    let image = scene().join("images/02928139_3448003521.jpg");
+    let h5 = dir.path().join("f.h5");
+    let first = run(
+        &[("XDG_CACHE_HOME", cache.as_os_str())],
+        &[os("extract"), image.as_os_str(), os("-o"), h5.as_os_str()],
+    );
+    let stderr = String::from_utf8_lossy(&first.stderr);
+    assert!(first.status.success(), "{stderr}");
+    assert!(stderr.contains("fetching"), "{stderr}");
+    let lib = cache.join("sfpmap/onnxruntime-1.31.1/libonnxruntime.so.1.31.1");
+    assert!(lib.is_file());
+
+    let setup = run(
+        &[("XDG_CACHE_HOME", cache.as_os_str())],
+        &[os("setup"), os("--check"), os("--json")],
+    );
+    assert!(
+        setup.status.success(),
+        "{}",
+        String::from_utf8_lossy(&setup.stderr)
+    );
+    let report: Value = serde_json::from_slice(&setup.stdout).unwrap();
+    assert_eq!(report["fetched"], false);
+    assert_eq!(report["version"], "1.31.1");
+    assert_eq!(report["active"], lib.to_str().unwrap());
+
+    // ORT_DYLIB_PATH wins, and must name a file.
+    let bogus = dir.path().join("nowhere/libonnxruntime.so");
+    let bad = run(
+        &[
+            ("XDG_CACHE_HOME", cache.as_os_str()),
+            ("ORT_DYLIB_PATH", bogus.as_os_str()),
+        ],
+        &[
+            os("extract"),
+            image.as_os_str(),
+            os("-o"),
+            dir.path().join("g.h5").as_os_str(),
+        ],
+    );
+    assert!(!bad.status.success());
+    let stderr = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        stderr.contains("ORT_DYLIB_PATH") && stderr.contains("nowhere"),
+        "{stderr}"
+    );
+    // A file that is not the 1.31.1 library is refused before it is loaded.
+    let fake = dir.path().join("libonnxruntime.so.1.30.0");
+    std::fs::write(&fake, b"\x7fELF not really").unwrap();
+    let bad = run(
+        &[("ORT_DYLIB_PATH", fake.as_os_str())],
+        &[os("setup"), os("--check")],
+    );
+    assert!(!bad.status.success());
+}
