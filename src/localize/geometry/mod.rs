@@ -42,6 +42,7 @@ mod camera;
 mod error;
 mod p3p;
 mod pose;
+mod prosac;
 mod ransac;
 mod refine;
 mod rng;

@@ -23,6 +23,7 @@ use super::camera::{Camera, Intrinsics};
 use super::error::GeometryError;
 use super::p3p;
 use super::pose::Pose;
+use super::prosac::{maximality_iterations, ProgressiveSampler};
 use super::refine::{refine_indexed, RefineOptions};
 use super::rng::SplitMix64;
 
@@ -48,6 +49,10 @@ pub struct RansacOptions {
     /// of them, several times faster at high outlier ratios. The iteration count accounts for
     /// the small chance of rejecting a good pose.
     pub sprt: bool,
+    /// The correspondences are sorted best-first (e.g. by descriptor ratio): sample them with
+    /// PROSAC and stop by its maximality rule, which ends after a few dozen iterations when the
+    /// top of the list is clean even if the whole list is mostly outliers.
+    pub progressive: bool,
     /// LM options of the local refits; few iterations suffice because the sample is refit
     /// again whenever it improves.
     pub local_refine: RefineOptions,
@@ -67,6 +72,7 @@ impl Default for RansacOptions {
             seed: 0x5EED_5F9A_0000_0001,
             local_optimization: true,
             sprt: true,
+            progressive: false,
             local_refine: RefineOptions {
                 max_iterations: 10,
                 ..RefineOptions::default()
@@ -177,6 +183,9 @@ pub fn estimate_absolute_pose_with_prior(
     let mut required = options.max_iterations;
     let mut iterations = 0;
 
+    let mut progressive = options
+        .progressive
+        .then(|| ProgressiveSampler::new(usable.len()));
     let mut pending_prior = prior.copied();
     while iterations
         < options
@@ -187,7 +196,10 @@ pub fn estimate_absolute_pose_with_prior(
             Some(prior) => p3p::Solutions::single(prior),
             None => {
                 iterations += 1;
-                let sample = draw_sample(&mut rng, &usable);
+                let sample = match progressive.as_mut() {
+                    Some(sampler) => sampler.sample(&mut rng).map(|k| usable[k]),
+                    None => draw_sample(&mut rng, &usable),
+                };
                 p3p::solve(&sample.map(|i| bearings[i]), &sample.map(|i| points[i]))
             }
         };
@@ -224,6 +236,21 @@ pub fn estimate_absolute_pose_with_prior(
             };
             required =
                 required_iterations(inlier_ratio * good_sample_kept.cbrt(), options.confidence);
+            if progressive.is_some() {
+                let unrolled = Unrolled::new(&candidate.0);
+                let in_order = usable.iter().map(|&i| {
+                    unrolled.squared_error(camera.intrinsics(), &pixels[i], &points[i])
+                        < scorer.threshold2
+                });
+                let chance = sprt.as_ref().map_or(0.01, |sprt| sprt.delta);
+                required = required.min(maximality_iterations(
+                    in_order,
+                    options.confidence,
+                    chance,
+                    good_sample_kept,
+                    options.min_inliers,
+                ));
+            }
         }
     }
 
