@@ -1,0 +1,477 @@
+//! The C ABI called from Rust as C would: zero-copy views against the spec vectors (raw and
+//! zstd sections), argument errors, and a localization through `sfpm_localize` on a
+//! synthetic map with a known pose, from several threads at once.
+#![cfg(feature = "capi")]
+// Every call here passes valid pointers (or deliberately NULL ones, which the API reports).
+#![allow(clippy::undocumented_unsafe_blocks)]
+
+use serde_json::Value;
+use sfpmap::ffi::*;
+use sfpmap::format::{CameraInfo, Descriptors, LevelInfo, MapWriter};
+use sfpmap::localize::geometry::{Camera, Pose};
+use std::ffi::{CStr, CString};
+use std::path::Path;
+use std::ptr::{null, null_mut};
+
+fn vector(name: &str) -> (CString, Value) {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("spec/vectors/valid");
+    let json = std::fs::read_to_string(root.join(format!("{name}.json"))).unwrap();
+    (
+        CString::new(root.join(format!("{name}.sfpm")).to_str().unwrap()).unwrap(),
+        serde_json::from_str(&json).unwrap(),
+    )
+}
+
+fn open(path: &CStr) -> SfpmMap {
+    let mut map = 0;
+    let status = unsafe { sfpm_open(path.as_ptr(), &mut map) };
+    assert_eq!(status, SfpmStatus::SFPM_OK, "{}", last_error());
+    map
+}
+
+fn last_error() -> String {
+    unsafe { CStr::from_ptr(sfpm_last_error()) }
+        .to_string_lossy()
+        .into_owned()
+}
+
+fn f16(bits: u16) -> f64 {
+    f64::from(sfpmap::format::f16::from_bits(bits))
+}
+
+/// Short and rest blocks of every level equal the vector's JSON, for raw and zstd maps; the
+/// pointers stay the same on a second call (the decoded buffer is owned by the handle).
+#[test]
+fn descriptor_blocks_match_the_vectors_raw_and_zstd() {
+    for name in ["levels", "zstd", "mixed_dtypes"] {
+        let (path, json) = vector(name);
+        let map = open(&path);
+        for level in json["content"]["levels"].as_array().unwrap() {
+            let id = level["level"].as_u64().unwrap() as u16;
+            for (block, key) in [(0, "short"), (1, "rest")] {
+                let Some(rows) = level[key].as_array() else {
+                    continue;
+                };
+                let expected: Vec<f64> = rows
+                    .iter()
+                    .flat_map(|r| r.as_array().unwrap().iter().map(|v| v.as_f64().unwrap()))
+                    .collect();
+                let (mut data, mut len) = (null(), 0usize);
+                let call = |data: &mut *const u16, len: &mut usize| unsafe {
+                    if block == 0 {
+                        sfpm_level_desc_short(map, id, data, len)
+                    } else {
+                        sfpm_level_desc_rest(map, id, data, len)
+                    }
+                };
+                assert_eq!(
+                    call(&mut data, &mut len),
+                    SfpmStatus::SFPM_OK,
+                    "{name} {id} {key}"
+                );
+                assert_eq!(len, expected.len(), "{name} level {id} {key}");
+                let got = unsafe { std::slice::from_raw_parts(data, len) };
+                for (g, e) in got.iter().zip(&expected) {
+                    assert_eq!(f16(*g), *e, "{name} level {id} {key}");
+                }
+                let (mut again, mut len2) = (null(), 0usize);
+                call(&mut again, &mut len2);
+                assert_eq!((again, len2), (data, len), "{name}: pointer moved");
+            }
+        }
+        let (mut positions, mut n, mut origin) = (null(), 0usize, [0f64; 3]);
+        assert_eq!(
+            unsafe { sfpm_point_positions(map, &mut positions, &mut n, origin.as_mut_ptr()) },
+            SfpmStatus::SFPM_OK
+        );
+        let expected = json["content"]["positions"].as_array().unwrap();
+        assert_eq!(n, expected.len());
+        let got = unsafe { std::slice::from_raw_parts(positions, 3 * n) };
+        for (p, e) in expected.iter().enumerate() {
+            for k in 0..3 {
+                assert_eq!(f64::from(got[3 * p + k]), e[k].as_f64().unwrap());
+            }
+        }
+        assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+    }
+}
+
+#[test]
+fn images_visibility_and_argument_errors() {
+    let (path, json) = vector("levels");
+    let map = open(&path);
+    let images = json["content"]["images"].as_array().unwrap();
+    unsafe {
+        let mut n = 0usize;
+        assert_eq!(
+            sfpm_level_ids(map, null_mut(), 0, &mut n),
+            SfpmStatus::SFPM_OK
+        );
+        assert_eq!(n, 3);
+        let mut one = [0u16; 1];
+        assert_eq!(
+            sfpm_level_ids(map, one.as_mut_ptr(), 1, &mut n),
+            SfpmStatus::SFPM_OK
+        );
+        assert_eq!((one[0], n), (0, 3), "truncated to capacity, full count");
+        assert_eq!(
+            sfpm_level_ids(map, null_mut(), 2, &mut n),
+            SfpmStatus::SFPM_ERR_NULL
+        );
+
+        assert_eq!(sfpm_image_count(map, &mut n), SfpmStatus::SFPM_OK);
+        assert_eq!(n, images.len());
+        let mut buf = [0 as std::ffi::c_char; 4];
+        let mut needed = 0usize;
+        assert_eq!(
+            sfpm_image_name(map, 0, buf.as_mut_ptr(), buf.len(), &mut needed),
+            SfpmStatus::SFPM_OK
+        );
+        assert_eq!(CStr::from_ptr(buf.as_ptr()).to_str().unwrap(), "img");
+        assert_eq!(needed, images[0]["name"].as_str().unwrap().len());
+        let mut pose = [0f64; 7];
+        let mut camera = 9u32;
+        assert_eq!(
+            sfpm_image_pose(map, 2, pose.as_mut_ptr(), &mut camera),
+            SfpmStatus::SFPM_OK
+        );
+        assert_eq!(pose[4], images[2]["cam_from_world"][4].as_f64().unwrap());
+        assert_eq!(camera, 0);
+        assert_eq!(
+            sfpm_image_pose(map, 3, pose.as_mut_ptr(), null_mut()),
+            SfpmStatus::SFPM_ERR_ARGUMENT
+        );
+        assert!(last_error().contains("out of range"), "{}", last_error());
+
+        let (mut offsets, mut n_offsets, mut points, mut n_points) = (null(), 0, null(), 0);
+        assert_eq!(
+            sfpm_visibility(
+                map,
+                &mut offsets,
+                &mut n_offsets,
+                &mut points,
+                &mut n_points
+            ),
+            SfpmStatus::SFPM_OK
+        );
+        let vis = &json["content"]["visibility"];
+        let offsets = std::slice::from_raw_parts(offsets, n_offsets);
+        let points = std::slice::from_raw_parts(points, n_points);
+        let expected: Vec<u64> = vis["offsets"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_u64().unwrap())
+            .collect();
+        assert_eq!(offsets, expected.as_slice());
+        assert_eq!(points.len(), vis["points"].as_array().unwrap().len());
+
+        let mut info = SfpmLevelInfo::default();
+        assert_eq!(
+            sfpm_level_info(map, 7, &mut info),
+            SfpmStatus::SFPM_ERR_NO_SUCH_LEVEL
+        );
+        assert!(last_error().contains("no level 7"), "{}", last_error());
+    }
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+
+    // A map without images or rest blocks says so.
+    let (path, _) = vector("minimal");
+    let map = open(&path);
+    unsafe {
+        let mut n = 1usize;
+        assert_eq!(sfpm_image_count(map, &mut n), SfpmStatus::SFPM_OK);
+        assert_eq!(n, 0);
+        let mut pose = [0f64; 7];
+        assert_eq!(
+            sfpm_image_pose(map, 0, pose.as_mut_ptr(), null_mut()),
+            SfpmStatus::SFPM_ERR_MISSING
+        );
+    }
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+
+    let missing = CString::new("/nonexistent/map.sfpm").unwrap();
+    let mut map = 0;
+    assert_eq!(
+        unsafe { sfpm_open(missing.as_ptr(), &mut map) },
+        SfpmStatus::SFPM_ERR_IO
+    );
+    assert!(last_error().contains("/nonexistent/map.sfpm"));
+    let garbage = tempfile::NamedTempFile::new().unwrap();
+    std::fs::write(garbage.path(), b"not a map at all").unwrap();
+    let garbage = CString::new(garbage.path().to_str().unwrap()).unwrap();
+    assert_eq!(
+        unsafe { sfpm_open(garbage.as_ptr(), &mut map) },
+        SfpmStatus::SFPM_ERR_FORMAT
+    );
+}
+
+// A synthetic map with a known query pose (the localizer tests' scene, smaller).
+
+const DIM: usize = 32;
+const N: usize = 1500;
+
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn normal(&mut self) -> f64 {
+        let (u, v) = (self.next().max(1e-12), self.next());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+}
+
+fn unit(v: &mut [f32]) {
+    let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    v.iter_mut().for_each(|x| *x /= n);
+}
+
+/// Writes the map; returns its points, descriptors and path holder.
+fn synthetic_map(dir: &Path) -> (Vec<[f64; 3]>, Vec<f32>, CString) {
+    let mut rng = Rng(42);
+    let points: Vec<[f64; 3]> = (0..N)
+        .map(|_| {
+            [
+                rng.next() * 20.0 - 10.0,
+                rng.next() * 10.0 - 5.0,
+                10.0 + rng.next() * 20.0,
+            ]
+        })
+        .collect();
+    let mut descriptors = Vec::with_capacity(N * DIM);
+    for _ in 0..N {
+        let mut d: Vec<f32> = (0..DIM).map(|_| rng.normal() as f32).collect();
+        unit(&mut d);
+        descriptors.extend(d);
+    }
+    let mut w = MapWriter::default();
+    w.add_camera(CameraInfo {
+        id: Some(1),
+        model: "PINHOLE".into(),
+        width: 640,
+        height: 480,
+        params: vec![500.0, 500.0, 320.0, 240.0],
+    });
+    w.set_points_world(&points);
+    w.set_images(
+        &["db0.jpg"],
+        &[0],
+        &[[1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]],
+        None,
+    )
+    .unwrap();
+    let levels: Vec<Vec<u32>> = (0..3usize)
+        .map(|l| (l * N / 3..(l + 1) * N / 3).map(|p| p as u32).collect())
+        .collect();
+    for (l, pts) in levels.iter().enumerate() {
+        let desc: Vec<f32> = pts
+            .iter()
+            .flat_map(|&p| descriptors[p as usize * DIM..(p as usize + 1) * DIM].to_vec())
+            .collect();
+        let info = LevelInfo {
+            level: l as u16,
+            stride: 4.0 * (1 << l) as f64,
+            descriptor: "test".into(),
+            dim_full: DIM as u32,
+            dim_short: 16,
+            normalization: "l2".into(),
+            extra: Default::default(),
+        };
+        w.add_level(info, pts, Some(Descriptors::F32(&desc)), true)
+            .unwrap();
+    }
+    let path = dir.join("synthetic.sfpm");
+    std::fs::write(&path, w.to_bytes().unwrap()).unwrap();
+    (
+        points,
+        descriptors,
+        CString::new(path.to_str().unwrap()).unwrap(),
+    )
+}
+
+fn truth() -> Pose {
+    Pose::from_colmap(0.995, 0.05, -0.07, 0.03, 0.4, -0.2, 1.5).unwrap()
+}
+
+/// Keypoints (x, y interleaved) and descriptors of the map points the query sees.
+fn query(points: &[[f64; 3]], descriptors: &[f32]) -> (Vec<f64>, Vec<f32>) {
+    let camera = Camera::parse("PINHOLE 640 480 500 500 320 240").unwrap();
+    let mut rng = Rng(7);
+    let (mut xy, mut desc) = (Vec::new(), Vec::new());
+    for (p, world) in points.iter().enumerate() {
+        let pc = truth().transform(&nalgebra::Vector3::from(*world));
+        let Some(px) = camera.project(&pc) else {
+            continue;
+        };
+        if !(px.x > 0.0 && px.y > 0.0 && px.x < 640.0 && px.y < 480.0) {
+            continue;
+        }
+        xy.extend([px.x + 0.3 * rng.normal(), px.y + 0.3 * rng.normal()]);
+        let mut d: Vec<f32> = (0..DIM)
+            .map(|k| descriptors[p * DIM + k] + 0.05 * rng.normal() as f32)
+            .collect();
+        unit(&mut d);
+        desc.extend(d);
+    }
+    (xy, desc)
+}
+
+fn localize(
+    map: SfpmMap,
+    xy: &[f64],
+    desc: &[f32],
+    options: Option<&SfpmLocalizeOptions>,
+) -> (SfpmStatus, SfpmLocalization) {
+    let model = CString::new("PINHOLE").unwrap();
+    let params = [500.0, 500.0, 320.0, 240.0];
+    let camera = SfpmCamera {
+        model: model.as_ptr(),
+        width: 640,
+        height: 480,
+        params: params.as_ptr(),
+        n_params: params.len(),
+    };
+    let mut out = SfpmLocalization::default();
+    let status = unsafe {
+        sfpm_localize(
+            map,
+            xy.as_ptr(),
+            desc.as_ptr(),
+            xy.len() / 2,
+            DIM,
+            &camera,
+            options.map_or(null(), |o| o as *const _),
+            &mut out,
+        )
+    };
+    (status, out)
+}
+
+fn assert_near_truth(out: &SfpmLocalization) {
+    let p = out.cam_from_world;
+    let pose = Pose::from_colmap(p[0], p[1], p[2], p[3], p[4], p[5], p[6]).unwrap();
+    let t = truth();
+    assert!(pose.rotation_error_deg(&t) < 0.5, "{p:?}");
+    assert!(pose.center_distance(&t) < 0.05, "{p:?}");
+}
+
+#[test]
+fn localizes_a_known_pose_from_several_threads() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (points, descriptors, path) = synthetic_map(tmp.path());
+    let (xy, desc) = query(&points, &descriptors);
+    assert!(xy.len() / 2 > 100);
+    let map = open(&path);
+
+    let (status, out) = localize(map, &xy, &desc, None);
+    assert_eq!(status, SfpmStatus::SFPM_OK, "{}", last_error());
+    assert!(out.inliers > 50, "{} inliers", out.inliers);
+    assert_near_truth(&out);
+
+    // Level 2 only, short block only.
+    let level = [2u16];
+    let options = SfpmLocalizeOptions {
+        levels: level.as_ptr(),
+        n_levels: 1,
+        short_only: 1,
+    };
+    let (status, out) = localize(map, &xy, &desc, Some(&options));
+    assert_eq!(status, SfpmStatus::SFPM_OK, "{}", last_error());
+    assert_near_truth(&out);
+
+    // One handle, four threads, the cached localizer shared.
+    std::thread::scope(|s| {
+        for _ in 0..4 {
+            s.spawn(|| {
+                let (status, out) = localize(map, &xy, &desc, None);
+                assert_eq!(status, SfpmStatus::SFPM_OK);
+                assert_near_truth(&out);
+            });
+        }
+    });
+
+    // Too few features: runs, no pose, a reason.
+    let (status, out) = localize(map, &xy[..10], &desc[..5 * DIM], None);
+    assert_eq!(status, SfpmStatus::SFPM_NOT_LOCALIZED);
+    assert_eq!(out.cam_from_world, [0.0; 7]);
+    assert!(!last_error().is_empty());
+
+    // NaN keypoint, wrong descriptor dimension, unknown level, bad camera parameters.
+    let mut bad = xy.clone();
+    bad[3] = f64::NAN;
+    assert_eq!(
+        localize(map, &bad, &desc, None).0,
+        SfpmStatus::SFPM_ERR_ARGUMENT
+    );
+    let short_desc: Vec<f32> = desc.chunks(DIM).flat_map(|d| d[..16].to_vec()).collect();
+    let model = CString::new("PINHOLE").unwrap();
+    let params = [500.0, 500.0, 320.0];
+    let camera = SfpmCamera {
+        model: model.as_ptr(),
+        width: 640,
+        height: 480,
+        params: params.as_ptr(),
+        n_params: params.len(),
+    };
+    let mut out = SfpmLocalization::default();
+    unsafe {
+        assert_eq!(
+            sfpm_localize(
+                map,
+                xy.as_ptr(),
+                short_desc.as_ptr(),
+                xy.len() / 2,
+                16,
+                &camera,
+                null(),
+                &mut out
+            ),
+            SfpmStatus::SFPM_ERR_ARGUMENT,
+            "three PINHOLE parameters"
+        );
+    }
+    assert!(last_error().contains("camera"), "{}", last_error());
+    let params4 = [500.0, 500.0, 320.0, 240.0];
+    let camera = SfpmCamera {
+        params: params4.as_ptr(),
+        n_params: 4,
+        ..camera
+    };
+    unsafe {
+        assert_eq!(
+            sfpm_localize(
+                map,
+                xy.as_ptr(),
+                short_desc.as_ptr(),
+                xy.len() / 2,
+                16,
+                &camera,
+                null(),
+                &mut out
+            ),
+            SfpmStatus::SFPM_ERR_LOCALIZE,
+            "16-dimensional descriptors against a 32-dimensional map"
+        );
+    }
+    let level = [5u16];
+    let options = SfpmLocalizeOptions {
+        levels: level.as_ptr(),
+        n_levels: 1,
+        short_only: 0,
+    };
+    assert_eq!(
+        localize(map, &xy, &desc, Some(&options)).0,
+        SfpmStatus::SFPM_ERR_NO_SUCH_LEVEL
+    );
+
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+    assert_eq!(
+        localize(map, &xy, &desc, None).0,
+        SfpmStatus::SFPM_ERR_INVALID_HANDLE
+    );
+}
