@@ -265,6 +265,12 @@ impl ReconstructionBuilder {
 
     /// Moves the 3D points and tracks of `other` (a builder that parsed only points3D) in.
     pub(crate) fn take_points3d(&mut self, other: ReconstructionBuilder) {
+        if self.points3d.is_empty() && self.tracks.is_empty() {
+            // The usual case: move, not copy, the (large) arrays.
+            self.points3d = other.points3d;
+            self.tracks = other.tracks;
+            return;
+        }
         let offset = self.tracks.len();
         self.tracks.extend(other.tracks);
         self.points3d.extend(other.points3d.into_iter().map(|mut p| {
