@@ -51,28 +51,43 @@ impl Cursor<'_> {
 
 struct Image {
     name: String,
+    camera_id: u32,
     pose: Pose,
     observations: Vec<(Vector2<f64>, u64)>,
 }
 
-fn scene_dir() -> Option<PathBuf> {
+fn scene_dir(scene: &str) -> Option<PathBuf> {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/scenes/south-building/sparse-full");
+        .join("../shared/data/scenes")
+        .join(scene)
+        .join("sparse-full");
     dir.join("images.bin").exists().then_some(dir)
 }
 
-fn read_model(dir: &Path) -> (Camera, Vec<Image>, HashMap<u64, (Vector3<f64>, f64)>) {
+type Model = (
+    HashMap<u32, Camera>,
+    Vec<Image>,
+    HashMap<u64, (Vector3<f64>, f64)>,
+);
+
+fn read_model(dir: &Path) -> Model {
     let bytes = std::fs::read(dir.join("cameras.bin")).unwrap();
     let mut c = Cursor {
         bytes: &bytes,
         at: 0,
     };
-    assert_eq!(c.u64(), 1, "one shared camera");
-    let _camera_id = c.u32();
-    let model = CameraModel::from_colmap_id(c.u32() as i32).unwrap();
-    let (width, height) = (c.u64() as u32, c.u64() as u32);
-    let params = (0..model.num_params()).map(|_| c.f64()).collect();
-    let camera = Camera::new(model, width, height, params).unwrap();
+    let cameras = (0..c.u64())
+        .map(|_| {
+            let camera_id = c.u32();
+            let model = CameraModel::from_colmap_id(c.u32() as i32).unwrap();
+            let (width, height) = (c.u64() as u32, c.u64() as u32);
+            let params = (0..model.num_params()).map(|_| c.f64()).collect();
+            (
+                camera_id,
+                Camera::new(model, width, height, params).unwrap(),
+            )
+        })
+        .collect();
 
     let bytes = std::fs::read(dir.join("images.bin")).unwrap();
     let mut c = Cursor {
@@ -85,7 +100,7 @@ fn read_model(dir: &Path) -> (Camera, Vec<Image>, HashMap<u64, (Vector3<f64>, f6
             let q = [c.f64(), c.f64(), c.f64(), c.f64()];
             let t = [c.f64(), c.f64(), c.f64()];
             let pose = Pose::from_colmap(q[0], q[1], q[2], q[3], t[0], t[1], t[2]).unwrap();
-            let _camera_id = c.u32();
+            let camera_id = c.u32();
             let name = c.name();
             let observations = (0..c.u64())
                 .map(|_| (Vector2::new(c.f64(), c.f64()), c.u64()))
@@ -93,6 +108,7 @@ fn read_model(dir: &Path) -> (Camera, Vec<Image>, HashMap<u64, (Vector3<f64>, f6
                 .collect();
             Image {
                 name,
+                camera_id,
                 pose,
                 observations,
             }
@@ -115,21 +131,26 @@ fn read_model(dir: &Path) -> (Camera, Vec<Image>, HashMap<u64, (Vector3<f64>, f6
             (id, (xyz, error))
         })
         .collect();
-    (camera, images, points)
+    (cameras, images, points)
 }
 
 #[test]
 fn colmap_observations_reproject_and_poses_are_recovered() {
-    let Some(dir) = scene_dir() else {
-        return;
-    };
-    let (camera, images, points) = read_model(&dir);
-    assert_eq!(camera.model(), CameraModel::SimpleRadial);
+    for scene in ["south-building", "sacre-coeur"] {
+        if let Some(dir) = scene_dir(scene) {
+            check_scene(&dir);
+        }
+    }
+}
+
+fn check_scene(dir: &Path) {
+    let (cameras, images, points) = read_model(dir);
     let options = RansacOptions {
         max_error_px: 4.0,
         ..RansacOptions::default()
     };
     for image in images.iter().step_by(16) {
+        let camera = &cameras[&image.camera_id];
         let (mut pixels, mut xyz) = (Vec::new(), Vec::new());
         let (mut ours, mut colmap) = (0.0, 0.0);
         for &(pixel, id) in &image.observations {
@@ -151,7 +172,7 @@ fn colmap_observations_reproject_and_poses_are_recovered() {
             image.name
         );
 
-        let estimate = estimate_absolute_pose(&pixels, &xyz, &camera, &options).unwrap();
+        let estimate = estimate_absolute_pose(&pixels, &xyz, camera, &options).unwrap();
         let rot = estimate.pose.rotation_error_deg(&image.pose);
         let pos = estimate.pose.center_distance(&image.pose);
         let shifted: f64 = image
