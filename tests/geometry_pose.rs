@@ -827,3 +827,34 @@ fn progressive_sampling_stops_early_on_sorted_matches() {
     assert!(estimate.pose.rotation_error_deg(&s.truth) < 0.5);
     assert!(estimate.pose.center_distance(&s.truth) < 0.05);
 }
+
+/// All points on one plane (a facade): P3P and LM handle coplanar points, only collinear
+/// ones are degenerate.
+#[test]
+fn planar_scene_is_not_degenerate() {
+    let mut rng = SplitMix64::new(7);
+    let camera = Camera::parse(SIMPLE_RADIAL).unwrap();
+    let truth = random_pose(&mut rng);
+    let world_from_cam = truth.inverse();
+    // A plane through a point 8 units ahead, tilted 30° from the image plane.
+    let normal_cam = Vector3::new(0.0, 0.5, -0.866);
+    let anchor_cam = Vector3::new(0.0, 0.0, 8.0);
+    let (mut pixels, mut points) = (Vec::new(), Vec::new());
+    for i in 0..400 {
+        let pixel = Vector2::new(rng.next_f64() * 1024.0, rng.next_f64() * 768.0);
+        let xy = camera.unproject(&pixel);
+        let ray = Vector3::new(xy.x, xy.y, 1.0);
+        let depth = anchor_cam.dot(&normal_cam) / ray.dot(&normal_cam);
+        points.push(world_from_cam.transform(&(ray * depth)));
+        let observed = if i % 2 == 0 {
+            Vector2::new(rng.next_f64() * 1024.0, rng.next_f64() * 768.0)
+        } else {
+            pixel + Vector2::new(gaussian(&mut rng), gaussian(&mut rng)) * 0.7
+        };
+        pixels.push(observed);
+    }
+    let estimate = estimate_absolute_pose(&pixels, &points, &camera, &test_options()).unwrap();
+    assert!(estimate.pose.rotation_error_deg(&truth) < 0.5);
+    assert!(estimate.pose.center_distance(&truth) < 0.05);
+    assert!(estimate.num_inliers >= 190);
+}
