@@ -307,6 +307,15 @@ fn get(map: SfpmMap) -> FfiResult<Arc<MapHandle>> {
     }
 }
 
+/// Checks every out pointer of a call before anything is written, so a call that fails for
+/// a NULL leaves the caller's other variables untouched.
+fn non_null(pointers: &[(bool, &str)]) -> FfiResult {
+    match pointers.iter().find(|(is_null, _)| *is_null) {
+        Some((_, what)) => Err(FfiError::null(what)),
+        None => Ok(()),
+    }
+}
+
 /// Writes `value` to a caller's out pointer.
 ///
 /// # Safety
@@ -452,11 +461,12 @@ pub unsafe extern "C" fn sfpm_level_ids(
     count: *mut usize,
 ) -> SfpmStatus {
     guard(|| {
+        non_null(&[
+            (capacity > 0 && ids.is_null(), "ids"),
+            (count.is_null(), "count"),
+        ])?;
         let h = get(map)?;
         let all = h.map.level_ids();
-        if capacity > 0 && ids.is_null() {
-            return Err(FfiError::null("ids"));
-        }
         for (i, &id) in all.iter().take(capacity).enumerate() {
             // SAFETY: `i < capacity` and `ids` is valid for `capacity` writes per contract.
             unsafe { ids.add(i).write(id) };
@@ -507,6 +517,7 @@ pub unsafe extern "C" fn sfpm_level_points(
     len: *mut usize,
 ) -> SfpmStatus {
     guard(|| {
+        non_null(&[(points.is_null(), "points"), (len.is_null(), "len")])?;
         let h = get(map)?;
         let l = h.map.level(level)?;
         let (ptr, n) = h.pin((SectionKind::LevelPoints, level), l.points()?);
@@ -533,6 +544,7 @@ pub unsafe extern "C" fn sfpm_level_desc_short(
     len: *mut usize,
 ) -> SfpmStatus {
     guard(|| {
+        non_null(&[(data.is_null(), "data"), (len.is_null(), "len")])?;
         let h = get(map)?;
         let l = h.map.level(level)?;
         let desc = l.desc_short()?;
@@ -559,6 +571,7 @@ pub unsafe extern "C" fn sfpm_level_desc_rest(
     len: *mut usize,
 ) -> SfpmStatus {
     guard(|| {
+        non_null(&[(data.is_null(), "data"), (len.is_null(), "len")])?;
         let h = get(map)?;
         let l = h.map.level(level)?;
         let desc = l.desc_rest()?.ok_or_else(|| {
@@ -602,6 +615,10 @@ pub unsafe extern "C" fn sfpm_point_positions(
     origin: *mut f64,
 ) -> SfpmStatus {
     guard(|| {
+        non_null(&[
+            (positions.is_null(), "positions"),
+            (n_points.is_null(), "n_points"),
+        ])?;
         let h = get(map)?;
         let (ptr, n) = h.pin((SectionKind::PointPositions, 0), h.map.point_positions()?);
         // SAFETY: per contract.
@@ -725,6 +742,12 @@ pub unsafe extern "C" fn sfpm_visibility(
     n_points: *mut usize,
 ) -> SfpmStatus {
     guard(|| {
+        non_null(&[
+            (offsets.is_null(), "offsets"),
+            (n_offsets.is_null(), "n_offsets"),
+            (points.is_null(), "points"),
+            (n_points.is_null(), "n_points"),
+        ])?;
         let h = get(map)?;
         let vis = h
             .map
@@ -876,86 +899,4 @@ fn out_of_range(what: &str, index: usize, len: usize) -> FfiError {
         SFPM_ERR_ARGUMENT,
         format!("{what} index {index} out of range (the map has {len})"),
     )
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn vector(name: &str) -> CString {
-        CString::new(format!(
-            "{}/spec/vectors/valid/{name}.sfpm",
-            env!("CARGO_MANIFEST_DIR")
-        ))
-        .unwrap()
-    }
-
-    #[test]
-    fn handles_detect_use_after_close() {
-        let path = vector("levels");
-        let mut map: SfpmMap = 0;
-        // SAFETY: valid C string and out pointer.
-        assert_eq!(unsafe { sfpm_open(path.as_ptr(), &mut map) }, SFPM_OK);
-        let mut n = 0usize;
-        // SAFETY: valid out pointer.
-        assert_eq!(unsafe { sfpm_level_count(map, &mut n) }, SFPM_OK);
-        assert_eq!(n, 3);
-        assert_eq!(sfpm_close(map), SFPM_OK);
-        assert_eq!(sfpm_close(map), SFPM_ERR_INVALID_HANDLE);
-        // SAFETY: valid out pointer.
-        assert_eq!(
-            unsafe { sfpm_level_count(map, &mut n) },
-            SFPM_ERR_INVALID_HANDLE
-        );
-        // A new map reusing the slot gets a new generation: the old handle stays dead.
-        let mut again: SfpmMap = 0;
-        // SAFETY: valid C string and out pointer.
-        assert_eq!(unsafe { sfpm_open(path.as_ptr(), &mut again) }, SFPM_OK);
-        assert_ne!(again, map);
-        // SAFETY: valid out pointer.
-        assert_eq!(
-            unsafe { sfpm_level_count(map, &mut n) },
-            SFPM_ERR_INVALID_HANDLE
-        );
-        assert_eq!(sfpm_close(again), SFPM_OK);
-        assert_eq!(sfpm_close(0), SFPM_ERR_INVALID_HANDLE);
-    }
-
-    #[test]
-    fn null_pointers_are_errors() {
-        let path = vector("levels");
-        // SAFETY: NULL is allowed and reported.
-        assert_eq!(
-            unsafe { sfpm_open(std::ptr::null(), std::ptr::null_mut()) },
-            SFPM_ERR_NULL
-        );
-        let mut map: SfpmMap = 0;
-        // SAFETY: valid C string and out pointer.
-        assert_eq!(unsafe { sfpm_open(path.as_ptr(), &mut map) }, SFPM_OK);
-        // SAFETY: NULL out pointers are reported.
-        unsafe {
-            assert_eq!(sfpm_level_count(map, std::ptr::null_mut()), SFPM_ERR_NULL);
-            assert_eq!(
-                sfpm_level_desc_short(map, 0, std::ptr::null_mut(), std::ptr::null_mut()),
-                SFPM_ERR_NULL
-            );
-            assert_eq!(
-                sfpm_localize(
-                    map,
-                    std::ptr::null(),
-                    std::ptr::null(),
-                    0,
-                    4,
-                    std::ptr::null(),
-                    std::ptr::null(),
-                    std::ptr::null_mut()
-                ),
-                SFPM_ERR_NULL
-            );
-        }
-        // SAFETY: sfpm_last_error returns a NUL-terminated string.
-        let msg = unsafe { CStr::from_ptr(sfpm_last_error()) };
-        assert!(msg.to_str().unwrap().contains("NULL"), "{msg:?}");
-        assert_eq!(sfpm_close(map), SFPM_OK);
-    }
 }

@@ -118,6 +118,14 @@ fn images_visibility_and_argument_errors() {
             sfpm_level_ids(map, null_mut(), 2, &mut n),
             SfpmStatus::SFPM_ERR_NULL
         );
+        // A NULL among several out pointers: nothing is written.
+        let mut data = null();
+        assert_eq!(
+            sfpm_level_desc_short(map, 0, &mut data, null_mut()),
+            SfpmStatus::SFPM_ERR_NULL
+        );
+        assert!(data.is_null());
+        assert!(last_error().contains("len is NULL"), "{}", last_error());
 
         assert_eq!(sfpm_image_count(map, &mut n), SfpmStatus::SFPM_OK);
         assert_eq!(n, images.len());
@@ -401,6 +409,17 @@ fn localizes_a_known_pose_from_several_threads() {
     assert_eq!(out.cam_from_world, [0.0; 7]);
     assert!(!last_error().is_empty());
 
+    // No features at all (NULL arrays are allowed for n = 0): an answer, not a crash.
+    let (status, _) = localize(map, &[], &[], None);
+    assert!(
+        [
+            SfpmStatus::SFPM_NOT_LOCALIZED,
+            SfpmStatus::SFPM_ERR_LOCALIZE
+        ]
+        .contains(&status),
+        "{status:?}"
+    );
+
     // NaN keypoint, wrong descriptor dimension, unknown level, bad camera parameters.
     let mut bad = xy.clone();
     bad[3] = f64::NAN;
@@ -474,4 +493,96 @@ fn localizes_a_known_pose_from_several_threads() {
         localize(map, &xy, &desc, None).0,
         SfpmStatus::SFPM_ERR_INVALID_HANDLE
     );
+}
+
+fn vector_path(name: &str) -> CString {
+    CString::new(format!(
+        "{}/spec/vectors/valid/{name}.sfpm",
+        env!("CARGO_MANIFEST_DIR")
+    ))
+    .unwrap()
+}
+
+#[test]
+fn handles_detect_use_after_close() {
+    let path = vector_path("levels");
+    let mut map: SfpmMap = 0;
+    // SAFETY: valid C string and out pointer.
+    assert_eq!(
+        unsafe { sfpm_open(path.as_ptr(), &mut map) },
+        SfpmStatus::SFPM_OK
+    );
+    let mut n = 0usize;
+    // SAFETY: valid out pointer.
+    assert_eq!(
+        unsafe { sfpm_level_count(map, &mut n) },
+        SfpmStatus::SFPM_OK
+    );
+    assert_eq!(n, 3);
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_ERR_INVALID_HANDLE);
+    // SAFETY: valid out pointer.
+    assert_eq!(
+        unsafe { sfpm_level_count(map, &mut n) },
+        SfpmStatus::SFPM_ERR_INVALID_HANDLE
+    );
+    // A new map reusing the slot gets a new generation: the old handle stays dead.
+    let mut again: SfpmMap = 0;
+    // SAFETY: valid C string and out pointer.
+    assert_eq!(
+        unsafe { sfpm_open(path.as_ptr(), &mut again) },
+        SfpmStatus::SFPM_OK
+    );
+    assert_ne!(again, map);
+    // SAFETY: valid out pointer.
+    assert_eq!(
+        unsafe { sfpm_level_count(map, &mut n) },
+        SfpmStatus::SFPM_ERR_INVALID_HANDLE
+    );
+    assert_eq!(sfpm_close(again), SfpmStatus::SFPM_OK);
+    assert_eq!(sfpm_close(0), SfpmStatus::SFPM_ERR_INVALID_HANDLE);
+}
+
+#[test]
+fn null_pointers_are_errors() {
+    let path = vector_path("levels");
+    // SAFETY: NULL is allowed and reported.
+    assert_eq!(
+        unsafe { sfpm_open(std::ptr::null(), std::ptr::null_mut()) },
+        SfpmStatus::SFPM_ERR_NULL
+    );
+    let mut map: SfpmMap = 0;
+    // SAFETY: valid C string and out pointer.
+    assert_eq!(
+        unsafe { sfpm_open(path.as_ptr(), &mut map) },
+        SfpmStatus::SFPM_OK
+    );
+    // SAFETY: NULL out pointers are reported.
+    unsafe {
+        assert_eq!(
+            sfpm_level_count(map, std::ptr::null_mut()),
+            SfpmStatus::SFPM_ERR_NULL
+        );
+        assert_eq!(
+            sfpm_level_desc_short(map, 0, std::ptr::null_mut(), std::ptr::null_mut()),
+            SfpmStatus::SFPM_ERR_NULL
+        );
+        assert_eq!(
+            sfpm_localize(
+                map,
+                std::ptr::null(),
+                std::ptr::null(),
+                0,
+                4,
+                std::ptr::null(),
+                std::ptr::null(),
+                std::ptr::null_mut()
+            ),
+            SfpmStatus::SFPM_ERR_NULL
+        );
+    }
+    // SAFETY: sfpm_last_error returns a NUL-terminated string.
+    let msg = unsafe { CStr::from_ptr(sfpm_last_error()) };
+    assert!(msg.to_str().unwrap().contains("NULL"), "{msg:?}");
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
 }
