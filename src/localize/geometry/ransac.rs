@@ -34,6 +34,8 @@ pub struct RansacOptions {
     pub max_error_px: f64,
     /// Probability of having drawn at least one all-inlier sample when stopping.
     pub confidence: f64,
+    /// Iterations always run, so a lucky early sample cannot end the search before LO and the
+    /// inlier-ratio estimate have settled.
     pub min_iterations: usize,
     /// Upper bound on iterations. At 90 % outliers the adaptive count needs ~9,200 at
     /// confidence 0.9999 (~10,300 with SPRT's occasional rejection of a good pose); the
@@ -41,6 +43,7 @@ pub struct RansacOptions {
     pub max_iterations: usize,
     /// Fewer inliers than this is a failure, not a pose.
     pub min_inliers: usize,
+    /// Seed of the sampling PRNG; the same input and seed give the same result.
     pub seed: u64,
     /// Refit each new best hypothesis on its inliers (the LO in LO-RANSAC).
     pub local_optimization: bool,
@@ -61,7 +64,8 @@ pub struct RansacOptions {
 }
 
 impl Default for RansacOptions {
-    /// 12 px and the inlier minimum follow pycolmap's `estimate_absolute_pose` defaults.
+    /// 12 px is pycolmap's `estimate_absolute_pose` default threshold; six inliers is the
+    /// least that over-determines a pose (six unknowns) with some margin against a chance fit.
     fn default() -> Self {
         Self {
             max_error_px: 12.0,
