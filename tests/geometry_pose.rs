@@ -130,6 +130,8 @@ fn check_ransac(
         estimate.num_inliers,
         estimate.inliers.iter().filter(|&&b| b).count()
     );
+    assert_eq!(estimate.inlier_indices().count(), estimate.num_inliers);
+    assert!(estimate.inlier_indices().all(|i| estimate.inliers[i]));
     assert!(estimate.mean_inlier_error_px < 2.0 * noise + 0.5);
     assert!(estimate.iterations <= options.max_iterations);
 }

@@ -126,6 +126,16 @@ pub struct PoseEstimate {
     pub mean_inlier_error_px: f64,
 }
 
+impl PoseEstimate {
+    /// Indices of the inlier correspondences, ascending.
+    pub fn inlier_indices(&self) -> impl Iterator<Item = usize> + '_ {
+        self.inliers
+            .iter()
+            .enumerate()
+            .filter_map(|(i, &inlier)| inlier.then_some(i))
+    }
+}
+
 const SAMPLE_SIZE: usize = 3;
 
 /// Fewer correspondences than this cannot tell P3P's up to four solutions apart.
