@@ -28,8 +28,9 @@ pub enum PoseFormat {
 /// LO-RANSAC, gated matching level by level, refinement.
 ///
 /// Query intrinsics come from the query list (`name MODEL W H params...`, hloc style) or one
-/// `--camera` for all. Query features: for SIFT maps from a COLMAP database holding the
-/// queries' keypoints and descriptors (`--database queries.db`). Failed queries are written
+/// `--camera` for all. Query features: for SFP maps extracted from the images in --images
+/// with the map's model (embedded by default); for SIFT maps from a COLMAP database holding
+/// the queries' keypoints and descriptors (`--database queries.db`). Failed queries are written
 /// as `# failed NAME: reason` lines. Example:
 /// `sfpmap localize --map sb.sfpm --query-list queries.txt --database queries.db -o poses.txt`
 #[derive(Debug, clap::Args)]
@@ -45,9 +46,12 @@ pub struct Args {
     /// One camera for every query: "MODEL W H params...".
     #[arg(long)]
     pub camera: Option<String>,
-    /// COLMAP database with the queries' SIFT keypoints and descriptors.
+    /// COLMAP database with the queries' SIFT keypoints and descriptors (SIFT maps).
     #[arg(long)]
     pub database: Option<PathBuf>,
+    /// SFP model for query extraction (default: the embedded models/sfp-v1.onnx).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
     /// Levels to use (repeat); default all. Coarse matching uses the deepest.
     #[arg(long = "level")]
     pub levels: Vec<u16>,
@@ -98,7 +102,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .map(|l| l.descriptor.clone())
         .unwrap_or_default();
     let features = match (&args.database, descriptor.as_str()) {
-        (Some(db), _) => DatabaseFeatures::open(db).with_context(|| db.display().to_string())?,
+        (Some(db), _) => {
+            Source::Database(DatabaseFeatures::open(db).with_context(|| db.display().to_string())?)
+        }
         (None, "sift") => bail!(
             "{}: a SIFT map; pass the queries' features with --database queries.db",
             args.map.display()
@@ -107,8 +113,29 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "{}: the map has no descriptors (geometry only)",
             args.map.display()
         ),
+        #[cfg(feature = "onnx")]
+        (None, _) => {
+            let Some(images) = args.images.clone() else {
+                bail!("{}: pass the query images with --images DIR (features are extracted with the SFP model)", args.query_list.display());
+            };
+            let options = sfpmap::extract::ExtractorOptions {
+                model: args.model.clone(),
+                threads: 2,
+            };
+            let bars = super::Bars::new(quiet, args.json);
+            let extractor = sfpmap::extract::Extractor::new(&options, &bars)?;
+            if extractor.contract().model_name != descriptor {
+                bail!(
+                    "{}: the map's descriptors are {descriptor:?} but the model is {:?}",
+                    args.map.display(),
+                    extractor.contract().model_name
+                );
+            }
+            Source::Extractor { extractor, images }
+        }
+        #[cfg(not(feature = "onnx"))]
         (None, other) => bail!(
-            "{}: query features for {other:?} maps need --database (this build has no extractor)",
+            "{}: query features for {other:?} maps need the extractor (feature onnx)",
             args.map.display()
         ),
     };
@@ -144,7 +171,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 let outcome = match f {
                     Ok(Some(f)) => localize_one(&localizer, q, &f),
                     Ok(None) => Ok(not_found(q)),
-                    Err(e) => Err(anyhow::Error::new(e)),
+                    Err(e) => Err(e),
                 };
                 match outcome {
                     Ok(l) => *results[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(l),
@@ -210,6 +237,61 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// Where query features come from.
+enum Source {
+    Database(DatabaseFeatures),
+    #[cfg(feature = "onnx")]
+    Extractor {
+        extractor: sfpmap::extract::Extractor,
+        images: PathBuf,
+    },
+}
+
+impl Source {
+    /// The query's features; `Ok(None)` when they are missing (a failed query, not an error).
+    fn features(&mut self, name: &str) -> anyhow::Result<Option<QueryFeatures>> {
+        match self {
+            Source::Database(db) => Ok(db.features(name)?),
+            #[cfg(feature = "onnx")]
+            Source::Extractor { extractor, images } => {
+                let path = images.join(name);
+                if !path.is_file() {
+                    return Ok(None);
+                }
+                let input =
+                    sfpmap::extract::image::load(&path, extractor.contract().gray_weights, None)?;
+                let f = extractor.extract(&input, &sfpmap::extract::DetectOptions::default())?;
+                Ok(Some(sfp_query(&f)))
+            }
+        }
+    }
+}
+
+/// Extractor output as localizer input: one feature set per level, full descriptors (the map
+/// keeps them in the extractor's basis; the localizer truncates for `--short`).
+#[cfg(feature = "onnx")]
+fn sfp_query(f: &sfpmap::extract::Features) -> QueryFeatures {
+    use sfpmap::localize::FeatureSet;
+    let sets = f
+        .levels
+        .iter()
+        .map(|l| FeatureSet {
+            level: Some(l.level),
+            keypoints: l
+                .keypoints
+                .iter()
+                .map(|k| [f64::from(k[0]), f64::from(k[1])])
+                .collect(),
+            descriptors: l.full.iter().map(|x| x.to_f32()).collect(),
+            dim: l.dim_full,
+        })
+        .collect();
+    QueryFeatures {
+        sets,
+        global: Some(f.global.clone()),
+    }
+}
+
 fn localize_one(
     localizer: &Localizer<'_>,
     q: &Query,
@@ -221,7 +303,10 @@ fn localize_one(
 fn not_found(q: &Query) -> Localization {
     Localization {
         pose: None,
-        failure: Some(format!("no features for {:?}", q.name)),
+        failure: Some(format!(
+            "no features for {:?} (image or database entry missing)",
+            q.name
+        )),
         inliers_per_level: Vec::new(),
         matches: 0,
         inliers: 0,
