@@ -208,6 +208,31 @@ SfpmStatus sfpm_point_positions(SfpmMap map,
                                 size_t *n_points,
                                 double *origin);
 
+// Number of cameras in the map's metadata (what `sfpm_image_pose`'s `camera` indexes).
+//
+// # Safety
+// `out` must be writable or NULL (an error).
+SfpmStatus sfpm_camera_count(SfpmMap map, size_t *out);
+
+// Camera `index`: its COLMAP model name copied into `model` (NUL-terminated, truncated to
+// `model_capacity` bytes; 32 always suffice), width and height, and up to `params_capacity`
+// parameters in COLMAP order into `params`, with their full count in `*n_params`.
+// `model`/`params` may be NULL with a zero capacity; the other out pointers may be NULL
+// to skip them.
+//
+// # Safety
+// `model` must be valid for `model_capacity` bytes and `params` for `params_capacity`
+// doubles; `width`, `height` and `n_params` writable or NULL.
+SfpmStatus sfpm_camera(SfpmMap map,
+                       size_t index,
+                       char *model,
+                       size_t model_capacity,
+                       uint64_t *width,
+                       uint64_t *height,
+                       double *params,
+                       size_t params_capacity,
+                       size_t *n_params);
+
 // Number of database images (0 when the map stores none).
 //
 // # Safety

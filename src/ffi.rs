@@ -635,6 +635,79 @@ pub unsafe extern "C" fn sfpm_point_positions(
     })
 }
 
+/// Number of cameras in the map's metadata (what `sfpm_image_pose`'s `camera` indexes).
+///
+/// # Safety
+/// `out` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_camera_count(map: SfpmMap, out: *mut usize) -> SfpmStatus {
+    guard(|| {
+        let h = get(map)?;
+        // SAFETY: per contract.
+        unsafe { put(out, h.map.metadata().cameras.len(), "out") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// Camera `index`: its COLMAP model name copied into `model` (NUL-terminated, truncated to
+/// `model_capacity` bytes; 32 always suffice), width and height, and up to `params_capacity`
+/// parameters in COLMAP order into `params`, with their full count in `*n_params`.
+/// `model`/`params` may be NULL with a zero capacity; the other out pointers may be NULL
+/// to skip them.
+///
+/// # Safety
+/// `model` must be valid for `model_capacity` bytes and `params` for `params_capacity`
+/// doubles; `width`, `height` and `n_params` writable or NULL.
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_camera(
+    map: SfpmMap,
+    index: usize,
+    model: *mut c_char,
+    model_capacity: usize,
+    width: *mut u64,
+    height: *mut u64,
+    params: *mut f64,
+    params_capacity: usize,
+    n_params: *mut usize,
+) -> SfpmStatus {
+    guard(|| {
+        non_null(&[
+            (model_capacity > 0 && model.is_null(), "model"),
+            (params_capacity > 0 && params.is_null(), "params"),
+        ])?;
+        let h = get(map)?;
+        let cameras = &h.map.metadata().cameras;
+        let camera = cameras
+            .get(index)
+            .ok_or_else(|| out_of_range("camera", index, cameras.len()))?;
+        if model_capacity > 0 {
+            let name = camera.model.as_bytes();
+            let n = name.len().min(model_capacity - 1);
+            // SAFETY: `model` is valid for `model_capacity` bytes per contract and
+            // `n + 1 <= model_capacity`; our string cannot overlap the caller's buffer.
+            unsafe {
+                std::ptr::copy_nonoverlapping(name.as_ptr(), model.cast::<u8>(), n);
+                model.add(n).write(0);
+            }
+        }
+        for (i, &p) in camera.params.iter().take(params_capacity).enumerate() {
+            // SAFETY: `i < params_capacity`, `params` valid for that many doubles.
+            unsafe { params.add(i).write(p) };
+        }
+        for (ptr, value) in [(width, camera.width), (height, camera.height)] {
+            if !ptr.is_null() {
+                // SAFETY: non-null, writable per contract.
+                unsafe { ptr.write(value) };
+            }
+        }
+        if !n_params.is_null() {
+            // SAFETY: non-null, writable per contract.
+            unsafe { n_params.write(camera.params.len()) };
+        }
+        Ok(SFPM_OK)
+    })
+}
+
 /// Number of database images (0 when the map stores none).
 ///
 /// # Safety

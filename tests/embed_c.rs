@@ -74,7 +74,13 @@ fn c_example_reads_the_levels_vector() {
     let exe = tmp.path().join("sfpm_info");
     compile_example(&lib_dir, &exe);
     let vector = root().join("spec/vectors/valid/levels.sfpm");
-    let output = Command::new(&exe).arg(&vector).output().unwrap();
+    // cargo test puts target/debug on LD_LIBRARY_PATH, which outranks the rpath: point it at
+    // the capi build so another feature set's libsfpmap.so is never the one loaded.
+    let output = Command::new(&exe)
+        .arg(&vector)
+        .env("LD_LIBRARY_PATH", &lib_dir)
+        .output()
+        .unwrap();
     let stdout = String::from_utf8_lossy(&output.stdout);
     assert!(
         output.status.success(),
@@ -135,6 +141,15 @@ fn c_example_reads_the_levels_vector() {
             positions[3][k].as_f64().unwrap()
         ));
     }
+    assert_eq!(fact("cameras")[0], content["cameras"].to_string());
+    let map = sfpmap::format::Map::open(&vector).unwrap();
+    let camera = &map.metadata().cameras[0];
+    let line = fact("camera");
+    assert_eq!(line[1], camera.model);
+    assert_eq!(line[2], camera.width.to_string());
+    assert_eq!(line[3], camera.height.to_string());
+    assert_eq!(line[5], camera.params.len().to_string());
+    assert_eq!(line[7].parse::<f64>().unwrap(), camera.params[0]);
     let images = content["images"].as_array().unwrap();
     assert_eq!(fact("images")[0], images.len().to_string());
     for (i, image) in images.iter().enumerate() {

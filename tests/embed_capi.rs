@@ -174,6 +174,65 @@ fn images_visibility_and_argument_errors() {
         assert_eq!(offsets, expected.as_slice());
         assert_eq!(points.len(), vis["points"].as_array().unwrap().len());
 
+        assert_eq!(sfpm_camera_count(map, &mut n), SfpmStatus::SFPM_OK);
+        assert_eq!(n, 1);
+        let mut model = [0 as std::ffi::c_char; 7];
+        let (mut w, mut h, mut n_params) = (0u64, 0u64, 0usize);
+        let mut params = [0f64; 1];
+        assert_eq!(
+            sfpm_camera(
+                map,
+                0,
+                model.as_mut_ptr(),
+                model.len(),
+                &mut w,
+                &mut h,
+                params.as_mut_ptr(),
+                1,
+                &mut n_params
+            ),
+            SfpmStatus::SFPM_OK
+        );
+        let map_camera = {
+            let m = sfpmap::format::Map::open(path.to_str().unwrap()).unwrap();
+            m.metadata().cameras[0].clone()
+        };
+        let name = CStr::from_ptr(model.as_ptr()).to_str().unwrap();
+        assert_eq!(name, &map_camera.model[..map_camera.model.len().min(6)]);
+        assert_eq!((w, h), (map_camera.width, map_camera.height));
+        assert_eq!(
+            (params[0], n_params),
+            (map_camera.params[0], map_camera.params.len())
+        );
+        assert_eq!(
+            sfpm_camera(
+                map,
+                1,
+                null_mut(),
+                0,
+                null_mut(),
+                null_mut(),
+                null_mut(),
+                0,
+                null_mut()
+            ),
+            SfpmStatus::SFPM_ERR_ARGUMENT
+        );
+        assert_eq!(
+            sfpm_camera(
+                map,
+                0,
+                null_mut(),
+                8,
+                null_mut(),
+                null_mut(),
+                null_mut(),
+                0,
+                null_mut()
+            ),
+            SfpmStatus::SFPM_ERR_NULL
+        );
+
         let mut info = SfpmLevelInfo::default();
         assert_eq!(
             sfpm_level_info(map, 7, &mut info),

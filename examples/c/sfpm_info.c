@@ -90,6 +90,20 @@ int main(int argc, char **argv) {
   if (n_points > 3)
     printf("position3 %.9g %.9g %.9g\n", positions[9], positions[10], positions[11]);
 
+  size_t n_cameras = 0;
+  CHECK(sfpm_camera_count(map, &n_cameras));
+  printf("cameras %zu\n", n_cameras);
+  for (size_t i = 0; i < n_cameras; i++) {
+    char model[32];
+    uint64_t width = 0, height = 0;
+    double params[16];
+    size_t n_params = 0;
+    CHECK(sfpm_camera(map, i, model, sizeof model, &width, &height, params, 16, &n_params));
+    printf("camera %zu %s %llu %llu params %zu first %.17g\n", i, model,
+           (unsigned long long)width, (unsigned long long)height, n_params,
+           n_params > 0 ? params[0] : 0.0);
+  }
+
   size_t n_images = 0;
   CHECK(sfpm_image_count(map, &n_images));
   printf("images %zu\n", n_images);
