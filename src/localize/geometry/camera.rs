@@ -24,8 +24,9 @@ use nalgebra::{Matrix2, Matrix2x3, Vector2, Vector3};
 
 use super::error::GeometryError;
 
-/// A supported COLMAP camera model.
+/// A supported COLMAP camera model. Non-exhaustive: more of COLMAP's models may follow.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[non_exhaustive]
 pub enum CameraModel {
     SimplePinhole,
     Pinhole,
