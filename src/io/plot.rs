@@ -137,6 +137,37 @@ fn view_axes(centres: &[[f64; 3]]) -> (usize, usize) {
     }
 }
 
+/// The corner of the plot where a legend box (38 % wide, `height` of the plot high) covers
+/// the fewest of `xy`; upper right on a tie.
+fn legend_corner(
+    xy: impl Iterator<Item = (f64, f64)>,
+    (lo, hi): ([f64; 2], [f64; 2]),
+    height: f64,
+) -> SeriesLabelPosition {
+    let height = height.clamp(0.1, 0.6);
+    let mut counts = [0usize; 4];
+    for (x, y) in xy {
+        let u = (x - lo[0]) / (hi[0] - lo[0]);
+        let v = (y - lo[1]) / (hi[1] - lo[1]);
+        let (right, left) = (u > 0.62, u < 0.38);
+        let (upper, lower) = (v > 1.0 - height, v < height);
+        for (k, inside) in [right && upper, left && upper, right && lower, left && lower]
+            .into_iter()
+            .enumerate()
+        {
+            counts[k] += usize::from(inside);
+        }
+    }
+    let best = (0..4).min_by_key(|&k| (counts[k], k)).unwrap_or(0);
+    [
+        SeriesLabelPosition::UpperRight,
+        SeriesLabelPosition::UpperLeft,
+        SeriesLabelPosition::LowerRight,
+        SeriesLabelPosition::LowerLeft,
+    ][best]
+        .clone()
+}
+
 fn percentile(sorted: &[f64], q: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * q).round() as usize]
 }
@@ -386,9 +417,20 @@ fn draw(
             .legend(|(x, y)| Cross::new((x, y), 5, ESTIMATED.stroke_width(2)));
     }
 
+    let entries = map.level_ids().len() + 5;
+    let position = legend_corner(
+        world
+            .iter()
+            .map(|(p, _)| (p[a], p[b]))
+            .chain(cameras.iter().map(|(c, _)| (c[a], c[b])))
+            .chain(options.estimated.iter().map(|(_, c)| (c[a], c[b])))
+            .chain(options.ground_truth.iter().map(|(_, c)| (c[a], c[b]))),
+        (lo, hi),
+        f64::from(label_size) * 1.6 * entries as f64 / plot_h,
+    );
     chart
         .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
+        .position(position)
         .label_font(("sans-serif", label_size))
         .background_style(WHITE.mix(0.85))
         .border_style(RGBColor(120, 120, 120))
