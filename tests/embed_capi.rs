@@ -645,3 +645,28 @@ fn null_pointers_are_errors() {
     assert!(msg.to_str().unwrap().contains("NULL"), "{msg:?}");
     assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
 }
+
+/// Closing a handle while other threads call with it: each call either completes on the map
+/// (it holds it until it returns) or sees an invalid handle; nothing crashes.
+#[test]
+fn close_races_with_calls_on_other_threads() {
+    let path = vector_path("zstd");
+    for _ in 0..20 {
+        let map = open(&path);
+        std::thread::scope(|s| {
+            for _ in 0..3 {
+                s.spawn(|| loop {
+                    let (mut data, mut len) = (null(), 0usize);
+                    let status = unsafe { sfpm_level_desc_short(map, 0, &mut data, &mut len) };
+                    match status {
+                        SfpmStatus::SFPM_OK => assert!(len > 0),
+                        SfpmStatus::SFPM_ERR_INVALID_HANDLE => break,
+                        other => panic!("{other:?}: {}", last_error()),
+                    }
+                });
+            }
+            std::thread::sleep(std::time::Duration::from_millis(2));
+            assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+        });
+    }
+}
