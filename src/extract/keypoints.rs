@@ -114,6 +114,13 @@ pub fn subpixel(map: ScoreMap<'_>, r: usize, c: usize) -> (f32, f32) {
 /// Bilinear sample of every channel at cell coordinates (x, y), clamped to the map
 /// (`align_corners = true`: integer coordinates hit cell centres). Appends `channels` values.
 pub fn sample_bilinear(map: FeatureMap<'_>, x: f32, y: f32, out: &mut Vec<f32>) {
+    let start = out.len();
+    out.resize(start + map.channels, 0.0);
+    sample_into(map, x, y, &mut out[start..]);
+}
+
+/// [`sample_bilinear`] into `out[..channels]`.
+fn sample_into(map: FeatureMap<'_>, x: f32, y: f32, out: &mut [f32]) {
     let (h, w) = (map.height, map.width);
     let plane = h * w;
     let x = if x.is_nan() {
@@ -136,10 +143,24 @@ pub fn sample_bilinear(map: FeatureMap<'_>, x: f32, y: f32, out: &mut Vec<f32>) 
         ax * ay,
     );
     let (i00, i01, i10, i11) = (y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1);
-    for ch in 0..map.channels {
+    for (ch, o) in out.iter_mut().enumerate().take(map.channels) {
         let p = &map.values[ch * plane..(ch + 1) * plane];
-        out.push(p[i00] * w00 + p[i01] * w01 + p[i10] * w10 + p[i11] * w11);
+        *o = p[i00] * w00 + p[i01] * w01 + p[i10] * w10 + p[i11] * w11;
     }
+}
+
+/// Bilinear sample of a one-channel map at cell coordinates (x, y), clamped like
+/// [`sample_bilinear`].
+pub fn bilinear_at(map: ScoreMap<'_>, x: f32, y: f32) -> f32 {
+    let mut out = [0.0f32; 1];
+    let one = FeatureMap {
+        channels: 1,
+        height: map.height,
+        width: map.width,
+        values: map.values,
+    };
+    sample_into(one, x, y, &mut out);
+    out[0]
 }
 
 /// Scales `v` to unit L2 norm (left as is when its norm is ~0).
@@ -285,6 +306,12 @@ mod tests {
         out.clear();
         sample_bilinear(f, 4.0, 3.0, &mut out); // the last cell
         assert_eq!(out[0], 18.0);
+        let plane = ScoreMap {
+            height: h,
+            width: w,
+            values: &v[..h * w],
+        };
+        assert!((bilinear_at(plane, 0.5, 0.5) - (1.0 + 1.0 + 1.5)).abs() < 1e-6);
     }
 
     #[test]

