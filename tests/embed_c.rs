@@ -135,11 +135,8 @@ fn c_example_reads_the_levels_vector() {
     }
     let positions = content["positions"].as_array().unwrap();
     assert_eq!(fact("points")[0], positions.len().to_string());
-    for k in 0..3 {
-        assert!(close(
-            num("position3", k),
-            positions[3][k].as_f64().unwrap()
-        ));
+    for (k, want) in positions[3].as_array().unwrap().iter().enumerate() {
+        assert!(close(num("position3", k), want.as_f64().unwrap()));
     }
     assert_eq!(fact("cameras")[0], content["cameras"].to_string());
     let map = sfpmap::format::Map::open(&vector).unwrap();

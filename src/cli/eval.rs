@@ -91,7 +91,11 @@ pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
         e.localized,
         fmt(e.median_translation, 3),
         fmt(e.median_rotation_deg, 2),
-        if e.scale.is_some() { fmt(e.median_translation_rel, 3) } else { "- (no --map)".to_string() },
+        if e.scale.is_some() {
+            fmt(e.median_translation_rel, 3)
+        } else {
+            "- (no --map)".to_string()
+        },
         map_bytes.map_or("-".to_string(), |b| format!("{:.2} MB", b as f64 / 1e6))
     );
     for (t, r, v) in &e.recall {

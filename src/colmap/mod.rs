@@ -175,7 +175,9 @@ fn read_with(dir: &Path, binary: bool) -> Result<Reconstruction> {
             }
             Ok(points)
         })();
-        let images = images.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        let images = images
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
         (images, points)
     });
     // Errors in file order: cameras, then images, then points3D.

@@ -273,10 +273,11 @@ impl ReconstructionBuilder {
         }
         let offset = self.tracks.len();
         self.tracks.extend(other.tracks);
-        self.points3d.extend(other.points3d.into_iter().map(|mut p| {
-            p.track_start += offset;
-            p
-        }));
+        self.points3d
+            .extend(other.points3d.into_iter().map(|mut p| {
+                p.track_start += offset;
+                p
+            }));
     }
 
     /// Reserves room for `points` 3D points with `observations` track elements in total.
@@ -445,7 +446,9 @@ impl ReconstructionBuilder {
         for point in &self.points3d {
             let end = point.track_start.saturating_add(point.track_len as usize);
             for e in self.tracks.get(point.track_start..end).unwrap_or(&[]) {
-                let Some(i) = image_of(e.image_id) else { return false };
+                let Some(i) = image_of(e.image_id) else {
+                    return false;
+                };
                 by_image[next[i]] = (e.point2d_idx, point.id);
                 next[i] += 1;
             }
@@ -456,11 +459,17 @@ impl ReconstructionBuilder {
             seen.resize(image.points2d.len(), false);
             for &(idx, id) in &by_image[counts[i]..counts[i + 1]] {
                 match image.points2d.get(idx as usize) {
-                    Some(p) if p.point3d_id == Some(id) && !seen[idx as usize] => seen[idx as usize] = true,
+                    Some(p) if p.point3d_id == Some(id) && !seen[idx as usize] => {
+                        seen[idx as usize] = true
+                    }
                     _ => return false,
                 }
             }
-            let referenced = image.points2d.iter().filter(|p| p.point3d_id.is_some()).count();
+            let referenced = image
+                .points2d
+                .iter()
+                .filter(|p| p.point3d_id.is_some())
+                .count();
             if referenced != counts[i + 1] - counts[i] {
                 return false;
             }

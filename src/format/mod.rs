@@ -33,10 +33,11 @@ pub use layout::{
 pub use metadata::{CameraInfo, LevelInfo, Metadata, Provenance, SourceFile};
 pub use reader::{decode_cap, Map, Section};
 pub use slice::{slice, SliceOptions, SliceSummary};
-pub use views::{Images, Level, Visibility};
+pub use views::{GlobalDescriptors, Images, Level, Visibility};
 pub use writer::{Descriptors, MapWriter};
 
 /// Memory-maps a file read-only (see the safety note on sfpmap's own files in `mmap.rs`).
+#[cfg(feature = "colmap-model")]
 pub(crate) use mmap::map_file;
 
 /// Re-exported so users need not depend on `half` to name descriptor elements.

@@ -318,6 +318,9 @@ impl Visibility<'_> {
     }
 }
 
+/// Image global descriptors, row-major `[images × dim]`, and `dim`.
+pub type GlobalDescriptors<'m> = (Cow<'m, [f16]>, usize);
+
 /// One level of a map: its points and descriptor blocks.
 #[derive(Debug, Clone, Copy)]
 pub struct Level<'m> {
@@ -453,7 +456,7 @@ impl<'a> Map<'a> {
     }
 
     /// Global descriptors `[images × dim]` and `dim`, if stored.
-    pub fn image_global(&self) -> Result<Option<(Cow<'_, [f16]>, usize)>, Error> {
+    pub fn image_global(&self) -> Result<Option<GlobalDescriptors<'_>>, Error> {
         match self.find(SectionKind::ImageGlobal, None) {
             Some(s) => Ok(Some((self.section_array(s)?, s.cols as usize))),
             None => Ok(None),

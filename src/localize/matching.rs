@@ -124,7 +124,8 @@ mod tests {
 
     fn unit(v: &[f32]) -> Vec<f32> {
         let mut v = v.to_vec();
-        normalise_rows(&mut v, v.len());
+        let dim = v.len();
+        normalise_rows(&mut v, dim);
         v
     }
 
