@@ -344,3 +344,31 @@ fn runtime_is_fetched_on_first_use_and_discovery_order_holds() {
     );
     assert!(!bad.status.success());
 }
+
+/// Images smaller than their cameras (a downscaled copy of the folder) still give a map: the
+/// observations are scaled to the files, with a warning.
+#[test]
+fn downscaled_images_are_sampled_at_scaled_observations() {
+    let dir = tempfile::tempdir().unwrap();
+    let images = dir.path().join("half");
+    std::fs::create_dir(&images).unwrap();
+    for entry in std::fs::read_dir(scene().join("images")).unwrap() {
+        let path = entry.unwrap().path();
+        let img = image::open(&path).unwrap();
+        img.resize_exact(
+            img.width() / 2,
+            img.height() / 2,
+            image::imageops::FilterType::Triangle,
+        )
+        .save(images.join(path.file_name().unwrap()))
+        .unwrap();
+    }
+    let out = dir.path().join("half.sfpm");
+    let run = convert(&images, &out, &[]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{stderr}");
+    assert!(stderr.contains("observations are scaled"), "{stderr}");
+    let summary: Value = serde_json::from_slice(&run.stdout).unwrap();
+    assert!(summary["points"].as_u64().unwrap() > 0);
+    ok(&[os("verify"), out.as_os_str()]);
+}

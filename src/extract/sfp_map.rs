@@ -224,6 +224,7 @@ pub fn convert_with_images(
     let mut ms = Vec::new();
     let mut image_bytes = 0;
     let mut buf = Vec::with_capacity(width);
+    let mut scaled = 0usize;
     reporter.start("extracting", Some(model.images().len() as u64));
     for (k, (image, path)) in model.images().iter().zip(&paths).enumerate() {
         if !path.is_file() {
@@ -238,11 +239,34 @@ pub fn convert_with_images(
         let dense = extractor.run(&input)?;
         global[k * contract.global_dim..(k + 1) * contract.global_dim]
             .copy_from_slice(&dense.global);
+        // Observations are in the camera's pixels; an image file of another size (e.g. a
+        // downscaled copy) is the same view scaled, so they are scaled to the file.
+        let to_file = match model.camera(image.camera_id) {
+            Some(c) if c.width > 0 && c.height > 0 => [
+                input.original_size[0] as f32 / c.width as f32,
+                input.original_size[1] as f32 / c.height as f32,
+            ],
+            _ => [1.0, 1.0],
+        };
+        if to_file != [1.0, 1.0] {
+            scaled += 1;
+            if scaled == 1 {
+                reporter.warn(&format!(
+                    "{}: {}x{} px but its camera is {}x{}; observations are scaled to the file (the first of such images)",
+                    path.display(),
+                    input.original_size[0],
+                    input.original_size[1],
+                    (input.original_size[0] as f32 / to_file[0]).round(),
+                    (input.original_size[1] as f32 / to_file[1]).round()
+                ));
+            }
+        }
         for p in &image.points2d {
             let Some(point) = p.point3d_id.and_then(|id| model.point3d_index(id)) else {
                 continue;
             };
-            let [x, y] = dense.input_pixel([p.xy[0] as f32, p.xy[1] as f32]);
+            let [x, y] =
+                dense.input_pixel([p.xy[0] as f32 * to_file[0], p.xy[1] as f32 * to_file[1]]);
             let row = &mut tracks.features[point * tracks.width..(point + 1) * tracks.width];
             for (j, level) in dense.levels.iter().enumerate() {
                 buf.clear();
@@ -258,6 +282,11 @@ pub fn convert_with_images(
         reporter.advance(1);
     }
     reporter.finish();
+    if scaled > 1 {
+        reporter.warn(&format!(
+            "{scaled} images differ in size from their cameras; their observations were scaled"
+        ));
+    }
 
     // Level membership by mean score; points in no level are dropped.
     let mean_score =
