@@ -4,6 +4,8 @@
 pub mod colmap_export;
 #[cfg(feature = "onnx")]
 pub mod features_h5;
+#[cfg(feature = "mcap")]
+pub mod mcap_io;
 #[cfg(feature = "plot")]
 pub mod plot;
 pub mod ply;
