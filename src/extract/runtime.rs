@@ -61,7 +61,7 @@ pub fn cache_dir() -> Option<PathBuf> {
 ///
 /// The wheel's runtime otherwise writes telemetry files under the home folder. This is the
 /// process environment, so it must happen before other threads read it: the CLI calls this
-/// first thing in the commands that use the runtime, and [`environment`] calls it again (a no-op
+/// first thing in the commands that use the runtime, and [`runtime()`] calls it again (a no-op
 /// then) before loading the library. The crate is edition 2021, where `set_var` is safe to
 /// call; it is still only sound while no other thread reads the environment, which holds at
 /// those two points in the CLI.
