@@ -34,6 +34,17 @@ fn os<S: AsRef<std::ffi::OsStr> + ?Sized>(s: &S) -> &std::ffi::OsStr {
     s.as_ref()
 }
 
+/// The embedded model's contract (dims, strides, level ids come from its metadata).
+fn contract() -> sfpmap::extract::contract::Contract {
+    sfpmap::extract::Extractor::new(
+        &sfpmap::extract::ExtractorOptions::default(),
+        &sfpmap::progress::Silent,
+    )
+    .expect("runtime and embedded model")
+    .contract()
+    .clone()
+}
+
 fn convert(images: &Path, out: &Path, extra: &[&str]) -> Output {
     let model = scene().join("sparse-map");
     let mut args = vec![
@@ -87,12 +98,15 @@ fn convert_images_builds_a_multilevel_map_that_slices_to_level_2_short() {
         meta.provenance.parameters["contract"]["sfp.contract"],
         "sfp-extractor/1"
     );
-    assert_eq!(map.level_ids(), vec![0, 1, 2, 3]);
+    let c = contract();
+    assert!(map.level_ids().iter().all(|l| c.level_ids.contains(l)));
     let (global, dim) = map.image_global().unwrap().expect("global descriptors");
-    assert_eq!((global.len() / dim, dim), (8, 128));
+    assert_eq!((global.len() / dim, dim), (8, c.global_dim));
+    let i2 = c.level_index(2).expect("the model has a level 2");
+    let (short2, full2) = (c.dims[i2], c.full_dims[i2]);
     let level2 = map.level(2).unwrap();
-    assert_eq!((level2.dim_short(), level2.dim_full()), (64, 192));
-    assert_eq!(level2.info().stride, 8.0);
+    assert_eq!((level2.dim_short(), level2.dim_full()), (short2, full2));
+    assert_eq!(level2.info().stride, f64::from(c.strides[i2]));
     assert!(level2.info().extra["assignment"]
         .as_str()
         .unwrap()
@@ -109,9 +123,10 @@ fn convert_images_builds_a_multilevel_map_that_slices_to_level_2_short() {
     let full_rest = level2.desc_rest().unwrap().unwrap().into_owned();
     // Full descriptors are unit vectors (f16 rounding aside).
     for i in 0..level2.len() {
-        let norm: f32 = full_short[i * 64..(i + 1) * 64]
+        let rest2 = full2 - short2;
+        let norm: f32 = full_short[i * short2..(i + 1) * short2]
             .iter()
-            .chain(&full_rest[i * 128..(i + 1) * 128])
+            .chain(&full_rest[i * rest2..(i + 1) * rest2])
             .map(|v| v.to_f32() * v.to_f32())
             .sum();
         assert!((norm - 1.0).abs() < 5e-3, "point {i}: |full|^2 = {norm}");
@@ -223,6 +238,8 @@ fn extract_writes_hloc_features_h5() {
     ]);
     assert_eq!(summary["images"], 10);
     assert_eq!(summary["main_level"], 2);
+    let c = contract();
+    let main_full = c.full_dims[c.level_index(2).unwrap()] as u64;
     assert!(summary["ms_median"].as_f64().unwrap() > 0.0);
     let file = hdf5_pure::File::open(&out).unwrap();
     let mut names: Vec<String> = std::fs::read_dir(&images)
@@ -237,7 +254,7 @@ fn extract_writes_hloc_features_h5() {
         let n = shape[0];
         assert!(n > 0, "{name}: no level-2 keypoints");
         let desc = file.dataset(&format!("{name}/descriptors")).unwrap();
-        assert_eq!(desc.shape().unwrap(), vec![192, n]);
+        assert_eq!(desc.shape().unwrap(), vec![main_full, n]);
         assert_eq!(
             file.dataset(&format!("{name}/scores"))
                 .unwrap()
@@ -247,7 +264,8 @@ fn extract_writes_hloc_features_h5() {
         );
         let size = file.dataset(&format!("{name}/image_size")).unwrap();
         assert_eq!(size.shape().unwrap(), vec![2]);
-        for (level, full, short) in [(0, 240, 16), (1, 224, 32), (2, 192, 64), (3, 128, 128)] {
+        for (i, level) in c.level_ids.iter().enumerate() {
+            let (full, short) = (c.full_dims[i] as u64, c.dims[i] as u64);
             let g = format!("{name}/level_{level}");
             let n = file
                 .dataset(&format!("{g}/keypoints"))
