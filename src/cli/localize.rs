@@ -38,8 +38,9 @@ pub struct Args {
     #[arg(long)]
     pub map: PathBuf,
     /// Query list: `name MODEL W H params...` per line (or names only with --camera).
-    #[arg(long)]
-    pub query_list: PathBuf,
+    #[cfg_attr(feature = "mcap", arg(long, required_unless_present = "mcap"))]
+    #[cfg_attr(not(feature = "mcap"), arg(long, required = true))]
+    pub query_list: Option<PathBuf>,
     /// Folder with the query images (needed when features are extracted).
     #[arg(long)]
     pub images: Option<PathBuf>,
@@ -75,7 +76,15 @@ pub struct Args {
     /// Print a JSON summary (counts, per-stage median times).
     #[arg(long)]
     pub json: bool,
+    #[cfg(feature = "mcap")]
+    #[command(flatten)]
+    pub mcap: mcap_input::McapArgs,
 }
+
+// A child module so it shares this command's private helpers; the file sits beside this one.
+#[cfg(feature = "mcap")]
+#[path = "localize_mcap.rs"]
+mod mcap_input;
 
 fn median(mut v: Vec<f64>) -> f64 {
     if v.is_empty() {
@@ -86,6 +95,13 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    #[cfg(feature = "mcap")]
+    if args.mcap.mcap.is_some() {
+        return mcap_input::run(&args, quiet);
+    }
+    let Some(query_list) = args.query_list.clone() else {
+        bail!("--query-list is required (or --mcap)");
+    };
     let start = Instant::now();
     let camera = args
         .camera
@@ -93,7 +109,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .map(Camera::parse)
         .transpose()
         .context("--camera")?;
-    let queries = read_query_list(&args.query_list, camera.as_ref())?;
+    let queries = read_query_list(&query_list, camera.as_ref())?;
     let map = Map::open(&args.map).with_context(|| args.map.display().to_string())?;
     let descriptor = map
         .metadata()
@@ -116,7 +132,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         #[cfg(feature = "onnx")]
         (None, _) => {
             let Some(images) = args.images.clone() else {
-                bail!("{}: pass the query images with --images DIR (features are extracted with the SFP model)", args.query_list.display());
+                bail!("{}: pass the query images with --images DIR (features are extracted with the SFP model)", query_list.display());
             };
             let options = sfpmap::extract::ExtractorOptions {
                 model: args.model.clone(),

@@ -1,0 +1,580 @@
+//! `sfpmap localize --mcap IN.mcap --topic TOPIC -o OUT.mcap`: localize the images of one topic
+//! of an MCAP log and write their poses as `foxglove.PoseInFrame` (and optionally TUM).
+//!
+//! Damaged logs: messages are streamed until the first unreadable record; what was read is
+//! localized and written, and the rest is reported (a warning on stderr, `unreadable` in
+//! `--json`). The run still exits 0 when at least one image message was read, as a query
+//! that fails to localize does not fail `sfpmap localize` either; it is an error when no image
+//! message could be read or decoded at all.
+
+use super::Args;
+use anyhow::{bail, Context};
+use serde_json::json;
+use sfpmap::extract::{DetectOptions, Extractor, ExtractorOptions};
+use sfpmap::format::Map;
+use sfpmap::io::mcap_io::{self, Stamp};
+use sfpmap::localize::geometry::Camera;
+use sfpmap::localize::matching::MatchOptions;
+use sfpmap::localize::{FeatureSet, Localization, LocalizeOptions, Localizer, QueryFeatures};
+use sfpmap::progress::Reporter;
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::BufReader;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Mutex;
+use std::time::Instant;
+
+/// The MCAP flags of `sfpmap localize`.
+#[derive(Debug, clap::Args)]
+pub struct McapArgs {
+    /// Read query images from this MCAP log instead of a query list; -o is then an MCAP with
+    /// foxglove.PoseInFrame messages. Example: `sfpmap localize --map m.sfpm --mcap run.mcap
+    /// --topic /camera/image_raw/compressed --camera-info-topic /camera/camera_info -o poses.mcap`
+    #[arg(long, requires = "topic")]
+    pub mcap: Option<PathBuf>,
+    /// The image topic: sensor_msgs/msg/CompressedImage or sensor_msgs/msg/Image (cdr), or
+    /// foxglove.CompressedImage (json, protobuf).
+    #[arg(long, requires = "mcap")]
+    pub topic: Option<String>,
+    /// Intrinsics from the first sensor_msgs/msg/CameraInfo on this topic (instead of --camera).
+    #[arg(long, requires = "mcap", conflicts_with = "camera")]
+    pub camera_info_topic: Option<String>,
+    /// Topic of the poses written to the output MCAP.
+    #[arg(long, default_value = "/sfpmap/pose", requires = "mcap")]
+    pub pose_topic: String,
+    /// frame_id of the poses (the map's frame).
+    #[arg(long, default_value = "map", requires = "mcap")]
+    pub frame_id: String,
+    /// Copy the input image messages (same schema and channel) into the output MCAP.
+    #[arg(long, requires = "mcap")]
+    pub passthrough_images: bool,
+    /// Also write the trajectory as TUM (`timestamp tx ty tz qx qy qz qw`, world_from_cam,
+    /// the image stamps in seconds).
+    #[arg(long, requires = "mcap")]
+    pub tum: Option<PathBuf>,
+}
+
+/// One image message on the topic and what became of it.
+struct Frame {
+    log_time: u64,
+    publish_time: u64,
+    /// The message's own stamp, else its log time.
+    stamp: Stamp,
+    outcome: Result<Localization, String>,
+    /// The image could not be decoded (as opposed to decoded but not localized).
+    undecodable: bool,
+}
+
+/// How the pass over the log ended.
+#[derive(Default)]
+struct Scan {
+    messages_on_topic: usize,
+    /// topic → schema name, for the "no such topic" error.
+    topics: BTreeMap<String, String>,
+    /// The error that ended the pass early.
+    error: Option<String>,
+}
+
+fn open_stream(path: &Path) -> anyhow::Result<mcap::io::MessageReader<BufReader<File>>> {
+    let file = File::open(path).with_context(|| path.display().to_string())?;
+    Ok(mcap::io::MessageReader::new(BufReader::with_capacity(
+        1 << 20,
+        file,
+    )))
+}
+
+/// The summary section (channels and per-channel counts), when the log has a readable one.
+fn read_summary(path: &Path) -> Option<mcap::Summary> {
+    use mcap::sans_io::{SummaryReadEvent, SummaryReader, SummaryReaderOptions};
+    use std::io::{Read, Seek};
+    let mut file = File::open(path).ok()?;
+    let len = file.metadata().ok()?.len();
+    let mut reader =
+        SummaryReader::new_with_options(SummaryReaderOptions::default().with_file_size(len));
+    while let Some(event) = reader.next_event() {
+        match event.ok()? {
+            SummaryReadEvent::ReadRequest(n) => {
+                let read = file.read(reader.insert(n)).ok()?;
+                reader.notify_read(read);
+            }
+            SummaryReadEvent::SeekRequest(to) => {
+                let pos = file.seek(to).ok()?;
+                reader.notify_seeked(pos);
+            }
+        }
+    }
+    reader.finish()
+}
+
+fn topic_list(topics: &BTreeMap<String, String>) -> String {
+    if topics.is_empty() {
+        return "none".into();
+    }
+    topics
+        .iter()
+        .map(|(t, s)| format!("{t} ({s})"))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+fn schema_name(channel: &mcap::Channel<'_>) -> String {
+    channel
+        .schema
+        .as_ref()
+        .map_or_else(|| "no schema".to_owned(), |s| s.name.clone())
+}
+
+/// Intrinsics from the first message on the camera-info topic.
+fn camera_from_info(path: &Path, topic: &str) -> anyhow::Result<Camera> {
+    let mut topics = BTreeMap::new();
+    for message in open_stream(path)? {
+        let message = match message {
+            Ok(m) => m,
+            Err(e) => bail!(
+                "{}: no message on camera-info topic {topic:?} before the log became unreadable ({e}); topics seen: {}",
+                path.display(),
+                topic_list(&topics)
+            ),
+        };
+        if message.channel.topic == topic {
+            let schema = schema_name(&message.channel);
+            return mcap_io::decode_camera_info(
+                &schema,
+                &message.channel.message_encoding,
+                &message.data,
+            )
+            .with_context(|| format!("{}: topic {topic}", path.display()));
+        }
+        topics
+            .entry(message.channel.topic.clone())
+            .or_insert_with(|| schema_name(&message.channel));
+    }
+    bail!(
+        "{}: no topic {topic:?}; topics present: {}",
+        path.display(),
+        topic_list(&topics)
+    )
+}
+
+pub fn run(args: &Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    let start = Instant::now();
+    let m = &args.mcap;
+    let (Some(input), Some(topic)) = (m.mcap.as_deref(), m.topic.as_deref()) else {
+        bail!("--mcap needs --topic");
+    };
+    let summary = read_summary(input);
+    // With a summary, a missing topic is found before anything is decoded.
+    let mut expected_on_topic = None;
+    if let Some(summary) = &summary {
+        let topics: BTreeMap<String, String> = summary
+            .channels
+            .values()
+            .map(|c| (c.topic.clone(), schema_name(c)))
+            .collect();
+        for t in std::iter::once(topic).chain(m.camera_info_topic.as_deref()) {
+            if !topics.contains_key(t) {
+                bail!(
+                    "{}: no topic {t:?}; topics present: {}",
+                    input.display(),
+                    topic_list(&topics)
+                );
+            }
+        }
+        if let Some(stats) = &summary.stats {
+            expected_on_topic = Some(
+                summary
+                    .channels
+                    .values()
+                    .filter(|c| c.topic == topic)
+                    .map(|c| {
+                        stats
+                            .channel_message_counts
+                            .get(&c.id)
+                            .copied()
+                            .unwrap_or(0)
+                    })
+                    .sum::<u64>(),
+            );
+        }
+    }
+    let camera = match (&args.camera, &m.camera_info_topic) {
+        (Some(c), _) => Camera::parse(c).context("--camera")?,
+        (None, Some(t)) => camera_from_info(input, t)?,
+        (None, None) => bail!("--mcap needs the intrinsics: --camera \"MODEL W H params...\" or --camera-info-topic TOPIC"),
+    };
+
+    let map = Map::open(&args.map).with_context(|| args.map.display().to_string())?;
+    let descriptor = map
+        .metadata()
+        .levels
+        .first()
+        .map(|l| l.descriptor.clone())
+        .unwrap_or_default();
+    match descriptor.as_str() {
+        "" => bail!(
+            "{}: the map has no descriptors (geometry only)",
+            args.map.display()
+        ),
+        "sift" => bail!(
+            "{}: a SIFT map; MCAP images need an SFP map (their features are extracted with the SFP model)",
+            args.map.display()
+        ),
+        _ => {}
+    }
+    let bars = super::super::Bars::new(quiet, args.json);
+    let extractor = Extractor::new(
+        &ExtractorOptions {
+            model: args.model.clone(),
+            threads: 2,
+        },
+        &bars,
+    )?;
+    if extractor.contract().model_name != descriptor {
+        bail!(
+            "{}: the map's descriptors are {descriptor:?} but the model is {:?}",
+            args.map.display(),
+            extractor.contract().model_name
+        );
+    }
+    let gray_weights = extractor.contract().gray_weights;
+    let options = LocalizeOptions {
+        levels: args.levels.clone(),
+        short: args.short,
+        top_k: args.top_k,
+        matching: MatchOptions {
+            ratio: args.ratio,
+            ..MatchOptions::default()
+        },
+        ..LocalizeOptions::default()
+    };
+    let localizer =
+        Localizer::new(&map, options).with_context(|| args.map.display().to_string())?;
+
+    bars.start("localizing", expected_on_topic);
+    let extractor = Mutex::new(extractor);
+    let frames: Mutex<BTreeMap<usize, Frame>> = Mutex::new(BTreeMap::new());
+    let threads = args.threads.max(1);
+    let (sender, receiver) = std::sync::mpsc::sync_channel::<(usize, mcap::Message)>(threads);
+    let receiver = Mutex::new(receiver);
+    let scan = std::thread::scope(|s| -> anyhow::Result<Scan> {
+        for _ in 0..threads {
+            s.spawn(|| loop {
+                let next = receiver.lock().unwrap_or_else(|p| p.into_inner()).recv();
+                let Ok((index, message)) = next else { break };
+                let frame =
+                    localize_message(&message, &camera, gray_weights, &extractor, &localizer);
+                frames
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .insert(index, frame);
+                bars.advance(1);
+            });
+        }
+        let mut scan = Scan::default();
+        let stream = open_stream(input);
+        let result = stream.map(|stream| {
+            for message in stream {
+                let message = match message {
+                    Ok(m) => m,
+                    Err(e) => {
+                        scan.error = Some(e.to_string());
+                        break;
+                    }
+                };
+                scan.topics
+                    .entry(message.channel.topic.clone())
+                    .or_insert_with(|| schema_name(&message.channel));
+                if message.channel.topic == topic {
+                    if sender.send((scan.messages_on_topic, message)).is_err() {
+                        break;
+                    }
+                    scan.messages_on_topic += 1;
+                }
+            }
+        });
+        drop(sender);
+        result.map(|_| scan)
+    })?;
+    bars.finish();
+
+    let frames = frames.into_inner().unwrap_or_else(|p| p.into_inner());
+    if scan.messages_on_topic == 0 {
+        match &scan.error {
+            Some(e) => bail!(
+                "{}: no message on topic {topic:?} before the log became unreadable ({e}); topics seen: {}",
+                input.display(),
+                topic_list(&scan.topics)
+            ),
+            None if !scan.topics.contains_key(topic) => bail!(
+                "{}: no topic {topic:?}; topics present: {}",
+                input.display(),
+                topic_list(&scan.topics)
+            ),
+            None => bail!("{}: topic {topic:?} has no messages", input.display()),
+        }
+    }
+    if frames.values().all(|f| f.undecodable) {
+        let first = frames
+            .values()
+            .next()
+            .and_then(|f| f.outcome.as_ref().err());
+        bail!(
+            "{}: topic {topic:?}: none of its {} images could be decoded: {}",
+            input.display(),
+            frames.len(),
+            first.map_or("", |s| s.as_str())
+        );
+    }
+
+    write_output(args, input, topic, &frames)?;
+    if let Some(tum) = &m.tum {
+        write_tum(tum, &frames)?;
+    }
+
+    let localized = frames
+        .values()
+        .filter(|f| matches!(&f.outcome, Ok(l) if l.pose.is_some()))
+        .count();
+    let failed: Vec<_> = frames
+        .iter()
+        .filter_map(|(i, f)| {
+            let reason = match &f.outcome {
+                Ok(l) if l.pose.is_some() => return None,
+                Ok(l) => l.failure.clone().unwrap_or_else(|| "unknown".into()),
+                Err(e) => e.clone(),
+            };
+            Some(json!({
+                "index": i,
+                "stamp": { "sec": f.stamp.sec, "nsec": f.stamp.nsec },
+                "reason": reason,
+            }))
+        })
+        .collect();
+    // Without a summary (a cut-off log) how many messages were lost is unknown.
+    let unreadable_messages = expected_on_topic
+        .map(|n| n.saturating_sub(scan.messages_on_topic as u64))
+        .filter(|_| scan.error.is_some());
+    let unreadable = scan.error.as_ref().map(|e| {
+        json!({
+            "error": e,
+            "messages": unreadable_messages,
+        })
+    });
+    if let Some(e) = &scan.error {
+        let lost = match unreadable_messages {
+            Some(n) => format!("{n} more image messages on the topic are lost"),
+            None => "how many more image messages it held is unknown (no summary)".to_owned(),
+        };
+        bars.warn(&format!(
+            "{}: unreadable after the first {} image messages on {topic} ({e}); {lost}",
+            input.display(),
+            scan.messages_on_topic
+        ));
+    }
+    let results: Vec<&Localization> = frames
+        .values()
+        .filter_map(|f| f.outcome.as_ref().ok())
+        .collect();
+    let stage = |f: fn(&Localization) -> f64| super::median(results.iter().map(|r| f(r)).collect());
+    if args.json {
+        super::super::print_json(&json!({
+            "mcap": input.display().to_string(),
+            "topic": topic,
+            "images": scan.messages_on_topic,
+            "localized": localized,
+            "failed": failed,
+            "unreadable": unreadable,
+            "output": args.output.display().to_string(),
+            "pose_topic": m.pose_topic,
+            "tum": m.tum.as_ref().map(|p| p.display().to_string()),
+            "camera": format!("{} {} {} {:?}", camera.model().name(), camera.width(), camera.height(), camera.params()),
+            "seconds": start.elapsed().as_secs_f64(),
+            "median_ms": {
+                "retrieval": stage(|r| r.times.retrieval_ms),
+                "coarse_match": stage(|r| r.times.coarse_match_ms),
+                "coarse_ransac": stage(|r| r.times.coarse_ransac_ms),
+                "fine": stage(|r| r.times.fine_ms),
+                "total": stage(|r| r.times.total_ms),
+            },
+        }))?;
+    } else if !quiet {
+        println!(
+            "{}: {localized}/{} images of {topic} localized, median {:.1} ms per image (after features)",
+            args.output.display(),
+            scan.messages_on_topic,
+            stage(|r| r.times.total_ms)
+        );
+        for f in &failed {
+            println!("failed: image {} ({})", f["index"], f["reason"]);
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn localize_message(
+    message: &mcap::Message<'_>,
+    camera: &Camera,
+    gray_weights: [f32; 3],
+    extractor: &Mutex<Extractor>,
+    localizer: &Localizer<'_>,
+) -> Frame {
+    let mut frame = Frame {
+        log_time: message.log_time,
+        publish_time: message.publish_time,
+        stamp: Stamp::from_nanos(message.log_time),
+        outcome: Err(String::new()),
+        undecodable: false,
+    };
+    let schema = schema_name(&message.channel);
+    let decoded =
+        match mcap_io::decode_image(&schema, &message.channel.message_encoding, &message.data) {
+            Ok(d) => d,
+            Err(e) => {
+                frame.outcome = Err(e.to_string());
+                frame.undecodable = true;
+                return frame;
+            }
+        };
+    if let Some(stamp) = decoded.stamp {
+        frame.stamp = stamp;
+    }
+    let (w, h) = (decoded.image.width(), decoded.image.height());
+    if (w, h) != (camera.width(), camera.height()) {
+        frame.outcome = Err(format!(
+            "the image is {w}x{h} but the camera is {}x{}",
+            camera.width(),
+            camera.height()
+        ));
+        return frame;
+    }
+    let input = sfpmap::extract::image::from_image(&decoded.image, gray_weights, None);
+    drop(decoded);
+    // One ONNX session: extraction takes turns, decoding and localization run in parallel.
+    let features = extractor
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .extract(&input, &DetectOptions::default());
+    frame.outcome = features
+        .map_err(|e| e.to_string())
+        .map(|f| query_features(&f))
+        .and_then(|q| localizer.localize(&q, camera).map_err(|e| e.to_string()));
+    frame
+}
+
+/// Temp file in the destination's folder, renamed over it once complete.
+fn temp_path(path: &Path) -> PathBuf {
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    dir.join(format!(
+        ".{}.tmp{}",
+        path.file_name()
+            .map(|f| f.to_string_lossy())
+            .unwrap_or_default(),
+        std::process::id()
+    ))
+}
+
+fn write_output(
+    args: &Args,
+    input: &Path,
+    topic: &str,
+    frames: &BTreeMap<usize, Frame>,
+) -> anyhow::Result<()> {
+    let m = &args.mcap;
+    let path = &args.output;
+    let tmp = temp_path(path);
+    let result = (|| -> anyhow::Result<()> {
+        let file = std::io::BufWriter::new(File::create(&tmp)?);
+        let mut writer = mcap_io::PoseWriter::new(file, &m.pose_topic)?;
+        let write_pose = |writer: &mut mcap_io::PoseWriter<_>, frame: &Frame| match &frame.outcome {
+            Ok(Localization {
+                pose: Some(pose), ..
+            }) => writer.write_pose(
+                frame.log_time,
+                frame.publish_time,
+                frame.stamp,
+                &m.frame_id,
+                pose,
+            ),
+            _ => Ok(()),
+        };
+        if m.passthrough_images {
+            // A second pass copies the images in log order, each followed by its pose.
+            let mut index = 0;
+            for message in open_stream(input)? {
+                let Ok(message) = message else { break };
+                if message.channel.topic != topic {
+                    continue;
+                }
+                let Some(frame) = frames.get(&index) else {
+                    break;
+                };
+                writer.write_message(&message)?;
+                write_pose(&mut writer, frame)?;
+                index += 1;
+            }
+        } else {
+            for frame in frames.values() {
+                write_pose(&mut writer, frame)?;
+            }
+        }
+        let mut file = writer.finish()?;
+        std::io::Write::flush(&mut file)?;
+        file.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+        std::fs::rename(&tmp, path)?;
+        Ok(())
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result.with_context(|| path.display().to_string())
+}
+
+fn write_tum(path: &Path, frames: &BTreeMap<usize, Frame>) -> anyhow::Result<()> {
+    use std::fmt::Write as _;
+    let mut out =
+        String::from("# timestamp tx ty tz qx qy qz qw (TUM: world_from_cam; image stamps)\n");
+    for frame in frames.values() {
+        if let Ok(Localization {
+            pose: Some(pose), ..
+        }) = &frame.outcome
+        {
+            let w = pose.inverse().to_colmap();
+            writeln!(
+                out,
+                "{}.{:09} {} {} {} {} {} {} {}",
+                frame.stamp.sec, frame.stamp.nsec, w[4], w[5], w[6], w[1], w[2], w[3], w[0]
+            )?;
+        }
+    }
+    let tmp = temp_path(path);
+    std::fs::write(&tmp, out)
+        .and_then(|_| std::fs::rename(&tmp, path))
+        .with_context(|| path.display().to_string())
+}
+
+/// Extractor output as localizer input: every level with its full descriptors (the localizer
+/// truncates for `--short`) and the global descriptor, as the query-list path does.
+fn query_features(f: &sfpmap::extract::Features) -> QueryFeatures {
+    let sets = f
+        .levels
+        .iter()
+        .map(|l| FeatureSet {
+            level: Some(l.level),
+            keypoints: l
+                .keypoints
+                .iter()
+                .map(|k| [f64::from(k[0]), f64::from(k[1])])
+                .collect(),
+            descriptors: l.full.iter().map(|x| x.to_f32()).collect(),
+            dim: l.dim_full,
+        })
+        .collect();
+    QueryFeatures {
+        sets,
+        global: Some(f.global.clone()),
+    }
+}
