@@ -266,21 +266,21 @@ fn extract_writes_hloc_features_h5() {
         assert_eq!(size.shape().unwrap(), vec![2]);
         for (i, level) in c.level_ids.iter().enumerate() {
             let (full, short) = (c.full_dims[i] as u64, c.dims[i] as u64);
-            let g = format!("{name}/level_{level}");
+            let g = format!("{name}/level{level}_");
             let n = file
-                .dataset(&format!("{g}/keypoints"))
+                .dataset(&format!("{g}keypoints"))
                 .unwrap()
                 .shape()
                 .unwrap()[0];
             assert_eq!(
-                file.dataset(&format!("{g}/descriptors"))
+                file.dataset(&format!("{g}descriptors"))
                     .unwrap()
                     .shape()
                     .unwrap(),
                 vec![full, n]
             );
             assert_eq!(
-                file.dataset(&format!("{g}/descriptors_short"))
+                file.dataset(&format!("{g}descriptors_short"))
                     .unwrap()
                     .shape()
                     .unwrap(),

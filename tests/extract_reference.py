@@ -94,17 +94,19 @@ def check_h5(path, reference=None, name=None):
             if n:
                 norms = np.linalg.norm(desc.astype(np.float32), axis=0)
                 assert np.allclose(norms, 1, atol=5e-3), (g, norms.min(), norms.max())
-            levels = sorted(k for k in grp if k.startswith("level_"))
+            # hloc's match_features loads every item of the group as an array: no subgroups.
+            assert all(isinstance(v, h5py.Dataset) for v in grp.values()), g
+            levels = sorted(k[: -len("keypoints")] for k in grp if k.startswith("level") and k.endswith("_keypoints"))
             assert levels, g
             for lv in levels:
-                sub = grp[lv]
-                m = sub["keypoints"].shape[0]
-                assert sub["descriptors"].shape[1] == m and sub["descriptors_short"].shape[1] == m
+                m = grp[lv + "keypoints"].shape[0]
+                assert grp[lv + "descriptors"].shape[1] == m and grp[lv + "descriptors_short"].shape[1] == m
+                assert grp[lv + "scores"].shape == (m,)
         if reference is not None:
             grp = f[name]
             for lv in reference["levels"]:
-                sub = grp[f"level_{lv['level']}"]
-                ours = sub["keypoints"][()] + 0.5  # hloc convention -> COLMAP
+                pre = f"level{lv['level']}_"
+                ours = grp[pre + "keypoints"][()] + 0.5  # hloc convention -> COLMAP
                 ref = np.asarray(lv["keypoints"], np.float32).reshape(-1, 2)
                 assert abs(len(ours) - len(ref)) <= 1 + len(ref) // 200, (lv["level"], len(ours), len(ref))
                 if len(ref) and len(ours):
@@ -112,7 +114,7 @@ def check_h5(path, reference=None, name=None):
                     j = d.argmin(1)
                     close = d[np.arange(len(ours)), j] < 1e-3 * lv["stride"]
                     assert close.mean() >= 0.99, (lv["level"], close.mean())
-                    full = sub["descriptors"][()].astype(np.float32).T[close]
+                    full = grp[pre + "descriptors"][()].astype(np.float32).T[close]
                     sim = (full * np.asarray(lv["full"], np.float32)[j[close]]).sum(1)
                     assert sim.min() > 0.999, (lv["level"], sim.min())
         print(f"{path}: {len(groups)} image groups, hloc layout ok (h5py {h5py.__version__})")

@@ -13,7 +13,7 @@ use std::time::Instant;
 ///
 /// Writes hloc's `features.h5` layout: one group per image name (relative to the folder given)
 /// with `keypoints` [N×2], `descriptors` [D×N] (f16), `scores`, `image_size` of the `--level`
-/// level, and `level_<id>/…` for every level (spec/extractor.md, "features.h5 layout"). The
+/// level, and `level<id>_…` datasets for every level (spec/extractor.md, "features.h5 layout"). The
 /// model is the embedded sfp-v1 unless `--model` is given; ONNX Runtime is fetched on first
 /// use (see `sfpmap setup`). Example: `sfpmap extract images/ -o features.h5`
 #[derive(Debug, clap::Args)]

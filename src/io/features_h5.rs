@@ -166,7 +166,7 @@ fn build_group(
                 name: String::new(),
                 reason: "features with no level".into(),
             })?;
-        write_level(&mut group, main, "descriptors");
+        write_level(&mut group, main, "");
         group
             .create_dataset("image_size")
             .with_i64_data(&[i64::from(f.image_size[0]), i64::from(f.image_size[1])]);
@@ -174,19 +174,24 @@ fn build_group(
             .create_dataset("global_descriptor")
             .with_f32_data(&f.global);
         group.set_attr("level", AttrValue::I64(i64::from(main.level)));
+        // Per level as prefixed datasets, not subgroups: hloc's readers load every item of an
+        // image group as an array and list every group holding a dataset as an image name.
         for level in &f.levels {
-            let mut sub = group.create_group(&format!("level_{}", level.level));
-            write_level(&mut sub, level, "descriptors");
+            let prefix = format!("level{}_", level.level);
+            write_level(&mut group, level, &prefix);
             let n = level.len();
-            sub.create_dataset("descriptors_short")
+            group
+                .create_dataset(&format!("{prefix}descriptors_short"))
                 .with_raw_data(
                     f16_type(),
                     transposed_f16(&level.short, n, level.dim_short),
                     (n * level.dim_short) as u64,
                 )
                 .with_shape(&[level.dim_short as u64, n as u64]);
-            sub.set_attr("stride", AttrValue::I64(i64::from(level.stride)));
-            group.add_group(sub.finish());
+            group.set_attr(
+                &format!("{prefix}stride"),
+                AttrValue::I64(i64::from(level.stride)),
+            );
         }
     }
     for (name, child) in &node.children {
@@ -202,8 +207,9 @@ fn build_group(
     Ok(group.finish())
 }
 
-/// `keypoints` [N×2] f32 (hloc convention), `scores` [N] f32, `descriptors` [D×N] f16 (full).
-fn write_level(group: &mut GroupBuilder, level: &LevelFeatures, descriptors: &str) {
+/// `{prefix}keypoints` [N×2] f32 (hloc convention), `{prefix}scores` [N] f32,
+/// `{prefix}descriptors` [D×N] f16 (full).
+fn write_level(group: &mut GroupBuilder, level: &LevelFeatures, prefix: &str) {
     let n = level.len();
     let kps: Vec<f32> = level
         .keypoints
@@ -211,15 +217,15 @@ fn write_level(group: &mut GroupBuilder, level: &LevelFeatures, descriptors: &st
         .flat_map(|k| [k[0] - 0.5, k[1] - 0.5])
         .collect();
     group
-        .create_dataset("keypoints")
+        .create_dataset(&format!("{prefix}keypoints"))
         .with_f32_data(&kps)
         .with_shape(&[n as u64, 2]);
     group
-        .create_dataset("scores")
+        .create_dataset(&format!("{prefix}scores"))
         .with_f32_data(&level.scores)
         .with_shape(&[n as u64]);
     group
-        .create_dataset(descriptors)
+        .create_dataset(&format!("{prefix}descriptors"))
         .with_raw_data(
             f16_type(),
             transposed_f16(&level.full, n, level.dim_full),
@@ -272,7 +278,7 @@ mod tests {
         assert_eq!(kp.shape().unwrap(), vec![4, 2]);
         let v = kp.read_f32().unwrap();
         assert_eq!(&v[..4], &[0.0, 0.0, 1.0, 2.0]);
-        let d = file.dataset("a.jpg/level_0/descriptors").unwrap();
+        let d = file.dataset("a.jpg/level0_descriptors").unwrap();
         assert_eq!(d.shape().unwrap(), vec![5, 3]);
         let raw = d.read_raw().unwrap();
         let vals: Vec<f32> = raw
