@@ -4,6 +4,7 @@
 #![cfg(feature = "mcap")]
 
 use serde_json::Value;
+use sfpmap::localize::geometry::Pose;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -64,19 +65,19 @@ struct Query {
     name: String,
     /// `MODEL W H params...`
     camera: String,
-    /// cam_from_world qw qx qy qz (pseudo ground truth).
-    gt_rotation: [f64; 4],
+    /// cam_from_world qw qx qy qz tx ty tz (pseudo ground truth).
+    gt: [f64; 7],
 }
 
 fn queries() -> Vec<Query> {
-    let gt: BTreeMap<String, [f64; 4]> = std::fs::read_to_string(scene().join("gt_poses.txt"))
+    let gt: BTreeMap<String, [f64; 7]> = std::fs::read_to_string(scene().join("gt_poses.txt"))
         .unwrap()
         .lines()
         .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
         .map(|l| {
             let t: Vec<&str> = l.split_whitespace().collect();
-            let q: Vec<f64> = t[1..5].iter().map(|v| v.parse().unwrap()).collect();
-            (t[0].to_owned(), [q[0], q[1], q[2], q[3]])
+            let v: Vec<f64> = t[1..8].iter().map(|v| v.parse().unwrap()).collect();
+            (t[0].to_owned(), v.try_into().unwrap())
         })
         .collect();
     std::fs::read_to_string(scene().join("queries.txt"))
@@ -88,7 +89,7 @@ fn queries() -> Vec<Query> {
             Query {
                 name: name.to_owned(),
                 camera: camera.to_owned(),
-                gt_rotation: gt[name],
+                gt: gt[name],
             }
         })
         .collect()
@@ -254,7 +255,7 @@ fn read_output(path: &Path) -> Out {
 const SEC: u64 = 1_000_000_000;
 
 /// Rotation error in degrees of a PoseInFrame (world_from_cam) against a cam_from_world.
-fn rotation_error_deg(pose: &Value, cam_from_world: [f64; 4]) -> f64 {
+fn rotation_error_deg(pose: &Value, cam_from_world: [f64; 7]) -> f64 {
     let o = &pose["pose"]["orientation"];
     let q = [&o["w"], &o["x"], &o["y"], &o["z"]].map(|v| v.as_f64().unwrap());
     // world_from_cam is the conjugate of cam_from_world.
@@ -276,8 +277,17 @@ fn check_poses(out: &Out, stamps: &[(i32, u32)], query: &Query) {
         assert_eq!(pose["timestamp"]["sec"], stamp.0);
         assert_eq!(pose["timestamp"]["nsec"], stamp.1);
         assert_eq!(pose["frame_id"], "map");
-        let err = rotation_error_deg(pose, query.gt_rotation);
+        let err = rotation_error_deg(pose, query.gt);
         assert!(err < 2.0, "{}: rotation error {err:.2}°", query.name);
+        // The position is the camera centre (world_from_cam); the scene spans a few units.
+        let [qw, qx, qy, qz, tx, ty, tz] = query.gt;
+        let gt = Pose::from_colmap(qw, qx, qy, qz, tx, ty, tz)
+            .unwrap()
+            .center();
+        let p = &pose["pose"]["position"];
+        let c = [&p["x"], &p["y"], &p["z"]].map(|v| v.as_f64().unwrap());
+        let dist = ((c[0] - gt.x).powi(2) + (c[1] - gt.y).powi(2) + (c[2] - gt.z).powi(2)).sqrt();
+        assert!(dist < 0.1, "{}: centre error {dist:.3}", query.name);
     }
     for s in &out.pose_schema {
         assert_eq!(
