@@ -55,10 +55,11 @@ pub struct Args {
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images", value_parser = clap::value_parser!(u32).range(16..))]
     pub resize_max: Option<u32>,
-    /// With --images: a point joins level i when its track's mean level-i score is at least this.
+    /// With --images: a point joins level i when its track's mean level-i score is at least
+    /// this (default: the model's keypoint threshold, sfp.default_threshold).
     #[cfg(feature = "onnx")]
-    #[arg(long, requires = "images", default_value_t = 0.5)]
-    pub score_threshold: f32,
+    #[arg(long, requires = "images")]
+    pub score_threshold: Option<f32>,
     /// Output map.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -184,11 +185,8 @@ fn run_sfp(
     use sfpmap::extract::sfp_map::{convert_with_images, SfpMapOptions};
     use sfpmap::extract::ExtractorOptions;
     sfpmap::extract::runtime::disable_telemetry();
-    if !(0.0..=1.0).contains(&args.score_threshold) {
-        bail!(
-            "--score-threshold {}: scores are in [0, 1]",
-            args.score_threshold
-        );
+    if let Some(t) = args.score_threshold.filter(|t| !(0.0..=1.0).contains(t)) {
+        bail!("--score-threshold {t}: scores are in [0, 1]");
     }
     let options = SfpMapOptions {
         images: images.to_path_buf(),
@@ -197,7 +195,7 @@ fn run_sfp(
             threads: args.threads as usize,
         },
         resize_max: args.resize_max,
-        score_threshold: Some(args.score_threshold),
+        score_threshold: args.score_threshold,
         allow_missing: args.allow_missing,
         codec: Codec::from(args.codec),
         zstd_level: args.zstd_level,

@@ -4,8 +4,10 @@
 //! level's dense features are sampled bilinearly (and L2-normalised) and its score map is
 //! sampled too. Per point and level, the track's features are aggregated by normalised mean
 //! and the scores by mean. **Level assignment**: a point belongs to level i when its mean
-//! level-i score is at least the threshold (default 0.5: the score is the probability of the
-//! network's sparsity mask keeping that pixel, so ≥ 0.5 is the mask's more likely value).
+//! level-i score is at least the threshold — by default the model's own keypoint threshold
+//! `sfp.default_threshold` (0.5 for sfp-v1: the score is the probability of the network's
+//! sparsity mask keeping that pixel, so ≥ 0.5 is the mask's more likely value), so a map keeps
+//! a point on a level where the network would, on average, detect it there.
 //! Points no level selects are dropped — the network's learned map compression.
 //!
 //! Each level stores the contract's `full` descriptor of its points (levels i.. parts, each
@@ -33,7 +35,8 @@ pub struct SfpMapOptions {
     pub extractor: ExtractorOptions,
     /// Resize images so the longer side is at most this before the network.
     pub resize_max: Option<u32>,
-    /// Level assignment threshold on the mean score (`None` = 0.5).
+    /// Level assignment threshold on the mean score (`None` = the model's
+    /// `sfp.default_threshold`).
     pub score_threshold: Option<f32>,
     /// Skip model images whose file is missing (default: error).
     pub allow_missing: bool,
@@ -204,7 +207,9 @@ pub fn convert_with_images(
     let mut extractor = Extractor::new(&options.extractor, reporter)?;
     let contract = extractor.contract().clone();
     let levels = contract.levels();
-    let threshold = options.score_threshold.unwrap_or(0.5);
+    let threshold = options
+        .score_threshold
+        .unwrap_or(contract.default_threshold);
     let n_points = model.points3d().len();
     let mut offsets = Vec::with_capacity(levels);
     let mut width = 0;
