@@ -31,7 +31,7 @@ pub struct McapArgs {
     /// Read query images from this MCAP log instead of a query list; -o is then an MCAP with
     /// foxglove.PoseInFrame messages. Example: `sfpmap localize --map m.sfpm --mcap run.mcap
     /// --topic /camera/image_raw/compressed --camera-info-topic /camera/camera_info -o poses.mcap`
-    #[arg(long, requires = "topic")]
+    #[arg(long, requires = "topic", conflicts_with_all = ["query_list", "images", "database"])]
     pub mcap: Option<PathBuf>,
     /// The image topic: sensor_msgs/msg/CompressedImage or sensor_msgs/msg/Image (cdr), or
     /// foxglove.CompressedImage (json, protobuf).

@@ -903,6 +903,94 @@ mod tests {
         );
     }
 
+    fn camera_info(model: &str, d: &[f64]) -> Vec<u8> {
+        let mut msg = vec![0, 1, 0, 0];
+        msg.extend(1i32.to_le_bytes());
+        msg.extend(2u32.to_le_bytes());
+        cdr_string(&mut msg, "cam");
+        while (msg.len() - 4) % 4 != 0 {
+            msg.push(0);
+        }
+        msg.extend(480u32.to_le_bytes());
+        msg.extend(640u32.to_le_bytes());
+        cdr_string(&mut msg, model);
+        while (msg.len() - 4) % 4 != 0 {
+            msg.push(0);
+        }
+        msg.extend((d.len() as u32).to_le_bytes());
+        let k = [500.0, 0.0, 319.5, 0.0, 510.0, 239.5, 0.0, 0.0, 1.0];
+        for v in d.iter().chain(&k) {
+            while (msg.len() - 4) % 8 != 0 {
+                msg.push(0);
+            }
+            msg.extend(v.to_le_bytes());
+        }
+        msg
+    }
+
+    #[test]
+    fn camera_info_models() {
+        let c = decode_camera_info(ROS_CAMERA_INFO, "cdr", &camera_info("plumb_bob", &[0.0; 5]))
+            .unwrap();
+        assert_eq!(c.model(), CameraModel::Pinhole);
+        assert_eq!(c.params(), &[500.0, 510.0, 320.0, 240.0]);
+        assert_eq!((c.width(), c.height()), (640, 480));
+        let d = [0.1, -0.01, 0.001, 0.002, 0.0];
+        let c = decode_camera_info(ROS_CAMERA_INFO, "cdr", &camera_info("plumb_bob", &d)).unwrap();
+        assert_eq!(c.model(), CameraModel::OpenCv);
+        assert_eq!(&c.params()[4..], &d[..4]);
+        let d = [0.1, -0.01, 0.001, 0.002, 0.003];
+        let c = decode_camera_info(ROS_CAMERA_INFO, "cdr", &camera_info("plumb_bob", &d)).unwrap();
+        assert_eq!(c.model(), CameraModel::FullOpenCv);
+        assert_eq!(&c.params()[4..9], &d);
+        let c = decode_camera_info(ROS_CAMERA_INFO, "cdr", &camera_info("equidistant", &d[..4]))
+            .unwrap();
+        assert_eq!(c.model(), CameraModel::OpenCvFisheye);
+        let err = decode_camera_info(ROS_CAMERA_INFO, "cdr", &camera_info("unified", &[0.5]))
+            .unwrap_err();
+        assert!(
+            err.to_string().contains("distortion model \"unified\""),
+            "{err}"
+        );
+        let err = decode_camera_info(ROS_IMAGE, "cdr", &[]).unwrap_err();
+        assert!(
+            matches!(err, McapIoError::UnsupportedSchema { .. }),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn cdr_big_endian_and_bad_headers() {
+        let mut msg = vec![0, 0, 0, 0];
+        msg.extend(3i32.to_be_bytes());
+        msg.extend(4u32.to_be_bytes());
+        msg.extend(1u32.to_be_bytes());
+        msg.push(0); // frame_id ""
+        msg.extend([0, 0, 0]);
+        msg.extend(4u32.to_be_bytes());
+        msg.extend(b"png\0");
+        msg.extend(3u32.to_be_bytes());
+        msg.extend(b"abc");
+        let err = decode_image(ROS_COMPRESSED_IMAGE, "cdr", &msg).unwrap_err();
+        assert!(
+            matches!(err, McapIoError::UnsupportedImageEncoding { .. }),
+            "{err}"
+        );
+        msg[1] = 3;
+        let err = decode_image(ROS_COMPRESSED_IMAGE, "cdr", &msg).unwrap_err();
+        assert!(
+            matches!(err, McapIoError::CdrEncapsulation { id: [0, 3] }),
+            "{err}"
+        );
+        let err = decode_image(ROS_COMPRESSED_IMAGE, "cdr", &msg[..2]).unwrap_err();
+        assert!(matches!(err, McapIoError::CdrTruncated { .. }), "{err}");
+        let err = decode_image("sensor_msgs/msg/PointCloud2", "cdr", &msg).unwrap_err();
+        assert!(
+            err.to_string().contains("unsupported message type"),
+            "{err}"
+        );
+    }
+
     #[test]
     fn protobuf_compressed_image_fields() {
         let png = {
