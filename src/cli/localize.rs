@@ -277,34 +277,9 @@ impl Source {
                 let input =
                     sfpmap::extract::image::load(&path, extractor.contract().gray_weights, None)?;
                 let f = extractor.extract(&input, &sfpmap::extract::DetectOptions::default())?;
-                Ok(Some(sfp_query(&f)))
+                Ok(Some(sfpmap::localize::query::sfp_query(&f)))
             }
         }
-    }
-}
-
-/// Extractor output as localizer input: one feature set per level, full descriptors (the map
-/// keeps them in the extractor's basis; the localizer truncates for `--short`).
-#[cfg(feature = "onnx")]
-fn sfp_query(f: &sfpmap::extract::Features) -> QueryFeatures {
-    use sfpmap::localize::FeatureSet;
-    let sets = f
-        .levels
-        .iter()
-        .map(|l| FeatureSet {
-            level: Some(l.level),
-            keypoints: l
-                .keypoints
-                .iter()
-                .map(|k| [f64::from(k[0]), f64::from(k[1])])
-                .collect(),
-            descriptors: l.full.iter().map(|x| x.to_f32()).collect(),
-            dim: l.dim_full,
-        })
-        .collect();
-    QueryFeatures {
-        sets,
-        global: Some(f.global.clone()),
     }
 }
 

@@ -5,6 +5,8 @@ use std::process::ExitCode;
 
 #[cfg(feature = "colmap")]
 mod convert;
+#[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
+mod demo;
 #[cfg(feature = "localize")]
 mod eval;
 mod export;
@@ -41,6 +43,8 @@ pub struct Cli {
 pub enum Command {
     #[cfg(feature = "colmap")]
     Convert(convert::Args),
+    #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
+    Demo(demo::Args),
     #[cfg(feature = "localize")]
     Eval(eval::Args),
     Export(export::Args),
@@ -63,6 +67,8 @@ pub fn run() -> anyhow::Result<ExitCode> {
     match cli.command {
         #[cfg(feature = "colmap")]
         Command::Convert(args) => convert::run(args, cli.quiet),
+        #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
+        Command::Demo(args) => demo::run(args, cli.quiet),
         #[cfg(feature = "localize")]
         Command::Eval(args) => eval::run(args, cli.quiet),
         Command::Export(args) => export::run(args, cli.quiet),

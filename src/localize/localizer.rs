@@ -285,40 +285,20 @@ impl<'m> Localizer<'m> {
             times,
         };
 
-        // Coarse: the deepest level against its candidates (all levels pooled if too few).
-        let t1 = Instant::now();
-        let mut pixels = Vec::new();
-        let mut points = Vec::new();
-        for (i, level) in self.levels.iter().enumerate() {
-            let (set, q) = &projected[i];
-            self.match_level(level, set, q, &candidate_points, &mut pixels, &mut points);
-            if pixels.len() >= 4 * self.options.min_inliers {
-                break;
-            }
+        // Coarse: the deepest level against its candidates (all levels pooled if too few);
+        // if the retrieved images give no pose, once more against every point (retrieval
+        // can be wrong where the global descriptor is weak).
+        let mut attempt = self.coarse(&projected, &candidate_points, camera, &mut times);
+        if attempt.is_err() && candidate_points.len() < self.positions.len() {
+            let all: Vec<u32> = (0..self.positions.len() as u32).collect();
+            attempt = self.coarse(&projected, &all, camera, &mut times);
         }
-        times.coarse_match_ms = ms(t1);
         let t2 = Instant::now();
-        let coarse_options = RansacOptions {
-            max_error_px: self.options.coarse_error_px,
-            min_inliers: self.options.min_inliers.min(pixels.len()).max(6),
-            ..RansacOptions::default()
-        };
-        let coarse = match estimate_absolute_pose_with_prior(
-            &pixels,
-            &points,
-            camera,
-            None,
-            &coarse_options,
-        ) {
-            Ok(e) => e,
-            Err(e) => {
-                times.coarse_ransac_ms = ms(t2);
+        let (coarse, pixels) = match attempt {
+            Ok(found) => found,
+            Err((reason, matches)) => {
                 times.total_ms = ms(t0);
-                return Ok(failed(
-                    format!("coarse pose: {e} ({} matches)", pixels.len()),
-                    pixels.len(),
-                    times,
-                ));
+                return Ok(failed(reason, matches, times));
             }
         };
         times.coarse_ransac_ms = ms(t2);
@@ -396,6 +376,46 @@ impl<'m> Localizer<'m> {
             retrieved_images,
             times,
         })
+    }
+
+    /// Matching against `candidates`, deepest level first, then P3P LO-RANSAC: the pose
+    /// estimate and the matched pixels, or the reason and the number of matches.
+    #[allow(clippy::type_complexity)]
+    fn coarse(
+        &self,
+        projected: &[(&FeatureSet, Vec<f32>)],
+        candidates: &[u32],
+        camera: &Camera,
+        times: &mut StageTimes,
+    ) -> Result<(super::geometry::PoseEstimate, Vec<Vector2<f64>>), (String, usize)> {
+        let t1 = Instant::now();
+        let mut pixels = Vec::new();
+        let mut points = Vec::new();
+        for (level, (set, q)) in self.levels.iter().zip(projected) {
+            self.match_level(level, set, q, candidates, &mut pixels, &mut points);
+            if pixels.len() >= 4 * self.options.min_inliers {
+                break;
+            }
+        }
+        times.coarse_match_ms += ms(t1);
+        let t2 = Instant::now();
+        // The coarse pose only seeds guided matching, which must then find `min_inliers`:
+        // accept fewer inliers here.
+        let coarse_options = RansacOptions {
+            max_error_px: self.options.coarse_error_px,
+            min_inliers: (self.options.min_inliers * 2 / 3).max(6),
+            ..RansacOptions::default()
+        };
+        let found =
+            estimate_absolute_pose_with_prior(&pixels, &points, camera, None, &coarse_options);
+        times.coarse_ransac_ms += ms(t2);
+        match found {
+            Ok(e) => Ok((e, pixels)),
+            Err(e) => Err((
+                format!("coarse pose: {e} ({} matches)", pixels.len()),
+                pixels.len(),
+            )),
+        }
     }
 
     /// Candidate points (global indices, sorted, deduplicated) seen by the retrieved images,

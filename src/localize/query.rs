@@ -2,7 +2,7 @@
 //! from a COLMAP database (`queries.db`).
 
 use super::geometry::Camera;
-#[cfg(feature = "colmap")]
+#[cfg(any(feature = "colmap", feature = "onnx"))]
 use super::localizer::{FeatureSet, QueryFeatures};
 use std::path::{Path, PathBuf};
 
@@ -124,5 +124,30 @@ impl DatabaseFeatures {
             sets: vec![set],
             global: None,
         }))
+    }
+}
+
+/// Extractor output as localizer input: one feature set per level with the full descriptors
+/// (SFP maps keep descriptors in the extractor's basis; the localizer truncates for `short`),
+/// and the global descriptor for retrieval.
+#[cfg(feature = "onnx")]
+pub fn sfp_query(f: &crate::extract::Features) -> QueryFeatures {
+    let sets = f
+        .levels
+        .iter()
+        .map(|l| FeatureSet {
+            level: Some(l.level),
+            keypoints: l
+                .keypoints
+                .iter()
+                .map(|k| [f64::from(k[0]), f64::from(k[1])])
+                .collect(),
+            descriptors: l.full.iter().map(|x| x.to_f32()).collect(),
+            dim: l.dim_full,
+        })
+        .collect();
+    QueryFeatures {
+        sets,
+        global: Some(f.global.clone()),
     }
 }

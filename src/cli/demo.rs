@@ -1,0 +1,250 @@
+//! `sfpmap demo`: the whole pipeline on a built-in synthetic scene, nothing downloaded.
+
+use anyhow::Context;
+use serde_json::json;
+use sfpmap::extract::sfp_map::{convert_with_images, SfpMapOptions};
+use sfpmap::extract::{DetectOptions, Extractor, ExtractorOptions};
+use sfpmap::format::{slice, Map, SliceOptions};
+use sfpmap::io::demo_scene::{write_png, DemoScene, HEIGHT, WIDTH};
+use sfpmap::localize::eval::{evaluate, median_nearest_camera_distance, read_poses};
+use sfpmap::localize::geometry::Pose;
+use sfpmap::localize::query::{read_query_list, sfp_query};
+use sfpmap::localize::{LocalizeOptions, Localizer};
+use sfpmap::progress::Reporter;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+/// Run the whole pipeline on a built-in scene: render a textured room from known poses, write
+/// a COLMAP model of the database images, convert it with the SFP model, slice it to level 2
+/// short, localize the query images with both maps and print the evaluation.
+///
+/// Example: `sfpmap demo --out demo/`
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Folder for the scene, maps and poses (default: a `sfpmap-demo` folder in the system
+    /// temp folder).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Scene seed.
+    #[arg(long, default_value_t = 7)]
+    pub seed: u32,
+    /// Print one JSON object with the results.
+    #[arg(long)]
+    pub json: bool,
+}
+
+struct Variant {
+    name: &'static str,
+    map: PathBuf,
+    short: bool,
+}
+
+pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    let start = Instant::now();
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| std::env::temp_dir().join("sfpmap-demo"));
+    let images = out.join("images");
+    let sparse = out.join("sparse");
+    for dir in [&images, &sparse] {
+        std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
+    }
+    let bars = super::Bars::new(quiet, args.json);
+    let say = |line: String| {
+        if !quiet && !args.json {
+            println!("{line}");
+        }
+    };
+
+    // 1. The scene: render every image (two threads), write the model and the query files.
+    let scene = DemoScene::new(args.seed);
+    let views: Vec<(&String, _)> = scene
+        .database
+        .iter()
+        .chain(&scene.queries)
+        .map(|(n, p)| (n, p))
+        .collect();
+    bars.start("rendering", Some(views.len() as u64));
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let failed = std::sync::Mutex::new(None);
+    std::thread::scope(|s| {
+        for _ in 0..2 {
+            s.spawn(|| loop {
+                let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let Some((name, pose)) = views.get(i) else {
+                    break;
+                };
+                let pixels = scene.render(pose);
+                if let Err(e) = write_png(&images.join(name), WIDTH, HEIGHT, &pixels) {
+                    failed
+                        .lock()
+                        .unwrap_or_else(|p| p.into_inner())
+                        .get_or_insert((images.join(name), e));
+                }
+                bars.advance(1);
+            });
+        }
+    });
+    bars.finish();
+    if let Some((path, e)) = failed.into_inner().unwrap_or_else(|p| p.into_inner()) {
+        return Err(anyhow::Error::new(e).context(path.display().to_string()));
+    }
+    let (cameras, images_txt, points) = scene.colmap_text();
+    write(&sparse.join("cameras.txt"), &cameras)?;
+    write(&sparse.join("images.txt"), &images_txt)?;
+    write(&sparse.join("points3D.txt"), &points)?;
+    write(&out.join("queries.txt"), &scene.query_list())?;
+    write(&out.join("gt_poses.txt"), &scene.gt_poses())?;
+    let render_s = start.elapsed().as_secs_f64();
+    say(format!(
+        "scene: {} database + {} query images rendered, {} surface points ({render_s:.1} s) in {}",
+        scene.database.len(),
+        scene.queries.len(),
+        scene.points.len(),
+        out.display()
+    ));
+
+    // 2. Convert with the SFP model, then slice.
+    let full = out.join("demo.sfpm");
+    let sliced = out.join("demo-l2-short.sfpm");
+    let options = SfpMapOptions::new(&images);
+    let summary = convert_with_images(&sparse, &options, &full, &bars)?;
+    let map = Map::open(&full)?;
+    let (writer, _) = slice(
+        &map,
+        &SliceOptions {
+            levels: vec![2],
+            short: true,
+            codec: None,
+            zstd_level: 3,
+        },
+    )?;
+    writer.write(&sliced, &bars)?;
+    let model_bytes: u64 = ["cameras.txt", "images.txt", "points3D.txt"]
+        .iter()
+        .map(|f| std::fs::metadata(sparse.join(f)).map_or(0, |m| m.len()))
+        .sum();
+    say(format!(
+        "convert: {} of {} model points kept in {} levels, {:.0} ms per image",
+        summary.convert.points,
+        summary.model_points,
+        summary.convert.levels.len(),
+        summary.ms_per_image
+    ));
+
+    // 3. Localize the queries with both maps.
+    let queries = read_query_list(&out.join("queries.txt"), None)?;
+    let gt = read_poses(&out.join("gt_poses.txt"))?;
+    let mut extractor = Extractor::new(&ExtractorOptions::default(), &bars)?;
+    let mut features = Vec::with_capacity(queries.len());
+    for q in &queries {
+        let input = sfpmap::extract::image::load(
+            &images.join(&q.name),
+            extractor.contract().gray_weights,
+            None,
+        )?;
+        features.push(sfp_query(
+            &extractor.extract(&input, &DetectOptions::default())?,
+        ));
+    }
+    let variants = [
+        Variant {
+            name: "SFP full",
+            map: full.clone(),
+            short: false,
+        },
+        Variant {
+            name: "SFP level 2, short",
+            map: sliced.clone(),
+            short: true,
+        },
+    ];
+    let mut rows = Vec::new();
+    say(String::new());
+    say(format!(
+        "{:<20} {:>9} {:>10} {:>13} {:>11} {:>12} {:>9}",
+        "map", "MB", "localized", "median pos.", "median rot.", "pos. / cams", "ms/query"
+    ));
+    for v in &variants {
+        let map = Map::open(&v.map)?;
+        let localizer = Localizer::new(
+            &map,
+            LocalizeOptions {
+                short: v.short,
+                ..LocalizeOptions::default()
+            },
+        )?;
+        let mut estimates = Vec::new();
+        let mut ms = Vec::new();
+        for (q, f) in queries.iter().zip(&features) {
+            let r = localizer.localize(f, &q.camera)?;
+            ms.push(r.times.total_ms);
+            if let Some(p) = r.pose {
+                estimates.push((q.name.clone(), p));
+            }
+        }
+        ms.sort_by(f64::total_cmp);
+        let centres: Vec<[f64; 3]> = map
+            .images()?
+            .map(|im| {
+                im.poses
+                    .iter()
+                    .filter_map(|q| {
+                        Pose::from_colmap(q[0], q[1], q[2], q[3], q[4], q[5], q[6]).ok()
+                    })
+                    .map(|p| p.center().into())
+                    .collect()
+            })
+            .unwrap_or_default();
+        let e = evaluate(
+            &estimates,
+            &gt,
+            &[(0.05, 1.0), (0.25, 2.0), (0.5, 5.0)],
+            median_nearest_camera_distance(&centres),
+        );
+        let fmt = |v: Option<f64>, unit: &str| v.map_or("-".into(), |x| format!("{x:.3}{unit}"));
+        say(format!(
+            "{:<20} {:>9.3} {:>10} {:>13} {:>11} {:>12} {:>9.1}",
+            v.name,
+            map.file_len() as f64 / 1e6,
+            format!("{}/{}", e.localized, e.queries),
+            fmt(e.median_translation, " m"),
+            fmt(e.median_rotation_deg, "°"),
+            fmt(e.median_translation_rel.map(|r| 100.0 * r), " %"),
+            ms[ms.len() / 2]
+        ));
+        rows.push(json!({
+            "map": v.name,
+            "map_bytes": map.file_len(),
+            "queries": e.queries,
+            "localized": e.localized,
+            "median_translation": e.median_translation,
+            "median_rotation_deg": e.median_rotation_deg,
+            "median_translation_rel": e.median_translation_rel,
+            "recall": e.recall.iter().map(|(t, r, v)| json!({ "translation": t, "rotation_deg": r, "recall": v })).collect::<Vec<_>>(),
+            "median_ms": ms[ms.len() / 2],
+        }));
+    }
+    let seconds = start.elapsed().as_secs_f64();
+    say(format!(
+        "\nCOLMAP text model {:.2} MB; total {seconds:.1} s",
+        model_bytes as f64 / 1e6
+    ));
+    if args.json {
+        super::print_json(&json!({
+            "out": out.display().to_string(),
+            "images": scene.database.len(),
+            "queries": scene.queries.len(),
+            "model_bytes": model_bytes,
+            "results": rows,
+            "seconds": seconds,
+        }))?;
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn write(path: &Path, text: &str) -> anyhow::Result<()> {
+    std::fs::write(path, text).with_context(|| path.display().to_string())
+}

@@ -1,0 +1,590 @@
+//! The built-in demo scene: a textured room rendered by ray casting from known poses, with
+//! a COLMAP text model of its database images. Nothing is downloaded; the same seed gives
+//! the same scene, images and model.
+//!
+//! The room is an axis-aligned box with a few boxes inside (pillars and a table) for depth
+//! and occlusion. Every surface carries a procedural texture — value-noise at several
+//! octaves plus sparse blobs and edges — so a keypoint detector finds corners at all scales.
+//! 3D points are sampled on the surfaces; an image observes a point when it projects inside
+//! the frame and the ray from the camera reaches that surface point unoccluded.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+/// Image size of the demo camera.
+pub const WIDTH: u32 = 640;
+pub const HEIGHT: u32 = 480;
+/// PINHOLE f, f, cx, cy (COLMAP pixel convention).
+pub const FOCAL: f64 = 420.0;
+
+type V3 = [f64; 3];
+
+fn sub(a: V3, b: V3) -> V3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn dot(a: V3, b: V3) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+fn cross(a: V3, b: V3) -> V3 {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+fn norm(a: V3) -> V3 {
+    let n = dot(a, a).sqrt();
+    [a[0] / n, a[1] / n, a[2] / n]
+}
+
+/// An axis-aligned box; `inside` boxes are seen from within (the room), others from outside.
+#[derive(Debug, Clone, Copy)]
+struct Cuboid {
+    min: V3,
+    max: V3,
+    inside: bool,
+    texture_seed: u32,
+}
+
+/// A camera pose: rotation rows (world → camera) and translation, COLMAP `cam_from_world`.
+#[derive(Debug, Clone, Copy)]
+pub struct DemoPose {
+    pub rotation: [V3; 3],
+    pub translation: V3,
+}
+
+impl DemoPose {
+    /// A camera at `center` looking at `target`, y down (COLMAP: x right, y down, z forward).
+    pub fn look_at(center: V3, target: V3) -> DemoPose {
+        let z = norm(sub(target, center));
+        let up = [0.0, -1.0, 0.0];
+        let x = norm(cross(z, up));
+        let y = cross(z, x);
+        let rotation = [x, y, z];
+        let t = [-dot(x, center), -dot(y, center), -dot(z, center)];
+        DemoPose {
+            rotation,
+            translation: t,
+        }
+    }
+
+    pub fn transform(&self, p: V3) -> V3 {
+        let r = &self.rotation;
+        [
+            dot(r[0], p) + self.translation[0],
+            dot(r[1], p) + self.translation[1],
+            dot(r[2], p) + self.translation[2],
+        ]
+    }
+
+    pub fn center(&self) -> V3 {
+        let r = &self.rotation;
+        let t = self.translation;
+        [
+            -(r[0][0] * t[0] + r[1][0] * t[1] + r[2][0] * t[2]),
+            -(r[0][1] * t[0] + r[1][1] * t[1] + r[2][1] * t[2]),
+            -(r[0][2] * t[0] + r[1][2] * t[1] + r[2][2] * t[2]),
+        ]
+    }
+
+    /// `qw qx qy qz` of the rotation.
+    pub fn quaternion(&self) -> [f64; 4] {
+        let m = &self.rotation;
+        let trace = m[0][0] + m[1][1] + m[2][2];
+        let q = if trace > 0.0 {
+            let s = (trace + 1.0).sqrt() * 2.0;
+            [
+                0.25 * s,
+                (m[2][1] - m[1][2]) / s,
+                (m[0][2] - m[2][0]) / s,
+                (m[1][0] - m[0][1]) / s,
+            ]
+        } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
+            let s = (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt() * 2.0;
+            [
+                (m[2][1] - m[1][2]) / s,
+                0.25 * s,
+                (m[0][1] + m[1][0]) / s,
+                (m[0][2] + m[2][0]) / s,
+            ]
+        } else if m[1][1] > m[2][2] {
+            let s = (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt() * 2.0;
+            [
+                (m[0][2] - m[2][0]) / s,
+                (m[0][1] + m[1][0]) / s,
+                0.25 * s,
+                (m[1][2] + m[2][1]) / s,
+            ]
+        } else {
+            let s = (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt() * 2.0;
+            [
+                (m[1][0] - m[0][1]) / s,
+                (m[0][2] + m[2][0]) / s,
+                (m[1][2] + m[2][1]) / s,
+                0.25 * s,
+            ]
+        };
+        if q[0] < 0.0 {
+            [-q[0], -q[1], -q[2], -q[3]]
+        } else {
+            q
+        }
+    }
+}
+
+/// The scene: geometry, cameras and sampled surface points.
+#[derive(Debug, Clone)]
+pub struct DemoScene {
+    boxes: Vec<Cuboid>,
+    pub database: Vec<(String, DemoPose)>,
+    pub queries: Vec<(String, DemoPose)>,
+    pub points: Vec<V3>,
+}
+
+fn hash(mut x: u32) -> u32 {
+    x ^= x >> 16;
+    x = x.wrapping_mul(0x7feb_352d);
+    x ^= x >> 15;
+    x = x.wrapping_mul(0x846c_a68b);
+    x ^ (x >> 16)
+}
+
+fn lattice(ix: i64, iy: i64, seed: u32) -> f64 {
+    let h = hash(
+        (ix as u32).wrapping_mul(0x9E37_79B1) ^ hash((iy as u32) ^ seed.wrapping_mul(0x85EB_CA77)),
+    );
+    f64::from(h) / f64::from(u32::MAX)
+}
+
+/// Smooth value noise in [0, 1].
+fn value_noise(u: f64, v: f64, seed: u32) -> f64 {
+    let (x0, y0) = (u.floor(), v.floor());
+    let (fx, fy) = (u - x0, v - y0);
+    let (sx, sy) = (fx * fx * (3.0 - 2.0 * fx), fy * fy * (3.0 - 2.0 * fy));
+    let (ix, iy) = (x0 as i64, y0 as i64);
+    let a = lattice(ix, iy, seed);
+    let b = lattice(ix + 1, iy, seed);
+    let c = lattice(ix, iy + 1, seed);
+    let d = lattice(ix + 1, iy + 1, seed);
+    let top = a + (b - a) * sx;
+    let bottom = c + (d - c) * sx;
+    top + (bottom - top) * sy
+}
+
+/// The surface texture at (u, v) metres on a face: octaves of noise, plus dark and bright
+/// blobs and crisp rectangles (posters, tiles) on a cell grid, so corners exist at all scales.
+fn texture(u: f64, v: f64, seed: u32) -> f64 {
+    let mut value = 0.0;
+    let mut amplitude = 0.5;
+    let mut frequency = 1.5;
+    for octave in 0..5 {
+        value += amplitude
+            * value_noise(
+                u * frequency,
+                v * frequency,
+                seed.wrapping_add(octave * 101),
+            );
+        amplitude *= 0.5;
+        frequency *= 2.3;
+    }
+    let cell = 0.45;
+    let (cx, cy) = ((u / cell).floor(), (v / cell).floor());
+    let r = lattice(cx as i64, cy as i64, seed ^ 0xA5A5);
+    let (fu, fv) = (u / cell - cx, v / cell - cy);
+    if r < 0.25 {
+        // A blob.
+        let (du, dv) = (fu - 0.5, fv - 0.5);
+        let d2 = (du * du + dv * dv) / (0.05 + 0.1 * r);
+        value += if r < 0.12 { -0.45 } else { 0.45 } * (-d2).exp();
+    } else if r < 0.4 && fu > 0.15 && fu < 0.85 && fv > 0.2 && fv < 0.7 {
+        // A rectangle with an inner pattern.
+        value = 0.15
+            + 0.7
+                * lattice(
+                    (fu * 4.0) as i64 + cx as i64 * 7,
+                    (fv * 3.0) as i64 + cy as i64 * 5,
+                    seed ^ 0x5A5A,
+                );
+    }
+    value.clamp(0.0, 1.0)
+}
+
+impl Cuboid {
+    /// Ray hit: distance and the texture value at the hit, if the ray meets a face.
+    fn hit(&self, origin: V3, dir: V3) -> Option<(f64, f64)> {
+        let mut best: Option<(f64, f64)> = None;
+        for axis in 0..3 {
+            if dir[axis].abs() < 1e-12 {
+                continue;
+            }
+            for (side, plane) in [(0, self.min[axis]), (1, self.max[axis])] {
+                let t = (plane - origin[axis]) / dir[axis];
+                if t <= 1e-6 || best.is_some_and(|b| t >= b.0) {
+                    continue;
+                }
+                let p = [
+                    origin[0] + t * dir[0],
+                    origin[1] + t * dir[1],
+                    origin[2] + t * dir[2],
+                ];
+                let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+                let eps = 1e-9;
+                if p[a] < self.min[a] - eps
+                    || p[a] > self.max[a] + eps
+                    || p[b] < self.min[b] - eps
+                    || p[b] > self.max[b] + eps
+                {
+                    continue;
+                }
+                // Faces seen from the wrong side are skipped (a room is seen from inside).
+                let outward = if side == 0 { -1.0 } else { 1.0 };
+                let facing = dir[axis] * outward < 0.0;
+                if facing == self.inside {
+                    continue;
+                }
+                let seed = self
+                    .texture_seed
+                    .wrapping_add((axis * 2 + side) as u32 * 7919);
+                best = Some((t, texture(p[a], p[b], seed)));
+            }
+        }
+        best
+    }
+}
+
+impl DemoScene {
+    /// The standard demo scene: a 12 × 4 × 10 m room with two pillars and a table, 36 database
+    /// images on a loop around the room looking outwards and across, and 8 queries between them.
+    pub fn new(seed: u32) -> DemoScene {
+        let boxes = vec![
+            Cuboid {
+                min: [-6.0, -3.0, -5.0],
+                max: [6.0, 1.0, 5.0],
+                inside: true,
+                texture_seed: seed,
+            },
+            Cuboid {
+                min: [-4.6, -3.0, -3.6],
+                max: [-3.8, 1.0, -2.8],
+                inside: false,
+                texture_seed: seed ^ 0x1111,
+            },
+            Cuboid {
+                min: [3.9, -3.0, 2.8],
+                max: [4.7, 1.0, 3.6],
+                inside: false,
+                texture_seed: seed ^ 0x2222,
+            },
+            Cuboid {
+                min: [-0.9, 0.2, -0.5],
+                max: [0.9, 0.4, 0.5],
+                inside: false,
+                texture_seed: seed ^ 0x3333,
+            },
+        ];
+        let ring = |angle: f64, radius: f64, height: f64| {
+            [radius * angle.cos(), height, radius * angle.sin() * 0.8]
+        };
+        let mut database = Vec::new();
+        let n = 36;
+        for i in 0..n {
+            let a = std::f64::consts::TAU * i as f64 / n as f64;
+            let center = ring(a, 3.2, -0.4 + 0.15 * (i % 3) as f64);
+            // Alternate: look outwards at the walls, or across the room.
+            let target = if i % 2 == 0 {
+                ring(a + 0.35, 9.0, -0.6)
+            } else {
+                ring(a + std::f64::consts::PI + 0.3, 4.0, -0.8)
+            };
+            database.push((format!("db_{i:03}.png"), DemoPose::look_at(center, target)));
+        }
+        let mut queries = Vec::new();
+        for i in 0..8 {
+            let a = std::f64::consts::TAU * (i as f64 + 0.43) / 8.0;
+            let center = ring(a, 2.7, -0.55);
+            let target = if i % 2 == 0 {
+                ring(a + 0.2, 9.0, -0.4)
+            } else {
+                ring(a + std::f64::consts::PI + 0.5, 4.0, -0.9)
+            };
+            queries.push((
+                format!("query_{i:02}.png"),
+                DemoPose::look_at(center, target),
+            ));
+        }
+        // Surface points: uniform on every face, density per square metre.
+        let mut points = Vec::new();
+        let mut state = seed.wrapping_mul(2654435761) | 1;
+        let mut rand = move || {
+            state = hash(state.wrapping_add(0x9E37_79B9));
+            f64::from(state) / f64::from(u32::MAX)
+        };
+        for b in &boxes {
+            for axis in 0..3 {
+                let (a, c) = ((axis + 1) % 3, (axis + 2) % 3);
+                let area = (b.max[a] - b.min[a]) * (b.max[c] - b.min[c]);
+                let count = (area * 120.0) as usize;
+                for side in [b.min[axis], b.max[axis]] {
+                    for _ in 0..count {
+                        let mut p = [0.0; 3];
+                        p[axis] = side;
+                        p[a] = b.min[a] + rand() * (b.max[a] - b.min[a]);
+                        p[c] = b.min[c] + rand() * (b.max[c] - b.min[c]);
+                        points.push(p);
+                    }
+                }
+            }
+        }
+        DemoScene {
+            boxes,
+            database,
+            queries,
+            points,
+        }
+    }
+
+    /// The first surface hit along a ray: distance and intensity.
+    fn trace(&self, origin: V3, dir: V3) -> Option<(f64, f64)> {
+        self.boxes
+            .iter()
+            .filter_map(|b| b.hit(origin, dir))
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+    }
+
+    /// Renders an 8-bit grayscale image (`WIDTH × HEIGHT`, row-major), 2×2 supersampled,
+    /// with distance shading.
+    pub fn render(&self, pose: &DemoPose) -> Vec<u8> {
+        let center = pose.center();
+        let r = &pose.rotation;
+        let mut out = Vec::with_capacity((WIDTH * HEIGHT) as usize);
+        for y in 0..HEIGHT {
+            for x in 0..WIDTH {
+                let mut sum = 0.0;
+                for (sx, sy) in [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)] {
+                    // Pixel (x, y) covers [x, x+1): its centre is x + 0.5 (COLMAP convention).
+                    let u = (f64::from(x) + sx - f64::from(WIDTH) / 2.0) / FOCAL;
+                    let v = (f64::from(y) + sy - f64::from(HEIGHT) / 2.0) / FOCAL;
+                    let d = norm([
+                        r[0][0] * u + r[1][0] * v + r[2][0],
+                        r[0][1] * u + r[1][1] * v + r[2][1],
+                        r[0][2] * u + r[1][2] * v + r[2][2],
+                    ]);
+                    let value = match self.trace(center, d) {
+                        Some((t, tex)) => tex * (1.0 / (1.0 + 0.02 * t)),
+                        None => 0.0,
+                    };
+                    sum += value;
+                }
+                out.push((sum / 4.0 * 255.0).round().clamp(0.0, 255.0) as u8);
+            }
+        }
+        out
+    }
+
+    /// Pixel of world point `p` in the image of `pose`, if in front and inside the frame.
+    pub fn project(&self, pose: &DemoPose, p: V3) -> Option<[f64; 2]> {
+        let c = pose.transform(p);
+        if c[2] <= 0.1 {
+            return None;
+        }
+        let x = FOCAL * c[0] / c[2] + f64::from(WIDTH) / 2.0;
+        let y = FOCAL * c[1] / c[2] + f64::from(HEIGHT) / 2.0;
+        (x >= 2.0 && y >= 2.0 && x <= f64::from(WIDTH) - 2.0 && y <= f64::from(HEIGHT) - 2.0)
+            .then_some([x, y])
+    }
+
+    /// Whether `p` is the first surface the ray from the camera meets.
+    fn visible(&self, pose: &DemoPose, p: V3) -> bool {
+        let center = pose.center();
+        let to = sub(p, center);
+        let dist = dot(to, to).sqrt();
+        match self.trace(center, norm(to)) {
+            Some((t, _)) => (t - dist).abs() < 1e-3 * dist.max(1.0),
+            None => false,
+        }
+    }
+
+    /// The database images' COLMAP text model: one PINHOLE camera, the images with every
+    /// visible projected point as a 2D point, and points seen by at least 2 images.
+    pub fn colmap_text(&self) -> (String, String, String) {
+        let mut observations: Vec<Vec<(usize, [f64; 2])>> = vec![Vec::new(); self.database.len()];
+        let mut tracks: Vec<Vec<(usize, usize)>> = vec![Vec::new(); self.points.len()];
+        for (i, (_, pose)) in self.database.iter().enumerate() {
+            for (p, &xyz) in self.points.iter().enumerate() {
+                if let Some(px) = self.project(pose, xyz) {
+                    if self.visible(pose, xyz) {
+                        tracks[p].push((i, observations[i].len()));
+                        observations[i].push((p, px));
+                    }
+                }
+            }
+        }
+        let kept: Vec<bool> = tracks.iter().map(|t| t.len() >= 2).collect();
+        let cameras = format!(
+            "# Camera list\n1 PINHOLE {WIDTH} {HEIGHT} {FOCAL} {FOCAL} {} {}\n",
+            f64::from(WIDTH) / 2.0,
+            f64::from(HEIGHT) / 2.0
+        );
+        let mut images = String::from("# Image list\n");
+        for (i, (name, pose)) in self.database.iter().enumerate() {
+            let q = pose.quaternion();
+            let t = pose.translation;
+            let _ = writeln!(
+                images,
+                "{} {} {} {} {} {} {} {} 1 {name}",
+                i + 1,
+                q[0],
+                q[1],
+                q[2],
+                q[3],
+                t[0],
+                t[1],
+                t[2]
+            );
+            let mut line = String::new();
+            for (p, px) in &observations[i] {
+                let id = if kept[*p] { (*p + 1) as i64 } else { -1 };
+                let _ = write!(line, "{} {} {id} ", px[0], px[1]);
+            }
+            images.push_str(line.trim_end());
+            images.push('\n');
+        }
+        let mut points = String::from("# 3D point list\n");
+        for (p, xyz) in self.points.iter().enumerate() {
+            if !kept[p] {
+                continue;
+            }
+            let _ = write!(
+                points,
+                "{} {} {} {} 128 128 128 0",
+                p + 1,
+                xyz[0],
+                xyz[1],
+                xyz[2]
+            );
+            for (i, idx) in &tracks[p] {
+                let _ = write!(points, " {} {idx}", i + 1);
+            }
+            points.push('\n');
+        }
+        (cameras, images, points)
+    }
+
+    /// `name PINHOLE W H f f cx cy` lines for the queries (hloc style).
+    pub fn query_list(&self) -> String {
+        let mut s = String::new();
+        for (name, _) in &self.queries {
+            let _ = writeln!(
+                s,
+                "{name} PINHOLE {WIDTH} {HEIGHT} {FOCAL} {FOCAL} {} {}",
+                f64::from(WIDTH) / 2.0,
+                f64::from(HEIGHT) / 2.0
+            );
+        }
+        s
+    }
+
+    /// Ground truth: `name qw qx qy qz tx ty tz` lines.
+    pub fn gt_poses(&self) -> String {
+        let mut s = String::new();
+        for (name, pose) in &self.queries {
+            let q = pose.quaternion();
+            let t = pose.translation;
+            let _ = writeln!(
+                s,
+                "{name} {} {} {} {} {} {} {}",
+                q[0], q[1], q[2], q[3], t[0], t[1], t[2]
+            );
+        }
+        s
+    }
+}
+
+/// Writes a grayscale PNG (stored, uncompressed deflate blocks: no dependency, a few hundred KB).
+pub fn write_png(path: &Path, width: u32, height: u32, gray: &[u8]) -> std::io::Result<()> {
+    fn crc32(data: &[u8]) -> u32 {
+        let mut crc = 0xFFFF_FFFFu32;
+        for &b in data {
+            crc ^= u32::from(b);
+            for _ in 0..8 {
+                crc = if crc & 1 != 0 {
+                    (crc >> 1) ^ 0xEDB8_8320
+                } else {
+                    crc >> 1
+                };
+            }
+        }
+        !crc
+    }
+    fn adler32(data: &[u8]) -> u32 {
+        let (mut a, mut b) = (1u32, 0u32);
+        for &d in data {
+            a = (a + u32::from(d)) % 65521;
+            b = (b + a) % 65521;
+        }
+        (b << 16) | a
+    }
+    let mut raw = Vec::with_capacity((width as usize + 1) * height as usize);
+    for row in gray.chunks_exact(width as usize) {
+        raw.push(0); // filter: none
+        raw.extend_from_slice(row);
+    }
+    let mut zlib = vec![0x78, 0x01];
+    let blocks: Vec<&[u8]> = raw.chunks(65535).collect();
+    for (i, block) in blocks.iter().enumerate() {
+        zlib.push(u8::from(i + 1 == blocks.len()));
+        let len = block.len() as u16;
+        zlib.extend_from_slice(&len.to_le_bytes());
+        zlib.extend_from_slice(&(!len).to_le_bytes());
+        zlib.extend_from_slice(block);
+    }
+    zlib.extend_from_slice(&adler32(&raw).to_be_bytes());
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    let mut chunk = |kind: &[u8; 4], data: &[u8]| {
+        png.extend_from_slice(&(data.len() as u32).to_be_bytes());
+        let mut body = kind.to_vec();
+        body.extend_from_slice(data);
+        png.extend_from_slice(&body);
+        png.extend_from_slice(&crc32(&body).to_be_bytes());
+    };
+    let mut ihdr = Vec::new();
+    ihdr.extend_from_slice(&width.to_be_bytes());
+    ihdr.extend_from_slice(&height.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 0, 0, 0, 0]); // 8-bit grayscale
+    chunk(b"IHDR", &ihdr);
+    chunk(b"IDAT", &zlib);
+    chunk(b"IEND", &[]);
+    std::fs::write(path, png)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn poses_round_trip_and_points_project_where_rays_land() {
+        let scene = DemoScene::new(1);
+        let (_, pose) = &scene.database[0];
+        let c = pose.center();
+        let back = pose.transform(c);
+        assert!(back.iter().all(|v| v.abs() < 1e-9));
+        let q = pose.quaternion();
+        assert!(((q.iter().map(|v| v * v).sum::<f64>()) - 1.0).abs() < 1e-9);
+        let seen = scene
+            .points
+            .iter()
+            .filter(|&&p| scene.project(pose, p).is_some() && scene.visible(pose, p))
+            .count();
+        assert!(seen > 200, "{seen}");
+    }
+
+    #[test]
+    fn texture_has_contrast() {
+        let values: Vec<f64> = (0..1000)
+            .map(|i| texture(i as f64 * 0.013, (i * 7 % 1000) as f64 * 0.011, 3))
+            .collect();
+        let mean = values.iter().sum::<f64>() / 1000.0;
+        let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / 1000.0;
+        assert!(var.sqrt() > 0.08, "{}", var.sqrt());
+    }
+}
