@@ -390,3 +390,48 @@ fn downscaled_images_are_sampled_at_scaled_observations() {
     assert!(summary["points"].as_u64().unwrap() > 0);
     ok(&[os("verify"), out.as_os_str()]);
 }
+
+/// `--resize-max` runs the network on a smaller image; keypoints come back in the file's pixels.
+#[test]
+fn resized_extraction_reports_keypoints_in_original_pixels() {
+    let dir = tempfile::tempdir().unwrap();
+    let image = scene().join("images/02928139_3448003521.jpg");
+    let (w, h) = image::image_dimensions(&image).unwrap();
+    let out = dir.path().join("small.h5");
+    ok(&[
+        os("extract"),
+        image.as_os_str(),
+        os("-o"),
+        out.as_os_str(),
+        os("--resize-max"),
+        os("320"),
+        os("--level"),
+        os("1"),
+    ]);
+    let file = hdf5_pure::File::open(&out).unwrap();
+    let name = "02928139_3448003521.jpg";
+    let size = file
+        .dataset(&format!("{name}/image_size"))
+        .unwrap()
+        .read_i64()
+        .unwrap();
+    assert_eq!(size, vec![i64::from(w), i64::from(h)]);
+    let kps = file
+        .dataset(&format!("{name}/keypoints"))
+        .unwrap()
+        .read_f32()
+        .unwrap();
+    assert!(!kps.is_empty());
+    let scale = w.max(h) as f32 / 320.0;
+    let (mut max_x, mut max_y) = (0.0f32, 0.0f32);
+    for k in kps.chunks_exact(2) {
+        assert!(k[0] >= -0.5 && k[0] <= w as f32 && k[1] >= -0.5 && k[1] <= h as f32);
+        max_x = max_x.max(k[0]);
+        max_y = max_y.max(k[1]);
+    }
+    // Keypoints spread over the whole original image, not only its top-left 320 px.
+    assert!(
+        max_x > 320.0 || max_y > 320.0,
+        "max ({max_x}, {max_y}), scale {scale}"
+    );
+}
