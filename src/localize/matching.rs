@@ -166,9 +166,15 @@ mod tests {
             found.iter().map(|m| (m.query, m.map)).collect::<Vec<_>>(),
             vec![(0, 5), (1, 2500)]
         );
-        // The rows are near-duplicates of their neighbours: a strict ratio test rejects them.
-        let strict = MatchOptions { ratio: 0.5, ..opts };
-        assert!(match_descriptors(&query, &map, dim, &strict).is_empty());
+        // A query halfway between two rows is ambiguous: the ratio test rejects it, while an
+        // exact query (distance 0 to its best row) passes any ratio.
+        let between: Vec<f32> = (0..dim)
+            .map(|k| map[100 * dim + k] + map[101 * dim + k])
+            .collect();
+        let between = unit(&between);
+        let strict = MatchOptions { ratio: 0.8, ..opts };
+        assert!(match_descriptors(&between, &map, dim, &strict).is_empty());
+        assert_eq!(match_descriptors(&query, &map, dim, &strict).len(), 2);
     }
 
     #[test]
