@@ -3,6 +3,8 @@
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
+#[cfg(feature = "localize")]
+mod bench_pose;
 #[cfg(feature = "colmap")]
 mod convert;
 #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
@@ -41,6 +43,9 @@ pub struct Cli {
 #[allow(clippy::large_enum_variant)]
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    #[cfg(feature = "localize")]
+    #[command(hide = true)]
+    BenchPose(bench_pose::Args),
     #[cfg(feature = "colmap")]
     Convert(convert::Args),
     #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
@@ -65,6 +70,8 @@ pub enum Command {
 pub fn run() -> anyhow::Result<ExitCode> {
     let cli = Cli::parse();
     match cli.command {
+        #[cfg(feature = "localize")]
+        Command::BenchPose(args) => bench_pose::run(args, cli.quiet),
         #[cfg(feature = "colmap")]
         Command::Convert(args) => convert::run(args, cli.quiet),
         #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]

@@ -1,0 +1,320 @@
+//! Matching and localizer benches (issue 6, "Benches"), on generated data of a stated size.
+//!
+//! - `match/{short_64,full_192}`: 2,000 query descriptors × 100,000 map descriptors through
+//!   `match_descriptors` (blocked sgemm + mutual NN + ratio test). `decoded` starts from the
+//!   f32 rows the localizer keeps after `Localizer::new`; `from_f16` also converts the f16 rows
+//!   as stored in the map to f32 inside the timed loop. Throughput is in descriptor pairs.
+//! - `localize/per_query/{full,level2_short}`: one `Localizer::localize` call (coarse matching
+//!   on the deepest level, LO-RANSAC, guided matching on every level, final estimate) on a
+//!   generated 100,000-point map with 4 levels of 25,000 points each (192-d, 64-d `short`, an
+//!   identity projection), and on its `--level 2 --short` slice. Points fill a 60 × 12 × 60
+//!   street-like volume; each point's descriptor is a random unit vector. The query (PINHOLE
+//!   1024 × 768, f = 870) has, per level, up to 1,500 projections of visible points with 0.7 px
+//!   noise and descriptor noise, plus 500 random outliers (~2,000 keypoints per level). The map
+//!   has no global descriptors, so every point is a candidate: the worst case of retrieval.
+//!   Query extraction is not part of it (the ≤ 20 ms target is "after extraction").
+//!
+//! Run: `cargo bench --bench localize` (about 3 minutes on 2 loaded cores).
+
+#[cfg(feature = "localize")]
+mod localize {
+    use std::hint::black_box;
+    use std::time::Duration;
+
+    use criterion::{BenchmarkId, Criterion, Throughput};
+    use half::f16;
+    use nalgebra::{UnitQuaternion, Vector3};
+    use sfpmap::format::{slice, CameraInfo, Descriptors, LevelInfo, Map, MapWriter, SliceOptions};
+    use sfpmap::localize::geometry::{Camera, Pose, SplitMix64};
+    use sfpmap::localize::matching::{match_descriptors, normalise_rows, MatchOptions};
+    use sfpmap::localize::{FeatureSet, LocalizeOptions, Localizer, QueryFeatures};
+
+    const DIM_FULL: usize = 192;
+    const DIM_SHORT: usize = 64;
+    const N_POINTS: usize = 100_000;
+    const N_LEVELS: usize = 4;
+    const N_QUERY: usize = 2_000;
+    const INLIERS_PER_LEVEL: usize = 1_500;
+    const OUTLIERS_PER_LEVEL: usize = 500;
+    const CAMERA: &str = "PINHOLE 1024 768 870 870 512 384";
+
+    fn gaussian(rng: &mut SplitMix64) -> f64 {
+        let (u, v) = (1.0 - rng.next_f64(), rng.next_f64());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+
+    fn random_unit_rows(rng: &mut SplitMix64, rows: usize, dim: usize) -> Vec<f32> {
+        let mut v: Vec<f32> = (0..rows * dim).map(|_| gaussian(rng) as f32).collect();
+        normalise_rows(&mut v, dim);
+        v
+    }
+
+    /// The first `dim` columns of `[rows × DIM_FULL]`, renormalised (what `short` matching sees).
+    fn prefix_rows(v: &[f32], dim: usize) -> Vec<f32> {
+        let mut out: Vec<f32> = v
+            .chunks_exact(DIM_FULL)
+            .flat_map(|row| row[..dim].iter().copied())
+            .collect();
+        normalise_rows(&mut out, dim);
+        out
+    }
+
+    fn bench_matching(c: &mut Criterion) {
+        let mut rng = SplitMix64::new(11);
+        let map = random_unit_rows(&mut rng, N_POINTS, DIM_FULL);
+        // Queries: noisy copies of 1,500 map rows plus 500 unrelated ones.
+        let mut query = Vec::with_capacity(N_QUERY * DIM_FULL);
+        for i in 0..N_QUERY {
+            if i < 1_500 {
+                let row = (rng.next_f64() * N_POINTS as f64) as usize % N_POINTS;
+                query.extend(
+                    map[row * DIM_FULL..(row + 1) * DIM_FULL]
+                        .iter()
+                        .map(|&x| x + 0.036 * gaussian(&mut rng) as f32),
+                );
+            } else {
+                query.extend((0..DIM_FULL).map(|_| gaussian(&mut rng) as f32));
+            }
+        }
+        normalise_rows(&mut query, DIM_FULL);
+        let options = MatchOptions::default();
+
+        let mut group = c.benchmark_group("match");
+        group.sample_size(10);
+        group.warm_up_time(Duration::from_secs(1));
+        group.measurement_time(Duration::from_secs(10));
+        group.throughput(Throughput::Elements((N_QUERY * N_POINTS) as u64));
+        for dim in [DIM_SHORT, DIM_FULL] {
+            let label = if dim == DIM_FULL {
+                "full_192"
+            } else {
+                "short_64"
+            };
+            let (q, m) = if dim == DIM_FULL {
+                (query.clone(), map.clone())
+            } else {
+                (prefix_rows(&query, dim), prefix_rows(&map, dim))
+            };
+            let stored: Vec<f16> = m.iter().map(|&x| f16::from_f32(x)).collect();
+            let found = match_descriptors(&q, &m, dim, &options).len();
+            eprintln!("match {label}: {found} matches of {N_QUERY} queries");
+            group.bench_with_input(BenchmarkId::new("decoded", label), &dim, |b, &dim| {
+                b.iter(|| black_box(match_descriptors(&q, &m, dim, &options)))
+            });
+            group.bench_with_input(BenchmarkId::new("from_f16", label), &dim, |b, &dim| {
+                b.iter(|| {
+                    let decoded: Vec<f32> = stored.iter().map(|x| x.to_f32()).collect();
+                    black_box(match_descriptors(&q, &decoded, dim, &options))
+                })
+            });
+        }
+        group.finish();
+    }
+
+    struct Scene {
+        /// World positions.
+        points: Vec<[f64; 3]>,
+        /// `[N_POINTS × DIM_FULL]`, unit rows.
+        descriptors: Vec<f32>,
+        camera: Camera,
+        truth: Pose,
+    }
+
+    fn level_of(point: usize) -> u16 {
+        (point % N_LEVELS) as u16
+    }
+
+    fn scene() -> Scene {
+        let mut rng = SplitMix64::new(5);
+        let points = (0..N_POINTS)
+            .map(|_| {
+                [
+                    rng.next_f64() * 60.0 - 30.0,
+                    rng.next_f64() * 12.0 - 6.0,
+                    rng.next_f64() * 60.0 - 30.0,
+                ]
+            })
+            .collect();
+        let descriptors = random_unit_rows(&mut rng, N_POINTS, DIM_FULL);
+        let camera = Camera::parse(CAMERA).unwrap();
+        // Inside the volume near one end, looking along +z with a slight yaw and pitch.
+        let rotation = UnitQuaternion::from_scaled_axis(Vector3::new(0.05, 0.2, 0.02));
+        let center = Vector3::new(2.0, 0.5, -27.0);
+        let truth = Pose::new(rotation, -(rotation * center));
+        Scene {
+            points,
+            descriptors,
+            camera,
+            truth,
+        }
+    }
+
+    fn map_bytes(s: &Scene) -> Vec<u8> {
+        let mut w = MapWriter::default();
+        w.add_camera(CameraInfo {
+            id: Some(1),
+            model: "PINHOLE".into(),
+            width: 1024,
+            height: 768,
+            params: vec![870.0, 870.0, 512.0, 384.0],
+        });
+        w.set_points_world(&s.points);
+        let levels: Vec<Vec<u32>> = (0..N_LEVELS as u16)
+            .map(|l| {
+                (0..N_POINTS as u32)
+                    .filter(|&p| level_of(p as usize) == l)
+                    .collect()
+            })
+            .collect();
+        let identity: Vec<f32> = (0..DIM_FULL * DIM_FULL)
+            .map(|i| if i % (DIM_FULL + 1) == 0 { 1.0 } else { 0.0 })
+            .collect();
+        for (l, points) in levels.iter().enumerate() {
+            let desc: Vec<f32> = points
+                .iter()
+                .flat_map(|&p| {
+                    s.descriptors[p as usize * DIM_FULL..(p as usize + 1) * DIM_FULL].to_vec()
+                })
+                .collect();
+            let info = LevelInfo {
+                level: l as u16,
+                stride: 4.0 * (1 << l) as f64,
+                descriptor: "bench".into(),
+                dim_full: DIM_FULL as u32,
+                dim_short: DIM_SHORT as u32,
+                normalization: "l2".into(),
+                extra: Default::default(),
+            };
+            w.add_level(info, points, Some(Descriptors::F32(&desc)), true)
+                .unwrap();
+            w.set_level_projection(l as u16, DIM_FULL, identity.clone())
+                .unwrap();
+        }
+        w.to_bytes().unwrap()
+    }
+
+    /// Per level: projections of visible points of that level (0.7 px noise, descriptor
+    /// noise of norm ≈ 0.5) and random outliers.
+    fn query(s: &Scene) -> QueryFeatures {
+        let mut rng = SplitMix64::new(9);
+        let (w, h) = (f64::from(s.camera.width()), f64::from(s.camera.height()));
+        let mut sets: Vec<FeatureSet> = (0..N_LEVELS as u16)
+            .map(|l| FeatureSet {
+                level: Some(l),
+                keypoints: Vec::new(),
+                descriptors: Vec::new(),
+                dim: DIM_FULL,
+            })
+            .collect();
+        let mut visible: Vec<usize> = (0..N_POINTS)
+            .filter(|&p| {
+                let pc = s.truth.transform(&Vector3::from(s.points[p]));
+                pc.z > 0.5
+                    && s.camera
+                        .project(&pc)
+                        .is_some_and(|px| px.x > 0.0 && px.y > 0.0 && px.x < w && px.y < h)
+            })
+            .collect();
+        // A deterministic shuffle so the kept projections spread over the image.
+        for i in (1..visible.len()).rev() {
+            visible.swap(i, (rng.next_f64() * (i + 1) as f64) as usize % (i + 1));
+        }
+        for p in visible {
+            let set = &mut sets[level_of(p) as usize];
+            if set.keypoints.len() >= INLIERS_PER_LEVEL {
+                continue;
+            }
+            let px = s
+                .camera
+                .project(&s.truth.transform(&Vector3::from(s.points[p])))
+                .unwrap();
+            set.keypoints.push([
+                px.x + 0.7 * gaussian(&mut rng),
+                px.y + 0.7 * gaussian(&mut rng),
+            ]);
+            set.descriptors.extend(
+                s.descriptors[p * DIM_FULL..(p + 1) * DIM_FULL]
+                    .iter()
+                    .map(|&x| x + 0.036 * gaussian(&mut rng) as f32),
+            );
+        }
+        for set in &mut sets {
+            for _ in 0..OUTLIERS_PER_LEVEL {
+                set.keypoints.push([rng.next_f64() * w, rng.next_f64() * h]);
+                set.descriptors
+                    .extend((0..DIM_FULL).map(|_| gaussian(&mut rng) as f32));
+            }
+            normalise_rows(&mut set.descriptors, DIM_FULL);
+        }
+        QueryFeatures { sets, global: None }
+    }
+
+    fn bench_localize(c: &mut Criterion) {
+        let s = scene();
+        let bytes = map_bytes(&s);
+        let map = Map::from_bytes(&bytes).unwrap();
+        let q = query(&s);
+        let keypoints: Vec<usize> = q.sets.iter().map(|s| s.keypoints.len()).collect();
+        let sliced = slice(
+            &map,
+            &SliceOptions {
+                levels: vec![2],
+                short: true,
+                codec: None,
+                zstd_level: 3,
+            },
+        )
+        .unwrap()
+        .0
+        .to_bytes()
+        .unwrap();
+        let small = Map::from_bytes(&sliced).unwrap();
+
+        let mut group = c.benchmark_group("localize");
+        group.sample_size(20);
+        group.warm_up_time(Duration::from_secs(2));
+        group.measurement_time(Duration::from_secs(15));
+        for (label, map, short) in [("full", &map, false), ("level2_short", &small, true)] {
+            let localizer = Localizer::new(
+                map,
+                LocalizeOptions {
+                    short,
+                    ..LocalizeOptions::default()
+                },
+            )
+            .unwrap();
+            // Check once, outside the timing, that the bench measures successful queries.
+            let r = localizer.localize(&q, &s.camera).unwrap();
+            let pose = r
+                .pose
+                .unwrap_or_else(|| panic!("{label}: query failed: {:?}", r.failure));
+            eprintln!(
+                "localize {label}: keypoints/level {keypoints:?}, {} matches, inliers/level {:?}, \
+                 rotation error {:.4}°, center error {:.4}, stages {:?}",
+                r.matches,
+                r.inliers_per_level,
+                pose.rotation_error_deg(&s.truth),
+                pose.center_distance(&s.truth),
+                r.times,
+            );
+            group.bench_function(BenchmarkId::new("per_query", label), |b| {
+                b.iter(|| black_box(localizer.localize(&q, &s.camera).unwrap()))
+            });
+        }
+        group.finish();
+    }
+
+    pub fn benches(c: &mut Criterion) {
+        bench_matching(c);
+        bench_localize(c);
+    }
+}
+
+#[cfg(feature = "localize")]
+criterion::criterion_group!(benches, localize::benches);
+#[cfg(feature = "localize")]
+criterion::criterion_main!(benches);
+
+/// Without the `localize` feature there is nothing to measure.
+#[cfg(not(feature = "localize"))]
+fn main() {}
