@@ -228,7 +228,7 @@ def main() -> int:
     )
     header = (
         f"{'outliers':>8} {'ours ms':>9} {'pycolmap ms':>12} {'ratio':>6} "
-        f"{'inl ours':>8} {'inl pyc':>8} {'rot° ours':>10} {'rot° pyc':>10} {'target':>7}"
+        f"{'inl ours':>8} {'inl pyc':>8} {'iter ours':>9} {'rot° ours':>10} {'rot° pyc':>10} {'target':>7}"
     )
     print(header)
     for r in rows:
@@ -236,6 +236,7 @@ def main() -> int:
         print(
             f"{r['outliers'] * 100:>7.0f}% {r['ours_ms']:>9.3f} {r['pycolmap_ms']:>12.3f} "
             f"{r['ratio']:>6.2f} {r['ours_inliers']:>8} {r['pycolmap_inliers']:>8} "
+            f"{r['ours_iterations']:>9} "
             f"{r['ours_rot_deg']:>10.4f} {rot_p:>10} {'PASS' if r['pass'] else 'FAIL':>7}"
         )
     print("target: ours <= pycolmap (ratio <= 1) with the pose found (rotation error < 1°)")
