@@ -17,11 +17,10 @@ rows=()
 
 jget() { python3 -c "import json,sys;d=json.load(open(sys.argv[1]));print(eval(sys.argv[2],{'d':d}))" "$@"; }
 
-row() { # scene variant map poses ms
+row() { # scene variant map poses ms [bytes: the size to report instead of the map's]
   local ev="$CACHE/ev.json"
-  if [ -n "$3" ]; then "$B" eval --poses "$4" --gt "$DATA/$1/gt_poses.txt" --map "$3" --json >"$ev"
-  else "$B" eval --poses "$4" --gt "$DATA/$1/gt_poses.txt" --json >"$ev"; fi
-  rows+=("$(jget "$ev" "f\"| $1 | $2 | {(d['map_bytes'] or 0)/1e6:.2f} | {d['localized']}/{d['queries']} | {d['median_translation'] if d['median_translation'] is None else round(d['median_translation'],4)} | {d['median_rotation_deg'] if d['median_rotation_deg'] is None else round(d['median_rotation_deg'],3)} | {'-' if d['median_translation_rel'] is None else round(100*d['median_translation_rel'],2)} | {' / '.join(str(round(100*r['recall'])) for r in d['recall'])} | $5 |\"")")
+  "$B" eval --poses "$4" --gt "$DATA/$1/gt_poses.txt" --map "$3" --json >"$ev"
+  rows+=("$(jget "$ev" "f\"| $1 | $2 | {${6:-d['map_bytes']}/1e6:.2f} | {d['localized']}/{d['queries']} | {d['median_translation'] if d['median_translation'] is None else round(d['median_translation'],4)} | {d['median_rotation_deg'] if d['median_rotation_deg'] is None else round(d['median_rotation_deg'],3)} | {'-' if d['median_translation_rel'] is None else round(100*d['median_translation_rel'],2)} | {' / '.join(str(round(100*r['recall'])) for r in d['recall'])} | $5 |\"")")
 }
 
 for scene in $scenes; do
@@ -50,7 +49,9 @@ for scene in $scenes; do
     done
   fi
   ref_ms=$(python3 benches/reference_localize.py "$S" "$C/database.db" "$C/queries.db" "$C/ref.poses" | sed -n 's/.*median \([0-9.]*\) ms.*/\1/p')
-  row "$scene" "pycolmap reference" "" "$C/ref.poses" "$ref_ms"
+  # The reference's "map" is the COLMAP model plus its database.
+  ref_bytes=$(( $(du -cb "$S"/sparse-map/* | tail -1 | cut -f1) + $(stat -c %s "$C/database.db") ))
+  row "$scene" "pycolmap reference (model + database.db)" "$C/sift.sfpm" "$C/ref.poses" "$ref_ms" "$ref_bytes"
 done
 echo "| scene | variant | map MB | localized | median transl. (units) | median rot. (deg) | median transl. (% of cam spacing) | recall 0.25m,2° / 0.5m,5° / 5m,10° (%) | ms/query |"
 echo "|---|---|---|---|---|---|---|---|---|"
