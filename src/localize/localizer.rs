@@ -6,7 +6,7 @@
 //! threads; it reads descriptors straight from the mmapped map.
 
 use super::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
-use super::matching::{gemm_abt, match_descriptors, normalise_rows, MatchOptions};
+use super::matching::{dot, gemm_abt, match_descriptors, normalise_rows, MatchOptions};
 use crate::format::{Error as FormatError, Map};
 use nalgebra::{Vector2, Vector3};
 use std::time::Instant;
@@ -293,7 +293,6 @@ impl<'m> Localizer<'m> {
             let all: Vec<u32> = (0..self.positions.len() as u32).collect();
             attempt = self.coarse(&projected, &all, camera, &mut times);
         }
-        let t2 = Instant::now();
         let (coarse, pixels) = match attempt {
             Ok(found) => found,
             Err((reason, matches)) => {
@@ -301,7 +300,6 @@ impl<'m> Localizer<'m> {
                 return Ok(failed(reason, matches, times));
             }
         };
-        times.coarse_ransac_ms = ms(t2);
 
         // Fine: guided matching around projections on every selected level, then one final
         // estimate seeded with the coarse pose.
@@ -557,9 +555,8 @@ impl<'m> Localizer<'m> {
             grid[cell].push((p as u32, [px.x as f32, px.y as f32]));
         }
         let dim = level.dim;
-        // Each map point keeps its best query so a point is matched once.
-        let mut best_for_point: std::collections::HashMap<u32, (f32, usize)> =
-            std::collections::HashMap::new();
+        // (point, similarity, keypoint); each map point keeps its best keypoint below.
+        let mut found: Vec<(u32, f32, usize)> = Vec::new();
         let gate2 = (gate * gate) as f32;
         for (k, kp) in set.keypoints.iter().enumerate() {
             if !(kp[0] >= 0.0 && kp[1] >= 0.0 && kp[0] < w && kp[1] < h) {
@@ -579,11 +576,7 @@ impl<'m> Localizer<'m> {
                             continue;
                         }
                         let r = level.row_of_point[p as usize] as usize;
-                        let s: f32 = qd
-                            .iter()
-                            .zip(&level.descriptors[r * dim..(r + 1) * dim])
-                            .map(|(a, b)| a * b)
-                            .sum();
+                        let s = dot(qd, &level.descriptors[r * dim..(r + 1) * dim]);
                         if s > best.0 {
                             second = best.0;
                             best = (s, p);
@@ -600,19 +593,12 @@ impl<'m> Localizer<'m> {
             if second.is_finite() && d(best.0) >= self.options.gate_ratio * d(second) {
                 continue;
             }
-            let entry = best_for_point
-                .entry(best.1)
-                .or_insert((f32::NEG_INFINITY, usize::MAX));
-            if best.0 > entry.0 {
-                *entry = (best.0, k);
-            }
+            found.push((best.1, best.0, k));
         }
-        let mut chosen: Vec<(u32, usize)> = best_for_point
-            .into_iter()
-            .map(|(p, (_, k))| (p, k))
-            .collect();
-        chosen.sort_unstable();
-        for (p, k) in chosen {
+        // Each map point is matched once, to its most similar keypoint.
+        found.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)).then(a.2.cmp(&b.2)));
+        found.dedup_by_key(|f| f.0);
+        for (p, _, k) in found {
             let kp = set.keypoints[k];
             pixels.push(Vector2::new(kp[0], kp[1]));
             points.push(self.positions[p as usize]);

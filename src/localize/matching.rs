@@ -54,25 +54,29 @@ pub fn match_descriptors(
     }
     let mut best = vec![(f32::NEG_INFINITY, u32::MAX); n_q];
     let mut second = vec![f32::NEG_INFINITY; n_q];
-    let mut best_query_of_map = vec![(f32::NEG_INFINITY, u32::MAX); n_m];
+    // The best similarity of each map row: query q is map row m's nearest neighbour exactly
+    // when S[q][m] reaches it, so no per-score argmax bookkeeping is needed.
+    let mut column_max = vec![f32::NEG_INFINITY; n_m];
     let mut scores = vec![0.0f32; n_q * BLOCK.min(n_m)];
     for start in (0..n_m).step_by(BLOCK) {
         let rows = BLOCK.min(n_m - start);
         let block = &map[start * dim..(start + rows) * dim];
         let out = &mut scores[..n_q * rows];
         gemm_abt(query, block, out, n_q, rows, dim);
+        let columns = &mut column_max[start..start + rows];
         for (q, row) in out.chunks_exact(rows).enumerate() {
-            for (j, &s) in row.iter().enumerate() {
-                let m = start + j;
-                if s > best[q].0 {
-                    second[q] = best[q].0;
-                    best[q] = (s, m as u32);
-                } else if s > second[q] {
-                    second[q] = s;
-                }
-                if s > best_query_of_map[m].0 {
-                    best_query_of_map[m] = (s, q as u32);
-                }
+            // Branch-free passes the compiler vectorizes: row maximum, column maxima.
+            let (s1, j) = row_max(row);
+            if s1 > best[q].0 {
+                // The old best is a candidate for second, as is this block's runner-up.
+                let runner_up = row_max_except(row, j);
+                second[q] = best[q].0.max(runner_up);
+                best[q] = (s1, (start + j) as u32);
+            } else if s1 > second[q] {
+                second[q] = s1;
+            }
+            for (c, &v) in columns.iter_mut().zip(row) {
+                *c = if v > *c { v } else { *c };
             }
         }
     }
@@ -88,7 +92,7 @@ pub fn match_descriptors(
         {
             continue;
         }
-        if options.mutual && best_query_of_map[m as usize].1 != q as u32 {
+        if options.mutual && s < column_max[m as usize] {
             continue;
         }
         matches.push(Match {
@@ -98,6 +102,52 @@ pub fn match_descriptors(
         });
     }
     matches
+}
+
+/// The maximum of `row` and its first index (`row` is not empty).
+fn row_max(row: &[f32]) -> (f32, usize) {
+    let max = lane_max(row);
+    (max, row.iter().position(|&v| v == max).unwrap_or(0))
+}
+
+/// The maximum of `row` without index `skip`.
+fn row_max_except(row: &[f32], skip: usize) -> f32 {
+    lane_max(&row[..skip]).max(lane_max(&row[skip + 1..]))
+}
+
+/// Maximum over 8 independent lanes, so the loop vectorizes (a plain fold does not).
+fn lane_max(v: &[f32]) -> f32 {
+    let mut lanes = [f32::NEG_INFINITY; 8];
+    let chunks = v.chunks_exact(8);
+    let tail = chunks.remainder();
+    for c in chunks {
+        for k in 0..8 {
+            lanes[k] = if c[k] > lanes[k] { c[k] } else { lanes[k] };
+        }
+    }
+    let mut max = tail.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    for l in lanes {
+        max = max.max(l);
+    }
+    max
+}
+
+/// Dot product over 8 independent lanes, so it vectorizes.
+pub fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let mut lanes = [0.0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f32 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for k in 0..8 {
+            lanes[k] += x[k] * y[k];
+        }
+    }
+    lanes.iter().sum::<f32>() + tail
 }
 
 /// `out[n × m] = a[n × k] · b[m × k]ᵀ`, row-major.
