@@ -15,7 +15,7 @@ use sfpmap::format::Map;
 use sfpmap::io::mcap_io::{self, Stamp};
 use sfpmap::localize::geometry::Camera;
 use sfpmap::localize::matching::MatchOptions;
-use sfpmap::localize::{FeatureSet, Localization, LocalizeOptions, Localizer, QueryFeatures};
+use sfpmap::localize::{Localization, LocalizeOptions, Localizer};
 use sfpmap::progress::Reporter;
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -457,7 +457,7 @@ fn localize_message(
         .extract(&input, &DetectOptions::default());
     frame.outcome = features
         .map_err(|e| e.to_string())
-        .map(|f| query_features(&f))
+        .map(|f| sfpmap::localize::query::sfp_query(&f))
         .and_then(|q| localizer.localize(&q, camera).map_err(|e| e.to_string()));
     frame
 }
@@ -554,27 +554,4 @@ fn write_tum(path: &Path, frames: &BTreeMap<usize, Frame>) -> anyhow::Result<()>
     std::fs::write(&tmp, out)
         .and_then(|_| std::fs::rename(&tmp, path))
         .with_context(|| path.display().to_string())
-}
-
-/// Extractor output as localizer input: every level with its full descriptors (the localizer
-/// truncates for `--short`) and the global descriptor, as the query-list path does.
-fn query_features(f: &sfpmap::extract::Features) -> QueryFeatures {
-    let sets = f
-        .levels
-        .iter()
-        .map(|l| FeatureSet {
-            level: Some(l.level),
-            keypoints: l
-                .keypoints
-                .iter()
-                .map(|k| [f64::from(k[0]), f64::from(k[1])])
-                .collect(),
-            descriptors: l.full.iter().map(|x| x.to_f32()).collect(),
-            dim: l.dim_full,
-        })
-        .collect();
-    QueryFeatures {
-        sets,
-        global: Some(f.global.clone()),
-    }
 }
