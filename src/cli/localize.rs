@@ -50,6 +50,9 @@ pub struct Args {
     /// COLMAP database with the queries' SIFT keypoints and descriptors (SIFT maps).
     #[arg(long)]
     pub database: Option<PathBuf>,
+    /// hloc-style features.h5 with the queries' features (e.g. from `sfpmap extract`).
+    #[arg(long, conflicts_with = "database")]
+    pub features: Option<PathBuf>,
     /// SFP model for query extraction (default: the embedded models/sfp-v1.onnx).
     #[arg(long)]
     pub model: Option<PathBuf>,
@@ -117,7 +120,21 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .first()
         .map(|l| l.descriptor.clone())
         .unwrap_or_default();
+    #[cfg(feature = "onnx")]
+    let from_h5 = match &args.features {
+        Some(path) => Some(sfpmap::localize::query::H5Features::open(path)?),
+        None => None,
+    };
+    #[cfg(not(feature = "onnx"))]
+    if let Some(path) = &args.features {
+        bail!(
+            "{}: reading features.h5 needs the onnx feature",
+            path.display()
+        );
+    }
     let features = match (&args.database, descriptor.as_str()) {
+        #[cfg(feature = "onnx")]
+        _ if from_h5.is_some() => Source::H5(from_h5.expect("checked")),
         (Some(db), _) => {
             Source::Database(DatabaseFeatures::open(db).with_context(|| db.display().to_string())?)
         }
@@ -257,6 +274,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
 enum Source {
     Database(DatabaseFeatures),
     #[cfg(feature = "onnx")]
+    H5(sfpmap::localize::query::H5Features),
+    #[cfg(feature = "onnx")]
     Extractor {
         extractor: sfpmap::extract::Extractor,
         images: PathBuf,
@@ -268,6 +287,8 @@ impl Source {
     fn features(&mut self, name: &str) -> anyhow::Result<Option<QueryFeatures>> {
         match self {
             Source::Database(db) => Ok(db.features(name)?),
+            #[cfg(feature = "onnx")]
+            Source::H5(h5) => Ok(h5.features(name)?),
             #[cfg(feature = "onnx")]
             Source::Extractor { extractor, images } => {
                 let path = images.join(name);

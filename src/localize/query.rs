@@ -151,3 +151,126 @@ pub fn sfp_query(f: &crate::extract::Features) -> QueryFeatures {
         global: Some(f.global.clone()),
     }
 }
+
+/// Query features from an hloc-style `features.h5` (as `sfpmap extract` writes, or hloc's own
+/// extractors): per-level `level<id>_keypoints` / `level<id>_descriptors` when present (SFP),
+/// else the image's `keypoints` / `descriptors` for every level. Keypoints are in hloc's
+/// convention (first pixel centre at 0) and get +0.5; descriptors are `[D × N]`, f16 or f32.
+#[cfg(feature = "onnx")]
+pub struct H5Features {
+    file: hdf5_pure::File,
+    path: PathBuf,
+}
+
+#[cfg(feature = "onnx")]
+impl H5Features {
+    pub fn open(path: &Path) -> Result<H5Features, QueryError> {
+        let file = hdf5_pure::File::open(path).map_err(|e| QueryError {
+            path: path.into(),
+            line: None,
+            message: format!("not a readable HDF5 file: {e}"),
+        })?;
+        Ok(H5Features {
+            file,
+            path: path.into(),
+        })
+    }
+
+    fn err(&self, message: String) -> QueryError {
+        QueryError {
+            path: self.path.clone(),
+            line: None,
+            message,
+        }
+    }
+
+    /// `[rows × cols]` values of a dataset, or `None` if it does not exist.
+    fn matrix(&self, name: &str) -> Result<Option<(Vec<f32>, usize, usize)>, QueryError> {
+        let Ok(ds) = self.file.dataset(name) else {
+            return Ok(None);
+        };
+        let shape = ds.shape().map_err(|e| self.err(format!("{name}: {e}")))?;
+        let (rows, cols) = match shape.as_slice() {
+            [r, c] => (*r as usize, *c as usize),
+            [n] => (1, *n as usize),
+            other => return Err(self.err(format!("{name}: unexpected shape {other:?}"))),
+        };
+        let raw = ds
+            .read_raw()
+            .map_err(|e| self.err(format!("{name}: {e}")))?;
+        let n = rows * cols;
+        let values: Vec<f32> = if raw.len() == n * 4 {
+            raw.chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect()
+        } else if raw.len() == n * 2 {
+            raw.chunks_exact(2)
+                .map(|b| crate::format::f16::from_le_bytes([b[0], b[1]]).to_f32())
+                .collect()
+        } else {
+            return Err(self.err(format!(
+                "{name}: {} bytes for {rows} x {cols} values (f16 or f32 expected)",
+                raw.len()
+            )));
+        };
+        Ok(Some((values, rows, cols)))
+    }
+
+    /// One feature set from `<prefix>keypoints` and `<prefix>descriptors`.
+    fn set(
+        &self,
+        name: &str,
+        prefix: &str,
+        level: Option<u16>,
+    ) -> Result<Option<FeatureSet>, QueryError> {
+        let Some((kp, n, two)) = self.matrix(&format!("{name}/{prefix}keypoints"))? else {
+            return Ok(None);
+        };
+        let Some((desc, dim, n_desc)) = self.matrix(&format!("{name}/{prefix}descriptors"))? else {
+            return Ok(None);
+        };
+        if two != 2 || n_desc != n {
+            return Err(self.err(format!(
+                "{name}/{prefix}: {n} keypoints x {two}, descriptors {dim} x {n_desc}"
+            )));
+        }
+        // [D × N] → [N × D].
+        let mut descriptors = vec![0.0f32; n * dim];
+        for d in 0..dim {
+            for k in 0..n {
+                descriptors[k * dim + d] = desc[d * n + k];
+            }
+        }
+        super::matching::normalise_rows(&mut descriptors, dim);
+        let keypoints = kp
+            .chunks_exact(2)
+            .map(|p| [f64::from(p[0]) + 0.5, f64::from(p[1]) + 0.5])
+            .collect();
+        Ok(Some(FeatureSet {
+            level,
+            keypoints,
+            descriptors,
+            dim,
+        }))
+    }
+
+    /// The query's features, `Ok(None)` if the file has no group for it.
+    pub fn features(&self, name: &str) -> Result<Option<QueryFeatures>, QueryError> {
+        let mut sets = Vec::new();
+        for id in 0..32u16 {
+            if let Some(set) = self.set(name, &format!("level{id}_"), Some(id))? {
+                sets.push(set);
+            }
+        }
+        if sets.is_empty() {
+            match self.set(name, "", None)? {
+                Some(set) => sets.push(set),
+                None => return Ok(None),
+            }
+        }
+        let global = self
+            .matrix(&format!("{name}/global_descriptor"))?
+            .map(|(v, _, _)| v);
+        Ok(Some(QueryFeatures { sets, global }))
+    }
+}

@@ -1,0 +1,180 @@
+//! `sfpmap localize` and `eval` on the real Sacre-Coeur scene: query features from the images
+//! (extractor), from a features.h5 and from a COLMAP database, and a missing query image.
+#![cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
+
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn scene() -> Option<PathBuf> {
+    let s = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes/sacre-coeur");
+    s.is_dir().then_some(s)
+}
+
+fn run(args: &[&str]) -> String {
+    let o = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        o.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8(o.stdout).unwrap()
+}
+
+fn poses(path: &Path) -> Vec<String> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(String::from)
+        .collect()
+}
+
+#[test]
+fn sfp_queries_from_images_and_from_features_h5_agree_and_eval_reports() {
+    let Some(s) = scene() else {
+        eprintln!("../shared/data absent: real-scene localize test not run");
+        return;
+    };
+    let t = tempfile::tempdir().unwrap();
+    let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
+    let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
+    run(&[
+        "convert",
+        "--colmap",
+        &sd("sparse-map"),
+        "--images",
+        &sd("images"),
+        "-o",
+        &p("m.sfpm"),
+        "-q",
+    ]);
+    let names: Vec<String> = std::fs::read_to_string(s.join("queries.txt"))
+        .unwrap()
+        .lines()
+        .map(|l| l.split(' ').next().unwrap().to_string())
+        .collect();
+    let images: Vec<String> = names.iter().map(|n| sd(&format!("images/{n}"))).collect();
+    let h5 = p("q.h5");
+    let mut extract: Vec<&str> = vec!["extract"];
+    extract.extend(images.iter().map(String::as_str));
+    extract.extend(["-o", h5.as_str()]);
+    // Image paths given one by one: groups are named by file name, as queries.txt names them.
+    run(&extract);
+    let a: Value = serde_json::from_str(&run(&[
+        "localize",
+        "--map",
+        &p("m.sfpm"),
+        "--query-list",
+        &sd("queries.txt"),
+        "--images",
+        &sd("images"),
+        "-o",
+        &p("a.txt"),
+        "--json",
+    ]))
+    .unwrap();
+    let b: Value = serde_json::from_str(&run(&[
+        "localize",
+        "--map",
+        &p("m.sfpm"),
+        "--query-list",
+        &sd("queries.txt"),
+        "--features",
+        &p("q.h5"),
+        "-o",
+        &p("b.txt"),
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(a["localized"], 2, "{a}");
+    assert_eq!(b["localized"], 2, "{b}");
+    for pose_file in ["a.txt", "b.txt"] {
+        let ev: Value = serde_json::from_str(&run(&[
+            "eval",
+            "--poses",
+            &p(pose_file),
+            "--gt",
+            &sd("gt_poses.txt"),
+            "--map",
+            &p("m.sfpm"),
+            "--json",
+        ]))
+        .unwrap();
+        for key in [
+            "queries",
+            "localized",
+            "median_translation",
+            "median_rotation_deg",
+            "median_translation_rel",
+            "recall",
+            "map_bytes",
+        ] {
+            assert!(ev.get(key).is_some(), "eval --json lacks {key}");
+        }
+        assert!(ev["median_rotation_deg"].as_f64().unwrap() < 2.0, "{ev}");
+    }
+    assert_eq!(poses(&t.path().join("a.txt")).len(), 2);
+    assert_eq!(poses(&t.path().join("b.txt")).len(), 2);
+}
+
+#[test]
+fn sift_queries_from_a_database_and_a_missing_query_is_listed_not_fatal() {
+    let Some(s) = scene() else {
+        eprintln!("../shared/data absent: real-scene localize test not run");
+        return;
+    };
+    let t = tempfile::tempdir().unwrap();
+    let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
+    std::fs::copy(s.join("database.db"), t.path().join("db.db")).unwrap();
+    std::fs::copy(s.join("queries.db"), t.path().join("q.db")).unwrap();
+    run(&[
+        "convert",
+        "--colmap",
+        s.join("sparse-map").to_str().unwrap(),
+        "--database",
+        &p("db.db"),
+        "-o",
+        &p("m.sfpm"),
+        "-q",
+    ]);
+    let mut list = std::fs::read_to_string(s.join("queries.txt")).unwrap();
+    list.push_str("missing.jpg SIMPLE_RADIAL 1024 768 800 512 384 0\n");
+    std::fs::write(t.path().join("queries.txt"), list).unwrap();
+    let out: Value = serde_json::from_str(&run(&[
+        "localize",
+        "--map",
+        &p("m.sfpm"),
+        "--query-list",
+        &p("queries.txt"),
+        "--database",
+        &p("q.db"),
+        "-o",
+        &p("p.txt"),
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(out["queries"], 3);
+    assert_eq!(out["localized"], 2);
+    assert_eq!(out["failed"][0]["name"], "missing.jpg");
+    let text = std::fs::read_to_string(t.path().join("p.txt")).unwrap();
+    assert!(text.contains("# failed missing.jpg"), "{text}");
+    // A SIFT map without query features is a clear error, not a crash.
+    let o = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+        .args([
+            "localize",
+            "--map",
+            &p("m.sfpm"),
+            "--query-list",
+            &p("queries.txt"),
+            "-o",
+            &p("x.txt"),
+        ])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--database"));
+}
