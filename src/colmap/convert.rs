@@ -345,6 +345,23 @@ impl Geometry {
     }
 }
 
+/// Reads the model in `model_dir` and describes its files (size, hash) for provenance.
+pub(crate) fn read_model_with_sources(
+    model_dir: &Path,
+    reporter: &dyn Reporter,
+) -> Result<(Reconstruction, Vec<SourceFile>), ConvertError> {
+    let files = model_files(model_dir)?;
+    reporter.start("reading model", None);
+    let model = read_model(model_dir)?;
+    reporter.finish();
+    let sources = files
+        .paths
+        .iter()
+        .map(|p| source_file(p))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((model, sources))
+}
+
 /// Converts the model in `model_dir` and writes the map to `output` (temp file + rename).
 pub fn convert(
     model_dir: &Path,
@@ -352,15 +369,7 @@ pub fn convert(
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<ConvertSummary, ConvertError> {
-    let files = model_files(model_dir)?;
-    reporter.start("reading model", None);
-    let model = read_model(model_dir)?;
-    reporter.finish();
-    let mut sources = files
-        .paths
-        .iter()
-        .map(|p| source_file(p))
-        .collect::<Result<Vec<_>, _>>()?;
+    let (model, mut sources) = read_model_with_sources(model_dir, reporter)?;
 
     let observations = match &options.database {
         Some(db_path) => {

@@ -16,8 +16,9 @@
 //! `level_projection` section), so query descriptors from [`Extractor`] match them directly.
 
 use super::{ExtractError, Extractor, ExtractorOptions, ModelInfo};
-use crate::colmap::convert::{source_file, ConvertError, ConvertSummary, Geometry, LevelSummary};
-use crate::colmap::{model_files, read_model};
+use crate::colmap::convert::{
+    read_model_with_sources, source_file, ConvertError, ConvertSummary, Geometry, LevelSummary,
+};
 use crate::format::{self, Codec, Descriptors, LevelInfo, MapWriter, Metadata, SourceFile};
 use crate::progress::Reporter;
 use serde_json::json;
@@ -165,15 +166,7 @@ pub fn convert_with_images(
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<SfpMapSummary, SfpMapError> {
-    let files = model_files(model_dir)?;
-    reporter.start("reading model", None);
-    let model = read_model(model_dir)?;
-    reporter.finish();
-    let mut sources = files
-        .paths
-        .iter()
-        .map(|p| source_file(p))
-        .collect::<Result<Vec<_>, _>>()?;
+    let (model, mut sources) = read_model_with_sources(model_dir, reporter)?;
     let input_bytes = sources.iter().map(|s| s.bytes).sum();
 
     let paths: Vec<PathBuf> = model
