@@ -175,18 +175,62 @@ pub fn parse_cameras(data: &[u8], path: &Path) -> Result<Vec<Camera>> {
     Ok(cameras)
 }
 
-/// Parses `images.bin`.
-pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
-    let mut r = Reader::new(data, path);
-    let (n, cap) = r.count(MIN_IMAGE, "image count")?;
-    let mut images = Vec::with_capacity(cap);
-    for _ in 0..n {
+/// One record of `images.bin`, its 2D points left as bytes (`num_points2D` × 24).
+pub(crate) struct ImageRecord<'a> {
+    pub id: u32,
+    pub name: String,
+    pub camera_id: u32,
+    pub cam_from_world: Rigid3,
+    pub points2d: &'a [u8],
+}
+
+impl ImageRecord<'_> {
+    pub fn num_points2d(&self) -> usize {
+        self.points2d.len() / POINT2D
+    }
+
+    /// The triangulated 2D points as `(point2D_idx, xy, point3D_id)`, in order. Indices
+    /// stop at `u32::MAX` (a track element cannot name more); check `num_points2d` first.
+    pub fn triangulated(&self) -> impl Iterator<Item = (u32, [f64; 2], u64)> + '_ {
+        (0..=u32::MAX)
+            .zip(self.points2d.chunks_exact(POINT2D))
+            .filter_map(|(idx, c)| {
+                let id = le_u64(&c[16..24]);
+                (id != INVALID_POINT3D_ID).then(|| (idx, [le_f64(&c[0..8]), le_f64(&c[8..16])], id))
+            })
+    }
+}
+
+/// Reads `images.bin` one record at a time: the 2D points stay in the file's bytes, so a
+/// caller that only needs some of them (convert) copies nothing else.
+pub(crate) struct ImageRecords<'a> {
+    r: Reader<'a>,
+    left: u64,
+    /// How many records to preallocate for (bounded by the file's length).
+    pub capacity: usize,
+}
+
+impl<'a> ImageRecords<'a> {
+    pub fn new(data: &'a [u8], path: &'a Path) -> Result<Self> {
+        let mut r = Reader::new(data, path);
+        let (left, capacity) = r.count(MIN_IMAGE, "image count")?;
+        Ok(ImageRecords { r, left, capacity })
+    }
+
+    /// The next record; `None` once all are read and the file is checked to end there.
+    pub fn next_record(&mut self) -> Result<Option<ImageRecord<'a>>> {
+        if self.left == 0 {
+            self.r.finish()?;
+            return Ok(None);
+        }
+        self.left -= 1;
+        let r = &mut self.r;
         let id = r.u32("image id")?;
         let rotation = r.f64s::<4>("image rotation")?;
         let translation = r.f64s::<3>("image translation")?;
         let camera_id = r.u32("image camera id")?;
         let name_start = r.pos;
-        let rest = data.get(name_start..).unwrap_or(&[]);
+        let rest = r.data.get(name_start..).unwrap_or(&[]);
         let name_len = rest
             .iter()
             .position(|&b| b == 0)
@@ -194,15 +238,34 @@ pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
         let name_bytes = r.take(name_len + 1, "image name")?;
         let name = std::str::from_utf8(&name_bytes[..name_len])
             .map_err(|_| Error::BadValue {
-                path: path.to_path_buf(),
+                path: r.path.to_path_buf(),
                 offset: name_start as u64,
                 what: format!("image {id}: name is not valid utf-8"),
             })?
             .to_string();
         let num_points2d = r.u64("image point2D count")?;
         // One bounds check for the whole block, then fixed-size records.
-        let block = r.block(num_points2d, POINT2D, "image points2D")?;
-        let points2d = block
+        let points2d = r.block(num_points2d, POINT2D, "image points2D")?;
+        Ok(Some(ImageRecord {
+            id,
+            name,
+            camera_id,
+            cam_from_world: Rigid3 {
+                rotation,
+                translation,
+            },
+            points2d,
+        }))
+    }
+}
+
+/// Parses `images.bin`.
+pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
+    let mut records = ImageRecords::new(data, path)?;
+    let mut images = Vec::with_capacity(records.capacity);
+    while let Some(record) = records.next_record()? {
+        let points2d = record
+            .points2d
             .chunks_exact(POINT2D)
             .map(|c| {
                 let point3d_id = le_u64(&c[16..24]);
@@ -213,18 +276,88 @@ pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
             })
             .collect();
         images.push(Image {
-            id,
-            name,
-            camera_id,
-            cam_from_world: Rigid3 {
-                rotation,
-                translation,
-            },
+            id: record.id,
+            name: record.name,
+            camera_id: record.camera_id,
+            cam_from_world: record.cam_from_world,
             points2d,
         });
     }
-    r.finish()?;
     Ok(images)
+}
+
+/// One record of `points3D.bin`, its track left as bytes (`track_length` × 8).
+pub(crate) struct Point3DRecord<'a> {
+    pub id: u64,
+    pub xyz: [f64; 3],
+    pub rgb: [u8; 3],
+    pub error: f64,
+    track: &'a [u8],
+}
+
+impl Point3DRecord<'_> {
+    pub fn track_len(&self) -> usize {
+        self.track.len() / TRACK_ELEMENT
+    }
+
+    pub fn track(&self) -> impl Iterator<Item = TrackElement> + '_ {
+        self.track
+            .chunks_exact(TRACK_ELEMENT)
+            .map(|c| TrackElement {
+                image_id: le_u32(&c[0..4]),
+                point2d_idx: le_u32(&c[4..8]),
+            })
+    }
+}
+
+/// Reads `points3D.bin` one record at a time (see [`ImageRecords`]).
+pub(crate) struct Point3DRecords<'a> {
+    r: Reader<'a>,
+    left: u64,
+    /// How many points to preallocate for (bounded by the file's length).
+    pub capacity: usize,
+    /// How many track elements to preallocate for.
+    pub track_capacity: usize,
+}
+
+impl<'a> Point3DRecords<'a> {
+    pub fn new(data: &'a [u8], path: &'a Path) -> Result<Self> {
+        let mut r = Reader::new(data, path);
+        let (left, capacity) = r.count(MIN_POINT3D, "point3D count")?;
+        // Typical tracks are a few elements long; reserving up to 8 per point avoids most
+        // regrowth without trusting the file's count beyond what its length can hold.
+        let track_capacity = (r.remaining().saturating_sub(capacity * MIN_POINT3D) / TRACK_ELEMENT)
+            .min(capacity * 8);
+        Ok(Point3DRecords {
+            r,
+            left,
+            capacity,
+            track_capacity,
+        })
+    }
+
+    /// The next record; `None` once all are read and the file is checked to end there.
+    pub fn next_record(&mut self) -> Result<Option<Point3DRecord<'a>>> {
+        if self.left == 0 {
+            self.r.finish()?;
+            return Ok(None);
+        }
+        self.left -= 1;
+        let r = &mut self.r;
+        let id = r.u64("point3D id")?;
+        let xyz = r.f64s::<3>("point3D position")?;
+        let rgb = r.array::<3>("point3D color")?;
+        let error = r.f64("point3D error")?;
+        let len = r.u64("point3D track length")?;
+        let track = r.block(len, TRACK_ELEMENT, "point3D track")?;
+        Ok(Some(Point3DRecord {
+            id,
+            xyz,
+            rgb,
+            error,
+            track,
+        }))
+    }
 }
 
 /// Parses `points3D.bin` into `builder`.
@@ -233,29 +366,16 @@ pub(crate) fn parse_points3d_into(
     path: &Path,
     builder: &mut ReconstructionBuilder,
 ) -> Result<()> {
-    let mut r = Reader::new(data, path);
-    let (n, cap) = r.count(MIN_POINT3D, "point3D count")?;
-    // Typical tracks are a few elements long; reserving up to 8 per point avoids most regrowth
-    // without trusting the file's count beyond what its length can hold.
-    let track_cap = (r.remaining().saturating_sub(cap * MIN_POINT3D) / TRACK_ELEMENT).min(cap * 8);
-    builder.reserve_points3d(cap, track_cap);
-    for _ in 0..n {
-        let id = r.u64("point3D id")?;
-        let xyz = r.f64s::<3>("point3D position")?;
-        let rgb = r.array::<3>("point3D color")?;
-        let error = r.f64("point3D error")?;
-        let len = r.u64("point3D track length")?;
-        let block = r.block(len, TRACK_ELEMENT, "point3D track")?;
+    let mut records = Point3DRecords::new(data, path)?;
+    builder.reserve_points3d(records.capacity, records.track_capacity);
+    while let Some(point) = records.next_record()? {
         let start = builder.begin_point3d();
-        for c in block.chunks_exact(TRACK_ELEMENT) {
-            builder.push_track(TrackElement {
-                image_id: le_u32(&c[0..4]),
-                point2d_idx: le_u32(&c[4..8]),
-            });
+        for element in point.track() {
+            builder.push_track(element);
         }
-        builder.end_point3d(start, id, xyz, rgb, error)?;
+        builder.end_point3d(start, point.id, point.xyz, point.rgb, point.error)?;
     }
-    r.finish()
+    Ok(())
 }
 
 /// Parses and validates the three files of a binary model given as bytes.

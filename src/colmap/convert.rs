@@ -7,10 +7,9 @@
 //! stores its descriptors in its own uncentred-PCA basis so a prefix (`short`) is meaningful.
 
 use super::basis::Basis;
-use super::{model_files, read_model, Database, Error as ColmapError, Reconstruction};
-use crate::format::{
-    self, CameraInfo, Codec, Descriptors, LevelInfo, MapWriter, Metadata, SourceFile,
-};
+pub(crate) use super::geometry::Geometry;
+use super::{model_files, read_model, Database, Error as ColmapError, ModelFormat, Reconstruction};
+use crate::format::{self, Codec, Descriptors, LevelInfo, MapWriter, Metadata, SourceFile};
 use crate::progress::Reporter;
 use serde_json::json;
 use std::fmt;
@@ -209,142 +208,6 @@ pub(crate) fn source_file(path: &Path) -> Result<SourceFile, ConvertError> {
     })
 }
 
-/// A model's geometry as the map stores it: cameras, points (all or a subset, renumbered in
-/// model order), images with poses, and visibility with the observing pixels. Shared by the
-/// SIFT convert and the SFP convert (`crate::extract::sfp_map`).
-#[derive(Debug, Clone)]
-pub(crate) struct Geometry {
-    pub cameras: Vec<CameraInfo>,
-    pub positions: Vec<[f64; 3]>,
-    pub colors: Vec<[u8; 3]>,
-    pub ids: Vec<u64>,
-    pub names: Vec<String>,
-    pub image_cameras: Vec<u32>,
-    pub poses: Vec<[f64; 7]>,
-    pub image_ids: Vec<u32>,
-    pub vis_offsets: Vec<u64>,
-    pub vis_points: Vec<u32>,
-    pub vis_keypoints: Vec<[f32; 2]>,
-    /// Model point index → map point index (`u32::MAX` = not kept).
-    #[cfg_attr(not(feature = "onnx"), allow(dead_code))]
-    pub map_index: Vec<u32>,
-}
-
-impl Geometry {
-    /// `keep[i]` says whether model point `i` goes into the map (`None`: every point).
-    pub(crate) fn new(model: &Reconstruction, keep: Option<&[bool]>) -> Geometry {
-        let points = model.points3d();
-        let mut map_index = vec![u32::MAX; points.len()];
-        let mut next = 0u32;
-        for (i, slot) in map_index.iter_mut().enumerate() {
-            if keep.is_none_or(|k| k[i]) {
-                *slot = next;
-                next += 1;
-            }
-        }
-        let kept = |i: &usize| map_index[*i] != u32::MAX;
-        let positions = (0..points.len())
-            .filter(kept)
-            .map(|i| points[i].xyz)
-            .collect();
-        let colors = (0..points.len())
-            .filter(kept)
-            .map(|i| points[i].rgb)
-            .collect();
-        let ids = (0..points.len())
-            .filter(kept)
-            .map(|i| points[i].id)
-            .collect();
-        // Visibility: image → observed (kept) points, with the observing pixel.
-        let mut vis_offsets = Vec::with_capacity(model.images().len() + 1);
-        let mut vis_points = Vec::with_capacity(model.num_observations());
-        let mut vis_keypoints = Vec::with_capacity(model.num_observations());
-        vis_offsets.push(0u64);
-        for image in model.images() {
-            for p in &image.points2d {
-                let Some(index) = p.point3d_id.and_then(|id| model.point3d_index(id)) else {
-                    continue;
-                };
-                if map_index[index] != u32::MAX {
-                    vis_points.push(map_index[index]);
-                    vis_keypoints.push([p.xy[0] as f32, p.xy[1] as f32]);
-                }
-            }
-            vis_offsets.push(vis_points.len() as u64);
-        }
-        let camera_index = |id: u32| {
-            model
-                .cameras()
-                .iter()
-                .position(|c| c.id == id)
-                .map(|i| i as u32)
-        };
-        Geometry {
-            cameras: model
-                .cameras()
-                .iter()
-                .map(|c| CameraInfo {
-                    id: Some(c.id),
-                    model: c.model.name().to_string(),
-                    width: c.width,
-                    height: c.height,
-                    params: c.params.clone(),
-                })
-                .collect(),
-            positions,
-            colors,
-            ids,
-            names: model.images().iter().map(|i| i.name.clone()).collect(),
-            image_cameras: model
-                .images()
-                .iter()
-                .map(|i| {
-                    camera_index(i.camera_id)
-                        .expect("the reader checked every image's camera exists")
-                })
-                .collect(),
-            poses: model
-                .images()
-                .iter()
-                .map(|i| {
-                    let (q, t) = (i.cam_from_world.rotation, i.cam_from_world.translation);
-                    [q[0], q[1], q[2], q[3], t[0], t[1], t[2]]
-                })
-                .collect(),
-            image_ids: model.images().iter().map(|i| i.id).collect(),
-            vis_offsets,
-            vis_points,
-            vis_keypoints,
-            map_index,
-        }
-    }
-
-    /// Adds cameras, points, images and visibility to `writer`.
-    pub(crate) fn write_into<'a>(
-        &'a self,
-        writer: &mut MapWriter<'a>,
-    ) -> Result<(), format::Error> {
-        for c in &self.cameras {
-            writer.add_camera(c.clone());
-        }
-        writer.set_points_world(&self.positions);
-        writer.set_point_colors(&self.colors);
-        writer.set_point_ids(&self.ids);
-        writer.set_images(
-            &self.names,
-            &self.image_cameras,
-            &self.poses,
-            Some(&self.image_ids),
-        )?;
-        writer.set_visibility(
-            &self.vis_offsets,
-            &self.vis_points,
-            Some(&self.vis_keypoints),
-        )?;
-        Ok(())
-    }
-}
-
 /// Reads the model in `model_dir` and describes its files (size, hash) for provenance.
 pub(crate) fn read_model_with_sources(
     model_dir: &Path,
@@ -362,6 +225,40 @@ pub(crate) fn read_model_with_sources(
     Ok((model, sources))
 }
 
+/// Reads the model in `model_dir` as the map's geometry, with its files' provenance.
+///
+/// A binary model goes the fast way ([`super::geometry::read_bin`]) while another thread
+/// hashes the files; anything that way declines (errors included) goes the general way.
+fn read_geometry_with_sources(
+    model_dir: &Path,
+    reporter: &dyn Reporter,
+) -> Result<(Geometry, Vec<SourceFile>), ConvertError> {
+    let files = model_files(model_dir)?;
+    if files.format == ModelFormat::Binary {
+        reporter.start("reading model", None);
+        let (geometry, sources) = std::thread::scope(|s| {
+            let sources = s.spawn(|| {
+                files
+                    .paths
+                    .iter()
+                    .map(|p| source_file(p))
+                    .collect::<Result<Vec<_>, _>>()
+            });
+            let geometry = super::geometry::read_bin(model_dir);
+            let sources = sources
+                .join()
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+            (geometry, sources)
+        });
+        reporter.finish();
+        if let Some(geometry) = geometry {
+            return Ok((geometry, sources?));
+        }
+    }
+    let (model, sources) = read_model_with_sources(model_dir, reporter)?;
+    Ok((Geometry::new(&model, None), sources))
+}
+
 /// Converts the model in `model_dir` and writes the map to `output` (temp file + rename).
 pub fn convert(
     model_dir: &Path,
@@ -369,12 +266,12 @@ pub fn convert(
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<ConvertSummary, ConvertError> {
-    let (model, mut sources) = read_model_with_sources(model_dir, reporter)?;
+    let (geometry, mut sources) = read_geometry_with_sources(model_dir, reporter)?;
 
     let observations = match &options.database {
         Some(db_path) => {
             sources.push(source_file(db_path)?);
-            Some(gather(&model, db_path, options, reporter)?)
+            Some(gather(&geometry, db_path, options, reporter)?)
         }
         None => None,
     };
@@ -400,7 +297,6 @@ pub fn convert(
     let mut writer = MapWriter::new(metadata);
     writer.set_codec(options.codec, options.zstd_level);
 
-    let geometry = Geometry::new(&model, None);
     geometry.write_into(&mut writer)?;
 
     let mut summaries = Vec::new();
@@ -445,30 +341,31 @@ pub fn convert(
 /// Reads every model image's features and gathers, per observation of a 3D point, its
 /// normalised descriptor and keypoint scale.
 fn gather(
-    model: &Reconstruction,
+    geometry: &Geometry,
     db_path: &Path,
     options: &ConvertOptions,
     reporter: &dyn Reporter,
 ) -> Result<Observations, ConvertError> {
     let db = Database::open(db_path)?;
-    let n_points = model.points3d().len();
+    let n_points = geometry.positions.len();
     let mut obs = Observations {
         dim: 0,
-        scales: Vec::with_capacity(model.num_observations()),
+        scales: Vec::with_capacity(geometry.vis_points.len()),
         sums: Vec::new(),
         counts: vec![0; n_points],
         all: Vec::new(),
         images_without_features: 0,
     };
-    reporter.start("reading features", Some(model.images().len() as u64));
+    let n_images = geometry.names.len();
+    reporter.start("reading features", Some(n_images as u64));
     let mut normalised = Vec::new();
-    for image in model.images() {
-        let features = db.features(image.id)?;
-        if features.image.name != image.name {
+    for (i, (&image_id, name)) in geometry.image_ids.iter().zip(&geometry.names).enumerate() {
+        let features = db.features(image_id)?;
+        if features.image.name != *name {
             return Err(ConvertError::NameMismatch {
                 database: db_path.to_path_buf(),
-                image_id: image.id,
-                model: image.name.clone(),
+                image_id,
+                model: name.clone(),
                 found: features.image.name,
             });
         }
@@ -477,14 +374,14 @@ fn gather(
             if options.strict {
                 return Err(ConvertError::MissingFeatures {
                     database: db_path.to_path_buf(),
-                    image: image.name.clone(),
+                    image: name.clone(),
                 });
             }
             obs.images_without_features += 1;
             reporter.warn(&format!(
                 "{}: image {:?} has no features; its observations get no descriptor",
                 db_path.display(),
-                image.name
+                name
             ));
             reporter.advance(1);
             continue;
@@ -497,16 +394,18 @@ fn gather(
         } else if descriptors.cols != obs.dim {
             return Err(ConvertError::DescriptorDim {
                 database: db_path.to_path_buf(),
-                image: image.name.clone(),
+                image: name.clone(),
                 expected: obs.dim,
                 found: descriptors.cols,
             });
         }
         let dim = obs.dim;
-        for (idx, p) in image.points2d.iter().enumerate() {
-            let Some(point) = p.point3d_id.and_then(|id| model.point3d_index(id)) else {
-                continue;
-            };
+        let entries = geometry.vis_offsets[i] as usize..geometry.vis_offsets[i + 1] as usize;
+        for (&point, &idx) in geometry.vis_points[entries.clone()]
+            .iter()
+            .zip(&geometry.vis_point2d[entries])
+        {
+            let (point, idx) = (point as usize, idx as usize);
             // Keypoints without a shape (x, y only) have no scale: one bucket for all.
             let scale = if idx < keypoints.len() {
                 keypoints.scale(idx).or(Some(1.0))
@@ -516,7 +415,7 @@ fn gather(
             let (Some(row), Some(scale)) = (descriptors.row(idx), scale) else {
                 return Err(ConvertError::KeypointOutOfRange {
                     database: db_path.to_path_buf(),
-                    image: image.name.clone(),
+                    image: name.clone(),
                     point2d_idx: idx,
                     keypoints: keypoints.len(),
                 });
@@ -545,7 +444,7 @@ fn gather(
         reporter.warn(&format!(
             "{} of {} images have no features in {}",
             obs.images_without_features,
-            model.images().len(),
+            n_images,
             db_path.display()
         ));
     }

@@ -43,6 +43,8 @@ pub mod convert;
 #[cfg(feature = "colmap")]
 mod database;
 mod error;
+#[cfg(feature = "colmap")]
+pub(crate) mod geometry;
 mod model;
 pub mod text;
 

@@ -111,28 +111,38 @@ pub struct Reconstruction {
 /// observation (millions), and a table read is several times faster than a binary search
 /// there. Sparse ids leave the table empty and lookups fall back to binary search.
 #[derive(Debug, Clone, Default)]
-struct IdIndex {
+pub(crate) struct IdIndex {
     slots: Vec<u32>,
 }
 
 impl IdIndex {
     const ABSENT: u32 = u32::MAX;
 
-    /// `ids` sorted ascending and unique.
+    /// `ids` sorted ascending and unique; an empty (search-only) index if they are sparse.
     fn new(ids: impl ExactSizeIterator<Item = u64> + Clone) -> IdIndex {
+        // At most ~2 slots per entry (4 bytes each).
+        let max_slots = ids.len().saturating_mul(2).saturating_add(1024);
+        IdIndex::dense(ids, max_slots).unwrap_or_default()
+    }
+
+    /// A table for `ids` (sorted ascending and unique), or `None` if it would need more than
+    /// `max_slots` slots or the positions do not fit u32.
+    pub(crate) fn dense(
+        ids: impl ExactSizeIterator<Item = u64> + Clone,
+        max_slots: usize,
+    ) -> Option<IdIndex> {
         let len = ids.len();
         let max = ids.clone().last().unwrap_or(0);
-        // At most ~2 slots per entry (4 bytes each), and positions must fit u32.
-        let dense = u32::try_from(len).is_ok_and(|n| n < IdIndex::ABSENT)
-            && usize::try_from(max).is_ok_and(|m| m <= len.saturating_mul(2).saturating_add(1024));
-        if !dense {
-            return IdIndex::default();
+        let fits = u32::try_from(len).is_ok_and(|n| n < IdIndex::ABSENT)
+            && usize::try_from(max).is_ok_and(|m| m < max_slots);
+        if !fits {
+            return None;
         }
         let mut slots = vec![IdIndex::ABSENT; max as usize + 1];
         for (position, id) in ids.enumerate() {
             slots[id as usize] = position as u32;
         }
-        IdIndex { slots }
+        Some(IdIndex { slots })
     }
 
     /// `Some(answer)` if the table decides, `None` to fall back to a search.
@@ -140,8 +150,14 @@ impl IdIndex {
         if self.slots.is_empty() {
             return None;
         }
-        let slot = usize::try_from(id).ok().and_then(|i| self.slots.get(i));
-        Some(slot.filter(|&&s| s != IdIndex::ABSENT).map(|&s| s as usize))
+        Some(self.position(id))
+    }
+
+    /// The position of `id`, for an index made by [`dense`](Self::dense).
+    #[inline]
+    pub(crate) fn position(&self, id: u64) -> Option<usize> {
+        let slot = usize::try_from(id).ok().and_then(|i| self.slots.get(i))?;
+        (*slot != IdIndex::ABSENT).then_some(*slot as usize)
     }
 }
 

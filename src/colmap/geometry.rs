@@ -1,0 +1,605 @@
+//! A model's geometry as a map stores it, from a [`Reconstruction`] or, for `convert`,
+//! straight from a binary model's bytes.
+//!
+//! Why a second way in: a [`Reconstruction`] keeps every 2D point of every image (24 bytes
+//! on disk, more in memory), which `convert` never needs beyond the triangulated ones'
+//! pixels. Reading `images.bin` in place and keeping only what the map stores makes a
+//! million-point model convert several times faster and in a fraction of the memory. It
+//! accepts exactly the models [`ReconstructionBuilder::build`](super::ReconstructionBuilder)
+//! accepts (up to the fingerprint note in [`read_bin`]); anything else sends the caller to
+//! the general reader, which reports the problem as COLMAP would.
+
+use std::hash::BuildHasher;
+use std::path::Path;
+
+use super::bin::{ImageRecord, ImageRecords, Point3DRecords};
+use super::model::IdIndex;
+use super::{files_with, read_file, Reconstruction};
+use crate::format::{self, CameraInfo, MapWriter};
+
+/// Cameras, points (all or a subset, renumbered in model order), images with poses, and
+/// visibility with the observing pixels. Shared by the SIFT convert and the SFP convert
+/// (`crate::extract::sfp_map`).
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Geometry {
+    pub cameras: Vec<CameraInfo>,
+    pub positions: Vec<[f64; 3]>,
+    pub colors: Vec<[u8; 3]>,
+    pub ids: Vec<u64>,
+    pub names: Vec<String>,
+    pub image_cameras: Vec<u32>,
+    pub poses: Vec<[f64; 7]>,
+    pub image_ids: Vec<u32>,
+    pub vis_offsets: Vec<u64>,
+    pub vis_points: Vec<u32>,
+    pub vis_keypoints: Vec<[f32; 2]>,
+    /// Each visibility entry's `point2D_idx` in its image (the keypoint row in `database.db`).
+    pub vis_point2d: Vec<u32>,
+    /// Model point index → map point index (`u32::MAX` = not kept).
+    #[cfg_attr(not(feature = "onnx"), allow(dead_code))]
+    pub map_index: Vec<u32>,
+}
+
+impl Geometry {
+    /// `keep[i]` says whether model point `i` goes into the map (`None`: every point).
+    pub(crate) fn new(model: &Reconstruction, keep: Option<&[bool]>) -> Geometry {
+        let points = model.points3d();
+        let mut map_index = vec![u32::MAX; points.len()];
+        let mut next = 0u32;
+        for (i, slot) in map_index.iter_mut().enumerate() {
+            if keep.is_none_or(|k| k[i]) {
+                *slot = next;
+                next += 1;
+            }
+        }
+        let kept = |i: &usize| map_index[*i] != u32::MAX;
+        let positions = (0..points.len())
+            .filter(kept)
+            .map(|i| points[i].xyz)
+            .collect();
+        let colors = (0..points.len())
+            .filter(kept)
+            .map(|i| points[i].rgb)
+            .collect();
+        let ids = (0..points.len())
+            .filter(kept)
+            .map(|i| points[i].id)
+            .collect();
+        // Visibility: image → observed (kept) points, with the observing pixel.
+        let mut vis = Visibility::with_capacity(model.images().len(), model.num_observations());
+        for image in model.images() {
+            for (idx, p) in image.points2d.iter().enumerate() {
+                let Some(index) = p.point3d_id.and_then(|id| model.point3d_index(id)) else {
+                    continue;
+                };
+                if map_index[index] != u32::MAX {
+                    vis.push(map_index[index], p.xy, idx as u32);
+                }
+            }
+            vis.end_image();
+        }
+        let cameras: Vec<CameraInfo> = model.cameras().iter().map(camera_info).collect();
+        let camera_ids: Vec<u32> = model.cameras().iter().map(|c| c.id).collect();
+        let images = model.images().iter().map(|i| ImageHead {
+            id: i.id,
+            name: i.name.clone(),
+            camera_id: i.camera_id,
+            pose: pose(&i.cam_from_world),
+        });
+        let (names, image_cameras, poses, image_ids) = image_columns(&camera_ids, images)
+            .expect("the reader checked every image's camera exists");
+        Geometry {
+            cameras,
+            positions,
+            colors,
+            ids,
+            names,
+            image_cameras,
+            poses,
+            image_ids,
+            vis_offsets: vis.offsets,
+            vis_points: vis.points,
+            vis_keypoints: vis.keypoints,
+            vis_point2d: vis.point2d,
+            map_index,
+        }
+    }
+
+    /// Adds cameras, points, images and visibility to `writer`.
+    pub(crate) fn write_into<'a>(
+        &'a self,
+        writer: &mut MapWriter<'a>,
+    ) -> Result<(), format::Error> {
+        for c in &self.cameras {
+            writer.add_camera(c.clone());
+        }
+        writer.set_points_world(&self.positions);
+        writer.set_point_colors(&self.colors);
+        writer.set_point_ids(&self.ids);
+        writer.set_images(
+            &self.names,
+            &self.image_cameras,
+            &self.poses,
+            Some(&self.image_ids),
+        )?;
+        writer.set_visibility(
+            &self.vis_offsets,
+            &self.vis_points,
+            Some(&self.vis_keypoints),
+        )?;
+        Ok(())
+    }
+}
+
+fn camera_info(c: &super::Camera) -> CameraInfo {
+    CameraInfo {
+        id: Some(c.id),
+        model: c.model.name().to_string(),
+        width: c.width,
+        height: c.height,
+        params: c.params.clone(),
+    }
+}
+
+fn pose(p: &super::Rigid3) -> [f64; 7] {
+    let (q, t) = (p.rotation, p.translation);
+    [q[0], q[1], q[2], q[3], t[0], t[1], t[2]]
+}
+
+/// What the map keeps of an image besides its visibility.
+struct ImageHead {
+    id: u32,
+    name: String,
+    camera_id: u32,
+    pose: [f64; 7],
+}
+
+type ImageColumns = (Vec<String>, Vec<u32>, Vec<[f64; 7]>, Vec<u32>);
+
+/// Names, camera indices (into `camera_ids`, sorted), poses and ids; `None` if an image's
+/// camera does not exist.
+fn image_columns(
+    camera_ids: &[u32],
+    images: impl ExactSizeIterator<Item = ImageHead>,
+) -> Option<ImageColumns> {
+    let n = images.len();
+    let mut columns = (
+        Vec::with_capacity(n),
+        Vec::with_capacity(n),
+        Vec::with_capacity(n),
+        Vec::with_capacity(n),
+    );
+    for image in images {
+        let camera = camera_ids.binary_search(&image.camera_id).ok()?;
+        columns.0.push(image.name);
+        columns.1.push(camera as u32);
+        columns.2.push(image.pose);
+        columns.3.push(image.id);
+    }
+    Some(columns)
+}
+
+/// The visibility CSR under construction, one image at a time.
+struct Visibility {
+    offsets: Vec<u64>,
+    points: Vec<u32>,
+    keypoints: Vec<[f32; 2]>,
+    point2d: Vec<u32>,
+}
+
+impl Visibility {
+    fn with_capacity(images: usize, observations: usize) -> Visibility {
+        let mut offsets = Vec::with_capacity(images + 1);
+        offsets.push(0);
+        Visibility {
+            offsets,
+            points: Vec::with_capacity(observations),
+            keypoints: Vec::with_capacity(observations),
+            point2d: Vec::with_capacity(observations),
+        }
+    }
+
+    #[inline]
+    fn push(&mut self, point: u32, xy: [f64; 2], point2d_idx: u32) {
+        self.points.push(point);
+        self.keypoints.push([xy[0] as f32, xy[1] as f32]);
+        self.point2d.push(point2d_idx);
+    }
+
+    fn end_image(&mut self) {
+        self.offsets.push(self.points.len() as u64);
+    }
+}
+
+/// Reads the binary model in `dir` straight into a [`Geometry`] of all its points.
+///
+/// `None` means "take the general path": a file is missing or malformed, the model is
+/// inconsistent, or its point ids are too sparse for a lookup table. The general reader
+/// then reports the problem (or, for sparse ids, converts the model more slowly).
+///
+/// Checks, against [`ReconstructionBuilder::build`](super::ReconstructionBuilder::build):
+/// unique camera, image and point ids, every image's camera exists, and every 3D point's
+/// track is exactly the set of 2D points that carry its id. The last is checked without
+/// building the reverse index: each observation `(image_id, point2D_idx)` gets a keyed
+/// 64-bit hash, and per point the wrapping sum over its track must equal the sum over the
+/// 2D points that name it. Equal multisets always pass; unequal ones pass with probability
+/// about 2⁻⁶⁴ (the key is random per process, so a file cannot be crafted to collide).
+/// Either way the map's visibility comes from the 2D points, as in the general path.
+pub(crate) fn read_bin(dir: &Path) -> Option<Geometry> {
+    let [cameras_path, images_path, points_path] = files_with(dir, "bin");
+    let mut cameras =
+        super::bin::parse_cameras(&read_file(&cameras_path).ok()?, &cameras_path).ok()?;
+    cameras.sort_by_key(|c| c.id);
+    if cameras.windows(2).any(|w| w[0].id == w[1].id) {
+        return None;
+    }
+    let camera_ids: Vec<u32> = cameras.iter().map(|c| c.id).collect();
+
+    let images_data = read_file(&images_path).ok()?;
+    let mut records = ImageRecords::new(&images_data, &images_path).ok()?;
+    let mut images = Vec::with_capacity(records.capacity);
+    while let Some(record) = records.next_record().ok()? {
+        images.push(record);
+    }
+    images.sort_by_key(|i| i.id);
+    if images.windows(2).any(|w| w[0].id == w[1].id) {
+        return None;
+    }
+
+    let key = std::hash::RandomState::new().hash_one(0x5f70_6d61_7000_u64);
+    let points_data = read_file(&points_path).ok()?;
+    let points = Points::read(&points_data, &points_path, key)?;
+    // COLMAP numbers points from 1 and filtering leaves gaps; up to 8 slots a point is a
+    // table of at most 32 bytes a point, still far smaller than the points themselves.
+    let max_slots = points.ids.len().saturating_mul(8).saturating_add(1 << 20);
+    let index = IdIndex::dense(points.ids.iter().copied(), max_slots)?;
+
+    let vis = scan_images(&images, &index, points.ids.len(), points.observations, key)?;
+    let (visibility, sums) = vis;
+    if sums != points.fingerprints {
+        return None;
+    }
+
+    let heads = images.into_iter().map(|i: ImageRecord<'_>| ImageHead {
+        id: i.id,
+        name: i.name,
+        camera_id: i.camera_id,
+        pose: pose(&i.cam_from_world),
+    });
+    let (names, image_cameras, poses, image_ids) = image_columns(&camera_ids, heads)?;
+    Some(Geometry {
+        cameras: cameras.iter().map(camera_info).collect(),
+        map_index: (0..points.ids.len() as u32).collect(),
+        positions: points.positions,
+        colors: points.colors,
+        ids: points.ids,
+        names,
+        image_cameras,
+        poses,
+        image_ids,
+        vis_offsets: visibility.offsets,
+        vis_points: visibility.points,
+        vis_keypoints: visibility.keypoints,
+        vis_point2d: visibility.point2d,
+    })
+}
+
+/// The hash of one observation: a murmur3-style finaliser (a bijection of u64) of the
+/// observation keyed by xor, so distinct observations never share a hash.
+#[inline]
+fn observation_hash(key: u64, image_id: u32, point2d_idx: u32) -> u64 {
+    let mut x = ((u64::from(image_id) << 32) | u64::from(point2d_idx)) ^ key;
+    x = (x ^ (x >> 33)).wrapping_mul(0xff51_afd7_ed55_8ccd);
+    x = (x ^ (x >> 33)).wrapping_mul(0xc4ce_b9fe_1a85_ec53);
+    x ^ (x >> 33)
+}
+
+/// `points3D.bin` as columns sorted by id, with each track's fingerprint.
+struct Points {
+    ids: Vec<u64>,
+    positions: Vec<[f64; 3]>,
+    colors: Vec<[u8; 3]>,
+    fingerprints: Vec<u64>,
+    /// Sum of the track lengths.
+    observations: usize,
+}
+
+impl Points {
+    fn read(data: &[u8], path: &Path, key: u64) -> Option<Points> {
+        let mut records = Point3DRecords::new(data, path).ok()?;
+        let n = records.capacity;
+        let mut points = Points {
+            ids: Vec::with_capacity(n),
+            positions: Vec::with_capacity(n),
+            colors: Vec::with_capacity(n),
+            fingerprints: Vec::with_capacity(n),
+            observations: 0,
+        };
+        while let Some(record) = records.next_record().ok()? {
+            let fingerprint = record.track().fold(0u64, |sum, e| {
+                sum.wrapping_add(observation_hash(key, e.image_id, e.point2d_idx))
+            });
+            // An empty track is a COLMAP error; u32 is the builder's limit on lengths.
+            let len = u32::try_from(record.track_len()).ok().filter(|&l| l > 0)?;
+            points.observations += len as usize;
+            points.ids.push(record.id);
+            points.positions.push(record.xyz);
+            points.colors.push(record.rgb);
+            points.fingerprints.push(fingerprint);
+        }
+        if !points.ids.is_sorted() {
+            points.sort_by_id();
+        }
+        if points.ids.windows(2).any(|w| w[0] == w[1]) {
+            return None;
+        }
+        Some(points)
+    }
+
+    /// COLMAP writes points in hash-map order; the map wants them by id.
+    fn sort_by_id(&mut self) {
+        let mut order: Vec<u32> = (0..self.ids.len() as u32).collect();
+        order.sort_unstable_by_key(|&i| self.ids[i as usize]);
+        fn permute<T: Copy>(v: &mut Vec<T>, order: &[u32]) {
+            *v = order.iter().map(|&i| v[i as usize]).collect();
+        }
+        permute(&mut self.ids, &order);
+        permute(&mut self.positions, &order);
+        permute(&mut self.colors, &order);
+        permute(&mut self.fingerprints, &order);
+    }
+}
+
+/// Visibility from the images' 2D points (in image id order), and per point the sum of
+/// the hashes of the 2D points naming it. `None` if a 2D point names a missing point.
+fn scan_images(
+    images: &[ImageRecord<'_>],
+    index: &IdIndex,
+    n_points: usize,
+    observations: usize,
+    key: u64,
+) -> Option<(Visibility, Vec<u64>)> {
+    let mut vis = Visibility::with_capacity(images.len(), observations);
+    let mut sums = vec![0u64; n_points];
+    for image in images {
+        u32::try_from(image.num_points2d()).ok()?;
+        for (idx, xy, id) in image.triangulated() {
+            let point = index.position(id)?;
+            vis.push(point as u32, xy, idx);
+            sums[point] = sums[point].wrapping_add(observation_hash(key, image.id, idx));
+        }
+        vis.end_image();
+    }
+    (vis.points.len() == observations).then_some((vis, sums))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::colmap::{read_model, Error};
+    use std::path::PathBuf;
+
+    /// A point as `points3D.bin` holds it: id, position, colour, track (image id, index).
+    type PointRow = (u64, [f64; 3], [u8; 3], Vec<(u32, u32)>);
+    /// An image as `images.bin` holds it: id, camera id, name, 2D points (x, y, point id).
+    type ImageRow = (u32, u32, &'static str, Vec<(f64, f64, u64)>);
+
+    const NONE: u64 = u64::MAX;
+
+    /// Two cameras; images 7 and 3 (file order not sorted); points 40, 10, 25 (not sorted,
+    /// with gaps) with untriangulated 2D points between the triangulated ones.
+    fn model() -> (Vec<ImageRow>, Vec<PointRow>) {
+        let images = vec![
+            (
+                7,
+                2,
+                "b.jpg",
+                vec![(1.5, 2.5, 40), (3.0, 4.0, NONE), (5.0, 6.0, 10)],
+            ),
+            (
+                3,
+                1,
+                "a.jpg",
+                vec![
+                    (7.0, 8.0, NONE),
+                    (9.0, 10.0, 25),
+                    (11.0, 12.0, 40),
+                    (0.5, 0.5, 10),
+                ],
+            ),
+        ];
+        let points = vec![
+            (40, [1.0, 2.0, 3.0], [1, 2, 3], vec![(3, 2), (7, 0)]),
+            (10, [-1.0, 0.0, 1e6], [4, 5, 6], vec![(7, 2), (3, 3)]),
+            (25, [0.25, 0.5, 0.75], [7, 8, 9], vec![(3, 1)]),
+        ];
+        (images, points)
+    }
+
+    fn write(dir: &Path, images: &[ImageRow], points: &[PointRow]) {
+        let mut c = 2u64.to_le_bytes().to_vec();
+        for (id, model, params) in [
+            (1u32, 0i32, vec![500.0, 320.0, 240.0]),
+            (2, 1, vec![1.0; 4]),
+        ] {
+            c.extend(id.to_le_bytes());
+            c.extend(model.to_le_bytes());
+            c.extend(640u64.to_le_bytes());
+            c.extend(480u64.to_le_bytes());
+            params.iter().for_each(|p: &f64| c.extend(p.to_le_bytes()));
+        }
+        let mut i = (images.len() as u64).to_le_bytes().to_vec();
+        for (id, camera, name, points2d) in images {
+            i.extend(id.to_le_bytes());
+            for v in [1.0f64, 0.0, 0.0, 0.0, f64::from(*id), 0.0, 0.0] {
+                i.extend(v.to_le_bytes());
+            }
+            i.extend(camera.to_le_bytes());
+            i.extend(name.as_bytes());
+            i.push(0);
+            i.extend((points2d.len() as u64).to_le_bytes());
+            for (x, y, p) in points2d {
+                i.extend(x.to_le_bytes());
+                i.extend(y.to_le_bytes());
+                i.extend(p.to_le_bytes());
+            }
+        }
+        let mut p = (points.len() as u64).to_le_bytes().to_vec();
+        for (id, xyz, rgb, track) in points {
+            p.extend(id.to_le_bytes());
+            xyz.iter().for_each(|v| p.extend(v.to_le_bytes()));
+            p.extend(rgb);
+            p.extend(0.5f64.to_le_bytes());
+            p.extend((track.len() as u64).to_le_bytes());
+            for (image, idx) in track {
+                p.extend(image.to_le_bytes());
+                p.extend(idx.to_le_bytes());
+            }
+        }
+        std::fs::create_dir_all(dir).unwrap();
+        std::fs::write(dir.join("cameras.bin"), c).unwrap();
+        std::fs::write(dir.join("images.bin"), i).unwrap();
+        std::fs::write(dir.join("points3D.bin"), p).unwrap();
+    }
+
+    /// The general path's geometry, or its error.
+    fn general(dir: &Path) -> Result<Geometry, Error> {
+        read_model(dir).map(|m| Geometry::new(&m, None))
+    }
+
+    #[test]
+    fn fast_path_matches_the_general_path() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (images, points) = model();
+        write(tmp.path(), &images, &points);
+        let fast = read_bin(tmp.path()).expect("a consistent model takes the fast path");
+        assert_eq!(fast, general(tmp.path()).unwrap());
+        // Sorted by id, visibility in image-id order with the 2D points' indices.
+        assert_eq!(fast.ids, [10, 25, 40]);
+        assert_eq!(fast.colors, [[4, 5, 6], [7, 8, 9], [1, 2, 3]]);
+        assert_eq!(fast.image_ids, [3, 7]);
+        assert_eq!(fast.image_cameras, [0, 1]);
+        assert_eq!(fast.vis_offsets, [0, 3, 5]);
+        assert_eq!(fast.vis_points, [1, 2, 0, 2, 0]);
+        assert_eq!(fast.vis_point2d, [1, 2, 3, 0, 2]);
+        assert_eq!(fast.vis_keypoints[0], [9.0, 10.0]);
+        assert_eq!(fast.map_index, [0, 1, 2]);
+    }
+
+    /// Each way a model can be inconsistent: the fast path declines and the general path
+    /// names the problem.
+    #[test]
+    fn inconsistent_models_decline_the_fast_path() {
+        type Edit = fn(&mut Vec<ImageRow>, &mut Vec<PointRow>);
+        let edits: [(&str, Edit); 9] = [
+            ("track names another 2D point", |_, p| p[2].3[0].1 = 0),
+            ("track element twice", |_, p| p[2].3.push((3, 1))),
+            ("track misses a 2D point", |_, p| {
+                p[1].3.pop();
+            }),
+            ("track names a missing image", |_, p| p[2].3.push((99, 0))),
+            ("2D point names a missing point", |i, _| i[0].3[1].2 = 77),
+            ("2D point names the wrong point", |i, _| i[0].3[0].2 = 10),
+            ("duplicate point id", |_, p| p[2].0 = 10),
+            ("duplicate image id", |i, _| i[1].0 = 7),
+            ("missing camera", |i, _| i[1].1 = 9),
+        ];
+        for (what, edit) in edits {
+            let tmp = tempfile::tempdir().unwrap();
+            let (mut images, mut points) = model();
+            edit(&mut images, &mut points);
+            write(tmp.path(), &images, &points);
+            assert!(read_bin(tmp.path()).is_none(), "{what}");
+            assert!(general(tmp.path()).is_err(), "{what}");
+        }
+    }
+
+    #[test]
+    fn truncated_files_decline_the_fast_path() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (images, points) = model();
+        write(tmp.path(), &images, &points);
+        for name in ["cameras.bin", "images.bin", "points3D.bin"] {
+            let path = tmp.path().join(name);
+            let bytes = std::fs::read(&path).unwrap();
+            for len in [0, bytes.len() / 2, bytes.len() - 1] {
+                std::fs::write(&path, &bytes[..len]).unwrap();
+                assert!(read_bin(tmp.path()).is_none(), "{name} cut at {len}");
+            }
+            std::fs::write(&path, &bytes).unwrap();
+        }
+        assert!(read_bin(tmp.path()).is_some());
+    }
+
+    #[test]
+    fn sparse_ids_decline_the_fast_path_but_convert_in_general() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (mut images, mut points) = model();
+        // Far past 8 slots a point: no lookup table.
+        let far = 1u64 << 40;
+        images[0].3[0].2 = far;
+        images[1].3[2].2 = far;
+        points[0].0 = far;
+        write(tmp.path(), &images, &points);
+        assert!(read_bin(tmp.path()).is_none());
+        assert_eq!(general(tmp.path()).unwrap().ids, [10, 25, far]);
+    }
+
+    #[test]
+    fn hashes_of_distinct_observations_differ() {
+        let key = 0x1234_5678_9abc_def0;
+        let mut seen = std::collections::HashSet::new();
+        for image in 0..64 {
+            for idx in 0..64 {
+                assert!(seen.insert(observation_hash(key, image, idx)));
+            }
+        }
+        assert_ne!(observation_hash(1, 2, 3), observation_hash(2, 2, 3));
+    }
+
+    /// Every binary model in the shared data (fixtures, scenes, malformed models): the fast
+    /// path gives the general path's geometry, or declines where the general path errors.
+    #[test]
+    fn shared_models_agree_with_the_general_path() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
+        if !root.is_dir() {
+            eprintln!("../shared/data absent: real models not compared");
+            return;
+        }
+        fn dirs(dir: &Path, out: &mut Vec<PathBuf>) {
+            let Ok(entries) = std::fs::read_dir(dir) else {
+                return;
+            };
+            for entry in entries.flatten() {
+                let path = entry.path();
+                if path.is_dir() {
+                    dirs(&path, out);
+                } else if path.file_name().is_some_and(|n| n == "points3D.bin") {
+                    out.push(dir.to_path_buf());
+                }
+            }
+        }
+        let mut found = Vec::new();
+        dirs(&root.join("colmap"), &mut found);
+        dirs(&root.join("scenes"), &mut found);
+        let (mut fast_count, mut declined) = (0, 0);
+        for dir in &found {
+            let fast = read_bin(dir);
+            match general(dir) {
+                Ok(geometry) => {
+                    assert_eq!(fast.as_ref(), Some(&geometry), "{}", dir.display());
+                    fast_count += 1;
+                }
+                Err(_) => {
+                    assert!(fast.is_none(), "{}", dir.display());
+                    declined += 1;
+                }
+            }
+        }
+        eprintln!("{fast_count} models read the fast way, {declined} declined");
+        assert!(
+            fast_count >= 4,
+            "{fast_count} models read, {declined} declined"
+        );
+    }
+}
