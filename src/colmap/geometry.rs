@@ -209,6 +209,16 @@ impl Visibility {
     fn end_image(&mut self) {
         self.offsets.push(self.points.len() as u64);
     }
+
+    /// Appends the images of `other`.
+    fn append(&mut self, other: &Visibility) {
+        let base = self.points.len() as u64;
+        self.offsets
+            .extend(other.offsets.iter().skip(1).map(|o| o + base));
+        self.points.extend_from_slice(&other.points);
+        self.keypoints.extend_from_slice(&other.keypoints);
+        self.point2d.extend_from_slice(&other.point2d);
+    }
 }
 
 /// Reads the binary model in `dir` straight into a [`Geometry`] of all its points.
@@ -218,13 +228,15 @@ impl Visibility {
 /// then reports the problem (or, for sparse ids, converts the model more slowly).
 ///
 /// Checks, against [`ReconstructionBuilder::build`](super::ReconstructionBuilder::build):
-/// unique camera, image and point ids, every image's camera exists, and every 3D point's
-/// track is exactly the set of 2D points that carry its id. The last is checked without
-/// building the reverse index: each observation `(image_id, point2D_idx)` gets a keyed
-/// 64-bit hash, and per point the wrapping sum over its track must equal the sum over the
-/// 2D points that name it. Equal multisets always pass; unequal ones pass with probability
-/// about 2⁻⁶⁴ (the key is random per process, so a file cannot be crafted to collide).
-/// Either way the map's visibility comes from the 2D points, as in the general path.
+/// unique camera, image and point ids, every image's camera exists, every 2D point's
+/// `point3D_id` names an existing point, and every 3D point's track is exactly the set of
+/// 2D points that carry its id. The last is checked without building the reverse index:
+/// the observations `(image_id, point2D_idx, point3D_id)` listed by the tracks and those
+/// listed by the 2D points must be the same multiset, and are compared by the wrapping sum
+/// of a keyed 64-bit hash of each (one sequential pass over each file, no per-point state).
+/// Equal multisets always pass; unequal ones pass with probability about 2⁻⁶⁴ (the key is
+/// random per process, so a file cannot be crafted to collide). Either way the map's
+/// visibility comes from the 2D points, as in the general path.
 pub(crate) fn read_bin(dir: &Path) -> Option<Geometry> {
     let [cameras_path, images_path, points_path] = files_with(dir, "bin");
     let mut cameras =
@@ -246,7 +258,8 @@ pub(crate) fn read_bin(dir: &Path) -> Option<Geometry> {
         return None;
     }
 
-    let key = std::hash::RandomState::new().hash_one(0x5f70_6d61_7000_u64);
+    let random = std::hash::RandomState::new();
+    let key = [random.hash_one(1u8), random.hash_one(2u8)];
     let points_data = read_file(&points_path).ok()?;
     let points = Points::read(&points_data, &points_path, key)?;
     // COLMAP numbers points from 1 and filtering leaves gaps; up to 8 slots a point is a
@@ -254,9 +267,8 @@ pub(crate) fn read_bin(dir: &Path) -> Option<Geometry> {
     let max_slots = points.ids.len().saturating_mul(8).saturating_add(1 << 20);
     let index = IdIndex::dense(points.ids.iter().copied(), max_slots)?;
 
-    let vis = scan_images(&images, &index, points.ids.len(), points.observations, key)?;
-    let (visibility, sums) = vis;
-    if sums != points.fingerprints {
+    let (visibility, sum) = scan_images(&images, &index, points.observations, key)?;
+    if sum != points.track_sum {
         return None;
     }
 
@@ -284,14 +296,17 @@ pub(crate) fn read_bin(dir: &Path) -> Option<Geometry> {
     })
 }
 
-/// The hash of one observation: a murmur3-style finaliser (a bijection of u64) of the
-/// observation keyed by xor, so distinct observations never share a hash.
+/// The keyed hash of one observation: murmur3's 64-bit finaliser (a bijection) over the
+/// 2D point, then again with the 3D point id folded in.
 #[inline]
-fn observation_hash(key: u64, image_id: u32, point2d_idx: u32) -> u64 {
-    let mut x = ((u64::from(image_id) << 32) | u64::from(point2d_idx)) ^ key;
-    x = (x ^ (x >> 33)).wrapping_mul(0xff51_afd7_ed55_8ccd);
-    x = (x ^ (x >> 33)).wrapping_mul(0xc4ce_b9fe_1a85_ec53);
-    x ^ (x >> 33)
+fn observation_hash(key: [u64; 2], image_id: u32, point2d_idx: u32, point3d_id: u64) -> u64 {
+    fn mix(mut x: u64) -> u64 {
+        x = (x ^ (x >> 33)).wrapping_mul(0xff51_afd7_ed55_8ccd);
+        x = (x ^ (x >> 33)).wrapping_mul(0xc4ce_b9fe_1a85_ec53);
+        x ^ (x >> 33)
+    }
+    let point2d = mix(((u64::from(image_id) << 32) | u64::from(point2d_idx)) ^ key[0]);
+    mix(point2d ^ mix(point3d_id ^ key[1]))
 }
 
 /// `points3D.bin` as columns sorted by id, with each track's fingerprint.
@@ -299,33 +314,34 @@ struct Points {
     ids: Vec<u64>,
     positions: Vec<[f64; 3]>,
     colors: Vec<[u8; 3]>,
-    fingerprints: Vec<u64>,
+    /// Wrapping sum of [`observation_hash`] over every track element.
+    track_sum: u64,
     /// Sum of the track lengths.
     observations: usize,
 }
 
 impl Points {
-    fn read(data: &[u8], path: &Path, key: u64) -> Option<Points> {
+    fn read(data: &[u8], path: &Path, key: [u64; 2]) -> Option<Points> {
         let mut records = Point3DRecords::new(data, path).ok()?;
         let n = records.capacity;
         let mut points = Points {
             ids: Vec::with_capacity(n),
             positions: Vec::with_capacity(n),
             colors: Vec::with_capacity(n),
-            fingerprints: Vec::with_capacity(n),
+            track_sum: 0,
             observations: 0,
         };
         while let Some(record) = records.next_record().ok()? {
-            let fingerprint = record.track().fold(0u64, |sum, e| {
-                sum.wrapping_add(observation_hash(key, e.image_id, e.point2d_idx))
-            });
+            for e in record.track() {
+                let hash = observation_hash(key, e.image_id, e.point2d_idx, record.id);
+                points.track_sum = points.track_sum.wrapping_add(hash);
+            }
             // An empty track is a COLMAP error; u32 is the builder's limit on lengths.
             let len = u32::try_from(record.track_len()).ok().filter(|&l| l > 0)?;
             points.observations += len as usize;
             points.ids.push(record.id);
             points.positions.push(record.xyz);
             points.colors.push(record.rgb);
-            points.fingerprints.push(fingerprint);
         }
         if !points.ids.is_sorted() {
             points.sort_by_id();
@@ -346,31 +362,59 @@ impl Points {
         permute(&mut self.ids, &order);
         permute(&mut self.positions, &order);
         permute(&mut self.colors, &order);
-        permute(&mut self.fingerprints, &order);
     }
 }
 
-/// Visibility from the images' 2D points (in image id order), and per point the sum of
-/// the hashes of the 2D points naming it. `None` if a 2D point names a missing point.
+/// Visibility from the images' 2D points (in image id order), and the wrapping sum of
+/// their observations' hashes. `None` if a 2D point names a missing point or the count
+/// differs from the tracks'. Two threads, each on half of the 2D points.
 fn scan_images(
     images: &[ImageRecord<'_>],
     index: &IdIndex,
-    n_points: usize,
     observations: usize,
-    key: u64,
-) -> Option<(Visibility, Vec<u64>)> {
-    let mut vis = Visibility::with_capacity(images.len(), observations);
-    let mut sums = vec![0u64; n_points];
+    key: [u64; 2],
+) -> Option<(Visibility, u64)> {
+    let total: usize = images.iter().map(|i| i.num_points2d()).sum();
+    let mut seen = 0;
+    let split = images
+        .iter()
+        .position(|i| {
+            seen += i.num_points2d();
+            seen * 2 >= total
+        })
+        .map_or(images.len(), |k| k + 1);
+    let (first, second) = images.split_at(split);
+    let (first, second) = std::thread::scope(|s| {
+        let second = s.spawn(|| scan_part(second, index, observations / 2, key));
+        let first = scan_part(first, index, observations, key);
+        let second = second
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        (first, second)
+    });
+    let ((mut vis, sum), (rest, rest_sum)) = (first?, second?);
+    vis.append(&rest);
+    (vis.points.len() == observations).then_some((vis, sum.wrapping_add(rest_sum)))
+}
+
+fn scan_part(
+    images: &[ImageRecord<'_>],
+    index: &IdIndex,
+    capacity: usize,
+    key: [u64; 2],
+) -> Option<(Visibility, u64)> {
+    let mut vis = Visibility::with_capacity(images.len(), capacity);
+    let mut sum = 0u64;
     for image in images {
         u32::try_from(image.num_points2d()).ok()?;
         for (idx, xy, id) in image.triangulated() {
             let point = index.position(id)?;
             vis.push(point as u32, xy, idx);
-            sums[point] = sums[point].wrapping_add(observation_hash(key, image.id, idx));
+            sum = sum.wrapping_add(observation_hash(key, image.id, idx, id));
         }
         vis.end_image();
     }
-    (vis.points.len() == observations).then_some((vis, sums))
+    Some((vis, sum))
 }
 
 #[cfg(test)]
@@ -547,14 +591,20 @@ mod tests {
 
     #[test]
     fn hashes_of_distinct_observations_differ() {
-        let key = 0x1234_5678_9abc_def0;
+        let key = [0x1234_5678_9abc_def0, 0x0fed_cba9_8765_4321];
         let mut seen = std::collections::HashSet::new();
-        for image in 0..64 {
-            for idx in 0..64 {
-                assert!(seen.insert(observation_hash(key, image, idx)));
+        for image in 0..32 {
+            for idx in 0..32 {
+                for point in [0, 1, 2, u64::MAX - 1] {
+                    assert!(seen.insert(observation_hash(key, image, idx, point)));
+                }
             }
         }
-        assert_ne!(observation_hash(1, 2, 3), observation_hash(2, 2, 3));
+        let other = [key[0] ^ 1, key[1]];
+        assert_ne!(
+            observation_hash(key, 2, 3, 4),
+            observation_hash(other, 2, 3, 4)
+        );
     }
 
     /// Every binary model in the shared data (fixtures, scenes, malformed models): the fast
