@@ -1,6 +1,6 @@
 //! Convert benches (issue 3, "Speed and size"): `convert` of a synthetic COLMAP binary model,
 //! geometry only, at 100k and 1M points × track length 5; the model read alone
-//! (`read_model_bin`) so the rest of convert can be told apart; and convert with a synthetic
+//! (`read_model_bin`, the general reader that convert's fast path for binary models skips); and convert with a synthetic
 //! `database.db` (SIFT-like descriptors, affine keypoints) at 100k points. Throughput in
 //! points/s.
 //!
