@@ -1,8 +1,8 @@
 //! Convert benches (issue 3, "Speed and size"): `convert` of a synthetic COLMAP binary model,
-//! geometry only, at 100k and 1M points × track length 5; the model read alone
-//! (`read_model_bin`, the general reader that convert's fast path for binary models skips); and convert with a synthetic
-//! `database.db` (SIFT-like descriptors, affine keypoints) at 100k points. Throughput in
-//! points/s.
+//! geometry only, at 100k and 1M points × track length 5; the model read alone by the general
+//! reader (`read_model_bin`, which convert's fast path for binary models skips); and convert
+//! with a synthetic `database.db` (SIFT-like descriptors, affine keypoints) at 100k points.
+//! Throughput in points/s.
 //!
 //! The model (400 images, 4 SIMPLE_RADIAL cameras, random valid poses, each image's points2D
 //! holding its observations plus ~25 % untriangulated ones) is built with
