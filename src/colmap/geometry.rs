@@ -238,17 +238,29 @@ impl Visibility {
 /// random per process, so a file cannot be crafted to collide). Either way the map's
 /// visibility comes from the 2D points, as in the general path.
 pub(crate) fn read_bin(dir: &Path) -> Option<Geometry> {
-    let [cameras_path, images_path, points_path] = files_with(dir, "bin");
-    let mut cameras =
-        super::bin::parse_cameras(&read_file(&cameras_path).ok()?, &cameras_path).ok()?;
+    let [cameras, images, points] = files_with(dir, "bin");
+    let bytes = [&cameras, &images, &points].map(|path| read_file(path).ok());
+    let [Some(c), Some(i), Some(p)] = bytes else {
+        return None;
+    };
+    from_bin((&c, &cameras), (&i, &images), (&p, &points))
+}
+
+/// [`read_bin`] on the three files' bytes (each with the path its errors would name).
+pub(crate) fn from_bin(
+    cameras: (&[u8], &Path),
+    images: (&[u8], &Path),
+    points: (&[u8], &Path),
+) -> Option<Geometry> {
+    let (cameras_data, cameras_path) = cameras;
+    let mut cameras = super::bin::parse_cameras(cameras_data, cameras_path).ok()?;
     cameras.sort_by_key(|c| c.id);
     if cameras.windows(2).any(|w| w[0].id == w[1].id) {
         return None;
     }
     let camera_ids: Vec<u32> = cameras.iter().map(|c| c.id).collect();
 
-    let images_data = read_file(&images_path).ok()?;
-    let mut records = ImageRecords::new(&images_data, &images_path).ok()?;
+    let mut records = ImageRecords::new(images.0, images.1).ok()?;
     let mut images = Vec::with_capacity(records.capacity);
     while let Some(record) = records.next_record().ok()? {
         images.push(record);
@@ -260,8 +272,7 @@ pub(crate) fn read_bin(dir: &Path) -> Option<Geometry> {
 
     let random = std::hash::RandomState::new();
     let key = [random.hash_one(1u8), random.hash_one(2u8)];
-    let points_data = read_file(&points_path).ok()?;
-    let points = Points::read(&points_data, &points_path, key)?;
+    let points = Points::read(points.0, points.1, key)?;
     // COLMAP numbers points from 1 and filtering leaves gaps; up to 8 slots a point is a
     // table of at most 32 bytes a point, still far smaller than the points themselves.
     let max_slots = points.ids.len().saturating_mul(8).saturating_add(1 << 20);
@@ -587,6 +598,19 @@ mod tests {
         write(tmp.path(), &images, &points);
         assert!(read_bin(tmp.path()).is_none());
         assert_eq!(general(tmp.path()).unwrap().ids, [10, 25, far]);
+    }
+
+    /// The fuzz seed of a whole model reaches the fast path, so fuzzing compares the two.
+    #[test]
+    fn the_fuzz_seed_takes_the_fast_path() {
+        let seed =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/corpus/colmap_bin/consistent-model");
+        let data = std::fs::read(seed).unwrap();
+        let [c, i, p] = crate::colmap::split3(&data);
+        let path = Path::new("seed");
+        let fast = from_bin((c, path), (i, path), (p, path)).expect("fast path");
+        assert_eq!(fast.ids, [10, 25, 40]);
+        crate::colmap::fuzz_read_bin(&data);
     }
 
     #[test]

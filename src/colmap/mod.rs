@@ -43,7 +43,6 @@ pub mod convert;
 #[cfg(feature = "colmap")]
 mod database;
 mod error;
-#[cfg(feature = "colmap")]
 pub(crate) mod geometry;
 mod model;
 pub mod text;
@@ -248,14 +247,24 @@ fn compare(a: &Reconstruction, b: &Reconstruction) -> Result<(), String> {
 
 /// Fuzz entry point: parses `data` as each binary model file, then as a whole model (so
 /// validation is fuzzed too) laid out as `u16 BE cameras_len, u16 BE images_len, cameras,
-/// images, points3D` (lengths are taken modulo what is left). Never panics (that is the test).
+/// images, points3D` (lengths are taken modulo what is left). Never panics (that is the
+/// test), and the whole model goes through convert's fast path too, which must accept
+/// only what the general reader accepts, with the same geometry.
 pub fn fuzz_read_bin(data: &[u8]) {
     let path = Path::new("fuzz.bin");
     let _ = bin::parse_cameras(data, path);
     let _ = bin::parse_images(data, path);
     let _ = bin::parse_model((&[0u8; 8], path), (&[0u8; 8], path), (data, path));
     let [c, i, p] = split3(data);
-    let _ = bin::parse_model((c, path), (i, path), (p, path));
+    let general = bin::parse_model((c, path), (i, path), (p, path));
+    if let Some(fast) = geometry::from_bin((c, path), (i, path), (p, path)) {
+        let general = match general {
+            Ok(model) => geometry::Geometry::new(&model, None),
+            Err(e) => panic!("the fast path accepted a model the reader rejects: {e}"),
+        };
+        // Debug, not ==, so that NaN coordinates compare equal to themselves.
+        assert_eq!(format!("{fast:?}"), format!("{general:?}"));
+    }
 }
 
 /// Fuzz entry point: like [`fuzz_read_bin`] for the text files.
