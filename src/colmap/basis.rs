@@ -13,21 +13,28 @@ pub struct Basis {
     pub rows: Vec<f32>,
     /// Eigenvalues (energy per direction), descending.
     pub energy: Vec<f64>,
+    /// `rows` transposed, for [`project`](Self::project).
+    columns: Vec<f32>,
 }
 
 impl Basis {
     /// The basis of `descriptors` (`[n × dim]` row-major).
     pub fn fit(descriptors: &[f32], dim: usize) -> Basis {
+        // Upper triangle of Σ r rᵀ in f64, one row at a time: each element's sum keeps the
+        // rows' order (the same bytes on every machine), and the loop over j vectorises.
         let mut m = vec![0.0f64; dim * dim];
-        for row in descriptors.chunks_exact(dim) {
+        let mut row = vec![0.0f64; dim];
+        for source in descriptors.chunks_exact(dim) {
+            for (r, &x) in row.iter_mut().zip(source) {
+                *r = f64::from(x);
+            }
             for i in 0..dim {
-                let ri = f64::from(row[i]);
+                let ri = row[i];
                 if ri == 0.0 {
                     continue;
                 }
-                let out = &mut m[i * dim..(i + 1) * dim];
-                for (o, &rj) in out.iter_mut().zip(row).skip(i) {
-                    *o += ri * f64::from(rj);
+                for (o, &rj) in m[i * dim + i..(i + 1) * dim].iter_mut().zip(&row[i..]) {
+                    *o += ri * rj;
                 }
             }
         }
@@ -51,10 +58,14 @@ impl Basis {
             let sign = if pivot < 0.0 { -1.0 } else { 1.0 };
             rows.extend(col.iter().map(|v| (v * sign) as f32));
         }
+        let columns = (0..dim * dim)
+            .map(|t| rows[(t % dim) * dim + t / dim])
+            .collect();
         Basis {
             dim,
             rows,
             energy: order.iter().map(|&k| values[k].max(0.0)).collect(),
+            columns,
         }
     }
 
@@ -69,8 +80,13 @@ impl Basis {
 
     /// `out = P · v`.
     pub fn project(&self, v: &[f32], out: &mut [f32]) {
-        for (o, row) in out.iter_mut().zip(self.rows.chunks_exact(self.dim)) {
-            *o = row.iter().zip(v).map(|(a, b)| a * b).sum();
+        // Column by column: every out[j] still sums its products in order of k (from -0.0,
+        // as `Iterator::sum` does), but the loop over j vectorises.
+        out.fill(-0.0);
+        for (&vk, column) in v.iter().zip(self.columns.chunks_exact(self.dim)) {
+            for (o, &p) in out.iter_mut().zip(column) {
+                *o += p * vk;
+            }
         }
     }
 }
