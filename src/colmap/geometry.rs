@@ -347,8 +347,8 @@ impl Points {
                 let hash = observation_hash(key, e.image_id, e.point2d_idx, record.id);
                 points.track_sum = points.track_sum.wrapping_add(hash);
             }
-            // An empty track is a COLMAP error; u32 is the builder's limit on lengths.
-            let len = u32::try_from(record.track_len()).ok().filter(|&l| l > 0)?;
+            // u32 is the builder's limit on track lengths.
+            let len = u32::try_from(record.track_len()).ok()?;
             points.observations += len as usize;
             points.ids.push(record.id);
             points.positions.push(record.xyz);
@@ -567,6 +567,18 @@ mod tests {
             assert!(read_bin(tmp.path()).is_none(), "{what}");
             assert!(general(tmp.path()).is_err(), "{what}");
         }
+    }
+
+    /// A point without observations is accepted by both (COLMAP reads it too).
+    #[test]
+    fn a_point_without_observations_takes_the_fast_path() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (images, mut points) = model();
+        points.push((30, [0.0; 3], [0; 3], Vec::new()));
+        write(tmp.path(), &images, &points);
+        let fast = read_bin(tmp.path()).expect("fast path");
+        assert_eq!(fast, general(tmp.path()).unwrap());
+        assert_eq!(fast.ids, [10, 25, 30, 40]);
     }
 
     #[test]
