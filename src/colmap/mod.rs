@@ -148,40 +148,61 @@ pub fn read_model_text(dir: &Path) -> Result<Reconstruction> {
 
 fn read_with(dir: &Path, binary: bool) -> Result<Reconstruction> {
     let [c, i, p] = files_with(dir, if binary { "bin" } else { "txt" });
-    let mut builder = ReconstructionBuilder::new().paths(&c, &i, &p);
-    let data = read_file(&c)?;
-    let cameras = if binary {
-        bin::parse_cameras(&data, &c)?
-    } else {
-        text::parse_cameras(&data, &c)?
+    let (cameras, images, points3d) = (read_file(&c)?, read_file(&i)?, read_file(&p)?);
+    let parsers = if binary { &BIN } else { &TEXT };
+    parse_with(parsers, (&cameras, &c), (&images, &i), (&points3d, &p))
+}
+
+/// The parsers of one encoding of the three model files.
+struct Parsers {
+    cameras: fn(&[u8], &Path) -> Result<Vec<Camera>>,
+    images: fn(&[u8], &Path) -> Result<Vec<Image>>,
+    points3d: fn(&[u8], &Path, &mut ReconstructionBuilder) -> Result<()>,
+}
+
+const BIN: Parsers = Parsers {
+    cameras: bin::parse_cameras,
+    images: bin::parse_images,
+    points3d: bin::parse_points3d_into,
+};
+
+const TEXT: Parsers = Parsers {
+    cameras: text::parse_cameras,
+    images: text::parse_images,
+    points3d: text::parse_points3d_into,
+};
+
+/// Parses and validates a model from its three files' bytes (each with the path errors
+/// name). Errors come in file order: cameras, then images, then points3D.
+fn parse_with(
+    parsers: &Parsers,
+    cameras: (&[u8], &Path),
+    images: (&[u8], &Path),
+    points3d: (&[u8], &Path),
+) -> Result<Reconstruction> {
+    let mut builder = ReconstructionBuilder::new().paths(cameras.1, images.1, points3d.1);
+    for camera in (parsers.cameras)(cameras.0, cameras.1)? {
+        builder.add_camera(camera);
+    }
+    let parse_points = || -> Result<ReconstructionBuilder> {
+        let mut points = ReconstructionBuilder::new().paths(cameras.1, images.1, points3d.1);
+        (parsers.points3d)(points3d.0, points3d.1, &mut points)?;
+        Ok(points)
     };
-    cameras.into_iter().for_each(|x| builder.add_camera(x));
-    // images and points3D are independent until validation: parse them on two threads.
-    let (images, points) = std::thread::scope(|s| {
-        let images = s.spawn(|| -> Result<Vec<Image>> {
-            let data = read_file(&i)?;
-            if binary {
-                bin::parse_images(&data, &i)
-            } else {
-                text::parse_images(&data, &i)
-            }
-        });
-        let points = (|| -> Result<ReconstructionBuilder> {
-            let data = read_file(&p)?;
-            let mut points = ReconstructionBuilder::new().paths(&c, &i, &p);
-            if binary {
-                bin::parse_points3d_into(&data, &p, &mut points)?;
-            } else {
-                text::parse_points3d_into(&data, &p, &mut points)?;
-            }
-            Ok(points)
-        })();
-        let images = images
-            .join()
-            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-        (images, points)
-    });
-    // Errors in file order: cameras, then images, then points3D.
+    // images and points3D are independent until validation: big files are parsed on two
+    // threads (for small ones, as in fuzzing, a thread costs more than it saves).
+    let (images, points) = if images.0.len() + points3d.0.len() > 1 << 20 {
+        std::thread::scope(|s| {
+            let images = s.spawn(|| (parsers.images)(images.0, images.1));
+            let points = parse_points();
+            let images = images
+                .join()
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+            (images, points)
+        })
+    } else {
+        ((parsers.images)(images.0, images.1), parse_points())
+    };
     images?.into_iter().for_each(|x| builder.add_image(x));
     builder.take_points3d(points?);
     builder.build()

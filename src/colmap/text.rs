@@ -279,15 +279,7 @@ pub fn parse_model(
     images: (&[u8], &Path),
     points3d: (&[u8], &Path),
 ) -> Result<Reconstruction> {
-    let mut builder = ReconstructionBuilder::new().paths(cameras.1, images.1, points3d.1);
-    for camera in parse_cameras(cameras.0, cameras.1)? {
-        builder.add_camera(camera);
-    }
-    for image in parse_images(images.0, images.1)? {
-        builder.add_image(image);
-    }
-    parse_points3d_into(points3d.0, points3d.1, &mut builder)?;
-    builder.build()
+    super::parse_with(&super::TEXT, cameras, images, points3d)
 }
 
 // Writers. `{}` on f64 prints the shortest text that parses back to the same bits, so a
