@@ -35,23 +35,31 @@ pub(crate) struct Geometry {
     pub vis_keypoints: Vec<[f32; 2]>,
     /// Each visibility entry's `point2D_idx` in its image (the keypoint row in `database.db`).
     pub vis_point2d: Vec<u32>,
-    /// Model point index → map point index (`u32::MAX` = not kept).
-    #[cfg_attr(not(feature = "onnx"), allow(dead_code))]
-    pub map_index: Vec<u32>,
+}
+
+/// Model point index → map point index when only the points with `keep[i]` go into the map
+/// (`u32::MAX` = not kept).
+pub(crate) fn map_index(keep: &[bool]) -> Vec<u32> {
+    let mut next = 0u32;
+    keep.iter()
+        .map(|&k| {
+            if !k {
+                return u32::MAX;
+            }
+            next += 1;
+            next - 1
+        })
+        .collect()
 }
 
 impl Geometry {
     /// `keep[i]` says whether model point `i` goes into the map (`None`: every point).
     pub(crate) fn new(model: &Reconstruction, keep: Option<&[bool]>) -> Geometry {
         let points = model.points3d();
-        let mut map_index = vec![u32::MAX; points.len()];
-        let mut next = 0u32;
-        for (i, slot) in map_index.iter_mut().enumerate() {
-            if keep.is_none_or(|k| k[i]) {
-                *slot = next;
-                next += 1;
-            }
-        }
+        let map_index = match keep {
+            Some(keep) => map_index(keep),
+            None => (0..points.len() as u32).collect(),
+        };
         let kept = |i: &usize| map_index[*i] != u32::MAX;
         let positions = (0..points.len())
             .filter(kept)
@@ -101,7 +109,6 @@ impl Geometry {
             vis_points: vis.points,
             vis_keypoints: vis.keypoints,
             vis_point2d: vis.point2d,
-            map_index,
         }
     }
 
@@ -292,7 +299,6 @@ pub(crate) fn from_bin(
     let (names, image_cameras, poses, image_ids) = image_columns(&camera_ids, heads)?;
     Some(Geometry {
         cameras: cameras.iter().map(camera_info).collect(),
-        map_index: (0..points.ids.len() as u32).collect(),
         positions: points.positions,
         colors: points.colors,
         ids: points.ids,
@@ -538,7 +544,6 @@ mod tests {
         assert_eq!(fast.vis_points, [1, 2, 0, 2, 0]);
         assert_eq!(fast.vis_point2d, [1, 2, 3, 0, 2]);
         assert_eq!(fast.vis_keypoints[0], [9.0, 10.0]);
-        assert_eq!(fast.map_index, [0, 1, 2]);
     }
 
     /// Each way a model can be inconsistent: the fast path declines and the general path
@@ -623,6 +628,14 @@ mod tests {
         let fast = from_bin((c, path), (i, path), (p, path)).expect("fast path");
         assert_eq!(fast.ids, [10, 25, 40]);
         crate::colmap::fuzz_read_bin(&data);
+    }
+
+    #[test]
+    fn map_index_numbers_the_kept_points() {
+        assert_eq!(
+            map_index(&[false, true, true, false, true]),
+            [u32::MAX, 0, 1, u32::MAX, 2]
+        );
     }
 
     #[test]

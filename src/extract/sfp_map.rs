@@ -294,6 +294,7 @@ pub fn convert_with_images(
         .map(|p| (0..levels).any(|j| member(p, j)))
         .collect();
     let geometry = Geometry::new(&model, Some(&keep));
+    let map_index = crate::colmap::geometry::map_index(&keep);
 
     let model_info = extractor.model().clone();
     let mut metadata = Metadata::default();
@@ -353,7 +354,7 @@ pub fn convert_with_images(
                 .map(|v| f64::from(v * v))
                 .sum::<f64>();
         }
-        let points: Vec<u32> = members.iter().map(|&p| geometry.map_index[p]).collect();
+        let points: Vec<u32> = members.iter().map(|&p| map_index[p]).collect();
         let scores: Vec<f32> = members.iter().map(|&p| mean_score(p, j)).collect();
         let variance_short = energy_short / members.len() as f64;
         let stride = contract.strides[j];
