@@ -1,18 +1,14 @@
 //! COLMAP `database.db` reading on both schemas, and the database never being modified.
 #![cfg(feature = "colmap")]
 
+mod shared_data;
+
 use std::path::{Path, PathBuf};
 
 use sfpmap::colmap::{self, Database, Error, KeypointLayout, Keypoints};
 
 fn data_root() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
-    if root.join("colmap").is_dir() {
-        Some(root)
-    } else {
-        println!("note: {} is absent; skipping fixture tests", root.display());
-        None
-    }
+    shared_data::shared_data("colmap").map(|c| c.join(".."))
 }
 
 fn dir_listing(dir: &Path) -> Vec<String> {

@@ -2,6 +2,8 @@
 //! models the tests write themselves.
 #![cfg(feature = "colmap")]
 
+mod shared_data;
+
 use std::path::{Path, PathBuf};
 
 use sfpmap::colmap::{
@@ -10,13 +12,7 @@ use sfpmap::colmap::{
 };
 
 fn data_root() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/colmap");
-    if root.is_dir() {
-        Some(root)
-    } else {
-        println!("note: {} is absent; skipping fixture tests", root.display());
-        None
-    }
+    shared_data::shared_data("colmap")
 }
 
 /// (model folder relative to the data root, images, points3D, observations, format).

@@ -1,6 +1,8 @@
 //! `convert` on a small model and database the test makes itself, then on the real fixtures.
 #![cfg(feature = "colmap")]
 
+mod shared_data;
+
 use rusqlite::{params, Connection};
 use sfpmap::colmap::convert::{convert, Aggregate, ConvertError, ConvertOptions};
 use sfpmap::colmap::{
@@ -365,16 +367,12 @@ fn a_file_that_is_not_a_database_is_refused_with_its_name() {
 }
 
 fn data() -> Option<PathBuf> {
-    let d = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/colmap");
-    d.is_dir().then_some(d)
+    shared_data::shared_data("colmap")
 }
 
 #[test]
 fn real_fixtures_convert_verify_and_slice() {
-    let Some(data) = data() else {
-        eprintln!("../shared/data absent: real-fixture conversion not run");
-        return;
-    };
+    let Some(data) = data() else { return };
     let tmp = tempfile::tempdir().unwrap();
     for (model, db, levels) in [
         (

@@ -1,6 +1,8 @@
 //! Camera models: parsing, projection, iterative undistortion.
 #![cfg(feature = "localize")]
 
+mod shared_data;
+
 use nalgebra::{Vector2, Vector3};
 use proptest::prelude::*;
 use sfpmap::localize::geometry::{Camera, CameraModel, GeometryError};
@@ -226,13 +228,13 @@ proptest! {
     }
 }
 
-/// The shared scenes' query lists and ground truth parse (skipped when the data is absent).
+/// The shared scenes' query lists and ground truth parse.
 #[test]
 fn parses_shared_scene_files() {
-    let scenes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes");
-    let Ok(entries) = std::fs::read_dir(&scenes) else {
+    let Some(scenes) = shared_data::shared_data("scenes") else {
         return;
     };
+    let entries = std::fs::read_dir(&scenes).unwrap();
     for scene in entries.flatten() {
         if let Ok(text) = std::fs::read_to_string(scene.path().join("queries.txt")) {
             for line in text

@@ -6,6 +6,8 @@
 //! tests depend on nothing but the `localize` feature.
 #![cfg(feature = "localize")]
 
+mod shared_data;
+
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
@@ -57,11 +59,7 @@ struct Image {
 }
 
 fn scene_dir(scene: &str) -> Option<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/scenes")
-        .join(scene)
-        .join("sparse-full");
-    dir.join("images.bin").exists().then_some(dir)
+    shared_data::shared_data(&format!("scenes/{scene}/sparse-full"))
 }
 
 type Model = (

@@ -2,13 +2,14 @@
 //! (extractor), from a features.h5 and from a COLMAP database, and a missing query image.
 #![cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
 
+mod shared_data;
+
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 fn scene() -> Option<PathBuf> {
-    let s = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes/sacre-coeur");
-    s.is_dir().then_some(s)
+    shared_data::shared_data("scenes/sacre-coeur")
 }
 
 fn run(args: &[&str]) -> String {
@@ -35,10 +36,7 @@ fn poses(path: &Path) -> Vec<String> {
 
 #[test]
 fn sfp_queries_from_images_and_from_features_h5_agree_and_eval_reports() {
-    let Some(s) = scene() else {
-        eprintln!("../shared/data absent: real-scene localize test not run");
-        return;
-    };
+    let Some(s) = scene() else { return };
     let t = tempfile::tempdir().unwrap();
     let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
     let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
@@ -123,10 +121,7 @@ fn sfp_queries_from_images_and_from_features_h5_agree_and_eval_reports() {
 
 #[test]
 fn sift_queries_from_a_database_and_a_missing_query_is_listed_not_fatal() {
-    let Some(s) = scene() else {
-        eprintln!("../shared/data absent: real-scene localize test not run");
-        return;
-    };
+    let Some(s) = scene() else { return };
     let t = tempfile::tempdir().unwrap();
     let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
     std::fs::copy(s.join("database.db"), t.path().join("db.db")).unwrap();

@@ -660,9 +660,16 @@ mod tests {
     /// path gives the general path's geometry, or declines where the general path errors.
     #[test]
     fn shared_models_agree_with_the_general_path() {
+        // As tests/shared_data: missing data fails unless skipping is asked for.
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
         if !root.is_dir() {
-            eprintln!("../shared/data absent: real models not compared");
+            let skip = std::env::var_os("SFPMAP_SKIP_SHARED_DATA").is_some_and(|v| v == "1");
+            assert!(
+                skip,
+                "{} is missing (SFPMAP_SKIP_SHARED_DATA=1 skips)",
+                root.display()
+            );
+            eprintln!("SKIPPED: {} is missing", root.display());
             return;
         }
         fn dirs(dir: &Path, out: &mut Vec<PathBuf>) {
