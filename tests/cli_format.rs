@@ -210,9 +210,26 @@ fn a_byte_flipped_copy_fails_verify() {
     }
 }
 
+/// One line that names the file once, for an I/O error and for a bad file alike.
 #[test]
-fn missing_file_names_the_path() {
-    let o = sfpmap(&["info", "/no/such/map.sfpm"]);
-    assert!(!o.status.success());
-    assert!(stderr(&o).contains("/no/such/map.sfpm"));
+fn errors_name_the_path_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.sfpm");
+    std::fs::write(
+        &bad,
+        b"not a map, not even close to one, long enough to read",
+    )
+    .unwrap();
+    let bad = bad.to_str().unwrap();
+    for (args, path) in [
+        (vec!["info", "/no/such/map.sfpm"], "/no/such/map.sfpm"),
+        (vec!["verify", bad], bad),
+        (vec!["info", bad], bad),
+    ] {
+        let o = sfpmap(&args);
+        assert!(!o.status.success());
+        let err = stderr(&o);
+        assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+        assert_eq!(err.matches(path).count(), 1, "{err}");
+    }
 }

@@ -87,14 +87,9 @@ pub struct Args {
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let start = Instant::now();
-    if args.output.exists() && !args.force {
-        bail!(
-            "{}: exists; pass --force to overwrite",
-            args.output.display()
-        );
-    }
+    super::check_free(&args.output, args.force)?;
     if let Some(db) = &args.database {
-        if super::slice::same_file(db, &args.output) {
+        if super::same_file(db, &args.output) {
             bail!(
                 "{}: output is the database; choose another -o",
                 args.output.display()

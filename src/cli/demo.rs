@@ -4,7 +4,7 @@ use anyhow::Context;
 use serde_json::json;
 use sfpmap::extract::sfp_map::{convert_with_images, SfpMapOptions};
 use sfpmap::extract::{DetectOptions, Extractor, ExtractorOptions};
-use sfpmap::format::{slice, Map, SliceOptions};
+use sfpmap::format::{slice, SliceOptions};
 use sfpmap::io::demo_scene::{write_png, DemoScene, HEIGHT, WIDTH};
 use sfpmap::localize::eval::{evaluate, median_nearest_camera_distance, read_poses};
 use sfpmap::localize::geometry::Pose;
@@ -111,7 +111,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let sliced = out.join("demo-l2-short.sfpm");
     let options = SfpMapOptions::new(&images);
     let summary = convert_with_images(&sparse, &options, &full, &bars)?;
-    let map = Map::open(&full)?;
+    let map = super::open_map(&full)?;
     let (writer, _) = slice(
         &map,
         &SliceOptions {
@@ -168,7 +168,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         "map", "MB", "localized", "median pos.", "median rot.", "pos. / cams", "ms/query"
     ));
     for v in &variants {
-        let map = Map::open(&v.map)?;
+        let map = super::open_map(&v.map)?;
         let localizer = Localizer::new(
             &map,
             LocalizeOptions {

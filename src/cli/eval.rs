@@ -1,8 +1,6 @@
 //! `sfpmap eval`: errors of estimated poses against ground truth.
 
-use anyhow::Context;
 use serde_json::json;
-use sfpmap::format::Map;
 use sfpmap::localize::eval::{evaluate, median_nearest_camera_distance, read_poses};
 use sfpmap::localize::geometry::Pose;
 use std::path::PathBuf;
@@ -49,7 +47,7 @@ pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
     };
     let (scale, map_bytes) = match &args.map {
         Some(path) => {
-            let map = Map::open(path).with_context(|| path.display().to_string())?;
+            let map = super::open_map(path)?;
             let centres: Vec<[f64; 3]> = match map.images()? {
                 Some(images) => images
                     .poses

@@ -5,8 +5,7 @@ use serde_json::json;
 use sfpmap::format::Map;
 use sfpmap::io::colmap_export::export_colmap;
 use sfpmap::io::{ply, poses};
-use std::io::BufWriter;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 /// Export a map's points and database poses to other tools. At least one output is needed.
@@ -42,38 +41,7 @@ pub struct Args {
     pub json: bool,
 }
 
-fn check_free(path: &Path, force: bool) -> anyhow::Result<()> {
-    if path.exists() && !force {
-        bail!("{}: exists; pass --force to overwrite", path.display());
-    }
-    Ok(())
-}
-
-/// Writes through a temp file in the same folder, renamed into place once complete.
-fn write_atomic(
-    path: &Path,
-    write: impl FnOnce(&mut BufWriter<std::fs::File>) -> anyhow::Result<()>,
-) -> anyhow::Result<()> {
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty());
-    let name = path.file_name().context("output has no file name")?;
-    let tmp = dir.unwrap_or(Path::new(".")).join(format!(
-        ".{}.tmp{}",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
-    let result = (|| {
-        let file = std::fs::File::create(&tmp).with_context(|| format!("{}", tmp.display()))?;
-        let mut out = BufWriter::new(file);
-        write(&mut out)?;
-        let file = out.into_inner().map_err(|e| e.into_error())?;
-        file.sync_all()?;
-        std::fs::rename(&tmp, path).with_context(|| path.display().to_string())
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
-}
+use super::{check_free, write_atomic};
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     if args.ply.is_none()
@@ -94,7 +62,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             check_free(&dir.join(f), args.force)?;
         }
     }
-    let map = Map::open(&args.map).with_context(|| args.map.display().to_string())?;
+    let map = super::open_map(&args.map)?;
     let source = args.map.display().to_string();
     let mut report = serde_json::Map::new();
     let mut lines = Vec::new();

@@ -1,8 +1,7 @@
 //! `sfpmap export-colmap`: a map as a COLMAP text model.
 
-use anyhow::{bail, Context};
+use anyhow::Context;
 use serde_json::json;
-use sfpmap::format::Map;
 use sfpmap::io::colmap_export::export_colmap;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -27,14 +26,10 @@ pub struct Args {
 }
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
-    let existing = ["cameras.txt", "images.txt", "points3D.txt"]
-        .iter()
-        .map(|f| args.output.join(f))
-        .find(|p| p.exists());
-    if let (Some(p), false) = (existing, args.force) {
-        bail!("{}: exists; pass --force to overwrite", p.display());
+    for f in ["cameras.txt", "images.txt", "points3D.txt"] {
+        super::check_free(&args.output.join(f), args.force)?;
     }
-    let map = Map::open(&args.map).with_context(|| args.map.display().to_string())?;
+    let map = super::open_map(&args.map)?;
     let summary =
         export_colmap(&map, &args.output).with_context(|| args.map.display().to_string())?;
     if args.json {

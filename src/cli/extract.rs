@@ -107,12 +107,7 @@ pub fn collect_images(inputs: &[PathBuf]) -> anyhow::Result<Vec<(String, PathBuf
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     runtime::disable_telemetry();
-    if args.output.exists() && !args.force {
-        bail!(
-            "{}: exists; pass --force to overwrite",
-            args.output.display()
-        );
-    }
+    super::check_free(&args.output, args.force)?;
     let images = collect_images(&args.inputs)?;
     let bars = super::Bars::new(quiet, args.json);
     let mut extractor = Extractor::new(

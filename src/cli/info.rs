@@ -1,8 +1,7 @@
 //! `sfpmap info`: what a map holds.
 
-use anyhow::Context;
 use serde_json::{json, Value};
-use sfpmap::format::{Map, Section};
+use sfpmap::format::Section;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -35,7 +34,7 @@ fn section_json(s: &Section) -> Value {
 
 pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
     let path = &args.map;
-    let map = Map::open(path).with_context(|| path.display().to_string())?;
+    let map = super::open_map(path)?;
     let meta = map.metadata();
     let levels: Vec<Value> = map
         .levels()

@@ -2,7 +2,6 @@
 
 use anyhow::{bail, Context};
 use serde_json::json;
-use sfpmap::format::Map;
 use sfpmap::localize::geometry::Camera;
 use sfpmap::localize::matching::MatchOptions;
 use sfpmap::localize::query::{read_query_list, DatabaseFeatures, Query};
@@ -113,7 +112,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .transpose()
         .context("--camera")?;
     let queries = read_query_list(&query_list, camera.as_ref())?;
-    let map = Map::open(&args.map).with_context(|| args.map.display().to_string())?;
+    let map = super::open_map(&args.map)?;
     let descriptor = map
         .metadata()
         .levels

@@ -11,7 +11,6 @@ use super::Args;
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::extract::{DetectOptions, Extractor, ExtractorOptions};
-use sfpmap::format::Map;
 use sfpmap::io::mcap_io::{self, Stamp};
 use sfpmap::localize::geometry::Camera;
 use sfpmap::localize::matching::MatchOptions;
@@ -204,7 +203,7 @@ pub fn run(args: &Args, quiet: bool) -> anyhow::Result<ExitCode> {
         (None, None) => bail!("--mcap needs the intrinsics: --camera \"MODEL W H params...\" or --camera-info-topic TOPIC"),
     };
 
-    let map = Map::open(&args.map).with_context(|| args.map.display().to_string())?;
+    let map = crate::cli::open_map(&args.map)?;
     let descriptor = map
         .metadata()
         .levels

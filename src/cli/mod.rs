@@ -102,3 +102,70 @@ pub fn print_json(value: &serde_json::Value) -> anyhow::Result<()> {
     writeln!(out)?;
     Ok(())
 }
+
+/// Opens a map; errors name its path once.
+pub fn open_map(path: &std::path::Path) -> anyhow::Result<sfpmap::format::Map<'static>> {
+    sfpmap::format::Map::open(path).map_err(naming(path))
+}
+
+/// A format error with `path` in front, unless it is an I/O error, which already names it.
+pub fn naming(path: &std::path::Path) -> impl FnOnce(sfpmap::format::Error) -> anyhow::Error + '_ {
+    move |e| match e {
+        sfpmap::format::Error::Io { .. } => anyhow::Error::new(e),
+        e => anyhow::Error::new(e).context(path.display().to_string()),
+    }
+}
+
+/// Refuses to replace an existing output unless `--force` was given.
+pub fn check_free(path: &std::path::Path, force: bool) -> anyhow::Result<()> {
+    if path.exists() && !force {
+        anyhow::bail!("{}: exists; pass --force to overwrite", path.display());
+    }
+    Ok(())
+}
+
+/// The same file, even when `b` does not exist yet or is reached by another path.
+pub fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
+    use std::path::{Path, PathBuf};
+    let canon = |p: &Path| -> Option<PathBuf> {
+        if let Ok(c) = p.canonicalize() {
+            return Some(c);
+        }
+        let parent = p
+            .parent()
+            .filter(|x| !x.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        Some(parent.canonicalize().ok()?.join(p.file_name()?))
+    };
+    matches!((canon(a), canon(b)), (Some(x), Some(y)) if x == y)
+}
+
+/// Writes `path` through a temp file in the same folder (fsynced), renamed into place once
+/// complete; on any error the temp file is removed and `path` is untouched.
+pub fn write_atomic(
+    path: &std::path::Path,
+    write: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    use anyhow::Context;
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty());
+    let name = path
+        .file_name()
+        .with_context(|| format!("{}: output has no file name", path.display()))?;
+    let tmp = dir.unwrap_or(std::path::Path::new(".")).join(format!(
+        ".{}.tmp{}",
+        name.to_string_lossy(),
+        std::process::id()
+    ));
+    let result = (|| {
+        let file = std::fs::File::create(&tmp).with_context(|| tmp.display().to_string())?;
+        let mut out = std::io::BufWriter::new(file);
+        write(&mut out)?;
+        let file = out.into_inner().map_err(|e| e.into_error())?;
+        file.sync_all()?;
+        std::fs::rename(&tmp, path).with_context(|| path.display().to_string())
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}

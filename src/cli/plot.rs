@@ -3,7 +3,6 @@
 
 use anyhow::Context;
 use serde_json::json;
-use sfpmap::format::Map;
 use sfpmap::io::plot::{plot_map, PlotOptions};
 use sfpmap::io::poses::camera_center;
 use sfpmap::localize::eval::read_poses;
@@ -58,7 +57,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         (64..=16384).contains(&args.width) && (64..=16384).contains(&args.height),
         "--width and --height must be between 64 and 16384"
     );
-    let map = Map::open(&args.map).with_context(|| args.map.display().to_string())?;
+    let map = super::open_map(&args.map)?;
     let estimated = args
         .poses
         .as_deref()

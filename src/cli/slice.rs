@@ -2,8 +2,8 @@
 
 use anyhow::{bail, Context};
 use serde_json::json;
-use sfpmap::format::{slice, Codec, Map, SliceOptions};
-use std::path::{Path, PathBuf};
+use sfpmap::format::{slice, Codec, SliceOptions};
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -53,20 +53,7 @@ pub struct Args {
     pub json: bool,
 }
 
-/// The same file, even when `b` does not exist yet or is reached by another path.
-pub fn same_file(a: &Path, b: &Path) -> bool {
-    let canon = |p: &Path| -> Option<PathBuf> {
-        if let Ok(c) = p.canonicalize() {
-            return Some(c);
-        }
-        let parent = p
-            .parent()
-            .filter(|x| !x.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        Some(parent.canonicalize().ok()?.join(p.file_name()?))
-    };
-    matches!((canon(a), canon(b)), (Some(x), Some(y)) if x == y)
-}
+use super::same_file;
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let (input, output) = (&args.map, &args.output);
@@ -76,10 +63,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             output.display()
         );
     }
-    if output.exists() && !args.force {
-        bail!("{}: exists; pass --force to overwrite", output.display());
-    }
-    let map = Map::open(input).with_context(|| input.display().to_string())?;
+    super::check_free(output, args.force)?;
+    let map = super::open_map(input)?;
     let options = SliceOptions {
         levels: args.levels.clone(),
         short: args.short,
@@ -88,9 +73,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     };
     let (writer, summary) = slice(&map, &options).with_context(|| input.display().to_string())?;
     let bars = super::Bars::new(quiet, args.json);
-    let written = writer
-        .write(output, &bars)
-        .with_context(|| output.display().to_string())?;
+    let written = writer.write(output, &bars).map_err(super::naming(output))?;
     let before = map.file_len();
     if args.json {
         super::print_json(&json!({

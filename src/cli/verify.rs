@@ -1,7 +1,6 @@
 //! `sfpmap verify`: check every byte of a map.
 
 use anyhow::Context;
-use sfpmap::format::Map;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -17,7 +16,7 @@ pub struct Args {
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let path = &args.map;
-    let map = Map::open(path).with_context(|| path.display().to_string())?;
+    let map = super::open_map(path)?;
     map.verify().with_context(|| path.display().to_string())?;
     if !quiet {
         println!(
