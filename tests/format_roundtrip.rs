@@ -32,6 +32,7 @@ proptest! {
         let bytes = scene.writer(codec).to_bytes().unwrap();
         let map = Map::from_bytes(&bytes).unwrap();
         map.verify().unwrap();
+        prop_assert_eq!(map.levels().count(), scene.levels.len());
         for (level, data) in map.levels().zip(&scene.levels) {
             let (full, short) = (level.dim_full(), level.dim_short());
             let s = level.desc_short().unwrap();
@@ -46,6 +47,7 @@ proptest! {
         }
         // Positions: f32 relative to the origin, within f32 precision of the f64 input.
         let positions = map.point_positions().unwrap();
+        prop_assert_eq!(positions.len(), scene.positions.len());
         for (p, q) in positions.iter().zip(&scene.positions) {
             let w = map.to_world(*p);
             for k in 0..3 {

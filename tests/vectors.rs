@@ -308,6 +308,8 @@ fn committed_vectors_equal_the_generator() {
             bytes,
             "{name}: generator differs from the committed vector"
         );
+        let committed: Value = serde_json::from_slice(&read_file(&js)).unwrap();
+        assert_eq!(committed, expected, "{name}: expected json differs");
     }
 }
 
