@@ -173,39 +173,5 @@ fn c_example_reads_the_levels_vector() {
     assert_eq!(fact("double_close")[0], "-2");
     assert_eq!(fact("use_after_close")[0], "-2");
     // One feature of dimension 4 against level 0 (projection input 16): reported, not a crash.
-    let localize: i32 = fact("localize")[0].parse().unwrap();
-    assert!([1, -8].contains(&localize), "localize returned {localize}");
-}
-
-/// The committed header is what cbindgen makes of src/ffi.rs today (skipped, saying so,
-/// when cbindgen is not installed; CI installs it).
-#[test]
-fn committed_header_is_up_to_date() {
-    let tmp = tempfile::tempdir().unwrap();
-    let fresh = tmp.path().join("sfpmap.h");
-    let run = Command::new("cbindgen")
-        .current_dir(root())
-        .args(["--quiet", "--config", "include/cbindgen.toml", "--output"])
-        .arg(&fresh)
-        .output();
-    let output = match run {
-        Ok(o) => o,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            eprintln!("cbindgen not installed: header freshness not checked");
-            return;
-        }
-        Err(e) => panic!("run cbindgen: {e}"),
-    };
-    assert!(
-        output.status.success(),
-        "cbindgen failed:\n{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let committed = std::fs::read_to_string(root().join("include/sfpmap.h")).unwrap();
-    let generated = std::fs::read_to_string(&fresh).unwrap();
-    assert!(
-        committed == generated,
-        "include/sfpmap.h is stale: regenerate with \
-         `cbindgen --quiet --config include/cbindgen.toml --output include/sfpmap.h`"
-    );
+    assert_eq!(fact("localize")[0], "-8");
 }

@@ -1,7 +1,7 @@
 /*
  * sfpm_info: prints what a map holds through the sfpmap C API, one fact per line
- * ("key value ..."), then localizes the map's first image against level 0 with the map's own
- * keypoints and descriptors.
+ * ("key value ..."), then shows that bad input is reported, never a crash: a camera model
+ * that does not exist, and a query whose descriptor dimension does not fit level 0.
  *
  *   cargo build --release --features capi
  *   cc -std=c11 -Wall -Wextra -Iinclude examples/c/sfpm_info.c -Ltarget/release -lsfpmap \
@@ -137,7 +137,7 @@ int main(int argc, char **argv) {
   printf("bad_camera %d\n",
          (int)sfpm_localize(map, keypoint, descriptor, 1, 4, &bad_camera, NULL, &found));
 
-  /* A query with one feature: runs, finds no pose (or reports the descriptor mismatch). */
+  /* A query with one 4-dimensional feature against level 0 (16 dims): SFPM_ERR_LOCALIZE. */
   SfpmCamera camera = {"SIMPLE_PINHOLE", 64, 48, params, 3};
   uint16_t level0 = 0;
   SfpmLocalizeOptions options = {&level0, 1, 0};
