@@ -23,6 +23,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from sfp import data as D  # noqa: E402
+from sfp.reference import level_features  # noqa: E402
 
 cv2.setNumThreads(1)
 
@@ -75,67 +76,19 @@ class SFPRunner:
         self.strides = [int(v) for v in md["sfp.strides"].split(",")]
         self.dims = [int(v) for v in md["sfp.dims"].split(",")]
         self.names = [o.name for o in self.s.get_outputs()]
+        self.input_name = md.get("sfp.input_name", "image")
 
     def run(self, img01):
-        outs = dict(zip(self.names, self.s.run(None, {"image": img01[None, None].astype(np.float32)})))
+        outs = dict(zip(self.names, self.s.run(None, {self.input_name: img01[None, None].astype(np.float32)})))
         feats = [outs[f"feat_{i}"][0] for i in range(len(self.strides))]
         scores = [outs[f"score_{i}"][0, 0] for i in range(len(self.strides))]
         return feats, scores, outs["global"][0]
 
 
-def nms_topk(score, k, thr, radius=1):
-    ks = 2 * radius + 1
-    mx = cv2.dilate(score, np.ones((ks, ks), np.uint8))
-    peak = (score >= mx) & (score > thr)
-    # exclude the outermost cells (no sub-pixel neighbourhood)
-    peak[0, :] = peak[-1, :] = False
-    peak[:, 0] = peak[:, -1] = False
-    ys, xs = np.nonzero(peak)
-    v = score[ys, xs]
-    order = np.argsort(-v)[:k]
-    ys, xs, v = ys[order], xs[order], v[order]
-    # sub-pixel: 1-D quadratic fit along x and y
-    def q(m, c, p):
-        den = m - 2 * c + p
-        with np.errstate(divide="ignore", invalid="ignore"):
-            d = np.where(np.abs(den) > 1e-9, 0.5 * (m - p) / den, 0.0)
-        return np.clip(d, -0.5, 0.5)
-    dx = q(score[ys, xs - 1], score[ys, xs], score[ys, xs + 1])
-    dy = q(score[ys - 1, xs], score[ys, xs], score[ys + 1, xs])
-    return np.stack([xs + dx, ys + dy], 1).astype(np.float32), v
-
-
-def bilinear(fmap, pts):
-    """fmap [C,h,w], pts [K,2] in cell coords (x, y) -> [K,C]"""
-    C, h, w = fmap.shape
-    x = np.clip(pts[:, 0], 0, w - 1)
-    y = np.clip(pts[:, 1], 0, h - 1)
-    x0 = np.floor(x).astype(int)
-    y0 = np.floor(y).astype(int)
-    x1 = np.minimum(x0 + 1, w - 1)
-    y1 = np.minimum(y0 + 1, h - 1)
-    ax = (x - x0)[:, None]
-    ay = (y - y0)[:, None]
-    f = fmap.transpose(1, 2, 0)
-    return (f[y0, x0] * (1 - ax) * (1 - ay) + f[y0, x1] * ax * (1 - ay) +
-            f[y1, x0] * (1 - ax) * ay + f[y1, x1] * ax * ay)
-
-
-def l2n(x):
-    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
-
-
 def sfp_features(runner, img01, topk, thr):
+    """Per level (pixels, short, full, scores), by the extractor's reference post-processing."""
     feats, scores, _ = runner.run(img01)
-    out = []
-    for i, s in enumerate(runner.strides):
-        cells, v = nms_topk(scores[i], topk[i], thr)
-        px = cells * s  # pixel coords (pixel-centre origin 0)
-        short = l2n(bilinear(feats[i], cells))
-        parts = [l2n(bilinear(feats[j], px / runner.strides[j])) for j in range(i, len(runner.strides))]
-        full = l2n(np.concatenate(parts, 1))
-        out.append((px, short, full, v))
-    return out
+    return level_features(feats, scores, runner.strides, 1, thr, topk)
 
 
 # --- matching / metrics ---------------------------------------------------------------------------

@@ -15,62 +15,15 @@ it also checks that image's group against this reference (same keypoints, descri
 
 import argparse
 import json
+import os
+import sys
 
 import numpy as np
 import onnxruntime as ort
 from PIL import Image
 
-
-def sliding_max(score, r):
-    """Max over the (2r+1)^2 window, clipped at the borders."""
-    h, w = score.shape
-    pad = np.full((h + 2 * r, w + 2 * r), -np.inf, np.float32)
-    pad[r:r + h, r:r + w] = score
-    out = np.full((h, w), -np.inf, np.float32)
-    for dy in range(2 * r + 1):
-        for dx in range(2 * r + 1):
-            out = np.maximum(out, pad[dy:dy + h, dx:dx + w])
-    return out
-
-
-def quad(m, c, p):
-    den = m - 2 * c + p
-    safe = np.where(np.abs(den) > 1e-9, den, 1.0)
-    d = np.where(np.abs(den) > 1e-9, 0.5 * (m - p) / safe, 0.0)
-    return np.clip(d, -0.5, 0.5)
-
-
-def detect(score, radius, thr, k):
-    peak = (score >= sliding_max(score, radius)) & (score > thr)
-    peak[0, :] = peak[-1, :] = False
-    peak[:, 0] = peak[:, -1] = False
-    ys, xs = np.nonzero(peak)
-    v = score[ys, xs]
-    # highest score first, ties by row then column (what the Rust extractor does)
-    order = np.lexsort((xs, ys, -v))[:k]
-    ys, xs, v = ys[order], xs[order], v[order]
-    dx = quad(score[ys, xs - 1], score[ys, xs], score[ys, xs + 1])
-    dy = quad(score[ys - 1, xs], score[ys, xs], score[ys + 1, xs])
-    return np.stack([xs + dx, ys + dy], 1).astype(np.float32), v
-
-
-def bilinear(fmap, pts):
-    c, h, w = fmap.shape
-    x = np.clip(pts[:, 0], 0, w - 1)
-    y = np.clip(pts[:, 1], 0, h - 1)
-    x0 = np.floor(x).astype(int)
-    y0 = np.floor(y).astype(int)
-    x1 = np.minimum(x0 + 1, w - 1)
-    y1 = np.minimum(y0 + 1, h - 1)
-    ax = (x - x0)[:, None]
-    ay = (y - y0)[:, None]
-    f = fmap.transpose(1, 2, 0)
-    return (f[y0, x0] * (1 - ax) * (1 - ay) + f[y0, x1] * ax * (1 - ay)
-            + f[y1, x0] * (1 - ax) * ay + f[y1, x1] * ax * ay)
-
-
-def l2n(x):
-    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
+from sfp.reference import level_features  # noqa: E402  (numpy only)
 
 
 def check_h5(path, reference=None, name=None):
@@ -156,16 +109,12 @@ def main():
     names = [o.name for o in s.get_outputs()]
     outs = dict(zip(names, s.run(None, {md.get("sfp.input_name", "image"): gray[None, None]})))
     feats = [outs[f"feat_{i}"][0] for i in range(len(strides))]
+    scores = [outs[f"score_{i}"][0, 0] for i in range(len(strides))]
     levels = []
-    for i, st in enumerate(strides):
-        cells, v = detect(outs[f"score_{i}"][0, 0], radius, thr, tops[i])
-        px = cells * st
-        short = l2n(bilinear(feats[i], cells))
-        parts = [l2n(bilinear(feats[j], px / strides[j])) for j in range(i, len(strides))]
-        full = l2n(np.concatenate(parts, 1))
+    for i, (px, short, full, v) in enumerate(level_features(feats, scores, strides, radius, thr, tops)):
         levels.append({
             "level": ids[i],
-            "stride": st,
+            "stride": strides[i],
             "keypoints": (px + 0.5).tolist(),
             "scores": v.tolist(),
             "short": short.tolist(),
