@@ -11,6 +11,10 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
+use crate::colmap::{
+    text, Camera, CameraModel, Image, Point2D, Reconstruction, Rigid3, TrackElement,
+};
+
 /// Image size of the demo camera.
 pub const WIDTH: u32 = 640;
 pub const HEIGHT: u32 = 480;
@@ -87,45 +91,15 @@ impl DemoPose {
         ]
     }
 
-    /// `qw qx qy qz` of the rotation.
+    /// `qw qx qy qz` of the rotation (`qw >= 0`).
     pub fn quaternion(&self) -> [f64; 4] {
-        let m = &self.rotation;
-        let trace = m[0][0] + m[1][1] + m[2][2];
-        let q = if trace > 0.0 {
-            let s = (trace + 1.0).sqrt() * 2.0;
-            [
-                0.25 * s,
-                (m[2][1] - m[1][2]) / s,
-                (m[0][2] - m[2][0]) / s,
-                (m[1][0] - m[0][1]) / s,
-            ]
-        } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
-            let s = (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt() * 2.0;
-            [
-                (m[2][1] - m[1][2]) / s,
-                0.25 * s,
-                (m[0][1] + m[1][0]) / s,
-                (m[0][2] + m[2][0]) / s,
-            ]
-        } else if m[1][1] > m[2][2] {
-            let s = (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt() * 2.0;
-            [
-                (m[0][2] - m[2][0]) / s,
-                (m[0][1] + m[1][0]) / s,
-                0.25 * s,
-                (m[1][2] + m[2][1]) / s,
-            ]
-        } else {
-            let s = (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt() * 2.0;
-            [
-                (m[1][0] - m[0][1]) / s,
-                (m[0][2] + m[2][0]) / s,
-                (m[1][2] + m[2][1]) / s,
-                0.25 * s,
-            ]
-        };
+        let r = &self.rotation;
+        let m = nalgebra::Matrix3::from_fn(|i, j| r[i][j]);
+        let rotation = nalgebra::Rotation3::from_matrix_unchecked(m);
+        let q = nalgebra::UnitQuaternion::from_rotation_matrix(&rotation);
+        let q = [q.w, q.i, q.j, q.k];
         if q[0] < 0.0 {
-            [-q[0], -q[1], -q[2], -q[3]]
+            q.map(|v| -v)
         } else {
             q
         }
@@ -404,70 +378,76 @@ impl DemoScene {
         }
     }
 
-    /// The database images' COLMAP text model: one PINHOLE camera, the images with every
+    /// The database images' COLMAP model: one PINHOLE camera, the images with every
     /// visible projected point as a 2D point, and points seen by at least 2 images.
-    pub fn colmap_text(&self) -> (String, String, String) {
+    pub fn colmap_model(&self) -> Reconstruction {
         let mut observations: Vec<Vec<(usize, [f64; 2])>> = vec![Vec::new(); self.database.len()];
-        let mut tracks: Vec<Vec<(usize, usize)>> = vec![Vec::new(); self.points.len()];
+        let mut tracks: Vec<Vec<TrackElement>> = vec![Vec::new(); self.points.len()];
         for (i, (_, pose)) in self.database.iter().enumerate() {
             for (p, &xyz) in self.points.iter().enumerate() {
                 if let Some(px) = self.project(pose, xyz) {
                     if self.visible(pose, xyz) {
-                        tracks[p].push((i, observations[i].len()));
+                        tracks[p].push(TrackElement {
+                            image_id: i as u32 + 1,
+                            point2d_idx: observations[i].len() as u32,
+                        });
                         observations[i].push((p, px));
                     }
                 }
             }
         }
-        let kept: Vec<bool> = tracks.iter().map(|t| t.len() >= 2).collect();
-        let cameras = format!(
-            "# Camera list\n1 PINHOLE {WIDTH} {HEIGHT} {FOCAL} {FOCAL} {} {}\n",
-            f64::from(WIDTH) / 2.0,
-            f64::from(HEIGHT) / 2.0
-        );
-        let mut images = String::from("# Image list\n");
+        let kept = |p: usize| tracks[p].len() >= 2;
+        let mut model = Reconstruction::builder();
+        model.add_camera(Camera {
+            id: 1,
+            model: CameraModel::Pinhole,
+            width: u64::from(WIDTH),
+            height: u64::from(HEIGHT),
+            params: vec![
+                FOCAL,
+                FOCAL,
+                f64::from(WIDTH) / 2.0,
+                f64::from(HEIGHT) / 2.0,
+            ],
+        });
         for (i, (name, pose)) in self.database.iter().enumerate() {
-            let q = pose.quaternion();
-            let t = pose.translation;
-            let _ = writeln!(
-                images,
-                "{} {} {} {} {} {} {} {} 1 {name}",
-                i + 1,
-                q[0],
-                q[1],
-                q[2],
-                q[3],
-                t[0],
-                t[1],
-                t[2]
-            );
-            let mut line = String::new();
-            for (p, px) in &observations[i] {
-                let id = if kept[*p] { (*p + 1) as i64 } else { -1 };
-                let _ = write!(line, "{} {} {id} ", px[0], px[1]);
-            }
-            images.push_str(line.trim_end());
-            images.push('\n');
+            model.add_image(Image {
+                id: i as u32 + 1,
+                name: name.clone(),
+                camera_id: 1,
+                cam_from_world: Rigid3 {
+                    rotation: pose.quaternion(),
+                    translation: pose.translation,
+                },
+                points2d: observations[i]
+                    .iter()
+                    .map(|&(p, xy)| Point2D {
+                        xy,
+                        point3d_id: kept(p).then_some(p as u64 + 1),
+                    })
+                    .collect(),
+            });
         }
-        let mut points = String::from("# 3D point list\n");
-        for (p, xyz) in self.points.iter().enumerate() {
-            if !kept[p] {
-                continue;
+        for (p, &xyz) in self.points.iter().enumerate() {
+            if kept(p) {
+                model
+                    .add_point3d(p as u64 + 1, xyz, [128; 3], 0.0, &tracks[p])
+                    .expect("tracks are short");
             }
-            let _ = write!(
-                points,
-                "{} {} {} {} 128 128 128 0",
-                p + 1,
-                xyz[0],
-                xyz[1],
-                xyz[2]
-            );
-            for (i, idx) in &tracks[p] {
-                let _ = write!(points, " {} {idx}", i + 1);
-            }
-            points.push('\n');
         }
-        (cameras, images, points)
+        model
+            .build()
+            .expect("the demo model is consistent by construction")
+    }
+
+    /// [`colmap_model`](Self::colmap_model) as `cameras.txt`, `images.txt`, `points3D.txt`.
+    pub fn colmap_text(&self) -> (String, String, String) {
+        let model = self.colmap_model();
+        (
+            text::write_cameras(&model),
+            text::write_images(&model),
+            text::write_points3d(&model),
+        )
     }
 
     /// `name PINHOLE W H f f cx cy` lines for the queries (hloc style).
@@ -500,61 +480,10 @@ impl DemoScene {
     }
 }
 
-/// Writes a grayscale PNG (stored, uncompressed deflate blocks: no dependency, a few hundred KB).
+/// Writes a grayscale PNG.
 pub fn write_png(path: &Path, width: u32, height: u32, gray: &[u8]) -> std::io::Result<()> {
-    fn crc32(data: &[u8]) -> u32 {
-        let mut crc = 0xFFFF_FFFFu32;
-        for &b in data {
-            crc ^= u32::from(b);
-            for _ in 0..8 {
-                crc = if crc & 1 != 0 {
-                    (crc >> 1) ^ 0xEDB8_8320
-                } else {
-                    crc >> 1
-                };
-            }
-        }
-        !crc
-    }
-    fn adler32(data: &[u8]) -> u32 {
-        let (mut a, mut b) = (1u32, 0u32);
-        for &d in data {
-            a = (a + u32::from(d)) % 65521;
-            b = (b + a) % 65521;
-        }
-        (b << 16) | a
-    }
-    let mut raw = Vec::with_capacity((width as usize + 1) * height as usize);
-    for row in gray.chunks_exact(width as usize) {
-        raw.push(0); // filter: none
-        raw.extend_from_slice(row);
-    }
-    let mut zlib = vec![0x78, 0x01];
-    let blocks: Vec<&[u8]> = raw.chunks(65535).collect();
-    for (i, block) in blocks.iter().enumerate() {
-        zlib.push(u8::from(i + 1 == blocks.len()));
-        let len = block.len() as u16;
-        zlib.extend_from_slice(&len.to_le_bytes());
-        zlib.extend_from_slice(&(!len).to_le_bytes());
-        zlib.extend_from_slice(block);
-    }
-    zlib.extend_from_slice(&adler32(&raw).to_be_bytes());
-    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
-    let mut chunk = |kind: &[u8; 4], data: &[u8]| {
-        png.extend_from_slice(&(data.len() as u32).to_be_bytes());
-        let mut body = kind.to_vec();
-        body.extend_from_slice(data);
-        png.extend_from_slice(&body);
-        png.extend_from_slice(&crc32(&body).to_be_bytes());
-    };
-    let mut ihdr = Vec::new();
-    ihdr.extend_from_slice(&width.to_be_bytes());
-    ihdr.extend_from_slice(&height.to_be_bytes());
-    ihdr.extend_from_slice(&[8, 0, 0, 0, 0]); // 8-bit grayscale
-    chunk(b"IHDR", &ihdr);
-    chunk(b"IDAT", &zlib);
-    chunk(b"IEND", &[]);
-    std::fs::write(path, png)
+    image::save_buffer(path, gray, width, height, image::ExtendedColorType::L8)
+        .map_err(std::io::Error::other)
 }
 
 #[cfg(test)]
@@ -576,6 +505,23 @@ mod tests {
             .filter(|&&p| scene.project(pose, p).is_some() && scene.visible(pose, p))
             .count();
         assert!(seen > 200, "{seen}");
+    }
+
+    #[test]
+    fn the_colmap_text_reads_back_as_the_model() {
+        let scene = DemoScene::new(1);
+        let model = scene.colmap_model();
+        assert_eq!(model.images().len(), scene.database.len());
+        assert!(model.points3d().len() > 1000, "{}", model.points3d().len());
+        let (c, i, p) = scene.colmap_text();
+        let path = Path::new("demo");
+        let read = text::parse_model(
+            (c.as_bytes(), path),
+            (i.as_bytes(), path),
+            (p.as_bytes(), path),
+        )
+        .unwrap();
+        assert_eq!(read, model);
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! poses, and a top-down PNG plot (feature `plot`).
 
 pub mod colmap_export;
+#[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
 pub mod demo_scene;
 #[cfg(feature = "onnx")]
 pub mod features_h5;
