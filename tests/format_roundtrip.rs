@@ -163,3 +163,31 @@ fn write_replaces_atomically_and_leaves_no_temp_file() {
     );
     assert!(err.is_err());
 }
+
+/// The "writing" progress ends exactly at the file's length.
+#[test]
+fn write_progress_reaches_the_file_length() {
+    use std::sync::Mutex;
+    #[derive(Default)]
+    struct Record(Mutex<Vec<(String, Option<u64>, u64)>>);
+    impl sfpmap::progress::Reporter for Record {
+        fn start(&self, stage: &str, total: Option<u64>) {
+            self.0.lock().unwrap().push((stage.to_string(), total, 0));
+        }
+        fn advance(&self, n: u64) {
+            if let Some(last) = self.0.lock().unwrap().last_mut() {
+                last.2 += n;
+            }
+        }
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.sfpm");
+    let scene = Scene::new(5, 40, 3, &[(0, 4.0, 16, 4), (1, 8.0, 8, 8)]);
+    let record = Record::default();
+    let written = scene.writer(Codec::Raw).write(&path, &record).unwrap();
+    let stages = record.0.into_inner().unwrap();
+    let (_, total, done) = stages.iter().find(|s| s.0 == "writing").unwrap();
+    assert_eq!(*total, Some(written));
+    assert_eq!(*done, written);
+    assert_eq!(written, std::fs::metadata(&path).unwrap().len());
+}

@@ -397,11 +397,16 @@ impl<'a> MapWriter<'a> {
                     values.len()
                 )));
             }
-            let mut short_block = Vec::with_capacity(n * short);
-            let mut rest_block = Vec::with_capacity(n * (full - short));
+            // The blocks' little-endian bytes straight from the rows: one copy, and none of
+            // `rest` when it is not kept.
+            let rest = if with_rest { full - short } else { 0 };
+            let mut short_block: Vec<u8> = Vec::with_capacity(n * short * 2);
+            let mut rest_block: Vec<u8> = Vec::with_capacity(n * rest * 2);
             for row in values.chunks_exact(full.max(1)).take(n) {
-                short_block.extend_from_slice(&row[..short]);
-                rest_block.extend_from_slice(&row[short..]);
+                short_block.extend_from_slice(bytemuck::cast_slice(&row[..short]));
+                if with_rest {
+                    rest_block.extend_from_slice(bytemuck::cast_slice(&row[short..]));
+                }
             }
             self.push_array(
                 SectionKind::LevelDescShort,
@@ -409,7 +414,7 @@ impl<'a> MapWriter<'a> {
                 Dtype::F16,
                 n,
                 short,
-                owned_bytes(short_block),
+                Cow::Owned(short_block),
             );
             if with_rest {
                 self.push_array(
@@ -417,8 +422,8 @@ impl<'a> MapWriter<'a> {
                     level,
                     Dtype::F16,
                     n,
-                    full - short,
-                    owned_bytes(rest_block),
+                    rest,
+                    Cow::Owned(rest_block),
                 );
             }
         }
@@ -684,8 +689,10 @@ impl Encoded<'_> {
         out.write_all(&self.table)?;
         out.write_all(&self.metadata)?;
         let mut pos = self.header.metadata_offset + self.header.metadata_len;
+        reporter.advance(pos);
         for (offset, bytes) in &self.sections {
             out.write_all(&ZEROS[..(offset - pos) as usize])?;
+            reporter.advance(offset - pos);
             // Write in chunks so progress moves on large sections.
             for chunk in bytes.chunks(8 << 20) {
                 out.write_all(chunk)?;
