@@ -5,7 +5,9 @@ mod shared_data;
 
 use nalgebra::{Vector2, Vector3};
 use proptest::prelude::*;
+use sfpmap::localize::eval::read_poses;
 use sfpmap::localize::geometry::{Camera, CameraModel, GeometryError};
+use sfpmap::localize::query::read_query_list;
 
 /// One camera per model, with distortion strong enough to matter at the image corners.
 fn cameras() -> Vec<Camera> {
@@ -228,46 +230,82 @@ proptest! {
     }
 }
 
-/// The shared scenes' query lists and ground truth parse.
+/// The shared scenes' query lists and ground truth parse with the localizer's readers: every
+/// query has a usable camera and a ground-truth pose.
 #[test]
 fn parses_shared_scene_files() {
     let Some(scenes) = shared_data::shared_data("scenes") else {
         return;
     };
-    let entries = std::fs::read_dir(&scenes).unwrap();
-    for scene in entries.flatten() {
-        if let Ok(text) = std::fs::read_to_string(scene.path().join("queries.txt")) {
-            for line in text
-                .lines()
-                .filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
-            {
-                let (name, camera) = Camera::parse_query_line(line).unwrap();
-                assert!(!name.is_empty());
-                let c = camera.principal_point();
-                assert!(camera.contains(&c), "{line}");
+    let mut checked = 0;
+    for entry in std::fs::read_dir(&scenes).unwrap() {
+        let dir = entry.unwrap().path();
+        let (queries_path, poses_path) = (dir.join("queries.txt"), dir.join("gt_poses.txt"));
+        if !queries_path.exists() && !poses_path.exists() {
+            continue;
+        }
+        let queries = read_query_list(&queries_path, None).unwrap_or_else(|e| panic!("{e}"));
+        let poses = read_poses(&poses_path).unwrap_or_else(|e| panic!("{e}"));
+        assert!(!queries.is_empty(), "{}", queries_path.display());
+        assert!(!poses.is_empty(), "{}", poses_path.display());
+
+        for query in &queries {
+            let (name, camera) = (&query.name, &query.camera);
+            assert!(!name.is_empty());
+            assert_eq!(camera.params().len(), camera.model().num_params(), "{name}");
+            assert!(camera.params().iter().all(|p| p.is_finite()), "{name}");
+            let (fx, fy) = camera.focal_lengths();
+            assert!(fx > 0.0 && fy > 0.0, "{name}: focal lengths {fx}, {fy}");
+            let centre = camera.principal_point();
+            assert!(
+                camera.contains(&centre),
+                "{name}: principal point {centre:?}"
+            );
+            // The principal point looks straight ahead, and the image corners survive an
+            // undistort/distort round trip (the distortion does not fold inside the image).
+            assert!(
+                (camera.bearing(&centre) - Vector3::z()).norm() < 1e-12,
+                "{name}"
+            );
+            let (w, h) = (f64::from(camera.width()), f64::from(camera.height()));
+            for corner in [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)] {
+                let pixel = Vector2::new(corner.0, corner.1);
+                let xy = camera.unproject(&pixel);
+                let back = camera.project(&Vector3::new(xy.x, xy.y, 1.0)).unwrap();
+                assert!(
+                    (back - pixel).norm() < 1e-6,
+                    "{name}: corner {corner:?} -> {back:?}"
+                );
             }
         }
-        if let Ok(text) = std::fs::read_to_string(scene.path().join("gt_poses.txt")) {
-            for line in text
-                .lines()
-                .filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
-            {
-                let v: Vec<f64> = line
-                    .split_whitespace()
-                    .skip(1)
-                    .map(|t| t.parse().unwrap())
-                    .collect();
-                let pose = sfpmap::localize::geometry::Pose::from_colmap(
-                    v[0], v[1], v[2], v[3], v[4], v[5], v[6],
-                )
-                .unwrap();
-                let back = pose.to_colmap();
-                for (a, b) in back.iter().zip(&v) {
-                    assert!((a - b).abs() < 1e-9, "{line}");
-                }
-            }
+
+        let mut gt = std::collections::HashMap::new();
+        for (name, pose) in &poses {
+            assert!(pose.is_finite(), "{name}");
+            let norm = pose.rotation.quaternion().norm();
+            assert!((norm - 1.0).abs() < 1e-12, "{name}: |q| = {norm}");
+            assert!(
+                gt.insert(name.as_str(), pose).is_none(),
+                "{name}: listed twice"
+            );
         }
+        let missing: Vec<&str> = queries
+            .iter()
+            .map(|q| q.name.as_str())
+            .filter(|name| !gt.contains_key(name))
+            .collect();
+        assert!(
+            missing.is_empty(),
+            "{}: queries without a ground-truth pose: {missing:?}",
+            dir.display()
+        );
+        checked += 1;
     }
+    assert!(
+        checked > 0,
+        "no scene with queries.txt and gt_poses.txt in {}",
+        scenes.display()
+    );
 }
 
 proptest! {

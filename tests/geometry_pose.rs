@@ -5,8 +5,8 @@ use nalgebra::{UnitQuaternion, Vector2, Vector3};
 use proptest::prelude::*;
 use sfpmap::localize::geometry::{
     estimate_absolute_pose, estimate_absolute_pose_with_prior, p3p, refine_pose,
-    refine_pose_masked, reprojection_inliers, Camera, GeometryError, Pose, RansacOptions,
-    RefineOptions, RobustLoss, SplitMix64,
+    refine_pose_masked, reprojection_inliers, required_iterations, Camera, GeometryError, Pose,
+    RansacOptions, RefineOptions, RobustLoss, SplitMix64,
 };
 
 struct Scene {
@@ -133,7 +133,15 @@ fn check_ransac(
     assert_eq!(estimate.inlier_indices().count(), estimate.num_inliers);
     assert!(estimate.inlier_indices().all(|i| estimate.inliers[i]));
     assert!(estimate.mean_inlier_error_px < 2.0 * noise + 0.5);
-    assert!(estimate.iterations <= options.max_iterations);
+    // The adaptive count stopped where the true inlier ratio says it should, with slack for
+    // SPRT's rejections of good poses and inliers lost to noise; not at the cap.
+    let expected = required_iterations(0.8 * true_inliers as f64 / n as f64, options.confidence)
+        .max(options.min_iterations);
+    assert!(
+        estimate.iterations <= expected,
+        "seed {seed}, {outliers}: {} iterations, expected at most {expected}",
+        estimate.iterations
+    );
 }
 
 fn test_options() -> RansacOptions {
@@ -533,11 +541,58 @@ fn a_good_prior_shortens_ransac() {
             .unwrap();
     assert!(estimate.pose.rotation_error_deg(&s.truth) < 0.5);
     assert!(estimate.pose.center_distance(&s.truth) < 0.05);
-    // The adaptive count for 10 % inliers is ~10^4; a good prior alone cannot shorten that
-    // below what the inlier ratio demands, but it must not fail or be slower.
-    assert!(estimate.iterations <= options.max_iterations);
+    // The adaptive count for 10 % inliers is ~10^4, far more than the ~10^3 samples it takes
+    // to draw a first all-inlier one; a good prior cannot shorten that count below what the
+    // inlier ratio demands, but it must not be slower than the same call without it.
+    let without = estimate_absolute_pose(&s.pixels, &s.points, &s.camera, &options).unwrap();
+    assert!(
+        estimate.iterations <= without.iterations,
+        "{} iterations with the prior, {} without",
+        estimate.iterations,
+        without.iterations
+    );
     let mask = reprojection_inliers(&s.pixels, &s.points, &s.camera, &estimate.pose, 4.0);
     assert_eq!(mask, estimate.inliers);
+
+    // At a low confidence the adaptive count is no longer than the wait for a first all-inlier
+    // sample (both ~10^3 at 10 % inliers), so RANSAC without a prior often runs past it; the
+    // prior removes that wait. Never slower per scene, fewer in total.
+    let loose = RansacOptions {
+        confidence: 0.5,
+        min_iterations: 1,
+        ..test_options()
+    };
+    let (mut with_prior, mut without_prior) = (0, 0);
+    for seed in 200..220 {
+        let s = scene(seed, SIMPLE_RADIAL, 300, 0.9, 1.0);
+        let options = RansacOptions {
+            seed,
+            ..loose.clone()
+        };
+        let prior = perturb(&s.truth, 0.3, 0.02);
+        let with = estimate_absolute_pose_with_prior(
+            &s.pixels,
+            &s.points,
+            &s.camera,
+            Some(&prior),
+            &options,
+        )
+        .unwrap();
+        let without = estimate_absolute_pose(&s.pixels, &s.points, &s.camera, &options).unwrap();
+        assert!(with.pose.rotation_error_deg(&s.truth) < 0.5, "seed {seed}");
+        assert!(
+            with.iterations <= without.iterations,
+            "seed {seed}: {} iterations with the prior, {} without",
+            with.iterations,
+            without.iterations
+        );
+        with_prior += with.iterations;
+        without_prior += without.iterations;
+    }
+    assert!(
+        with_prior < without_prior,
+        "{with_prior} iterations with priors, {without_prior} without"
+    );
 
     // With 30 % outliers a prior lets RANSAC stop at the minimum.
     let s = scene(81, SIMPLE_RADIAL, 300, 0.3, 1.0);
@@ -551,6 +606,13 @@ fn a_good_prior_shortens_ransac() {
             .unwrap();
     assert!(estimate.iterations <= 30, "{}", estimate.iterations);
     assert!(estimate.pose.rotation_error_deg(&s.truth) < 0.5);
+    let without = estimate_absolute_pose(&s.pixels, &s.points, &s.camera, &options).unwrap();
+    assert!(
+        estimate.iterations <= without.iterations,
+        "{} iterations with the prior, {} without",
+        estimate.iterations,
+        without.iterations
+    );
     // A non-finite prior is an input error.
     let nan = Pose::new(prior.rotation, Vector3::new(f64::NAN, 0.0, 0.0));
     assert!(matches!(
@@ -587,14 +649,13 @@ fn p3p_accuracy_over_random_scenes() {
                 worst = worst.max(rot);
             }
         }
-        assert_eq!(none, 0, "{label}: no solution in {none} of {trials} trials");
+        assert_eq!(
+            none, 0,
+            "{label}: no solution in {none} of {trials} trials (trials by solution count: {counts:?})"
+        );
         assert!(
             worst < 1e-4,
             "{label}: worst rotation error {worst:.2e}° ({bad} above 1e-6)"
-        );
-        assert!(
-            counts[1..].iter().sum::<usize>() == trials as usize,
-            "{label}: {counts:?}"
         );
     }
 }

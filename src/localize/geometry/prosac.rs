@@ -10,7 +10,8 @@
 
 use super::rng::SplitMix64;
 
-const SAMPLE_SIZE: usize = 3;
+/// Correspondences in a minimal sample: P3P needs three.
+pub(super) const SAMPLE_SIZE: usize = 3;
 
 /// `T_N` of the paper: the number of samples over which the subset grows to the full list.
 const GROWTH_HORIZON: f64 = 200_000.0;
@@ -66,8 +67,13 @@ impl ProgressiveSampler {
     }
 }
 
-/// Three distinct positions below `n`, or two below `n` plus `fixed`.
-fn distinct(rng: &mut SplitMix64, n: usize, fixed: Option<usize>) -> [usize; SAMPLE_SIZE] {
+/// Three distinct positions below `n`, or two below `n` plus `fixed`. With `fixed = None` it
+/// is also RANSAC's uniform sampler.
+pub(super) fn distinct(
+    rng: &mut SplitMix64,
+    n: usize,
+    fixed: Option<usize>,
+) -> [usize; SAMPLE_SIZE] {
     let a = fixed.unwrap_or_else(|| rng.below(n));
     let mut b = rng.below(n);
     while b == a {

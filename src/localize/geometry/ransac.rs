@@ -23,8 +23,8 @@ use super::camera::{Camera, Intrinsics};
 use super::error::GeometryError;
 use super::p3p;
 use super::pose::Pose;
-use super::prosac::{maximality_iterations, ProgressiveSampler};
-use super::refine::{refine_indexed, RefineOptions};
+use super::prosac::{distinct, maximality_iterations, ProgressiveSampler, SAMPLE_SIZE};
+use super::refine::{refine_indexed, validate_correspondences, RefineOptions};
 use super::rng::SplitMix64;
 
 /// Options of [`estimate_absolute_pose`].
@@ -136,8 +136,6 @@ impl PoseEstimate {
     }
 }
 
-const SAMPLE_SIZE: usize = 3;
-
 /// Fewer correspondences than this cannot tell P3P's up to four solutions apart.
 pub const MIN_CORRESPONDENCES: usize = 4;
 
@@ -212,7 +210,7 @@ pub fn estimate_absolute_pose_with_prior(
                 iterations += 1;
                 let sample = match progressive.as_mut() {
                     Some(sampler) => sampler.sample(&mut rng).map(|k| usable[k]),
-                    None => draw_sample(&mut rng, &usable),
+                    None => distinct(&mut rng, usable.len(), None).map(|k| usable[k]),
                 };
                 p3p::solve(&sample.map(|i| bearings[i]), &sample.map(|i| points[i]))
             }
@@ -358,20 +356,6 @@ pub fn required_iterations(inlier_ratio: f64, confidence: f64) -> usize {
     } else {
         usize::MAX
     }
-}
-
-fn draw_sample(rng: &mut SplitMix64, usable: &[usize]) -> [usize; SAMPLE_SIZE] {
-    let n = usable.len();
-    let a = rng.below(n);
-    let mut b = rng.below(n);
-    while b == a {
-        b = rng.below(n);
-    }
-    let mut c = rng.below(n);
-    while c == a || c == b {
-        c = rng.below(n);
-    }
-    [usable[a], usable[b], usable[c]]
 }
 
 /// Refits on inliers while the MSAC score improves.
@@ -651,34 +635,15 @@ impl Sprt {
 }
 
 fn validate_input(pixels: &[Vector2<f64>], points: &[Vector3<f64>]) -> Result<(), GeometryError> {
-    if pixels.len() != points.len() {
-        return Err(GeometryError::LengthMismatch {
-            what: "points",
-            expected: pixels.len(),
-            found: points.len(),
-        });
-    }
-    if pixels.len() < MIN_CORRESPONDENCES {
+    // Errors in this order: length mismatch, too few correspondences, non-finite values (the
+    // first and last from `validate_correspondences`).
+    if pixels.len() == points.len() && pixels.len() < MIN_CORRESPONDENCES {
         return Err(GeometryError::TooFewCorrespondences {
             found: pixels.len(),
             required: MIN_CORRESPONDENCES,
         });
     }
-    if let Some(index) = pixels
-        .iter()
-        .position(|p| !(p.x.is_finite() && p.y.is_finite()))
-    {
-        return Err(GeometryError::NonFinite {
-            what: "pixels",
-            index,
-        });
-    }
-    if let Some(index) = points.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
-        return Err(GeometryError::NonFinite {
-            what: "points",
-            index,
-        });
-    }
+    validate_correspondences(pixels, points)?;
     check_point_spread(points)?;
     check_pixel_spread(pixels)
 }
@@ -754,7 +719,7 @@ mod tests {
         assert_eq!(required_iterations(0.0, 0.99), usize::MAX);
         // w = 0.5: ln(0.01) / ln(0.875) = 34.5
         assert_eq!(required_iterations(0.5, 0.99), 35);
-        // w = 0.1 at 0.9999: ~9,206, below the default cap of 10,000.
+        // w = 0.1 at 0.9999: ~9,206, below the default cap of 20,000.
         let n = required_iterations(0.1, 0.9999);
         assert!((9_190..9_220).contains(&n), "{n}");
         assert!(n <= RansacOptions::default().max_iterations);

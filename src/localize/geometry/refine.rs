@@ -182,7 +182,8 @@ pub fn refine_pose_masked(
     refine_checked(pixels, points, &indices, camera, initial, options)
 }
 
-fn validate_correspondences(
+/// Equal lengths and finite pixels and points; shared with RANSAC's input checks.
+pub(super) fn validate_correspondences(
     pixels: &[Vector2<f64>],
     points: &[Vector3<f64>],
 ) -> Result<(), GeometryError> {
