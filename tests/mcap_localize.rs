@@ -428,10 +428,20 @@ fn ros_and_foxglove_images_round_trip_to_pose_in_frame() {
         "--json",
     ]);
     assert_eq!(json["localized"], 2, "{json}");
-    assert!(json["camera"]
-        .as_str()
-        .unwrap()
-        .starts_with("OPENCV 758 1024"));
+    // The camera as `MODEL W H params...` (what --camera takes): SIMPLE_RADIAL `f cx cy k`
+    // comes back from CameraInfo as OPENCV `f f cx cy k 0 0 0`.
+    let p: Vec<f64> = q[1].camera.split_whitespace().collect::<Vec<_>>()[3..]
+        .iter()
+        .map(|v| v.parse().unwrap())
+        .collect();
+    assert_eq!(
+        json["camera"].as_str().unwrap(),
+        format!(
+            "OPENCV 758 1024 {} {} {} {} {} 0 0 0",
+            p[0], p[0], p[1], p[2], p[3]
+        ),
+        "{json}"
+    );
     let out = read_output(&out_b);
     check_poses(&out, &stamps_b, &q[1]);
     assert_eq!(out.other_messages, 0);
@@ -555,4 +565,33 @@ fn missing_topic_unsupported_encoding_and_truncated_log() {
     let err = fails(&args(&run(truncated.to_str().unwrap(), "/cam/compressed")));
     assert!(err.contains("no message on topic"), "{err}");
     assert!(!out.exists());
+}
+
+#[test]
+fn mcap_refuses_query_list_only_flags() {
+    // --features and --format describe query-list runs; with --mcap they would be ignored.
+    for extra in [["--features", "x.h5"], ["--format", "tum"]] {
+        let mut args = vec![
+            "localize",
+            "--map",
+            "m.sfpm",
+            "--mcap",
+            "in.mcap",
+            "--topic",
+            "/cam",
+            "--camera",
+            "PINHOLE 640 480 500 500 320 240",
+            "-o",
+            "out.mcap",
+        ];
+        args.extend(extra);
+        let err = fails(&args);
+        assert!(
+            err.contains(&format!(
+                "the argument '--mcap <MCAP>' cannot be used with '{} <",
+                extra[0]
+            )),
+            "{err}"
+        );
+    }
 }

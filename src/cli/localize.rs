@@ -2,12 +2,14 @@
 
 use anyhow::{bail, Context};
 use serde_json::json;
+use sfpmap::format::Map;
+use sfpmap::io::poses::tum_line;
 use sfpmap::localize::geometry::Camera;
 use sfpmap::localize::matching::MatchOptions;
 use sfpmap::localize::query::{read_query_list, DatabaseFeatures, Query};
 use sfpmap::localize::{Localization, LocalizeOptions, Localizer, QueryFeatures};
 use sfpmap::progress::Reporter;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
@@ -96,10 +98,87 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// The `median_ms` object of `--json`: per-stage median times over the results.
+fn median_ms<'a, I>(results: I) -> serde_json::Value
+where
+    I: IntoIterator<Item = &'a Localization>,
+    I::IntoIter: Clone,
+{
+    let results = results.into_iter();
+    let stage = |f: fn(&Localization) -> f64| median(results.clone().map(f).collect());
+    json!({
+        "retrieval": stage(|r| r.times.retrieval_ms),
+        "coarse_match": stage(|r| r.times.coarse_match_ms),
+        "coarse_ransac": stage(|r| r.times.coarse_ransac_ms),
+        "fine": stage(|r| r.times.fine_ms),
+        "total": stage(|r| r.times.total_ms),
+    })
+}
+
+/// The descriptor kind of the map's levels (`""` for a map without descriptors).
+fn descriptor_kind(map: &Map<'_>) -> String {
+    map.metadata()
+        .levels
+        .first()
+        .map(|l| l.descriptor.clone())
+        .unwrap_or_default()
+}
+
+/// Refuses a map whose query features the SFP extractor cannot provide: one without
+/// descriptors, or a SIFT map (`sift_hint` says what to do instead).
+fn check_extractable(map_path: &Path, descriptor: &str, sift_hint: &str) -> anyhow::Result<()> {
+    match descriptor {
+        "" => bail!(
+            "{}: the map has no descriptors (geometry only)",
+            map_path.display()
+        ),
+        "sift" => bail!("{}: a SIFT map; {sift_hint}", map_path.display()),
+        _ => Ok(()),
+    }
+}
+
+/// The SFP extractor (`--model`, else the embedded one), checked against the map's descriptors.
+#[cfg(feature = "onnx")]
+fn sfp_extractor(
+    args: &Args,
+    descriptor: &str,
+    bars: &super::Bars,
+) -> anyhow::Result<sfpmap::extract::Extractor> {
+    let options = sfpmap::extract::ExtractorOptions {
+        model: args.model.clone(),
+        threads: 2,
+    };
+    let extractor = sfpmap::extract::Extractor::new(&options, bars)?;
+    if extractor.contract().model_name != descriptor {
+        bail!(
+            "{}: the map's descriptors are {descriptor:?} but the model is {:?}",
+            args.map.display(),
+            extractor.contract().model_name
+        );
+    }
+    Ok(extractor)
+}
+
+/// The localizer with the options of `--level`, `--short`, `--top-k` and `--ratio`.
+fn localizer<'m>(map: &'m Map<'m>, args: &Args) -> anyhow::Result<Localizer<'m>> {
+    let options = LocalizeOptions {
+        levels: args.levels.clone(),
+        short: args.short,
+        top_k: args.top_k,
+        matching: MatchOptions {
+            ratio: args.ratio,
+            ..MatchOptions::default()
+        },
+        ..LocalizeOptions::default()
+    };
+    Localizer::new(map, options).with_context(|| args.map.display().to_string())
+}
+
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    let bars = super::Bars::new(quiet, args.json);
     #[cfg(feature = "mcap")]
     if args.mcap.mcap.is_some() {
-        return mcap_input::run(&args, quiet);
+        return mcap_input::run(&args, quiet, &bars);
     }
     let Some(query_list) = args.query_list.clone() else {
         bail!("--query-list is required (or --mcap)");
@@ -113,12 +192,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .context("--camera")?;
     let queries = read_query_list(&query_list, camera.as_ref())?;
     let map = super::open_map(&args.map)?;
-    let descriptor = map
-        .metadata()
-        .levels
-        .first()
-        .map(|l| l.descriptor.clone())
-        .unwrap_or_default();
+    let descriptor = descriptor_kind(&map);
     #[cfg(feature = "onnx")]
     let from_h5 = match &args.features {
         Some(path) => Some(sfpmap::localize::query::H5Features::open(path)?),
@@ -137,53 +211,25 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         (Some(db), _) => {
             Source::Database(DatabaseFeatures::open(db).with_context(|| db.display().to_string())?)
         }
-        (None, "sift") => bail!(
-            "{}: a SIFT map; pass the queries' features with --database queries.db",
-            args.map.display()
-        ),
-        (None, "") => bail!(
-            "{}: the map has no descriptors (geometry only)",
-            args.map.display()
-        ),
         #[cfg(feature = "onnx")]
         (None, _) => {
+            check_extractable(&args.map, &descriptor, SIFT_HINT)?;
             let Some(images) = args.images.clone() else {
                 bail!("{}: pass the query images with --images DIR (features are extracted with the SFP model)", query_list.display());
             };
-            let options = sfpmap::extract::ExtractorOptions {
-                model: args.model.clone(),
-                threads: 2,
-            };
-            let bars = super::Bars::new(quiet, args.json);
-            let extractor = sfpmap::extract::Extractor::new(&options, &bars)?;
-            if extractor.contract().model_name != descriptor {
-                bail!(
-                    "{}: the map's descriptors are {descriptor:?} but the model is {:?}",
-                    args.map.display(),
-                    extractor.contract().model_name
-                );
-            }
+            let extractor = sfp_extractor(&args, &descriptor, &bars)?;
             Source::Extractor { extractor, images }
         }
         #[cfg(not(feature = "onnx"))]
-        (None, other) => bail!(
-            "{}: query features for {other:?} maps need the extractor (feature onnx)",
-            args.map.display()
-        ),
+        (None, other) => {
+            check_extractable(&args.map, other, SIFT_HINT)?;
+            bail!(
+                "{}: query features for {other:?} maps need the extractor (feature onnx)",
+                args.map.display()
+            )
+        }
     };
-    let options = LocalizeOptions {
-        levels: args.levels.clone(),
-        short: args.short,
-        top_k: args.top_k,
-        matching: MatchOptions {
-            ratio: args.ratio,
-            ..MatchOptions::default()
-        },
-        ..LocalizeOptions::default()
-    };
-    let localizer =
-        Localizer::new(&map, options).with_context(|| args.map.display().to_string())?;
-    let bars = super::Bars::new(quiet, args.json);
+    let localizer = localizer(&map, &args)?;
     bars.start("localizing", Some(queries.len() as u64));
     let results: Vec<Mutex<Option<Localization>>> =
         queries.iter().map(|_| Mutex::new(None)).collect();
@@ -238,7 +284,6 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .filter(|(_, r)| r.pose.is_none())
         .map(|(q, r)| json!({ "name": q.name, "reason": r.failure }))
         .collect();
-    let stage = |f: fn(&Localization) -> f64| median(results.iter().map(f).collect());
     if args.json {
         super::print_json(&json!({
             "queries": queries.len(),
@@ -246,13 +291,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "failed": failed,
             "output": args.output.display().to_string(),
             "seconds": start.elapsed().as_secs_f64(),
-            "median_ms": {
-                "retrieval": stage(|r| r.times.retrieval_ms),
-                "coarse_match": stage(|r| r.times.coarse_match_ms),
-                "coarse_ransac": stage(|r| r.times.coarse_ransac_ms),
-                "fine": stage(|r| r.times.fine_ms),
-                "total": stage(|r| r.times.total_ms),
-            },
+            "median_ms": median_ms(&results),
             "median_inliers": median(results.iter().filter(|r| r.pose.is_some()).map(|r| r.inliers as f64).collect()),
         }))?;
     } else if !quiet {
@@ -260,7 +299,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "{}: {localized}/{} localized, median {:.1} ms per query (after features)",
             args.output.display(),
             queries.len(),
-            stage(|r| r.times.total_ms)
+            median(results.iter().map(|r| r.times.total_ms).collect())
         );
         for f in &failed {
             println!("failed: {} ({})", f["name"], f["reason"]);
@@ -268,6 +307,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     }
     Ok(ExitCode::SUCCESS)
 }
+
+/// What to do instead when a query-list run meets a SIFT map without `--database`.
+const SIFT_HINT: &str = "pass the queries' features with --database queries.db";
 
 /// Where query features come from.
 enum Source {
@@ -328,16 +370,26 @@ fn not_found(q: &Query) -> Localization {
 
 /// Writes all results through a temp file + rename.
 fn write_poses(
-    path: &std::path::Path,
+    path: &Path,
     format: PoseFormat,
     queries: &[Query],
     results: &[Localization],
 ) -> anyhow::Result<()> {
-    use std::fmt::Write as _;
-    let mut out = String::new();
+    super::write_atomic(path, |out| {
+        pose_text(out, format, queries, results).with_context(|| path.display().to_string())
+    })
+}
+
+/// The results as `--format` says.
+fn pose_text(
+    out: &mut impl std::io::Write,
+    format: PoseFormat,
+    queries: &[Query],
+    results: &[Localization],
+) -> anyhow::Result<()> {
     match format {
         PoseFormat::Colmap => {
-            out.push_str("# name qw qx qy qz tx ty tz (COLMAP cam_from_world)\n");
+            writeln!(out, "# name qw qx qy qz tx ty tz (COLMAP cam_from_world)")?;
             for (q, r) in queries.iter().zip(results) {
                 match &r.pose {
                     Some(p) => {
@@ -358,17 +410,10 @@ fn write_poses(
             }
         }
         PoseFormat::Tum => {
-            out.push_str("# index tx ty tz qx qy qz qw (TUM: world_from_cam); query names in order of the list\n");
+            writeln!(out, "# index tx ty tz qx qy qz qw (TUM: world_from_cam); query names in order of the list")?;
             for (i, (q, r)) in queries.iter().zip(results).enumerate() {
                 match &r.pose {
-                    Some(p) => {
-                        let w = p.inverse().to_colmap();
-                        writeln!(
-                            out,
-                            "{i} {} {} {} {} {} {} {}",
-                            w[4], w[5], w[6], w[1], w[2], w[3], w[0]
-                        )?;
-                    }
+                    Some(p) => writeln!(out, "{}", tum_line(i, p.to_colmap()))?,
                     None => writeln!(
                         out,
                         "# failed {i} {}: {}",
@@ -394,22 +439,9 @@ fn write_poses(
                     })
                 })
                 .collect();
-            out = serde_json::to_string_pretty(&list)? + "\n";
+            serde_json::to_writer_pretty(&mut *out, &list)?;
+            writeln!(out)?;
         }
     }
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(std::path::Path::new("."));
-    let tmp = dir.join(format!(
-        ".{}.tmp{}",
-        path.file_name()
-            .map(|f| f.to_string_lossy())
-            .unwrap_or_default(),
-        std::process::id()
-    ));
-    std::fs::write(&tmp, out)
-        .and_then(|_| std::fs::rename(&tmp, path))
-        .with_context(|| path.display().to_string())?;
     Ok(())
 }

@@ -7,14 +7,15 @@
 //! that fails to localize does not fail `sfpmap localize` either; it is an error when no image
 //! message could be read or decoded at all.
 
+use super::super::Bars;
 use super::Args;
 use anyhow::{bail, Context};
 use serde_json::json;
-use sfpmap::extract::{DetectOptions, Extractor, ExtractorOptions};
+use sfpmap::extract::{DetectOptions, Extractor};
 use sfpmap::io::mcap_io::{self, Stamp};
+use sfpmap::io::poses::tum_line;
 use sfpmap::localize::geometry::Camera;
-use sfpmap::localize::matching::MatchOptions;
-use sfpmap::localize::{Localization, LocalizeOptions, Localizer};
+use sfpmap::localize::{Localization, Localizer};
 use sfpmap::progress::Reporter;
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -30,7 +31,7 @@ pub struct McapArgs {
     /// Read query images from this MCAP log instead of a query list; -o is then an MCAP with
     /// foxglove.PoseInFrame messages. Example: `sfpmap localize --map m.sfpm --mcap run.mcap
     /// --topic /camera/image_raw/compressed --camera-info-topic /camera/camera_info -o poses.mcap`
-    #[arg(long, requires = "topic", conflicts_with_all = ["query_list", "images", "database"])]
+    #[arg(long, requires = "topic", conflicts_with_all = ["query_list", "images", "database", "features", "format"])]
     pub mcap: Option<PathBuf>,
     /// The image topic: sensor_msgs/msg/CompressedImage or sensor_msgs/msg/Image (cdr), or
     /// foxglove.CompressedImage (json, protobuf).
@@ -117,6 +118,15 @@ fn topic_list(topics: &BTreeMap<String, String>) -> String {
         .join(", ")
 }
 
+/// The "no such topic" error, listing the topics there are.
+fn no_topic(input: &Path, topic: &str, topics: &BTreeMap<String, String>) -> anyhow::Error {
+    anyhow::anyhow!(
+        "{}: no topic {topic:?}; topics present: {}",
+        input.display(),
+        topic_list(topics)
+    )
+}
+
 fn schema_name(channel: &mcap::Channel<'_>) -> String {
     channel
         .schema
@@ -149,14 +159,10 @@ fn camera_from_info(path: &Path, topic: &str) -> anyhow::Result<Camera> {
             .entry(message.channel.topic.clone())
             .or_insert_with(|| schema_name(&message.channel));
     }
-    bail!(
-        "{}: no topic {topic:?}; topics present: {}",
-        path.display(),
-        topic_list(&topics)
-    )
+    Err(no_topic(path, topic, &topics))
 }
 
-pub fn run(args: &Args, quiet: bool) -> anyhow::Result<ExitCode> {
+pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     let start = Instant::now();
     let m = &args.mcap;
     let (Some(input), Some(topic)) = (m.mcap.as_deref(), m.topic.as_deref()) else {
@@ -173,11 +179,7 @@ pub fn run(args: &Args, quiet: bool) -> anyhow::Result<ExitCode> {
             .collect();
         for t in std::iter::once(topic).chain(m.camera_info_topic.as_deref()) {
             if !topics.contains_key(t) {
-                bail!(
-                    "{}: no topic {t:?}; topics present: {}",
-                    input.display(),
-                    topic_list(&topics)
-                );
+                return Err(no_topic(input, t, &topics));
             }
         }
         if let Some(stats) = &summary.stats {
@@ -203,52 +205,16 @@ pub fn run(args: &Args, quiet: bool) -> anyhow::Result<ExitCode> {
         (None, None) => bail!("--mcap needs the intrinsics: --camera \"MODEL W H params...\" or --camera-info-topic TOPIC"),
     };
 
-    let map = crate::cli::open_map(&args.map)?;
-    let descriptor = map
-        .metadata()
-        .levels
-        .first()
-        .map(|l| l.descriptor.clone())
-        .unwrap_or_default();
-    match descriptor.as_str() {
-        "" => bail!(
-            "{}: the map has no descriptors (geometry only)",
-            args.map.display()
-        ),
-        "sift" => bail!(
-            "{}: a SIFT map; MCAP images need an SFP map (their features are extracted with the SFP model)",
-            args.map.display()
-        ),
-        _ => {}
-    }
-    let bars = super::super::Bars::new(quiet, args.json);
-    let extractor = Extractor::new(
-        &ExtractorOptions {
-            model: args.model.clone(),
-            threads: 2,
-        },
-        &bars,
+    let map = super::super::open_map(&args.map)?;
+    let descriptor = super::descriptor_kind(&map);
+    super::check_extractable(
+        &args.map,
+        &descriptor,
+        "MCAP images need an SFP map (their features are extracted with the SFP model)",
     )?;
-    if extractor.contract().model_name != descriptor {
-        bail!(
-            "{}: the map's descriptors are {descriptor:?} but the model is {:?}",
-            args.map.display(),
-            extractor.contract().model_name
-        );
-    }
+    let extractor = super::sfp_extractor(args, &descriptor, bars)?;
     let gray_weights = extractor.contract().gray_weights;
-    let options = LocalizeOptions {
-        levels: args.levels.clone(),
-        short: args.short,
-        top_k: args.top_k,
-        matching: MatchOptions {
-            ratio: args.ratio,
-            ..MatchOptions::default()
-        },
-        ..LocalizeOptions::default()
-    };
-    let localizer =
-        Localizer::new(&map, options).with_context(|| args.map.display().to_string())?;
+    let localizer = super::localizer(&map, args)?;
 
     bars.start("localizing", expected_on_topic);
     let extractor = Mutex::new(extractor);
@@ -305,11 +271,9 @@ pub fn run(args: &Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 input.display(),
                 topic_list(&scan.topics)
             ),
-            None if !scan.topics.contains_key(topic) => bail!(
-                "{}: no topic {topic:?}; topics present: {}",
-                input.display(),
-                topic_list(&scan.topics)
-            ),
+            None if !scan.topics.contains_key(topic) => {
+                return Err(no_topic(input, topic, &scan.topics))
+            }
             None => bail!("{}: topic {topic:?} has no messages", input.display()),
         }
     }
@@ -375,7 +339,6 @@ pub fn run(args: &Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .values()
         .filter_map(|f| f.outcome.as_ref().ok())
         .collect();
-    let stage = |f: fn(&Localization) -> f64| super::median(results.iter().map(|r| f(r)).collect());
     if args.json {
         super::super::print_json(&json!({
             "mcap": input.display().to_string(),
@@ -387,22 +350,16 @@ pub fn run(args: &Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "output": args.output.display().to_string(),
             "pose_topic": m.pose_topic,
             "tum": m.tum.as_ref().map(|p| p.display().to_string()),
-            "camera": format!("{} {} {} {:?}", camera.model().name(), camera.width(), camera.height(), camera.params()),
+            "camera": camera.to_string(),
             "seconds": start.elapsed().as_secs_f64(),
-            "median_ms": {
-                "retrieval": stage(|r| r.times.retrieval_ms),
-                "coarse_match": stage(|r| r.times.coarse_match_ms),
-                "coarse_ransac": stage(|r| r.times.coarse_ransac_ms),
-                "fine": stage(|r| r.times.fine_ms),
-                "total": stage(|r| r.times.total_ms),
-            },
+            "median_ms": super::median_ms(results.iter().copied()),
         }))?;
     } else if !quiet {
         println!(
             "{}: {localized}/{} images of {topic} localized, median {:.1} ms per image (after features)",
             args.output.display(),
             scan.messages_on_topic,
-            stage(|r| r.times.total_ms)
+            super::median(results.iter().map(|r| r.times.total_ms).collect())
         );
         for f in &failed {
             println!("failed: image {} ({})", f["index"], f["reason"]);
@@ -461,21 +418,7 @@ fn localize_message(
     frame
 }
 
-/// Temp file in the destination's folder, renamed over it once complete.
-fn temp_path(path: &Path) -> PathBuf {
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    dir.join(format!(
-        ".{}.tmp{}",
-        path.file_name()
-            .map(|f| f.to_string_lossy())
-            .unwrap_or_default(),
-        std::process::id()
-    ))
-}
-
+/// The output MCAP, through a temp file + rename ([`write_atomic`](super::super::write_atomic)).
 fn write_output(
     args: &Args,
     input: &Path,
@@ -484,73 +427,70 @@ fn write_output(
 ) -> anyhow::Result<()> {
     let m = &args.mcap;
     let path = &args.output;
-    let tmp = temp_path(path);
-    let result = (|| -> anyhow::Result<()> {
-        let file = std::io::BufWriter::new(File::create(&tmp)?);
-        let mut writer = mcap_io::PoseWriter::new(file, &m.pose_topic)?;
-        let write_pose = |writer: &mut mcap_io::PoseWriter<_>, frame: &Frame| match &frame.outcome {
-            Ok(Localization {
-                pose: Some(pose), ..
-            }) => writer.write_pose(
-                frame.log_time,
-                frame.publish_time,
-                frame.stamp,
-                &m.frame_id,
-                pose,
-            ),
-            _ => Ok(()),
-        };
-        if m.passthrough_images {
-            // A second pass copies the images in log order, each followed by its pose.
-            let mut index = 0;
-            for message in open_stream(input)? {
-                let Ok(message) = message else { break };
-                if message.channel.topic != topic {
-                    continue;
-                }
-                let Some(frame) = frames.get(&index) else {
-                    break;
+    super::super::write_atomic(path, |out| {
+        (|| -> anyhow::Result<()> {
+            // `&mut BufWriter<File>` is Write + Seek: the MCAP writer seeks back for the summary.
+            let mut writer = mcap_io::PoseWriter::new(out, &m.pose_topic)?;
+            let write_pose =
+                |writer: &mut mcap_io::PoseWriter<_>, frame: &Frame| match &frame.outcome {
+                    Ok(Localization {
+                        pose: Some(pose), ..
+                    }) => writer.write_pose(
+                        frame.log_time,
+                        frame.publish_time,
+                        frame.stamp,
+                        &m.frame_id,
+                        pose,
+                    ),
+                    _ => Ok(()),
                 };
-                writer.write_message(&message)?;
-                write_pose(&mut writer, frame)?;
-                index += 1;
+            if m.passthrough_images {
+                // A second pass copies the images in log order, each followed by its pose.
+                let mut index = 0;
+                for message in open_stream(input)? {
+                    let Ok(message) = message else { break };
+                    if message.channel.topic != topic {
+                        continue;
+                    }
+                    let Some(frame) = frames.get(&index) else {
+                        break;
+                    };
+                    writer.write_message(&message)?;
+                    write_pose(&mut writer, frame)?;
+                    index += 1;
+                }
+            } else {
+                for frame in frames.values() {
+                    write_pose(&mut writer, frame)?;
+                }
             }
-        } else {
-            for frame in frames.values() {
-                write_pose(&mut writer, frame)?;
-            }
-        }
-        let mut file = writer.finish()?;
-        std::io::Write::flush(&mut file)?;
-        file.into_inner().map_err(|e| e.into_error())?.sync_all()?;
-        std::fs::rename(&tmp, path)?;
-        Ok(())
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result.with_context(|| path.display().to_string())
+            writer.finish()?;
+            Ok(())
+        })()
+        .with_context(|| path.display().to_string())
+    })
 }
 
+/// The trajectory as TUM, stamped with the images' own times in seconds.
 fn write_tum(path: &Path, frames: &BTreeMap<usize, Frame>) -> anyhow::Result<()> {
-    use std::fmt::Write as _;
-    let mut out =
-        String::from("# timestamp tx ty tz qx qy qz qw (TUM: world_from_cam; image stamps)\n");
-    for frame in frames.values() {
-        if let Ok(Localization {
-            pose: Some(pose), ..
-        }) = &frame.outcome
-        {
-            let w = pose.inverse().to_colmap();
+    use std::io::Write as _;
+    super::super::write_atomic(path, |out| {
+        (|| -> anyhow::Result<()> {
             writeln!(
                 out,
-                "{}.{:09} {} {} {} {} {} {} {}",
-                frame.stamp.sec, frame.stamp.nsec, w[4], w[5], w[6], w[1], w[2], w[3], w[0]
+                "# timestamp tx ty tz qx qy qz qw (TUM: world_from_cam; image stamps)"
             )?;
-        }
-    }
-    let tmp = temp_path(path);
-    std::fs::write(&tmp, out)
-        .and_then(|_| std::fs::rename(&tmp, path))
+            for frame in frames.values() {
+                if let Ok(Localization {
+                    pose: Some(pose), ..
+                }) = &frame.outcome
+                {
+                    let stamp = format!("{}.{:09}", frame.stamp.sec, frame.stamp.nsec);
+                    writeln!(out, "{}", tum_line(stamp, pose.to_colmap()))?;
+                }
+            }
+            Ok(())
+        })()
         .with_context(|| path.display().to_string())
+    })
 }

@@ -36,6 +36,23 @@ pub fn camera_center(cam_from_world: [f64; 7]) -> [f64; 3] {
     world_from_cam(cam_from_world).0
 }
 
+/// One TUM row, `timestamp tx ty tz qx qy qz qw` (`world_from_cam`), without the newline, for a
+/// `cam_from_world` pose (qw qx qy qz tx ty tz). `−0` is written as `0`.
+pub fn tum_line(timestamp: impl std::fmt::Display, cam_from_world: [f64; 7]) -> String {
+    let (c, q) = world_from_cam(cam_from_world);
+    // `+ 0.0` turns the conjugate's −0 into 0, which reads better.
+    format!(
+        "{timestamp} {} {} {} {} {} {} {}",
+        c[0] + 0.0,
+        c[1] + 0.0,
+        c[2] + 0.0,
+        q[1] + 0.0,
+        q[2] + 0.0,
+        q[3] + 0.0,
+        q[0] + 0.0
+    )
+}
+
 /// TUM lines for `(name, cam_from_world)` poses. TUM needs a timestamp: the pose's index in
 /// the list, with the names listed in order in the header comment so rows can be traced back.
 pub fn to_tum<'a>(poses: impl IntoIterator<Item = (&'a str, [f64; 7])>) -> String {
@@ -43,21 +60,9 @@ pub fn to_tum<'a>(poses: impl IntoIterator<Item = (&'a str, [f64; 7])>) -> Strin
         String::from("# sfpmap: TUM trajectory (world_from_cam); timestamp = index of the image:");
     let mut body = String::new();
     for (i, (name, pose)) in poses.into_iter().enumerate() {
-        // `+ 0.0` turns the conjugate's −0 into 0, which reads better.
-        let (c, q) = world_from_cam(pose);
         write!(names, " {i}={name}").ok();
-        writeln!(
-            body,
-            "{i} {} {} {} {} {} {} {}",
-            c[0] + 0.0,
-            c[1] + 0.0,
-            c[2] + 0.0,
-            q[1] + 0.0,
-            q[2] + 0.0,
-            q[3] + 0.0,
-            q[0] + 0.0
-        )
-        .ok();
+        body.push_str(&tum_line(i, pose));
+        body.push('\n');
     }
     names.push_str("\n# timestamp tx ty tz qx qy qz qw\n");
     names + &body
@@ -129,5 +134,24 @@ mod tests {
         assert!((c[0]).abs() < 1e-12 && (c[1] - 1.0).abs() < 1e-12 && c[2].abs() < 1e-12);
         let c = camera_center([1.0, 0.0, 0.0, 0.0, 1.0, -0.5, 2.0]);
         assert_eq!(c, [-1.0, 0.5, -2.0]);
+    }
+
+    #[test]
+    fn tum_rows_are_world_from_cam_without_negative_zero() {
+        assert_eq!(
+            tum_line(3, [1.0, 0.0, 0.0, 0.0, 1.0, -0.5, 2.0]),
+            "3 -1 0.5 -2 0 0 0 1"
+        );
+        assert_eq!(
+            tum_line("12.000000005", [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]),
+            "12.000000005 0 0 0 0 0 0 1"
+        );
+        let text = to_tum([("a.jpg", [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0])]);
+        assert_eq!(
+            text,
+            "# sfpmap: TUM trajectory (world_from_cam); timestamp = index of the image: 0=a.jpg\n\
+             # timestamp tx ty tz qx qy qz qw\n\
+             0 -1 0 0 0 0 0 1\n"
+        );
     }
 }
