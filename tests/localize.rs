@@ -244,6 +244,14 @@ fn wrong_descriptor_kind_and_geometry_only_maps_are_errors() {
         })
     ));
 
+    // Descriptors that are not keypoints × dim values: an error, not a panic.
+    let mut bad = query(&s, &truth(), 0, 32);
+    bad.sets[0].descriptors.pop();
+    assert!(matches!(
+        localizer.localize(&bad, &s.camera),
+        Err(LocalizeError::FeatureShape { dim: 32, .. })
+    ));
+
     let mut w = MapWriter::default();
     w.metadata_mut().geometry_only = true;
     w.set_points_world(&s.points);

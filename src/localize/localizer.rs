@@ -112,6 +112,12 @@ pub enum LocalizeError {
     NoFeaturesForLevel {
         level: u16,
     },
+    /// A feature set's descriptors are not `keypoints × dim` values.
+    FeatureShape {
+        keypoints: usize,
+        dim: usize,
+        values: usize,
+    },
 }
 
 impl std::fmt::Display for LocalizeError {
@@ -124,6 +130,10 @@ impl std::fmt::Display for LocalizeError {
                 "query descriptors have {found} dimensions but level {level} of the map expects {expected} (another descriptor kind?)"
             ),
             LocalizeError::NoFeaturesForLevel { level } => write!(f, "the query has no features for level {level}"),
+            LocalizeError::FeatureShape { keypoints, dim, values } => write!(
+                f,
+                "query features: {values} descriptor values for {keypoints} keypoints of {dim} dimensions"
+            ),
         }
     }
 }
@@ -457,6 +467,14 @@ impl<'m> Localizer<'m> {
     /// dimensions and renormalised.
     fn project(&self, level: &LevelIndex, set: &FeatureSet) -> Result<Vec<f32>, LocalizeError> {
         let n = set.keypoints.len();
+        // The fields are public: a set of the wrong shape is an error, not a panic below.
+        if n.checked_mul(set.dim) != Some(set.descriptors.len()) {
+            return Err(LocalizeError::FeatureShape {
+                keypoints: n,
+                dim: set.dim,
+                values: set.descriptors.len(),
+            });
+        }
         let mut out = vec![0.0f32; n * level.dim];
         match &level.projection {
             Some(p) => {
