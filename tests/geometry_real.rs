@@ -1,10 +1,8 @@
 //! Geometry against a real COLMAP reconstruction (the shared South Building scene): COLMAP's
 //! own 2D–3D observations, camera and poses must agree with our projection, and RANSAC must
-//! recover the stored poses. Skipped when the data is absent.
-//!
-//! The binary model is read by a minimal reader here, not `sfpmap::colmap`, so the geometry
-//! tests depend on nothing but the `localize` feature.
-#![cfg(feature = "localize")]
+//! recover the stored poses. The model is read by `sfpmap::colmap` (feature `colmap-model`,
+//! no dependencies).
+#![cfg(all(feature = "localize", feature = "colmap-model"))]
 
 mod shared_data;
 
@@ -15,41 +13,6 @@ use nalgebra::{Vector2, Vector3};
 use sfpmap::localize::geometry::{
     estimate_absolute_pose, Camera, CameraModel, Pose, RansacOptions,
 };
-
-struct Cursor<'a> {
-    bytes: &'a [u8],
-    at: usize,
-}
-
-impl Cursor<'_> {
-    fn take(&mut self, n: usize) -> &[u8] {
-        let out = &self.bytes[self.at..self.at + n];
-        self.at += n;
-        out
-    }
-    fn u8(&mut self) -> u8 {
-        self.take(1)[0]
-    }
-    fn u32(&mut self) -> u32 {
-        u32::from_le_bytes(self.take(4).try_into().unwrap())
-    }
-    fn u64(&mut self) -> u64 {
-        u64::from_le_bytes(self.take(8).try_into().unwrap())
-    }
-    fn f64(&mut self) -> f64 {
-        f64::from_le_bytes(self.take(8).try_into().unwrap())
-    }
-    fn name(&mut self) -> String {
-        let mut name = Vec::new();
-        loop {
-            match self.u8() {
-                0 => break,
-                c => name.push(c),
-            }
-        }
-        String::from_utf8(name).unwrap()
-    }
-}
 
 struct Image {
     name: String,
@@ -68,66 +31,39 @@ type Model = (
     HashMap<u64, (Vector3<f64>, f64)>,
 );
 
+/// The model through the crate's COLMAP reader, in the geometry module's types.
 fn read_model(dir: &Path) -> Model {
-    let bytes = std::fs::read(dir.join("cameras.bin")).unwrap();
-    let mut c = Cursor {
-        bytes: &bytes,
-        at: 0,
-    };
-    let cameras = (0..c.u64())
-        .map(|_| {
-            let camera_id = c.u32();
-            let model = CameraModel::from_colmap_id(c.u32() as i32).unwrap();
-            let (width, height) = (c.u64() as u32, c.u64() as u32);
-            let params = (0..model.num_params()).map(|_| c.f64()).collect();
-            (
-                camera_id,
-                Camera::new(model, width, height, params).unwrap(),
-            )
+    let model = sfpmap::colmap::read_model(dir).unwrap();
+    let cameras = model
+        .cameras()
+        .iter()
+        .map(|c| {
+            let kind = CameraModel::from_colmap_id(c.model.id()).unwrap();
+            let camera = Camera::new(kind, c.width as u32, c.height as u32, c.params.clone());
+            (c.id, camera.unwrap())
         })
         .collect();
-
-    let bytes = std::fs::read(dir.join("images.bin")).unwrap();
-    let mut c = Cursor {
-        bytes: &bytes,
-        at: 0,
-    };
-    let images = (0..c.u64())
-        .map(|_| {
-            let _image_id = c.u32();
-            let q = [c.f64(), c.f64(), c.f64(), c.f64()];
-            let t = [c.f64(), c.f64(), c.f64()];
-            let pose = Pose::from_colmap(q[0], q[1], q[2], q[3], t[0], t[1], t[2]).unwrap();
-            let camera_id = c.u32();
-            let name = c.name();
-            let observations = (0..c.u64())
-                .map(|_| (Vector2::new(c.f64(), c.f64()), c.u64()))
-                .filter(|&(_, id)| id != u64::MAX)
-                .collect();
+    let images = model
+        .images()
+        .iter()
+        .map(|i| {
+            let (q, t) = (i.cam_from_world.rotation, i.cam_from_world.translation);
             Image {
-                name,
-                camera_id,
-                pose,
-                observations,
+                name: i.name.clone(),
+                camera_id: i.camera_id,
+                pose: Pose::from_colmap(q[0], q[1], q[2], q[3], t[0], t[1], t[2]).unwrap(),
+                observations: i
+                    .points2d
+                    .iter()
+                    .filter_map(|p| Some((Vector2::new(p.xy[0], p.xy[1]), p.point3d_id?)))
+                    .collect(),
             }
         })
         .collect();
-
-    let bytes = std::fs::read(dir.join("points3D.bin")).unwrap();
-    let mut c = Cursor {
-        bytes: &bytes,
-        at: 0,
-    };
-    let points = (0..c.u64())
-        .map(|_| {
-            let id = c.u64();
-            let xyz = Vector3::new(c.f64(), c.f64(), c.f64());
-            c.take(3);
-            let error = c.f64();
-            let track = c.u64() as usize;
-            c.take(8 * track);
-            (id, (xyz, error))
-        })
+    let points = model
+        .points3d()
+        .iter()
+        .map(|p| (p.id, (Vector3::from(p.xyz), p.error)))
         .collect();
     (cameras, images, points)
 }
