@@ -5,13 +5,16 @@
 // Every call here passes valid pointers (or deliberately NULL ones, which the API reports).
 #![allow(clippy::undocumented_unsafe_blocks)]
 
+mod synthetic_scene;
+
 use serde_json::Value;
 use sfpmap::ffi::*;
-use sfpmap::format::{CameraInfo, Descriptors, LevelInfo, MapWriter};
+use sfpmap::format::{CameraInfo, Descriptors, MapWriter};
 use sfpmap::localize::geometry::{Camera, Pose};
 use std::ffi::{CStr, CString};
 use std::path::Path;
 use std::ptr::{null, null_mut};
+use synthetic_scene::{level_info, points_and_descriptors, truth, unit, Rng};
 
 fn vector(name: &str) -> (CString, Value) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("spec/vectors/valid");
@@ -278,44 +281,9 @@ fn images_visibility_and_argument_errors() {
 const DIM: usize = 32;
 const N: usize = 1500;
 
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn normal(&mut self) -> f64 {
-        let (u, v) = (self.next().max(1e-12), self.next());
-        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-    }
-}
-
-fn unit(v: &mut [f32]) {
-    let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
-    v.iter_mut().for_each(|x| *x /= n);
-}
-
 /// Writes the map; returns its points, descriptors and path holder.
 fn synthetic_map(dir: &Path) -> (Vec<[f64; 3]>, Vec<f32>, CString) {
-    let mut rng = Rng(42);
-    let points: Vec<[f64; 3]> = (0..N)
-        .map(|_| {
-            [
-                rng.next() * 20.0 - 10.0,
-                rng.next() * 10.0 - 5.0,
-                10.0 + rng.next() * 20.0,
-            ]
-        })
-        .collect();
-    let mut descriptors = Vec::with_capacity(N * DIM);
-    for _ in 0..N {
-        let mut d: Vec<f32> = (0..DIM).map(|_| rng.normal() as f32).collect();
-        unit(&mut d);
-        descriptors.extend(d);
-    }
+    let (points, descriptors) = points_and_descriptors(N, DIM);
     let mut w = MapWriter::default();
     w.add_camera(CameraInfo {
         id: Some(1),
@@ -340,15 +308,7 @@ fn synthetic_map(dir: &Path) -> (Vec<[f64; 3]>, Vec<f32>, CString) {
             .iter()
             .flat_map(|&p| descriptors[p as usize * DIM..(p as usize + 1) * DIM].to_vec())
             .collect();
-        let info = LevelInfo {
-            level: l as u16,
-            stride: 4.0 * (1 << l) as f64,
-            descriptor: "test".into(),
-            dim_full: DIM as u32,
-            dim_short: 16,
-            normalization: "l2".into(),
-            extra: Default::default(),
-        };
+        let info = level_info(l as u16, DIM);
         w.add_level(info, pts, Some(Descriptors::F32(&desc)), true)
             .unwrap();
     }
@@ -359,10 +319,6 @@ fn synthetic_map(dir: &Path) -> (Vec<[f64; 3]>, Vec<f32>, CString) {
         descriptors,
         CString::new(path.to_str().unwrap()).unwrap(),
     )
-}
-
-fn truth() -> Pose {
-    Pose::from_colmap(0.995, 0.05, -0.07, 0.03, 0.4, -0.2, 1.5).unwrap()
 }
 
 /// Keypoints (x, y interleaved) and descriptors of the map points the query sees.

@@ -2,32 +2,15 @@
 //! projected keypoints with noise, descriptor noise and outliers.
 #![cfg(feature = "localize")]
 
-use sfpmap::format::{slice, Descriptors, LevelInfo, Map, MapWriter, SliceOptions};
+mod synthetic_scene;
+
+use sfpmap::format::{slice, Descriptors, Map, MapWriter, SliceOptions};
 use sfpmap::localize::geometry::{Camera, Pose};
 use sfpmap::localize::{FeatureSet, LocalizeError, LocalizeOptions, Localizer, QueryFeatures};
+use synthetic_scene::{level_info, points_and_descriptors, truth, unit, Rng};
 
 const DIM: usize = 32;
 const N: usize = 3000;
-
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> f64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn normal(&mut self) -> f64 {
-        let (u, v) = (self.next().max(1e-12), self.next());
-        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-    }
-}
-
-fn unit(v: &mut [f32]) {
-    let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
-    v.iter_mut().for_each(|x| *x /= n);
-}
 
 struct Scene {
     points: Vec<[f64; 3]>,
@@ -36,22 +19,7 @@ struct Scene {
 }
 
 fn scene() -> Scene {
-    let mut rng = Rng(42);
-    let points = (0..N)
-        .map(|_| {
-            [
-                rng.next() * 20.0 - 10.0,
-                rng.next() * 10.0 - 5.0,
-                10.0 + rng.next() * 20.0,
-            ]
-        })
-        .collect();
-    let mut descriptors = Vec::with_capacity(N * DIM);
-    for _ in 0..N {
-        let mut d: Vec<f32> = (0..DIM).map(|_| rng.normal() as f32).collect();
-        unit(&mut d);
-        descriptors.extend(d);
-    }
+    let (points, descriptors) = points_and_descriptors(N, DIM);
     let camera = Camera::parse("SIMPLE_RADIAL 640 480 500 320 240 0.01").unwrap();
     Scene {
         points,
@@ -92,15 +60,7 @@ fn map_bytes(s: &Scene) -> Vec<u8> {
             .iter()
             .flat_map(|&p| s.descriptors[p as usize * DIM..(p as usize + 1) * DIM].to_vec())
             .collect();
-        let info = LevelInfo {
-            level: l as u16,
-            stride: 4.0 * (1 << l) as f64,
-            descriptor: "test".into(),
-            dim_full: DIM as u32,
-            dim_short: 16,
-            normalization: "l2".into(),
-            extra: Default::default(),
-        };
+        let info = level_info(l as u16, DIM);
         w2.add_level(info, pts, Some(Descriptors::F32(&desc)), true)
             .unwrap();
         w2.set_level_projection(l as u16, DIM, identity.clone())
@@ -108,10 +68,6 @@ fn map_bytes(s: &Scene) -> Vec<u8> {
     }
     w2.set_visibility(&offsets, &vis, None).unwrap();
     w2.to_bytes().unwrap()
-}
-
-fn truth() -> Pose {
-    Pose::from_colmap(0.995, 0.05, -0.07, 0.03, 0.4, -0.2, 1.5).unwrap()
 }
 
 /// Keypoints where the map's points project (0.5 px noise, descriptor noise) plus outliers.
