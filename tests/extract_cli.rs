@@ -170,37 +170,54 @@ fn missing_images_are_named_unless_allowed() {
         .map(|e| e.unwrap().path())
         .collect();
     names.sort();
-    let dropped = names.remove(0);
+    // Drop an image the map's model uses (db_images.txt lists them), so its absence matters.
+    let listed = scene().join("db_images.txt");
+    let db_images =
+        std::fs::read_to_string(&listed).unwrap_or_else(|e| panic!("{}: {e}", listed.display()));
+    let dropped_name = db_images
+        .lines()
+        .map(str::trim)
+        .find(|l| !l.is_empty())
+        .unwrap_or_else(|| panic!("{}: no image names", listed.display()))
+        .to_string();
+    let before = names.len();
+    names.retain(|p| p.file_name().unwrap().to_string_lossy() != dropped_name.as_str());
+    assert_eq!(names.len() + 1, before, "{dropped_name} is in images/");
     for p in &names {
         std::fs::copy(p, images.join(p.file_name().unwrap())).unwrap();
     }
     let out = dir.path().join("m.sfpm");
     let run = convert(&images, &out, &[]);
     let stderr = String::from_utf8_lossy(&run.stderr);
-    let dropped_name = dropped.file_name().unwrap().to_string_lossy().into_owned();
-    // The dropped file may be a query image the map does not use; then the convert succeeds.
-    let model_uses_it = std::fs::read(scene().join("db_images.txt"))
-        .map(|b| String::from_utf8_lossy(&b).contains(&dropped_name))
-        .unwrap_or(true);
-    if model_uses_it {
-        assert!(!run.status.success());
-        assert!(
-            stderr.contains(&dropped_name) && stderr.contains("--allow-missing"),
-            "{stderr}"
-        );
-        assert!(!out.exists());
-        let run = convert(&images, &out, &["--allow-missing"]);
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
-        );
-        let summary: Value = serde_json::from_slice(&run.stdout).unwrap();
-        assert_eq!(summary["missing_images"][0], dropped_name.as_str());
-    } else {
-        assert!(run.status.success(), "{stderr}");
-    }
+    assert!(!run.status.success());
+    assert!(
+        stderr.contains(&dropped_name) && stderr.contains("--allow-missing"),
+        "{stderr}"
+    );
+    assert!(!out.exists());
+    let run = convert(&images, &out, &["--allow-missing"]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let summary: Value = serde_json::from_slice(&run.stdout).unwrap();
+    assert_eq!(summary["missing_images"], serde_json::json!([dropped_name]));
     ok(&[os("verify"), out.as_os_str()]);
+}
+
+/// A failed command prints one line, `error: …`, that names `path` exactly once (an error
+/// chain whose messages contain their sources would repeat it).
+fn assert_one_line_naming_once(run: &Output, path: &Path) {
+    assert!(!run.status.success());
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    let path = path.to_str().unwrap();
+    assert!(
+        stderr.ends_with('\n') && stderr.matches('\n').count() == 1,
+        "{stderr:?}"
+    );
+    assert!(stderr.starts_with("error: "), "{stderr}");
+    assert_eq!(stderr.matches(path).count(), 1, "{path} in {stderr}");
 }
 
 #[test]
@@ -215,13 +232,47 @@ fn bad_model_files_are_named() {
             &out,
             &["--model", model.to_str().unwrap()],
         );
-        assert!(!run.status.success());
-        let stderr = String::from_utf8_lossy(&run.stderr);
-        assert!(
-            stderr.contains(model.to_str().unwrap()) && !stderr.contains("panicked"),
-            "{stderr}"
-        );
+        assert_one_line_naming_once(&run, &model);
+        assert!(!out.exists());
     }
+}
+
+#[test]
+fn bad_images_are_named_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("f.h5");
+    // No known format; a JPEG header then garbage (a decoder error); a PNG cut after IHDR.
+    let unknown = dir.path().join("not-an-image.jpg");
+    std::fs::write(&unknown, b"not a JPEG").unwrap();
+    let bad_jpeg = dir.path().join("bad.jpg");
+    std::fs::write(&bad_jpeg, b"\xff\xd8\xff\xe0\x00\x10JFIF\x00garbage").unwrap();
+    let cut_png = dir.path().join("cut.png");
+    std::fs::write(&cut_png, b"\x89PNG\r\n\x1a\n\x00\x00\x00\x0dIHDR").unwrap();
+    let absent = dir.path().join("absent.png");
+    for image in [&unknown, &bad_jpeg, &cut_png, &absent] {
+        let run = sfpmap(&[os("extract"), image.as_os_str(), os("-o"), out.as_os_str()]);
+        assert_one_line_naming_once(&run, image);
+        assert!(!out.exists());
+    }
+    // In `convert --images` too (its error wraps the extractor's): every model image is bad.
+    let images = dir.path().join("images");
+    std::fs::create_dir(&images).unwrap();
+    let listed = scene().join("db_images.txt");
+    for name in std::fs::read_to_string(&listed)
+        .unwrap_or_else(|e| panic!("{}: {e}", listed.display()))
+        .lines()
+        .filter(|l| !l.trim().is_empty())
+    {
+        std::fs::write(
+            images.join(name.trim()),
+            b"\xff\xd8\xff\xe0\x00\x10JFIF\x00garbage",
+        )
+        .unwrap();
+    }
+    let map = dir.path().join("m.sfpm");
+    let run = convert(&images, &map, &[]);
+    assert_one_line_naming_once(&run, &images);
+    assert!(!map.exists());
 }
 
 #[test]
@@ -353,14 +404,27 @@ fn runtime_is_fetched_on_first_use_and_discovery_order_holds() {
         stderr.contains("ORT_DYLIB_PATH") && stderr.contains("nowhere"),
         "{stderr}"
     );
-    // A file that is not the 1.31.1 library is refused before it is loaded.
+    // A library of another release is refused before it is loaded: a fake as large as a real
+    // one (the size check passes) that declares VERS_1.30.0, the symbol version it reads.
     let fake = dir.path().join("libonnxruntime.so.1.30.0");
-    std::fs::write(&fake, b"\x7fELF not really").unwrap();
+    let mut bytes = b"\x7fELF".to_vec();
+    bytes.resize(1 << 20, 0);
+    bytes.extend_from_slice(b"GLIBC_2.2.5\0VERS_1.30.0\0");
+    std::fs::write(&fake, &bytes).unwrap();
     let bad = run(
-        &[("ORT_DYLIB_PATH", fake.as_os_str())],
+        &[
+            ("XDG_CACHE_HOME", cache.as_os_str()),
+            ("ORT_DYLIB_PATH", fake.as_os_str()),
+        ],
         &[os("setup"), os("--check")],
     );
     assert!(!bad.status.success());
+    let stderr = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        stderr.contains(fake.to_str().unwrap())
+            && stderr.contains("is ONNX Runtime 1.30.0; sfpmap needs 1.31.1"),
+        "{stderr}"
+    );
 }
 
 /// Images smaller than their cameras (a downscaled copy of the folder) still give a map: the

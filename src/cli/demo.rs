@@ -140,14 +140,12 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let mut extractor = Extractor::new(&ExtractorOptions::default(), &bars)?;
     let mut features = Vec::with_capacity(queries.len());
     for q in &queries {
-        let input = sfpmap::extract::image::load(
-            &images.join(&q.name),
-            extractor.contract().gray_weights,
-            None,
-        )?;
-        features.push(sfp_query(
-            &extractor.extract(&input, &DetectOptions::default())?,
-        ));
+        let path = images.join(&q.name);
+        let input = sfpmap::extract::image::load(&path, extractor.contract().gray_weights, None)?;
+        let extracted = extractor
+            .extract(&input, &DetectOptions::default())
+            .map_err(|e| e.on_image(&path))?;
+        features.push(sfp_query(&extracted));
     }
     let variants = [
         Variant {

@@ -138,7 +138,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     for (name, path) in &images {
         let input = image::load(path, contract.gray_weights, args.resize_max)?;
         let t = Instant::now();
-        let features = extractor.extract(&input, &detect)?;
+        let features = extractor
+            .extract(&input, &detect)
+            .map_err(|e| e.on_image(path))?;
         ms.push(t.elapsed().as_secs_f64() * 1e3);
         results.push((name.clone(), features));
         bars.advance(1);

@@ -30,21 +30,24 @@ pub fn load(
     weights: [f32; 3],
     resize_max: Option<u32>,
 ) -> Result<GrayInput, ExtractError> {
-    let err = |source: image::ImageError| ExtractError::Image {
+    let bytes = std::fs::read(path).map_err(|source| ExtractError::Io {
         path: path.to_path_buf(),
         source,
-    };
-    let reader = image::ImageReader::open(path)
-        .map_err(|source| ExtractError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?
-        .with_guessed_format()
-        .map_err(|source| ExtractError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-    let decoded = reader.decode().map_err(err)?;
+    })?;
+    decode(&bytes, path, weights, resize_max)
+}
+
+/// [`load`] on the bytes of an image file already read; `path` names it in errors.
+pub fn decode(
+    bytes: &[u8],
+    path: &Path,
+    weights: [f32; 3],
+    resize_max: Option<u32>,
+) -> Result<GrayInput, ExtractError> {
+    let decoded = image::load_from_memory(bytes).map_err(|source| ExtractError::Image {
+        path: path.to_path_buf(),
+        source,
+    })?;
     Ok(from_image(&decoded, weights, resize_max))
 }
 

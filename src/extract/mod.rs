@@ -66,8 +66,32 @@ pub enum ExtractError {
         path: PathBuf,
         source: ::image::ImageError,
     },
-    /// Running the model failed, or it returned outputs that break its contract.
-    Inference { model: String, reason: String },
+    /// Running the model failed, or it returned outputs that break its contract; `image` is
+    /// the file the input came from, when the caller says ([`ExtractError::on_image`]).
+    Inference {
+        model: String,
+        image: Option<PathBuf>,
+        reason: String,
+    },
+}
+
+impl ExtractError {
+    /// Names the image file an [`ExtractError::Inference`] happened on (other errors, and
+    /// one that already names an image, are returned as they are).
+    pub fn on_image(self, path: &Path) -> Self {
+        match self {
+            ExtractError::Inference {
+                model,
+                image: None,
+                reason,
+            } => ExtractError::Inference {
+                model,
+                image: Some(path.to_path_buf()),
+                reason,
+            },
+            other => other,
+        }
+    }
 }
 
 impl fmt::Display for ExtractError {
@@ -99,21 +123,30 @@ impl fmt::Display for ExtractError {
                 write!(f, "{model}: not a loadable ONNX model: {reason}")
             }
             ExtractError::Contract { model, reason } => write!(f, "{model}: {reason}"),
-            ExtractError::Image { path, source } => write!(f, "{}: {source}", path.display()),
-            ExtractError::Inference { model, reason } => write!(f, "{model}: {reason}"),
+            // Some decoders end their message with a newline: kept to one line.
+            ExtractError::Image { path, source } => write!(
+                f,
+                "{}: {}",
+                path.display(),
+                source.to_string().trim_end().replace('\n', "; ")
+            ),
+            ExtractError::Inference {
+                model,
+                image: Some(image),
+                reason,
+            } => write!(f, "{}: {model}: {reason}", image.display()),
+            ExtractError::Inference {
+                model,
+                image: None,
+                reason,
+            } => write!(f, "{model}: {reason}"),
         }
     }
 }
 
-impl std::error::Error for ExtractError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            ExtractError::Io { source, .. } => Some(source),
-            ExtractError::Image { source, .. } => Some(source),
-            _ => None,
-        }
-    }
-}
+/// No `source()`: every message already contains its cause (`Io` and `Image` print theirs
+/// after the path), and a chain printed with `{:#}` would repeat it.
+impl std::error::Error for ExtractError {}
 
 /// How the extractor is built.
 #[derive(Debug, Clone)]
@@ -224,10 +257,17 @@ impl Dense {
     /// L2-normalised, concatenated and normalised again (`spec/extractor.md`).
     pub fn full_descriptor_at(&self, i: usize, x: f32, y: f32, out: &mut Vec<f32>) {
         let start = out.len();
+        self.parts_at(i, x, y, out);
+        keypoints::l2_normalise(&mut out[start..]);
+    }
+
+    /// [`Dense::full_descriptor_at`] before its last normalisation: levels i.. sampled, each
+    /// part L2-normalised, concatenated. The first part (`levels[i].channels` values) is
+    /// level i's own descriptor, [`DenseLevel::descriptor_at`].
+    pub fn parts_at(&self, i: usize, x: f32, y: f32, out: &mut Vec<f32>) {
         for level in &self.levels[i..] {
             level.descriptor_at(x, y, out);
         }
-        keypoints::l2_normalise(&mut out[start..]);
     }
 }
 
@@ -284,7 +324,6 @@ pub struct Extractor {
     session: Session,
     contract: Contract,
     model: ModelInfo,
-    output_names: Vec<String>,
 }
 
 impl fmt::Debug for Extractor {
@@ -381,7 +420,6 @@ impl Extractor {
             session,
             contract,
             model,
-            output_names,
         })
     }
 
@@ -399,6 +437,7 @@ impl Extractor {
         let name = self.model.name.clone();
         let infer = |reason: String| ExtractError::Inference {
             model: name.clone(),
+            image: None,
             reason,
         };
         if w == 0 || h == 0 {
@@ -455,7 +494,6 @@ impl Extractor {
             return Err(infer(format!("global has shape {:?}", &**shape)));
         }
         let global = data.to_vec();
-        debug_assert!(self.output_names.iter().any(|n| n == "global"));
         Ok(Dense {
             input_size: [w, h],
             scale: input.scale(),
@@ -489,11 +527,11 @@ impl Extractor {
             let mut buf = Vec::with_capacity(c.full_dims[i]);
             for p in &peaks {
                 let (x, y) = (p.x * s, p.y * s);
+                // Level i's own part is `short`; normalised with the rest it is `full`.
                 buf.clear();
-                level.descriptor_at(x, y, &mut buf);
-                short.extend(buf.iter().map(|&v| f16::from_f32(v)));
-                buf.clear();
-                dense.full_descriptor_at(i, x, y, &mut buf);
+                dense.parts_at(i, x, y, &mut buf);
+                short.extend(buf[..level.channels].iter().map(|&v| f16::from_f32(v)));
+                keypoints::l2_normalise(&mut buf);
                 full.extend(buf.iter().map(|&v| f16::from_f32(v)));
                 kps.push([(x + 0.5) * dense.scale[0], (y + 0.5) * dense.scale[1]]);
             }
@@ -523,5 +561,70 @@ impl Extractor {
     ) -> Result<Features, ExtractError> {
         let dense = self.run(input)?;
         Ok(self.features(&dense, input.original_size, options))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn level(stride: u32, channels: usize, side: usize, seed: u32) -> DenseLevel {
+        let mut state = seed;
+        let mut next = || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (state >> 8) as f32 / (1 << 24) as f32 - 0.5
+        };
+        DenseLevel {
+            stride,
+            channels,
+            height: side,
+            width: side,
+            feat: (0..channels * side * side).map(|_| next()).collect(),
+            score: (0..side * side).map(|_| next()).collect(),
+        }
+    }
+
+    #[test]
+    fn parts_start_with_the_level_descriptor_and_normalise_to_the_full_one() {
+        let dense = Dense {
+            input_size: [32, 32],
+            scale: [1.0, 1.0],
+            levels: vec![level(2, 4, 16, 1), level(4, 6, 8, 2), level(8, 8, 4, 3)],
+            global: vec![1.0],
+        };
+        for i in 0..3 {
+            for (x, y) in [(3.3, 7.9), (0.0, 0.0), (31.0, 12.5)] {
+                let mut own = Vec::new();
+                dense.levels[i].descriptor_at(x, y, &mut own);
+                let mut full = Vec::new();
+                dense.full_descriptor_at(i, x, y, &mut full);
+                let mut parts = vec![9.0];
+                dense.parts_at(i, x, y, &mut parts);
+                assert_eq!(parts[1..=own.len()], own[..]);
+                keypoints::l2_normalise(&mut parts[1..]);
+                assert_eq!(parts[1..], full[..]);
+            }
+        }
+    }
+
+    #[test]
+    fn inference_errors_name_the_image_once() {
+        let e = ExtractError::Inference {
+            model: "m.onnx".into(),
+            image: None,
+            reason: "empty image".into(),
+        };
+        assert_eq!(e.to_string(), "m.onnx: empty image");
+        let e = e.on_image(Path::new("a.jpg")).on_image(Path::new("b.jpg"));
+        assert_eq!(e.to_string(), "a.jpg: m.onnx: empty image");
+        let io = ExtractError::Io {
+            path: "x.png".into(),
+            source: std::io::Error::from(std::io::ErrorKind::NotFound),
+        };
+        assert!(std::error::Error::source(&io).is_none());
+        assert!(io
+            .on_image(Path::new("y.png"))
+            .to_string()
+            .starts_with("x.png: "));
     }
 }

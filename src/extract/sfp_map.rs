@@ -17,7 +17,7 @@
 
 use super::{ExtractError, Extractor, ExtractorOptions, ModelInfo};
 use crate::colmap::convert::{
-    read_model_with_sources, source_file, ConvertError, ConvertSummary, Geometry, LevelSummary,
+    read_model_with_sources, ConvertError, ConvertSummary, Geometry, LevelSummary,
 };
 use crate::format::{self, Codec, Descriptors, LevelInfo, MapWriter, Metadata, SourceFile};
 use crate::progress::Reporter;
@@ -113,11 +113,13 @@ impl fmt::Display for SfpMapError {
     }
 }
 
+/// Transparent: `Convert` and `Extract` print their inner error, so its source (if any) is
+/// theirs; returning the inner error itself would print its text twice under `{:#}`.
 impl std::error::Error for SfpMapError {
     fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
         match self {
-            SfpMapError::Convert(e) => Some(e),
-            SfpMapError::Extract(e) => Some(e),
+            SfpMapError::Convert(e) => e.source(),
+            SfpMapError::Extract(e) => e.source(),
             SfpMapError::MissingImages { .. } => None,
         }
     }
@@ -174,11 +176,12 @@ pub fn convert_with_images(
         .iter()
         .map(|i| options.images.join(&i.name))
         .collect();
+    let present: Vec<bool> = paths.iter().map(|p| p.is_file()).collect();
     let missing: Vec<String> = model
         .images()
         .iter()
-        .zip(&paths)
-        .filter(|(_, p)| !p.is_file())
+        .zip(&present)
+        .filter(|(_, &here)| !here)
         .map(|(i, _)| i.name.clone())
         .collect();
     if !missing.is_empty() {
@@ -225,16 +228,25 @@ pub fn convert_with_images(
     let mut scaled = 0usize;
     reporter.start("extracting", Some(model.images().len() as u64));
     for (k, (image, path)) in model.images().iter().zip(&paths).enumerate() {
-        if !path.is_file() {
+        if !present[k] {
             reporter.advance(1);
             continue;
         }
-        let source = source_file(path)?;
-        image_bytes += source.bytes;
-        sources.push(source);
-        let input = super::image::load(path, contract.gray_weights, options.resize_max)?;
+        // Read once: hashed for provenance and decoded from the same bytes.
+        let bytes = std::fs::read(path).map_err(|source| ExtractError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        image_bytes += bytes.len() as u64;
+        sources.push(SourceFile {
+            path: path.display().to_string(),
+            bytes: bytes.len() as u64,
+            xxh3: format::file_hash(&bytes),
+        });
+        let input = super::image::decode(&bytes, path, contract.gray_weights, options.resize_max)?;
+        drop(bytes);
         let t = Instant::now();
-        let dense = extractor.run(&input)?;
+        let dense = extractor.run(&input).map_err(|e| e.on_image(path))?;
         global[k * contract.global_dim..(k + 1) * contract.global_dim]
             .copy_from_slice(&dense.global);
         // Observations are in the camera's pixels; an image file of another size (e.g. a

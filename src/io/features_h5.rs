@@ -109,12 +109,13 @@ pub fn write(
         for p in parts {
             node = node.children.entry(p.to_string()).or_default();
         }
-        if node.features.is_some() || !node.children.is_empty() {
+        if node.features.is_some() {
             return Err(H5Error::BadName {
                 name: name.clone(),
                 reason: "two images map to the same group".into(),
             });
         }
+        // A group that is both an image and a folder is refused in `build_group`.
         node.features = Some(features);
     }
     let mut file = FileBuilder::new();
@@ -130,13 +131,7 @@ pub fn write(
         file.set_attr(k, AttrValue::String(v.clone()));
     }
     for (name, node) in &root.children {
-        if node.features.is_some() && !node.children.is_empty() {
-            return Err(H5Error::BadName {
-                name: name.clone(),
-                reason: "is both an image and a folder of images".into(),
-            });
-        }
-        let group = build_group(file.create_group(name), node, options)?;
+        let group = build_group(file.create_group(name), node, name, options)?;
         file.add_group(group);
     }
     let bytes = file.finish().map_err(|e| H5Error::Hdf5 {
@@ -153,17 +148,25 @@ pub fn write(
     Ok(bytes.len() as u64)
 }
 
+/// `node`'s group; `path` is its full group path (the image name), for errors.
 fn build_group(
     mut group: GroupBuilder,
     node: &Node<'_>,
+    path: &str,
     options: &H5Options,
 ) -> Result<FinishedGroup, H5Error> {
+    if node.features.is_some() && !node.children.is_empty() {
+        return Err(H5Error::BadName {
+            name: path.to_string(),
+            reason: "is both an image and a folder of images".into(),
+        });
+    }
     if let Some(f) = node.features {
         let main = f
             .level(options.main_level)
             .or_else(|| f.levels.first())
             .ok_or_else(|| H5Error::BadName {
-                name: String::new(),
+                name: path.to_string(),
                 reason: "features with no level".into(),
             })?;
         write_level(&mut group, main, "");
@@ -195,13 +198,12 @@ fn build_group(
         }
     }
     for (name, child) in &node.children {
-        if child.features.is_some() && !child.children.is_empty() {
-            return Err(H5Error::BadName {
-                name: name.clone(),
-                reason: "is both an image and a folder of images".into(),
-            });
-        }
-        let sub = build_group(group.create_group(name), child, options)?;
+        let sub = build_group(
+            group.create_group(name),
+            child,
+            &format!("{path}/{name}"),
+            options,
+        )?;
         group.add_group(sub);
     }
     Ok(group.finish())
@@ -297,6 +299,32 @@ mod tests {
             &options
         )
         .is_err());
+    }
+
+    #[test]
+    fn bad_names_are_named_in_full() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("f.h5");
+        let options = H5Options {
+            main_level: 0,
+            attributes: vec![],
+        };
+        // Either order: the group "a/b" is an image and holds one.
+        for names in [["a/b", "a/b/c.jpg"], ["a/b/c.jpg", "a/b"]] {
+            let images: Vec<_> = names.iter().map(|n| (n.to_string(), features(1))).collect();
+            let err = write(&path, &images, &options).unwrap_err().to_string();
+            assert_eq!(
+                err, "image name \"a/b\": is both an image and a folder of images",
+                "{names:?}"
+            );
+        }
+        let mut empty = features(1);
+        empty.levels.clear();
+        let err = write(&path, &[("x/y.jpg".into(), empty)], &options)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(err, "image name \"x/y.jpg\": features with no level");
+        assert!(!path.exists());
     }
 
     #[test]
