@@ -338,7 +338,9 @@ impl Source {
                 }
                 let input =
                     sfpmap::extract::image::load(&path, extractor.contract().gray_weights, None)?;
-                let f = extractor.extract(&input, &sfpmap::extract::DetectOptions::default())?;
+                let f = extractor
+                    .extract(&input, &sfpmap::extract::DetectOptions::default())
+                    .map_err(|e| e.on_image(&path))?;
                 Ok(Some(sfpmap::localize::query::sfp_query(&f)))
             }
         }
