@@ -3,7 +3,9 @@
 //!
 //! Runs the real runtime: `Extractor::new` finds `libonnxruntime.so.1.31.1` or fetches it
 //! itself (what `sfpmap setup` does). The reference needs Python with numpy, pillow and
-//! onnxruntime==1.31.1 (`.ci/run` installs them); without them this test fails, it never skips.
+//! onnxruntime==1.31.1: `python3` if it has them, else a venv this test makes under the
+//! target folder from `python/requirements-ci.txt` (so `cargo test` sets itself up, like the
+//! runtime fetch); `SFPMAP_PYTHON` names another interpreter. It fails, never skips.
 #![cfg(feature = "onnx")]
 
 use serde_json::Value;
@@ -25,10 +27,53 @@ fn scene_image() -> PathBuf {
     images.pop().expect("south-building has images")
 }
 
+/// A Python that can run the reference (see the module docs).
+fn python() -> PathBuf {
+    static PYTHON: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    PYTHON
+        .get_or_init(|| {
+            if let Some(p) = std::env::var_os("SFPMAP_PYTHON") {
+                return PathBuf::from(p);
+            }
+            let ready = |python: &Path| {
+                Command::new(python)
+                    .args([
+                        "-c",
+                        "import numpy, PIL, onnxruntime; assert onnxruntime.__version__ == '1.31.1'",
+                    ])
+                    .output()
+                    .is_ok_and(|o| o.status.success())
+            };
+            let system = PathBuf::from("python3");
+            if ready(&system) {
+                return system;
+            }
+            let venv = Path::new(env!("CARGO_TARGET_TMPDIR")).join("py-reference");
+            let python = venv.join("bin/python3");
+            if !ready(&python) {
+                let run = |cmd: &mut Command| {
+                    let out = cmd.output().expect("python3 runs");
+                    assert!(
+                        out.status.success(),
+                        "setting up the Python reference in {} failed: {}",
+                        venv.display(),
+                        String::from_utf8_lossy(&out.stderr)
+                    );
+                };
+                run(Command::new("python3").args(["-m", "venv"]).arg(&venv));
+                run(Command::new(&python)
+                    .args(["-m", "pip", "install", "--quiet", "-r"])
+                    .arg(root().join("python/requirements-ci.txt")));
+            }
+            python
+        })
+        .clone()
+}
+
 fn reference(model: &Path, image: &Path, dir: &Path) -> (PathBuf, Value) {
     let png = dir.join("image.png");
     let json = dir.join("reference.json");
-    let out = Command::new(std::env::var("SFPMAP_PYTHON").unwrap_or_else(|_| "python3".into()))
+    let out = Command::new(python())
         .arg(root().join("tests/extract_reference.py"))
         .arg("--model")
         .arg(model)
