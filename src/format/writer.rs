@@ -115,6 +115,7 @@ impl<'a> MapWriter<'a> {
         dtype: Dtype,
         rows: u64,
         cols: u64,
+        required: bool,
         content: Content<'a>,
     ) {
         self.sections
@@ -125,7 +126,7 @@ impl<'a> MapWriter<'a> {
             dtype,
             rows,
             cols,
-            required: true,
+            required,
             content,
         });
     }
@@ -145,6 +146,7 @@ impl<'a> MapWriter<'a> {
             dtype,
             rows as u64,
             cols as u64,
+            true,
             Content::Array { bytes, codec: None },
         );
     }
@@ -494,11 +496,9 @@ impl<'a> MapWriter<'a> {
             dtype,
             rows,
             cols,
+            required,
             Content::Array { bytes, codec },
         );
-        if let Some(s) = self.sections.last_mut() {
-            s.required = required;
-        }
         Ok(self)
     }
 
@@ -522,15 +522,13 @@ impl<'a> MapWriter<'a> {
             dtype,
             rows,
             cols,
+            required,
             Content::Stored {
                 bytes: Cow::Borrowed(bytes),
                 codec,
                 raw_len,
             },
         );
-        if let Some(s) = self.sections.last_mut() {
-            s.required = required;
-        }
         self
     }
 
