@@ -191,3 +191,36 @@ fn write_progress_reaches_the_file_length() {
     assert_eq!(*done, written);
     assert_eq!(written, std::fs::metadata(&path).unwrap().len());
 }
+
+/// A stored zstd section that compresses past the new file's decode cap (4 MiB of zeros in
+/// a few hundred bytes) is written decoded, so the map stays readable.
+#[test]
+fn stored_sections_past_the_decode_cap_are_written_decoded() {
+    use sfpmap::format::{Dtype, SectionKind};
+    let raw = vec![0u8; 4 << 20];
+    let z = zstd::bulk::compress(&raw, 19).unwrap();
+    assert!((raw.len() as u64) > sfpmap::format::decode_cap(z.len() as u64));
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
+    w.add_stored_section(
+        SectionKind::Unknown(0x7000),
+        u16::MAX,
+        Dtype::U8,
+        raw.len() as u64,
+        1,
+        false,
+        Codec::Zstd,
+        raw.len() as u64,
+        &z,
+    );
+    let bytes = w.to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    map.verify().unwrap();
+    let section = map
+        .sections()
+        .iter()
+        .find(|s| s.kind == SectionKind::Unknown(0x7000))
+        .unwrap();
+    assert_eq!(section.codec, Codec::Raw);
+    assert_eq!(map.section_bytes(section).unwrap(), &raw[..]);
+}

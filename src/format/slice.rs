@@ -3,7 +3,7 @@
 use super::error::Error;
 use super::layout::{Codec, Dtype, SectionKind, NO_LEVEL};
 use super::metadata::Metadata;
-use super::reader::{decode_cap, Map, Section};
+use super::reader::{Map, Section};
 use super::writer::MapWriter;
 use std::borrow::Cow;
 
@@ -218,12 +218,8 @@ fn add_section<'m>(
 ) -> Result<(), Error> {
     let level = section.level.unwrap_or(NO_LEVEL);
     let dtype: Dtype = section.dtype;
-    // A zstd section from another writer may compress so well that the smaller sliced file's
-    // decode cap would refuse it: such sections are decoded and rebuilt instead of copied.
-    let copyable =
-        section.codec != Codec::Zstd || section.raw_len <= decode_cap(section.stored_len);
     match rebuilt {
-        None if copyable && codec.is_none_or(|c| c == section.codec) => {
+        None if codec.is_none_or(|c| c == section.codec) => {
             // Checked before copying so a corrupt section is not passed on silently.
             map.section_bytes(section)?;
             writer.add_stored_section(

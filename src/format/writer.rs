@@ -586,6 +586,17 @@ impl<'a> MapWriter<'a> {
         let mut blocks = Vec::with_capacity(order.len());
         for s in order {
             let (bytes, codec, raw_len) = match &s.content {
+                // A zstd section copied from another writer may compress past the decode cap
+                // of this (perhaps smaller) file: it is stored decoded instead.
+                Content::Stored {
+                    bytes,
+                    codec: Codec::Zstd,
+                    raw_len,
+                } if *raw_len > decode_cap(bytes.len() as u64) => {
+                    let raw = zstd::bulk::decompress(bytes, *raw_len as usize)
+                        .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
+                    (Cow::Owned(raw), Codec::Raw, *raw_len)
+                }
                 Content::Stored {
                     bytes,
                     codec,
