@@ -108,6 +108,7 @@ impl<'a> MapWriter<'a> {
         (self.metadata.cameras.len() - 1) as u32
     }
 
+    #[allow(clippy::too_many_arguments)] // one per entry-table field
     fn push(
         &mut self,
         kind: SectionKind,
