@@ -6,8 +6,7 @@ use sfpmap::extract::sfp_map::{convert_with_images, SfpMapOptions};
 use sfpmap::extract::{DetectOptions, Extractor, ExtractorOptions};
 use sfpmap::format::{slice, SliceOptions};
 use sfpmap::io::demo_scene::{write_png, DemoScene, HEIGHT, WIDTH};
-use sfpmap::localize::eval::{evaluate, median_nearest_camera_distance, read_poses};
-use sfpmap::localize::geometry::Pose;
+use sfpmap::localize::eval::{evaluate, map_scale, median, read_poses};
 use sfpmap::localize::query::{read_query_list, sfp_query};
 use sfpmap::localize::{LocalizeOptions, Localizer};
 use sfpmap::progress::Reporter;
@@ -183,24 +182,12 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 estimates.push((q.name.clone(), p));
             }
         }
-        ms.sort_by(f64::total_cmp);
-        let centres: Vec<[f64; 3]> = map
-            .images()?
-            .map(|im| {
-                im.poses
-                    .iter()
-                    .filter_map(|q| {
-                        Pose::from_colmap(q[0], q[1], q[2], q[3], q[4], q[5], q[6]).ok()
-                    })
-                    .map(|p| p.center().into())
-                    .collect()
-            })
-            .unwrap_or_default();
+        let median_ms = median(ms).unwrap_or(f64::NAN);
         let e = evaluate(
             &estimates,
             &gt,
             &[(0.05, 1.0), (0.25, 2.0), (0.5, 5.0)],
-            median_nearest_camera_distance(&centres),
+            map_scale(&map)?,
         );
         let fmt = |v: Option<f64>, unit: &str| v.map_or("-".into(), |x| format!("{x:.3}{unit}"));
         say(format!(
@@ -211,7 +198,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             fmt(e.median_translation, " m"),
             fmt(e.median_rotation_deg, "°"),
             fmt(e.median_translation_rel.map(|r| 100.0 * r), " %"),
-            ms[ms.len() / 2]
+            median_ms
         ));
         rows.push(json!({
             "map": v.name,
@@ -221,8 +208,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "median_translation": e.median_translation,
             "median_rotation_deg": e.median_rotation_deg,
             "median_translation_rel": e.median_translation_rel,
-            "recall": e.recall.iter().map(|(t, r, v)| json!({ "translation": t, "rotation_deg": r, "recall": v })).collect::<Vec<_>>(),
-            "median_ms": ms[ms.len() / 2],
+            "recall": e.recall_json(),
+            "median_ms": median_ms,
         }));
     }
     let seconds = start.elapsed().as_secs_f64();

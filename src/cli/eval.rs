@@ -1,8 +1,7 @@
 //! `sfpmap eval`: errors of estimated poses against ground truth.
 
 use serde_json::json;
-use sfpmap::localize::eval::{evaluate, median_nearest_camera_distance, read_poses};
-use sfpmap::localize::geometry::Pose;
+use sfpmap::localize::eval::{evaluate, map_scale, read_poses};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -48,21 +47,7 @@ pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
     let (scale, map_bytes) = match &args.map {
         Some(path) => {
             let map = super::open_map(path)?;
-            let centres: Vec<[f64; 3]> = match map.images()? {
-                Some(images) => images
-                    .poses
-                    .iter()
-                    .filter_map(|q| {
-                        Pose::from_colmap(q[0], q[1], q[2], q[3], q[4], q[5], q[6]).ok()
-                    })
-                    .map(|p| p.center().into())
-                    .collect(),
-                None => Vec::new(),
-            };
-            (
-                median_nearest_camera_distance(&centres),
-                Some(map.file_len()),
-            )
+            (map_scale(&map)?, Some(map.file_len()))
         }
         None => (None, None),
     };
@@ -74,7 +59,7 @@ pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
             "median_translation": e.median_translation,
             "median_rotation_deg": e.median_rotation_deg,
             "median_translation_rel": e.median_translation_rel,
-            "recall": e.recall.iter().map(|(t, r, v)| json!({ "translation": t, "rotation_deg": r, "recall": v })).collect::<Vec<_>>(),
+            "recall": e.recall_json(),
             "map_bytes": map_bytes,
             "scale": e.scale,
             "per_query": e.per_query.iter().map(|(n, err)| json!({ "name": n, "translation": err.map(|x| x.0), "rotation_deg": err.map(|x| x.1) })).collect::<Vec<_>>(),

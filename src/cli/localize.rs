@@ -4,6 +4,7 @@ use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::format::Map;
 use sfpmap::io::poses::tum_line;
+use sfpmap::localize::eval::median;
 use sfpmap::localize::geometry::Camera;
 use sfpmap::localize::matching::MatchOptions;
 use sfpmap::localize::query::{read_query_list, DatabaseFeatures, Query};
@@ -89,14 +90,6 @@ pub struct Args {
 #[cfg(feature = "mcap")]
 #[path = "localize_mcap.rs"]
 mod mcap_input;
-
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 /// The `median_ms` object of `--json`: per-stage median times over the results.
 fn median_ms<'a, I>(results: I) -> serde_json::Value
@@ -299,7 +292,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "{}: {localized}/{} localized, median {:.1} ms per query (after features)",
             args.output.display(),
             queries.len(),
-            median(results.iter().map(|r| r.times.total_ms).collect())
+            median(results.iter().map(|r| r.times.total_ms).collect()).unwrap_or(f64::NAN)
         );
         for f in &failed {
             println!("failed: {} ({})", f["name"], f["reason"]);

@@ -14,6 +14,7 @@ use serde_json::json;
 use sfpmap::extract::{DetectOptions, Extractor};
 use sfpmap::io::mcap_io::{self, Stamp};
 use sfpmap::io::poses::tum_line;
+use sfpmap::localize::eval::median;
 use sfpmap::localize::geometry::Camera;
 use sfpmap::localize::{Localization, Localizer};
 use sfpmap::progress::Reporter;
@@ -359,7 +360,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             "{}: {localized}/{} images of {topic} localized, median {:.1} ms per image (after features)",
             args.output.display(),
             scan.messages_on_topic,
-            super::median(results.iter().map(|r| r.times.total_ms).collect())
+            median(results.iter().map(|r| r.times.total_ms).collect()).unwrap_or(f64::NAN)
         );
         for f in &failed {
             println!("failed: image {} ({})", f["index"], f["reason"]);

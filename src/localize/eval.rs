@@ -2,32 +2,16 @@
 //! relative to the map's median nearest-camera distance (SfM scale is arbitrary).
 
 use super::geometry::Pose;
+use super::query::InputError;
+use crate::format::{Error as FormatError, Map};
+use serde_json::json;
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
-
-/// A poses file problem, naming the file and line.
-#[derive(Debug)]
-pub struct PosesError {
-    pub path: PathBuf,
-    pub line: Option<usize>,
-    pub message: String,
-}
-
-impl std::fmt::Display for PosesError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self.line {
-            Some(l) => write!(f, "{}:{l}: {}", self.path.display(), self.message),
-            None => write!(f, "{}: {}", self.path.display(), self.message),
-        }
-    }
-}
-
-impl std::error::Error for PosesError {}
+use std::path::Path;
 
 /// Reads `name qw qx qy qz tx ty tz` lines (COLMAP `cam_from_world`); `#` lines are comments
 /// (the localizer lists failed queries as `# failed NAME: reason`).
-pub fn read_poses(path: &Path) -> Result<Vec<(String, Pose)>, PosesError> {
-    let text = std::fs::read_to_string(path).map_err(|e| PosesError {
+pub fn read_poses(path: &Path) -> Result<Vec<(String, Pose)>, InputError> {
+    let text = std::fs::read_to_string(path).map_err(|e| InputError {
         path: path.into(),
         line: None,
         message: e.to_string(),
@@ -38,7 +22,7 @@ pub fn read_poses(path: &Path) -> Result<Vec<(String, Pose)>, PosesError> {
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
-        let bad = |message: String| PosesError {
+        let bad = |message: String| InputError {
             path: path.into(),
             line: Some(i + 1),
             message,
@@ -82,7 +66,21 @@ pub struct Evaluation {
     pub per_query: Vec<(String, Option<(f64, f64)>)>,
 }
 
+impl Evaluation {
+    /// The recall list as JSON: `[{ "translation", "rotation_deg", "recall" }, ...]`, one
+    /// object per threshold.
+    pub fn recall_json(&self) -> serde_json::Value {
+        self.recall
+            .iter()
+            .map(|(t, r, v)| json!({ "translation": t, "rotation_deg": r, "recall": v }))
+            .collect()
+    }
+}
+
 /// Median distance from each camera centre to its nearest other centre.
+///
+/// With an even count this is the upper of the two middle values, not their mean as in
+/// [`median`]: kept so that scales, and so relative errors, match earlier results.
 pub fn median_nearest_camera_distance(centres: &[[f64; 3]]) -> Option<f64> {
     if centres.len() < 2 {
         return None;
@@ -105,7 +103,25 @@ pub fn median_nearest_camera_distance(centres: &[[f64; 3]]) -> Option<f64> {
     Some(nearest[nearest.len() / 2])
 }
 
-fn median(mut v: Vec<f64>) -> Option<f64> {
+/// The map's scale: [`median_nearest_camera_distance`] over its image centres; `None` if the
+/// map has fewer than two images with a usable pose. Images whose stored pose is unusable (zero
+/// quaternion, non-finite values) are skipped.
+pub fn map_scale(map: &Map<'_>) -> Result<Option<f64>, FormatError> {
+    let Some(images) = map.images()? else {
+        return Ok(None);
+    };
+    let centres: Vec<[f64; 3]> = images
+        .poses
+        .iter()
+        .filter_map(|q| Pose::from_colmap(q[0], q[1], q[2], q[3], q[4], q[5], q[6]).ok())
+        .map(|p| p.center().into())
+        .collect();
+    Ok(median_nearest_camera_distance(&centres))
+}
+
+/// The median (the mean of the two middle values for an even count); `None` for no values or
+/// a non-finite median (e.g. when half or more of the values are infinite).
+pub fn median(mut v: Vec<f64>) -> Option<f64> {
     if v.is_empty() {
         return None;
     }
@@ -203,6 +219,14 @@ mod tests {
         assert_eq!(e.recall[1].2, 0.75);
         let none = evaluate(&[], &gt, &[], None);
         assert_eq!(none.median_translation, None);
+    }
+
+    #[test]
+    fn median_of_even_odd_and_empty() {
+        assert_eq!(median(vec![3.0, 1.0, 2.0]), Some(2.0));
+        assert_eq!(median(vec![4.0, 1.0, 3.0, 2.0]), Some(2.5));
+        assert_eq!(median(Vec::new()), None);
+        assert_eq!(median(vec![1.0, f64::INFINITY]), None);
     }
 
     #[test]

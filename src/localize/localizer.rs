@@ -7,7 +7,7 @@
 
 use super::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use super::matching::{dot, gemm_abt, match_descriptors, normalise_rows, MatchOptions};
-use crate::format::{Error as FormatError, Map};
+use crate::format::{Error as FormatError, Map, Visibility};
 use nalgebra::{Vector2, Vector3};
 use std::time::Instant;
 
@@ -167,8 +167,8 @@ pub struct Localizer<'m> {
     /// Selected levels, deepest first.
     levels: Vec<LevelIndex>,
     global: Option<(Vec<f32>, usize)>,
-    /// Image → points (CSR), or `None` (all points are candidates).
-    visibility: Option<(Vec<u64>, Vec<u32>)>,
+    /// Image → points, borrowed from the map, or `None` (all points are candidates).
+    visibility: Option<Visibility<'m>>,
 }
 
 impl<'m> Localizer<'m> {
@@ -237,9 +237,7 @@ impl<'m> Localizer<'m> {
             normalise_rows(&mut v, dim);
             (v, dim)
         });
-        let visibility = map
-            .visibility()?
-            .map(|v| (v.offsets.to_vec(), v.points.to_vec()));
+        let visibility = map.visibility()?;
         Ok(Localizer {
             map,
             options,
@@ -303,7 +301,7 @@ impl<'m> Localizer<'m> {
             let all: Vec<u32> = (0..self.positions.len() as u32).collect();
             attempt = self.coarse(&projected, &all, camera, &mut times);
         }
-        let (coarse, pixels) = match attempt {
+        let coarse = match attempt {
             Ok(found) => found,
             Err((reason, matches)) => {
                 times.total_ms = ms(t0);
@@ -350,10 +348,12 @@ impl<'m> Localizer<'m> {
         let Some((estimate, level_of, n_matches)) = result else {
             // The coarse pose stands if guided matching could not improve it.
             let inliers = coarse.num_inliers;
+            // The inlier mask has one entry per coarse match.
+            let coarse_matches = coarse.inliers.len();
             if inliers < self.options.min_inliers {
                 return Ok(failed(
                     format!("only {inliers} inliers"),
-                    pixels.len(),
+                    coarse_matches,
                     times,
                 ));
             }
@@ -361,7 +361,7 @@ impl<'m> Localizer<'m> {
                 pose: Some(coarse.pose),
                 failure: None,
                 inliers_per_level: vec![(self.levels[0].id, inliers)],
-                matches: pixels.len(),
+                matches: coarse_matches,
                 inliers,
                 retrieved_images,
                 times,
@@ -387,15 +387,15 @@ impl<'m> Localizer<'m> {
     }
 
     /// Matching against `candidates`, deepest level first, then P3P LO-RANSAC: the pose
-    /// estimate and the matched pixels, or the reason and the number of matches.
-    #[allow(clippy::type_complexity)]
+    /// estimate (its inlier mask has one entry per match), or the reason and the number of
+    /// matches.
     fn coarse(
         &self,
         projected: &[(&FeatureSet, Vec<f32>)],
         candidates: &[u32],
         camera: &Camera,
         times: &mut StageTimes,
-    ) -> Result<(super::geometry::PoseEstimate, Vec<Vector2<f64>>), (String, usize)> {
+    ) -> Result<super::geometry::PoseEstimate, (String, usize)> {
         let t1 = Instant::now();
         let mut pixels = Vec::new();
         let mut points = Vec::new();
@@ -417,13 +417,12 @@ impl<'m> Localizer<'m> {
         let found =
             estimate_absolute_pose_with_prior(&pixels, &points, camera, None, &coarse_options);
         times.coarse_ransac_ms += ms(t2);
-        match found {
-            Ok(e) => Ok((e, pixels)),
-            Err(e) => Err((
+        found.map_err(|e| {
+            (
                 format!("coarse pose: {e} ({} matches)", pixels.len()),
                 pixels.len(),
-            )),
-        }
+            )
+        })
     }
 
     /// Candidate points (global indices, sorted, deduplicated) seen by the retrieved images,
@@ -445,10 +444,10 @@ impl<'m> Localizer<'m> {
             _ => (0..n_images).collect(),
         };
         match &self.visibility {
-            Some((offsets, points)) if !images.is_empty() => {
+            Some(visibility) if !images.is_empty() => {
                 let mut seen = vec![false; self.positions.len()];
                 for &i in &images {
-                    for &p in &points[offsets[i] as usize..offsets[i + 1] as usize] {
+                    for &p in visibility.points_of(i) {
                         seen[p as usize] = true;
                     }
                 }

@@ -13,15 +13,16 @@ pub struct Query {
     pub camera: Camera,
 }
 
-/// A problem with a query input, naming the file (and line).
+/// A problem with an input file (query list, features file, poses file), naming the file and,
+/// when known, the line.
 #[derive(Debug)]
-pub struct QueryError {
+pub struct InputError {
     pub path: PathBuf,
     pub line: Option<usize>,
     pub message: String,
 }
 
-impl std::fmt::Display for QueryError {
+impl std::fmt::Display for InputError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self.line {
             Some(line) => write!(f, "{}:{line}: {}", self.path.display(), self.message),
@@ -30,12 +31,12 @@ impl std::fmt::Display for QueryError {
     }
 }
 
-impl std::error::Error for QueryError {}
+impl std::error::Error for InputError {}
 
 /// Reads `name MODEL W H params...` lines (hloc's query list with intrinsics). With
 /// `camera`, lines may hold just a name and that camera is used for every query.
-pub fn read_query_list(path: &Path, camera: Option<&Camera>) -> Result<Vec<Query>, QueryError> {
-    let text = std::fs::read_to_string(path).map_err(|e| QueryError {
+pub fn read_query_list(path: &Path, camera: Option<&Camera>) -> Result<Vec<Query>, InputError> {
+    let text = std::fs::read_to_string(path).map_err(|e| InputError {
         path: path.into(),
         line: None,
         message: e.to_string(),
@@ -46,7 +47,7 @@ pub fn read_query_list(path: &Path, camera: Option<&Camera>) -> Result<Vec<Query
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
-        let bad = |message: String| QueryError {
+        let bad = |message: String| InputError {
             path: path.into(),
             line: Some(i + 1),
             message,
@@ -70,7 +71,7 @@ pub fn read_query_list(path: &Path, camera: Option<&Camera>) -> Result<Vec<Query
         queries.push(query);
     }
     if queries.is_empty() {
-        return Err(QueryError {
+        return Err(InputError {
             path: path.into(),
             line: None,
             message: "no queries".into(),
@@ -164,8 +165,8 @@ pub struct H5Features {
 
 #[cfg(feature = "onnx")]
 impl H5Features {
-    pub fn open(path: &Path) -> Result<H5Features, QueryError> {
-        let file = hdf5_pure::File::open(path).map_err(|e| QueryError {
+    pub fn open(path: &Path) -> Result<H5Features, InputError> {
+        let file = hdf5_pure::File::open(path).map_err(|e| InputError {
             path: path.into(),
             line: None,
             message: format!("not a readable HDF5 file: {e}"),
@@ -176,8 +177,8 @@ impl H5Features {
         })
     }
 
-    fn err(&self, message: String) -> QueryError {
-        QueryError {
+    fn err(&self, message: String) -> InputError {
+        InputError {
             path: self.path.clone(),
             line: None,
             message,
@@ -185,7 +186,7 @@ impl H5Features {
     }
 
     /// `[rows × cols]` values of a dataset, or `None` if it does not exist.
-    fn matrix(&self, name: &str) -> Result<Option<(Vec<f32>, usize, usize)>, QueryError> {
+    fn matrix(&self, name: &str) -> Result<Option<(Vec<f32>, usize, usize)>, InputError> {
         let Ok(ds) = self.file.dataset(name) else {
             return Ok(None);
         };
@@ -222,7 +223,7 @@ impl H5Features {
         name: &str,
         prefix: &str,
         level: Option<u16>,
-    ) -> Result<Option<FeatureSet>, QueryError> {
+    ) -> Result<Option<FeatureSet>, InputError> {
         let Some((kp, n, two)) = self.matrix(&format!("{name}/{prefix}keypoints"))? else {
             return Ok(None);
         };
@@ -255,7 +256,7 @@ impl H5Features {
     }
 
     /// The query's features, `Ok(None)` if the file has no group for it.
-    pub fn features(&self, name: &str) -> Result<Option<QueryFeatures>, QueryError> {
+    pub fn features(&self, name: &str) -> Result<Option<QueryFeatures>, InputError> {
         let mut sets = Vec::new();
         for id in 0..32u16 {
             if let Some(set) = self.set(name, &format!("level{id}_"), Some(id))? {
