@@ -92,8 +92,10 @@ typedef struct SfpmLevelInfo {
 typedef struct SfpmCamera {
   // NUL-terminated COLMAP model name ("PINHOLE", "SIMPLE_RADIAL", "OPENCV", ...).
   const char *model;
-  uint32_t width;
-  uint32_t height;
+  // Image size in pixels, as `sfpm_camera` gives it. `sfpm_localize` takes sizes up to
+  // `UINT32_MAX` and rejects larger ones (`SFPM_ERR_ARGUMENT`).
+  uint64_t width;
+  uint64_t height;
   // `n_params` doubles in COLMAP order for the model.
   const double *params;
   size_t n_params;

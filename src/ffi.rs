@@ -16,7 +16,7 @@
 #![allow(unsafe_code)]
 #![deny(unsafe_op_in_unsafe_fn)]
 
-use crate::format::{Error as FormatError, Map, SectionKind};
+use crate::format::{Error as FormatError, Images, Map, SectionKind};
 use crate::localize::{Camera, FeatureSet, LocalizeOptions, Localizer, QueryFeatures};
 use std::any::Any;
 use std::borrow::Cow;
@@ -85,8 +85,10 @@ pub struct SfpmLevelInfo {
 pub struct SfpmCamera {
     /// NUL-terminated COLMAP model name ("PINHOLE", "SIMPLE_RADIAL", "OPENCV", ...).
     pub model: *const c_char,
-    pub width: u32,
-    pub height: u32,
+    /// Image size in pixels, as `sfpm_camera` gives it. `sfpm_localize` takes sizes up to
+    /// `UINT32_MAX` and rejects larger ones (`SFPM_ERR_ARGUMENT`).
+    pub width: u64,
+    pub height: u64,
     /// `n_params` doubles in COLMAP order for the model.
     pub params: *const f64,
     pub n_params: usize,
@@ -131,6 +133,10 @@ impl FfiError {
 
     fn null(what: &str) -> Self {
         FfiError::new(SFPM_ERR_NULL, format!("{what} is NULL"))
+    }
+
+    fn argument(message: impl Into<String>) -> Self {
+        FfiError::new(SFPM_ERR_ARGUMENT, message)
     }
 }
 
@@ -190,7 +196,7 @@ struct MapHandle {
     map: Box<Map<'static>>,
 }
 
-#[derive(PartialEq, Eq)]
+#[derive(PartialEq, Eq, Default)]
 struct LocalizerKey {
     levels: Vec<u16>,
     short: bool,
@@ -203,13 +209,19 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl MapHandle {
-    /// A pointer and length for an array of the map, valid until the handle is closed.
-    fn pin<T: bytemuck::Pod + Send + Sync>(
+    /// Writes pointer and length of a map array, valid until close, to the caller's `ptr` and
+    /// `len`. `U` is the element type the caller sees (`u16` for `f16`, `f32` for `[f32; 3]`).
+    ///
+    /// # Safety
+    /// `ptr` and `len` must be non-null (callers check with [`non_null`] first) and writable.
+    unsafe fn lend<T: bytemuck::Pod + Send + Sync, U>(
         &self,
         key: (SectionKind, u16),
         data: Cow<'_, [T]>,
-    ) -> (*const T, usize) {
-        match data {
+        ptr: *mut *const U,
+        len: *mut usize,
+    ) {
+        let (p, n) = match data {
             // Borrowed from the mmap or from the map's decoded-section cache: both live as
             // long as `map`.
             Cow::Borrowed(s) => (s.as_ptr(), s.len()),
@@ -221,6 +233,11 @@ impl MapHandle {
                     None => (std::ptr::null(), 0),
                 }
             }
+        };
+        // SAFETY: non-null and writable per this function's contract.
+        unsafe {
+            ptr.write(p.cast());
+            len.write(n);
         }
     }
 
@@ -321,9 +338,7 @@ fn non_null(pointers: &[(bool, &str)]) -> FfiResult {
 /// # Safety
 /// `ptr` must be NULL (an error is returned) or valid for a write of one `T`.
 unsafe fn put<T>(ptr: *mut T, value: T, what: &str) -> FfiResult {
-    if ptr.is_null() {
-        return Err(FfiError::null(what));
-    }
+    non_null(&[(ptr.is_null(), what)])?;
     // SAFETY: non-null, and valid for writes per this function's contract.
     unsafe { ptr.write(value) };
     Ok(())
@@ -337,19 +352,72 @@ unsafe fn input<'a, T>(ptr: *const T, n: usize, what: &str) -> FfiResult<&'a [T]
     if n == 0 {
         return Ok(&[]);
     }
-    if ptr.is_null() {
-        return Err(FfiError::null(what));
-    }
+    non_null(&[(ptr.is_null(), what)])?;
     if n.checked_mul(std::mem::size_of::<T>())
         .is_none_or(|b| b > isize::MAX as usize)
     {
-        return Err(FfiError::new(
-            SFPM_ERR_ARGUMENT,
-            format!("{what}: length {n} too large"),
-        ));
+        return Err(FfiError::argument(format!("{what}: length {n} too large")));
     }
     // SAFETY: non-null, size checked against isize::MAX, valid for `n` reads per contract.
     Ok(unsafe { std::slice::from_raw_parts(ptr, n) })
+}
+
+/// Writes `value` to an out pointer the caller may pass as NULL to skip it.
+///
+/// # Safety
+/// `ptr` must be NULL or valid for a write of one `T`.
+unsafe fn put_opt<T>(ptr: *mut T, value: T) {
+    if !ptr.is_null() {
+        // SAFETY: non-null, and valid for writes per this function's contract.
+        unsafe { ptr.write(value) };
+    }
+}
+
+/// Copies up to `capacity` elements of `src` to a caller's array; returns how many.
+///
+/// # Safety
+/// `dst` must be valid for `capacity` writes of `T` (NULL is allowed when `capacity == 0`).
+unsafe fn copy_out<T: Copy>(src: &[T], dst: *mut T, capacity: usize) -> usize {
+    let n = src.len().min(capacity);
+    if n > 0 {
+        // SAFETY: `0 < n <= capacity`: `dst` is valid for `n` writes per this function's
+        // contract; `src` is ours and cannot overlap a caller's buffer.
+        unsafe { std::ptr::copy_nonoverlapping(src.as_ptr(), dst, n) };
+    }
+    n
+}
+
+/// Copies `s` NUL-terminated into a caller's buffer of `capacity` bytes, truncated to fit.
+///
+/// # Safety
+/// `buf` must be NULL (an error unless `capacity == 0`) or valid for `capacity` writes.
+unsafe fn put_str(s: &str, buf: *mut c_char, capacity: usize, what: &str) -> FfiResult {
+    if capacity == 0 {
+        return Ok(());
+    }
+    non_null(&[(buf.is_null(), what)])?;
+    // SAFETY: non-null and valid for `capacity` bytes per contract; `n < capacity`.
+    unsafe {
+        let n = copy_out(s.as_bytes(), buf.cast::<u8>(), capacity - 1);
+        buf.add(n).write(0);
+    }
+    Ok(())
+}
+
+/// The `sfpm_*_count` functions: `count` of the map written to `*out`.
+///
+/// # Safety
+/// `out` must be NULL (an error) or valid for one write.
+unsafe fn put_count(
+    map: SfpmMap,
+    out: *mut usize,
+    count: impl FnOnce(&Map) -> FfiResult<usize>,
+) -> SfpmStatus {
+    guard(|| {
+        let n = count(&get(map)?.map)?;
+        // SAFETY: per this function's contract.
+        unsafe { put(out, n, "out") }.map(|()| SFPM_OK)
+    })
 }
 
 /// The library version, e.g. "0.1.0". Static storage: never free it.
@@ -375,17 +443,11 @@ pub extern "C" fn sfpm_last_error() -> *const c_char {
 #[no_mangle]
 pub unsafe extern "C" fn sfpm_open(path: *const c_char, out: *mut SfpmMap) -> SfpmStatus {
     guard(|| {
-        if path.is_null() {
-            return Err(FfiError::null("path"));
-        }
-        if out.is_null() {
-            return Err(FfiError::null("out"));
-        }
+        non_null(&[(path.is_null(), "path"), (out.is_null(), "out")])?;
         // SAFETY: non-null and NUL-terminated per contract.
-        let path = unsafe { CStr::from_ptr(path) };
-        let path = path
+        let path = unsafe { CStr::from_ptr(path) }
             .to_str()
-            .map_err(|_| FfiError::new(SFPM_ERR_ARGUMENT, "path is not UTF-8"))?;
+            .map_err(|_| FfiError::argument("path is not UTF-8"))?;
         let map = Map::open(path)?;
         let handle = register(MapHandle {
             localizers: Mutex::new(Vec::new()),
@@ -440,12 +502,8 @@ pub extern "C" fn sfpm_close(map: SfpmMap) -> SfpmStatus {
 /// `out` must be writable or NULL (an error).
 #[no_mangle]
 pub unsafe extern "C" fn sfpm_level_count(map: SfpmMap, out: *mut usize) -> SfpmStatus {
-    guard(|| {
-        let h = get(map)?;
-        // SAFETY: per contract.
-        unsafe { put(out, h.map.metadata().levels.len(), "out") }?;
-        Ok(SFPM_OK)
-    })
+    // SAFETY: `out` per contract.
+    unsafe { put_count(map, out, |m| Ok(m.metadata().levels.len())) }
 }
 
 /// Writes up to `capacity` level ids (ascending) to `ids` and the number of levels to
@@ -467,12 +525,11 @@ pub unsafe extern "C" fn sfpm_level_ids(
         ])?;
         let h = get(map)?;
         let all = h.map.level_ids();
-        for (i, &id) in all.iter().take(capacity).enumerate() {
-            // SAFETY: `i < capacity` and `ids` is valid for `capacity` writes per contract.
-            unsafe { ids.add(i).write(id) };
+        // SAFETY: `ids` is valid for `capacity` writes and `count` writable per contract.
+        unsafe {
+            copy_out(&all, ids, capacity);
+            put(count, all.len(), "count")?;
         }
-        // SAFETY: per contract.
-        unsafe { put(count, all.len(), "count") }?;
         Ok(SFPM_OK)
     })
 }
@@ -520,11 +577,8 @@ pub unsafe extern "C" fn sfpm_level_points(
         non_null(&[(points.is_null(), "points"), (len.is_null(), "len")])?;
         let h = get(map)?;
         let l = h.map.level(level)?;
-        let (ptr, n) = h.pin((SectionKind::LevelPoints, level), l.points()?);
-        // SAFETY: per contract.
-        unsafe { put(points, ptr, "points") }?;
-        // SAFETY: per contract.
-        unsafe { put(len, n, "len") }?;
+        // SAFETY: checked non-null above; writable per contract.
+        unsafe { h.lend((SectionKind::LevelPoints, level), l.points()?, points, len) };
         Ok(SFPM_OK)
     })
 }
@@ -548,11 +602,8 @@ pub unsafe extern "C" fn sfpm_level_desc_short(
         let h = get(map)?;
         let l = h.map.level(level)?;
         let desc = l.desc_short()?;
-        let (ptr, n) = h.pin((SectionKind::LevelDescShort, level), desc);
-        // SAFETY: per contract.
-        unsafe { put(data, ptr.cast::<u16>(), "data") }?;
-        // SAFETY: per contract.
-        unsafe { put(len, n, "len") }?;
+        // SAFETY: checked non-null above; writable per contract.
+        unsafe { h.lend((SectionKind::LevelDescShort, level), desc, data, len) };
         Ok(SFPM_OK)
     })
 }
@@ -577,11 +628,8 @@ pub unsafe extern "C" fn sfpm_level_desc_rest(
         let desc = l.desc_rest()?.ok_or_else(|| {
             FfiError::new(SFPM_ERR_MISSING, format!("level {level} has no rest block"))
         })?;
-        let (ptr, n) = h.pin((SectionKind::LevelDescRest, level), desc);
-        // SAFETY: per contract.
-        unsafe { put(data, ptr.cast::<u16>(), "data") }?;
-        // SAFETY: per contract.
-        unsafe { put(len, n, "len") }?;
+        // SAFETY: checked non-null above; writable per contract.
+        unsafe { h.lend((SectionKind::LevelDescRest, level), desc, data, len) };
         Ok(SFPM_OK)
     })
 }
@@ -592,12 +640,8 @@ pub unsafe extern "C" fn sfpm_level_desc_rest(
 /// `out` must be writable or NULL (an error).
 #[no_mangle]
 pub unsafe extern "C" fn sfpm_point_count(map: SfpmMap, out: *mut usize) -> SfpmStatus {
-    guard(|| {
-        let h = get(map)?;
-        // SAFETY: per contract.
-        unsafe { put(out, h.map.n_points() as usize, "out") }?;
-        Ok(SFPM_OK)
-    })
+    // SAFETY: `out` per contract.
+    unsafe { put_count(map, out, |m| Ok(m.n_points() as usize)) }
 }
 
 /// Point positions: `*n_points` rows of 3 floats (x y z) relative to the map origin, which is
@@ -620,16 +664,12 @@ pub unsafe extern "C" fn sfpm_point_positions(
             (n_points.is_null(), "n_points"),
         ])?;
         let h = get(map)?;
-        let (ptr, n) = h.pin((SectionKind::PointPositions, 0), h.map.point_positions()?);
-        // SAFETY: per contract.
-        unsafe { put(positions, ptr.cast::<f32>(), "positions") }?;
-        // SAFETY: per contract.
-        unsafe { put(n_points, n, "n_points") }?;
-        if !origin.is_null() {
-            for (i, &o) in h.map.metadata().origin.iter().enumerate() {
-                // SAFETY: non-null and valid for 3 doubles per contract.
-                unsafe { origin.add(i).write(o) };
-            }
+        let data = h.map.point_positions()?;
+        // SAFETY: `positions` and `n_points` checked non-null above and writable, `origin` NULL
+        // or valid for 3 doubles, i.e. one `[f64; 3]` (alignment of `f64`), per contract.
+        unsafe {
+            h.lend((SectionKind::PointPositions, 0), data, positions, n_points);
+            put_opt(origin.cast::<[f64; 3]>(), h.map.metadata().origin);
         }
         Ok(SFPM_OK)
     })
@@ -641,12 +681,8 @@ pub unsafe extern "C" fn sfpm_point_positions(
 /// `out` must be writable or NULL (an error).
 #[no_mangle]
 pub unsafe extern "C" fn sfpm_camera_count(map: SfpmMap, out: *mut usize) -> SfpmStatus {
-    guard(|| {
-        let h = get(map)?;
-        // SAFETY: per contract.
-        unsafe { put(out, h.map.metadata().cameras.len(), "out") }?;
-        Ok(SFPM_OK)
-    })
+    // SAFETY: `out` per contract.
+    unsafe { put_count(map, out, |m| Ok(m.metadata().cameras.len())) }
 }
 
 /// Camera `index`: its COLMAP model name copied into `model` (NUL-terminated, truncated to
@@ -680,29 +716,14 @@ pub unsafe extern "C" fn sfpm_camera(
         let camera = cameras
             .get(index)
             .ok_or_else(|| out_of_range("camera", index, cameras.len()))?;
-        if model_capacity > 0 {
-            let name = camera.model.as_bytes();
-            let n = name.len().min(model_capacity - 1);
-            // SAFETY: `model` is valid for `model_capacity` bytes per contract and
-            // `n + 1 <= model_capacity`; our string cannot overlap the caller's buffer.
-            unsafe {
-                std::ptr::copy_nonoverlapping(name.as_ptr(), model.cast::<u8>(), n);
-                model.add(n).write(0);
-            }
-        }
-        for (i, &p) in camera.params.iter().take(params_capacity).enumerate() {
-            // SAFETY: `i < params_capacity`, `params` valid for that many doubles.
-            unsafe { params.add(i).write(p) };
-        }
-        for (ptr, value) in [(width, camera.width), (height, camera.height)] {
-            if !ptr.is_null() {
-                // SAFETY: non-null, writable per contract.
-                unsafe { ptr.write(value) };
-            }
-        }
-        if !n_params.is_null() {
-            // SAFETY: non-null, writable per contract.
-            unsafe { n_params.write(camera.params.len()) };
+        // SAFETY: `model` and `params` are valid for their capacities (checked non-null unless
+        // 0), `width`, `height` and `n_params` NULL or writable, per contract.
+        unsafe {
+            put_str(&camera.model, model, model_capacity, "model")?;
+            copy_out(&camera.params, params, params_capacity);
+            put_opt(width, camera.width);
+            put_opt(height, camera.height);
+            put_opt(n_params, camera.params.len());
         }
         Ok(SFPM_OK)
     })
@@ -714,13 +735,8 @@ pub unsafe extern "C" fn sfpm_camera(
 /// `out` must be writable or NULL (an error).
 #[no_mangle]
 pub unsafe extern "C" fn sfpm_image_count(map: SfpmMap, out: *mut usize) -> SfpmStatus {
-    guard(|| {
-        let h = get(map)?;
-        let n = h.map.images()?.map_or(0, |i| i.len());
-        // SAFETY: per contract.
-        unsafe { put(out, n, "out") }?;
-        Ok(SFPM_OK)
-    })
+    // SAFETY: `out` per contract.
+    unsafe { put_count(map, out, |m| Ok(m.images()?.map_or(0, |i| i.len()))) }
 }
 
 /// Copies image `index`'s name into `buf` (at most `capacity` bytes including the NUL,
@@ -741,26 +757,12 @@ pub unsafe extern "C" fn sfpm_image_name(
 ) -> SfpmStatus {
     guard(|| {
         let h = get(map)?;
-        let images = h.map.images()?.ok_or_else(no_images)?;
-        if index >= images.len() {
-            return Err(out_of_range("image", index, images.len()));
-        }
-        let name = images.name(index)?.as_bytes();
-        if capacity > 0 {
-            if buf.is_null() {
-                return Err(FfiError::null("buf"));
-            }
-            let n = name.len().min(capacity - 1);
-            // SAFETY: `buf` is valid for `capacity` bytes per contract and `n + 1 <= capacity`;
-            // the source is our own slice, which cannot overlap a caller's buffer.
-            unsafe {
-                std::ptr::copy_nonoverlapping(name.as_ptr(), buf.cast::<u8>(), n);
-                buf.add(n).write(0);
-            }
-        }
-        if !needed.is_null() {
-            // SAFETY: non-null, writable per contract.
-            unsafe { needed.write(name.len()) };
+        let images = images_at(&h.map, index)?;
+        let name = images.name(index)?;
+        // SAFETY: `buf` NULL or valid for `capacity` bytes, `needed` NULL or writable (contract).
+        unsafe {
+            put_str(name, buf, capacity, "buf")?;
+            put_opt(needed, name.len());
         }
         Ok(SFPM_OK)
     })
@@ -780,20 +782,12 @@ pub unsafe extern "C" fn sfpm_image_pose(
 ) -> SfpmStatus {
     guard(|| {
         let h = get(map)?;
-        let images = h.map.images()?.ok_or_else(no_images)?;
-        if index >= images.len() {
-            return Err(out_of_range("image", index, images.len()));
-        }
-        if pose.is_null() {
-            return Err(FfiError::null("pose"));
-        }
-        for (i, &v) in images.poses[index].iter().enumerate() {
-            // SAFETY: non-null and valid for 7 doubles per contract.
-            unsafe { pose.add(i).write(v) };
-        }
-        if !camera.is_null() {
-            // SAFETY: non-null, writable per contract.
-            unsafe { camera.write(images.cameras[index]) };
+        let images = images_at(&h.map, index)?;
+        // SAFETY: `pose` is NULL (reported) or valid for 7 doubles, one `[f64; 7]` (same
+        // alignment as `f64`); `camera` NULL or writable; per contract.
+        unsafe {
+            put(pose.cast::<[f64; 7]>(), images.poses[index], "pose")?;
+            put_opt(camera, images.cameras[index]);
         }
         Ok(SFPM_OK)
     })
@@ -826,14 +820,20 @@ pub unsafe extern "C" fn sfpm_visibility(
             .map
             .visibility()?
             .ok_or_else(|| FfiError::new(SFPM_ERR_MISSING, "the map stores no visibility"))?;
-        let (op, on) = h.pin((SectionKind::VisibilityOffsets, 0), vis.offsets);
-        let (pp, pn) = h.pin((SectionKind::VisibilityPoints, 0), vis.points);
-        // SAFETY: per contract (each `put` checks for NULL).
+        // SAFETY: checked non-null above; writable per contract.
         unsafe {
-            put(offsets, op, "offsets")?;
-            put(n_offsets, on, "n_offsets")?;
-            put(points, pp, "points")?;
-            put(n_points, pn, "n_points")?;
+            h.lend(
+                (SectionKind::VisibilityOffsets, 0),
+                vis.offsets,
+                offsets,
+                n_offsets,
+            );
+            h.lend(
+                (SectionKind::VisibilityPoints, 0),
+                vis.points,
+                points,
+                n_points,
+            );
         }
         Ok(SFPM_OK)
     })
@@ -869,46 +869,36 @@ pub unsafe extern "C" fn sfpm_localize(
 ) -> SfpmStatus {
     guard(|| {
         let h = get(map)?;
-        if out.is_null() {
-            return Err(FfiError::null("out"));
-        }
-        if camera.is_null() {
-            return Err(FfiError::null("camera"));
-        }
+        non_null(&[(out.is_null(), "out"), (camera.is_null(), "camera")])?;
         if dim == 0 {
-            return Err(FfiError::new(SFPM_ERR_ARGUMENT, "dim is 0"));
+            return Err(FfiError::argument("dim is 0"));
         }
         let n2 = n
             .checked_mul(2)
-            .ok_or_else(|| FfiError::new(SFPM_ERR_ARGUMENT, "n too large"))?;
+            .ok_or_else(|| FfiError::argument("n too large"))?;
         let nd = n
             .checked_mul(dim)
-            .ok_or_else(|| FfiError::new(SFPM_ERR_ARGUMENT, "n × dim too large"))?;
-        // SAFETY: per contract: `2n` doubles and `n × dim` floats.
-        let (xy, desc) = unsafe {
-            (
-                input(keypoints, n2, "keypoints")?,
-                input(descriptors, nd, "descriptors")?,
-            )
-        };
+            .ok_or_else(|| FfiError::argument("n × dim too large"))?;
+        // SAFETY: per contract: `2n` doubles.
+        let xy = unsafe { input(keypoints, n2, "keypoints")? };
+        // SAFETY: per contract: `n × dim` floats.
+        let desc = unsafe { input(descriptors, nd, "descriptors")? };
         // SAFETY: non-null (checked), points to a valid SfpmCamera per contract.
         let cam = unsafe { &*camera };
-        if cam.model.is_null() {
-            return Err(FfiError::null("camera.model"));
-        }
+        non_null(&[(cam.model.is_null(), "camera.model")])?;
         // SAFETY: non-null, NUL-terminated per contract.
         let model = unsafe { CStr::from_ptr(cam.model) }
             .to_str()
-            .map_err(|_| FfiError::new(SFPM_ERR_ARGUMENT, "camera.model is not UTF-8"))?;
+            .map_err(|_| FfiError::argument("camera.model is not UTF-8"))?;
         // SAFETY: per contract: `n_params` doubles.
         let params = unsafe { input(cam.params, cam.n_params, "camera.params")? };
-        let camera = Camera::from_model_name(model, cam.width, cam.height, params)
-            .map_err(|e| FfiError::new(SFPM_ERR_ARGUMENT, format!("camera: {e}")))?;
+        let too_large = |what| FfiError::argument(format!("camera.{what} is above {}", u32::MAX));
+        let width = u32::try_from(cam.width).map_err(|_| too_large("width"))?;
+        let height = u32::try_from(cam.height).map_err(|_| too_large("height"))?;
+        let camera = Camera::from_model_name(model, width, height, params)
+            .map_err(|e| FfiError::argument(format!("camera: {e}")))?;
         let key = if options.is_null() {
-            LocalizerKey {
-                levels: Vec::new(),
-                short: false,
-            }
+            LocalizerKey::default()
         } else {
             // SAFETY: non-null, points to a valid SfpmLocalizeOptions per contract.
             let o = unsafe { &*options };
@@ -923,8 +913,7 @@ pub unsafe extern "C" fn sfpm_localize(
             }
         };
         if xy.iter().any(|v| !v.is_finite()) || desc.iter().any(|v| !v.is_finite()) {
-            return Err(FfiError::new(
-                SFPM_ERR_ARGUMENT,
+            return Err(FfiError::argument(
                 "keypoints or descriptors hold NaN or infinity",
             ));
         }
@@ -963,13 +952,19 @@ pub unsafe extern "C" fn sfpm_localize(
     })
 }
 
-fn no_images() -> FfiError {
-    FfiError::new(SFPM_ERR_MISSING, "the map stores no images")
+/// The map's images, `index` checked against them.
+fn images_at<'m>(map: &'m Map<'_>, index: usize) -> FfiResult<Images<'m>> {
+    let images = map
+        .images()?
+        .ok_or_else(|| FfiError::new(SFPM_ERR_MISSING, "the map stores no images"))?;
+    if index >= images.len() {
+        return Err(out_of_range("image", index, images.len()));
+    }
+    Ok(images)
 }
 
 fn out_of_range(what: &str, index: usize, len: usize) -> FfiError {
-    FfiError::new(
-        SFPM_ERR_ARGUMENT,
-        format!("{what} index {index} out of range (the map has {len})"),
-    )
+    FfiError::argument(format!(
+        "{what} index {index} out of range (the map has {len})"
+    ))
 }

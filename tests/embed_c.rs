@@ -174,4 +174,6 @@ fn c_example_reads_the_levels_vector() {
     assert_eq!(fact("use_after_close")[0], "-2");
     // One feature of dimension 4 against level 0 (projection input 16): reported, not a crash.
     assert_eq!(fact("localize")[0], "-8");
+    // A camera width above UINT32_MAX (the field is uint64_t): refused, not truncated.
+    assert_eq!(fact("too_wide_camera")[0], "-3");
 }

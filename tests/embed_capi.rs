@@ -510,6 +510,212 @@ fn localizes_a_known_pose_from_several_threads() {
     );
 }
 
+/// `sfpm_camera`'s width and height (`uint64_t`) go straight into an `SfpmCamera`; a size the
+/// localizer's 32 bits cannot hold is an argument error, never silently truncated.
+#[test]
+fn map_camera_localizes_and_oversized_cameras_are_rejected() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (points, descriptors, path) = synthetic_map(tmp.path());
+    let (xy, desc) = query(&points, &descriptors);
+    let map = open(&path);
+    let mut model = [0 as std::ffi::c_char; 32];
+    let (mut width, mut height, mut n_params) = (0u64, 0u64, 0usize);
+    let mut params = [0f64; 8];
+    let status = unsafe {
+        sfpm_camera(
+            map,
+            0,
+            model.as_mut_ptr(),
+            model.len(),
+            &mut width,
+            &mut height,
+            params.as_mut_ptr(),
+            params.len(),
+            &mut n_params,
+        )
+    };
+    assert_eq!(status, SfpmStatus::SFPM_OK, "{}", last_error());
+    assert_eq!((width, height, n_params), (640, 480, 4));
+    let camera = SfpmCamera {
+        model: model.as_ptr(),
+        width,
+        height,
+        params: params.as_ptr(),
+        n_params,
+    };
+    let run = |camera: &SfpmCamera| {
+        let mut out = SfpmLocalization::default();
+        let (n, p) = (xy.len() / 2, null());
+        let status =
+            unsafe { sfpm_localize(map, xy.as_ptr(), desc.as_ptr(), n, DIM, camera, p, &mut out) };
+        (status, out)
+    };
+    let (status, out) = run(&camera);
+    assert_eq!(status, SfpmStatus::SFPM_OK, "{}", last_error());
+    assert_near_truth(&out);
+    for (width, height, what) in [
+        (1u64 << 32, 480, "camera.width"),
+        (640, u64::MAX, "camera.height"),
+    ] {
+        let (status, _) = run(&SfpmCamera {
+            width,
+            height,
+            ..camera
+        });
+        assert_eq!(status, SfpmStatus::SFPM_ERR_ARGUMENT, "{what}");
+        assert!(last_error().contains(what), "{}", last_error());
+    }
+    let (status, _) = run(&SfpmCamera {
+        model: null(),
+        ..camera
+    });
+    assert_eq!(status, SfpmStatus::SFPM_ERR_NULL);
+    assert!(
+        last_error().contains("camera.model is NULL"),
+        "{}",
+        last_error()
+    );
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+}
+
+/// Optional out pointers may be NULL, names are copied like `snprintf`, and a NULL required
+/// pointer is named in the error, the first one in argument order, with nothing written.
+#[test]
+fn optional_truncated_and_null_outputs() {
+    let (path, json) = vector("levels");
+    let map = open(&path);
+    let name = json["content"]["images"][0]["name"].as_str().unwrap();
+    unsafe {
+        let mut needed = 0usize;
+        assert_eq!(
+            sfpm_image_name(map, 0, null_mut(), 0, &mut needed),
+            SfpmStatus::SFPM_OK
+        );
+        assert_eq!(needed, name.len());
+        let mut one = [1 as std::ffi::c_char; 1];
+        assert_eq!(
+            sfpm_image_name(map, 0, one.as_mut_ptr(), 1, null_mut()),
+            SfpmStatus::SFPM_OK
+        );
+        assert_eq!(one[0], 0, "capacity 1 holds just the NUL");
+        let mut buf = [1 as std::ffi::c_char; 64];
+        assert_eq!(
+            sfpm_image_name(map, 0, buf.as_mut_ptr(), buf.len(), null_mut()),
+            SfpmStatus::SFPM_OK
+        );
+        assert_eq!(CStr::from_ptr(buf.as_ptr()).to_str().unwrap(), name);
+        assert_eq!(
+            sfpm_image_name(map, 0, null_mut(), 8, &mut needed),
+            SfpmStatus::SFPM_ERR_NULL
+        );
+        assert!(last_error().contains("buf is NULL"), "{}", last_error());
+        assert_eq!(
+            sfpm_image_name(map, 99, null_mut(), 8, null_mut()),
+            SfpmStatus::SFPM_ERR_ARGUMENT,
+            "the index is checked before the buffer"
+        );
+
+        let nulls = sfpm_camera(
+            map,
+            0,
+            null_mut(),
+            0,
+            null_mut(),
+            null_mut(),
+            null_mut(),
+            0,
+            null_mut(),
+        );
+        assert_eq!(
+            nulls,
+            SfpmStatus::SFPM_OK,
+            "every camera output is optional"
+        );
+        let mut model = [1 as std::ffi::c_char; 3];
+        let mut params = [0f64; 1];
+        let mut width = 0u64;
+        let status = sfpm_camera(
+            map,
+            0,
+            model.as_mut_ptr(),
+            model.len(),
+            &mut width,
+            null_mut(),
+            params.as_mut_ptr(),
+            0,
+            null_mut(),
+        );
+        assert_eq!(status, SfpmStatus::SFPM_OK);
+        assert_eq!(model[2], 0);
+        assert_eq!(params[0], 0.0, "capacity 0: nothing written");
+        assert!(width > 0);
+
+        let (mut positions, mut n) = (null(), 0usize);
+        assert_eq!(
+            sfpm_point_positions(map, &mut positions, &mut n, null_mut()),
+            SfpmStatus::SFPM_OK,
+            "origin is optional"
+        );
+        assert_eq!(n, json["content"]["positions"].as_array().unwrap().len());
+        assert!(!positions.is_null());
+
+        let mut camera = 9u32;
+        assert_eq!(
+            sfpm_image_pose(map, 0, null_mut(), &mut camera),
+            SfpmStatus::SFPM_ERR_NULL
+        );
+        assert!(last_error().contains("pose is NULL"), "{}", last_error());
+        assert_eq!(camera, 9, "nothing written");
+
+        let (mut offsets, mut n_offsets, mut points) = (null(), 0usize, null());
+        assert_eq!(
+            sfpm_visibility(map, &mut offsets, &mut n_offsets, &mut points, null_mut()),
+            SfpmStatus::SFPM_ERR_NULL
+        );
+        assert!(
+            last_error().contains("n_points is NULL"),
+            "{}",
+            last_error()
+        );
+        assert!(offsets.is_null() && points.is_null() && n_offsets == 0);
+
+        let mut other: SfpmMap = 0;
+        assert_eq!(sfpm_open(null(), null_mut()), SfpmStatus::SFPM_ERR_NULL);
+        assert!(last_error().contains("path is NULL"), "{}", last_error());
+        assert_eq!(
+            sfpm_open(path.as_ptr(), null_mut()),
+            SfpmStatus::SFPM_ERR_NULL
+        );
+        assert!(last_error().contains("out is NULL"), "{}", last_error());
+        let not_utf8 = CString::new(vec![0xffu8, 0xfe]).unwrap();
+        assert_eq!(
+            sfpm_open(not_utf8.as_ptr(), &mut other),
+            SfpmStatus::SFPM_ERR_ARGUMENT
+        );
+        assert!(last_error().contains("not UTF-8"), "{}", last_error());
+        assert_eq!(other, 0);
+
+        let mut count = 7usize;
+        assert_eq!(
+            sfpm_point_count(0, &mut count),
+            SfpmStatus::SFPM_ERR_INVALID_HANDLE
+        );
+        assert_eq!(count, 7);
+        for (f, want) in [
+            (sfpm_level_count as unsafe extern "C" fn(_, _) -> _, 3),
+            (sfpm_point_count, n),
+            (sfpm_camera_count, 1),
+            (sfpm_image_count, 3),
+        ] {
+            assert_eq!(f(map, &mut count), SfpmStatus::SFPM_OK);
+            assert_eq!(count, want);
+            assert_eq!(f(map, null_mut()), SfpmStatus::SFPM_ERR_NULL);
+            assert!(last_error().contains("out is NULL"), "{}", last_error());
+        }
+    }
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+}
+
 fn vector_path(name: &str) -> CString {
     CString::new(format!(
         "{}/spec/vectors/valid/{name}.sfpm",

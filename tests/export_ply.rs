@@ -212,13 +212,38 @@ fn colmap_output_matches_export_colmap() {
     let tmp = tempfile::tempdir().unwrap();
     let a = tmp.path().join("export");
     let b = tmp.path().join("export-colmap");
+    let poses = tmp.path().join("images.txt");
     let m = map.to_str().unwrap();
-    assert!(sfpmap(&["export", m, "--colmap", a.to_str().unwrap()])
-        .status
-        .success());
-    assert!(sfpmap(&["export-colmap", m, "-o", b.to_str().unwrap()])
-        .status
-        .success());
+    let out = sfpmap(&[
+        "export",
+        m,
+        "--colmap",
+        a.to_str().unwrap(),
+        "--images-txt",
+        poses.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(out.status.success());
+    let nested: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let out = sfpmap(&["export-colmap", m, "-o", b.to_str().unwrap(), "--json"]);
+    assert!(out.status.success());
+    // export-colmap keeps its own flat JSON keys.
+    let flat: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let mut keys: Vec<&str> = flat
+        .as_object()
+        .unwrap()
+        .keys()
+        .map(|k| k.as_str())
+        .collect();
+    keys.sort_unstable();
+    assert_eq!(
+        keys,
+        ["cameras", "images", "observations", "output", "points"]
+    );
+    assert_eq!(flat["output"], b.to_str().unwrap());
+    for k in ["cameras", "images", "points", "observations"] {
+        assert_eq!(flat[k], nested["colmap"][k], "{k}");
+    }
     for f in ["cameras.txt", "images.txt", "points3D.txt"] {
         assert_eq!(
             std::fs::read(a.join(f)).unwrap(),
@@ -226,6 +251,35 @@ fn colmap_output_matches_export_colmap() {
             "{f}"
         );
     }
+    // --images-txt writes the same header and image lines, with empty POINTS2D lines.
+    let full = std::fs::read_to_string(a.join("images.txt")).unwrap();
+    let bare = std::fs::read_to_string(&poses).unwrap();
+    let (full, bare): (Vec<&str>, Vec<&str>) = (full.lines().collect(), bare.lines().collect());
+    assert_eq!(full.len(), bare.len());
+    assert_eq!(full[..3], bare[..3], "header");
+    assert!(bare[3].ends_with("observations: 0"), "{}", bare[3]);
+    for i in (4..full.len()).step_by(2) {
+        assert_eq!(full[i], bare[i], "image line {i}");
+        assert_eq!(bare[i + 1], "");
+    }
+
+    // The same refusal as export --colmap: an existing model needs --force.
+    let out = sfpmap(&["export-colmap", m, "-o", b.to_str().unwrap()]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--force"));
+    let out = sfpmap(&["export-colmap", m, "-o", b.to_str().unwrap(), "--force"]);
+    assert!(out.status.success());
+    assert_eq!(
+        String::from_utf8_lossy(&out.stdout).trim(),
+        format!(
+            "{}: {} cameras, {} images, {} points, {} observations",
+            b.display(),
+            flat["cameras"],
+            flat["images"],
+            flat["points"],
+            flat["observations"]
+        )
+    );
 }
 
 #[test]

@@ -1,7 +1,8 @@
 /*
  * sfpm_info: prints what a map holds through the sfpmap C API, one fact per line
  * ("key value ..."), then shows that bad input is reported, never a crash: a camera model
- * that does not exist, and a query whose descriptor dimension does not fit level 0.
+ * that does not exist, a query whose descriptor dimension does not fit level 0, and a camera
+ * wider than the localizer takes.
  *
  *   cargo build --release --features capi
  *   cc -std=c11 -Wall -Wextra -Iinclude examples/c/sfpm_info.c -Ltarget/release -lsfpmap \
@@ -143,6 +144,11 @@ int main(int argc, char **argv) {
   SfpmLocalizeOptions options = {&level0, 1, 0};
   SfpmStatus status = sfpm_localize(map, keypoint, descriptor, 1, 4, &camera, &options, &found);
   printf("localize %d inliers %llu\n", (int)status, (unsigned long long)found.inliers);
+
+  /* Sizes are uint64_t, as sfpm_camera gives them; one above UINT32_MAX is refused (-3). */
+  SfpmCamera too_wide = {"SIMPLE_PINHOLE", UINT64_C(1) << 32, 48, params, 3};
+  printf("too_wide_camera %d\n",
+         (int)sfpm_localize(map, keypoint, descriptor, 1, 4, &too_wide, &options, &found));
 
   CHECK(sfpm_close(map));
   printf("double_close %d\n", (int)sfpm_close(map));

@@ -3,7 +3,7 @@
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::format::Map;
-use sfpmap::io::colmap_export::export_colmap;
+use sfpmap::io::colmap_export::{export_colmap, ExportSummary, COLMAP_FILES};
 use sfpmap::io::{ply, poses};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -43,7 +43,29 @@ pub struct Args {
 
 use super::{check_free, write_atomic};
 
+/// What [`export`] wrote: the `--json` object, one plain-text line per output, and the COLMAP
+/// model's counts (`export-colmap` prints those its own way).
+pub(super) struct Exported {
+    pub report: serde_json::Map<String, serde_json::Value>,
+    pub lines: Vec<String>,
+    pub colmap: Option<ExportSummary>,
+}
+
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    let Exported { report, lines, .. } = export(&args)?;
+    if args.json {
+        super::print_json(&serde_json::Value::Object(report))?;
+    } else if !quiet {
+        for line in lines {
+            println!("{line}");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Writes every output `args` asks for (`--json` is the caller's); `export-colmap` runs
+/// through here too.
+pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
     if args.ply.is_none()
         && args.colmap.is_none()
         && args.tum.is_none()
@@ -58,7 +80,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         check_free(p, args.force)?;
     }
     if let Some(dir) = &args.colmap {
-        for f in ["cameras.txt", "images.txt", "points3D.txt"] {
+        for f in COLMAP_FILES {
             check_free(&dir.join(f), args.force)?;
         }
     }
@@ -66,6 +88,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let source = args.map.display().to_string();
     let mut report = serde_json::Map::new();
     let mut lines = Vec::new();
+    let mut colmap = None;
 
     if let Some(path) = &args.ply {
         let mut summary = None;
@@ -99,13 +122,14 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             s.points,
             s.observations
         ));
+        colmap = Some(s);
     }
-    let n_images = map.images()?.map_or(0, |i| i.len());
     for (path, text, key) in [
         (&args.tum, poses::images_tum as fn(&Map<'_>) -> _, "tum"),
         (&args.images_txt, poses::images_txt, "images_txt"),
     ] {
         let Some(path) = path else { continue };
+        let n_images = map.images()?.map_or(0, |i| i.len());
         let text = text(&map).with_context(|| source.clone())?;
         write_atomic(path, |out| {
             use std::io::Write;
@@ -118,13 +142,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         );
         lines.push(format!("{}: {n_images} image poses", path.display()));
     }
-
-    if args.json {
-        super::print_json(&serde_json::Value::Object(report))?;
-    } else if !quiet {
-        for line in lines {
-            println!("{line}");
-        }
-    }
-    Ok(ExitCode::SUCCESS)
+    Ok(Exported {
+        report,
+        lines,
+        colmap,
+    })
 }

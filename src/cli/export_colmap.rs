@@ -2,7 +2,6 @@
 
 use anyhow::Context;
 use serde_json::json;
-use sfpmap::io::colmap_export::export_colmap;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -26,12 +25,17 @@ pub struct Args {
 }
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
-    for f in ["cameras.txt", "images.txt", "points3D.txt"] {
-        super::check_free(&args.output.join(f), args.force)?;
-    }
-    let map = super::open_map(&args.map)?;
-    let summary =
-        export_colmap(&map, &args.output).with_context(|| args.map.display().to_string())?;
+    // `export --colmap OUTPUT`, with this command's own JSON keys.
+    let exported = super::export::export(&super::export::Args {
+        map: args.map,
+        ply: None,
+        colmap: Some(args.output.clone()),
+        tum: None,
+        images_txt: None,
+        force: args.force,
+        json: args.json,
+    })?;
+    let summary = exported.colmap.context("COLMAP export did not run")?;
     if args.json {
         super::print_json(&json!({
             "output": args.output.display().to_string(),
@@ -41,14 +45,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "observations": summary.observations,
         }))?;
     } else if !quiet {
-        println!(
-            "{}: {} cameras, {} images, {} points, {} observations",
-            args.output.display(),
-            summary.cameras,
-            summary.images,
-            summary.points,
-            summary.observations
-        );
+        for line in exported.lines {
+            println!("{line}");
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

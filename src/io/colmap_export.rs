@@ -4,9 +4,12 @@
 //! Each image's points2D are the map's visibility entries for it, in order, so a point's
 //! track element `(image_id, point2D_idx)` is the entry's index within its image.
 
-use crate::format::{Error, Map};
+use crate::format::{CameraInfo, Error, Images, Map};
 use std::fmt::Write as _;
 use std::path::Path;
+
+/// The files of a COLMAP text model, in the order [`export_colmap`] writes them.
+pub const COLMAP_FILES: [&str; 3] = ["cameras.txt", "images.txt", "points3D.txt"];
 
 /// Counts of what was written.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -40,8 +43,6 @@ pub fn to_colmap_text(map: &Map<'_>) -> Result<ColmapText, Error> {
     let positions = map.point_positions()?;
     let colors = map.point_colors()?;
     let ids = map.point_ids()?;
-    let camera_id = |i: usize| meta.cameras[i].id.unwrap_or(i as u32 + 1);
-    let image_id = |i: usize| images.ids.as_ref().map_or(i as u32 + 1, |ids| ids[i]);
     let point_id = |p: usize| ids.as_ref().map_or(p as u64 + 1, |ids| ids[p]);
 
     let mut cameras = String::from("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
@@ -50,7 +51,7 @@ pub fn to_colmap_text(map: &Map<'_>) -> Result<ColmapText, Error> {
         write!(
             cameras,
             "{} {} {} {}",
-            camera_id(i),
+            camera_id(&meta.cameras, i),
             c.model,
             c.width,
             c.height
@@ -65,32 +66,9 @@ pub fn to_colmap_text(map: &Map<'_>) -> Result<ColmapText, Error> {
     // Tracks: for each point, (image_id, index within the image), in image order.
     let n_points = positions.len();
     let mut tracks: Vec<Vec<(u32, usize)>> = vec![Vec::new(); n_points];
-    let mut text_images = String::from("# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n");
-    writeln!(
-        text_images,
-        "# Number of images: {}, observations: {}",
-        images.len(),
-        vis.points.len()
-    )
-    .ok();
+    let mut text_images = images_txt_header(images.len(), vis.points.len());
     for i in 0..images.len() {
-        let q = images.poses[i];
-        let cam = images.cameras[i] as usize;
-        writeln!(
-            text_images,
-            "{} {} {} {} {} {} {} {} {} {}",
-            image_id(i),
-            q[0],
-            q[1],
-            q[2],
-            q[3],
-            q[4],
-            q[5],
-            q[6],
-            camera_id(cam),
-            images.name(i)?
-        )
-        .ok();
+        write_image_line(&mut text_images, &meta.cameras, &images, i)?;
         let start = vis.offsets[i] as usize;
         let mut line = String::new();
         for (k, &p) in vis.points_of(i).iter().enumerate() {
@@ -99,7 +77,7 @@ pub fn to_colmap_text(map: &Map<'_>) -> Result<ColmapText, Error> {
                 line.push(' ');
             }
             write!(line, "{} {} {}", xy[0], xy[1], point_id(p as usize)).ok();
-            tracks[p as usize].push((image_id(i), k));
+            tracks[p as usize].push((image_id(&images, i), k));
         }
         text_images.push_str(&line);
         text_images.push('\n');
@@ -150,11 +128,10 @@ pub fn to_colmap_text(map: &Map<'_>) -> Result<ColmapText, Error> {
 pub fn export_colmap(map: &Map<'_>, dir: &Path) -> Result<ExportSummary, Error> {
     let text = to_colmap_text(map)?;
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    for (name, body) in [
-        ("cameras.txt", &text.cameras),
-        ("images.txt", &text.images),
-        ("points3D.txt", &text.points3d),
-    ] {
+    for (name, body) in COLMAP_FILES
+        .into_iter()
+        .zip([&text.cameras, &text.images, &text.points3d])
+    {
         let path = dir.join(name);
         let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
         std::fs::write(&tmp, body)
@@ -165,4 +142,55 @@ pub fn export_colmap(map: &Map<'_>, dir: &Path) -> Result<ExportSummary, Error> 
             })?;
     }
     Ok(text.summary)
+}
+
+/// The COLMAP `camera_id` of the map's camera `index`: its source id, else `index + 1` (also
+/// for an index past the camera list, so a bad index never panics).
+fn camera_id(cameras: &[CameraInfo], index: usize) -> u32 {
+    cameras
+        .get(index)
+        .and_then(|c| c.id)
+        .unwrap_or(index as u32 + 1)
+}
+
+/// The COLMAP `image_id` of image `i`: its source id, else `i + 1`.
+fn image_id(images: &Images<'_>, i: usize) -> u32 {
+    images.ids.as_ref().map_or(i as u32 + 1, |ids| ids[i])
+}
+
+/// The comment header `images.txt` starts with, counts included.
+pub(crate) fn images_txt_header(images: usize, observations: usize) -> String {
+    format!(
+        "# Image list with two lines of data per image:\n\
+         #   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n\
+         #   POINTS2D[] as (X, Y, POINT3D_ID)\n\
+         # Number of images: {images}, observations: {observations}\n"
+    )
+}
+
+/// Appends image `i`'s first `images.txt` line (`IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID
+/// NAME` and the newline); its POINTS2D line is the caller's to write.
+pub(crate) fn write_image_line(
+    out: &mut String,
+    cameras: &[CameraInfo],
+    images: &Images<'_>,
+    i: usize,
+) -> Result<(), Error> {
+    let q = images.poses[i];
+    writeln!(
+        out,
+        "{} {} {} {} {} {} {} {} {} {}",
+        image_id(images, i),
+        q[0],
+        q[1],
+        q[2],
+        q[3],
+        q[4],
+        q[5],
+        q[6],
+        camera_id(cameras, images.cameras[i] as usize),
+        images.name(i)?
+    )
+    .ok();
+    Ok(())
 }

@@ -2,6 +2,7 @@
 //! `world_from_cam`, what evo and the TUM scripts read) and COLMAP `images.txt` without
 //! observations.
 
+use super::colmap_export::{images_txt_header, write_image_line};
 use crate::format::{Error, Map};
 use std::fmt::Write as _;
 
@@ -84,39 +85,14 @@ pub fn images_tum(map: &Map<'_>) -> Result<String, Error> {
 /// The map's database images as a COLMAP `images.txt` with empty POINTS2D lines (a valid
 /// model file once next to a `cameras.txt`; `export --colmap` writes one with observations).
 pub fn images_txt(map: &Map<'_>) -> Result<String, Error> {
-    let meta = map.metadata();
     let images = map
         .images()?
         .ok_or_else(|| Error::inconsistent("the map has no images"))?;
-    let mut text = String::from("# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n");
-    writeln!(
-        text,
-        "# Number of images: {}, observations: 0",
-        images.len()
-    )
-    .ok();
+    let cameras = &map.metadata().cameras;
+    let mut text = images_txt_header(images.len(), 0);
     for i in 0..images.len() {
-        let q = images.poses[i];
-        let cam = images.cameras[i] as usize;
-        let camera_id = meta
-            .cameras
-            .get(cam)
-            .and_then(|c| c.id)
-            .unwrap_or(cam as u32 + 1);
-        let image_id = images.ids.as_ref().map_or(i as u32 + 1, |ids| ids[i]);
-        writeln!(
-            text,
-            "{image_id} {} {} {} {} {} {} {} {camera_id} {}\n",
-            q[0],
-            q[1],
-            q[2],
-            q[3],
-            q[4],
-            q[5],
-            q[6],
-            images.name(i)?
-        )
-        .ok();
+        write_image_line(&mut text, cameras, &images, i)?;
+        text.push('\n');
     }
     Ok(text)
 }
