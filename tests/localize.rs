@@ -184,6 +184,21 @@ fn a_query_of_noise_fails_with_a_reason_not_a_panic() {
         .is_none());
 }
 
+/// A camera claiming a huge image (any u32 size is valid input) still localizes: the
+/// guided-matching grid is bounded, not sized by the image.
+#[test]
+fn a_huge_camera_does_not_size_the_matching_grid() {
+    let s = scene();
+    let bytes = map_bytes(&s);
+    let map = Map::from_bytes(&bytes).unwrap();
+    let localizer = Localizer::new(&map, LocalizeOptions::default()).unwrap();
+    let q = query(&s, &truth(), 0, DIM);
+    let huge = Camera::parse("SIMPLE_RADIAL 4294967295 4294967295 500 320 240 0.01").unwrap();
+    let r = localizer.localize(&q, &huge).unwrap();
+    let pose = r.pose.unwrap_or_else(|| panic!("failed: {:?}", r.failure));
+    assert!(pose.rotation_error_deg(&truth()) < 0.2);
+}
+
 #[test]
 fn wrong_descriptor_kind_and_geometry_only_maps_are_errors() {
     let s = scene();

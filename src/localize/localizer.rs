@@ -551,8 +551,11 @@ impl<'m> Localizer<'m> {
     ) {
         let gate = self.options.gate_px.max(1.0);
         let (w, h) = (f64::from(camera.width()), f64::from(camera.height()));
-        let cols = (w / gate).ceil() as usize + 1;
-        let rows_n = (h / gate).ceil() as usize + 1;
+        // Grid cells at least a gate wide (so a 3 × 3 block covers the gate), and at most
+        // MAX_GRID_CELLS of them whatever the image size the camera claims.
+        let cell_px = gate.max((w * h / MAX_GRID_CELLS).sqrt());
+        let cols = (w / cell_px).ceil() as usize + 1;
+        let rows_n = (h / cell_px).ceil() as usize + 1;
         let mut grid: Vec<Vec<(u32, [f32; 2])>> = vec![Vec::new(); cols * rows_n];
         for (p, &row) in level.row_of_point.iter().enumerate() {
             if row == u32::MAX {
@@ -568,7 +571,7 @@ impl<'m> Localizer<'m> {
             if !(px.x >= 0.0 && px.y >= 0.0 && px.x < w && px.y < h) {
                 continue;
             }
-            let cell = (px.y / gate) as usize * cols + (px.x / gate) as usize;
+            let cell = (px.y / cell_px) as usize * cols + (px.x / cell_px) as usize;
             grid[cell].push((p as u32, [px.x as f32, px.y as f32]));
         }
         let dim = level.dim;
@@ -579,7 +582,7 @@ impl<'m> Localizer<'m> {
             if !(kp[0] >= 0.0 && kp[1] >= 0.0 && kp[0] < w && kp[1] < h) {
                 continue;
             }
-            let (cx, cy) = ((kp[0] / gate) as i64, (kp[1] / gate) as i64);
+            let (cx, cy) = ((kp[0] / cell_px) as i64, (kp[1] / cell_px) as i64);
             let qd = &q[k * dim..(k + 1) * dim];
             let (mut best, mut second) = ((f32::NEG_INFINITY, u32::MAX), f32::NEG_INFINITY);
             for gy in cy - 1..=cy + 1 {
@@ -626,3 +629,6 @@ impl<'m> Localizer<'m> {
 fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
+
+/// Upper bound on the guided-matching grid (a camera may claim any size up to u32).
+const MAX_GRID_CELLS: f64 = (1u32 << 20) as f64;
