@@ -398,3 +398,232 @@ pub fn with_extra_section(
     .unwrap();
     w.to_bytes().unwrap()
 }
+
+/// One section for [`craft`]: the table fields and the stored bytes, taken as given (absurd
+/// values welcome); `craft` fills in offset, stored length and checksum.
+#[derive(Debug, Clone)]
+pub struct Crafted {
+    pub kind: u16,
+    pub level: u16,
+    pub dtype: u8,
+    pub codec: u8,
+    pub flags: u8,
+    pub rows: u64,
+    pub cols: u64,
+    /// The declared decoded length (a raw section's must equal its stored length).
+    pub raw_len: u64,
+    /// The bytes as stored: compressed for zstd.
+    pub stored: Vec<u8>,
+}
+
+impl Crafted {
+    /// A raw, required section holding `bytes`.
+    pub fn raw(
+        kind: SectionKind,
+        level: u16,
+        dtype: sfpmap::format::Dtype,
+        rows: u64,
+        cols: u64,
+        bytes: Vec<u8>,
+    ) -> Crafted {
+        Crafted {
+            kind: kind.code(),
+            level,
+            dtype: dtype as u8,
+            codec: Codec::Raw as u8,
+            flags: sfpmap::format::SECTION_REQUIRED,
+            rows,
+            cols,
+            raw_len: bytes.len() as u64,
+            stored: bytes,
+        }
+    }
+
+    /// A zstd, required section whose frame decodes to `raw` (level 19: small frames).
+    pub fn zstd(
+        kind: SectionKind,
+        level: u16,
+        dtype: sfpmap::format::Dtype,
+        rows: u64,
+        cols: u64,
+        raw: &[u8],
+    ) -> Crafted {
+        Crafted {
+            codec: Codec::Zstd as u8,
+            raw_len: raw.len() as u64,
+            stored: zstd::bulk::compress(raw, 19).unwrap(),
+            ..Crafted::raw(kind, level, dtype, rows, cols, Vec::new())
+        }
+    }
+
+    /// Clears the required flag (for unknown kinds a reader must skip).
+    pub fn optional(mut self) -> Crafted {
+        self.flags &= !sfpmap::format::SECTION_REQUIRED;
+        self
+    }
+}
+
+/// Metadata JSON of a map with the given `levels` (see [`craft_level`]); edit the value for more.
+pub fn craft_metadata(levels: Vec<Value>) -> Value {
+    json!({
+        "format": "sfpmap",
+        "units": "model",
+        "convention": "colmap",
+        "origin": [0.0, 0.0, 0.0],
+        "levels": levels,
+    })
+}
+
+/// One entry of the metadata's `levels`.
+pub fn craft_level(level: u16, dim_full: u64, dim_short: u64) -> Value {
+    json!({
+        "level": level,
+        "stride": 8.0,
+        "descriptor": "sfp-v1",
+        "dim_full": dim_full,
+        "dim_short": dim_short,
+        "normalization": "l2",
+    })
+}
+
+/// `point_positions` of `n` points, all at the origin.
+pub fn craft_points(n: u64) -> Crafted {
+    Crafted::raw(
+        SectionKind::PointPositions,
+        sfpmap::format::NO_LEVEL,
+        sfpmap::format::Dtype::F32,
+        n,
+        3,
+        vec![0; n as usize * 12],
+    )
+}
+
+/// `level_points` holding the global indices `points`.
+pub fn craft_level_points(level: u16, points: &[u32]) -> Crafted {
+    Crafted::raw(
+        SectionKind::LevelPoints,
+        level,
+        sfpmap::format::Dtype::U32,
+        points.len() as u64,
+        1,
+        bytemuck::cast_slice(points).to_vec(),
+    )
+}
+
+/// Lays out a map from `metadata` and `sections` (in table and file order) the way the spec
+/// says (header, table, metadata, 64-byte-aligned sections, zero padding) with every checksum
+/// correct, so a test reaches the checks behind them. Nothing else is checked or fixed: the
+/// metadata and the table fields may contradict each other as much as the test wants.
+pub fn craft(metadata: &Value, sections: &[Crafted]) -> Vec<u8> {
+    craft_with_metadata_bytes(&serde_json::to_vec(metadata).unwrap(), sections)
+}
+
+/// [`craft`] with the metadata block given as bytes (which need not be JSON at all).
+pub fn craft_with_metadata_bytes(metadata: &[u8], sections: &[Crafted]) -> Vec<u8> {
+    use sfpmap::format::{align_up, VERSION_MAJOR, VERSION_MINOR};
+    let table_end = (HEADER_LEN + sections.len() * ENTRY_LEN) as u64;
+    let mut out = vec![0u8; table_end as usize];
+    out.extend_from_slice(metadata);
+    let mut table = Vec::with_capacity(sections.len() * ENTRY_LEN);
+    for s in sections {
+        let offset = align_up(out.len() as u64).unwrap();
+        out.resize(offset as usize, 0);
+        out.extend_from_slice(&s.stored);
+        let entry = RawEntry {
+            kind: s.kind,
+            level: s.level,
+            dtype: s.dtype,
+            codec: s.codec,
+            flags: s.flags,
+            reserved: 0,
+            rows: s.rows,
+            cols: s.cols,
+            offset,
+            stored_len: s.stored.len() as u64,
+            raw_len: s.raw_len,
+            checksum: checksum(&s.stored),
+            reserved2: 0,
+        };
+        table.extend_from_slice(&entry.encode());
+    }
+    let mut header = Header {
+        major: VERSION_MAJOR,
+        minor: VERSION_MINOR,
+        flags: 0,
+        section_count: sections.len() as u32,
+        entry_len: ENTRY_LEN as u32,
+        metadata_offset: table_end,
+        metadata_len: metadata.len() as u64,
+        file_len: out.len() as u64,
+        index_checksum: 0,
+    };
+    header.index_checksum = concat_checksum(&header.encode()[..56], &table, metadata);
+    out[..HEADER_LEN].copy_from_slice(&header.encode());
+    out[HEADER_LEN..table_end as usize].copy_from_slice(&table);
+    out
+}
+
+/// How a child run by [`run_limited`] ended.
+#[derive(Debug)]
+pub struct Limited {
+    /// `None` when it was killed (signal, or past the time limit).
+    pub code: Option<i32>,
+    pub timed_out: bool,
+    pub stdout: String,
+    pub stderr: String,
+    pub seconds: f64,
+}
+
+/// Runs `program args` with its address space capped at `max_bytes` (`ulimit -v`, so a
+/// regression to a huge allocation fails instead of swapping) and killed after `timeout`.
+/// Pass `env!("CARGO_BIN_EXE_sfpmap")` as `program` for the CLI.
+pub fn run_limited(
+    program: impl AsRef<std::ffi::OsStr>,
+    args: &[&std::ffi::OsStr],
+    max_bytes: u64,
+    timeout: std::time::Duration,
+) -> Limited {
+    use std::io::Read;
+    use std::process::{Command, Stdio};
+    let start = std::time::Instant::now();
+    let mut child = Command::new("sh")
+        .arg("-c")
+        .arg(format!("ulimit -v {} && exec \"$@\"", max_bytes / 1024))
+        .arg("sh")
+        .arg(program.as_ref())
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Drain the pipes on threads so a chatty child cannot block on a full pipe.
+    let drain = |mut pipe: Box<dyn Read + Send>| {
+        std::thread::spawn(move || {
+            let mut s = Vec::new();
+            let _ = pipe.read_to_end(&mut s);
+            String::from_utf8_lossy(&s).into_owned()
+        })
+    };
+    let out = drain(Box::new(child.stdout.take().unwrap()));
+    let err = drain(Box::new(child.stderr.take().unwrap()));
+    let mut timed_out = false;
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if start.elapsed() > timeout {
+            timed_out = true;
+            let _ = child.kill();
+            break child.wait().unwrap();
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    };
+    Limited {
+        code: status.code(),
+        timed_out,
+        stdout: out.join().unwrap(),
+        stderr: err.join().unwrap(),
+        seconds: start.elapsed().as_secs_f64(),
+    }
+}
