@@ -584,27 +584,67 @@ mod tests {
         }
     }
 
+    /// Level `l`'s feature vector at cell (cx, cy), read straight from the CHW array.
+    fn cell(l: &DenseLevel, cx: usize, cy: usize) -> Vec<f32> {
+        (0..l.channels)
+            .map(|c| l.feat[(c * l.height + cy) * l.width + cx])
+            .collect()
+    }
+
+    fn unit(v: &[f32]) -> Vec<f32> {
+        let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        v.iter().map(|x| x / n).collect()
+    }
+
+    fn assert_close(a: &[f32], b: &[f32]) {
+        assert_eq!(a.len(), b.len());
+        for (x, y) in a.iter().zip(b) {
+            assert!((x - y).abs() < 1e-6, "{a:?}\n{b:?}");
+        }
+    }
+
+    // The expected values come from the feature arrays by hand (cell lookups, a mean of two
+    // cells, explicit norms), not from the sampling or normalising code under test.
     #[test]
-    fn parts_start_with_the_level_descriptor_and_normalise_to_the_full_one() {
+    fn descriptors_are_sampled_per_level_normalised_and_concatenated() {
         let dense = Dense {
             input_size: [32, 32],
             scale: [1.0, 1.0],
             levels: vec![level(2, 4, 16, 1), level(4, 6, 8, 2), level(8, 8, 4, 3)],
             global: vec![1.0],
         };
+        let l = &dense.levels;
+        // Pixel (8, 16) is a cell centre on every level: cells (4, 8), (2, 4), (1, 2).
+        let own = [cell(&l[0], 4, 8), cell(&l[1], 2, 4), cell(&l[2], 1, 2)];
         for i in 0..3 {
-            for (x, y) in [(3.3, 7.9), (0.0, 0.0), (31.0, 12.5)] {
-                let mut own = Vec::new();
-                dense.levels[i].descriptor_at(x, y, &mut own);
-                let mut full = Vec::new();
-                dense.full_descriptor_at(i, x, y, &mut full);
-                let mut parts = vec![9.0];
-                dense.parts_at(i, x, y, &mut parts);
-                assert_eq!(parts[1..=own.len()], own[..]);
-                keypoints::l2_normalise(&mut parts[1..]);
-                assert_eq!(parts[1..], full[..]);
-            }
+            let mut got = Vec::new();
+            l[i].descriptor_at(8.0, 16.0, &mut got);
+            assert_close(&got, &unit(&own[i]));
+            // full = the unit parts of levels i.. concatenated, over sqrt(number of parts).
+            let k = (3 - i) as f32;
+            let expected: Vec<f32> = own[i..]
+                .iter()
+                .flat_map(|p| unit(p))
+                .map(|x| x / k.sqrt())
+                .collect();
+            let mut full = vec![9.0];
+            dense.full_descriptor_at(i, 8.0, 16.0, &mut full);
+            assert_eq!(full[0], 9.0, "appends, keeps what was there");
+            assert_close(&full[1..], &expected);
+            let mut parts = Vec::new();
+            dense.parts_at(i, 8.0, 16.0, &mut parts);
+            let unnormalised: Vec<f32> = own[i..].iter().flat_map(|p| unit(p)).collect();
+            assert_close(&parts, &unnormalised);
         }
+        // Half-way between cells 4 and 5 of level 0 (pixel x = 9): the mean of the two cells.
+        let mean: Vec<f32> = cell(&l[0], 4, 8)
+            .iter()
+            .zip(cell(&l[0], 5, 8))
+            .map(|(a, b)| (a + b) / 2.0)
+            .collect();
+        let mut got = Vec::new();
+        l[0].descriptor_at(9.0, 16.0, &mut got);
+        assert_close(&got, &unit(&mean));
     }
 
     #[test]
