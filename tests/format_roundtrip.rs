@@ -145,12 +145,26 @@ fn write_replaces_atomically_and_leaves_no_temp_file() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m.sfpm");
     std::fs::write(&path, b"old").unwrap();
+    // A second name for the old file: a write in place (truncate + write) would change what
+    // it reads; a new file renamed over `path` leaves it alone.
+    let old_link = dir.path().join("old-link");
+    std::fs::hard_link(&path, &old_link).unwrap();
     let scene = Scene::new(4, 5, 1, &[]);
     scene
         .writer(Codec::Raw)
         .write(&path, &sfpmap::progress::Silent)
         .unwrap();
     Map::open(&path).unwrap().verify().unwrap();
+    assert_eq!(std::fs::read(&old_link).unwrap(), b"old");
+    {
+        use std::os::unix::fs::MetadataExt;
+        let (new, old) = (
+            std::fs::metadata(&path).unwrap(),
+            std::fs::metadata(&old_link).unwrap(),
+        );
+        assert_ne!(new.ino(), old.ino(), "the map was rewritten in place");
+    }
+    std::fs::remove_file(&old_link).unwrap();
     let names: Vec<_> = std::fs::read_dir(dir.path())
         .unwrap()
         .map(|e| e.unwrap().file_name())

@@ -115,8 +115,34 @@ fn sfp_queries_from_images_and_from_features_h5_agree_and_eval_reports() {
         }
         assert!(ev["median_rotation_deg"].as_f64().unwrap() < 2.0, "{ev}");
     }
-    assert_eq!(poses(&t.path().join("a.txt")).len(), 2);
-    assert_eq!(poses(&t.path().join("b.txt")).len(), 2);
+    let a = poses(&t.path().join("a.txt"));
+    let b = poses(&t.path().join("b.txt"));
+    assert_eq!(a.len(), 2);
+    assert_eq!(b.len(), 2);
+    // Both paths run the same extractor on the same images; features.h5 stores descriptors
+    // as f16 like the in-memory query, so the poses must agree closely, query by query.
+    for (la, lb) in a.iter().zip(&b) {
+        let (na, va) = pose_fields(la);
+        let (nb, vb) = pose_fields(lb);
+        assert_eq!(na, nb, "queries in a different order: {la} / {lb}");
+        let dq: f64 = (0..4).map(|i| (va[i] - vb[i]).powi(2)).sum::<f64>().sqrt();
+        let dq_flip: f64 = (0..4).map(|i| (va[i] + vb[i]).powi(2)).sum::<f64>().sqrt();
+        let dt: f64 = (4..7).map(|i| (va[i] - vb[i]).powi(2)).sum::<f64>().sqrt();
+        let norm_t: f64 = (4..7).map(|i| va[i].powi(2)).sum::<f64>().sqrt().max(1e-9);
+        assert!(
+            dq.min(dq_flip) < 1e-6 && dt / norm_t < 1e-6,
+            "images and features.h5 disagree for {na}: {la} / {lb}"
+        );
+    }
+}
+
+/// `name qw qx qy qz tx ty tz` → (name, the seven numbers).
+fn pose_fields(line: &str) -> (String, Vec<f64>) {
+    let mut it = line.split(' ');
+    let name = it.next().unwrap().to_string();
+    let v: Vec<f64> = it.map(|x| x.parse().unwrap()).collect();
+    assert_eq!(v.len(), 7, "{line}");
+    (name, v)
 }
 
 #[test]
