@@ -4,7 +4,9 @@
 /// `out[n × m] = a[n × k] · b[m × k]ᵀ`, all row-major. Panics if a slice is too short, so
 /// the unsafe call below never reads or writes outside them.
 pub(crate) fn sgemm_abt(a: &[f32], b: &[f32], out: &mut [f32], n: usize, m: usize, k: usize) {
-    assert!(a.len() >= n * k && b.len() >= m * k && out.len() >= n * m);
+    // Checked products: a wrapped one could pass the check with slices far too short.
+    let fits = |len: usize, x: usize, y: usize| x.checked_mul(y).is_some_and(|xy| len >= xy);
+    assert!(fits(a.len(), n, k) && fits(b.len(), m, k) && fits(out.len(), n, m));
     if n == 0 || m == 0 {
         return;
     }

@@ -7,8 +7,10 @@
 
 use super::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use super::matching::{dot, gemm_abt, match_descriptors, normalise_rows, MatchOptions};
-use crate::format::{Error as FormatError, Map, Visibility};
+use crate::format::{Error as FormatError, Level, Map, Visibility};
+use bitvec::vec::BitVec;
 use nalgebra::{Vector2, Vector3};
+use std::borrow::Cow;
 use std::time::Instant;
 
 /// Keypoints and descriptors of one query image, for one level or for all.
@@ -118,6 +120,45 @@ pub enum LocalizeError {
         dim: usize,
         values: usize,
     },
+    /// A level's sections disagree with its dimensions (the reader's checks should have
+    /// caught it; the localizer sizes nothing from a claim it has not checked).
+    BadLevel {
+        level: u16,
+        message: String,
+    },
+    /// Every selected level was skipped (see [`SkippedLevel`]): nothing can be matched.
+    NoUsableLevel {
+        skipped: Vec<SkippedLevel>,
+    },
+}
+
+/// A selected level the localizer does not match, and why (no points, no descriptor
+/// dimensions, a projection no query can fit).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SkippedLevel {
+    pub level: u16,
+    pub reason: String,
+}
+
+impl std::fmt::Display for SkippedLevel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "level {}: {}", self.level, self.reason)
+    }
+}
+
+/// `skipped` as one line: the first few, then how many more.
+pub fn describe_skipped(skipped: &[SkippedLevel]) -> String {
+    const SHOWN: usize = 3;
+    let mut text = skipped
+        .iter()
+        .take(SHOWN)
+        .map(SkippedLevel::to_string)
+        .collect::<Vec<_>>()
+        .join("; ");
+    if skipped.len() > SHOWN {
+        text.push_str(&format!("; and {} more", skipped.len() - SHOWN));
+    }
+    text
 }
 
 impl std::fmt::Display for LocalizeError {
@@ -134,6 +175,12 @@ impl std::fmt::Display for LocalizeError {
                 f,
                 "query features: {values} descriptor values for {keypoints} keypoints of {dim} dimensions"
             ),
+            LocalizeError::BadLevel { level, message } => write!(f, "level {level}: {message}"),
+            LocalizeError::NoUsableLevel { skipped } => write!(
+                f,
+                "no selected level can be matched ({})",
+                describe_skipped(skipped)
+            ),
         }
     }
 }
@@ -146,17 +193,28 @@ impl From<FormatError> for LocalizeError {
     }
 }
 
-struct LevelIndex {
+/// One selected level, ready for matching. Everything here is sized by the level's own
+/// points and its sections' actual lengths: a map of many small levels costs what its
+/// sections hold, never levels × points.
+struct LevelIndex<'m> {
     id: u16,
-    /// Global point → row in the level, `u32::MAX` if the level does not hold it.
-    row_of_point: Vec<u32>,
+    /// The global point of each row, strictly increasing (the map's own array).
+    points: Cow<'m, [u32]>,
     /// Every row's descriptor as f32, unit norm, in the stored basis: `short` only
     /// (`[rows × dim_short]`) or the full one.
     descriptors: Vec<f32>,
+    /// Matched dimensions, at least 1.
     dim: usize,
     /// `[dim × d_in]`: maps a query descriptor into the stored basis (first `dim` rows).
     projection: Option<Vec<f32>>,
+    /// The query descriptors' dimension this level takes, at least `dim`.
     d_in: usize,
+}
+
+impl LevelIndex<'_> {
+    fn row(&self, r: usize) -> &[f32] {
+        &self.descriptors[r * self.dim..(r + 1) * self.dim]
+    }
 }
 
 /// A map prepared for localization: levels indexed, descriptors decoded to f32 once.
@@ -164,8 +222,10 @@ pub struct Localizer<'m> {
     map: &'m Map<'m>,
     options: LocalizeOptions,
     positions: Vec<Vector3<f64>>,
-    /// Selected levels, deepest first.
-    levels: Vec<LevelIndex>,
+    /// Selected levels, deepest first; never empty.
+    levels: Vec<LevelIndex<'m>>,
+    /// Selected levels that are not matched, and why.
+    skipped: Vec<SkippedLevel>,
     global: Option<(Vec<f32>, usize)>,
     /// Image → points, borrowed from the map, or `None` (all points are candidates).
     visibility: Option<Visibility<'m>>,
@@ -183,66 +243,41 @@ impl<'m> Localizer<'m> {
         };
         ids.sort_unstable_by(|a, b| b.cmp(a));
         ids.dedup();
-        let n_points = map.n_points() as usize;
         let mut levels = Vec::new();
+        let mut skipped = Vec::new();
         for id in ids {
             let level = map.level(id)?;
             if !level.has_descriptors() {
                 return Err(LocalizeError::NoDescriptors);
             }
-            let use_full = !options.short && level.has_rest();
-            let (ds, df) = (level.dim_short(), level.dim_full());
-            let dim = if use_full { df } else { ds };
-            let short = level.desc_short()?;
-            let rest = if use_full { level.desc_rest()? } else { None };
-            let mut descriptors = Vec::with_capacity(level.len() * dim);
-            for r in 0..level.len() {
-                descriptors.extend(short[r * ds..(r + 1) * ds].iter().map(|x| x.to_f32()));
-                if let Some(rest) = &rest {
-                    descriptors.extend(
-                        rest[r * (df - ds)..(r + 1) * (df - ds)]
-                            .iter()
-                            .map(|x| x.to_f32()),
-                    );
-                }
+            match index_level(&level, &options, map.n_points())? {
+                Ok(index) => levels.push(index),
+                Err(reason) => skipped.push(SkippedLevel { level: id, reason }),
             }
-            normalise_rows(&mut descriptors, dim);
-            let mut row_of_point = vec![u32::MAX; n_points];
-            for (row, &p) in level.points()?.iter().enumerate() {
-                row_of_point[p as usize] = row as u32;
-            }
-            let (projection, d_in) = match level.projection()? {
-                Some(p) => {
-                    let d_in = level.projection_input_dim().unwrap_or(0);
-                    (Some(p[..dim * d_in].to_vec()), d_in)
-                }
-                None => (None, df),
-            };
-            levels.push(LevelIndex {
-                id,
-                row_of_point,
-                descriptors,
-                dim,
-                projection,
-                d_in,
-            });
+        }
+        if levels.is_empty() {
+            return Err(LocalizeError::NoUsableLevel { skipped });
         }
         let positions = map
             .point_positions()?
             .iter()
             .map(|&p| Vector3::from(map.to_world(p)))
             .collect();
-        let global = map.image_global()?.map(|(g, dim)| {
-            let mut v: Vec<f32> = g.iter().map(|x| x.to_f32()).collect();
-            normalise_rows(&mut v, dim);
-            (v, dim)
-        });
+        let global = map
+            .image_global()?
+            .filter(|(_, dim)| *dim > 0)
+            .map(|(g, dim)| {
+                let mut v: Vec<f32> = g.iter().map(|x| x.to_f32()).collect();
+                normalise_rows(&mut v, dim);
+                (v, dim)
+            });
         let visibility = map.visibility()?;
         Ok(Localizer {
             map,
             options,
             positions,
             levels,
+            skipped,
             global,
             visibility,
         })
@@ -257,6 +292,12 @@ impl<'m> Localizer<'m> {
         self.levels.iter().map(|l| l.id).collect()
     }
 
+    /// Selected levels that are not matched (no points, no descriptor dimensions, …), in the
+    /// order they were considered; the caller reports them.
+    pub fn skipped_levels(&self) -> &[SkippedLevel] {
+        &self.skipped
+    }
+
     /// Localizes one query. Errors only for unusable input; a query that cannot be localized
     /// returns a `Localization` with `pose: None` and the reason.
     pub fn localize(
@@ -266,22 +307,16 @@ impl<'m> Localizer<'m> {
     ) -> Result<Localization, LocalizeError> {
         let t0 = Instant::now();
         let mut times = StageTimes::default();
-        let candidates = self.candidate_points(query);
+        let (candidates, retrieved_images) = self.candidate_points(query);
         times.retrieval_ms = ms(t0);
-        let retrieved_images = candidates.1;
-        let candidate_points = candidates.0;
 
-        // Query descriptors in each level's basis.
-        let mut projected = Vec::with_capacity(self.levels.len());
-        for level in &self.levels {
-            let set = query
-                .sets
-                .iter()
-                .find(|s| s.level == Some(level.id))
-                .or_else(|| query.sets.iter().find(|s| s.level.is_none()))
-                .ok_or(LocalizeError::NoFeaturesForLevel { level: level.id })?;
-            projected.push((set, self.project(level, set)?));
-        }
+        // The feature set each level matches, checked once; each level projects it into its
+        // basis only when it is matched, so at most one level's projection is alive at a time.
+        let sets = self
+            .levels
+            .iter()
+            .map(|level| self.feature_set(level, query))
+            .collect::<Result<Vec<_>, _>>()?;
 
         let failed = |reason: String, matches, times| Localization {
             pose: None,
@@ -296,10 +331,9 @@ impl<'m> Localizer<'m> {
         // Coarse: the deepest level against its candidates (all levels pooled if too few);
         // if the retrieved images give no pose, once more against every point (retrieval
         // can be wrong where the global descriptor is weak).
-        let mut attempt = self.coarse(&projected, &candidate_points, camera, &mut times);
-        if attempt.is_err() && candidate_points.len() < self.positions.len() {
-            let all: Vec<u32> = (0..self.positions.len() as u32).collect();
-            attempt = self.coarse(&projected, &all, camera, &mut times);
+        let mut attempt = self.coarse(&sets, candidates.as_ref(), camera, &mut times);
+        if attempt.is_err() && candidates.is_some() {
+            attempt = self.coarse(&sets, None, camera, &mut times);
         }
         let coarse = match attempt {
             Ok(found) => found,
@@ -317,12 +351,12 @@ impl<'m> Localizer<'m> {
         for _round in 0..2 {
             let mut pixels = Vec::new();
             let mut points = Vec::new();
+            // The index into `levels` of each match.
             let mut level_of = Vec::new();
-            for (i, level) in self.levels.iter().enumerate() {
-                let (set, q) = &projected[i];
+            for (i, (level, set)) in self.levels.iter().zip(&sets).enumerate() {
                 let before = pixels.len();
-                self.guided_level(level, set, q, &pose, camera, &mut pixels, &mut points);
-                level_of.extend(std::iter::repeat_n(level.id, pixels.len() - before));
+                self.guided_level(level, set, &pose, camera, &mut pixels, &mut points);
+                level_of.extend(std::iter::repeat_n(i, pixels.len() - before));
             }
             let fine_options = RansacOptions {
                 max_error_px: self.options.fine_error_px,
@@ -368,11 +402,9 @@ impl<'m> Localizer<'m> {
             });
         };
         let mut per_level: Vec<(u16, usize)> = self.levels.iter().map(|l| (l.id, 0)).collect();
-        for (k, &inlier) in estimate.inliers.iter().enumerate() {
+        for (&inlier, &i) in estimate.inliers.iter().zip(&level_of) {
             if inlier {
-                if let Some(e) = per_level.iter_mut().find(|e| e.0 == level_of[k]) {
-                    e.1 += 1;
-                }
+                per_level[i].1 += 1;
             }
         }
         Ok(Localization {
@@ -386,21 +418,21 @@ impl<'m> Localizer<'m> {
         })
     }
 
-    /// Matching against `candidates`, deepest level first, then P3P LO-RANSAC: the pose
-    /// estimate (its inlier mask has one entry per match), or the reason and the number of
-    /// matches.
+    /// Matching against `candidates` (`None`: every point), deepest level first, then P3P
+    /// LO-RANSAC: the pose estimate (its inlier mask has one entry per match), or the reason
+    /// and the number of matches.
     fn coarse(
         &self,
-        projected: &[(&FeatureSet, Vec<f32>)],
-        candidates: &[u32],
+        sets: &[&FeatureSet],
+        candidates: Option<&BitVec>,
         camera: &Camera,
         times: &mut StageTimes,
     ) -> Result<super::geometry::PoseEstimate, (String, usize)> {
         let t1 = Instant::now();
         let mut pixels = Vec::new();
         let mut points = Vec::new();
-        for (level, (set, q)) in self.levels.iter().zip(projected) {
-            self.match_level(level, set, q, candidates, &mut pixels, &mut points);
+        for (level, set) in self.levels.iter().zip(sets) {
+            self.match_level(level, set, candidates, &mut pixels, &mut points);
             if pixels.len() >= 4 * self.options.min_inliers {
                 break;
             }
@@ -425,10 +457,10 @@ impl<'m> Localizer<'m> {
         })
     }
 
-    /// Candidate points (global indices, sorted, deduplicated) seen by the retrieved images,
-    /// and how many images were retrieved. Without global descriptors or visibility: all
-    /// points.
-    fn candidate_points(&self, query: &QueryFeatures) -> (Vec<u32>, usize) {
+    /// Points seen by the retrieved images (one bit per point; `None` when that is every
+    /// point, or without global descriptors or visibility), and how many images were
+    /// retrieved.
+    fn candidate_points(&self, query: &QueryFeatures) -> (Option<BitVec>, usize) {
         let n_images = self.map.n_images() as usize;
         let images: Vec<usize> = match (&self.global, &query.global) {
             (Some((g, dim)), Some(q)) if q.len() == *dim && n_images > 0 => {
@@ -445,26 +477,33 @@ impl<'m> Localizer<'m> {
         };
         match &self.visibility {
             Some(visibility) if !images.is_empty() => {
-                let mut seen = vec![false; self.positions.len()];
+                let n_points = self.positions.len();
+                let mut seen = BitVec::repeat(false, n_points);
                 for &i in &images {
                     for &p in visibility.points_of(i) {
-                        seen[p as usize] = true;
+                        if (p as usize) < n_points {
+                            seen.set(p as usize, true);
+                        }
                     }
                 }
-                (
-                    (0..seen.len() as u32)
-                        .filter(|&p| seen[p as usize])
-                        .collect(),
-                    images.len(),
-                )
+                ((!seen.all()).then_some(seen), images.len())
             }
-            _ => ((0..self.positions.len() as u32).collect(), images.len()),
+            _ => (None, images.len()),
         }
     }
 
-    /// The query's descriptors of `set` in `level`'s stored basis, truncated to the matched
-    /// dimensions and renormalised.
-    fn project(&self, level: &LevelIndex, set: &FeatureSet) -> Result<Vec<f32>, LocalizeError> {
+    /// The query's feature set for `level`, checked against the level's descriptor space.
+    fn feature_set<'q>(
+        &self,
+        level: &LevelIndex<'_>,
+        query: &'q QueryFeatures,
+    ) -> Result<&'q FeatureSet, LocalizeError> {
+        let set = query
+            .sets
+            .iter()
+            .find(|s| s.level == Some(level.id))
+            .or_else(|| query.sets.iter().find(|s| s.level.is_none()))
+            .ok_or(LocalizeError::NoFeaturesForLevel { level: level.id })?;
         let n = set.keypoints.len();
         // The fields are public: a set of the wrong shape is an error, not a panic below.
         if n.checked_mul(set.dim) != Some(set.descriptors.len()) {
@@ -474,26 +513,25 @@ impl<'m> Localizer<'m> {
                 values: set.descriptors.len(),
             });
         }
+        if set.dim != level.d_in {
+            return Err(LocalizeError::DescriptorMismatch {
+                level: level.id,
+                expected: level.d_in,
+                found: set.dim,
+            });
+        }
+        Ok(set)
+    }
+
+    /// The query's descriptors of `set` in `level`'s stored basis, truncated to the matched
+    /// dimensions and renormalised: `[keypoints × dim]`, no larger than the set itself
+    /// (`dim ≤ d_in`).
+    fn project(&self, level: &LevelIndex<'_>, set: &FeatureSet) -> Vec<f32> {
+        let n = set.keypoints.len();
         let mut out = vec![0.0f32; n * level.dim];
         match &level.projection {
-            Some(p) => {
-                if set.dim != level.d_in {
-                    return Err(LocalizeError::DescriptorMismatch {
-                        level: level.id,
-                        expected: level.d_in,
-                        found: set.dim,
-                    });
-                }
-                gemm_abt(&set.descriptors, p, &mut out, n, level.dim, set.dim);
-            }
+            Some(p) => gemm_abt(&set.descriptors, p, &mut out, n, level.dim, set.dim),
             None => {
-                if set.dim < level.dim || set.dim != level.d_in {
-                    return Err(LocalizeError::DescriptorMismatch {
-                        level: level.id,
-                        expected: level.d_in,
-                        found: set.dim,
-                    });
-                }
                 for (row, src) in out
                     .chunks_exact_mut(level.dim)
                     .zip(set.descriptors.chunks_exact(set.dim))
@@ -503,47 +541,64 @@ impl<'m> Localizer<'m> {
             }
         }
         normalise_rows(&mut out, level.dim);
-        Ok(out)
+        out
+    }
+
+    /// [`Self::project`] of keypoint `k` alone, into `out`.
+    fn project_row(&self, level: &LevelIndex<'_>, set: &FeatureSet, k: usize, out: &mut Vec<f32>) {
+        let src = &set.descriptors[k * set.dim..(k + 1) * set.dim];
+        out.clear();
+        match &level.projection {
+            Some(p) => out.extend(p.chunks_exact(set.dim).map(|row| dot(row, src))),
+            None => out.extend_from_slice(&src[..level.dim]),
+        }
+        normalise_rows(out, level.dim);
     }
 
     /// Global matching of a level's query descriptors against its candidate points.
     fn match_level(
         &self,
-        level: &LevelIndex,
+        level: &LevelIndex<'_>,
         set: &FeatureSet,
-        q: &[f32],
-        candidates: &[u32],
+        candidates: Option<&BitVec>,
         pixels: &mut Vec<Vector2<f64>>,
         points: &mut Vec<Vector3<f64>>,
     ) {
-        let rows: Vec<(u32, u32)> = candidates
-            .iter()
-            .filter_map(|&p| {
-                let r = level.row_of_point[p as usize];
-                (r != u32::MAX).then_some((p, r))
-            })
-            .collect();
-        let mut block = Vec::with_capacity(rows.len() * level.dim);
-        for &(_, r) in &rows {
-            block.extend_from_slice(
-                &level.descriptors[r as usize * level.dim..(r as usize + 1) * level.dim],
-            );
+        let rows: Vec<usize> = match candidates {
+            Some(c) => (0..level.points.len())
+                .filter(|&r| c[level.points[r] as usize])
+                .collect(),
+            None => (0..level.points.len()).collect(),
+        };
+        if rows.is_empty() || set.keypoints.is_empty() {
+            return;
         }
-        for m in match_descriptors(q, &block, level.dim, &self.options.matching) {
+        let q = self.project(level, set);
+        // Every row a candidate: the level's own block, not a copy.
+        let gathered;
+        let block: &[f32] = if rows.len() == level.points.len() {
+            &level.descriptors
+        } else {
+            gathered = rows
+                .iter()
+                .flat_map(|&r| level.row(r).iter().copied())
+                .collect::<Vec<f32>>();
+            &gathered
+        };
+        for m in match_descriptors(&q, block, level.dim, &self.options.matching) {
             let kp = set.keypoints[m.query as usize];
+            let p = level.points[rows[m.map as usize]];
             pixels.push(Vector2::new(kp[0], kp[1]));
-            points.push(self.positions[rows[m.map as usize].0 as usize]);
+            points.push(self.positions[p as usize]);
         }
     }
 
     /// Guided matching: every point of the level that projects into the image is a candidate
     /// for the query keypoints within `gate_px` of its projection.
-    #[allow(clippy::too_many_arguments)]
     fn guided_level(
         &self,
-        level: &LevelIndex,
+        level: &LevelIndex<'_>,
         set: &FeatureSet,
-        q: &[f32],
         pose: &Pose,
         camera: &Camera,
         pixels: &mut Vec<Vector2<f64>>,
@@ -551,17 +606,12 @@ impl<'m> Localizer<'m> {
     ) {
         let gate = self.options.gate_px.max(1.0);
         let (w, h) = (f64::from(camera.width()), f64::from(camera.height()));
-        // Grid cells at least a gate wide (so a 3 × 3 block covers the gate), and at most
-        // MAX_GRID_CELLS of them whatever the image size the camera claims.
-        let cell_px = gate.max((w * h / MAX_GRID_CELLS).sqrt());
-        let cols = (w / cell_px).ceil() as usize + 1;
-        let rows_n = (h / cell_px).ceil() as usize + 1;
-        let mut grid: Vec<Vec<(u32, [f32; 2])>> = vec![Vec::new(); cols * rows_n];
-        for (p, &row) in level.row_of_point.iter().enumerate() {
-            if row == u32::MAX {
-                continue;
-            }
-            let pc = pose.transform(&self.positions[p]);
+        // The projected points keyed by grid cell (a gate wide, so a 3 × 3 block of cells
+        // covers the gate) and sorted: memory follows the level's points, whatever image size
+        // the camera claims. (cell row, cell column, level row, pixel).
+        let mut cells: Vec<(u32, u32, u32, [f32; 2])> = Vec::new();
+        for (row, &p) in level.points.iter().enumerate() {
+            let pc = pose.transform(&self.positions[p as usize]);
             if pc.z <= 0.0 {
                 continue;
             }
@@ -571,38 +621,45 @@ impl<'m> Localizer<'m> {
             if !(px.x >= 0.0 && px.y >= 0.0 && px.x < w && px.y < h) {
                 continue;
             }
-            let cell = (px.y / cell_px) as usize * cols + (px.x / cell_px) as usize;
-            grid[cell].push((p as u32, [px.x as f32, px.y as f32]));
+            let cell = ((px.y / gate) as u32, (px.x / gate) as u32);
+            cells.push((cell.0, cell.1, row as u32, [px.x as f32, px.y as f32]));
         }
-        let dim = level.dim;
+        if cells.is_empty() {
+            return;
+        }
+        cells.sort_unstable_by_key(|c| (c.0, c.1, c.2));
         // (point, similarity, keypoint); each map point keeps its best keypoint below.
         let mut found: Vec<(u32, f32, usize)> = Vec::new();
         let gate2 = (gate * gate) as f32;
+        let mut qd = Vec::with_capacity(level.dim);
         for (k, kp) in set.keypoints.iter().enumerate() {
             if !(kp[0] >= 0.0 && kp[1] >= 0.0 && kp[0] < w && kp[1] < h) {
                 continue;
             }
-            let (cx, cy) = ((kp[0] / cell_px) as i64, (kp[1] / cell_px) as i64);
-            let qd = &q[k * dim..(k + 1) * dim];
+            let (cy, cx) = ((kp[1] / gate) as u32, (kp[0] / gate) as u32);
+            let (x_lo, x_hi) = (cx.saturating_sub(1), cx.saturating_add(1));
             let (mut best, mut second) = ((f32::NEG_INFINITY, u32::MAX), f32::NEG_INFINITY);
-            for gy in cy - 1..=cy + 1 {
-                for gx in cx - 1..=cx + 1 {
-                    if gx < 0 || gy < 0 || gx as usize >= cols || gy as usize >= rows_n {
+            // The keypoint's descriptor is projected once, and only if some point is near.
+            let mut projected = false;
+            for gy in cy.saturating_sub(1)..=cy.saturating_add(1) {
+                let lo = cells.partition_point(|c| (c.0, c.1) < (gy, x_lo));
+                let hi = cells.partition_point(|c| (c.0, c.1) <= (gy, x_hi));
+                for &(_, _, row, xy) in &cells[lo..hi] {
+                    let (dx, dy) = (xy[0] - kp[0] as f32, xy[1] - kp[1] as f32);
+                    if dx * dx + dy * dy > gate2 {
                         continue;
                     }
-                    for &(p, xy) in &grid[gy as usize * cols + gx as usize] {
-                        let (dx, dy) = (xy[0] - kp[0] as f32, xy[1] - kp[1] as f32);
-                        if dx * dx + dy * dy > gate2 {
-                            continue;
-                        }
-                        let r = level.row_of_point[p as usize] as usize;
-                        let s = dot(qd, &level.descriptors[r * dim..(r + 1) * dim]);
-                        if s > best.0 {
-                            second = best.0;
-                            best = (s, p);
-                        } else if s > second {
-                            second = s;
-                        }
+                    if !projected {
+                        self.project_row(level, set, k, &mut qd);
+                        projected = true;
+                    }
+                    let s = dot(&qd, level.row(row as usize));
+                    let p = level.points[row as usize];
+                    if s > best.0 {
+                        second = best.0;
+                        best = (s, p);
+                    } else if s > second {
+                        second = s;
                     }
                 }
             }
@@ -626,9 +683,98 @@ impl<'m> Localizer<'m> {
     }
 }
 
+/// Indexes one level for matching, or says why it is skipped. Every buffer is sized from the
+/// sections' actual lengths, checked against the level's dimensions with checked arithmetic:
+/// the metadata's dims alone size nothing.
+fn index_level<'m>(
+    level: &Level<'m>,
+    options: &LocalizeOptions,
+    n_points: u64,
+) -> Result<Result<LevelIndex<'m>, String>, LocalizeError> {
+    let id = level.id();
+    let n = level.len();
+    if n == 0 {
+        return Ok(Err("no points".into()));
+    }
+    let use_full = !options.short && level.has_rest();
+    let (ds, df) = (level.dim_short(), level.dim_full());
+    let dim = if use_full { df } else { ds };
+    if dim == 0 {
+        let why = if options.short {
+            "dim_short 0: nothing to match with --short"
+        } else {
+            "dim_short 0 and no rest block: nothing to match"
+        };
+        return Ok(Err(why.into()));
+    }
+    let bad = |message: String| LocalizeError::BadLevel { level: id, message };
+    let short = level.desc_short()?;
+    if n.checked_mul(ds) != Some(short.len()) {
+        return Err(bad(format!(
+            "short block has {} values, not {n} points x {ds} dimensions",
+            short.len()
+        )));
+    }
+    let dr = df
+        .checked_sub(ds)
+        .ok_or_else(|| bad(format!("dim_short {ds} > dim_full {df}")))?;
+    let rest = if use_full { level.desc_rest()? } else { None };
+    if let Some(rest) = &rest {
+        if n.checked_mul(dr) != Some(rest.len()) {
+            return Err(bad(format!(
+                "rest block has {} values, not {n} points x {dr} dimensions",
+                rest.len()
+            )));
+        }
+    }
+    let points = level.points()?;
+    if points.len() != n || points.last().is_some_and(|&p| u64::from(p) >= n_points) {
+        return Err(bad("point indices do not fit the map's points".into()));
+    }
+    let (projection, d_in) = match level.projection()? {
+        Some(p) => {
+            let d_in = level.projection_input_dim().unwrap_or(0);
+            if d_in == 0 {
+                return Ok(Err("the projection takes no input dimensions".into()));
+            }
+            // A projection to more dimensions than it reads adds nothing to match, and would
+            // make a query's projection larger than the query.
+            if dim > d_in {
+                return Ok(Err(format!(
+                    "the projection maps {d_in} input dimensions to {dim}"
+                )));
+            }
+            let used = dim
+                .checked_mul(d_in)
+                .filter(|&k| k <= p.len())
+                .ok_or_else(|| {
+                    bad(format!(
+                        "projection has {} values, fewer than {dim} x {d_in}",
+                        p.len()
+                    ))
+                })?;
+            (Some(p[..used].to_vec()), d_in)
+        }
+        None => (None, df),
+    };
+    let mut descriptors = Vec::with_capacity(short.len() + rest.as_ref().map_or(0, |r| r.len()));
+    for r in 0..n {
+        descriptors.extend(short[r * ds..(r + 1) * ds].iter().map(|x| x.to_f32()));
+        if let Some(rest) = &rest {
+            descriptors.extend(rest[r * dr..(r + 1) * dr].iter().map(|x| x.to_f32()));
+        }
+    }
+    normalise_rows(&mut descriptors, dim);
+    Ok(Ok(LevelIndex {
+        id,
+        points,
+        descriptors,
+        dim,
+        projection,
+        d_in,
+    }))
+}
+
 fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
-
-/// Upper bound on the guided-matching grid (a camera may claim any size up to u32).
-const MAX_GRID_CELLS: f64 = (1u32 << 20) as f64;

@@ -17,5 +17,6 @@ pub mod matching;
 pub mod query;
 
 pub use localizer::{
-    FeatureSet, Localization, LocalizeError, LocalizeOptions, Localizer, QueryFeatures, StageTimes,
+    describe_skipped, FeatureSet, Localization, LocalizeError, LocalizeOptions, Localizer,
+    QueryFeatures, SkippedLevel, StageTimes,
 };
