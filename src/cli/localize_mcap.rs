@@ -1,18 +1,19 @@
 //! `sfpmap localize --mcap IN.mcap --topic TOPIC -o OUT.mcap`: localize the images of one topic
 //! of an MCAP log and write their poses as `foxglove.PoseInFrame` (and optionally TUM).
 //!
-//! Damaged logs: messages are streamed until the first unreadable record; what was read is
-//! localized and written, and the rest is reported (a warning on stderr, `unreadable` in
-//! `--json`). The run still exits 0 when at least one image message was read, as a query
-//! that fails to localize does not fail `sfpmap localize` either; it is an error when no image
-//! message could be read or decoded at all.
+//! Damaged logs ([`LogReader`]): a chunk that fails its CRC or does not decompress is skipped,
+//! and a record whose length cannot be right is skipped up to the next chunk of the chunk index
+//! (or, without an intact summary, ends the log). Each skip is a warning naming the file and
+//! where, and `unreadable` in `--json`; what was read is localized and written, and the exit
+//! status is [`SKIPPED_EXIT`] instead of 0. It is an error when no image message on the topic
+//! could be read or decoded at all.
 
 use super::super::Bars;
 use super::Args;
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::extract::{DetectOptions, Extractor};
-use sfpmap::io::mcap_io::{self, Stamp};
+use sfpmap::io::mcap_io::{self, Damage, LogReader, Skipped, Stamp};
 use sfpmap::io::poses::tum_line;
 use sfpmap::localize::eval::median;
 use sfpmap::localize::geometry::Camera;
@@ -26,12 +27,17 @@ use std::process::ExitCode;
 use std::sync::Mutex;
 use std::time::Instant;
 
+/// The exit status of a run that skipped damaged parts of the log (1 is an error, 2 a usage
+/// error).
+pub const SKIPPED_EXIT: u8 = 3;
+
 /// The MCAP flags of `sfpmap localize`.
 #[derive(Debug, clap::Args)]
 pub struct McapArgs {
     /// Read query images from this MCAP log instead of a query list; -o is then an MCAP with
     /// foxglove.PoseInFrame messages. Example: `sfpmap localize --map m.sfpm --mcap run.mcap
-    /// --topic /camera/image_raw/compressed --camera-info-topic /camera/camera_info -o poses.mcap`
+    /// --topic /camera/image_raw/compressed --camera-info-topic /camera/camera_info -o poses.mcap`.
+    /// Damaged chunks and records are skipped with a warning; the exit status is then 3.
     #[arg(long, requires = "topic", conflicts_with_all = ["query_list", "images", "database", "features", "format"])]
     pub mcap: Option<PathBuf>,
     /// The image topic: sensor_msgs/msg/CompressedImage or sensor_msgs/msg/Image (cdr), or
@@ -73,39 +79,20 @@ struct Scan {
     messages_on_topic: usize,
     /// topic → schema name, for the "no such topic" error.
     topics: BTreeMap<String, String>,
-    /// The error that ended the pass early.
-    error: Option<String>,
+    /// The damaged parts that were skipped, as their warnings say.
+    skipped: Vec<String>,
 }
 
-fn open_stream(path: &Path) -> anyhow::Result<mcap::io::MessageReader<BufReader<File>>> {
-    let file = File::open(path).with_context(|| path.display().to_string())?;
-    Ok(mcap::io::MessageReader::new(BufReader::with_capacity(
-        1 << 20,
-        file,
-    )))
+fn open_log(path: &Path) -> anyhow::Result<LogReader<BufReader<File>>> {
+    LogReader::open(path).with_context(|| path.display().to_string())
 }
 
-/// The summary section (channels and per-channel counts), when the log has a readable one.
-fn read_summary(path: &Path) -> Option<mcap::Summary> {
-    use mcap::sans_io::{SummaryReadEvent, SummaryReader, SummaryReaderOptions};
-    use std::io::{Read, Seek};
-    let mut file = File::open(path).ok()?;
-    let len = file.metadata().ok()?.len();
-    let mut reader =
-        SummaryReader::new_with_options(SummaryReaderOptions::default().with_file_size(len));
-    while let Some(event) = reader.next_event() {
-        match event.ok()? {
-            SummaryReadEvent::ReadRequest(n) => {
-                let read = file.read(reader.insert(n)).ok()?;
-                reader.notify_read(read);
-            }
-            SummaryReadEvent::SeekRequest(to) => {
-                let pos = file.seek(to).ok()?;
-                reader.notify_seeked(pos);
-            }
-        }
-    }
-    reader.finish()
+/// The messages again for `--passthrough-images`: the same damaged parts are skipped as in
+/// the first pass, so the n-th message on the topic is the n-th frame.
+fn open_stream(
+    path: &Path,
+) -> anyhow::Result<impl Iterator<Item = Result<mcap::Message<'static>, Damage>>> {
+    Ok(open_log(path)?.filter(Result::is_ok))
 }
 
 fn topic_list(topics: &BTreeMap<String, String>) -> String {
@@ -138,14 +125,16 @@ fn schema_name(channel: &mcap::Channel<'_>) -> String {
 /// Intrinsics from the first message on the camera-info topic.
 fn camera_from_info(path: &Path, topic: &str) -> anyhow::Result<Camera> {
     let mut topics = BTreeMap::new();
-    for message in open_stream(path)? {
+    for message in open_log(path)? {
+        // Damage is reported by the image pass, which reads the whole log.
         let message = match message {
             Ok(m) => m,
-            Err(e) => bail!(
+            Err(e) if e.skipped == Skipped::Rest => bail!(
                 "{}: no message on camera-info topic {topic:?} before the log became unreadable ({e}); topics seen: {}",
                 path.display(),
                 topic_list(&topics)
             ),
+            Err(_) => continue,
         };
         if message.channel.topic == topic {
             let schema = schema_name(&message.channel);
@@ -169,10 +158,16 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     let (Some(input), Some(topic)) = (m.mcap.as_deref(), m.topic.as_deref()) else {
         bail!("--mcap needs --topic");
     };
-    let summary = read_summary(input);
+    let log = open_log(input)?;
+    if let Some(e) = log.summary_error() {
+        bars.warn(&format!(
+            "{}: the summary section is not used ({e}); damage in the log cannot be skipped by its chunk index",
+            input.display()
+        ));
+    }
     // With a summary, a missing topic is found before anything is decoded.
     let mut expected_on_topic = None;
-    if let Some(summary) = &summary {
+    if let Some(summary) = log.summary() {
         let topics: BTreeMap<String, String> = summary
             .channels
             .values()
@@ -183,19 +178,13 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
                 return Err(no_topic(input, t, &topics));
             }
         }
-        if let Some(stats) = &summary.stats {
+        if let Some(counts) = &summary.message_counts {
             expected_on_topic = Some(
                 summary
                     .channels
                     .values()
                     .filter(|c| c.topic == topic)
-                    .map(|c| {
-                        stats
-                            .channel_message_counts
-                            .get(&c.id)
-                            .copied()
-                            .unwrap_or(0)
-                    })
+                    .map(|c| counts.get(&c.id).copied().unwrap_or(0))
                     .sum::<u64>(),
             );
         }
@@ -238,38 +227,39 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             });
         }
         let mut scan = Scan::default();
-        let stream = open_stream(input);
-        let result = stream.map(|stream| {
-            for message in stream {
-                let message = match message {
-                    Ok(m) => m,
-                    Err(e) => {
-                        scan.error = Some(e.to_string());
-                        break;
-                    }
-                };
-                scan.topics
-                    .entry(message.channel.topic.clone())
-                    .or_insert_with(|| schema_name(&message.channel));
-                if message.channel.topic == topic {
-                    if sender.send((scan.messages_on_topic, message)).is_err() {
-                        break;
-                    }
-                    scan.messages_on_topic += 1;
+        for message in log {
+            let message = match message {
+                Ok(m) => m,
+                // The reader goes on after a skip, or ends after it when the rest is lost.
+                Err(damage) => {
+                    let what = damage.to_string();
+                    bars.warn(&format!("{}: {what}", input.display()));
+                    scan.skipped.push(what);
+                    continue;
                 }
+            };
+            scan.topics
+                .entry(message.channel.topic.clone())
+                .or_insert_with(|| schema_name(&message.channel));
+            if message.channel.topic == topic {
+                if sender.send((scan.messages_on_topic, message)).is_err() {
+                    break;
+                }
+                scan.messages_on_topic += 1;
             }
-        });
+        }
         drop(sender);
-        result.map(|_| scan)
+        Ok(scan)
     })?;
     bars.finish();
 
     let frames = frames.into_inner().unwrap_or_else(|p| p.into_inner());
     if scan.messages_on_topic == 0 {
-        match &scan.error {
+        match scan.skipped.first() {
             Some(e) => bail!(
-                "{}: no message on topic {topic:?} before the log became unreadable ({e}); topics seen: {}",
+                "{}: no message on topic {topic:?} could be read; {} damaged parts skipped, the first: {e}; topics seen: {}",
                 input.display(),
+                scan.skipped.len(),
                 topic_list(&scan.topics)
             ),
             None if !scan.topics.contains_key(topic) => {
@@ -318,21 +308,23 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     // Without a summary (a cut-off log) how many messages were lost is unknown.
     let unreadable_messages = expected_on_topic
         .map(|n| n.saturating_sub(scan.messages_on_topic as u64))
-        .filter(|_| scan.error.is_some());
-    let unreadable = scan.error.as_ref().map(|e| {
+        .filter(|_| !scan.skipped.is_empty());
+    let unreadable = scan.skipped.first().map(|e| {
         json!({
             "error": e,
             "messages": unreadable_messages,
+            "skipped": scan.skipped,
         })
     });
-    if let Some(e) = &scan.error {
+    if !scan.skipped.is_empty() {
         let lost = match unreadable_messages {
-            Some(n) => format!("{n} more image messages on the topic are lost"),
-            None => "how many more image messages it held is unknown (no summary)".to_owned(),
+            Some(n) => format!("{n} image messages on the topic are lost"),
+            None => "how many image messages were lost is unknown (no summary)".to_owned(),
         };
         bars.warn(&format!(
-            "{}: unreadable after the first {} image messages on {topic} ({e}); {lost}",
+            "{}: {} damaged parts skipped (exit status {SKIPPED_EXIT}); {} image messages on {topic} read, {lost}",
             input.display(),
+            scan.skipped.len(),
             scan.messages_on_topic
         ));
     }
@@ -366,7 +358,11 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             println!("failed: image {} ({})", f["index"], f["reason"]);
         }
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(if scan.skipped.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(SKIPPED_EXIT)
+    })
 }
 
 fn localize_message(

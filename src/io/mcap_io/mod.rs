@@ -11,9 +11,15 @@
 //! `mcap` CLI read without a plugin.
 
 mod pose_writer;
+mod reader;
+mod records;
 mod wire;
 
 pub use pose_writer::{pose_in_frame_json, PoseWriter, POSE_IN_FRAME_JSON_SCHEMA};
+pub use reader::{
+    Damage, Limits, LogReader, LogSummary, Skipped, CHUNK_FLOOR, CHUNK_RATIO, MAX_RECORD,
+};
+pub use records::ChunkIndex;
 pub use wire::{base64_decode, base64_encode};
 
 use crate::localize::geometry::{Camera, CameraModel};
@@ -75,7 +81,49 @@ pub enum McapIoError {
     BadMessage { schema: String, reason: String },
     /// Camera info we cannot express as a COLMAP camera.
     Camera { reason: String },
-    /// The MCAP container itself.
+    /// The file does not start with the MCAP magic.
+    NotMcap,
+    /// The log is a directory, FIFO or device, not a file.
+    NotRegularFile,
+    /// Reading the log failed.
+    Io(std::io::Error),
+    /// A record's fields do not fit together or in the record.
+    BadRecord {
+        record: &'static str,
+        reason: String,
+    },
+    /// A record's length runs past the end of what holds it (the data section, the summary
+    /// or a chunk).
+    RecordTooLong {
+        record: &'static str,
+        len: u64,
+        available: u64,
+        within: &'static str,
+    },
+    /// A record longer than [`MAX_RECORD`].
+    RecordOverLimit { record: &'static str, len: u64 },
+    /// Fewer bytes than a record header left at the end of the data section, summary or chunk.
+    Truncated {
+        needed: u64,
+        available: u64,
+        within: &'static str,
+    },
+    /// A chunk that says it decompresses to more than this file may ([`Limits`]).
+    ChunkTooLarge { uncompressed: u64, limit: u64 },
+    /// A chunk whose records do not match its CRC.
+    ChunkCrc { stored: u32, computed: u32 },
+    /// A summary section that does not match the footer's CRC.
+    SummaryCrc { stored: u32, computed: u32 },
+    /// A chunk's compressed records do not decompress.
+    Decompress {
+        compression: &'static str,
+        reason: String,
+    },
+    /// A chunk compression other than zstd and lz4.
+    UnsupportedCompression { compression: String },
+    /// A message on a channel no channel record defines.
+    UnknownChannel { id: u16 },
+    /// Writing the output MCAP.
     Mcap(mcap::McapError),
 }
 
@@ -118,6 +166,57 @@ impl fmt::Display for McapIoError {
             }
             McapIoError::BadMessage { schema, reason } => write!(f, "bad {schema} message: {reason}"),
             McapIoError::Camera { reason } => write!(f, "camera info: {reason}"),
+            McapIoError::NotMcap => write!(f, "not an MCAP file (no MCAP magic at its start)"),
+            McapIoError::NotRegularFile => write!(f, "not a regular file"),
+            McapIoError::Io(e) => write!(f, "{e}"),
+            McapIoError::BadRecord { record, reason } => write!(f, "bad {record} record: {reason}"),
+            McapIoError::RecordTooLong {
+                record,
+                len,
+                available,
+                within,
+            } => write!(
+                f,
+                "{record} record length {len} runs past the end of the {within} ({available} bytes left)"
+            ),
+            McapIoError::RecordOverLimit { record, len } => write!(
+                f,
+                "{record} record length {len} is over the limit of {MAX_RECORD} bytes"
+            ),
+            McapIoError::Truncated {
+                needed,
+                available,
+                within,
+            } => write!(
+                f,
+                "the {within} ends {available} bytes into a record header of {needed}"
+            ),
+            McapIoError::ChunkTooLarge {
+                uncompressed,
+                limit,
+            } => write!(
+                f,
+                "chunk says it decompresses to {uncompressed} bytes, over this file's limit of {limit} ({CHUNK_RATIO} × the file size, at least {CHUNK_FLOOR}, at most {MAX_RECORD})"
+            ),
+            McapIoError::ChunkCrc { stored, computed } => write!(
+                f,
+                "chunk CRC mismatch (stored {stored:#010x}, computed {computed:#010x})"
+            ),
+            McapIoError::SummaryCrc { stored, computed } => write!(
+                f,
+                "summary CRC mismatch (stored {stored:#010x}, computed {computed:#010x})"
+            ),
+            McapIoError::Decompress {
+                compression,
+                reason,
+            } => write!(f, "{compression} chunk does not decompress: {reason}"),
+            McapIoError::UnsupportedCompression { compression } => write!(
+                f,
+                "unsupported chunk compression {compression:?} (supported: zstd, lz4, none)"
+            ),
+            McapIoError::UnknownChannel { id } => {
+                write!(f, "message on channel {id}, which no channel record defines")
+            }
             McapIoError::Mcap(e) => write!(f, "mcap: {e}"),
         }
     }
@@ -130,6 +229,12 @@ impl std::error::Error for McapIoError {
             McapIoError::Mcap(e) => Some(e),
             _ => None,
         }
+    }
+}
+
+impl From<std::io::Error> for McapIoError {
+    fn from(e: std::io::Error) -> Self {
+        McapIoError::Io(e)
     }
 }
 
