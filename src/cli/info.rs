@@ -1,7 +1,7 @@
 //! `sfpmap info`: what a map holds.
 
-use serde_json::{json, Value};
-use sfpmap::format::Section;
+use serde::Serialize;
+use sfpmap::format::{Level, Map, Metadata, Provenance, Section};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -17,61 +17,128 @@ pub struct Args {
     pub json: bool,
 }
 
-fn section_json(s: &Section) -> Value {
-    json!({
-        "kind": s.kind.name(),
-        "kind_code": s.kind.code(),
-        "level": s.level,
-        "dtype": s.dtype.name(),
-        "rows": s.rows,
-        "cols": s.cols,
-        "codec": s.codec.name(),
-        "stored_bytes": s.stored_len,
-        "raw_bytes": s.raw_len,
-        "required": s.required,
-    })
+/// The `--json` object. Serialised straight from the map (no `serde_json::Value` tree), so
+/// a map of 65,535 levels costs a few bytes per section, not a JSON object per value.
+#[derive(Serialize)]
+struct Info<'m> {
+    path: String,
+    version: String,
+    file_bytes: u64,
+    points: u64,
+    images: u64,
+    cameras: usize,
+    geometry_only: bool,
+    origin: [f64; 3],
+    levels: Vec<LevelJson<'m>>,
+    sections: Vec<SectionJson>,
+    unknown_sections: Vec<SectionJson>,
+    provenance: &'m Provenance,
+}
+
+#[derive(Serialize)]
+struct LevelJson<'m> {
+    level: u16,
+    points: usize,
+    dim_full: usize,
+    dim_short: usize,
+    has_rest: bool,
+    has_descriptors: bool,
+    descriptor: &'m str,
+    stride: f64,
+    stored_bytes: u64,
+    sections: Vec<SectionJson>,
+}
+
+#[derive(Serialize)]
+struct SectionJson {
+    kind: &'static str,
+    kind_code: u16,
+    level: Option<u16>,
+    dtype: &'static str,
+    rows: u64,
+    cols: u64,
+    codec: &'static str,
+    stored_bytes: u64,
+    raw_bytes: u64,
+    required: bool,
+}
+
+impl From<&Section> for SectionJson {
+    fn from(s: &Section) -> Self {
+        SectionJson {
+            kind: s.kind.name(),
+            kind_code: s.kind.code(),
+            level: s.level,
+            dtype: s.dtype.name(),
+            rows: s.rows,
+            cols: s.cols,
+            codec: s.codec.name(),
+            stored_bytes: s.stored_len,
+            raw_bytes: s.raw_len,
+            required: s.required,
+        }
+    }
+}
+
+impl<'m> From<Level<'m>> for LevelJson<'m> {
+    fn from(l: Level<'m>) -> Self {
+        LevelJson {
+            level: l.id(),
+            points: l.len(),
+            dim_full: l.dim_full(),
+            dim_short: l.dim_short(),
+            has_rest: l.has_rest(),
+            has_descriptors: l.has_descriptors(),
+            descriptor: &l.info().descriptor,
+            stride: l.info().stride,
+            stored_bytes: l.sections().map(|s| s.stored_len).sum(),
+            sections: l.sections().map(SectionJson::from).collect(),
+        }
+    }
 }
 
 pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
     let path = &args.map;
     let map = super::open_map(path)?;
     let meta = map.metadata();
-    let levels: Vec<Value> = map
-        .levels()
-        .map(|l| {
-            json!({
-                "level": l.id(),
-                "points": l.len(),
-                "dim_full": l.dim_full(),
-                "dim_short": l.dim_short(),
-                "has_rest": l.has_rest(),
-                "has_descriptors": l.has_descriptors(),
-                "descriptor": l.info().descriptor,
-                "stride": l.info().stride,
-                "stored_bytes": l.sections().map(|s| s.stored_len).sum::<u64>(),
-                "sections": l.sections().map(section_json).collect::<Vec<_>>(),
-            })
-        })
-        .collect();
-    let info = json!({
-        "path": path.display().to_string(),
-        "version": map.version(),
-        "file_bytes": map.file_len(),
-        "points": map.n_points(),
-        "images": map.n_images(),
-        "cameras": meta.cameras.len(),
-        "geometry_only": meta.geometry_only,
-        "origin": meta.origin,
-        "levels": levels,
-        "sections": map.sections().iter().map(section_json).collect::<Vec<_>>(),
-        "unknown_sections": map.unknown_sections().map(section_json).collect::<Vec<_>>(),
-        "provenance": meta.provenance,
-    });
     if args.json {
-        super::print_json(&info)?;
+        print_info_json(&map, meta, path)?;
         return Ok(ExitCode::SUCCESS);
     }
-    println!(
+    print_info_text(&map, meta, path)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+fn print_info_json(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> anyhow::Result<()> {
+    use std::io::Write;
+    let info = Info {
+        path: path.display().to_string(),
+        version: map.version(),
+        file_bytes: map.file_len(),
+        points: map.n_points(),
+        images: map.n_images(),
+        cameras: meta.cameras.len(),
+        geometry_only: meta.geometry_only,
+        origin: meta.origin,
+        levels: map.levels().map(LevelJson::from).collect(),
+        sections: map.sections().iter().map(SectionJson::from).collect(),
+        unknown_sections: map.unknown_sections().map(SectionJson::from).collect(),
+        provenance: &meta.provenance,
+    };
+    // As `super::print_json` prints a Value: one line on stdout.
+    let mut out = std::io::BufWriter::new(std::io::stdout().lock());
+    serde_json::to_writer(&mut out, &info)?;
+    writeln!(out)?;
+    out.flush()?;
+    Ok(())
+}
+
+fn print_info_text(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> anyhow::Result<()> {
+    use std::io::Write;
+    // Buffered: a map may list 65,536 sections.
+    let mut out = std::io::BufWriter::new(std::io::stdout().lock());
+    writeln!(
+        out,
         "{}: sfpmap {}, {} bytes, {} points, {} images, {} cameras{}",
         path.display(),
         map.version(),
@@ -84,9 +151,10 @@ pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
         } else {
             ""
         }
-    );
+    )?;
     for l in map.levels() {
-        println!(
+        writeln!(
+            out,
             "level {}: {} points, {} (stride {}), dims {} full / {} short, rest {}",
             l.id(),
             l.len(),
@@ -95,12 +163,13 @@ pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
             l.dim_full(),
             l.dim_short(),
             if l.has_rest() { "present" } else { "absent" }
-        );
+        )?;
     }
-    println!("sections:");
+    writeln!(out, "sections:")?;
     for s in map.sections() {
         let level = s.level.map_or(String::new(), |l| format!(" L{l}"));
-        println!(
+        writeln!(
+            out,
             "  {:<22}{:<4} {:>4} {:>9}x{:<5} {:<5} {:>12} B stored ({} B raw)",
             s.kind.name(),
             level,
@@ -110,7 +179,8 @@ pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
             s.codec.name(),
             s.stored_len,
             s.raw_len
-        );
+        )?;
     }
-    Ok(ExitCode::SUCCESS)
+    out.flush()?;
+    Ok(())
 }

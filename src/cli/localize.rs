@@ -80,6 +80,9 @@ pub struct Args {
     pub threads: usize,
     /// Print a JSON summary (counts, per-stage median times).
     #[arg(long)]
+    /// Overwrite the output(s) if they exist.
+    #[arg(long)]
+    pub force: bool,
     pub json: bool,
     #[cfg(feature = "mcap")]
     #[command(flatten)]
@@ -215,6 +218,11 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         }
         #[cfg(not(feature = "onnx"))]
         (None, other) => {
+    let images: Vec<PathBuf> = match &args.images {
+        Some(dir) => queries.iter().map(|q| dir.join(&q.name)).collect(),
+        None => Vec::new(),
+    };
+    check_outputs(&args, &[&query_list], &images)?;
             check_extractable(&args.map, other, SIFT_HINT)?;
             bail!(
                 "{}: query features for {other:?} maps need the extractor (feature onnx)",
@@ -363,16 +371,29 @@ fn not_found(q: &Query) -> Localization {
     }
 }
 
-/// Writes all results through a temp file + rename.
+/// The output policy for `-o` (and the MCAP mode's `--tum`): none may be the map, the query
+/// list or MCAP log, `--database`, `--features`, `--model` or one of `query_inputs`.
+fn check_outputs(args: &Args, query_inputs: &[&Path], images: &[PathBuf]) -> anyhow::Result<()> {
+    let mut outputs = vec![args.output.as_path()];
+    #[cfg(feature = "mcap")]
+    outputs.extend(args.mcap.tum.as_deref());
+    let mut inputs = vec![args.map.as_path()];
+    inputs.extend(query_inputs);
+    inputs.extend(args.database.as_deref());
+    inputs.extend(args.features.as_deref());
+    inputs.extend(args.model.as_deref());
+    inputs.extend(images.iter().map(|p| p.as_path()));
+    super::check_outputs(&outputs, &inputs, args.force)
+}
+
+/// Writes all results through [`super::write_atomic`].
 fn write_poses(
     path: &Path,
     format: PoseFormat,
     queries: &[Query],
     results: &[Localization],
 ) -> anyhow::Result<()> {
-    super::write_atomic(path, |out| {
-        pose_text(out, format, queries, results).with_context(|| path.display().to_string())
-    })
+    super::write_atomic(path, |out| pose_text(out, format, queries, results))
 }
 
 /// The results as `--format` says.

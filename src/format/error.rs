@@ -31,6 +31,8 @@ impl fmt::Display for SectionRef {
 pub enum Error {
     /// Reading or writing the file failed.
     Io { path: PathBuf, message: String },
+    /// The path names a directory, FIFO, device or socket; `what` says which ("is a directory").
+    NotARegularFile { what: &'static str },
     /// The file does not start with the sfpmap magic.
     BadMagic,
     /// The file's major version is not one this reader understands.
@@ -115,6 +117,14 @@ pub enum Error {
         raw_len: u64,
         cap: u64,
     },
+    /// Decoding a zstd section would take the bytes decoded from this open map past its
+    /// decode budget ([`super::decode_budget`]).
+    DecodeBudgetExceeded {
+        section: SectionRef,
+        raw_len: u64,
+        decoded: u64,
+        budget: u64,
+    },
     /// Section contents or metadata contradict each other.
     Inconsistent { what: String },
     /// A level was asked for that the map does not hold.
@@ -128,6 +138,7 @@ impl fmt::Display for Error {
         use Error::*;
         match self {
             Io { path, message } => write!(f, "{}: {message}", path.display()),
+            NotARegularFile { what } => f.write_str(what),
             BadMagic => f.write_str("not an sfpmap file (bad magic)"),
             VersionMismatch {
                 expected,
@@ -225,6 +236,15 @@ impl fmt::Display for Error {
                 f,
                 "{section}: declared raw length {raw_len} exceeds the cap of {cap} bytes"
             ),
+            DecodeBudgetExceeded {
+                section,
+                raw_len,
+                decoded,
+                budget,
+            } => write!(
+                f,
+                "{section}: decoding its {raw_len} bytes would pass the map's decode budget of {budget} bytes ({decoded} decoded already)"
+            ),
             Inconsistent { what } => write!(f, "inconsistent map: {what}"),
             NoSuchLevel { level, available } => {
                 write!(f, "no level {level} in this map (levels: {available:?})")
@@ -242,6 +262,7 @@ impl Error {
         use Error::*;
         match self {
             Io { .. } => "io",
+            NotARegularFile { .. } => "not_a_regular_file",
             BadMagic => "bad_magic",
             VersionMismatch { .. } => "version_mismatch",
             BadEndianCheck { .. } => "bad_endian_check",
@@ -264,6 +285,7 @@ impl Error {
             ChecksumMismatch { .. } => "checksum_mismatch",
             Decode { .. } => "decode",
             DecodedTooLarge { .. } => "decoded_too_large",
+            DecodeBudgetExceeded { .. } => "decode_budget_exceeded",
             Inconsistent { .. } => "inconsistent",
             NoSuchLevel { .. } => "no_such_level",
             InvalidInput { .. } => "invalid_input",

@@ -27,6 +27,14 @@ pub const METADATA_MAX_BYTES: u64 = 16 << 20;
 pub const MAX_SECTIONS: u32 = 1 << 16;
 /// `level` value of sections that belong to no level.
 pub const NO_LEVEL: u16 = u16::MAX;
+/// Cap on descriptor dimensions: a level's `dim_full`, and the columns of the descriptor,
+/// projection and global-descriptor sections. Readers size buffers from these before reading
+/// a single descriptor, so they are bounded at open.
+pub const MAX_DESCRIPTOR_DIM: u64 = 4096;
+/// Cap on a camera's width and height in pixels.
+pub const MAX_IMAGE_SIDE: u64 = 1 << 20;
+/// Cap on a camera's parameter count.
+pub const MAX_CAMERA_PARAMS: usize = 64;
 
 /// Section entry flag: a reader that does not know the section's kind must fail.
 pub const SECTION_REQUIRED: u8 = 1 << 0;
@@ -214,6 +222,17 @@ impl SectionKind {
             VisibilityKeypoints => (Dtype::F32, Some(2)),
             Unknown(_) => return None,
         })
+    }
+
+    /// Whether the kind's columns are a descriptor dimension (at most [`MAX_DESCRIPTOR_DIM`]).
+    pub fn has_descriptor_columns(self) -> bool {
+        matches!(
+            self,
+            SectionKind::LevelDescShort
+                | SectionKind::LevelDescRest
+                | SectionKind::LevelProjection
+                | SectionKind::ImageGlobal
+        )
     }
 
     /// Whether sections of this kind carry a level id (others use [`NO_LEVEL`]).

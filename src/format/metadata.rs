@@ -113,8 +113,13 @@ pub struct SourceFile {
 }
 
 impl Metadata {
+    /// The level with id `level`. A binary search: `levels` must be sorted by id, as the spec
+    /// requires (open checks it; the writer keeps them sorted).
     pub fn level(&self, level: u16) -> Option<&LevelInfo> {
-        self.levels.iter().find(|l| l.level == level)
+        self.levels
+            .binary_search_by_key(&level, |l| l.level)
+            .ok()
+            .map(|i| &self.levels[i])
     }
 
     /// The tool string this crate writes into provenance.

@@ -27,11 +27,12 @@ mod writer;
 pub use error::{Error, SectionRef};
 pub use layout::{
     align_up, checksum, Codec, Dtype, Header, RawEntry, SectionKind, ALIGN, ENDIAN_CHECK,
-    ENTRY_LEN, HEADER_LEN, MAGIC, MAX_ENTRY_LEN, MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL,
-    SECTION_REQUIRED, VERSION_MAJOR, VERSION_MINOR,
+    ENTRY_LEN, HEADER_LEN, MAGIC, MAX_CAMERA_PARAMS, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN,
+    MAX_IMAGE_SIDE, MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED, VERSION_MAJOR,
+    VERSION_MINOR,
 };
 pub use metadata::{CameraInfo, LevelInfo, Metadata, Provenance, SourceFile};
-pub use reader::{decode_cap, Map, Section};
+pub use reader::{decode_budget, decode_cap, Map, Section};
 pub use slice::{slice, SliceOptions, SliceSummary};
 pub use views::{GlobalDescriptors, Images, Level, Visibility};
 pub use writer::{Descriptors, MapWriter};

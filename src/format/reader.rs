@@ -1,16 +1,19 @@
 //! `Map`: opens a map from a file (mmap) or from bytes, validates its index once, and hands
 //! out sections. Section bytes are checksummed (and decoded, and their contents checked) on
-//! first access; `verify` does that for all of them.
+//! first access; `verify` does that for all of them. Every zstd decode is charged to one
+//! budget per open map (`decode_budget`), so no file makes a reader decode without bound.
 
 use super::error::{Error, SectionRef};
 use super::layout::{
     align_up, checksum, index_checksum, Codec, Dtype, Header, RawEntry, SectionKind, ALIGN,
-    ENTRY_LEN, HEADER_LEN, MAX_ENTRY_LEN, MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL,
-    SECTION_REQUIRED,
+    ENTRY_LEN, HEADER_LEN, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN, MAX_SECTIONS, METADATA_MAX_BYTES,
+    NO_LEVEL, SECTION_REQUIRED,
 };
 use super::metadata::Metadata;
 use std::borrow::Cow;
+use std::collections::HashMap;
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::OnceLock;
 
 /// A validated section-table entry.
@@ -59,6 +62,35 @@ impl Decoded {
     }
 }
 
+/// Table positions by (kind, level), built once at open: every lookup is O(1), so nothing
+/// that walks the levels is quadratic in them.
+#[derive(Debug, Default)]
+pub(crate) struct SectionIndex(HashMap<(SectionKind, Option<u16>), usize>);
+
+impl SectionIndex {
+    /// Fails on the first (kind, level) pair seen twice.
+    pub(crate) fn build(sections: &[Section]) -> Result<SectionIndex, Error> {
+        let mut index = HashMap::with_capacity(sections.len());
+        for s in sections {
+            if index.insert((s.kind, s.level), s.index).is_some() {
+                return Err(Error::DuplicateSection {
+                    section: s.reference(),
+                });
+            }
+        }
+        Ok(SectionIndex(index))
+    }
+
+    pub(crate) fn get<'s>(
+        &self,
+        sections: &'s [Section],
+        kind: SectionKind,
+        level: Option<u16>,
+    ) -> Option<&'s Section> {
+        self.0.get(&(kind, level)).map(|&i| &sections[i])
+    }
+}
+
 /// An open map. Cheap to open whatever its size: only the header, the section table and the
 /// metadata are read and checked. `Send + Sync`: share one `Map` between threads.
 pub struct Map<'a> {
@@ -66,8 +98,13 @@ pub struct Map<'a> {
     header: Header,
     metadata: Metadata,
     sections: Vec<Section>,
+    index: SectionIndex,
     /// Per section: `Ok(None)` once checked (raw), `Ok(Some)` once checked and decoded (zstd).
     ready: Vec<OnceLock<Result<Option<Decoded>, Error>>>,
+    /// Per section: checked by `verify` without keeping its decoded bytes.
+    checked: Vec<AtomicBool>,
+    /// Bytes decoded from zstd sections so far, against `decode_budget(file_len)`.
+    decoded: AtomicU64,
     n_points: u64,
     n_images: u64,
 }
@@ -88,7 +125,7 @@ impl Map<'static> {
     /// Memory-maps and validates the map at `path`. Errors name the path.
     pub fn open(path: impl AsRef<Path>) -> Result<Map<'static>, Error> {
         let path = path.as_ref();
-        let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        let file = super::mmap::open_regular(path)?;
         let mmap = super::mmap::map_file(&file).map_err(|e| Error::io(path, e))?;
         Map::from_backing(Backing::Mmap(mmap))
     }
@@ -106,13 +143,16 @@ impl<'a> Map<'a> {
             Backing::Borrowed(b) => b,
         };
         let index = validate_index(bytes)?;
-        let ready = (0..index.sections.len()).map(|_| OnceLock::new()).collect();
+        let n = index.sections.len();
         Ok(Map {
             backing,
             header: index.header,
             metadata: index.metadata,
             sections: index.sections,
-            ready,
+            index: index.by_kind,
+            ready: (0..n).map(|_| OnceLock::new()).collect(),
+            checked: (0..n).map(|_| AtomicBool::new(false)).collect(),
+            decoded: AtomicU64::new(0),
             n_points: index.n_points,
             n_images: index.n_images,
         })
@@ -163,11 +203,19 @@ impl<'a> Map<'a> {
         self.n_images
     }
 
-    /// The section of `kind` (and `level`), if present.
+    /// The section of `kind` (and `level`), if present. O(1).
     pub fn find(&self, kind: SectionKind, level: Option<u16>) -> Option<&Section> {
-        self.sections
-            .iter()
-            .find(|s| s.kind == kind && s.level == level)
+        self.index.get(&self.sections, kind, level)
+    }
+
+    /// Bytes decoded from zstd sections since open (each decode counts, repeated or not).
+    pub fn decoded_bytes(&self) -> u64 {
+        self.decoded.load(Ordering::Relaxed)
+    }
+
+    /// The most bytes this map may decode from zstd sections: `decode_budget(file_len)`.
+    pub fn decode_budget(&self) -> u64 {
+        decode_budget(self.file_len())
     }
 
     /// The stored bytes of a section, as they are in the file (compressed for zstd).
@@ -197,12 +245,66 @@ impl<'a> Map<'a> {
         Ok(cast(bytes))
     }
 
-    /// Checks every section: checksums, decoding and contents. Stops at the first error.
+    /// Checks every section: checksums, decoding and contents, in table order, then what ties
+    /// sections together. Stops at the first error. Streams: a zstd section not already
+    /// decoded is decoded, checked and dropped (the image names excepted, which the last
+    /// check needs whole), so memory stays at about one section whatever the map holds.
     pub fn verify(&self) -> Result<(), Error> {
+        self.verify_keeping(|_| false)
+    }
+
+    /// [`Map::verify`], keeping the decoded bytes of the sections `keep` selects (those the
+    /// caller reads next, so no section is decoded twice).
+    pub(crate) fn verify_keeping(&self, keep: impl Fn(&Section) -> bool) -> Result<(), Error> {
         for section in &self.sections {
-            self.section_bytes(section)?;
+            let names = matches!(
+                section.kind,
+                SectionKind::ImageNameOffsets | SectionKind::ImageNames
+            );
+            if names || keep(section) {
+                self.section_bytes(section)?;
+            } else {
+                self.check_section(section)?;
+            }
         }
         super::views::check_cross_sections(self)
+    }
+
+    /// Checks one section as its first access would (checksum, decoding, contents) without
+    /// keeping the decoded bytes of a zstd section; free once the section was checked.
+    pub fn check_section(&self, section: &Section) -> Result<(), Error> {
+        if let Some(ready) = self.ready[section.index].get() {
+            return ready.as_ref().map(|_| ()).map_err(Error::clone);
+        }
+        if self.checked[section.index].load(Ordering::Acquire) {
+            return Ok(());
+        }
+        match section.codec {
+            // Keeping a raw section costs nothing: it is a view of the bytes.
+            Codec::Raw => self.section_bytes(section).map(|_| ()),
+            Codec::Zstd => {
+                self.prepare(section)?;
+                self.checked[section.index].store(true, Ordering::Release);
+                Ok(())
+            }
+        }
+    }
+
+    /// Charges `section`'s decoded length to the budget, before anything is allocated.
+    fn charge(&self, section: &Section) -> Result<(), Error> {
+        let budget = self.decode_budget();
+        self.decoded
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |d| {
+                d.checked_add(section.raw_len)
+                    .filter(|&total| total <= budget)
+            })
+            .map(|_| ())
+            .map_err(|decoded| Error::DecodeBudgetExceeded {
+                section: section.reference(),
+                raw_len: section.raw_len,
+                decoded,
+                budget,
+            })
     }
 
     fn prepare(&self, section: &Section) -> Result<Option<Decoded>, Error> {
@@ -217,7 +319,11 @@ impl<'a> Map<'a> {
         }
         let decoded = match section.codec {
             Codec::Raw => None,
-            Codec::Zstd => Some(decode_zstd(section, stored, self.file_len())?),
+            Codec::Zstd => {
+                check_decode_cap(section, self.file_len())?;
+                self.charge(section)?;
+                Some(decode_zstd(section, stored)?)
+            }
         };
         let bytes = decoded.as_ref().map_or(stored, |d| d.bytes());
         super::views::check_contents(self, section, bytes)?;
@@ -229,10 +335,21 @@ impl<'a> Map<'a> {
 /// forged length cannot make the reader allocate without bound. The writer stores a
 /// section raw rather than exceed it.
 pub fn decode_cap(file_len: u64) -> u64 {
-    file_len.saturating_mul(256).max(1 << 20)
+    file_len.saturating_mul(DECODE_RATIO).max(1 << 20)
 }
 
-fn decode_zstd(section: &Section, stored: &[u8], file_len: u64) -> Result<Decoded, Error> {
+/// The cap on the bytes one open map decodes from zstd sections, all decodes together:
+/// `max(256 × file_len, 64 MiB)`. Many sections each under [`decode_cap`] cannot add up past
+/// it, so decoding time and memory are linear in the file length. The writer's per-section
+/// rule keeps every map it writes within it (each section decoded once).
+pub fn decode_budget(file_len: u64) -> u64 {
+    file_len.saturating_mul(DECODE_RATIO).max(64 << 20)
+}
+
+/// The decoded : stored ratio both caps allow (see spec/format.md, "Codecs").
+const DECODE_RATIO: u64 = 256;
+
+fn check_decode_cap(section: &Section, file_len: u64) -> Result<(), Error> {
     let cap = decode_cap(file_len);
     if section.raw_len > cap {
         return Err(Error::DecodedTooLarge {
@@ -241,6 +358,11 @@ fn decode_zstd(section: &Section, stored: &[u8], file_len: u64) -> Result<Decode
             cap,
         });
     }
+    Ok(())
+}
+
+/// Decodes one frame of exactly `raw_len` bytes; the caller checked the caps.
+fn decode_zstd(section: &Section, stored: &[u8]) -> Result<Decoded, Error> {
     let len = section.raw_len as usize;
     let mut words = vec![0u64; len.div_ceil(8)];
     let out: &mut [u8] = &mut bytemuck::cast_slice_mut(&mut words)[..len];
@@ -272,6 +394,7 @@ struct Index {
     header: Header,
     metadata: Metadata,
     sections: Vec<Section>,
+    by_kind: SectionIndex,
     n_points: u64,
     n_images: u64,
 }
@@ -357,11 +480,12 @@ fn validate_index(bytes: &[u8]) -> Result<Index, Error> {
     }
     check_tiling(bytes, &sections, metadata_end)?;
 
-    let (n_points, n_images) = super::views::check_shapes(&metadata, &sections)?;
+    let (by_kind, n_points, n_images) = super::views::check_shapes(&metadata, &sections)?;
     Ok(Index {
         header,
         metadata,
         sections,
+        by_kind,
         n_points,
         n_images,
     })
@@ -428,6 +552,13 @@ fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section
         None if required => return Err(Error::UnknownRequiredSection { section: reference }),
         None => {}
         Some((want_dtype, want_cols)) => {
+            if kind.has_descriptor_columns() && raw.cols > MAX_DESCRIPTOR_DIM {
+                return Err(Error::WrongLayout {
+                    section: reference,
+                    expected: format!("{} x at most {MAX_DESCRIPTOR_DIM}", want_dtype.name()),
+                    found: format!("{} x {}", dtype.name(), raw.cols),
+                });
+            }
             if dtype != want_dtype || want_cols.is_some_and(|c| c != raw.cols) {
                 let cols = want_cols.map_or("any".to_string(), |c| c.to_string());
                 return Err(Error::WrongLayout {

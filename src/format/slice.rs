@@ -42,15 +42,22 @@ pub fn slice<'m>(
     if options.levels.is_empty() {
         return Err(Error::invalid("slice needs at least one level"));
     }
-    // Slicing reads nearly everything anyway; checking all of it first means a corrupt
-    // section is never copied into the new map.
-    map.verify()?;
     let mut keep_levels = options.levels.clone();
     keep_levels.sort_unstable();
     keep_levels.dedup();
     for &l in &keep_levels {
-        map.level(l)?;
+        let level = map.level(l)?;
+        if options.short && level.has_descriptors() && level.dim_short() == 0 {
+            // Without `rest` such a level would hold no descriptor dimension (refused at open).
+            return Err(Error::invalid(format!(
+                "level {l} has no short dimensions (dim_short 0): --short would leave it no descriptors"
+            )));
+        }
     }
+    // Checking everything first means a corrupt section is never copied into the new map.
+    // Sections this slice reads are kept decoded and the others streamed, so each is decoded
+    // once and a slice fits the map's decode budget.
+    map.verify_keeping(|s| reads_contents(s, options, &keep_levels))?;
 
     // Old point index → new index, u32::MAX for dropped points.
     let n_points = map.n_points() as usize;
@@ -97,16 +104,10 @@ pub fn slice<'m>(
     };
 
     for section in map.sections() {
-        let keep_section = match section.kind {
-            SectionKind::Unknown(_) => {
-                summary.unknown_dropped += 1;
-                false
-            }
-            SectionKind::LevelDescRest if options.short => false,
-            k if k.is_per_level() => keep_levels.contains(&section.level.unwrap_or(NO_LEVEL)),
-            _ => true,
-        };
-        if !keep_section {
+        if matches!(section.kind, SectionKind::Unknown(_)) {
+            summary.unknown_dropped += 1;
+        }
+        if !is_kept(section, options, &keep_levels) {
             continue;
         }
         let rebuilt: Option<Cow<'m, [u8]>> = match section.kind {
@@ -194,6 +195,34 @@ pub fn slice<'m>(
     Ok((writer, summary))
 }
 
+/// Whether the slice keeps `section` (rebuilt or copied). Unknown kinds are dropped: how to
+/// remap indices in them is unknown.
+fn is_kept(section: &Section, options: &SliceOptions, keep_levels: &[u16]) -> bool {
+    match section.kind {
+        SectionKind::Unknown(_) => false,
+        SectionKind::LevelDescRest if options.short => false,
+        k if k.is_per_level() => keep_levels.contains(&section.level.unwrap_or(NO_LEVEL)),
+        _ => true,
+    }
+}
+
+/// Whether slicing reads `section`'s decoded contents (to rebuild or re-encode it), rather
+/// than dropping it or copying its stored bytes.
+fn reads_contents(section: &Section, options: &SliceOptions, keep_levels: &[u16]) -> bool {
+    let rebuilt = matches!(
+        section.kind,
+        SectionKind::PointPositions
+            | SectionKind::PointColors
+            | SectionKind::PointIds
+            | SectionKind::LevelPoints
+            | SectionKind::VisibilityOffsets
+            | SectionKind::VisibilityPoints
+            | SectionKind::VisibilityKeypoints
+    );
+    is_kept(section, options, keep_levels)
+        && (rebuilt || options.codec.is_some_and(|c| c != section.codec))
+}
+
 /// Keeps the rows of a per-point section whose point is kept.
 fn gather_rows<'m>(bytes: &[u8], section: &Section, keep: &[bool]) -> Cow<'m, [u8]> {
     let row_len = (section.cols * section.dtype.size()) as usize;
@@ -220,8 +249,9 @@ fn add_section<'m>(
     let dtype: Dtype = section.dtype;
     match rebuilt {
         None if codec.is_none_or(|c| c == section.codec) => {
-            // Checked before copying so a corrupt section is not passed on silently.
-            map.section_bytes(section)?;
+            // Checked before copying so a corrupt section is not passed on silently (free:
+            // the verify above checked it).
+            map.check_section(section)?;
             writer.add_stored_section(
                 section.kind,
                 level,

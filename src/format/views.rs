@@ -1,30 +1,27 @@
 //! Typed views of a map's sections, and the checks that tie sections and metadata together.
 
 use super::error::Error;
-use super::layout::SectionKind;
+use super::layout::{SectionKind, MAX_CAMERA_PARAMS, MAX_DESCRIPTOR_DIM, MAX_IMAGE_SIDE};
 use super::metadata::{LevelInfo, Metadata};
-use super::reader::{cast, Map, Section};
+use super::reader::{cast, Map, Section, SectionIndex};
 use half::f16;
 use std::borrow::Cow;
-use std::collections::HashSet;
 
-/// Checks, from the table and metadata alone, that the sections fit together. Returns the
-/// point and image counts.
-pub(crate) fn check_shapes(metadata: &Metadata, sections: &[Section]) -> Result<(u64, u64), Error> {
+/// Checks, from the table and metadata alone, that the sections fit together and that every
+/// count and size the metadata states is within the spec's limits, so nothing is sized from
+/// an unchecked number. Returns the section index and the point and image counts.
+pub(crate) fn check_shapes(
+    metadata: &Metadata,
+    sections: &[Section],
+) -> Result<(SectionIndex, u64, u64), Error> {
     if metadata.format != super::metadata::FORMAT_NAME {
         return Err(Error::BadMetadata {
             message: format!("format is {:?}, expected \"sfpmap\"", metadata.format),
         });
     }
-    let mut seen = HashSet::new();
-    for s in sections {
-        if !seen.insert((s.kind, s.level)) {
-            return Err(Error::DuplicateSection {
-                section: s.reference(),
-            });
-        }
-    }
-    let find = |kind, level| sections.iter().find(|s| s.kind == kind && s.level == level);
+    check_cameras(metadata)?;
+    let index = SectionIndex::build(sections)?;
+    let find = |kind, level| index.get(sections, kind, level);
     let need = |kind, level| find(kind, level).ok_or(Error::MissingSection { kind, level });
     let rows_must = |s: Option<&Section>, rows: u64, what: &str| match s {
         Some(s) if s.rows != rows => Err(Error::inconsistent(format!(
@@ -56,11 +53,7 @@ pub(crate) fn check_shapes(metadata: &Metadata, sections: &[Section]) -> Result<
             });
         }
         previous = Some(level.level);
-        if level.dim_short > level.dim_full {
-            return Err(Error::BadMetadata {
-                message: format!("level {}: dim_short > dim_full", level.level),
-            });
-        }
+        check_dims(level)?;
         let l = Some(level.level);
         let n = need(SectionKind::LevelPoints, l)?.rows;
         let short = find(SectionKind::LevelDescShort, l);
@@ -82,6 +75,14 @@ pub(crate) fn check_shapes(metadata: &Metadata, sections: &[Section]) -> Result<
                 level.level
             )));
         }
+        if !metadata.geometry_only && level.dim_short == 0 && rest.is_none_or(|r| r.cols == 0) {
+            return Err(Error::BadMetadata {
+                message: format!(
+                    "level {}: dim_short is 0 and there is no rest block: no descriptor dimension",
+                    level.level
+                ),
+            });
+        }
         if let Some(rest) = rest {
             rows_must(Some(rest), n, "one per level point")?;
             if rest.cols != u64::from(level.dim_full - level.dim_short) {
@@ -101,6 +102,7 @@ pub(crate) fn check_shapes(metadata: &Metadata, sections: &[Section]) -> Result<
     }
     for s in sections.iter().filter(|s| s.kind.is_per_level()) {
         let level = s.level.unwrap_or(super::layout::NO_LEVEL);
+        // Sorted above, so this is a binary search.
         if metadata.level(level).is_none() {
             return Err(Error::inconsistent(format!(
                 "{} belongs to a level the metadata does not list",
@@ -181,7 +183,48 @@ pub(crate) fn check_shapes(metadata: &Metadata, sections: &[Section]) -> Result<
             })
         }
     }
-    Ok((n_points, n_images))
+    Ok((index, n_points, n_images))
+}
+
+/// A level's dims: `dim_short ≤ dim_full ≤ MAX_DESCRIPTOR_DIM`.
+fn check_dims(level: &LevelInfo) -> Result<(), Error> {
+    let bad = |what: String| {
+        Err(Error::BadMetadata {
+            message: format!("level {}: {what}", level.level),
+        })
+    };
+    if u64::from(level.dim_full) > MAX_DESCRIPTOR_DIM {
+        return bad(format!(
+            "dim_full {} is over the limit: at most {MAX_DESCRIPTOR_DIM}",
+            level.dim_full
+        ));
+    }
+    if level.dim_short > level.dim_full {
+        return bad("dim_short > dim_full".into());
+    }
+    Ok(())
+}
+
+/// Camera sizes in `1..=MAX_IMAGE_SIDE` and at most `MAX_CAMERA_PARAMS` parameters.
+fn check_cameras(metadata: &Metadata) -> Result<(), Error> {
+    for (i, c) in metadata.cameras.iter().enumerate() {
+        let side = 1..=MAX_IMAGE_SIDE;
+        let message = if !side.contains(&c.width) || !side.contains(&c.height) {
+            format!(
+                "camera {i}: size {}x{} is outside 1..={MAX_IMAGE_SIDE} pixels",
+                c.width, c.height
+            )
+        } else if c.params.len() > MAX_CAMERA_PARAMS {
+            format!(
+                "camera {i}: {} parameters, more than {MAX_CAMERA_PARAMS}",
+                c.params.len()
+            )
+        } else {
+            continue;
+        };
+        return Err(Error::BadMetadata { message });
+    }
+    Ok(())
 }
 
 /// Checks what one section's decoded contents must satisfy (indices in range, offsets
@@ -253,13 +296,27 @@ pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> 
 }
 
 /// Checks that need two sections at once (image names are UTF-8 between their offsets).
+/// Reads only those two sections.
 pub(crate) fn check_cross_sections(map: &Map<'_>) -> Result<(), Error> {
-    if let Some(images) = map.images()? {
-        for i in 0..images.len() {
-            images.name(i)?;
-        }
+    let (Some(offsets), Some(names)) = (
+        map.find(SectionKind::ImageNameOffsets, None),
+        map.find(SectionKind::ImageNames, None),
+    ) else {
+        return Ok(());
+    };
+    let offsets = map.section_array::<u64>(offsets)?;
+    let names = map.section_bytes(names)?;
+    for i in 0..offsets.len().saturating_sub(1) {
+        image_name(&offsets, names, i)?;
     }
     Ok(())
+}
+
+/// Name `i` between its offsets (checked monotonic and ending at `names.len()` on access).
+fn image_name<'m>(offsets: &[u64], names: &'m [u8], i: usize) -> Result<&'m str, Error> {
+    let (start, end) = (offsets[i] as usize, offsets[i + 1] as usize);
+    std::str::from_utf8(&names[start..end])
+        .map_err(|_| Error::inconsistent(format!("image {i}: name is not UTF-8")))
 }
 
 /// The map's database images.
@@ -286,13 +343,7 @@ impl<'m> Images<'m> {
 
     /// The name of image `i`.
     pub fn name(&self, i: usize) -> Result<&'m str, Error> {
-        // Offsets were checked monotonic and ending at names.len() on access.
-        let (start, end) = (
-            self.name_offsets[i] as usize,
-            self.name_offsets[i + 1] as usize,
-        );
-        std::str::from_utf8(&self.names[start..end])
-            .map_err(|_| Error::inconsistent(format!("image {i}: name is not UTF-8")))
+        image_name(&self.name_offsets, self.names, i)
     }
 }
 
