@@ -18,7 +18,9 @@ use std::path::Path;
 use super::camera::CameraModel;
 use super::error::{Error, Result};
 use super::model::{
-    Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, Rigid3, TrackElement,
+    has_control_character, non_finite_param, non_finite_point2d, non_finite_point3d,
+    non_finite_pose, Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, Rigid3,
+    TrackElement,
 };
 
 /// COLMAP's invalid `point3D_t`.
@@ -117,6 +119,17 @@ impl<'a> Reader<'a> {
         self.take(bytes, what)
     }
 
+    /// A NaN or infinite value of record `kind id` (binary files have no line numbers).
+    fn not_finite(&self, kind: &'static str, id: u64, field: impl Into<String>) -> Error {
+        Error::NotFinite {
+            path: self.path.to_path_buf(),
+            line: None,
+            kind,
+            id,
+            field: field.into(),
+        }
+    }
+
     fn finish(&self) -> Result<()> {
         if self.pos == self.data.len() {
             Ok(())
@@ -162,6 +175,9 @@ pub fn parse_cameras(data: &[u8], path: &Path) -> Result<Vec<Camera>> {
         let mut params = Vec::with_capacity(model.num_params());
         for _ in 0..model.num_params() {
             params.push(r.f64("camera parameters")?);
+        }
+        if let Some(field) = non_finite_param(&params) {
+            return Err(r.not_finite("camera", id.into(), field));
         }
         cameras.push(Camera {
             id,
@@ -243,17 +259,37 @@ impl<'a> ImageRecords<'a> {
                 what: format!("image {id}: name is not valid utf-8"),
             })?
             .to_string();
+        if has_control_character(&name) {
+            return Err(Error::BadImageName {
+                path: r.path.to_path_buf(),
+                line: None,
+                image_id: id,
+                name: super::error::shown_name(&name),
+            });
+        }
         let num_points2d = r.u64("image point2D count")?;
         // One bounds check for the whole block, then fixed-size records.
         let points2d = r.block(num_points2d, POINT2D, "image points2D")?;
+        let cam_from_world = Rigid3 {
+            rotation,
+            translation,
+        };
+        // Checked here, where the general reader and convert's fast path both pass, so they
+        // accept the same files.
+        if let Some(field) = non_finite_pose(&cam_from_world) {
+            return Err(r.not_finite("image", id.into(), field));
+        }
+        let xys = points2d
+            .chunks_exact(POINT2D)
+            .map(|c| [le_f64(&c[0..8]), le_f64(&c[8..16])]);
+        if let Some(field) = non_finite_point2d(xys) {
+            return Err(r.not_finite("image", id.into(), field));
+        }
         Ok(Some(ImageRecord {
             id,
             name,
             camera_id,
-            cam_from_world: Rigid3 {
-                rotation,
-                translation,
-            },
+            cam_from_world,
             points2d,
         }))
     }
@@ -348,6 +384,9 @@ impl<'a> Point3DRecords<'a> {
         let xyz = r.f64s::<3>("point3D position")?;
         let rgb = r.array::<3>("point3D color")?;
         let error = r.f64("point3D error")?;
+        if let Some(field) = non_finite_point3d(&xyz, error) {
+            return Err(r.not_finite("point3D", id, field));
+        }
         let len = r.u64("point3D track length")?;
         let track = r.block(len, TRACK_ELEMENT, "point3D track")?;
         Ok(Some(Point3DRecord {

@@ -109,6 +109,12 @@ pub enum ConvertError {
         point2d_idx: usize,
         keypoints: usize,
     },
+    /// An observed keypoint's scale is NaN or infinite.
+    KeypointScaleNotFinite {
+        database: PathBuf,
+        image: String,
+        point2d_idx: usize,
+    },
     /// An image has no features in the database and `strict` is set.
     MissingFeatures {
         database: PathBuf,
@@ -141,6 +147,12 @@ impl fmt::Display for ConvertError {
                 f,
                 "{}: image {image:?} has {keypoints} keypoints but the model observes point2D {point2d_idx}",
                 database.display()
+            ),
+            ConvertError::KeypointScaleNotFinite { database, image, point2d_idx } => write!(
+                f,
+                "{}: image {}: keypoint {point2d_idx}: scale is not finite",
+                database.display(),
+                super::error::shown_name(image)
             ),
             ConvertError::MissingFeatures { database, image } => write!(
                 f,
@@ -195,12 +207,12 @@ struct Observations {
 pub(crate) fn source_file(path: &Path) -> Result<SourceFile, ConvertError> {
     // Mapped, not read: the model was just parsed from the page cache, so hashing it again
     // costs no copy and no allocation of its size.
-    let io = |source| ConvertError::Io {
+    // Checked to be a regular file first: opening a FIFO would block.
+    let file = super::open_regular(path)?;
+    let bytes = format::map_file(&file).map_err(|source| ConvertError::Io {
         path: path.to_path_buf(),
         source,
-    };
-    let file = std::fs::File::open(path).map_err(io)?;
-    let bytes = format::map_file(&file).map_err(io)?;
+    })?;
     Ok(SourceFile {
         path: path.display().to_string(),
         bytes: bytes.len() as u64,
@@ -420,6 +432,15 @@ fn gather(
                     keypoints: keypoints.len(),
                 });
             };
+            // A NaN scale would drop the point from every level without a word; the level
+            // assignment and the metadata's scale ranges need finite scales.
+            if !scale.is_finite() {
+                return Err(ConvertError::KeypointScaleNotFinite {
+                    database: db_path.to_path_buf(),
+                    image: name.clone(),
+                    point2d_idx: idx,
+                });
+            }
             normalised.clear();
             normalised.extend(row.iter().map(|&b| f32::from(b)));
             normalise(&mut normalised);

@@ -253,7 +253,8 @@ fn uri_path(path: &Path) -> String {
 }
 
 impl Database {
-    /// Opens `path` read-only and immutable.
+    /// Opens `path` read-only and immutable; it must be a regular file
+    /// ([`Error::NotAFile`] otherwise).
     ///
     /// `immutable=1` tells SQLite the file cannot change: it takes no locks and never
     /// creates `-wal`/`-shm`/journal files, so the user's database is left byte-identical
@@ -265,10 +266,8 @@ impl Database {
             path: path.to_path_buf(),
             source,
         };
-        let meta = std::fs::metadata(path).map_err(io)?;
-        if !meta.is_file() {
-            return Err(io(std::io::Error::other("not a file")));
-        }
+        // SQLite would open a FIFO and wait for a writer, and a folder gives a vague error.
+        super::check_regular_path(path)?;
         let mut wal = path.as_os_str().to_owned();
         wal.push("-wal");
         let wal = PathBuf::from(wal);
@@ -354,7 +353,8 @@ impl Database {
             .map_err(|_| self.bad_row(table, row_id, format!("{what} {value} out of range")))
     }
 
-    /// All cameras, sorted by id, parameter counts checked against the model.
+    /// All cameras, sorted by id, parameter counts checked against the model and every
+    /// parameter finite.
     pub fn cameras(&self) -> Result<Vec<Camera>> {
         let mut stmt = self
             .conn
@@ -401,6 +401,15 @@ impl Database {
                     model: model.name(),
                     expected: model.num_params(),
                     found: params.len(),
+                });
+            }
+            if let Some(field) = super::model::non_finite_param(&params) {
+                return Err(Error::NotFinite {
+                    path: self.path.clone(),
+                    line: None,
+                    kind: "camera",
+                    id: camera_id.into(),
+                    field,
                 });
             }
             cameras.push(Camera {

@@ -17,6 +17,34 @@ pub enum Error {
         path: PathBuf,
         source: std::io::Error,
     },
+    /// A model file or database is not a regular file (a folder, a FIFO, a device): read
+    /// only after this check, so a FIFO never blocks the reader.
+    NotAFile {
+        path: PathBuf,
+        /// What it is instead (`"a folder"`, `"a FIFO"`).
+        kind: &'static str,
+    },
+    /// A number is NaN or infinite (a map, whose metadata is JSON, cannot store it).
+    NotFinite {
+        path: PathBuf,
+        /// The 1-based line of a text file; `None` in a binary file.
+        line: Option<u64>,
+        /// `"camera"`, `"image"` or `"point3D"`.
+        kind: &'static str,
+        id: u64,
+        /// Which value (`"parameter 0"`, `"rotation"`, `"point2D 3 position"`).
+        field: String,
+    },
+    /// An image name holds a control character (a newline, a tab, an escape): no COLMAP text
+    /// file can hold it, and it would inject lines into line-based exports.
+    BadImageName {
+        path: PathBuf,
+        /// As [`Error::NotFinite::line`].
+        line: Option<u64>,
+        image_id: u32,
+        /// The name, quoted, escaped and shortened for the message.
+        name: String,
+    },
     /// A folder has neither `cameras.bin` … nor `cameras.txt` ….
     NoModel { dir: PathBuf },
     /// One file of a model is present but another is not (`images.bin` without `points3D.bin`).
@@ -168,6 +196,19 @@ fn show(path: &Path) -> std::path::Display<'_> {
     path.display()
 }
 
+/// `path` or `path:line`.
+fn at(path: &Path, line: Option<u64>) -> String {
+    match line {
+        Some(line) => format!("{}:{line}", show(path)),
+        None => show(path).to_string(),
+    }
+}
+
+/// `name` quoted for a message, control characters escaped (the one rule for all messages).
+pub(crate) fn shown_name(name: &str) -> String {
+    crate::io::colmap_export::quoted_name(name)
+}
+
 fn opt_id(id: Option<u64>) -> String {
     match id {
         Some(id) => id.to_string(),
@@ -179,6 +220,17 @@ impl fmt::Display for Error {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Error::Io { path, .. } => write!(f, "cannot read {}", show(path)),
+            Error::NotAFile { path, kind } => {
+                write!(f, "{}: is {kind}, not a regular file", show(path))
+            }
+            Error::NotFinite { path, line, kind, id, field } => {
+                write!(f, "{}: {kind} {id}: {field} is not finite", at(path, *line))
+            }
+            Error::BadImageName { path, line, image_id, name } => write!(
+                f,
+                "{}: image {image_id}: name {name} holds a control character",
+                at(path, *line)
+            ),
             Error::NoModel { dir } => write!(
                 f,
                 "{}: no COLMAP model (neither cameras.bin, images.bin, points3D.bin nor the .txt files)",

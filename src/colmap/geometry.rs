@@ -574,6 +574,37 @@ mod tests {
         }
     }
 
+    /// Non-finite numbers and names with control characters: the fast path declines and
+    /// the general path names the record, so both accept the same files.
+    #[test]
+    fn non_finite_values_and_bad_names_decline_the_fast_path() {
+        type Edit = fn(&mut Vec<ImageRow>, &mut Vec<PointRow>);
+        let edits: [(&str, &str, Edit); 5] = [
+            ("point3D 25: position", "points3D.bin", |_, p| {
+                p[2].1[1] = f64::NAN
+            }),
+            ("point3D 40: position", "points3D.bin", |_, p| {
+                p[0].1[2] = f64::INFINITY
+            }),
+            ("image 7: point2D 1 position", "images.bin", |i, _| {
+                i[0].3[1].0 = f64::NAN
+            }),
+            ("image 3: point2D 2 position", "images.bin", |i, _| {
+                i[1].3[2].1 = f64::NEG_INFINITY
+            }),
+            ("image 3: name", "images.bin", |i, _| i[1].2 = "a\nb.jpg"),
+        ];
+        for (what, file, edit) in edits {
+            let tmp = tempfile::tempdir().unwrap();
+            let (mut images, mut points) = model();
+            edit(&mut images, &mut points);
+            write(tmp.path(), &images, &points);
+            assert!(read_bin(tmp.path()).is_none(), "{what}");
+            let err = general(tmp.path()).unwrap_err().to_string();
+            assert!(err.contains(file) && err.contains(what), "{what}: {err}");
+        }
+    }
+
     /// A point without observations is accepted by both (COLMAP reads it too).
     #[test]
     fn a_point_without_observations_takes_the_fast_path() {

@@ -88,16 +88,20 @@ fn files_with(dir: &Path, ext: &str) -> [PathBuf; 3] {
     STEMS.map(|stem| dir.join(format!("{stem}.{ext}")))
 }
 
-/// Finds the model files in `dir`: errors if there are none, or if a set is incomplete.
+/// Finds the model files in `dir`: errors if there are none, if a set is incomplete, or if
+/// a model file is not a regular file (a folder or FIFO by that name is not "missing").
 pub fn model_files(dir: &Path) -> Result<ModelFiles> {
     let mut found = Vec::new();
     for ext in ["bin", "txt"] {
         let paths = files_with(dir, ext);
-        let present = paths.iter().filter(|p| p.is_file()).count();
-        if present == 0 {
+        let mut present = [false; 3];
+        for (present, path) in present.iter_mut().zip(&paths) {
+            *present = is_present(path)?;
+        }
+        if present.iter().all(|p| !p) {
             continue;
         }
-        if let Some(missing) = paths.iter().find(|p| !p.is_file()) {
+        if let Some((missing, _)) = paths.iter().zip(present).find(|(_, p)| !p) {
             return Err(Error::MissingFile {
                 path: missing.clone(),
             });
@@ -125,15 +129,84 @@ pub fn model_files(dir: &Path) -> Result<ModelFiles> {
     Ok(ModelFiles { format, paths })
 }
 
-/// The file's bytes, memory-mapped: no copy of a model that may be hundreds of MB, and a
-/// second look (hashing for provenance) costs no second read.
-fn read_file(path: &Path) -> Result<impl std::ops::Deref<Target = [u8]>> {
+/// Whether `path` exists (symlinks followed); an error if it exists but is not a regular file.
+fn is_present(path: &Path) -> Result<bool> {
+    match std::fs::metadata(path) {
+        Ok(meta) => check_regular(path, &meta).map(|()| true),
+        Err(_) => Ok(false),
+    }
+}
+
+/// What a file is when it is not a regular file, for [`Error::NotAFile`].
+fn not_regular(t: &std::fs::FileType) -> Option<&'static str> {
+    if t.is_file() {
+        return None;
+    }
+    if t.is_dir() {
+        return Some("a folder");
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if t.is_fifo() {
+            return Some("a FIFO");
+        }
+        if t.is_socket() {
+            return Some("a socket");
+        }
+        if t.is_char_device() {
+            return Some("a character device");
+        }
+        if t.is_block_device() {
+            return Some("a block device");
+        }
+    }
+    Some("not a plain file")
+}
+
+fn check_regular(path: &Path, meta: &std::fs::Metadata) -> Result<()> {
+    match not_regular(&meta.file_type()) {
+        None => Ok(()),
+        Some(kind) => Err(Error::NotAFile {
+            path: path.to_path_buf(),
+            kind,
+        }),
+    }
+}
+
+/// Opens `path` for reading if it is a regular file. The path is checked before the open,
+/// because opening a FIFO blocks until a writer comes; the opened file is checked again
+/// (`fstat`), because the path may have been replaced in between.
+pub(crate) fn open_regular(path: &Path) -> Result<std::fs::File> {
     let io = |source| Error::Io {
         path: path.to_path_buf(),
         source,
     };
+    check_regular(path, &std::fs::metadata(path).map_err(io)?)?;
     let file = std::fs::File::open(path).map_err(io)?;
-    crate::format::map_file(&file).map_err(io)
+    check_regular(path, &file.metadata().map_err(io)?)?;
+    Ok(file)
+}
+
+/// Checks that `path` is a regular file without opening it (for SQLite, which opens the
+/// database itself).
+#[cfg(feature = "colmap")]
+pub(crate) fn check_regular_path(path: &Path) -> Result<()> {
+    let meta = std::fs::metadata(path).map_err(|source| Error::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    check_regular(path, &meta)
+}
+
+/// The file's bytes, memory-mapped: no copy of a model that may be hundreds of MB, and a
+/// second look (hashing for provenance) costs no second read.
+fn read_file(path: &Path) -> Result<impl std::ops::Deref<Target = [u8]>> {
+    let file = open_regular(path)?;
+    crate::format::map_file(&file).map_err(|source| Error::Io {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 /// Reads the binary model in `dir` (`cameras.bin`, `images.bin`, `points3D.bin`).

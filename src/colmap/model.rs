@@ -83,6 +83,54 @@ impl PartialEq for Point3D {
     }
 }
 
+// Value checks shared by the readers (which report file and line or record) and the
+// builder (for models built by hand). Why refuse non-finite numbers at all: a map keeps
+// camera parameters and its origin in JSON, which has no NaN or infinity, so such a model
+// would convert into a map that does not open.
+
+/// The first camera parameter that is NaN or infinite, as `"parameter {index}"`.
+pub(crate) fn non_finite_param(params: &[f64]) -> Option<String> {
+    let i = params.iter().position(|p| !p.is_finite())?;
+    Some(format!("parameter {i}"))
+}
+
+/// Which part of a pose is NaN or infinite, if any.
+pub(crate) fn non_finite_pose(pose: &Rigid3) -> Option<&'static str> {
+    if !pose.rotation.iter().all(|v| v.is_finite()) {
+        Some("rotation")
+    } else if !pose.translation.iter().all(|v| v.is_finite()) {
+        Some("translation")
+    } else {
+        None
+    }
+}
+
+/// The first 2D point of `xys` (in order) with a NaN or infinite coordinate.
+pub(crate) fn non_finite_point2d(xys: impl Iterator<Item = [f64; 2]>) -> Option<String> {
+    let i = xys
+        .into_iter()
+        .position(|xy| !(xy[0].is_finite() && xy[1].is_finite()))?;
+    Some(format!("point2D {i} position"))
+}
+
+/// Which value of a 3D point is NaN or infinite, if any.
+pub(crate) fn non_finite_point3d(xyz: &[f64; 3], error: f64) -> Option<&'static str> {
+    if !xyz.iter().all(|v| v.is_finite()) {
+        Some("position")
+    } else if !error.is_finite() {
+        Some("error")
+    } else {
+        None
+    }
+}
+
+/// Whether an image name holds a control character (U+0000–U+001F, U+007F–U+009F: a
+/// newline, a tab, an escape). Such a name is refused: COLMAP's `images.txt` is one image a
+/// line, so it cannot hold one, and it would inject lines into every line-based export.
+pub(crate) fn has_control_character(name: &str) -> bool {
+    name.chars().any(char::is_control)
+}
+
 impl Point3D {
     /// Number of observations.
     pub fn track_len(&self) -> usize {
@@ -364,8 +412,11 @@ impl ReconstructionBuilder {
     /// reverse direction: ids are unique; parameter counts match the camera model; images
     /// refer to existing cameras; every track element names an existing image and 2D point
     /// whose `point3D_id` is the point's id, at most once; every 2D point with a `point3D_id`
-    /// is in that point's track. The first problem (in input order) is the error.
+    /// is in that point's track. Also every number is finite and no image name holds a
+    /// control character (the readers check both as they parse, naming the line or record).
+    /// The first problem (in input order) is the error.
     pub fn build(mut self) -> Result<Reconstruction> {
+        self.check_values()?;
         self.cameras.sort_by_key(|c| c.id);
         if let Some(w) = self.cameras.windows(2).find(|w| w[0].id == w[1].id) {
             return Err(Error::DuplicateId {
@@ -425,6 +476,51 @@ impl ReconstructionBuilder {
             image_slots,
             point3d_slots,
         })
+    }
+
+    /// Finite numbers and names without control characters (see [`non_finite_param`] and
+    /// [`has_control_character`] for why).
+    fn check_values(&self) -> Result<()> {
+        let not_finite = |path: &PathBuf, kind, id, field: String| Error::NotFinite {
+            path: path.clone(),
+            line: None,
+            kind,
+            id,
+            field,
+        };
+        for c in &self.cameras {
+            if let Some(field) = non_finite_param(&c.params) {
+                return Err(not_finite(&self.cameras_path, "camera", c.id.into(), field));
+            }
+        }
+        for image in &self.images {
+            let id = u64::from(image.id);
+            if let Some(field) = non_finite_pose(&image.cam_from_world) {
+                return Err(not_finite(&self.images_path, "image", id, field.into()));
+            }
+            if has_control_character(&image.name) {
+                return Err(Error::BadImageName {
+                    path: self.images_path.clone(),
+                    line: None,
+                    image_id: image.id,
+                    name: super::error::shown_name(&image.name),
+                });
+            }
+            if let Some(field) = non_finite_point2d(image.points2d.iter().map(|p| p.xy)) {
+                return Err(not_finite(&self.images_path, "image", id, field));
+            }
+        }
+        for p in &self.points3d {
+            if let Some(field) = non_finite_point3d(&p.xyz, p.error) {
+                return Err(not_finite(
+                    &self.points3d_path,
+                    "point3D",
+                    p.id,
+                    field.into(),
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// Track → 2D point direction. A fast pass checks image by image (each image's 2D points

@@ -15,7 +15,9 @@ use std::str::FromStr;
 use super::camera::CameraModel;
 use super::error::{Error, Result};
 use super::model::{
-    Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, Rigid3, TrackElement,
+    has_control_character, non_finite_param, non_finite_point2d, non_finite_point3d,
+    non_finite_pose, Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, Rigid3,
+    TrackElement,
 };
 
 /// Lines with their 1-based numbers, `\r\n` tolerated.
@@ -116,6 +118,18 @@ impl<'a> Tokens<'a> {
         self.rest.split_ascii_whitespace().count()
     }
 
+    /// A NaN or infinite value (Rust's parser, like COLMAP's `stold`, reads `nan`, `inf` and
+    /// overflows such as `1e400`), named by line and record.
+    fn not_finite(&self, kind: &'static str, id: u64, field: impl Into<String>) -> Error {
+        Error::NotFinite {
+            path: self.path.to_path_buf(),
+            line: Some(self.line),
+            kind,
+            id,
+            field: field.into(),
+        }
+    }
+
     fn bad(&self, what: &str, token: &str) -> Error {
         let shown: String = token.chars().take(SHOWN).collect();
         self.error(format!("bad {what} {shown:?}"))
@@ -177,6 +191,9 @@ pub fn parse_cameras(data: &[u8], path: &Path) -> Result<Vec<Camera>> {
         for _ in 0..found {
             params.push(t.parse("camera parameter")?);
         }
+        if let Some(field) = non_finite_param(&params) {
+            return Err(t.not_finite("camera", id.into(), field));
+        }
         cameras.push(Camera {
             id,
             model,
@@ -198,10 +215,26 @@ pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
         let rotation = t.parse_f64s::<4>("image rotation")?;
         let translation = t.parse_f64s::<3>("image translation")?;
         let camera_id: u32 = t.parse("image camera id")?;
-        // The name is the rest of the line, so names with spaces survive.
+        let cam_from_world = Rigid3 {
+            rotation,
+            translation,
+        };
+        if let Some(field) = non_finite_pose(&cam_from_world) {
+            return Err(t.not_finite("image", id.into(), field));
+        }
+        // The name is the rest of the line, so names with spaces survive (COLMAP itself
+        // reads up to the first space; `io::colmap_export` refuses to write such names).
         let name = t.rest();
         if name.is_empty() {
             return Err(t.error(format!("image {id}: missing name")));
+        }
+        if has_control_character(name) {
+            return Err(Error::BadImageName {
+                path: path.to_path_buf(),
+                line: Some(number),
+                image_id: id,
+                name: super::error::shown_name(name),
+            });
         }
         let name = name.to_string();
         // The points line follows unconditionally; a file ending right after the image line
@@ -221,15 +254,15 @@ pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
                 let point3d_id = t.point3d_id()?;
                 points2d.push(Point2D { xy, point3d_id });
             }
+            if let Some(field) = non_finite_point2d(points2d.iter().map(|p| p.xy)) {
+                return Err(t.not_finite("image", id.into(), field));
+            }
         }
         images.push(Image {
             id,
             name,
             camera_id,
-            cam_from_world: Rigid3 {
-                rotation,
-                translation,
-            },
+            cam_from_world,
             points2d,
         });
     }
@@ -253,6 +286,9 @@ pub(crate) fn parse_points3d_into(
             t.parse::<u8>("point3D color")?,
         ];
         let error: f64 = t.parse("point3D error")?;
+        if let Some(field) = non_finite_point3d(&xyz, error) {
+            return Err(t.not_finite("point3D", id, field));
+        }
         let n = t.count_rest();
         if n % 2 != 0 {
             return Err(t.error(format!(
@@ -283,7 +319,10 @@ pub fn parse_model(
 }
 
 // Writers. `{}` on f64 prints the shortest text that parses back to the same bits, so a
-// text model written here reads back exactly.
+// text model written here reads back exactly. A `Reconstruction` holds only finite numbers
+// and names without control characters (the builder checks), so no value can break a line.
+// Names with spaces are written as COLMAP writes them: this crate's reader reads them back,
+// COLMAP's reads up to the first space.
 
 /// Encodes `cameras.txt`.
 pub fn write_cameras(model: &Reconstruction) -> String {

@@ -48,6 +48,13 @@ pub fn to_colmap_text(map: &Map<'_>) -> Result<ColmapText, Error> {
     let mut cameras = String::from("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
     writeln!(cameras, "# Number of cameras: {}", meta.cameras.len()).ok();
     for (i, c) in meta.cameras.iter().enumerate() {
+        if let Some(problem) = text_name_problem(&c.model) {
+            return Err(Error::invalid(format!(
+                "camera {}: model name {} {problem}, which a COLMAP cameras.txt cannot hold",
+                camera_id(&meta.cameras, i),
+                quoted_name(&c.model)
+            )));
+        }
         write!(
             cameras,
             "{} {} {} {}",
@@ -177,6 +184,14 @@ pub(crate) fn write_image_line(
     i: usize,
 ) -> Result<(), Error> {
     let q = images.poses[i];
+    let name = images.name(i)?;
+    if let Some(problem) = text_name_problem(name) {
+        return Err(Error::invalid(format!(
+            "image {}: name {} {problem}, which a COLMAP images.txt cannot hold",
+            image_id(images, i),
+            quoted_name(name)
+        )));
+    }
     writeln!(
         out,
         "{} {} {} {} {} {} {} {} {} {}",
@@ -189,8 +204,58 @@ pub(crate) fn write_image_line(
         q[5],
         q[6],
         camera_id(cameras, images.cameras[i] as usize),
-        images.name(i)?
+        name
     )
     .ok();
     Ok(())
+}
+
+/// Why `name` cannot be a NAME in `images.txt` (or a MODEL in `cameras.txt`), if it cannot.
+/// Refused rather than escaped: COLMAP reads a line up to its newline, trims it and takes
+/// each field up to the next space, with no escape syntax, so a control character ends or
+/// corrupts the line (a newline injects an image), a space cuts the name short, and an
+/// escape would be read back as part of the name.
+fn text_name_problem(name: &str) -> Option<&'static str> {
+    if name.is_empty() {
+        Some("is empty")
+    } else if name.chars().any(char::is_control) {
+        Some("holds a control character")
+    } else if name.bytes().any(|b| b.is_ascii_whitespace()) {
+        Some("holds a space")
+    } else {
+        None
+    }
+}
+
+/// `s` with each control character written as an escape (`\n`, `\r`, `\t`, else
+/// `\xNN`; all control characters are below U+00A0), so it stays on one line; borrowed
+/// when there is none, which is the usual case.
+pub fn escape_control_characters(s: &str) -> std::borrow::Cow<'_, str> {
+    if !s.chars().any(char::is_control) {
+        return std::borrow::Cow::Borrowed(s);
+    }
+    let mut out = String::with_capacity(s.len() + 8);
+    for c in s.chars() {
+        match c {
+            '\n' => out.push_str("\\n"),
+            '\r' => out.push_str("\\r"),
+            '\t' => out.push_str("\\t"),
+            c if c.is_control() => {
+                write!(out, "\\x{:02x}", u32::from(c)).ok();
+            }
+            c => out.push(c),
+        }
+    }
+    std::borrow::Cow::Owned(out)
+}
+
+/// At most this many characters of a name go into a message.
+const SHOWN_NAME: usize = 60;
+
+/// `name` for a one-line message: quoted, control characters escaped, cut after
+/// [`SHOWN_NAME`] characters.
+pub fn quoted_name(name: &str) -> String {
+    let shown: String = name.chars().take(SHOWN_NAME).collect();
+    let cut = if shown.len() < name.len() { "…" } else { "" };
+    format!("\"{}{cut}\"", escape_control_characters(&shown))
 }

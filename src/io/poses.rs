@@ -2,7 +2,7 @@
 //! `world_from_cam`, what evo and the TUM scripts read) and COLMAP `images.txt` without
 //! observations.
 
-use super::colmap_export::{images_txt_header, write_image_line};
+use super::colmap_export::{escape_control_characters, images_txt_header, write_image_line};
 use crate::format::{Error, Map};
 use std::fmt::Write as _;
 
@@ -56,12 +56,16 @@ pub fn tum_line(timestamp: impl std::fmt::Display, cam_from_world: [f64; 7]) -> 
 
 /// TUM lines for `(name, cam_from_world)` poses. TUM needs a timestamp: the pose's index in
 /// the list, with the names listed in order in the header comment so rows can be traced back.
+///
+/// Names there have their control characters escaped (`\n`), not refused as `images.txt`
+/// refuses them: the rows hold no names, so the comment is only for people, and escaping
+/// keeps it one line (a raw newline would end it and inject a row).
 pub fn to_tum<'a>(poses: impl IntoIterator<Item = (&'a str, [f64; 7])>) -> String {
     let mut names =
         String::from("# sfpmap: TUM trajectory (world_from_cam); timestamp = index of the image:");
     let mut body = String::new();
     for (i, (name, pose)) in poses.into_iter().enumerate() {
-        write!(names, " {i}={name}").ok();
+        write!(names, " {i}={}", escape_control_characters(name)).ok();
         body.push_str(&tum_line(i, pose));
         body.push('\n');
     }
@@ -84,6 +88,7 @@ pub fn images_tum(map: &Map<'_>) -> Result<String, Error> {
 
 /// The map's database images as a COLMAP `images.txt` with empty POINTS2D lines (a valid
 /// model file once next to a `cameras.txt`; `export --colmap` writes one with observations).
+/// A name that line cannot hold (a control character, a space) is an error naming the image.
 pub fn images_txt(map: &Map<'_>) -> Result<String, Error> {
     let images = map
         .images()?
@@ -129,5 +134,19 @@ mod tests {
              # timestamp tx ty tz qx qy qz qw\n\
              0 -1 0 0 0 0 0 1\n"
         );
+    }
+
+    #[test]
+    fn tum_names_stay_in_their_comment_line() {
+        let pose = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        let text = to_tum([("a\n1 2 3 4 5 6 7 8\r", pose), ("b\u{1b}.jpg", pose)]);
+        assert_eq!(
+            text.lines().next(),
+            Some(
+                "# sfpmap: TUM trajectory (world_from_cam); timestamp = index of the image: \
+                 0=a\\n1 2 3 4 5 6 7 8\\r 1=b\\x1b.jpg"
+            )
+        );
+        assert_eq!(text.lines().filter(|l| !l.starts_with('#')).count(), 2);
     }
 }
