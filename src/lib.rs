@@ -7,6 +7,7 @@
 
 pub mod format;
 pub mod io;
+pub mod output;
 pub mod progress;
 
 #[cfg(feature = "colmap-model")]

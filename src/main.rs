@@ -6,6 +6,8 @@ use std::process::ExitCode;
 mod cli;
 
 fn main() -> ExitCode {
+    // Before any work: a Ctrl-C while writing must not leave a temp file behind.
+    cli::remove_temps_on_signal();
     match cli::run() {
         Ok(code) => code,
         Err(err) => {

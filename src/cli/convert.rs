@@ -1,7 +1,6 @@
 //! `sfpmap convert`: a COLMAP model (+ database.db) into a map.
 
 use super::slice::CodecArg;
-use anyhow::bail;
 use serde_json::json;
 use sfpmap::colmap::convert::{convert, Aggregate, ConvertOptions};
 use sfpmap::format::Codec;
@@ -87,15 +86,7 @@ pub struct Args {
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let start = Instant::now();
-    super::check_free(&args.output, args.force)?;
-    if let Some(db) = &args.database {
-        if super::same_file(db, &args.output) {
-            bail!(
-                "{}: output is the database; choose another -o",
-                args.output.display()
-            );
-        }
-    }
+    check_output(&args)?;
     #[cfg(feature = "onnx")]
     if let Some(images) = &args.images {
         return run_sfp(&args, images, quiet, start);
@@ -171,6 +162,19 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
 }
 
 #[cfg(feature = "onnx")]
+/// The output policy, with every file convert reads as an input: the model files, the
+/// database and the extractor's model.
+fn check_output(args: &Args) -> anyhow::Result<()> {
+    let model = sfpmap::colmap::model_files(&args.colmap)
+        .map(|f| f.paths)
+        .unwrap_or_default();
+    let mut inputs: Vec<&std::path::Path> = model.iter().map(|p| p.as_path()).collect();
+    inputs.extend(args.database.as_deref());
+    #[cfg(feature = "onnx")]
+    inputs.extend(args.model.as_deref());
+    super::check_outputs(&[&args.output], &inputs, args.force)
+}
+
 fn run_sfp(
     args: &Args,
     images: &std::path::Path,
@@ -181,7 +185,7 @@ fn run_sfp(
     use sfpmap::extract::ExtractorOptions;
     sfpmap::extract::runtime::disable_telemetry();
     if let Some(t) = args.score_threshold.filter(|t| !(0.0..=1.0).contains(t)) {
-        bail!("--score-threshold {t}: scores are in [0, 1]");
+        anyhow::bail!("--score-threshold {t}: scores are in [0, 1]");
     }
     let options = SfpMapOptions {
         images: images.to_path_buf(),

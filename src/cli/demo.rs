@@ -28,6 +28,10 @@ pub struct Args {
     /// Scene seed.
     #[arg(long, default_value_t = 7)]
     pub seed: u32,
+    /// Overwrite the files of an earlier run in OUT (implied without --out: the default folder
+    /// is the demo's own).
+    #[arg(long)]
+    pub force: bool,
     /// Print one JSON object with the results.
     #[arg(long)]
     pub json: bool,
@@ -47,6 +51,19 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .unwrap_or_else(|| std::env::temp_dir().join("sfpmap-demo"));
     let images = out.join("images");
     let sparse = out.join("sparse");
+    let scene = DemoScene::new(args.seed);
+    let outputs: Vec<PathBuf> = scene
+        .database
+        .iter()
+        .chain(&scene.queries)
+        .map(|(name, _)| images.join(name))
+        .chain(["cameras.txt", "images.txt", "points3D.txt"].map(|f| sparse.join(f)))
+        .chain(
+            ["queries.txt", "gt_poses.txt", "demo.sfpm", "demo-l2-short.sfpm"].map(|f| out.join(f)),
+        )
+        .collect();
+    let outputs: Vec<&Path> = outputs.iter().map(|p| p.as_path()).collect();
+    super::check_outputs(&outputs, &[], args.force || args.out.is_none())?;
     for dir in [&images, &sparse] {
         std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
     }
@@ -58,7 +75,6 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     };
 
     // 1. The scene: render every image (two threads), write the model and the query files.
-    let scene = DemoScene::new(args.seed);
     let views: Vec<(&String, _)> = scene
         .database
         .iter()
@@ -80,15 +96,16 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                     failed
                         .lock()
                         .unwrap_or_else(|p| p.into_inner())
-                        .get_or_insert((images.join(name), e));
+                        .get_or_insert(e);
                 }
                 bars.advance(1);
             });
         }
     });
     bars.finish();
-    if let Some((path, e)) = failed.into_inner().unwrap_or_else(|p| p.into_inner()) {
-        return Err(anyhow::Error::new(e).context(path.display().to_string()));
+    if let Some(e) = failed.into_inner().unwrap_or_else(|p| p.into_inner()) {
+        // Names the image already.
+        return Err(e.into());
     }
     let (cameras, images_txt, points) = scene.colmap_text();
     write(&sparse.join("cameras.txt"), &cameras)?;
@@ -231,5 +248,5 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
 }
 
 fn write(path: &Path, text: &str) -> anyhow::Result<()> {
-    std::fs::write(path, text).with_context(|| path.display().to_string())
+    super::write_atomic(path, |out| Ok(std::io::Write::write_all(out, text.as_bytes())?))
 }

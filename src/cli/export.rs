@@ -5,7 +5,7 @@ use serde_json::json;
 use sfpmap::format::Map;
 use sfpmap::io::colmap_export::{export_colmap, ExportSummary, COLMAP_FILES};
 use sfpmap::io::{ply, poses};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 /// Export a map's points and database poses to other tools. At least one output is needed.
@@ -41,7 +41,7 @@ pub struct Args {
     pub json: bool,
 }
 
-use super::{check_free, write_atomic};
+use super::{check_outputs, write_atomic};
 
 /// What [`export`] wrote: the `--json` object, one plain-text line per output, and the COLMAP
 /// model's counts (`export-colmap` prints those its own way).
@@ -73,17 +73,18 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
     {
         bail!("nothing to export: pass --ply, --colmap, --tum and/or --images-txt");
     }
-    for p in [&args.ply, &args.tum, &args.images_txt]
+    let colmap_files: Vec<PathBuf> = args
+        .colmap
+        .iter()
+        .flat_map(|dir| COLMAP_FILES.map(|f| dir.join(f)))
+        .collect();
+    let outputs: Vec<&Path> = [&args.ply, &args.tum, &args.images_txt]
         .into_iter()
         .flatten()
-    {
-        check_free(p, args.force)?;
-    }
-    if let Some(dir) = &args.colmap {
-        for f in COLMAP_FILES {
-            check_free(&dir.join(f), args.force)?;
-        }
-    }
+        .chain(&colmap_files)
+        .map(|p| p.as_path())
+        .collect();
+    check_outputs(&outputs, &[&args.map], args.force)?;
     let map = super::open_map(&args.map)?;
     let source = args.map.display().to_string();
     let mut report = serde_json::Map::new();
@@ -91,12 +92,7 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
     let mut colmap = None;
 
     if let Some(path) = &args.ply {
-        let mut summary = None;
-        write_atomic(path, |out| {
-            summary = Some(ply::write_ply(&map, out, &source)?);
-            Ok(())
-        })?;
-        let s = summary.context("PLY writer did not run")?;
+        let s = write_atomic(path, |out| Ok(ply::write_ply(&map, out, &source)?))?;
         report.insert(
             "ply".into(),
             json!({"path": path.display().to_string(), "points": s.points, "points_in_levels": s.points_in_levels}),
@@ -109,7 +105,7 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         ));
     }
     if let Some(dir) = &args.colmap {
-        let s = export_colmap(&map, dir).with_context(|| source.clone())?;
+        let s = export_colmap(&map, dir).map_err(super::naming(&args.map))?;
         report.insert(
             "colmap".into(),
             json!({"path": dir.display().to_string(), "cameras": s.cameras, "images": s.images, "points": s.points, "observations": s.observations}),

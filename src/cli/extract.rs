@@ -107,8 +107,13 @@ pub fn collect_images(inputs: &[PathBuf]) -> anyhow::Result<Vec<(String, PathBuf
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     runtime::disable_telemetry();
-    super::check_free(&args.output, args.force)?;
     let images = collect_images(&args.inputs)?;
+    let inputs: Vec<&Path> = images
+        .iter()
+        .map(|(_, p)| p.as_path())
+        .chain(args.model.as_deref())
+        .collect();
+    super::check_outputs(&[&args.output], &inputs, args.force)?;
     let bars = super::Bars::new(quiet, args.json);
     let mut extractor = Extractor::new(
         &ExtractorOptions {

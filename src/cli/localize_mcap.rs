@@ -158,6 +158,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     let (Some(input), Some(topic)) = (m.mcap.as_deref(), m.topic.as_deref()) else {
         bail!("--mcap needs --topic");
     };
+    super::check_outputs(args, &[input], &[])?;
     let log = open_log(input)?;
     if let Some(e) = log.summary_error() {
         bars.warn(&format!(
@@ -415,7 +416,7 @@ fn localize_message(
     frame
 }
 
-/// The output MCAP, through a temp file + rename ([`write_atomic`](super::super::write_atomic)).
+/// The output MCAP, through [`write_atomic`](super::super::write_atomic).
 fn write_output(
     args: &Args,
     input: &Path,
@@ -423,10 +424,9 @@ fn write_output(
     frames: &BTreeMap<usize, Frame>,
 ) -> anyhow::Result<()> {
     let m = &args.mcap;
-    let path = &args.output;
-    super::super::write_atomic(path, |out| {
-        (|| -> anyhow::Result<()> {
-            // `&mut BufWriter<File>` is Write + Seek: the MCAP writer seeks back for the summary.
+    super::super::write_atomic(&args.output, |out| {
+        {
+            // `&mut AtomicFile` is Write + Seek: the MCAP writer seeks back for the summary.
             let mut writer = mcap_io::PoseWriter::new(out, &m.pose_topic)?;
             let write_pose =
                 |writer: &mut mcap_io::PoseWriter<_>, frame: &Frame| match &frame.outcome {
@@ -463,8 +463,7 @@ fn write_output(
             }
             writer.finish()?;
             Ok(())
-        })()
-        .with_context(|| path.display().to_string())
+        }
     })
 }
 
@@ -472,22 +471,19 @@ fn write_output(
 fn write_tum(path: &Path, frames: &BTreeMap<usize, Frame>) -> anyhow::Result<()> {
     use std::io::Write as _;
     super::super::write_atomic(path, |out| {
-        (|| -> anyhow::Result<()> {
-            writeln!(
-                out,
-                "# timestamp tx ty tz qx qy qz qw (TUM: world_from_cam; image stamps)"
-            )?;
-            for frame in frames.values() {
-                if let Ok(Localization {
-                    pose: Some(pose), ..
-                }) = &frame.outcome
-                {
-                    let stamp = format!("{}.{:09}", frame.stamp.sec, frame.stamp.nsec);
-                    writeln!(out, "{}", tum_line(stamp, pose.to_colmap()))?;
-                }
+        writeln!(
+            out,
+            "# timestamp tx ty tz qx qy qz qw (TUM: world_from_cam; image stamps)"
+        )?;
+        for frame in frames.values() {
+            if let Ok(Localization {
+                pose: Some(pose), ..
+            }) = &frame.outcome
+            {
+                let stamp = format!("{}.{:09}", frame.stamp.sec, frame.stamp.nsec);
+                writeln!(out, "{}", tum_line(stamp, pose.to_colmap()))?;
             }
-            Ok(())
-        })()
-        .with_context(|| path.display().to_string())
+        }
+        Ok(())
     })
 }

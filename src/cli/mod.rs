@@ -116,56 +116,43 @@ pub fn naming(path: &std::path::Path) -> impl FnOnce(sfpmap::format::Error) -> a
     }
 }
 
-/// Refuses to replace an existing output unless `--force` was given.
-pub fn check_free(path: &std::path::Path, force: bool) -> anyhow::Result<()> {
-    if path.exists() && !force {
-        anyhow::bail!("{}: exists; pass --force to overwrite", path.display());
+/// The output policy ([`sfpmap::output::check_output`]) for each of `outputs`: none may be one
+/// of `inputs`, a device, FIFO or folder, or an existing file without `--force`.
+pub fn check_outputs(
+    outputs: &[&std::path::Path],
+    inputs: &[&std::path::Path],
+    force: bool,
+) -> anyhow::Result<()> {
+    for out in outputs {
+        sfpmap::output::check_output(out, inputs, force)?;
     }
     Ok(())
 }
 
-/// The same file, even when `b` does not exist yet or is reached by another path.
-pub fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
-    use std::path::{Path, PathBuf};
-    let canon = |p: &Path| -> Option<PathBuf> {
-        if let Ok(c) = p.canonicalize() {
-            return Some(c);
-        }
-        let parent = p
-            .parent()
-            .filter(|x| !x.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        Some(parent.canonicalize().ok()?.join(p.file_name()?))
-    };
-    matches!((canon(a), canon(b)), (Some(x), Some(y)) if x == y)
+/// Writes `path` through [`sfpmap::output::AtomicFile`] (temp file in the same folder, fsync,
+/// rename; nothing changed and nothing left on error); errors of `write` get `path` in front.
+pub fn write_atomic<T>(
+    path: &std::path::Path,
+    write: impl FnOnce(&mut sfpmap::output::AtomicFile) -> anyhow::Result<T>,
+) -> anyhow::Result<T> {
+    use anyhow::Context;
+    sfpmap::output::write_atomic(path, |out| {
+        write(out).with_context(|| path.display().to_string())
+    })
 }
 
-/// Writes `path` through a temp file in the same folder (fsynced), renamed into place once
-/// complete; on any error the temp file is removed and `path` is untouched.
-pub fn write_atomic(
-    path: &std::path::Path,
-    write: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> anyhow::Result<()>,
-) -> anyhow::Result<()> {
-    use anyhow::Context;
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty());
-    let name = path
-        .file_name()
-        .with_context(|| format!("{}: output has no file name", path.display()))?;
-    let tmp = dir.unwrap_or(std::path::Path::new(".")).join(format!(
-        ".{}.tmp{}",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
-    let result = (|| {
-        let file = std::fs::File::create(&tmp).with_context(|| tmp.display().to_string())?;
-        let mut out = std::io::BufWriter::new(file);
-        write(&mut out)?;
-        let file = out.into_inner().map_err(|e| e.into_error())?;
-        file.sync_all()?;
-        std::fs::rename(&tmp, path).with_context(|| path.display().to_string())
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+/// On SIGINT or SIGTERM: removes the temp files of unfinished writes and exits 130 (SIGINT)
+/// or 143 (SIGTERM), as a shell reports a process killed by them.
+pub fn remove_temps_on_signal() {
+    use signal_hook::consts::{SIGINT, SIGTERM};
+    // Without a handler the default action still ends the process: only temp files stay.
+    let Ok(mut signals) = signal_hook::iterator::Signals::new([SIGINT, SIGTERM]) else {
+        return;
+    };
+    std::thread::spawn(move || {
+        if let Some(signal) = signals.forever().next() {
+            sfpmap::output::remove_pending_temps();
+            std::process::exit(128 + signal);
+        }
+    });
 }

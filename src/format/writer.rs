@@ -12,7 +12,7 @@ use crate::progress::{Reporter, Silent};
 use half::f16;
 use std::borrow::Cow;
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// Descriptors handed to [`MapWriter::add_level`], row-major `[points × dim_full]`.
 #[derive(Debug, Clone)]
@@ -533,38 +533,18 @@ impl<'a> MapWriter<'a> {
         self
     }
 
-    /// Writes the map to `path`: a temp file in the same folder, fsync, rename. An existing
-    /// `path` is replaced only once the new file is complete.
+    /// Writes the map to `path` through [`crate::output::AtomicFile`] (temp file in the same
+    /// folder, fsync, rename): an existing `path` is replaced only once the new file is
+    /// complete, and never when it is not a regular file.
     pub fn write(&self, path: &Path, reporter: &dyn Reporter) -> Result<u64, Error> {
         let encoded = self.encode(reporter)?;
-        let dir = path
-            .parent()
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        let file_name = path
-            .file_name()
-            .ok_or_else(|| Error::invalid(format!("{} is not a file path", path.display())))?;
-        let tmp: PathBuf = dir.join(format!(
-            ".{}.tmp{}",
-            file_name.to_string_lossy(),
-            std::process::id()
-        ));
-        let result = (|| -> std::io::Result<()> {
-            let file = std::fs::File::create(&tmp)?;
-            let mut out = std::io::BufWriter::with_capacity(1 << 20, file);
-            reporter.start("writing", Some(encoded.file_len));
-            encoded.write_to(&mut out, reporter)?;
-            let file = out.into_inner().map_err(|e| e.into_error())?;
-            file.sync_all()?;
-            drop(file);
-            std::fs::rename(&tmp, path)?;
-            reporter.finish();
-            Ok(())
-        })();
-        if let Err(e) = result {
-            let _ = std::fs::remove_file(&tmp);
-            return Err(Error::io(path, e));
-        }
+        let mut out = crate::output::AtomicFile::create(path)?;
+        reporter.start("writing", Some(encoded.file_len));
+        encoded
+            .write_to(&mut out, reporter)
+            .map_err(|e| Error::io(path, e))?;
+        out.commit()?;
+        reporter.finish();
         Ok(encoded.file_len)
     }
 

@@ -131,7 +131,8 @@ pub fn to_colmap_text(map: &Map<'_>) -> Result<ColmapText, Error> {
     })
 }
 
-/// Writes the model into `dir` (created if needed), each file through a temp file + rename.
+/// Writes the model into `dir` (created if needed), each file through
+/// [`crate::output::write_atomic`] (temp file, fsync, rename).
 pub fn export_colmap(map: &Map<'_>, dir: &Path) -> Result<ExportSummary, Error> {
     let text = to_colmap_text(map)?;
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
@@ -140,13 +141,9 @@ pub fn export_colmap(map: &Map<'_>, dir: &Path) -> Result<ExportSummary, Error> 
         .zip([&text.cameras, &text.images, &text.points3d])
     {
         let path = dir.join(name);
-        let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
-        std::fs::write(&tmp, body)
-            .and_then(|_| std::fs::rename(&tmp, &path))
-            .map_err(|e| {
-                let _ = std::fs::remove_file(&tmp);
-                Error::io(&path, e)
-            })?;
+        crate::output::write_atomic(&path, |out| {
+            std::io::Write::write_all(out, body.as_bytes()).map_err(|e| Error::io(&path, e))
+        })?;
     }
     Ok(text.summary)
 }

@@ -480,10 +480,25 @@ impl DemoScene {
     }
 }
 
-/// Writes a grayscale PNG.
-pub fn write_png(path: &Path, width: u32, height: u32, gray: &[u8]) -> std::io::Result<()> {
-    image::save_buffer(path, gray, width, height, image::ExtendedColorType::L8)
-        .map_err(std::io::Error::other)
+/// Writes a grayscale PNG through [`crate::output::AtomicFile`]; errors name `path`.
+pub fn write_png(
+    path: &Path,
+    width: u32,
+    height: u32,
+    gray: &[u8],
+) -> Result<(), crate::output::OutputError> {
+    use image::ImageEncoder;
+    let mut out = crate::output::AtomicFile::create(path)?;
+    image::codecs::png::PngEncoder::new(&mut out)
+        .write_image(gray, width, height, image::ExtendedColorType::L8)
+        .map_err(|e| {
+            let source = match e {
+                image::ImageError::IoError(e) => e,
+                e => std::io::Error::other(e),
+            };
+            crate::output::OutputError::cannot_write(path, source)
+        })?;
+    out.commit()
 }
 
 #[cfg(test)]

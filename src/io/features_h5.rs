@@ -32,6 +32,14 @@ pub enum H5Error {
         path: PathBuf,
         source: std::io::Error,
     },
+    /// The output cannot be written ([`crate::output`]'s policy or its I/O).
+    Output(crate::output::OutputError),
+}
+
+impl From<crate::output::OutputError> for H5Error {
+    fn from(e: crate::output::OutputError) -> H5Error {
+        H5Error::Output(e)
+    }
 }
 
 impl std::fmt::Display for H5Error {
@@ -40,11 +48,20 @@ impl std::fmt::Display for H5Error {
             H5Error::Hdf5 { path, reason } => write!(f, "{}: hdf5: {reason}", path.display()),
             H5Error::BadName { name, reason } => write!(f, "image name {name:?}: {reason}"),
             H5Error::Io { path, source } => write!(f, "{}: {source}", path.display()),
+            H5Error::Output(e) => e.fmt(f),
         }
     }
 }
 
-impl std::error::Error for H5Error {}
+impl std::error::Error for H5Error {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            // Shown by Display already: the rest of the chain only.
+            H5Error::Output(e) => e.source(),
+            _ => None,
+        }
+    }
+}
 
 fn f16_type() -> Datatype {
     Datatype::FloatingPoint {
@@ -90,7 +107,7 @@ struct Node<'a> {
     children: BTreeMap<String, Node<'a>>,
 }
 
-/// Writes `images` (name, features) to `path` (temp file + rename).
+/// Writes `images` (name, features) to `path` ([`crate::output::write_atomic`]).
 pub fn write(
     path: &Path,
     images: &[(String, Features)],
@@ -138,13 +155,12 @@ pub fn write(
         path: path.to_path_buf(),
         reason: e.to_string(),
     })?;
-    let tmp = path.with_extension(format!("h5.tmp{}", std::process::id()));
-    let io = |source| H5Error::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    std::fs::write(&tmp, &bytes).map_err(io)?;
-    std::fs::rename(&tmp, path).map_err(io)?;
+    crate::output::write_atomic(path, |out| {
+        std::io::Write::write_all(out, &bytes).map_err(|source| H5Error::Io {
+            path: path.to_path_buf(),
+            source,
+        })
+    })?;
     Ok(bytes.len() as u64)
 }
 

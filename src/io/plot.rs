@@ -84,6 +84,8 @@ pub enum PlotError {
     Draw(String),
     /// Nothing to plot (no points, cameras or poses).
     Empty,
+    /// The PNG cannot be written ([`crate::output`]'s policy or its I/O).
+    Output(crate::output::OutputError),
 }
 
 impl std::fmt::Display for PlotError {
@@ -92,11 +94,26 @@ impl std::fmt::Display for PlotError {
             PlotError::Format(e) => e.fmt(f),
             PlotError::Draw(e) => write!(f, "drawing the plot failed: {e}"),
             PlotError::Empty => f.write_str("nothing to plot: the map has no points or cameras"),
+            PlotError::Output(e) => e.fmt(f),
         }
     }
 }
 
-impl std::error::Error for PlotError {}
+impl std::error::Error for PlotError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            // Shown by Display already: the rest of the chain only.
+            PlotError::Output(e) => e.source(),
+            _ => None,
+        }
+    }
+}
+
+impl From<crate::output::OutputError> for PlotError {
+    fn from(e: crate::output::OutputError) -> Self {
+        PlotError::Output(e)
+    }
+}
 
 impl From<Error> for PlotError {
     fn from(e: Error) -> Self {
@@ -251,11 +268,40 @@ pub fn plot_map(
         return Err(PlotError::Empty);
     }
 
-    let root = BitMapBackend::new(path, (options.width, options.height)).into_drawing_area();
-    root.fill(&WHITE).map_err(draw_err)?;
-    let summary = draw(&root, map, options, (a, b), (lo, hi), &world, &cameras)?;
-    root.present().map_err(draw_err)?;
+    // Drawn in memory, then encoded through the atomic writer: plotters' own file output
+    // writes in place, so a kill mid-write lost the old PNG.
+    let (width, height) = (options.width, options.height);
+    let mut pixels = vec![0u8; width as usize * height as usize * 3];
+    let summary = {
+        let root = BitMapBackend::with_buffer(&mut pixels, (width, height)).into_drawing_area();
+        root.fill(&WHITE).map_err(draw_err)?;
+        let summary = draw(&root, map, options, (a, b), (lo, hi), &world, &cameras)?;
+        root.present().map_err(draw_err)?;
+        summary
+    };
+    write_png(path, width, height, &pixels)?;
     Ok(summary)
+}
+
+/// `rgb` (8-bit RGB rows) as a PNG at `path`, through [`crate::output::write_atomic`].
+fn write_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<(), PlotError> {
+    crate::output::write_atomic(path, |out| {
+        let mut encoder = png::Encoder::new(out, width, height);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Eight);
+        let encoded = encoder
+            .write_header()
+            .and_then(|mut writer| {
+                writer.write_image_data(rgb)?;
+                writer.finish()
+            });
+        encoded.map_err(|e| match e {
+            png::EncodingError::IoError(source) => {
+                PlotError::Output(crate::output::OutputError::cannot_write(path, source))
+            }
+            e => draw_err(e),
+        })
+    })
 }
 
 #[allow(clippy::too_many_arguments)]

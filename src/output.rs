@@ -1,0 +1,818 @@
+//! The one output policy: every file the crate writes goes through here.
+//!
+//! [`check_output`] says whether a command may write an output at all: not over an existing
+//! file without `force`, never over one of its inputs (same device and inode, whatever path
+//! reaches it), never over something that is not a regular file (a device such as
+//! `/dev/full`, a FIFO, a folder). [`AtomicFile`] then writes it so that readers only ever see
+//! the complete old or the complete new file:
+//!
+//! - On Linux the data goes to an unnamed file in the target folder (`O_TMPFILE`): a process
+//!   killed while writing leaves nothing behind. Once written and fsynced it is linked in under
+//!   a temp name and renamed over the target, and the folder is fsynced.
+//! - Where the file system has no `O_TMPFILE`, a named temp file `.NAME.sfpmap-tmp.PID.RANDOM`
+//!   in the target folder takes its place. Live temp names are kept in a process-wide list so
+//!   that a signal handler can remove them ([`remove_pending_temps`]); after `kill -9`, the
+//!   next write into that folder removes temp files whose process is gone.
+//!
+//! Errors name the path the caller gave, never a temp path. The library installs no signal
+//! handler; the CLI does.
+
+use std::ffi::OsString;
+use std::fs::File;
+use std::io::{self, BufWriter, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, MutexGuard};
+
+/// What marks a temp file of this module (between the output's name and the pid).
+const TEMP_MARK: &str = ".sfpmap-tmp.";
+
+/// The longest part of the output's name copied into a temp name (file names are limited to
+/// 255 bytes and the temp name adds the mark, a pid and a random part).
+const TEMP_NAME_PREFIX_MAX: usize = 160;
+
+/// Why an output cannot be written.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum OutputError {
+    /// The output exists and replacing it was not asked for.
+    Exists { path: PathBuf },
+    /// The output is one of the command's inputs (the same file, by device and inode).
+    IsInput { path: PathBuf, input: PathBuf },
+    /// The output exists and is not a regular file; `kind` says what it is.
+    NotRegular { path: PathBuf, kind: &'static str },
+    /// The path names no file (`/`, `..`, empty).
+    NoFileName { path: PathBuf },
+    /// Creating, writing, syncing or renaming failed; `action` says which.
+    Io {
+        path: PathBuf,
+        action: &'static str,
+        source: io::Error,
+    },
+}
+
+impl OutputError {
+    /// The output path the caller gave.
+    pub fn path(&self) -> &Path {
+        match self {
+            OutputError::Exists { path }
+            | OutputError::IsInput { path, .. }
+            | OutputError::NotRegular { path, .. }
+            | OutputError::NoFileName { path }
+            | OutputError::Io { path, .. } => path,
+        }
+    }
+
+    /// The message without the path in front and with the I/O cause, for error types that
+    /// print the path themselves and keep no source.
+    pub fn reason(&self) -> String {
+        match self {
+            OutputError::Io { action, source, .. } => format!("{action}: {source}"),
+            _ => self.what(),
+        }
+    }
+
+    /// The message without the path and without the cause (which [`Error::source`] gives).
+    ///
+    /// [`Error::source`]: std::error::Error::source
+    fn what(&self) -> String {
+        match self {
+            OutputError::Exists { .. } => "exists; pass --force to overwrite".into(),
+            OutputError::IsInput { path, input } if path == input => {
+                "is an input of this command; choose another output".into()
+            }
+            OutputError::IsInput { input, .. } => format!(
+                "is the same file as the input {}; choose another output",
+                input.display()
+            ),
+            OutputError::NotRegular { kind, .. } => {
+                format!("is {kind}, not a regular file; choose a file path")
+            }
+            OutputError::NoFileName { .. } => "names no file".into(),
+            OutputError::Io { action, .. } => (*action).into(),
+        }
+    }
+
+    /// A write of `path`'s data that failed (for encoders that write into an [`AtomicFile`]).
+    pub fn cannot_write(path: &Path, source: io::Error) -> OutputError {
+        OutputError::io(path, "cannot write")(source)
+    }
+
+    fn io<'a>(path: &'a Path, action: &'static str) -> impl FnOnce(io::Error) -> OutputError + 'a {
+        move |source| OutputError::Io {
+            path: path.to_path_buf(),
+            action,
+            source,
+        }
+    }
+}
+
+impl std::fmt::Display for OutputError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {}", self.path().display(), self.what())
+    }
+}
+
+impl std::error::Error for OutputError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            OutputError::Io { source, .. } => Some(source),
+            _ => None,
+        }
+    }
+}
+
+/// For the format's error, which prints the path itself and keeps messages as text.
+impl From<OutputError> for crate::format::Error {
+    fn from(e: OutputError) -> crate::format::Error {
+        crate::format::Error::Io {
+            path: e.path().to_path_buf(),
+            message: e.reason(),
+        }
+    }
+}
+
+/// The policy for one output of a command that reads `inputs`: refuses an output that is one
+/// of the inputs (also through symlinks, hard links or `..`), one that exists and is not a
+/// regular file, and an existing one unless `force`. An output that does not exist yet is free.
+pub fn check_output(out: &Path, inputs: &[&Path], force: bool) -> Result<(), OutputError> {
+    // `symlink_metadata`: a dangling symlink is something there too.
+    if std::fs::symlink_metadata(out).is_err() {
+        return Ok(());
+    }
+    let Ok(meta) = std::fs::metadata(out) else {
+        // A dangling symlink: replacing it needs `force` like any existing entry.
+        return if force {
+            Ok(())
+        } else {
+            Err(OutputError::Exists {
+                path: out.to_path_buf(),
+            })
+        };
+    };
+    for input in inputs {
+        if let Ok(input_meta) = std::fs::metadata(input) {
+            if same_file(&meta, &input_meta, out, input) {
+                return Err(OutputError::IsInput {
+                    path: out.to_path_buf(),
+                    input: input.to_path_buf(),
+                });
+            }
+        }
+    }
+    if let Some(kind) = not_regular(&meta.file_type()) {
+        return Err(OutputError::NotRegular {
+            path: out.to_path_buf(),
+            kind,
+        });
+    }
+    if !force {
+        return Err(OutputError::Exists {
+            path: out.to_path_buf(),
+        });
+    }
+    Ok(())
+}
+
+#[cfg(unix)]
+fn same_file(a: &std::fs::Metadata, b: &std::fs::Metadata, _: &Path, _: &Path) -> bool {
+    use std::os::unix::fs::MetadataExt;
+    (a.dev(), a.ino()) == (b.dev(), b.ino())
+}
+
+#[cfg(not(unix))]
+fn same_file(_: &std::fs::Metadata, _: &std::fs::Metadata, a: &Path, b: &Path) -> bool {
+    matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y)
+}
+
+/// What a file is when it is not a regular file.
+fn not_regular(t: &std::fs::FileType) -> Option<&'static str> {
+    if t.is_file() {
+        return None;
+    }
+    if t.is_dir() {
+        return Some("a folder");
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if t.is_char_device() {
+            return Some("a character device");
+        }
+        if t.is_block_device() {
+            return Some("a block device");
+        }
+        if t.is_fifo() {
+            return Some("a FIFO");
+        }
+        if t.is_socket() {
+            return Some("a socket");
+        }
+    }
+    Some("not a plain file")
+}
+
+/// Refuses to replace something that is not a regular file (the symlink followed).
+fn check_replaceable(path: &Path) -> Result<(), OutputError> {
+    match std::fs::metadata(path) {
+        Ok(meta) => match not_regular(&meta.file_type()) {
+            Some(kind) => Err(OutputError::NotRegular {
+                path: path.to_path_buf(),
+                kind,
+            }),
+            None => Ok(()),
+        },
+        Err(_) => Ok(()),
+    }
+}
+
+/// Temp files this process has in the file system right now (named ones only: unnamed
+/// `O_TMPFILE` data vanishes with the process).
+static PENDING: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+fn pending() -> MutexGuard<'static, Vec<PathBuf>> {
+    PENDING.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Removes every temp file of this process's unfinished writes; for a SIGINT/SIGTERM handler
+/// that exits right after. The list stays locked until the process ends, so no write creates
+/// or renames a temp file after this.
+pub fn remove_pending_temps() {
+    let mut list = pending();
+    for path in list.drain(..) {
+        let _ = std::fs::remove_file(path);
+    }
+    // Held on purpose: the caller exits; other threads' writes wait instead of going on.
+    std::mem::forget(list);
+}
+
+/// How the data reaches the file system before the rename.
+#[derive(Debug)]
+enum Temp {
+    /// An `O_TMPFILE` file: no name until [`AtomicFile::commit`].
+    Unnamed,
+    /// A named temp file (its full path), listed in [`PENDING`].
+    Named(PathBuf),
+}
+
+/// A file written to a temp file in the target's folder and renamed over the target by
+/// [`AtomicFile::commit`]; dropped without a commit, it leaves the target as it was and no
+/// temp file behind. Implements [`Write`] and [`Seek`] (buffered).
+#[derive(Debug)]
+pub struct AtomicFile {
+    target: PathBuf,
+    dir: PathBuf,
+    /// The folder, open: for `openat`/`linkat`/`renameat` and its fsync.
+    dir_file: File,
+    name: OsString,
+    out: BufWriter<File>,
+    temp: Temp,
+    done: bool,
+}
+
+impl AtomicFile {
+    /// Starts writing `path`. Refuses a `path` that exists and is not a regular file.
+    ///
+    /// `SFPMAP_NO_TMPFILE` set in the environment makes it use a named temp file even where
+    /// `O_TMPFILE` works (the tests of that way; a file system that claims `O_TMPFILE` and
+    /// fails it).
+    pub fn create(path: &Path) -> Result<AtomicFile, OutputError> {
+        AtomicFile::create_with(path, std::env::var_os("SFPMAP_NO_TMPFILE").is_none())
+    }
+
+    fn create_with(path: &Path, allow_unnamed: bool) -> Result<AtomicFile, OutputError> {
+        check_replaceable(path)?;
+        let name = path
+            .file_name()
+            .filter(|n| !n.is_empty())
+            .ok_or_else(|| OutputError::NoFileName {
+                path: path.to_path_buf(),
+            })?
+            .to_os_string();
+        let dir = path
+            .parent()
+            .filter(|d| !d.as_os_str().is_empty())
+            .unwrap_or(Path::new("."))
+            .to_path_buf();
+        let dir_file = File::open(&dir).map_err(OutputError::io(path, "cannot open its folder"))?;
+        remove_stale_temps(&dir);
+        let unnamed = if allow_unnamed {
+            open_unnamed(&dir_file).map_err(OutputError::io(path, "cannot create"))?
+        } else {
+            None
+        };
+        let (file, temp) = match unnamed {
+            Some(file) => (file, Temp::Unnamed),
+            None => {
+                let (file, temp) = create_named(&dir, &name).map_err(OutputError::io(
+                    path,
+                    "cannot create a temp file in its folder",
+                ))?;
+                (file, Temp::Named(temp))
+            }
+        };
+        Ok(AtomicFile {
+            target: path.to_path_buf(),
+            dir,
+            dir_file,
+            name,
+            out: BufWriter::with_capacity(1 << 20, file),
+            temp,
+            done: false,
+        })
+    }
+
+    /// Flushes, fsyncs and renames the file over the target, then fsyncs the folder.
+    pub fn commit(mut self) -> Result<(), OutputError> {
+        let path = self.target.clone();
+        self.out
+            .flush()
+            .map_err(OutputError::io(&path, "cannot write"))?;
+        self.out
+            .get_ref()
+            .sync_all()
+            .map_err(OutputError::io(&path, "cannot sync"))?;
+        // Checked again right before the rename: the target may have changed since `create`.
+        check_replaceable(&path)?;
+        {
+            // Locked from the temp name's creation to the rename: a signal handler's
+            // [`remove_pending_temps`] runs entirely before or entirely after.
+            let mut list = pending();
+            let temp = match &self.temp {
+                Temp::Named(temp) => temp.clone(),
+                Temp::Unnamed => {
+                    let temp = self.link_unnamed(&mut list)?;
+                    self.temp = Temp::Named(temp.clone());
+                    temp
+                }
+            };
+            let renamed = std::fs::rename(&temp, &path)
+                .map_err(OutputError::io(&path, "cannot rename into place"));
+            if renamed.is_err() {
+                let _ = std::fs::remove_file(&temp);
+            }
+            list.retain(|p| p != &temp);
+            self.done = true;
+            renamed?;
+        }
+        sync_dir(&self.dir_file).map_err(OutputError::io(&path, "cannot sync its folder"))
+    }
+
+    /// Gives the unnamed file a temp name (listed in `list`), or copies it to a named temp
+    /// file where `linkat` through `/proc` is refused.
+    fn link_unnamed(&mut self, list: &mut Vec<PathBuf>) -> Result<PathBuf, OutputError> {
+        let path = self.target.clone();
+        for _ in 0..16 {
+            let temp = self.dir.join(temp_name(&self.name));
+            list.push(temp.clone());
+            match link_fd(self.out.get_ref(), &self.dir_file, &temp) {
+                Ok(()) => return Ok(temp),
+                Err(e) if e.kind() == io::ErrorKind::AlreadyExists => {
+                    list.pop();
+                }
+                Err(_) => {
+                    list.pop();
+                    return self.copy_to_named(list);
+                }
+            }
+        }
+        Err(OutputError::Io {
+            path,
+            action: "cannot name the temp file",
+            source: io::ErrorKind::AlreadyExists.into(),
+        })
+    }
+
+    fn copy_to_named(&mut self, list: &mut Vec<PathBuf>) -> Result<PathBuf, OutputError> {
+        let path = self.target.clone();
+        let (mut named, temp) = create_named_locked(&self.dir, &self.name, list).map_err(
+            OutputError::io(&path, "cannot create a temp file in its folder"),
+        )?;
+        let copied = (|| {
+            let file = self.out.get_mut();
+            file.seek(SeekFrom::Start(0))?;
+            io::copy(file, &mut named)?;
+            named.sync_all()
+        })();
+        if let Err(e) = copied {
+            let _ = std::fs::remove_file(&temp);
+            list.retain(|p| p != &temp);
+            return Err(OutputError::io(&path, "cannot write")(e));
+        }
+        Ok(temp)
+    }
+}
+
+impl Write for AtomicFile {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        self.out.write(buf)
+    }
+    fn write_all(&mut self, buf: &[u8]) -> io::Result<()> {
+        self.out.write_all(buf)
+    }
+    fn flush(&mut self) -> io::Result<()> {
+        self.out.flush()
+    }
+}
+
+impl Seek for AtomicFile {
+    fn seek(&mut self, pos: SeekFrom) -> io::Result<u64> {
+        self.out.seek(pos)
+    }
+}
+
+impl Drop for AtomicFile {
+    fn drop(&mut self) {
+        if self.done {
+            return;
+        }
+        if let Temp::Named(temp) = &self.temp {
+            let mut list = pending();
+            let _ = std::fs::remove_file(temp);
+            list.retain(|p| p != temp);
+        }
+    }
+}
+
+/// Writes `path` atomically with `write` ([`AtomicFile`]): committed when `write` succeeds,
+/// dropped (nothing changed, nothing left) when it fails.
+pub fn write_atomic<T, E>(
+    path: &Path,
+    write: impl FnOnce(&mut AtomicFile) -> Result<T, E>,
+) -> Result<T, E>
+where
+    E: From<OutputError>,
+{
+    let mut file = AtomicFile::create(path)?;
+    let value = write(&mut file)?;
+    file.commit()?;
+    Ok(value)
+}
+
+/// A fresh temp name for an output called `name`: `.NAME.sfpmap-tmp.PID.RANDOM`.
+fn temp_name(name: &std::ffi::OsStr) -> String {
+    let name = name.to_string_lossy();
+    let mut end = name.len().min(TEMP_NAME_PREFIX_MAX);
+    while !name.is_char_boundary(end) {
+        end -= 1;
+    }
+    format!(
+        ".{}{TEMP_MARK}{}.{:016x}",
+        &name[..end],
+        std::process::id(),
+        random_u64()
+    )
+}
+
+/// Not for secrets: only so that two writers of the same pid (threads) pick distinct names.
+fn random_u64() -> u64 {
+    use std::hash::{BuildHasher, Hasher};
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u64(COUNTER.fetch_add(1, Ordering::Relaxed));
+    if let Ok(t) = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH) {
+        h.write_u128(t.as_nanos());
+    }
+    h.finish()
+}
+
+fn create_named(dir: &Path, name: &std::ffi::OsStr) -> io::Result<(File, PathBuf)> {
+    let mut list = pending();
+    create_named_locked(dir, name, &mut list)
+}
+
+/// A new named temp file in `dir`, listed in `list` before it exists (a handler that runs
+/// after this returns finds it; `list` is locked, so none runs in between).
+fn create_named_locked(
+    dir: &Path,
+    name: &std::ffi::OsStr,
+    list: &mut Vec<PathBuf>,
+) -> io::Result<(File, PathBuf)> {
+    let mut last = io::Error::from(io::ErrorKind::AlreadyExists);
+    for _ in 0..16 {
+        let temp = dir.join(temp_name(name));
+        list.push(temp.clone());
+        match std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create_new(true)
+            .open(&temp)
+        {
+            Ok(file) => return Ok((file, temp)),
+            Err(e) => {
+                list.pop();
+                if e.kind() != io::ErrorKind::AlreadyExists {
+                    return Err(e);
+                }
+                last = e;
+            }
+        }
+    }
+    Err(last)
+}
+
+/// Removes temp files in `dir` left by processes that no longer run (best effort).
+fn remove_stale_temps(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    let me = std::process::id();
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) = temp_pid(&name.to_string_lossy()) else {
+            continue;
+        };
+        if pid != me && !process_alive(pid) {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
+}
+
+/// The pid in a temp name of this module (`.NAME.sfpmap-tmp.PID.RANDOM`), else `None`.
+fn temp_pid(name: &str) -> Option<u32> {
+    let rest = name.strip_prefix('.')?;
+    let (head, random) = rest.rsplit_once('.')?;
+    if random.len() != 16 || !random.bytes().all(|b| b.is_ascii_hexdigit()) {
+        return None;
+    }
+    let (head, pid) = head.rsplit_once('.')?;
+    if pid.is_empty() || !pid.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    let mark = TEMP_MARK.trim_end_matches('.');
+    if head.len() <= mark.len() || !head.ends_with(mark) {
+        return None;
+    }
+    pid.parse().ok()
+}
+
+#[cfg(unix)]
+fn process_alive(pid: u32) -> bool {
+    let Some(pid) = i32::try_from(pid)
+        .ok()
+        .and_then(rustix::process::Pid::from_raw)
+    else {
+        return false;
+    };
+    // EPERM: it runs, as another user.
+    !matches!(
+        rustix::process::test_kill_process(pid),
+        Err(rustix::io::Errno::SRCH)
+    )
+}
+
+#[cfg(not(unix))]
+fn process_alive(_: u32) -> bool {
+    // No cheap check: keep every temp file rather than remove a live one.
+    true
+}
+
+/// An unnamed file in the folder, or `None` where the file system (or kernel) has none.
+#[cfg(target_os = "linux")]
+fn open_unnamed(dir: &File) -> io::Result<Option<File>> {
+    use rustix::fs::{Mode, OFlags};
+    use rustix::io::Errno;
+    // `linkat` needs /proc/self/fd to give the file a name.
+    if !Path::new("/proc/self/fd").is_dir() {
+        return Ok(None);
+    }
+    match rustix::fs::openat(
+        dir,
+        ".",
+        OFlags::TMPFILE | OFlags::RDWR | OFlags::CLOEXEC,
+        Mode::from_raw_mode(0o666),
+    ) {
+        Ok(fd) => Ok(Some(File::from(fd))),
+        // No O_TMPFILE here: EOPNOTSUPP (the file system), EISDIR (an old kernel), EINVAL.
+        Err(Errno::OPNOTSUPP | Errno::ISDIR | Errno::INVAL | Errno::NOSYS) => Ok(None),
+        Err(e) => Err(e.into()),
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn open_unnamed(_: &File) -> io::Result<Option<File>> {
+    Ok(None)
+}
+
+/// Links the unnamed `file` into `dir` as `temp`.
+#[cfg(target_os = "linux")]
+fn link_fd(file: &File, dir: &File, temp: &Path) -> io::Result<()> {
+    use std::os::fd::AsRawFd;
+    let name = temp.file_name().unwrap_or_default();
+    rustix::fs::linkat(
+        rustix::fs::CWD,
+        format!("/proc/self/fd/{}", file.as_raw_fd()),
+        dir,
+        name,
+        rustix::fs::AtFlags::SYMLINK_FOLLOW,
+    )?;
+    Ok(())
+}
+
+#[cfg(not(target_os = "linux"))]
+fn link_fd(_: &File, _: &File, _: &Path) -> io::Result<()> {
+    Err(io::ErrorKind::Unsupported.into())
+}
+
+/// Makes the rename durable. File systems that cannot fsync a folder say EINVAL: nothing to do.
+fn sync_dir(dir: &File) -> io::Result<()> {
+    match dir.sync_all() {
+        Err(e) if e.kind() == io::ErrorKind::InvalidInput => Ok(()),
+        other => other,
+    }
+}
+
+#[cfg(all(test, unix))]
+mod tests {
+    use super::*;
+
+    fn names(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    }
+
+    fn write_with(path: &Path, allow_unnamed: bool, body: &[u8]) -> Result<(), OutputError> {
+        let mut f = AtomicFile::create_with(path, allow_unnamed)?;
+        f.write_all(body).unwrap();
+        f.commit()
+    }
+
+    #[test]
+    fn both_ways_replace_the_file_and_leave_only_it() {
+        for allow_unnamed in [true, false] {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("out.bin");
+            std::fs::write(&path, b"old").unwrap();
+            let link = dir.path().join("old-link");
+            std::fs::hard_link(&path, &link).unwrap();
+            write_with(&path, allow_unnamed, b"new").unwrap();
+            assert_eq!(std::fs::read(&path).unwrap(), b"new");
+            // Renamed over, not rewritten in place: the old inode keeps the old bytes.
+            assert_eq!(std::fs::read(&link).unwrap(), b"old");
+            assert_eq!(names(dir.path()), ["old-link", "out.bin"]);
+            assert!(!pending().iter().any(|p| p.starts_with(dir.path())));
+        }
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn the_unnamed_way_has_no_name_while_writing() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("out.bin");
+        let mut f = AtomicFile::create(&path).unwrap();
+        assert!(matches!(f.temp, Temp::Unnamed), "this test needs O_TMPFILE");
+        f.write_all(b"data").unwrap();
+        f.flush().unwrap();
+        assert!(names(dir.path()).is_empty());
+        f.commit().unwrap();
+        assert_eq!(names(dir.path()), ["out.bin"]);
+    }
+
+    #[test]
+    fn the_named_way_is_listed_while_writing_and_removed_when_dropped() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("out.bin");
+        let mut f = AtomicFile::create_with(&path, false).unwrap();
+        f.write_all(b"partial").unwrap();
+        let listed = names(dir.path());
+        assert_eq!(listed.len(), 1);
+        assert_eq!(temp_pid(&listed[0]), Some(std::process::id()));
+        assert!(pending().iter().any(|p| p.starts_with(dir.path())));
+        drop(f);
+        assert!(names(dir.path()).is_empty());
+        assert!(!pending().iter().any(|p| p.starts_with(dir.path())));
+    }
+
+    #[test]
+    fn seek_works_for_writers_that_patch_a_header() {
+        for allow_unnamed in [true, false] {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("out.bin");
+            let mut f = AtomicFile::create_with(&path, allow_unnamed).unwrap();
+            f.write_all(b"xxxxBODY").unwrap();
+            f.seek(SeekFrom::Start(0)).unwrap();
+            f.write_all(b"HEAD").unwrap();
+            f.commit().unwrap();
+            assert_eq!(std::fs::read(&path).unwrap(), b"HEADBODY");
+        }
+    }
+
+    #[test]
+    fn the_unnamed_copy_fallback_writes_the_whole_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("out.bin");
+        let body: Vec<u8> = (0..3_000_000u32).map(|i| i as u8).collect();
+        let mut f = AtomicFile::create(&path).unwrap();
+        f.write_all(&body).unwrap();
+        f.out.flush().unwrap();
+        let temp = {
+            let mut list = pending();
+            let t = f.copy_to_named(&mut list).unwrap();
+            list.retain(|p| p != &t);
+            t
+        };
+        assert_eq!(std::fs::read(&temp).unwrap(), body);
+        std::fs::remove_file(temp).unwrap();
+    }
+
+    #[test]
+    fn stale_temps_of_dead_processes_go_live_ones_stay() {
+        let dir = tempfile::tempdir().unwrap();
+        let dead = {
+            let mut child = std::process::Command::new("true").spawn().unwrap();
+            let pid = child.id();
+            child.wait().unwrap();
+            pid
+        };
+        let stale = format!(".out.bin{TEMP_MARK}{dead}.0123456789abcdef");
+        let live = format!(".out.bin{TEMP_MARK}1.0123456789abcdef"); // init never dies
+        let other = ".out.bin.tmp123".to_string(); // not ours: never touched
+        for n in [&stale, &live, &other] {
+            std::fs::write(dir.path().join(n), b"x").unwrap();
+        }
+        write_with(&dir.path().join("out.bin"), true, b"new").unwrap();
+        let left = names(dir.path());
+        assert!(!left.contains(&stale), "{left:?}");
+        assert!(left.contains(&live) && left.contains(&other), "{left:?}");
+    }
+
+    #[test]
+    fn temp_names_parse_back_and_others_do_not() {
+        let n = temp_name(std::ffi::OsStr::new("map.v2.sfpm"));
+        assert_eq!(temp_pid(&n), Some(std::process::id()));
+        let long = "é".repeat(120);
+        let n = temp_name(std::ffi::OsStr::new(&long));
+        assert!(n.len() < 255 && temp_pid(&n).is_some());
+        for n in [
+            ".m.sfpm.tmp123",
+            "m.sfpmap-tmp.12.0123456789abcdef",
+            ".m.sfpmap-tmp..0123456789abcdef",
+            ".m.sfpmap-tmp.12.0123",
+            ".sfpmap-tmp.12.0123456789abcdef",
+        ] {
+            assert_eq!(temp_pid(n), None, "{n}");
+        }
+    }
+
+    #[test]
+    fn errors_name_the_output_not_the_temp() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("no/such/out.bin");
+        for allow_unnamed in [true, false] {
+            let e = write_with(&path, allow_unnamed, b"x").unwrap_err();
+            let msg = e.to_string();
+            assert!(msg.starts_with(&path.display().to_string()), "{msg}");
+            assert!(!msg.contains(TEMP_MARK), "{msg}");
+            assert!(std::error::Error::source(&e).is_some());
+        }
+    }
+
+    #[test]
+    fn the_policy_refuses_inputs_non_regular_files_and_existing_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("in.sfpm");
+        std::fs::write(&input, b"map").unwrap();
+        let fresh = dir.path().join("new.sfpm");
+        check_output(&fresh, &[&input], false).unwrap();
+        // The same file by another path: `..`, a symlink, a hard link.
+        std::fs::create_dir(dir.path().join("sub")).unwrap();
+        let dotdot = dir.path().join("sub/../in.sfpm");
+        let sym = dir.path().join("sym.sfpm");
+        std::os::unix::fs::symlink(&input, &sym).unwrap();
+        let hard = dir.path().join("hard.sfpm");
+        std::fs::hard_link(&input, &hard).unwrap();
+        for out in [&input, &dotdot, &sym, &hard] {
+            let e = check_output(out, &[&input], true).unwrap_err();
+            assert!(matches!(e, OutputError::IsInput { .. }), "{e}");
+        }
+        let e = check_output(dir.path(), &[], true).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                OutputError::NotRegular {
+                    kind: "a folder",
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        let e = check_output(Path::new("/dev/null"), &[], true).unwrap_err();
+        assert!(e.to_string().contains("character device"), "{e}");
+        // And the writer itself never replaces one, policy or not.
+        let e = AtomicFile::create(Path::new("/dev/null")).unwrap_err();
+        assert!(matches!(e, OutputError::NotRegular { .. }), "{e}");
+        let other = dir.path().join("other");
+        std::fs::write(&other, b"x").unwrap();
+        let e = check_output(&other, &[&input], false).unwrap_err();
+        assert!(e.to_string().contains("--force"), "{e}");
+        check_output(&other, &[&input], true).unwrap();
+        let dangling = dir.path().join("dangling");
+        std::os::unix::fs::symlink(dir.path().join("nothing"), &dangling).unwrap();
+        assert!(check_output(&dangling, &[], false).is_err());
+        check_output(&dangling, &[], true).unwrap();
+    }
+}
