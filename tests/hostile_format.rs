@@ -400,3 +400,51 @@ fn write_crafted_maps() {
     std::fs::write(dir.join("levels-65535.sfpm"), many_levels()).unwrap();
     std::fs::write(dir.join("zstd-160.sfpm"), decode_budget_bomb()).unwrap();
 }
+
+/// The writer refuses what open would refuse, instead of writing a map nothing can read (a
+/// NaN becomes JSON `null`, finding 16's format side).
+#[test]
+fn writer_refuses_maps_open_would_refuse() {
+    use sfpmap::format::{CameraInfo, Descriptors, MapWriter};
+    let camera = |params: Vec<f64>, width: u64| CameraInfo {
+        id: None,
+        model: "PINHOLE".into(),
+        width,
+        height: 480,
+        params,
+    };
+    let mut cases: Vec<(&str, MapWriter<'static>)> = Vec::new();
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3]]);
+    w.add_camera(camera(vec![500.0, f64::NAN, 320.0, 240.0], 640));
+    cases.push(("a parameter is not finite", w));
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3]]);
+    w.add_camera(camera(vec![500.0, 500.0, 320.0, 240.0], 0));
+    cases.push(("size 0x480", w));
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[f64::NAN, 0.0, 0.0]]);
+    cases.push(("origin is not finite", w));
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3]]);
+    w.add_level(common::level_info(0, 8.0, 5000, 4), &[], None, false)
+        .unwrap();
+    cases.push(("dim_full 5000", w));
+    for (what, w) in cases {
+        let err = w.to_bytes().unwrap_err();
+        assert_eq!(err.kind_name(), "invalid_input", "{what}: {err}");
+        assert!(err.to_string().contains(what), "{what}: {err}");
+    }
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3]]);
+    let values = [0.5f32; 4];
+    let err = w
+        .add_level(
+            common::level_info(0, 8.0, 4, 0),
+            &[0],
+            Some(Descriptors::F32(&values)),
+            false,
+        )
+        .unwrap_err();
+    assert!(err.to_string().contains("no descriptor dimension"), "{err}");
+}

@@ -10,11 +10,20 @@ use std::path::Path;
 /// [`Error::NotARegularFile`] saying what it is.
 ///
 /// The path is checked before opening (opening a FIFO waits for a writer, forever if none
-/// comes), and the opened file is checked again, since that is the one that is read.
+/// comes); it is opened with `O_NONBLOCK`, so a path swapped for a FIFO in between cannot
+/// block either (the flag means nothing for a regular file); and the opened file is checked
+/// again, since that is the one that is read.
 pub(crate) fn open_regular(path: &Path) -> Result<File, Error> {
     let metadata = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
     check_regular(&metadata)?;
-    let file = File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut options = std::fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(rustix::fs::OFlags::NONBLOCK.bits() as i32);
+    }
+    let file = options.open(path).map_err(|e| Error::io(path, e))?;
     check_regular(&file.metadata().map_err(|e| Error::io(path, e))?)?;
     Ok(file)
 }

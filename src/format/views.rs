@@ -19,7 +19,7 @@ pub(crate) fn check_shapes(
             message: format!("format is {:?}, expected \"sfpmap\"", metadata.format),
         });
     }
-    check_cameras(metadata)?;
+    check_metadata_values(metadata)?;
     let index = SectionIndex::build(sections)?;
     let find = |kind, level| index.get(sections, kind, level);
     let need = |kind, level| find(kind, level).ok_or(Error::MissingSection { kind, level });
@@ -53,7 +53,11 @@ pub(crate) fn check_shapes(
             });
         }
         previous = Some(level.level);
-        check_dims(level)?;
+        if level.dim_short > level.dim_full {
+            return Err(Error::BadMetadata {
+                message: format!("level {}: dim_short > dim_full", level.level),
+            });
+        }
         let l = Some(level.level);
         let n = need(SectionKind::LevelPoints, l)?.rows;
         let short = find(SectionKind::LevelDescShort, l);
@@ -186,21 +190,30 @@ pub(crate) fn check_shapes(
     Ok((index, n_points, n_images))
 }
 
-/// A level's dims: `dim_short ≤ dim_full ≤ MAX_DESCRIPTOR_DIM`.
-fn check_dims(level: &LevelInfo) -> Result<(), Error> {
-    let bad = |what: String| {
-        Err(Error::BadMetadata {
-            message: format!("level {}: {what}", level.level),
-        })
-    };
-    if u64::from(level.dim_full) > MAX_DESCRIPTOR_DIM {
-        return bad(format!(
-            "dim_full {} is over the limit: at most {MAX_DESCRIPTOR_DIM}",
-            level.dim_full
-        ));
+/// What the metadata states that anything is sized from, within the spec's limits (camera
+/// sizes and parameter counts, `dim_full`), and its floats finite (JSON has no NaN: a writer
+/// would write `null`, which no reader parses as a number). Open and the writer both check.
+pub(crate) fn check_metadata_values(metadata: &Metadata) -> Result<(), Error> {
+    check_cameras(metadata)?;
+    for level in &metadata.levels {
+        if u64::from(level.dim_full) > MAX_DESCRIPTOR_DIM {
+            return Err(Error::BadMetadata {
+                message: format!(
+                    "level {}: dim_full {} is over the limit: at most {MAX_DESCRIPTOR_DIM}",
+                    level.level, level.dim_full
+                ),
+            });
+        }
+        if !level.stride.is_finite() {
+            return Err(Error::BadMetadata {
+                message: format!("level {}: stride is not finite", level.level),
+            });
+        }
     }
-    if level.dim_short > level.dim_full {
-        return bad("dim_short > dim_full".into());
+    if metadata.origin.iter().any(|o| !o.is_finite()) {
+        return Err(Error::BadMetadata {
+            message: "origin is not finite".into(),
+        });
     }
     Ok(())
 }
@@ -219,6 +232,8 @@ fn check_cameras(metadata: &Metadata) -> Result<(), Error> {
                 "camera {i}: {} parameters, more than {MAX_CAMERA_PARAMS}",
                 c.params.len()
             )
+        } else if c.params.iter().any(|p| !p.is_finite()) {
+            format!("camera {i}: a parameter is not finite")
         } else {
             continue;
         };

@@ -4,7 +4,8 @@
 use super::error::Error;
 use super::layout::{
     align_up, checksum, index_checksum, Codec, Dtype, Header, RawEntry, SectionKind, ENTRY_LEN,
-    HEADER_LEN, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED, VERSION_MAJOR, VERSION_MINOR,
+    HEADER_LEN, MAX_DESCRIPTOR_DIM, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED, VERSION_MAJOR,
+    VERSION_MINOR,
 };
 use super::metadata::{CameraInfo, LevelInfo, Metadata};
 use super::reader::decode_cap;
@@ -383,6 +384,12 @@ impl<'a> MapWriter<'a> {
                 info.level
             )));
         }
+        if descriptors.is_some() && info.dim_short == 0 && !(with_rest && info.dim_full > 0) {
+            return Err(Error::invalid(format!(
+                "level {}: dim_short 0 and no rest block: no descriptor dimension",
+                info.level
+            )));
+        }
         let level = info.level;
         let (n, full, short) = (
             points.len(),
@@ -560,6 +567,21 @@ impl<'a> MapWriter<'a> {
 
     /// Encodes every section and lays out the file.
     fn encode(&self, reporter: &dyn Reporter) -> Result<Encoded<'_>, Error> {
+        // Never write a map that open refuses.
+        super::views::check_metadata_values(&self.metadata).map_err(|e| match e {
+            Error::BadMetadata { message } => Error::invalid(message),
+            e => e,
+        })?;
+        if let Some(s) = self
+            .sections
+            .iter()
+            .find(|s| s.kind.has_descriptor_columns() && s.cols > MAX_DESCRIPTOR_DIM)
+        {
+            return Err(Error::invalid(format!(
+                "{}: {} columns, more than {MAX_DESCRIPTOR_DIM}",
+                s.kind, s.cols
+            )));
+        }
         let mut order: Vec<&PendingSection<'a>> = self.sections.iter().collect();
         // Canonical order, so the bytes do not depend on the order of the calls.
         order.sort_by_key(|s| (s.kind.code(), s.level));
