@@ -256,7 +256,8 @@ enum Temp {
 
 /// A file written to a temp file in the target's folder and renamed over the target by
 /// [`AtomicFile::commit`]; dropped without a commit, it leaves the target as it was and no
-/// temp file behind. Implements [`Write`] and [`Seek`] (buffered).
+/// temp file behind. Implements [`Write`] and [`Seek`] (buffered). A symlink at the target is
+/// replaced by the new file, not written through; the new file's mode is 0666 less the umask.
 #[derive(Debug)]
 pub struct AtomicFile {
     target: PathBuf,

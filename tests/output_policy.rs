@@ -580,7 +580,7 @@ fn kill_9_leaves_the_old_or_the_new_file_and_no_stray_temp_file() {
                 }
                 Some(f) => std::thread::sleep(full_run.mul_f64(f * 1.2)),
             }
-            let _ = signal(&child, rustix::process::Signal::KILL);
+            signal(&child, rustix::process::Signal::KILL);
             let status = child.wait().unwrap();
             kills.push((frac, status.code()));
             let bytes = std::fs::read(&out).unwrap();

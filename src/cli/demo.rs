@@ -59,7 +59,13 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .map(|(name, _)| images.join(name))
         .chain(["cameras.txt", "images.txt", "points3D.txt"].map(|f| sparse.join(f)))
         .chain(
-            ["queries.txt", "gt_poses.txt", "demo.sfpm", "demo-l2-short.sfpm"].map(|f| out.join(f)),
+            [
+                "queries.txt",
+                "gt_poses.txt",
+                "demo.sfpm",
+                "demo-l2-short.sfpm",
+            ]
+            .map(|f| out.join(f)),
         )
         .collect();
     let outputs: Vec<&Path> = outputs.iter().map(|p| p.as_path()).collect();
@@ -248,5 +254,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
 }
 
 fn write(path: &Path, text: &str) -> anyhow::Result<()> {
-    super::write_atomic(path, |out| Ok(std::io::Write::write_all(out, text.as_bytes())?))
+    super::write_atomic(path, |out| {
+        Ok(std::io::Write::write_all(out, text.as_bytes())?)
+    })
 }

@@ -289,12 +289,10 @@ fn write_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<(), Plo
         let mut encoder = png::Encoder::new(out, width, height);
         encoder.set_color(png::ColorType::Rgb);
         encoder.set_depth(png::BitDepth::Eight);
-        let encoded = encoder
-            .write_header()
-            .and_then(|mut writer| {
-                writer.write_image_data(rgb)?;
-                writer.finish()
-            });
+        let encoded = encoder.write_header().and_then(|mut writer| {
+            writer.write_image_data(rgb)?;
+            writer.finish()
+        });
         encoded.map_err(|e| match e {
             png::EncodingError::IoError(source) => {
                 PlotError::Output(crate::output::OutputError::cannot_write(path, source))
