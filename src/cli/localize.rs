@@ -446,6 +446,7 @@ fn pose_text(
                 .map(|(q, r)| {
                     json!({
                         "name": q.name,
+    #[cfg_attr(not(feature = "mcap"), allow(unused_mut))]
                         "cam_from_world": r.pose.as_ref().map(|p| p.to_colmap()),
                         "failure": r.failure,
                         "inliers": r.inliers,
