@@ -21,7 +21,6 @@ use sfpmap::localize::{Localization, Localizer};
 use sfpmap::progress::Reporter;
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::BufReader;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Mutex;
@@ -83,7 +82,7 @@ struct Scan {
     skipped: Vec<String>,
 }
 
-fn open_log(path: &Path) -> anyhow::Result<LogReader<BufReader<File>>> {
+fn open_log(path: &Path) -> anyhow::Result<LogReader<File>> {
     LogReader::open(path).with_context(|| path.display().to_string())
 }
 
@@ -322,10 +321,13 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             Some(n) => format!("{n} image messages on the topic are lost"),
             None => "how many image messages were lost is unknown (no summary)".to_owned(),
         };
+        let parts = match scan.skipped.len() {
+            1 => "1 damaged part".to_owned(),
+            n => format!("{n} damaged parts"),
+        };
         bars.warn(&format!(
-            "{}: {} damaged parts skipped (exit status {SKIPPED_EXIT}); {} image messages on {topic} read, {lost}",
+            "{}: {parts} of the log skipped (exit status {SKIPPED_EXIT}); {} image messages on {topic} read, {lost}",
             input.display(),
-            scan.skipped.len(),
             scan.messages_on_topic
         ));
     }

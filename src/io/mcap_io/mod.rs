@@ -20,12 +20,14 @@ pub use reader::{
     Damage, Limits, LogReader, LogSummary, Skipped, CHUNK_FLOOR, CHUNK_RATIO, MAX_RECORD,
 };
 pub use records::ChunkIndex;
-pub use wire::{base64_decode, base64_encode};
+pub use wire::{base64_decode, base64_encode, fuzz_wire, CdrError, Stamp};
 
 use crate::localize::geometry::{Camera, CameraModel};
 use image::DynamicImage;
 use std::fmt;
-use wire::{Cdr, Protobuf, Wire};
+use wire::{
+    foxglove_compressed_image, ros_camera_info, ros_compressed_image, ros_image, RosCameraInfo,
+};
 
 /// ROS 2 `sensor_msgs/msg/CompressedImage`.
 pub const ROS_COMPRESSED_IMAGE: &str = "sensor_msgs/msg/CompressedImage";
@@ -50,17 +52,8 @@ pub const RAW_ENCODINGS: &[&str] = &["mono8", "rgb8", "bgr8", "rgba8", "bgra8", 
 #[derive(Debug)]
 #[non_exhaustive]
 pub enum McapIoError {
-    /// A CDR message ends before the field.
-    CdrTruncated {
-        field: &'static str,
-        offset: usize,
-        needed: usize,
-        len: usize,
-    },
-    /// The 4-byte CDR encapsulation header names a representation we do not read.
-    CdrEncapsulation { id: [u8; 2] },
-    /// A string field without its terminating NUL or not UTF-8.
-    BadString { field: &'static str },
+    /// A CDR message that does not hold the fields of its type.
+    Cdr(CdrError),
     /// A channel whose schema and message encoding are not what the decoder reads (an image,
     /// or camera info); `expected` lists what it does read.
     UnsupportedSchema {
@@ -102,6 +95,8 @@ pub enum McapIoError {
     },
     /// A record longer than [`MAX_RECORD`].
     RecordOverLimit { record: &'static str, len: u64 },
+    /// The log ends without a footer: it was cut off.
+    CutOff,
     /// Fewer bytes than a record header left at the end of the data section, summary or chunk.
     Truncated {
         needed: u64,
@@ -130,23 +125,7 @@ pub enum McapIoError {
 impl fmt::Display for McapIoError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            McapIoError::CdrTruncated {
-                field,
-                offset,
-                needed,
-                len,
-            } => write!(
-                f,
-                "cdr message truncated: {field} needs {needed} bytes at offset {offset}, the message has {len}"
-            ),
-            McapIoError::CdrEncapsulation { id } => write!(
-                f,
-                "unsupported cdr encapsulation {:#04x}{:02x} (expected plain CDR or XCDR2, little or big endian)",
-                id[0], id[1]
-            ),
-            McapIoError::BadString { field } => {
-                write!(f, "cdr string {field} is not NUL-terminated UTF-8")
-            }
+            McapIoError::Cdr(e) => write!(f, "{e}"),
             McapIoError::UnsupportedSchema {
                 schema,
                 encoding,
@@ -168,6 +147,7 @@ impl fmt::Display for McapIoError {
             McapIoError::Camera { reason } => write!(f, "camera info: {reason}"),
             McapIoError::NotMcap => write!(f, "not an MCAP file (no MCAP magic at its start)"),
             McapIoError::NotRegularFile => write!(f, "not a regular file"),
+            McapIoError::CutOff => write!(f, "the log ends here without its footer (cut off)"),
             McapIoError::Io(e) => write!(f, "{e}"),
             McapIoError::BadRecord { record, reason } => write!(f, "bad {record} record: {reason}"),
             McapIoError::RecordTooLong {
@@ -232,6 +212,12 @@ impl std::error::Error for McapIoError {
     }
 }
 
+impl From<CdrError> for McapIoError {
+    fn from(e: CdrError) -> Self {
+        McapIoError::Cdr(e)
+    }
+}
+
 impl From<std::io::Error> for McapIoError {
     fn from(e: std::io::Error) -> Self {
         McapIoError::Io(e)
@@ -241,23 +227,6 @@ impl From<std::io::Error> for McapIoError {
 impl From<mcap::McapError> for McapIoError {
     fn from(e: mcap::McapError) -> Self {
         McapIoError::Mcap(e)
-    }
-}
-
-/// A time as ROS and Foxglove carry it: seconds and nanoseconds.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Default)]
-pub struct Stamp {
-    pub sec: i64,
-    pub nsec: u32,
-}
-
-impl Stamp {
-    /// From MCAP's nanoseconds since the epoch (log and publish times).
-    pub fn from_nanos(ns: u64) -> Stamp {
-        Stamp {
-            sec: (ns / 1_000_000_000) as i64,
-            nsec: (ns % 1_000_000_000) as u32,
-        }
     }
 }
 
@@ -287,30 +256,19 @@ pub fn decode_image(
 ) -> Result<ImageMessage, McapIoError> {
     match (schema, message_encoding) {
         (ROS_COMPRESSED_IMAGE, "cdr") => {
-            let mut r = Cdr::new(data)?;
-            let (stamp, frame_id) = r.header()?;
-            let format = r.string("format")?.to_owned();
-            let bytes = r.byte_sequence("data")?;
+            let m = ros_compressed_image(data)?;
             Ok(ImageMessage {
-                stamp: Some(stamp),
-                frame_id,
-                image: decode_compressed(&format, bytes)?,
+                stamp: Some(m.stamp),
+                image: decode_compressed(m.format, m.data)?,
+                frame_id: m.frame_id,
             })
         }
         (ROS_IMAGE, "cdr") => {
-            let mut r = Cdr::new(data)?;
-            let (stamp, frame_id) = r.header()?;
-            let height = r.u32("height")?;
-            let width = r.u32("width")?;
-            let encoding = r.string("encoding")?.to_owned();
-            let big_endian = r.u8("is_bigendian")? != 0;
-            let step = r.u32("step")?;
-            let bytes = r.byte_sequence("data")?;
-            let image = raw_image(width, height, &encoding, big_endian, step, bytes)?;
+            let m = ros_image(data)?;
             Ok(ImageMessage {
-                stamp: Some(stamp),
-                frame_id,
-                image,
+                stamp: Some(m.stamp),
+                image: raw_image(m.width, m.height, m.encoding, m.big_endian, m.step, m.data)?,
+                frame_id: m.frame_id,
             })
         }
         (FOXGLOVE_COMPRESSED_IMAGE, "json") => {
@@ -356,44 +314,14 @@ pub fn decode_image(
             })
         }
         (FOXGLOVE_COMPRESSED_IMAGE, "protobuf") => {
-            let bad = |reason: String| McapIoError::BadMessage {
+            let m = foxglove_compressed_image(data).map_err(|reason| McapIoError::BadMessage {
                 schema: schema.to_owned(),
                 reason,
-            };
-            let mut stamp = None;
-            let (mut frame_id, mut format, mut bytes) = (String::new(), String::new(), &[][..]);
-            for field in Protobuf(data) {
-                match field.map_err(bad)? {
-                    (1, Wire::Bytes(t)) => {
-                        let mut s = Stamp::default();
-                        for f in Protobuf(t) {
-                            match f.map_err(bad)? {
-                                (1, Wire::Varint(v)) => s.sec = v as i64,
-                                (2, Wire::Varint(v)) => {
-                                    s.nsec = u32::try_from(v)
-                                        .map_err(|_| bad(format!("timestamp nanos {v}")))?
-                                }
-                                _ => {}
-                            }
-                        }
-                        stamp = Some(s);
-                    }
-                    (2, Wire::Bytes(d)) => bytes = d,
-                    (3, Wire::Bytes(s)) => {
-                        format = String::from_utf8(s.to_vec())
-                            .map_err(|_| bad("format is not UTF-8".into()))?
-                    }
-                    (4, Wire::Bytes(s)) => {
-                        frame_id = String::from_utf8(s.to_vec())
-                            .map_err(|_| bad("frame_id is not UTF-8".into()))?
-                    }
-                    _ => {}
-                }
-            }
+            })?;
             Ok(ImageMessage {
-                stamp,
-                frame_id,
-                image: decode_compressed(&format, bytes)?,
+                stamp: m.stamp,
+                image: decode_compressed(&m.format, m.data)?,
+                frame_id: m.frame_id,
             })
         }
         _ => Err(McapIoError::UnsupportedSchema {
@@ -524,20 +452,19 @@ pub fn decode_camera_info(
             expected: CAMERA_INFO_SCHEMAS,
         });
     }
-    let mut r = Cdr::new(data)?;
-    r.header()?;
-    let height = r.u32("height")?;
-    let width = r.u32("width")?;
-    let model = r.string("distortion_model")?.to_owned();
-    let n = r.u32("d")? as usize;
-    let d = (0..n).map(|_| r.f64("d")).collect::<Result<Vec<_>, _>>()?;
-    let k = (0..9).map(|_| r.f64("k")).collect::<Result<Vec<_>, _>>()?;
+    let RosCameraInfo {
+        height,
+        width,
+        distortion_model: model,
+        d,
+        k,
+    } = ros_camera_info(data)?;
     let (fx, fy, cx, cy) = (k[0], k[4], k[2] + 0.5, k[5] + 0.5);
     let coef = |i: usize| d.get(i).copied().unwrap_or(0.0);
     let (colmap_model, params) = if d.iter().all(|&v| v == 0.0) {
         (CameraModel::Pinhole, vec![fx, fy, cx, cy])
     } else {
-        match model.as_str() {
+        match model {
             "plumb_bob" | "rational_polynomial" if (4..=8).contains(&d.len()) => {
                 if (4..8).all(|i| coef(i) == 0.0) {
                     (
@@ -582,8 +509,8 @@ mod tests {
         out.push(0);
     }
 
-    #[test]
-    fn raw_bgr8_with_padding_and_unsupported_encoding() {
+    /// A 2x1 `bgr8` `sensor_msgs/msg/Image` stamped 7 s 9 ns.
+    fn raw_bgr8() -> Vec<u8> {
         let mut msg = vec![0, 1, 0, 0];
         msg.extend(7i32.to_le_bytes());
         msg.extend(9u32.to_le_bytes());
@@ -601,6 +528,12 @@ mod tests {
         msg.extend(8u32.to_le_bytes()); // step: 6 bytes of pixels + 2 of padding
         msg.extend(8u32.to_le_bytes());
         msg.extend([1, 2, 3, 4, 5, 6, 0, 0]);
+        msg
+    }
+
+    #[test]
+    fn raw_bgr8_with_padding_and_unsupported_encoding() {
+        let msg = raw_bgr8();
         let m = decode_image(ROS_IMAGE, "cdr", &msg).unwrap();
         assert_eq!(m.stamp, Some(Stamp { sec: 7, nsec: 9 }));
         assert_eq!(m.frame_id, "cam");
@@ -616,7 +549,10 @@ mod tests {
 
         let err = decode_image(ROS_IMAGE, "cdr", &msg[..msg.len() - 3]).unwrap_err();
         assert!(
-            matches!(err, McapIoError::CdrTruncated { field: "data", .. }),
+            matches!(
+                err,
+                McapIoError::Cdr(CdrError::Truncated { field: "data", .. })
+            ),
             "{err}"
         );
     }
@@ -701,11 +637,17 @@ mod tests {
         msg[1] = 3;
         let err = decode_image(ROS_COMPRESSED_IMAGE, "cdr", &msg).unwrap_err();
         assert!(
-            matches!(err, McapIoError::CdrEncapsulation { id: [0, 3] }),
+            matches!(
+                err,
+                McapIoError::Cdr(CdrError::Encapsulation { id: [0, 3] })
+            ),
             "{err}"
         );
         let err = decode_image(ROS_COMPRESSED_IMAGE, "cdr", &msg[..2]).unwrap_err();
-        assert!(matches!(err, McapIoError::CdrTruncated { .. }), "{err}");
+        assert!(
+            matches!(err, McapIoError::Cdr(CdrError::Truncated { .. })),
+            "{err}"
+        );
         let err = decode_image("sensor_msgs/msg/PointCloud2", "cdr", &msg).unwrap_err();
         assert!(
             err.to_string().contains("unsupported message type"),
@@ -720,21 +662,94 @@ mod tests {
         assert!(!err.contains('\n'), "{err}");
     }
 
-    #[test]
-    fn protobuf_compressed_image_fields() {
-        let png = {
-            let mut out = std::io::Cursor::new(Vec::new());
-            DynamicImage::ImageLuma8(image::GrayImage::new(3, 2))
-                .write_to(&mut out, image::ImageFormat::Png)
-                .unwrap();
-            out.into_inner()
-        };
+    /// A 3x2 grey PNG.
+    fn png() -> Vec<u8> {
+        let mut out = std::io::Cursor::new(Vec::new());
+        DynamicImage::ImageLuma8(image::GrayImage::new(3, 2))
+            .write_to(&mut out, image::ImageFormat::Png)
+            .unwrap();
+        out.into_inner()
+    }
+
+    /// `foxglove.CompressedImage` as protobuf: the PNG, stamped 5 s 6 ns, frame "c".
+    fn protobuf_image() -> Vec<u8> {
+        let png = png();
         let mut msg = vec![0x0a, 4, 0x08, 5, 0x10, 6]; // timestamp {seconds 5, nanos 6}
         msg.extend([0x12, png.len() as u8]);
         msg.extend(&png);
         msg.extend([0x1a, 3]);
         msg.extend(b"png");
         msg.extend([0x22, 1, b'c']);
+        msg
+    }
+
+    /// `sensor_msgs/msg/CompressedImage` as CDR: the PNG, stamped 1 s 2 ns, frame "cam".
+    fn compressed_image() -> Vec<u8> {
+        let mut msg = vec![0, 1, 0, 0];
+        msg.extend(1i32.to_le_bytes());
+        msg.extend(2u32.to_le_bytes());
+        cdr_string(&mut msg, "cam");
+        cdr_string(&mut msg, "png");
+        while (msg.len() - 4) % 4 != 0 {
+            msg.push(0);
+        }
+        let png = png();
+        msg.extend((png.len() as u32).to_le_bytes());
+        msg.extend(png);
+        msg
+    }
+
+    /// The seeds of the `mcap_wire` fuzz target (fuzz/corpus/mcap_wire/): one message of each
+    /// layout we read, built as above. `SFPMAP_WRITE_FUZZ_SEEDS=1 cargo test --all-features
+    /// --lib io::mcap_io` rewrites them. Every file there and in fuzz/regressions/mcap_wire/
+    /// goes through the target's body, so a crash found once stays fixed.
+    #[test]
+    fn fuzz_seeds_decode_are_current_and_replay() {
+        let seeds = [
+            ("ros_compressed_image.cdr", compressed_image()),
+            ("ros_image_bgr8.cdr", raw_bgr8()),
+            (
+                "ros_camera_info.cdr",
+                camera_info("plumb_bob", &[0.1, -0.01, 0.001, 0.002, 0.0]),
+            ),
+            ("foxglove_compressed_image.pb", protobuf_image()),
+            ("png.base64", base64_encode(&png()).into_bytes()),
+        ];
+        decode_image(ROS_COMPRESSED_IMAGE, "cdr", &seeds[0].1).unwrap();
+        decode_image(ROS_IMAGE, "cdr", &seeds[1].1).unwrap();
+        decode_camera_info(ROS_CAMERA_INFO, "cdr", &seeds[2].1).unwrap();
+        decode_image(FOXGLOVE_COMPRESSED_IMAGE, "protobuf", &seeds[3].1).unwrap();
+        let text = std::str::from_utf8(&seeds[4].1).unwrap();
+        assert_eq!(base64_decode(text).unwrap(), png());
+
+        let fuzz = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz");
+        let corpus = fuzz.join("corpus/mcap_wire");
+        if std::env::var_os("SFPMAP_WRITE_FUZZ_SEEDS").is_some() {
+            std::fs::create_dir_all(&corpus).unwrap();
+            for (name, bytes) in &seeds {
+                std::fs::write(corpus.join(name), bytes).unwrap();
+            }
+        }
+        for (name, bytes) in &seeds {
+            let committed = std::fs::read(corpus.join(name)).unwrap_or_default();
+            assert!(
+                committed == *bytes,
+                "fuzz/corpus/mcap_wire/{name} is stale: SFPMAP_WRITE_FUZZ_SEEDS=1 rewrites it"
+            );
+        }
+        let mut replayed = 0;
+        for dir in [corpus, fuzz.join("regressions/mcap_wire")] {
+            for entry in std::fs::read_dir(dir).into_iter().flatten() {
+                fuzz_wire(&std::fs::read(entry.unwrap().path()).unwrap());
+                replayed += 1;
+            }
+        }
+        assert!(replayed >= seeds.len());
+    }
+
+    #[test]
+    fn protobuf_compressed_image_fields() {
+        let msg = protobuf_image();
         let m = decode_image(FOXGLOVE_COMPRESSED_IMAGE, "protobuf", &msg).unwrap();
         assert_eq!(m.stamp, Some(Stamp { sec: 5, nsec: 6 }));
         assert_eq!(m.frame_id, "c");

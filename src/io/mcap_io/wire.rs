@@ -1,7 +1,70 @@
 //! The wire formats under the messages, read by hand: CDR (ROS 2), protobuf fields
 //! (Foxglove), and base64 (bytes inside JSON messages).
+//!
+//! This file uses nothing but `std`: `fuzz/fuzz_targets/mcap_wire.rs` compiles it as it is
+//! (`#[path]`), so the fuzz crate needs neither the `mcap` feature nor its ONNX stack.
 
-use super::{McapIoError, Stamp};
+use std::fmt;
+
+/// A time as ROS and Foxglove carry it: seconds and nanoseconds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Default)]
+pub struct Stamp {
+    pub sec: i64,
+    pub nsec: u32,
+}
+
+impl Stamp {
+    /// From MCAP's nanoseconds since the epoch (log and publish times).
+    pub fn from_nanos(ns: u64) -> Stamp {
+        Stamp {
+            sec: (ns / 1_000_000_000) as i64,
+            nsec: (ns % 1_000_000_000) as u32,
+        }
+    }
+}
+
+/// What can go wrong reading a CDR message.
+#[derive(Debug, Clone, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum CdrError {
+    /// The message ends before the field.
+    Truncated {
+        field: &'static str,
+        offset: usize,
+        needed: usize,
+        len: usize,
+    },
+    /// The 4-byte encapsulation header names a representation we do not read.
+    Encapsulation { id: [u8; 2] },
+    /// A string field without its terminating NUL or not UTF-8.
+    BadString { field: &'static str },
+}
+
+impl fmt::Display for CdrError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            CdrError::Truncated {
+                field,
+                offset,
+                needed,
+                len,
+            } => write!(
+                f,
+                "cdr message truncated: {field} needs {needed} bytes at offset {offset}, the message has {len}"
+            ),
+            CdrError::Encapsulation { id } => write!(
+                f,
+                "unsupported cdr encapsulation {:#04x}{:02x} (expected plain CDR or XCDR2, little or big endian)",
+                id[0], id[1]
+            ),
+            CdrError::BadString { field } => {
+                write!(f, "cdr string {field} is not NUL-terminated UTF-8")
+            }
+        }
+    }
+}
+
+impl std::error::Error for CdrError {}
 
 /// A reader of CDR as ROS 2 writes it: after the 4-byte encapsulation header, each primitive
 /// is aligned to its size relative to the first byte after that header (XCDR2 caps the
@@ -14,8 +77,8 @@ pub(super) struct Cdr<'a> {
 }
 
 impl<'a> Cdr<'a> {
-    pub(super) fn new(data: &'a [u8]) -> Result<Self, McapIoError> {
-        let truncated = McapIoError::CdrTruncated {
+    pub(super) fn new(data: &'a [u8]) -> Result<Self, CdrError> {
+        let truncated = CdrError::Truncated {
             field: "encapsulation header",
             offset: 0,
             needed: 4,
@@ -27,7 +90,7 @@ impl<'a> Cdr<'a> {
             [0, 1] => (true, 8),
             [0, 6] => (false, 4),
             [0, 7] => (true, 4),
-            id => return Err(McapIoError::CdrEncapsulation { id }),
+            id => return Err(CdrError::Encapsulation { id }),
         };
         Ok(Cdr {
             body: &data[4..],
@@ -37,17 +100,12 @@ impl<'a> Cdr<'a> {
         })
     }
 
-    fn take(
-        &mut self,
-        field: &'static str,
-        n: usize,
-        align: usize,
-    ) -> Result<&'a [u8], McapIoError> {
+    fn take(&mut self, field: &'static str, n: usize, align: usize) -> Result<&'a [u8], CdrError> {
         let a = align.min(self.max_align);
         let start = self.pos.div_ceil(a) * a;
         let end = start.checked_add(n).filter(|&e| e <= self.body.len());
         let Some(end) = end else {
-            return Err(McapIoError::CdrTruncated {
+            return Err(CdrError::Truncated {
                 field,
                 offset: start + 4,
                 needed: n,
@@ -58,11 +116,11 @@ impl<'a> Cdr<'a> {
         Ok(&self.body[start..end])
     }
 
-    pub(super) fn u8(&mut self, field: &'static str) -> Result<u8, McapIoError> {
+    pub(super) fn u8(&mut self, field: &'static str) -> Result<u8, CdrError> {
         Ok(self.take(field, 1, 1)?[0])
     }
 
-    pub(super) fn u32(&mut self, field: &'static str) -> Result<u32, McapIoError> {
+    pub(super) fn u32(&mut self, field: &'static str) -> Result<u32, CdrError> {
         let b: [u8; 4] = self.take(field, 4, 4)?.try_into().expect("4 bytes");
         Ok(if self.little {
             u32::from_le_bytes(b)
@@ -71,7 +129,7 @@ impl<'a> Cdr<'a> {
         })
     }
 
-    pub(super) fn f64(&mut self, field: &'static str) -> Result<f64, McapIoError> {
+    pub(super) fn f64(&mut self, field: &'static str) -> Result<f64, CdrError> {
         let b: [u8; 8] = self.take(field, 8, 8)?.try_into().expect("8 bytes");
         Ok(if self.little {
             f64::from_le_bytes(b)
@@ -82,27 +140,25 @@ impl<'a> Cdr<'a> {
 
     /// A string: u32 length including the NUL, the bytes, the NUL. Length 0 is read as empty
     /// (some writers emit it for "").
-    pub(super) fn string(&mut self, field: &'static str) -> Result<&'a str, McapIoError> {
+    pub(super) fn string(&mut self, field: &'static str) -> Result<&'a str, CdrError> {
         let n = self.u32(field)? as usize;
         if n == 0 {
             return Ok("");
         }
         let bytes = self.take(field, n, 1)?;
         match bytes.split_last() {
-            Some((0, text)) => {
-                std::str::from_utf8(text).map_err(|_| McapIoError::BadString { field })
-            }
-            _ => Err(McapIoError::BadString { field }),
+            Some((0, text)) => std::str::from_utf8(text).map_err(|_| CdrError::BadString { field }),
+            _ => Err(CdrError::BadString { field }),
         }
     }
 
-    pub(super) fn byte_sequence(&mut self, field: &'static str) -> Result<&'a [u8], McapIoError> {
+    pub(super) fn byte_sequence(&mut self, field: &'static str) -> Result<&'a [u8], CdrError> {
         let n = self.u32(field)? as usize;
         self.take(field, n, 1)
     }
 
     /// `std_msgs/Header`: stamp (sec i32, nanosec u32) and frame_id.
-    pub(super) fn header(&mut self) -> Result<(Stamp, String), McapIoError> {
+    pub(super) fn header(&mut self) -> Result<(Stamp, String), CdrError> {
         let sec = self.u32("header.stamp.sec")? as i32;
         let nsec = self.u32("header.stamp.nanosec")?;
         let frame_id = self.string("header.frame_id")?.to_owned();
@@ -185,6 +241,145 @@ impl<'a> Iterator for Protobuf<'a> {
         }
         Some(item)
     }
+}
+
+/// `sensor_msgs/msg/CompressedImage` (CDR): header, format, data.
+pub(super) struct RosCompressedImage<'a> {
+    pub stamp: Stamp,
+    pub frame_id: String,
+    pub format: &'a str,
+    pub data: &'a [u8],
+}
+
+pub(super) fn ros_compressed_image(data: &[u8]) -> Result<RosCompressedImage<'_>, CdrError> {
+    let mut r = Cdr::new(data)?;
+    let (stamp, frame_id) = r.header()?;
+    Ok(RosCompressedImage {
+        stamp,
+        frame_id,
+        format: r.string("format")?,
+        data: r.byte_sequence("data")?,
+    })
+}
+
+/// `sensor_msgs/msg/Image` (CDR): header, size, encoding, endianness, row step, pixels.
+pub(super) struct RosImage<'a> {
+    pub stamp: Stamp,
+    pub frame_id: String,
+    pub height: u32,
+    pub width: u32,
+    pub encoding: &'a str,
+    pub big_endian: bool,
+    pub step: u32,
+    pub data: &'a [u8],
+}
+
+pub(super) fn ros_image(data: &[u8]) -> Result<RosImage<'_>, CdrError> {
+    let mut r = Cdr::new(data)?;
+    let (stamp, frame_id) = r.header()?;
+    Ok(RosImage {
+        stamp,
+        frame_id,
+        height: r.u32("height")?,
+        width: r.u32("width")?,
+        encoding: r.string("encoding")?,
+        big_endian: r.u8("is_bigendian")? != 0,
+        step: r.u32("step")?,
+        data: r.byte_sequence("data")?,
+    })
+}
+
+/// `sensor_msgs/msg/CameraInfo` (CDR), up to K: size, distortion model and coefficients.
+pub(super) struct RosCameraInfo<'a> {
+    pub height: u32,
+    pub width: u32,
+    pub distortion_model: &'a str,
+    pub d: Vec<f64>,
+    pub k: [f64; 9],
+}
+
+pub(super) fn ros_camera_info(data: &[u8]) -> Result<RosCameraInfo<'_>, CdrError> {
+    let mut r = Cdr::new(data)?;
+    r.header()?;
+    let height = r.u32("height")?;
+    let width = r.u32("width")?;
+    let distortion_model = r.string("distortion_model")?;
+    // The count is a claim: each coefficient read is checked against the message.
+    let n = r.u32("d")?;
+    let d = (0..n).map(|_| r.f64("d")).collect::<Result<Vec<_>, _>>()?;
+    let mut k = [0.0; 9];
+    for v in &mut k {
+        *v = r.f64("k")?;
+    }
+    Ok(RosCameraInfo {
+        height,
+        width,
+        distortion_model,
+        d,
+        k,
+    })
+}
+
+/// `foxglove.CompressedImage` (protobuf): timestamp (1), data (2), format (3), frame_id (4).
+pub(super) struct FoxgloveCompressedImage<'a> {
+    pub stamp: Option<Stamp>,
+    pub frame_id: String,
+    pub format: String,
+    pub data: &'a [u8],
+}
+
+pub(super) fn foxglove_compressed_image(
+    data: &[u8],
+) -> Result<FoxgloveCompressedImage<'_>, String> {
+    let mut image = FoxgloveCompressedImage {
+        stamp: None,
+        frame_id: String::new(),
+        format: String::new(),
+        data: &[],
+    };
+    let text = |s: &[u8], field: &str| {
+        String::from_utf8(s.to_vec()).map_err(|_| format!("{field} is not UTF-8"))
+    };
+    for field in Protobuf(data) {
+        match field? {
+            (1, Wire::Bytes(t)) => {
+                let mut s = Stamp::default();
+                for f in Protobuf(t) {
+                    match f? {
+                        (1, Wire::Varint(v)) => s.sec = v as i64,
+                        (2, Wire::Varint(v)) => {
+                            s.nsec = u32::try_from(v).map_err(|_| format!("timestamp nanos {v}"))?
+                        }
+                        _ => {}
+                    }
+                }
+                image.stamp = Some(s);
+            }
+            (2, Wire::Bytes(d)) => image.data = d,
+            (3, Wire::Bytes(s)) => image.format = text(s, "format")?,
+            (4, Wire::Bytes(s)) => image.frame_id = text(s, "frame_id")?,
+            _ => {}
+        }
+    }
+    Ok(image)
+}
+
+/// The fuzz target `mcap_wire`: every message layout above on any bytes (none may panic),
+/// and base64 round trips.
+pub fn fuzz_wire(data: &[u8]) {
+    let _ = ros_compressed_image(data);
+    let _ = ros_image(data);
+    let _ = ros_camera_info(data);
+    let _ = foxglove_compressed_image(data);
+    for field in Protobuf(data).flatten() {
+        if let (_, Wire::Bytes(inner)) = field {
+            Protobuf(inner).for_each(drop);
+        }
+    }
+    if let Ok(Ok(bytes)) = std::str::from_utf8(data).map(base64_decode) {
+        assert_eq!(base64_decode(&base64_encode(&bytes)), Ok(bytes));
+    }
+    assert_eq!(base64_decode(&base64_encode(data)).as_deref(), Ok(data));
 }
 
 /// Standard base64 (RFC 4648, padding optional, whitespace ignored), as JSON carries bytes.
@@ -272,7 +467,7 @@ mod tests {
         assert_eq!((r.u8("a").unwrap(), r.f64("b").unwrap()), (9, 2.5));
         assert!(matches!(
             r.u32("c"),
-            Err(McapIoError::CdrTruncated { field: "c", .. })
+            Err(CdrError::Truncated { field: "c", .. })
         ));
     }
 
