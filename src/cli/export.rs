@@ -92,7 +92,19 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
     let mut colmap = None;
 
     if let Some(path) = &args.ply {
-        let s = write_atomic(path, |out| Ok(ply::write_ply(&map, out, &source)?))?;
+        // What the PLY reads is checked first, so a damaged map is reported as the map's
+        // error (sections are checked once, so the writer below reads them at no cost).
+        map.point_positions().map_err(super::naming(&args.map))?;
+        map.point_colors().map_err(super::naming(&args.map))?;
+        ply::point_levels(&map).map_err(super::naming(&args.map))?;
+        let s = write_atomic(path, |out| {
+            ply::write_ply(&map, out, &source).map_err(|e| match e {
+                // Writing failed: `write_atomic` names the output; the error's own path is
+                // the map (`write_ply` names its errors after its source).
+                sfpmap::format::Error::Io { message, .. } => anyhow::anyhow!(message),
+                e => super::naming(&args.map)(e),
+            })
+        })?;
         report.insert(
             "ply".into(),
             json!({"path": path.display().to_string(), "points": s.points, "points_in_levels": s.points_in_levels}),
@@ -125,7 +137,10 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         (&args.images_txt, poses::images_txt, "images_txt"),
     ] {
         let Some(path) = path else { continue };
-        let n_images = map.images()?.map_or(0, |i| i.len());
+        let n_images = map
+            .images()
+            .map_err(super::naming(&args.map))?
+            .map_or(0, |i| i.len());
         let text = text(&map).with_context(|| source.clone())?;
         write_atomic(path, |out| {
             use std::io::Write;

@@ -100,6 +100,11 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let summary = plot_map(&map, &options, &args.output).map_err(|e| match e {
         // Names the output already.
         PlotError::Output(e) => anyhow::Error::new(e),
+        // About what the map holds: name the map.
+        e @ (PlotError::Empty | PlotError::Unplottable(_)) => {
+            anyhow::Error::new(e).context(args.map.display().to_string())
+        }
+        PlotError::Format(e) => super::naming(&args.map)(e),
         e => anyhow::Error::new(e).context(args.output.display().to_string()),
     })?;
     let axes = ["x", "y", "z"];

@@ -84,6 +84,9 @@ pub enum PlotError {
     Draw(String),
     /// Nothing to plot (no points, cameras or poses).
     Empty,
+    /// The map's coordinates cannot be plotted (none is finite, or they span more than f64
+    /// can scale); says which.
+    Unplottable(String),
     /// The PNG cannot be written ([`crate::output`]'s policy or its I/O).
     Output(crate::output::OutputError),
 }
@@ -94,6 +97,7 @@ impl std::fmt::Display for PlotError {
             PlotError::Format(e) => e.fmt(f),
             PlotError::Draw(e) => write!(f, "drawing the plot failed: {e}"),
             PlotError::Empty => f.write_str("nothing to plot: the map has no points or cameras"),
+            PlotError::Unplottable(what) => write!(f, "cannot plot: {what}"),
             PlotError::Output(e) => e.fmt(f),
         }
     }
@@ -122,7 +126,9 @@ impl From<Error> for PlotError {
 }
 
 fn draw_err(e: impl std::fmt::Display) -> PlotError {
-    PlotError::Draw(e.to_string())
+    // One line whatever the cause says (plotters' bitmap errors print their Debug form).
+    let what: Vec<String> = e.to_string().split_whitespace().map(String::from).collect();
+    PlotError::Draw(what.join(" "))
 }
 
 fn register_embedded_font() {
@@ -185,6 +191,116 @@ fn legend_corner(
         .clone()
 }
 
+/// Whether plotters cannot resolve the range `lo..hi` as it is. Its tick loop steps from
+/// the range's start by about a hundredth of the range: a step below the start's rounding
+/// (f64 holds 16 digits) goes nowhere and the loop never ends, which is how a map whose
+/// origin is 1.7e308 hung `plot`. And padding and the one-scale widening must not overflow.
+/// Such a range is drawn relative to its middle instead.
+fn needs_offset(lo: f64, hi: f64) -> bool {
+    let magnitude = lo.abs().max(hi.abs());
+    !(hi - lo > magnitude * 1e-9 && magnitude < 1e300)
+}
+
+/// Everything drawn, in plot coordinates: world coordinates less an offset.
+struct PlotCoordinates {
+    world: Vec<([f64; 3], Option<u16>)>,
+    cameras: Vec<([f64; 3], [f64; 3])>,
+    estimated: Vec<(String, [f64; 3])>,
+    ground_truth: Vec<(String, [f64; 3])>,
+}
+
+impl PlotCoordinates {
+    /// Points from their `stored` (origin-relative) positions, cameras and poses from world
+    /// coordinates; poses that are not finite are left out (they cannot be drawn).
+    fn new(
+        origin: [f64; 3],
+        offset: [f64; 3],
+        stored: &[([f32; 3], Option<u16>)],
+        cameras: &[([f64; 3], [f64; 3])],
+        options: &PlotOptions,
+    ) -> PlotCoordinates {
+        let base = [0, 1, 2].map(|k| origin[k] - offset[k]);
+        let shift = |c: &[f64; 3]| [0, 1, 2].map(|k| c[k] - offset[k]);
+        let poses = |poses: &[(String, [f64; 3])]| {
+            poses
+                .iter()
+                .filter(|(_, c)| c.iter().all(|v| v.is_finite()))
+                .map(|(n, c)| (n.clone(), shift(c)))
+                .collect()
+        };
+        PlotCoordinates {
+            world: stored
+                .iter()
+                .map(|(p, l)| ([0, 1, 2].map(|k| base[k] + f64::from(p[k])), *l))
+                .collect(),
+            cameras: cameras.iter().map(|(c, d)| (shift(c), *d)).collect(),
+            estimated: poses(&options.estimated),
+            ground_truth: poses(&options.ground_truth),
+        }
+    }
+
+    /// The robust range of the points (0.5–99.5 %, SfM leaves a few far points) along axes
+    /// `a` and `b`, grown to every camera and pose; infinite where nothing is finite.
+    fn extent(&self, (a, b): (usize, usize)) -> ([f64; 2], [f64; 2]) {
+        let mut lo = [f64::INFINITY; 2];
+        let mut hi = [f64::NEG_INFINITY; 2];
+        for (k, axis) in [a, b].into_iter().enumerate() {
+            let mut v: Vec<f64> = self
+                .world
+                .iter()
+                .map(|(p, _)| p[axis])
+                .filter(|x| x.is_finite())
+                .collect();
+            if !v.is_empty() {
+                v.sort_by(f64::total_cmp);
+                lo[k] = percentile(&v, 0.005);
+                hi[k] = percentile(&v, 0.995);
+            }
+            let extra = self
+                .cameras
+                .iter()
+                .map(|(c, _)| c)
+                .chain(self.estimated.iter().map(|(_, c)| c))
+                .chain(self.ground_truth.iter().map(|(_, c)| c));
+            for c in extra {
+                if c[axis].is_finite() {
+                    lo[k] = lo[k].min(c[axis]);
+                    hi[k] = hi[k].max(c[axis]);
+                }
+            }
+        }
+        (lo, hi)
+    }
+}
+
+/// A tick label in scientific notation with at most 4 digits (`2.5e307`), for views whose
+/// numbers plotters would print in full (hundreds of digits).
+fn scientific(v: &f64) -> String {
+    if *v == 0.0 {
+        return "0".into();
+    }
+    let text = format!("{v:.3e}");
+    match text.split_once('e') {
+        Some((mantissa, exponent)) if mantissa.contains('.') => {
+            let mantissa = mantissa.trim_end_matches('0').trim_end_matches('.');
+            format!("{mantissa}e{exponent}")
+        }
+        _ => text,
+    }
+}
+
+/// The axis title: its name, less the plot offset if there is one, and the units.
+fn axis_title(axis: usize, offset: f64, units: &str) -> String {
+    let name = AXIS_NAMES[axis];
+    if offset == 0.0 {
+        format!("{name} ({units})")
+    } else if offset.abs() >= 1e7 || offset.abs() < 1e-3 {
+        format!("{name} - {} ({units})", scientific(&offset))
+    } else {
+        format!("{name} - {offset} ({units})")
+    }
+}
+
 fn percentile(sorted: &[f64], q: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * q).round() as usize]
 }
@@ -198,8 +314,10 @@ pub fn plot_map(
     register_embedded_font();
     let positions = map.point_positions()?;
     let (levels, _) = super::ply::point_levels(map)?;
+    let origin = map.metadata().origin;
     // Centre and viewing direction (the optical axis in the world: Rᵀ·(0, 0, 1), the third
-    // row of R) of each database camera.
+    // row of R) of each database camera. A camera whose centre is not finite cannot be
+    // drawn; a pose whose quaternion is zero draws no tick.
     let cameras: Vec<([f64; 3], [f64; 3])> = match map.images()? {
         Some(images) => images
             .poses
@@ -212,61 +330,77 @@ pub fn plot_map(
                     2.0 * (y * z + w * x) / n,
                     1.0 - 2.0 * (x * x + y * y) / n,
                 ];
+                let axis = if axis.iter().all(|v| v.is_finite()) {
+                    axis
+                } else {
+                    [0.0; 3]
+                };
                 (super::poses::camera_center(p), axis)
             })
+            .filter(|(c, _)| c.iter().all(|v| v.is_finite()))
             .collect(),
         None => Vec::new(),
     };
     let step = positions.len().div_ceil(options.max_points.max(1)).max(1);
-    let world: Vec<([f64; 3], Option<u16>)> = positions
+    let stored: Vec<([f32; 3], Option<u16>)> = positions
         .iter()
         .zip(&levels)
         .step_by(step)
-        .map(|(&p, &l)| (map.to_world(p), l))
+        .map(|(&p, &l)| (p, l))
         .collect();
 
-    let mut centres: Vec<[f64; 3]> = cameras.iter().map(|(c, _)| *c).collect();
+    // The view axes from the spread of the camera centres (else the poses, else the points),
+    // taken relative to the origin: the same spread, without the rounding of far-out world
+    // coordinates.
+    let from_origin = |c: &[f64; 3]| [c[0] - origin[0], c[1] - origin[1], c[2] - origin[2]];
+    let mut centres: Vec<[f64; 3]> = cameras.iter().map(|(c, _)| from_origin(c)).collect();
     if centres.len() < 2 {
-        centres.extend(options.ground_truth.iter().map(|(_, c)| *c));
-        centres.extend(options.estimated.iter().map(|(_, c)| *c));
+        centres.extend(options.ground_truth.iter().map(|(_, c)| from_origin(c)));
+        centres.extend(options.estimated.iter().map(|(_, c)| from_origin(c)));
     }
     if centres.len() < 2 {
-        centres.extend(world.iter().map(|(p, _)| *p));
+        centres.extend(stored.iter().map(|(p, _)| p.map(f64::from)));
     }
     if centres.is_empty() {
         return Err(PlotError::Empty);
     }
     let (a, b) = view_axes(&centres);
 
-    // Extent: robust range of the points, grown to every camera and pose.
-    let mut lo = [f64::INFINITY; 2];
-    let mut hi = [f64::NEG_INFINITY; 2];
-    for (k, axis) in [a, b].into_iter().enumerate() {
-        let mut v: Vec<f64> = world
-            .iter()
-            .map(|(p, _)| p[axis])
-            .filter(|x| x.is_finite())
-            .collect();
-        if !v.is_empty() {
-            v.sort_by(f64::total_cmp);
-            lo[k] = percentile(&v, 0.005);
-            hi[k] = percentile(&v, 0.995);
-        }
-        let extra = cameras
-            .iter()
-            .map(|(c, _)| c)
-            .chain(options.estimated.iter().map(|(_, c)| c))
-            .chain(options.ground_truth.iter().map(|(_, c)| c));
-        for c in extra {
-            if c[axis].is_finite() {
-                lo[k] = lo[k].min(c[axis]);
-                hi[k] = hi[k].max(c[axis]);
-            }
-        }
-    }
+    // Plot coordinates are world coordinates less an offset, zero unless plotters could not
+    // resolve the view in world coordinates (see `needs_offset`); points are computed as
+    // (origin − offset) + stored position, so an offset near the origin loses nothing.
+    let mut offset = [0.0f64; 3];
+    let mut view = PlotCoordinates::new(origin, offset, &stored, &cameras, options);
+    let (mut lo, mut hi) = view.extent((a, b));
     if !(lo[0].is_finite() && lo[1].is_finite()) {
-        return Err(PlotError::Empty);
+        return Err(PlotError::Unplottable(
+            "no point, camera or pose has finite coordinates".into(),
+        ));
     }
+    let mut shifted = false;
+    for (k, axis) in [a, b].into_iter().enumerate() {
+        if needs_offset(lo[k], hi[k]) {
+            offset[axis] = lo[k] / 2.0 + hi[k] / 2.0;
+            shifted = true;
+        }
+    }
+    if shifted {
+        view = PlotCoordinates::new(origin, offset, &stored, &cameras, options);
+        (lo, hi) = view.extent((a, b));
+    }
+    let PlotCoordinates {
+        world,
+        cameras,
+        estimated,
+        ground_truth,
+    } = view;
+    // What is drawn is in plot coordinates, poses included.
+    let options = &PlotOptions {
+        estimated,
+        ground_truth,
+        ..options.clone()
+    };
+    let offset = [offset[a], offset[b]];
 
     // Drawn in memory, then encoded through the atomic writer: plotters' own file output
     // writes in place, so a kill mid-write lost the old PNG.
@@ -275,7 +409,16 @@ pub fn plot_map(
     let summary = {
         let root = BitMapBackend::with_buffer(&mut pixels, (width, height)).into_drawing_area();
         root.fill(&WHITE).map_err(draw_err)?;
-        let summary = draw(&root, map, options, (a, b), (lo, hi), &world, &cameras)?;
+        let summary = draw(
+            &root,
+            map,
+            options,
+            (a, b),
+            offset,
+            (lo, hi),
+            &world,
+            &cameras,
+        )?;
         root.present().map_err(draw_err)?;
         summary
     };
@@ -308,10 +451,13 @@ fn draw(
     map: &Map<'_>,
     options: &PlotOptions,
     (a, b): (usize, usize),
+    offset: [f64; 2],
     (mut lo, mut hi): ([f64; 2], [f64; 2]),
     world: &[([f64; 3], Option<u16>)],
     cameras: &[([f64; 3], [f64; 3])],
 ) -> Result<PlotSummary, PlotError> {
+    let units = &map.metadata().units;
+    let extent = (lo, hi);
     let caption_size = (options.height / 32).clamp(14, 40);
     let label_size = (options.height / 55).clamp(10, 24);
     let (left, bottom) = (label_size * 5, label_size * 3);
@@ -334,8 +480,18 @@ fn draw(
         lo[k] = mid - scale * size / 2.0;
         hi[k] = mid + scale * size / 2.0;
     }
+    // Plot coordinates keep the view resolvable; what is left is a span past f64's reach.
+    for (k, axis) in [a, b].into_iter().enumerate() {
+        if needs_offset(lo[k], hi[k]) {
+            return Err(PlotError::Unplottable(format!(
+                "{} runs from {} to {} ({units}), more than a plot can scale",
+                AXIS_NAMES[axis],
+                scientific(&(extent.0[k] + offset[k])),
+                scientific(&(extent.1[k] + offset[k])),
+            )));
+        }
+    }
 
-    let units = &map.metadata().units;
     let mut chart = ChartBuilder::on(root)
         .caption(&options.title, ("sans-serif", caption_size))
         .margin(15)
@@ -343,15 +499,20 @@ fn draw(
         .y_label_area_size(left)
         .build_cartesian_2d(lo[0]..hi[0], lo[1]..hi[1])
         .map_err(draw_err)?;
-    chart
-        .configure_mesh()
-        .x_desc(format!("{} ({units})", AXIS_NAMES[a]))
-        .y_desc(format!("{} ({units})", AXIS_NAMES[b]))
+    let mut mesh = chart.configure_mesh();
+    mesh.x_desc(axis_title(a, offset[0], units))
+        .y_desc(axis_title(b, offset[1], units))
         .label_style(("sans-serif", label_size))
         .light_line_style(RGBColor(235, 235, 235))
-        .bold_line_style(RGBColor(215, 215, 215))
-        .draw()
-        .map_err(draw_err)?;
+        .bold_line_style(RGBColor(215, 215, 215));
+    // Plotters prints a tick label in full, which for 1e300 is 301 digits.
+    if lo[0].abs().max(hi[0].abs()) >= 1e7 {
+        mesh.x_label_formatter(&scientific);
+    }
+    if lo[1].abs().max(hi[1].abs()) >= 1e7 {
+        mesh.y_label_formatter(&scientific);
+    }
+    mesh.draw().map_err(draw_err)?;
 
     let in_view = |x: f64, y: f64| x >= lo[0] && x <= hi[0] && y >= lo[1] && y <= hi[1];
     // Bigger dots for sparse maps, so a few thousand points still read as structure.
