@@ -448,3 +448,30 @@ fn writer_refuses_maps_open_would_refuse() {
         .unwrap_err();
     assert!(err.to_string().contains("no descriptor dimension"), "{err}");
 }
+
+/// Every map the writer writes fits its own decode budget, even one of many sections that
+/// each compress past 256:1 but stay under the per-section cap's 1 MiB floor.
+#[test]
+fn writer_keeps_every_map_within_the_decode_budget() {
+    use sfpmap::format::{Codec, MapWriter};
+    let zeros = vec![0u8; 1 << 20];
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3]]);
+    for i in 0..65 {
+        w.add_raw_section(
+            SectionKind::Unknown(0x7000 + i),
+            NO_LEVEL,
+            Dtype::U8,
+            zeros.len() as u64,
+            1,
+            false,
+            std::borrow::Cow::Borrowed(&zeros),
+            Some(Codec::Zstd),
+        )
+        .unwrap();
+    }
+    let bytes = w.to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    map.verify().unwrap();
+    assert!(map.decoded_bytes() <= map.decode_budget());
+}

@@ -349,6 +349,13 @@ pub fn decode_budget(file_len: u64) -> u64 {
 /// The decoded : stored ratio both caps allow (see spec/format.md, "Codecs").
 const DECODE_RATIO: u64 = 256;
 
+/// Whether a zstd section of `stored_len` bytes decoding to `raw_len` keeps to the ratio the
+/// writer keeps every section to, so that the sum over a file's sections stays within
+/// [`decode_budget`] (and each within [`decode_cap`]) of the file they are written to.
+pub(crate) fn within_decode_ratio(raw_len: u64, stored_len: u64) -> bool {
+    raw_len <= stored_len.saturating_mul(DECODE_RATIO)
+}
+
 fn check_decode_cap(section: &Section, file_len: u64) -> Result<(), Error> {
     let cap = decode_cap(file_len);
     if section.raw_len > cap {

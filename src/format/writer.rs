@@ -8,7 +8,7 @@ use super::layout::{
     VERSION_MINOR,
 };
 use super::metadata::{CameraInfo, LevelInfo, Metadata};
-use super::reader::decode_cap;
+use super::reader::within_decode_ratio;
 use crate::progress::{Reporter, Silent};
 use half::f16;
 use std::borrow::Cow;
@@ -589,13 +589,13 @@ impl<'a> MapWriter<'a> {
         let mut blocks = Vec::with_capacity(order.len());
         for s in order {
             let (bytes, codec, raw_len) = match &s.content {
-                // A zstd section copied from another writer may compress past the decode cap
-                // of this (perhaps smaller) file: it is stored decoded instead.
+                // A zstd section copied from another map may compress past the ratio this
+                // writer keeps to: it is stored decoded instead.
                 Content::Stored {
                     bytes,
                     codec: Codec::Zstd,
                     raw_len,
-                } if *raw_len > decode_cap(bytes.len() as u64) => {
+                } if !within_decode_ratio(*raw_len, bytes.len() as u64) => {
                     let raw = zstd::bulk::decompress(bytes, *raw_len as usize)
                         .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
                     (Cow::Owned(raw), Codec::Raw, *raw_len)
@@ -612,10 +612,11 @@ impl<'a> MapWriter<'a> {
                         Codec::Zstd => {
                             let z = zstd::bulk::compress(bytes, self.zstd_level)
                                 .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
-                            // A reader refuses raw lengths past decode_cap(file_len); the
-                            // file is at least as long as this section, so staying under
-                            // decode_cap(z.len()) keeps every map we write readable.
-                            if raw_len > decode_cap(z.len() as u64) {
+                            // A reader refuses a raw length past decode_cap(file_len) and all
+                            // of them together past decode_budget(file_len); the file is at
+                            // least as long as its sections, so keeping each section within
+                            // 256 x its compressed length keeps every map we write readable.
+                            if !within_decode_ratio(raw_len, z.len() as u64) {
                                 (Cow::Borrowed(&bytes[..]), Codec::Raw, raw_len)
                             } else {
                                 (Cow::Owned(z), Codec::Zstd, raw_len)
