@@ -46,9 +46,10 @@ pub struct Args {
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images")]
     pub allow_missing: bool,
-    /// With --images: ONNX Runtime intra-op threads.
+    /// With --images: ONNX Runtime intra-op threads (capped at 4 per core, at most 256, with a
+    /// warning).
     #[cfg(feature = "onnx")]
-    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=256))]
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..))]
     pub threads: u32,
     /// With --images: resize images so the longer side is at most this before the network.
     #[cfg(feature = "onnx")]
@@ -161,7 +162,6 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-#[cfg(feature = "onnx")]
 /// The output policy, with every file convert reads as an input: the model files, the
 /// database and the extractor's model.
 fn check_output(args: &Args) -> anyhow::Result<()> {
@@ -175,6 +175,7 @@ fn check_output(args: &Args) -> anyhow::Result<()> {
     super::check_outputs(&[&args.output], &inputs, args.force)
 }
 
+#[cfg(feature = "onnx")]
 fn run_sfp(
     args: &Args,
     images: &std::path::Path,
@@ -187,11 +188,12 @@ fn run_sfp(
     if let Some(t) = args.score_threshold.filter(|t| !(0.0..=1.0).contains(t)) {
         anyhow::bail!("--score-threshold {t}: scores are in [0, 1]");
     }
+    let bars = super::Bars::new(quiet, args.json);
     let options = SfpMapOptions {
         images: images.to_path_buf(),
         extractor: ExtractorOptions {
             model: args.model.clone(),
-            threads: args.threads as usize,
+            threads: super::cap_threads(args.threads as usize, &bars),
         },
         resize_max: args.resize_max,
         score_threshold: args.score_threshold,
@@ -199,7 +201,6 @@ fn run_sfp(
         codec: Codec::from(args.codec),
         zstd_level: args.zstd_level,
     };
-    let bars = super::Bars::new(quiet, args.json);
     let summary = convert_with_images(&args.colmap, &options, &args.output, &bars)?;
     let seconds = start.elapsed().as_secs_f64();
     let c = &summary.convert;

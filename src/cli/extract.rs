@@ -27,8 +27,8 @@ pub struct Args {
     /// An ONNX model of the sfp-extractor/1 contract (default: the embedded sfp-v1).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// ONNX Runtime intra-op threads.
-    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=256))]
+    /// ONNX Runtime intra-op threads (capped at 4 per core, at most 256, with a warning).
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..))]
     pub threads: u32,
     /// Resize images so the longer side is at most this (keypoints are scaled back).
     #[arg(long, value_parser = clap::value_parser!(u32).range(16..))]
@@ -115,10 +115,11 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .collect();
     super::check_outputs(&[&args.output], &inputs, args.force)?;
     let bars = super::Bars::new(quiet, args.json);
+    let threads = super::cap_threads(args.threads as usize, &bars);
     let mut extractor = Extractor::new(
         &ExtractorOptions {
             model: args.model.clone(),
-            threads: args.threads as usize,
+            threads,
         },
         &bars,
     )?;
@@ -205,7 +206,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "keypoints": per_level.iter().map(|(l, n)| json!({"level": l, "keypoints": n})).collect::<Vec<_>>(),
             "ms_per_image": ms,
             "ms_median": median,
-            "threads": args.threads,
+            "threads": threads,
             "model": model.name,
             "model_xxh3": model.xxh3,
         }))?;
@@ -215,7 +216,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             args.output.display(),
             results.len(),
             bytes,
-            args.threads
+            threads
         );
         for (l, n) in per_level {
             println!(

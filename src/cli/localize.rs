@@ -8,7 +8,7 @@ use sfpmap::localize::eval::median;
 use sfpmap::localize::geometry::Camera;
 use sfpmap::localize::matching::MatchOptions;
 use sfpmap::localize::query::{read_query_list, DatabaseFeatures, Query};
-use sfpmap::localize::{Localization, LocalizeOptions, Localizer, QueryFeatures};
+use sfpmap::localize::{describe_skipped, Localization, LocalizeOptions, Localizer, QueryFeatures};
 use sfpmap::progress::Reporter;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -75,14 +75,16 @@ pub struct Args {
     pub output: PathBuf,
     #[arg(long, value_enum, default_value = "colmap")]
     pub format: PoseFormat,
-    /// Worker threads (queries run in parallel; the map is shared).
-    #[arg(long, default_value_t = 2)]
+    /// Worker threads (queries run in parallel; the map is shared); capped at 4 per core, at
+    /// most 256, with a warning.
+    #[arg(long, default_value_t = 2,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub threads: usize,
-    /// Print a JSON summary (counts, per-stage median times).
-    #[arg(long)]
     /// Overwrite the output(s) if they exist.
     #[arg(long)]
     pub force: bool,
+    /// Print a JSON summary (counts, per-stage median times).
+    #[arg(long)]
     pub json: bool,
     #[cfg(feature = "mcap")]
     #[command(flatten)]
@@ -170,8 +172,34 @@ fn localizer<'m>(map: &'m Map<'m>, args: &Args) -> anyhow::Result<Localizer<'m>>
     Localizer::new(map, options).with_context(|| args.map.display().to_string())
 }
 
-pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+/// Warns about the selected levels the localizer does not match (one line for all).
+fn warn_skipped(localizer: &Localizer<'_>, map: &Path, reporter: &dyn Reporter) {
+    let skipped = localizer.skipped_levels();
+    if !skipped.is_empty() {
+        reporter.warn(&format!(
+            "{}: {} level(s) not matched: {}",
+            map.display(),
+            skipped.len(),
+            describe_skipped(skipped)
+        ));
+    }
+}
+
+/// `--images` must be a folder, checked before any work.
+fn check_images_dir(dir: &Path) -> anyhow::Result<()> {
+    match std::fs::metadata(dir) {
+        Ok(m) if m.is_dir() => Ok(()),
+        Ok(_) => bail!("{}: --images is not a folder", dir.display()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            bail!("{}: no such folder (--images)", dir.display())
+        }
+        Err(e) => bail!("{}: {e}", dir.display()),
+    }
+}
+
+pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let bars = super::Bars::new(quiet, args.json);
+    args.threads = super::cap_threads(args.threads, &bars);
     #[cfg(feature = "mcap")]
     if args.mcap.mcap.is_some() {
         return mcap_input::run(&args, quiet, &bars);
@@ -179,6 +207,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let Some(query_list) = args.query_list.clone() else {
         bail!("--query-list is required (or --mcap)");
     };
+    if let Some(dir) = &args.images {
+        check_images_dir(dir)?;
+    }
     let start = Instant::now();
     let camera = args
         .camera
@@ -187,6 +218,11 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .transpose()
         .context("--camera")?;
     let queries = read_query_list(&query_list, camera.as_ref())?;
+    let images: Vec<PathBuf> = match &args.images {
+        Some(dir) => queries.iter().map(|q| dir.join(&q.name)).collect(),
+        None => Vec::new(),
+    };
+    check_outputs(&args, &[&query_list], &images)?;
     let map = super::open_map(&args.map)?;
     let descriptor = descriptor_kind(&map);
     #[cfg(feature = "onnx")]
@@ -213,16 +249,21 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             let Some(images) = args.images.clone() else {
                 bail!("{}: pass the query images with --images DIR (features are extracted with the SFP model)", query_list.display());
             };
+            // A list naming none of the folder's images is a mistake, not N failed queries.
+            if !queries.iter().any(|q| images.join(&q.name).is_file()) {
+                bail!(
+                    "{}: none of the {} images {} names is in this folder (first: {:?})",
+                    images.display(),
+                    queries.len(),
+                    query_list.display(),
+                    queries[0].name
+                );
+            }
             let extractor = sfp_extractor(&args, &descriptor, &bars)?;
             Source::Extractor { extractor, images }
         }
         #[cfg(not(feature = "onnx"))]
         (None, other) => {
-    let images: Vec<PathBuf> = match &args.images {
-        Some(dir) => queries.iter().map(|q| dir.join(&q.name)).collect(),
-        None => Vec::new(),
-    };
-    check_outputs(&args, &[&query_list], &images)?;
             check_extractable(&args.map, other, SIFT_HINT)?;
             bail!(
                 "{}: query features for {other:?} maps need the extractor (feature onnx)",
@@ -231,14 +272,16 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         }
     };
     let localizer = localizer(&map, &args)?;
+    warn_skipped(&localizer, &args.map, &bars);
     bars.start("localizing", Some(queries.len() as u64));
-    let results: Vec<Mutex<Option<Localization>>> =
+    // Each query's outcome, and whether its features could be read at all.
+    let results: Vec<Mutex<Option<(Localization, bool)>>> =
         queries.iter().map(|_| Mutex::new(None)).collect();
     let next = AtomicUsize::new(0);
     let features = Mutex::new(features);
     let first_error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
     std::thread::scope(|s| {
-        for _ in 0..args.threads.max(1) {
+        for _ in 0..args.threads {
             s.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(q) = queries.get(i) else { break };
@@ -248,8 +291,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                     .unwrap_or_else(|p| p.into_inner())
                     .features(&q.name);
                 let outcome = match f {
-                    Ok(Some(f)) => localize_one(&localizer, q, &f),
-                    Ok(None) => Ok(not_found(q)),
+                    Ok(Ok(f)) => localize_one(&localizer, &args.map, q, &f).map(|l| (l, true)),
+                    Ok(Err(reason)) => Ok((unread(reason), false)),
                     Err(e) => Err(e),
                 };
                 match outcome {
@@ -269,14 +312,25 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     if let Some(e) = first_error.into_inner().unwrap_or_else(|p| p.into_inner()) {
         return Err(e);
     }
-    let results: Vec<Localization> = results
+    let (results, read): (Vec<Localization>, Vec<bool>) = results
         .into_iter()
         .map(|m| {
             m.into_inner()
                 .unwrap_or_else(|p| p.into_inner())
                 .expect("every query ran")
         })
-        .collect();
+        .unzip();
+    // Queries that merely fail to localize are listed in the output; a run that could read no
+    // query at all is an error.
+    if !read.contains(&true) {
+        bail!(
+            "{}: none of the {} queries could be read ({}: {})",
+            query_list.display(),
+            queries.len(),
+            queries[0].name,
+            results[0].failure.as_deref().unwrap_or("unknown")
+        );
+    }
     write_poses(&args.output, args.format, &queries, &results)?;
     let localized = results.iter().filter(|r| r.pose.is_some()).count();
     let failed: Vec<_> = queries
@@ -325,44 +379,62 @@ enum Source {
 }
 
 impl Source {
-    /// The query's features; `Ok(None)` when they are missing (a failed query, not an error).
-    fn features(&mut self, name: &str) -> anyhow::Result<Option<QueryFeatures>> {
+    /// The query's features, or why they cannot be had for this query (missing, or an image
+    /// that does not decode completely): a failed query, not an error.
+    fn features(&mut self, name: &str) -> anyhow::Result<Result<QueryFeatures, String>> {
+        let missing = |what: &str| Err(format!("no features for {name:?} ({what})"));
         match self {
-            Source::Database(db) => Ok(db.features(name)?),
+            Source::Database(db) => Ok(db
+                .features(name)?
+                .map_or_else(|| missing("not in the database"), Ok)),
             #[cfg(feature = "onnx")]
-            Source::H5(h5) => Ok(h5.features(name)?),
+            Source::H5(h5) => Ok(h5
+                .features(name)?
+                .map_or_else(|| missing("not in the features file"), Ok)),
             #[cfg(feature = "onnx")]
             Source::Extractor { extractor, images } => {
+                use sfpmap::extract::ExtractError;
                 let path = images.join(name);
                 if !path.is_file() {
-                    return Ok(None);
+                    return Ok(missing("no such image"));
                 }
-                let input =
-                    sfpmap::extract::image::load(&path, extractor.contract().gray_weights, None)?;
+                let weights = extractor.contract().gray_weights;
+                let input = match sfpmap::extract::image::load(&path, weights, None) {
+                    Ok(input) => input,
+                    Err(ExtractError::Image { source, .. }) => {
+                        return Ok(Err(format!("the image does not decode: {source}")))
+                    }
+                    Err(ExtractError::Io { source, .. }) => {
+                        return Ok(Err(format!("the image cannot be read: {source}")))
+                    }
+                    Err(e) => return Err(e.into()),
+                };
                 let f = extractor
                     .extract(&input, &sfpmap::extract::DetectOptions::default())
                     .map_err(|e| e.on_image(&path))?;
-                Ok(Some(sfpmap::localize::query::sfp_query(&f)))
+                Ok(Ok(sfpmap::localize::query::sfp_query(&f)))
             }
         }
     }
 }
 
+/// Localizes one query; an error (features that do not fit the map) names the map and query.
 fn localize_one(
     localizer: &Localizer<'_>,
+    map: &Path,
     q: &Query,
     f: &QueryFeatures,
 ) -> anyhow::Result<Localization> {
-    Ok(localizer.localize(f, &q.camera)?)
+    localizer
+        .localize(f, &q.camera)
+        .with_context(|| format!("{}: query {:?}", map.display(), q.name))
 }
 
-fn not_found(q: &Query) -> Localization {
+/// The failed localization of a query whose features could not be read.
+fn unread(reason: String) -> Localization {
     Localization {
         pose: None,
-        failure: Some(format!(
-            "no features for {:?} (image or database entry missing)",
-            q.name
-        )),
+        failure: Some(reason),
         inliers_per_level: Vec::new(),
         matches: 0,
         inliers: 0,
@@ -374,6 +446,7 @@ fn not_found(q: &Query) -> Localization {
 /// The output policy for `-o` (and the MCAP mode's `--tum`): none may be the map, the query
 /// list or MCAP log, `--database`, `--features`, `--model` or one of `query_inputs`.
 fn check_outputs(args: &Args, query_inputs: &[&Path], images: &[PathBuf]) -> anyhow::Result<()> {
+    #[cfg_attr(not(feature = "mcap"), allow(unused_mut))]
     let mut outputs = vec![args.output.as_path()];
     #[cfg(feature = "mcap")]
     outputs.extend(args.mcap.tum.as_deref());
@@ -446,7 +519,6 @@ fn pose_text(
                 .map(|(q, r)| {
                     json!({
                         "name": q.name,
-    #[cfg_attr(not(feature = "mcap"), allow(unused_mut))]
                         "cam_from_world": r.pose.as_ref().map(|p| p.to_colmap()),
                         "failure": r.failure,
                         "inliers": r.inliers,

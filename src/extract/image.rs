@@ -44,11 +44,120 @@ pub fn decode(
     weights: [f32; 3],
     resize_max: Option<u32>,
 ) -> Result<GrayInput, ExtractError> {
-    let decoded = image::load_from_memory(bytes).map_err(|source| ExtractError::Image {
+    let decoded = decode_complete(bytes).map_err(|source| ExtractError::Image {
         path: path.to_path_buf(),
         source,
     })?;
     Ok(from_image(&decoded, weights, resize_max))
+}
+
+/// Most bytes a decoded image may take (the `image` crate's default allocation limit).
+pub const MAX_DECODED_BYTES: u64 = 512 << 20;
+
+/// Decodes an image file's bytes (format from its content), refusing any that does not decode
+/// completely. PNG carries CRCs, which the `png` crate checks. JPEG carries no checksum, and the
+/// `image` crate decodes it leniently (a cut-off or damaged scan becomes grey and counts as a
+/// success), so JPEG goes through zune-jpeg in strict mode, and the scan must end in an
+/// end-of-image marker. A flip that leaves a well-formed stream still decodes (to other
+/// pixels): no decoder can tell.
+pub fn decode_complete(bytes: &[u8]) -> Result<DynamicImage, image::ImageError> {
+    if image::guess_format(bytes).ok() != Some(image::ImageFormat::Jpeg) {
+        return image::load_from_memory(bytes);
+    }
+    decode_jpeg_strict(bytes).map_err(|reason| {
+        image::ImageError::Decoding(image::error::DecodingError::new(
+            image::ImageFormat::Jpeg.into(),
+            reason,
+        ))
+    })
+}
+
+/// A JPEG decoded as the `image` crate would (same colour spaces, same pixels), but failing
+/// where that one fills in: zune-jpeg's strict mode, then the end-of-image check.
+fn decode_jpeg_strict(bytes: &[u8]) -> Result<DynamicImage, String> {
+    use zune_core::colorspace::ColorSpace;
+    let options = zune_core::options::DecoderOptions::default()
+        .set_strict_mode(true)
+        .set_max_width(usize::MAX)
+        .set_max_height(usize::MAX);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(
+        zune_core::bytestream::ZCursor::new(bytes),
+        options,
+    );
+    decoder.decode_headers().map_err(|e| e.to_string())?;
+    let (width, height) = decoder.dimensions().ok_or("no image dimensions")?;
+    // The colour spaces the `image` crate keeps; it converts the others (CMYK, YCCK) to RGB.
+    let out = match decoder.input_colorspace() {
+        Some(c @ (ColorSpace::RGB | ColorSpace::RGBA | ColorSpace::Luma | ColorSpace::LumaA)) => c,
+        _ => ColorSpace::RGB,
+    };
+    let bytes_needed = (width as u64)
+        .checked_mul(height as u64)
+        .and_then(|n| n.checked_mul(out.num_components() as u64));
+    if bytes_needed.is_none_or(|n| n > MAX_DECODED_BYTES) {
+        return Err(format!(
+            "{width} x {height} pixels: over the {} MiB decode limit",
+            MAX_DECODED_BYTES >> 20
+        ));
+    }
+    decoder.set_options(decoder.options().jpeg_set_out_colorspace(out));
+    let pixels = decoder.decode().map_err(|e| e.to_string())?;
+    if !ends_with_eoi(bytes) {
+        return Err("truncated: the scan does not end in an end-of-image marker".into());
+    }
+    let (w, h) = (width as u32, height as u32);
+    let image = match out {
+        ColorSpace::Luma => image::GrayImage::from_raw(w, h, pixels).map(DynamicImage::ImageLuma8),
+        ColorSpace::LumaA => {
+            image::GrayAlphaImage::from_raw(w, h, pixels).map(DynamicImage::ImageLumaA8)
+        }
+        ColorSpace::RGBA => image::RgbaImage::from_raw(w, h, pixels).map(DynamicImage::ImageRgba8),
+        _ => image::RgbImage::from_raw(w, h, pixels).map(DynamicImage::ImageRgb8),
+    };
+    image.ok_or_else(|| "decoded pixels do not fill the image".into())
+}
+
+/// Whether the JPEG's marker segments, walked from SOI over every scan, reach EOI. A cut-off
+/// file does not; an end-of-image marker inside an APP segment (an EXIF thumbnail) is skipped
+/// with its segment, so it does not count.
+fn ends_with_eoi(bytes: &[u8]) -> bool {
+    let byte = |i: usize| bytes.get(i).copied();
+    let mut i = 2; // after SOI
+    loop {
+        // Markers may be preceded by fill bytes (0xFF).
+        if byte(i) != Some(0xFF) {
+            return false;
+        }
+        while byte(i + 1) == Some(0xFF) {
+            i += 1;
+        }
+        let Some(marker) = byte(i + 1) else {
+            return false;
+        };
+        i += 2;
+        match marker {
+            0xD9 => return true,
+            // Standalone markers: no length.
+            0x01 | 0xD0..=0xD7 => {}
+            _ => {
+                let (Some(hi), Some(lo)) = (byte(i), byte(i + 1)) else {
+                    return false;
+                };
+                i += usize::from(u16::from_be_bytes([hi, lo]));
+                if marker == 0xDA {
+                    // Entropy-coded data runs to the next marker that is not a stuffed 0xFF00
+                    // or a restart marker.
+                    loop {
+                        match (byte(i), byte(i + 1)) {
+                            (Some(0xFF), Some(m)) if m != 0 && !(0xD0..=0xD7).contains(&m) => break,
+                            (Some(_), Some(_)) => i += 1,
+                            _ => return false,
+                        }
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// Grey values as 8-bit, rounded like PIL's `convert("L")` and OpenCV's grey decode: the
@@ -102,6 +211,98 @@ pub fn from_image(image: &DynamicImage, weights: [f32; 3], resize_max: Option<u3
 mod tests {
     use super::*;
     use image::{Rgb, RgbImage};
+
+    fn textured(w: u32, h: u32) -> RgbImage {
+        RgbImage::from_fn(w, h, |x, y| {
+            let v = ((x as f32 * 0.1).sin() * 60.0 + (y as f32 * 0.07).cos() * 60.0 + 128.0) as u8;
+            Rgb([v, (x * 3 % 256) as u8, ((x ^ y) % 256) as u8])
+        })
+    }
+
+    fn jpeg(image: &DynamicImage) -> Vec<u8> {
+        let mut out = Vec::new();
+        image
+            .write_to(
+                &mut std::io::Cursor::new(&mut out),
+                image::ImageFormat::Jpeg,
+            )
+            .unwrap();
+        out
+    }
+
+    /// Where the (single, baseline) scan's entropy-coded data starts.
+    fn scan_start(jpg: &[u8]) -> usize {
+        let sos = jpg.windows(2).position(|w| w == [0xFF, 0xDA]).unwrap();
+        sos + 2 + usize::from(u16::from_be_bytes([jpg[sos + 2], jpg[sos + 3]]))
+    }
+
+    #[test]
+    fn a_complete_jpeg_decodes_as_the_image_crate_does() {
+        for image in [
+            DynamicImage::ImageRgb8(textured(97, 61)),
+            DynamicImage::ImageLuma8(DynamicImage::ImageRgb8(textured(64, 48)).to_luma8()),
+        ] {
+            let bytes = jpeg(&image);
+            let ours = decode_complete(&bytes).unwrap();
+            let theirs = image::load_from_memory(&bytes).unwrap();
+            assert_eq!(ours.color(), theirs.color());
+            assert_eq!(ours.as_bytes(), theirs.as_bytes());
+        }
+    }
+
+    #[test]
+    fn every_truncation_of_a_jpeg_is_refused() {
+        let bytes = jpeg(&DynamicImage::ImageRgb8(textured(64, 48)));
+        // The lenient decoder accepts most of these (filled with grey).
+        assert!(image::load_from_memory(&bytes[..bytes.len() - 2]).is_ok());
+        for cut in scan_start(&bytes)..bytes.len() {
+            let e = decode_complete(&bytes[..cut]).unwrap_err();
+            assert!(matches!(e, image::ImageError::Decoding(_)), "{cut}: {e}");
+        }
+    }
+
+    #[test]
+    fn damaged_entropy_data_that_breaks_the_code_is_refused() {
+        let bytes = jpeg(&DynamicImage::ImageRgb8(textured(160, 120)));
+        let mid = (scan_start(&bytes) + bytes.len()) / 2;
+        // A burst of set bits (stuffed 0xFF bytes: no code is all ones), and bytes flipped
+        // over a stretch of the scan (no 0xFF made, so no stray marker either).
+        let mut ones = bytes.clone();
+        for (i, b) in ones[mid..mid + 32].iter_mut().enumerate() {
+            *b = if i % 2 == 0 { 0xFF } else { 0x00 };
+        }
+        let mut flipped = bytes.clone();
+        for b in flipped[mid..mid + 200]
+            .iter_mut()
+            .filter(|b| **b != 0xFF && **b != 0x00)
+        {
+            *b = (*b ^ 0x5A).min(0xFE);
+        }
+        for (what, damaged) in [("ones", ones), ("flipped", flipped)] {
+            assert!(
+                image::load_from_memory(&damaged).is_ok(),
+                "{what}: lenient fails"
+            );
+            assert!(decode_complete(&damaged).is_err(), "{what}: accepted");
+        }
+    }
+
+    #[test]
+    fn png_damage_is_refused_by_its_checksums() {
+        let mut bytes = Vec::new();
+        DynamicImage::ImageRgb8(textured(40, 30))
+            .write_to(
+                &mut std::io::Cursor::new(&mut bytes),
+                image::ImageFormat::Png,
+            )
+            .unwrap();
+        assert!(decode_complete(&bytes).is_ok());
+        assert!(decode_complete(&bytes[..bytes.len() - 20]).is_err());
+        let mut flipped = bytes.clone();
+        let mid = bytes.len() / 2;
+        flipped[mid] ^= 0x10;
+        assert!(decode_complete(&flipped).is_err());
+    }
 
     #[test]
     fn gray_matches_pil_rounding_and_resize_keeps_aspect() {

@@ -7,7 +7,7 @@
 
 use super::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use super::matching::{dot, gemm_abt, match_descriptors, normalise_rows, MatchOptions};
-use crate::format::{Error as FormatError, Level, Map, Visibility};
+use crate::format::{f16, Error as FormatError, Level, Map, Visibility};
 use bitvec::vec::BitVec;
 use nalgebra::{Vector2, Vector3};
 use std::borrow::Cow;
@@ -683,32 +683,76 @@ impl<'m> Localizer<'m> {
     }
 }
 
-/// Indexes one level for matching, or says why it is skipped. Every buffer is sized from the
-/// sections' actual lengths, checked against the level's dimensions with checked arithmetic:
-/// the metadata's dims alone size nothing.
+/// What the localizer takes of one level, as the map holds it, before any check.
+struct LevelParts<'m> {
+    id: u16,
+    dim_short: usize,
+    dim_full: usize,
+    /// Whether the map holds the level's `rest` block (`rest` is it when it is matched).
+    has_rest: bool,
+    points: Cow<'m, [u32]>,
+    short: Cow<'m, [f16]>,
+    rest: Option<Cow<'m, [f16]>>,
+    /// `[dim_full × d_in]` and `d_in`.
+    projection: Option<(Cow<'m, [f32]>, usize)>,
+}
+
+/// Reads what [`build_level`] needs of `level` (views of the mapping for raw sections).
 fn index_level<'m>(
     level: &Level<'m>,
     options: &LocalizeOptions,
     n_points: u64,
 ) -> Result<Result<LevelIndex<'m>, String>, LocalizeError> {
-    let id = level.id();
-    let n = level.len();
+    let parts = LevelParts {
+        id: level.id(),
+        dim_short: level.dim_short(),
+        dim_full: level.dim_full(),
+        has_rest: level.has_rest(),
+        points: level.points()?,
+        short: level.desc_short()?,
+        rest: if options.short {
+            None
+        } else {
+            level.desc_rest()?
+        },
+        projection: level
+            .projection()?
+            .map(|p| (p, level.projection_input_dim().unwrap_or(0))),
+    };
+    build_level(parts, n_points)
+}
+
+/// Indexes one level for matching, or says why it is skipped. Every buffer is sized from the
+/// sections' actual lengths, checked against the level's dimensions with checked arithmetic:
+/// the dims the metadata states size nothing, whatever the reader let through.
+fn build_level(
+    parts: LevelParts<'_>,
+    n_points: u64,
+) -> Result<Result<LevelIndex<'_>, String>, LocalizeError> {
+    let LevelParts {
+        id,
+        dim_short: ds,
+        dim_full: df,
+        has_rest,
+        points,
+        short,
+        rest,
+        projection,
+    } = parts;
+    let n = points.len();
     if n == 0 {
         return Ok(Err("no points".into()));
     }
-    let use_full = !options.short && level.has_rest();
-    let (ds, df) = (level.dim_short(), level.dim_full());
-    let dim = if use_full { df } else { ds };
+    let dim = if rest.is_some() { df } else { ds };
     if dim == 0 {
-        let why = if options.short {
-            "dim_short 0: nothing to match with --short"
+        let why = if has_rest {
+            "dim_short 0: nothing to match with the short block only"
         } else {
             "dim_short 0 and no rest block: nothing to match"
         };
         return Ok(Err(why.into()));
     }
     let bad = |message: String| LocalizeError::BadLevel { level: id, message };
-    let short = level.desc_short()?;
     if n.checked_mul(ds) != Some(short.len()) {
         return Err(bad(format!(
             "short block has {} values, not {n} points x {ds} dimensions",
@@ -718,7 +762,6 @@ fn index_level<'m>(
     let dr = df
         .checked_sub(ds)
         .ok_or_else(|| bad(format!("dim_short {ds} > dim_full {df}")))?;
-    let rest = if use_full { level.desc_rest()? } else { None };
     if let Some(rest) = &rest {
         if n.checked_mul(dr) != Some(rest.len()) {
             return Err(bad(format!(
@@ -727,13 +770,15 @@ fn index_level<'m>(
             )));
         }
     }
-    let points = level.points()?;
-    if points.len() != n || points.last().is_some_and(|&p| u64::from(p) >= n_points) {
-        return Err(bad("point indices do not fit the map's points".into()));
+    if points.last().is_some_and(|&p| u64::from(p) >= n_points)
+        || points.windows(2).any(|w| w[0] >= w[1])
+    {
+        return Err(bad(
+            "point indices are not increasing indices of the map's points".into(),
+        ));
     }
-    let (projection, d_in) = match level.projection()? {
-        Some(p) => {
-            let d_in = level.projection_input_dim().unwrap_or(0);
+    let (projection, d_in) = match projection {
+        Some((p, d_in)) => {
             if d_in == 0 {
                 return Ok(Err("the projection takes no input dimensions".into()));
             }
@@ -777,4 +822,106 @@ fn index_level<'m>(
 
 fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn halves(n: usize) -> Cow<'static, [f16]> {
+        Cow::Owned(vec![f16::from_f32(0.5); n])
+    }
+
+    fn parts(points: Vec<u32>, ds: usize, df: usize) -> LevelParts<'static> {
+        let n = points.len();
+        LevelParts {
+            id: 3,
+            dim_short: ds,
+            dim_full: df,
+            has_rest: false,
+            points: Cow::Owned(points),
+            short: halves(n * ds),
+            rest: None,
+            projection: None,
+        }
+    }
+
+    fn skipped(parts: LevelParts<'_>) -> String {
+        match build_level(parts, 100) {
+            Ok(Err(reason)) => reason,
+            Ok(Ok(_)) => panic!("indexed"),
+            Err(e) => panic!("error: {e}"),
+        }
+    }
+
+    fn refused(parts: LevelParts<'_>) -> String {
+        match build_level(parts, 100) {
+            Err(LocalizeError::BadLevel { level: 3, message }) => message,
+            Err(e) => panic!("other error: {e}"),
+            Ok(_) => panic!("accepted"),
+        }
+    }
+
+    // The localizer's own checks, whatever the reader's limits let through: degenerate or
+    // absurd dims are skipped or refused before anything is sized from them.
+
+    #[test]
+    fn dim_short_0_without_rest_is_skipped() {
+        assert!(skipped(parts(vec![0, 1, 2], 0, 0)).contains("dim_short 0"));
+        assert!(skipped(parts(vec![0, 1, 2], 0, 8)).contains("no rest block"));
+    }
+
+    #[test]
+    fn an_empty_level_is_skipped_whatever_its_dims() {
+        let mut p = parts(vec![], 1, u32::MAX as usize);
+        p.has_rest = true;
+        p.rest = Some(halves(0));
+        assert_eq!(skipped(p), "no points");
+    }
+
+    #[test]
+    fn dims_the_sections_do_not_hold_are_refused_not_allocated() {
+        // One point claiming 2^32 - 1 full dimensions with an empty rest block.
+        let mut p = parts(vec![7], 4, u32::MAX as usize);
+        p.has_rest = true;
+        p.rest = Some(halves(0));
+        assert!(refused(p).contains("rest block has 0 values"));
+        // A product that overflows usize is refused the same way.
+        let mut p = parts(vec![6, 7], 4, 8);
+        p.dim_short = usize::MAX / 2 + 1;
+        assert!(refused(p).contains("short block"));
+        let mut p = parts(vec![0, 1], 2, 2);
+        p.short = halves(3);
+        assert!(refused(p).contains("short block has 3 values"));
+    }
+
+    #[test]
+    fn points_out_of_range_or_unsorted_are_refused() {
+        assert!(refused(parts(vec![5, 100], 2, 2)).contains("point indices"));
+        assert!(refused(parts(vec![5, 5], 2, 2)).contains("point indices"));
+    }
+
+    #[test]
+    fn projections_no_query_can_fit_are_skipped() {
+        let mut p = parts(vec![1], 4, 4);
+        p.projection = Some((Cow::Owned(vec![]), 0));
+        assert!(skipped(p).contains("no input dimensions"));
+        let mut p = parts(vec![1], 4, 4);
+        p.projection = Some((Cow::Owned(vec![1.0; 8]), 2));
+        assert!(skipped(p).contains("maps 2 input dimensions to 4"));
+        let mut p = parts(vec![1], 4, 4);
+        p.projection = Some((Cow::Owned(vec![1.0; 7]), 2 + 2));
+        assert!(refused(p).contains("projection has 7 values"));
+    }
+
+    #[test]
+    fn a_sound_level_is_indexed_from_its_sections() {
+        let mut p = parts(vec![1, 4], 2, 3);
+        p.has_rest = true;
+        p.rest = Some(halves(2));
+        let level = build_level(p, 100).unwrap().unwrap();
+        assert_eq!((level.dim, level.d_in, level.descriptors.len()), (3, 3, 6));
+        let norm: f32 = level.row(1).iter().map(|v| v * v).sum();
+        assert!((norm - 1.0).abs() < 1e-6);
+    }
 }

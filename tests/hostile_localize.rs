@@ -1,0 +1,434 @@
+//! Hostile and careless input to `sfpmap localize` (issue 12): crafted maps with correct
+//! checksums, damaged query images, a missing images folder, absurd `--threads`. Each test runs
+//! the real binary under an address-space cap and a timeout, so a regression to a panic, a
+//! huge allocation or a runaway loop fails instead of taking the machine down.
+#![cfg(all(feature = "cli", feature = "localize", feature = "onnx"))]
+
+mod common;
+
+use common::{craft, craft_level, craft_level_points, craft_metadata, craft_points, run_limited};
+use common::{level_info, Crafted, Limited, Rng};
+use sfpmap::extract::{Features, LevelFeatures};
+use sfpmap::format::{f16, Descriptors, Dtype, MapWriter, SectionKind};
+use sfpmap::io::features_h5::{self, H5Options};
+use std::ffi::OsStr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+const GIB: u64 = 1 << 30;
+
+fn sfpmap(args: &[&OsStr], max_bytes: u64) -> Limited {
+    run_limited(
+        env!("CARGO_BIN_EXE_sfpmap"),
+        args,
+        max_bytes,
+        Duration::from_secs(300),
+    )
+}
+
+/// Arguments as `OsStr`, so paths and flags mix.
+macro_rules! args {
+    ($($a:expr),* $(,)?) => { [$(AsRef::<OsStr>::as_ref(&$a)),*] };
+}
+
+/// An error is one line, `error: <file>: ...`, naming `file`, and nothing panicked.
+fn assert_one_line_error(run: &Limited, file: &Path) {
+    assert_eq!(run.code, Some(1), "{run:?}");
+    let lines: Vec<&str> = run.stderr.lines().collect();
+    assert_eq!(lines.len(), 1, "{run:?}");
+    assert!(
+        lines[0].starts_with(&format!("error: {}", file.display())),
+        "{run:?}"
+    );
+    assert!(!run.stderr.contains("panicked"), "{run:?}");
+}
+
+/// A query list of `names`, one pinhole camera for all (640 × 480).
+fn query_list(dir: &Path, names: &[&str]) -> PathBuf {
+    let path = dir.join("queries.txt");
+    let text: String = names
+        .iter()
+        .map(|n| format!("{n} PINHOLE 640 480 500 500 320 240\n"))
+        .collect();
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// A features.h5 with `n` random keypoints of `dim`-dimensional descriptors for the image
+/// `name`, as one level whose id no map uses, so the reader serves them to every level.
+fn features(dir: &Path, name: &str, n: usize, dim: usize) -> PathBuf {
+    let mut rng = Rng(11);
+    let full: Vec<f16> = (0..n * dim).map(|_| f16::from_f32(rng.unit())).collect();
+    let level = LevelFeatures {
+        level: 999,
+        stride: 8,
+        keypoints: (0..n)
+            .map(|_| [(rng.unit() + 1.0) * 320.0, (rng.unit() + 1.0) * 240.0])
+            .collect(),
+        scores: vec![0.9; n],
+        dim_short: dim,
+        dim_full: dim,
+        short: full.clone(),
+        full,
+    };
+    let f = Features {
+        image_size: [640, 480],
+        levels: vec![level],
+        global: vec![1.0; 4],
+    };
+    let path = dir.join("features.h5");
+    let options = H5Options {
+        main_level: 999,
+        attributes: Vec::new(),
+    };
+    features_h5::write(&path, &[(name.to_string(), f)], &options).unwrap();
+    path
+}
+
+fn write(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
+    let path = dir.join(name);
+    std::fs::write(&path, bytes).unwrap();
+    path
+}
+
+/// `localize --features` of one query against `map`.
+fn localize_features(dir: &Path, map: &Path, dim: usize, extra: &[&str]) -> Limited {
+    let list = query_list(dir, &["q.jpg"]);
+    let h5 = features(dir, "q.jpg", 200, dim);
+    let out = dir.join("poses.txt");
+    let mut a = args![
+        "localize",
+        "--map",
+        map,
+        "--query-list",
+        list,
+        "--features",
+        h5,
+        "-o",
+        out
+    ]
+    .to_vec();
+    a.extend(extra.iter().map(OsStr::new));
+    sfpmap(&a, 2 * GIB)
+}
+
+/// A level's descriptor block, crafted: `rows × cols` f16 (zeros).
+fn desc(kind: SectionKind, level: u16, rows: u64, cols: u64) -> Crafted {
+    let bytes = vec![0u8; (rows * cols * 2) as usize];
+    Crafted::raw(kind, level, Dtype::F16, rows, cols, bytes)
+}
+
+/// Finding 1: a level with `dim_short` 0 and no `rest` block made `localize` panic
+/// ("chunk size must be non-zero"). Now: refused at open, or the level skipped — never a panic.
+#[test]
+fn finding_1_a_level_with_no_dimensions_to_match_is_not_a_panic() {
+    let t = tempfile::tempdir().unwrap();
+    // dim_full 8 (the query's), dim_short 0, no rest: nothing to match.
+    let metadata = craft_metadata(vec![craft_level(0, 8, 0)]);
+    let bytes = craft(
+        &metadata,
+        &[
+            craft_points(4),
+            craft_level_points(0, &[0, 1, 2, 3]),
+            desc(SectionKind::LevelDescShort, 0, 4, 0),
+        ],
+    );
+    let map = write(t.path(), "dim0.sfpm", &bytes);
+    let run = localize_features(t.path(), &map, 8, &[]);
+    assert_one_line_error(&run, &map);
+}
+
+/// Finding 2: an empty level claiming 2^32 − 1 (or 2^24) descriptor dimensions made
+/// `localize` abort allocating ~10^14 bytes. Now a one-line error within a 2 GiB address space.
+#[test]
+fn finding_2_an_empty_level_of_huge_dimensions_allocates_nothing() {
+    let t = tempfile::tempdir().unwrap();
+    for dim_full in [u64::from(u32::MAX), 1 << 24] {
+        let metadata = craft_metadata(vec![craft_level(0, dim_full, 8)]);
+        let bytes = craft(
+            &metadata,
+            &[
+                craft_points(4),
+                craft_level_points(0, &[]),
+                desc(SectionKind::LevelDescShort, 0, 0, 8),
+                desc(SectionKind::LevelDescRest, 0, 0, dim_full - 8),
+            ],
+        );
+        let map = write(t.path(), "huge.sfpm", &bytes);
+        let run = localize_features(t.path(), &map, 8, &[]);
+        assert_one_line_error(&run, &map);
+    }
+}
+
+/// Finding 4: 250 k points and 4,000 one-point levels (a 5 MB map) grew past 12 GB: the
+/// localizer kept a points-sized table per level. Now it localizes within 1.5 GiB.
+#[test]
+fn finding_4_many_small_levels_do_not_multiply_memory_by_points() {
+    const POINTS: usize = 250_000;
+    const LEVELS: usize = 4_000;
+    const DIM: usize = 16;
+    let t = tempfile::tempdir().unwrap();
+    let mut rng = Rng(5);
+    let positions: Vec<[f64; 3]> = (0..POINTS)
+        .map(|_| {
+            [
+                f64::from(rng.unit()) * 10.0,
+                f64::from(rng.unit()) * 10.0,
+                f64::from(rng.unit()) * 10.0 + 20.0,
+            ]
+        })
+        .collect();
+    let descriptors: Vec<Vec<f32>> = (0..LEVELS)
+        .map(|_| (0..DIM).map(|_| rng.unit()).collect())
+        .collect();
+    let points: Vec<[u32; 1]> = (0..LEVELS).map(|l| [(l * 61) as u32]).collect();
+    let mut w = MapWriter::default();
+    w.set_points_world(&positions);
+    for l in 0..LEVELS {
+        let info = level_info(l as u16, 8.0, DIM as u32, DIM as u32);
+        w.add_level(
+            info,
+            &points[l],
+            Some(Descriptors::F32(&descriptors[l])),
+            false,
+        )
+        .unwrap();
+    }
+    let map = write(t.path(), "levels.sfpm", &w.to_bytes().unwrap());
+    assert!(std::fs::metadata(&map).unwrap().len() < 8 << 20);
+    let list = query_list(t.path(), &["q.jpg"]);
+    let h5 = features(t.path(), "q.jpg", 300, DIM);
+    let out = t.path().join("poses.txt");
+    let run = sfpmap(
+        &args![
+            "localize",
+            "--map",
+            map,
+            "--query-list",
+            list,
+            "--features",
+            h5,
+            "-o",
+            out,
+            "--json"
+        ],
+        3 * GIB / 2,
+    );
+    assert_eq!(run.code, Some(0), "{run:?}");
+    let summary: serde_json::Value = serde_json::from_str(&run.stdout).unwrap();
+    assert_eq!(summary["queries"], 1, "{summary}");
+    let poses = std::fs::read_to_string(&out).unwrap();
+    assert!(poses
+        .lines()
+        .any(|l| l.starts_with("# failed q.jpg") || l.starts_with("q.jpg ")));
+}
+
+/// A textured 640 × 480 JPEG, and where its scan's entropy-coded data starts.
+fn query_jpeg() -> (Vec<u8>, usize) {
+    let image = image::RgbImage::from_fn(640, 480, |x, y| {
+        let v = ((x as f32 * 0.1).sin() * 60.0 + (y as f32 * 0.07).cos() * 60.0 + 128.0) as u8;
+        image::Rgb([v, (x * 3 % 256) as u8, ((x ^ y) % 256) as u8])
+    });
+    let mut bytes = Vec::new();
+    image
+        .write_to(
+            &mut std::io::Cursor::new(&mut bytes),
+            image::ImageFormat::Jpeg,
+        )
+        .unwrap();
+    let sos = bytes.windows(2).position(|w| w == [0xFF, 0xDA]).unwrap();
+    let start = sos + 2 + usize::from(u16::from_be_bytes([bytes[sos + 2], bytes[sos + 3]]));
+    (bytes, start)
+}
+
+/// An SFP map the embedded extractor's queries fit: level 2 (stride 8) of sfp-v1, 192 full
+/// dimensions of which 64 short, random descriptors.
+fn sfp_map(dir: &Path) -> PathBuf {
+    let (n, full) = (500, 192);
+    let mut rng = Rng(3);
+    let positions: Vec<[f64; 3]> = (0..n)
+        .map(|_| {
+            let u = f64::from(rng.unit());
+            [u * 5.0, f64::from(rng.unit()) * 4.0, 10.0]
+        })
+        .collect();
+    let descriptors: Vec<f32> = (0..n * full).map(|_| rng.unit()).collect();
+    let points: Vec<u32> = (0..n as u32).collect();
+    let mut w = MapWriter::default();
+    w.set_points_world(&positions);
+    w.add_level(
+        level_info(2, 8.0, full as u32, 64),
+        &points,
+        Some(Descriptors::F32(&descriptors)),
+        true,
+    )
+    .unwrap();
+    write(dir, "sfp.sfpm", &w.to_bytes().unwrap())
+}
+
+/// Finding 17: a cut-off or damaged query JPEG was decoded leniently (the lost part grey)
+/// and localized, exit 0. Now each is a failed query saying the image does not decode.
+#[test]
+fn finding_17_a_damaged_query_image_is_a_failed_query_with_the_reason() {
+    let t = tempfile::tempdir().unwrap();
+    let images = t.path().join("images");
+    std::fs::create_dir(&images).unwrap();
+    let (jpg, scan) = query_jpeg();
+    write(&images, "good.jpg", &jpg);
+    // Cut in the middle of the scan, and cut just before the end-of-image marker.
+    write(&images, "cut.jpg", &jpg[..(scan + jpg.len()) / 2]);
+    write(&images, "cut-end.jpg", &jpg[..jpg.len() - 2]);
+    // A burst of set bits in the scan (stuffed 0xFF bytes): no Huffman code reads it.
+    let mut burst = jpg.clone();
+    let mid = (scan + jpg.len()) / 2;
+    for (i, b) in burst[mid..mid + 32].iter_mut().enumerate() {
+        *b = if i % 2 == 0 { 0xFF } else { 0x00 };
+    }
+    write(&images, "burst.jpg", &burst);
+    let names = ["good.jpg", "cut.jpg", "cut-end.jpg", "burst.jpg"];
+    let list = query_list(t.path(), &names);
+    let map = sfp_map(t.path());
+    let out = t.path().join("poses.txt");
+    let run = sfpmap(
+        &args![
+            "localize",
+            "--map",
+            map,
+            "--query-list",
+            list,
+            "--images",
+            images,
+            "--level",
+            "2",
+            "-o",
+            out,
+            "--json"
+        ],
+        4 * GIB,
+    );
+    // Some queries were read: the run succeeds and lists the others as failed.
+    assert_eq!(run.code, Some(0), "{run:?}");
+    let poses = std::fs::read_to_string(&out).unwrap();
+    for name in &names[1..] {
+        let line = poses
+            .lines()
+            .find(|l| l.starts_with(&format!("# failed {name}:")))
+            .unwrap_or_else(|| panic!("{name} not failed: {poses}"));
+        assert!(line.contains("the image does not decode"), "{line}");
+    }
+    assert!(!poses.contains("# failed good.jpg: the image"), "{poses}");
+    let summary: serde_json::Value = serde_json::from_str(&run.stdout).unwrap();
+    assert!(
+        summary["failed"].as_array().unwrap().len() >= 3,
+        "{summary}"
+    );
+}
+
+/// Finding 17: `--images` naming a missing folder ran every query and exited 0 with all
+/// failed. Now it is an error naming the folder, before any work (no model is loaded); so is
+/// a folder holding none of the listed images, and a run that could read no query at all.
+#[test]
+fn finding_17_a_missing_images_folder_is_an_error_before_any_work() {
+    let t = tempfile::tempdir().unwrap();
+    let map = sfp_map(t.path());
+    let list = query_list(t.path(), &["a.jpg", "b.jpg"]);
+    let out = t.path().join("poses.txt");
+    let missing = t.path().join("no-such-folder");
+    let run = sfpmap(
+        &args![
+            "localize",
+            "--map",
+            map,
+            "--query-list",
+            list,
+            "--images",
+            missing,
+            "-o",
+            out
+        ],
+        2 * GIB,
+    );
+    assert_one_line_error(&run, &missing);
+    assert!(run.stderr.contains("no such folder"), "{run:?}");
+    assert!(run.seconds < 30.0, "{run:?}");
+
+    let empty = t.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    let run = sfpmap(
+        &args![
+            "localize",
+            "--map",
+            map,
+            "--query-list",
+            list,
+            "--images",
+            empty,
+            "-o",
+            out
+        ],
+        2 * GIB,
+    );
+    assert_one_line_error(&run, &empty);
+    assert!(run.stderr.contains("none of the 2 images"), "{run:?}");
+
+    // Features for another image only: no query can be read.
+    let h5 = features(t.path(), "other.jpg", 10, 192);
+    let run = sfpmap(
+        &args![
+            "localize",
+            "--map",
+            map,
+            "--query-list",
+            list,
+            "--features",
+            h5,
+            "--level",
+            "2",
+            "-o",
+            out
+        ],
+        2 * GIB,
+    );
+    assert_one_line_error(&run, &list);
+    assert!(
+        run.stderr.contains("none of the 2 queries could be read"),
+        "{run:?}"
+    );
+    assert!(!out.exists(), "no output for a run that read nothing");
+}
+
+/// `--threads 1000000` spawned a million threads (48 s for 3 queries). Now it is capped
+/// with a warning, which `--quiet` silences.
+#[test]
+fn absurd_threads_are_capped_with_a_warning() {
+    let t = tempfile::tempdir().unwrap();
+    let metadata = craft_metadata(vec![craft_level(0, 8, 8)]);
+    let mut rng = Rng(9);
+    let short: Vec<u8> = (0..16 * 8)
+        .flat_map(|_| f16::from_f32(rng.unit()).to_le_bytes())
+        .collect();
+    let bytes = craft(
+        &metadata,
+        &[
+            craft_points(16),
+            craft_level_points(0, &(0..16).collect::<Vec<u32>>()),
+            Crafted::raw(SectionKind::LevelDescShort, 0, Dtype::F16, 16, 8, short),
+        ],
+    );
+    let map = write(t.path(), "small.sfpm", &bytes);
+    let run = localize_features(t.path(), &map, 8, &["--threads", "1000000"]);
+    assert_eq!(run.code, Some(0), "{run:?}");
+    assert!(
+        run.stderr.contains("warning: --threads 1000000: using"),
+        "{run:?}"
+    );
+    assert!(run.seconds < 60.0, "{run:?}");
+    let run = localize_features(
+        t.path(),
+        &map,
+        8,
+        &["--threads", "1000000", "-q", "--force"],
+    );
+    assert_eq!(run.code, Some(0), "{run:?}");
+    assert!(run.stderr.is_empty(), "{run:?}");
+}
