@@ -192,14 +192,26 @@ impl H5Features {
         };
         let shape = ds.shape().map_err(|e| self.err(format!("{name}: {e}")))?;
         let (rows, cols) = match shape.as_slice() {
-            [r, c] => (*r as usize, *c as usize),
-            [n] => (1, *n as usize),
+            [r, c] => (*r, *c),
+            [n] => (1, *n),
             other => return Err(self.err(format!("{name}: unexpected shape {other:?}"))),
         };
         let raw = ds
             .read_raw()
             .map_err(|e| self.err(format!("{name}: {e}")))?;
-        let n = rows * cols;
+        // The shape is the file's claim: checked against the bytes actually read, never used
+        // to size anything before that.
+        let n = rows
+            .checked_mul(cols)
+            .and_then(|n| usize::try_from(n).ok())
+            .filter(|n| n.checked_mul(2).is_some_and(|b| b <= raw.len()))
+            .ok_or_else(|| {
+                self.err(format!(
+                    "{name}: {} bytes for {rows} x {cols} values (f16 or f32 expected)",
+                    raw.len()
+                ))
+            })?;
+        let (rows, cols) = (rows as usize, cols as usize);
         let values: Vec<f32> = if raw.len() == n * 4 {
             raw.chunks_exact(4)
                 .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
