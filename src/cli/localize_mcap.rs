@@ -30,6 +30,9 @@ use std::time::Instant;
 /// error).
 pub const SKIPPED_EXIT: u8 = 3;
 
+/// Damaged parts named one warning each; the rest are counted.
+const MAX_DAMAGE_WARNINGS: usize = 20;
+
 /// The MCAP flags of `sfpmap localize`.
 #[derive(Debug, clap::Args)]
 pub struct McapArgs {
@@ -233,7 +236,10 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
                 // The reader goes on after a skip, or ends after it when the rest is lost.
                 Err(damage) => {
                     let what = damage.to_string();
-                    bars.warn(&format!("{}: {what}", input.display()));
+                    // A log damaged all over gets a bounded number of lines; --json has all.
+                    if scan.skipped.len() < MAX_DAMAGE_WARNINGS {
+                        bars.warn(&format!("{}: {what}", input.display()));
+                    }
                     scan.skipped.push(what);
                     continue;
                 }
@@ -318,15 +324,18 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     });
     if !scan.skipped.is_empty() {
         let lost = match unreadable_messages {
-            Some(n) => format!("{n} image messages on the topic are lost"),
-            None => "how many image messages were lost is unknown (no summary)".to_owned(),
+            Some(n) => format!("{n} lost"),
+            None => "how many were lost is unknown (no summary)".to_owned(),
         };
         let parts = match scan.skipped.len() {
             1 => "1 damaged part".to_owned(),
+            n if n > MAX_DAMAGE_WARNINGS => {
+                format!("{n} damaged parts (the first {MAX_DAMAGE_WARNINGS} above)")
+            }
             n => format!("{n} damaged parts"),
         };
         bars.warn(&format!(
-            "{}: {parts} of the log skipped (exit status {SKIPPED_EXIT}); {} image messages on {topic} read, {lost}",
+            "{}: {parts} of the log skipped (exit status {SKIPPED_EXIT}); image messages on {topic}: {} read, {lost}",
             input.display(),
             scan.messages_on_topic
         ));
