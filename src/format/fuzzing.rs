@@ -52,6 +52,34 @@ pub fn fix_checksums(data: &[u8]) -> Vec<u8> {
     out
 }
 
+/// `data` (a map whose header and table entries point inside it) with `metadata` as its
+/// metadata block: every section moved to the offset the tiling rule gives it, checksums fixed.
+/// `None` when `data` has no such header and table. Lets a fuzz target edit the metadata
+/// (which changes its length) of a map the writer made.
+pub fn with_metadata(data: &[u8], metadata: &[u8]) -> Option<Vec<u8>> {
+    let mut header = Header::decode(data).ok()?;
+    let entry_len = header.entry_len as usize;
+    let table_end = (header.section_count as usize)
+        .checked_mul(entry_len)?
+        .checked_add(HEADER_LEN)
+        .filter(|&end| end <= data.len() && entry_len >= ENTRY_LEN)?;
+    let mut out = data[..table_end].to_vec();
+    out.extend_from_slice(metadata);
+    for at in (HEADER_LEN..table_end).step_by(entry_len) {
+        let mut entry = RawEntry::decode(&data[at..at + ENTRY_LEN]);
+        let start = entry.offset as usize;
+        let stored = data.get(start..start.checked_add(entry.stored_len as usize)?)?;
+        entry.offset = super::layout::align_up(out.len() as u64)?;
+        out.resize(entry.offset as usize, 0);
+        out.extend_from_slice(stored);
+        out[at..at + ENTRY_LEN].copy_from_slice(&entry.encode());
+    }
+    header.metadata_offset = table_end as u64;
+    header.metadata_len = metadata.len() as u64;
+    out[..HEADER_LEN].copy_from_slice(&header.encode());
+    Some(fix_checksums(&out))
+}
+
 /// Runs `body` on `data`, then on `data` with its checksums fixed up if that changes it.
 fn as_is_and_fixed(data: &[u8], body: fn(&[u8])) {
     body(data);
