@@ -475,3 +475,73 @@ fn writer_keeps_every_map_within_the_decode_budget() {
     map.verify().unwrap();
     assert!(map.decoded_bytes() <= map.decode_budget());
 }
+
+/// `verify` streams: sections that together decode past the memory cap, each far under it and
+/// all within the decode budget, verify in about one section's memory (finding 5's other half:
+/// verify kept every decoded section).
+#[test]
+fn verify_streams_sections() {
+    let raw = vec![0u8; 40 << 20];
+    let frame = Crafted::zstd(
+        SectionKind::Unknown(0x7000),
+        NO_LEVEL,
+        Dtype::U8,
+        raw.len() as u64,
+        1,
+        &raw,
+    );
+    drop(raw);
+    // 2 MiB of raw padding makes the budget 512 MiB: room for 10 x 40 MiB.
+    let padding = Crafted::raw(
+        SectionKind::Unknown(0x6FFF),
+        NO_LEVEL,
+        Dtype::U8,
+        2 << 20,
+        1,
+        vec![0; 2 << 20],
+    )
+    .optional();
+    let mut sections = vec![craft_points(1), padding];
+    for i in 0..10 {
+        let mut s = frame.clone().optional();
+        s.kind = 0x7000 + i;
+        sections.push(s);
+    }
+    let bytes = craft(&craft_metadata(vec![]), &sections);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("big.sfpm");
+    std::fs::write(&path, &bytes).unwrap();
+    let out = sfpmap(&[os("verify"), path.as_os_str()]);
+    assert_eq!(out.code, Some(0), "{out:?}");
+}
+
+/// The fuzz bodies' checksum fix-up makes a damaged map reach the checks behind the checksums.
+#[test]
+fn fuzz_fixup_reaches_past_the_checksums() {
+    use sfpmap::format::fuzzing::fix_checksums;
+    let good = common::minimal();
+    let mut bad = good.clone();
+    let last = bad.len() - 1; // inside point_positions
+    bad[last] ^= 0x40;
+    let err = Map::from_bytes(&bad).unwrap().verify().unwrap_err();
+    assert_eq!(err.kind_name(), "checksum_mismatch");
+    Map::from_bytes(&fix_checksums(&bad))
+        .unwrap()
+        .verify()
+        .unwrap();
+    // A metadata byte: the index checksum first, then the JSON itself.
+    let mut bad = good.clone();
+    let header = sfpmap::format::Header::decode(&good).unwrap();
+    bad[header.metadata_offset as usize] = b'[';
+    assert_eq!(
+        Map::from_bytes(&bad).unwrap_err().kind_name(),
+        "index_checksum_mismatch"
+    );
+    assert_eq!(
+        Map::from_bytes(&fix_checksums(&bad))
+            .unwrap_err()
+            .kind_name(),
+        "bad_metadata"
+    );
+    assert_eq!(fix_checksums(&good), good);
+}
