@@ -545,3 +545,47 @@ fn fuzz_fixup_reaches_past_the_checksums() {
     );
     assert_eq!(fix_checksums(&good), good);
 }
+
+/// Counts a reader takes from the table before decoding (points, level points) are bounded
+/// at open: the zstd sections of known kinds may not declare more than the decode budget
+/// together, and a level may not hold more points than the map.
+#[test]
+fn declared_sizes_are_bounded_at_open() {
+    let zeros = vec![0u8; 1 << 20];
+    let rows = zeros.len() as u64 / 4;
+    let mut metadata = craft_metadata((0..70).map(|l| craft_level(l, 8, 2)).collect());
+    metadata["geometry_only"] = true.into();
+    let positions = vec![0u8; rows as usize * 12];
+    let mut sections = vec![Crafted::zstd(
+        SectionKind::PointPositions,
+        NO_LEVEL,
+        Dtype::F32,
+        rows,
+        3,
+        &positions,
+    )];
+    for l in 0..70 {
+        sections.push(Crafted::zstd(
+            SectionKind::LevelPoints,
+            l,
+            Dtype::U32,
+            rows,
+            1,
+            &zeros,
+        ));
+    }
+    let bytes = craft(&metadata, &sections);
+    assert!(bytes.len() < 20_000, "{}", bytes.len());
+    let err = open_error(&bytes);
+    assert!(err.starts_with("decode_budget_exceeded: "), "{err}");
+
+    // One point, a level claiming two.
+    let mut metadata = craft_metadata(vec![craft_level(0, 8, 2)]);
+    metadata["geometry_only"] = true.into();
+    let bytes = craft(
+        &metadata,
+        &[craft_points(1), craft_level_points(0, &[0, 1])],
+    );
+    let err = open_error(&bytes);
+    assert!(err.contains("level 0 holds 2 points of 1"), "{err}");
+}

@@ -118,7 +118,8 @@ pub enum Error {
         cap: u64,
     },
     /// Decoding a zstd section would take the bytes decoded from this open map past its
-    /// decode budget ([`super::decode_budget`]).
+    /// decode budget ([`super::decode_budget`]); at open: the zstd sections of known kinds
+    /// declare more than it together.
     DecodeBudgetExceeded {
         section: SectionRef,
         raw_len: u64,
@@ -243,7 +244,7 @@ impl fmt::Display for Error {
                 budget,
             } => write!(
                 f,
-                "{section}: decoding its {raw_len} bytes would pass the map's decode budget of {budget} bytes ({decoded} decoded already)"
+                "{section}: its {raw_len} decoded bytes would take the map past its decode budget of {budget} bytes ({decoded} before it)"
             ),
             Inconsistent { what } => write!(f, "inconsistent map: {what}"),
             NoSuchLevel { level, available } => {

@@ -486,6 +486,7 @@ fn validate_index(bytes: &[u8]) -> Result<Index, Error> {
         sections.push(validate_entry(index, &raw, file_len)?);
     }
     check_tiling(bytes, &sections, metadata_end)?;
+    check_declared_sizes(&sections, file_len)?;
 
     let (by_kind, n_points, n_images) = super::views::check_shapes(&metadata, &sections)?;
     Ok(Index {
@@ -596,6 +597,32 @@ fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section
         raw_len: raw.raw_len,
         checksum: raw.checksum,
     })
+}
+
+/// The zstd sections of known kinds must, together, declare no more than the decode budget:
+/// every count a reader takes from them (points, level points, images) is then bounded by the
+/// file length before anything is decoded or sized from it. (Unknown kinds are skipped by
+/// readers; only `verify` decodes them, within the budget as it goes.)
+fn check_declared_sizes(sections: &[Section], file_len: u64) -> Result<(), Error> {
+    let budget = decode_budget(file_len);
+    let mut declared = 0u64;
+    for s in sections {
+        if s.codec != Codec::Zstd || matches!(s.kind, SectionKind::Unknown(_)) {
+            continue;
+        }
+        match declared.checked_add(s.raw_len).filter(|&t| t <= budget) {
+            Some(total) => declared = total,
+            None => {
+                return Err(Error::DecodeBudgetExceeded {
+                    section: s.reference(),
+                    raw_len: s.raw_len,
+                    decoded: declared,
+                    budget,
+                })
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Sections follow the metadata in table order, each at the next multiple of 64 after the

@@ -60,6 +60,13 @@ pub(crate) fn check_shapes(
         }
         let l = Some(level.level);
         let n = need(SectionKind::LevelPoints, l)?.rows;
+        if n > n_points {
+            // Strictly increasing indices below `points` cannot be more than `points`.
+            return Err(Error::inconsistent(format!(
+                "level {} holds {n} points of {n_points}",
+                level.level
+            )));
+        }
         let short = find(SectionKind::LevelDescShort, l);
         let rest = find(SectionKind::LevelDescRest, l);
         if !metadata.geometry_only {
