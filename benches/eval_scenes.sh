@@ -35,7 +35,7 @@ for scene in $scenes; do
   for v in sift sift-l2s; do
     extra=(); [ "$v" = sift-l2s ] && extra=(--short)
     "$B" localize --map "$C/$v.sfpm" --query-list "$S/queries.txt" --database "$C/queries.db" \
-      -o "$C/$v.poses" --json "${extra[@]}" >"$C/$v.loc.json"
+      -o "$C/$v.poses" --force --json "${extra[@]}" >"$C/$v.loc.json"
     row "$scene" "$v" "$C/$v.sfpm" "$C/$v.poses" "$(jget "$C/$v.loc.json" "round(d['median_ms']['total'])")"
   done
   if "$B" --help | grep -qE '^\s+extract\b'; then
@@ -44,7 +44,7 @@ for scene in $scenes; do
     for v in sfp sfp-l2s; do
       extra=(); [ "$v" = sfp-l2s ] && extra=(--short)
       "$B" localize --map "$C/$v.sfpm" --query-list "$S/queries.txt" --images "$S/images" \
-        -o "$C/$v.poses" --json "${extra[@]}" >"$C/$v.loc.json"
+        -o "$C/$v.poses" --force --json "${extra[@]}" >"$C/$v.loc.json"
       row "$scene" "$v" "$C/$v.sfpm" "$C/$v.poses" "$(jget "$C/$v.loc.json" "round(d['median_ms']['total'])")"
     done
   fi
