@@ -77,7 +77,9 @@ pub fn slice<'m>(
     }
 
     let mut metadata: Metadata = map.metadata().clone();
-    metadata.levels.retain(|l| keep_levels.contains(&l.level));
+    metadata
+        .levels
+        .retain(|l| keep_levels.binary_search(&l.level).is_ok());
     let previous = std::mem::take(&mut metadata.provenance.parameters);
     metadata
         .provenance
@@ -195,13 +197,15 @@ pub fn slice<'m>(
     Ok((writer, summary))
 }
 
-/// Whether the slice keeps `section` (rebuilt or copied). Unknown kinds are dropped: how to
-/// remap indices in them is unknown.
+/// Whether the slice keeps `section` (rebuilt or copied); `keep_levels` is sorted. Unknown
+/// kinds are dropped: how to remap indices in them is unknown.
 fn is_kept(section: &Section, options: &SliceOptions, keep_levels: &[u16]) -> bool {
     match section.kind {
         SectionKind::Unknown(_) => false,
         SectionKind::LevelDescRest if options.short => false,
-        k if k.is_per_level() => keep_levels.contains(&section.level.unwrap_or(NO_LEVEL)),
+        k if k.is_per_level() => keep_levels
+            .binary_search(&section.level.unwrap_or(NO_LEVEL))
+            .is_ok(),
         _ => true,
     }
 }

@@ -12,6 +12,7 @@ use super::reader::within_decode_ratio;
 use crate::progress::{Reporter, Silent};
 use half::f16;
 use std::borrow::Cow;
+use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::Path;
 
@@ -54,7 +55,9 @@ enum Content<'a> {
 #[derive(Debug, Clone)]
 pub struct MapWriter<'a> {
     metadata: Metadata,
-    sections: Vec<PendingSection<'a>>,
+    /// By (kind code, level): the canonical table order, and one section per pair (a second
+    /// push replaces the first) in O(log n), so a map of 65,536 sections builds in linear time.
+    sections: BTreeMap<(u16, u16), PendingSection<'a>>,
     codec: Codec,
     zstd_level: i32,
 }
@@ -82,7 +85,7 @@ impl<'a> MapWriter<'a> {
     pub fn new(metadata: Metadata) -> Self {
         MapWriter {
             metadata,
-            sections: Vec::new(),
+            sections: BTreeMap::new(),
             codec: Codec::Raw,
             zstd_level: 3,
         }
@@ -120,9 +123,7 @@ impl<'a> MapWriter<'a> {
         required: bool,
         content: Content<'a>,
     ) {
-        self.sections
-            .retain(|s| !(s.kind == kind && s.level == level));
-        self.sections.push(PendingSection {
+        let section = PendingSection {
             kind,
             level,
             dtype,
@@ -130,7 +131,8 @@ impl<'a> MapWriter<'a> {
             cols,
             required,
             content,
-        });
+        };
+        self.sections.insert((kind.code(), level), section);
     }
 
     fn push_array(
@@ -574,7 +576,7 @@ impl<'a> MapWriter<'a> {
         })?;
         if let Some(s) = self
             .sections
-            .iter()
+            .values()
             .find(|s| s.kind.has_descriptor_columns() && s.cols > MAX_DESCRIPTOR_DIM)
         {
             return Err(Error::invalid(format!(
@@ -582,9 +584,9 @@ impl<'a> MapWriter<'a> {
                 s.kind, s.cols
             )));
         }
-        let mut order: Vec<&PendingSection<'a>> = self.sections.iter().collect();
-        // Canonical order, so the bytes do not depend on the order of the calls.
-        order.sort_by_key(|s| (s.kind.code(), s.level));
+        // Canonical order (by kind code, level), so the bytes do not depend on the order of
+        // the calls.
+        let order: Vec<&PendingSection<'a>> = self.sections.values().collect();
         reporter.start("encoding", Some(order.len() as u64));
         let mut blocks = Vec::with_capacity(order.len());
         for s in order {
