@@ -159,7 +159,7 @@ pub fn check_output(out: &Path, inputs: &[&Path], force: bool) -> Result<(), Out
             }
         }
     }
-    if let Some(kind) = not_regular(&meta.file_type()) {
+    if let Some(kind) = crate::input::not_regular(&meta.file_type()) {
         return Err(OutputError::NotRegular {
             path: out.to_path_buf(),
             kind,
@@ -184,37 +184,10 @@ fn same_file(_: &std::fs::Metadata, _: &std::fs::Metadata, a: &Path, b: &Path) -
     matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y)
 }
 
-/// What a file is when it is not a regular file.
-fn not_regular(t: &std::fs::FileType) -> Option<&'static str> {
-    if t.is_file() {
-        return None;
-    }
-    if t.is_dir() {
-        return Some("a folder");
-    }
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::FileTypeExt;
-        if t.is_char_device() {
-            return Some("a character device");
-        }
-        if t.is_block_device() {
-            return Some("a block device");
-        }
-        if t.is_fifo() {
-            return Some("a FIFO");
-        }
-        if t.is_socket() {
-            return Some("a socket");
-        }
-    }
-    Some("not a plain file")
-}
-
 /// Refuses to replace something that is not a regular file (the symlink followed).
 fn check_replaceable(path: &Path) -> Result<(), OutputError> {
     match std::fs::metadata(path) {
-        Ok(meta) => match not_regular(&meta.file_type()) {
+        Ok(meta) => match crate::input::not_regular(&meta.file_type()) {
             Some(kind) => Err(OutputError::NotRegular {
                 path: path.to_path_buf(),
                 kind,

@@ -84,10 +84,10 @@ fn crafted_map_opens_and_verifies() {
 fn directory_as_map_is_refused_by_name() {
     let dir = tempfile::tempdir().unwrap();
     let err = Map::open(dir.path()).unwrap_err();
-    assert_eq!(err.to_string(), "is a directory");
+    assert_eq!(err.to_string(), "is a folder, not a regular file");
     for command in ["verify", "info"] {
         let out = sfpmap(&[os(command), dir.path().as_os_str()]);
-        assert_refused(&out, dir.path(), "is a directory");
+        assert_refused(&out, dir.path(), "is a folder, not a regular file");
     }
 }
 

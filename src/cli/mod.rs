@@ -159,6 +159,7 @@ pub fn remove_temps_on_signal() {
 
 /// The most worker threads any `--threads` gets: 4 per core this machine has, at most 256.
 /// More only costs memory and start-up time (10^6 threads took 48 s for 3 queries).
+#[cfg(any(feature = "colmap", feature = "onnx"))]
 pub fn max_threads() -> usize {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     cores.saturating_mul(4).min(256)
@@ -166,6 +167,7 @@ pub fn max_threads() -> usize {
 
 /// `--threads` capped at [`max_threads`], with a warning (silent under `--quiet`) when it is
 /// cut.
+#[cfg(any(feature = "colmap", feature = "onnx"))]
 pub fn cap_threads(requested: usize, reporter: &dyn sfpmap::progress::Reporter) -> usize {
     let max = max_threads();
     if requested > max {

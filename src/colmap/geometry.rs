@@ -14,8 +14,12 @@ use std::path::Path;
 
 use super::bin::{ImageRecord, ImageRecords, Point3DRecords};
 use super::model::IdIndex;
-use super::{files_with, read_file, Reconstruction};
-use crate::format::{self, CameraInfo, MapWriter};
+use super::Reconstruction;
+#[cfg(any(feature = "colmap", test))]
+use super::{files_with, read_file};
+use crate::format::CameraInfo;
+#[cfg(feature = "colmap")]
+use crate::format::{self, MapWriter};
 
 /// Cameras, points (all or a subset, renumbered in model order), images with poses, and
 /// visibility with the observing pixels. Shared by the SIFT convert and the SFP convert
@@ -113,6 +117,7 @@ impl Geometry {
     }
 
     /// Adds cameras, points, images and visibility to `writer`.
+    #[cfg(feature = "colmap")]
     pub(crate) fn write_into<'a>(
         &'a self,
         writer: &mut MapWriter<'a>,
@@ -244,6 +249,7 @@ impl Visibility {
 /// Equal multisets always pass; unequal ones pass with probability about 2⁻⁶⁴ (the key is
 /// random per process, so a file cannot be crafted to collide). Either way the map's
 /// visibility comes from the 2D points, as in the general path.
+#[cfg(any(feature = "colmap", test))]
 pub(crate) fn read_bin(dir: &Path) -> Option<Geometry> {
     let [cameras, images, points] = files_with(dir, "bin");
     let bytes = [&cameras, &images, &points].map(|path| read_file(path).ok());

@@ -131,72 +131,40 @@ pub fn model_files(dir: &Path) -> Result<ModelFiles> {
 
 /// Whether `path` exists (symlinks followed); an error if it exists but is not a regular file.
 fn is_present(path: &Path) -> Result<bool> {
-    match std::fs::metadata(path) {
-        Ok(meta) => check_regular(path, &meta).map(|()| true),
-        Err(_) => Ok(false),
+    match crate::input::check_regular_path(path) {
+        Ok(_) => Ok(true),
+        Err(crate::input::OpenError::Io(_)) => Ok(false),
+        Err(e) => Err(input_error(path, e)),
     }
 }
 
-/// What a file is when it is not a regular file, for [`Error::NotAFile`].
-fn not_regular(t: &std::fs::FileType) -> Option<&'static str> {
-    if t.is_file() {
-        return None;
-    }
-    if t.is_dir() {
-        return Some("a folder");
-    }
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::FileTypeExt;
-        if t.is_fifo() {
-            return Some("a FIFO");
-        }
-        if t.is_socket() {
-            return Some("a socket");
-        }
-        if t.is_char_device() {
-            return Some("a character device");
-        }
-        if t.is_block_device() {
-            return Some("a block device");
-        }
-    }
-    Some("not a plain file")
-}
-
-fn check_regular(path: &Path, meta: &std::fs::Metadata) -> Result<()> {
-    match not_regular(&meta.file_type()) {
-        None => Ok(()),
-        Some(kind) => Err(Error::NotAFile {
+/// `input`'s answer as this module's error, naming `path`.
+fn input_error(path: &Path, e: crate::input::OpenError) -> Error {
+    match e {
+        crate::input::OpenError::Io(source) => Error::Io {
+            path: path.to_path_buf(),
+            source,
+        },
+        crate::input::OpenError::NotRegular(kind) => Error::NotAFile {
             path: path.to_path_buf(),
             kind,
-        }),
+        },
     }
 }
 
-/// Opens `path` for reading if it is a regular file. The path is checked before the open,
-/// because opening a FIFO blocks until a writer comes; the opened file is checked again
-/// (`fstat`), because the path may have been replaced in between.
+/// Opens `path` for reading if it is a regular file, without blocking on a FIFO
+/// ([`crate::input::open_regular`]).
 pub(crate) fn open_regular(path: &Path) -> Result<std::fs::File> {
-    let io = |source| Error::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    check_regular(path, &std::fs::metadata(path).map_err(io)?)?;
-    let file = std::fs::File::open(path).map_err(io)?;
-    check_regular(path, &file.metadata().map_err(io)?)?;
-    Ok(file)
+    crate::input::open_regular(path).map_err(|e| input_error(path, e))
 }
 
 /// Checks that `path` is a regular file without opening it (for SQLite, which opens the
 /// database itself).
 #[cfg(feature = "colmap")]
 pub(crate) fn check_regular_path(path: &Path) -> Result<()> {
-    let meta = std::fs::metadata(path).map_err(|source| Error::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    check_regular(path, &meta)
+    crate::input::check_regular_path(path)
+        .map(drop)
+        .map_err(|e| input_error(path, e))
 }
 
 /// The file's bytes, memory-mapped: no copy of a model that may be hundreds of MB, and a

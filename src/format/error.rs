@@ -31,7 +31,7 @@ impl fmt::Display for SectionRef {
 pub enum Error {
     /// Reading or writing the file failed.
     Io { path: PathBuf, message: String },
-    /// The path names a directory, FIFO, device or socket; `what` says which ("is a directory").
+    /// The path names a folder, FIFO, device or socket; `what` says which (`"a folder"`).
     NotARegularFile { what: &'static str },
     /// The file does not start with the sfpmap magic.
     BadMagic,
@@ -139,7 +139,7 @@ impl fmt::Display for Error {
         use Error::*;
         match self {
             Io { path, message } => write!(f, "{}: {message}", path.display()),
-            NotARegularFile { what } => f.write_str(what),
+            NotARegularFile { what } => write!(f, "is {what}, not a regular file"),
             BadMagic => f.write_str("not an sfpmap file (bad magic)"),
             VersionMismatch {
                 expected,

@@ -7,59 +7,12 @@ use std::fs::File;
 use std::path::Path;
 
 /// Opens `path` for reading if it is a regular file (a symlink to one is fine), else
-/// [`Error::NotARegularFile`] saying what it is.
-///
-/// The path is checked before opening (opening a FIFO waits for a writer, forever if none
-/// comes); it is opened with `O_NONBLOCK`, so a path swapped for a FIFO in between cannot
-/// block either (the flag means nothing for a regular file); and the opened file is checked
-/// again, since that is the one that is read.
+/// [`Error::NotARegularFile`] saying what it is; never blocks ([`crate::input::open_regular`]).
 pub(crate) fn open_regular(path: &Path) -> Result<File, Error> {
-    let metadata = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
-    check_regular(&metadata)?;
-    let mut options = std::fs::OpenOptions::new();
-    options.read(true);
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::OpenOptionsExt;
-        options.custom_flags(rustix::fs::OFlags::NONBLOCK.bits() as i32);
-    }
-    let file = options.open(path).map_err(|e| Error::io(path, e))?;
-    check_regular(&file.metadata().map_err(|e| Error::io(path, e))?)?;
-    Ok(file)
-}
-
-fn check_regular(metadata: &std::fs::Metadata) -> Result<(), Error> {
-    let t = metadata.file_type();
-    if t.is_file() {
-        return Ok(());
-    }
-    let what = if t.is_dir() {
-        "is a directory"
-    } else {
-        not_regular(&t)
-    };
-    Err(Error::NotARegularFile { what })
-}
-
-#[cfg(unix)]
-fn not_regular(t: &std::fs::FileType) -> &'static str {
-    use std::os::unix::fs::FileTypeExt;
-    if t.is_fifo() {
-        "is a FIFO, not a regular file"
-    } else if t.is_char_device() {
-        "is a character device, not a regular file"
-    } else if t.is_block_device() {
-        "is a block device, not a regular file"
-    } else if t.is_socket() {
-        "is a socket, not a regular file"
-    } else {
-        "is not a regular file"
-    }
-}
-
-#[cfg(not(unix))]
-fn not_regular(_: &std::fs::FileType) -> &'static str {
-    "is not a regular file"
+    crate::input::open_regular(path).map_err(|e| match e {
+        crate::input::OpenError::Io(e) => Error::io(path, e),
+        crate::input::OpenError::NotRegular(what) => Error::NotARegularFile { what },
+    })
 }
 
 /// Maps `file` read-only.

@@ -137,15 +137,11 @@ impl LogReader<File> {
     /// Opens a log file; an error when it is not MCAP (or cannot be read at all).
     pub fn open(path: &Path) -> Result<Self, McapIoError> {
         // Opening a FIFO would block until something writes to it.
-        if !std::fs::metadata(path)?.is_file() {
-            return Err(McapIoError::NotRegularFile);
-        }
-        let file = File::open(path)?;
-        let meta = file.metadata()?;
-        if !meta.is_file() {
-            return Err(McapIoError::NotRegularFile);
-        }
-        let len = meta.len();
+        let file = crate::input::open_regular(path).map_err(|e| match e {
+            crate::input::OpenError::Io(e) => McapIoError::from(e),
+            crate::input::OpenError::NotRegular(_) => McapIoError::NotRegularFile,
+        })?;
+        let len = file.metadata()?.len();
         LogReader::new(file, len)
     }
 }

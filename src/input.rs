@@ -1,0 +1,131 @@
+//! Opening what a user named as input: regular files only (a symlink to one is fine), and
+//! never blocking. The one home of that rule: the map reader, the COLMAP readers, the
+//! database, the MCAP reader and the output policy (which refuses to replace anything else)
+//! all ask here. Each module wraps the answer in its own error type, naming the path.
+
+use std::fs::{File, FileType, Metadata};
+use std::path::Path;
+
+/// Why an input cannot be read as a file.
+#[derive(Debug)]
+pub enum OpenError {
+    /// `metadata` or `open` failed.
+    Io(std::io::Error),
+    /// It exists but is not a regular file; the value says what it is (`"a FIFO"`).
+    NotRegular(&'static str),
+}
+
+impl std::fmt::Display for OpenError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            OpenError::Io(e) => e.fmt(f),
+            OpenError::NotRegular(kind) => write!(f, "is {kind}, not a regular file"),
+        }
+    }
+}
+
+impl std::error::Error for OpenError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            OpenError::Io(e) => Some(e),
+            OpenError::NotRegular(_) => None,
+        }
+    }
+}
+
+/// What a file is when it is not a regular file (`None` for a regular file): `"a folder"`,
+/// `"a FIFO"`, `"a character device"`, `"a block device"`, `"a socket"`.
+pub fn not_regular(t: &FileType) -> Option<&'static str> {
+    if t.is_file() {
+        return None;
+    }
+    if t.is_dir() {
+        return Some("a folder");
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if t.is_fifo() {
+            return Some("a FIFO");
+        }
+        if t.is_char_device() {
+            return Some("a character device");
+        }
+        if t.is_block_device() {
+            return Some("a block device");
+        }
+        if t.is_socket() {
+            return Some("a socket");
+        }
+    }
+    Some("not a plain file")
+}
+
+fn check(meta: &Metadata) -> Result<(), OpenError> {
+    match not_regular(&meta.file_type()) {
+        None => Ok(()),
+        Some(kind) => Err(OpenError::NotRegular(kind)),
+    }
+}
+
+/// Checks that `path` is a regular file without opening it (for SQLite, which opens the
+/// file itself).
+pub fn check_regular_path(path: &Path) -> Result<Metadata, OpenError> {
+    let meta = std::fs::metadata(path).map_err(OpenError::Io)?;
+    check(&meta)?;
+    Ok(meta)
+}
+
+/// Opens `path` for reading if it is a regular file.
+///
+/// The path is checked before opening (opening a FIFO waits for a writer, forever if none
+/// comes); it is opened with `O_NONBLOCK`, so a path swapped for a FIFO in between cannot
+/// block either (the flag means nothing for a regular file); and the opened file is checked
+/// again (`fstat`), since that is the one that is read.
+pub fn open_regular(path: &Path) -> Result<File, OpenError> {
+    check_regular_path(path)?;
+    let mut options = std::fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(rustix::fs::OFlags::NONBLOCK.bits() as i32);
+    }
+    let file = options.open(path).map_err(OpenError::Io)?;
+    check(&file.metadata().map_err(OpenError::Io)?)?;
+    Ok(file)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn regular_files_open_and_everything_else_says_what_it_is() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("f");
+        std::fs::write(&file, b"x").unwrap();
+        assert!(open_regular(&file).is_ok());
+        let e = open_regular(dir.path()).unwrap_err();
+        assert_eq!(e.to_string(), "is a folder, not a regular file");
+        let missing = open_regular(&dir.path().join("missing")).unwrap_err();
+        assert!(matches!(missing, OpenError::Io(_)), "{missing:?}");
+        #[cfg(unix)]
+        {
+            let fifo = dir.path().join("fifo");
+            rustix::fs::mknodat(
+                rustix::fs::CWD,
+                &fifo,
+                rustix::fs::FileType::Fifo,
+                rustix::fs::Mode::from_raw_mode(0o600),
+                0,
+            )
+            .unwrap();
+            // Returns at once: a blocking open would wait here for a writer forever.
+            let e = open_regular(&fifo).unwrap_err();
+            assert_eq!(e.to_string(), "is a FIFO, not a regular file");
+            let e = check_regular_path(Path::new("/dev/null")).unwrap_err();
+            assert_eq!(e.to_string(), "is a character device, not a regular file");
+        }
+    }
+}
