@@ -433,6 +433,14 @@ fn writer_refuses_maps_open_would_refuse() {
     let mut w = MapWriter::default();
     w.set_points_world(&[[f64::NAN, 0.0, 0.0]]);
     cases.push(("origin is not finite", w));
+    // Finite in f64, but 1e308 apart: relative to their mean they overflow f32.
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[1e308, 0.0, 0.0], [-1e308, 0.0, 0.0]]);
+    cases.push(("point 0: position is not finite", w));
+    let mut w = MapWriter::default();
+    static RELATIVE: [[f32; 3]; 2] = [[0.0; 3], [1.0, f32::NAN, 0.0]];
+    w.set_points(&RELATIVE);
+    cases.push(("point 1: position is not finite", w));
     let mut w = MapWriter::default();
     w.set_points_world(&[[0.0; 3]]);
     w.add_level(common::level_info(0, 8.0, 5000, 4), &[], None, false)

@@ -584,6 +584,24 @@ impl<'a> MapWriter<'a> {
                 s.kind, s.cols
             )));
         }
+        // A point too far from the origin for f32 (or a NaN the caller passed) would be stored
+        // as inf/NaN, which no localizer can use: refuse it, naming the point.
+        if let Some(s) = self
+            .sections
+            .get(&(SectionKind::PointPositions.code(), NO_LEVEL))
+        {
+            if let Content::Array { bytes, .. } = &s.content {
+                let bad = bytes
+                    .chunks_exact(4)
+                    .position(|b| !f32::from_le_bytes([b[0], b[1], b[2], b[3]]).is_finite());
+                if let Some(i) = bad {
+                    return Err(Error::invalid(format!(
+                        "point {}: position is not finite relative to the origin (too far for f32, or NaN)",
+                        i / 3
+                    )));
+                }
+            }
+        }
         // Canonical order (by kind code, level), so the bytes do not depend on the order of
         // the calls.
         let order: Vec<&PendingSection<'a>> = self.sections.values().collect();
