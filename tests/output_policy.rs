@@ -298,6 +298,24 @@ fn convert_never_writes_over_a_model_file_or_the_database() {
     ]);
     refused(&o, &db, "input");
     assert_eq!(std::fs::read(&db).unwrap(), before);
+    // With --images, an existing file in the images folder may be a model image: refused
+    // before the extractor runs (no ONNX Runtime needed to get this far).
+    let images = dir.path().join("images");
+    std::fs::create_dir(&images).unwrap();
+    let image = images.join("a.jpg");
+    std::fs::write(&image, b"not really a jpeg").unwrap();
+    let o = sfpmap(&[
+        "convert",
+        "--colmap",
+        s(&model),
+        "--images",
+        s(&images),
+        "-o",
+        s(&image),
+        "--force",
+    ]);
+    refused(&o, &image, "input");
+    assert_eq!(std::fs::read(&image).unwrap(), b"not really a jpeg");
 }
 
 // Finding 12: `plot` overwrote without --force, over its own map too, and wrote in place.

@@ -163,7 +163,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
 }
 
 /// The output policy, with every file convert reads as an input: the model files, the
-/// database and the extractor's model.
+/// database, the extractor's model and, with `--images`, an existing output inside the
+/// images folder (it may be a model image: refused rather than read the model twice).
 fn check_output(args: &Args) -> anyhow::Result<()> {
     let model = sfpmap::colmap::model_files(&args.colmap)
         .map(|f| f.paths)
@@ -172,6 +173,15 @@ fn check_output(args: &Args) -> anyhow::Result<()> {
     inputs.extend(args.database.as_deref());
     #[cfg(feature = "onnx")]
     inputs.extend(args.model.as_deref());
+    let in_images = args.images.as_deref().is_some_and(|images| {
+        match (args.output.canonicalize(), images.canonicalize()) {
+            (Ok(out), Ok(images)) => out.starts_with(images),
+            _ => false,
+        }
+    });
+    if in_images {
+        inputs.push(&args.output);
+    }
     super::check_outputs(&[&args.output], &inputs, args.force)
 }
 
