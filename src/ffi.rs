@@ -143,7 +143,7 @@ impl FfiError {
 impl From<FormatError> for FfiError {
     fn from(e: FormatError) -> Self {
         let code = match &e {
-            FormatError::Io { .. } => SFPM_ERR_IO,
+            FormatError::Io { .. } | FormatError::NotARegularFile { .. } => SFPM_ERR_IO,
             FormatError::NoSuchLevel { .. } => SFPM_ERR_NO_SUCH_LEVEL,
             FormatError::MissingSection { .. } => SFPM_ERR_MISSING,
             _ => SFPM_ERR_FORMAT,

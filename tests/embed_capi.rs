@@ -267,6 +267,14 @@ fn images_visibility_and_argument_errors() {
         SfpmStatus::SFPM_ERR_IO
     );
     assert!(last_error().contains("/nonexistent/map.sfpm"));
+    // A folder cannot be read as a file: an I/O error too, saying what it is.
+    let folder = tempfile::tempdir().unwrap();
+    let folder_path = CString::new(folder.path().to_str().unwrap()).unwrap();
+    assert_eq!(
+        unsafe { sfpm_open(folder_path.as_ptr(), &mut map) },
+        SfpmStatus::SFPM_ERR_IO
+    );
+    assert!(last_error().contains("is a folder"), "{}", last_error());
     let garbage = tempfile::NamedTempFile::new().unwrap();
     std::fs::write(garbage.path(), b"not a map at all").unwrap();
     let garbage = CString::new(garbage.path().to_str().unwrap()).unwrap();
