@@ -250,6 +250,16 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "seconds": seconds,
         }))?;
     }
+    // The demo is the README's main job and CI's smoke test of the whole pipeline: a run in
+    // which a map localizes nothing is a failure, not a table of dashes.
+    if let Some(row) = rows.iter().find(|r| r["localized"] == 0) {
+        anyhow::bail!(
+            "{}: the demo localized none of its {} queries with the {} map",
+            out.display(),
+            scene.queries.len(),
+            row["map"].as_str().unwrap_or("?")
+        );
+    }
     Ok(ExitCode::SUCCESS)
 }
 
