@@ -632,6 +632,11 @@ impl<'m> Localizer<'m> {
         let mut found: Vec<(u32, f32, usize)> = Vec::new();
         let gate2 = (gate * gate) as f32;
         let mut qd = Vec::with_capacity(level.dim);
+        // Most keypoints will need their projection when the level has as many points in view
+        // as a quarter of the keypoints: then one GEMM for all of them (5x faster than row by
+        // row), held only while this level is matched; otherwise each keypoint is projected
+        // alone, and only if some point is near it.
+        let all = (cells.len() * 4 >= set.keypoints.len()).then(|| self.project(level, set));
         for (k, kp) in set.keypoints.iter().enumerate() {
             if !(kp[0] >= 0.0 && kp[1] >= 0.0 && kp[0] < w && kp[1] < h) {
                 continue;
@@ -649,11 +654,17 @@ impl<'m> Localizer<'m> {
                     if dx * dx + dy * dy > gate2 {
                         continue;
                     }
-                    if !projected {
-                        self.project_row(level, set, k, &mut qd);
-                        projected = true;
-                    }
-                    let s = dot(&qd, level.row(row as usize));
+                    let q = match &all {
+                        Some(all) => &all[k * level.dim..(k + 1) * level.dim],
+                        None => {
+                            if !projected {
+                                self.project_row(level, set, k, &mut qd);
+                                projected = true;
+                            }
+                            &qd[..]
+                        }
+                    };
+                    let s = dot(q, level.row(row as usize));
                     let p = level.points[row as usize];
                     if s > best.0 {
                         second = best.0;
