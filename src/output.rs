@@ -485,8 +485,18 @@ fn create_named_locked(
     Err(last)
 }
 
-/// Removes temp files in `dir` left by processes that no longer run (best effort).
+/// Removes temp files in `dir` left by processes that no longer run (best effort), once per
+/// folder per process: a command writing many files into one folder of 200 k entries would
+/// otherwise list it for each file.
 fn remove_stale_temps(dir: &Path) {
+    static SWEPT: std::sync::Mutex<Vec<std::path::PathBuf>> = std::sync::Mutex::new(Vec::new());
+    {
+        let mut swept = SWEPT.lock().unwrap_or_else(|e| e.into_inner());
+        if swept.iter().any(|d| d == dir) {
+            return;
+        }
+        swept.push(dir.to_path_buf());
+    }
     let Ok(entries) = std::fs::read_dir(dir) else {
         return;
     };
