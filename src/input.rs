@@ -33,6 +33,17 @@ impl std::error::Error for OpenError {
     }
 }
 
+impl From<OpenError> for std::io::Error {
+    fn from(e: OpenError) -> Self {
+        match e {
+            OpenError::Io(e) => e,
+            e @ OpenError::NotRegular(_) => {
+                std::io::Error::new(std::io::ErrorKind::InvalidInput, e.to_string())
+            }
+        }
+    }
+}
+
 /// What a file is when it is not a regular file (`None` for a regular file): `"a folder"`,
 /// `"a FIFO"`, `"a character device"`, `"a block device"`, `"a socket"`.
 pub fn not_regular(t: &FileType) -> Option<&'static str> {
@@ -96,6 +107,23 @@ pub fn open_regular(path: &Path) -> Result<File, OpenError> {
     Ok(file)
 }
 
+/// The whole of `path`, read only if it is a regular file (so a FIFO never blocks and a
+/// device such as `/dev/zero` is never read without end).
+pub fn read_regular(path: &Path) -> Result<Vec<u8>, OpenError> {
+    use std::io::Read;
+    let mut file = open_regular(path)?;
+    let len = file.metadata().map_err(OpenError::Io)?.len();
+    let mut bytes = Vec::with_capacity(usize::try_from(len).unwrap_or(0));
+    file.read_to_end(&mut bytes).map_err(OpenError::Io)?;
+    Ok(bytes)
+}
+
+/// [`read_regular`] as UTF-8 text.
+pub fn read_regular_to_string(path: &Path) -> Result<String, OpenError> {
+    String::from_utf8(read_regular(path)?)
+        .map_err(|e| OpenError::Io(std::io::Error::new(std::io::ErrorKind::InvalidData, e)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -106,6 +134,7 @@ mod tests {
         let file = dir.path().join("f");
         std::fs::write(&file, b"x").unwrap();
         assert!(open_regular(&file).is_ok());
+        assert_eq!(read_regular(&file).unwrap(), b"x");
         let e = open_regular(dir.path()).unwrap_err();
         assert_eq!(e.to_string(), "is a folder, not a regular file");
         let missing = open_regular(&dir.path().join("missing")).unwrap_err();
@@ -124,6 +153,9 @@ mod tests {
             // Returns at once: a blocking open would wait here for a writer forever.
             let e = open_regular(&fifo).unwrap_err();
             assert_eq!(e.to_string(), "is a FIFO, not a regular file");
+            let e = read_regular_to_string(&fifo).unwrap_err();
+            assert_eq!(e.to_string(), "is a FIFO, not a regular file");
+            assert!(read_regular(Path::new("/dev/zero")).is_err());
             let e = check_regular_path(Path::new("/dev/null")).unwrap_err();
             assert_eq!(e.to_string(), "is a character device, not a regular file");
         }

@@ -920,3 +920,62 @@ fn export_ply_errors_name_the_map() {
     assert_refused(&out, &[&map.display().to_string()]);
     assert!(!ply.exists());
 }
+
+// ---------------------------------------------------------------------------------------
+// Query-side inputs (a review found these bypassed the regular-file rule): a FIFO as the
+// query list, the poses or features.h5 blocked for ever, /dev/zero was read without end.
+
+/// Runs `f` on a thread; fails the test if it has not returned within `TIMEOUT`.
+fn returns_promptly<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(f());
+    });
+    rx.recv_timeout(TIMEOUT)
+        .expect("blocked on a file that is not a regular file")
+}
+
+#[cfg(unix)]
+#[test]
+fn query_lists_poses_and_features_must_be_regular_files() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fifo = tmp.path().join("queries.fifo");
+    mkfifo(&fifo);
+    for path in [
+        fifo.clone(),
+        PathBuf::from("/dev/zero"),
+        tmp.path().to_path_buf(),
+    ] {
+        let p = path.clone();
+        let err = returns_promptly(move || {
+            sfpmap::localize::query::read_query_list(&p, None)
+                .unwrap_err()
+                .to_string()
+        });
+        assert!(err.contains("not a regular file"), "{err}");
+        let p = path.clone();
+        let err = returns_promptly(move || {
+            sfpmap::localize::eval::read_poses(&p)
+                .unwrap_err()
+                .to_string()
+        });
+        assert!(err.contains("not a regular file"), "{err}");
+        let p = path.clone();
+        let err = returns_promptly(
+            move || match sfpmap::localize::query::H5Features::open(&p) {
+                Ok(_) => "opened".to_string(),
+                Err(e) => e.to_string(),
+            },
+        );
+        assert!(err.contains("not a regular file"), "{err}");
+    }
+    // Through the CLI: one line naming the file.
+    let out = sfpmap(&[
+        OsStr::new("eval"),
+        OsStr::new("--poses"),
+        fifo.as_os_str(),
+        OsStr::new("--gt"),
+        fifo.as_os_str(),
+    ]);
+    assert_refused(&out, &[&fifo.display().to_string(), "a FIFO"]);
+}

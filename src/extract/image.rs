@@ -30,9 +30,9 @@ pub fn load(
     weights: [f32; 3],
     resize_max: Option<u32>,
 ) -> Result<GrayInput, ExtractError> {
-    let bytes = std::fs::read(path).map_err(|source| ExtractError::Io {
+    let bytes = crate::input::read_regular(path).map_err(|e| ExtractError::Io {
         path: path.to_path_buf(),
-        source,
+        source: e.into(),
     })?;
     decode(&bytes, path, weights, resize_max)
 }

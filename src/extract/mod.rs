@@ -341,9 +341,9 @@ fn read_model(
     match path {
         None => Ok((DEFAULT_MODEL.into(), DEFAULT_MODEL_NAME.to_string())),
         Some(p) => {
-            let bytes = std::fs::read(p).map_err(|source| ExtractError::Io {
+            let bytes = crate::input::read_regular(p).map_err(|e| ExtractError::Io {
                 path: p.to_path_buf(),
-                source,
+                source: e.into(),
             })?;
             Ok((bytes.into(), p.display().to_string()))
         }

@@ -233,9 +233,9 @@ pub fn convert_with_images(
             continue;
         }
         // Read once: hashed for provenance and decoded from the same bytes.
-        let bytes = std::fs::read(path).map_err(|source| ExtractError::Io {
+        let bytes = crate::input::read_regular(path).map_err(|e| ExtractError::Io {
             path: path.clone(),
-            source,
+            source: e.into(),
         })?;
         image_bytes += bytes.len() as u64;
         sources.push(SourceFile {

@@ -11,7 +11,7 @@ use std::path::Path;
 /// Reads `name qw qx qy qz tx ty tz` lines (COLMAP `cam_from_world`); `#` lines are comments
 /// (the localizer lists failed queries as `# failed NAME: reason`).
 pub fn read_poses(path: &Path) -> Result<Vec<(String, Pose)>, InputError> {
-    let text = std::fs::read_to_string(path).map_err(|e| InputError {
+    let text = crate::input::read_regular_to_string(path).map_err(|e| InputError {
         path: path.into(),
         line: None,
         message: e.to_string(),

@@ -36,7 +36,7 @@ impl std::error::Error for InputError {}
 /// Reads `name MODEL W H params...` lines (hloc's query list with intrinsics). With
 /// `camera`, lines may hold just a name and that camera is used for every query.
 pub fn read_query_list(path: &Path, camera: Option<&Camera>) -> Result<Vec<Query>, InputError> {
-    let text = std::fs::read_to_string(path).map_err(|e| InputError {
+    let text = crate::input::read_regular_to_string(path).map_err(|e| InputError {
         path: path.into(),
         line: None,
         message: e.to_string(),
@@ -161,19 +161,27 @@ pub fn sfp_query(f: &crate::extract::Features) -> QueryFeatures {
 pub struct H5Features {
     file: hdf5_pure::File,
     path: PathBuf,
+    /// Bounds every dataset's declared size before it is read (an unwritten dataset of a
+    /// declared 2^31 values would otherwise be allocated as its fill value).
+    file_len: u64,
 }
 
 #[cfg(feature = "onnx")]
 impl H5Features {
     pub fn open(path: &Path) -> Result<H5Features, InputError> {
-        let file = hdf5_pure::File::open(path).map_err(|e| InputError {
+        let err = |message: String| InputError {
             path: path.into(),
             line: None,
-            message: format!("not a readable HDF5 file: {e}"),
-        })?;
+            message,
+        };
+        let bytes = crate::input::read_regular(path).map_err(|e| err(e.to_string()))?;
+        let file_len = bytes.len() as u64;
+        let file = hdf5_pure::File::from_bytes(bytes)
+            .map_err(|e| err(format!("not a readable HDF5 file: {e}")))?;
         Ok(H5Features {
             file,
             path: path.into(),
+            file_len,
         })
     }
 
@@ -196,6 +204,18 @@ impl H5Features {
             [n] => (1, *n),
             other => return Err(self.err(format!("{name}: unexpected shape {other:?}"))),
         };
+        // At least 2 bytes a value (f16): a shape the file cannot hold is refused before
+        // hdf5 allocates it.
+        if rows
+            .checked_mul(cols)
+            .and_then(|n| n.checked_mul(2))
+            .is_none_or(|b| b > self.file_len)
+        {
+            return Err(self.err(format!(
+                "{name}: {rows} x {cols} values do not fit in a file of {} bytes",
+                self.file_len
+            )));
+        }
         let raw = ds
             .read_raw()
             .map_err(|e| self.err(format!("{name}: {e}")))?;
