@@ -319,7 +319,8 @@ impl AtomicFile {
                     temp
                 }
             };
-            let renamed = std::fs::rename(&temp, &path)
+            let renamed = self
+                .rename_into_place(&temp)
                 .map_err(OutputError::io(&path, "cannot rename into place"));
             if renamed.is_err() {
                 let _ = std::fs::remove_file(&temp);
@@ -329,6 +330,21 @@ impl AtomicFile {
             renamed?;
         }
         sync_dir(&self.dir_file).map_err(OutputError::io(&path, "cannot sync its folder"))
+    }
+
+    /// Renames `temp` over the target relative to the open folder (`renameat`), so the file
+    /// lands in the folder it was created in even if that folder's path is swapped meanwhile.
+    fn rename_into_place(&self, temp: &Path) -> std::io::Result<()> {
+        #[cfg(unix)]
+        {
+            let temp_name = temp.file_name().unwrap_or(temp.as_os_str());
+            rustix::fs::renameat(&self.dir_file, temp_name, &self.dir_file, &self.name)
+                .map_err(std::io::Error::from)
+        }
+        #[cfg(not(unix))]
+        {
+            std::fs::rename(temp, &self.target)
+        }
     }
 
     /// Gives the unnamed file a temp name (listed in `list`), or copies it to a named temp

@@ -158,7 +158,8 @@ fn print_info_text(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
             "level {}: {} points, {} (stride {}), dims {} full / {} short, rest {}",
             l.id(),
             l.len(),
-            l.info().descriptor,
+            // The file's text: control characters escaped, so a map cannot drive the terminal.
+            l.info().descriptor.escape_debug(),
             l.info().stride,
             l.dim_full(),
             l.dim_short(),
