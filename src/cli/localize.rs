@@ -409,6 +409,12 @@ impl Source {
                     }
                     Err(e) => return Err(e.into()),
                 };
+                // One oversized query is a failed query, not an aborted run.
+                if let Some(reason) =
+                    sfpmap::extract::too_large_for_the_network(input.width, input.height)
+                {
+                    return Ok(Err(reason));
+                }
                 let f = extractor
                     .extract(&input, &sfpmap::extract::DetectOptions::default())
                     .map_err(|e| e.on_image(&path))?;
