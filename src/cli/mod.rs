@@ -117,7 +117,8 @@ pub fn naming(path: &std::path::Path) -> impl FnOnce(sfpmap::format::Error) -> a
 }
 
 /// The output policy ([`sfpmap::output::check_output`]) for each of `outputs`: none may be one
-/// of `inputs`, a device, FIFO or folder, or an existing file without `--force`.
+/// of `inputs`, a device, FIFO or folder, or an existing file without `--force`; and no two
+/// outputs may name the same file (the second would silently replace the first).
 pub fn check_outputs(
     outputs: &[&std::path::Path],
     inputs: &[&std::path::Path],
@@ -125,6 +126,22 @@ pub fn check_outputs(
 ) -> anyhow::Result<()> {
     for out in outputs {
         sfpmap::output::check_output(out, inputs, force)?;
+    }
+    // The file an output names, whether or not it exists yet: its folder resolved, its name.
+    let place = |p: &std::path::Path| {
+        let dir = p.parent().filter(|d| !d.as_os_str().is_empty());
+        let dir = dir.unwrap_or(std::path::Path::new("."));
+        Some((dir.canonicalize().ok()?, p.file_name()?.to_os_string()))
+    };
+    let places: Vec<_> = outputs.iter().map(|p| place(p)).collect();
+    for (i, a) in places.iter().enumerate() {
+        if let Some(j) = places[..i].iter().position(|b| a.is_some() && b == a) {
+            anyhow::bail!(
+                "{}: named as two outputs (also as {}); give each output its own file",
+                outputs[i].display(),
+                outputs[j].display()
+            );
+        }
     }
     Ok(())
 }
