@@ -4,7 +4,11 @@
 //! after it still read through the chunk index.
 #![cfg(feature = "mcap")]
 
+mod common;
+
+use common::{level_info, Rng};
 use serde_json::Value;
+use sfpmap::format::{Descriptors, MapWriter};
 use std::collections::BTreeMap;
 use std::os::unix::process::ExitStatusExt;
 use std::path::{Path, PathBuf};
@@ -101,6 +105,16 @@ const TOPIC: &str = "/cam/compressed";
 /// one chunk per image.
 fn write_log(path: &Path, chunks: Option<Option<mcap::Compression>>, images: u32) -> Vec<u8> {
     let (jpeg, _) = query();
+    let jpegs = vec![jpeg; images as usize];
+    write_log_of(path, chunks, &jpegs)
+}
+
+/// A log of one message per JPEG of `jpegs` on [`TOPIC`], stamped 1, 2, ... s.
+fn write_log_of(
+    path: &Path,
+    chunks: Option<Option<mcap::Compression>>,
+    jpegs: &[Vec<u8>],
+) -> Vec<u8> {
     let mut out = std::io::Cursor::new(Vec::new());
     let options = match chunks {
         Some(compression) => mcap::WriteOptions::new()
@@ -115,7 +129,7 @@ fn write_log(path: &Path, chunks: Option<Option<mcap::Compression>>, images: u32
     let channel = w
         .add_channel(schema, TOPIC, "cdr", &BTreeMap::new())
         .unwrap();
-    for i in 1..=images {
+    for (i, jpeg) in (1..).zip(jpegs) {
         let time = u64::from(i) * 1_000_000_000;
         w.write_to_known_channel(
             &mcap::records::MessageHeader {
@@ -124,7 +138,7 @@ fn write_log(path: &Path, chunks: Option<Option<mcap::Compression>>, images: u32
                 log_time: time,
                 publish_time: time,
             },
-            &compressed_image(i, &jpeg),
+            &compressed_image(i, jpeg),
         )
         .unwrap();
     }
@@ -163,11 +177,15 @@ struct Run {
 }
 
 fn localize(input: &Path, out: &Path, extra: &[&str]) -> Run {
+    localize_on(map(), input, out, extra)
+}
+
+fn localize_on(map: &str, input: &Path, out: &Path, extra: &[&str]) -> Run {
     let (_, camera) = query();
     let mut args = vec![
         "localize",
         "--map",
-        map(),
+        map,
         "--mcap",
         input.to_str().unwrap(),
         "--topic",
@@ -362,4 +380,94 @@ fn a_flipped_byte_in_a_chunk_is_named_and_the_other_chunks_are_read() {
         assert!(warnings(&run.stderr).is_empty(), "{}", run.stderr);
         assert_eq!(pose_seconds(&out), [1, 2, 3], "{name}");
     }
+}
+
+/// An SFP map the embedded extractor's queries fit, built in a moment (random points and
+/// descriptors, so nothing localizes): level 2 (stride 8) of sfp-v1, 192 full dimensions of
+/// which 64 short, and level 3 with no points, which the localizer skips.
+fn map_with_an_empty_level(dir: &Path) -> String {
+    let (n, full) = (500, 192);
+    let mut rng = Rng(3);
+    let positions: Vec<[f64; 3]> = (0..n)
+        .map(|_| {
+            [
+                f64::from(rng.unit()) * 5.0,
+                f64::from(rng.unit()) * 4.0,
+                10.0,
+            ]
+        })
+        .collect();
+    let descriptors: Vec<f32> = (0..n * full).map(|_| rng.unit()).collect();
+    let points: Vec<u32> = (0..n as u32).collect();
+    let mut w = MapWriter::default();
+    w.set_points_world(&positions);
+    w.add_level(
+        level_info(2, 8.0, full as u32, 64),
+        &points,
+        Some(Descriptors::F32(&descriptors)),
+        true,
+    )
+    .unwrap();
+    w.add_level(
+        level_info(3, 16.0, full as u32, 64),
+        &[],
+        Some(Descriptors::F32(&[])),
+        true,
+    )
+    .unwrap();
+    let path = dir.join("empty-level.sfpm");
+    std::fs::write(&path, w.to_bytes().unwrap()).unwrap();
+    path.to_str().unwrap().to_owned()
+}
+
+/// Issue 12, finding 17 on the MCAP path: a cut-off JPEG in a message was decoded leniently
+/// (the lost part grey) and localized like any other frame. Now it is a failed frame whose
+/// reason is the decoder's, as with query files (one decoder for both). The MCAP path also
+/// warns about the levels the localizer skips, as the query-list path does.
+#[test]
+fn a_cut_off_jpeg_in_a_message_is_a_failed_frame_and_skipped_levels_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let map = map_with_an_empty_level(dir.path());
+    let (jpeg, _) = query();
+    let scan = jpeg.windows(2).position(|w| w == [0xFF, 0xDA]).unwrap();
+    let jpegs = [
+        jpeg.clone(),
+        // Cut in the middle of the scan, and cut just before the end-of-image marker.
+        jpeg[..(scan + jpeg.len()) / 2].to_vec(),
+        jpeg[..jpeg.len() - 2].to_vec(),
+    ];
+    let input = dir.path().join("cut.mcap");
+    write_log_of(&input, Some(Some(mcap::Compression::Zstd)), &jpegs);
+    let out = dir.path().join("out.mcap");
+    let run = localize_on(&map, &input, &out, &[]);
+    // Nothing of the log was skipped: the frames were read, two of them do not decode.
+    assert_eq!(run.code, Some(0), "{}", run.stderr);
+    assert_eq!(run.json["images"], 3, "{}", run.json);
+    let failed = run.json["failed"].as_array().unwrap();
+    let reason = |index: usize| {
+        failed
+            .iter()
+            .find(|f| f["index"] == index)
+            .and_then(|f| f["reason"].as_str())
+            .unwrap_or("")
+            .to_owned()
+    };
+    for index in [1, 2] {
+        let reason = reason(index);
+        assert!(
+            reason.starts_with("cannot decode \"jpeg\" image: "),
+            "frame {index}: {reason:?}: {}",
+            run.json
+        );
+    }
+    assert!(!reason(0).contains("decode"), "{}", run.json);
+    let w = warnings(&run.stderr);
+    assert_eq!(
+        w,
+        [format!(
+            "warning: {map}: 1 level(s) not matched: level 3: no points"
+        )],
+        "{}",
+        run.stderr
+    );
 }

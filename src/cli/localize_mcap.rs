@@ -208,6 +208,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     let extractor = super::sfp_extractor(args, &descriptor, bars)?;
     let gray_weights = extractor.contract().gray_weights;
     let localizer = super::localizer(&map, args)?;
+    super::warn_skipped(&localizer, &args.map, bars);
 
     bars.start("localizing", expected_on_topic);
     let extractor = Mutex::new(extractor);

@@ -332,7 +332,9 @@ pub fn decode_image(
     }
 }
 
-/// JPEG or PNG bytes (format from the content; the `format` string only names errors).
+/// JPEG or PNG bytes (format from the content; the `format` string only names errors),
+/// decoded as query files are ([`decode_complete`](crate::extract::image::decode_complete)):
+/// a cut-off or damaged JPEG is an error, not an image with its lost part grey.
 fn decode_compressed(format: &str, bytes: &[u8]) -> Result<DynamicImage, McapIoError> {
     // Depth images are 16-bit distances behind a private header, not a photo to match.
     if format.contains("compressedDepth") {
@@ -340,14 +342,14 @@ fn decode_compressed(format: &str, bytes: &[u8]) -> Result<DynamicImage, McapIoE
             encoding: format.to_owned(),
         });
     }
-    let kind = image::guess_format(bytes).map_err(|_| McapIoError::UnsupportedImageEncoding {
+    image::guess_format(bytes).map_err(|_| McapIoError::UnsupportedImageEncoding {
         encoding: if format.is_empty() {
             "unknown (no JPEG or PNG signature)".to_owned()
         } else {
             format.to_owned()
         },
     })?;
-    image::load_from_memory_with_format(bytes, kind).map_err(|source| McapIoError::ImageDecode {
+    crate::extract::image::decode_complete(bytes).map_err(|source| McapIoError::ImageDecode {
         format: format.to_owned(),
         source,
     })
