@@ -432,3 +432,188 @@ fn absurd_threads_are_capped_with_a_warning() {
     assert_eq!(run.code, Some(0), "{run:?}");
     assert!(run.stderr.is_empty(), "{run:?}");
 }
+
+/// A crafted map of one level, 16 points with random `dim`-dimensional descriptors.
+fn small_map(dir: &Path, dim: u64) -> PathBuf {
+    let metadata = craft_metadata(vec![craft_level(0, dim, dim)]);
+    let mut rng = Rng(9);
+    let short: Vec<u8> = (0..16 * dim)
+        .flat_map(|_| f16::from_f32(rng.unit()).to_le_bytes())
+        .collect();
+    let bytes = craft(
+        &metadata,
+        &[
+            craft_points(16),
+            craft_level_points(0, &(0..16).collect::<Vec<u32>>()),
+            Crafted::raw(SectionKind::LevelDescShort, 0, Dtype::F16, 16, dim, short),
+        ],
+    );
+    write(dir, "small.sfpm", &bytes)
+}
+
+/// Issue 12, finding 18 for `localize -o`: query names went into the pose file as they were,
+/// so a control character in a name (ESC, NUL, DEL: the query list's own line and field
+/// splitting keeps newlines and spaces out) landed raw in a text format. Now, as the
+/// exporters do: the COLMAP format, whose rows start with the name, refuses such a name
+/// before any work; TUM, whose rows hold no names, escapes it in its comment; JSON keeps it.
+#[test]
+fn query_names_with_control_characters_are_refused_or_escaped() {
+    let t = tempfile::tempdir().unwrap();
+    let map = small_map(t.path(), 8);
+    let names = ["q.jpg", "a\u{1b}[2Jb.jpg", "c\u{0}d\u{7f}.jpg"];
+    let list = query_list(t.path(), &names);
+    let h5 = features(t.path(), "q.jpg", 200, 8);
+    let run_format = |format: &str| {
+        let out = t.path().join(format!("poses.{format}"));
+        let run = sfpmap(
+            &args![
+                "localize",
+                "--map",
+                map,
+                "--query-list",
+                list,
+                "--features",
+                h5,
+                "--format",
+                format,
+                "-o",
+                out
+            ],
+            2 * GIB,
+        );
+        (run, out)
+    };
+
+    let (run, out) = run_format("colmap");
+    assert_one_line_error(&run, &list);
+    assert!(
+        run.stderr
+            .contains(r#"query 2 "a\x1b[2Jb.jpg" holds a control character"#),
+        "{run:?}"
+    );
+    assert!(!out.exists(), "no output for a refused run");
+
+    let (run, out) = run_format("tum");
+    assert_eq!(run.code, Some(0), "{run:?}");
+    let text = std::fs::read_to_string(&out).unwrap();
+    assert!(
+        !text.chars().any(|c| c.is_control() && c != '\n'),
+        "raw control character: {text:?}"
+    );
+    assert!(text.contains("# failed 1 a\\x1b[2Jb.jpg: "), "{text:?}");
+    assert!(text.contains("# failed 2 c\\x00d\\x7f.jpg: "), "{text:?}");
+    assert_eq!(text.lines().count(), 4, "{text:?}");
+
+    let (run, out) = run_format("json");
+    assert_eq!(run.code, Some(0), "{run:?}");
+    let list: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let read: Vec<&str> = list
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|q| q["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(read, names);
+}
+
+/// A COLMAP database with one image, `name`, whose keypoints are `cols` values per row
+/// (`keypoints`, row-major) with 128-byte descriptors.
+#[cfg(feature = "colmap")]
+fn query_database(dir: &Path, name: &str, cols: usize, keypoints: &[f32]) -> PathBuf {
+    let path = dir.join(format!("queries-{cols}.db"));
+    let conn = rusqlite::Connection::open(&path).unwrap();
+    conn.execute_batch(
+        "CREATE TABLE cameras (camera_id INTEGER PRIMARY KEY, model INTEGER, width INTEGER, \
+           height INTEGER, params BLOB, prior_focal_length INTEGER);
+         CREATE TABLE images (image_id INTEGER PRIMARY KEY, name TEXT, camera_id INTEGER);
+         CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);
+         CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);",
+    )
+    .unwrap();
+    let rows = keypoints.len() / cols;
+    let blob: Vec<u8> = keypoints.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let mut rng = Rng(21);
+    let descriptors: Vec<u8> = (0..rows * 128)
+        .map(|_| (rng.unit() * 255.0) as u8)
+        .collect();
+    conn.execute("INSERT INTO images VALUES (1, ?1, 1)", [name])
+        .unwrap();
+    conn.execute(
+        "INSERT INTO keypoints VALUES (1, ?1, ?2, ?3)",
+        rusqlite::params![rows as i64, cols as i64, blob],
+    )
+    .unwrap();
+    conn.execute(
+        "INSERT INTO descriptors VALUES (1, ?1, 128, ?2)",
+        rusqlite::params![rows as i64, descriptors],
+    )
+    .unwrap();
+    path
+}
+
+/// Issue 12 (NaN/inf in COLMAP inputs) for query databases: a keypoint with a NaN or
+/// infinite x, y or scale went into matching and pose estimation unchecked. Now it is a
+/// one-line error naming the database, the image and the keypoint.
+#[cfg(feature = "colmap")]
+#[test]
+fn a_non_finite_query_keypoint_is_an_error_naming_database_image_and_keypoint() {
+    let t = tempfile::tempdir().unwrap();
+    let map = small_map(t.path(), 128);
+    let list = query_list(t.path(), &["q.jpg"]);
+    let out = t.path().join("poses.txt");
+    let cases: [(usize, Vec<f32>, &str); 3] = [
+        (
+            2,
+            vec![10.0, 20.0, f32::NAN, 40.0, 50.0, 60.0],
+            "keypoint 1: x is NaN",
+        ),
+        (
+            4,
+            vec![10.0, 20.0, 2.0, 0.0, 30.0, f32::NEG_INFINITY, 2.0, 0.0],
+            "keypoint 1: y is -inf",
+        ),
+        (
+            4,
+            vec![
+                10.0,
+                20.0,
+                2.0,
+                0.0,
+                30.0,
+                40.0,
+                2.0,
+                0.0,
+                1.0,
+                2.0,
+                f32::INFINITY,
+                0.0,
+            ],
+            "keypoint 2: scale is inf",
+        ),
+    ];
+    for (cols, keypoints, expected) in cases {
+        let db = query_database(t.path(), "q.jpg", cols, &keypoints);
+        let run = sfpmap(
+            &args![
+                "localize",
+                "--map",
+                map,
+                "--query-list",
+                list,
+                "--database",
+                db,
+                "-o",
+                out,
+                "--force"
+            ],
+            2 * GIB,
+        );
+        assert_one_line_error(&run, &db);
+        assert!(
+            run.stderr.contains(r#"image "q.jpg""#) && run.stderr.contains(expected),
+            "{expected}: {run:?}"
+        );
+        std::fs::remove_file(&db).unwrap();
+    }
+}

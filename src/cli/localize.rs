@@ -3,6 +3,7 @@
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::format::Map;
+use sfpmap::io::colmap_export::{escape_control_characters, quoted_name, text_name_problem};
 use sfpmap::io::poses::tum_line;
 use sfpmap::localize::eval::median;
 use sfpmap::localize::geometry::Camera;
@@ -218,6 +219,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .transpose()
         .context("--camera")?;
     let queries = read_query_list(&query_list, camera.as_ref())?;
+    check_pose_names(&query_list, args.format, &queries)?;
     let images: Vec<PathBuf> = match &args.images {
         Some(dir) => queries.iter().map(|q| dir.join(&q.name)).collect(),
         None => Vec::new(),
@@ -331,7 +333,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             results[0].failure.as_deref().unwrap_or("unknown")
         );
     }
-    write_poses(&args.output, args.format, &queries, &results)?;
+    write_poses(&args.output, args.format, &query_list, &queries, &results)?;
     let localized = results.iter().filter(|r| r.pose.is_some()).count();
     let failed: Vec<_> = queries
         .iter()
@@ -465,14 +467,46 @@ fn check_outputs(args: &Args, query_inputs: &[&Path], images: &[PathBuf]) -> any
     super::check_outputs(&outputs, &inputs, args.force)
 }
 
-/// Writes all results through [`super::write_atomic`].
+/// Refuses, for `--format colmap`, a query name its rows cannot hold, by the rule of the
+/// COLMAP exporters ([`text_name_problem`]): rows start with the name and have no escape
+/// syntax, so a control character would corrupt or inject a row. Checked before any work.
+/// TUM rows hold no names (its comments escape them) and JSON escapes them itself.
+fn check_pose_names(
+    query_list: &Path,
+    format: PoseFormat,
+    queries: &[Query],
+) -> anyhow::Result<()> {
+    if format != PoseFormat::Colmap {
+        return Ok(());
+    }
+    for (i, q) in queries.iter().enumerate() {
+        if let Some(problem) = text_name_problem(&q.name) {
+            bail!(
+                "{}: query {} {} {problem}, which --format colmap cannot hold (--format json keeps any name)",
+                query_list.display(),
+                i + 1,
+                quoted_name(&q.name)
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Writes all results through [`super::write_atomic`]; `query_list` names refused names.
 fn write_poses(
     path: &Path,
     format: PoseFormat,
+    query_list: &Path,
     queries: &[Query],
     results: &[Localization],
 ) -> anyhow::Result<()> {
+    check_pose_names(query_list, format, queries)?;
     super::write_atomic(path, |out| pose_text(out, format, queries, results))
+}
+
+/// Why a query failed, on one line (a comment in the text formats).
+fn failure(r: &Localization) -> std::borrow::Cow<'_, str> {
+    escape_control_characters(r.failure.as_deref().unwrap_or("unknown"))
 }
 
 /// The results as `--format` says.
@@ -495,12 +529,7 @@ fn pose_text(
                             q.name, v[0], v[1], v[2], v[3], v[4], v[5], v[6]
                         )?;
                     }
-                    None => writeln!(
-                        out,
-                        "# failed {}: {}",
-                        q.name,
-                        r.failure.as_deref().unwrap_or("unknown")
-                    )?,
+                    None => writeln!(out, "# failed {}: {}", q.name, failure(r))?,
                 }
             }
         }
@@ -512,8 +541,8 @@ fn pose_text(
                     None => writeln!(
                         out,
                         "# failed {i} {}: {}",
-                        q.name,
-                        r.failure.as_deref().unwrap_or("unknown")
+                        escape_control_characters(&q.name),
+                        failure(r)
                     )?,
                 }
             }

@@ -174,6 +174,20 @@ impl Keypoints {
             KeypointLayout::Affine => self.get(i).map(|k| k.scale()),
         }
     }
+
+    /// The first keypoint whose x, y or scale ([`scale`](Self::scale)) is NaN or infinite,
+    /// as `(index, "x" | "y" | "scale", value)`. Callers refuse such keypoints naming the
+    /// image: a NaN position or scale would reach matching and pose estimation unchecked.
+    pub fn first_non_finite(&self) -> Option<(usize, &'static str, f32)> {
+        (0..self.len()).find_map(|i| {
+            let [x, y] = self.xy(i)?;
+            let scale = self.scale(i).unwrap_or(1.0);
+            [("x", x), ("y", y), ("scale", scale)]
+                .into_iter()
+                .find(|(_, v)| !v.is_finite())
+                .map(|(field, v)| (i, field, v))
+        })
+    }
 }
 
 /// The descriptors of one image: `rows × cols` bytes, row `i` for keypoint `i`.

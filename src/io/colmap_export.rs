@@ -212,7 +212,7 @@ pub(crate) fn write_image_line(
 /// each field up to the next space, with no escape syntax, so a control character ends or
 /// corrupts the line (a newline injects an image), a space cuts the name short, and an
 /// escape would be read back as part of the name.
-fn text_name_problem(name: &str) -> Option<&'static str> {
+pub fn text_name_problem(name: &str) -> Option<&'static str> {
     if name.is_empty() {
         Some("is empty")
     } else if name.chars().any(char::is_control) {

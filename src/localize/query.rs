@@ -96,7 +96,8 @@ impl DatabaseFeatures {
     }
 
     /// The query's keypoints and L2-normalised descriptors; `Ok(None)` if the database has no
-    /// such image or no features for it.
+    /// such image or no features for it; an error naming the image and keypoint if a
+    /// keypoint's x, y or scale is not finite.
     pub fn features(&self, name: &str) -> Result<Option<QueryFeatures>, crate::colmap::Error> {
         let Some(&id) = self.ids.get(name) else {
             return Ok(None);
@@ -105,6 +106,17 @@ impl DatabaseFeatures {
         let (Some(keypoints), Some(descriptors)) = (f.keypoints, f.descriptors) else {
             return Ok(None);
         };
+        if let Some((i, field, value)) = keypoints.first_non_finite() {
+            return Err(crate::colmap::Error::BadRow {
+                path: self.db.path().to_path_buf(),
+                table: "keypoints",
+                id: i64::from(id),
+                what: format!(
+                    "image {}, keypoint {i}: {field} is {value}",
+                    crate::io::colmap_export::quoted_name(name)
+                ),
+            });
+        }
         let n = keypoints.len().min(descriptors.len());
         let dim = descriptors.cols;
         let mut set = FeatureSet {
