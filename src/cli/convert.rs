@@ -173,12 +173,14 @@ fn check_output(args: &Args) -> anyhow::Result<()> {
     inputs.extend(args.database.as_deref());
     #[cfg(feature = "onnx")]
     inputs.extend(args.model.as_deref());
+    #[cfg(feature = "onnx")]
     let in_images = args.images.as_deref().is_some_and(|images| {
         match (args.output.canonicalize(), images.canonicalize()) {
             (Ok(out), Ok(images)) => out.starts_with(images),
             _ => false,
         }
     });
+    #[cfg(feature = "onnx")]
     if in_images {
         inputs.push(&args.output);
     }
