@@ -24,14 +24,8 @@ impl std::fmt::Display for OpenError {
     }
 }
 
-impl std::error::Error for OpenError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            OpenError::Io(e) => Some(e),
-            OpenError::NotRegular(_) => None,
-        }
-    }
-}
+// No `source()`: `Io`'s message is its cause's, and `{:#}` would print it twice.
+impl std::error::Error for OpenError {}
 
 impl From<OpenError> for std::io::Error {
     fn from(e: OpenError) -> Self {

@@ -139,6 +139,7 @@ pub fn check_output(out: &Path, inputs: &[&Path], force: bool) -> Result<(), Out
     if std::fs::symlink_metadata(out).is_err() {
         return Ok(());
     }
+    check_not_proc_link(out)?;
     let Ok(meta) = std::fs::metadata(out) else {
         // A dangling symlink: replacing it needs `force` like any existing entry.
         return if force {
@@ -184,8 +185,23 @@ fn same_file(_: &std::fs::Metadata, _: &std::fs::Metadata, a: &Path, b: &Path) -
     matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y)
 }
 
-/// Refuses to replace something that is not a regular file (the symlink followed).
+/// Refuses a symlink into `/proc` (`/dev/stdout` is one to `/proc/self/fd/1`): it names an open
+/// descriptor, not a file, and the rename would replace the link (in `/dev`) with a regular
+/// file even when the descriptor is a regular file.
+fn check_not_proc_link(path: &Path) -> Result<(), OutputError> {
+    match std::fs::read_link(path) {
+        Ok(target) if target.starts_with("/proc") => Err(OutputError::NotRegular {
+            path: path.to_path_buf(),
+            kind: "a link to a process's file descriptor",
+        }),
+        _ => Ok(()),
+    }
+}
+
+/// Refuses to replace something that is not a regular file (the symlink followed), or a link
+/// to a process's descriptor.
 fn check_replaceable(path: &Path) -> Result<(), OutputError> {
+    check_not_proc_link(path)?;
     match std::fs::metadata(path) {
         Ok(meta) => match crate::input::not_regular(&meta.file_type()) {
             Some(kind) => Err(OutputError::NotRegular {
@@ -230,7 +246,9 @@ enum Temp {
 /// A file written to a temp file in the target's folder and renamed over the target by
 /// [`AtomicFile::commit`]; dropped without a commit, it leaves the target as it was and no
 /// temp file behind. Implements [`Write`] and [`Seek`] (buffered). A symlink at the target is
-/// replaced by the new file, not written through; the new file's mode is 0666 less the umask.
+/// replaced by the new file, not written through: written through, a link that another user
+/// planted in a shared folder would aim the write at any file of ours. The new file's mode is
+/// 0666 less the umask.
 #[derive(Debug)]
 pub struct AtomicFile {
     target: PathBuf,
@@ -488,7 +506,10 @@ fn create_named_locked(
             .create_new(true)
             .open(&temp)
         {
-            Ok(file) => return Ok((file, temp)),
+            Ok(file) => {
+                lock_temp(&file);
+                return Ok((file, temp));
+            }
             Err(e) => {
                 list.pop();
                 if e.kind() != io::ErrorKind::AlreadyExists {
@@ -523,9 +544,43 @@ fn remove_stale_temps(dir: &Path) {
             continue;
         };
         if pid != me && !process_alive(pid) {
-            let _ = std::fs::remove_file(entry.path());
+            remove_if_unlocked(&entry.path());
         }
     }
+}
+
+/// Marks a temp file as in use until its last descriptor closes, which happens when the
+/// writer ends, even by `kill -9`. Best effort: where the file system has no `flock`, the
+/// sweep relies on the PID alone.
+fn lock_temp(file: &File) {
+    #[cfg(unix)]
+    let _ = rustix::fs::flock(file, rustix::fs::FlockOperation::NonBlockingLockExclusive);
+    #[cfg(not(unix))]
+    let _ = file;
+}
+
+/// Removes a stale-looking temp file unless a live writer holds its lock. Why both checks:
+/// a PID names a process only within one PID namespace (containers sharing a folder, NFS), so
+/// a writer elsewhere can look dead; its lock shows it is not. The PID check covers the
+/// instant between a writer creating its temp file and locking it.
+fn remove_if_unlocked(path: &Path) {
+    #[cfg(unix)]
+    {
+        use rustix::fs::{FlockOperation, Mode, OFlags};
+        let flags = OFlags::RDONLY | OFlags::NOFOLLOW | OFlags::NONBLOCK | OFlags::CLOEXEC;
+        let Ok(fd) = rustix::fs::open(path, flags, Mode::empty()) else {
+            return;
+        };
+        if rustix::fs::flock(&fd, FlockOperation::NonBlockingLockExclusive)
+            == Err(rustix::io::Errno::WOULDBLOCK)
+        {
+            return;
+        }
+        // Removed while holding the lock; it goes with `fd`.
+        let _ = std::fs::remove_file(path);
+    }
+    #[cfg(not(unix))]
+    let _ = std::fs::remove_file(path);
 }
 
 /// The pid in a temp name of this module (`.NAME.sfpmap-tmp.PID.RANDOM`), else `None`.
@@ -582,7 +637,12 @@ fn open_unnamed(dir: &File) -> io::Result<Option<File>> {
         OFlags::TMPFILE | OFlags::RDWR | OFlags::CLOEXEC,
         Mode::from_raw_mode(0o666),
     ) {
-        Ok(fd) => Ok(Some(File::from(fd))),
+        Ok(fd) => {
+            let file = File::from(fd);
+            // Held by the inode's open description, so the name it gets later is locked too.
+            lock_temp(&file);
+            Ok(Some(file))
+        }
         // No O_TMPFILE here: EOPNOTSUPP (the file system), EISDIR (an old kernel), EINVAL.
         Err(Errno::OPNOTSUPP | Errno::ISDIR | Errno::INVAL | Errno::NOSYS) => Ok(None),
         Err(e) => Err(e.into()),
@@ -741,6 +801,22 @@ mod tests {
     }
 
     #[test]
+    fn a_locked_temp_of_a_process_that_looks_dead_stays() {
+        // A writer in another PID namespace: its PID means nothing here, its lock does.
+        let dir = tempfile::tempdir().unwrap();
+        let name = format!(".map.sfpm{}{}.0123456789abcdef", TEMP_MARK, u32::MAX - 7);
+        let locked = dir.path().join(&name);
+        let file = File::create(&locked).unwrap();
+        lock_temp(&file);
+        let unlocked = dir.path().join(name.replace("0123", "3210"));
+        std::fs::write(&unlocked, b"left by kill -9").unwrap();
+        remove_stale_temps(dir.path());
+        assert!(locked.exists(), "removed a temp file a live writer holds");
+        assert!(!unlocked.exists(), "kept a temp file nobody holds");
+        drop(file);
+    }
+
+    #[test]
     fn temp_names_parse_back_and_others_do_not() {
         let n = temp_name(std::ffi::OsStr::new("map.v2.sfpm"));
         assert_eq!(temp_pid(&n), Some(std::process::id()));
@@ -814,5 +890,36 @@ mod tests {
         std::os::unix::fs::symlink(dir.path().join("nothing"), &dangling).unwrap();
         assert!(check_output(&dangling, &[], false).is_err());
         check_output(&dangling, &[], true).unwrap();
+    }
+
+    #[test]
+    fn a_symlink_is_replaced_not_written_through_and_proc_links_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let sub = dir.path().join("sub");
+        std::fs::create_dir(&sub).unwrap();
+        let real = sub.join("real.txt");
+        std::fs::write(&real, b"old").unwrap();
+        let link = dir.path().join("link.txt");
+        std::os::unix::fs::symlink(&real, &link).unwrap();
+        write_with(&link, true, b"new").unwrap();
+        // What the link led to is untouched (a planted link cannot aim the write elsewhere).
+        assert_eq!(std::fs::read(&real).unwrap(), b"old");
+        assert!(!std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+        assert_eq!(std::fs::read(&link).unwrap(), b"new");
+        // `/dev/stdout`'s kind of link: refused by the policy and by the writer, even when the
+        // descriptor it names is a regular file (as it is with `> file`).
+        let fd_file = File::create(dir.path().join("fd.txt")).unwrap();
+        use std::os::fd::AsRawFd;
+        let proc_link = dir.path().join("stdout");
+        let target = format!("/proc/self/fd/{}", fd_file.as_raw_fd());
+        std::os::unix::fs::symlink(&target, &proc_link).unwrap();
+        let e = check_output(&proc_link, &[], true).unwrap_err();
+        assert!(e.to_string().contains("file descriptor"), "{e}");
+        let e = AtomicFile::create(&proc_link).unwrap_err();
+        assert!(e.to_string().contains("file descriptor"), "{e}");
+        assert_eq!(std::fs::read_link(&proc_link).unwrap(), Path::new(&target));
     }
 }

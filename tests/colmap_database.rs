@@ -214,6 +214,35 @@ fn colmap_schema(conn: &rusqlite::Connection) {
     .unwrap();
 }
 
+/// The model readers' rule for image names, in a database too: a newline would inject rows into
+/// `images.txt` and TUM files written from it.
+#[test]
+fn an_image_name_with_a_control_character_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("db.db");
+    {
+        let conn = rusqlite::Connection::open(&path).unwrap();
+        colmap_schema(&conn);
+        conn.execute_batch(
+            "INSERT INTO images VALUES (1, 'a.jpg', 1), (2, 'b.jpg' || char(10) || '2 0 0 0', 1);",
+        )
+        .unwrap();
+    }
+    let db = Database::open(&path).unwrap();
+    let err = db.images().unwrap_err();
+    assert!(
+        matches!(err, Error::BadImageName { image_id: 2, .. }),
+        "{err}"
+    );
+    let message = err.to_string();
+    assert!(
+        message.starts_with(&path.display().to_string()),
+        "{message}"
+    );
+    assert!(message.contains("\\n"), "{message}");
+    assert!(!message.contains('\n'), "{message}");
+}
+
 #[test]
 fn bad_rows_are_errors_not_panics() {
     let tmp = tempfile::tempdir().unwrap();

@@ -40,22 +40,6 @@ fn assert_refused(out: &Limited, path: &Path, what: &str) {
     assert!(line.contains(what), "{line:?} does not say {what:?}");
 }
 
-/// Exit 0, or exit 1 with one `error:` line; never killed, never past the time limit.
-fn assert_bounded(out: &Limited) {
-    assert!(!out.timed_out, "ran past {TIMEOUT:?}: {out:?}");
-    match out.code {
-        Some(0) => {}
-        Some(1) => {
-            let line = out.stderr.trim_end();
-            assert!(
-                line.starts_with("error: ") && !line.contains('\n'),
-                "{line}"
-            );
-        }
-        _ => panic!("killed or crashed (memory cap {MEMORY} bytes): {out:?}"),
-    }
-}
-
 #[test]
 fn crafted_map_opens_and_verifies() {
     let bytes = craft(
@@ -235,7 +219,9 @@ fn zstd_sections_share_one_decode_budget() {
         os("-o"),
         sliced.as_os_str(),
     ]);
-    assert_bounded(&slice);
+    // `slice` checks every section first, streaming, so it meets the same budget as verify.
+    assert_refused(&slice, &path, "decode budget");
+    assert!(!sliced.exists());
 }
 
 // ---- Sizes from the metadata are checked before anything is sized from them (2, 1) ----
@@ -537,7 +523,9 @@ fn fuzz_fixup_reaches_past_the_checksums() {
     use sfpmap::format::fuzzing::fix_checksums;
     let good = common::minimal();
     let mut bad = good.clone();
-    let last = bad.len() - 1; // inside point_positions
+    // The low mantissa byte of the last position (a flip in its exponent byte could make it
+    // NaN, which the content check refuses).
+    let last = bad.len() - 4;
     bad[last] ^= 0x40;
     let err = Map::from_bytes(&bad).unwrap().verify().unwrap_err();
     assert_eq!(err.kind_name(), "checksum_mismatch");

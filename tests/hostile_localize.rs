@@ -136,6 +136,9 @@ fn finding_1_a_level_with_no_dimensions_to_match_is_not_a_panic() {
     let map = write(t.path(), "dim0.sfpm", &bytes);
     let run = localize_features(t.path(), &map, 8, &[]);
     assert_one_line_error(&run, &map);
+    // Refused at open by the format's rule (`LevelInfo::matched_dims`); the localizer's own
+    // skip of such a level is unit-tested in `localizer.rs` (`build_level`).
+    assert!(run.stderr.contains("no descriptor dimension"), "{run:?}");
 }
 
 /// Finding 2: an empty level claiming 2^32 − 1 (or 2^24) descriptor dimensions made
@@ -157,6 +160,8 @@ fn finding_2_an_empty_level_of_huge_dimensions_allocates_nothing() {
         let map = write(t.path(), "huge.sfpm", &bytes);
         let run = localize_features(t.path(), &map, 8, &[]);
         assert_one_line_error(&run, &map);
+        // The rest block's columns (dim_full - 8) are refused at open, before any buffer.
+        assert!(run.stderr.contains("at most 4096"), "{run:?}");
     }
 }
 
@@ -615,5 +620,48 @@ fn a_non_finite_query_keypoint_is_an_error_naming_database_image_and_keypoint() 
             "{expected}: {run:?}"
         );
         std::fs::remove_file(&db).unwrap();
+    }
+}
+
+/// The same for a features.h5 query: a keypoint (or descriptor value) that is not finite is
+/// an error naming the file, the dataset and the keypoint.
+#[test]
+fn a_non_finite_features_h5_keypoint_is_an_error_naming_file_and_keypoint() {
+    let t = tempfile::tempdir().unwrap();
+    for (x, y, expected) in [
+        (f32::NAN, 10.0, "keypoint 3: x is NaN"),
+        (10.0, f32::INFINITY, "keypoint 3: y is inf"),
+    ] {
+        let mut rng = Rng(5);
+        let full: Vec<f16> = (0..8 * 4).map(|_| f16::from_f32(rng.unit())).collect();
+        let mut keypoints: Vec<[f32; 2]> = (0..8).map(|i| [i as f32, 1.0]).collect();
+        keypoints[3] = [x, y];
+        let level = LevelFeatures {
+            level: 0,
+            stride: 8,
+            keypoints,
+            scores: vec![0.9; 8],
+            dim_short: 4,
+            dim_full: 4,
+            short: full.clone(),
+            full,
+        };
+        let f = Features {
+            image_size: [64, 48],
+            levels: vec![level],
+            global: vec![1.0; 4],
+        };
+        let path = t.path().join("nan.h5");
+        let options = H5Options {
+            main_level: 0,
+            attributes: Vec::new(),
+        };
+        let _ = std::fs::remove_file(&path);
+        features_h5::write(&path, &[("q.jpg".to_string(), f)], &options).unwrap();
+        let h5 = sfpmap::localize::query::H5Features::open(&path).unwrap();
+        let e = h5.features("q.jpg").unwrap_err().to_string();
+        assert!(e.starts_with(&path.display().to_string()), "{e}");
+        assert!(e.contains(expected), "{e}");
+        assert!(!e.contains('\n'), "{e}");
     }
 }

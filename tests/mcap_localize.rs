@@ -526,7 +526,7 @@ fn missing_topic_unsupported_encoding_and_truncated_log() {
     assert!(
         err.contains("no topic \"/camera/image\"")
             && err.contains(
-                "/cam/compressed (sensor_msgs/msg/CompressedImage), /cam/yuv (sensor_msgs/msg/Image)"
+                r#""/cam/compressed" ("sensor_msgs/msg/CompressedImage"), "/cam/yuv" ("sensor_msgs/msg/Image")"#
             ),
         "{err}"
     );

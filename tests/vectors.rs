@@ -240,6 +240,20 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
     b[first - 1] = 0xFF;
     out.push(("bad_padding", patch(&b, |_, _| {}), "bad_padding", "open"));
 
+    // A NaN position with a correct checksum: found when the section is first read.
+    let mut b = good.clone();
+    let at = {
+        let map = Map::from_bytes(&good).unwrap();
+        map.find(SectionKind::PointPositions, None).unwrap().offset as usize
+    };
+    b[at + 12..at + 16].copy_from_slice(&f32::NAN.to_le_bytes());
+    out.push((
+        "nonfinite_position",
+        sfpmap::format::fuzzing::fix_checksums(&b),
+        "inconsistent",
+        "verify",
+    ));
+
     let b = with_extra_section(
         SectionKind::Unknown(0x7F01),
         NO_LEVEL,

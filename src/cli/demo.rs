@@ -6,6 +6,8 @@ use sfpmap::extract::sfp_map::{convert_with_images, SfpMapOptions};
 use sfpmap::extract::{DetectOptions, Extractor, ExtractorOptions};
 use sfpmap::format::{slice, SliceOptions};
 use sfpmap::io::demo_scene::{write_png, DemoScene, HEIGHT, WIDTH};
+use sfpmap::io::plot::{plot_map, PlotOptions};
+use sfpmap::io::poses::camera_center;
 use sfpmap::localize::eval::{evaluate, map_scale, median, read_poses};
 use sfpmap::localize::query::{read_query_list, sfp_query};
 use sfpmap::localize::{LocalizeOptions, Localizer};
@@ -64,6 +66,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 "gt_poses.txt",
                 "demo.sfpm",
                 "demo-l2-short.sfpm",
+                "poses.txt",
+                "plot.png",
             ]
             .map(|f| out.join(f)),
         )
@@ -182,6 +186,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         },
     ];
     let mut rows = Vec::new();
+    // The full map's poses and its plot, for the user to open.
+    let (poses_txt, plot_png) = (out.join("poses.txt"), out.join("plot.png"));
+    let mut plotted = None;
     say(String::new());
     say(format!(
         "{:<20} {:>9} {:>10} {:>13} {:>11} {:>12} {:>9}",
@@ -198,12 +205,42 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         )?;
         let mut estimates = Vec::new();
         let mut ms = Vec::new();
+        let mut results = Vec::with_capacity(queries.len());
         for (q, f) in queries.iter().zip(&features) {
             let r = localizer.localize(f, &q.camera)?;
             ms.push(r.times.total_ms);
             if let Some(p) = r.pose {
                 estimates.push((q.name.clone(), p));
             }
+            results.push(r);
+        }
+        if plotted.is_none() {
+            super::localize::write_poses(
+                &poses_txt,
+                super::localize::PoseFormat::Colmap,
+                &out.join("queries.txt"),
+                &queries,
+                &results,
+            )?;
+            let centres = |poses: &[(String, sfpmap::localize::geometry::Pose)]| {
+                poses
+                    .iter()
+                    .map(|(n, p)| (n.clone(), camera_center(p.to_colmap())))
+                    .collect::<Vec<_>>()
+            };
+            let options = PlotOptions {
+                title: format!(
+                    "sfpmap demo, {}: localized (estimated) and true query cameras",
+                    v.name
+                ),
+                estimated: centres(&estimates),
+                ground_truth: centres(&gt),
+                ..PlotOptions::default()
+            };
+            plotted = Some(
+                plot_map(&map, &options, &plot_png)
+                    .map_err(|e| anyhow::anyhow!("{}: {e}", plot_png.display()))?,
+            );
         }
         let median_ms = median(ms).unwrap_or(f64::NAN);
         let e = evaluate(
@@ -240,6 +277,11 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         "\nCOLMAP text model {:.2} MB; total {seconds:.1} s",
         model_bytes as f64 / 1e6
     ));
+    say(format!(
+        "poses of the full map: {}\nplot of the map with localized and true cameras: {}",
+        poses_txt.display(),
+        plot_png.display()
+    ));
     if args.json {
         super::print_json(&json!({
             "out": out.display().to_string(),
@@ -247,6 +289,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "queries": scene.queries.len(),
             "model_bytes": model_bytes,
             "results": rows,
+            "poses": poses_txt.display().to_string(),
+            "plot": plot_png.display().to_string(),
+            "plot_pairs": plotted.as_ref().map(|s| s.pairs),
             "seconds": seconds,
         }))?;
     }

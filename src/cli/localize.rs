@@ -252,7 +252,8 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 bail!("{}: pass the query images with --images DIR (features are extracted with the SFP model)", query_list.display());
             };
             // A list naming none of the folder's images is a mistake, not N failed queries.
-            if !queries.iter().any(|q| images.join(&q.name).is_file()) {
+            // `exists`, not `is_file`: a FIFO or folder there is reported as what it is, below.
+            if !queries.iter().any(|q| images.join(&q.name).exists()) {
                 bail!(
                     "{}: none of the {} images {} names is in this folder (first: {:?})",
                     images.display(),
@@ -359,7 +360,12 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             median(results.iter().map(|r| r.times.total_ms).collect()).unwrap_or(f64::NAN)
         );
         for f in &failed {
-            println!("failed: {} ({})", f["name"], f["reason"]);
+            // JSON escapes C0 controls but not DEL or C1 ones: escape them all for the terminal.
+            println!(
+                "failed: {} ({})",
+                escape_control_characters(&f["name"].to_string()),
+                escape_control_characters(&f["reason"].to_string())
+            );
         }
     }
     Ok(ExitCode::SUCCESS)
@@ -397,7 +403,8 @@ impl Source {
             Source::Extractor { extractor, images } => {
                 use sfpmap::extract::ExtractError;
                 let path = images.join(name);
-                if !path.is_file() {
+                // A FIFO or folder goes on to `load`, whose regular-file rule names it.
+                if !path.exists() {
                     return Ok(missing("no such image"));
                 }
                 let weights = extractor.contract().gray_weights;
@@ -493,7 +500,7 @@ fn check_pose_names(
 }
 
 /// Writes all results through [`super::write_atomic`]; `query_list` names refused names.
-fn write_poses(
+pub(super) fn write_poses(
     path: &Path,
     format: PoseFormat,
     query_list: &Path,

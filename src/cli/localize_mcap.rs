@@ -13,17 +13,18 @@ use super::Args;
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::extract::{DetectOptions, Extractor};
+use sfpmap::io::colmap_export::{escape_control_characters, quoted_name};
 use sfpmap::io::mcap_io::{self, Damage, LogReader, Skipped, Stamp};
 use sfpmap::io::poses::tum_line;
 use sfpmap::localize::eval::median;
 use sfpmap::localize::geometry::Camera;
 use sfpmap::localize::{Localization, Localizer};
 use sfpmap::progress::Reporter;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashSet};
 use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 /// The exit status of a run that skipped damaged parts of the log (1 is an error, 2 a usage
@@ -31,7 +32,10 @@ use std::time::Instant;
 pub const SKIPPED_EXIT: u8 = 3;
 
 /// Damaged parts named one warning each; the rest are counted.
-const MAX_DAMAGE_WARNINGS: usize = 20;
+const MAX_DAMAGE_WARNINGS: u64 = 20;
+/// Damaged parts `--json` lists; the rest are counted (a log damaged all over must not cost
+/// memory per damaged record).
+const MAX_DAMAGE_LISTED: usize = 1000;
 
 /// The MCAP flags of `sfpmap localize`.
 #[derive(Debug, clap::Args)]
@@ -70,7 +74,9 @@ struct Frame {
     publish_time: u64,
     /// The message's own stamp, else its log time.
     stamp: Stamp,
-    outcome: Result<Localization, String>,
+    /// Boxed, and reasons shared between frames: a forged log of 2 M tiny image messages
+    /// (64 MiB decompressed from a few KB) keeps one small frame each.
+    outcome: Result<Box<Localization>, Arc<str>>,
     /// The image could not be decoded (as opposed to decoded but not localized).
     undecodable: bool,
 }
@@ -79,10 +85,12 @@ struct Frame {
 #[derive(Default)]
 struct Scan {
     messages_on_topic: usize,
-    /// topic → schema name, for the "no such topic" error.
-    topics: BTreeMap<String, String>,
-    /// The damaged parts that were skipped, as their warnings say.
+    /// The topics seen, for the "no such topic" error.
+    topics: Topics,
+    /// The first [`MAX_DAMAGE_LISTED`] damaged parts that were skipped, as their warnings say.
     skipped: Vec<String>,
+    /// How many damaged parts were skipped in all.
+    skipped_count: u64,
 }
 
 fn open_log(path: &Path) -> anyhow::Result<LogReader<File>> {
@@ -97,19 +105,49 @@ fn open_stream(
     Ok(open_log(path)?.filter(Result::is_ok))
 }
 
-fn topic_list(topics: &BTreeMap<String, String>) -> String {
-    if topics.is_empty() {
+/// Topic → schema name of the messages read, recorded once per channel: a forged log can pair
+/// a topic of megabytes with a million messages, and copying or comparing it per message would
+/// cost their product.
+#[derive(Default)]
+struct Topics {
+    channels: HashSet<u16>,
+    names: BTreeMap<String, String>,
+}
+
+impl Topics {
+    fn see(&mut self, channel: &mcap::Channel<'_>) {
+        if self.channels.insert(channel.id) {
+            self.names
+                .entry(channel.topic.clone())
+                .or_insert_with(|| schema_name(channel));
+        }
+    }
+
+    fn contains(&self, topic: &str) -> bool {
+        self.names.contains_key(topic)
+    }
+}
+
+/// The topics for a one-line message: quoted, escaped and shortened (they come from the file).
+fn topic_list(topics: &Topics) -> String {
+    if topics.names.is_empty() {
         return "none".into();
     }
-    topics
+    let shown = 50;
+    let mut list: Vec<String> = topics
+        .names
         .iter()
-        .map(|(t, s)| format!("{t} ({s})"))
-        .collect::<Vec<_>>()
-        .join(", ")
+        .take(shown)
+        .map(|(t, s)| format!("{} ({})", quoted_name(t), quoted_name(s)))
+        .collect();
+    if topics.names.len() > shown {
+        list.push(format!("and {} more", topics.names.len() - shown));
+    }
+    list.join(", ")
 }
 
 /// The "no such topic" error, listing the topics there are.
-fn no_topic(input: &Path, topic: &str, topics: &BTreeMap<String, String>) -> anyhow::Error {
+fn no_topic(input: &Path, topic: &str, topics: &Topics) -> anyhow::Error {
     anyhow::anyhow!(
         "{}: no topic {topic:?}; topics present: {}",
         input.display(),
@@ -126,7 +164,7 @@ fn schema_name(channel: &mcap::Channel<'_>) -> String {
 
 /// Intrinsics from the first message on the camera-info topic.
 fn camera_from_info(path: &Path, topic: &str) -> anyhow::Result<Camera> {
-    let mut topics = BTreeMap::new();
+    let mut topics = Topics::default();
     for message in open_log(path)? {
         // Damage is reported by the image pass, which reads the whole log.
         let message = match message {
@@ -147,9 +185,7 @@ fn camera_from_info(path: &Path, topic: &str) -> anyhow::Result<Camera> {
             )
             .with_context(|| format!("{}: topic {topic}", path.display()));
         }
-        topics
-            .entry(message.channel.topic.clone())
-            .or_insert_with(|| schema_name(&message.channel));
+        topics.see(&message.channel);
     }
     Err(no_topic(path, topic, &topics))
 }
@@ -171,13 +207,12 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     // With a summary, a missing topic is found before anything is decoded.
     let mut expected_on_topic = None;
     if let Some(summary) = log.summary() {
-        let topics: BTreeMap<String, String> = summary
-            .channels
-            .values()
-            .map(|c| (c.topic.clone(), schema_name(c)))
-            .collect();
+        let mut topics = Topics::default();
+        for c in summary.channels.values() {
+            topics.see(c);
+        }
         for t in std::iter::once(topic).chain(m.camera_info_topic.as_deref()) {
-            if !topics.contains_key(t) {
+            if !topics.contains(t) {
                 return Err(no_topic(input, t, &topics));
             }
         }
@@ -213,6 +248,8 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     bars.start("localizing", expected_on_topic);
     let extractor = Mutex::new(extractor);
     let frames: Mutex<BTreeMap<usize, Frame>> = Mutex::new(BTreeMap::new());
+    // Failure reasons, each kept once.
+    let reasons: Mutex<HashSet<Arc<str>>> = Mutex::new(HashSet::new());
     let threads = args.threads.max(1);
     let (sender, receiver) = std::sync::mpsc::sync_channel::<(usize, mcap::Message)>(threads);
     let receiver = Mutex::new(receiver);
@@ -221,8 +258,20 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             s.spawn(|| loop {
                 let next = receiver.lock().unwrap_or_else(|p| p.into_inner()).recv();
                 let Ok((index, message)) = next else { break };
-                let frame =
+                let (mut frame, reason) =
                     localize_message(&message, &camera, gray_weights, &extractor, &localizer);
+                if let Some(reason) = reason {
+                    let mut reasons = reasons.lock().unwrap_or_else(|p| p.into_inner());
+                    let shared = match reasons.get(reason.as_str()) {
+                        Some(r) => r.clone(),
+                        None => {
+                            let r: Arc<str> = reason.into();
+                            reasons.insert(r.clone());
+                            r
+                        }
+                    };
+                    frame.outcome = Err(shared);
+                }
                 frames
                     .lock()
                     .unwrap_or_else(|p| p.into_inner())
@@ -236,18 +285,18 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
                 Ok(m) => m,
                 // The reader goes on after a skip, or ends after it when the rest is lost.
                 Err(damage) => {
-                    let what = damage.to_string();
-                    // A log damaged all over gets a bounded number of lines; --json has all.
-                    if scan.skipped.len() < MAX_DAMAGE_WARNINGS {
-                        bars.warn(&format!("{}: {what}", input.display()));
+                    // A log damaged all over gets a bounded number of lines and list entries.
+                    if scan.skipped_count < MAX_DAMAGE_WARNINGS {
+                        bars.warn(&format!("{}: {damage}", input.display()));
                     }
-                    scan.skipped.push(what);
+                    if scan.skipped.len() < MAX_DAMAGE_LISTED {
+                        scan.skipped.push(damage.to_string());
+                    }
+                    scan.skipped_count += 1;
                     continue;
                 }
             };
-            scan.topics
-                .entry(message.channel.topic.clone())
-                .or_insert_with(|| schema_name(&message.channel));
+            scan.topics.see(&message.channel);
             if message.channel.topic == topic {
                 if sender.send((scan.messages_on_topic, message)).is_err() {
                     break;
@@ -266,10 +315,10 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             Some(e) => bail!(
                 "{}: no message on topic {topic:?} could be read; {} damaged parts skipped, the first: {e}; topics seen: {}",
                 input.display(),
-                scan.skipped.len(),
+                scan.skipped_count,
                 topic_list(&scan.topics)
             ),
-            None if !scan.topics.contains_key(topic) => {
+            None if !scan.topics.contains(topic) => {
                 return Err(no_topic(input, topic, &scan.topics))
             }
             None => bail!("{}: topic {topic:?} has no messages", input.display()),
@@ -284,7 +333,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             "{}: topic {topic:?}: none of its {} images could be decoded: {}",
             input.display(),
             frames.len(),
-            first.map_or("", |s| s.as_str())
+            first.map_or("", |s| &**s)
         );
     }
 
@@ -297,21 +346,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
         .values()
         .filter(|f| matches!(&f.outcome, Ok(l) if l.pose.is_some()))
         .count();
-    let failed: Vec<_> = frames
-        .iter()
-        .filter_map(|(i, f)| {
-            let reason = match &f.outcome {
-                Ok(l) if l.pose.is_some() => return None,
-                Ok(l) => l.failure.clone().unwrap_or_else(|| "unknown".into()),
-                Err(e) => e.clone(),
-            };
-            Some(json!({
-                "index": i,
-                "stamp": { "sec": f.stamp.sec, "nsec": f.stamp.nsec },
-                "reason": reason,
-            }))
-        })
-        .collect();
+    let failed = FailedFrames(&frames);
     // Without a summary (a cut-off log) how many messages were lost is unknown.
     let unreadable_messages = expected_on_topic
         .map(|n| n.saturating_sub(scan.messages_on_topic as u64))
@@ -321,6 +356,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             "error": e,
             "messages": unreadable_messages,
             "skipped": scan.skipped,
+            "skipped_count": scan.skipped_count,
         })
     });
     if !scan.skipped.is_empty() {
@@ -328,7 +364,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             Some(n) => format!("{n} lost"),
             None => "how many were lost is unknown (no summary)".to_owned(),
         };
-        let parts = match scan.skipped.len() {
+        let parts = match scan.skipped_count {
             1 => "1 damaged part".to_owned(),
             n if n > MAX_DAMAGE_WARNINGS => {
                 format!("{n} damaged parts (the first {MAX_DAMAGE_WARNINGS} above)")
@@ -343,23 +379,44 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     }
     let results: Vec<&Localization> = frames
         .values()
-        .filter_map(|f| f.outcome.as_ref().ok())
+        .filter_map(|f| f.outcome.as_deref().ok())
         .collect();
     if args.json {
-        super::super::print_json(&json!({
-            "mcap": input.display().to_string(),
-            "topic": topic,
-            "images": scan.messages_on_topic,
-            "localized": localized,
-            "failed": failed,
-            "unreadable": unreadable,
-            "output": args.output.display().to_string(),
-            "pose_topic": m.pose_topic,
-            "tum": m.tum.as_ref().map(|p| p.display().to_string()),
-            "camera": camera.to_string(),
-            "seconds": start.elapsed().as_secs_f64(),
-            "median_ms": super::median_ms(results.iter().copied()),
-        }))?;
+        // Serialized straight from the frames: a `Value` per failed frame would cost far more
+        // than the frames themselves.
+        #[derive(serde::Serialize)]
+        struct Report<'a> {
+            mcap: String,
+            topic: &'a str,
+            images: usize,
+            localized: usize,
+            failed: FailedFrames<'a>,
+            unreadable: Option<serde_json::Value>,
+            output: String,
+            pose_topic: &'a str,
+            tum: Option<String>,
+            camera: String,
+            seconds: f64,
+            median_ms: serde_json::Value,
+        }
+        let report = Report {
+            mcap: input.display().to_string(),
+            topic,
+            images: scan.messages_on_topic,
+            localized,
+            failed,
+            unreadable,
+            output: args.output.display().to_string(),
+            pose_topic: &m.pose_topic,
+            tum: m.tum.as_ref().map(|p| p.display().to_string()),
+            camera: camera.to_string(),
+            seconds: start.elapsed().as_secs_f64(),
+            median_ms: super::median_ms(results.iter().copied()),
+        };
+        use std::io::Write as _;
+        let mut out = std::io::stdout().lock();
+        serde_json::to_writer(&mut out, &report)?;
+        writeln!(out)?;
     } else if !quiet {
         println!(
             "{}: {localized}/{} images of {topic} localized, median {:.1} ms per image (after features)",
@@ -367,8 +424,12 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             scan.messages_on_topic,
             median(results.iter().map(|r| r.times.total_ms).collect()).unwrap_or(f64::NAN)
         );
-        for f in &failed {
-            println!("failed: image {} ({})", f["index"], f["reason"]);
+        for (index, _, reason) in failed.iter() {
+            // Escaped: the reason may quote the file (a schema name, an encoding).
+            println!(
+                "failed: image {index} ({})",
+                escape_control_characters(reason)
+            );
         }
     }
     Ok(if scan.skipped.is_empty() {
@@ -378,18 +439,61 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     })
 }
 
+/// The frames that were not localized, serialized (and listed) as
+/// `{index, stamp: {sec, nsec}, reason}` without a copy per frame.
+struct FailedFrames<'a>(&'a BTreeMap<usize, Frame>);
+
+impl<'a> FailedFrames<'a> {
+    fn iter(&self) -> impl Iterator<Item = (usize, &'a Frame, &'a str)> {
+        self.0.iter().filter_map(|(&i, f)| {
+            let reason = match &f.outcome {
+                Ok(l) if l.pose.is_some() => return None,
+                Ok(l) => l.failure.as_deref().unwrap_or("unknown"),
+                Err(e) => e,
+            };
+            Some((i, f, reason))
+        })
+    }
+}
+
+impl serde::Serialize for FailedFrames<'_> {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        #[derive(serde::Serialize)]
+        struct Failed<'a> {
+            index: usize,
+            stamp: StampJson,
+            reason: &'a str,
+        }
+        #[derive(serde::Serialize)]
+        struct StampJson {
+            sec: i64,
+            nsec: u32,
+        }
+        s.collect_seq(self.iter().map(|(index, f, reason)| Failed {
+            index,
+            stamp: StampJson {
+                sec: f.stamp.sec,
+                nsec: f.stamp.nsec,
+            },
+            reason,
+        }))
+    }
+}
+
+/// The frame of one image message, and the reason it failed (which the caller shares between
+/// frames and sets as the outcome).
 fn localize_message(
     message: &mcap::Message<'_>,
     camera: &Camera,
     gray_weights: [f32; 3],
     extractor: &Mutex<Extractor>,
     localizer: &Localizer<'_>,
-) -> Frame {
+) -> (Frame, Option<String>) {
     let mut frame = Frame {
         log_time: message.log_time,
         publish_time: message.publish_time,
         stamp: Stamp::from_nanos(message.log_time),
-        outcome: Err(String::new()),
+        outcome: Err(Arc::from("")),
         undecodable: false,
     };
     let schema = schema_name(&message.channel);
@@ -397,9 +501,8 @@ fn localize_message(
         match mcap_io::decode_image(&schema, &message.channel.message_encoding, &message.data) {
             Ok(d) => d,
             Err(e) => {
-                frame.outcome = Err(e.to_string());
                 frame.undecodable = true;
-                return frame;
+                return (frame, Some(e.to_string()));
             }
         };
     if let Some(stamp) = decoded.stamp {
@@ -407,12 +510,12 @@ fn localize_message(
     }
     let (w, h) = (decoded.image.width(), decoded.image.height());
     if (w, h) != (camera.width(), camera.height()) {
-        frame.outcome = Err(format!(
+        let reason = format!(
             "the image is {w}x{h} but the camera is {}x{}",
             camera.width(),
             camera.height()
-        ));
-        return frame;
+        );
+        return (frame, Some(reason));
     }
     let input = sfpmap::extract::image::from_image(&decoded.image, gray_weights, None);
     drop(decoded);
@@ -421,11 +524,17 @@ fn localize_message(
         .lock()
         .unwrap_or_else(|p| p.into_inner())
         .extract(&input, &DetectOptions::default());
-    frame.outcome = features
+    let outcome = features
         .map_err(|e| e.to_string())
         .map(|f| sfpmap::localize::query::sfp_query(&f))
         .and_then(|q| localizer.localize(&q, camera).map_err(|e| e.to_string()));
-    frame
+    match outcome {
+        Ok(l) => {
+            frame.outcome = Ok(Box::new(l));
+            (frame, None)
+        }
+        Err(reason) => (frame, Some(reason)),
+    }
 }
 
 /// The output MCAP, through [`write_atomic`](super::super::write_atomic).
@@ -441,7 +550,8 @@ fn write_output(
             // `&mut AtomicFile` is Write + Seek: the MCAP writer seeks back for the summary.
             let mut writer = mcap_io::PoseWriter::new(out, &m.pose_topic)?;
             let write_pose =
-                |writer: &mut mcap_io::PoseWriter<_>, frame: &Frame| match &frame.outcome {
+                |writer: &mut mcap_io::PoseWriter<_>, frame: &Frame| match frame.outcome.as_deref()
+                {
                     Ok(Localization {
                         pose: Some(pose), ..
                     }) => writer.write_pose(
@@ -490,7 +600,7 @@ fn write_tum(path: &Path, frames: &BTreeMap<usize, Frame>) -> anyhow::Result<()>
         for frame in frames.values() {
             if let Ok(Localization {
                 pose: Some(pose), ..
-            }) = &frame.outcome
+            }) = frame.outcome.as_deref()
             {
                 let stamp = format!("{}.{:09}", frame.stamp.sec, frame.stamp.nsec);
                 writeln!(out, "{}", tum_line(stamp, pose.to_colmap()))?;

@@ -449,8 +449,18 @@ impl Database {
             let id: i64 = row.get(0).map_err(|e| self.err(e))?;
             let name: String = row.get(1).map_err(|e| self.err(e))?;
             let camera_id: i64 = row.get(2).map_err(|e| self.err(e))?;
+            let image_id = self.id_u32("images", id, id, "image_id")?;
+            // The model readers' rule: such a name would inject lines into every text export.
+            if super::model::has_control_character(&name) {
+                return Err(Error::BadImageName {
+                    path: self.path.clone(),
+                    line: None,
+                    image_id,
+                    name: super::error::shown_name(&name),
+                });
+            }
             images.push(DbImage {
-                id: self.id_u32("images", id, id, "image_id")?,
+                id: image_id,
                 name,
                 camera_id: self.id_u32("images", id, camera_id, "camera_id")?,
             });

@@ -182,18 +182,44 @@ pub fn to_gray8(image: &DynamicImage, weights: [f32; 3]) -> GrayImage {
     }
 }
 
-/// [`to_gray8`], resized so its longer side is at most `resize_max` (triangle filter), in [0, 1].
+/// [`to_gray8`], resized so its longer side is at most `resize_max` (triangle filter), in [0, 1];
+/// then, if it is still past [`MAX_INPUT_PIXELS`](super::MAX_INPUT_PIXELS), downscaled to fit
+/// (a 20–24 MP camera photo is an ordinary query). Keypoints come back in the original pixels
+/// through `original_size`.
 pub fn from_image(image: &DynamicImage, weights: [f32; 3], resize_max: Option<u32>) -> GrayInput {
     let gray = to_gray8(image, weights);
     let original_size = [gray.width(), gray.height()];
-    let gray = match resize_max {
-        Some(m) if m > 0 && gray.width().max(gray.height()) > m => {
-            let s = m as f64 / gray.width().max(gray.height()) as f64;
-            let w = ((gray.width() as f64 * s).round() as u32).max(1);
-            let h = ((gray.height() as f64 * s).round() as u32).max(1);
-            image::imageops::resize(&gray, w, h, image::imageops::FilterType::Triangle)
+    let longer = gray.width().max(gray.height());
+    let mut scale = match resize_max {
+        Some(m) if m > 0 && longer > m => f64::from(m) / f64::from(longer),
+        _ => 1.0,
+    };
+    let pixels = |s: f64| {
+        let w = ((f64::from(gray.width()) * s).round() as u64).max(1);
+        let h = ((f64::from(gray.height()) * s).round() as u64).max(1);
+        (w, h)
+    };
+    let (w, h) = pixels(scale);
+    if w * h > super::MAX_INPUT_PIXELS {
+        scale *= (super::MAX_INPUT_PIXELS as f64 / (w * h) as f64).sqrt();
+        // Rounding may land a pixel over: step down until it fits.
+        while {
+            let (w, h) = pixels(scale);
+            w * h > super::MAX_INPUT_PIXELS
+        } {
+            scale *= 0.999;
         }
-        _ => gray,
+    }
+    let gray = if scale < 1.0 {
+        let (w, h) = pixels(scale);
+        image::imageops::resize(
+            &gray,
+            w as u32,
+            h as u32,
+            image::imageops::FilterType::Triangle,
+        )
+    } else {
+        gray
     };
     GrayInput {
         width: gray.width() as usize,
@@ -322,5 +348,28 @@ mod tests {
         assert_eq!(input.original_size, [40, 20]);
         assert_eq!(input.scale(), [4.0, 4.0]);
         assert!(input.values.iter().all(|v| (0.0..=1.0).contains(v)));
+    }
+
+    #[test]
+    fn an_input_past_the_network_cap_is_downscaled_to_fit_not_refused() {
+        // 16,794,625 pixels, just past 2^24: a grey image, so the test stays cheap.
+        let (w, h) = (16_385u32, 1_025u32);
+        let img = DynamicImage::ImageLuma8(GrayImage::new(w, h));
+        let input = from_image(&img, [0.299, 0.587, 0.114], None);
+        let pixels = (input.width * input.height) as u64;
+        assert!(pixels <= super::super::MAX_INPUT_PIXELS, "{pixels}");
+        assert!(
+            pixels > super::super::MAX_INPUT_PIXELS * 99 / 100,
+            "{pixels}"
+        );
+        assert_eq!(input.original_size, [w, h]);
+        assert_eq!(
+            super::super::too_large_for_the_network(input.width, input.height),
+            None
+        );
+        // Under the cap nothing changes.
+        let img = DynamicImage::ImageLuma8(GrayImage::new(4032, 3024));
+        let input = from_image(&img, [0.299, 0.587, 0.114], None);
+        assert_eq!((input.width, input.height), (4032, 3024));
     }
 }

@@ -569,7 +569,7 @@ impl Extractor {
 
 /// The most pixels the network is run on: its activations take about 70 bytes a pixel
 /// (a 120 MP PNG of 117 KB took 8.7 GB), so 16 MP keeps one inference near 1.2 GB. A 12 MP
-/// phone photo fits; larger inputs are downscaled with `--resize-max` first.
+/// phone photo fits; larger decoded images are downscaled to fit ([`image::from_image`]).
 pub const MAX_INPUT_PIXELS: u64 = 1 << 24;
 
 /// Why an input of `w x h` pixels is refused, if it is.

@@ -176,7 +176,8 @@ pub fn convert_with_images(
         .iter()
         .map(|i| options.images.join(&i.name))
         .collect();
-    let present: Vec<bool> = paths.iter().map(|p| p.is_file()).collect();
+    // Present, not necessarily a file: a FIFO or folder is refused by name when it is read.
+    let present: Vec<bool> = paths.iter().map(|p| p.exists()).collect();
     let missing: Vec<String> = model
         .images()
         .iter()

@@ -85,6 +85,20 @@ pub struct LevelInfo {
     pub extra: JsonMap<String, Value>,
 }
 
+impl LevelInfo {
+    /// The descriptor dimensions a reader matches this level with: all of them when the `rest`
+    /// block is stored and used, else the `short` block's. Zero means nothing to match with:
+    /// the one rule behind the writer's and `open`'s refusal, `slice --short`'s and the
+    /// localizer's skip.
+    pub fn matched_dims(&self, with_rest: bool) -> u32 {
+        if with_rest {
+            self.dim_full
+        } else {
+            self.dim_short
+        }
+    }
+}
+
 /// Where the map came from.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Provenance {

@@ -47,7 +47,8 @@ pub fn slice<'m>(
     keep_levels.dedup();
     for &l in &keep_levels {
         let level = map.level(l)?;
-        if options.short && level.has_descriptors() && level.dim_short() == 0 {
+        let with_rest = !options.short && level.has_rest();
+        if level.has_descriptors() && level.info().matched_dims(with_rest) == 0 {
             // Without `rest` such a level would hold no descriptor dimension (refused at open).
             return Err(Error::invalid(format!(
                 "level {l} has no short dimensions (dim_short 0): --short would leave it no descriptors"

@@ -86,7 +86,7 @@ pub(crate) fn check_shapes(
                 level.level
             )));
         }
-        if !metadata.geometry_only && level.dim_short == 0 && rest.is_none_or(|r| r.cols == 0) {
+        if !metadata.geometry_only && level.matched_dims(rest.is_some()) == 0 {
             return Err(Error::BadMetadata {
                 message: format!(
                     "level {}: dim_short is 0 and there is no rest block: no descriptor dimension",
@@ -283,6 +283,13 @@ pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> 
                     "index {p} out of range for {} points",
                     map.n_points()
                 ));
+            }
+        }
+        // The writer never stores one (see `MapWriter`), and a slice or a localizer would carry
+        // a NaN or inf position on into poses.
+        SectionKind::PointPositions => {
+            if let Some(i) = cast::<f32>(bytes).iter().position(|v| !v.is_finite()) {
+                return bad(format!("point {}: position is not finite", i / 3));
             }
         }
         SectionKind::ImageCameras => {

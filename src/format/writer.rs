@@ -386,7 +386,7 @@ impl<'a> MapWriter<'a> {
                 info.level
             )));
         }
-        if descriptors.is_some() && info.dim_short == 0 && !(with_rest && info.dim_full > 0) {
+        if descriptors.is_some() && info.matched_dims(with_rest) == 0 {
             return Err(Error::invalid(format!(
                 "level {}: dim_short 0 and no rest block: no descriptor dimension",
                 info.level

@@ -278,10 +278,9 @@ mod tests {
         }
     }
 
-    #[test]
-    fn round_trip_nested_names_and_transposed_descriptors() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("features.h5");
+    /// `features.h5` in `dir` with a top-level and a nested image, main level 1.
+    fn two_images(dir: &Path) -> (PathBuf, Vec<(String, Features)>, H5Options) {
+        let path = dir.join("features.h5");
         let images = vec![
             ("a.jpg".to_string(), features(3)),
             ("sub/b.png".to_string(), features(4)),
@@ -291,6 +290,13 @@ mod tests {
             attributes: vec![("sfp.model".into(), "test".into())],
         };
         write(&path, &images, &options).unwrap();
+        (path, images, options)
+    }
+
+    #[test]
+    fn round_trip_nested_names_and_transposed_descriptors() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, _, options) = two_images(dir.path());
         let file = hdf5_pure::File::open(&path).unwrap();
         let kp = file.dataset("sub/b.png/keypoints").unwrap();
         assert_eq!(kp.shape().unwrap(), vec![4, 2]);
@@ -315,6 +321,47 @@ mod tests {
             &options
         )
         .is_err());
+    }
+
+    /// The writer and the query reader (`localize::query::H5Features`) agree: every level's
+    /// keypoints in sfpmap's pixel convention, its descriptors (normalised, as the reader
+    /// hands them out), and the global descriptor.
+    #[cfg(feature = "localize")]
+    #[test]
+    fn the_query_reader_reads_back_what_the_writer_wrote() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, images, _) = two_images(dir.path());
+        let reader = crate::localize::query::H5Features::open(&path).unwrap();
+        for (name, written) in &images {
+            let read = reader.features(name).unwrap().expect("the image is there");
+            assert_eq!(read.global.as_deref(), Some(&written.global[..]));
+            assert_eq!(read.sets.len(), written.levels.len());
+            for (set, level) in read.sets.iter().zip(&written.levels) {
+                assert_eq!(set.level, Some(level.level));
+                assert_eq!(set.dim, level.dim_full);
+                let expected: Vec<[f64; 2]> = level
+                    .keypoints
+                    .iter()
+                    .map(|k| [f64::from(k[0]), f64::from(k[1])])
+                    .collect();
+                assert_eq!(set.keypoints, expected, "{name} level {}", level.level);
+                for (i, row) in set.descriptors.chunks(set.dim).enumerate() {
+                    let full: Vec<f32> = level.full[i * set.dim..(i + 1) * set.dim]
+                        .iter()
+                        .map(|v| v.to_f32())
+                        .collect();
+                    let norm = full.iter().map(|v| v * v).sum::<f32>().sqrt();
+                    for (r, f) in row.iter().zip(&full) {
+                        let want = if norm > 0.0 { f / norm } else { 0.0 };
+                        assert!(
+                            (r - want).abs() < 1e-6,
+                            "{name} keypoint {i}: {r} vs {want}"
+                        );
+                    }
+                }
+            }
+        }
+        assert!(reader.features("missing.jpg").unwrap().is_none());
     }
 
     #[test]

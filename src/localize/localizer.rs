@@ -754,6 +754,7 @@ fn build_level(
     if n == 0 {
         return Ok(Err("no points".into()));
     }
+    // `LevelInfo::matched_dims`, on the blocks actually read.
     let dim = if rest.is_some() { df } else { ds };
     if dim == 0 {
         let why = if has_rest {

@@ -279,6 +279,22 @@ impl H5Features {
                 "{name}/{prefix}: {n} keypoints x {two}, descriptors {dim} x {n_desc}"
             )));
         }
+        // As for database keypoints: a NaN would pass every check of the pose solver's input.
+        if let Some(i) = kp.iter().position(|v| !v.is_finite()) {
+            return Err(self.err(format!(
+                "{name}/{prefix}keypoints: keypoint {}: {} is {}",
+                i / 2,
+                ["x", "y"][i % 2],
+                kp[i]
+            )));
+        }
+        if let Some(i) = desc.iter().position(|v| !v.is_finite()) {
+            return Err(self.err(format!(
+                "{name}/{prefix}descriptors: keypoint {}: a value is {}",
+                i % n.max(1),
+                desc[i]
+            )));
+        }
         // [D × N] → [N × D].
         let mut descriptors = vec![0.0f32; n * dim];
         for d in 0..dim {

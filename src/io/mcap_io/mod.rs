@@ -76,8 +76,8 @@ pub enum McapIoError {
     Camera { reason: String },
     /// The file does not start with the MCAP magic.
     NotMcap,
-    /// The log is a directory, FIFO or device, not a file.
-    NotRegularFile,
+    /// The log is a directory, FIFO or device, not a file; the value says which (`"a FIFO"`).
+    NotRegularFile(&'static str),
     /// Reading the log failed.
     Io(std::io::Error),
     /// A record's fields do not fit together or in the record.
@@ -105,6 +105,13 @@ pub enum McapIoError {
     },
     /// A chunk that says it decompresses to more than this file may ([`Limits`]).
     ChunkTooLarge { uncompressed: u64, limit: u64 },
+    /// A chunk that would take the log's chunks together past what they may decompress to
+    /// ([`Limits::log_uncompressed`]).
+    LogBudgetSpent {
+        uncompressed: u64,
+        spent: u64,
+        limit: u64,
+    },
     /// A chunk whose records do not match its CRC.
     ChunkCrc { stored: u32, computed: u32 },
     /// A summary section that does not match the footer's CRC.
@@ -146,7 +153,7 @@ impl fmt::Display for McapIoError {
             McapIoError::BadMessage { schema, reason } => write!(f, "bad {schema} message: {reason}"),
             McapIoError::Camera { reason } => write!(f, "camera info: {reason}"),
             McapIoError::NotMcap => write!(f, "not an MCAP file (no MCAP magic at its start)"),
-            McapIoError::NotRegularFile => write!(f, "not a regular file"),
+            McapIoError::NotRegularFile(kind) => write!(f, "is {kind}, not a regular file"),
             McapIoError::CutOff => write!(f, "the log ends here without its footer (cut off)"),
             McapIoError::Io(e) => write!(f, "{e}"),
             McapIoError::BadRecord { record, reason } => write!(f, "bad {record} record: {reason}"),
@@ -178,6 +185,14 @@ impl fmt::Display for McapIoError {
                 f,
                 "chunk says it decompresses to {uncompressed} bytes, over this file's limit of {limit} ({CHUNK_RATIO} × the file size, at least {CHUNK_FLOOR}, at most {MAX_RECORD})"
             ),
+            McapIoError::LogBudgetSpent {
+                uncompressed,
+                spent,
+                limit,
+            } => write!(
+                f,
+                "chunk says it decompresses to {uncompressed} bytes, but the chunks before it took {spent} of this file's limit of {limit} for all chunks together ({CHUNK_RATIO} × the file size, at least {CHUNK_FLOOR})"
+            ),
             McapIoError::ChunkCrc { stored, computed } => write!(
                 f,
                 "chunk CRC mismatch (stored {stored:#010x}, computed {computed:#010x})"
@@ -202,15 +217,9 @@ impl fmt::Display for McapIoError {
     }
 }
 
-impl std::error::Error for McapIoError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            McapIoError::ImageDecode { source, .. } => Some(source),
-            McapIoError::Mcap(e) => Some(e),
-            _ => None,
-        }
-    }
-}
+// No `source()`: every message already ends with its cause, and `{:#}` (the CLI's
+// `error: {err:#}`) would print it twice.
+impl std::error::Error for McapIoError {}
 
 impl From<CdrError> for McapIoError {
     fn from(e: CdrError) -> Self {

@@ -59,7 +59,7 @@ fn top_level(bytes: &[u8]) -> Vec<(usize, u8, usize)> {
 /// The log times of the messages in the chunk record at `at`.
 fn chunk_message_times(bytes: &[u8], at: usize, len: usize) -> Vec<u64> {
     let limits = Limits::for_file(bytes.len() as u64);
-    let records = decompress_chunk(&bytes[at + 9..at + 9 + len], &limits).unwrap();
+    let records = decompress_chunk(&bytes[at + 9..at + 9 + len], &limits, &mut 0).unwrap();
     let mut times = Vec::new();
     let mut pos = 0;
     while pos < records.len() {
@@ -272,4 +272,181 @@ fn limits_follow_the_file_size() {
         CHUNK_RATIO * (10 << 20)
     );
     assert_eq!(Limits::for_file(u64::MAX).chunk_uncompressed, MAX_RECORD);
+}
+
+/// A chunk record (opcode, length, body) holding `records` uncompressed, without a CRC.
+fn raw_chunk(records: &[u8]) -> Vec<u8> {
+    chunk_record(records, records.len() as u64, "")
+}
+
+/// A chunk record of `stored` records bytes, compressed with `compression`, that decompress to
+/// `uncompressed` bytes; no CRC.
+fn chunk_record(stored: &[u8], uncompressed: u64, compression: &str) -> Vec<u8> {
+    let mut body = Vec::new();
+    body.extend_from_slice(&0u64.to_le_bytes()); // message_start_time
+    body.extend_from_slice(&0u64.to_le_bytes()); // message_end_time
+    body.extend_from_slice(&uncompressed.to_le_bytes());
+    body.extend_from_slice(&0u32.to_le_bytes()); // no CRC
+    body.extend_from_slice(&(compression.len() as u32).to_le_bytes());
+    body.extend_from_slice(compression.as_bytes());
+    body.extend_from_slice(&(stored.len() as u64).to_le_bytes());
+    body.extend_from_slice(stored);
+    let mut out = vec![op::CHUNK];
+    out.extend_from_slice(&(body.len() as u64).to_le_bytes());
+    out.extend_from_slice(&body);
+    out
+}
+
+/// The items of a log that holds no readable message, as their messages.
+fn only_damage(bytes: &[u8]) -> Vec<String> {
+    read(bytes)
+        .iter()
+        .map(|r| r.as_ref().expect_err("no message is readable").to_string())
+        .collect()
+}
+
+/// A message record on `channel` with no data.
+fn message_record(channel: u16) -> Vec<u8> {
+    let mut body = channel.to_le_bytes().to_vec();
+    body.extend_from_slice(&[0; 4 + 8 + 8]);
+    let mut out = vec![op::MESSAGE];
+    out.extend_from_slice(&(body.len() as u64).to_le_bytes());
+    out.extend_from_slice(&body);
+    out
+}
+
+#[test]
+fn a_chunk_of_bad_records_is_two_damage_items_not_one_per_record() {
+    // 10,000 messages on a channel no record defines: a 28 KB log had cost one item (and a
+    // string in --json) per record.
+    let records: Vec<u8> = (0..10_000).flat_map(|_| message_record(7)).collect();
+    let mut bytes = mcap::MAGIC.to_vec();
+    bytes.extend_from_slice(&raw_chunk(&records));
+    bytes.extend_from_slice(&raw_chunk(&message_record(8)));
+    let damage = only_damage(&bytes);
+    // Per chunk: the first bad record, then how many more; then the missing footer.
+    assert_eq!(damage.len(), 4, "{damage:#?}");
+    assert!(damage[0].ends_with("record skipped"), "{}", damage[0]);
+    assert!(damage[0].contains("channel 7"), "{}", damage[0]);
+    assert!(
+        damage[1].ends_with("9999 more records of this chunk skipped"),
+        "{}",
+        damage[1]
+    );
+    assert!(damage[2].contains("channel 8"), "{}", damage[2]);
+    assert!(damage[3].contains("cut off"), "{}", damage[3]);
+}
+
+#[test]
+fn all_chunks_of_a_log_share_one_decompression_budget() {
+    let limits = Limits {
+        file_len: 1000,
+        chunk_uncompressed: 1000,
+        log_uncompressed: 2500,
+    };
+    let records = vec![0u8; 1000];
+    let body = {
+        let chunk = raw_chunk(&records);
+        chunk[1 + 8..].to_vec()
+    };
+    let mut spent = 0;
+    for _ in 0..2 {
+        assert_eq!(
+            decompress_chunk(&body, &limits, &mut spent).unwrap().len(),
+            1000
+        );
+    }
+    let e = decompress_chunk(&body, &limits, &mut spent).unwrap_err();
+    assert!(
+        matches!(e, McapIoError::LogBudgetSpent { spent: 2000, .. }),
+        "{e}"
+    );
+    assert_eq!(spent, 2000, "a refused chunk is not charged");
+    // From the file size: 64 x the file, at least 64 MiB, and not capped at 1 GiB like a chunk.
+    assert_eq!(Limits::for_file(1000).log_uncompressed, CHUNK_FLOOR);
+    assert_eq!(
+        Limits::for_file(1 << 30).log_uncompressed,
+        CHUNK_RATIO << 30
+    );
+}
+
+#[test]
+fn bad_records_before_a_cut_in_the_chunk_are_still_counted() {
+    let mut records: Vec<u8> = (0..5).flat_map(|_| message_record(7)).collect();
+    records.extend_from_slice(&[op::MESSAGE, 1, 2]); // a record header cut short
+    let mut bytes = mcap::MAGIC.to_vec();
+    bytes.extend_from_slice(&raw_chunk(&records));
+    let damage = only_damage(&bytes);
+    assert_eq!(damage.len(), 4, "{damage:#?}");
+    assert!(damage[0].ends_with("record skipped"), "{}", damage[0]);
+    assert!(
+        damage[1].ends_with("4 more records of this chunk skipped"),
+        "{}",
+        damage[1]
+    );
+    assert!(damage[2].contains("record header"), "{}", damage[2]);
+    assert!(damage[2].ends_with("chunk skipped"), "{}", damage[2]);
+    assert!(damage[3].contains("cut off"), "{}", damage[3]);
+}
+
+#[test]
+fn a_log_whose_chunks_decompress_past_its_budget_is_read_up_to_it() {
+    // Each chunk: one record of an opcode nobody reads, 40 MiB of zeros, a few KB stored. Two
+    // of them pass 64 MiB, the budget of a file this small.
+    let size = 40u64 << 20;
+    let mut records = vec![0u8; size as usize];
+    records[0] = 0x80;
+    records[1..9].copy_from_slice(&(size - 9).to_le_bytes());
+    let stored = zstd::bulk::compress(&records, 1).unwrap();
+    let mut bytes = mcap::MAGIC.to_vec();
+    for _ in 0..3 {
+        bytes.extend_from_slice(&chunk_record(&stored, size, "zstd"));
+    }
+    assert!(bytes.len() < 1 << 20);
+    let damage = only_damage(&bytes);
+    // Chunk 1 is read; chunks 2 and 3 are over the budget; then the missing footer.
+    assert_eq!(damage.len(), 3, "{damage:#?}");
+    for d in &damage[..2] {
+        assert!(d.contains("the chunks before it took 41943040"), "{d}");
+        assert!(d.ends_with("chunk skipped"), "{d}");
+    }
+}
+
+#[test]
+fn an_attachment_past_the_record_limit_is_skipped_not_the_end_of_the_log() {
+    // A 1.5 GiB attachment (a sparse file: no disk), then a channel and a message on it.
+    fn record(opcode: u8, body: &[u8]) -> Vec<u8> {
+        let mut out = vec![opcode];
+        out.extend_from_slice(&(body.len() as u64).to_le_bytes());
+        out.extend_from_slice(body);
+        out
+    }
+    let mut channel = 1u16.to_le_bytes().to_vec();
+    channel.extend_from_slice(&0u16.to_le_bytes()); // no schema
+    for s in ["/a", "raw"] {
+        channel.extend_from_slice(&(s.len() as u32).to_le_bytes());
+        channel.extend_from_slice(s.as_bytes());
+    }
+    channel.extend_from_slice(&0u32.to_le_bytes()); // no metadata
+    let attachment_len = MAX_RECORD + (MAX_RECORD >> 1);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("attached.mcap");
+    {
+        use std::io::Write as _;
+        let mut f = std::fs::File::create(&path).unwrap();
+        f.write_all(mcap::MAGIC).unwrap();
+        f.write_all(&[op::ATTACHMENT]).unwrap();
+        f.write_all(&attachment_len.to_le_bytes()).unwrap();
+        f.seek(SeekFrom::Current(attachment_len as i64)).unwrap();
+        f.write_all(&record(op::CHANNEL, &channel)).unwrap();
+        f.write_all(&message_record(1)).unwrap();
+    }
+    let items: Vec<_> = LogReader::open(&path).unwrap().collect();
+    assert_eq!(items.len(), 2, "{items:#?}");
+    assert_eq!(items[0].as_ref().unwrap().channel.topic, "/a");
+    assert!(items[1]
+        .as_ref()
+        .unwrap_err()
+        .to_string()
+        .contains("cut off"));
 }
