@@ -316,6 +316,33 @@ fn convert_never_writes_over_a_model_file_or_the_database() {
     ]);
     refused(&o, &image, "input");
     assert_eq!(std::fs::read(&image).unwrap(), b"not really a jpeg");
+    // Outside the folder, through `..` in a model image's name: the same-file rule per image.
+    let images_txt = std::fs::read_to_string(model.join("images.txt")).unwrap();
+    let first = images_txt
+        .lines()
+        .find(|l| !l.starts_with('#'))
+        .unwrap()
+        .to_string();
+    let renamed = first.rsplit_once(' ').unwrap().0.to_string() + " ../out.sfpm";
+    std::fs::write(
+        model.join("images.txt"),
+        images_txt.replacen(&first, &renamed, 1),
+    )
+    .unwrap();
+    let out = dir.path().join("out.sfpm");
+    std::fs::write(&out, b"an image of the model").unwrap();
+    let o = sfpmap(&[
+        "convert",
+        "--colmap",
+        s(&model),
+        "--images",
+        s(&images),
+        "-o",
+        s(&out),
+        "--force",
+    ]);
+    refused(&o, &out, "input");
+    assert_eq!(std::fs::read(&out).unwrap(), b"an image of the model");
 }
 
 // Finding 12: `plot` overwrote without --force, over its own map too, and wrote in place.

@@ -81,6 +81,8 @@ pub struct SfpMapSummary {
 pub enum SfpMapError {
     Convert(ConvertError),
     Extract(ExtractError),
+    /// The output is one of the model's images (through `..` in its name, a link, ...).
+    Output(crate::output::OutputError),
     /// Model images with no file under the images folder.
     MissingImages {
         images: PathBuf,
@@ -94,6 +96,7 @@ impl fmt::Display for SfpMapError {
         match self {
             SfpMapError::Convert(e) => e.fmt(f),
             SfpMapError::Extract(e) => e.fmt(f),
+            SfpMapError::Output(e) => e.fmt(f),
             SfpMapError::MissingImages {
                 images,
                 missing,
@@ -120,6 +123,7 @@ impl std::error::Error for SfpMapError {
         match self {
             SfpMapError::Convert(e) => e.source(),
             SfpMapError::Extract(e) => e.source(),
+            SfpMapError::Output(e) => e.source(),
             SfpMapError::MissingImages { .. } => None,
         }
     }
@@ -176,6 +180,14 @@ pub fn convert_with_images(
         .iter()
         .map(|i| options.images.join(&i.name))
         .collect();
+    // An existing output that is a model image (`../out.sfpm` as a name, a link) would be
+    // replaced while it is still to be read: the output policy's same-file rule, per image.
+    let image_paths: Vec<&Path> = paths.iter().map(PathBuf::as_path).collect();
+    if let Err(e) = crate::output::check_output(output, &image_paths, true) {
+        if matches!(e, crate::output::OutputError::IsInput { .. }) {
+            return Err(SfpMapError::Output(e));
+        }
+    }
     // Present, not necessarily a file: a FIFO or folder is refused by name when it is read.
     let present: Vec<bool> = paths.iter().map(|p| p.exists()).collect();
     let missing: Vec<String> = model
