@@ -10,6 +10,8 @@ pub mod input;
 pub mod io;
 pub mod output;
 pub mod progress;
+#[cfg(any(feature = "colmap", feature = "localize", feature = "onnx"))]
+mod vector;
 
 #[cfg(feature = "colmap-model")]
 pub mod colmap;

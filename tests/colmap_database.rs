@@ -1,6 +1,7 @@
 //! COLMAP `database.db` reading on both schemas, and the database never being modified.
 #![cfg(feature = "colmap")]
 
+mod common;
 mod shared_data;
 
 use std::path::{Path, PathBuf};
@@ -203,17 +204,6 @@ fn wrong_files_give_clear_errors() {
     assert!(err.to_string().contains("not a COLMAP database"), "{err}");
 }
 
-fn colmap_schema(conn: &rusqlite::Connection) {
-    conn.execute_batch(
-        "CREATE TABLE cameras (camera_id INTEGER PRIMARY KEY, model INTEGER, width INTEGER, \
-           height INTEGER, params BLOB, prior_focal_length INTEGER);
-         CREATE TABLE images (image_id INTEGER PRIMARY KEY, name TEXT, camera_id INTEGER);
-         CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);
-         CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);",
-    )
-    .unwrap();
-}
-
 /// The model readers' rule for image names, in a database too: a newline would inject rows into
 /// `images.txt` and TUM files written from it.
 #[test]
@@ -222,7 +212,7 @@ fn an_image_name_with_a_control_character_is_refused() {
     let path = tmp.path().join("db.db");
     {
         let conn = rusqlite::Connection::open(&path).unwrap();
-        colmap_schema(&conn);
+        common::colmap_schema(&conn);
         conn.execute_batch(
             "INSERT INTO images VALUES (1, 'a.jpg', 1), (2, 'b.jpg' || char(10) || '2 0 0 0', 1);",
         )
@@ -249,7 +239,7 @@ fn bad_rows_are_errors_not_panics() {
     let path = tmp.path().join("db.db");
     {
         let conn = rusqlite::Connection::open(&path).unwrap();
-        colmap_schema(&conn);
+        common::colmap_schema(&conn);
         let params: Vec<u8> = [1.0f64, 2.0, 3.0]
             .iter()
             .flat_map(|v| v.to_le_bytes())
@@ -313,7 +303,7 @@ fn a_pending_write_ahead_log_is_an_error() {
     let conn = rusqlite::Connection::open(&path).unwrap();
     conn.pragma_update(None, "journal_mode", "wal").unwrap();
     conn.pragma_update(None, "wal_autocheckpoint", 0).unwrap();
-    colmap_schema(&conn);
+    common::colmap_schema(&conn);
     // While `conn` is open its changes sit in wal.db-wal, invisible to an immutable open.
     let err = Database::open(&path).unwrap_err();
     assert!(matches!(err, Error::PendingWal { .. }), "{err}");

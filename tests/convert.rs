@@ -1,6 +1,7 @@
 //! `convert` on a small model and database the test makes itself, then on the real fixtures.
 #![cfg(feature = "colmap")]
 
+mod common;
 mod shared_data;
 
 use rusqlite::{params, Connection};
@@ -84,13 +85,7 @@ fn write_model(dir: &Path, rec: &Reconstruction) {
 /// A current-schema-like database with 4-column keypoints (x, y, scale, orientation).
 fn write_database(path: &Path, keypoints_per_image: usize) {
     let db = Connection::open(path).unwrap();
-    db.execute_batch(
-        "CREATE TABLE cameras (camera_id INTEGER PRIMARY KEY, model INTEGER, width INTEGER, height INTEGER, params BLOB, prior_focal_length INTEGER);
-         CREATE TABLE images (image_id INTEGER PRIMARY KEY, name TEXT, camera_id INTEGER);
-         CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);
-         CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);",
-    )
-    .unwrap();
+    common::colmap_schema(&db);
     let params: Vec<u8> = [500.0f64, 320.0, 240.0]
         .iter()
         .flat_map(|v| v.to_le_bytes())

@@ -212,21 +212,36 @@ fn write_progress_reaches_the_file_length() {
 fn stored_sections_past_the_decode_cap_are_written_decoded() {
     use sfpmap::format::{Dtype, SectionKind};
     let raw = vec![0u8; 4 << 20];
-    let z = zstd::bulk::compress(&raw, 19).unwrap();
-    assert!((raw.len() as u64) > sfpmap::format::decode_cap(z.len() as u64));
+    // Another writer's map (crafted): the zstd section as it is, 4 MiB in a few hundred bytes,
+    // readable there (20 KB of other data make the file's cap 5 MB) but past the cap of a
+    // small new map.
+    let kind = SectionKind::Unknown(0x7000);
+    let zstd = common::Crafted::zstd(kind, u16::MAX, Dtype::U8, raw.len() as u64, 1, &raw);
+    assert!((raw.len() as u64) > sfpmap::format::decode_cap(zstd.stored.len() as u64));
+    let other = SectionKind::Unknown(0x7001);
+    let filler = common::Crafted::raw(other, u16::MAX, Dtype::U8, 20_000, 1, vec![0; 20_000]);
+    let source = common::craft(
+        &common::craft_metadata(vec![]),
+        &[common::craft_points(2), zstd.optional(), filler.optional()],
+    );
+    let source = Map::from_bytes(&source).unwrap();
+    let stored = source.sections().iter().find(|s| s.kind == kind).unwrap();
     let mut w = MapWriter::default();
     w.set_points_world(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
-    w.add_stored_section(
-        SectionKind::Unknown(0x7000),
-        u16::MAX,
-        Dtype::U8,
-        raw.len() as u64,
-        1,
-        false,
-        Codec::Zstd,
-        raw.len() as u64,
-        &z,
-    );
+    w.copy_section(&source, stored).unwrap();
+    // A section that is not the map's own (its index names another) is refused, not sliced.
+    let mut forged = *stored;
+    forged.index = 0;
+    assert!(w.copy_section(&source, &forged).is_err());
+    assert!(source.section_bytes(&forged).is_err());
+    // Nor one whose index is past the table, or whose offset was moved.
+    forged = *stored;
+    forged.index = 99;
+    assert!(source.section_bytes(&forged).is_err());
+    assert!(source.check_section(&forged).is_err());
+    forged = *stored;
+    forged.offset += 64;
+    assert!(w.copy_section(&source, &forged).is_err());
     let bytes = w.to_bytes().unwrap();
     let map = Map::from_bytes(&bytes).unwrap();
     map.verify().unwrap();

@@ -304,13 +304,7 @@ fn readers_refuse_non_finite_point2d_coordinates_and_errors() {
 /// of image 2's keypoint 1 is `scale`.
 fn write_database(path: &Path, scale: f32) {
     let db = Connection::open(path).unwrap();
-    db.execute_batch(
-        "CREATE TABLE cameras (camera_id INTEGER PRIMARY KEY, model INTEGER, width INTEGER, height INTEGER, params BLOB, prior_focal_length INTEGER);
-         CREATE TABLE images (image_id INTEGER PRIMARY KEY, name TEXT, camera_id INTEGER);
-         CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);
-         CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);",
-    )
-    .unwrap();
+    common::colmap_schema(&db);
     let params: Vec<u8> = [FOCAL, 320.0, 240.0]
         .iter()
         .flat_map(|v| v.to_le_bytes())

@@ -528,14 +528,7 @@ fn query_names_with_control_characters_are_refused_or_escaped() {
 fn query_database(dir: &Path, name: &str, cols: usize, keypoints: &[f32]) -> PathBuf {
     let path = dir.join(format!("queries-{cols}.db"));
     let conn = rusqlite::Connection::open(&path).unwrap();
-    conn.execute_batch(
-        "CREATE TABLE cameras (camera_id INTEGER PRIMARY KEY, model INTEGER, width INTEGER, \
-           height INTEGER, params BLOB, prior_focal_length INTEGER);
-         CREATE TABLE images (image_id INTEGER PRIMARY KEY, name TEXT, camera_id INTEGER);
-         CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);
-         CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);",
-    )
-    .unwrap();
+    common::colmap_schema(&conn);
     let rows = keypoints.len() / cols;
     let blob: Vec<u8> = keypoints.iter().flat_map(|v| v.to_le_bytes()).collect();
     let mut rng = Rng(21);

@@ -6,6 +6,7 @@
 //! `SFPMAP_BIN` runs these tests against another build (e.g. an older release) to see them fail.
 #![cfg(all(feature = "cli", feature = "colmap", unix))]
 
+mod common;
 mod shared_data;
 
 use std::os::unix::fs::FileTypeExt;
@@ -65,13 +66,7 @@ fn map_in(dir: &Path) -> PathBuf {
 /// `localize` writes its output.
 fn empty_database(path: &Path) {
     let db = rusqlite::Connection::open(path).unwrap();
-    db.execute_batch(
-        "CREATE TABLE cameras (camera_id INTEGER PRIMARY KEY, model INTEGER, width INTEGER, height INTEGER, params BLOB, prior_focal_length INTEGER);
-         CREATE TABLE images (image_id INTEGER PRIMARY KEY, name TEXT, camera_id INTEGER);
-         CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);
-         CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);",
-    )
-    .unwrap();
+    common::colmap_schema(&db);
 }
 
 const CAMERA: &str = "SIMPLE_PINHOLE 640 480 500 320 240";

@@ -443,7 +443,7 @@ fn gather(
             }
             normalised.clear();
             normalised.extend(row.iter().map(|&b| f32::from(b)));
-            normalise(&mut normalised);
+            crate::vector::l2_normalise(&mut normalised);
             obs.scales.push((point as u32, scale));
             obs.counts[point] += 1;
             match options.aggregate {
@@ -472,13 +472,6 @@ fn gather(
     Ok(obs)
 }
 
-fn normalise(v: &mut [f32]) {
-    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
-    if norm > 0.0 {
-        v.iter_mut().for_each(|x| *x /= norm);
-    }
-}
-
 /// One descriptor per point (`[points × dim]`) and whether the point has one.
 fn aggregate(obs: &Observations, n_points: usize, how: Aggregate) -> (Vec<f32>, Vec<bool>) {
     let dim = obs.dim;
@@ -488,7 +481,7 @@ fn aggregate(obs: &Observations, n_points: usize, how: Aggregate) -> (Vec<f32>, 
             let mut out = obs.sums.clone();
             out.resize(n_points * dim, 0.0);
             for row in out.chunks_exact_mut(dim.max(1)) {
-                normalise(row);
+                crate::vector::l2_normalise(row);
             }
             (out, has)
         }
@@ -500,7 +493,10 @@ fn aggregate(obs: &Observations, n_points: usize, how: Aggregate) -> (Vec<f32>, 
                 let best = (0..group.len())
                     .max_by(|&i, &j| {
                         let score = |k: usize| -> f32 {
-                            group.iter().map(|(_, d)| dot(&group[k].1, d)).sum()
+                            group
+                                .iter()
+                                .map(|(_, d)| crate::vector::dot(&group[k].1, d))
+                                .sum()
                         };
                         score(i).total_cmp(&score(j)).then(j.cmp(&i))
                     })
@@ -511,10 +507,6 @@ fn aggregate(obs: &Observations, n_points: usize, how: Aggregate) -> (Vec<f32>, 
             (out, has)
         }
     }
-}
-
-fn dot(a: &[f32], b: &[f32]) -> f32 {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
 struct BuiltLevel {

@@ -163,13 +163,7 @@ pub fn bilinear_at(map: ScoreMap<'_>, x: f32, y: f32) -> f32 {
     out[0]
 }
 
-/// Scales `v` to unit L2 norm (left as is when its norm is ~0).
-pub fn l2_normalise(v: &mut [f32]) {
-    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
-    if norm > 1e-12 {
-        v.iter_mut().for_each(|x| *x /= norm);
-    }
-}
+pub(crate) use crate::vector::l2_normalise;
 
 #[cfg(test)]
 mod tests {
@@ -312,15 +306,5 @@ mod tests {
             values: &v[..h * w],
         };
         assert!((bilinear_at(plane, 0.5, 0.5) - (1.0 + 1.0 + 1.5)).abs() < 1e-6);
-    }
-
-    #[test]
-    fn normalise_unit_and_zero() {
-        let mut v = [3.0, 4.0];
-        l2_normalise(&mut v);
-        assert_eq!(v, [0.6, 0.8]);
-        let mut z = [0.0, 0.0];
-        l2_normalise(&mut z);
-        assert_eq!(z, [0.0, 0.0]);
     }
 }

@@ -15,6 +15,9 @@
 //! ```
 
 mod error;
+/// Fuzz-target bodies and the raw on-disk structs they edit: for the fuzz crate and the
+/// tests, not the reader API.
+#[cfg(feature = "fuzzing")]
 pub mod fuzzing;
 mod layout;
 mod metadata;
@@ -26,11 +29,12 @@ mod writer;
 
 pub use error::{Error, SectionRef};
 pub use layout::{
-    align_up, checksum, Codec, Dtype, Header, RawEntry, SectionKind, ALIGN, ENDIAN_CHECK,
-    ENTRY_LEN, HEADER_LEN, MAGIC, MAX_CAMERA_PARAMS, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN,
-    MAX_IMAGE_SIDE, MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED, VERSION_MAJOR,
-    VERSION_MINOR,
+    align_up, checksum, Codec, Dtype, SectionKind, ALIGN, ENDIAN_CHECK, ENTRY_LEN, HEADER_LEN,
+    MAGIC, MAX_CAMERA_PARAMS, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN, MAX_IMAGE_SIDE, MAX_SECTIONS,
+    METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED, VERSION_MAJOR, VERSION_MINOR,
 };
+#[cfg(feature = "fuzzing")]
+pub use layout::{Header, RawEntry};
 pub use metadata::{CameraInfo, LevelInfo, Metadata, Provenance, SourceFile};
 pub use reader::{decode_budget, decode_cap, Map, Section};
 pub use slice::{slice, SliceOptions, SliceSummary};

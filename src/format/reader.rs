@@ -166,6 +166,8 @@ impl<'a> Map<'a> {
         }
     }
 
+    /// The raw header (fuzz bodies and tests).
+    #[cfg(feature = "fuzzing")]
     pub fn header(&self) -> &Header {
         &self.header
     }
@@ -218,15 +220,30 @@ impl<'a> Map<'a> {
         decode_budget(self.file_len())
     }
 
-    /// The stored bytes of a section, as they are in the file (compressed for zstd).
-    /// Not checksummed: callers that copy them must check or recompute.
-    pub fn stored_bytes(&self, section: &Section) -> &[u8] {
+    /// The stored bytes of one of this map's sections (checked by [`Map::own`]), as they are in
+    /// the file (compressed for zstd). Not checksummed: callers that copy them must check or
+    /// recompute.
+    pub(crate) fn stored_bytes(&self, section: &Section) -> &[u8] {
         let start = section.offset as usize;
         &self.bytes()[start..start + section.stored_len as usize]
     }
 
+    /// `section` if it is one of this map's, as [`Map::sections`] lists it. `Section`'s fields
+    /// are public, so one made up or taken from another map could otherwise index or slice past
+    /// what this map holds.
+    fn own(&self, section: &Section) -> Result<(), Error> {
+        match self.sections.get(section.index) {
+            Some(s) if s == section => Ok(()),
+            _ => Err(Error::invalid(format!(
+                "{} is not a section of this map",
+                section.reference()
+            ))),
+        }
+    }
+
     /// The decoded bytes of a section, checked (checksum, length, contents) on first access.
     pub fn section_bytes(&self, section: &Section) -> Result<&[u8], Error> {
+        self.own(section)?;
         let ready = self.ready[section.index].get_or_init(|| self.prepare(section));
         match ready {
             Ok(None) => Ok(self.stored_bytes(section)),
@@ -273,6 +290,7 @@ impl<'a> Map<'a> {
     /// Checks one section as its first access would (checksum, decoding, contents) without
     /// keeping the decoded bytes of a zstd section; free once the section was checked.
     pub fn check_section(&self, section: &Section) -> Result<(), Error> {
+        self.own(section)?;
         if let Some(ready) = self.ready[section.index].get() {
             return ready.as_ref().map(|_| ()).map_err(Error::clone);
         }

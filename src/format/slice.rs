@@ -254,20 +254,8 @@ fn add_section<'m>(
     let dtype: Dtype = section.dtype;
     match rebuilt {
         None if codec.is_none_or(|c| c == section.codec) => {
-            // Checked before copying so a corrupt section is not passed on silently (free:
-            // the verify above checked it).
-            map.check_section(section)?;
-            writer.add_stored_section(
-                section.kind,
-                level,
-                dtype,
-                section.rows,
-                section.cols,
-                section.required,
-                section.codec,
-                section.raw_len,
-                map.stored_bytes(section),
-            );
+            // Checked before copying (free: the verify above checked it).
+            writer.copy_section(map, section)?;
             summary.sections_copied += 1;
         }
         rebuilt => {

@@ -8,7 +8,7 @@ use super::layout::{
     VERSION_MINOR,
 };
 use super::metadata::{CameraInfo, LevelInfo, Metadata};
-use super::reader::within_decode_ratio;
+use super::reader::{within_decode_ratio, Map, Section};
 use crate::progress::{Reporter, Silent};
 use half::f16;
 use std::borrow::Cow;
@@ -512,34 +512,29 @@ impl<'a> MapWriter<'a> {
         Ok(self)
     }
 
-    /// Adds a section exactly as another map stores it (copied byte for byte, no decode).
-    #[allow(clippy::too_many_arguments)]
-    pub fn add_stored_section(
+    /// Adds one of `map`'s sections exactly as `map` stores it (copied byte for byte, no
+    /// decode), after checking it as its first access would (checksum, decoding, contents), so
+    /// a damaged section is never passed on.
+    pub fn copy_section(
         &mut self,
-        kind: SectionKind,
-        level: u16,
-        dtype: Dtype,
-        rows: u64,
-        cols: u64,
-        required: bool,
-        codec: Codec,
-        raw_len: u64,
-        bytes: &'a [u8],
-    ) -> &mut Self {
+        map: &'a Map<'_>,
+        section: &Section,
+    ) -> Result<&mut Self, Error> {
+        map.check_section(section)?;
         self.push(
-            kind,
-            level,
-            dtype,
-            rows,
-            cols,
-            required,
+            section.kind,
+            section.level.unwrap_or(NO_LEVEL),
+            section.dtype,
+            section.rows,
+            section.cols,
+            section.required,
             Content::Stored {
-                bytes: Cow::Borrowed(bytes),
-                codec,
-                raw_len,
+                bytes: Cow::Borrowed(map.stored_bytes(section)),
+                codec: section.codec,
+                raw_len: section.raw_len,
             },
         );
-        self
+        Ok(self)
     }
 
     /// Writes the map to `path` through [`crate::output::AtomicFile`] (temp file in the same

@@ -132,40 +132,17 @@ fn lane_max(v: &[f32]) -> f32 {
     max
 }
 
-/// Dot product over 8 independent lanes, so it vectorizes.
-pub fn dot(a: &[f32], b: &[f32]) -> f32 {
-    let mut lanes = [0.0f32; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f32 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in ca.zip(cb) {
-        for k in 0..8 {
-            lanes[k] += x[k] * y[k];
-        }
-    }
-    lanes.iter().sum::<f32>() + tail
-}
+pub(crate) use crate::vector::dot;
 
 /// `out[n × m] = a[n × k] · b[m × k]ᵀ`, row-major.
 pub fn gemm_abt(a: &[f32], b: &[f32], out: &mut [f32], n: usize, m: usize, k: usize) {
     super::kernels::sgemm_abt(a, b, out, n, m, k);
 }
 
-/// L2-normalises each `dim`-row in place (zero rows stay zero).
+/// L2-normalises each `dim`-row in place (zero rows stay zero); the crate's one kernel,
+/// public for the benches.
 pub fn normalise_rows(v: &mut [f32], dim: usize) {
-    if dim == 0 {
-        return;
-    }
-    for row in v.chunks_exact_mut(dim) {
-        let n = row.iter().map(|x| x * x).sum::<f32>().sqrt();
-        if n > 0.0 {
-            row.iter_mut().for_each(|x| *x /= n);
-        }
-    }
+    crate::vector::normalise_rows(v, dim);
 }
 
 #[cfg(test)]

@@ -627,3 +627,17 @@ pub fn run_limited(
         seconds: start.elapsed().as_secs_f64(),
     }
 }
+
+/// The four tables of a COLMAP `database.db` that sfpmap reads (the current schema's columns),
+/// without rows.
+#[cfg(feature = "colmap")]
+pub fn colmap_schema(conn: &rusqlite::Connection) {
+    conn.execute_batch(
+        "CREATE TABLE cameras (camera_id INTEGER PRIMARY KEY, model INTEGER, width INTEGER, \
+           height INTEGER, params BLOB, prior_focal_length INTEGER);
+         CREATE TABLE images (image_id INTEGER PRIMARY KEY, name TEXT, camera_id INTEGER);
+         CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);
+         CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY, rows INTEGER, cols INTEGER, data BLOB);",
+    )
+    .unwrap();
+}
