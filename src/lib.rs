@@ -6,6 +6,7 @@
 #![deny(unsafe_code)]
 
 pub mod format;
+pub mod geometry;
 pub mod input;
 pub mod io;
 pub mod output;

@@ -29,12 +29,12 @@ fn cameras() -> Vec<Camera> {
 fn parses_every_model_with_colmap_parameter_order() {
     let cameras = cameras();
     let models: Vec<CameraModel> = cameras.iter().map(Camera::model).collect();
-    assert_eq!(models, CameraModel::ALL);
+    assert_eq!(models, sfpmap::localize::geometry::SUPPORTED);
     for camera in &cameras {
         assert_eq!(camera.params().len(), camera.model().num_params());
         assert_eq!((camera.width(), camera.height()), (1024, 768));
         assert_eq!(
-            CameraModel::from_colmap_id(camera.model().colmap_id()),
+            CameraModel::from_id(camera.model().id()),
             Some(camera.model())
         );
     }
@@ -135,10 +135,31 @@ fn points_behind_the_camera_do_not_project() {
 
 #[test]
 fn parse_errors_are_specific() {
+    // A COLMAP model the localizer does not project, by name or built directly; a name that
+    // is no COLMAP model.
+    let e = Camera::parse("FISHEYE 10 10 1 2 3 4").unwrap_err();
+    assert_eq!(
+        e,
+        GeometryError::UnsupportedCameraModel {
+            model: CameraModel::Fisheye
+        }
+    );
+    assert!(e.to_string().contains("FULL_OPENCV"), "{e}");
+    assert_eq!(
+        Camera::new(CameraModel::Eucm, 10, 10, vec![1.0; 6]).unwrap_err(),
+        GeometryError::UnsupportedCameraModel {
+            model: CameraModel::Eucm
+        }
+    );
     assert!(matches!(
-        Camera::parse("FISHEYE 10 10 1 2 3"),
-        Err(GeometryError::UnknownCameraModel { name }) if name == "FISHEYE"
+        Camera::parse("FISHEYES 10 10 1 2 3"),
+        Err(GeometryError::UnknownCameraModel { name }) if name == "FISHEYES"
     ));
+    // Names are matched in any case here (hand-written query lists).
+    assert_eq!(
+        Camera::parse("simple_pinhole 10 10 5 5 5").unwrap().model(),
+        CameraModel::SimplePinhole
+    );
     assert_eq!(
         Camera::parse("SIMPLE_RADIAL 1024 768 800 512 384"),
         Err(GeometryError::WrongParamCount {

@@ -10,9 +10,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Vector2, Vector3};
-use sfpmap::localize::geometry::{
-    estimate_absolute_pose, Camera, CameraModel, Pose, RansacOptions,
-};
+use sfpmap::localize::geometry::{estimate_absolute_pose, Camera, Pose, RansacOptions};
 
 struct Image {
     name: String,
@@ -38,8 +36,8 @@ fn read_model(dir: &Path) -> Model {
         .cameras()
         .iter()
         .map(|c| {
-            let kind = CameraModel::from_colmap_id(c.model.id()).unwrap();
-            let camera = Camera::new(kind, c.width as u32, c.height as u32, c.params.clone());
+            // One camera-model type for the COLMAP reader and the localizer.
+            let camera = Camera::new(c.model, c.width as u32, c.height as u32, c.params.clone());
             (c.id, camera.unwrap())
         })
         .collect();

@@ -15,13 +15,13 @@
 
 use std::path::Path;
 
-use super::camera::CameraModel;
 use super::error::{Error, Result};
 use super::model::{
     has_control_character, non_finite_param, non_finite_point2d, non_finite_point3d,
     non_finite_pose, Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, Rigid3,
     TrackElement,
 };
+use crate::geometry::CameraModel;
 
 /// COLMAP's invalid `point3D_t`.
 const INVALID_POINT3D_ID: u64 = u64::MAX;

@@ -11,9 +11,9 @@ use std::path::{Path, PathBuf};
 
 use rusqlite::{Connection, OpenFlags, OptionalExtension};
 
-use super::camera::CameraModel;
 use super::error::{Error, Result};
 use super::model::Camera;
+use crate::geometry::CameraModel;
 
 /// An image row of the database.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -37,7 +37,6 @@
 #[cfg(feature = "colmap")]
 mod basis;
 pub mod bin;
-mod camera;
 #[cfg(feature = "colmap")]
 pub mod convert;
 #[cfg(feature = "colmap")]
@@ -49,7 +48,7 @@ pub mod text;
 
 use std::path::{Path, PathBuf};
 
-pub use camera::CameraModel;
+pub use crate::geometry::CameraModel;
 #[cfg(feature = "colmap")]
 pub use database::{
     Database, DbImage, Descriptors, ImageFeatures, ImageFeaturesIter, Keypoint, KeypointLayout,

@@ -7,8 +7,8 @@
 
 use std::path::{Path, PathBuf};
 
-use super::camera::CameraModel;
 use super::error::{Error, Result};
+use crate::geometry::CameraModel;
 
 /// A camera: intrinsics in COLMAP's parameter order for its model.
 #[derive(Debug, Clone, PartialEq)]

@@ -12,13 +12,13 @@ use std::fmt::Write as _;
 use std::path::Path;
 use std::str::FromStr;
 
-use super::camera::CameraModel;
 use super::error::{Error, Result};
 use super::model::{
     has_control_character, non_finite_param, non_finite_point2d, non_finite_point3d,
     non_finite_pose, Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, Rigid3,
     TrackElement,
 };
+use crate::geometry::CameraModel;
 
 /// Lines with their 1-based numbers, `\r\n` tolerated.
 struct Lines<'a> {

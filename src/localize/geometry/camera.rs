@@ -24,110 +24,31 @@ use nalgebra::{Matrix2, Matrix2x3, Vector2, Vector3};
 
 use super::error::GeometryError;
 
-/// A supported COLMAP camera model. Non-exhaustive: more of COLMAP's models may follow.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-#[non_exhaustive]
-pub enum CameraModel {
-    SimplePinhole,
-    Pinhole,
-    SimpleRadial,
-    Radial,
-    OpenCv,
-    OpenCvFisheye,
-    FullOpenCv,
-}
+pub use crate::geometry::CameraModel;
 
-impl CameraModel {
-    /// All supported models, in COLMAP id order.
-    pub const ALL: [CameraModel; 7] = [
-        Self::SimplePinhole,
-        Self::Pinhole,
-        Self::SimpleRadial,
-        Self::Radial,
-        Self::OpenCv,
-        Self::OpenCvFisheye,
-        Self::FullOpenCv,
-    ];
+/// The models the localizer projects and undistorts (COLMAP ids 0–6); the other COLMAP models
+/// are read and written everywhere but refused for a query or map camera here.
+pub const SUPPORTED: [CameraModel; 7] = [
+    CameraModel::SimplePinhole,
+    CameraModel::Pinhole,
+    CameraModel::SimpleRadial,
+    CameraModel::Radial,
+    CameraModel::OpenCv,
+    CameraModel::OpenCvFisheye,
+    CameraModel::FullOpenCv,
+];
 
-    /// COLMAP's name, as written in `cameras.txt`.
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::SimplePinhole => "SIMPLE_PINHOLE",
-            Self::Pinhole => "PINHOLE",
-            Self::SimpleRadial => "SIMPLE_RADIAL",
-            Self::Radial => "RADIAL",
-            Self::OpenCv => "OPENCV",
-            Self::OpenCvFisheye => "OPENCV_FISHEYE",
-            Self::FullOpenCv => "FULL_OPENCV",
+/// The model named `name` (any case), if the localizer supports it.
+fn supported_model(name: &str) -> Result<CameraModel, GeometryError> {
+    let model = CameraModel::from_name_ignore_case(name).ok_or_else(|| {
+        GeometryError::UnknownCameraModel {
+            name: name.to_owned(),
         }
-    }
-
-    /// COLMAP's numeric model id, as stored in `cameras.bin` and `database.db`.
-    pub fn colmap_id(self) -> i32 {
-        match self {
-            Self::SimplePinhole => 0,
-            Self::Pinhole => 1,
-            Self::SimpleRadial => 2,
-            Self::Radial => 3,
-            Self::OpenCv => 4,
-            Self::OpenCvFisheye => 5,
-            Self::FullOpenCv => 6,
-        }
-    }
-
-    /// The model for a COLMAP numeric id, `None` for models not supported here.
-    pub fn from_colmap_id(id: i32) -> Option<Self> {
-        Self::ALL.into_iter().find(|m| m.colmap_id() == id)
-    }
-
-    /// The model for a COLMAP name; case-insensitive because hand-written query lists vary.
-    pub fn from_name(name: &str) -> Result<Self, GeometryError> {
-        Self::ALL
-            .into_iter()
-            .find(|m| m.name().eq_ignore_ascii_case(name))
-            .ok_or_else(|| GeometryError::UnknownCameraModel {
-                name: name.to_owned(),
-            })
-    }
-
-    /// Number of intrinsic parameters.
-    pub fn num_params(self) -> usize {
-        match self {
-            Self::SimplePinhole => 3,
-            Self::Pinhole => 4,
-            Self::SimpleRadial => 4,
-            Self::Radial => 5,
-            Self::OpenCv => 8,
-            Self::OpenCvFisheye => 8,
-            Self::FullOpenCv => 12,
-        }
-    }
-
-    /// Parameter names in order, for error messages and help text.
-    pub fn param_names(self) -> &'static str {
-        match self {
-            Self::SimplePinhole => "f, cx, cy",
-            Self::Pinhole => "fx, fy, cx, cy",
-            Self::SimpleRadial => "f, cx, cy, k",
-            Self::Radial => "f, cx, cy, k1, k2",
-            Self::OpenCv => "fx, fy, cx, cy, k1, k2, p1, p2",
-            Self::OpenCvFisheye => "fx, fy, cx, cy, k1, k2, k3, k4",
-            Self::FullOpenCv => "fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6",
-        }
-    }
-}
-
-impl fmt::Display for CameraModel {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl FromStr for CameraModel {
-    type Err = GeometryError;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        Self::from_name(s)
+    })?;
+    if SUPPORTED.contains(&model) {
+        Ok(model)
+    } else {
+        Err(GeometryError::UnsupportedCameraModel { model })
     }
 }
 
@@ -161,7 +82,8 @@ pub(crate) struct Intrinsics {
 }
 
 impl Intrinsics {
-    fn from_params(model: CameraModel, p: &[f64]) -> Self {
+    /// `None` for a model outside [`SUPPORTED`]; `p` holds the model's parameter count.
+    fn from_params(model: CameraModel, p: &[f64]) -> Option<Self> {
         let opencv = |k1: f64, k2: f64, p1: f64, p2: f64| {
             if k1 == 0.0 && k2 == 0.0 && p1 == 0.0 && p2 == 0.0 {
                 Distortion::None
@@ -203,8 +125,9 @@ impl Intrinsics {
                 };
                 (p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], d)
             }
+            _ => return None,
         };
-        Self {
+        Some(Self {
             fx,
             fy,
             cx,
@@ -214,7 +137,7 @@ impl Intrinsics {
             p1,
             p2,
             distortion,
-        }
+        })
     }
 
     pub fn is_distorted(&self) -> bool {
@@ -325,6 +248,9 @@ impl Camera {
         height: u32,
         params: Vec<f64>,
     ) -> Result<Self, GeometryError> {
+        if !SUPPORTED.contains(&model) {
+            return Err(GeometryError::UnsupportedCameraModel { model });
+        }
         if params.len() != model.num_params() {
             return Err(GeometryError::WrongParamCount {
                 model,
@@ -342,7 +268,8 @@ impl Camera {
                 reason: "parameters must be finite",
             });
         }
-        let intrinsics = Intrinsics::from_params(model, &params);
+        let intrinsics = Intrinsics::from_params(model, &params)
+            .ok_or(GeometryError::UnsupportedCameraModel { model })?;
         if intrinsics.fx <= 0.0 || intrinsics.fy <= 0.0 {
             return Err(GeometryError::InvalidCamera {
                 reason: "focal lengths must be positive",
@@ -364,12 +291,7 @@ impl Camera {
         height: u32,
         params: &[f64],
     ) -> Result<Self, GeometryError> {
-        Self::new(
-            CameraModel::from_name(name)?,
-            width,
-            height,
-            params.to_vec(),
-        )
+        Self::new(supported_model(name)?, width, height, params.to_vec())
     }
 
     /// Parses `MODEL WIDTH HEIGHT p1 p2 ...` (whitespace-separated), the `--camera` syntax and
@@ -383,7 +305,7 @@ impl Camera {
         let model = tokens
             .next()
             .ok_or_else(|| parse_err("empty camera description".into()))?;
-        let model = CameraModel::from_name(model)?;
+        let model = supported_model(model)?;
         let mut size = |what: &str| -> Result<u32, GeometryError> {
             let token = tokens
                 .next()

@@ -2,7 +2,7 @@
 
 use std::fmt;
 
-use super::camera::CameraModel;
+use super::camera::{CameraModel, SUPPORTED};
 
 /// Everything that can go wrong in camera parsing, pose estimation and refinement.
 ///
@@ -11,8 +11,10 @@ use super::camera::CameraModel;
 #[derive(Debug, Clone, PartialEq)]
 #[non_exhaustive]
 pub enum GeometryError {
-    /// A camera model name that is not one of the supported COLMAP models.
+    /// A camera model name that is not one of COLMAP's.
     UnknownCameraModel { name: String },
+    /// A COLMAP camera model the localizer does not project (see [`SUPPORTED`]).
+    UnsupportedCameraModel { model: CameraModel },
     /// The number of intrinsic parameters does not match the model.
     WrongParamCount {
         model: CameraModel,
@@ -52,13 +54,22 @@ pub enum GeometryError {
     RefinementFailed { reason: &'static str },
 }
 
+fn supported_names() -> String {
+    SUPPORTED.map(CameraModel::name).join(", ")
+}
+
 impl fmt::Display for GeometryError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Self::UnknownCameraModel { name } => write!(
                 f,
-                "unknown camera model {name:?} (supported: SIMPLE_PINHOLE, PINHOLE, \
-                 SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE, FULL_OPENCV)"
+                "unknown camera model {name:?} (supported: {})",
+                supported_names()
+            ),
+            Self::UnsupportedCameraModel { model } => write!(
+                f,
+                "camera model {model} is not supported for localization (supported: {})",
+                supported_names()
             ),
             Self::WrongParamCount {
                 model,

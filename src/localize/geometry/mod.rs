@@ -47,7 +47,7 @@ mod ransac;
 mod refine;
 mod rng;
 
-pub use camera::{Camera, CameraModel};
+pub use camera::{Camera, CameraModel, SUPPORTED};
 pub use error::GeometryError;
 pub use p3p::p3p;
 pub use pose::Pose;

@@ -1,4 +1,4 @@
-//! COLMAP camera models: ids, names and parameter counts.
+//! COLMAP camera models: ids, names, parameter counts and names.
 //!
 //! Ids and counts follow COLMAP 4 (`src/colmap/sensor/models/base.h`, the `CameraModelId`
 //! enum, and the per-model `*_CAMERA_MODEL_DEFINITIONS` in `sensor/models/*.h`). The id is what
@@ -46,30 +46,72 @@ pub enum CameraModel {
     Equirectangular = 17,
 }
 
-/// Every model in id order, with its name and parameter count; the one table the methods read.
-const MODELS: [(CameraModel, &str, usize); 18] = [
-    (CameraModel::SimplePinhole, "SIMPLE_PINHOLE", 3),
-    (CameraModel::Pinhole, "PINHOLE", 4),
-    (CameraModel::SimpleRadial, "SIMPLE_RADIAL", 4),
-    (CameraModel::Radial, "RADIAL", 5),
-    (CameraModel::OpenCv, "OPENCV", 8),
-    (CameraModel::OpenCvFisheye, "OPENCV_FISHEYE", 8),
-    (CameraModel::FullOpenCv, "FULL_OPENCV", 12),
-    (CameraModel::Fov, "FOV", 5),
-    (CameraModel::SimpleRadialFisheye, "SIMPLE_RADIAL_FISHEYE", 4),
-    (CameraModel::RadialFisheye, "RADIAL_FISHEYE", 5),
-    (CameraModel::ThinPrismFisheye, "THIN_PRISM_FISHEYE", 12),
+/// Every model in id order, with its name, parameter count and parameter names; the one table
+/// the methods read.
+const MODELS: [(CameraModel, &str, usize, &str); 18] = [
+    (CameraModel::SimplePinhole, "SIMPLE_PINHOLE", 3, "f, cx, cy"),
+    (CameraModel::Pinhole, "PINHOLE", 4, "fx, fy, cx, cy"),
+    (
+        CameraModel::SimpleRadial,
+        "SIMPLE_RADIAL",
+        4,
+        "f, cx, cy, k",
+    ),
+    (CameraModel::Radial, "RADIAL", 5, "f, cx, cy, k1, k2"),
+    (
+        CameraModel::OpenCv,
+        "OPENCV",
+        8,
+        "fx, fy, cx, cy, k1, k2, p1, p2",
+    ),
+    (
+        CameraModel::OpenCvFisheye,
+        "OPENCV_FISHEYE",
+        8,
+        "fx, fy, cx, cy, k1, k2, k3, k4",
+    ),
+    (
+        CameraModel::FullOpenCv,
+        "FULL_OPENCV",
+        12,
+        "fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6",
+    ),
+    (CameraModel::Fov, "FOV", 5, "fx, fy, cx, cy, omega"),
+    (
+        CameraModel::SimpleRadialFisheye,
+        "SIMPLE_RADIAL_FISHEYE",
+        4,
+        "f, cx, cy, k",
+    ),
+    (
+        CameraModel::RadialFisheye,
+        "RADIAL_FISHEYE",
+        5,
+        "f, cx, cy, k1, k2",
+    ),
+    (
+        CameraModel::ThinPrismFisheye,
+        "THIN_PRISM_FISHEYE",
+        12,
+        "fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, sx1, sy1",
+    ),
     (
         CameraModel::RadTanThinPrismFisheye,
         "RAD_TAN_THIN_PRISM_FISHEYE",
         16,
+        "fx, fy, cx, cy, k0, k1, k2, k3, k4, k5, p0, p1, s0, s1, s2, s3",
     ),
-    (CameraModel::SimpleDivision, "SIMPLE_DIVISION", 4),
-    (CameraModel::Division, "DIVISION", 5),
-    (CameraModel::SimpleFisheye, "SIMPLE_FISHEYE", 3),
-    (CameraModel::Fisheye, "FISHEYE", 4),
-    (CameraModel::Eucm, "EUCM", 6),
-    (CameraModel::Equirectangular, "EQUIRECTANGULAR", 2),
+    (
+        CameraModel::SimpleDivision,
+        "SIMPLE_DIVISION",
+        4,
+        "f, cx, cy, k",
+    ),
+    (CameraModel::Division, "DIVISION", 5, "fx, fy, cx, cy, k"),
+    (CameraModel::SimpleFisheye, "SIMPLE_FISHEYE", 3, "f, cx, cy"),
+    (CameraModel::Fisheye, "FISHEYE", 4, "fx, fy, cx, cy"),
+    (CameraModel::Eucm, "EUCM", 6, "fx, fy, cx, cy, alpha, beta"),
+    (CameraModel::Equirectangular, "EQUIRECTANGULAR", 2, "w, h"),
 ];
 
 impl CameraModel {
@@ -105,9 +147,23 @@ impl CameraModel {
         MODELS.get(index).map(|m| m.0)
     }
 
+    /// The parameter names in COLMAP's order (`"f, cx, cy, k"`), for messages and help.
+    pub const fn param_names(self) -> &'static str {
+        MODELS[self as usize].3
+    }
+
     /// The model with COLMAP name `name` (exact, upper case as COLMAP writes it).
     pub fn from_name(name: &str) -> Option<Self> {
         MODELS.iter().find(|m| m.1 == name).map(|m| m.0)
+    }
+
+    /// [`CameraModel::from_name`] ignoring ASCII case: hand-written query lists and `--camera`
+    /// flags vary; COLMAP's own files are read exactly.
+    pub fn from_name_ignore_case(name: &str) -> Option<Self> {
+        MODELS
+            .iter()
+            .find(|m| m.1.eq_ignore_ascii_case(name))
+            .map(|m| m.0)
     }
 }
 
@@ -123,7 +179,12 @@ mod tests {
 
     #[test]
     fn table_is_in_id_order_and_round_trips() {
-        for (i, (model, name, _)) in MODELS.iter().enumerate() {
+        for (i, (model, name, count, params)) in MODELS.iter().enumerate() {
+            assert_eq!(params.split(", ").count(), *count, "{name}");
+            assert_eq!(
+                CameraModel::from_name_ignore_case(&name.to_lowercase()),
+                Some(*model)
+            );
             assert_eq!(model.id() as usize, i);
             assert_eq!(CameraModel::ALL[i], *model);
             assert_eq!(CameraModel::from_id(model.id()), Some(*model));
