@@ -10,7 +10,7 @@ mod geometry {
 
     use criterion::{BenchmarkId, Criterion};
     use nalgebra::{UnitQuaternion, Vector2, Vector3};
-    use sfpmap::localize::geometry::{
+    use sfpmap::geometry::{
         estimate_absolute_pose, p3p, refine_pose, Camera, Pose, RansacOptions, RefineOptions,
         SplitMix64,
     };

@@ -29,7 +29,7 @@ mod localize {
     use half::f16;
     use nalgebra::{UnitQuaternion, Vector3};
     use sfpmap::format::{slice, CameraInfo, Descriptors, LevelInfo, Map, MapWriter, SliceOptions};
-    use sfpmap::localize::geometry::{Camera, Pose, SplitMix64};
+    use sfpmap::geometry::{Camera, Pose, SplitMix64};
     use sfpmap::localize::matching::{gemm_abt, match_descriptors, normalise_rows, MatchOptions};
     use sfpmap::localize::{FeatureSet, LocalizeOptions, Localizer, QueryFeatures};
 

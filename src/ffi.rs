@@ -17,7 +17,8 @@
 #![deny(unsafe_op_in_unsafe_fn)]
 
 use crate::format::{Error as FormatError, Images, Map, SectionKind};
-use crate::localize::{Camera, FeatureSet, LocalizeOptions, Localizer, QueryFeatures};
+use crate::geometry::Camera;
+use crate::localize::{FeatureSet, LocalizeOptions, Localizer, QueryFeatures};
 use std::any::Any;
 use std::borrow::Cow;
 use std::cell::RefCell;

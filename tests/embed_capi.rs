@@ -10,7 +10,7 @@ mod synthetic_scene;
 use serde_json::Value;
 use sfpmap::ffi::*;
 use sfpmap::format::{CameraInfo, Descriptors, MapWriter};
-use sfpmap::localize::geometry::{Camera, Pose};
+use sfpmap::geometry::{Camera, Pose};
 use std::ffi::{CStr, CString};
 use std::path::Path;
 use std::ptr::{null, null_mut};

@@ -5,8 +5,8 @@ mod shared_data;
 
 use nalgebra::{Vector2, Vector3};
 use proptest::prelude::*;
+use sfpmap::geometry::{Camera, CameraModel, GeometryError};
 use sfpmap::localize::eval::read_poses;
-use sfpmap::localize::geometry::{Camera, CameraModel, GeometryError};
 use sfpmap::localize::query::read_query_list;
 
 /// One camera per model, with distortion strong enough to matter at the image corners.
@@ -29,7 +29,7 @@ fn cameras() -> Vec<Camera> {
 fn parses_every_model_with_colmap_parameter_order() {
     let cameras = cameras();
     let models: Vec<CameraModel> = cameras.iter().map(Camera::model).collect();
-    assert_eq!(models, sfpmap::localize::geometry::SUPPORTED);
+    assert_eq!(models, sfpmap::geometry::SUPPORTED);
     for camera in &cameras {
         assert_eq!(camera.params().len(), camera.model().num_params());
         assert_eq!((camera.width(), camera.height()), (1024, 768));

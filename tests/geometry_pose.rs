@@ -3,7 +3,7 @@
 
 use nalgebra::{UnitQuaternion, Vector2, Vector3};
 use proptest::prelude::*;
-use sfpmap::localize::geometry::{
+use sfpmap::geometry::{
     estimate_absolute_pose, estimate_absolute_pose_with_prior, p3p, refine_pose,
     refine_pose_masked, reprojection_inliers, required_iterations, Camera, GeometryError, Pose,
     RansacOptions, RefineOptions, RobustLoss, SplitMix64,
@@ -394,7 +394,7 @@ fn degenerate_inputs_are_errors() {
 fn run_with(
     s: &Scene,
     options: &RansacOptions,
-) -> Result<sfpmap::localize::geometry::PoseEstimate, GeometryError> {
+) -> Result<sfpmap::geometry::PoseEstimate, GeometryError> {
     estimate_absolute_pose(&s.pixels, &s.points, &s.camera, options)
 }
 

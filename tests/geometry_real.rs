@@ -10,7 +10,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Vector2, Vector3};
-use sfpmap::localize::geometry::{estimate_absolute_pose, Camera, Pose, RansacOptions};
+use sfpmap::geometry::{estimate_absolute_pose, Camera, Pose, RansacOptions};
 
 struct Image {
     name: String,

@@ -5,7 +5,7 @@
 mod synthetic_scene;
 
 use sfpmap::format::{slice, Descriptors, Map, MapWriter, SliceOptions};
-use sfpmap::localize::geometry::{Camera, Pose};
+use sfpmap::geometry::{Camera, Pose};
 use sfpmap::localize::{FeatureSet, LocalizeError, LocalizeOptions, Localizer, QueryFeatures};
 use synthetic_scene::{level_info, points_and_descriptors, truth, unit, Rng};
 

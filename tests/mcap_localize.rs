@@ -4,7 +4,7 @@
 #![cfg(feature = "mcap")]
 
 use serde_json::Value;
-use sfpmap::localize::geometry::Pose;
+use sfpmap::geometry::Pose;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

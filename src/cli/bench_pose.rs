@@ -6,7 +6,7 @@ use anyhow::{bail, Context};
 use nalgebra::{Vector2, Vector3};
 use serde::Deserialize;
 use serde_json::json;
-use sfpmap::localize::geometry::{estimate_absolute_pose, Camera, RansacOptions};
+use sfpmap::geometry::{estimate_absolute_pose, Camera, RansacOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;

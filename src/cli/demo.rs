@@ -222,7 +222,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 &queries,
                 &results,
             )?;
-            let centres = |poses: &[(String, sfpmap::localize::geometry::Pose)]| {
+            let centres = |poses: &[(String, sfpmap::geometry::Pose)]| {
                 poses
                     .iter()
                     .map(|(n, p)| (n.clone(), camera_center(p.to_colmap())))

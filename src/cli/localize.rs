@@ -3,10 +3,10 @@
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::format::Map;
+use sfpmap::geometry::Camera;
 use sfpmap::io::colmap_export::{escape_control_characters, quoted_name, text_name_problem};
 use sfpmap::io::poses::tum_line;
 use sfpmap::localize::eval::median;
-use sfpmap::localize::geometry::Camera;
 use sfpmap::localize::matching::MatchOptions;
 use sfpmap::localize::query::{read_query_list, DatabaseFeatures, Query};
 use sfpmap::localize::{describe_skipped, Localization, LocalizeOptions, Localizer, QueryFeatures};

@@ -1,9 +1,9 @@
 //! Pose evaluation against ground truth: median errors, recall at thresholds, and errors
 //! relative to the map's median nearest-camera distance (SfM scale is arbitrary).
 
-use super::geometry::Pose;
 use super::query::InputError;
 use crate::format::{Error as FormatError, Map};
+use crate::geometry::Pose;
 use serde_json::json;
 use std::collections::HashMap;
 use std::path::Path;

@@ -5,9 +5,9 @@
 //! A [`Localizer`] is built once per map (it indexes the levels and visibility) and shared by
 //! threads; it reads descriptors straight from the mmapped map.
 
-use super::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use super::matching::{dot, gemm_abt, match_descriptors, normalise_rows, MatchOptions};
 use crate::format::{f16, Error as FormatError, Level, Map, Visibility};
+use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use bitvec::vec::BitVec;
 use nalgebra::{Vector2, Vector3};
 use std::borrow::Cow;
@@ -427,7 +427,7 @@ impl<'m> Localizer<'m> {
         candidates: Option<&BitVec>,
         camera: &Camera,
         times: &mut StageTimes,
-    ) -> Result<super::geometry::PoseEstimate, (String, usize)> {
+    ) -> Result<crate::geometry::PoseEstimate, (String, usize)> {
         let t1 = Instant::now();
         let mut pixels = Vec::new();
         let mut points = Vec::new();

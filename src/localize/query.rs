@@ -1,9 +1,9 @@
 //! Query inputs: hloc-style query lists with intrinsics, and SIFT features of queries read
 //! from a COLMAP database (`queries.db`).
 
-use super::geometry::Camera;
 #[cfg(any(feature = "colmap", feature = "onnx"))]
 use super::localizer::{FeatureSet, QueryFeatures};
+use crate::geometry::Camera;
 use std::path::{Path, PathBuf};
 
 /// One query: its image name and camera.

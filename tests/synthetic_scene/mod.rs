@@ -3,7 +3,7 @@
 #![allow(dead_code)]
 
 use sfpmap::format::LevelInfo;
-use sfpmap::localize::geometry::Pose;
+use sfpmap::geometry::Pose;
 
 /// A 64-bit LCG: deterministic and dependency-free.
 pub struct Rng(pub u64);

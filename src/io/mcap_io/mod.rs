@@ -22,7 +22,7 @@ pub use reader::{
 pub use records::ChunkIndex;
 pub use wire::{base64_decode, base64_encode, fuzz_wire, CdrError, Stamp};
 
-use crate::localize::geometry::{Camera, CameraModel};
+use crate::geometry::{Camera, CameraModel};
 use image::DynamicImage;
 use std::fmt;
 use wire::{

@@ -2,7 +2,7 @@
 //! writer of pose messages (optionally with the input messages copied alongside).
 
 use super::{McapIoError, Stamp, POSE_IN_FRAME};
-use crate::localize::geometry::Pose;
+use crate::geometry::Pose;
 use std::collections::BTreeMap;
 use std::io::{Seek, Write};
 

@@ -2,7 +2,7 @@
 
 use std::fmt;
 
-use super::camera::{CameraModel, SUPPORTED};
+use super::{CameraModel, SUPPORTED};
 
 /// Everything that can go wrong in camera parsing, pose estimation and refinement.
 ///

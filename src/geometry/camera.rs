@@ -24,7 +24,7 @@ use nalgebra::{Matrix2, Matrix2x3, Vector2, Vector3};
 
 use super::error::GeometryError;
 
-pub use crate::geometry::CameraModel;
+use super::CameraModel;
 
 /// The models the localizer projects and undistorts (COLMAP ids 0–6); the other COLMAP models
 /// are read and written everywhere but refused for a query or map camera here.
