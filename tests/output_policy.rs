@@ -299,17 +299,11 @@ fn convert_never_writes_over_a_model_file_or_the_database() {
     std::fs::create_dir(&images).unwrap();
     let image = images.join("a.jpg");
     std::fs::write(&image, b"not really a jpeg").unwrap();
-    let o = sfpmap(&[
-        "convert",
-        "--colmap",
-        s(&model),
-        "--images",
-        s(&images),
-        "-o",
-        s(&image),
-        "--force",
-    ]);
-    refused(&o, &image, "input");
+    let convert_images_to = |out: &Path| {
+        let args = ["convert", "--colmap", s(&model), "--images", s(&images)];
+        sfpmap(&[&args[..], &["-o", s(out), "--force"]].concat())
+    };
+    refused(&convert_images_to(&image), &image, "input");
     assert_eq!(std::fs::read(&image).unwrap(), b"not really a jpeg");
     // Outside the folder, through `..` in a model image's name: the same-file rule per image.
     let images_txt = std::fs::read_to_string(model.join("images.txt")).unwrap();
@@ -326,17 +320,7 @@ fn convert_never_writes_over_a_model_file_or_the_database() {
     .unwrap();
     let out = dir.path().join("out.sfpm");
     std::fs::write(&out, b"an image of the model").unwrap();
-    let o = sfpmap(&[
-        "convert",
-        "--colmap",
-        s(&model),
-        "--images",
-        s(&images),
-        "-o",
-        s(&out),
-        "--force",
-    ]);
-    refused(&o, &out, "input");
+    refused(&convert_images_to(&out), &out, "input");
     assert_eq!(std::fs::read(&out).unwrap(), b"an image of the model");
 }
 
