@@ -101,8 +101,9 @@ fn open_log(path: &Path) -> anyhow::Result<LogReader<File>> {
 /// the first pass, so the n-th message on the topic is the n-th frame.
 fn open_stream(
     path: &Path,
+    topic: &str,
 ) -> anyhow::Result<impl Iterator<Item = Result<mcap::Message<'static>, Damage>>> {
-    Ok(open_log(path)?.filter(Result::is_ok))
+    Ok(open_log(path)?.data_of(topic).filter(Result::is_ok))
 }
 
 /// Topic → schema name of the messages read, recorded once per channel: a forged log can pair
@@ -165,7 +166,7 @@ fn schema_name(channel: &mcap::Channel<'_>) -> String {
 /// Intrinsics from the first message on the camera-info topic.
 fn camera_from_info(path: &Path, topic: &str) -> anyhow::Result<Camera> {
     let mut topics = Topics::default();
-    for message in open_log(path)? {
+    for message in open_log(path)?.data_of(topic) {
         // Damage is reported by the image pass, which reads the whole log.
         let message = match message {
             Ok(m) => m,
@@ -197,7 +198,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
         bail!("--mcap needs --topic");
     };
     super::check_outputs(args, &[input], &[])?;
-    let log = open_log(input)?;
+    let log = open_log(input)?.data_of(topic);
     if let Some(e) = log.summary_error() {
         bars.warn(&format!(
             "{}: the summary section is not used ({e}); damage in the log cannot be skipped by its chunk index",
@@ -566,7 +567,7 @@ fn write_output(
             if m.passthrough_images {
                 // A second pass copies the images in log order, each followed by its pose.
                 let mut index = 0;
-                for message in open_stream(input)? {
+                for message in open_stream(input, topic)? {
                     let Ok(message) = message else { break };
                     if message.channel.topic != topic {
                         continue;

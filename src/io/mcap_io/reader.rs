@@ -147,6 +147,8 @@ pub struct LogReader<R> {
     chunk: Option<OpenChunk>,
     /// Bytes all chunks so far declared they decompress to (charged before decompressing).
     decompressed: u64,
+    /// With [`LogReader::data_of`]: messages of other topics come with empty `data`.
+    data_topic: Option<String>,
     done: bool,
 }
 
@@ -185,10 +187,19 @@ impl<R: Read + Seek> LogReader<R> {
             channels: HashMap::new(),
             chunk: None,
             decompressed: 0,
+            data_topic: None,
             done: false,
         };
         reader.read_footer_and_summary()?;
         Ok(reader)
+    }
+
+    /// Hands out the payload of `topic`'s messages only; the others come with empty `data`
+    /// (their channel, times and sequence intact). A log of lidar and IMU beside the images
+    /// then costs no copy of what is not used.
+    pub fn data_of(mut self, topic: &str) -> Self {
+        self.data_topic = Some(topic.to_owned());
+        self
     }
 
     /// The summary, when the log has one that is intact.
@@ -666,12 +677,21 @@ impl<R: Read + Seek> LogReader<R> {
                     .or_else(|| self.summary.as_ref()?.channels.get(&m.channel_id))
                     .cloned()
                     .ok_or(McapIoError::UnknownChannel { id: m.channel_id })?;
+                // Only the wanted topic's payloads are copied out of the chunk.
+                let wanted = self
+                    .data_topic
+                    .as_deref()
+                    .is_none_or(|t| t == channel.topic);
                 return Ok(Some(Message {
                     channel,
                     sequence: m.sequence,
                     log_time: m.log_time,
                     publish_time: m.publish_time,
-                    data: Cow::Owned(m.data.to_vec()),
+                    data: if wanted {
+                        Cow::Owned(m.data.to_vec())
+                    } else {
+                        Cow::Borrowed(&[])
+                    },
                 }));
             }
             _ => {}

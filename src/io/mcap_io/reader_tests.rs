@@ -450,3 +450,23 @@ fn an_attachment_past_the_record_limit_is_skipped_not_the_end_of_the_log() {
         .to_string()
         .contains("cut off"));
 }
+
+#[test]
+fn only_the_wanted_topic_s_payloads_are_handed_out() {
+    let bytes = log(Some(Some(mcap::Compression::Zstd)), 6);
+    let all = read(&bytes);
+    let only_a: Vec<_> = LogReader::new(Cursor::new(&bytes), bytes.len() as u64)
+        .unwrap()
+        .data_of("/a")
+        .map(|r| r.unwrap())
+        .collect();
+    assert_eq!(only_a.len(), all.len());
+    for (m, (topic, time, data)) in only_a.iter().zip(all.iter().map(|r| r.as_ref().unwrap())) {
+        assert_eq!((&m.channel.topic, m.log_time), (topic, *time));
+        if topic == "/a" {
+            assert_eq!(&m.data[..], &data[..]);
+        } else {
+            assert!(m.data.is_empty(), "{topic} at {time}");
+        }
+    }
+}
