@@ -249,26 +249,7 @@ fn query_jpeg() -> (Vec<u8>, usize) {
 /// An SFP map the embedded extractor's queries fit: level 2 (stride 8) of sfp-v1, 192 full
 /// dimensions of which 64 short, random descriptors.
 fn sfp_map(dir: &Path) -> PathBuf {
-    let (n, full) = (500, 192);
-    let mut rng = Rng(3);
-    let positions: Vec<[f64; 3]> = (0..n)
-        .map(|_| {
-            let u = f64::from(rng.unit());
-            [u * 5.0, f64::from(rng.unit()) * 4.0, 10.0]
-        })
-        .collect();
-    let descriptors: Vec<f32> = (0..n * full).map(|_| rng.unit()).collect();
-    let points: Vec<u32> = (0..n as u32).collect();
-    let mut w = MapWriter::default();
-    w.set_points_world(&positions);
-    w.add_level(
-        level_info(2, 8.0, full as u32, 64),
-        &points,
-        Some(Descriptors::F32(&descriptors)),
-        true,
-    )
-    .unwrap();
-    write(dir, "sfp.sfpm", &w.to_bytes().unwrap())
+    write(dir, "sfp.sfpm", &common::sfp_level_2_map(&[]))
 }
 
 /// Finding 17: a cut-off or damaged query JPEG was decoded leniently (the lost part grey)

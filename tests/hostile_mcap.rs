@@ -6,9 +6,7 @@
 
 mod common;
 
-use common::{level_info, Rng};
 use serde_json::Value;
-use sfpmap::format::{Descriptors, MapWriter};
 use std::collections::BTreeMap;
 use std::os::unix::process::ExitStatusExt;
 use std::path::{Path, PathBuf};
@@ -386,37 +384,8 @@ fn a_flipped_byte_in_a_chunk_is_named_and_the_other_chunks_are_read() {
 /// descriptors, so nothing localizes): level 2 (stride 8) of sfp-v1, 192 full dimensions of
 /// which 64 short, and level 3 with no points, which the localizer skips.
 fn map_with_an_empty_level(dir: &Path) -> String {
-    let (n, full) = (500, 192);
-    let mut rng = Rng(3);
-    let positions: Vec<[f64; 3]> = (0..n)
-        .map(|_| {
-            [
-                f64::from(rng.unit()) * 5.0,
-                f64::from(rng.unit()) * 4.0,
-                10.0,
-            ]
-        })
-        .collect();
-    let descriptors: Vec<f32> = (0..n * full).map(|_| rng.unit()).collect();
-    let points: Vec<u32> = (0..n as u32).collect();
-    let mut w = MapWriter::default();
-    w.set_points_world(&positions);
-    w.add_level(
-        level_info(2, 8.0, full as u32, 64),
-        &points,
-        Some(Descriptors::F32(&descriptors)),
-        true,
-    )
-    .unwrap();
-    w.add_level(
-        level_info(3, 16.0, full as u32, 64),
-        &[],
-        Some(Descriptors::F32(&[])),
-        true,
-    )
-    .unwrap();
     let path = dir.join("empty-level.sfpm");
-    std::fs::write(&path, w.to_bytes().unwrap()).unwrap();
+    std::fs::write(&path, common::sfp_level_2_map(&[(3, 16.0)])).unwrap();
     path.to_str().unwrap().to_owned()
 }
 

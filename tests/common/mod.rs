@@ -641,3 +641,39 @@ pub fn colmap_schema(conn: &rusqlite::Connection) {
     )
     .unwrap();
 }
+
+/// An SFP-like map the embedded extractor's queries fit, built in a moment: 500 random points at
+/// depth 10, level 2 (stride 8) of sfp-v1 with 192 full dimensions of which 64 short, random
+/// descriptors (so nothing localizes), plus a level with no points for each of `empty_levels`
+/// (id, stride).
+pub fn sfp_level_2_map(empty_levels: &[(u16, f64)]) -> Vec<u8> {
+    let (n, full) = (500, 192);
+    let mut rng = Rng(3);
+    let positions: Vec<[f64; 3]> = (0..n)
+        .map(|_| {
+            let x = f64::from(rng.unit()) * 5.0;
+            [x, f64::from(rng.unit()) * 4.0, 10.0]
+        })
+        .collect();
+    let descriptors: Vec<f32> = (0..n * full).map(|_| rng.unit()).collect();
+    let points: Vec<u32> = (0..n as u32).collect();
+    let mut w = MapWriter::default();
+    w.set_points_world(&positions);
+    w.add_level(
+        level_info(2, 8.0, full as u32, 64),
+        &points,
+        Some(Descriptors::F32(&descriptors)),
+        true,
+    )
+    .unwrap();
+    for &(level, stride) in empty_levels {
+        w.add_level(
+            level_info(level, stride, full as u32, 64),
+            &[],
+            Some(Descriptors::F32(&[])),
+            true,
+        )
+        .unwrap();
+    }
+    w.to_bytes().unwrap()
+}
