@@ -16,11 +16,13 @@
 //! Run: `cargo bench --bench convert` (SFPMAP_BENCH_MAX_POINTS=100000 skips the 1M model).
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use sfpmap::build::{convert, ConvertOptions};
 use sfpmap::colmap::bin::{write_cameras, write_images, write_points3d};
-use sfpmap::colmap::convert::{convert, ConvertOptions};
 use sfpmap::colmap::{
-    read_model_bin, Camera, CameraModel, Image, Point2D, Reconstruction, Rigid3, TrackElement,
+    read_model_bin, Camera, CameraModel, Image, Point2D, Reconstruction, TrackElement,
 };
+use sfpmap::geometry::Pose;
 use sfpmap::progress::Silent;
 use std::path::{Path, PathBuf};
 
@@ -65,35 +67,11 @@ impl Rng {
 }
 
 /// `cam_from_world` for a camera at `centre` with a random orientation.
-fn random_pose(rng: &mut Rng, centre: [f64; 3]) -> Rigid3 {
-    let mut q = [rng.normal(), rng.normal(), rng.normal(), rng.normal()];
-    let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-12);
-    let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
-    q.iter_mut().for_each(|v| *v *= sign / norm);
-    let [w, x, y, z] = q;
-    let r = [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ];
+fn random_pose(rng: &mut Rng, centre: [f64; 3]) -> Pose {
+    let q = Quaternion::new(rng.normal(), rng.normal(), rng.normal(), rng.normal());
+    let rotation = UnitQuaternion::from_quaternion(q);
     // t = -R C, so that the camera centre is C.
-    let t = r.map(|row| -(row[0] * centre[0] + row[1] * centre[1] + row[2] * centre[2]));
-    Rigid3 {
-        rotation: q,
-        translation: t,
-    }
+    Pose::new(rotation, -(rotation * Vector3::from(centre)))
 }
 
 /// A valid reconstruction of `points` points with tracks of `TRACK_LENGTH` distinct images.

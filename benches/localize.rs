@@ -412,9 +412,9 @@ mod localize {
             .unwrap();
             // Check once, outside the timing, that the bench measures successful queries.
             let r = localizer.localize(&q, &s.camera).unwrap();
-            let pose = r
-                .pose
-                .unwrap_or_else(|| panic!("{label}: query failed: {:?}", r.failure));
+            let pose = *r
+                .pose()
+                .unwrap_or_else(|| panic!("{label}: query failed: {:?}", r.failure()));
             eprintln!(
                 "localize {label}: keypoints/level {keypoints:?}, points in the query's view/level \
                  {in_view:?}, {} retrieved images, {} matches, inliers/level {:?}, \

@@ -936,14 +936,14 @@ pub unsafe extern "C" fn sfpm_localize(
             inliers: result.inliers as u64,
             ..SfpmLocalization::default()
         };
-        let code = match result.pose {
-            Some(pose) => {
+        let code = match &result.outcome {
+            Ok(pose) => {
                 found.cam_from_world = pose.to_colmap();
                 SFPM_OK
             }
-            None => {
+            Err(failure) => {
                 found.inliers = 0;
-                set_last_error(result.failure.as_deref().unwrap_or("not localized"));
+                set_last_error(&failure.to_string());
                 SFPM_NOT_LOCALIZED
             }
         };

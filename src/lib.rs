@@ -15,6 +15,8 @@ pub mod progress;
 mod vector;
 
 #[cfg(feature = "colmap-model")]
+pub mod build;
+#[cfg(feature = "colmap-model")]
 pub mod colmap;
 
 #[cfg(feature = "localize")]
@@ -25,3 +27,6 @@ pub mod ffi;
 
 #[cfg(feature = "onnx")]
 pub mod extract;
+
+#[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
+pub mod demo;

@@ -8,8 +8,9 @@ use std::path::{Path, PathBuf};
 
 use sfpmap::colmap::{
     self, bin, text, Camera, CameraModel, Error, Image, ModelFormat, Point2D, Reconstruction,
-    Rigid3, TrackElement,
+    TrackElement,
 };
+use sfpmap::geometry::Pose;
 
 fn data_root() -> Option<PathBuf> {
     shared_data::shared_data("colmap")
@@ -286,10 +287,7 @@ fn synthetic() -> Reconstruction {
         height: 2,
         params: (0..16).map(|i| f64::from(i) * 0.1 - 0.7).collect(),
     });
-    let pose = Rigid3 {
-        rotation: [0.5, -0.5, 0.5, 0.5],
-        translation: [1e-300, -2.5, 3.0],
-    };
+    let pose = Pose::from_colmap_array([0.5, -0.5, 0.5, 0.5, 1e-300, -2.5, 3.0]).unwrap();
     let p2 = |x: f64, id: Option<u64>| Point2D {
         xy: [x, x * 0.5 + 0.25],
         point3d_id: id,
@@ -517,10 +515,7 @@ fn each_consistency_check_fires() {
         id: 1,
         name: "x".into(),
         camera_id: 1,
-        cam_from_world: Rigid3 {
-            rotation: [1.0, 0.0, 0.0, 0.0],
-            translation: [0.0; 3],
-        },
+        cam_from_world: Pose::from_colmap_array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]).unwrap(),
         points2d: vec![Point2D {
             xy: [0.0; 2],
             point3d_id: Some(9),

@@ -5,11 +5,10 @@ mod common;
 mod shared_data;
 
 use rusqlite::{params, Connection};
-use sfpmap::colmap::convert::{convert, Aggregate, ConvertError, ConvertOptions};
-use sfpmap::colmap::{
-    bin, Camera, CameraModel, Image, Point2D, Reconstruction, Rigid3, TrackElement,
-};
+use sfpmap::build::{convert, Aggregate, ConvertError, ConvertOptions};
+use sfpmap::colmap::{bin, Camera, CameraModel, Image, Point2D, Reconstruction, TrackElement};
 use sfpmap::format::{Codec, Map};
+use sfpmap::geometry::Pose;
 use sfpmap::progress::Silent;
 use std::path::{Path, PathBuf};
 
@@ -49,10 +48,8 @@ fn model() -> Reconstruction {
             id: i,
             name: format!("img{i}.jpg"),
             camera_id: 1,
-            cam_from_world: Rigid3 {
-                rotation: [1.0, 0.0, 0.0, 0.0],
-                translation: [i as f64, 0.0, 0.0],
-            },
+            cam_from_world: Pose::from_colmap_array([1.0, 0.0, 0.0, 0.0, i as f64, 0.0, 0.0])
+                .unwrap(),
             points2d,
         });
     }

@@ -6,8 +6,8 @@ mod shared_data;
 use nalgebra::{Vector2, Vector3};
 use proptest::prelude::*;
 use sfpmap::geometry::{Camera, CameraModel, GeometryError};
-use sfpmap::localize::eval::read_poses;
-use sfpmap::localize::query::read_query_list;
+use sfpmap::io::poses::read_poses;
+use sfpmap::io::queries::read_query_list;
 
 /// One camera per model, with distortion strong enough to matter at the image corners.
 fn cameras() -> Vec<Camera> {

@@ -10,9 +10,10 @@ mod common;
 use common::{run_limited, Limited};
 use rusqlite::{params, Connection};
 use sfpmap::colmap::{
-    bin, text, Camera, CameraModel, Image, Point2D, Reconstruction, Rigid3, TrackElement,
+    bin, text, Camera, CameraModel, Image, Point2D, Reconstruction, TrackElement,
 };
 use sfpmap::format::{CameraInfo, MapWriter};
+use sfpmap::geometry::Pose;
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -68,10 +69,16 @@ fn model_named(names: [&str; 2]) -> Reconstruction {
             id: i,
             name: name.to_string(),
             camera_id: 1,
-            cam_from_world: Rigid3 {
-                rotation: [1.0, 0.0, 0.0, 0.0],
-                translation: [if i == 2 { TX } else { 0.5 }, 0.0, 0.0],
-            },
+            cam_from_world: Pose::from_colmap_array([
+                1.0,
+                0.0,
+                0.0,
+                0.0,
+                if i == 2 { TX } else { 0.5 },
+                0.0,
+                0.0,
+            ])
+            .unwrap(),
             points2d: vec![
                 Point2D {
                     xy: [10.0, 20.0],
@@ -529,10 +536,7 @@ fn image_names_with_control_characters_are_refused_at_read() {
         id: 3,
         name: "x\ny".into(),
         camera_id: 1,
-        cam_from_world: Rigid3 {
-            rotation: [1.0, 0.0, 0.0, 0.0],
-            translation: [0.0; 3],
-        },
+        cam_from_world: Pose::from_colmap_array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]).unwrap(),
         points2d: Vec::new(),
     });
     let err = b.build().unwrap_err().to_string();
@@ -942,21 +946,18 @@ fn query_lists_poses_and_features_must_be_regular_files() {
     ] {
         let p = path.clone();
         let err = returns_promptly(move || {
-            sfpmap::localize::query::read_query_list(&p, None)
+            sfpmap::io::queries::read_query_list(&p, None)
                 .unwrap_err()
                 .to_string()
         });
         assert!(err.contains("not a regular file"), "{err}");
         let p = path.clone();
-        let err = returns_promptly(move || {
-            sfpmap::localize::eval::read_poses(&p)
-                .unwrap_err()
-                .to_string()
-        });
+        let err =
+            returns_promptly(move || sfpmap::io::poses::read_poses(&p).unwrap_err().to_string());
         assert!(err.contains("not a regular file"), "{err}");
         let p = path.clone();
         let err = returns_promptly(
-            move || match sfpmap::localize::query::H5Features::open(&p) {
+            move || match sfpmap::io::features_h5::H5Features::open(&p) {
                 Ok(_) => "opened".to_string(),
                 Err(e) => e.to_string(),
             },

@@ -632,7 +632,7 @@ fn a_non_finite_features_h5_keypoint_is_an_error_naming_file_and_keypoint() {
         };
         let _ = std::fs::remove_file(&path);
         features_h5::write(&path, &[("q.jpg".to_string(), f)], &options).unwrap();
-        let h5 = sfpmap::localize::query::H5Features::open(&path).unwrap();
+        let h5 = sfpmap::io::features_h5::H5Features::open(&path).unwrap();
         let e = h5.features("q.jpg").unwrap_err().to_string();
         assert!(e.starts_with(&path.display().to_string()), "{e}");
         assert!(e.contains(expected), "{e}");

@@ -116,7 +116,9 @@ fn recovers_the_pose_with_all_levels_and_with_a_level_2_short_slice() {
     let localizer = Localizer::new(&map, LocalizeOptions::default()).unwrap();
     assert_eq!(localizer.level_order(), vec![2, 1, 0]);
     let r = localizer.localize(&q, &s.camera).unwrap();
-    let pose = r.pose.unwrap_or_else(|| panic!("failed: {:?}", r.failure));
+    let pose = *r
+        .pose()
+        .unwrap_or_else(|| panic!("failed: {:?}", r.failure()));
     assert!(
         pose.rotation_error_deg(&truth()) < 0.1,
         "{}",
@@ -150,7 +152,9 @@ fn recovers_the_pose_with_all_levels_and_with_a_level_2_short_slice() {
     )
     .unwrap();
     let r = localizer.localize(&q, &s.camera).unwrap();
-    let pose = r.pose.unwrap_or_else(|| panic!("failed: {:?}", r.failure));
+    let pose = *r
+        .pose()
+        .unwrap_or_else(|| panic!("failed: {:?}", r.failure()));
     assert!(pose.rotation_error_deg(&truth()) < 0.2);
     assert_eq!(r.inliers_per_level.len(), 1);
 }
@@ -167,7 +171,7 @@ fn a_query_of_noise_fails_with_a_reason_not_a_panic() {
     q.sets[0].keypoints.drain(..n - 300);
     q.sets[0].descriptors.drain(..(n - 300) * DIM);
     let r = localizer.localize(&q, &s.camera).unwrap();
-    assert!(r.pose.is_none() && r.failure.is_some());
+    assert!(r.pose().is_none() && r.failure().is_some());
     let empty = QueryFeatures {
         sets: vec![FeatureSet {
             level: None,
@@ -180,7 +184,7 @@ fn a_query_of_noise_fails_with_a_reason_not_a_panic() {
     assert!(localizer
         .localize(&empty, &s.camera)
         .unwrap()
-        .pose
+        .pose()
         .is_none());
 }
 
@@ -195,7 +199,9 @@ fn a_huge_camera_does_not_size_the_matching_grid() {
     let q = query(&s, &truth(), 0, DIM);
     let huge = Camera::parse("SIMPLE_RADIAL 4294967295 4294967295 500 320 240 0.01").unwrap();
     let r = localizer.localize(&q, &huge).unwrap();
-    let pose = r.pose.unwrap_or_else(|| panic!("failed: {:?}", r.failure));
+    let pose = *r
+        .pose()
+        .unwrap_or_else(|| panic!("failed: {:?}", r.failure()));
     assert!(pose.rotation_error_deg(&truth()) < 0.2);
 }
 
@@ -243,7 +249,7 @@ fn threads_share_one_localizer() {
     let q = query(&s, &truth(), 200, DIM);
     let poses: Vec<_> = std::thread::scope(|sc| {
         let handles: Vec<_> = (0..3)
-            .map(|_| sc.spawn(|| localizer.localize(&q, &s.camera).unwrap().pose.unwrap()))
+            .map(|_| sc.spawn(|| *localizer.localize(&q, &s.camera).unwrap().pose().unwrap()))
             .collect();
         handles.into_iter().map(|h| h.join().unwrap()).collect()
     });

@@ -2,7 +2,7 @@
 
 use super::slice::CodecArg;
 use serde_json::json;
-use sfpmap::colmap::convert::{convert, Aggregate, ConvertOptions};
+use sfpmap::build::{convert, Aggregate, ConvertOptions};
 use sfpmap::format::Codec;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -194,7 +194,7 @@ fn run_sfp(
     quiet: bool,
     start: Instant,
 ) -> anyhow::Result<ExitCode> {
-    use sfpmap::extract::sfp_map::{convert_with_images, SfpMapOptions};
+    use sfpmap::build::{convert_with_images, SfpMapOptions};
     use sfpmap::extract::ExtractorOptions;
     sfpmap::extract::runtime::disable_telemetry();
     if let Some(t) = args.score_threshold.filter(|t| !(0.0..=1.0).contains(t)) {

@@ -2,14 +2,14 @@
 
 use anyhow::Context;
 use serde_json::json;
-use sfpmap::extract::sfp_map::{convert_with_images, SfpMapOptions};
+use sfpmap::build::{convert_with_images, SfpMapOptions};
+use sfpmap::demo::{write_png, DemoScene, HEIGHT, WIDTH};
 use sfpmap::extract::{DetectOptions, Extractor, ExtractorOptions};
 use sfpmap::format::{slice, SliceOptions};
-use sfpmap::io::demo_scene::{write_png, DemoScene, HEIGHT, WIDTH};
 use sfpmap::io::plot::{plot_map, PlotOptions};
-use sfpmap::io::poses::camera_center;
-use sfpmap::localize::eval::{evaluate, map_scale, median, read_poses};
-use sfpmap::localize::query::{read_query_list, sfp_query};
+use sfpmap::io::poses::read_poses;
+use sfpmap::io::queries::{read_query_list, sfp_query};
+use sfpmap::localize::eval::{evaluate, map_scale, median};
 use sfpmap::localize::{LocalizeOptions, Localizer};
 use sfpmap::progress::Reporter;
 use std::path::{Path, PathBuf};
@@ -209,8 +209,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         for (q, f) in queries.iter().zip(&features) {
             let r = localizer.localize(f, &q.camera)?;
             ms.push(r.times.total_ms);
-            if let Some(p) = r.pose {
-                estimates.push((q.name.clone(), p));
+            if let Some(p) = r.pose() {
+                estimates.push((q.name.clone(), *p));
             }
             results.push(r);
         }
@@ -225,7 +225,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             let centres = |poses: &[(String, sfpmap::geometry::Pose)]| {
                 poses
                     .iter()
-                    .map(|(n, p)| (n.clone(), camera_center(p.to_colmap())))
+                    .map(|(n, p)| (n.clone(), p.center().into()))
                     .collect::<Vec<_>>()
             };
             let options = PlotOptions {

@@ -1,7 +1,8 @@
 //! `sfpmap eval`: errors of estimated poses against ground truth.
 
 use serde_json::json;
-use sfpmap::localize::eval::{evaluate, map_scale, read_poses};
+use sfpmap::io::poses::read_poses;
+use sfpmap::localize::eval::{evaluate, map_scale};
 use std::path::PathBuf;
 use std::process::ExitCode;
 

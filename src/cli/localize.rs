@@ -5,11 +5,13 @@ use serde_json::json;
 use sfpmap::format::Map;
 use sfpmap::geometry::Camera;
 use sfpmap::io::colmap_export::{escape_control_characters, quoted_name, text_name_problem};
-use sfpmap::io::poses::tum_line;
+use sfpmap::io::poses::{colmap_pose_line, tum_line};
+use sfpmap::io::queries::{read_query_list, DatabaseFeatures, Query};
 use sfpmap::localize::eval::median;
 use sfpmap::localize::matching::MatchOptions;
-use sfpmap::localize::query::{read_query_list, DatabaseFeatures, Query};
-use sfpmap::localize::{describe_skipped, Localization, LocalizeOptions, Localizer, QueryFeatures};
+use sfpmap::localize::{
+    describe_skipped, Localization, LocalizeOptions, Localizer, QueryFailure, QueryFeatures,
+};
 use sfpmap::progress::Reporter;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -229,7 +231,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let descriptor = descriptor_kind(&map);
     #[cfg(feature = "onnx")]
     let from_h5 = match &args.features {
-        Some(path) => Some(sfpmap::localize::query::H5Features::open(path)?),
+        Some(path) => Some(sfpmap::io::features_h5::H5Features::open(path)?),
         None => None,
     };
     #[cfg(not(feature = "onnx"))]
@@ -331,16 +333,15 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             query_list.display(),
             queries.len(),
             queries[0].name,
-            results[0].failure.as_deref().unwrap_or("unknown")
+            failure(&results[0])
         );
     }
     write_poses(&args.output, args.format, &query_list, &queries, &results)?;
-    let localized = results.iter().filter(|r| r.pose.is_some()).count();
+    let localized = results.iter().filter(|r| r.pose().is_some()).count();
     let failed: Vec<_> = queries
         .iter()
         .zip(&results)
-        .filter(|(_, r)| r.pose.is_none())
-        .map(|(q, r)| json!({ "name": q.name, "reason": r.failure }))
+        .filter_map(|(q, r)| Some(json!({ "name": q.name, "reason": r.failure()?.to_string() })))
         .collect();
     if args.json {
         super::print_json(&json!({
@@ -350,7 +351,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "output": args.output.display().to_string(),
             "seconds": start.elapsed().as_secs_f64(),
             "median_ms": median_ms(&results),
-            "median_inliers": median(results.iter().filter(|r| r.pose.is_some()).map(|r| r.inliers as f64).collect()),
+            "median_inliers": median(results.iter().filter(|r| r.pose().is_some()).map(|r| r.inliers as f64).collect()),
         }))?;
     } else if !quiet {
         println!(
@@ -378,7 +379,7 @@ const SIFT_HINT: &str = "pass the queries' features with --database queries.db";
 enum Source {
     Database(DatabaseFeatures),
     #[cfg(feature = "onnx")]
-    H5(sfpmap::localize::query::H5Features),
+    H5(sfpmap::io::features_h5::H5Features),
     #[cfg(feature = "onnx")]
     Extractor {
         extractor: sfpmap::extract::Extractor,
@@ -427,7 +428,7 @@ impl Source {
                 let f = extractor
                     .extract(&input, &sfpmap::extract::DetectOptions::default())
                     .map_err(|e| e.on_image(&path))?;
-                Ok(Ok(sfpmap::localize::query::sfp_query(&f)))
+                Ok(Ok(sfpmap::io::queries::sfp_query(&f)))
             }
         }
     }
@@ -447,15 +448,7 @@ fn localize_one(
 
 /// The failed localization of a query whose features could not be read.
 fn unread(reason: String) -> Localization {
-    Localization {
-        pose: None,
-        failure: Some(reason),
-        inliers_per_level: Vec::new(),
-        matches: 0,
-        inliers: 0,
-        retrieved_images: 0,
-        times: Default::default(),
-    }
+    Localization::failed(QueryFailure::NoFeatures(reason))
 }
 
 /// The output policy for `-o` (and the MCAP mode's `--tum`): none may be the map, the query
@@ -512,8 +505,11 @@ pub(super) fn write_poses(
 }
 
 /// Why a query failed, on one line (a comment in the text formats).
-fn failure(r: &Localization) -> std::borrow::Cow<'_, str> {
-    escape_control_characters(r.failure.as_deref().unwrap_or("unknown"))
+fn failure(r: &Localization) -> String {
+    let reason = r
+        .failure()
+        .map_or_else(|| "unknown".to_string(), |f| f.to_string());
+    escape_control_characters(&reason).into_owned()
 }
 
 /// The results as `--format` says.
@@ -527,15 +523,8 @@ fn pose_text(
         PoseFormat::Colmap => {
             writeln!(out, "# name qw qx qy qz tx ty tz (COLMAP cam_from_world)")?;
             for (q, r) in queries.iter().zip(results) {
-                match &r.pose {
-                    Some(p) => {
-                        let v = p.to_colmap();
-                        writeln!(
-                            out,
-                            "{} {} {} {} {} {} {} {}",
-                            q.name, v[0], v[1], v[2], v[3], v[4], v[5], v[6]
-                        )?;
-                    }
+                match r.pose() {
+                    Some(p) => writeln!(out, "{}", colmap_pose_line(&q.name, p))?,
                     None => writeln!(out, "# failed {}: {}", q.name, failure(r))?,
                 }
             }
@@ -543,8 +532,8 @@ fn pose_text(
         PoseFormat::Tum => {
             writeln!(out, "# index tx ty tz qx qy qz qw (TUM: world_from_cam); query names in order of the list")?;
             for (i, (q, r)) in queries.iter().zip(results).enumerate() {
-                match &r.pose {
-                    Some(p) => writeln!(out, "{}", tum_line(i, p.to_colmap()))?,
+                match r.pose() {
+                    Some(p) => writeln!(out, "{}", tum_line(i, p))?,
                     None => writeln!(
                         out,
                         "# failed {i} {}: {}",
@@ -561,8 +550,8 @@ fn pose_text(
                 .map(|(q, r)| {
                     json!({
                         "name": q.name,
-                        "cam_from_world": r.pose.as_ref().map(|p| p.to_colmap()),
-                        "failure": r.failure,
+                        "cam_from_world": r.pose().map(|p| p.to_colmap()),
+                        "failure": r.failure().map(|f| f.to_string()),
                         "inliers": r.inliers,
                         "inliers_per_level": r.inliers_per_level,
                         "matches": r.matches,

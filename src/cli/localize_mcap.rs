@@ -345,7 +345,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
 
     let localized = frames
         .values()
-        .filter(|f| matches!(&f.outcome, Ok(l) if l.pose.is_some()))
+        .filter(|f| matches!(&f.outcome, Ok(l) if l.pose().is_some()))
         .count();
     let failed = FailedFrames(&frames);
     // Without a summary (a cut-off log) how many messages were lost is unknown.
@@ -429,7 +429,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             // Escaped: the reason may quote the file (a schema name, an encoding).
             println!(
                 "failed: image {index} ({})",
-                escape_control_characters(reason)
+                escape_control_characters(&reason)
             );
         }
     }
@@ -445,12 +445,11 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
 struct FailedFrames<'a>(&'a BTreeMap<usize, Frame>);
 
 impl<'a> FailedFrames<'a> {
-    fn iter(&self) -> impl Iterator<Item = (usize, &'a Frame, &'a str)> {
+    fn iter(&self) -> impl Iterator<Item = (usize, &'a Frame, std::borrow::Cow<'a, str>)> {
         self.0.iter().filter_map(|(&i, f)| {
             let reason = match &f.outcome {
-                Ok(l) if l.pose.is_some() => return None,
-                Ok(l) => l.failure.as_deref().unwrap_or("unknown"),
-                Err(e) => e,
+                Ok(l) => l.failure()?.to_string().into(),
+                Err(e) => std::borrow::Cow::Borrowed(&**e),
             };
             Some((i, f, reason))
         })
@@ -463,7 +462,7 @@ impl serde::Serialize for FailedFrames<'_> {
         struct Failed<'a> {
             index: usize,
             stamp: StampJson,
-            reason: &'a str,
+            reason: std::borrow::Cow<'a, str>,
         }
         #[derive(serde::Serialize)]
         struct StampJson {
@@ -527,7 +526,7 @@ fn localize_message(
         .extract(&input, &DetectOptions::default());
     let outcome = features
         .map_err(|e| e.to_string())
-        .map(|f| sfpmap::localize::query::sfp_query(&f))
+        .map(|f| sfpmap::io::queries::sfp_query(&f))
         .and_then(|q| localizer.localize(&q, camera).map_err(|e| e.to_string()));
     match outcome {
         Ok(l) => {
@@ -554,7 +553,7 @@ fn write_output(
                 |writer: &mut mcap_io::PoseWriter<_>, frame: &Frame| match frame.outcome.as_deref()
                 {
                     Ok(Localization {
-                        pose: Some(pose), ..
+                        outcome: Ok(pose), ..
                     }) => writer.write_pose(
                         frame.log_time,
                         frame.publish_time,
@@ -600,11 +599,11 @@ fn write_tum(path: &Path, frames: &BTreeMap<usize, Frame>) -> anyhow::Result<()>
         )?;
         for frame in frames.values() {
             if let Ok(Localization {
-                pose: Some(pose), ..
+                outcome: Ok(pose), ..
             }) = frame.outcome.as_deref()
             {
                 let stamp = format!("{}.{:09}", frame.stamp.sec, frame.stamp.nsec);
-                writeln!(out, "{}", tum_line(stamp, pose.to_colmap()))?;
+                writeln!(out, "{}", tum_line(stamp, pose))?;
             }
         }
         Ok(())

@@ -3,8 +3,7 @@
 
 use serde_json::json;
 use sfpmap::io::plot::{plot_map, PlotError, PlotOptions};
-use sfpmap::io::poses::camera_center;
-use sfpmap::localize::eval::read_poses;
+use sfpmap::io::poses::read_poses;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -50,7 +49,7 @@ pub struct Args {
 fn centres(path: &Path) -> anyhow::Result<Vec<(String, [f64; 3])>> {
     Ok(read_poses(path)?
         .into_iter()
-        .map(|(name, pose)| (name, camera_center(pose.to_colmap())))
+        .map(|(name, pose)| (name, pose.center().into()))
         .collect())
 }
 

@@ -17,11 +17,10 @@ use std::path::Path;
 
 use super::error::{Error, Result};
 use super::model::{
-    has_control_character, non_finite_param, non_finite_point2d, non_finite_point3d,
-    non_finite_pose, Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, Rigid3,
-    TrackElement,
+    has_control_character, image_pose, non_finite_param, non_finite_point2d, non_finite_point3d,
+    BadPose, Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, TrackElement,
 };
-use crate::geometry::CameraModel;
+use crate::geometry::{CameraModel, Pose};
 
 /// COLMAP's invalid `point3D_t`.
 const INVALID_POINT3D_ID: u64 = u64::MAX;
@@ -120,6 +119,18 @@ impl<'a> Reader<'a> {
     }
 
     /// A NaN or infinite value of record `kind id` (binary files have no line numbers).
+    /// An image's pose that [`image_pose`] refuses.
+    fn bad_pose(&self, image_id: u32, bad: BadPose) -> Error {
+        match bad {
+            BadPose::NotFinite(field) => self.not_finite("image", image_id.into(), field),
+            BadPose::ZeroRotation => Error::ZeroRotation {
+                path: self.path.to_path_buf(),
+                line: None,
+                image_id,
+            },
+        }
+    }
+
     fn not_finite(&self, kind: &'static str, id: u64, field: impl Into<String>) -> Error {
         Error::NotFinite {
             path: self.path.to_path_buf(),
@@ -196,7 +207,7 @@ pub(crate) struct ImageRecord<'a> {
     pub id: u32,
     pub name: String,
     pub camera_id: u32,
-    pub cam_from_world: Rigid3,
+    pub cam_from_world: Pose,
     pub points2d: &'a [u8],
 }
 
@@ -270,15 +281,10 @@ impl<'a> ImageRecords<'a> {
         let num_points2d = r.u64("image point2D count")?;
         // One bounds check for the whole block, then fixed-size records.
         let points2d = r.block(num_points2d, POINT2D, "image points2D")?;
-        let cam_from_world = Rigid3 {
-            rotation,
-            translation,
-        };
         // Checked here, where the general reader and convert's fast path both pass, so they
         // accept the same files.
-        if let Some(field) = non_finite_pose(&cam_from_world) {
-            return Err(r.not_finite("image", id.into(), field));
-        }
+        let cam_from_world =
+            image_pose(rotation, translation).map_err(|bad| r.bad_pose(id, bad))?;
         let xys = points2d
             .chunks_exact(POINT2D)
             .map(|c| [le_f64(&c[0..8]), le_f64(&c[8..16])]);
@@ -448,8 +454,7 @@ pub fn write_images(model: &Reconstruction) -> Vec<u8> {
     out.extend_from_slice(&(model.images().len() as u64).to_le_bytes());
     for image in model.images() {
         out.extend_from_slice(&image.id.to_le_bytes());
-        let pose = &image.cam_from_world;
-        for v in pose.rotation.iter().chain(&pose.translation) {
+        for v in image.cam_from_world.to_colmap() {
             out.extend_from_slice(&v.to_le_bytes());
         }
         out.extend_from_slice(&image.camera_id.to_le_bytes());

@@ -35,6 +35,13 @@ pub enum Error {
         /// Which value (`"parameter 0"`, `"rotation"`, `"point2D 3 position"`).
         field: String,
     },
+    /// An image's rotation is the zero quaternion.
+    ZeroRotation {
+        path: PathBuf,
+        /// As [`Error::NotFinite::line`].
+        line: Option<u64>,
+        image_id: u32,
+    },
     /// An image name holds a control character (a newline, a tab, an escape): no COLMAP text
     /// file can hold it, and it would inject lines into line-based exports.
     BadImageName {
@@ -226,6 +233,11 @@ impl fmt::Display for Error {
             Error::NotFinite { path, line, kind, id, field } => {
                 write!(f, "{}: {kind} {id}: {field} is not finite", at(path, *line))
             }
+            Error::ZeroRotation { path, line, image_id } => write!(
+                f,
+                "{}: image {image_id}: rotation is the zero quaternion",
+                at(path, *line)
+            ),
             Error::BadImageName { path, line, image_id, name } => write!(
                 f,
                 "{}: image {image_id}: name {name} holds a control character",

@@ -34,15 +34,10 @@
 //! # Ok::<(), sfpmap::colmap::Error>(())
 //! ```
 
-#[cfg(feature = "colmap")]
-mod basis;
 pub mod bin;
-#[cfg(feature = "colmap")]
-pub mod convert;
 #[cfg(feature = "colmap")]
 mod database;
 mod error;
-pub(crate) mod geometry;
 mod model;
 pub mod text;
 
@@ -54,9 +49,12 @@ pub use database::{
     Database, DbImage, Descriptors, ImageFeatures, ImageFeaturesIter, Keypoint, KeypointLayout,
     Keypoints,
 };
+#[cfg(feature = "colmap")]
+pub(crate) use error::shown_name;
 pub use error::{Error, Result};
+pub(crate) use model::IdIndex;
 pub use model::{
-    Camera, Image, Point2D, Point3D, Reconstruction, ReconstructionBuilder, Rigid3, TrackElement,
+    Camera, Image, Point2D, Point3D, Reconstruction, ReconstructionBuilder, TrackElement,
 };
 
 /// The file names of a model, in reading order.
@@ -83,7 +81,7 @@ pub struct ModelFiles {
     pub paths: Vec<PathBuf>,
 }
 
-fn files_with(dir: &Path, ext: &str) -> [PathBuf; 3] {
+pub(crate) fn files_with(dir: &Path, ext: &str) -> [PathBuf; 3] {
     STEMS.map(|stem| dir.join(format!("{stem}.{ext}")))
 }
 
@@ -168,7 +166,7 @@ pub(crate) fn check_regular_path(path: &Path) -> Result<()> {
 
 /// The file's bytes, memory-mapped: no copy of a model that may be hundreds of MB, and a
 /// second look (hashing for provenance) costs no second read.
-fn read_file(path: &Path) -> Result<impl std::ops::Deref<Target = [u8]>> {
+pub(crate) fn read_file(path: &Path) -> Result<impl std::ops::Deref<Target = [u8]>> {
     let file = open_regular(path)?;
     crate::format::map_file(&file).map_err(|source| Error::Io {
         path: path.to_path_buf(),
@@ -318,9 +316,9 @@ pub fn fuzz_read_bin(data: &[u8]) {
     let _ = bin::parse_model((&[0u8; 8], path), (&[0u8; 8], path), (data, path));
     let [c, i, p] = split3(data);
     let general = bin::parse_model((c, path), (i, path), (p, path));
-    if let Some(fast) = geometry::from_bin((c, path), (i, path), (p, path)) {
+    if let Some(fast) = crate::build::geometry::from_bin((c, path), (i, path), (p, path)) {
         let general = match general {
-            Ok(model) => geometry::Geometry::new(&model, None),
+            Ok(model) => crate::build::geometry::Geometry::new(&model, None),
             Err(e) => panic!("the fast path accepted a model the reader rejects: {e}"),
         };
         // Debug, not ==: stricter (-0.0 differs from 0.0). No NaN gets this far: both
@@ -340,7 +338,7 @@ pub fn fuzz_read_txt(data: &[u8]) {
 }
 
 /// Three consecutive parts of `data[4..]`, their lengths from `data[0..4]`.
-fn split3(data: &[u8]) -> [&[u8]; 3] {
+pub(crate) fn split3(data: &[u8]) -> [&[u8]; 3] {
     let (head, rest) = data.split_at(data.len().min(4));
     let mut lens = [0usize; 2];
     for (len, pair) in lens.iter_mut().zip(head.chunks(2)) {

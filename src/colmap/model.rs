@@ -8,7 +8,7 @@
 use std::path::{Path, PathBuf};
 
 use super::error::{Error, Result};
-use crate::geometry::CameraModel;
+use crate::geometry::{CameraModel, Pose};
 
 /// A camera: intrinsics in COLMAP's parameter order for its model.
 #[derive(Debug, Clone, PartialEq)]
@@ -19,15 +19,6 @@ pub struct Camera {
     pub height: u64,
     /// `model.num_params()` values; the reader checks the count.
     pub params: Vec<f64>,
-}
-
-/// A rigid transform; COLMAP's `cam_from_world` maps world points into the camera frame.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Rigid3 {
-    /// Unit quaternion, scalar first: `[qw, qx, qy, qz]` as in `images.txt`.
-    pub rotation: [f64; 4],
-    /// `[tx, ty, tz]`.
-    pub translation: [f64; 3],
 }
 
 /// A 2D feature observation in an image.
@@ -46,7 +37,8 @@ pub struct Image {
     pub id: u32,
     pub name: String,
     pub camera_id: u32,
-    pub cam_from_world: Rigid3,
+    /// As stored, up to [`Pose::from_colmap`]'s normalisation of a non-unit quaternion.
+    pub cam_from_world: Pose,
     /// Index `i` here is the `point2D_idx` of track elements (and, for COLMAP-written models,
     /// the keypoint row in `database.db`).
     pub points2d: Vec<Point2D>,
@@ -94,15 +86,25 @@ pub(crate) fn non_finite_param(params: &[f64]) -> Option<String> {
     Some(format!("parameter {i}"))
 }
 
-/// Which part of a pose is NaN or infinite, if any.
-pub(crate) fn non_finite_pose(pose: &Rigid3) -> Option<&'static str> {
-    if !pose.rotation.iter().all(|v| v.is_finite()) {
-        Some("rotation")
-    } else if !pose.translation.iter().all(|v| v.is_finite()) {
-        Some("translation")
-    } else {
-        None
+/// What is wrong with an image's stored pose.
+pub(crate) enum BadPose {
+    /// This part (`"rotation"`, `"translation"`) holds a NaN or infinity.
+    NotFinite(&'static str),
+    /// The rotation is the zero quaternion, which is no rotation.
+    ZeroRotation,
+}
+
+/// An image's `cam_from_world` from its stored `qw qx qy qz` and `tx ty tz`.
+pub(crate) fn image_pose(rotation: [f64; 4], translation: [f64; 3]) -> Result<Pose, BadPose> {
+    if !rotation.iter().all(|v| v.is_finite()) {
+        return Err(BadPose::NotFinite("rotation"));
     }
+    if !translation.iter().all(|v| v.is_finite()) {
+        return Err(BadPose::NotFinite("translation"));
+    }
+    let [qw, qx, qy, qz] = rotation;
+    let [tx, ty, tz] = translation;
+    Pose::from_colmap(qw, qx, qy, qz, tx, ty, tz).map_err(|_| BadPose::ZeroRotation)
 }
 
 /// The first 2D point of `xys` (in order) with a NaN or infinite coordinate.
@@ -495,8 +497,19 @@ impl ReconstructionBuilder {
         }
         for image in &self.images {
             let id = u64::from(image.id);
-            if let Some(field) = non_finite_pose(&image.cam_from_world) {
-                return Err(not_finite(&self.images_path, "image", id, field.into()));
+            let [qw, qx, qy, qz, tx, ty, tz] = image.cam_from_world.to_colmap();
+            match image_pose([qw, qx, qy, qz], [tx, ty, tz]) {
+                Ok(_) => {}
+                Err(BadPose::NotFinite(field)) => {
+                    return Err(not_finite(&self.images_path, "image", id, field.into()))
+                }
+                Err(BadPose::ZeroRotation) => {
+                    return Err(Error::ZeroRotation {
+                        path: self.images_path.clone(),
+                        line: None,
+                        image_id: image.id,
+                    })
+                }
             }
             if has_control_character(&image.name) {
                 return Err(Error::BadImageName {

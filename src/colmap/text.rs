@@ -14,9 +14,8 @@ use std::str::FromStr;
 
 use super::error::{Error, Result};
 use super::model::{
-    has_control_character, non_finite_param, non_finite_point2d, non_finite_point3d,
-    non_finite_pose, Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, Rigid3,
-    TrackElement,
+    has_control_character, image_pose, non_finite_param, non_finite_point2d, non_finite_point3d,
+    BadPose, Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, TrackElement,
 };
 use crate::geometry::CameraModel;
 
@@ -120,6 +119,18 @@ impl<'a> Tokens<'a> {
 
     /// A NaN or infinite value (Rust's parser, like COLMAP's `stold`, reads `nan`, `inf` and
     /// overflows such as `1e400`), named by line and record.
+    /// An image's pose that [`image_pose`] refuses.
+    fn bad_pose(&self, image_id: u32, bad: BadPose) -> Error {
+        match bad {
+            BadPose::NotFinite(field) => self.not_finite("image", image_id.into(), field),
+            BadPose::ZeroRotation => Error::ZeroRotation {
+                path: self.path.to_path_buf(),
+                line: Some(self.line),
+                image_id,
+            },
+        }
+    }
+
     fn not_finite(&self, kind: &'static str, id: u64, field: impl Into<String>) -> Error {
         Error::NotFinite {
             path: self.path.to_path_buf(),
@@ -215,13 +226,8 @@ pub fn parse_images(data: &[u8], path: &Path) -> Result<Vec<Image>> {
         let rotation = t.parse_f64s::<4>("image rotation")?;
         let translation = t.parse_f64s::<3>("image translation")?;
         let camera_id: u32 = t.parse("image camera id")?;
-        let cam_from_world = Rigid3 {
-            rotation,
-            translation,
-        };
-        if let Some(field) = non_finite_pose(&cam_from_world) {
-            return Err(t.not_finite("image", id.into(), field));
-        }
+        let cam_from_world =
+            image_pose(rotation, translation).map_err(|bad| t.bad_pose(id, bad))?;
         // The name is the rest of the line, so names with spaces survive (COLMAP itself
         // reads up to the first space; `io::colmap_export` refuses to write such names).
         let name = t.rest();
@@ -348,8 +354,7 @@ pub fn write_images(model: &Reconstruction) -> String {
     out.push_str("#   POINTS2D[] as (X, Y, POINT3D_ID)\n");
     let _ = writeln!(out, "# Number of images: {}", model.images().len());
     for image in model.images() {
-        let [qw, qx, qy, qz] = image.cam_from_world.rotation;
-        let [tx, ty, tz] = image.cam_from_world.translation;
+        let [qw, qx, qy, qz, tx, ty, tz] = image.cam_from_world.to_colmap();
         let _ = writeln!(
             out,
             "{} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {} {}",

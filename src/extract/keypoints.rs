@@ -163,8 +163,6 @@ pub fn bilinear_at(map: ScoreMap<'_>, x: f32, y: f32) -> f32 {
     out[0]
 }
 
-pub(crate) use crate::vector::l2_normalise;
-
 #[cfg(test)]
 mod tests {
     use super::*;

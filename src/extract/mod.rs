@@ -17,14 +17,13 @@
 //! - [`contract`]: the model's metadata, checked.
 //! - [`image`]: JPEG/PNG → grey input.
 //! - [`keypoints`]: NMS, sub-pixel refinement, bilinear sampling.
-//! - `sfp_map` (with `colmap`): SFP maps from a COLMAP model and its images.
+//!
+//! Turning a model and its images into an SFP map is [`crate::build`]'s (`build::sfp`).
 
 pub mod contract;
 pub mod image;
 pub mod keypoints;
 pub mod runtime;
-#[cfg(feature = "colmap")]
-pub mod sfp_map;
 
 use self::contract::Contract;
 use self::image::GrayInput;
@@ -222,7 +221,7 @@ impl DenseLevel {
         let start = out.len();
         let s = self.stride as f32;
         keypoints::sample_bilinear(self.feature_map(), x / s, y / s, out);
-        keypoints::l2_normalise(&mut out[start..]);
+        crate::vector::l2_normalise(&mut out[start..]);
     }
 
     /// The score bilinearly sampled at pixel (x, y) of the model input (pixel-index convention).
@@ -258,7 +257,7 @@ impl Dense {
     pub fn full_descriptor_at(&self, i: usize, x: f32, y: f32, out: &mut Vec<f32>) {
         let start = out.len();
         self.parts_at(i, x, y, out);
-        keypoints::l2_normalise(&mut out[start..]);
+        crate::vector::l2_normalise(&mut out[start..]);
     }
 
     /// [`Dense::full_descriptor_at`] before its last normalisation: levels i.. sampled, each
@@ -534,7 +533,7 @@ impl Extractor {
                 buf.clear();
                 dense.parts_at(i, x, y, &mut buf);
                 short.extend(buf[..level.channels].iter().map(|&v| f16::from_f32(v)));
-                keypoints::l2_normalise(&mut buf);
+                crate::vector::l2_normalise(&mut buf);
                 full.extend(buf.iter().map(|&v| f16::from_f32(v)));
                 kps.push([(x + 0.5) * dense.scale[0], (y + 0.5) * dense.scale[1]]);
             }

@@ -4,6 +4,10 @@ use nalgebra::{Quaternion, Rotation3, UnitQuaternion, Vector3};
 
 use super::error::GeometryError;
 
+/// How far `‖q‖²` may be from 1 for a quaternion to count as unit and be kept as given: a few
+/// ulps, the error of normalising in f64.
+const UNIT_TOLERANCE: f64 = 8.0 * f64::EPSILON;
+
 /// A camera pose `cam_from_world`: `p_cam = rotation · p_world + translation`.
 ///
 /// This is what COLMAP stores per image (`images.txt`: `QW QX QY QZ TX TY TZ`) and what
@@ -32,8 +36,13 @@ impl Pose {
         Self::new(UnitQuaternion::identity(), Vector3::zeros())
     }
 
-    /// From COLMAP's `QW QX QY QZ TX TY TZ`. The quaternion is normalized, since text files
-    /// round it; a zero or non-finite quaternion or translation is an error.
+    /// From COLMAP's `QW QX QY QZ TX TY TZ`; a zero or non-finite quaternion or translation
+    /// is an error.
+    ///
+    /// A quaternion that is not unit (a text file's rounding) is normalised, as COLMAP does
+    /// when it reads a model. One that is unit to within a few ulps is kept bit for bit, so
+    /// that a model read and written back, or converted into a map, keeps COLMAP's values
+    /// exactly, and normalising twice is the same as once.
     pub fn from_colmap(
         qw: f64,
         qx: f64,
@@ -51,16 +60,27 @@ impl Pose {
             });
         }
         let q = Quaternion::new(qw, qx, qy, qz);
-        let norm = q.norm();
-        if !(norm > 1e-12) {
+        let norm_squared = q.norm_squared();
+        if !(norm_squared > 1e-24) {
             return Err(GeometryError::Degenerate {
                 reason: "zero quaternion",
             });
         }
+        let q = if (norm_squared - 1.0).abs() <= UNIT_TOLERANCE {
+            q
+        } else {
+            q / norm_squared.sqrt()
+        };
         Ok(Self::new(
-            UnitQuaternion::new_unchecked(q / norm),
+            UnitQuaternion::new_unchecked(q),
             Vector3::new(tx, ty, tz),
         ))
+    }
+
+    /// [`from_colmap`](Self::from_colmap) of `[qw, qx, qy, qz, tx, ty, tz]`, the order of
+    /// `images.txt`, `images.bin` and a map's `image_poses`.
+    pub fn from_colmap_array(v: [f64; 7]) -> Result<Self, GeometryError> {
+        Self::from_colmap(v[0], v[1], v[2], v[3], v[4], v[5], v[6])
     }
 
     /// `[qw, qx, qy, qz, tx, ty, tz]`, COLMAP's order.
@@ -85,6 +105,14 @@ impl Pose {
     pub fn inverse(&self) -> Self {
         let rotation = self.rotation.inverse();
         Self::new(rotation, -(rotation * self.translation))
+    }
+
+    /// `self ∘ other`: first `other`, then `self` (`a_from_c = a_from_b.compose(&b_from_c)`).
+    pub fn compose(&self, other: &Pose) -> Self {
+        Self::new(
+            self.rotation * other.rotation,
+            self.rotation * other.translation + self.translation,
+        )
     }
 
     pub fn rotation_matrix(&self) -> Rotation3<f64> {
@@ -124,5 +152,37 @@ mod tests {
         assert!((pose.rotation_error_deg(&turned) - 10.0).abs() < 1e-9);
         assert!(Pose::from_colmap(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0).is_err());
         assert!(Pose::from_colmap(f64::NAN, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0).is_err());
+    }
+
+    #[test]
+    fn unit_quaternions_are_kept_bit_for_bit_and_normalising_is_idempotent() {
+        // Unit to within an ulp but not exactly 1 when squared: kept as given.
+        let q = [0.7071067811865476, 0.0, 0.7071067811865475, 0.0];
+        let v = [q[0], q[1], q[2], q[3], 1.0, 2.0, 3.0];
+        assert_eq!(Pose::from_colmap_array(v).unwrap().to_colmap(), v);
+        // A text file's rounding is normalised, and the result is kept on a second pass.
+        let once = Pose::from_colmap(0.7071, 0.0, 0.7071, 0.0, 0.0, 0.0, 0.0).unwrap();
+        assert!((once.rotation.quaternion().norm() - 1.0).abs() < 1e-15);
+        assert_ne!(once.to_colmap()[0], 0.7071);
+        let twice = Pose::from_colmap_array(once.to_colmap()).unwrap();
+        assert_eq!(twice.to_colmap(), once.to_colmap());
+    }
+
+    #[test]
+    fn compose_and_inverse() {
+        let a = Pose::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(0.3, -0.2, 0.1)),
+            Vector3::new(1.0, 2.0, -3.0),
+        );
+        let b = Pose::new(
+            UnitQuaternion::from_scaled_axis(Vector3::new(-0.5, 0.4, 0.9)),
+            Vector3::new(-0.5, 0.25, 4.0),
+        );
+        let p = Vector3::new(0.7, -1.1, 2.5);
+        let ab = a.compose(&b);
+        assert!((ab.transform(&p) - a.transform(&b.transform(&p))).norm() < 1e-12);
+        let identity = a.compose(&a.inverse());
+        assert!(identity.transform(&p).metric_distance(&p) < 1e-12);
+        assert!(a.inverse().translation.metric_distance(&a.center()) < 1e-12);
     }
 }

@@ -9,6 +9,11 @@ use hdf5_pure::{
 };
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+#[cfg(feature = "localize")]
+use {
+    super::InputError,
+    crate::localize::{FeatureSet, QueryFeatures},
+};
 
 /// Keypoints in the file are in hloc's convention: the first pixel's centre is (0, 0), so
 /// COLMAP's coordinates are these + 0.5 (hloc adds it when it imports into COLMAP).
@@ -252,6 +257,177 @@ fn write_level(group: &mut GroupBuilder, level: &LevelFeatures, prefix: &str) {
         .with_shape(&[level.dim_full as u64, n as u64]);
 }
 
+/// Query features from an hloc-style `features.h5` (as `sfpmap extract` writes, or hloc's own
+/// extractors): per-level `level<id>_keypoints` / `level<id>_descriptors` when present (SFP),
+/// else the image's `keypoints` / `descriptors` for every level. Keypoints are in hloc's
+/// convention (first pixel centre at 0) and get +0.5; descriptors are `[D × N]`, f16 or f32.
+#[cfg(feature = "localize")]
+pub struct H5Features {
+    file: hdf5_pure::File,
+    path: PathBuf,
+    /// Bounds every dataset's declared size before it is read (an unwritten dataset of a
+    /// declared 2^31 values would otherwise be allocated as its fill value).
+    file_len: u64,
+}
+
+#[cfg(feature = "localize")]
+impl H5Features {
+    pub fn open(path: &Path) -> Result<H5Features, InputError> {
+        let err = |message: String| InputError {
+            path: path.into(),
+            line: None,
+            message,
+        };
+        let bytes = crate::input::read_regular(path).map_err(|e| err(e.to_string()))?;
+        let file_len = bytes.len() as u64;
+        let file = hdf5_pure::File::from_bytes(bytes)
+            .map_err(|e| err(format!("not a readable HDF5 file: {e}")))?;
+        Ok(H5Features {
+            file,
+            path: path.into(),
+            file_len,
+        })
+    }
+
+    fn err(&self, message: String) -> InputError {
+        InputError {
+            path: self.path.clone(),
+            line: None,
+            message,
+        }
+    }
+
+    /// `[rows × cols]` values of a dataset, or `None` if it does not exist.
+    fn matrix(&self, name: &str) -> Result<Option<(Vec<f32>, usize, usize)>, InputError> {
+        let Ok(ds) = self.file.dataset(name) else {
+            return Ok(None);
+        };
+        let shape = ds.shape().map_err(|e| self.err(format!("{name}: {e}")))?;
+        let (rows, cols) = match shape.as_slice() {
+            [r, c] => (*r, *c),
+            [n] => (1, *n),
+            other => return Err(self.err(format!("{name}: unexpected shape {other:?}"))),
+        };
+        // At least 2 bytes a value (f16): a shape the file cannot hold is refused before
+        // hdf5 allocates it.
+        if rows
+            .checked_mul(cols)
+            .and_then(|n| n.checked_mul(2))
+            .is_none_or(|b| b > self.file_len)
+        {
+            return Err(self.err(format!(
+                "{name}: {rows} x {cols} values do not fit in a file of {} bytes",
+                self.file_len
+            )));
+        }
+        let raw = ds
+            .read_raw()
+            .map_err(|e| self.err(format!("{name}: {e}")))?;
+        // The shape is the file's claim: checked against the bytes actually read, never used
+        // to size anything before that.
+        let n = rows
+            .checked_mul(cols)
+            .and_then(|n| usize::try_from(n).ok())
+            .filter(|n| n.checked_mul(2).is_some_and(|b| b <= raw.len()))
+            .ok_or_else(|| {
+                self.err(format!(
+                    "{name}: {} bytes for {rows} x {cols} values (f16 or f32 expected)",
+                    raw.len()
+                ))
+            })?;
+        let (rows, cols) = (rows as usize, cols as usize);
+        let values: Vec<f32> = if raw.len() == n * 4 {
+            raw.chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect()
+        } else if raw.len() == n * 2 {
+            raw.chunks_exact(2)
+                .map(|b| crate::format::f16::from_le_bytes([b[0], b[1]]).to_f32())
+                .collect()
+        } else {
+            return Err(self.err(format!(
+                "{name}: {} bytes for {rows} x {cols} values (f16 or f32 expected)",
+                raw.len()
+            )));
+        };
+        Ok(Some((values, rows, cols)))
+    }
+
+    /// One feature set from `<prefix>keypoints` and `<prefix>descriptors`.
+    fn set(
+        &self,
+        name: &str,
+        prefix: &str,
+        level: Option<u16>,
+    ) -> Result<Option<FeatureSet>, InputError> {
+        let Some((kp, n, two)) = self.matrix(&format!("{name}/{prefix}keypoints"))? else {
+            return Ok(None);
+        };
+        let Some((desc, dim, n_desc)) = self.matrix(&format!("{name}/{prefix}descriptors"))? else {
+            return Ok(None);
+        };
+        if two != 2 || n_desc != n {
+            return Err(self.err(format!(
+                "{name}/{prefix}: {n} keypoints x {two}, descriptors {dim} x {n_desc}"
+            )));
+        }
+        // As for database keypoints: a NaN would pass every check of the pose solver's input.
+        if let Some(i) = kp.iter().position(|v| !v.is_finite()) {
+            return Err(self.err(format!(
+                "{name}/{prefix}keypoints: keypoint {}: {} is {}",
+                i / 2,
+                ["x", "y"][i % 2],
+                kp[i]
+            )));
+        }
+        if let Some(i) = desc.iter().position(|v| !v.is_finite()) {
+            return Err(self.err(format!(
+                "{name}/{prefix}descriptors: keypoint {}: a value is {}",
+                i % n.max(1),
+                desc[i]
+            )));
+        }
+        // [D × N] → [N × D].
+        let mut descriptors = vec![0.0f32; n * dim];
+        for d in 0..dim {
+            for k in 0..n {
+                descriptors[k * dim + d] = desc[d * n + k];
+            }
+        }
+        crate::vector::normalise_rows(&mut descriptors, dim);
+        let keypoints = kp
+            .chunks_exact(2)
+            .map(|p| [f64::from(p[0]) + 0.5, f64::from(p[1]) + 0.5])
+            .collect();
+        Ok(Some(FeatureSet {
+            level,
+            keypoints,
+            descriptors,
+            dim,
+        }))
+    }
+
+    /// The query's features, `Ok(None)` if the file has no group for it.
+    pub fn features(&self, name: &str) -> Result<Option<QueryFeatures>, InputError> {
+        let mut sets = Vec::new();
+        for id in 0..32u16 {
+            if let Some(set) = self.set(name, &format!("level{id}_"), Some(id))? {
+                sets.push(set);
+            }
+        }
+        if sets.is_empty() {
+            match self.set(name, "", None)? {
+                Some(set) => sets.push(set),
+                None => return Ok(None),
+            }
+        }
+        let global = self
+            .matrix(&format!("{name}/global_descriptor"))?
+            .map(|(v, _, _)| v);
+        Ok(Some(QueryFeatures { sets, global }))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -323,7 +499,7 @@ mod tests {
         .is_err());
     }
 
-    /// The writer and the query reader (`localize::query::H5Features`) agree: every level's
+    /// The writer and the query reader ([`H5Features`]) agree: every level's
     /// keypoints in sfpmap's pixel convention, its descriptors (normalised, as the reader
     /// hands them out), and the global descriptor.
     #[cfg(feature = "localize")]
@@ -331,7 +507,7 @@ mod tests {
     fn the_query_reader_reads_back_what_the_writer_wrote() {
         let dir = tempfile::tempdir().unwrap();
         let (path, images, _) = two_images(dir.path());
-        let reader = crate::localize::query::H5Features::open(&path).unwrap();
+        let reader = H5Features::open(&path).unwrap();
         for (name, written) in &images {
             let read = reader.features(name).unwrap().expect("the image is there");
             assert_eq!(read.global.as_deref(), Some(&written.global[..]));

@@ -316,28 +316,19 @@ pub fn plot_map(
     let (levels, _) = super::ply::point_levels(map)?;
     let origin = map.metadata().origin;
     // Centre and viewing direction (the optical axis in the world: Rᵀ·(0, 0, 1), the third
-    // row of R) of each database camera. A camera whose centre is not finite cannot be
-    // drawn; a pose whose quaternion is zero draws no tick.
+    // row of R) of each database camera. A camera whose pose is no rotation (a zero or
+    // non-finite quaternion) or whose centre is not finite cannot be drawn.
     let cameras: Vec<([f64; 3], [f64; 3])> = match map.images()? {
         Some(images) => images
             .poses
             .iter()
-            .map(|&p| {
-                let [w, x, y, z] = [p[0], p[1], p[2], p[3]];
-                let n = w * w + x * x + y * y + z * z;
-                let axis = [
-                    2.0 * (x * z - w * y) / n,
-                    2.0 * (y * z + w * x) / n,
-                    1.0 - 2.0 * (x * x + y * y) / n,
-                ];
-                let axis = if axis.iter().all(|v| v.is_finite()) {
-                    axis
-                } else {
-                    [0.0; 3]
-                };
-                (super::poses::camera_center(p), axis)
+            .filter_map(|&p| {
+                let pose = crate::geometry::Pose::from_colmap_array(p).ok()?;
+                // The viewing direction, +z of the camera, in the world.
+                let axis = pose.rotation.inverse() * nalgebra::Vector3::z();
+                Some((pose.center().into(), axis.into()))
             })
-            .filter(|(c, _)| c.iter().all(|v| v.is_finite()))
+            .filter(|(c, _): &([f64; 3], [f64; 3])| c.iter().all(|v| v.is_finite()))
             .collect(),
         None => Vec::new(),
     };

@@ -3,54 +3,26 @@
 //! observations.
 
 use super::colmap_export::{escape_control_characters, images_txt_header, write_image_line};
+use super::InputError;
 use crate::format::{Error, Map};
+use crate::geometry::Pose;
 use std::fmt::Write as _;
-
-/// `cam_from_world` (qw qx qy qz tx ty tz) → `world_from_cam` as (centre, qw qx qy qz).
-/// The inverse rotation is the conjugate; the centre is −Rᵀt.
-pub fn world_from_cam(cam_from_world: [f64; 7]) -> ([f64; 3], [f64; 4]) {
-    let [qw, qx, qy, qz, tx, ty, tz] = cam_from_world;
-    let n = (qw * qw + qx * qx + qy * qy + qz * qz).sqrt();
-    let (w, x, y, z) = (qw / n, -qx / n, -qy / n, -qz / n);
-    let t = [-tx, -ty, -tz];
-    // Rotate −t by the conjugate quaternion: v' = v + 2w(u×v) + 2u×(u×v), u = (x, y, z).
-    let u = [x, y, z];
-    let cross = |a: [f64; 3], b: [f64; 3]| {
-        [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ]
-    };
-    let uv = cross(u, t);
-    let uuv = cross(u, uv);
-    let c = [
-        t[0] + 2.0 * (w * uv[0] + uuv[0]),
-        t[1] + 2.0 * (w * uv[1] + uuv[1]),
-        t[2] + 2.0 * (w * uv[2] + uuv[2]),
-    ];
-    (c, [w, x, y, z])
-}
-
-/// The camera centre of a `cam_from_world` pose.
-pub fn camera_center(cam_from_world: [f64; 7]) -> [f64; 3] {
-    world_from_cam(cam_from_world).0
-}
+use std::path::Path;
 
 /// One TUM row, `timestamp tx ty tz qx qy qz qw` (`world_from_cam`), without the newline, for a
-/// `cam_from_world` pose (qw qx qy qz tx ty tz). `−0` is written as `0`.
-pub fn tum_line(timestamp: impl std::fmt::Display, cam_from_world: [f64; 7]) -> String {
-    let (c, q) = world_from_cam(cam_from_world);
+/// `cam_from_world` pose. `−0` is written as `0`.
+pub fn tum_line(timestamp: impl std::fmt::Display, cam_from_world: &Pose) -> String {
+    let [qw, qx, qy, qz, x, y, z] = cam_from_world.inverse().to_colmap();
     // `+ 0.0` turns the conjugate's −0 into 0, which reads better.
     format!(
         "{timestamp} {} {} {} {} {} {} {}",
-        c[0] + 0.0,
-        c[1] + 0.0,
-        c[2] + 0.0,
-        q[1] + 0.0,
-        q[2] + 0.0,
-        q[3] + 0.0,
-        q[0] + 0.0
+        x + 0.0,
+        y + 0.0,
+        z + 0.0,
+        qx + 0.0,
+        qy + 0.0,
+        qz + 0.0,
+        qw + 0.0
     )
 }
 
@@ -60,30 +32,33 @@ pub fn tum_line(timestamp: impl std::fmt::Display, cam_from_world: [f64; 7]) -> 
 /// Names there have their control characters escaped (`\n`), not refused as `images.txt`
 /// refuses them: the rows hold no names, so the comment is only for people, and escaping
 /// keeps it one line (a raw newline would end it and inject a row).
-pub fn to_tum<'a>(poses: impl IntoIterator<Item = (&'a str, [f64; 7])>) -> String {
+pub fn to_tum<'a>(poses: impl IntoIterator<Item = (&'a str, Pose)>) -> String {
     let mut names =
         String::from("# sfpmap: TUM trajectory (world_from_cam); timestamp = index of the image:");
     let mut body = String::new();
     for (i, (name, pose)) in poses.into_iter().enumerate() {
         write!(names, " {i}={}", escape_control_characters(name)).ok();
-        body.push_str(&tum_line(i, pose));
+        body.push_str(&tum_line(i, &pose));
         body.push('\n');
     }
     names.push_str("\n# timestamp tx ty tz qx qy qz qw\n");
     names + &body
 }
 
-/// The map's database images as TUM.
+/// The map's database images as TUM; a pose that is no rotation (a zero or non-finite
+/// quaternion) is an error naming the image.
 pub fn images_tum(map: &Map<'_>) -> Result<String, Error> {
     let images = map
         .images()?
         .ok_or_else(|| Error::inconsistent("the map has no images"))?;
-    let names = (0..images.len())
-        .map(|i| images.name(i))
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok(to_tum(
-        names.iter().zip(images.poses.iter()).map(|(n, p)| (*n, *p)),
-    ))
+    let poses = (0..images.len())
+        .map(|i| {
+            let pose = Pose::from_colmap_array(images.poses[i])
+                .map_err(|e| Error::inconsistent(format!("image {i}: pose: {e}")))?;
+            Ok((images.name(i)?, pose))
+        })
+        .collect::<Result<Vec<_>, Error>>()?;
+    Ok(to_tum(poses))
 }
 
 /// The map's database images as a COLMAP `images.txt` with empty POINTS2D lines (a valid
@@ -102,32 +77,124 @@ pub fn images_txt(map: &Map<'_>) -> Result<String, Error> {
     Ok(text)
 }
 
+/// One line of a poses file, `name qw qx qy qz tx ty tz` (COLMAP `cam_from_world`, as in
+/// `gt_poses.txt`), without the newline; [`read_poses`] reads it back bit for bit.
+pub fn colmap_pose_line(name: &str, cam_from_world: &Pose) -> String {
+    let [qw, qx, qy, qz, tx, ty, tz] = cam_from_world.to_colmap();
+    format!("{name} {qw} {qx} {qy} {qz} {tx} {ty} {tz}")
+}
+
+/// Reads `name qw qx qy qz tx ty tz` lines (COLMAP `cam_from_world`); `#` lines are comments
+/// (the localizer lists failed queries as `# failed NAME: reason`).
+pub fn read_poses(path: &Path) -> Result<Vec<(String, Pose)>, InputError> {
+    let text = crate::input::read_regular_to_string(path).map_err(|e| InputError {
+        path: path.into(),
+        line: None,
+        message: e.to_string(),
+    })?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let bad = |message: String| InputError {
+            path: path.into(),
+            line: Some(i + 1),
+            message,
+        };
+        let tokens: Vec<&str> = line.split_whitespace().collect();
+        if tokens.len() != 8 {
+            return Err(bad(format!(
+                "expected `name qw qx qy qz tx ty tz`, found {} fields",
+                tokens.len()
+            )));
+        }
+        let v: Vec<f64> = tokens[1..]
+            .iter()
+            .map(|t| {
+                t.parse::<f64>()
+                    .map_err(|_| bad(format!("not a number: {t:?}")))
+            })
+            .collect::<Result<_, _>>()?;
+        let pose = Pose::from_colmap(v[0], v[1], v[2], v[3], v[4], v[5], v[6])
+            .map_err(|e| bad(e.to_string()))?;
+        out.push((tokens[0].to_string(), pose));
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn pose(v: [f64; 7]) -> Pose {
+        Pose::from_colmap_array(v).unwrap()
+    }
+
     #[test]
-    fn centre_of_a_translated_and_rotated_camera() {
-        // 90° about z (R maps x to y) and t = (1, 0, 0).
+    fn tum_rows_of_a_rotated_camera_are_its_centre_and_inverse_rotation() {
+        // 90° about z (R maps x to y) and t = (1, 0, 0): the centre is −Rᵀt = (0, 1, 0).
         let h = std::f64::consts::FRAC_1_SQRT_2;
-        let c = camera_center([h, 0.0, 0.0, h, 1.0, 0.0, 0.0]);
-        // Rᵀ(1,0,0) = (0,−1,0), so −Rᵀt = (0, 1, 0).
-        assert!((c[0]).abs() < 1e-12 && (c[1] - 1.0).abs() < 1e-12 && c[2].abs() < 1e-12);
-        let c = camera_center([1.0, 0.0, 0.0, 0.0, 1.0, -0.5, 2.0]);
-        assert_eq!(c, [-1.0, 0.5, -2.0]);
+        let row = tum_line(0, &pose([h, 0.0, 0.0, h, 1.0, 0.0, 0.0]));
+        let v: Vec<f64> = row.split(' ').skip(1).map(|t| t.parse().unwrap()).collect();
+        let expected = [0.0, 1.0, 0.0, 0.0, 0.0, -h, h];
+        assert!(
+            v.iter().zip(expected).all(|(a, b)| (a - b).abs() < 1e-12),
+            "{row}"
+        );
+    }
+
+    #[test]
+    fn poses_files_read_back_bit_for_bit() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("poses.txt");
+        let poses = [
+            ("a.jpg", pose([0.5, -0.5, 0.5, 0.5, 1e-300, -2.5, 3.0])),
+            (
+                "b.jpg",
+                pose([
+                    0.9238795325112867,
+                    0.0,
+                    0.3826834323650898,
+                    0.0,
+                    0.1,
+                    0.2,
+                    0.3,
+                ]),
+            ),
+        ];
+        let mut text = String::from("# name qw qx qy qz tx ty tz\n# failed c.jpg: why\n");
+        for (name, p) in &poses {
+            text += &colmap_pose_line(name, p);
+            text.push('\n');
+        }
+        std::fs::write(&path, text).unwrap();
+        let read = read_poses(&path).unwrap();
+        assert_eq!(read.len(), 2);
+        for ((name, p), (read_name, read_pose)) in poses.iter().zip(&read) {
+            assert_eq!(name, read_name);
+            assert_eq!(p.to_colmap(), read_pose.to_colmap());
+        }
+        std::fs::write(&path, "a.jpg 1 0 0 0 0 0\n").unwrap();
+        let e = read_poses(&path).unwrap_err().to_string();
+        assert!(
+            e.ends_with("poses.txt:1: expected `name qw qx qy qz tx ty tz`, found 7 fields"),
+            "{e}"
+        );
     }
 
     #[test]
     fn tum_rows_are_world_from_cam_without_negative_zero() {
         assert_eq!(
-            tum_line(3, [1.0, 0.0, 0.0, 0.0, 1.0, -0.5, 2.0]),
+            tum_line(3, &pose([1.0, 0.0, 0.0, 0.0, 1.0, -0.5, 2.0])),
             "3 -1 0.5 -2 0 0 0 1"
         );
         assert_eq!(
-            tum_line("12.000000005", [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]),
+            tum_line("12.000000005", &pose([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])),
             "12.000000005 0 0 0 0 0 0 1"
         );
-        let text = to_tum([("a.jpg", [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0])]);
+        let text = to_tum([("a.jpg", pose([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0]))]);
         assert_eq!(
             text,
             "# sfpmap: TUM trajectory (world_from_cam); timestamp = index of the image: 0=a.jpg\n\
@@ -138,8 +205,8 @@ mod tests {
 
     #[test]
     fn tum_names_stay_in_their_comment_line() {
-        let pose = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
-        let text = to_tum([("a\n1 2 3 4 5 6 7 8\r", pose), ("b\u{1b}.jpg", pose)]);
+        let p = pose([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        let text = to_tum([("a\n1 2 3 4 5 6 7 8\r", p), ("b\u{1b}.jpg", p)]);
         assert_eq!(
             text.lines().next(),
             Some(

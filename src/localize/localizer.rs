@@ -85,16 +85,67 @@ pub struct StageTimes {
 /// The outcome of one query.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Localization {
-    /// `cam_from_world`, or `None` when the query failed.
-    pub pose: Option<Pose>,
-    /// Why the query failed.
-    pub failure: Option<String>,
+    /// `cam_from_world`, or why the query was not localized.
+    pub outcome: Result<Pose, QueryFailure>,
     /// (level, inliers) of the final estimate.
     pub inliers_per_level: Vec<(u16, usize)>,
     pub matches: usize,
     pub inliers: usize,
     pub retrieved_images: usize,
     pub times: StageTimes,
+}
+
+impl Localization {
+    /// The pose, if the query was localized.
+    pub fn pose(&self) -> Option<&Pose> {
+        self.outcome.as_ref().ok()
+    }
+
+    /// Why the query was not localized, if it was not.
+    pub fn failure(&self) -> Option<&QueryFailure> {
+        self.outcome.as_ref().err()
+    }
+
+    /// A query that was not localized for `failure`, before any matching.
+    pub fn failed(failure: QueryFailure) -> Localization {
+        Localization {
+            outcome: Err(failure),
+            inliers_per_level: Vec::new(),
+            matches: 0,
+            inliers: 0,
+            retrieved_images: 0,
+            times: StageTimes::default(),
+        }
+    }
+}
+
+/// Why a query was not localized (the query was usable; the map and it did not agree on a
+/// pose). Input that cannot be used at all is a [`LocalizeError`] instead.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum QueryFailure {
+    /// No pose from the coarse matches (too few, or no consistent subset).
+    NoCoarsePose {
+        error: crate::geometry::GeometryError,
+        matches: usize,
+    },
+    /// The best pose has fewer inliers than [`LocalizeOptions::min_inliers`].
+    TooFewInliers { inliers: usize },
+    /// The caller could not produce the query's features (an unreadable image, a query
+    /// missing from the features file); the caller's one-line reason.
+    NoFeatures(String),
+}
+
+impl std::fmt::Display for QueryFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            QueryFailure::NoCoarsePose { error, matches } => {
+                write!(f, "coarse pose: {error} ({matches} matches)")
+            }
+            QueryFailure::TooFewInliers { inliers } => write!(f, "only {inliers} inliers"),
+            QueryFailure::NoFeatures(reason) => f.write_str(reason),
+        }
+    }
 }
 
 /// What stops a localizer from being built or used (a query that merely fails is not an error).
@@ -185,7 +236,16 @@ impl std::fmt::Display for LocalizeError {
     }
 }
 
-impl std::error::Error for LocalizeError {}
+/// Transparent for `Format`: its text is printed as this error's, so its source is the
+/// format error's own.
+impl std::error::Error for LocalizeError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            LocalizeError::Format(e) => e.source(),
+            _ => None,
+        }
+    }
+}
 
 impl From<FormatError> for LocalizeError {
     fn from(e: FormatError) -> Self {
@@ -299,7 +359,7 @@ impl<'m> Localizer<'m> {
     }
 
     /// Localizes one query. Errors only for unusable input; a query that cannot be localized
-    /// returns a `Localization` with `pose: None` and the reason.
+    /// returns a `Localization` whose `outcome` is the [`QueryFailure`].
     pub fn localize(
         &self,
         query: &QueryFeatures,
@@ -318,9 +378,8 @@ impl<'m> Localizer<'m> {
             .map(|level| self.feature_set(level, query))
             .collect::<Result<Vec<_>, _>>()?;
 
-        let failed = |reason: String, matches, times| Localization {
-            pose: None,
-            failure: Some(reason),
+        let failed = |failure: QueryFailure, matches, times| Localization {
+            outcome: Err(failure),
             inliers_per_level: Vec::new(),
             matches,
             inliers: 0,
@@ -337,9 +396,9 @@ impl<'m> Localizer<'m> {
         }
         let coarse = match attempt {
             Ok(found) => found,
-            Err((reason, matches)) => {
+            Err((failure, matches)) => {
                 times.total_ms = ms(t0);
-                return Ok(failed(reason, matches, times));
+                return Ok(failed(failure, matches, times));
             }
         };
 
@@ -386,14 +445,13 @@ impl<'m> Localizer<'m> {
             let coarse_matches = coarse.inliers.len();
             if inliers < self.options.min_inliers {
                 return Ok(failed(
-                    format!("only {inliers} inliers"),
+                    QueryFailure::TooFewInliers { inliers },
                     coarse_matches,
                     times,
                 ));
             }
             return Ok(Localization {
-                pose: Some(coarse.pose),
-                failure: None,
+                outcome: Ok(coarse.pose),
                 inliers_per_level: vec![(self.levels[0].id, inliers)],
                 matches: coarse_matches,
                 inliers,
@@ -408,8 +466,7 @@ impl<'m> Localizer<'m> {
             }
         }
         Ok(Localization {
-            pose: Some(estimate.pose),
-            failure: None,
+            outcome: Ok(estimate.pose),
             inliers_per_level: per_level,
             matches: n_matches,
             inliers: estimate.num_inliers,
@@ -427,7 +484,7 @@ impl<'m> Localizer<'m> {
         candidates: Option<&BitVec>,
         camera: &Camera,
         times: &mut StageTimes,
-    ) -> Result<crate::geometry::PoseEstimate, (String, usize)> {
+    ) -> Result<crate::geometry::PoseEstimate, (QueryFailure, usize)> {
         let t1 = Instant::now();
         let mut pixels = Vec::new();
         let mut points = Vec::new();
@@ -449,11 +506,9 @@ impl<'m> Localizer<'m> {
         let found =
             estimate_absolute_pose_with_prior(&pixels, &points, camera, None, &coarse_options);
         times.coarse_ransac_ms += ms(t2);
-        found.map_err(|e| {
-            (
-                format!("coarse pose: {e} ({} matches)", pixels.len()),
-                pixels.len(),
-            )
+        found.map_err(|error| {
+            let matches = pixels.len();
+            (QueryFailure::NoCoarsePose { error, matches }, matches)
         })
     }
 

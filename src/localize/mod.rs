@@ -5,9 +5,8 @@ pub mod eval;
 mod kernels;
 pub mod localizer;
 pub mod matching;
-pub mod query;
 
 pub use localizer::{
     describe_skipped, FeatureSet, Localization, LocalizeError, LocalizeOptions, Localizer,
-    QueryFeatures, SkippedLevel, StageTimes,
+    QueryFailure, QueryFeatures, SkippedLevel, StageTimes,
 };

@@ -5,25 +5,24 @@
 //! on disk, more in memory), which `convert` never needs beyond the triangulated ones'
 //! pixels. Reading `images.bin` in place and keeping only what the map stores makes a
 //! million-point model convert several times faster and in a fraction of the memory. It
-//! accepts exactly the models [`ReconstructionBuilder::build`](super::ReconstructionBuilder)
+//! accepts exactly the models [`ReconstructionBuilder::build`](crate::colmap::ReconstructionBuilder)
 //! accepts (up to the fingerprint note in [`read_bin`]); anything else sends the caller to
 //! the general reader, which reports the problem as COLMAP would.
 
 use std::hash::BuildHasher;
 use std::path::Path;
 
-use super::bin::{ImageRecord, ImageRecords, Point3DRecords};
-use super::model::IdIndex;
-use super::Reconstruction;
+use crate::colmap::bin::{ImageRecord, ImageRecords, Point3DRecords};
 #[cfg(any(feature = "colmap", test))]
-use super::{files_with, read_file};
+use crate::colmap::{files_with, read_file};
+use crate::colmap::{IdIndex, Reconstruction};
 use crate::format::CameraInfo;
 #[cfg(feature = "colmap")]
 use crate::format::{self, MapWriter};
 
 /// Cameras, points (all or a subset, renumbered in model order), images with poses, and
 /// visibility with the observing pixels. Shared by the SIFT convert and the SFP convert
-/// (`crate::extract::sfp_map`).
+/// ([`super::sfp`]).
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) struct Geometry {
     pub cameras: Vec<CameraInfo>,
@@ -96,7 +95,7 @@ impl Geometry {
             id: i.id,
             name: i.name.clone(),
             camera_id: i.camera_id,
-            pose: pose(&i.cam_from_world),
+            pose: i.cam_from_world.to_colmap(),
         });
         let (names, image_cameras, poses, image_ids) = image_columns(&camera_ids, images)
             .expect("the reader checked every image's camera exists");
@@ -143,7 +142,7 @@ impl Geometry {
     }
 }
 
-fn camera_info(c: &super::Camera) -> CameraInfo {
+fn camera_info(c: &crate::colmap::Camera) -> CameraInfo {
     CameraInfo {
         id: Some(c.id),
         model: c.model.name().to_string(),
@@ -151,11 +150,6 @@ fn camera_info(c: &super::Camera) -> CameraInfo {
         height: c.height,
         params: c.params.clone(),
     }
-}
-
-fn pose(p: &super::Rigid3) -> [f64; 7] {
-    let (q, t) = (p.rotation, p.translation);
-    [q[0], q[1], q[2], q[3], t[0], t[1], t[2]]
 }
 
 /// What the map keeps of an image besides its visibility.
@@ -239,7 +233,7 @@ impl Visibility {
 /// inconsistent, or its point ids are too sparse for a lookup table. The general reader
 /// then reports the problem (or, for sparse ids, converts the model more slowly).
 ///
-/// Checks, against [`ReconstructionBuilder::build`](super::ReconstructionBuilder::build):
+/// Checks, against [`ReconstructionBuilder::build`](crate::colmap::ReconstructionBuilder::build):
 /// unique camera, image and point ids, every image's camera exists, every 2D point's
 /// `point3D_id` names an existing point, and every 3D point's track is exactly the set of
 /// 2D points that carry its id. The last is checked without building the reverse index:
@@ -266,7 +260,7 @@ pub(crate) fn from_bin(
     points: (&[u8], &Path),
 ) -> Option<Geometry> {
     let (cameras_data, cameras_path) = cameras;
-    let mut cameras = super::bin::parse_cameras(cameras_data, cameras_path).ok()?;
+    let mut cameras = crate::colmap::bin::parse_cameras(cameras_data, cameras_path).ok()?;
     cameras.sort_by_key(|c| c.id);
     if cameras.windows(2).any(|w| w[0].id == w[1].id) {
         return None;
@@ -300,7 +294,7 @@ pub(crate) fn from_bin(
         id: i.id,
         name: i.name,
         camera_id: i.camera_id,
-        pose: pose(&i.cam_from_world),
+        pose: i.cam_from_world.to_colmap(),
     });
     let (names, image_cameras, poses, image_ids) = image_columns(&camera_ids, heads)?;
     Some(Geometry {

@@ -15,14 +15,12 @@
 //! feature; descriptors stay in the extractor's basis (identity projection, no
 //! `level_projection` section), so query descriptors from [`Extractor`] match them directly.
 
-use super::{ExtractError, Extractor, ExtractorOptions, ModelInfo};
-use crate::colmap::convert::{
-    read_model_with_sources, ConvertError, ConvertSummary, Geometry, LevelSummary,
-};
+use super::geometry::{map_index, Geometry};
+use super::{read_model_with_sources, ConvertError, ConvertSummary, LevelSummary};
+use crate::extract::{contract, image, ExtractError, Extractor, ExtractorOptions, ModelInfo};
 use crate::format::{self, Codec, Descriptors, LevelInfo, MapWriter, Metadata, SourceFile};
 use crate::progress::Reporter;
 use serde_json::json;
-use std::fmt;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -76,83 +74,6 @@ pub struct SfpMapSummary {
     pub score_threshold: f32,
 }
 
-#[derive(Debug)]
-#[non_exhaustive]
-pub enum SfpMapError {
-    Convert(ConvertError),
-    Extract(ExtractError),
-    /// The output is one of the model's images (through `..` in its name, a link, ...).
-    Output(crate::output::OutputError),
-    /// Model images with no file under the images folder.
-    MissingImages {
-        images: PathBuf,
-        missing: Vec<String>,
-        total: usize,
-    },
-}
-
-impl fmt::Display for SfpMapError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            SfpMapError::Convert(e) => e.fmt(f),
-            SfpMapError::Extract(e) => e.fmt(f),
-            SfpMapError::Output(e) => e.fmt(f),
-            SfpMapError::MissingImages {
-                images,
-                missing,
-                total,
-            } => {
-                let shown: Vec<&str> = missing.iter().take(5).map(String::as_str).collect();
-                write!(
-                    f,
-                    "{}: {} of {total} model images missing ({}{}); pass --allow-missing to skip them",
-                    images.display(),
-                    missing.len(),
-                    shown.join(", "),
-                    if missing.len() > 5 { ", …" } else { "" }
-                )
-            }
-        }
-    }
-}
-
-/// Transparent: `Convert` and `Extract` print their inner error, so its source (if any) is
-/// theirs; returning the inner error itself would print its text twice under `{:#}`.
-impl std::error::Error for SfpMapError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            SfpMapError::Convert(e) => e.source(),
-            SfpMapError::Extract(e) => e.source(),
-            SfpMapError::Output(e) => e.source(),
-            SfpMapError::MissingImages { .. } => None,
-        }
-    }
-}
-
-impl From<ConvertError> for SfpMapError {
-    fn from(e: ConvertError) -> Self {
-        SfpMapError::Convert(e)
-    }
-}
-
-impl From<ExtractError> for SfpMapError {
-    fn from(e: ExtractError) -> Self {
-        SfpMapError::Extract(e)
-    }
-}
-
-impl From<format::Error> for SfpMapError {
-    fn from(e: format::Error) -> Self {
-        SfpMapError::Convert(ConvertError::Format(e))
-    }
-}
-
-impl From<crate::colmap::Error> for SfpMapError {
-    fn from(e: crate::colmap::Error) -> Self {
-        SfpMapError::Convert(ConvertError::Colmap(e))
-    }
-}
-
 /// Per-point sums over the track: every level's normalised features, scores, counts.
 struct Tracks {
     /// Offsets of each level's features within a point's row.
@@ -171,7 +92,7 @@ pub fn convert_with_images(
     options: &SfpMapOptions,
     output: &Path,
     reporter: &dyn Reporter,
-) -> Result<SfpMapSummary, SfpMapError> {
+) -> Result<SfpMapSummary, ConvertError> {
     let (model, mut sources) = read_model_with_sources(model_dir, reporter)?;
     let input_bytes = sources.iter().map(|s| s.bytes).sum();
 
@@ -185,7 +106,7 @@ pub fn convert_with_images(
     let image_paths: Vec<&Path> = paths.iter().map(PathBuf::as_path).collect();
     if let Err(e) = crate::output::check_output(output, &image_paths, true) {
         if matches!(e, crate::output::OutputError::IsInput { .. }) {
-            return Err(SfpMapError::Output(e));
+            return Err(ConvertError::Output(e));
         }
     }
     // Present, not necessarily a file: a FIFO or folder is refused by name when it is read.
@@ -199,7 +120,7 @@ pub fn convert_with_images(
         .collect();
     if !missing.is_empty() {
         if !options.allow_missing {
-            return Err(SfpMapError::MissingImages {
+            return Err(ConvertError::MissingImages {
                 images: options.images.clone(),
                 missing,
                 total: paths.len(),
@@ -256,7 +177,7 @@ pub fn convert_with_images(
             bytes: bytes.len() as u64,
             xxh3: format::file_hash(&bytes),
         });
-        let input = super::image::decode(&bytes, path, contract.gray_weights, options.resize_max)?;
+        let input = image::decode(&bytes, path, contract.gray_weights, options.resize_max)?;
         drop(bytes);
         let t = Instant::now();
         let dense = extractor.run(&input).map_err(|e| e.on_image(path))?;
@@ -319,7 +240,7 @@ pub fn convert_with_images(
         .map(|p| (0..levels).any(|j| member(p, j)))
         .collect();
     let geometry = Geometry::new(&model, Some(&keep));
-    let map_index = crate::colmap::geometry::map_index(&keep);
+    let map_index = map_index(&keep);
 
     let model_info = extractor.model().clone();
     let mut metadata = Metadata::default();
@@ -371,9 +292,9 @@ pub fn convert_with_images(
             for (i, &off) in tracks.offsets.iter().enumerate().skip(j) {
                 let part_start = descriptors.len();
                 descriptors.extend_from_slice(&row[off..off + contract.dims[i]]);
-                super::keypoints::l2_normalise(&mut descriptors[part_start..]);
+                crate::vector::l2_normalise(&mut descriptors[part_start..]);
             }
-            super::keypoints::l2_normalise(&mut descriptors[start..]);
+            crate::vector::l2_normalise(&mut descriptors[start..]);
             energy_short += descriptors[start..start + dim_short]
                 .iter()
                 .map(|v| f64::from(v * v))
@@ -406,7 +327,7 @@ pub fn convert_with_images(
             json!("levels i.. features, each L2-normalised, concatenated, L2-normalised; short = level i's part"),
         );
         info.extra
-            .insert("contract".into(), json!(super::contract::CONTRACT));
+            .insert("contract".into(), json!(contract::CONTRACT));
         info.extra
             .insert("variance_short".into(), json!(variance_short));
         built.push((info, points, descriptors, variance_short));

@@ -1,6 +1,7 @@
 //! The built-in demo scene: a textured room rendered by ray casting from known poses, with
 //! a COLMAP text model of its database images. Nothing is downloaded; the same seed gives
-//! the same scene, images and model.
+//! the same scene, images and model. `sfpmap demo` renders it, converts it and localizes its
+//! queries.
 //!
 //! The room is an axis-aligned box with a few boxes inside (pillars and a table) for depth
 //! and occlusion. Every surface carries a procedural texture — value-noise at several
@@ -11,9 +12,10 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use crate::colmap::{
-    text, Camera, CameraModel, Image, Point2D, Reconstruction, Rigid3, TrackElement,
-};
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
+
+use crate::colmap::{text, Camera, Image, Point2D, Reconstruction, TrackElement};
+use crate::geometry::{CameraModel, Pose};
 
 /// Image size of the demo camera.
 pub const WIDTH: u32 = 640;
@@ -21,25 +23,7 @@ pub const HEIGHT: u32 = 480;
 /// PINHOLE f, f, cx, cy (COLMAP pixel convention).
 pub const FOCAL: f64 = 420.0;
 
-type V3 = [f64; 3];
-
-fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn dot(a: V3, b: V3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn cross(a: V3, b: V3) -> V3 {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-fn norm(a: V3) -> V3 {
-    let n = dot(a, a).sqrt();
-    [a[0] / n, a[1] / n, a[2] / n]
-}
+type V3 = Vector3<f64>;
 
 /// An axis-aligned box; `inside` boxes are seen from within (the room), others from outside.
 #[derive(Debug, Clone, Copy)]
@@ -50,68 +34,30 @@ struct Cuboid {
     texture_seed: u32,
 }
 
-/// A camera pose: rotation rows (world → camera) and translation, COLMAP `cam_from_world`.
-#[derive(Debug, Clone, Copy)]
-pub struct DemoPose {
-    pub rotation: [V3; 3],
-    pub translation: V3,
-}
-
-impl DemoPose {
-    /// A camera at `center` looking at `target`, y down (COLMAP: x right, y down, z forward).
-    pub fn look_at(center: V3, target: V3) -> DemoPose {
-        let z = norm(sub(target, center));
-        let up = [0.0, -1.0, 0.0];
-        let x = norm(cross(z, up));
-        let y = cross(z, x);
-        let rotation = [x, y, z];
-        let t = [-dot(x, center), -dot(y, center), -dot(z, center)];
-        DemoPose {
-            rotation,
-            translation: t,
-        }
-    }
-
-    pub fn transform(&self, p: V3) -> V3 {
-        let r = &self.rotation;
-        [
-            dot(r[0], p) + self.translation[0],
-            dot(r[1], p) + self.translation[1],
-            dot(r[2], p) + self.translation[2],
-        ]
-    }
-
-    pub fn center(&self) -> V3 {
-        let r = &self.rotation;
-        let t = self.translation;
-        [
-            -(r[0][0] * t[0] + r[1][0] * t[1] + r[2][0] * t[2]),
-            -(r[0][1] * t[0] + r[1][1] * t[1] + r[2][1] * t[2]),
-            -(r[0][2] * t[0] + r[1][2] * t[1] + r[2][2] * t[2]),
-        ]
-    }
-
-    /// `qw qx qy qz` of the rotation (`qw >= 0`).
-    pub fn quaternion(&self) -> [f64; 4] {
-        let r = &self.rotation;
-        let m = nalgebra::Matrix3::from_fn(|i, j| r[i][j]);
-        let rotation = nalgebra::Rotation3::from_matrix_unchecked(m);
-        let q = nalgebra::UnitQuaternion::from_rotation_matrix(&rotation);
-        let q = [q.w, q.i, q.j, q.k];
-        if q[0] < 0.0 {
-            q.map(|v| -v)
-        } else {
-            q
-        }
-    }
+/// A camera at `center` looking at `target`, y down (COLMAP: x right, y down, z forward), as
+/// `cam_from_world` with `qw >= 0`.
+pub fn look_at(center: V3, target: V3) -> Pose {
+    let z = (target - center).normalize();
+    let x = z.cross(&V3::new(0.0, -1.0, 0.0)).normalize();
+    let y = z.cross(&x);
+    // Rows x, y, z: world → camera.
+    let rows = Matrix3::from_rows(&[x.transpose(), y.transpose(), z.transpose()]);
+    let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(rows));
+    // One sign of the two quaternions of a rotation, so the model's text is canonical.
+    let rotation = if rotation.w < 0.0 {
+        UnitQuaternion::new_unchecked(-rotation.into_inner())
+    } else {
+        rotation
+    };
+    Pose::new(rotation, -(rows * center))
 }
 
 /// The scene: geometry, cameras and sampled surface points.
 #[derive(Debug, Clone)]
 pub struct DemoScene {
     boxes: Vec<Cuboid>,
-    pub database: Vec<(String, DemoPose)>,
-    pub queries: Vec<(String, DemoPose)>,
+    pub database: Vec<(String, Pose)>,
+    pub queries: Vec<(String, Pose)>,
     pub points: Vec<V3>,
 }
 
@@ -185,7 +131,7 @@ fn texture(u: f64, v: f64, seed: u32) -> f64 {
 
 impl Cuboid {
     /// Ray hit: distance and the texture value at the hit, if the ray meets a face.
-    fn hit(&self, origin: V3, dir: V3) -> Option<(f64, f64)> {
+    fn hit(&self, origin: &V3, dir: &V3) -> Option<(f64, f64)> {
         let mut best: Option<(f64, f64)> = None;
         for axis in 0..3 {
             if dir[axis].abs() < 1e-12 {
@@ -196,11 +142,7 @@ impl Cuboid {
                 if t <= 1e-6 || best.is_some_and(|b| t >= b.0) {
                     continue;
                 }
-                let p = [
-                    origin[0] + t * dir[0],
-                    origin[1] + t * dir[1],
-                    origin[2] + t * dir[2],
-                ];
+                let p = origin + t * dir;
                 let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
                 let eps = 1e-9;
                 if p[a] < self.min[a] - eps
@@ -232,32 +174,32 @@ impl DemoScene {
     pub fn new(seed: u32) -> DemoScene {
         let boxes = vec![
             Cuboid {
-                min: [-6.0, -3.0, -5.0],
-                max: [6.0, 1.0, 5.0],
+                min: V3::new(-6.0, -3.0, -5.0),
+                max: V3::new(6.0, 1.0, 5.0),
                 inside: true,
                 texture_seed: seed,
             },
             Cuboid {
-                min: [-4.6, -3.0, -3.6],
-                max: [-3.8, 1.0, -2.8],
+                min: V3::new(-4.6, -3.0, -3.6),
+                max: V3::new(-3.8, 1.0, -2.8),
                 inside: false,
                 texture_seed: seed ^ 0x1111,
             },
             Cuboid {
-                min: [3.9, -3.0, 2.8],
-                max: [4.7, 1.0, 3.6],
+                min: V3::new(3.9, -3.0, 2.8),
+                max: V3::new(4.7, 1.0, 3.6),
                 inside: false,
                 texture_seed: seed ^ 0x2222,
             },
             Cuboid {
-                min: [-0.9, 0.2, -0.5],
-                max: [0.9, 0.4, 0.5],
+                min: V3::new(-0.9, 0.2, -0.5),
+                max: V3::new(0.9, 0.4, 0.5),
                 inside: false,
                 texture_seed: seed ^ 0x3333,
             },
         ];
         let ring = |angle: f64, radius: f64, height: f64| {
-            [radius * angle.cos(), height, radius * angle.sin() * 0.8]
+            V3::new(radius * angle.cos(), height, radius * angle.sin() * 0.8)
         };
         let mut database = Vec::new();
         let n = 36;
@@ -270,7 +212,7 @@ impl DemoScene {
             } else {
                 ring(a + std::f64::consts::PI + 0.3, 4.0, -0.8)
             };
-            database.push((format!("db_{i:03}.png"), DemoPose::look_at(center, target)));
+            database.push((format!("db_{i:03}.png"), look_at(center, target)));
         }
         let mut queries = Vec::new();
         for i in 0..8 {
@@ -281,10 +223,7 @@ impl DemoScene {
             } else {
                 ring(a + std::f64::consts::PI + 0.5, 4.0, -0.9)
             };
-            queries.push((
-                format!("query_{i:02}.png"),
-                DemoPose::look_at(center, target),
-            ));
+            queries.push((format!("query_{i:02}.png"), look_at(center, target)));
         }
         // Surface points: uniform on every face, density per square metre.
         let mut points = Vec::new();
@@ -300,7 +239,7 @@ impl DemoScene {
                 let count = (area * 120.0) as usize;
                 for side in [b.min[axis], b.max[axis]] {
                     for _ in 0..count {
-                        let mut p = [0.0; 3];
+                        let mut p = V3::zeros();
                         p[axis] = side;
                         p[a] = b.min[a] + rand() * (b.max[a] - b.min[a]);
                         p[c] = b.min[c] + rand() * (b.max[c] - b.min[c]);
@@ -318,7 +257,7 @@ impl DemoScene {
     }
 
     /// The first surface hit along a ray: distance and intensity.
-    fn trace(&self, origin: V3, dir: V3) -> Option<(f64, f64)> {
+    fn trace(&self, origin: &V3, dir: &V3) -> Option<(f64, f64)> {
         self.boxes
             .iter()
             .filter_map(|b| b.hit(origin, dir))
@@ -327,9 +266,9 @@ impl DemoScene {
 
     /// Renders an 8-bit grayscale image (`WIDTH × HEIGHT`, row-major), 2×2 supersampled,
     /// with distance shading.
-    pub fn render(&self, pose: &DemoPose) -> Vec<u8> {
+    pub fn render(&self, pose: &Pose) -> Vec<u8> {
         let center = pose.center();
-        let r = &pose.rotation;
+        let world_from_cam = pose.rotation.inverse();
         let mut out = Vec::with_capacity((WIDTH * HEIGHT) as usize);
         for y in 0..HEIGHT {
             for x in 0..WIDTH {
@@ -338,12 +277,8 @@ impl DemoScene {
                     // Pixel (x, y) covers [x, x+1): its centre is x + 0.5 (COLMAP convention).
                     let u = (f64::from(x) + sx - f64::from(WIDTH) / 2.0) / FOCAL;
                     let v = (f64::from(y) + sy - f64::from(HEIGHT) / 2.0) / FOCAL;
-                    let d = norm([
-                        r[0][0] * u + r[1][0] * v + r[2][0],
-                        r[0][1] * u + r[1][1] * v + r[2][1],
-                        r[0][2] * u + r[1][2] * v + r[2][2],
-                    ]);
-                    let value = match self.trace(center, d) {
+                    let d = (world_from_cam * V3::new(u, v, 1.0)).normalize();
+                    let value = match self.trace(&center, &d) {
                         Some((t, tex)) => tex * (1.0 / (1.0 + 0.02 * t)),
                         None => 0.0,
                     };
@@ -356,7 +291,7 @@ impl DemoScene {
     }
 
     /// Pixel of world point `p` in the image of `pose`, if in front and inside the frame.
-    pub fn project(&self, pose: &DemoPose, p: V3) -> Option<[f64; 2]> {
+    pub fn project(&self, pose: &Pose, p: &V3) -> Option<[f64; 2]> {
         let c = pose.transform(p);
         if c[2] <= 0.1 {
             return None;
@@ -368,11 +303,11 @@ impl DemoScene {
     }
 
     /// Whether `p` is the first surface the ray from the camera meets.
-    fn visible(&self, pose: &DemoPose, p: V3) -> bool {
+    fn visible(&self, pose: &Pose, p: &V3) -> bool {
         let center = pose.center();
-        let to = sub(p, center);
-        let dist = dot(to, to).sqrt();
-        match self.trace(center, norm(to)) {
+        let to = p - center;
+        let dist = to.norm();
+        match self.trace(&center, &to.normalize()) {
             Some((t, _)) => (t - dist).abs() < 1e-3 * dist.max(1.0),
             None => false,
         }
@@ -384,7 +319,7 @@ impl DemoScene {
         let mut observations: Vec<Vec<(usize, [f64; 2])>> = vec![Vec::new(); self.database.len()];
         let mut tracks: Vec<Vec<TrackElement>> = vec![Vec::new(); self.points.len()];
         for (i, (_, pose)) in self.database.iter().enumerate() {
-            for (p, &xyz) in self.points.iter().enumerate() {
+            for (p, xyz) in self.points.iter().enumerate() {
                 if let Some(px) = self.project(pose, xyz) {
                     if self.visible(pose, xyz) {
                         tracks[p].push(TrackElement {
@@ -415,10 +350,7 @@ impl DemoScene {
                 id: i as u32 + 1,
                 name: name.clone(),
                 camera_id: 1,
-                cam_from_world: Rigid3 {
-                    rotation: pose.quaternion(),
-                    translation: pose.translation,
-                },
+                cam_from_world: *pose,
                 points2d: observations[i]
                     .iter()
                     .map(|&(p, xy)| Point2D {
@@ -428,10 +360,10 @@ impl DemoScene {
                     .collect(),
             });
         }
-        for (p, &xyz) in self.points.iter().enumerate() {
+        for (p, xyz) in self.points.iter().enumerate() {
             if kept(p) {
                 model
-                    .add_point3d(p as u64 + 1, xyz, [128; 3], 0.0, &tracks[p])
+                    .add_point3d(p as u64 + 1, (*xyz).into(), [128; 3], 0.0, &tracks[p])
                     .expect("tracks are short");
             }
         }
@@ -468,13 +400,8 @@ impl DemoScene {
     pub fn gt_poses(&self) -> String {
         let mut s = String::new();
         for (name, pose) in &self.queries {
-            let q = pose.quaternion();
-            let t = pose.translation;
-            let _ = writeln!(
-                s,
-                "{name} {} {} {} {} {} {} {}",
-                q[0], q[1], q[2], q[3], t[0], t[1], t[2]
-            );
+            s.push_str(&crate::io::poses::colmap_pose_line(name, pose));
+            s.push('\n');
         }
         s
     }
@@ -510,14 +437,14 @@ mod tests {
         let scene = DemoScene::new(1);
         let (_, pose) = &scene.database[0];
         let c = pose.center();
-        let back = pose.transform(c);
+        let back = pose.transform(&c);
         assert!(back.iter().all(|v| v.abs() < 1e-9));
-        let q = pose.quaternion();
-        assert!(((q.iter().map(|v| v * v).sum::<f64>()) - 1.0).abs() < 1e-9);
+        assert!((pose.rotation.quaternion().norm() - 1.0).abs() < 1e-9);
+        assert!(pose.rotation.w >= 0.0);
         let seen = scene
             .points
             .iter()
-            .filter(|&&p| scene.project(pose, p).is_some() && scene.visible(pose, p))
+            .filter(|&p| scene.project(pose, p).is_some() && scene.visible(pose, p))
             .count();
         assert!(seen > 200, "{seen}");
     }

@@ -1,4 +1,5 @@
-//! `convert`: a COLMAP model (and optionally its `database.db`) into an sfpmap map.
+//! SIFT maps: a COLMAP model (and optionally its `database.db`) into an sfpmap map
+//! (`sfpmap convert --colmap`).
 //!
 //! Each 3D point's descriptor aggregates its track's SIFT descriptors (normalised mean or
 //! medoid). Points are assigned to 3 levels by the median keypoint scale of their
@@ -7,12 +8,12 @@
 //! stores its descriptors in its own uncentred-PCA basis so a prefix (`short`) is meaningful.
 
 use super::basis::Basis;
-pub(crate) use super::geometry::Geometry;
-use super::{model_files, read_model, Database, Error as ColmapError, ModelFormat, Reconstruction};
-use crate::format::{self, Codec, Descriptors, LevelInfo, MapWriter, Metadata, SourceFile};
+use super::geometry::Geometry;
+use super::{read_geometry_with_sources, source_file, ConvertError, ConvertSummary, LevelSummary};
+use crate::colmap::Database;
+use crate::format::{Codec, Descriptors, LevelInfo, MapWriter, Metadata};
 use crate::progress::Reporter;
 use serde_json::json;
-use std::fmt;
 use std::path::{Path, PathBuf};
 
 /// How a point's descriptor is made from its observations'.
@@ -60,136 +61,6 @@ impl Default for ConvertOptions {
     }
 }
 
-/// What one level of the converted map holds.
-#[derive(Debug, Clone, PartialEq)]
-pub struct LevelSummary {
-    pub level: u16,
-    pub points: usize,
-    pub dim_full: u32,
-    pub dim_short: u32,
-    /// Share of the descriptors' energy the `short` block keeps.
-    pub variance_short: f64,
-    /// Smallest and largest median keypoint scale (pixels) of the level's points.
-    pub scale_range: [f32; 2],
-}
-
-#[derive(Debug, Clone, PartialEq)]
-pub struct ConvertSummary {
-    pub points: usize,
-    pub images: usize,
-    pub observations: usize,
-    /// Model files plus database, in bytes.
-    pub input_bytes: u64,
-    pub output_bytes: u64,
-    pub geometry_only: bool,
-    pub levels: Vec<LevelSummary>,
-    /// Images whose keypoints or descriptors are missing from the database.
-    pub images_without_features: usize,
-    /// Points none of whose observations has a descriptor (kept, but in no level).
-    pub points_without_descriptors: usize,
-}
-
-/// What can stop a conversion.
-#[derive(Debug)]
-#[non_exhaustive]
-pub enum ConvertError {
-    Colmap(ColmapError),
-    Format(format::Error),
-    /// The database's image `image_id` has another name than the model's.
-    NameMismatch {
-        database: PathBuf,
-        image_id: u32,
-        model: String,
-        found: String,
-    },
-    /// An observation's keypoint row does not exist in the database.
-    KeypointOutOfRange {
-        database: PathBuf,
-        image: String,
-        point2d_idx: usize,
-        keypoints: usize,
-    },
-    /// An observed keypoint's scale is NaN or infinite.
-    KeypointScaleNotFinite {
-        database: PathBuf,
-        image: String,
-        point2d_idx: usize,
-    },
-    /// An image has no features in the database and `strict` is set.
-    MissingFeatures {
-        database: PathBuf,
-        image: String,
-    },
-    /// Descriptor lengths differ between images.
-    DescriptorDim {
-        database: PathBuf,
-        image: String,
-        expected: usize,
-        found: usize,
-    },
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
-}
-
-impl fmt::Display for ConvertError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            ConvertError::Colmap(e) => e.fmt(f),
-            ConvertError::Format(e) => e.fmt(f),
-            ConvertError::NameMismatch { database, image_id, model, found } => write!(
-                f,
-                "{}: image {image_id} is {found:?} in the database but {model:?} in the model (a database of another reconstruction?)",
-                database.display()
-            ),
-            ConvertError::KeypointOutOfRange { database, image, point2d_idx, keypoints } => write!(
-                f,
-                "{}: image {image:?} has {keypoints} keypoints but the model observes point2D {point2d_idx}",
-                database.display()
-            ),
-            ConvertError::KeypointScaleNotFinite { database, image, point2d_idx } => write!(
-                f,
-                "{}: image {}: keypoint {point2d_idx}: scale is not finite",
-                database.display(),
-                super::error::shown_name(image)
-            ),
-            ConvertError::MissingFeatures { database, image } => write!(
-                f,
-                "{}: image {image:?} has no keypoints or descriptors (without --strict it would be skipped)",
-                database.display()
-            ),
-            ConvertError::DescriptorDim { database, image, expected, found } => write!(
-                f,
-                "{}: image {image:?} has {found}-byte descriptors, others have {expected}",
-                database.display()
-            ),
-            ConvertError::Io { path, source } => write!(f, "{}: {source}", path.display()),
-        }
-    }
-}
-
-impl std::error::Error for ConvertError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            ConvertError::Colmap(e) => e.source(),
-            _ => None,
-        }
-    }
-}
-
-impl From<ColmapError> for ConvertError {
-    fn from(e: ColmapError) -> Self {
-        ConvertError::Colmap(e)
-    }
-}
-
-impl From<format::Error> for ConvertError {
-    fn from(e: format::Error) -> Self {
-        ConvertError::Format(e)
-    }
-}
-
 /// Per-observation features gathered from the database, flat and sorted by point.
 struct Observations {
     dim: usize,
@@ -201,74 +72,6 @@ struct Observations {
     /// Medoid: every observation's normalised descriptor, with its point.
     all: Vec<(u32, Vec<f32>)>,
     images_without_features: usize,
-}
-
-/// A file's size and XXH3 for `provenance.sources`.
-pub(crate) fn source_file(path: &Path) -> Result<SourceFile, ConvertError> {
-    // Mapped, not read: the model was just parsed from the page cache, so hashing it again
-    // costs no copy and no allocation of its size.
-    // Checked to be a regular file first: opening a FIFO would block.
-    let file = super::open_regular(path)?;
-    let bytes = format::map_file(&file).map_err(|source| ConvertError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    Ok(SourceFile {
-        path: path.display().to_string(),
-        bytes: bytes.len() as u64,
-        xxh3: format::file_hash(&bytes),
-    })
-}
-
-/// Reads the model in `model_dir` and describes its files (size, hash) for provenance.
-pub(crate) fn read_model_with_sources(
-    model_dir: &Path,
-    reporter: &dyn Reporter,
-) -> Result<(Reconstruction, Vec<SourceFile>), ConvertError> {
-    let files = model_files(model_dir)?;
-    reporter.start("reading model", None);
-    let model = read_model(model_dir)?;
-    reporter.finish();
-    let sources = files
-        .paths
-        .iter()
-        .map(|p| source_file(p))
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok((model, sources))
-}
-
-/// Reads the model in `model_dir` as the map's geometry, with its files' provenance.
-///
-/// A binary model goes the fast way ([`super::geometry::read_bin`]) while another thread
-/// hashes the files; anything that way declines (errors included) goes the general way.
-fn read_geometry_with_sources(
-    model_dir: &Path,
-    reporter: &dyn Reporter,
-) -> Result<(Geometry, Vec<SourceFile>), ConvertError> {
-    let files = model_files(model_dir)?;
-    if files.format == ModelFormat::Binary {
-        reporter.start("reading model", None);
-        let (geometry, sources) = std::thread::scope(|s| {
-            let sources = s.spawn(|| {
-                files
-                    .paths
-                    .iter()
-                    .map(|p| source_file(p))
-                    .collect::<Result<Vec<_>, _>>()
-            });
-            let geometry = super::geometry::read_bin(model_dir);
-            let sources = sources
-                .join()
-                .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-            (geometry, sources)
-        });
-        reporter.finish();
-        if let Some(geometry) = geometry {
-            return Ok((geometry, sources?));
-        }
-    }
-    let (model, sources) = read_model_with_sources(model_dir, reporter)?;
-    Ok((Geometry::new(&model, None), sources))
 }
 
 /// Converts the model in `model_dir` and writes the map to `output` (temp file + rename).

@@ -1,0 +1,147 @@
+//! The one error of map building.
+
+use crate::colmap::Error as ColmapError;
+use crate::format;
+use std::fmt;
+use std::path::PathBuf;
+
+/// What can stop a conversion (`convert` from a database or from images).
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum ConvertError {
+    Colmap(ColmapError),
+    Format(format::Error),
+    /// The database's image `image_id` has another name than the model's.
+    NameMismatch {
+        database: PathBuf,
+        image_id: u32,
+        model: String,
+        found: String,
+    },
+    /// An observation's keypoint row does not exist in the database.
+    KeypointOutOfRange {
+        database: PathBuf,
+        image: String,
+        point2d_idx: usize,
+        keypoints: usize,
+    },
+    /// An observed keypoint's scale is NaN or infinite.
+    KeypointScaleNotFinite {
+        database: PathBuf,
+        image: String,
+        point2d_idx: usize,
+    },
+    /// An image has no features in the database and `strict` is set.
+    MissingFeatures {
+        database: PathBuf,
+        image: String,
+    },
+    /// Descriptor lengths differ between images.
+    DescriptorDim {
+        database: PathBuf,
+        image: String,
+        expected: usize,
+        found: usize,
+    },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// `convert --images`: the network failed on an image.
+    #[cfg(feature = "onnx")]
+    Extract(crate::extract::ExtractError),
+    /// The output is one of the model's images (through `..` in its name, a link, ...).
+    Output(crate::output::OutputError),
+    /// `convert --images`: model images with no file under the images folder.
+    MissingImages {
+        images: PathBuf,
+        missing: Vec<String>,
+        total: usize,
+    },
+}
+
+impl fmt::Display for ConvertError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ConvertError::Colmap(e) => e.fmt(f),
+            ConvertError::Format(e) => e.fmt(f),
+            ConvertError::NameMismatch { database, image_id, model, found } => write!(
+                f,
+                "{}: image {image_id} is {found:?} in the database but {model:?} in the model (a database of another reconstruction?)",
+                database.display()
+            ),
+            ConvertError::KeypointOutOfRange { database, image, point2d_idx, keypoints } => write!(
+                f,
+                "{}: image {image:?} has {keypoints} keypoints but the model observes point2D {point2d_idx}",
+                database.display()
+            ),
+            ConvertError::KeypointScaleNotFinite { database, image, point2d_idx } => write!(
+                f,
+                "{}: image {}: keypoint {point2d_idx}: scale is not finite",
+                database.display(),
+                crate::colmap::shown_name(image)
+            ),
+            ConvertError::MissingFeatures { database, image } => write!(
+                f,
+                "{}: image {image:?} has no keypoints or descriptors (without --strict it would be skipped)",
+                database.display()
+            ),
+            ConvertError::DescriptorDim { database, image, expected, found } => write!(
+                f,
+                "{}: image {image:?} has {found}-byte descriptors, others have {expected}",
+                database.display()
+            ),
+            ConvertError::Io { path, source } => write!(f, "{}: {source}", path.display()),
+            #[cfg(feature = "onnx")]
+            ConvertError::Extract(e) => e.fmt(f),
+            ConvertError::Output(e) => e.fmt(f),
+            ConvertError::MissingImages {
+                images,
+                missing,
+                total,
+            } => {
+                let shown: Vec<&str> = missing.iter().take(5).map(String::as_str).collect();
+                write!(
+                    f,
+                    "{}: {} of {total} model images missing ({}{}); pass --allow-missing to skip them",
+                    images.display(),
+                    missing.len(),
+                    shown.join(", "),
+                    if missing.len() > 5 { ", …" } else { "" }
+                )
+            }
+        }
+    }
+}
+
+impl std::error::Error for ConvertError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            ConvertError::Colmap(e) => e.source(),
+            ConvertError::Format(e) => e.source(),
+            #[cfg(feature = "onnx")]
+            ConvertError::Extract(e) => e.source(),
+            ConvertError::Output(e) => e.source(),
+            _ => None,
+        }
+    }
+}
+
+impl From<ColmapError> for ConvertError {
+    fn from(e: ColmapError) -> Self {
+        ConvertError::Colmap(e)
+    }
+}
+
+impl From<format::Error> for ConvertError {
+    fn from(e: format::Error) -> Self {
+        ConvertError::Format(e)
+    }
+}
+
+#[cfg(feature = "onnx")]
+impl From<crate::extract::ExtractError> for ConvertError {
+    fn from(e: crate::extract::ExtractError) -> Self {
+        ConvertError::Extract(e)
+    }
+}

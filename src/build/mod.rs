@@ -1,0 +1,143 @@
+//! Map building: everything that turns a COLMAP model into a map.
+//!
+//! - [`geometry`] (`colmap-model`): the arrays a map stores of a model (cameras, points,
+//!   images with poses, visibility), from a [`Reconstruction`] or straight from a binary
+//!   model's bytes.
+//! - [`sift`] (`colmap`): SIFT maps from the model's `database.db` (descriptor aggregation
+//!   per track, scale levels, a per-level PCA basis in `basis`) — `sfpmap convert --colmap`.
+//! - [`sfp`] (`colmap` + `onnx`): SFP maps from the model's images through the extractor —
+//!   `sfpmap convert --images`.
+//!
+//! [`crate::colmap`] only reads and writes COLMAP files and databases and [`crate::extract`]
+//! only runs the network; both are inputs here. Every map is written by
+//! [`crate::format::MapWriter`].
+
+#[cfg(feature = "colmap")]
+mod basis;
+#[cfg(feature = "colmap")]
+mod error;
+pub(crate) mod geometry;
+#[cfg(all(feature = "colmap", feature = "onnx"))]
+pub mod sfp;
+#[cfg(feature = "colmap")]
+pub mod sift;
+
+#[cfg(feature = "colmap")]
+pub use error::ConvertError;
+#[cfg(all(feature = "colmap", feature = "onnx"))]
+pub use sfp::{convert_with_images, SfpMapOptions, SfpMapSummary};
+#[cfg(feature = "colmap")]
+pub use sift::{convert, Aggregate, ConvertOptions};
+
+#[cfg(feature = "colmap")]
+use crate::colmap::{model_files, read_model, ModelFormat, Reconstruction};
+#[cfg(feature = "colmap")]
+use crate::format::{self, SourceFile};
+#[cfg(feature = "colmap")]
+use crate::progress::Reporter;
+#[cfg(feature = "colmap")]
+use geometry::Geometry;
+#[cfg(feature = "colmap")]
+use std::path::Path;
+
+#[cfg(feature = "colmap")]
+/// What one level of the converted map holds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LevelSummary {
+    pub level: u16,
+    pub points: usize,
+    pub dim_full: u32,
+    pub dim_short: u32,
+    /// Share of the descriptors' energy the `short` block keeps.
+    pub variance_short: f64,
+    /// Smallest and largest median keypoint scale (pixels) of the level's points.
+    pub scale_range: [f32; 2],
+}
+
+#[cfg(feature = "colmap")]
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConvertSummary {
+    pub points: usize,
+    pub images: usize,
+    pub observations: usize,
+    /// Model files plus database, in bytes.
+    pub input_bytes: u64,
+    pub output_bytes: u64,
+    pub geometry_only: bool,
+    pub levels: Vec<LevelSummary>,
+    /// Images whose keypoints or descriptors are missing from the database.
+    pub images_without_features: usize,
+    /// Points none of whose observations has a descriptor (kept, but in no level).
+    pub points_without_descriptors: usize,
+}
+
+#[cfg(feature = "colmap")]
+/// A file's size and XXH3 for `provenance.sources`.
+pub(crate) fn source_file(path: &Path) -> Result<SourceFile, ConvertError> {
+    // Mapped, not read: the model was just parsed from the page cache, so hashing it again
+    // costs no copy and no allocation of its size.
+    // Checked to be a regular file first: opening a FIFO would block.
+    let file = crate::colmap::open_regular(path)?;
+    let bytes = format::map_file(&file).map_err(|source| ConvertError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    Ok(SourceFile {
+        path: path.display().to_string(),
+        bytes: bytes.len() as u64,
+        xxh3: format::file_hash(&bytes),
+    })
+}
+
+#[cfg(feature = "colmap")]
+/// Reads the model in `model_dir` and describes its files (size, hash) for provenance.
+pub(crate) fn read_model_with_sources(
+    model_dir: &Path,
+    reporter: &dyn Reporter,
+) -> Result<(Reconstruction, Vec<SourceFile>), ConvertError> {
+    let files = model_files(model_dir)?;
+    reporter.start("reading model", None);
+    let model = read_model(model_dir)?;
+    reporter.finish();
+    let sources = files
+        .paths
+        .iter()
+        .map(|p| source_file(p))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((model, sources))
+}
+
+#[cfg(feature = "colmap")]
+/// Reads the model in `model_dir` as the map's geometry, with its files' provenance.
+///
+/// A binary model goes the fast way ([`geometry::read_bin`]) while another thread
+/// hashes the files; anything that way declines (errors included) goes the general way.
+fn read_geometry_with_sources(
+    model_dir: &Path,
+    reporter: &dyn Reporter,
+) -> Result<(Geometry, Vec<SourceFile>), ConvertError> {
+    let files = model_files(model_dir)?;
+    if files.format == ModelFormat::Binary {
+        reporter.start("reading model", None);
+        let (geometry, sources) = std::thread::scope(|s| {
+            let sources = s.spawn(|| {
+                files
+                    .paths
+                    .iter()
+                    .map(|p| source_file(p))
+                    .collect::<Result<Vec<_>, _>>()
+            });
+            let geometry = geometry::read_bin(model_dir);
+            let sources = sources
+                .join()
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+            (geometry, sources)
+        });
+        reporter.finish();
+        if let Some(geometry) = geometry {
+            return Ok((geometry, sources?));
+        }
+    }
+    let (model, sources) = read_model_with_sources(model_dir, reporter)?;
+    Ok((Geometry::new(&model, None), sources))
+}

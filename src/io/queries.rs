@@ -1,0 +1,148 @@
+//! Query inputs of the localizer: hloc-style query lists with intrinsics, SIFT features of
+//! queries from a COLMAP database (`queries.db`), and the extractor's output as localizer
+//! input. hloc's `features.h5` is read beside its writer, in [`super::features_h5`].
+
+use super::InputError;
+use crate::geometry::Camera;
+#[cfg(any(feature = "colmap", feature = "onnx"))]
+use crate::localize::{FeatureSet, QueryFeatures};
+use std::path::Path;
+
+/// One query: its image name and camera.
+#[derive(Debug, Clone)]
+pub struct Query {
+    pub name: String,
+    pub camera: Camera,
+}
+
+/// Reads `name MODEL W H params...` lines (hloc's query list with intrinsics). With
+/// `camera`, lines may hold just a name and that camera is used for every query.
+pub fn read_query_list(path: &Path, camera: Option<&Camera>) -> Result<Vec<Query>, InputError> {
+    let text = crate::input::read_regular_to_string(path).map_err(|e| InputError {
+        path: path.into(),
+        line: None,
+        message: e.to_string(),
+    })?;
+    let mut queries = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let bad = |message: String| InputError {
+            path: path.into(),
+            line: Some(i + 1),
+            message,
+        };
+        let query = match camera {
+            // One camera for all: the first token is the name, the rest is ignored.
+            Some(c) => Query {
+                name: line
+                    .split_whitespace()
+                    .next()
+                    .unwrap_or_default()
+                    .to_string(),
+                camera: c.clone(),
+            },
+            None => {
+                let (name, camera) =
+                    Camera::parse_query_line(line).map_err(|e| bad(e.to_string()))?;
+                Query { name, camera }
+            }
+        };
+        queries.push(query);
+    }
+    if queries.is_empty() {
+        return Err(InputError {
+            path: path.into(),
+            line: None,
+            message: "no queries".into(),
+        });
+    }
+    Ok(queries)
+}
+
+/// SIFT features of query images from a COLMAP database, looked up by image name.
+#[cfg(feature = "colmap")]
+pub struct DatabaseFeatures {
+    db: crate::colmap::Database,
+    ids: std::collections::HashMap<String, u32>,
+}
+
+#[cfg(feature = "colmap")]
+impl DatabaseFeatures {
+    pub fn open(path: &Path) -> Result<DatabaseFeatures, crate::colmap::Error> {
+        let db = crate::colmap::Database::open(path)?;
+        let ids = db.images()?.into_iter().map(|i| (i.name, i.id)).collect();
+        Ok(DatabaseFeatures { db, ids })
+    }
+
+    /// The query's keypoints and L2-normalised descriptors; `Ok(None)` if the database has no
+    /// such image or no features for it; an error naming the image and keypoint if a
+    /// keypoint's x, y or scale is not finite.
+    pub fn features(&self, name: &str) -> Result<Option<QueryFeatures>, crate::colmap::Error> {
+        let Some(&id) = self.ids.get(name) else {
+            return Ok(None);
+        };
+        let f = self.db.features(id)?;
+        let (Some(keypoints), Some(descriptors)) = (f.keypoints, f.descriptors) else {
+            return Ok(None);
+        };
+        if let Some((i, field, value)) = keypoints.first_non_finite() {
+            return Err(crate::colmap::Error::BadRow {
+                path: self.db.path().to_path_buf(),
+                table: "keypoints",
+                id: i64::from(id),
+                what: format!(
+                    "image {}, keypoint {i}: {field} is {value}",
+                    crate::io::colmap_export::quoted_name(name)
+                ),
+            });
+        }
+        let n = keypoints.len().min(descriptors.len());
+        let dim = descriptors.cols;
+        let mut set = FeatureSet {
+            level: None,
+            keypoints: Vec::with_capacity(n),
+            descriptors: Vec::with_capacity(n * dim),
+            dim,
+        };
+        for i in 0..n {
+            let (Some(xy), Some(row)) = (keypoints.xy(i), descriptors.row(i)) else {
+                continue;
+            };
+            set.keypoints.push([f64::from(xy[0]), f64::from(xy[1])]);
+            set.descriptors.extend(row.iter().map(|&b| f32::from(b)));
+        }
+        crate::vector::normalise_rows(&mut set.descriptors, dim);
+        Ok(Some(QueryFeatures {
+            sets: vec![set],
+            global: None,
+        }))
+    }
+}
+
+/// Extractor output as localizer input: one feature set per level with the full descriptors
+/// (SFP maps keep descriptors in the extractor's basis; the localizer truncates for `short`),
+/// and the global descriptor for retrieval.
+#[cfg(feature = "onnx")]
+pub fn sfp_query(f: &crate::extract::Features) -> QueryFeatures {
+    let sets = f
+        .levels
+        .iter()
+        .map(|l| FeatureSet {
+            level: Some(l.level),
+            keypoints: l
+                .keypoints
+                .iter()
+                .map(|k| [f64::from(k[0]), f64::from(k[1])])
+                .collect(),
+            descriptors: l.full.iter().map(|x| x.to_f32()).collect(),
+            dim: l.dim_full,
+        })
+        .collect();
+    QueryFeatures {
+        sets,
+        global: Some(f.global.clone()),
+    }
+}
