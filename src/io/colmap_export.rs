@@ -4,7 +4,11 @@
 //! Each image's points2D are the map's visibility entries for it, in order, so a point's
 //! track element `(image_id, point2D_idx)` is the entry's index within its image.
 
+use crate::colmap::{
+    text, Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, TrackElement,
+};
 use crate::format::{CameraInfo, Error, Images, Map};
+use crate::geometry::{CameraModel, Pose};
 use std::fmt::Write as _;
 use std::path::Path;
 
@@ -30,10 +34,56 @@ pub struct ColmapText {
 
 /// Renders the map as COLMAP text files. Needs images and visibility with keypoints.
 pub fn to_colmap_text(map: &Map<'_>) -> Result<ColmapText, Error> {
+    let (model, summary) = to_reconstruction(map, true)?;
+    Ok(ColmapText {
+        cameras: text::write_cameras(&model),
+        images: text::write_images(&model),
+        points3d: text::write_points3d(&model),
+        summary,
+    })
+}
+
+/// The map as a COLMAP [`Reconstruction`], written by [`crate::colmap::text`], the one COLMAP
+/// text writer. With `observations`, each image's points2D are its visibility entries and
+/// every observed point is a 3D point (unobserved ones are dropped, as COLMAP drops them);
+/// without, the images only (what `export --images-txt` writes).
+pub(crate) fn to_reconstruction(
+    map: &Map<'_>,
+    observations: bool,
+) -> Result<(Reconstruction, ExportSummary), Error> {
     let meta = map.metadata();
     let images = map
         .images()?
         .ok_or_else(|| Error::inconsistent("the map has no images; a COLMAP model needs them"))?;
+    let mut model = Reconstruction::builder();
+    for (i, c) in meta.cameras.iter().enumerate() {
+        let id = camera_id(&meta.cameras, i);
+        let Some(kind) = CameraModel::from_name(&c.model) else {
+            return Err(Error::invalid(format!(
+                "camera {id}: model name {} is not a COLMAP camera model, which a COLMAP cameras.txt cannot hold",
+                quoted_name(&c.model)
+            )));
+        };
+        model.add_camera(Camera {
+            id,
+            model: kind,
+            width: c.width,
+            height: c.height,
+            params: c.params.clone(),
+        });
+    }
+    let mut summary = ExportSummary {
+        cameras: meta.cameras.len(),
+        images: images.len(),
+        points: 0,
+        observations: 0,
+    };
+    if !observations {
+        for i in 0..images.len() {
+            model.add_image(image(&meta.cameras, &images, i, Vec::new())?);
+        }
+        return Ok((build(model)?, summary));
+    }
     let vis = map
         .visibility()?
         .ok_or_else(|| Error::inconsistent("the map has no visibility; COLMAP tracks need it"))?;
@@ -45,90 +95,72 @@ pub fn to_colmap_text(map: &Map<'_>) -> Result<ColmapText, Error> {
     let ids = map.point_ids()?;
     let point_id = |p: usize| ids.as_ref().map_or(p as u64 + 1, |ids| ids[p]);
 
-    let mut cameras = String::from("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
-    writeln!(cameras, "# Number of cameras: {}", meta.cameras.len()).ok();
-    for (i, c) in meta.cameras.iter().enumerate() {
-        if let Some(problem) = text_name_problem(&c.model) {
-            return Err(Error::invalid(format!(
-                "camera {}: model name {} {problem}, which a COLMAP cameras.txt cannot hold",
-                camera_id(&meta.cameras, i),
-                quoted_name(&c.model)
-            )));
-        }
-        write!(
-            cameras,
-            "{} {} {} {}",
-            camera_id(&meta.cameras, i),
-            c.model,
-            c.width,
-            c.height
-        )
-        .ok();
-        for p in &c.params {
-            write!(cameras, " {p}").ok();
-        }
-        cameras.push('\n');
-    }
-
     // Tracks: for each point, (image_id, index within the image), in image order.
     let n_points = positions.len();
-    let mut tracks: Vec<Vec<(u32, usize)>> = vec![Vec::new(); n_points];
-    let mut text_images = images_txt_header(images.len(), vis.points.len());
+    let mut tracks: Vec<Vec<TrackElement>> = vec![Vec::new(); n_points];
     for i in 0..images.len() {
-        write_image_line(&mut text_images, &meta.cameras, &images, i)?;
         let start = vis.offsets[i] as usize;
-        let mut line = String::new();
+        let mut points2d = Vec::with_capacity(vis.points_of(i).len());
         for (k, &p) in vis.points_of(i).iter().enumerate() {
             let xy = keypoints[start + k];
-            if !line.is_empty() {
-                line.push(' ');
-            }
-            write!(line, "{} {} {}", xy[0], xy[1], point_id(p as usize)).ok();
-            tracks[p as usize].push((image_id(&images, i), k));
+            points2d.push(Point2D {
+                xy: [f64::from(xy[0]), f64::from(xy[1])],
+                point3d_id: Some(point_id(p as usize)),
+            });
+            tracks[p as usize].push(TrackElement {
+                image_id: image_id(&images, i),
+                point2d_idx: k as u32,
+            });
         }
-        text_images.push_str(&line);
-        text_images.push('\n');
+        model.add_image(image(&meta.cameras, &images, i, points2d)?);
     }
-
-    let mut points3d = String::from("# 3D point list with one line of data per point:\n#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n");
-    writeln!(points3d, "# Number of points: {n_points}").ok();
-    let mut exported = 0;
     for (p, track) in tracks.iter().enumerate() {
         // COLMAP drops points without observations; so do we, to stay readable by it.
         if track.is_empty() {
             continue;
         }
-        exported += 1;
-        let w = map.to_world(positions[p]);
+        summary.points += 1;
         let rgb = colors.as_ref().map_or([128, 128, 128], |c| c[p]);
-        write!(
-            points3d,
-            "{} {} {} {} {} {} {} 0",
-            point_id(p),
-            w[0],
-            w[1],
-            w[2],
-            rgb[0],
-            rgb[1],
-            rgb[2]
-        )
-        .ok();
-        for (image, idx) in track {
-            write!(points3d, " {image} {idx}").ok();
-        }
-        points3d.push('\n');
+        model
+            .add_point3d(point_id(p), map.to_world(positions[p]), rgb, 0.0, track)
+            .map_err(|e| Error::inconsistent(format!("as a COLMAP model: {e}")))?;
     }
-    Ok(ColmapText {
-        cameras,
-        images: text_images,
-        points3d,
-        summary: ExportSummary {
-            cameras: meta.cameras.len(),
-            images: images.len(),
-            points: exported,
-            observations: vis.points.len(),
-        },
+    summary.observations = vis.points.len();
+    Ok((build(model)?, summary))
+}
+
+/// Image `i` with its points2D; a name COLMAP's text files cannot hold is an error.
+fn image(
+    cameras: &[CameraInfo],
+    images: &Images<'_>,
+    i: usize,
+    points2d: Vec<Point2D>,
+) -> Result<Image, Error> {
+    let name = images.name(i)?;
+    let id = image_id(images, i);
+    if let Some(problem) = text_name_problem(name) {
+        return Err(Error::invalid(format!(
+            "image {id}: name {} {problem}, which a COLMAP images.txt cannot hold",
+            quoted_name(name)
+        )));
+    }
+    let cam_from_world = Pose::from_colmap_array(images.poses[i])
+        .map_err(|e| Error::inconsistent(format!("image {id}: pose: {e}")))?;
+    Ok(Image {
+        id,
+        name: name.to_string(),
+        camera_id: camera_id(cameras, images.cameras[i] as usize),
+        cam_from_world,
+        points2d,
     })
+}
+
+/// The builder's checks (ids unique, tracks and points2D agree, values finite) on what the
+/// map holds.
+fn build(model: ReconstructionBuilder) -> Result<Reconstruction, Error> {
+    model
+        .build()
+        .map_err(|e| Error::inconsistent(format!("as a COLMAP model: {e}")))
 }
 
 /// Writes the model into `dir` (created if needed), each file through
@@ -160,51 +192,6 @@ fn camera_id(cameras: &[CameraInfo], index: usize) -> u32 {
 /// The COLMAP `image_id` of image `i`: its source id, else `i + 1`.
 fn image_id(images: &Images<'_>, i: usize) -> u32 {
     images.ids.as_ref().map_or(i as u32 + 1, |ids| ids[i])
-}
-
-/// The comment header `images.txt` starts with, counts included.
-pub(crate) fn images_txt_header(images: usize, observations: usize) -> String {
-    format!(
-        "# Image list with two lines of data per image:\n\
-         #   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n\
-         #   POINTS2D[] as (X, Y, POINT3D_ID)\n\
-         # Number of images: {images}, observations: {observations}\n"
-    )
-}
-
-/// Appends image `i`'s first `images.txt` line (`IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID
-/// NAME` and the newline); its POINTS2D line is the caller's to write.
-pub(crate) fn write_image_line(
-    out: &mut String,
-    cameras: &[CameraInfo],
-    images: &Images<'_>,
-    i: usize,
-) -> Result<(), Error> {
-    let q = images.poses[i];
-    let name = images.name(i)?;
-    if let Some(problem) = text_name_problem(name) {
-        return Err(Error::invalid(format!(
-            "image {}: name {} {problem}, which a COLMAP images.txt cannot hold",
-            image_id(images, i),
-            quoted_name(name)
-        )));
-    }
-    writeln!(
-        out,
-        "{} {} {} {} {} {} {} {} {} {}",
-        image_id(images, i),
-        q[0],
-        q[1],
-        q[2],
-        q[3],
-        q[4],
-        q[5],
-        q[6],
-        camera_id(cameras, images.cameras[i] as usize),
-        name
-    )
-    .ok();
-    Ok(())
 }
 
 /// Why `name` cannot be a NAME in `images.txt` (or a MODEL in `cameras.txt`), if it cannot.

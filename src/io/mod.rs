@@ -1,6 +1,7 @@
 //! Getting maps out to other tools: a COLMAP text model, a PLY point cloud, TUM / images.txt
 //! poses, and a top-down PNG plot (feature `plot`).
 
+#[cfg(feature = "colmap-model")]
 pub mod colmap_export;
 #[cfg(feature = "onnx")]
 pub mod features_h5;
@@ -9,7 +10,7 @@ pub mod mcap_io;
 #[cfg(feature = "plot")]
 pub mod plot;
 pub mod ply;
-#[cfg(feature = "geometry")]
+#[cfg(feature = "colmap-model")]
 pub mod poses;
 #[cfg(feature = "localize")]
 pub mod queries;

@@ -2,7 +2,7 @@
 //! `world_from_cam`, what evo and the TUM scripts read) and COLMAP `images.txt` without
 //! observations.
 
-use super::colmap_export::{escape_control_characters, images_txt_header, write_image_line};
+use super::colmap_export::escape_control_characters;
 use super::InputError;
 use crate::format::{Error, Map};
 use crate::geometry::Pose;
@@ -65,16 +65,8 @@ pub fn images_tum(map: &Map<'_>) -> Result<String, Error> {
 /// model file once next to a `cameras.txt`; `export --colmap` writes one with observations).
 /// A name that line cannot hold (a control character, a space) is an error naming the image.
 pub fn images_txt(map: &Map<'_>) -> Result<String, Error> {
-    let images = map
-        .images()?
-        .ok_or_else(|| Error::inconsistent("the map has no images"))?;
-    let cameras = &map.metadata().cameras;
-    let mut text = images_txt_header(images.len(), 0);
-    for i in 0..images.len() {
-        write_image_line(&mut text, cameras, &images, i)?;
-        text.push('\n');
-    }
-    Ok(text)
+    let (model, _) = super::colmap_export::to_reconstruction(map, false)?;
+    Ok(crate::colmap::text::write_images(&model))
 }
 
 /// One line of a poses file, `name qw qx qy qz tx ty tz` (COLMAP `cam_from_world`, as in
