@@ -30,8 +30,8 @@ mod localize {
     use nalgebra::{UnitQuaternion, Vector3};
     use sfpmap::format::{slice, CameraInfo, Descriptors, LevelInfo, Map, MapWriter, SliceOptions};
     use sfpmap::geometry::{Camera, Pose, SplitMix64};
-    use sfpmap::localize::matching::{gemm_abt, match_descriptors, normalise_rows, MatchOptions};
-    use sfpmap::localize::{FeatureSet, LocalizeOptions, Localizer, QueryFeatures};
+    use sfpmap::localize::internals::{match_descriptors, normalise_rows, sgemm_abt};
+    use sfpmap::localize::{FeatureSet, LocalizeOptions, Localizer, MatchOptions, QueryFeatures};
 
     const DIM_FULL: usize = 192;
     const DIM_SHORT: usize = 64;
@@ -109,7 +109,7 @@ mod localize {
                 b.iter(|| {
                     for block in m.chunks(2048 * dim) {
                         let rows = block.len() / dim;
-                        gemm_abt(&q, block, &mut scores[..N_QUERY * rows], N_QUERY, rows, dim);
+                        sgemm_abt(&q, block, &mut scores[..N_QUERY * rows], N_QUERY, rows, dim);
                     }
                     black_box(scores[0])
                 })

@@ -250,7 +250,7 @@ fn medoid_picks_an_observation_and_short_dims_and_zstd_apply() {
     convert(&f.model, &opts, &f.out, &Silent).unwrap();
     let map = Map::open(&f.out).unwrap();
     map.verify().unwrap();
-    assert!(map.sections().iter().any(|s| s.codec == Codec::Zstd));
+    assert!(map.sections().iter().any(|s| s.codec() == Codec::Zstd));
     for level in 0..3u16 {
         assert_eq!(map.level(level).unwrap().dim_short(), 16);
         for (r, got) in unprojected(&map, level).iter().enumerate() {

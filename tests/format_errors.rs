@@ -237,7 +237,7 @@ fn overlap() {
 fn bad_padding() {
     let b = minimal();
     let map = Map::from_bytes(&b).unwrap();
-    let at = map.sections()[0].offset as usize - 1;
+    let at = map.sections()[0].offset() as usize - 1;
     let mut b = b.clone();
     b[at] = 1;
     assert!(matches!(open_err(&b), Error::BadPadding { .. }));
@@ -325,13 +325,13 @@ fn decode() {
     let s = *map
         .sections()
         .iter()
-        .find(|s| s.codec == Codec::Zstd && s.stored_len > 16)
+        .find(|s| s.codec() == Codec::Zstd && s.stored_len() > 16)
         .unwrap();
     let mut bad = b.clone();
-    let start = s.offset as usize;
+    let start = s.offset() as usize;
     bad[start..start + 4].copy_from_slice(&[0xde, 0xad, 0xbe, 0xef]);
-    let sum = checksum(&bad[start..start + s.stored_len as usize]);
-    let bad = patch(&bad, |_, e| e[s.index].checksum = sum);
+    let sum = checksum(&bad[start..start + s.stored_len() as usize]);
+    let bad = patch(&bad, |_, e| e[s.index()].checksum = sum);
     assert!(matches!(verify_err(&bad), Error::Decode { .. }));
     // A frame that decodes to fewer bytes than declared.
     let mut short = with_extra_section(

@@ -222,34 +222,50 @@ fn stored_sections_past_the_decode_cap_are_written_decoded() {
     let filler = common::Crafted::raw(other, u16::MAX, Dtype::U8, 20_000, 1, vec![0; 20_000]);
     let source = common::craft(
         &common::craft_metadata(vec![]),
-        &[common::craft_points(2), zstd.optional(), filler.optional()],
+        &[
+            common::craft_points(2),
+            zstd.clone().optional(),
+            filler.clone().optional(),
+        ],
     );
     let source = Map::from_bytes(&source).unwrap();
-    let stored = source.sections().iter().find(|s| s.kind == kind).unwrap();
+    let stored = source.sections().iter().find(|s| s.kind() == kind).unwrap();
     let mut w = MapWriter::default();
     w.set_points_world(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
     w.copy_section(&source, stored).unwrap();
-    // A section that is not the map's own (its index names another) is refused, not sliced.
-    let mut forged = *stored;
-    forged.index = 0;
-    assert!(w.copy_section(&source, &forged).is_err());
-    assert!(source.section_bytes(&forged).is_err());
-    // Nor one whose index is past the table, or whose offset was moved.
-    forged = *stored;
-    forged.index = 99;
-    assert!(source.section_bytes(&forged).is_err());
-    assert!(source.check_section(&forged).is_err());
-    forged = *stored;
-    forged.offset += 64;
-    assert!(w.copy_section(&source, &forged).is_err());
+    // A section of another map (its index names another section here, or none, and its
+    // offset is elsewhere) is refused, not sliced. Fields are private: no other forgery.
+    let extra = common::Crafted::raw(other, 7, Dtype::U8, 64, 1, vec![0; 64]);
+    let foreign = common::craft(
+        &common::craft_metadata(vec![]),
+        &[
+            common::craft_points(2),
+            filler.optional(),
+            extra.optional(),
+            zstd.optional(),
+        ],
+    );
+    let foreign = Map::from_bytes(&foreign).unwrap();
+    let theirs = foreign
+        .sections()
+        .iter()
+        .find(|s| s.kind() == kind)
+        .unwrap();
+    assert_ne!(theirs.index(), stored.index());
+    assert!(w.copy_section(&source, theirs).is_err());
+    assert!(source.section_bytes(theirs).is_err());
+    let past = foreign.sections().last().unwrap();
+    assert!(past.index() >= source.sections().len());
+    assert!(source.section_bytes(past).is_err());
+    assert!(source.check_section(past).is_err());
     let bytes = w.to_bytes().unwrap();
     let map = Map::from_bytes(&bytes).unwrap();
     map.verify().unwrap();
     let section = map
         .sections()
         .iter()
-        .find(|s| s.kind == SectionKind::Unknown(0x7000))
+        .find(|s| s.kind() == SectionKind::Unknown(0x7000))
         .unwrap();
-    assert_eq!(section.codec, Codec::Raw);
+    assert_eq!(section.codec(), Codec::Raw);
     assert_eq!(map.section_bytes(section).unwrap(), &raw[..]);
 }

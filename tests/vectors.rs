@@ -236,7 +236,7 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
     ));
 
     let mut b = good.clone();
-    let first = Map::from_bytes(&good).unwrap().sections()[0].offset as usize;
+    let first = Map::from_bytes(&good).unwrap().sections()[0].offset() as usize;
     b[first - 1] = 0xFF;
     out.push(("bad_padding", patch(&b, |_, _| {}), "bad_padding", "open"));
 
@@ -244,7 +244,9 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
     let mut b = good.clone();
     let at = {
         let map = Map::from_bytes(&good).unwrap();
-        map.find(SectionKind::PointPositions, None).unwrap().offset as usize
+        map.find(SectionKind::PointPositions, None)
+            .unwrap()
+            .offset() as usize
     };
     b[at + 12..at + 16].copy_from_slice(&f32::NAN.to_le_bytes());
     out.push((
@@ -362,7 +364,7 @@ fn valid_vectors_decode_to_their_json() {
         );
         let unknown: Vec<Value> = map
             .unknown_sections()
-            .map(|s| json!({ "kind_code": s.kind.code(), "dtype": s.dtype.name(), "rows": s.rows, "cols": s.cols }))
+            .map(|s| json!({ "kind_code": s.kind().code(), "dtype": s.dtype().name(), "rows": s.rows(), "cols": s.cols() }))
             .collect();
         assert_eq!(
             json!(unknown),

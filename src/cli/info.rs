@@ -66,16 +66,16 @@ struct SectionJson {
 impl From<&Section> for SectionJson {
     fn from(s: &Section) -> Self {
         SectionJson {
-            kind: s.kind.name(),
-            kind_code: s.kind.code(),
-            level: s.level,
-            dtype: s.dtype.name(),
-            rows: s.rows,
-            cols: s.cols,
-            codec: s.codec.name(),
-            stored_bytes: s.stored_len,
-            raw_bytes: s.raw_len,
-            required: s.required,
+            kind: s.kind().name(),
+            kind_code: s.kind().code(),
+            level: s.level(),
+            dtype: s.dtype().name(),
+            rows: s.rows(),
+            cols: s.cols(),
+            codec: s.codec().name(),
+            stored_bytes: s.stored_len(),
+            raw_bytes: s.raw_len(),
+            required: s.required(),
         }
     }
 }
@@ -91,7 +91,7 @@ impl<'m> From<Level<'m>> for LevelJson<'m> {
             has_descriptors: l.has_descriptors(),
             descriptor: &l.info().descriptor,
             stride: l.info().stride,
-            stored_bytes: l.sections().map(|s| s.stored_len).sum(),
+            stored_bytes: l.sections().map(|s| s.stored_len()).sum(),
             sections: l.sections().map(SectionJson::from).collect(),
         }
     }
@@ -168,18 +168,18 @@ fn print_info_text(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
     }
     writeln!(out, "sections:")?;
     for s in map.sections() {
-        let level = s.level.map_or(String::new(), |l| format!(" L{l}"));
+        let level = s.level().map_or(String::new(), |l| format!(" L{l}"));
         writeln!(
             out,
             "  {:<22}{:<4} {:>4} {:>9}x{:<5} {:<5} {:>12} B stored ({} B raw)",
-            s.kind.name(),
+            s.kind().name(),
             level,
-            s.dtype.name(),
-            s.rows,
-            s.cols,
-            s.codec.name(),
-            s.stored_len,
-            s.raw_len
+            s.dtype().name(),
+            s.rows(),
+            s.cols(),
+            s.codec().name(),
+            s.stored_len(),
+            s.raw_len()
         )?;
     }
     out.flush()?;

@@ -8,9 +8,9 @@ use sfpmap::io::colmap_export::{escape_control_characters, quoted_name, text_nam
 use sfpmap::io::poses::{colmap_pose_line, tum_line};
 use sfpmap::io::queries::{read_query_list, DatabaseFeatures, Query};
 use sfpmap::localize::eval::median;
-use sfpmap::localize::matching::MatchOptions;
 use sfpmap::localize::{
-    describe_skipped, Localization, LocalizeOptions, Localizer, QueryFailure, QueryFeatures,
+    describe_skipped, Localization, LocalizeOptions, Localizer, MatchOptions, QueryFailure,
+    QueryFeatures,
 };
 use sfpmap::progress::Reporter;
 use std::path::{Path, PathBuf};

@@ -16,26 +16,88 @@ use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::OnceLock;
 
-/// A validated section-table entry.
+/// A validated section-table entry; fields through its accessors.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Section {
     /// Position in the section table.
-    pub index: usize,
-    pub kind: SectionKind,
+    pub(crate) index: usize,
+    pub(crate) kind: SectionKind,
     /// The level for per-level kinds, `None` otherwise.
-    pub level: Option<u16>,
-    pub dtype: Dtype,
-    pub codec: Codec,
-    pub required: bool,
-    pub rows: u64,
-    pub cols: u64,
-    pub offset: u64,
-    pub stored_len: u64,
-    pub raw_len: u64,
-    pub checksum: u64,
+    pub(crate) level: Option<u16>,
+    pub(crate) dtype: Dtype,
+    pub(crate) codec: Codec,
+    pub(crate) required: bool,
+    pub(crate) rows: u64,
+    pub(crate) cols: u64,
+    pub(crate) offset: u64,
+    pub(crate) stored_len: u64,
+    pub(crate) raw_len: u64,
+    pub(crate) checksum: u64,
 }
 
+/// Read-only: a `Section` comes only from a map's validated table, so the byte ranges and
+/// lengths the reader trusts cannot be forged.
 impl Section {
+    /// Position in the section table.
+    pub fn index(&self) -> usize {
+        self.index
+    }
+
+    /// What the section holds.
+    pub fn kind(&self) -> SectionKind {
+        self.kind
+    }
+
+    /// The level for per-level kinds, `None` otherwise.
+    pub fn level(&self) -> Option<u16> {
+        self.level
+    }
+
+    /// Element type.
+    pub fn dtype(&self) -> Dtype {
+        self.dtype
+    }
+
+    /// How the bytes are stored (raw or zstd).
+    pub fn codec(&self) -> Codec {
+        self.codec
+    }
+
+    /// Whether a reader must understand the section to use the map.
+    pub fn required(&self) -> bool {
+        self.required
+    }
+
+    /// Rows (elements for 1-D sections).
+    pub fn rows(&self) -> u64 {
+        self.rows
+    }
+
+    /// Columns (1 for 1-D sections).
+    pub fn cols(&self) -> u64 {
+        self.cols
+    }
+
+    /// Byte offset of the stored bytes in the file.
+    pub fn offset(&self) -> u64 {
+        self.offset
+    }
+
+    /// Stored bytes (compressed for zstd).
+    pub fn stored_len(&self) -> u64 {
+        self.stored_len
+    }
+
+    /// Bytes once decoded.
+    pub fn raw_len(&self) -> u64 {
+        self.raw_len
+    }
+
+    /// XXH3-64 of the stored bytes.
+    pub fn checksum(&self) -> u64 {
+        self.checksum
+    }
+
     pub fn reference(&self) -> SectionRef {
         SectionRef {
             index: self.index,

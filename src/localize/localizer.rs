@@ -5,9 +5,11 @@
 //! A [`Localizer`] is built once per map (it indexes the levels and visibility) and shared by
 //! threads; it reads descriptors straight from the mmapped map.
 
-use super::matching::{dot, gemm_abt, match_descriptors, normalise_rows, MatchOptions};
+use super::kernels::sgemm_abt;
+use super::matching::{match_descriptors, MatchOptions};
 use crate::format::{f16, Error as FormatError, Level, Map, Visibility};
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
+use crate::vector::{dot, normalise_rows};
 use bitvec::vec::BitVec;
 use nalgebra::{Vector2, Vector3};
 use std::borrow::Cow;
@@ -516,35 +518,18 @@ impl<'m> Localizer<'m> {
     /// point, or without global descriptors or visibility), and how many images were
     /// retrieved.
     fn candidate_points(&self, query: &QueryFeatures) -> (Option<BitVec>, usize) {
-        let n_images = self.map.n_images() as usize;
-        let images: Vec<usize> = match (&self.global, &query.global) {
-            (Some((g, dim)), Some(q)) if q.len() == *dim && n_images > 0 => {
-                let mut q = q.clone();
-                normalise_rows(&mut q, *dim);
-                let mut scores = vec![0.0; n_images];
-                gemm_abt(&q, g, &mut scores, 1, n_images, *dim);
-                let mut order: Vec<usize> = (0..n_images).collect();
-                order.sort_by(|&a, &b| scores[b].total_cmp(&scores[a]).then(a.cmp(&b)));
-                order.truncate(self.options.top_k.max(1));
-                order
-            }
-            _ => (0..n_images).collect(),
-        };
-        match &self.visibility {
-            Some(visibility) if !images.is_empty() => {
-                let n_points = self.positions.len();
-                let mut seen = BitVec::repeat(false, n_points);
-                for &i in &images {
-                    for &p in visibility.points_of(i) {
-                        if (p as usize) < n_points {
-                            seen.set(p as usize, true);
-                        }
-                    }
-                }
-                ((!seen.all()).then_some(seen), images.len())
-            }
-            _ => (None, images.len()),
-        }
+        let images = super::retrieval::retrieve(
+            self.global.as_ref().map(|(g, dim)| (g.as_slice(), *dim)),
+            query.global.as_deref(),
+            self.map.n_images() as usize,
+            self.options.top_k,
+        );
+        let candidates = self.visibility.as_ref().and_then(|visibility| {
+            super::retrieval::points_seen(&images, self.positions.len(), |i| {
+                visibility.points_of(i)
+            })
+        });
+        (candidates, images.len())
     }
 
     /// The query's feature set for `level`, checked against the level's descriptor space.
@@ -585,7 +570,7 @@ impl<'m> Localizer<'m> {
         let n = set.keypoints.len();
         let mut out = vec![0.0f32; n * level.dim];
         match &level.projection {
-            Some(p) => gemm_abt(&set.descriptors, p, &mut out, n, level.dim, set.dim),
+            Some(p) => sgemm_abt(&set.descriptors, p, &mut out, n, level.dim, set.dim),
             None => {
                 for (row, src) in out
                     .chunks_exact_mut(level.dim)

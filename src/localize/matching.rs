@@ -3,6 +3,7 @@
 //! query, for the ratio test and the mutual-nearest-neighbour check. No O(N·M) scalar loop:
 //! the inner products all go through the GEMM kernel.
 
+use super::kernels::sgemm_abt;
 /// Options of [`match_descriptors`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MatchOptions {
@@ -62,7 +63,7 @@ pub fn match_descriptors(
         let rows = BLOCK.min(n_m - start);
         let block = &map[start * dim..(start + rows) * dim];
         let out = &mut scores[..n_q * rows];
-        gemm_abt(query, block, out, n_q, rows, dim);
+        sgemm_abt(query, block, out, n_q, rows, dim);
         let columns = &mut column_max[start..start + rows];
         for (q, row) in out.chunks_exact(rows).enumerate() {
             // Branch-free passes the compiler vectorizes: row maximum, column maxima.
@@ -132,22 +133,10 @@ fn lane_max(v: &[f32]) -> f32 {
     max
 }
 
-pub(crate) use crate::vector::dot;
-
-/// `out[n × m] = a[n × k] · b[m × k]ᵀ`, row-major.
-pub fn gemm_abt(a: &[f32], b: &[f32], out: &mut [f32], n: usize, m: usize, k: usize) {
-    super::kernels::sgemm_abt(a, b, out, n, m, k);
-}
-
-/// L2-normalises each `dim`-row in place (zero rows stay zero); the crate's one kernel,
-/// public for the benches.
-pub fn normalise_rows(v: &mut [f32], dim: usize) {
-    crate::vector::normalise_rows(v, dim);
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::vector::normalise_rows;
 
     fn unit(v: &[f32]) -> Vec<f32> {
         let mut v = v.to_vec();
@@ -162,7 +151,7 @@ mod tests {
         let a: Vec<f32> = (0..n * k).map(|i| (i as f32 * 0.37).sin()).collect();
         let b: Vec<f32> = (0..m * k).map(|i| (i as f32 * 0.11).cos()).collect();
         let mut out = vec![0.0; n * m];
-        gemm_abt(&a, &b, &mut out, n, m, k);
+        sgemm_abt(&a, &b, &mut out, n, m, k);
         for i in 0..n {
             for j in 0..m {
                 let want: f32 = (0..k).map(|t| a[i * k + t] * b[j * k + t]).sum();

@@ -4,9 +4,21 @@
 pub mod eval;
 mod kernels;
 pub mod localizer;
-pub mod matching;
+mod matching;
+mod retrieval;
 
 pub use localizer::{
     describe_skipped, FeatureSet, Localization, LocalizeError, LocalizeOptions, Localizer,
     QueryFailure, QueryFeatures, SkippedLevel, StageTimes,
 };
+pub use matching::MatchOptions;
+
+/// The matching kernels, for the benches that measure them (feature `fuzzing`, which the
+/// crate's tests and benches enable); not part of the API.
+#[cfg(feature = "fuzzing")]
+#[doc(hidden)]
+pub mod internals {
+    pub use super::kernels::sgemm_abt;
+    pub use super::matching::match_descriptors;
+    pub use crate::vector::normalise_rows;
+}

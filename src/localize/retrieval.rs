@@ -1,0 +1,120 @@
+//! Retrieval: which database images a query is compared with, and which map points they
+//! see. The fallback when retrieval cannot help (no global descriptors in the map or the
+//! query, or descriptors of another length) is every image, so every point is a candidate.
+
+use crate::vector::normalise_rows;
+use bitvec::vec::BitVec;
+
+/// The `top_k` database images whose global descriptors (`[n_images × dim]`, L2-normalised,
+/// row-major) score highest against the query's, best first (ties: lower index first); all
+/// images in order when the map or the query has no global descriptor of that length.
+pub(crate) fn retrieve(
+    database: Option<(&[f32], usize)>,
+    query: Option<&[f32]>,
+    n_images: usize,
+    top_k: usize,
+) -> Vec<usize> {
+    match (database, query) {
+        (Some((g, dim)), Some(q)) if q.len() == dim && n_images > 0 => {
+            let mut q = q.to_vec();
+            normalise_rows(&mut q, dim);
+            let mut scores = vec![0.0; n_images];
+            super::kernels::sgemm_abt(&q, g, &mut scores, 1, n_images, dim);
+            top_k_indices(&scores, top_k.max(1))
+        }
+        _ => (0..n_images).collect(),
+    }
+}
+
+/// Indices of the `k` highest scores, best first, ties by index: a partial selection
+/// (O(n) to find them, O(k log k) to order them), never a sort of all `n`.
+pub(crate) fn top_k_indices(scores: &[f32], k: usize) -> Vec<usize> {
+    let better = |&a: &usize, &b: &usize| scores[b].total_cmp(&scores[a]).then(a.cmp(&b));
+    let mut order: Vec<usize> = (0..scores.len()).collect();
+    if k < order.len() {
+        order.select_nth_unstable_by(k, better);
+        order.truncate(k);
+    }
+    order.sort_unstable_by(better);
+    order
+}
+
+/// One bit per map point: whether one of `images` sees it (`points_of(i)` lists image `i`'s
+/// points; indices past `n_points` are ignored). `None` when every point is seen (no
+/// narrowing), or when there are no images.
+pub(crate) fn points_seen<'a>(
+    images: &[usize],
+    n_points: usize,
+    points_of: impl Fn(usize) -> &'a [u32],
+) -> Option<BitVec> {
+    if images.is_empty() {
+        return None;
+    }
+    let mut seen = BitVec::repeat(false, n_points);
+    for &i in images {
+        for &p in points_of(i) {
+            if (p as usize) < n_points {
+                seen.set(p as usize, true);
+            }
+        }
+    }
+    (!seen.all()).then_some(seen)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn top_k_is_the_full_sort_cut_at_k() {
+        // Ties, a NaN-free spread, k below, at and above n.
+        let scores: [f32; 9] = [0.5, 0.9, 0.1, 0.9, -0.3, 0.5, 0.7, 0.0, 0.9];
+        let mut full: Vec<usize> = (0..scores.len()).collect();
+        full.sort_by(|&a, &b| scores[b].total_cmp(&scores[a]).then(a.cmp(&b)));
+        assert_eq!(full[..4], [1, 3, 8, 6]);
+        for k in 0..=scores.len() + 2 {
+            assert_eq!(
+                top_k_indices(&scores, k),
+                full[..k.min(scores.len())],
+                "k = {k}"
+            );
+        }
+        assert!(top_k_indices(&[], 3).is_empty());
+    }
+
+    #[test]
+    fn retrieval_ranks_images_by_their_global_descriptor() {
+        // Four images in 2-D: the query (unnormalised) points along image 2's descriptor.
+        let s = std::f32::consts::FRAC_1_SQRT_2;
+        let g = [1.0, 0.0, 0.0, 1.0, s, s, -1.0, 0.0];
+        assert_eq!(retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 2), [2, 0]);
+        assert_eq!(retrieve(Some((&g, 2)), Some(&[0.0, -5.0]), 4, 1), [0]);
+        // top_k 0 is taken as 1; top_k past the images is every image, ranked.
+        assert_eq!(retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 0), [2]);
+        assert_eq!(
+            retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 9),
+            [2, 0, 1, 3]
+        );
+    }
+
+    #[test]
+    fn without_usable_global_descriptors_every_image_is_retrieved() {
+        let g = [1.0, 0.0, 0.0, 1.0];
+        let all = [0, 1];
+        assert_eq!(retrieve(None, Some(&[1.0, 0.0]), 2, 1), all);
+        assert_eq!(retrieve(Some((&g, 2)), None, 2, 1), all);
+        // A query descriptor of another length (another model) cannot be compared.
+        assert_eq!(retrieve(Some((&g, 2)), Some(&[1.0, 0.0, 0.0]), 2, 1), all);
+        assert!(retrieve(Some((&[], 2)), Some(&[1.0, 0.0]), 0, 1).is_empty());
+    }
+
+    #[test]
+    fn candidates_are_the_points_the_retrieved_images_see() {
+        let visibility: [&[u32]; 3] = [&[0, 2], &[2, 3, 99], &[1, 4]];
+        let seen = points_seen(&[0, 1], 5, |i| visibility[i]).unwrap();
+        assert_eq!(seen.iter_ones().collect::<Vec<_>>(), [0, 2, 3]);
+        // Every point seen: no narrowing; no image: no narrowing either.
+        assert!(points_seen(&[0, 1, 2], 5, |i| visibility[i]).is_none());
+        assert!(points_seen(&[], 5, |i| visibility[i]).is_none());
+    }
+}
