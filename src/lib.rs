@@ -1,8 +1,12 @@
 //! sfpmap: small, fast, level-sliceable visual-localization maps.
 //!
 //! The crate with `default-features = false` is only the map format ([`format`]): an mmap
-//! zero-copy reader and a deterministic writer. Features add the rest of the pipeline:
-//! `colmap` (COLMAP models and databases), `localize` (geometry and the localizer), `cli`.
+//! zero-copy reader and a deterministic writer. Features add the rest of the pipeline, one
+//! module per stage: [`colmap`] reads and writes COLMAP models and databases, [`extract`]
+//! runs the SFP network, [`build`] turns a model into a map, [`geometry`] holds cameras and
+//! the one pose type, [`localize`] localizes queries against a map, [`io`] reads and writes
+//! the external formats (poses, features.h5, query inputs, exports, MCAP, plots), [`demo`]
+//! is the built-in scene, `ffi` the C ABI. README's "Architecture" says what may use what.
 #![deny(unsafe_code)]
 
 pub mod format;

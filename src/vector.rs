@@ -12,7 +12,7 @@ pub(crate) fn l2_normalise(v: &mut [f32]) {
     }
 }
 
-/// [`l2_normalise`] on each `dim`-row of `v`.
+/// L2 normalisation of each `dim`-row of `v`.
 #[cfg(feature = "localize")]
 pub fn normalise_rows(v: &mut [f32], dim: usize) {
     if dim == 0 {

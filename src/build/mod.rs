@@ -1,6 +1,6 @@
 //! Map building: everything that turns a COLMAP model into a map.
 //!
-//! - [`geometry`] (`colmap-model`): the arrays a map stores of a model (cameras, points,
+//! - `geometry` (`colmap-model`): the arrays a map stores of a model (cameras, points,
 //!   images with poses, visibility), from a [`Reconstruction`] or straight from a binary
 //!   model's bytes.
 //! - [`sift`] (`colmap`): SIFT maps from the model's `database.db` (descriptor aggregation
