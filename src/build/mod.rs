@@ -71,6 +71,25 @@ pub struct ConvertSummary {
     pub points_without_descriptors: usize,
 }
 
+/// The writer of a converted map: provenance (the tool, the input files, the `parameters`
+/// object), the codec, and the model's geometry already added.
+#[cfg(feature = "colmap")]
+fn map_writer<'a>(
+    mut metadata: format::Metadata,
+    sources: Vec<SourceFile>,
+    parameters: serde_json::Value,
+    codec: (format::Codec, i32),
+    geometry: &'a Geometry,
+) -> Result<format::MapWriter<'a>, ConvertError> {
+    metadata.provenance.tool = format::Metadata::tool_string();
+    metadata.provenance.sources = sources;
+    metadata.provenance.parameters = parameters.as_object().cloned().unwrap_or_default();
+    let mut writer = format::MapWriter::new(metadata);
+    writer.set_codec(codec.0, codec.1);
+    geometry.write_into(&mut writer)?;
+    Ok(writer)
+}
+
 #[cfg(feature = "colmap")]
 /// A file's size and XXH3 for `provenance.sources`.
 pub(crate) fn source_file(path: &Path) -> Result<SourceFile, ConvertError> {

@@ -18,7 +18,7 @@
 use super::geometry::{map_index, Geometry};
 use super::{read_model_with_sources, ConvertError, ConvertSummary, LevelSummary};
 use crate::extract::{contract, image, ExtractError, Extractor, ExtractorOptions, ModelInfo};
-use crate::format::{self, Codec, Descriptors, LevelInfo, MapWriter, Metadata, SourceFile};
+use crate::format::{self, Codec, Descriptors, LevelInfo, Metadata, SourceFile};
 use crate::progress::Reporter;
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -244,14 +244,12 @@ pub fn convert_with_images(
 
     let model_info = extractor.model().clone();
     let mut metadata = Metadata::default();
-    metadata.provenance.tool = Metadata::tool_string();
-    metadata.provenance.sources = sources;
     metadata.provenance.model = Some(SourceFile {
         path: model_info.name.clone(),
         bytes: model_info.bytes,
         xxh3: model_info.xxh3.clone(),
     });
-    metadata.provenance.parameters = json!({
+    let parameters = json!({
         "operation": "convert",
         "colmap": model_dir.display().to_string(),
         "images": options.images.display().to_string(),
@@ -266,13 +264,9 @@ pub fn convert_with_images(
         "allow_missing": options.allow_missing,
         "missing_images": missing,
         "codec": options.codec.name(),
-    })
-    .as_object()
-    .cloned()
-    .unwrap_or_default();
-    let mut writer = MapWriter::new(metadata);
-    writer.set_codec(options.codec, options.zstd_level);
-    geometry.write_into(&mut writer)?;
+    });
+    let codec = (options.codec, options.zstd_level);
+    let mut writer = super::map_writer(metadata, sources, parameters, codec, &geometry)?;
     writer.set_image_global(contract.global_dim, &global)?;
 
     reporter.start("levels", Some(levels as u64));

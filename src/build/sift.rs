@@ -11,7 +11,7 @@ use super::basis::Basis;
 use super::geometry::Geometry;
 use super::{read_geometry_with_sources, source_file, ConvertError, ConvertSummary, LevelSummary};
 use crate::colmap::Database;
-use crate::format::{Codec, Descriptors, LevelInfo, MapWriter, Metadata};
+use crate::format::{Codec, Descriptors, LevelInfo, Metadata};
 use crate::progress::Reporter;
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -92,27 +92,20 @@ pub fn convert(
     };
     let input_bytes = sources.iter().map(|s| s.bytes).sum();
 
-    let mut metadata = Metadata {
+    let metadata = Metadata {
         geometry_only: observations.is_none(),
         ..Default::default()
     };
-    metadata.provenance.tool = Metadata::tool_string();
-    metadata.provenance.sources = sources;
-    metadata.provenance.parameters = json!({
+    let parameters = json!({
         "operation": "convert",
         "colmap": model_dir.display().to_string(),
         "database": options.database.as_ref().map(|p| p.display().to_string()),
         "aggregate": options.aggregate.name(),
         "short_dims": options.short_dims,
         "codec": options.codec.name(),
-    })
-    .as_object()
-    .cloned()
-    .unwrap_or_default();
-    let mut writer = MapWriter::new(metadata);
-    writer.set_codec(options.codec, options.zstd_level);
-
-    geometry.write_into(&mut writer)?;
+    });
+    let codec = (options.codec, options.zstd_level);
+    let mut writer = super::map_writer(metadata, sources, parameters, codec, &geometry)?;
 
     let mut summaries = Vec::new();
     let mut points_without_descriptors = 0;

@@ -15,7 +15,7 @@ pub mod poses;
 #[cfg(feature = "localize")]
 pub mod queries;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// A problem with an input file (query list, features file, poses file), naming the file and,
 /// when known, the line.
@@ -37,3 +37,30 @@ impl std::fmt::Display for InputError {
 }
 
 impl std::error::Error for InputError {}
+
+/// The data lines of a text input (`#` comments and blank lines skipped, each trimmed), each
+/// parsed by `parse`; its error becomes an [`InputError`] naming the file and the line.
+#[cfg(feature = "geometry")]
+pub(crate) fn parse_lines<T>(
+    path: &Path,
+    mut parse: impl FnMut(&str) -> Result<T, String>,
+) -> Result<Vec<T>, InputError> {
+    let text = crate::input::read_regular_to_string(path).map_err(|e| InputError {
+        path: path.into(),
+        line: None,
+        message: e.to_string(),
+    })?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        out.push(parse(line).map_err(|message| InputError {
+            path: path.into(),
+            line: Some(i + 1),
+            message,
+        })?);
+    }
+    Ok(out)
+}

@@ -79,41 +79,21 @@ pub fn colmap_pose_line(name: &str, cam_from_world: &Pose) -> String {
 /// Reads `name qw qx qy qz tx ty tz` lines (COLMAP `cam_from_world`); `#` lines are comments
 /// (the localizer lists failed queries as `# failed NAME: reason`).
 pub fn read_poses(path: &Path) -> Result<Vec<(String, Pose)>, InputError> {
-    let text = crate::input::read_regular_to_string(path).map_err(|e| InputError {
-        path: path.into(),
-        line: None,
-        message: e.to_string(),
-    })?;
-    let mut out = Vec::new();
-    for (i, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let bad = |message: String| InputError {
-            path: path.into(),
-            line: Some(i + 1),
-            message,
-        };
+    super::parse_lines(path, |line| {
         let tokens: Vec<&str> = line.split_whitespace().collect();
         if tokens.len() != 8 {
-            return Err(bad(format!(
+            return Err(format!(
                 "expected `name qw qx qy qz tx ty tz`, found {} fields",
                 tokens.len()
-            )));
+            ));
         }
-        let v: Vec<f64> = tokens[1..]
-            .iter()
-            .map(|t| {
-                t.parse::<f64>()
-                    .map_err(|_| bad(format!("not a number: {t:?}")))
-            })
-            .collect::<Result<_, _>>()?;
-        let pose = Pose::from_colmap(v[0], v[1], v[2], v[3], v[4], v[5], v[6])
-            .map_err(|e| bad(e.to_string()))?;
-        out.push((tokens[0].to_string(), pose));
-    }
-    Ok(out)
+        let mut v = [0.0; 7];
+        for (v, t) in v.iter_mut().zip(&tokens[1..]) {
+            *v = t.parse().map_err(|_| format!("not a number: {t:?}"))?;
+        }
+        let pose = Pose::from_colmap_array(v).map_err(|e| e.to_string())?;
+        Ok((tokens[0].to_string(), pose))
+    })
 }
 
 #[cfg(test)]

@@ -18,23 +18,8 @@ pub struct Query {
 /// Reads `name MODEL W H params...` lines (hloc's query list with intrinsics). With
 /// `camera`, lines may hold just a name and that camera is used for every query.
 pub fn read_query_list(path: &Path, camera: Option<&Camera>) -> Result<Vec<Query>, InputError> {
-    let text = crate::input::read_regular_to_string(path).map_err(|e| InputError {
-        path: path.into(),
-        line: None,
-        message: e.to_string(),
-    })?;
-    let mut queries = Vec::new();
-    for (i, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let bad = |message: String| InputError {
-            path: path.into(),
-            line: Some(i + 1),
-            message,
-        };
-        let query = match camera {
+    let queries = super::parse_lines(path, |line| {
+        Ok(match camera {
             // One camera for all: the first token is the name, the rest is ignored.
             Some(c) => Query {
                 name: line
@@ -45,13 +30,11 @@ pub fn read_query_list(path: &Path, camera: Option<&Camera>) -> Result<Vec<Query
                 camera: c.clone(),
             },
             None => {
-                let (name, camera) =
-                    Camera::parse_query_line(line).map_err(|e| bad(e.to_string()))?;
+                let (name, camera) = Camera::parse_query_line(line).map_err(|e| e.to_string())?;
                 Query { name, camera }
             }
-        };
-        queries.push(query);
-    }
+        })
+    })?;
     if queries.is_empty() {
         return Err(InputError {
             path: path.into(),
