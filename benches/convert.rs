@@ -33,7 +33,7 @@ const TRACK_LENGTH: usize = 5;
 const UNTRIANGULATED: f64 = 0.25;
 const RESOLUTIONS: [(u64, u64); 4] = [(4032, 3024), (1920, 1080), (1600, 1200), (2704, 1520)];
 /// Bump when the generated content changes, so cached models are rebuilt.
-const GENERATOR_VERSION: u32 = 1;
+const GENERATOR_VERSION: u32 = 2;
 
 /// xorshift64*: deterministic, dependency-free, plenty for synthetic data.
 struct Rng(u64);

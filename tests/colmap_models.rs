@@ -603,7 +603,7 @@ fn fuzz_entry_points_take_anything() {
                 let at = (next() % data.len() as u64) as usize;
                 data[at] = next() as u8;
             }
-            colmap::fuzz_read_bin(&data);
+            sfpmap::build::fuzz_read_bin(&data);
             colmap::fuzz_read_txt(&data);
         }
     }

@@ -233,31 +233,44 @@ fn stored_sections_past_the_decode_cap_are_written_decoded() {
     let mut w = MapWriter::default();
     w.set_points_world(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
     w.copy_section(&source, stored).unwrap();
-    // A section of another map (its index names another section here, or none, and its
-    // offset is elsewhere) is refused, not sliced. Fields are private: no other forgery.
+    // A section of another map is refused, not sliced: fields are private, so that is the only
+    // way to hand over a section this map did not list. Three cases: the same index with
+    // the same kind but another offset (more points before it), an index naming another
+    // section here, and an index past this map's table.
+    let foreign = |parts: Vec<common::Crafted>| {
+        Map::from_bytes(&common::craft(&common::craft_metadata(vec![]), &parts))
+            .unwrap()
+            .sections()
+            .to_vec()
+    };
+    let zstd_at =
+        |sections: &[sfpmap::format::Section]| *sections.iter().find(|s| s.kind() == kind).unwrap();
+    let moved = zstd_at(&foreign(vec![
+        common::craft_points(50),
+        zstd.clone().optional(),
+        filler.clone().optional(),
+    ]));
+    assert_eq!(moved.index(), stored.index());
+    assert_ne!(moved.offset(), stored.offset());
+    let renumbered = zstd_at(&foreign(vec![
+        common::craft_points(2),
+        filler.clone().optional(),
+        zstd.clone().optional(),
+    ]));
+    assert_ne!(renumbered.index(), stored.index());
     let extra = common::Crafted::raw(other, 7, Dtype::U8, 64, 1, vec![0; 64]);
-    let foreign = common::craft(
-        &common::craft_metadata(vec![]),
-        &[
-            common::craft_points(2),
-            filler.optional(),
-            extra.optional(),
-            zstd.optional(),
-        ],
-    );
-    let foreign = Map::from_bytes(&foreign).unwrap();
-    let theirs = foreign
-        .sections()
-        .iter()
-        .find(|s| s.kind() == kind)
-        .unwrap();
-    assert_ne!(theirs.index(), stored.index());
-    assert!(w.copy_section(&source, theirs).is_err());
-    assert!(source.section_bytes(theirs).is_err());
-    let past = foreign.sections().last().unwrap();
+    let past = zstd_at(&foreign(vec![
+        common::craft_points(2),
+        filler.optional(),
+        extra.optional(),
+        zstd.optional(),
+    ]));
     assert!(past.index() >= source.sections().len());
-    assert!(source.section_bytes(past).is_err());
-    assert!(source.check_section(past).is_err());
+    for theirs in [moved, renumbered, past] {
+        assert!(w.copy_section(&source, &theirs).is_err(), "{theirs:?}");
+        assert!(source.section_bytes(&theirs).is_err(), "{theirs:?}");
+        assert!(source.check_section(&theirs).is_err(), "{theirs:?}");
+    }
     let bytes = w.to_bytes().unwrap();
     let map = Map::from_bytes(&bytes).unwrap();
     map.verify().unwrap();

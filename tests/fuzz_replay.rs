@@ -68,7 +68,7 @@ fn format_targets_survive_their_corpus() {
 #[test]
 fn colmap_targets_survive_their_corpus() {
     for (target, body) in [
-        ("colmap_bin", sfpmap::colmap::fuzz_read_bin as fn(&[u8])),
+        ("colmap_bin", sfpmap::build::fuzz_read_bin as fn(&[u8])),
         ("colmap_txt", sfpmap::colmap::fuzz_read_txt),
     ] {
         let n = replay(target, body);

@@ -45,11 +45,11 @@ fn read_model(dir: &Path) -> Model {
         .images()
         .iter()
         .map(|i| {
-            let (q, t) = (i.cam_from_world.rotation, i.cam_from_world.translation);
             Image {
                 name: i.name.clone(),
                 camera_id: i.camera_id,
-                pose: Pose::from_colmap(q[0], q[1], q[2], q[3], t[0], t[1], t[2]).unwrap(),
+                // The reader's pose is the geometry module's: no conversion.
+                pose: i.cam_from_world,
                 observations: i
                     .points2d
                     .iter()

@@ -6,7 +6,9 @@ mod synthetic_scene;
 
 use sfpmap::format::{slice, Descriptors, Map, MapWriter, SliceOptions};
 use sfpmap::geometry::{Camera, Pose};
-use sfpmap::localize::{FeatureSet, LocalizeError, LocalizeOptions, Localizer, QueryFeatures};
+use sfpmap::localize::{
+    FeatureSet, LocalizeError, LocalizeOptions, Localizer, QueryFailure, QueryFeatures,
+};
 use synthetic_scene::{level_info, points_and_descriptors, truth, unit, Rng};
 
 const DIM: usize = 32;
@@ -171,7 +173,18 @@ fn a_query_of_noise_fails_with_a_reason_not_a_panic() {
     q.sets[0].keypoints.drain(..n - 300);
     q.sets[0].descriptors.drain(..(n - 300) * DIM);
     let r = localizer.localize(&q, &s.camera).unwrap();
-    assert!(r.pose().is_none() && r.failure().is_some());
+    // Noise has no consistent subset: no coarse pose, with the matches it had.
+    assert!(r.pose().is_none());
+    assert!(
+        matches!(r.failure(), Some(QueryFailure::NoCoarsePose { matches, .. }) if *matches > 0),
+        "{:?}",
+        r.failure()
+    );
+    assert!(r
+        .failure()
+        .unwrap()
+        .to_string()
+        .starts_with("coarse pose: "));
     let empty = QueryFeatures {
         sets: vec![FeatureSet {
             level: None,

@@ -24,6 +24,7 @@ pub mod sift;
 
 #[cfg(feature = "colmap")]
 pub use error::ConvertError;
+pub use geometry::fuzz_read_bin;
 #[cfg(all(feature = "colmap", feature = "onnx"))]
 pub use sfp::{convert_with_images, SfpMapOptions, SfpMapSummary};
 #[cfg(feature = "colmap")]

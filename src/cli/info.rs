@@ -159,7 +159,7 @@ fn print_info_text(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
             l.id(),
             l.len(),
             // The file's text: control characters escaped, so a map cannot drive the terminal.
-            sfpmap::io::colmap_export::escape_control_characters(&l.info().descriptor),
+            sfpmap::colmap::text::escape_control_characters(&l.info().descriptor),
             l.info().stride,
             l.dim_full(),
             l.dim_short(),

@@ -2,9 +2,9 @@
 
 use anyhow::{bail, Context};
 use serde_json::json;
+use sfpmap::colmap::text::{escape_control_characters, quoted_name, text_name_problem};
 use sfpmap::format::Map;
 use sfpmap::geometry::Camera;
-use sfpmap::io::colmap_export::{escape_control_characters, quoted_name, text_name_problem};
 use sfpmap::io::poses::{colmap_pose_line, tum_line};
 use sfpmap::io::queries::{read_query_list, DatabaseFeatures, Query};
 use sfpmap::localize::eval::median;

@@ -118,7 +118,6 @@ impl<'a> Reader<'a> {
         self.take(bytes, what)
     }
 
-    /// A NaN or infinite value of record `kind id` (binary files have no line numbers).
     /// An image's pose that [`image_pose`] refuses.
     fn bad_pose(&self, image_id: u32, bad: BadPose) -> Error {
         match bad {
@@ -131,6 +130,7 @@ impl<'a> Reader<'a> {
         }
     }
 
+    /// A NaN or infinite value of record `kind id` (binary files have no line numbers).
     fn not_finite(&self, kind: &'static str, id: u64, field: impl Into<String>) -> Error {
         Error::NotFinite {
             path: self.path.to_path_buf(),

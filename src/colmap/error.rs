@@ -213,7 +213,7 @@ fn at(path: &Path, line: Option<u64>) -> String {
 
 /// `name` quoted for a message, control characters escaped (the one rule for all messages).
 pub(crate) fn shown_name(name: &str) -> String {
-    crate::io::colmap_export::quoted_name(name)
+    super::text::quoted_name(name)
 }
 
 fn opt_id(id: Option<u64>) -> String {

@@ -304,30 +304,8 @@ fn compare(a: &Reconstruction, b: &Reconstruction) -> Result<(), String> {
     Ok(())
 }
 
-/// Fuzz entry point: parses `data` as each binary model file, then as a whole model (so
-/// validation is fuzzed too) laid out as `u16 BE cameras_len, u16 BE images_len, cameras,
-/// images, points3D` (lengths are taken modulo what is left). Never panics (that is the
-/// test), and the whole model goes through convert's fast path too, which must accept
-/// only what the general reader accepts, with the same geometry.
-pub fn fuzz_read_bin(data: &[u8]) {
-    let path = Path::new("fuzz.bin");
-    let _ = bin::parse_cameras(data, path);
-    let _ = bin::parse_images(data, path);
-    let _ = bin::parse_model((&[0u8; 8], path), (&[0u8; 8], path), (data, path));
-    let [c, i, p] = split3(data);
-    let general = bin::parse_model((c, path), (i, path), (p, path));
-    if let Some(fast) = crate::build::geometry::from_bin((c, path), (i, path), (p, path)) {
-        let general = match general {
-            Ok(model) => crate::build::geometry::Geometry::new(&model, None),
-            Err(e) => panic!("the fast path accepted a model the reader rejects: {e}"),
-        };
-        // Debug, not ==: stricter (-0.0 differs from 0.0). No NaN gets this far: both
-        // paths refuse non-finite values in the same record readers.
-        assert_eq!(format!("{fast:?}"), format!("{general:?}"));
-    }
-}
-
-/// Fuzz entry point: like [`fuzz_read_bin`] for the text files.
+/// Fuzz entry point: like `build::fuzz_read_bin` (the binary files, which also go through
+/// convert's fast path there) for the text files.
 pub fn fuzz_read_txt(data: &[u8]) {
     let path = Path::new("fuzz.txt");
     let _ = text::parse_cameras(data, path);

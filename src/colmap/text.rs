@@ -17,7 +17,7 @@ use super::model::{
     has_control_character, image_pose, non_finite_param, non_finite_point2d, non_finite_point3d,
     BadPose, Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, TrackElement,
 };
-use crate::geometry::CameraModel;
+use crate::geometry::{CameraModel, Pose};
 
 /// Lines with their 1-based numbers, `\r\n` tolerated.
 struct Lines<'a> {
@@ -117,8 +117,6 @@ impl<'a> Tokens<'a> {
         self.rest.split_ascii_whitespace().count()
     }
 
-    /// A NaN or infinite value (Rust's parser, like COLMAP's `stold`, reads `nan`, `inf` and
-    /// overflows such as `1e400`), named by line and record.
     /// An image's pose that [`image_pose`] refuses.
     fn bad_pose(&self, image_id: u32, bad: BadPose) -> Error {
         match bad {
@@ -131,6 +129,8 @@ impl<'a> Tokens<'a> {
         }
     }
 
+    /// A NaN or infinite value (Rust's parser, like COLMAP's `stold`, reads `nan`, `inf` and
+    /// overflows such as `1e400`), named by line and record.
     fn not_finite(&self, kind: &'static str, id: u64, field: impl Into<String>) -> Error {
         Error::NotFinite {
             path: self.path.to_path_buf(),
@@ -330,64 +330,162 @@ pub fn parse_model(
 // Names with spaces are written as COLMAP writes them: this crate's reader reads them back,
 // COLMAP's reads up to the first space.
 
+/// The comment lines `cameras.txt` starts with (COLMAP's), before the count line.
+pub(crate) const CAMERAS_HEADER: &str =
+    "# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n";
+/// The comment lines `images.txt` starts with, before the count line.
+pub(crate) const IMAGES_HEADER: &str = "# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n";
+/// The comment lines `points3D.txt` starts with, before the count line.
+pub(crate) const POINTS3D_HEADER: &str = "# 3D point list with one line of data per point:\n#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n";
+
+// One line of each file, for the writers here and for writers that stream a model they never
+// hold whole (`io::colmap_export`). The caller checks names and values (see above).
+
+/// A `cameras.txt` line with its newline.
+pub(crate) fn camera_line(out: &mut String, id: u32, model: &str, size: [u64; 2], params: &[f64]) {
+    let _ = write!(out, "{id} {model} {} {}", size[0], size[1]);
+    for p in params {
+        let _ = write!(out, " {p}");
+    }
+    out.push('\n');
+}
+
+/// An image's first `images.txt` line with its newline.
+pub(crate) fn image_line(out: &mut String, id: u32, pose: &Pose, camera_id: u32, name: &str) {
+    let [qw, qx, qy, qz, tx, ty, tz] = pose.to_colmap();
+    let _ = writeln!(
+        out,
+        "{id} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {camera_id} {name}"
+    );
+}
+
+/// An image's POINTS2D line with its newline: `X Y POINT3D_ID` per point (`-1`: none).
+/// Coordinates print as stored (`f32` from a map prints as the `f32` it is).
+pub(crate) fn points2d_line<X: std::fmt::Display>(
+    out: &mut String,
+    points: impl IntoIterator<Item = ([X; 2], Option<u64>)>,
+) {
+    for (i, ([x, y], id)) in points.into_iter().enumerate() {
+        if i > 0 {
+            out.push(' ');
+        }
+        let _ = match id {
+            Some(id) => write!(out, "{x} {y} {id}"),
+            None => write!(out, "{x} {y} -1"),
+        };
+    }
+    out.push('\n');
+}
+
+/// A `points3D.txt` line with its newline; `track` is `(IMAGE_ID, POINT2D_IDX)` pairs.
+pub(crate) fn point3d_line(
+    out: &mut String,
+    id: u64,
+    xyz: [f64; 3],
+    rgb: [u8; 3],
+    error: f64,
+    track: impl IntoIterator<Item = (u32, u32)>,
+) {
+    let ([x, y, z], [r, g, b]) = (xyz, rgb);
+    let _ = write!(out, "{id} {x} {y} {z} {r} {g} {b} {error}");
+    for (image_id, point2d_idx) in track {
+        let _ = write!(out, " {image_id} {point2d_idx}");
+    }
+    out.push('\n');
+}
+
 /// Encodes `cameras.txt`.
 pub fn write_cameras(model: &Reconstruction) -> String {
-    let mut out = String::new();
-    out.push_str("# Camera list with one line of data per camera:\n");
-    out.push_str("#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
+    let mut out = String::from(CAMERAS_HEADER);
     let _ = writeln!(out, "# Number of cameras: {}", model.cameras().len());
     for c in model.cameras() {
-        let _ = write!(out, "{} {} {} {}", c.id, c.model.name(), c.width, c.height);
-        for p in &c.params {
-            let _ = write!(out, " {p}");
-        }
-        out.push('\n');
+        camera_line(
+            &mut out,
+            c.id,
+            c.model.name(),
+            [c.width, c.height],
+            &c.params,
+        );
     }
     out
 }
 
 /// Encodes `images.txt`.
 pub fn write_images(model: &Reconstruction) -> String {
-    let mut out = String::new();
-    out.push_str("# Image list with two lines of data per image:\n");
-    out.push_str("#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n");
-    out.push_str("#   POINTS2D[] as (X, Y, POINT3D_ID)\n");
+    let mut out = String::from(IMAGES_HEADER);
     let _ = writeln!(out, "# Number of images: {}", model.images().len());
     for image in model.images() {
-        let [qw, qx, qy, qz, tx, ty, tz] = image.cam_from_world.to_colmap();
-        let _ = writeln!(
-            out,
-            "{} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {} {}",
-            image.id, image.camera_id, image.name
+        image_line(
+            &mut out,
+            image.id,
+            &image.cam_from_world,
+            image.camera_id,
+            &image.name,
         );
-        for (i, p) in image.points2d.iter().enumerate() {
-            if i > 0 {
-                out.push(' ');
-            }
-            let _ = match p.point3d_id {
-                Some(id) => write!(out, "{} {} {id}", p.xy[0], p.xy[1]),
-                None => write!(out, "{} {} -1", p.xy[0], p.xy[1]),
-            };
-        }
-        out.push('\n');
+        points2d_line(
+            &mut out,
+            image.points2d.iter().map(|p| (p.xy, p.point3d_id)),
+        );
     }
     out
 }
 
 /// Encodes `points3D.txt`.
 pub fn write_points3d(model: &Reconstruction) -> String {
-    let mut out = String::new();
-    out.push_str("# 3D point list with one line of data per point:\n");
-    out.push_str("#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n");
+    let mut out = String::from(POINTS3D_HEADER);
     let _ = writeln!(out, "# Number of points: {}", model.points3d().len());
     for p in model.points3d() {
-        let [x, y, z] = p.xyz;
-        let [r, g, b] = p.rgb;
-        let _ = write!(out, "{} {x} {y} {z} {r} {g} {b} {}", p.id, p.error);
-        for e in model.track(p) {
-            let _ = write!(out, " {} {}", e.image_id, e.point2d_idx);
-        }
-        out.push('\n');
+        let track = model.track(p).iter().map(|e| (e.image_id, e.point2d_idx));
+        point3d_line(&mut out, p.id, p.xyz, p.rgb, p.error, track);
     }
     out
+}
+/// Why `name` cannot be a NAME in `images.txt` (or a MODEL in `cameras.txt`), if it cannot.
+/// Refused rather than escaped: COLMAP reads a line up to its newline, trims it and takes
+/// each field up to the next space, with no escape syntax, so a control character ends or
+/// corrupts the line (a newline injects an image), a space cuts the name short, and an
+/// escape would be read back as part of the name.
+pub fn text_name_problem(name: &str) -> Option<&'static str> {
+    if name.is_empty() {
+        Some("is empty")
+    } else if name.chars().any(char::is_control) {
+        Some("holds a control character")
+    } else if name.bytes().any(|b| b.is_ascii_whitespace()) {
+        Some("holds a space")
+    } else {
+        None
+    }
+}
+
+/// `s` with each control character written as an escape (`\n`, `\r`, `\t`, else
+/// `\xNN`; all control characters are below U+00A0), so it stays on one line; borrowed
+/// when there is none, which is the usual case.
+pub fn escape_control_characters(s: &str) -> std::borrow::Cow<'_, str> {
+    if !s.chars().any(char::is_control) {
+        return std::borrow::Cow::Borrowed(s);
+    }
+    let mut out = String::with_capacity(s.len() + 8);
+    for c in s.chars() {
+        match c {
+            '\n' => out.push_str("\\n"),
+            '\r' => out.push_str("\\r"),
+            '\t' => out.push_str("\\t"),
+            c if c.is_control() => {
+                write!(out, "\\x{:02x}", u32::from(c)).ok();
+            }
+            c => out.push(c),
+        }
+    }
+    std::borrow::Cow::Owned(out)
+}
+
+/// At most this many characters of a name go into a message.
+const SHOWN_NAME: usize = 60;
+
+/// `name` for a one-line message: quoted, control characters escaped, cut after
+/// [`SHOWN_NAME`] characters.
+pub fn quoted_name(name: &str) -> String {
+    let shown: String = name.chars().take(SHOWN_NAME).collect();
+    let cut = if shown.len() < name.len() { "…" } else { "" };
+    format!("\"{}{cut}\"", escape_control_characters(&shown))
 }

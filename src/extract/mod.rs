@@ -18,7 +18,7 @@
 //! - [`image`]: JPEG/PNG → grey input.
 //! - [`keypoints`]: NMS, sub-pixel refinement, bilinear sampling.
 //!
-//! Turning a model and its images into an SFP map is [`crate::build`]'s (`build::sfp`).
+//! Turning a model and its images into an SFP map is `build::sfp`'s.
 
 pub mod contract;
 pub mod image;

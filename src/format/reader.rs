@@ -290,9 +290,9 @@ impl<'a> Map<'a> {
         &self.bytes()[start..start + section.stored_len as usize]
     }
 
-    /// `section` if it is one of this map's, as [`Map::sections`] lists it. `Section`'s fields
-    /// are public, so one made up or taken from another map could otherwise index or slice past
-    /// what this map holds.
+    /// `section` if it is one of this map's, as [`Map::sections`] lists it. A `Section` cannot be
+    /// made up outside the reader, but one taken from another map could otherwise index or
+    /// slice past what this map holds.
     fn own(&self, section: &Section) -> Result<(), Error> {
         match self.sections.get(section.index) {
             Some(s) if s == section => Ok(()),

@@ -61,6 +61,13 @@ impl Pose {
         }
         let q = Quaternion::new(qw, qx, qy, qz);
         let norm_squared = q.norm_squared();
+        if !norm_squared.is_finite() {
+            // 1e200 squared: no quaternion of that size can be normalised in f64.
+            return Err(GeometryError::NonFinite {
+                what: "colmap pose (quaternion norm)",
+                index: 0,
+            });
+        }
         if !(norm_squared > 1e-24) {
             return Err(GeometryError::Degenerate {
                 reason: "zero quaternion",
@@ -152,13 +159,17 @@ mod tests {
         assert!((pose.rotation_error_deg(&turned) - 10.0).abs() < 1e-9);
         assert!(Pose::from_colmap(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0).is_err());
         assert!(Pose::from_colmap(f64::NAN, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0).is_err());
+        // Finite, but its norm overflows: not a rotation (it would normalise to zero).
+        assert!(Pose::from_colmap(1e200, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0).is_err());
     }
 
     #[test]
     fn unit_quaternions_are_kept_bit_for_bit_and_normalising_is_idempotent() {
         // Unit to within an ulp but not exactly 1 when squared: kept as given.
-        let q = [0.6, 0.0, 0.8, 0.0];
+        let q = [0.5, 0.5, 0.5, 0.5000000000000002];
         let v = [q[0], q[1], q[2], q[3], 1.0, 2.0, 3.0];
+        let squared = Quaternion::new(q[0], q[1], q[2], q[3]).norm_squared();
+        assert_ne!(squared, 1.0, "the case normalising would change");
         assert_eq!(Pose::from_colmap_array(v).unwrap().to_colmap(), v);
         // A text file's rounding is normalised, and the result is kept on a second pass.
         let once = Pose::from_colmap(0.6, 0.0, 0.8001, 0.0, 0.0, 0.0, 0.0).unwrap();

@@ -4,9 +4,7 @@
 //! Each image's points2D are the map's visibility entries for it, in order, so a point's
 //! track element `(image_id, point2D_idx)` is the entry's index within its image.
 
-use crate::colmap::{
-    text, Camera, Image, Point2D, Reconstruction, ReconstructionBuilder, TrackElement,
-};
+use crate::colmap::text::{self, quoted_name, text_name_problem};
 use crate::format::{CameraInfo, Error, Images, Map};
 use crate::geometry::{CameraModel, Pose};
 use std::fmt::Write as _;
@@ -24,66 +22,15 @@ pub struct ExportSummary {
     pub observations: usize,
 }
 
-/// The three files' contents.
-pub struct ColmapText {
-    pub cameras: String,
-    pub images: String,
-    pub points3d: String,
-    pub summary: ExportSummary,
-}
-
-/// Renders the map as COLMAP text files. Needs images and visibility with keypoints.
-pub fn to_colmap_text(map: &Map<'_>) -> Result<ColmapText, Error> {
-    let (model, summary) = to_reconstruction(map, true)?;
-    Ok(ColmapText {
-        cameras: text::write_cameras(&model),
-        images: text::write_images(&model),
-        points3d: text::write_points3d(&model),
-        summary,
-    })
-}
-
-/// The map as a COLMAP [`Reconstruction`], written by [`crate::colmap::text`], the one COLMAP
-/// text writer. With `observations`, each image's points2D are its visibility entries and
-/// every observed point is a 3D point (unobserved ones are dropped, as COLMAP drops them);
-/// without, the images only (what `export --images-txt` writes).
-pub(crate) fn to_reconstruction(
-    map: &Map<'_>,
-    observations: bool,
-) -> Result<(Reconstruction, ExportSummary), Error> {
+/// Writes the model into `dir` (created if needed), each file through
+/// [`crate::output::write_atomic`] (temp file, fsync, rename), streamed: lines go out in
+/// chunks, so a million-point map never has its text (or a model) in memory whole. Needs
+/// images and visibility with keypoints.
+pub fn export_colmap(map: &Map<'_>, dir: &Path) -> Result<ExportSummary, Error> {
     let meta = map.metadata();
     let images = map
         .images()?
         .ok_or_else(|| Error::inconsistent("the map has no images; a COLMAP model needs them"))?;
-    let mut model = Reconstruction::builder();
-    for (i, c) in meta.cameras.iter().enumerate() {
-        let id = camera_id(&meta.cameras, i);
-        let Some(kind) = CameraModel::from_name(&c.model) else {
-            return Err(Error::invalid(format!(
-                "camera {id}: model name {} is not a COLMAP camera model, which a COLMAP cameras.txt cannot hold",
-                quoted_name(&c.model)
-            )));
-        };
-        model.add_camera(Camera {
-            id,
-            model: kind,
-            width: c.width,
-            height: c.height,
-            params: c.params.clone(),
-        });
-    }
-    let mut summary = ExportSummary {
-        cameras: meta.cameras.len(),
-        images: images.len(),
-        points: 0,
-        observations: 0,
-    };
-    if !observations {
-        for i in 0..images.len() {
-            model.add_image(image(&meta.cameras, &images, i, Vec::new())?);
-        }
-        return Ok((build(model)?, summary));
-    }
     let vis = map
         .visibility()?
         .ok_or_else(|| Error::inconsistent("the map has no visibility; COLMAP tracks need it"))?;
@@ -94,90 +41,222 @@ pub(crate) fn to_reconstruction(
     let colors = map.point_colors()?;
     let ids = map.point_ids()?;
     let point_id = |p: usize| ids.as_ref().map_or(p as u64 + 1, |ids| ids[p]);
+    let tracks = Tracks::new(
+        &images,
+        vis.points.as_ref(),
+        |i| vis.points_of(i),
+        positions.len(),
+    )?;
+    // Checked before anything is written, so a bad map leaves no partial model behind.
+    let lines = ImageLines::new(meta.cameras.as_slice(), &images)?;
+    let cameras = cameras_txt(&meta.cameras)?;
 
-    // Tracks: for each point, (image_id, index within the image), in image order.
-    let n_points = positions.len();
-    let mut tracks: Vec<Vec<TrackElement>> = vec![Vec::new(); n_points];
-    for i in 0..images.len() {
-        let start = vis.offsets[i] as usize;
-        let mut points2d = Vec::with_capacity(vis.points_of(i).len());
-        for (k, &p) in vis.points_of(i).iter().enumerate() {
-            let xy = keypoints[start + k];
-            points2d.push(Point2D {
-                xy: [f64::from(xy[0]), f64::from(xy[1])],
-                point3d_id: Some(point_id(p as usize)),
-            });
-            tracks[p as usize].push(TrackElement {
-                image_id: image_id(&images, i),
-                point2d_idx: k as u32,
-            });
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let path = dir.join(COLMAP_FILES[0]);
+    chunked(&path, |buf, _| {
+        buf.push_str(&cameras);
+        Ok(())
+    })?;
+    let path = dir.join(COLMAP_FILES[1]);
+    chunked(&path, |buf, flush| {
+        buf.push_str(text::IMAGES_HEADER);
+        writeln!(buf, "# Number of images: {}", images.len()).ok();
+        for i in 0..images.len() {
+            lines.image_line(buf, i);
+            let start = vis.offsets[i] as usize;
+            let own = vis.points_of(i);
+            let xys = &keypoints[start..start + own.len()];
+            let points = xys
+                .iter()
+                .zip(own)
+                .map(|(&xy, &p)| (xy, Some(point_id(p as usize))));
+            text::points2d_line(buf, points);
+            flush(buf)?;
         }
-        model.add_image(image(&meta.cameras, &images, i, points2d)?);
-    }
-    for (p, track) in tracks.iter().enumerate() {
-        // COLMAP drops points without observations; so do we, to stay readable by it.
-        if track.is_empty() {
-            continue;
+        Ok(())
+    })?;
+    let path = dir.join(COLMAP_FILES[2]);
+    let mut exported = 0;
+    chunked(&path, |buf, flush| {
+        buf.push_str(text::POINTS3D_HEADER);
+        writeln!(buf, "# Number of points: {}", tracks.observed).ok();
+        for p in 0..positions.len() {
+            let track = tracks.of(p);
+            // COLMAP drops points without observations; so do we, to stay readable by it.
+            if track.is_empty() {
+                continue;
+            }
+            exported += 1;
+            let rgb = colors.as_ref().map_or([128, 128, 128], |c| c[p]);
+            let xyz = map.to_world(positions[p]);
+            text::point3d_line(buf, point_id(p), xyz, rgb, 0.0, track.iter().copied());
+            flush(buf)?;
         }
-        summary.points += 1;
-        let rgb = colors.as_ref().map_or([128, 128, 128], |c| c[p]);
-        model
-            .add_point3d(point_id(p), map.to_world(positions[p]), rgb, 0.0, track)
-            .map_err(|e| Error::inconsistent(format!("as a COLMAP model: {e}")))?;
-    }
-    summary.observations = vis.points.len();
-    Ok((build(model)?, summary))
-}
-
-/// Image `i` with its points2D; a name COLMAP's text files cannot hold is an error.
-fn image(
-    cameras: &[CameraInfo],
-    images: &Images<'_>,
-    i: usize,
-    points2d: Vec<Point2D>,
-) -> Result<Image, Error> {
-    let name = images.name(i)?;
-    let id = image_id(images, i);
-    if let Some(problem) = text_name_problem(name) {
-        return Err(Error::invalid(format!(
-            "image {id}: name {} {problem}, which a COLMAP images.txt cannot hold",
-            quoted_name(name)
-        )));
-    }
-    let cam_from_world = Pose::from_colmap_array(images.poses[i])
-        .map_err(|e| Error::inconsistent(format!("image {id}: pose: {e}")))?;
-    Ok(Image {
-        id,
-        name: name.to_string(),
-        camera_id: camera_id(cameras, images.cameras[i] as usize),
-        cam_from_world,
-        points2d,
+        Ok(())
+    })?;
+    Ok(ExportSummary {
+        cameras: meta.cameras.len(),
+        images: images.len(),
+        points: exported,
+        observations: vis.points.len(),
     })
 }
 
-/// The builder's checks (ids unique, tracks and points2D agree, values finite) on what the
-/// map holds.
-fn build(model: ReconstructionBuilder) -> Result<Reconstruction, Error> {
-    model
-        .build()
-        .map_err(|e| Error::inconsistent(format!("as a COLMAP model: {e}")))
+/// The map's database images as a COLMAP `images.txt` with empty POINTS2D lines (a valid
+/// model file once next to a `cameras.txt`; [`export_colmap`] writes one with observations).
+/// A name that line cannot hold (a control character, a space) is an error naming the image.
+pub(crate) fn images_txt_without_points(map: &Map<'_>) -> Result<String, Error> {
+    let images = map
+        .images()?
+        .ok_or_else(|| Error::inconsistent("the map has no images"))?;
+    let lines = ImageLines::new(&map.metadata().cameras, &images)?;
+    let mut out = String::from(text::IMAGES_HEADER);
+    writeln!(out, "# Number of images: {}", images.len()).ok();
+    for i in 0..images.len() {
+        lines.image_line(&mut out, i);
+        out.push('\n');
+    }
+    Ok(out)
 }
 
-/// Writes the model into `dir` (created if needed), each file through
-/// [`crate::output::write_atomic`] (temp file, fsync, rename).
-pub fn export_colmap(map: &Map<'_>, dir: &Path) -> Result<ExportSummary, Error> {
-    let text = to_colmap_text(map)?;
-    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    for (name, body) in COLMAP_FILES
-        .into_iter()
-        .zip([&text.cameras, &text.images, &text.points3d])
-    {
-        let path = dir.join(name);
-        crate::output::write_atomic(&path, |out| {
-            std::io::Write::write_all(out, body.as_bytes()).map_err(|e| Error::io(&path, e))
+/// `cameras.txt`; a model name COLMAP does not know is an error naming the camera.
+fn cameras_txt(cameras: &[CameraInfo]) -> Result<String, Error> {
+    let mut out = String::from(text::CAMERAS_HEADER);
+    writeln!(out, "# Number of cameras: {}", cameras.len()).ok();
+    for (i, c) in cameras.iter().enumerate() {
+        let id = camera_id(cameras, i);
+        let model = CameraModel::from_name(&c.model).ok_or_else(|| {
+            Error::invalid(format!(
+                "camera {id}: model name {} is not a COLMAP camera model, which a COLMAP cameras.txt cannot hold",
+                quoted_name(&c.model)
+            ))
         })?;
+        if c.params.len() != model.num_params() || !c.params.iter().all(|p| p.is_finite()) {
+            return Err(Error::invalid(format!(
+                "camera {id}: {} parameters ({} expected, all finite)",
+                c.params.len(),
+                model.num_params()
+            )));
+        }
+        text::camera_line(&mut out, id, model.name(), [c.width, c.height], &c.params);
     }
-    Ok(text.summary)
+    Ok(out)
+}
+
+/// Every image's first `images.txt` line, checked up front: names COLMAP's text can hold and
+/// poses that are rotations.
+struct ImageLines<'a> {
+    cameras: &'a [CameraInfo],
+    images: &'a Images<'a>,
+    poses: Vec<Pose>,
+}
+
+impl<'a> ImageLines<'a> {
+    fn new(cameras: &'a [CameraInfo], images: &'a Images<'a>) -> Result<Self, Error> {
+        let mut poses = Vec::with_capacity(images.len());
+        for i in 0..images.len() {
+            let id = image_id(images, i);
+            let name = images.name(i)?;
+            if let Some(problem) = text_name_problem(name) {
+                return Err(Error::invalid(format!(
+                    "image {id}: name {} {problem}, which a COLMAP images.txt cannot hold",
+                    quoted_name(name)
+                )));
+            }
+            poses.push(
+                Pose::from_colmap_array(images.poses[i])
+                    .map_err(|e| Error::inconsistent(format!("image {id}: pose: {e}")))?,
+            );
+        }
+        Ok(ImageLines {
+            cameras,
+            images,
+            poses,
+        })
+    }
+
+    fn image_line(&self, out: &mut String, i: usize) {
+        let camera = camera_id(self.cameras, self.images.cameras[i] as usize);
+        // Names were read in `new`; a second read cannot fail.
+        let name = self.images.name(i).unwrap_or_default();
+        text::image_line(out, image_id(self.images, i), &self.poses[i], camera, name);
+    }
+}
+
+/// Every point's track, `(image_id, point2D_idx)` in image order, in one flat array (CSR):
+/// 8 bytes an observation, no allocation per point.
+struct Tracks {
+    offsets: Vec<usize>,
+    elements: Vec<(u32, u32)>,
+    /// Points with at least one observation.
+    observed: usize,
+}
+
+impl Tracks {
+    fn new<'v>(
+        images: &Images<'_>,
+        all: &[u32],
+        points_of: impl Fn(usize) -> &'v [u32],
+        n_points: usize,
+    ) -> Result<Self, Error> {
+        let mut offsets = vec![0usize; n_points + 1];
+        for &p in all {
+            let slot = offsets.get_mut(p as usize + 1).ok_or_else(|| {
+                Error::inconsistent(format!("visibility names point {p} of {n_points}"))
+            })?;
+            *slot += 1;
+        }
+        let observed = offsets[1..].iter().filter(|&&n| n > 0).count();
+        for i in 1..offsets.len() {
+            offsets[i] += offsets[i - 1];
+        }
+        let mut next = offsets.clone();
+        let mut elements = vec![(0, 0); all.len()];
+        for i in 0..images.len() {
+            let image = image_id(images, i);
+            for (k, &p) in points_of(i).iter().enumerate() {
+                let at = &mut next[p as usize];
+                elements[*at] = (image, k as u32);
+                *at += 1;
+            }
+        }
+        Ok(Tracks {
+            offsets,
+            elements,
+            observed,
+        })
+    }
+
+    fn of(&self, p: usize) -> &[(u32, u32)] {
+        &self.elements[self.offsets[p]..self.offsets[p + 1]]
+    }
+}
+
+/// Writes `path` atomically from text that `fill` appends to a buffer; `fill` calls the
+/// flush it is given after each record, which writes the buffer out past 1 MiB.
+fn chunked(
+    path: &Path,
+    fill: impl FnOnce(
+        &mut String,
+        &mut dyn FnMut(&mut String) -> Result<(), Error>,
+    ) -> Result<(), Error>,
+) -> Result<(), Error> {
+    crate::output::write_atomic(path, |out| {
+        let mut write = |buf: &mut String| {
+            std::io::Write::write_all(out, buf.as_bytes()).map_err(|e| Error::io(path, e))?;
+            buf.clear();
+            Ok(())
+        };
+        let mut flush = |buf: &mut String| {
+            if buf.len() >= 1 << 20 {
+                write(buf)?;
+            }
+            Ok(())
+        };
+        let mut buf = String::new();
+        fill(&mut buf, &mut flush)?;
+        write(&mut buf)
+    })
 }
 
 /// The COLMAP `camera_id` of the map's camera `index`: its source id, else `index + 1` (also
@@ -192,54 +271,4 @@ fn camera_id(cameras: &[CameraInfo], index: usize) -> u32 {
 /// The COLMAP `image_id` of image `i`: its source id, else `i + 1`.
 fn image_id(images: &Images<'_>, i: usize) -> u32 {
     images.ids.as_ref().map_or(i as u32 + 1, |ids| ids[i])
-}
-
-/// Why `name` cannot be a NAME in `images.txt` (or a MODEL in `cameras.txt`), if it cannot.
-/// Refused rather than escaped: COLMAP reads a line up to its newline, trims it and takes
-/// each field up to the next space, with no escape syntax, so a control character ends or
-/// corrupts the line (a newline injects an image), a space cuts the name short, and an
-/// escape would be read back as part of the name.
-pub fn text_name_problem(name: &str) -> Option<&'static str> {
-    if name.is_empty() {
-        Some("is empty")
-    } else if name.chars().any(char::is_control) {
-        Some("holds a control character")
-    } else if name.bytes().any(|b| b.is_ascii_whitespace()) {
-        Some("holds a space")
-    } else {
-        None
-    }
-}
-
-/// `s` with each control character written as an escape (`\n`, `\r`, `\t`, else
-/// `\xNN`; all control characters are below U+00A0), so it stays on one line; borrowed
-/// when there is none, which is the usual case.
-pub fn escape_control_characters(s: &str) -> std::borrow::Cow<'_, str> {
-    if !s.chars().any(char::is_control) {
-        return std::borrow::Cow::Borrowed(s);
-    }
-    let mut out = String::with_capacity(s.len() + 8);
-    for c in s.chars() {
-        match c {
-            '\n' => out.push_str("\\n"),
-            '\r' => out.push_str("\\r"),
-            '\t' => out.push_str("\\t"),
-            c if c.is_control() => {
-                write!(out, "\\x{:02x}", u32::from(c)).ok();
-            }
-            c => out.push(c),
-        }
-    }
-    std::borrow::Cow::Owned(out)
-}
-
-/// At most this many characters of a name go into a message.
-const SHOWN_NAME: usize = 60;
-
-/// `name` for a one-line message: quoted, control characters escaped, cut after
-/// [`SHOWN_NAME`] characters.
-pub fn quoted_name(name: &str) -> String {
-    let shown: String = name.chars().take(SHOWN_NAME).collect();
-    let cut = if shown.len() < name.len() { "…" } else { "" };
-    format!("\"{}{cut}\"", escape_control_characters(&shown))
 }

@@ -424,6 +424,13 @@ impl H5Features {
         let global = self
             .matrix(&format!("{name}/global_descriptor"))?
             .map(|(v, _, _)| v);
+        // As for descriptors: a NaN would rank every database image equal, silently.
+        if let Some(v) = global
+            .as_ref()
+            .and_then(|g| g.iter().find(|v| !v.is_finite()))
+        {
+            return Err(self.err(format!("{name}/global_descriptor: a value is {v}")));
+        }
         Ok(Some(QueryFeatures { sets, global }))
     }
 }

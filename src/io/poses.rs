@@ -1,9 +1,11 @@
-//! Database image poses out to trajectory tools: TUM (`timestamp tx ty tz qx qy qz qw`,
+//! Poses in and out: `name qw qx qy qz tx ty tz` lines (COLMAP `cam_from_world`, as
+//! `gt_poses.txt` and `sfpmap localize` write them) read by [`read_poses`] and written by
+//! [`colmap_pose_line`]; and database image poses out to trajectory tools: TUM (`timestamp tx ty tz qx qy qz qw`,
 //! `world_from_cam`, what evo and the TUM scripts read) and COLMAP `images.txt` without
 //! observations.
 
-use super::colmap_export::escape_control_characters;
 use super::InputError;
+use crate::colmap::text::escape_control_characters;
 use crate::format::{Error, Map};
 use crate::geometry::Pose;
 use std::fmt::Write as _;
@@ -55,6 +57,12 @@ pub fn images_tum(map: &Map<'_>) -> Result<String, Error> {
         .map(|i| {
             let pose = Pose::from_colmap_array(images.poses[i])
                 .map_err(|e| Error::inconsistent(format!("image {i}: pose: {e}")))?;
+            // A finite pose far out (a translation near f64::MAX) can overflow on inversion.
+            if !pose.inverse().is_finite() {
+                return Err(Error::inconsistent(format!(
+                    "image {i}: pose: its inverse is not finite"
+                )));
+            }
             Ok((images.name(i)?, pose))
         })
         .collect::<Result<Vec<_>, Error>>()?;
@@ -65,8 +73,7 @@ pub fn images_tum(map: &Map<'_>) -> Result<String, Error> {
 /// model file once next to a `cameras.txt`; `export --colmap` writes one with observations).
 /// A name that line cannot hold (a control character, a space) is an error naming the image.
 pub fn images_txt(map: &Map<'_>) -> Result<String, Error> {
-    let (model, _) = super::colmap_export::to_reconstruction(map, false)?;
-    Ok(crate::colmap::text::write_images(&model))
+    super::colmap_export::images_txt_without_points(map)
 }
 
 /// One line of a poses file, `name qw qx qy qz tx ty tz` (COLMAP `cam_from_world`, as in

@@ -78,7 +78,7 @@ impl DatabaseFeatures {
                 id: i64::from(id),
                 what: format!(
                     "image {}, keypoint {i}: {field} is {value}",
-                    crate::io::colmap_export::quoted_name(name)
+                    crate::colmap::text::quoted_name(name)
                 ),
             });
         }
