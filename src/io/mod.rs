@@ -16,7 +16,7 @@ pub mod poses;
 #[cfg(feature = "localize")]
 pub mod queries;
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// A problem with an input file (query list, features file, poses file), naming the file and,
 /// when known, the line.
@@ -41,9 +41,9 @@ impl std::error::Error for InputError {}
 
 /// The data lines of a text input (`#` comments and blank lines skipped, each trimmed), each
 /// parsed by `parse`; its error becomes an [`InputError`] naming the file and the line.
-#[cfg(feature = "geometry")]
+#[cfg(any(feature = "colmap-model", feature = "localize"))]
 pub(crate) fn parse_lines<T>(
-    path: &Path,
+    path: &std::path::Path,
     mut parse: impl FnMut(&str) -> Result<T, String>,
 ) -> Result<Vec<T>, InputError> {
     let text = crate::input::read_regular_to_string(path).map_err(|e| InputError {
