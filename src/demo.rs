@@ -384,14 +384,18 @@ impl DemoScene {
 
     /// `name PINHOLE W H f f cx cy` lines for the queries (hloc style).
     pub fn query_list(&self) -> String {
+        let params = vec![
+            FOCAL,
+            FOCAL,
+            f64::from(WIDTH) / 2.0,
+            f64::from(HEIGHT) / 2.0,
+        ];
+        let camera = crate::geometry::Camera::new(CameraModel::Pinhole, WIDTH, HEIGHT, params)
+            .expect("the demo camera is valid");
         let mut s = String::new();
         for (name, _) in &self.queries {
-            let _ = writeln!(
-                s,
-                "{name} PINHOLE {WIDTH} {HEIGHT} {FOCAL} {FOCAL} {} {}",
-                f64::from(WIDTH) / 2.0,
-                f64::from(HEIGHT) / 2.0
-            );
+            // `Camera`'s Display is what `Camera::parse_query_line` reads back.
+            let _ = writeln!(s, "{name} {camera}");
         }
         s
     }

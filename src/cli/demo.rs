@@ -260,17 +260,11 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             fmt(e.median_translation_rel.map(|r| 100.0 * r), " %"),
             median_ms
         ));
-        rows.push(json!({
-            "map": v.name,
-            "map_bytes": map.file_len(),
-            "queries": e.queries,
-            "localized": e.localized,
-            "median_translation": e.median_translation,
-            "median_rotation_deg": e.median_rotation_deg,
-            "median_translation_rel": e.median_translation_rel,
-            "recall": e.recall_json(),
-            "median_ms": median_ms,
-        }));
+        let mut row = e.summary_json();
+        row.insert("map".into(), json!(v.name));
+        row.insert("map_bytes".into(), json!(map.file_len()));
+        row.insert("median_ms".into(), json!(median_ms));
+        rows.push(serde_json::Value::Object(row));
     }
     let seconds = start.elapsed().as_secs_f64();
     say(format!(

@@ -54,17 +54,16 @@ pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
     };
     let e = evaluate(&estimates, &gt, &thresholds, scale);
     if args.json {
-        super::print_json(&json!({
-            "queries": e.queries,
-            "localized": e.localized,
-            "median_translation": e.median_translation,
-            "median_rotation_deg": e.median_rotation_deg,
-            "median_translation_rel": e.median_translation_rel,
-            "recall": e.recall_json(),
-            "map_bytes": map_bytes,
-            "scale": e.scale,
-            "per_query": e.per_query.iter().map(|(n, err)| json!({ "name": n, "translation": err.map(|x| x.0), "rotation_deg": err.map(|x| x.1) })).collect::<Vec<_>>(),
-        }))?;
+        let mut report = e.summary_json();
+        report.insert("map_bytes".into(), json!(map_bytes));
+        report.insert("scale".into(), json!(e.scale));
+        let per_query: Vec<_> = e
+            .per_query
+            .iter()
+            .map(|(n, err)| json!({ "name": n, "translation": err.map(|x| x.0), "rotation_deg": err.map(|x| x.1) }))
+            .collect();
+        report.insert("per_query".into(), json!(per_query));
+        super::print_json(&serde_json::Value::Object(report))?;
         return Ok(ExitCode::SUCCESS);
     }
     let fmt =

@@ -448,7 +448,7 @@ pub fn write_points3d(model: &Reconstruction) -> String {
 pub fn text_name_problem(name: &str) -> Option<&'static str> {
     if name.is_empty() {
         Some("is empty")
-    } else if name.chars().any(char::is_control) {
+    } else if has_control_character(name) {
         Some("holds a control character")
     } else if name.bytes().any(|b| b.is_ascii_whitespace()) {
         Some("holds a space")
@@ -461,7 +461,7 @@ pub fn text_name_problem(name: &str) -> Option<&'static str> {
 /// `\xNN`; all control characters are below U+00A0), so it stays on one line; borrowed
 /// when there is none, which is the usual case.
 pub fn escape_control_characters(s: &str) -> std::borrow::Cow<'_, str> {
-    if !s.chars().any(char::is_control) {
+    if !has_control_character(s) {
         return std::borrow::Cow::Borrowed(s);
     }
     let mut out = String::with_capacity(s.len() + 8);

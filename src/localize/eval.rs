@@ -25,6 +25,19 @@ pub struct Evaluation {
 }
 
 impl Evaluation {
+    /// The summary every evaluation report shares: counts, medians, recall.
+    pub fn summary_json(&self) -> serde_json::Map<String, serde_json::Value> {
+        let summary = json!({
+            "queries": self.queries,
+            "localized": self.localized,
+            "median_translation": self.median_translation,
+            "median_rotation_deg": self.median_rotation_deg,
+            "median_translation_rel": self.median_translation_rel,
+            "recall": self.recall_json(),
+        });
+        summary.as_object().cloned().unwrap_or_default()
+    }
+
     /// The recall list as JSON: `[{ "translation", "rotation_deg", "recall" }, ...]`, one
     /// object per threshold.
     pub fn recall_json(&self) -> serde_json::Value {
@@ -71,7 +84,7 @@ pub fn map_scale(map: &Map<'_>) -> Result<Option<f64>, FormatError> {
     let centres: Vec<[f64; 3]> = images
         .poses
         .iter()
-        .filter_map(|q| Pose::from_colmap(q[0], q[1], q[2], q[3], q[4], q[5], q[6]).ok())
+        .filter_map(|&q| Pose::from_colmap_array(q).ok())
         .map(|p| p.center().into())
         .collect();
     Ok(median_nearest_camera_distance(&centres))

@@ -6,7 +6,7 @@
 //! threads; it reads descriptors straight from the mmapped map.
 
 use super::kernels::sgemm_abt;
-use super::matching::{match_descriptors, MatchOptions};
+use super::matching::{fails_ratio_test, match_descriptors, MatchOptions};
 use crate::format::{f16, Error as FormatError, Level, Map, Visibility};
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use crate::vector::{dot, normalise_rows};
@@ -136,6 +136,15 @@ pub enum QueryFailure {
     /// The caller could not produce the query's features (an unreadable image, a query
     /// missing from the features file); the caller's one-line reason.
     NoFeatures(String),
+}
+
+impl std::error::Error for QueryFailure {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            QueryFailure::NoCoarsePose { error, .. } => Some(error),
+            _ => None,
+        }
+    }
 }
 
 impl std::fmt::Display for QueryFailure {
@@ -717,8 +726,7 @@ impl<'m> Localizer<'m> {
             if best.1 == u32::MAX || best.0 < self.options.matching.min_similarity {
                 continue;
             }
-            let d = |s: f32| (2.0 - 2.0 * s).max(0.0).sqrt();
-            if second.is_finite() && d(best.0) >= self.options.gate_ratio * d(second) {
+            if fails_ratio_test(best.0, second, self.options.gate_ratio) {
                 continue;
             }
             found.push((best.1, best.0, k));

@@ -81,16 +81,12 @@ pub fn match_descriptors(
             }
         }
     }
-    let distance = |s: f32| (2.0 - 2.0 * s).max(0.0).sqrt();
     let mut matches = Vec::new();
     for (q, &(s, m)) in best.iter().enumerate() {
         if m == u32::MAX || s < options.min_similarity {
             continue;
         }
-        if options.ratio < 1.0
-            && second[q].is_finite()
-            && distance(s) >= options.ratio * distance(second[q])
-        {
+        if options.ratio < 1.0 && fails_ratio_test(s, second[q], options.ratio) {
             continue;
         }
         if options.mutual && s < column_max[m as usize] {
@@ -131,6 +127,14 @@ fn lane_max(v: &[f32]) -> f32 {
         max = max.max(l);
     }
     max
+}
+
+/// Lowe's ratio test on cosine similarities of unit vectors, as distances: the best match
+/// fails when its distance is not below `ratio` times the second best's. No second (`-inf`)
+/// passes.
+pub(crate) fn fails_ratio_test(best: f32, second: f32, ratio: f32) -> bool {
+    let distance = |s: f32| (2.0 - 2.0 * s).max(0.0).sqrt();
+    second.is_finite() && distance(best) >= ratio * distance(second)
 }
 
 #[cfg(test)]

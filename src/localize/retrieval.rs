@@ -16,6 +16,8 @@ pub(crate) fn retrieve(
 ) -> Vec<usize> {
     match (database, query) {
         (Some((g, dim)), Some(q)) if q.len() == dim && n_images > 0 => {
+            // Scores are cosines, as the map's rows are unit. The ranking would not change
+            // without it, but the tie-breaks between scores an ulp apart could.
             let mut q = q.to_vec();
             normalise_rows(&mut q, dim);
             let mut scores = vec![0.0; n_images];
