@@ -37,6 +37,8 @@
 pub mod bin;
 #[cfg(feature = "colmap")]
 mod database;
+#[cfg(feature = "colmap")]
+mod database_writer;
 mod error;
 mod model;
 pub mod text;
@@ -44,6 +46,8 @@ pub mod text;
 use std::path::{Path, PathBuf};
 
 pub use crate::geometry::CameraModel;
+#[cfg(feature = "colmap")]
+pub use database_writer::DatabaseWriter;
 #[cfg(feature = "colmap")]
 pub use database::{
     Database, DbImage, Descriptors, ImageFeatures, ImageFeaturesIter, Keypoint, KeypointLayout,
