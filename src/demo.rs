@@ -9,6 +9,8 @@
 //! 3D points are sampled on the surfaces; an image observes a point when it projects inside
 //! the frame and the ray from the camera reaches that surface point unoccluded.
 
+pub mod street;
+
 use std::fmt::Write as _;
 use std::path::Path;
 

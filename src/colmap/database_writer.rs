@@ -168,8 +168,11 @@ mod tests {
         db.add_camera(&camera).unwrap();
         let keypoints = [[10.5, 20.25, 2.0, 0.5], [1.0, 2.0, 4.0, -1.0]];
         let descriptors: Vec<u8> = (0..8).collect();
-        db.add_image(7, "a.jpg", 3, &keypoints, &descriptors, 4).unwrap();
-        assert!(db.add_image(8, "b.jpg", 3, &keypoints, &descriptors, 3).is_err());
+        db.add_image(7, "a.jpg", 3, &keypoints, &descriptors, 4)
+            .unwrap();
+        assert!(db
+            .add_image(8, "b.jpg", 3, &keypoints, &descriptors, 3)
+            .is_err());
         db.write().unwrap();
 
         let read = Database::open(&path).unwrap();

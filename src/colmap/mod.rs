@@ -47,12 +47,12 @@ use std::path::{Path, PathBuf};
 
 pub use crate::geometry::CameraModel;
 #[cfg(feature = "colmap")]
-pub use database_writer::DatabaseWriter;
-#[cfg(feature = "colmap")]
 pub use database::{
     Database, DbImage, Descriptors, ImageFeatures, ImageFeaturesIter, Keypoint, KeypointLayout,
     Keypoints,
 };
+#[cfg(feature = "colmap")]
+pub use database_writer::DatabaseWriter;
 #[cfg(feature = "colmap")]
 pub(crate) use error::shown_name;
 pub use error::{Error, Result};

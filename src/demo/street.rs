@@ -1,0 +1,408 @@
+//! A street-sized scene for scale work: a COLMAP model, its `database.db`, and queries with
+//! ground truth, generated deterministically from a seed (no images: descriptors are
+//! generated, SIFT-like). What `benches/street.sh` and the scale benches run on.
+//!
+//! - **Geometry**: a straight street along +z, façades at x = ±6 m, 15 m high (y down, as in
+//!   COLMAP's camera frame: the ground is y = 0, a roof y = −15). Points uniform on both
+//!   façades; the street is `points / 1000` metres long, so a million points make a
+//!   kilometre.
+//! - **Database cameras** (PINHOLE 1024 × 768, f = 800) every 0.5 m along the street at eye
+//!   height, 4 views each (both façades, across and ahead): about 8 images a metre. Each sees
+//!   the façade points in front of it within 45 m, thinned to at most 1,400 observations (a
+//!   detector's budget); points seen by fewer than 2 images are dropped, as COLMAP would not
+//!   have triangulated them.
+//! - **Descriptors**: 128-d, per point a base vector with a decaying PCA spectrum in a random
+//!   orthonormal basis; each observation adds noise, then SIFT's encoding (clamped at 0, L2 to
+//!   512, saturated to `u8`). Keypoint scales follow depth (a point's size over its depth).
+//! - **Queries** off the database path (1.5–3 m to the side, other headings): projections of
+//!   visible points with 0.7 px noise and about 30 % outlier keypoints that carry the
+//!   descriptor of some other point, in `queries.db`; `queries.txt` (hloc list with
+//!   intrinsics) and `gt_poses.txt` (`cam_from_world`).
+
+use std::path::Path;
+
+use nalgebra::Vector3;
+
+use super::look_at;
+use crate::colmap::{
+    bin, Camera, DatabaseWriter, Error, Image, Point2D, Reconstruction, TrackElement,
+};
+use crate::format::f16;
+use crate::geometry::{CameraModel, Pose, SplitMix64};
+
+const WIDTH: u32 = 1024;
+const HEIGHT: u32 = 768;
+const FOCAL: f64 = 800.0;
+const HALF_WIDTH: f64 = 6.0;
+const FACADE_HEIGHT: f64 = 15.0;
+const EYE: f64 = -1.6;
+const MAX_DEPTH: f64 = 45.0;
+const MAX_OBSERVATIONS: usize = 1_400;
+const DIM: usize = 128;
+
+/// What to generate.
+#[derive(Debug, Clone)]
+pub struct StreetOptions {
+    /// Façade points before thinning (those seen by fewer than 2 images are dropped).
+    pub points: usize,
+    pub queries: usize,
+    pub seed: u64,
+    /// Share of a query's keypoints that are outliers.
+    pub outlier_share: f64,
+    /// Pixel noise (standard deviation) of the query keypoints.
+    pub pixel_noise: f64,
+}
+
+impl Default for StreetOptions {
+    fn default() -> Self {
+        StreetOptions {
+            points: 100_000,
+            queries: 20,
+            seed: 0,
+            outlier_share: 0.3,
+            pixel_noise: 0.7,
+        }
+    }
+}
+
+/// What was written.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StreetSummary {
+    pub length_m: f64,
+    /// 3D points in the model.
+    pub points: usize,
+    pub images: usize,
+    pub observations: usize,
+    pub queries: usize,
+}
+
+/// Writes the scene into `dir` (which must exist): `sparse/{cameras,images,points3D}.bin`,
+/// `database.db`, `queries.db`, `queries.txt`, `gt_poses.txt`, each through the atomic writer.
+pub fn write_street(dir: &Path, options: &StreetOptions) -> Result<StreetSummary, Error> {
+    let scene = Street::new(options);
+    let camera = scene.camera();
+    let mut rng = SplitMix64::new(options.seed ^ 0x5EED_0001);
+
+    // Which points each database image sees (thinned), in image order.
+    let poses = scene.database_poses();
+    let mut seen: Vec<Vec<(u32, [f64; 2], f64)>> = Vec::with_capacity(poses.len());
+    let mut track_len = vec![0u32; scene.positions.len()];
+    for (i, pose) in poses.iter().enumerate() {
+        let mut visible = scene.visible(pose);
+        let keep = MAX_OBSERVATIONS as f64 / visible.len().max(1) as f64;
+        let mut thin = SplitMix64::new(options.seed ^ (i as u64).wrapping_mul(0x9E37_79B9));
+        visible.retain(|_| keep >= 1.0 || thin.next_f64() < keep);
+        for &(p, _, _) in &visible {
+            track_len[p as usize] += 1;
+        }
+        seen.push(visible);
+    }
+    let kept: Vec<bool> = track_len.iter().map(|&n| n >= 2).collect();
+
+    let sparse = dir.join("sparse");
+    std::fs::create_dir_all(&sparse).map_err(|source| Error::Io {
+        path: sparse.clone(),
+        source,
+    })?;
+    let mut model = Reconstruction::builder();
+    model.add_camera(camera.clone());
+    let mut tracks: Vec<Vec<TrackElement>> = vec![Vec::new(); scene.positions.len()];
+    let mut db = DatabaseWriter::new(&dir.join("database.db"))?;
+    db.add_camera(&camera)?;
+    let mut observations = 0;
+    for (i, (pose, visible)) in poses.iter().zip(&seen).enumerate() {
+        let id = i as u32 + 1;
+        let name = format!("db_{i:06}.jpg");
+        let mut points2d = Vec::with_capacity(visible.len());
+        let mut keypoints = Vec::with_capacity(visible.len());
+        let mut descriptors = Vec::with_capacity(visible.len() * DIM);
+        for &(p, xy, depth) in visible {
+            let point3d_id = kept[p as usize].then_some(u64::from(p) + 1);
+            if point3d_id.is_some() {
+                tracks[p as usize].push(TrackElement {
+                    image_id: id,
+                    point2d_idx: points2d.len() as u32,
+                });
+                observations += 1;
+            }
+            points2d.push(Point2D { xy, point3d_id });
+            keypoints.push(scene.keypoint(p, xy, depth, &mut rng));
+            scene.observe(p, 0.25, &mut rng, &mut descriptors);
+        }
+        db.add_image(id, &name, camera.id, &keypoints, &descriptors, DIM)?;
+        model.add_image(Image {
+            id,
+            name,
+            camera_id: camera.id,
+            cam_from_world: *pose,
+            points2d,
+        });
+    }
+    db.write()?;
+    let mut points = 0;
+    for (p, track) in tracks.iter().enumerate() {
+        if kept[p] {
+            points += 1;
+            let xyz = scene.positions[p].into();
+            model.add_point3d(p as u64 + 1, xyz, scene.color(p), 0.5, track)?;
+        }
+    }
+    drop(tracks);
+    let model = model.build()?;
+    for (name, bytes) in [
+        ("cameras.bin", bin::write_cameras(&model)),
+        ("images.bin", bin::write_images(&model)),
+        ("points3D.bin", bin::write_points3d(&model)),
+    ] {
+        write_file(&sparse.join(name), &bytes)?;
+    }
+    let images = model.images().len();
+    drop(model);
+
+    let queries = scene.write_queries(dir, options, &camera, &kept)?;
+    Ok(StreetSummary {
+        length_m: scene.length,
+        points,
+        images,
+        observations,
+        queries,
+    })
+}
+
+fn write_file(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+    crate::output::write_atomic(path, |out| {
+        std::io::Write::write_all(out, bytes)
+            .map_err(|e| crate::output::OutputError::cannot_write(path, e))
+    })
+    .map_err(|e| Error::Io {
+        path: path.to_path_buf(),
+        source: std::io::Error::other(e.to_string()),
+    })
+}
+
+fn gaussian(rng: &mut SplitMix64) -> f64 {
+    // Box–Muller; 1 − u keeps the logarithm finite.
+    let (u, v) = (1.0 - rng.next_f64(), rng.next_f64());
+    (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+}
+
+/// The generated world: façade points sorted along the street, their sizes and base
+/// descriptors.
+struct Street {
+    length: f64,
+    seed: u64,
+    positions: Vec<Vector3<f64>>,
+    /// Physical size (m) of each point's feature: its keypoint scale is size × f / depth.
+    sizes: Vec<f32>,
+    /// `[points × DIM]` base descriptors (before SIFT's encoding).
+    base: Vec<f16>,
+}
+
+impl Street {
+    fn new(options: &StreetOptions) -> Street {
+        let length = (options.points as f64 / 1000.0).max(10.0);
+        let mut rng = SplitMix64::new(options.seed);
+        let mut positions: Vec<Vector3<f64>> = (0..options.points)
+            .map(|_| {
+                let side = if rng.next_f64() < 0.5 { -1.0 } else { 1.0 };
+                // A little relief, so the façades are not exact planes.
+                let x = side * (HALF_WIDTH + 0.1 * rng.next_f64());
+                Vector3::new(x, -FACADE_HEIGHT * rng.next_f64(), length * rng.next_f64())
+            })
+            .collect();
+        positions.sort_by(|a, b| a.z.total_cmp(&b.z));
+        let sizes = (0..options.points)
+            .map(|_| (0.02 * 10f64.powf(rng.next_f64())) as f32)
+            .collect();
+        // A random orthonormal basis (Gram–Schmidt) and a decaying spectrum: a few
+        // directions carry most of the variance, as in real SIFT.
+        let mut basis = vec![0.0f64; DIM * DIM];
+        for k in 0..DIM {
+            let mut v: Vec<f64> = (0..DIM).map(|_| gaussian(&mut rng)).collect();
+            for j in 0..k {
+                let b = &basis[j * DIM..(j + 1) * DIM];
+                let d: f64 = v.iter().zip(b).map(|(x, y)| x * y).sum();
+                v.iter_mut().zip(b).for_each(|(x, y)| *x -= d * y);
+            }
+            let n = v.iter().map(|x| x * x).sum::<f64>().sqrt();
+            basis[k * DIM..(k + 1) * DIM]
+                .iter_mut()
+                .zip(&v)
+                .for_each(|(b, x)| *b = x / n);
+        }
+        let mut base = Vec::with_capacity(options.points * DIM);
+        let mut row = [0.0f64; DIM];
+        for _ in 0..options.points {
+            row.fill(30.0);
+            for k in 0..DIM {
+                let c = 40.0 * (-(k as f64) / 24.0).exp() * gaussian(&mut rng);
+                row.iter_mut()
+                    .zip(&basis[k * DIM..(k + 1) * DIM])
+                    .for_each(|(r, b)| *r += c * b);
+            }
+            base.extend(row.iter().map(|&v| f16::from_f64(v)));
+        }
+        Street {
+            length,
+            seed: options.seed,
+            positions,
+            sizes,
+            base,
+        }
+    }
+
+    fn camera(&self) -> Camera {
+        Camera {
+            id: 1,
+            model: CameraModel::Pinhole,
+            width: u64::from(WIDTH),
+            height: u64::from(HEIGHT),
+            params: vec![
+                FOCAL,
+                FOCAL,
+                f64::from(WIDTH) / 2.0,
+                f64::from(HEIGHT) / 2.0,
+            ],
+        }
+    }
+
+    /// Every 0.5 m along the street: both façades across, both ahead.
+    fn database_poses(&self) -> Vec<Pose> {
+        let stations = (self.length / 0.5) as usize;
+        let mut poses = Vec::with_capacity(stations * 4);
+        for s in 0..stations {
+            let z = 0.25 + 0.5 * s as f64;
+            let x = if s % 2 == 0 { -0.5 } else { 0.5 };
+            let centre = Vector3::new(x, EYE, z);
+            for (side, ahead) in [(-1.0, 4.0), (1.0, 4.0), (-1.0, 15.0), (1.0, 15.0)] {
+                let target = Vector3::new(side * HALF_WIDTH, -3.0, z + ahead);
+                poses.push(look_at(centre, target));
+            }
+        }
+        poses
+    }
+
+    /// The points `pose` sees: in front, within [`MAX_DEPTH`], inside the frame (1 px
+    /// margin); as (point, pixel, depth), in point order.
+    fn visible(&self, pose: &Pose) -> Vec<(u32, [f64; 2], f64)> {
+        let centre = pose.center();
+        let lo = self
+            .positions
+            .partition_point(|p| p.z < centre.z - MAX_DEPTH);
+        let hi = self
+            .positions
+            .partition_point(|p| p.z <= centre.z + MAX_DEPTH);
+        let (w, h) = (f64::from(WIDTH), f64::from(HEIGHT));
+        (lo..hi)
+            .filter_map(|p| {
+                let c = pose.transform(&self.positions[p]);
+                if !(c.z > 0.5 && c.z < MAX_DEPTH) {
+                    return None;
+                }
+                let xy = [FOCAL * c.x / c.z + w / 2.0, FOCAL * c.y / c.z + h / 2.0];
+                (xy[0] > 1.0 && xy[0] < w - 1.0 && xy[1] > 1.0 && xy[1] < h - 1.0)
+                    .then_some((p as u32, xy, c.z))
+            })
+            .collect()
+    }
+
+    /// `(x, y, scale, orientation)` of point `p` seen at `xy` from `depth`.
+    fn keypoint(&self, p: u32, xy: [f64; 2], depth: f64, rng: &mut SplitMix64) -> [f32; 4] {
+        let scale = (f64::from(self.sizes[p as usize]) * FOCAL / depth).max(1.0);
+        let angle = (rng.next_f64() - 0.5) * std::f64::consts::TAU;
+        [xy[0] as f32, xy[1] as f32, scale as f32, angle as f32]
+    }
+
+    /// Appends one observation of point `p`: its base descriptor plus noise of `noise` times
+    /// the base's spread, encoded as COLMAP's SIFT (`u8`, L2 norm 512, saturated).
+    fn observe(&self, p: u32, noise: f64, rng: &mut SplitMix64, out: &mut Vec<u8>) {
+        let base = &self.base[p as usize * DIM..(p as usize + 1) * DIM];
+        let mut v: Vec<f64> = base
+            .iter()
+            .map(|b| (b.to_f64() + noise * 40.0 * gaussian(rng)).max(0.0))
+            .collect();
+        let n = v.iter().map(|x| x * x).sum::<f64>().sqrt().max(1e-9);
+        v.iter_mut().for_each(|x| *x *= 512.0 / n);
+        out.extend(v.iter().map(|&x| x.round().min(255.0) as u8));
+    }
+
+    fn color(&self, p: usize) -> [u8; 3] {
+        let h = (p as u64 ^ self.seed).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        [(h >> 40) as u8, (h >> 48) as u8, (h >> 56) as u8]
+    }
+
+    /// `queries.db`, `queries.txt`, `gt_poses.txt`; returns the number of queries.
+    fn write_queries(
+        &self,
+        dir: &Path,
+        options: &StreetOptions,
+        camera: &Camera,
+        kept: &[bool],
+    ) -> Result<usize, Error> {
+        let mut rng = SplitMix64::new(options.seed ^ 0x0051_EE71);
+        let mut db = DatabaseWriter::new(&dir.join("queries.db"))?;
+        db.add_camera(camera)?;
+        let (mut list, mut gt) = (String::new(), String::new());
+        let (w, h) = (f64::from(WIDTH), f64::from(HEIGHT));
+        for q in 0..options.queries {
+            let z = self.length * (0.1 + 0.8 * rng.next_f64());
+            let side = if rng.next_f64() < 0.5 { -1.0 } else { 1.0 };
+            let centre = Vector3::new(
+                side * (1.5 + 1.5 * rng.next_f64()),
+                EYE + 0.2 * (rng.next_f64() - 0.5),
+                z,
+            );
+            let look = if rng.next_f64() < 0.5 { -side } else { side };
+            let target = Vector3::new(
+                look * HALF_WIDTH,
+                -1.0 - 4.0 * rng.next_f64(),
+                z + 2.0 + 18.0 * rng.next_f64(),
+            );
+            let pose = look_at(centre, target);
+            let mut visible = self.visible(&pose);
+            visible.retain(|&(p, _, _)| kept[p as usize]);
+            let keep = 1_500.0 / visible.len().max(1) as f64;
+            visible.retain(|_| keep >= 1.0 || rng.next_f64() < keep);
+            let outliers = (visible.len() as f64 * options.outlier_share
+                / (1.0 - options.outlier_share)) as usize;
+            let mut keypoints = Vec::with_capacity(visible.len() + outliers);
+            let mut descriptors = Vec::with_capacity((visible.len() + outliers) * DIM);
+            for &(p, xy, depth) in &visible {
+                let noisy = [
+                    xy[0] + options.pixel_noise * gaussian(&mut rng),
+                    xy[1] + options.pixel_noise * gaussian(&mut rng),
+                ];
+                keypoints.push(self.keypoint(p, noisy, depth, &mut rng));
+                self.observe(p, 0.25, &mut rng, &mut descriptors);
+            }
+            for _ in 0..outliers {
+                let xy = [
+                    1.0 + (w - 2.0) * rng.next_f64(),
+                    1.0 + (h - 2.0) * rng.next_f64(),
+                ];
+                let other = rng.below(self.positions.len()) as u32;
+                keypoints.push(self.keypoint(other, xy, 10.0, &mut rng));
+                self.observe(other, 0.25, &mut rng, &mut descriptors);
+            }
+            let name = format!("query_{q:04}.jpg");
+            db.add_image(
+                q as u32 + 1,
+                &name,
+                camera.id,
+                &keypoints,
+                &descriptors,
+                DIM,
+            )?;
+            let intrinsics =
+                crate::geometry::Camera::new(camera.model, WIDTH, HEIGHT, camera.params.clone())
+                    .expect("the street camera is valid");
+            list.push_str(&format!("{name} {intrinsics}\n"));
+            gt.push_str(&crate::io::poses::colmap_pose_line(&name, &pose));
+            gt.push('\n');
+        }
+        db.write()?;
+        write_file(&dir.join("queries.txt"), list.as_bytes())?;
+        write_file(&dir.join("gt_poses.txt"), gt.as_bytes())?;
+        Ok(options.queries)
+    }
+}
