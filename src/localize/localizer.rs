@@ -6,7 +6,7 @@
 //! threads; it reads descriptors straight from the mmapped map.
 
 use super::kernels::sgemm_abt;
-use super::matching::{fails_ratio_test, match_descriptors, MatchOptions};
+use super::matching::{fails_ratio_test, match_rows, MatchOptions};
 use crate::format::{f16, Error as FormatError, Level, Map, Visibility};
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use crate::vector::{dot, normalise_rows};
@@ -271,10 +271,16 @@ struct LevelIndex<'m> {
     id: u16,
     /// The global point of each row, strictly increasing (the map's own array).
     points: Cow<'m, [u32]>,
-    /// Every row's descriptor as f32, unit norm, in the stored basis: `short` only
-    /// (`[rows × dim_short]`) or the full one.
-    descriptors: Vec<f32>,
-    /// Matched dimensions, at least 1.
+    /// The level's `short` block as the map stores it (`[rows × ds]` f16, a view of the
+    /// mapping for raw sections), and its `rest` block (`[rows × dr]`) when it is matched.
+    short: Cow<'m, [f16]>,
+    rest: Option<Cow<'m, [f16]>>,
+    ds: usize,
+    dr: usize,
+    /// Each row's L2 norm as decoded to f32 (rows are matched at unit norm): 4 bytes a row
+    /// instead of a decoded copy of the level.
+    norms: Vec<f32>,
+    /// Matched dimensions (`ds`, or `ds + dr` with `rest`), at least 1.
     dim: usize,
     /// `[dim × d_in]`: maps a query descriptor into the stored basis (first `dim` rows).
     projection: Option<Vec<f32>>,
@@ -283,9 +289,25 @@ struct LevelIndex<'m> {
 }
 
 impl LevelIndex<'_> {
-    fn row(&self, r: usize) -> &[f32] {
-        &self.descriptors[r * self.dim..(r + 1) * self.dim]
+    /// Row `r` decoded and normalised into `out` (`dim` values): the same values, bit for
+    /// bit, as normalising the decoded row with `vector::l2_normalise`.
+    fn decode_row(&self, r: usize, out: &mut [f32]) {
+        let (short, rest) = out.split_at_mut(self.ds);
+        decode(&self.short[r * self.ds..(r + 1) * self.ds], short);
+        if let Some(block) = &self.rest {
+            decode(&block[r * self.dr..(r + 1) * self.dr], rest);
+        }
+        let norm = self.norms[r];
+        if norm > 1e-12 {
+            out.iter_mut().for_each(|x| *x /= norm);
+        }
     }
+}
+
+/// f16 → f32 (exact), through `half`'s slice conversion (F16C where the CPU has it).
+fn decode(from: &[f16], to: &mut [f32]) {
+    use half::slice::HalfFloatSliceExt;
+    from.convert_to_f32_slice(to);
 }
 
 /// A map prepared for localization: levels indexed, descriptors decoded to f32 once.
@@ -623,18 +645,14 @@ impl<'m> Localizer<'m> {
             return;
         }
         let q = self.project(level, set);
-        // Every row a candidate: the level's own block, not a copy.
-        let gathered;
-        let block: &[f32] = if rows.len() == level.points.len() {
-            &level.descriptors
-        } else {
-            gathered = rows
-                .iter()
-                .flat_map(|&r| level.row(r).iter().copied())
-                .collect::<Vec<f32>>();
-            &gathered
+        let dim = level.dim;
+        // Candidate rows are decoded from the mapping a block at a time, never all at once.
+        let fill = |start: usize, tile: &mut [f32]| {
+            for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
+                level.decode_row(rows[start + k], out);
+            }
         };
-        for m in match_descriptors(&q, block, level.dim, &self.options.matching) {
+        for m in match_rows(&q, rows.len(), dim, &self.options.matching, fill) {
             let kp = set.keypoints[m.query as usize];
             let p = level.points[rows[m.map as usize]];
             pixels.push(Vector2::new(kp[0], kp[1]));
@@ -681,6 +699,7 @@ impl<'m> Localizer<'m> {
         let mut found: Vec<(u32, f32, usize)> = Vec::new();
         let gate2 = (gate * gate) as f32;
         let mut qd = Vec::with_capacity(level.dim);
+        let mut map_row = vec![0.0f32; level.dim];
         // Most keypoints will need their projection when the level has as many points in view
         // as a quarter of the keypoints: then one GEMM for all of them (5x faster than row by
         // row), held only while this level is matched; otherwise each keypoint is projected
@@ -713,7 +732,8 @@ impl<'m> Localizer<'m> {
                             &qd[..]
                         }
                     };
-                    let s = dot(q, level.row(row as usize));
+                    level.decode_row(row as usize, &mut map_row);
+                    let s = dot(q, &map_row);
                     let p = level.points[row as usize];
                     if s > best.0 {
                         second = best.0;
@@ -862,18 +882,27 @@ fn build_level(
         }
         None => (None, df),
     };
-    let mut descriptors = Vec::with_capacity(short.len() + rest.as_ref().map_or(0, |r| r.len()));
-    for r in 0..n {
-        descriptors.extend(short[r * ds..(r + 1) * ds].iter().map(|x| x.to_f32()));
-        if let Some(rest) = &rest {
-            descriptors.extend(rest[r * dr..(r + 1) * dr].iter().map(|x| x.to_f32()));
-        }
-    }
-    normalise_rows(&mut descriptors, dim);
+    // Each row's norm as `l2_normalise` computes it (the same sum, in the same order, of
+    // the same decoded values), so `decode_row` divides by exactly what it would.
+    let mut row = vec![0.0f32; dim];
+    let norms = (0..n)
+        .map(|r| {
+            decode(&short[r * ds..(r + 1) * ds], &mut row[..ds]);
+            if let Some(rest) = &rest {
+                decode(&rest[r * dr..(r + 1) * dr], &mut row[ds..]);
+            }
+            row.iter().map(|x| x * x).sum::<f32>().sqrt()
+        })
+        .collect();
+    let dr = if rest.is_some() { dr } else { 0 };
     Ok(Ok(LevelIndex {
         id,
         points,
-        descriptors,
+        short,
+        rest,
+        ds,
+        dr,
+        norms,
         dim,
         projection,
         d_in,
@@ -980,8 +1009,10 @@ mod tests {
         p.has_rest = true;
         p.rest = Some(halves(2));
         let level = build_level(p, 100).unwrap().unwrap();
-        assert_eq!((level.dim, level.d_in, level.descriptors.len()), (3, 3, 6));
-        let norm: f32 = level.row(1).iter().map(|v| v * v).sum();
+        assert_eq!((level.dim, level.d_in, level.norms.len()), (3, 3, 2));
+        let mut row = [0.0; 3];
+        level.decode_row(1, &mut row);
+        let norm: f32 = row.iter().map(|v| v * v).sum();
         assert!((norm - 1.0).abs() < 1e-6);
     }
 }

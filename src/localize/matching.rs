@@ -48,11 +48,30 @@ pub fn match_descriptors(
     if dim == 0 {
         return Vec::new();
     }
-    let n_q = query.len() / dim;
     let n_m = map.len() / dim;
+    match_rows(query, n_m, dim, options, |start, tile| {
+        tile.copy_from_slice(&map[start * dim..start * dim + tile.len()]);
+    })
+}
+
+/// [`match_descriptors`] against `n_m` map rows that `fill(start, tile)` writes, a block of
+/// at most 2,048 rows at a time, into `tile` (`rows × dim`): the map's rows never need to be
+/// in memory as f32 all at once (the localizer decodes them from the mapping's f16).
+pub(crate) fn match_rows(
+    query: &[f32],
+    n_m: usize,
+    dim: usize,
+    options: &MatchOptions,
+    mut fill: impl FnMut(usize, &mut [f32]),
+) -> Vec<Match> {
+    if dim == 0 {
+        return Vec::new();
+    }
+    let n_q = query.len() / dim;
     if n_q == 0 || n_m == 0 {
         return Vec::new();
     }
+    let mut tile = vec![0.0f32; BLOCK.min(n_m) * dim];
     let mut best = vec![(f32::NEG_INFINITY, u32::MAX); n_q];
     let mut second = vec![f32::NEG_INFINITY; n_q];
     // The best similarity of each map row: query q is map row m's nearest neighbour exactly
@@ -61,7 +80,8 @@ pub fn match_descriptors(
     let mut scores = vec![0.0f32; n_q * BLOCK.min(n_m)];
     for start in (0..n_m).step_by(BLOCK) {
         let rows = BLOCK.min(n_m - start);
-        let block = &map[start * dim..(start + rows) * dim];
+        let block = &mut tile[..rows * dim];
+        fill(start, block);
         let out = &mut scores[..n_q * rows];
         sgemm_abt(query, block, out, n_q, rows, dim);
         let columns = &mut column_max[start..start + rows];
