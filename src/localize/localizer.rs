@@ -297,6 +297,11 @@ impl LevelIndex<'_> {
         if let Some(block) = &self.rest {
             decode(&block[r * self.dr..(r + 1) * self.dr], rest);
         }
+        self.scale_row(r, out);
+    }
+
+    /// Divides decoded row `r` by its norm (as `vector::l2_normalise` would).
+    fn scale_row(&self, r: usize, out: &mut [f32]) {
         let norm = self.norms[r];
         if norm > 1e-12 {
             out.iter_mut().for_each(|x| *x /= norm);
@@ -648,8 +653,18 @@ impl<'m> Localizer<'m> {
         let dim = level.dim;
         // Candidate rows are decoded from the mapping a block at a time, never all at once.
         let fill = |start: usize, tile: &mut [f32]| {
-            for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
-                level.decode_row(rows[start + k], out);
+            let n = tile.len() / dim;
+            let first = rows[start];
+            if level.rest.is_none() && rows[start + n - 1] == first + n - 1 {
+                // Consecutive rows of the short block (every row a candidate): one conversion.
+                decode(&level.short[first * dim..(first + n) * dim], tile);
+                for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
+                    level.scale_row(first + k, out);
+                }
+            } else {
+                for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
+                    level.decode_row(rows[start + k], out);
+                }
             }
         };
         for m in match_rows(&q, rows.len(), dim, &self.options.matching, fill) {
@@ -695,11 +710,14 @@ impl<'m> Localizer<'m> {
             return;
         }
         cells.sort_unstable_by_key(|c| (c.0, c.1, c.2));
+        // A row is decoded when a gate reaches it: caching the rows in view costs more than it
+        // saves (a street's far points all project into the image; measured on the 1 M-point
+        // street: more memory and slower).
+        let mut map_row = vec![0.0f32; level.dim];
         // (point, similarity, keypoint); each map point keeps its best keypoint below.
         let mut found: Vec<(u32, f32, usize)> = Vec::new();
         let gate2 = (gate * gate) as f32;
         let mut qd = Vec::with_capacity(level.dim);
-        let mut map_row = vec![0.0f32; level.dim];
         // Most keypoints will need their projection when the level has as many points in view
         // as a quarter of the keypoints: then one GEMM for all of them (5x faster than row by
         // row), held only while this level is matched; otherwise each keypoint is projected
