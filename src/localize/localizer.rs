@@ -3,7 +3,8 @@
 //! a radius of each query keypoint) → re-estimation and refinement on all inliers.
 //!
 //! A [`Localizer`] is built once per map (it indexes the levels and visibility) and shared by
-//! threads; it reads descriptors straight from the mmapped map.
+//! threads; it reads descriptors straight from the mmapped map's f16 blocks, decoding the
+//! candidate rows a block at a time inside matching (4 bytes a row of its own: the norm).
 
 use super::kernels::sgemm_abt;
 use super::matching::{fails_ratio_test, match_rows, MatchOptions};
@@ -315,7 +316,7 @@ fn decode(from: &[f16], to: &mut [f32]) {
     from.convert_to_f32_slice(to);
 }
 
-/// A map prepared for localization: levels indexed, descriptors decoded to f32 once.
+/// A map prepared for localization: levels indexed over the map's own descriptor blocks.
 pub struct Localizer<'m> {
     map: &'m Map<'m>,
     options: LocalizeOptions,
