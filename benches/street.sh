@@ -3,7 +3,7 @@
 # (cached under target/street/), convert the SIFT map, slice level 2 short, localize the
 # queries with both maps (1 thread), and print median ms per query, localized share, map
 # bytes and localize's peak RSS side by side.
-# Usage: benches/street.sh [POINTS ...]   (default 100000; 1000000 takes minutes and ~3 GB)
+# Usage: benches/street.sh [POINTS ...]   (default 100000; 1000000 takes ~5 min and ~8 GB to generate)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 sizes=("${@:-100000}")

@@ -1,6 +1,8 @@
 //! A street-sized scene for scale work: a COLMAP model, its `database.db`, and queries with
 //! ground truth, generated deterministically from a seed (no images: descriptors are
-//! generated, SIFT-like). What `benches/street.sh` and the scale benches run on.
+//! generated, SIFT-like). What `benches/street.sh` and the scale benches run on. The same seed
+//! gives the same files on the same platform (the system's `ln`, `cos` and `exp` may differ in
+//! their last bits elsewhere).
 //!
 //! - **Geometry**: a straight street along +z, façades at x = ±6 m, 15 m high (y down, as in
 //!   COLMAP's camera frame: the ground is y = 0, a roof y = −15). Points uniform on both
@@ -47,7 +49,7 @@ pub struct StreetOptions {
     pub points: usize,
     pub queries: usize,
     pub seed: u64,
-    /// Share of a query's keypoints that are outliers.
+    /// Share of a query's keypoints that are outliers (taken as at most 0.9).
     pub outlier_share: f64,
     /// Pixel noise (standard deviation) of the query keypoints.
     pub pixel_noise: f64,
@@ -90,7 +92,8 @@ pub fn write_street(dir: &Path, options: &StreetOptions) -> Result<StreetSummary
     for (i, pose) in poses.iter().enumerate() {
         let mut visible = scene.visible(pose);
         let keep = MAX_OBSERVATIONS as f64 / visible.len().max(1) as f64;
-        let mut thin = SplitMix64::new(options.seed ^ (i as u64).wrapping_mul(0x9E37_79B9));
+        let mut thin =
+            SplitMix64::new(options.seed ^ 0x7417_0000 ^ (i as u64).wrapping_mul(0x9E37_79B9));
         visible.retain(|_| keep >= 1.0 || thin.next_f64() < keep);
         for &(p, _, _) in &visible {
             track_len[p as usize] += 1;
@@ -240,7 +243,8 @@ impl Street {
                     .zip(&basis[k * DIM..(k + 1) * DIM])
                     .for_each(|(r, b)| *r += c * b);
             }
-            base.extend(row.iter().map(|&v| f16::from_f64(v)));
+            // Through f32: `f16::from_f64` rounds once or twice depending on the CPU.
+            base.extend(row.iter().map(|&v| f16::from_f32(v as f32)));
         }
         Street {
             length,
@@ -363,8 +367,9 @@ impl Street {
             visible.retain(|&(p, _, _)| kept[p as usize]);
             let keep = 1_500.0 / visible.len().max(1) as f64;
             visible.retain(|_| keep >= 1.0 || rng.next_f64() < keep);
-            let outliers = (visible.len() as f64 * options.outlier_share
-                / (1.0 - options.outlier_share)) as usize;
+            // At most 90 % outliers: a share of 1 would ask for infinitely many.
+            let share = options.outlier_share.clamp(0.0, 0.9);
+            let outliers = (visible.len() as f64 * share / (1.0 - share)) as usize;
             let mut keypoints = Vec::with_capacity(visible.len() + outliers);
             let mut descriptors = Vec::with_capacity((visible.len() + outliers) * DIM);
             for &(p, xy, depth) in &visible {

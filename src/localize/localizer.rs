@@ -657,7 +657,7 @@ impl<'m> Localizer<'m> {
             let n = tile.len() / dim;
             let first = rows[start];
             if level.rest.is_none() && rows[start + n - 1] == first + n - 1 {
-                // Consecutive rows of the short block (every row a candidate): one conversion.
+                // Consecutive rows of the short block (a run of candidates): one conversion.
                 decode(&level.short[first * dim..(first + n) * dim], tile);
                 for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
                     level.scale_row(first + k, out);

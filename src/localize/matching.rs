@@ -38,7 +38,9 @@ pub struct Match {
 const BLOCK: usize = 2048;
 
 /// Matches unit-norm `query` rows (`[n_q × dim]`) against unit-norm `map` rows
-/// (`[n_m × dim]`), both row-major f32.
+/// (`[n_m × dim]`), both row-major f32 (the benches' and tests' entry; the localizer decodes
+/// its rows through [`match_rows`]).
+#[cfg(any(test, feature = "fuzzing"))]
 pub fn match_descriptors(
     query: &[f32],
     map: &[f32],
