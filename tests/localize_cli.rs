@@ -181,6 +181,12 @@ fn sift_queries_from_a_database_and_a_missing_query_is_listed_not_fatal() {
     assert_eq!(out["queries"], 3);
     assert_eq!(out["localized"], 2);
     assert_eq!(out["failed"][0]["name"], "missing.jpg");
+    // A SIFT map has no global descriptors: the fallback is stated, for the two queries read.
+    assert_eq!(
+        out["retrieval_fallback"],
+        serde_json::json!({ "the map has no global descriptors": 2 }),
+        "{out}"
+    );
     let text = std::fs::read_to_string(t.path().join("p.txt")).unwrap();
     assert!(text.contains("# failed missing.jpg"), "{text}");
     // A SIFT map without query features is a clear error, not a crash.

@@ -343,11 +343,22 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .zip(&results)
         .filter_map(|(q, r)| Some(json!({ "name": q.name, "reason": r.failure()?.to_string() })))
         .collect();
+    // Retrieval's fallback, stated: how many queries matched against every point, and why.
+    let mut fallbacks: std::collections::BTreeMap<String, usize> = Default::default();
+    for r in results.iter().filter(|&r| {
+        !r.failure()
+            .is_some_and(|f| matches!(f, QueryFailure::NoFeatures(_)))
+    }) {
+        if let Some(why) = r.retrieval_fallback {
+            *fallbacks.entry(why.to_string()).or_default() += 1;
+        }
+    }
     if args.json {
         super::print_json(&json!({
             "queries": queries.len(),
             "localized": localized,
             "failed": failed,
+            "retrieval_fallback": fallbacks,
             "output": args.output.display().to_string(),
             "seconds": start.elapsed().as_secs_f64(),
             "median_ms": median_ms(&results),
@@ -360,6 +371,12 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             queries.len(),
             median(results.iter().map(|r| r.times.total_ms).collect()).unwrap_or(f64::NAN)
         );
+        for (why, n) in &fallbacks {
+            println!(
+                "retrieval not used for {n} of {} queries: {why}; every point was a candidate",
+                queries.len()
+            );
+        }
         for f in &failed {
             // JSON escapes C0 controls but not DEL or C1 ones: escape them all for the terminal.
             println!(
@@ -555,6 +572,8 @@ fn pose_text(
                         "inliers": r.inliers,
                         "inliers_per_level": r.inliers_per_level,
                         "matches": r.matches,
+                        "retrieved_images": r.retrieved_images,
+                        "retrieval_fallback": r.retrieval_fallback.map(|w| w.to_string()),
                         "ms": r.times.total_ms,
                     })
                 })

@@ -8,6 +8,7 @@
 
 use super::kernels::sgemm_abt;
 use super::matching::{fails_ratio_test, match_rows, MatchOptions};
+use super::retrieval::RetrievalFallback;
 use crate::format::{f16, Error as FormatError, Level, Map, Visibility};
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use crate::vector::{dot, normalise_rows};
@@ -95,6 +96,8 @@ pub struct Localization {
     pub matches: usize,
     pub inliers: usize,
     pub retrieved_images: usize,
+    /// Why the candidates were every point (no retrieval), if they were: the fallback.
+    pub retrieval_fallback: Option<RetrievalFallback>,
     pub times: StageTimes,
 }
 
@@ -117,6 +120,7 @@ impl Localization {
             matches: 0,
             inliers: 0,
             retrieved_images: 0,
+            retrieval_fallback: None,
             times: StageTimes::default(),
         }
     }
@@ -406,7 +410,7 @@ impl<'m> Localizer<'m> {
     ) -> Result<Localization, LocalizeError> {
         let t0 = Instant::now();
         let mut times = StageTimes::default();
-        let (candidates, retrieved_images) = self.candidate_points(query);
+        let (candidates, retrieved_images, retrieval_fallback) = self.candidate_points(query);
         times.retrieval_ms = ms(t0);
 
         // The feature set each level matches, checked once; each level projects it into its
@@ -423,6 +427,7 @@ impl<'m> Localizer<'m> {
             matches,
             inliers: 0,
             retrieved_images,
+            retrieval_fallback,
             times,
         };
 
@@ -495,6 +500,7 @@ impl<'m> Localizer<'m> {
                 matches: coarse_matches,
                 inliers,
                 retrieved_images,
+                retrieval_fallback,
                 times,
             });
         };
@@ -510,6 +516,7 @@ impl<'m> Localizer<'m> {
             matches: n_matches,
             inliers: estimate.num_inliers,
             retrieved_images,
+            retrieval_fallback,
             times,
         })
     }
@@ -552,13 +559,18 @@ impl<'m> Localizer<'m> {
     }
 
     /// Points seen by the retrieved images (one bit per point; `None` when that is every
-    /// point, or without global descriptors or visibility), and how many images were
-    /// retrieved.
-    fn candidate_points(&self, query: &QueryFeatures) -> (Option<BitVec>, usize) {
+    /// point, or without global descriptors or visibility), how many images were retrieved,
+    /// and why there was no narrowing if there was none.
+    fn candidate_points(
+        &self,
+        query: &QueryFeatures,
+    ) -> (Option<BitVec>, usize, Option<RetrievalFallback>) {
+        let global = self.global.as_ref().map(|(g, dim)| (g.as_slice(), *dim));
+        let n_images = self.map.n_images() as usize;
         let images = super::retrieval::retrieve(
-            self.global.as_ref().map(|(g, dim)| (g.as_slice(), *dim)),
+            global,
             query.global.as_deref(),
-            self.map.n_images() as usize,
+            n_images,
             self.options.top_k,
         );
         let candidates = self.visibility.as_ref().and_then(|visibility| {
@@ -566,7 +578,13 @@ impl<'m> Localizer<'m> {
                 visibility.points_of(i)
             })
         });
-        (candidates, images.len())
+        let why = match super::retrieval::fallback(global, query.global.as_deref(), n_images) {
+            Some(why) => Some(why),
+            None if self.visibility.is_none() => Some(RetrievalFallback::NoVisibility),
+            None if candidates.is_none() => Some(RetrievalFallback::EveryPointSeen),
+            None => None,
+        };
+        (candidates, images.len(), why)
     }
 
     /// The query's feature set for `level`, checked against the level's descriptor space.

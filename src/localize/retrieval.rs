@@ -5,6 +5,60 @@
 use crate::vector::normalise_rows;
 use bitvec::vec::BitVec;
 
+/// Why a query's candidates are every point of the map instead of those of its retrieved
+/// images: what `localize` reports per query.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum RetrievalFallback {
+    /// The map stores no global descriptors (SIFT maps today).
+    NoMapDescriptors,
+    /// The query has no global descriptor (SIFT features, a features.h5 without one).
+    NoQueryDescriptor,
+    /// The query's global descriptor has another length than the map's (another model).
+    DimensionMismatch { map: usize, query: usize },
+    /// The map has no images, or no visibility to turn images into points.
+    NoVisibility,
+    /// The retrieved images see every point (`top_k` covers the map).
+    EveryPointSeen,
+}
+
+impl std::fmt::Display for RetrievalFallback {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RetrievalFallback::NoMapDescriptors => f.write_str("the map has no global descriptors"),
+            RetrievalFallback::NoQueryDescriptor => {
+                f.write_str("the query has no global descriptor")
+            }
+            RetrievalFallback::DimensionMismatch { map, query } => write!(
+                f,
+                "the query's global descriptor has {query} dimensions, the map's {map}"
+            ),
+            RetrievalFallback::NoVisibility => f.write_str("the map has no images or visibility"),
+            RetrievalFallback::EveryPointSeen => {
+                f.write_str("the retrieved images see every point")
+            }
+        }
+    }
+}
+
+/// Why [`retrieve`] could not rank, if it could not.
+pub(crate) fn fallback(
+    database: Option<(&[f32], usize)>,
+    query: Option<&[f32]>,
+    n_images: usize,
+) -> Option<RetrievalFallback> {
+    match (database, query) {
+        _ if n_images == 0 => Some(RetrievalFallback::NoVisibility),
+        (None, _) => Some(RetrievalFallback::NoMapDescriptors),
+        (_, None) => Some(RetrievalFallback::NoQueryDescriptor),
+        (Some((_, map)), Some(q)) if q.len() != map => Some(RetrievalFallback::DimensionMismatch {
+            map,
+            query: q.len(),
+        }),
+        _ => None,
+    }
+}
+
 /// The `top_k` database images whose global descriptors (`[n_images × dim]`, L2-normalised,
 /// row-major) score highest against the query's, best first (ties: lower index first); all
 /// images in order when the map or the query has no global descriptor of that length.
@@ -108,6 +162,32 @@ mod tests {
         // A query descriptor of another length (another model) cannot be compared.
         assert_eq!(retrieve(Some((&g, 2)), Some(&[1.0, 0.0, 0.0]), 2, 1), all);
         assert!(retrieve(Some((&[], 2)), Some(&[1.0, 0.0]), 0, 1).is_empty());
+    }
+
+    #[test]
+    fn each_fallback_is_named() {
+        let g = [1.0, 0.0, 0.0, 1.0];
+        assert_eq!(fallback(Some((&g, 2)), Some(&[1.0, 0.0]), 2), None);
+        assert_eq!(
+            fallback(None, Some(&[1.0, 0.0]), 2),
+            Some(RetrievalFallback::NoMapDescriptors)
+        );
+        assert_eq!(
+            fallback(Some((&g, 2)), None, 2),
+            Some(RetrievalFallback::NoQueryDescriptor)
+        );
+        assert_eq!(
+            fallback(Some((&g, 2)), Some(&[1.0; 3]), 2),
+            Some(RetrievalFallback::DimensionMismatch { map: 2, query: 3 })
+        );
+        assert_eq!(
+            fallback(Some((&[], 2)), Some(&[1.0, 0.0]), 0),
+            Some(RetrievalFallback::NoVisibility)
+        );
+        assert_eq!(
+            RetrievalFallback::DimensionMismatch { map: 2, query: 3 }.to_string(),
+            "the query's global descriptor has 3 dimensions, the map's 2"
+        );
     }
 
     #[test]
