@@ -8,7 +8,7 @@ use sfpmap::demo::street::{write_street, StreetOptions};
 use sfpmap::format::Map;
 use sfpmap::io::poses::read_poses;
 use sfpmap::io::queries::{read_query_list, DatabaseFeatures};
-use sfpmap::localize::{LocalizeOptions, Localizer};
+use sfpmap::localize::{LocalizeOptions, Localizer, RetrievalFallback};
 
 #[test]
 fn a_small_street_converts_and_every_query_localizes() {
@@ -72,6 +72,11 @@ fn a_small_street_converts_and_every_query_localizes() {
         let pose = r
             .pose()
             .unwrap_or_else(|| panic!("{name}: {:?}", r.failure()));
+        // A SIFT map: no retrieval, and the localizer says so.
+        assert_eq!(
+            r.retrieval_fallback,
+            Some(RetrievalFallback::NoMapDescriptors)
+        );
         let (t, deg) = (pose.center_distance(gt), pose.rotation_error_deg(gt));
         assert!(t < 0.5 && deg < 2.0, "{name}: {t} m, {deg}°");
     }
