@@ -54,6 +54,22 @@ pub fn look_at(center: V3, target: V3) -> Pose {
     Pose::new(rotation, -(rows * center))
 }
 
+/// COLMAP camera 1: PINHOLE with focal `focal` and the principal point at the centre.
+fn pinhole(width: u32, height: u32, focal: f64) -> Camera {
+    Camera {
+        id: 1,
+        model: CameraModel::Pinhole,
+        width: u64::from(width),
+        height: u64::from(height),
+        params: vec![
+            focal,
+            focal,
+            f64::from(width) / 2.0,
+            f64::from(height) / 2.0,
+        ],
+    }
+}
+
 /// The scene: geometry, cameras and sampled surface points.
 #[derive(Debug, Clone)]
 pub struct DemoScene {
@@ -335,18 +351,7 @@ impl DemoScene {
         }
         let kept = |p: usize| tracks[p].len() >= 2;
         let mut model = Reconstruction::builder();
-        model.add_camera(Camera {
-            id: 1,
-            model: CameraModel::Pinhole,
-            width: u64::from(WIDTH),
-            height: u64::from(HEIGHT),
-            params: vec![
-                FOCAL,
-                FOCAL,
-                f64::from(WIDTH) / 2.0,
-                f64::from(HEIGHT) / 2.0,
-            ],
-        });
+        model.add_camera(pinhole(WIDTH, HEIGHT, FOCAL));
         for (i, (name, pose)) in self.database.iter().enumerate() {
             model.add_image(Image {
                 id: i as u32 + 1,

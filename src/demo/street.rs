@@ -30,7 +30,7 @@ use crate::colmap::{
     bin, Camera, DatabaseWriter, Error, Image, Point2D, Reconstruction, TrackElement,
 };
 use crate::format::f16;
-use crate::geometry::{CameraModel, Pose, SplitMix64};
+use crate::geometry::{Pose, SplitMix64};
 
 const WIDTH: u32 = 1024;
 const HEIGHT: u32 = 768;
@@ -256,18 +256,7 @@ impl Street {
     }
 
     fn camera(&self) -> Camera {
-        Camera {
-            id: 1,
-            model: CameraModel::Pinhole,
-            width: u64::from(WIDTH),
-            height: u64::from(HEIGHT),
-            params: vec![
-                FOCAL,
-                FOCAL,
-                f64::from(WIDTH) / 2.0,
-                f64::from(HEIGHT) / 2.0,
-            ],
-        }
+        super::pinhole(WIDTH, HEIGHT, FOCAL)
     }
 
     /// Every 0.5 m along the street: both façades across, both ahead.
