@@ -3,6 +3,7 @@
 
 pub mod eval;
 mod kernels;
+mod level;
 pub mod localizer;
 mod matching;
 mod retrieval;
