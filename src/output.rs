@@ -456,6 +456,13 @@ where
     Ok(value)
 }
 
+/// Writes `bytes` to `path` through [`write_atomic`].
+pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<(), OutputError> {
+    write_atomic(path, |out| {
+        io::Write::write_all(out, bytes).map_err(|e| OutputError::cannot_write(path, e))
+    })
+}
+
 /// A fresh temp name for an output called `name`: `.NAME.sfpmap-tmp.PID.RANDOM`.
 fn temp_name(name: &std::ffi::OsStr) -> String {
     let name = name.to_string_lossy();

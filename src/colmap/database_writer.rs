@@ -137,14 +137,7 @@ impl DatabaseWriter {
         let err = |e| sqlite(&self.path, e);
         self.conn.execute_batch("COMMIT").map_err(err)?;
         let bytes = self.conn.serialize(MAIN_DB).map_err(err)?;
-        crate::output::write_atomic(&self.path, |out| {
-            std::io::Write::write_all(out, &bytes)
-                .map_err(|e| crate::output::OutputError::cannot_write(&self.path, e))
-        })
-        .map_err(|e| Error::Io {
-            path: self.path.clone(),
-            source: std::io::Error::other(e.to_string()),
-        })
+        Ok(crate::output::write_bytes(&self.path, &bytes)?)
     }
 }
 

@@ -17,6 +17,8 @@ pub enum Error {
         path: PathBuf,
         source: std::io::Error,
     },
+    /// Writing a model file or database failed (the output policy's error, path included).
+    Output(crate::output::OutputError),
     /// A model file or database is not a regular file (a folder, a FIFO, a device): read
     /// only after this check, so a FIFO never blocks the reader.
     NotAFile {
@@ -227,6 +229,7 @@ impl fmt::Display for Error {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Error::Io { path, .. } => write!(f, "cannot read {}", show(path)),
+            Error::Output(e) => e.fmt(f),
             Error::NotAFile { path, kind } => {
                 write!(f, "{}: is {kind}, not a regular file", show(path))
             }
@@ -368,10 +371,18 @@ impl fmt::Display for Error {
     }
 }
 
+impl From<crate::output::OutputError> for Error {
+    fn from(e: crate::output::OutputError) -> Self {
+        Error::Output(e)
+    }
+}
+
 impl std::error::Error for Error {
     fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
         match self {
             Error::Io { source, .. } => Some(source),
+            // Transparent: its text is printed as this error's.
+            Error::Output(e) => e.source(),
             #[cfg(feature = "colmap")]
             Error::Sqlite { source, .. } => Some(source),
             _ => None,

@@ -103,10 +103,8 @@ pub fn write_street(dir: &Path, options: &StreetOptions) -> Result<StreetSummary
     let kept: Vec<bool> = track_len.iter().map(|&n| n >= 2).collect();
 
     let sparse = dir.join("sparse");
-    std::fs::create_dir_all(&sparse).map_err(|source| Error::Io {
-        path: sparse.clone(),
-        source,
-    })?;
+    std::fs::create_dir_all(&sparse)
+        .map_err(|e| crate::output::OutputError::cannot_write(&sparse, e))?;
     let mut model = Reconstruction::builder();
     model.add_camera(camera.clone());
     let mut tracks: Vec<Vec<TrackElement>> = vec![Vec::new(); scene.positions.len()];
@@ -157,7 +155,7 @@ pub fn write_street(dir: &Path, options: &StreetOptions) -> Result<StreetSummary
         ("images.bin", bin::write_images(&model)),
         ("points3D.bin", bin::write_points3d(&model)),
     ] {
-        write_file(&sparse.join(name), &bytes)?;
+        crate::output::write_bytes(&sparse.join(name), &bytes)?;
     }
     let images = model.images().len();
     drop(model);
@@ -169,17 +167,6 @@ pub fn write_street(dir: &Path, options: &StreetOptions) -> Result<StreetSummary
         images,
         observations,
         queries,
-    })
-}
-
-fn write_file(path: &Path, bytes: &[u8]) -> Result<(), Error> {
-    crate::output::write_atomic(path, |out| {
-        std::io::Write::write_all(out, bytes)
-            .map_err(|e| crate::output::OutputError::cannot_write(path, e))
-    })
-    .map_err(|e| Error::Io {
-        path: path.to_path_buf(),
-        source: std::io::Error::other(e.to_string()),
     })
 }
 
@@ -395,8 +382,8 @@ impl Street {
             gt.push('\n');
         }
         db.write()?;
-        write_file(&dir.join("queries.txt"), list.as_bytes())?;
-        write_file(&dir.join("gt_poses.txt"), gt.as_bytes())?;
+        crate::output::write_bytes(&dir.join("queries.txt"), list.as_bytes())?;
+        crate::output::write_bytes(&dir.join("gt_poses.txt"), gt.as_bytes())?;
         Ok(options.queries)
     }
 }

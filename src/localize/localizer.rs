@@ -516,7 +516,7 @@ impl<'m> Localizer<'m> {
     ) -> (Option<BitVec>, usize, Option<RetrievalFallback>) {
         let global = self.global.as_ref().map(|(g, dim)| (g.as_slice(), *dim));
         let n_images = self.map.n_images() as usize;
-        let images = super::retrieval::retrieve(
+        let (images, fallback) = super::retrieval::retrieve(
             global,
             query.global.as_deref(),
             n_images,
@@ -527,7 +527,7 @@ impl<'m> Localizer<'m> {
                 visibility.points_of(i)
             })
         });
-        let why = match super::retrieval::fallback(global, query.global.as_deref(), n_images) {
+        let why = match fallback {
             Some(why) => Some(why),
             None if self.visibility.is_none() => Some(RetrievalFallback::NoVisibility),
             None if candidates.is_none() => Some(RetrievalFallback::EveryPointSeen),

@@ -41,45 +41,35 @@ impl std::fmt::Display for RetrievalFallback {
     }
 }
 
-/// Why [`retrieve`] could not rank, if it could not.
-pub(crate) fn fallback(
-    database: Option<(&[f32], usize)>,
-    query: Option<&[f32]>,
-    n_images: usize,
-) -> Option<RetrievalFallback> {
-    match (database, query) {
-        _ if n_images == 0 => Some(RetrievalFallback::NoVisibility),
-        (None, _) => Some(RetrievalFallback::NoMapDescriptors),
-        (_, None) => Some(RetrievalFallback::NoQueryDescriptor),
-        (Some((_, map)), Some(q)) if q.len() != map => Some(RetrievalFallback::DimensionMismatch {
-            map,
-            query: q.len(),
-        }),
-        _ => None,
-    }
-}
-
 /// The `top_k` database images whose global descriptors (`[n_images × dim]`, L2-normalised,
-/// row-major) score highest against the query's, best first (ties: lower index first); all
-/// images in order when the map or the query has no global descriptor of that length.
+/// row-major) score highest against the query's, best first (ties: lower index first); or
+/// all images in order, with the reason, when the map or the query has no global descriptor
+/// of that length.
 pub(crate) fn retrieve(
     database: Option<(&[f32], usize)>,
     query: Option<&[f32]>,
     n_images: usize,
     top_k: usize,
-) -> Vec<usize> {
-    match (database, query) {
-        (Some((g, dim)), Some(q)) if q.len() == dim && n_images > 0 => {
+) -> (Vec<usize>, Option<RetrievalFallback>) {
+    let fallback = match (database, query) {
+        _ if n_images == 0 => RetrievalFallback::NoVisibility,
+        (None, _) => RetrievalFallback::NoMapDescriptors,
+        (_, None) => RetrievalFallback::NoQueryDescriptor,
+        (Some((_, map)), Some(q)) if q.len() != map => RetrievalFallback::DimensionMismatch {
+            map,
+            query: q.len(),
+        },
+        (Some((g, dim)), Some(q)) => {
             // Scores are cosines, as the map's rows are unit. The ranking would not change
             // without it, but the tie-breaks between scores an ulp apart could.
             let mut q = q.to_vec();
             normalise_rows(&mut q, dim);
             let mut scores = vec![0.0; n_images];
             super::kernels::sgemm_abt(&q, g, &mut scores, 1, n_images, dim);
-            top_k_indices(&scores, top_k.max(1))
+            return (top_k_indices(&scores, top_k.max(1)), None);
         }
-        _ => (0..n_images).collect(),
-    }
+    };
+    ((0..n_images).collect(), Some(fallback))
 }
 
 /// Indices of the `k` highest scores, best first, ties by index: a partial selection
@@ -143,49 +133,48 @@ mod tests {
         // Four images in 2-D: the query (unnormalised) points along image 2's descriptor.
         let s = std::f32::consts::FRAC_1_SQRT_2;
         let g = [1.0, 0.0, 0.0, 1.0, s, s, -1.0, 0.0];
-        assert_eq!(retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 2), [2, 0]);
-        assert_eq!(retrieve(Some((&g, 2)), Some(&[0.0, -5.0]), 4, 1), [0]);
-        // top_k 0 is taken as 1; top_k past the images is every image, ranked.
-        assert_eq!(retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 0), [2]);
         assert_eq!(
-            retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 9),
+            retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 2),
+            (vec![2, 0], None)
+        );
+        assert_eq!(retrieve(Some((&g, 2)), Some(&[0.0, -5.0]), 4, 1).0, [0]);
+        // top_k 0 is taken as 1; top_k past the images is every image, ranked.
+        assert_eq!(retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 0).0, [2]);
+        assert_eq!(
+            retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 9).0,
             [2, 0, 1, 3]
         );
     }
 
     #[test]
-    fn without_usable_global_descriptors_every_image_is_retrieved() {
+    fn without_usable_global_descriptors_every_image_is_retrieved_and_why_is_named() {
+        use RetrievalFallback::*;
         let g = [1.0, 0.0, 0.0, 1.0];
-        let all = [0, 1];
-        assert_eq!(retrieve(None, Some(&[1.0, 0.0]), 2, 1), all);
-        assert_eq!(retrieve(Some((&g, 2)), None, 2, 1), all);
-        // A query descriptor of another length (another model) cannot be compared.
-        assert_eq!(retrieve(Some((&g, 2)), Some(&[1.0, 0.0, 0.0]), 2, 1), all);
-        assert!(retrieve(Some((&[], 2)), Some(&[1.0, 0.0]), 0, 1).is_empty());
-    }
-
-    #[test]
-    fn each_fallback_is_named() {
-        let g = [1.0, 0.0, 0.0, 1.0];
-        assert_eq!(fallback(Some((&g, 2)), Some(&[1.0, 0.0]), 2), None);
+        let all = vec![0, 1];
+        type Case<'a> = (
+            Option<(&'a [f32], usize)>,
+            Option<&'a [f32]>,
+            RetrievalFallback,
+        );
+        let cases: [Case<'_>; 3] = [
+            (None, Some(&[1.0, 0.0]), NoMapDescriptors),
+            (Some((&g, 2)), None, NoQueryDescriptor),
+            // A query descriptor of another length (another model) cannot be compared.
+            (
+                Some((&g, 2)),
+                Some(&[1.0, 0.0, 0.0]),
+                DimensionMismatch { map: 2, query: 3 },
+            ),
+        ];
+        for (database, query, why) in cases {
+            assert_eq!(retrieve(database, query, 2, 1), (all.clone(), Some(why)));
+        }
         assert_eq!(
-            fallback(None, Some(&[1.0, 0.0]), 2),
-            Some(RetrievalFallback::NoMapDescriptors)
+            retrieve(Some((&[], 2)), Some(&[1.0, 0.0]), 0, 1),
+            (vec![], Some(NoVisibility))
         );
         assert_eq!(
-            fallback(Some((&g, 2)), None, 2),
-            Some(RetrievalFallback::NoQueryDescriptor)
-        );
-        assert_eq!(
-            fallback(Some((&g, 2)), Some(&[1.0; 3]), 2),
-            Some(RetrievalFallback::DimensionMismatch { map: 2, query: 3 })
-        );
-        assert_eq!(
-            fallback(Some((&[], 2)), Some(&[1.0, 0.0]), 0),
-            Some(RetrievalFallback::NoVisibility)
-        );
-        assert_eq!(
-            RetrievalFallback::DimensionMismatch { map: 2, query: 3 }.to_string(),
+            DimensionMismatch { map: 2, query: 3 }.to_string(),
             "the query's global descriptor has 3 dimensions, the map's 2"
         );
     }
