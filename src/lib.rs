@@ -17,6 +17,8 @@ pub mod output;
 pub mod progress;
 #[cfg(any(feature = "colmap", feature = "localize", feature = "onnx"))]
 mod vector;
+#[cfg(any(feature = "colmap", feature = "localize"))]
+pub mod vlad;
 
 #[cfg(feature = "colmap-model")]
 pub mod build;

@@ -13,7 +13,7 @@ pub(crate) fn l2_normalise(v: &mut [f32]) {
 }
 
 /// L2 normalisation of each `dim`-row of `v`.
-#[cfg(feature = "localize")]
+#[cfg(any(feature = "colmap", feature = "localize"))]
 pub fn normalise_rows(v: &mut [f32], dim: usize) {
     if dim == 0 {
         return;

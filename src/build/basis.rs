@@ -91,6 +91,29 @@ impl Basis {
     }
 }
 
+impl Basis {
+    /// The first `k` coordinates of each row of `rows` (`[n × dim]`) in this basis,
+    /// renormalised: `[n × k]`; rows with `keep[i]` false stay zero.
+    pub fn project_leading(&self, rows: &[f32], dim: usize, k: usize, keep: &[bool]) -> Vec<f32> {
+        let k = k.min(self.dim);
+        let mut out = vec![0.0f32; rows.len() / dim.max(1) * k];
+        for ((src, dst), &keep) in rows
+            .chunks_exact(dim)
+            .zip(out.chunks_exact_mut(k))
+            .zip(keep)
+        {
+            if !keep {
+                continue;
+            }
+            for (o, direction) in dst.iter_mut().zip(self.rows.chunks_exact(self.dim)) {
+                *o = crate::vector::dot(direction, src);
+            }
+            crate::vector::l2_normalise(dst);
+        }
+        out
+    }
+}
+
 /// Eigen-decomposition of a symmetric matrix by cyclic Jacobi rotations: returns the
 /// eigenvalues and the eigenvectors as columns of a row-major matrix. `a` is destroyed.
 /// Jacobi is slow for big matrices but exact and simple for descriptor sizes (≤ 256).

@@ -17,6 +17,8 @@ mod basis;
 #[cfg(feature = "colmap")]
 mod error;
 pub(crate) mod geometry;
+#[cfg(feature = "colmap")]
+mod retrieval;
 #[cfg(all(feature = "colmap", feature = "onnx"))]
 pub mod sfp;
 #[cfg(feature = "colmap")]
@@ -25,6 +27,8 @@ pub mod sift;
 #[cfg(feature = "colmap")]
 pub use error::ConvertError;
 pub use geometry::fuzz_read_bin;
+#[cfg(feature = "colmap")]
+pub use retrieval::VladOptions;
 #[cfg(all(feature = "colmap", feature = "onnx"))]
 pub use sfp::{convert_with_images, SfpMapOptions, SfpMapSummary};
 #[cfg(feature = "colmap")]
@@ -70,6 +74,8 @@ pub struct ConvertSummary {
     pub images_without_features: usize,
     /// Points none of whose observations has a descriptor (kept, but in no level).
     pub points_without_descriptors: usize,
+    /// The level whose descriptors the stored VLAD retrieval aggregates, if one was stored.
+    pub vlad_level: Option<u16>,
 }
 
 /// The writer of a converted map: provenance (the tool, the input files, the `parameters`

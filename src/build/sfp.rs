@@ -41,7 +41,12 @@ pub struct SfpMapOptions {
     pub allow_missing: bool,
     pub codec: Codec,
     pub zstd_level: i32,
+    /// Retrieval data besides the network's global descriptor: a VLAD codebook on level 2.
+    pub vlad: super::VladOptions,
 }
+
+/// The level whose descriptors SFP maps' VLAD aggregates, when the map has it.
+const VLAD_LEVEL: u16 = 2;
 
 impl SfpMapOptions {
     pub fn new(images: impl Into<PathBuf>) -> Self {
@@ -53,6 +58,7 @@ impl SfpMapOptions {
             allow_missing: false,
             codec: Codec::Raw,
             zstd_level: 3,
+            vlad: super::VladOptions::default(),
         }
     }
 }
@@ -345,6 +351,41 @@ pub fn convert_with_images(
             true,
         )?;
     }
+    // Retrieval over level 2's descriptors (the level a `level 2, short` slice keeps), or the
+    // deepest level without one; the network's global descriptor stays the default.
+    let vlad_level = built
+        .iter()
+        .find(|b| b.0.level == VLAD_LEVEL)
+        .or(built.last())
+        .map(
+            |(info, points, descriptors, _)| -> Result<Option<u16>, ConvertError> {
+                let dims = options.vlad.dims.min(info.dim_short as usize);
+                if options.vlad.clusters == 0 || dims == 0 {
+                    return Ok(None);
+                }
+                let full = info.dim_full as usize;
+                let mut rows = vec![0.0f32; geometry.positions.len() * dims];
+                for (&p, src) in points.iter().zip(descriptors.chunks_exact(full)) {
+                    let dst = &mut rows[p as usize * dims..(p as usize + 1) * dims];
+                    dst.copy_from_slice(&src[..dims]);
+                    crate::vector::l2_normalise(dst);
+                }
+                let added = super::retrieval::add_vlad(
+                    &mut writer,
+                    info.level,
+                    &rows,
+                    dims,
+                    options.vlad.clusters,
+                    &geometry,
+                    reporter,
+                )?;
+                Ok(added.then_some(info.level))
+            },
+        )
+        .transpose()?
+        .flatten();
+    // The extractor's global descriptor, trained for retrieval, stays the default.
+    writer.metadata_mut().retrieval = Some(crate::format::Retrieval::Global.name().to_string());
     let output_bytes = writer.write(output, reporter)?;
     ms.sort_by(f64::total_cmp);
     Ok(SfpMapSummary {
@@ -358,6 +399,7 @@ pub fn convert_with_images(
             levels: summaries,
             images_without_features: missing.len(),
             points_without_descriptors: 0,
+            vlad_level,
         },
         model_points: n_points,
         missing_images: missing,

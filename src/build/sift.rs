@@ -46,6 +46,8 @@ pub struct ConvertOptions {
     pub aggregate: Aggregate,
     /// Fail when an image's features are missing from the database (default: warn, skip).
     pub strict: bool,
+    /// Retrieval data: a VLAD codebook on the deepest level's basis.
+    pub vlad: super::VladOptions,
 }
 
 impl Default for ConvertOptions {
@@ -56,6 +58,7 @@ impl Default for ConvertOptions {
             codec: Codec::Raw,
             zstd_level: 3,
             aggregate: Aggregate::Mean,
+            vlad: super::VladOptions::default(),
             strict: false,
         }
     }
@@ -110,7 +113,7 @@ pub fn convert(
     let mut summaries = Vec::new();
     let mut points_without_descriptors = 0;
     let mut images_without_features = 0;
-    let built_levels = match &observations {
+    let (built_levels, described) = match &observations {
         Some(obs) => {
             images_without_features = obs.images_without_features;
             let n_points = geometry.positions.len();
@@ -118,9 +121,10 @@ pub fn convert(
             let (descriptors, has) = aggregate(obs, n_points, options.aggregate);
             reporter.finish();
             points_without_descriptors = has.iter().filter(|h| !**h).count();
-            build_levels(obs, &descriptors, &has, options.short_dims, reporter)?
+            let levels = build_levels(obs, &descriptors, &has, options.short_dims, reporter)?;
+            (levels, Some((descriptors, has, obs.dim)))
         }
-        None => Vec::new(),
+        None => (Vec::new(), None),
     };
     for l in &built_levels {
         writer.add_level(
@@ -131,6 +135,28 @@ pub fn convert(
         )?;
         writer.set_level_projection(l.info.level, l.basis.dim, l.basis.rows.clone())?;
         summaries.push(l.summary.clone());
+    }
+    // Retrieval on the deepest level's basis (the level a `level 2, short` slice keeps), over
+    // every described point: each point's descriptor projected on the basis' leading rows.
+    let mut vlad_level = None;
+    if let (Some((descriptors, has, dim)), Some(deepest)) = (&described, built_levels.last()) {
+        let dims = options.vlad.dims.min(deepest.info.dim_short as usize);
+        if options.vlad.clusters > 0 && dims > 0 {
+            reporter.start("projecting for retrieval", None);
+            let rows = deepest.basis.project_leading(descriptors, *dim, dims, has);
+            drop(described);
+            reporter.finish();
+            let added = super::retrieval::add_vlad(
+                &mut writer,
+                deepest.info.level,
+                &rows,
+                dims,
+                options.vlad.clusters,
+                &geometry,
+                reporter,
+            )?;
+            vlad_level = added.then_some(deepest.info.level);
+        }
     }
     let output_bytes = writer.write(output, reporter)?;
     Ok(ConvertSummary {
@@ -143,6 +169,7 @@ pub fn convert(
         levels: summaries,
         images_without_features,
         points_without_descriptors,
+        vlad_level,
     })
 }
 

@@ -77,6 +77,14 @@ pub struct Args {
     /// Fail if an image's features are missing from the database (default: warn and go on).
     #[arg(long)]
     pub strict: bool,
+    /// Retrieval: centroids of the VLAD codebook stored with the map (0: none). Queries are
+    /// ranked against the map's images by their VLAD of the same level's descriptors.
+    #[arg(long, default_value_t = sfpmap::vlad::DEFAULT_CLUSTERS, value_parser = vlad_clusters)]
+    pub vlad_clusters: usize,
+    /// Retrieval: leading dimensions of the level basis the codebook covers (at most the
+    /// level's short dimensions).
+    #[arg(long, default_value_t = sfpmap::vlad::DEFAULT_DIMS, value_parser = vlad_dims)]
+    pub vlad_dims: usize,
     /// Overwrite OUTPUT if it exists.
     #[arg(long)]
     pub force: bool,
@@ -102,6 +110,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             AggregateArg::Medoid => Aggregate::Medoid,
         },
         strict: args.strict,
+        vlad: vlad_options(&args),
     };
     let bars = super::Bars::new(quiet, args.json);
     // Errors name the file at fault themselves.
@@ -132,6 +141,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "levels": levels,
             "images_without_features": summary.images_without_features,
             "points_without_descriptors": summary.points_without_descriptors,
+            "vlad_level": summary.vlad_level,
         }))?;
     } else if !quiet {
         println!(
@@ -158,8 +168,37 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         if summary.geometry_only {
             println!("geometry only (no --database): no levels, no descriptors");
         }
+        if let Some(level) = summary.vlad_level {
+            println!(
+                "retrieval: VLAD of {} x {} over level {level}",
+                args.vlad_clusters, args.vlad_dims
+            );
+        }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+fn vlad_options(args: &Args) -> sfpmap::build::VladOptions {
+    sfpmap::build::VladOptions {
+        clusters: args.vlad_clusters,
+        dims: args.vlad_dims,
+    }
+}
+
+/// At most 1024 centroids: more would not rank a map's images better and k-means time
+/// grows with them.
+fn vlad_clusters(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(n) if n <= 1024 => Ok(n),
+        _ => Err("a number of centroids from 0 (no VLAD) to 1024".into()),
+    }
+}
+
+fn vlad_dims(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(n) if (1..=256).contains(&n) => Ok(n),
+        _ => Err("a number of dimensions from 1 to 256".into()),
+    }
 }
 
 /// The output policy, with every file convert reads as an input: the model files, the
@@ -212,6 +251,7 @@ fn run_sfp(
         allow_missing: args.allow_missing,
         codec: Codec::from(args.codec),
         zstd_level: args.zstd_level,
+        vlad: vlad_options(args),
     };
     let summary = convert_with_images(&args.colmap, &options, &args.output, &bars)?;
     let seconds = start.elapsed().as_secs_f64();
@@ -248,6 +288,7 @@ fn run_sfp(
             "model_xxh3": summary.model.xxh3,
             "missing_images": summary.missing_images,
             "levels": levels,
+            "vlad_level": c.vlad_level,
         }))?;
     } else if !quiet {
         println!(

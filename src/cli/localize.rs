@@ -10,7 +10,7 @@ use sfpmap::io::queries::{read_query_list, DatabaseFeatures, Query};
 use sfpmap::localize::eval::median;
 use sfpmap::localize::{
     describe_skipped, Localization, LocalizeOptions, Localizer, MatchOptions, QueryFailure,
-    QueryFeatures,
+    QueryFeatures, RetrievalMethod,
 };
 use sfpmap::progress::Reporter;
 use std::path::{Path, PathBuf};
@@ -18,6 +18,14 @@ use std::process::ExitCode;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum RetrievalArg {
+    Auto,
+    Vlad,
+    Global,
+    Off,
+}
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum PoseFormat {
@@ -67,9 +75,13 @@ pub struct Args {
     /// Match with the short descriptor block only.
     #[arg(long)]
     pub short: bool,
-    /// Database images retrieved per query (maps with global descriptors).
+    /// Database images retrieved per query (maps with global descriptors or VLAD).
     #[arg(long, default_value_t = 10)]
     pub top_k: usize,
+    /// What ranks the database images: the map's stated preference (auto), its VLAD of local
+    /// descriptors, the extractor's global descriptor, or nothing (every point a candidate).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub retrieval: RetrievalArg,
     /// Lowe ratio for coarse matching.
     #[arg(long, default_value_t = 0.9)]
     pub ratio: f32,
@@ -166,6 +178,12 @@ fn localizer<'m>(map: &'m Map<'m>, args: &Args) -> anyhow::Result<Localizer<'m>>
         levels: args.levels.clone(),
         short: args.short,
         top_k: args.top_k,
+        retrieval: match args.retrieval {
+            RetrievalArg::Auto => RetrievalMethod::Auto,
+            RetrievalArg::Vlad => RetrievalMethod::Vlad,
+            RetrievalArg::Global => RetrievalMethod::Global,
+            RetrievalArg::Off => RetrievalMethod::Off,
+        },
         matching: MatchOptions {
             ratio: args.ratio,
             ..MatchOptions::default()
@@ -345,6 +363,8 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .collect();
     // Retrieval's fallback, stated: how many queries matched against every point, and why.
     let mut fallbacks: std::collections::BTreeMap<String, usize> = Default::default();
+    // And which stored descriptor ranked the images of the others.
+    let mut methods: std::collections::BTreeMap<&str, usize> = Default::default();
     for r in results.iter().filter(|&r| {
         !r.failure()
             .is_some_and(|f| matches!(f, QueryFailure::NoFeatures(_)))
@@ -352,12 +372,16 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         if let Some(why) = r.retrieval_fallback {
             *fallbacks.entry(why.to_string()).or_default() += 1;
         }
+        if let Some(method) = r.retrieval {
+            *methods.entry(method.name()).or_default() += 1;
+        }
     }
     if args.json {
         super::print_json(&json!({
             "queries": queries.len(),
             "localized": localized,
             "failed": failed,
+            "retrieval": methods,
             "retrieval_fallback": fallbacks,
             "output": args.output.display().to_string(),
             "seconds": start.elapsed().as_secs_f64(),
@@ -573,6 +597,7 @@ fn pose_text(
                         "inliers_per_level": r.inliers_per_level,
                         "matches": r.matches,
                         "retrieved_images": r.retrieved_images,
+                        "retrieval": r.retrieval.map(|m| m.name()),
                         "retrieval_fallback": r.retrieval_fallback.map(|w| w.to_string()),
                         "ms": r.times.total_ms,
                     })

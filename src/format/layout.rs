@@ -8,8 +8,9 @@ use super::error::Error;
 pub const MAGIC: [u8; 8] = *b"\x89SFPM\r\n\x1a";
 /// The major version this crate reads and writes. A different major is an error.
 pub const VERSION_MAJOR: u16 = 1;
-/// The minor version this crate writes. Readers accept any minor of their major.
-pub const VERSION_MINOR: u16 = 0;
+/// The highest minor version this crate writes (a file gets the lowest minor that defines all
+/// its sections, see [`SectionKind::since_minor`]). Readers accept any minor of their major.
+pub const VERSION_MINOR: u16 = 1;
 /// Written as a `u32` LE; a reader that sees other bytes has the wrong byte order.
 pub const ENDIAN_CHECK: u32 = 0x1A2B_3C4D;
 /// Size of the fixed header in bytes.
@@ -134,6 +135,9 @@ pub enum SectionKind {
     LevelDescRest,
     /// f32 [d_full × d_in]: orthonormal rows mapping an extractor descriptor into the stored basis.
     LevelProjection,
+    /// f32 [clusters × dims] (1.1): the VLAD codebook of the level whose descriptors (their first
+    /// `dims` stored dimensions) retrieval aggregates; at most one level has one.
+    LevelVladCentroids,
     /// f64 [images × 7]: `cam_from_world` as qw qx qy qz tx ty tz (COLMAP).
     ImagePoses,
     /// u32 [images × 1]: index into the metadata `cameras`.
@@ -146,6 +150,8 @@ pub enum SectionKind {
     ImageNames,
     /// f16 [images × d_g]: L2-normalised global descriptors for retrieval.
     ImageGlobal,
+    /// f16 [images × clusters·dims] (1.1): each image's VLAD over the level codebook.
+    ImageVlad,
     /// u64 [images + 1 × 1]: CSR row offsets into `VisibilityPoints`.
     VisibilityOffsets,
     /// u32 [observations × 1]: point indices seen by each image, image by image.
@@ -157,7 +163,7 @@ pub enum SectionKind {
 }
 
 impl SectionKind {
-    const KNOWN: [(u16, SectionKind, &'static str); 16] = [
+    const KNOWN: [(u16, SectionKind, &'static str); 18] = [
         (1, SectionKind::PointPositions, "point_positions"),
         (2, SectionKind::PointColors, "point_colors"),
         (3, SectionKind::PointIds, "point_ids"),
@@ -165,12 +171,14 @@ impl SectionKind {
         (17, SectionKind::LevelDescShort, "level_desc_short"),
         (18, SectionKind::LevelDescRest, "level_desc_rest"),
         (19, SectionKind::LevelProjection, "level_projection"),
+        (20, SectionKind::LevelVladCentroids, "level_vlad_centroids"),
         (32, SectionKind::ImagePoses, "image_poses"),
         (33, SectionKind::ImageCameras, "image_cameras"),
         (34, SectionKind::ImageIds, "image_ids"),
         (35, SectionKind::ImageNameOffsets, "image_name_offsets"),
         (36, SectionKind::ImageNames, "image_names"),
         (37, SectionKind::ImageGlobal, "image_global"),
+        (38, SectionKind::ImageVlad, "image_vlad"),
         (48, SectionKind::VisibilityOffsets, "visibility_offsets"),
         (49, SectionKind::VisibilityPoints, "visibility_points"),
         (50, SectionKind::VisibilityKeypoints, "visibility_keypoints"),
@@ -212,8 +220,8 @@ impl SectionKind {
             PointColors => (Dtype::U8, Some(3)),
             PointIds => (Dtype::U64, Some(1)),
             LevelPoints => (Dtype::U32, Some(1)),
-            LevelDescShort | LevelDescRest | ImageGlobal => (Dtype::F16, None),
-            LevelProjection => (Dtype::F32, None),
+            LevelDescShort | LevelDescRest | ImageGlobal | ImageVlad => (Dtype::F16, None),
+            LevelProjection | LevelVladCentroids => (Dtype::F32, None),
             ImagePoses => (Dtype::F64, Some(7)),
             ImageCameras | ImageIds => (Dtype::U32, Some(1)),
             ImageNameOffsets | VisibilityOffsets => (Dtype::U64, Some(1)),
@@ -231,6 +239,7 @@ impl SectionKind {
             SectionKind::LevelDescShort
                 | SectionKind::LevelDescRest
                 | SectionKind::LevelProjection
+                | SectionKind::LevelVladCentroids
                 | SectionKind::ImageGlobal
         )
     }
@@ -243,7 +252,18 @@ impl SectionKind {
                 | SectionKind::LevelDescShort
                 | SectionKind::LevelDescRest
                 | SectionKind::LevelProjection
+                | SectionKind::LevelVladCentroids
         )
+    }
+
+    /// The first minor version that defines the kind (0 for 1.0 kinds and unknown ones): a
+    /// writer stamps a file with the highest minor among its sections, so a map without 1.1
+    /// sections stays a 1.0 file byte for byte.
+    pub fn since_minor(self) -> u16 {
+        match self {
+            SectionKind::LevelVladCentroids | SectionKind::ImageVlad => 1,
+            _ => 0,
+        }
     }
 }
 

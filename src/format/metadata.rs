@@ -31,9 +31,47 @@ pub struct Metadata {
     pub levels: Vec<LevelInfo>,
     #[serde(default)]
     pub provenance: Provenance,
+    /// 1.1: which stored global descriptor the map retrieves with by default: `"vlad"`
+    /// (`image_vlad`) or `"global"` (`image_global`). A value this version does not know is
+    /// kept and read as no preference (see [`Metadata::retrieval`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub retrieval: Option<String>,
     /// Keys this version does not know, kept as they are.
     #[serde(flatten)]
     pub extra: JsonMap<String, Value>,
+}
+
+/// A stored kind of per-image global descriptor that retrieval can rank images with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Retrieval {
+    /// `image_vlad`: the map's own local descriptors aggregated over a codebook (any map).
+    Vlad,
+    /// `image_global`: the extractor's global descriptor (SFP maps).
+    Global,
+}
+
+impl Retrieval {
+    pub fn name(self) -> &'static str {
+        match self {
+            Retrieval::Vlad => "vlad",
+            Retrieval::Global => "global",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<Retrieval> {
+        match name {
+            "vlad" => Some(Retrieval::Vlad),
+            "global" => Some(Retrieval::Global),
+            _ => None,
+        }
+    }
+}
+
+impl Metadata {
+    /// The map's stated retrieval preference, if it states one this version knows.
+    pub fn retrieval(&self) -> Option<Retrieval> {
+        self.retrieval.as_deref().and_then(Retrieval::from_name)
+    }
 }
 
 impl Default for Metadata {
@@ -47,6 +85,7 @@ impl Default for Metadata {
             cameras: Vec::new(),
             levels: Vec::new(),
             provenance: Provenance::default(),
+            retrieval: None,
             extra: JsonMap::new(),
         }
     }

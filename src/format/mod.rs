@@ -35,10 +35,10 @@ pub use layout::{
 };
 #[cfg(feature = "fuzzing")]
 pub use layout::{Header, RawEntry};
-pub use metadata::{CameraInfo, LevelInfo, Metadata, Provenance, SourceFile};
+pub use metadata::{CameraInfo, LevelInfo, Metadata, Provenance, Retrieval, SourceFile};
 pub use reader::{decode_budget, decode_cap, Map, Section};
 pub use slice::{slice, SliceOptions, SliceSummary};
-pub use views::{GlobalDescriptors, Images, Level, Visibility};
+pub use views::{GlobalDescriptors, Images, Level, Visibility, Vlad};
 pub use writer::{Descriptors, MapWriter};
 
 /// Memory-maps a file read-only (see the safety note on sfpmap's own files in `mmap.rs`).

@@ -2,7 +2,7 @@
 
 use super::error::Error;
 use super::layout::{Codec, Dtype, SectionKind, NO_LEVEL};
-use super::metadata::Metadata;
+use super::metadata::{Metadata, Retrieval};
 use super::reader::{Map, Section};
 use super::writer::MapWriter;
 use std::borrow::Cow;
@@ -31,6 +31,8 @@ pub struct SliceSummary {
     pub sections_rebuilt: usize,
     /// Unknown optional sections that were dropped (their meaning, so their remapping, is unknown).
     pub unknown_dropped: usize,
+    /// The VLAD retrieval data was dropped with the level its codebook belongs to.
+    pub vlad_dropped: bool,
 }
 
 /// Builds a writer holding the slice of `map`. Points no kept level references are dropped
@@ -55,10 +57,21 @@ pub fn slice<'m>(
             )));
         }
     }
+    // VLAD retrieval lives on one level's descriptors: kept with that level, dropped with it.
+    let vlad_level = map
+        .sections()
+        .iter()
+        .find(|s| s.kind == SectionKind::LevelVladCentroids)
+        .and_then(|s| s.level);
+    let keeps = Keep {
+        options,
+        levels: &keep_levels,
+        vlad: vlad_level.is_some_and(|l| keep_levels.binary_search(&l).is_ok()),
+    };
     // Checking everything first means a corrupt section is never copied into the new map.
     // Sections this slice reads are kept decoded and the others streamed, so each is decoded
     // once and a slice fits the map's decode budget.
-    map.verify_keeping(|s| reads_contents(s, options, &keep_levels))?;
+    map.verify_keeping(|s| keeps.reads_contents(s))?;
 
     // Old point index → new index, u32::MAX for dropped points.
     let n_points = map.n_points() as usize;
@@ -81,6 +94,12 @@ pub fn slice<'m>(
     metadata
         .levels
         .retain(|l| keep_levels.binary_search(&l.level).is_ok());
+    let vlad_dropped = vlad_level.is_some() && !keeps.vlad;
+    if vlad_dropped && metadata.retrieval() == Some(Retrieval::Vlad) {
+        metadata.retrieval = map
+            .find(SectionKind::ImageGlobal, None)
+            .map(|_| Retrieval::Global.name().to_string());
+    }
     let previous = std::mem::take(&mut metadata.provenance.parameters);
     metadata
         .provenance
@@ -103,6 +122,7 @@ pub fn slice<'m>(
     let mut summary = SliceSummary {
         points_before: map.n_points(),
         points_after: u64::from(kept),
+        vlad_dropped,
         ..SliceSummary::default()
     };
 
@@ -110,7 +130,7 @@ pub fn slice<'m>(
         if matches!(section.kind, SectionKind::Unknown(_)) {
             summary.unknown_dropped += 1;
         }
-        if !is_kept(section, options, &keep_levels) {
+        if !keeps.section(section) {
             continue;
         }
         let rebuilt: Option<Cow<'m, [u8]>> = match section.kind {
@@ -200,32 +220,44 @@ pub fn slice<'m>(
 
 /// Whether the slice keeps `section` (rebuilt or copied); `keep_levels` is sorted. Unknown
 /// kinds are dropped: how to remap indices in them is unknown.
-fn is_kept(section: &Section, options: &SliceOptions, keep_levels: &[u16]) -> bool {
-    match section.kind {
-        SectionKind::Unknown(_) => false,
-        SectionKind::LevelDescRest if options.short => false,
-        k if k.is_per_level() => keep_levels
-            .binary_search(&section.level.unwrap_or(NO_LEVEL))
-            .is_ok(),
-        _ => true,
-    }
+/// Which sections a slice keeps.
+struct Keep<'a> {
+    options: &'a SliceOptions,
+    /// Sorted.
+    levels: &'a [u16],
+    /// Whether the VLAD codebook's level is kept (and with it `image_vlad`).
+    vlad: bool,
 }
 
-/// Whether slicing reads `section`'s decoded contents (to rebuild or re-encode it), rather
-/// than dropping it or copying its stored bytes.
-fn reads_contents(section: &Section, options: &SliceOptions, keep_levels: &[u16]) -> bool {
-    let rebuilt = matches!(
-        section.kind,
-        SectionKind::PointPositions
-            | SectionKind::PointColors
-            | SectionKind::PointIds
-            | SectionKind::LevelPoints
-            | SectionKind::VisibilityOffsets
-            | SectionKind::VisibilityPoints
-            | SectionKind::VisibilityKeypoints
-    );
-    is_kept(section, options, keep_levels)
-        && (rebuilt || options.codec.is_some_and(|c| c != section.codec))
+impl Keep<'_> {
+    fn section(&self, section: &Section) -> bool {
+        match section.kind {
+            SectionKind::Unknown(_) => false,
+            SectionKind::LevelDescRest if self.options.short => false,
+            SectionKind::ImageVlad => self.vlad,
+            k if k.is_per_level() => self
+                .levels
+                .binary_search(&section.level.unwrap_or(NO_LEVEL))
+                .is_ok(),
+            _ => true,
+        }
+    }
+
+    /// Whether slicing reads `section`'s decoded contents (to rebuild or re-encode it), rather
+    /// than dropping it or copying its stored bytes.
+    fn reads_contents(&self, section: &Section) -> bool {
+        let rebuilt = matches!(
+            section.kind,
+            SectionKind::PointPositions
+                | SectionKind::PointColors
+                | SectionKind::PointIds
+                | SectionKind::LevelPoints
+                | SectionKind::VisibilityOffsets
+                | SectionKind::VisibilityPoints
+                | SectionKind::VisibilityKeypoints
+        );
+        self.section(section) && (rebuilt || self.options.codec.is_some_and(|c| c != section.codec))
+    }
 }
 
 /// Keeps the rows of a per-point section whose point is kept.

@@ -128,6 +128,7 @@ pub(crate) fn check_shapes(
         SectionKind::ImageNameOffsets,
         SectionKind::ImageNames,
         SectionKind::ImageGlobal,
+        SectionKind::ImageVlad,
         SectionKind::VisibilityOffsets,
     ];
     let n_images = match find(SectionKind::ImagePoses, None) {
@@ -160,7 +161,13 @@ pub(crate) fn check_shapes(
             n_images,
             "one per image",
         )?;
+        rows_must(
+            find(SectionKind::ImageVlad, None),
+            n_images,
+            "one per image",
+        )?;
     }
+    check_vlad(metadata, sections, find(SectionKind::ImageVlad, None))?;
     match (
         find(SectionKind::VisibilityOffsets, None),
         find(SectionKind::VisibilityPoints, None),
@@ -195,6 +202,70 @@ pub(crate) fn check_shapes(
         }
     }
     Ok((index, n_points, n_images))
+}
+
+/// 1.1 retrieval: at most one level has a VLAD codebook, over at most its `short`
+/// dimensions (so `slice --short` keeps it usable), and `image_vlad` is present with it, one
+/// column per codebook value.
+fn check_vlad(
+    metadata: &Metadata,
+    sections: &[Section],
+    image_vlad: Option<&Section>,
+) -> Result<(), Error> {
+    let mut codebooks = sections
+        .iter()
+        .filter(|s| s.kind == SectionKind::LevelVladCentroids);
+    let codebook = codebooks.next();
+    if let Some(second) = codebooks.next() {
+        return Err(Error::inconsistent(format!(
+            "{} is a second VLAD codebook (a map has at most one)",
+            second.reference()
+        )));
+    }
+    let (codebook, vlad) = match (codebook, image_vlad) {
+        (None, None) => return Ok(()),
+        (Some(c), Some(v)) => (c, v),
+        (Some(_), None) => {
+            return Err(Error::MissingSection {
+                kind: SectionKind::ImageVlad,
+                level: None,
+            })
+        }
+        (None, Some(_)) => {
+            return Err(Error::MissingSection {
+                kind: SectionKind::LevelVladCentroids,
+                level: None,
+            })
+        }
+    };
+    if metadata.geometry_only {
+        return Err(Error::inconsistent(format!(
+            "{} in a geometry-only map",
+            codebook.reference()
+        )));
+    }
+    let dim_short = codebook
+        .level
+        .and_then(|l| metadata.level(l))
+        .map_or(0, |l| u64::from(l.dim_short));
+    if codebook.rows == 0 || codebook.cols == 0 || codebook.cols > dim_short {
+        return Err(Error::inconsistent(format!(
+            "{} is {} x {}: needs at least one centroid of 1 to dim_short ({dim_short}) dimensions",
+            codebook.reference(),
+            codebook.rows,
+            codebook.cols
+        )));
+    }
+    if codebook.rows.checked_mul(codebook.cols) != Some(vlad.cols) {
+        return Err(Error::inconsistent(format!(
+            "{} has {} columns, expected clusters x dims = {} x {}",
+            vlad.reference(),
+            vlad.cols,
+            codebook.rows,
+            codebook.cols
+        )));
+    }
+    Ok(())
 }
 
 /// What the metadata states that anything is sized from, within the spec's limits (camera
@@ -401,6 +472,19 @@ impl Visibility<'_> {
 /// Image global descriptors, row-major `[images × dim]`, and `dim`.
 pub type GlobalDescriptors<'m> = (Cow<'m, [f16]>, usize);
 
+/// A map's VLAD retrieval data (format 1.1): a codebook over the first `dims` stored
+/// dimensions of `level`'s descriptors, and one VLAD of `clusters × dims` values per image.
+#[derive(Debug, Clone)]
+pub struct Vlad<'m> {
+    pub level: u16,
+    pub clusters: usize,
+    pub dims: usize,
+    /// `[clusters × dims]`.
+    pub centroids: Cow<'m, [f32]>,
+    /// `[images × clusters·dims]`, L2-normalised rows.
+    pub images: Cow<'m, [f16]>,
+}
+
 /// One level of a map: its points and descriptor blocks.
 #[derive(Debug, Clone, Copy)]
 pub struct Level<'m> {
@@ -541,6 +625,26 @@ impl<'a> Map<'a> {
             Some(s) => Ok(Some((self.section_array(s)?, s.cols as usize))),
             None => Ok(None),
         }
+    }
+
+    /// The VLAD retrieval data (format 1.1), if stored: the codebook's level, its centroids and
+    /// each image's VLAD.
+    pub fn vlad(&self) -> Result<Option<Vlad<'_>>, Error> {
+        let Some(codebook) = self
+            .sections()
+            .iter()
+            .find(|s| s.kind == SectionKind::LevelVladCentroids)
+        else {
+            return Ok(None);
+        };
+        let images = self.required(SectionKind::ImageVlad)?;
+        Ok(Some(Vlad {
+            level: codebook.level.unwrap_or(super::layout::NO_LEVEL),
+            clusters: codebook.rows as usize,
+            dims: codebook.cols as usize,
+            centroids: self.section_array(codebook)?,
+            images: self.section_array(images)?,
+        }))
     }
 
     pub fn visibility(&self) -> Result<Option<Visibility<'_>>, Error> {

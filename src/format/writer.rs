@@ -475,6 +475,51 @@ impl<'a> MapWriter<'a> {
         Ok(self)
     }
 
+    /// Retrieval by VLAD (format 1.1): the codebook of `level`, `[clusters × dims]` f32 over
+    /// the first `dims` stored dimensions of its descriptors, and each image's VLAD,
+    /// `[images × clusters·dims]`, converted to f16. Records `retrieval` in the metadata
+    /// unless it is already set.
+    pub fn set_vlad(
+        &mut self,
+        level: u16,
+        dims: usize,
+        centroids: Vec<f32>,
+        images: &[f32],
+    ) -> Result<&mut Self, Error> {
+        if dims == 0 || centroids.is_empty() || centroids.len() % dims != 0 {
+            return Err(Error::invalid(
+                "VLAD centroids are not a whole number of rows",
+            ));
+        }
+        let width = centroids.len();
+        if images.len() % width != 0 {
+            return Err(Error::invalid(
+                "image VLADs are not a whole number of clusters x dims rows",
+            ));
+        }
+        let values: Vec<f16> = images.iter().map(|&v| f16::from_f32(v)).collect();
+        self.push_array(
+            SectionKind::LevelVladCentroids,
+            level,
+            Dtype::F32,
+            width / dims,
+            dims,
+            owned_bytes(centroids),
+        );
+        self.push_array(
+            SectionKind::ImageVlad,
+            NO_LEVEL,
+            Dtype::F16,
+            values.len() / width,
+            width,
+            owned_bytes(values),
+        );
+        if self.metadata.retrieval.is_none() {
+            self.metadata.retrieval = Some(super::metadata::Retrieval::Vlad.name().to_string());
+        }
+        Ok(self)
+    }
+
     /// Adds any section from its little-endian array bytes (for kinds a newer minor defines,
     /// and for tests). `codec = None` uses the writer's codec.
     #[allow(clippy::too_many_arguments)]
@@ -659,6 +704,12 @@ impl<'a> MapWriter<'a> {
         let mut cursor = metadata_end;
         let mut table = Vec::with_capacity(blocks.len() * ENTRY_LEN);
         let mut sections = Vec::with_capacity(blocks.len());
+        let minor = blocks
+            .iter()
+            .map(|(s, ..)| s.kind.since_minor())
+            .max()
+            .unwrap_or(0);
+        debug_assert!(minor <= VERSION_MINOR);
         for (s, bytes, codec, raw_len) in blocks {
             let offset = align_up(cursor).ok_or_else(|| Error::invalid("file too large"))?;
             let entry = RawEntry {
@@ -682,7 +733,7 @@ impl<'a> MapWriter<'a> {
         }
         let mut header = Header {
             major: VERSION_MAJOR,
-            minor: VERSION_MINOR,
+            minor,
             flags: 0,
             section_count: sections.len() as u32,
             entry_len: ENTRY_LEN as u32,

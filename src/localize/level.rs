@@ -42,6 +42,26 @@ impl LevelIndex<'_> {
         self.scale_row(r, out);
     }
 
+    /// The level rows of `points` (ascending global indices), ascending: each found by
+    /// binary search, O(c log n) for c candidates, never a scan of the level. `None` for
+    /// `None` (every row).
+    pub(super) fn rows_of(&self, points: Option<&[u32]>) -> Option<Vec<u32>> {
+        let points = points?;
+        let mut rows = Vec::with_capacity(points.len().min(self.points.len()));
+        let mut from = 0;
+        for p in points {
+            // Both lists ascend: each search starts where the last one ended.
+            match self.points[from..].binary_search(p) {
+                Ok(i) => {
+                    rows.push((from + i) as u32);
+                    from += i + 1;
+                }
+                Err(i) => from += i,
+            }
+        }
+        Some(rows)
+    }
+
     /// Divides decoded row `r` by its norm (as `vector::l2_normalise` would).
     pub(super) fn scale_row(&self, r: usize, out: &mut [f32]) {
         let norm = self.norms[r];

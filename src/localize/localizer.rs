@@ -9,11 +9,10 @@
 use super::kernels::sgemm_abt;
 use super::level::{decode, index_level, LevelIndex};
 use super::matching::{fails_ratio_test, match_rows, MatchOptions};
-use super::retrieval::RetrievalFallback;
-use crate::format::{Error as FormatError, Map, Visibility};
+use super::retrieval::{RetrievalFallback, RetrievalIndex, RetrievalMethod};
+use crate::format::{Error as FormatError, Map, Retrieval, Visibility};
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use crate::vector::{dot, normalise_rows};
-use bitvec::vec::BitVec;
 use nalgebra::{Vector2, Vector3};
 use std::time::Instant;
 
@@ -45,8 +44,10 @@ pub struct LocalizeOptions {
     pub levels: Vec<u16>,
     /// Match with the `short` block only.
     pub short: bool,
-    /// Retrieved database images (when the map has global descriptors).
+    /// Retrieved database images (when the map has global descriptors or VLAD).
     pub top_k: usize,
+    /// Which stored descriptor ranks the database images.
+    pub retrieval: RetrievalMethod,
     pub matching: MatchOptions,
     /// Coarse RANSAC threshold (px).
     pub coarse_error_px: f64,
@@ -66,6 +67,7 @@ impl Default for LocalizeOptions {
             levels: Vec::new(),
             short: false,
             top_k: 10,
+            retrieval: RetrievalMethod::Auto,
             matching: MatchOptions::default(),
             coarse_error_px: 12.0,
             gate_px: 24.0,
@@ -96,6 +98,8 @@ pub struct Localization {
     pub matches: usize,
     pub inliers: usize,
     pub retrieved_images: usize,
+    /// The stored descriptor that ranked the retrieved images, if retrieval narrowed them.
+    pub retrieval: Option<Retrieval>,
     /// Why the candidates were every point (no retrieval), if they were: the fallback.
     pub retrieval_fallback: Option<RetrievalFallback>,
     pub times: StageTimes,
@@ -120,6 +124,7 @@ impl Localization {
             matches: 0,
             inliers: 0,
             retrieved_images: 0,
+            retrieval: None,
             retrieval_fallback: None,
             times: StageTimes::default(),
         }
@@ -269,6 +274,15 @@ impl From<FormatError> for LocalizeError {
     }
 }
 
+/// What retrieval gave one query.
+struct Retrieved {
+    /// Candidate points, ascending; `None`: every point.
+    candidates: Option<Vec<u32>>,
+    images: usize,
+    method: Option<Retrieval>,
+    fallback: Option<RetrievalFallback>,
+}
+
 /// A map prepared for localization: levels indexed over the map's own descriptor blocks.
 pub struct Localizer<'m> {
     map: &'m Map<'m>,
@@ -278,7 +292,7 @@ pub struct Localizer<'m> {
     levels: Vec<LevelIndex<'m>>,
     /// Selected levels that are not matched, and why.
     skipped: Vec<SkippedLevel>,
-    global: Option<(Vec<f32>, usize)>,
+    retrieval: RetrievalIndex,
     /// Image → points, borrowed from the map, or `None` (all points are candidates).
     visibility: Option<Visibility<'m>>,
 }
@@ -315,14 +329,7 @@ impl<'m> Localizer<'m> {
             .iter()
             .map(|&p| Vector3::from(map.to_world(p)))
             .collect();
-        let global = map
-            .image_global()?
-            .filter(|(_, dim)| *dim > 0)
-            .map(|(g, dim)| {
-                let mut v: Vec<f32> = g.iter().map(|x| x.to_f32()).collect();
-                normalise_rows(&mut v, dim);
-                (v, dim)
-            });
+        let retrieval = RetrievalIndex::new(map, options.retrieval)?;
         let visibility = map.visibility()?;
         Ok(Localizer {
             map,
@@ -330,7 +337,7 @@ impl<'m> Localizer<'m> {
             positions,
             levels,
             skipped,
-            global,
+            retrieval,
             visibility,
         })
     }
@@ -359,7 +366,12 @@ impl<'m> Localizer<'m> {
     ) -> Result<Localization, LocalizeError> {
         let t0 = Instant::now();
         let mut times = StageTimes::default();
-        let (candidates, retrieved_images, retrieval_fallback) = self.candidate_points(query);
+        let Retrieved {
+            candidates,
+            images: retrieved_images,
+            method: retrieval,
+            fallback: retrieval_fallback,
+        } = self.candidate_points(query);
         times.retrieval_ms = ms(t0);
 
         // The feature set each level matches, checked once; each level projects it into its
@@ -376,6 +388,7 @@ impl<'m> Localizer<'m> {
             matches,
             inliers: 0,
             retrieved_images,
+            retrieval,
             retrieval_fallback,
             times,
         };
@@ -383,9 +396,12 @@ impl<'m> Localizer<'m> {
         // Coarse: the deepest level against its candidates (all levels pooled if too few);
         // if the retrieved images give no pose, once more against every point (retrieval
         // can be wrong where the global descriptor is weak).
-        let mut attempt = self.coarse(&sets, candidates.as_ref(), camera, &mut times);
+        let mut candidates = candidates;
+        let mut attempt = self.coarse(&sets, candidates.as_deref(), camera, &mut times);
         if attempt.is_err() && candidates.is_some() {
             attempt = self.coarse(&sets, None, camera, &mut times);
+            // The fine stage then looks at every point too.
+            candidates = None;
         }
         let coarse = match attempt {
             Ok(found) => found,
@@ -407,7 +423,16 @@ impl<'m> Localizer<'m> {
             let mut level_of = Vec::new();
             for (i, (level, set)) in self.levels.iter().zip(&sets).enumerate() {
                 let before = pixels.len();
-                self.guided_level(level, set, &pose, camera, &mut pixels, &mut points);
+                let rows = level.rows_of(candidates.as_deref());
+                self.guided_level(
+                    level,
+                    set,
+                    rows.as_deref(),
+                    &pose,
+                    camera,
+                    &mut pixels,
+                    &mut points,
+                );
                 level_of.extend(std::iter::repeat_n(i, pixels.len() - before));
             }
             let fine_options = RansacOptions {
@@ -449,6 +474,7 @@ impl<'m> Localizer<'m> {
                 matches: coarse_matches,
                 inliers,
                 retrieved_images,
+                retrieval,
                 retrieval_fallback,
                 times,
             });
@@ -465,6 +491,7 @@ impl<'m> Localizer<'m> {
             matches: n_matches,
             inliers: estimate.num_inliers,
             retrieved_images,
+            retrieval,
             retrieval_fallback,
             times,
         })
@@ -476,7 +503,7 @@ impl<'m> Localizer<'m> {
     fn coarse(
         &self,
         sets: &[&FeatureSet],
-        candidates: Option<&BitVec>,
+        candidates: Option<&[u32]>,
         camera: &Camera,
         times: &mut StageTimes,
     ) -> Result<crate::geometry::PoseEstimate, (QueryFailure, usize)> {
@@ -507,33 +534,32 @@ impl<'m> Localizer<'m> {
         })
     }
 
-    /// Points seen by the retrieved images (one bit per point; `None` when that is every
-    /// point, or without global descriptors or visibility), how many images were retrieved,
-    /// and why there was no narrowing if there was none.
-    fn candidate_points(
-        &self,
-        query: &QueryFeatures,
-    ) -> (Option<BitVec>, usize, Option<RetrievalFallback>) {
-        let global = self.global.as_ref().map(|(g, dim)| (g.as_slice(), *dim));
+    /// The points the retrieved images see (ascending; `None` when that is every point, or
+    /// without retrieval data or visibility), how many images were retrieved, the method that
+    /// ranked them, and why there was no narrowing if there was none.
+    fn candidate_points(&self, query: &QueryFeatures) -> Retrieved {
         let n_images = self.map.n_images() as usize;
-        let (images, fallback) = super::retrieval::retrieve(
-            global,
-            query.global.as_deref(),
-            n_images,
-            self.options.top_k,
-        );
-        let candidates = self.visibility.as_ref().and_then(|visibility| {
-            super::retrieval::points_seen(&images, self.positions.len(), |i| {
-                visibility.points_of(i)
-            })
-        });
-        let why = match fallback {
-            Some(why) => Some(why),
-            None if self.visibility.is_none() => Some(RetrievalFallback::NoVisibility),
-            None if candidates.is_none() => Some(RetrievalFallback::EveryPointSeen),
-            None => None,
+        let (images, ranked) = self.retrieval.retrieve(query, n_images, self.options.top_k);
+        let candidates = match (&self.visibility, &ranked) {
+            (Some(visibility), Ok(_)) => {
+                super::retrieval::points_seen(&images, self.positions.len(), |i| {
+                    visibility.points_of(i)
+                })
+            }
+            _ => None,
         };
-        (candidates, images.len(), why)
+        let fallback = match ranked {
+            Err(why) => Some(why),
+            Ok(_) if self.visibility.is_none() => Some(RetrievalFallback::NoVisibility),
+            Ok(_) if candidates.is_none() => Some(RetrievalFallback::EveryPointSeen),
+            Ok(_) => None,
+        };
+        Retrieved {
+            candidates,
+            images: images.len(),
+            method: ranked.ok(),
+            fallback,
+        }
     }
 
     /// The query's feature set for `level`, checked against the level's descriptor space.
@@ -604,14 +630,12 @@ impl<'m> Localizer<'m> {
         &self,
         level: &LevelIndex<'_>,
         set: &FeatureSet,
-        candidates: Option<&BitVec>,
+        candidates: Option<&[u32]>,
         pixels: &mut Vec<Vector2<f64>>,
         points: &mut Vec<Vector3<f64>>,
     ) {
-        let rows: Vec<usize> = match candidates {
-            Some(c) => (0..level.points.len())
-                .filter(|&r| c[level.points[r] as usize])
-                .collect(),
+        let rows: Vec<usize> = match level.rows_of(candidates) {
+            Some(rows) => rows.into_iter().map(|r| r as usize).collect(),
             None => (0..level.points.len()).collect(),
         };
         if rows.is_empty() || set.keypoints.is_empty() {
@@ -657,12 +681,14 @@ impl<'m> Localizer<'m> {
         }
     }
 
-    /// Guided matching: every point of the level that projects into the image is a candidate
-    /// for the query keypoints within `gate_px` of its projection.
+    /// Guided matching: every point of the level (of `rows`, if given) that projects into the
+    /// image is a candidate for the query keypoints within `gate_px` of its projection.
+    #[allow(clippy::too_many_arguments)]
     fn guided_level(
         &self,
         level: &LevelIndex<'_>,
         set: &FeatureSet,
+        rows: Option<&[u32]>,
         pose: &Pose,
         camera: &Camera,
         pixels: &mut Vec<Vector2<f64>>,
@@ -674,7 +700,13 @@ impl<'m> Localizer<'m> {
         // covers the gate) and sorted: memory follows the level's points, whatever image size
         // the camera claims. (cell row, cell column, level row, pixel).
         let mut cells: Vec<(u32, u32, u32, [f32; 2])> = Vec::new();
-        for (row, &p) in level.points.iter().enumerate() {
+        let all_rows = || 0..level.points.len() as u32;
+        let candidate_rows: &mut dyn Iterator<Item = u32> = match rows {
+            Some(rows) => &mut rows.iter().copied(),
+            None => &mut all_rows(),
+        };
+        for row in candidate_rows {
+            let p = level.points[row as usize];
             let pc = pose.transform(&self.positions[p as usize]);
             if pc.z <= 0.0 {
                 continue;
@@ -686,7 +718,7 @@ impl<'m> Localizer<'m> {
                 continue;
             }
             let cell = ((px.y / gate) as u32, (px.x / gate) as u32);
-            cells.push((cell.0, cell.1, row as u32, [px.x as f32, px.y as f32]));
+            cells.push((cell.0, cell.1, row, [px.x as f32, px.y as f32]));
         }
         if cells.is_empty() {
             return;

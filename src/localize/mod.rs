@@ -13,7 +13,7 @@ pub use localizer::{
     QueryFailure, QueryFeatures, SkippedLevel, StageTimes,
 };
 pub use matching::MatchOptions;
-pub use retrieval::RetrievalFallback;
+pub use retrieval::{RetrievalFallback, RetrievalMethod};
 
 /// The matching kernels, for the benches that measure them (feature `fuzzing`, which the
 /// crate's tests and benches enable); not part of the API.

@@ -1,75 +1,268 @@
 //! Retrieval: which database images a query is compared with, and which map points they
-//! see. The fallback when retrieval cannot help (no global descriptors in the map or the
-//! query, or descriptors of another length) is every image, so every point is a candidate.
+//! see. A map can rank its images two ways: the extractor's global descriptor
+//! (`image_global`, SFP maps) or VLAD of its own local descriptors (`image_vlad`, every map
+//! converted by 1.1, see [`crate::vlad`]). The fallback when neither can help (the map has
+//! neither, the query lacks what they need, lengths differ) is every image, so every point is
+//! a candidate.
 
-use crate::vector::normalise_rows;
+use super::localizer::QueryFeatures;
+use crate::format::{Error as FormatError, Map, Retrieval};
+use crate::vector::{dot, normalise_rows};
+use crate::vlad::Codebook;
 use bitvec::vec::BitVec;
+
+/// Which stored global descriptor ranks the map's images.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum RetrievalMethod {
+    /// The map's stated preference (metadata `retrieval`) when the query can use it, else
+    /// the other kind the map stores.
+    #[default]
+    Auto,
+    /// Only VLAD.
+    Vlad,
+    /// Only the extractor's global descriptor.
+    Global,
+    /// No retrieval: every point is a candidate.
+    Off,
+}
 
 /// Why a query's candidates are every point of the map instead of those of its retrieved
 /// images: what `localize` reports per query.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[non_exhaustive]
 pub enum RetrievalFallback {
-    /// The map stores no global descriptors (SIFT maps today).
+    /// The map stores neither global descriptors nor VLAD (SIFT maps written by 1.0), or not
+    /// the kind asked for.
     NoMapDescriptors,
     /// The query has no global descriptor (SIFT features, a features.h5 without one).
     NoQueryDescriptor,
-    /// The query's global descriptor has another length than the map's (another model).
+    /// The query has no features for the level the map's VLAD aggregates.
+    NoQueryFeatures { level: u16 },
+    /// The query's descriptors have another length than the map's (another model).
     DimensionMismatch { map: usize, query: usize },
     /// The map has no images, or no visibility to turn images into points.
     NoVisibility,
     /// The retrieved images see every point (`top_k` covers the map).
     EveryPointSeen,
+    /// Retrieval was switched off (`--retrieval off`).
+    Off,
 }
 
 impl std::fmt::Display for RetrievalFallback {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            RetrievalFallback::NoMapDescriptors => f.write_str("the map has no global descriptors"),
+            RetrievalFallback::NoMapDescriptors => {
+                f.write_str("the map has no retrieval data (global descriptors or VLAD) to use")
+            }
             RetrievalFallback::NoQueryDescriptor => {
                 f.write_str("the query has no global descriptor")
             }
+            RetrievalFallback::NoQueryFeatures { level } => write!(
+                f,
+                "the query has no features for level {level}, which the map's VLAD aggregates"
+            ),
             RetrievalFallback::DimensionMismatch { map, query } => write!(
                 f,
-                "the query's global descriptor has {query} dimensions, the map's {map}"
+                "the query's descriptors for retrieval have {query} dimensions, the map's {map}"
             ),
             RetrievalFallback::NoVisibility => f.write_str("the map has no images or visibility"),
             RetrievalFallback::EveryPointSeen => {
                 f.write_str("the retrieved images see every point")
             }
+            RetrievalFallback::Off => f.write_str("retrieval is off"),
         }
     }
 }
 
-/// The `top_k` database images whose global descriptors (`[n_images × dim]`, L2-normalised,
-/// row-major) score highest against the query's, best first (ties: lower index first); or
-/// all images in order, with the reason, when the map or the query has no global descriptor
-/// of that length.
-pub(crate) fn retrieve(
-    database: Option<(&[f32], usize)>,
-    query: Option<&[f32]>,
-    n_images: usize,
-    top_k: usize,
-) -> (Vec<usize>, Option<RetrievalFallback>) {
-    let fallback = match (database, query) {
-        _ if n_images == 0 => RetrievalFallback::NoVisibility,
-        (None, _) => RetrievalFallback::NoMapDescriptors,
-        (_, None) => RetrievalFallback::NoQueryDescriptor,
-        (Some((_, map)), Some(q)) if q.len() != map => RetrievalFallback::DimensionMismatch {
-            map,
-            query: q.len(),
-        },
-        (Some((g, dim)), Some(q)) => {
-            // Scores are cosines, as the map's rows are unit. The ranking would not change
-            // without it, but the tie-breaks between scores an ulp apart could.
-            let mut q = q.to_vec();
-            normalise_rows(&mut q, dim);
-            let mut scores = vec![0.0; n_images];
-            super::kernels::sgemm_abt(&q, g, &mut scores, 1, n_images, dim);
-            return (top_k_indices(&scores, top_k.max(1)), None);
+/// A map's VLAD, ready to score queries.
+struct VladIndex {
+    level: u16,
+    codebook: Codebook,
+    /// `[dims × d_in]`: the level basis' leading rows (`None`: the extractor's own basis,
+    /// whose leading dimensions are taken as they are).
+    projection: Option<Vec<f32>>,
+    d_in: usize,
+    /// `[images × width]`, f32 (decoded once: 4 bytes per value, small next to the points).
+    images: Vec<f32>,
+}
+
+/// What a localizer retrieves with: the map's global descriptors and VLAD, decoded once.
+pub(crate) struct RetrievalIndex {
+    global: Option<(Vec<f32>, usize)>,
+    vlad: Option<VladIndex>,
+    /// The map's preference, else VLAD first (the one every converted map has).
+    order: [Retrieval; 2],
+    method: RetrievalMethod,
+}
+
+impl RetrievalIndex {
+    pub(crate) fn new(map: &Map<'_>, method: RetrievalMethod) -> Result<Self, FormatError> {
+        let global = map
+            .image_global()?
+            .filter(|(_, dim)| *dim > 0)
+            .map(|(g, dim)| {
+                let mut v: Vec<f32> = g.iter().map(|x| x.to_f32()).collect();
+                normalise_rows(&mut v, dim);
+                (v, dim)
+            });
+        let vlad = match map.vlad()? {
+            None => None,
+            Some(v) => {
+                let level = map.level(v.level)?;
+                let codebook = Codebook::new(v.centroids.to_vec(), v.dims)
+                    .ok_or_else(|| FormatError::inconsistent("VLAD codebook of no centroids"))?;
+                // Open checked dims ≤ dim_short ≤ dim_full = the projection's rows.
+                let (projection, d_in) = match level.projection_input_dim() {
+                    Some(d_in) => {
+                        let leading = level
+                            .projection()?
+                            .and_then(|p| p.get(..v.dims * d_in).map(<[f32]>::to_vec))
+                            .ok_or_else(|| {
+                                FormatError::inconsistent("VLAD dims past the level projection")
+                            })?;
+                        (Some(leading), d_in)
+                    }
+                    None => (None, level.info().dim_full as usize),
+                };
+                Some(VladIndex {
+                    level: v.level,
+                    codebook,
+                    projection,
+                    d_in,
+                    images: v.images.iter().map(|x| x.to_f32()).collect(),
+                })
+            }
+        };
+        let order = match map.metadata().retrieval() {
+            Some(Retrieval::Global) => [Retrieval::Global, Retrieval::Vlad],
+            _ => [Retrieval::Vlad, Retrieval::Global],
+        };
+        Ok(RetrievalIndex {
+            global,
+            vlad,
+            order,
+            method,
+        })
+    }
+
+    /// The `top_k` images for `query`, best first, and the method that ranked them; or every
+    /// image and why not.
+    pub(crate) fn retrieve(
+        &self,
+        query: &QueryFeatures,
+        n_images: usize,
+        top_k: usize,
+    ) -> (Vec<usize>, Result<Retrieval, RetrievalFallback>) {
+        let all = || (0..n_images).collect::<Vec<_>>();
+        if n_images == 0 {
+            return (all(), Err(RetrievalFallback::NoVisibility));
         }
-    };
-    ((0..n_images).collect(), Some(fallback))
+        let methods: &[Retrieval] = match self.method {
+            RetrievalMethod::Off => return (all(), Err(RetrievalFallback::Off)),
+            RetrievalMethod::Auto => &self.order,
+            RetrievalMethod::Vlad => &[Retrieval::Vlad],
+            RetrievalMethod::Global => &[Retrieval::Global],
+        };
+        // The first usable method ranks; otherwise the first method's reason is reported.
+        let mut first_reason = None;
+        for &method in methods {
+            let vectors = match method {
+                Retrieval::Global => self.global_vectors(query),
+                Retrieval::Vlad => self.vlad_vectors(query),
+            };
+            match vectors {
+                Ok((database, q, dim)) if database.len() == n_images * dim => {
+                    return (rank(database, dim, &q, top_k), Ok(method));
+                }
+                Ok(_) => {
+                    first_reason.get_or_insert(RetrievalFallback::NoMapDescriptors);
+                }
+                Err(why) => {
+                    first_reason.get_or_insert(why);
+                }
+            }
+        }
+        (
+            all(),
+            Err(first_reason.unwrap_or(RetrievalFallback::NoMapDescriptors)),
+        )
+    }
+
+    fn global_vectors(
+        &self,
+        query: &QueryFeatures,
+    ) -> Result<(&[f32], Vec<f32>, usize), RetrievalFallback> {
+        let (g, dim) = self
+            .global
+            .as_ref()
+            .ok_or(RetrievalFallback::NoMapDescriptors)?;
+        let q = query
+            .global
+            .as_ref()
+            .ok_or(RetrievalFallback::NoQueryDescriptor)?;
+        if q.len() != *dim {
+            return Err(RetrievalFallback::DimensionMismatch {
+                map: *dim,
+                query: q.len(),
+            });
+        }
+        Ok((g, q.clone(), *dim))
+    }
+
+    fn vlad_vectors(
+        &self,
+        query: &QueryFeatures,
+    ) -> Result<(&[f32], Vec<f32>, usize), RetrievalFallback> {
+        let v = self
+            .vlad
+            .as_ref()
+            .ok_or(RetrievalFallback::NoMapDescriptors)?;
+        let set = query
+            .sets
+            .iter()
+            .find(|s| s.level == Some(v.level))
+            .or_else(|| query.sets.iter().find(|s| s.level.is_none()))
+            .ok_or(RetrievalFallback::NoQueryFeatures { level: v.level })?;
+        let n = set.keypoints.len();
+        if set.dim != v.d_in || n.checked_mul(set.dim) != Some(set.descriptors.len()) {
+            return Err(RetrievalFallback::DimensionMismatch {
+                map: v.d_in,
+                query: set.dim,
+            });
+        }
+        let dims = v.codebook.dims;
+        let mut rows = vec![0.0f32; n * dims];
+        for (src, dst) in set
+            .descriptors
+            .chunks_exact(set.dim)
+            .zip(rows.chunks_exact_mut(dims))
+        {
+            match &v.projection {
+                Some(p) => {
+                    for (o, direction) in dst.iter_mut().zip(p.chunks_exact(v.d_in)) {
+                        *o = dot(direction, src);
+                    }
+                }
+                None => dst.copy_from_slice(&src[..dims]),
+            }
+        }
+        normalise_rows(&mut rows, dims);
+        Ok((&v.images, v.codebook.vlad(&rows), v.codebook.width()))
+    }
+}
+
+/// The `top_k` database images whose descriptors (`[n_images × dim]`, L2-normalised,
+/// row-major) score highest against `query`'s (`dim` values), best first (ties: lower index
+/// first); `top_k` 0 is taken as 1.
+pub(crate) fn rank(database: &[f32], dim: usize, query: &[f32], top_k: usize) -> Vec<usize> {
+    let n_images = database.len() / dim.max(1);
+    // Scores are cosines, as the map's rows are unit. The ranking would not change without
+    // it, but the tie-breaks between scores an ulp apart could.
+    let mut q = query.to_vec();
+    normalise_rows(&mut q, dim);
+    let mut scores = vec![0.0; n_images];
+    super::kernels::sgemm_abt(&q, database, &mut scores, 1, n_images, dim);
+    top_k_indices(&scores, top_k.max(1))
 }
 
 /// Indices of the `k` highest scores, best first, ties by index: a partial selection
@@ -85,31 +278,38 @@ pub(crate) fn top_k_indices(scores: &[f32], k: usize) -> Vec<usize> {
     order
 }
 
-/// One bit per map point: whether one of `images` sees it (`points_of(i)` lists image `i`'s
-/// points; indices past `n_points` are ignored). `None` when every point is seen (no
-/// narrowing), or when there are no images.
+/// The map points `images` see, ascending and each once (`points_of(i)` lists image `i`'s
+/// points; indices past `n_points` are ignored). `None` when that is every point (no
+/// narrowing), or when there are no images. A bit per point marks the points already listed:
+/// cost O(n_points / 64) to clear plus O(points seen).
 pub(crate) fn points_seen<'a>(
     images: &[usize],
     n_points: usize,
     points_of: impl Fn(usize) -> &'a [u32],
-) -> Option<BitVec> {
+) -> Option<Vec<u32>> {
     if images.is_empty() {
         return None;
     }
-    let mut seen = BitVec::repeat(false, n_points);
+    let mut seen: BitVec = BitVec::repeat(false, n_points);
+    let mut list = Vec::new();
     for &i in images {
         for &p in points_of(i) {
-            if (p as usize) < n_points {
-                seen.set(p as usize, true);
+            if (p as usize) < n_points && !seen.replace(p as usize, true) {
+                list.push(p);
             }
         }
     }
-    (!seen.all()).then_some(seen)
+    if list.len() == n_points {
+        return None;
+    }
+    list.sort_unstable();
+    Some(list)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::localize::FeatureSet;
 
     #[test]
     fn top_k_is_the_full_sort_cut_at_k() {
@@ -129,53 +329,116 @@ mod tests {
     }
 
     #[test]
-    fn retrieval_ranks_images_by_their_global_descriptor() {
+    fn ranking_orders_images_by_cosine() {
         // Four images in 2-D: the query (unnormalised) points along image 2's descriptor.
         let s = std::f32::consts::FRAC_1_SQRT_2;
         let g = [1.0, 0.0, 0.0, 1.0, s, s, -1.0, 0.0];
-        assert_eq!(
-            retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 2),
-            (vec![2, 0], None)
-        );
-        assert_eq!(retrieve(Some((&g, 2)), Some(&[0.0, -5.0]), 4, 1).0, [0]);
+        assert_eq!(rank(&g, 2, &[3.0, 2.9], 2), [2, 0]);
+        assert_eq!(rank(&g, 2, &[0.0, -5.0], 1), [0]);
         // top_k 0 is taken as 1; top_k past the images is every image, ranked.
-        assert_eq!(retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 0).0, [2]);
+        assert_eq!(rank(&g, 2, &[3.0, 2.9], 0), [2]);
+        assert_eq!(rank(&g, 2, &[3.0, 2.9], 9), [2, 0, 1, 3]);
+    }
+
+    fn query(global: Option<Vec<f32>>, sets: Vec<FeatureSet>) -> QueryFeatures {
+        QueryFeatures { sets, global }
+    }
+
+    fn set(level: Option<u16>, dim: usize, rows: &[f32]) -> FeatureSet {
+        FeatureSet {
+            level,
+            keypoints: vec![[1.0, 1.0]; rows.len() / dim],
+            descriptors: rows.to_vec(),
+            dim,
+        }
+    }
+
+    /// Two images in 2-D: global descriptors along x and y; a VLAD of one centroid on a
+    /// level-3 basis that swaps the axes, so the two methods disagree.
+    fn index(method: RetrievalMethod, order: [Retrieval; 2]) -> RetrievalIndex {
+        RetrievalIndex {
+            global: Some((vec![1.0, 0.0, 0.0, 1.0], 2)),
+            vlad: Some(VladIndex {
+                level: 3,
+                codebook: Codebook::new(vec![0.0, 0.0], 2).unwrap(),
+                projection: Some(vec![0.0, 1.0, 1.0, 0.0]),
+                d_in: 2,
+                images: vec![1.0, 0.0, 0.0, 1.0],
+            }),
+            order,
+            method,
+        }
+    }
+
+    #[test]
+    fn the_map_preference_ranks_and_the_other_method_stands_in() {
+        use Retrieval::{Global, Vlad};
+        let both = query(Some(vec![1.0, 0.0]), vec![set(Some(3), 2, &[1.0, 0.0])]);
+        let auto = |order| index(RetrievalMethod::Auto, order);
+        // Global says image 0; the swapped VLAD basis says image 1.
         assert_eq!(
-            retrieve(Some((&g, 2)), Some(&[3.0, 2.9]), 4, 9).0,
-            [2, 0, 1, 3]
+            auto([Global, Vlad]).retrieve(&both, 2, 1),
+            (vec![0], Ok(Global))
+        );
+        assert_eq!(
+            auto([Vlad, Global]).retrieve(&both, 2, 1),
+            (vec![1], Ok(Vlad))
+        );
+        // Without a global descriptor, VLAD stands in; without level-3 features, global.
+        let no_global = query(None, vec![set(Some(3), 2, &[1.0, 0.0])]);
+        assert_eq!(
+            auto([Global, Vlad]).retrieve(&no_global, 2, 1),
+            (vec![1], Ok(Vlad))
+        );
+        let no_level = query(Some(vec![0.0, 1.0]), vec![set(Some(0), 2, &[1.0, 0.0])]);
+        assert_eq!(
+            auto([Vlad, Global]).retrieve(&no_level, 2, 1),
+            (vec![1], Ok(Global))
+        );
+        // Features for no particular level (SIFT) serve the VLAD.
+        let sift = query(None, vec![set(None, 2, &[0.0, 1.0])]);
+        assert_eq!(
+            auto([Vlad, Global]).retrieve(&sift, 2, 1),
+            (vec![0], Ok(Vlad))
         );
     }
 
     #[test]
-    fn without_usable_global_descriptors_every_image_is_retrieved_and_why_is_named() {
+    fn without_usable_retrieval_every_image_is_retrieved_and_why_is_named() {
         use RetrievalFallback::*;
-        let g = [1.0, 0.0, 0.0, 1.0];
+        use RetrievalMethod as M;
+        let order = [Retrieval::Vlad, Retrieval::Global];
         let all = vec![0, 1];
-        type Case<'a> = (
-            Option<(&'a [f32], usize)>,
-            Option<&'a [f32]>,
-            RetrievalFallback,
+        let nothing = query(None, vec![set(Some(0), 2, &[1.0, 0.0])]);
+        let wide = query(
+            Some(vec![1.0, 0.0, 0.0]),
+            vec![set(Some(3), 3, &[1.0, 0.0, 0.0])],
         );
-        let cases: [Case<'_>; 3] = [
-            (None, Some(&[1.0, 0.0]), NoMapDescriptors),
-            (Some((&g, 2)), None, NoQueryDescriptor),
-            // A query descriptor of another length (another model) cannot be compared.
-            (
-                Some((&g, 2)),
-                Some(&[1.0, 0.0, 0.0]),
-                DimensionMismatch { map: 2, query: 3 },
-            ),
+        let cases = [
+            (M::Auto, &nothing, NoQueryFeatures { level: 3 }),
+            (M::Global, &nothing, NoQueryDescriptor),
+            (M::Vlad, &wide, DimensionMismatch { map: 2, query: 3 }),
+            (M::Global, &wide, DimensionMismatch { map: 2, query: 3 }),
+            (M::Off, &wide, Off),
         ];
-        for (database, query, why) in cases {
-            assert_eq!(retrieve(database, query, 2, 1), (all.clone(), Some(why)));
+        for (method, q, why) in cases {
+            assert_eq!(
+                index(method, order).retrieve(q, 2, 1),
+                (all.clone(), Err(why)),
+                "{method:?}"
+            );
         }
+        let mut bare = index(M::Auto, order);
+        bare.global = None;
+        bare.vlad = None;
         assert_eq!(
-            retrieve(Some((&[], 2)), Some(&[1.0, 0.0]), 0, 1),
-            (vec![], Some(NoVisibility))
+            bare.retrieve(&wide, 2, 1),
+            (all.clone(), Err(NoMapDescriptors))
         );
+        assert_eq!(bare.retrieve(&wide, 0, 1), (vec![], Err(NoVisibility)));
         assert_eq!(
             DimensionMismatch { map: 2, query: 3 }.to_string(),
-            "the query's global descriptor has 3 dimensions, the map's 2"
+            "the query's descriptors for retrieval have 3 dimensions, the map's 2"
         );
     }
 
@@ -183,7 +446,13 @@ mod tests {
     fn candidates_are_the_points_the_retrieved_images_see() {
         let visibility: [&[u32]; 3] = [&[0, 2], &[2, 3, 99], &[1, 4]];
         let seen = points_seen(&[0, 1], 5, |i| visibility[i]).unwrap();
-        assert_eq!(seen.iter_ones().collect::<Vec<_>>(), [0, 2, 3]);
+        assert_eq!(seen, [0, 2, 3]);
+        // Listed once, ascending, whatever order the images list them in.
+        let visibility: [&[u32]; 2] = [&[3, 0, 3], &[2, 0]];
+        assert_eq!(
+            points_seen(&[1, 0], 5, |i| visibility[i]).unwrap(),
+            [0, 2, 3]
+        );
         // Every point seen: no narrowing; no image: no narrowing either.
         assert!(points_seen(&[0, 1, 2], 5, |i| visibility[i]).is_none());
         assert!(points_seen(&[], 5, |i| visibility[i]).is_none());

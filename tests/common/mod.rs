@@ -520,7 +520,7 @@ pub fn craft(metadata: &Value, sections: &[Crafted]) -> Vec<u8> {
 
 /// [`craft`] with the metadata block given as bytes (which need not be JSON at all).
 pub fn craft_with_metadata_bytes(metadata: &[u8], sections: &[Crafted]) -> Vec<u8> {
-    use sfpmap::format::{align_up, VERSION_MAJOR, VERSION_MINOR};
+    use sfpmap::format::{align_up, VERSION_MAJOR};
     let table_end = (HEADER_LEN + sections.len() * ENTRY_LEN) as u64;
     let mut out = vec![0u8; table_end as usize];
     out.extend_from_slice(metadata);
@@ -548,7 +548,7 @@ pub fn craft_with_metadata_bytes(metadata: &[u8], sections: &[Crafted]) -> Vec<u
     }
     let mut header = Header {
         major: VERSION_MAJOR,
-        minor: VERSION_MINOR,
+        minor: 0,
         flags: 0,
         section_count: sections.len() as u32,
         entry_len: ENTRY_LEN as u32,

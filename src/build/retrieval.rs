@@ -1,0 +1,73 @@
+//! Retrieval for every map: the VLAD codebook and per-image VLADs `convert` stores (format
+//! 1.1, [`crate::vlad`]), from the map's own point descriptors in one level's basis.
+
+use super::geometry::Geometry;
+use crate::format::MapWriter;
+use crate::progress::Reporter;
+use crate::vlad::Codebook;
+use serde_json::json;
+
+/// How `convert` builds retrieval data.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct VladOptions {
+    /// Centroids; 0 stores no VLAD.
+    pub clusters: usize,
+    /// Leading dimensions of the level basis (at most the level's `dim_short`).
+    pub dims: usize,
+}
+
+impl Default for VladOptions {
+    fn default() -> Self {
+        VladOptions {
+            clusters: crate::vlad::DEFAULT_CLUSTERS,
+            dims: crate::vlad::DEFAULT_DIMS,
+        }
+    }
+}
+
+/// The seed of the codebook's k-means: fixed, so a map converts to the same bytes.
+const SEED: u64 = 0x5f9_1a0;
+
+/// Learns the codebook from `rows` (one per map point: its descriptor's first `dims` stored
+/// dimensions of `level`, renormalised; a zero row for a point without one) and adds it, each
+/// image's VLAD over the points it sees, and the rule to the level's metadata to `writer`
+/// (after the level). Returns whether it did: a map with fewer described points than
+/// centroids, or without images, gets no VLAD.
+pub(crate) fn add_vlad(
+    writer: &mut MapWriter<'_>,
+    level: u16,
+    rows: &[f32],
+    dims: usize,
+    clusters: usize,
+    geometry: &Geometry,
+    reporter: &dyn Reporter,
+) -> Result<bool, crate::format::Error> {
+    if clusters == 0 || dims == 0 || geometry.vis_offsets.len() < 2 {
+        return Ok(false);
+    }
+    reporter.start("retrieval codebook", None);
+    let codebook = Codebook::train(rows, dims, clusters, SEED);
+    reporter.finish();
+    let Some(codebook) = codebook else {
+        return Ok(false);
+    };
+    reporter.start("image VLADs", None);
+    let images = codebook.image_vlads(rows, &geometry.vis_offsets, &geometry.vis_points);
+    reporter.finish();
+    let info = writer
+        .metadata_mut()
+        .levels
+        .iter_mut()
+        .find(|l| l.level == level)
+        .ok_or_else(|| crate::format::Error::invalid("VLAD for a level the map does not have"))?;
+    info.extra.insert(
+        "vlad".into(),
+        json!({
+            "clusters": codebook.clusters,
+            "dims": dims,
+            "rule": "k-means++ then Lloyd (25 iterations, seeded) on at most 32768 point descriptors of this level's basis (first dims, renormalised); per image, residuals of the points it sees summed per centroid, each centroid's sum L2-normalised, then the whole",
+        }),
+    );
+    writer.set_vlad(level, dims, codebook.centroids, &images)?;
+    Ok(true)
+}

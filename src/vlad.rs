@@ -1,0 +1,332 @@
+//! VLAD (Jégou et al., "Aggregating local descriptors into a compact image representation",
+//! 2010): an image's global descriptor made from its local descriptors. Each descriptor is
+//! assigned to the nearest of a few centroids and the residuals are summed per centroid; each
+//! centroid's sum is normalised on its own ("intra-normalisation", Arandjelović & Zisserman,
+//! "All about VLAD", 2013, which damps bursts of similar features) and the whole vector to unit
+//! length, so two images compare by a dot product.
+//!
+//! It gives every map retrieval, also maps without images or a network (SIFT maps from a
+//! COLMAP database): `convert` learns the codebook from the map's own descriptors (one level's
+//! first `dims` stored dimensions) and stores each database image's VLAD over the points it
+//! sees; a query's VLAD comes from its keypoints' descriptors in the same level basis. The
+//! codebook is small (16 × 32 by default) because it only has to rank images of one map.
+
+use crate::geometry::rng::SplitMix64;
+use crate::vector::{dot, normalise_rows};
+
+/// Centroids of the codebook learned by default.
+pub const DEFAULT_CLUSTERS: usize = 16;
+/// Leading dimensions of the level basis the codebook covers by default.
+pub const DEFAULT_DIMS: usize = 32;
+/// Descriptors k-means sees at most (a seeded sample): enough for 16–64 centroids, and it
+/// bounds training time whatever the map's size.
+const MAX_TRAIN: usize = 32_768;
+const ITERATIONS: usize = 25;
+
+/// A VLAD codebook: `clusters` centroids of `dims` dimensions.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Codebook {
+    pub clusters: usize,
+    pub dims: usize,
+    /// `[clusters × dims]`, row-major.
+    pub centroids: Vec<f32>,
+    /// `‖c‖² / 2` per centroid: the nearest centroid maximises `x·c − ‖c‖²/2`.
+    half_norms: Vec<f32>,
+}
+
+impl Codebook {
+    /// A codebook from stored centroids (`[clusters × dims]`); `None` if the shape is wrong.
+    pub fn new(centroids: Vec<f32>, dims: usize) -> Option<Codebook> {
+        if dims == 0 || centroids.is_empty() || centroids.len() % dims != 0 {
+            return None;
+        }
+        let half_norms = centroids
+            .chunks_exact(dims)
+            .map(|c| 0.5 * dot(c, c))
+            .collect();
+        Some(Codebook {
+            clusters: centroids.len() / dims,
+            dims,
+            centroids,
+            half_norms,
+        })
+    }
+
+    /// k-means (k-means++ seeding, then Lloyd iterations) over the non-zero rows of `rows`
+    /// (`[n × dims]`), on a seeded sample of at most 32,768 of them: the same codebook for the
+    /// same rows and seed on every machine. `None` when there are fewer non-zero rows than
+    /// `clusters`.
+    pub fn train(rows: &[f32], dims: usize, clusters: usize, seed: u64) -> Option<Codebook> {
+        if dims == 0 || clusters == 0 {
+            return None;
+        }
+        let mut rng = SplitMix64::new(seed);
+        let mut sample: Vec<usize> = rows
+            .chunks_exact(dims)
+            .enumerate()
+            .filter(|(_, r)| r.iter().any(|&v| v != 0.0))
+            .map(|(i, _)| i)
+            .collect();
+        if sample.len() < clusters {
+            return None;
+        }
+        // A partial Fisher–Yates shuffle picks the sample; sorted again so memory is read in
+        // order.
+        let take = sample.len().min(MAX_TRAIN);
+        for i in 0..take {
+            let j = i + (rng.next_u64() % (sample.len() - i) as u64) as usize;
+            sample.swap(i, j);
+        }
+        sample.truncate(take);
+        sample.sort_unstable();
+        let data: Vec<f32> = sample
+            .iter()
+            .flat_map(|&i| rows[i * dims..(i + 1) * dims].iter().copied())
+            .collect();
+        let n = sample.len();
+        let row = |i: usize| &data[i * dims..(i + 1) * dims];
+
+        // k-means++: each next centroid is a row drawn with probability ∝ its squared
+        // distance to the nearest centroid so far.
+        let mut centroids = Vec::with_capacity(clusters * dims);
+        centroids.extend_from_slice(row((rng.next_u64() % n as u64) as usize));
+        let mut nearest = vec![f64::INFINITY; n];
+        for c in 1..clusters {
+            let last = &centroids[(c - 1) * dims..c * dims];
+            let mut total = 0.0f64;
+            for (i, d) in nearest.iter_mut().enumerate() {
+                *d = d.min(squared_distance(row(i), last));
+                total += *d;
+            }
+            let mut target = rng.next_f64() * total;
+            let mut pick = n - 1;
+            for (i, &d) in nearest.iter().enumerate() {
+                if target < d {
+                    pick = i;
+                    break;
+                }
+                target -= d;
+            }
+            centroids.extend_from_slice(row(pick));
+        }
+
+        let mut codebook = Codebook::new(centroids, dims)?;
+        let mut assignment = vec![usize::MAX; n];
+        for _ in 0..ITERATIONS {
+            let mut changed = false;
+            for (i, a) in assignment.iter_mut().enumerate() {
+                let c = codebook.nearest(row(i));
+                changed |= *a != c;
+                *a = c;
+            }
+            if !changed {
+                break;
+            }
+            let mut sums = vec![0.0f64; clusters * dims];
+            let mut counts = vec![0usize; clusters];
+            for (i, &a) in assignment.iter().enumerate() {
+                counts[a] += 1;
+                for (s, &v) in sums[a * dims..(a + 1) * dims].iter_mut().zip(row(i)) {
+                    *s += f64::from(v);
+                }
+            }
+            let old = &codebook.centroids;
+            let mut centroids = vec![0.0f32; clusters * dims];
+            for c in 0..clusters {
+                let out = &mut centroids[c * dims..(c + 1) * dims];
+                if counts[c] == 0 {
+                    // An empty cluster restarts at the row farthest from its centroid.
+                    let error = |i: usize| {
+                        let a = assignment[i];
+                        squared_distance(row(i), &old[a * dims..(a + 1) * dims])
+                    };
+                    let far = (0..n)
+                        .max_by(|&a, &b| error(a).total_cmp(&error(b)).then(b.cmp(&a)))
+                        .unwrap_or(0);
+                    out.copy_from_slice(row(far));
+                    continue;
+                }
+                for (o, s) in out.iter_mut().zip(&sums[c * dims..(c + 1) * dims]) {
+                    *o = (s / counts[c] as f64) as f32;
+                }
+            }
+            codebook = Codebook::new(centroids, dims)?;
+        }
+        Some(codebook)
+    }
+
+    /// The centroid nearest to `x` (`dims` values; ties: the lower index).
+    pub fn nearest(&self, x: &[f32]) -> usize {
+        let mut best = (f32::NEG_INFINITY, 0);
+        for (c, (centroid, half)) in self
+            .centroids
+            .chunks_exact(self.dims)
+            .zip(&self.half_norms)
+            .enumerate()
+        {
+            let s = dot(x, centroid) - half;
+            if s > best.0 {
+                best = (s, c);
+            }
+        }
+        best.1
+    }
+
+    /// Values of one VLAD: `clusters × dims`.
+    pub fn width(&self) -> usize {
+        self.clusters * self.dims
+    }
+
+    /// Adds `x`'s residual to its centroid's block of `sum` (`width()` values).
+    fn accumulate(&self, x: &[f32], sum: &mut [f32], cluster: usize) {
+        let d = self.dims;
+        let centroid = &self.centroids[cluster * d..(cluster + 1) * d];
+        for ((s, &v), &c) in sum[cluster * d..(cluster + 1) * d]
+            .iter_mut()
+            .zip(x)
+            .zip(centroid)
+        {
+            *s += v - c;
+        }
+    }
+
+    /// The VLAD of `rows` (`[n × dims]`, each already in the codebook's space and unit):
+    /// `width()` values, unit length (all zero without rows).
+    pub fn vlad(&self, rows: &[f32]) -> Vec<f32> {
+        let mut sum = vec![0.0f32; self.width()];
+        for x in rows.chunks_exact(self.dims) {
+            self.accumulate(x, &mut sum, self.nearest(x));
+        }
+        self.finish(&mut sum);
+        sum
+    }
+
+    /// Intra-normalisation, then unit length.
+    fn finish(&self, sum: &mut [f32]) {
+        normalise_rows(sum, self.dims);
+        normalise_rows(sum, sum.len().max(1));
+    }
+
+    /// Each image's VLAD over the points it sees: image `i` sees
+    /// `points[offsets[i]..offsets[i + 1]]`, rows of `rows` (`[n × dims]`; zero rows are points
+    /// without a descriptor and are skipped, as are indices past `n`). `[images × width()]`.
+    pub fn image_vlads(&self, rows: &[f32], offsets: &[u64], points: &[u32]) -> Vec<f32> {
+        let d = self.dims;
+        let n = rows.len() / d;
+        // Each point's centroid, once: most points are seen by several images.
+        let assignment: Vec<u32> = rows
+            .chunks_exact(d)
+            .map(|x| {
+                if x.iter().all(|&v| v == 0.0) {
+                    u32::MAX
+                } else {
+                    self.nearest(x) as u32
+                }
+            })
+            .collect();
+        let images = offsets.len().saturating_sub(1);
+        let mut out = vec![0.0f32; images * self.width()];
+        for (i, sum) in out.chunks_exact_mut(self.width().max(1)).enumerate() {
+            let range = offsets[i] as usize..offsets[i + 1] as usize;
+            for &p in points.get(range).unwrap_or(&[]) {
+                let p = p as usize;
+                match assignment.get(p) {
+                    Some(&c) if c != u32::MAX && p < n => {
+                        self.accumulate(&rows[p * d..(p + 1) * d], sum, c as usize)
+                    }
+                    _ => {}
+                }
+            }
+            self.finish(sum);
+        }
+        out
+    }
+}
+
+fn squared_distance(a: &[f32], b: &[f32]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(&x, &y)| {
+            let d = f64::from(x - y);
+            d * d
+        })
+        .sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `n` unit rows of `dims` around `groups` well-separated directions.
+    fn clustered(n: usize, dims: usize, groups: usize, seed: u64) -> Vec<f32> {
+        let mut rng = SplitMix64::new(seed);
+        let mut rows = Vec::with_capacity(n * dims);
+        for i in 0..n {
+            let g = i % groups;
+            for k in 0..dims {
+                let base = if k == g { 1.0 } else { 0.0 };
+                rows.push(base + 0.05 * (rng.next_f64() as f32 - 0.5));
+            }
+        }
+        normalise_rows(&mut rows, dims);
+        rows
+    }
+
+    #[test]
+    fn kmeans_finds_separated_groups_and_is_deterministic() {
+        let rows = clustered(600, 8, 4, 1);
+        let a = Codebook::train(&rows, 8, 4, 7).unwrap();
+        assert_eq!(a, Codebook::train(&rows, 8, 4, 7).unwrap());
+        // Every group's rows go to one centroid, and the groups to different ones.
+        let mut owner = [usize::MAX; 4];
+        for (i, x) in rows.chunks_exact(8).enumerate() {
+            let c = a.nearest(x);
+            if owner[i % 4] == usize::MAX {
+                owner[i % 4] = c;
+            }
+            assert_eq!(owner[i % 4], c, "row {i}");
+        }
+        let mut distinct = owner.to_vec();
+        distinct.sort_unstable();
+        distinct.dedup();
+        assert_eq!(distinct.len(), 4);
+        // Too few rows for the clusters; zero rows do not count.
+        let mut few = vec![0.0f32; 8 * 10];
+        few[..8].copy_from_slice(&rows[..8]);
+        assert!(Codebook::train(&few, 8, 2, 0).is_none());
+        assert!(Codebook::train(&rows, 0, 2, 0).is_none());
+    }
+
+    #[test]
+    fn a_vlad_is_unit_and_ranks_images_that_share_points_first() {
+        let rows = clustered(400, 8, 4, 2);
+        let codebook = Codebook::train(&rows, 8, 4, 3).unwrap();
+        // Image 0 sees points 0..100, image 1 points 50..150 (half shared), image 2 200..300,
+        // image 3 nothing; the query is points 0..100 again.
+        let offsets = [0u64, 100, 200, 300, 300];
+        let points: Vec<u32> = (0..100).chain(50..150).chain(200..300).collect();
+        let images = codebook.image_vlads(&rows, &offsets, &points);
+        assert_eq!(images.len(), 4 * codebook.width());
+        let query = codebook.vlad(&rows[..100 * 8]);
+        let norm = dot(&query, &query).sqrt();
+        assert!((norm - 1.0).abs() < 1e-5, "{norm}");
+        let scores: Vec<f32> = images
+            .chunks_exact(codebook.width())
+            .map(|v| dot(&query, v))
+            .collect();
+        assert!((scores[0] - 1.0).abs() < 1e-5, "{scores:?}");
+        assert!(scores[1] > scores[2], "{scores:?}");
+        assert_eq!(scores[3], 0.0, "an image without points has a zero VLAD");
+        // Indices past the rows are skipped, not a panic.
+        let bad = codebook.image_vlads(&rows, &[0, 2], &[0, 9_999]);
+        assert_eq!(bad.len(), codebook.width());
+    }
+
+    #[test]
+    fn stored_centroids_of_the_wrong_shape_are_refused() {
+        assert!(Codebook::new(vec![0.0; 6], 4).is_none());
+        assert!(Codebook::new(Vec::new(), 4).is_none());
+        assert!(Codebook::new(vec![0.0; 8], 0).is_none());
+        assert_eq!(Codebook::new(vec![0.0; 8], 4).unwrap().clusters, 2);
+    }
+}
