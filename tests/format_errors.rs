@@ -457,3 +457,178 @@ fn messages_are_one_lowercase_line() {
         assert!(!msg.ends_with('.'), "{msg}");
     }
 }
+
+/// The scene of [`levels_map`] (level 2 has `dim_short` 2) with VLAD retrieval on level 2,
+/// then `edit` (1.1 sections added or replaced around `set_vlad`'s shapes).
+fn vlad_map(edit: impl FnOnce(&mut MapWriter<'_>)) -> Vec<u8> {
+    let s = Scene::new(3, 12, 2, &[(0, 8.0, 8, 4), (2, 4.0, 4, 2)]);
+    let vlad = s.vlad(2, 2, vec![1.0, 0.0, 0.0, 1.0]);
+    let mut w = s.writer_with_vlad(Codec::Raw, &vlad);
+    edit(&mut w);
+    w.to_bytes().unwrap()
+}
+
+/// `[rows × cols]` of `dtype` (f32 or f16), every value 0.5, as an optional section.
+fn add_array(
+    w: &mut MapWriter<'_>,
+    kind: SectionKind,
+    level: u16,
+    dtype: Dtype,
+    rows: u64,
+    cols: u64,
+) {
+    let n = (rows * cols) as usize;
+    let bytes = match dtype {
+        Dtype::F32 => bytemuck::cast_slice(&vec![0.5f32; n]).to_vec(),
+        Dtype::F16 => bytemuck::cast_slice(&vec![sfpmap::format::f16::from_f32(0.5); n]).to_vec(),
+        _ => unreachable!(),
+    };
+    w.add_raw_section(
+        kind,
+        level,
+        dtype,
+        rows,
+        cols,
+        false,
+        Cow::Owned(bytes),
+        None,
+    )
+    .unwrap();
+}
+
+fn inconsistent_saying(bytes: &[u8], words: &str) {
+    match open_err(bytes) {
+        Error::Inconsistent { what } => assert!(what.contains(words), "{what}"),
+        e => panic!("{e:?}, expected inconsistent ({words})"),
+    }
+}
+
+#[test]
+fn vlad_the_fixture_opens() {
+    let b = vlad_map(|_| {});
+    let map = Map::from_bytes(&b).unwrap();
+    map.verify().unwrap();
+    let v = map.vlad().unwrap().unwrap();
+    assert_eq!((v.level, v.clusters, v.dims), (2, 2, 2));
+    assert_eq!(v.images.len(), 2 * 4);
+}
+
+#[test]
+fn vlad_missing_section_either_way() {
+    // A codebook without image VLADs, and image VLADs without a codebook.
+    let s = Scene::new(3, 12, 2, &[(0, 8.0, 8, 4), (2, 4.0, 4, 2)]);
+    let mut w = s.writer(Codec::Raw);
+    add_array(&mut w, SectionKind::LevelVladCentroids, 2, Dtype::F32, 2, 2);
+    assert!(matches!(
+        open_err(&w.to_bytes().unwrap()),
+        Error::MissingSection {
+            kind: SectionKind::ImageVlad,
+            level: None
+        }
+    ));
+    let mut w = s.writer(Codec::Raw);
+    add_array(&mut w, SectionKind::ImageVlad, NO_LEVEL, Dtype::F16, 2, 4);
+    assert!(matches!(
+        open_err(&w.to_bytes().unwrap()),
+        Error::MissingSection {
+            kind: SectionKind::LevelVladCentroids,
+            level: None
+        }
+    ));
+}
+
+#[test]
+fn vlad_two_codebooks_are_inconsistent() {
+    let b = vlad_map(|w| {
+        add_array(w, SectionKind::LevelVladCentroids, 0, Dtype::F32, 2, 2);
+    });
+    inconsistent_saying(&b, "second VLAD codebook");
+}
+
+#[test]
+fn vlad_codebook_dims_must_be_within_dim_short() {
+    // Level 2 has dim_short 2: 3 codebook dims are past it (and image VLADs of 2 x 3 match).
+    let b = vlad_map(|w| {
+        w.set_vlad(2, 3, vec![0.5; 6], &[0.5; 12]).unwrap();
+    });
+    inconsistent_saying(&b, "dim_short (2)");
+    // On level 0 (dim_short 4), 4 dims are fine and 5 are not.
+    let b = vlad_map(|w| {
+        w.set_vlad(0, 4, vec![0.5; 8], &[0.5; 16]).unwrap();
+    });
+    let map = Map::from_bytes(&b).unwrap();
+    assert_eq!(map.vlad().unwrap().unwrap().level, 0, "set_vlad replaces");
+    let b = vlad_map(|w| {
+        w.set_vlad(0, 5, vec![0.5; 10], &[0.5; 20]).unwrap();
+    });
+    inconsistent_saying(&b, "dim_short (4)");
+    // No centroid at all.
+    let b = vlad_map(|w| {
+        add_array(w, SectionKind::LevelVladCentroids, 2, Dtype::F32, 0, 2);
+        add_array(w, SectionKind::ImageVlad, NO_LEVEL, Dtype::F16, 2, 0);
+    });
+    inconsistent_saying(&b, "at least one centroid");
+}
+
+#[test]
+fn vlad_image_vlad_shape_follows_the_codebook_and_the_images() {
+    // 3 columns where the 2 x 2 codebook makes 4.
+    let b = vlad_map(|w| add_array(w, SectionKind::ImageVlad, NO_LEVEL, Dtype::F16, 2, 3));
+    inconsistent_saying(&b, "expected clusters x dims = 2 x 2");
+    // One row for two images.
+    let b = vlad_map(|w| add_array(w, SectionKind::ImageVlad, NO_LEVEL, Dtype::F16, 1, 4));
+    inconsistent_saying(&b, "one per image");
+    // No images at all.
+    let descriptors = [0.5f32; 8];
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3], [1.0; 3]]);
+    w.add_level(
+        level_info(0, 4.0, 4, 2),
+        &[0, 1],
+        Some(sfpmap::format::Descriptors::F32(&descriptors)),
+        false,
+    )
+    .unwrap();
+    w.set_vlad(0, 2, vec![0.5; 4], &[]).unwrap();
+    inconsistent_saying(
+        &w.to_bytes().unwrap(),
+        "(image_vlad) present without image_poses",
+    );
+}
+
+#[test]
+fn vlad_in_a_geometry_only_map_is_inconsistent() {
+    let s = Scene::new(5, 6, 2, &[]);
+    let points = [0u32, 2, 4];
+    let mut w = s.writer(Codec::Raw);
+    w.metadata_mut().geometry_only = true;
+    w.add_level(level_info(0, 8.0, 4, 2), &points, None, false)
+        .unwrap();
+    w.set_vlad(0, 2, vec![0.5; 4], &[0.5; 8]).unwrap();
+    inconsistent_saying(&w.to_bytes().unwrap(), "geometry-only");
+}
+
+#[test]
+fn vlad_codebook_of_an_unlisted_level_or_wrong_dtype() {
+    let b = vlad_map(|w| {
+        w.set_vlad(7, 2, vec![0.5; 4], &[0.5; 8]).unwrap();
+    });
+    inconsistent_saying(&b, "does not list");
+    let b = vlad_map(|w| add_array(w, SectionKind::LevelVladCentroids, 2, Dtype::F16, 2, 2));
+    assert!(matches!(open_err(&b), Error::WrongLayout { .. }));
+    let b = vlad_map(|w| add_array(w, SectionKind::ImageVlad, NO_LEVEL, Dtype::F32, 2, 4));
+    assert!(matches!(open_err(&b), Error::WrongLayout { .. }));
+    // The codebook's columns are descriptor dimensions: the writer keeps to the cap.
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0; 3]]);
+    assert!(matches!(
+        w.set_vlad(0, 4097, vec![0.5; 4097], &[])
+            .unwrap()
+            .to_bytes(),
+        Err(Error::InvalidInput { .. })
+    ));
+    assert!(matches!(
+        w.set_vlad(0, 3, vec![0.5; 4], &[]),
+        Err(Error::InvalidInput { .. })
+    ));
+}

@@ -2,9 +2,12 @@
 
 mod common;
 
-use common::{decoded_json, Scene};
+use common::{decoded_json, patch, Scene, VladData};
 use proptest::prelude::*;
-use sfpmap::format::{f16, slice, Codec, Descriptors, Map, MapWriter, SliceOptions};
+use sfpmap::format::{
+    f16, slice, Codec, Descriptors, Map, MapWriter, Retrieval, SectionKind, SliceOptions,
+    SliceSummary, VERSION_MINOR,
+};
 
 /// |f16(x) − x| for |x| ≤ 1 is at most half an ulp: 2^-11 relative, 2^-25 absolute near 0.
 fn within_f16(reference: f32, stored: f32) -> bool {
@@ -281,4 +284,257 @@ fn stored_sections_past_the_decode_cap_are_written_decoded() {
         .unwrap();
     assert_eq!(section.codec(), Codec::Raw);
     assert_eq!(map.section_bytes(section).unwrap(), &raw[..]);
+}
+
+/// The scene of the conformance vectors with VLAD on level 2 (2 centroids × 2 dims).
+fn vlad_scene() -> (Scene, VladData) {
+    let s = Scene::new(
+        7,
+        24,
+        3,
+        &[(0, 16.0, 16, 4), (1, 8.0, 8, 4), (2, 4.0, 8, 2)],
+    );
+    let vlad = s.vlad(2, 2, vec![0.6, 0.8, -0.8, 0.6]);
+    (s, vlad)
+}
+
+fn slice_to(bytes: &[u8], levels: &[u16], short: bool) -> (Vec<u8>, SliceSummary) {
+    let map = Map::from_bytes(bytes).unwrap();
+    let options = SliceOptions {
+        levels: levels.to_vec(),
+        short,
+        codec: None,
+        zstd_level: 3,
+    };
+    let (writer, summary) = slice(&map, &options).unwrap();
+    (writer.to_bytes().unwrap(), summary)
+}
+
+/// A section as stored: level, rows, cols, `required`, stored bytes.
+type Stored = (Option<u16>, u64, u64, bool, Vec<u8>);
+
+/// The stored bytes and table fields of the section of `kind`, if any.
+fn stored(map: &Map<'_>, kind: SectionKind) -> Option<Stored> {
+    let s = map.sections().iter().find(|s| s.kind() == kind)?;
+    let at = s.offset() as usize;
+    Some((
+        s.level(),
+        s.rows(),
+        s.cols(),
+        s.required(),
+        map.bytes()[at..at + s.stored_len() as usize].to_vec(),
+    ))
+}
+
+/// The header's minor version as a 1.0 reader reads it: the u16 at byte 10.
+fn minor(bytes: &[u8]) -> u16 {
+    u16::from_le_bytes([bytes[10], bytes[11]])
+}
+
+#[test]
+fn slice_keeps_vlad_with_its_level_byte_for_byte() {
+    let (s, vlad) = vlad_scene();
+    for codec in [Codec::Raw, Codec::Zstd] {
+        let bytes = s.writer_with_vlad(codec, &vlad).to_bytes().unwrap();
+        let map = Map::from_bytes(&bytes).unwrap();
+        for (levels, short) in [(&[2][..], false), (&[2][..], true), (&[1, 2][..], false)] {
+            let (out, summary) = slice_to(&bytes, levels, short);
+            assert!(!summary.vlad_dropped);
+            let sliced = Map::from_bytes(&out).unwrap();
+            sliced.verify().unwrap();
+            assert_eq!(sliced.version(), "1.1");
+            for kind in [SectionKind::LevelVladCentroids, SectionKind::ImageVlad] {
+                let before = stored(&map, kind).unwrap();
+                assert_eq!(
+                    stored(&sliced, kind).unwrap(),
+                    before,
+                    "{kind} {levels:?} {short}"
+                );
+            }
+            assert_eq!(sliced.metadata().retrieval(), Some(Retrieval::Vlad));
+            let v = sliced.vlad().unwrap().unwrap();
+            assert_eq!((v.level, v.clusters, v.dims), (2, 2, 2));
+            assert_eq!(decoded_json(&sliced)["vlad"], vlad.expected_json());
+        }
+    }
+}
+
+#[test]
+fn slice_drops_vlad_with_its_level_and_retargets_retrieval() {
+    let (s, vlad) = vlad_scene();
+    let bytes = s.writer_with_vlad(Codec::Raw, &vlad).to_bytes().unwrap();
+    assert_eq!(minor(&bytes), 1);
+    let (out, summary) = slice_to(&bytes, &[0, 1], false);
+    assert!(summary.vlad_dropped);
+    let sliced = Map::from_bytes(&out).unwrap();
+    sliced.verify().unwrap();
+    assert!(sliced.vlad().unwrap().is_none());
+    assert!(stored(&sliced, SectionKind::ImageVlad).is_none());
+    assert!(stored(&sliced, SectionKind::LevelVladCentroids).is_none());
+    // The map still has image_global: it becomes the preference.
+    assert_eq!(sliced.metadata().retrieval.as_deref(), Some("global"));
+    // Nothing of 1.1 left: a 1.0 file again.
+    assert_eq!(minor(&out), 0);
+    assert_eq!(sliced.version(), "1.0");
+
+    // Without image_global, no preference is left.
+    let mut bare = vlad_scene().0;
+    bare.global = None;
+    let bytes = bare.writer_with_vlad(Codec::Raw, &vlad).to_bytes().unwrap();
+    let (out, summary) = slice_to(&bytes, &[0], true);
+    assert!(summary.vlad_dropped);
+    let sliced = Map::from_bytes(&out).unwrap();
+    assert_eq!(sliced.metadata().retrieval, None);
+    assert_eq!(minor(&out), 0);
+
+    // A preference other than "vlad" is not the slice's to change, known or not.
+    for stated in ["global", "netvlad-2027"] {
+        let mut w = s.writer(Codec::Raw);
+        w.metadata_mut().retrieval = Some(stated.into());
+        w.set_vlad(vlad.level, vlad.dims, vlad.centroids.clone(), &vlad.images)
+            .unwrap();
+        let bytes = w.to_bytes().unwrap();
+        assert_eq!(
+            Map::from_bytes(&bytes)
+                .unwrap()
+                .metadata()
+                .retrieval
+                .as_deref(),
+            Some(stated),
+            "set_vlad keeps a stated preference"
+        );
+        let (out, _) = slice_to(&bytes, &[1], false);
+        let sliced = Map::from_bytes(&out).unwrap();
+        assert_eq!(sliced.metadata().retrieval.as_deref(), Some(stated));
+        assert_eq!(sliced.metadata().retrieval(), Retrieval::from_name(stated));
+    }
+}
+
+#[test]
+fn files_without_1_1_sections_stay_1_0() {
+    assert_eq!(VERSION_MINOR, 1);
+    let (s, vlad) = vlad_scene();
+    // Every 1.0 kind, zstd or raw, an unknown optional kind, and the 1.1 metadata key
+    // (which a 1.0 reader keeps as an unknown key): still minor 0.
+    for codec in [Codec::Raw, Codec::Zstd] {
+        let mut w = s.writer(codec);
+        w.metadata_mut().retrieval = Some("global".into());
+        let bytes = w.to_bytes().unwrap();
+        assert_eq!(minor(&bytes), 0);
+        assert_eq!(Map::from_bytes(&bytes).unwrap().version(), "1.0");
+    }
+    let unknown = common::with_extra_section(
+        SectionKind::Unknown(0x7F01),
+        sfpmap::format::NO_LEVEL,
+        false,
+        None,
+    );
+    assert_eq!(minor(&unknown), 0);
+    // The same map with VLAD: minor 1, and the rest of the file is what 1.0 wrote, section
+    // for section.
+    let plain = s.writer(Codec::Raw).to_bytes().unwrap();
+    let with = s.writer_with_vlad(Codec::Raw, &vlad).to_bytes().unwrap();
+    assert_eq!(minor(&with), 1);
+    let (plain, with) = (
+        Map::from_bytes(&plain).unwrap(),
+        Map::from_bytes(&with).unwrap(),
+    );
+    for section in plain.sections() {
+        assert_eq!(
+            stored(&with, section.kind()),
+            stored(&plain, section.kind())
+        );
+    }
+    assert_eq!(with.sections().len(), plain.sections().len() + 2);
+}
+
+#[test]
+fn a_1_0_reader_skips_the_1_1_sections() {
+    // A reader that knows no 1.1 kind sees kinds 20 and 38 as unknown: here they are renamed
+    // to codes no version defines, which is what such a reader meets.
+    let (s, vlad) = vlad_scene();
+    let bytes = s.writer_with_vlad(Codec::Raw, &vlad).to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    for kind in [SectionKind::LevelVladCentroids, SectionKind::ImageVlad] {
+        let (.., required, _) = stored(&map, kind).unwrap();
+        assert!(!required, "{kind} must be optional so 1.0 readers skip it");
+    }
+    let old = patch(&bytes, |_, entries| {
+        for e in entries.iter_mut() {
+            e.kind = match e.kind {
+                20 => 0x7F20,
+                38 => 0x7F38,
+                k => k,
+            };
+        }
+    });
+    let map = Map::from_bytes(&old).unwrap();
+    map.verify().unwrap();
+    let skipped: Vec<u16> = map.unknown_sections().map(|s| s.kind().code()).collect();
+    assert_eq!(skipped, [0x7F20, 0x7F38]);
+    assert!(map.vlad().unwrap().is_none());
+    // Everything 1.0 defines reads as in the plain map.
+    let plain = s.writer(Codec::Raw).to_bytes().unwrap();
+    let mut expected = decoded_json(&Map::from_bytes(&plain).unwrap());
+    expected["retrieval"] = "vlad".into();
+    assert_eq!(decoded_json(&map), expected);
+}
+
+/// The VLAD spec/format.md describes (and tests/common computes) is the one the crate
+/// computes for `convert` and queries.
+#[cfg(any(feature = "colmap", feature = "localize"))]
+#[test]
+fn the_spec_vlad_is_the_crate_vlad() {
+    use sfpmap::vlad::Codebook;
+    let (s, vlad) = vlad_scene();
+    let codebook = Codebook::new(vlad.centroids.clone(), vlad.dims).unwrap();
+    let rows: Vec<f32> = s
+        .vlad_rows(vlad.level, vlad.dims)
+        .into_iter()
+        .flat_map(|r| r.unwrap_or(vec![0.0; vlad.dims]))
+        .collect();
+    let crate_images = codebook.image_vlads(&rows, &s.vis_offsets, &s.vis_points);
+    assert_eq!(crate_images.len(), vlad.images.len());
+    for (a, b) in crate_images.iter().zip(&vlad.images) {
+        assert!(
+            (a - b).abs() < 1e-5,
+            "{crate_images:?} vs {:?}",
+            vlad.images
+        );
+    }
+    // A query's VLAD from its own rows: image 0's points as the query give image 0's VLAD.
+    let seen: Vec<f32> = s.vis_points[s.vis_offsets[0] as usize..s.vis_offsets[1] as usize]
+        .iter()
+        .flat_map(|&p| rows[p as usize * vlad.dims..(p as usize + 1) * vlad.dims].to_vec())
+        .collect();
+    let described: Vec<&[f32]> = seen
+        .chunks(vlad.dims)
+        .filter(|r| r.iter().any(|&v| v != 0.0))
+        .collect();
+    let query = codebook.vlad(&described.concat());
+    let reference = common::reference_vlad(&described, &vlad.centroids, vlad.dims);
+    for (a, b) in query.iter().zip(&reference) {
+        assert!((a - b).abs() < 1e-5, "{query:?} vs {reference:?}");
+    }
+    for (a, b) in query.iter().zip(&vlad.images[..codebook.width()]) {
+        assert!((a - b).abs() < 1e-5, "{query:?} vs {:?}", vlad.images);
+    }
+}
+
+#[test]
+fn set_vlad_replaces_the_previous_vlad() {
+    let (s, vlad) = vlad_scene();
+    let mut w = s.writer_with_vlad(Codec::Raw, &vlad);
+    w.set_vlad(0, 4, vec![0.25; 8], &[0.5; 3 * 8]).unwrap();
+    let bytes = w.to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    map.verify().unwrap();
+    let v = map.vlad().unwrap().unwrap();
+    assert_eq!((v.level, v.clusters, v.dims), (0, 2, 4));
+    let codebooks = map
+        .sections()
+        .iter()
+        .filter(|s| s.kind() == SectionKind::LevelVladCentroids)
+        .count();
+    assert_eq!(codebooks, 1);
 }

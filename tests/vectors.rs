@@ -5,9 +5,9 @@
 
 mod common;
 
-use common::{decoded_json, minimal, patch, with_extra_section, Scene};
+use common::{decoded_json, minimal, patch, with_extra_section, Scene, VladData};
 use serde_json::{json, Value};
-use sfpmap::format::{slice, Codec, Dtype, Map, SectionKind, SliceOptions, NO_LEVEL};
+use sfpmap::format::{f16, slice, Codec, Dtype, Map, SectionKind, SliceOptions, NO_LEVEL};
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
@@ -24,10 +24,26 @@ fn scene() -> Scene {
     )
 }
 
+/// VLAD retrieval (format 1.1) on the scene's level 2 (`dim_short` 2): 2 centroids of 2
+/// dimensions, so each image's VLAD has 4 values.
+fn scene_vlad(s: &Scene) -> VladData {
+    s.vlad(2, 2, vec![0.6, 0.8, -0.8, 0.6])
+}
+
 fn valid_expected(description: &str, bytes: &[u8], content: Value, unknown: Value) -> Value {
+    valid_expected_version("1.0", description, bytes, content, unknown)
+}
+
+fn valid_expected_version(
+    version: &str,
+    description: &str,
+    bytes: &[u8],
+    content: Value,
+    unknown: Value,
+) -> Value {
     json!({
         "description": description,
-        "version": "1.0",
+        "version": version,
         "file_bytes": bytes.len(),
         "content": content,
         "unknown_sections": unknown,
@@ -167,6 +183,23 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         ),
     ));
 
+    let vlad = scene_vlad(&s);
+    let with_vlad = s.writer_with_vlad(Codec::Raw, &vlad).to_bytes().unwrap();
+    let mut content = s.expected_json(origin_of(&with_vlad));
+    content["retrieval"] = json!("vlad");
+    content["vlad"] = vlad.expected_json();
+    out.push((
+        "vlad",
+        with_vlad.clone(),
+        valid_expected_version(
+            "1.1",
+            "the levels vector plus VLAD retrieval on level 2 (2 centroids x 2 dims)",
+            &with_vlad,
+            content,
+            json!([]),
+        ),
+    ));
+
     let geo = Scene::new(5, 6, 2, &[]);
     let mut w = geo.writer(Codec::Raw);
     w.metadata_mut().geometry_only = true;
@@ -279,6 +312,53 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
         }),
         "decoded_too_large",
         "verify",
+    ));
+
+    // 1.1: a VLAD codebook without the image VLADs it belongs with.
+    let s = scene();
+    let vlad = scene_vlad(&s);
+    let mut w = s.writer(Codec::Raw);
+    w.add_raw_section(
+        SectionKind::LevelVladCentroids,
+        2,
+        Dtype::F32,
+        2,
+        2,
+        false,
+        Cow::Owned(bytemuck::cast_slice(&vlad.centroids).to_vec()),
+        None,
+    )
+    .unwrap();
+    out.push((
+        "vlad_without_image_vlad",
+        w.to_bytes().unwrap(),
+        "missing_section",
+        "open",
+    ));
+
+    // 1.1: image VLADs of 3 values where the 2 x 2 codebook makes 4.
+    let mut w = s.writer_with_vlad(Codec::Raw, &vlad);
+    let three: Vec<f16> = vlad
+        .images
+        .chunks(4)
+        .flat_map(|r| r[..3].iter().map(|&v| f16::from_f32(v)))
+        .collect();
+    w.add_raw_section(
+        SectionKind::ImageVlad,
+        NO_LEVEL,
+        Dtype::F16,
+        3,
+        3,
+        false,
+        Cow::Owned(bytemuck::cast_slice(&three).to_vec()),
+        None,
+    )
+    .unwrap();
+    out.push((
+        "vlad_wrong_columns",
+        w.to_bytes().unwrap(),
+        "inconsistent",
+        "open",
     ));
     out
 }

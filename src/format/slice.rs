@@ -310,3 +310,72 @@ fn add_section<'m>(
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn section(kind: SectionKind, level: Option<u16>) -> Section {
+        Section {
+            index: 0,
+            kind,
+            level,
+            dtype: kind.expected_layout().unwrap().0,
+            codec: Codec::Raw,
+            required: false,
+            rows: 1,
+            cols: 1,
+            offset: 0,
+            stored_len: 0,
+            raw_len: 0,
+            checksum: 0,
+        }
+    }
+
+    #[test]
+    fn vlad_sections_follow_the_codebook_level() {
+        let codebook = |l| section(SectionKind::LevelVladCentroids, Some(l));
+        let image_vlad = section(SectionKind::ImageVlad, None);
+        for short in [false, true] {
+            let options = SliceOptions {
+                levels: vec![2],
+                short,
+                codec: None,
+                zstd_level: 3,
+            };
+            // The codebook's level kept (also short: its dims are within dim_short).
+            let keep = Keep {
+                options: &options,
+                levels: &[2],
+                vlad: true,
+            };
+            assert!(keep.section(&codebook(2)));
+            assert!(keep.section(&image_vlad));
+            assert!(!keep.reads_contents(&codebook(2)), "copied, not decoded");
+            assert!(!keep.reads_contents(&image_vlad), "copied, not decoded");
+            // The codebook's level dropped: both go.
+            let keep = Keep {
+                options: &options,
+                levels: &[2],
+                vlad: false,
+            };
+            assert!(!keep.section(&codebook(0)));
+            assert!(!keep.section(&image_vlad));
+            assert!(!keep.reads_contents(&image_vlad));
+        }
+        // Re-encoded when the codec changes.
+        let options = SliceOptions {
+            levels: vec![2],
+            short: false,
+            codec: Some(Codec::Zstd),
+            zstd_level: 3,
+        };
+        let keep = Keep {
+            options: &options,
+            levels: &[2],
+            vlad: true,
+        };
+        assert!(keep.reads_contents(&codebook(2)));
+        assert!(keep.reads_contents(&image_vlad));
+    }
+}

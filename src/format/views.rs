@@ -696,3 +696,99 @@ impl<'a> Map<'a> {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::format::layout::{Codec, NO_LEVEL};
+
+    fn section(kind: SectionKind, level: u16, rows: u64, cols: u64) -> Section {
+        let dtype = kind.expected_layout().unwrap().0;
+        Section {
+            index: 0,
+            kind,
+            level: (level != NO_LEVEL).then_some(level),
+            dtype,
+            codec: Codec::Raw,
+            required: false,
+            rows,
+            cols,
+            offset: 0,
+            stored_len: 0,
+            raw_len: 0,
+            checksum: 0,
+        }
+    }
+
+    fn metadata(geometry_only: bool) -> Metadata {
+        let level = |level, dim_short| LevelInfo {
+            level,
+            stride: 8.0,
+            descriptor: "sfp-v1".into(),
+            dim_full: 8,
+            dim_short,
+            normalization: "l2".into(),
+            extra: Default::default(),
+        };
+        Metadata {
+            geometry_only,
+            levels: vec![level(0, 4), level(2, 2)],
+            ..Metadata::default()
+        }
+    }
+
+    fn check(metadata: &Metadata, sections: &[Section]) -> Result<(), Error> {
+        let vlad = sections.iter().find(|s| s.kind == SectionKind::ImageVlad);
+        check_vlad(metadata, sections, vlad)
+    }
+
+    fn codebook(level: u16, rows: u64, cols: u64) -> Section {
+        section(SectionKind::LevelVladCentroids, level, rows, cols)
+    }
+
+    fn image_vlad(cols: u64) -> Section {
+        section(SectionKind::ImageVlad, NO_LEVEL, 3, cols)
+    }
+
+    #[test]
+    fn check_vlad_follows_the_spec() {
+        let m = metadata(false);
+        assert!(check(&m, &[]).is_ok());
+        assert!(check(&m, &[codebook(2, 16, 2), image_vlad(32)]).is_ok());
+        assert!(check(&m, &[codebook(0, 1, 4), image_vlad(4)]).is_ok());
+        let inconsistent = |sections: &[Section]| {
+            assert!(
+                matches!(check(&m, sections), Err(Error::Inconsistent { .. })),
+                "{sections:?}"
+            )
+        };
+        inconsistent(&[codebook(0, 2, 2), codebook(2, 2, 2), image_vlad(4)]);
+        inconsistent(&[codebook(2, 2, 3), image_vlad(6)]);
+        inconsistent(&[codebook(0, 2, 5), image_vlad(10)]);
+        inconsistent(&[codebook(2, 0, 2), image_vlad(0)]);
+        inconsistent(&[codebook(2, 2, 0), image_vlad(0)]);
+        inconsistent(&[codebook(2, 2, 2), image_vlad(5)]);
+        // A level the metadata does not list has no dim_short: no codebook fits it.
+        inconsistent(&[codebook(7, 2, 2), image_vlad(4)]);
+        // rows × cols overflowing u64 matches no column count, and does not panic.
+        inconsistent(&[codebook(2, u64::MAX, 2), image_vlad(u64::MAX)]);
+        assert!(matches!(
+            check(&metadata(true), &[codebook(2, 2, 2), image_vlad(4)]),
+            Err(Error::Inconsistent { .. })
+        ));
+        assert!(matches!(
+            check(&m, &[codebook(2, 2, 2)]),
+            Err(Error::MissingSection {
+                kind: SectionKind::ImageVlad,
+                level: None
+            })
+        ));
+        assert!(matches!(
+            check(&m, &[image_vlad(4)]),
+            Err(Error::MissingSection {
+                kind: SectionKind::LevelVladCentroids,
+                level: None
+            })
+        ));
+    }
+}

@@ -478,7 +478,9 @@ impl<'a> MapWriter<'a> {
     /// Retrieval by VLAD (format 1.1): the codebook of `level`, `[clusters × dims]` f32 over
     /// the first `dims` stored dimensions of its descriptors, and each image's VLAD,
     /// `[images × clusters·dims]`, converted to f16. Records `retrieval` in the metadata
-    /// unless it is already set.
+    /// unless it is already set. Replaces an earlier call's VLAD (a map has one codebook).
+    /// Both sections are written optional: a 1.0 reader skips them and reads the rest of the
+    /// map, which they do not change the meaning of.
     pub fn set_vlad(
         &mut self,
         level: u16,
@@ -498,21 +500,31 @@ impl<'a> MapWriter<'a> {
             ));
         }
         let values: Vec<f16> = images.iter().map(|&v| f16::from_f32(v)).collect();
-        self.push_array(
+        let codebook = SectionKind::LevelVladCentroids.code();
+        self.sections.retain(|&(kind, _), _| kind != codebook);
+        self.push(
             SectionKind::LevelVladCentroids,
             level,
             Dtype::F32,
-            width / dims,
-            dims,
-            owned_bytes(centroids),
+            (width / dims) as u64,
+            dims as u64,
+            false,
+            Content::Array {
+                bytes: owned_bytes(centroids),
+                codec: None,
+            },
         );
-        self.push_array(
+        self.push(
             SectionKind::ImageVlad,
             NO_LEVEL,
             Dtype::F16,
-            values.len() / width,
-            width,
-            owned_bytes(values),
+            (values.len() / width) as u64,
+            width as u64,
+            false,
+            Content::Array {
+                bytes: owned_bytes(values),
+                codec: None,
+            },
         );
         if self.metadata.retrieval.is_none() {
             self.metadata.retrieval = Some(super::metadata::Retrieval::Vlad.name().to_string());

@@ -287,7 +287,120 @@ impl Scene {
     }
 }
 
-/// What a reader decodes from a map, in the schema of the vectors' `.json` files.
+/// A map's VLAD retrieval data (format 1.1) as a writer is given it.
+#[derive(Debug, Clone)]
+pub struct VladData {
+    pub level: u16,
+    pub dims: usize,
+    /// `[clusters × dims]`.
+    pub centroids: Vec<f32>,
+    /// `[images × clusters·dims]`, before the f16 rounding of the file.
+    pub images: Vec<f32>,
+}
+
+impl VladData {
+    pub fn clusters(&self) -> usize {
+        self.centroids.len() / self.dims
+    }
+
+    /// The `vlad` object of the vectors' content (f16 rounding applied).
+    pub fn expected_json(&self) -> Value {
+        let width = self.centroids.len();
+        let round = |v: &f32| f16::from_f32(*v).to_f32();
+        json!({
+            "level": self.level,
+            "clusters": self.clusters(),
+            "dims": self.dims,
+            "centroids": self.centroids.chunks(self.dims).collect::<Vec<_>>(),
+            "images": self.images.chunks(width).map(|r| r.iter().map(round).collect::<Vec<_>>()).collect::<Vec<_>>(),
+        })
+    }
+}
+
+/// L2 normalisation that leaves a zero vector zero.
+fn unit(v: &mut [f32]) {
+    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    if norm > 0.0 {
+        v.iter_mut().for_each(|x| *x /= norm);
+    }
+}
+
+/// The VLAD of `rows` (`[n × dims]`, already cut to `dims` and unit) over `centroids`, as
+/// spec/format.md states it and independently of `sfpmap::vlad`: each row's residual to its
+/// nearest centroid (Euclidean; ties to the lower index) summed per centroid, each centroid's
+/// block L2-normalised, then the whole vector.
+pub fn reference_vlad(rows: &[&[f32]], centroids: &[f32], dims: usize) -> Vec<f32> {
+    let mut sum = vec![0.0f32; centroids.len()];
+    for x in rows {
+        let distance = |c: &[f32]| -> f32 { x.iter().zip(c).map(|(a, b)| (a - b) * (a - b)).sum() };
+        let nearest = centroids
+            .chunks(dims)
+            .enumerate()
+            .min_by(|a, b| distance(a.1).total_cmp(&distance(b.1)).then(a.0.cmp(&b.0)))
+            .unwrap()
+            .0;
+        let block = &mut sum[nearest * dims..(nearest + 1) * dims];
+        for ((s, v), c) in block
+            .iter_mut()
+            .zip(x.iter())
+            .zip(&centroids[nearest * dims..])
+        {
+            *s += v - c;
+        }
+    }
+    sum.chunks_mut(dims).for_each(unit);
+    unit(&mut sum);
+    sum
+}
+
+impl Scene {
+    /// The first `dims` dimensions of `level`'s descriptor of each map point, L2-normalised;
+    /// `None` for points the level does not hold.
+    pub fn vlad_rows(&self, level: u16, dims: usize) -> Vec<Option<Vec<f32>>> {
+        let l = self.levels.iter().find(|l| l.info.level == level).unwrap();
+        let full = l.info.dim_full as usize;
+        let mut rows = vec![None; self.positions.len()];
+        for (&p, d) in l.points.iter().zip(l.descriptors.chunks(full)) {
+            let mut row = d[..dims].to_vec();
+            unit(&mut row);
+            rows[p as usize] = Some(row);
+        }
+        rows
+    }
+
+    /// VLAD retrieval over `level` with `centroids` (`[clusters × dims]`): each image's VLAD
+    /// over the level's points it sees, by [`reference_vlad`].
+    pub fn vlad(&self, level: u16, dims: usize, centroids: Vec<f32>) -> VladData {
+        let rows = self.vlad_rows(level, dims);
+        let mut images = Vec::new();
+        for i in 0..self.image_names.len() {
+            let seen: Vec<&[f32]> = self.vis_points
+                [self.vis_offsets[i] as usize..self.vis_offsets[i + 1] as usize]
+                .iter()
+                .filter_map(|&p| rows[p as usize].as_deref())
+                .collect();
+            images.extend(reference_vlad(&seen, &centroids, dims));
+        }
+        VladData {
+            level,
+            dims,
+            centroids,
+            images,
+        }
+    }
+
+    /// [`Scene::writer`] plus `vlad` (which also sets `metadata.retrieval` to `"vlad"`).
+    pub fn writer_with_vlad(&self, codec: Codec, vlad: &VladData) -> MapWriter<'_> {
+        let mut w = self.writer(codec);
+        w.set_vlad(vlad.level, vlad.dims, vlad.centroids.clone(), &vlad.images)
+            .unwrap();
+        w
+    }
+}
+
+/// What a reader decodes from a map, in the schema of the vectors' `.json` files. The 1.1
+/// keys `retrieval` and `vlad` are there only when the map has them, so 1.0 maps decode as
+/// before.
 pub fn decoded_json(map: &Map<'_>) -> Value {
     let images = map.images().unwrap();
     let levels: Vec<Value> = map
@@ -313,7 +426,7 @@ pub fn decoded_json(map: &Map<'_>) -> Value {
         })
         .collect();
     let vis = map.visibility().unwrap();
-    json!({
+    let mut content = json!({
         "points": map.n_points(),
         "positions": *map.point_positions().unwrap(),
         "colors": map.point_colors().unwrap().map(|c| c.to_vec()),
@@ -325,7 +438,20 @@ pub fn decoded_json(map: &Map<'_>) -> Value {
         })).collect::<Vec<_>>()),
         "visibility": vis.map(|v| json!({ "offsets": *v.offsets, "points": *v.points })),
         "levels": levels,
-    })
+    });
+    if let Some(retrieval) = &map.metadata().retrieval {
+        content["retrieval"] = json!(retrieval);
+    }
+    if let Some(v) = map.vlad().unwrap() {
+        content["vlad"] = json!({
+            "level": v.level,
+            "clusters": v.clusters,
+            "dims": v.dims,
+            "centroids": v.centroids.chunks(v.dims).collect::<Vec<_>>(),
+            "images": v.images.chunks(v.clusters * v.dims).map(|r| r.iter().map(|x| x.to_f32()).collect::<Vec<_>>()).collect::<Vec<_>>(),
+        });
+    }
+    content
 }
 
 /// Re-encodes header and table of `bytes` after `edit`, recomputing the index checksum,
