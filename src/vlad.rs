@@ -190,11 +190,15 @@ impl Codebook {
         }
     }
 
-    /// The VLAD of `rows` (`[n × dims]`, each already in the codebook's space and unit):
-    /// `width()` values, unit length (all zero without rows).
+    /// The VLAD of `rows` (`[n × dims]`, each already in the codebook's space and unit; zero
+    /// rows are skipped): `width()` values, unit length (all zero without rows).
     pub fn vlad(&self, rows: &[f32]) -> Vec<f32> {
         let mut sum = vec![0.0f32; self.width()];
-        for x in rows.chunks_exact(self.dims) {
+        // Zero rows (descriptors of no direction) are skipped, as the map's are.
+        for x in rows
+            .chunks_exact(self.dims)
+            .filter(|x| x.iter().any(|&v| v != 0.0))
+        {
             self.accumulate(x, &mut sum, self.nearest(x));
         }
         self.finish(&mut sum);

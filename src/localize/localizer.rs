@@ -14,6 +14,7 @@ use crate::format::{Error as FormatError, Map, Retrieval, Visibility};
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use crate::vector::{dot, normalise_rows};
 use nalgebra::{Vector2, Vector3};
+use std::cell::OnceCell;
 use std::time::Instant;
 
 /// Keypoints and descriptors of one query image, for one level or for all.
@@ -274,10 +275,28 @@ impl From<FormatError> for LocalizeError {
     }
 }
 
+/// One level's query features and their projection into its basis, made when first needed.
+struct Query<'q> {
+    set: &'q FeatureSet,
+    projected: &'q OnceCell<Vec<f32>>,
+}
+
+/// Query keypoints coarse matching uses at most (a stride over them).
+const COARSE_KEYPOINTS: usize = 1024;
+
+/// Decoded values of the rows in view guided matching keeps for a level (16 MB).
+const DECODED_IN_VIEW_MAX: usize = 4 << 20;
+
+/// Retrieved images whose points coarse matching tries first: the points of the best few
+/// images hold enough true matches for a pose at a fraction of the cost of all `top_k`.
+const COARSE_IMAGES: usize = 3;
+
 /// What retrieval gave one query.
 struct Retrieved {
-    /// Candidate points, ascending; `None`: every point.
+    /// Candidate points (those the retrieved images see), ascending; `None`: every point.
     candidates: Option<Vec<u32>>,
+    /// Those of the best [`COARSE_IMAGES`] retrieved images, when fewer than `candidates`.
+    coarse_candidates: Option<Vec<u32>>,
     images: usize,
     method: Option<Retrieval>,
     fallback: Option<RetrievalFallback>,
@@ -368,6 +387,7 @@ impl<'m> Localizer<'m> {
         let mut times = StageTimes::default();
         let Retrieved {
             candidates,
+            coarse_candidates,
             images: retrieved_images,
             method: retrieval,
             fallback: retrieval_fallback,
@@ -375,12 +395,20 @@ impl<'m> Localizer<'m> {
         times.retrieval_ms = ms(t0);
 
         // The feature set each level matches, checked once; each level projects it into its
-        // basis only when it is matched, so at most one level's projection is alive at a time.
+        // basis once, when it is first matched, and keeps it for the query (the coarse stage
+        // and both fine rounds use it).
         let sets = self
             .levels
             .iter()
             .map(|level| self.feature_set(level, query))
             .collect::<Result<Vec<_>, _>>()?;
+        let projected: Vec<OnceCell<Vec<f32>>> =
+            self.levels.iter().map(|_| OnceCell::new()).collect();
+        let sets: Vec<Query<'_>> = sets
+            .into_iter()
+            .zip(&projected)
+            .map(|(set, projected)| Query { set, projected })
+            .collect();
 
         let failed = |failure: QueryFailure, matches, times| Localization {
             outcome: Err(failure),
@@ -393,16 +421,26 @@ impl<'m> Localizer<'m> {
             times,
         };
 
-        // Coarse: the deepest level against its candidates (all levels pooled if too few);
-        // if the retrieved images give no pose, once more against every point (retrieval
-        // can be wrong where the global descriptor is weak).
+        // Coarse: the deepest level against the points of the best few retrieved images
+        // (all levels pooled if too few matches); if they give no pose, against those of all
+        // retrieved images; then against every point (retrieval can be wrong where the
+        // global descriptor is weak).
         let mut candidates = candidates;
-        let mut attempt = self.coarse(&sets, candidates.as_deref(), camera, &mut times);
-        if attempt.is_err() && candidates.is_some() {
-            attempt = self.coarse(&sets, None, camera, &mut times);
-            // The fine stage then looks at every point too.
-            candidates = None;
+        let mut attempt = None;
+        if let Some(few) = &coarse_candidates {
+            attempt = Some(self.coarse(&sets, Some(few), camera, &mut times));
         }
+        if !matches!(attempt, Some(Ok(_))) && candidates.is_some() {
+            attempt = Some(self.coarse(&sets, candidates.as_deref(), camera, &mut times));
+        }
+        let attempt = match attempt {
+            Some(Ok(found)) => Ok(found),
+            _ => {
+                // The fine stage then looks at every point too.
+                candidates = None;
+                self.coarse(&sets, None, camera, &mut times)
+            }
+        };
         let coarse = match attempt {
             Ok(found) => found,
             Err((failure, matches)) => {
@@ -416,7 +454,15 @@ impl<'m> Localizer<'m> {
         let t3 = Instant::now();
         let mut pose = coarse.pose;
         let mut result = None;
-        for _round in 0..2 {
+        for round in 0..2 {
+            // The second round starts from a pose already fitted to fine inliers within
+            // `fine_error_px`: a gate of twice that finds them again at a fraction of the
+            // comparisons.
+            let gate_px = if round == 0 {
+                self.options.gate_px
+            } else {
+                self.options.gate_px.min(2.0 * self.options.fine_error_px)
+            };
             let mut pixels = Vec::new();
             let mut points = Vec::new();
             // The index into `levels` of each match.
@@ -428,6 +474,7 @@ impl<'m> Localizer<'m> {
                     level,
                     set,
                     rows.as_deref(),
+                    gate_px,
                     &pose,
                     camera,
                     &mut pixels,
@@ -502,7 +549,7 @@ impl<'m> Localizer<'m> {
     /// and the number of matches.
     fn coarse(
         &self,
-        sets: &[&FeatureSet],
+        sets: &[Query<'_>],
         candidates: Option<&[u32]>,
         camera: &Camera,
         times: &mut StageTimes,
@@ -540,12 +587,17 @@ impl<'m> Localizer<'m> {
     fn candidate_points(&self, query: &QueryFeatures) -> Retrieved {
         let n_images = self.map.n_images() as usize;
         let (images, ranked) = self.retrieval.retrieve(query, n_images, self.options.top_k);
-        let candidates = match (&self.visibility, &ranked) {
+        let seen = |images: &[usize]| match (&self.visibility, &ranked) {
             (Some(visibility), Ok(_)) => {
-                super::retrieval::points_seen(&images, self.positions.len(), |i| {
+                super::retrieval::points_seen(images, self.positions.len(), |i| {
                     visibility.points_of(i)
                 })
             }
+            _ => None,
+        };
+        let candidates = seen(&images);
+        let coarse_candidates = match &candidates {
+            Some(_) if images.len() > COARSE_IMAGES => seen(&images[..COARSE_IMAGES]),
             _ => None,
         };
         let fallback = match ranked {
@@ -556,6 +608,7 @@ impl<'m> Localizer<'m> {
         };
         Retrieved {
             candidates,
+            coarse_candidates,
             images: images.len(),
             method: ranked.ok(),
             fallback,
@@ -629,7 +682,7 @@ impl<'m> Localizer<'m> {
     fn match_level(
         &self,
         level: &LevelIndex<'_>,
-        set: &FeatureSet,
+        query: &Query<'_>,
         candidates: Option<&[u32]>,
         pixels: &mut Vec<Vector2<f64>>,
         points: &mut Vec<Vector3<f64>>,
@@ -638,11 +691,27 @@ impl<'m> Localizer<'m> {
             Some(rows) => rows.into_iter().map(|r| r as usize).collect(),
             None => (0..level.points.len()).collect(),
         };
+        let set = query.set;
         if rows.is_empty() || set.keypoints.is_empty() {
             return;
         }
-        let q = self.project(level, set);
+        let q = query.projected.get_or_init(|| self.project(level, set));
         let dim = level.dim;
+        // Coarse matching only seeds the pose: every `stride`-th keypoint (COLMAP lists SIFT
+        // keypoints by octave, so a stride keeps every scale) holds enough true matches.
+        let stride = set.keypoints.len().div_ceil(COARSE_KEYPOINTS).max(1);
+        let subset: Vec<f32>;
+        let q: &[f32] = if stride > 1 {
+            subset = q
+                .chunks_exact(dim)
+                .step_by(stride)
+                .flatten()
+                .copied()
+                .collect();
+            &subset
+        } else {
+            q
+        };
         // Candidate rows are decoded from the mapping a block at a time, never all at once.
         // Scratch for a run's `rest` values, converted in one call and spread into the rows.
         let mut rest_run = Vec::new();
@@ -673,8 +742,8 @@ impl<'m> Localizer<'m> {
                 level.scale_row(first + k, out);
             }
         };
-        for m in match_rows(&q, rows.len(), dim, &self.options.matching, fill) {
-            let kp = set.keypoints[m.query as usize];
+        for m in match_rows(q, rows.len(), dim, &self.options.matching, fill) {
+            let kp = set.keypoints[m.query as usize * stride];
             let p = level.points[rows[m.map as usize]];
             pixels.push(Vector2::new(kp[0], kp[1]));
             points.push(self.positions[p as usize]);
@@ -687,14 +756,16 @@ impl<'m> Localizer<'m> {
     fn guided_level(
         &self,
         level: &LevelIndex<'_>,
-        set: &FeatureSet,
+        query: &Query<'_>,
         rows: Option<&[u32]>,
+        gate_px: f64,
         pose: &Pose,
         camera: &Camera,
         pixels: &mut Vec<Vector2<f64>>,
         points: &mut Vec<Vector3<f64>>,
     ) {
-        let gate = self.options.gate_px.max(1.0);
+        let set = query.set;
+        let gate = gate_px.max(1.0);
         let (w, h) = (f64::from(camera.width()), f64::from(camera.height()));
         // The projected points keyed by grid cell (a gate wide, so a 3 × 3 block of cells
         // covers the gate) and sorted: memory follows the level's points, whatever image size
@@ -724,9 +795,17 @@ impl<'m> Localizer<'m> {
             return;
         }
         cells.sort_unstable_by_key(|c| (c.0, c.1, c.2));
-        // A row is decoded each time a gate reaches it. Caching decoded rows was measured
-        // on the streets: all rows in view (slower, larger), rows on first use (100 k: fine
-        // stage 112 -> 65 ms; 1 M: no faster, peak RSS 475 -> 577 MB, past map + 150 MB).
+        // The rows in view are decoded once, in cell order, when they are few (retrieval's
+        // candidates: a gate reaches each row dozens of times, 100 k street fine stage
+        // 55 -> 14 ms); a level in view at large (no retrieval, 1 M points) would make that
+        // copy hundreds of MB, so then a row is decoded each time a gate reaches it.
+        let decoded = (cells.len() * level.dim <= DECODED_IN_VIEW_MAX).then(|| {
+            let mut rows = vec![0.0f32; cells.len() * level.dim];
+            for (out, c) in rows.chunks_exact_mut(level.dim).zip(&cells) {
+                level.decode_row(c.2 as usize, out);
+            }
+            rows
+        });
         let mut map_row = vec![0.0f32; level.dim];
         // (point, similarity, keypoint); each map point keeps its best keypoint below.
         let mut found: Vec<(u32, f32, usize)> = Vec::new();
@@ -736,7 +815,8 @@ impl<'m> Localizer<'m> {
         // as a quarter of the keypoints: then one GEMM for all of them (5x faster than row by
         // row), held only while this level is matched; otherwise each keypoint is projected
         // alone, and only if some point is near it.
-        let all = (cells.len() * 4 >= set.keypoints.len()).then(|| self.project(level, set));
+        let all = (query.projected.get().is_some() || cells.len() * 4 >= set.keypoints.len())
+            .then(|| query.projected.get_or_init(|| self.project(level, set)));
         for (k, kp) in set.keypoints.iter().enumerate() {
             if !(kp[0] >= 0.0 && kp[1] >= 0.0 && kp[0] < w && kp[1] < h) {
                 continue;
@@ -749,7 +829,7 @@ impl<'m> Localizer<'m> {
             for gy in cy.saturating_sub(1)..=cy.saturating_add(1) {
                 let lo = cells.partition_point(|c| (c.0, c.1) < (gy, x_lo));
                 let hi = cells.partition_point(|c| (c.0, c.1) <= (gy, x_hi));
-                for &(_, _, row, xy) in &cells[lo..hi] {
+                for (ci, &(_, _, row, xy)) in cells[lo..hi].iter().enumerate() {
                     let (dx, dy) = (xy[0] - kp[0] as f32, xy[1] - kp[1] as f32);
                     if dx * dx + dy * dy > gate2 {
                         continue;
@@ -764,8 +844,14 @@ impl<'m> Localizer<'m> {
                             &qd[..]
                         }
                     };
-                    level.decode_row(row as usize, &mut map_row);
-                    let s = dot(q, &map_row);
+                    let map_row = match &decoded {
+                        Some(rows) => &rows[(lo + ci) * level.dim..(lo + ci + 1) * level.dim],
+                        None => {
+                            level.decode_row(row as usize, &mut map_row);
+                            &map_row[..]
+                        }
+                    };
+                    let s = dot(q, map_row);
                     let p = level.points[row as usize];
                     if s > best.0 {
                         second = best.0;

@@ -7,7 +7,7 @@
 
 use super::localizer::QueryFeatures;
 use crate::format::{Error as FormatError, Map, Retrieval};
-use crate::vector::{dot, normalise_rows};
+use crate::vector::normalise_rows;
 use crate::vlad::Codebook;
 use bitvec::vec::BitVec;
 
@@ -232,18 +232,16 @@ impl RetrievalIndex {
         }
         let dims = v.codebook.dims;
         let mut rows = vec![0.0f32; n * dims];
-        for (src, dst) in set
-            .descriptors
-            .chunks_exact(set.dim)
-            .zip(rows.chunks_exact_mut(dims))
-        {
-            match &v.projection {
-                Some(p) => {
-                    for (o, direction) in dst.iter_mut().zip(p.chunks_exact(v.d_in)) {
-                        *o = dot(direction, src);
-                    }
+        match &v.projection {
+            Some(p) => super::kernels::sgemm_abt(&set.descriptors, p, &mut rows, n, dims, v.d_in),
+            None => {
+                for (src, dst) in set
+                    .descriptors
+                    .chunks_exact(set.dim)
+                    .zip(rows.chunks_exact_mut(dims))
+                {
+                    dst.copy_from_slice(&src[..dims]);
                 }
-                None => dst.copy_from_slice(&src[..dims]),
             }
         }
         normalise_rows(&mut rows, dims);
