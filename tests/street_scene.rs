@@ -6,9 +6,12 @@
 use sfpmap::build::{convert, ConvertOptions};
 use sfpmap::demo::street::{write_street, StreetOptions};
 use sfpmap::format::Map;
+use sfpmap::format::Retrieval;
 use sfpmap::io::poses::read_poses;
 use sfpmap::io::queries::{read_query_list, DatabaseFeatures};
-use sfpmap::localize::{LocalizeOptions, Localizer, RetrievalFallback};
+use sfpmap::localize::{
+    LocalizationPath, LocalizeOptions, Localizer, MotionModel, RetrievalFallback, RetrievalMethod,
+};
 
 #[test]
 fn a_small_street_converts_and_every_query_localizes() {
@@ -34,6 +37,8 @@ fn a_small_street_converts_and_every_query_localizes() {
         "sparse/points3D.bin",
         "gt_poses.txt",
         "queries.txt",
+        "sequence_gt.txt",
+        "sequence.txt",
     ] {
         assert_eq!(
             std::fs::read(dir.path().join(f)).unwrap(),
@@ -60,7 +65,18 @@ fn a_small_street_converts_and_every_query_localizes() {
     assert_eq!(converted.points, summary.points);
 
     let map = Map::open(&map_path).unwrap();
+    assert_eq!(converted.vlad_level, Some(2));
+    assert!(map.vlad().unwrap().is_some());
     let localizer = Localizer::new(&map, LocalizeOptions::default()).unwrap();
+    // The brute-force reference: no retrieval, every point a candidate.
+    let brute_force = Localizer::new(
+        &map,
+        LocalizeOptions {
+            retrieval: RetrievalMethod::Off,
+            ..LocalizeOptions::default()
+        },
+    )
+    .unwrap();
     let queries = read_query_list(&dir.path().join("queries.txt"), None).unwrap();
     let truth = read_poses(&dir.path().join("gt_poses.txt")).unwrap();
     let features = DatabaseFeatures::open(&dir.path().join("queries.db")).unwrap();
@@ -68,16 +84,52 @@ fn a_small_street_converts_and_every_query_localizes() {
     for (query, (name, gt)) in queries.iter().zip(&truth) {
         assert_eq!(&query.name, name);
         let f = features.features(name).unwrap().unwrap();
-        let r = localizer.localize(&f, &query.camera).unwrap();
+        for (r, narrowed) in [
+            (localizer.localize(&f, &query.camera).unwrap(), true),
+            (brute_force.localize(&f, &query.camera).unwrap(), false),
+        ] {
+            let pose = r
+                .pose()
+                .unwrap_or_else(|| panic!("{name}: {:?}", r.failure()));
+            if narrowed {
+                // A SIFT map retrieves with the VLAD convert stored.
+                assert_eq!(r.retrieval, Some(Retrieval::Vlad), "{name}");
+                assert_eq!(r.retrieval_fallback, None, "{name}");
+                assert_eq!(r.retrieved_images, 10, "{name}");
+            } else {
+                assert_eq!(r.retrieval_fallback, Some(RetrievalFallback::Off));
+            }
+            assert_eq!(r.path, LocalizationPath::Retrieval);
+            let (t, deg) = (pose.center_distance(gt), pose.rotation_error_deg(gt));
+            assert!(t < 0.5 && deg < 2.0, "{name}: {t} m, {deg}°");
+        }
+    }
+
+    // The walk along the pavement, in order: the first frame through retrieval, the others
+    // tracked from the constant-velocity prediction, all within the bar.
+    let frames = read_query_list(&dir.path().join("sequence.txt"), None).unwrap();
+    let truth = read_poses(&dir.path().join("sequence_gt.txt")).unwrap();
+    let features = DatabaseFeatures::open(&dir.path().join("sequence.db")).unwrap();
+    let mut motion = MotionModel::new();
+    let mut tracked = 0;
+    for (frame, (name, gt)) in frames.iter().zip(&truth) {
+        assert_eq!(&frame.name, name);
+        let f = features.features(name).unwrap().unwrap();
+        let prior = motion.predict();
+        let r = localizer
+            .localize_with_prior(&f, &frame.camera, prior.as_ref())
+            .unwrap();
         let pose = r
             .pose()
             .unwrap_or_else(|| panic!("{name}: {:?}", r.failure()));
-        // A SIFT map: no retrieval, and the localizer says so.
-        assert_eq!(
-            r.retrieval_fallback,
-            Some(RetrievalFallback::NoMapDescriptors)
-        );
         let (t, deg) = (pose.center_distance(gt), pose.rotation_error_deg(gt));
         assert!(t < 0.5 && deg < 2.0, "{name}: {t} m, {deg}°");
+        if prior.is_none() {
+            assert_eq!(r.path, LocalizationPath::Retrieval, "{name}");
+        }
+        tracked += usize::from(r.path == LocalizationPath::Tracking);
+        motion.update(r.pose());
     }
+    assert_eq!(frames.len(), 6);
+    assert_eq!(tracked, 5, "every frame after the first is tracked");
 }

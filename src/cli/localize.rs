@@ -4,15 +4,16 @@ use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::colmap::text::{escape_control_characters, quoted_name, text_name_problem};
 use sfpmap::format::Map;
-use sfpmap::geometry::Camera;
+use sfpmap::geometry::{Camera, Pose};
 use sfpmap::io::poses::{colmap_pose_line, tum_line};
 use sfpmap::io::queries::{read_query_list, DatabaseFeatures, Query};
 use sfpmap::localize::eval::median;
 use sfpmap::localize::{
-    describe_skipped, Localization, LocalizeOptions, Localizer, MatchOptions, QueryFailure,
-    QueryFeatures, RetrievalMethod,
+    describe_skipped, Localization, LocalizeOptions, Localizer, MatchOptions, MotionModel,
+    QueryFailure, QueryFeatures, RetrievalMethod,
 };
 use sfpmap::progress::Reporter;
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -95,6 +96,13 @@ pub struct Args {
     #[arg(long, default_value_t = 2,
           value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub threads: usize,
+    /// The query list is an ordered sequence (a camera moving): each query's pose is
+    /// predicted from the previous ones (constant velocity) and it is localized by guided
+    /// matching around the prediction, through retrieval only when tracking is lost (fewer
+    /// than 12 inliers around the prediction, or no database image near it). Queries run in
+    /// order, on one thread. Always on for --mcap.
+    #[arg(long)]
+    pub sequence: bool,
     /// Overwrite the output(s) if they exist.
     #[arg(long)]
     pub force: bool,
@@ -302,9 +310,12 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         queries.iter().map(|_| Mutex::new(None)).collect();
     let next = AtomicUsize::new(0);
     let features = Mutex::new(features);
+    // A sequence runs in order: one worker, which predicts each query from the last ones.
+    let workers = if args.sequence { 1 } else { args.threads };
+    let motion = Mutex::new(MotionModel::new());
     let first_error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
     std::thread::scope(|s| {
-        for _ in 0..args.threads {
+        for _ in 0..workers {
             s.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(q) = queries.get(i) else { break };
@@ -314,7 +325,15 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                     .unwrap_or_else(|p| p.into_inner())
                     .features(&q.name);
                 let outcome = match f {
-                    Ok(Ok(f)) => localize_one(&localizer, &args.map, q, &f).map(|l| (l, true)),
+                    Ok(Ok(f)) => {
+                        let mut motion = motion.lock().unwrap_or_else(|p| p.into_inner());
+                        let prior = args.sequence.then(|| motion.predict()).flatten();
+                        let found = localize_one(&localizer, &args.map, q, &f, prior.as_ref());
+                        if let Ok(l) = &found {
+                            motion.update(l.pose());
+                        }
+                        found.map(|l| (l, true))
+                    }
                     Ok(Err(reason)) => Ok((unread(reason), false)),
                     Err(e) => Err(e),
                 };
@@ -361,28 +380,19 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .zip(&results)
         .filter_map(|(q, r)| Some(json!({ "name": q.name, "reason": r.failure()?.to_string() })))
         .collect();
-    // Retrieval's fallback, stated: how many queries matched against every point, and why.
-    let mut fallbacks: std::collections::BTreeMap<String, usize> = Default::default();
-    // And which stored descriptor ranked the images of the others.
-    let mut methods: std::collections::BTreeMap<&str, usize> = Default::default();
-    for r in results.iter().filter(|&r| {
+    let paths = PathCounts::of(results.iter().filter(|&r| {
         !r.failure()
             .is_some_and(|f| matches!(f, QueryFailure::NoFeatures(_)))
-    }) {
-        if let Some(why) = r.retrieval_fallback {
-            *fallbacks.entry(why.to_string()).or_default() += 1;
-        }
-        if let Some(method) = r.retrieval {
-            *methods.entry(method.name()).or_default() += 1;
-        }
-    }
+    }));
     if args.json {
         super::print_json(&json!({
             "queries": queries.len(),
             "localized": localized,
             "failed": failed,
-            "retrieval": methods,
-            "retrieval_fallback": fallbacks,
+            "path": paths.path,
+            "tracking_lost": paths.tracking_lost,
+            "retrieval": paths.retrieval,
+            "retrieval_fallback": paths.retrieval_fallback,
             "output": args.output.display().to_string(),
             "seconds": start.elapsed().as_secs_f64(),
             "median_ms": median_ms(&results),
@@ -395,12 +405,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             queries.len(),
             median(results.iter().map(|r| r.times.total_ms).collect()).unwrap_or(f64::NAN)
         );
-        for (why, n) in &fallbacks {
-            println!(
-                "retrieval not used for {n} of {} queries: {why}; every point was a candidate",
-                queries.len()
-            );
-        }
+        paths.print(queries.len());
         for f in &failed {
             // JSON escapes C0 controls but not DEL or C1 ones: escape them all for the terminal.
             println!(
@@ -411,6 +416,51 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// How the queries were localized, counted: the path (retrieval or tracking), why tracking
+/// was lost, which stored descriptor ranked the images, and retrieval's fallbacks (queries
+/// matched against every point), each reason with its count.
+#[derive(Default)]
+pub(super) struct PathCounts {
+    pub path: BTreeMap<&'static str, usize>,
+    pub tracking_lost: BTreeMap<String, usize>,
+    pub retrieval: BTreeMap<&'static str, usize>,
+    pub retrieval_fallback: BTreeMap<String, usize>,
+}
+
+impl PathCounts {
+    pub(super) fn of<'a>(results: impl Iterator<Item = &'a Localization>) -> PathCounts {
+        let mut counts = PathCounts::default();
+        for r in results {
+            *counts.path.entry(r.path.name()).or_default() += 1;
+            if let Some(why) = r.tracking_lost {
+                *counts.tracking_lost.entry(why.to_string()).or_default() += 1;
+            }
+            if let Some(method) = r.retrieval {
+                *counts.retrieval.entry(method.name()).or_default() += 1;
+            }
+            if let Some(why) = r.retrieval_fallback {
+                *counts
+                    .retrieval_fallback
+                    .entry(why.to_string())
+                    .or_default() += 1;
+            }
+        }
+        counts
+    }
+
+    /// The lines a person reads: fallbacks and lost tracking, with counts of `total`.
+    pub(super) fn print(&self, total: usize) {
+        for (why, n) in &self.retrieval_fallback {
+            println!(
+                "retrieval not used for {n} of {total} queries: {why}; every point was a candidate"
+            );
+        }
+        for (why, n) in &self.tracking_lost {
+            println!("tracking lost for {n} of {total} queries: {why}; retrieval was used");
+        }
+    }
 }
 
 /// What to do instead when a query-list run meets a SIFT map without `--database`.
@@ -481,9 +531,10 @@ fn localize_one(
     map: &Path,
     q: &Query,
     f: &QueryFeatures,
+    prior: Option<&Pose>,
 ) -> anyhow::Result<Localization> {
     localizer
-        .localize(f, &q.camera)
+        .localize_with_prior(f, &q.camera, prior)
         .with_context(|| format!("{}: query {:?}", map.display(), q.name))
 }
 
@@ -597,6 +648,8 @@ fn pose_text(
                         "inliers_per_level": r.inliers_per_level,
                         "matches": r.matches,
                         "retrieved_images": r.retrieved_images,
+                        "path": r.path.name(),
+                        "tracking_lost": r.tracking_lost.map(|w| w.to_string()),
                         "retrieval": r.retrieval.map(|m| m.name()),
                         "retrieval_fallback": r.retrieval_fallback.map(|w| w.to_string()),
                         "ms": r.times.total_ms,

@@ -311,7 +311,9 @@ impl Street {
         [(h >> 40) as u8, (h >> 48) as u8, (h >> 56) as u8]
     }
 
-    /// `queries.db`, `queries.txt`, `gt_poses.txt`; returns the number of queries.
+    /// `queries.db`, `queries.txt`, `gt_poses.txt` (queries anywhere along the street), and
+    /// `sequence.db`, `sequence.txt`, `sequence_gt.txt` (as many frames of a camera walking
+    /// the pavement, in order, for `localize --sequence`); returns the number of queries.
     fn write_queries(
         &self,
         dir: &Path,
@@ -320,11 +322,7 @@ impl Street {
         kept: &[bool],
     ) -> Result<usize, Error> {
         let mut rng = SplitMix64::new(options.seed ^ 0x0051_EE71);
-        let mut db = DatabaseWriter::new(&dir.join("queries.db"))?;
-        db.add_camera(camera)?;
-        let (mut list, mut gt) = (String::new(), String::new());
-        let (w, h) = (f64::from(WIDTH), f64::from(HEIGHT));
-        for q in 0..options.queries {
+        let random = |_: usize, rng: &mut SplitMix64| {
             let z = self.length * (0.1 + 0.8 * rng.next_f64());
             let side = if rng.next_f64() < 0.5 { -1.0 } else { 1.0 };
             let centre = Vector3::new(
@@ -338,8 +336,45 @@ impl Street {
                 -1.0 - 4.0 * rng.next_f64(),
                 z + 2.0 + 18.0 * rng.next_f64(),
             );
-            let pose = look_at(centre, target);
-            let mut visible = self.visible(&pose);
+            look_at(centre, target)
+        };
+        let files = ("queries", "query", "gt_poses");
+        self.write_query_set(dir, files, random, options, camera, kept, &mut rng)?;
+        // The walk: 0.5 m a frame along the right pavement from a tenth of the street,
+        // looking ahead at the far façade, the view swaying a little (as a hand-held camera).
+        let walk = |f: usize, _: &mut SplitMix64| {
+            let z = self.length * 0.1 + 0.5 * f as f64;
+            let sway = (f as f64 * 0.7).sin();
+            let centre = Vector3::new(2.0 + 0.1 * sway, EYE, z);
+            let target = Vector3::new(-HALF_WIDTH, -2.0 + 0.3 * sway, z + 10.0 + sway);
+            look_at(centre, target)
+        };
+        let files = ("sequence", "frame", "sequence_gt");
+        self.write_query_set(dir, files, walk, options, camera, kept, &mut rng)?;
+        Ok(options.queries)
+    }
+
+    /// One query set of `options.queries` poses from `pose_of(q, rng)`, `files` = (stem,
+    /// image name prefix, ground-truth stem): `{stem}.db` with each pose's keypoints (the points it sees, with noise, and outliers),
+    /// `{stem}.txt` and `{gt}.txt`.
+    #[allow(clippy::too_many_arguments)]
+    fn write_query_set(
+        &self,
+        dir: &Path,
+        (stem, prefix, gt_stem): (&str, &str, &str),
+        mut pose_of: impl FnMut(usize, &mut SplitMix64) -> Pose,
+        options: &StreetOptions,
+        camera: &Camera,
+        kept: &[bool],
+        rng: &mut SplitMix64,
+    ) -> Result<(), Error> {
+        let mut db = DatabaseWriter::new(&dir.join(format!("{stem}.db")))?;
+        db.add_camera(camera)?;
+        let (mut list, mut gt) = (String::new(), String::new());
+        let (w, h) = (f64::from(WIDTH), f64::from(HEIGHT));
+        for q in 0..options.queries {
+            let pose = &pose_of(q, rng);
+            let mut visible = self.visible(pose);
             visible.retain(|&(p, _, _)| kept[p as usize]);
             let keep = 1_500.0 / visible.len().max(1) as f64;
             visible.retain(|_| keep >= 1.0 || rng.next_f64() < keep);
@@ -350,11 +385,11 @@ impl Street {
             let mut descriptors = Vec::with_capacity((visible.len() + outliers) * DIM);
             for &(p, xy, depth) in &visible {
                 let noisy = [
-                    xy[0] + options.pixel_noise * gaussian(&mut rng),
-                    xy[1] + options.pixel_noise * gaussian(&mut rng),
+                    xy[0] + options.pixel_noise * gaussian(rng),
+                    xy[1] + options.pixel_noise * gaussian(rng),
                 ];
-                keypoints.push(self.keypoint(p, noisy, depth, &mut rng));
-                self.observe(p, 0.25, &mut rng, &mut descriptors);
+                keypoints.push(self.keypoint(p, noisy, depth, rng));
+                self.observe(p, 0.25, rng, &mut descriptors);
             }
             for _ in 0..outliers {
                 let xy = [
@@ -362,10 +397,10 @@ impl Street {
                     1.0 + (h - 2.0) * rng.next_f64(),
                 ];
                 let other = rng.below(self.positions.len()) as u32;
-                keypoints.push(self.keypoint(other, xy, 10.0, &mut rng));
-                self.observe(other, 0.25, &mut rng, &mut descriptors);
+                keypoints.push(self.keypoint(other, xy, 10.0, rng));
+                self.observe(other, 0.25, rng, &mut descriptors);
             }
-            let name = format!("query_{q:04}.jpg");
+            let name = format!("{prefix}_{q:04}.jpg");
             db.add_image(
                 q as u32 + 1,
                 &name,
@@ -378,12 +413,12 @@ impl Street {
                 crate::geometry::Camera::new(camera.model, WIDTH, HEIGHT, camera.params.clone())
                     .expect("the street camera is valid");
             list.push_str(&format!("{name} {intrinsics}\n"));
-            gt.push_str(&crate::io::poses::colmap_pose_line(&name, &pose));
+            gt.push_str(&crate::io::poses::colmap_pose_line(&name, pose));
             gt.push('\n');
         }
         db.write()?;
-        crate::output::write_bytes(&dir.join("queries.txt"), list.as_bytes())?;
-        crate::output::write_bytes(&dir.join("gt_poses.txt"), gt.as_bytes())?;
-        Ok(options.queries)
+        crate::output::write_bytes(&dir.join(format!("{stem}.txt")), list.as_bytes())?;
+        crate::output::write_bytes(&dir.join(format!("{gt_stem}.txt")), gt.as_bytes())?;
+        Ok(())
     }
 }

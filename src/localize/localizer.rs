@@ -9,6 +9,7 @@
 use super::kernels::sgemm_abt;
 use super::level::{decode, index_level, LevelIndex};
 use super::matching::{fails_ratio_test, match_rows, MatchOptions};
+use super::prior::Viewpoints;
 use super::retrieval::{RetrievalFallback, RetrievalIndex, RetrievalMethod};
 use crate::format::{Error as FormatError, Map, Retrieval, Visibility};
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
@@ -103,7 +104,55 @@ pub struct Localization {
     pub retrieval: Option<Retrieval>,
     /// Why the candidates were every point (no retrieval), if they were: the fallback.
     pub retrieval_fallback: Option<RetrievalFallback>,
+    /// Which path localized the query (or last tried to).
+    pub path: LocalizationPath,
+    /// With a pose prior: why tracking did not hold, so that the retrieval path ran.
+    pub tracking_lost: Option<TrackingLost>,
     pub times: StageTimes,
+}
+
+/// How a query was localized.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum LocalizationPath {
+    /// Retrieval, coarse matching, then guided matching.
+    #[default]
+    Retrieval,
+    /// Guided matching around a pose prior (a sequence's prediction).
+    Tracking,
+}
+
+impl LocalizationPath {
+    pub fn name(self) -> &'static str {
+        match self {
+            LocalizationPath::Retrieval => "retrieval",
+            LocalizationPath::Tracking => "tracking",
+        }
+    }
+}
+
+/// Why a pose prior did not localize a query (the criterion for "tracking lost").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum TrackingLost {
+    /// No database image is near the prior looking its way (or the map has no images or
+    /// visibility).
+    NoImagesNearPrior,
+    /// Guided matching around the prior found fewer inliers than `min_inliers`.
+    TooFewInliers { inliers: usize, needed: usize },
+}
+
+impl std::fmt::Display for TrackingLost {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            TrackingLost::NoImagesNearPrior => {
+                f.write_str("no database image near the predicted pose")
+            }
+            TrackingLost::TooFewInliers { inliers, needed } => write!(
+                f,
+                "{inliers} inliers around the predicted pose (fewer than {needed})"
+            ),
+        }
+    }
 }
 
 impl Localization {
@@ -127,6 +176,8 @@ impl Localization {
             retrieved_images: 0,
             retrieval: None,
             retrieval_fallback: None,
+            path: LocalizationPath::Retrieval,
+            tracking_lost: None,
             times: StageTimes::default(),
         }
     }
@@ -284,6 +335,10 @@ struct Query<'q> {
 /// Query keypoints coarse matching uses at most (a stride over them).
 const COARSE_KEYPOINTS: usize = 1024;
 
+/// A pose prior's gate is this many times `gate_px`: a prediction is further off than a
+/// coarse pose fitted to this frame.
+const PRIOR_GATE_FACTOR: f64 = 2.0;
+
 /// Decoded values of the rows in view guided matching keeps for a level (16 MB).
 const DECODED_IN_VIEW_MAX: usize = 4 << 20;
 
@@ -297,7 +352,8 @@ struct Retrieved {
     candidates: Option<Vec<u32>>,
     /// Those of the best [`COARSE_IMAGES`] retrieved images, when fewer than `candidates`.
     coarse_candidates: Option<Vec<u32>>,
-    images: usize,
+    /// The retrieved images, best first.
+    images: Vec<usize>,
     method: Option<Retrieval>,
     fallback: Option<RetrievalFallback>,
 }
@@ -312,6 +368,8 @@ pub struct Localizer<'m> {
     /// Selected levels that are not matched, and why.
     skipped: Vec<SkippedLevel>,
     retrieval: RetrievalIndex,
+    /// Database camera centres and directions, for images near a pose (`None`: no images).
+    viewpoints: Option<Viewpoints>,
     /// Image → points, borrowed from the map, or `None` (all points are candidates).
     visibility: Option<Visibility<'m>>,
 }
@@ -349,6 +407,10 @@ impl<'m> Localizer<'m> {
             .map(|&p| Vector3::from(map.to_world(p)))
             .collect();
         let retrieval = RetrievalIndex::new(map, options.retrieval)?;
+        let viewpoints = map
+            .images()?
+            .filter(|images| !images.is_empty())
+            .map(|images| Viewpoints::new(&images.poses));
         let visibility = map.visibility()?;
         Ok(Localizer {
             map,
@@ -357,6 +419,7 @@ impl<'m> Localizer<'m> {
             levels,
             skipped,
             retrieval,
+            viewpoints,
             visibility,
         })
     }
@@ -383,17 +446,22 @@ impl<'m> Localizer<'m> {
         query: &QueryFeatures,
         camera: &Camera,
     ) -> Result<Localization, LocalizeError> {
+        self.localize_with_prior(query, camera, None)
+    }
+
+    /// [`Self::localize`] with a pose prior (a sequence's prediction, see
+    /// [`MotionModel`](super::MotionModel)): the points of the database images nearest the
+    /// prior are matched by reprojection around it, with no retrieval and no coarse matching.
+    /// If that gives fewer than `min_inliers` (tracking lost, [`TrackingLost`]), the query
+    /// goes the retrieval path; [`Localization::path`] says which path localized it.
+    pub fn localize_with_prior(
+        &self,
+        query: &QueryFeatures,
+        camera: &Camera,
+        prior: Option<&Pose>,
+    ) -> Result<Localization, LocalizeError> {
         let t0 = Instant::now();
         let mut times = StageTimes::default();
-        let Retrieved {
-            candidates,
-            coarse_candidates,
-            images: retrieved_images,
-            method: retrieval,
-            fallback: retrieval_fallback,
-        } = self.candidate_points(query);
-        times.retrieval_ms = ms(t0);
-
         // The feature set each level matches, checked once; each level projects it into its
         // basis once, when it is first matched, and keeps it for the query (the coarse stage
         // and both fine rounds use it).
@@ -410,6 +478,31 @@ impl<'m> Localizer<'m> {
             .map(|(set, projected)| Query { set, projected })
             .collect();
 
+        let mut tracking_lost = None;
+        if let Some(prior) = prior {
+            match self.track(&sets, prior, camera, &mut times) {
+                Ok(tracked) => {
+                    times.total_ms = ms(t0);
+                    return Ok(Localization {
+                        path: LocalizationPath::Tracking,
+                        times,
+                        ..tracked
+                    });
+                }
+                Err(lost) => tracking_lost = Some(lost),
+            }
+        }
+
+        let t1 = Instant::now();
+        let Retrieved {
+            candidates,
+            coarse_candidates,
+            images: retrieved,
+            method: retrieval,
+            fallback: retrieval_fallback,
+        } = self.candidate_points(query);
+        times.retrieval_ms = ms(t1);
+        let retrieved_images = retrieved.len();
         let failed = |failure: QueryFailure, matches, times| Localization {
             outcome: Err(failure),
             inliers_per_level: Vec::new(),
@@ -418,6 +511,8 @@ impl<'m> Localizer<'m> {
             retrieved_images,
             retrieval,
             retrieval_fallback,
+            path: LocalizationPath::Retrieval,
+            tracking_lost,
             times,
         };
 
@@ -425,7 +520,6 @@ impl<'m> Localizer<'m> {
         // (all levels pooled if too few matches); if they give no pose, against those of all
         // retrieved images; then against every point (retrieval can be wrong where the
         // global descriptor is weak).
-        let mut candidates = candidates;
         let mut attempt = None;
         if let Some(few) = &coarse_candidates {
             attempt = Some(self.coarse(&sets, Some(few), camera, &mut times));
@@ -433,11 +527,11 @@ impl<'m> Localizer<'m> {
         if !matches!(attempt, Some(Ok(_))) && candidates.is_some() {
             attempt = Some(self.coarse(&sets, candidates.as_deref(), camera, &mut times));
         }
+        let mut narrowed = true;
         let attempt = match attempt {
             Some(Ok(found)) => Ok(found),
             _ => {
-                // The fine stage then looks at every point too.
-                candidates = None;
+                narrowed = false;
                 self.coarse(&sets, None, camera, &mut times)
             }
         };
@@ -450,26 +544,132 @@ impl<'m> Localizer<'m> {
         };
 
         // Fine: guided matching around projections on every selected level, then one final
-        // estimate seeded with the coarse pose.
+        // estimate seeded with the coarse pose, against the points of the retrieved images
+        // and of the database images nearest the coarse pose (which retrieval may have
+        // missed); every point if the coarse pose needed every point.
         let t3 = Instant::now();
-        let mut pose = coarse.pose;
+        let fine_candidates = match (&self.viewpoints, &self.visibility) {
+            (Some(viewpoints), Some(visibility)) if narrowed && candidates.is_some() => {
+                let mut images = retrieved.clone();
+                images.extend(viewpoints.near(&coarse.pose, self.options.top_k));
+                super::retrieval::points_seen(&images, self.positions.len(), |i| {
+                    visibility.points_of(i)
+                })
+            }
+            _ if narrowed => candidates,
+            _ => None,
+        };
+        let result = self.refine(
+            &sets,
+            fine_candidates.as_deref(),
+            coarse.pose,
+            self.options.gate_px,
+            camera,
+        );
+        times.fine_ms = ms(t3);
+        times.total_ms = ms(t0);
+        let Some(fine) = result else {
+            // The coarse pose stands if guided matching could not improve it.
+            let inliers = coarse.num_inliers;
+            // The inlier mask has one entry per coarse match.
+            let coarse_matches = coarse.inliers.len();
+            if inliers < self.options.min_inliers {
+                return Ok(failed(
+                    QueryFailure::TooFewInliers { inliers },
+                    coarse_matches,
+                    times,
+                ));
+            }
+            return Ok(Localization {
+                outcome: Ok(coarse.pose),
+                inliers_per_level: vec![(self.levels[0].id, inliers)],
+                matches: coarse_matches,
+                inliers,
+                retrieved_images,
+                retrieval,
+                retrieval_fallback,
+                path: LocalizationPath::Retrieval,
+                tracking_lost,
+                times,
+            });
+        };
+        Ok(Localization {
+            retrieved_images,
+            retrieval,
+            retrieval_fallback,
+            path: LocalizationPath::Retrieval,
+            tracking_lost,
+            times,
+            ..fine
+        })
+    }
+
+    /// The tracking path: guided matching around `prior` against the points of the database
+    /// images nearest it, with a gate widened for the prediction's error.
+    fn track(
+        &self,
+        sets: &[Query<'_>],
+        prior: &Pose,
+        camera: &Camera,
+        times: &mut StageTimes,
+    ) -> Result<Localization, TrackingLost> {
+        let t = Instant::now();
+        let (Some(viewpoints), Some(visibility)) = (&self.viewpoints, &self.visibility) else {
+            return Err(TrackingLost::NoImagesNearPrior);
+        };
+        let images = viewpoints.near(prior, self.options.top_k);
+        if images.is_empty() {
+            return Err(TrackingLost::NoImagesNearPrior);
+        }
+        let candidates = super::retrieval::points_seen(&images, self.positions.len(), |i| {
+            visibility.points_of(i)
+        });
+        let gate = self.options.gate_px * PRIOR_GATE_FACTOR;
+        let result = self.refine(sets, candidates.as_deref(), *prior, gate, camera);
+        times.fine_ms += ms(t);
+        match result {
+            Some(found) if found.inliers >= self.options.min_inliers => Ok(Localization {
+                retrieved_images: images.len(),
+                ..found
+            }),
+            found => Err(TrackingLost::TooFewInliers {
+                inliers: found.map_or(0, |f| f.inliers),
+                needed: self.options.min_inliers,
+            }),
+        }
+    }
+
+    /// Two rounds of guided matching on every selected level (`candidates`: the points to
+    /// consider, `None` every point) around `start`, the first with a gate of `first_gate`
+    /// pixels, each followed by a RANSAC estimate seeded with the pose so far: the last
+    /// estimate as a localization (the caller fills in retrieval and timing), or `None` if
+    /// the first round gives no pose.
+    fn refine(
+        &self,
+        sets: &[Query<'_>],
+        candidates: Option<&[u32]>,
+        start: Pose,
+        first_gate: f64,
+        camera: &Camera,
+    ) -> Option<Localization> {
+        let mut pose = start;
         let mut result = None;
         for round in 0..2 {
             // The second round starts from a pose already fitted to fine inliers within
             // `fine_error_px`: a gate of twice that finds them again at a fraction of the
             // comparisons.
             let gate_px = if round == 0 {
-                self.options.gate_px
+                first_gate
             } else {
-                self.options.gate_px.min(2.0 * self.options.fine_error_px)
+                first_gate.min(2.0 * self.options.fine_error_px)
             };
             let mut pixels = Vec::new();
             let mut points = Vec::new();
             // The index into `levels` of each match.
             let mut level_of = Vec::new();
-            for (i, (level, set)) in self.levels.iter().zip(&sets).enumerate() {
+            for (i, (level, set)) in self.levels.iter().zip(sets).enumerate() {
                 let before = pixels.len();
-                let rows = level.rows_of(candidates.as_deref());
+                let rows = level.rows_of(candidates);
                 self.guided_level(
                     level,
                     set,
@@ -501,46 +701,24 @@ impl<'m> Localizer<'m> {
                 Err(_) => break,
             }
         }
-        times.fine_ms = ms(t3);
-        times.total_ms = ms(t0);
-        let Some((estimate, level_of, n_matches)) = result else {
-            // The coarse pose stands if guided matching could not improve it.
-            let inliers = coarse.num_inliers;
-            // The inlier mask has one entry per coarse match.
-            let coarse_matches = coarse.inliers.len();
-            if inliers < self.options.min_inliers {
-                return Ok(failed(
-                    QueryFailure::TooFewInliers { inliers },
-                    coarse_matches,
-                    times,
-                ));
-            }
-            return Ok(Localization {
-                outcome: Ok(coarse.pose),
-                inliers_per_level: vec![(self.levels[0].id, inliers)],
-                matches: coarse_matches,
-                inliers,
-                retrieved_images,
-                retrieval,
-                retrieval_fallback,
-                times,
-            });
-        };
+        let (estimate, level_of, matches) = result?;
         let mut per_level: Vec<(u16, usize)> = self.levels.iter().map(|l| (l.id, 0)).collect();
         for (&inlier, &i) in estimate.inliers.iter().zip(&level_of) {
             if inlier {
                 per_level[i].1 += 1;
             }
         }
-        Ok(Localization {
+        Some(Localization {
             outcome: Ok(estimate.pose),
             inliers_per_level: per_level,
-            matches: n_matches,
+            matches,
             inliers: estimate.num_inliers,
-            retrieved_images,
-            retrieval,
-            retrieval_fallback,
-            times,
+            retrieved_images: 0,
+            retrieval: None,
+            retrieval_fallback: None,
+            path: LocalizationPath::Retrieval,
+            tracking_lost: None,
+            times: StageTimes::default(),
         })
     }
 
@@ -609,7 +787,7 @@ impl<'m> Localizer<'m> {
         Retrieved {
             candidates,
             coarse_candidates,
-            images: images.len(),
+            images,
             method: ranked.ok(),
             fallback,
         }

@@ -6,13 +6,15 @@ mod kernels;
 mod level;
 pub mod localizer;
 mod matching;
+mod prior;
 mod retrieval;
 
 pub use localizer::{
-    describe_skipped, FeatureSet, Localization, LocalizeError, LocalizeOptions, Localizer,
-    QueryFailure, QueryFeatures, SkippedLevel, StageTimes,
+    describe_skipped, FeatureSet, Localization, LocalizationPath, LocalizeError, LocalizeOptions,
+    Localizer, QueryFailure, QueryFeatures, SkippedLevel, StageTimes, TrackingLost,
 };
 pub use matching::MatchOptions;
+pub use prior::MotionModel;
 pub use retrieval::{RetrievalFallback, RetrievalMethod};
 
 /// The matching kernels, for the benches that measure them (feature `fuzzing`, which the
