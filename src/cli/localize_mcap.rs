@@ -18,7 +18,7 @@ use sfpmap::geometry::Camera;
 use sfpmap::io::mcap_io::{self, Damage, LogReader, Skipped, Stamp};
 use sfpmap::io::poses::tum_line;
 use sfpmap::localize::eval::median;
-use sfpmap::localize::{Localization, Localizer};
+use sfpmap::localize::{Localization, MotionModel, QueryFeatures};
 use sfpmap::progress::Reporter;
 use std::collections::{BTreeMap, HashSet};
 use std::fs::File;
@@ -251,35 +251,72 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     let frames: Mutex<BTreeMap<usize, Frame>> = Mutex::new(BTreeMap::new());
     // Failure reasons, each kept once.
     let reasons: Mutex<HashSet<Arc<str>>> = Mutex::new(HashSet::new());
+    let share = |reason: String| -> Arc<str> {
+        let mut reasons = reasons.lock().unwrap_or_else(|p| p.into_inner());
+        match reasons.get(reason.as_str()) {
+            Some(r) => r.clone(),
+            None => {
+                let r: Arc<str> = reason.into();
+                reasons.insert(r.clone());
+                r
+            }
+        }
+    };
     let threads = args.threads.max(1);
     let (sender, receiver) = std::sync::mpsc::sync_channel::<(usize, mcap::Message)>(threads);
     let receiver = Mutex::new(receiver);
+    // Decoding and extraction run on `threads` workers; one more thread localizes the frames
+    // in log order as they come (a log is a sequence: each frame is predicted from the last
+    // ones and tracked), so extraction and matching overlap.
+    let pending = Ordered::new(threads);
     let scan = std::thread::scope(|s| -> anyhow::Result<Scan> {
         for _ in 0..threads {
             s.spawn(|| loop {
                 let next = receiver.lock().unwrap_or_else(|p| p.into_inner()).recv();
                 let Ok((index, message)) = next else { break };
-                let (mut frame, reason) =
-                    localize_message(&message, &camera, gray_weights, &extractor, &localizer);
-                if let Some(reason) = reason {
-                    let mut reasons = reasons.lock().unwrap_or_else(|p| p.into_inner());
-                    let shared = match reasons.get(reason.as_str()) {
-                        Some(r) => r.clone(),
-                        None => {
-                            let r: Arc<str> = reason.into();
-                            reasons.insert(r.clone());
-                            r
-                        }
+                // Every index must reach the localizer, which waits for them in order: a
+                // panic becomes the frame's failure instead of a hang.
+                let extracted = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    extract_message(&message, &camera, gray_weights, &extractor)
+                }))
+                .unwrap_or_else(|_| {
+                    let frame = Frame {
+                        log_time: message.log_time,
+                        publish_time: message.publish_time,
+                        stamp: Stamp::from_nanos(message.log_time),
+                        outcome: Err(Arc::from("")),
+                        undecodable: false,
                     };
-                    frame.outcome = Err(shared);
-                }
+                    (
+                        frame,
+                        Err("internal error while extracting (a bug)".to_string()),
+                    )
+                });
+                drop(message);
+                pending.put(index, extracted);
+            });
+        }
+        s.spawn(|| {
+            let mut motion = MotionModel::new();
+            while let Some((index, (mut frame, features))) = pending.take_next() {
+                let outcome = features.and_then(|q| {
+                    let prior = motion.predict();
+                    localizer
+                        .localize_with_prior(&q, &camera, prior.as_ref())
+                        .map_err(|e| e.to_string())
+                });
+                motion.update(outcome.as_ref().ok().and_then(|l| l.pose()));
+                frame.outcome = match outcome {
+                    Ok(l) => Ok(Box::new(l)),
+                    Err(reason) => Err(share(reason)),
+                };
                 frames
                     .lock()
                     .unwrap_or_else(|p| p.into_inner())
                     .insert(index, frame);
                 bars.advance(1);
-            });
-        }
+            }
+        });
         let mut scan = Scan::default();
         for message in log {
             let message = match message {
@@ -306,6 +343,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             }
         }
         drop(sender);
+        pending.finish(scan.messages_on_topic);
         Ok(scan)
     })?;
     bars.finish();
@@ -382,6 +420,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
         .values()
         .filter_map(|f| f.outcome.as_deref().ok())
         .collect();
+    let paths = super::PathCounts::of(results.iter().copied());
     if args.json {
         // Serialized straight from the frames: a `Value` per failed frame would cost far more
         // than the frames themselves.
@@ -399,6 +438,10 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             camera: String,
             seconds: f64,
             median_ms: serde_json::Value,
+            path: BTreeMap<&'static str, usize>,
+            tracking_lost: BTreeMap<String, usize>,
+            retrieval: BTreeMap<&'static str, usize>,
+            retrieval_fallback: BTreeMap<String, usize>,
         }
         let report = Report {
             mcap: input.display().to_string(),
@@ -413,6 +456,10 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             camera: camera.to_string(),
             seconds: start.elapsed().as_secs_f64(),
             median_ms: super::median_ms(results.iter().copied()),
+            path: paths.path,
+            tracking_lost: paths.tracking_lost,
+            retrieval: paths.retrieval,
+            retrieval_fallback: paths.retrieval_fallback,
         };
         use std::io::Write as _;
         let mut out = std::io::stdout().lock();
@@ -425,6 +472,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             scan.messages_on_topic,
             median(results.iter().map(|r| r.times.total_ms).collect()).unwrap_or(f64::NAN)
         );
+        paths.print(scan.messages_on_topic);
         for (index, _, reason) in failed.iter() {
             // Escaped: the reason may quote the file (a schema name, an encoding).
             println!(
@@ -480,15 +528,13 @@ impl serde::Serialize for FailedFrames<'_> {
     }
 }
 
-/// The frame of one image message, and the reason it failed (which the caller shares between
-/// frames and sets as the outcome).
-fn localize_message(
+/// The frame of one image message and its features, or why there are none.
+fn extract_message(
     message: &mcap::Message<'_>,
     camera: &Camera,
     gray_weights: [f32; 3],
     extractor: &Mutex<Extractor>,
-    localizer: &Localizer<'_>,
-) -> (Frame, Option<String>) {
+) -> (Frame, Result<QueryFeatures, String>) {
     let mut frame = Frame {
         log_time: message.log_time,
         publish_time: message.publish_time,
@@ -502,7 +548,7 @@ fn localize_message(
             Ok(d) => d,
             Err(e) => {
                 frame.undecodable = true;
-                return (frame, Some(e.to_string()));
+                return (frame, Err(e.to_string()));
             }
         };
     if let Some(stamp) = decoded.stamp {
@@ -515,25 +561,87 @@ fn localize_message(
             camera.width(),
             camera.height()
         );
-        return (frame, Some(reason));
+        return (frame, Err(reason));
     }
     let input = sfpmap::extract::image::from_image(&decoded.image, gray_weights, None);
     drop(decoded);
-    // One ONNX session: extraction takes turns, decoding and localization run in parallel.
+    // One ONNX session: extraction takes turns, decoding runs in parallel.
     let features = extractor
         .lock()
         .unwrap_or_else(|p| p.into_inner())
         .extract(&input, &DetectOptions::default());
-    let outcome = features
+    let features = features
         .map_err(|e| e.to_string())
-        .map(|f| sfpmap::io::queries::sfp_query(&f))
-        .and_then(|q| localizer.localize(&q, camera).map_err(|e| e.to_string()));
-    match outcome {
-        Ok(l) => {
-            frame.outcome = Ok(Box::new(l));
-            (frame, None)
+        .map(|f| sfpmap::io::queries::sfp_query(&f));
+    (frame, features)
+}
+
+/// Extracted frames handed from the workers to the localizing thread in log order. Workers
+/// wait while `capacity` frames are pending (unless theirs is the one the localizer waits
+/// for), so a fast extractor cannot pile up features.
+struct Ordered {
+    state: Mutex<OrderedState>,
+    changed: std::sync::Condvar,
+    capacity: usize,
+}
+
+type Extracted = (Frame, Result<QueryFeatures, String>);
+
+struct OrderedState {
+    pending: BTreeMap<usize, Extracted>,
+    /// The index the localizer takes next.
+    next: usize,
+    /// How many frames there are, once the log is read.
+    total: Option<usize>,
+}
+
+impl Ordered {
+    fn new(threads: usize) -> Ordered {
+        Ordered {
+            state: Mutex::new(OrderedState {
+                pending: BTreeMap::new(),
+                next: 0,
+                total: None,
+            }),
+            changed: std::sync::Condvar::new(),
+            capacity: 2 * threads + 2,
         }
-        Err(reason) => (frame, Some(reason)),
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, OrderedState> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn put(&self, index: usize, extracted: Extracted) {
+        let mut state = self.lock();
+        while state.pending.len() >= self.capacity && index != state.next {
+            state = self.changed.wait(state).unwrap_or_else(|p| p.into_inner());
+        }
+        state.pending.insert(index, extracted);
+        self.changed.notify_all();
+    }
+
+    /// The next frame in order, waiting for it; `None` after the last.
+    fn take_next(&self) -> Option<(usize, Extracted)> {
+        let mut state = self.lock();
+        loop {
+            let next = state.next;
+            if let Some(extracted) = state.pending.remove(&next) {
+                state.next += 1;
+                self.changed.notify_all();
+                return Some((next, extracted));
+            }
+            if state.total.is_some_and(|total| next >= total) {
+                return None;
+            }
+            state = self.changed.wait(state).unwrap_or_else(|p| p.into_inner());
+        }
+    }
+
+    /// Every frame has been handed to a worker: `total` of them.
+    fn finish(&self, total: usize) {
+        self.lock().total = Some(total);
+        self.changed.notify_all();
     }
 }
 
