@@ -92,7 +92,7 @@ impl MotionModel {
         let last = self.last.as_ref()?;
         Some(match &self.step {
             Some(step) => step.compose(last),
-            None => last.clone(),
+            None => *last,
         })
     }
 
@@ -101,7 +101,7 @@ impl MotionModel {
         match pose {
             Some(pose) => {
                 self.step = self.last.as_ref().map(|last| pose.compose(&last.inverse()));
-                self.last = Some(pose.clone());
+                self.last = Some(*pose);
             }
             None => *self = MotionModel::default(),
         }
