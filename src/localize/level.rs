@@ -42,21 +42,30 @@ impl LevelIndex<'_> {
         self.scale_row(r, out);
     }
 
-    /// The level rows of `points` (ascending global indices), ascending: each found by
-    /// binary search, O(c log n) for c candidates, never a scan of the level. `None` for
-    /// `None` (every row).
+    /// The level rows of `points` (ascending global indices), ascending: each found by a
+    /// galloping search from where the last one ended, O(c log(n / c)) for c candidates,
+    /// never a scan of the level. `None` for `None` (every row).
     pub(super) fn rows_of(&self, points: Option<&[u32]>) -> Option<Vec<u32>> {
         let points = points?;
-        let mut rows = Vec::with_capacity(points.len().min(self.points.len()));
+        let level = &self.points[..];
+        let mut rows = Vec::with_capacity(points.len().min(level.len()));
         let mut from = 0;
-        for p in points {
-            // Both lists ascend: each search starts where the last one ended.
-            match self.points[from..].binary_search(p) {
+        for &p in points {
+            // Gallop: double the step until the level passes p, then search that stretch.
+            let mut step = 1;
+            while from + step < level.len() && level[from + step] < p {
+                step *= 2;
+            }
+            let end = (from + step + 1).min(level.len());
+            match level[from..end].binary_search(&p) {
                 Ok(i) => {
                     rows.push((from + i) as u32);
                     from += i + 1;
                 }
                 Err(i) => from += i,
+            }
+            if from >= level.len() {
+                break;
             }
         }
         Some(rows)
@@ -260,6 +269,41 @@ mod tests {
             Err(e) => panic!("other error: {e}"),
             Ok(_) => panic!("accepted"),
         }
+    }
+
+    #[test]
+    fn rows_of_candidates_are_the_level_rows_holding_them() {
+        // A level of every third point; candidate lists dense, sparse, past the end, empty.
+        let points: Vec<u32> = (0..3000).map(|i| i * 3).collect();
+        let index = match build_level(parts(points.clone(), 2, 2), 10_000) {
+            Ok(Ok(index)) => index,
+            _ => panic!("indexed"),
+        };
+        let naive = |c: &[u32]| -> Vec<u32> {
+            (0..points.len() as u32)
+                .filter(|&r| c.binary_search(&points[r as usize]).is_ok())
+                .collect()
+        };
+        let mut rng = 12345u64;
+        for density in [1u64, 2, 7, 100, 5000] {
+            let mut c: Vec<u32> = Vec::new();
+            for p in 0..9_100u32 {
+                rng = rng
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                if (rng >> 33) % density == 0 {
+                    c.push(p);
+                }
+            }
+            assert_eq!(
+                index.rows_of(Some(&c)).unwrap(),
+                naive(&c),
+                "1 in {density}"
+            );
+        }
+        assert_eq!(index.rows_of(Some(&[])).unwrap(), Vec::<u32>::new());
+        assert_eq!(index.rows_of(Some(&[8_997, 9_000])).unwrap(), [2_999]);
+        assert!(index.rows_of(None).is_none());
     }
 
     // The localizer's own checks, whatever the reader's limits let through: degenerate or

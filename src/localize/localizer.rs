@@ -337,7 +337,7 @@ const COARSE_KEYPOINTS: usize = 1024;
 
 /// A pose prior's gate is this many times `gate_px`: a prediction is further off than a
 /// coarse pose fitted to this frame.
-const PRIOR_GATE_FACTOR: f64 = 2.0;
+const PRIOR_GATE_FACTOR: f64 = 1.5;
 
 /// Decoded values of the rows in view guided matching keeps for a level (16 MB).
 const DECODED_IN_VIEW_MAX: usize = 4 << 20;
@@ -550,8 +550,7 @@ impl<'m> Localizer<'m> {
         let t3 = Instant::now();
         let fine_candidates = match (&self.viewpoints, &self.visibility) {
             (Some(viewpoints), Some(visibility)) if narrowed && candidates.is_some() => {
-                let mut images = retrieved.clone();
-                images.extend(viewpoints.near(&coarse.pose, self.options.top_k));
+                let images = viewpoints.near(&coarse.pose, self.options.top_k);
                 super::retrieval::points_seen(&images, self.positions.len(), |i| {
                     visibility.points_of(i)
                 })
@@ -654,6 +653,9 @@ impl<'m> Localizer<'m> {
     ) -> Option<Localization> {
         let mut pose = start;
         let mut result = None;
+        // Each level's candidate rows, found once for both rounds.
+        let rows: Vec<Option<Vec<u32>>> =
+            self.levels.iter().map(|l| l.rows_of(candidates)).collect();
         for round in 0..2 {
             // The second round starts from a pose already fitted to fine inliers within
             // `fine_error_px`: a gate of twice that finds them again at a fraction of the
@@ -667,9 +669,8 @@ impl<'m> Localizer<'m> {
             let mut points = Vec::new();
             // The index into `levels` of each match.
             let mut level_of = Vec::new();
-            for (i, (level, set)) in self.levels.iter().zip(sets).enumerate() {
+            for (i, ((level, set), rows)) in self.levels.iter().zip(sets).zip(&rows).enumerate() {
                 let before = pixels.len();
-                let rows = level.rows_of(candidates);
                 self.guided_level(
                     level,
                     set,

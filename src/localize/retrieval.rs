@@ -446,11 +446,8 @@ mod tests {
         let seen = points_seen(&[0, 1], 5, |i| visibility[i]).unwrap();
         assert_eq!(seen, [0, 2, 3]);
         // Listed once, ascending, whatever order the images list them in.
-        let visibility: [&[u32]; 2] = [&[3, 0, 3], &[2, 0]];
-        assert_eq!(
-            points_seen(&[1, 0], 5, |i| visibility[i]).unwrap(),
-            [0, 2, 3]
-        );
+        let repeated: [&[u32]; 2] = [&[3, 0, 3], &[2, 0]];
+        assert_eq!(points_seen(&[1, 0], 5, |i| repeated[i]).unwrap(), [0, 2, 3]);
         // Every point seen: no narrowing; no image: no narrowing either.
         assert!(points_seen(&[0, 1, 2], 5, |i| visibility[i]).is_none());
         assert!(points_seen(&[], 5, |i| visibility[i]).is_none());
