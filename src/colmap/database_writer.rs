@@ -32,6 +32,37 @@ CREATE TABLE two_view_geometries (pair_id INTEGER PRIMARY KEY NOT NULL, rows INT
   tvec BLOB);
 ";
 
+/// The most a database may grow to in memory. memdb's default, 1 GiB, is less than the
+/// 1 M-point street's 1.6 GB; the buffer only grows as rows are added.
+const MEMDB_MAX_BYTES: i64 = 1 << 40;
+
+/// Sets the memdb VFS's size limit of `conn`'s main database to `bytes` (a negative value
+/// changes nothing) and returns the limit now in force.
+///
+/// Why unsafe: SQLite sets this limit only through `sqlite3_file_control`, which rusqlite
+/// does not wrap. The alternative, a compile-time `SQLITE_MEMDB_DEFAULT_MAXSIZE`, would not
+/// reach users who build the crate without this repository's build settings.
+#[allow(unsafe_code)]
+fn memdb_limit(conn: &Connection, bytes: i64) -> rusqlite::Result<i64> {
+    use rusqlite::ffi;
+    let mut limit: ffi::sqlite3_int64 = bytes;
+    // SAFETY: `handle` is `conn`'s open database, used on this thread only for the call;
+    // "main" is a NUL-terminated name; SQLITE_FCNTL_SIZE_LIMIT reads and writes one
+    // sqlite3_int64 through the pointer, which points at `limit`, alive for the call.
+    let rc = unsafe {
+        ffi::sqlite3_file_control(
+            conn.handle(),
+            c"main".as_ptr(),
+            ffi::SQLITE_FCNTL_SIZE_LIMIT,
+            (&mut limit as *mut ffi::sqlite3_int64).cast(),
+        )
+    };
+    if rc != ffi::SQLITE_OK {
+        return Err(rusqlite::Error::SqliteFailure(ffi::Error::new(rc), None));
+    }
+    Ok(limit)
+}
+
 /// A `database.db` being built. Keypoints are written in COLMAP's current 6-column affine
 /// layout from `(x, y, scale, orientation)`.
 pub struct DatabaseWriter {
@@ -52,6 +83,7 @@ impl DatabaseWriter {
             | OpenFlags::SQLITE_OPEN_NO_MUTEX;
         let conn =
             Connection::open_with_flags("file:sfpmap-database?vfs=memdb", flags).map_err(err)?;
+        memdb_limit(&conn, MEMDB_MAX_BYTES).map_err(err)?;
         conn.execute_batch(SCHEMA).map_err(err)?;
         conn.execute_batch("BEGIN").map_err(err)?;
         Ok(DatabaseWriter {
@@ -153,6 +185,14 @@ mod tests {
     use super::*;
     use crate::colmap::{Database, KeypointLayout};
     use crate::geometry::CameraModel;
+
+    #[test]
+    fn a_database_may_grow_past_memdbs_default_gigabyte() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = DatabaseWriter::new(&dir.path().join("database.db")).unwrap();
+        assert_eq!(memdb_limit(&db.conn, -1).unwrap(), MEMDB_MAX_BYTES);
+        assert!(MEMDB_MAX_BYTES > 2 << 30);
+    }
 
     #[test]
     fn a_written_database_reads_back() {
