@@ -337,7 +337,7 @@ const COARSE_KEYPOINTS: usize = 1024;
 
 /// A pose prior's gate is this many times `gate_px`: a prediction is further off than a
 /// coarse pose fitted to this frame.
-const PRIOR_GATE_FACTOR: f64 = 1.5;
+const PRIOR_GATE_FACTOR: f64 = 1.0;
 
 /// Decoded values of the rows in view guided matching keeps for a level (16 MB).
 const DECODED_IN_VIEW_MAX: usize = 4 << 20;
