@@ -5,9 +5,11 @@
 # (--retrieval off, every point a candidate) side by side with retrieval, and the walk
 # (sequence.txt) with --sequence. Prints ms per query, queries within 0.5 m and 2°, map
 # bytes and localize's peak RSS.
-# Usage: benches/street.sh [POINTS ...]   (default 100000; 1000000 takes ~5 min and ~3 GB to generate)
+# Usage: benches/street.sh [POINTS ...]   (default 100000; generating 1000000 takes about 10 min)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+work=
+trap 'rm -rf "$work"' EXIT
 sizes=("${@:-100000}")
 cargo build --release --quiet --all-features --example street
 cargo build --release --quiet --all-features
@@ -20,7 +22,6 @@ for n in "${sizes[@]}"; do
     target/release/examples/street --points "$n" --queries 20 "$dir" >&2
   fi
   work=$(mktemp -d)
-  trap 'rm -rf "$work"' EXIT
   cp "$dir/database.db" "$work/db.db"; cp "$dir/queries.db" "$work/q.db"; cp "$dir/sequence.db" "$work/s.db"
   "$bin" convert --colmap "$dir/sparse" --database "$work/db.db" -o "$work/sift.sfpm" -q
   "$bin" slice "$work/sift.sfpm" --level 2 --short -o "$work/l2.sfpm" -q

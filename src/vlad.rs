@@ -11,7 +11,7 @@
 //! sees; a query's VLAD comes from its keypoints' descriptors in the same level basis. The
 //! codebook is small (16 × 32 by default) because it only has to rank images of one map.
 
-use crate::geometry::rng::SplitMix64;
+use crate::geometry::SplitMix64;
 use crate::vector::{dot, normalise_rows};
 
 /// Centroids of the codebook learned by default.
@@ -22,6 +22,13 @@ pub const DEFAULT_DIMS: usize = 32;
 /// bounds training time whatever the map's size.
 const MAX_TRAIN: usize = 32_768;
 const ITERATIONS: usize = 25;
+
+/// How a codebook is learned and a VLAD made, in words (recorded in the map's metadata).
+pub fn rule() -> String {
+    format!(
+        "k-means++ then Lloyd ({ITERATIONS} iterations at most, seeded) on at most {MAX_TRAIN} descriptors (the leading dims of the level basis, renormalised); per image, the residuals of its descriptors to their nearest centroids summed per centroid, each centroid's sum L2-normalised, then the whole"
+    )
+}
 
 /// A VLAD codebook: `clusters` centroids of `dims` dimensions.
 #[derive(Debug, Clone, PartialEq)]
@@ -194,10 +201,11 @@ impl Codebook {
     /// rows are skipped): `width()` values, unit length (all zero without rows).
     pub fn vlad(&self, rows: &[f32]) -> Vec<f32> {
         let mut sum = vec![0.0f32; self.width()];
-        // Zero rows (descriptors of no direction) are skipped, as the map's are.
+        // Zero rows (descriptors of no direction) are skipped, as the map's are, and so are
+        // rows with a non-finite value (one would make the whole VLAD NaN).
         for x in rows
             .chunks_exact(self.dims)
-            .filter(|x| x.iter().any(|&v| v != 0.0))
+            .filter(|x| x.iter().any(|&v| v != 0.0) && x.iter().all(|v| v.is_finite()))
         {
             self.accumulate(x, &mut sum, self.nearest(x));
         }
@@ -312,6 +320,11 @@ mod tests {
         let images = codebook.image_vlads(&rows, &offsets, &points);
         assert_eq!(images.len(), 4 * codebook.width());
         let query = codebook.vlad(&rows[..100 * 8]);
+        // Rows with a non-finite value, and zero rows, are skipped.
+        let mut noisy = rows[..100 * 8].to_vec();
+        noisy.extend([f32::NAN; 8]);
+        noisy.extend([0.0; 8]);
+        assert_eq!(codebook.vlad(&noisy), query);
         let norm = dot(&query, &query).sqrt();
         assert!((norm - 1.0).abs() < 1e-5, "{norm}");
         let scores: Vec<f32> = images

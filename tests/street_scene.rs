@@ -65,7 +65,7 @@ fn a_small_street_converts_and_every_query_localizes() {
     assert_eq!(converted.points, summary.points);
 
     let map = Map::open(&map_path).unwrap();
-    assert_eq!(converted.vlad_level, Some(2));
+    assert_eq!(converted.vlad.map(|v| (v.level, v.dims)), Some((2, 32)));
     assert!(map.vlad().unwrap().is_some());
     let localizer = Localizer::new(&map, LocalizeOptions::default()).unwrap();
     // The brute-force reference: no retrieval, every point a candidate.

@@ -28,7 +28,7 @@ pub mod sift;
 pub use error::ConvertError;
 pub use geometry::fuzz_read_bin;
 #[cfg(feature = "colmap")]
-pub use retrieval::VladOptions;
+pub use retrieval::{StoredVlad, VladOptions};
 #[cfg(all(feature = "colmap", feature = "onnx"))]
 pub use sfp::{convert_with_images, SfpMapOptions, SfpMapSummary};
 #[cfg(feature = "colmap")]
@@ -74,8 +74,8 @@ pub struct ConvertSummary {
     pub images_without_features: usize,
     /// Points none of whose observations has a descriptor (kept, but in no level).
     pub points_without_descriptors: usize,
-    /// The level whose descriptors the stored VLAD retrieval aggregates, if one was stored.
-    pub vlad_level: Option<u16>,
+    /// The VLAD stored for retrieval, if one was.
+    pub vlad: Option<StoredVlad>,
 }
 
 /// The writer of a converted map: provenance (the tool, the input files, the `parameters`

@@ -25,31 +25,42 @@ impl Default for VladOptions {
     }
 }
 
+/// What a converted map's VLAD is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StoredVlad {
+    /// The level whose basis (and codebook section) it is on.
+    pub level: u16,
+    pub clusters: usize,
+    pub dims: usize,
+}
+
 /// The seed of the codebook's k-means: fixed, so a map converts to the same bytes.
 const SEED: u64 = 0x5f9_1a0;
 
-/// Learns the codebook from `rows` (one per map point: its descriptor's first `dims` stored
-/// dimensions of `level`, renormalised; a zero row for a point without one) and adds it, each
-/// image's VLAD over the points it sees, and the rule to the level's metadata to `writer`
-/// (after the level). Returns whether it did: a map with fewer described points than
-/// centroids, or without images, gets no VLAD.
+/// Learns the codebook from `rows` (one per map point: its descriptor's first `dims`
+/// dimensions in `level`'s basis, renormalised; a zero row for a point without one; `points`
+/// says which points those are, in words) and adds it, each image's VLAD over the points it
+/// sees, and the rule to the level's metadata to `writer` (after the level). `None`: a map
+/// with fewer described points than centroids, or without images, gets no VLAD.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn add_vlad(
     writer: &mut MapWriter<'_>,
     level: u16,
     rows: &[f32],
     dims: usize,
     clusters: usize,
+    points: &str,
     geometry: &Geometry,
     reporter: &dyn Reporter,
-) -> Result<bool, crate::format::Error> {
+) -> Result<Option<StoredVlad>, crate::format::Error> {
     if clusters == 0 || dims == 0 || geometry.vis_offsets.len() < 2 {
-        return Ok(false);
+        return Ok(None);
     }
     reporter.start("retrieval codebook", None);
     let codebook = Codebook::train(rows, dims, clusters, SEED);
     reporter.finish();
     let Some(codebook) = codebook else {
-        return Ok(false);
+        return Ok(None);
     };
     reporter.start("image VLADs", None);
     let images = codebook.image_vlads(rows, &geometry.vis_offsets, &geometry.vis_points);
@@ -65,9 +76,15 @@ pub(crate) fn add_vlad(
         json!({
             "clusters": codebook.clusters,
             "dims": dims,
-            "rule": "k-means++ then Lloyd (25 iterations, seeded) on at most 32768 point descriptors of this level's basis (first dims, renormalised); per image, residuals of the points it sees summed per centroid, each centroid's sum L2-normalised, then the whole",
+            "rule": crate::vlad::rule(),
+            "points": points,
         }),
     );
+    let clusters = codebook.clusters;
     writer.set_vlad(level, dims, codebook.centroids, &images)?;
-    Ok(true)
+    Ok(Some(StoredVlad {
+        level,
+        clusters,
+        dims,
+    }))
 }

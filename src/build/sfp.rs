@@ -353,12 +353,12 @@ pub fn convert_with_images(
     }
     // Retrieval over level 2's descriptors (the level a `level 2, short` slice keeps), or the
     // deepest level without one; the network's global descriptor stays the default.
-    let vlad_level = built
+    let vlad = built
         .iter()
         .find(|b| b.0.level == VLAD_LEVEL)
         .or(built.last())
         .map(
-            |(info, points, descriptors, _)| -> Result<Option<u16>, ConvertError> {
+            |(info, points, descriptors, _)| -> Result<Option<super::StoredVlad>, ConvertError> {
                 let dims = options.vlad.dims.min(info.dim_short as usize);
                 if options.vlad.clusters == 0 || dims == 0 {
                     return Ok(None);
@@ -370,16 +370,16 @@ pub fn convert_with_images(
                     dst.copy_from_slice(&src[..dims]);
                     crate::vector::l2_normalise(dst);
                 }
-                let added = super::retrieval::add_vlad(
+                Ok(super::retrieval::add_vlad(
                     &mut writer,
                     info.level,
                     &rows,
                     dims,
                     options.vlad.clusters,
+                    "this level's points",
                     &geometry,
                     reporter,
-                )?;
-                Ok(added.then_some(info.level))
+                )?)
             },
         )
         .transpose()?
@@ -399,7 +399,7 @@ pub fn convert_with_images(
             levels: summaries,
             images_without_features: missing.len(),
             points_without_descriptors: 0,
-            vlad_level,
+            vlad,
         },
         model_points: n_points,
         missing_images: missing,

@@ -113,7 +113,10 @@ pub fn convert(
     let mut summaries = Vec::new();
     let mut points_without_descriptors = 0;
     let mut images_without_features = 0;
-    let (built_levels, described) = match &observations {
+    // Retrieval on the deepest level's basis (the level a `level 2, short` slice keeps), over
+    // every described point: each point's descriptor projected on the basis' leading rows,
+    // made as soon as the levels are, so the full descriptors are dropped before writing.
+    let (built_levels, vlad_rows) = match &observations {
         Some(obs) => {
             images_without_features = obs.images_without_features;
             let n_points = geometry.positions.len();
@@ -122,7 +125,18 @@ pub fn convert(
             reporter.finish();
             points_without_descriptors = has.iter().filter(|h| !**h).count();
             let levels = build_levels(obs, &descriptors, &has, options.short_dims, reporter)?;
-            (levels, Some((descriptors, has, obs.dim)))
+            let rows = levels.last().and_then(|deepest| {
+                let dims = options.vlad.dims.min(deepest.info.dim_short as usize);
+                (options.vlad.clusters > 0 && dims > 0).then(|| {
+                    reporter.start("projecting for retrieval", None);
+                    let rows = deepest
+                        .basis
+                        .project_leading(&descriptors, obs.dim, dims, &has);
+                    reporter.finish();
+                    (rows, dims)
+                })
+            });
+            (levels, rows)
         }
         None => (Vec::new(), None),
     };
@@ -136,27 +150,18 @@ pub fn convert(
         writer.set_level_projection(l.info.level, l.basis.dim, l.basis.rows.clone())?;
         summaries.push(l.summary.clone());
     }
-    // Retrieval on the deepest level's basis (the level a `level 2, short` slice keeps), over
-    // every described point: each point's descriptor projected on the basis' leading rows.
-    let mut vlad_level = None;
-    if let (Some((descriptors, has, dim)), Some(deepest)) = (&described, built_levels.last()) {
-        let dims = options.vlad.dims.min(deepest.info.dim_short as usize);
-        if options.vlad.clusters > 0 && dims > 0 {
-            reporter.start("projecting for retrieval", None);
-            let rows = deepest.basis.project_leading(descriptors, *dim, dims, has);
-            drop(described);
-            reporter.finish();
-            let added = super::retrieval::add_vlad(
-                &mut writer,
-                deepest.info.level,
-                &rows,
-                dims,
-                options.vlad.clusters,
-                &geometry,
-                reporter,
-            )?;
-            vlad_level = added.then_some(deepest.info.level);
-        }
+    let mut vlad = None;
+    if let (Some((rows, dims)), Some(deepest)) = (vlad_rows, built_levels.last()) {
+        vlad = super::retrieval::add_vlad(
+            &mut writer,
+            deepest.info.level,
+            &rows,
+            dims,
+            options.vlad.clusters,
+            "every point with a descriptor (all levels), projected on this level's basis",
+            &geometry,
+            reporter,
+        )?;
     }
     let output_bytes = writer.write(output, reporter)?;
     Ok(ConvertSummary {
@@ -169,7 +174,7 @@ pub fn convert(
         levels: summaries,
         images_without_features,
         points_without_descriptors,
-        vlad_level,
+        vlad,
     })
 }
 

@@ -141,7 +141,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "levels": levels,
             "images_without_features": summary.images_without_features,
             "points_without_descriptors": summary.points_without_descriptors,
-            "vlad_level": summary.vlad_level,
+            "vlad": summary.vlad.map(|v| json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
         }))?;
     } else if !quiet {
         println!(
@@ -168,10 +168,10 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         if summary.geometry_only {
             println!("geometry only (no --database): no levels, no descriptors");
         }
-        if let Some(level) = summary.vlad_level {
+        if let Some(v) = summary.vlad {
             println!(
-                "retrieval: VLAD of {} x {} over level {level}",
-                args.vlad_clusters, args.vlad_dims
+                "retrieval: VLAD of {} centroids x {} dims on level {}",
+                v.clusters, v.dims, v.level
             );
         }
     }
@@ -288,7 +288,7 @@ fn run_sfp(
             "model_xxh3": summary.model.xxh3,
             "missing_images": summary.missing_images,
             "levels": levels,
-            "vlad_level": c.vlad_level,
+            "vlad": c.vlad.map(|v| json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
         }))?;
     } else if !quiet {
         println!(

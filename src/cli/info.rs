@@ -1,7 +1,7 @@
 //! `sfpmap info`: what a map holds.
 
 use serde::Serialize;
-use sfpmap::format::{Level, Map, Metadata, Provenance, Section};
+use sfpmap::format::{Level, Map, Metadata, Provenance, Section, SectionKind};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -32,7 +32,65 @@ struct Info<'m> {
     levels: Vec<LevelJson<'m>>,
     sections: Vec<SectionJson>,
     unknown_sections: Vec<SectionJson>,
+    retrieval: Retrieval<'m>,
     provenance: &'m Provenance,
+}
+
+/// What the map can retrieve with (format 1.1), from the section table alone.
+#[derive(Serialize)]
+struct Retrieval<'m> {
+    /// The metadata `retrieval` as written (`"vlad"`, `"global"`, a later minor's value).
+    preference: Option<&'m str>,
+    /// `{level, clusters, dims}` of the VLAD codebook.
+    vlad: Option<serde_json::Value>,
+    /// Dimensions of the stored global descriptors.
+    global_dims: Option<u64>,
+}
+
+impl<'m> Retrieval<'m> {
+    fn of(map: &'m Map<'_>, meta: &'m Metadata) -> Retrieval<'m> {
+        let vlad = map
+            .sections()
+            .iter()
+            .find(|s| s.kind() == SectionKind::LevelVladCentroids)
+            .map(
+                |s| serde_json::json!({"level": s.level(), "clusters": s.rows(), "dims": s.cols()}),
+            );
+        let global_dims = map
+            .sections()
+            .iter()
+            .find(|s| s.kind() == SectionKind::ImageGlobal)
+            .map(|s| s.cols());
+        Retrieval {
+            preference: meta.retrieval.as_deref(),
+            vlad,
+            global_dims,
+        }
+    }
+
+    /// One line for the text output.
+    fn describe(&self) -> String {
+        let mut kinds = Vec::new();
+        if let Some(v) = &self.vlad {
+            kinds.push(format!(
+                "VLAD {} x {} on level {}",
+                v["clusters"], v["dims"], v["level"]
+            ));
+        }
+        if let Some(d) = self.global_dims {
+            kinds.push(format!("global descriptors of {d} dims"));
+        }
+        if kinds.is_empty() {
+            return "retrieval: none (every point is a candidate)".into();
+        }
+        let preference = self.preference.map_or(String::new(), |p| {
+            format!(
+                "; prefers {}",
+                sfpmap::colmap::text::escape_control_characters(p)
+            )
+        });
+        format!("retrieval: {}{preference}", kinds.join(", "))
+    }
 }
 
 #[derive(Serialize)]
@@ -123,6 +181,7 @@ fn print_info_json(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
         levels: map.levels().map(LevelJson::from).collect(),
         sections: map.sections().iter().map(SectionJson::from).collect(),
         unknown_sections: map.unknown_sections().map(SectionJson::from).collect(),
+        retrieval: Retrieval::of(map, meta),
         provenance: &meta.provenance,
     };
     // As `super::print_json` prints a Value: one line on stdout.
@@ -166,6 +225,7 @@ fn print_info_text(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
             if l.has_rest() { "present" } else { "absent" }
         )?;
     }
+    writeln!(out, "{}", Retrieval::of(map, meta).describe())?;
     writeln!(out, "sections:")?;
     for s in map.sections() {
         let level = s.level().map_or(String::new(), |l| format!(" L{l}"));

@@ -4,7 +4,7 @@ use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::colmap::text::{escape_control_characters, quoted_name, text_name_problem};
 use sfpmap::format::Map;
-use sfpmap::geometry::{Camera, Pose};
+use sfpmap::geometry::Camera;
 use sfpmap::io::poses::{colmap_pose_line, tum_line};
 use sfpmap::io::queries::{read_query_list, DatabaseFeatures, Query};
 use sfpmap::localize::eval::median;
@@ -22,9 +22,13 @@ use std::time::Instant;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum RetrievalArg {
+    /// The map's stated preference (metadata `retrieval`), else whichever it has.
     Auto,
+    /// The VLAD of the map's own descriptors (every map converted by 1.1).
     Vlad,
+    /// The extractor's global descriptor (SFP maps).
     Global,
+    /// None: every point is a candidate (the brute-force reference).
     Off,
 }
 
@@ -324,17 +328,20 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                     .lock()
                     .unwrap_or_else(|p| p.into_inner())
                     .features(&q.name);
+                // Only a sequence (one worker) touches the motion model.
+                let sequence = || motion.lock().unwrap_or_else(|p| p.into_inner());
                 let outcome = match f {
-                    Ok(Ok(f)) => {
-                        let mut motion = motion.lock().unwrap_or_else(|p| p.into_inner());
-                        let prior = args.sequence.then(|| motion.predict()).flatten();
-                        let found = localize_one(&localizer, &args.map, q, &f, prior.as_ref());
-                        if let Ok(l) = &found {
-                            motion.update(l.pose());
+                    Ok(Ok(f)) if args.sequence => sequence()
+                        .localize(&localizer, &f, &q.camera)
+                        .with_context(|| format!("{}: query {:?}", args.map.display(), q.name))
+                        .map(|l| (l, true)),
+                    Ok(Ok(f)) => localize_one(&localizer, &args.map, q, &f).map(|l| (l, true)),
+                    Ok(Err(reason)) => {
+                        if args.sequence {
+                            sequence().update(None);
                         }
-                        found.map(|l| (l, true))
+                        Ok((unread(reason), false))
                     }
-                    Ok(Err(reason)) => Ok((unread(reason), false)),
                     Err(e) => Err(e),
                 };
                 match outcome {
@@ -531,10 +538,9 @@ fn localize_one(
     map: &Path,
     q: &Query,
     f: &QueryFeatures,
-    prior: Option<&Pose>,
 ) -> anyhow::Result<Localization> {
     localizer
-        .localize_with_prior(f, &q.camera, prior)
+        .localize(f, &q.camera)
         .with_context(|| format!("{}: query {:?}", map.display(), q.name))
 }
 

@@ -298,14 +298,24 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
         }
         s.spawn(|| {
             let mut motion = MotionModel::new();
+            // Should this thread panic, the workers and the reader must not wait for it.
+            let _close = pending.close_on_panic();
             while let Some((index, (mut frame, features))) = pending.take_next() {
-                let outcome = features.and_then(|q| {
-                    let prior = motion.predict();
-                    localizer
-                        .localize_with_prior(&q, &camera, prior.as_ref())
-                        .map_err(|e| e.to_string())
-                });
-                motion.update(outcome.as_ref().ok().and_then(|l| l.pose()));
+                let outcome = match features {
+                    Ok(q) => std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                        motion
+                            .localize(&localizer, &q, &camera)
+                            .map_err(|e| e.to_string())
+                    }))
+                    .unwrap_or_else(|_| {
+                        motion.update(None);
+                        Err("internal error while localizing (a bug)".to_string())
+                    }),
+                    Err(reason) => {
+                        motion.update(None);
+                        Err(reason)
+                    }
+                };
                 frame.outcome = match outcome {
                     Ok(l) => Ok(Box::new(l)),
                     Err(reason) => Err(share(reason)),
@@ -317,6 +327,8 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
                 bars.advance(1);
             }
         });
+        // Should the reader panic, the localizing thread must not wait for more frames.
+        let _close = pending.close_on_panic();
         let mut scan = Scan::default();
         for message in log {
             let message = match message {
@@ -589,6 +601,8 @@ type Extracted = (Frame, Result<QueryFeatures, String>);
 
 struct OrderedState {
     pending: BTreeMap<usize, Extracted>,
+    /// A thread of the hand-over panicked: nobody waits any more, frames are dropped.
+    closed: bool,
     /// The index the localizer takes next.
     next: usize,
     /// How many frames there are, once the log is read.
@@ -600,10 +614,13 @@ impl Ordered {
         Ordered {
             state: Mutex::new(OrderedState {
                 pending: BTreeMap::new(),
+                closed: false,
                 next: 0,
                 total: None,
             }),
             changed: std::sync::Condvar::new(),
+            // One frame per worker in flight and as many again waiting: extraction takes
+            // turns on one ONNX session, so more would only hold features (a few MB each).
             capacity: 2 * threads + 2,
         }
     }
@@ -614,8 +631,11 @@ impl Ordered {
 
     fn put(&self, index: usize, extracted: Extracted) {
         let mut state = self.lock();
-        while state.pending.len() >= self.capacity && index != state.next {
+        while state.pending.len() >= self.capacity && index != state.next && !state.closed {
             state = self.changed.wait(state).unwrap_or_else(|p| p.into_inner());
+        }
+        if state.closed {
+            return;
         }
         state.pending.insert(index, extracted);
         self.changed.notify_all();
@@ -631,17 +651,33 @@ impl Ordered {
                 self.changed.notify_all();
                 return Some((next, extracted));
             }
-            if state.total.is_some_and(|total| next >= total) {
+            if state.closed || state.total.is_some_and(|total| next >= total) {
                 return None;
             }
             state = self.changed.wait(state).unwrap_or_else(|p| p.into_inner());
         }
     }
 
+    /// A guard that closes the hand-over if its thread unwinds.
+    fn close_on_panic(&self) -> CloseOnPanic<'_> {
+        CloseOnPanic(self)
+    }
+
     /// Every frame has been handed to a worker: `total` of them.
     fn finish(&self, total: usize) {
         self.lock().total = Some(total);
         self.changed.notify_all();
+    }
+}
+
+struct CloseOnPanic<'a>(&'a Ordered);
+
+impl Drop for CloseOnPanic<'_> {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            self.0.lock().closed = true;
+            self.0.changed.notify_all();
+        }
     }
 }
 

@@ -61,7 +61,7 @@ mod ransac;
 #[cfg(feature = "geometry")]
 mod refine;
 #[cfg(feature = "geometry")]
-pub(crate) mod rng;
+mod rng;
 
 #[cfg(feature = "geometry")]
 pub use camera::{Camera, SUPPORTED};

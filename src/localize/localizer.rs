@@ -1,14 +1,18 @@
-//! The hierarchical localizer: retrieval → candidates → coarse matching on the deepest
-//! selected level → P3P LO-RANSAC → gated matching level by level (projected candidates within
-//! a radius of each query keypoint) → re-estimation and refinement on all inliers.
+//! The hierarchical localizer: retrieval (VLAD or a global descriptor) → the points of the
+//! retrieved images → coarse matching on the deepest selected level → P3P LO-RANSAC → gated
+//! matching level by level (the points of the database images nearest the coarse pose,
+//! projected, within a radius of each query keypoint) → re-estimation and refinement on all
+//! inliers. With a pose prior (a sequence), the gated matching around the prior replaces
+//! everything before it, and retrieval runs only when tracking is lost.
 //!
-//! A [`Localizer`] is built once per map (it indexes the levels and visibility) and shared by
-//! threads; it reads descriptors straight from the mmapped map's f16 blocks, decoding the
-//! candidate rows a block at a time inside matching (4 bytes a row of its own: the norm).
+//! A [`Localizer`] is built once per map (it indexes the levels, retrieval data, database
+//! viewpoints and visibility) and shared by threads; it reads descriptors straight from the
+//! mmapped map's f16 blocks, decoding the candidate rows a block at a time inside matching:
+//! nothing of its own per map point.
 
 use super::kernels::sgemm_abt;
 use super::level::{decode, index_level, LevelIndex};
-use super::matching::{fails_ratio_test, match_rows, MatchOptions};
+use super::matching::{match_rows, MatchOptions};
 use super::prior::Viewpoints;
 use super::retrieval::{RetrievalFallback, RetrievalIndex, RetrievalMethod};
 use crate::format::{Error as FormatError, Map, Retrieval, Visibility};
@@ -327,20 +331,17 @@ impl From<FormatError> for LocalizeError {
 }
 
 /// One level's query features and their projection into its basis, made when first needed.
-struct Query<'q> {
-    set: &'q FeatureSet,
-    projected: &'q OnceCell<Vec<f32>>,
+pub(super) struct Query<'q> {
+    pub(super) set: &'q FeatureSet,
+    pub(super) projected: &'q OnceCell<Vec<f32>>,
 }
+
+/// When coarse matching finds no pose among the points of the `top_k` retrieved images, it
+/// tries those of this many times `top_k` before every point.
+const WIDER_RETRIEVAL: usize = 4;
 
 /// Query keypoints coarse matching uses at most (a stride over them).
 const COARSE_KEYPOINTS: usize = 1024;
-
-/// A pose prior's gate is this many times `gate_px`: a prediction is further off than a
-/// coarse pose fitted to this frame.
-const PRIOR_GATE_FACTOR: f64 = 1.0;
-
-/// Decoded values of the rows in view guided matching keeps for a level (16 MB).
-const DECODED_IN_VIEW_MAX: usize = 4 << 20;
 
 /// Retrieved images whose points coarse matching tries first: the points of the best few
 /// images hold enough true matches for a pose at a fraction of the cost of all `top_k`.
@@ -360,18 +361,18 @@ struct Retrieved {
 
 /// A map prepared for localization: levels indexed over the map's own descriptor blocks.
 pub struct Localizer<'m> {
-    map: &'m Map<'m>,
-    options: LocalizeOptions,
-    positions: Vec<Vector3<f64>>,
+    pub(super) map: &'m Map<'m>,
+    pub(super) options: LocalizeOptions,
+    pub(super) positions: Vec<Vector3<f64>>,
     /// Selected levels, deepest first; never empty.
-    levels: Vec<LevelIndex<'m>>,
+    pub(super) levels: Vec<LevelIndex<'m>>,
     /// Selected levels that are not matched, and why.
-    skipped: Vec<SkippedLevel>,
-    retrieval: RetrievalIndex,
+    pub(super) skipped: Vec<SkippedLevel>,
+    pub(super) retrieval: RetrievalIndex,
     /// Database camera centres and directions, for images near a pose (`None`: no images).
-    viewpoints: Option<Viewpoints>,
+    pub(super) viewpoints: Option<Viewpoints>,
     /// Image → points, borrowed from the map, or `None` (all points are candidates).
-    visibility: Option<Visibility<'m>>,
+    pub(super) visibility: Option<Visibility<'m>>,
 }
 
 impl<'m> Localizer<'m> {
@@ -495,7 +496,7 @@ impl<'m> Localizer<'m> {
 
         let t1 = Instant::now();
         let Retrieved {
-            candidates,
+            mut candidates,
             coarse_candidates,
             images: retrieved,
             method: retrieval,
@@ -527,6 +528,16 @@ impl<'m> Localizer<'m> {
         if !matches!(attempt, Some(Ok(_))) && candidates.is_some() {
             attempt = Some(self.coarse(&sets, candidates.as_deref(), camera, &mut times));
         }
+        // A wider net before every point: the points of 4 × top_k images (at 1 M points,
+        // tens of milliseconds instead of seconds).
+        if !matches!(attempt, Some(Ok(_))) && candidates.is_some() {
+            let wider = self.retrieved_points(query, WIDER_RETRIEVAL * self.options.top_k);
+            if let Some(wider) = wider.filter(|w| Some(w.len()) > candidates.as_ref().map(Vec::len))
+            {
+                attempt = Some(self.coarse(&sets, Some(&wider), camera, &mut times));
+                candidates = Some(wider);
+            }
+        }
         let mut narrowed = true;
         let attempt = match attempt {
             Some(Ok(found)) => Ok(found),
@@ -544,19 +555,26 @@ impl<'m> Localizer<'m> {
         };
 
         // Fine: guided matching around projections on every selected level, then one final
-        // estimate seeded with the coarse pose, against the points of the retrieved images
-        // and of the database images nearest the coarse pose (which retrieval may have
-        // missed); every point if the coarse pose needed every point.
+        // estimate seeded with the coarse pose, against the points of the database images
+        // nearest the coarse pose (retrieval may have ranked some of them low); those of the
+        // retrieved images if no image is near it; every point if the coarse pose needed
+        // every point.
         let t3 = Instant::now();
-        let fine_candidates = match (&self.viewpoints, &self.visibility) {
+        let near = match (&self.viewpoints, &self.visibility) {
             (Some(viewpoints), Some(visibility)) if narrowed && candidates.is_some() => {
                 let images = viewpoints.near(&coarse.pose, self.options.top_k);
-                super::retrieval::points_seen(&images, self.positions.len(), |i| {
-                    visibility.points_of(i)
+                (!images.is_empty()).then(|| {
+                    super::retrieval::points_seen(&images, self.positions.len(), |i| {
+                        visibility.points_of(i)
+                    })
                 })
             }
-            _ if narrowed => candidates,
             _ => None,
+        };
+        let fine_candidates = match near {
+            Some(points) => points,
+            None if narrowed => candidates,
+            None => None,
         };
         let result = self.refine(
             &sets,
@@ -600,126 +618,6 @@ impl<'m> Localizer<'m> {
             tracking_lost,
             times,
             ..fine
-        })
-    }
-
-    /// The tracking path: guided matching around `prior` against the points of the database
-    /// images nearest it, with a gate widened for the prediction's error.
-    fn track(
-        &self,
-        sets: &[Query<'_>],
-        prior: &Pose,
-        camera: &Camera,
-        times: &mut StageTimes,
-    ) -> Result<Localization, TrackingLost> {
-        let t = Instant::now();
-        let (Some(viewpoints), Some(visibility)) = (&self.viewpoints, &self.visibility) else {
-            return Err(TrackingLost::NoImagesNearPrior);
-        };
-        let images = viewpoints.near(prior, self.options.top_k);
-        if images.is_empty() {
-            return Err(TrackingLost::NoImagesNearPrior);
-        }
-        let candidates = super::retrieval::points_seen(&images, self.positions.len(), |i| {
-            visibility.points_of(i)
-        });
-        let gate = self.options.gate_px * PRIOR_GATE_FACTOR;
-        let result = self.refine(sets, candidates.as_deref(), *prior, gate, camera);
-        times.fine_ms += ms(t);
-        match result {
-            Some(found) if found.inliers >= self.options.min_inliers => Ok(Localization {
-                retrieved_images: images.len(),
-                ..found
-            }),
-            found => Err(TrackingLost::TooFewInliers {
-                inliers: found.map_or(0, |f| f.inliers),
-                needed: self.options.min_inliers,
-            }),
-        }
-    }
-
-    /// Two rounds of guided matching on every selected level (`candidates`: the points to
-    /// consider, `None` every point) around `start`, the first with a gate of `first_gate`
-    /// pixels, each followed by a RANSAC estimate seeded with the pose so far: the last
-    /// estimate as a localization (the caller fills in retrieval and timing), or `None` if
-    /// the first round gives no pose.
-    fn refine(
-        &self,
-        sets: &[Query<'_>],
-        candidates: Option<&[u32]>,
-        start: Pose,
-        first_gate: f64,
-        camera: &Camera,
-    ) -> Option<Localization> {
-        let mut pose = start;
-        let mut result = None;
-        // Each level's candidate rows, found once for both rounds.
-        let rows: Vec<Option<Vec<u32>>> =
-            self.levels.iter().map(|l| l.rows_of(candidates)).collect();
-        for round in 0..2 {
-            // The second round starts from a pose already fitted to fine inliers within
-            // `fine_error_px`: a gate of twice that finds them again at a fraction of the
-            // comparisons.
-            let gate_px = if round == 0 {
-                first_gate
-            } else {
-                first_gate.min(2.0 * self.options.fine_error_px)
-            };
-            let mut pixels = Vec::new();
-            let mut points = Vec::new();
-            // The index into `levels` of each match.
-            let mut level_of = Vec::new();
-            for (i, ((level, set), rows)) in self.levels.iter().zip(sets).zip(&rows).enumerate() {
-                let before = pixels.len();
-                self.guided_level(
-                    level,
-                    set,
-                    rows.as_deref(),
-                    gate_px,
-                    &pose,
-                    camera,
-                    &mut pixels,
-                    &mut points,
-                );
-                level_of.extend(std::iter::repeat_n(i, pixels.len() - before));
-            }
-            let fine_options = RansacOptions {
-                max_error_px: self.options.fine_error_px,
-                min_inliers: self.options.min_inliers,
-                ..RansacOptions::default()
-            };
-            match estimate_absolute_pose_with_prior(
-                &pixels,
-                &points,
-                camera,
-                Some(&pose),
-                &fine_options,
-            ) {
-                Ok(e) => {
-                    pose = e.pose;
-                    result = Some((e, level_of, pixels.len()));
-                }
-                Err(_) => break,
-            }
-        }
-        let (estimate, level_of, matches) = result?;
-        let mut per_level: Vec<(u16, usize)> = self.levels.iter().map(|l| (l.id, 0)).collect();
-        for (&inlier, &i) in estimate.inliers.iter().zip(&level_of) {
-            if inlier {
-                per_level[i].1 += 1;
-            }
-        }
-        Some(Localization {
-            outcome: Ok(estimate.pose),
-            inliers_per_level: per_level,
-            matches,
-            inliers: estimate.num_inliers,
-            retrieved_images: 0,
-            retrieval: None,
-            retrieval_fallback: None,
-            path: LocalizationPath::Retrieval,
-            tracking_lost: None,
-            times: StageTimes::default(),
         })
     }
 
@@ -794,6 +692,16 @@ impl<'m> Localizer<'m> {
         }
     }
 
+    /// The points the `k` best retrieved images see (`None`: no retrieval, or every point).
+    fn retrieved_points(&self, query: &QueryFeatures, k: usize) -> Option<Vec<u32>> {
+        let visibility = self.visibility.as_ref()?;
+        let (images, ranked) = self
+            .retrieval
+            .retrieve(query, self.map.n_images() as usize, k);
+        ranked.ok()?;
+        super::retrieval::points_seen(&images, self.positions.len(), |i| visibility.points_of(i))
+    }
+
     /// The query's feature set for `level`, checked against the level's descriptor space.
     fn feature_set<'q>(
         &self,
@@ -828,7 +736,7 @@ impl<'m> Localizer<'m> {
     /// The query's descriptors of `set` in `level`'s stored basis, truncated to the matched
     /// dimensions and renormalised: `[keypoints × dim]`, no larger than the set itself
     /// (`dim ≤ d_in`).
-    fn project(&self, level: &LevelIndex<'_>, set: &FeatureSet) -> Vec<f32> {
+    pub(super) fn project(&self, level: &LevelIndex<'_>, set: &FeatureSet) -> Vec<f32> {
         let n = set.keypoints.len();
         let mut out = vec![0.0f32; n * level.dim];
         match &level.projection {
@@ -847,7 +755,13 @@ impl<'m> Localizer<'m> {
     }
 
     /// [`Self::project`] of keypoint `k` alone, into `out`.
-    fn project_row(&self, level: &LevelIndex<'_>, set: &FeatureSet, k: usize, out: &mut Vec<f32>) {
+    pub(super) fn project_row(
+        &self,
+        level: &LevelIndex<'_>,
+        set: &FeatureSet,
+        k: usize,
+        out: &mut Vec<f32>,
+    ) {
         let src = &set.descriptors[k * set.dim..(k + 1) * set.dim];
         out.clear();
         match &level.projection {
@@ -917,8 +831,8 @@ impl<'m> Localizer<'m> {
                     }
                 }
             }
-            for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
-                level.scale_row(first + k, out);
+            for out in tile.chunks_exact_mut(dim) {
+                LevelIndex::scale_row(out);
             }
         };
         for m in match_rows(q, rows.len(), dim, &self.options.matching, fill) {
@@ -928,137 +842,8 @@ impl<'m> Localizer<'m> {
             points.push(self.positions[p as usize]);
         }
     }
-
-    /// Guided matching: every point of the level (of `rows`, if given) that projects into the
-    /// image is a candidate for the query keypoints within `gate_px` of its projection.
-    #[allow(clippy::too_many_arguments)]
-    fn guided_level(
-        &self,
-        level: &LevelIndex<'_>,
-        query: &Query<'_>,
-        rows: Option<&[u32]>,
-        gate_px: f64,
-        pose: &Pose,
-        camera: &Camera,
-        pixels: &mut Vec<Vector2<f64>>,
-        points: &mut Vec<Vector3<f64>>,
-    ) {
-        let set = query.set;
-        let gate = gate_px.max(1.0);
-        let (w, h) = (f64::from(camera.width()), f64::from(camera.height()));
-        // The projected points keyed by grid cell (a gate wide, so a 3 × 3 block of cells
-        // covers the gate) and sorted: memory follows the level's points, whatever image size
-        // the camera claims. (cell row, cell column, level row, pixel).
-        let mut cells: Vec<(u32, u32, u32, [f32; 2])> = Vec::new();
-        let all_rows = || 0..level.points.len() as u32;
-        let candidate_rows: &mut dyn Iterator<Item = u32> = match rows {
-            Some(rows) => &mut rows.iter().copied(),
-            None => &mut all_rows(),
-        };
-        for row in candidate_rows {
-            let p = level.points[row as usize];
-            let pc = pose.transform(&self.positions[p as usize]);
-            if pc.z <= 0.0 {
-                continue;
-            }
-            let Some(px) = camera.project(&pc) else {
-                continue;
-            };
-            if !(px.x >= 0.0 && px.y >= 0.0 && px.x < w && px.y < h) {
-                continue;
-            }
-            let cell = ((px.y / gate) as u32, (px.x / gate) as u32);
-            cells.push((cell.0, cell.1, row, [px.x as f32, px.y as f32]));
-        }
-        if cells.is_empty() {
-            return;
-        }
-        cells.sort_unstable_by_key(|c| (c.0, c.1, c.2));
-        // The rows in view are decoded once, in cell order, when they are few (retrieval's
-        // candidates: a gate reaches each row dozens of times, 100 k street fine stage
-        // 55 -> 14 ms); a level in view at large (no retrieval, 1 M points) would make that
-        // copy hundreds of MB, so then a row is decoded each time a gate reaches it.
-        let decoded = (cells.len() * level.dim <= DECODED_IN_VIEW_MAX).then(|| {
-            let mut rows = vec![0.0f32; cells.len() * level.dim];
-            for (out, c) in rows.chunks_exact_mut(level.dim).zip(&cells) {
-                level.decode_row(c.2 as usize, out);
-            }
-            rows
-        });
-        let mut map_row = vec![0.0f32; level.dim];
-        // (point, similarity, keypoint); each map point keeps its best keypoint below.
-        let mut found: Vec<(u32, f32, usize)> = Vec::new();
-        let gate2 = (gate * gate) as f32;
-        let mut qd = Vec::with_capacity(level.dim);
-        // Most keypoints will need their projection when the level has as many points in view
-        // as a quarter of the keypoints: then one GEMM for all of them (5x faster than row by
-        // row), held only while this level is matched; otherwise each keypoint is projected
-        // alone, and only if some point is near it.
-        let all = (query.projected.get().is_some() || cells.len() * 4 >= set.keypoints.len())
-            .then(|| query.projected.get_or_init(|| self.project(level, set)));
-        for (k, kp) in set.keypoints.iter().enumerate() {
-            if !(kp[0] >= 0.0 && kp[1] >= 0.0 && kp[0] < w && kp[1] < h) {
-                continue;
-            }
-            let (cy, cx) = ((kp[1] / gate) as u32, (kp[0] / gate) as u32);
-            let (x_lo, x_hi) = (cx.saturating_sub(1), cx.saturating_add(1));
-            let (mut best, mut second) = ((f32::NEG_INFINITY, u32::MAX), f32::NEG_INFINITY);
-            // The keypoint's descriptor is projected once, and only if some point is near.
-            let mut projected = false;
-            for gy in cy.saturating_sub(1)..=cy.saturating_add(1) {
-                let lo = cells.partition_point(|c| (c.0, c.1) < (gy, x_lo));
-                let hi = cells.partition_point(|c| (c.0, c.1) <= (gy, x_hi));
-                for (ci, &(_, _, row, xy)) in cells[lo..hi].iter().enumerate() {
-                    let (dx, dy) = (xy[0] - kp[0] as f32, xy[1] - kp[1] as f32);
-                    if dx * dx + dy * dy > gate2 {
-                        continue;
-                    }
-                    let q = match &all {
-                        Some(all) => &all[k * level.dim..(k + 1) * level.dim],
-                        None => {
-                            if !projected {
-                                self.project_row(level, set, k, &mut qd);
-                                projected = true;
-                            }
-                            &qd[..]
-                        }
-                    };
-                    let map_row = match &decoded {
-                        Some(rows) => &rows[(lo + ci) * level.dim..(lo + ci + 1) * level.dim],
-                        None => {
-                            level.decode_row(row as usize, &mut map_row);
-                            &map_row[..]
-                        }
-                    };
-                    let s = dot(q, map_row);
-                    let p = level.points[row as usize];
-                    if s > best.0 {
-                        second = best.0;
-                        best = (s, p);
-                    } else if s > second {
-                        second = s;
-                    }
-                }
-            }
-            if best.1 == u32::MAX || best.0 < self.options.matching.min_similarity {
-                continue;
-            }
-            if fails_ratio_test(best.0, second, self.options.gate_ratio) {
-                continue;
-            }
-            found.push((best.1, best.0, k));
-        }
-        // Each map point is matched once, to its most similar keypoint.
-        found.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)).then(a.2.cmp(&b.2)));
-        found.dedup_by_key(|f| f.0);
-        for (p, _, k) in found {
-            let kp = set.keypoints[k];
-            pixels.push(Vector2::new(kp[0], kp[1]));
-            points.push(self.positions[p as usize]);
-        }
-    }
 }
 
-fn ms(t: Instant) -> f64 {
+pub(super) fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }

@@ -2,6 +2,7 @@
 //! pose refinement).
 
 pub mod eval;
+mod guided;
 mod kernels;
 mod level;
 pub mod localizer;

@@ -6,7 +6,8 @@
 //! global descriptor and no coarse matching at all.
 
 use super::retrieval::top_k_indices;
-use crate::geometry::Pose;
+use super::{Localization, LocalizeError, Localizer, QueryFeatures};
+use crate::geometry::{Camera, Pose};
 use nalgebra::Vector3;
 
 /// Each database image's camera centre and viewing direction, in world coordinates.
@@ -94,6 +95,20 @@ impl MotionModel {
             Some(step) => step.compose(last),
             None => *last,
         })
+    }
+
+    /// One frame of a sequence: localized with the prediction as its prior, then recorded
+    /// (a frame that is not localized, or an error, resets the model).
+    pub fn localize(
+        &mut self,
+        localizer: &Localizer<'_>,
+        query: &QueryFeatures,
+        camera: &Camera,
+    ) -> Result<Localization, LocalizeError> {
+        let prior = self.predict();
+        let found = localizer.localize_with_prior(query, camera, prior.as_ref());
+        self.update(found.as_ref().ok().and_then(Localization::pose));
+        found
     }
 
     /// Records the frame's pose (`None`: not localized, which resets the model).

@@ -129,7 +129,12 @@ impl RetrievalIndex {
                     codebook,
                     projection,
                     d_in,
-                    images: v.images.iter().map(|x| x.to_f32()).collect(),
+                    images: {
+                        use half::slice::HalfFloatSliceExt;
+                        let mut images = vec![0.0f32; v.images.len()];
+                        v.images.convert_to_f32_slice(&mut images);
+                        images
+                    },
                 })
             }
         };
@@ -260,6 +265,13 @@ pub(crate) fn rank(database: &[f32], dim: usize, query: &[f32], top_k: usize) ->
     normalise_rows(&mut q, dim);
     let mut scores = vec![0.0; n_images];
     super::kernels::sgemm_abt(&q, database, &mut scores, 1, n_images, dim);
+    // A non-finite score (a NaN in a stored VLAD, which the format does not check) ranks
+    // last, not first.
+    for s in &mut scores {
+        if !s.is_finite() {
+            *s = f32::NEG_INFINITY;
+        }
+    }
     top_k_indices(&scores, top_k.max(1))
 }
 
@@ -336,6 +348,9 @@ mod tests {
         // top_k 0 is taken as 1; top_k past the images is every image, ranked.
         assert_eq!(rank(&g, 2, &[3.0, 2.9], 0), [2]);
         assert_eq!(rank(&g, 2, &[3.0, 2.9], 9), [2, 0, 1, 3]);
+        // A stored NaN ranks last, not first.
+        let g = [f32::NAN, 0.0, 0.0, 1.0, 1.0, 0.0];
+        assert_eq!(rank(&g, 2, &[1.0, 0.0], 3), [2, 1, 0]);
     }
 
     fn query(global: Option<Vec<f32>>, sets: Vec<FeatureSet>) -> QueryFeatures {
