@@ -181,12 +181,15 @@ fn sift_queries_from_a_database_and_a_missing_query_is_listed_not_fatal() {
     assert_eq!(out["queries"], 3);
     assert_eq!(out["localized"], 2);
     assert_eq!(out["failed"][0]["name"], "missing.jpg");
-    // A SIFT map has no global descriptors: the fallback is stated, for the two queries read.
+    // A SIFT map retrieves with its VLAD; Sacre-Coeur's 8 map images are fewer than top_k, so
+    // the retrieved images see every point: the fallback is stated, for the two queries read.
+    assert_eq!(out["retrieval"], serde_json::json!({ "vlad": 2 }), "{out}");
     assert_eq!(
         out["retrieval_fallback"],
-        serde_json::json!({ "the map has no global descriptors": 2 }),
+        serde_json::json!({ "the retrieved images see every point": 2 }),
         "{out}"
     );
+    assert_eq!(out["path"], serde_json::json!({ "retrieval": 2 }), "{out}");
     let text = std::fs::read_to_string(t.path().join("p.txt")).unwrap();
     assert!(text.contains("# failed missing.jpg"), "{text}");
     // A SIFT map without query features is a clear error, not a crash.

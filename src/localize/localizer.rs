@@ -517,33 +517,42 @@ impl<'m> Localizer<'m> {
             times,
         };
 
-        // Coarse: the deepest level against the points of the best few retrieved images
-        // (all levels pooled if too few matches); if they give no pose, against those of all
-        // retrieved images; then against every point (retrieval can be wrong where the
-        // global descriptor is weak).
+        // Coarse: the deepest level (all levels pooled if too few matches) against the points
+        // of the best few retrieved images, then of all retrieved images, then of 4 × top_k,
+        // with at most 1,024 query keypoints; if none gives a pose, with all keypoints against
+        // the retrieved images' points, then against every point (retrieval can be wrong where
+        // the global descriptor is weak, and a busy image's true matches can be too few in a
+        // sample).
         let mut attempt = None;
+        let failed_so_far = |a: &Option<Result<_, _>>| !matches!(a, Some(Ok(_)));
         if let Some(few) = &coarse_candidates {
-            attempt = Some(self.coarse(&sets, Some(few), camera, &mut times));
+            attempt = Some(self.coarse(&sets, Some(few), COARSE_KEYPOINTS, camera, &mut times));
         }
-        if !matches!(attempt, Some(Ok(_))) && candidates.is_some() {
-            attempt = Some(self.coarse(&sets, candidates.as_deref(), camera, &mut times));
+        if failed_so_far(&attempt) && candidates.is_some() {
+            let tier = candidates.as_deref();
+            attempt = Some(self.coarse(&sets, tier, COARSE_KEYPOINTS, camera, &mut times));
         }
-        // A wider net before every point: the points of 4 × top_k images (at 1 M points,
-        // tens of milliseconds instead of seconds).
-        if !matches!(attempt, Some(Ok(_))) && candidates.is_some() {
+        // A wider net before every point (at 1 M points, tens of milliseconds instead of
+        // seconds).
+        if failed_so_far(&attempt) && candidates.is_some() {
             let wider = self.retrieved_points(query, WIDER_RETRIEVAL * self.options.top_k);
             if let Some(wider) = wider.filter(|w| Some(w.len()) > candidates.as_ref().map(Vec::len))
             {
-                attempt = Some(self.coarse(&sets, Some(&wider), camera, &mut times));
+                attempt =
+                    Some(self.coarse(&sets, Some(&wider), COARSE_KEYPOINTS, camera, &mut times));
                 candidates = Some(wider);
             }
+        }
+        if failed_so_far(&attempt) && candidates.is_some() {
+            let tier = candidates.as_deref();
+            attempt = Some(self.coarse(&sets, tier, usize::MAX, camera, &mut times));
         }
         let mut narrowed = true;
         let attempt = match attempt {
             Some(Ok(found)) => Ok(found),
             _ => {
                 narrowed = false;
-                self.coarse(&sets, None, camera, &mut times)
+                self.coarse(&sets, None, usize::MAX, camera, &mut times)
             }
         };
         let coarse = match attempt {
@@ -621,13 +630,15 @@ impl<'m> Localizer<'m> {
         })
     }
 
-    /// Matching against `candidates` (`None`: every point), deepest level first, then P3P
+    /// Matching against `candidates` (`None`: every point) with at most `max_keypoints` query
+    /// keypoints (a stride), deepest level first, then P3P
     /// LO-RANSAC: the pose estimate (its inlier mask has one entry per match), or the reason
     /// and the number of matches.
     fn coarse(
         &self,
         sets: &[Query<'_>],
         candidates: Option<&[u32]>,
+        max_keypoints: usize,
         camera: &Camera,
         times: &mut StageTimes,
     ) -> Result<crate::geometry::PoseEstimate, (QueryFailure, usize)> {
@@ -635,7 +646,14 @@ impl<'m> Localizer<'m> {
         let mut pixels = Vec::new();
         let mut points = Vec::new();
         for (level, set) in self.levels.iter().zip(sets) {
-            self.match_level(level, set, candidates, &mut pixels, &mut points);
+            self.match_level(
+                level,
+                set,
+                candidates,
+                max_keypoints,
+                &mut pixels,
+                &mut points,
+            );
             if pixels.len() >= 4 * self.options.min_inliers {
                 break;
             }
@@ -777,6 +795,7 @@ impl<'m> Localizer<'m> {
         level: &LevelIndex<'_>,
         query: &Query<'_>,
         candidates: Option<&[u32]>,
+        max_keypoints: usize,
         pixels: &mut Vec<Vector2<f64>>,
         points: &mut Vec<Vector3<f64>>,
     ) {
@@ -791,8 +810,8 @@ impl<'m> Localizer<'m> {
         let q = query.projected.get_or_init(|| self.project(level, set));
         let dim = level.dim;
         // Coarse matching only seeds the pose: every `stride`-th keypoint (COLMAP lists SIFT
-        // keypoints by octave, so a stride keeps every scale) holds enough true matches.
-        let stride = set.keypoints.len().div_ceil(COARSE_KEYPOINTS).max(1);
+        // keypoints by octave, so a stride keeps every scale) usually holds enough true matches.
+        let stride = set.keypoints.len().div_ceil(max_keypoints.max(1)).max(1);
         let subset: Vec<f32>;
         let q: &[f32] = if stride > 1 {
             subset = q
