@@ -33,10 +33,10 @@ pub fn rule() -> String {
 /// A VLAD codebook: `clusters` centroids of `dims` dimensions.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Codebook {
-    pub clusters: usize,
-    pub dims: usize,
+    clusters: usize,
+    dims: usize,
     /// `[clusters × dims]`, row-major.
-    pub centroids: Vec<f32>,
+    centroids: Vec<f32>,
     /// `‖c‖² / 2` per centroid: the nearest centroid maximises `x·c − ‖c‖²/2`.
     half_norms: Vec<f32>,
 }
@@ -160,6 +160,24 @@ impl Codebook {
             codebook = Codebook::new(centroids, dims)?;
         }
         Some(codebook)
+    }
+
+    pub fn clusters(&self) -> usize {
+        self.clusters
+    }
+
+    pub fn dims(&self) -> usize {
+        self.dims
+    }
+
+    /// `[clusters × dims]`, row-major.
+    pub fn centroids(&self) -> &[f32] {
+        &self.centroids
+    }
+
+    /// The centroids, for storing.
+    pub fn into_centroids(self) -> Vec<f32> {
+        self.centroids
     }
 
     /// The centroid nearest to `x` (`dims` values; ties: the lower index).

@@ -74,14 +74,14 @@ pub(crate) fn add_vlad(
     info.extra.insert(
         "vlad".into(),
         json!({
-            "clusters": codebook.clusters,
+            "clusters": codebook.clusters(),
             "dims": dims,
             "rule": crate::vlad::rule(),
             "points": points,
         }),
     );
-    let clusters = codebook.clusters;
-    writer.set_vlad(level, dims, codebook.centroids, &images)?;
+    let clusters = codebook.clusters();
+    writer.set_vlad(level, dims, codebook.into_centroids(), &images)?;
     Ok(Some(StoredVlad {
         level,
         clusters,

@@ -235,7 +235,7 @@ impl RetrievalIndex {
                 query: set.dim,
             });
         }
-        let dims = v.codebook.dims;
+        let dims = v.codebook.dims();
         let mut rows = vec![0.0f32; n * dims];
         match &v.projection {
             Some(p) => super::kernels::sgemm_abt(&set.descriptors, p, &mut rows, n, dims, v.d_in),
