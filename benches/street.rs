@@ -1,11 +1,11 @@
 //! Localization on the generated street (`sfpmap::demo::street`, issue 11): one
 //! `Localizer::localize` call per query (after extraction), on the SIFT map and on its
-//! `--level 2 --short` slice, 1 thread. The scene is generated once into
-//! `target/street-bench/<points>` and reused.
+//! `--level 2 --short` slice, 1 thread: the brute-force path, retrieval, and a tracked frame
+//! of the walk. The scene is generated once into `target/street-bench/v2/<points>` and reused.
 //!
-//! - `street/100000/{sift,level2_short}`: always;
-//! - `street/1000000/…`: only with `SFPMAP_BENCH_1M=1` (generating it takes ~5 minutes and
-//!   ~8 GB; converting it ~15 s).
+//! - `street/100000/{sift,level2_short}/…`: always;
+//! - `street/1000000/…`: only with `SFPMAP_BENCH_1M=1` (generating it takes ~10 minutes;
+//!   converting it ~30 s).
 //!
 //! Run: `cargo bench --bench street` (`SFPMAP_BENCH_1M=1 cargo bench --bench street` for both).
 
@@ -19,13 +19,16 @@ mod street {
     use sfpmap::demo::street::{write_street, StreetOptions};
     use sfpmap::format::{slice, Map, SliceOptions};
     use sfpmap::io::queries::{read_query_list, DatabaseFeatures};
-    use sfpmap::localize::{LocalizeOptions, Localizer};
+    use sfpmap::localize::{
+        LocalizationPath, LocalizeOptions, Localizer, MotionModel, RetrievalMethod,
+    };
 
     /// The scene and its two maps, made once per size.
     fn prepared(points: usize) -> PathBuf {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("target/street-bench")
+            .join("target/street-bench/v2")
             .join(points.to_string());
+        // v2: maps with VLAD, and the walk (`sequence.*`).
         if !dir.join("l2.sfpm").exists() {
             let _ = std::fs::remove_dir_all(&dir);
             std::fs::create_dir_all(&dir).unwrap();
@@ -59,12 +62,21 @@ mod street {
         dir
     }
 
+    /// Per map: the brute-force path (`RetrievalMethod::Off`, every point a candidate),
+    /// retrieval (the map's VLAD), and a tracked frame of the walk (its prior predicted by
+    /// the constant-velocity model from the two frames before it, localized first).
     fn bench_size(c: &mut Criterion, points: usize) {
         let dir = prepared(points);
         let queries = read_query_list(&dir.join("queries.txt"), None).unwrap();
         let db = DatabaseFeatures::open(&dir.join("queries.db")).unwrap();
         let query = &queries[0];
         let features = db.features(&query.name).unwrap().unwrap();
+        let walk = read_query_list(&dir.join("sequence.txt"), None).unwrap();
+        let walk_db = DatabaseFeatures::open(&dir.join("sequence.db")).unwrap();
+        let frames: Vec<_> = walk[..3]
+            .iter()
+            .map(|f| walk_db.features(&f.name).unwrap().unwrap())
+            .collect();
         let mut group = c.benchmark_group(format!("street/{points}"));
         group.sample_size(10).warm_up_time(Duration::from_secs(1));
         for (label, file, short) in [
@@ -72,17 +84,54 @@ mod street {
             ("level2_short", "l2.sfpm", true),
         ] {
             let map = Map::open(dir.join(file)).unwrap();
+            for (path, retrieval) in [
+                ("brute_force", RetrievalMethod::Off),
+                ("retrieval", RetrievalMethod::Auto),
+            ] {
+                let options = LocalizeOptions {
+                    short,
+                    retrieval,
+                    ..LocalizeOptions::default()
+                };
+                let localizer = Localizer::new(&map, options).unwrap();
+                // Once outside the timing: the bench measures a query that localizes.
+                let r = localizer.localize(&features, &query.camera).unwrap();
+                assert!(r.pose().is_some(), "{label}: {:?}", r.failure());
+                group.bench_function(
+                    BenchmarkId::new(format!("{label}/{path}"), &query.name),
+                    |b| b.iter(|| localizer.localize(&features, &query.camera).unwrap()),
+                );
+            }
             let options = LocalizeOptions {
                 short,
                 ..LocalizeOptions::default()
             };
             let localizer = Localizer::new(&map, options).unwrap();
-            // Once outside the timing: the bench measures a query that localizes.
-            let r = localizer.localize(&features, &query.camera).unwrap();
-            assert!(r.pose().is_some(), "{label}: {:?}", r.failure());
-            group.bench_function(BenchmarkId::new(label, &query.name), |b| {
-                b.iter(|| localizer.localize(&features, &query.camera).unwrap())
-            });
+            let mut motion = MotionModel::new();
+            for (frame, f) in walk.iter().zip(&frames).take(2) {
+                motion.localize(&localizer, f, &frame.camera).unwrap();
+            }
+            let prior = motion.predict().expect("two frames localized");
+            let (frame, f) = (&walk[2], &frames[2]);
+            let r = localizer
+                .localize_with_prior(f, &frame.camera, Some(&prior))
+                .unwrap();
+            assert_eq!(
+                r.path,
+                LocalizationPath::Tracking,
+                "{label}: {:?}",
+                r.tracking_lost
+            );
+            group.bench_function(
+                BenchmarkId::new(format!("{label}/tracked"), &frame.name),
+                |b| {
+                    b.iter(|| {
+                        localizer
+                            .localize_with_prior(f, &frame.camera, Some(&prior))
+                            .unwrap()
+                    })
+                },
+            );
         }
         group.finish();
     }
