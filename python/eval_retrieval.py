@@ -13,6 +13,12 @@ Ground truth "most co-visible":
 
 Models: ONNX files (`--onnx`, run with ONNX Runtime as the contract says) and/or training states /
 checkpoints with a `model` state dict (`--torch`, e.g. python/checkpoints/sfp-v2-state.pt).
+`--localized LABEL:SCENE=FILE` scores instead the ranking `sfpmap localize --format json` reports per
+query (`retrieved`, best first; run it with `--top-k 10`), e.g. a map's VLAD (issue 11):
+
+  sfpmap localize --map sift.sfpm --query-list queries.txt --database queries.db --top-k 10 \
+      --retrieval vlad --format json -o vlad.json
+  python3 python/eval_retrieval.py --localized "SIFT VLAD:south-building=vlad.json"
 
   python3 python/eval_retrieval.py --onnx models/sfp-v1.onnx --torch python/checkpoints/sfp-v2-state.pt \
       --json python/curves/eval-retrieval.json
@@ -124,10 +130,26 @@ def main():
     ap.add_argument("--max-side", type=int, default=1024)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--localized", action="append", default=[],
+                    help="LABEL:SCENE=FILE, a `sfpmap localize --format json` output")
     args = ap.parse_args()
     models = [OnnxGlobal(p, args.threads) for p in args.onnx] + [TorchGlobal(p, args.threads) for p in args.torch]
     gts = [(n, d) + ground_truth(n, d) for n, d in SCENES if os.path.exists(d)]
     res = {}
+    by_scene = {g[0]: g for g in gts}
+    for spec in args.localized:
+        label, rest = spec.split(":", 1)
+        scene, path = rest.split("=", 1)
+        name, d, db, qs, best, counts = by_scene[scene]
+        ranked = {q["name"]: q.get("retrieved") or [] for q in json.load(open(path))}
+        rec = {}
+        for k in (1, 5, 10):
+            rec[f"r@{k}"] = float(np.mean([best[q] in ranked.get(q, [])[:k] for q in qs]))
+        rec["queries"] = len(qs)
+        rec["db"] = len(db)
+        res.setdefault(label, {})[name] = rec
+        print(f"{label:60s} {name:15s} q={len(qs):3d} db={len(db):3d} "
+              f"r@1={rec['r@1']:.3f} r@5={rec['r@5']:.3f} r@10={rec['r@10']:.3f}", flush=True)
     for m in models:
         res[m.label] = {}
         for name, d, db, qs, best, counts in gts:

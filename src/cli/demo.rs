@@ -221,6 +221,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 &out.join("queries.txt"),
                 &queries,
                 &results,
+                &[],
             )?;
             let centres = |poses: &[(String, sfpmap::geometry::Pose)]| {
                 poses

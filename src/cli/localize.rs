@@ -380,7 +380,21 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             failure(&results[0])
         );
     }
-    write_poses(&args.output, args.format, &query_list, &queries, &results)?;
+    // Names of the retrieved images, for `--format json`.
+    let image_names: Vec<&str> = match (args.format, map.images()?) {
+        (PoseFormat::Json, Some(images)) => (0..images.len())
+            .map(|i| images.name(i))
+            .collect::<Result<_, _>>()?,
+        _ => Vec::new(),
+    };
+    write_poses(
+        &args.output,
+        args.format,
+        &query_list,
+        &queries,
+        &results,
+        &image_names,
+    )?;
     let localized = results.iter().filter(|r| r.pose().is_some()).count();
     let failed: Vec<_> = queries
         .iter()
@@ -597,9 +611,12 @@ pub(super) fn write_poses(
     query_list: &Path,
     queries: &[Query],
     results: &[Localization],
+    image_names: &[&str],
 ) -> anyhow::Result<()> {
     check_pose_names(query_list, format, queries)?;
-    super::write_atomic(path, |out| pose_text(out, format, queries, results))
+    super::write_atomic(path, |out| {
+        pose_text(out, format, queries, results, image_names)
+    })
 }
 
 /// Why a query failed, on one line (a comment in the text formats).
@@ -616,6 +633,7 @@ fn pose_text(
     format: PoseFormat,
     queries: &[Query],
     results: &[Localization],
+    image_names: &[&str],
 ) -> anyhow::Result<()> {
     match format {
         PoseFormat::Colmap => {
@@ -654,6 +672,7 @@ fn pose_text(
                         "inliers_per_level": r.inliers_per_level,
                         "matches": r.matches,
                         "retrieved_images": r.retrieved_images,
+                        "retrieved": r.retrieved.iter().filter_map(|&i| image_names.get(i)).collect::<Vec<_>>(),
                         "path": r.path.name(),
                         "tracking_lost": r.tracking_lost.map(|w| w.to_string()),
                         "retrieval": r.retrieval.map(|m| m.name()),

@@ -132,6 +132,7 @@ impl Localizer<'_> {
             matches,
             inliers: estimate.num_inliers,
             retrieved_images: 0,
+            retrieved: Vec::new(),
             retrieval: None,
             retrieval_fallback: None,
             path: LocalizationPath::Retrieval,

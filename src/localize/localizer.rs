@@ -104,6 +104,9 @@ pub struct Localization {
     pub matches: usize,
     pub inliers: usize,
     pub retrieved_images: usize,
+    /// The retrieved database images, best first (image indices of the map; empty on the
+    /// tracking path and without retrieval).
+    pub retrieved: Vec<usize>,
     /// The stored descriptor that ranked the retrieved images, if retrieval narrowed them.
     pub retrieval: Option<Retrieval>,
     /// Why the candidates were every point (no retrieval), if they were: the fallback.
@@ -178,6 +181,7 @@ impl Localization {
             matches: 0,
             inliers: 0,
             retrieved_images: 0,
+            retrieved: Vec::new(),
             retrieval: None,
             retrieval_fallback: None,
             path: LocalizationPath::Retrieval,
@@ -505,12 +509,18 @@ impl<'m> Localizer<'m> {
         } = self.candidate_points(query);
         times.retrieval_ms = ms(t1);
         let retrieved_images = retrieved.len();
+        let ranked = if retrieval.is_some() {
+            retrieved.clone()
+        } else {
+            Vec::new()
+        };
         let failed = |failure: QueryFailure, matches, times| Localization {
             outcome: Err(failure),
             inliers_per_level: Vec::new(),
             matches,
             inliers: 0,
             retrieved_images,
+            retrieved: ranked.clone(),
             retrieval,
             retrieval_fallback,
             path: LocalizationPath::Retrieval,
@@ -616,6 +626,7 @@ impl<'m> Localizer<'m> {
                 matches: coarse_matches,
                 inliers,
                 retrieved_images,
+                retrieved: ranked,
                 retrieval,
                 retrieval_fallback,
                 path: LocalizationPath::Retrieval,
@@ -625,6 +636,7 @@ impl<'m> Localizer<'m> {
         };
         Ok(Localization {
             retrieved_images,
+            retrieved: ranked,
             retrieval,
             retrieval_fallback,
             path: LocalizationPath::Retrieval,
