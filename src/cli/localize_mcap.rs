@@ -81,6 +81,20 @@ struct Frame {
     undecodable: bool,
 }
 
+impl Frame {
+    /// The frame of `message`, before anything is known of it (stamped with its log time,
+    /// its outcome set by whoever finishes it).
+    fn of(message: &mcap::Message<'_>) -> Frame {
+        Frame {
+            log_time: message.log_time,
+            publish_time: message.publish_time,
+            stamp: Stamp::from_nanos(message.log_time),
+            outcome: Err(Arc::from("")),
+            undecodable: false,
+        }
+    }
+}
+
 /// How the pass over the log ended.
 #[derive(Default)]
 struct Scan {
@@ -280,13 +294,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
                     extract_message(&message, &camera, gray_weights, &extractor)
                 }))
                 .unwrap_or_else(|_| {
-                    let frame = Frame {
-                        log_time: message.log_time,
-                        publish_time: message.publish_time,
-                        stamp: Stamp::from_nanos(message.log_time),
-                        outcome: Err(Arc::from("")),
-                        undecodable: false,
-                    };
+                    let frame = Frame::of(&message);
                     (
                         frame,
                         Err("internal error while extracting (a bug)".to_string()),
@@ -547,13 +555,7 @@ fn extract_message(
     gray_weights: [f32; 3],
     extractor: &Mutex<Extractor>,
 ) -> (Frame, Result<QueryFeatures, String>) {
-    let mut frame = Frame {
-        log_time: message.log_time,
-        publish_time: message.publish_time,
-        stamp: Stamp::from_nanos(message.log_time),
-        outcome: Err(Arc::from("")),
-        undecodable: false,
-    };
+    let mut frame = Frame::of(message);
     let schema = schema_name(&message.channel);
     let decoded =
         match mcap_io::decode_image(&schema, &message.channel.message_encoding, &message.data) {
