@@ -639,3 +639,55 @@ fn a_non_finite_features_h5_keypoint_is_an_error_naming_file_and_keypoint() {
         assert!(!e.contains('\n'), "{e}");
     }
 }
+
+/// Issue 11's review: a map's VLAD values are not checked by the format (as descriptors are
+/// not). NaN centroids and NaN image VLADs, and a query with a NaN descriptor, never panic;
+/// a NaN image ranks last, not first.
+#[test]
+fn hostile_vlad_values_rank_last_and_never_panic() {
+    use sfpmap::format::{Codec, Map, Retrieval};
+    use sfpmap::geometry::Camera;
+    use sfpmap::localize::{FeatureSet, LocalizeOptions, Localizer, QueryFeatures};
+    let scene = common::Scene::new(5, 200, 12, &[(2, 4.0, 8, 4)]);
+    let mut w = scene.writer(Codec::Raw);
+    let (clusters, dims) = (3, 4);
+    let mut centroids = vec![0.5f32; clusters * dims];
+    centroids[5] = f32::NAN;
+    let mut images = vec![0.1f32; 12 * clusters * dims];
+    images[..clusters * dims].fill(f32::NAN);
+    w.set_vlad(2, dims, centroids, &images).unwrap();
+    let bytes = w.to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    let options = LocalizeOptions {
+        top_k: 3,
+        ..LocalizeOptions::default()
+    };
+    let localizer = Localizer::new(&map, options).unwrap();
+    let level = map.level(2).unwrap();
+    let d_in = level
+        .projection_input_dim()
+        .unwrap_or(level.info().dim_full as usize);
+    let n = 50;
+    let mut descriptors: Vec<f32> = (0..n * d_in)
+        .map(|i| ((i * 37 % 101) as f32 / 101.0) - 0.5)
+        .collect();
+    descriptors[..d_in].fill(f32::NAN);
+    let query = QueryFeatures {
+        sets: vec![FeatureSet {
+            level: None,
+            keypoints: (0..n).map(|i| [i as f64 * 10.0 + 5.0, 100.0]).collect(),
+            descriptors,
+            dim: d_in,
+        }],
+        global: None,
+    };
+    let camera = Camera::parse("SIMPLE_RADIAL 640 480 500 320 240 0.01").unwrap();
+    let r = localizer.localize(&query, &camera).unwrap();
+    assert_eq!(r.retrieval, Some(Retrieval::Vlad), "{r:?}");
+    assert_eq!(r.retrieved.len(), 3, "{r:?}");
+    assert!(
+        !r.retrieved.contains(&0),
+        "the NaN image ranks last: {:?}",
+        r.retrieved
+    );
+}
