@@ -3,6 +3,9 @@
 //! foxglove.CompressedImage as JSON), the real binary, and the output read back.
 #![cfg(feature = "mcap")]
 
+mod common;
+
+use common::Cdr;
 use serde_json::Value;
 use sfpmap::geometry::Pose;
 use std::collections::BTreeMap;
@@ -93,49 +96,6 @@ fn queries() -> Vec<Query> {
             }
         })
         .collect()
-}
-
-/// CDR as ROS 2 writes it: little-endian, aligned relative to the byte after the 4-byte
-/// encapsulation header.
-struct Cdr(Vec<u8>);
-
-impl Cdr {
-    fn new() -> Cdr {
-        Cdr(vec![0, 1, 0, 0])
-    }
-    fn align(&mut self, n: usize) {
-        while (self.0.len() - 4) % n != 0 {
-            self.0.push(0);
-        }
-    }
-    fn u32(&mut self, v: u32) -> &mut Self {
-        self.align(4);
-        self.0.extend(v.to_le_bytes());
-        self
-    }
-    fn f64(&mut self, v: f64) -> &mut Self {
-        self.align(8);
-        self.0.extend(v.to_le_bytes());
-        self
-    }
-    fn u8(&mut self, v: u8) -> &mut Self {
-        self.0.push(v);
-        self
-    }
-    fn string(&mut self, s: &str) -> &mut Self {
-        self.u32(s.len() as u32 + 1);
-        self.0.extend(s.as_bytes());
-        self.0.push(0);
-        self
-    }
-    fn bytes(&mut self, b: &[u8]) -> &mut Self {
-        self.u32(b.len() as u32);
-        self.0.extend(b);
-        self
-    }
-    fn header(&mut self, stamp: (i32, u32), frame_id: &str) -> &mut Self {
-        self.u32(stamp.0 as u32).u32(stamp.1).string(frame_id)
-    }
 }
 
 fn compressed_image(stamp: (i32, u32), jpeg: &[u8]) -> Vec<u8> {

@@ -13,6 +13,9 @@
 //! on the query list, two in the log).
 #![cfg(all(feature = "mcap", feature = "colmap"))]
 
+mod common;
+
+use common::Cdr;
 use serde_json::Value;
 use sfpmap::geometry::Pose;
 use std::collections::BTreeMap;
@@ -285,34 +288,6 @@ fn sift_level2_short_slice_sequence_tracks_and_without_it_retrieves() {
     assert!(paths.iter().all(|p| p == "retrieval"), "{report}");
     assert_eq!(report["retrieval"], serde_json::json!({ "vlad": 13 }));
     assert_eq!(report["tracking_lost"], serde_json::json!({}));
-}
-
-/// CDR as ROS 2 writes it: little-endian, aligned relative to the byte after the 4-byte
-/// encapsulation header.
-struct Cdr(Vec<u8>);
-
-impl Cdr {
-    fn new() -> Cdr {
-        Cdr(vec![0, 1, 0, 0])
-    }
-    fn u32(&mut self, v: u32) -> &mut Self {
-        while (self.0.len() - 4) % 4 != 0 {
-            self.0.push(0);
-        }
-        self.0.extend(v.to_le_bytes());
-        self
-    }
-    fn string(&mut self, s: &str) -> &mut Self {
-        self.u32(s.len() as u32 + 1);
-        self.0.extend(s.as_bytes());
-        self.0.push(0);
-        self
-    }
-    fn bytes(&mut self, b: &[u8]) -> &mut Self {
-        self.u32(b.len() as u32);
-        self.0.extend(b);
-        self
-    }
 }
 
 /// A `sensor_msgs/msg/CompressedImage` as CDR.

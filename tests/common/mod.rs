@@ -803,3 +803,46 @@ pub fn sfp_level_2_map(empty_levels: &[(u16, f64)]) -> Vec<u8> {
     }
     w.to_bytes().unwrap()
 }
+
+/// CDR as ROS 2 writes it: little-endian, aligned relative to the byte after the 4-byte
+/// encapsulation header.
+pub struct Cdr(pub Vec<u8>);
+
+impl Cdr {
+    pub fn new() -> Cdr {
+        Cdr(vec![0, 1, 0, 0])
+    }
+    pub fn align(&mut self, n: usize) {
+        while (self.0.len() - 4) % n != 0 {
+            self.0.push(0);
+        }
+    }
+    pub fn u32(&mut self, v: u32) -> &mut Self {
+        self.align(4);
+        self.0.extend(v.to_le_bytes());
+        self
+    }
+    pub fn f64(&mut self, v: f64) -> &mut Self {
+        self.align(8);
+        self.0.extend(v.to_le_bytes());
+        self
+    }
+    pub fn u8(&mut self, v: u8) -> &mut Self {
+        self.0.push(v);
+        self
+    }
+    pub fn string(&mut self, s: &str) -> &mut Self {
+        self.u32(s.len() as u32 + 1);
+        self.0.extend(s.as_bytes());
+        self.0.push(0);
+        self
+    }
+    pub fn bytes(&mut self, b: &[u8]) -> &mut Self {
+        self.u32(b.len() as u32);
+        self.0.extend(b);
+        self
+    }
+    pub fn header(&mut self, stamp: (i32, u32), frame_id: &str) -> &mut Self {
+        self.u32(stamp.0 as u32).u32(stamp.1).string(frame_id)
+    }
+}
