@@ -16,6 +16,9 @@ use std::time::Instant;
 /// short): 1.0 tracked 2 of 20 frames within 0.5 m and 2° (the others drifted), 2.0 all 20.
 const PRIOR_GATE_FACTOR: f64 = 2.0;
 
+/// A tracked pose must have at least this share of its guided matches as inliers.
+const TRACKING_MIN_INLIER_SHARE: f64 = 0.3;
+
 /// Decoded values of the rows in view guided matching keeps for a level (16 MB).
 const DECODED_IN_VIEW_MAX: usize = 4 << 20;
 
@@ -43,14 +46,24 @@ impl Localizer<'_> {
         let gate = self.options.gate_px * PRIOR_GATE_FACTOR;
         let result = self.refine(sets, candidates.as_deref(), *prior, gate, camera);
         times.fine_ms += ms(t);
+        let (inliers, matches) = result.as_ref().map_or((0, 0), |f| (f.inliers, f.matches));
+        // Around a wrong prior, gated matching still finds some matches, and RANSAC a subset
+        // of them consistent with a wrong pose: a tracked pose must explain a share of the
+        // matches as well as `min_inliers` (the demo room's unordered queries: wrong tracks
+        // had 13-16 % inliers, right ones 75 %+).
+        let needed = self
+            .options
+            .min_inliers
+            .max((matches as f64 * TRACKING_MIN_INLIER_SHARE).ceil() as usize);
         match result {
-            Some(found) if found.inliers >= self.options.min_inliers => Ok(Localization {
+            Some(found) if inliers >= needed => Ok(Localization {
                 retrieved_images: images.len(),
                 ..found
             }),
-            found => Err(TrackingLost::TooFewInliers {
-                inliers: found.map_or(0, |f| f.inliers),
-                needed: self.options.min_inliers,
+            _ => Err(TrackingLost::TooFewInliers {
+                inliers,
+                needed,
+                matches,
             }),
         }
     }
