@@ -552,6 +552,11 @@ impl<'m> Localizer<'m> {
         // points cost little there, and the sample cost the demo room's query_04 its accuracy
         // (87 -> 78 inliers, 0.5° -> 2°).
         let small = self.positions.len() <= SMALL_MAP_POINTS;
+        // There, a VLAD narrows nothing worth its misses (South Building's SIFT map lost a
+        // query to it): every point, as before.
+        if small && retrieval == Some(Retrieval::Vlad) {
+            candidates = None;
+        }
         let mut attempt = None;
         let failed_so_far = |a: &Option<Result<_, _>>| !matches!(a, Some(Ok(_)));
         if let Some(few) = coarse_candidates.as_ref().filter(|_| !small) {
