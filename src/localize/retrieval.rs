@@ -97,15 +97,25 @@ pub(crate) struct RetrievalIndex {
 
 impl RetrievalIndex {
     pub(crate) fn new(map: &Map<'_>, method: RetrievalMethod) -> Result<Self, FormatError> {
-        let global = map
-            .image_global()?
-            .filter(|(_, dim)| *dim > 0)
-            .map(|(g, dim)| {
-                let mut v: Vec<f32> = g.iter().map(|x| x.to_f32()).collect();
-                normalise_rows(&mut v, dim);
-                (v, dim)
-            });
-        let vlad = match map.vlad()? {
+        // Only what the method can use is decoded (and checked): `--retrieval off` opens a
+        // map whose retrieval sections are damaged, as a 1.0 reader would.
+        let (use_global, use_vlad) = match method {
+            RetrievalMethod::Auto => (true, true),
+            RetrievalMethod::Global => (true, false),
+            RetrievalMethod::Vlad => (false, true),
+            RetrievalMethod::Off => (false, false),
+        };
+        let global = if use_global {
+            map.image_global()?
+        } else {
+            None
+        };
+        let global = global.filter(|(_, dim)| *dim > 0).map(|(g, dim)| {
+            let mut v: Vec<f32> = g.iter().map(|x| x.to_f32()).collect();
+            normalise_rows(&mut v, dim);
+            (v, dim)
+        });
+        let vlad = match if use_vlad { map.vlad()? } else { None } {
             None => None,
             Some(v) => {
                 let level = map.level(v.level)?;
