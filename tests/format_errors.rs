@@ -4,8 +4,8 @@ mod common;
 
 use common::{level_info, minimal, patch, with_extra_section, Scene};
 use sfpmap::format::{
-    checksum, Codec, Dtype, Error, Map, MapWriter, SectionKind, HEADER_LEN, METADATA_MAX_BYTES,
-    NO_LEVEL,
+    checksum, Codec, Dtype, Error, Map, MapWriter, RawEntry, SectionKind, Skipped, HEADER_LEN,
+    METADATA_MAX_BYTES, NO_LEVEL,
 };
 use std::borrow::Cow;
 
@@ -250,8 +250,83 @@ fn unknown_required_section() {
     // The same section marked optional is skipped and listed.
     let b = with_extra_section(SectionKind::Unknown(0x7000), NO_LEVEL, false, None);
     let map = Map::from_bytes(&b).unwrap();
-    assert_eq!(map.unknown_sections().count(), 1);
+    assert_eq!(map.skipped_sections().count(), 1);
     map.verify().unwrap();
+}
+
+/// 1.1: an optional section this reader cannot decode (dtype, codec or flag bit of a later
+/// minor) is skipped and listed, also when its kind is known; a required one is refused.
+#[test]
+fn optional_sections_with_unknown_encodings_are_skipped() {
+    let colors = [[1u8, 2, 3], [4, 5, 6]];
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
+    w.add_raw_section(
+        SectionKind::PointColors,
+        NO_LEVEL,
+        Dtype::U8,
+        2,
+        3,
+        false,
+        Cow::Owned(colors.concat()),
+        None,
+    )
+    .unwrap();
+    let b = w.to_bytes().unwrap();
+    assert!(Map::from_bytes(&b)
+        .unwrap()
+        .point_colors()
+        .unwrap()
+        .is_some());
+    let at = |b: &[u8]| {
+        let map = Map::from_bytes(b).unwrap();
+        map.sections()
+            .iter()
+            .position(|s| s.kind() == SectionKind::PointColors)
+            .unwrap()
+    };
+    let i = at(&b);
+    type Edit = fn(&mut RawEntry);
+    let edits: [(Edit, Skipped); 3] = [
+        (|e| e.dtype = 9, Skipped::Dtype(9)),
+        (|e| e.codec = 2, Skipped::Codec(2)),
+        (|e| e.flags |= 0x40, Skipped::Flags(0x40)),
+    ];
+    for (edit, why) in edits {
+        let skipped = patch(&b, |_, e| edit(&mut e[i]));
+        let map = Map::from_bytes(&skipped).unwrap();
+        let listed: Vec<_> = map.skipped_sections().map(|s| s.skipped()).collect();
+        assert_eq!(listed, [Some(why)]);
+        // Skipped is absent: the colours are gone, the rest of the map reads.
+        assert!(map.point_colors().unwrap().is_none());
+        assert_eq!(map.point_positions().unwrap().len(), 2);
+        let section = &map.sections()[i];
+        assert!(map.section_bytes(section).is_err());
+        map.verify().unwrap();
+        // Its checksum is still checked.
+        let mut flipped = skipped.clone();
+        flipped[section.offset() as usize] ^= 1;
+        assert!(matches!(
+            Map::from_bytes(&flipped).unwrap().verify(),
+            Err(Error::ChecksumMismatch { .. })
+        ));
+        // The same entry marked required keeps 1.0's rule: refused at open.
+        let required = patch(&b, |_, e| {
+            edit(&mut e[i]);
+            e[i].flags |= 1;
+        });
+        assert!(matches!(open_err(&required), Error::BadEntry { .. }));
+    }
+}
+
+/// 1.1: header flags are required features; this version knows none.
+#[test]
+fn unknown_required_feature() {
+    let b = patch(&minimal(), |h, _| h.flags = 1 << 5);
+    assert!(matches!(
+        open_err(&b),
+        Error::UnknownRequiredFeature { bits: 32 }
+    ));
 }
 
 #[test]

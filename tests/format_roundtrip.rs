@@ -470,7 +470,7 @@ fn a_1_0_reader_skips_the_1_1_sections() {
     });
     let map = Map::from_bytes(&old).unwrap();
     map.verify().unwrap();
-    let skipped: Vec<u16> = map.unknown_sections().map(|s| s.kind().code()).collect();
+    let skipped: Vec<u16> = map.skipped_sections().map(|s| s.kind().code()).collect();
     assert_eq!(skipped, [0x7F20, 0x7F38]);
     assert!(map.vlad().unwrap().is_none());
     // Everything 1.0 defines reads as in the plain map.

@@ -7,7 +7,10 @@ mod common;
 
 use common::{decoded_json, minimal, patch, with_extra_section, Scene, VladData};
 use serde_json::{json, Value};
-use sfpmap::format::{f16, slice, Codec, Dtype, Map, SectionKind, SliceOptions, NO_LEVEL};
+use sfpmap::format::{
+    f16, slice, Codec, Dtype, Header, Map, MapWriter, RawEntry, SectionKind, SliceOptions,
+    ENTRY_LEN, HEADER_LEN, NO_LEVEL, SECTION_REQUIRED,
+};
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
@@ -45,9 +48,28 @@ fn valid_expected_version(
         "description": description,
         "version": version,
         "file_bytes": bytes.len(),
+        "reader_1_0": if opens_under_1_0_rules(bytes) { "opens" } else { "refuses" },
         "content": content,
-        "unknown_sections": unknown,
+        "skipped_sections": unknown,
     })
+}
+
+/// Whether a reader of 1.0's rules, which refuses unknown dtype, codec and flag codes in any
+/// entry and required sections of kinds 1.0 does not define, gets past the table of `bytes`.
+fn opens_under_1_0_rules(bytes: &[u8]) -> bool {
+    let header = Header::decode(bytes).unwrap();
+    let table = &bytes[HEADER_LEN..header.metadata_offset as usize];
+    table
+        .chunks(header.entry_len as usize)
+        .map(|e| RawEntry::decode(&e[..ENTRY_LEN]))
+        .all(|e| {
+            let kind = SectionKind::from_code(e.kind);
+            let known_in_1_0 = kind.expected_layout().is_some() && kind.since_minor() == 0;
+            Dtype::from_code(e.dtype).is_some()
+                && Codec::from_code(e.codec).is_some()
+                && e.flags & !SECTION_REQUIRED == 0
+                && (e.flags & SECTION_REQUIRED == 0 || known_in_1_0)
+        })
 }
 
 fn origin_of(bytes: &[u8]) -> [f64; 3] {
@@ -126,7 +148,7 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         "points": 2, "positions": [[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]], "colors": null, "point_ids": null,
         "cameras": 0, "images": [], "visibility": null, "levels": [],
     });
-    let listed = json!([{ "kind_code": 0x7F01, "dtype": "u16", "rows": 4, "cols": 3 }]);
+    let listed = json!([{ "kind_code": 0x7F01, "skipped": "unknown kind", "dtype": "u16", "rows": 4, "cols": 3 }]);
     out.push((
         "unknown_optional",
         unknown.clone(),
@@ -169,8 +191,8 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
     let mixed = w.to_bytes().unwrap();
     let content = mixed_scene.expected_json(origin_of(&mixed));
     let listed = json!([
-        { "kind_code": 0x7F02, "dtype": "u16", "rows": 10, "cols": 1 },
-        { "kind_code": 0x7F03, "dtype": "f64", "rows": 2, "cols": 2 },
+        { "kind_code": 0x7F02, "skipped": "unknown kind", "dtype": "u16", "rows": 10, "cols": 1 },
+        { "kind_code": 0x7F03, "skipped": "unknown kind", "dtype": "f64", "rows": 2, "cols": 2 },
     ]);
     out.push((
         "mixed_dtypes",
@@ -197,6 +219,72 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
             &with_vlad,
             content,
             json!([]),
+        ),
+    ));
+
+    // A later minor's optional sections in encodings 1.1 does not define: a known kind with
+    // an unknown codec (colours) and one with an unknown dtype (ids), an unknown kind with an
+    // unknown flag bit. A 1.1 reader skips and lists all three and reads the points.
+    let mut w = MapWriter::default();
+    w.metadata_mut().provenance.tool = "sfpmap test fixture".into();
+    w.set_points_world(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
+    let optional = [
+        (
+            SectionKind::PointColors,
+            Dtype::U8,
+            3,
+            vec![1u8, 2, 3, 4, 5, 6],
+        ),
+        (
+            SectionKind::PointIds,
+            Dtype::U64,
+            1,
+            bytemuck::cast_slice(&[7u64, 8]).to_vec(),
+        ),
+        (
+            SectionKind::Unknown(0x7F01),
+            Dtype::U16,
+            1,
+            vec![9, 0, 10, 0],
+        ),
+    ];
+    for (kind, dtype, cols, bytes) in optional {
+        w.add_raw_section(
+            kind,
+            NO_LEVEL,
+            dtype,
+            2,
+            cols,
+            false,
+            Cow::Owned(bytes),
+            None,
+        )
+        .unwrap();
+    }
+    let later = patch(&w.to_bytes().unwrap(), |h, e| {
+        h.minor = 2;
+        e[1].codec = 2;
+        e[2].dtype = 9;
+        e[3].flags = 0x02;
+    });
+    let content = json!({
+        "points": 2, "positions": [[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]], "colors": null, "point_ids": null,
+        "cameras": 0, "images": [], "visibility": null, "levels": [],
+    });
+    let listed = json!([
+        { "kind_code": 2, "skipped": "unknown codec code 2", "dtype": null, "rows": 2, "cols": 3 },
+        { "kind_code": 3, "skipped": "unknown dtype code 9", "dtype": null, "rows": 2, "cols": 1 },
+        { "kind_code": 0x7F01, "skipped": "unknown section flags 0x02", "dtype": null, "rows": 2, "cols": 1 },
+    ]);
+    out.push((
+        "later_minor",
+        later.clone(),
+        valid_expected_version(
+            "1.2",
+            "a later minor's optional sections in encodings this version does not know (skipped)",
+            &later,
+            content,
+            listed,
         ),
     ));
 
@@ -296,6 +384,21 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
         Some(Codec::Raw),
     );
     out.push(("unknown_required", b, "unknown_required_section", "open"));
+
+    // 1.1: header flags are required features; none is defined yet.
+    out.push((
+        "unknown_feature",
+        patch(&minimal(), |h, _| h.flags = 1),
+        "unknown_required_feature",
+        "open",
+    ));
+    // 1.1: a required section keeps the encodings its reader knows.
+    out.push((
+        "required_unknown_codec",
+        patch(&minimal(), |_, e| e[0].codec = 2),
+        "bad_entry",
+        "open",
+    ));
 
     // A zstd section whose table claims a huge (but self-consistent) array.
     let z = with_extra_section(
@@ -442,16 +545,26 @@ fn valid_vectors_decode_to_their_json() {
             "{}",
             path.display()
         );
-        let unknown: Vec<Value> = map
-            .unknown_sections()
-            .map(|s| json!({ "kind_code": s.kind().code(), "dtype": s.dtype().name(), "rows": s.rows(), "cols": s.cols() }))
+        let skipped: Vec<Value> = map
+            .skipped_sections()
+            .map(|s| {
+                let why = s.skipped().unwrap();
+                let dtype = (!why.hides_encoding()).then(|| s.dtype().name());
+                json!({ "kind_code": s.kind().code(), "skipped": why.to_string(), "dtype": dtype, "rows": s.rows(), "cols": s.cols() })
+            })
             .collect();
         assert_eq!(
-            json!(unknown),
-            expected["unknown_sections"],
+            json!(skipped),
+            expected["skipped_sections"],
             "{}",
             path.display()
         );
+        let reader_1_0 = if opens_under_1_0_rules(&bytes) {
+            "opens"
+        } else {
+            "refuses"
+        };
+        assert_eq!(reader_1_0, expected["reader_1_0"], "{}", path.display());
         // The same through the mmap path.
         let mapped = Map::open(&path).unwrap();
         assert_eq!(decoded_json(&mapped), expected["content"]);

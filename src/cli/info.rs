@@ -31,7 +31,8 @@ struct Info<'m> {
     origin: [f64; 3],
     levels: Vec<LevelJson<'m>>,
     sections: Vec<SectionJson>,
-    unknown_sections: Vec<SectionJson>,
+    /// Optional sections this reader skips (unknown kinds; 1.1: unknown dtype, codec or flags).
+    skipped_sections: Vec<SectionJson>,
     retrieval: Retrieval<'m>,
     provenance: &'m Provenance,
 }
@@ -119,6 +120,9 @@ struct SectionJson {
     stored_bytes: u64,
     raw_bytes: u64,
     required: bool,
+    /// Why the reader skips it (`dtype` and `codec` then say `u8`/`raw`: the bytes as stored).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    skipped: Option<String>,
 }
 
 impl From<&Section> for SectionJson {
@@ -134,6 +138,7 @@ impl From<&Section> for SectionJson {
             stored_bytes: s.stored_len(),
             raw_bytes: s.raw_len(),
             required: s.required(),
+            skipped: s.skipped().map(|why| why.to_string()),
         }
     }
 }
@@ -180,7 +185,7 @@ fn print_info_json(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
         origin: meta.origin,
         levels: map.levels().map(LevelJson::from).collect(),
         sections: map.sections().iter().map(SectionJson::from).collect(),
-        unknown_sections: map.unknown_sections().map(SectionJson::from).collect(),
+        skipped_sections: map.skipped_sections().map(SectionJson::from).collect(),
         retrieval: Retrieval::of(map, meta),
         provenance: &meta.provenance,
     };
@@ -231,7 +236,7 @@ fn print_info_text(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
         let level = s.level().map_or(String::new(), |l| format!(" L{l}"));
         writeln!(
             out,
-            "  {:<22}{:<4} {:>4} {:>9}x{:<5} {:<5} {:>12} B stored ({} B raw)",
+            "  {:<22}{:<4} {:>4} {:>9}x{:<5} {:<5} {:>12} B stored ({} B raw){}",
             s.kind().name(),
             level,
             s.dtype().name(),
@@ -239,7 +244,9 @@ fn print_info_text(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
             s.cols(),
             s.codec().name(),
             s.stored_len(),
-            s.raw_len()
+            s.raw_len(),
+            s.skipped()
+                .map_or(String::new(), |why| format!(", skipped: {why}"))
         )?;
     }
     out.flush()?;

@@ -78,7 +78,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "points_after": summary.points_after,
             "sections_copied": summary.sections_copied,
             "sections_rebuilt": summary.sections_rebuilt,
-            "unknown_sections_dropped": summary.unknown_dropped,
+            "skipped_sections_dropped": summary.skipped_dropped,
         }))?;
     } else if !quiet {
         println!(

@@ -59,7 +59,8 @@ pub enum Error {
     MetadataTooLarge { len: u64, max: u64 },
     /// The metadata is not valid JSON of the expected shape.
     BadMetadata { message: String },
-    /// A table entry has an unknown dtype or codec code, or nonzero reserved fields.
+    /// A table entry has nonzero reserved fields, or a required entry an unknown dtype, codec
+    /// or flag bit.
     BadEntry { section: SectionRef, what: String },
     /// rows × cols × dtype size overflows or disagrees with the raw length.
     SizeMismatch {
@@ -93,6 +94,8 @@ pub enum Error {
     BadPadding { offset: u64, len: u64 },
     /// A required section of a kind this reader does not know.
     UnknownRequiredSection { section: SectionRef },
+    /// The header's `flags` name a required feature this reader does not know (1.1).
+    UnknownRequiredFeature { bits: u64 },
     /// A section the metadata or another section needs is absent.
     MissingSection {
         kind: SectionKind,
@@ -215,6 +218,10 @@ impl fmt::Display for Error {
             UnknownRequiredSection { section } => {
                 write!(f, "{section}: required section of a kind this reader does not know")
             }
+            UnknownRequiredFeature { bits } => write!(
+                f,
+                "the header requires features this reader does not know (flags 0x{bits:016x})"
+            ),
             MissingSection { kind, level } => match level {
                 Some(l) => write!(f, "missing section {kind} for level {l}"),
                 None => write!(f, "missing section {kind}"),
@@ -281,6 +288,7 @@ impl Error {
             Overlap { .. } => "overlap",
             BadPadding { .. } => "bad_padding",
             UnknownRequiredSection { .. } => "unknown_required_section",
+            UnknownRequiredFeature { .. } => "unknown_required_feature",
             MissingSection { .. } => "missing_section",
             DuplicateSection { .. } => "duplicate_section",
             ChecksumMismatch { .. } => "checksum_mismatch",

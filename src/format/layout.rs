@@ -39,6 +39,13 @@ pub const MAX_CAMERA_PARAMS: usize = 64;
 
 /// Section entry flag: a reader that does not know the section's kind must fail.
 pub const SECTION_REQUIRED: u8 = 1 << 0;
+/// Section flag bits this version knows. An optional section with another bit set is skipped
+/// (1.1); a required one is an error.
+pub const SECTION_FLAGS_KNOWN: u8 = SECTION_REQUIRED;
+/// Header `flags` bits this version knows: each bit is a *required feature* (1.1), a change
+/// to how required sections are encoded that a reader must understand to read the map. 1.1
+/// defines none; a file with any bit set is refused with `unknown_required_feature`.
+pub const HEADER_FEATURES_KNOWN: u64 = 0;
 
 /// Element type of a section's array.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

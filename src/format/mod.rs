@@ -36,7 +36,7 @@ pub use layout::{
 #[cfg(feature = "fuzzing")]
 pub use layout::{Header, RawEntry};
 pub use metadata::{CameraInfo, LevelInfo, Metadata, Provenance, Retrieval, SourceFile};
-pub use reader::{decode_budget, decode_cap, Map, Section};
+pub use reader::{decode_budget, decode_cap, Map, Section, Skipped};
 pub use slice::{slice, SliceOptions, SliceSummary};
 pub use views::{GlobalDescriptors, Images, Level, Visibility, Vlad};
 pub use writer::{Descriptors, MapWriter};

@@ -6,8 +6,8 @@
 use super::error::{Error, SectionRef};
 use super::layout::{
     align_up, checksum, index_checksum, Codec, Dtype, Header, RawEntry, SectionKind, ALIGN,
-    ENTRY_LEN, HEADER_LEN, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN, MAX_SECTIONS, METADATA_MAX_BYTES,
-    NO_LEVEL, SECTION_REQUIRED,
+    ENTRY_LEN, HEADER_FEATURES_KNOWN, HEADER_LEN, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN, MAX_SECTIONS,
+    METADATA_MAX_BYTES, NO_LEVEL, SECTION_FLAGS_KNOWN, SECTION_REQUIRED,
 };
 use super::metadata::Metadata;
 use std::borrow::Cow;
@@ -33,6 +33,41 @@ pub struct Section {
     pub(crate) stored_len: u64,
     pub(crate) raw_len: u64,
     pub(crate) checksum: u64,
+    /// Why this reader skips the section (optional sections only), `None` if it reads it.
+    pub(crate) skipped: Option<Skipped>,
+}
+
+/// Why a reader skips an optional section: it does not know its kind, or (1.1) it cannot
+/// decode it. A skipped section is not used, `verify` checks only its checksum (and decodes a
+/// skipped kind's zstd bytes, within the budget), and `slice` drops it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Skipped {
+    /// A kind this reader does not know.
+    Kind,
+    /// A dtype code this reader does not know.
+    Dtype(u8),
+    /// A codec code this reader does not know.
+    Codec(u8),
+    /// Section flag bits this reader does not know (the unknown bits).
+    Flags(u8),
+}
+
+impl Skipped {
+    /// Whether the reader cannot tell what the stored bytes decode to (so it hands none out).
+    pub fn hides_encoding(self) -> bool {
+        !matches!(self, Skipped::Kind)
+    }
+}
+
+impl std::fmt::Display for Skipped {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Skipped::Kind => f.write_str("unknown kind"),
+            Skipped::Dtype(code) => write!(f, "unknown dtype code {code}"),
+            Skipped::Codec(code) => write!(f, "unknown codec code {code}"),
+            Skipped::Flags(bits) => write!(f, "unknown section flags 0x{bits:02x}"),
+        }
+    }
 }
 
 /// Read-only: a `Section` comes only from a map's validated table, so the byte ranges and
@@ -53,14 +88,21 @@ impl Section {
         self.level
     }
 
-    /// Element type.
+    /// Element type. For a section [skipped](Section::skipped) for its dtype, `U8` (its
+    /// bytes; the code is in [`Skipped::Dtype`]).
     pub fn dtype(&self) -> Dtype {
         self.dtype
     }
 
-    /// How the bytes are stored (raw or zstd).
+    /// How the bytes are stored (raw or zstd). For a section [skipped](Section::skipped) for
+    /// its codec, `Raw` (the code is in [`Skipped::Codec`]).
     pub fn codec(&self) -> Codec {
         self.codec
+    }
+
+    /// Why the reader skips this optional section, `None` when it reads it.
+    pub fn skipped(&self) -> Option<Skipped> {
+        self.skipped
     }
 
     /// Whether a reader must understand the section to use the map.
@@ -149,7 +191,11 @@ impl SectionIndex {
         kind: SectionKind,
         level: Option<u16>,
     ) -> Option<&'s Section> {
-        self.0.get(&(kind, level)).map(|&i| &sections[i])
+        // Every entry counts for duplicates; a skipped one is absent to everything else.
+        self.0
+            .get(&(kind, level))
+            .map(|&i| &sections[i])
+            .filter(|s| s.skipped.is_none())
     }
 }
 
@@ -247,16 +293,15 @@ impl<'a> Map<'a> {
         &self.metadata
     }
 
-    /// Every section in the table, in file order, unknown optional ones included.
+    /// Every section in the table, in file order, skipped optional ones included.
     pub fn sections(&self) -> &[Section] {
         &self.sections
     }
 
-    /// Optional sections of kinds this reader does not know; they are skipped.
-    pub fn unknown_sections(&self) -> impl Iterator<Item = &Section> {
-        self.sections
-            .iter()
-            .filter(|s| matches!(s.kind, SectionKind::Unknown(_)))
+    /// Optional sections this reader skips: of kinds it does not know, or (1.1) with a dtype,
+    /// codec or flag bit it does not know. [`Section::skipped`] says which.
+    pub fn skipped_sections(&self) -> impl Iterator<Item = &Section> {
+        self.sections.iter().filter(|s| s.skipped.is_some())
     }
 
     pub fn n_points(&self) -> u64 {
@@ -306,6 +351,12 @@ impl<'a> Map<'a> {
     /// The decoded bytes of a section, checked (checksum, length, contents) on first access.
     pub fn section_bytes(&self, section: &Section) -> Result<&[u8], Error> {
         self.own(section)?;
+        if let Some(why) = section.skipped.filter(|s| s.hides_encoding()) {
+            return Err(Error::invalid(format!(
+                "{} is skipped ({why}): its bytes cannot be decoded",
+                section.reference()
+            )));
+        }
         let ready = self.ready[section.index].get_or_init(|| self.prepare(section));
         match ready {
             Ok(None) => Ok(self.stored_bytes(section)),
@@ -360,6 +411,12 @@ impl<'a> Map<'a> {
             return Ok(());
         }
         match section.codec {
+            // Skipped for its encoding: only the checksum can be checked.
+            _ if section.skipped.is_some_and(|s| s.hides_encoding()) => {
+                self.prepare(section)?;
+                self.checked[section.index].store(true, Ordering::Release);
+                Ok(())
+            }
             // Keeping a raw section costs nothing: it is a view of the bytes.
             Codec::Raw => self.section_bytes(section).map(|_| ()),
             Codec::Zstd => {
@@ -396,6 +453,9 @@ impl<'a> Map<'a> {
                 expected: section.checksum,
                 found,
             });
+        }
+        if section.skipped.is_some_and(|s| s.hides_encoding()) {
+            return Ok(None);
         }
         let decoded = match section.codec {
             Codec::Raw => None,
@@ -555,6 +615,13 @@ fn validate_index(bytes: &[u8]) -> Result<Index, Error> {
             found,
         });
     }
+    // 1.1: header flags are required features (1.0 writers wrote 0, so no 1.0 file has one).
+    let unknown_features = header.flags & !HEADER_FEATURES_KNOWN;
+    if unknown_features != 0 {
+        return Err(Error::UnknownRequiredFeature {
+            bits: unknown_features,
+        });
+    }
     let metadata: Metadata =
         serde_json::from_slice(metadata_bytes).map_err(|e| Error::BadMetadata {
             message: e.to_string(),
@@ -590,33 +657,43 @@ fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section
         section: reference,
         what,
     };
-    let dtype = Dtype::from_code(raw.dtype)
-        .ok_or_else(|| bad(format!("unknown dtype code {}", raw.dtype)))?;
-    let codec = Codec::from_code(raw.codec)
-        .ok_or_else(|| bad(format!("unknown codec code {}", raw.codec)))?;
     if raw.reserved != 0 || raw.reserved2 != 0 {
         return Err(bad("reserved fields are not zero".into()));
     }
-    if raw.flags & !SECTION_REQUIRED != 0 {
-        return Err(bad(format!("unknown section flags 0x{:02x}", raw.flags)));
-    }
-    let expected_raw = raw
-        .rows
-        .checked_mul(raw.cols)
-        .and_then(|n| n.checked_mul(dtype.size()));
-    if expected_raw != Some(raw.raw_len) {
-        return Err(Error::SizeMismatch {
-            section: reference,
-            rows: raw.rows,
-            cols: raw.cols,
-            raw_len: raw.raw_len,
-        });
-    }
-    if codec == Codec::Raw && raw.stored_len != raw.raw_len {
-        return Err(bad(format!(
-            "raw section stores {} bytes but its array has {}",
-            raw.stored_len, raw.raw_len
-        )));
+    let required = raw.flags & SECTION_REQUIRED != 0;
+    // 1.1: an optional section this reader cannot decode is skipped; a required one keeps the
+    // encodings this reader knows (header features aside), so its unknown code is an error.
+    let unknown_flags = raw.flags & !SECTION_FLAGS_KNOWN;
+    let encoding = match (Dtype::from_code(raw.dtype), Codec::from_code(raw.codec)) {
+        (None, _) => Err(Skipped::Dtype(raw.dtype)),
+        (_, None) => Err(Skipped::Codec(raw.codec)),
+        _ if unknown_flags != 0 => Err(Skipped::Flags(unknown_flags)),
+        (Some(dtype), Some(codec)) => Ok((dtype, codec)),
+    };
+    let (dtype, codec, skipped) = match encoding {
+        Ok((dtype, codec)) => (dtype, codec, None),
+        Err(why) if required => return Err(bad(why.to_string())),
+        Err(why) => (Dtype::U8, Codec::Raw, Some(why)),
+    };
+    if skipped.is_none() {
+        let expected_raw = raw
+            .rows
+            .checked_mul(raw.cols)
+            .and_then(|n| n.checked_mul(dtype.size()));
+        if expected_raw != Some(raw.raw_len) {
+            return Err(Error::SizeMismatch {
+                section: reference,
+                rows: raw.rows,
+                cols: raw.cols,
+                raw_len: raw.raw_len,
+            });
+        }
+        if codec == Codec::Raw && raw.stored_len != raw.raw_len {
+            return Err(bad(format!(
+                "raw section stores {} bytes but its array has {}",
+                raw.stored_len, raw.raw_len
+            )));
+        }
     }
     if raw.offset % ALIGN != 0 {
         return Err(Error::Misaligned {
@@ -635,10 +712,14 @@ fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section
             })
         }
     }
-    let required = raw.flags & SECTION_REQUIRED != 0;
-    match kind.expected_layout() {
+    let layout = if skipped.is_some() {
+        None
+    } else {
+        kind.expected_layout()
+    };
+    let skipped = match layout {
         None if required => return Err(Error::UnknownRequiredSection { section: reference }),
-        None => {}
+        None => skipped.or(Some(Skipped::Kind)),
         Some((want_dtype, want_cols)) => {
             if kind.has_descriptor_columns() && raw.cols > MAX_DESCRIPTOR_DIM {
                 return Err(Error::WrongLayout {
@@ -661,8 +742,9 @@ fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section
                     raw.level
                 )));
             }
+            None
         }
-    }
+    };
     Ok(Section {
         index,
         kind,
@@ -676,18 +758,19 @@ fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section
         stored_len: raw.stored_len,
         raw_len: raw.raw_len,
         checksum: raw.checksum,
+        skipped,
     })
 }
 
 /// The zstd sections of known kinds must, together, declare no more than the decode budget:
 /// every count a reader takes from them (points, level points, images) is then bounded by the
-/// file length before anything is decoded or sized from it. (Unknown kinds are skipped by
-/// readers; only `verify` decodes them, within the budget as it goes.)
+/// file length before anything is decoded or sized from it. (Skipped sections are not read;
+/// only `verify` decodes those of unknown kinds, within the budget as it goes.)
 fn check_declared_sizes(sections: &[Section], file_len: u64) -> Result<(), Error> {
     let budget = decode_budget(file_len);
     let mut declared = 0u64;
     for s in sections {
-        if s.codec != Codec::Zstd || matches!(s.kind, SectionKind::Unknown(_)) {
+        if s.codec != Codec::Zstd || s.skipped.is_some() {
             continue;
         }
         match declared.checked_add(s.raw_len).filter(|&t| t <= budget) {

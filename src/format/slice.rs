@@ -29,8 +29,9 @@ pub struct SliceSummary {
     pub sections_copied: usize,
     /// Sections that were rebuilt (remapped indices or a codec change).
     pub sections_rebuilt: usize,
-    /// Unknown optional sections that were dropped (their meaning, so their remapping, is unknown).
-    pub unknown_dropped: usize,
+    /// Skipped optional sections (unknown kinds or, 1.1, encodings) that were dropped: their
+    /// meaning, so their remapping, is unknown.
+    pub skipped_dropped: usize,
     /// The VLAD retrieval data was dropped with the level its codebook belongs to.
     pub vlad_dropped: bool,
 }
@@ -127,8 +128,8 @@ pub fn slice<'m>(
     };
 
     for section in map.sections() {
-        if matches!(section.kind, SectionKind::Unknown(_)) {
-            summary.unknown_dropped += 1;
+        if section.skipped().is_some() {
+            summary.skipped_dropped += 1;
         }
         if !keeps.section(section) {
             continue;
@@ -232,7 +233,7 @@ struct Keep<'a> {
 impl Keep<'_> {
     fn section(&self, section: &Section) -> bool {
         match section.kind {
-            SectionKind::Unknown(_) => false,
+            _ if section.skipped().is_some() => false,
             SectionKind::LevelDescRest if self.options.short => false,
             SectionKind::ImageVlad => self.vlad,
             k if k.is_per_level() => self
@@ -329,6 +330,7 @@ mod tests {
             stored_len: 0,
             raw_len: 0,
             checksum: 0,
+            skipped: None,
         }
     }
 

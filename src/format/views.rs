@@ -111,7 +111,10 @@ pub(crate) fn check_shapes(
             "one per stored dimension",
         )?;
     }
-    for s in sections.iter().filter(|s| s.kind.is_per_level()) {
+    for s in sections
+        .iter()
+        .filter(|s| s.kind.is_per_level() && s.skipped.is_none())
+    {
         let level = s.level.unwrap_or(super::layout::NO_LEVEL);
         // Sorted above, so this is a binary search.
         if metadata.level(level).is_none() {
@@ -214,7 +217,7 @@ fn check_vlad(
 ) -> Result<(), Error> {
     let mut codebooks = sections
         .iter()
-        .filter(|s| s.kind == SectionKind::LevelVladCentroids);
+        .filter(|s| s.kind == SectionKind::LevelVladCentroids && s.skipped.is_none());
     let codebook = codebooks.next();
     if let Some(second) = codebooks.next() {
         return Err(Error::inconsistent(format!(
@@ -633,7 +636,7 @@ impl<'a> Map<'a> {
         let Some(codebook) = self
             .sections()
             .iter()
-            .find(|s| s.kind == SectionKind::LevelVladCentroids)
+            .find(|s| s.kind == SectionKind::LevelVladCentroids && s.skipped.is_none())
         else {
             return Ok(None);
         };
@@ -717,6 +720,7 @@ mod tests {
             stored_len: 0,
             raw_len: 0,
             checksum: 0,
+            skipped: None,
         }
     }
 
