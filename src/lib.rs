@@ -15,7 +15,7 @@ pub mod input;
 pub mod io;
 pub mod output;
 pub mod progress;
-#[cfg(any(feature = "colmap", feature = "localize", feature = "onnx"))]
+#[cfg(any(feature = "colmap-model", feature = "localize", feature = "onnx"))]
 mod vector;
 #[cfg(any(feature = "colmap", feature = "localize"))]
 pub mod vlad;

@@ -40,6 +40,62 @@ pub(crate) fn dot(a: &[f32], b: &[f32]) -> f32 {
     lanes.iter().sum::<f32>() + tail
 }
 
+/// The nearest of a set of centroids, by `x·c − ‖c‖²/2` (the order of the squared distance),
+/// with the centroids stored transposed (`[dims × clusters]`) so each of `x`'s values scales
+/// one contiguous row into all the scores at once: the loop vectorizes over centroids, which
+/// makes 256-centroid codebooks (PQ) cheap to train and encode with. k-means
+/// (`build::kmeans`), VLAD assignments and PQ encoding all go through it.
+#[cfg(any(feature = "colmap-model", feature = "localize"))]
+#[derive(Debug, Clone, PartialEq)]
+pub struct Nearest {
+    clusters: usize,
+    transposed: Vec<f32>,
+    minus_half_norms: Vec<f32>,
+}
+
+#[cfg(any(feature = "colmap-model", feature = "localize"))]
+impl Nearest {
+    /// From centroids `[clusters × dims]` (a partial last row is ignored).
+    pub fn new(centroids: &[f32], dims: usize) -> Nearest {
+        let clusters = if dims == 0 { 0 } else { centroids.len() / dims };
+        let mut transposed = vec![0.0f32; dims * clusters];
+        let mut minus_half_norms = vec![0.0f32; clusters];
+        for (c, centroid) in centroids.chunks_exact(dims.max(1)).enumerate() {
+            for (d, &v) in centroid.iter().enumerate() {
+                transposed[d * clusters + c] = v;
+                minus_half_norms[c] -= 0.5 * v * v;
+            }
+        }
+        Nearest {
+            clusters,
+            transposed,
+            minus_half_norms,
+        }
+    }
+
+    /// The index of the centroid nearest to `x` (`dims` values; ties: the lower index; 0
+    /// without centroids). `scores` is scratch of at least `clusters` values.
+    pub fn find(&self, x: &[f32], scores: &mut [f32]) -> usize {
+        let scores = &mut scores[..self.clusters];
+        scores.copy_from_slice(&self.minus_half_norms);
+        for (&v, column) in x
+            .iter()
+            .zip(self.transposed.chunks_exact(self.clusters.max(1)))
+        {
+            for (s, &c) in scores.iter_mut().zip(column) {
+                *s += v * c;
+            }
+        }
+        let mut best = 0;
+        for (c, &s) in scores.iter().enumerate() {
+            if s > scores[best] {
+                best = c;
+            }
+        }
+        best
+    }
+}
+
 #[cfg(all(test, feature = "localize"))]
 mod tests {
     use super::*;

@@ -11,8 +11,7 @@
 //! sees; a query's VLAD comes from its keypoints' descriptors in the same level basis. The
 //! codebook is small (16 × 32 by default) because it only has to rank images of one map.
 
-use crate::geometry::SplitMix64;
-use crate::vector::{dot, normalise_rows};
+use crate::vector::{normalise_rows, Nearest};
 
 /// Centroids of the codebook learned by default.
 pub const DEFAULT_CLUSTERS: usize = 16;
@@ -37,8 +36,7 @@ pub struct Codebook {
     dims: usize,
     /// `[clusters × dims]`, row-major.
     centroids: Vec<f32>,
-    /// `‖c‖² / 2` per centroid: the nearest centroid maximises `x·c − ‖c‖²/2`.
-    half_norms: Vec<f32>,
+    nearest: Nearest,
 }
 
 impl Codebook {
@@ -47,119 +45,27 @@ impl Codebook {
         if dims == 0 || centroids.is_empty() || centroids.len() % dims != 0 {
             return None;
         }
-        let half_norms = centroids
-            .chunks_exact(dims)
-            .map(|c| 0.5 * dot(c, c))
-            .collect();
         Some(Codebook {
             clusters: centroids.len() / dims,
             dims,
+            nearest: Nearest::new(&centroids, dims),
             centroids,
-            half_norms,
         })
     }
 
-    /// k-means (k-means++ seeding, then Lloyd iterations) over the non-zero rows of `rows`
-    /// (`[n × dims]`), on a seeded sample of at most 32,768 of them: the same codebook for the
-    /// same rows and seed on every machine. `None` when there are fewer non-zero rows than
-    /// `clusters`.
+    /// k-means (`build::kmeans`: k-means++ seeding, then Lloyd iterations) over the non-zero
+    /// rows of `rows` (`[n × dims]`), on a seeded sample of at most 32,768 of them: the same
+    /// codebook for the same rows and seed on every machine. `None` when there are fewer
+    /// non-zero rows than `clusters`.
+    #[cfg(feature = "colmap")]
     pub fn train(rows: &[f32], dims: usize, clusters: usize, seed: u64) -> Option<Codebook> {
-        if dims == 0 || clusters == 0 {
-            return None;
-        }
-        let mut rng = SplitMix64::new(seed);
-        let mut sample: Vec<usize> = rows
-            .chunks_exact(dims)
-            .enumerate()
-            .filter(|(_, r)| r.iter().any(|&v| v != 0.0))
-            .map(|(i, _)| i)
-            .collect();
-        if sample.len() < clusters {
-            return None;
-        }
-        // A partial Fisher–Yates shuffle picks the sample; sorted again so memory is read in
-        // order.
-        let take = sample.len().min(MAX_TRAIN);
-        for i in 0..take {
-            let j = i + (rng.next_u64() % (sample.len() - i) as u64) as usize;
-            sample.swap(i, j);
-        }
-        sample.truncate(take);
-        sample.sort_unstable();
-        let data: Vec<f32> = sample
-            .iter()
-            .flat_map(|&i| rows[i * dims..(i + 1) * dims].iter().copied())
-            .collect();
-        let n = sample.len();
-        let row = |i: usize| &data[i * dims..(i + 1) * dims];
-
-        // k-means++: each next centroid is a row drawn with probability ∝ its squared
-        // distance to the nearest centroid so far.
-        let mut centroids = Vec::with_capacity(clusters * dims);
-        centroids.extend_from_slice(row((rng.next_u64() % n as u64) as usize));
-        let mut nearest = vec![f64::INFINITY; n];
-        for c in 1..clusters {
-            let last = &centroids[(c - 1) * dims..c * dims];
-            let mut total = 0.0f64;
-            for (i, d) in nearest.iter_mut().enumerate() {
-                *d = d.min(squared_distance(row(i), last));
-                total += *d;
-            }
-            let mut target = rng.next_f64() * total;
-            let mut pick = n - 1;
-            for (i, &d) in nearest.iter().enumerate() {
-                if target < d {
-                    pick = i;
-                    break;
-                }
-                target -= d;
-            }
-            centroids.extend_from_slice(row(pick));
-        }
-
-        let mut codebook = Codebook::new(centroids, dims)?;
-        let mut assignment = vec![usize::MAX; n];
-        for _ in 0..ITERATIONS {
-            let mut changed = false;
-            for (i, a) in assignment.iter_mut().enumerate() {
-                let c = codebook.nearest(row(i));
-                changed |= *a != c;
-                *a = c;
-            }
-            if !changed {
-                break;
-            }
-            let mut sums = vec![0.0f64; clusters * dims];
-            let mut counts = vec![0usize; clusters];
-            for (i, &a) in assignment.iter().enumerate() {
-                counts[a] += 1;
-                for (s, &v) in sums[a * dims..(a + 1) * dims].iter_mut().zip(row(i)) {
-                    *s += f64::from(v);
-                }
-            }
-            let old = &codebook.centroids;
-            let mut centroids = vec![0.0f32; clusters * dims];
-            for c in 0..clusters {
-                let out = &mut centroids[c * dims..(c + 1) * dims];
-                if counts[c] == 0 {
-                    // An empty cluster restarts at the row farthest from its centroid.
-                    let error = |i: usize| {
-                        let a = assignment[i];
-                        squared_distance(row(i), &old[a * dims..(a + 1) * dims])
-                    };
-                    let far = (0..n)
-                        .max_by(|&a, &b| error(a).total_cmp(&error(b)).then(b.cmp(&a)))
-                        .unwrap_or(0);
-                    out.copy_from_slice(row(far));
-                    continue;
-                }
-                for (o, s) in out.iter_mut().zip(&sums[c * dims..(c + 1) * dims]) {
-                    *o = (s / counts[c] as f64) as f32;
-                }
-            }
-            codebook = Codebook::new(centroids, dims)?;
-        }
-        Some(codebook)
+        let kmeans = crate::build::kmeans::KMeans {
+            clusters,
+            max_train: MAX_TRAIN,
+            iterations: ITERATIONS,
+            seed,
+        };
+        Codebook::new(kmeans.train(rows, dims)?, dims)
     }
 
     pub fn clusters(&self) -> usize {
@@ -182,19 +88,7 @@ impl Codebook {
 
     /// The centroid nearest to `x` (`dims` values; ties: the lower index).
     pub fn nearest(&self, x: &[f32]) -> usize {
-        let mut best = (f32::NEG_INFINITY, 0);
-        for (c, (centroid, half)) in self
-            .centroids
-            .chunks_exact(self.dims)
-            .zip(&self.half_norms)
-            .enumerate()
-        {
-            let s = dot(x, centroid) - half;
-            if s > best.0 {
-                best = (s, c);
-            }
-        }
-        best.1
+        self.nearest.find(x, &mut vec![0.0; self.clusters])
     }
 
     /// Values of one VLAD: `clusters × dims`.
@@ -219,13 +113,14 @@ impl Codebook {
     /// rows are skipped): `width()` values, unit length (all zero without rows).
     pub fn vlad(&self, rows: &[f32]) -> Vec<f32> {
         let mut sum = vec![0.0f32; self.width()];
+        let mut scores = vec![0.0f32; self.clusters];
         // Zero rows (descriptors of no direction) are skipped, as the map's are, and so are
         // rows with a non-finite value (one would make the whole VLAD NaN).
         for x in rows
             .chunks_exact(self.dims)
             .filter(|x| x.iter().any(|&v| v != 0.0) && x.iter().all(|v| v.is_finite()))
         {
-            self.accumulate(x, &mut sum, self.nearest(x));
+            self.accumulate(x, &mut sum, self.nearest.find(x, &mut scores));
         }
         self.finish(&mut sum);
         sum
@@ -244,13 +139,14 @@ impl Codebook {
         let d = self.dims;
         let n = rows.len() / d;
         // Each point's centroid, once: most points are seen by several images.
+        let mut scores = vec![0.0f32; self.clusters];
         let assignment: Vec<u32> = rows
             .chunks_exact(d)
             .map(|x| {
                 if x.iter().all(|&v| v == 0.0) {
                     u32::MAX
                 } else {
-                    self.nearest(x) as u32
+                    self.nearest.find(x, &mut scores) as u32
                 }
             })
             .collect();
@@ -273,19 +169,11 @@ impl Codebook {
     }
 }
 
-fn squared_distance(a: &[f32], b: &[f32]) -> f64 {
-    a.iter()
-        .zip(b)
-        .map(|(&x, &y)| {
-            let d = f64::from(x - y);
-            d * d
-        })
-        .sum()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::SplitMix64;
+    use crate::vector::dot;
 
     /// `n` unit rows of `dims` around `groups` well-separated directions.
     fn clustered(n: usize, dims: usize, groups: usize, seed: u64) -> Vec<f32> {
@@ -302,31 +190,7 @@ mod tests {
         rows
     }
 
-    #[test]
-    fn kmeans_finds_separated_groups_and_is_deterministic() {
-        let rows = clustered(600, 8, 4, 1);
-        let a = Codebook::train(&rows, 8, 4, 7).unwrap();
-        assert_eq!(a, Codebook::train(&rows, 8, 4, 7).unwrap());
-        // Every group's rows go to one centroid, and the groups to different ones.
-        let mut owner = [usize::MAX; 4];
-        for (i, x) in rows.chunks_exact(8).enumerate() {
-            let c = a.nearest(x);
-            if owner[i % 4] == usize::MAX {
-                owner[i % 4] = c;
-            }
-            assert_eq!(owner[i % 4], c, "row {i}");
-        }
-        let mut distinct = owner.to_vec();
-        distinct.sort_unstable();
-        distinct.dedup();
-        assert_eq!(distinct.len(), 4);
-        // Too few rows for the clusters; zero rows do not count.
-        let mut few = vec![0.0f32; 8 * 10];
-        few[..8].copy_from_slice(&rows[..8]);
-        assert!(Codebook::train(&few, 8, 2, 0).is_none());
-        assert!(Codebook::train(&rows, 0, 2, 0).is_none());
-    }
-
+    #[cfg(feature = "colmap")]
     #[test]
     fn a_vlad_is_unit_and_ranks_images_that_share_points_first() {
         let rows = clustered(400, 8, 4, 2);

@@ -161,6 +161,83 @@ fn recovers_the_pose_with_all_levels_and_with_a_level_2_short_slice() {
     assert_eq!(r.inliers_per_level.len(), 1);
 }
 
+/// (1.1) The map's levels product-quantised (`slice --pq`): 8 one-byte codes per point in
+/// place of 32 (or, short, 16) f16 values, matched by asymmetric distance, still give the
+/// pose.
+#[cfg(feature = "colmap-model")]
+#[test]
+fn recovers_the_pose_from_product_quantised_levels() {
+    use sfpmap::build::pq::{quantise_levels, PqOptions};
+    let s = scene();
+    let bytes = map_bytes(&s);
+    let map = Map::from_bytes(&bytes).unwrap();
+    let q = query(&s, &truth(), 800, DIM);
+    for (levels, short) in [(vec![0, 1, 2], false), (vec![2], true)] {
+        let options = SliceOptions {
+            levels: levels.clone(),
+            short,
+            codec: None,
+            zstd_level: 3,
+        };
+        let (mut writer, _) = slice(&map, &options).unwrap();
+        let summary = quantise_levels(
+            &map,
+            &mut writer,
+            &levels,
+            &PqOptions {
+                subspaces: 8,
+                short,
+            },
+        )
+        .unwrap();
+        let dims = if short { 16 } else { DIM };
+        assert!(
+            summary.iter().all(|l| l.centroids == 32 && l.dims == dims),
+            "{summary:?}"
+        );
+        let pq_bytes = writer.to_bytes().unwrap();
+        let pq_map = Map::from_bytes(&pq_bytes).unwrap();
+        pq_map.verify().unwrap();
+        assert!(pq_map.levels().all(|l| l.is_pq()));
+        let localizer = Localizer::new(&pq_map, LocalizeOptions::default()).unwrap();
+        let r = localizer.localize(&q, &s.camera).unwrap();
+        let pose = *r
+            .pose()
+            .unwrap_or_else(|| panic!("{levels:?}: failed: {:?}", r.failure()));
+        assert!(pose.rotation_error_deg(&truth()) < 0.3, "{levels:?}");
+        assert!(pose.center_distance(&truth()) < 0.05, "{levels:?}");
+        assert!(
+            r.inliers_per_level.iter().all(|&(_, n)| n > 30),
+            "{:?}",
+            r.inliers_per_level
+        );
+    }
+    // A PQ level is not quantised twice, and M must divide the dims.
+    let (mut writer, _) = slice(
+        &map,
+        &SliceOptions {
+            levels: vec![1],
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let err = quantise_levels(
+        &map,
+        &mut writer,
+        &[1],
+        &PqOptions {
+            subspaces: 5,
+            short: false,
+        },
+    )
+    .unwrap_err();
+    assert!(
+        err.to_string()
+            .contains("32 dimensions, which 5 subspaces do not divide"),
+        "{err}"
+    );
+}
+
 #[test]
 fn a_query_of_noise_fails_with_a_reason_not_a_panic() {
     let s = scene();

@@ -288,6 +288,31 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         ),
     ));
 
+    // 1.1: level 1 (dim_full 8, dim_short 4) product-quantised over its short block: 2
+    // subspaces of 2 dims, 3 centroids each; point r's codes (r mod 3, r div 3 mod 3).
+    let pq = pq_levels(&s);
+    let mut content = s.expected_json(origin_of(&pq));
+    content["levels"][1] = json!({
+        "level": 1, "points": content["levels"][1]["points"], "dim_full": 8, "dim_short": 4,
+        "has_rest": false, "short": null, "rest": null,
+        "pq": {
+            "subspaces": 2, "centroids": 3, "sub_dims": 2,
+            "codebook": PQ_CODEBOOK.chunks(2).collect::<Vec<_>>(),
+            "codes": pq_codes(&s).chunks(2).collect::<Vec<_>>(),
+        },
+    });
+    out.push((
+        "pq",
+        pq.clone(),
+        valid_expected_version(
+            "1.1",
+            "the levels vector with level 1 product-quantised (2 subspaces x 3 centroids of 2 dims over its short block)",
+            &pq,
+            content,
+            json!([]),
+        ),
+    ));
+
     let geo = Scene::new(5, 6, 2, &[]);
     let mut w = geo.writer(Codec::Raw);
     w.metadata_mut().geometry_only = true;
@@ -304,6 +329,26 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         ),
     ));
     out
+}
+
+/// The PQ vector's codebook `[2·3 × 2]`: subspace 0's centroids, then subspace 1's.
+const PQ_CODEBOOK: [f32; 12] = [
+    0.5, 0.5, -0.5, 0.5, 0.0, -0.7, 0.6, 0.0, -0.6, 0.1, 0.0, 0.25,
+];
+
+fn pq_codes(s: &Scene) -> Vec<u8> {
+    let n = s.levels[1].points.len();
+    (0..n)
+        .flat_map(|r| [(r % 3) as u8, (r / 3 % 3) as u8])
+        .collect()
+}
+
+/// The levels scene with level 1's f16 blocks replaced by PQ codes.
+fn pq_levels(s: &Scene) -> Vec<u8> {
+    let mut w = s.writer(Codec::Raw);
+    w.set_level_pq(1, 2, 3, PQ_CODEBOOK.to_vec(), pq_codes(s))
+        .unwrap();
+    w.to_bytes().unwrap()
 }
 
 /// (name, bytes, expected error kind, stage where it must be found).
@@ -459,6 +504,45 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
     .unwrap();
     out.push((
         "vlad_wrong_columns",
+        w.to_bytes().unwrap(),
+        "inconsistent",
+        "open",
+    ));
+
+    // 1.1: a code past the codebook's 3 centroids, its section checksum recomputed.
+    let good_pq = pq_levels(&s);
+    let map = Map::from_bytes(&good_pq).unwrap();
+    let codes = map
+        .sections()
+        .iter()
+        .find(|x| x.kind() == SectionKind::LevelPqCodes)
+        .unwrap()
+        .offset() as usize;
+    let mut b = good_pq.clone();
+    b[codes + 1] = 3;
+    out.push((
+        "pq_code_past_codebook",
+        sfpmap::format::fuzzing::fix_checksums(&b),
+        "inconsistent",
+        "verify",
+    ));
+    // 1.1: 2 subspaces x 3 dims = 6, neither dim_short 4 nor dim_full 8 of level 1.
+    let mut w = s.writer(Codec::Raw);
+    w.set_level_pq(1, 2, 3, PQ_CODEBOOK.to_vec(), pq_codes(&s))
+        .unwrap();
+    w.add_raw_section(
+        SectionKind::LevelPqCodebook,
+        1,
+        Dtype::F32,
+        4,
+        3,
+        true,
+        Cow::Owned(bytemuck::cast_slice(&PQ_CODEBOOK).to_vec()),
+        None,
+    )
+    .unwrap();
+    out.push((
+        "pq_codebook_wrong_shape",
         w.to_bytes().unwrap(),
         "inconsistent",
         "open",

@@ -17,6 +17,8 @@ mod basis;
 #[cfg(feature = "colmap")]
 mod error;
 pub(crate) mod geometry;
+pub(crate) mod kmeans;
+pub mod pq;
 #[cfg(feature = "colmap")]
 mod retrieval;
 #[cfg(all(feature = "colmap", feature = "onnx"))]

@@ -2,6 +2,7 @@
 
 use anyhow::Context;
 use serde_json::json;
+use sfpmap::build::pq::{quantise_levels, PqOptions};
 use sfpmap::format::{slice, Codec, SliceOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -21,11 +22,13 @@ impl From<CodecArg> for Codec {
     }
 }
 
-/// Cut a map down to some levels; `--short` also drops the `rest` descriptor blocks.
+/// Cut a map down to some levels; `--short` also drops the `rest` descriptor blocks; `--pq M`
+/// replaces the kept levels' descriptors by M-byte product-quantisation codes.
 ///
 /// Points no kept level references are dropped and indices remapped. Sections that do not
-/// change are copied byte for byte. Example:
-/// `sfpmap slice building.sfpm --level 2 --short -o building-l2s.sfpm`
+/// change are copied byte for byte. Examples:
+/// `sfpmap slice building.sfpm --level 2 --short -o building-l2s.sfpm`,
+/// `sfpmap slice building.sfpm --level 2 --short --pq 8 -o building-l2-pq8.sfpm`
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The map to slice.
@@ -36,6 +39,10 @@ pub struct Args {
     /// Keep only the short descriptor block of each level.
     #[arg(long)]
     pub short: bool,
+    /// Product-quantise the kept levels' descriptors (all their dims, or with `--short` the
+    /// short block's) into M one-byte codes per point, M dividing the dims (format 1.1).
+    #[arg(long, value_name = "M", value_parser = clap::value_parser!(u16).range(1..=4096))]
+    pub pq: Option<u16>,
     /// Re-encode every section with this codec (default: keep each section's codec).
     #[arg(long, value_enum)]
     pub codec: Option<CodecArg>,
@@ -63,7 +70,27 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         codec: args.codec.map(Codec::from),
         zstd_level: args.zstd_level,
     };
-    let (writer, summary) = slice(&map, &options).with_context(|| input.display().to_string())?;
+    let (mut writer, summary) =
+        slice(&map, &options).with_context(|| input.display().to_string())?;
+    let pq = match args.pq {
+        Some(m) => {
+            let pq_options = PqOptions {
+                subspaces: usize::from(m),
+                short: args.short,
+            };
+            writer
+                .metadata_mut()
+                .provenance
+                .parameters
+                .insert("pq".into(), json!(m));
+            let mut levels = args.levels.clone();
+            levels.sort_unstable();
+            levels.dedup();
+            quantise_levels(&map, &mut writer, &levels, &pq_options)
+                .with_context(|| input.display().to_string())?
+        }
+        None => Vec::new(),
+    };
     let bars = super::Bars::new(quiet, args.json);
     let written = writer.write(output, &bars).map_err(super::naming(output))?;
     let before = map.file_len();
@@ -79,6 +106,16 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "sections_copied": summary.sections_copied,
             "sections_rebuilt": summary.sections_rebuilt,
             "skipped_sections_dropped": summary.skipped_dropped,
+            "pq": pq.iter().map(|l| json!({
+                "level": l.level,
+                "points": l.points,
+                "dims": l.dims,
+                "subspaces": l.subspaces,
+                "centroids": l.centroids,
+                "descriptor_bytes_before": l.bytes_before,
+                "descriptor_bytes_after": l.bytes_after,
+                "mean_squared_error": l.mean_squared_error,
+            })).collect::<Vec<_>>(),
         }))?;
     } else if !quiet {
         println!(
@@ -89,6 +126,12 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             summary.points_before,
             summary.points_after
         );
+        for l in &pq {
+            println!(
+                "  level {}: {} dims -> {} bytes per point ({} centroids per subspace), descriptors {} -> {} bytes, mean squared error {:.4}",
+                l.level, l.dims, l.subspaces, l.centroids, l.bytes_before, l.bytes_after, l.mean_squared_error
+            );
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

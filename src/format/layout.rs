@@ -145,6 +145,12 @@ pub enum SectionKind {
     /// f32 [clusters × dims] (1.1): the VLAD codebook of the level whose descriptors (their first
     /// `dims` stored dimensions) retrieval aggregates; at most one level has one.
     LevelVladCentroids,
+    /// f32 [M·K × D/M] (1.1): a product-quantised level's codebook, K centroids per subspace,
+    /// subspace by subspace.
+    LevelPqCodebook,
+    /// u8 [n_L × M] (1.1): each level point's centroid in each subspace; replaces the level's
+    /// f16 blocks.
+    LevelPqCodes,
     /// f64 [images × 7]: `cam_from_world` as qw qx qy qz tx ty tz (COLMAP).
     ImagePoses,
     /// u32 [images × 1]: index into the metadata `cameras`.
@@ -170,7 +176,7 @@ pub enum SectionKind {
 }
 
 impl SectionKind {
-    const KNOWN: [(u16, SectionKind, &'static str); 18] = [
+    const KNOWN: [(u16, SectionKind, &'static str); 20] = [
         (1, SectionKind::PointPositions, "point_positions"),
         (2, SectionKind::PointColors, "point_colors"),
         (3, SectionKind::PointIds, "point_ids"),
@@ -179,6 +185,8 @@ impl SectionKind {
         (18, SectionKind::LevelDescRest, "level_desc_rest"),
         (19, SectionKind::LevelProjection, "level_projection"),
         (20, SectionKind::LevelVladCentroids, "level_vlad_centroids"),
+        (21, SectionKind::LevelPqCodebook, "level_pq_codebook"),
+        (22, SectionKind::LevelPqCodes, "level_pq_codes"),
         (32, SectionKind::ImagePoses, "image_poses"),
         (33, SectionKind::ImageCameras, "image_cameras"),
         (34, SectionKind::ImageIds, "image_ids"),
@@ -228,7 +236,8 @@ impl SectionKind {
             PointIds => (Dtype::U64, Some(1)),
             LevelPoints => (Dtype::U32, Some(1)),
             LevelDescShort | LevelDescRest | ImageGlobal | ImageVlad => (Dtype::F16, None),
-            LevelProjection | LevelVladCentroids => (Dtype::F32, None),
+            LevelProjection | LevelVladCentroids | LevelPqCodebook => (Dtype::F32, None),
+            LevelPqCodes => (Dtype::U8, None),
             ImagePoses => (Dtype::F64, Some(7)),
             ImageCameras | ImageIds => (Dtype::U32, Some(1)),
             ImageNameOffsets | VisibilityOffsets => (Dtype::U64, Some(1)),
@@ -239,7 +248,8 @@ impl SectionKind {
         })
     }
 
-    /// Whether the kind's columns are a descriptor dimension (at most [`MAX_DESCRIPTOR_DIM`]).
+    /// Whether the kind's columns are a descriptor dimension or a part of one (at most
+    /// [`MAX_DESCRIPTOR_DIM`]).
     pub fn has_descriptor_columns(self) -> bool {
         matches!(
             self,
@@ -247,6 +257,8 @@ impl SectionKind {
                 | SectionKind::LevelDescRest
                 | SectionKind::LevelProjection
                 | SectionKind::LevelVladCentroids
+                | SectionKind::LevelPqCodebook
+                | SectionKind::LevelPqCodes
                 | SectionKind::ImageGlobal
         )
     }
@@ -260,6 +272,8 @@ impl SectionKind {
                 | SectionKind::LevelDescRest
                 | SectionKind::LevelProjection
                 | SectionKind::LevelVladCentroids
+                | SectionKind::LevelPqCodebook
+                | SectionKind::LevelPqCodes
         )
     }
 
@@ -268,7 +282,10 @@ impl SectionKind {
     /// sections stays a 1.0 file byte for byte.
     pub fn since_minor(self) -> u16 {
         match self {
-            SectionKind::LevelVladCentroids | SectionKind::ImageVlad => 1,
+            SectionKind::LevelVladCentroids
+            | SectionKind::ImageVlad
+            | SectionKind::LevelPqCodebook
+            | SectionKind::LevelPqCodes => 1,
             _ => 0,
         }
     }

@@ -22,6 +22,7 @@ pub mod fuzzing;
 mod layout;
 mod metadata;
 mod mmap;
+mod pq;
 mod reader;
 mod slice;
 mod views;
@@ -36,6 +37,7 @@ pub use layout::{
 #[cfg(feature = "fuzzing")]
 pub use layout::{Header, RawEntry};
 pub use metadata::{CameraInfo, LevelInfo, Metadata, Provenance, Retrieval, SourceFile};
+pub use pq::{Pq, MAX_PQ_CENTROIDS};
 pub use reader::{decode_budget, decode_cap, Map, Section, Skipped};
 pub use slice::{slice, SliceOptions, SliceSummary};
 pub use views::{GlobalDescriptors, Images, Level, Visibility, Vlad};

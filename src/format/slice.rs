@@ -50,6 +50,15 @@ pub fn slice<'m>(
     keep_levels.dedup();
     for &l in &keep_levels {
         let level = map.level(l)?;
+        if let Some(pq) = level.pq()? {
+            if options.short && pq.dims() != level.dim_short() {
+                return Err(Error::invalid(format!(
+                    "level {l} is product-quantised over all its {} dimensions: --short cannot cut its codes",
+                    pq.dims()
+                )));
+            }
+            continue;
+        }
         let with_rest = !options.short && level.has_rest();
         if level.has_descriptors() && level.info().matched_dims(with_rest) == 0 {
             // Without `rest` such a level would hold no descriptor dimension (refused at open).

@@ -3,6 +3,7 @@
 use super::error::Error;
 use super::layout::{SectionKind, MAX_CAMERA_PARAMS, MAX_DESCRIPTOR_DIM, MAX_IMAGE_SIDE};
 use super::metadata::{LevelInfo, Metadata};
+use super::pq::Pq;
 use super::reader::{cast, Map, Section, SectionIndex};
 use half::f16;
 use std::borrow::Cow;
@@ -69,7 +70,21 @@ pub(crate) fn check_shapes(
         }
         let short = find(SectionKind::LevelDescShort, l);
         let rest = find(SectionKind::LevelDescRest, l);
-        if !metadata.geometry_only {
+        let pq = super::pq::check_shapes(
+            level,
+            n,
+            find(SectionKind::LevelPqCodebook, l),
+            find(SectionKind::LevelPqCodes, l),
+        )?;
+        if pq.is_some() && (metadata.geometry_only || short.is_some() || rest.is_some()) {
+            return Err(Error::inconsistent(format!(
+                "level {}: PQ codes beside f16 descriptor blocks or in a geometry-only map",
+                level.level
+            )));
+        }
+        if pq.is_some() {
+            // The codes are the level's descriptors (1.1): no f16 block is required.
+        } else if !metadata.geometry_only {
             let short = need(SectionKind::LevelDescShort, l)?;
             rows_must(Some(short), n, "one per level point")?;
             if short.cols != u64::from(level.dim_short) {
@@ -86,7 +101,7 @@ pub(crate) fn check_shapes(
                 level.level
             )));
         }
-        if !metadata.geometry_only && level.matched_dims(rest.is_some()) == 0 {
+        if !metadata.geometry_only && pq.is_none() && level.matched_dims(rest.is_some()) == 0 {
             return Err(Error::BadMetadata {
                 message: format!(
                     "level {}: dim_short is 0 and there is no rest block: no descriptor dimension",
@@ -393,6 +408,22 @@ pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> 
                 ));
             }
         }
+        SectionKind::LevelPqCodes => {
+            let codebook = map
+                .find(SectionKind::LevelPqCodebook, section.level)
+                .ok_or(Error::MissingSection {
+                    kind: SectionKind::LevelPqCodebook,
+                    level: section.level,
+                })?;
+            if let Err(what) = super::pq::check_codes(bytes, section.cols, codebook) {
+                return bad(what);
+            }
+        }
+        SectionKind::LevelPqCodebook => {
+            if cast::<f32>(bytes).iter().any(|v| !v.is_finite()) {
+                return bad("a centroid value is not finite".into());
+            }
+        }
         _ => {}
     }
     Ok(())
@@ -497,6 +528,8 @@ pub struct Level<'m> {
     short: Option<&'m Section>,
     rest: Option<&'m Section>,
     projection: Option<&'m Section>,
+    pq_codebook: Option<&'m Section>,
+    pq_codes: Option<&'m Section>,
 }
 
 impl<'m> Level<'m> {
@@ -525,8 +558,30 @@ impl<'m> Level<'m> {
         self.info.dim_full as usize
     }
 
+    /// Whether the level stores descriptors: f16 blocks, or (1.1) PQ codes.
     pub fn has_descriptors(&self) -> bool {
-        self.short.is_some()
+        self.short.is_some() || self.pq_codes.is_some()
+    }
+
+    /// Whether the level's descriptors are product-quantised (1.1): [`Level::pq`] holds them
+    /// and there are no f16 blocks.
+    pub fn is_pq(&self) -> bool {
+        self.pq_codes.is_some()
+    }
+
+    /// The level's PQ codes and codebook (1.1), views of the mapping for raw sections.
+    pub fn pq(&self) -> Result<Option<Pq<'m>>, Error> {
+        let (Some(codebook), Some(codes)) = (self.pq_codebook, self.pq_codes) else {
+            return Ok(None);
+        };
+        let m = codes.cols as usize;
+        Ok(Some(Pq {
+            subspaces: m,
+            centroids: codebook.rows as usize / m,
+            sub_dims: codebook.cols as usize,
+            codebook: self.map.section_array(codebook)?,
+            codes: self.map.section_array(codes)?,
+        }))
     }
 
     /// Whether the `rest` block is present (a `--short` slice drops it).
@@ -565,11 +620,18 @@ impl<'m> Level<'m> {
         self.projection.map(|s| s.cols as usize)
     }
 
-    /// The sections of this level: points, short, rest, projection.
+    /// The sections of this level: points, short, rest, projection, PQ codebook and codes.
     pub fn sections(&self) -> impl Iterator<Item = &'m Section> {
-        [Some(self.points), self.short, self.rest, self.projection]
-            .into_iter()
-            .flatten()
+        [
+            Some(self.points),
+            self.short,
+            self.rest,
+            self.projection,
+            self.pq_codebook,
+            self.pq_codes,
+        ]
+        .into_iter()
+        .flatten()
     }
 }
 
@@ -696,6 +758,8 @@ impl<'a> Map<'a> {
             short: self.find(SectionKind::LevelDescShort, l),
             rest: self.find(SectionKind::LevelDescRest, l),
             projection: self.find(SectionKind::LevelProjection, l),
+            pq_codebook: self.find(SectionKind::LevelPqCodebook, l),
+            pq_codes: self.find(SectionKind::LevelPqCodes, l),
         }
     }
 }

@@ -475,6 +475,80 @@ impl<'a> MapWriter<'a> {
         Ok(self)
     }
 
+    /// Replaces `level`'s f16 descriptor blocks by product-quantisation codes (format 1.1):
+    /// `codebook` `[M·K × dims/M]` f32 (subspace m's centroid k is row `m·K + k`) and `codes`
+    /// `[points × M]`, over `dims` = `dim_short`, or `dim_full` when the codes include the
+    /// `rest` dimensions. Both sections are written required: a reader that does not know them
+    /// cannot match the level, so a 1.0 reader refuses the map.
+    pub fn set_level_pq(
+        &mut self,
+        level: u16,
+        subspaces: usize,
+        centroids: usize,
+        codebook: Vec<f32>,
+        codes: Vec<u8>,
+    ) -> Result<&mut Self, Error> {
+        let info = self.metadata.level(level).ok_or_else(|| {
+            Error::invalid(format!("level {level}: add the level before its PQ codes"))
+        })?;
+        let (ds, df) = (info.dim_short as usize, info.dim_full as usize);
+        let wrong = |what: String| Err(Error::invalid(format!("level {level}: {what}")));
+        if subspaces == 0 || !(1..=super::pq::MAX_PQ_CENTROIDS as usize).contains(&centroids) {
+            return wrong(format!(
+                "{subspaces} subspaces of {centroids} centroids: needs at least one subspace and 1 to 256 centroids"
+            ));
+        }
+        let rows = subspaces * centroids;
+        if codebook.is_empty() || codebook.len() % rows != 0 {
+            return wrong(format!(
+                "a codebook of {} values is not {subspaces} x {centroids} centroid rows",
+                codebook.len()
+            ));
+        }
+        let sub_dims = codebook.len() / rows;
+        let dims = subspaces * sub_dims;
+        if dims != ds && dims != df {
+            return wrong(format!(
+                "{subspaces} subspaces x {sub_dims} dimensions = {dims}, neither dim_short {ds} nor dim_full {df}"
+            ));
+        }
+        let points = self
+            .sections
+            .get(&(SectionKind::LevelPoints.code(), level))
+            .map_or(0, |s| s.rows as usize);
+        if codes.len() != points * subspaces {
+            return wrong(format!(
+                "{} codes for {points} points x {subspaces} subspaces",
+                codes.len()
+            ));
+        }
+        if let Some(&c) = codes.iter().find(|&&c| usize::from(c) >= centroids) {
+            return wrong(format!(
+                "code {c} past the codebook's {centroids} centroids"
+            ));
+        }
+        for kind in [SectionKind::LevelDescShort, SectionKind::LevelDescRest] {
+            self.sections.remove(&(kind.code(), level));
+        }
+        self.push_array(
+            SectionKind::LevelPqCodebook,
+            level,
+            Dtype::F32,
+            rows,
+            sub_dims,
+            owned_bytes(codebook),
+        );
+        self.push_array(
+            SectionKind::LevelPqCodes,
+            level,
+            Dtype::U8,
+            points,
+            subspaces,
+            Cow::Owned(codes),
+        );
+        Ok(self)
+    }
+
     /// Retrieval by VLAD (format 1.1): the codebook of `level`, `[clusters × dims]` f32 over
     /// the first `dims` stored dimensions of its descriptors, and each image's VLAD,
     /// `[images × clusters·dims]`, converted to f16. Records `retrieval` in the metadata

@@ -1,10 +1,11 @@
-//! One selected level of a map, indexed for matching over the map's own f16 descriptor
-//! blocks (views of the mapping for raw sections): rows are decoded and normalised a block or
-//! a row at a time where they are compared, never the level at once, and nothing is computed
-//! per row at open.
+//! One selected level of a map, indexed for matching over the map's own descriptors as they
+//! are stored (views of the mapping for raw sections): f16 blocks, whose rows are decoded and
+//! normalised a block or a row at a time where they are compared, never the level at once, or
+//! (1.1) PQ codes, compared by asymmetric distance (`adc`) and reconstructed where a row is
+//! needed. Nothing is computed per row at open.
 
 use super::{LocalizeError, LocalizeOptions};
-use crate::format::{f16, Level};
+use crate::format::{f16, Level, Pq};
 use std::borrow::Cow;
 
 /// One selected level, ready for matching. Everything here is sized by the level's own
@@ -14,13 +15,9 @@ pub(super) struct LevelIndex<'m> {
     pub(super) id: u16,
     /// The global point of each row, strictly increasing (the map's own array).
     pub(super) points: Cow<'m, [u32]>,
-    /// The level's `short` block as the map stores it (`[rows × ds]` f16, a view of the
-    /// mapping for raw sections), and its `rest` block (`[rows × dr]`) when it is matched.
-    pub(super) short: Cow<'m, [f16]>,
-    pub(super) rest: Option<Cow<'m, [f16]>>,
-    pub(super) ds: usize,
-    pub(super) dr: usize,
-    /// Matched dimensions (`ds`, or `ds + dr` with `rest`), at least 1.
+    pub(super) stored: Stored<'m>,
+    /// Matched dimensions (`ds`, or `ds + dr` with `rest`; a PQ level's quantised dims), at
+    /// least 1.
     pub(super) dim: usize,
     /// `[dim × d_in]`: maps a query descriptor into the stored basis (first `dim` rows).
     pub(super) projection: Option<Vec<f32>>,
@@ -28,16 +25,84 @@ pub(super) struct LevelIndex<'m> {
     pub(super) d_in: usize,
 }
 
+/// A level's descriptors as the map stores them.
+pub(super) enum Stored<'m> {
+    /// The `short` block (`[rows × ds]` f16, a view of the mapping for raw sections), and the
+    /// `rest` block (`[rows × dr]`) when it is matched.
+    F16 {
+        short: Cow<'m, [f16]>,
+        rest: Option<Cow<'m, [f16]>>,
+        ds: usize,
+        dr: usize,
+    },
+    /// PQ codes and codebook (1.1).
+    Pq(Pq<'m>),
+}
+
 impl LevelIndex<'_> {
-    /// Row `r` decoded and normalised into `out` (`dim` values): the same values, bit for
-    /// bit, as normalising the decoded row with `vector::l2_normalise`.
+    /// Row `r` decoded (or, for PQ, reconstructed) and normalised into `out` (`dim` values):
+    /// for f16 the same values, bit for bit, as normalising the decoded row with
+    /// `vector::l2_normalise`.
     pub(super) fn decode_row(&self, r: usize, out: &mut [f32]) {
-        let (short, rest) = out.split_at_mut(self.ds);
-        decode(&self.short[r * self.ds..(r + 1) * self.ds], short);
-        if let Some(block) = &self.rest {
-            decode(&block[r * self.dr..(r + 1) * self.dr], rest);
+        match &self.stored {
+            Stored::F16 {
+                short,
+                rest,
+                ds,
+                dr,
+            } => {
+                let (to_short, to_rest) = out.split_at_mut(*ds);
+                decode(&short[r * ds..(r + 1) * ds], to_short);
+                if let Some(block) = rest {
+                    decode(&block[r * dr..(r + 1) * dr], to_rest);
+                }
+            }
+            Stored::Pq(pq) => pq.decode_row(r, out),
         }
         Self::scale_row(out);
+    }
+
+    /// Fills `tile` (`k × dim`) with the decoded, normalised rows `rows[..k]`. A run of
+    /// consecutive f16 rows is converted a block in one call; `rest_run` is scratch for its
+    /// `rest` values.
+    pub(super) fn fill_rows(&self, rows: &[usize], tile: &mut [f32], rest_run: &mut Vec<f32>) {
+        let dim = self.dim;
+        let n = tile.len() / dim;
+        let first = rows[0];
+        let Stored::F16 {
+            short,
+            rest,
+            ds,
+            dr,
+        } = &self.stored
+        else {
+            for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
+                self.decode_row(rows[k], out);
+            }
+            return;
+        };
+        if rows[n - 1] != first + n - 1 {
+            for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
+                self.decode_row(rows[k], out);
+            }
+            return;
+        }
+        let (ds, dr) = (*ds, *dr);
+        match rest {
+            None => decode(&short[first * ds..(first + n) * ds], tile),
+            Some(rest) => {
+                rest_run.resize(n * dr, 0.0);
+                decode(&rest[first * dr..(first + n) * dr], rest_run);
+                let short = &short[first * ds..(first + n) * ds];
+                for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
+                    decode(&short[k * ds..(k + 1) * ds], &mut out[..ds]);
+                    out[ds..].copy_from_slice(&rest_run[k * dr..(k + 1) * dr]);
+                }
+            }
+        }
+        for out in tile.chunks_exact_mut(dim) {
+            Self::scale_row(out);
+        }
     }
 
     /// The level rows of `points` (ascending global indices), ascending: each found by a
@@ -78,7 +143,7 @@ impl LevelIndex<'_> {
 }
 
 /// f16 → f32 (exact), through `half`'s slice conversion (F16C where the CPU has it).
-pub(super) fn decode(from: &[f16], to: &mut [f32]) {
+fn decode(from: &[f16], to: &mut [f32]) {
     use half::slice::HalfFloatSliceExt;
     from.convert_to_f32_slice(to);
 }
@@ -93,6 +158,8 @@ struct LevelParts<'m> {
     points: Cow<'m, [u32]>,
     short: Cow<'m, [f16]>,
     rest: Option<Cow<'m, [f16]>>,
+    /// The PQ codes (1.1), instead of `short` and `rest` (then empty and `None`).
+    pq: Option<Pq<'m>>,
     /// `[dim_full × d_in]` and `d_in`.
     projection: Option<(Cow<'m, [f32]>, usize)>,
 }
@@ -103,18 +170,25 @@ pub(super) fn index_level<'m>(
     options: &LocalizeOptions,
     n_points: u64,
 ) -> Result<Result<LevelIndex<'m>, String>, LocalizeError> {
+    let pq = level.pq()?;
     let parts = LevelParts {
         id: level.id(),
         dim_short: level.dim_short(),
         dim_full: level.dim_full(),
         has_rest: level.has_rest(),
         points: level.points()?,
-        short: level.desc_short()?,
-        rest: if options.short {
+        short: if pq.is_some() {
+            Cow::Borrowed(&[])
+        } else {
+            level.desc_short()?
+        },
+        // A PQ level's codes cover what they cover: `short` cannot cut them.
+        rest: if options.short || pq.is_some() {
             None
         } else {
             level.desc_rest()?
         },
+        pq,
         projection: level
             .projection()?
             .map(|p| (p, level.projection_input_dim().unwrap_or(0))),
@@ -137,40 +211,14 @@ fn build_level(
         points,
         short,
         rest,
+        pq,
         projection,
     } = parts;
     let n = points.len();
     if n == 0 {
         return Ok(Err("no points".into()));
     }
-    // `LevelInfo::matched_dims`, on the blocks actually read.
-    let dim = if rest.is_some() { df } else { ds };
-    if dim == 0 {
-        let why = if has_rest {
-            "dim_short 0: nothing to match with the short block only"
-        } else {
-            "dim_short 0 and no rest block: nothing to match"
-        };
-        return Ok(Err(why.into()));
-    }
     let bad = |message: String| LocalizeError::BadLevel { level: id, message };
-    if n.checked_mul(ds) != Some(short.len()) {
-        return Err(bad(format!(
-            "short block has {} values, not {n} points x {ds} dimensions",
-            short.len()
-        )));
-    }
-    let dr = df
-        .checked_sub(ds)
-        .ok_or_else(|| bad(format!("dim_short {ds} > dim_full {df}")))?;
-    if let Some(rest) = &rest {
-        if n.checked_mul(dr) != Some(rest.len()) {
-            return Err(bad(format!(
-                "rest block has {} values, not {n} points x {dr} dimensions",
-                rest.len()
-            )));
-        }
-    }
     if points.last().is_some_and(|&p| u64::from(p) >= n_points)
         || points.windows(2).any(|w| w[0] >= w[1])
     {
@@ -178,6 +226,35 @@ fn build_level(
             "point indices are not increasing indices of the map's points".into(),
         ));
     }
+    let (stored, dim) = match pq {
+        Some(pq) => {
+            // The reader checked the shapes and every code against the codebook; these are
+            // the sizes indexing relies on, re-checked on the arrays actually read.
+            let dim = pq.dims();
+            let codebook = pq
+                .subspaces
+                .checked_mul(pq.centroids)
+                .and_then(|r| r.checked_mul(pq.sub_dims));
+            if dim == 0
+                || n.checked_mul(pq.subspaces) != Some(pq.codes.len())
+                || codebook != Some(pq.codebook.len())
+            {
+                return Err(bad(format!(
+                    "PQ codes ({} bytes) and codebook ({} values) do not fit {n} points x {} subspaces of {} centroids x {} dimensions",
+                    pq.codes.len(),
+                    pq.codebook.len(),
+                    pq.subspaces,
+                    pq.centroids,
+                    pq.sub_dims
+                )));
+            }
+            (Stored::Pq(pq), dim)
+        }
+        None => match f16_blocks(ds, df, has_rest, n, short, rest, &bad)? {
+            Ok(blocks) => blocks,
+            Err(why) => return Ok(Err(why)),
+        },
+    };
     let (projection, d_in) = match projection {
         Some((p, d_in)) => {
             if d_in == 0 {
@@ -203,18 +280,65 @@ fn build_level(
         }
         None => (None, df),
     };
-    let dr = if rest.is_some() { dr } else { 0 };
     Ok(Ok(LevelIndex {
         id,
         points,
-        short,
-        rest,
-        ds,
-        dr,
+        stored,
         dim,
         projection,
         d_in,
     }))
+}
+
+/// The f16 blocks of a level of `n` points, checked against its dims: the stored form and the
+/// matched dims, or why the level is skipped.
+#[allow(clippy::type_complexity)]
+fn f16_blocks<'m>(
+    ds: usize,
+    df: usize,
+    has_rest: bool,
+    n: usize,
+    short: Cow<'m, [f16]>,
+    rest: Option<Cow<'m, [f16]>>,
+    bad: &impl Fn(String) -> LocalizeError,
+) -> Result<Result<(Stored<'m>, usize), String>, LocalizeError> {
+    // `LevelInfo::matched_dims`, on the blocks actually read.
+    let dim = if rest.is_some() { df } else { ds };
+    if dim == 0 {
+        let why = if has_rest {
+            "dim_short 0: nothing to match with the short block only"
+        } else {
+            "dim_short 0 and no rest block: nothing to match"
+        };
+        return Ok(Err(why.into()));
+    }
+    if n.checked_mul(ds) != Some(short.len()) {
+        return Err(bad(format!(
+            "short block has {} values, not {n} points x {ds} dimensions",
+            short.len()
+        )));
+    }
+    let dr = df
+        .checked_sub(ds)
+        .ok_or_else(|| bad(format!("dim_short {ds} > dim_full {df}")))?;
+    if let Some(rest) = &rest {
+        if n.checked_mul(dr) != Some(rest.len()) {
+            return Err(bad(format!(
+                "rest block has {} values, not {n} points x {dr} dimensions",
+                rest.len()
+            )));
+        }
+    }
+    let dr = if rest.is_some() { dr } else { 0 };
+    Ok(Ok((
+        Stored::F16 {
+            short,
+            rest,
+            ds,
+            dr,
+        },
+        dim,
+    )))
 }
 
 #[cfg(test)]
@@ -235,6 +359,7 @@ mod tests {
             points: Cow::Owned(points),
             short: halves(n * ds),
             rest: None,
+            pq: None,
             projection: None,
         }
     }

@@ -10,9 +10,10 @@
 //! mmapped map's f16 blocks, decoding the candidate rows a block at a time inside matching:
 //! nothing of its own per map point.
 
+use super::adc::AdcTables;
 use super::kernels::sgemm_abt;
-use super::level::{decode, index_level, LevelIndex};
-use super::matching::{match_rows, MatchOptions};
+use super::level::{index_level, LevelIndex, Stored};
+use super::matching::{match_rows, match_scored, MatchOptions};
 use super::prior::Viewpoints;
 use super::retrieval::{RetrievalFallback, RetrievalIndex, RetrievalMethod};
 use crate::format::{Error as FormatError, Map, Retrieval, Visibility};
@@ -865,37 +866,29 @@ impl<'m> Localizer<'m> {
         } else {
             q
         };
-        // Candidate rows are decoded from the mapping a block at a time, never all at once.
-        // Scratch for a run's `rest` values, converted in one call and spread into the rows.
-        let mut rest_run = Vec::new();
-        let fill = |start: usize, tile: &mut [f32]| {
-            let n = tile.len() / dim;
-            let first = rows[start];
-            if rows[start + n - 1] != first + n - 1 {
-                for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
-                    level.decode_row(rows[start + k], out);
-                }
-                return;
+        let options = &self.options.matching;
+        let n_q = q.len() / dim;
+        // A PQ level is scored by table lookups where the tables fit; otherwise (and for f16)
+        // candidate rows are decoded from the mapping a block at a time, never all at once.
+        let tables = match &level.stored {
+            Stored::Pq(pq) => AdcTables::new(q, pq),
+            Stored::F16 { .. } => None,
+        };
+        let matches = match tables {
+            Some(tables) => {
+                let (mut codes_t, mut norms) = (Vec::new(), Vec::new());
+                match_scored(n_q, rows.len(), options, |start, count, out| {
+                    tables.scores(&rows[start..start + count], out, &mut codes_t, &mut norms)
+                })
             }
-            // Consecutive rows (a run of candidates): each block converted in one call.
-            let (ds, dr) = (level.ds, level.dr);
-            match &level.rest {
-                None => decode(&level.short[first * ds..(first + n) * ds], tile),
-                Some(rest) => {
-                    rest_run.resize(n * dr, 0.0);
-                    decode(&rest[first * dr..(first + n) * dr], &mut rest_run);
-                    let short = &level.short[first * ds..(first + n) * ds];
-                    for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
-                        decode(&short[k * ds..(k + 1) * ds], &mut out[..ds]);
-                        out[ds..].copy_from_slice(&rest_run[k * dr..(k + 1) * dr]);
-                    }
-                }
-            }
-            for out in tile.chunks_exact_mut(dim) {
-                LevelIndex::scale_row(out);
+            None => {
+                let mut rest_run = Vec::new();
+                match_rows(q, rows.len(), dim, options, |start, tile| {
+                    level.fill_rows(&rows[start..], tile, &mut rest_run)
+                })
             }
         };
-        for m in match_rows(q, rows.len(), dim, &self.options.matching, fill) {
+        for m in matches {
             let kp = set.keypoints[m.query as usize * stride];
             let p = level.points[rows[m.map as usize]];
             pixels.push(Vector2::new(kp[0], kp[1]));

@@ -74,6 +74,25 @@ pub(crate) fn match_rows(
         return Vec::new();
     }
     let mut tile = vec![0.0f32; BLOCK.min(n_m) * dim];
+    match_scored(n_q, n_m, options, |start, rows, out| {
+        let block = &mut tile[..rows * dim];
+        fill(start, block);
+        sgemm_abt(query, block, out, n_q, rows, dim);
+    })
+}
+
+/// The matching of [`match_rows`] over similarities that `score(start, rows, out)` writes for
+/// map rows `start..start + rows` (at most 2,048), query by query, into `out`
+/// (`[n_q × rows]`): the GEMM of decoded rows, or a PQ level's asymmetric distances.
+pub(crate) fn match_scored(
+    n_q: usize,
+    n_m: usize,
+    options: &MatchOptions,
+    mut score: impl FnMut(usize, usize, &mut [f32]),
+) -> Vec<Match> {
+    if n_q == 0 || n_m == 0 {
+        return Vec::new();
+    }
     let mut best = vec![(f32::NEG_INFINITY, u32::MAX); n_q];
     let mut second = vec![f32::NEG_INFINITY; n_q];
     // The best similarity of each map row: query q is map row m's nearest neighbour exactly
@@ -82,10 +101,8 @@ pub(crate) fn match_rows(
     let mut scores = vec![0.0f32; n_q * BLOCK.min(n_m)];
     for start in (0..n_m).step_by(BLOCK) {
         let rows = BLOCK.min(n_m - start);
-        let block = &mut tile[..rows * dim];
-        fill(start, block);
         let out = &mut scores[..n_q * rows];
-        sgemm_abt(query, block, out, n_q, rows, dim);
+        score(start, rows, out);
         let columns = &mut column_max[start..start + rows];
         for (q, row) in out.chunks_exact(rows).enumerate() {
             // Branch-free passes the compiler vectorizes: row maximum, column maxima.

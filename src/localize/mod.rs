@@ -1,6 +1,7 @@
 //! The hierarchical localizer, built on [`crate::geometry`] (cameras, P3P, LO-RANSAC,
 //! pose refinement).
 
+mod adc;
 pub mod eval;
 mod guided;
 mod kernels;

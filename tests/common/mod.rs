@@ -406,6 +406,24 @@ pub fn decoded_json(map: &Map<'_>) -> Value {
     let levels: Vec<Value> = map
         .levels()
         .map(|l| {
+            if let Some(pq) = l.pq().unwrap() {
+                return json!({
+                    "level": l.id(),
+                    "points": *l.points().unwrap(),
+                    "dim_full": l.dim_full(),
+                    "dim_short": l.dim_short(),
+                    "has_rest": false,
+                    "short": null,
+                    "rest": null,
+                    "pq": {
+                        "subspaces": pq.subspaces,
+                        "centroids": pq.centroids,
+                        "sub_dims": pq.sub_dims,
+                        "codebook": pq.codebook.chunks(pq.sub_dims).collect::<Vec<_>>(),
+                        "codes": pq.codes.chunks(pq.subspaces).collect::<Vec<_>>(),
+                    },
+                });
+            }
             let short = l.desc_short().unwrap();
             let rest = l.desc_rest().unwrap();
             let rows = |v: &[f16], d: usize| -> Vec<Vec<f32>> {

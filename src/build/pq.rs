@@ -1,0 +1,327 @@
+//! Product quantisation of a map's levels (format 1.1, `slice --pq`, `convert --pq`): each
+//! level's descriptors, L2-normalised over the dimensions kept, are cut into `M` subspaces and
+//! each subvector replaced by the index of the nearest of `K = 256` centroids learned for its
+//! subspace by k-means — one byte per subspace instead of two per dimension. The localizer
+//! matches such a level by asymmetric distances (`localize`: the query stays exact, the map
+//! side is looked up in per-query tables).
+
+use super::kmeans::KMeans;
+use crate::format::{f16, Error, Map, MapWriter};
+use crate::geometry::SplitMix64;
+use crate::vector::{l2_normalise, Nearest};
+
+/// Centroids per subspace at most: every value of a one-byte code.
+pub const CENTROIDS: usize = 256;
+/// Level points per centroid at least: a small level gets the largest power of two of
+/// centroids with this many points each (a level of 345 points 16, one of 4,096 or more 256),
+/// so its codebook stays small beside its codes and every centroid is learned from data.
+const POINTS_PER_CENTROID: usize = 16;
+/// Rows k-means sees per subspace at most (64 per centroid): bounds training time whatever
+/// the level's size (≤ 2 s per level on one core).
+const MAX_TRAIN: usize = 16_384;
+const ITERATIONS: usize = 20;
+const SEED: u64 = 0x5051_5346_504d_4150;
+
+/// How to quantise.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PqOptions {
+    /// Subspaces `M`: bytes per point. Must divide the quantised dimensions.
+    pub subspaces: usize,
+    /// Quantise only the `short` block (the `rest` is dropped, as `slice --short` does).
+    pub short: bool,
+}
+
+/// What quantising one level did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PqLevelSummary {
+    pub level: u16,
+    pub points: usize,
+    /// Dimensions quantised (`dim_short`, or `dim_full` with the rest).
+    pub dims: usize,
+    pub subspaces: usize,
+    pub centroids: usize,
+    /// Descriptor bytes before (f16 blocks kept) and after (codes + codebook).
+    pub bytes_before: u64,
+    pub bytes_after: u64,
+    /// Mean squared distance between a unit descriptor and its reconstruction.
+    pub mean_squared_error: f64,
+}
+
+/// How the codes are made, in words (recorded in each level's metadata).
+pub fn rule() -> String {
+    format!(
+        "descriptors L2-normalised over the quantised dims; per subspace, k-means++ then Lloyd ({ITERATIONS} iterations at most, seeded) on a seeded sample of at most {MAX_TRAIN} rows, {CENTROIDS} centroids; each subvector coded by its nearest centroid"
+    )
+}
+
+/// A product quantiser of unit rows of `dims = subspaces × sub_dims`.
+#[derive(Debug, Clone)]
+pub struct Quantiser {
+    subspaces: usize,
+    centroids: usize,
+    sub_dims: usize,
+    /// `[M·K × sub_dims]`: subspace m's centroid k is row `m·K + k`.
+    codebook: Vec<f32>,
+    nearest: Vec<Nearest>,
+}
+
+impl Quantiser {
+    /// Learns `subspaces` codebooks of `centroids` (at most 256) from `rows` (`[n × dims]`,
+    /// unit rows; a seeded sample of them is used); fewer training rows than `centroids` give
+    /// one centroid per row. Errors say what is wrong with the request.
+    pub fn train(
+        rows: &[f32],
+        dims: usize,
+        subspaces: usize,
+        centroids: usize,
+    ) -> Result<Quantiser, String> {
+        if subspaces == 0 || dims == 0 || dims % subspaces != 0 {
+            return Err(format!(
+                "{subspaces} subspaces do not divide {dims} dimensions"
+            ));
+        }
+        let n = rows.len() / dims;
+        if n == 0 {
+            return Err("no descriptors to learn a codebook from".into());
+        }
+        let sub_dims = dims / subspaces;
+        let centroids = centroids.clamp(1, CENTROIDS).min(n);
+        let mut codebook = Vec::with_capacity(subspaces * centroids * sub_dims);
+        let mut sub = vec![0.0f32; n * sub_dims];
+        for m in 0..subspaces {
+            for (out, row) in sub.chunks_exact_mut(sub_dims).zip(rows.chunks_exact(dims)) {
+                out.copy_from_slice(&row[m * sub_dims..(m + 1) * sub_dims]);
+            }
+            let kmeans = KMeans {
+                clusters: centroids,
+                max_train: MAX_TRAIN,
+                iterations: ITERATIONS,
+                seed: SEED ^ m as u64,
+            };
+            match kmeans.train(&sub, sub_dims) {
+                Some(c) => codebook.extend(c),
+                // Fewer non-zero subvectors than centroids: they and zeros are the codebook.
+                None => {
+                    let mut c: Vec<f32> = sub
+                        .chunks_exact(sub_dims)
+                        .filter(|r| r.iter().any(|&v| v != 0.0))
+                        .take(centroids)
+                        .flatten()
+                        .copied()
+                        .collect();
+                    c.resize(centroids * sub_dims, 0.0);
+                    codebook.extend(c);
+                }
+            }
+        }
+        let nearest = codebook
+            .chunks_exact(centroids * sub_dims)
+            .map(|c| Nearest::new(c, sub_dims))
+            .collect();
+        Ok(Quantiser {
+            subspaces,
+            centroids,
+            sub_dims,
+            codebook,
+            nearest,
+        })
+    }
+
+    pub fn subspaces(&self) -> usize {
+        self.subspaces
+    }
+
+    pub fn centroids(&self) -> usize {
+        self.centroids
+    }
+
+    /// `[M·K × sub_dims]`.
+    pub fn codebook(&self) -> &[f32] {
+        &self.codebook
+    }
+
+    /// Codes of one unit row (`dims` values) into `codes` (`subspaces` bytes); returns the
+    /// squared reconstruction error. `scores` is scratch of at least `centroids` values.
+    pub fn encode(&self, row: &[f32], codes: &mut [u8], scores: &mut [f32]) -> f64 {
+        let d = self.sub_dims;
+        let mut error = 0.0f64;
+        for (m, (code, nearest)) in codes.iter_mut().zip(&self.nearest).enumerate() {
+            let x = &row[m * d..(m + 1) * d];
+            let k = nearest.find(x, scores);
+            *code = k as u8;
+            let at = (m * self.centroids + k) * d;
+            error += x
+                .iter()
+                .zip(&self.codebook[at..at + d])
+                .map(|(&a, &b)| f64::from(a - b).powi(2))
+                .sum::<f64>();
+        }
+        error
+    }
+}
+
+/// Replaces the f16 descriptor blocks of `levels` in `writer` (a slice of `map`, see
+/// [`crate::format::slice`]) by PQ codes learned from `map`'s descriptors of those levels.
+/// Memory: a sample of at most 16,384 rows as f32 plus the codes; rows are decoded one at a
+/// time.
+pub fn quantise_levels(
+    map: &Map<'_>,
+    writer: &mut MapWriter<'_>,
+    levels: &[u16],
+    options: &PqOptions,
+) -> Result<Vec<PqLevelSummary>, Error> {
+    let mut summaries = Vec::with_capacity(levels.len());
+    for &id in levels {
+        let level = map.level(id)?;
+        let bad =
+            |what: String| Error::invalid(format!("--pq {}: level {id} {what}", options.subspaces));
+        if level.is_pq() {
+            return Err(bad("is already product-quantised".into()));
+        }
+        if !level.has_descriptors() {
+            return Err(bad("has no descriptors".into()));
+        }
+        let ds = level.dim_short();
+        let short = level.desc_short()?;
+        let rest = if options.short {
+            None
+        } else {
+            level.desc_rest()?
+        };
+        let dr = if rest.is_some() {
+            level.dim_full() - ds
+        } else {
+            0
+        };
+        let dims = ds + dr;
+        if dims % options.subspaces.max(1) != 0 || options.subspaces == 0 {
+            return Err(bad(format!(
+                "has {dims} dimensions, which {} subspaces do not divide",
+                options.subspaces
+            )));
+        }
+        let n = level.len();
+        let row = |r: usize, out: &mut [f32]| {
+            decode(&short[r * ds..(r + 1) * ds], &mut out[..ds]);
+            if let Some(rest) = &rest {
+                decode(&rest[r * dr..(r + 1) * dr], &mut out[ds..]);
+            }
+            l2_normalise(out);
+        };
+        // The training sample: a seeded partial shuffle of the rows, decoded.
+        let mut rng = SplitMix64::new(SEED ^ u64::from(id));
+        let take = n.min(MAX_TRAIN);
+        let mut picks: Vec<usize> = (0..n).collect();
+        for i in 0..take {
+            let j = i + rng.below(n - i);
+            picks.swap(i, j);
+        }
+        picks.truncate(take);
+        picks.sort_unstable();
+        let mut sample = vec![0.0f32; take * dims];
+        for (out, &r) in sample.chunks_exact_mut(dims.max(1)).zip(&picks) {
+            row(r, out);
+        }
+        let quantiser = Quantiser::train(&sample, dims, options.subspaces, centroids_for(n))
+            .map_err(|e| bad(e))?;
+        let m = options.subspaces;
+        let mut codes = vec![0u8; n * m];
+        let mut scratch = vec![0.0f32; dims];
+        let mut scores = vec![0.0f32; quantiser.centroids];
+        let mut error = 0.0f64;
+        for (r, out) in codes.chunks_exact_mut(m).enumerate() {
+            row(r, &mut scratch);
+            error += quantiser.encode(&scratch, out, &mut scores);
+        }
+        let bytes_before = (n * dims * 2) as u64;
+        let bytes_after = (codes.len() + quantiser.codebook.len() * 4) as u64;
+        summaries.push(PqLevelSummary {
+            level: id,
+            points: n,
+            dims,
+            subspaces: m,
+            centroids: quantiser.centroids,
+            bytes_before,
+            bytes_after,
+            mean_squared_error: if n == 0 { 0.0 } else { error / n as f64 },
+        });
+        if let Some(info) = writer
+            .metadata_mut()
+            .levels
+            .iter_mut()
+            .find(|l| l.level == id)
+        {
+            info.extra.insert(
+                "pq".into(),
+                serde_json::json!({ "subspaces": m, "centroids": quantiser.centroids, "dims": dims, "rule": rule() }),
+            );
+        }
+        let centroids = quantiser.centroids;
+        writer.set_level_pq(id, m, centroids, quantiser.codebook, codes)?;
+    }
+    Ok(summaries)
+}
+
+/// Centroids per subspace for a level of `n` points: the largest power of two up to 256 with
+/// at least [`POINTS_PER_CENTROID`] points each (at least 1).
+pub fn centroids_for(n: usize) -> usize {
+    let most = (n / POINTS_PER_CENTROID).clamp(1, CENTROIDS);
+    1 << most.ilog2()
+}
+
+fn decode(from: &[f16], to: &mut [f32]) {
+    use half::slice::HalfFloatSliceExt;
+    from.convert_to_f32_slice(to);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit_rows(n: usize, dims: usize, seed: u64) -> Vec<f32> {
+        let mut rng = SplitMix64::new(seed);
+        let mut rows: Vec<f32> = (0..n * dims).map(|_| rng.next_f64() as f32 - 0.5).collect();
+        rows.chunks_exact_mut(dims).for_each(l2_normalise);
+        rows
+    }
+
+    #[test]
+    fn codes_reconstruct_rows_better_than_chance_and_deterministically() {
+        let rows = unit_rows(3000, 16, 1);
+        let q = Quantiser::train(&rows, 16, 4, 256).unwrap();
+        assert_eq!(q.centroids(), 256);
+        assert_eq!(q.codebook().len(), 4 * 256 * 4);
+        assert_eq!(
+            q.codebook(),
+            Quantiser::train(&rows, 16, 4, 256).unwrap().codebook()
+        );
+        let mut codes = vec![0u8; 4];
+        let mut scores = vec![0.0; 256];
+        let mut error = 0.0;
+        for row in rows.chunks_exact(16) {
+            error += q.encode(row, &mut codes, &mut scores);
+        }
+        // A unit row against a random unit row: 2 on average; 4 × 256 centroids do far better.
+        let mean = error / 3000.0;
+        assert!(mean < 0.5, "{mean}");
+    }
+
+    #[test]
+    fn bad_requests_and_tiny_inputs() {
+        let rows = unit_rows(10, 12, 2);
+        assert!(Quantiser::train(&rows, 12, 5, 256).is_err());
+        assert!(Quantiser::train(&rows, 12, 0, 256).is_err());
+        assert!(Quantiser::train(&[], 12, 3, 256).is_err());
+        // 10 rows: 10 centroids per subspace, each row its own, so no error.
+        let q = Quantiser::train(&rows, 12, 3, 256).unwrap();
+        assert_eq!(q.centroids(), 10);
+        let (mut codes, mut scores) = (vec![0u8; 3], vec![0.0; 10]);
+        for row in rows.chunks_exact(12) {
+            assert!(q.encode(row, &mut codes, &mut scores) < 1e-10);
+        }
+        assert_eq!(
+            [0, 15, 16, 345, 4095, 4096, 1 << 20].map(centroids_for),
+            [1, 1, 1, 16, 128, 256, 256]
+        );
+    }
+}

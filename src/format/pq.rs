@@ -1,0 +1,113 @@
+//! Product-quantised levels (1.1): a level's descriptors stored as `M` one-byte codes per
+//! point, each naming one of `K ≤ 256` centroids of its subspace (Jégou, Douze & Schmid,
+//! "Product quantization for nearest neighbor search", 2011). The shape rules are checked at
+//! open, the codes against the codebook on first access; the view hands both out zero-copy.
+
+use super::error::Error;
+use super::layout::SectionKind;
+use super::metadata::LevelInfo;
+use super::reader::Section;
+use std::borrow::Cow;
+
+/// Codes are one byte: at most 256 centroids per subspace.
+pub const MAX_PQ_CENTROIDS: u64 = 256;
+
+/// A product-quantised level's descriptors: `subspaces` (M) codes per point over `dims`
+/// (`dim_short`, or `dim_full` when the quantised vector includes the `rest` dimensions), each
+/// subspace `sub_dims` = dims / M wide with `centroids` (K) centroids. The quantised vector is
+/// the stored descriptor's first `dims` values, L2-normalised.
+#[derive(Debug, Clone)]
+pub struct Pq<'m> {
+    pub subspaces: usize,
+    pub centroids: usize,
+    pub sub_dims: usize,
+    /// `[M·K × sub_dims]` f32: subspace m's centroid k is row `m·K + k`.
+    pub codebook: Cow<'m, [f32]>,
+    /// `[n_L × M]`: point r's centroid in subspace m is `codes[r·M + m]`.
+    pub codes: Cow<'m, [u8]>,
+}
+
+impl Pq<'_> {
+    /// Dimensions the codes quantise: `subspaces × sub_dims`.
+    pub fn dims(&self) -> usize {
+        self.subspaces * self.sub_dims
+    }
+
+    /// Row `r` reconstructed from its codes into `out` (`dims` values), not renormalised.
+    pub fn decode_row(&self, r: usize, out: &mut [f32]) {
+        let (m, k, d) = (self.subspaces, self.centroids, self.sub_dims);
+        for (s, &code) in self.codes[r * m..(r + 1) * m].iter().enumerate() {
+            let row = s * k + usize::from(code);
+            out[s * d..(s + 1) * d].copy_from_slice(&self.codebook[row * d..(row + 1) * d]);
+        }
+    }
+}
+
+/// Open's rules for a level's PQ sections, from the table alone: both or neither, one code
+/// row per level point, `K` in 1..=256 centroids per subspace, and `M × sub_dims` equal to
+/// `dim_short` or `dim_full`. Returns the quantised dimensions, `None` without PQ.
+pub(crate) fn check_shapes(
+    level: &LevelInfo,
+    n: u64,
+    codebook: Option<&Section>,
+    codes: Option<&Section>,
+) -> Result<Option<u64>, Error> {
+    let l = Some(level.level);
+    let (codebook, codes) = match (codebook, codes) {
+        (None, None) => return Ok(None),
+        (Some(b), Some(c)) => (b, c),
+        (Some(_), None) => {
+            return Err(Error::MissingSection {
+                kind: SectionKind::LevelPqCodes,
+                level: l,
+            })
+        }
+        (None, Some(_)) => {
+            return Err(Error::MissingSection {
+                kind: SectionKind::LevelPqCodebook,
+                level: l,
+            })
+        }
+    };
+    let (m, sub_dims) = (codes.cols, codebook.cols);
+    if codes.rows != n {
+        return Err(Error::inconsistent(format!(
+            "{} has {} rows, expected {n} (one per level point)",
+            codes.reference(),
+            codes.rows
+        )));
+    }
+    let k = if m == 0 { 0 } else { codebook.rows / m };
+    if m == 0 || sub_dims == 0 || codebook.rows % m != 0 || !(1..=MAX_PQ_CENTROIDS).contains(&k) {
+        return Err(Error::inconsistent(format!(
+            "{} is {} x {} for {m} subspaces: needs M x K rows (K from 1 to {MAX_PQ_CENTROIDS} centroids per subspace) of at least one dimension",
+            codebook.reference(),
+            codebook.rows,
+            sub_dims
+        )));
+    }
+    // Both are at most MAX_DESCRIPTOR_DIM (checked per entry), so this cannot overflow.
+    let dims = m * sub_dims;
+    if dims != u64::from(level.dim_short) && dims != u64::from(level.dim_full) {
+        return Err(Error::inconsistent(format!(
+            "level {}: {m} subspaces x {sub_dims} dimensions = {dims}, neither dim_short {} nor dim_full {}",
+            level.level, level.dim_short, level.dim_full
+        )));
+    }
+    Ok(Some(dims))
+}
+
+/// The first-access rule of the codes: every code names a centroid of the codebook (`< K`).
+/// `codebook` is the level's codebook section (for `K`).
+pub(crate) fn check_codes(codes: &[u8], m: u64, codebook: &Section) -> Result<(), String> {
+    let k = codebook.rows / m.max(1);
+    match codes.iter().position(|&c| u64::from(c) >= k) {
+        Some(i) => Err(format!(
+            "point row {}, subspace {}: code {} past the codebook's {k} centroids",
+            i as u64 / m,
+            i as u64 % m,
+            codes[i]
+        )),
+        None => Ok(()),
+    }
+}
