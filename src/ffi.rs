@@ -80,6 +80,22 @@ pub struct SfpmLevelInfo {
     pub has_rest: u8,
 }
 
+/// A product-quantised level's descriptors (format 1.1; see `spec/format.md`, kinds 21 and
+/// 22): `points × subspaces` one-byte codes and the `subspaces × centroids` codebook rows of
+/// `sub_dims` floats (subspace s's centroid k is row `s·centroids + k`). Zero-copy for raw
+/// sections; valid until `sfpm_close`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct SfpmLevelPq {
+    pub subspaces: u32,
+    pub centroids: u32,
+    pub sub_dims: u32,
+    pub codes: *const u8,
+    pub codes_len: usize,
+    pub codebook: *const f32,
+    pub codebook_len: usize,
+}
+
 /// A camera in COLMAP terms, e.g. model "SIMPLE_RADIAL" with params f, cx, cy, k.
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
@@ -631,6 +647,58 @@ pub unsafe extern "C" fn sfpm_level_desc_rest(
         })?;
         // SAFETY: checked non-null above; writable per contract.
         unsafe { h.lend((SectionKind::LevelDescRest, level), desc, data, len) };
+        Ok(SFPM_OK)
+    })
+}
+
+/// The PQ codes and codebook of a product-quantised `level` into `*out`. `SFPM_ERR_MISSING`
+/// when the level stores f16 blocks (see `sfpm_level_desc_short`).
+///
+/// # Safety
+/// `out` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_level_pq(
+    map: SfpmMap,
+    level: u16,
+    out: *mut SfpmLevelPq,
+) -> SfpmStatus {
+    guard(|| {
+        non_null(&[(out.is_null(), "out")])?;
+        let h = get(map)?;
+        let pq = h.map.level(level)?.pq()?.ok_or_else(|| {
+            FfiError::new(
+                SFPM_ERR_MISSING,
+                format!("level {level} is not product-quantised"),
+            )
+        })?;
+        let (mut codes, mut codes_len) = (std::ptr::null::<u8>(), 0usize);
+        let (mut codebook, mut codebook_len) = (std::ptr::null::<f32>(), 0usize);
+        // SAFETY: locals, writable.
+        unsafe {
+            h.lend(
+                (SectionKind::LevelPqCodes, level),
+                pq.codes,
+                &mut codes,
+                &mut codes_len,
+            );
+            h.lend(
+                (SectionKind::LevelPqCodebook, level),
+                pq.codebook,
+                &mut codebook,
+                &mut codebook_len,
+            );
+        }
+        let value = SfpmLevelPq {
+            subspaces: pq.subspaces as u32,
+            centroids: pq.centroids as u32,
+            sub_dims: pq.sub_dims as u32,
+            codes,
+            codes_len,
+            codebook,
+            codebook_len,
+        };
+        // SAFETY: per contract.
+        unsafe { put(out, value, "out") }?;
         Ok(SFPM_OK)
     })
 }

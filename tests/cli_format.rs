@@ -233,3 +233,64 @@ fn errors_name_the_path_once() {
         assert_eq!(err.matches(path).count(), 1, "{err}");
     }
 }
+
+/// (1.1) `slice --pq`: the kept levels' f16 blocks become codes; a PQ map is a 1.1 map whose
+/// sections `info` lists; requests that cannot be met fail in one line and write nothing.
+#[test]
+fn slice_pq_replaces_descriptor_blocks_by_codes() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("pq.sfpm");
+    let levels = vector("valid", "levels");
+    let o = sfpmap(&[
+        "slice",
+        levels.to_str().unwrap(),
+        "--level",
+        "0",
+        "--pq",
+        "4",
+        "-o",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(report["pq"][0]["dims"], 16);
+    assert_eq!(report["pq"][0]["subspaces"], 4);
+    assert!(sfpmap(&["verify", out.to_str().unwrap()]).status.success());
+    let info = info_json(&out);
+    assert_eq!(info["version"], "1.1");
+    let kinds: Vec<&str> = info["sections"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["kind"].as_str().unwrap())
+        .collect();
+    assert!(kinds.contains(&"level_pq_codes") && kinds.contains(&"level_pq_codebook"));
+    assert!(!kinds.contains(&"level_desc_short"), "{kinds:?}");
+
+    // 3 subspaces do not divide 16 dims; a PQ level is not quantised again.
+    let bad = dir.path().join("bad.sfpm");
+    for (map, level, m, why) in [
+        (levels.clone(), "0", "3", "which 3 subspaces do not divide"),
+        (vector("valid", "pq"), "1", "2", "already product-quantised"),
+    ] {
+        let o = sfpmap(&[
+            "slice",
+            map.to_str().unwrap(),
+            "--level",
+            level,
+            "--pq",
+            m,
+            "-o",
+            bad.to_str().unwrap(),
+        ]);
+        assert_eq!(o.status.code(), Some(1));
+        let err = stderr(&o);
+        assert!(
+            err.contains(why) && err.contains(map.to_str().unwrap()),
+            "{err}"
+        );
+        assert_eq!(err.lines().count(), 1, "{err}");
+        assert!(!bad.exists());
+    }
+}

@@ -78,6 +78,8 @@ pub struct ConvertSummary {
     pub points_without_descriptors: usize,
     /// The VLAD stored for retrieval, if one was.
     pub vlad: Option<StoredVlad>,
+    /// Each product-quantised level (`--pq`), empty without.
+    pub pq: Vec<pq::PqLevelSummary>,
 }
 
 /// The writer of a converted map: provenance (the tool, the input files, the `parameters`

@@ -269,6 +269,31 @@ pub fn centroids_for(n: usize) -> usize {
     1 << most.ilog2()
 }
 
+/// `convert --pq M`: every level with descriptors of the map `writer` holds, quantised over
+/// all its dimensions. The map is encoded once in memory to read its levels back.
+pub fn quantise_all(
+    writer: &mut MapWriter<'_>,
+    subspaces: usize,
+) -> Result<Vec<PqLevelSummary>, Error> {
+    let bytes = writer.to_bytes()?;
+    let map = Map::from_bytes(&bytes)?;
+    let levels: Vec<u16> = map
+        .levels()
+        .filter(|l| l.has_descriptors())
+        .map(|l| l.id())
+        .collect();
+    writer
+        .metadata_mut()
+        .provenance
+        .parameters
+        .insert("pq".into(), serde_json::json!(subspaces));
+    let options = PqOptions {
+        subspaces,
+        short: false,
+    };
+    quantise_levels(&map, writer, &levels, &options)
+}
+
 fn decode(from: &[f16], to: &mut [f32]) {
     use half::slice::HalfFloatSliceExt;
     from.convert_to_f32_slice(to);

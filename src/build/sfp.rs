@@ -43,6 +43,8 @@ pub struct SfpMapOptions {
     pub zstd_level: i32,
     /// Retrieval data besides the network's global descriptor: a VLAD codebook on level 2.
     pub vlad: super::VladOptions,
+    /// Product-quantise every level into this many one-byte codes per point (format 1.1).
+    pub pq: Option<usize>,
 }
 
 /// The level whose descriptors SFP maps' VLAD aggregates, when the map has it.
@@ -59,6 +61,7 @@ impl SfpMapOptions {
             codec: Codec::Raw,
             zstd_level: 3,
             vlad: super::VladOptions::default(),
+            pq: None,
         }
     }
 }
@@ -386,6 +389,10 @@ pub fn convert_with_images(
         .flatten();
     // The extractor's global descriptor, trained for retrieval, stays the default.
     writer.metadata_mut().retrieval = Some(crate::format::Retrieval::Global.name().to_string());
+    let pq = match options.pq {
+        Some(m) => super::pq::quantise_all(&mut writer, m)?,
+        None => Vec::new(),
+    };
     let output_bytes = writer.write(output, reporter)?;
     ms.sort_by(f64::total_cmp);
     Ok(SfpMapSummary {
@@ -400,6 +407,7 @@ pub fn convert_with_images(
             images_without_features: missing.len(),
             points_without_descriptors: 0,
             vlad,
+            pq,
         },
         model_points: n_points,
         missing_images: missing,

@@ -48,6 +48,8 @@ pub struct ConvertOptions {
     pub strict: bool,
     /// Retrieval data: a VLAD codebook on the deepest level's basis.
     pub vlad: super::VladOptions,
+    /// Product-quantise every level into this many one-byte codes per point (format 1.1).
+    pub pq: Option<usize>,
 }
 
 impl Default for ConvertOptions {
@@ -59,6 +61,7 @@ impl Default for ConvertOptions {
             zstd_level: 3,
             aggregate: Aggregate::Mean,
             vlad: super::VladOptions::default(),
+            pq: None,
             strict: false,
         }
     }
@@ -163,6 +166,10 @@ pub fn convert(
             reporter,
         )?;
     }
+    let pq = match options.pq {
+        Some(m) => super::pq::quantise_all(&mut writer, m)?,
+        None => Vec::new(),
+    };
     let output_bytes = writer.write(output, reporter)?;
     Ok(ConvertSummary {
         points: geometry.positions.len(),
@@ -175,6 +182,7 @@ pub fn convert(
         images_without_features,
         points_without_descriptors,
         vlad,
+        pq,
     })
 }
 

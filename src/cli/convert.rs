@@ -81,6 +81,10 @@ pub struct Args {
     /// ranked against the map's images by their VLAD of the same level's descriptors.
     #[arg(long, default_value_t = sfpmap::vlad::DEFAULT_CLUSTERS, value_parser = vlad_clusters)]
     pub vlad_clusters: usize,
+    /// Product-quantise every level into M one-byte codes per point (M dividing each level's
+    /// dims; format 1.1). `sfpmap slice --pq` does it for some levels of a map.
+    #[arg(long, value_name = "M", value_parser = clap::value_parser!(u16).range(1..=4096))]
+    pub pq: Option<u16>,
     /// Retrieval: leading dimensions of the level basis the codebook covers (at most the
     /// level's short dimensions).
     #[arg(long, default_value_t = sfpmap::vlad::DEFAULT_DIMS, value_parser = vlad_dims)]
@@ -111,6 +115,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         },
         strict: args.strict,
         vlad: vlad_options(&args),
+        pq: args.pq.map(usize::from),
     };
     let bars = super::Bars::new(quiet, args.json);
     // Errors name the file at fault themselves.
@@ -252,6 +257,7 @@ fn run_sfp(
         codec: Codec::from(args.codec),
         zstd_level: args.zstd_level,
         vlad: vlad_options(args),
+        pq: args.pq.map(usize::from),
     };
     let summary = convert_with_images(&args.colmap, &options, &args.output, &bars)?;
     let seconds = start.elapsed().as_secs_f64();

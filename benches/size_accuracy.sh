@@ -1,0 +1,63 @@
+#!/usr/bin/env bash
+# Accuracy per megabyte (issue 14): per shared scene (sacre-coeur, south-building, the KITTI 06
+# scene built once into target/scenes/kitti06) and map kind (SIFT from the scene's database,
+# SFP from its images), the level-2 short f16 map against its product-quantised slices
+# (`slice --level 2 --short --pq M`): bytes, bytes per point, queries localized, recall at
+# (0.1 x the median spacing of neighbouring map cameras, 2 deg), median errors.
+#
+# Usage: bash benches/size_accuracy.sh [BIN] [scene ...]   (BIN: target/release/sfpmap)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bin=${1:-target/release/sfpmap}; shift || true
+scenes=${*:-sacre-coeur south-building kitti06}
+DATA=../shared/data
+CACHE=target/scenes
+mkdir -p "$CACHE"
+
+jget() { python3 -c "import json,sys;d=json.load(open(sys.argv[1]));print(eval(sys.argv[2],{'d':d}))" "$@"; }
+
+scene_dir() { # the scene's folder (KITTI 06 built once)
+  if [ "$1" = kitti06 ]; then
+    if [ ! -f "$CACHE/kitti06/stats.json" ]; then
+      local K=$DATA/sequences/kitti06
+      python3 "$DATA/tools/make_posed_scene.py" "$K/images" "$K/poses.txt" "$K/calib.txt" \
+        "$CACHE/kitti06" --every 4 >"$CACHE/kitti06.log" 2>&1
+    fi
+    echo "$CACHE/kitti06"
+  else
+    echo "$DATA/scenes/$1"
+  fi
+}
+
+echo "| scene | map | variant | bytes | bytes/point | localized | recall (0.1 x spacing, 2°) | median transl. | median rot. (°) |"
+echo "|---|---|---|---|---|---|---|---|---|"
+for scene in $scenes; do
+  S=$(scene_dir "$scene"); C="$CACHE/$scene-size"; mkdir -p "$C"
+  # Copies of the databases (never the originals); South Building's are rebuilt once.
+  if [ -f "$S/database.db" ]; then cp "$S/database.db" "$C/database.db"; cp "$S/queries.db" "$C/queries.db"
+  elif [ ! -f "$C/database.db" ]; then
+    python3 "$DATA/tools/make_scene.py" IGNORED "$S" "$(mktemp -d)" --camera-mode SINGLE --every 5 \
+      --steps regen-db --regen-out "$C/database.db" --regen-queries-out "$C/queries.db" >"$C/regen.log" 2>&1
+  fi
+  [ -f "$C/sift.sfpm" ] || "$bin" convert --colmap "$S/sparse-map" --database "$C/database.db" -o "$C/sift.sfpm" --force -q
+  [ -f "$C/sfp.sfpm" ] || "$bin" convert --colmap "$S/sparse-map" --images "$S/images" -o "$C/sfp.sfpm" --force -q
+  for kind in sift sfp; do
+    dims=$("$bin" info "$C/$kind.sfpm" --json | python3 -c "import json,sys;d=json.load(sys.stdin);print([l['dim_short'] for l in d['levels'] if l['level']==2][0])")
+    variants="l2s"
+    for m in 4 8 16; do [ $((dims % m)) -eq 0 ] && [ "$m" -le "$dims" ] && variants="$variants l2s-pq$m"; done
+    for v in $variants; do
+      out="$C/$kind-$v.sfpm"
+      pq=(); [[ "$v" == *pq* ]] && pq=(--pq "${v##*pq}")
+      "$bin" slice "$C/$kind.sfpm" --level 2 --short "${pq[@]}" -o "$out" --force -q
+      if [ "$kind" = sift ]; then src=(--database "$C/queries.db"); else src=(--images "$S/images"); fi
+      "$bin" localize --map "$out" --query-list "$S/queries.txt" "${src[@]}" --threads 1 --short \
+        -o "$C/$kind-$v.poses" --force --json >"$C/$kind-$v.loc.json"
+      "$bin" eval --poses "$C/$kind-$v.poses" --gt "$S/gt_poses.txt" --map "$out" --json >"$C/$kind-$v.scale.json"
+      spacing=$(jget "$C/$kind-$v.scale.json" "d['scale']")
+      "$bin" eval --poses "$C/$kind-$v.poses" --gt "$S/gt_poses.txt" --map "$out" \
+        --threshold "$(python3 -c "print(0.1*$spacing)"),2" --json >"$C/$kind-$v.ev.json"
+      points=$("$bin" info "$out" --json | python3 -c "import json,sys;print(json.load(sys.stdin)['points'])")
+      jget "$C/$kind-$v.ev.json" "f\"| $scene | $kind | $v (L2 {$dims} dims) | {d['map_bytes']} | {d['map_bytes']/max($points,1):.1f} | {d['localized']}/{d['queries']} | {round(100*d['recall'][0]['recall'])} % | {'-' if d['median_translation'] is None else round(d['median_translation'],4)} | {'-' if d['median_rotation_deg'] is None else round(d['median_rotation_deg'],3)} |\""
+    done
+  done
+done
