@@ -4,7 +4,10 @@
 //!   `decoded`: `match_descriptors` (blocked sgemm + mutual NN + ratio test) on the f32 rows the
 //!   localizer keeps after `Localizer::new`; `from_f16`: the same, converting the f16 rows as
 //!   stored in the map to f32 inside the timed loop; `gemm_only`: the sgemm calls alone, so
-//!   `decoded − gemm_only` is the per-score bookkeeping. Throughput is in descriptor pairs.
+//!   `decoded − gemm_only` is the per-score bookkeeping; `adc_pqM`: the same rows
+//!   product-quantised into M one-byte codes (256 centroids per subspace), matched by
+//!   asymmetric distance as the localizer matches a PQ level (format 1.1). Throughput is in
+//!   descriptor pairs.
 //! - `localize/per_query/*`: one `Localizer::localize` call (coarse matching on the deepest
 //!   level, LO-RANSAC, guided matching on every level, final estimate; query extraction is not
 //!   part of it: the ≤ 20 ms target is "after extraction") on a generated 100,000-point map with
@@ -28,10 +31,15 @@ mod localize {
     use criterion::{BenchmarkId, Criterion, Throughput};
     use half::f16;
     use nalgebra::{UnitQuaternion, Vector3};
+    use sfpmap::build::pq::Quantiser;
+    use sfpmap::format::Pq;
     use sfpmap::format::{slice, CameraInfo, Descriptors, LevelInfo, Map, MapWriter, SliceOptions};
     use sfpmap::geometry::{Camera, Pose, SplitMix64};
-    use sfpmap::localize::internals::{match_descriptors, normalise_rows, sgemm_abt};
+    use sfpmap::localize::internals::{
+        match_descriptors, match_pq_descriptors, normalise_rows, sgemm_abt,
+    };
     use sfpmap::localize::{FeatureSet, LocalizeOptions, Localizer, MatchOptions, QueryFeatures};
+    use std::borrow::Cow;
 
     const DIM_FULL: usize = 192;
     const DIM_SHORT: usize = 64;
@@ -123,6 +131,31 @@ mod localize {
                     black_box(match_descriptors(&q, &decoded, dim, &options))
                 })
             });
+            // The same rows product-quantised (`slice --pq M`: 256 centroids per subspace,
+            // learned from 16,384 rows as `slice` samples), matched by asymmetric distance as
+            // the localizer matches a PQ level.
+            for subspaces in [dim / 8, dim / 4] {
+                let sample = &m[..16_384 * dim];
+                let quantiser = Quantiser::train(sample, dim, subspaces, 256).unwrap();
+                let mut codes = vec![0u8; N_POINTS * subspaces];
+                let mut scratch = vec![0.0f32; 256];
+                for (row, out) in m.chunks_exact(dim).zip(codes.chunks_exact_mut(subspaces)) {
+                    quantiser.encode(row, out, &mut scratch);
+                }
+                let pq = Pq {
+                    subspaces,
+                    centroids: 256,
+                    sub_dims: dim / subspaces,
+                    codebook: Cow::Borrowed(quantiser.codebook()),
+                    codes: Cow::Owned(codes),
+                };
+                let found = match_pq_descriptors(&q, &pq, &options).len();
+                eprintln!("match {label} pq{subspaces}: {found} matches of {N_QUERY} queries");
+                let id = BenchmarkId::new(format!("adc_pq{subspaces}"), label);
+                group.bench_with_input(id, &dim, |b, _| {
+                    b.iter(|| black_box(match_pq_descriptors(&q, &pq, &options)))
+                });
+            }
         }
         group.finish();
     }

@@ -11,9 +11,9 @@ use crate::format::Pq;
 
 /// Table entries per subspace: every value of a code byte, so a lookup needs no bounds check.
 const SLOTS: usize = 256;
-/// The most bytes the query tables of one matching call may take (`n_q × M × 256 × 4`):
-/// beyond it the caller reconstructs rows instead.
-pub(super) const MAX_TABLE_BYTES: usize = 32 << 20;
+/// The bytes of query tables held at once (`queries × M × 256 × 4`): queries are matched a
+/// chunk of this size at a time, so memory stays bounded whatever the query's keypoints.
+const TABLE_BYTES: usize = 8 << 20;
 
 /// The per-query tables of one matching call.
 pub(super) struct AdcTables<'p, 'm> {
@@ -26,15 +26,16 @@ pub(super) struct AdcTables<'p, 'm> {
 }
 
 impl<'p, 'm> AdcTables<'p, 'm> {
-    /// Tables for `query` (`[n_q × dims]` unit rows in the level basis), or `None` when they
-    /// would take more than [`MAX_TABLE_BYTES`].
-    pub(super) fn new(query: &[f32], pq: &'p Pq<'m>) -> Option<AdcTables<'p, 'm>> {
+    /// Queries per chunk for `pq`: tables of at most 8 MB.
+    pub(super) fn chunk(pq: &Pq<'_>) -> usize {
+        (TABLE_BYTES / (pq.subspaces.max(1) * SLOTS * 4)).max(1)
+    }
+
+    /// Tables for `query` (`[n_q × dims]` unit rows in the level basis; one chunk).
+    pub(super) fn new(query: &[f32], pq: &'p Pq<'m>) -> AdcTables<'p, 'm> {
         let (m, k, d) = (pq.subspaces, pq.centroids, pq.sub_dims);
         let dims = pq.dims();
         let n_q = query.len() / dims.max(1);
-        if n_q.checked_mul(m * SLOTS * 4)? > MAX_TABLE_BYTES {
-            return None;
-        }
         let mut lut = vec![0.0f32; n_q * m * SLOTS];
         let mut sub = vec![0.0f32; n_q * d];
         let mut products = vec![0.0f32; n_q * k];
@@ -53,12 +54,12 @@ impl<'p, 'm> AdcTables<'p, 'm> {
         for (i, c) in pq.codebook.chunks_exact(d).enumerate() {
             norms[(i / k) * SLOTS + i % k] = c.iter().map(|v| v * v).sum();
         }
-        Some(AdcTables {
+        AdcTables {
             pq,
             n_q,
             lut,
             norms,
-        })
+        }
     }
 
     /// Similarities of every query with the level rows `rows` into `out` (`[n_q × rows]`).
@@ -108,6 +109,48 @@ impl<'p, 'm> AdcTables<'p, 'm> {
     }
 }
 
+/// Matches unit `query` rows (`[n_q × dims]`) against the level rows `rows` of `pq` by
+/// asymmetric distance, a chunk of queries at a time (match indices are positions in `rows`).
+pub(super) fn match_pq(
+    query: &[f32],
+    pq: &Pq<'_>,
+    rows: &[usize],
+    options: &super::MatchOptions,
+) -> Vec<super::matching::Match> {
+    let dims = pq.dims().max(1);
+    let (mut codes_t, mut norms) = (Vec::new(), Vec::new());
+    let mut tables: Option<(usize, AdcTables<'_, '_>)> = None;
+    super::matching::match_scored(
+        query.len() / dims,
+        rows.len(),
+        AdcTables::chunk(pq),
+        options,
+        |queries, start, count, out| {
+            if tables
+                .as_ref()
+                .is_none_or(|(first, _)| *first != queries.start)
+            {
+                let chunk = &query[queries.start * dims..queries.end * dims];
+                tables = Some((queries.start, AdcTables::new(chunk, pq)));
+            }
+            if let Some((_, t)) = &tables {
+                t.scores(&rows[start..start + count], out, &mut codes_t, &mut norms);
+            }
+        },
+    )
+}
+
+/// [`match_pq`] against every row of `pq` (the benches' entry).
+#[cfg(any(test, feature = "fuzzing"))]
+pub fn match_pq_descriptors(
+    query: &[f32],
+    pq: &Pq<'_>,
+    options: &super::MatchOptions,
+) -> Vec<super::matching::Match> {
+    let rows: Vec<usize> = (0..pq.codes.len() / pq.subspaces.max(1)).collect();
+    match_pq(query, pq, &rows, options)
+}
+
 /// Table `i` of 256 entries: indexing it with a `u8` cannot go out of bounds.
 fn slots(tables: &[f32], i: usize) -> &[f32; SLOTS] {
     tables[i * SLOTS..(i + 1) * SLOTS]
@@ -140,7 +183,7 @@ mod tests {
             .map(|_| rng.next_f64() as f32 - 0.5)
             .collect();
         crate::vector::normalise_rows(&mut query, m * d);
-        let tables = AdcTables::new(&query, &pq).unwrap();
+        let tables = AdcTables::new(&query, &pq);
         let rows: Vec<usize> = vec![3, 0, 39, 17, 17];
         let mut out = vec![0.0; 4 * rows.len()];
         tables.scores(&rows, &mut out, &mut Vec::new(), &mut Vec::new());
@@ -154,8 +197,32 @@ mod tests {
                 assert!((got - want).abs() < 1e-5, "q {q} row {r}: {got} vs {want}");
             }
         }
-        // Tables past the cap are refused (the caller reconstructs instead).
-        let many = vec![0.0f32; (MAX_TABLE_BYTES / (m * SLOTS * 4) + 1) * m * d];
-        assert!(AdcTables::new(&many, &pq).is_none());
+        // In chunks of 3 queries, the matches are those of matching the reconstructions.
+        let all: Vec<usize> = (0..n).collect();
+        let options = crate::localize::MatchOptions::default();
+        let chunked =
+            crate::localize::matching::match_scored(4, n, 3, &options, |qs, start, count, out| {
+                let t = AdcTables::new(&query[qs.start * m * d..qs.end * m * d], &pq);
+                t.scores(
+                    &all[start..start + count],
+                    out,
+                    &mut Vec::new(),
+                    &mut Vec::new(),
+                );
+            });
+        let mut rebuilt = vec![0.0; n * m * d];
+        for (r, out) in rebuilt.chunks_exact_mut(m * d).enumerate() {
+            pq.decode_row(r, out);
+            crate::vector::l2_normalise(out);
+        }
+        let exact = crate::localize::matching::match_descriptors(&query, &rebuilt, m * d, &options);
+        assert_eq!(chunked.len(), exact.len());
+        for (a, b) in chunked.iter().zip(&exact) {
+            assert_eq!((a.query, a.map), (b.query, b.map));
+        }
+        assert_eq!(
+            match_pq_descriptors(&query, &pq, &options).len(),
+            exact.len()
+        );
     }
 }

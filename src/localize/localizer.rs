@@ -10,10 +10,10 @@
 //! mmapped map's f16 blocks, decoding the candidate rows a block at a time inside matching:
 //! nothing of its own per map point.
 
-use super::adc::AdcTables;
+use super::adc::match_pq;
 use super::kernels::sgemm_abt;
 use super::level::{index_level, LevelIndex, Stored};
-use super::matching::{match_rows, match_scored, MatchOptions};
+use super::matching::{match_rows, MatchOptions};
 use super::prior::Viewpoints;
 use super::retrieval::{RetrievalFallback, RetrievalIndex, RetrievalMethod};
 use crate::format::{Error as FormatError, Map, Retrieval, Visibility};
@@ -867,21 +867,11 @@ impl<'m> Localizer<'m> {
             q
         };
         let options = &self.options.matching;
-        let n_q = q.len() / dim;
-        // A PQ level is scored by table lookups where the tables fit; otherwise (and for f16)
-        // candidate rows are decoded from the mapping a block at a time, never all at once.
-        let tables = match &level.stored {
-            Stored::Pq(pq) => AdcTables::new(q, pq),
-            Stored::F16 { .. } => None,
-        };
-        let matches = match tables {
-            Some(tables) => {
-                let (mut codes_t, mut norms) = (Vec::new(), Vec::new());
-                match_scored(n_q, rows.len(), options, |start, count, out| {
-                    tables.scores(&rows[start..start + count], out, &mut codes_t, &mut norms)
-                })
-            }
-            None => {
+        // A PQ level is scored by table lookups (`adc`); f16 candidate rows are decoded from
+        // the mapping a block at a time, never all at once.
+        let matches = match &level.stored {
+            Stored::Pq(pq) => match_pq(q, pq, &rows, options),
+            Stored::F16 { .. } => {
                 let mut rest_run = Vec::new();
                 match_rows(q, rows.len(), dim, options, |start, tile| {
                     level.fill_rows(&rows[start..], tile, &mut rest_run)

@@ -24,6 +24,7 @@ pub use retrieval::{RetrievalFallback, RetrievalMethod};
 #[cfg(feature = "fuzzing")]
 #[doc(hidden)]
 pub mod internals {
+    pub use super::adc::match_pq_descriptors;
     pub use super::kernels::sgemm_abt;
     pub use super::matching::match_descriptors;
     pub use crate::vector::normalise_rows;
