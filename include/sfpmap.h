@@ -88,6 +88,20 @@ typedef struct SfpmLevelInfo {
   uint8_t has_rest;
 } SfpmLevelInfo;
 
+// A product-quantised level's descriptors (format 1.1; see `spec/format.md`, kinds 21 and
+// 22): `points × subspaces` one-byte codes and the `subspaces × centroids` codebook rows of
+// `sub_dims` floats (subspace s's centroid k is row `s·centroids + k`). Zero-copy for raw
+// sections; valid until `sfpm_close`.
+typedef struct SfpmLevelPq {
+  uint32_t subspaces;
+  uint32_t centroids;
+  uint32_t sub_dims;
+  const uint8_t *codes;
+  size_t codes_len;
+  const float *codebook;
+  size_t codebook_len;
+} SfpmLevelPq;
+
 // A camera in COLMAP terms, e.g. model "SIMPLE_RADIAL" with params f, cx, cy, k.
 typedef struct SfpmCamera {
   // NUL-terminated COLMAP model name ("PINHOLE", "SIMPLE_RADIAL", "OPENCV", ...).
@@ -191,6 +205,13 @@ SfpmStatus sfpm_level_desc_short(SfpmMap map, uint16_t level, const uint16_t **d
 // # Safety
 // `data` and `len` must be writable or NULL (an error).
 SfpmStatus sfpm_level_desc_rest(SfpmMap map, uint16_t level, const uint16_t **data, size_t *len);
+
+// The PQ codes and codebook of a product-quantised `level` into `*out`. `SFPM_ERR_MISSING`
+// when the level stores f16 blocks (see `sfpm_level_desc_short`).
+//
+// # Safety
+// `out` must be writable or NULL (an error).
+SfpmStatus sfpm_level_pq(SfpmMap map, uint16_t level, struct SfpmLevelPq *out);
 
 // Number of 3D points in the map.
 //

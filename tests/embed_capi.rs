@@ -391,6 +391,95 @@ fn assert_near_truth(out: &SfpmLocalization) {
     assert!(pose.center_distance(&t) < 0.05, "{p:?}");
 }
 
+/// (1.1) A product-quantised level: codes and codebook equal the `pq` vector's, zero-copy
+/// (the same pointers again), `SFPM_ERR_MISSING` for an f16 level.
+#[test]
+fn pq_codes_and_codebook_match_the_vector() {
+    let (path, json) = vector("pq");
+    let map = open(&path);
+    let level = &json["content"]["levels"][1]["pq"];
+    let mut out = std::mem::MaybeUninit::<SfpmLevelPq>::zeroed();
+    assert_eq!(
+        unsafe { sfpm_level_pq(map, 1, out.as_mut_ptr()) },
+        SfpmStatus::SFPM_OK
+    );
+    let pq = unsafe { out.assume_init() };
+    assert_eq!((pq.subspaces, pq.centroids, pq.sub_dims), (2, 3, 2));
+    let codes = unsafe { std::slice::from_raw_parts(pq.codes, pq.codes_len) };
+    let want: Vec<u8> = level["codes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|r| {
+            r.as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_u64().unwrap() as u8)
+        })
+        .collect();
+    assert_eq!(codes, want);
+    let codebook = unsafe { std::slice::from_raw_parts(pq.codebook, pq.codebook_len) };
+    let want: Vec<f32> = level["codebook"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|r| {
+            r.as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap() as f32)
+        })
+        .collect();
+    assert_eq!(codebook, want);
+    let mut again = std::mem::MaybeUninit::<SfpmLevelPq>::zeroed();
+    unsafe { sfpm_level_pq(map, 1, again.as_mut_ptr()) };
+    let again = unsafe { again.assume_init() };
+    assert_eq!((again.codes, again.codebook), (pq.codes, pq.codebook));
+    let mut other = std::mem::MaybeUninit::<SfpmLevelPq>::zeroed();
+    assert_eq!(
+        unsafe { sfpm_level_pq(map, 0, other.as_mut_ptr()) },
+        SfpmStatus::SFPM_ERR_MISSING
+    );
+    assert!(
+        last_error().contains("not product-quantised"),
+        "{}",
+        last_error()
+    );
+    assert_eq!(
+        unsafe { sfpm_level_pq(map, 1, null_mut()) },
+        SfpmStatus::SFPM_ERR_NULL
+    );
+    sfpm_close(map);
+}
+
+/// (1.1) `sfpm_localize` on the synthetic map with every level product-quantised.
+#[test]
+fn localizes_a_known_pose_on_a_pq_map() {
+    use sfpmap::build::pq::{quantise_all, PqLevelSummary};
+    let tmp = tempfile::tempdir().unwrap();
+    let (points, descriptors, path) = synthetic_map(tmp.path());
+    let bytes = std::fs::read(path.to_str().unwrap()).unwrap();
+    let source = sfpmap::format::Map::from_bytes(&bytes).unwrap();
+    let (mut writer, _) = sfpmap::format::slice(
+        &source,
+        &sfpmap::format::SliceOptions {
+            levels: vec![0, 1, 2],
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let summary: Vec<PqLevelSummary> = quantise_all(&mut writer, 8).unwrap();
+    assert_eq!(summary.len(), 3);
+    let pq_path = tmp.path().join("pq.sfpm");
+    std::fs::write(&pq_path, writer.to_bytes().unwrap()).unwrap();
+    let map = open(&CString::new(pq_path.to_str().unwrap()).unwrap());
+    let (xy, desc) = query(&points, &descriptors);
+    let (status, out) = localize(map, &xy, &desc, None);
+    assert_eq!(status, SfpmStatus::SFPM_OK, "{}", last_error());
+    assert_near_truth(&out);
+    sfpm_close(map);
+}
+
 #[test]
 fn localizes_a_known_pose_from_several_threads() {
     let tmp = tempfile::tempdir().unwrap();
