@@ -106,6 +106,7 @@ fn slicing(c: &mut Criterion) {
             short: true,
             codec,
             zstd_level: 1,
+            minimal: false,
         };
         group.bench_function(name, |b| {
             // A fresh open each time: slicing checks every section's checksum first.

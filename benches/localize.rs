@@ -418,6 +418,7 @@ mod localize {
                 short: true,
                 codec: None,
                 zstd_level: 3,
+                minimal: false,
             },
         )
         .unwrap()

@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Accuracy per megabyte (issue 14): per shared scene (sacre-coeur, south-building, the KITTI 06
 # scene built once into target/scenes/kitti06) and map kind (SIFT from the scene's database,
-# SFP from its images), the level-2 short f16 map against its product-quantised slices
-# (`slice --level 2 --short --pq M`): bytes, bytes per point, queries localized, recall at
-# (0.1 x the median spacing of neighbouring map cameras, 2 deg), median errors.
+# SFP from its images), the level-2 short f16 map (`slice --level 2 --short`, "l2s") against
+# its compact slices: `--minimal` ("min": positions on a 16-bit grid, no ids, colours or
+# visibility keypoints, compressed indices) and `--pq M` ("pqM": M one-byte codes per point):
+# bytes, bytes per point, queries localized, recall at (0.1 x the median spacing of
+# neighbouring map cameras, 2 deg), median errors.
 #
 # Usage: bash benches/size_accuracy.sh [BIN] [scene ...]   (BIN: target/release/sfpmap)
 set -euo pipefail
@@ -43,12 +45,13 @@ for scene in $scenes; do
   [ -f "$C/sfp.sfpm" ] || "$bin" convert --colmap "$S/sparse-map" --images "$S/images" -o "$C/sfp.sfpm" --force -q
   for kind in sift sfp; do
     dims=$("$bin" info "$C/$kind.sfpm" --json | python3 -c "import json,sys;d=json.load(sys.stdin);print([l['dim_short'] for l in d['levels'] if l['level']==2][0])")
-    variants="l2s"
-    for m in 4 8 16; do [ $((dims % m)) -eq 0 ] && [ "$m" -le "$dims" ] && variants="$variants l2s-pq$m"; done
+    variants="l2s l2s-pq8 l2s-min"
+    for m in 4 8 16; do [ $((dims % m)) -eq 0 ] && [ "$m" -le "$dims" ] && variants="$variants l2s-min-pq$m"; done
     for v in $variants; do
       out="$C/$kind-$v.sfpm"
-      pq=(); [[ "$v" == *pq* ]] && pq=(--pq "${v##*pq}")
-      "$bin" slice "$C/$kind.sfpm" --level 2 --short "${pq[@]}" -o "$out" --force -q
+      opts=(); [[ "$v" == *pq* ]] && opts=(--pq "${v##*pq}")
+      [[ "$v" == *min* ]] && opts+=(--minimal)
+      "$bin" slice "$C/$kind.sfpm" --level 2 --short "${opts[@]}" -o "$out" --force -q
       if [ "$kind" = sift ]; then src=(--database "$C/queries.db"); else src=(--images "$S/images"); fi
       "$bin" localize --map "$out" --query-list "$S/queries.txt" "${src[@]}" --threads 1 --short \
         -o "$C/$kind-$v.poses" --force --json >"$C/$kind-$v.loc.json"

@@ -404,6 +404,7 @@ fn real_fixtures_convert_verify_and_slice() {
                     short: true,
                     codec: None,
                     zstd_level: 3,
+                    minimal: false,
                 },
             )
             .unwrap();

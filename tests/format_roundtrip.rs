@@ -72,7 +72,7 @@ proptest! {
         let scene = Scene::new(seed, n_points, n_images, &[(0, 16.0, 12, 3), (1, 8.0, 8, 4), (2, 4.0, 6, 2)]);
         let bytes = scene.writer(Codec::Raw).to_bytes().unwrap();
         let map = Map::from_bytes(&bytes).unwrap();
-        let options = SliceOptions { levels: vec![keep as u16], short: true, codec, zstd_level: 1 };
+        let options = SliceOptions { levels: vec![keep as u16], short: true, codec, zstd_level: 1, minimal: false };
         let sliced = slice(&map, &options).unwrap().0.to_bytes().unwrap();
         let out = Map::from_bytes(&sliced).unwrap();
         out.verify().unwrap();
@@ -305,6 +305,7 @@ fn slice_to(bytes: &[u8], levels: &[u16], short: bool) -> (Vec<u8>, SliceSummary
         short,
         codec: None,
         zstd_level: 3,
+        minimal: false,
     };
     let (writer, summary) = slice(&map, &options).unwrap();
     (writer.to_bytes().unwrap(), summary)

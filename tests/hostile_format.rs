@@ -379,6 +379,7 @@ fn zero_short_dims_need_a_rest_block() {
         short: true,
         codec: None,
         zstd_level: 1,
+        minimal: false,
     };
     let err = sfpmap::format::slice(&map, &options).unwrap_err();
     assert_eq!(err.kind_name(), "invalid_input", "{err}");

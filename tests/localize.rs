@@ -142,6 +142,7 @@ fn recovers_the_pose_with_all_levels_and_with_a_level_2_short_slice() {
         short: true,
         codec: None,
         zstd_level: 3,
+        minimal: false,
     };
     let sliced = slice(&map, &options).unwrap().0.to_bytes().unwrap();
     let small = Map::from_bytes(&sliced).unwrap();
@@ -178,6 +179,7 @@ fn recovers_the_pose_from_product_quantised_levels() {
             short,
             codec: None,
             zstd_level: 3,
+            minimal: false,
         };
         let (mut writer, _) = slice(&map, &options).unwrap();
         let summary = quantise_levels(

@@ -111,6 +111,7 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         short: true,
         codec: None,
         zstd_level: 3,
+        minimal: false,
     };
     let short = slice(&map, &options).unwrap().0.to_bytes().unwrap();
     let content = s.sliced(2).expected_json(origin_of(&levels));

@@ -257,6 +257,21 @@ pub fn quantise_levels(
             );
         }
         let centroids = quantiser.centroids;
+        if dims < level.dim_full() {
+            // Quantised over `short` only, the level's descriptor is now those dims: the
+            // metadata says so, and the projection keeps the rows that make them.
+            if let Some(info) = writer
+                .metadata_mut()
+                .levels
+                .iter_mut()
+                .find(|l| l.level == id)
+            {
+                info.dim_full = dims as u32;
+            }
+            if let (Some(p), Some(d_in)) = (level.projection()?, level.projection_input_dim()) {
+                writer.set_level_projection(id, d_in, p[..dims * d_in].to_vec())?;
+            }
+        }
         writer.set_level_pq(id, m, centroids, quantiser.codebook, codes)?;
     }
     Ok(summaries)

@@ -145,6 +145,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             short: true,
             codec: None,
             zstd_level: 3,
+            minimal: false,
         },
     )?;
     writer.write(&sliced, &bars)?;

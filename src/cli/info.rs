@@ -34,7 +34,62 @@ struct Info<'m> {
     /// Optional sections this reader skips (unknown kinds; 1.1: unknown dtype, codec or flags).
     skipped_sections: Vec<SectionJson>,
     retrieval: Retrieval<'m>,
+    /// Stored bytes per point by component ([`components`]), with the file's total.
+    bytes_per_point: Vec<(&'static str, f64)>,
     provenance: &'m Provenance,
+}
+
+/// What each section is for, as `info` sums stored bytes: the map's size by component.
+fn component(kind: SectionKind) -> &'static str {
+    use SectionKind::*;
+    match kind {
+        PointPositions | PointPositionsQ16 => "positions",
+        PointColors | PointIds => "colours and ids",
+        LevelPoints => "level membership",
+        LevelDescShort | LevelDescRest | LevelPqCodes | LevelPqCodebook => "descriptors",
+        LevelProjection => "projections",
+        LevelVladCentroids | ImageGlobal | ImageVlad => "retrieval",
+        ImagePoses | ImageCameras | ImageIds | ImageNameOffsets | ImageNames => "images",
+        VisibilityOffsets | VisibilityPoints | VisibilityKeypoints => "visibility",
+        Unknown(_) => "skipped",
+    }
+}
+
+/// Stored bytes per point of each component present, in a fixed order, then the index
+/// (header, table, metadata, padding) and the whole file.
+fn components(map: &Map<'_>) -> Vec<(&'static str, f64)> {
+    const ORDER: [&str; 10] = [
+        "positions",
+        "colours and ids",
+        "level membership",
+        "descriptors",
+        "projections",
+        "retrieval",
+        "images",
+        "visibility",
+        "skipped",
+        "index and padding",
+    ];
+    let n = map.n_points().max(1) as f64;
+    let mut bytes = [0u64; 10];
+    for s in map.sections() {
+        let name = if s.skipped().is_some() {
+            "skipped"
+        } else {
+            component(s.kind())
+        };
+        let i = ORDER.iter().position(|&c| c == name).unwrap_or(8);
+        bytes[i] += s.stored_len();
+    }
+    bytes[9] = map.file_len() - bytes.iter().sum::<u64>();
+    let mut out: Vec<(&'static str, f64)> = ORDER
+        .iter()
+        .zip(bytes)
+        .filter(|&(_, b)| b > 0)
+        .map(|(&name, b)| (name, b as f64 / n))
+        .collect();
+    out.push(("total", map.file_len() as f64 / n));
+    out
 }
 
 /// What the map can retrieve with (format 1.1), from the section table alone.
@@ -187,6 +242,7 @@ fn print_info_json(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
         sections: map.sections().iter().map(SectionJson::from).collect(),
         skipped_sections: map.skipped_sections().map(SectionJson::from).collect(),
         retrieval: Retrieval::of(map, meta),
+        bytes_per_point: components(map),
         provenance: &meta.provenance,
     };
     // As `super::print_json` prints a Value: one line on stdout.
@@ -231,6 +287,11 @@ fn print_info_text(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
         )?;
     }
     writeln!(out, "{}", Retrieval::of(map, meta).describe())?;
+    let parts: Vec<String> = components(map)
+        .iter()
+        .map(|(name, b)| format!("{name} {b:.1}"))
+        .collect();
+    writeln!(out, "bytes per point: {}", parts.join(", "))?;
     writeln!(out, "sections:")?;
     for s in map.sections() {
         let level = s.level().map_or(String::new(), |l| format!(" L{l}"));

@@ -39,6 +39,11 @@ pub struct Args {
     /// Keep only the short descriptor block of each level.
     #[arg(long)]
     pub short: bool,
+    /// Keep only what localization reads, compactly (format 1.1): no point ids, colours or
+    /// visibility keypoints; positions on a 16-bit grid (the largest error is printed);
+    /// sorted, compressed visibility.
+    #[arg(long)]
+    pub minimal: bool,
     /// Product-quantise the kept levels' descriptors (all their dims, or with `--short` the
     /// short block's) into M one-byte codes per point, M dividing the dims (format 1.1).
     #[arg(long, value_name = "M", value_parser = clap::value_parser!(u16).range(1..=4096))]
@@ -69,6 +74,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         short: args.short,
         codec: args.codec.map(Codec::from),
         zstd_level: args.zstd_level,
+        minimal: args.minimal,
     };
     let (mut writer, summary) =
         slice(&map, &options).with_context(|| input.display().to_string())?;
@@ -91,6 +97,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         }
         None => Vec::new(),
     };
+    let writer_grid = writer.metadata().position_grid;
     let bars = super::Bars::new(quiet, args.json);
     let written = writer.write(output, &bars).map_err(super::naming(output))?;
     let before = map.file_len();
@@ -106,6 +113,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "sections_copied": summary.sections_copied,
             "sections_rebuilt": summary.sections_rebuilt,
             "skipped_sections_dropped": summary.skipped_dropped,
+            "position_max_error": writer_grid.map(|g| g.max_error()),
             "pq": pq.iter().map(|l| json!({
                 "level": l.level,
                 "points": l.points,
@@ -126,6 +134,13 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             summary.points_before,
             summary.points_after
         );
+        if let Some(g) = writer_grid {
+            let e = g.max_error();
+            println!(
+                "  positions on a 16-bit grid: at most {:.3e}, {:.3e}, {:.3e} {} from where they were (x, y, z)",
+                e[0], e[1], e[2], map.metadata().units
+            );
+        }
         for l in &pq {
             println!(
                 "  level {}: {} dims -> {} bytes per point ({} centroids per subspace), descriptors {} -> {} bytes, mean squared error {:.4}",

@@ -165,6 +165,7 @@ fn slice_in_memory_once(data: &[u8]) {
             short: i % 2 == 0,
             codec: None,
             zstd_level: 1,
+            minimal: false,
         };
         if let Ok((writer, _)) = slice(&map, &options) {
             let bytes = writer

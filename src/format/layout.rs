@@ -130,6 +130,9 @@ impl Codec {
 pub enum SectionKind {
     /// f32 [points × 3]: xyz relative to the metadata `origin`.
     PointPositions,
+    /// u16 [points × 3] (1.1): xyz on the metadata `position_grid`, in place of
+    /// `PointPositions`.
+    PointPositionsQ16,
     /// u8 [points × 3]: RGB.
     PointColors,
     /// u64 [points × 1]: the source's point ids (COLMAP `point3D_id`).
@@ -176,8 +179,9 @@ pub enum SectionKind {
 }
 
 impl SectionKind {
-    const KNOWN: [(u16, SectionKind, &'static str); 20] = [
+    const KNOWN: [(u16, SectionKind, &'static str); 21] = [
         (1, SectionKind::PointPositions, "point_positions"),
+        (4, SectionKind::PointPositionsQ16, "point_positions_q16"),
         (2, SectionKind::PointColors, "point_colors"),
         (3, SectionKind::PointIds, "point_ids"),
         (16, SectionKind::LevelPoints, "level_points"),
@@ -232,6 +236,7 @@ impl SectionKind {
         use SectionKind::*;
         Some(match self {
             PointPositions => (Dtype::F32, Some(3)),
+            PointPositionsQ16 => (Dtype::U16, Some(3)),
             PointColors => (Dtype::U8, Some(3)),
             PointIds => (Dtype::U64, Some(1)),
             LevelPoints => (Dtype::U32, Some(1)),
@@ -284,6 +289,7 @@ impl SectionKind {
         match self {
             SectionKind::LevelVladCentroids
             | SectionKind::ImageVlad
+            | SectionKind::PointPositionsQ16
             | SectionKind::LevelPqCodebook
             | SectionKind::LevelPqCodes => 1,
             _ => 0,

@@ -36,6 +36,9 @@ pub struct Metadata {
     /// kept and read as no preference (see [`Metadata::retrieval`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub retrieval: Option<String>,
+    /// 1.1: the grid of `point_positions_q16`, present exactly when that section is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub position_grid: Option<PositionGrid>,
     /// Keys this version does not know, kept as they are.
     #[serde(flatten)]
     pub extra: JsonMap<String, Value>,
@@ -86,8 +89,61 @@ impl Default for Metadata {
             levels: Vec::new(),
             provenance: Provenance::default(),
             retrieval: None,
+            position_grid: None,
             extra: JsonMap::new(),
         }
+    }
+}
+
+/// The grid quantised positions lie on (1.1): a stored `q` (u16 per axis) is the position
+/// `min + q × step` relative to the metadata `origin`, within `step / 2` of the position it
+/// quantised.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PositionGrid {
+    pub min: [f64; 3],
+    pub step: [f64; 3],
+}
+
+impl PositionGrid {
+    /// The grid over `positions` (relative to the origin): 65,536 steps from the smallest to
+    /// the largest value of each axis (a step of 1 for an axis that does not vary).
+    pub fn spanning(positions: &[[f32; 3]]) -> PositionGrid {
+        let mut min = [f64::INFINITY; 3];
+        let mut max = [f64::NEG_INFINITY; 3];
+        for p in positions {
+            for k in 0..3 {
+                min[k] = min[k].min(f64::from(p[k]));
+                max[k] = max[k].max(f64::from(p[k]));
+            }
+        }
+        let mut step = [1.0; 3];
+        for k in 0..3 {
+            if !min[k].is_finite() {
+                min[k] = 0.0;
+            } else if max[k] > min[k] {
+                step[k] = (max[k] - min[k]) / f64::from(u16::MAX);
+            }
+        }
+        PositionGrid { min, step }
+    }
+
+    /// The grid point nearest to `p`.
+    pub fn quantise(&self, p: [f32; 3]) -> [u16; 3] {
+        std::array::from_fn(|k| {
+            ((f64::from(p[k]) - self.min[k]) / self.step[k])
+                .round()
+                .clamp(0.0, f64::from(u16::MAX)) as u16
+        })
+    }
+
+    /// The position of grid point `q`, relative to the origin.
+    pub fn position(&self, q: [u16; 3]) -> [f32; 3] {
+        std::array::from_fn(|k| (self.min[k] + f64::from(q[k]) * self.step[k]) as f32)
+    }
+
+    /// The largest distance, per axis, between a position and its grid point: half a step.
+    pub fn max_error(&self) -> [f64; 3] {
+        self.step.map(|s| s / 2.0)
     }
 }
 

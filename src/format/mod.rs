@@ -36,7 +36,9 @@ pub use layout::{
 };
 #[cfg(feature = "fuzzing")]
 pub use layout::{Header, RawEntry};
-pub use metadata::{CameraInfo, LevelInfo, Metadata, Provenance, Retrieval, SourceFile};
+pub use metadata::{
+    CameraInfo, LevelInfo, Metadata, PositionGrid, Provenance, Retrieval, SourceFile,
+};
 pub use pq::{Pq, MAX_PQ_CENTROIDS};
 pub use reader::{decode_budget, decode_cap, Map, Section, Skipped};
 pub use slice::{slice, SliceOptions, SliceSummary};

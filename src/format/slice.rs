@@ -18,6 +18,10 @@ pub struct SliceOptions {
     /// (and its stored bytes, copied without decoding).
     pub codec: Option<Codec>,
     pub zstd_level: i32,
+    /// (1.1) Keep only what localization reads, compactly: drop point ids and colours and the
+    /// visibility keypoints, store positions on a grid (`point_positions_q16`, 6 bytes a point)
+    /// and each image's visible points sorted, index arrays zstd-compressed.
+    pub minimal: bool,
 }
 
 /// What a slice kept and dropped.
@@ -124,6 +128,12 @@ pub fn slice<'m>(
     .as_object()
     .cloned()
     .unwrap_or_default();
+    if options.minimal {
+        metadata
+            .provenance
+            .parameters
+            .insert("minimal".into(), serde_json::json!(true));
+    }
 
     let mut writer = MapWriter::new(metadata);
     if let Some(codec) = options.codec {
@@ -144,7 +154,12 @@ pub fn slice<'m>(
             continue;
         }
         let rebuilt: Option<Cow<'m, [u8]>> = match section.kind {
-            SectionKind::PointPositions | SectionKind::PointColors | SectionKind::PointIds => {
+            // Quantised below, from the kept positions.
+            SectionKind::PointPositions if options.minimal => continue,
+            SectionKind::PointPositions
+            | SectionKind::PointPositionsQ16
+            | SectionKind::PointColors
+            | SectionKind::PointIds => {
                 Some(gather_rows(map.section_bytes(section)?, section, &keep))
             }
             SectionKind::LevelPoints => {
@@ -164,21 +179,39 @@ pub fn slice<'m>(
             }
             _ => section.rows,
         };
+        let codec = match section.kind {
+            SectionKind::LevelPoints if options.minimal => Some(Codec::Zstd),
+            _ => options.codec,
+        };
         add_section(
             &mut writer,
             map,
             section,
             rows,
             rebuilt,
-            options.codec,
+            codec,
             &mut summary,
         )?;
+    }
+    if options.minimal {
+        let positions = map.point_positions()?;
+        let kept: Vec<[f32; 3]> = positions
+            .iter()
+            .zip(&keep)
+            .filter(|(_, &k)| k)
+            .map(|(&p, _)| p)
+            .collect();
+        writer.set_points_q16(&kept);
     }
 
     if let Some(vis) = map.visibility()? {
         let mut offsets = Vec::with_capacity(vis.offsets.len());
         let mut points = Vec::new();
-        let mut keypoints = vis.keypoints.as_ref().map(|_| Vec::new());
+        let mut keypoints = vis
+            .keypoints
+            .as_ref()
+            .filter(|_| !options.minimal)
+            .map(|_| Vec::new());
         offsets.push(0u64);
         for image in 0..vis.offsets.len() - 1 {
             let range = vis.offsets[image] as usize..vis.offsets[image + 1] as usize;
@@ -191,8 +224,18 @@ pub fn slice<'m>(
                     }
                 }
             }
+            if options.minimal {
+                // Without keypoints the order within an image is free: sorted, it compresses.
+                let start = *offsets.last().unwrap_or(&0) as usize;
+                points[start..].sort_unstable();
+            }
             offsets.push(points.len() as u64);
         }
+        let index_codec = if options.minimal {
+            Some(Codec::Zstd)
+        } else {
+            options.codec
+        };
         let as_bytes = |b: &[u8]| Some(Cow::Owned(b.to_vec()));
         let table = |kind| map.find(kind, None).expect("visibility sections exist");
         add_section(
@@ -201,7 +244,7 @@ pub fn slice<'m>(
             table(SectionKind::VisibilityOffsets),
             offsets.len() as u64,
             as_bytes(bytemuck::cast_slice(&offsets)),
-            options.codec,
+            index_codec,
             &mut summary,
         )?;
         add_section(
@@ -210,7 +253,7 @@ pub fn slice<'m>(
             table(SectionKind::VisibilityPoints),
             points.len() as u64,
             as_bytes(bytemuck::cast_slice(&points)),
-            options.codec,
+            index_codec,
             &mut summary,
         )?;
         if let Some(k) = keypoints {
@@ -244,6 +287,11 @@ impl Keep<'_> {
         match section.kind {
             _ if section.skipped().is_some() => false,
             SectionKind::LevelDescRest if self.options.short => false,
+            SectionKind::PointIds | SectionKind::PointColors | SectionKind::VisibilityKeypoints
+                if self.options.minimal =>
+            {
+                false
+            }
             SectionKind::ImageVlad => self.vlad,
             k if k.is_per_level() => self
                 .levels
@@ -259,6 +307,7 @@ impl Keep<'_> {
         let rebuilt = matches!(
             section.kind,
             SectionKind::PointPositions
+                | SectionKind::PointPositionsQ16
                 | SectionKind::PointColors
                 | SectionKind::PointIds
                 | SectionKind::LevelPoints
@@ -353,6 +402,7 @@ mod tests {
                 short,
                 codec: None,
                 zstd_level: 3,
+                minimal: false,
             };
             // The codebook's level kept (also short: its dims are within dim_short).
             let keep = Keep {
@@ -380,6 +430,7 @@ mod tests {
             short: false,
             codec: Some(Codec::Zstd),
             zstd_level: 3,
+            minimal: false,
         };
         let keep = Keep {
             options: &options,

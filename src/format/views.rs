@@ -33,7 +33,32 @@ pub(crate) fn check_shapes(
         _ => Ok(()),
     };
 
-    let n_points = need(SectionKind::PointPositions, None)?.rows;
+    let n_points = match (
+        find(SectionKind::PointPositions, None),
+        find(SectionKind::PointPositionsQ16, None),
+    ) {
+        (Some(p), None) => p.rows,
+        // 1.1: positions on a grid, which the metadata states.
+        (None, Some(q)) => {
+            let grid = metadata.position_grid.ok_or_else(|| Error::BadMetadata {
+                message: "point_positions_q16 without a position_grid".into(),
+            })?;
+            let finite = grid.min.iter().chain(&grid.step).all(|v| v.is_finite());
+            if !finite || grid.step.iter().any(|&s| s <= 0.0) {
+                return Err(Error::BadMetadata {
+                    message: "position_grid: min and step must be finite, step above 0".into(),
+                });
+            }
+            q.rows
+        }
+        (Some(_), Some(q)) => {
+            return Err(Error::inconsistent(format!(
+                "{} beside point_positions (a map has one of them)",
+                q.reference()
+            )))
+        }
+        (None, None) => need(SectionKind::PointPositions, None)?.rows,
+    };
     if n_points > u64::from(u32::MAX) {
         return Err(Error::inconsistent(
             "more points than u32 indices can address",
@@ -647,8 +672,16 @@ impl<'a> Map<'a> {
             .transpose()
     }
 
-    /// Point positions relative to the metadata origin.
+    /// Point positions relative to the metadata origin: a view of the mapping for raw f32
+    /// positions, decoded from the grid for (1.1) quantised ones.
     pub fn point_positions(&self) -> Result<Cow<'_, [[f32; 3]]>, Error> {
+        if let (Some(q), Some(grid)) = (
+            self.find(SectionKind::PointPositionsQ16, None),
+            self.metadata().position_grid,
+        ) {
+            let q = self.section_array::<[u16; 3]>(q)?;
+            return Ok(Cow::Owned(q.iter().map(|&q| grid.position(q)).collect()));
+        }
         self.section_array(self.required(SectionKind::PointPositions)?)
     }
 

@@ -7,7 +7,7 @@ use super::layout::{
     HEADER_LEN, MAX_DESCRIPTOR_DIM, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED, VERSION_MAJOR,
     VERSION_MINOR,
 };
-use super::metadata::{CameraInfo, LevelInfo, Metadata};
+use super::metadata::{CameraInfo, LevelInfo, Metadata, PositionGrid};
 use super::reader::{within_decode_ratio, Map, Section};
 use crate::progress::{Reporter, Silent};
 use half::f16;
@@ -178,6 +178,7 @@ impl<'a> MapWriter<'a> {
             })
             .collect();
         self.metadata.origin = origin;
+        self.clear_q16();
         self.push_array(
             SectionKind::PointPositions,
             NO_LEVEL,
@@ -189,8 +190,37 @@ impl<'a> MapWriter<'a> {
         self
     }
 
+    /// Point positions relative to the metadata origin, stored on a grid of 65,536 steps per
+    /// axis spanning them (format 1.1, `point_positions_q16`, written required) instead of as
+    /// f32: 6 bytes a point instead of 12. Returns the grid (its `max_error` is the most any
+    /// position moves).
+    pub fn set_points_q16(&mut self, relative: &[[f32; 3]]) -> PositionGrid {
+        let grid = PositionGrid::spanning(relative);
+        let q: Vec<[u16; 3]> = relative.iter().map(|&p| grid.quantise(p)).collect();
+        self.sections
+            .remove(&(SectionKind::PointPositions.code(), NO_LEVEL));
+        self.push_array(
+            SectionKind::PointPositionsQ16,
+            NO_LEVEL,
+            Dtype::U16,
+            q.len(),
+            3,
+            owned_bytes(q),
+        );
+        self.metadata.position_grid = Some(grid);
+        grid
+    }
+
+    /// Drops quantised positions: a map has f32 positions or (1.1) grid ones.
+    fn clear_q16(&mut self) {
+        self.sections
+            .remove(&(SectionKind::PointPositionsQ16.code(), NO_LEVEL));
+        self.metadata.position_grid = None;
+    }
+
     /// Point positions already relative to the metadata origin.
     pub fn set_points(&mut self, relative: &'a [[f32; 3]]) -> &mut Self {
+        self.clear_q16();
         self.push_array(
             SectionKind::PointPositions,
             NO_LEVEL,
