@@ -126,6 +126,43 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         ),
     ));
 
+    // 1.1: the same slice with --minimal: positions on a 16-bit grid, no colours, ids or
+    // keypoints, each image's visibility sorted.
+    let minimal = slice(
+        &map,
+        &SliceOptions {
+            minimal: true,
+            ..options.clone()
+        },
+    )
+    .unwrap()
+    .0
+    .to_bytes()
+    .unwrap();
+    let mut content = s.sliced(2).expected_json(origin_of(&levels));
+    content["positions"] = json!(on_grid(&content["positions"]));
+    content["colors"] = Value::Null;
+    content["point_ids"] = Value::Null;
+    let offsets: Vec<usize> =
+        serde_json::from_value(content["visibility"]["offsets"].clone()).unwrap();
+    let mut points: Vec<u32> =
+        serde_json::from_value(content["visibility"]["points"].clone()).unwrap();
+    for w in offsets.windows(2) {
+        points[w[0]..w[1]].sort_unstable();
+    }
+    content["visibility"]["points"] = json!(points);
+    out.push((
+        "minimal_slice",
+        minimal.clone(),
+        valid_expected_version(
+            "1.1",
+            "the levels vector sliced to level 2, short, minimal: point_positions_q16",
+            &minimal,
+            content,
+            json!([]),
+        ),
+    ));
+
     let zstd = s.writer(Codec::Zstd).to_bytes().unwrap();
     let content = s.expected_json(origin_of(&zstd));
     out.push((
@@ -332,6 +369,24 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
     out
 }
 
+/// Positions (`[[x, y, z]]` JSON) as the spec's grid stores them: 65,535 steps from each
+/// axis's smallest to its largest value, each value at its nearest step, read back as f32.
+fn on_grid(positions: &Value) -> Vec<[f32; 3]> {
+    let p: Vec<[f32; 3]> = serde_json::from_value(positions.clone()).unwrap();
+    let axis = |k: usize| p.iter().map(move |v| f64::from(v[k]));
+    let min: [f64; 3] = std::array::from_fn(|k| axis(k).fold(f64::INFINITY, f64::min));
+    let max: [f64; 3] = std::array::from_fn(|k| axis(k).fold(f64::NEG_INFINITY, f64::max));
+    let step: [f64; 3] = std::array::from_fn(|k| (max[k] - min[k]) / 65535.0);
+    p.iter()
+        .map(|v| {
+            std::array::from_fn(|k| {
+                let q = ((f64::from(v[k]) - min[k]) / step[k]).round();
+                (min[k] + q * step[k]) as f32
+            })
+        })
+        .collect()
+}
+
 /// The PQ vector's codebook `[2·3 × 2]`: subspace 0's centroids, then subspace 1's.
 const PQ_CODEBOOK: [f32; 12] = [
     0.5, 0.5, -0.5, 0.5, 0.0, -0.7, 0.6, 0.0, -0.6, 0.1, 0.0, 0.25,
@@ -432,6 +487,26 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
     out.push(("unknown_required", b, "unknown_required_section", "open"));
 
     // 1.1: header flags are required features; none is defined yet.
+    // 1.1: quantised positions without the grid that gives them meaning.
+    let m = Map::from_bytes(&good).unwrap();
+    let (mut w, _) = slice(
+        &m,
+        &SliceOptions {
+            levels: vec![2],
+            short: true,
+            codec: None,
+            zstd_level: 3,
+            minimal: true,
+        },
+    )
+    .unwrap();
+    w.metadata_mut().position_grid = None;
+    out.push((
+        "q16_without_grid",
+        w.to_bytes().unwrap(),
+        "bad_metadata",
+        "open",
+    ));
     out.push((
         "unknown_feature",
         patch(&minimal(), |h, _| h.flags = 1),

@@ -257,18 +257,16 @@ pub fn quantise_levels(
             );
         }
         let centroids = quantiser.centroids;
-        if dims < level.dim_full() {
-            // Quantised over `short` only, the level's descriptor is now those dims: the
-            // metadata says so, and the projection keeps the rows that make them.
-            if let Some(info) = writer
-                .metadata_mut()
-                .levels
-                .iter_mut()
-                .find(|l| l.level == id)
-            {
-                info.dim_full = dims as u32;
-            }
-            if let (Some(p), Some(d_in)) = (level.projection()?, level.projection_input_dim()) {
+        // Quantised over `short` only, a level with a projection has those dims as its
+        // descriptor: the metadata says so, and the projection keeps the rows that make them.
+        // (Without a projection, `dim_full` is also the query dimension the level takes, so
+        // it stays.)
+        if let (Some(p), Some(d_in)) = (level.projection()?, level.projection_input_dim()) {
+            if dims < level.dim_full() {
+                let levels = &mut writer.metadata_mut().levels;
+                if let Some(info) = levels.iter_mut().find(|l| l.level == id) {
+                    info.dim_full = dims as u32;
+                }
                 writer.set_level_projection(id, d_in, p[..dims * d_in].to_vec())?;
             }
         }
