@@ -68,44 +68,70 @@ impl<'p, 'm> AdcTables<'p, 'm> {
         &self,
         rows: &[usize],
         out: &mut [f32],
-        codes_t: &mut Vec<u8>,
+        block_codes: &mut Vec<u8>,
         inverse_norms: &mut Vec<f32>,
     ) {
         let m = self.pq.subspaces;
         let count = rows.len();
-        // The block's codes, subspace by subspace, so each lookup pass reads them in order.
-        codes_t.resize(m * count, 0);
-        for (j, &r) in rows.iter().enumerate() {
-            for (s, &c) in self.pq.codes[r * m..(r + 1) * m].iter().enumerate() {
-                codes_t[s * count + j] = c;
-            }
+        // The block's codes, row by row and contiguous, read once per query below.
+        block_codes.clear();
+        for &r in rows {
+            block_codes.extend_from_slice(&self.pq.codes[r * m..(r + 1) * m]);
         }
         inverse_norms.clear();
-        inverse_norms.resize(count, 0.0);
-        for s in 0..m {
-            let norms = slots(&self.norms, s);
-            for (n, &c) in inverse_norms
-                .iter_mut()
-                .zip(&codes_t[s * count..(s + 1) * count])
-            {
-                *n += norms[usize::from(c)];
-            }
-        }
-        for n in inverse_norms.iter_mut() {
-            *n = if *n > 0.0 { 1.0 / n.sqrt() } else { 0.0 };
+        for codes in block_codes.chunks_exact(m) {
+            let n: f32 = codes
+                .iter()
+                .enumerate()
+                .map(|(s, &c)| slots(&self.norms, s)[usize::from(c)])
+                .sum();
+            inverse_norms.push(if n > 0.0 { 1.0 / n.sqrt() } else { 0.0 });
         }
         for (q, out) in out.chunks_exact_mut(count).take(self.n_q).enumerate() {
-            out.fill(0.0);
-            for s in 0..m {
-                let table = slots(&self.lut, q * m + s);
-                for (o, &c) in out.iter_mut().zip(&codes_t[s * count..(s + 1) * count]) {
-                    *o += table[usize::from(c)];
+            let tables = &self.lut[q * m * SLOTS..(q + 1) * m * SLOTS];
+            let tables: &[[f32; SLOTS]] = bytemuck::cast_slice(tables);
+            // The common sizes with the subspace loop unrolled; any other M the same way.
+            match m {
+                4 => rows_fixed::<4>(tables, block_codes, inverse_norms, out),
+                8 => rows_fixed::<8>(tables, block_codes, inverse_norms, out),
+                16 => rows_fixed::<16>(tables, block_codes, inverse_norms, out),
+                32 => rows_fixed::<32>(tables, block_codes, inverse_norms, out),
+                _ => {
+                    for ((o, codes), &n) in out
+                        .iter_mut()
+                        .zip(block_codes.chunks_exact(m))
+                        .zip(inverse_norms.iter())
+                    {
+                        let sum: f32 = tables
+                            .iter()
+                            .zip(codes)
+                            .map(|(t, &c)| t[usize::from(c)])
+                            .sum();
+                        *o = sum * n;
+                    }
                 }
             }
-            for (o, &n) in out.iter_mut().zip(inverse_norms.iter()) {
-                *o *= n;
-            }
         }
+    }
+}
+
+/// One query's similarities with a block of rows of `M` codes: `M` lookups per row summed in
+/// two independent chains (so additions overlap), then scaled by the row's inverse norm.
+fn rows_fixed<const M: usize>(
+    tables: &[[f32; SLOTS]],
+    codes: &[u8],
+    inverse_norms: &[f32],
+    out: &mut [f32],
+) {
+    let tables: &[[f32; SLOTS]; M] = tables.try_into().expect("M tables");
+    for ((o, codes), &n) in out.iter_mut().zip(codes.chunks_exact(M)).zip(inverse_norms) {
+        let codes: &[u8; M] = codes.try_into().expect("M codes");
+        let (mut even, mut odd) = (0.0f32, 0.0f32);
+        for s in (0..M).step_by(2) {
+            even += tables[s][usize::from(codes[s])];
+            odd += tables[s + 1][usize::from(codes[s + 1])];
+        }
+        *o = (even + odd) * n;
     }
 }
 
@@ -118,7 +144,7 @@ pub(super) fn match_pq(
     options: &super::MatchOptions,
 ) -> Vec<super::matching::Match> {
     let dims = pq.dims().max(1);
-    let (mut codes_t, mut norms) = (Vec::new(), Vec::new());
+    let (mut block_codes, mut norms) = (Vec::new(), Vec::new());
     let mut tables: Option<(usize, AdcTables<'_, '_>)> = None;
     super::matching::match_scored(
         query.len() / dims,
@@ -134,7 +160,12 @@ pub(super) fn match_pq(
                 tables = Some((queries.start, AdcTables::new(chunk, pq)));
             }
             if let Some((_, t)) = &tables {
-                t.scores(&rows[start..start + count], out, &mut codes_t, &mut norms);
+                t.scores(
+                    &rows[start..start + count],
+                    out,
+                    &mut block_codes,
+                    &mut norms,
+                );
             }
         },
     )
@@ -166,63 +197,72 @@ mod tests {
 
     #[test]
     fn adc_scores_are_cosines_with_the_reconstructions() {
-        let (m, k, d, n) = (3, 5, 2, 40);
-        let mut rng = SplitMix64::new(9);
-        let codebook: Vec<f32> = (0..m * k * d)
-            .map(|_| rng.next_f64() as f32 - 0.5)
-            .collect();
-        let codes: Vec<u8> = (0..n * m).map(|_| rng.below(k) as u8).collect();
-        let pq = Pq {
-            subspaces: m,
-            centroids: k,
-            sub_dims: d,
-            codebook: Cow::Owned(codebook),
-            codes: Cow::Owned(codes),
-        };
-        let mut query: Vec<f32> = (0..4 * m * d)
-            .map(|_| rng.next_f64() as f32 - 0.5)
-            .collect();
-        crate::vector::normalise_rows(&mut query, m * d);
-        let tables = AdcTables::new(&query, &pq);
-        let rows: Vec<usize> = vec![3, 0, 39, 17, 17];
-        let mut out = vec![0.0; 4 * rows.len()];
-        tables.scores(&rows, &mut out, &mut Vec::new(), &mut Vec::new());
-        let mut x = vec![0.0; m * d];
-        for (q, qrow) in query.chunks_exact(m * d).enumerate() {
-            for (j, &r) in rows.iter().enumerate() {
-                pq.decode_row(r, &mut x);
-                crate::vector::l2_normalise(&mut x);
-                let want: f32 = qrow.iter().zip(&x).map(|(a, b)| a * b).sum();
-                let got = out[q * rows.len() + j];
-                assert!((got - want).abs() < 1e-5, "q {q} row {r}: {got} vs {want}");
+        // M = 3 takes the general loop, M = 8 the unrolled one.
+        for m in [3usize, 8] {
+            let (k, d, n) = (5, 2, 40);
+            let mut rng = SplitMix64::new(9);
+            let codebook: Vec<f32> = (0..m * k * d)
+                .map(|_| rng.next_f64() as f32 - 0.5)
+                .collect();
+            let codes: Vec<u8> = (0..n * m).map(|_| rng.below(k) as u8).collect();
+            let pq = Pq {
+                subspaces: m,
+                centroids: k,
+                sub_dims: d,
+                codebook: Cow::Owned(codebook),
+                codes: Cow::Owned(codes),
+            };
+            let mut query: Vec<f32> = (0..4 * m * d)
+                .map(|_| rng.next_f64() as f32 - 0.5)
+                .collect();
+            crate::vector::normalise_rows(&mut query, m * d);
+            let tables = AdcTables::new(&query, &pq);
+            let rows: Vec<usize> = vec![3, 0, 39, 17, 17];
+            let mut out = vec![0.0; 4 * rows.len()];
+            tables.scores(&rows, &mut out, &mut Vec::new(), &mut Vec::new());
+            let mut x = vec![0.0; m * d];
+            for (q, qrow) in query.chunks_exact(m * d).enumerate() {
+                for (j, &r) in rows.iter().enumerate() {
+                    pq.decode_row(r, &mut x);
+                    crate::vector::l2_normalise(&mut x);
+                    let want: f32 = qrow.iter().zip(&x).map(|(a, b)| a * b).sum();
+                    let got = out[q * rows.len() + j];
+                    assert!((got - want).abs() < 1e-5, "q {q} row {r}: {got} vs {want}");
+                }
             }
+            // In chunks of 3 queries, the matches are those of matching the reconstructions.
+            let all: Vec<usize> = (0..n).collect();
+            let options = crate::localize::MatchOptions::default();
+            let chunked = crate::localize::matching::match_scored(
+                4,
+                n,
+                3,
+                &options,
+                |qs, start, count, out| {
+                    let t = AdcTables::new(&query[qs.start * m * d..qs.end * m * d], &pq);
+                    t.scores(
+                        &all[start..start + count],
+                        out,
+                        &mut Vec::new(),
+                        &mut Vec::new(),
+                    );
+                },
+            );
+            let mut rebuilt = vec![0.0; n * m * d];
+            for (r, out) in rebuilt.chunks_exact_mut(m * d).enumerate() {
+                pq.decode_row(r, out);
+                crate::vector::l2_normalise(out);
+            }
+            let exact =
+                crate::localize::matching::match_descriptors(&query, &rebuilt, m * d, &options);
+            assert_eq!(chunked.len(), exact.len());
+            for (a, b) in chunked.iter().zip(&exact) {
+                assert_eq!((a.query, a.map), (b.query, b.map));
+            }
+            assert_eq!(
+                match_pq_descriptors(&query, &pq, &options).len(),
+                exact.len()
+            );
         }
-        // In chunks of 3 queries, the matches are those of matching the reconstructions.
-        let all: Vec<usize> = (0..n).collect();
-        let options = crate::localize::MatchOptions::default();
-        let chunked =
-            crate::localize::matching::match_scored(4, n, 3, &options, |qs, start, count, out| {
-                let t = AdcTables::new(&query[qs.start * m * d..qs.end * m * d], &pq);
-                t.scores(
-                    &all[start..start + count],
-                    out,
-                    &mut Vec::new(),
-                    &mut Vec::new(),
-                );
-            });
-        let mut rebuilt = vec![0.0; n * m * d];
-        for (r, out) in rebuilt.chunks_exact_mut(m * d).enumerate() {
-            pq.decode_row(r, out);
-            crate::vector::l2_normalise(out);
-        }
-        let exact = crate::localize::matching::match_descriptors(&query, &rebuilt, m * d, &options);
-        assert_eq!(chunked.len(), exact.len());
-        for (a, b) in chunked.iter().zip(&exact) {
-            assert_eq!((a.query, a.map), (b.query, b.map));
-        }
-        assert_eq!(
-            match_pq_descriptors(&query, &pq, &options).len(),
-            exact.len()
-        );
     }
 }
