@@ -77,10 +77,16 @@ pub fn slice<'m>(
         .iter()
         .find(|s| s.kind == SectionKind::LevelVladCentroids)
         .and_then(|s| s.level);
+    // --minimal keeps the retrieval data the map prefers when it has both kinds: the
+    // localizer reads only that one.
+    let preference = map.metadata().retrieval();
+    let has_global = map.find(SectionKind::ImageGlobal, None).is_some();
+    let vlad_kept = vlad_level.is_some_and(|l| keep_levels.binary_search(&l).is_ok());
     let keeps = Keep {
         options,
         levels: &keep_levels,
-        vlad: vlad_level.is_some_and(|l| keep_levels.binary_search(&l).is_ok()),
+        vlad: vlad_kept && !(options.minimal && preference == Some(Retrieval::Global) && has_global),
+        global: !(options.minimal && preference == Some(Retrieval::Vlad) && vlad_kept),
     };
     // Checking everything first means a corrupt section is never copied into the new map.
     // Sections this slice reads are kept decoded and the others streamed, so each is decoded
@@ -109,6 +115,9 @@ pub fn slice<'m>(
         .levels
         .retain(|l| keep_levels.binary_search(&l.level).is_ok());
     let vlad_dropped = vlad_level.is_some() && !keeps.vlad;
+    if !keeps.global && metadata.retrieval() == Some(Retrieval::Global) {
+        metadata.retrieval = None;
+    }
     if vlad_dropped && metadata.retrieval() == Some(Retrieval::Vlad) {
         metadata.retrieval = map
             .find(SectionKind::ImageGlobal, None)
@@ -280,6 +289,8 @@ struct Keep<'a> {
     levels: &'a [u16],
     /// Whether the VLAD codebook's level is kept (and with it `image_vlad`).
     vlad: bool,
+    /// Whether `image_global` is kept.
+    global: bool,
 }
 
 impl Keep<'_> {
@@ -293,6 +304,8 @@ impl Keep<'_> {
                 false
             }
             SectionKind::ImageVlad => self.vlad,
+            SectionKind::LevelVladCentroids if !self.vlad => false,
+            SectionKind::ImageGlobal => self.global,
             k if k.is_per_level() => self
                 .levels
                 .binary_search(&section.level.unwrap_or(NO_LEVEL))
@@ -409,6 +422,7 @@ mod tests {
                 options: &options,
                 levels: &[2],
                 vlad: true,
+                global: true,
             };
             assert!(keep.section(&codebook(2)));
             assert!(keep.section(&image_vlad));
@@ -419,6 +433,7 @@ mod tests {
                 options: &options,
                 levels: &[2],
                 vlad: false,
+                global: true,
             };
             assert!(!keep.section(&codebook(0)));
             assert!(!keep.section(&image_vlad));
@@ -436,6 +451,7 @@ mod tests {
             options: &options,
             levels: &[2],
             vlad: true,
+            global: true,
         };
         assert!(keep.reads_contents(&codebook(2)));
         assert!(keep.reads_contents(&image_vlad));
