@@ -57,7 +57,7 @@ pub struct Nearest {
 impl Nearest {
     /// From centroids `[clusters × dims]` (a partial last row is ignored).
     pub fn new(centroids: &[f32], dims: usize) -> Nearest {
-        let clusters = if dims == 0 { 0 } else { centroids.len() / dims };
+        let clusters = centroids.len().checked_div(dims).unwrap_or(0);
         let mut transposed = vec![0.0f32; dims * clusters];
         let mut minus_half_norms = vec![0.0f32; clusters];
         for (c, centroid) in centroids.chunks_exact(dims.max(1)).enumerate() {

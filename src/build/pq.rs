@@ -222,8 +222,8 @@ pub fn quantise_levels(
         for (out, &r) in sample.chunks_exact_mut(dims.max(1)).zip(&picks) {
             row(r, out);
         }
-        let quantiser = Quantiser::train(&sample, dims, options.subspaces, centroids_for(n))
-            .map_err(|e| bad(e))?;
+        let quantiser =
+            Quantiser::train(&sample, dims, options.subspaces, centroids_for(n)).map_err(bad)?;
         let m = options.subspaces;
         let mut codes = vec![0u8; n * m];
         let mut scratch = vec![0.0f32; dims];

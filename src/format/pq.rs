@@ -77,7 +77,7 @@ pub(crate) fn check_shapes(
             codes.rows
         )));
     }
-    let k = if m == 0 { 0 } else { codebook.rows / m };
+    let k = codebook.rows.checked_div(m).unwrap_or(0);
     if m == 0 || sub_dims == 0 || codebook.rows % m != 0 || !(1..=MAX_PQ_CENTROIDS).contains(&k) {
         return Err(Error::inconsistent(format!(
             "{} is {} x {} for {m} subspaces: needs M x K rows (K from 1 to {MAX_PQ_CENTROIDS} centroids per subspace) of at least one dimension",

@@ -85,7 +85,8 @@ pub fn slice<'m>(
     let keeps = Keep {
         options,
         levels: &keep_levels,
-        vlad: vlad_kept && !(options.minimal && preference == Some(Retrieval::Global) && has_global),
+        vlad: vlad_kept
+            && !(options.minimal && preference == Some(Retrieval::Global) && has_global),
         global: !(options.minimal && preference == Some(Retrieval::Vlad) && vlad_kept),
     };
     // Checking everything first means a corrupt section is never copied into the new map.

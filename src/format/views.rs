@@ -444,10 +444,8 @@ pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> 
                 return bad(what);
             }
         }
-        SectionKind::LevelPqCodebook => {
-            if cast::<f32>(bytes).iter().any(|v| !v.is_finite()) {
-                return bad("a centroid value is not finite".into());
-            }
+        SectionKind::LevelPqCodebook if cast::<f32>(bytes).iter().any(|v| !v.is_finite()) => {
+            return bad("a centroid value is not finite".into());
         }
         _ => {}
     }
