@@ -1,6 +1,7 @@
 //! External formats in and out, each reader beside its writer: poses (`poses`), hloc's
-//! `features.h5`, query inputs (`queries`), MCAP logs (`mcap_io`), the `info --json` object (`info`); and maps out to other
-//! tools: a COLMAP text model, a PLY point cloud, TUM / images.txt poses, a PNG plot.
+//! `features.h5`, query inputs (`queries`), MCAP logs (`mcap_io`), the `info --json` object
+//! (`info`); and maps out to other tools: a COLMAP text model, a PLY point cloud, TUM /
+//! images.txt poses, a PNG plot.
 
 #[cfg(feature = "colmap-model")]
 pub mod colmap_export;

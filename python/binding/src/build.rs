@@ -1,7 +1,9 @@
 //! `convert`, `slice` and `from_pycolmap`: the CLI's map building, as functions. Each returns
 //! the object the CLI's `--json` prints (as JSON text; `sfpmap/__init__.py` parses it).
 
-use crate::errors::{chain, format_error, output_error, within, ConvertError, FileError, InputError};
+use crate::errors::{
+    chain, format_error, output_error, within, ConvertError, FileError, InputError,
+};
 use pyo3::prelude::*;
 use serde_json::json;
 use sfpmap::build::{
@@ -280,8 +282,9 @@ pub(crate) fn convert(
         match &o.images {
             Some(images) => {
                 sfpmap::extract::runtime::disable_telemetry();
-                let s = sfpmap::build::convert_with_images(&model_dir, &o.sfp(images), &out, &Silent)
-                    .map_err(convert_error)?;
+                let s =
+                    sfpmap::build::convert_with_images(&model_dir, &o.sfp(images), &out, &Silent)
+                        .map_err(convert_error)?;
                 Ok(sfp_json(&out, &s, start.elapsed().as_secs_f64()))
             }
             None => {
@@ -313,7 +316,9 @@ pub(crate) fn slice(
         return Err(InputError::new_err("levels: at least one level to keep"));
     }
     if !(1..=22).contains(&zstd_level) {
-        return Err(InputError::new_err(format!("zstd_level {zstd_level}: 1 to 22")));
+        return Err(InputError::new_err(format!(
+            "zstd_level {zstd_level}: 1 to 22"
+        )));
     }
     let options = sfpmap::format::SliceOptions {
         levels,
@@ -398,7 +403,11 @@ fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
         let q = vec_f64(pose.getattr("rotation")?.getattr("quat")?)?;
         let t = vec_f64(pose.getattr("translation")?)?;
         if q.len() != 4 || t.len() != 3 {
-            return Err(bad(format!("image {id}: a pose of {} + {} values", q.len(), t.len())));
+            return Err(bad(format!(
+                "image {id}: a pose of {} + {} values",
+                q.len(),
+                t.len()
+            )));
         }
         // pycolmap's quaternions are [x, y, z, w].
         let cam_from_world = Pose::from_colmap(q[3], q[0], q[1], q[2], t[0], t[1], t[2])
@@ -548,7 +557,9 @@ pub(crate) fn write_synthetic_map(
 ) -> PyResult<u64> {
     use sfpmap::format::{f16, Descriptors, LevelInfo, MapWriter, Metadata};
     if points == 0 || points > u32::MAX as usize || dim_short == 0 || dim_short > dim_full {
-        return Err(InputError::new_err("points >= 1, 1 <= dim_short <= dim_full"));
+        return Err(InputError::new_err(
+            "points >= 1, 1 <= dim_short <= dim_full",
+        ));
     }
     py.detach(|| {
         let positions: Vec<[f32; 3]> = (0..points)

@@ -30,14 +30,22 @@ fn extract_error(e: sfpmap::extract::ExtractError) -> PyErr {
 /// floats in [0, 1].
 fn image_of(array: &Bound<'_, PyAny>) -> PyResult<image::DynamicImage> {
     let np = array.py().import("numpy")?;
-    let dtype = array.getattr("dtype")?.getattr("kind")?.extract::<String>()?;
+    let dtype = array
+        .getattr("dtype")?
+        .getattr("kind")?
+        .extract::<String>()?;
     let as_u8 = if dtype == "f" {
         let scaled = np
             .call_method1("clip", (array, 0.0, 1.0))?
             .call_method1("__mul__", (255.0,))?
             .call_method1("round", ())?;
         np.call_method1("ascontiguousarray", (scaled, "uint8"))?
-    } else if dtype == "u" && array.getattr("dtype")?.getattr("itemsize")?.extract::<usize>()? == 1
+    } else if dtype == "u"
+        && array
+            .getattr("dtype")?
+            .getattr("itemsize")?
+            .extract::<usize>()?
+            == 1
     {
         np.call_method1("ascontiguousarray", (array,))?
     } else {
@@ -62,8 +70,12 @@ fn image_of(array: &Bound<'_, PyAny>) -> PyResult<image::DynamicImage> {
         return Err(bad());
     }
     Ok(match shape.len() == 3 && shape[2] == 3 {
-        true => image::DynamicImage::ImageRgb8(image::RgbImage::from_raw(w, h, data).ok_or_else(bad)?),
-        false => image::DynamicImage::ImageLuma8(image::GrayImage::from_raw(w, h, data).ok_or_else(bad)?),
+        true => {
+            image::DynamicImage::ImageRgb8(image::RgbImage::from_raw(w, h, data).ok_or_else(bad)?)
+        }
+        false => {
+            image::DynamicImage::ImageLuma8(image::GrayImage::from_raw(w, h, data).ok_or_else(bad)?)
+        }
     })
 }
 

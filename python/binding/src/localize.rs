@@ -191,10 +191,7 @@ impl Features {
     /// for SIFT) to `(keypoints (n, 2), descriptors (n, dim))`.
     #[new]
     #[pyo3(signature = (levels, global_descriptor=None))]
-    fn py_new(
-        levels: &Bound<'_, PyDict>,
-        global_descriptor: Option<Vec<f32>>,
-    ) -> PyResult<Self> {
+    fn py_new(levels: &Bound<'_, PyDict>, global_descriptor: Option<Vec<f32>>) -> PyResult<Self> {
         let mut sets = Vec::new();
         for (level, value) in levels.iter() {
             let level: Option<u16> = level.extract()?;
@@ -232,11 +229,7 @@ impl Features {
 
     /// `(n, dim)` float32 descriptors of `level`.
     #[pyo3(signature = (level=None))]
-    fn descriptors<'py>(
-        &self,
-        py: Python<'py>,
-        level: Option<u16>,
-    ) -> PyResult<Bound<'py, PyAny>> {
+    fn descriptors<'py>(&self, py: Python<'py>, level: Option<u16>) -> PyResult<Bound<'py, PyAny>> {
         let s = &self.inner.sets[self.set(level)?];
         let n = s.keypoints.len();
         let a = Array2::from_shape_vec((n, s.dim), s.descriptors.clone())

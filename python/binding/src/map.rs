@@ -226,8 +226,7 @@ impl Map {
     /// The metadata block as JSON text.
     fn _metadata_json(&self, py: Python<'_>) -> PyResult<String> {
         let opened = self.opened(py)?;
-        serde_json::to_string(opened.map.metadata())
-            .map_err(|e| MapError::new_err(e.to_string()))
+        serde_json::to_string(opened.map.metadata()).map_err(|e| MapError::new_err(e.to_string()))
     }
 
     /// What `sfpmap info --json` prints, as JSON text.
@@ -310,10 +309,7 @@ impl Map {
                 o.map.n_images(),
                 o.map.level_ids()
             ),
-            Err(_) => format!(
-                "sfpmap.Map({:?}, closed)",
-                self.path.display().to_string()
-            ),
+            Err(_) => format!("sfpmap.Map({:?}, closed)", self.path.display().to_string()),
         }
     }
 }
