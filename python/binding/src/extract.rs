@@ -69,14 +69,13 @@ fn image_of(array: &Bound<'_, PyAny>) -> PyResult<image::DynamicImage> {
     if h == 0 || w == 0 {
         return Err(bad());
     }
-    Ok(match shape.len() == 3 && shape[2] == 3 {
-        true => {
-            image::DynamicImage::ImageRgb8(image::RgbImage::from_raw(w, h, data).ok_or_else(bad)?)
-        }
-        false => {
-            image::DynamicImage::ImageLuma8(image::GrayImage::from_raw(w, h, data).ok_or_else(bad)?)
-        }
-    })
+    if shape.len() == 3 && shape[2] == 3 {
+        let rgb = image::RgbImage::from_raw(w, h, data).ok_or_else(bad)?;
+        Ok(image::DynamicImage::ImageRgb8(rgb))
+    } else {
+        let gray = image::GrayImage::from_raw(w, h, data).ok_or_else(bad)?;
+        Ok(image::DynamicImage::ImageLuma8(gray))
+    }
 }
 
 #[pymethods]

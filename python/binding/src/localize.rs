@@ -6,7 +6,7 @@
 
 #![allow(unsafe_code)]
 
-use crate::errors::{chain, within, InputError, LocalizeError};
+use crate::errors::{chain, within, InputError, LocalizeError, MapError, NoSuchLevelError};
 use crate::map::{Map, Opened};
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyReadonlyArray2, PyUntypedArrayMethods};
@@ -407,9 +407,16 @@ impl Localizer {
         // lives as long as `Prepared::opened`; `Prepared` drops the localizer first.
         let map_ref: &'static sfpmap::format::Map<'static> =
             unsafe { &*std::ptr::addr_of!(opened.map) };
-        let localizer = py
-            .detach(|| Inner::new(map_ref, options))
-            .map_err(|e| LocalizeError::new_err(within(&opened.path.display().to_string(), &e)))?;
+        let localizer = py.detach(|| Inner::new(map_ref, options)).map_err(|e| {
+            let message = within(&opened.path.display().to_string(), &e);
+            match e {
+                sfpmap::localize::LocalizeError::Format(sfpmap::format::Error::NoSuchLevel {
+                    ..
+                }) => NoSuchLevelError::new_err(message),
+                sfpmap::localize::LocalizeError::Format(_) => MapError::new_err(message),
+                _ => LocalizeError::new_err(message),
+            }
+        })?;
         Ok(Localizer {
             prepared: Prepared { localizer, opened },
         })

@@ -156,3 +156,15 @@ def test_localizer_outlives_a_closed_map(south_sfp, south_queries, south_feature
     m.close()
     del m
     assert loc.localize(south_features[name], camera).colmap == before
+
+
+def test_python_threads_share_a_localizer(south_sfp, south_queries, south_features):
+    from concurrent.futures import ThreadPoolExecutor
+
+    scene, queries = south_queries
+    with sfpmap.Map(south_sfp) as m:
+        loc = sfpmap.Localizer(m)
+        one = [loc.localize(south_features[n], c).colmap for n, c in queries]
+        with ThreadPoolExecutor(4) as pool:
+            threaded = list(pool.map(lambda q: loc.localize(south_features[q[0]], q[1]).colmap, queries))
+    assert threaded == one
