@@ -168,3 +168,21 @@ def test_python_threads_share_a_localizer(south_sfp, south_queries, south_featur
         with ThreadPoolExecutor(4) as pool:
             threaded = list(pool.map(lambda q: loc.localize(south_features[q[0]], q[1]).colmap, queries))
     assert threaded == one
+
+
+def test_the_gil_is_released_while_localizing(south_sfp, south_queries, south_features):
+    import threading
+
+    scene, queries = south_queries
+    batch = [(south_features[n], c, n) for n, c in queries]
+    with sfpmap.Map(south_sfp) as m:
+        loc = sfpmap.Localizer(m)
+        done = threading.Event()
+        worker = threading.Thread(target=lambda: (loc.localize_many(batch, threads=1), done.set()))
+        ticks = 0
+        worker.start()
+        while not done.is_set():
+            ticks += 1
+        worker.join()
+    # Holding the GIL for the whole batch would leave this thread a few switch intervals.
+    assert ticks > 10_000, ticks
