@@ -110,6 +110,10 @@ def test_result_fields_and_pycolmap(south_sfp, south_queries, south_features):
     assert sum(r.inliers_per_level.values()) == r.inliers
     assert r.times["total"] > 0 and r.path == "retrieval"
     assert r.retrieved_names and all(isinstance(n, str) for n in r.retrieved_names)
+    # A pycolmap.Camera is a camera too.
+    cam = pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=camera.params)
+    with sfpmap.Map(south_sfp) as m:
+        assert sfpmap.Localizer(m).localize(south_features[name], cam).colmap == r.colmap
 
 
 def test_arrays_and_array_images(south_sfp, south_queries, south_features):
