@@ -122,8 +122,9 @@ impl Extractor {
             .unwrap_or_else(|p| p.into_inner())
             .contract()
             .gray_weights;
-        let input = if let Ok(path) = image.extract::<PathBuf>() {
-            py.detach(|| sfpmap::extract::image::load(&path, weights, resize_max))
+        let path = image.extract::<PathBuf>().ok();
+        let input = if let Some(path) = &path {
+            py.detach(|| sfpmap::extract::image::load(path, weights, resize_max))
                 .map_err(extract_error)?
         } else {
             let decoded = image_of(image)?;
@@ -131,7 +132,10 @@ impl Extractor {
         };
         if let Some(reason) = sfpmap::extract::too_large_for_the_network(input.width, input.height)
         {
-            return Err(ExtractError::new_err(reason));
+            return Err(ExtractError::new_err(match &path {
+                Some(p) => format!("{}: {reason}", p.display()),
+                None => reason,
+            }));
         }
         let options = DetectOptions {
             threshold,
@@ -145,7 +149,13 @@ impl Extractor {
                     .unwrap_or_else(|p| p.into_inner())
                     .extract(&input, &options)
             })
-            .map_err(extract_error)?;
+            // Named as the CLI names them: the image in front.
+            .map_err(|e| {
+                extract_error(match &path {
+                    Some(p) => e.on_image(p),
+                    None => e,
+                })
+            })?;
         let mut features = Features::new(sfpmap::io::queries::sfp_query(&f));
         features.scores = f.levels.iter().map(|l| Some(l.scores.clone())).collect();
         Ok(features)
