@@ -4,8 +4,6 @@
 //! Python threads at once (the GIL is released while it runs), and `localize_many` runs the
 //! queries on Rust threads.
 
-#![allow(unsafe_code)]
-
 use crate::errors::{chain, within, InputError, LocalizeError, MapError, NoSuchLevelError};
 use crate::map::{Map, Opened};
 use numpy::ndarray::Array2;
@@ -369,7 +367,7 @@ impl Localizer {
     #[pyo3(signature = (map, levels=None, short=false, top_k=10, retrieval="auto", ratio=0.9,
                         mutual=true, min_similarity=0.0, coarse_error_px=12.0, gate_px=24.0,
                         gate_ratio=0.95, fine_error_px=6.0, min_inliers=12))]
-    #[allow(clippy::too_many_arguments)]
+    #[allow(clippy::too_many_arguments, unsafe_code)]
     fn new(
         py: Python<'_>,
         map: &Bound<'_, Map>,

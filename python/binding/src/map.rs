@@ -13,8 +13,6 @@
 //! on its first view; the library keeps the decoded bytes for the map's lifetime and every
 //! later view shares them. Views are read-only (the mapping is `PROT_READ`).
 
-#![allow(unsafe_code)]
-
 use crate::errors::{format_error, ClosedError, MapError};
 use numpy::ndarray::{ArrayView, IxDyn};
 use numpy::{Element, PyArray, PyArrayMethods};
@@ -82,6 +80,7 @@ fn find<'m>(map: &'m FormatMap<'_>, kind: &str, level: Option<u16>) -> Option<&'
 /// or decoded bytes the library keeps in that same map until it is dropped. The array holds
 /// a reference to `owner` as its base, so the memory outlives the array. It is made
 /// read-only before any Python code sees it, so nothing writes to the `PROT_READ` mapping.
+#[allow(unsafe_code)]
 fn view<'py, T: Element + bytemuck::Pod>(
     owner: &Bound<'py, Mapping>,
     bytes: &[u8],
