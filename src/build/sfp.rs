@@ -105,13 +105,25 @@ pub fn convert_with_images(
 ) -> Result<SfpMapSummary, ConvertError> {
     let (model, sources) = read_model_with_sources(model_dir, reporter)?;
     let colmap = model_dir.display().to_string();
-    convert_model_with_images(&model, sources, &colmap, options, output, reporter)
+    convert_images_of(&model, sources, &colmap, options, output, reporter)
 }
 
 /// [`convert_with_images`] of a model already in memory (the Python package's
-/// `from_pycolmap`): `sources` are the model's files for provenance (none for a model that has
-/// none) and `colmap` what provenance records as the model.
+/// `from_pycolmap`): the same map, but for provenance, which lists no model files and records
+/// `source` as the model.
 pub fn convert_model_with_images(
+    model: &Reconstruction,
+    source: &str,
+    options: &SfpMapOptions,
+    output: &Path,
+    reporter: &dyn Reporter,
+) -> Result<SfpMapSummary, ConvertError> {
+    convert_images_of(model, Vec::new(), source, options, output, reporter)
+}
+
+/// The SFP map of `model`; `sources` are its files for provenance, `colmap` what provenance
+/// records as the model.
+fn convert_images_of(
     model: &Reconstruction,
     mut sources: Vec<SourceFile>,
     colmap: &str,

@@ -93,7 +93,7 @@ pub fn convert(
 }
 
 /// [`convert`] of a model already in memory (the Python package's `from_pycolmap`): the same
-/// map, but for provenance, which lists no model files and records `colmap` as `source`.
+/// map, but for provenance, which lists no model files and records `source` as the model.
 pub fn convert_model(
     model: &Reconstruction,
     source: &str,
@@ -105,6 +105,8 @@ pub fn convert_model(
     convert_geometry(&geometry, Vec::new(), source, options, output, reporter)
 }
 
+/// The map of `geometry`; `sources` are its files for provenance, `colmap` what provenance
+/// records as the model.
 fn convert_geometry(
     geometry: &Geometry,
     mut sources: Vec<SourceFile>,

@@ -524,7 +524,6 @@ pub(crate) fn from_pycolmap(
                 sfpmap::extract::runtime::disable_telemetry();
                 let s = sfpmap::build::convert_model_with_images(
                     &rec,
-                    Vec::new(),
                     source,
                     &o.sfp(images),
                     &out,
