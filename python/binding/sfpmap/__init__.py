@@ -86,15 +86,22 @@ PathLike = Union[str, "_os.PathLike[str]"]
 
 
 class Points:
-    """The map's 3D points: ``positions`` (N×3 float32, relative to ``origin``), ``colors``
-    (N×3 uint8), ``ids`` (N uint64, COLMAP ``point3D_id``), each a view or ``None``."""
+    """The map's 3D points: ``positions`` (N×3 float32, relative to ``origin``; ``None`` in a
+    ``minimal`` slice, which stores ``positions_q16``), ``colors`` (N×3 uint8), ``ids`` (N
+    uint64, COLMAP ``point3D_id``), each a view or ``None``."""
 
     def __init__(self, map: "Map") -> None:
         self._map = map
 
     @property
-    def positions(self) -> _np.ndarray:
+    def positions(self) -> Optional[_np.ndarray]:
         return self._map._section("point_positions")
+
+    @property
+    def positions_q16(self) -> Optional[_np.ndarray]:
+        """A ``minimal`` slice's positions (N×3 uint16 on ``metadata["position_grid"]``),
+        stored instead of ``positions``."""
+        return self._map._section("point_positions_q16")
 
     @property
     def colors(self) -> Optional[_np.ndarray]:
@@ -149,6 +156,16 @@ class Level:
     @property
     def projection(self) -> Optional[_np.ndarray]:
         return self._map._section("level_projection", self.id)
+
+    @property
+    def pq_codes(self) -> Optional[_np.ndarray]:
+        """A product-quantised level's codes (rows × M uint8), or ``None``."""
+        return self._map._section("level_pq_codes", self.id)
+
+    @property
+    def pq_codebook(self) -> Optional[_np.ndarray]:
+        """A product-quantised level's codebook (float32), or ``None``."""
+        return self._map._section("level_pq_codebook", self.id)
 
     def __len__(self) -> int:
         return int(self.n_points)
@@ -478,7 +495,7 @@ def convert(
     """``sfpmap convert``: a COLMAP model folder into the map ``out`` (a SIFT map with
     ``database``, an SFP map with ``images``, else geometry only). ``options`` are the
     CLI's flags (``force``, ``codec``, ``short_dims``, ``aggregate``, ``vlad_clusters``,
-    ``model``, ``resize_max``, ...). Returns what ``convert --json`` prints."""
+    ``pq``, ``model``, ``resize_max``, ...). Returns what ``convert --json`` prints."""
     if out is None:
         raise InputError("out: the map to write")
     return _json.loads(
@@ -500,8 +517,9 @@ def slice(
     **options: Any,
 ) -> Dict[str, Any]:
     """``sfpmap slice``: keep ``levels`` (and with ``short`` only their short blocks) of a
-    map, written to ``out``. Options: ``codec``, ``zstd_level``, ``force``. Returns what
-    ``slice --json`` prints."""
+    map, written to ``out``. Options as the CLI's flags: ``minimal`` (only what localization
+    reads, positions on a 16-bit grid), ``pq`` (M one-byte codes per point), ``codec``,
+    ``zstd_level``, ``force``. Returns what ``slice --json`` prints."""
     if out is None:
         raise InputError("out: the map to write")
     return _json.loads(

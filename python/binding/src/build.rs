@@ -46,6 +46,7 @@ struct Options {
     aggregate: Aggregate,
     strict: bool,
     vlad: VladOptions,
+    pq: Option<usize>,
 }
 
 impl Options {
@@ -65,6 +66,7 @@ impl Options {
         strict: bool,
         vlad_clusters: usize,
         vlad_dims: usize,
+        pq: Option<usize>,
     ) -> PyResult<Options> {
         let bad = |m: String| Err(InputError::new_err(m));
         if database.is_some() && images.is_some() {
@@ -91,6 +93,9 @@ impl Options {
         if vlad_clusters > 1024 {
             return bad("vlad_clusters: a number of centroids from 0 (no VLAD) to 1024".into());
         }
+        if pq.is_some_and(|m| !(1..=4096).contains(&m)) {
+            return bad("pq: 1 to 4096 one-byte codes per point".into());
+        }
         if !(1..=256).contains(&vlad_dims) {
             return bad("vlad_dims: a number of dimensions from 1 to 256".into());
         }
@@ -116,6 +121,7 @@ impl Options {
                 clusters: vlad_clusters,
                 dims: vlad_dims,
             },
+            pq,
         })
     }
 
@@ -128,6 +134,7 @@ impl Options {
             aggregate: self.aggregate,
             strict: self.strict,
             vlad: self.vlad,
+            pq: self.pq,
         }
     }
 
@@ -144,6 +151,7 @@ impl Options {
             codec: self.codec,
             zstd_level: self.zstd_level,
             vlad: self.vlad,
+            pq: self.pq,
         }
     }
 
@@ -235,7 +243,7 @@ fn sfp_json(out: &Path, summary: &SfpMapSummary, seconds: f64) -> serde_json::Va
 #[pyo3(signature = (model_dir, database=None, images=None, *, out, force=false, model=None,
                     allow_missing=false, threads=2, resize_max=None, score_threshold=None,
                     short_dims=None, codec="raw", zstd_level=3, aggregate="mean", strict=false,
-                    vlad_clusters=sfpmap::vlad::DEFAULT_CLUSTERS, vlad_dims=sfpmap::vlad::DEFAULT_DIMS))]
+                    vlad_clusters=sfpmap::vlad::DEFAULT_CLUSTERS, vlad_dims=sfpmap::vlad::DEFAULT_DIMS, pq=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn convert(
     py: Python<'_>,
@@ -256,6 +264,7 @@ pub(crate) fn convert(
     strict: bool,
     vlad_clusters: usize,
     vlad_dims: usize,
+    pq: Option<usize>,
 ) -> PyResult<String> {
     let start = Instant::now();
     let o = Options::new(
@@ -273,6 +282,7 @@ pub(crate) fn convert(
         strict,
         vlad_clusters,
         vlad_dims,
+        pq,
     )?;
     let files = sfpmap::colmap::model_files(&model_dir)
         .map(|f| f.paths)
@@ -298,9 +308,11 @@ pub(crate) fn convert(
 }
 
 /// `sfpmap slice`: keep `levels` of the map at `map_path` (and only their short descriptor
-/// blocks with `short`), written to `out`. Returns what `slice --json` prints.
+/// blocks with `short`; only what localization reads with `minimal`; product-quantised into
+/// `pq` codes per point), written to `out`. Returns what `slice --json` prints.
 #[pyfunction]
-#[pyo3(signature = (map_path, levels, short=false, *, out, codec=None, zstd_level=3, force=false))]
+#[pyo3(signature = (map_path, levels, short=false, *, out, minimal=false, pq=None, codec=None,
+                    zstd_level=3, force=false))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn slice(
     py: Python<'_>,
@@ -308,10 +320,13 @@ pub(crate) fn slice(
     levels: Vec<u16>,
     short: bool,
     out: PathBuf,
+    minimal: bool,
+    pq: Option<u16>,
     codec: Option<&str>,
     zstd_level: i32,
     force: bool,
 ) -> PyResult<String> {
+    use sfpmap::build::pq::{quantise_levels, PqOptions};
     if levels.is_empty() {
         return Err(InputError::new_err("levels: at least one level to keep"));
     }
@@ -320,17 +335,44 @@ pub(crate) fn slice(
             "zstd_level {zstd_level}: 1 to 22"
         )));
     }
+    if pq.is_some_and(|m| !(1..=4096).contains(&m)) {
+        return Err(InputError::new_err(
+            "pq: 1 to 4096 one-byte codes per point",
+        ));
+    }
     let options = sfpmap::format::SliceOptions {
-        levels,
+        levels: levels.clone(),
         short,
         codec: codec.map(self::codec).transpose()?,
         zstd_level,
+        minimal,
     };
     sfpmap::output::check_output(&out, &[&map_path], force).map_err(output_error)?;
     let value = py.detach(|| -> PyResult<serde_json::Value> {
         let map = sfpmap::format::Map::open(&map_path).map_err(|e| format_error(&map_path, e))?;
-        let (writer, summary) =
+        let (mut writer, summary) =
             sfpmap::format::slice(&map, &options).map_err(|e| format_error(&map_path, e))?;
+        let pq = match pq {
+            Some(m) => {
+                let pq_options = PqOptions {
+                    subspaces: usize::from(m),
+                    short,
+                };
+                writer
+                    .metadata_mut()
+                    .provenance
+                    .parameters
+                    .insert("pq".into(), json!(m));
+                let mut levels = levels.clone();
+                levels.sort_unstable();
+                levels.dedup();
+                quantise_levels(&map, &mut writer, &levels, &pq_options).map_err(|e| {
+                    ConvertError::new_err(within(&map_path.display().to_string(), &e))
+                })?
+            }
+            None => Vec::new(),
+        };
+        let grid = writer.metadata().position_grid;
         let written = writer.write(&out, &Silent).map_err(|e| match e {
             sfpmap::format::Error::Io { .. } => FileError::new_err(chain(&e)),
             e => FileError::new_err(within(&out.display().to_string(), &e)),
@@ -346,7 +388,18 @@ pub(crate) fn slice(
             "points_after": summary.points_after,
             "sections_copied": summary.sections_copied,
             "sections_rebuilt": summary.sections_rebuilt,
-            "unknown_sections_dropped": summary.unknown_dropped,
+            "skipped_sections_dropped": summary.skipped_dropped,
+            "position_max_error": grid.map(|g| g.max_error()),
+            "pq": pq.iter().map(|l| json!({
+                "level": l.level,
+                "points": l.points,
+                "dims": l.dims,
+                "subspaces": l.subspaces,
+                "centroids": l.centroids,
+                "descriptor_bytes_before": l.bytes_before,
+                "descriptor_bytes_after": l.bytes_after,
+                "mean_squared_error": l.mean_squared_error,
+            })).collect::<Vec<_>>(),
         }))
     })?;
     Ok(value.to_string())
@@ -476,7 +529,7 @@ fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
                     source="pycolmap.Reconstruction", model=None, allow_missing=false, threads=2,
                     resize_max=None, score_threshold=None, short_dims=None, codec="raw",
                     zstd_level=3, aggregate="mean", strict=false,
-                    vlad_clusters=sfpmap::vlad::DEFAULT_CLUSTERS, vlad_dims=sfpmap::vlad::DEFAULT_DIMS))]
+                    vlad_clusters=sfpmap::vlad::DEFAULT_CLUSTERS, vlad_dims=sfpmap::vlad::DEFAULT_DIMS, pq=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn from_pycolmap(
     py: Python<'_>,
@@ -498,6 +551,7 @@ pub(crate) fn from_pycolmap(
     strict: bool,
     vlad_clusters: usize,
     vlad_dims: usize,
+    pq: Option<usize>,
 ) -> PyResult<String> {
     let start = Instant::now();
     let o = Options::new(
@@ -515,6 +569,7 @@ pub(crate) fn from_pycolmap(
         strict,
         vlad_clusters,
         vlad_dims,
+        pq,
     )?;
     o.check_output(&[], &out, force)?;
     let rec = reconstruction_of(reconstruction)?;

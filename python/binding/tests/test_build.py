@@ -70,6 +70,25 @@ def test_slice_equals_the_cli(cli, sacre_sift, work):
         sfpmap.slice(sacre_sift, levels=[9], out=work / "never.sfpm")
 
 
+@pytest.mark.parametrize(
+    "flags, options",
+    [(["--minimal"], {"minimal": True}), (["--short", "--pq", "8"], {"short": True, "pq": 8})],
+)
+def test_slice_options_equal_the_cli(cli, sacre_sift, work, flags, options):
+    tag = "-".join(f.strip("-") for f in flags)
+    a, b = work / f"py-slice-{tag}.sfpm", work / f"cli-slice-{tag}.sfpm"
+    s = sfpmap.slice(sacre_sift, levels=[2], out=a, **options)
+    run_cli(cli, "slice", sacre_sift, "--level", "2", *flags, "-o", b)
+    assert a.read_bytes() == b.read_bytes()
+    with sfpmap.Map(a) as m:
+        if options.get("minimal"):
+            assert m.points.positions is None and m.points.positions_q16.dtype == np.uint16
+            assert s["position_max_error"] is not None
+        else:
+            assert m.levels[2].pq_codes.shape == (len(m.levels[2]), 8)
+            assert s["pq"][0]["subspaces"] == 8
+
+
 def test_from_pycolmap_equals_convert(shared, work, sacre_sift):
     pycolmap = pytest.importorskip("pycolmap")
     scene = shared / "scenes/sacre-coeur"
