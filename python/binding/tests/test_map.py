@@ -23,7 +23,7 @@ def rss_kb() -> int:
     raise RuntimeError("no VmRSS")
 
 
-def test_views_match_the_cli_export_shapes(sacre_sift):
+def test_views_have_the_shapes_info_states(sacre_sift):
     with sfpmap.Map(sacre_sift) as m:
         info = m.info()
         assert m.n_points == info["points"] and len(m.points) == info["points"]
