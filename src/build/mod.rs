@@ -32,9 +32,9 @@ pub use geometry::fuzz_read_bin;
 #[cfg(feature = "colmap")]
 pub use retrieval::{StoredVlad, VladOptions};
 #[cfg(all(feature = "colmap", feature = "onnx"))]
-pub use sfp::{convert_with_images, SfpMapOptions, SfpMapSummary};
+pub use sfp::{convert_model_with_images, convert_with_images, SfpMapOptions, SfpMapSummary};
 #[cfg(feature = "colmap")]
-pub use sift::{convert, Aggregate, ConvertOptions};
+pub use sift::{convert, convert_model, Aggregate, ConvertOptions};
 
 #[cfg(feature = "colmap")]
 use crate::colmap::{model_files, read_model, ModelFormat, Reconstruction};

@@ -17,6 +17,7 @@
 
 use super::geometry::{map_index, Geometry};
 use super::{read_model_with_sources, ConvertError, ConvertSummary, LevelSummary};
+use crate::colmap::Reconstruction;
 use crate::extract::{contract, image, ExtractError, Extractor, ExtractorOptions, ModelInfo};
 use crate::format::{self, Codec, Descriptors, LevelInfo, Metadata, SourceFile};
 use crate::progress::Reporter;
@@ -102,7 +103,34 @@ pub fn convert_with_images(
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<SfpMapSummary, ConvertError> {
-    let (model, mut sources) = read_model_with_sources(model_dir, reporter)?;
+    let (model, sources) = read_model_with_sources(model_dir, reporter)?;
+    let colmap = model_dir.display().to_string();
+    convert_images_of(&model, sources, &colmap, options, output, reporter)
+}
+
+/// [`convert_with_images`] of a model already in memory (the Python package's
+/// `from_pycolmap`): the same map, but for provenance, which lists no model files and records
+/// `source` as the model.
+pub fn convert_model_with_images(
+    model: &Reconstruction,
+    source: &str,
+    options: &SfpMapOptions,
+    output: &Path,
+    reporter: &dyn Reporter,
+) -> Result<SfpMapSummary, ConvertError> {
+    convert_images_of(model, Vec::new(), source, options, output, reporter)
+}
+
+/// The SFP map of `model`; `sources` are its files for provenance, `colmap` what provenance
+/// records as the model.
+fn convert_images_of(
+    model: &Reconstruction,
+    mut sources: Vec<SourceFile>,
+    colmap: &str,
+    options: &SfpMapOptions,
+    output: &Path,
+    reporter: &dyn Reporter,
+) -> Result<SfpMapSummary, ConvertError> {
     let input_bytes = sources.iter().map(|s| s.bytes).sum();
 
     let paths: Vec<PathBuf> = model
@@ -248,7 +276,7 @@ pub fn convert_with_images(
     let keep: Vec<bool> = (0..n_points)
         .map(|p| (0..levels).any(|j| member(p, j)))
         .collect();
-    let geometry = Geometry::new(&model, Some(&keep));
+    let geometry = Geometry::new(model, Some(&keep));
     let map_index = map_index(&keep);
 
     let model_info = extractor.model().clone();
@@ -260,7 +288,7 @@ pub fn convert_with_images(
     });
     let parameters = json!({
         "operation": "convert",
-        "colmap": model_dir.display().to_string(),
+        "colmap": colmap,
         "images": options.images.display().to_string(),
         "descriptors": "sfp",
         "model": model_info.name,

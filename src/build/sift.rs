@@ -10,8 +10,8 @@
 use super::basis::Basis;
 use super::geometry::Geometry;
 use super::{read_geometry_with_sources, source_file, ConvertError, ConvertSummary, LevelSummary};
-use crate::colmap::Database;
-use crate::format::{Codec, Descriptors, LevelInfo, Metadata};
+use crate::colmap::{Database, Reconstruction};
+use crate::format::{Codec, Descriptors, LevelInfo, Metadata, SourceFile};
 use crate::progress::Reporter;
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -87,12 +87,38 @@ pub fn convert(
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<ConvertSummary, ConvertError> {
-    let (geometry, mut sources) = read_geometry_with_sources(model_dir, reporter)?;
+    let (geometry, sources) = read_geometry_with_sources(model_dir, reporter)?;
+    let colmap = model_dir.display().to_string();
+    convert_geometry(&geometry, sources, &colmap, options, output, reporter)
+}
 
+/// [`convert`] of a model already in memory (the Python package's `from_pycolmap`): the same
+/// map, but for provenance, which lists no model files and records `source` as the model.
+pub fn convert_model(
+    model: &Reconstruction,
+    source: &str,
+    options: &ConvertOptions,
+    output: &Path,
+    reporter: &dyn Reporter,
+) -> Result<ConvertSummary, ConvertError> {
+    let geometry = Geometry::new(model, None);
+    convert_geometry(&geometry, Vec::new(), source, options, output, reporter)
+}
+
+/// The map of `geometry`; `sources` are its files for provenance, `colmap` what provenance
+/// records as the model.
+fn convert_geometry(
+    geometry: &Geometry,
+    mut sources: Vec<SourceFile>,
+    colmap: &str,
+    options: &ConvertOptions,
+    output: &Path,
+    reporter: &dyn Reporter,
+) -> Result<ConvertSummary, ConvertError> {
     let observations = match &options.database {
         Some(db_path) => {
             sources.push(source_file(db_path)?);
-            Some(gather(&geometry, db_path, options, reporter)?)
+            Some(gather(geometry, db_path, options, reporter)?)
         }
         None => None,
     };
@@ -104,14 +130,14 @@ pub fn convert(
     };
     let parameters = json!({
         "operation": "convert",
-        "colmap": model_dir.display().to_string(),
+        "colmap": colmap,
         "database": options.database.as_ref().map(|p| p.display().to_string()),
         "aggregate": options.aggregate.name(),
         "short_dims": options.short_dims,
         "codec": options.codec.name(),
     });
     let codec = (options.codec, options.zstd_level);
-    let mut writer = super::map_writer(metadata, sources, parameters, codec, &geometry)?;
+    let mut writer = super::map_writer(metadata, sources, parameters, codec, geometry)?;
 
     let mut summaries = Vec::new();
     let mut points_without_descriptors = 0;
@@ -162,7 +188,7 @@ pub fn convert(
             dims,
             options.vlad.clusters,
             "every point with a descriptor (all levels), projected on this level's basis",
-            &geometry,
+            geometry,
             reporter,
         )?;
     }

@@ -1,7 +1,7 @@
 //! `sfpmap info`: what a map holds.
 
-use serde::Serialize;
-use sfpmap::format::{Level, Map, Metadata, Provenance, Section, SectionKind};
+use sfpmap::format::{Map, Metadata};
+use sfpmap::io::info::{components, Info, Retrieval};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -17,234 +17,21 @@ pub struct Args {
     pub json: bool,
 }
 
-/// The `--json` object. Serialised straight from the map (no `serde_json::Value` tree), so
-/// a map of 65,535 levels costs a few bytes per section, not a JSON object per value.
-#[derive(Serialize)]
-struct Info<'m> {
-    path: String,
-    version: String,
-    file_bytes: u64,
-    points: u64,
-    images: u64,
-    cameras: usize,
-    geometry_only: bool,
-    origin: [f64; 3],
-    levels: Vec<LevelJson<'m>>,
-    sections: Vec<SectionJson>,
-    /// Optional sections this reader skips (unknown kinds; 1.1: unknown dtype, codec or flags).
-    skipped_sections: Vec<SectionJson>,
-    retrieval: Retrieval<'m>,
-    /// Stored bytes per point by component ([`components`]), with the file's total.
-    bytes_per_point: Vec<(&'static str, f64)>,
-    provenance: &'m Provenance,
-}
-
-/// What each section is for, as `info` sums stored bytes: the map's size by component.
-fn component(kind: SectionKind) -> &'static str {
-    use SectionKind::*;
-    match kind {
-        PointPositions | PointPositionsQ16 => "positions",
-        PointColors | PointIds => "colours and ids",
-        LevelPoints => "level membership",
-        LevelDescShort | LevelDescRest | LevelPqCodes | LevelPqCodebook => "descriptors",
-        LevelProjection => "projections",
-        LevelVladCentroids | ImageGlobal | ImageVlad => "retrieval",
-        ImagePoses | ImageCameras | ImageIds | ImageNameOffsets | ImageNames => "images",
-        VisibilityOffsets | VisibilityPoints | VisibilityKeypoints => "visibility",
-        Unknown(_) => "skipped",
-    }
-}
-
-/// Stored bytes per point of each component present, in a fixed order, then the index
-/// (header, table, metadata, padding) and the whole file.
-fn components(map: &Map<'_>) -> Vec<(&'static str, f64)> {
-    const ORDER: [&str; 10] = [
-        "positions",
-        "colours and ids",
-        "level membership",
-        "descriptors",
-        "projections",
-        "retrieval",
-        "images",
-        "visibility",
-        "skipped",
-        "index and padding",
-    ];
-    let n = map.n_points().max(1) as f64;
-    let mut bytes = [0u64; 10];
-    for s in map.sections() {
-        let name = if s.skipped().is_some() {
-            "skipped"
-        } else {
-            component(s.kind())
-        };
-        let i = ORDER.iter().position(|&c| c == name).unwrap_or(8);
-        bytes[i] += s.stored_len();
-    }
-    bytes[9] = map.file_len() - bytes.iter().sum::<u64>();
-    let mut out: Vec<(&'static str, f64)> = ORDER
-        .iter()
-        .zip(bytes)
-        .filter(|&(_, b)| b > 0)
-        .map(|(&name, b)| (name, b as f64 / n))
-        .collect();
-    out.push(("total", map.file_len() as f64 / n));
-    out
-}
-
-/// What the map can retrieve with (format 1.1), from the section table alone.
-#[derive(Serialize)]
-struct Retrieval<'m> {
-    /// The metadata `retrieval` as written (`"vlad"`, `"global"`, a later minor's value).
-    preference: Option<&'m str>,
-    /// `{level, clusters, dims}` of the VLAD codebook.
-    vlad: Option<serde_json::Value>,
-    /// Dimensions of the stored global descriptors.
-    global_dims: Option<u64>,
-}
-
-impl<'m> Retrieval<'m> {
-    fn of(map: &'m Map<'_>, meta: &'m Metadata) -> Retrieval<'m> {
-        let vlad = map
-            .sections()
-            .iter()
-            .find(|s| s.kind() == SectionKind::LevelVladCentroids)
-            .map(
-                |s| serde_json::json!({"level": s.level(), "clusters": s.rows(), "dims": s.cols()}),
-            );
-        let global_dims = map
-            .sections()
-            .iter()
-            .find(|s| s.kind() == SectionKind::ImageGlobal)
-            .map(|s| s.cols());
-        Retrieval {
-            preference: meta.retrieval.as_deref(),
-            vlad,
-            global_dims,
-        }
-    }
-
-    /// One line for the text output.
-    fn describe(&self) -> String {
-        let mut kinds = Vec::new();
-        if let Some(v) = &self.vlad {
-            kinds.push(format!(
-                "VLAD {} x {} on level {}",
-                v["clusters"], v["dims"], v["level"]
-            ));
-        }
-        if let Some(d) = self.global_dims {
-            kinds.push(format!("global descriptors of {d} dims"));
-        }
-        if kinds.is_empty() {
-            return "retrieval: none (every point is a candidate)".into();
-        }
-        let preference = self.preference.map_or(String::new(), |p| {
-            format!(
-                "; prefers {}",
-                sfpmap::colmap::text::escape_control_characters(p)
-            )
-        });
-        format!("retrieval: {}{preference}", kinds.join(", "))
-    }
-}
-
-#[derive(Serialize)]
-struct LevelJson<'m> {
-    level: u16,
-    points: usize,
-    dim_full: usize,
-    dim_short: usize,
-    has_rest: bool,
-    has_descriptors: bool,
-    descriptor: &'m str,
-    stride: f64,
-    stored_bytes: u64,
-    sections: Vec<SectionJson>,
-}
-
-#[derive(Serialize)]
-struct SectionJson {
-    kind: &'static str,
-    kind_code: u16,
-    level: Option<u16>,
-    dtype: &'static str,
-    rows: u64,
-    cols: u64,
-    codec: &'static str,
-    stored_bytes: u64,
-    raw_bytes: u64,
-    required: bool,
-    /// Why the reader skips it (`dtype` and `codec` then say `u8`/`raw`: the bytes as stored).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    skipped: Option<String>,
-}
-
-impl From<&Section> for SectionJson {
-    fn from(s: &Section) -> Self {
-        SectionJson {
-            kind: s.kind().name(),
-            kind_code: s.kind().code(),
-            level: s.level(),
-            dtype: s.dtype().name(),
-            rows: s.rows(),
-            cols: s.cols(),
-            codec: s.codec().name(),
-            stored_bytes: s.stored_len(),
-            raw_bytes: s.raw_len(),
-            required: s.required(),
-            skipped: s.skipped().map(|why| why.to_string()),
-        }
-    }
-}
-
-impl<'m> From<Level<'m>> for LevelJson<'m> {
-    fn from(l: Level<'m>) -> Self {
-        LevelJson {
-            level: l.id(),
-            points: l.len(),
-            dim_full: l.dim_full(),
-            dim_short: l.dim_short(),
-            has_rest: l.has_rest(),
-            has_descriptors: l.has_descriptors(),
-            descriptor: &l.info().descriptor,
-            stride: l.info().stride,
-            stored_bytes: l.sections().map(|s| s.stored_len()).sum(),
-            sections: l.sections().map(SectionJson::from).collect(),
-        }
-    }
-}
-
 pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
     let path = &args.map;
     let map = super::open_map(path)?;
     let meta = map.metadata();
     if args.json {
-        print_info_json(&map, meta, path)?;
+        print_info_json(&map, path)?;
         return Ok(ExitCode::SUCCESS);
     }
     print_info_text(&map, meta, path)?;
     Ok(ExitCode::SUCCESS)
 }
 
-fn print_info_json(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> anyhow::Result<()> {
+fn print_info_json(map: &Map<'_>, path: &std::path::Path) -> anyhow::Result<()> {
     use std::io::Write;
-    let info = Info {
-        path: path.display().to_string(),
-        version: map.version(),
-        file_bytes: map.file_len(),
-        points: map.n_points(),
-        images: map.n_images(),
-        cameras: meta.cameras.len(),
-        geometry_only: meta.geometry_only,
-        origin: meta.origin,
-        levels: map.levels().map(LevelJson::from).collect(),
-        sections: map.sections().iter().map(SectionJson::from).collect(),
-        skipped_sections: map.skipped_sections().map(SectionJson::from).collect(),
-        retrieval: Retrieval::of(map, meta),
-        bytes_per_point: components(map),
-        provenance: &meta.provenance,
-    };
+    let info = Info::of(map, path);
     // As `super::print_json` prints a Value: one line on stdout.
     let mut out = std::io::BufWriter::new(std::io::stdout().lock());
     serde_json::to_writer(&mut out, &info)?;

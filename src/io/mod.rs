@@ -1,11 +1,15 @@
 //! External formats in and out, each reader beside its writer: poses (`poses`), hloc's
-//! `features.h5`, query inputs (`queries`), MCAP logs (`mcap_io`); and maps out to other
-//! tools: a COLMAP text model, a PLY point cloud, TUM / images.txt poses, a PNG plot.
+//! `features.h5`, query inputs (`queries`), MCAP logs (`mcap_io`), the `info --json` object
+//! (`info`); and maps out to other tools: a COLMAP text model, a PLY point cloud, TUM /
+//! images.txt poses, a PNG plot.
 
 #[cfg(feature = "colmap-model")]
 pub mod colmap_export;
 #[cfg(feature = "onnx")]
 pub mod features_h5;
+/// `info` needs `colmap-model` only to escape text (`colmap::text`).
+#[cfg(feature = "colmap-model")]
+pub mod info;
 #[cfg(feature = "mcap")]
 pub mod mcap_io;
 #[cfg(feature = "plot")]

@@ -1,0 +1,649 @@
+//! `convert`, `slice` and `from_pycolmap`: the CLI's map building, as functions. Each returns
+//! the object the CLI's `--json` prints (as JSON text; `sfpmap/__init__.py` parses it).
+
+use crate::errors::{
+    chain, format_error, output_error, within, ConvertError, FileError, InputError,
+};
+use pyo3::prelude::*;
+use serde_json::json;
+use sfpmap::build::{
+    Aggregate, ConvertOptions, ConvertSummary, SfpMapOptions, SfpMapSummary, VladOptions,
+};
+use sfpmap::colmap::{Camera as ColmapCamera, Image, Point2D, Reconstruction, TrackElement};
+use sfpmap::format::Codec;
+use sfpmap::geometry::{CameraModel, Pose};
+use sfpmap::progress::Silent;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+fn convert_error(e: sfpmap::build::ConvertError) -> PyErr {
+    ConvertError::new_err(chain(&e))
+}
+
+fn codec(name: &str) -> PyResult<Codec> {
+    match name {
+        "raw" => Ok(Codec::Raw),
+        "zstd" => Ok(Codec::Zstd),
+        other => Err(InputError::new_err(format!(
+            "codec {other:?}: \"raw\" or \"zstd\""
+        ))),
+    }
+}
+
+/// Options shared by `convert` and `from_pycolmap`, checked as the CLI's parser checks them.
+#[derive(Clone)]
+struct Options {
+    database: Option<PathBuf>,
+    images: Option<PathBuf>,
+    model: Option<PathBuf>,
+    allow_missing: bool,
+    threads: usize,
+    resize_max: Option<u32>,
+    score_threshold: Option<f32>,
+    short_dims: Option<u32>,
+    codec: Codec,
+    zstd_level: i32,
+    aggregate: Aggregate,
+    strict: bool,
+    vlad: VladOptions,
+    pq: Option<usize>,
+}
+
+impl Options {
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        database: Option<PathBuf>,
+        images: Option<PathBuf>,
+        model: Option<PathBuf>,
+        allow_missing: bool,
+        threads: usize,
+        resize_max: Option<u32>,
+        score_threshold: Option<f32>,
+        short_dims: Option<u32>,
+        codec_name: &str,
+        zstd_level: i32,
+        aggregate: &str,
+        strict: bool,
+        vlad_clusters: usize,
+        vlad_dims: usize,
+        pq: Option<usize>,
+    ) -> PyResult<Options> {
+        let bad = |m: String| Err(InputError::new_err(m));
+        if database.is_some() && images.is_some() {
+            return bad("database and images exclude each other (SIFT or SFP map)".into());
+        }
+        if images.is_none() && (model.is_some() || allow_missing || resize_max.is_some()) {
+            return bad("model, allow_missing and resize_max need images".into());
+        }
+        if images.is_none() && score_threshold.is_some() {
+            return bad("score_threshold needs images".into());
+        }
+        if let Some(t) = score_threshold.filter(|t| !(0.0..=1.0).contains(t)) {
+            return bad(format!("score_threshold {t}: scores are in [0, 1]"));
+        }
+        if short_dims == Some(0) {
+            return bad("short_dims: at least 1".into());
+        }
+        if resize_max.is_some_and(|r| r < 16) {
+            return bad("resize_max: at least 16".into());
+        }
+        if !(1..=22).contains(&zstd_level) {
+            return bad(format!("zstd_level {zstd_level}: 1 to 22"));
+        }
+        if vlad_clusters > 1024 {
+            return bad("vlad_clusters: a number of centroids from 0 (no VLAD) to 1024".into());
+        }
+        if pq.is_some_and(|m| !(1..=4096).contains(&m)) {
+            return bad("pq: 1 to 4096 one-byte codes per point".into());
+        }
+        if !(1..=256).contains(&vlad_dims) {
+            return bad("vlad_dims: a number of dimensions from 1 to 256".into());
+        }
+        let aggregate = match aggregate {
+            "mean" => Aggregate::Mean,
+            "medoid" => Aggregate::Medoid,
+            other => return bad(format!("aggregate {other:?}: \"mean\" or \"medoid\"")),
+        };
+        Ok(Options {
+            database,
+            images,
+            model,
+            allow_missing,
+            threads: threads.clamp(1, 256),
+            resize_max,
+            score_threshold,
+            short_dims,
+            codec: codec(codec_name)?,
+            zstd_level,
+            aggregate,
+            strict,
+            vlad: VladOptions {
+                clusters: vlad_clusters,
+                dims: vlad_dims,
+            },
+            pq,
+        })
+    }
+
+    fn sift(&self) -> ConvertOptions {
+        ConvertOptions {
+            database: self.database.clone(),
+            short_dims: self.short_dims,
+            codec: self.codec,
+            zstd_level: self.zstd_level,
+            aggregate: self.aggregate,
+            strict: self.strict,
+            vlad: self.vlad,
+            pq: self.pq,
+        }
+    }
+
+    fn sfp(&self, images: &Path) -> SfpMapOptions {
+        SfpMapOptions {
+            images: images.to_path_buf(),
+            extractor: sfpmap::extract::ExtractorOptions {
+                model: self.model.clone(),
+                threads: self.threads,
+            },
+            resize_max: self.resize_max,
+            score_threshold: self.score_threshold,
+            allow_missing: self.allow_missing,
+            codec: self.codec,
+            zstd_level: self.zstd_level,
+            vlad: self.vlad,
+            pq: self.pq,
+        }
+    }
+
+    /// The CLI's output policy: `out` may not be an input, or exist without `force`.
+    fn check_output(&self, model_files: &[PathBuf], out: &Path, force: bool) -> PyResult<()> {
+        let mut inputs: Vec<&Path> = model_files.iter().map(|p| p.as_path()).collect();
+        inputs.extend(self.database.as_deref());
+        inputs.extend(self.model.as_deref());
+        let in_images = self.images.as_deref().is_some_and(|images| {
+            match (out.canonicalize(), images.canonicalize()) {
+                (Ok(out), Ok(images)) => out.starts_with(images),
+                _ => false,
+            }
+        });
+        if in_images {
+            inputs.push(out);
+        }
+        sfpmap::output::check_output(out, &inputs, force).map_err(output_error)
+    }
+}
+
+fn sift_json(out: &Path, s: &ConvertSummary, seconds: f64) -> serde_json::Value {
+    let levels: Vec<_> = s
+        .levels
+        .iter()
+        .map(|l| {
+            json!({
+                "level": l.level, "points": l.points, "dim_full": l.dim_full, "dim_short": l.dim_short,
+                "variance_short": l.variance_short, "scale_range": l.scale_range,
+            })
+        })
+        .collect();
+    json!({
+        "output": out.display().to_string(),
+        "points": s.points,
+        "images": s.images,
+        "observations": s.observations,
+        "input_bytes": s.input_bytes,
+        "output_bytes": s.output_bytes,
+        "ratio": s.input_bytes as f64 / s.output_bytes.max(1) as f64,
+        "seconds": seconds,
+        "geometry_only": s.geometry_only,
+        "levels": levels,
+        "images_without_features": s.images_without_features,
+        "points_without_descriptors": s.points_without_descriptors,
+        "vlad": s.vlad.map(|v| json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
+    })
+}
+
+fn sfp_json(out: &Path, summary: &SfpMapSummary, seconds: f64) -> serde_json::Value {
+    let c = &summary.convert;
+    let levels: Vec<_> = c
+        .levels
+        .iter()
+        .map(|l| {
+            json!({
+                "level": l.level, "points": l.points, "dim_full": l.dim_full,
+                "dim_short": l.dim_short, "variance_short": l.variance_short,
+                "stride": l.scale_range[0],
+            })
+        })
+        .collect();
+    json!({
+        "output": out.display().to_string(),
+        "descriptors": "sfp",
+        "points": c.points,
+        "model_points": summary.model_points,
+        "dropped_points": summary.model_points - c.points,
+        "images": c.images,
+        "observations": c.observations,
+        "input_bytes": c.input_bytes,
+        "image_bytes": summary.image_bytes,
+        "output_bytes": c.output_bytes,
+        "ratio": c.input_bytes as f64 / c.output_bytes.max(1) as f64,
+        "seconds": seconds,
+        "ms_per_image": summary.ms_per_image,
+        "score_threshold": summary.score_threshold,
+        "model": summary.model.name,
+        "model_xxh3": summary.model.xxh3,
+        "missing_images": summary.missing_images,
+        "levels": levels,
+        "vlad": c.vlad.map(|v| json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
+    })
+}
+
+/// `sfpmap convert`: a COLMAP model folder (+ `database` for a SIFT map, or `images` for an
+/// SFP map) into the map `out`. Returns what `convert --json` prints (as JSON text).
+#[pyfunction]
+#[pyo3(signature = (model_dir, database=None, images=None, *, out, force=false, model=None,
+                    allow_missing=false, threads=2, resize_max=None, score_threshold=None,
+                    short_dims=None, codec="raw", zstd_level=3, aggregate="mean", strict=false,
+                    vlad_clusters=sfpmap::vlad::DEFAULT_CLUSTERS, vlad_dims=sfpmap::vlad::DEFAULT_DIMS, pq=None))]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn convert(
+    py: Python<'_>,
+    model_dir: PathBuf,
+    database: Option<PathBuf>,
+    images: Option<PathBuf>,
+    out: PathBuf,
+    force: bool,
+    model: Option<PathBuf>,
+    allow_missing: bool,
+    threads: usize,
+    resize_max: Option<u32>,
+    score_threshold: Option<f32>,
+    short_dims: Option<u32>,
+    codec: &str,
+    zstd_level: i32,
+    aggregate: &str,
+    strict: bool,
+    vlad_clusters: usize,
+    vlad_dims: usize,
+    pq: Option<usize>,
+) -> PyResult<String> {
+    let start = Instant::now();
+    let o = Options::new(
+        database,
+        images,
+        model,
+        allow_missing,
+        threads,
+        resize_max,
+        score_threshold,
+        short_dims,
+        codec,
+        zstd_level,
+        aggregate,
+        strict,
+        vlad_clusters,
+        vlad_dims,
+        pq,
+    )?;
+    let files = sfpmap::colmap::model_files(&model_dir)
+        .map(|f| f.paths)
+        .unwrap_or_default();
+    o.check_output(&files, &out, force)?;
+    let value = py.detach(|| -> PyResult<serde_json::Value> {
+        match &o.images {
+            Some(images) => {
+                sfpmap::extract::runtime::disable_telemetry();
+                let s =
+                    sfpmap::build::convert_with_images(&model_dir, &o.sfp(images), &out, &Silent)
+                        .map_err(convert_error)?;
+                Ok(sfp_json(&out, &s, start.elapsed().as_secs_f64()))
+            }
+            None => {
+                let s = sfpmap::build::convert(&model_dir, &o.sift(), &out, &Silent)
+                    .map_err(convert_error)?;
+                Ok(sift_json(&out, &s, start.elapsed().as_secs_f64()))
+            }
+        }
+    })?;
+    Ok(value.to_string())
+}
+
+/// `sfpmap slice`: keep `levels` of the map at `map_path` (and only their short descriptor
+/// blocks with `short`; only what localization reads with `minimal`; product-quantised into
+/// `pq` codes per point), written to `out`. Returns what `slice --json` prints.
+#[pyfunction]
+#[pyo3(signature = (map_path, levels, short=false, *, out, minimal=false, pq=None, codec=None,
+                    zstd_level=3, force=false))]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn slice(
+    py: Python<'_>,
+    map_path: PathBuf,
+    levels: Vec<u16>,
+    short: bool,
+    out: PathBuf,
+    minimal: bool,
+    pq: Option<u16>,
+    codec: Option<&str>,
+    zstd_level: i32,
+    force: bool,
+) -> PyResult<String> {
+    use sfpmap::build::pq::{quantise_levels, PqOptions};
+    if levels.is_empty() {
+        return Err(InputError::new_err("levels: at least one level to keep"));
+    }
+    if !(1..=22).contains(&zstd_level) {
+        return Err(InputError::new_err(format!(
+            "zstd_level {zstd_level}: 1 to 22"
+        )));
+    }
+    if pq.is_some_and(|m| !(1..=4096).contains(&m)) {
+        return Err(InputError::new_err(
+            "pq: 1 to 4096 one-byte codes per point",
+        ));
+    }
+    let options = sfpmap::format::SliceOptions {
+        levels: levels.clone(),
+        short,
+        codec: codec.map(self::codec).transpose()?,
+        zstd_level,
+        minimal,
+    };
+    sfpmap::output::check_output(&out, &[&map_path], force).map_err(output_error)?;
+    let value = py.detach(|| -> PyResult<serde_json::Value> {
+        let map = sfpmap::format::Map::open(&map_path).map_err(|e| format_error(&map_path, e))?;
+        let (mut writer, summary) =
+            sfpmap::format::slice(&map, &options).map_err(|e| format_error(&map_path, e))?;
+        let pq = match pq {
+            Some(m) => {
+                let pq_options = PqOptions {
+                    subspaces: usize::from(m),
+                    short,
+                };
+                writer
+                    .metadata_mut()
+                    .provenance
+                    .parameters
+                    .insert("pq".into(), json!(m));
+                let mut levels = levels.clone();
+                levels.sort_unstable();
+                levels.dedup();
+                quantise_levels(&map, &mut writer, &levels, &pq_options).map_err(|e| {
+                    ConvertError::new_err(within(&map_path.display().to_string(), &e))
+                })?
+            }
+            None => Vec::new(),
+        };
+        let grid = writer.metadata().position_grid;
+        let written = writer.write(&out, &Silent).map_err(|e| match e {
+            sfpmap::format::Error::Io { .. } => FileError::new_err(chain(&e)),
+            e => FileError::new_err(within(&out.display().to_string(), &e)),
+        })?;
+        let before = map.file_len();
+        Ok(json!({
+            "input": map_path.display().to_string(),
+            "output": out.display().to_string(),
+            "input_bytes": before,
+            "output_bytes": written,
+            "ratio": before as f64 / written.max(1) as f64,
+            "points_before": summary.points_before,
+            "points_after": summary.points_after,
+            "sections_copied": summary.sections_copied,
+            "sections_rebuilt": summary.sections_rebuilt,
+            "skipped_sections_dropped": summary.skipped_dropped,
+            "position_max_error": grid.map(|g| g.max_error()),
+            "pq": pq.iter().map(|l| json!({
+                "level": l.level,
+                "points": l.points,
+                "dims": l.dims,
+                "subspaces": l.subspaces,
+                "centroids": l.centroids,
+                "descriptor_bytes_before": l.bytes_before,
+                "descriptor_bytes_after": l.bytes_after,
+                "mean_squared_error": l.mean_squared_error,
+            })).collect::<Vec<_>>(),
+        }))
+    })?;
+    Ok(value.to_string())
+}
+
+/// A pycolmap `Reconstruction` as the library's model, read through its attributes.
+fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
+    let bad = |what: String| ConvertError::new_err(format!("pycolmap reconstruction: {what}"));
+    let vec_f64 = |v: Bound<'_, PyAny>| -> PyResult<Vec<f64>> {
+        match v.extract::<Vec<f64>>() {
+            Ok(x) => Ok(x),
+            Err(_) => v.call_method0("tolist")?.extract(),
+        }
+    };
+    let mut builder = Reconstruction::builder().paths(
+        Path::new("pycolmap cameras"),
+        Path::new("pycolmap images"),
+        Path::new("pycolmap points3D"),
+    );
+    let cameras = rec.getattr("cameras")?;
+    for item in cameras.call_method0("values")?.try_iter()? {
+        let c = item?;
+        let id: u32 = c.getattr("camera_id")?.extract()?;
+        let model = c.getattr("model")?;
+        let name: String = match model.extract::<String>() {
+            Ok(s) => s,
+            Err(_) => model.getattr("name")?.extract()?,
+        };
+        let model = CameraModel::from_name(&name)
+            .ok_or_else(|| bad(format!("camera {id}: unknown model {name:?}")))?;
+        builder.add_camera(ColmapCamera {
+            id,
+            model,
+            width: c.getattr("width")?.extract()?,
+            height: c.getattr("height")?.extract()?,
+            params: vec_f64(c.getattr("params")?)?,
+        });
+    }
+    let images = rec.getattr("images")?;
+    for item in images.call_method0("values")?.try_iter()? {
+        let im = item?;
+        let id: u32 = im.getattr("image_id")?.extract()?;
+        // pycolmap >= 3.12 keeps images without a pose (unregistered frames); a model file
+        // holds registered images only.
+        if let Ok(has_pose) = im.getattr("has_pose") {
+            if !has_pose.extract::<bool>()? {
+                continue;
+            }
+        }
+        let mut pose = im.getattr("cam_from_world")?;
+        if pose.is_callable() {
+            pose = pose.call0()?;
+        }
+        let q = vec_f64(pose.getattr("rotation")?.getattr("quat")?)?;
+        let t = vec_f64(pose.getattr("translation")?)?;
+        if q.len() != 4 || t.len() != 3 {
+            return Err(bad(format!(
+                "image {id}: a pose of {} + {} values",
+                q.len(),
+                t.len()
+            )));
+        }
+        // pycolmap's quaternions are [x, y, z, w].
+        let cam_from_world = Pose::from_colmap(q[3], q[0], q[1], q[2], t[0], t[1], t[2])
+            .map_err(|e| bad(format!("image {id}: {}", chain(&e))))?;
+        let mut points2d = Vec::new();
+        for p in im.getattr("points2D")?.try_iter()? {
+            let p = p?;
+            let xy = vec_f64(p.getattr("xy")?)?;
+            let point3d: u64 = p.getattr("point3D_id")?.extract()?;
+            if xy.len() != 2 {
+                return Err(bad(format!("image {id}: a point2D of {} values", xy.len())));
+            }
+            points2d.push(Point2D {
+                xy: [xy[0], xy[1]],
+                point3d_id: (point3d != u64::MAX).then_some(point3d),
+            });
+        }
+        builder.add_image(Image {
+            id,
+            name: im.getattr("name")?.extract()?,
+            camera_id: im.getattr("camera_id")?.extract()?,
+            cam_from_world,
+            points2d,
+        });
+    }
+    let points = rec.getattr("points3D")?;
+    let mut track = Vec::new();
+    for item in points.call_method0("items")?.try_iter()? {
+        let (id, p): (u64, Bound<'_, PyAny>) = item?.extract()?;
+        let xyz = vec_f64(p.getattr("xyz")?)?;
+        let color: Vec<u8> = match p.getattr("color")?.extract::<Vec<u8>>() {
+            Ok(c) => c,
+            Err(_) => p.getattr("color")?.call_method0("tolist")?.extract()?,
+        };
+        if xyz.len() != 3 || color.len() != 3 {
+            return Err(bad(format!("point3D {id}: xyz or color is not 3 values")));
+        }
+        track.clear();
+        for e in p.getattr("track")?.getattr("elements")?.try_iter()? {
+            let e = e?;
+            track.push(TrackElement {
+                image_id: e.getattr("image_id")?.extract()?,
+                point2d_idx: e.getattr("point2D_idx")?.extract()?,
+            });
+        }
+        builder
+            .add_point3d(
+                id,
+                [xyz[0], xyz[1], xyz[2]],
+                [color[0], color[1], color[2]],
+                p.getattr("error")?.extract()?,
+                &track,
+            )
+            .map_err(|e| ConvertError::new_err(chain(&e)))?;
+    }
+    builder
+        .build()
+        .map_err(|e| ConvertError::new_err(chain(&e)))
+}
+
+/// `convert` of a pycolmap `Reconstruction` in memory (no temp files): the same map as
+/// `sfpmap convert` of the model's files, but for provenance, which records `source` as the
+/// model and lists no model files.
+#[pyfunction]
+#[pyo3(signature = (reconstruction, database=None, images=None, *, out, force=false,
+                    source="pycolmap.Reconstruction", model=None, allow_missing=false, threads=2,
+                    resize_max=None, score_threshold=None, short_dims=None, codec="raw",
+                    zstd_level=3, aggregate="mean", strict=false,
+                    vlad_clusters=sfpmap::vlad::DEFAULT_CLUSTERS, vlad_dims=sfpmap::vlad::DEFAULT_DIMS, pq=None))]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn from_pycolmap(
+    py: Python<'_>,
+    reconstruction: &Bound<'_, PyAny>,
+    database: Option<PathBuf>,
+    images: Option<PathBuf>,
+    out: PathBuf,
+    force: bool,
+    source: &str,
+    model: Option<PathBuf>,
+    allow_missing: bool,
+    threads: usize,
+    resize_max: Option<u32>,
+    score_threshold: Option<f32>,
+    short_dims: Option<u32>,
+    codec: &str,
+    zstd_level: i32,
+    aggregate: &str,
+    strict: bool,
+    vlad_clusters: usize,
+    vlad_dims: usize,
+    pq: Option<usize>,
+) -> PyResult<String> {
+    let start = Instant::now();
+    let o = Options::new(
+        database,
+        images,
+        model,
+        allow_missing,
+        threads,
+        resize_max,
+        score_threshold,
+        short_dims,
+        codec,
+        zstd_level,
+        aggregate,
+        strict,
+        vlad_clusters,
+        vlad_dims,
+        pq,
+    )?;
+    o.check_output(&[], &out, force)?;
+    let rec = reconstruction_of(reconstruction)?;
+    let value = py.detach(|| -> PyResult<serde_json::Value> {
+        match &o.images {
+            Some(images) => {
+                sfpmap::extract::runtime::disable_telemetry();
+                let s = sfpmap::build::convert_model_with_images(
+                    &rec,
+                    source,
+                    &o.sfp(images),
+                    &out,
+                    &Silent,
+                )
+                .map_err(convert_error)?;
+                Ok(sfp_json(&out, &s, start.elapsed().as_secs_f64()))
+            }
+            None => {
+                let s = sfpmap::build::convert_model(&rec, source, &o.sift(), &out, &Silent)
+                    .map_err(convert_error)?;
+                Ok(sift_json(&out, &s, start.elapsed().as_secs_f64()))
+            }
+        }
+    })?;
+    Ok(value.to_string())
+}
+
+/// A synthetic map of `points` points and one level of `dim_full` f16 dimensions (`dim_short`
+/// of them short), for the tests and benchmarks that need a large map quickly (a 1 GB map
+/// is 2.2 M points of 240 dims). Not part of the documented API.
+#[pyfunction]
+#[pyo3(name = "_write_synthetic_map")]
+pub(crate) fn write_synthetic_map(
+    py: Python<'_>,
+    path: PathBuf,
+    points: usize,
+    dim_full: u32,
+    dim_short: u32,
+) -> PyResult<u64> {
+    use sfpmap::format::{f16, Descriptors, LevelInfo, MapWriter, Metadata};
+    if points == 0 || points > u32::MAX as usize || dim_short == 0 || dim_short > dim_full {
+        return Err(InputError::new_err(
+            "points >= 1, 1 <= dim_short <= dim_full",
+        ));
+    }
+    py.detach(|| {
+        let positions: Vec<[f32; 3]> = (0..points)
+            .map(|i| {
+                let i = i as f32;
+                [i * 1e-3, (i * 0.37).sin(), (i * 0.11).cos()]
+            })
+            .collect();
+        let indices: Vec<u32> = (0..points as u32).collect();
+        let value = f16::from_f32(1.0 / (dim_full as f32).sqrt());
+        let descriptors = vec![value; points * dim_full as usize];
+        let mut writer = MapWriter::new(Metadata::default());
+        writer.set_points(&positions);
+        let info = LevelInfo {
+            level: 0,
+            stride: 8.0,
+            descriptor: "synthetic".into(),
+            dim_full,
+            dim_short,
+            normalization: "l2".into(),
+            extra: Default::default(),
+        };
+        writer
+            .add_level(
+                info,
+                &indices,
+                Some(Descriptors::F16(std::borrow::Cow::Owned(descriptors))),
+                true,
+            )
+            .and_then(|w| w.write(&path, &Silent))
+            .map_err(|e| format_error(&path, e))
+    })
+}

@@ -1,0 +1,230 @@
+//! Query features: the SFP extractor, hloc's `features.h5`, COLMAP query databases.
+
+use crate::errors::{chain, ExtractError, FileError, InputError};
+use crate::localize::Features;
+use numpy::{PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use sfpmap::extract::{DetectOptions, Extractor as Inner, ExtractorOptions};
+use sfpmap::io::features_h5::H5Features;
+use sfpmap::io::queries::DatabaseFeatures;
+use std::path::PathBuf;
+use std::sync::Mutex;
+
+/// The SFP extractor on ONNX Runtime (found or fetched as the CLI does; see `sfpmap setup`).
+/// One network run at a time per extractor (calls from several threads take turns).
+#[pyclass(frozen, module = "sfpmap._sfpmap", name = "_Extractor")]
+pub(crate) struct Extractor {
+    inner: Mutex<Inner>,
+    model_name: String,
+}
+
+fn extract_error(e: sfpmap::extract::ExtractError) -> PyErr {
+    use sfpmap::extract::ExtractError as E;
+    match &e {
+        E::Io { .. } => FileError::new_err(chain(&e)),
+        _ => ExtractError::new_err(chain(&e)),
+    }
+}
+
+/// An image from a numpy array: `(h, w)` or `(h, w, 1)` grey, `(h, w, 3)` RGB; uint8, or
+/// floats in [0, 1].
+fn image_of(array: &Bound<'_, PyAny>) -> PyResult<image::DynamicImage> {
+    let np = array.py().import("numpy")?;
+    let dtype = array
+        .getattr("dtype")?
+        .getattr("kind")?
+        .extract::<String>()?;
+    let as_u8 = if dtype == "f" {
+        let scaled = np
+            .call_method1("clip", (array, 0.0, 1.0))?
+            .call_method1("__mul__", (255.0,))?
+            .call_method1("round", ())?;
+        np.call_method1("ascontiguousarray", (scaled, "uint8"))?
+    } else if dtype == "u"
+        && array
+            .getattr("dtype")?
+            .getattr("itemsize")?
+            .extract::<usize>()?
+            == 1
+    {
+        np.call_method1("ascontiguousarray", (array,))?
+    } else {
+        return Err(InputError::new_err(format!(
+            "image: dtype {} (expected uint8, or floats in [0, 1])",
+            array.getattr("dtype")?.str()?
+        )));
+    };
+    let a: PyReadonlyArrayDyn<'_, u8> = as_u8.extract()?;
+    let shape = a.shape().to_vec();
+    let data = a.as_slice()?.to_vec();
+    let bad = || {
+        InputError::new_err(format!(
+            "image: shape {shape:?} (expected (h, w), (h, w, 1) or (h, w, 3))"
+        ))
+    };
+    let (h, w) = match shape.as_slice() {
+        [h, w] | [h, w, 1] | [h, w, 3] => (*h as u32, *w as u32),
+        _ => return Err(bad()),
+    };
+    if h == 0 || w == 0 {
+        return Err(bad());
+    }
+    if shape.len() == 3 && shape[2] == 3 {
+        let rgb = image::RgbImage::from_raw(w, h, data).ok_or_else(bad)?;
+        Ok(image::DynamicImage::ImageRgb8(rgb))
+    } else {
+        let gray = image::GrayImage::from_raw(w, h, data).ok_or_else(bad)?;
+        Ok(image::DynamicImage::ImageLuma8(gray))
+    }
+}
+
+#[pymethods]
+impl Extractor {
+    #[new]
+    #[pyo3(signature = (model=None, threads=2))]
+    fn new(py: Python<'_>, model: Option<PathBuf>, threads: usize) -> PyResult<Self> {
+        sfpmap::extract::runtime::disable_telemetry();
+        let options = ExtractorOptions {
+            model,
+            threads: threads.max(1),
+        };
+        let inner = py
+            .detach(|| Inner::new(&options, &sfpmap::progress::Silent))
+            .map_err(extract_error)?;
+        let model_name = inner.contract().model_name.clone();
+        Ok(Extractor {
+            inner: Mutex::new(inner),
+            model_name,
+        })
+    }
+
+    /// The descriptor kind the model makes (`"sfp-v1"`, ...), as maps record it.
+    #[getter]
+    fn descriptor(&self) -> String {
+        self.model_name.clone()
+    }
+
+    /// Keypoints and descriptors per level, and the global descriptor, of an image file
+    /// (`str` / `os.PathLike`) or array. GIL released while the network runs.
+    #[pyo3(signature = (image, resize_max=None, threshold=None, nms_radius=None, max_keypoints=None))]
+    fn extract(
+        &self,
+        py: Python<'_>,
+        image: &Bound<'_, PyAny>,
+        resize_max: Option<u32>,
+        threshold: Option<f32>,
+        nms_radius: Option<u32>,
+        max_keypoints: Option<Vec<usize>>,
+    ) -> PyResult<Features> {
+        let weights = self
+            .inner
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .contract()
+            .gray_weights;
+        let path = image.extract::<PathBuf>().ok();
+        let input = if let Some(path) = &path {
+            py.detach(|| sfpmap::extract::image::load(path, weights, resize_max))
+                .map_err(extract_error)?
+        } else {
+            let decoded = image_of(image)?;
+            py.detach(|| sfpmap::extract::image::from_image(&decoded, weights, resize_max))
+        };
+        if let Some(reason) = sfpmap::extract::too_large_for_the_network(input.width, input.height)
+        {
+            return Err(ExtractError::new_err(match &path {
+                Some(p) => format!("{}: {reason}", p.display()),
+                None => reason,
+            }));
+        }
+        let options = DetectOptions {
+            threshold,
+            nms_radius,
+            max_keypoints,
+        };
+        let f = py
+            .detach(|| {
+                self.inner
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .extract(&input, &options)
+            })
+            // Named as the CLI names them: the image in front.
+            .map_err(|e| {
+                extract_error(match &path {
+                    Some(p) => e.on_image(p),
+                    None => e,
+                })
+            })?;
+        let mut features = Features::new(sfpmap::io::queries::sfp_query(&f));
+        features.scores = f.levels.iter().map(|l| Some(l.scores.clone())).collect();
+        Ok(features)
+    }
+}
+
+/// Query features from an hloc-style `features.h5` (`sfpmap extract`'s, or hloc's own).
+#[pyclass(frozen, module = "sfpmap._sfpmap", name = "FeaturesFile")]
+pub(crate) struct FeaturesFile {
+    inner: Mutex<H5Features>,
+}
+
+#[pymethods]
+impl FeaturesFile {
+    #[new]
+    fn new(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+        let inner = py
+            .detach(|| H5Features::open(&path))
+            .map_err(|e| InputError::new_err(chain(&e)))?;
+        Ok(FeaturesFile {
+            inner: Mutex::new(inner),
+        })
+    }
+
+    /// The features of image `name`, or `None` if the file has none.
+    fn features(&self, py: Python<'_>, name: &str) -> PyResult<Option<Features>> {
+        let f = py
+            .detach(|| {
+                self.inner
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .features(name)
+            })
+            .map_err(|e| InputError::new_err(chain(&e)))?;
+        Ok(f.map(Features::new))
+    }
+}
+
+/// SIFT features of query images from a COLMAP database (`queries.db`), by image name:
+/// L2-normalised descriptors, as `sfpmap localize --database` reads them.
+#[pyclass(frozen, module = "sfpmap._sfpmap", name = "QueryDatabase")]
+pub(crate) struct QueryDatabase {
+    inner: Mutex<DatabaseFeatures>,
+    path: PathBuf,
+}
+
+#[pymethods]
+impl QueryDatabase {
+    #[new]
+    fn new(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+        let inner = py
+            .detach(|| DatabaseFeatures::open(&path))
+            .map_err(|e| InputError::new_err(format!("{}: {}", path.display(), chain(&e))))?;
+        Ok(QueryDatabase {
+            inner: Mutex::new(inner),
+            path,
+        })
+    }
+
+    /// The features of image `name`, or `None` if the database has none.
+    fn features(&self, py: Python<'_>, name: &str) -> PyResult<Option<Features>> {
+        let f = py
+            .detach(|| {
+                self.inner
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .features(name)
+            })
+            .map_err(|e| InputError::new_err(format!("{}: {}", self.path.display(), chain(&e))))?;
+        Ok(f.map(Features::new))
+    }
+}

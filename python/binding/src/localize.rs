@@ -1,0 +1,681 @@
+//! Cameras, query features, the localizer and its results.
+//!
+//! A [`Localizer`] is built once per map and shared: `localize` can be called from several
+//! Python threads at once (the GIL is released while it runs), and `localize_many` runs the
+//! queries on Rust threads.
+
+use crate::errors::{chain, within, InputError, LocalizeError, MapError, NoSuchLevelError};
+use crate::map::{Map, Opened};
+use numpy::ndarray::Array2;
+use numpy::{IntoPyArray, PyReadonlyArray2, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList, PyTuple};
+use sfpmap::geometry::Camera as GeoCamera;
+use sfpmap::localize::{
+    FeatureSet, Localization as Outcome, LocalizeOptions, Localizer as Inner, MatchOptions,
+    QueryFeatures, RetrievalMethod,
+};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+
+/// A camera: a COLMAP model name, the image size and the model's parameters in COLMAP order.
+#[pyclass(frozen, module = "sfpmap._sfpmap", name = "Camera")]
+#[derive(Clone)]
+pub(crate) struct Camera {
+    pub(crate) inner: GeoCamera,
+}
+
+#[pymethods]
+impl Camera {
+    #[new]
+    fn new(model: &str, width: u32, height: u32, params: Vec<f64>) -> PyResult<Self> {
+        GeoCamera::from_model_name(model, width, height, &params)
+            .map(|inner| Camera { inner })
+            .map_err(|e| InputError::new_err(format!("camera: {}", chain(&e))))
+    }
+
+    /// Parses `"MODEL WIDTH HEIGHT p1 p2 ..."` (the CLI's `--camera`, an hloc query line's
+    /// tail).
+    #[staticmethod]
+    fn parse(text: &str) -> PyResult<Self> {
+        GeoCamera::parse(text)
+            .map(|inner| Camera { inner })
+            .map_err(|e| InputError::new_err(format!("camera: {}", chain(&e))))
+    }
+
+    #[getter]
+    fn model(&self) -> &'static str {
+        self.inner.model().name()
+    }
+
+    #[getter]
+    fn width(&self) -> u32 {
+        self.inner.width()
+    }
+
+    #[getter]
+    fn height(&self) -> u32 {
+        self.inner.height()
+    }
+
+    #[getter]
+    fn params(&self) -> Vec<f64> {
+        self.inner.params().to_vec()
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "sfpmap.Camera({:?}, {}, {}, {:?})",
+            self.model(),
+            self.width(),
+            self.height(),
+            self.inner.params()
+        )
+    }
+}
+
+/// A camera from a `Camera`, a `"MODEL W H params..."` string, a dict with `model`, `width`,
+/// `height`, `params`, or any object with those attributes (a `pycolmap.Camera`, whose
+/// `model` is an enum with a `name`).
+pub(crate) fn camera_of(obj: &Bound<'_, PyAny>) -> PyResult<GeoCamera> {
+    if let Ok(c) = obj.cast::<Camera>() {
+        return Ok(c.get().inner.clone());
+    }
+    if let Ok(text) = obj.extract::<String>() {
+        return Ok(Camera::parse(&text)?.inner);
+    }
+    let field = |name: &str| -> PyResult<Bound<'_, PyAny>> {
+        match obj.cast::<PyDict>() {
+            Ok(d) => d
+                .get_item(name)?
+                .ok_or_else(|| InputError::new_err(format!("camera: no {name:?}"))),
+            Err(_) => obj.getattr(name).map_err(|_| {
+                InputError::new_err(format!(
+                    "camera: expected a Camera, a \"MODEL W H params...\" string, a dict or a pycolmap.Camera (no {name:?})"
+                ))
+            }),
+        }
+    };
+    let model = field("model")?;
+    let model: String = match model.extract::<String>() {
+        Ok(s) => s,
+        Err(_) => model.getattr("name")?.extract()?,
+    };
+    let width: u32 = field("width")?.extract()?;
+    let height: u32 = field("height")?.extract()?;
+    let params: Vec<f64> = match field("params")?.extract::<Vec<f64>>() {
+        Ok(p) => p,
+        Err(_) => field("params")?.call_method0("tolist")?.extract()?,
+    };
+    Ok(Camera::new(&model, width, height, params)?.inner)
+}
+
+/// One query's features: per level (or one set for every level, SIFT), keypoints in pixels
+/// (COLMAP convention) and descriptors in the extractor's space; optionally a global
+/// descriptor for retrieval.
+#[pyclass(frozen, module = "sfpmap._sfpmap", name = "Features")]
+pub(crate) struct Features {
+    pub(crate) inner: Arc<QueryFeatures>,
+    /// Per set: the keypoint scores, when the extractor made them.
+    pub(crate) scores: Vec<Option<Vec<f32>>>,
+}
+
+impl Features {
+    pub(crate) fn new(inner: QueryFeatures) -> Features {
+        let scores = vec![None; inner.sets.len()];
+        Features {
+            inner: Arc::new(inner),
+            scores,
+        }
+    }
+
+    fn set(&self, level: Option<u16>) -> PyResult<usize> {
+        self.inner
+            .sets
+            .iter()
+            .position(|s| s.level == level || s.level.is_none())
+            .ok_or_else(|| {
+                InputError::new_err(format!(
+                    "no features for level {}",
+                    level.map_or("None".to_string(), |l| l.to_string())
+                ))
+            })
+    }
+}
+
+/// `(n, 2)` keypoints and `(n, dim)` descriptors (any float or integer dtype) as a feature
+/// set.
+fn feature_set(
+    level: Option<u16>,
+    keypoints: &Bound<'_, PyAny>,
+    descriptors: &Bound<'_, PyAny>,
+) -> PyResult<FeatureSet> {
+    let np = keypoints.py().import("numpy")?;
+    let as_f64 = np.call_method1("ascontiguousarray", (keypoints, "float64"))?;
+    let as_f32 = np.call_method1("ascontiguousarray", (descriptors, "float32"))?;
+    let k: PyReadonlyArray2<'_, f64> = as_f64.extract().map_err(|_| {
+        InputError::new_err("keypoints: expected an array of shape (n, 2) (or (n, >=2))")
+    })?;
+    let d: PyReadonlyArray2<'_, f32> = as_f32
+        .extract()
+        .map_err(|_| InputError::new_err("descriptors: expected an array of shape (n, dim)"))?;
+    let (n, kcols) = (k.shape()[0], k.shape()[1]);
+    if kcols < 2 {
+        return Err(InputError::new_err(format!(
+            "keypoints: shape ({n}, {kcols}), expected (n, 2)"
+        )));
+    }
+    if d.shape()[0] != n {
+        return Err(InputError::new_err(format!(
+            "{n} keypoints but {} descriptors",
+            d.shape()[0]
+        )));
+    }
+    let k = k.as_array();
+    let keypoints = (0..n).map(|i| [k[[i, 0]], k[[i, 1]]]).collect();
+    let dim = d.shape()[1];
+    let descriptors = d.as_array().iter().copied().collect();
+    Ok(FeatureSet {
+        level,
+        keypoints,
+        descriptors,
+        dim,
+    })
+}
+
+#[pymethods]
+impl Features {
+    /// Features from arrays: `levels` maps a level id (or `None`: one set for every level, as
+    /// for SIFT) to `(keypoints (n, 2), descriptors (n, dim))`.
+    #[new]
+    #[pyo3(signature = (levels, global_descriptor=None))]
+    fn py_new(levels: &Bound<'_, PyDict>, global_descriptor: Option<Vec<f32>>) -> PyResult<Self> {
+        let mut sets = Vec::new();
+        for (level, value) in levels.iter() {
+            let level: Option<u16> = level.extract()?;
+            let pair = value.cast::<PyTuple>().map_err(|_| {
+                InputError::new_err("each level's features are a (keypoints, descriptors) tuple")
+            })?;
+            if pair.len() != 2 {
+                return Err(InputError::new_err(
+                    "each level's features are a (keypoints, descriptors) tuple",
+                ));
+            }
+            sets.push(feature_set(level, &pair.get_item(0)?, &pair.get_item(1)?)?);
+        }
+        Ok(Features::new(QueryFeatures {
+            sets,
+            global: global_descriptor,
+        }))
+    }
+
+    /// Level ids with features (`None` for one set serving every level).
+    #[getter]
+    fn levels(&self) -> Vec<Option<u16>> {
+        self.inner.sets.iter().map(|s| s.level).collect()
+    }
+
+    /// `(n, 2)` float64 keypoints of `level` (pixels, COLMAP convention).
+    #[pyo3(signature = (level=None))]
+    fn keypoints<'py>(&self, py: Python<'py>, level: Option<u16>) -> PyResult<Bound<'py, PyAny>> {
+        let s = &self.inner.sets[self.set(level)?];
+        let flat: Vec<f64> = s.keypoints.iter().flatten().copied().collect();
+        let a = Array2::from_shape_vec((s.keypoints.len(), 2), flat)
+            .map_err(|e| InputError::new_err(e.to_string()))?;
+        Ok(a.into_pyarray(py).into_any())
+    }
+
+    /// `(n, dim)` float32 descriptors of `level`.
+    #[pyo3(signature = (level=None))]
+    fn descriptors<'py>(&self, py: Python<'py>, level: Option<u16>) -> PyResult<Bound<'py, PyAny>> {
+        let s = &self.inner.sets[self.set(level)?];
+        let n = s.keypoints.len();
+        let a = Array2::from_shape_vec((n, s.dim), s.descriptors.clone())
+            .map_err(|e| InputError::new_err(e.to_string()))?;
+        Ok(a.into_pyarray(py).into_any())
+    }
+
+    /// `(n,)` float32 keypoint scores of `level`, if the extractor made them.
+    #[pyo3(signature = (level=None))]
+    fn scores<'py>(
+        &self,
+        py: Python<'py>,
+        level: Option<u16>,
+    ) -> PyResult<Option<Bound<'py, PyAny>>> {
+        let i = self.set(level)?;
+        Ok(self.scores[i]
+            .as_ref()
+            .map(|s| s.clone().into_pyarray(py).into_any()))
+    }
+
+    /// The global descriptor, if any.
+    #[getter]
+    fn global_descriptor<'py>(&self, py: Python<'py>) -> Option<Bound<'py, PyAny>> {
+        self.inner
+            .global
+            .as_ref()
+            .map(|g| g.clone().into_pyarray(py).into_any())
+    }
+
+    fn __len__(&self) -> usize {
+        self.inner.sets.iter().map(|s| s.keypoints.len()).sum()
+    }
+
+    fn __repr__(&self) -> String {
+        let sets: Vec<String> = self
+            .inner
+            .sets
+            .iter()
+            .map(|s| {
+                format!(
+                    "{}: {} x {}",
+                    s.level.map_or("all".to_string(), |l| l.to_string()),
+                    s.keypoints.len(),
+                    s.dim
+                )
+            })
+            .collect();
+        format!("sfpmap.Features({})", sets.join(", "))
+    }
+}
+
+/// Query features from a `Features`, a `(keypoints, descriptors)` tuple (one set for every
+/// level) or a dict `{level: (keypoints, descriptors)}`; `global_descriptor` replaces theirs.
+fn features_of(
+    obj: &Bound<'_, PyAny>,
+    global_descriptor: Option<Vec<f32>>,
+) -> PyResult<Arc<QueryFeatures>> {
+    let features = if let Ok(f) = obj.cast::<Features>() {
+        f.get().inner.clone()
+    } else if let Ok(pair) = obj.cast::<PyTuple>() {
+        if pair.len() != 2 {
+            return Err(InputError::new_err(
+                "features: expected Features, (keypoints, descriptors) or {level: (keypoints, descriptors)}",
+            ));
+        }
+        Arc::new(QueryFeatures {
+            sets: vec![feature_set(None, &pair.get_item(0)?, &pair.get_item(1)?)?],
+            global: None,
+        })
+    } else if let Ok(d) = obj.cast::<PyDict>() {
+        Features::py_new(d, None)?.inner
+    } else {
+        return Err(InputError::new_err(
+            "features: expected Features, (keypoints, descriptors) or {level: (keypoints, descriptors)}",
+        ));
+    };
+    Ok(match global_descriptor {
+        Some(g) => {
+            let mut f = (*features).clone();
+            f.global = Some(g);
+            Arc::new(f)
+        }
+        None => features,
+    })
+}
+
+/// The localizer and the map it borrows. Field order matters: `localizer` (which borrows the
+/// map) drops before `opened` (which owns it).
+struct Prepared {
+    localizer: Inner<'static>,
+    opened: Arc<Opened>,
+}
+
+/// A map prepared for localization; see the module docs for threads.
+#[pyclass(frozen, module = "sfpmap._sfpmap", name = "_Localizer")]
+pub(crate) struct Localizer {
+    prepared: Prepared,
+}
+
+fn retrieval_method(name: &str) -> PyResult<RetrievalMethod> {
+    Ok(match name {
+        "auto" => RetrievalMethod::Auto,
+        "vlad" => RetrievalMethod::Vlad,
+        "global" => RetrievalMethod::Global,
+        "off" => RetrievalMethod::Off,
+        other => {
+            return Err(InputError::new_err(format!(
+                "retrieval {other:?}: one of \"auto\", \"vlad\", \"global\", \"off\""
+            )))
+        }
+    })
+}
+
+impl Localizer {
+    /// One query, errors named as the CLI names them (`MAP: query NAME: ...`).
+    fn run(
+        &self,
+        features: &QueryFeatures,
+        camera: &GeoCamera,
+        name: &str,
+    ) -> Result<Outcome, String> {
+        self.prepared
+            .localizer
+            .localize(features, camera)
+            .map_err(|e| {
+                within(
+                    &format!("{}: query {name:?}", self.prepared.opened.path.display()),
+                    &e,
+                )
+            })
+    }
+}
+
+#[pymethods]
+impl Localizer {
+    #[new]
+    #[pyo3(signature = (map, levels=None, short=false, top_k=10, retrieval="auto", ratio=0.9,
+                        mutual=true, min_similarity=0.0, coarse_error_px=12.0, gate_px=24.0,
+                        gate_ratio=0.95, fine_error_px=6.0, min_inliers=12))]
+    #[allow(clippy::too_many_arguments, unsafe_code)]
+    fn new(
+        py: Python<'_>,
+        map: &Bound<'_, Map>,
+        levels: Option<Vec<u16>>,
+        short: bool,
+        top_k: usize,
+        retrieval: &str,
+        ratio: f32,
+        mutual: bool,
+        min_similarity: f32,
+        coarse_error_px: f64,
+        gate_px: f64,
+        gate_ratio: f32,
+        fine_error_px: f64,
+        min_inliers: usize,
+    ) -> PyResult<Self> {
+        let opened = map.get().opened(py)?;
+        let options = LocalizeOptions {
+            levels: levels.unwrap_or_default(),
+            short,
+            top_k,
+            retrieval: retrieval_method(retrieval)?,
+            matching: MatchOptions {
+                ratio,
+                mutual,
+                min_similarity,
+            },
+            coarse_error_px,
+            gate_px,
+            gate_ratio,
+            fine_error_px,
+            min_inliers,
+        };
+        // SAFETY: the reference points into the `Arc`'s allocation, which does not move and
+        // lives as long as `Prepared::opened`; `Prepared` drops the localizer first.
+        let map_ref: &'static sfpmap::format::Map<'static> =
+            unsafe { &*std::ptr::addr_of!(opened.map) };
+        let localizer = py.detach(|| Inner::new(map_ref, options)).map_err(|e| {
+            let message = within(&opened.path.display().to_string(), &e);
+            match e {
+                sfpmap::localize::LocalizeError::Format(sfpmap::format::Error::NoSuchLevel {
+                    ..
+                }) => NoSuchLevelError::new_err(message),
+                sfpmap::localize::LocalizeError::Format(_) => MapError::new_err(message),
+                _ => LocalizeError::new_err(message),
+            }
+        })?;
+        Ok(Localizer {
+            prepared: Prepared { localizer, opened },
+        })
+    }
+
+    /// Level ids in matching order (deepest first).
+    #[getter]
+    fn level_order(&self) -> Vec<u16> {
+        self.prepared.localizer.level_order()
+    }
+
+    /// Selected levels that are not matched, as `(level, reason)`.
+    #[getter]
+    fn skipped_levels(&self) -> Vec<(u16, String)> {
+        self.prepared
+            .localizer
+            .skipped_levels()
+            .iter()
+            .map(|s| (s.level, s.reason.clone()))
+            .collect()
+    }
+
+    /// Localizes one query (GIL released); a query that is not localized is a result whose
+    /// `success` is false, not an exception.
+    #[pyo3(signature = (features, camera, global_descriptor=None, name="query"))]
+    fn localize(
+        &self,
+        py: Python<'_>,
+        features: &Bound<'_, PyAny>,
+        camera: &Bound<'_, PyAny>,
+        global_descriptor: Option<Vec<f32>>,
+        name: &str,
+    ) -> PyResult<Localization> {
+        let f = features_of(features, global_descriptor)?;
+        let c = camera_of(camera)?;
+        let outcome = py
+            .detach(|| self.run(&f, &c, name))
+            .map_err(LocalizeError::new_err)?;
+        Ok(Localization::new(outcome, &self.prepared.opened))
+    }
+
+    /// Localizes `queries` (a list of `(features, camera)` or `(features, camera, name)`) on
+    /// `threads` Rust threads sharing this localizer, GIL released; results in order.
+    #[pyo3(signature = (queries, threads=2))]
+    fn localize_many(
+        &self,
+        py: Python<'_>,
+        queries: &Bound<'_, PyList>,
+        threads: usize,
+    ) -> PyResult<Vec<Localization>> {
+        let mut inputs = Vec::with_capacity(queries.len());
+        for (i, q) in queries.iter().enumerate() {
+            let t = q.cast::<PyTuple>().map_err(|_| {
+                InputError::new_err(format!(
+                    "query {i}: expected (features, camera) or (features, camera, name)"
+                ))
+            })?;
+            if !(2..=3).contains(&t.len()) {
+                return Err(InputError::new_err(format!(
+                    "query {i}: expected (features, camera) or (features, camera, name)"
+                )));
+            }
+            let name = if t.len() == 3 {
+                t.get_item(2)?.extract::<String>()?
+            } else {
+                format!("#{i}")
+            };
+            inputs.push((
+                features_of(&t.get_item(0)?, None)?,
+                camera_of(&t.get_item(1)?)?,
+                name,
+            ));
+        }
+        let workers = threads.clamp(1, 256).min(inputs.len().max(1));
+        let outcomes = py.detach(|| {
+            let results: Vec<Mutex<Option<Result<Outcome, String>>>> =
+                inputs.iter().map(|_| Mutex::new(None)).collect();
+            let next = AtomicUsize::new(0);
+            std::thread::scope(|s| {
+                for _ in 0..workers {
+                    s.spawn(|| loop {
+                        let i = next.fetch_add(1, Ordering::Relaxed);
+                        let Some((f, c, name)) = inputs.get(i) else {
+                            break;
+                        };
+                        let r = self.run(f, c, name);
+                        *results[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(r);
+                    });
+                }
+            });
+            results
+                .into_iter()
+                .map(|m| {
+                    m.into_inner()
+                        .unwrap_or_else(|p| p.into_inner())
+                        .expect("every query ran")
+                })
+                .collect::<Vec<_>>()
+        });
+        outcomes
+            .into_iter()
+            .map(|o| {
+                o.map(|o| Localization::new(o, &self.prepared.opened))
+                    .map_err(LocalizeError::new_err)
+            })
+            .collect()
+    }
+}
+
+/// What `localize` found for one query.
+#[pyclass(frozen, module = "sfpmap._sfpmap", name = "_Localization")]
+pub(crate) struct Localization {
+    /// `[qw, qx, qy, qz, tx, ty, tz]`, COLMAP's `cam_from_world`.
+    colmap: Option<[f64; 7]>,
+    matrix: Option<[[f64; 4]; 4]>,
+    failure: Option<String>,
+    inliers: usize,
+    inliers_per_level: Vec<(u16, usize)>,
+    matches: usize,
+    retrieved: Vec<usize>,
+    retrieved_names: Vec<String>,
+    path: &'static str,
+    retrieval: Option<&'static str>,
+    retrieval_fallback: Option<String>,
+    times: [f64; 5],
+}
+
+impl Localization {
+    fn new(o: Outcome, opened: &Opened) -> Localization {
+        let names = opened.map.images().ok().flatten();
+        let retrieved_names = o
+            .retrieved
+            .iter()
+            .filter_map(|&i| names.as_ref()?.name(i).ok().map(str::to_string))
+            .collect();
+        let pose = o.pose();
+        Localization {
+            colmap: pose.map(|p| p.to_colmap()),
+            matrix: pose.map(|p| {
+                let r = p.rotation.to_rotation_matrix();
+                let m = r.matrix();
+                let t = &p.translation;
+                [
+                    [m[(0, 0)], m[(0, 1)], m[(0, 2)], t.x],
+                    [m[(1, 0)], m[(1, 1)], m[(1, 2)], t.y],
+                    [m[(2, 0)], m[(2, 1)], m[(2, 2)], t.z],
+                    [0.0, 0.0, 0.0, 1.0],
+                ]
+            }),
+            failure: o.failure().map(|f| f.to_string()),
+            inliers: o.inliers,
+            inliers_per_level: o.inliers_per_level.clone(),
+            matches: o.matches,
+            retrieved: o.retrieved.clone(),
+            retrieved_names,
+            path: o.path.name(),
+            retrieval: o.retrieval.map(|m| m.name()),
+            retrieval_fallback: o.retrieval_fallback.map(|w| w.to_string()),
+            times: [
+                o.times.retrieval_ms,
+                o.times.coarse_match_ms,
+                o.times.coarse_ransac_ms,
+                o.times.fine_ms,
+                o.times.total_ms,
+            ],
+        }
+    }
+}
+
+#[pymethods]
+impl Localization {
+    /// Whether a pose was found.
+    #[getter]
+    fn success(&self) -> bool {
+        self.colmap.is_some()
+    }
+
+    /// `cam_from_world` as `[qw, qx, qy, qz, tx, ty, tz]` (COLMAP), or `None`.
+    #[getter]
+    fn colmap(&self) -> Option<[f64; 7]> {
+        self.colmap
+    }
+
+    /// `cam_from_world` as a 4×4 matrix (list of rows), or `None`.
+    #[getter]
+    fn _matrix(&self) -> Option<[[f64; 4]; 4]> {
+        self.matrix
+    }
+
+    /// Why the query was not localized, or `None`.
+    #[getter]
+    fn failure(&self) -> Option<String> {
+        self.failure.clone()
+    }
+
+    #[getter]
+    fn inliers(&self) -> usize {
+        self.inliers
+    }
+
+    /// `{level: inliers}` of the final estimate.
+    #[getter]
+    fn inliers_per_level(&self) -> Vec<(u16, usize)> {
+        self.inliers_per_level.clone()
+    }
+
+    #[getter]
+    fn matches(&self) -> usize {
+        self.matches
+    }
+
+    /// Retrieved database images (map indices), best first.
+    #[getter]
+    fn retrieved(&self) -> Vec<usize> {
+        self.retrieved.clone()
+    }
+
+    /// Their names.
+    #[getter]
+    fn retrieved_names(&self) -> Vec<String> {
+        self.retrieved_names.clone()
+    }
+
+    /// `"retrieval"` or `"tracking"`.
+    #[getter]
+    fn path(&self) -> &'static str {
+        self.path
+    }
+
+    /// The stored descriptor that ranked the images (`"vlad"`, `"global"`), if any.
+    #[getter]
+    fn retrieval(&self) -> Option<&'static str> {
+        self.retrieval
+    }
+
+    /// Why retrieval did not narrow the candidates, if it did not.
+    #[getter]
+    fn retrieval_fallback(&self) -> Option<String> {
+        self.retrieval_fallback.clone()
+    }
+
+    /// Milliseconds per stage: retrieval, coarse_match, coarse_ransac, fine, total.
+    #[getter]
+    fn _times(&self) -> [f64; 5] {
+        self.times
+    }
+}
+
+/// An hloc query list (`name MODEL W H params...` per line), or names only with `camera`:
+/// `[(name, Camera)]`.
+#[pyfunction]
+#[pyo3(signature = (path, camera=None))]
+pub(crate) fn read_queries(
+    path: std::path::PathBuf,
+    camera: Option<&Bound<'_, PyAny>>,
+) -> PyResult<Vec<(String, Camera)>> {
+    let camera = camera.map(camera_of).transpose()?;
+    let queries = sfpmap::io::queries::read_query_list(&path, camera.as_ref())
+        .map_err(|e| InputError::new_err(chain(&e)))?;
+    Ok(queries
+        .into_iter()
+        .map(|q| (q.name, Camera { inner: q.camera }))
+        .collect())
+}

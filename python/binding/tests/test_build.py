@@ -1,0 +1,129 @@
+"""convert, slice and from_pycolmap make the CLI's maps."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+
+import numpy as np
+import pytest
+import sfpmap
+
+from conftest import copy_db, run_cli
+
+
+def without_provenance(path) -> tuple:
+    """A map's content but its provenance: metadata (less provenance) and every section's
+    decoded bytes, in table order."""
+    with sfpmap.Map(path) as m:
+        meta = m.metadata
+        meta.pop("provenance")
+        sections = [
+            (s["kind"], s["level"], s["codec"], m.section(s["kind"], s["level"]).tobytes())
+            for s in m.info()["sections"]
+        ]
+    return meta, sections
+
+
+def test_convert_equals_the_cli(cli, shared, work, sacre_sift):
+    scene = shared / "scenes/sacre-coeur"
+    out = work / "py-sacre.sfpm"
+    summary = sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=out)
+    assert summary["points"] > 0 and summary["output"] == str(out)
+    # Provenance records the paths as given, so the two maps are byte-identical when the
+    # paths are: both were given the same ones.
+    assert out.read_bytes() == sacre_sift.read_bytes()
+
+
+def test_convert_geometry_only_and_options(shared, work):
+    scene = shared / "scenes/sacre-coeur"
+    out = work / "py-geom.sfpm"
+    s = sfpmap.convert(scene / "sparse-map", out=out, codec="zstd")
+    assert s["geometry_only"] and s["levels"] == []
+    with pytest.raises(sfpmap.FileError, match="exists"):
+        sfpmap.convert(scene / "sparse-map", out=out)
+    sfpmap.convert(scene / "sparse-map", out=out, force=True)
+    with pytest.raises(sfpmap.InputError):
+        sfpmap.convert(scene / "sparse-map", out=out, force=True, codec="lzma")
+    with pytest.raises(TypeError):
+        sfpmap.convert(scene / "sparse-map", out=out, force=True, no_such_option=1)
+
+
+def test_convert_errors_are_the_cli_messages(cli, tmp_path):
+    missing = tmp_path / "no-model"
+    with pytest.raises(sfpmap.Error) as e:
+        sfpmap.convert(missing, out=tmp_path / "x.sfpm")
+    r = subprocess.run([str(cli), "convert", "--colmap", str(missing), "-o", str(tmp_path / "x.sfpm")],
+                       capture_output=True, text=True)
+    assert r.stderr.strip() == f"error: {e.value}"
+
+
+def test_slice_equals_the_cli(cli, sacre_sift, work):
+    a, b = work / "py-slice.sfpm", work / "cli-slice.sfpm"
+    s = sfpmap.slice(sacre_sift, levels=[2], short=True, out=a)
+    run_cli(cli, "slice", sacre_sift, "--level", "2", "--short", "-o", b)
+    assert a.read_bytes() == b.read_bytes()
+    assert s["points_after"] <= s["points_before"]
+    with sfpmap.Map(a) as m:
+        assert m.levels.ids == [2] and m.levels[2].rest is None
+    with pytest.raises(sfpmap.NoSuchLevelError):
+        sfpmap.slice(sacre_sift, levels=[9], out=work / "never.sfpm")
+
+
+@pytest.mark.parametrize(
+    "flags, options",
+    [(["--minimal"], {"minimal": True}), (["--short", "--pq", "8"], {"short": True, "pq": 8})],
+)
+def test_slice_options_equal_the_cli(cli, sacre_sift, work, flags, options):
+    tag = "-".join(f.strip("-") for f in flags)
+    a, b = work / f"py-slice-{tag}.sfpm", work / f"cli-slice-{tag}.sfpm"
+    s = sfpmap.slice(sacre_sift, levels=[2], out=a, **options)
+    run_cli(cli, "slice", sacre_sift, "--level", "2", *flags, "-o", b)
+    assert a.read_bytes() == b.read_bytes()
+    with sfpmap.Map(a) as m:
+        if options.get("minimal"):
+            assert m.points.positions is None and m.points.positions_q16.dtype == np.uint16
+            assert s["position_max_error"] is not None
+        else:
+            assert m.levels[2].pq_codes.shape == (len(m.levels[2]), 8)
+            assert s["pq"][0]["subspaces"] == 8
+
+
+def test_from_pycolmap_equals_convert(shared, work, sacre_sift):
+    pycolmap = pytest.importorskip("pycolmap")
+    scene = shared / "scenes/sacre-coeur"
+    rec = pycolmap.Reconstruction(str(scene / "sparse-map"))
+    out = work / "pycolmap-sacre.sfpm"
+    s = sfpmap.from_pycolmap(rec, database=scene / "database.db", out=out)
+    assert s["points"] == len(rec.points3D)
+    assert without_provenance(out) == without_provenance(sacre_sift)
+    with sfpmap.Map(out) as m:
+        assert m.metadata["provenance"]["parameters"]["colmap"] == "pycolmap.Reconstruction"
+
+
+def test_from_pycolmap_south_building_geometry_and_sfp(cli, shared, work, south_sfp):
+    pycolmap = pytest.importorskip("pycolmap")
+    scene = shared / "scenes/south-building"
+    rec = pycolmap.Reconstruction(str(scene / "sparse-map"))
+    geometry_cli = work / "south-geom-cli.sfpm"
+    run_cli(cli, "convert", "--colmap", scene / "sparse-map", "-o", geometry_cli)
+    geometry_py = work / "south-geom-py.sfpm"
+    sfpmap.from_pycolmap(rec, out=geometry_py)
+    assert without_provenance(geometry_py) == without_provenance(geometry_cli)
+    sfp_py = work / "south-sfp-py.sfpm"
+    sfpmap.from_pycolmap(rec, images=scene / "images", out=sfp_py)
+    assert without_provenance(sfp_py) == without_provenance(south_sfp)
+
+
+def test_from_pycolmap_garbage_raises(tmp_path):
+    class Fake:
+        cameras = {}
+        images = {}
+        points3D = {1: object()}
+
+    with pytest.raises(Exception) as e:
+        sfpmap.from_pycolmap(Fake(), out=tmp_path / "x.sfpm")
+    assert not (tmp_path / "x.sfpm").exists()
+    with pytest.raises(AttributeError):
+        sfpmap.from_pycolmap(object(), out=tmp_path / "y.sfpm")
+    assert isinstance(e.value, (AttributeError, TypeError, sfpmap.Error))
