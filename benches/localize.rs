@@ -21,6 +21,9 @@
 //!   - `full_retrieval`: the same map with 100 database images (visibility of ≤ 4,000 points
 //!     each, global descriptors that vary smoothly with the camera pose): top-10 retrieval.
 //!
+//! - `pq/train_and_encode_100k/*`: what `slice --pq M` does per level (codebooks from a
+//!   16,384-row sample, then every one of 100,000 rows encoded), one core.
+//!
 //! Run: `cargo bench --bench localize` (about 4 minutes on 2 loaded cores).
 
 #[cfg(feature = "localize")]
@@ -156,6 +159,36 @@ mod localize {
                     b.iter(|| black_box(match_pq_descriptors(&q, &pq, &options)))
                 });
             }
+        }
+        group.finish();
+
+        // What `slice --pq M` does per level: learn the codebooks from a 16,384-row sample,
+        // then encode every row (100,000 here), on one core.
+        let mut group = c.benchmark_group("pq");
+        group.sample_size(10);
+        group.warm_up_time(Duration::from_secs(1));
+        group.measurement_time(Duration::from_secs(20));
+        for (dim, subspaces) in [(DIM_SHORT, 8), (DIM_FULL, 24)] {
+            let rows = if dim == DIM_FULL {
+                map.clone()
+            } else {
+                prefix_rows(&map, dim)
+            };
+            let id = BenchmarkId::new("train_and_encode_100k", format!("{dim}d_pq{subspaces}"));
+            group.bench_function(id, |b| {
+                b.iter(|| {
+                    let q = Quantiser::train(&rows[..16_384 * dim], dim, subspaces, 256).unwrap();
+                    let mut codes = vec![0u8; N_POINTS * subspaces];
+                    let mut scratch = vec![0.0f32; 256];
+                    for (row, out) in rows
+                        .chunks_exact(dim)
+                        .zip(codes.chunks_exact_mut(subspaces))
+                    {
+                        q.encode(row, out, &mut scratch);
+                    }
+                    black_box(codes)
+                })
+            });
         }
         group.finish();
     }

@@ -13,6 +13,8 @@ pub mod format;
 pub mod geometry;
 pub mod input;
 pub mod io;
+#[cfg(feature = "colmap-model")]
+pub(crate) mod kmeans;
 pub mod output;
 pub mod progress;
 #[cfg(any(feature = "colmap-model", feature = "localize", feature = "onnx"))]

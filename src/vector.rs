@@ -44,7 +44,7 @@ pub(crate) fn dot(a: &[f32], b: &[f32]) -> f32 {
 /// with the centroids stored transposed (`[dims × clusters]`) so each of `x`'s values scales
 /// one contiguous row into all the scores at once: the loop vectorizes over centroids, which
 /// makes 256-centroid codebooks (PQ) cheap to train and encode with. k-means
-/// (`build::kmeans`), VLAD assignments and PQ encoding all go through it.
+/// (`kmeans`), VLAD assignments and PQ encoding all go through it.
 #[cfg(any(feature = "colmap-model", feature = "localize"))]
 #[derive(Debug, Clone, PartialEq)]
 pub struct Nearest {
@@ -86,13 +86,9 @@ impl Nearest {
                 *s += v * c;
             }
         }
-        let mut best = 0;
-        for (c, &s) in scores.iter().enumerate() {
-            if s > scores[best] {
-                best = c;
-            }
-        }
-        best
+        // The maximum in one pass the compiler vectorizes, then its first position.
+        let max = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        scores.iter().position(|&s| s == max).unwrap_or(0)
     }
 }
 

@@ -53,13 +53,13 @@ impl Codebook {
         })
     }
 
-    /// k-means (`build::kmeans`: k-means++ seeding, then Lloyd iterations) over the non-zero
+    /// k-means (`crate::kmeans`: k-means++ seeding, then Lloyd iterations) over the non-zero
     /// rows of `rows` (`[n × dims]`), on a seeded sample of at most 32,768 of them: the same
     /// codebook for the same rows and seed on every machine. `None` when there are fewer
     /// non-zero rows than `clusters`.
     #[cfg(feature = "colmap")]
     pub fn train(rows: &[f32], dims: usize, clusters: usize, seed: u64) -> Option<Codebook> {
-        let kmeans = crate::build::kmeans::KMeans {
+        let kmeans = crate::kmeans::KMeans {
             clusters,
             max_train: MAX_TRAIN,
             iterations: ITERATIONS,

@@ -707,3 +707,60 @@ fn vlad_codebook_of_an_unlisted_level_or_wrong_dtype() {
         Err(Error::InvalidInput { .. })
     ));
 }
+
+/// (1.1) A position grid that cannot give finite f32 positions, at either corner, or a grid
+/// without quantised positions, is refused at open; the writer refuses non-finite positions.
+#[test]
+fn hostile_position_grids_are_bad_metadata() {
+    use sfpmap::format::PositionGrid;
+    let quantised = |grid: Option<PositionGrid>| {
+        let mut w = MapWriter::default();
+        w.set_points_world(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
+        w.set_points_q16(&[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+            .unwrap();
+        w.metadata_mut().position_grid = grid;
+        w.to_bytes().unwrap()
+    };
+    assert!(Map::from_bytes(&quantised(Some(PositionGrid {
+        min: [0.0; 3],
+        step: [1e-3; 3]
+    })))
+    .is_ok());
+    for grid in [
+        None,
+        Some(PositionGrid {
+            min: [1e39, 0.0, 0.0],
+            step: [1.0; 3],
+        }),
+        Some(PositionGrid {
+            min: [-1e39, 0.0, 0.0],
+            step: [1.55e34, 1.0, 1.0],
+        }),
+        Some(PositionGrid {
+            min: [0.0; 3],
+            step: [1e35, 1.0, 1.0],
+        }),
+        Some(PositionGrid {
+            min: [0.0; 3],
+            step: [0.0, 1.0, 1.0],
+        }),
+    ] {
+        assert!(
+            matches!(open_err(&quantised(grid)), Error::BadMetadata { .. }),
+            "{grid:?}"
+        );
+    }
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[1.0, 2.0, 3.0]]);
+    w.metadata_mut().position_grid = Some(PositionGrid {
+        min: [0.0; 3],
+        step: [1.0; 3],
+    });
+    assert!(matches!(
+        open_err(&w.to_bytes().unwrap()),
+        Error::BadMetadata { .. }
+    ));
+    assert!(MapWriter::default()
+        .set_points_q16(&[[f32::NAN, 0.0, 0.0]])
+        .is_err());
+}

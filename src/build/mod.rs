@@ -17,7 +17,6 @@ mod basis;
 #[cfg(feature = "colmap")]
 mod error;
 pub(crate) mod geometry;
-pub(crate) mod kmeans;
 pub mod pq;
 #[cfg(feature = "colmap")]
 mod retrieval;

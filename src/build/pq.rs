@@ -5,9 +5,9 @@
 //! matches such a level by asymmetric distances (`localize`: the query stays exact, the map
 //! side is looked up in per-query tables).
 
-use super::kmeans::KMeans;
 use crate::format::{f16, Error, Map, MapWriter};
 use crate::geometry::SplitMix64;
+use crate::kmeans::KMeans;
 use crate::vector::{l2_normalise, Nearest};
 
 /// Centroids per subspace at most: every value of a one-byte code.
@@ -206,6 +206,11 @@ pub fn quantise_levels(
             if let Some(rest) = &rest {
                 decode(&rest[r * dr..(r + 1) * dr], &mut out[ds..]);
             }
+            // The format does not check descriptor values: a non-finite one makes the row a
+            // zero row (no direction), never a NaN centroid.
+            if out.iter().any(|v| !v.is_finite()) {
+                out.fill(0.0);
+            }
             l2_normalise(out);
         };
         // The training sample: a seeded partial shuffle of the rows, decoded.
@@ -288,7 +293,12 @@ pub fn quantise_all(
     writer: &mut MapWriter<'_>,
     subspaces: usize,
 ) -> Result<Vec<PqLevelSummary>, Error> {
-    let bytes = writer.to_bytes()?;
+    // Raw: the copy is read back once, so compressing it would be wasted work.
+    let (codec, level) = writer.codec();
+    writer.set_codec(crate::format::Codec::Raw, level);
+    let bytes = writer.to_bytes();
+    writer.set_codec(codec, level);
+    let bytes = bytes?;
     let map = Map::from_bytes(&bytes)?;
     let levels: Vec<u16> = map
         .levels()

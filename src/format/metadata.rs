@@ -141,6 +141,17 @@ impl PositionGrid {
         std::array::from_fn(|k| (self.min[k] + f64::from(q[k]) * self.step[k]) as f32)
     }
 
+    /// Whether every grid point is a finite f32 position: `min` and `step` finite, `step`
+    /// above 0, and both corners finite once rounded to f32.
+    pub fn is_valid(&self) -> bool {
+        let finite = self.min.iter().chain(&self.step).all(|v| v.is_finite());
+        finite
+            && self.step.iter().all(|&s| s > 0.0)
+            && [[0; 3], [u16::MAX; 3]]
+                .iter()
+                .all(|&q| self.position(q).iter().all(|v| v.is_finite()))
+    }
+
     /// The largest distance, per axis, between a position and its grid point: half a step.
     pub fn max_error(&self) -> [f64; 3] {
         self.step.map(|s| s / 2.0)

@@ -387,10 +387,11 @@ impl<'a> Map<'a> {
     /// caller reads next, so no section is decoded twice).
     pub(crate) fn verify_keeping(&self, keep: impl Fn(&Section) -> bool) -> Result<(), Error> {
         for section in &self.sections {
-            let names = matches!(
-                section.kind,
-                SectionKind::ImageNameOffsets | SectionKind::ImageNames
-            );
+            let names = section.skipped.is_none()
+                && matches!(
+                    section.kind,
+                    SectionKind::ImageNameOffsets | SectionKind::ImageNames
+                );
             if names || keep(section) {
                 self.section_bytes(section)?;
             } else {

@@ -75,7 +75,7 @@ pub fn slice<'m>(
     let vlad_level = map
         .sections()
         .iter()
-        .find(|s| s.kind == SectionKind::LevelVladCentroids)
+        .find(|s| s.kind == SectionKind::LevelVladCentroids && s.skipped.is_none())
         .and_then(|s| s.level);
     // --minimal keeps the retrieval data the map prefers when it has both kinds: the
     // localizer reads only that one.
@@ -116,9 +116,6 @@ pub fn slice<'m>(
         .levels
         .retain(|l| keep_levels.binary_search(&l.level).is_ok());
     let vlad_dropped = vlad_level.is_some() && !keeps.vlad;
-    if !keeps.global && metadata.retrieval() == Some(Retrieval::Global) {
-        metadata.retrieval = None;
-    }
     if vlad_dropped && metadata.retrieval() == Some(Retrieval::Vlad) {
         metadata.retrieval = map
             .find(SectionKind::ImageGlobal, None)
@@ -211,7 +208,7 @@ pub fn slice<'m>(
             .filter(|(_, &k)| k)
             .map(|(&p, _)| p)
             .collect();
-        writer.set_points_q16(&kept);
+        writer.set_points_q16(&kept)?;
     }
 
     if let Some(vis) = map.visibility()? {

@@ -37,16 +37,20 @@ pub(crate) fn check_shapes(
         find(SectionKind::PointPositions, None),
         find(SectionKind::PointPositionsQ16, None),
     ) {
+        (Some(_), None) if metadata.position_grid.is_some() => {
+            return Err(Error::BadMetadata {
+                message: "position_grid without point_positions_q16".into(),
+            })
+        }
         (Some(p), None) => p.rows,
         // 1.1: positions on a grid, which the metadata states.
         (None, Some(q)) => {
             let grid = metadata.position_grid.ok_or_else(|| Error::BadMetadata {
                 message: "point_positions_q16 without a position_grid".into(),
             })?;
-            let finite = grid.min.iter().chain(&grid.step).all(|v| v.is_finite());
-            if !finite || grid.step.iter().any(|&s| s <= 0.0) {
+            if !grid.is_valid() {
                 return Err(Error::BadMetadata {
-                    message: "position_grid: min and step must be finite, step above 0".into(),
+                    message: "position_grid: min and step must be finite, step above 0, and every grid point a finite f32".into(),
                 });
             }
             q.rows

@@ -91,6 +91,11 @@ impl<'a> MapWriter<'a> {
         }
     }
 
+    /// The codec of sections added without one, and the zstd level.
+    pub fn codec(&self) -> (Codec, i32) {
+        (self.codec, self.zstd_level)
+    }
+
     /// The codec for every section added without one (default raw) and the zstd level.
     pub fn set_codec(&mut self, codec: Codec, zstd_level: i32) -> &mut Self {
         self.codec = codec;
@@ -194,7 +199,13 @@ impl<'a> MapWriter<'a> {
     /// axis spanning them (format 1.1, `point_positions_q16`, written required) instead of as
     /// f32: 6 bytes a point instead of 12. Returns the grid (its `max_error` is the most any
     /// position moves).
-    pub fn set_points_q16(&mut self, relative: &[[f32; 3]]) -> PositionGrid {
+    pub fn set_points_q16(&mut self, relative: &[[f32; 3]]) -> Result<PositionGrid, Error> {
+        if let Some(i) = relative
+            .iter()
+            .position(|p| p.iter().any(|v| !v.is_finite()))
+        {
+            return Err(Error::invalid(format!("point {i}: position is not finite")));
+        }
         let grid = PositionGrid::spanning(relative);
         let q: Vec<[u16; 3]> = relative.iter().map(|&p| grid.quantise(p)).collect();
         self.sections
@@ -208,7 +219,7 @@ impl<'a> MapWriter<'a> {
             owned_bytes(q),
         );
         self.metadata.position_grid = Some(grid);
-        grid
+        Ok(grid)
     }
 
     /// Drops quantised positions: a map has f32 positions or (1.1) grid ones.
@@ -528,7 +539,16 @@ impl<'a> MapWriter<'a> {
                 "{subspaces} subspaces of {centroids} centroids: needs at least one subspace and 1 to 256 centroids"
             ));
         }
+        if subspaces as u64 > super::layout::MAX_DESCRIPTOR_DIM {
+            return wrong(format!(
+                "{subspaces} subspaces: more than {}",
+                super::layout::MAX_DESCRIPTOR_DIM
+            ));
+        }
         let rows = subspaces * centroids;
+        if codebook.iter().any(|v| !v.is_finite()) {
+            return wrong("a centroid value is not finite".into());
+        }
         if codebook.is_empty() || codebook.len() % rows != 0 {
             return wrong(format!(
                 "a codebook of {} values is not {subspaces} x {centroids} centroid rows",

@@ -95,14 +95,14 @@ impl<'m> Retrieval<'m> {
         let vlad = map
             .sections()
             .iter()
-            .find(|s| s.kind() == SectionKind::LevelVladCentroids)
+            .find(|s| s.kind() == SectionKind::LevelVladCentroids && s.skipped().is_none())
             .map(
                 |s| serde_json::json!({"level": s.level(), "clusters": s.rows(), "dims": s.cols()}),
             );
         let global_dims = map
             .sections()
             .iter()
-            .find(|s| s.kind() == SectionKind::ImageGlobal)
+            .find(|s| s.kind() == SectionKind::ImageGlobal && s.skipped().is_none())
             .map(|s| s.cols());
         Retrieval {
             preference: meta.retrieval.as_deref(),

@@ -99,19 +99,32 @@ impl KMeans {
                 }
             }
             let old = centroids;
+            // Empty clusters restart at the rows farthest from their centroids, a different
+            // row each (ties: the lower index), found once per iteration.
+            let empty = counts.iter().filter(|&&c| c == 0).count();
+            let mut farthest = Vec::new();
+            if empty > 0 {
+                let mut errors: Vec<(f64, usize)> = (0..n)
+                    .map(|i| {
+                        let a = assignment[i];
+                        (squared_distance(row(i), &old[a * dims..(a + 1) * dims]), i)
+                    })
+                    .collect();
+                let by_error =
+                    |a: &(f64, usize), b: &(f64, usize)| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1));
+                if empty < n {
+                    errors.select_nth_unstable_by(empty - 1, by_error);
+                    errors.truncate(empty);
+                }
+                errors.sort_unstable_by(by_error);
+                farthest = errors.into_iter().map(|(_, i)| i).collect();
+            }
+            let mut restarts = farthest.into_iter();
             centroids = vec![0.0f32; clusters * dims];
             for c in 0..clusters {
                 let out = &mut centroids[c * dims..(c + 1) * dims];
                 if counts[c] == 0 {
-                    // An empty cluster restarts at the row farthest from its centroid.
-                    let error = |i: usize| {
-                        let a = assignment[i];
-                        squared_distance(row(i), &old[a * dims..(a + 1) * dims])
-                    };
-                    let far = (0..n)
-                        .max_by(|&a, &b| error(a).total_cmp(&error(b)).then(b.cmp(&a)))
-                        .unwrap_or(0);
-                    out.copy_from_slice(row(far));
+                    out.copy_from_slice(row(restarts.next().unwrap_or(0)));
                     continue;
                 }
                 for (o, s) in out.iter_mut().zip(&sums[c * dims..(c + 1) * dims]) {
