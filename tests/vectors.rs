@@ -761,7 +761,11 @@ fn reader_1_0_column_is_the_spec_table() {
     let refused = ["pq", "later_minor", "minimal_slice"];
     for (path, _, expected) in committed("valid") {
         let name = path.file_stem().unwrap().to_str().unwrap();
-        let want = if refused.contains(&name) { "refuses" } else { "opens" };
+        let want = if refused.contains(&name) {
+            "refuses"
+        } else {
+            "opens"
+        };
         assert_eq!(expected["reader_1_0"], want, "{name}");
     }
 }

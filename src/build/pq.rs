@@ -287,6 +287,85 @@ pub fn centroids_for(n: usize) -> usize {
     1 << most.ilog2()
 }
 
+/// A slice of a map (`format::slice`) with its kept levels optionally product-quantised:
+/// what `sfpmap slice` and the Python package's `slice` write and report.
+pub struct SlicedMap<'m> {
+    pub writer: MapWriter<'m>,
+    pub summary: crate::format::SliceSummary,
+    /// Each quantised level, empty without `--pq`.
+    pub pq: Vec<PqLevelSummary>,
+}
+
+/// [`crate::format::slice`], then, with `pq = Some(M)`, every kept level quantised into `M`
+/// codes per point over what the slice keeps (`options.short`), recorded in the provenance.
+pub fn slice_quantised<'m>(
+    map: &'m Map<'_>,
+    options: &crate::format::SliceOptions,
+    pq: Option<usize>,
+) -> Result<SlicedMap<'m>, Error> {
+    let (mut writer, summary) = crate::format::slice(map, options)?;
+    let pq = match pq {
+        Some(m) => {
+            writer
+                .metadata_mut()
+                .provenance
+                .parameters
+                .insert("pq".into(), serde_json::json!(m));
+            let mut levels = options.levels.clone();
+            levels.sort_unstable();
+            levels.dedup();
+            let pq_options = PqOptions {
+                subspaces: m,
+                short: options.short,
+            };
+            quantise_levels(map, &mut writer, &levels, &pq_options)?
+        }
+        None => Vec::new(),
+    };
+    Ok(SlicedMap {
+        writer,
+        summary,
+        pq,
+    })
+}
+
+impl SlicedMap<'_> {
+    /// The `slice --json` object, once the slice of `input` (`input_bytes`) is written to
+    /// `output` (`written` bytes).
+    pub fn report(
+        &self,
+        input: &std::path::Path,
+        output: &std::path::Path,
+        input_bytes: u64,
+        written: u64,
+    ) -> serde_json::Value {
+        let s = &self.summary;
+        serde_json::json!({
+            "input": input.display().to_string(),
+            "output": output.display().to_string(),
+            "input_bytes": input_bytes,
+            "output_bytes": written,
+            "ratio": input_bytes as f64 / written.max(1) as f64,
+            "points_before": s.points_before,
+            "points_after": s.points_after,
+            "sections_copied": s.sections_copied,
+            "sections_rebuilt": s.sections_rebuilt,
+            "skipped_sections_dropped": s.skipped_dropped,
+            "position_max_error": self.writer.metadata().position_grid.map(|g| g.max_error()),
+            "pq": self.pq.iter().map(|l| serde_json::json!({
+                "level": l.level,
+                "points": l.points,
+                "dims": l.dims,
+                "subspaces": l.subspaces,
+                "centroids": l.centroids,
+                "descriptor_bytes_before": l.bytes_before,
+                "descriptor_bytes_after": l.bytes_after,
+                "mean_squared_error": l.mean_squared_error,
+            })).collect::<Vec<_>>(),
+        })
+    }
+}
+
 /// `convert --pq M`: every level with descriptors of the map `writer` holds, quantised over
 /// all its dimensions. The map is encoded once in memory to read its levels back.
 pub fn quantise_all(

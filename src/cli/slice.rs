@@ -1,9 +1,8 @@
 //! `sfpmap slice`: keep some levels, optionally only their short descriptors.
 
 use anyhow::Context;
-use serde_json::json;
-use sfpmap::build::pq::{quantise_levels, PqOptions};
-use sfpmap::format::{slice, Codec, SliceOptions};
+use sfpmap::build::pq::slice_quantised;
+use sfpmap::format::{Codec, SliceOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -76,55 +75,18 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         zstd_level: args.zstd_level,
         minimal: args.minimal,
     };
-    let (mut writer, summary) =
-        slice(&map, &options).with_context(|| input.display().to_string())?;
-    let pq = match args.pq {
-        Some(m) => {
-            let pq_options = PqOptions {
-                subspaces: usize::from(m),
-                short: args.short,
-            };
-            writer
-                .metadata_mut()
-                .provenance
-                .parameters
-                .insert("pq".into(), json!(m));
-            let mut levels = args.levels.clone();
-            levels.sort_unstable();
-            levels.dedup();
-            quantise_levels(&map, &mut writer, &levels, &pq_options)
-                .with_context(|| input.display().to_string())?
-        }
-        None => Vec::new(),
-    };
-    let writer_grid = writer.metadata().position_grid;
+    let sliced = slice_quantised(&map, &options, args.pq.map(usize::from))
+        .with_context(|| input.display().to_string())?;
     let bars = super::Bars::new(quiet, args.json);
-    let written = writer.write(output, &bars).map_err(super::naming(output))?;
+    let written = sliced
+        .writer
+        .write(output, &bars)
+        .map_err(super::naming(output))?;
     let before = map.file_len();
+    let (summary, pq) = (&sliced.summary, &sliced.pq);
+    let writer_grid = sliced.writer.metadata().position_grid;
     if args.json {
-        super::print_json(&json!({
-            "input": input.display().to_string(),
-            "output": output.display().to_string(),
-            "input_bytes": before,
-            "output_bytes": written,
-            "ratio": before as f64 / written.max(1) as f64,
-            "points_before": summary.points_before,
-            "points_after": summary.points_after,
-            "sections_copied": summary.sections_copied,
-            "sections_rebuilt": summary.sections_rebuilt,
-            "skipped_sections_dropped": summary.skipped_dropped,
-            "position_max_error": writer_grid.map(|g| g.max_error()),
-            "pq": pq.iter().map(|l| json!({
-                "level": l.level,
-                "points": l.points,
-                "dims": l.dims,
-                "subspaces": l.subspaces,
-                "centroids": l.centroids,
-                "descriptor_bytes_before": l.bytes_before,
-                "descriptor_bytes_after": l.bytes_after,
-                "mean_squared_error": l.mean_squared_error,
-            })).collect::<Vec<_>>(),
-        }))?;
+        super::print_json(&sliced.report(input, output, before, written))?;
     } else if !quiet {
         println!(
             "{}: {before} bytes -> {}: {written} bytes ({:.2}x smaller), points {} -> {}",
@@ -141,7 +103,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 e[0], e[1], e[2], map.metadata().units
             );
         }
-        for l in &pq {
+        for l in pq {
             println!(
                 "  level {}: {} dims -> {} bytes per point ({} centroids per subspace), descriptors {} -> {} bytes, mean squared error {:.4}",
                 l.level, l.dims, l.subspaces, l.centroids, l.bytes_before, l.bytes_after, l.mean_squared_error

@@ -326,7 +326,7 @@ pub(crate) fn slice(
     zstd_level: i32,
     force: bool,
 ) -> PyResult<String> {
-    use sfpmap::build::pq::{quantise_levels, PqOptions};
+    use sfpmap::build::pq::slice_quantised;
     if levels.is_empty() {
         return Err(InputError::new_err("levels: at least one level to keep"));
     }
@@ -350,57 +350,13 @@ pub(crate) fn slice(
     sfpmap::output::check_output(&out, &[&map_path], force).map_err(output_error)?;
     let value = py.detach(|| -> PyResult<serde_json::Value> {
         let map = sfpmap::format::Map::open(&map_path).map_err(|e| format_error(&map_path, e))?;
-        let (mut writer, summary) =
-            sfpmap::format::slice(&map, &options).map_err(|e| format_error(&map_path, e))?;
-        let pq = match pq {
-            Some(m) => {
-                let pq_options = PqOptions {
-                    subspaces: usize::from(m),
-                    short,
-                };
-                writer
-                    .metadata_mut()
-                    .provenance
-                    .parameters
-                    .insert("pq".into(), json!(m));
-                let mut levels = levels.clone();
-                levels.sort_unstable();
-                levels.dedup();
-                quantise_levels(&map, &mut writer, &levels, &pq_options).map_err(|e| {
-                    ConvertError::new_err(within(&map_path.display().to_string(), &e))
-                })?
-            }
-            None => Vec::new(),
-        };
-        let grid = writer.metadata().position_grid;
-        let written = writer.write(&out, &Silent).map_err(|e| match e {
+        let sliced = slice_quantised(&map, &options, pq.map(usize::from))
+            .map_err(|e| ConvertError::new_err(within(&map_path.display().to_string(), &e)))?;
+        let written = sliced.writer.write(&out, &Silent).map_err(|e| match e {
             sfpmap::format::Error::Io { .. } => FileError::new_err(chain(&e)),
             e => FileError::new_err(within(&out.display().to_string(), &e)),
         })?;
-        let before = map.file_len();
-        Ok(json!({
-            "input": map_path.display().to_string(),
-            "output": out.display().to_string(),
-            "input_bytes": before,
-            "output_bytes": written,
-            "ratio": before as f64 / written.max(1) as f64,
-            "points_before": summary.points_before,
-            "points_after": summary.points_after,
-            "sections_copied": summary.sections_copied,
-            "sections_rebuilt": summary.sections_rebuilt,
-            "skipped_sections_dropped": summary.skipped_dropped,
-            "position_max_error": grid.map(|g| g.max_error()),
-            "pq": pq.iter().map(|l| json!({
-                "level": l.level,
-                "points": l.points,
-                "dims": l.dims,
-                "subspaces": l.subspaces,
-                "centroids": l.centroids,
-                "descriptor_bytes_before": l.bytes_before,
-                "descriptor_bytes_after": l.bytes_after,
-                "mean_squared_error": l.mean_squared_error,
-            })).collect::<Vec<_>>(),
-        }))
+        Ok(sliced.report(&map_path, &out, map.file_len(), written))
     })?;
     Ok(value.to_string())
 }
