@@ -351,7 +351,7 @@ pub(crate) fn slice(
     let value = py.detach(|| -> PyResult<serde_json::Value> {
         let map = sfpmap::format::Map::open(&map_path).map_err(|e| format_error(&map_path, e))?;
         let sliced = slice_quantised(&map, &options, pq.map(usize::from))
-            .map_err(|e| ConvertError::new_err(within(&map_path.display().to_string(), &e)))?;
+            .map_err(|e| format_error(&map_path, e))?;
         let written = sliced.writer.write(&out, &Silent).map_err(|e| match e {
             sfpmap::format::Error::Io { .. } => FileError::new_err(chain(&e)),
             e => FileError::new_err(within(&out.display().to_string(), &e)),
