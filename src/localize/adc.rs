@@ -63,7 +63,7 @@ impl<'p, 'm> AdcTables<'p, 'm> {
     }
 
     /// Similarities of every query with the level rows `rows` into `out` (`[n_q × rows]`).
-    /// `codes_t` and `inverse_norms` are scratch, reused across calls.
+    /// `block_codes` and `inverse_norms` are scratch, reused across calls.
     pub(super) fn scores(
         &self,
         rows: &[usize],

@@ -7,8 +7,9 @@
 //!
 //! A [`Localizer`] is built once per map (it indexes the levels, retrieval data, database
 //! viewpoints and visibility) and shared by threads; it reads descriptors straight from the
-//! mmapped map's f16 blocks, decoding the candidate rows a block at a time inside matching:
-//! nothing of its own per map point.
+//! mmapped map's f16 blocks, decoding the candidate rows a block at a time inside matching,
+//! or (1.1) matches a product-quantised level's codes by table lookups (`adc`): nothing of
+//! its own per map point.
 
 use super::adc::match_pq;
 use super::kernels::sgemm_abt;
