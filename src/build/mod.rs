@@ -170,3 +170,37 @@ fn read_geometry_with_sources(
     let (model, sources) = read_model_with_sources(model_dir, reporter)?;
     Ok((Geometry::new(&model, None), sources))
 }
+
+#[cfg(feature = "colmap")]
+impl ConvertSummary {
+    /// The `convert --json` object of a SIFT or geometry-only map written to `out` in
+    /// `seconds` (the CLI and the Python package print this).
+    pub fn report(&self, out: &Path, seconds: f64) -> serde_json::Value {
+        let s = self;
+        let levels: Vec<_> = s
+            .levels
+            .iter()
+            .map(|l| {
+                serde_json::json!({
+                    "level": l.level, "points": l.points, "dim_full": l.dim_full, "dim_short": l.dim_short,
+                    "variance_short": l.variance_short, "scale_range": l.scale_range,
+                })
+            })
+            .collect();
+        serde_json::json!({
+            "output": out.display().to_string(),
+            "points": s.points,
+            "images": s.images,
+            "observations": s.observations,
+            "input_bytes": s.input_bytes,
+            "output_bytes": s.output_bytes,
+            "ratio": s.input_bytes as f64 / s.output_bytes.max(1) as f64,
+            "seconds": seconds,
+            "geometry_only": s.geometry_only,
+            "levels": levels,
+            "images_without_features": s.images_without_features,
+            "points_without_descriptors": s.points_without_descriptors,
+            "vlad": s.vlad.map(|v| serde_json::json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
+        })
+    }
+}

@@ -445,3 +445,42 @@ fn convert_images_of(
         score_threshold: threshold,
     })
 }
+impl SfpMapSummary {
+    /// The `convert --images --json` object of the map written to `out` in `seconds`.
+    pub fn report(&self, out: &Path, seconds: f64) -> serde_json::Value {
+        let summary = self;
+        let c = &summary.convert;
+        let levels: Vec<_> = c
+            .levels
+            .iter()
+            .map(|l| {
+                serde_json::json!({
+                    "level": l.level, "points": l.points, "dim_full": l.dim_full,
+                    "dim_short": l.dim_short, "variance_short": l.variance_short,
+                    "stride": l.scale_range[0],
+                })
+            })
+            .collect();
+        serde_json::json!({
+            "output": out.display().to_string(),
+            "descriptors": "sfp",
+            "points": c.points,
+            "model_points": summary.model_points,
+            "dropped_points": summary.model_points - c.points,
+            "images": c.images,
+            "observations": c.observations,
+            "input_bytes": c.input_bytes,
+            "image_bytes": summary.image_bytes,
+            "output_bytes": c.output_bytes,
+            "ratio": c.input_bytes as f64 / c.output_bytes.max(1) as f64,
+            "seconds": seconds,
+            "ms_per_image": summary.ms_per_image,
+            "score_threshold": summary.score_threshold,
+            "model": summary.model.name,
+            "model_xxh3": summary.model.xxh3,
+            "missing_images": summary.missing_images,
+            "levels": levels,
+            "vlad": c.vlad.map(|v| serde_json::json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
+        })
+    }
+}

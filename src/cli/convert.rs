@@ -1,7 +1,6 @@
 //! `sfpmap convert`: a COLMAP model (+ database.db) into a map.
 
 use super::slice::CodecArg;
-use serde_json::json;
 use sfpmap::build::{convert, Aggregate, ConvertOptions};
 use sfpmap::format::Codec;
 use std::path::PathBuf;
@@ -122,32 +121,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let summary = convert(&args.colmap, &options, &args.output, &bars)?;
     let seconds = start.elapsed().as_secs_f64();
     let ratio = summary.input_bytes as f64 / summary.output_bytes.max(1) as f64;
-    let levels: Vec<_> = summary
-        .levels
-        .iter()
-        .map(|l| {
-            json!({
-                "level": l.level, "points": l.points, "dim_full": l.dim_full, "dim_short": l.dim_short,
-                "variance_short": l.variance_short, "scale_range": l.scale_range,
-            })
-        })
-        .collect();
     if args.json {
-        super::print_json(&json!({
-            "output": args.output.display().to_string(),
-            "points": summary.points,
-            "images": summary.images,
-            "observations": summary.observations,
-            "input_bytes": summary.input_bytes,
-            "output_bytes": summary.output_bytes,
-            "ratio": ratio,
-            "seconds": seconds,
-            "geometry_only": summary.geometry_only,
-            "levels": levels,
-            "images_without_features": summary.images_without_features,
-            "points_without_descriptors": summary.points_without_descriptors,
-            "vlad": summary.vlad.map(|v| json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
-        }))?;
+        super::print_json(&summary.report(&args.output, seconds))?;
     } else if !quiet {
         println!(
             "{}: {} points, {} images, {} observations; {} bytes in -> {} bytes out ({ratio:.2}x) in {seconds:.2} s",
@@ -264,38 +239,7 @@ fn run_sfp(
     let c = &summary.convert;
     let ratio = c.input_bytes as f64 / c.output_bytes.max(1) as f64;
     if args.json {
-        let levels: Vec<_> = c
-            .levels
-            .iter()
-            .map(|l| {
-                json!({
-                    "level": l.level, "points": l.points, "dim_full": l.dim_full,
-                    "dim_short": l.dim_short, "variance_short": l.variance_short,
-                    "stride": l.scale_range[0],
-                })
-            })
-            .collect();
-        super::print_json(&json!({
-            "output": args.output.display().to_string(),
-            "descriptors": "sfp",
-            "points": c.points,
-            "model_points": summary.model_points,
-            "dropped_points": summary.model_points - c.points,
-            "images": c.images,
-            "observations": c.observations,
-            "input_bytes": c.input_bytes,
-            "image_bytes": summary.image_bytes,
-            "output_bytes": c.output_bytes,
-            "ratio": ratio,
-            "seconds": seconds,
-            "ms_per_image": summary.ms_per_image,
-            "score_threshold": summary.score_threshold,
-            "model": summary.model.name,
-            "model_xxh3": summary.model.xxh3,
-            "missing_images": summary.missing_images,
-            "levels": levels,
-            "vlad": c.vlad.map(|v| json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
-        }))?;
+        super::print_json(&summary.report(&args.output, seconds))?;
     } else if !quiet {
         println!(
             "{}: {} of {} points kept, {} images, {} observations; model {} bytes -> map {} bytes ({ratio:.2}x) in {seconds:.1} s ({:.0} ms per image)",

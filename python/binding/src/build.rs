@@ -5,10 +5,7 @@ use crate::errors::{
     chain, format_error, output_error, within, ConvertError, FileError, InputError,
 };
 use pyo3::prelude::*;
-use serde_json::json;
-use sfpmap::build::{
-    Aggregate, ConvertOptions, ConvertSummary, SfpMapOptions, SfpMapSummary, VladOptions,
-};
+use sfpmap::build::{Aggregate, ConvertOptions, SfpMapOptions, VladOptions};
 use sfpmap::colmap::{Camera as ColmapCamera, Image, Point2D, Reconstruction, TrackElement};
 use sfpmap::format::Codec;
 use sfpmap::geometry::{CameraModel, Pose};
@@ -173,70 +170,6 @@ impl Options {
     }
 }
 
-fn sift_json(out: &Path, s: &ConvertSummary, seconds: f64) -> serde_json::Value {
-    let levels: Vec<_> = s
-        .levels
-        .iter()
-        .map(|l| {
-            json!({
-                "level": l.level, "points": l.points, "dim_full": l.dim_full, "dim_short": l.dim_short,
-                "variance_short": l.variance_short, "scale_range": l.scale_range,
-            })
-        })
-        .collect();
-    json!({
-        "output": out.display().to_string(),
-        "points": s.points,
-        "images": s.images,
-        "observations": s.observations,
-        "input_bytes": s.input_bytes,
-        "output_bytes": s.output_bytes,
-        "ratio": s.input_bytes as f64 / s.output_bytes.max(1) as f64,
-        "seconds": seconds,
-        "geometry_only": s.geometry_only,
-        "levels": levels,
-        "images_without_features": s.images_without_features,
-        "points_without_descriptors": s.points_without_descriptors,
-        "vlad": s.vlad.map(|v| json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
-    })
-}
-
-fn sfp_json(out: &Path, summary: &SfpMapSummary, seconds: f64) -> serde_json::Value {
-    let c = &summary.convert;
-    let levels: Vec<_> = c
-        .levels
-        .iter()
-        .map(|l| {
-            json!({
-                "level": l.level, "points": l.points, "dim_full": l.dim_full,
-                "dim_short": l.dim_short, "variance_short": l.variance_short,
-                "stride": l.scale_range[0],
-            })
-        })
-        .collect();
-    json!({
-        "output": out.display().to_string(),
-        "descriptors": "sfp",
-        "points": c.points,
-        "model_points": summary.model_points,
-        "dropped_points": summary.model_points - c.points,
-        "images": c.images,
-        "observations": c.observations,
-        "input_bytes": c.input_bytes,
-        "image_bytes": summary.image_bytes,
-        "output_bytes": c.output_bytes,
-        "ratio": c.input_bytes as f64 / c.output_bytes.max(1) as f64,
-        "seconds": seconds,
-        "ms_per_image": summary.ms_per_image,
-        "score_threshold": summary.score_threshold,
-        "model": summary.model.name,
-        "model_xxh3": summary.model.xxh3,
-        "missing_images": summary.missing_images,
-        "levels": levels,
-        "vlad": c.vlad.map(|v| json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
-    })
-}
-
 /// `sfpmap convert`: a COLMAP model folder (+ `database` for a SIFT map, or `images` for an
 /// SFP map) into the map `out`. Returns what `convert --json` prints (as JSON text).
 #[pyfunction]
@@ -295,12 +228,12 @@ pub(crate) fn convert(
                 let s =
                     sfpmap::build::convert_with_images(&model_dir, &o.sfp(images), &out, &Silent)
                         .map_err(convert_error)?;
-                Ok(sfp_json(&out, &s, start.elapsed().as_secs_f64()))
+                Ok(s.report(&out, start.elapsed().as_secs_f64()))
             }
             None => {
                 let s = sfpmap::build::convert(&model_dir, &o.sift(), &out, &Silent)
                     .map_err(convert_error)?;
-                Ok(sift_json(&out, &s, start.elapsed().as_secs_f64()))
+                Ok(s.report(&out, start.elapsed().as_secs_f64()))
             }
         }
     })?;
@@ -541,12 +474,12 @@ pub(crate) fn from_pycolmap(
                     &Silent,
                 )
                 .map_err(convert_error)?;
-                Ok(sfp_json(&out, &s, start.elapsed().as_secs_f64()))
+                Ok(s.report(&out, start.elapsed().as_secs_f64()))
             }
             None => {
                 let s = sfpmap::build::convert_model(&rec, source, &o.sift(), &out, &Silent)
                     .map_err(convert_error)?;
-                Ok(sift_json(&out, &s, start.elapsed().as_secs_f64()))
+                Ok(s.report(&out, start.elapsed().as_secs_f64()))
             }
         }
     })?;
