@@ -12,35 +12,13 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 before=$1; after=$2; shift 2
 scenes=${*:-sacre-coeur south-building kitti06}
-DATA=../shared/data
-CACHE=target/scenes
-mkdir -p "$CACHE"
-
-jget() { python3 -c "import json,sys;d=json.load(open(sys.argv[1]));print(eval(sys.argv[2],{'d':d}))" "$@"; }
-
-scene_dir() { # the scene's folder (KITTI 06 built once)
-  if [ "$1" = kitti06 ]; then
-    if [ ! -f "$CACHE/kitti06/stats.json" ]; then
-      local K=$DATA/sequences/kitti06
-      python3 "$DATA/tools/make_posed_scene.py" "$K/images" "$K/poses.txt" "$K/calib.txt" \
-        "$CACHE/kitti06" >"$CACHE/kitti06.log" 2>&1
-    fi
-    echo "$CACHE/kitti06"
-  else
-    echo "$DATA/scenes/$1"
-  fi
-}
+source benches/scenes.sh
 
 echo "| scene | variant | build | map MB | localized | recall (0.1 x spacing, 2°) | median transl. | median rot. (°) | ms/query |"
 echo "|---|---|---|---|---|---|---|---|---|"
 for scene in $scenes; do
   S=$(scene_dir "$scene"); C="$CACHE/$scene-compare"; mkdir -p "$C"
-  # Copies of the databases (never the originals); South Building's are rebuilt once.
-  if [ -f "$S/database.db" ]; then cp "$S/database.db" "$C/database.db"; cp "$S/queries.db" "$C/queries.db"
-  elif [ ! -f "$C/database.db" ]; then
-    python3 "$DATA/tools/make_scene.py" IGNORED "$S" "$(mktemp -d)" --camera-mode SINGLE --every 5 \
-      --steps regen-db --regen-out "$C/database.db" --regen-queries-out "$C/queries.db" >"$C/regen.log" 2>&1
-  fi
+  scene_databases "$S" "$C"
   for build in before after; do
     B=$before; [ "$build" = after ] && B=$after
     W="$C/$build"; mkdir -p "$W"

@@ -1,0 +1,29 @@
+# Shared by the scene scripts (scenes_compare.sh, size_accuracy.sh): where the shared scenes
+# are, the KITTI 06 scene built once, and copies of their databases. Source it.
+DATA=../shared/data
+CACHE=target/scenes
+mkdir -p "$CACHE"
+
+jget() { python3 -c "import json,sys;d=json.load(open(sys.argv[1]));print(eval(sys.argv[2],{'d':d}))" "$@"; }
+
+scene_dir() { # the scene's folder (KITTI 06 built once: map every frame but each 4th, queries those)
+  if [ "$1" = kitti06 ]; then
+    if [ ! -f "$CACHE/kitti06/stats.json" ]; then
+      local K=$DATA/sequences/kitti06
+      python3 "$DATA/tools/make_posed_scene.py" "$K/images" "$K/poses.txt" "$K/calib.txt" \
+        "$CACHE/kitti06" --every 4 >"$CACHE/kitti06.log" 2>&1
+    fi
+    echo "$CACHE/kitti06"
+  else
+    echo "$DATA/scenes/$1"
+  fi
+}
+
+scene_databases() { # SCENE_DIR WORK_DIR: copies of database.db and queries.db (never the originals); South Building's are rebuilt once
+  local S=$1 C=$2
+  if [ -f "$S/database.db" ]; then cp "$S/database.db" "$C/database.db"; cp "$S/queries.db" "$C/queries.db"
+  elif [ ! -f "$C/database.db" ]; then
+    python3 "$DATA/tools/make_scene.py" IGNORED "$S" "$(mktemp -d)" --camera-mode SINGLE --every 5 \
+      --steps regen-db --regen-out "$C/database.db" --regen-queries-out "$C/queries.db" >"$C/regen.log" 2>&1
+  fi
+}
