@@ -17,6 +17,8 @@ pub mod io;
 pub(crate) mod kmeans;
 pub mod output;
 pub mod progress;
+#[cfg(feature = "remote")]
+pub mod remote;
 #[cfg(any(feature = "colmap-model", feature = "localize", feature = "onnx"))]
 mod vector;
 #[cfg(any(feature = "colmap", feature = "localize"))]

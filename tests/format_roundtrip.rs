@@ -118,7 +118,7 @@ fn raw_sections_are_borrowed_from_the_mapping() {
         matches!(short, std::borrow::Cow::Borrowed(_)),
         "raw f16 must be zero-copy"
     );
-    let range = map.bytes().as_ptr_range();
+    let range = map.bytes().unwrap().as_ptr_range();
     assert!(range.contains(&(short.as_ptr() as *const u8)));
 }
 
@@ -323,7 +323,7 @@ fn stored(map: &Map<'_>, kind: SectionKind) -> Option<Stored> {
         s.rows(),
         s.cols(),
         s.required(),
-        map.bytes()[at..at + s.stored_len() as usize].to_vec(),
+        map.bytes().unwrap()[at..at + s.stored_len() as usize].to_vec(),
     ))
 }
 

@@ -153,6 +153,12 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         );
         lines.push(format!("{}: {n_images} image poses", path.display()));
     }
+    if map.source().is_some() {
+        report.insert("transfer".into(), super::transfer_json(&map));
+        if let Some(source) = map.source() {
+            lines.push(super::transfer_line(source.name(), &source.stats()));
+        }
+    }
     Ok(Exported {
         report,
         lines,

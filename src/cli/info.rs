@@ -17,10 +17,11 @@ pub struct Args {
     pub json: bool,
 }
 
-pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
+pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let path = &args.map;
     let map = super::open_map(path)?;
     let meta = map.metadata();
+    super::report_transfer(&map, quiet);
     if args.json {
         print_info_json(&map, path)?;
         return Ok(ExitCode::SUCCESS);

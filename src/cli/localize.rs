@@ -257,7 +257,9 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         None => Vec::new(),
     };
     check_outputs(&args, &[&query_list], &images)?;
+    let opening = Instant::now();
     let map = super::open_map(&args.map)?;
+    let open_ms = opening.elapsed().as_secs_f64() * 1e3;
     let descriptor = descriptor_kind(&map);
     #[cfg(feature = "onnx")]
     let from_h5 = match &args.features {
@@ -306,7 +308,11 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             )
         }
     };
+    let indexing = Instant::now();
     let localizer = localizer(&map, &args)?;
+    // Opening the map and building the localizer: all a remote map's reads (with the
+    // first query's time, when its first pose is ready).
+    let map_ms = json!({ "open": open_ms, "localizer": indexing.elapsed().as_secs_f64() * 1e3 });
     warn_skipped(&localizer, &args.map, &bars);
     bars.start("localizing", Some(queries.len() as u64));
     // Each query's outcome, and whether its features could be read at all.
@@ -418,8 +424,11 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "seconds": start.elapsed().as_secs_f64(),
             "median_ms": median_ms(&results),
             "median_inliers": median(results.iter().filter(|r| r.pose().is_some()).map(|r| r.inliers as f64).collect()),
+            "transfer": super::transfer_json(&map),
+            "map_ms": map_ms,
         }))?;
     } else if !quiet {
+        super::report_transfer(&map, quiet);
         println!(
             "{}: {localized}/{} localized, median {:.1} ms per query (after features)",
             args.output.display(),

@@ -103,9 +103,60 @@ pub fn print_json(value: &serde_json::Value) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Opens a map; errors name its path once.
+/// Opens a map, a file or an `http(s)://` / `s3://` URL read by range (cache and S3 settings
+/// from the environment, `sfpmap::remote::RemoteOptions::from_env`); errors name it once.
 pub fn open_map(path: &std::path::Path) -> anyhow::Result<sfpmap::format::Map<'static>> {
+    if let Some(url) = path.to_str().filter(|p| sfpmap::remote::is_url(p)) {
+        let options = sfpmap::remote::RemoteOptions::from_env();
+        return sfpmap::remote::open(url, &options).map_err(naming(path));
+    }
     sfpmap::format::Map::open(path).map_err(naming(path))
+}
+
+/// What reading a map by range cost (`None` for a local map), for `--json`.
+pub fn transfer_json(map: &sfpmap::format::Map<'_>) -> serde_json::Value {
+    map.source()
+        .map_or(serde_json::Value::Null, |s| serde_json::json!(s.stats()))
+}
+
+/// One line on stderr saying what reading a map by range cost (nothing for a local map, or
+/// with `--quiet`), and a warning when the server ignored range requests.
+pub fn report_transfer(map: &sfpmap::format::Map<'_>, quiet: bool) {
+    let Some(source) = map.source() else {
+        return;
+    };
+    if quiet {
+        return;
+    }
+    let s = source.stats();
+    if s.whole_object {
+        eprintln!(
+            "warning: {}: the server ignores range requests; the whole object ({} bytes) was read",
+            source.name(),
+            source.len()
+        );
+    }
+    eprintln!("{}", transfer_line(source.name(), &s));
+}
+
+/// `URL: read N bytes in K requests (C sections, B bytes from the cache)`.
+pub fn transfer_line(name: &str, s: &sfpmap::format::SourceStats) -> String {
+    let mut line = format!(
+        "{name}: read {} bytes in {} request{}",
+        s.bytes,
+        s.requests,
+        if s.requests == 1 { "" } else { "s" }
+    );
+    if s.cache_hits > 0 {
+        line.push_str(&format!(
+            " ({} sections, {} bytes from the cache)",
+            s.cache_hits, s.cache_bytes
+        ));
+    }
+    if s.refetched > 0 {
+        line.push_str(&format!("; {} damaged section(s) read again", s.refetched));
+    }
+    line
 }
 
 /// A format error with `path` in front, unless it is an I/O error, which already names it.

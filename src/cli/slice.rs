@@ -86,8 +86,13 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let (summary, pq) = (&sliced.summary, &sliced.pq);
     let writer_grid = sliced.writer.metadata().position_grid;
     if args.json {
-        super::print_json(&sliced.report(input, output, before, written))?;
+        let mut report = sliced.report(input, output, before, written);
+        report["transfer"] = super::transfer_json(&map);
+        super::print_json(&report)?;
     } else if !quiet {
+        if let Some(source) = map.source() {
+            println!("{}", super::transfer_line(source.name(), &source.stats()));
+        }
         println!(
             "{}: {before} bytes -> {}: {written} bytes ({:.2}x smaller), points {} -> {}",
             input.display(),

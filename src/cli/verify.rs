@@ -18,6 +18,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let path = &args.map;
     let map = super::open_map(path)?;
     map.verify().with_context(|| path.display().to_string())?;
+    super::report_transfer(&map, quiet);
     if !quiet {
         println!(
             "{}: ok (sfpmap {}, {} sections, {} bytes)",

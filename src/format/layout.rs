@@ -269,6 +269,28 @@ impl SectionKind {
     }
 
     /// Whether sections of this kind carry a level id (others use [`NO_LEVEL`]).
+    /// Where the reference writer puts a section of this kind and `level`: the shared
+    /// sections (geometry, images, retrieval, visibility) by kind code, then level by level
+    /// ascending, each level's `short` block after everything else it needs and its `rest`
+    /// block last. So one level's short map is one contiguous byte range, and a reader by
+    /// range fetches it in one request (spec, "Section order").
+    pub fn file_order(self, level: u16) -> (u8, u16, u16) {
+        if level == NO_LEVEL {
+            return (0, self.code(), 0);
+        }
+        let rank = match self {
+            SectionKind::LevelPoints => 0,
+            SectionKind::LevelProjection => 1,
+            SectionKind::LevelVladCentroids => 2,
+            SectionKind::LevelPqCodebook => 3,
+            SectionKind::LevelPqCodes => 4,
+            SectionKind::LevelDescShort => 5,
+            SectionKind::LevelDescRest => 6,
+            other => 16u16.saturating_add(other.code()),
+        };
+        (1, level, rank)
+    }
+
     pub fn is_per_level(self) -> bool {
         matches!(
             self,

@@ -25,6 +25,7 @@ mod mmap;
 mod pq;
 mod reader;
 mod slice;
+mod source;
 mod views;
 mod writer;
 
@@ -40,8 +41,9 @@ pub use metadata::{
     CameraInfo, LevelInfo, Metadata, PositionGrid, Provenance, Retrieval, SourceFile,
 };
 pub use pq::{Pq, MAX_PQ_CENTROIDS};
-pub use reader::{decode_budget, decode_cap, Map, Section, Skipped};
+pub use reader::{decode_budget, decode_cap, Map, Section, Skipped, HEAD_READ};
 pub use slice::{slice, SliceOptions, SliceSummary};
+pub use source::{coalesce, RangeSource, SourceStats, Wanted, COALESCE_GAP};
 pub use views::{GlobalDescriptors, Images, Level, Visibility, Vlad};
 pub use writer::{Descriptors, MapWriter};
 

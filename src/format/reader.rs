@@ -10,6 +10,7 @@ use super::layout::{
     METADATA_MAX_BYTES, NO_LEVEL, SECTION_FLAGS_KNOWN, SECTION_REQUIRED,
 };
 use super::metadata::Metadata;
+use super::source::{RangeSource, Wanted};
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::path::Path;
@@ -35,6 +36,8 @@ pub struct Section {
     pub(crate) checksum: u64,
     /// Why this reader skips the section (optional sections only), `None` if it reads it.
     pub(crate) skipped: Option<Skipped>,
+    /// Where the zero padding before the section starts (the previous region's end).
+    pub(crate) padding_start: u64,
 }
 
 /// Why a reader skips an optional section: it does not know its kind, or (1.1) it cannot
@@ -152,6 +155,11 @@ impl Section {
 enum Backing<'a> {
     Mmap(memmap2::Mmap),
     Borrowed(&'a [u8]),
+    /// Read by range: each section's stored bytes once fetched and checked.
+    Source {
+        source: Box<dyn RangeSource>,
+        fetched: Vec<OnceLock<Decoded>>,
+    },
 }
 
 /// Decoded bytes of a zstd section, held in `u64`s so every dtype casts aligned.
@@ -164,6 +172,23 @@ impl Decoded {
     fn bytes(&self) -> &[u8] {
         &bytemuck::cast_slice(&self.words)[..self.len]
     }
+
+    /// A copy of `bytes` in `u64`s, so every dtype casts aligned.
+    fn aligned(bytes: &[u8]) -> Decoded {
+        let mut words = vec![0u64; bytes.len().div_ceil(8)];
+        bytemuck::cast_slice_mut::<u64, u8>(&mut words)[..bytes.len()].copy_from_slice(bytes);
+        Decoded {
+            words,
+            len: bytes.len(),
+        }
+    }
+}
+
+/// Keeps a fetched section's stored bytes (the padding before them dropped); a second thread
+/// that fetched the same section meanwhile keeps the first copy.
+fn keep(slot: &OnceLock<Decoded>, want: &Wanted, bytes: &[u8]) {
+    let pad = (want.offset - want.range.start) as usize;
+    let _ = slot.get_or_init(|| Decoded::aligned(&bytes[pad..]));
 }
 
 /// Table positions by (kind, level), built once at open: every lookup is O(1), so nothing
@@ -239,6 +264,38 @@ impl Map<'static> {
     }
 }
 
+impl Map<'static> {
+    /// Opens a map read by range from `source` (an object in storage): one read of the
+    /// first [`HEAD_READ`] bytes holds the header and, usually, the whole index; a second
+    /// reads the rest of a longer index. Sections are fetched on first access, or together
+    /// by [`Map::prefetch`], and checked against their checksums before use.
+    pub fn open_source(source: Box<dyn RangeSource>) -> Result<Map<'static>, Error> {
+        let file_len = source.len();
+        let mut head = source.read_range(0..file_len.min(HEAD_READ))?;
+        let index_end = index_end(&head, file_len)?;
+        if index_end > head.len() as u64 {
+            head.extend(source.read_range(head.len() as u64..index_end)?);
+        }
+        let index = validate_index(&head, file_len)?;
+        let fetched = (0..index.sections.len()).map(|_| OnceLock::new()).collect();
+        Map::from_index(index, Backing::Source { source, fetched })
+    }
+}
+
+/// How much of a map [`Map::open_source`] reads first: the header, a table of ~1,000 sections
+/// and the metadata of most maps.
+pub const HEAD_READ: u64 = 64 << 10;
+
+/// Where the index of a map whose first bytes are `head` ends, padding to the first section
+/// included, capped by the named limits and the file: what `open_source` must have read.
+fn index_end(head: &[u8], file_len: u64) -> Result<u64, Error> {
+    let header = Header::decode(head)?;
+    let table = u64::from(header.section_count.min(MAX_SECTIONS))
+        * u64::from(header.entry_len.min(MAX_ENTRY_LEN));
+    let end = HEADER_LEN as u64 + table + header.metadata_len.min(METADATA_MAX_BYTES);
+    Ok(align_up(end).unwrap_or(end).min(file_len))
+}
+
 impl<'a> Map<'a> {
     /// Validates a map held in memory, borrowing it (no copy).
     pub fn from_bytes(bytes: &'a [u8]) -> Result<Map<'a>, Error> {
@@ -249,8 +306,13 @@ impl<'a> Map<'a> {
         let bytes: &[u8] = match &backing {
             Backing::Mmap(m) => m,
             Backing::Borrowed(b) => b,
+            Backing::Source { .. } => unreachable!("sources open through open_source"),
         };
-        let index = validate_index(bytes)?;
+        let index = validate_index(bytes, bytes.len() as u64)?;
+        Map::from_index(index, backing)
+    }
+
+    fn from_index(index: Index, backing: Backing<'a>) -> Result<Map<'a>, Error> {
         let n = index.sections.len();
         Ok(Map {
             backing,
@@ -266,12 +328,101 @@ impl<'a> Map<'a> {
         })
     }
 
-    /// The whole file.
-    pub fn bytes(&self) -> &[u8] {
+    /// The whole file, when it is in memory or mapped (`None` for a map read by range).
+    pub fn bytes(&self) -> Option<&[u8]> {
         match &self.backing {
-            Backing::Mmap(m) => m,
-            Backing::Borrowed(b) => b,
+            Backing::Mmap(m) => Some(m),
+            Backing::Borrowed(b) => Some(b),
+            Backing::Source { .. } => None,
         }
+    }
+
+    /// The source of a map opened with [`Map::open_source`].
+    pub fn source(&self) -> Option<&dyn RangeSource> {
+        match &self.backing {
+            Backing::Source { source, .. } => Some(source.as_ref()),
+            _ => None,
+        }
+    }
+
+    /// Fetches, in as few reads as the source allows, the sections `wanted` selects that are
+    /// not fetched yet; a no-op for a map in memory. Reading a section fetches it anyway:
+    /// this only saves round trips (a command that knows what it reads calls it first).
+    pub fn prefetch(&self, wanted: impl Fn(&Section) -> bool) -> Result<(), Error> {
+        let Backing::Source { source, fetched } = &self.backing else {
+            return Ok(());
+        };
+        let missing: Vec<&Section> = self
+            .sections
+            .iter()
+            .filter(|s| fetched[s.index].get().is_none() && wanted(s))
+            .collect();
+        self.fetch(source.as_ref(), fetched, &missing)
+    }
+
+    /// Reads `sections` from `source`, checks each (length, padding, checksum), reads the
+    /// damaged ones once more from the origin, and keeps them.
+    fn fetch(
+        &self,
+        source: &dyn RangeSource,
+        fetched: &[OnceLock<Decoded>],
+        sections: &[&Section],
+    ) -> Result<(), Error> {
+        if sections.is_empty() {
+            return Ok(());
+        }
+        let wanted: Vec<Wanted> = sections
+            .iter()
+            .map(|s| Wanted {
+                index: s.index,
+                range: s.padding_start..s.offset + s.stored_len,
+                offset: s.offset,
+                checksum: s.checksum,
+            })
+            .collect();
+        let got = source.read_sections(self.header.index_checksum, &wanted, false)?;
+        let mut damaged = Vec::new();
+        for ((section, want), bytes) in sections.iter().zip(&wanted).zip(got) {
+            if want.matches(&bytes) {
+                keep(&fetched[section.index], want, &bytes);
+            } else {
+                damaged.push((*section, want.clone()));
+            }
+        }
+        if damaged.is_empty() {
+            return Ok(());
+        }
+        let again: Vec<Wanted> = damaged.iter().map(|(_, w)| w.clone()).collect();
+        let got = source.read_sections(self.header.index_checksum, &again, true)?;
+        for ((section, want), bytes) in damaged.iter().zip(got) {
+            if !want.matches(&bytes) {
+                let len = want.range.end - want.range.start;
+                if bytes.len() as u64 != len {
+                    return Err(Error::Io {
+                        path: source.name().into(),
+                        message: format!(
+                            "{}: the source returned {} bytes for a range of {len}",
+                            section.reference(),
+                            bytes.len()
+                        ),
+                    });
+                }
+                let pad = (want.offset - want.range.start) as usize;
+                if bytes[..pad].iter().any(|&b| b != 0) {
+                    return Err(Error::BadPadding {
+                        offset: want.range.start,
+                        len: pad as u64,
+                    });
+                }
+                return Err(Error::ChecksumMismatch {
+                    section: section.reference(),
+                    expected: section.checksum,
+                    found: checksum(&bytes[pad..]),
+                });
+            }
+            keep(&fetched[section.index], want, &bytes);
+        }
+        Ok(())
     }
 
     /// The raw header (fuzz bodies and tests).
@@ -330,9 +481,21 @@ impl<'a> Map<'a> {
     /// The stored bytes of one of this map's sections (checked by [`Map::own`]), as they are in
     /// the file (compressed for zstd). Not checksummed: callers that copy them must check or
     /// recompute.
-    pub(crate) fn stored_bytes(&self, section: &Section) -> &[u8] {
-        let start = section.offset as usize;
-        &self.bytes()[start..start + section.stored_len as usize]
+    pub(crate) fn stored_bytes(&self, section: &Section) -> Result<&[u8], Error> {
+        match &self.backing {
+            Backing::Source { source, fetched } => {
+                let slot = &fetched[section.index];
+                if slot.get().is_none() {
+                    self.fetch(source.as_ref(), fetched, &[section])?;
+                }
+                Ok(slot.get().expect("fetch kept the section").bytes())
+            }
+            Backing::Mmap(_) | Backing::Borrowed(_) => {
+                let bytes = self.bytes().expect("in memory");
+                let start = section.offset as usize;
+                Ok(&bytes[start..start + section.stored_len as usize])
+            }
+        }
     }
 
     /// `section` if it is one of this map's, as [`Map::sections`] lists it. A `Section` cannot be
@@ -359,7 +522,7 @@ impl<'a> Map<'a> {
         }
         let ready = self.ready[section.index].get_or_init(|| self.prepare(section));
         match ready {
-            Ok(None) => Ok(self.stored_bytes(section)),
+            Ok(None) => self.stored_bytes(section),
             Ok(Some(decoded)) => Ok(decoded.bytes()),
             Err(e) => Err(e.clone()),
         }
@@ -386,7 +549,20 @@ impl<'a> Map<'a> {
     /// [`Map::verify`], keeping the decoded bytes of the sections `keep` selects (those the
     /// caller reads next, so no section is decoded twice).
     pub(crate) fn verify_keeping(&self, keep: impl Fn(&Section) -> bool) -> Result<(), Error> {
-        for section in &self.sections {
+        self.verify_selected(|_| true, keep)
+    }
+
+    /// [`Map::verify_keeping`] of the sections `select` picks (all of them but those a slice
+    /// of a map read by range drops, which are then never downloaded), then what ties
+    /// sections together.
+    pub(crate) fn verify_selected(
+        &self,
+        select: impl Fn(&Section) -> bool,
+        keep: impl Fn(&Section) -> bool,
+    ) -> Result<(), Error> {
+        // Read by range, the selected sections are fetched together, in few requests.
+        self.prefetch(&select)?;
+        for section in self.sections.iter().filter(|s| select(s)) {
             let names = section.skipped.is_none()
                 && matches!(
                     section.kind,
@@ -446,7 +622,7 @@ impl<'a> Map<'a> {
     }
 
     fn prepare(&self, section: &Section) -> Result<Option<Decoded>, Error> {
-        let stored = self.stored_bytes(section);
+        let stored = self.stored_bytes(section)?;
         let found = checksum(stored);
         if found != section.checksum {
             return Err(Error::ChecksumMismatch {
@@ -549,9 +725,10 @@ struct Index {
 
 /// Everything `open` checks: the header, table bounds, each entry, exact tiling with zero
 /// padding, the index checksum, the metadata and the sections' shapes against each other.
-fn validate_index(bytes: &[u8]) -> Result<Index, Error> {
+/// `bytes` is the file, or (read by range) its first bytes through the padding before the
+/// first section; `file_len` the whole file's length.
+fn validate_index(bytes: &[u8], file_len: u64) -> Result<Index, Error> {
     let header = Header::decode(bytes)?;
-    let file_len = bytes.len() as u64;
     if file_len < header.file_len {
         return Err(Error::Truncated {
             what: "file",
@@ -581,7 +758,7 @@ fn validate_index(bytes: &[u8]) -> Result<Index, Error> {
     // Both factors are capped above, so this cannot overflow.
     let table_end =
         HEADER_LEN as u64 + u64::from(header.section_count) * u64::from(header.entry_len);
-    if table_end > file_len {
+    if table_end > bytes.len() as u64 {
         return Err(Error::Truncated {
             what: "section table",
             needed: table_end,
@@ -600,7 +777,7 @@ fn validate_index(bytes: &[u8]) -> Result<Index, Error> {
         });
     }
     let metadata_end = table_end + header.metadata_len;
-    if metadata_end > file_len {
+    if metadata_end > bytes.len() as u64 {
         return Err(Error::Truncated {
             what: "metadata",
             needed: metadata_end,
@@ -633,7 +810,7 @@ fn validate_index(bytes: &[u8]) -> Result<Index, Error> {
         let raw = RawEntry::decode(&entry_bytes[..ENTRY_LEN]);
         sections.push(validate_entry(index, &raw, file_len)?);
     }
-    check_tiling(bytes, &sections, metadata_end)?;
+    check_tiling(bytes, file_len, &mut sections, metadata_end)?;
     check_declared_sizes(&sections, file_len)?;
 
     let (by_kind, n_points, n_images) = super::views::check_shapes(&metadata, &sections)?;
@@ -760,6 +937,7 @@ fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section
         raw_len: raw.raw_len,
         checksum: raw.checksum,
         skipped,
+        padding_start: 0,
     })
 }
 
@@ -791,8 +969,14 @@ fn check_declared_sizes(sections: &[Section], file_len: u64) -> Result<(), Error
 
 /// Sections follow the metadata in table order, each at the next multiple of 64 after the
 /// previous region, with zero bytes between; the last one ends the file. So every byte of
-/// the file is either index, section data or checked padding.
-fn check_tiling(bytes: &[u8], sections: &[Section], metadata_end: u64) -> Result<(), Error> {
+/// the file is either index, section data or checked padding. Padding past `bytes` (a map
+/// read by range) is checked when its section is fetched ([`Wanted::matches`]).
+fn check_tiling(
+    bytes: &[u8],
+    file_len: u64,
+    sections: &mut [Section],
+    metadata_end: u64,
+) -> Result<(), Error> {
     let mut previous_end = metadata_end;
     for section in sections {
         let expected = align_up(previous_end).ok_or(Error::BadIndex {
@@ -810,10 +994,12 @@ fn check_tiling(bytes: &[u8], sections: &[Section], metadata_end: u64) -> Result
                 what: "gap between sections larger than the alignment padding",
             });
         }
-        check_padding(bytes, previous_end, section.offset)?;
+        if section.offset <= bytes.len() as u64 {
+            check_padding(bytes, previous_end, section.offset)?;
+        }
+        section.padding_start = previous_end;
         previous_end = section.offset + section.stored_len;
     }
-    let file_len = bytes.len() as u64;
     if previous_end != file_len {
         return Err(Error::TrailingBytes {
             expected: previous_end,

@@ -92,7 +92,12 @@ pub fn slice<'m>(
     // Checking everything first means a corrupt section is never copied into the new map.
     // Sections this slice reads are kept decoded and the others streamed, so each is decoded
     // once and a slice fits the map's decode budget.
-    map.verify_keeping(|s| keeps.reads_contents(s))?;
+    // Read by range, only the kept sections are checked, so only they are downloaded.
+    let in_memory = map.bytes().is_some();
+    map.verify_selected(
+        |s| in_memory || keeps.section(s),
+        |s| keeps.reads_contents(s),
+    )?;
 
     // Old point index → new index, u32::MAX for dropped points.
     let n_points = map.n_points() as usize;
@@ -400,6 +405,7 @@ mod tests {
             raw_len: 0,
             checksum: 0,
             skipped: None,
+            padding_start: 0,
         }
     }
 

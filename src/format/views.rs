@@ -748,13 +748,26 @@ impl<'a> Map<'a> {
     }
 
     pub fn visibility(&self) -> Result<Option<Visibility<'_>>, Error> {
+        self.visibility_with(true)
+    }
+
+    /// [`Map::visibility`] without the keypoints (image → points only), so a map read by
+    /// range never fetches them for a reader that does not use them.
+    pub fn visibility_points(&self) -> Result<Option<Visibility<'_>>, Error> {
+        self.visibility_with(false)
+    }
+
+    fn visibility_with(&self, keypoints: bool) -> Result<Option<Visibility<'_>>, Error> {
         let Some(offsets) = self.find(SectionKind::VisibilityOffsets, None) else {
             return Ok(None);
         };
         Ok(Some(Visibility {
             offsets: self.section_array(offsets)?,
             points: self.section_array(self.required(SectionKind::VisibilityPoints)?)?,
-            keypoints: self.optional(SectionKind::VisibilityKeypoints)?,
+            keypoints: match keypoints {
+                true => self.optional(SectionKind::VisibilityKeypoints)?,
+                false => None,
+            },
         }))
     }
 
@@ -820,6 +833,7 @@ mod tests {
             raw_len: 0,
             checksum: 0,
             skipped: None,
+            padding_start: 0,
         }
     }
 

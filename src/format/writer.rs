@@ -55,7 +55,7 @@ enum Content<'a> {
 #[derive(Debug, Clone)]
 pub struct MapWriter<'a> {
     metadata: Metadata,
-    /// By (kind code, level): the canonical table order, and one section per pair (a second
+    /// By (kind code, level): one section per pair (a second
     /// push replaces the first) in O(log n), so a map of 65,536 sections builds in linear time.
     sections: BTreeMap<(u16, u16), PendingSection<'a>>,
     codec: Codec,
@@ -702,6 +702,7 @@ impl<'a> MapWriter<'a> {
         section: &Section,
     ) -> Result<&mut Self, Error> {
         map.check_section(section)?;
+        let stored = map.stored_bytes(section)?;
         self.push(
             section.kind,
             section.level.unwrap_or(NO_LEVEL),
@@ -710,7 +711,7 @@ impl<'a> MapWriter<'a> {
             section.cols,
             section.required,
             Content::Stored {
-                bytes: Cow::Borrowed(map.stored_bytes(section)),
+                bytes: Cow::Borrowed(stored),
                 codec: section.codec,
                 raw_len: section.raw_len,
             },
@@ -778,9 +779,10 @@ impl<'a> MapWriter<'a> {
                 }
             }
         }
-        // Canonical order (by kind code, level), so the bytes do not depend on the order of
-        // the calls.
-        let order: Vec<&PendingSection<'a>> = self.sections.values().collect();
+        // Canonical order (`SectionKind::file_order`: shared sections, then level by level),
+        // so the bytes do not depend on the order of the calls.
+        let mut order: Vec<&PendingSection<'a>> = self.sections.values().collect();
+        order.sort_by_key(|s| s.kind.file_order(s.level));
         reporter.start("encoding", Some(order.len() as u64));
         let mut blocks = Vec::with_capacity(order.len());
         for s in order {

@@ -159,6 +159,8 @@ struct SectionJson {
     rows: u64,
     cols: u64,
     codec: &'static str,
+    /// Where the stored bytes start in the file (a range read fetches from here).
+    offset: u64,
     stored_bytes: u64,
     raw_bytes: u64,
     required: bool,
@@ -177,6 +179,7 @@ impl From<&Section> for SectionJson {
             rows: s.rows(),
             cols: s.cols(),
             codec: s.codec().name(),
+            offset: s.offset(),
             stored_bytes: s.stored_len(),
             raw_bytes: s.raw_len(),
             required: s.required(),

@@ -17,7 +17,7 @@ use super::level::{index_level, LevelIndex, Stored};
 use super::matching::{match_rows, MatchOptions};
 use super::prior::Viewpoints;
 use super::retrieval::{RetrievalFallback, RetrievalIndex, RetrievalMethod};
-use crate::format::{Error as FormatError, Map, Retrieval, Visibility};
+use crate::format::{Error as FormatError, Map, Retrieval, SectionKind, Visibility};
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use crate::vector::{dot, normalise_rows};
 use nalgebra::{Vector2, Vector3};
@@ -408,6 +408,15 @@ impl<'m> Localizer<'m> {
         };
         ids.sort_unstable_by(|a, b| b.cmp(a));
         ids.dedup();
+        // Read by range: what the localizer reads below, fetched in few requests (the
+        // selected levels, the VLAD codebook's level, the shared sections it uses).
+        map.prefetch(|s| match s.level() {
+            Some(level) => ids.contains(&level) || s.kind() == SectionKind::LevelVladCentroids,
+            None => !matches!(
+                s.kind(),
+                SectionKind::PointColors | SectionKind::PointIds | SectionKind::VisibilityKeypoints
+            ),
+        })?;
         let mut levels = Vec::new();
         let mut skipped = Vec::new();
         for id in ids {
@@ -433,7 +442,7 @@ impl<'m> Localizer<'m> {
             .images()?
             .filter(|images| !images.is_empty())
             .map(|images| Viewpoints::new(&images.poses));
-        let visibility = map.visibility()?;
+        let visibility = map.visibility_points()?;
         Ok(Localizer {
             map,
             options,

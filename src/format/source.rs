@@ -1,0 +1,153 @@
+//! Maps whose bytes are not in memory: a [`RangeSource`] reads byte ranges of the object
+//! (an HTTP or S3 object in `crate::remote`, anything else a caller implements), and
+//! [`Map::open_source`](super::Map::open_source) reads only the header, the index and the
+//! sections that are used. The reader needs no network code for it.
+
+use super::error::Error;
+use super::layout::checksum;
+use std::ops::Range;
+
+/// One section a [`Map`](super::Map) wants from its source: the byte range to read (the
+/// section's stored bytes, preceded by the zero padding before it) and what the bytes must be.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Wanted {
+    /// Position in the section table (a cache key, with the index checksum).
+    pub index: usize,
+    /// Bytes to read: `padding_start..offset + stored_len`.
+    pub range: Range<u64>,
+    /// Where the section's stored bytes start (`range.start` up to it is padding).
+    pub offset: u64,
+    /// XXH3-64 of the stored bytes, from the map's table.
+    pub checksum: u64,
+}
+
+impl Wanted {
+    /// Whether `bytes`, read for this request, are what the table says: the right length,
+    /// zero padding, and the checksum. A source uses it to keep damaged bytes out of a cache.
+    pub fn matches(&self, bytes: &[u8]) -> bool {
+        let pad = (self.offset - self.range.start) as usize;
+        bytes.len() as u64 == self.range.end - self.range.start
+            && bytes[..pad].iter().all(|&b| b == 0)
+            && checksum(&bytes[pad..]) == self.checksum
+    }
+}
+
+/// Where the bytes of a map come from when they are read by range. `Send + Sync`: a map
+/// opened on a source is shared between threads like any other.
+pub trait RangeSource: Send + Sync {
+    /// What the user named (a URL), for errors.
+    fn name(&self) -> &str;
+
+    /// The object's length in bytes.
+    fn len(&self) -> u64;
+
+    /// Whether the object is empty.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bytes `range` of the object, exactly (`range` lies within [`RangeSource::len`]).
+    fn read_range(&self, range: Range<u64>) -> Result<Vec<u8>, Error>;
+
+    /// The bytes of each wanted section, in order, each exactly `range` long. A source may
+    /// serve them from a cache, merge neighbouring ranges into one request, and keep what it
+    /// read (when [`Wanted::matches`] holds). `fresh`: the map found the bytes it had been
+    /// given damaged; read from the origin, not a cache. `index_checksum` identifies the
+    /// map's content (the header's checksum over header, table and metadata).
+    fn read_sections(
+        &self,
+        index_checksum: u64,
+        wanted: &[Wanted],
+        fresh: bool,
+    ) -> Result<Vec<Vec<u8>>, Error>;
+
+    /// What reading has cost so far.
+    fn stats(&self) -> SourceStats {
+        SourceStats::default()
+    }
+}
+
+/// What a [`RangeSource`] has read: from the origin, and from its cache.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct SourceStats {
+    /// Requests sent to the origin.
+    pub requests: u64,
+    /// Body bytes received from the origin.
+    pub bytes: u64,
+    /// Sections served from the cache, and their bytes.
+    pub cache_hits: u64,
+    pub cache_bytes: u64,
+    /// Sections read again from the origin because the bytes first read were damaged.
+    pub refetched: u64,
+    /// The origin ignored range requests, so the whole object was read once.
+    pub whole_object: bool,
+}
+
+/// Ranges closer than this are read as one request (the bytes between are read and dropped):
+/// one round trip costs more than this many bytes on any link a map is read over.
+pub const COALESCE_GAP: u64 = 64 << 10;
+
+/// Groups sorted `wanted` into runs that one ranged read can serve: each run is the range
+/// covering it and the positions of its members.
+pub fn coalesce(wanted: &[&Wanted]) -> Vec<(Range<u64>, Vec<usize>)> {
+    let mut order: Vec<usize> = (0..wanted.len()).collect();
+    order.sort_by_key(|&i| wanted[i].range.start);
+    let mut runs: Vec<(Range<u64>, Vec<usize>)> = Vec::new();
+    for i in order {
+        let r = &wanted[i].range;
+        match runs.last_mut() {
+            Some((run, members)) if r.start <= run.end.saturating_add(COALESCE_GAP) => {
+                run.end = run.end.max(r.end);
+                members.push(i);
+            }
+            _ => runs.push((r.clone(), vec![i])),
+        }
+    }
+    runs
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn wanted(index: usize, range: Range<u64>) -> Wanted {
+        Wanted {
+            index,
+            offset: range.start,
+            range,
+            checksum: 0,
+        }
+    }
+
+    #[test]
+    fn neighbours_merge_and_far_ranges_do_not() {
+        let a = wanted(0, 0..100);
+        let b = wanted(1, 128..200);
+        let c = wanted(2, 200 + COALESCE_GAP + 1..300 + COALESCE_GAP);
+        let runs = coalesce(&[&c, &a, &b]);
+        assert_eq!(runs.len(), 2);
+        assert_eq!(runs[0], (0..200, vec![1, 2]));
+        assert_eq!(runs[1].1, vec![0]);
+    }
+
+    #[test]
+    fn matches_checks_length_padding_and_checksum() {
+        let data = b"section bytes";
+        let mut bytes = vec![0u8; 3];
+        bytes.extend_from_slice(data);
+        let w = Wanted {
+            index: 0,
+            range: 10..10 + bytes.len() as u64,
+            offset: 13,
+            checksum: checksum(data),
+        };
+        assert!(w.matches(&bytes));
+        let mut padded = bytes.clone();
+        padded[1] = 1;
+        assert!(!w.matches(&padded));
+        let mut flipped = bytes.clone();
+        flipped[5] ^= 1;
+        assert!(!w.matches(&flipped));
+        assert!(!w.matches(&bytes[1..]));
+    }
+}

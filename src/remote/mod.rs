@@ -1,0 +1,375 @@
+//! Maps in object storage, read by range: `http://`, `https://` and `s3://` URLs through
+//! the `object_store` crate, with an on-disk cache of checked sections ([`cache`]).
+//!
+//! [`open`] reads the first [`HEAD_READ`](crate::format::HEAD_READ) bytes in one GET (the
+//! header and, usually, the whole index), then [`Map`] fetches the sections it uses, merging
+//! neighbours into one request. Every section GET carries `If-Match` with the ETag of the
+//! first response, so an object replaced meanwhile is an error, not a mix of two maps.
+//!
+//! S3 takes its endpoint, region and credentials from the usual `AWS_*` variables
+//! (`AWS_ENDPOINT_URL`, `AWS_REGION`, `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, or
+//! `AWS_SKIP_SIGNATURE=true` for a public bucket).
+
+pub mod cache;
+
+use crate::format::{coalesce, Error, Map, RangeSource, SourceStats, Wanted, HEAD_READ};
+use cache::Cache;
+use object_store::path::Path as StorePath;
+use object_store::{GetOptions, GetRange, ObjectStore};
+use std::ops::Range;
+use std::path::PathBuf;
+use std::sync::{Mutex, OnceLock};
+
+/// Whether `name` is a URL this module reads (rather than a local path).
+pub fn is_url(name: &str) -> bool {
+    ["http://", "https://", "s3://"].iter().any(|scheme| {
+        name.len() > scheme.len() && name[..scheme.len()].eq_ignore_ascii_case(scheme)
+    })
+}
+
+/// How remote maps are read.
+#[derive(Debug, Clone)]
+pub struct RemoteOptions {
+    /// The cache folder, `None` for no cache.
+    pub cache_dir: Option<PathBuf>,
+    /// The most bytes the cache keeps; the least recently used sections go first.
+    pub cache_max_bytes: u64,
+}
+
+impl RemoteOptions {
+    /// From the environment: `SFPMAP_CACHE_DIR` (default `$XDG_CACHE_HOME/sfpmap` or
+    /// `~/.cache/sfpmap`; `off` for none) and `SFPMAP_CACHE_MAX_BYTES` (default 2 GiB).
+    pub fn from_env() -> RemoteOptions {
+        let cache_dir = match std::env::var_os("SFPMAP_CACHE_DIR") {
+            Some(dir) if dir == "off" => None,
+            Some(dir) => Some(PathBuf::from(dir)),
+            None => std::env::var_os("XDG_CACHE_HOME")
+                .map(PathBuf::from)
+                .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))
+                .map(|base| base.join("sfpmap")),
+        };
+        let cache_max_bytes = std::env::var("SFPMAP_CACHE_MAX_BYTES")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(DEFAULT_CACHE_MAX_BYTES);
+        RemoteOptions {
+            cache_dir,
+            cache_max_bytes,
+        }
+    }
+}
+
+/// The cache's default cap.
+pub const DEFAULT_CACHE_MAX_BYTES: u64 = 2 << 30;
+
+/// Opens the map at `url` by range.
+pub fn open(url: &str, options: &RemoteOptions) -> Result<Map<'static>, Error> {
+    let source = RemoteSource::connect(url, options)?;
+    Map::open_source(Box::new(source))
+}
+
+/// An object in an HTTP server or S3 bucket, read by range.
+pub struct RemoteSource {
+    url: String,
+    store: Box<dyn ObjectStore>,
+    path: StorePath,
+    runtime: tokio::runtime::Runtime,
+    len: u64,
+    /// The ETag of the first response; every later GET must match it.
+    e_tag: Option<String>,
+    /// The first bytes, read at connect.
+    head: Vec<u8>,
+    /// The whole object, when the server ignored the first range request.
+    whole: OnceLock<Vec<u8>>,
+    cache: Option<Cache>,
+    stats: Mutex<SourceStats>,
+}
+
+impl std::fmt::Debug for RemoteSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RemoteSource")
+            .field("url", &self.url)
+            .field("len", &self.len)
+            .finish()
+    }
+}
+
+impl RemoteSource {
+    /// Parses `url`, builds its store and reads the object's first bytes (one GET), which
+    /// give its length and ETag.
+    pub fn connect(url: &str, options: &RemoteOptions) -> Result<RemoteSource, Error> {
+        let fail = |message: String| Error::Io {
+            path: url.into(),
+            message,
+        };
+        let parsed = url::Url::parse(url).map_err(|e| fail(format!("not a URL: {e}")))?;
+        let (store, path) = build_store(&parsed).map_err(|e| fail(describe(&e)))?;
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| fail(format!("cannot start the I/O runtime: {e}")))?;
+        let mut source = RemoteSource {
+            url: url.to_string(),
+            store,
+            path,
+            runtime,
+            len: 0,
+            e_tag: None,
+            head: Vec::new(),
+            whole: OnceLock::new(),
+            cache: None,
+            stats: Mutex::new(SourceStats::default()),
+        };
+        let first = source.get(Some(0..HEAD_READ), false);
+        let (bytes, meta) = match first {
+            Ok(got) => got,
+            Err(GetError::NotPartial) => {
+                // The server answered the range with the whole object: read it once, keep it.
+                source.stats_mut().requests += 1;
+                let (bytes, meta) = source.get(None, false).map_err(|e| source.error(e))?;
+                source.stats_mut().whole_object = true;
+                (bytes, meta)
+            }
+            Err(e) => return Err(source.error(e)),
+        };
+        source.len = meta.size;
+        source.e_tag = meta.e_tag;
+        if source.stats_mut().whole_object {
+            if bytes.len() as u64 != meta.size {
+                return Err(fail(format!(
+                    "truncated response: {} bytes of {}",
+                    bytes.len(),
+                    meta.size
+                )));
+            }
+            source.head = bytes[..bytes.len().min(HEAD_READ as usize)].to_vec();
+            let _ = source.whole.set(bytes);
+        } else {
+            source.head = bytes;
+        }
+        if let Some(dir) = &options.cache_dir {
+            source.cache = Some(Cache::open(
+                dir,
+                url,
+                source.e_tag.as_deref(),
+                meta.last_modified,
+                options.cache_max_bytes,
+            ));
+        }
+        Ok(source)
+    }
+
+    /// The URL as the user gave it.
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    fn stats_mut(&self) -> std::sync::MutexGuard<'_, SourceStats> {
+        self.stats.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn error(&self, e: GetError) -> Error {
+        Error::Io {
+            path: self.url.clone().into(),
+            message: match e {
+                GetError::NotPartial => "the server answered a range request with the whole object".into(),
+                GetError::Changed => "the object changed since its index was read (ETag no longer matches); open it again".into(),
+                GetError::Short { got, wanted } => format!("truncated response: {got} bytes of {wanted}"),
+                GetError::Store(message) => message,
+            },
+        }
+    }
+
+    /// One GET of `range` (the whole object for `None`), `If-Match` the first ETag once known.
+    fn get(
+        &self,
+        range: Option<Range<u64>>,
+        conditional: bool,
+    ) -> Result<(Vec<u8>, object_store::ObjectMeta), GetError> {
+        let options = GetOptions {
+            range: range.clone().map(GetRange::Bounded),
+            if_match: if conditional {
+                self.e_tag.clone()
+            } else {
+                None
+            },
+            ..GetOptions::default()
+        };
+        let result = self.runtime.block_on(async {
+            let got = self.store.get_opts(&self.path, options).await?;
+            let meta = got.meta.clone();
+            let returned = got.range.clone();
+            let bytes = got.bytes().await?;
+            Ok::<_, object_store::Error>((bytes, meta, returned))
+        });
+        let (bytes, meta, returned) = result.map_err(GetError::from)?;
+        let mut stats = self.stats_mut();
+        stats.requests += 1;
+        stats.bytes += bytes.len() as u64;
+        drop(stats);
+        let wanted = returned.end - returned.start;
+        if bytes.len() as u64 != wanted {
+            return Err(GetError::Short {
+                got: bytes.len() as u64,
+                wanted,
+            });
+        }
+        Ok((bytes.to_vec(), meta))
+    }
+
+    /// Bytes `range`, from the first read, the whole object, or a conditional GET.
+    fn read(&self, range: Range<u64>) -> Result<Vec<u8>, Error> {
+        if let Some(whole) = self.whole.get() {
+            return Ok(whole[range.start as usize..range.end as usize].to_vec());
+        }
+        if range.end <= self.head.len() as u64 {
+            return Ok(self.head[range.start as usize..range.end as usize].to_vec());
+        }
+        let wanted = range.end - range.start;
+        let (bytes, _) = self.get(Some(range), true).map_err(|e| self.error(e))?;
+        if bytes.len() as u64 != wanted {
+            return Err(self.error(GetError::Short {
+                got: bytes.len() as u64,
+                wanted,
+            }));
+        }
+        Ok(bytes)
+    }
+}
+
+impl RangeSource for RemoteSource {
+    fn name(&self) -> &str {
+        &self.url
+    }
+
+    fn len(&self) -> u64 {
+        self.len
+    }
+
+    fn read_range(&self, range: Range<u64>) -> Result<Vec<u8>, Error> {
+        self.read(range)
+    }
+
+    fn read_sections(
+        &self,
+        index_checksum: u64,
+        wanted: &[Wanted],
+        fresh: bool,
+    ) -> Result<Vec<Vec<u8>>, Error> {
+        let mut out: Vec<Option<Vec<u8>>> = vec![None; wanted.len()];
+        if fresh {
+            self.stats_mut().refetched += wanted.len() as u64;
+        } else if let Some(cache) = &self.cache {
+            for (slot, want) in out.iter_mut().zip(wanted) {
+                if let Some(bytes) = cache.get(index_checksum, want) {
+                    let mut stats = self.stats_mut();
+                    stats.cache_hits += 1;
+                    stats.cache_bytes += bytes.len() as u64;
+                    *slot = Some(bytes);
+                }
+            }
+        }
+        let missing: Vec<usize> = (0..wanted.len()).filter(|&i| out[i].is_none()).collect();
+        let refs: Vec<&Wanted> = missing.iter().map(|&i| &wanted[i]).collect();
+        // A damaged range read again is read alone, so nothing else is fetched twice.
+        for (run, members) in coalesce(&refs) {
+            let bytes = self.read(run.clone())?;
+            for m in members {
+                let want = refs[m];
+                let from = (want.range.start - run.start) as usize;
+                let to = (want.range.end - run.start) as usize;
+                let part = bytes[from..to].to_vec();
+                if let Some(cache) = &self.cache {
+                    if want.matches(&part) {
+                        cache.put(index_checksum, want, &part);
+                    }
+                }
+                out[missing[m]] = Some(part);
+            }
+        }
+        Ok(out.into_iter().map(|b| b.unwrap_or_default()).collect())
+    }
+
+    fn stats(&self) -> SourceStats {
+        *self.stats_mut()
+    }
+}
+
+enum GetError {
+    /// A range request answered `200` with the whole body.
+    NotPartial,
+    /// `If-Match` failed: the object is not the one whose index was read.
+    Changed,
+    /// Fewer body bytes than the response announced.
+    Short {
+        got: u64,
+        wanted: u64,
+    },
+    Store(String),
+}
+
+impl From<object_store::Error> for GetError {
+    fn from(e: object_store::Error) -> GetError {
+        match &e {
+            object_store::Error::Precondition { .. } => GetError::Changed,
+            object_store::Error::NotFound { .. } => GetError::Store("not found (HTTP 404)".into()),
+            _ if describe(&e).contains("non-partial response") => GetError::NotPartial,
+            _ => GetError::Store(describe(&e)),
+        }
+    }
+}
+
+/// An error and its causes on one line (object_store's own messages say what failed, its
+/// causes say why: a refused connection, a status code).
+fn describe(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut message = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        let text = c.to_string();
+        if !message.contains(&text) {
+            message.push_str(": ");
+            message.push_str(&text);
+        }
+        cause = c.source();
+    }
+    message.replace('\n', " ")
+}
+
+/// The store and object path for `url`: an HTTP(S) server, or an S3 bucket configured from
+/// `AWS_*` variables.
+fn build_store(url: &url::Url) -> Result<(Box<dyn ObjectStore>, StorePath), object_store::Error> {
+    use object_store::{BackoffConfig, ClientOptions, RetryConfig};
+    use std::time::Duration;
+    // Plain http is what the user asked for when the URL (or the S3 endpoint) says so.
+    let client = ClientOptions::new()
+        .with_allow_http(true)
+        .with_connect_timeout(Duration::from_secs(5))
+        .with_timeout(Duration::from_secs(120));
+    // Bounded time: an unreachable or failing server is reported within seconds, not after
+    // the crate's default of ten retries over three minutes.
+    let retry = RetryConfig {
+        backoff: BackoffConfig::default(),
+        max_retries: 2,
+        retry_timeout: Duration::from_secs(15),
+    };
+    let path = StorePath::from_url_path(url.path())?;
+    match url.scheme() {
+        "s3" => {
+            let store = object_store::aws::AmazonS3Builder::from_env()
+                .with_url(url.as_str())
+                .with_client_options(client)
+                .with_retry(retry)
+                .build()?;
+            Ok((Box::new(store), path))
+        }
+        _ => {
+            let base = &url[..url::Position::BeforePath];
+            let store = object_store::http::HttpBuilder::new()
+                .with_url(base)
+                .with_client_options(client)
+                .with_retry(retry)
+                .build()?;
+            Ok((Box::new(store), path))
+        }
+    }
+}
