@@ -19,22 +19,47 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
-/// The demo scene (maps, query images, query list), made once for this test binary.
-fn demo() -> &'static Path {
-    static DEMO: OnceLock<PathBuf> = OnceLock::new();
-    DEMO.get_or_init(|| {
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("remote-demo");
-        if !dir.join("demo-l2-short.sfpm").is_file() {
-            let o = sfpmap(
-                &["demo", "--out", dir.to_str().unwrap(), "--force", "-q"],
-                &[],
-            );
-            assert!(
-                o.status.success(),
-                "demo: {}",
-                String::from_utf8_lossy(&o.stderr)
-            );
-        }
+/// A generated street (`sfpmap::demo::street`: COLMAP model, map and query databases) and
+/// its SIFT map (`full.sfpm`) and level 2 short slice (`l2s.sfpm`), made once for this test
+/// binary.
+fn scene() -> &'static Path {
+    static SCENE: OnceLock<PathBuf> = OnceLock::new();
+    SCENE.get_or_init(|| {
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("remote-street");
+        let _ = std::fs::remove_dir_all(&dir);
+        let options = sfpmap::demo::street::StreetOptions {
+            points: 6000,
+            queries: 4,
+            ..Default::default()
+        };
+        sfpmap::demo::street::write_street(&dir, &options).unwrap();
+        let p = |n: &str| dir.join(n).to_str().unwrap().to_string();
+        ok(&sfpmap(
+            &[
+                "convert",
+                "--colmap",
+                &p("sparse"),
+                "--database",
+                &p("database.db"),
+                "-o",
+                &p("full.sfpm"),
+                "-q",
+            ],
+            &[],
+        ));
+        ok(&sfpmap(
+            &[
+                "slice",
+                &p("full.sfpm"),
+                "--level",
+                "2",
+                "--short",
+                "-o",
+                &p("l2s.sfpm"),
+                "-q",
+            ],
+            &[],
+        ));
         dir
     })
 }
@@ -90,7 +115,7 @@ fn expected_bytes(map: &Map<'_>, keep: impl Fn(SectionKind, Option<u16>) -> bool
 #[test]
 fn http_slice_info_verify_read_only_what_they_use() {
     let nginx = Nginx::start();
-    let full = demo().join("demo.sfpm");
+    let full = scene().join("full.sfpm");
     std::fs::copy(&full, nginx.root.join("demo.sfpm")).unwrap();
     let url = nginx.url("demo.sfpm");
     let t = tempfile::tempdir().unwrap();
@@ -161,8 +186,8 @@ fn http_slice_info_verify_read_only_what_they_use() {
 #[test]
 fn http_localize_equals_local_and_runs_from_the_cache_the_second_time() {
     let nginx = Nginx::start();
-    let d = demo();
-    let full = d.join("demo.sfpm");
+    let d = scene();
+    let full = d.join("full.sfpm");
     std::fs::copy(&full, nginx.root.join("demo.sfpm")).unwrap();
     let url = nginx.url("demo.sfpm");
     let t = tempfile::tempdir().unwrap();
@@ -175,8 +200,8 @@ fn http_localize_equals_local_and_runs_from_the_cache_the_second_time() {
             map,
             "--query-list",
             d.join("queries.txt").to_str().unwrap(),
-            "--images",
-            d.join("images").to_str().unwrap(),
+            "--database",
+            d.join("queries.db").to_str().unwrap(),
             "--level",
             "2",
             "--short",
@@ -232,7 +257,7 @@ fn http_localize_equals_local_and_runs_from_the_cache_the_second_time() {
 #[test]
 fn a_server_that_ignores_range_is_read_whole_and_reported() {
     let nginx = Nginx::start();
-    let full = demo().join("demo-l2-short.sfpm");
+    let full = scene().join("l2s.sfpm");
     std::fs::copy(&full, nginx.root.join("m.sfpm")).unwrap();
     let t = tempfile::tempdir().unwrap();
     let out = t.path().join("s.sfpm");
@@ -258,7 +283,7 @@ fn a_server_that_ignores_range_is_read_whole_and_reported() {
 #[test]
 fn a_damaged_section_is_read_again_once_then_reported_and_never_cached() {
     let nginx = Nginx::start();
-    let full = demo().join("demo-l2-short.sfpm");
+    let full = scene().join("l2s.sfpm");
     let mut bytes = std::fs::read(&full).unwrap();
     let map = Map::open(&full).unwrap();
     let section = map
@@ -319,16 +344,16 @@ fn walk(dir: &Path) -> Vec<PathBuf> {
 #[test]
 fn an_object_replaced_after_its_index_was_read_is_an_error() {
     let nginx = Nginx::start();
-    let d = demo();
+    let d = scene();
     let served = nginx.root.join("m.sfpm");
-    std::fs::copy(d.join("demo.sfpm"), &served).unwrap();
+    std::fs::copy(d.join("full.sfpm"), &served).unwrap();
     let options = sfpmap::remote::RemoteOptions {
         cache_dir: None,
         cache_max_bytes: 0,
     };
     let map = sfpmap::remote::open(&nginx.url("m.sfpm"), &options).unwrap();
     // Another map at the same URL (another size, so another ETag).
-    std::fs::copy(d.join("demo-l2-short.sfpm"), nginx.root.join("tmp.sfpm")).unwrap();
+    std::fs::copy(d.join("l2s.sfpm"), nginx.root.join("tmp.sfpm")).unwrap();
     std::fs::rename(nginx.root.join("tmp.sfpm"), &served).unwrap();
     let err = map.verify().unwrap_err().to_string();
     assert!(err.contains("changed since its index was read"), "{err}");
@@ -337,7 +362,7 @@ fn an_object_replaced_after_its_index_was_read_is_an_error() {
 #[test]
 fn missing_forbidden_and_unreachable_maps_are_one_line_errors() {
     let nginx = Nginx::start();
-    std::fs::copy(demo().join("demo-l2-short.sfpm"), nginx.root.join("m.sfpm")).unwrap();
+    std::fs::copy(scene().join("l2s.sfpm"), nginx.root.join("m.sfpm")).unwrap();
     let cache_dir = tempfile::tempdir().unwrap();
     let env = [cache(&cache_dir)];
     let missing = nginx.url("nothing.sfpm");
@@ -371,7 +396,7 @@ fn a_truncated_response_is_an_error() {
     // A server that announces the whole range and closes half way (nginx never does).
     let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let port = listener.local_addr().unwrap().port();
-    let map = std::fs::read(demo().join("demo-l2-short.sfpm")).unwrap();
+    let map = std::fs::read(scene().join("l2s.sfpm")).unwrap();
     let server = std::thread::spawn(move || {
         use std::io::{Read, Write};
         // Bounded: object_store retries a failed body read a few times.
@@ -403,8 +428,8 @@ fn a_truncated_response_is_an_error() {
 #[test]
 fn s3_slice_and_localize_equal_the_local_map() {
     let s3 = S3::start();
-    let d = demo();
-    let full = d.join("demo.sfpm");
+    let d = scene();
+    let full = d.join("full.sfpm");
     s3.put("maps", "place/demo.sfpm", &std::fs::read(&full).unwrap());
     let mut env = s3.env();
     env.push(("SFPMAP_CACHE_DIR", "off".into()));
@@ -450,8 +475,8 @@ fn s3_slice_and_localize_equal_the_local_map() {
             "s3://maps/place/demo.sfpm",
             "--query-list",
             d.join("queries.txt").to_str().unwrap(),
-            "--images",
-            d.join("images").to_str().unwrap(),
+            "--database",
+            d.join("queries.db").to_str().unwrap(),
             "-o",
             poses.to_str().unwrap(),
             "--json",
@@ -459,7 +484,28 @@ fn s3_slice_and_localize_equal_the_local_map() {
         &env,
     );
     let r = json(&o);
-    assert_eq!(r["localized"], r["queries"]);
+    let local = t.path().join("local-poses.txt");
+    let l = json(&sfpmap(
+        &[
+            "localize",
+            "--map",
+            full.to_str().unwrap(),
+            "--query-list",
+            d.join("queries.txt").to_str().unwrap(),
+            "--database",
+            d.join("queries.db").to_str().unwrap(),
+            "-o",
+            local.to_str().unwrap(),
+            "--json",
+        ],
+        &[],
+    ));
+    assert!(r["localized"].as_u64().unwrap() > 0);
+    assert_eq!(r["localized"], l["localized"]);
+    assert_eq!(
+        std::fs::read_to_string(&poses).unwrap(),
+        std::fs::read_to_string(&local).unwrap()
+    );
 
     // Wrong credentials: refused by the server, one line.
     let mut bad = s3.env();

@@ -14,6 +14,7 @@
 
 #[cfg(feature = "colmap")]
 mod basis;
+pub mod catalog;
 #[cfg(feature = "colmap")]
 mod error;
 pub(crate) mod geometry;

@@ -128,15 +128,19 @@ pub fn report_transfer(map: &sfpmap::format::Map<'_>, quiet: bool) {
     if quiet {
         return;
     }
-    let s = source.stats();
-    if s.whole_object {
+    warn_whole_object(map, quiet);
+    eprintln!("{}", transfer_line(source.name(), &source.stats()));
+}
+
+/// A warning on stderr when the server of a map read by range ignored range requests.
+pub fn warn_whole_object(map: &sfpmap::format::Map<'_>, quiet: bool) {
+    if let Some(source) = map.source().filter(|s| !quiet && s.stats().whole_object) {
         eprintln!(
             "warning: {}: the server ignores range requests; the whole object ({} bytes) was read",
             source.name(),
             source.len()
         );
     }
-    eprintln!("{}", transfer_line(source.name(), &s));
 }
 
 /// `URL: read N bytes in K requests (C sections, B bytes from the cache)`.

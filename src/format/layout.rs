@@ -174,12 +174,18 @@ pub enum SectionKind {
     VisibilityPoints,
     /// f32 [observations × 2]: the pixel (x, y) of each visibility entry.
     VisibilityKeypoints,
+    /// u64 [places + 1 × 1] (1.1, catalogs): byte offsets into `PlaceSummaries`, each a
+    /// multiple of 64.
+    PlaceOffsets,
+    /// u8 [bytes × 1] (1.1, catalogs): each place's summary, itself a map (its images and
+    /// retrieval data, no points), one after another.
+    PlaceSummaries,
     /// A kind this version does not know.
     Unknown(u16),
 }
 
 impl SectionKind {
-    const KNOWN: [(u16, SectionKind, &'static str); 21] = [
+    const KNOWN: [(u16, SectionKind, &'static str); 23] = [
         (1, SectionKind::PointPositions, "point_positions"),
         (4, SectionKind::PointPositionsQ16, "point_positions_q16"),
         (2, SectionKind::PointColors, "point_colors"),
@@ -201,6 +207,8 @@ impl SectionKind {
         (48, SectionKind::VisibilityOffsets, "visibility_offsets"),
         (49, SectionKind::VisibilityPoints, "visibility_points"),
         (50, SectionKind::VisibilityKeypoints, "visibility_keypoints"),
+        (64, SectionKind::PlaceOffsets, "place_offsets"),
+        (65, SectionKind::PlaceSummaries, "place_summaries"),
     ];
 
     pub fn from_code(code: u16) -> SectionKind {
@@ -245,8 +253,8 @@ impl SectionKind {
             LevelPqCodes => (Dtype::U8, None),
             ImagePoses => (Dtype::F64, Some(7)),
             ImageCameras | ImageIds => (Dtype::U32, Some(1)),
-            ImageNameOffsets | VisibilityOffsets => (Dtype::U64, Some(1)),
-            ImageNames => (Dtype::U8, Some(1)),
+            ImageNameOffsets | VisibilityOffsets | PlaceOffsets => (Dtype::U64, Some(1)),
+            ImageNames | PlaceSummaries => (Dtype::U8, Some(1)),
             VisibilityPoints => (Dtype::U32, Some(1)),
             VisibilityKeypoints => (Dtype::F32, Some(2)),
             Unknown(_) => return None,
@@ -268,7 +276,6 @@ impl SectionKind {
         )
     }
 
-    /// Whether sections of this kind carry a level id (others use [`NO_LEVEL`]).
     /// Where the reference writer puts a section of this kind and `level`: the shared
     /// sections (geometry, images, retrieval, visibility) by kind code, then level by level
     /// ascending, each level's `short` block after everything else it needs and its `rest`
@@ -291,6 +298,7 @@ impl SectionKind {
         (1, level, rank)
     }
 
+    /// Whether sections of this kind carry a level id (others use [`NO_LEVEL`]).
     pub fn is_per_level(self) -> bool {
         matches!(
             self,

@@ -14,6 +14,7 @@
 //! # Ok(()) }
 //! ```
 
+mod catalog;
 mod error;
 /// Fuzz-target bodies and the raw on-disk structs they edit: for the fuzz crate and the
 /// tests, not the reader API.
@@ -29,6 +30,7 @@ mod source;
 mod views;
 mod writer;
 
+pub use catalog::{Catalog, Place, CATALOG_KEY};
 pub use error::{Error, SectionRef};
 pub use layout::{
     align_up, checksum, Codec, Dtype, SectionKind, ALIGN, ENDIAN_CHECK, ENTRY_LEN, HEADER_LEN,

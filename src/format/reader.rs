@@ -440,6 +440,12 @@ impl<'a> Map<'a> {
         self.header.file_len
     }
 
+    /// The header's XXH3-64 over header, table and metadata: identifies the map's content
+    /// (every section's checksum is in the table).
+    pub fn index_checksum(&self) -> u64 {
+        self.header.index_checksum
+    }
+
     pub fn metadata(&self) -> &Metadata {
         &self.metadata
     }

@@ -693,6 +693,52 @@ impl<'a> MapWriter<'a> {
         Ok(self)
     }
 
+    /// Makes the map a catalog (spec "Catalogs"): lists `places` in the metadata and stores
+    /// each place's summary map (`summaries[i]`, from [`MapWriter::to_bytes`]), each starting
+    /// on a multiple of 64.
+    pub fn set_catalog(
+        &mut self,
+        places: &[super::catalog::Place],
+        summaries: &[Vec<u8>],
+    ) -> Result<&mut Self, Error> {
+        if places.len() != summaries.len() {
+            return Err(Error::invalid("one summary per place"));
+        }
+        let mut offsets = vec![0u64];
+        let mut blob = Vec::new();
+        for s in summaries {
+            blob.extend_from_slice(s);
+            blob.resize(
+                blob.len().next_multiple_of(super::layout::ALIGN as usize),
+                0,
+            );
+            offsets.push(blob.len() as u64);
+        }
+        self.metadata.extra.insert(
+            super::catalog::CATALOG_KEY.into(),
+            super::catalog::Catalog::listing(places),
+        );
+        let n = offsets.len();
+        self.push_array(
+            SectionKind::PlaceOffsets,
+            NO_LEVEL,
+            Dtype::U64,
+            n,
+            1,
+            Cow::Owned(bytemuck::cast_slice(&offsets).to_vec()),
+        );
+        let len = blob.len();
+        self.push_array(
+            SectionKind::PlaceSummaries,
+            NO_LEVEL,
+            Dtype::U8,
+            len,
+            1,
+            Cow::Owned(blob),
+        );
+        Ok(self)
+    }
+
     /// Adds one of `map`'s sections exactly as `map` stores it (copied byte for byte, no
     /// decode), after checking it as its first access would (checksum, decoding, contents), so
     /// a damaged section is never passed on.

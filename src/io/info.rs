@@ -38,6 +38,7 @@ fn component(kind: SectionKind) -> &'static str {
         LevelVladCentroids | ImageGlobal | ImageVlad => "retrieval",
         ImagePoses | ImageCameras | ImageIds | ImageNameOffsets | ImageNames => "images",
         VisibilityOffsets | VisibilityPoints | VisibilityKeypoints => "visibility",
+        PlaceOffsets | PlaceSummaries => "places",
         Unknown(_) => "skipped",
     }
 }
@@ -45,7 +46,7 @@ fn component(kind: SectionKind) -> &'static str {
 /// Stored bytes per point of each component present, in a fixed order, then the index
 /// (header, table, metadata, padding) and the whole file.
 pub fn components(map: &Map<'_>) -> Vec<(&'static str, f64)> {
-    const ORDER: [&str; 10] = [
+    const ORDER: [&str; 11] = [
         "positions",
         "colours and ids",
         "level membership",
@@ -54,6 +55,7 @@ pub fn components(map: &Map<'_>) -> Vec<(&'static str, f64)> {
         "retrieval",
         "images",
         "visibility",
+        "places",
         "skipped",
         "index and padding",
     ];

@@ -2,6 +2,7 @@
 //! pose refinement).
 
 mod adc;
+pub mod catalog;
 pub mod eval;
 mod guided;
 mod kernels;

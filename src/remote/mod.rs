@@ -313,7 +313,14 @@ impl From<object_store::Error> for GetError {
         match &e {
             object_store::Error::Precondition { .. } => GetError::Changed,
             object_store::Error::NotFound { .. } => GetError::Store("not found (HTTP 404)".into()),
-            _ if describe(&e).contains("non-partial response") => GetError::NotPartial,
+            // The HTTP store says "Range request not supported", the S3 one "non-partial
+            // response": both mean a 200 with the whole body.
+            _ if ["non-partial response", "Range request not supported"]
+                .iter()
+                .any(|m| describe(&e).contains(m)) =>
+            {
+                GetError::NotPartial
+            }
             _ => GetError::Store(describe(&e)),
         }
     }
