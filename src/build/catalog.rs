@@ -1,8 +1,28 @@
 //! Building a catalog of place maps (spec "Catalogs"; read by `format::Catalog`): per place,
-//! where its map is, its origin, bounding box and counts, and a summary map holding its
-//! images and retrieval data, copied byte for byte from the place map.
+//! where its map is, its origin, bounding box and counts; for all places together, one VLAD
+//! codebook on a basis of their common descriptor space, and every place's images' VLADs.
+//!
+//! Each place's descriptors are taken back to the descriptor space they were extracted in
+//! (the transpose of the level's orthonormal projection), so places converted with different
+//! bases meet in one space; an uncentred PCA of a sample from every place keeps
+//! [`CATALOG_DIMS`] dimensions, a k-means of [`CATALOG_CLUSTERS`] centroids is the codebook,
+//! and each image's VLAD aggregates the points it sees, as `convert` does for one map.
 
-use crate::format::{Descriptors, Error, Map, MapWriter, Metadata, Place, Provenance, SectionKind};
+use super::basis::Basis;
+use crate::format::{Error, Listing, Map, MapWriter, Metadata, Place, Provenance};
+use crate::vector::{dot, normalise_rows};
+use crate::vlad::Codebook;
+
+/// Dimensions of the catalog's basis, and centroids of its codebook: an image's VLAD is
+/// `32 × 32` f16 values, 2 KiB, so a catalog of 10,000 images is 20 MiB.
+pub const CATALOG_DIMS: usize = 32;
+pub const CATALOG_CLUSTERS: usize = 32;
+
+/// Rows of each place in the basis and codebook sample.
+const SAMPLE_PER_PLACE: usize = 20_000;
+
+/// The k-means seed: a catalog builds to the same bytes.
+const SEED: u64 = 0xca7a_1065;
 
 /// One place for [`build_catalog`].
 pub struct PlaceMap<'m> {
@@ -13,14 +33,85 @@ pub struct PlaceMap<'m> {
     pub map: &'m Map<'m>,
 }
 
+/// One place's descriptors in the common space, one row per map point (zero rows for points
+/// its level does not hold), and its level's descriptor name.
+struct PlaceRows {
+    rows: Vec<f32>,
+    d_in: usize,
+    descriptor: String,
+}
+
 /// The catalog of `places`, ready to write (`.sfpc`).
 pub fn build_catalog(places: &[PlaceMap<'_>]) -> Result<MapWriter<'static>, Error> {
+    if places.is_empty() {
+        return Err(Error::invalid("a catalog needs at least one place"));
+    }
     let mut listed = Vec::with_capacity(places.len());
-    let mut summaries = Vec::with_capacity(places.len());
+    let mut rows = Vec::with_capacity(places.len());
     for p in places {
         listed.push(describe(p)?);
-        summaries.push(place_summary(p.map)?);
+        rows.push(place_rows(p)?);
     }
+    let (d_in, descriptor) = (rows[0].d_in, rows[0].descriptor.clone());
+    if let Some((p, r)) = places
+        .iter()
+        .zip(&rows)
+        .find(|(_, r)| r.d_in != d_in || r.descriptor != descriptor)
+    {
+        return Err(Error::invalid(format!(
+            "place {:?} has {} descriptors of {} dimensions, place {:?} {descriptor} of {d_in}: a catalog holds places of one descriptor",
+            p.name, r.descriptor, r.d_in, places[0].name
+        )));
+    }
+    // The basis and the codebook from a sample of every place (every k-th described point).
+    let mut sample = Vec::new();
+    for r in &rows {
+        let described: Vec<&[f32]> = r
+            .rows
+            .chunks_exact(d_in)
+            .filter(|x| x.iter().any(|&v| v != 0.0))
+            .collect();
+        let step = described.len().div_ceil(SAMPLE_PER_PLACE).max(1);
+        for x in described.iter().step_by(step) {
+            sample.extend_from_slice(x);
+        }
+    }
+    let dims = CATALOG_DIMS.min(d_in);
+    let basis = Basis::fit(&sample, d_in);
+    let projection = basis.rows[..dims * d_in].to_vec();
+    let project = |rows: &[f32]| -> Vec<f32> {
+        let n = rows.len() / d_in;
+        let mut out = vec![0.0f32; n * dims];
+        for (x, o) in rows.chunks_exact(d_in).zip(out.chunks_exact_mut(dims)) {
+            if x.iter().any(|&v| v != 0.0) {
+                for (k, o) in o.iter_mut().enumerate() {
+                    *o = dot(&projection[k * d_in..(k + 1) * d_in], x);
+                }
+            }
+        }
+        normalise_rows(&mut out, dims);
+        out
+    };
+    let codebook = Codebook::train(&project(&sample), dims, CATALOG_CLUSTERS, SEED)
+        .ok_or_else(|| Error::invalid("too few described points in the places for a codebook"))?;
+    let mut place_images = vec![0u64];
+    let mut image_vlad = Vec::new();
+    for (p, r) in places.iter().zip(&rows) {
+        let vis = p.map.visibility_points()?.ok_or_else(|| {
+            Error::invalid(format!(
+                "place {:?} has no visibility (image → points): its images cannot be summarised",
+                p.name
+            ))
+        })?;
+        let vlads = codebook.image_vlads(&project(&r.rows), &vis.offsets, &vis.points);
+        image_vlad.extend(vlads);
+        place_images.push((image_vlad.len() / codebook.width()) as u64);
+    }
+    let listing = Listing {
+        places: listed,
+        descriptor,
+        d_in: d_in as u32,
+    };
     let metadata = Metadata {
         geometry_only: true,
         provenance: Provenance {
@@ -30,8 +121,15 @@ pub fn build_catalog(places: &[PlaceMap<'_>]) -> Result<MapWriter<'static>, Erro
         ..Metadata::default()
     };
     let mut writer = MapWriter::new(metadata);
-    writer.set_points_world(&[]);
-    writer.set_catalog(&listed, &summaries)?;
+    writer.set_points(&[]);
+    writer.set_catalog(
+        &listing,
+        &place_images,
+        &projection,
+        codebook.centroids(),
+        dims,
+        &image_vlad,
+    )?;
     Ok(writer)
 }
 
@@ -64,55 +162,65 @@ fn describe(p: &PlaceMap<'_>) -> Result<Place, Error> {
     })
 }
 
-/// A map of no points holding `map`'s images and what ranks them: the VLAD level's info,
-/// projection and codebook (its points and descriptors left out), the images' VLADs and
-/// global descriptors. Retrieval on it ranks the images as on the map.
-pub fn place_summary(map: &Map<'_>) -> Result<Vec<u8>, Error> {
-    let source = map.metadata();
-    let vlad_level = map.vlad()?.map(|v| v.level);
-    let metadata = Metadata {
-        levels: Vec::new(),
-        geometry_only: false,
-        position_grid: None,
-        provenance: Provenance {
-            tool: format!("sfpmap {} catalog summary", env!("CARGO_PKG_VERSION")),
-            ..Provenance::default()
-        },
-        extra: Default::default(),
-        ..source.clone()
+/// The descriptors of the place's retrieval level (its VLAD's, else its level with the most
+/// points), back in the space they were extracted in, one row per map point, unit length.
+fn place_rows(p: &PlaceMap<'_>) -> Result<PlaceRows, Error> {
+    let map = p.map;
+    let level_id = match map.vlad()? {
+        Some(v) => v.level,
+        None => map
+            .levels()
+            .filter(|l| l.has_descriptors())
+            .max_by_key(|l| l.len())
+            .map(|l| l.id())
+            .ok_or_else(|| Error::invalid(format!("place {:?} has no descriptors", p.name)))?,
     };
-    // No points, the place map's origin kept (`set_points` leaves it as the metadata says).
-    let mut writer = MapWriter::new(metadata);
-    writer.set_points(&[]);
-    let mut copied = vec![
-        SectionKind::ImagePoses,
-        SectionKind::ImageCameras,
-        SectionKind::ImageIds,
-        SectionKind::ImageNameOffsets,
-        SectionKind::ImageNames,
-        SectionKind::ImageGlobal,
-        SectionKind::ImageVlad,
-    ]
-    .into_iter()
-    .filter_map(|kind| map.find(kind, None))
-    .collect::<Vec<_>>();
-    if let Some(level) = vlad_level {
-        let info = source
-            .level(level)
-            .cloned()
-            .ok_or_else(|| Error::inconsistent("VLAD level not in the metadata"))?;
-        writer.add_level(info, &[], Some(Descriptors::F32(&[])), false)?;
-        copied.extend(
-            [
-                SectionKind::LevelProjection,
-                SectionKind::LevelVladCentroids,
-            ]
-            .into_iter()
-            .filter_map(|kind| map.find(kind, Some(level))),
-        );
+    let level = map.level(level_id)?;
+    if level.pq()?.is_some() {
+        return Err(Error::invalid(format!(
+            "place {:?}: level {level_id} is product-quantised; a catalog reads f16 descriptors",
+            p.name
+        )));
     }
-    for section in copied {
-        writer.copy_section(map, section)?;
+    let (full, short) = (level.dim_full(), level.dim_short());
+    let short_block = level.desc_short()?;
+    let rest_block = level.desc_rest()?;
+    let stored = match &rest_block {
+        Some(_) => full,
+        None => short,
+    };
+    let projection = level.projection()?;
+    let d_in = level.projection_input_dim().unwrap_or(full);
+    let n_points = map.n_points() as usize;
+    let mut rows = vec![0.0f32; n_points * d_in];
+    let mut y = vec![0.0f32; stored];
+    for (i, &point) in level.points()?.iter().enumerate() {
+        for (k, v) in y[..short].iter_mut().enumerate() {
+            *v = short_block[i * short + k].to_f32();
+        }
+        if let Some(rest) = &rest_block {
+            let r = full - short;
+            for (k, v) in y[short..].iter_mut().enumerate() {
+                *v = rest[i * r + k].to_f32();
+            }
+        }
+        let x = &mut rows[point as usize * d_in..(point as usize + 1) * d_in];
+        match &projection {
+            // y = P x with orthonormal rows: x ≈ Pᵀ y (exact when all rows are kept).
+            Some(p) => {
+                for (k, &yk) in y.iter().enumerate() {
+                    for (xj, &pkj) in x.iter_mut().zip(&p[k * d_in..(k + 1) * d_in]) {
+                        *xj += yk * pkj;
+                    }
+                }
+            }
+            None => x[..stored].copy_from_slice(&y),
+        }
     }
-    writer.to_bytes()
+    normalise_rows(&mut rows, d_in);
+    Ok(PlaceRows {
+        rows,
+        d_in,
+        descriptor: level.info().descriptor.clone(),
+    })
 }

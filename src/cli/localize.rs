@@ -53,8 +53,26 @@ pub enum PoseFormat {
 /// `sfpmap localize --map sb.sfpm --query-list queries.txt --database queries.db -o poses.txt`
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    #[arg(long)]
-    pub map: PathBuf,
+    /// The map: a file, or an `http(s)://` or `s3://` URL.
+    #[arg(long, required_unless_present = "catalog")]
+    pub map: Option<PathBuf>,
+    /// A catalog of place maps (`sfpmap catalog build`) instead of one map: each query's
+    /// candidate places are ranked by retrieval on their summaries, the best `--places` are
+    /// opened (only their needed sections, for URLs) and the pose with the most inliers wins.
+    /// Query features from `--database` or `--features`.
+    #[arg(long, conflicts_with = "map", value_name = "CATALOG")]
+    pub catalog: Option<PathBuf>,
+    /// With --catalog: candidate places tried per query, best ranked first.
+    #[arg(long, default_value_t = 2, requires = "catalog",
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    pub places: usize,
+    /// With --catalog: only places whose bounding box lies within --radius of this world
+    /// point ("x,y,z").
+    #[arg(long, requires = "catalog", value_name = "X,Y,Z")]
+    pub prior: Option<String>,
+    /// With --prior: how far from a place's bounding box the prior may be (map units).
+    #[arg(long, default_value_t = 50.0, requires = "prior")]
+    pub radius: f64,
     /// Query list: `name MODEL W H params...` per line (or names only with --camera).
     #[cfg_attr(feature = "mcap", arg(long, required_unless_present = "mcap"))]
     #[cfg_attr(not(feature = "mcap"), arg(long, required = true))]
@@ -118,7 +136,18 @@ pub struct Args {
     pub mcap: mcap_input::McapArgs,
 }
 
-// A child module so it shares this command's private helpers; the file sits beside this one.
+impl Args {
+    /// `--map` (clap requires it unless `--catalog`, whose path does not call this).
+    pub fn map_path(&self) -> &Path {
+        self.map
+            .as_deref()
+            .expect("--map is required without --catalog")
+    }
+}
+
+// Child modules so they share this command's private helpers; the files sit beside this one.
+#[path = "localize_catalog.rs"]
+mod catalog_input;
 #[cfg(feature = "mcap")]
 #[path = "localize_mcap.rs"]
 mod mcap_input;
@@ -177,7 +206,7 @@ fn sfp_extractor(
     if extractor.contract().model_name != descriptor {
         bail!(
             "{}: the map's descriptors are {descriptor:?} but the model is {:?}",
-            args.map.display(),
+            args.map_path().display(),
             extractor.contract().model_name
         );
     }
@@ -202,7 +231,7 @@ fn localizer<'m>(map: &'m Map<'m>, args: &Args) -> anyhow::Result<Localizer<'m>>
         },
         ..LocalizeOptions::default()
     };
-    Localizer::new(map, options).with_context(|| args.map.display().to_string())
+    Localizer::new(map, options).with_context(|| args.map_path().display().to_string())
 }
 
 /// Warns about the selected levels the localizer does not match (one line for all).
@@ -240,6 +269,9 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let Some(query_list) = args.query_list.clone() else {
         bail!("--query-list is required (or --mcap)");
     };
+    if let Some(catalog) = args.catalog.clone() {
+        return catalog_input::run(&args, &catalog, &query_list, quiet, &bars);
+    }
     if let Some(dir) = &args.images {
         check_images_dir(dir)?;
     }
@@ -258,7 +290,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     };
     check_outputs(&args, &[&query_list], &images)?;
     let opening = Instant::now();
-    let map = super::open_map(&args.map)?;
+    let map = super::open_map(args.map_path())?;
     let open_ms = opening.elapsed().as_secs_f64() * 1e3;
     let descriptor = descriptor_kind(&map);
     #[cfg(feature = "onnx")]
@@ -281,7 +313,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         }
         #[cfg(feature = "onnx")]
         (None, _) => {
-            check_extractable(&args.map, &descriptor, SIFT_HINT)?;
+            check_extractable(args.map_path(), &descriptor, SIFT_HINT)?;
             let Some(images) = args.images.clone() else {
                 bail!("{}: pass the query images with --images DIR (features are extracted with the SFP model)", query_list.display());
             };
@@ -301,10 +333,10 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         }
         #[cfg(not(feature = "onnx"))]
         (None, other) => {
-            check_extractable(&args.map, other, SIFT_HINT)?;
+            check_extractable(args.map_path(), other, SIFT_HINT)?;
             bail!(
                 "{}: query features for {other:?} maps need the extractor (feature onnx)",
-                args.map.display()
+                args.map_path().display()
             )
         }
     };
@@ -313,7 +345,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     // Opening the map and building the localizer: all a remote map's reads (with the
     // first query's time, when its first pose is ready).
     let map_ms = json!({ "open": open_ms, "localizer": indexing.elapsed().as_secs_f64() * 1e3 });
-    warn_skipped(&localizer, &args.map, &bars);
+    warn_skipped(&localizer, args.map_path(), &bars);
     bars.start("localizing", Some(queries.len() as u64));
     // Each query's outcome, and whether its features could be read at all.
     let results: Vec<Mutex<Option<(Localization, bool)>>> =
@@ -339,9 +371,13 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 let outcome = match f {
                     Ok(Ok(f)) if args.sequence => sequence()
                         .localize(&localizer, &f, &q.camera)
-                        .with_context(|| format!("{}: query {:?}", args.map.display(), q.name))
+                        .with_context(|| {
+                            format!("{}: query {:?}", args.map_path().display(), q.name)
+                        })
                         .map(|l| (l, true)),
-                    Ok(Ok(f)) => localize_one(&localizer, &args.map, q, &f).map(|l| (l, true)),
+                    Ok(Ok(f)) => {
+                        localize_one(&localizer, args.map_path(), q, &f).map(|l| (l, true))
+                    }
                     Ok(Err(reason)) => {
                         if args.sequence {
                             sequence().update(None);
@@ -579,7 +615,7 @@ fn check_outputs(args: &Args, query_inputs: &[&Path], images: &[PathBuf]) -> any
     let mut outputs = vec![args.output.as_path()];
     #[cfg(feature = "mcap")]
     outputs.extend(args.mcap.tum.as_deref());
-    let mut inputs = vec![args.map.as_path()];
+    let mut inputs = vec![args.map_path()];
     inputs.extend(query_inputs);
     inputs.extend(args.database.as_deref());
     inputs.extend(args.features.as_deref());

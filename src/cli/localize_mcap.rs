@@ -248,17 +248,17 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
         (None, None) => bail!("--mcap needs the intrinsics: --camera \"MODEL W H params...\" or --camera-info-topic TOPIC"),
     };
 
-    let map = super::super::open_map(&args.map)?;
+    let map = super::super::open_map(args.map_path())?;
     let descriptor = super::descriptor_kind(&map);
     super::check_extractable(
-        &args.map,
+        args.map_path(),
         &descriptor,
         "MCAP images need an SFP map (their features are extracted with the SFP model)",
     )?;
     let extractor = super::sfp_extractor(args, &descriptor, bars)?;
     let gray_weights = extractor.contract().gray_weights;
     let localizer = super::localizer(&map, args)?;
-    super::warn_skipped(&localizer, &args.map, bars);
+    super::warn_skipped(&localizer, args.map_path(), bars);
 
     bars.start("localizing", expected_on_topic);
     let extractor = Mutex::new(extractor);

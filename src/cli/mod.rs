@@ -5,6 +5,7 @@ use std::process::ExitCode;
 
 #[cfg(feature = "localize")]
 mod bench_pose;
+mod catalog;
 #[cfg(feature = "colmap")]
 mod convert;
 #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
@@ -46,6 +47,7 @@ pub enum Command {
     #[cfg(feature = "localize")]
     #[command(hide = true)]
     BenchPose(bench_pose::Args),
+    Catalog(catalog::Args),
     #[cfg(feature = "colmap")]
     Convert(convert::Args),
     #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
@@ -72,6 +74,7 @@ pub fn run() -> anyhow::Result<ExitCode> {
     match cli.command {
         #[cfg(feature = "localize")]
         Command::BenchPose(args) => bench_pose::run(args, cli.quiet),
+        Command::Catalog(args) => catalog::run(args, cli.quiet),
         #[cfg(feature = "colmap")]
         Command::Convert(args) => convert::run(args, cli.quiet),
         #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]

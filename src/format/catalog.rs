@@ -1,14 +1,16 @@
 //! Catalogs of place maps (`.sfpc`, spec "Catalogs"): a map file of no points whose metadata
 //! lists the places (`catalog.places`: where each map is, its origin, bounding box and
-//! counts) and whose sections hold each place's summary, itself a map: its images and what
-//! ranks them (the VLAD level's projection and codebook, the images' VLADs or global
-//! descriptors), no points. A localizer ranks the places for a query from the summaries
-//! before it opens any place map.
+//! counts) and whose sections rank them for a query: one VLAD codebook for all places, on a
+//! basis of their common descriptor space, and every place's images' VLADs on it. One
+//! codebook makes scores comparable across places (each map's own codebook fits its own
+//! descriptors, so its scores say little about other places').
 
 use super::error::Error;
-use super::layout::{SectionKind, ALIGN};
-use super::reader::{cast, Map};
+use super::layout::SectionKind;
+use super::reader::Map;
+use half::f16;
 use serde::{Deserialize, Serialize};
+use std::borrow::Cow;
 
 /// One place of a catalog, as its metadata lists it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -41,18 +43,28 @@ impl Place {
 /// The metadata key under which a catalog lists its places.
 pub const CATALOG_KEY: &str = "catalog";
 
+/// What a catalog's metadata holds under [`CATALOG_KEY`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-struct Listing {
-    places: Vec<Place>,
+pub struct Listing {
+    pub places: Vec<Place>,
+    /// The places' common descriptor (`sift`, an SFP model's name), their dimension `d_in`.
+    pub descriptor: String,
+    pub d_in: u32,
 }
 
-/// A catalog, read from a map that is one. Place summaries are checked (opened as maps) on
-/// access.
+/// A catalog, read from a map that is one; its arrays are checked against each other here.
 #[derive(Debug)]
 pub struct Catalog<'m> {
-    places: Vec<Place>,
-    offsets: Vec<u64>,
-    summaries: &'m [u8],
+    pub listing: Listing,
+    /// Place `i`'s images are rows `place_images[i]..place_images[i + 1]` of `image_vlad`.
+    pub place_images: Cow<'m, [u64]>,
+    /// `[dims × d_in]`.
+    pub projection: Cow<'m, [f32]>,
+    /// `[clusters × dims]`.
+    pub centroids: Cow<'m, [f32]>,
+    pub dims: usize,
+    /// `[images × clusters·dims]`, unit rows.
+    pub image_vlad: Cow<'m, [f16]>,
 }
 
 impl<'m> Catalog<'m> {
@@ -69,61 +81,62 @@ impl<'m> Catalog<'m> {
             map.find(kind, None)
                 .ok_or(Error::MissingSection { kind, level: None })
         };
-        let offsets: Vec<u64> =
-            cast::<u64>(map.section_bytes(need(SectionKind::PlaceOffsets)?)?).into_owned();
-        let summaries = map.section_bytes(need(SectionKind::PlaceSummaries)?)?;
-        if offsets.len() != listing.places.len() + 1 {
-            return Err(Error::inconsistent(format!(
-                "catalog: {} place offsets for {} places",
-                offsets.len(),
+        let (offsets, projection, centroids, vlad) = (
+            need(SectionKind::PlaceImages)?,
+            need(SectionKind::CatalogProjection)?,
+            need(SectionKind::CatalogVladCentroids)?,
+            need(SectionKind::CatalogImageVlad)?,
+        );
+        let bad = |what: String| Err(Error::inconsistent(format!("catalog: {what}")));
+        let dims = centroids.cols() as usize;
+        if offsets.rows() != listing.places.len() as u64 + 1 {
+            return bad(format!(
+                "{} place offsets for {} places",
+                offsets.rows(),
                 listing.places.len()
-            )));
-        }
-        let ordered = offsets.windows(2).all(|w| w[0] <= w[1]);
-        let aligned = offsets.iter().all(|&o| o % ALIGN == 0);
-        if offsets.first() != Some(&0)
-            || !ordered
-            || !aligned
-            || offsets.last() != Some(&(summaries.len() as u64))
-        {
-            return Err(Error::inconsistent(
-                "catalog: place offsets are not increasing multiples of 64 from 0 to the summaries' length",
             ));
         }
+        if projection.rows() != centroids.cols() || projection.cols() != u64::from(listing.d_in) {
+            return bad(format!(
+                "projection is {} x {}, expected {dims} x {}",
+                projection.rows(),
+                projection.cols(),
+                listing.d_in
+            ));
+        }
+        if centroids.rows() == 0 || vlad.cols() != centroids.rows() * centroids.cols() {
+            return bad(format!(
+                "image VLADs have {} columns for {} x {dims} centroids",
+                vlad.cols(),
+                centroids.rows()
+            ));
+        }
+        let place_images = map.section_array::<u64>(offsets)?;
+        let ordered = place_images.windows(2).all(|w| w[0] <= w[1]);
+        if place_images.first() != Some(&0) || !ordered || place_images.last() != Some(&vlad.rows())
+        {
+            return bad("place offsets do not run from 0 to the image VLADs' rows".into());
+        }
+        let projection = map.section_array::<f32>(projection)?;
+        let centroids = map.section_array::<f32>(centroids)?;
+        if !projection
+            .iter()
+            .chain(centroids.iter())
+            .all(|v| v.is_finite())
+        {
+            return bad("projection or centroids hold a non-finite value".into());
+        }
         Ok(Some(Catalog {
-            places: listing.places,
-            offsets,
-            summaries,
+            listing,
+            place_images,
+            projection,
+            centroids,
+            dims,
+            image_vlad: map.section_array::<f16>(vlad)?,
         }))
     }
 
     pub fn places(&self) -> &[Place] {
-        &self.places
-    }
-
-    /// Place `i`'s summary map (images and retrieval data), checked as any map is at open.
-    pub fn summary(&self, i: usize) -> Result<Map<'m>, Error> {
-        let (start, end) = (self.offsets[i] as usize, self.offsets[i + 1] as usize);
-        // A summary is zero-padded to 64 bytes; the map inside ends where its header says.
-        let bytes = &self.summaries[start..end];
-        let len = bytes
-            .get(48..56) // the header's file_len field
-            .map_or(0, |b| {
-                u64::from_le_bytes(b.try_into().expect("8 bytes")) as usize
-            });
-        Map::from_bytes(&bytes[..len.min(bytes.len())]).map_err(|e| {
-            Error::inconsistent(format!(
-                "catalog place {i} ({}): summary: {e}",
-                self.places[i].name
-            ))
-        })
-    }
-
-    /// The metadata value a catalog of `places` stores under [`CATALOG_KEY`].
-    pub fn listing(places: &[Place]) -> serde_json::Value {
-        serde_json::to_value(Listing {
-            places: places.to_vec(),
-        })
-        .expect("places serialise")
+        &self.listing.places
     }
 }

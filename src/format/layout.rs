@@ -174,18 +174,21 @@ pub enum SectionKind {
     VisibilityPoints,
     /// f32 [observations × 2]: the pixel (x, y) of each visibility entry.
     VisibilityKeypoints,
-    /// u64 [places + 1 × 1] (1.1, catalogs): byte offsets into `PlaceSummaries`, each a
-    /// multiple of 64.
-    PlaceOffsets,
-    /// u8 [bytes × 1] (1.1, catalogs): each place's summary, itself a map (its images and
-    /// retrieval data, no points), one after another.
-    PlaceSummaries,
+    /// u64 [places + 1 × 1] (1.1, catalogs): each place's first row in `CatalogImageVlad`.
+    PlaceImages,
+    /// f32 [dims × d_in] (1.1, catalogs): the catalog's basis, from the places' common
+    /// descriptor space (SIFT's 128 dimensions) to the `dims` its codebook is on.
+    CatalogProjection,
+    /// f32 [clusters × dims] (1.1, catalogs): the catalog's one VLAD codebook.
+    CatalogVladCentroids,
+    /// f16 [images × clusters·dims] (1.1, catalogs): every place's images' VLADs on it.
+    CatalogImageVlad,
     /// A kind this version does not know.
     Unknown(u16),
 }
 
 impl SectionKind {
-    const KNOWN: [(u16, SectionKind, &'static str); 23] = [
+    const KNOWN: [(u16, SectionKind, &'static str); 25] = [
         (1, SectionKind::PointPositions, "point_positions"),
         (4, SectionKind::PointPositionsQ16, "point_positions_q16"),
         (2, SectionKind::PointColors, "point_colors"),
@@ -207,8 +210,14 @@ impl SectionKind {
         (48, SectionKind::VisibilityOffsets, "visibility_offsets"),
         (49, SectionKind::VisibilityPoints, "visibility_points"),
         (50, SectionKind::VisibilityKeypoints, "visibility_keypoints"),
-        (64, SectionKind::PlaceOffsets, "place_offsets"),
-        (65, SectionKind::PlaceSummaries, "place_summaries"),
+        (64, SectionKind::PlaceImages, "place_images"),
+        (65, SectionKind::CatalogProjection, "catalog_projection"),
+        (
+            66,
+            SectionKind::CatalogVladCentroids,
+            "catalog_vlad_centroids",
+        ),
+        (67, SectionKind::CatalogImageVlad, "catalog_image_vlad"),
     ];
 
     pub fn from_code(code: u16) -> SectionKind {
@@ -253,8 +262,10 @@ impl SectionKind {
             LevelPqCodes => (Dtype::U8, None),
             ImagePoses => (Dtype::F64, Some(7)),
             ImageCameras | ImageIds => (Dtype::U32, Some(1)),
-            ImageNameOffsets | VisibilityOffsets | PlaceOffsets => (Dtype::U64, Some(1)),
-            ImageNames | PlaceSummaries => (Dtype::U8, Some(1)),
+            ImageNameOffsets | VisibilityOffsets | PlaceImages => (Dtype::U64, Some(1)),
+            ImageNames => (Dtype::U8, Some(1)),
+            CatalogProjection | CatalogVladCentroids => (Dtype::F32, None),
+            CatalogImageVlad => (Dtype::F16, None),
             VisibilityPoints => (Dtype::U32, Some(1)),
             VisibilityKeypoints => (Dtype::F32, Some(2)),
             Unknown(_) => return None,
@@ -273,6 +284,8 @@ impl SectionKind {
                 | SectionKind::LevelPqCodebook
                 | SectionKind::LevelPqCodes
                 | SectionKind::ImageGlobal
+                | SectionKind::CatalogProjection
+                | SectionKind::CatalogVladCentroids
         )
     }
 

@@ -30,7 +30,7 @@ mod source;
 mod views;
 mod writer;
 
-pub use catalog::{Catalog, Place, CATALOG_KEY};
+pub use catalog::{Catalog, Listing, Place, CATALOG_KEY};
 pub use error::{Error, SectionRef};
 pub use layout::{
     align_up, checksum, Codec, Dtype, SectionKind, ALIGN, ENDIAN_CHECK, ENTRY_LEN, HEADER_LEN,

@@ -693,49 +693,70 @@ impl<'a> MapWriter<'a> {
         Ok(self)
     }
 
-    /// Makes the map a catalog (spec "Catalogs"): lists `places` in the metadata and stores
-    /// each place's summary map (`summaries[i]`, from [`MapWriter::to_bytes`]), each starting
-    /// on a multiple of 64.
+    /// Makes the map a catalog (spec "Catalogs"): `listing` in the metadata, place `i`'s
+    /// images at rows `place_images[i]..place_images[i + 1]` of `image_vlad`
+    /// (`[images × clusters·dims]`), on the codebook `centroids` (`[clusters × dims]`) in the
+    /// basis `projection` (`[dims × listing.d_in]`).
     pub fn set_catalog(
         &mut self,
-        places: &[super::catalog::Place],
-        summaries: &[Vec<u8>],
+        listing: &super::catalog::Listing,
+        place_images: &[u64],
+        projection: &[f32],
+        centroids: &[f32],
+        dims: usize,
+        image_vlad: &[f32],
     ) -> Result<&mut Self, Error> {
-        if places.len() != summaries.len() {
-            return Err(Error::invalid("one summary per place"));
-        }
-        let mut offsets = vec![0u64];
-        let mut blob = Vec::new();
-        for s in summaries {
-            blob.extend_from_slice(s);
-            blob.resize(
-                blob.len().next_multiple_of(super::layout::ALIGN as usize),
-                0,
-            );
-            offsets.push(blob.len() as u64);
+        let d_in = listing.d_in as usize;
+        let clusters = centroids.len() / dims.max(1);
+        let width = clusters * dims;
+        if dims == 0
+            || place_images.len() != listing.places.len() + 1
+            || projection.len() != dims * d_in
+            || centroids.len() != width
+            || width == 0
+            || image_vlad.len() % width != 0
+            || place_images.last() != Some(&((image_vlad.len() / width) as u64))
+        {
+            return Err(Error::invalid("catalog arrays of inconsistent shapes"));
         }
         self.metadata.extra.insert(
             super::catalog::CATALOG_KEY.into(),
-            super::catalog::Catalog::listing(places),
+            serde_json::to_value(listing).map_err(|e| Error::invalid(e.to_string()))?,
         );
-        let n = offsets.len();
-        self.push_array(
-            SectionKind::PlaceOffsets,
-            NO_LEVEL,
-            Dtype::U64,
-            n,
-            1,
-            Cow::Owned(bytemuck::cast_slice(&offsets).to_vec()),
-        );
-        let len = blob.len();
-        self.push_array(
-            SectionKind::PlaceSummaries,
-            NO_LEVEL,
-            Dtype::U8,
-            len,
-            1,
-            Cow::Owned(blob),
-        );
+        let vlad: Vec<f16> = image_vlad.iter().map(|&v| f16::from_f32(v)).collect();
+        let arrays: [(SectionKind, Dtype, usize, usize, Vec<u8>); 4] = [
+            (
+                SectionKind::PlaceImages,
+                Dtype::U64,
+                place_images.len(),
+                1,
+                bytemuck::cast_slice(place_images).to_vec(),
+            ),
+            (
+                SectionKind::CatalogProjection,
+                Dtype::F32,
+                dims,
+                d_in,
+                le_bytes(projection).into_owned(),
+            ),
+            (
+                SectionKind::CatalogVladCentroids,
+                Dtype::F32,
+                clusters,
+                dims,
+                le_bytes(centroids).into_owned(),
+            ),
+            (
+                SectionKind::CatalogImageVlad,
+                Dtype::F16,
+                vlad.len() / width,
+                width,
+                le_bytes(&vlad).into_owned(),
+            ),
+        ];
+        for (kind, dtype, rows, cols, bytes) in arrays {
+            self.push_array(kind, NO_LEVEL, dtype, rows, cols, Cow::Owned(bytes));
+        }
         Ok(self)
     }
 

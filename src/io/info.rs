@@ -38,7 +38,7 @@ fn component(kind: SectionKind) -> &'static str {
         LevelVladCentroids | ImageGlobal | ImageVlad => "retrieval",
         ImagePoses | ImageCameras | ImageIds | ImageNameOffsets | ImageNames => "images",
         VisibilityOffsets | VisibilityPoints | VisibilityKeypoints => "visibility",
-        PlaceOffsets | PlaceSummaries => "places",
+        PlaceImages | CatalogProjection | CatalogVladCentroids | CatalogImageVlad => "places",
         Unknown(_) => "skipped",
     }
 }

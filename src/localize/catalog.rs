@@ -1,16 +1,22 @@
 //! Choosing the places of a catalog (`format::Catalog`) a query may be in, before any place
-//! map is opened: each place's summary ranks its images for the query as the place map would
-//! (its VLAD or global descriptors), and places are ordered by their best image's cosine.
+//! map is opened: the query's VLAD on the catalog's one codebook is scored against every
+//! place's images, and places are ordered by their best image's cosine.
 
-use super::localizer::LocalizeError;
-use super::retrieval::{RetrievalIndex, RetrievalMethod};
 use super::QueryFeatures;
-use crate::format::{Catalog, Retrieval};
+use crate::format::{Catalog, Error as FormatError};
+use crate::vector::normalise_rows;
+use crate::vlad::Codebook;
 
-/// The places of a catalog, ready to rank queries.
+/// A catalog's places, ready to rank queries.
 pub struct PlaceRanker {
-    /// Per place, what ranks its images.
-    indexes: Vec<RetrievalIndex>,
+    codebook: Codebook,
+    /// `[dims × d_in]`.
+    projection: Vec<f32>,
+    d_in: usize,
+    /// `[images × width]`, unit rows.
+    images: Vec<f32>,
+    /// Place `i`'s images are rows `place_images[i]..place_images[i + 1]`.
+    place_images: Vec<u64>,
 }
 
 /// One place's score for a query.
@@ -20,37 +26,70 @@ pub struct PlaceScore {
     pub place: usize,
     /// The cosine of the query with the place's best image.
     pub score: f32,
-    /// What scored it.
-    pub method: Retrieval,
+    /// That image, within the place's images.
+    pub image: usize,
 }
 
 impl PlaceRanker {
-    /// Reads every place's summary (checked as a map is at open).
-    pub fn new(
-        catalog: &Catalog<'_>,
-        method: RetrievalMethod,
-    ) -> Result<PlaceRanker, LocalizeError> {
-        let mut indexes = Vec::with_capacity(catalog.places().len());
-        for i in 0..catalog.places().len() {
-            let summary = catalog.summary(i)?;
-            indexes.push(RetrievalIndex::new(&summary, method)?);
-        }
-        Ok(PlaceRanker { indexes })
+    pub fn new(catalog: &Catalog<'_>) -> Result<PlaceRanker, FormatError> {
+        let codebook = Codebook::new(catalog.centroids.to_vec(), catalog.dims)
+            .ok_or_else(|| FormatError::inconsistent("catalog: a codebook of no centroids"))?;
+        let images = catalog.image_vlad.iter().map(|v| v.to_f32()).collect();
+        Ok(PlaceRanker {
+            codebook,
+            projection: catalog.projection.to_vec(),
+            d_in: catalog.listing.d_in as usize,
+            images,
+            place_images: catalog.place_images.to_vec(),
+        })
     }
 
-    /// The places among `allowed` that can score `query`, best first (ties: lower index).
-    pub fn rank(&self, query: &QueryFeatures, allowed: impl Fn(usize) -> bool) -> Vec<PlaceScore> {
-        let mut scored: Vec<PlaceScore> = self
-            .indexes
+    /// The query's VLAD on the catalog's codebook, `None` when it has no features of the
+    /// catalog's descriptor dimension.
+    fn query_vlad(&self, query: &QueryFeatures) -> Option<Vec<f32>> {
+        let set = query
+            .sets
             .iter()
-            .enumerate()
-            .filter(|(i, _)| allowed(*i))
-            .filter_map(|(place, index)| {
-                let (score, method) = index.best_score(query)?;
+            .find(|s| s.dim == self.d_in && s.descriptors.len() == s.keypoints.len() * s.dim)?;
+        let dims = self.codebook.dims();
+        let mut rows = vec![0.0f32; set.keypoints.len() * dims];
+        for (x, o) in set
+            .descriptors
+            .chunks_exact(self.d_in)
+            .zip(rows.chunks_exact_mut(dims))
+        {
+            for (k, o) in o.iter_mut().enumerate() {
+                *o = crate::vector::dot(&self.projection[k * self.d_in..(k + 1) * self.d_in], x);
+            }
+        }
+        normalise_rows(&mut rows, dims);
+        Some(self.codebook.vlad(&rows))
+    }
+
+    /// The places among `allowed`, best first (ties: lower index); empty when the query has
+    /// no features of the catalog's descriptor.
+    pub fn rank(&self, query: &QueryFeatures, allowed: impl Fn(usize) -> bool) -> Vec<PlaceScore> {
+        let Some(q) = self.query_vlad(query) else {
+            return Vec::new();
+        };
+        let width = self.codebook.width();
+        let mut scored: Vec<PlaceScore> = (0..self.place_images.len() - 1)
+            .filter(|&p| allowed(p))
+            .filter_map(|place| {
+                let (start, end) = (
+                    self.place_images[place] as usize,
+                    self.place_images[place + 1] as usize,
+                );
+                let (image, score) = self.images[start * width..end * width]
+                    .chunks_exact(width)
+                    .map(|row| crate::vector::dot(row, &q))
+                    .enumerate()
+                    .filter(|(_, s)| s.is_finite())
+                    .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))?;
                 Some(PlaceScore {
                     place,
                     score,
-                    method,
+                    image,
                 })
             })
             .collect();

@@ -203,29 +203,6 @@ impl RetrievalIndex {
         )
     }
 
-    /// How well the map's best image matches `query` (a cosine), by the first method that
-    /// can rank ([`RetrievalIndex::retrieve`]'s order); `None` when none can. A catalog ranks
-    /// places by it.
-    pub(crate) fn best_score(&self, query: &QueryFeatures) -> Option<(f32, Retrieval)> {
-        let methods: &[Retrieval] = match self.method {
-            RetrievalMethod::Off => return None,
-            RetrievalMethod::Auto => &self.order,
-            RetrievalMethod::Vlad => &[Retrieval::Vlad],
-            RetrievalMethod::Global => &[Retrieval::Global],
-        };
-        methods.iter().find_map(|&method| {
-            let (database, q, dim) = match method {
-                Retrieval::Global => self.global_vectors(query),
-                Retrieval::Vlad => self.vlad_vectors(query),
-            }
-            .ok()?;
-            let best = scores(database, dim, &q)
-                .into_iter()
-                .fold(f32::NEG_INFINITY, f32::max);
-            best.is_finite().then_some((best, method))
-        })
-    }
-
     fn global_vectors(
         &self,
         query: &QueryFeatures,
@@ -291,11 +268,6 @@ impl RetrievalIndex {
 /// row-major) score highest against `query`'s (`dim` values), best first (ties: lower index
 /// first); `top_k` 0 is taken as 1.
 pub(crate) fn rank(database: &[f32], dim: usize, query: &[f32], top_k: usize) -> Vec<usize> {
-    top_k_indices(&scores(database, dim, query), top_k.max(1))
-}
-
-/// The cosine of `query` with each database row (`-inf` for a non-finite one).
-fn scores(database: &[f32], dim: usize, query: &[f32]) -> Vec<f32> {
     let n_images = database.len() / dim.max(1);
     // Scores are cosines, as the map's rows are unit. The ranking would not change without
     // it, but the tie-breaks between scores an ulp apart could.
@@ -310,7 +282,7 @@ fn scores(database: &[f32], dim: usize, query: &[f32]) -> Vec<f32> {
             *s = f32::NEG_INFINITY;
         }
     }
-    scores
+    top_k_indices(&scores, top_k.max(1))
 }
 
 /// Indices of the `k` highest scores, best first, ties by index: a partial selection

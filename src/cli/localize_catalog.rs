@@ -1,0 +1,225 @@
+//! `sfpmap localize --catalog city.sfpc`: each query's candidate places are ranked by
+//! retrieval on the catalog's place summaries (`PlaceRanker`), optionally only those near
+//! `--prior`; the best `--places` are opened (files, or URLs read by range: only the sections
+//! the localizer reads) and localize the query; the pose with the most inliers wins. Poses
+//! are in the chosen place's frame; `--json` says which place each query went to.
+
+use super::{failure, localizer, unread, write_poses, Args, Source};
+use anyhow::{bail, Context};
+use serde_json::json;
+use sfpmap::format::{Catalog, Map, Place};
+use sfpmap::io::queries::{read_query_list, DatabaseFeatures};
+use sfpmap::localize::catalog::PlaceRanker;
+use sfpmap::localize::{Localization, Localizer};
+use sfpmap::progress::Reporter;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::OnceLock;
+
+/// Where place `location` is: a URL as is; a relative path from the catalog's folder (or,
+/// for a catalog read from a URL, relative to that URL).
+fn resolve(catalog: &Path, location: &str) -> PathBuf {
+    if sfpmap::remote::is_url(location) || Path::new(location).is_absolute() {
+        return PathBuf::from(location);
+    }
+    if let Some(url) = catalog.to_str().filter(|c| sfpmap::remote::is_url(c)) {
+        if let Ok(joined) = url::Url::parse(url).and_then(|u| u.join(location)) {
+            return PathBuf::from(joined.as_str());
+        }
+    }
+    catalog.parent().unwrap_or(Path::new(".")).join(location)
+}
+
+fn parse_prior(text: &str) -> anyhow::Result<[f64; 3]> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("--prior {text:?}: expected x,y,z"))?;
+    match v[..] {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([x, y, z]),
+        _ => bail!("--prior {text:?}: expected three finite numbers x,y,z"),
+    }
+}
+
+/// A place map, opened on first use and checked against what the catalog recorded.
+fn open_place(catalog: &Path, place: &Place) -> anyhow::Result<Map<'static>> {
+    let path = resolve(catalog, &place.map);
+    let map = super::super::open_map(&path)
+        .with_context(|| format!("{}: place {:?}", catalog.display(), place.name))?;
+    let found = format!("{:016x}", map.index_checksum());
+    if found != place.index_checksum {
+        bail!(
+            "{}: place {:?}: {} is not the map the catalog was built from (index checksum {found}, catalog says {}); rebuild the catalog",
+            catalog.display(),
+            place.name,
+            path.display(),
+            place.index_checksum
+        );
+    }
+    Ok(map)
+}
+
+pub(super) fn run(
+    args: &Args,
+    catalog_path: &Path,
+    query_list: &Path,
+    quiet: bool,
+    bars: &super::super::Bars,
+) -> anyhow::Result<ExitCode> {
+    let start = std::time::Instant::now();
+    let camera = args
+        .camera
+        .as_deref()
+        .map(sfpmap::geometry::Camera::parse)
+        .transpose()
+        .context("--camera")?;
+    let queries = read_query_list(query_list, camera.as_ref())?;
+    let mut inputs = vec![catalog_path, query_list];
+    inputs.extend(args.database.as_deref());
+    inputs.extend(args.features.as_deref());
+    super::super::check_outputs(&[&args.output], &inputs, args.force)?;
+    let prior = args.prior.as_deref().map(parse_prior).transpose()?;
+    let catalog_map = super::super::open_map(catalog_path)?;
+    let catalog = Catalog::of(&catalog_map)
+        .map_err(super::super::naming(catalog_path))?
+        .with_context(|| {
+            format!(
+                "{}: not a catalog (its metadata lists no places)",
+                catalog_path.display()
+            )
+        })?;
+    let ranker = PlaceRanker::new(&catalog).map_err(super::super::naming(catalog_path))?;
+    let mut features = match (&args.database, &args.features) {
+        (Some(db), _) => {
+            Source::Database(DatabaseFeatures::open(db).with_context(|| db.display().to_string())?)
+        }
+        #[cfg(feature = "onnx")]
+        (None, Some(h5)) => Source::H5(sfpmap::io::features_h5::H5Features::open(h5)?),
+        _ => bail!("--catalog needs the queries' features: --database queries.db or --features features.h5"),
+    };
+    let places = catalog.places();
+    let maps: Vec<OnceLock<Result<Map<'static>, String>>> =
+        places.iter().map(|_| OnceLock::new()).collect();
+    let localizers: Vec<OnceLock<Result<Localizer<'_>, String>>> =
+        places.iter().map(|_| OnceLock::new()).collect();
+    let place_localizer = |i: usize| -> anyhow::Result<&Localizer<'_>> {
+        let map = maps[i]
+            .get_or_init(|| open_place(catalog_path, &places[i]).map_err(|e| format!("{e:#}")))
+            .as_ref()
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        localizers[i]
+            .get_or_init(|| localizer(map, args).map_err(|e| format!("{}: {e:#}", places[i].name)))
+            .as_ref()
+            .map_err(|e| anyhow::anyhow!("{e}"))
+    };
+
+    bars.start("localizing", Some(queries.len() as u64));
+    let mut results = Vec::with_capacity(queries.len());
+    let mut chosen: Vec<Option<usize>> = Vec::with_capacity(queries.len());
+    let mut rankings: Vec<serde_json::Value> = Vec::with_capacity(queries.len());
+    let mut read_any = false;
+    for q in &queries {
+        let f = match features.features(&q.name)? {
+            Ok(f) => f,
+            Err(reason) => {
+                results.push(unread(reason));
+                chosen.push(None);
+                rankings.push(json!([]));
+                bars.advance(1);
+                continue;
+            }
+        };
+        read_any = true;
+        let near = |i: usize| prior.is_none_or(|p| places[i].near(p, args.radius));
+        let ranked = ranker.rank(&f, near);
+        rankings.push(json!(ranked
+            .iter()
+            .map(|r| json!({
+                "place": places[r.place].name,
+                "score": r.score,
+            }))
+            .collect::<Vec<_>>()));
+        let mut best: Option<(Localization, usize)> = None;
+        for candidate in ranked.iter().take(args.places) {
+            let l = place_localizer(candidate.place)?
+                .localize(&f, &q.camera)
+                .with_context(|| format!("{}: query {:?}", places[candidate.place].name, q.name))?;
+            let better = match &best {
+                None => true,
+                Some((b, _)) => l.pose().is_some() && (b.pose().is_none() || l.inliers > b.inliers),
+            };
+            if better {
+                best = Some((l, candidate.place));
+            }
+        }
+        match best {
+            Some((l, place)) => {
+                chosen.push(l.pose().is_some().then_some(place));
+                results.push(l);
+            }
+            None => {
+                chosen.push(None);
+                results.push(unread("no place of the catalog could rank the query (none near --prior, or no retrieval data for its features)".into()));
+            }
+        }
+        bars.advance(1);
+    }
+    bars.finish();
+    if !read_any {
+        bail!(
+            "{}: none of the {} queries could be read ({}: {})",
+            query_list.display(),
+            queries.len(),
+            queries[0].name,
+            failure(&results[0])
+        );
+    }
+    write_poses(
+        &args.output,
+        args.format,
+        query_list,
+        &queries,
+        &results,
+        &[],
+    )?;
+    let localized = results.iter().filter(|r| r.pose().is_some()).count();
+    let mut per_place: BTreeMap<&str, usize> = BTreeMap::new();
+    for p in chosen.iter().flatten() {
+        *per_place.entry(places[*p].name.as_str()).or_default() += 1;
+    }
+    let mut transfer = serde_json::Map::new();
+    for (i, m) in maps.iter().enumerate() {
+        if let Some(Ok(map)) = m.get() {
+            transfer.insert(places[i].name.clone(), super::super::transfer_json(map));
+        }
+    }
+    if args.json {
+        super::super::print_json(&json!({
+            "queries": queries.len(),
+            "localized": localized,
+            "places": per_place,
+            "chosen": queries.iter().zip(&chosen).zip(&rankings).map(|((q, c), ranked)| json!({
+                "name": q.name,
+                "place": c.map(|p| places[p].name.clone()),
+                "ranked": ranked,
+            })).collect::<Vec<_>>(),
+            "catalog_transfer": super::super::transfer_json(&catalog_map),
+            "transfer": transfer,
+            "output": args.output.display().to_string(),
+            "seconds": start.elapsed().as_secs_f64(),
+        }))?;
+    } else if !quiet {
+        println!(
+            "{}: {localized}/{} localized with catalog {}",
+            args.output.display(),
+            queries.len(),
+            catalog_path.display()
+        );
+        for (name, n) in &per_place {
+            println!("  place {name}: {n}");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
