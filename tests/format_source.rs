@@ -17,6 +17,7 @@ struct Fake {
     damage: Option<(usize, usize)>,
     short: bool,
     log: Mutex<Vec<(Range<u64>, bool)>>,
+    heads: Mutex<usize>,
     batches: Mutex<usize>,
 }
 
@@ -27,6 +28,7 @@ impl Fake {
             damage: None,
             short: false,
             log: Mutex::new(Vec::new()),
+            heads: Mutex::new(0),
             batches: Mutex::new(0),
         }
     }
@@ -40,7 +42,7 @@ impl RangeSource for Fake {
         self.bytes.len() as u64
     }
     fn read_range(&self, range: Range<u64>) -> Result<Vec<u8>, Error> {
-        self.log.lock().unwrap().push((range.clone(), false));
+        *self.heads.lock().unwrap() += 1;
         Ok(self.bytes[range.start as usize..range.end as usize].to_vec())
     }
     fn read_sections(
@@ -69,8 +71,13 @@ impl RangeSource for Fake {
         }
         Ok(out)
     }
+    /// Reads of the head and batches of sections, as `requests`.
     fn stats(&self) -> SourceStats {
-        SourceStats::default()
+        let heads = *self.heads.lock().unwrap();
+        SourceStats {
+            requests: (heads + *self.batches.lock().unwrap()) as u64,
+            ..SourceStats::default()
+        }
     }
 }
 
@@ -107,10 +114,13 @@ fn index_of(map: &Map<'_>, kind: SectionKind, level: u16) -> usize {
 fn reads_the_index_once_and_a_level_in_one_batch_and_agrees_with_memory() {
     let bytes = map_bytes();
     let local = Map::from_bytes(&bytes).unwrap();
-    let fake = Box::new(Fake::new(bytes.clone()));
-    let map = Map::open_source(fake).unwrap();
+    let fake = Fake::new(bytes.clone());
+    let map = Map::open_source(Box::new(fake)).unwrap();
     assert!(map.bytes().is_none());
     map.prefetch(|s| s.level() == Some(1)).unwrap();
+    let fake = map.source().unwrap();
+    // One read of the head (the whole index), one batch for level 1.
+    assert_eq!(fake.stats().requests, 2, "{:?}", fake.stats());
     let level = map.level(1).unwrap();
     assert_eq!(
         level.desc_short().unwrap().as_ref(),
@@ -178,6 +188,8 @@ fn an_index_longer_than_the_first_read_takes_a_second_read() {
     let bytes = w.to_bytes().unwrap();
     let fake = Fake::new(bytes);
     let map = Map::open_source(Box::new(fake)).unwrap();
+    // The first read, then the rest of the index.
+    assert_eq!(map.source().unwrap().stats().requests, 2);
     map.verify().unwrap();
 }
 

@@ -155,9 +155,6 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
     }
     if map.source().is_some() {
         report.insert("transfer".into(), super::transfer_json(&map));
-        if let Some(source) = map.source() {
-            lines.push(super::transfer_line(source.name(), &source.stats()));
-        }
     }
     Ok(Exported {
         report,

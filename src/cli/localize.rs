@@ -78,7 +78,7 @@ pub struct Args {
     #[cfg_attr(not(feature = "mcap"), arg(long, required = true))]
     pub query_list: Option<PathBuf>,
     /// Folder with the query images (needed when features are extracted).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "catalog")]
     pub images: Option<PathBuf>,
     /// One camera for every query: "MODEL W H params...".
     #[arg(long)]
@@ -123,7 +123,7 @@ pub struct Args {
     /// matching around the prediction, through retrieval only when tracking is lost (fewer
     /// than 12 inliers around the prediction, or no database image near it). Queries run in
     /// order, on one thread. Always on for --mcap.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "catalog")]
     pub sequence: bool,
     /// Overwrite the output(s) if they exist.
     #[arg(long)]
@@ -214,7 +214,8 @@ fn sfp_extractor(
 }
 
 /// The localizer with the options of `--level`, `--short`, `--top-k` and `--ratio`.
-fn localizer<'m>(map: &'m Map<'m>, args: &Args) -> anyhow::Result<Localizer<'m>> {
+/// The localizer of `map` (named `name` in errors) with the options `args` give.
+fn localizer<'m>(map: &'m Map<'m>, args: &Args, name: &Path) -> anyhow::Result<Localizer<'m>> {
     let options = LocalizeOptions {
         levels: args.levels.clone(),
         short: args.short,
@@ -231,7 +232,7 @@ fn localizer<'m>(map: &'m Map<'m>, args: &Args) -> anyhow::Result<Localizer<'m>>
         },
         ..LocalizeOptions::default()
     };
-    Localizer::new(map, options).with_context(|| args.map_path().display().to_string())
+    Localizer::new(map, options).with_context(|| name.display().to_string())
 }
 
 /// Warns about the selected levels the localizer does not match (one line for all).
@@ -341,7 +342,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         }
     };
     let indexing = Instant::now();
-    let localizer = localizer(&map, &args)?;
+    let localizer = localizer(&map, &args, args.map_path())?;
     // Opening the map and building the localizer: all a remote map's reads (with the
     // first query's time, when its first pose is ready).
     let map_ms = json!({ "open": open_ms, "localizer": indexing.elapsed().as_secs_f64() * 1e3 });

@@ -7,6 +7,7 @@
 use super::{failure, localizer, unread, write_poses, Args, Source};
 use anyhow::{bail, Context};
 use serde_json::json;
+use sfpmap::colmap::text::escape_control_characters;
 use sfpmap::format::{Catalog, Map, Place};
 use sfpmap::io::queries::{read_query_list, DatabaseFeatures};
 use sfpmap::localize::catalog::PlaceRanker;
@@ -17,18 +18,20 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::OnceLock;
 
-/// Where place `location` is: a URL as is; a relative path from the catalog's folder (or,
-/// for a catalog read from a URL, relative to that URL).
-fn resolve(catalog: &Path, location: &str) -> PathBuf {
-    if sfpmap::remote::is_url(location) || Path::new(location).is_absolute() {
-        return PathBuf::from(location);
+/// Where place `location` is: a URL as is; a path from the catalog's folder (absolute ones
+/// as they are). A catalog read from a URL names no local file: its other locations are
+/// resolved against its URL, so a downloaded catalog cannot make the reader open local files.
+fn resolve(catalog: &Path, location: &str) -> anyhow::Result<PathBuf> {
+    if sfpmap::remote::is_url(location) {
+        return Ok(PathBuf::from(location));
     }
     if let Some(url) = catalog.to_str().filter(|c| sfpmap::remote::is_url(c)) {
-        if let Ok(joined) = url::Url::parse(url).and_then(|u| u.join(location)) {
-            return PathBuf::from(joined.as_str());
-        }
+        let joined = url::Url::parse(url)
+            .and_then(|u| u.join(location))
+            .with_context(|| format!("{}: place map {location:?}", catalog.display()))?;
+        return Ok(PathBuf::from(joined.as_str()));
     }
-    catalog.parent().unwrap_or(Path::new(".")).join(location)
+    Ok(catalog.parent().unwrap_or(Path::new(".")).join(location))
 }
 
 fn parse_prior(text: &str) -> anyhow::Result<[f64; 3]> {
@@ -45,7 +48,7 @@ fn parse_prior(text: &str) -> anyhow::Result<[f64; 3]> {
 
 /// A place map, opened on first use and checked against what the catalog recorded.
 fn open_place(catalog: &Path, place: &Place) -> anyhow::Result<Map<'static>> {
-    let path = resolve(catalog, &place.map);
+    let path = resolve(catalog, &place.map)?;
     let map = super::super::open_map(&path)
         .with_context(|| format!("{}: place {:?}", catalog.display(), place.name))?;
     let found = format!("{:016x}", map.index_checksum());
@@ -100,6 +103,13 @@ pub(super) fn run(
         _ => bail!("--catalog needs the queries' features: --database queries.db or --features features.h5"),
     };
     let places = catalog.places();
+    // The place maps are inputs too: no output may replace one.
+    let place_paths = places
+        .iter()
+        .map(|p| resolve(catalog_path, &p.map))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    inputs.extend(place_paths.iter().map(PathBuf::as_path));
+    super::super::check_outputs(&[&args.output], &inputs, args.force)?;
     let maps: Vec<OnceLock<Result<Map<'static>, String>>> =
         places.iter().map(|_| OnceLock::new()).collect();
     let localizers: Vec<OnceLock<Result<Localizer<'_>, String>>> =
@@ -110,7 +120,10 @@ pub(super) fn run(
             .as_ref()
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         localizers[i]
-            .get_or_init(|| localizer(map, args).map_err(|e| format!("{}: {e:#}", places[i].name)))
+            .get_or_init(|| {
+                let name = resolve(catalog_path, &places[i].map).unwrap_or_default();
+                localizer(map, args, &name).map_err(|e| format!("{e:#}"))
+            })
             .as_ref()
             .map_err(|e| anyhow::anyhow!("{e}"))
     };
@@ -218,7 +231,8 @@ pub(super) fn run(
             catalog_path.display()
         );
         for (name, n) in &per_place {
-            println!("  place {name}: {n}");
+            // The catalog's text: control characters escaped, so it cannot drive the terminal.
+            println!("  place {}: {n}", escape_control_characters(name));
         }
     }
     Ok(ExitCode::SUCCESS)

@@ -44,7 +44,7 @@ pub struct McapArgs {
     /// foxglove.PoseInFrame messages. Example: `sfpmap localize --map m.sfpm --mcap run.mcap
     /// --topic /camera/image_raw/compressed --camera-info-topic /camera/camera_info -o poses.mcap`.
     /// Damaged chunks and records are skipped with a warning; the exit status is then 3.
-    #[arg(long, requires = "topic", conflicts_with_all = ["query_list", "images", "database", "features", "format"])]
+    #[arg(long, requires = "topic", conflicts_with_all = ["query_list", "images", "database", "features", "format", "catalog"])]
     pub mcap: Option<PathBuf>,
     /// The image topic: sensor_msgs/msg/CompressedImage or sensor_msgs/msg/Image (cdr), or
     /// foxglove.CompressedImage (json, protobuf).
@@ -257,7 +257,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     )?;
     let extractor = super::sfp_extractor(args, &descriptor, bars)?;
     let gray_weights = extractor.contract().gray_weights;
-    let localizer = super::localizer(&map, args)?;
+    let localizer = super::localizer(&map, args, args.map_path())?;
     super::warn_skipped(&localizer, args.map_path(), bars);
 
     bars.start("localizing", expected_on_topic);

@@ -5,6 +5,7 @@ use std::process::ExitCode;
 
 #[cfg(feature = "localize")]
 mod bench_pose;
+#[cfg(feature = "colmap")]
 mod catalog;
 #[cfg(feature = "colmap")]
 mod convert;
@@ -47,6 +48,7 @@ pub enum Command {
     #[cfg(feature = "localize")]
     #[command(hide = true)]
     BenchPose(bench_pose::Args),
+    #[cfg(feature = "colmap")]
     Catalog(catalog::Args),
     #[cfg(feature = "colmap")]
     Convert(convert::Args),
@@ -74,6 +76,7 @@ pub fn run() -> anyhow::Result<ExitCode> {
     match cli.command {
         #[cfg(feature = "localize")]
         Command::BenchPose(args) => bench_pose::run(args, cli.quiet),
+        #[cfg(feature = "colmap")]
         Command::Catalog(args) => catalog::run(args, cli.quiet),
         #[cfg(feature = "colmap")]
         Command::Convert(args) => convert::run(args, cli.quiet),
@@ -136,7 +139,7 @@ pub fn report_transfer(map: &sfpmap::format::Map<'_>, quiet: bool) {
 }
 
 /// A warning on stderr when the server of a map read by range ignored range requests.
-pub fn warn_whole_object(map: &sfpmap::format::Map<'_>, quiet: bool) {
+fn warn_whole_object(map: &sfpmap::format::Map<'_>, quiet: bool) {
     if let Some(source) = map.source().filter(|s| !quiet && s.stats().whole_object) {
         eprintln!(
             "warning: {}: the server ignores range requests; the whole object ({} bytes) was read",

@@ -90,10 +90,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         report["transfer"] = super::transfer_json(&map);
         super::print_json(&report)?;
     } else if !quiet {
-        super::warn_whole_object(&map, quiet);
-        if let Some(source) = map.source() {
-            println!("{}", super::transfer_line(source.name(), &source.stats()));
-        }
+        super::report_transfer(&map, quiet);
         println!(
             "{}: {before} bytes -> {}: {written} bytes ({:.2}x smaller), points {} -> {}",
             input.display(),

@@ -8,7 +8,29 @@
 //! the body, not in the target, keeps a crash reproducible by replaying its input file.
 
 use super::layout::{checksum, index_checksum, Header, RawEntry, ENTRY_LEN, HEADER_LEN};
-use super::{slice, Map, SliceOptions};
+use super::{slice, Catalog, Error, Map, RangeSource, SliceOptions, Wanted};
+use std::ops::Range;
+
+/// A [`RangeSource`] over bytes in memory: what a server holding them would answer.
+pub struct BytesSource(pub Vec<u8>);
+
+impl RangeSource for BytesSource {
+    fn name(&self) -> &str {
+        "memory"
+    }
+    fn len(&self) -> u64 {
+        self.0.len() as u64
+    }
+    fn read_range(&self, range: Range<u64>) -> Result<Vec<u8>, Error> {
+        Ok(self.0[range.start as usize..range.end as usize].to_vec())
+    }
+    fn read_sections(&self, _: u64, wanted: &[Wanted], _: bool) -> Result<Vec<Vec<u8>>, Error> {
+        Ok(wanted
+            .iter()
+            .map(|w| self.0[w.range.start as usize..w.range.end as usize].to_vec())
+            .collect())
+    }
+}
 
 /// `data` with the header's `file_len` set to its length, every section checksum that covers
 /// bytes inside `data` recomputed, and the index checksum recomputed; `data` unchanged when
@@ -95,9 +117,26 @@ pub fn open_and_read(data: &[u8]) {
 }
 
 fn open_and_read_once(data: &[u8]) {
+    // Read by range, a map is valid exactly when it is in memory (by range, the padding
+    // between sections is checked when they are fetched, so a bad one may open and then
+    // fail to verify).
+    let by_range = Map::open_source(Box::new(BytesSource(data.to_vec())));
     let Ok(map) = Map::from_bytes(data) else {
+        if let Ok(m) = by_range {
+            assert!(m.verify().is_err(), "valid by range, not in memory");
+        }
         return;
     };
+    let by_range = by_range.expect("opened in memory, not by range");
+    let _ = by_range.prefetch(|s| s.index() % 2 == 0);
+    assert_eq!(
+        by_range.verify().is_ok(),
+        map.verify().is_ok(),
+        "verify by range and in memory disagree"
+    );
+    if let Ok(Some(catalog)) = Catalog::of(&map) {
+        let _ = catalog.places().len();
+    }
     let _ = map.point_positions();
     let _ = map.point_colors();
     let _ = map.point_ids();

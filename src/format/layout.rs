@@ -294,7 +294,7 @@ impl SectionKind {
     /// ascending, each level's `short` block after everything else it needs and its `rest`
     /// block last. So one level's short map is one contiguous byte range, and a reader by
     /// range fetches it in one request (spec, "Section order").
-    pub fn file_order(self, level: u16) -> (u8, u16, u16) {
+    pub(crate) fn file_order(self, level: u16) -> (u8, u16, u16) {
         if level == NO_LEVEL {
             return (0, self.code(), 0);
         }
@@ -334,7 +334,11 @@ impl SectionKind {
             | SectionKind::ImageVlad
             | SectionKind::PointPositionsQ16
             | SectionKind::LevelPqCodebook
-            | SectionKind::LevelPqCodes => 1,
+            | SectionKind::LevelPqCodes
+            | SectionKind::PlaceImages
+            | SectionKind::CatalogProjection
+            | SectionKind::CatalogVladCentroids
+            | SectionKind::CatalogImageVlad => 1,
             _ => 0,
         }
     }

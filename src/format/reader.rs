@@ -184,6 +184,21 @@ impl Decoded {
     }
 }
 
+/// A source must answer every wanted section (a short answer would leave one unfetched).
+fn check_count(source: &dyn RangeSource, got: &[Vec<u8>], wanted: &[Wanted]) -> Result<(), Error> {
+    if got.len() == wanted.len() {
+        return Ok(());
+    }
+    Err(Error::Io {
+        path: source.name().into(),
+        message: format!(
+            "the source answered {} of {} section reads",
+            got.len(),
+            wanted.len()
+        ),
+    })
+}
+
 /// Keeps a fetched section's stored bytes (the padding before them dropped); a second thread
 /// that fetched the same section meanwhile keeps the first copy.
 fn keep(slot: &OnceLock<Decoded>, want: &Wanted, bytes: &[u8]) {
@@ -381,6 +396,7 @@ impl<'a> Map<'a> {
             })
             .collect();
         let got = source.read_sections(self.header.index_checksum, &wanted, false)?;
+        check_count(source, &got, &wanted)?;
         let mut damaged = Vec::new();
         for ((section, want), bytes) in sections.iter().zip(&wanted).zip(got) {
             if want.matches(&bytes) {
@@ -394,6 +410,7 @@ impl<'a> Map<'a> {
         }
         let again: Vec<Wanted> = damaged.iter().map(|(_, w)| w.clone()).collect();
         let got = source.read_sections(self.header.index_checksum, &again, true)?;
+        check_count(source, &got, &again)?;
         for ((section, want), bytes) in damaged.iter().zip(got) {
             if !want.matches(&bytes) {
                 let len = want.range.end - want.range.start;
@@ -526,6 +543,11 @@ impl<'a> Map<'a> {
                 section.reference()
             )));
         }
+        // Fetched first (read by range), so a failed read is not kept as the section's
+        // outcome: the next access reads again.
+        if self.ready[section.index].get().is_none() {
+            self.stored_bytes(section)?;
+        }
         let ready = self.ready[section.index].get_or_init(|| self.prepare(section));
         match ready {
             Ok(None) => self.stored_bytes(section),
@@ -644,6 +666,18 @@ impl<'a> Map<'a> {
             Codec::Raw => None,
             Codec::Zstd => {
                 check_decode_cap(section, self.file_len())?;
+                // Read by range, the file length is what the server claims: each section
+                // must also keep to the writer's ratio of the bytes actually read, so what
+                // is decoded is bounded by what was downloaded.
+                if matches!(self.backing, Backing::Source { .. })
+                    && !within_decode_ratio(section.raw_len, section.stored_len)
+                {
+                    return Err(Error::DecodedTooLarge {
+                        section: section.reference(),
+                        raw_len: section.raw_len,
+                        cap: section.stored_len.saturating_mul(DECODE_RATIO),
+                    });
+                }
                 self.charge(section)?;
                 Some(decode_zstd(section, stored)?)
             }

@@ -25,10 +25,16 @@ impl Wanted {
     /// Whether `bytes`, read for this request, are what the table says: the right length,
     /// zero padding, and the checksum. A source uses it to keep damaged bytes out of a cache.
     pub fn matches(&self, bytes: &[u8]) -> bool {
-        let pad = (self.offset - self.range.start) as usize;
-        bytes.len() as u64 == self.range.end - self.range.start
-            && bytes[..pad].iter().all(|&b| b == 0)
-            && checksum(&bytes[pad..]) == self.checksum
+        let Some(pad) = self.offset.checked_sub(self.range.start) else {
+            return false;
+        };
+        let (Some(padding), Some(stored)) = (bytes.get(..pad as usize), bytes.get(pad as usize..))
+        else {
+            return false;
+        };
+        Some(bytes.len() as u64) == self.range.end.checked_sub(self.range.start)
+            && padding.iter().all(|&b| b == 0)
+            && checksum(stored) == self.checksum
     }
 }
 

@@ -60,17 +60,22 @@ pub fn components(map: &Map<'_>) -> Vec<(&'static str, f64)> {
         "index and padding",
     ];
     let n = map.n_points().max(1) as f64;
-    let mut bytes = [0u64; 10];
+    let mut bytes = [0u64; ORDER.len()];
+    let at = |name: &str| {
+        ORDER
+            .iter()
+            .position(|&c| c == name)
+            .expect("a listed component")
+    };
     for s in map.sections() {
         let name = if s.skipped().is_some() {
             "skipped"
         } else {
             component(s.kind())
         };
-        let i = ORDER.iter().position(|&c| c == name).unwrap_or(8);
-        bytes[i] += s.stored_len();
+        bytes[at(name)] += s.stored_len();
     }
-    bytes[9] = map.file_len() - bytes.iter().sum::<u64>();
+    bytes[at("index and padding")] = map.file_len() - bytes.iter().sum::<u64>();
     let mut out: Vec<(&'static str, f64)> = ORDER
         .iter()
         .zip(bytes)

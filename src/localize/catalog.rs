@@ -44,26 +44,32 @@ impl PlaceRanker {
         })
     }
 
-    /// The query's VLAD on the catalog's codebook, `None` when it has no features of the
-    /// catalog's descriptor dimension.
+    /// The query's VLAD on the catalog's codebook over all its features of the catalog's
+    /// descriptor dimension (a SIFT query's scale levels together), `None` without any.
     fn query_vlad(&self, query: &QueryFeatures) -> Option<Vec<f32>> {
-        let set = query
+        let sets: Vec<_> = query
             .sets
             .iter()
-            .find(|s| s.dim == self.d_in && s.descriptors.len() == s.keypoints.len() * s.dim)?;
+            .filter(|s| s.dim == self.d_in && s.descriptors.len() == s.keypoints.len() * s.dim)
+            .collect();
+        if sets.iter().all(|s| s.keypoints.is_empty()) {
+            return None;
+        }
         let dims = self.codebook.dims();
-        let mut rows = vec![0.0f32; set.keypoints.len() * dims];
-        for (x, o) in set
-            .descriptors
-            .chunks_exact(self.d_in)
-            .zip(rows.chunks_exact_mut(dims))
-        {
+        let n: usize = sets.iter().map(|s| s.keypoints.len()).sum();
+        let mut rows = vec![0.0f32; n * dims];
+        let descriptors = sets
+            .iter()
+            .flat_map(|s| s.descriptors.chunks_exact(self.d_in));
+        for (x, o) in descriptors.zip(rows.chunks_exact_mut(dims)) {
             for (k, o) in o.iter_mut().enumerate() {
                 *o = crate::vector::dot(&self.projection[k * self.d_in..(k + 1) * self.d_in], x);
             }
         }
         normalise_rows(&mut rows, dims);
-        Some(self.codebook.vlad(&rows))
+        let vlad = self.codebook.vlad(&rows);
+        // No usable feature: nothing to rank by (an all-zero VLAD scores every image 0).
+        vlad.iter().any(|&v| v != 0.0).then_some(vlad)
     }
 
     /// The places among `allowed`, best first (ties: lower index); empty when the query has

@@ -411,6 +411,7 @@ impl<'m> Localizer<'m> {
         // Read by range: what the localizer reads below, fetched in few requests (the
         // selected levels, the VLAD codebook's level, the shared sections it uses).
         map.prefetch(|s| match s.level() {
+            Some(_) if s.kind() == SectionKind::LevelDescRest && options.short => false,
             Some(level) => ids.contains(&level) || s.kind() == SectionKind::LevelVladCentroids,
             None => !matches!(
                 s.kind(),

@@ -22,6 +22,23 @@ pub struct Cache {
     max_bytes: u64,
 }
 
+/// The folder under the cache root that holds the sections.
+const CACHE_FOLDER: &str = "remote-sections";
+
+/// `<16 hex digits>-<section index>.bin`: the only files the cache trims.
+fn is_entry_name(name: &str) -> bool {
+    let Some((checksum, rest)) = name.split_once('-') else {
+        return false;
+    };
+    let Some(index) = rest.strip_suffix(".bin") else {
+        return false;
+    };
+    checksum.len() == 16
+        && checksum.bytes().all(|b| b.is_ascii_hexdigit())
+        && !index.is_empty()
+        && index.bytes().all(|b| b.is_ascii_digit())
+}
+
 #[derive(Debug, Serialize, Deserialize, PartialEq)]
 struct ObjectVersion {
     url: String,
@@ -39,6 +56,8 @@ impl Cache {
         last_modified: impl std::fmt::Display,
         max_bytes: u64,
     ) -> Cache {
+        // A folder of its own under the root, so trimming never meets another file.
+        let root = root.join(CACHE_FOLDER);
         let dir = root.join(format!("{:016x}", checksum(url.as_bytes())));
         let version = ObjectVersion {
             url: url.to_string(),
@@ -58,7 +77,7 @@ impl Cache {
             }
         }
         Cache {
-            root: root.to_path_buf(),
+            root,
             dir,
             max_bytes,
         }
@@ -84,31 +103,33 @@ impl Cache {
         Some(bytes)
     }
 
-    /// Keeps `bytes` (which matched `want`), then trims the cache to its cap.
+    /// Keeps `bytes` (which matched `want`); [`Cache::trim`] after a batch.
     pub fn put(&self, index_checksum: u64, want: &Wanted, bytes: &[u8]) {
         if bytes.len() as u64 > self.max_bytes {
             return;
         }
         let _ = std::fs::create_dir_all(&self.dir);
-        if crate::output::write_bytes(&self.entry(index_checksum, want), bytes).is_ok() {
-            self.trim();
-        }
+        let _ = crate::output::write_bytes(&self.entry(index_checksum, want), bytes);
     }
 
     /// Removes the least recently used entries (of every URL) until the cache holds at most
-    /// `max_bytes`.
-    fn trim(&self) {
+    /// `max_bytes`. Only files named as entries, in folders that hold an `object.json`, count
+    /// or go.
+    pub fn trim(&self) {
         let mut entries: Vec<(std::time::SystemTime, u64, PathBuf)> = Vec::new();
         let Ok(objects) = std::fs::read_dir(&self.root) else {
             return;
         };
         for object in objects.flatten() {
+            if !object.path().join("object.json").is_file() {
+                continue;
+            }
             let Ok(files) = std::fs::read_dir(object.path()) else {
                 continue;
             };
             for file in files.flatten() {
                 let path = file.path();
-                if path.extension().is_none_or(|e| e != "bin") {
+                if !is_entry_name(&file.file_name().to_string_lossy()) {
                     continue;
                 }
                 if let Ok(meta) = file.metadata() {
@@ -183,7 +204,11 @@ mod tests {
             .open(cache.entry(1, &a))
             .unwrap();
         f.set_modified(old).unwrap();
+        // Another file in the folder is not the cache's: never counted, never removed.
+        std::fs::write(cache.dir.join("notes.bin"), b"mine, twenty bytes..").unwrap();
         cache.put(1, &b, b"bbbbbb");
+        cache.trim();
+        assert!(cache.dir.join("notes.bin").exists());
         assert!(cache.get(1, &a).is_none());
         assert!(cache.get(1, &b).is_some());
     }

@@ -10,20 +10,22 @@
 //! (`AWS_ENDPOINT_URL`, `AWS_REGION`, `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, or
 //! `AWS_SKIP_SIGNATURE=true` for a public bucket).
 
-pub mod cache;
+mod cache;
 
 use crate::format::{coalesce, Error, Map, RangeSource, SourceStats, Wanted, HEAD_READ};
 use cache::Cache;
 use object_store::path::Path as StorePath;
-use object_store::{GetOptions, GetRange, ObjectStore};
+use object_store::{GetOptions, GetRange, ObjectStore, ObjectStoreExt};
 use std::ops::Range;
 use std::path::PathBuf;
 use std::sync::{Mutex, OnceLock};
 
 /// Whether `name` is a URL this module reads (rather than a local path).
 pub fn is_url(name: &str) -> bool {
+    // Bytes, not a str slice: a name may start with a multi-byte character.
     ["http://", "https://", "s3://"].iter().any(|scheme| {
-        name.len() > scheme.len() && name[..scheme.len()].eq_ignore_ascii_case(scheme)
+        name.len() > scheme.len()
+            && name.as_bytes()[..scheme.len()].eq_ignore_ascii_case(scheme.as_bytes())
     })
 }
 
@@ -58,6 +60,12 @@ impl RemoteOptions {
         }
     }
 }
+
+/// The most bytes one GET asks for: a longer range is read in pieces.
+pub const MAX_REQUEST: u64 = 32 << 20;
+
+/// The largest object read whole from a server that ignores range requests.
+pub const MAX_WHOLE_OBJECT: u64 = 512 << 20;
 
 /// The cache's default cap.
 pub const DEFAULT_CACHE_MAX_BYTES: u64 = 2 << 30;
@@ -124,8 +132,17 @@ impl RemoteSource {
         let (bytes, meta) = match first {
             Ok(got) => got,
             Err(GetError::NotPartial) => {
-                // The server answered the range with the whole object: read it once, keep it.
+                // The server answered the range with the whole object: read it once, keep
+                // it, if it is not too large to hold.
                 source.stats_mut().requests += 1;
+                let head = source.runtime.block_on(source.store.head(&source.path));
+                let size = head.map_err(|e| source.error(GetError::from(e)))?.size;
+                source.stats_mut().requests += 1;
+                if size > MAX_WHOLE_OBJECT {
+                    return Err(fail(format!(
+                        "the server ignores range requests and the object is {size} bytes (more than {MAX_WHOLE_OBJECT} to hold whole); download it and open the file"
+                    )));
+                }
                 let (bytes, meta) = source.get(None, false).map_err(|e| source.error(e))?;
                 source.stats_mut().whole_object = true;
                 (bytes, meta)
@@ -133,7 +150,9 @@ impl RemoteSource {
             Err(e) => return Err(source.error(e)),
         };
         source.len = meta.size;
-        source.e_tag = meta.e_tag;
+        // If-Match compares strongly: a weak ETag (a proxy's) would fail every later read.
+        // Without one, the per-section checksums still catch a replaced object.
+        source.e_tag = meta.e_tag.filter(|t| !t.starts_with("W/"));
         if source.stats_mut().whole_object {
             if bytes.len() as u64 != meta.size {
                 return Err(fail(format!(
@@ -157,11 +176,6 @@ impl RemoteSource {
             ));
         }
         Ok(source)
-    }
-
-    /// The URL as the user gave it.
-    pub fn url(&self) -> &str {
-        &self.url
     }
 
     fn stats_mut(&self) -> std::sync::MutexGuard<'_, SourceStats> {
@@ -217,7 +231,9 @@ impl RemoteSource {
         Ok((bytes.to_vec(), meta))
     }
 
-    /// Bytes `range`, from the first read, the whole object, or a conditional GET.
+    /// Bytes `range`, from the first read, the whole object, or conditional GETs of at most
+    /// [`MAX_REQUEST`] bytes each: memory grows with the bytes that arrive, never with what a
+    /// server's index claims.
     fn read(&self, range: Range<u64>) -> Result<Vec<u8>, Error> {
         if let Some(whole) = self.whole.get() {
             return Ok(whole[range.start as usize..range.end as usize].to_vec());
@@ -225,15 +241,21 @@ impl RemoteSource {
         if range.end <= self.head.len() as u64 {
             return Ok(self.head[range.start as usize..range.end as usize].to_vec());
         }
-        let wanted = range.end - range.start;
-        let (bytes, _) = self.get(Some(range), true).map_err(|e| self.error(e))?;
-        if bytes.len() as u64 != wanted {
-            return Err(self.error(GetError::Short {
-                got: bytes.len() as u64,
-                wanted,
-            }));
+        let mut out = Vec::new();
+        let mut at = range.start;
+        while at < range.end {
+            let end = range.end.min(at.saturating_add(MAX_REQUEST));
+            let (bytes, _) = self.get(Some(at..end), true).map_err(|e| self.error(e))?;
+            if bytes.len() as u64 != end - at {
+                return Err(self.error(GetError::Short {
+                    got: bytes.len() as u64,
+                    wanted: end - at,
+                }));
+            }
+            out.extend_from_slice(&bytes);
+            at = end;
         }
-        Ok(bytes)
+        Ok(out)
     }
 }
 
@@ -271,7 +293,7 @@ impl RangeSource for RemoteSource {
         }
         let missing: Vec<usize> = (0..wanted.len()).filter(|&i| out[i].is_none()).collect();
         let refs: Vec<&Wanted> = missing.iter().map(|&i| &wanted[i]).collect();
-        // A damaged range read again is read alone, so nothing else is fetched twice.
+        // Neighbouring sections are read in one run (damaged ones read again are few).
         for (run, members) in coalesce(&refs) {
             let bytes = self.read(run.clone())?;
             for m in members {
@@ -286,6 +308,9 @@ impl RangeSource for RemoteSource {
                 }
                 out[missing[m]] = Some(part);
             }
+        }
+        if let Some(cache) = &self.cache {
+            cache.trim();
         }
         Ok(out.into_iter().map(|b| b.unwrap_or_default()).collect())
     }

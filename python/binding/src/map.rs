@@ -114,7 +114,11 @@ pub(crate) fn section_view<'py>(
         // Validated at open: in bounds, aligned, tiling the file.
         Codec::Raw => {
             let start = section.offset() as usize;
-            &map.bytes()[start..start + section.stored_len() as usize]
+            // The package opens files (mmap): the whole file is there.
+            let file = map
+                .bytes()
+                .ok_or_else(|| MapError::new_err("the map is not in memory"))?;
+            &file[start..start + section.stored_len() as usize]
         }
         // Checked and decoded once; the GIL is released while it decodes.
         Codec::Zstd => owner
