@@ -43,9 +43,9 @@ pub use metadata::{
     CameraInfo, LevelInfo, Metadata, PositionGrid, Provenance, Retrieval, SourceFile,
 };
 pub use pq::{Pq, MAX_PQ_CENTROIDS};
-pub use reader::{decode_budget, decode_cap, Map, Section, Skipped, HEAD_READ};
+pub use reader::{decode_budget, decode_cap, Map, Section, Skipped};
 pub use slice::{slice, SliceOptions, SliceSummary};
-pub use source::{coalesce, RangeSource, SourceStats, Wanted, COALESCE_GAP};
+pub use source::{coalesce, RangeSource, SourceStats, Wanted, COALESCE_GAP, HEAD_READ};
 pub use views::{GlobalDescriptors, Images, Level, Visibility, Vlad};
 pub use writer::{Descriptors, MapWriter};
 

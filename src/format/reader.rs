@@ -10,7 +10,7 @@ use super::layout::{
     METADATA_MAX_BYTES, NO_LEVEL, SECTION_FLAGS_KNOWN, SECTION_REQUIRED,
 };
 use super::metadata::Metadata;
-use super::source::{RangeSource, Wanted};
+use super::source::{fetch, index_end, RangeSource, HEAD_READ};
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::path::Path;
@@ -162,19 +162,20 @@ enum Backing<'a> {
     },
 }
 
-/// Decoded bytes of a zstd section, held in `u64`s so every dtype casts aligned.
-struct Decoded {
+/// Decoded bytes of a zstd section (or a fetched section's stored bytes), held in `u64`s so
+/// every dtype casts aligned.
+pub(super) struct Decoded {
     words: Vec<u64>,
     len: usize,
 }
 
 impl Decoded {
-    fn bytes(&self) -> &[u8] {
+    pub(super) fn bytes(&self) -> &[u8] {
         &bytemuck::cast_slice(&self.words)[..self.len]
     }
 
     /// A copy of `bytes` in `u64`s, so every dtype casts aligned.
-    fn aligned(bytes: &[u8]) -> Decoded {
+    pub(super) fn aligned(bytes: &[u8]) -> Decoded {
         let mut words = vec![0u64; bytes.len().div_ceil(8)];
         bytemuck::cast_slice_mut::<u64, u8>(&mut words)[..bytes.len()].copy_from_slice(bytes);
         Decoded {
@@ -182,28 +183,6 @@ impl Decoded {
             len: bytes.len(),
         }
     }
-}
-
-/// A source must answer every wanted section (a short answer would leave one unfetched).
-fn check_count(source: &dyn RangeSource, got: &[Vec<u8>], wanted: &[Wanted]) -> Result<(), Error> {
-    if got.len() == wanted.len() {
-        return Ok(());
-    }
-    Err(Error::Io {
-        path: source.name().into(),
-        message: format!(
-            "the source answered {} of {} section reads",
-            got.len(),
-            wanted.len()
-        ),
-    })
-}
-
-/// Keeps a fetched section's stored bytes (the padding before them dropped); a second thread
-/// that fetched the same section meanwhile keeps the first copy.
-fn keep(slot: &OnceLock<Decoded>, want: &Wanted, bytes: &[u8]) {
-    let pad = (want.offset - want.range.start) as usize;
-    let _ = slot.get_or_init(|| Decoded::aligned(&bytes[pad..]));
 }
 
 /// Table positions by (kind, level), built once at open: every lookup is O(1), so nothing
@@ -297,20 +276,6 @@ impl Map<'static> {
     }
 }
 
-/// How much of a map [`Map::open_source`] reads first: the header, a table of ~1,000 sections
-/// and the metadata of most maps.
-pub const HEAD_READ: u64 = 64 << 10;
-
-/// Where the index of a map whose first bytes are `head` ends, padding to the first section
-/// included, capped by the named limits and the file: what `open_source` must have read.
-fn index_end(head: &[u8], file_len: u64) -> Result<u64, Error> {
-    let header = Header::decode(head)?;
-    let table = u64::from(header.section_count.min(MAX_SECTIONS))
-        * u64::from(header.entry_len.min(MAX_ENTRY_LEN));
-    let end = HEADER_LEN as u64 + table + header.metadata_len.min(METADATA_MAX_BYTES);
-    Ok(align_up(end).unwrap_or(end).min(file_len))
-}
-
 impl<'a> Map<'a> {
     /// Validates a map held in memory, borrowing it (no copy).
     pub fn from_bytes(bytes: &'a [u8]) -> Result<Map<'a>, Error> {
@@ -372,74 +337,12 @@ impl<'a> Map<'a> {
             .iter()
             .filter(|s| fetched[s.index].get().is_none() && wanted(s))
             .collect();
-        self.fetch(source.as_ref(), fetched, &missing)
-    }
-
-    /// Reads `sections` from `source`, checks each (length, padding, checksum), reads the
-    /// damaged ones once more from the origin, and keeps them.
-    fn fetch(
-        &self,
-        source: &dyn RangeSource,
-        fetched: &[OnceLock<Decoded>],
-        sections: &[&Section],
-    ) -> Result<(), Error> {
-        if sections.is_empty() {
-            return Ok(());
-        }
-        let wanted: Vec<Wanted> = sections
-            .iter()
-            .map(|s| Wanted {
-                index: s.index,
-                range: s.padding_start..s.offset + s.stored_len,
-                offset: s.offset,
-                checksum: s.checksum,
-            })
-            .collect();
-        let got = source.read_sections(self.header.index_checksum, &wanted, false)?;
-        check_count(source, &got, &wanted)?;
-        let mut damaged = Vec::new();
-        for ((section, want), bytes) in sections.iter().zip(&wanted).zip(got) {
-            if want.matches(&bytes) {
-                keep(&fetched[section.index], want, &bytes);
-            } else {
-                damaged.push((*section, want.clone()));
-            }
-        }
-        if damaged.is_empty() {
-            return Ok(());
-        }
-        let again: Vec<Wanted> = damaged.iter().map(|(_, w)| w.clone()).collect();
-        let got = source.read_sections(self.header.index_checksum, &again, true)?;
-        check_count(source, &got, &again)?;
-        for ((section, want), bytes) in damaged.iter().zip(got) {
-            if !want.matches(&bytes) {
-                let len = want.range.end - want.range.start;
-                if bytes.len() as u64 != len {
-                    return Err(Error::Io {
-                        path: source.name().into(),
-                        message: format!(
-                            "{}: the source returned {} bytes for a range of {len}",
-                            section.reference(),
-                            bytes.len()
-                        ),
-                    });
-                }
-                let pad = (want.offset - want.range.start) as usize;
-                if bytes[..pad].iter().any(|&b| b != 0) {
-                    return Err(Error::BadPadding {
-                        offset: want.range.start,
-                        len: pad as u64,
-                    });
-                }
-                return Err(Error::ChecksumMismatch {
-                    section: section.reference(),
-                    expected: section.checksum,
-                    found: checksum(&bytes[pad..]),
-                });
-            }
-            keep(&fetched[section.index], want, &bytes);
-        }
-        Ok(())
+        fetch(
+            source.as_ref(),
+            fetched,
+            self.header.index_checksum,
+            &missing,
+        )
     }
 
     /// The raw header (fuzz bodies and tests).
@@ -509,7 +412,12 @@ impl<'a> Map<'a> {
             Backing::Source { source, fetched } => {
                 let slot = &fetched[section.index];
                 if slot.get().is_none() {
-                    self.fetch(source.as_ref(), fetched, &[section])?;
+                    fetch(
+                        source.as_ref(),
+                        fetched,
+                        self.header.index_checksum,
+                        &[section],
+                    )?;
                 }
                 Ok(slot.get().expect("fetch kept the section").bytes())
             }

@@ -4,8 +4,12 @@
 //! sections that are used. The reader needs no network code for it.
 
 use super::error::Error;
-use super::layout::checksum;
+use super::layout::{
+    align_up, checksum, Header, HEADER_LEN, MAX_ENTRY_LEN, MAX_SECTIONS, METADATA_MAX_BYTES,
+};
+use super::reader::{Decoded, Section};
 use std::ops::Range;
+use std::sync::OnceLock;
 
 /// One section a [`Map`](super::Map) wants from its source: the byte range to read (the
 /// section's stored bytes, preceded by the zero padding before it) and what the bytes must be.
@@ -110,6 +114,109 @@ pub fn coalesce(wanted: &[&Wanted]) -> Vec<(Range<u64>, Vec<usize>)> {
         }
     }
     runs
+}
+
+/// How much of a map [`Map::open_source`] reads first: the header, a table of ~1,000 sections
+/// and the metadata of most maps.
+pub const HEAD_READ: u64 = 64 << 10;
+
+/// Where the index of a map whose first bytes are `head` ends, padding to the first section
+/// included, capped by the named limits and the file: what `open_source` must have read.
+pub(super) fn index_end(head: &[u8], file_len: u64) -> Result<u64, Error> {
+    let header = Header::decode(head)?;
+    let table = u64::from(header.section_count.min(MAX_SECTIONS))
+        * u64::from(header.entry_len.min(MAX_ENTRY_LEN));
+    let end = HEADER_LEN as u64 + table + header.metadata_len.min(METADATA_MAX_BYTES);
+    Ok(align_up(end).unwrap_or(end).min(file_len))
+}
+
+/// Reads `sections` from `source`, checks each (length, padding, checksum), reads the
+/// damaged ones once more from the origin, and keeps them.
+pub(super) fn fetch(
+    source: &dyn RangeSource,
+    fetched: &[OnceLock<Decoded>],
+    index_checksum: u64,
+    sections: &[&Section],
+) -> Result<(), Error> {
+    if sections.is_empty() {
+        return Ok(());
+    }
+    let wanted: Vec<Wanted> = sections
+        .iter()
+        .map(|s| Wanted {
+            index: s.index,
+            range: s.padding_start..s.offset + s.stored_len,
+            offset: s.offset,
+            checksum: s.checksum,
+        })
+        .collect();
+    let got = source.read_sections(index_checksum, &wanted, false)?;
+    check_count(source, &got, &wanted)?;
+    let mut damaged = Vec::new();
+    for ((section, want), bytes) in sections.iter().zip(&wanted).zip(got) {
+        if want.matches(&bytes) {
+            keep(&fetched[section.index], want, &bytes);
+        } else {
+            damaged.push((*section, want.clone()));
+        }
+    }
+    if damaged.is_empty() {
+        return Ok(());
+    }
+    let again: Vec<Wanted> = damaged.iter().map(|(_, w)| w.clone()).collect();
+    let got = source.read_sections(index_checksum, &again, true)?;
+    check_count(source, &got, &again)?;
+    for ((section, want), bytes) in damaged.iter().zip(got) {
+        if !want.matches(&bytes) {
+            let len = want.range.end - want.range.start;
+            if bytes.len() as u64 != len {
+                return Err(Error::Io {
+                    path: source.name().into(),
+                    message: format!(
+                        "{}: the source returned {} bytes for a range of {len}",
+                        section.reference(),
+                        bytes.len()
+                    ),
+                });
+            }
+            let pad = (want.offset - want.range.start) as usize;
+            if bytes[..pad].iter().any(|&b| b != 0) {
+                return Err(Error::BadPadding {
+                    offset: want.range.start,
+                    len: pad as u64,
+                });
+            }
+            return Err(Error::ChecksumMismatch {
+                section: section.reference(),
+                expected: section.checksum,
+                found: checksum(&bytes[pad..]),
+            });
+        }
+        keep(&fetched[section.index], want, &bytes);
+    }
+    Ok(())
+}
+
+/// A source must answer every wanted section (a short answer would leave one unfetched).
+fn check_count(source: &dyn RangeSource, got: &[Vec<u8>], wanted: &[Wanted]) -> Result<(), Error> {
+    if got.len() == wanted.len() {
+        return Ok(());
+    }
+    Err(Error::Io {
+        path: source.name().into(),
+        message: format!(
+            "the source answered {} of {} section reads",
+            got.len(),
+            wanted.len()
+        ),
+    })
+}
+
+/// Keeps a fetched section's stored bytes (the padding before them dropped); a second thread
+/// that fetched the same section meanwhile keeps the first copy.
+fn keep(slot: &OnceLock<Decoded>, want: &Wanted, bytes: &[u8]) {
+    let pad = (want.offset - want.range.start) as usize;
+    let _ = slot.get_or_init(|| Decoded::aligned(&bytes[pad..]));
 }
 
 #[cfg(test)]
