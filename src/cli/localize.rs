@@ -415,13 +415,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     // Queries that merely fail to localize are listed in the output; a run that could read no
     // query at all is an error.
     if !read.contains(&true) {
-        bail!(
-            "{}: none of the {} queries could be read ({}: {})",
-            query_list.display(),
-            queries.len(),
-            queries[0].name,
-            failure(&results[0])
-        );
+        return Err(none_read(&query_list, &queries, &results));
     }
     // Names of the retrieved images, for `--format json`.
     let image_names: Vec<&str> = match (args.format, map.images()?) {
@@ -602,6 +596,17 @@ fn localize_one(
     localizer
         .localize(f, &q.camera)
         .with_context(|| format!("{}: query {:?}", map.display(), q.name))
+}
+
+/// The error of a run that could read no query's features, naming the first one's reason.
+fn none_read(query_list: &Path, queries: &[Query], results: &[Localization]) -> anyhow::Error {
+    anyhow::anyhow!(
+        "{}: none of the {} queries could be read ({}: {})",
+        query_list.display(),
+        queries.len(),
+        queries[0].name,
+        failure(&results[0])
+    )
 }
 
 /// The failed localization of a query whose features could not be read.

@@ -4,7 +4,7 @@
 //! the localizer reads) and localize the query; the pose with the most inliers wins. Poses
 //! are in the chosen place's frame; `--json` says which place each query went to.
 
-use super::{failure, localizer, unread, write_poses, Args, Source};
+use super::{localizer, none_read, unread, write_poses, Args, Source};
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::colmap::text::escape_control_characters;
@@ -181,13 +181,7 @@ pub(super) fn run(
     }
     bars.finish();
     if !read_any {
-        bail!(
-            "{}: none of the {} queries could be read ({}: {})",
-            query_list.display(),
-            queries.len(),
-            queries[0].name,
-            failure(&results[0])
-        );
+        return Err(none_read(query_list, &queries, &results));
     }
     write_poses(
         &args.output,
