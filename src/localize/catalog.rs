@@ -86,9 +86,18 @@ impl PlaceRanker {
                     self.place_images[place] as usize,
                     self.place_images[place + 1] as usize,
                 );
-                let (image, score) = self.images[start * width..end * width]
-                    .chunks_exact(width)
-                    .map(|row| crate::vector::dot(row, &q))
+                // One GEMM row per place (the retrieval kernel), not a dot per image.
+                let mut cosines = vec![0.0f32; end - start];
+                super::kernels::sgemm_abt(
+                    &q,
+                    &self.images[start * width..end * width],
+                    &mut cosines,
+                    1,
+                    end - start,
+                    width,
+                );
+                let (image, score) = cosines
+                    .into_iter()
                     .enumerate()
                     .filter(|(_, s)| s.is_finite())
                     .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))?;
