@@ -424,7 +424,7 @@ fn a_truncated_response_is_an_error() {
         &["info", &url],
         &[("SFPMAP_CACHE_DIR", "off".into())],
     ));
-    assert!(err.contains(&url), "{err}");
+    assert!(err.contains(&url) && err.contains("truncated response"), "{err}");
     drop(server);
 }
 

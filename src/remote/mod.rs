@@ -245,13 +245,9 @@ impl RemoteSource {
         let mut at = range.start;
         while at < range.end {
             let end = range.end.min(at.saturating_add(MAX_REQUEST));
+            // `get` checked the body against the range the server confirmed, and object_store
+            // that range against the one asked for.
             let (bytes, _) = self.get(Some(at..end), true).map_err(|e| self.error(e))?;
-            if bytes.len() as u64 != end - at {
-                return Err(self.error(GetError::Short {
-                    got: bytes.len() as u64,
-                    wanted: end - at,
-                }));
-            }
             out.extend_from_slice(&bytes);
             at = end;
         }
@@ -335,6 +331,7 @@ enum GetError {
 
 impl From<object_store::Error> for GetError {
     fn from(e: object_store::Error) -> GetError {
+        let text = describe(&e);
         match &e {
             object_store::Error::Precondition { .. } => GetError::Changed,
             object_store::Error::NotFound { .. } => GetError::Store("not found (HTTP 404)".into()),
@@ -342,11 +339,15 @@ impl From<object_store::Error> for GetError {
             // response": both mean a 200 with the whole body.
             _ if ["non-partial response", "Range request not supported"]
                 .iter()
-                .any(|m| describe(&e).contains(m)) =>
+                .any(|m| text.contains(m)) =>
             {
                 GetError::NotPartial
             }
-            _ => GetError::Store(describe(&e)),
+            // hyper's words for a body that ends before its Content-Length.
+            _ if text.contains("before message length reached") => {
+                GetError::Store(format!("truncated response: {text}"))
+            }
+            _ => GetError::Store(text),
         }
     }
 }
