@@ -21,6 +21,27 @@ pub fn normalise_rows(v: &mut [f32], dim: usize) {
     v.chunks_exact_mut(dim).for_each(l2_normalise);
 }
 
+/// `rows` (`[n × d_in]`) in the basis `projection` (`[dims × d_in]`, a direction a row), each
+/// result row unit length; a zero row (a point without a descriptor) stays zero. A catalog's
+/// image VLADs and a query's, ranked against them, go through this one projection.
+#[cfg(any(feature = "colmap", feature = "localize"))]
+pub(crate) fn project_rows(rows: &[f32], d_in: usize, projection: &[f32], dims: usize) -> Vec<f32> {
+    let n = rows.len() / d_in.max(1);
+    let mut out = vec![0.0f32; n * dims];
+    for (x, o) in rows
+        .chunks_exact(d_in.max(1))
+        .zip(out.chunks_exact_mut(dims.max(1)))
+    {
+        if x.iter().any(|&v| v != 0.0) {
+            for (k, o) in o.iter_mut().enumerate() {
+                *o = dot(&projection[k * d_in..(k + 1) * d_in], x);
+            }
+        }
+    }
+    normalise_rows(&mut out, dims);
+    out
+}
+
 /// Dot product over 8 independent lanes, so it vectorizes.
 #[cfg(any(feature = "colmap", feature = "localize"))]
 pub(crate) fn dot(a: &[f32], b: &[f32]) -> f32 {

@@ -9,99 +9,53 @@
 ))]
 
 mod servers;
+mod street_cli;
 
 use serde_json::Value;
 use sfpmap::format::{Catalog, Map};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 use std::sync::OnceLock;
+use street_cli::{failed, json, localize, ok};
 
+/// No cache: each run reads what it reads.
 fn sfpmap(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-        .args(args)
-        .env("SFPMAP_CACHE_DIR", "off")
-        .output()
-        .unwrap()
+    street_cli::sfpmap(args, &[("SFPMAP_CACHE_DIR", "off".into())])
 }
 
-fn ok(o: &Output) -> String {
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    String::from_utf8(o.stdout.clone()).unwrap()
-}
-
-fn json(o: &Output) -> Value {
-    serde_json::from_str(ok(o).trim()).unwrap()
-}
-
-/// Three generated streets (seeds 1, 2, 3), each converted to a SIFT map: `streets/sN/`.
+/// Three generated streets (seeds 1, 2, 3), each with its SIFT map: `streets/sN/`.
 fn streets() -> &'static Path {
     static STREETS: OnceLock<PathBuf> = OnceLock::new();
     STREETS.get_or_init(|| {
         let root = Path::new(env!("CARGO_TARGET_TMPDIR")).join("catalog-streets");
-        let _ = std::fs::remove_dir_all(&root);
         for seed in 1..=3u64 {
-            let dir = root.join(format!("s{seed}"));
-            let options = sfpmap::demo::street::StreetOptions {
-                points: 4000,
-                queries: 8,
-                seed,
-                ..Default::default()
-            };
-            sfpmap::demo::street::write_street(&dir, &options).unwrap();
-            let p = |n: &str| dir.join(n).to_str().unwrap().to_string();
-            ok(&sfpmap(&[
-                "convert",
-                "--colmap",
-                &p("sparse"),
-                "--database",
-                &p("database.db"),
-                "-o",
-                &p("map.sfpm"),
-                "-q",
-            ]));
+            street_cli::street(&root.join(format!("s{seed}")), 4000, 8, seed);
         }
         root
     })
 }
 
 fn localize_catalog(catalog: &Path, street: &Path, out: &Path, extra: &[&str]) -> Value {
-    let (list, db) = (street.join("queries.txt"), street.join("queries.db"));
-    let mut args = vec![
-        "localize",
-        "--catalog",
-        catalog.to_str().unwrap(),
-        "--query-list",
-        list.to_str().unwrap(),
-        "--database",
-        db.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--json",
-        "--force",
-    ];
-    args.extend(extra);
-    json(&sfpmap(&args))
+    let no_cache = [("SFPMAP_CACHE_DIR", "off".into())];
+    json(&localize(
+        ["--catalog", catalog.to_str().unwrap()],
+        street,
+        out,
+        extra,
+        &no_cache,
+    ))
 }
 
 /// How many of `street`'s queries its own map localizes.
 fn direct_localized(street: &Path, out: &Path) -> Value {
-    let (map, list, db) = (
-        street.join("map.sfpm"),
-        street.join("queries.txt"),
-        street.join("queries.db"),
-    );
-    json(&sfpmap(&[
-        "localize",
-        "--map",
-        map.to_str().unwrap(),
-        "--query-list",
-        list.to_str().unwrap(),
-        "--database",
-        db.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--json",
-    ]))["localized"]
+    let map = street.join("map.sfpm");
+    json(&localize(
+        ["--map", map.to_str().unwrap()],
+        street,
+        out,
+        &[],
+        &[],
+    ))["localized"]
         .clone()
 }
 
@@ -231,53 +185,36 @@ fn a_missing_or_replaced_place_map_is_a_one_line_error() {
     ]));
     // Replaced by another map: the index checksum no longer matches.
     std::fs::copy(root.join("s2/map.sfpm"), &place).unwrap();
-    let args = |out: &str| -> Vec<String> {
-        [
-            "localize",
-            "--catalog",
-            catalog.to_str().unwrap(),
-            "--query-list",
-            root.join("s1/queries.txt").to_str().unwrap(),
-            "--database",
-            root.join("s1/queries.db").to_str().unwrap(),
-            "-o",
-            t.path().join(out).to_str().unwrap(),
-        ]
-        .map(String::from)
-        .to_vec()
+    let s1 = root.join("s1");
+    let run = |catalog: &Path, out: &str| {
+        localize(
+            ["--catalog", catalog.to_str().unwrap()],
+            &s1,
+            &t.path().join(out),
+            &[],
+            &[],
+        )
     };
-    let run = |out: &str| {
-        let a = args(out);
-        sfpmap(&a.iter().map(String::as_str).collect::<Vec<_>>())
-    };
-    let o = run("a.txt");
-    assert_eq!(o.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        err.contains("rebuild the catalog") && err.trim().lines().count() == 1,
-        "{err}"
-    );
+    let err = failed(&run(&catalog, "a.txt"));
+    assert!(err.contains("rebuild the catalog"), "{err}");
     std::fs::remove_file(&place).unwrap();
-    let o = run("b.txt");
-    assert_eq!(o.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        err.contains("p.sfpm") && err.trim().lines().count() == 1,
-        "{err}"
-    );
+    let err = failed(&run(&catalog, "b.txt"));
+    assert!(err.contains("p.sfpm"), "{err}");
     assert!(!t.path().join("b.txt").exists());
+    // An output naming a place map is refused, even with --force, before anything runs.
+    std::fs::copy(root.join("s1/map.sfpm"), &place).unwrap();
+    let before = std::fs::read(&place).unwrap();
+    let o = localize(
+        ["--catalog", catalog.to_str().unwrap()],
+        &s1,
+        &place,
+        &[],
+        &[],
+    );
+    let err = failed(&o);
+    assert!(err.contains("input"), "{err}");
+    assert_eq!(std::fs::read(&place).unwrap(), before);
     // A map that is not a catalog.
-    let o = sfpmap(&[
-        "localize",
-        "--catalog",
-        root.join("s1/map.sfpm").to_str().unwrap(),
-        "--query-list",
-        root.join("s1/queries.txt").to_str().unwrap(),
-        "--database",
-        root.join("s1/queries.db").to_str().unwrap(),
-        "-o",
-        t.path().join("c.txt").to_str().unwrap(),
-    ]);
-    assert_eq!(o.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("not a catalog"));
+    let err = failed(&run(&s1.join("map.sfpm"), "c.txt"));
+    assert!(err.contains("not a catalog"), "{err}");
 }

@@ -11,83 +11,36 @@
 ))]
 
 mod servers;
+mod street_cli;
 
-use serde_json::Value;
 use servers::{Nginx, S3};
 use sfpmap::format::{Map, SectionKind};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 use std::sync::OnceLock;
+use street_cli::{failed, json, localize, ok, sfpmap, street};
 
-/// A generated street (`sfpmap::demo::street`: COLMAP model, map and query databases) and
-/// its SIFT map (`full.sfpm`) and level 2 short slice (`l2s.sfpm`), made once for this test
-/// binary.
+/// A generated street (`street_cli::street`: model, databases, its SIFT map `map.sfpm`) and
+/// the map's level 2 short slice (`l2s.sfpm`), made once for this test binary.
 fn scene() -> &'static Path {
     static SCENE: OnceLock<PathBuf> = OnceLock::new();
     SCENE.get_or_init(|| {
         let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("remote-street");
-        let _ = std::fs::remove_dir_all(&dir);
-        let options = sfpmap::demo::street::StreetOptions {
-            points: 6000,
-            queries: 4,
-            ..Default::default()
-        };
-        sfpmap::demo::street::write_street(&dir, &options).unwrap();
+        let seed = sfpmap::demo::street::StreetOptions::default().seed;
+        street(&dir, 6000, 4, seed);
         let p = |n: &str| dir.join(n).to_str().unwrap().to_string();
-        ok(&sfpmap(
-            &[
-                "convert",
-                "--colmap",
-                &p("sparse"),
-                "--database",
-                &p("database.db"),
-                "-o",
-                &p("full.sfpm"),
-                "-q",
-            ],
-            &[],
-        ));
-        ok(&sfpmap(
-            &[
-                "slice",
-                &p("full.sfpm"),
-                "--level",
-                "2",
-                "--short",
-                "-o",
-                &p("l2s.sfpm"),
-                "-q",
-            ],
-            &[],
-        ));
+        let slice = [
+            "slice",
+            &p("map.sfpm"),
+            "--level",
+            "2",
+            "--short",
+            "-o",
+            &p("l2s.sfpm"),
+            "-q",
+        ];
+        ok(&sfpmap(&slice, &[]));
         dir
     })
-}
-
-fn sfpmap(args: &[&str], env: &[(&str, String)]) -> Output {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_sfpmap"));
-    c.args(args);
-    for (k, v) in env {
-        c.env(k, v);
-    }
-    c.output().unwrap()
-}
-
-fn ok(o: &Output) -> String {
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    String::from_utf8(o.stdout.clone()).unwrap()
-}
-
-fn failed(o: &Output) -> String {
-    assert!(!o.status.success(), "expected a failure");
-    assert_eq!(o.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&o.stderr).to_string();
-    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
-    err
-}
-
-fn json(o: &Output) -> Value {
-    serde_json::from_str(ok(o).trim()).unwrap()
 }
 
 fn cache(dir: &tempfile::TempDir) -> (&'static str, String) {
@@ -115,7 +68,7 @@ fn expected_bytes(map: &Map<'_>, keep: impl Fn(SectionKind, Option<u16>) -> bool
 #[test]
 fn http_slice_info_verify_read_only_what_they_use() {
     let nginx = Nginx::start();
-    let full = scene().join("full.sfpm");
+    let full = scene().join("map.sfpm");
     std::fs::copy(&full, nginx.root.join("demo.sfpm")).unwrap();
     let url = nginx.url("demo.sfpm");
     let t = tempfile::tempdir().unwrap();
@@ -187,36 +140,18 @@ fn http_slice_info_verify_read_only_what_they_use() {
 fn http_localize_equals_local_and_runs_from_the_cache_the_second_time() {
     let nginx = Nginx::start();
     let d = scene();
-    let full = d.join("full.sfpm");
+    let full = d.join("map.sfpm");
     std::fs::copy(&full, nginx.root.join("demo.sfpm")).unwrap();
     let url = nginx.url("demo.sfpm");
     let t = tempfile::tempdir().unwrap();
     let cache_dir = tempfile::tempdir().unwrap();
     let env = [cache(&cache_dir)];
-    let args = |map: &str, out: &Path| -> Vec<String> {
-        [
-            "localize",
-            "--map",
-            map,
-            "--query-list",
-            d.join("queries.txt").to_str().unwrap(),
-            "--database",
-            d.join("queries.db").to_str().unwrap(),
-            "--level",
-            "2",
-            "--short",
-            "-o",
-            out.to_str().unwrap(),
-            "--json",
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect()
-    };
     let run = |map: &str, out: &Path, env: &[(&str, String)]| {
-        let a = args(map, out);
-        json(&sfpmap(
-            &a.iter().map(String::as_str).collect::<Vec<_>>(),
+        json(&localize(
+            ["--map", map],
+            d,
+            out,
+            &["--level", "2", "--short"],
             env,
         ))
     };
@@ -349,7 +284,7 @@ fn an_object_replaced_after_its_index_was_read_is_an_error() {
     let nginx = Nginx::start();
     let d = scene();
     let served = nginx.root.join("m.sfpm");
-    std::fs::copy(d.join("full.sfpm"), &served).unwrap();
+    std::fs::copy(d.join("map.sfpm"), &served).unwrap();
     let options = sfpmap::remote::RemoteOptions {
         cache_dir: None,
         cache_max_bytes: 0,
@@ -424,7 +359,10 @@ fn a_truncated_response_is_an_error() {
         &["info", &url],
         &[("SFPMAP_CACHE_DIR", "off".into())],
     ));
-    assert!(err.contains(&url) && err.contains("truncated response"), "{err}");
+    assert!(
+        err.contains(&url) && err.contains("truncated response"),
+        "{err}"
+    );
     drop(server);
 }
 
@@ -432,7 +370,7 @@ fn a_truncated_response_is_an_error() {
 fn s3_slice_and_localize_equal_the_local_map() {
     let s3 = S3::start();
     let d = scene();
-    let full = d.join("full.sfpm");
+    let full = d.join("map.sfpm");
     s3.put("maps", "place/demo.sfpm", &std::fs::read(&full).unwrap());
     let mut env = s3.env();
     env.push(("SFPMAP_CACHE_DIR", "off".into()));
@@ -471,36 +409,19 @@ fn s3_slice_and_localize_equal_the_local_map() {
     assert!(report["transfer"]["bytes"].as_u64().unwrap() < Map::open(&full).unwrap().file_len());
 
     let poses = t.path().join("poses.txt");
-    let o = sfpmap(
-        &[
-            "localize",
-            "--map",
-            "s3://maps/place/demo.sfpm",
-            "--query-list",
-            d.join("queries.txt").to_str().unwrap(),
-            "--database",
-            d.join("queries.db").to_str().unwrap(),
-            "-o",
-            poses.to_str().unwrap(),
-            "--json",
-        ],
+    let r = json(&localize(
+        ["--map", "s3://maps/place/demo.sfpm"],
+        d,
+        &poses,
+        &[],
         &env,
-    );
-    let r = json(&o);
+    ));
     let local = t.path().join("local-poses.txt");
-    let l = json(&sfpmap(
-        &[
-            "localize",
-            "--map",
-            full.to_str().unwrap(),
-            "--query-list",
-            d.join("queries.txt").to_str().unwrap(),
-            "--database",
-            d.join("queries.db").to_str().unwrap(),
-            "-o",
-            local.to_str().unwrap(),
-            "--json",
-        ],
+    let l = json(&localize(
+        ["--map", full.to_str().unwrap()],
+        d,
+        &local,
+        &[],
         &[],
     ));
     assert!(r["localized"].as_u64().unwrap() > 0);

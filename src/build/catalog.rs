@@ -10,7 +10,7 @@
 
 use super::basis::Basis;
 use crate::format::{Error, Listing, Map, MapWriter, Metadata, Place, Provenance};
-use crate::vector::{dot, normalise_rows};
+use crate::vector::{normalise_rows, project_rows};
 use crate::vlad::Codebook;
 
 /// Dimensions of the catalog's basis, and centroids of its codebook: an image's VLAD is
@@ -79,19 +79,7 @@ pub fn build_catalog(places: &[PlaceMap<'_>]) -> Result<MapWriter<'static>, Erro
     let dims = CATALOG_DIMS.min(d_in);
     let basis = Basis::fit(&sample, d_in);
     let projection = basis.rows[..dims * d_in].to_vec();
-    let project = |rows: &[f32]| -> Vec<f32> {
-        let n = rows.len() / d_in;
-        let mut out = vec![0.0f32; n * dims];
-        for (x, o) in rows.chunks_exact(d_in).zip(out.chunks_exact_mut(dims)) {
-            if x.iter().any(|&v| v != 0.0) {
-                for (k, o) in o.iter_mut().enumerate() {
-                    *o = dot(&projection[k * d_in..(k + 1) * d_in], x);
-                }
-            }
-        }
-        normalise_rows(&mut out, dims);
-        out
-    };
+    let project = |rows: &[f32]| project_rows(rows, d_in, &projection, dims);
     let codebook = Codebook::train(&project(&sample), dims, CATALOG_CLUSTERS, SEED)
         .ok_or_else(|| Error::invalid("too few described points in the places for a codebook"))?;
     let mut place_images = vec![0u64];
@@ -166,8 +154,9 @@ fn describe(p: &PlaceMap<'_>) -> Result<Place, Error> {
 /// points), back in the space they were extracted in, one row per map point, unit length.
 fn place_rows(p: &PlaceMap<'_>) -> Result<PlaceRows, Error> {
     let map = p.map;
-    let level_id = match map.vlad()? {
-        Some(v) => v.level,
+    // From the table: reading the VLAD itself would fetch every image's (by range).
+    let level_id = match map.vlad_level() {
+        Some(level) => level,
         None => map
             .levels()
             .filter(|l| l.has_descriptors())

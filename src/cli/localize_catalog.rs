@@ -46,10 +46,10 @@ fn parse_prior(text: &str) -> anyhow::Result<[f64; 3]> {
     }
 }
 
-/// A place map, opened on first use and checked against what the catalog recorded.
-fn open_place(catalog: &Path, place: &Place) -> anyhow::Result<Map<'static>> {
-    let path = resolve(catalog, &place.map)?;
-    let map = super::super::open_map(&path)
+/// A place map at `path` (its resolved location), opened on first use and checked against
+/// what the catalog recorded.
+fn open_place(catalog: &Path, place: &Place, path: &Path) -> anyhow::Result<Map<'static>> {
+    let map = super::super::open_map(path)
         .with_context(|| format!("{}: place {:?}", catalog.display(), place.name))?;
     let found = format!("{:016x}", map.index_checksum());
     if found != place.index_checksum {
@@ -82,7 +82,6 @@ pub(super) fn run(
     let mut inputs = vec![catalog_path, query_list];
     inputs.extend(args.database.as_deref());
     inputs.extend(args.features.as_deref());
-    super::super::check_outputs(&[&args.output], &inputs, args.force)?;
     let prior = args.prior.as_deref().map(parse_prior).transpose()?;
     let catalog_map = super::super::open_map(catalog_path)?;
     let catalog = Catalog::of(&catalog_map)
@@ -93,6 +92,15 @@ pub(super) fn run(
                 catalog_path.display()
             )
         })?;
+    // The place maps are inputs too: no output may replace one. Checked once, before any
+    // query is read.
+    let places = catalog.places();
+    let place_paths = places
+        .iter()
+        .map(|p| resolve(catalog_path, &p.map))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    inputs.extend(place_paths.iter().map(PathBuf::as_path));
+    super::super::check_outputs(&[&args.output], &inputs, args.force)?;
     let ranker = PlaceRanker::new(&catalog).map_err(super::super::naming(catalog_path))?;
     let mut features = match (&args.database, &args.features) {
         (Some(db), _) => {
@@ -102,28 +110,19 @@ pub(super) fn run(
         (None, Some(h5)) => Source::H5(sfpmap::io::features_h5::H5Features::open(h5)?),
         _ => bail!("--catalog needs the queries' features: --database queries.db or --features features.h5"),
     };
-    let places = catalog.places();
-    // The place maps are inputs too: no output may replace one.
-    let place_paths = places
-        .iter()
-        .map(|p| resolve(catalog_path, &p.map))
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    inputs.extend(place_paths.iter().map(PathBuf::as_path));
-    super::super::check_outputs(&[&args.output], &inputs, args.force)?;
     let maps: Vec<OnceLock<Result<Map<'static>, String>>> =
         places.iter().map(|_| OnceLock::new()).collect();
     let localizers: Vec<OnceLock<Result<Localizer<'_>, String>>> =
         places.iter().map(|_| OnceLock::new()).collect();
     let place_localizer = |i: usize| -> anyhow::Result<&Localizer<'_>> {
         let map = maps[i]
-            .get_or_init(|| open_place(catalog_path, &places[i]).map_err(|e| format!("{e:#}")))
+            .get_or_init(|| {
+                open_place(catalog_path, &places[i], &place_paths[i]).map_err(|e| format!("{e:#}"))
+            })
             .as_ref()
             .map_err(|e| anyhow::anyhow!("{e}"))?;
         localizers[i]
-            .get_or_init(|| {
-                let name = resolve(catalog_path, &places[i].map).unwrap_or_default();
-                localizer(map, args, &name).map_err(|e| format!("{e:#}"))
-            })
+            .get_or_init(|| localizer(map, args, &place_paths[i]).map_err(|e| format!("{e:#}")))
             .as_ref()
             .map_err(|e| anyhow::anyhow!("{e}"))
     };

@@ -89,6 +89,9 @@ impl<'m> Catalog<'m> {
         );
         let bad = |what: String| Err(Error::inconsistent(format!("catalog: {what}")));
         let dims = centroids.cols() as usize;
+        if listing.d_in == 0 || dims == 0 {
+            return bad("a descriptor or codebook of no dimension".into());
+        }
         if offsets.rows() != listing.places.len() as u64 + 1 {
             return bad(format!(
                 "{} place offsets for {} places",

@@ -72,11 +72,7 @@ pub fn slice<'m>(
         }
     }
     // VLAD retrieval lives on one level's descriptors: kept with that level, dropped with it.
-    let vlad_level = map
-        .sections()
-        .iter()
-        .find(|s| s.kind == SectionKind::LevelVladCentroids && s.skipped.is_none())
-        .and_then(|s| s.level);
+    let vlad_level = map.vlad_level();
     // --minimal keeps the retrieval data the map prefers when it has both kinds: the
     // localizer reads only that one.
     let preference = map.metadata().retrieval();

@@ -730,11 +730,7 @@ impl<'a> Map<'a> {
     /// The VLAD retrieval data (format 1.1), if stored: the codebook's level, its centroids and
     /// each image's VLAD.
     pub fn vlad(&self) -> Result<Option<Vlad<'_>>, Error> {
-        let Some(codebook) = self
-            .sections()
-            .iter()
-            .find(|s| s.kind == SectionKind::LevelVladCentroids && s.skipped.is_none())
-        else {
+        let Some(codebook) = self.vlad_codebook() else {
             return Ok(None);
         };
         let images = self.required(SectionKind::ImageVlad)?;
@@ -745,6 +741,18 @@ impl<'a> Map<'a> {
             centroids: self.section_array(codebook)?,
             images: self.section_array(images)?,
         }))
+    }
+
+    /// The level whose descriptors the VLAD aggregates, from the table alone (nothing read).
+    pub fn vlad_level(&self) -> Option<u16> {
+        self.vlad_codebook().and_then(|s| s.level)
+    }
+
+    /// The VLAD codebook's section (at most one level has one).
+    fn vlad_codebook(&self) -> Option<&Section> {
+        self.sections()
+            .iter()
+            .find(|s| s.kind == SectionKind::LevelVladCentroids && s.skipped.is_none())
     }
 
     pub fn visibility(&self) -> Result<Option<Visibility<'_>>, Error> {

@@ -4,7 +4,7 @@
 
 use super::QueryFeatures;
 use crate::format::{Catalog, Error as FormatError};
-use crate::vector::normalise_rows;
+use crate::vector::project_rows;
 use crate::vlad::Codebook;
 
 /// A catalog's places, ready to rank queries.
@@ -26,8 +26,6 @@ pub struct PlaceScore {
     pub place: usize,
     /// The cosine of the query with the place's best image.
     pub score: f32,
-    /// That image, within the place's images.
-    pub image: usize,
 }
 
 impl PlaceRanker {
@@ -55,18 +53,16 @@ impl PlaceRanker {
         if sets.iter().all(|s| s.keypoints.is_empty()) {
             return None;
         }
-        let dims = self.codebook.dims();
-        let n: usize = sets.iter().map(|s| s.keypoints.len()).sum();
-        let mut rows = vec![0.0f32; n * dims];
-        let descriptors = sets
+        let descriptors: Vec<f32> = sets
             .iter()
-            .flat_map(|s| s.descriptors.chunks_exact(self.d_in));
-        for (x, o) in descriptors.zip(rows.chunks_exact_mut(dims)) {
-            for (k, o) in o.iter_mut().enumerate() {
-                *o = crate::vector::dot(&self.projection[k * self.d_in..(k + 1) * self.d_in], x);
-            }
-        }
-        normalise_rows(&mut rows, dims);
+            .flat_map(|s| s.descriptors.iter().copied())
+            .collect();
+        let rows = project_rows(
+            &descriptors,
+            self.d_in,
+            &self.projection,
+            self.codebook.dims(),
+        );
         let vlad = self.codebook.vlad(&rows);
         // No usable feature: nothing to rank by (an all-zero VLAD scores every image 0).
         vlad.iter().any(|&v| v != 0.0).then_some(vlad)
@@ -96,16 +92,11 @@ impl PlaceRanker {
                     end - start,
                     width,
                 );
-                let (image, score) = cosines
+                let score = cosines
                     .into_iter()
-                    .enumerate()
-                    .filter(|(_, s)| s.is_finite())
-                    .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))?;
-                Some(PlaceScore {
-                    place,
-                    score,
-                    image,
-                })
+                    .filter(|s| s.is_finite())
+                    .max_by(f32::total_cmp)?;
+                Some(PlaceScore { place, score })
             })
             .collect();
         scored.sort_by(|a, b| b.score.total_cmp(&a.score).then(a.place.cmp(&b.place)));
