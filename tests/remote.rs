@@ -43,6 +43,21 @@ fn scene() -> &'static Path {
     })
 }
 
+/// `slice MAP --level 2 --short -o OUT --json`, the report.
+fn slice_level_2_short(map: &str, out: &Path, env: &[(&str, String)]) -> serde_json::Value {
+    let args = [
+        "slice",
+        map,
+        "--level",
+        "2",
+        "--short",
+        "-o",
+        out.to_str().unwrap(),
+        "--json",
+    ];
+    json(&sfpmap(&args, env))
+}
+
 fn cache(dir: &tempfile::TempDir) -> (&'static str, String) {
     ("SFPMAP_CACHE_DIR", dir.path().display().to_string())
 }
@@ -82,35 +97,11 @@ fn http_slice_info_verify_read_only_what_they_use() {
 
     // slice --level 2 --short: the kept sections only, byte-identical to the local slice.
     let out = t.path().join("remote-l2s.sfpm");
-    let report = json(&sfpmap(
-        &[
-            "slice",
-            &url,
-            "--level",
-            "2",
-            "--short",
-            "-o",
-            out.to_str().unwrap(),
-            "--json",
-        ],
-        &no_cache,
-    ));
-    let reference = t.path().join("local-l2s.sfpm");
-    ok(&sfpmap(
-        &[
-            "slice",
-            full.to_str().unwrap(),
-            "--level",
-            "2",
-            "--short",
-            "-o",
-            reference.to_str().unwrap(),
-        ],
-        &[],
-    ));
+    let report = slice_level_2_short(&url, &out, &no_cache);
+    // The local file's slice, made with the scene.
     assert_eq!(
         std::fs::read(&out).unwrap(),
-        std::fs::read(&reference).unwrap()
+        std::fs::read(scene().join("l2s.sfpm")).unwrap()
     );
     let map = Map::open(&full).unwrap();
     let kept = expected_bytes(&map, |kind, level| match level {
@@ -376,35 +367,10 @@ fn s3_slice_and_localize_equal_the_local_map() {
     env.push(("SFPMAP_CACHE_DIR", "off".into()));
     let t = tempfile::tempdir().unwrap();
     let out = t.path().join("s3-l2s.sfpm");
-    let report = json(&sfpmap(
-        &[
-            "slice",
-            "s3://maps/place/demo.sfpm",
-            "--level",
-            "2",
-            "--short",
-            "-o",
-            out.to_str().unwrap(),
-            "--json",
-        ],
-        &env,
-    ));
-    let reference = t.path().join("local-l2s.sfpm");
-    ok(&sfpmap(
-        &[
-            "slice",
-            full.to_str().unwrap(),
-            "--level",
-            "2",
-            "--short",
-            "-o",
-            reference.to_str().unwrap(),
-        ],
-        &[],
-    ));
+    let report = slice_level_2_short("s3://maps/place/demo.sfpm", &out, &env);
     assert_eq!(
         std::fs::read(&out).unwrap(),
-        std::fs::read(&reference).unwrap()
+        std::fs::read(d.join("l2s.sfpm")).unwrap()
     );
     assert!(report["transfer"]["bytes"].as_u64().unwrap() < Map::open(&full).unwrap().file_len());
 
