@@ -1,5 +1,5 @@
 //! Maps whose bytes are not in memory: a [`RangeSource`] reads byte ranges of the object
-//! (an HTTP or S3 object in `crate::remote`, anything else a caller implements), and
+//! (an HTTP or S3 object in the `remote` module, anything else a caller implements), and
 //! [`Map::open_source`](super::Map::open_source) reads only the header, the index and the
 //! sections that are used. The reader needs no network code for it.
 
