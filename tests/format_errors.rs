@@ -289,7 +289,7 @@ fn optional_sections_with_unknown_encodings_are_skipped() {
     type Edit = fn(&mut RawEntry);
     let edits: [(Edit, Skipped); 3] = [
         (|e| e.dtype = 9, Skipped::Dtype(9)),
-        (|e| e.codec = 2, Skipped::Codec(2)),
+        (|e| e.codec = 3, Skipped::Codec(3)),
         (|e| e.flags |= 0x40, Skipped::Flags(0x40)),
     ];
     for (edit, why) in edits {

@@ -5,7 +5,10 @@
 
 mod common;
 
-use common::{decoded_json, minimal, patch, with_extra_section, Scene, VladData};
+use common::{
+    craft, craft_metadata, craft_points, decoded_json, minimal, patch, with_extra_section, Crafted,
+    Scene, VladData,
+};
 use serde_json::{json, Value};
 use sfpmap::format::{
     f16, slice, Codec, Dtype, Header, Map, MapWriter, RawEntry, SectionKind, SliceOptions,
@@ -301,7 +304,7 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
     }
     let later = patch(&w.to_bytes().unwrap(), |h, e| {
         h.minor = 2;
-        e[1].codec = 2;
+        e[1].codec = 3;
         e[2].dtype = 9;
         e[3].flags = 0x02;
     });
@@ -310,7 +313,7 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         "cameras": 0, "images": [], "visibility": null, "levels": [],
     });
     let listed = json!([
-        { "kind_code": 2, "skipped": "unknown codec code 2", "dtype": null, "rows": 2, "cols": 3 },
+        { "kind_code": 2, "skipped": "unknown codec code 3", "dtype": null, "rows": 2, "cols": 3 },
         { "kind_code": 3, "skipped": "unknown dtype code 9", "dtype": null, "rows": 2, "cols": 1 },
         { "kind_code": 0x7F01, "skipped": "unknown section flags 0x02", "dtype": null, "rows": 2, "cols": 1 },
     ]);
@@ -500,6 +503,7 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
         },
     )
     .unwrap();
+    let minimal_slice = w.to_bytes().unwrap();
     w.metadata_mut().position_grid = None;
     out.push((
         "q16_without_grid",
@@ -507,18 +511,61 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
         "bad_metadata",
         "open",
     ));
+    // 1.1 defines feature bit 0 (delta); bit 1 is unknown.
     out.push((
         "unknown_feature",
-        patch(&minimal(), |h, _| h.flags = 1),
+        patch(&minimal_slice, |h, _| h.flags |= 2),
         "unknown_required_feature",
         "open",
     ));
     // 1.1: a required section keeps the encodings its reader knows.
     out.push((
         "required_unknown_codec",
-        patch(&minimal(), |_, e| e[0].codec = 2),
+        patch(&minimal_slice, |_, e| e[0].codec = 3),
         "bad_entry",
         "open",
+    ));
+    // 1.1: codec delta in required sections only behind header feature bit 0 ...
+    out.push((
+        "delta_without_feature",
+        patch(&minimal_slice, |h, _| h.flags = 0),
+        "bad_entry",
+        "open",
+    ));
+    // ... and on u32 and u64 arrays only (here the u16 grid positions).
+    out.push((
+        "delta_on_u16",
+        patch(&minimal_slice, |_, e| {
+            let q16 = e
+                .iter_mut()
+                .find(|e| e.kind == SectionKind::PointPositionsQ16.code())
+                .unwrap();
+            q16.codec = 2;
+        }),
+        "bad_entry",
+        "open",
+    ));
+    // A delta stream one value short of the 4 values its table declares.
+    let short_stream = zstd::bulk::compress(&[2, 2, 2], 3).unwrap();
+    let mut delta = Crafted::raw(
+        SectionKind::Unknown(0x7F01),
+        NO_LEVEL,
+        sfpmap::format::Dtype::U32,
+        4,
+        1,
+        short_stream,
+    );
+    delta.codec = Codec::Delta as u8;
+    delta.flags = 0;
+    delta.raw_len = 16;
+    out.push((
+        "delta_short_stream",
+        craft(
+            &craft_metadata(vec![]),
+            &[craft_points(2), delta],
+        ),
+        "decode",
+        "verify",
     ));
 
     // A zstd section whose table claims a huge (but self-consistent) array.

@@ -42,10 +42,12 @@ pub const SECTION_REQUIRED: u8 = 1 << 0;
 /// Section flag bits this version knows. An optional section with another bit set is skipped
 /// (1.1); a required one is an error.
 pub const SECTION_FLAGS_KNOWN: u8 = SECTION_REQUIRED;
+/// Header feature bit 0 (1.1): required sections may use codec 2 `delta`.
+pub const FEATURE_DELTA: u64 = 1 << 0;
 /// Header `flags` bits this version knows: each bit is a *required feature* (1.1), a change
-/// to how required sections are encoded that a reader must understand to read the map. 1.1
-/// defines none; a file with any bit set is refused with `unknown_required_feature`.
-pub const HEADER_FEATURES_KNOWN: u64 = 0;
+/// to how required sections are encoded that a reader must understand to read the map. A file
+/// with another bit set is refused with `unknown_required_feature`.
+pub const HEADER_FEATURES_KNOWN: u64 = FEATURE_DELTA;
 
 /// Element type of a section's array.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -106,6 +108,10 @@ pub enum Codec {
     Raw = 0,
     /// One zstd frame holding the array's bytes.
     Zstd = 1,
+    /// (1.1) u32/u64 arrays: one zstd frame of the LEB128 varints of the zigzag differences
+    /// of consecutive values (`format/delta.rs`). In a required section only behind the header
+    /// feature [`FEATURE_DELTA`].
+    Delta = 2,
 }
 
 impl Codec {
@@ -113,6 +119,7 @@ impl Codec {
         match code {
             0 => Some(Codec::Raw),
             1 => Some(Codec::Zstd),
+            2 => Some(Codec::Delta),
             _ => None,
         }
     }
@@ -121,6 +128,7 @@ impl Codec {
         match self {
             Codec::Raw => "raw",
             Codec::Zstd => "zstd",
+            Codec::Delta => "delta",
         }
     }
 }

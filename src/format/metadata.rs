@@ -44,6 +44,11 @@ pub struct Metadata {
     pub extra: JsonMap<String, Value>,
 }
 
+/// How many database images retrieval selects by default (the localizer's `top_k`). A map
+/// with no more images than this gains nothing from retrieval data: every image is selected,
+/// so `slice --minimal` drops it.
+pub const DEFAULT_RETRIEVAL_TOP_K: usize = 10;
+
 /// A stored kind of per-image global descriptor that retrieval can rank images with.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Retrieval {

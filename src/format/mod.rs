@@ -15,6 +15,7 @@
 //! ```
 
 mod catalog;
+mod delta;
 mod error;
 /// Fuzz-target bodies and the raw on-disk structs they edit: for the fuzz crate and the
 /// tests, not the reader API.
@@ -41,6 +42,7 @@ pub use layout::{
 pub use layout::{Header, RawEntry};
 pub use metadata::{
     CameraInfo, LevelInfo, Metadata, PositionGrid, Provenance, Retrieval, SourceFile,
+    DEFAULT_RETRIEVAL_TOP_K,
 };
 pub use pq::{Pq, MAX_PQ_CENTROIDS};
 pub use reader::{decode_budget, decode_cap, Map, Section, Skipped};

@@ -6,7 +6,7 @@
 use super::error::{Error, SectionRef};
 use super::layout::{
     align_up, checksum, index_checksum, Codec, Dtype, Header, RawEntry, SectionKind, ALIGN,
-    ENTRY_LEN, HEADER_FEATURES_KNOWN, HEADER_LEN, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN, MAX_SECTIONS,
+    ENTRY_LEN, FEATURE_DELTA, HEADER_FEATURES_KNOWN, HEADER_LEN, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN, MAX_SECTIONS,
     METADATA_MAX_BYTES, NO_LEVEL, SECTION_FLAGS_KNOWN, SECTION_REQUIRED,
 };
 use super::metadata::Metadata;
@@ -532,7 +532,7 @@ impl<'a> Map<'a> {
             }
             // Keeping a raw section costs nothing: it is a view of the bytes.
             Codec::Raw => self.section_bytes(section).map(|_| ()),
-            Codec::Zstd => {
+            Codec::Zstd | Codec::Delta => {
                 self.prepare(section)?;
                 self.checked[section.index].store(true, Ordering::Release);
                 Ok(())
@@ -572,7 +572,7 @@ impl<'a> Map<'a> {
         }
         let decoded = match section.codec {
             Codec::Raw => None,
-            Codec::Zstd => {
+            codec @ (Codec::Zstd | Codec::Delta) => {
                 check_decode_cap(section, self.file_len())?;
                 // Read by range, the file length is what the server claims: each section
                 // must also keep to the writer's ratio of the bytes actually read, so what
@@ -587,7 +587,10 @@ impl<'a> Map<'a> {
                     });
                 }
                 self.charge(section)?;
-                Some(decode_zstd(section, stored)?)
+                Some(match codec {
+                    Codec::Delta => decode_delta(section, stored)?,
+                    _ => decode_zstd(section, stored)?,
+                })
             }
         };
         let bytes = decoded.as_ref().map_or(stored, |d| d.bytes());
@@ -612,7 +615,7 @@ pub fn decode_budget(file_len: u64) -> u64 {
 }
 
 /// The decoded : stored ratio both caps allow (see spec/format.md, "Codecs").
-const DECODE_RATIO: u64 = 256;
+pub(crate) const DECODE_RATIO: u64 = 256;
 
 /// Whether a zstd section of `stored_len` bytes decoding to `raw_len` keeps to the ratio the
 /// writer keeps every section to, so that the sum over a file's sections stays within
@@ -651,6 +654,23 @@ fn decode_zstd(section: &Section, stored: &[u8]) -> Result<Decoded, Error> {
             "decoded {written} bytes, the table declares {len}"
         )));
     }
+    Ok(Decoded { words, len })
+}
+
+/// Decodes a `delta` section: its zstd frame (at most the longest varint stream of
+/// `raw_len`, a transient buffer of ≤ 1.25 × `raw_len`), then the varints into `raw_len` bytes.
+fn decode_delta(section: &Section, stored: &[u8]) -> Result<Decoded, Error> {
+    let decode_err = |message: String| Error::Decode {
+        section: section.reference(),
+        message,
+    };
+    let bound = super::delta::max_stream_len(section.dtype, section.raw_len);
+    let stream = zstd::bulk::decompress(stored, bound as usize)
+        .map_err(|e| decode_err(format!("zstd: {e}")))?;
+    let len = section.raw_len as usize;
+    let mut words = vec![0u64; len.div_ceil(8)];
+    let out: &mut [u8] = &mut bytemuck::cast_slice_mut(&mut words)[..len];
+    super::delta::decode(section.dtype, &stream, out).map_err(decode_err)?;
     Ok(Decoded { words, len })
 }
 
@@ -756,7 +776,7 @@ fn validate_index(bytes: &[u8], file_len: u64) -> Result<Index, Error> {
     let mut sections = Vec::with_capacity(header.section_count as usize);
     for (index, entry_bytes) in table.chunks_exact(header.entry_len as usize).enumerate() {
         let raw = RawEntry::decode(&entry_bytes[..ENTRY_LEN]);
-        sections.push(validate_entry(index, &raw, file_len)?);
+        sections.push(validate_entry(index, &raw, file_len, header.flags)?);
     }
     check_tiling(bytes, file_len, &mut sections, metadata_end)?;
     check_declared_sizes(&sections, file_len)?;
@@ -772,7 +792,12 @@ fn validate_index(bytes: &[u8], file_len: u64) -> Result<Index, Error> {
     })
 }
 
-fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section, Error> {
+fn validate_entry(
+    index: usize,
+    raw: &RawEntry,
+    file_len: u64,
+    features: u64,
+) -> Result<Section, Error> {
     let kind = SectionKind::from_code(raw.kind);
     let reference = SectionRef {
         index,
@@ -801,6 +826,19 @@ fn validate_entry(index: usize, raw: &RawEntry, file_len: u64) -> Result<Section
         Err(why) if required => return Err(bad(why.to_string())),
         Err(why) => (Dtype::U8, Codec::Raw, Some(why)),
     };
+    if skipped.is_none() && codec == Codec::Delta {
+        if super::delta::width(dtype).is_none() {
+            return Err(bad(format!(
+                "codec delta applies to u32 and u64 arrays, not {}",
+                dtype.name()
+            )));
+        }
+        if required && features & FEATURE_DELTA == 0 {
+            return Err(bad(
+                "codec delta in a required section without header feature bit 0 (delta)".into(),
+            ));
+        }
+    }
     if skipped.is_none() {
         let expected_raw = raw
             .rows
@@ -897,7 +935,7 @@ fn check_declared_sizes(sections: &[Section], file_len: u64) -> Result<(), Error
     let budget = decode_budget(file_len);
     let mut declared = 0u64;
     for s in sections {
-        if s.codec != Codec::Zstd || s.skipped.is_some() {
+        if s.codec == Codec::Raw || s.skipped.is_some() {
             continue;
         }
         match declared.checked_add(s.raw_len).filter(|&t| t <= budget) {

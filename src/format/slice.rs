@@ -20,7 +20,9 @@ pub struct SliceOptions {
     pub zstd_level: i32,
     /// (1.1) Keep only what localization reads, compactly: drop point ids and colours and the
     /// visibility keypoints, store positions on a grid (`point_positions_q16`, 6 bytes a point)
-    /// and each image's visible points sorted, index arrays zstd-compressed.
+    /// and each image's visible points sorted, index arrays in codec `delta`; keep only the
+    /// retrieval data the map prefers, and none when the map has no more images than retrieval
+    /// selects ([`DEFAULT_RETRIEVAL_TOP_K`](super::DEFAULT_RETRIEVAL_TOP_K)).
     pub minimal: bool,
 }
 
@@ -78,12 +80,17 @@ pub fn slice<'m>(
     let preference = map.metadata().retrieval();
     let has_global = map.find(SectionKind::ImageGlobal, None).is_some();
     let vlad_kept = vlad_level.is_some_and(|l| keep_levels.binary_search(&l).is_ok());
+    // ... and none when retrieval would select every image anyway.
+    let retrieval_useless =
+        options.minimal && map.n_images() as usize <= super::metadata::DEFAULT_RETRIEVAL_TOP_K;
     let keeps = Keep {
         options,
         levels: &keep_levels,
         vlad: vlad_kept
+            && !retrieval_useless
             && !(options.minimal && preference == Some(Retrieval::Global) && has_global),
-        global: !(options.minimal && preference == Some(Retrieval::Vlad) && vlad_kept),
+        global: !retrieval_useless
+            && !(options.minimal && preference == Some(Retrieval::Vlad) && vlad_kept),
     };
     // Checking everything first means a corrupt section is never copied into the new map.
     // Sections this slice reads are kept decoded and the others streamed, so each is decoded
@@ -117,10 +124,16 @@ pub fn slice<'m>(
         .levels
         .retain(|l| keep_levels.binary_search(&l.level).is_ok());
     let vlad_dropped = vlad_level.is_some() && !keeps.vlad;
-    if vlad_dropped && metadata.retrieval() == Some(Retrieval::Vlad) {
-        metadata.retrieval = map
-            .find(SectionKind::ImageGlobal, None)
-            .map(|_| Retrieval::Global.name().to_string());
+    let global_kept = keeps.global && has_global;
+    match metadata.retrieval() {
+        Some(Retrieval::Vlad) if vlad_dropped => {
+            metadata.retrieval = global_kept.then(|| Retrieval::Global.name().to_string());
+        }
+        Some(Retrieval::Global) if !global_kept => {
+            metadata.retrieval = (!vlad_dropped && vlad_level.is_some())
+                .then(|| Retrieval::Vlad.name().to_string());
+        }
+        _ => {}
     }
     let previous = std::mem::take(&mut metadata.provenance.parameters);
     metadata
@@ -188,7 +201,7 @@ pub fn slice<'m>(
             _ => section.rows,
         };
         let codec = match section.kind {
-            SectionKind::LevelPoints if options.minimal => Some(Codec::Zstd),
+            SectionKind::LevelPoints if options.minimal => Some(Codec::Delta),
             _ => options.codec,
         };
         add_section(
@@ -240,7 +253,7 @@ pub fn slice<'m>(
             offsets.push(points.len() as u64);
         }
         let index_codec = if options.minimal {
-            Some(Codec::Zstd)
+            Some(Codec::Delta)
         } else {
             options.codec
         };

@@ -4,11 +4,12 @@
 use super::error::Error;
 use super::layout::{
     align_up, checksum, index_checksum, Codec, Dtype, Header, RawEntry, SectionKind, ENTRY_LEN,
+    FEATURE_DELTA,
     HEADER_LEN, MAX_DESCRIPTOR_DIM, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED, VERSION_MAJOR,
     VERSION_MINOR,
 };
 use super::metadata::{CameraInfo, LevelInfo, Metadata, PositionGrid};
-use super::reader::{within_decode_ratio, Map, Section};
+use super::reader::{within_decode_ratio, Map, Section, DECODE_RATIO};
 use crate::progress::{Reporter, Silent};
 use half::f16;
 use std::borrow::Cow;
@@ -801,6 +802,12 @@ impl<'a> MapWriter<'a> {
         Ok(encoded.file_len)
     }
 
+    /// The length of the file [`write`](Self::write) would write, without writing it (every
+    /// section is encoded, so it costs what encoding does).
+    pub fn encoded_len(&self) -> Result<u64, Error> {
+        Ok(self.encode(&Silent)?.file_len)
+    }
+
     /// The map's bytes in memory.
     pub fn to_bytes(&self) -> Result<Vec<u8>, Error> {
         let encoded = self.encode(&Silent)?;
@@ -858,11 +865,10 @@ impl<'a> MapWriter<'a> {
                 // writer keeps to: it is stored decoded instead.
                 Content::Stored {
                     bytes,
-                    codec: Codec::Zstd,
+                    codec: codec @ (Codec::Zstd | Codec::Delta),
                     raw_len,
                 } if !within_decode_ratio(*raw_len, bytes.len() as u64) => {
-                    let raw = zstd::bulk::decompress(bytes, *raw_len as usize)
-                        .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
+                    let raw = decode_stored(*codec, s.dtype, bytes, *raw_len)?;
                     (Cow::Owned(raw), Codec::Raw, *raw_len)
                 }
                 Content::Stored {
@@ -872,8 +878,19 @@ impl<'a> MapWriter<'a> {
                 } => (Cow::Borrowed(&bytes[..]), *codec, *raw_len),
                 Content::Array { bytes, codec } => {
                     let raw_len = bytes.len() as u64;
-                    match codec.unwrap_or(self.codec) {
+                    let codec = match codec.unwrap_or(self.codec) {
+                        // `delta` applies to integer arrays; zstd stands in elsewhere.
+                        Codec::Delta if super::delta::width(s.dtype).is_none() => Codec::Zstd,
+                        codec => codec,
+                    };
+                    match codec {
                         Codec::Raw => (Cow::Borrowed(&bytes[..]), Codec::Raw, raw_len),
+                        Codec::Delta => {
+                            let stream = super::delta::encode(s.dtype, bytes);
+                            let z = super::delta::compress(&stream, raw_len, DECODE_RATIO)
+                                .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
+                            (Cow::Owned(z), Codec::Delta, raw_len)
+                        }
                         Codec::Zstd => {
                             let z = zstd::bulk::compress(bytes, self.zstd_level)
                                 .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
@@ -909,11 +926,20 @@ impl<'a> MapWriter<'a> {
         let mut cursor = metadata_end;
         let mut table = Vec::with_capacity(blocks.len() * ENTRY_LEN);
         let mut sections = Vec::with_capacity(blocks.len());
+        // Codec `delta` is 1.1 too; in a required section it is also a header feature.
         let minor = blocks
             .iter()
-            .map(|(s, ..)| s.kind.since_minor())
+            .map(|(s, _, codec, _)| s.kind.since_minor().max(u16::from(*codec == Codec::Delta)))
             .max()
             .unwrap_or(0);
+        let features = if blocks
+            .iter()
+            .any(|(s, _, codec, _)| s.required && *codec == Codec::Delta)
+        {
+            FEATURE_DELTA
+        } else {
+            0
+        };
         debug_assert!(minor <= VERSION_MINOR);
         for (s, bytes, codec, raw_len) in blocks {
             let offset = align_up(cursor).ok_or_else(|| Error::invalid("file too large"))?;
@@ -939,7 +965,7 @@ impl<'a> MapWriter<'a> {
         let mut header = Header {
             major: VERSION_MAJOR,
             minor,
-            flags: 0,
+            flags: features,
             section_count: sections.len() as u32,
             entry_len: ENTRY_LEN as u32,
             metadata_offset: table_end,
@@ -985,5 +1011,20 @@ impl Encoded<'_> {
             pos = offset + bytes.len() as u64;
         }
         out.flush()
+    }
+}
+
+/// A copied section's array, decoded (to store it raw when it compresses past the ratio).
+fn decode_stored(codec: Codec, dtype: Dtype, bytes: &[u8], raw_len: u64) -> Result<Vec<u8>, Error> {
+    let zstd = |e: std::io::Error| Error::invalid(format!("zstd: {e}"));
+    match codec {
+        Codec::Delta => {
+            let bound = super::delta::max_stream_len(dtype, raw_len) as usize;
+            let stream = zstd::bulk::decompress(bytes, bound).map_err(zstd)?;
+            let mut raw = vec![0u8; raw_len as usize];
+            super::delta::decode(dtype, &stream, &mut raw).map_err(Error::invalid)?;
+            Ok(raw)
+        }
+        _ => zstd::bulk::decompress(bytes, raw_len as usize).map_err(zstd),
     }
 }

@@ -74,7 +74,7 @@ impl Default for LocalizeOptions {
         LocalizeOptions {
             levels: Vec::new(),
             short: false,
-            top_k: 10,
+            top_k: crate::format::DEFAULT_RETRIEVAL_TOP_K,
             retrieval: RetrievalMethod::Auto,
             matching: MatchOptions::default(),
             coarse_error_px: 12.0,
