@@ -294,3 +294,71 @@ fn slice_pq_replaces_descriptor_blocks_by_codes() {
         assert!(!bad.exists());
     }
 }
+
+/// (1.1) `slice --budget`: the report says what was chosen, the map fits, and a budget below
+/// every cut fails in one line naming the map and the smallest cut, writing nothing.
+#[test]
+fn slice_budget_fits_or_names_the_smallest_cut() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("budget.sfpm");
+    let levels = vector("valid", "levels");
+    let run = |budget: &str| {
+        sfpmap(&[
+            "slice",
+            levels.to_str().unwrap(),
+            "--budget",
+            budget,
+            "-o",
+            out.to_str().unwrap(),
+            "--force",
+            "--json",
+        ])
+    };
+    let whole = std::fs::metadata(&levels).unwrap().len();
+    let o = run("1MiB");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(report["budget"]["budget_bytes"], 1 << 20);
+    assert_eq!(report["budget"]["candidates"].as_array().unwrap().len(), 1);
+    assert!(report["output_bytes"].as_u64().unwrap() <= whole + 64);
+
+    let o = run("1B");
+    assert_eq!(o.status.code(), Some(1));
+    let err = stderr(&o);
+    assert!(
+        err.contains(levels.to_str().unwrap()) && err.contains("the smallest is"),
+        "{err}"
+    );
+    assert_eq!(err.lines().count(), 1, "{err}");
+    std::fs::remove_file(&out).unwrap();
+    let smallest: u64 = err
+        .split("the smallest is ")
+        .nth(1)
+        .unwrap()
+        .trim_start_matches("about ")
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    let o = run(&(smallest + 256).to_string());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+    let written = std::fs::metadata(&out).unwrap().len();
+    assert!(
+        written <= smallest + 256 && report["output_bytes"] == written,
+        "{report}"
+    );
+    assert!(sfpmap(&["verify", out.to_str().unwrap()]).status.success());
+
+    for (args, why) in [
+        (vec!["--budget", "2XB"], "is not a size"),
+        (vec!["--budget", "1MB", "--pq", "4"], "cannot be used with"),
+    ] {
+        let mut all = vec!["slice", levels.to_str().unwrap(), "-o", "never.sfpm"];
+        all.extend(args);
+        let o = sfpmap(&all);
+        assert_eq!(o.status.code(), Some(2), "{}", stderr(&o));
+        assert!(stderr(&o).contains(why), "{}", stderr(&o));
+    }
+}

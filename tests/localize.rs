@@ -350,3 +350,56 @@ fn threads_share_one_localizer() {
         "deterministic across threads"
     );
 }
+
+/// (1.1) `slice --budget`: budgets from above the whole map down to below its smallest cut.
+/// Each choice is the first candidate of the ladder that fits, is no larger than its budget,
+/// and localizes the query; a budget below every candidate names the smallest.
+#[cfg(feature = "colmap-model")]
+#[test]
+fn budget_slices_fit_and_localize() {
+    use sfpmap::build::budget::{ladder, slice_to_budget};
+    let s = scene();
+    let bytes = map_bytes(&s);
+    let map = Map::from_bytes(&bytes).unwrap();
+    let q = query(&s, &truth(), 800, DIM);
+    let rungs = ladder(&map, None).unwrap();
+    assert_eq!(rungs[0].levels, map.level_ids(), "all levels first");
+    assert!(rungs
+        .iter()
+        .any(|c| c.levels == [2] && c.dims_per_code == Some(8)));
+    let mut chosen = Vec::new();
+    let mut budget = bytes.len() as u64 * 2;
+    let smallest = loop {
+        match slice_to_budget(&map, budget, None) {
+            Ok(b) => {
+                assert!(b.bytes <= budget);
+                let written = b.sliced.writer.to_bytes().unwrap();
+                assert_eq!(written.len() as u64, b.bytes);
+                // Every candidate sized before the chosen one is larger than the budget.
+                let (last, before) = b.sized.split_last().unwrap();
+                assert!(before.iter().all(|c| c.bytes > budget), "{budget}");
+                assert_eq!(last.candidate, b.chosen);
+                let small = Map::from_bytes(&written).unwrap();
+                small.verify().unwrap();
+                let r = Localizer::new(&small, LocalizeOptions::default())
+                    .unwrap()
+                    .localize(&q, &s.camera)
+                    .unwrap();
+                let pose = *r
+                    .pose()
+                    .unwrap_or_else(|| panic!("{budget}: {:?}", r.failure()));
+                assert!(pose.rotation_error_deg(&truth()) < 0.5, "{budget}");
+                chosen.push(b.chosen);
+                budget = b.bytes - 1;
+            }
+            Err(e) => break e.to_string(),
+        }
+    };
+    assert!(chosen.len() >= 4, "{chosen:?}");
+    assert!(chosen.windows(2).all(|w| w[0] != w[1]));
+    assert!(chosen.last().unwrap().dims_per_code.is_some(), "{chosen:?}");
+    assert!(
+        smallest.contains("no slice fits in") && smallest.contains("the smallest is"),
+        "{smallest}"
+    );
+}

@@ -14,6 +14,7 @@
 
 #[cfg(feature = "colmap")]
 mod basis;
+pub mod budget;
 #[cfg(feature = "colmap")]
 pub mod catalog;
 #[cfg(feature = "colmap")]

@@ -1,6 +1,7 @@
 //! `sfpmap slice`: keep some levels, optionally only their short descriptors.
 
 use anyhow::Context;
+use sfpmap::build::budget::slice_to_budget;
 use sfpmap::build::pq::slice_quantised;
 use sfpmap::format::{Codec, SliceOptions};
 use std::path::PathBuf;
@@ -27,14 +28,21 @@ impl From<CodecArg> for Codec {
 /// Points no kept level references are dropped and indices remapped. Sections that do not
 /// change are copied byte for byte. Examples:
 /// `sfpmap slice building.sfpm --level 2 --short -o building-l2s.sfpm`,
-/// `sfpmap slice building.sfpm --level 2 --short --pq 8 -o building-l2-pq8.sfpm`
+/// `sfpmap slice building.sfpm --level 2 --short --pq 8 -o building-l2-pq8.sfpm`,
+/// `sfpmap slice building.sfpm --budget 2MB -o building-2mb.sfpm`
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The map to slice.
     pub map: PathBuf,
-    /// A level to keep (repeat for several).
-    #[arg(long = "level", required = true)]
+    /// A level to keep (repeat for several). With `--budget`, the only level set tried.
+    #[arg(long = "level", required_unless_present = "budget")]
     pub levels: Vec<u16>,
+    /// Choose levels, short or full, `--minimal` and `--pq` to fit this many bytes with the
+    /// best expected accuracy (e.g. 2MB, 500kB, 1.5MiB): the rule is in README, "Byte
+    /// budgets", and in `--json`.
+    #[arg(long, value_name = "SIZE", value_parser = parse_size,
+          conflicts_with_all = ["short", "minimal", "pq", "codec"])]
+    pub budget: Option<u64>,
     /// Keep only the short descriptor block of each level.
     #[arg(long)]
     pub short: bool,
@@ -64,19 +72,46 @@ pub struct Args {
     pub json: bool,
 }
 
+/// A byte count as people write it: `2MB` (decimal), `1.5MiB` (binary), `500000`.
+fn parse_size(s: &str) -> Result<u64, String> {
+    s.trim()
+        .parse::<bytesize::ByteSize>()
+        .map(|b| b.as_u64())
+        .map_err(|e| format!("{s:?} is not a size such as 2MB, 500kB or 1.5MiB ({e})"))
+}
+
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let (input, output) = (&args.map, &args.output);
     super::check_outputs(&[output], &[input], args.force)?;
     let map = super::open_map(input)?;
-    let options = SliceOptions {
-        levels: args.levels.clone(),
-        short: args.short,
-        codec: args.codec.map(Codec::from),
-        zstd_level: args.zstd_level,
-        minimal: args.minimal,
+    let mut budget_report = None;
+    let sliced = match args.budget {
+        Some(budget) => {
+            let levels = (!args.levels.is_empty()).then_some(&args.levels[..]);
+            let chosen = slice_to_budget(&map, budget, levels)
+                .with_context(|| input.display().to_string())?;
+            budget_report = Some(chosen.report(budget));
+            if !quiet && !args.json {
+                println!(
+                    "budget {budget} bytes: {} ({} bytes)",
+                    chosen.chosen.describe(&map),
+                    chosen.bytes
+                );
+            }
+            chosen.sliced
+        }
+        None => {
+            let options = SliceOptions {
+                levels: args.levels.clone(),
+                short: args.short,
+                codec: args.codec.map(Codec::from),
+                zstd_level: args.zstd_level,
+                minimal: args.minimal,
+            };
+            slice_quantised(&map, &options, args.pq.map(usize::from))
+                .with_context(|| input.display().to_string())?
+        }
     };
-    let sliced = slice_quantised(&map, &options, args.pq.map(usize::from))
-        .with_context(|| input.display().to_string())?;
     let bars = super::Bars::new(quiet, args.json);
     let written = sliced
         .writer
@@ -88,6 +123,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     if args.json {
         let mut report = sliced.report(input, output, before, written);
         report["transfer"] = super::transfer_json(&map);
+        if let Some(b) = budget_report {
+            report["budget"] = b;
+        }
         super::print_json(&report)?;
     } else if !quiet {
         super::report_transfer(&map, quiet);

@@ -4,9 +4,8 @@
 use super::error::Error;
 use super::layout::{
     align_up, checksum, index_checksum, Codec, Dtype, Header, RawEntry, SectionKind, ENTRY_LEN,
-    FEATURE_DELTA,
-    HEADER_LEN, MAX_DESCRIPTOR_DIM, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED, VERSION_MAJOR,
-    VERSION_MINOR,
+    FEATURE_DELTA, HEADER_LEN, MAX_DESCRIPTOR_DIM, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED,
+    VERSION_MAJOR, VERSION_MINOR,
 };
 use super::metadata::{CameraInfo, LevelInfo, Metadata, PositionGrid};
 use super::reader::{within_decode_ratio, Map, Section, DECODE_RATIO};
