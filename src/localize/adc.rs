@@ -11,24 +11,26 @@ use crate::format::Pq;
 
 /// Table entries per subspace: every value of a code byte, so a lookup needs no bounds check.
 const SLOTS: usize = 256;
-/// The bytes of query tables held at once (`queries × M × 256 × 4`): queries are matched a
-/// chunk of this size at a time, so memory stays bounded whatever the query's keypoints.
-const TABLE_BYTES: usize = 8 << 20;
+/// The bytes of query tables held at once (`M × 256 × queries × 4`): small enough to stay in
+/// the L2 cache, which every map row's `M` lookups read.
+const TABLE_BYTES: usize = 512 << 10;
+/// Queries per chunk at most: the width of the vectorised accumulation.
+const MAX_CHUNK: usize = 64;
 
-/// The per-query tables of one matching call.
+/// The per-query tables of one chunk of queries, laid out query-fastest: a map row's score
+/// with every query of the chunk is `M` contiguous rows of the table added together —
+/// vector additions across queries instead of one scalar lookup per query and subspace.
 pub(super) struct AdcTables<'p, 'm> {
     pq: &'p Pq<'m>,
     n_q: usize,
-    /// `[n_q × M × 256]`: `query_q,s · centroid_s,c` at `(q·M + s)·256 + c`.
+    /// `[M × 256 × n_q]`: `query_q,s · centroid_s,c` at `(s·256 + c)·n_q + q`.
     lut: Vec<f32>,
-    /// `[M × 256]`: `‖centroid_s,c‖²`.
-    norms: Vec<f32>,
 }
 
 impl<'p, 'm> AdcTables<'p, 'm> {
-    /// Queries per chunk for `pq`: tables of at most 8 MB.
+    /// Queries per chunk for `pq`: tables of at most 512 KB, 4 to 64 queries.
     pub(super) fn chunk(pq: &Pq<'_>) -> usize {
-        (TABLE_BYTES / (pq.subspaces.max(1) * SLOTS * 4)).max(1)
+        (TABLE_BYTES / (pq.subspaces.max(1) * SLOTS * 4)).clamp(4, MAX_CHUNK)
     }
 
     /// Tables for `query` (`[n_q × dims]` unit rows in the level basis; one chunk).
@@ -36,103 +38,61 @@ impl<'p, 'm> AdcTables<'p, 'm> {
         let (m, k, d) = (pq.subspaces, pq.centroids, pq.sub_dims);
         let dims = pq.dims();
         let n_q = query.len() / dims.max(1);
-        let mut lut = vec![0.0f32; n_q * m * SLOTS];
+        let mut lut = vec![0.0f32; m * SLOTS * n_q];
         let mut sub = vec![0.0f32; n_q * d];
-        let mut products = vec![0.0f32; n_q * k];
         for s in 0..m {
             for (out, row) in sub.chunks_exact_mut(d).zip(query.chunks_exact(dims)) {
                 out.copy_from_slice(&row[s * d..(s + 1) * d]);
             }
             let centroids = &pq.codebook[s * k * d..(s + 1) * k * d];
-            sgemm_abt(&sub, centroids, &mut products, n_q, k, d);
-            for (q, row) in products.chunks_exact(k).enumerate() {
-                let at = (q * m + s) * SLOTS;
-                lut[at..at + k].copy_from_slice(row);
-            }
+            // `[k × n_q]`: centroid-major, so each centroid's products with the chunk are a row.
+            let at = s * SLOTS * n_q;
+            sgemm_abt(centroids, &sub, &mut lut[at..at + k * n_q], k, n_q, d);
         }
-        let mut norms = vec![0.0f32; m * SLOTS];
-        for (i, c) in pq.codebook.chunks_exact(d).enumerate() {
-            norms[(i / k) * SLOTS + i % k] = c.iter().map(|v| v * v).sum();
-        }
-        AdcTables {
-            pq,
-            n_q,
-            lut,
-            norms,
-        }
+        AdcTables { pq, n_q, lut }
     }
 
-    /// Similarities of every query with the level rows `rows` into `out` (`[n_q × rows]`).
-    /// `block_codes` and `inverse_norms` are scratch, reused across calls.
-    pub(super) fn scores(
-        &self,
-        rows: &[usize],
-        out: &mut [f32],
-        block_codes: &mut Vec<u8>,
-        inverse_norms: &mut Vec<f32>,
-    ) {
-        let m = self.pq.subspaces;
-        let count = rows.len();
-        // The block's codes, row by row and contiguous, read once per query below.
-        block_codes.clear();
-        for &r in rows {
-            block_codes.extend_from_slice(&self.pq.codes[r * m..(r + 1) * m]);
-        }
-        inverse_norms.clear();
-        for codes in block_codes.chunks_exact(m) {
-            let n: f32 = codes
-                .iter()
-                .enumerate()
-                .map(|(s, &c)| slots(&self.norms, s)[usize::from(c)])
-                .sum();
-            inverse_norms.push(if n > 0.0 { 1.0 / n.sqrt() } else { 0.0 });
-        }
-        for (q, out) in out.chunks_exact_mut(count).take(self.n_q).enumerate() {
-            let tables = &self.lut[q * m * SLOTS..(q + 1) * m * SLOTS];
-            let tables: &[[f32; SLOTS]] = bytemuck::cast_slice(tables);
-            // The common sizes with the subspace loop unrolled; any other M the same way.
-            match m {
-                4 => rows_fixed::<4>(tables, block_codes, inverse_norms, out),
-                8 => rows_fixed::<8>(tables, block_codes, inverse_norms, out),
-                16 => rows_fixed::<16>(tables, block_codes, inverse_norms, out),
-                32 => rows_fixed::<32>(tables, block_codes, inverse_norms, out),
-                _ => {
-                    for ((o, codes), &n) in out
-                        .iter_mut()
-                        .zip(block_codes.chunks_exact(m))
-                        .zip(inverse_norms.iter())
-                    {
-                        let sum: f32 = tables
-                            .iter()
-                            .zip(codes)
-                            .map(|(t, &c)| t[usize::from(c)])
-                            .sum();
-                        *o = sum * n;
-                    }
+    /// Similarities of the level rows `rows` with every query into `out` (`[rows × n_q]`,
+    /// map-row-major), `inverse_norms[i]` the inverse norm of row `rows[i]`'s reconstruction.
+    pub(super) fn scores(&self, rows: &[usize], inverse_norms: &[f32], out: &mut [f32]) {
+        let (m, n_q) = (self.pq.subspaces, self.n_q);
+        out.fill(0.0);
+        for ((acc, &r), &inv) in out.chunks_exact_mut(n_q).zip(rows).zip(inverse_norms) {
+            for (s, &c) in self.pq.codes[r * m..(r + 1) * m].iter().enumerate() {
+                let at = (s * SLOTS + usize::from(c)) * n_q;
+                for (a, &v) in acc.iter_mut().zip(&self.lut[at..at + n_q]) {
+                    *a += v;
                 }
+            }
+            for a in acc.iter_mut() {
+                *a *= inv;
             }
         }
     }
 }
 
-/// One query's similarities with a block of rows of `M` codes: `M` lookups per row summed in
-/// two independent chains (so additions overlap), then scaled by the row's inverse norm.
-fn rows_fixed<const M: usize>(
-    tables: &[[f32; SLOTS]],
-    codes: &[u8],
-    inverse_norms: &[f32],
-    out: &mut [f32],
-) {
-    let tables: &[[f32; SLOTS]; M] = tables.try_into().expect("M tables");
-    for ((o, codes), &n) in out.iter_mut().zip(codes.chunks_exact(M)).zip(inverse_norms) {
-        let codes: &[u8; M] = codes.try_into().expect("M codes");
-        let (mut even, mut odd) = (0.0f32, 0.0f32);
-        for s in (0..M).step_by(2) {
-            even += tables[s][usize::from(codes[s])];
-            odd += tables[s + 1][usize::from(codes[s + 1])];
-        }
-        *o = (even + odd) * n;
+/// The inverse norm of each row's reconstruction (`1 / ‖Σ_s centroid_s,code‖`, 0 for a zero
+/// reconstruction): query-independent, computed once per matching call.
+fn inverse_norms(pq: &Pq<'_>, rows: &[usize]) -> Vec<f32> {
+    let (m, k, d) = (pq.subspaces, pq.centroids, pq.sub_dims);
+    let mut norms = vec![0.0f32; m * SLOTS];
+    for (i, c) in pq.codebook.chunks_exact(d).enumerate() {
+        norms[(i / k) * SLOTS + i % k] = c.iter().map(|v| v * v).sum();
     }
+    rows.iter()
+        .map(|&r| {
+            let n: f32 = pq.codes[r * m..(r + 1) * m]
+                .iter()
+                .enumerate()
+                .map(|(s, &c)| norms[s * SLOTS + usize::from(c)])
+                .sum();
+            if n > 0.0 {
+                1.0 / n.sqrt()
+            } else {
+                0.0
+            }
+        })
+        .collect()
 }
 
 /// Matches unit `query` rows (`[n_q × dims]`) against the level rows `rows` of `pq` by
@@ -144,9 +104,9 @@ pub(super) fn match_pq(
     options: &super::MatchOptions,
 ) -> Vec<super::matching::Match> {
     let dims = pq.dims().max(1);
-    let (mut block_codes, mut norms) = (Vec::new(), Vec::new());
+    let norms = inverse_norms(pq, rows);
     let mut tables: Option<(usize, AdcTables<'_, '_>)> = None;
-    super::matching::match_scored(
+    super::matching::match_scored_by_row(
         query.len() / dims,
         rows.len(),
         AdcTables::chunk(pq),
@@ -160,12 +120,8 @@ pub(super) fn match_pq(
                 tables = Some((queries.start, AdcTables::new(chunk, pq)));
             }
             if let Some((_, t)) = &tables {
-                t.scores(
-                    &rows[start..start + count],
-                    out,
-                    &mut block_codes,
-                    &mut norms,
-                );
+                let range = start..start + count;
+                t.scores(&rows[range.clone()], &norms[range], out);
             }
         },
     )
@@ -182,13 +138,6 @@ pub fn match_pq_descriptors(
     match_pq(query, pq, &rows, options)
 }
 
-/// Table `i` of 256 entries: indexing it with a `u8` cannot go out of bounds.
-fn slots(tables: &[f32], i: usize) -> &[f32; SLOTS] {
-    tables[i * SLOTS..(i + 1) * SLOTS]
-        .try_into()
-        .expect("tables are whole multiples of 256 entries")
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -197,7 +146,6 @@ mod tests {
 
     #[test]
     fn adc_scores_are_cosines_with_the_reconstructions() {
-        // M = 3 takes the general loop, M = 8 the unrolled one.
         for m in [3usize, 8] {
             let (k, d, n) = (5, 2, 40);
             let mut rng = SplitMix64::new(9);
@@ -218,34 +166,31 @@ mod tests {
             crate::vector::normalise_rows(&mut query, m * d);
             let tables = AdcTables::new(&query, &pq);
             let rows: Vec<usize> = vec![3, 0, 39, 17, 17];
-            let mut out = vec![0.0; 4 * rows.len()];
-            tables.scores(&rows, &mut out, &mut Vec::new(), &mut Vec::new());
+            let mut out = vec![0.0; rows.len() * 4];
+            let norms = inverse_norms(&pq, &rows);
+            tables.scores(&rows, &norms, &mut out);
             let mut x = vec![0.0; m * d];
             for (q, qrow) in query.chunks_exact(m * d).enumerate() {
                 for (j, &r) in rows.iter().enumerate() {
                     pq.decode_row(r, &mut x);
                     crate::vector::l2_normalise(&mut x);
                     let want: f32 = qrow.iter().zip(&x).map(|(a, b)| a * b).sum();
-                    let got = out[q * rows.len() + j];
+                    let got = out[j * 4 + q];
                     assert!((got - want).abs() < 1e-5, "q {q} row {r}: {got} vs {want}");
                 }
             }
             // In chunks of 3 queries, the matches are those of matching the reconstructions.
             let all: Vec<usize> = (0..n).collect();
             let options = crate::localize::MatchOptions::default();
-            let chunked = crate::localize::matching::match_scored(
+            let chunked = crate::localize::matching::match_scored_by_row(
                 4,
                 n,
                 3,
                 &options,
                 |qs, start, count, out| {
                     let t = AdcTables::new(&query[qs.start * m * d..qs.end * m * d], &pq);
-                    t.scores(
-                        &all[start..start + count],
-                        out,
-                        &mut Vec::new(),
-                        &mut Vec::new(),
-                    );
+                    let rows = &all[start..start + count];
+                    t.scores(rows, &inverse_norms(&pq, rows), out);
                 },
             );
             let mut rebuilt = vec![0.0; n * m * d];

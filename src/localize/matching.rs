@@ -129,6 +129,75 @@ pub(crate) fn match_scored(
             }
         }
     }
+    select(&best, &second, &column_max, options)
+}
+
+/// [`match_scored`] over similarities written map-row-major: `score(queries, start, rows,
+/// out)` writes row `start + r` against query `queries.start + i` at `out[r × queries.len()
+/// + i]` — the layout of a PQ level's asymmetric distances, which score one map row against a
+/// chunk of queries at once. Same matches as [`match_scored`] on the same similarities (ties
+/// go to the first row), with no transposition: per row a maximum across queries, per query a
+/// branch-free best/second update the compiler vectorizes.
+pub(crate) fn match_scored_by_row(
+    n_q: usize,
+    n_m: usize,
+    query_chunk: usize,
+    options: &MatchOptions,
+    mut score: impl FnMut(std::ops::Range<usize>, usize, usize, &mut [f32]),
+) -> Vec<Match> {
+    if n_q == 0 || n_m == 0 {
+        return Vec::new();
+    }
+    let chunk = query_chunk.clamp(1, n_q);
+    let mut best = vec![f32::NEG_INFINITY; n_q];
+    let mut arg = vec![u32::MAX; n_q];
+    let mut second = vec![f32::NEG_INFINITY; n_q];
+    let mut column_max = vec![f32::NEG_INFINITY; n_m];
+    let mut scores = vec![0.0f32; chunk * BLOCK.min(n_m)];
+    for first in (0..n_q).step_by(chunk) {
+        let queries = first..(first + chunk).min(n_q);
+        let width = queries.len();
+        for start in (0..n_m).step_by(BLOCK) {
+            let rows = BLOCK.min(n_m - start);
+            let out = &mut scores[..rows * width];
+            score(queries.clone(), start, rows, out);
+            let (b, a, s2) = (
+                &mut best[queries.clone()],
+                &mut arg[queries.clone()],
+                &mut second[queries.clone()],
+            );
+            for (r, row) in out.chunks_exact(width).enumerate() {
+                let c = &mut column_max[start + r];
+                *c = c.max(lane_max(row));
+                let id = (start + r) as u32;
+                for (((&v, b), a), s) in row
+                    .iter()
+                    .zip(b.iter_mut())
+                    .zip(a.iter_mut())
+                    .zip(s2.iter_mut())
+                {
+                    // The loser of (v, best) is a candidate for second.
+                    let lower = if v > *b { *b } else { v };
+                    *s = if lower > *s { lower } else { *s };
+                    let gt = v > *b;
+                    *a = if gt { id } else { *a };
+                    *b = if gt { v } else { *b };
+                }
+            }
+        }
+    }
+    let best: Vec<(f32, u32)> = best.into_iter().zip(arg).collect();
+    select(&best, &second, &column_max, options)
+}
+
+/// The matches the best and second-best row of each query and the best query of each map row
+/// allow: similarity, ratio test, mutual check.
+fn select(
+    best: &[(f32, u32)],
+    second: &[f32],
+    column_max: &[f32],
+    options: &MatchOptions,
+) -> Vec<Match> {
     let mut matches = Vec::new();
     for (q, &(s, m)) in best.iter().enumerate() {
         if m == u32::MAX || s < options.min_similarity {
@@ -243,6 +312,41 @@ mod tests {
         let strict = MatchOptions { ratio: 0.8, ..opts };
         assert!(match_descriptors(&between, &map, dim, &strict).is_empty());
         assert_eq!(match_descriptors(&query, &map, dim, &strict).len(), 2);
+    }
+
+    #[test]
+    fn row_major_scores_give_the_same_matches() {
+        // 3 chunks of queries × 2 blocks of rows, with ties (scores on a coarse grid).
+        let (n_q, n_m) = (7, 3000);
+        let mut rng = crate::geometry::SplitMix64::new(5);
+        let scores: Vec<f32> = (0..n_q * n_m)
+            .map(|_| (rng.next_f64() * 40.0).floor() as f32 / 40.0)
+            .collect();
+        for options in [
+            MatchOptions::default(),
+            MatchOptions {
+                ratio: 1.0,
+                mutual: false,
+                min_similarity: 0.9,
+            },
+        ] {
+            let by_query = match_scored(n_q, n_m, 3, &options, |qs, start, rows, out| {
+                for (i, q) in qs.enumerate() {
+                    out[i * rows..(i + 1) * rows]
+                        .copy_from_slice(&scores[q * n_m + start..q * n_m + start + rows]);
+                }
+            });
+            let by_row = match_scored_by_row(n_q, n_m, 3, &options, |qs, start, rows, out| {
+                let w = qs.len();
+                for (i, q) in qs.enumerate() {
+                    for r in 0..rows {
+                        out[r * w + i] = scores[q * n_m + start + r];
+                    }
+                }
+            });
+            assert_eq!(by_query, by_row);
+            assert!(!by_row.is_empty() || options.mutual);
+        }
     }
 
     #[test]
