@@ -11,11 +11,11 @@ use crate::format::Pq;
 
 /// Table entries per subspace: every value of a code byte, so a lookup needs no bounds check.
 const SLOTS: usize = 256;
-/// The bytes of query tables held at once (`M × 256 × queries × 4`): small enough to stay in
-/// the L2 cache, which every map row's `M` lookups read.
-const TABLE_BYTES: usize = 512 << 10;
+/// The bytes of query tables held at once (`M × 256 × queries × 4`): half of a 512 KB L2
+/// cache, which every map row's `M` lookups read, the other half for the scores they make.
+const TABLE_BYTES: usize = 2 << 20;
 /// Queries per chunk at most: the width of the vectorised accumulation.
-const MAX_CHUNK: usize = 64;
+const MAX_CHUNK: usize = 256;
 
 /// The per-query tables of one chunk of queries, laid out query-fastest: a map row's score
 /// with every query of the chunk is `M` contiguous rows of the table added together —
@@ -28,9 +28,11 @@ pub(super) struct AdcTables<'p, 'm> {
 }
 
 impl<'p, 'm> AdcTables<'p, 'm> {
-    /// Queries per chunk for `pq`: tables of at most 512 KB, 4 to 64 queries.
+    /// Queries per chunk for `pq`: tables of at most [`TABLE_BYTES`], a multiple of 8 queries
+    /// (whole vectors) from 8 to 64.
     pub(super) fn chunk(pq: &Pq<'_>) -> usize {
-        (TABLE_BYTES / (pq.subspaces.max(1) * SLOTS * 4)).clamp(4, MAX_CHUNK)
+        let fit = TABLE_BYTES / (pq.subspaces.max(1) * SLOTS * 4);
+        (fit / 8 * 8).clamp(8, MAX_CHUNK)
     }
 
     /// Tables for `query` (`[n_q × dims]` unit rows in the level basis; one chunk).
@@ -55,17 +57,57 @@ impl<'p, 'm> AdcTables<'p, 'm> {
     /// Similarities of the level rows `rows` with every query into `out` (`[rows × n_q]`,
     /// map-row-major), `inverse_norms[i]` the inverse norm of row `rows[i]`'s reconstruction.
     pub(super) fn scores(&self, rows: &[usize], inverse_norms: &[f32], out: &mut [f32]) {
-        let (m, n_q) = (self.pq.subspaces, self.n_q);
-        out.fill(0.0);
-        for ((acc, &r), &inv) in out.chunks_exact_mut(n_q).zip(rows).zip(inverse_norms) {
-            for (s, &c) in self.pq.codes[r * m..(r + 1) * m].iter().enumerate() {
-                let at = (s * SLOTS + usize::from(c)) * n_q;
-                for (a, &v) in acc.iter_mut().zip(&self.lut[at..at + n_q]) {
-                    *a += v;
+        let (pq, n_q) = (self.pq, self.n_q);
+        accumulate(
+            &self.lut,
+            &pq.codes,
+            pq.subspaces,
+            n_q,
+            rows,
+            inverse_norms,
+            out,
+        );
+    }
+}
+
+/// [`AdcTables::scores`]' loop: for each row, its `M` table rows added across the chunk's
+/// queries, then scaled. Compiled for AVX2 too and chosen at run time.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx"))]
+fn accumulate(
+    lut: &[f32],
+    codes: &[u8],
+    m: usize,
+    n_q: usize,
+    rows: &[usize],
+    inverse_norms: &[f32],
+    out: &mut [f32],
+) {
+    let table = |s: usize, c: u8| {
+        let at = (s * SLOTS + usize::from(c)) * n_q;
+        &lut[at..at + n_q]
+    };
+    for ((acc, &r), &inv) in out.chunks_exact_mut(n_q).zip(rows).zip(inverse_norms) {
+        let Some((&last, middle)) = codes[r * m..(r + 1) * m].split_last() else {
+            acc.fill(0.0);
+            continue;
+        };
+        // One pass per subspace: the first writes, the last adds and scales.
+        match middle.split_first() {
+            Some((&c0, rest)) => {
+                acc.copy_from_slice(table(0, c0));
+                for (s, &c) in rest.iter().enumerate() {
+                    for (a, &v) in acc.iter_mut().zip(table(s + 1, c)) {
+                        *a += v;
+                    }
+                }
+                for (a, &v) in acc.iter_mut().zip(table(m - 1, last)) {
+                    *a = (*a + v) * inv;
                 }
             }
-            for a in acc.iter_mut() {
-                *a *= inv;
+            None => {
+                for (a, &v) in acc.iter_mut().zip(table(0, last)) {
+                    *a = v * inv;
+                }
             }
         }
     }
@@ -146,7 +188,7 @@ mod tests {
 
     #[test]
     fn adc_scores_are_cosines_with_the_reconstructions() {
-        for m in [3usize, 8] {
+        for m in [1usize, 2, 3, 8] {
             let (k, d, n) = (5, 2, 40);
             let mut rng = SplitMix64::new(9);
             let codebook: Vec<f32> = (0..m * k * d)

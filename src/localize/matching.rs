@@ -36,6 +36,9 @@ pub struct Match {
 
 /// Map rows per GEMM block: bounds the score buffer at `queries × BLOCK` floats.
 const BLOCK: usize = 2048;
+/// Map rows per block of [`match_scored_by_row`]: its chunks of queries are small (≤ 64),
+/// and 1,024 rows of them stay in the L2 cache beside their tables.
+const BLOCK_BY_ROW: usize = 256;
 
 /// Matches unit-norm `query` rows (`[n_q × dim]`) against unit-norm `map` rows
 /// (`[n_m × dim]`), both row-major f32 (the benches' and tests' entry; the localizer decodes
@@ -153,41 +156,67 @@ pub(crate) fn match_scored_by_row(
     let mut arg = vec![u32::MAX; n_q];
     let mut second = vec![f32::NEG_INFINITY; n_q];
     let mut column_max = vec![f32::NEG_INFINITY; n_m];
-    let mut scores = vec![0.0f32; chunk * BLOCK.min(n_m)];
+    let mut scores = vec![0.0f32; chunk * BLOCK_BY_ROW.min(n_m)];
     for first in (0..n_q).step_by(chunk) {
         let queries = first..(first + chunk).min(n_q);
         let width = queries.len();
-        for start in (0..n_m).step_by(BLOCK) {
-            let rows = BLOCK.min(n_m - start);
+        for start in (0..n_m).step_by(BLOCK_BY_ROW) {
+            let rows = BLOCK_BY_ROW.min(n_m - start);
             let out = &mut scores[..rows * width];
             score(queries.clone(), start, rows, out);
-            let (b, a, s2) = (
+            let before = best[queries.clone()].to_vec();
+            update_by_row(
+                out,
+                width,
+                &mut column_max[start..start + rows],
                 &mut best[queries.clone()],
-                &mut arg[queries.clone()],
                 &mut second[queries.clone()],
             );
-            for (r, row) in out.chunks_exact(width).enumerate() {
-                let c = &mut column_max[start + r];
-                *c = c.max(lane_max(row));
-                let id = (start + r) as u32;
-                for (((&v, b), a), s) in row
-                    .iter()
-                    .zip(b.iter_mut())
-                    .zip(a.iter_mut())
-                    .zip(s2.iter_mut())
-                {
-                    // The loser of (v, best) is a candidate for second.
-                    let lower = if v > *b { *b } else { v };
-                    *s = if lower > *s { lower } else { *s };
-                    let gt = v > *b;
-                    *a = if gt { id } else { *a };
-                    *b = if gt { v } else { *b };
+            // A query whose best improved in this block: its first row reaching it.
+            for (i, (&b, &was)) in best[queries.clone()].iter().zip(&before).enumerate() {
+                if b > was {
+                    let r = out[i..].iter().step_by(width).position(|&v| v == b);
+                    arg[first + i] = (start + r.unwrap_or(0)) as u32;
                 }
             }
         }
     }
     let best: Vec<(f32, u32)> = best.into_iter().zip(arg).collect();
     select(&best, &second, &column_max, options)
+}
+
+/// [`match_scored_by_row`]'s bookkeeping of one block (`scores`: rows of `width` queries):
+/// each row's maximum, each query's best and second best. Minima and maxima only, so it
+/// vectorizes; compiled for AVX2 too and chosen at run time.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx"))]
+fn update_by_row(
+    scores: &[f32],
+    width: usize,
+    column_max: &mut [f32],
+    best: &mut [f32],
+    second: &mut [f32],
+) {
+    for (row, c) in scores.chunks_exact(width).zip(column_max) {
+        let mut lanes = [f32::NEG_INFINITY; 8];
+        let chunks = row.chunks_exact(8);
+        let tail = chunks.remainder();
+        for x in chunks {
+            for k in 0..8 {
+                lanes[k] = if x[k] > lanes[k] { x[k] } else { lanes[k] };
+            }
+        }
+        let row_max = lanes
+            .iter()
+            .chain(tail)
+            .fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+        *c = c.max(row_max);
+        for ((&v, b), s) in row.iter().zip(&mut *best).zip(&mut *second) {
+            // The loser of (v, best) is a candidate for second.
+            let lower = if v > *b { *b } else { v };
+            *s = if lower > *s { lower } else { *s };
+            *b = if v > *b { v } else { *b };
+        }
+    }
 }
 
 /// The matches the best and second-best row of each query and the best query of each map row
