@@ -98,19 +98,29 @@ impl Nearest {
     /// without centroids). `scores` is scratch of at least `clusters` values.
     pub fn find(&self, x: &[f32], scores: &mut [f32]) -> usize {
         let scores = &mut scores[..self.clusters];
-        scores.copy_from_slice(&self.minus_half_norms);
-        for (&v, column) in x
-            .iter()
-            .zip(self.transposed.chunks_exact(self.clusters.max(1)))
-        {
-            for (s, &c) in scores.iter_mut().zip(column) {
-                *s += v * c;
-            }
-        }
-        // The maximum in one pass the compiler vectorizes, then its first position.
-        let max = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-        scores.iter().position(|&s| s == max).unwrap_or(0)
+        nearest_scores(x, &self.transposed, &self.minus_half_norms, scores)
     }
+}
+
+/// [`Nearest::find`]'s loop, compiled for AVX2 too and chosen at run time.
+#[cfg(any(feature = "colmap-model", feature = "localize"))]
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx"))]
+fn nearest_scores(
+    x: &[f32],
+    transposed: &[f32],
+    minus_half_norms: &[f32],
+    scores: &mut [f32],
+) -> usize {
+    let clusters = scores.len();
+    scores.copy_from_slice(minus_half_norms);
+    for (&v, column) in x.iter().zip(transposed.chunks_exact(clusters.max(1))) {
+        for (s, &c) in scores.iter_mut().zip(column) {
+            *s += v * c;
+        }
+    }
+    // The maximum in one pass the compiler vectorizes, then its first position.
+    let max = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    scores.iter().position(|&s| s == max).unwrap_or(0)
 }
 
 #[cfg(all(test, feature = "localize"))]

@@ -560,10 +560,7 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
     delta.raw_len = 16;
     out.push((
         "delta_short_stream",
-        craft(
-            &craft_metadata(vec![]),
-            &[craft_points(2), delta],
-        ),
+        craft(&craft_metadata(vec![]), &[craft_points(2), delta]),
         "decode",
         "verify",
     ));

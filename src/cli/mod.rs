@@ -235,24 +235,9 @@ pub fn remove_temps_on_signal() {
     });
 }
 
-/// The most worker threads any `--threads` gets: 4 per core this machine has, at most 256.
-/// More only costs memory and start-up time (10^6 threads took 48 s for 3 queries).
-#[cfg(any(feature = "colmap", feature = "onnx"))]
-pub fn max_threads() -> usize {
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    cores.saturating_mul(4).min(256)
-}
-
-/// `--threads` capped at [`max_threads`], with a warning (silent under `--quiet`) when it is
-/// cut.
+/// `--threads` capped at [`sfpmap::progress::max_threads`] (4 per core, at most 256), with a
+/// warning (silent under `--quiet`) when it is cut; the Python package caps the same way.
 #[cfg(any(feature = "colmap", feature = "onnx"))]
 pub fn cap_threads(requested: usize, reporter: &dyn sfpmap::progress::Reporter) -> usize {
-    let max = max_threads();
-    if requested > max {
-        reporter.warn(&format!(
-            "--threads {requested}: using {max} (4 per core, at most 256)"
-        ));
-        return max;
-    }
-    requested.max(1)
+    sfpmap::progress::cap_threads("--threads", requested, reporter)
 }

@@ -39,7 +39,10 @@ pub fn encode(dtype: Dtype, raw: &[u8]) -> Vec<u8> {
     match dtype {
         Dtype::U32 => {
             let mut prev = 0u32;
-            for v in raw.chunks_exact(4).map(|b| u32::from_le_bytes(b.try_into().unwrap())) {
+            for v in raw
+                .chunks_exact(4)
+                .map(|b| u32::from_le_bytes(b.try_into().unwrap()))
+            {
                 let d = v.wrapping_sub(prev) as i32;
                 put(u64::from(((d << 1) ^ (d >> 31)) as u32));
                 prev = v;
@@ -47,7 +50,10 @@ pub fn encode(dtype: Dtype, raw: &[u8]) -> Vec<u8> {
         }
         _ => {
             let mut prev = 0u64;
-            for v in raw.chunks_exact(8).map(|b| u64::from_le_bytes(b.try_into().unwrap())) {
+            for v in raw
+                .chunks_exact(8)
+                .map(|b| u64::from_le_bytes(b.try_into().unwrap()))
+            {
                 let d = v.wrapping_sub(prev) as i64;
                 put(((d << 1) ^ (d >> 63)) as u64);
                 prev = v;
@@ -125,7 +131,11 @@ mod tests {
     fn sorted_runs_and_extremes_round_trip() {
         let v: Vec<u32> = vec![0, 1, 2, 7, 3, u32::MAX, 0, 5, 5, 4_000_000_000];
         let stream = roundtrip(Dtype::U32, bytemuck::cast_slice(&v));
-        assert_eq!(&stream[..3], &[0, 2, 2], "steps of 1 are one byte each (zigzag 2)");
+        assert_eq!(
+            &stream[..3],
+            &[0, 2, 2],
+            "steps of 1 are one byte each (zigzag 2)"
+        );
         let w: Vec<u64> = vec![u64::MAX, 0, 1 << 63, 12, 11];
         roundtrip(Dtype::U64, bytemuck::cast_slice(&w));
         roundtrip(Dtype::U32, &[]);
@@ -135,14 +145,24 @@ mod tests {
     fn malformed_streams_are_errors() {
         let mut out = [0u8; 8];
         // Too few values, a trailing byte, a value past u32, an endless varint.
-        assert!(decode(Dtype::U32, &[2], &mut out).unwrap_err().contains("ends"));
-        assert!(decode(Dtype::U32, &[2, 2, 2], &mut out).unwrap_err().contains("after"));
+        assert!(decode(Dtype::U32, &[2], &mut out)
+            .unwrap_err()
+            .contains("ends"));
+        assert!(decode(Dtype::U32, &[2, 2, 2], &mut out)
+            .unwrap_err()
+            .contains("after"));
         let big = [0xFF, 0xFF, 0xFF, 0xFF, 0x7F, 0];
-        assert!(decode(Dtype::U32, &big, &mut out).unwrap_err().contains("exceeds"));
+        assert!(decode(Dtype::U32, &big, &mut out)
+            .unwrap_err()
+            .contains("exceeds"));
         let mut long = [0xFF; 12];
         long[11] = 0x01;
-        assert!(decode(Dtype::U64, &long, &mut out).unwrap_err().contains("64 bits"));
-        assert!(decode(Dtype::U64, &[0xFF; 11], &mut out).unwrap_err().contains("ends"));
+        assert!(decode(Dtype::U64, &long, &mut out)
+            .unwrap_err()
+            .contains("64 bits"));
+        assert!(decode(Dtype::U64, &[0xFF; 11], &mut out)
+            .unwrap_err()
+            .contains("ends"));
         assert!(decode(Dtype::F32, &[], &mut out).is_err());
     }
 

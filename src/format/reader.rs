@@ -6,8 +6,8 @@
 use super::error::{Error, SectionRef};
 use super::layout::{
     align_up, checksum, index_checksum, Codec, Dtype, Header, RawEntry, SectionKind, ALIGN,
-    ENTRY_LEN, FEATURE_DELTA, HEADER_FEATURES_KNOWN, HEADER_LEN, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN, MAX_SECTIONS,
-    METADATA_MAX_BYTES, NO_LEVEL, SECTION_FLAGS_KNOWN, SECTION_REQUIRED,
+    ENTRY_LEN, FEATURE_DELTA, HEADER_FEATURES_KNOWN, HEADER_LEN, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN,
+    MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL, SECTION_FLAGS_KNOWN, SECTION_REQUIRED,
 };
 use super::metadata::Metadata;
 use super::source::{fetch, index_end, RangeSource, HEAD_READ};

@@ -130,8 +130,8 @@ pub fn slice<'m>(
             metadata.retrieval = global_kept.then(|| Retrieval::Global.name().to_string());
         }
         Some(Retrieval::Global) if !global_kept => {
-            metadata.retrieval = (!vlad_dropped && vlad_level.is_some())
-                .then(|| Retrieval::Vlad.name().to_string());
+            metadata.retrieval =
+                (!vlad_dropped && vlad_level.is_some()).then(|| Retrieval::Vlad.name().to_string());
         }
         _ => {}
     }

@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 use {
     super::InputError,
     crate::localize::{FeatureSet, QueryFeatures},
+    std::collections::HashMap,
 };
 
 /// Keypoints in the file are in hloc's convention: the first pixel's centre is (0, 0), so
@@ -261,6 +262,10 @@ fn write_level(group: &mut GroupBuilder, level: &LevelFeatures, prefix: &str) {
 /// extractors): per-level `level<id>_keypoints` / `level<id>_descriptors` when present (SFP),
 /// else the image's `keypoints` / `descriptors` for every level. Keypoints are in hloc's
 /// convention (first pixel centre at 0) and get +0.5; descriptors are `[D × N]`, f16 or f32.
+///
+/// The file is read on demand, never whole (hloc's files reach tens of GB): opening reads the
+/// superblock, and each query the metadata on its image's path (through a cache of at most
+/// [`H5Features::METADATA_CACHE_BYTES`]) and the datasets it uses.
 #[cfg(feature = "localize")]
 pub struct H5Features {
     file: hdf5_pure::File,
@@ -272,15 +277,24 @@ pub struct H5Features {
 
 #[cfg(feature = "localize")]
 impl H5Features {
+    /// The most bytes of metadata (group indexes, object headers) kept between queries.
+    pub const METADATA_CACHE_BYTES: usize = 8 << 20;
+
     pub fn open(path: &Path) -> Result<H5Features, InputError> {
+        use hdf5_pure::Source;
         let err = |message: String| InputError {
             path: path.into(),
             line: None,
             message,
         };
-        let bytes = crate::input::read_regular(path).map_err(|e| err(e.to_string()))?;
-        let file_len = bytes.len() as u64;
-        let file = hdf5_pure::File::from_bytes(bytes)
+        let handle = crate::input::open_regular(path).map_err(|e| err(e.to_string()))?;
+        let source = hdf5_pure::ReadSeekSource::new(handle)
+            .map_err(|e| err(format!("not a readable HDF5 file: {e}")))?;
+        let file_len = source.len();
+        let properties = hdf5_pure::FileAccessProperties::new().with_metadata_cache(
+            hdf5_pure::MetadataCacheConfig::new(Self::METADATA_CACHE_BYTES),
+        );
+        let file = hdf5_pure::File::from_source_with_options(source, properties)
             .map_err(|e| err(format!("not a readable HDF5 file: {e}")))?;
         Ok(H5Features {
             file,
@@ -297,17 +311,34 @@ impl H5Features {
         }
     }
 
-    /// `[rows × cols]` values of a dataset, or `None` if it does not exist.
-    fn matrix(&self, name: &str) -> Result<Option<(Vec<f32>, usize, usize)>, InputError> {
-        let Ok(ds) = self.file.dataset(name) else {
-            return Ok(None);
-        };
+    /// `[rows × cols]` values of the dataset `ds` (`name` in errors): little-endian f16 or
+    /// f32, its declared size checked against the file's before anything is read.
+    fn matrix(
+        &self,
+        name: &str,
+        ds: &hdf5_pure::Dataset,
+    ) -> Result<(Vec<f32>, usize, usize), InputError> {
         let shape = ds.shape().map_err(|e| self.err(format!("{name}: {e}")))?;
         let (rows, cols) = match shape.as_slice() {
             [r, c] => (*r, *c),
             [n] => (1, *n),
             other => return Err(self.err(format!("{name}: unexpected shape {other:?}"))),
         };
+        let datatype = ds
+            .datatype()
+            .map_err(|e| self.err(format!("{name}: {e}")))?;
+        if !matches!(
+            datatype,
+            Datatype::FloatingPoint {
+                size: 2 | 4,
+                byte_order: DatatypeByteOrder::LittleEndian,
+                ..
+            }
+        ) {
+            return Err(self.err(format!(
+                "{name}: values of type {datatype:?} (little-endian f16 or f32 expected)"
+            )));
+        }
         // At least 2 bytes a value (f16): a shape the file cannot hold is refused before
         // hdf5 allocates it.
         if rows
@@ -350,22 +381,26 @@ impl H5Features {
                 raw.len()
             )));
         };
-        Ok(Some((values, rows, cols)))
+        Ok((values, rows, cols))
     }
 
-    /// One feature set from `<prefix>keypoints` and `<prefix>descriptors`.
+    /// One feature set from the image's `<prefix>keypoints` and `<prefix>descriptors`
+    /// (`datasets`: its group's datasets by name), `None` if either is missing.
     fn set(
         &self,
         name: &str,
+        datasets: &HashMap<String, hdf5_pure::Dataset>,
         prefix: &str,
         level: Option<u16>,
     ) -> Result<Option<FeatureSet>, InputError> {
-        let Some((kp, n, two)) = self.matrix(&format!("{name}/{prefix}keypoints"))? else {
+        let (Some(kp), Some(desc)) = (
+            datasets.get(&format!("{prefix}keypoints")),
+            datasets.get(&format!("{prefix}descriptors")),
+        ) else {
             return Ok(None);
         };
-        let Some((desc, dim, n_desc)) = self.matrix(&format!("{name}/{prefix}descriptors"))? else {
-            return Ok(None);
-        };
+        let (kp, n, two) = self.matrix(&format!("{name}/{prefix}keypoints"), kp)?;
+        let (desc, dim, n_desc) = self.matrix(&format!("{name}/{prefix}descriptors"), desc)?;
         if two != 2 || n_desc != n {
             return Err(self.err(format!(
                 "{name}/{prefix}: {n} keypoints x {two}, descriptors {dim} x {n_desc}"
@@ -407,22 +442,43 @@ impl H5Features {
         }))
     }
 
-    /// The query's features, `Ok(None)` if the file has no group for it.
+    /// The query's features, `Ok(None)` if the file has no group for it. The image's group
+    /// is resolved once and its datasets listed once: a query costs one path lookup, whatever
+    /// the number of images or levels.
     pub fn features(&self, name: &str) -> Result<Option<QueryFeatures>, InputError> {
+        // No such group (or a dataset of that name): the file has no features for it.
+        let Ok(group) = self.file.group(name) else {
+            return Ok(None);
+        };
+        let datasets: HashMap<String, hdf5_pure::Dataset> = group
+            .iter_datasets()
+            .map_err(|e| self.err(format!("{name}: {e}")))?
+            .collect();
+        // `level<id>_keypoints`, ids as the writer spells them, ascending.
+        let levels: BTreeMap<u16, &str> = datasets
+            .keys()
+            .filter_map(|k| {
+                let digits = k.strip_prefix("level")?.strip_suffix("_keypoints")?;
+                let id: u16 = digits.parse().ok()?;
+                (id.to_string() == digits).then_some((id, digits))
+            })
+            .collect();
         let mut sets = Vec::new();
-        for id in 0..32u16 {
-            if let Some(set) = self.set(name, &format!("level{id}_"), Some(id))? {
+        for (&id, digits) in &levels {
+            if let Some(set) = self.set(name, &datasets, &format!("level{digits}_"), Some(id))? {
                 sets.push(set);
             }
         }
         if sets.is_empty() {
-            match self.set(name, "", None)? {
+            match self.set(name, &datasets, "", None)? {
                 Some(set) => sets.push(set),
                 None => return Ok(None),
             }
         }
-        let global = self
-            .matrix(&format!("{name}/global_descriptor"))?
+        let global = datasets
+            .get("global_descriptor")
+            .map(|ds| self.matrix(&format!("{name}/global_descriptor"), ds))
+            .transpose()?
             .map(|(v, _, _)| v);
         // As for descriptors: a NaN would rank every database image equal, silently.
         if let Some(v) = global

@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import json as _json
 import os as _os
-from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple, Union
+from functools import cached_property as _cached_property
+from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Union
 
 import numpy as _np
 
@@ -88,7 +89,8 @@ PathLike = Union[str, "_os.PathLike[str]"]
 class Points:
     """The map's 3D points: ``positions`` (N×3 float32, relative to ``origin``; ``None`` in a
     ``minimal`` slice, which stores ``positions_q16``), ``colors`` (N×3 uint8), ``ids`` (N
-    uint64, COLMAP ``point3D_id``), each a view or ``None``."""
+    uint64, COLMAP ``point3D_id``), each a view or ``None``. ``relative()`` and ``world()``
+    decode the positions of every map, a ``minimal`` one's included."""
 
     def __init__(self, map: "Map") -> None:
         self._map = map
@@ -113,11 +115,18 @@ class Points:
 
     @property
     def origin(self) -> Tuple[float, float, float]:
-        return tuple(self._map.origin)  # type: ignore[return-value]
+        return self._map.origin
+
+    def relative(self) -> _np.ndarray:
+        """Positions relative to ``origin`` (N×3 float32, a copy), whichever way the map
+        stores them: ``positions``, or a ``minimal`` map's ``positions_q16`` decoded from its
+        grid. Checked as the library reads them."""
+        return self._map._point_positions(False)
 
     def world(self) -> _np.ndarray:
-        """World coordinates (a float64 copy): ``positions + origin``."""
-        return self.positions.astype(_np.float64) + _np.asarray(self._map.origin)
+        """World coordinates (N×3 float64, a copy): ``relative() + origin``, for every map
+        (a ``minimal`` one's 16-bit grid decoded)."""
+        return self._map._point_positions(True)
 
     def __len__(self) -> int:
         return int(self._map.n_points)
@@ -189,6 +198,8 @@ class Levels:
         return list(self._map.level_ids)
 
     def __getitem__(self, level: int) -> Level:
+        """Level ``level``; ``NoSuchLevelError`` if the map has none (any int, negative or
+        past 65535 included)."""
         return Level(self._map, level)
 
     def __iter__(self) -> Iterator[Level]:
@@ -204,17 +215,33 @@ class Levels:
 class Images:
     """The map's database images: ``names`` (list of str), ``poses`` (N×7 float64,
     ``cam_from_world`` as qw qx qy qz tx ty tz), ``cameras`` (N uint32, index into
-    ``Map.cameras``), ``ids`` (COLMAP ``image_id``), ``global_descriptors`` (N×d float16)."""
+    ``Map.cameras``), ``ids`` (COLMAP ``image_id``), ``global_descriptors`` (N×d float16).
+    ``index(name)`` is an image's index. Names are read once (``Map.images`` is one object
+    per map)."""
 
     def __init__(self, map: "Map") -> None:
         self._map = map
         self._names: Optional[List[str]] = None
+        self._index: Optional[Dict[str, int]] = None
 
     @property
     def names(self) -> List[str]:
         if self._names is None:
             self._names = self._map._image_names() or []
         return self._names
+
+    def index(self, name: str) -> int:
+        """The index of the image ``name`` (in ``names``, ``poses``, ...); ``ValueError`` if
+        the map has no such image, as ``list.index``. O(1) after the first call."""
+        if self._index is None:
+            index: Dict[str, int] = {}
+            for i, n in enumerate(self.names):
+                index.setdefault(n, i)
+            self._index = index
+        try:
+            return self._index[name]
+        except KeyError:
+            raise ValueError(f"{name!r}: no such image in the map") from None
 
     @property
     def poses(self) -> _np.ndarray:
@@ -267,37 +294,42 @@ class Map(_sfpmap._Map):
     keep the mapping alive until they are gone). Section views are read-only numpy arrays
     over the mapping, see the module docs."""
 
-    @property
+    @_cached_property
     def points(self) -> Points:
         return Points(self)
 
-    @property
+    @_cached_property
     def levels(self) -> Levels:
         return Levels(self)
 
     def level(self, level: int) -> Level:
         return Level(self, level)
 
-    @property
+    @_cached_property
     def images(self) -> Optional[Images]:
+        """The database images (one object per map, so names are read once), or ``None``."""
         return Images(self) if self._section("image_poses") is not None else None
 
-    @property
+    @_cached_property
     def visibility(self) -> Optional[Visibility]:
         return Visibility(self) if self._section("visibility_offsets") is not None else None
 
-    @property
+    @_cached_property
     def metadata(self) -> Dict[str, Any]:
-        """The metadata block (a dict parsed from its JSON)."""
+        """The metadata block (a dict parsed from its JSON once; every access returns that
+        same dict, so copy it before changing it)."""
         return _json.loads(self._metadata_json())
 
     @property
     def cameras(self) -> List[Dict[str, Any]]:
-        """The metadata cameras (``model``, ``width``, ``height``, ``params``)."""
+        """The metadata cameras (``model``, ``width``, ``height``, ``params``), from the
+        parsed ``metadata``."""
         return self.metadata.get("cameras", [])
 
     def section(self, kind: str, level: Optional[int] = None) -> Optional[_np.ndarray]:
-        """A view of any section by its spec name (``"image_vlad"``, ...), or ``None``."""
+        """A view of any section by its spec name (``"image_vlad"``, ...), or ``None`` if the
+        map has none or this version skips it (a later minor's encoding it does not know).
+        ``InputError`` for a name that is no section kind of the spec."""
         return self._section(kind, level)
 
     def info(self) -> Dict[str, Any]:
@@ -315,8 +347,10 @@ class Localization:
     """One query's result: ``success``; ``cam_from_world`` (4×4 float64, or ``None``),
     ``quaternion`` (w, x, y, z) and ``translation``; ``colmap`` (qw qx qy qz tx ty tz);
     ``inliers``, ``inliers_per_level`` ({level: n}), ``matches``, ``retrieved`` (image
-    indices) and ``retrieved_names``, ``path``, ``retrieval``, ``retrieval_fallback``,
-    ``times`` (ms per stage) and ``failure`` (why not localized, or ``None``)."""
+    indices) and ``retrieved_names``, ``retrieved_images`` (how many retrieval gave),
+    ``path``, ``tracking_lost``, ``retrieval``, ``retrieval_fallback``, ``times`` (ms per
+    stage) and ``failure`` (why not localized, or ``None``). Names as the CLI's JSON has
+    them where it has them."""
 
     __slots__ = ("_r",)
 
@@ -373,8 +407,16 @@ class Localization:
         return list(self._r.retrieved_names)
 
     @property
+    def retrieved_images(self) -> int:
+        return int(self._r.retrieved_images)
+
+    @property
     def path(self) -> str:
         return self._r.path
+
+    @property
+    def tracking_lost(self) -> Optional[str]:
+        return self._r.tracking_lost
 
     @property
     def retrieval(self) -> Optional[str]:
@@ -446,16 +488,20 @@ class Localizer:
         return Localization(self._inner.localize(features, camera, g, name))
 
     def localize_many(
-        self, queries: Sequence[Tuple[Any, ...]], threads: int = 2
+        self, queries: Iterable[Sequence[Any]], threads: Optional[int] = None
     ) -> List[Localization]:
-        """Localizes ``[(features, camera)]`` or ``[(features, camera, name)]`` on
-        ``threads`` Rust threads (GIL released); results in input order."""
-        return [Localization(r) for r in self._inner.localize_many(list(queries), threads)]
+        """Localizes an iterable of ``(features, camera)`` or ``(features, camera, name)`` on
+        ``threads`` Rust threads (GIL released); results in input order. ``threads``:
+        default the machine's available parallelism; 0 is an ``InputError``; more than 4 per
+        core (or 256) is capped, with a ``RuntimeWarning``, as the CLI caps ``--threads``."""
+        return [Localization(r) for r in self._inner.localize_many(queries, threads)]
 
 
 class Extractor:
     """The SFP extractor (``model=None``: the embedded sfp-v1). ONNX Runtime is found or
-    fetched as the CLI does (``ORT_DYLIB_PATH``, the cache, ``sfpmap setup``)."""
+    fetched as the CLI does (``ORT_DYLIB_PATH``, the cache, ``sfpmap setup``). ``threads``
+    as the CLI's ``--threads``: at least 1, capped at 4 per core (at most 256) with a
+    ``RuntimeWarning``."""
 
     def __init__(self, model: Optional[PathLike] = None, threads: int = 2) -> None:
         self._inner = _sfpmap._Extractor(None if model is None else _os.fspath(model), threads)
@@ -495,7 +541,9 @@ def convert(
     """``sfpmap convert``: a COLMAP model folder into the map ``out`` (a SIFT map with
     ``database``, an SFP map with ``images``, else geometry only). ``options`` are the
     CLI's flags (``force``, ``codec``, ``short_dims``, ``aggregate``, ``vlad_clusters``,
-    ``pq``, ``model``, ``resize_max``, ...). Returns what ``convert --json`` prints."""
+    ``pq``, ``model``, ``resize_max``, ``threads``, ...), checked as the CLI checks them:
+    ``images`` with ``database``, ``short_dims``, ``aggregate`` or ``strict`` is the CLI's
+    ``InputError``. Returns what ``convert --json`` prints."""
     if out is None:
         raise InputError("out: the map to write")
     return _json.loads(
@@ -511,7 +559,7 @@ def convert(
 
 def slice(
     map_path: PathLike,
-    levels: Sequence[int] = (2,),
+    levels: Sequence[int],
     short: bool = False,
     out: Optional[PathLike] = None,
     **options: Any,
@@ -536,7 +584,9 @@ def from_pycolmap(
 ) -> Dict[str, Any]:
     """``convert`` of a ``pycolmap.Reconstruction`` in memory (no temp files). The map equals
     ``sfpmap convert`` of the same model's files except for provenance, which records
-    ``source`` (default ``"pycolmap.Reconstruction"``) and lists no model files."""
+    ``source`` (default ``"pycolmap.Reconstruction"``) and lists no model files. An object
+    that is not a reconstruction (a missing attribute, a value of the wrong type) is a
+    ``ConvertError`` whose ``__cause__`` is Python's error."""
     if out is None:
         raise InputError("out: the map to write")
     return _json.loads(

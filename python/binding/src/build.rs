@@ -2,8 +2,10 @@
 //! the object the CLI's `--json` prints (as JSON text; `sfpmap/__init__.py` parses it).
 
 use crate::errors::{
-    chain, format_error, output_error, within, ConvertError, FileError, InputError,
+    chain, format_error, level_arg, no_such_level, output_error, within, ConvertError, FileError,
+    InputError,
 };
+use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
 use sfpmap::build::{Aggregate, ConvertOptions, SfpMapOptions, VladOptions};
 use sfpmap::colmap::{Camera as ColmapCamera, Image, Point2D, Reconstruction, TrackElement};
@@ -59,15 +61,28 @@ impl Options {
         short_dims: Option<u32>,
         codec_name: &str,
         zstd_level: i32,
-        aggregate: &str,
+        aggregate: Option<&str>,
         strict: bool,
         vlad_clusters: usize,
         vlad_dims: usize,
         pq: Option<usize>,
     ) -> PyResult<Options> {
         let bad = |m: String| Err(InputError::new_err(m));
-        if database.is_some() && images.is_some() {
-            return bad("database and images exclude each other (SIFT or SFP map)".into());
+        // `sfpmap convert`'s parser: `--images` conflicts with `--database`, `--short-dims`,
+        // `--aggregate` and `--strict` (cli/convert.rs, `conflicts_with_all`); the first
+        // conflict, in the words of its one-line error.
+        if images.is_some() {
+            let given = [
+                (database.is_some(), "--database <DATABASE>"),
+                (short_dims.is_some(), "--short-dims <SHORT_DIMS>"),
+                (aggregate.is_some(), "--aggregate <AGGREGATE>"),
+                (strict, "--strict"),
+            ];
+            if let Some((_, flag)) = given.iter().find(|(given, _)| *given) {
+                return bad(format!(
+                    "the argument '--images <IMAGES>' cannot be used with '{flag}'"
+                ));
+            }
         }
         if images.is_none() && (model.is_some() || allow_missing || resize_max.is_some()) {
             return bad("model, allow_missing and resize_max need images".into());
@@ -96,7 +111,7 @@ impl Options {
         if !(1..=256).contains(&vlad_dims) {
             return bad("vlad_dims: a number of dimensions from 1 to 256".into());
         }
-        let aggregate = match aggregate {
+        let aggregate = match aggregate.unwrap_or("mean") {
             "mean" => Aggregate::Mean,
             "medoid" => Aggregate::Medoid,
             other => return bad(format!("aggregate {other:?}: \"mean\" or \"medoid\"")),
@@ -106,7 +121,7 @@ impl Options {
             images,
             model,
             allow_missing,
-            threads: threads.clamp(1, 256),
+            threads,
             resize_max,
             score_threshold,
             short_dims,
@@ -175,7 +190,7 @@ impl Options {
 #[pyfunction]
 #[pyo3(signature = (model_dir, database=None, images=None, *, out, force=false, model=None,
                     allow_missing=false, threads=2, resize_max=None, score_threshold=None,
-                    short_dims=None, codec="raw", zstd_level=3, aggregate="mean", strict=false,
+                    short_dims=None, codec="raw", zstd_level=3, aggregate=None, strict=false,
                     vlad_clusters=sfpmap::vlad::DEFAULT_CLUSTERS, vlad_dims=sfpmap::vlad::DEFAULT_DIMS, pq=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn convert(
@@ -187,19 +202,24 @@ pub(crate) fn convert(
     force: bool,
     model: Option<PathBuf>,
     allow_missing: bool,
-    threads: usize,
+    threads: i64,
     resize_max: Option<u32>,
     score_threshold: Option<f32>,
     short_dims: Option<u32>,
     codec: &str,
     zstd_level: i32,
-    aggregate: &str,
+    aggregate: Option<&str>,
     strict: bool,
     vlad_clusters: usize,
     vlad_dims: usize,
     pq: Option<usize>,
 ) -> PyResult<String> {
     let start = Instant::now();
+    // As the CLI: 0 is refused, the cap (and its warning) applies where threads are used.
+    let threads = match (&images, threads) {
+        (Some(_), _) | (None, ..=0) => crate::thread_count(py, Some(threads))?,
+        (None, n) => n as usize,
+    };
     let o = Options::new(
         database,
         images,
@@ -250,7 +270,7 @@ pub(crate) fn convert(
 pub(crate) fn slice(
     py: Python<'_>,
     map_path: PathBuf,
-    levels: Vec<u16>,
+    levels: Vec<Bound<'_, PyAny>>,
     short: bool,
     out: PathBuf,
     minimal: bool,
@@ -273,16 +293,22 @@ pub(crate) fn slice(
             "pq: 1 to 4096 one-byte codes per point",
         ));
     }
-    let options = sfpmap::format::SliceOptions {
-        levels: levels.clone(),
+    let mut options = sfpmap::format::SliceOptions {
+        levels: Vec::new(),
         short,
         codec: codec.map(self::codec).transpose()?,
         zstd_level,
         minimal,
     };
+    // Ids, or the text of an int no level can be (refused once the map's levels are known).
+    let levels: Vec<Result<u16, String>> = levels.iter().map(level_arg).collect::<PyResult<_>>()?;
     sfpmap::output::check_output(&out, &[&map_path], force).map_err(output_error)?;
     let value = py.detach(|| -> PyResult<serde_json::Value> {
         let map = sfpmap::format::Map::open(&map_path).map_err(|e| format_error(&map_path, e))?;
+        options.levels = levels
+            .into_iter()
+            .collect::<Result<_, String>>()
+            .map_err(|bad| no_such_level(&map_path, &bad, &map.level_ids()))?;
         let sliced = slice_quantised(&map, &options, pq.map(usize::from))
             .map_err(|e| format_error(&map_path, e))?;
         let written = sliced.writer.write(&out, &Silent).map_err(|e| match e {
@@ -294,8 +320,24 @@ pub(crate) fn slice(
     Ok(value.to_string())
 }
 
-/// A pycolmap `Reconstruction` as the library's model, read through its attributes.
+/// A pycolmap `Reconstruction` as the library's model, read through its attributes; an
+/// object that is not one (a missing attribute, a value of the wrong type) is a
+/// `ConvertError` naming what Python said, with that exception as its `__cause__`.
 fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
+    let py = rec.py();
+    read_reconstruction(rec).map_err(|e| {
+        if e.is_instance_of::<ConvertError>(py) || !e.is_instance_of::<PyException>(py) {
+            // Ours already, or not an error of the object (KeyboardInterrupt, ...).
+            return e;
+        }
+        let converted = ConvertError::new_err(format!("pycolmap reconstruction: {e}"));
+        converted.set_cause(py, Some(e));
+        converted
+    })
+}
+
+/// [`reconstruction_of`], Python's errors as they are.
+fn read_reconstruction(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
     let bad = |what: String| ConvertError::new_err(format!("pycolmap reconstruction: {what}"));
     let vec_f64 = |v: Bound<'_, PyAny>| -> PyResult<Vec<f64>> {
         match v.extract::<Vec<f64>>() {
@@ -417,7 +459,7 @@ fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
 #[pyo3(signature = (reconstruction, database=None, images=None, *, out, force=false,
                     source="pycolmap.Reconstruction", model=None, allow_missing=false, threads=2,
                     resize_max=None, score_threshold=None, short_dims=None, codec="raw",
-                    zstd_level=3, aggregate="mean", strict=false,
+                    zstd_level=3, aggregate=None, strict=false,
                     vlad_clusters=sfpmap::vlad::DEFAULT_CLUSTERS, vlad_dims=sfpmap::vlad::DEFAULT_DIMS, pq=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn from_pycolmap(
@@ -430,19 +472,24 @@ pub(crate) fn from_pycolmap(
     source: &str,
     model: Option<PathBuf>,
     allow_missing: bool,
-    threads: usize,
+    threads: i64,
     resize_max: Option<u32>,
     score_threshold: Option<f32>,
     short_dims: Option<u32>,
     codec: &str,
     zstd_level: i32,
-    aggregate: &str,
+    aggregate: Option<&str>,
     strict: bool,
     vlad_clusters: usize,
     vlad_dims: usize,
     pq: Option<usize>,
 ) -> PyResult<String> {
     let start = Instant::now();
+    // As the CLI: 0 is refused, the cap (and its warning) applies where threads are used.
+    let threads = match (&images, threads) {
+        (Some(_), _) | (None, ..=0) => crate::thread_count(py, Some(threads))?,
+        (None, n) => n as usize,
+    };
     let o = Options::new(
         database,
         images,

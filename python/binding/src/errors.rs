@@ -4,7 +4,7 @@
 //! `: `), with the file at fault in front; an exception's text is that line without
 //! `error: `.
 
-use pyo3::exceptions::PyException;
+use pyo3::exceptions::{PyException, PyOverflowError};
 use pyo3::prelude::*;
 use pyo3::{create_exception, PyErr};
 use std::path::Path;
@@ -105,6 +105,38 @@ pub(crate) fn format_error(path: &Path, e: sfpmap::format::Error) -> PyErr {
         E::NoSuchLevel { .. } => NoSuchLevelError::new_err(within(&path.display().to_string(), &e)),
         _ => MapError::new_err(within(&path.display().to_string(), &e)),
     }
+}
+
+/// A level argument (any Python int): `Ok(id)`, or `Err(its decimal text)` for an int no
+/// level id can be (negative, past 65535); not an int is Python's `TypeError`.
+pub(crate) fn level_arg(obj: &Bound<'_, PyAny>) -> PyResult<Result<u16, String>> {
+    match obj.extract::<i64>() {
+        Ok(level) => Ok(u16::try_from(level).map_err(|_| level.to_string())),
+        Err(e) if e.is_instance_of::<PyOverflowError>(obj.py()) => Ok(Err(obj.str()?.to_string())),
+        Err(e) => Err(e),
+    }
+}
+
+/// `NoSuchLevelError` for a level no id can be (`level`: its decimal text), in the words of
+/// the library's `no_such_level`, the map's path in front.
+pub(crate) fn no_such_level(path: &Path, level: &str, available: &[u16]) -> PyErr {
+    NoSuchLevelError::new_err(format!(
+        "{}: no level {level} in this map (levels: {available:?})",
+        path.display()
+    ))
+}
+
+/// `levels` (Python ints) as level ids; one that cannot be an id is `no_such_level` of the
+/// map at `path`, whose levels `available` lists.
+pub(crate) fn level_ids(
+    path: &Path,
+    levels: &[Bound<'_, PyAny>],
+    available: impl FnOnce() -> Vec<u16>,
+) -> PyResult<Vec<u16>> {
+    let ids = levels.iter().map(level_arg).collect::<PyResult<Vec<_>>>()?;
+    ids.into_iter()
+        .collect::<Result<Vec<u16>, String>>()
+        .map_err(|bad| no_such_level(path, &bad, &available()))
 }
 
 pub(crate) fn output_error(e: sfpmap::output::OutputError) -> PyErr {

@@ -16,6 +16,9 @@ use std::sync::Mutex;
 pub(crate) struct Extractor {
     inner: Mutex<Inner>,
     model_name: String,
+    /// The model's RGB-to-grey weights, read at construction: preparing an image takes no
+    /// lock (and never waits for a network run while holding the GIL).
+    gray_weights: [f32; 3],
 }
 
 fn extract_error(e: sfpmap::extract::ExtractError) -> PyErr {
@@ -82,19 +85,19 @@ fn image_of(array: &Bound<'_, PyAny>) -> PyResult<image::DynamicImage> {
 impl Extractor {
     #[new]
     #[pyo3(signature = (model=None, threads=2))]
-    fn new(py: Python<'_>, model: Option<PathBuf>, threads: usize) -> PyResult<Self> {
+    fn new(py: Python<'_>, model: Option<PathBuf>, threads: i64) -> PyResult<Self> {
         sfpmap::extract::runtime::disable_telemetry();
-        let options = ExtractorOptions {
-            model,
-            threads: threads.max(1),
-        };
+        let threads = crate::thread_count(py, Some(threads))?;
+        let options = ExtractorOptions { model, threads };
         let inner = py
             .detach(|| Inner::new(&options, &sfpmap::progress::Silent))
             .map_err(extract_error)?;
         let model_name = inner.contract().model_name.clone();
+        let gray_weights = inner.contract().gray_weights;
         Ok(Extractor {
             inner: Mutex::new(inner),
             model_name,
+            gray_weights,
         })
     }
 
@@ -116,12 +119,7 @@ impl Extractor {
         nms_radius: Option<u32>,
         max_keypoints: Option<Vec<usize>>,
     ) -> PyResult<Features> {
-        let weights = self
-            .inner
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .contract()
-            .gray_weights;
+        let weights = self.gray_weights;
         let path = image.extract::<PathBuf>().ok();
         let input = if let Some(path) = &path {
             py.detach(|| sfpmap::extract::image::load(path, weights, resize_max))
@@ -130,13 +128,6 @@ impl Extractor {
             let decoded = image_of(image)?;
             py.detach(|| sfpmap::extract::image::from_image(&decoded, weights, resize_max))
         };
-        if let Some(reason) = sfpmap::extract::too_large_for_the_network(input.width, input.height)
-        {
-            return Err(ExtractError::new_err(match &path {
-                Some(p) => format!("{}: {reason}", p.display()),
-                None => reason,
-            }));
-        }
         let options = DetectOptions {
             threshold,
             nms_radius,
@@ -162,10 +153,11 @@ impl Extractor {
     }
 }
 
-/// Query features from an hloc-style `features.h5` (`sfpmap extract`'s, or hloc's own).
+/// Query features from an hloc-style `features.h5` (`sfpmap extract`'s, or hloc's own), read
+/// on demand (never whole); threads query it concurrently.
 #[pyclass(frozen, module = "sfpmap._sfpmap", name = "FeaturesFile")]
 pub(crate) struct FeaturesFile {
-    inner: Mutex<H5Features>,
+    inner: H5Features,
 }
 
 #[pymethods]
@@ -175,20 +167,13 @@ impl FeaturesFile {
         let inner = py
             .detach(|| H5Features::open(&path))
             .map_err(|e| InputError::new_err(chain(&e)))?;
-        Ok(FeaturesFile {
-            inner: Mutex::new(inner),
-        })
+        Ok(FeaturesFile { inner })
     }
 
     /// The features of image `name`, or `None` if the file has none.
     fn features(&self, py: Python<'_>, name: &str) -> PyResult<Option<Features>> {
         let f = py
-            .detach(|| {
-                self.inner
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .features(name)
-            })
+            .detach(|| self.inner.features(name))
             .map_err(|e| InputError::new_err(chain(&e)))?;
         Ok(f.map(Features::new))
     }

@@ -21,6 +21,53 @@ mod localize;
 mod map;
 
 use pyo3::prelude::*;
+use std::sync::Mutex;
+
+/// Collects the library's warnings, for Python's `warnings` once the work is done.
+#[derive(Default)]
+pub(crate) struct Warnings(Mutex<Vec<String>>);
+
+impl sfpmap::progress::Reporter for Warnings {
+    fn warn(&self, message: &str) {
+        self.0
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .push(message.to_string());
+    }
+}
+
+impl Warnings {
+    /// Each warning as a Python `RuntimeWarning`, attributed to the caller of the package's
+    /// function.
+    pub(crate) fn emit(self, py: Python<'_>) -> PyResult<()> {
+        let category = py.get_type::<pyo3::exceptions::PyRuntimeWarning>();
+        for message in self.0.into_inner().unwrap_or_else(|p| p.into_inner()) {
+            let text = std::ffi::CString::new(message.replace('\0', " "))
+                .expect("no NUL left in the message");
+            PyErr::warn(py, &category, &text, 2)?;
+        }
+        Ok(())
+    }
+}
+
+/// A `threads` argument as the CLI takes `--threads`: at least 1 (`InputError`, as the CLI's
+/// parser refuses less), capped at 4 per core and at most 256 with a `RuntimeWarning`
+/// (`sfpmap::progress::cap_threads`). `None`: the machine's available parallelism.
+pub(crate) fn thread_count(py: Python<'_>, requested: Option<i64>) -> PyResult<usize> {
+    let requested = match requested {
+        Some(n) if n < 1 => {
+            return Err(errors::InputError::new_err(format!(
+                "threads {n}: at least 1 thread"
+            )))
+        }
+        Some(n) => usize::try_from(n).unwrap_or(usize::MAX),
+        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
+    };
+    let warnings = Warnings::default();
+    let threads = sfpmap::progress::cap_threads("threads", requested, &warnings);
+    warnings.emit(py)?;
+    Ok(threads)
+}
 
 #[pymodule]
 fn _sfpmap(m: &Bound<'_, PyModule>) -> PyResult<()> {

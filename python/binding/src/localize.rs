@@ -4,7 +4,9 @@
 //! Python threads at once (the GIL is released while it runs), and `localize_many` runs the
 //! queries on Rust threads.
 
-use crate::errors::{chain, within, InputError, LocalizeError, MapError, NoSuchLevelError};
+use crate::errors::{
+    chain, level_ids, within, InputError, LocalizeError, MapError, NoSuchLevelError,
+};
 use crate::map::{Map, Opened};
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyReadonlyArray2, PyUntypedArrayMethods};
@@ -304,9 +306,12 @@ fn features_of(
             "features: expected Features, (keypoints, descriptors) or {level: (keypoints, descriptors)}",
         ));
     };
+    // The library reads the global descriptor from the features: one made here from arrays is
+    // this call's own and takes it in place; a shared `Features` object is copied (the
+    // library has no call taking the global descriptor beside the features).
     Ok(match global_descriptor {
         Some(g) => {
-            let mut f = (*features).clone();
+            let mut f = Arc::try_unwrap(features).unwrap_or_else(|shared| (*shared).clone());
             f.global = Some(g);
             Arc::new(f)
         }
@@ -371,7 +376,7 @@ impl Localizer {
     fn new(
         py: Python<'_>,
         map: &Bound<'_, Map>,
-        levels: Option<Vec<u16>>,
+        levels: Option<Vec<Bound<'_, PyAny>>>,
         short: bool,
         top_k: usize,
         retrieval: &str,
@@ -385,8 +390,11 @@ impl Localizer {
         min_inliers: usize,
     ) -> PyResult<Self> {
         let opened = map.get().opened(py)?;
+        let levels = level_ids(&opened.path, &levels.unwrap_or_default(), || {
+            opened.map.level_ids()
+        })?;
         let options = LocalizeOptions {
-            levels: levels.unwrap_or_default(),
+            levels,
             short,
             top_k,
             retrieval: retrieval_method(retrieval)?,
@@ -456,39 +464,40 @@ impl Localizer {
         Ok(Localization::new(outcome, &self.prepared.opened))
     }
 
-    /// Localizes `queries` (a list of `(features, camera)` or `(features, camera, name)`) on
-    /// `threads` Rust threads sharing this localizer, GIL released; results in order.
-    #[pyo3(signature = (queries, threads=2))]
+    /// Localizes `queries` (any iterable of `(features, camera)` or `(features, camera,
+    /// name)`) on `threads` Rust threads sharing this localizer (default: the machine's
+    /// parallelism; capped as the CLI caps `--threads`), GIL released; results in order.
+    #[pyo3(signature = (queries, threads=None))]
     fn localize_many(
         &self,
         py: Python<'_>,
-        queries: &Bound<'_, PyList>,
-        threads: usize,
+        queries: &Bound<'_, PyAny>,
+        threads: Option<i64>,
     ) -> PyResult<Vec<Localization>> {
-        let mut inputs = Vec::with_capacity(queries.len());
-        for (i, q) in queries.iter().enumerate() {
-            let t = q.cast::<PyTuple>().map_err(|_| {
+        let threads = crate::thread_count(py, threads)?;
+        let mut inputs = Vec::new();
+        for (i, q) in queries.try_iter()?.enumerate() {
+            let q = q?;
+            let bad = || {
                 InputError::new_err(format!(
                     "query {i}: expected (features, camera) or (features, camera, name)"
                 ))
-            })?;
-            if !(2..=3).contains(&t.len()) {
-                return Err(InputError::new_err(format!(
-                    "query {i}: expected (features, camera) or (features, camera, name)"
-                )));
-            }
-            let name = if t.len() == 3 {
-                t.get_item(2)?.extract::<String>()?
-            } else {
-                format!("#{i}")
             };
-            inputs.push((
-                features_of(&t.get_item(0)?, None)?,
-                camera_of(&t.get_item(1)?)?,
-                name,
-            ));
+            let items: Vec<Bound<'_, PyAny>> = if let Ok(t) = q.cast::<PyTuple>() {
+                t.iter().collect()
+            } else if let Ok(l) = q.cast::<PyList>() {
+                l.iter().collect()
+            } else {
+                return Err(bad());
+            };
+            let (features, camera, name) = match items.as_slice() {
+                [f, c] => (f, c, format!("#{i}")),
+                [f, c, n] => (f, c, n.extract::<String>()?),
+                _ => return Err(bad()),
+            };
+            inputs.push((features_of(features, None)?, camera_of(camera)?, name));
         }
-        let workers = threads.clamp(1, 256).min(inputs.len().max(1));
+        let workers = threads.min(inputs.len().max(1));
         let outcomes = py.detach(|| {
             let results: Vec<Mutex<Option<Result<Outcome, String>>>> =
                 inputs.iter().map(|_| Mutex::new(None)).collect();
@@ -536,7 +545,9 @@ pub(crate) struct Localization {
     matches: usize,
     retrieved: Vec<usize>,
     retrieved_names: Vec<String>,
+    retrieved_images: usize,
     path: &'static str,
+    tracking_lost: Option<String>,
     retrieval: Option<&'static str>,
     retrieval_fallback: Option<String>,
     times: [f64; 5],
@@ -570,7 +581,9 @@ impl Localization {
             matches: o.matches,
             retrieved: o.retrieved.clone(),
             retrieved_names,
+            retrieved_images: o.retrieved_images,
             path: o.path.name(),
+            tracking_lost: o.tracking_lost.map(|w| w.to_string()),
             retrieval: o.retrieval.map(|m| m.name()),
             retrieval_fallback: o.retrieval_fallback.map(|w| w.to_string()),
             times: [
@@ -638,10 +651,24 @@ impl Localization {
         self.retrieved_names.clone()
     }
 
+    /// How many database images retrieval gave the coarse stage (the CLI JSON's
+    /// `retrieved_images`).
+    #[getter]
+    fn retrieved_images(&self) -> usize {
+        self.retrieved_images
+    }
+
     /// `"retrieval"` or `"tracking"`.
     #[getter]
     fn path(&self) -> &'static str {
         self.path
+    }
+
+    /// With a pose prior: why tracking did not hold, so the retrieval path ran (the CLI
+    /// JSON's `tracking_lost`); `None` otherwise.
+    #[getter]
+    fn tracking_lost(&self) -> Option<String> {
+        self.tracking_lost.clone()
     }
 
     /// The stored descriptor that ranked the images (`"vlad"`, `"global"`), if any.

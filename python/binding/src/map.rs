@@ -7,19 +7,23 @@
 //! (`ClosedError`), and the file is unmapped when the last view is garbage-collected. No path
 //! leads to a use after unmap.
 //!
+//! Sections are found through the library's lookup (`Map::find`), so a section this reader
+//! skips (a later minor's codec, dtype or flag it does not know) is absent, never a view.
 //! Views of raw sections are the mapped bytes themselves: O(1), no copy, no page touched (so
 //! no checksum either: `Map.verify()` checks every section, and the localizer checks each it
-//! reads, as the library does on first access). A zstd section is checked and decoded once,
-//! on its first view; the library keeps the decoded bytes for the map's lifetime and every
-//! later view shares them. Views are read-only (the mapping is `PROT_READ`).
+//! reads, as the library does on first access). A section in any other codec (zstd, delta) is
+//! checked and decoded once by the library (`Map::section_bytes`), on its first view; the
+//! library keeps the decoded bytes for the map's lifetime and every later view shares them.
+//! Views are read-only (the mapping is `PROT_READ`).
 
-use crate::errors::{format_error, ClosedError, MapError};
+use crate::errors::{format_error, level_arg, no_such_level, ClosedError, InputError, MapError};
 use numpy::ndarray::{ArrayView, IxDyn};
 use numpy::{Element, PyArray, PyArrayMethods};
 use pyo3::prelude::*;
-use sfpmap::format::{Codec, Dtype, Map as FormatMap, Section};
+use sfpmap::format::{Codec, Dtype, Map as FormatMap, Section, SectionKind};
+use std::collections::HashMap;
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 
 /// An open map and the path it was opened from.
 pub(crate) struct Opened {
@@ -65,11 +69,20 @@ impl Map {
     }
 }
 
-/// The section of `kind` (its name in the spec, e.g. `"level_desc_short"`) and `level`.
-fn find<'m>(map: &'m FormatMap<'_>, kind: &str, level: Option<u16>) -> Option<&'m Section> {
-    map.sections()
-        .iter()
-        .find(|s| s.level() == level && s.kind().name() == kind)
+/// The section kind the spec names `name` (`"level_desc_short"`, ...), `None` for a name
+/// this version does not know.
+fn kind_named(name: &str) -> Option<SectionKind> {
+    static KINDS: OnceLock<HashMap<&'static str, SectionKind>> = OnceLock::new();
+    KINDS
+        .get_or_init(|| {
+            (0..=u16::MAX)
+                .map(SectionKind::from_code)
+                .filter(|k| !matches!(k, SectionKind::Unknown(_)))
+                .map(|k| (k.name(), k))
+                .collect()
+        })
+        .get(name)
+        .copied()
 }
 
 /// A read-only numpy array of `bytes` as `T` in `shape`, whose base is `owner`; a copy when
@@ -102,8 +115,10 @@ fn view<'py, T: Element + bytemuck::Pod>(
     Ok(array.into_any())
 }
 
-/// A view of `section` of the map `owner` holds: `(rows,)` for one column, else
-/// `(rows, cols)`.
+/// A view of `section` (one the library's lookup gave, so not skipped) of the map `owner`
+/// holds: `(rows,)` for the kinds whose column count the spec fixes at 1 (point ids, level
+/// points, image cameras and ids, offsets, visibility points), else `(rows, cols)`, even with
+/// one column (a 1-dimension descriptor block stays 2-D).
 pub(crate) fn section_view<'py>(
     owner: &Bound<'py, Mapping>,
     section: &Section,
@@ -111,26 +126,25 @@ pub(crate) fn section_view<'py>(
     let opened = &owner.get().opened;
     let map = &opened.map;
     let bytes: &[u8] = match section.codec() {
-        // Validated at open: in bounds, aligned, tiling the file.
+        // Validated at open: in bounds, aligned, tiling the file. The package opens files
+        // (mmap): the whole file is there. Unchecked, so that a view touches no page.
         Codec::Raw => {
             let start = section.offset() as usize;
-            // The package opens files (mmap): the whole file is there.
             let file = map
                 .bytes()
                 .ok_or_else(|| MapError::new_err("the map is not in memory"))?;
             &file[start..start + section.stored_len() as usize]
         }
-        // Checked and decoded once; the GIL is released while it decodes.
-        Codec::Zstd => owner
+        // Any other codec (zstd, and those a later version adds): checked and decoded once
+        // by the library, which keeps the bytes; the GIL is released while it decodes.
+        _ => owner
             .py()
             .detach(|| map.section_bytes(section))
             .map_err(|e| opened.error(e))?,
-        // A codec a later minor version may add; the library refuses it at open.
-        #[allow(unreachable_patterns)]
-        _ => return Err(MapError::new_err("unknown codec")),
     };
     let (rows, cols) = (section.rows() as usize, section.cols() as usize);
-    let shape: Vec<usize> = if cols == 1 {
+    let one_column = matches!(section.kind().expected_layout(), Some((_, Some(1))));
+    let shape: Vec<usize> = if one_column && cols == 1 {
         vec![rows]
     } else {
         vec![rows, cols]
@@ -222,8 +236,9 @@ impl Map {
 
     /// The metadata `origin` that point positions are relative to.
     #[getter]
-    fn origin(&self, py: Python<'_>) -> PyResult<[f64; 3]> {
-        Ok(self.opened(py)?.map.metadata().origin)
+    fn origin(&self, py: Python<'_>) -> PyResult<(f64, f64, f64)> {
+        let [x, y, z] = self.opened(py)?.map.metadata().origin;
+        Ok((x, y, z))
     }
 
     /// The metadata block as JSON text.
@@ -240,20 +255,51 @@ impl Map {
     }
 
     /// A read-only numpy view of the section `kind` (its spec name) of `level`, or `None` if
-    /// the map has none.
+    /// the map has none or this reader skips it (a later minor's encoding it does not know).
+    /// `InputError` for a name that is no section kind.
     #[pyo3(signature = (kind, level=None))]
     fn _section<'py>(
         &self,
         py: Python<'py>,
         kind: &str,
-        level: Option<u16>,
+        level: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Option<Bound<'py, PyAny>>> {
         let owner = self.mapping(py)?;
         let opened = owner.get().opened.clone();
-        match find(&opened.map, kind, level) {
+        let kind = kind_named(kind).ok_or_else(|| {
+            InputError::new_err(format!("section kind {kind:?}: not a kind of the spec"))
+        })?;
+        // A level no id can be has no section.
+        let level = match level.map(level_arg).transpose()?.transpose() {
+            Ok(level) => level,
+            Err(_) => return Ok(None),
+        };
+        match opened.map.find(kind, level) {
             Some(section) => Ok(Some(section_view(&owner, section)?)),
             None => Ok(None),
         }
+    }
+
+    /// Point positions relative to `origin` (`world`: false, float32) or in the world
+    /// (float64), `(points, 3)`: the stored `point_positions`, or a minimal map's
+    /// `point_positions_q16` decoded from its grid, as the library reads them (checked). A
+    /// copy.
+    #[pyo3(signature = (world=false))]
+    fn _point_positions<'py>(&self, py: Python<'py>, world: bool) -> PyResult<Bound<'py, PyAny>> {
+        let opened = self.opened(py)?;
+        let map = &opened.map;
+        let positions = py
+            .detach(|| map.point_positions())
+            .map_err(|e| opened.error(e))?;
+        let n = positions.len();
+        let array = if world {
+            let flat: Vec<f64> = positions.iter().flat_map(|&p| map.to_world(p)).collect();
+            PyArray::from_vec(py, flat).reshape([n, 3])?.into_any()
+        } else {
+            let flat: Vec<f32> = positions.iter().flatten().copied().collect();
+            PyArray::from_vec(py, flat).reshape([n, 3])?.into_any()
+        };
+        Ok(array)
     }
 
     /// `(points, dim_short, dim_full, has_rest, has_descriptors, descriptor, stride)` of a
@@ -261,9 +307,11 @@ impl Map {
     fn _level_info(
         &self,
         py: Python<'_>,
-        level: u16,
+        level: &Bound<'_, PyAny>,
     ) -> PyResult<(usize, usize, usize, bool, bool, String, f64)> {
         let opened = self.opened(py)?;
+        let level = level_arg(level)?
+            .map_err(|bad| no_such_level(&opened.path, &bad, &opened.map.level_ids()))?;
         let l = opened.map.level(level).map_err(|e| opened.error(e))?;
         Ok((
             l.len(),

@@ -26,6 +26,70 @@ def _need(path: Path, what: str) -> Path:
     return path
 
 
+def need_module(name: str):
+    """The module `name`, imported; missing, it fails the test as missing data does (skips
+    under SFPMAP_SKIP_SHARED_DATA=1): the test extra installs it (pyproject, `test`)."""
+    import importlib
+
+    try:
+        return importlib.import_module(name)
+    except ImportError as e:
+        if os.environ.get("SFPMAP_SKIP_SHARED_DATA") == "1":
+            pytest.skip(f"{name} absent ({e}); SFPMAP_SKIP_SHARED_DATA=1")
+        pytest.fail(f"{name} absent ({e}): pip install {name} (the test extra)")
+
+
+def gil_stall(call) -> tuple:
+    """Runs `call` on a thread and spins here meanwhile: (the call's duration, the longest this
+    thread went without running while it ran). A call that holds the GIL stalls this thread
+    for about all of its duration; one that releases it, for a switch interval or two."""
+    import threading
+    import time
+
+    started, done = threading.Event(), threading.Event()
+    span = []
+
+    def work():
+        started.set()  # the last thing before the call
+        t0 = time.perf_counter()
+        try:
+            call()
+        finally:
+            span.extend((t0, time.perf_counter()))
+            done.set()
+
+    worker = threading.Thread(target=work)
+    worker.start()
+    started.wait()
+    first = last = time.perf_counter()
+    longest = 0.0
+    while not done.is_set():
+        now = time.perf_counter()
+        longest = max(longest, now - last)
+        last = now
+    worker.join()
+    t0, t1 = span
+    # A stall from the call's start to this thread's first turn, or from its last turn to
+    # the call's end, counts too.
+    return t1 - t0, max(longest, first - t0, t1 - last)
+
+
+def assert_releases_the_gil(call, min_seconds: float = 0.2) -> None:
+    """`call` lets other Python threads run while it works: this thread, spinning meanwhile,
+    never stalls for half of it. A control call that holds the GIL (a backtracking regular
+    expression) shows that the measurement sees a held GIL."""
+    import re
+
+    seconds, longest = gil_stall(call)
+    assert seconds >= min_seconds, f"the call took {seconds:.3f} s: too short to tell"
+    assert longest < seconds / 2, f"stalled {longest:.3f} s of a {seconds:.3f} s call: the GIL was held"
+    for n in range(16, 40):
+        held, stalled = gil_stall(lambda: re.match(r"(a+)+$", "a" * n + "b"))
+        if held >= min_seconds:
+            break
+    assert stalled > held / 2, f"control: stalled {stalled:.3f} s of {held:.3f} s holding the GIL"
+
+
 @pytest.fixture(scope="session")
 def cli() -> Path:
     return _need(Path(os.environ.get("SFPMAP_CLI", REPO / "target/release/sfpmap")), "the sfpmap CLI")

@@ -2,21 +2,20 @@
 
 from __future__ import annotations
 
-import json
 import subprocess
 
 import numpy as np
 import pytest
 import sfpmap
 
-from conftest import copy_db, run_cli
+from conftest import assert_releases_the_gil, need_module, run_cli
 
 
 def without_provenance(path) -> tuple:
     """A map's content but its provenance: metadata (less provenance) and every section's
     decoded bytes, in table order."""
     with sfpmap.Map(path) as m:
-        meta = m.metadata
+        meta = dict(m.metadata)  # the map's own dict: a copy to change
         meta.pop("provenance")
         sections = [
             (s["kind"], s["level"], s["codec"], m.section(s["kind"], s["level"]).tobytes())
@@ -90,7 +89,7 @@ def test_slice_options_equal_the_cli(cli, sacre_sift, work, flags, options):
 
 
 def test_from_pycolmap_equals_convert(shared, work, sacre_sift):
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = need_module("pycolmap")
     scene = shared / "scenes/sacre-coeur"
     rec = pycolmap.Reconstruction(str(scene / "sparse-map"))
     out = work / "pycolmap-sacre.sfpm"
@@ -102,7 +101,7 @@ def test_from_pycolmap_equals_convert(shared, work, sacre_sift):
 
 
 def test_from_pycolmap_south_building_geometry_and_sfp(cli, shared, work, south_sfp):
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = need_module("pycolmap")
     scene = shared / "scenes/south-building"
     rec = pycolmap.Reconstruction(str(scene / "sparse-map"))
     geometry_cli = work / "south-geom-cli.sfpm"
@@ -121,9 +120,70 @@ def test_from_pycolmap_garbage_raises(tmp_path):
         images = {}
         points3D = {1: object()}
 
-    with pytest.raises(Exception) as e:
+    # A point without `xyz`: Python's AttributeError, as a ConvertError caused by it.
+    with pytest.raises(sfpmap.ConvertError, match="pycolmap reconstruction: AttributeError") as e:
         sfpmap.from_pycolmap(Fake(), out=tmp_path / "x.sfpm")
+    assert isinstance(e.value.__cause__, AttributeError)
     assert not (tmp_path / "x.sfpm").exists()
-    with pytest.raises(AttributeError):
+    with pytest.raises(sfpmap.ConvertError, match="cameras"):
         sfpmap.from_pycolmap(object(), out=tmp_path / "y.sfpm")
-    assert isinstance(e.value, (AttributeError, TypeError, sfpmap.Error))
+
+    class BadId:
+        cameras = {}
+        images = {}
+        points3D = {"one": object()}
+
+    # A point id that is no integer: Python's TypeError, as a ConvertError.
+    with pytest.raises(sfpmap.ConvertError) as e:
+        sfpmap.from_pycolmap(BadId(), out=tmp_path / "z.sfpm")
+    assert isinstance(e.value.__cause__, TypeError)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    "flags, options",
+    [
+        (["--database", "x.db"], {"database": "x.db"}),
+        (["--short-dims", "8"], {"short_dims": 8}),
+        (["--aggregate", "mean"], {"aggregate": "mean"}),
+        (["--strict"], {"strict": True}),
+    ],
+)
+def test_convert_refuses_what_the_cli_refuses(cli, tmp_path, flags, options):
+    # --images conflicts with each: the same one-line message as the CLI's first line.
+    with pytest.raises(sfpmap.InputError) as e:
+        sfpmap.convert(tmp_path / "model", images=tmp_path / "images", out=tmp_path / "x.sfpm", **options)
+    r = subprocess.run(
+        [str(cli), "convert", "--colmap", str(tmp_path / "model"), "--images", str(tmp_path / "images"),
+         *flags, "-o", str(tmp_path / "x.sfpm")],
+        capture_output=True, text=True,
+    )
+    assert r.returncode != 0 and r.stderr.splitlines()[0] == f"error: {e.value}"
+
+
+def test_threads_are_checked_and_capped_as_the_cli_does(shared, tmp_path):
+    # As the CLI's parser: fewer than 1 thread is refused, with or without images.
+    scene = shared / "scenes/sacre-coeur"
+    for threads in (0, -1):
+        with pytest.raises(sfpmap.InputError, match=f"threads {threads}: at least 1 thread"):
+            sfpmap.convert(scene / "sparse-map", out=tmp_path / "x.sfpm", threads=threads)
+        with pytest.raises(sfpmap.InputError, match=f"threads {threads}: at least 1 thread"):
+            sfpmap.convert(scene / "sparse-map", images=tmp_path, out=tmp_path / "x.sfpm", threads=threads)
+    assert not list(tmp_path.iterdir())
+
+
+def test_slice_levels_are_required_and_checked(sacre_sift, work, tmp_path):
+    with pytest.raises(TypeError):
+        sfpmap.slice(sacre_sift, out=tmp_path / "x.sfpm")  # type: ignore[call-arg]
+    for level in (-1, 70000):
+        with pytest.raises(sfpmap.NoSuchLevelError, match=f"no level {level} in this map"):
+            sfpmap.slice(sacre_sift, levels=[level], out=tmp_path / "x.sfpm")
+    assert not list(tmp_path.iterdir())
+
+
+def test_convert_releases_the_gil(shared, tmp_path):
+    # (slice and verify: test_map.py, on its large map)
+    scene = shared / "scenes/sacre-coeur"
+    assert_releases_the_gil(
+        lambda: sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=tmp_path / "a.sfpm")
+    )

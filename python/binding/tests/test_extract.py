@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 import sfpmap
 
-from conftest import run_cli
+from conftest import assert_releases_the_gil, gil_stall, need_module, run_cli
 
 
 @pytest.fixture(scope="module")
@@ -92,3 +94,100 @@ def test_hostile_inputs_raise(tmp_path, extractor):
         sfpmap.QueryDatabase(junk)
     with pytest.raises(sfpmap.InputError):
         sfpmap.read_queries(junk)
+
+
+def test_hloc_features_h5_written_by_h5py(tmp_path):
+    """hloc's own layout, as h5py writes it: a group per image name (nested for names with
+    folders) holding keypoints (N×2 f32), descriptors (D×N, f16 or f32), scores, image_size;
+    no per-level datasets, no global descriptor."""
+    h5py = need_module("h5py")
+    rng = np.random.default_rng(3)
+    images = {}
+    path = tmp_path / "feats-superpoint-n4096-r1024.h5"
+    with h5py.File(path, "w") as f:
+        for name, n, dtype in (("query/day/a.jpg", 7, np.float16), ("b.png", 5, np.float32)):
+            keypoints = rng.uniform(0, 500, (n, 2)).astype(np.float32)
+            descriptors = rng.normal(size=(256, n)).astype(dtype)
+            g = f.create_group(name)
+            g.create_dataset("keypoints", data=keypoints)
+            g.create_dataset("descriptors", data=descriptors)
+            g.create_dataset("scores", data=rng.uniform(0, 1, n).astype(np.float32))
+            g.create_dataset("image_size", data=np.array([640, 480]))
+            images[name] = (keypoints, descriptors)
+    features = sfpmap.read_features_h5(path)
+    for name, (keypoints, descriptors) in images.items():
+        f = features.features(name)
+        assert f.levels == [None] and f.global_descriptor is None
+        # hloc's pixel convention (first pixel centre at 0) to COLMAP's: +0.5.
+        assert np.array_equal(f.keypoints(), keypoints.astype(np.float64) + 0.5)
+        rows = descriptors.T.astype(np.float32)
+        rows /= np.linalg.norm(rows, axis=1, keepdims=True)
+        assert np.allclose(f.descriptors(), rows, atol=1e-6)
+    assert features.features("query/day") is None  # a folder, not an image
+    assert features.features("query/day/a.jpg/keypoints") is None  # a dataset
+    assert features.features("missing.jpg") is None
+    # A dataset that is no float array is refused, named.
+    with h5py.File(path, "a") as f:
+        f["b.png"]["bad"] = np.zeros(3)
+        g = f.create_group("ints.jpg")
+        g.create_dataset("keypoints", data=np.zeros((2, 2), np.int32))
+        g.create_dataset("descriptors", data=np.zeros((4, 2), np.float32))
+    features = sfpmap.read_features_h5(path)
+    assert features.features("b.png") is not None
+    with pytest.raises(sfpmap.InputError, match="ints.jpg/keypoints: values of type"):
+        features.features("ints.jpg")
+
+
+def rss_kb() -> int:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    raise RuntimeError("no VmRSS")
+
+
+def test_a_large_features_h5_is_read_on_demand(tmp_path):
+    """hloc's files reach tens of GB: opening one and reading an image's features reads the
+    metadata on the way and that image's datasets, not the file."""
+    h5py = need_module("h5py")
+    path = tmp_path / "large.h5"
+    with h5py.File(path, "w") as f:
+        # 256 MB of other images' data, written in 16 MB slabs.
+        other = f.create_dataset("other.jpg/descriptors", shape=(256, 1 << 20), dtype=np.uint8)
+        for i in range(0, 256, 16):
+            other[i : i + 16] = 1
+        g = f.create_group("a.jpg")
+        g["keypoints"] = np.array([[1, 2], [3, 4]], np.float32)
+        g["descriptors"] = np.ones((8, 2), np.float32)
+    before = rss_kb()
+    features = sfpmap.read_features_h5(path)
+    f = features.features("a.jpg")
+    after = rss_kb()
+    assert len(f) == 2
+    assert after - before < 32 * 1024, (before, after)
+
+
+def test_extractor_threads_and_the_gil(tmp_path, extractor):
+    for threads in (0, -1):
+        with pytest.raises(sfpmap.InputError, match=f"threads {threads}: at least 1 thread"):
+            sfpmap.Extractor(threads=threads)
+    rng = np.random.default_rng(11)
+    image = np.kron(rng.integers(0, 256, (60, 80), dtype=np.uint8), np.ones((16, 16), np.uint8))
+    assert_releases_the_gil(lambda: extractor.extract(image))
+    # Two threads on one extractor take turns, and the one waiting for its turn (here: a
+    # thread starting its next image while the other's runs) waits without the GIL: this
+    # thread never stalls for the other's run.
+    from concurrent.futures import ThreadPoolExecutor
+
+    t0 = time.perf_counter()
+    one = extractor.extract(image)
+    single = time.perf_counter() - t0
+    got = []
+
+    def four_on_two_threads():
+        with ThreadPoolExecutor(2) as pool:
+            got.extend(pool.map(extractor.extract, [image] * 4))
+
+    seconds, longest = gil_stall(four_on_two_threads)
+    assert longest < single / 2, f"stalled {longest:.3f} s; one image takes {single:.3f} s"
+    assert len(got) == 4 and all(np.array_equal(f.keypoints(0), one.keypoints(0)) for f in got)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import sfpmap
 
-from conftest import cli_poses, copy_db, run_cli
+from conftest import assert_releases_the_gil, cli_poses, copy_db, need_module, run_cli
 
 
 def assert_same_poses(python: dict, cli: dict) -> None:
@@ -70,9 +72,22 @@ def test_localize_many_equals_localize(south_sfp, south_queries, south_features)
         loc = sfpmap.Localizer(m)
         one = [loc.localize(south_features[n], c).colmap for n, c in queries]
         batch = [(south_features[n], c, n) for n, c in queries]
-        for threads in (1, 2, 4):
+        for threads in (1, 2, 4, None):
             many = loc.localize_many(batch, threads=threads)
             assert [r.colmap for r in many] == one
+        # Any iterable of tuples or lists.
+        assert [r.colmap for r in loc.localize_many(iter(batch))] == one
+        assert [r.colmap for r in loc.localize_many(list(q) for q in batch)] == one
+        assert loc.localize_many([]) == []
+        # Threads as the CLI's --threads: at least 1, capped at 4 per core with a warning.
+        for threads in (0, -3):
+            with pytest.raises(sfpmap.InputError, match=f"threads {threads}: at least 1 thread"):
+                loc.localize_many(batch, threads=threads)
+        with pytest.warns(RuntimeWarning, match=r"threads 100000: using \d+ \(4 per core, at most 256\)"):
+            capped = loc.localize_many(batch[:2], threads=100_000)
+        assert [r.colmap for r in capped] == one[:2]
+        with pytest.raises(sfpmap.InputError, match="query 0"):
+            loc.localize_many([batch[0][0]])
 
 
 def test_features_h5_queries_equal_the_cli(cli, south_sfp, south_queries, work):
@@ -86,13 +101,23 @@ def test_features_h5_queries_equal_the_cli(cli, south_sfp, south_queries, work):
     f = sfpmap.read_features_h5(h5)
     with sfpmap.Map(south_sfp) as m:
         loc = sfpmap.Localizer(m)
-        got = {n: loc.localize(f.features(n), c).colmap for n, c in sfpmap.read_queries(qlist)}
-    assert_same_poses(got, expected)
+        results = {n: loc.localize(f.features(n), c, name=n) for n, c in sfpmap.read_queries(qlist)}
+    assert_same_poses({n: r.colmap for n, r in results.items()}, expected)
     assert f.features("not-there.jpg") is None
+    # Every field the CLI's JSON has, under its name (its "retrieved" lists names).
+    cli_json = {q["name"]: q for q in json.loads((work / "h5-poses.json").read_text())}
+    for name, r in results.items():
+        q = cli_json[name]
+        assert r.failure == q["failure"] and r.inliers == q["inliers"] and r.matches == q["matches"]
+        assert r.retrieved_images == q["retrieved_images"] > 0
+        assert r.tracking_lost == q["tracking_lost"] is None
+        assert r.retrieved_names == q["retrieved"] and r.path == q["path"]
+        assert r.retrieval == q["retrieval"] and r.retrieval_fallback == q["retrieval_fallback"]
+        assert r.inliers_per_level == {int(l): n for l, n in q["inliers_per_level"]}
 
 
 def test_result_fields_and_pycolmap(south_sfp, south_queries, south_features):
-    pycolmap = pytest.importorskip("pycolmap")
+    pycolmap = need_module("pycolmap")
     scene, queries = south_queries
     name, camera = queries[0]
     with sfpmap.Map(south_sfp) as m:
@@ -175,18 +200,8 @@ def test_python_threads_share_a_localizer(south_sfp, south_queries, south_featur
 
 
 def test_the_gil_is_released_while_localizing(south_sfp, south_queries, south_features):
-    import threading
-
     scene, queries = south_queries
     batch = [(south_features[n], c, n) for n, c in queries]
     with sfpmap.Map(south_sfp) as m:
         loc = sfpmap.Localizer(m)
-        done = threading.Event()
-        worker = threading.Thread(target=lambda: (loc.localize_many(batch, threads=1), done.set()))
-        ticks = 0
-        worker.start()
-        while not done.is_set():
-            ticks += 1
-        worker.join()
-    # Holding the GIL for the whole batch would leave this thread a few switch intervals.
-    assert ticks > 10_000, ticks
+        assert_releases_the_gil(lambda: loc.localize_many(batch, threads=1))
