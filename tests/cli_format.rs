@@ -335,7 +335,7 @@ fn slice_budget_fits_or_names_the_smallest_cut() {
         .split("the smallest is ")
         .nth(1)
         .unwrap()
-        .trim_start_matches("about ")
+        .trim_start_matches("at least ")
         .split(' ')
         .next()
         .unwrap()

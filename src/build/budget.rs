@@ -12,8 +12,9 @@
 //! The order comes from the accuracy-per-byte table (README): `--minimal` costs no accuracy,
 //! short costs little, PQ at 2 dims per byte little, at 8 dims per byte up to a third of
 //! the recall of SFP maps; so a set is cut down its own ladder before fewer levels are tried.
-//! Candidates without PQ are sized exactly (encoded in memory); PQ candidates are estimated
-//! from their set's short minimal size and confirmed by encoding the one chosen.
+//! Candidates without PQ are sized exactly (encoded in memory); PQ candidates get a lower
+//! bound from their set's short minimal size and are confirmed by encoding when it fits.
+//! Empty levels are not tried alone, nor more than [`MAX_SINGLE_LEVELS`] single levels.
 
 use super::pq::{centroids_for, quantise_levels, slice_quantised, PqOptions, SlicedMap};
 use crate::format::{Error, Map, SliceOptions};
@@ -30,7 +31,8 @@ pub struct Candidate {
 }
 
 impl Candidate {
-    /// `slice` options for this candidate, with the zstd level a budget slice uses.
+    /// `slice` options for this candidate (each section keeps its codec; `delta` sections
+    /// choose their own zstd level).
     pub fn options(&self) -> SliceOptions {
         SliceOptions {
             levels: self.levels.clone(),
@@ -41,8 +43,9 @@ impl Candidate {
         }
     }
 
-    /// In words, as `slice` options, e.g. `--level 2 --short --minimal --pq 16` (several
-    /// levels quantised: `--pq` per level).
+    /// In words, close to `slice` options, e.g. `--level 2 --short --minimal --pq 16`; with
+    /// several levels quantised, each level's `M` (`--pq 8/16/32`), which one `slice --pq`
+    /// cannot express (it takes one `M` for every level).
     pub fn describe(&self, map: &Map<'_>) -> String {
         let mut s: Vec<String> = self.levels.iter().map(|l| format!("--level {l}")).collect();
         if self.short {
@@ -107,9 +110,14 @@ impl BudgetSlice<'_> {
     /// The `budget` object of `slice --budget --json`.
     pub fn report(&self, budget: u64) -> serde_json::Value {
         let chosen = self.sized.last().map(|s| s.description.clone());
+        let c = &self.chosen;
         serde_json::json!({
             "budget_bytes": budget,
             "chosen": chosen,
+            "levels": c.levels,
+            "short": c.short,
+            "minimal": c.minimal,
+            "dims_per_code": c.dims_per_code,
             "bytes": self.bytes,
             "rule": RULE,
             "candidates": self.sized.iter().map(|s| serde_json::json!({
@@ -121,6 +129,9 @@ impl BudgetSlice<'_> {
         })
     }
 }
+
+/// Single levels tried at most (most points first).
+pub const MAX_SINGLE_LEVELS: usize = 16;
 
 /// The ladder in one line, for reports.
 pub const RULE: &str = "level sets: all levels, level 2, each other level (most points first); per set: full, full --minimal, --short --minimal, --short --minimal with PQ of 2, 4, 8 dims per one-byte code; the first that fits";
@@ -137,9 +148,14 @@ pub fn ladder(map: &Map<'_>, levels: Option<&[u16]>) -> Result<Vec<Candidate>, E
         }
         None => {
             let all = map.level_ids();
-            let mut singles: Vec<(u16, usize)> = map.levels().map(|l| (l.id(), l.len())).collect();
+            let mut singles: Vec<(u16, usize)> = map
+                .levels()
+                .map(|l| (l.id(), l.len()))
+                .filter(|&(_, n)| n > 0)
+                .collect();
             // Level 2 first, then most points first.
             singles.sort_by_key(|&(l, n)| (l != 2, std::cmp::Reverse(n), l));
+            singles.truncate(MAX_SINGLE_LEVELS);
             if all.len() > 1 {
                 sets.push(all);
             }
@@ -189,9 +205,10 @@ pub fn slice_to_budget<'m>(
     levels: Option<&[u16]>,
 ) -> Result<BudgetSlice<'m>, Error> {
     let mut sized: Vec<Sized> = Vec::new();
+    let rungs = ladder(map, levels)?;
     // Each set's short minimal size, for its PQ estimates.
     let mut base: Option<(Vec<u16>, u64)> = None;
-    for candidate in ladder(map, levels)? {
+    for candidate in rungs {
         let description = candidate.describe(map);
         let (bytes, estimated) = match candidate.dims_per_code {
             None => {
@@ -258,15 +275,17 @@ pub fn slice_to_budget<'m>(
         .ok_or_else(|| Error::invalid("the map has no level to slice"))?;
     Err(Error::invalid(format!(
         "no slice fits in {budget} bytes: the smallest is {}{} bytes ({})",
-        if smallest.estimated { "about " } else { "" },
+        if smallest.estimated { "at least " } else { "" },
         smallest.bytes,
         smallest.description
     )))
 }
 
-/// A PQ candidate's size from its set's short minimal slice (`base` bytes): each level's f16
-/// short block replaced by `dim_short / per` codes per point and a `K × dim_short` f32
-/// codebook, plus a table entry, alignment and the level's `pq` metadata.
+/// A lower bound of a PQ candidate's size from its set's short minimal slice (`base`
+/// bytes): each level's f16 short block (at most `n × dim_short × 2` stored) replaced by
+/// `dim_short / per` codes per point and a `K × dim_short` f32 codebook; the table entry,
+/// alignment and `pq` metadata it also adds are left out, so a candidate that fits is never
+/// skipped (the chosen one is confirmed by encoding).
 fn estimate_pq(map: &Map<'_>, levels: &[u16], per: usize, base: u64) -> Result<u64, Error> {
     let mut bytes = base;
     for &l in levels {
@@ -279,8 +298,11 @@ fn estimate_pq(map: &Map<'_>, levels: &[u16], per: usize, base: u64) -> Result<u
             _ => 0,
         };
         bytes = bytes
-            .saturating_sub(n * dims * 2 + cut)
-            .saturating_add(n * (dims / per as u64) + k * dims * 4 + 64 + 64 + 512);
+            .saturating_sub(n.saturating_mul(dims * 2).saturating_add(cut))
+            .saturating_add(
+                n.saturating_mul(dims / per as u64)
+                    .saturating_add(k * dims * 4),
+            );
     }
     Ok(bytes)
 }

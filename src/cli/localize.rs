@@ -99,7 +99,7 @@ pub struct Args {
     #[arg(long)]
     pub short: bool,
     /// Database images retrieved per query (maps with global descriptors or VLAD).
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = sfpmap::format::DEFAULT_RETRIEVAL_TOP_K)]
     pub top_k: usize,
     /// What ranks the database images: the map's stated preference (auto), its VLAD of local
     /// descriptors, the extractor's global descriptor, or nothing (every point a candidate).

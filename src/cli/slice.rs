@@ -41,7 +41,7 @@ pub struct Args {
     /// best expected accuracy (e.g. 2MB, 500kB, 1.5MiB): the rule is in README, "Byte
     /// budgets", and in `--json`.
     #[arg(long, value_name = "SIZE", value_parser = parse_size,
-          conflicts_with_all = ["short", "minimal", "pq", "codec"])]
+          conflicts_with_all = ["short", "minimal", "pq", "codec", "zstd_level"])]
     pub budget: Option<u64>,
     /// Keep only the short descriptor block of each level.
     #[arg(long)]

@@ -657,20 +657,16 @@ fn decode_zstd(section: &Section, stored: &[u8]) -> Result<Decoded, Error> {
     Ok(Decoded { words, len })
 }
 
-/// Decodes a `delta` section: its zstd frame (at most the longest varint stream of
-/// `raw_len`, a transient buffer of ≤ 1.25 × `raw_len`), then the varints into `raw_len` bytes.
+/// Decodes a `delta` section (`delta::decompress`) into `raw_len` bytes.
 fn decode_delta(section: &Section, stored: &[u8]) -> Result<Decoded, Error> {
     let decode_err = |message: String| Error::Decode {
         section: section.reference(),
         message,
     };
-    let bound = super::delta::max_stream_len(section.dtype, section.raw_len);
-    let stream = zstd::bulk::decompress(stored, bound as usize)
-        .map_err(|e| decode_err(format!("zstd: {e}")))?;
     let len = section.raw_len as usize;
     let mut words = vec![0u64; len.div_ceil(8)];
     let out: &mut [u8] = &mut bytemuck::cast_slice_mut(&mut words)[..len];
-    super::delta::decode(section.dtype, &stream, out).map_err(decode_err)?;
+    super::delta::decompress(section.dtype, stored, out).map_err(decode_err)?;
     Ok(Decoded { words, len })
 }
 

@@ -129,7 +129,7 @@ pub fn slice<'m>(
         Some(Retrieval::Vlad) if vlad_dropped => {
             metadata.retrieval = global_kept.then(|| Retrieval::Global.name().to_string());
         }
-        Some(Retrieval::Global) if !global_kept => {
+        Some(Retrieval::Global) if has_global && !keeps.global => {
             metadata.retrieval =
                 (!vlad_dropped && vlad_level.is_some()).then(|| Retrieval::Vlad.name().to_string());
         }

@@ -888,7 +888,12 @@ impl<'a> MapWriter<'a> {
                             let stream = super::delta::encode(s.dtype, bytes);
                             let z = super::delta::compress(&stream, raw_len, DECODE_RATIO)
                                 .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
-                            (Cow::Owned(z), Codec::Delta, raw_len)
+                            // Values that are not nearly sorted gain nothing: stored raw.
+                            if z.len() as u64 >= raw_len {
+                                (Cow::Borrowed(&bytes[..]), Codec::Raw, raw_len)
+                            } else {
+                                (Cow::Owned(z), Codec::Delta, raw_len)
+                            }
                         }
                         Codec::Zstd => {
                             let z = zstd::bulk::compress(bytes, self.zstd_level)
@@ -1018,10 +1023,8 @@ fn decode_stored(codec: Codec, dtype: Dtype, bytes: &[u8], raw_len: u64) -> Resu
     let zstd = |e: std::io::Error| Error::invalid(format!("zstd: {e}"));
     match codec {
         Codec::Delta => {
-            let bound = super::delta::max_stream_len(dtype, raw_len) as usize;
-            let stream = zstd::bulk::decompress(bytes, bound).map_err(zstd)?;
             let mut raw = vec![0u8; raw_len as usize];
-            super::delta::decode(dtype, &stream, &mut raw).map_err(Error::invalid)?;
+            super::delta::decompress(dtype, bytes, &mut raw).map_err(Error::invalid)?;
             Ok(raw)
         }
         _ => zstd::bulk::decompress(bytes, raw_len as usize).map_err(zstd),

@@ -16,6 +16,10 @@ use {
     std::collections::HashMap,
 };
 
+/// Level ids read as pyramid levels (`level<id>_…` datasets): 0 to 31.
+#[cfg(feature = "localize")]
+const PYRAMID_LEVELS: u16 = 32;
+
 /// Keypoints in the file are in hloc's convention: the first pixel's centre is (0, 0), so
 /// COLMAP's coordinates are these + 0.5 (hloc adds it when it imports into COLMAP).
 pub const KEYPOINT_CONVENTION: &str =
@@ -454,13 +458,15 @@ impl H5Features {
             .iter_datasets()
             .map_err(|e| self.err(format!("{name}: {e}")))?
             .collect();
-        // `level<id>_keypoints`, ids as the writer spells them, ascending.
+        // `level<id>_keypoints`, ids as the writer spells them, ascending; pyramid levels are
+        // 0 to 31 (a larger id is another tool's dataset, and the image's plain `keypoints`
+        // then serve every level, as before).
         let levels: BTreeMap<u16, &str> = datasets
             .keys()
             .filter_map(|k| {
                 let digits = k.strip_prefix("level")?.strip_suffix("_keypoints")?;
                 let id: u16 = digits.parse().ok()?;
-                (id.to_string() == digits).then_some((id, digits))
+                (id.to_string() == digits && id < PYRAMID_LEVELS).then_some((id, digits))
             })
             .collect();
         let mut sets = Vec::new();

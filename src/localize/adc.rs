@@ -11,8 +11,9 @@ use crate::format::Pq;
 
 /// Table entries per subspace: every value of a code byte, so a lookup needs no bounds check.
 const SLOTS: usize = 256;
-/// The bytes of query tables held at once (`M × 256 × queries × 4`): half of a 512 KB L2
-/// cache, which every map row's `M` lookups read, the other half for the scores they make.
+/// The bytes of query tables held at once (`M × 256 × queries × 4`; more only when `M > 256`,
+/// as 8 queries are the least): larger chunks pay the per-row work (codes, norms, the row's
+/// maximum) for more queries, which measured faster than tables that fit the L2 cache.
 const TABLE_BYTES: usize = 2 << 20;
 /// Queries per chunk at most: the width of the vectorised accumulation.
 const MAX_CHUNK: usize = 256;
@@ -29,7 +30,8 @@ pub(super) struct AdcTables<'p, 'm> {
 
 impl<'p, 'm> AdcTables<'p, 'm> {
     /// Queries per chunk for `pq`: tables of at most [`TABLE_BYTES`], a multiple of 8 queries
-    /// (whole vectors) from 8 to 64.
+    /// (whole vectors) from 8 to [`MAX_CHUNK`]. `match_pq` builds them once per chunk:
+    /// `match_scored_by_row` takes the chunks in its outer loop.
     pub(super) fn chunk(pq: &Pq<'_>) -> usize {
         let fit = TABLE_BYTES / (pq.subspaces.max(1) * SLOTS * 4);
         (fit / 8 * 8).clamp(8, MAX_CHUNK)

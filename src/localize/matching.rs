@@ -36,8 +36,8 @@ pub struct Match {
 
 /// Map rows per GEMM block: bounds the score buffer at `queries × BLOCK` floats.
 const BLOCK: usize = 2048;
-/// Map rows per block of [`match_scored_by_row`]: its chunks of queries are small (≤ 64),
-/// and 1,024 rows of them stay in the L2 cache beside their tables.
+/// Map rows per block of [`match_scored_by_row`]: with its chunks of at most 256 queries, a
+/// block's scores are at most 256 KB.
 const BLOCK_BY_ROW: usize = 256;
 
 /// Matches unit-norm `query` rows (`[n_q × dim]`) against unit-norm `map` rows
@@ -87,9 +87,9 @@ pub(crate) fn match_rows(
 /// The matching of [`match_rows`] over similarities that `score(queries, start, rows, out)`
 /// writes for the queries `queries` (at most `query_chunk` of them) against map rows
 /// `start..start + rows` (at most 2,048), query by query, into `out` (`[queries × rows]`): the
-/// GEMM of decoded rows, or a PQ level's asymmetric distances. Queries are taken a chunk at a
-/// time, each chunk against every map row, so per-query state (a PQ level's lookup tables) is
-/// needed for one chunk only.
+/// GEMM of decoded rows. Queries are taken a chunk at a time, each chunk against every map
+/// row (a PQ level's asymmetric distances use [`match_scored_by_row`], which chunks the same
+/// way with scores map-row-major).
 pub(crate) fn match_scored(
     n_q: usize,
     n_m: usize,
@@ -345,12 +345,17 @@ mod tests {
 
     #[test]
     fn row_major_scores_give_the_same_matches() {
-        // 3 chunks of queries × 2 blocks of rows, with ties (scores on a coarse grid).
-        let (n_q, n_m) = (7, 3000);
+        // 3 chunks of queries × several blocks of rows; a coarse grid of scores makes ties,
+        // and each query has one clear best (query q's row 700·q + 5 scores 0.99) so the
+        // ratio test and the mutual check pass for some of them.
+        let (n_q, n_m) = (7, 5000);
         let mut rng = crate::geometry::SplitMix64::new(5);
-        let scores: Vec<f32> = (0..n_q * n_m)
-            .map(|_| (rng.next_f64() * 40.0).floor() as f32 / 40.0)
+        let mut scores: Vec<f32> = (0..n_q * n_m)
+            .map(|_| (rng.next_f64() * 40.0).floor() as f32 / 80.0)
             .collect();
+        for q in 0..n_q {
+            scores[q * n_m + 700 * q + 5] = 0.99;
+        }
         for options in [
             MatchOptions::default(),
             MatchOptions {
@@ -374,7 +379,10 @@ mod tests {
                 }
             });
             assert_eq!(by_query, by_row);
-            assert!(!by_row.is_empty() || options.mutual);
+            assert_eq!(by_row.len(), n_q, "{by_row:?}");
+            assert!(by_row
+                .iter()
+                .all(|m| m.map == 700 * m.query + 5 && m.similarity == 0.99));
         }
     }
 
