@@ -89,8 +89,8 @@ pub fn slice<'m>(
         vlad: vlad_kept
             && !retrieval_useless
             && !(options.minimal && preference == Some(Retrieval::Global) && has_global),
-        global: !retrieval_useless
-            && !(options.minimal && preference == Some(Retrieval::Vlad) && vlad_kept),
+        global: !(retrieval_useless
+            || options.minimal && preference == Some(Retrieval::Vlad) && vlad_kept),
     };
     // Checking everything first means a corrupt section is never copied into the new map.
     // Sections this slice reads are kept decoded and the others streamed, so each is decoded

@@ -136,11 +136,11 @@ pub(crate) fn match_scored(
 }
 
 /// [`match_scored`] over similarities written map-row-major: `score(queries, start, rows,
-/// out)` writes row `start + r` against query `queries.start + i` at `out[r × queries.len()
-/// + i]` — the layout of a PQ level's asymmetric distances, which score one map row against a
-/// chunk of queries at once. Same matches as [`match_scored`] on the same similarities (ties
-/// go to the first row), with no transposition: per row a maximum across queries, per query a
-/// branch-free best/second update the compiler vectorizes.
+/// out)` writes row `start + r` against query `queries.start + i` at
+/// `out[r × queries.len() + i]`, the layout of a PQ level's asymmetric distances, which score
+/// one map row against a chunk of queries at once. Same matches as [`match_scored`] on the
+/// same similarities (ties go to the first row), with no transposition: per row a maximum
+/// across queries, per query a best/second update by minima and maxima that vectorizes.
 pub(crate) fn match_scored_by_row(
     n_q: usize,
     n_m: usize,

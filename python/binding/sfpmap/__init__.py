@@ -21,6 +21,14 @@ numpy arrays over the mapping whose ``base`` keeps it alive; ``Map.close()`` mak
 sections are O(1) and unchecked (``Map.verify()`` checks every checksum); a zstd section is
 checked and decoded once, on first access, and shared by later views.
 
+The mmap contract: views are read-only views of the file itself, not copies. sfpmap never
+writes onto a file it reads (``convert``, ``slice`` and the rest write a temporary file and
+rename it over the output), so a map replaced that way leaves existing views on the old
+contents. But a map truncated or rewritten in place by another program while a ``Map``, a
+view or a ``Localizer`` of it is alive can crash the process (``SIGBUS`` on reading a page
+that is gone) or change what views hold, as with any mmap: replace maps by renaming a new
+file over them.
+
 Errors are ``sfpmap.Error`` subclasses whose text is the CLI's one-line message without its
 ``error: `` prefix.
 """

@@ -5,6 +5,7 @@ use crate::errors::{
     chain, format_error, level_arg, no_such_level, output_error, within, ConvertError, FileError,
     InputError,
 };
+use crate::Warnings;
 use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
 use sfpmap::build::{Aggregate, ConvertOptions, SfpMapOptions, VladOptions};
@@ -241,23 +242,25 @@ pub(crate) fn convert(
         .map(|f| f.paths)
         .unwrap_or_default();
     o.check_output(&files, &out, force)?;
+    // The library's warnings (ONNX Runtime fetched, images missing or without features) as
+    // `RuntimeWarning`s, as the CLI prints them.
+    let warnings = Warnings::default();
     let value = py.detach(|| -> PyResult<serde_json::Value> {
         match &o.images {
             Some(images) => {
-                sfpmap::extract::runtime::disable_telemetry();
                 let s =
-                    sfpmap::build::convert_with_images(&model_dir, &o.sfp(images), &out, &Silent)
+                    sfpmap::build::convert_with_images(&model_dir, &o.sfp(images), &out, &warnings)
                         .map_err(convert_error)?;
                 Ok(s.report(&out, start.elapsed().as_secs_f64()))
             }
             None => {
-                let s = sfpmap::build::convert(&model_dir, &o.sift(), &out, &Silent)
+                let s = sfpmap::build::convert(&model_dir, &o.sift(), &out, &warnings)
                     .map_err(convert_error)?;
                 Ok(s.report(&out, start.elapsed().as_secs_f64()))
             }
         }
-    })?;
-    Ok(value.to_string())
+    });
+    Ok(warnings.emit_then(py, value)?.to_string())
 }
 
 /// `sfpmap slice`: keep `levels` of the map at `map_path` (and only their short descriptor
@@ -320,131 +323,205 @@ pub(crate) fn slice(
     Ok(value.to_string())
 }
 
-/// A pycolmap `Reconstruction` as the library's model, read through its attributes; an
-/// object that is not one (a missing attribute, a value of the wrong type) is a
-/// `ConvertError` naming what Python said, with that exception as its `__cause__`.
-fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
-    let py = rec.py();
-    read_reconstruction(rec).map_err(|e| {
-        if e.is_instance_of::<ConvertError>(py) || !e.is_instance_of::<PyException>(py) {
-            // Ours already, or not an error of the object (KeyboardInterrupt, ...).
-            return e;
+/// Why an object could not be read as a reconstruction: Python raised (a missing attribute, a
+/// value of the wrong type), or a value is not one a model can hold.
+enum Bad {
+    Python(PyErr),
+    Value(String),
+}
+
+impl From<PyErr> for Bad {
+    fn from(e: PyErr) -> Bad {
+        Bad::Python(e)
+    }
+}
+
+/// `bad` as a `ConvertError` `pycolmap reconstruction: {item}: ...` (`item`: `camera 1`,
+/// `image 3`, `point3D 7`; `None` for the reconstruction itself), Python's exception as its
+/// `__cause__`. An exception that is no error of the object (`KeyboardInterrupt`, ...)
+/// passes as it is.
+fn failure(py: Python<'_>, item: Option<&str>, bad: Bad) -> PyErr {
+    let context = match item {
+        Some(item) => format!("pycolmap reconstruction: {item}"),
+        None => "pycolmap reconstruction".to_string(),
+    };
+    match bad {
+        Bad::Value(what) => ConvertError::new_err(format!("{context}: {what}")),
+        Bad::Python(e) if !e.is_instance_of::<PyException>(py) => e,
+        Bad::Python(e) => {
+            let converted = ConvertError::new_err(format!("{context}: {e}"));
+            converted.set_cause(py, Some(e));
+            converted
         }
-        let converted = ConvertError::new_err(format!("pycolmap reconstruction: {e}"));
-        converted.set_cause(py, Some(e));
-        converted
+    }
+}
+
+/// A key of one of the reconstruction's maps as an error names it: the id, or the `repr` of
+/// a key that is no id.
+fn key_text(key: &Bound<'_, PyAny>) -> String {
+    match key.extract::<u64>() {
+        Ok(id) => id.to_string(),
+        Err(_) => key
+            .repr()
+            .map_or_else(|_| "?".to_string(), |r| r.to_string()),
+    }
+}
+
+/// A list of floats, or an array's (`tolist()`).
+fn floats(v: Bound<'_, PyAny>) -> PyResult<Vec<f64>> {
+    match v.extract::<Vec<f64>>() {
+        Ok(x) => Ok(x),
+        Err(_) => v.call_method0("tolist")?.extract(),
+    }
+}
+
+/// The `(key, value)` pairs of one of the reconstruction's maps (`cameras`, `images`,
+/// `points3D`: dicts by id, in pycolmap as in a plain `dict`).
+fn items<'py>(rec: &Bound<'py, PyAny>, name: &str) -> Result<Vec<Bound<'py, PyAny>>, Bad> {
+    let mut all = Vec::new();
+    for item in rec.getattr(name)?.call_method0("items")?.try_iter()? {
+        all.push(item?);
+    }
+    Ok(all)
+}
+
+fn read_camera(c: &Bound<'_, PyAny>) -> Result<ColmapCamera, Bad> {
+    let id: u32 = c.getattr("camera_id")?.extract()?;
+    let model = c.getattr("model")?;
+    let name: String = match model.extract::<String>() {
+        Ok(s) => s,
+        Err(_) => model.getattr("name")?.extract()?,
+    };
+    let model = CameraModel::from_name(&name)
+        .ok_or_else(|| Bad::Value(format!("unknown model {name:?}")))?;
+    Ok(ColmapCamera {
+        id,
+        model,
+        width: c.getattr("width")?.extract()?,
+        height: c.getattr("height")?.extract()?,
+        params: floats(c.getattr("params")?)?,
     })
 }
 
-/// [`reconstruction_of`], Python's errors as they are.
-fn read_reconstruction(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
-    let bad = |what: String| ConvertError::new_err(format!("pycolmap reconstruction: {what}"));
-    let vec_f64 = |v: Bound<'_, PyAny>| -> PyResult<Vec<f64>> {
-        match v.extract::<Vec<f64>>() {
-            Ok(x) => Ok(x),
-            Err(_) => v.call_method0("tolist")?.extract(),
+/// A registered image; `None` for one without a pose (pycolmap >= 3.12 keeps unregistered
+/// frames; a model file holds registered images only).
+fn read_image(im: &Bound<'_, PyAny>) -> Result<Option<Image>, Bad> {
+    let id: u32 = im.getattr("image_id")?.extract()?;
+    if let Ok(has_pose) = im.getattr("has_pose") {
+        if !has_pose.extract::<bool>()? {
+            return Ok(None);
         }
+    }
+    let mut pose = im.getattr("cam_from_world")?;
+    if pose.is_callable() {
+        pose = pose.call0()?;
+    }
+    let q = floats(pose.getattr("rotation")?.getattr("quat")?)?;
+    let t = floats(pose.getattr("translation")?)?;
+    if q.len() != 4 || t.len() != 3 {
+        return Err(Bad::Value(format!(
+            "a pose of {} + {} values",
+            q.len(),
+            t.len()
+        )));
+    }
+    // pycolmap's quaternions are [x, y, z, w].
+    let cam_from_world = Pose::from_colmap(q[3], q[0], q[1], q[2], t[0], t[1], t[2])
+        .map_err(|e| Bad::Value(chain(&e)))?;
+    let mut points2d = Vec::new();
+    for (i, p) in im.getattr("points2D")?.try_iter()?.enumerate() {
+        let p = p?;
+        let xy = floats(p.getattr("xy")?)?;
+        let point3d: u64 = p.getattr("point3D_id")?.extract()?;
+        if xy.len() != 2 {
+            return Err(Bad::Value(format!(
+                "point2D {i}: {} values for xy",
+                xy.len()
+            )));
+        }
+        points2d.push(Point2D {
+            xy: [xy[0], xy[1]],
+            point3d_id: (point3d != u64::MAX).then_some(point3d),
+        });
+    }
+    Ok(Some(Image {
+        id,
+        name: im.getattr("name")?.extract()?,
+        camera_id: im.getattr("camera_id")?.extract()?,
+        cam_from_world,
+        points2d,
+    }))
+}
+
+/// A 3D point: position, colour, error and track (into `track`).
+fn read_point(
+    p: &Bound<'_, PyAny>,
+    track: &mut Vec<TrackElement>,
+) -> Result<([f64; 3], [u8; 3], f64), Bad> {
+    let xyz = floats(p.getattr("xyz")?)?;
+    let color: Vec<u8> = match p.getattr("color")?.extract::<Vec<u8>>() {
+        Ok(c) => c,
+        Err(_) => p.getattr("color")?.call_method0("tolist")?.extract()?,
     };
+    if xyz.len() != 3 || color.len() != 3 {
+        return Err(Bad::Value("xyz or color is not 3 values".into()));
+    }
+    track.clear();
+    for e in p.getattr("track")?.getattr("elements")?.try_iter()? {
+        let e = e?;
+        track.push(TrackElement {
+            image_id: e.getattr("image_id")?.extract()?,
+            point2d_idx: e.getattr("point2D_idx")?.extract()?,
+        });
+    }
+    Ok((
+        [xyz[0], xyz[1], xyz[2]],
+        [color[0], color[1], color[2]],
+        p.getattr("error")?.extract()?,
+    ))
+}
+
+/// A pycolmap `Reconstruction` as the library's model, read through its attributes. An object
+/// that is not one (a missing attribute, a value of the wrong type) is a `ConvertError` naming
+/// the camera, image or point3D at fault and what Python said (`pycolmap reconstruction:
+/// point3D 7: AttributeError: ...`), with that exception as its `__cause__`; the model's own
+/// checks (ids, tracks) are the library's errors, as for model files.
+fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
+    let py = rec.py();
+    let whole = |bad: Bad| failure(py, None, bad);
     let mut builder = Reconstruction::builder().paths(
         Path::new("pycolmap cameras"),
         Path::new("pycolmap images"),
         Path::new("pycolmap points3D"),
     );
-    let cameras = rec.getattr("cameras")?;
-    for item in cameras.call_method0("values")?.try_iter()? {
-        let c = item?;
-        let id: u32 = c.getattr("camera_id")?.extract()?;
-        let model = c.getattr("model")?;
-        let name: String = match model.extract::<String>() {
-            Ok(s) => s,
-            Err(_) => model.getattr("name")?.extract()?,
-        };
-        let model = CameraModel::from_name(&name)
-            .ok_or_else(|| bad(format!("camera {id}: unknown model {name:?}")))?;
-        builder.add_camera(ColmapCamera {
-            id,
-            model,
-            width: c.getattr("width")?.extract()?,
-            height: c.getattr("height")?.extract()?,
-            params: vec_f64(c.getattr("params")?)?,
-        });
+    for item in items(rec, "cameras").map_err(whole)? {
+        let (key, c): (Bound<'_, PyAny>, Bound<'_, PyAny>) =
+            item.extract().map_err(|e: PyErr| whole(e.into()))?;
+        let camera = read_camera(&c)
+            .map_err(|bad| failure(py, Some(&format!("camera {}", key_text(&key))), bad))?;
+        builder.add_camera(camera);
     }
-    let images = rec.getattr("images")?;
-    for item in images.call_method0("values")?.try_iter()? {
-        let im = item?;
-        let id: u32 = im.getattr("image_id")?.extract()?;
-        // pycolmap >= 3.12 keeps images without a pose (unregistered frames); a model file
-        // holds registered images only.
-        if let Ok(has_pose) = im.getattr("has_pose") {
-            if !has_pose.extract::<bool>()? {
-                continue;
-            }
+    for item in items(rec, "images").map_err(whole)? {
+        let (key, im): (Bound<'_, PyAny>, Bound<'_, PyAny>) =
+            item.extract().map_err(|e: PyErr| whole(e.into()))?;
+        let image = read_image(&im)
+            .map_err(|bad| failure(py, Some(&format!("image {}", key_text(&key))), bad))?;
+        if let Some(image) = image {
+            builder.add_image(image);
         }
-        let mut pose = im.getattr("cam_from_world")?;
-        if pose.is_callable() {
-            pose = pose.call0()?;
-        }
-        let q = vec_f64(pose.getattr("rotation")?.getattr("quat")?)?;
-        let t = vec_f64(pose.getattr("translation")?)?;
-        if q.len() != 4 || t.len() != 3 {
-            return Err(bad(format!(
-                "image {id}: a pose of {} + {} values",
-                q.len(),
-                t.len()
-            )));
-        }
-        // pycolmap's quaternions are [x, y, z, w].
-        let cam_from_world = Pose::from_colmap(q[3], q[0], q[1], q[2], t[0], t[1], t[2])
-            .map_err(|e| bad(format!("image {id}: {}", chain(&e))))?;
-        let mut points2d = Vec::new();
-        for p in im.getattr("points2D")?.try_iter()? {
-            let p = p?;
-            let xy = vec_f64(p.getattr("xy")?)?;
-            let point3d: u64 = p.getattr("point3D_id")?.extract()?;
-            if xy.len() != 2 {
-                return Err(bad(format!("image {id}: a point2D of {} values", xy.len())));
-            }
-            points2d.push(Point2D {
-                xy: [xy[0], xy[1]],
-                point3d_id: (point3d != u64::MAX).then_some(point3d),
-            });
-        }
-        builder.add_image(Image {
-            id,
-            name: im.getattr("name")?.extract()?,
-            camera_id: im.getattr("camera_id")?.extract()?,
-            cam_from_world,
-            points2d,
-        });
     }
-    let points = rec.getattr("points3D")?;
     let mut track = Vec::new();
-    for item in points.call_method0("items")?.try_iter()? {
-        let (id, p): (u64, Bound<'_, PyAny>) = item?.extract()?;
-        let xyz = vec_f64(p.getattr("xyz")?)?;
-        let color: Vec<u8> = match p.getattr("color")?.extract::<Vec<u8>>() {
-            Ok(c) => c,
-            Err(_) => p.getattr("color")?.call_method0("tolist")?.extract()?,
-        };
-        if xyz.len() != 3 || color.len() != 3 {
-            return Err(bad(format!("point3D {id}: xyz or color is not 3 values")));
-        }
-        track.clear();
-        for e in p.getattr("track")?.getattr("elements")?.try_iter()? {
-            let e = e?;
-            track.push(TrackElement {
-                image_id: e.getattr("image_id")?.extract()?,
-                point2d_idx: e.getattr("point2D_idx")?.extract()?,
-            });
-        }
+    for item in items(rec, "points3D").map_err(whole)? {
+        let (key, p): (Bound<'_, PyAny>, Bound<'_, PyAny>) =
+            item.extract().map_err(|e: PyErr| whole(e.into()))?;
+        let at = || format!("point3D {}", key_text(&key));
+        let id: u64 = key
+            .extract()
+            .map_err(|e: PyErr| failure(py, Some(&at()), e.into()))?;
+        let (xyz, color, error) =
+            read_point(&p, &mut track).map_err(|bad| failure(py, Some(&at()), bad))?;
         builder
-            .add_point3d(
-                id,
-                [xyz[0], xyz[1], xyz[2]],
-                [color[0], color[1], color[2]],
-                p.getattr("error")?.extract()?,
-                &track,
-            )
+            .add_point3d(id, xyz, color, error, &track)
             .map_err(|e| ConvertError::new_err(chain(&e)))?;
     }
     builder
@@ -509,58 +586,80 @@ pub(crate) fn from_pycolmap(
     )?;
     o.check_output(&[], &out, force)?;
     let rec = reconstruction_of(reconstruction)?;
+    let warnings = Warnings::default();
     let value = py.detach(|| -> PyResult<serde_json::Value> {
         match &o.images {
             Some(images) => {
-                sfpmap::extract::runtime::disable_telemetry();
                 let s = sfpmap::build::convert_model_with_images(
                     &rec,
                     source,
                     &o.sfp(images),
                     &out,
-                    &Silent,
+                    &warnings,
                 )
                 .map_err(convert_error)?;
                 Ok(s.report(&out, start.elapsed().as_secs_f64()))
             }
             None => {
-                let s = sfpmap::build::convert_model(&rec, source, &o.sift(), &out, &Silent)
+                let s = sfpmap::build::convert_model(&rec, source, &o.sift(), &out, &warnings)
                     .map_err(convert_error)?;
                 Ok(s.report(&out, start.elapsed().as_secs_f64()))
             }
         }
-    })?;
-    Ok(value.to_string())
+    });
+    Ok(warnings.emit_then(py, value)?.to_string())
 }
 
 /// A synthetic map of `points` points and one level of `dim_full` f16 dimensions (`dim_short`
 /// of them short), for the tests and benchmarks that need a large map quickly (a 1 GB map
 /// is 2.2 M points of 240 dims). Not part of the documented API.
+///
+/// Bounded before anything is allocated: `dim_full` at most the format's
+/// `MAX_DESCRIPTOR_DIM`, and `points × (2 × dim_full + 16)` bytes (descriptors, positions,
+/// indices) at most [`SYNTHETIC_MAX_BYTES`]; `path` is the CLI's output (no existing file
+/// without `force`).
 #[pyfunction]
-#[pyo3(name = "_write_synthetic_map")]
+#[pyo3(name = "_write_synthetic_map", signature = (path, points, dim_full, dim_short, force=false))]
 pub(crate) fn write_synthetic_map(
     py: Python<'_>,
     path: PathBuf,
-    points: usize,
+    points: u64,
     dim_full: u32,
     dim_short: u32,
+    force: bool,
 ) -> PyResult<u64> {
-    use sfpmap::format::{f16, Descriptors, LevelInfo, MapWriter, Metadata};
-    if points == 0 || points > u32::MAX as usize || dim_short == 0 || dim_short > dim_full {
+    use sfpmap::format::{f16, Descriptors, LevelInfo, MapWriter, Metadata, MAX_DESCRIPTOR_DIM};
+    if points == 0 || dim_short == 0 || dim_short > dim_full {
         return Err(InputError::new_err(
             "points >= 1, 1 <= dim_short <= dim_full",
         ));
     }
+    if u64::from(dim_full) > MAX_DESCRIPTOR_DIM {
+        return Err(InputError::new_err(format!(
+            "dim_full {dim_full}: at most {MAX_DESCRIPTOR_DIM} (the format's limit)"
+        )));
+    }
+    let bytes = points
+        .checked_mul(2 * u64::from(dim_full) + 16)
+        .filter(|&b| b <= SYNTHETIC_MAX_BYTES);
+    let (Some(_), Ok(n)) = (bytes, usize::try_from(points)) else {
+        return Err(InputError::new_err(format!(
+            "{points} points of {dim_full} dims: over {} GiB in memory",
+            SYNTHETIC_MAX_BYTES >> 30
+        )));
+    };
+    sfpmap::output::check_output(&path, &[], force).map_err(output_error)?;
     py.detach(|| {
-        let positions: Vec<[f32; 3]> = (0..points)
+        let positions: Vec<[f32; 3]> = (0..n)
             .map(|i| {
                 let i = i as f32;
                 [i * 1e-3, (i * 0.37).sin(), (i * 0.11).cos()]
             })
             .collect();
-        let indices: Vec<u32> = (0..points as u32).collect();
+        // n <= 4 GiB / 18 < 2^32.
+        let indices: Vec<u32> = (0..n as u32).collect();
         let value = f16::from_f32(1.0 / (dim_full as f32).sqrt());
-        let descriptors = vec![value; points * dim_full as usize];
+        let descriptors = vec![value; n * dim_full as usize];
         let mut writer = MapWriter::new(Metadata::default());
         writer.set_points(&positions);
         let info = LevelInfo {
@@ -583,3 +682,6 @@ pub(crate) fn write_synthetic_map(
             .map_err(|e| format_error(&path, e))
     })
 }
+
+/// The most memory `_write_synthetic_map` takes for its arrays: 4 GiB.
+const SYNTHETIC_MAX_BYTES: u64 = 4 << 30;

@@ -78,16 +78,30 @@ pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     Ok(())
 }
 
-/// `e` and its causes, `: `-separated, as anyhow's `{:#}` prints them.
+/// `e` and its causes, `: `-separated, as anyhow's `{:#}` prints them, on one line: the
+/// messages of ONNX Runtime, SQLite or HDF5 may hold line breaks (ORT ends some with one).
 pub(crate) fn chain(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
+    let mut text = one_line(&e.to_string());
     let mut source = e.source();
     while let Some(s) = source {
         text.push_str(": ");
-        text.push_str(&s.to_string());
+        text.push_str(&one_line(&s.to_string()));
         source = s.source();
     }
     text
+}
+
+/// `text` with its lines trimmed and joined by `; ` (blank ones dropped); as it is when it
+/// holds no line break.
+pub(crate) fn one_line(text: &str) -> String {
+    if !text.contains(['\n', '\r']) {
+        return text.to_string();
+    }
+    text.split(['\n', '\r'])
+        .map(str::trim)
+        .filter(|line| !line.is_empty())
+        .collect::<Vec<_>>()
+        .join("; ")
 }
 
 /// `context: chain(e)`.

@@ -30,9 +30,32 @@ fn extract_error(e: sfpmap::extract::ExtractError) -> PyErr {
 }
 
 /// An image from a numpy array: `(h, w)` or `(h, w, 1)` grey, `(h, w, 3)` RGB; uint8, or
-/// floats in [0, 1].
+/// floats in [0, 1]. The shape is checked before anything is copied: each side at least 1 and
+/// at most `u32::MAX` pixels (a wider array is refused, not truncated to its low 32 bits).
 fn image_of(array: &Bound<'_, PyAny>) -> PyResult<image::DynamicImage> {
     let np = array.py().import("numpy")?;
+    let shape: Vec<usize> = array.getattr("shape")?.extract()?;
+    let bad = || {
+        InputError::new_err(format!(
+            "image: shape {shape:?} (expected (h, w), (h, w, 1) or (h, w, 3))"
+        ))
+    };
+    let (h, w) = match shape.as_slice() {
+        [h, w] | [h, w, 1] | [h, w, 3] => (*h, *w),
+        _ => return Err(bad()),
+    };
+    if h == 0 || w == 0 {
+        return Err(bad());
+    }
+    let side = |n: usize| {
+        u32::try_from(n).map_err(|_| {
+            InputError::new_err(format!(
+                "image: shape {shape:?}: a side of {n} pixels (at most {})",
+                u32::MAX
+            ))
+        })
+    };
+    let (h, w) = (side(h)?, side(w)?);
     let dtype = array
         .getattr("dtype")?
         .getattr("kind")?
@@ -58,20 +81,10 @@ fn image_of(array: &Bound<'_, PyAny>) -> PyResult<image::DynamicImage> {
         )));
     };
     let a: PyReadonlyArrayDyn<'_, u8> = as_u8.extract()?;
-    let shape = a.shape().to_vec();
-    let data = a.as_slice()?.to_vec();
-    let bad = || {
-        InputError::new_err(format!(
-            "image: shape {shape:?} (expected (h, w), (h, w, 1) or (h, w, 3))"
-        ))
-    };
-    let (h, w) = match shape.as_slice() {
-        [h, w] | [h, w, 1] | [h, w, 3] => (*h as u32, *w as u32),
-        _ => return Err(bad()),
-    };
-    if h == 0 || w == 0 {
+    if a.shape() != shape.as_slice() {
         return Err(bad());
     }
+    let data = a.as_slice()?.to_vec();
     if shape.len() == 3 && shape[2] == 3 {
         let rgb = image::RgbImage::from_raw(w, h, data).ok_or_else(bad)?;
         Ok(image::DynamicImage::ImageRgb8(rgb))
@@ -86,12 +99,12 @@ impl Extractor {
     #[new]
     #[pyo3(signature = (model=None, threads=2))]
     fn new(py: Python<'_>, model: Option<PathBuf>, threads: i64) -> PyResult<Self> {
-        sfpmap::extract::runtime::disable_telemetry();
         let threads = crate::thread_count(py, Some(threads))?;
         let options = ExtractorOptions { model, threads };
-        let inner = py
-            .detach(|| Inner::new(&options, &sfpmap::progress::Silent))
-            .map_err(extract_error)?;
+        // The library's warnings (ONNX Runtime not found, so fetched) as `RuntimeWarning`s.
+        let warnings = crate::Warnings::default();
+        let inner = py.detach(|| Inner::new(&options, &warnings));
+        let inner = warnings.emit_then(py, inner.map_err(extract_error))?;
         let model_name = inner.contract().model_name.clone();
         let gray_weights = inner.contract().gray_weights;
         Ok(Extractor {
@@ -184,7 +197,6 @@ impl FeaturesFile {
 #[pyclass(frozen, module = "sfpmap._sfpmap", name = "QueryDatabase")]
 pub(crate) struct QueryDatabase {
     inner: Mutex<DatabaseFeatures>,
-    path: PathBuf,
 }
 
 #[pymethods]
@@ -193,10 +205,10 @@ impl QueryDatabase {
     fn new(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
         let inner = py
             .detach(|| DatabaseFeatures::open(&path))
-            .map_err(|e| InputError::new_err(format!("{}: {}", path.display(), chain(&e))))?;
+            // The database's errors name it already.
+            .map_err(|e| InputError::new_err(chain(&e)))?;
         Ok(QueryDatabase {
             inner: Mutex::new(inner),
-            path,
         })
     }
 
@@ -209,7 +221,7 @@ impl QueryDatabase {
                     .unwrap_or_else(|p| p.into_inner())
                     .features(name)
             })
-            .map_err(|e| InputError::new_err(format!("{}: {}", self.path.display(), chain(&e))))?;
+            .map_err(|e| InputError::new_err(chain(&e)))?;
         Ok(f.map(Features::new))
     }
 }

@@ -48,6 +48,16 @@ impl Warnings {
         }
         Ok(())
     }
+
+    /// [`Warnings::emit`], then `result`: the warnings of a call that failed are shown too (a
+    /// failed ONNX Runtime fetch says it tried). The call's own error wins over one a warning
+    /// raises (`-W error`).
+    pub(crate) fn emit_then<T>(self, py: Python<'_>, result: PyResult<T>) -> PyResult<T> {
+        let emitted = self.emit(py);
+        let value = result?;
+        emitted?;
+        Ok(value)
+    }
 }
 
 /// A `threads` argument as the CLI takes `--threads`: at least 1 (`InputError`, as the CLI's
@@ -71,6 +81,13 @@ pub(crate) fn thread_count(py: Python<'_>, requested: Option<i64>) -> PyResult<u
 
 #[pymodule]
 fn _sfpmap(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    // `ORT_DISABLE_TELEMETRY=1` (`std::env::set_var`) once, here: at import, with the GIL
+    // held and before this module has started any thread. Writing the environment while
+    // another thread reads it (`getenv`) is undefined behaviour, and later, in a detached
+    // call, other Python threads could be doing just that. The library's `runtime()` calls it
+    // again before loading ONNX Runtime, a no-op by then (a `OnceLock`); the session builder
+    // also turns telemetry off (`with_telemetry(false)`).
+    sfpmap::extract::runtime::disable_telemetry();
     errors::register(m)?;
     m.add_class::<map::Map>()?;
     m.add_class::<map::Mapping>()?;

@@ -131,11 +131,13 @@ impl Features {
         }
     }
 
+    /// The set the localizer uses for `level`: the level's own, else the one for every level
+    /// (`None`), as the library picks it.
     fn set(&self, level: Option<u16>) -> PyResult<usize> {
-        self.inner
-            .sets
-            .iter()
-            .position(|s| s.level == level || s.level.is_none())
+        let sets = &self.inner.sets;
+        sets.iter()
+            .position(|s| s.level == level)
+            .or_else(|| sets.iter().position(|s| s.level.is_none()))
             .ok_or_else(|| {
                 InputError::new_err(format!(
                     "no features for level {}",
@@ -174,9 +176,29 @@ fn feature_set(
         )));
     }
     let k = k.as_array();
-    let keypoints = (0..n).map(|i| [k[[i, 0]], k[[i, 1]]]).collect();
+    let keypoints: Vec<[f64; 2]> = (0..n).map(|i| [k[[i, 0]], k[[i, 1]]]).collect();
     let dim = d.shape()[1];
-    let descriptors = d.as_array().iter().copied().collect();
+    let descriptors: Vec<f32> = d.as_array().iter().copied().collect();
+    // As the features.h5 and database readers: a NaN would pass every check of the pose
+    // solver's input, an infinity wreck the matching.
+    let set = || level.map_or("None (every level)".to_string(), |l| l.to_string());
+    if let Some((i, axis, v)) = keypoints.iter().enumerate().find_map(|(i, xy)| {
+        let axis = xy.iter().position(|v| !v.is_finite())?;
+        Some((i, ["x", "y"][axis], xy[axis]))
+    }) {
+        return Err(InputError::new_err(format!(
+            "level {}: keypoints row {i}: {axis} is {v}",
+            set()
+        )));
+    }
+    if let Some(at) = descriptors.iter().position(|v| !v.is_finite()) {
+        return Err(InputError::new_err(format!(
+            "level {}: descriptors row {}: a value is {}",
+            set(),
+            at / dim.max(1),
+            descriptors[at]
+        )));
+    }
     Ok(FeatureSet {
         level,
         keypoints,
@@ -192,6 +214,7 @@ impl Features {
     #[new]
     #[pyo3(signature = (levels, global_descriptor=None))]
     fn py_new(levels: &Bound<'_, PyDict>, global_descriptor: Option<Vec<f32>>) -> PyResult<Self> {
+        check_global(global_descriptor.as_deref())?;
         let mut sets = Vec::new();
         for (level, value) in levels.iter() {
             let level: Option<u16> = level.extract()?;
@@ -281,6 +304,16 @@ impl Features {
     }
 }
 
+/// A global descriptor holds finite values only (as the features.h5 reader requires).
+fn check_global(global: Option<&[f32]>) -> PyResult<()> {
+    match global.and_then(|g| g.iter().position(|v| !v.is_finite()).map(|i| (i, g[i]))) {
+        Some((i, v)) => Err(InputError::new_err(format!(
+            "global_descriptor: value {i} is {v}"
+        ))),
+        None => Ok(()),
+    }
+}
+
 /// Query features from a `Features`, a `(keypoints, descriptors)` tuple (one set for every
 /// level) or a dict `{level: (keypoints, descriptors)}`; `global_descriptor` replaces theirs.
 fn features_of(
@@ -306,6 +339,7 @@ fn features_of(
             "features: expected Features, (keypoints, descriptors) or {level: (keypoints, descriptors)}",
         ));
     };
+    check_global(global_descriptor.as_deref())?;
     // The library reads the global descriptor from the features: one made here from arrays is
     // this call's own and takes it in place; a shared `Features` object is copied (the
     // library has no call taking the global descriptor beside the features).
@@ -347,23 +381,84 @@ fn retrieval_method(name: &str) -> PyResult<RetrievalMethod> {
 }
 
 impl Localizer {
-    /// One query, errors named as the CLI names them (`MAP: query NAME: ...`).
-    fn run(
-        &self,
-        features: &QueryFeatures,
-        camera: &GeoCamera,
-        name: &str,
-    ) -> Result<Outcome, String> {
-        self.prepared
+    /// One query (GIL released), errors named as the CLI names them (`MAP: query NAME: ...`),
+    /// and the names of the images it retrieved, read from the map (checked on first access:
+    /// a damaged names section is the map's `MapError`, not an empty list).
+    fn run(&self, features: &QueryFeatures, camera: &GeoCamera, name: &str) -> PyResult<Ran> {
+        let opened = &self.prepared.opened;
+        let outcome = self
+            .prepared
             .localizer
             .localize(features, camera)
             .map_err(|e| {
-                within(
-                    &format!("{}: query {name:?}", self.prepared.opened.path.display()),
+                LocalizeError::new_err(within(
+                    &format!("{}: query {name:?}", opened.path.display()),
                     &e,
-                )
-            })
+                ))
+            })?;
+        let names = retrieved_names(opened, &outcome.retrieved).map_err(|e| opened.error(e))?;
+        Ok((outcome, names))
     }
+}
+
+/// One query's outcome and the names of the images it retrieved.
+type Ran = (Outcome, Vec<String>);
+
+/// The names of the images `retrieved` (map indices).
+fn retrieved_names(
+    opened: &Opened,
+    retrieved: &[usize],
+) -> Result<Vec<String>, sfpmap::format::Error> {
+    if retrieved.is_empty() {
+        return Ok(Vec::new());
+    }
+    let Some(images) = opened.map.images()? else {
+        return Ok(Vec::new());
+    };
+    retrieved
+        .iter()
+        .map(|&i| images.name(i).map(str::to_string))
+        .collect()
+}
+
+/// The most images `top_k` may retrieve (the library multiplies it when widening a search).
+const MAX_TOP_K: i64 = 100_000;
+
+/// The localizer's numeric options, checked: `InputError` for one it cannot use.
+#[allow(clippy::too_many_arguments)]
+fn check_options(
+    top_k: i64,
+    ratio: f32,
+    min_similarity: f32,
+    coarse_error_px: f64,
+    gate_px: f64,
+    gate_ratio: f32,
+    fine_error_px: f64,
+) -> PyResult<usize> {
+    let bad = |m: String| Err(InputError::new_err(m));
+    if !(1..=MAX_TOP_K).contains(&top_k) {
+        return bad(format!("top_k {top_k}: 1 to {MAX_TOP_K} images"));
+    }
+    for (name, value) in [("ratio", ratio), ("gate_ratio", gate_ratio)] {
+        if !(value > 0.0 && value <= 1.0) {
+            return bad(format!("{name} {value}: a ratio in (0, 1]"));
+        }
+    }
+    if !(-1.0..=1.0).contains(&min_similarity) {
+        return bad(format!(
+            "min_similarity {min_similarity}: a cosine similarity in [-1, 1]"
+        ));
+    }
+    for (name, value) in [
+        ("coarse_error_px", coarse_error_px),
+        ("gate_px", gate_px),
+        ("fine_error_px", fine_error_px),
+    ] {
+        if !(value.is_finite() && value > 0.0) {
+            return bad(format!("{name} {value}: a finite number of pixels > 0"));
+        }
+    }
+    Ok(top_k as usize)
 }
 
 #[pymethods]
@@ -378,7 +473,7 @@ impl Localizer {
         map: &Bound<'_, Map>,
         levels: Option<Vec<Bound<'_, PyAny>>>,
         short: bool,
-        top_k: usize,
+        top_k: i64,
         retrieval: &str,
         ratio: f32,
         mutual: bool,
@@ -389,6 +484,15 @@ impl Localizer {
         fine_error_px: f64,
         min_inliers: usize,
     ) -> PyResult<Self> {
+        let top_k = check_options(
+            top_k,
+            ratio,
+            min_similarity,
+            coarse_error_px,
+            gate_px,
+            gate_ratio,
+            fine_error_px,
+        )?;
         let opened = map.get().opened(py)?;
         let levels = level_ids(&opened.path, &levels.unwrap_or_default(), || {
             opened.map.level_ids()
@@ -458,10 +562,8 @@ impl Localizer {
     ) -> PyResult<Localization> {
         let f = features_of(features, global_descriptor)?;
         let c = camera_of(camera)?;
-        let outcome = py
-            .detach(|| self.run(&f, &c, name))
-            .map_err(LocalizeError::new_err)?;
-        Ok(Localization::new(outcome, &self.prepared.opened))
+        let (outcome, names) = py.detach(|| self.run(&f, &c, name))?;
+        Ok(Localization::new(outcome, names))
     }
 
     /// Localizes `queries` (any iterable of `(features, camera)` or `(features, camera,
@@ -499,7 +601,7 @@ impl Localizer {
         }
         let workers = threads.min(inputs.len().max(1));
         let outcomes = py.detach(|| {
-            let results: Vec<Mutex<Option<Result<Outcome, String>>>> =
+            let results: Vec<Mutex<Option<PyResult<Ran>>>> =
                 inputs.iter().map(|_| Mutex::new(None)).collect();
             let next = AtomicUsize::new(0);
             std::thread::scope(|s| {
@@ -525,10 +627,7 @@ impl Localizer {
         });
         outcomes
             .into_iter()
-            .map(|o| {
-                o.map(|o| Localization::new(o, &self.prepared.opened))
-                    .map_err(LocalizeError::new_err)
-            })
+            .map(|o| o.map(|(o, names)| Localization::new(o, names)))
             .collect()
     }
 }
@@ -554,13 +653,8 @@ pub(crate) struct Localization {
 }
 
 impl Localization {
-    fn new(o: Outcome, opened: &Opened) -> Localization {
-        let names = opened.map.images().ok().flatten();
-        let retrieved_names = o
-            .retrieved
-            .iter()
-            .filter_map(|&i| names.as_ref()?.name(i).ok().map(str::to_string))
-            .collect();
+    /// `o`, and the names of its retrieved images (`Localizer::run` reads them).
+    fn new(o: Outcome, retrieved_names: Vec<String>) -> Localization {
         let pose = o.pose();
         Localization {
             colmap: pose.map(|p| p.to_colmap()),

@@ -87,6 +87,7 @@ fn kind_named(name: &str) -> Option<SectionKind> {
 
 /// A read-only numpy array of `bytes` as `T` in `shape`, whose base is `owner`; a copy when
 /// the bytes are not aligned for `T` (never for a mapped file: sections are 64-byte aligned).
+/// `section` names the map and section (`{path}: {section}`) in an error (made only then).
 ///
 /// SAFETY (of the one `unsafe` block): `bytes` lie in memory `owner` keeps alive and
 /// unchanged for as long as `owner` lives: the read-only mapping held by its `Arc<Opened>`,
@@ -96,19 +97,28 @@ fn kind_named(name: &str) -> Option<SectionKind> {
 #[allow(unsafe_code)]
 fn view<'py, T: Element + bytemuck::Pod>(
     owner: &Bound<'py, Mapping>,
+    section: &dyn Fn() -> String,
     bytes: &[u8],
     shape: &[usize],
 ) -> PyResult<Bound<'py, PyAny>> {
     let py = owner.py();
+    let shape_error = |e: &dyn std::fmt::Display| {
+        MapError::new_err(format!(
+            "{}: {} bytes as shape {shape:?}: {e}",
+            section(),
+            bytes.len()
+        ))
+    };
     let array = match bytemuck::try_cast_slice::<u8, T>(bytes) {
         Ok(values) => {
-            let view = ArrayView::from_shape(IxDyn(shape), values)
-                .map_err(|e| MapError::new_err(format!("section shape: {e}")))?;
+            let view = ArrayView::from_shape(IxDyn(shape), values).map_err(|e| shape_error(&e))?;
             unsafe { PyArray::<T, IxDyn>::borrow_from_array(&view, owner.clone().into_any()) }
         }
         Err(_) => {
             let values: Vec<T> = bytemuck::pod_collect_to_vec(bytes);
-            PyArray::from_vec(py, values).reshape(shape.to_vec())?
+            PyArray::from_vec(py, values)
+                .reshape(shape.to_vec())
+                .map_err(|e| shape_error(&e))?
         }
     };
     array.call_method1("setflags", (false,))?;
@@ -125,14 +135,16 @@ pub(crate) fn section_view<'py>(
 ) -> PyResult<Bound<'py, PyAny>> {
     let opened = &owner.get().opened;
     let map = &opened.map;
+    // `{path}: section 3 (level_desc_short, level 2)`, as the library's errors name it.
+    let name = || format!("{}: {}", opened.path.display(), section.reference());
     let bytes: &[u8] = match section.codec() {
         // Validated at open: in bounds, aligned, tiling the file. The package opens files
         // (mmap): the whole file is there. Unchecked, so that a view touches no page.
         Codec::Raw => {
             let start = section.offset() as usize;
-            let file = map
-                .bytes()
-                .ok_or_else(|| MapError::new_err("the map is not in memory"))?;
+            let file = map.bytes().ok_or_else(|| {
+                MapError::new_err(format!("{}: the map is not in memory", name()))
+            })?;
             &file[start..start + section.stored_len() as usize]
         }
         // Any other codec (zstd, and those a later version adds): checked and decoded once
@@ -150,15 +162,19 @@ pub(crate) fn section_view<'py>(
         vec![rows, cols]
     };
     match section.dtype() {
-        Dtype::U8 => view::<u8>(owner, bytes, &shape),
-        Dtype::U16 => view::<u16>(owner, bytes, &shape),
-        Dtype::U32 => view::<u32>(owner, bytes, &shape),
-        Dtype::U64 => view::<u64>(owner, bytes, &shape),
-        Dtype::F16 => view::<half::f16>(owner, bytes, &shape),
-        Dtype::F32 => view::<f32>(owner, bytes, &shape),
-        Dtype::F64 => view::<f64>(owner, bytes, &shape),
+        Dtype::U8 => view::<u8>(owner, &name, bytes, &shape),
+        Dtype::U16 => view::<u16>(owner, &name, bytes, &shape),
+        Dtype::U32 => view::<u32>(owner, &name, bytes, &shape),
+        Dtype::U64 => view::<u64>(owner, &name, bytes, &shape),
+        Dtype::F16 => view::<half::f16>(owner, &name, bytes, &shape),
+        Dtype::F32 => view::<f32>(owner, &name, bytes, &shape),
+        Dtype::F64 => view::<f64>(owner, &name, bytes, &shape),
         #[allow(unreachable_patterns)]
-        _ => Err(MapError::new_err("unknown dtype")),
+        other => Err(MapError::new_err(format!(
+            "{}: dtype {}: not one this package can view",
+            name(),
+            other.name()
+        ))),
     }
 }
 
@@ -244,14 +260,16 @@ impl Map {
     /// The metadata block as JSON text.
     fn _metadata_json(&self, py: Python<'_>) -> PyResult<String> {
         let opened = self.opened(py)?;
-        serde_json::to_string(opened.map.metadata()).map_err(|e| MapError::new_err(e.to_string()))
+        serde_json::to_string(opened.map.metadata())
+            .map_err(|e| MapError::new_err(format!("{}: metadata: {e}", opened.path.display())))
     }
 
     /// What `sfpmap info --json` prints, as JSON text.
     fn _info_json(&self, py: Python<'_>) -> PyResult<String> {
         let opened = self.opened(py)?;
         let info = sfpmap::io::info::Info::of(&opened.map, &opened.path);
-        serde_json::to_string(&info).map_err(|e| MapError::new_err(e.to_string()))
+        serde_json::to_string(&info)
+            .map_err(|e| MapError::new_err(format!("{}: info: {e}", opened.path.display())))
     }
 
     /// A read-only numpy view of the section `kind` (its spec name) of `level`, or `None` if

@@ -120,12 +120,13 @@ def test_from_pycolmap_garbage_raises(tmp_path):
         images = {}
         points3D = {1: object()}
 
-    # A point without `xyz`: Python's AttributeError, as a ConvertError caused by it.
-    with pytest.raises(sfpmap.ConvertError, match="pycolmap reconstruction: AttributeError") as e:
+    # A point without `xyz`: Python's AttributeError, as a ConvertError caused by it, naming
+    # the point.
+    with pytest.raises(sfpmap.ConvertError, match="^pycolmap reconstruction: point3D 1: AttributeError") as e:
         sfpmap.from_pycolmap(Fake(), out=tmp_path / "x.sfpm")
     assert isinstance(e.value.__cause__, AttributeError)
     assert not (tmp_path / "x.sfpm").exists()
-    with pytest.raises(sfpmap.ConvertError, match="cameras"):
+    with pytest.raises(sfpmap.ConvertError, match="^pycolmap reconstruction: AttributeError: .*cameras"):
         sfpmap.from_pycolmap(object(), out=tmp_path / "y.sfpm")
 
     class BadId:
@@ -134,9 +135,44 @@ def test_from_pycolmap_garbage_raises(tmp_path):
         points3D = {"one": object()}
 
     # A point id that is no integer: Python's TypeError, as a ConvertError.
-    with pytest.raises(sfpmap.ConvertError) as e:
+    with pytest.raises(sfpmap.ConvertError, match="^pycolmap reconstruction: point3D 'one': TypeError") as e:
         sfpmap.from_pycolmap(BadId(), out=tmp_path / "z.sfpm")
     assert isinstance(e.value.__cause__, TypeError)
+    assert not list(tmp_path.iterdir())
+
+
+def test_from_pycolmap_errors_name_the_camera_image_or_point(tmp_path):
+    from types import SimpleNamespace as NS
+
+    camera = NS(camera_id=1, model="SIMPLE_PINHOLE", width=640, height=480, params=[500.0, 320.0, 240.0])
+    pose = NS(rotation=NS(quat=[0.0, 0.0, 0.0, 1.0]), translation=[0.0, 0.0, 0.0])
+
+    def rec(cameras=None, images=None, points3D=None):
+        return NS(cameras=cameras or {1: camera}, images=images or {}, points3D=points3D or {})
+
+    cases = [
+        # A camera without `width`: Python's error, the camera named.
+        (rec(cameras={1: NS(camera_id=1, model="PINHOLE", height=1, params=[])}), AttributeError,
+         "pycolmap reconstruction: camera 1: AttributeError"),
+        (rec(cameras={3: NS(camera_id=3, model="NO_SUCH_MODEL")}), None,
+         'pycolmap reconstruction: camera 3: unknown model "NO_SUCH_MODEL"'),
+        # An image without `points2D`, one whose point has no `xy`.
+        (rec(images={7: NS(image_id=7, cam_from_world=pose, name="a.jpg", camera_id=1)}), AttributeError,
+         "pycolmap reconstruction: image 7: AttributeError"),
+        (rec(images={8: NS(image_id=8, cam_from_world=pose, points2D=[NS(point3D_id=1)])}), AttributeError,
+         "pycolmap reconstruction: image 8: AttributeError"),
+        (rec(images={9: NS(image_id=9, cam_from_world=NS(rotation=NS(quat=[1.0]), translation=[0.0]))}), None,
+         "pycolmap reconstruction: image 9: a pose of 1 + 1 values"),
+        # A point whose error is no number.
+        (rec(points3D={5: NS(xyz=[0.0, 0.0, 0.0], color=[1, 2, 3], track=NS(elements=[]), error="big")}),
+         TypeError, "pycolmap reconstruction: point3D 5: TypeError"),
+    ]
+    for reconstruction, cause, message in cases:
+        with pytest.raises(sfpmap.ConvertError) as e:
+            sfpmap.from_pycolmap(reconstruction, out=tmp_path / "x.sfpm")
+        assert str(e.value).startswith(message), (str(e.value), message)
+        if cause is not None:
+            assert isinstance(e.value.__cause__, cause)
     assert not list(tmp_path.iterdir())
 
 

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import re
+import shutil
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -191,3 +196,86 @@ def test_extractor_threads_and_the_gil(tmp_path, extractor):
     seconds, longest = gil_stall(four_on_two_threads)
     assert longest < single / 2, f"stalled {longest:.3f} s; one image takes {single:.3f} s"
     assert len(got) == 4 and all(np.array_equal(f.keypoints(0), one.keypoints(0)) for f in got)
+
+
+def test_array_sides_past_u32_are_refused_not_truncated(extractor):
+    # Broadcast views: no memory behind them, and the shape is refused before any copy (one
+    # would not fit in memory: a copy could only fail).
+    tall = np.broadcast_to(np.zeros((1, 1), np.uint8), (2**32 + 16, 1 << 20))
+    with pytest.raises(sfpmap.InputError, match=r"image: shape \[4294967312, 1048576\]: a side of 4294967312 pixels"):
+        extractor.extract(tall)
+    wide = np.broadcast_to(np.zeros((1, 1, 3), np.float32), (1 << 20, 2**32 + 1, 3))
+    with pytest.raises(sfpmap.InputError, match="a side of 4294967297 pixels"):
+        extractor.extract(wide)
+
+
+def test_error_messages_are_one_line_and_name_the_file_once(tmp_path, extractor):
+    # ONNX Runtime ends this message with a line break: kept to one line.
+    model = tmp_path / "no-opset.onnx"
+    model.write_bytes(b"\x08\x07\x12\x03abc\x3a\x02\x0a\x00")
+    with pytest.raises(sfpmap.ExtractError, match="Missing opset") as e:
+        sfpmap.Extractor(model=model)
+    assert "\n" not in str(e.value) and str(e.value) == str(e.value).strip()
+    # The database's errors name it already: once.
+    junk = tmp_path / "junk.db"
+    junk.write_bytes(b"not a database" * 100)
+    with pytest.raises(sfpmap.InputError) as e:
+        sfpmap.QueryDatabase(junk)
+    assert str(e.value).count(str(junk)) == 1, str(e.value)
+
+
+def child_env(tmp_path, **extra):
+    """This environment for a child interpreter: no ONNX Runtime but what `extra` says."""
+    env = {k: v for k, v in os.environ.items() if k not in ("ORT_DYLIB_PATH", "ORT_DISABLE_TELEMETRY")}
+    env.update(HOME=str(tmp_path / "home"), XDG_CACHE_HOME=str(tmp_path / "cache"), **extra)
+    return env
+
+
+def test_telemetry_is_off_from_import(tmp_path):
+    # Set once at import (no thread of ours yet), not later in a call that released the GIL,
+    # when another thread may read the environment.
+    code = (
+        "import ctypes, sfpmap\n"
+        "libc = ctypes.CDLL(None)\n"
+        "libc.getenv.restype = ctypes.c_char_p\n"
+        "print(libc.getenv(b'ORT_DISABLE_TELEMETRY'))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], env=child_env(tmp_path), capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "b'1'"
+
+
+def test_fetching_onnx_runtime_is_a_warning(tmp_path, shared):
+    """Without a runtime, the extractor (and convert with images) fetches one, as the CLI does,
+    and says so: a RuntimeWarning, shown even when the fetch fails (here: the `python3` that
+    would run pip is `false`)."""
+    scene = shared / "scenes/south-building"
+    code = f"""
+import warnings, sfpmap
+calls = (
+    lambda: sfpmap.Extractor(),
+    lambda: sfpmap.convert({str(scene / "sparse-map")!r}, images={str(scene / "images")!r},
+                           out={str(tmp_path / "x.sfpm")!r}),
+)
+for call in calls:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            call()
+            print("no error")
+        except sfpmap.Error as e:
+            print(type(e).__name__, e)
+    for w in caught:
+        print(w.category.__name__, w.message)
+"""
+    env = child_env(tmp_path, SFPMAP_PYTHON=shutil.which("false"))
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert len(lines) == 4, lines
+    fetching = re.compile(r"RuntimeWarning ONNX Runtime [0-9.]+ not found; fetching it once")
+    assert lines[0].startswith("ExtractError ") and "pip download" in lines[0], lines
+    assert fetching.match(lines[1]), lines
+    assert lines[2].startswith("ConvertError ") and "pip download" in lines[2], lines
+    assert fetching.match(lines[3]), lines
+    assert not (tmp_path / "x.sfpm").exists()

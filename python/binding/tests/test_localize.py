@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -205,3 +206,88 @@ def test_the_gil_is_released_while_localizing(south_sfp, south_queries, south_fe
     with sfpmap.Map(south_sfp) as m:
         loc = sfpmap.Localizer(m)
         assert_releases_the_gil(lambda: loc.localize_many(batch, threads=1))
+
+
+def test_features_prefer_the_level_s_own_set():
+    # As the localizer picks: a level's own set first, else the one for every level.
+    every = (np.zeros((2, 2)), np.ones((2, 4)))
+    own = (np.ones((3, 2)), np.full((3, 4), 2.0))
+    f = sfpmap.Features({None: every, 2: own})
+    assert f.keypoints(2).shape == (3, 2)
+    assert np.array_equal(f.descriptors(2), own[1].astype(np.float32))
+    assert f.keypoints(1).shape == (2, 2) and f.keypoints().shape == (2, 2)
+    with pytest.raises(sfpmap.InputError, match="no features for level 1"):
+        sfpmap.Features({2: own}).keypoints(1)
+
+
+def test_non_finite_features_are_refused(south_sfp, south_queries):
+    # As the features.h5 and database readers refuse them: the level and the row named.
+    scene, queries = south_queries
+    camera = queries[0][1]
+    keypoints, descriptors = np.zeros((4, 2)), np.ones((4, 8), np.float32)
+    bad_keypoints = keypoints.copy()
+    bad_keypoints[2, 1] = np.nan
+    bad_descriptors = descriptors.copy()
+    bad_descriptors[1, 5] = -np.inf
+    with pytest.raises(sfpmap.InputError, match=re.escape("level 3: keypoints row 2: y is NaN")):
+        sfpmap.Features({3: (bad_keypoints, descriptors)})
+    with pytest.raises(sfpmap.InputError, match=re.escape("level 0: descriptors row 1: a value is -inf")):
+        sfpmap.Features({0: (keypoints, bad_descriptors)})
+    with pytest.raises(sfpmap.InputError, match=re.escape("global_descriptor: value 1 is NaN")):
+        sfpmap.Features({0: (keypoints, descriptors)}, global_descriptor=[0.0, float("nan")])
+    with sfpmap.Map(south_sfp) as m:
+        loc = sfpmap.Localizer(m)
+        with pytest.raises(sfpmap.InputError, match=re.escape("level None (every level): keypoints row 2: y is NaN")):
+            loc.localize((bad_keypoints, descriptors), camera)
+        with pytest.raises(sfpmap.InputError, match="descriptors row 1"):
+            loc.localize({0: (keypoints, bad_descriptors)}, camera)
+        with pytest.raises(sfpmap.InputError, match="global_descriptor: value 0 is inf"):
+            loc.localize((keypoints, descriptors), camera, global_descriptor=[float("inf")])
+        with pytest.raises(sfpmap.InputError, match="descriptors row 1"):
+            loc.localize_many([((keypoints, bad_descriptors), camera)])
+
+
+def test_localizer_options_are_checked(south_sfp):
+    nan, inf = float("nan"), float("inf")
+    refused = [
+        ({"top_k": 0}, "top_k 0: 1 to 100000 images"),
+        ({"top_k": -1}, "top_k -1: 1 to 100000 images"),
+        ({"top_k": 100_001}, "top_k 100001: 1 to 100000 images"),
+        ({"ratio": 0.0}, "ratio 0: a ratio in (0, 1]"),
+        ({"ratio": 1.5}, "ratio 1.5: a ratio in (0, 1]"),
+        ({"ratio": nan}, "ratio NaN: a ratio in (0, 1]"),
+        ({"gate_ratio": -0.5}, "gate_ratio -0.5: a ratio in (0, 1]"),
+        ({"min_similarity": nan}, "min_similarity NaN: a cosine similarity in [-1, 1]"),
+        ({"min_similarity": 2.0}, "min_similarity 2: a cosine similarity in [-1, 1]"),
+        ({"coarse_error_px": inf}, "coarse_error_px inf: a finite number of pixels > 0"),
+        ({"gate_px": 0.0}, "gate_px 0: a finite number of pixels > 0"),
+        ({"fine_error_px": nan}, "fine_error_px NaN: a finite number of pixels > 0"),
+    ]
+    with sfpmap.Map(south_sfp) as m:
+        for options, message in refused:
+            with pytest.raises(sfpmap.InputError) as e:
+                sfpmap.Localizer(m, **options)
+            assert str(e.value) == message, options
+        # The bounds themselves are fine.
+        sfpmap.Localizer(m, top_k=1, ratio=1.0, gate_ratio=1.0, min_similarity=-1.0)
+        sfpmap.Localizer(m, top_k=100_000)
+
+
+def test_damaged_image_names_are_an_error_not_an_empty_list(south_sfp, south_queries, south_features, tmp_path):
+    # Retrieved images are named from the map's image sections, checked on first access: a
+    # damaged names section is the map's error (here the localizer, which reads the image
+    # sections as it starts, meets it first), never a result whose names are silently empty.
+    scene, queries = south_queries
+    name, camera = queries[0]
+    with sfpmap.Map(south_sfp) as m:
+        r = sfpmap.Localizer(m).localize(south_features[name], camera)
+        assert r.retrieved and r.retrieved_names == [m.images.names[i] for i in r.retrieved]
+        names = next(s for s in m.info()["sections"] if s["kind"] == "image_names")
+    assert names["codec"] == "raw"
+    data = bytearray(south_sfp.read_bytes())
+    data[names["offset"] + 3] ^= 0x01
+    bad = tmp_path / "bad-names.sfpm"
+    bad.write_bytes(bytes(data))
+    with sfpmap.Map(bad) as m:
+        with pytest.raises(sfpmap.MapError, match=r"bad-names\.sfpm: section \d+ \(image_names\): checksum"):
+            sfpmap.Localizer(m)

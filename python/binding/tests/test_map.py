@@ -288,3 +288,38 @@ def test_images_metadata_and_cameras_are_read_once(sacre_sift):
         assert m.origin == tuple(m.metadata["origin"]) and isinstance(m.origin, tuple)
         with pytest.raises(sfpmap.InputError, match="not a kind of the spec"):
             m.section("level_short")
+
+
+def test_synthetic_maps_are_bounded_and_never_overwrite(tmp_path):
+    write = sfpmap._sfpmap._write_synthetic_map
+    path = tmp_path / "s.sfpm"
+    with pytest.raises(sfpmap.InputError, match="dim_full 4097: at most 4096"):
+        write(str(path), 10, 4097, 1)
+    assert not path.exists()
+    written = write(str(path), 10, 8, 4)
+    # The CLI's output policy: an existing file only with force.
+    with pytest.raises(sfpmap.FileError, match="exists"):
+        write(str(path), 20, 8, 4)
+    assert path.stat().st_size == written
+    assert write(str(path), 20, 8, 4, force=True) > written
+    with sfpmap.Map(path) as m:
+        assert m.n_points == 20
+    # Sizes past memory are refused before anything is allocated. In a child interpreter: an
+    # allocation that fails aborts the process, which then fails this test, not the run.
+    huge = tmp_path / "huge.sfpm"
+    code = f"""
+import sfpmap
+for points, dims in ((2**32 - 1, 4096), (1 << 27, 4096), (1 << 20, 1 << 31)):
+    try:
+        sfpmap._sfpmap._write_synthetic_map({str(huge)!r}, points, dims, 1)
+    except sfpmap.InputError as e:
+        print(e)
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines() == [
+        "4294967295 points of 4096 dims: over 4 GiB in memory",
+        "134217728 points of 4096 dims: over 4 GiB in memory",
+        "dim_full 2147483648: at most 4096 (the format's limit)",
+    ]
+    assert not huge.exists()
