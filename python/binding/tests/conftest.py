@@ -39,6 +39,15 @@ def need_module(name: str):
         pytest.fail(f"{name} absent ({e}): pip install {name} (the test extra)")
 
 
+def rss_kb() -> int:
+    """This process's resident memory (Linux), for tests of what a call keeps in memory."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    raise RuntimeError("no VmRSS")
+
+
 def gil_stall(call) -> tuple:
     """Runs `call` on a thread and spins here meanwhile: (the call's duration, the longest this
     thread went without running while it ran). A call that holds the GIL stalls this thread

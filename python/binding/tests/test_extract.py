@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import sfpmap
 
-from conftest import assert_releases_the_gil, gil_stall, need_module, run_cli
+from conftest import assert_releases_the_gil, gil_stall, need_module, rss_kb, run_cli
 
 
 @pytest.fixture(scope="module")
@@ -141,14 +141,6 @@ def test_hloc_features_h5_written_by_h5py(tmp_path):
     assert features.features("b.png") is not None
     with pytest.raises(sfpmap.InputError, match="ints.jpg/keypoints: values of type"):
         features.features("ints.jpg")
-
-
-def rss_kb() -> int:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1])
-    raise RuntimeError("no VmRSS")
 
 
 def test_a_large_features_h5_is_read_on_demand(tmp_path):

@@ -13,15 +13,7 @@ import numpy as np
 import pytest
 import sfpmap
 
-from conftest import assert_releases_the_gil, run_cli
-
-
-def rss_kb() -> int:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1])
-    raise RuntimeError("no VmRSS")
+from conftest import assert_releases_the_gil, rss_kb, run_cli
 
 
 def test_views_have_the_shapes_info_states(sacre_sift):
