@@ -19,8 +19,7 @@ echo "|---|---|---|---|---|---|---|---|---|"
 for scene in $scenes; do
   S=$(scene_dir "$scene"); C="$CACHE/$scene-size"; mkdir -p "$C"
   scene_databases "$S" "$C"
-  [ -f "$C/sift.sfpm" ] || "$bin" convert --colmap "$S/sparse-map" --database "$C/database.db" -o "$C/sift.sfpm" --force -q
-  [ -f "$C/sfp.sfpm" ] || "$bin" convert --colmap "$S/sparse-map" --images "$S/images" -o "$C/sfp.sfpm" --force -q
+  scene_maps "$bin" "$S" "$C"
   for kind in sift sfp; do
     for budget in whole $budgets; do
       out="$C/$kind-budget-$budget.sfpm"

@@ -27,3 +27,9 @@ scene_databases() { # SCENE_DIR WORK_DIR: copies of database.db and queries.db (
       --steps regen-db --regen-out "$C/database.db" --regen-queries-out "$C/queries.db" >"$C/regen.log" 2>&1
   fi
 }
+
+scene_maps() { # BIN SCENE_DIR WORK_DIR: the scene's SIFT map (from the database copy) and SFP map (from its images), built once into WORK_DIR
+  local bin=$1 S=$2 C=$3
+  [ -f "$C/sift.sfpm" ] || "$bin" convert --colmap "$S/sparse-map" --database "$C/database.db" -o "$C/sift.sfpm" --force -q
+  [ -f "$C/sfp.sfpm" ] || "$bin" convert --colmap "$S/sparse-map" --images "$S/images" -o "$C/sfp.sfpm" --force -q
+}

@@ -19,8 +19,7 @@ echo "|---|---|---|---|---|---|---|---|---|"
 for scene in $scenes; do
   S=$(scene_dir "$scene"); C="$CACHE/$scene-size"; mkdir -p "$C"
   scene_databases "$S" "$C"
-  [ -f "$C/sift.sfpm" ] || "$bin" convert --colmap "$S/sparse-map" --database "$C/database.db" -o "$C/sift.sfpm" --force -q
-  [ -f "$C/sfp.sfpm" ] || "$bin" convert --colmap "$S/sparse-map" --images "$S/images" -o "$C/sfp.sfpm" --force -q
+  scene_maps "$bin" "$S" "$C"
   for kind in sift sfp; do
     dims=$("$bin" info "$C/$kind.sfpm" --json | python3 -c "import json,sys;d=json.load(sys.stdin);print([l['dim_short'] for l in d['levels'] if l['level']==2][0])")
     variants="l2s l2s-pq8 l2s-min"
