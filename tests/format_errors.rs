@@ -764,3 +764,25 @@ fn hostile_position_grids_are_bad_metadata() {
         .set_points_q16(&[[f32::NAN, 0.0, 0.0]])
         .is_err());
 }
+
+/// (1.1) A NaN in the VLAD codebook (checksum recomputed) is found on first access: it would
+/// make every image VLAD it touches NaN and retrieval's ranking arbitrary.
+#[test]
+fn a_nonfinite_vlad_centroid_is_inconsistent() {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("spec/vectors/valid/vlad.sfpm");
+    let good = std::fs::read(path).unwrap();
+    let at = Map::from_bytes(&good)
+        .unwrap()
+        .find(SectionKind::LevelVladCentroids, Some(2))
+        .unwrap()
+        .offset() as usize;
+    let mut b = good.clone();
+    b[at..at + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    let b = sfpmap::format::fuzzing::fix_checksums(&b);
+    let err = Map::from_bytes(&b).unwrap().verify().unwrap_err();
+    assert!(
+        matches!(err, Error::Inconsistent { .. }) && err.to_string().contains("not finite"),
+        "{err}"
+    );
+}

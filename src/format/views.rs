@@ -448,7 +448,11 @@ pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> 
                 return bad(what);
             }
         }
-        SectionKind::LevelPqCodebook if cast::<f32>(bytes).iter().any(|v| !v.is_finite()) => {
+        // A NaN centroid would make every VLAD (or PQ reconstruction) it touches NaN, and
+        // every ranking (or match) silently arbitrary.
+        SectionKind::LevelPqCodebook | SectionKind::LevelVladCentroids
+            if cast::<f32>(bytes).iter().any(|v| !v.is_finite()) =>
+        {
             return bad("a centroid value is not finite".into());
         }
         _ => {}

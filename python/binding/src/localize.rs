@@ -421,6 +421,9 @@ fn retrieved_names(
         .collect()
 }
 
+/// The library's retrieval top-k (`sfpmap.Localizer`'s default).
+const DEFAULT_TOP_K: i64 = sfpmap::format::DEFAULT_RETRIEVAL_TOP_K as i64;
+
 /// The most images `top_k` may retrieve (the library multiplies it when widening a search).
 const MAX_TOP_K: i64 = 100_000;
 
@@ -464,7 +467,7 @@ fn check_options(
 #[pymethods]
 impl Localizer {
     #[new]
-    #[pyo3(signature = (map, levels=None, short=false, top_k=10, retrieval="auto", ratio=0.9,
+    #[pyo3(signature = (map, levels=None, short=false, top_k=DEFAULT_TOP_K, retrieval="auto", ratio=0.9,
                         mutual=true, min_similarity=0.0, coarse_error_px=12.0, gate_px=24.0,
                         gate_ratio=0.95, fine_error_px=6.0, min_inliers=12))]
     #[allow(clippy::too_many_arguments, unsafe_code)]
