@@ -77,58 +77,50 @@ pub(crate) fn match_rows(
         return Vec::new();
     }
     let mut tile = vec![0.0f32; BLOCK.min(n_m) * dim];
-    match_scored(n_q, n_m, n_q, options, |_, start, rows, out| {
+    match_scored(n_q, n_m, options, |start, rows, out| {
         let block = &mut tile[..rows * dim];
         fill(start, block);
         sgemm_abt(query, block, out, n_q, rows, dim);
     })
 }
 
-/// The matching of [`match_rows`] over similarities that `score(queries, start, rows, out)`
-/// writes for the queries `queries` (at most `query_chunk` of them) against map rows
-/// `start..start + rows` (at most 2,048), query by query, into `out` (`[queries × rows]`): the
-/// GEMM of decoded rows. Queries are taken a chunk at a time, each chunk against every map
-/// row (a PQ level's asymmetric distances use [`match_scored_by_row`], which chunks the same
-/// way with scores map-row-major).
+/// The matching of [`match_rows`] over similarities that `score(start, rows, out)` writes for
+/// every query against map rows `start..start + rows` (at most 2,048), query by query, into
+/// `out` (`[n_q × rows]`): the GEMM of decoded rows. (A PQ level's asymmetric distances use
+/// [`match_scored_by_row`], which takes queries a chunk at a time, scores map-row-major.)
 pub(crate) fn match_scored(
     n_q: usize,
     n_m: usize,
-    query_chunk: usize,
     options: &MatchOptions,
-    mut score: impl FnMut(std::ops::Range<usize>, usize, usize, &mut [f32]),
+    mut score: impl FnMut(usize, usize, &mut [f32]),
 ) -> Vec<Match> {
     if n_q == 0 || n_m == 0 {
         return Vec::new();
     }
-    let chunk = query_chunk.clamp(1, n_q);
     let mut best = vec![(f32::NEG_INFINITY, u32::MAX); n_q];
     let mut second = vec![f32::NEG_INFINITY; n_q];
     // The best similarity of each map row over all queries: query q is map row m's nearest
     // neighbour exactly when S[q][m] reaches it, so no per-score argmax bookkeeping is needed.
     let mut column_max = vec![f32::NEG_INFINITY; n_m];
-    let mut scores = vec![0.0f32; chunk * BLOCK.min(n_m)];
-    for first in (0..n_q).step_by(chunk) {
-        let queries = first..(first + chunk).min(n_q);
-        for start in (0..n_m).step_by(BLOCK) {
-            let rows = BLOCK.min(n_m - start);
-            let out = &mut scores[..queries.len() * rows];
-            score(queries.clone(), start, rows, out);
-            let columns = &mut column_max[start..start + rows];
-            for (i, row) in out.chunks_exact(rows).enumerate() {
-                let q = first + i;
-                // Branch-free passes the compiler vectorizes: row maximum, column maxima.
-                let (s1, j) = row_max(row);
-                if s1 > best[q].0 {
-                    // The old best is a candidate for second, as is this block's runner-up.
-                    let runner_up = row_max_except(row, j);
-                    second[q] = best[q].0.max(runner_up);
-                    best[q] = (s1, (start + j) as u32);
-                } else if s1 > second[q] {
-                    second[q] = s1;
-                }
-                for (c, &v) in columns.iter_mut().zip(row) {
-                    *c = if v > *c { v } else { *c };
-                }
+    let mut scores = vec![0.0f32; n_q * BLOCK.min(n_m)];
+    for start in (0..n_m).step_by(BLOCK) {
+        let rows = BLOCK.min(n_m - start);
+        let out = &mut scores[..n_q * rows];
+        score(start, rows, out);
+        let columns = &mut column_max[start..start + rows];
+        for (q, row) in out.chunks_exact(rows).enumerate() {
+            // Branch-free passes the compiler vectorizes: row maximum, column maxima.
+            let (s1, j) = row_max(row);
+            if s1 > best[q].0 {
+                // The old best is a candidate for second, as is this block's runner-up.
+                let runner_up = row_max_except(row, j);
+                second[q] = best[q].0.max(runner_up);
+                best[q] = (s1, (start + j) as u32);
+            } else if s1 > second[q] {
+                second[q] = s1;
+            }
+            for (c, &v) in columns.iter_mut().zip(row) {
+                *c = if v > *c { v } else { *c };
             }
         }
     }
@@ -364,9 +356,9 @@ mod tests {
                 min_similarity: 0.9,
             },
         ] {
-            let by_query = match_scored(n_q, n_m, 3, &options, |qs, start, rows, out| {
-                for (i, q) in qs.enumerate() {
-                    out[i * rows..(i + 1) * rows]
+            let by_query = match_scored(n_q, n_m, &options, |start, rows, out| {
+                for q in 0..n_q {
+                    out[q * rows..(q + 1) * rows]
                         .copy_from_slice(&scores[q * n_m + start..q * n_m + start + rows]);
                 }
             });
