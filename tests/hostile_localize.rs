@@ -640,9 +640,9 @@ fn a_non_finite_features_h5_keypoint_is_an_error_naming_file_and_keypoint() {
     }
 }
 
-/// Issue 11's review: a map's VLAD values are not checked by the format (as descriptors are
-/// not). NaN centroids and NaN image VLADs, and a query with a NaN descriptor, never panic;
-/// a NaN image ranks last, not first.
+/// Issue 11's review: a map's image VLADs are not checked by the format (as descriptors are
+/// not), so NaN image VLADs and a query with a NaN descriptor never panic and a NaN image ranks
+/// last, not first. Centroids are checked (issue 14): a NaN centroid is a format error.
 #[test]
 fn hostile_vlad_values_rank_last_and_never_panic() {
     use sfpmap::format::{Codec, Map, Retrieval};
@@ -651,17 +651,29 @@ fn hostile_vlad_values_rank_last_and_never_panic() {
     let scene = common::Scene::new(5, 200, 12, &[(2, 4.0, 8, 4)]);
     let mut w = scene.writer(Codec::Raw);
     let (clusters, dims) = (3, 4);
-    let mut centroids = vec![0.5f32; clusters * dims];
-    centroids[5] = f32::NAN;
     let mut images = vec![0.1f32; 12 * clusters * dims];
     images[..clusters * dims].fill(f32::NAN);
-    w.set_vlad(2, dims, centroids, &images).unwrap();
-    let bytes = w.to_bytes().unwrap();
-    let map = Map::from_bytes(&bytes).unwrap();
     let options = LocalizeOptions {
         top_k: 3,
         ..LocalizeOptions::default()
     };
+
+    let mut nan_centroids = vec![0.5f32; clusters * dims];
+    nan_centroids[5] = f32::NAN;
+    let mut bad = scene.writer(Codec::Raw);
+    bad.set_vlad(2, dims, nan_centroids, &images).unwrap();
+    let bad_bytes = bad.to_bytes().unwrap();
+    let bad_map = Map::from_bytes(&bad_bytes).unwrap();
+    let e = Localizer::new(&bad_map, options.clone())
+        .err()
+        .expect("a NaN centroid is refused")
+        .to_string();
+    assert!(e.contains("centroid value is not finite"), "{e}");
+
+    w.set_vlad(2, dims, vec![0.5f32; clusters * dims], &images)
+        .unwrap();
+    let bytes = w.to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
     let localizer = Localizer::new(&map, options).unwrap();
     let level = map.level(2).unwrap();
     let d_in = level
