@@ -141,9 +141,8 @@ mod localize {
                 let sample = &m[..16_384 * dim];
                 let quantiser = Quantiser::train(sample, dim, subspaces, 256).unwrap();
                 let mut codes = vec![0u8; N_POINTS * subspaces];
-                let mut scratch = vec![0.0f32; 256];
                 for (row, out) in m.chunks_exact(dim).zip(codes.chunks_exact_mut(subspaces)) {
-                    quantiser.encode(row, out, &mut scratch);
+                    quantiser.encode(row, out);
                 }
                 let pq = Pq {
                     subspaces,
@@ -179,12 +178,11 @@ mod localize {
                 b.iter(|| {
                     let q = Quantiser::train(&rows[..16_384 * dim], dim, subspaces, 256).unwrap();
                     let mut codes = vec![0u8; N_POINTS * subspaces];
-                    let mut scratch = vec![0.0f32; 256];
                     for (row, out) in rows
                         .chunks_exact(dim)
                         .zip(codes.chunks_exact_mut(subspaces))
                     {
-                        q.encode(row, out, &mut scratch);
+                        q.encode(row, out);
                     }
                     black_box(codes)
                 })

@@ -61,71 +61,147 @@ pub(crate) fn dot(a: &[f32], b: &[f32]) -> f32 {
     lanes.iter().sum::<f32>() + tail
 }
 
-/// The nearest of a set of centroids, by `x·c − ‖c‖²/2` (the order of the squared distance),
-/// with the centroids stored transposed (`[dims × clusters]`) so each of `x`'s values scales
-/// one contiguous row into all the scores at once: the loop vectorizes over centroids, which
-/// makes 256-centroid codebooks (PQ) cheap to train and encode with. k-means
+/// The nearest of a set of centroids, by `x·c − ‖c‖²/2` (the order of the squared distance).
+/// The centroids are stored in blocks of [`LANES`] (`[blocks × dims × LANES]`, the last block
+/// padded with centroids that never win), so a block's scores stay in one vector register
+/// while `x`'s values scale it: the loop vectorizes over centroids without storing scores,
+/// which makes 256-centroid codebooks (PQ) cheap to train and encode with. k-means
 /// (`kmeans`), VLAD assignments and PQ encoding all go through it.
 #[cfg(any(feature = "colmap-model", feature = "localize"))]
 #[derive(Debug, Clone, PartialEq)]
 pub struct Nearest {
+    dims: usize,
     clusters: usize,
-    transposed: Vec<f32>,
+    blocks: Vec<f32>,
+    /// `−‖c‖²/2` per centroid; `−∞` for the padding.
     minus_half_norms: Vec<f32>,
 }
+
+/// Centroids a block: one AVX2 register of f32.
+#[cfg(any(feature = "colmap-model", feature = "localize"))]
+const LANES: usize = 8;
 
 #[cfg(any(feature = "colmap-model", feature = "localize"))]
 impl Nearest {
     /// From centroids `[clusters × dims]` (a partial last row is ignored).
     pub fn new(centroids: &[f32], dims: usize) -> Nearest {
         let clusters = centroids.len().checked_div(dims).unwrap_or(0);
-        let mut transposed = vec![0.0f32; dims * clusters];
-        let mut minus_half_norms = vec![0.0f32; clusters];
+        let padded = clusters.div_ceil(LANES) * LANES;
+        let mut blocks = vec![0.0f32; padded * dims];
+        let mut minus_half_norms = vec![f32::NEG_INFINITY; padded];
         for (c, centroid) in centroids.chunks_exact(dims.max(1)).enumerate() {
+            let (block, lane) = (c / LANES, c % LANES);
+            minus_half_norms[c] = 0.0;
             for (d, &v) in centroid.iter().enumerate() {
-                transposed[d * clusters + c] = v;
+                blocks[(block * dims + d) * LANES + lane] = v;
                 minus_half_norms[c] -= 0.5 * v * v;
             }
         }
         Nearest {
+            dims,
             clusters,
-            transposed,
+            blocks,
             minus_half_norms,
         }
     }
 
     /// The index of the centroid nearest to `x` (`dims` values; ties: the lower index; 0
-    /// without centroids). `scores` is scratch of at least `clusters` values.
-    pub fn find(&self, x: &[f32], scores: &mut [f32]) -> usize {
-        let scores = &mut scores[..self.clusters];
-        nearest_scores(x, &self.transposed, &self.minus_half_norms, scores)
+    /// without centroids, or when no score is a number).
+    pub fn find(&self, x: &[f32]) -> usize {
+        if self.dims == 0 {
+            return 0;
+        }
+        // The clamp only matters past 2²⁴ blocks, where block indices stop being exact f32.
+        nearest_in_blocks(&x[..self.dims], &self.blocks, &self.minus_half_norms)
+            .min(self.clusters.saturating_sub(1))
     }
 }
 
-/// [`Nearest::find`]'s loop, compiled for AVX2 too and chosen at run time.
+/// [`Nearest::find`]'s loop, compiled for AVX2 too and chosen at run time. Each score is
+/// `−‖c‖²/2 + x₀c₀ + x₁c₁ + …` summed in that order, so every build gives the same index.
 #[cfg(any(feature = "colmap-model", feature = "localize"))]
 #[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx"))]
-fn nearest_scores(
-    x: &[f32],
-    transposed: &[f32],
-    minus_half_norms: &[f32],
-    scores: &mut [f32],
-) -> usize {
-    let clusters = scores.len();
-    scores.copy_from_slice(minus_half_norms);
-    for (&v, column) in x.iter().zip(transposed.chunks_exact(clusters.max(1))) {
-        for (s, &c) in scores.iter_mut().zip(column) {
-            *s += v * c;
+fn nearest_in_blocks(x: &[f32], blocks: &[f32], minus_half_norms: &[f32]) -> usize {
+    let dims = x.len();
+    let mut best = [f32::NEG_INFINITY; LANES];
+    // Block indices as f32 (exact below 2²⁴ blocks): the update is then one compare and two
+    // blends; as u32 the compiler packs and shuffles the compare masks.
+    let mut best_block = [0.0f32; LANES];
+    for (b, (block, norms)) in blocks
+        .chunks_exact(dims * LANES)
+        .zip(minus_half_norms.chunks_exact(LANES))
+        .enumerate()
+    {
+        let mut acc = [0.0f32; LANES];
+        acc.copy_from_slice(norms);
+        for (&v, column) in x.iter().zip(block.chunks_exact(LANES)) {
+            for k in 0..LANES {
+                acc[k] += v * column[k];
+            }
+        }
+        // Strictly greater: a lane keeps its first (lowest) block on ties; NaN never wins.
+        let block_index = b as f32;
+        for k in 0..LANES {
+            let better = acc[k] > best[k];
+            best[k] = if better { acc[k] } else { best[k] };
+            best_block[k] = if better { block_index } else { best_block[k] };
         }
     }
-    // The maximum in one pass the compiler vectorizes, then its first position.
-    let max = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-    scores.iter().position(|&s| s == max).unwrap_or(0)
+    let max = best.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    (0..LANES)
+        .filter(|&k| best[k] == max)
+        .map(|k| best_block[k] as usize * LANES + k)
+        .min()
+        .unwrap_or(0)
 }
 
 #[cfg(all(test, feature = "localize"))]
 mod tests {
     use super::*;
+
+    /// [`Nearest::find`] is the first maximum of `−‖c‖²/2 + x₀c₀ + x₁c₁ + …` summed in that
+    /// order, bit for bit, for cluster counts that do and do not fill the last block, with
+    /// ties, and 0 when no score is a number.
+    #[test]
+    fn nearest_is_the_first_maximum_of_the_scalar_scores() {
+        let mut rng = crate::geometry::SplitMix64::new(4);
+        for (clusters, dims) in [(256usize, 8usize), (13, 3), (1, 4), (9, 1)] {
+            let mut centroids: Vec<f32> = (0..clusters * dims)
+                .map(|_| rng.next_f64() as f32 - 0.5)
+                .collect();
+            if clusters > 2 {
+                // A tie: the same centroid twice, the lower index must win.
+                let (a, b) = centroids.split_at_mut(dims * (clusters - 1));
+                b.copy_from_slice(&a[dims..2 * dims]);
+            }
+            let nearest = Nearest::new(&centroids, dims);
+            for t in 0..200 {
+                let x: Vec<f32> = if t == 0 && clusters > 2 {
+                    centroids[dims..2 * dims].to_vec()
+                } else {
+                    (0..dims).map(|_| rng.next_f64() as f32 - 0.5).collect()
+                };
+                let scores: Vec<f32> = centroids
+                    .chunks_exact(dims)
+                    .map(|c| {
+                        let mut s = 0.0f32;
+                        for &v in c {
+                            s -= 0.5 * v * v;
+                        }
+                        for (&xv, &cv) in x.iter().zip(c) {
+                            s += xv * cv;
+                        }
+                        s
+                    })
+                    .collect();
+                let max = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                let want = scores.iter().position(|&s| s == max).unwrap();
+                assert_eq!(nearest.find(&x), want, "{clusters} clusters, row {t}");
+            }
+            assert_eq!(nearest.find(&vec![f32::NAN; dims]), 0);
+        }
+        assert_eq!(Nearest::new(&[], 3).find(&[1.0, 2.0, 3.0]), 0);
+    }
 
     #[test]
     fn unit_rows_zero_rows_and_dots() {

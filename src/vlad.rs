@@ -88,7 +88,7 @@ impl Codebook {
 
     /// The centroid nearest to `x` (`dims` values; ties: the lower index).
     pub fn nearest(&self, x: &[f32]) -> usize {
-        self.nearest.find(x, &mut vec![0.0; self.clusters])
+        self.nearest.find(x)
     }
 
     /// Values of one VLAD: `clusters × dims`.
@@ -113,14 +113,13 @@ impl Codebook {
     /// rows are skipped): `width()` values, unit length (all zero without rows).
     pub fn vlad(&self, rows: &[f32]) -> Vec<f32> {
         let mut sum = vec![0.0f32; self.width()];
-        let mut scores = vec![0.0f32; self.clusters];
         // Zero rows (descriptors of no direction) are skipped, as the map's are, and so are
         // rows with a non-finite value (one would make the whole VLAD NaN).
         for x in rows
             .chunks_exact(self.dims)
             .filter(|x| x.iter().any(|&v| v != 0.0) && x.iter().all(|v| v.is_finite()))
         {
-            self.accumulate(x, &mut sum, self.nearest.find(x, &mut scores));
+            self.accumulate(x, &mut sum, self.nearest.find(x));
         }
         self.finish(&mut sum);
         sum
@@ -139,14 +138,13 @@ impl Codebook {
         let d = self.dims;
         let n = rows.len() / d;
         // Each point's centroid, once: most points are seen by several images.
-        let mut scores = vec![0.0f32; self.clusters];
         let assignment: Vec<u32> = rows
             .chunks_exact(d)
             .map(|x| {
                 if x.iter().all(|&v| v == 0.0) {
                     u32::MAX
                 } else {
-                    self.nearest.find(x, &mut scores) as u32
+                    self.nearest.find(x) as u32
                 }
             })
             .collect();

@@ -141,13 +141,13 @@ impl Quantiser {
     }
 
     /// Codes of one unit row (`dims` values) into `codes` (`subspaces` bytes); returns the
-    /// squared reconstruction error. `scores` is scratch of at least `centroids` values.
-    pub fn encode(&self, row: &[f32], codes: &mut [u8], scores: &mut [f32]) -> f64 {
+    /// squared reconstruction error.
+    pub fn encode(&self, row: &[f32], codes: &mut [u8]) -> f64 {
         let d = self.sub_dims;
         let mut error = 0.0f64;
         for (m, (code, nearest)) in codes.iter_mut().zip(&self.nearest).enumerate() {
             let x = &row[m * d..(m + 1) * d];
-            let k = nearest.find(x, scores);
+            let k = nearest.find(x);
             *code = k as u8;
             let at = (m * self.centroids + k) * d;
             error += x
@@ -232,11 +232,10 @@ pub fn quantise_levels(
         let m = options.subspaces;
         let mut codes = vec![0u8; n * m];
         let mut scratch = vec![0.0f32; dims];
-        let mut scores = vec![0.0f32; quantiser.centroids];
         let mut error = 0.0f64;
         for (r, out) in codes.chunks_exact_mut(m).enumerate() {
             row(r, &mut scratch);
-            error += quantiser.encode(&scratch, out, &mut scores);
+            error += quantiser.encode(&scratch, out);
         }
         let bytes_before = (n * dims * 2) as u64;
         let bytes_after = (codes.len() + quantiser.codebook.len() * 4) as u64;
@@ -423,10 +422,9 @@ mod tests {
             Quantiser::train(&rows, 16, 4, 256).unwrap().codebook()
         );
         let mut codes = vec![0u8; 4];
-        let mut scores = vec![0.0; 256];
         let mut error = 0.0;
         for row in rows.chunks_exact(16) {
-            error += q.encode(row, &mut codes, &mut scores);
+            error += q.encode(row, &mut codes);
         }
         // A unit row against a random unit row: 2 on average; 4 × 256 centroids do far better.
         let mean = error / 3000.0;
@@ -442,9 +440,9 @@ mod tests {
         // 10 rows: 10 centroids per subspace, each row its own, so no error.
         let q = Quantiser::train(&rows, 12, 3, 256).unwrap();
         assert_eq!(q.centroids(), 10);
-        let (mut codes, mut scores) = (vec![0u8; 3], vec![0.0; 10]);
+        let mut codes = vec![0u8; 3];
         for row in rows.chunks_exact(12) {
-            assert!(q.encode(row, &mut codes, &mut scores) < 1e-10);
+            assert!(q.encode(row, &mut codes) < 1e-10);
         }
         assert_eq!(
             [0, 15, 16, 345, 4095, 4096, 1 << 20].map(centroids_for),
