@@ -73,6 +73,8 @@ impl KMeans {
             }
             centroids.extend_from_slice(row(pick));
         }
+        // Only seeding reads the transposed copy.
+        drop((columns, nearest));
 
         let mut assignment = vec![usize::MAX; n];
         for _ in 0..self.iterations {

@@ -105,14 +105,14 @@ impl Nearest {
         }
     }
 
-    /// The index of the centroid nearest to `x` (`dims` values; ties: the lower index; 0
-    /// without centroids, or when no score is a number).
+    /// The index of the centroid nearest to `x` (`dims` values, a shorter `x` scores only its
+    /// own; ties: the lower index; 0 without centroids, or when no score is a number).
     pub fn find(&self, x: &[f32]) -> usize {
         if self.dims == 0 {
             return 0;
         }
         // The clamp only matters past 2²⁴ blocks, where block indices stop being exact f32.
-        nearest_in_blocks(&x[..self.dims], &self.blocks, &self.minus_half_norms)
+        nearest_in_blocks(x, self.dims, &self.blocks, &self.minus_half_norms)
             .min(self.clusters.saturating_sub(1))
     }
 }
@@ -121,8 +121,7 @@ impl Nearest {
 /// `−‖c‖²/2 + x₀c₀ + x₁c₁ + …` summed in that order, so every build gives the same index.
 #[cfg(any(feature = "colmap-model", feature = "localize"))]
 #[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx"))]
-fn nearest_in_blocks(x: &[f32], blocks: &[f32], minus_half_norms: &[f32]) -> usize {
-    let dims = x.len();
+fn nearest_in_blocks(x: &[f32], dims: usize, blocks: &[f32], minus_half_norms: &[f32]) -> usize {
     let mut best = [f32::NEG_INFINITY; LANES];
     // Block indices as f32 (exact below 2²⁴ blocks): the update is then one compare and two
     // blends; as u32 the compiler packs and shuffles the compare masks.
@@ -199,6 +198,14 @@ mod tests {
                 assert_eq!(nearest.find(&x), want, "{clusters} clusters, row {t}");
             }
             assert_eq!(nearest.find(&vec![f32::NAN; dims]), 0);
+            // An empty `x` scores only `−‖c‖²/2`: the shortest centroid, no panic.
+            let norms: Vec<f32> = centroids
+                .chunks_exact(dims)
+                .map(|c| c.iter().fold(0.0f32, |s, &v| s - 0.5 * v * v))
+                .collect();
+            let max = norms.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            let shortest = norms.iter().position(|&s| s == max).unwrap();
+            assert_eq!(nearest.find(&[]), shortest);
         }
         assert_eq!(Nearest::new(&[], 3).find(&[1.0, 2.0, 3.0]), 0);
     }
