@@ -178,12 +178,7 @@ mod localize {
                 b.iter(|| {
                     let q = Quantiser::train(&rows[..16_384 * dim], dim, subspaces, 256).unwrap();
                     let mut codes = vec![0u8; N_POINTS * subspaces];
-                    for (row, out) in rows
-                        .chunks_exact(dim)
-                        .zip(codes.chunks_exact_mut(subspaces))
-                    {
-                        q.encode(row, out);
-                    }
+                    q.encode_rows(&rows, &mut codes);
                     black_box(codes)
                 })
             });

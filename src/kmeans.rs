@@ -80,11 +80,10 @@ impl KMeans {
         for _ in 0..self.iterations {
             let nearest = Nearest::new(&centroids, dims);
             let mut changed = false;
-            for (i, a) in assignment.iter_mut().enumerate() {
-                let c = nearest.find(row(i));
-                changed |= *a != c;
-                *a = c;
-            }
+            nearest.find_each(data.chunks_exact(dims), |i, c| {
+                changed |= assignment[i] != c;
+                assignment[i] = c;
+            });
             if !changed {
                 break;
             }

@@ -111,10 +111,80 @@ impl Nearest {
         if self.dims == 0 {
             return 0;
         }
-        // The clamp only matters past 2²⁴ blocks, where block indices stop being exact f32.
-        nearest_in_blocks(x, self.dims, &self.blocks, &self.minus_half_norms)
-            .min(self.clusters.saturating_sub(1))
+        let used = x.len().min(self.dims);
+        #[cfg(target_arch = "x86_64")]
+        if let Some(found) =
+            avx::nearest_rows(&[x], used, self.dims, &self.blocks, &self.minus_half_norms)
+        {
+            return self.clamp(found[0]);
+        }
+        self.clamp(nearest_in_blocks(
+            x,
+            self.dims,
+            &self.blocks,
+            &self.minus_half_norms,
+        ))
     }
+
+    /// [`Nearest::find`] of each row in order, `found(row index, centroid)` for each; rows of
+    /// `dims` values go [`ROWS`] at a time through one pass over the centroids (a block's
+    /// loads shared, independent sums in flight), the rest one at a time. Same indices as
+    /// `find`, bit for bit.
+    pub fn find_each<'a>(
+        &self,
+        rows: impl IntoIterator<Item = &'a [f32]>,
+        mut found: impl FnMut(usize, usize),
+    ) {
+        let mut rows = rows.into_iter();
+        let mut first = 0;
+        loop {
+            let mut group: [&[f32]; ROWS] = [&[]; ROWS];
+            let mut len = 0;
+            for (slot, x) in group.iter_mut().zip(rows.by_ref()) {
+                *slot = x;
+                len += 1;
+            }
+            if len == 0 {
+                return;
+            }
+            #[cfg(target_arch = "x86_64")]
+            if len == ROWS && self.dims > 0 && group.iter().all(|x| x.len() >= self.dims) {
+                let (dims, blocks, norms) = (self.dims, &self.blocks, &self.minus_half_norms);
+                if let Some(cs) = avx::nearest_rows(&group, dims, dims, blocks, norms) {
+                    for (r, c) in cs.into_iter().enumerate() {
+                        found(first + r, self.clamp(c));
+                    }
+                    first += ROWS;
+                    continue;
+                }
+            }
+            for (r, x) in group[..len].iter().enumerate() {
+                found(first + r, self.find(x));
+            }
+            first += len;
+        }
+    }
+
+    // The clamp only matters past 2²⁴ blocks, where block indices stop being exact f32.
+    fn clamp(&self, found: usize) -> usize {
+        found.min(self.clusters.saturating_sub(1))
+    }
+}
+
+/// Rows [`Nearest::find_each`] scores together: four sums, four running bests and four best
+/// blocks stay in 12 of AVX's 16 registers.
+#[cfg(any(feature = "colmap-model", feature = "localize"))]
+const ROWS: usize = 4;
+
+/// The first maximum over lanes of the per-lane bests, as a centroid index.
+#[cfg(any(feature = "colmap-model", feature = "localize"))]
+fn first_maximum(best: &[f32; LANES], best_block: &[f32; LANES]) -> usize {
+    let max = best.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    (0..LANES)
+        .filter(|&k| best[k] == max)
+        .map(|k| best_block[k] as usize * LANES + k)
+        .min()
+        .unwrap_or(0)
 }
 
 /// [`Nearest::find`]'s loop, compiled for AVX2 too and chosen at run time. Each score is
@@ -146,12 +216,99 @@ fn nearest_in_blocks(x: &[f32], dims: usize, blocks: &[f32], minus_half_norms: &
             best_block[k] = if better { block_index } else { best_block[k] };
         }
     }
-    let max = best.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-    (0..LANES)
-        .filter(|&k| best[k] == max)
-        .map(|k| best_block[k] as usize * LANES + k)
-        .min()
-        .unwrap_or(0)
+    first_maximum(&best, &best_block)
+}
+
+/// The same loop written with AVX intrinsics for several rows at once: LLVM does not keep
+/// the portable loop's per-lane compare-and-select in registers (it packs the masks), which
+/// made it most of PQ training's time. Multiplies and adds stay separate (no FMA), in the
+/// portable loop's order, so both give the same index bit for bit.
+#[cfg(all(
+    target_arch = "x86_64",
+    any(feature = "colmap-model", feature = "localize")
+))]
+#[allow(unsafe_code)]
+mod avx {
+    use super::LANES;
+    use std::arch::x86_64::*;
+
+    /// The nearest centroid (before clamping) of each of `xs`, scoring their first `used`
+    /// values, or `None` without AVX. Panics if an `x` is shorter than `used`, `used`
+    /// exceeds `dims`, or the blocks do not hold `dims` columns for every norm.
+    pub(super) fn nearest_rows<const R: usize>(
+        xs: &[&[f32]; R],
+        used: usize,
+        dims: usize,
+        blocks: &[f32],
+        minus_half_norms: &[f32],
+    ) -> Option<[usize; R]> {
+        if !std::arch::is_x86_feature_detected!("avx") {
+            return None;
+        }
+        assert!(used <= dims && xs.iter().all(|x| x.len() >= used));
+        assert!(minus_half_norms.len() % LANES == 0);
+        assert!(blocks.len() >= minus_half_norms.len() * dims);
+        // SAFETY: AVX is present (checked above); the asserts are the bounds the function's
+        // reads rely on.
+        Some(unsafe { nearest_rows_avx(xs, used, dims, blocks, minus_half_norms) })
+    }
+
+    #[target_feature(enable = "avx")]
+    fn nearest_rows_avx<const R: usize>(
+        xs: &[&[f32]; R],
+        used: usize,
+        dims: usize,
+        blocks: &[f32],
+        minus_half_norms: &[f32],
+    ) -> [usize; R] {
+        let mut best = [_mm256_set1_ps(f32::NEG_INFINITY); R];
+        let mut best_block = [_mm256_setzero_ps(); R];
+        for b in 0..minus_half_norms.len() / LANES {
+            // SAFETY: b·LANES + LANES ≤ minus_half_norms.len() (the loop's bound); the block's
+            // columns d < used ≤ dims lie below (b + 1)·dims·LANES ≤ blocks.len() (asserted by
+            // the caller); x[d] with d < used ≤ x.len() (asserted).
+            let norms = unsafe { _mm256_loadu_ps(minus_half_norms.as_ptr().add(b * LANES)) };
+            let mut acc = [norms; R];
+            let block = unsafe { blocks.as_ptr().add(b * dims * LANES) };
+            for d in 0..used {
+                let column = unsafe { _mm256_loadu_ps(block.add(d * LANES)) };
+                for r in 0..R {
+                    let v = _mm256_set1_ps(unsafe { *xs[r].get_unchecked(d) });
+                    acc[r] = _mm256_add_ps(acc[r], _mm256_mul_ps(v, column));
+                }
+            }
+            // Strictly greater (ordered): a lane keeps its first block on ties; NaN never wins.
+            let index = _mm256_set1_ps(b as f32);
+            for r in 0..R {
+                let better = _mm256_cmp_ps::<_CMP_GT_OQ>(acc[r], best[r]);
+                best[r] = _mm256_blendv_ps(best[r], acc[r], better);
+                best_block[r] = _mm256_blendv_ps(best_block[r], index, better);
+            }
+        }
+        std::array::from_fn(|r| first_maximum_avx(best[r], best_block[r]))
+    }
+
+    /// [`first_maximum`] in registers: the maximum broadcast to every lane, then the lowest
+    /// index among the lanes that hold it (indices are exact in f32 below 2²⁴).
+    #[target_feature(enable = "avx")]
+    fn first_maximum_avx(best: __m256, best_block: __m256) -> usize {
+        let mut max = _mm256_max_ps(best, _mm256_permute2f128_ps::<0x01>(best, best));
+        max = _mm256_max_ps(max, _mm256_permute_ps::<0b0100_1110>(max));
+        max = _mm256_max_ps(max, _mm256_permute_ps::<0b1011_0001>(max));
+        let lane = _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0);
+        let index = _mm256_add_ps(
+            _mm256_mul_ps(best_block, _mm256_set1_ps(LANES as f32)),
+            lane,
+        );
+        let is_max = _mm256_cmp_ps::<_CMP_EQ_OQ>(best, max);
+        let mut min = _mm256_blendv_ps(_mm256_set1_ps(f32::INFINITY), index, is_max);
+        min = _mm256_min_ps(min, _mm256_permute2f128_ps::<0x01>(min, min));
+        min = _mm256_min_ps(min, _mm256_permute_ps::<0b0100_1110>(min));
+        min = _mm256_min_ps(min, _mm256_permute_ps::<0b1011_0001>(min));
+        let first = _mm256_cvtss_f32(min);
+        // Every lane is −∞ or better, so one always equals the maximum; `as` saturates anyway.
+        first as usize
+    }
 }
 
 #[cfg(all(test, feature = "localize"))]
@@ -174,6 +331,7 @@ mod tests {
                 b.copy_from_slice(&a[dims..2 * dims]);
             }
             let nearest = Nearest::new(&centroids, dims);
+            let (mut rows, mut wants) = (Vec::new(), Vec::new());
             for t in 0..200 {
                 let x: Vec<f32> = if t == 0 && clusters > 2 {
                     centroids[dims..2 * dims].to_vec()
@@ -196,7 +354,22 @@ mod tests {
                 let max = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
                 let want = scores.iter().position(|&s| s == max).unwrap();
                 assert_eq!(nearest.find(&x), want, "{clusters} clusters, row {t}");
+                // The portable loop (the one without AVX) agrees too.
+                let portable =
+                    nearest_in_blocks(&x, dims, &nearest.blocks, &nearest.minus_half_norms);
+                assert_eq!(portable.min(clusters - 1), want);
+                rows.extend_from_slice(&x);
+                wants.push(want);
             }
+            // `find_each`: rows in groups of ROWS and a partial group (202 = 50·4 + 2).
+            rows.extend(vec![f32::NAN; dims]);
+            wants.push(0);
+            rows.extend_from_slice(&centroids[..dims]);
+            wants.push(0);
+            let mut got = Vec::new();
+            nearest.find_each(rows.chunks_exact(dims), |i, c| got.push((i, c)));
+            let want_pairs: Vec<(usize, usize)> = wants.iter().copied().enumerate().collect();
+            assert_eq!(got, want_pairs, "{clusters} clusters");
             assert_eq!(nearest.find(&vec![f32::NAN; dims]), 0);
             // An empty `x` scores only `−‖c‖²/2`: the shortest centroid, no panic.
             let norms: Vec<f32> = centroids

@@ -20,6 +20,8 @@ const POINTS_PER_CENTROID: usize = 16;
 /// the level's size (≤ 2 s per level on one core).
 const MAX_TRAIN: usize = 16_384;
 const ITERATIONS: usize = 20;
+/// Rows decoded and encoded together by [`quantise_levels`].
+const ENCODE_BATCH: usize = 256;
 const SEED: u64 = 0x5051_5346_504d_4150;
 
 /// How to quantise.
@@ -143,18 +145,32 @@ impl Quantiser {
     /// Codes of one unit row (`dims` values) into `codes` (`subspaces` bytes); returns the
     /// squared reconstruction error.
     pub fn encode(&self, row: &[f32], codes: &mut [u8]) -> f64 {
-        let d = self.sub_dims;
+        self.encode_rows(row, codes)
+    }
+
+    /// Codes of unit rows (`[n × dims]`) into `codes` (`[n × subspaces]`, as many rows as
+    /// both hold); returns the summed squared reconstruction error. Each subspace's rows go
+    /// through [`Nearest::find_each`] together.
+    pub fn encode_rows(&self, rows: &[f32], codes: &mut [u8]) -> f64 {
+        let (d, m) = (self.sub_dims, self.subspaces);
+        let dims = d * m;
         let mut error = 0.0f64;
-        for (m, (code, nearest)) in codes.iter_mut().zip(&self.nearest).enumerate() {
-            let x = &row[m * d..(m + 1) * d];
-            let k = nearest.find(x);
-            *code = k as u8;
-            let at = (m * self.centroids + k) * d;
-            error += x
-                .iter()
-                .zip(&self.codebook[at..at + d])
-                .map(|(&a, &b)| f64::from(a - b).powi(2))
-                .sum::<f64>();
+        let n = (rows.len() / dims).min(codes.len() / m);
+        for (s, nearest) in self.nearest.iter().enumerate() {
+            let subvectors = rows
+                .chunks_exact(dims)
+                .take(n)
+                .map(|r| &r[s * d..(s + 1) * d]);
+            nearest.find_each(subvectors, |i, k| {
+                codes[i * m + s] = k as u8;
+                let x = &rows[i * dims + s * d..i * dims + (s + 1) * d];
+                let at = (s * self.centroids + k) * d;
+                error += x
+                    .iter()
+                    .zip(&self.codebook[at..at + d])
+                    .map(|(&a, &b)| f64::from(a - b).powi(2))
+                    .sum::<f64>();
+            });
         }
         error
     }
@@ -231,11 +247,15 @@ pub fn quantise_levels(
             Quantiser::train(&sample, dims, options.subspaces, centroids_for(n)).map_err(bad)?;
         let m = options.subspaces;
         let mut codes = vec![0u8; n * m];
-        let mut scratch = vec![0.0f32; dims];
+        // Rows are decoded a batch at a time, so encoding scores several rows per pass.
+        let mut batch = vec![0.0f32; ENCODE_BATCH * dims];
         let mut error = 0.0f64;
-        for (r, out) in codes.chunks_exact_mut(m).enumerate() {
-            row(r, &mut scratch);
-            error += quantiser.encode(&scratch, out);
+        for (b, out) in codes.chunks_mut(ENCODE_BATCH * m).enumerate() {
+            let rows = out.len() / m;
+            for (i, scratch) in batch.chunks_exact_mut(dims).take(rows).enumerate() {
+                row(b * ENCODE_BATCH + i, scratch);
+            }
+            error += quantiser.encode_rows(&batch[..rows * dims], out);
         }
         let bytes_before = (n * dims * 2) as u64;
         let bytes_after = (codes.len() + quantiser.codebook.len() * 4) as u64;
