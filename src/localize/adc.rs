@@ -21,20 +21,23 @@ const MAX_CHUNK: usize = 256;
 /// The per-query tables of one chunk of queries, laid out query-fastest: a map row's score
 /// with every query of the chunk is `M` contiguous rows of the table added together —
 /// vector additions across queries instead of one scalar lookup per query and subspace.
+/// Entries are i16 (16 queries a 256-bit add, half the bytes of f32: matching is bound by
+/// reading the tables), each query's scaled so that no sum of `M` entries can leave i16.
 pub(super) struct AdcTables<'p, 'm> {
     pq: &'p Pq<'m>,
-    n_q: usize,
-    /// `[M × 256 × n_q]`: `query_q,s · centroid_s,c` at `(s·256 + c)·n_q + q`.
-    lut: Vec<f32>,
+    /// `[M × 256 × n_q]`: `round(scale_q · query_q,s · centroid_s,c)` at `(s·256 + c)·n_q + q`.
+    lut: Vec<i16>,
+    /// `1 / scale_q` per query: a sum of entries times it is the inner product.
+    inverse_scales: Vec<f32>,
 }
 
 impl<'p, 'm> AdcTables<'p, 'm> {
-    /// Queries per chunk for `pq`: tables of at most [`TABLE_BYTES`], a multiple of 8 queries
-    /// (whole vectors) from 8 to [`MAX_CHUNK`]. `match_pq` builds them once per chunk:
+    /// Queries per chunk for `pq`: tables of at most [`TABLE_BYTES`], a multiple of 16 queries
+    /// (whole vectors) from 16 to [`MAX_CHUNK`]. `match_pq` builds them once per chunk:
     /// `match_scored_by_row` takes the chunks in its outer loop.
     pub(super) fn chunk(pq: &Pq<'_>) -> usize {
-        let fit = TABLE_BYTES / (pq.subspaces.max(1) * SLOTS * 4);
-        (fit / 8 * 8).clamp(8, MAX_CHUNK)
+        let fit = TABLE_BYTES / (pq.subspaces.max(1) * SLOTS * 2);
+        (fit / 16 * 16).clamp(16, MAX_CHUNK)
     }
 
     /// Tables for `query` (`[n_q × dims]` unit rows in the level basis; one chunk).
@@ -42,7 +45,7 @@ impl<'p, 'm> AdcTables<'p, 'm> {
         let (m, k, d) = (pq.subspaces, pq.centroids, pq.sub_dims);
         let dims = pq.dims();
         let n_q = query.len() / dims.max(1);
-        let mut lut = vec![0.0f32; m * SLOTS * n_q];
+        let mut exact = vec![0.0f32; m * SLOTS * n_q];
         let mut sub = vec![0.0f32; n_q * d];
         for s in 0..m {
             for (out, row) in sub.chunks_exact_mut(d).zip(query.chunks_exact(dims)) {
@@ -51,67 +54,135 @@ impl<'p, 'm> AdcTables<'p, 'm> {
             let centroids = &pq.codebook[s * k * d..(s + 1) * k * d];
             // `[k × n_q]`: centroid-major, so each centroid's products with the chunk are a row.
             let at = s * SLOTS * n_q;
-            sgemm_abt(centroids, &sub, &mut lut[at..at + k * n_q], k, n_q, d);
+            sgemm_abt(centroids, &sub, &mut exact[at..at + k * n_q], k, n_q, d);
         }
-        AdcTables { pq, n_q, lut }
+        // A query's largest possible |sum| is the sum over subspaces of its largest |entry|;
+        // rounding adds at most 1/2 per subspace, so `scale · bound + M/2 ≤ i16::MAX`.
+        let mut bound = vec![0.0f32; n_q];
+        for table in exact.chunks_exact(SLOTS * n_q.max(1)) {
+            let mut largest = vec![0.0f32; n_q];
+            for row in table.chunks_exact(n_q.max(1)) {
+                for (l, &v) in largest.iter_mut().zip(row) {
+                    *l = l.max(v.abs());
+                }
+            }
+            bound.iter_mut().zip(&largest).for_each(|(b, l)| *b += l);
+        }
+        let room = (f32::from(i16::MAX) - m as f32 / 2.0 - 1.0).max(0.0);
+        let scales: Vec<f32> = bound
+            .iter()
+            .map(|&b| {
+                if b > 0.0 && b.is_finite() {
+                    room / b
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let mut lut = vec![0i16; exact.len()];
+        for (out, v) in lut
+            .chunks_exact_mut(n_q.max(1))
+            .zip(exact.chunks_exact(n_q.max(1)))
+        {
+            for ((o, &v), &scale) in out.iter_mut().zip(v).zip(&scales) {
+                // `as` saturates and maps NaN to 0: a non-finite query scores 0 everywhere.
+                *o = (v * scale).round() as i16;
+            }
+        }
+        let inverse_scales = scales
+            .iter()
+            .map(|&s| if s > 0.0 { 1.0 / s } else { 0.0 })
+            .collect();
+        AdcTables {
+            pq,
+            lut,
+            inverse_scales,
+        }
     }
 
     /// Similarities of the level rows `rows` with every query into `out` (`[rows × n_q]`,
     /// map-row-major), `inverse_norms[i]` the inverse norm of row `rows[i]`'s reconstruction.
     pub(super) fn scores(&self, rows: &[usize], inverse_norms: &[f32], out: &mut [f32]) {
-        let (pq, n_q) = (self.pq, self.n_q);
+        let pq = self.pq;
         accumulate(
             &self.lut,
             &pq.codes,
             pq.subspaces,
-            n_q,
-            rows,
-            inverse_norms,
+            (rows, inverse_norms),
+            &self.inverse_scales,
             out,
         );
     }
 }
 
 /// [`AdcTables::scores`]' loop: for each row, its `M` table rows added across the chunk's
-/// queries, then scaled. Compiled for AVX2 too and chosen at run time.
-#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx"))]
+/// queries (wrapping adds that the scales keep from wrapping), then converted and scaled.
+/// Queries go [`TILE`] at a time through all `M` subspaces, so a tile's sums stay in
+/// registers. Compiled for AVX-512 and AVX2 too and chosen at run time.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+avx"
+))]
 fn accumulate(
-    lut: &[f32],
+    lut: &[i16],
     codes: &[u8],
     m: usize,
-    n_q: usize,
-    rows: &[usize],
-    inverse_norms: &[f32],
+    (rows, inverse_norms): (&[usize], &[f32]),
+    inverse_scales: &[f32],
     out: &mut [f32],
 ) {
-    let table = |s: usize, c: u8| {
-        let at = (s * SLOTS + usize::from(c)) * n_q;
-        &lut[at..at + n_q]
-    };
-    for ((acc, &r), &inv) in out.chunks_exact_mut(n_q).zip(rows).zip(inverse_norms) {
-        let Some((&last, middle)) = codes[r * m..(r + 1) * m].split_last() else {
-            acc.fill(0.0);
-            continue;
-        };
-        // One pass per subspace: the first writes, the last adds and scales.
-        match middle.split_first() {
-            Some((&c0, rest)) => {
-                acc.copy_from_slice(table(0, c0));
-                for (s, &c) in rest.iter().enumerate() {
-                    for (a, &v) in acc.iter_mut().zip(table(s + 1, c)) {
-                        *a += v;
-                    }
-                }
-                for (a, &v) in acc.iter_mut().zip(table(m - 1, last)) {
-                    *a = (*a + v) * inv;
-                }
-            }
-            None => {
-                for (a, &v) in acc.iter_mut().zip(table(0, last)) {
-                    *a = v * inv;
-                }
-            }
+    let n_q = inverse_scales.len();
+    if n_q == 0 {
+        return;
+    }
+    for ((scores, &r), &inv) in out.chunks_exact_mut(n_q).zip(rows).zip(inverse_norms) {
+        let row_codes = &codes[r * m..(r + 1) * m];
+        let mut q = 0;
+        while q + TILE <= n_q {
+            let sums = tile_sums::<TILE>(lut, row_codes, n_q, q);
+            scale_tile(
+                &sums,
+                &inverse_scales[q..q + TILE],
+                inv,
+                &mut scores[q..q + TILE],
+            );
+            q += TILE;
         }
+        while q + 8 <= n_q {
+            let sums = tile_sums::<8>(lut, row_codes, n_q, q);
+            scale_tile(&sums, &inverse_scales[q..q + 8], inv, &mut scores[q..q + 8]);
+            q += 8;
+        }
+        for q in q..n_q {
+            let sums = tile_sums::<1>(lut, row_codes, n_q, q);
+            scale_tile(&sums, &inverse_scales[q..q + 1], inv, &mut scores[q..q + 1]);
+        }
+    }
+}
+
+/// Queries a tile of [`accumulate`]: 32 i16 sums, one AVX-512 or two AVX2 registers.
+const TILE: usize = 32;
+
+/// The sums over subspaces of one row's table entries for queries `q..q + T`.
+#[inline(always)]
+fn tile_sums<const T: usize>(lut: &[i16], codes: &[u8], n_q: usize, q: usize) -> [i16; T] {
+    let mut sums = [0i16; T];
+    for (s, &c) in codes.iter().enumerate() {
+        let at = (s * SLOTS + usize::from(c)) * n_q + q;
+        let entries: &[i16; T] = lut[at..at + T].try_into().expect("a tile of T entries");
+        for (sum, &e) in sums.iter_mut().zip(entries) {
+            *sum = sum.wrapping_add(e);
+        }
+    }
+    sums
+}
+
+/// Tile sums to similarities: times the query's inverse scale and the row's inverse norm.
+#[inline(always)]
+fn scale_tile(sums: &[i16], inverse_scales: &[f32], inverse_norm: f32, out: &mut [f32]) {
+    for ((o, &v), &scale) in out.iter_mut().zip(sums).zip(inverse_scales) {
+        *o = f32::from(v) * scale * inverse_norm;
     }
 }
 
@@ -188,6 +259,9 @@ mod tests {
     use crate::geometry::SplitMix64;
     use std::borrow::Cow;
 
+    /// Queries of the test: whole tiles of 32 and of 8, and single queries.
+    const QUERIES: usize = 45;
+
     #[test]
     fn adc_scores_are_cosines_with_the_reconstructions() {
         for m in [1usize, 2, 3, 8] {
@@ -204,13 +278,13 @@ mod tests {
                 codebook: Cow::Owned(codebook),
                 codes: Cow::Owned(codes),
             };
-            let mut query: Vec<f32> = (0..4 * m * d)
+            let mut query: Vec<f32> = (0..QUERIES * m * d)
                 .map(|_| rng.next_f64() as f32 - 0.5)
                 .collect();
             crate::vector::normalise_rows(&mut query, m * d);
             let tables = AdcTables::new(&query, &pq);
             let rows: Vec<usize> = vec![3, 0, 39, 17, 17];
-            let mut out = vec![0.0; rows.len() * 4];
+            let mut out = vec![0.0; rows.len() * QUERIES];
             let norms = inverse_norms(&pq, &rows);
             tables.scores(&rows, &norms, &mut out);
             let mut x = vec![0.0; m * d];
@@ -219,17 +293,26 @@ mod tests {
                     pq.decode_row(r, &mut x);
                     crate::vector::l2_normalise(&mut x);
                     let want: f32 = qrow.iter().zip(&x).map(|(a, b)| a * b).sum();
-                    let got = out[j * 4 + q];
-                    assert!((got - want).abs() < 1e-5, "q {q} row {r}: {got} vs {want}");
+                    let got = out[j * QUERIES + q];
+                    // i16 tables: each of the M entries is off by at most half a unit of
+                    // 1/scale, before the row's inverse norm.
+                    let unit = tables.inverse_scales[q];
+                    assert!(unit > 0.0 && unit < 1e-3, "{unit}");
+                    let tolerance = (m as f32 * 0.5 * unit) * norms[j] * 1.001 + 1e-6;
+                    assert!(
+                        (got - want).abs() < tolerance,
+                        "q {q} row {r}: {got} vs {want}"
+                    );
                 }
             }
-            // In chunks of 3 queries, the matches are those of matching the reconstructions.
+            // In chunks of 41 queries (a tile of 32, one of 8, one query), the matches are
+            // those of matching the reconstructions.
             let all: Vec<usize> = (0..n).collect();
             let options = crate::localize::MatchOptions::default();
             let chunked = crate::localize::matching::match_scored_by_row(
-                4,
+                QUERIES,
                 n,
-                3,
+                41,
                 &options,
                 |qs, start, count, out| {
                     let t = AdcTables::new(&query[qs.start * m * d..qs.end * m * d], &pq);

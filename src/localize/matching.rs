@@ -180,7 +180,11 @@ pub(crate) fn match_scored_by_row(
 /// [`match_scored_by_row`]'s bookkeeping of one block (`scores`: rows of `width` queries):
 /// each row's maximum, each query's best and second best. Minima and maxima only, so it
 /// vectorizes; compiled for AVX2 too and chosen at run time.
-#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx"))]
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+avx"
+))]
 fn update_by_row(
     scores: &[f32],
     width: usize,
