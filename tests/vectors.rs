@@ -405,7 +405,7 @@ fn pq_codes(s: &Scene) -> Vec<u8> {
 /// The levels scene with level 1's f16 blocks replaced by PQ codes.
 fn pq_levels(s: &Scene) -> Vec<u8> {
     let mut w = s.writer(Codec::Raw);
-    w.set_level_pq(1, 2, 3, PQ_CODEBOOK.to_vec(), pq_codes(s))
+    w.set_level_pq(1, 2, 3, (PQ_CODEBOOK.to_vec(), pq_codes(s)), None)
         .unwrap();
     w.to_bytes().unwrap()
 }
@@ -648,7 +648,7 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
     ));
     // 1.1: 2 subspaces x 3 dims = 6, neither dim_short 4 nor dim_full 8 of level 1.
     let mut w = s.writer(Codec::Raw);
-    w.set_level_pq(1, 2, 3, PQ_CODEBOOK.to_vec(), pq_codes(&s))
+    w.set_level_pq(1, 2, 3, (PQ_CODEBOOK.to_vec(), pq_codes(&s)), None)
         .unwrap();
     w.add_raw_section(
         SectionKind::LevelPqCodebook,

@@ -294,7 +294,7 @@ pub fn quantise_levels(
                 writer.set_level_projection(id, d_in, p[..dims * d_in].to_vec())?;
             }
         }
-        writer.set_level_pq(id, m, centroids, quantiser.codebook, codes)?;
+        writer.set_level_pq(id, m, centroids, (quantiser.codebook, codes), None)?;
     }
     Ok(summaries)
 }

@@ -162,6 +162,9 @@ pub enum SectionKind {
     /// u8 [n_L × M] (1.1): each level point's centroid in each subspace; replaces the level's
     /// f16 blocks.
     LevelPqCodes,
+    /// u16 [D × 1] (1.1): the level dimension at each position of the quantised vector (a
+    /// permutation of `0..D`); absent = the identity.
+    LevelPqOrder,
     /// f64 [images × 7]: `cam_from_world` as qw qx qy qz tx ty tz (COLMAP).
     ImagePoses,
     /// u32 [images × 1]: index into the metadata `cameras`.
@@ -196,7 +199,7 @@ pub enum SectionKind {
 }
 
 impl SectionKind {
-    const KNOWN: [(u16, SectionKind, &'static str); 25] = [
+    const KNOWN: [(u16, SectionKind, &'static str); 26] = [
         (1, SectionKind::PointPositions, "point_positions"),
         (4, SectionKind::PointPositionsQ16, "point_positions_q16"),
         (2, SectionKind::PointColors, "point_colors"),
@@ -208,6 +211,7 @@ impl SectionKind {
         (20, SectionKind::LevelVladCentroids, "level_vlad_centroids"),
         (21, SectionKind::LevelPqCodebook, "level_pq_codebook"),
         (22, SectionKind::LevelPqCodes, "level_pq_codes"),
+        (23, SectionKind::LevelPqOrder, "level_pq_order"),
         (32, SectionKind::ImagePoses, "image_poses"),
         (33, SectionKind::ImageCameras, "image_cameras"),
         (34, SectionKind::ImageIds, "image_ids"),
@@ -268,6 +272,7 @@ impl SectionKind {
             LevelDescShort | LevelDescRest | ImageGlobal | ImageVlad => (Dtype::F16, None),
             LevelProjection | LevelVladCentroids | LevelPqCodebook => (Dtype::F32, None),
             LevelPqCodes => (Dtype::U8, None),
+            LevelPqOrder => (Dtype::U16, Some(1)),
             ImagePoses => (Dtype::F64, Some(7)),
             ImageCameras | ImageIds => (Dtype::U32, Some(1)),
             ImageNameOffsets | VisibilityOffsets | PlaceImages => (Dtype::U64, Some(1)),
@@ -310,10 +315,11 @@ impl SectionKind {
             SectionKind::LevelPoints => 0,
             SectionKind::LevelProjection => 1,
             SectionKind::LevelVladCentroids => 2,
-            SectionKind::LevelPqCodebook => 3,
-            SectionKind::LevelPqCodes => 4,
-            SectionKind::LevelDescShort => 5,
-            SectionKind::LevelDescRest => 6,
+            SectionKind::LevelPqOrder => 3,
+            SectionKind::LevelPqCodebook => 4,
+            SectionKind::LevelPqCodes => 5,
+            SectionKind::LevelDescShort => 6,
+            SectionKind::LevelDescRest => 7,
             other => 16u16.saturating_add(other.code()),
         };
         (1, level, rank)
@@ -330,6 +336,7 @@ impl SectionKind {
                 | SectionKind::LevelVladCentroids
                 | SectionKind::LevelPqCodebook
                 | SectionKind::LevelPqCodes
+                | SectionKind::LevelPqOrder
         )
     }
 
@@ -343,6 +350,7 @@ impl SectionKind {
             | SectionKind::PointPositionsQ16
             | SectionKind::LevelPqCodebook
             | SectionKind::LevelPqCodes
+            | SectionKind::LevelPqOrder
             | SectionKind::PlaceImages
             | SectionKind::CatalogProjection
             | SectionKind::CatalogVladCentroids

@@ -15,7 +15,8 @@ pub const MAX_PQ_CENTROIDS: u64 = 256;
 /// A product-quantised level's descriptors: `subspaces` (M) codes per point over `dims`
 /// (`dim_short`, or `dim_full` when the quantised vector includes the `rest` dimensions), each
 /// subspace `sub_dims` = dims / M wide with `centroids` (K) centroids. The quantised vector is
-/// the stored descriptor's first `dims` values, L2-normalised.
+/// the stored descriptor's first `dims` values, L2-normalised, taken in `order` when there is
+/// one (position `j` of the quantised vector is level dimension `order[j]`).
 #[derive(Debug, Clone)]
 pub struct Pq<'m> {
     pub subspaces: usize,
@@ -25,6 +26,8 @@ pub struct Pq<'m> {
     pub codebook: Cow<'m, [f32]>,
     /// `[n_L × M]`: point r's centroid in subspace m is `codes[r·M + m]`.
     pub codes: Cow<'m, [u8]>,
+    /// `[dims]`, a permutation of `0..dims` (checked on first access); `None` = the identity.
+    pub order: Option<Cow<'m, [u16]>>,
 }
 
 impl Pq<'_> {
@@ -33,13 +36,27 @@ impl Pq<'_> {
         self.subspaces * self.sub_dims
     }
 
-    /// Row `r` reconstructed from its codes into `out` (`dims` values), not renormalised.
+    /// Row `r` reconstructed from its codes into `out` (`dims` values, in the level's
+    /// dimension order), not renormalised.
     pub fn decode_row(&self, r: usize, out: &mut [f32]) {
         let (m, k, d) = (self.subspaces, self.centroids, self.sub_dims);
         for (s, &code) in self.codes[r * m..(r + 1) * m].iter().enumerate() {
             let row = s * k + usize::from(code);
-            out[s * d..(s + 1) * d].copy_from_slice(&self.codebook[row * d..(row + 1) * d]);
+            let centroid = &self.codebook[row * d..(row + 1) * d];
+            match &self.order {
+                None => out[s * d..(s + 1) * d].copy_from_slice(centroid),
+                Some(order) => {
+                    for (&dim, &v) in order[s * d..(s + 1) * d].iter().zip(centroid) {
+                        out[usize::from(dim)] = v;
+                    }
+                }
+            }
         }
+    }
+
+    /// The level dimension at position `j` of the quantised vector.
+    pub fn dimension_at(&self, j: usize) -> usize {
+        self.order.as_ref().map_or(j, |o| usize::from(o[j]))
     }
 }
 
@@ -51,10 +68,19 @@ pub(crate) fn check_shapes(
     n: u64,
     codebook: Option<&Section>,
     codes: Option<&Section>,
+    order: Option<&Section>,
 ) -> Result<Option<u64>, Error> {
     let l = Some(level.level);
     let (codebook, codes) = match (codebook, codes) {
-        (None, None) => return Ok(None),
+        (None, None) => {
+            return match order {
+                Some(o) => Err(Error::inconsistent(format!(
+                    "{} on a level without PQ codes",
+                    o.reference()
+                ))),
+                None => Ok(None),
+            }
+        }
         (Some(b), Some(c)) => (b, c),
         (Some(_), None) => {
             return Err(Error::MissingSection {
@@ -94,9 +120,33 @@ pub(crate) fn check_shapes(
             level.level, level.dim_short, level.dim_full
         )));
     }
+    if let Some(o) = order.filter(|o| o.rows != dims) {
+        return Err(Error::inconsistent(format!(
+            "{} has {} rows, expected {dims} (one per quantised dimension)",
+            o.reference(),
+            o.rows
+        )));
+    }
     Ok(Some(dims))
 }
 
+/// The first-access rule of the order: a permutation of `0..D`, each dimension once.
+pub(crate) fn check_order(order: &[u16]) -> Result<(), String> {
+    let mut sorted = order.to_vec();
+    sorted.sort_unstable();
+    // Sorted, the first position j not holding j shows a repeat (it holds j − 1) or a gap.
+    match sorted.iter().enumerate().find(|&(j, &d)| usize::from(d) != j) {
+        Some((j, &d)) if usize::from(d) < j => Err(format!(
+            "not a permutation of 0..{}: dimension {d} appears twice",
+            order.len()
+        )),
+        Some((j, _)) => Err(format!(
+            "not a permutation of 0..{}: dimension {j} is missing",
+            order.len()
+        )),
+        None => Ok(()),
+    }
+}
 /// The first-access rule of the codes: every code names a centroid of the codebook (`< K`).
 /// `codebook` is the level's codebook section (for `K`).
 pub(crate) fn check_codes(codes: &[u8], m: u64, codebook: &Section) -> Result<(), String> {

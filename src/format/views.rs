@@ -104,6 +104,7 @@ pub(crate) fn check_shapes(
             n,
             find(SectionKind::LevelPqCodebook, l),
             find(SectionKind::LevelPqCodes, l),
+            find(SectionKind::LevelPqOrder, l),
         )?;
         if pq.is_some() && (metadata.geometry_only || short.is_some() || rest.is_some()) {
             return Err(Error::inconsistent(format!(
@@ -448,6 +449,11 @@ pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> 
                 return bad(what);
             }
         }
+        SectionKind::LevelPqOrder => {
+            if let Err(what) = super::pq::check_order(&cast::<u16>(bytes)) {
+                return bad(what);
+            }
+        }
         // A NaN centroid would make every VLAD (or PQ reconstruction) it touches NaN, and
         // every ranking (or match) silently arbitrary.
         SectionKind::LevelPqCodebook | SectionKind::LevelVladCentroids
@@ -561,6 +567,7 @@ pub struct Level<'m> {
     projection: Option<&'m Section>,
     pq_codebook: Option<&'m Section>,
     pq_codes: Option<&'m Section>,
+    pq_order: Option<&'m Section>,
 }
 
 impl<'m> Level<'m> {
@@ -612,6 +619,10 @@ impl<'m> Level<'m> {
             sub_dims: codebook.cols as usize,
             codebook: self.map.section_array(codebook)?,
             codes: self.map.section_array(codes)?,
+            order: self
+                .pq_order
+                .map(|o| self.map.section_array(o))
+                .transpose()?,
         }))
     }
 
@@ -820,6 +831,7 @@ impl<'a> Map<'a> {
             projection: self.find(SectionKind::LevelProjection, l),
             pq_codebook: self.find(SectionKind::LevelPqCodebook, l),
             pq_codes: self.find(SectionKind::LevelPqCodes, l),
+            pq_order: self.find(SectionKind::LevelPqOrder, l),
         }
     }
 }

@@ -519,15 +519,17 @@ impl<'a> MapWriter<'a> {
     /// Replaces `level`'s f16 descriptor blocks by product-quantisation codes (format 1.1):
     /// `codebook` `[M·K × dims/M]` f32 (subspace m's centroid k is row `m·K + k`) and `codes`
     /// `[points × M]`, over `dims` = `dim_short`, or `dim_full` when the codes include the
-    /// `rest` dimensions. Both sections are written required: a reader that does not know them
-    /// cannot match the level, so a 1.0 reader refuses the map.
+    /// `rest` dimensions. `order` (`[dims]`, a permutation of `0..dims`) is the level
+    /// dimension at each position of the quantised vector; `None` = the identity. All three
+    /// sections are written required: a reader that does not know them cannot match the level,
+    /// so a 1.0 reader refuses the map.
     pub fn set_level_pq(
         &mut self,
         level: u16,
         subspaces: usize,
         centroids: usize,
-        codebook: Vec<f32>,
-        codes: Vec<u8>,
+        (codebook, codes): (Vec<f32>, Vec<u8>),
+        order: Option<Vec<u16>>,
     ) -> Result<&mut Self, Error> {
         let info = self.metadata.level(level).ok_or_else(|| {
             Error::invalid(format!("level {level}: add the level before its PQ codes"))
@@ -577,8 +579,33 @@ impl<'a> MapWriter<'a> {
                 "code {c} past the codebook's {centroids} centroids"
             ));
         }
-        for kind in [SectionKind::LevelDescShort, SectionKind::LevelDescRest] {
+        if let Some(order) = &order {
+            if order.len() != dims {
+                return wrong(format!(
+                    "an order of {} dimensions for {dims} quantised ones",
+                    order.len()
+                ));
+            }
+            if let Err(what) = super::pq::check_order(order) {
+                return wrong(format!("PQ order {what}"));
+            }
+        }
+        for kind in [
+            SectionKind::LevelDescShort,
+            SectionKind::LevelDescRest,
+            SectionKind::LevelPqOrder,
+        ] {
             self.sections.remove(&(kind.code(), level));
+        }
+        if let Some(order) = order {
+            self.push_array(
+                SectionKind::LevelPqOrder,
+                level,
+                Dtype::U16,
+                dims,
+                1,
+                owned_bytes(order),
+            );
         }
         self.push_array(
             SectionKind::LevelPqCodebook,

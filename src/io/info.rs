@@ -33,7 +33,9 @@ fn component(kind: SectionKind) -> &'static str {
         PointPositions | PointPositionsQ16 => "positions",
         PointColors | PointIds => "colours and ids",
         LevelPoints => "level membership",
-        LevelDescShort | LevelDescRest | LevelPqCodes | LevelPqCodebook => "descriptors",
+        LevelDescShort | LevelDescRest | LevelPqCodes | LevelPqCodebook | LevelPqOrder => {
+            "descriptors"
+        }
         LevelProjection => "projections",
         LevelVladCentroids | ImageGlobal | ImageVlad => "retrieval",
         ImagePoses | ImageCameras | ImageIds | ImageNameOffsets | ImageNames => "images",
