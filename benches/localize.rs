@@ -141,15 +141,14 @@ mod localize {
                 let sample = &m[..16_384 * dim];
                 let quantiser = Quantiser::train(sample, dim, subspaces, 256).unwrap();
                 let mut codes = vec![0u8; N_POINTS * subspaces];
-                for (row, out) in m.chunks_exact(dim).zip(codes.chunks_exact_mut(subspaces)) {
-                    quantiser.encode(row, out);
-                }
+                quantiser.encode_rows(&m, &mut codes);
                 let pq = Pq {
                     subspaces,
                     centroids: 256,
                     sub_dims: dim / subspaces,
                     codebook: Cow::Borrowed(quantiser.codebook()),
                     codes: Cow::Owned(codes),
+                    order: Some(quantiser.order().iter().map(|&d| d as u16).collect()),
                 };
                 let found = match_pq_descriptors(&q, &pq, &options).len();
                 eprintln!("match {label} pq{subspaces}: {found} matches of {N_QUERY} queries");

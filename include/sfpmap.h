@@ -88,10 +88,11 @@ typedef struct SfpmLevelInfo {
   uint8_t has_rest;
 } SfpmLevelInfo;
 
-// A product-quantised level's descriptors (format 1.1; see `spec/format.md`, kinds 21 and
-// 22): `points × subspaces` one-byte codes and the `subspaces × centroids` codebook rows of
-// `sub_dims` floats (subspace s's centroid k is row `s·centroids + k`). Zero-copy for raw
-// sections; valid until `sfpm_close`.
+// A product-quantised level's descriptors (format 1.1; see `spec/format.md`, kinds 21 to
+// 23): `points × subspaces` one-byte codes, the `subspaces × centroids` codebook rows of
+// `sub_dims` floats (subspace s's centroid k is row `s·centroids + k`) and the order of the
+// quantised dimensions (`order[j]` is the level dimension at position j; NULL and 0 when it
+// is the identity). Zero-copy for raw sections; valid until `sfpm_close`.
 typedef struct SfpmLevelPq {
   uint32_t subspaces;
   uint32_t centroids;
@@ -100,6 +101,8 @@ typedef struct SfpmLevelPq {
   size_t codes_len;
   const float *codebook;
   size_t codebook_len;
+  const uint16_t *order;
+  size_t order_len;
 } SfpmLevelPq;
 
 // A camera in COLMAP terms, e.g. model "SIMPLE_RADIAL" with params f, cx, cy, k.

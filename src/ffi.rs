@@ -80,10 +80,11 @@ pub struct SfpmLevelInfo {
     pub has_rest: u8,
 }
 
-/// A product-quantised level's descriptors (format 1.1; see `spec/format.md`, kinds 21 and
-/// 22): `points × subspaces` one-byte codes and the `subspaces × centroids` codebook rows of
-/// `sub_dims` floats (subspace s's centroid k is row `s·centroids + k`). Zero-copy for raw
-/// sections; valid until `sfpm_close`.
+/// A product-quantised level's descriptors (format 1.1; see `spec/format.md`, kinds 21 to
+/// 23): `points × subspaces` one-byte codes, the `subspaces × centroids` codebook rows of
+/// `sub_dims` floats (subspace s's centroid k is row `s·centroids + k`) and the order of the
+/// quantised dimensions (`order[j]` is the level dimension at position j; NULL and 0 when it
+/// is the identity). Zero-copy for raw sections; valid until `sfpm_close`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct SfpmLevelPq {
@@ -94,6 +95,8 @@ pub struct SfpmLevelPq {
     pub codes_len: usize,
     pub codebook: *const f32,
     pub codebook_len: usize,
+    pub order: *const u16,
+    pub order_len: usize,
 }
 
 /// A camera in COLMAP terms, e.g. model "SIMPLE_RADIAL" with params f, cx, cy, k.
@@ -688,6 +691,18 @@ pub unsafe extern "C" fn sfpm_level_pq(
                 &mut codebook_len,
             );
         }
+        let (mut order, mut order_len) = (std::ptr::null::<u16>(), 0usize);
+        if let Some(o) = pq.order {
+            // SAFETY: locals, writable.
+            unsafe {
+                h.lend(
+                    (SectionKind::LevelPqOrder, level),
+                    o,
+                    &mut order,
+                    &mut order_len,
+                )
+            };
+        }
         let value = SfpmLevelPq {
             subspaces: pq.subspaces as u32,
             centroids: pq.centroids as u32,
@@ -696,6 +711,8 @@ pub unsafe extern "C" fn sfpm_level_pq(
             codes_len,
             codebook,
             codebook_len,
+            order,
+            order_len,
         };
         // SAFETY: per contract.
         unsafe { put(out, value, "out") }?;

@@ -435,6 +435,25 @@ fn pq_codes_and_codebook_match_the_vector() {
     unsafe { sfpm_level_pq(map, 1, again.as_mut_ptr()) };
     let again = unsafe { again.assume_init() };
     assert_eq!((again.codes, again.codebook), (pq.codes, pq.codebook));
+    // No order in this vector: the identity, NULL and 0.
+    assert_eq!((pq.order, pq.order_len), (std::ptr::null(), 0));
+    let (ordered_path, ordered_json) = vector("pq_order");
+    let ordered = open(&ordered_path);
+    let mut out = std::mem::MaybeUninit::<SfpmLevelPq>::zeroed();
+    assert_eq!(
+        unsafe { sfpm_level_pq(ordered, 1, out.as_mut_ptr()) },
+        SfpmStatus::SFPM_OK
+    );
+    let with_order = unsafe { out.assume_init() };
+    let order = unsafe { std::slice::from_raw_parts(with_order.order, with_order.order_len) };
+    let want: Vec<u16> = ordered_json["content"]["levels"][1]["pq"]["order"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap() as u16)
+        .collect();
+    assert_eq!(order, want);
+    assert_eq!(sfpm_close(ordered), SfpmStatus::SFPM_OK);
     let mut other = std::mem::MaybeUninit::<SfpmLevelPq>::zeroed();
     assert_eq!(
         unsafe { sfpm_level_pq(map, 0, other.as_mut_ptr()) },

@@ -349,6 +349,20 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
             "1.1",
             "the levels vector with level 1 product-quantised (2 subspaces x 3 centroids of 2 dims over its short block)",
             &pq,
+            content.clone(),
+            json!([]),
+        ),
+    ));
+    // The same codes over the dimensions in the order PQ_ORDER.
+    let pq_ordered = pq_levels_ordered(&s, &PQ_ORDER);
+    content["levels"][1]["pq"]["order"] = json!(PQ_ORDER);
+    out.push((
+        "pq_order",
+        pq_ordered.clone(),
+        valid_expected_version(
+            "1.1",
+            "the pq vector with level_pq_order: quantised position j is level dimension order[j]",
+            &pq_ordered,
             content,
             json!([]),
         ),
@@ -407,6 +421,22 @@ fn pq_levels(s: &Scene) -> Vec<u8> {
     let mut w = s.writer(Codec::Raw);
     w.set_level_pq(1, 2, 3, (PQ_CODEBOOK.to_vec(), pq_codes(s)), None)
         .unwrap();
+    w.to_bytes().unwrap()
+}
+
+/// The `pq_order` vector's order of level 1's 4 short dimensions.
+const PQ_ORDER: [u16; 4] = [2, 0, 3, 1];
+
+fn pq_levels_ordered(s: &Scene, order: &[u16]) -> Vec<u8> {
+    let mut w = s.writer(Codec::Raw);
+    w.set_level_pq(
+        1,
+        2,
+        3,
+        (PQ_CODEBOOK.to_vec(), pq_codes(s)),
+        Some(order.to_vec()),
+    )
+    .unwrap();
     w.to_bytes().unwrap()
 }
 
@@ -646,6 +676,44 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
         "inconsistent",
         "verify",
     ));
+    // 1.1: an order naming dimension 0 twice (and not 3), its section checksum recomputed.
+    let good = pq_levels_ordered(&s, &PQ_ORDER);
+    let map = Map::from_bytes(&good).unwrap();
+    let order = map
+        .sections()
+        .iter()
+        .find(|x| x.kind() == SectionKind::LevelPqOrder)
+        .unwrap()
+        .offset() as usize;
+    let mut b = good.clone();
+    b[order + 4..order + 6].copy_from_slice(&0u16.to_le_bytes());
+    out.push((
+        "pq_order_not_a_permutation",
+        sfpmap::format::fuzzing::fix_checksums(&b),
+        "inconsistent",
+        "verify",
+    ));
+    // 1.1: an order of 3 rows for the 4 quantised dimensions.
+    let mut w = s.writer(Codec::Raw);
+    w.set_level_pq(1, 2, 3, (PQ_CODEBOOK.to_vec(), pq_codes(&s)), None)
+        .unwrap();
+    w.add_raw_section(
+        SectionKind::LevelPqOrder,
+        1,
+        Dtype::U16,
+        3,
+        1,
+        true,
+        Cow::Owned(bytemuck::cast_slice(&[0u16, 1, 2]).to_vec()),
+        None,
+    )
+    .unwrap();
+    out.push((
+        "pq_order_wrong_length",
+        w.to_bytes().unwrap(),
+        "inconsistent",
+        "open",
+    ));
     // 1.1: 2 subspaces x 3 dims = 6, neither dim_short 4 nor dim_full 8 of level 1.
     let mut w = s.writer(Codec::Raw);
     w.set_level_pq(1, 2, 3, (PQ_CODEBOOK.to_vec(), pq_codes(&s)), None)
@@ -802,7 +870,7 @@ fn invalid_vectors_fail_with_their_error() {
 /// compute): 1.1 files with a required 1.1 kind or an encoding 1.0 rejects are refused.
 #[test]
 fn reader_1_0_column_is_the_spec_table() {
-    let refused = ["pq", "later_minor", "minimal_slice"];
+    let refused = ["pq", "pq_order", "later_minor", "minimal_slice"];
     for (path, _, expected) in committed("valid") {
         let name = path.file_stem().unwrap().to_str().unwrap();
         let want = if refused.contains(&name) {

@@ -284,7 +284,8 @@ pub fn slice_to_budget<'m>(
 /// A lower bound of a PQ candidate's size from its set's short minimal slice (`base`
 /// bytes): each level's f16 short block (at most `n × dim_short × 2` stored) replaced by
 /// `dim_short / per` codes per point and a `K × dim_short` f32 codebook; the table entry,
-/// alignment and `pq` metadata it also adds are left out, so a candidate that fits is never
+/// alignment, dimension order (`level_pq_order`, 2 bytes a dimension) and `pq` metadata it
+/// also adds are left out, so a candidate that fits is never
 /// skipped (the chosen one is confirmed by encoding).
 fn estimate_pq(map: &Map<'_>, levels: &[u16], per: usize, base: u64) -> Result<u64, Error> {
     let mut bytes = base;

@@ -13,7 +13,7 @@
 //! [`crate::format::MapWriter`].
 
 #[cfg(feature = "colmap")]
-pub mod basis;
+mod basis;
 pub mod budget;
 #[cfg(feature = "colmap")]
 pub mod catalog;

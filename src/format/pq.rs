@@ -135,7 +135,11 @@ pub(crate) fn check_order(order: &[u16]) -> Result<(), String> {
     let mut sorted = order.to_vec();
     sorted.sort_unstable();
     // Sorted, the first position j not holding j shows a repeat (it holds j − 1) or a gap.
-    match sorted.iter().enumerate().find(|&(j, &d)| usize::from(d) != j) {
+    match sorted
+        .iter()
+        .enumerate()
+        .find(|&(j, &d)| usize::from(d) != j)
+    {
         Some((j, &d)) if usize::from(d) < j => Err(format!(
             "not a permutation of 0..{}: dimension {d} appears twice",
             order.len()

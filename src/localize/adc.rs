@@ -49,7 +49,15 @@ impl<'p, 'm> AdcTables<'p, 'm> {
         let mut sub = vec![0.0f32; n_q * d];
         for s in 0..m {
             for (out, row) in sub.chunks_exact_mut(d).zip(query.chunks_exact(dims)) {
-                out.copy_from_slice(&row[s * d..(s + 1) * d]);
+                match &pq.order {
+                    None => out.copy_from_slice(&row[s * d..(s + 1) * d]),
+                    // Checked a permutation of 0..dims on first access.
+                    Some(order) => {
+                        for (o, &dim) in out.iter_mut().zip(&order[s * d..(s + 1) * d]) {
+                            *o = row[usize::from(dim)];
+                        }
+                    }
+                }
             }
             let centroids = &pq.codebook[s * k * d..(s + 1) * k * d];
             // `[k × n_q]`: centroid-major, so each centroid's products with the chunk are a row.
@@ -277,6 +285,8 @@ mod tests {
                 sub_dims: d,
                 codebook: Cow::Owned(codebook),
                 codes: Cow::Owned(codes),
+                // Odd m: the identity; even m: the dimensions reversed (level_pq_order).
+                order: (m % 2 == 0).then(|| Cow::Owned((0..(m * d) as u16).rev().collect())),
             };
             let mut query: Vec<f32> = (0..QUERIES * m * d)
                 .map(|_| rng.next_f64() as f32 - 0.5)

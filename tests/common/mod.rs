@@ -407,7 +407,7 @@ pub fn decoded_json(map: &Map<'_>) -> Value {
         .levels()
         .map(|l| {
             if let Some(pq) = l.pq().unwrap() {
-                return json!({
+                let mut level = json!({
                     "level": l.id(),
                     "points": *l.points().unwrap(),
                     "dim_full": l.dim_full(),
@@ -423,6 +423,10 @@ pub fn decoded_json(map: &Map<'_>) -> Value {
                         "codes": pq.codes.chunks(pq.subspaces).collect::<Vec<_>>(),
                     },
                 });
+                if let Some(order) = &pq.order {
+                    level["pq"]["order"] = json!(order);
+                }
+                return level;
             }
             let short = l.desc_short().unwrap();
             let rest = l.desc_rest().unwrap();

@@ -184,6 +184,13 @@ class Level:
         """A product-quantised level's codebook (float32), or ``None``."""
         return self._map._section("level_pq_codebook", self.id)
 
+    @property
+    def pq_order(self) -> Optional[_np.ndarray]:
+        """The level dimension at each quantised position (uint16), or ``None`` (the identity,
+        or not product-quantised)."""
+        order = self._map._section("level_pq_order", self.id)
+        return None if order is None else order.reshape(-1)
+
     def __len__(self) -> int:
         return int(self.n_points)
 

@@ -84,7 +84,11 @@ def test_slice_options_equal_the_cli(cli, sacre_sift, work, flags, options):
             assert m.points.positions is None and m.points.positions_q16.dtype == np.uint16
             assert s["position_max_error"] is not None
         else:
-            assert m.levels[2].pq_codes.shape == (len(m.levels[2]), 8)
+            level = m.levels[2]
+            assert level.pq_codes.shape == (len(level), 8)
+            # SIFT's level basis is PCA: the balanced order is not the identity.
+            assert sorted(level.pq_order.tolist()) == list(range(level.dim_short))
+            assert level.pq_order.tolist() != list(range(level.dim_short))
             assert s["pq"][0]["subspaces"] == 8
 
 
