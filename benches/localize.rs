@@ -148,7 +148,7 @@ mod localize {
                     sub_dims: dim / subspaces,
                     codebook: Cow::Borrowed(quantiser.codebook()),
                     codes: Cow::Owned(codes),
-                    order: Some(quantiser.order().iter().map(|&d| d as u16).collect()),
+                    order: quantiser.order().map(Cow::Borrowed),
                 };
                 let found = match_pq_descriptors(&q, &pq, &options).len();
                 eprintln!("match {label} pq{subspaces}: {found} matches of {N_QUERY} queries");

@@ -83,8 +83,9 @@ pub struct SfpmLevelInfo {
 /// A product-quantised level's descriptors (format 1.1; see `spec/format.md`, kinds 21 to
 /// 23): `points × subspaces` one-byte codes, the `subspaces × centroids` codebook rows of
 /// `sub_dims` floats (subspace s's centroid k is row `s·centroids + k`) and the order of the
-/// quantised dimensions (`order[j]` is the level dimension at position j; NULL and 0 when it
-/// is the identity). Zero-copy for raw sections; valid until `sfpm_close`.
+/// quantised dimensions (`order[j]` is the level dimension at position j, checked a
+/// permutation; NULL and 0 when the level has no `level_pq_order`, i.e. the identity).
+/// Zero-copy for raw sections; valid until `sfpm_close`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct SfpmLevelPq {

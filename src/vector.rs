@@ -127,7 +127,7 @@ impl Nearest {
     }
 
     /// [`Nearest::find`] of each row in order, `found(row index, centroid)` for each; rows of
-    /// `dims` values go [`ROWS`] at a time through one pass over the centroids (a block's
+    /// `dims` values go [`ROWS_PER_PASS`] at a time through one pass over the centroids (a block's
     /// loads shared, independent sums in flight), the rest one at a time. Same indices as
     /// `find`, bit for bit.
     pub fn find_each<'a>(
@@ -138,7 +138,7 @@ impl Nearest {
         let mut rows = rows.into_iter();
         let mut first = 0;
         loop {
-            let mut group: [&[f32]; ROWS] = [&[]; ROWS];
+            let mut group: [&[f32]; ROWS_PER_PASS] = [&[]; ROWS_PER_PASS];
             let mut len = 0;
             for (slot, x) in group.iter_mut().zip(rows.by_ref()) {
                 *slot = x;
@@ -148,13 +148,13 @@ impl Nearest {
                 return;
             }
             #[cfg(target_arch = "x86_64")]
-            if len == ROWS && self.dims > 0 && group.iter().all(|x| x.len() >= self.dims) {
+            if len == ROWS_PER_PASS && self.dims > 0 && group.iter().all(|x| x.len() >= self.dims) {
                 let (dims, blocks, norms) = (self.dims, &self.blocks, &self.minus_half_norms);
                 if let Some(cs) = avx::nearest_rows(&group, dims, dims, blocks, norms) {
                     for (r, c) in cs.into_iter().enumerate() {
                         found(first + r, self.clamp(c));
                     }
-                    first += ROWS;
+                    first += ROWS_PER_PASS;
                     continue;
                 }
             }
@@ -174,7 +174,7 @@ impl Nearest {
 /// Rows [`Nearest::find_each`] scores together: four sums, four running bests and four best
 /// blocks stay in 12 of AVX's 16 registers.
 #[cfg(any(feature = "colmap-model", feature = "localize"))]
-const ROWS: usize = 4;
+const ROWS_PER_PASS: usize = 4;
 
 /// The first maximum over lanes of the per-lane bests, as a centroid index.
 #[cfg(any(feature = "colmap-model", feature = "localize"))]
@@ -187,10 +187,10 @@ fn first_maximum(best: &[f32; LANES], best_block: &[f32; LANES]) -> usize {
         .unwrap_or(0)
 }
 
-/// [`Nearest::find`]'s loop, compiled for AVX2 too and chosen at run time. Each score is
-/// `−‖c‖²/2 + x₀c₀ + x₁c₁ + …` summed in that order, so every build gives the same index.
+/// [`Nearest::find`]'s portable loop, for machines without AVX (with it, the `avx` module's
+/// kernel runs instead). Each score is `−‖c‖²/2 + x₀c₀ + x₁c₁ + …` summed in that order, so
+/// both give the same index.
 #[cfg(any(feature = "colmap-model", feature = "localize"))]
-#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx"))]
 fn nearest_in_blocks(x: &[f32], dims: usize, blocks: &[f32], minus_half_norms: &[f32]) -> usize {
     let mut best = [f32::NEG_INFINITY; LANES];
     // Block indices as f32 (exact below 2²⁴ blocks): the update is then one compare and two
@@ -253,8 +253,12 @@ mod avx {
         Some(unsafe { nearest_rows_avx(xs, used, dims, blocks, minus_half_norms) })
     }
 
+    /// # Safety
+    /// AVX must be present; `xs`, `used`, `dims`, `blocks` and `minus_half_norms` as
+    /// [`nearest_rows`] asserts. (An `unsafe fn` so that the crate's Rust 1.85 builds it:
+    /// safe `#[target_feature]` functions need 1.86, safe intrinsics in them 1.87.)
     #[target_feature(enable = "avx")]
-    fn nearest_rows_avx<const R: usize>(
+    unsafe fn nearest_rows_avx<const R: usize>(
         xs: &[&[f32]; R],
         used: usize,
         dims: usize,
@@ -285,13 +289,16 @@ mod avx {
                 best_block[r] = _mm256_blendv_ps(best_block[r], index, better);
             }
         }
-        std::array::from_fn(|r| first_maximum_avx(best[r], best_block[r]))
+        // SAFETY: AVX is present (this function's contract).
+        std::array::from_fn(|r| unsafe { first_maximum_avx(best[r], best_block[r]) })
     }
 
     /// [`first_maximum`] in registers: the maximum broadcast to every lane, then the lowest
     /// index among the lanes that hold it (indices are exact in f32 below 2²⁴).
+    /// # Safety
+    /// AVX must be present.
     #[target_feature(enable = "avx")]
-    fn first_maximum_avx(best: __m256, best_block: __m256) -> usize {
+    unsafe fn first_maximum_avx(best: __m256, best_block: __m256) -> usize {
         let mut max = _mm256_max_ps(best, _mm256_permute2f128_ps::<0x01>(best, best));
         max = _mm256_max_ps(max, _mm256_permute_ps::<0b0100_1110>(max));
         max = _mm256_max_ps(max, _mm256_permute_ps::<0b1011_0001>(max));
@@ -325,16 +332,27 @@ mod tests {
             let mut centroids: Vec<f32> = (0..clusters * dims)
                 .map(|_| rng.next_f64() as f32 - 0.5)
                 .collect();
+            // Ties: the same centroid twice, the lower index must win — across lanes (1 and
+            // the last), across blocks in one lane (1 and 9), and between lane 7 of block 0
+            // and lane 0 of block 1 (7 and 8).
+            let copy = |c: &mut Vec<f32>, from: usize, to: usize| {
+                let v = c[from * dims..(from + 1) * dims].to_vec();
+                c[to * dims..(to + 1) * dims].copy_from_slice(&v);
+            };
             if clusters > 2 {
-                // A tie: the same centroid twice, the lower index must win.
-                let (a, b) = centroids.split_at_mut(dims * (clusters - 1));
-                b.copy_from_slice(&a[dims..2 * dims]);
+                copy(&mut centroids, 1, clusters - 1);
+            }
+            if clusters > 9 {
+                copy(&mut centroids, 1, 9);
+                copy(&mut centroids, 7, 8);
             }
             let nearest = Nearest::new(&centroids, dims);
             let (mut rows, mut wants) = (Vec::new(), Vec::new());
             for t in 0..200 {
                 let x: Vec<f32> = if t == 0 && clusters > 2 {
                     centroids[dims..2 * dims].to_vec()
+                } else if t == 1 && clusters > 9 {
+                    centroids[7 * dims..8 * dims].to_vec()
                 } else {
                     (0..dims).map(|_| rng.next_f64() as f32 - 0.5).collect()
                 };
@@ -361,7 +379,7 @@ mod tests {
                 rows.extend_from_slice(&x);
                 wants.push(want);
             }
-            // `find_each`: rows in groups of ROWS and a partial group (202 = 50·4 + 2).
+            // `find_each`: rows in groups of ROWS_PER_PASS and a partial group (202 = 50·4 + 2).
             rows.extend(vec![f32::NAN; dims]);
             wants.push(0);
             rows.extend_from_slice(&centroids[..dims]);

@@ -445,6 +445,8 @@ fn pq_codes_and_codebook_match_the_vector() {
         SfpmStatus::SFPM_OK
     );
     let with_order = unsafe { out.assume_init() };
+    assert!(!with_order.order.is_null());
+    assert_eq!(with_order.order_len, 4);
     let order = unsafe { std::slice::from_raw_parts(with_order.order, with_order.order_len) };
     let want: Vec<u16> = ordered_json["content"]["levels"][1]["pq"]["order"]
         .as_array()

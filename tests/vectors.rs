@@ -714,6 +714,47 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
         "inconsistent",
         "open",
     ));
+    // 1.1: an order on a level stored in f16 (no codes to order).
+    let mut w = s.writer(Codec::Raw);
+    w.add_raw_section(
+        SectionKind::LevelPqOrder,
+        1,
+        Dtype::U16,
+        4,
+        1,
+        true,
+        Cow::Owned(bytemuck::cast_slice(&PQ_ORDER).to_vec()),
+        None,
+    )
+    .unwrap();
+    out.push((
+        "pq_order_without_pq",
+        w.to_bytes().unwrap(),
+        "inconsistent",
+        "open",
+    ));
+    // 1.1: the pq_order vector with its order flagged optional (a reader skipping it would
+    // read the codes in the wrong dimensions).
+    let mut w = s.writer(Codec::Raw);
+    w.set_level_pq(1, 2, 3, (PQ_CODEBOOK.to_vec(), pq_codes(&s)), None)
+        .unwrap();
+    w.add_raw_section(
+        SectionKind::LevelPqOrder,
+        1,
+        Dtype::U16,
+        4,
+        1,
+        false,
+        Cow::Owned(bytemuck::cast_slice(&PQ_ORDER).to_vec()),
+        None,
+    )
+    .unwrap();
+    out.push((
+        "pq_order_optional",
+        w.to_bytes().unwrap(),
+        "bad_entry",
+        "open",
+    ));
     // 1.1: 2 subspaces x 3 dims = 6, neither dim_short 4 nor dim_full 8 of level 1.
     let mut w = s.writer(Codec::Raw);
     w.set_level_pq(1, 2, 3, (PQ_CODEBOOK.to_vec(), pq_codes(&s)), None)

@@ -52,7 +52,7 @@ pub struct PqLevelSummary {
 /// How the codes are made, in words (recorded in each level's metadata).
 pub fn rule() -> String {
     format!(
-        "descriptors L2-normalised over the quantised dims; dims sorted by decreasing energy (sum of squares over the sample) dealt to the subspaces in snake order (level_pq_order); per subspace, k-means++ then Lloyd ({ITERATIONS} iterations at most, seeded) on a seeded sample of at most {MAX_TRAIN} rows, {CENTROIDS} centroids; each subvector coded by its nearest centroid"
+        "descriptors L2-normalised over the quantised dims; dims sorted by decreasing energy (sum of squares over the sample) dealt to the subspaces in snake order (level_pq_order, omitted when that is the identity); per subspace, k-means++ then Lloyd ({ITERATIONS} iterations at most, seeded) on a seeded sample of at most {MAX_TRAIN} rows, {CENTROIDS} centroids; each subvector coded by its nearest centroid"
     )
 }
 
@@ -66,8 +66,9 @@ pub struct Quantiser {
     codebook: Vec<f32>,
     nearest: Vec<Nearest>,
     /// The row dimension at each position of the quantised vector: subspace s is positions
-    /// `s·sub_dims..(s + 1)·sub_dims` ([`dimension_order`]).
-    order: Vec<usize>,
+    /// `s·sub_dims..(s + 1)·sub_dims` ([`dimension_order`]); `None` when it is the identity
+    /// (as `level_pq_order` is then not written).
+    order: Option<Vec<u16>>,
 }
 
 /// The order in which a row's dimensions are quantised: sorted by decreasing energy (sum of
@@ -82,16 +83,25 @@ pub struct Quantiser {
 /// Coeur's SIFT descriptors (64 dims, M 8): mean squared error 0.083 → 0.051, recall@1 of the
 /// exact nearest neighbour 0.19 → 0.38; a learned rotation on top (OPQ's Procrustes
 /// iterations) changed either by under 1 %, so only the permutation is used.
-pub fn dimension_order(rows: &[f32], dims: usize, subspaces: usize) -> Vec<usize> {
+pub fn dimension_order(rows: &[f32], dims: usize, subspaces: usize) -> Vec<u16> {
+    let by_energy_identity = |dims: usize| (0..dims as u16).collect::<Vec<u16>>();
     let mut energy = vec![0.0f64; dims];
     for row in rows.chunks_exact(dims.max(1)) {
         for (e, &v) in energy.iter_mut().zip(row) {
             *e += f64::from(v) * f64::from(v);
         }
     }
-    let mut by_energy: Vec<usize> = (0..dims).collect();
-    by_energy.sort_by(|&a, &b| energy[b].total_cmp(&energy[a]).then(a.cmp(&b)));
+    // Dimensions fit u16: the format's descriptor dimensions are at most 4,096.
+    let mut by_energy: Vec<u16> = (0..dims as u16).collect();
+    by_energy.sort_by(|&a, &b| {
+        let (ea, eb) = (energy[usize::from(a)], energy[usize::from(b)]);
+        eb.total_cmp(&ea).then(a.cmp(&b))
+    });
     let m = subspaces.max(1);
+    // One subspace, or one dimension each: no order changes a code.
+    if m == 1 || m >= dims {
+        return by_energy_identity(dims);
+    }
     let mut buckets = vec![Vec::with_capacity(dims / m); m];
     for (rank, &d) in by_energy.iter().enumerate() {
         let (round, i) = (rank / m, rank % m);
@@ -123,14 +133,20 @@ impl Quantiser {
         let sub_dims = dims / subspaces;
         let centroids = centroids.clamp(1, CENTROIDS).min(n);
         let order = dimension_order(rows, dims, subspaces);
+        let order = (!order.iter().enumerate().all(|(j, &d)| usize::from(d) == j)).then_some(order);
         let mut codebook = Vec::with_capacity(subspaces * centroids * sub_dims);
+        // The rows in quantisation order once, so each subspace's columns are contiguous.
+        let mut ordered = vec![0.0f32; n * dims];
+        for (out, row) in ordered.chunks_exact_mut(dims).zip(rows.chunks_exact(dims)) {
+            crate::format::pq_gather(order.as_deref(), row, out);
+        }
         let mut sub = vec![0.0f32; n * sub_dims];
         for m in 0..subspaces {
-            let positions = &order[m * sub_dims..(m + 1) * sub_dims];
-            for (out, row) in sub.chunks_exact_mut(sub_dims).zip(rows.chunks_exact(dims)) {
-                for (o, &d) in out.iter_mut().zip(positions) {
-                    *o = row[d];
-                }
+            for (out, row) in sub
+                .chunks_exact_mut(sub_dims)
+                .zip(ordered.chunks_exact(dims))
+            {
+                out.copy_from_slice(&row[m * sub_dims..(m + 1) * sub_dims]);
             }
             let kmeans = KMeans {
                 clusters: centroids,
@@ -168,9 +184,10 @@ impl Quantiser {
         })
     }
 
-    /// The row dimension at each position of the quantised vector ([`dimension_order`]).
-    pub fn order(&self) -> &[usize] {
-        &self.order
+    /// The row dimension at each position of the quantised vector ([`dimension_order`]),
+    /// `None` for the identity.
+    pub fn order(&self) -> Option<&[u16]> {
+        self.order.as_deref()
     }
 
     pub fn subspaces(&self) -> usize {
@@ -200,25 +217,30 @@ impl Quantiser {
         let dims = d * m;
         let mut error = 0.0f64;
         let n = (rows.len() / dims).min(codes.len() / m);
-        // Rows with their dimensions in quantisation order, so each subvector is contiguous.
-        let mut ordered = vec![0.0f32; n * dims];
-        for (out, row) in ordered.chunks_exact_mut(dims).zip(rows.chunks_exact(dims)) {
-            for (o, &dim) in out.iter_mut().zip(&self.order) {
-                *o = row[dim];
+        // A batch of rows at a time in quantisation order, so each subvector is contiguous
+        // and memory stays ENCODE_BATCH rows whatever `rows` holds.
+        let mut ordered = vec![0.0f32; n.min(ENCODE_BATCH) * dims];
+        let batches = rows[..n * dims]
+            .chunks(ENCODE_BATCH * dims)
+            .zip(codes[..n * m].chunks_mut(ENCODE_BATCH * m));
+        for (batch, batch_codes) in batches {
+            let ordered = &mut ordered[..batch.len()];
+            for (out, row) in ordered.chunks_exact_mut(dims).zip(batch.chunks_exact(dims)) {
+                crate::format::pq_gather(self.order.as_deref(), row, out);
             }
-        }
-        for (s, nearest) in self.nearest.iter().enumerate() {
-            let subvectors = ordered.chunks_exact(dims).map(|r| &r[s * d..(s + 1) * d]);
-            nearest.find_each(subvectors, |i, k| {
-                codes[i * m + s] = k as u8;
-                let x = &ordered[i * dims + s * d..i * dims + (s + 1) * d];
-                let at = (s * self.centroids + k) * d;
-                error += x
-                    .iter()
-                    .zip(&self.codebook[at..at + d])
-                    .map(|(&a, &b)| f64::from(a - b).powi(2))
-                    .sum::<f64>();
-            });
+            for (s, nearest) in self.nearest.iter().enumerate() {
+                let subvectors = ordered.chunks_exact(dims).map(|r| &r[s * d..(s + 1) * d]);
+                nearest.find_each(subvectors, |i, k| {
+                    batch_codes[i * m + s] = k as u8;
+                    let x = &ordered[i * dims + s * d..i * dims + (s + 1) * d];
+                    let at = (s * self.centroids + k) * d;
+                    error += x
+                        .iter()
+                        .zip(&self.codebook[at..at + d])
+                        .map(|(&a, &b)| f64::from(a - b).powi(2))
+                        .sum::<f64>();
+                });
+            }
         }
         error
     }
@@ -343,9 +365,13 @@ pub fn quantise_levels(
             }
         }
         // The identity order is not written: such a level reads as before level_pq_order.
-        let identity = quantiser.order.iter().enumerate().all(|(j, &d)| j == d);
-        let order = (!identity).then(|| quantiser.order.iter().map(|&d| d as u16).collect());
-        writer.set_level_pq(id, m, centroids, (quantiser.codebook, codes), order)?;
+        writer.set_level_pq(
+            id,
+            m,
+            centroids,
+            (quantiser.codebook, codes),
+            quantiser.order,
+        )?;
     }
     Ok(summaries)
 }
@@ -502,15 +528,23 @@ mod tests {
         assert!(mean < 0.5, "{mean}");
     }
 
-    /// Dimensions by decreasing energy, dealt in snake order; the codes follow that order:
-    /// a row's reconstruction from the codebook, put back through the order, is its nearest.
+    /// Dimensions by decreasing energy, dealt in snake order (the identity when one
+    /// subspace or one dimension per subspace makes the order change nothing); the codes
+    /// follow that order: `Pq::decode_row` of the stored codebook, codes and order gives back
+    /// the encoder's reconstruction, in the row's own dimension order.
     #[test]
     fn dimensions_are_dealt_by_energy_in_snake_order() {
         // Energy grows with the dimension: 7, 6, …, 0 by decreasing energy; ties by index.
         let rows: Vec<f32> = (0..8).map(|d| d as f32).collect();
         assert_eq!(dimension_order(&rows, 8, 2), [7, 4, 3, 0, 6, 5, 2, 1]);
-        assert_eq!(dimension_order(&rows, 8, 8), [7, 6, 5, 4, 3, 2, 1, 0]);
+        assert_eq!(dimension_order(&rows, 8, 4), [7, 0, 6, 1, 5, 2, 4, 3]);
         assert_eq!(dimension_order(&[1.0; 6], 6, 3), [0, 5, 1, 4, 2, 3]);
+        for subspaces in [1, 8] {
+            assert_eq!(
+                dimension_order(&rows, 8, subspaces),
+                [0, 1, 2, 3, 4, 5, 6, 7]
+            );
+        }
         // A PCA-like spectrum: row values scale down with the dimension.
         let mut rows = unit_rows(2000, 8, 3);
         for row in rows.chunks_exact_mut(8) {
@@ -519,23 +553,29 @@ mod tests {
             }
         }
         let q = Quantiser::train(&rows, 8, 2, 16).unwrap();
-        assert_eq!(q.order(), [0, 3, 4, 7, 1, 2, 5, 6]);
-        let mut codes = [0u8; 2];
-        let row = &rows[..8];
-        let error = q.encode(row, &mut codes);
+        assert_eq!(q.order(), Some(&[0u16, 3, 4, 7, 1, 2, 5, 6][..]));
+        let mut codes = vec![0u8; 2 * 20];
+        let error = q.encode_rows(&rows[..8 * 20], &mut codes);
+        let pq = crate::format::Pq {
+            subspaces: 2,
+            centroids: 16,
+            sub_dims: 4,
+            codebook: std::borrow::Cow::Borrowed(q.codebook()),
+            codes: std::borrow::Cow::Owned(codes),
+            order: q.order().map(std::borrow::Cow::Borrowed),
+        };
+        let mut direct = 0.0f64;
         let mut rebuilt = [0.0f32; 8];
-        for (s, &c) in codes.iter().enumerate() {
-            let centroid = &q.codebook()[(s * 16 + usize::from(c)) * 4..][..4];
-            for (j, &v) in centroid.iter().enumerate() {
-                rebuilt[q.order()[s * 4 + j]] = v;
-            }
+        for (r, row) in rows.chunks_exact(8).take(20).enumerate() {
+            pq.decode_row(r, &mut rebuilt);
+            direct += row
+                .iter()
+                .zip(&rebuilt)
+                .map(|(&a, &b)| f64::from(a - b).powi(2))
+                .sum::<f64>();
         }
-        let direct: f64 = row
-            .iter()
-            .zip(&rebuilt)
-            .map(|(&a, &b)| f64::from(a - b).powi(2))
-            .sum();
         assert!((direct - error).abs() < 1e-9, "{direct} vs {error}");
+        assert!(error / 20.0 < 0.05, "{error}");
     }
 
     #[test]

@@ -53,10 +53,19 @@ impl Pq<'_> {
             }
         }
     }
+}
 
-    /// The level dimension at position `j` of the quantised vector.
-    pub fn dimension_at(&self, j: usize) -> usize {
-        self.order.as_ref().map_or(j, |o| usize::from(o[j]))
+/// `row` (level dimensions) in quantisation order into `out`: `out[j] = row[order[j]]`, a
+/// copy without an order. The one gather every PQ user shares (the writer's encoder, the
+/// localizer's query tables); [`Pq::decode_row`] is its inverse.
+pub fn gather(order: Option<&[u16]>, row: &[f32], out: &mut [f32]) {
+    match order {
+        None => out.copy_from_slice(&row[..out.len()]),
+        Some(order) => {
+            for (o, &dim) in out.iter_mut().zip(order) {
+                *o = row[usize::from(dim)];
+            }
+        }
     }
 }
 
@@ -163,5 +172,54 @@ pub(crate) fn check_codes(codes: &[u8], m: u64, codebook: &Section) -> Result<()
             codes[i]
         )),
         None => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_order_is_a_permutation_of_its_positions() {
+        assert_eq!(check_order(&[2, 0, 3, 1]), Ok(()));
+        assert_eq!(check_order(&[]), Ok(()));
+        let err = |o: &[u16]| check_order(o).unwrap_err();
+        assert_eq!(
+            err(&[0, 0, 1]),
+            "not a permutation of 0..3: dimension 0 appears twice"
+        );
+        assert_eq!(
+            err(&[0, 2, 3]),
+            "not a permutation of 0..3: dimension 1 is missing"
+        );
+        assert_eq!(
+            err(&[1, 2, 3]),
+            "not a permutation of 0..3: dimension 0 is missing"
+        );
+        assert_eq!(
+            err(&[0, 1, 9]),
+            "not a permutation of 0..3: dimension 2 is missing"
+        );
+    }
+
+    #[test]
+    fn gather_and_decode_are_inverse() {
+        let pq = Pq {
+            subspaces: 2,
+            centroids: 1,
+            sub_dims: 2,
+            codebook: Cow::Owned(vec![10.0, 20.0, 30.0, 40.0]),
+            codes: Cow::Owned(vec![0, 0]),
+            // Not its own inverse: reading it backwards gives another row.
+            order: Some(Cow::Owned(vec![1, 2, 3, 0])),
+        };
+        let mut row = [0.0f32; 4];
+        pq.decode_row(0, &mut row);
+        assert_eq!(row, [40.0, 10.0, 20.0, 30.0]);
+        let mut back = [0.0f32; 4];
+        gather(pq.order.as_deref(), &row, &mut back);
+        assert_eq!(back, [10.0, 20.0, 30.0, 40.0]);
+        gather(None, &row, &mut back);
+        assert_eq!(back, row);
     }
 }

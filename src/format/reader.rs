@@ -808,6 +808,11 @@ fn validate_entry(
         return Err(bad("reserved fields are not zero".into()));
     }
     let required = raw.flags & SECTION_REQUIRED != 0;
+    // A level_pq_order a reader skipped would silently leave the codes in the wrong
+    // dimensions, so the spec makes it required (and a 1.0 reader refuses it).
+    if kind == SectionKind::LevelPqOrder && !required {
+        return Err(bad("level_pq_order must be flagged required".into()));
+    }
     // 1.1: an optional section this reader cannot decode is skipped; a required one keeps the
     // encodings this reader knows (header features aside), so its unknown code is an error.
     let unknown_flags = raw.flags & !SECTION_FLAGS_KNOWN;

@@ -238,6 +238,7 @@ fn build_level(
             if dim == 0
                 || n.checked_mul(pq.subspaces) != Some(pq.codes.len())
                 || codebook != Some(pq.codebook.len())
+                || pq.order.as_ref().is_some_and(|o| o.len() != dim)
             {
                 return Err(bad(format!(
                     "PQ codes ({} bytes) and codebook ({} values) do not fit {n} points x {} subspaces of {} centroids x {} dimensions",

@@ -189,7 +189,14 @@ class Level:
         """The level dimension at each quantised position (uint16), or ``None`` (the identity,
         or not product-quantised)."""
         order = self._map._section("level_pq_order", self.id)
-        return None if order is None else order.reshape(-1)
+        if order is None:
+            return None
+        order = order.reshape(-1)
+        # The raw view skips the library's first-access check: a map whose order is not a
+        # permutation is refused here as it is when the library reads the level.
+        if not _np.array_equal(_np.sort(order), _np.arange(len(order))):
+            raise MapError(f"level {self.id}: level_pq_order is not a permutation of 0..{len(order)}")
+        return order
 
     def __len__(self) -> int:
         return int(self.n_points)
