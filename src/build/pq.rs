@@ -23,6 +23,8 @@ const ITERATIONS: usize = 20;
 /// Rows decoded and encoded together by [`quantise_levels`].
 const ENCODE_BATCH: usize = 256;
 const SEED: u64 = 0x5051_5346_504d_4150;
+/// Subspace energies at most this far apart count as balanced ([`dimension_order`]).
+const BALANCED: f64 = 4.0;
 
 /// How to quantise.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -75,16 +77,22 @@ pub struct Quantiser {
 /// squares over `rows`, f64 in row order; ties: the lower dimension), then dealt to the
 /// subspaces in snake order (0, 1, …, M−1, M−1, …, 0, 0, 1, …), so every subspace gets a
 /// balanced share of the strong and the weak dimensions. Position `i` of subspace `s` is
-/// dimension `order[s·(dims/M) + i]`.
+/// dimension `order[s·(dims/M) + i]`. The identity when consecutive subspaces are already
+/// balanced (the largest subspace energy at most [`BALANCED`] times the smallest), or when
+/// no order can change a code (one subspace, or one dimension each).
 ///
 /// Why: in a PCA basis (SIFT levels) energy falls steeply with the dimension, so consecutive
 /// subspaces give the first one most of the variance and the last ones almost none; the
-/// parametric OPQ of Ge et al. (2013) balances it with a permutation. Measured on Sacre
-/// Coeur's SIFT descriptors (64 dims, M 8): mean squared error 0.083 → 0.051, recall@1 of the
-/// exact nearest neighbour 0.19 → 0.38; a learned rotation on top (OPQ's Procrustes
-/// iterations) changed either by under 1 %, so only the permutation is used.
+/// parametric OPQ of Ge et al. (2013) balances it with a permutation. Measured (mean squared
+/// error of unit rows, 256 centroids): the level-2 short SIFT maps (32 PCA dims; subspace
+/// energies 47–220× apart) of South Building and KITTI 06 lose 16–27 % of it at `M` 4, 8 and
+/// 16; Sacre Coeur's raw SIFT descriptors in PCA order (64 dims, `M` 8) 0.083 → 0.051, with
+/// recall@1 of the exact nearest neighbour 0.19 → 0.38 (`examples/opq_check.rs` of commit
+/// a95c593); OPQ's learned rotation on top changed either by under 1 %. The
+/// SFP levels' energies are flat (within 1.9×) and the order changed their error by under
+/// 1 %, so they keep the identity.
 pub fn dimension_order(rows: &[f32], dims: usize, subspaces: usize) -> Vec<u16> {
-    let by_energy_identity = |dims: usize| (0..dims as u16).collect::<Vec<u16>>();
+    let identity = |dims: usize| (0..dims as u16).collect::<Vec<u16>>();
     let mut energy = vec![0.0f64; dims];
     for row in rows.chunks_exact(dims.max(1)) {
         for (e, &v) in energy.iter_mut().zip(row) {
@@ -99,8 +107,17 @@ pub fn dimension_order(rows: &[f32], dims: usize, subspaces: usize) -> Vec<u16> 
     });
     let m = subspaces.max(1);
     // One subspace, or one dimension each: no order changes a code.
-    if m == 1 || m >= dims {
-        return by_energy_identity(dims);
+    if m == 1 || m >= dims || dims % m != 0 {
+        return identity(dims);
+    }
+    let in_place: Vec<f64> = energy
+        .chunks_exact(dims / m)
+        .map(|c| c.iter().sum())
+        .collect();
+    let most = in_place.iter().copied().fold(0.0f64, f64::max);
+    let least = in_place.iter().copied().fold(f64::INFINITY, f64::min);
+    if most <= BALANCED * least {
+        return identity(dims);
     }
     let mut buckets = vec![Vec::with_capacity(dims / m); m];
     for (rank, &d) in by_energy.iter().enumerate() {
@@ -121,6 +138,20 @@ impl Quantiser {
         subspaces: usize,
         centroids: usize,
     ) -> Result<Quantiser, String> {
+        let order = (dims > 0).then(|| dimension_order(rows, dims, subspaces.max(1)));
+        Quantiser::train_in_order(rows, dims, subspaces, centroids, order)
+    }
+
+    /// [`Quantiser::train`] with a given dimension order (`None`: the identity), for
+    /// measuring what the order adds. Errors also for an order that is not a permutation of
+    /// `0..dims`.
+    pub fn train_in_order(
+        rows: &[f32],
+        dims: usize,
+        subspaces: usize,
+        centroids: usize,
+        order: Option<Vec<u16>>,
+    ) -> Result<Quantiser, String> {
         if subspaces == 0 || dims == 0 || dims % subspaces != 0 {
             return Err(format!(
                 "{subspaces} subspaces do not divide {dims} dimensions"
@@ -132,8 +163,13 @@ impl Quantiser {
         }
         let sub_dims = dims / subspaces;
         let centroids = centroids.clamp(1, CENTROIDS).min(n);
-        let order = dimension_order(rows, dims, subspaces);
-        let order = (!order.iter().enumerate().all(|(j, &d)| usize::from(d) == j)).then_some(order);
+        if let Some(o) = &order {
+            if o.len() != dims {
+                return Err(format!("an order of {} dimensions for {dims}", o.len()));
+            }
+            crate::format::pq_check_order(o)?;
+        }
+        let order = order.filter(|o| !o.iter().enumerate().all(|(j, &d)| usize::from(d) == j));
         let mut codebook = Vec::with_capacity(subspaces * centroids * sub_dims);
         // The rows in quantisation order once, so each subspace's columns are contiguous.
         let mut ordered = vec![0.0f32; n * dims];
@@ -538,7 +574,10 @@ mod tests {
         let rows: Vec<f32> = (0..8).map(|d| d as f32).collect();
         assert_eq!(dimension_order(&rows, 8, 2), [7, 4, 3, 0, 6, 5, 2, 1]);
         assert_eq!(dimension_order(&rows, 8, 4), [7, 0, 6, 1, 5, 2, 4, 3]);
-        assert_eq!(dimension_order(&[1.0; 6], 6, 3), [0, 5, 1, 4, 2, 3]);
+        // Balanced already (equal energies; or within 4×: 1+4 vs 9+16 is 5×, 4+9 vs 1+16 is not).
+        assert_eq!(dimension_order(&[1.0; 6], 6, 3), [0, 1, 2, 3, 4, 5]);
+        assert_eq!(dimension_order(&[1.0, 2.0, 3.0, 4.0], 4, 2), [3, 0, 2, 1]);
+        assert_eq!(dimension_order(&[2.0, 3.0, 1.0, 4.0], 4, 2), [0, 1, 2, 3]);
         for subspaces in [1, 8] {
             assert_eq!(
                 dimension_order(&rows, 8, subspaces),
