@@ -4,9 +4,10 @@
 //! open, the codes against the codebook on first access; the view hands both out zero-copy.
 
 use super::error::Error;
-use super::layout::SectionKind;
+use super::layout::{Dtype, SectionKind, MAX_DESCRIPTOR_DIM};
 use super::metadata::LevelInfo;
 use super::reader::Section;
+use super::writer::{owned_bytes, MapWriter};
 use std::borrow::Cow;
 
 /// Codes are one byte: at most 256 centroids per subspace.
@@ -66,6 +67,118 @@ pub fn gather(order: Option<&[u16]>, row: &[f32], out: &mut [f32]) {
                 *o = row[usize::from(dim)];
             }
         }
+    }
+}
+
+impl MapWriter<'_> {
+    /// Replaces `level`'s f16 descriptor blocks by product-quantisation codes (format 1.1):
+    /// `codebook` `[M·K × dims/M]` f32 (subspace m's centroid k is row `m·K + k`) and `codes`
+    /// `[points × M]`, over `dims` = `dim_short`, or `dim_full` when the codes include the
+    /// `rest` dimensions. `order` (`[dims]`, a permutation of `0..dims`) is the level
+    /// dimension at each position of the quantised vector; `None` = the identity. All three
+    /// sections are written required: a reader that does not know them cannot match the level,
+    /// so a 1.0 reader refuses the map.
+    pub fn set_level_pq(
+        &mut self,
+        level: u16,
+        subspaces: usize,
+        centroids: usize,
+        (codebook, codes): (Vec<f32>, Vec<u8>),
+        order: Option<Vec<u16>>,
+    ) -> Result<&mut Self, Error> {
+        let info = self.metadata.level(level).ok_or_else(|| {
+            Error::invalid(format!("level {level}: add the level before its PQ codes"))
+        })?;
+        let (ds, df) = (info.dim_short as usize, info.dim_full as usize);
+        let wrong = |what: String| Err(Error::invalid(format!("level {level}: {what}")));
+        if subspaces == 0 || !(1..=MAX_PQ_CENTROIDS as usize).contains(&centroids) {
+            return wrong(format!(
+                "{subspaces} subspaces of {centroids} centroids: needs at least one subspace and 1 to 256 centroids"
+            ));
+        }
+        if subspaces as u64 > MAX_DESCRIPTOR_DIM {
+            return wrong(format!(
+                "{subspaces} subspaces: more than {}",
+                MAX_DESCRIPTOR_DIM
+            ));
+        }
+        let rows = subspaces * centroids;
+        if codebook.iter().any(|v| !v.is_finite()) {
+            return wrong("a centroid value is not finite".into());
+        }
+        if codebook.is_empty() || codebook.len() % rows != 0 {
+            return wrong(format!(
+                "a codebook of {} values is not {subspaces} x {centroids} centroid rows",
+                codebook.len()
+            ));
+        }
+        let sub_dims = codebook.len() / rows;
+        let dims = subspaces * sub_dims;
+        if dims != ds && dims != df {
+            return wrong(format!(
+                "{subspaces} subspaces x {sub_dims} dimensions = {dims}, neither dim_short {ds} nor dim_full {df}"
+            ));
+        }
+        let points = self
+            .sections
+            .get(&(SectionKind::LevelPoints.code(), level))
+            .map_or(0, |s| s.rows as usize);
+        if codes.len() != points * subspaces {
+            return wrong(format!(
+                "{} codes for {points} points x {subspaces} subspaces",
+                codes.len()
+            ));
+        }
+        if let Some(&c) = codes.iter().find(|&&c| usize::from(c) >= centroids) {
+            return wrong(format!(
+                "code {c} past the codebook's {centroids} centroids"
+            ));
+        }
+        if let Some(order) = &order {
+            if order.len() != dims {
+                return wrong(format!(
+                    "an order of {} dimensions for {dims} quantised ones",
+                    order.len()
+                ));
+            }
+            if let Err(what) = check_order(order) {
+                return wrong(format!("PQ order {what}"));
+            }
+        }
+        for kind in [
+            SectionKind::LevelDescShort,
+            SectionKind::LevelDescRest,
+            SectionKind::LevelPqOrder,
+        ] {
+            self.sections.remove(&(kind.code(), level));
+        }
+        if let Some(order) = order {
+            self.push_array(
+                SectionKind::LevelPqOrder,
+                level,
+                Dtype::U16,
+                dims,
+                1,
+                owned_bytes(order),
+            );
+        }
+        self.push_array(
+            SectionKind::LevelPqCodebook,
+            level,
+            Dtype::F32,
+            rows,
+            sub_dims,
+            owned_bytes(codebook),
+        );
+        self.push_array(
+            SectionKind::LevelPqCodes,
+            level,
+            Dtype::U8,
+            points,
+            subspaces,
+            Cow::Owned(codes),
+        );
+        Ok(self)
     }
 }
 
