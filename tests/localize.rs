@@ -194,7 +194,7 @@ fn recovers_the_pose_from_product_quantised_levels() {
         .unwrap();
         let dims = if short { 16 } else { DIM };
         assert!(
-            summary.iter().all(|l| l.centroids == 32 && l.dims == dims),
+            summary.iter().all(|l| l.centroids == 64 && l.dims == dims),
             "{summary:?}"
         );
         let pq_bytes = writer.to_bytes().unwrap();

@@ -13,9 +13,9 @@ use crate::vector::{l2_normalise, Nearest};
 /// Centroids per subspace at most: every value of a one-byte code.
 pub const CENTROIDS: usize = 256;
 /// Level points per centroid at least: a small level gets the largest power of two of
-/// centroids with this many points each (a level of 345 points 16, one of 4,096 or more 256),
+/// centroids with this many points each (a level of 345 points 32, one of 2,048 or more 256),
 /// so its codebook stays small beside its codes and every centroid is learned from data.
-const POINTS_PER_CENTROID: usize = 16;
+const POINTS_PER_CENTROID: usize = 8;
 /// Rows k-means sees per subspace at most (64 per centroid): bounds training time whatever
 /// the level's size (≤ 2 s per level on one core).
 const MAX_TRAIN: usize = 16_384;
@@ -632,7 +632,7 @@ mod tests {
         }
         assert_eq!(
             [0, 15, 16, 345, 4095, 4096, 1 << 20].map(centroids_for),
-            [1, 1, 1, 16, 128, 256, 256]
+            [1, 1, 2, 32, 256, 256, 256]
         );
     }
 }
