@@ -84,14 +84,25 @@ def gil_stall(call) -> tuple:
 
 
 def assert_releases_the_gil(call, min_seconds: float = 0.2) -> None:
-    """`call` lets other Python threads run while it works: this thread, spinning meanwhile,
-    never stalls for half of it. A control call that holds the GIL (a backtracking regular
+    """`call(i)` lets other Python threads run while it works: this thread, spinning meanwhile,
+    never stalls for half of one call. On a fast machine one call can be too short to tell, so
+    the calls are repeated (i = 0, 1, 2, … across all of them: a caller writing files names each
+    differently) until
+    they take `min_seconds`. A control call that holds the GIL (a backtracking regular
     expression) shows that the measurement sees a held GIL."""
+    import itertools
     import re
 
-    seconds, longest = gil_stall(call)
-    assert seconds >= min_seconds, f"the call took {seconds:.3f} s: too short to tell"
-    assert longest < seconds / 2, f"stalled {longest:.3f} s of a {seconds:.3f} s call: the GIL was held"
+    calls = itertools.count()
+    repeats = 1
+    while True:
+        seconds, longest = gil_stall(lambda: [call(next(calls)) for _ in range(repeats)])
+        if seconds >= min_seconds or repeats >= 64:
+            break
+        repeats *= 2
+    assert seconds >= min_seconds, f"{repeats} calls took {seconds:.3f} s: too short to tell"
+    per_call = seconds / repeats
+    assert longest < per_call / 2, f"stalled {longest:.3f} s of a {per_call:.3f} s call: the GIL was held"
     for n in range(16, 40):
         held, stalled = gil_stall(lambda: re.match(r"(a+)+$", "a" * n + "b"))
         if held >= min_seconds:

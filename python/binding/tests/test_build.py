@@ -225,5 +225,5 @@ def test_convert_releases_the_gil(shared, tmp_path):
     # (slice and verify: test_map.py, on its large map)
     scene = shared / "scenes/sacre-coeur"
     assert_releases_the_gil(
-        lambda: sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=tmp_path / "a.sfpm")
+        lambda i: sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=tmp_path / f"a-{i}.sfpm")
     )

@@ -170,7 +170,7 @@ def test_extractor_threads_and_the_gil(tmp_path, extractor):
             sfpmap.Extractor(threads=threads)
     rng = np.random.default_rng(11)
     image = np.kron(rng.integers(0, 256, (60, 80), dtype=np.uint8), np.ones((16, 16), np.uint8))
-    assert_releases_the_gil(lambda: extractor.extract(image))
+    assert_releases_the_gil(lambda _: extractor.extract(image))
     # Two threads on one extractor take turns, and the one waiting for its turn (here: a
     # thread starting its next image while the other's runs) waits without the GIL: this
     # thread never stalls for the other's run.

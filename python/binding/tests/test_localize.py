@@ -205,7 +205,7 @@ def test_the_gil_is_released_while_localizing(south_sfp, south_queries, south_fe
     batch = [(south_features[n], c, n) for n, c in queries]
     with sfpmap.Map(south_sfp) as m:
         loc = sfpmap.Localizer(m)
-        assert_releases_the_gil(lambda: loc.localize_many(batch, threads=1))
+        assert_releases_the_gil(lambda _: loc.localize_many(batch, threads=1))
 
 
 def test_features_prefer_the_level_s_own_set():
