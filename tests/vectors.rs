@@ -424,6 +424,34 @@ fn pq_levels(s: &Scene) -> Vec<u8> {
     w.to_bytes().unwrap()
 }
 
+/// The scene (with level 1 product-quantised as in the `pq` vector when `pq`) plus one raw
+/// section `(kind, dtype, rows, cols)` on level 1 holding `bytes`.
+fn pq_plus_raw(
+    s: &Scene,
+    pq: bool,
+    (kind, dtype, rows, cols): (SectionKind, Dtype, u64, u64),
+    required: bool,
+    bytes: Vec<u8>,
+) -> Vec<u8> {
+    let mut w = s.writer(Codec::Raw);
+    if pq {
+        w.set_level_pq(1, 2, 3, (PQ_CODEBOOK.to_vec(), pq_codes(s)), None)
+            .unwrap();
+    }
+    w.add_raw_section(
+        kind,
+        1,
+        dtype,
+        rows,
+        cols,
+        required,
+        Cow::Owned(bytes),
+        None,
+    )
+    .unwrap();
+    w.to_bytes().unwrap()
+}
+
 /// The `pq_order` vector's order of level 1's 4 short dimensions.
 const PQ_ORDER: [u16; 4] = [2, 0, 3, 1];
 
@@ -694,88 +722,45 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
         "verify",
     ));
     // 1.1: an order of 3 rows for the 4 quantised dimensions.
-    let mut w = s.writer(Codec::Raw);
-    w.set_level_pq(1, 2, 3, (PQ_CODEBOOK.to_vec(), pq_codes(&s)), None)
-        .unwrap();
-    w.add_raw_section(
-        SectionKind::LevelPqOrder,
-        1,
-        Dtype::U16,
-        3,
-        1,
+    let order3 = bytemuck::cast_slice(&[0u16, 1, 2]).to_vec();
+    let b = pq_plus_raw(
+        &s,
         true,
-        Cow::Owned(bytemuck::cast_slice(&[0u16, 1, 2]).to_vec()),
-        None,
-    )
-    .unwrap();
-    out.push((
-        "pq_order_wrong_length",
-        w.to_bytes().unwrap(),
-        "inconsistent",
-        "open",
-    ));
+        (SectionKind::LevelPqOrder, Dtype::U16, 3, 1),
+        true,
+        order3,
+    );
+    out.push(("pq_order_wrong_length", b, "inconsistent", "open"));
     // 1.1: an order on a level stored in f16 (no codes to order).
-    let mut w = s.writer(Codec::Raw);
-    w.add_raw_section(
-        SectionKind::LevelPqOrder,
-        1,
-        Dtype::U16,
-        4,
-        1,
+    let order = bytemuck::cast_slice(&PQ_ORDER).to_vec();
+    let b = pq_plus_raw(
+        &s,
+        false,
+        (SectionKind::LevelPqOrder, Dtype::U16, 4, 1),
         true,
-        Cow::Owned(bytemuck::cast_slice(&PQ_ORDER).to_vec()),
-        None,
-    )
-    .unwrap();
-    out.push((
-        "pq_order_without_pq",
-        w.to_bytes().unwrap(),
-        "inconsistent",
-        "open",
-    ));
+        order.clone(),
+    );
+    out.push(("pq_order_without_pq", b, "inconsistent", "open"));
     // 1.1: the pq_order vector with its order flagged optional (a reader skipping it would
     // read the codes in the wrong dimensions).
-    let mut w = s.writer(Codec::Raw);
-    w.set_level_pq(1, 2, 3, (PQ_CODEBOOK.to_vec(), pq_codes(&s)), None)
-        .unwrap();
-    w.add_raw_section(
-        SectionKind::LevelPqOrder,
-        1,
-        Dtype::U16,
-        4,
-        1,
-        false,
-        Cow::Owned(bytemuck::cast_slice(&PQ_ORDER).to_vec()),
-        None,
-    )
-    .unwrap();
-    out.push((
-        "pq_order_optional",
-        w.to_bytes().unwrap(),
-        "bad_entry",
-        "open",
-    ));
-    // 1.1: 2 subspaces x 3 dims = 6, neither dim_short 4 nor dim_full 8 of level 1.
-    let mut w = s.writer(Codec::Raw);
-    w.set_level_pq(1, 2, 3, (PQ_CODEBOOK.to_vec(), pq_codes(&s)), None)
-        .unwrap();
-    w.add_raw_section(
-        SectionKind::LevelPqCodebook,
-        1,
-        Dtype::F32,
-        4,
-        3,
+    let b = pq_plus_raw(
+        &s,
         true,
-        Cow::Owned(bytemuck::cast_slice(&PQ_CODEBOOK).to_vec()),
-        None,
-    )
-    .unwrap();
-    out.push((
-        "pq_codebook_wrong_shape",
-        w.to_bytes().unwrap(),
-        "inconsistent",
-        "open",
-    ));
+        (SectionKind::LevelPqOrder, Dtype::U16, 4, 1),
+        false,
+        order,
+    );
+    out.push(("pq_order_optional", b, "bad_entry", "open"));
+    // 1.1: 2 subspaces x 3 dims = 6, neither dim_short 4 nor dim_full 8 of level 1.
+    let codebook = bytemuck::cast_slice(&PQ_CODEBOOK).to_vec();
+    let b = pq_plus_raw(
+        &s,
+        true,
+        (SectionKind::LevelPqCodebook, Dtype::F32, 4, 3),
+        true,
+        codebook,
+    );
+    out.push(("pq_codebook_wrong_shape", b, "inconsistent", "open"));
     out
 }
 

@@ -169,12 +169,8 @@ impl<'p, 'm> AdcTables<'p, 'm> {
         };
         let rows = (rows, inverse_norms);
         match &self.entries {
-            Entries::I16(lut) => {
-                accumulate_i16(lut, &pq.codes, shape, rows, &self.inverse_scales, out)
-            }
-            Entries::F32(lut) => {
-                accumulate_f32(lut, &pq.codes, shape, rows, &self.inverse_scales, out)
-            }
+            Entries::I16(lut) => accumulate(lut, &pq.codes, shape, rows, &self.inverse_scales, out),
+            Entries::F32(lut) => accumulate(lut, &pq.codes, shape, rows, &self.inverse_scales, out),
         }
     }
 }
@@ -217,45 +213,16 @@ impl Entry for f32 {
     }
 }
 
-/// [`AdcTables::scores`]' loop for i16 and f32 tables, compiled for AVX-512 and AVX2 too and
-/// chosen at run time.
-#[multiversion::multiversion(targets(
-    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
-    "x86_64+avx2+fma",
-    "x86_64+avx"
-))]
-fn accumulate_i16(
-    lut: &[i16],
-    codes: &[u8],
-    shape: Shape,
-    rows: (&[usize], &[f32]),
-    inverse_scales: &[f32],
-    out: &mut [f32],
-) {
-    accumulate(lut, codes, shape, rows, inverse_scales, out);
-}
-
-#[multiversion::multiversion(targets(
-    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
-    "x86_64+avx2+fma",
-    "x86_64+avx"
-))]
-fn accumulate_f32(
-    lut: &[f32],
-    codes: &[u8],
-    shape: Shape,
-    rows: (&[usize], &[f32]),
-    inverse_scales: &[f32],
-    out: &mut [f32],
-) {
-    accumulate(lut, codes, shape, rows, inverse_scales, out);
-}
-
 /// For each row, its `M` table rows added across the chunk's queries, then converted and
 /// scaled by the query's inverse scale and the row's inverse norm. Queries go [`TILE`] (then
 /// 8) at a time through all `M` subspaces, so a tile's sums stay in registers; the table rows
-/// are padded to whole tiles of 8, and only the chunk's `n_q` scores are written.
-#[inline(always)]
+/// are padded to whole tiles of 8, and only the chunk's `n_q` scores are written. Compiled for
+/// AVX-512 and AVX2 too and chosen at run time.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+avx"
+))]
 fn accumulate<E: Entry>(
     lut: &[E],
     codes: &[u8],
