@@ -54,7 +54,7 @@ pub struct PqLevelSummary {
 /// How the codes are made, in words (recorded in each level's metadata).
 pub fn rule() -> String {
     format!(
-        "descriptors L2-normalised over the quantised dims; dims sorted by decreasing energy (sum of squares over the sample) dealt to the subspaces in snake order (level_pq_order, omitted when that is the identity); per subspace, k-means++ then Lloyd ({ITERATIONS} iterations at most, seeded) on a seeded sample of at most {MAX_TRAIN} rows, {CENTROIDS} centroids; each subvector coded by its nearest centroid"
+        "descriptors L2-normalised over the quantised dims; where consecutive subspaces' energies (sums of squares over the sample) are more than {BALANCED}x apart, dims sorted by decreasing energy dealt to the subspaces in snake order (level_pq_order), else in place; per subspace, k-means++ then Lloyd ({ITERATIONS} iterations at most, seeded) on a seeded sample of at most {MAX_TRAIN} rows, {CENTROIDS} centroids (fewer for small levels: at least {POINTS_PER_CENTROID} points each); each subvector coded by its nearest centroid"
     )
 }
 
@@ -138,6 +138,10 @@ impl Quantiser {
         subspaces: usize,
         centroids: usize,
     ) -> Result<Quantiser, String> {
+        // Orders are u16 (the format's dimensions are at most 4,096).
+        if dims > usize::from(u16::MAX) + 1 {
+            return Err(format!("{dims} dimensions: more than an order can name"));
+        }
         let order = (dims > 0).then(|| dimension_order(rows, dims, subspaces.max(1)));
         Quantiser::train_in_order(rows, dims, subspaces, centroids, order)
     }
@@ -145,7 +149,7 @@ impl Quantiser {
     /// [`Quantiser::train`] with a given dimension order (`None`: the identity), for
     /// measuring what the order adds. Errors also for an order that is not a permutation of
     /// `0..dims`.
-    pub fn train_in_order(
+    pub(crate) fn train_in_order(
         rows: &[f32],
         dims: usize,
         subspaces: usize,
@@ -578,6 +582,8 @@ mod tests {
         assert_eq!(dimension_order(&[1.0; 6], 6, 3), [0, 1, 2, 3, 4, 5]);
         assert_eq!(dimension_order(&[1.0, 2.0, 3.0, 4.0], 4, 2), [3, 0, 2, 1]);
         assert_eq!(dimension_order(&[2.0, 3.0, 1.0, 4.0], 4, 2), [0, 1, 2, 3]);
+        // Ties by index: 0 before 1 and 2 before 3.
+        assert_eq!(dimension_order(&[3.0, 3.0, 1.0, 1.0], 4, 2), [0, 3, 1, 2]);
         for subspaces in [1, 8] {
             assert_eq!(
                 dimension_order(&rows, 8, subspaces),

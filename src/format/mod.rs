@@ -44,7 +44,8 @@ pub use metadata::{
     CameraInfo, LevelInfo, Metadata, PositionGrid, Provenance, Retrieval, SourceFile,
     DEFAULT_RETRIEVAL_TOP_K,
 };
-pub use pq::{check_order as pq_check_order, gather as pq_gather, Pq, MAX_PQ_CENTROIDS};
+pub(crate) use pq::check_order as pq_check_order;
+pub use pq::{gather as pq_gather, Pq, MAX_PQ_CENTROIDS};
 pub use reader::{decode_budget, decode_cap, Map, Section, Skipped};
 pub use slice::{slice, SliceOptions, SliceSummary};
 pub use source::{coalesce, RangeSource, SourceStats, Wanted, COALESCE_GAP, HEAD_READ};

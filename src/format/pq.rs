@@ -253,7 +253,7 @@ pub(crate) fn check_shapes(
 }
 
 /// The first-access rule of the order: a permutation of `0..D`, each dimension once.
-pub fn check_order(order: &[u16]) -> Result<(), String> {
+pub(crate) fn check_order(order: &[u16]) -> Result<(), String> {
     let mut sorted = order.to_vec();
     sorted.sort_unstable();
     // Sorted, the first position j not holding j shows a repeat (it holds j − 1) or a gap.

@@ -92,14 +92,22 @@ def assert_releases_the_gil(call, min_seconds: float = 0.2) -> None:
     expression) shows that the measurement sees a held GIL."""
     import itertools
     import re
+    import sys
 
     calls = itertools.count()
     repeats = 1
-    while True:
-        seconds, longest = gil_stall(lambda: [call(next(calls)) for _ in range(repeats)])
-        if seconds >= min_seconds or repeats >= 64:
-            break
-        repeats *= 2
+    # Short calls are measured against half of one call: Python's thread switches must then
+    # be far shorter than a call (default 5 ms), or a released GIL would look held.
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-4)
+    try:
+        while True:
+            seconds, longest = gil_stall(lambda: [call(next(calls)) for _ in range(repeats)])
+            if seconds >= min_seconds or repeats >= 64:
+                break
+            repeats *= 2
+    finally:
+        sys.setswitchinterval(interval)
     assert seconds >= min_seconds, f"{repeats} calls took {seconds:.3f} s: too short to tell"
     per_call = seconds / repeats
     assert longest < per_call / 2, f"stalled {longest:.3f} s of a {per_call:.3f} s call: the GIL was held"

@@ -226,4 +226,5 @@ def test_convert_releases_the_gil(shared, tmp_path):
     scene = shared / "scenes/sacre-coeur"
     assert_releases_the_gil(
         lambda i: sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=tmp_path / f"a-{i}.sfpm")
+        and (tmp_path / f"a-{i}.sfpm").unlink()
     )

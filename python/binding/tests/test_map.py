@@ -200,9 +200,12 @@ def test_a_view_of_a_large_map_costs_no_rss_until_touched(tmp_path):
         # Checking a GB (a fresh map each time: a checked section is not checked again) and
         # slicing it let other Python threads run.
         assert_releases_the_gil(lambda _: sfpmap.Map(path).verify(), min_seconds=0.1)
-        assert_releases_the_gil(
-            lambda i: sfpmap.slice(path, levels=[0], short=True, out=tmp_path / f"short-{i}.sfpm")
-        )
+        def slice_once(i: int) -> None:
+            out = tmp_path / f"short-{i}.sfpm"  # a new name each call; removed after
+            sfpmap.slice(path, levels=[0], short=True, out=out)
+            out.unlink()
+
+        assert_releases_the_gil(slice_once)
 
 
 VECTORS = Path(__file__).resolve().parents[3] / "spec/vectors/valid"
