@@ -424,6 +424,17 @@ fn pq_levels(s: &Scene) -> Vec<u8> {
     w.to_bytes().unwrap()
 }
 
+/// `file` with `bytes` written `at` bytes into the first section of `kind`, its checksums
+/// recomputed: a value only a check of the section's contents can catch.
+fn patched(file: &[u8], kind: SectionKind, at: usize, bytes: &[u8]) -> Vec<u8> {
+    let map = Map::from_bytes(file).unwrap();
+    let section = map.sections().iter().find(|x| x.kind() == kind).unwrap();
+    let start = section.offset() as usize + at;
+    let mut b = file.to_vec();
+    b[start..start + bytes.len()].copy_from_slice(bytes);
+    sfpmap::format::fuzzing::fix_checksums(&b)
+}
+
 /// The scene (with level 1 product-quantised as in the `pq` vector when `pq`) plus one raw
 /// section `(kind, dtype, rows, cols)` on level 1 holding `bytes`.
 fn pq_plus_raw(
@@ -524,20 +535,13 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
     out.push(("bad_padding", patch(&b, |_, _| {}), "bad_padding", "open"));
 
     // A NaN position with a correct checksum: found when the section is first read.
-    let mut b = good.clone();
-    let at = {
-        let map = Map::from_bytes(&good).unwrap();
-        map.find(SectionKind::PointPositions, None)
-            .unwrap()
-            .offset() as usize
-    };
-    b[at + 12..at + 16].copy_from_slice(&f32::NAN.to_le_bytes());
-    out.push((
-        "nonfinite_position",
-        sfpmap::format::fuzzing::fix_checksums(&b),
-        "inconsistent",
-        "verify",
-    ));
+    let b = patched(
+        &good,
+        SectionKind::PointPositions,
+        12,
+        &f32::NAN.to_le_bytes(),
+    );
+    out.push(("nonfinite_position", b, "inconsistent", "verify"));
 
     let b = with_extra_section(
         SectionKind::Unknown(0x7F01),
@@ -688,39 +692,12 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
     ));
 
     // 1.1: a code past the codebook's 3 centroids, its section checksum recomputed.
-    let good_pq = pq_levels(&s);
-    let map = Map::from_bytes(&good_pq).unwrap();
-    let codes = map
-        .sections()
-        .iter()
-        .find(|x| x.kind() == SectionKind::LevelPqCodes)
-        .unwrap()
-        .offset() as usize;
-    let mut b = good_pq.clone();
-    b[codes + 1] = 3;
-    out.push((
-        "pq_code_past_codebook",
-        sfpmap::format::fuzzing::fix_checksums(&b),
-        "inconsistent",
-        "verify",
-    ));
+    let b = patched(&pq_levels(&s), SectionKind::LevelPqCodes, 1, &[3]);
+    out.push(("pq_code_past_codebook", b, "inconsistent", "verify"));
     // 1.1: an order naming dimension 0 twice (and not 3), its section checksum recomputed.
-    let good = pq_levels_ordered(&s, &PQ_ORDER);
-    let map = Map::from_bytes(&good).unwrap();
-    let order = map
-        .sections()
-        .iter()
-        .find(|x| x.kind() == SectionKind::LevelPqOrder)
-        .unwrap()
-        .offset() as usize;
-    let mut b = good.clone();
-    b[order + 4..order + 6].copy_from_slice(&0u16.to_le_bytes());
-    out.push((
-        "pq_order_not_a_permutation",
-        sfpmap::format::fuzzing::fix_checksums(&b),
-        "inconsistent",
-        "verify",
-    ));
+    let ordered = pq_levels_ordered(&s, &PQ_ORDER);
+    let b = patched(&ordered, SectionKind::LevelPqOrder, 4, &0u16.to_le_bytes());
+    out.push(("pq_order_not_a_permutation", b, "inconsistent", "verify"));
     // 1.1: an order of 3 rows for the 4 quantised dimensions.
     let order3 = bytemuck::cast_slice(&[0u16, 1, 2]).to_vec();
     let b = pq_plus_raw(
