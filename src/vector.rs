@@ -129,7 +129,8 @@ impl Nearest {
     /// [`Nearest::find`] of each row in order, `found(row index, centroid)` for each; rows of
     /// `dims` values go [`ROWS_PER_PASS`] at a time through one pass over the centroids (a block's
     /// loads shared, independent sums in flight), the rest one at a time. Same indices as
-    /// `find`, bit for bit.
+    /// `find`, bit for bit. (k-means and PQ encoding, in `build`, use it.)
+    #[cfg(feature = "colmap-model")]
     pub fn find_each<'a>(
         &self,
         rows: impl IntoIterator<Item = &'a [f32]>,
@@ -173,7 +174,7 @@ impl Nearest {
 
 /// Rows [`Nearest::find_each`] scores together: four sums, four running bests and four best
 /// blocks stay in 12 of AVX's 16 registers.
-#[cfg(any(feature = "colmap-model", feature = "localize"))]
+#[cfg(feature = "colmap-model")]
 const ROWS_PER_PASS: usize = 4;
 
 /// The first maximum over lanes of the per-lane bests, as a centroid index.
@@ -318,7 +319,7 @@ mod avx {
     }
 }
 
-#[cfg(all(test, feature = "localize"))]
+#[cfg(all(test, feature = "colmap-model"))]
 mod tests {
     use super::*;
 

@@ -44,6 +44,8 @@ pub use metadata::{
     CameraInfo, LevelInfo, Metadata, PositionGrid, Provenance, Retrieval, SourceFile,
     DEFAULT_RETRIEVAL_TOP_K,
 };
+// Only the PQ trainer in `build` (behind `colmap-model`) checks orders it is handed.
+#[cfg(feature = "colmap-model")]
 pub(crate) use pq::check_order as pq_check_order;
 pub use pq::{gather as pq_gather, Pq, MAX_PQ_CENTROIDS};
 pub use reader::{decode_budget, decode_cap, Map, Section, Skipped};
