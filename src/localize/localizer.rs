@@ -11,16 +11,15 @@
 //! or (1.1) matches a product-quantised level's codes by table lookups (`adc`): nothing of
 //! its own per map point.
 
-use super::adc::match_pq;
 use super::kernels::sgemm_abt;
-use super::level::{index_level, LevelIndex, Stored};
-use super::matching::{match_rows, MatchOptions};
+use super::level::{index_level, LevelIndex};
+use super::matching::MatchOptions;
 use super::prior::Viewpoints;
 use super::retrieval::{RetrievalFallback, RetrievalIndex, RetrievalMethod};
 use crate::format::{Error as FormatError, Map, Retrieval, SectionKind, Visibility};
-use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
+use crate::geometry::{Camera, Pose};
 use crate::vector::{dot, normalise_rows};
-use nalgebra::{Vector2, Vector3};
+use nalgebra::Vector3;
 use std::cell::OnceCell;
 use std::time::Instant;
 
@@ -351,19 +350,6 @@ pub(super) struct Query<'q> {
     pub(super) projected: &'q OnceCell<Vec<f32>>,
 }
 
-/// When coarse matching finds no pose among the points of the `top_k` retrieved images, it
-/// tries those of these many times `top_k` before every point (on the 1 M-point street, a
-/// query's VLAD ranks its place past 40 images for 2 of 20 queries).
-const WIDER_RETRIEVAL: [usize; 2] = [4, 16];
-
-/// Maps of at most this many points localize as before the scale work: coarse matching with
-/// every query keypoint against the retrieved images' points, guided matching over the whole
-/// map. The sampled tiers and the candidate restriction are for streets and buildings.
-const SMALL_MAP_POINTS: usize = 50_000;
-
-/// Query keypoints coarse matching uses at most (a stride over them).
-const COARSE_KEYPOINTS: usize = 1024;
-
 /// Retrieved images whose points coarse matching tries first: the points of the best few
 /// images hold enough true matches for a pose at a fraction of the cost of all `top_k`.
 const COARSE_IMAGES: usize = 3;
@@ -527,7 +513,7 @@ impl<'m> Localizer<'m> {
 
         let t1 = Instant::now();
         let Retrieved {
-            mut candidates,
+            candidates,
             coarse_candidates,
             images: retrieved,
             method: retrieval,
@@ -554,56 +540,14 @@ impl<'m> Localizer<'m> {
             times,
         };
 
-        // Coarse: the deepest level (all levels pooled if too few matches) against the points
-        // of the best few retrieved images, then of all retrieved images, then of 4 and 16 × top_k,
-        // with at most 1,024 query keypoints; if none gives a pose, with all keypoints against
-        // the retrieved images' points, then against every point (retrieval can be wrong where
-        // the global descriptor is weak, and a busy image's true matches can be too few in a
-        // sample).
-        // A small map skips the sampled tiers: all keypoints against the retrieved images'
-        // points cost little there, and the sample cost the demo room's query_04 its accuracy
-        // (87 -> 78 inliers, 0.5° -> 2°).
-        let small = self.positions.len() <= SMALL_MAP_POINTS;
-        // There, a VLAD narrows nothing worth its misses (South Building's SIFT map lost a
-        // query to it): every point, as before.
-        if small && retrieval == Some(Retrieval::Vlad) {
-            candidates = None;
-        }
-        let mut attempt = None;
-        let failed_so_far = |a: &Option<Result<_, _>>| !matches!(a, Some(Ok(_)));
-        if let Some(few) = coarse_candidates.as_ref().filter(|_| !small) {
-            attempt = Some(self.coarse(&sets, Some(few), COARSE_KEYPOINTS, camera, &mut times));
-        }
-        if failed_so_far(&attempt) && candidates.is_some() && !small {
-            let tier = candidates.as_deref();
-            attempt = Some(self.coarse(&sets, tier, COARSE_KEYPOINTS, camera, &mut times));
-        }
-        // Wider nets before every point (at 1 M points, a fraction of its cost).
-        for factor in WIDER_RETRIEVAL {
-            if !failed_so_far(&attempt) || candidates.is_none() || small {
-                break;
-            }
-            let wider = self.retrieved_points(query, factor * self.options.top_k);
-            if let Some(wider) = wider.filter(|w| Some(w.len()) > candidates.as_ref().map(Vec::len))
-            {
-                attempt =
-                    Some(self.coarse(&sets, Some(&wider), COARSE_KEYPOINTS, camera, &mut times));
-                candidates = Some(wider);
-            }
-        }
-        if failed_so_far(&attempt) && candidates.is_some() {
-            let tier = candidates.as_deref();
-            attempt = Some(self.coarse(&sets, tier, usize::MAX, camera, &mut times));
-        }
-        let mut narrowed = true;
-        let attempt = match attempt {
-            Some(Ok(found)) => Ok(found),
-            _ => {
-                narrowed = false;
-                self.coarse(&sets, None, usize::MAX, camera, &mut times)
-            }
-        };
-        let coarse = match attempt {
+        let coarse = match self.coarse_poses(
+            &sets,
+            query,
+            candidates,
+            coarse_candidates.as_deref(),
+            camera,
+            &mut times,
+        ) {
             Ok(found) => found,
             Err((failure, matches)) => {
                 times.total_ms = ms(t0);
@@ -615,38 +559,48 @@ impl<'m> Localizer<'m> {
         // estimate seeded with the coarse pose, against the points of the retrieved images and
         // of the database images nearest the coarse pose (retrieval may have ranked some of
         // them low; either alone lost recall on South Building's SFP level-2 short map, 92 ->
-        // 85 %); every point if the coarse pose needed every point.
+        // 85 %); every point if the coarse pose needed every point. From each coarse pose
+        // given; the result with most inliers wins.
         let t3 = Instant::now();
-        let near = match (&self.viewpoints, &self.visibility) {
-            (Some(viewpoints), Some(visibility)) if narrowed && candidates.is_some() => {
-                let mut images = viewpoints.near(&coarse.pose, self.options.top_k);
-                images.extend(&retrieved);
-                (!images.is_empty()).then(|| {
-                    super::retrieval::points_seen(&images, self.positions.len(), |i| {
-                        visibility.points_of(i)
+        let mut result: Option<Localization> = None;
+        for seed in &coarse.poses {
+            let near = match (&self.viewpoints, &self.visibility) {
+                (Some(viewpoints), Some(visibility))
+                    if seed.narrowed && coarse.candidates.is_some() =>
+                {
+                    let mut images = viewpoints.near(&seed.estimate.pose, self.options.top_k);
+                    images.extend(&retrieved);
+                    (!images.is_empty()).then(|| {
+                        super::retrieval::points_seen(&images, self.positions.len(), |i| {
+                            visibility.points_of(i)
+                        })
                     })
-                })
+                }
+                _ => None,
+            };
+            let fine_candidates = match near {
+                Some(points) => points,
+                None if seed.narrowed => coarse.candidates.clone(),
+                None => None,
+            };
+            let refined = self.refine(
+                &sets,
+                fine_candidates.as_deref(),
+                seed.estimate.pose,
+                self.options.gate_px,
+                camera,
+            );
+            if let Some(refined) =
+                refined.filter(|r| result.as_ref().is_none_or(|b| r.inliers > b.inliers))
+            {
+                result = Some(refined);
             }
-            _ => None,
-        };
-        let fine_candidates = match near {
-            // A small map is gated whole: projecting all of it costs little.
-            _ if small => None,
-            Some(points) => points,
-            None if narrowed => candidates,
-            None => None,
-        };
-        let result = self.refine(
-            &sets,
-            fine_candidates.as_deref(),
-            coarse.pose,
-            self.options.gate_px,
-            camera,
-        );
+        }
         times.fine_ms = ms(t3);
         times.total_ms = ms(t0);
         let Some(fine) = result else {
             // The coarse pose stands if guided matching could not improve it.
+            let coarse = &coarse.poses[0].estimate;
             let inliers = coarse.num_inliers;
             // The inlier mask has one entry per coarse match.
             let coarse_matches = coarse.inliers.len();
@@ -680,52 +634,6 @@ impl<'m> Localizer<'m> {
             tracking_lost,
             times,
             ..fine
-        })
-    }
-
-    /// Matching against `candidates` (`None`: every point) with at most `max_keypoints` query
-    /// keypoints (a stride), deepest level first, then P3P
-    /// LO-RANSAC: the pose estimate (its inlier mask has one entry per match), or the reason
-    /// and the number of matches.
-    fn coarse(
-        &self,
-        sets: &[Query<'_>],
-        candidates: Option<&[u32]>,
-        max_keypoints: usize,
-        camera: &Camera,
-        times: &mut StageTimes,
-    ) -> Result<crate::geometry::PoseEstimate, (QueryFailure, usize)> {
-        let t1 = Instant::now();
-        let mut pixels = Vec::new();
-        let mut points = Vec::new();
-        for (level, set) in self.levels.iter().zip(sets) {
-            self.match_level(
-                level,
-                set,
-                candidates,
-                max_keypoints,
-                &mut pixels,
-                &mut points,
-            );
-            if pixels.len() >= 4 * self.options.min_inliers {
-                break;
-            }
-        }
-        times.coarse_match_ms += ms(t1);
-        let t2 = Instant::now();
-        // The coarse pose only seeds guided matching, which must then find `min_inliers`:
-        // accept fewer inliers here.
-        let coarse_options = RansacOptions {
-            max_error_px: self.options.coarse_error_px,
-            min_inliers: (self.options.min_inliers * 2 / 3).max(6),
-            ..RansacOptions::default()
-        };
-        let found =
-            estimate_absolute_pose_with_prior(&pixels, &points, camera, None, &coarse_options);
-        times.coarse_ransac_ms += ms(t2);
-        found.map_err(|error| {
-            let matches = pixels.len();
-            (QueryFailure::NoCoarsePose { error, matches }, matches)
         })
     }
 
@@ -764,7 +672,7 @@ impl<'m> Localizer<'m> {
     }
 
     /// The points the `k` best retrieved images see (`None`: no retrieval, or every point).
-    fn retrieved_points(&self, query: &QueryFeatures, k: usize) -> Option<Vec<u32>> {
+    pub(super) fn retrieved_points(&self, query: &QueryFeatures, k: usize) -> Option<Vec<u32>> {
         let visibility = self.visibility.as_ref()?;
         let (images, ranked) = self
             .retrieval
@@ -840,61 +748,6 @@ impl<'m> Localizer<'m> {
             None => out.extend_from_slice(&src[..level.dim]),
         }
         normalise_rows(out, level.dim);
-    }
-
-    /// Global matching of a level's query descriptors against its candidate points.
-    fn match_level(
-        &self,
-        level: &LevelIndex<'_>,
-        query: &Query<'_>,
-        candidates: Option<&[u32]>,
-        max_keypoints: usize,
-        pixels: &mut Vec<Vector2<f64>>,
-        points: &mut Vec<Vector3<f64>>,
-    ) {
-        let rows: Vec<usize> = match level.rows_of(candidates) {
-            Some(rows) => rows.into_iter().map(|r| r as usize).collect(),
-            None => (0..level.points.len()).collect(),
-        };
-        let set = query.set;
-        if rows.is_empty() || set.keypoints.is_empty() {
-            return;
-        }
-        let q = query.projected.get_or_init(|| self.project(level, set));
-        let dim = level.dim;
-        // Coarse matching only seeds the pose: every `stride`-th keypoint (COLMAP lists SIFT
-        // keypoints by octave, so a stride keeps every scale) usually holds enough true matches.
-        let stride = set.keypoints.len().div_ceil(max_keypoints.max(1)).max(1);
-        let subset: Vec<f32>;
-        let q: &[f32] = if stride > 1 {
-            subset = q
-                .chunks_exact(dim)
-                .step_by(stride)
-                .flatten()
-                .copied()
-                .collect();
-            &subset
-        } else {
-            q
-        };
-        let options = &self.options.matching;
-        // A PQ level is scored by table lookups (`adc`); f16 candidate rows are decoded from
-        // the mapping a block at a time, never all at once.
-        let matches = match &level.stored {
-            Stored::Pq(pq) => match_pq(q, pq, &rows, options),
-            Stored::F16 { .. } => {
-                let mut rest_run = Vec::new();
-                match_rows(q, rows.len(), dim, options, |start, tile| {
-                    level.fill_rows(&rows[start..], tile, &mut rest_run)
-                })
-            }
-        };
-        for m in matches {
-            let kp = set.keypoints[m.query as usize * stride];
-            let p = level.points[rows[m.map as usize]];
-            pixels.push(Vector2::new(kp[0], kp[1]));
-            points.push(self.positions[p as usize]);
-        }
     }
 }
 

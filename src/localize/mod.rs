@@ -3,6 +3,7 @@
 
 mod adc;
 pub mod catalog;
+mod coarse;
 pub mod eval;
 mod guided;
 mod kernels;
