@@ -21,9 +21,9 @@ const WIDER_RETRIEVAL: [usize; 2] = [4, 16];
 const COARSE_KEYPOINTS: usize = 1024;
 
 /// Keypoint × candidate pairs a sampled coarse tier compares at most: more keypoints than
-/// [`COARSE_KEYPOINTS`] are used while the pairs stay within this (about 2 ms of f16 GEMM at
-/// 64 dims on one core).
-const COARSE_PAIRS: usize = 1 << 22;
+/// [`COARSE_KEYPOINTS`] are used while the pairs stay within this (under 1 ms of f16 GEMM
+/// at 64 dims on one core), so a small map's tiers sample little.
+const COARSE_PAIRS: usize = 1 << 20;
 
 /// A narrowed coarse tier's pose is taken only with at least this many times `min_inliers`
 /// inliers; a weaker one lets the next, wider tier try (the pose with most inliers is kept).
@@ -72,6 +72,19 @@ impl Tiers {
     fn sure(&self, inliers: usize) -> bool {
         self.poses.iter().any(|p| p.estimate.num_inliers >= inliers)
     }
+}
+
+/// The poses guided matching starts from: the one with most inliers alone if it has at
+/// least `sure`, else the first [`MAX_UNSURE_SEEDS`] by inliers (ties: the earlier tier,
+/// the narrower, first).
+fn seeds(mut poses: Vec<CoarsePose>, sure: usize) -> Vec<CoarsePose> {
+    poses.sort_by(|a, b| b.estimate.num_inliers.cmp(&a.estimate.num_inliers));
+    let keep = match poses.first() {
+        Some(best) if best.estimate.num_inliers >= sure => 1,
+        _ => MAX_UNSURE_SEEDS,
+    };
+    poses.truncate(keep);
+    poses
 }
 
 impl Localizer<'_> {
@@ -136,21 +149,14 @@ impl Localizer<'_> {
         if tiers.poses.is_empty() && !tiers.exhaustive {
             tier(&mut tiers, None, usize::MAX);
         }
-        let Tiers {
-            mut poses, failure, ..
-        } = tiers;
+        let Tiers { poses, failure, .. } = tiers;
         if poses.is_empty() {
             return Err(failure.expect("a tier without a pose left its failure"));
         }
-        // Most inliers first; ties keep the earlier (narrower) tier first.
-        poses.sort_by(|a, b| b.estimate.num_inliers.cmp(&a.estimate.num_inliers));
-        let keep = if poses[0].estimate.num_inliers >= sure {
-            1
-        } else {
-            MAX_UNSURE_SEEDS
-        };
-        poses.truncate(keep);
-        Ok(Coarse { poses, candidates })
+        Ok(Coarse {
+            poses: seeds(poses, sure),
+            candidates,
+        })
     }
 
     /// Matching against `candidates` (`None`: every point) with at most `max_keypoints` query
@@ -256,5 +262,52 @@ impl Localizer<'_> {
             points.push(self.positions[p as usize]);
         }
         stride > 1
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::Pose;
+
+    fn pose(inliers: usize, narrowed: bool) -> CoarsePose {
+        CoarsePose {
+            estimate: PoseEstimate {
+                pose: Pose::identity(),
+                inliers: vec![true; inliers],
+                num_inliers: inliers,
+                iterations: 1,
+                mean_inlier_error_px: 0.0,
+            },
+            narrowed,
+        }
+    }
+
+    fn inliers(poses: &[CoarsePose]) -> Vec<(usize, bool)> {
+        poses
+            .iter()
+            .map(|p| (p.estimate.num_inliers, p.narrowed))
+            .collect()
+    }
+
+    #[test]
+    fn a_sure_pose_is_refined_alone() {
+        let poses = vec![pose(21, true), pose(30, true), pose(16, false)];
+        assert_eq!(inliers(&seeds(poses, 24)), [(30, true)]);
+    }
+
+    #[test]
+    fn unsure_poses_are_all_refined_most_inliers_first_ties_narrower_first() {
+        let poses = vec![
+            pose(21, true),
+            pose(20, true),
+            pose(21, false),
+            pose(16, false),
+            pose(9, true),
+        ];
+        let got = inliers(&seeds(poses, 24));
+        assert_eq!(got, [(21, true), (21, false), (20, true), (16, false)]);
+        assert_eq!(got.len(), MAX_UNSURE_SEEDS);
+        assert!(seeds(Vec::new(), 24).is_empty());
     }
 }
