@@ -1,7 +1,7 @@
 //! Coarse matching: the query's keypoints against the points of ever wider sets of
 //! candidates (the best retrieved images', all retrieved images', those of 4 and 16 × top_k,
-//! every point), each followed by P3P LO-RANSAC, until a pose is sure; the poses guided
-//! matching starts from.
+//! then every keypoint, then every point), each followed by P3P LO-RANSAC: the poses guided
+//! matching starts from, one tier at a time ([`CoarseSearch`]).
 
 use super::adc::match_pq;
 use super::level::{LevelIndex, Stored};
@@ -25,15 +25,6 @@ const COARSE_KEYPOINTS: usize = 1024;
 /// at 64 dims on one core), so a small map's tiers sample little.
 const COARSE_PAIRS: usize = 1 << 20;
 
-/// A narrowed coarse tier's pose is taken only with at least this many times `min_inliers`
-/// inliers; a weaker one lets the next, wider tier try (the pose with most inliers is kept).
-/// On the demo room's query_04 the best 3 images' points gave a 21-inlier pose that guided
-/// matching could bring only to 2.05°; all 10 retrieved images' points give 0.5°.
-const COARSE_SURE_FACTOR: usize = 2;
-
-/// Unsure coarse poses guided matching starts from, at most (most inliers first).
-const MAX_UNSURE_SEEDS: usize = 4;
-
 /// A pose coarse matching found, for guided matching to start from.
 pub(super) struct CoarsePose {
     pub(super) estimate: PoseEstimate,
@@ -41,122 +32,140 @@ pub(super) struct CoarsePose {
     pub(super) narrowed: bool,
 }
 
-/// What coarse matching gives one query.
-pub(super) struct Coarse {
-    /// The sure pose alone, or, when no tier gave a sure one, the poses of the tiers (most
-    /// inliers first, at most [`MAX_UNSURE_SEEDS`]): around a weak pose guided matching can
-    /// settle in a wrong optimum (the demo room's query_04: the best 3 images' 21-inlier pose
-    /// led to 78 inliers at 2.05°, every point's 16-inlier pose to 85 at 0.53°), so each is
-    /// refined and the refinement with most inliers wins.
-    pub(super) poses: Vec<CoarsePose>,
-    /// The widest narrowed tier's candidate points (`None`: every point).
-    pub(super) candidates: Option<Vec<u32>>,
-}
-
 /// A tier's pose estimate, or why there is none and the number of matches.
 type TierResult = Result<PoseEstimate, (QueryFailure, usize)>;
 
-/// The tiers tried so far for one query.
-#[derive(Default)]
-struct Tiers {
-    poses: Vec<CoarsePose>,
-    /// The last tier's failure, reported when no tier found a pose.
-    failure: Option<(QueryFailure, usize)>,
+/// The tiers in the order they are tried.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Tier {
+    /// The best few retrieved images' points (sampled keypoints).
+    Few,
+    /// All retrieved images' points (sampled keypoints).
+    Retrieved,
+    /// The points of `WIDER_RETRIEVAL[i] × top_k` images (sampled keypoints).
+    Wider(usize),
+    /// The widest candidates so far with every keypoint, if a tier sampled them.
+    AllKeypoints,
+    /// Every point with every keypoint, if no tier found a pose.
+    EveryPoint,
+    Done,
+}
+
+/// One query's walk through the coarse tiers (see the module text), one pose at a time:
+/// guided matching refines each pose [`Localizer::next_coarse_pose`] gives and asks for the
+/// next only while its result is weak, so a query whose first pose refines well costs one
+/// tier, and one whose first pose settles in a wrong optimum gets more seeds (the demo
+/// room's query_04: the best 3 images' 21-inlier pose led guided matching to 78 inliers at
+/// 2.05°, every point's 16-inlier pose to 85 at 0.53°).
+pub(super) struct CoarseSearch<'c> {
+    next: Tier,
+    /// The widest narrowed tier's candidate points so far (`None`: every point).
+    pub(super) candidates: Option<Vec<u32>>,
+    few: Option<&'c [u32]>,
     /// Whether some tier sampled the query keypoints.
     sampled: bool,
     /// Whether every point was matched with every keypoint.
     exhaustive: bool,
+    /// Whether some tier gave a pose.
+    found: bool,
+    /// The last tier's failure, reported when no tier gives a pose.
+    pub(super) failure: Option<(QueryFailure, usize)>,
 }
 
-impl Tiers {
-    fn sure(&self, inliers: usize) -> bool {
-        self.poses.iter().any(|p| p.estimate.num_inliers >= inliers)
+impl<'c> CoarseSearch<'c> {
+    /// From the retrieved images' points (`candidates`, `None`: every point) and the best
+    /// few's (`few`).
+    pub(super) fn new(candidates: Option<Vec<u32>>, few: Option<&'c [u32]>) -> Self {
+        CoarseSearch {
+            next: Tier::Few,
+            candidates,
+            few,
+            sampled: false,
+            exhaustive: false,
+            found: false,
+            failure: None,
+        }
     }
 }
 
-/// The poses guided matching starts from: the one with most inliers alone if it has at
-/// least `sure`, else the first [`MAX_UNSURE_SEEDS`] by inliers (ties: the earlier tier,
-/// the narrower, first).
-fn seeds(mut poses: Vec<CoarsePose>, sure: usize) -> Vec<CoarsePose> {
-    poses.sort_by(|a, b| b.estimate.num_inliers.cmp(&a.estimate.num_inliers));
-    let keep = match poses.first() {
-        Some(best) if best.estimate.num_inliers >= sure => 1,
-        _ => MAX_UNSURE_SEEDS,
-    };
-    poses.truncate(keep);
-    poses
-}
-
 impl Localizer<'_> {
-    /// The coarse tiers (see the module text) from the retrieved images' points
-    /// (`candidates`, `None`: every point) and the best few's (`few`); a tier runs only while
-    /// no pose so far has `COARSE_SURE_FACTOR × min_inliers` inliers. Every point is tried
-    /// last, and only if no tier gave a pose at all (retrieval can be wrong where the global
-    /// descriptor is weak, and a busy image's true matches can be too few in a sample).
-    pub(super) fn coarse_poses(
+    /// The next tier's pose (tiers without a pose are passed over), or `None` when the tiers
+    /// are spent. Every point is tried last, and only if no tier gave a pose at all (retrieval
+    /// can be wrong where the global descriptor is weak, and a busy image's true matches can
+    /// be too few in a sample).
+    pub(super) fn next_coarse_pose(
         &self,
+        search: &mut CoarseSearch<'_>,
         sets: &[Query<'_>],
         query: &QueryFeatures,
-        mut candidates: Option<Vec<u32>>,
-        few: Option<&[u32]>,
         camera: &Camera,
         times: &mut StageTimes,
-    ) -> Result<Coarse, (QueryFailure, usize)> {
-        let sure = COARSE_SURE_FACTOR * self.options.min_inliers;
-        let mut tiers = Tiers::default();
-        let mut tier = |tiers: &mut Tiers, candidates: Option<&[u32]>, keypoints| {
+    ) -> Option<CoarsePose> {
+        loop {
+            let tier = search.next;
+            search.next = match tier {
+                Tier::Few => Tier::Retrieved,
+                Tier::Retrieved => Tier::Wider(0),
+                Tier::Wider(i) if i + 1 < WIDER_RETRIEVAL.len() => Tier::Wider(i + 1),
+                Tier::Wider(_) => Tier::AllKeypoints,
+                Tier::AllKeypoints => Tier::EveryPoint,
+                Tier::EveryPoint | Tier::Done => Tier::Done,
+            };
+            let (candidates, keypoints) = match tier {
+                Tier::Done => return None,
+                Tier::Few => match search.few {
+                    Some(few) => (Some(few.to_vec()), COARSE_KEYPOINTS),
+                    None => continue,
+                },
+                Tier::Retrieved => match &search.candidates {
+                    Some(c) => (Some(c.clone()), COARSE_KEYPOINTS),
+                    None => continue,
+                },
+                // A net that would hold every point is the every-point tier (a small map's,
+                // where retrieval narrows little and misses most).
+                Tier::Wider(i) => {
+                    let Some(current) = &search.candidates else {
+                        continue;
+                    };
+                    let k = WIDER_RETRIEVAL[i] * self.options.top_k;
+                    match self.retrieved_points(query, k) {
+                        Some(wider) if wider.len() > current.len() => {
+                            search.candidates = Some(wider.clone());
+                            (Some(wider), COARSE_KEYPOINTS)
+                        }
+                        Some(_) => continue,
+                        None => {
+                            search.candidates = None;
+                            (None, COARSE_KEYPOINTS)
+                        }
+                    }
+                }
+                Tier::AllKeypoints if search.sampled => (search.candidates.clone(), usize::MAX),
+                Tier::EveryPoint if !search.found && !search.exhaustive => (None, usize::MAX),
+                Tier::AllKeypoints | Tier::EveryPoint => continue,
+            };
             let mut sampled = false;
-            let tried = self.coarse(sets, candidates, keypoints, camera, times, &mut sampled);
-            tiers.sampled |= sampled;
-            tiers.exhaustive |= candidates.is_none() && !sampled;
+            let tried = self.coarse(
+                sets,
+                candidates.as_deref(),
+                keypoints,
+                camera,
+                times,
+                &mut sampled,
+            );
+            search.sampled |= sampled;
+            search.exhaustive |= candidates.is_none() && !sampled;
             match tried {
-                Ok(estimate) => tiers.poses.push(CoarsePose {
-                    estimate,
-                    narrowed: candidates.is_some(),
-                }),
-                Err(failure) => tiers.failure = Some(failure),
-            }
-        };
-        if let Some(few) = few {
-            tier(&mut tiers, Some(few), COARSE_KEYPOINTS);
-        }
-        if !tiers.sure(sure) && candidates.is_some() {
-            tier(&mut tiers, candidates.as_deref(), COARSE_KEYPOINTS);
-        }
-        // Wider nets before every point (at 1 M points, a fraction of its cost). A net that
-        // would hold every point is the every-point tier (a small map's, where retrieval
-        // narrows little and misses most).
-        for factor in WIDER_RETRIEVAL {
-            if tiers.sure(sure) || candidates.is_none() {
-                break;
-            }
-            match self.retrieved_points(query, factor * self.options.top_k) {
-                Some(wider) if Some(wider.len()) > candidates.as_ref().map(Vec::len) => {
-                    tier(&mut tiers, Some(&wider), COARSE_KEYPOINTS);
-                    candidates = Some(wider);
+                Ok(estimate) => {
+                    search.found = true;
+                    return Some(CoarsePose {
+                        estimate,
+                        narrowed: candidates.is_some(),
+                    });
                 }
-                Some(_) => {}
-                None => {
-                    tier(&mut tiers, None, COARSE_KEYPOINTS);
-                    candidates = None;
-                }
+                Err(failure) => search.failure = Some(failure),
             }
         }
-        // All keypoints, if a tier sampled them; every point if no tier found a pose.
-        if !tiers.sure(sure) && tiers.sampled {
-            tier(&mut tiers, candidates.as_deref(), usize::MAX);
-        }
-        if tiers.poses.is_empty() && !tiers.exhaustive {
-            tier(&mut tiers, None, usize::MAX);
-        }
-        let Tiers { poses, failure, .. } = tiers;
-        if poses.is_empty() {
-            return Err(failure.expect("a tier without a pose left its failure"));
-        }
-        Ok(Coarse {
-            poses: seeds(poses, sure),
-            candidates,
-        })
     }
 
     /// Matching against `candidates` (`None`: every point) with at most `max_keypoints` query
@@ -262,52 +271,5 @@ impl Localizer<'_> {
             points.push(self.positions[p as usize]);
         }
         stride > 1
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::geometry::Pose;
-
-    fn pose(inliers: usize, narrowed: bool) -> CoarsePose {
-        CoarsePose {
-            estimate: PoseEstimate {
-                pose: Pose::identity(),
-                inliers: vec![true; inliers],
-                num_inliers: inliers,
-                iterations: 1,
-                mean_inlier_error_px: 0.0,
-            },
-            narrowed,
-        }
-    }
-
-    fn inliers(poses: &[CoarsePose]) -> Vec<(usize, bool)> {
-        poses
-            .iter()
-            .map(|p| (p.estimate.num_inliers, p.narrowed))
-            .collect()
-    }
-
-    #[test]
-    fn a_sure_pose_is_refined_alone() {
-        let poses = vec![pose(21, true), pose(30, true), pose(16, false)];
-        assert_eq!(inliers(&seeds(poses, 24)), [(30, true)]);
-    }
-
-    #[test]
-    fn unsure_poses_are_all_refined_most_inliers_first_ties_narrower_first() {
-        let poses = vec![
-            pose(21, true),
-            pose(20, true),
-            pose(21, false),
-            pose(16, false),
-            pose(9, true),
-        ];
-        let got = inliers(&seeds(poses, 24));
-        assert_eq!(got, [(21, true), (21, false), (20, true), (16, false)]);
-        assert_eq!(got.len(), MAX_UNSURE_SEEDS);
-        assert!(seeds(Vec::new(), 24).is_empty());
     }
 }

@@ -11,13 +11,14 @@
 //! or (1.1) matches a product-quantised level's codes by table lookups (`adc`): nothing of
 //! its own per map point.
 
+use super::coarse::CoarseSearch;
 use super::kernels::sgemm_abt;
 use super::level::{index_level, LevelIndex};
 use super::matching::MatchOptions;
 use super::prior::Viewpoints;
 use super::retrieval::{RetrievalFallback, RetrievalIndex, RetrievalMethod};
 use crate::format::{Error as FormatError, Map, Retrieval, SectionKind, Visibility};
-use crate::geometry::{Camera, Pose};
+use crate::geometry::{Camera, Pose, PoseEstimate};
 use crate::vector::{dot, normalise_rows};
 use nalgebra::Vector3;
 use std::cell::OnceCell;
@@ -350,6 +351,14 @@ pub(super) struct Query<'q> {
     pub(super) projected: &'q OnceCell<Vec<f32>>,
 }
 
+/// A refined pose with at least this many times `min_inliers` inliers ends the coarse
+/// search; a weaker one asks for the next tier's pose. Street queries refine to hundreds of
+/// inliers; the demo room's query_04, in a wrong optimum, to 78.
+const FINE_SURE_FACTOR: usize = 8;
+
+/// Coarse poses guided matching starts from, at most.
+const MAX_SEEDS: usize = 4;
+
 /// Retrieved images whose points coarse matching tries first: the points of the best few
 /// images hold enough true matches for a pose at a fraction of the cost of all `top_k`.
 const COARSE_IMAGES: usize = 3;
@@ -540,33 +549,27 @@ impl<'m> Localizer<'m> {
             times,
         };
 
-        let coarse = match self.coarse_poses(
-            &sets,
-            query,
-            candidates,
-            coarse_candidates.as_deref(),
-            camera,
-            &mut times,
-        ) {
-            Ok(found) => found,
-            Err((failure, matches)) => {
-                times.total_ms = ms(t0);
-                return Ok(failed(failure, matches, times));
-            }
-        };
-
         // Fine: guided matching around projections on every selected level, then one final
         // estimate seeded with the coarse pose, against the points of the retrieved images and
         // of the database images nearest the coarse pose (retrieval may have ranked some of
         // them low; either alone lost recall on South Building's SFP level-2 short map, 92 ->
-        // 85 %); every point if the coarse pose needed every point. From each coarse pose
-        // given; the result with most inliers wins.
-        let t3 = Instant::now();
+        // 85 %); every point if the coarse pose needed every point. While the result has
+        // fewer than `FINE_SURE_FACTOR × min_inliers` inliers, the next coarse tier's pose is
+        // refined too (`MAX_SEEDS` in all), and the result with most inliers wins.
+        let mut search = CoarseSearch::new(candidates, coarse_candidates.as_deref());
+        let sure = FINE_SURE_FACTOR * self.options.min_inliers;
+        let mut first: Option<PoseEstimate> = None;
         let mut result: Option<Localization> = None;
-        for seed in &coarse.poses {
+        let mut fine_ms = 0.0;
+        for _ in 0..MAX_SEEDS {
+            let Some(seed) = self.next_coarse_pose(&mut search, &sets, query, camera, &mut times)
+            else {
+                break;
+            };
+            let t3 = Instant::now();
             let near = match (&self.viewpoints, &self.visibility) {
                 (Some(viewpoints), Some(visibility))
-                    if seed.narrowed && coarse.candidates.is_some() =>
+                    if seed.narrowed && search.candidates.is_some() =>
                 {
                     let mut images = viewpoints.near(&seed.estimate.pose, self.options.top_k);
                     images.extend(&retrieved);
@@ -580,7 +583,7 @@ impl<'m> Localizer<'m> {
             };
             let fine_candidates = match near {
                 Some(points) => points,
-                None if seed.narrowed => coarse.candidates.clone(),
+                None if seed.narrowed => search.candidates.clone(),
                 None => None,
             };
             let refined = self.refine(
@@ -590,17 +593,27 @@ impl<'m> Localizer<'m> {
                 self.options.gate_px,
                 camera,
             );
+            fine_ms += ms(t3);
+            first.get_or_insert(seed.estimate);
             if let Some(refined) =
                 refined.filter(|r| result.as_ref().is_none_or(|b| r.inliers > b.inliers))
             {
                 result = Some(refined);
             }
+            if result.as_ref().is_some_and(|r| r.inliers >= sure) {
+                break;
+            }
         }
-        times.fine_ms = ms(t3);
+        times.fine_ms = fine_ms;
         times.total_ms = ms(t0);
+        let Some(coarse) = first else {
+            let (failure, matches) = search
+                .failure
+                .expect("a coarse search without a pose left its failure");
+            return Ok(failed(failure, matches, times));
+        };
         let Some(fine) = result else {
-            // The coarse pose stands if guided matching could not improve it.
-            let coarse = &coarse.poses[0].estimate;
+            // The first coarse pose stands if guided matching could not improve it.
             let inliers = coarse.num_inliers;
             // The inlier mask has one entry per coarse match.
             let coarse_matches = coarse.inliers.len();
