@@ -12,9 +12,9 @@ use crate::geometry::{estimate_absolute_pose_with_prior, Camera, PoseEstimate, R
 use nalgebra::{Vector2, Vector3};
 use std::time::Instant;
 
-/// When coarse matching finds no pose among the points of the `top_k` retrieved images, it
-/// tries those of these many times `top_k` before every point (on the 1 M-point street, a
-/// query's VLAD ranks its place past 40 images for 2 of 20 queries).
+/// When the points of the `top_k` retrieved images give no pose, or only one that refines
+/// weakly, coarse matching tries those of these many times `top_k` (on the 1 M-point street,
+/// a query's VLAD ranks its place past 40 images for 2 of 20 queries).
 const WIDER_RETRIEVAL: [usize; 2] = [4, 16];
 
 /// Query keypoints a sampled coarse tier uses at least (a stride over them).
@@ -48,6 +48,7 @@ enum Tier {
     AllKeypoints,
     /// Every point with every keypoint, if no tier found a pose.
     EveryPoint,
+    /// The tiers are spent.
     Done,
 }
 
@@ -88,11 +89,73 @@ impl<'c> CoarseSearch<'c> {
     }
 }
 
-impl Localizer<'_> {
+impl CoarseSearch<'_> {
     /// The next tier's pose (tiers without a pose are passed over), or `None` when the tiers
     /// are spent. Every point is tried last, and only if no tier gave a pose at all (retrieval
     /// can be wrong where the global descriptor is weak, and a busy image's true matches can
-    /// be too few in a sample).
+    /// be too few in a sample). `wider(k)`: the points of the best `k` retrieved images
+    /// (`None`: every point, or no retrieval); `run(candidates, max_keypoints)`: one tier's
+    /// matching and RANSAC, and whether it sampled the keypoints.
+    fn next_pose(
+        &mut self,
+        top_k: usize,
+        mut wider: impl FnMut(usize) -> Option<Vec<u32>>,
+        mut run: impl FnMut(Option<&[u32]>, usize) -> (TierResult, bool),
+    ) -> Option<CoarsePose> {
+        loop {
+            let tier = self.next;
+            self.next = match tier {
+                Tier::Few => Tier::Retrieved,
+                Tier::Retrieved => Tier::Wider(0),
+                Tier::Wider(i) if i + 1 < WIDER_RETRIEVAL.len() => Tier::Wider(i + 1),
+                Tier::Wider(_) => Tier::AllKeypoints,
+                Tier::AllKeypoints => Tier::EveryPoint,
+                Tier::EveryPoint | Tier::Done => Tier::Done,
+            };
+            let (candidates, keypoints): (Option<&[u32]>, usize) = match tier {
+                Tier::Done => return None,
+                Tier::Few => match self.few {
+                    Some(few) => (Some(few), COARSE_KEYPOINTS),
+                    None => continue,
+                },
+                Tier::Retrieved => match &self.candidates {
+                    Some(c) => (Some(c), COARSE_KEYPOINTS),
+                    None => continue,
+                },
+                // A net that would hold every point is the every-point tier (a small map's,
+                // where retrieval narrows little and misses most).
+                Tier::Wider(i) => {
+                    let Some(current) = &self.candidates else {
+                        continue;
+                    };
+                    match wider(WIDER_RETRIEVAL[i].saturating_mul(top_k)) {
+                        Some(w) if w.len() > current.len() => self.candidates = Some(w),
+                        Some(_) => continue,
+                        None => self.candidates = None,
+                    }
+                    (self.candidates.as_deref(), COARSE_KEYPOINTS)
+                }
+                Tier::AllKeypoints if self.sampled => (self.candidates.as_deref(), usize::MAX),
+                Tier::EveryPoint if !self.found && !self.exhaustive => (None, usize::MAX),
+                Tier::AllKeypoints | Tier::EveryPoint => continue,
+            };
+            let (tried, sampled) = run(candidates, keypoints);
+            let narrowed = candidates.is_some();
+            self.sampled |= sampled;
+            self.exhaustive |= !narrowed && !sampled;
+            match tried {
+                Ok(estimate) => {
+                    self.found = true;
+                    return Some(CoarsePose { estimate, narrowed });
+                }
+                Err(failure) => self.failure = Some(failure),
+            }
+        }
+    }
+}
+
+impl Localizer<'_> {
+    /// [`CoarseSearch`]'s next pose for this query.
     pub(super) fn next_coarse_pose(
         &self,
         search: &mut CoarseSearch<'_>,
@@ -101,71 +164,15 @@ impl Localizer<'_> {
         camera: &Camera,
         times: &mut StageTimes,
     ) -> Option<CoarsePose> {
-        loop {
-            let tier = search.next;
-            search.next = match tier {
-                Tier::Few => Tier::Retrieved,
-                Tier::Retrieved => Tier::Wider(0),
-                Tier::Wider(i) if i + 1 < WIDER_RETRIEVAL.len() => Tier::Wider(i + 1),
-                Tier::Wider(_) => Tier::AllKeypoints,
-                Tier::AllKeypoints => Tier::EveryPoint,
-                Tier::EveryPoint | Tier::Done => Tier::Done,
-            };
-            let (candidates, keypoints) = match tier {
-                Tier::Done => return None,
-                Tier::Few => match search.few {
-                    Some(few) => (Some(few.to_vec()), COARSE_KEYPOINTS),
-                    None => continue,
-                },
-                Tier::Retrieved => match &search.candidates {
-                    Some(c) => (Some(c.clone()), COARSE_KEYPOINTS),
-                    None => continue,
-                },
-                // A net that would hold every point is the every-point tier (a small map's,
-                // where retrieval narrows little and misses most).
-                Tier::Wider(i) => {
-                    let Some(current) = &search.candidates else {
-                        continue;
-                    };
-                    let k = WIDER_RETRIEVAL[i] * self.options.top_k;
-                    match self.retrieved_points(query, k) {
-                        Some(wider) if wider.len() > current.len() => {
-                            search.candidates = Some(wider.clone());
-                            (Some(wider), COARSE_KEYPOINTS)
-                        }
-                        Some(_) => continue,
-                        None => {
-                            search.candidates = None;
-                            (None, COARSE_KEYPOINTS)
-                        }
-                    }
-                }
-                Tier::AllKeypoints if search.sampled => (search.candidates.clone(), usize::MAX),
-                Tier::EveryPoint if !search.found && !search.exhaustive => (None, usize::MAX),
-                Tier::AllKeypoints | Tier::EveryPoint => continue,
-            };
-            let mut sampled = false;
-            let tried = self.coarse(
-                sets,
-                candidates.as_deref(),
-                keypoints,
-                camera,
-                times,
-                &mut sampled,
-            );
-            search.sampled |= sampled;
-            search.exhaustive |= candidates.is_none() && !sampled;
-            match tried {
-                Ok(estimate) => {
-                    search.found = true;
-                    return Some(CoarsePose {
-                        estimate,
-                        narrowed: candidates.is_some(),
-                    });
-                }
-                Err(failure) => search.failure = Some(failure),
-            }
-        }
+        search.next_pose(
+            self.options.top_k,
+            |k| self.retrieved_points(query, k),
+            |candidates, keypoints| {
+                let mut sampled = false;
+                let tried = self.coarse(sets, candidates, keypoints, camera, times, &mut sampled);
+                (tried, sampled)
+            },
+        )
     }
 
     /// Matching against `candidates` (`None`: every point) with at most `max_keypoints` query
@@ -239,7 +246,7 @@ impl Localizer<'_> {
         // Coarse matching only seeds the pose: every `stride`-th keypoint (COLMAP lists SIFT
         // keypoints by octave, so a stride keeps every scale) usually holds enough true matches.
         let max_keypoints = max_keypoints.max(COARSE_PAIRS / rows.len());
-        let stride = set.keypoints.len().div_ceil(max_keypoints).max(1);
+        let stride = set.keypoints.len().div_ceil(max_keypoints.max(1)).max(1);
         let subset: Vec<f32>;
         let q: &[f32] = if stride > 1 {
             subset = q
@@ -271,5 +278,126 @@ impl Localizer<'_> {
             points.push(self.positions[p as usize]);
         }
         stride > 1
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{GeometryError, Pose};
+
+    fn pose(inliers: usize) -> TierResult {
+        Ok(PoseEstimate {
+            pose: Pose::identity(),
+            inliers: vec![true; inliers],
+            num_inliers: inliers,
+            iterations: 1,
+            mean_inlier_error_px: 0.0,
+        })
+    }
+
+    fn none(matches: usize) -> TierResult {
+        let error = GeometryError::Degenerate { reason: "test" };
+        Err((QueryFailure::NoCoarsePose { error, matches }, matches))
+    }
+
+    /// Runs the search to its end with `results` as the tiers' answers (sampling as given),
+    /// `wider` as the wider nets; the tiers run (candidate count, `None` every point; the
+    /// keypoint cap), the poses (inliers, narrowed) and the nets asked for.
+    #[allow(clippy::type_complexity)]
+    fn walk(
+        candidates: Option<Vec<u32>>,
+        few: Option<&[u32]>,
+        mut results: Vec<(TierResult, bool)>,
+        wider: impl Fn(usize) -> Option<Vec<u32>>,
+    ) -> (
+        Vec<(Option<usize>, usize)>,
+        Vec<(usize, bool)>,
+        Vec<usize>,
+        CoarseSearch<'_>,
+    ) {
+        let mut search = CoarseSearch::new(candidates, few);
+        let (mut runs, mut poses, mut asked) = (Vec::new(), Vec::new(), Vec::new());
+        results.reverse();
+        while let Some(p) = search.next_pose(
+            10,
+            |k| {
+                asked.push(k);
+                wider(k)
+            },
+            |c, k| {
+                runs.push((c.map(<[u32]>::len), k));
+                results.pop().expect("a tier no test result was given for")
+            },
+        ) {
+            poses.push((p.estimate.num_inliers, p.narrowed));
+        }
+        assert!(results.is_empty(), "tiers left unrun: {}", results.len());
+        (runs, poses, asked, search)
+    }
+
+    #[test]
+    fn a_small_map_s_wider_net_is_every_point_and_every_tier_s_pose_is_offered() {
+        let few = [1, 2];
+        let results = vec![(pose(21), false), (pose(20), false), (pose(16), false)];
+        let (runs, poses, asked, search) = walk(Some(vec![1, 2, 3]), Some(&few), results, |_| None);
+        let k = COARSE_KEYPOINTS;
+        assert_eq!(runs, [(Some(2), k), (Some(3), k), (None, k)]);
+        assert_eq!(poses, [(21, true), (20, true), (16, false)]);
+        // The every-point net ends the wider tiers; nothing sampled, a pose found: done.
+        assert_eq!(asked, [40]);
+        assert!(search.candidates.is_none());
+    }
+
+    #[test]
+    fn without_any_pose_the_nets_widen_then_every_keypoint_then_every_point() {
+        let few = [1];
+        let results = vec![
+            (none(3), true),
+            (none(4), true),
+            (none(5), true),
+            (none(6), true),
+            (none(7), false),
+            (none(8), false),
+        ];
+        let (runs, poses, asked, search) = walk(Some(vec![1, 2]), Some(&few), results, |k| {
+            Some((0..k as u32).collect())
+        });
+        let k = COARSE_KEYPOINTS;
+        let all = usize::MAX;
+        let expected = [
+            (Some(1), k),
+            (Some(2), k),
+            (Some(40), k),
+            (Some(160), k),
+            (Some(160), all),
+            (None, all),
+        ];
+        assert_eq!(runs, expected);
+        assert!(poses.is_empty());
+        assert_eq!(asked, [40, 160]);
+        assert_eq!(search.failure.map(|f| f.1), Some(8));
+    }
+
+    #[test]
+    fn a_net_no_wider_than_the_last_is_skipped_and_a_found_pose_spares_every_point() {
+        let results = vec![(pose(30), true), (pose(40), false)];
+        let (runs, poses, asked, _) =
+            walk(Some(vec![1, 2, 3]), None, results, |_| Some(vec![1, 2]));
+        let k = COARSE_KEYPOINTS;
+        assert_eq!(runs, [(Some(3), k), (Some(3), usize::MAX)]);
+        assert_eq!(poses, [(30, true), (40, true)]);
+        assert_eq!(asked, [40, 160]);
+    }
+
+    #[test]
+    fn without_retrieval_only_every_point_is_tried() {
+        let (runs, poses, asked, _) = walk(None, None, vec![(pose(50), false)], |_| None);
+        assert_eq!(runs, [(None, usize::MAX)]);
+        assert_eq!(poses, [(50, false)]);
+        assert!(asked.is_empty());
+        let (runs, poses, _, search) = walk(None, None, vec![(none(2), false)], |_| None);
+        assert_eq!((runs.len(), poses.len()), (1, 0));
+        assert!(search.failure.is_some());
     }
 }

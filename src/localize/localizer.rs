@@ -557,8 +557,9 @@ impl<'m> Localizer<'m> {
         // fewer than `FINE_SURE_FACTOR × min_inliers` inliers, the next coarse tier's pose is
         // refined too (`MAX_SEEDS` in all), and the result with most inliers wins.
         let mut search = CoarseSearch::new(candidates, coarse_candidates.as_deref());
-        let sure = FINE_SURE_FACTOR * self.options.min_inliers;
-        let mut first: Option<PoseEstimate> = None;
+        let sure = FINE_SURE_FACTOR.saturating_mul(self.options.min_inliers);
+        // The coarse pose with most inliers, which stands if no refinement gives a pose.
+        let mut best_coarse: Option<PoseEstimate> = None;
         let mut result: Option<Localization> = None;
         let mut fine_ms = 0.0;
         for _ in 0..MAX_SEEDS {
@@ -568,9 +569,7 @@ impl<'m> Localizer<'m> {
             };
             let t3 = Instant::now();
             let near = match (&self.viewpoints, &self.visibility) {
-                (Some(viewpoints), Some(visibility))
-                    if seed.narrowed && search.candidates.is_some() =>
-                {
+                (Some(viewpoints), Some(visibility)) if seed.narrowed => {
                     let mut images = viewpoints.near(&seed.estimate.pose, self.options.top_k);
                     images.extend(&retrieved);
                     (!images.is_empty()).then(|| {
@@ -594,7 +593,12 @@ impl<'m> Localizer<'m> {
                 camera,
             );
             fine_ms += ms(t3);
-            first.get_or_insert(seed.estimate);
+            if best_coarse
+                .as_ref()
+                .is_none_or(|b| seed.estimate.num_inliers > b.num_inliers)
+            {
+                best_coarse = Some(seed.estimate);
+            }
             if let Some(refined) =
                 refined.filter(|r| result.as_ref().is_none_or(|b| r.inliers > b.inliers))
             {
@@ -606,14 +610,14 @@ impl<'m> Localizer<'m> {
         }
         times.fine_ms = fine_ms;
         times.total_ms = ms(t0);
-        let Some(coarse) = first else {
+        let Some(coarse) = best_coarse else {
             let (failure, matches) = search
                 .failure
                 .expect("a coarse search without a pose left its failure");
             return Ok(failed(failure, matches, times));
         };
         let Some(fine) = result else {
-            // The first coarse pose stands if guided matching could not improve it.
+            // The best coarse pose stands if guided matching could not improve it.
             let inliers = coarse.num_inliers;
             // The inlier mask has one entry per coarse match.
             let coarse_matches = coarse.inliers.len();
