@@ -25,6 +25,14 @@ const COARSE_KEYPOINTS: usize = 1024;
 /// at 64 dims on one core), so a small map's tiers sample little.
 const COARSE_PAIRS: usize = 1 << 20;
 
+/// A refined pose with at least this many times `min_inliers` inliers ends the coarse
+/// search; a weaker one asks for the next tier's pose. Street queries refine to hundreds of
+/// inliers; the demo room's query_04, in a wrong optimum, to 78.
+pub(super) const FINE_SURE_FACTOR: usize = 8;
+
+/// Coarse poses guided matching starts from, at most.
+pub(super) const MAX_SEEDS: usize = 4;
+
 /// A pose coarse matching found, for guided matching to start from.
 pub(super) struct CoarsePose {
     pub(super) estimate: PoseEstimate,

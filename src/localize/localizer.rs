@@ -11,7 +11,7 @@
 //! or (1.1) matches a product-quantised level's codes by table lookups (`adc`): nothing of
 //! its own per map point.
 
-use super::coarse::CoarseSearch;
+use super::coarse::{CoarseSearch, FINE_SURE_FACTOR, MAX_SEEDS};
 use super::kernels::sgemm_abt;
 use super::level::{index_level, LevelIndex};
 use super::matching::MatchOptions;
@@ -350,14 +350,6 @@ pub(super) struct Query<'q> {
     pub(super) set: &'q FeatureSet,
     pub(super) projected: &'q OnceCell<Vec<f32>>,
 }
-
-/// A refined pose with at least this many times `min_inliers` inliers ends the coarse
-/// search; a weaker one asks for the next tier's pose. Street queries refine to hundreds of
-/// inliers; the demo room's query_04, in a wrong optimum, to 78.
-const FINE_SURE_FACTOR: usize = 8;
-
-/// Coarse poses guided matching starts from, at most.
-const MAX_SEEDS: usize = 4;
 
 /// Retrieved images whose points coarse matching tries first: the points of the best few
 /// images hold enough true matches for a pose at a fraction of the cost of all `top_k`.
