@@ -16,8 +16,11 @@ use std::time::Instant;
 /// short): 1.0 tracked 2 of 20 frames within 0.5 m and 2° (the others drifted), 2.0 all 20.
 const PRIOR_GATE_FACTOR: f64 = 2.0;
 
-/// A tracked pose must have at least this share of its guided matches as inliers.
-const TRACKING_MIN_INLIER_SHARE: f64 = 0.3;
+/// A tracked pose must have at least this share of its guided matches as inliers. The demo
+/// room's unordered queries run as a sequence: wrong tracks had 11–13 % (16 of 149, 23 of
+/// 175, 30 of 252); the street's walk, level 2 short: right tracks 25–29 % at worst (0.3 lost
+/// 4 of its 19 predicted frames, 0.2 none).
+const TRACKING_MIN_INLIER_SHARE: f64 = 0.2;
 
 /// Decoded values of the rows in view guided matching keeps for a level (16 MB).
 const DECODED_IN_VIEW_MAX: usize = 4 << 20;
@@ -49,8 +52,7 @@ impl Localizer<'_> {
         let (inliers, matches) = result.as_ref().map_or((0, 0), |f| (f.inliers, f.matches));
         // Around a wrong prior, gated matching still finds some matches, and RANSAC a subset
         // of them consistent with a wrong pose: a tracked pose must explain a share of the
-        // matches as well as `min_inliers` (the demo room's unordered queries: wrong tracks
-        // had 13-16 % inliers, right ones 75 %+).
+        // matches as well as `min_inliers` (`TRACKING_MIN_INLIER_SHARE`).
         let needed = self
             .options
             .min_inliers
