@@ -175,18 +175,14 @@ impl Localizer<'_> {
         search.next_pose(
             self.options.top_k,
             |k| self.retrieved_points(query, k),
-            |candidates, keypoints| {
-                let mut sampled = false;
-                let tried = self.coarse(sets, candidates, keypoints, camera, times, &mut sampled);
-                (tried, sampled)
-            },
+            |candidates, keypoints| self.coarse(sets, candidates, keypoints, camera, times),
         )
     }
 
     /// Matching against `candidates` (`None`: every point) with at most `max_keypoints` query
     /// keypoints (a stride), deepest level first, then P3P
     /// LO-RANSAC: the pose estimate (its inlier mask has one entry per match), or the reason
-    /// and the number of matches.
+    /// and the number of matches; and whether the query keypoints were sampled.
     fn coarse(
         &self,
         sets: &[Query<'_>],
@@ -194,13 +190,13 @@ impl Localizer<'_> {
         max_keypoints: usize,
         camera: &Camera,
         times: &mut StageTimes,
-        sampled: &mut bool,
-    ) -> TierResult {
+    ) -> (TierResult, bool) {
         let t1 = Instant::now();
         let mut pixels = Vec::new();
         let mut points = Vec::new();
+        let mut sampled = false;
         for (level, set) in self.levels.iter().zip(sets) {
-            *sampled |= self.match_level(
+            sampled |= self.match_level(
                 level,
                 set,
                 candidates,
@@ -224,10 +220,11 @@ impl Localizer<'_> {
         let found =
             estimate_absolute_pose_with_prior(&pixels, &points, camera, None, &coarse_options);
         times.coarse_ransac_ms += ms(t2);
-        found.map_err(|error| {
+        let found = found.map_err(|error| {
             let matches = pixels.len();
             (QueryFailure::NoCoarsePose { error, matches }, matches)
-        })
+        });
+        (found, sampled)
     }
 
     /// Global matching of a level's query descriptors against its candidate points; whether
