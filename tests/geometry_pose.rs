@@ -793,3 +793,34 @@ fn planar_scene_is_not_degenerate() {
     assert!(estimate.pose.center_distance(&truth) < 0.05);
     assert!(estimate.num_inliers >= 190);
 }
+
+#[test]
+fn a_search_without_a_pose_ends_where_min_inliers_would_have_been_found() {
+    // 60 correspondences, all wrong: no pose has `min_inliers` of them. A pose that had would
+    // have an inlier ratio of at least 8 / 60, so the search ends after the iterations that
+    // find such a pose with `confidence` (SPRT's small chance of rejecting it included),
+    // far below `max_iterations`.
+    let s = scene(41, "PINHOLE 640 480 500 500 320 240", 60, 1.0, 0.5);
+    let options = RansacOptions {
+        min_inliers: 8,
+        max_iterations: 50_000,
+        ..RansacOptions::default()
+    };
+    let iterations = match run_with(&s, &options) {
+        Err(GeometryError::TooFewInliers { iterations, .. })
+        | Err(GeometryError::NoModel { iterations }) => iterations,
+        other => panic!("a pose from outliers only: {other:?}"),
+    };
+    // SPRT keeps a good pose with probability at least 0.9 (its decision threshold is at
+    // least 10), which scales w³ by that.
+    let at_floor = required_iterations(8.0 / 60.0, options.confidence);
+    let with_sprt = required_iterations(8.0 / 60.0 * 0.9f64.cbrt(), options.confidence);
+    assert!(
+        (at_floor..=with_sprt).contains(&iterations),
+        "{iterations} iterations, {at_floor}-{with_sprt} at the floor ratio"
+    );
+    // With enough true matches among them the pose is still found.
+    let s = scene(42, "PINHOLE 640 480 500 500 320 240", 60, 0.8, 0.5);
+    let found = run_with(&s, &options).expect("12 inliers of 60");
+    assert!(found.num_inliers >= 12);
+}
