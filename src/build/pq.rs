@@ -5,7 +5,7 @@
 //! matches such a level by asymmetric distances (`localize`: the query stays exact, the map
 //! side is looked up in per-query tables).
 
-use crate::format::{f16, Error, Map, MapWriter};
+use crate::format::{Error, Map, MapWriter};
 use crate::geometry::SplitMix64;
 use crate::kmeans::KMeans;
 use crate::vector::{l2_normalise, Nearest};
@@ -328,9 +328,9 @@ pub fn quantise_levels(
         }
         let n = level.len();
         let row = |r: usize, out: &mut [f32]| {
-            decode(&short[r * ds..(r + 1) * ds], &mut out[..ds]);
+            crate::vector::widen_f16(&short[r * ds..(r + 1) * ds], &mut out[..ds]);
             if let Some(rest) = &rest {
-                decode(&rest[r * dr..(r + 1) * dr], &mut out[ds..]);
+                crate::vector::widen_f16(&rest[r * dr..(r + 1) * dr], &mut out[ds..]);
             }
             // The format does not check descriptor values: a non-finite one makes the row a
             // zero row (no direction), never a NaN centroid.
@@ -530,11 +530,6 @@ pub fn quantise_all(
         short: false,
     };
     quantise_levels(&map, writer, &levels, &options)
-}
-
-fn decode(from: &[f16], to: &mut [f32]) {
-    use half::slice::HalfFloatSliceExt;
-    from.convert_to_f32_slice(to);
 }
 
 #[cfg(test)]

@@ -8,20 +8,20 @@ use crate::vlad::Codebook;
 use serde_json::json;
 
 /// How `convert` builds retrieval data.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct VladOptions {
-    /// Centroids; 0 stores no VLAD.
-    pub clusters: usize,
-    /// Leading dimensions of the level basis (at most the level's `dim_short`).
-    pub dims: usize,
+    /// Centroids; 0 stores no VLAD; `None`: by the map's images ([`crate::vlad::default_shape`]).
+    pub clusters: Option<usize>,
+    /// Leading dimensions of the level basis (at most the level's `dim_short`); `None`: by
+    /// the map's images.
+    pub dims: Option<usize>,
 }
 
-impl Default for VladOptions {
-    fn default() -> Self {
-        VladOptions {
-            clusters: crate::vlad::DEFAULT_CLUSTERS,
-            dims: crate::vlad::DEFAULT_DIMS,
-        }
+impl VladOptions {
+    /// (clusters, dims) for a map of `images` images.
+    pub fn shape(&self, images: usize) -> (usize, usize) {
+        let (clusters, dims) = crate::vlad::default_shape(images);
+        (self.clusters.unwrap_or(clusters), self.dims.unwrap_or(dims))
     }
 }
 
@@ -87,4 +87,22 @@ pub(crate) fn add_vlad(
         clusters,
         dims,
     }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::VladOptions;
+
+    #[test]
+    fn a_stated_shape_wins_over_the_images_rule() {
+        let by_images = VladOptions::default();
+        assert_eq!(by_images.shape(100), crate::vlad::default_shape(100));
+        assert_eq!(by_images.shape(10_000), crate::vlad::default_shape(10_000));
+        let stated = VladOptions {
+            clusters: Some(0),
+            dims: None,
+        };
+        assert_eq!(stated.shape(10_000).0, 0);
+        assert_eq!(stated.shape(10_000).1, crate::vlad::LARGE_DIMS);
+    }
 }

@@ -390,8 +390,9 @@ fn convert_images_of(
         .or(built.last())
         .map(
             |(info, points, descriptors, _)| -> Result<Option<super::StoredVlad>, ConvertError> {
-                let dims = options.vlad.dims.min(info.dim_short as usize);
-                if options.vlad.clusters == 0 || dims == 0 {
+                let (clusters, dims) = options.vlad.shape(geometry.names.len());
+                let dims = dims.min(info.dim_short as usize);
+                if clusters == 0 || dims == 0 {
                     return Ok(None);
                 }
                 let full = info.dim_full as usize;
@@ -406,7 +407,7 @@ fn convert_images_of(
                     info.level,
                     &rows,
                     dims,
-                    options.vlad.clusters,
+                    clusters,
                     "this level's points",
                     &geometry,
                     reporter,

@@ -154,9 +154,10 @@ fn convert_geometry(
             reporter.finish();
             points_without_descriptors = has.iter().filter(|h| !**h).count();
             let levels = build_levels(obs, &descriptors, &has, options.short_dims, reporter)?;
+            let (clusters, dims) = options.vlad.shape(geometry.names.len());
             let rows = levels.last().and_then(|deepest| {
-                let dims = options.vlad.dims.min(deepest.info.dim_short as usize);
-                (options.vlad.clusters > 0 && dims > 0).then(|| {
+                let dims = dims.min(deepest.info.dim_short as usize);
+                (clusters > 0 && dims > 0).then(|| {
                     reporter.start("projecting for retrieval", None);
                     let rows = deepest
                         .basis
@@ -186,7 +187,7 @@ fn convert_geometry(
             deepest.info.level,
             &rows,
             dims,
-            options.vlad.clusters,
+            options.vlad.shape(geometry.names.len()).0,
             "every point with a descriptor (all levels), projected on this level's basis",
             geometry,
             reporter,

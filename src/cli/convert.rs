@@ -78,16 +78,17 @@ pub struct Args {
     pub strict: bool,
     /// Retrieval: centroids of the VLAD codebook stored with the map (0: none). Queries are
     /// ranked against the map's images by their VLAD of the same level's descriptors.
-    #[arg(long, default_value_t = sfpmap::vlad::DEFAULT_CLUSTERS, value_parser = vlad_clusters)]
-    pub vlad_clusters: usize,
+    /// [default: 16, or 64 from 2,000 images on]
+    #[arg(long, value_parser = vlad_clusters)]
+    pub vlad_clusters: Option<usize>,
     /// Product-quantise every level into M one-byte codes per point (M dividing each level's
     /// dims; format 1.1). `sfpmap slice --pq` does it for some levels of a map.
     #[arg(long, value_name = "M", value_parser = clap::value_parser!(u16).range(1..=4096))]
     pub pq: Option<u16>,
     /// Retrieval: leading dimensions of the level basis the codebook covers (at most the
-    /// level's short dimensions).
-    #[arg(long, default_value_t = sfpmap::vlad::DEFAULT_DIMS, value_parser = vlad_dims)]
-    pub vlad_dims: usize,
+    /// level's short dimensions). [default: 32, or 16 from 2,000 images on]
+    #[arg(long, value_parser = vlad_dims)]
+    pub vlad_dims: Option<usize>,
     /// Overwrite OUTPUT if it exists.
     #[arg(long)]
     pub force: bool,

@@ -128,8 +128,14 @@ impl Localizer<'_> {
                 &fine_options,
             ) {
                 Ok(e) => {
+                    let settled = round == 0
+                        && self.options.gate_px >= first_gate
+                        && settled(&pose, &e, &points, camera, first_gate / 4.0);
                     pose = e.pose;
                     result = Some((e, level_of, pixels.len()));
+                    if settled {
+                        break;
+                    }
                 }
                 Err(_) => break,
             }
@@ -283,5 +289,78 @@ impl Localizer<'_> {
             pixels.push(Vector2::new(kp[0], kp[1]));
             points.push(self.positions[p as usize]);
         }
+    }
+}
+
+/// Whether the pose barely moved from `before` to `estimate`: 90 % of its inliers reproject
+/// within `tolerance_px` of where they did. A second round at the same gate would then gate
+/// the same candidates (on the street it changed the inliers by under 1 %, at half the fine
+/// stage's time), so it is skipped.
+fn settled(
+    before: &Pose,
+    estimate: &crate::geometry::PoseEstimate,
+    points: &[Vector3<f64>],
+    camera: &Camera,
+    tolerance_px: f64,
+) -> bool {
+    let mut moved: Vec<f64> = estimate
+        .inliers
+        .iter()
+        .zip(points)
+        .filter(|(&inlier, _)| inlier)
+        .filter_map(|(_, p)| {
+            let a = camera.project(&before.transform(p))?;
+            let b = camera.project(&estimate.pose.transform(p))?;
+            Some((a - b).norm())
+        })
+        .collect();
+    if moved.is_empty() {
+        return false;
+    }
+    let at = (moved.len() * 9 / 10).min(moved.len() - 1);
+    let (_, &mut p90, _) = moved.select_nth_unstable_by(at, f64::total_cmp);
+    p90 < tolerance_px
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::PoseEstimate;
+    use nalgebra::UnitQuaternion;
+
+    #[test]
+    fn a_pose_that_moved_its_inliers_less_than_the_tolerance_is_settled() {
+        let camera = Camera::parse("PINHOLE 640 480 500 500 320 240").unwrap();
+        let points: Vec<Vector3<f64>> = (0..50)
+            .map(|i| Vector3::new((i % 10) as f64 - 5.0, (i / 10) as f64 - 2.5, 10.0))
+            .collect();
+        let before = Pose::identity();
+        let estimate = |pose: Pose| PoseEstimate {
+            pose,
+            inliers: vec![true; points.len()],
+            num_inliers: points.len(),
+            iterations: 1,
+            mean_inlier_error_px: 0.0,
+        };
+        // 1 cm sideways at 10 m: 0.5 px; 20 cm: 10 px.
+        let shifted = |dx: f64| Pose::new(UnitQuaternion::identity(), Vector3::new(dx, 0.0, 0.0));
+        assert!(settled(
+            &before,
+            &estimate(shifted(0.01)),
+            &points,
+            &camera,
+            6.0
+        ));
+        assert!(!settled(
+            &before,
+            &estimate(shifted(0.2)),
+            &points,
+            &camera,
+            6.0
+        ));
+        // No inliers: nothing says it settled.
+        let mut none = estimate(before);
+        none.inliers = vec![false; points.len()];
+        assert!(!settled(&before, &none, &points, &camera, 6.0));
     }
 }

@@ -52,9 +52,9 @@ impl LevelIndex<'_> {
                 dr,
             } => {
                 let (to_short, to_rest) = out.split_at_mut(*ds);
-                decode(&short[r * ds..(r + 1) * ds], to_short);
+                crate::vector::widen_f16(&short[r * ds..(r + 1) * ds], to_short);
                 if let Some(block) = rest {
-                    decode(&block[r * dr..(r + 1) * dr], to_rest);
+                    crate::vector::widen_f16(&block[r * dr..(r + 1) * dr], to_rest);
                 }
             }
             Stored::Pq(pq) => pq.decode_row(r, out),
@@ -89,13 +89,13 @@ impl LevelIndex<'_> {
         }
         let (ds, dr) = (*ds, *dr);
         match rest {
-            None => decode(&short[first * ds..(first + n) * ds], tile),
+            None => crate::vector::widen_f16(&short[first * ds..(first + n) * ds], tile),
             Some(rest) => {
                 rest_run.resize(n * dr, 0.0);
-                decode(&rest[first * dr..(first + n) * dr], rest_run);
+                crate::vector::widen_f16(&rest[first * dr..(first + n) * dr], rest_run);
                 let short = &short[first * ds..(first + n) * ds];
                 for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
-                    decode(&short[k * ds..(k + 1) * ds], &mut out[..ds]);
+                    crate::vector::widen_f16(&short[k * ds..(k + 1) * ds], &mut out[..ds]);
                     out[ds..].copy_from_slice(&rest_run[k * dr..(k + 1) * dr]);
                 }
             }
@@ -140,12 +140,6 @@ impl LevelIndex<'_> {
     pub(super) fn scale_row(out: &mut [f32]) {
         crate::vector::l2_normalise(out);
     }
-}
-
-/// f16 → f32 (exact), through `half`'s slice conversion (F16C where the CPU has it).
-fn decode(from: &[f16], to: &mut [f32]) {
-    use half::slice::HalfFloatSliceExt;
-    from.convert_to_f32_slice(to);
 }
 
 /// What the localizer takes of one level, as the map holds it, before any check.

@@ -376,7 +376,7 @@ pub struct Localizer<'m> {
     pub(super) levels: Vec<LevelIndex<'m>>,
     /// Selected levels that are not matched, and why.
     pub(super) skipped: Vec<SkippedLevel>,
-    pub(super) retrieval: RetrievalIndex,
+    pub(super) retrieval: RetrievalIndex<'m>,
     /// Database camera centres and directions, for images near a pose (`None`: no images).
     pub(super) viewpoints: Option<Viewpoints>,
     /// Image → points, borrowed from the map, or `None` (all points are candidates).

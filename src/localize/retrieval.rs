@@ -7,9 +7,11 @@
 
 use super::localizer::QueryFeatures;
 use crate::format::{Error as FormatError, Map, Retrieval};
-use crate::vector::normalise_rows;
+use crate::vector::{dot, normalise_rows};
 use crate::vlad::Codebook;
 use bitvec::vec::BitVec;
+use half::f16;
+use std::borrow::Cow;
 
 /// Which stored global descriptor ranks the map's images.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -75,28 +77,30 @@ impl std::fmt::Display for RetrievalFallback {
 }
 
 /// A map's VLAD, ready to score queries.
-struct VladIndex {
+struct VladIndex<'m> {
     level: u16,
     codebook: Codebook,
     /// `[dims × d_in]`: the level basis' leading rows (`None`: the extractor's own basis,
     /// whose leading dimensions are taken as they are).
     projection: Option<Vec<f32>>,
     d_in: usize,
-    /// `[images × width]`, f32 (decoded once: 4 bytes per value, small next to the points).
-    images: Vec<f32>,
+    /// `[images × width]`, the map's f16 rows, read in place (decoded inside the scoring:
+    /// at 64 clusters an f32 copy was 64 MB for 8,000 images, and reading it per query took
+    /// twice as long).
+    images: Cow<'m, [f16]>,
 }
 
 /// What a localizer retrieves with: the map's global descriptors and VLAD, decoded once.
-pub(crate) struct RetrievalIndex {
+pub(crate) struct RetrievalIndex<'m> {
     global: Option<(Vec<f32>, usize)>,
-    vlad: Option<VladIndex>,
+    vlad: Option<VladIndex<'m>>,
     /// The map's preference, else VLAD first (the one every converted map has).
     order: [Retrieval; 2],
     method: RetrievalMethod,
 }
 
-impl RetrievalIndex {
-    pub(crate) fn new(map: &Map<'_>, method: RetrievalMethod) -> Result<Self, FormatError> {
+impl<'m> RetrievalIndex<'m> {
+    pub(crate) fn new(map: &'m Map<'m>, method: RetrievalMethod) -> Result<Self, FormatError> {
         // Only what the method can use is decoded (and checked): `--retrieval off` opens a
         // map whose retrieval sections are damaged, as a 1.0 reader would.
         let (use_global, use_vlad) = match method {
@@ -139,12 +143,7 @@ impl RetrievalIndex {
                     codebook,
                     projection,
                     d_in,
-                    images: {
-                        use half::slice::HalfFloatSliceExt;
-                        let mut images = vec![0.0f32; v.images.len()];
-                        v.images.convert_to_f32_slice(&mut images);
-                        images
-                    },
+                    images: v.images,
                 })
             }
         };
@@ -182,8 +181,12 @@ impl RetrievalIndex {
         let mut first_reason = None;
         for &method in methods {
             let vectors = match method {
-                Retrieval::Global => self.global_vectors(query),
-                Retrieval::Vlad => self.vlad_vectors(query),
+                Retrieval::Global => self
+                    .global_vectors(query)
+                    .map(|(database, q, dim)| (Rows::F32(database), q, dim)),
+                Retrieval::Vlad => self
+                    .vlad_vectors(query)
+                    .map(|(database, q, dim)| (Rows::F16(database), q, dim)),
             };
             match vectors {
                 Ok((database, q, dim)) if database.len() == n_images * dim => {
@@ -227,7 +230,7 @@ impl RetrievalIndex {
     fn vlad_vectors(
         &self,
         query: &QueryFeatures,
-    ) -> Result<(&[f32], Vec<f32>, usize), RetrievalFallback> {
+    ) -> Result<(&[f16], Vec<f32>, usize), RetrievalFallback> {
         let v = self
             .vlad
             .as_ref()
@@ -264,20 +267,57 @@ impl RetrievalIndex {
     }
 }
 
+/// Database descriptors, `[n_images × dim]` row-major: decoded, or the map's f16.
+#[derive(Clone, Copy)]
+pub(crate) enum Rows<'a> {
+    F32(&'a [f32]),
+    F16(&'a [f16]),
+}
+
+impl Rows<'_> {
+    fn len(&self) -> usize {
+        match self {
+            Rows::F32(v) => v.len(),
+            Rows::F16(v) => v.len(),
+        }
+    }
+
+    /// Each row's dot product with `q` (`dim` values).
+    fn dots(&self, dim: usize, q: &[f32]) -> Vec<f32> {
+        let dim = dim.max(1);
+        match self {
+            Rows::F32(v) => v.chunks_exact(dim).map(|row| dot(row, q)).collect(),
+            Rows::F16(v) => {
+                // A row decoded a stretch at a time into a buffer that stays in L1.
+                const STRETCH: usize = 256;
+                let mut buffer = [0.0f32; STRETCH];
+                v.chunks_exact(dim)
+                    .map(|row| {
+                        let mut sum = 0.0;
+                        for (part, qs) in row.chunks(STRETCH).zip(q.chunks(STRETCH)) {
+                            let b = &mut buffer[..part.len()];
+                            crate::vector::widen_f16(part, b);
+                            sum += dot(b, qs);
+                        }
+                        sum
+                    })
+                    .collect()
+            }
+        }
+    }
+}
+
 /// The `top_k` database images whose descriptors (`[n_images × dim]`, L2-normalised,
 /// row-major) score highest against `query`'s (`dim` values), best first (ties: lower index
 /// first); `top_k` 0 is taken as 1.
-pub(crate) fn rank(database: &[f32], dim: usize, query: &[f32], top_k: usize) -> Vec<usize> {
+pub(crate) fn rank(database: Rows<'_>, dim: usize, query: &[f32], top_k: usize) -> Vec<usize> {
     // Scores are cosines, as the map's rows are unit. The ranking would not change without
     // it, but the tie-breaks between scores an ulp apart could.
     let mut q = query.to_vec();
     normalise_rows(&mut q, dim);
     // One query: a dot per image row. (A GEMM of one row packs the whole database first,
     // 16 MB at 8,000 images: most of retrieval's time on the 1 M-point street.)
-    let mut scores: Vec<f32> = database
-        .chunks_exact(dim.max(1))
-        .map(|row| crate::vector::dot(row, &q))
-        .collect();
+    let mut scores = database.dots(dim, &q);
     // A non-finite score (a NaN in a stored VLAD, which the format does not check) ranks
     // last, not first.
     for s in &mut scores {
@@ -356,14 +396,14 @@ mod tests {
         // Four images in 2-D: the query (unnormalised) points along image 2's descriptor.
         let s = std::f32::consts::FRAC_1_SQRT_2;
         let g = [1.0, 0.0, 0.0, 1.0, s, s, -1.0, 0.0];
-        assert_eq!(rank(&g, 2, &[3.0, 2.9], 2), [2, 0]);
-        assert_eq!(rank(&g, 2, &[0.0, -5.0], 1), [0]);
+        assert_eq!(rank(Rows::F32(&g), 2, &[3.0, 2.9], 2), [2, 0]);
+        assert_eq!(rank(Rows::F32(&g), 2, &[0.0, -5.0], 1), [0]);
         // top_k 0 is taken as 1; top_k past the images is every image, ranked.
-        assert_eq!(rank(&g, 2, &[3.0, 2.9], 0), [2]);
-        assert_eq!(rank(&g, 2, &[3.0, 2.9], 9), [2, 0, 1, 3]);
+        assert_eq!(rank(Rows::F32(&g), 2, &[3.0, 2.9], 0), [2]);
+        assert_eq!(rank(Rows::F32(&g), 2, &[3.0, 2.9], 9), [2, 0, 1, 3]);
         // A stored NaN ranks last, not first.
         let g = [f32::NAN, 0.0, 0.0, 1.0, 1.0, 0.0];
-        assert_eq!(rank(&g, 2, &[1.0, 0.0], 3), [2, 1, 0]);
+        assert_eq!(rank(Rows::F32(&g), 2, &[1.0, 0.0], 3), [2, 1, 0]);
     }
 
     fn query(global: Option<Vec<f32>>, sets: Vec<FeatureSet>) -> QueryFeatures {
@@ -381,7 +421,7 @@ mod tests {
 
     /// Two images in 2-D: global descriptors along x and y; a VLAD of one centroid on a
     /// level-3 basis that swaps the axes, so the two methods disagree.
-    fn index(method: RetrievalMethod, order: [Retrieval; 2]) -> RetrievalIndex {
+    fn index(method: RetrievalMethod, order: [Retrieval; 2]) -> RetrievalIndex<'static> {
         RetrievalIndex {
             global: Some((vec![1.0, 0.0, 0.0, 1.0], 2)),
             vlad: Some(VladIndex {
@@ -389,7 +429,7 @@ mod tests {
                 codebook: Codebook::new(vec![0.0, 0.0], 2).unwrap(),
                 projection: Some(vec![0.0, 1.0, 1.0, 0.0]),
                 d_in: 2,
-                images: vec![1.0, 0.0, 0.0, 1.0],
+                images: Cow::Owned([1.0, 0.0, 0.0, 1.0].map(f16::from_f32).to_vec()),
             }),
             order,
             method,

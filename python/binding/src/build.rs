@@ -64,8 +64,8 @@ impl Options {
         zstd_level: i32,
         aggregate: Option<&str>,
         strict: bool,
-        vlad_clusters: usize,
-        vlad_dims: usize,
+        vlad_clusters: Option<usize>,
+        vlad_dims: Option<usize>,
         pq: Option<usize>,
     ) -> PyResult<Options> {
         let bad = |m: String| Err(InputError::new_err(m));
@@ -103,13 +103,13 @@ impl Options {
         if !(1..=22).contains(&zstd_level) {
             return bad(format!("zstd_level {zstd_level}: 1 to 22"));
         }
-        if vlad_clusters > 1024 {
+        if vlad_clusters.is_some_and(|k| k > 1024) {
             return bad("vlad_clusters: a number of centroids from 0 (no VLAD) to 1024".into());
         }
         if pq.is_some_and(|m| !(1..=4096).contains(&m)) {
             return bad("pq: 1 to 4096 one-byte codes per point".into());
         }
-        if !(1..=256).contains(&vlad_dims) {
+        if vlad_dims.is_some_and(|d| !(1..=256).contains(&d)) {
             return bad("vlad_dims: a number of dimensions from 1 to 256".into());
         }
         let aggregate = match aggregate.unwrap_or("mean") {
@@ -192,7 +192,7 @@ impl Options {
 #[pyo3(signature = (model_dir, database=None, images=None, *, out, force=false, model=None,
                     allow_missing=false, threads=2, resize_max=None, score_threshold=None,
                     short_dims=None, codec="raw", zstd_level=3, aggregate=None, strict=false,
-                    vlad_clusters=sfpmap::vlad::DEFAULT_CLUSTERS, vlad_dims=sfpmap::vlad::DEFAULT_DIMS, pq=None))]
+                    vlad_clusters=None, vlad_dims=None, pq=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn convert(
     py: Python<'_>,
@@ -211,8 +211,8 @@ pub(crate) fn convert(
     zstd_level: i32,
     aggregate: Option<&str>,
     strict: bool,
-    vlad_clusters: usize,
-    vlad_dims: usize,
+    vlad_clusters: Option<usize>,
+    vlad_dims: Option<usize>,
     pq: Option<usize>,
 ) -> PyResult<String> {
     let start = Instant::now();
@@ -537,7 +537,7 @@ fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
                     source="pycolmap.Reconstruction", model=None, allow_missing=false, threads=2,
                     resize_max=None, score_threshold=None, short_dims=None, codec="raw",
                     zstd_level=3, aggregate=None, strict=false,
-                    vlad_clusters=sfpmap::vlad::DEFAULT_CLUSTERS, vlad_dims=sfpmap::vlad::DEFAULT_DIMS, pq=None))]
+                    vlad_clusters=None, vlad_dims=None, pq=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn from_pycolmap(
     py: Python<'_>,
@@ -557,8 +557,8 @@ pub(crate) fn from_pycolmap(
     zstd_level: i32,
     aggregate: Option<&str>,
     strict: bool,
-    vlad_clusters: usize,
-    vlad_dims: usize,
+    vlad_clusters: Option<usize>,
+    vlad_dims: Option<usize>,
     pq: Option<usize>,
 ) -> PyResult<String> {
     let start = Instant::now();
