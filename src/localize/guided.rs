@@ -194,10 +194,8 @@ impl Localizer<'_> {
         let set = query.set;
         let gate = gate_px.max(1.0);
         let (w, h) = (f64::from(camera.width()), f64::from(camera.height()));
-        // The projected points keyed by grid cell (a gate wide, so a 3 × 3 block of cells
-        // covers the gate) and sorted: memory follows the level's points, whatever image size
-        // the camera claims. (cell row, cell column, level row, pixel).
-        let mut cells: Vec<(u32, u32, u32, [f32; 2])> = Vec::new();
+        // The points in view: (level row, pixel).
+        let mut in_view: Vec<(u32, [f32; 2])> = Vec::new();
         let all_rows = || 0..level.points.len() as u32;
         let candidate_rows: &mut dyn Iterator<Item = u32> = match rows {
             Some(rows) => &mut rows.iter().copied(),
@@ -215,21 +213,21 @@ impl Localizer<'_> {
             if !(px.x >= 0.0 && px.y >= 0.0 && px.x < w && px.y < h) {
                 continue;
             }
-            let cell = ((px.y / gate) as u32, (px.x / gate) as u32);
-            cells.push((cell.0, cell.1, row, [px.x as f32, px.y as f32]));
+            in_view.push((row, [px.x as f32, px.y as f32]));
         }
-        if cells.is_empty() {
+        if in_view.is_empty() {
             return;
         }
-        cells.sort_unstable_by_key(|c| (c.0, c.1, c.2));
+        let grid = Grid::new(&in_view, w, h, gate);
+        let cells = &grid.points;
         // The rows in view are decoded once, in cell order, when they are few (retrieval's
         // candidates: a gate reaches each row dozens of times, 100 k street fine stage
         // 55 -> 14 ms); a level in view at large (no retrieval, 1 M points) would make that
         // copy hundreds of MB, so then a row is decoded each time a gate reaches it.
         let decoded = (cells.len() * level.dim <= DECODED_IN_VIEW_MAX).then(|| {
             let mut rows = vec![0.0f32; cells.len() * level.dim];
-            for (out, c) in rows.chunks_exact_mut(level.dim).zip(&cells) {
-                level.decode_row(c.2 as usize, out);
+            for (out, c) in rows.chunks_exact_mut(level.dim).zip(cells) {
+                level.decode_row(c.0 as usize, out);
             }
             rows
         });
@@ -242,21 +240,17 @@ impl Localizer<'_> {
         // as a quarter of the keypoints: then one GEMM for all of them (5x faster than row by
         // row), held only while this level is matched; otherwise each keypoint is projected
         // alone, and only if some point is near it.
-        let all = (query.projected.get().is_some() || cells.len() * 4 >= set.keypoints.len())
+        let all = (query.projected.get().is_some() || in_view.len() * 4 >= set.keypoints.len())
             .then(|| query.projected.get_or_init(|| self.project(level, set)));
         for (k, kp) in set.keypoints.iter().enumerate().step_by(stride.max(1)) {
             if !(kp[0] >= 0.0 && kp[1] >= 0.0 && kp[0] < w && kp[1] < h) {
                 continue;
             }
-            let (cy, cx) = ((kp[1] / gate) as u32, (kp[0] / gate) as u32);
-            let (x_lo, x_hi) = (cx.saturating_sub(1), cx.saturating_add(1));
             let (mut best, mut second) = ((f32::NEG_INFINITY, u32::MAX), f32::NEG_INFINITY);
             // The keypoint's descriptor is projected once, and only if some point is near.
             let mut projected = false;
-            for gy in cy.saturating_sub(1)..=cy.saturating_add(1) {
-                let lo = cells.partition_point(|c| (c.0, c.1) < (gy, x_lo));
-                let hi = cells.partition_point(|c| (c.0, c.1) <= (gy, x_hi));
-                for (ci, &(_, _, row, xy)) in cells[lo..hi].iter().enumerate() {
+            for (lo, hi) in grid.around(kp[0], kp[1]) {
+                for (ci, &(row, xy)) in cells[lo..hi].iter().enumerate() {
                     let (dx, dy) = (xy[0] - kp[0] as f32, xy[1] - kp[1] as f32);
                     if dx * dx + dy * dy > gate2 {
                         continue;
@@ -304,6 +298,76 @@ impl Localizer<'_> {
             pixels.push(Vector2::new(kp[0], kp[1]));
             points.push(self.positions[p as usize]);
         }
+    }
+}
+
+/// The points in view bucketed by a flat grid (counting sort into cell order, offsets per
+/// cell): a keypoint finds the points of the 3 × 3 cells around it by six lookups. Cells are
+/// at least a gate wide, so those cells cover the gate, and wider when the camera claims an
+/// image so large that the grid would outgrow the points in view: memory follows the points,
+/// whatever image size the camera states.
+struct Grid {
+    cell: f64,
+    columns: usize,
+    rows: usize,
+    /// `offsets[c]..offsets[c + 1]`: cell `c`'s entries of `points` (row-major cells).
+    offsets: Vec<u32>,
+    /// (level row, pixel), in cell order, in their input order within a cell.
+    points: Vec<(u32, [f32; 2])>,
+}
+
+impl Grid {
+    /// `in_view`'s pixels lie in `[0, w) × [0, h)`.
+    fn new(in_view: &[(u32, [f32; 2])], w: f64, h: f64, gate: f64) -> Grid {
+        let max_cells = (4 * in_view.len() + 1024) as f64;
+        // Each side has at most `max_cells` cells, and the area at most `max_cells` cells.
+        let cell = gate
+            .max((w * h / max_cells).sqrt())
+            .max(w / max_cells)
+            .max(h / max_cells);
+        let columns = (w / cell) as usize + 1;
+        let rows = (h / cell) as usize + 1;
+        let index = |xy: [f32; 2]| {
+            let cx = ((f64::from(xy[0]) / cell) as usize).min(columns - 1);
+            let cy = ((f64::from(xy[1]) / cell) as usize).min(rows - 1);
+            cy * columns + cx
+        };
+        let mut offsets = vec![0u32; columns * rows + 1];
+        for &(_, xy) in in_view {
+            offsets[index(xy) + 1] += 1;
+        }
+        for c in 1..offsets.len() {
+            offsets[c] += offsets[c - 1];
+        }
+        let mut next = offsets.clone();
+        let mut points = vec![(0u32, [0.0f32; 2]); in_view.len()];
+        for &(row, xy) in in_view {
+            let slot = &mut next[index(xy)];
+            points[*slot as usize] = (row, xy);
+            *slot += 1;
+        }
+        Grid {
+            cell,
+            columns,
+            rows,
+            offsets,
+            points,
+        }
+    }
+
+    /// For each of the (up to 3) cell rows around pixel (x, y) inside the image, the range of
+    /// `points` in the (up to 3) cells around it in that row.
+    fn around(&self, x: f64, y: f64) -> impl Iterator<Item = (usize, usize)> + '_ {
+        let cx = ((x / self.cell) as usize).min(self.columns - 1);
+        let cy = ((y / self.cell) as usize).min(self.rows - 1);
+        let (x_lo, x_hi) = (cx.saturating_sub(1), (cx + 1).min(self.columns - 1));
+        (cy.saturating_sub(1)..=(cy + 1).min(self.rows - 1)).map(move |gy| {
+            let start = gy * self.columns;
+            (
+                self.offsets[start + x_lo] as usize,
+                self.offsets[start + x_hi + 1] as usize,
+            )
+        })
     }
 }
 
