@@ -408,6 +408,47 @@ mod tests {
     use nalgebra::UnitQuaternion;
 
     #[test]
+    fn the_grid_finds_every_point_within_the_gate_and_stays_small() {
+        let mut rng = crate::geometry::SplitMix64::new(3);
+        let (w, h, gate) = (200.0, 120.0, 10.0);
+        let in_view: Vec<(u32, [f32; 2])> = (0..500)
+            .map(|i| {
+                let xy = [(rng.next_f64() * w) as f32, (rng.next_f64() * h) as f32];
+                (i, xy)
+            })
+            .collect();
+        let grid = Grid::new(&in_view, w, h, gate);
+        assert_eq!(grid.points.len(), in_view.len());
+        for _ in 0..200 {
+            let (x, y) = (rng.next_f64() * w, rng.next_f64() * h);
+            let mut near: Vec<u32> = grid
+                .around(x, y)
+                .flat_map(|(lo, hi)| grid.points[lo..hi].iter())
+                .filter(|(_, xy)| {
+                    let (dx, dy) = (f64::from(xy[0]) - x, f64::from(xy[1]) - y);
+                    dx * dx + dy * dy <= gate * gate
+                })
+                .map(|p| p.0)
+                .collect();
+            near.sort_unstable();
+            let want: Vec<u32> = in_view
+                .iter()
+                .filter(|(_, xy)| {
+                    let (dx, dy) = (f64::from(xy[0]) - x, f64::from(xy[1]) - y);
+                    dx * dx + dy * dy <= gate * gate
+                })
+                .map(|p| p.0)
+                .collect();
+            assert_eq!(near, want);
+        }
+        // A camera claiming a vast image (or a thin one) does not size the grid.
+        for (w, h) in [(4e9, 4e9), (4e9, 1.0), (1.0, 4e9)] {
+            let grid = Grid::new(&in_view[..3], w, h, gate);
+            assert!(grid.offsets.len() <= 4 * (4 * 3 + 1024), "{w} x {h}");
+        }
+    }
+
+    #[test]
     fn a_pose_that_moved_its_inliers_less_than_the_tolerance_is_settled() {
         let camera = Camera::parse("PINHOLE 640 480 500 500 320 240").unwrap();
         let points: Vec<Vector3<f64>> = (0..50)
