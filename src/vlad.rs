@@ -194,25 +194,16 @@ impl Codebook {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::SplitMix64;
+    use crate::vector::dot;
 
     #[test]
     fn the_default_codebook_grows_with_the_images() {
-        assert_eq!(
-            default_shape(LARGE_MAP_IMAGES - 1),
-            (DEFAULT_CLUSTERS, DEFAULT_DIMS)
-        );
-        assert_eq!(
-            default_shape(LARGE_MAP_IMAGES),
-            (LARGE_CLUSTERS, LARGE_DIMS)
-        );
-        // The large shape's values an image: twice the small one's.
-        assert_eq!(
-            LARGE_CLUSTERS * LARGE_DIMS,
-            2 * DEFAULT_CLUSTERS * DEFAULT_DIMS
-        );
+        assert_eq!(default_shape(0), (16, 32));
+        assert_eq!(default_shape(1_999), (16, 32));
+        assert_eq!(default_shape(2_000), (64, 16));
+        assert_eq!(default_shape(1_000_000), (64, 16));
     }
-    use crate::geometry::SplitMix64;
-    use crate::vector::dot;
 
     /// `n` unit rows of `dims` around `groups` well-separated directions.
     fn clustered(n: usize, dims: usize, groups: usize, seed: u64) -> Vec<f32> {

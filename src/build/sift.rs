@@ -163,7 +163,7 @@ fn convert_geometry(
                         .basis
                         .project_leading(&descriptors, obs.dim, dims, &has);
                     reporter.finish();
-                    (rows, dims)
+                    (rows, dims, clusters)
                 })
             });
             (levels, rows)
@@ -181,13 +181,13 @@ fn convert_geometry(
         summaries.push(l.summary.clone());
     }
     let mut vlad = None;
-    if let (Some((rows, dims)), Some(deepest)) = (vlad_rows, built_levels.last()) {
+    if let (Some((rows, dims, clusters)), Some(deepest)) = (vlad_rows, built_levels.last()) {
         vlad = super::retrieval::add_vlad(
             &mut writer,
             deepest.info.level,
             &rows,
             dims,
-            options.vlad.shape(geometry.names.len()).0,
+            clusters,
             "every point with a descriptor (all levels), projected on this level's basis",
             geometry,
             reporter,

@@ -78,16 +78,15 @@ pub struct Args {
     pub strict: bool,
     /// Retrieval: centroids of the VLAD codebook stored with the map (0: none). Queries are
     /// ranked against the map's images by their VLAD of the same level's descriptors.
-    /// [default: 16, or 64 from 2,000 images on]
-    #[arg(long, value_parser = vlad_clusters)]
+    #[arg(long, value_parser = vlad_clusters, long_help = vlad_help("centroids of the VLAD codebook stored with the map (0: none); queries are ranked against the map's images by their VLAD of the same level's descriptors", |(c, _)| c))]
     pub vlad_clusters: Option<usize>,
     /// Product-quantise every level into M one-byte codes per point (M dividing each level's
     /// dims; format 1.1). `sfpmap slice --pq` does it for some levels of a map.
     #[arg(long, value_name = "M", value_parser = clap::value_parser!(u16).range(1..=4096))]
     pub pq: Option<u16>,
     /// Retrieval: leading dimensions of the level basis the codebook covers (at most the
-    /// level's short dimensions). [default: 32, or 16 from 2,000 images on]
-    #[arg(long, value_parser = vlad_dims)]
+    /// level's short dimensions).
+    #[arg(long, value_parser = vlad_dims, long_help = vlad_help("leading dimensions of the level basis the codebook covers (at most the level's short dimensions)", |(_, d)| d))]
     pub vlad_dims: Option<usize>,
     /// Overwrite OUTPUT if it exists.
     #[arg(long)]
@@ -157,6 +156,17 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// `--vlad-clusters`/`--vlad-dims` help: `what`, then the default by the map's image count
+/// (`pick` takes it from a (clusters, dims) shape), from the library's rule.
+fn vlad_help(what: &str, pick: fn((usize, usize)) -> usize) -> String {
+    let large = sfpmap::vlad::LARGE_MAP_IMAGES;
+    format!(
+        "Retrieval: {what}. [default: {}, or {} from {large} images on]",
+        pick(sfpmap::vlad::default_shape(0)),
+        pick(sfpmap::vlad::default_shape(large)),
+    )
 }
 
 fn vlad_options(args: &Args) -> sfpmap::build::VladOptions {

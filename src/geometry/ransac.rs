@@ -197,8 +197,13 @@ pub fn estimate_absolute_pose_with_prior(
     // finding is at least this: the iterations that find such a pose with `confidence` bound
     // the search also while no (or only a weaker) pose is known. Without it a search that
     // fails ran to `max_iterations` (coarse matching on the 1 M-point street: 10-19 ms for
-    // 60 matches that held no pose).
-    let floor_ratio = options.min_inliers.max(SAMPLE_SIZE) as f64 / pixels.len() as f64;
+    // 60 matches that held no pose). The count assumes uniform samples: PROSAC's reach the
+    // bottom of the list only late, so it keeps its own stopping rules.
+    let floor_ratio = if options.progressive {
+        0.0
+    } else {
+        options.min_inliers.max(SAMPLE_SIZE) as f64 / pixels.len() as f64
+    };
     let kept = |sprt: Option<&Sprt>| sprt.map_or(1.0, Sprt::acceptance_probability);
     let mut required =
         required_iterations(floor_ratio * kept(sprt.as_ref()).cbrt(), options.confidence);

@@ -2,6 +2,7 @@
 //! map is opened: the query's VLAD on the catalog's one codebook is scored against every
 //! place's images, and places are ordered by their best image's cosine.
 
+use super::retrieval::Rows;
 use super::QueryFeatures;
 use crate::format::{Catalog, Error as FormatError};
 use crate::vector::project_rows;
@@ -32,7 +33,8 @@ impl PlaceRanker {
     pub fn new(catalog: &Catalog<'_>) -> Result<PlaceRanker, FormatError> {
         let codebook = Codebook::new(catalog.centroids.to_vec(), catalog.dims)
             .ok_or_else(|| FormatError::inconsistent("catalog: a codebook of no centroids"))?;
-        let images = catalog.image_vlad.iter().map(|v| v.to_f32()).collect();
+        let mut images = vec![0.0f32; catalog.image_vlad.len()];
+        crate::vector::widen_f16(&catalog.image_vlad, &mut images);
         Ok(PlaceRanker {
             codebook,
             projection: catalog.projection.to_vec(),
@@ -82,16 +84,8 @@ impl PlaceRanker {
                     self.place_images[place] as usize,
                     self.place_images[place + 1] as usize,
                 );
-                // One GEMM row per place (the retrieval kernel), not a dot per image.
-                let mut cosines = vec![0.0f32; end - start];
-                super::kernels::sgemm_abt(
-                    &q,
-                    &self.images[start * width..end * width],
-                    &mut cosines,
-                    1,
-                    end - start,
-                    width,
-                );
+                // The retrieval kernel: a dot per image.
+                let cosines = Rows::F32(&self.images[start * width..end * width]).dots(width, &q);
                 let score = cosines
                     .into_iter()
                     .filter(|s| s.is_finite())

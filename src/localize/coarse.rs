@@ -280,7 +280,7 @@ impl Localizer<'_> {
             let kp = set.keypoints[m.query as usize * stride];
             let p = level.points[rows[m.map as usize]];
             pixels.push(Vector2::new(kp[0], kp[1]));
-            points.push(self.positions[p as usize]);
+            points.push(self.position(p));
         }
         stride > 1
     }

@@ -43,9 +43,8 @@ impl Localizer<'_> {
         if images.is_empty() {
             return Err(TrackingLost::NoImagesNearPrior);
         }
-        let candidates = super::retrieval::points_seen(&images, self.positions.len(), |i| {
-            visibility.points_of(i)
-        });
+        let candidates =
+            super::retrieval::points_seen(&images, self.n_points(), |i| visibility.points_of(i));
         let gate = self.options.gate_px * PRIOR_GATE_FACTOR;
         let result = self.refine(sets, candidates.as_deref(), *prior, gate, camera);
         times.fine_ms += ms(t);
@@ -70,11 +69,13 @@ impl Localizer<'_> {
         }
     }
 
-    /// Two rounds of guided matching on every selected level (`candidates`: the points to
-    /// consider, `None` every point) around `start`, the first with a gate of `first_gate`
-    /// pixels, each followed by a RANSAC estimate seeded with the pose so far: the last
-    /// estimate as a localization (the caller fills in retrieval and timing), or `None` if
-    /// the first round gives no pose.
+    /// Up to two rounds of guided matching on every selected level (`candidates`: the points
+    /// to consider, `None` every point) around `start`, the first with a gate of `first_gate`
+    /// pixels (on every `stride`-th keypoint when that is wider than `gate_px`, again on all
+    /// of them if that gives no pose), each followed by a RANSAC estimate seeded with the pose
+    /// so far; the second is skipped when the first barely moved the pose at the same gate
+    /// ([`settled`]). The last estimate as a localization (the caller fills in retrieval and
+    /// timing), or `None` if the first round gives no pose.
     pub(super) fn refine(
         &self,
         sets: &[Query<'_>],
@@ -85,7 +86,7 @@ impl Localizer<'_> {
     ) -> Option<Localization> {
         let mut pose = start;
         let mut result = None;
-        // Each level's candidate rows, found once for both rounds.
+        // Each level's candidate rows, found once for all rounds.
         let rows: Vec<Option<Vec<u32>>> =
             self.levels.iter().map(|l| l.rows_of(candidates)).collect();
         // A first gate wider than `gate_px` (a prior's) looks at every `stride`-th keypoint,
@@ -203,7 +204,7 @@ impl Localizer<'_> {
         };
         for row in candidate_rows {
             let p = level.points[row as usize];
-            let pc = pose.transform(&self.positions[p as usize]);
+            let pc = pose.transform(&self.position(p));
             if pc.z <= 0.0 {
                 continue;
             }
@@ -218,7 +219,7 @@ impl Localizer<'_> {
         if in_view.is_empty() {
             return;
         }
-        let grid = Grid::new(&in_view, w, h, gate);
+        let grid = Grid::new(&in_view, gate);
         let cells = &grid.points;
         // The rows in view are decoded once, in cell order, when they are few (retrieval's
         // candidates: a gate reaches each row dozens of times, 100 k street fine stage
@@ -296,17 +297,19 @@ impl Localizer<'_> {
         for (p, _, k) in found {
             let kp = set.keypoints[k];
             pixels.push(Vector2::new(kp[0], kp[1]));
-            points.push(self.positions[p as usize]);
+            points.push(self.position(p));
         }
     }
 }
 
-/// The points in view bucketed by a flat grid (counting sort into cell order, offsets per
-/// cell): a keypoint finds the points of the 3 × 3 cells around it by six lookups. Cells are
-/// at least a gate wide, so those cells cover the gate, and wider when the camera claims an
-/// image so large that the grid would outgrow the points in view: memory follows the points,
-/// whatever image size the camera states.
+/// The points in view bucketed by a flat grid over their bounding box (counting sort into
+/// cell order, offsets per cell): a keypoint finds the points of the 3 × 3 cells around it by
+/// six lookups. Cells are at least a gate wide, so those cells cover the gate, and wider when
+/// the points spread so far that the grid would outgrow them: memory follows the points in
+/// view, and so does the work, whatever image size the camera claims.
 struct Grid {
+    /// The bounding box's lowest corner.
+    origin: [f64; 2],
     cell: f64,
     columns: usize,
     rows: usize,
@@ -317,8 +320,17 @@ struct Grid {
 }
 
 impl Grid {
-    /// `in_view`'s pixels lie in `[0, w) × [0, h)`.
-    fn new(in_view: &[(u32, [f32; 2])], w: f64, h: f64, gate: f64) -> Grid {
+    /// `in_view`'s pixels are finite.
+    fn new(in_view: &[(u32, [f32; 2])], gate: f64) -> Grid {
+        let mut lo = [f64::INFINITY; 2];
+        let mut hi = [f64::NEG_INFINITY; 2];
+        for (_, xy) in in_view {
+            for k in 0..2 {
+                lo[k] = lo[k].min(f64::from(xy[k]));
+                hi[k] = hi[k].max(f64::from(xy[k]));
+            }
+        }
+        let (w, h) = ((hi[0] - lo[0]).max(0.0), (hi[1] - lo[1]).max(0.0));
         let max_cells = (4 * in_view.len() + 1024) as f64;
         // Each side has at most `max_cells` cells, and the area at most `max_cells` cells.
         let cell = gate
@@ -327,41 +339,64 @@ impl Grid {
             .max(h / max_cells);
         let columns = (w / cell) as usize + 1;
         let rows = (h / cell) as usize + 1;
-        let index = |xy: [f32; 2]| {
-            let cx = ((f64::from(xy[0]) / cell) as usize).min(columns - 1);
-            let cy = ((f64::from(xy[1]) / cell) as usize).min(rows - 1);
-            cy * columns + cx
-        };
-        let mut offsets = vec![0u32; columns * rows + 1];
-        for &(_, xy) in in_view {
-            offsets[index(xy) + 1] += 1;
-        }
-        for c in 1..offsets.len() {
-            offsets[c] += offsets[c - 1];
-        }
-        let mut next = offsets.clone();
-        let mut points = vec![(0u32, [0.0f32; 2]); in_view.len()];
-        for &(row, xy) in in_view {
-            let slot = &mut next[index(xy)];
-            points[*slot as usize] = (row, xy);
-            *slot += 1;
-        }
-        Grid {
+        let mut grid = Grid {
+            origin: if in_view.is_empty() { [0.0; 2] } else { lo },
             cell,
             columns,
             rows,
-            offsets,
-            points,
+            offsets: vec![0u32; columns * rows + 1],
+            points: vec![(0u32, [0.0f32; 2]); in_view.len()],
+        };
+        // Counts, their exclusive sums (each cell's start), then each entry placed at its
+        // cell's next slot: the starts become the ends, shifted into `offsets[c + 1]`.
+        let cells: Vec<usize> = in_view.iter().map(|&(_, xy)| grid.index(xy)).collect();
+        for &c in &cells {
+            grid.offsets[c] += 1;
         }
+        let mut running = 0;
+        for o in &mut grid.offsets {
+            let count = *o;
+            *o = running;
+            running += count;
+        }
+        for (&c, &entry) in cells.iter().zip(in_view) {
+            grid.points[grid.offsets[c] as usize] = entry;
+            grid.offsets[c] += 1;
+        }
+        grid.offsets.rotate_right(1);
+        grid.offsets[0] = 0;
+        grid
     }
 
-    /// For each of the (up to 3) cell rows around pixel (x, y) inside the image, the range of
-    /// `points` in the (up to 3) cells around it in that row.
+    fn index(&self, xy: [f32; 2]) -> usize {
+        let cx = (((f64::from(xy[0]) - self.origin[0]) / self.cell) as usize).min(self.columns - 1);
+        let cy = (((f64::from(xy[1]) - self.origin[1]) / self.cell) as usize).min(self.rows - 1);
+        cy * self.columns + cx
+    }
+
+    /// For each of the (up to 3) cell rows around pixel (x, y), the range of `points` in the
+    /// (up to 3) cells around it in that row; none when (x, y) is more than a cell outside the
+    /// bounding box.
     fn around(&self, x: f64, y: f64) -> impl Iterator<Item = (usize, usize)> + '_ {
-        let cx = ((x / self.cell) as usize).min(self.columns - 1);
-        let cy = ((y / self.cell) as usize).min(self.rows - 1);
-        let (x_lo, x_hi) = (cx.saturating_sub(1), (cx + 1).min(self.columns - 1));
-        (cy.saturating_sub(1)..=(cy + 1).min(self.rows - 1)).map(move |gy| {
+        let at = |v: f64, origin: f64| ((v - origin) / self.cell).floor();
+        let (fx, fy) = (at(x, self.origin[0]), at(y, self.origin[1]));
+        let span = |f: f64, n: usize| -> (usize, usize) {
+            // Cells f − 1 ..= f + 1 within 0..n (empty as (1, 0) when none are).
+            if !(f >= -1.0 && f <= n as f64) {
+                return (1, 0);
+            }
+            let lo = (f - 1.0).max(0.0) as usize;
+            let hi = ((f + 1.0) as usize).min(n - 1);
+            if lo > hi {
+                (1, 0)
+            } else {
+                (lo, hi)
+            }
+        };
+        let (x_lo, x_hi) = span(fx, self.columns);
+        let (y_lo, y_hi) = span(fy, self.rows);
+        let rows = if x_lo > x_hi { 1..=0 } else { y_lo..=y_hi };
+        rows.map(move |gy| {
             let start = gy * self.columns;
             (
                 self.offsets[start + x_lo] as usize,
@@ -417,7 +452,7 @@ mod tests {
                 (i, xy)
             })
             .collect();
-        let grid = Grid::new(&in_view, w, h, gate);
+        let grid = Grid::new(&in_view, gate);
         assert_eq!(grid.points.len(), in_view.len());
         for _ in 0..200 {
             let (x, y) = (rng.next_f64() * w, rng.next_f64() * h);
@@ -441,11 +476,43 @@ mod tests {
                 .collect();
             assert_eq!(near, want);
         }
-        // A camera claiming a vast image (or a thin one) does not size the grid.
-        for (w, h) in [(4e9, 4e9), (4e9, 1.0), (1.0, 4e9)] {
-            let grid = Grid::new(&in_view[..3], w, h, gate);
-            assert!(grid.offsets.len() <= 4 * (4 * 3 + 1024), "{w} x {h}");
+        // Points spread over a vast image (or a thin one): the grid stays small, its cells
+        // wider than the gate, and still every point within the gate is found.
+        for (w, h) in [(4e9, 4e9), (4e9, 1.0), (1.0, 4e9), (1e5, 1e5)] {
+            let spread: Vec<(u32, [f32; 2])> = (0..300)
+                .map(|i| {
+                    let (x, y) = (rng.next_f64() * w, rng.next_f64() * h);
+                    (i, [x as f32, y as f32])
+                })
+                .collect();
+            let grid = Grid::new(&spread, gate);
+            assert!(grid.offsets.len() <= 4 * (4 * 300 + 1024), "{w} x {h}");
+            for &(_, xy) in spread.iter().take(50) {
+                let (x, y) = (f64::from(xy[0]) + 3.0, f64::from(xy[1]) - 3.0);
+                let found: Vec<u32> = grid
+                    .around(x, y)
+                    .flat_map(|(lo, hi)| grid.points[lo..hi].iter())
+                    .filter(|(_, p)| {
+                        let (dx, dy) = (f64::from(p[0]) - x, f64::from(p[1]) - y);
+                        dx * dx + dy * dy <= gate * gate
+                    })
+                    .map(|p| p.0)
+                    .collect();
+                let want: Vec<u32> = spread
+                    .iter()
+                    .filter(|(_, p)| {
+                        let (dx, dy) = (f64::from(p[0]) - x, f64::from(p[1]) - y);
+                        dx * dx + dy * dy <= gate * gate
+                    })
+                    .map(|p| p.0)
+                    .collect();
+                let mut found = found;
+                found.sort_unstable();
+                assert_eq!(found, want, "{w} x {h}");
+            }
         }
+        // A keypoint far outside the points' box finds nothing.
+        assert_eq!(grid.around(-1e6, 5.0).count(), 0);
     }
 
     #[test]

@@ -21,6 +21,7 @@ use crate::format::{Error as FormatError, Map, Retrieval, SectionKind, Visibilit
 use crate::geometry::{Camera, Pose, PoseEstimate};
 use crate::vector::{dot, normalise_rows};
 use nalgebra::Vector3;
+use std::borrow::Cow;
 use std::cell::OnceCell;
 use std::time::Instant;
 
@@ -371,7 +372,11 @@ struct Retrieved {
 pub struct Localizer<'m> {
     pub(super) map: &'m Map<'m>,
     pub(super) options: LocalizeOptions,
-    pub(super) positions: Vec<Vector3<f64>>,
+    /// The map's point positions as stored (origin-relative f32, read in place when the
+    /// section is raw): [`Self::position`] makes a world position of one when it is used. (A
+    /// world f64 copy was 24 MB at 1 M points, made at every open, and twice the cache
+    /// footprint for guided matching's projections.)
+    positions: Cow<'m, [[f32; 3]]>,
     /// Selected levels, deepest first; never empty.
     pub(super) levels: Vec<LevelIndex<'m>>,
     /// Selected levels that are not matched, and why.
@@ -420,11 +425,7 @@ impl<'m> Localizer<'m> {
         if levels.is_empty() {
             return Err(LocalizeError::NoUsableLevel { skipped });
         }
-        let positions = map
-            .point_positions()?
-            .iter()
-            .map(|&p| Vector3::from(map.to_world(p)))
-            .collect();
+        let positions = map.point_positions()?;
         let retrieval = RetrievalIndex::new(map, options.retrieval)?;
         let viewpoints = map
             .images()?
@@ -445,6 +446,16 @@ impl<'m> Localizer<'m> {
 
     pub fn options(&self) -> &LocalizeOptions {
         &self.options
+    }
+
+    /// The world position of map point `p`.
+    pub(super) fn position(&self, p: u32) -> Vector3<f64> {
+        Vector3::from(self.map.to_world(self.positions[p as usize]))
+    }
+
+    /// How many points the map has (the positions' length).
+    pub(super) fn n_points(&self) -> usize {
+        self.positions.len()
     }
 
     /// Level ids in matching order (deepest first).
@@ -565,7 +576,7 @@ impl<'m> Localizer<'m> {
                     let mut images = viewpoints.near(&seed.estimate.pose, self.options.top_k);
                     images.extend(&retrieved);
                     (!images.is_empty()).then(|| {
-                        super::retrieval::points_seen(&images, self.positions.len(), |i| {
+                        super::retrieval::points_seen(&images, self.n_points(), |i| {
                             visibility.points_of(i)
                         })
                     })
@@ -654,9 +665,7 @@ impl<'m> Localizer<'m> {
         let (images, ranked) = self.retrieval.retrieve(query, n_images, self.options.top_k);
         let seen = |images: &[usize]| match (&self.visibility, &ranked) {
             (Some(visibility), Ok(_)) => {
-                super::retrieval::points_seen(images, self.positions.len(), |i| {
-                    visibility.points_of(i)
-                })
+                super::retrieval::points_seen(images, self.n_points(), |i| visibility.points_of(i))
             }
             _ => None,
         };
@@ -687,7 +696,7 @@ impl<'m> Localizer<'m> {
             .retrieval
             .retrieve(query, self.map.n_images() as usize, k);
         ranked.ok()?;
-        super::retrieval::points_seen(&images, self.positions.len(), |i| visibility.points_of(i))
+        super::retrieval::points_seen(&images, self.n_points(), |i| visibility.points_of(i))
     }
 
     /// The query's feature set for `level`, checked against the level's descriptor space.

@@ -422,8 +422,12 @@ mod tests {
         let mut rng = crate::geometry::SplitMix64::new(9);
         for len in [1, 3, 7, 8, 9, 15, 16, 17, 40, 301] {
             for _ in 0..20 {
+                // Values in [-1, 1) on a grid of sixths, and now and then -inf (no score).
                 let row: Vec<f32> = (0..len)
-                    .map(|_| (rng.next_f64() * 6.0).floor() as f32 / 6.0)
+                    .map(|_| match rng.next_f64() {
+                        u if u < 0.05 => f32::NEG_INFINITY,
+                        u => ((u * 12.0).floor() as f32 - 6.0) / 6.0,
+                    })
                     .collect();
                 let mut columns: Vec<f32> =
                     (0..len).map(|_| (rng.next_f64() as f32) - 0.5).collect();

@@ -90,7 +90,8 @@ struct VladIndex<'m> {
     images: Cow<'m, [f16]>,
 }
 
-/// What a localizer retrieves with: the map's global descriptors and VLAD, decoded once.
+/// What a localizer retrieves with: the map's global descriptors (decoded once) and VLAD (read
+/// in place).
 pub(crate) struct RetrievalIndex<'m> {
     global: Option<(Vec<f32>, usize)>,
     vlad: Option<VladIndex<'m>>,
@@ -115,7 +116,8 @@ impl<'m> RetrievalIndex<'m> {
             None
         };
         let global = global.filter(|(_, dim)| *dim > 0).map(|(g, dim)| {
-            let mut v: Vec<f32> = g.iter().map(|x| x.to_f32()).collect();
+            let mut v = vec![0.0f32; g.len()];
+            crate::vector::widen_f16(&g, &mut v);
             normalise_rows(&mut v, dim);
             (v, dim)
         });
@@ -283,7 +285,7 @@ impl Rows<'_> {
     }
 
     /// Each row's dot product with `q` (`dim` values).
-    fn dots(&self, dim: usize, q: &[f32]) -> Vec<f32> {
+    pub(crate) fn dots(&self, dim: usize, q: &[f32]) -> Vec<f32> {
         let dim = dim.max(1);
         match self {
             Rows::F32(v) => v.chunks_exact(dim).map(|row| dot(row, q)).collect(),
@@ -389,6 +391,24 @@ mod tests {
             );
         }
         assert!(top_k_indices(&[], 3).is_empty());
+    }
+
+    #[test]
+    fn f16_rows_score_as_their_f32_values_across_the_decoding_stretch() {
+        // Widths below, at and past the 256-value stretch the f16 rows are decoded in.
+        let mut rng = crate::geometry::SplitMix64::new(8);
+        for dim in [3, 256, 300, 1024] {
+            let rows: Vec<f16> = (0..5 * dim)
+                .map(|_| f16::from_f32(rng.next_f64() as f32 - 0.5))
+                .collect();
+            let q: Vec<f32> = (0..dim).map(|_| rng.next_f64() as f32 - 0.5).collect();
+            let wide: Vec<f32> = rows.iter().map(|v| v.to_f32()).collect();
+            let want = Rows::F32(&wide).dots(dim, &q);
+            let got = Rows::F16(&rows).dots(dim, &q);
+            for (g, w) in got.iter().zip(&want) {
+                assert!((g - w).abs() <= 1e-4 * (1.0 + w.abs()), "{dim}: {g} vs {w}");
+            }
+        }
     }
 
     #[test]
