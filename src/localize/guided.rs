@@ -380,27 +380,26 @@ impl Grid {
     fn around(&self, x: f64, y: f64) -> impl Iterator<Item = (usize, usize)> + '_ {
         let at = |v: f64, origin: f64| ((v - origin) / self.cell).floor();
         let (fx, fy) = (at(x, self.origin[0]), at(y, self.origin[1]));
-        let span = |f: f64, n: usize| -> (usize, usize) {
-            // Cells f − 1 ..= f + 1 within 0..n (empty as (1, 0) when none are).
+        // Cells f − 1 ..= f + 1 within 0..n, as a half-open range (empty when none are).
+        let span = |f: f64, n: usize| -> std::ops::Range<usize> {
             if !(f >= -1.0 && f <= n as f64) {
-                return (1, 0);
+                return 0..0;
             }
             let lo = (f - 1.0).max(0.0) as usize;
-            let hi = ((f + 1.0) as usize).min(n - 1);
-            if lo > hi {
-                (1, 0)
-            } else {
-                (lo, hi)
-            }
+            let end = ((f + 2.0) as usize).min(n);
+            lo..end.max(lo)
         };
-        let (x_lo, x_hi) = span(fx, self.columns);
-        let (y_lo, y_hi) = span(fy, self.rows);
-        let rows = if x_lo > x_hi { 1..=0 } else { y_lo..=y_hi };
+        let columns = span(fx, self.columns);
+        let rows = if columns.is_empty() {
+            0..0
+        } else {
+            span(fy, self.rows)
+        };
         rows.map(move |gy| {
             let start = gy * self.columns;
             (
-                self.offsets[start + x_lo] as usize,
-                self.offsets[start + x_hi + 1] as usize,
+                self.offsets[start + columns.start] as usize,
+                self.offsets[start + columns.end] as usize,
             )
         })
     }
