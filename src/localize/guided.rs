@@ -22,6 +22,13 @@ const PRIOR_GATE_FACTOR: f64 = 2.0;
 /// 4 of its 19 predicted frames, 0.2 none).
 const TRACKING_MIN_INLIER_SHARE: f64 = 0.2;
 
+/// The first round's pose ends the refinement when 90 % of its inliers reproject within this
+/// many pixels of where the starting pose put them: a second round at the same gate would gate
+/// the same candidates and refit the same pose. A quarter gate (6 px) was faster on the 1 M
+/// street but cost South Building's SFP level-2 PQ maps their accuracy (`l2s-pq8` recall
+/// 96 → 85 %, `l2s-min-pq8` 92 → 88 %); 1 px keeps every shared-scene row.
+const SETTLED_PX: f64 = 1.0;
+
 /// Decoded values of the rows in view guided matching keeps for a level (16 MB).
 const DECODED_IN_VIEW_MAX: usize = 4 << 20;
 
@@ -132,6 +139,7 @@ impl Localizer<'_> {
                 min_inliers: self.options.min_inliers,
                 ..RansacOptions::default()
             };
+
             match estimate_absolute_pose_with_prior(
                 &pixels,
                 &points,
@@ -142,7 +150,7 @@ impl Localizer<'_> {
                 Ok(e) => {
                     let settled = round == 0
                         && self.options.gate_px >= first_gate
-                        && settled(&pose, &e, &points, camera, first_gate / 4.0);
+                        && settled(&pose, &e, &points, camera, SETTLED_PX);
                     pose = e.pose;
                     result = Some((e, level_of, pixels.len()));
                     if settled {
@@ -406,9 +414,7 @@ impl Grid {
 }
 
 /// Whether the pose barely moved from `before` to `estimate`: 90 % of its inliers reproject
-/// within `tolerance_px` of where they did. A second round at the same gate would then gate
-/// the same candidates (on the street it changed the inliers by under 1 %, at half the fine
-/// stage's time), so it is skipped.
+/// within `tolerance_px` of where they did ([`SETTLED_PX`]).
 fn settled(
     before: &Pose,
     estimate: &crate::geometry::PoseEstimate,
