@@ -447,6 +447,32 @@ mod tests {
     use crate::geometry::PoseEstimate;
     use nalgebra::UnitQuaternion;
 
+    /// The points of `points` within `gate` of (x, y), by index, ascending.
+    fn within<'a>(
+        points: impl Iterator<Item = &'a (u32, [f32; 2])>,
+        x: f64,
+        y: f64,
+        gate: f64,
+    ) -> Vec<u32> {
+        let mut near: Vec<u32> = points
+            .filter(|(_, p)| {
+                let (dx, dy) = (f64::from(p[0]) - x, f64::from(p[1]) - y);
+                dx * dx + dy * dy <= gate * gate
+            })
+            .map(|p| p.0)
+            .collect();
+        near.sort_unstable();
+        near
+    }
+
+    /// What the grid gives around (x, y), filtered by the gate.
+    fn found(grid: &Grid, x: f64, y: f64, gate: f64) -> Vec<u32> {
+        let candidates = grid
+            .around(x, y)
+            .flat_map(|(lo, hi)| grid.points[lo..hi].iter());
+        within(candidates, x, y, gate)
+    }
+
     #[test]
     fn the_grid_finds_every_point_within_the_gate_and_stays_small() {
         let mut rng = crate::geometry::SplitMix64::new(3);
@@ -461,25 +487,7 @@ mod tests {
         assert_eq!(grid.points.len(), in_view.len());
         for _ in 0..200 {
             let (x, y) = (rng.next_f64() * w, rng.next_f64() * h);
-            let mut near: Vec<u32> = grid
-                .around(x, y)
-                .flat_map(|(lo, hi)| grid.points[lo..hi].iter())
-                .filter(|(_, xy)| {
-                    let (dx, dy) = (f64::from(xy[0]) - x, f64::from(xy[1]) - y);
-                    dx * dx + dy * dy <= gate * gate
-                })
-                .map(|p| p.0)
-                .collect();
-            near.sort_unstable();
-            let want: Vec<u32> = in_view
-                .iter()
-                .filter(|(_, xy)| {
-                    let (dx, dy) = (f64::from(xy[0]) - x, f64::from(xy[1]) - y);
-                    dx * dx + dy * dy <= gate * gate
-                })
-                .map(|p| p.0)
-                .collect();
-            assert_eq!(near, want);
+            assert_eq!(found(&grid, x, y, gate), within(in_view.iter(), x, y, gate));
         }
         // Points spread over a vast image (or a thin one): the grid stays small, its cells
         // wider than the gate, and still every point within the gate is found.
@@ -494,26 +502,9 @@ mod tests {
             assert!(grid.offsets.len() <= 4 * (4 * 300 + 1024), "{w} x {h}");
             for &(_, xy) in spread.iter().take(50) {
                 let (x, y) = (f64::from(xy[0]) + 3.0, f64::from(xy[1]) - 3.0);
-                let found: Vec<u32> = grid
-                    .around(x, y)
-                    .flat_map(|(lo, hi)| grid.points[lo..hi].iter())
-                    .filter(|(_, p)| {
-                        let (dx, dy) = (f64::from(p[0]) - x, f64::from(p[1]) - y);
-                        dx * dx + dy * dy <= gate * gate
-                    })
-                    .map(|p| p.0)
-                    .collect();
-                let want: Vec<u32> = spread
-                    .iter()
-                    .filter(|(_, p)| {
-                        let (dx, dy) = (f64::from(p[0]) - x, f64::from(p[1]) - y);
-                        dx * dx + dy * dy <= gate * gate
-                    })
-                    .map(|p| p.0)
-                    .collect();
-                let mut found = found;
-                found.sort_unstable();
-                assert_eq!(found, want, "{w} x {h}");
+                let want = within(spread.iter(), x, y, gate);
+                assert!(!want.is_empty());
+                assert_eq!(found(&grid, x, y, gate), want, "{w} x {h}");
             }
         }
         // A keypoint far outside the points' box finds nothing.
