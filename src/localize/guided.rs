@@ -2,6 +2,7 @@
 //! by level, around a pose (the coarse pose, or a sequence's prediction), then re-estimated.
 //! The fine stage of every query, and the whole of a tracked one.
 
+use super::coarse::FINE_SURE_FACTOR;
 use super::level::LevelIndex;
 use super::localizer::{ms, Query};
 use super::matching::fails_ratio_test;
@@ -21,13 +22,6 @@ const PRIOR_GATE_FACTOR: f64 = 2.0;
 /// 175, 30 of 252); the street's walk, level 2 short: right tracks 25–29 % at worst (0.3 lost
 /// 4 of its 19 predicted frames, 0.2 none).
 const TRACKING_MIN_INLIER_SHARE: f64 = 0.2;
-
-/// The first round's pose ends the refinement when 90 % of its inliers reproject within this
-/// many pixels of where the starting pose put them: a second round at the same gate would gate
-/// the same candidates and refit the same pose. A quarter gate (6 px) was faster on the 1 M
-/// street but cost South Building's SFP level-2 PQ maps their accuracy (`l2s-pq8` recall
-/// 96 → 85 %, `l2s-min-pq8` 92 → 88 %); 1 px keeps every shared-scene row.
-const SETTLED_PX: f64 = 1.0;
 
 /// Decoded values of the rows in view guided matching keeps for a level (16 MB).
 const DECODED_IN_VIEW_MAX: usize = 4 << 20;
@@ -148,9 +142,12 @@ impl Localizer<'_> {
                 &fine_options,
             ) {
                 Ok(e) => {
+                    // A strong first round that barely moved the pose ends the refinement.
+                    let sure = FINE_SURE_FACTOR.saturating_mul(self.options.min_inliers);
                     let settled = round == 0
                         && self.options.gate_px >= first_gate
-                        && settled(&pose, &e, &points, camera, SETTLED_PX);
+                        && e.num_inliers >= sure
+                        && settled(&pose, &e, &points, camera, first_gate / 4.0);
                     pose = e.pose;
                     result = Some((e, level_of, pixels.len()));
                     if settled {
@@ -414,7 +411,12 @@ impl Grid {
 }
 
 /// Whether the pose barely moved from `before` to `estimate`: 90 % of its inliers reproject
-/// within `tolerance_px` of where they did ([`SETTLED_PX`]).
+/// within `tolerance_px` of where they did. With a quarter gate, and a first round of at least
+/// `FINE_SURE_FACTOR × min_inliers` inliers (the coarse search's "sure"), a second round at the
+/// same gate would gate the same candidates and refit the same pose: skipped. (Without the
+/// inlier condition South Building's SFP level-2 PQ maps lost accuracy, `l2s-pq8` recall
+/// 96 → 85 %: their weak first rounds gain from the second; a 1 px tolerance instead kept
+/// them but lost most of the street's gain, SIFT 39 → 49–59 ms.)
 fn settled(
     before: &Pose,
     estimate: &crate::geometry::PoseEstimate,
