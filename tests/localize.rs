@@ -403,3 +403,36 @@ fn budget_slices_fit_and_localize() {
         "{smallest}"
     );
 }
+
+/// A prior's wide first round looks at every 4th keypoint; a query whose 40 keypoints leave
+/// that round 10, fewer than `min_inliers` (12), is tracked all the same: the round is run
+/// again on every keypoint.
+#[test]
+fn a_prior_whose_strided_round_is_too_thin_still_tracks() {
+    let s = scene();
+    let bytes = map_bytes(&s);
+    let map = Map::from_bytes(&bytes).unwrap();
+    let localizer = Localizer::new(&map, LocalizeOptions::default()).unwrap();
+    let mut q = query(&s, &truth(), 0, DIM);
+    let set = &mut q.sets[0];
+    set.keypoints.truncate(40);
+    set.descriptors.truncate(40 * DIM);
+    // The prior: the truth moved 2 cm sideways (a few pixels at these depths).
+    let t = truth();
+    let prior = Pose::new(
+        t.rotation,
+        t.translation + nalgebra::Vector3::new(0.02, 0.0, 0.0),
+    );
+    let r = localizer
+        .localize_with_prior(&q, &s.camera, Some(&prior))
+        .unwrap();
+    assert_eq!(
+        r.path,
+        sfpmap::localize::LocalizationPath::Tracking,
+        "{:?}",
+        r.tracking_lost
+    );
+    assert!(r.inliers > 10, "{} inliers", r.inliers);
+    let pose = *r.pose().unwrap();
+    assert!(pose.rotation_error_deg(&t) < 0.5);
+}
