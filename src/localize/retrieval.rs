@@ -183,12 +183,8 @@ impl<'m> RetrievalIndex<'m> {
         let mut first_reason = None;
         for &method in methods {
             let vectors = match method {
-                Retrieval::Global => self
-                    .global_vectors(query)
-                    .map(|(database, q, dim)| (Rows::F32(database), q, dim)),
-                Retrieval::Vlad => self
-                    .vlad_vectors(query)
-                    .map(|(database, q, dim)| (Rows::F16(database), q, dim)),
+                Retrieval::Global => self.global_vectors(query),
+                Retrieval::Vlad => self.vlad_vectors(query),
             };
             match vectors {
                 Ok((database, q, dim)) if database.len() == n_images * dim => {
@@ -211,7 +207,7 @@ impl<'m> RetrievalIndex<'m> {
     fn global_vectors(
         &self,
         query: &QueryFeatures,
-    ) -> Result<(&[f32], Vec<f32>, usize), RetrievalFallback> {
+    ) -> Result<(Rows<'_>, Vec<f32>, usize), RetrievalFallback> {
         let (g, dim) = self
             .global
             .as_ref()
@@ -226,13 +222,13 @@ impl<'m> RetrievalIndex<'m> {
                 query: q.len(),
             });
         }
-        Ok((g, q.clone(), *dim))
+        Ok((Rows::F32(g), q.clone(), *dim))
     }
 
     fn vlad_vectors(
         &self,
         query: &QueryFeatures,
-    ) -> Result<(&[f16], Vec<f32>, usize), RetrievalFallback> {
+    ) -> Result<(Rows<'_>, Vec<f32>, usize), RetrievalFallback> {
         let v = self
             .vlad
             .as_ref()
@@ -265,7 +261,11 @@ impl<'m> RetrievalIndex<'m> {
             }
         }
         normalise_rows(&mut rows, dims);
-        Ok((&v.images, v.codebook.vlad(&rows), v.codebook.width()))
+        Ok((
+            Rows::F16(&v.images),
+            v.codebook.vlad(&rows),
+            v.codebook.width(),
+        ))
     }
 }
 
