@@ -824,3 +824,38 @@ fn a_search_without_a_pose_ends_where_min_inliers_would_have_been_found() {
     let found = run_with(&s, &options).expect("12 inliers of 60");
     assert!(found.num_inliers >= 12);
 }
+
+#[test]
+fn a_prior_that_explains_enough_matches_is_accepted_without_sampling() {
+    // 300 correspondences, 30 % outliers: a prior near the truth keeps ~210 inliers.
+    let s = scene(83, SIMPLE_RADIAL, 300, 0.3, 1.0);
+    let prior = perturb(&s.truth, 0.3, 0.02);
+    let options = RansacOptions {
+        accept_prior: Some(150),
+        ..test_options()
+    };
+    let accepted =
+        estimate_absolute_pose_with_prior(&s.pixels, &s.points, &s.camera, Some(&prior), &options)
+            .unwrap();
+    assert_eq!(accepted.iterations, 0);
+    assert!(accepted.num_inliers >= 150, "{}", accepted.num_inliers);
+    assert!(accepted.pose.rotation_error_deg(&s.truth) < 0.5);
+    assert!(accepted.pose.center_distance(&s.truth) < 0.05);
+    // The same prior asked to explain more than the matches hold is one hypothesis among
+    // the samples, as without the option.
+    let sampled = RansacOptions {
+        accept_prior: Some(301),
+        ..test_options()
+    };
+    let searched =
+        estimate_absolute_pose_with_prior(&s.pixels, &s.points, &s.camera, Some(&prior), &sampled)
+            .unwrap();
+    assert!(searched.iterations >= sampled.min_iterations);
+    // A wrong prior (far from the truth) explains too few and the samples find the pose.
+    let wrong = perturb(&s.truth, 30.0, 2.0);
+    let recovered =
+        estimate_absolute_pose_with_prior(&s.pixels, &s.points, &s.camera, Some(&wrong), &options)
+            .unwrap();
+    assert!(recovered.iterations > 0);
+    assert!(recovered.pose.rotation_error_deg(&s.truth) < 0.5);
+}

@@ -62,6 +62,12 @@ pub struct RansacOptions {
     pub local_refine: RefineOptions,
     /// A final LM refinement on all inliers of the best pose; `None` returns the LO-RANSAC pose.
     pub final_refine: Option<RefineOptions>,
+    /// A prior ([`estimate_absolute_pose_with_prior`]) whose local optimization keeps at
+    /// least this many inliers ends the search without sampling: guided matches gathered
+    /// around a pose that already explains this many of them need no search for another
+    /// (the localizer's fine stage: 100+ samples a round on the street's walk otherwise).
+    /// `None`: the prior is one hypothesis among the samples.
+    pub accept_prior: Option<usize>,
 }
 
 impl Default for RansacOptions {
@@ -83,6 +89,7 @@ impl Default for RansacOptions {
                 ..RefineOptions::default()
             },
             final_refine: Some(RefineOptions::default()),
+            accept_prior: None,
         }
     }
 }
@@ -157,7 +164,8 @@ pub fn estimate_absolute_pose(
 
 /// [`estimate_absolute_pose`] that first scores a prior pose (e.g. from a coarser level) as if
 /// a sample had produced it. A good prior sets a high inlier ratio at once, so the adaptive
-/// count stops after `min_iterations`; a bad one costs one scoring pass.
+/// count stops after `min_iterations` (or at once, see [`RansacOptions::accept_prior`]); a
+/// bad one costs one scoring pass.
 pub fn estimate_absolute_pose_with_prior(
     pixels: &[Vector2<f64>],
     points: &[Vector3<f64>],
@@ -213,10 +221,13 @@ pub fn estimate_absolute_pose_with_prior(
         .progressive
         .then(|| ProgressiveSampler::new(usable.len()));
     let mut pending_prior = prior.copied();
-    while iterations
-        < options
-            .max_iterations
-            .min(required.max(options.min_iterations))
+    // Set when the prior alone is accepted (`accept_prior`).
+    let mut accepted = false;
+    while !accepted
+        && iterations
+            < options
+                .max_iterations
+                .min(required.max(options.min_iterations))
     {
         let hypotheses = match pending_prior.take() {
             Some(prior) => p3p::Solutions::single(prior),
@@ -255,6 +266,14 @@ pub fn estimate_absolute_pose_with_prior(
                 scorer.inliers_into(&candidate.0, &mut inlier_indices) as f64 / pixels.len() as f64;
             if let Some(sprt) = sprt.as_mut() {
                 sprt.set_inlier_ratio(inlier_ratio);
+            }
+            // Only the prior is scored before the first sample.
+            if iterations == 0
+                && options
+                    .accept_prior
+                    .is_some_and(|needed| inlier_indices.len() >= needed)
+            {
+                accepted = true;
             }
             let good_sample_kept = kept(sprt.as_ref());
             required = required_iterations(

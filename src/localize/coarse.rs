@@ -9,6 +9,7 @@ use super::localizer::{ms, Query, QueryFailure, QueryFeatures, StageTimes};
 use super::matching::match_rows;
 use super::Localizer;
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, PoseEstimate, RansacOptions};
+use crate::vector::normalise_rows;
 use nalgebra::{Vector2, Vector3};
 use std::time::Instant;
 
@@ -247,19 +248,25 @@ impl Localizer<'_> {
             return false;
         }
         let q = query.projected.get_or_init(|| self.project(level, set));
-        let dim = level.dim;
-        // Coarse matching only seeds the pose: every `stride`-th keypoint (COLMAP lists SIFT
-        // keypoints by octave, so a stride keeps every scale) usually holds enough true matches.
+        // Coarse matching only seeds the pose: the leading dimensions (`coarse_dim`) of every
+        // `stride`-th keypoint (COLMAP lists SIFT keypoints by octave, so a stride keeps every
+        // scale) usually hold enough true matches.
+        let dim = level.coarse_dim();
         let max_keypoints = max_keypoints.max(COARSE_PAIRS / rows.len());
         let stride = set.keypoints.len().div_ceil(max_keypoints.max(1)).max(1);
         let subset: Vec<f32>;
-        let q: &[f32] = if stride > 1 {
-            subset = q
-                .chunks_exact(dim)
+        let q: &[f32] = if stride > 1 || dim < level.dim {
+            // A prefix of a unit row, renormalised: the prefix of the query's projection.
+            let mut rows: Vec<f32> = q
+                .chunks_exact(level.dim)
                 .step_by(stride)
-                .flatten()
+                .flat_map(|row| &row[..dim])
                 .copied()
                 .collect();
+            if dim < level.dim {
+                normalise_rows(&mut rows, dim);
+            }
+            subset = rows;
             &subset
         } else {
             q
@@ -272,7 +279,7 @@ impl Localizer<'_> {
             Stored::F16 { .. } => {
                 let mut rest_run = Vec::new();
                 match_rows(q, rows.len(), dim, options, |start, tile| {
-                    level.fill_rows(&rows[start..], tile, &mut rest_run)
+                    level.fill_rows(&rows[start..], dim, tile, &mut rest_run)
                 })
             }
         };

@@ -40,9 +40,23 @@ pub(super) enum Stored<'m> {
 }
 
 impl LevelIndex<'_> {
-    /// Row `r` decoded (or, for PQ, reconstructed) and normalised into `out` (`dim` values):
-    /// for f16 the same values, bit for bit, as normalising the decoded row with
-    /// `vector::l2_normalise`.
+    /// The leading dimensions coarse matching compares: the `short` block's when the level
+    /// also matches its `rest`, otherwise all of them. Coarse matching only seeds guided
+    /// matching, which compares every dimension; on the 1 M-point street's SIFT map the
+    /// 32-dimension prefix cut coarse matching 17 -> 3.3 ms a query, at the same accuracy
+    /// there and on the shared scenes' 12 variants.
+    pub(super) fn coarse_dim(&self) -> usize {
+        match &self.stored {
+            Stored::F16 {
+                rest: Some(_), ds, ..
+            } => *ds,
+            _ => self.dim,
+        }
+    }
+
+    /// Row `r` decoded (or, for PQ, reconstructed) and normalised into `out`: its first
+    /// `out.len()` values, `dim` or `coarse_dim` of them. For f16 the same values, bit for
+    /// bit, as normalising the decoded values with `vector::l2_normalise`.
     pub(super) fn decode_row(&self, r: usize, out: &mut [f32]) {
         match &self.stored {
             Stored::F16 {
@@ -53,7 +67,7 @@ impl LevelIndex<'_> {
             } => {
                 let (to_short, to_rest) = out.split_at_mut(*ds);
                 crate::vector::widen_f16(&short[r * ds..(r + 1) * ds], to_short);
-                if let Some(block) = rest {
+                if let Some(block) = rest.as_ref().filter(|_| !to_rest.is_empty()) {
                     crate::vector::widen_f16(&block[r * dr..(r + 1) * dr], to_rest);
                 }
             }
@@ -62,11 +76,18 @@ impl LevelIndex<'_> {
         Self::scale_row(out);
     }
 
-    /// Fills `tile` (`k × dim`) with the decoded, normalised rows `rows[..k]`. A run of
-    /// consecutive f16 rows is converted a block in one call; `rest_run` is scratch for its
-    /// `rest` values.
-    pub(super) fn fill_rows(&self, rows: &[usize], tile: &mut [f32], rest_run: &mut Vec<f32>) {
-        let dim = self.dim;
+    /// Fills `tile` (`k × dims`, `dims` being `dim` or `coarse_dim`) with the decoded,
+    /// normalised rows `rows[..k]`. A run of consecutive f16 rows is converted a block in one
+    /// call; `rest_run` is scratch for its `rest` values.
+    pub(super) fn fill_rows(
+        &self,
+        rows: &[usize],
+        dims: usize,
+        tile: &mut [f32],
+        rest_run: &mut Vec<f32>,
+    ) {
+        debug_assert!(dims == self.dim || dims == self.coarse_dim());
+        let dim = dims;
         let n = tile.len() / dim;
         let first = rows[0];
         let Stored::F16 {
@@ -88,7 +109,7 @@ impl LevelIndex<'_> {
             return;
         }
         let (ds, dr) = (*ds, *dr);
-        match rest {
+        match rest.as_ref().filter(|_| dim > ds) {
             None => crate::vector::widen_f16(&short[first * ds..(first + n) * ds], tile),
             Some(rest) => {
                 rest_run.resize(n * dr, 0.0);
@@ -473,5 +494,43 @@ mod tests {
         level.decode_row(1, &mut row);
         let norm: f32 = row.iter().map(|v| v * v).sum();
         assert!((norm - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn coarse_matching_reads_the_short_prefix_of_a_level_with_rest() {
+        // 3 points, 2 short + 2 rest dims, every value distinct.
+        let mut p = parts(vec![1, 4, 9], 2, 4);
+        p.short = Cow::Owned((1..=6).map(|v| f16::from_f32(v as f32)).collect());
+        p.has_rest = true;
+        p.rest = Some(Cow::Owned(
+            (7..=12).map(|v| f16::from_f32(v as f32)).collect(),
+        ));
+        let level = build_level(p, 100).unwrap().unwrap();
+        assert_eq!((level.dim, level.coarse_dim()), (4, 2));
+        let unit = |v: &[f32]| {
+            let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+            v.iter().map(|x| x / n).collect::<Vec<f32>>()
+        };
+        let mut scratch = Vec::new();
+        // A run of consecutive rows (one block) and scattered rows (row by row) agree.
+        for rows in [vec![0usize, 1, 2], vec![2, 0]] {
+            let mut prefix = vec![0.0; rows.len() * 2];
+            level.fill_rows(&rows, 2, &mut prefix, &mut scratch);
+            let mut full = vec![0.0; rows.len() * 4];
+            level.fill_rows(&rows, 4, &mut full, &mut scratch);
+            for (k, &r) in rows.iter().enumerate() {
+                let short = [(2 * r + 1) as f32, (2 * r + 2) as f32];
+                let rest = [(2 * r + 7) as f32, (2 * r + 8) as f32];
+                assert_eq!(prefix[k * 2..k * 2 + 2], unit(&short)[..], "rows {rows:?}");
+                let all = [short[0], short[1], rest[0], rest[1]];
+                assert_eq!(full[k * 4..k * 4 + 4], unit(&all)[..], "rows {rows:?}");
+                let mut one = [0.0; 2];
+                level.decode_row(r, &mut one);
+                assert_eq!(one[..], unit(&short)[..]);
+            }
+        }
+        // Without rest, coarse matching compares every dimension.
+        let plain = build_level(parts(vec![1], 2, 2), 100).unwrap().unwrap();
+        assert_eq!(plain.coarse_dim(), plain.dim);
     }
 }

@@ -289,22 +289,7 @@ impl Rows<'_> {
         let dim = dim.max(1);
         match self {
             Rows::F32(v) => v.chunks_exact(dim).map(|row| dot(row, q)).collect(),
-            Rows::F16(v) => {
-                // A row decoded a stretch at a time into a buffer that stays in L1.
-                const STRETCH: usize = 256;
-                let mut buffer = [0.0f32; STRETCH];
-                v.chunks_exact(dim)
-                    .map(|row| {
-                        let mut sum = 0.0;
-                        for (part, qs) in row.chunks(STRETCH).zip(q.chunks(STRETCH)) {
-                            let b = &mut buffer[..part.len()];
-                            crate::vector::widen_f16(part, b);
-                            sum += dot(b, qs);
-                        }
-                        sum
-                    })
-                    .collect()
-            }
+            Rows::F16(v) => crate::vector::dots_f16(v, dim, q),
         }
     }
 }
@@ -394,10 +379,10 @@ mod tests {
     }
 
     #[test]
-    fn f16_rows_score_as_their_f32_values_across_the_decoding_stretch() {
-        // Widths below, at and past the 256-value stretch the f16 rows are decoded in.
+    fn f16_rows_score_as_their_f32_values() {
+        // Widths below, at and past the 8 lanes of the kernel, with and without a tail.
         let mut rng = crate::geometry::SplitMix64::new(8);
-        for dim in [3, 256, 300, 1024] {
+        for dim in [3, 8, 256, 300, 1023, 1024] {
             let rows: Vec<f16> = (0..5 * dim)
                 .map(|_| f16::from_f32(rng.next_f64() as f32 - 0.5))
                 .collect();
