@@ -380,7 +380,7 @@ mod tests {
 
     #[test]
     fn f16_rows_score_as_their_f32_values() {
-        // Widths below, at and past the 8 lanes of the kernel, with and without a tail.
+        // Widths below, at and past the kernel's 256-value stretch and its 8 lanes.
         let mut rng = crate::geometry::SplitMix64::new(8);
         for dim in [3, 8, 256, 300, 1023, 1024] {
             let rows: Vec<f16> = (0..5 * dim)
