@@ -352,18 +352,27 @@ pub(super) struct Query<'q> {
     pub(super) projected: &'q OnceCell<Vec<f32>>,
 }
 
-/// Retrieved images whose points coarse matching tries first: the points of the best few
-/// images hold enough true matches for a pose at a fraction of the cost of all `top_k`. On
-/// the 1 M-point street's level-2 short map, the best 3 left 8 of 20 queries to the next
-/// tier (median 13.4 ms a query), 4 and 5 left 5 (10.5 and 9.5 ms), 6 and 8 left 4 and 3
-/// but cost more in the tier every query runs (11 ms).
-const COARSE_IMAGES: usize = 5;
+/// Retrieved images whose points coarse matching tries first, for a map of `images` images:
+/// the points of the best few hold enough true matches for a pose at a fraction of the cost
+/// of all `top_k`. A large map's retrieval ranks a query's place lower more often (as for
+/// [`vlad::default_shape`](crate::vlad::default_shape), from `LARGE_MAP_IMAGES` on). On the
+/// 1 M-point street's level-2 short map (7,934 images), the best 3 left 8 of 20 queries to
+/// the next tier (median 13.4 ms a query), 4 and 5 left 5 (10.5 and 9.5 ms), 6 and 8 left 4
+/// and 3 but cost more in the tier every query runs (11 ms); on the 100 k street (800 images)
+/// no query needed the next tier with 3, and 5 cost more (5.3 -> 5.9 ms).
+fn coarse_images(images: usize) -> usize {
+    if images >= crate::vlad::LARGE_MAP_IMAGES {
+        5
+    } else {
+        3
+    }
+}
 
 /// What retrieval gave one query.
 struct Retrieved {
     /// Candidate points (those the retrieved images see), ascending; `None`: every point.
     candidates: Option<Vec<u32>>,
-    /// Those of the best [`COARSE_IMAGES`] retrieved images, when fewer than `candidates`.
+    /// Those of the best [`coarse_images`] retrieved images, when fewer than `candidates`.
     coarse_candidates: Option<Vec<u32>>,
     /// The retrieved images, best first.
     images: Vec<usize>,
@@ -673,8 +682,9 @@ impl<'m> Localizer<'m> {
             _ => None,
         };
         let candidates = seen(&images);
+        let few = coarse_images(n_images);
         let coarse_candidates = match &candidates {
-            Some(_) if images.len() > COARSE_IMAGES => seen(&images[..COARSE_IMAGES]),
+            Some(_) if images.len() > few => seen(&images[..few]),
             _ => None,
         };
         let fallback = match ranked {
