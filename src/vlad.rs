@@ -33,9 +33,15 @@ pub const LARGE_CLUSTERS: usize = 64;
 /// values an image, twice the small maps' 16 × 32.
 pub const LARGE_DIMS: usize = 16;
 
+/// Whether a map of `images` images is large: its retrieval has more images to tell apart
+/// (a larger default codebook, and coarse matching starts from more retrieved images).
+pub fn is_large_map(images: usize) -> bool {
+    images >= LARGE_MAP_IMAGES
+}
+
 /// The default codebook's (clusters, dims) for a map of `images` images.
 pub fn default_shape(images: usize) -> (usize, usize) {
-    if images >= LARGE_MAP_IMAGES {
+    if is_large_map(images) {
         (LARGE_CLUSTERS, LARGE_DIMS)
     } else {
         (DEFAULT_CLUSTERS, DEFAULT_DIMS)

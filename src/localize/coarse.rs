@@ -31,6 +31,11 @@ const COARSE_PAIRS: usize = 1 << 20;
 /// inliers; the demo room's query_04, in a wrong optimum, to 78.
 pub(super) const FINE_SURE_FACTOR: usize = 8;
 
+/// The inliers that make a pose sure: `FINE_SURE_FACTOR × min_inliers`.
+pub(super) fn sure_inliers(min_inliers: usize) -> usize {
+    FINE_SURE_FACTOR.saturating_mul(min_inliers)
+}
+
 /// Coarse poses guided matching starts from, at most.
 pub(super) const MAX_SEEDS: usize = 4;
 
@@ -228,8 +233,8 @@ impl Localizer<'_> {
         (found, sampled)
     }
 
-    /// Global matching of a level's query descriptors against its candidate points; whether
-    /// the query keypoints were sampled.
+    /// Global matching of a level's query descriptors (their `coarse_dim` prefix) against its
+    /// candidate points; whether the query keypoints were sampled.
     fn match_level(
         &self,
         level: &LevelIndex<'_>,

@@ -2,7 +2,7 @@
 //! by level, around a pose (the coarse pose, or a sequence's prediction), then re-estimated.
 //! The fine stage of every query, and the whole of a tracked one.
 
-use super::coarse::FINE_SURE_FACTOR;
+use super::coarse::sure_inliers;
 use super::level::LevelIndex;
 use super::localizer::{ms, Query};
 use super::matching::fails_ratio_test;
@@ -80,11 +80,12 @@ impl Localizer<'_> {
 
     /// Up to two rounds of guided matching on every selected level (`candidates`: the points
     /// to consider, `None` every point) around `start`, the first with a gate of `first_gate`
-    /// pixels (on every `stride`-th keypoint when that is wider than `gate_px`, again on all
-    /// of them if that gives no pose), each followed by a RANSAC estimate seeded with the pose
-    /// so far; the second is skipped when the first barely moved the pose at the same gate
-    /// ([`settled`]). The last estimate as a localization (the caller fills in retrieval and
-    /// timing), or `None` if the first round gives no pose.
+    /// pixels (when that is wider than `gate_px`: on every `stride`-th keypoint, again on all
+    /// of them if that gives no pose, estimated like a coarse pose only to seed the second),
+    /// each followed by a RANSAC estimate seeded with the pose so far; the second is skipped
+    /// when the first barely moved the pose at the same gate ([`settled`]). The last estimate
+    /// as a localization (the caller fills in retrieval and timing), or `None` if the first
+    /// round gives no pose, or a seeding round's second does not.
     pub(super) fn refine(
         &self,
         sets: &[Query<'_>],
@@ -138,7 +139,7 @@ impl Localizer<'_> {
             }
             // A pose that already explains `sure` of the gated matches is refined, not searched
             // around (the street's walk: two rounds' RANSAC 1.5 -> 1.1 ms a frame).
-            let sure = FINE_SURE_FACTOR.saturating_mul(self.options.min_inliers);
+            let sure = sure_inliers(self.options.min_inliers);
             let seeding = round == 0 && first_gate > self.options.gate_px;
             let fine_options = RansacOptions {
                 max_error_px: if seeding {
@@ -177,6 +178,9 @@ impl Localizer<'_> {
                     round += 1;
                 }
                 Err(_) if round == 0 && stride > 1 => stride = 1,
+                // A seeding round's pose (at the coarse threshold) is no answer of its own: the
+                // frame goes to retrieval.
+                Err(_) if round == 1 && first_gate > self.options.gate_px => return None,
                 Err(_) => break,
             }
         }
@@ -550,7 +554,7 @@ impl Grid {
 
 /// Whether the pose barely moved from `before` to `estimate`: 90 % of its inliers reproject
 /// within `tolerance_px` of where they did. With a quarter gate, and a first round of at least
-/// `FINE_SURE_FACTOR × min_inliers` inliers (the coarse search's "sure"), a second round at the
+/// `sure_inliers(min_inliers)` (the coarse search's "sure"), a second round at the
 /// same gate would gate the same candidates and refit the same pose: skipped. (Without the
 /// inlier condition South Building's SFP level-2 PQ maps lost accuracy, `l2s-pq8` recall
 /// 96 → 85 %: their weak first rounds gain from the second; a 1 px tolerance instead kept

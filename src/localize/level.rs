@@ -25,6 +25,10 @@ pub(super) struct LevelIndex<'m> {
     pub(super) d_in: usize,
 }
 
+/// The shortest `short` block coarse matching compares alone (the measured one: SIFT's 32 of
+/// 128): in a few dimensions every similarity is near ±1 and the ratio test keeps nothing.
+const COARSE_PREFIX_MIN_DIMS: usize = 32;
+
 /// A level's descriptors as the map stores them.
 pub(super) enum Stored<'m> {
     /// The `short` block (`[rows × ds]` f16, a view of the mapping for raw sections), and the
@@ -41,15 +45,16 @@ pub(super) enum Stored<'m> {
 
 impl LevelIndex<'_> {
     /// The leading dimensions coarse matching compares: the `short` block's when the level
-    /// also matches its `rest`, otherwise all of them. Coarse matching only seeds guided
-    /// matching, which compares every dimension; on the 1 M-point street's SIFT map the
-    /// 32-dimension prefix cut coarse matching 17 -> 3.3 ms a query, at the same accuracy
-    /// there and on the shared scenes' 12 variants.
+    /// also matches its `rest` and the block has at least [`COARSE_PREFIX_MIN_DIMS`],
+    /// otherwise all of them. Coarse matching only seeds guided matching, which compares every
+    /// dimension; on the 1 M-point street's SIFT map the 32-dimension prefix cut coarse
+    /// matching 17 -> 3.3 ms a query, at the same accuracy there and on the shared scenes' 12
+    /// variants.
     pub(super) fn coarse_dim(&self) -> usize {
         match &self.stored {
             Stored::F16 {
                 rest: Some(_), ds, ..
-            } => *ds,
+            } if *ds >= COARSE_PREFIX_MIN_DIMS => *ds,
             _ => self.dim,
         }
     }
@@ -497,40 +502,64 @@ mod tests {
     }
 
     #[test]
-    fn coarse_matching_reads_the_short_prefix_of_a_level_with_rest() {
-        // 3 points, 2 short + 2 rest dims, every value distinct.
-        let mut p = parts(vec![1, 4, 9], 2, 4);
-        p.short = Cow::Owned((1..=6).map(|v| f16::from_f32(v as f32)).collect());
+    fn fill_rows_and_decode_row_take_the_short_prefix_coarse_matching_compares() {
+        // 3 points, 32 short + 2 rest dims, every value distinct (and exact in f16).
+        let (ds, dr) = (COARSE_PREFIX_MIN_DIMS, 2);
+        let mut p = parts(vec![1, 4, 9], ds, ds + dr);
+        p.short = Cow::Owned((0..3 * ds).map(|v| f16::from_f32(v as f32 + 1.0)).collect());
         p.has_rest = true;
         p.rest = Some(Cow::Owned(
-            (7..=12).map(|v| f16::from_f32(v as f32)).collect(),
+            (0..3 * dr)
+                .map(|v| f16::from_f32(-(v as f32) - 1.0))
+                .collect(),
         ));
         let level = build_level(p, 100).unwrap().unwrap();
-        assert_eq!((level.dim, level.coarse_dim()), (4, 2));
+        assert_eq!((level.dim, level.coarse_dim()), (ds + dr, ds));
         let unit = |v: &[f32]| {
             let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
             v.iter().map(|x| x / n).collect::<Vec<f32>>()
         };
+        let short = |r: usize| (r * ds..(r + 1) * ds).map(|v| v as f32 + 1.0);
+        let rest = |r: usize| (r * dr..(r + 1) * dr).map(|v| -(v as f32) - 1.0);
         let mut scratch = Vec::new();
         // A run of consecutive rows (one block) and scattered rows (row by row) agree.
         for rows in [vec![0usize, 1, 2], vec![2, 0]] {
-            let mut prefix = vec![0.0; rows.len() * 2];
-            level.fill_rows(&rows, 2, &mut prefix, &mut scratch);
-            let mut full = vec![0.0; rows.len() * 4];
-            level.fill_rows(&rows, 4, &mut full, &mut scratch);
+            let mut prefix = vec![0.0; rows.len() * ds];
+            level.fill_rows(&rows, ds, &mut prefix, &mut scratch);
+            let mut full = vec![0.0; rows.len() * (ds + dr)];
+            level.fill_rows(&rows, ds + dr, &mut full, &mut scratch);
             for (k, &r) in rows.iter().enumerate() {
-                let short = [(2 * r + 1) as f32, (2 * r + 2) as f32];
-                let rest = [(2 * r + 7) as f32, (2 * r + 8) as f32];
-                assert_eq!(prefix[k * 2..k * 2 + 2], unit(&short)[..], "rows {rows:?}");
-                let all = [short[0], short[1], rest[0], rest[1]];
-                assert_eq!(full[k * 4..k * 4 + 4], unit(&all)[..], "rows {rows:?}");
-                let mut one = [0.0; 2];
+                let want_prefix = unit(&short(r).collect::<Vec<_>>());
+                assert_eq!(
+                    prefix[k * ds..(k + 1) * ds],
+                    want_prefix[..],
+                    "rows {rows:?}"
+                );
+                let all: Vec<f32> = short(r).chain(rest(r)).collect();
+                let got = &full[k * (ds + dr)..(k + 1) * (ds + dr)];
+                assert_eq!(got, &unit(&all)[..], "rows {rows:?}");
+                let mut one = vec![0.0; ds];
                 level.decode_row(r, &mut one);
-                assert_eq!(one[..], unit(&short)[..]);
+                assert_eq!(one, want_prefix);
             }
         }
         // Without rest, coarse matching compares every dimension.
         let plain = build_level(parts(vec![1], 2, 2), 100).unwrap().unwrap();
         assert_eq!(plain.coarse_dim(), plain.dim);
+        // So it does with a short block too small to match alone, and takes one that is not.
+        for (ds, coarse) in [
+            (COARSE_PREFIX_MIN_DIMS - 1, 40),
+            (COARSE_PREFIX_MIN_DIMS, 32),
+        ] {
+            let mut p = parts(vec![1], ds, 40);
+            p.has_rest = true;
+            p.rest = Some(halves(40 - ds));
+            let level = build_level(p, 100).unwrap().unwrap();
+            assert_eq!(
+                (level.dim, level.coarse_dim()),
+                (40, coarse),
+                "{ds} short dims"
+            );
+        }
     }
 }

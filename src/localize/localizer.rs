@@ -11,7 +11,7 @@
 //! or (1.1) matches a product-quantised level's codes by table lookups (`adc`): nothing of
 //! its own per map point.
 
-use super::coarse::{CoarseSearch, FINE_SURE_FACTOR, MAX_SEEDS};
+use super::coarse::{sure_inliers, CoarseSearch, MAX_SEEDS};
 use super::kernels::sgemm_abt;
 use super::level::{index_level, LevelIndex};
 use super::matching::MatchOptions;
@@ -361,7 +361,7 @@ pub(super) struct Query<'q> {
 /// and 3 but cost more in the tier every query runs (11 ms); on the 100 k street (800 images)
 /// no query needed the next tier with 3, and 5 cost more (5.3 -> 5.9 ms).
 fn coarse_images(images: usize) -> usize {
-    if images >= crate::vlad::LARGE_MAP_IMAGES {
+    if crate::vlad::is_large_map(images) {
         5
     } else {
         3
@@ -572,7 +572,7 @@ impl<'m> Localizer<'m> {
         // fewer than `FINE_SURE_FACTOR × min_inliers` inliers, the next coarse tier's pose is
         // refined too (`MAX_SEEDS` in all), and the result with most inliers wins.
         let mut search = CoarseSearch::new(candidates, coarse_candidates.as_deref());
-        let sure = FINE_SURE_FACTOR.saturating_mul(self.options.min_inliers);
+        let sure = sure_inliers(self.options.min_inliers);
         // The coarse pose with most inliers, which stands if no refinement gives a pose.
         let mut best_coarse: Option<PoseEstimate> = None;
         let mut result: Option<Localization> = None;
@@ -784,4 +784,17 @@ impl<'m> Localizer<'m> {
 
 pub(super) fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
+}
+
+#[cfg(test)]
+mod tests {
+    use super::coarse_images;
+
+    #[test]
+    fn coarse_matching_starts_from_more_retrieved_images_on_large_maps() {
+        assert_eq!(coarse_images(0), 3);
+        assert_eq!(coarse_images(crate::vlad::LARGE_MAP_IMAGES - 1), 3);
+        assert_eq!(coarse_images(crate::vlad::LARGE_MAP_IMAGES), 5);
+        assert_eq!(coarse_images(1_000_000), 5);
+    }
 }
