@@ -111,8 +111,7 @@ class TorchGlobal:
 
         torch.set_num_threads(threads)
         ck = torch.load(path, map_location="cpu", weights_only=False)
-        self.net = SFP()
-        self.net.load_state_dict(ck["model"])
+        self.net = SFP.for_state_dict(ck["model"])  # also distill_v2.py's strided students
         self.net.eval()
         self.torch = torch
         self.label = f"{os.path.relpath(path, REPO)} (step {ck.get('step')})"

@@ -3,6 +3,10 @@
 (spec/extractor.md) in its metadata_props, then verify it with ONNX Runtime.
 
 Example: python3 python/export.py python/runs/main/best.pt -o models/sfp-v1.onnx
+The student of python/distill_v2.py (strided stem, same contract):
+  python3 python/export.py python/checkpoints/sfp-v2s-state.pt -o models/sfp-v2s.onnx
+The model name (sfp.model_name: a map built with one model is localized only with that model) comes
+from --model-name, else the checkpoint's `model_name`, else sfp-v1.
 """
 from __future__ import annotations
 
@@ -21,12 +25,13 @@ CONTRACT = "sfp-extractor/1"
 OPSET = 17
 
 
-def contract_metadata(net: SFP, extra: dict | None = None, threshold: float = 0.5) -> dict[str, str]:
+def contract_metadata(net: SFP, extra: dict | None = None, threshold: float = 0.5,
+                      model_name: str = "sfp-v1") -> dict[str, str]:
     dims = list(net.dims)
     full = [sum(dims[i:]) for i in range(len(dims))]
     md = {
         "sfp.contract": CONTRACT,
-        "sfp.model_name": "sfp-v1",
+        "sfp.model_name": model_name,
         "sfp.levels": str(len(dims)),
         "sfp.level_ids": ",".join(str(i) for i in range(len(dims))),
         "sfp.strides": ",".join(str(s) for s in net.strides),
@@ -61,8 +66,7 @@ def contract_metadata(net: SFP, extra: dict | None = None, threshold: float = 0.
 
 def load_net(ckpt_path: str) -> tuple[SFP, dict]:
     ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    net = SFP()
-    net.load_state_dict(ck["model"])
+    net = SFP.for_state_dict(ck["model"])  # full or strided stem, from the weight names
     net.eval()
     return net, ck
 
@@ -120,16 +124,23 @@ def verify(net: SFP, path: str, sizes=((481, 641), (480, 640), (33, 47))):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("ckpt")
-    ap.add_argument("-o", "--out", default="models/sfp-v1.onnx")
+    ap.add_argument("-o", "--out", default=None, help="default models/<model name>.onnx")
     ap.add_argument("--no-verify", action="store_true")
     ap.add_argument("--threshold", type=float, default=0.5, help="default keypoint score threshold (metadata)")
+    ap.add_argument("--model-name", default=None, help="sfp.model_name (default: the checkpoint's, else sfp-v1)")
     args = ap.parse_args()
     net, ck = load_net(args.ckpt)
+    name = args.model_name or ck.get("model_name") or "sfp-v1"
+    if net.stem_mode != "full" and name == "sfp-v1":
+        raise SystemExit("a strided-stem network is not sfp-v1: give --model-name")
+    minutes = ck.get("minutes", ck.get("meta", {}).get("total_minutes", 0))
     extra = {"sfp.train_steps": ck.get("step", ""),
-             "sfp.train_minutes": round(float(ck.get("minutes", 0)), 1),
+             "sfp.train_minutes": round(float(minutes), 1),
              "sfp.train_loss": ck.get("args", {}).get("loss", "")}
+    extra.update(ck.get("export_metadata", {}))  # e.g. the distillation's teacher
+    args.out = args.out or os.path.join("models", f"{name}.onnx")  # never a student over sfp-v1.onnx
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    export(net, args.out, contract_metadata(net, extra, args.threshold))
+    export(net, args.out, contract_metadata(net, extra, args.threshold, name))
     if not args.no_verify:
         verify(net, args.out)
     h = hashlib.sha256(open(args.out, "rb").read()).hexdigest()

@@ -145,6 +145,15 @@ def load_v1_encoder(net: SFP, onnx_path: str):
             assert sd[k].shape == v.shape, (k, sd[k].shape, v.shape)
             sd[k] = v
             n += 1
+    # Every exported tensor both ways, or the stems differ (a strided student's ONNX has its stem conv
+    # and first BN folded together): load its .pt state instead (SFP.for_state_dict).
+    names = {i.name for i in m.graph.initializer}
+    unused = sorted(k[4:] for k in names if k.startswith("net.") and k[4:] not in sd)
+    missing = sorted(k for k in sd if k.startswith(("stem", "pre.", "enc.", "score_heads."))
+                     and not k.endswith("num_batches_tracked") and "net." + k not in names)
+    if unused or missing:
+        raise ValueError(f"{onnx_path} does not hold this network's encoder: unused {unused[:4]}, "
+                         f"missing {missing[:4]}")
     net.load_state_dict(sd)
     return n
 
@@ -369,11 +378,13 @@ def expand_opt_state(sd):
     return sd
 
 
-def save_state(path, net, opt, step, samplers, meta):
+def save_state(path, net, opt, step, samplers, meta, extra=None):
+    """`extra`: more top-level entries (python/distill_v2.py: format, model_name, export_metadata)."""
     os.makedirs(os.path.dirname(path), exist_ok=True)
     ck = dict(format="sfp-v2-state/1", model=net.state_dict(), opt=compact_opt_state(opt.state_dict()),
               step=step, torch_rng=torch.get_rng_state(),
               np_rng={k: s.rng.bit_generator.state for k, s in samplers.items()}, meta=meta)
+    ck.update(extra or {})
     tmp = path + ".tmp"
     torch.save(ck, tmp)
     os.replace(tmp, path)

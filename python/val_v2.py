@@ -23,13 +23,13 @@ vsc = MV.SfMScene(V.VAL_MODEL[0], os.path.join(V.DATA, V.VAL_MODEL[1]), os.path.
 vmv = MV.MVPairSampler([vsc], size=256, kmax=256, min_shared=30, seed=4321, photo=0.0)
 val_mv = [tuple(torch.from_numpy(a) for a in vmv.batch(4)) for _ in range(4)]
 for p in sys.argv[1:]:
-    net = SFP()
     if p.endswith(".onnx"):
+        net = SFP()
         V.load_v1_encoder(net, p)
         step = "-"
     else:
         ck = torch.load(p, map_location="cpu", weights_only=False)
-        net.load_state_dict(ck["model"])
+        net = SFP.for_state_dict(ck["model"])  # also distill_v2.py's strided students
         step = ck.get("step")
     net.eval()
     a, r, s = T.validate(net, val_h)

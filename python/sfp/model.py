@@ -56,15 +56,36 @@ class DecoderBlock(nn.Module):
         return F.relu(self.conv2(F.relu(self.conv1(x))))
 
 
+STEM_MODES = ("full", "strided", "strided1")
+
+
 class SFP(nn.Module):
-    def __init__(self, strides=STRIDES, dims=DIMS, stem=STEM, rate_init=(0.1, 0.15, 0.2, 0.3)):
+    """stem_mode "full" (sfp-v1): two 3x3 convolutions at full resolution, then the first encoder
+    block's MaxPool (about 40 % of the MACs at 640x480). The students of python/distill_v2.py skip
+    full resolution: "strided" = a 3x3 stride-2 conv straight from the image, ReLU, one 3x3 conv at
+    stride 2 (receptive field 7 px, as v1's MaxPool output); "strided1" = the stride-2 conv alone.
+    Both drop the first block's MaxPool; a 3x3 stride-2 conv with padding 1 maps n to ceil(n / 2) and
+    centres cell r on pixel 2r, so level sizes and the cell <-> pixel rule are v1's. Their weights are
+    named `stem_s2.*`: a student state dict never loads silently into a full-stem net or vice versa
+    (SFP.for_state_dict picks the mode from the names)."""
+
+    def __init__(self, strides=STRIDES, dims=DIMS, stem=STEM, rate_init=(0.1, 0.15, 0.2, 0.3),
+                 stem_mode: str = "full"):
         super().__init__()
         assert len(strides) == len(dims)
         for a, b in zip(strides, strides[1:]):
             assert b == 2 * a
+        assert stem_mode in STEM_MODES, stem_mode
         self.strides = tuple(strides)
         self.dims = tuple(dims)
-        self.stem = nn.Sequential(conv3(1, stem), nn.ReLU(inplace=True), conv3(stem, stem))
+        self.stem_mode = stem_mode
+        if stem_mode == "full":
+            self.stem = nn.Sequential(conv3(1, stem), nn.ReLU(inplace=True), conv3(stem, stem))
+        elif stem_mode == "strided":
+            self.stem_s2 = nn.Sequential(nn.Conv2d(1, stem, 3, stride=2, padding=1), nn.ReLU(inplace=True),
+                                         conv3(stem, stem))
+        else:  # the first block's BN -> ReLU follows: no ReLU of its own
+            self.stem_s2 = nn.Sequential(nn.Conv2d(1, stem, 3, stride=2, padding=1))
         # blocks from full resolution down to strides[0]
         n_pre = int(math.log2(strides[0])) - 1  # blocks before the first level (strides[0]=2 -> 0)
         pre = []
@@ -77,6 +98,8 @@ class SFP(nn.Module):
             enc.append(EncoderBlock(c, d))
             c = d
         self.enc = nn.ModuleList(enc)
+        if stem_mode != "full":  # the stem already halved the size: the first pooling block doesn't
+            self.first_block().pool = nn.Identity()
         self.score_heads = nn.ModuleList([nn.Conv2d(d, 1, 1) for d in dims])
         for h, r in zip(self.score_heads, rate_init):
             nn.init.normal_(h.weight, std=0.01)
@@ -91,9 +114,23 @@ class SFP(nn.Module):
         self.dec_full = DecoderBlock(cin, 0, stem)
         self.out = nn.Conv2d(stem, 1, 3, padding=1)
 
+    @classmethod
+    def for_state_dict(cls, sd: dict, **kw) -> "SFP":
+        """An SFP whose stem mode matches the state dict's weight names (loaded, strict)."""
+        mode = ("strided" if "stem_s2.2.weight" in sd else "strided1" if "stem_s2.0.weight" in sd
+                else "full")
+        net = cls(stem_mode=mode, **kw)
+        net.load_state_dict(sd)
+        return net
+
+    def first_block(self) -> EncoderBlock:
+        """The block whose MaxPool the strided stems replace: its bn1 input is at stride 2 in every
+        stem mode (the distillation's stem hint)."""
+        return self.pre[0] if len(self.pre) else self.enc[0]
+
     # -- encoder / scores ---------------------------------------------------------------------
     def encode(self, x):
-        x = self.pre(self.stem(x))
+        x = self.pre(self.stem(x) if self.stem_mode == "full" else self.stem_s2(x))
         feats = []
         for blk in self.enc:
             x = blk(x)

@@ -1,0 +1,387 @@
+#!/usr/bin/env python3
+"""Distil SFP v1 into a faster student on CPU, resumably (issue 17's speed target: <= 15 ms per
+640x480 image on 2 cores, <= 25 ms on 1). Same ONNX contract (sfp-extractor/1: 4 levels, strides
+2/4/8/16, dims 16/32/64/128, GeM global), so the Rust extractor runs the student unchanged.
+
+Student: SFP(stem_mode="strided") of python/sfp/model.py -- a 3x3 stride-2 conv from the image and one
+3x3 conv at stride 2 instead of v1's two full-resolution convs + MaxPool (`--stem strided1`: the
+stride-2 conv alone, faster still). Everything after the stem (encoder blocks, score heads, their
+frozen BN statistics) starts as the teacher's; the stem starts fresh.
+Teacher: models/sfp-v1.onnx's weights in torch (train_v2.load_v1_encoder; or a .pt state with
+"model", e.g. a v2 run), eval mode, no gradient.
+Data: train_v2.py's homography images (train/, the scenes' map images without their queries, the
+COLMAP fixtures except the validation one) + scikit-image, query files excluded and asserted exactly
+as there (multiview.assert_disjoint: by path and md5). A step: n_img random crops A of side `size`
+and their random-homography warps B (sfp/data.PairSampler) = 2 n_img images for both networks.
+
+Loss (weights `w`, per level `level_w`; weight 0 switches a term off):
+  score  Bernoulli KL(p_t || p_s) per cell = BCE(logit_s, p_t) - H(p_t): 0 when the maps agree
+  desc   1 - cos(f_s, f_t) per cell, weighted by p_t + desc_floor: the extractor L2-normalises
+         descriptors (only the direction counts), and the cells a map keeps matter most
+  glob   1 - cos(g_s, g_t) of the GeM global descriptors
+  hint   |h_s - h_t|^2 / mean(h_t^2) at the first block's input (student stem vs v1's pooled stem)
+For the first `stem_steps` steps only the stem learns (the other parameters get lr 0), so the fresh
+stem's early output does not pull the teacher-initialised blocks away. BatchNorm is frozen as in
+train_v2 (eval mode, affine parameters trained): training optimises the exported network.
+
+Resumable: python/checkpoints/sfp-v2s-state.pt (train_v2.save_state's layout + model_name and
+export_metadata) is written atomically every `ckpt_minutes`, at the end and on SIGTERM/SIGINT, and
+read on start (`--fresh` ignores it). Curves: python/curves/<run>.csv (means over log_every steps),
+<run>-val.csv (held-out colmap/kapture_maupertuis: distillation loss and train.validate's
+homography accuracy; the teacher's is in the first line).
+
+  mkdir -p python/runs
+  nohup nice -n 19 python3 python/distill_v2.py --minutes 150 > python/runs/v2s-$(date +%Y%m%d-%H%M).log 2>&1 &
+  kill -TERM <pid>                     # clean stop: writes the state first
+  python3 python/export.py python/checkpoints/sfp-v2s-state.pt -o models/sfp-v2s.onnx
+  python3 python/bench_onnx.py models/sfp-v1.onnx models/sfp-v2s.onnx
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import json
+import os
+import signal
+import sys
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+import train as T  # noqa: E402  (validate: homography mutual-NN accuracy)
+import train_v2 as V  # noqa: E402  (data lists, teacher loading, state file, lr schedule, BN freezing)
+from sfp import data as D  # noqa: E402
+from sfp import multiview as MV  # noqa: E402
+from sfp.model import SFP  # noqa: E402
+
+REPO = V.REPO
+STATE = os.path.join(HERE, "checkpoints", "sfp-v2s-state.pt")
+
+CFG = {
+    "seed": 0,
+    "threads": 1,
+    "stem": "strided",
+    "model_name": None,  # sfp.model_name of the export; None: MODEL_NAMES[stem]
+    "size": 256,
+    "n_img": 4,
+    "lr": 1e-3,
+    "weight_decay": 1e-4,
+    "warmup_steps": 100,
+    "total_steps": 20000,
+    "lr_min_frac": 0.05,
+    "stem_steps": 300,
+    "desc_floor": 0.02,
+    "level_w": [1.0, 1.0, 1.0, 1.0],
+    "w": {"score": 1.0, "desc": 1.0, "glob": 1.0, "hint": 0.1},
+    "ckpt_minutes": 5.0,
+    "val_every": 250,
+    "log_every": 10,
+}
+MODEL_NAMES = {"strided": "sfp-v2s", "strided1": "sfp-v2s1"}  # maps are tied to the name: one per net
+INIT_PREFIXES = ("pre.", "enc.", "score_heads.")  # the exported layers after the stem
+
+STOP = {"flag": False, "sig": None}
+
+
+def _on_signal(sig, _frame):
+    STOP["flag"] = True
+    STOP["sig"] = sig
+
+
+# ----------------------------------------------------------------------------------------------
+# networks
+
+def load_teacher(path: str) -> SFP:
+    if path.endswith(".onnx"):
+        net = SFP()
+        n = V.load_v1_encoder(net, path)
+        assert n > 0, f"no SFP weights in {path}"
+    else:
+        net = SFP.for_state_dict(torch.load(path, map_location="cpu", weights_only=False)["model"])
+    net.eval()
+    for p in net.parameters():
+        p.requires_grad_(False)
+    return net
+
+
+def init_from_teacher(student: SFP, teacher: SFP) -> int:
+    """Copy the teacher's layers after the stem (same names and shapes in every stem mode)."""
+    sd = student.state_dict()
+    n = 0
+    for k, v in teacher.state_dict().items():
+        if k.startswith(INIT_PREFIXES) and k in sd:
+            assert sd[k].shape == v.shape, (k, sd[k].shape, v.shape)
+            sd[k] = v.clone()
+            n += 1
+    student.load_state_dict(sd)
+    return n
+
+
+class Hint:
+    """Captures the input of the first block's bn1 (stride 2 in every stem mode) on each encode."""
+
+    def __init__(self, net: SFP):
+        self.x = None
+        net.first_block().bn1.register_forward_pre_hook(self._grab)
+
+    def _grab(self, _mod, args):
+        self.x = args[0]
+
+
+def run_net(net: SFP, hint: Hint, x):
+    feats, logits = net.encode(x)
+    return dict(feats=feats, logits=logits, glob=SFP.global_desc(feats[-1]), hint=hint.x)
+
+
+# ----------------------------------------------------------------------------------------------
+# loss
+
+def bernoulli_kl(logit_s, p_t):
+    """KL(p_t || sigmoid(logit_s)) per cell, without log(0) at saturated teacher scores."""
+    pt = p_t.clamp(1e-6, 1 - 1e-6)
+    ent = -(pt * pt.log() + (1 - pt) * (1 - pt).log())
+    return F.binary_cross_entropy_with_logits(logit_s, pt, reduction="none") - ent
+
+
+def distill_terms(s, t, cfg, logs):
+    L = len(t["feats"])
+    tot = dict(score=0.0, desc=0.0)
+    for i in range(L):
+        pt = torch.sigmoid(t["logits"][i])
+        kl = bernoulli_kl(s["logits"][i], pt).mean()
+        cos = F.cosine_similarity(s["feats"][i], t["feats"][i], dim=1, eps=1e-6)[:, None]
+        w = pt + cfg["desc_floor"]
+        desc = ((1 - cos) * w).sum() / w.sum()
+        lw = cfg["level_w"][i]
+        tot["score"] = tot["score"] + lw * kl
+        tot["desc"] = tot["desc"] + lw * desc
+        with torch.no_grad():
+            logs[f"kl{i}"] = kl.item()
+            logs[f"cos{i}"] = 1 - desc.item()
+            logs[f"rate_s{i}"] = torch.sigmoid(s["logits"][i]).mean().item()
+            logs[f"rate_t{i}"] = pt.mean().item()
+    gcos = (s["glob"] * t["glob"]).sum(1)
+    tot["glob"] = (1 - gcos).mean()
+    ht = t["hint"]
+    tot["hint"] = (s["hint"] - ht).pow(2).mean() / ht.pow(2).mean().clamp(min=1e-8)
+    logs["gcos"] = gcos.mean().item()
+    return tot
+
+
+def total_loss(terms, cfg):
+    W = cfg["w"]
+    return sum(W[k] * v for k, v in terms.items() if W.get(k, 0) > 0)
+
+
+# ----------------------------------------------------------------------------------------------
+
+@torch.no_grad()
+def validate(student, sh, teacher, th, val_batches, cfg):
+    """Distillation loss on the held-out pairs (eval mode) and `student`'s homography accuracy
+    (`student` may be the teacher itself: its reference line)."""
+    was = student.training
+    student.eval()
+    acc = {}
+    n = 0
+    for A, B, _H, _V in val_batches:
+        x = torch.cat([A, B], 0)
+        logs = {}
+        terms = distill_terms(run_net(student, sh, x), run_net(teacher, th, x), cfg, logs)
+        logs.update({k: float(v) for k, v in terms.items()})
+        logs["loss"] = float(total_loss(terms, cfg))
+        for k, v in logs.items():
+            acc[k] = acc.get(k, 0.0) + v
+        n += 1
+    out = {k: v / n for k, v in acc.items()}
+    hacc, rates, _ = T.validate(student, val_batches)
+    student.train(was)  # T.validate leaves train mode: the teacher's BN must never see it
+    out.update({f"hom_acc{i}": a for i, a in enumerate(hacc)})
+    out.update({f"rate{i}": r for i, r in enumerate(rates)})
+    return out
+
+
+def parse_cfg(sets):
+    cfg = copy.deepcopy(CFG)
+    for kv in sets:
+        k, v = kv.split("=", 1)
+        d = cfg
+        ks = k.split(".")
+        for kk in ks[:-1]:
+            d = d[kk]
+        assert ks[-1] in d, f"unknown config key {k}"
+        d[ks[-1]] = json.loads(v)
+    return cfg
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--set", action="append", default=[], help="override: key=json_value (w.hint=0)")
+    ap.add_argument("--minutes", type=float, default=150)
+    ap.add_argument("--max-steps", type=int, default=None, help="stop at this global step")
+    ap.add_argument("--state", default=STATE, help="training-state file (read if present, written)")
+    ap.add_argument("--teacher", default=os.path.join(REPO, "models", "sfp-v1.onnx"),
+                    help=".onnx (SFP weights) or .pt state with 'model'")
+    ap.add_argument("--fresh", action="store_true", help="ignore an existing --state")
+    ap.add_argument("--curves", default=os.path.join(HERE, "curves"))
+    ap.add_argument("--run-name", default=None)
+    ap.add_argument("--best", default=os.path.join(HERE, "runs", "v2s-best.pt"),
+                    help="weights of the lowest validation loss (not committed)")
+    args = ap.parse_args()
+    cfg = parse_cfg(args.set)
+    torch.set_num_threads(cfg["threads"])
+    t_start = time.time()
+    run = args.run_name or time.strftime("v2s-run-%Y%m%d-%H%M")
+    signal.signal(signal.SIGTERM, _on_signal)
+    signal.signal(signal.SIGINT, _on_signal)
+
+    # --- data (the query exclusion exactly as train_v2.py)
+    qpaths = V.query_paths()
+    hfiles = V.hom_files()
+    MV.assert_disjoint(hfiles, qpaths)
+    print(f"queries excluded (asserted by path and md5): {len(qpaths)} files", flush=True)
+    imgs = [D.load_gray(p, 640) for p in hfiles] + D.skimage_images()
+    print(f"images: {len(hfiles)} files + {len(imgs) - len(hfiles)} skimage", flush=True)
+    hs = D.PairSampler(imgs, size=cfg["size"], seed=cfg["seed"])
+    vs = D.PairSampler([D.load_gray(p, 640) for p in D.val_files()], size=256, seed=1234)
+    val_h = [tuple(torch.from_numpy(a) for a in vs.batch(4)) for _ in range(4)]  # train_v2's val pairs
+
+    # --- networks / state
+    teacher = load_teacher(args.teacher)
+    th = Hint(teacher)
+    samplers = dict(hom=hs)
+    step, meta = 0, dict(runs=[], total_minutes=0.0, init=None, best=float("inf"))
+    if os.path.exists(args.state) and not args.fresh:
+        ck = torch.load(args.state, map_location="cpu", weights_only=False)
+        net = SFP.for_state_dict(ck["model"])
+        if net.stem_mode != cfg["stem"]:
+            raise SystemExit(f"{args.state} holds a {net.stem_mode!r} stem, config says {cfg['stem']!r}")
+        step, meta = ck["step"], ck["meta"]
+        torch.set_rng_state(ck["torch_rng"])
+        hs.rng.bit_generator.state = ck["np_rng"]["hom"]
+    else:
+        ck = None
+        net = SFP(stem_mode=cfg["stem"])
+        n = init_from_teacher(net, teacher)
+        meta["init"] = f"{os.path.relpath(args.teacher, REPO)} ({n} tensors after the stem; stem fresh)"
+        print(f"fresh run: {meta['init']}", flush=True)
+    sh = Hint(net)
+    stem_p = [p for k, p in net.named_parameters() if k.startswith("stem_s2.")]
+    rest_p = [p for k, p in net.named_parameters() if not k.startswith("stem_s2.")]
+    opt = torch.optim.AdamW([dict(params=stem_p), dict(params=rest_p)], lr=cfg["lr"],
+                            weight_decay=cfg["weight_decay"])
+    if ck is not None:
+        opt.load_state_dict(V.expand_opt_state(ck["opt"]))
+        print(f"resumed {args.state} at step {step} ({meta['total_minutes']:.1f} min trained before)", flush=True)
+    meta["runs"].append(dict(name=run, start_step=step, started=time.strftime("%Y-%m-%d %H:%M"), cfg=cfg,
+                             teacher=os.path.relpath(args.teacher, REPO)))
+    extra = dict(format="sfp-v2s-state/1", model_name=cfg["model_name"] or MODEL_NAMES[net.stem_mode],
+                 export_metadata={"sfp.teacher": os.path.basename(args.teacher), "sfp.stem": net.stem_mode,
+                                  "sfp.train_loss": "distillation (python/distill_v2.py)"})
+    print(f"student {cfg['stem']}: {sum(p.numel() for p in net.parameters())} params "
+          f"({sum(p.numel() for p in stem_p)} in the stem)", flush=True)
+
+    os.makedirs(args.curves, exist_ok=True)
+    os.makedirs(os.path.dirname(os.path.abspath(args.best)), exist_ok=True)
+    L = len(net.strides)
+    terms = ["score", "desc", "glob", "hint"]
+    per_level = ["kl", "cos", "rate_s", "rate_t"]
+    cols = (["step", "run_minutes", "total_minutes", "lr", "sec_per_step", "loss"] + terms + ["gcos"] +
+            [f"{k}{i}" for k in per_level for i in range(L)])
+    vcols = (["step", "total_minutes", "who", "loss"] + terms + ["gcos"] + [f"cos{i}" for i in range(L)] +
+             [f"kl{i}" for i in range(L)] + [f"hom_acc{i}" for i in range(L)] + [f"rate{i}" for i in range(L)])
+    curve_path = os.path.join(args.curves, f"{run}.csv")
+    val_path = os.path.join(args.curves, f"{run}-val.csv")
+    cf = open(curve_path, "w", newline="")
+    cw = csv.DictWriter(cf, fieldnames=cols)
+    cw.writeheader()
+    vf = open(val_path, "w", newline="")
+    vw = csv.DictWriter(vf, fieldnames=vcols, extrasaction="ignore")
+    vw.writeheader()
+    total0 = meta["total_minutes"]
+    t_loop = time.time()
+    last_ck = time.time()
+    start_step = step
+    acc_rows = []
+
+    def do_save(reason):
+        meta["total_minutes"] = total0 + (time.time() - t_loop) / 60
+        meta["runs"][-1].update(end_step=step, minutes=round((time.time() - t_loop) / 60, 2))
+        sz = V.save_state(args.state, net, opt, step, samplers, meta, extra)
+        print(f"checkpoint ({reason}) step {step}: {args.state} {sz} bytes", flush=True)
+
+    def do_val(who="student"):
+        m = teacher if who == "teacher" else net
+        h = th if who == "teacher" else sh
+        r = validate(m, h, teacher, th, val_h, cfg)
+        r.update(step=step, who=who, total_minutes=round(total0 + (time.time() - t_loop) / 60, 2))
+        vw.writerow({k: (round(v, 5) if isinstance(v, float) else v) for k, v in r.items()})
+        vf.flush()
+        print(f"VAL {who} step {step}: loss={r['loss']:.4f} cos=" +
+              ",".join(f"{r[f'cos{i}']:.3f}" for i in range(L)) + f" gcos={r['gcos']:.3f} hom_acc=" +
+              ",".join(f"{r[f'hom_acc{i}']:.3f}" for i in range(L)), flush=True)
+        if who == "student" and r["loss"] < meta.get("best", float("inf")):
+            meta["best"] = r["loss"]
+            torch.save(dict(model=net.state_dict(), step=step, val=r, model_name=extra["model_name"],
+                            export_metadata=extra["export_metadata"]), args.best)  # export.py reads it
+
+    do_val("teacher")  # the reference line: what the student's accuracies should reach
+    if step == 0:
+        do_val()
+    while not STOP["flag"] and time.time() - t_start < args.minutes * 60 and \
+            (args.max_steps is None or step < args.max_steps):
+        ts = time.time()
+        net.train()
+        V.freeze_bn(net)
+        lr = V.lr_at(step, cfg)
+        opt.param_groups[0]["lr"] = lr
+        opt.param_groups[1]["lr"] = lr if step >= cfg["stem_steps"] else 0.0
+        A, B, _H, _V = map(torch.from_numpy, hs.batch(cfg["n_img"]))
+        x = torch.cat([A, B], 0)
+        with torch.no_grad():
+            t_out = run_net(teacher, th, x)
+        logs = {}
+        Ls = distill_terms(run_net(net, sh, x), t_out, cfg, logs)
+        loss = total_loss(Ls, cfg)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
+        opt.step()
+        row = dict(step=step, lr=lr, sec_per_step=time.time() - ts, loss=loss.item())
+        row.update({k: float(v.detach()) if torch.is_tensor(v) else float(v) for k, v in Ls.items()})
+        row.update(logs)
+        acc_rows.append(row)
+        step += 1
+        if len(acc_rows) >= cfg["log_every"]:
+            agg = {k: float(np.mean([r[k] for r in acc_rows])) for k in cols if k in acc_rows[0]}
+            agg.update(step=step - 1, run_minutes=round((time.time() - t_loop) / 60, 3),
+                       total_minutes=round(total0 + (time.time() - t_loop) / 60, 3))
+            cw.writerow({k: (round(v, 5) if isinstance(v, float) else v) for k, v in agg.items()})
+            cf.flush()
+            acc_rows = []
+            print(f"step {step - 1} t={agg['run_minutes']:.1f}m {agg['sec_per_step']:.2f}s/step "
+                  f"loss={agg['loss']:.4f} " + " ".join(f"{k}={agg[k]:.4f}" for k in terms) +
+                  " cos=" + ",".join(f"{agg[f'cos{i}']:.3f}" for i in range(L)) + f" gcos={agg['gcos']:.3f}",
+                  flush=True)
+        if step % cfg["val_every"] == 0:
+            do_val()
+        if time.time() - last_ck >= cfg["ckpt_minutes"] * 60:
+            do_save("periodic")
+            last_ck = time.time()
+    if STOP["flag"]:
+        print(f"signal {STOP['sig']}: stopping cleanly", flush=True)
+    elif step % cfg["val_every"] != 0:
+        do_val()
+    do_save("end")
+    cf.close()
+    vf.close()
+    print(f"done: steps {start_step}..{step} in {(time.time() - t_loop) / 60:.1f} min "
+          f"(total {meta['total_minutes']:.1f} min); curves {curve_path}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
