@@ -273,16 +273,18 @@ impl Localizer<'_> {
         // large (no retrieval, 1 M points) would make that copy hundreds of MB, so then a row
         // is decoded each time a gate reaches it.
         let found = if grid.points.len() * level.dim <= DECODED_IN_VIEW_MAX {
-            let mut rows = vec![0.0f32; grid.points.len() * level.dim];
-            for (&(row, _), &slot) in in_view.iter().zip(&slots) {
-                let slot = slot as usize;
-                level.decode_row(
-                    row as usize,
-                    &mut rows[slot * level.dim..(slot + 1) * level.dim],
-                );
-            }
-            let mut map = MapRows::Decoded(&rows, level.dim);
-            best_in_gates(set, stride, (w, h), gate, &grid, &mut queries, &mut map)
+            // Every slot is written: `slots` is a permutation of the rows in view.
+            super::scratch::with_f32(grid.points.len() * level.dim, |rows| {
+                for (&(row, _), &slot) in in_view.iter().zip(&slots) {
+                    let slot = slot as usize;
+                    level.decode_row(
+                        row as usize,
+                        &mut rows[slot * level.dim..(slot + 1) * level.dim],
+                    );
+                }
+                let mut map = MapRows::Decoded(rows, level.dim);
+                best_in_gates(set, stride, (w, h), gate, &grid, &mut queries, &mut map)
+            })
         } else {
             let mut map = MapRows::OnDemand {
                 level,
@@ -389,21 +391,21 @@ impl MapRows<'_, '_> {
 /// For every `stride`-th keypoint of `set` inside the image (`size`), the most similar point
 /// of `grid` within `gate` pixels, and the runner-up's similarity. Most of guided matching's
 /// time (the street's SIFT map: about 200,000 gated pairs of 128 dimensions a level), so it
-/// is compiled for AVX-512 and AVX2 too, where the inlined dot product is 4-8x wider than
-/// the baseline's SSE2, chosen at run time.
+/// is compiled for AVX-512 and AVX2 too, chosen at run time: the inlined dot product's 8
+/// lanes then fill one register with FMA instead of two SSE2 registers without.
 #[multiversion::multiversion(targets(
     "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
     "x86_64+avx2+fma",
     "x86_64+avx"
 ))]
-fn best_in_gates<'a, 'm>(
+fn best_in_gates<'a, 'b, 'm>(
     set: &crate::localize::FeatureSet,
     stride: usize,
     size: (f64, f64),
     gate: f64,
     grid: &Grid,
     queries: &mut QueryRows<'a, 'm>,
-    map: &mut MapRows<'a, 'm>,
+    map: &mut MapRows<'b, 'm>,
 ) -> Vec<Gated> {
     let (w, h) = size;
     let gate2 = (gate * gate) as f32;

@@ -79,11 +79,12 @@ pub(crate) fn match_rows(
     if n_q == 0 || n_m == 0 {
         return Vec::new();
     }
-    let mut tile = vec![0.0f32; BLOCK.min(n_m) * dim];
-    match_scored(n_q, n_m, options, |start, rows, out| {
-        let block = &mut tile[..rows * dim];
-        fill(start, block);
-        sgemm_abt(query, block, out, n_q, rows, dim);
+    super::scratch::with_f32(BLOCK.min(n_m) * dim, |tile| {
+        match_scored(n_q, n_m, options, |start, rows, out| {
+            let block = &mut tile[..rows * dim];
+            fill(start, block);
+            sgemm_abt(query, block, out, n_q, rows, dim);
+        })
     })
 }
 
@@ -105,23 +106,24 @@ pub(crate) fn match_scored(
     // The best similarity of each map row over all queries: query q is map row m's nearest
     // neighbour exactly when S[q][m] reaches it, so no per-score argmax bookkeeping is needed.
     let mut column_max = vec![f32::NEG_INFINITY; n_m];
-    let mut scores = vec![0.0f32; n_q * BLOCK.min(n_m)];
-    for start in (0..n_m).step_by(BLOCK) {
-        let rows = BLOCK.min(n_m - start);
-        let out = &mut scores[..n_q * rows];
-        score(start, rows, out);
-        let columns = &mut column_max[start..start + rows];
-        for (q, row) in out.chunks_exact(rows).enumerate() {
-            let (s1, j, runner_up) = scan_row(row, columns);
-            if s1 > best[q].0 {
-                // The old best is a candidate for second, as is this block's runner-up.
-                second[q] = best[q].0.max(runner_up);
-                best[q] = (s1, (start + j) as u32);
-            } else if s1 > second[q] {
-                second[q] = s1;
+    super::scratch::with_f32(n_q * BLOCK.min(n_m), |scores| {
+        for start in (0..n_m).step_by(BLOCK) {
+            let rows = BLOCK.min(n_m - start);
+            let out = &mut scores[..n_q * rows];
+            score(start, rows, out);
+            let columns = &mut column_max[start..start + rows];
+            for (q, row) in out.chunks_exact(rows).enumerate() {
+                let (s1, j, runner_up) = scan_row(row, columns);
+                if s1 > best[q].0 {
+                    // The old best is a candidate for second, as is this block's runner-up.
+                    second[q] = best[q].0.max(runner_up);
+                    best[q] = (s1, (start + j) as u32);
+                } else if s1 > second[q] {
+                    second[q] = s1;
+                }
             }
         }
-    }
+    });
     select(&best, &second, &column_max, options)
 }
 

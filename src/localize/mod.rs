@@ -12,6 +12,7 @@ pub mod localizer;
 mod matching;
 mod prior;
 mod retrieval;
+mod scratch;
 
 pub use localizer::{
     describe_skipped, FeatureSet, Localization, LocalizationPath, LocalizeError, LocalizeOptions,
