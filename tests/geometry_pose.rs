@@ -873,4 +873,15 @@ fn a_prior_that_explains_enough_matches_is_accepted_without_sampling() {
             .unwrap();
     assert!(recovered.iterations > 0);
     assert!(recovered.pose.rotation_error_deg(&s.truth) < 0.5);
+    // Asked for 0, it still needs what any pose needs (`min_inliers`): the wrong prior is not
+    // accepted, the samples find the pose.
+    let zero = RansacOptions {
+        accept_prior: Some(0),
+        ..test_options()
+    };
+    let floored =
+        estimate_absolute_pose_with_prior(&s.pixels, &s.points, &s.camera, Some(&wrong), &zero)
+            .unwrap();
+    assert!(floored.iterations > 0);
+    assert!(floored.pose.rotation_error_deg(&s.truth) < 0.5);
 }

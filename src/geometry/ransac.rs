@@ -66,7 +66,8 @@ pub struct RansacOptions {
     /// least this many inliers ends the search without sampling: guided matches gathered
     /// around a pose that already explains this many of them need no search for another
     /// (the localizer's fine stage: 100+ samples a round on the street's walk otherwise).
-    /// `None`: the prior is one hypothesis among the samples.
+    /// Never fewer than `min_inliers` nor a sample's points, whatever is set here. `None`: the
+    /// prior is one hypothesis among the samples.
     pub accept_prior: Option<usize>,
 }
 
@@ -271,6 +272,8 @@ pub fn estimate_absolute_pose_with_prior(
             if iterations == 0
                 && options
                     .accept_prior
+                    // Never below what a pose needs at all (`min_inliers`, a sample).
+                    .map(|needed| needed.max(options.min_inliers).max(SAMPLE_SIZE))
                     .is_some_and(|needed| inlier_indices.len() >= needed)
             {
                 accepted = true;

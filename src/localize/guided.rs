@@ -33,6 +33,8 @@ const PRIOR_ROUND_CONFIDENCE: f64 = 0.99;
 
 /// Decoded values of the rows in view guided matching keeps for a level (16 MB).
 const DECODED_IN_VIEW_MAX: usize = 4 << 20;
+// Its buffer is per-thread scratch, which keeps buffers up to this size.
+const _: () = assert!(DECODED_IN_VIEW_MAX <= super::scratch::KEEP_MAX_VALUES);
 
 impl Localizer<'_> {
     /// The tracking path: guided matching around `prior` against the points of the database

@@ -64,7 +64,8 @@ pub fn match_descriptors(
 
 /// [`match_descriptors`] against `n_m` map rows that `fill(start, tile)` writes, a block of
 /// at most [`BLOCK`] rows at a time, into `tile` (`rows × dim`): the map's rows never need to be
-/// in memory as f32 all at once (the localizer decodes them from the mapping's f16).
+/// in memory as f32 all at once (the localizer decodes them from the mapping's f16). `tile` is
+/// per-thread scratch holding an earlier block's or query's values: `fill` writes all of it.
 pub(crate) fn match_rows(
     query: &[f32],
     n_m: usize,
@@ -92,6 +93,7 @@ pub(crate) fn match_rows(
 /// every query against map rows `start..start + rows` (at most [`BLOCK`]), query by query, into
 /// `out` (`[n_q × rows]`): the GEMM of decoded rows. (A PQ level's asymmetric distances use
 /// [`match_scored_by_row`], which takes queries a chunk at a time, scores map-row-major.)
+/// `out` is per-thread scratch holding earlier scores: `score` writes every value of it.
 pub(crate) fn match_scored(
     n_q: usize,
     n_m: usize,

@@ -287,7 +287,9 @@ impl Rows<'_> {
     /// Each row's dot product with `q` (`dim` values; both kinds refuse any other length).
     pub(crate) fn dots(&self, dim: usize, q: &[f32]) -> Vec<f32> {
         assert_eq!(q.len(), dim, "Rows::dots: the query is not a row");
-        let dim = dim.max(1);
+        if dim == 0 {
+            return Vec::new();
+        }
         match self {
             Rows::F32(v) => v.chunks_exact(dim).map(|row| dot(row, q)).collect(),
             Rows::F16(v) => crate::vector::dots_f16(v, dim, q),
