@@ -67,7 +67,14 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         }
         Err(e) => {
-            eprintln!("street: {e}");
+            // With its causes (SQLite's own message), as the CLI prints errors.
+            let mut message = e.to_string();
+            let mut cause = std::error::Error::source(&e);
+            while let Some(c) = cause {
+                message += &format!(": {c}");
+                cause = c.source();
+            }
+            eprintln!("street: {message}");
             ExitCode::FAILURE
         }
     }

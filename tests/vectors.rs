@@ -11,8 +11,8 @@ use common::{
 };
 use serde_json::{json, Value};
 use sfpmap::format::{
-    f16, slice, Codec, Dtype, Header, Map, MapWriter, RawEntry, SectionKind, SliceOptions,
-    ENTRY_LEN, HEADER_LEN, NO_LEVEL, SECTION_REQUIRED,
+    checksum, f16, slice, Codec, Dtype, Header, Map, MapWriter, RawEntry, SectionKind,
+    SliceOptions, ENTRY_LEN, HEADER_LEN, NO_LEVEL, SECTION_REQUIRED,
 };
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
@@ -303,7 +303,7 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         .unwrap();
     }
     let later = patch(&w.to_bytes().unwrap(), |h, e| {
-        h.minor = 2;
+        h.minor = 3;
         e[1].codec = 3;
         e[2].dtype = 9;
         e[3].flags = 0x02;
@@ -321,7 +321,7 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         "later_minor",
         later.clone(),
         valid_expected_version(
-            "1.2",
+            "1.3",
             "a later minor's optional sections in encodings this version does not know (skipped)",
             &later,
             content,
@@ -365,6 +365,26 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
             &pq_ordered,
             content,
             json!([]),
+        ),
+    ));
+
+    // (1.2) A section of more than one chunk: the writer adds chunk checksums over every
+    // section. The large section is one a reader skips, so the content stays two points.
+    let chunked = chunked_map();
+    let content = json!({
+        "points": 2, "positions": [[-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]], "colors": null, "point_ids": null,
+        "cameras": 0, "images": [], "visibility": null, "levels": [],
+    });
+    let listed = json!([{ "kind_code": 0x7F02, "skipped": "unknown kind", "dtype": "u8", "rows": CHUNKED_ROWS, "cols": 1 }]);
+    out.push((
+        "chunk_checksums",
+        chunked.clone(),
+        valid_expected_version(
+            "1.2",
+            "chunk checksums: a 70,000-byte optional section (2 chunks of 64 KiB) and the positions (1), checked chunk by chunk",
+            &chunked,
+            content,
+            listed,
         ),
     ));
 
@@ -480,6 +500,30 @@ fn pq_levels_ordered(s: &Scene, order: &[u16]) -> Vec<u8> {
 }
 
 /// (name, bytes, expected error kind, stage where it must be found).
+/// Bytes of the `chunk_checksums` vector's large section: more than one chunk.
+const CHUNKED_ROWS: u64 = 70_000;
+
+/// Two points and an optional section of a kind no version defines, [`CHUNKED_ROWS`] bytes:
+/// the writer stores chunk checksums (1.2).
+fn chunked_map() -> Vec<u8> {
+    let mut w = MapWriter::default();
+    w.metadata_mut().provenance.tool = "sfpmap test fixture".into();
+    w.set_points_world(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
+    let values: Vec<u8> = (0..CHUNKED_ROWS).map(|i| (i * 7 % 251) as u8).collect();
+    w.add_raw_section(
+        SectionKind::Unknown(0x7F02),
+        NO_LEVEL,
+        Dtype::U8,
+        CHUNKED_ROWS,
+        1,
+        false,
+        Cow::Owned(values),
+        Some(Codec::Raw),
+    )
+    .unwrap();
+    w.to_bytes().unwrap()
+}
+
 fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)> {
     let good = scene().writer(Codec::Raw).to_bytes().unwrap();
     let mut out = Vec::new();
@@ -738,6 +782,35 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
         codebook,
     );
     out.push(("pq_codebook_wrong_shape", b, "inconsistent", "open"));
+
+    // (1.2) A chunk checksum too few: open refuses the table.
+    let chunked = chunked_map();
+    let mut b = patch(&chunked, |h, e| {
+        let last = e.len() - 1;
+        assert_eq!(e[last].kind, SectionKind::ChunkChecksums.code());
+        e[last].rows -= 1;
+        e[last].raw_len -= 8;
+        e[last].stored_len -= 8;
+        h.file_len -= 8;
+    });
+    b.truncate(b.len() - 8);
+    out.push(("chunk_count_mismatch", b, "inconsistent", "open"));
+
+    // (1.2) The second chunk of the large section does not match its chunk checksum (the
+    // chunk section's own checksum fixed, and the large section's whole checksum intact).
+    let map = Map::from_bytes(&chunked).unwrap();
+    let sums = *map.sections().last().unwrap();
+    assert_eq!(sums.kind(), SectionKind::ChunkChecksums);
+    let mut b = chunked.clone();
+    let second = sums.offset() as usize + 8 * 2;
+    b[second] ^= 0x01;
+    let fixed_sum =
+        checksum(&b[sums.offset() as usize..(sums.offset() + sums.stored_len()) as usize]);
+    let b = patch(&b, |_, e| {
+        let last = e.len() - 1;
+        e[last].checksum = fixed_sum;
+    });
+    out.push(("bad_chunk_checksum", b, "checksum_mismatch", "verify"));
     out
 }
 
@@ -885,11 +958,26 @@ fn reader_1_0_column_is_the_spec_table() {
     }
 }
 
+/// The bytes whose flips `every_byte_flip_of_a_valid_vector_fails_verify` tries: every byte of
+/// a small vector; of the `chunk_checksums` vector (70 KB, each flip a whole verify) the
+/// index, and of each 64-byte block the first and last byte (so every chunk and both sides of
+/// each chunk boundary).
+fn flipped_bytes(bytes: &[u8]) -> Vec<usize> {
+    if bytes.len() <= 16 << 10 {
+        return (0..bytes.len()).collect();
+    }
+    let header = Header::decode(bytes).unwrap();
+    let index_end = (header.metadata_offset + header.metadata_len) as usize;
+    (0..bytes.len())
+        .filter(|&i| i < index_end || i % 64 == 0 || i % 64 == 63)
+        .collect()
+}
+
 #[test]
 fn every_byte_flip_of_a_valid_vector_fails_verify() {
     for (path, bytes, _) in committed("valid") {
         let mut copy = bytes.clone();
-        for i in 0..bytes.len() {
+        for i in flipped_bytes(&bytes) {
             for mask in [0x01u8, 0x80] {
                 copy[i] ^= mask;
                 let outcome = Map::from_bytes(&copy).and_then(|m| m.verify());

@@ -109,6 +109,14 @@ pub enum Error {
         expected: u64,
         found: u64,
     },
+    /// (1.2) A chunk of a section's stored bytes does not match `chunk_checksums`.
+    ChunkChecksumMismatch {
+        section: SectionRef,
+        /// The chunk's position in the section (bytes from `chunk × CHUNK_LEN`).
+        chunk: u64,
+        expected: u64,
+        found: u64,
+    },
     /// A compressed section does not decode to its declared raw length.
     Decode {
         section: SectionRef,
@@ -235,6 +243,17 @@ impl fmt::Display for Error {
                 f,
                 "{section}: checksum mismatch, expected {expected:016x}, found {found:016x}"
             ),
+            ChunkChecksumMismatch {
+                section,
+                chunk,
+                expected,
+                found,
+            } => write!(
+                f,
+                "{section}: checksum mismatch in bytes {} to {} (chunk {chunk}), expected {expected:016x}, found {found:016x}",
+                chunk * super::layout::CHUNK_LEN,
+                (chunk + 1) * super::layout::CHUNK_LEN
+            ),
             Decode { section, message } => write!(f, "{section}: cannot decode: {message}"),
             DecodedTooLarge {
                 section,
@@ -291,7 +310,7 @@ impl Error {
             UnknownRequiredFeature { .. } => "unknown_required_feature",
             MissingSection { .. } => "missing_section",
             DuplicateSection { .. } => "duplicate_section",
-            ChecksumMismatch { .. } => "checksum_mismatch",
+            ChecksumMismatch { .. } | ChunkChecksumMismatch { .. } => "checksum_mismatch",
             Decode { .. } => "decode",
             DecodedTooLarge { .. } => "decoded_too_large",
             DecodeBudgetExceeded { .. } => "decode_budget_exceeded",

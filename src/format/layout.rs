@@ -10,7 +10,7 @@ pub const MAGIC: [u8; 8] = *b"\x89SFPM\r\n\x1a";
 pub const VERSION_MAJOR: u16 = 1;
 /// The highest minor version this crate writes (a file gets the lowest minor that defines all
 /// its sections, see [`SectionKind::since_minor`]). Readers accept any minor of their major.
-pub const VERSION_MINOR: u16 = 1;
+pub const VERSION_MINOR: u16 = 2;
 /// Written as a `u32` LE; a reader that sees other bytes has the wrong byte order.
 pub const ENDIAN_CHECK: u32 = 0x1A2B_3C4D;
 /// Size of the fixed header in bytes.
@@ -24,6 +24,9 @@ pub const MAX_ENTRY_LEN: u32 = 1024;
 pub const ALIGN: u64 = 64;
 /// Cap on the metadata JSON; checked before anything is parsed.
 pub const METADATA_MAX_BYTES: u64 = 16 << 20;
+/// (1.2) Bytes per chunk of a section's stored bytes in `chunk_checksums`: a reader checks a
+/// large raw section 64 KiB at a time where it reads it, instead of whole on first access.
+pub const CHUNK_LEN: u64 = 1 << 16;
 /// Cap on the number of sections, so the table is bounded too.
 pub const MAX_SECTIONS: u32 = 1 << 16;
 /// `level` value of sections that belong to no level.
@@ -194,12 +197,15 @@ pub enum SectionKind {
     CatalogVladCentroids,
     /// f16 [images × clusters·dims] (1.1, catalogs): every place's images' VLADs on it.
     CatalogImageVlad,
+    /// u64 [chunks × 1] (1.2): XXH3 of each [`CHUNK_LEN`] bytes of every other section's stored
+    /// bytes, sections in table order.
+    ChunkChecksums,
     /// A kind this version does not know.
     Unknown(u16),
 }
 
 impl SectionKind {
-    const KNOWN: [(u16, SectionKind, &'static str); 26] = [
+    const KNOWN: [(u16, SectionKind, &'static str); 27] = [
         (1, SectionKind::PointPositions, "point_positions"),
         (4, SectionKind::PointPositionsQ16, "point_positions_q16"),
         (2, SectionKind::PointColors, "point_colors"),
@@ -230,6 +236,7 @@ impl SectionKind {
             "catalog_vlad_centroids",
         ),
         (67, SectionKind::CatalogImageVlad, "catalog_image_vlad"),
+        (80, SectionKind::ChunkChecksums, "chunk_checksums"),
     ];
 
     pub fn from_code(code: u16) -> SectionKind {
@@ -275,7 +282,9 @@ impl SectionKind {
             LevelPqOrder => (Dtype::U16, Some(1)),
             ImagePoses => (Dtype::F64, Some(7)),
             ImageCameras | ImageIds => (Dtype::U32, Some(1)),
-            ImageNameOffsets | VisibilityOffsets | PlaceImages => (Dtype::U64, Some(1)),
+            ImageNameOffsets | VisibilityOffsets | PlaceImages | ChunkChecksums => {
+                (Dtype::U64, Some(1))
+            }
             ImageNames => (Dtype::U8, Some(1)),
             CatalogProjection | CatalogVladCentroids => (Dtype::F32, None),
             CatalogImageVlad => (Dtype::F16, None),
@@ -308,6 +317,10 @@ impl SectionKind {
     /// block last. So one level's short map is one contiguous byte range, and a reader by
     /// range fetches it in one request (spec, "Section order").
     pub(crate) fn file_order(self, level: u16) -> (u8, u16, u16) {
+        // Last: its values cover every section before it.
+        if self == SectionKind::ChunkChecksums {
+            return (2, 0, 0);
+        }
         if level == NO_LEVEL {
             return (0, self.code(), 0);
         }
@@ -323,6 +336,19 @@ impl SectionKind {
             other => 16u16.saturating_add(other.code()),
         };
         (1, level, rank)
+    }
+
+    /// Whether a reader may check sections of this kind a chunk at a time where it reads them
+    /// (1.2, with `chunk_checksums`): kinds whose contents rules hold value by value, so a
+    /// chunk's values are checked without the rest (`views::check_chunk_contents`).
+    pub fn checked_by_chunk(self) -> bool {
+        matches!(
+            self,
+            SectionKind::LevelDescShort
+                | SectionKind::LevelDescRest
+                | SectionKind::VisibilityPoints
+                | SectionKind::VisibilityKeypoints
+        )
     }
 
     /// Whether sections of this kind carry a level id (others use [`NO_LEVEL`]).
@@ -355,6 +381,7 @@ impl SectionKind {
             | SectionKind::CatalogProjection
             | SectionKind::CatalogVladCentroids
             | SectionKind::CatalogImageVlad => 1,
+            SectionKind::ChunkChecksums => 2,
             _ => 0,
         }
     }

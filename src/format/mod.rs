@@ -15,6 +15,7 @@
 //! ```
 
 mod catalog;
+mod chunks;
 mod delta;
 mod error;
 /// Fuzz-target bodies and the raw on-disk structs they edit: for the fuzz crate and the
@@ -32,11 +33,12 @@ mod views;
 mod writer;
 
 pub use catalog::{Catalog, Listing, Place, CATALOG_KEY};
+pub use chunks::Chunked;
 pub use error::{Error, SectionRef};
 pub use layout::{
-    align_up, checksum, Codec, Dtype, SectionKind, ALIGN, ENDIAN_CHECK, ENTRY_LEN, HEADER_LEN,
-    MAGIC, MAX_CAMERA_PARAMS, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN, MAX_IMAGE_SIDE, MAX_SECTIONS,
-    METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED, VERSION_MAJOR, VERSION_MINOR,
+    align_up, checksum, Codec, Dtype, SectionKind, ALIGN, CHUNK_LEN, ENDIAN_CHECK, ENTRY_LEN,
+    HEADER_LEN, MAGIC, MAX_CAMERA_PARAMS, MAX_DESCRIPTOR_DIM, MAX_ENTRY_LEN, MAX_IMAGE_SIDE,
+    MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED, VERSION_MAJOR, VERSION_MINOR,
 };
 #[cfg(feature = "fuzzing")]
 pub use layout::{Header, RawEntry};
@@ -51,7 +53,7 @@ pub use pq::{gather as pq_gather, Pq, MAX_PQ_CENTROIDS};
 pub use reader::{decode_budget, decode_cap, Map, Section, Skipped};
 pub use slice::{slice, SliceOptions, SliceSummary};
 pub use source::{coalesce, RangeSource, SourceStats, Wanted, COALESCE_GAP, HEAD_READ};
-pub use views::{GlobalDescriptors, Images, Level, Visibility, Vlad};
+pub use views::{GlobalDescriptors, Images, Level, Visibility, VisibilityByChunk, Vlad};
 pub use writer::{Descriptors, MapWriter};
 
 /// Memory-maps a file read-only (see the safety note on sfpmap's own files in `mmap.rs`).

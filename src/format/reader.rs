@@ -232,6 +232,8 @@ pub struct Map<'a> {
     checked: Vec<AtomicBool>,
     /// Bytes decoded from zstd sections so far, against `decode_budget(file_len)`.
     decoded: AtomicU64,
+    /// (1.2) Chunk checksums, when the map has them: which chunks were checked.
+    chunks: Option<super::chunks::ChunkIndex>,
     n_points: u64,
     n_images: u64,
 }
@@ -294,6 +296,12 @@ impl<'a> Map<'a> {
 
     fn from_index(index: Index, backing: Backing<'a>) -> Result<Map<'a>, Error> {
         let n = index.sections.len();
+        let chunks = super::chunks::ChunkIndex::new(
+            &index.sections,
+            index
+                .by_kind
+                .get(&index.sections, SectionKind::ChunkChecksums, None),
+        );
         Ok(Map {
             backing,
             header: index.header,
@@ -303,6 +311,7 @@ impl<'a> Map<'a> {
             ready: (0..n).map(|_| OnceLock::new()).collect(),
             checked: (0..n).map(|_| AtomicBool::new(false)).collect(),
             decoded: AtomicU64::new(0),
+            chunks,
             n_points: index.n_points,
             n_images: index.n_images,
         })
@@ -429,6 +438,22 @@ impl<'a> Map<'a> {
         }
     }
 
+    /// (1.2) The map's chunk checksums' state, if it has them.
+    pub(crate) fn chunk_index(&self) -> Option<&super::chunks::ChunkIndex> {
+        self.chunks.as_ref()
+    }
+
+    /// Whether `section` was checked whole already (by its first access or `verify`).
+    pub(crate) fn is_checked_whole(&self, section: &Section) -> bool {
+        self.ready[section.index].get().is_some_and(|r| r.is_ok())
+            || self.checked[section.index].load(Ordering::Acquire)
+    }
+
+    /// [`Map::own`] for the other modules of the reader.
+    pub(crate) fn own_section(&self, section: &Section) -> Result<(), Error> {
+        self.own(section)
+    }
+
     /// `section` if it is one of this map's, as [`Map::sections`] lists it. A `Section` cannot be
     /// made up outside the reader, but one taken from another map could otherwise index or
     /// slice past what this map holds.
@@ -509,6 +534,8 @@ impl<'a> Map<'a> {
             } else {
                 self.check_section(section)?;
             }
+            // (1.2) And chunk by chunk, as a reader that reads it where it is used would.
+            self.check_chunks(section)?;
         }
         super::views::check_cross_sections(self)
     }

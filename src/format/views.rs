@@ -1,5 +1,6 @@
 //! Typed views of a map's sections, and the checks that tie sections and metadata together.
 
+use super::chunks::Chunked;
 use super::error::Error;
 use super::layout::{SectionKind, MAX_CAMERA_PARAMS, MAX_DESCRIPTOR_DIM, MAX_IMAGE_SIDE};
 use super::metadata::{LevelInfo, Metadata};
@@ -249,6 +250,21 @@ pub(crate) fn check_shapes(
             })
         }
     }
+    // (1.2) One checksum per chunk of every other section, so each chunk has one.
+    if let Some(chunks) = find(SectionKind::ChunkChecksums, None) {
+        match super::chunks::expected_rows(sections) {
+            Some(rows) if rows == chunks.rows => {}
+            expected => {
+                return Err(Error::inconsistent(format!(
+                    "{} has {} rows, the other sections have {} chunks of {} bytes",
+                    chunks.reference(),
+                    chunks.rows,
+                    expected.map_or("more than 2^64".into(), |n| n.to_string()),
+                    super::layout::CHUNK_LEN
+                )))
+            }
+        }
+    }
     Ok((index, n_points, n_images))
 }
 
@@ -370,6 +386,17 @@ fn check_cameras(metadata: &Metadata) -> Result<(), Error> {
 
 /// Checks what one section's decoded contents must satisfy (indices in range, offsets
 /// monotonic). Runs once per section, on first access.
+/// The contents rules of a kind [`SectionKind::checked_by_chunk`] on one chunk's values: those
+/// rules hold value by value, so a chunk is checked without the rest of its section.
+pub(crate) fn check_chunk_contents(
+    map: &Map<'_>,
+    section: &Section,
+    bytes: &[u8],
+) -> Result<(), Error> {
+    debug_assert!(section.kind.checked_by_chunk());
+    check_contents(map, section, bytes)
+}
+
 pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> Result<(), Error> {
     let bad = |what: String| {
         Err(Error::inconsistent(format!(
@@ -540,6 +567,21 @@ impl Visibility<'_> {
     }
 }
 
+/// Image → point ids, in CSR form, the points checked where they are read (1.2, see
+/// [`Chunked`]): what a localizer that reads a few images' points per query takes.
+pub struct VisibilityByChunk<'m> {
+    pub offsets: Cow<'m, [u64]>,
+    pub points: Chunked<'m, u32>,
+}
+
+impl VisibilityByChunk<'_> {
+    /// The points image `i` sees, their chunks checked.
+    pub fn points_of(&self, i: usize) -> Result<&[u32], Error> {
+        self.points
+            .get(self.offsets[i] as usize..self.offsets[i + 1] as usize)
+    }
+}
+
 /// Image global descriptors, row-major `[images × dim]`, and `dim`.
 pub type GlobalDescriptors<'m> = (Cow<'m, [f16]>, usize);
 
@@ -648,6 +690,21 @@ impl<'m> Level<'m> {
     /// `[len × (dim_full − dim_short)]` row-major f16, if present.
     pub fn desc_rest(&self) -> Result<Option<Cow<'m, [f16]>>, Error> {
         self.rest.map(|s| self.map.section_array(s)).transpose()
+    }
+
+    /// [`Level::desc_short`] checked where it is read, a chunk at a time (1.2, see
+    /// [`Chunked`]): what a localizer that reads a few rows per query takes.
+    pub fn desc_short_chunked(&self) -> Result<Chunked<'m, f16>, Error> {
+        let s = self.short.ok_or(Error::MissingSection {
+            kind: SectionKind::LevelDescShort,
+            level: Some(self.id()),
+        })?;
+        self.map.chunked(s)
+    }
+
+    /// [`Level::desc_rest`] checked where it is read (see [`Level::desc_short_chunked`]).
+    pub fn desc_rest_chunked(&self) -> Result<Option<Chunked<'m, f16>>, Error> {
+        self.rest.map(|s| self.map.chunked(s)).transpose()
     }
 
     /// `[dim_full × d_in]` row-major f32: row k maps an extractor descriptor to stored dim k.
@@ -778,6 +835,18 @@ impl<'a> Map<'a> {
     /// range never fetches them for a reader that does not use them.
     pub fn visibility_points(&self) -> Result<Option<Visibility<'_>>, Error> {
         self.visibility_with(false)
+    }
+
+    /// [`Map::visibility_points`] with the points checked where they are read (1.2, see
+    /// [`Chunked`]).
+    pub fn visibility_by_chunk(&self) -> Result<Option<VisibilityByChunk<'_>>, Error> {
+        let Some(offsets) = self.find(SectionKind::VisibilityOffsets, None) else {
+            return Ok(None);
+        };
+        Ok(Some(VisibilityByChunk {
+            offsets: self.section_array(offsets)?,
+            points: self.chunked(self.required(SectionKind::VisibilityPoints)?)?,
+        }))
     }
 
     fn visibility_with(&self, keypoints: bool) -> Result<Option<Visibility<'_>>, Error> {

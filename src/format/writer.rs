@@ -771,7 +771,12 @@ impl<'a> MapWriter<'a> {
         }
         // Canonical order (`SectionKind::file_order`: shared sections, then level by level),
         // so the bytes do not depend on the order of the calls.
-        let mut order: Vec<&PendingSection<'a>> = self.sections.values().collect();
+        // `chunk_checksums` is the writer's own (below): one handed in is not copied.
+        let mut order: Vec<&PendingSection<'a>> = self
+            .sections
+            .values()
+            .filter(|s| s.kind != SectionKind::ChunkChecksums)
+            .collect();
         order.sort_by_key(|s| s.kind.file_order(s.level));
         reporter.start("encoding", Some(order.len() as u64));
         let mut blocks = Vec::with_capacity(order.len());
@@ -832,6 +837,27 @@ impl<'a> MapWriter<'a> {
             reporter.advance(1);
         }
         reporter.finish();
+        // (1.2) Chunk checksums, last, when a section spans more than one chunk, so a reader
+        // checks a large section where it reads it (`format/chunks.rs`).
+        let chunk_pending;
+        if super::chunks::worth_storing(blocks.iter().map(|b| b.1.len() as u64)) {
+            let sums = super::chunks::chunk_checksums(blocks.iter().map(|b| &b.1[..]));
+            chunk_pending = PendingSection {
+                kind: SectionKind::ChunkChecksums,
+                level: NO_LEVEL,
+                dtype: Dtype::U64,
+                rows: sums.len() as u64,
+                cols: 1,
+                required: false,
+                content: Content::Array {
+                    bytes: Cow::Borrowed(&[]),
+                    codec: Some(Codec::Raw),
+                },
+            };
+            let bytes = owned_bytes(sums);
+            let raw_len = bytes.len() as u64;
+            blocks.push((&chunk_pending, bytes, Codec::Raw, raw_len));
+        }
 
         let mut metadata =
             serde_json::to_vec(&self.metadata).map_err(|e| Error::invalid(e.to_string()))?;

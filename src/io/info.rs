@@ -41,6 +41,7 @@ fn component(kind: SectionKind) -> &'static str {
         ImagePoses | ImageCameras | ImageIds | ImageNameOffsets | ImageNames => "images",
         VisibilityOffsets | VisibilityPoints | VisibilityKeypoints => "visibility",
         PlaceImages | CatalogProjection | CatalogVladCentroids | CatalogImageVlad => "places",
+        ChunkChecksums => "chunk checksums",
         Unknown(_) => "skipped",
     }
 }
@@ -48,7 +49,7 @@ fn component(kind: SectionKind) -> &'static str {
 /// Stored bytes per point of each component present, in a fixed order, then the index
 /// (header, table, metadata, padding) and the whole file.
 pub fn components(map: &Map<'_>) -> Vec<(&'static str, f64)> {
-    const ORDER: [&str; 11] = [
+    const ORDER: [&str; 12] = [
         "positions",
         "colours and ids",
         "level membership",
@@ -58,6 +59,7 @@ pub fn components(map: &Map<'_>) -> Vec<(&'static str, f64)> {
         "images",
         "visibility",
         "places",
+        "chunk checksums",
         "skipped",
         "index and padding",
     ];

@@ -7,7 +7,7 @@ use super::adc::match_pq;
 use super::level::{LevelIndex, Stored};
 use super::localizer::{ms, Query, QueryFailure, QueryFeatures, StageTimes};
 use super::matching::match_rows;
-use super::Localizer;
+use super::{LocalizeError, Localizer};
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, PoseEstimate, RansacOptions};
 use crate::vector::normalise_rows;
 use nalgebra::{Vector2, Vector3};
@@ -109,13 +109,14 @@ impl CoarseSearch<'_> {
     /// can be wrong where the global descriptor is weak, and a busy image's true matches can
     /// be too few in a sample). `wider(k)`: the points of the best `k` retrieved images
     /// (`None`: every point, or no retrieval); `run(candidates, max_keypoints)`: one tier's
-    /// matching and RANSAC, and whether it sampled the keypoints.
-    fn next_pose(
+    /// matching and RANSAC, and whether it sampled the keypoints. Fails where they fail (a
+    /// damaged chunk of the map).
+    fn next_pose<E>(
         &mut self,
         top_k: usize,
-        mut wider: impl FnMut(usize) -> Option<Vec<u32>>,
-        mut run: impl FnMut(Option<&[u32]>, usize) -> (TierResult, bool),
-    ) -> Option<CoarsePose> {
+        mut wider: impl FnMut(usize) -> Result<Option<Vec<u32>>, E>,
+        mut run: impl FnMut(Option<&[u32]>, usize) -> Result<(TierResult, bool), E>,
+    ) -> Result<Option<CoarsePose>, E> {
         loop {
             let tier = self.next;
             self.next = match tier {
@@ -127,7 +128,7 @@ impl CoarseSearch<'_> {
                 Tier::EveryPoint | Tier::Done => Tier::Done,
             };
             let (candidates, keypoints): (Option<&[u32]>, usize) = match tier {
-                Tier::Done => return None,
+                Tier::Done => return Ok(None),
                 Tier::Few => match self.few {
                     Some(few) => (Some(few), COARSE_KEYPOINTS),
                     None => continue,
@@ -142,7 +143,7 @@ impl CoarseSearch<'_> {
                     let Some(current) = &self.candidates else {
                         continue;
                     };
-                    match wider(WIDER_RETRIEVAL[i].saturating_mul(top_k)) {
+                    match wider(WIDER_RETRIEVAL[i].saturating_mul(top_k))? {
                         Some(w) if w.len() > current.len() => self.candidates = Some(w),
                         Some(_) => continue,
                         None => self.candidates = None,
@@ -153,14 +154,14 @@ impl CoarseSearch<'_> {
                 Tier::EveryPoint if !self.found && !self.exhaustive => (None, usize::MAX),
                 Tier::AllKeypoints | Tier::EveryPoint => continue,
             };
-            let (tried, sampled) = run(candidates, keypoints);
+            let (tried, sampled) = run(candidates, keypoints)?;
             let narrowed = candidates.is_some();
             self.sampled |= sampled;
             self.exhaustive |= !narrowed && !sampled;
             match tried {
                 Ok(estimate) => {
                     self.found = true;
-                    return Some(CoarsePose { estimate, narrowed });
+                    return Ok(Some(CoarsePose { estimate, narrowed }));
                 }
                 Err(failure) => self.failure = Some(failure),
             }
@@ -177,7 +178,7 @@ impl Localizer<'_> {
         query: &QueryFeatures,
         camera: &Camera,
         times: &mut StageTimes,
-    ) -> Option<CoarsePose> {
+    ) -> Result<Option<CoarsePose>, LocalizeError> {
         search.next_pose(
             self.options.top_k,
             |k| self.retrieved_points(query, k),
@@ -196,7 +197,7 @@ impl Localizer<'_> {
         max_keypoints: usize,
         camera: &Camera,
         times: &mut StageTimes,
-    ) -> (TierResult, bool) {
+    ) -> Result<(TierResult, bool), LocalizeError> {
         let t1 = Instant::now();
         let mut pixels = Vec::new();
         let mut points = Vec::new();
@@ -209,7 +210,7 @@ impl Localizer<'_> {
                 max_keypoints,
                 &mut pixels,
                 &mut points,
-            );
+            )?;
             if pixels.len() >= 4 * self.options.min_inliers {
                 break;
             }
@@ -230,7 +231,7 @@ impl Localizer<'_> {
             let matches = pixels.len();
             (QueryFailure::NoCoarsePose { error, matches }, matches)
         });
-        (found, sampled)
+        Ok((found, sampled))
     }
 
     /// Global matching of a level's query descriptors (their `coarse_dim` prefix) against its
@@ -243,14 +244,14 @@ impl Localizer<'_> {
         max_keypoints: usize,
         pixels: &mut Vec<Vector2<f64>>,
         points: &mut Vec<Vector3<f64>>,
-    ) -> bool {
-        let rows: Vec<usize> = match level.rows_of(candidates) {
+    ) -> Result<bool, LocalizeError> {
+        let rows: Vec<usize> = match level.rows_of(candidates)? {
             Some(rows) => rows.into_iter().map(|r| r as usize).collect(),
             None => (0..level.points.len()).collect(),
         };
         let set = query.set;
         if rows.is_empty() || set.keypoints.is_empty() {
-            return false;
+            return Ok(false);
         }
         let q = query.projected.get_or_init(|| self.project(level, set));
         // Coarse matching only seeds the pose: the leading dimensions (`coarse_dim`) of every
@@ -294,7 +295,7 @@ impl Localizer<'_> {
             pixels.push(Vector2::new(kp[0], kp[1]));
             points.push(self.position(p));
         }
-        stride > 1
+        Ok(stride > 1)
     }
 }
 
@@ -336,17 +337,20 @@ mod tests {
         let mut search = CoarseSearch::new(candidates, few);
         let (mut runs, mut poses, mut asked) = (Vec::new(), Vec::new(), Vec::new());
         results.reverse();
-        while let Some(p) = search.next_pose(
-            10,
-            |k| {
-                asked.push(k);
-                wider(k)
-            },
-            |c, k| {
-                runs.push((c.map(<[u32]>::len), k));
-                results.pop().expect("a tier no test result was given for")
-            },
-        ) {
+        while let Some(p) = search
+            .next_pose(
+                10,
+                |k| {
+                    asked.push(k);
+                    Ok::<_, ()>(wider(k))
+                },
+                |c, k| {
+                    runs.push((c.map(<[u32]>::len), k));
+                    Ok(results.pop().expect("a tier no test result was given for"))
+                },
+            )
+            .unwrap()
+        {
             poses.push((p.estimate.num_inliers, p.narrowed));
         }
         assert!(results.is_empty(), "tiers left unrun: {}", results.len());

@@ -6,7 +6,7 @@ use super::coarse::sure_inliers;
 use super::level::LevelIndex;
 use super::localizer::{ms, Query};
 use super::matching::fails_ratio_test;
-use super::{Localization, LocalizationPath, Localizer, StageTimes, TrackingLost};
+use super::{Localization, LocalizationPath, LocalizeError, Localizer, StageTimes, TrackingLost};
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
 use crate::vector::dot;
 use nalgebra::{Vector2, Vector3};
@@ -45,19 +45,19 @@ impl Localizer<'_> {
         prior: &Pose,
         camera: &Camera,
         times: &mut StageTimes,
-    ) -> Result<Localization, TrackingLost> {
+    ) -> Result<Result<Localization, TrackingLost>, LocalizeError> {
         let t = Instant::now();
         let (Some(viewpoints), Some(visibility)) = (&self.viewpoints, &self.visibility) else {
-            return Err(TrackingLost::NoImagesNearPrior);
+            return Ok(Err(TrackingLost::NoImagesNearPrior));
         };
         let images = viewpoints.near(prior, self.options.top_k);
         if images.is_empty() {
-            return Err(TrackingLost::NoImagesNearPrior);
+            return Ok(Err(TrackingLost::NoImagesNearPrior));
         }
         let candidates =
-            super::retrieval::points_seen(&images, self.n_points(), |i| visibility.points_of(i));
+            super::retrieval::points_seen(&images, self.n_points(), |i| visibility.points_of(i))?;
         let gate = self.options.gate_px * PRIOR_GATE_FACTOR;
-        let result = self.refine(sets, candidates.as_deref(), *prior, gate, camera);
+        let result = self.refine(sets, candidates.as_deref(), *prior, gate, camera)?;
         times.fine_ms += ms(t);
         let (inliers, matches) = result.as_ref().map_or((0, 0), |f| (f.inliers, f.matches));
         // Around a wrong prior, gated matching still finds some matches, and RANSAC a subset
@@ -67,7 +67,7 @@ impl Localizer<'_> {
             .options
             .min_inliers
             .max((matches as f64 * TRACKING_MIN_INLIER_SHARE).ceil() as usize);
-        match result {
+        Ok(match result {
             Some(found) if inliers >= needed => Ok(Localization {
                 retrieved_images: images.len(),
                 ..found
@@ -77,7 +77,7 @@ impl Localizer<'_> {
                 needed,
                 matches,
             }),
-        }
+        })
     }
 
     /// Up to two rounds of guided matching on every selected level (`candidates`: the points
@@ -87,7 +87,8 @@ impl Localizer<'_> {
     /// each followed by a RANSAC estimate seeded with the pose so far; the second is skipped
     /// when the first barely moved the pose at the same gate ([`settled`]). The last estimate
     /// as a localization (the caller fills in retrieval and timing), or `None` if the first
-    /// round gives no pose, or a seeding round's second does not.
+    /// round gives no pose, or a seeding round's second does not. Fails only for a damaged
+    /// chunk of the map.
     pub(super) fn refine(
         &self,
         sets: &[Query<'_>],
@@ -95,12 +96,15 @@ impl Localizer<'_> {
         start: Pose,
         first_gate: f64,
         camera: &Camera,
-    ) -> Option<Localization> {
+    ) -> Result<Option<Localization>, LocalizeError> {
         let mut pose = start;
         let mut result = None;
         // Each level's candidate rows, found once for all rounds.
-        let rows: Vec<Option<Vec<u32>>> =
-            self.levels.iter().map(|l| l.rows_of(candidates)).collect();
+        let rows: Vec<Option<Vec<u32>>> = self
+            .levels
+            .iter()
+            .map(|l| l.rows_of(candidates))
+            .collect::<Result<_, _>>()?;
         // A first gate wider than `gate_px` (a prior's) looks at every `stride`-th keypoint,
         // so that it compares about as many keypoint × point pairs as a round at `gate_px`
         // (the street's walk, level 2 short: 7 -> 4 ms a frame); if that gives no pose, the
@@ -182,18 +186,20 @@ impl Localizer<'_> {
                 Err(_) if round == 0 && stride > 1 => stride = 1,
                 // A seeding round's pose (at the coarse threshold) is no answer of its own: the
                 // frame goes to retrieval.
-                Err(_) if round == 1 && first_gate > self.options.gate_px => return None,
+                Err(_) if round == 1 && first_gate > self.options.gate_px => return Ok(None),
                 Err(_) => break,
             }
         }
-        let (estimate, level_of, matches) = result?;
+        let Some((estimate, level_of, matches)) = result else {
+            return Ok(None);
+        };
         let mut per_level: Vec<(u16, usize)> = self.levels.iter().map(|l| (l.id, 0)).collect();
         for (&inlier, &i) in estimate.inliers.iter().zip(&level_of) {
             if inlier {
                 per_level[i].1 += 1;
             }
         }
-        Some(Localization {
+        Ok(Some(Localization {
             outcome: Ok(estimate.pose),
             inliers_per_level: per_level,
             matches,
@@ -205,7 +211,7 @@ impl Localizer<'_> {
             path: LocalizationPath::Retrieval,
             tracking_lost: None,
             times: StageTimes::default(),
-        })
+        }))
     }
 
     /// Guided matching: every point of the level (of `rows`, if given) that projects into the

@@ -5,7 +5,7 @@
 //! needed. Nothing is computed per row at open.
 
 use super::{LocalizeError, LocalizeOptions};
-use crate::format::{f16, Level, Pq};
+use crate::format::{f16, Chunked, Error as FormatError, Level, Pq};
 use std::borrow::Cow;
 
 /// One selected level, ready for matching. Everything here is sized by the level's own
@@ -32,10 +32,12 @@ const COARSE_PREFIX_MIN_DIMS: usize = 32;
 /// A level's descriptors as the map stores them.
 pub(super) enum Stored<'m> {
     /// The `short` block (`[rows × ds]` f16, a view of the mapping for raw sections), and the
-    /// `rest` block (`[rows × dr]`) when it is matched.
+    /// `rest` block (`[rows × dr]`) when it is matched. With chunk checksums (1.2) both are
+    /// checked where they are read: [`LevelIndex::rows_of`] checks a query's rows before
+    /// matching reads them.
     F16 {
-        short: Cow<'m, [f16]>,
-        rest: Option<Cow<'m, [f16]>>,
+        short: Chunked<'m, f16>,
+        rest: Option<Chunked<'m, f16>>,
         ds: usize,
         dr: usize,
     },
@@ -71,9 +73,14 @@ impl LevelIndex<'_> {
                 dr,
             } => {
                 let (to_short, to_rest) = out.split_at_mut(*ds);
-                crate::vector::widen_f16(&short[r * ds..(r + 1) * ds], to_short);
+                debug_assert!(
+                    short.is_checked(r * ds..(r + 1) * ds),
+                    "row {r} read unchecked"
+                );
+                crate::vector::widen_f16(&short.unchecked()[r * ds..(r + 1) * ds], to_short);
                 if let Some(block) = rest.as_ref().filter(|_| !to_rest.is_empty()) {
-                    crate::vector::widen_f16(&block[r * dr..(r + 1) * dr], to_rest);
+                    debug_assert!(block.is_checked(r * dr..(r + 1) * dr));
+                    crate::vector::widen_f16(&block.unchecked()[r * dr..(r + 1) * dr], to_rest);
                 }
             }
             Stored::Pq(pq) => pq.decode_row(r, out),
@@ -114,11 +121,14 @@ impl LevelIndex<'_> {
             return;
         }
         let (ds, dr) = (*ds, *dr);
+        debug_assert!(short.is_checked(first * ds..(first + n) * ds));
+        let short = short.unchecked();
         match rest.as_ref().filter(|_| dim > ds) {
             None => crate::vector::widen_f16(&short[first * ds..(first + n) * ds], tile),
             Some(rest) => {
+                debug_assert!(rest.is_checked(first * dr..(first + n) * dr));
                 rest_run.resize(n * dr, 0.0);
-                crate::vector::widen_f16(&rest[first * dr..(first + n) * dr], rest_run);
+                crate::vector::widen_f16(&rest.unchecked()[first * dr..(first + n) * dr], rest_run);
                 let short = &short[first * ds..(first + n) * ds];
                 for (k, out) in tile.chunks_exact_mut(dim).enumerate() {
                     crate::vector::widen_f16(&short[k * ds..(k + 1) * ds], &mut out[..ds]);
@@ -133,9 +143,13 @@ impl LevelIndex<'_> {
 
     /// The level rows of `points` (ascending global indices), ascending: each found by a
     /// galloping search from where the last one ended, O(c log(n / c)) for c candidates,
-    /// never a scan of the level. `None` for `None` (every row).
-    pub(super) fn rows_of(&self, points: Option<&[u32]>) -> Option<Vec<u32>> {
-        let points = points?;
+    /// never a scan of the level. `None` for `None` (every row). The rows' stored descriptors
+    /// are checked (1.2: the chunks holding them, once per map), so matching may read them.
+    pub(super) fn rows_of(&self, points: Option<&[u32]>) -> Result<Option<Vec<u32>>, FormatError> {
+        let Some(points) = points else {
+            self.check_rows(0..self.points.len())?;
+            return Ok(None);
+        };
         let level = &self.points[..];
         let mut rows = Vec::with_capacity(points.len().min(level.len()));
         let mut from = 0;
@@ -157,7 +171,25 @@ impl LevelIndex<'_> {
                 break;
             }
         }
-        Some(rows)
+        self.check_rows(rows.iter().map(|&r| r as usize))?;
+        Ok(Some(rows))
+    }
+
+    /// Checks the stored descriptors of `rows` (ascending) where the map checks them by chunk.
+    fn check_rows(&self, rows: impl Iterator<Item = usize> + Clone) -> Result<(), FormatError> {
+        if let Stored::F16 {
+            short,
+            rest,
+            ds,
+            dr,
+        } = &self.stored
+        {
+            short.check_rows(rows.clone(), *ds)?;
+            if let Some(rest) = rest {
+                rest.check_rows(rows, *dr)?;
+            }
+        }
+        Ok(())
     }
 
     /// Normalises a decoded row: its norm is computed where it is decoded, not stored, so
@@ -176,8 +208,8 @@ struct LevelParts<'m> {
     /// Whether the map holds the level's `rest` block (`rest` is it when it is matched).
     has_rest: bool,
     points: Cow<'m, [u32]>,
-    short: Cow<'m, [f16]>,
-    rest: Option<Cow<'m, [f16]>>,
+    short: Chunked<'m, f16>,
+    rest: Option<Chunked<'m, f16>>,
     /// The PQ codes (1.1), instead of `short` and `rest` (then empty and `None`).
     pq: Option<Pq<'m>>,
     /// `[dim_full × d_in]` and `d_in`.
@@ -198,15 +230,15 @@ pub(super) fn index_level<'m>(
         has_rest: level.has_rest(),
         points: level.points()?,
         short: if pq.is_some() {
-            Cow::Borrowed(&[])
+            Chunked::checked(Cow::Borrowed(&[]))
         } else {
-            level.desc_short()?
+            level.desc_short_chunked()?
         },
         // A PQ level's codes cover what they cover: `short` cannot cut them.
         rest: if options.short || pq.is_some() {
             None
         } else {
-            level.desc_rest()?
+            level.desc_rest_chunked()?
         },
         pq,
         projection: level
@@ -319,8 +351,8 @@ fn f16_blocks<'m>(
     df: usize,
     has_rest: bool,
     n: usize,
-    short: Cow<'m, [f16]>,
-    rest: Option<Cow<'m, [f16]>>,
+    short: Chunked<'m, f16>,
+    rest: Option<Chunked<'m, f16>>,
     bad: &impl Fn(String) -> LocalizeError,
 ) -> Result<Result<(Stored<'m>, usize), String>, LocalizeError> {
     // `LevelInfo::matched_dims`, on the blocks actually read.
@@ -366,8 +398,8 @@ fn f16_blocks<'m>(
 mod tests {
     use super::*;
 
-    fn halves(n: usize) -> Cow<'static, [f16]> {
-        Cow::Owned(vec![f16::from_f32(0.5); n])
+    fn halves(n: usize) -> Chunked<'static, f16> {
+        Chunked::checked(Cow::Owned(vec![f16::from_f32(0.5); n]))
     }
 
     fn parts(points: Vec<u32>, ds: usize, df: usize) -> LevelParts<'static> {
@@ -426,14 +458,20 @@ mod tests {
                 }
             }
             assert_eq!(
-                index.rows_of(Some(&c)).unwrap(),
+                index.rows_of(Some(&c)).unwrap().unwrap(),
                 naive(&c),
                 "1 in {density}"
             );
         }
-        assert_eq!(index.rows_of(Some(&[])).unwrap(), Vec::<u32>::new());
-        assert_eq!(index.rows_of(Some(&[8_997, 9_000])).unwrap(), [2_999]);
-        assert!(index.rows_of(None).is_none());
+        assert_eq!(
+            index.rows_of(Some(&[])).unwrap().unwrap(),
+            Vec::<u32>::new()
+        );
+        assert_eq!(
+            index.rows_of(Some(&[8_997, 9_000])).unwrap().unwrap(),
+            [2_999]
+        );
+        assert!(index.rows_of(None).unwrap().is_none());
     }
 
     // The localizer's own checks, whatever the reader's limits let through: degenerate or
@@ -506,13 +544,15 @@ mod tests {
         // 3 points, 32 short + 2 rest dims, every value distinct (and exact in f16).
         let (ds, dr) = (COARSE_PREFIX_MIN_DIMS, 2);
         let mut p = parts(vec![1, 4, 9], ds, ds + dr);
-        p.short = Cow::Owned((0..3 * ds).map(|v| f16::from_f32(v as f32 + 1.0)).collect());
+        p.short = Chunked::checked(Cow::Owned(
+            (0..3 * ds).map(|v| f16::from_f32(v as f32 + 1.0)).collect(),
+        ));
         p.has_rest = true;
-        p.rest = Some(Cow::Owned(
+        p.rest = Some(Chunked::checked(Cow::Owned(
             (0..3 * dr)
                 .map(|v| f16::from_f32(-(v as f32) - 1.0))
                 .collect(),
-        ));
+        )));
         let level = build_level(p, 100).unwrap().unwrap();
         assert_eq!((level.dim, level.coarse_dim()), (ds + dr, ds));
         let unit = |v: &[f32]| {

@@ -17,7 +17,7 @@ use super::level::{index_level, LevelIndex};
 use super::matching::MatchOptions;
 use super::prior::Viewpoints;
 use super::retrieval::{RetrievalFallback, RetrievalIndex, RetrievalMethod};
-use crate::format::{Error as FormatError, Map, Retrieval, SectionKind, Visibility};
+use crate::format::{Error as FormatError, Map, Retrieval, SectionKind, VisibilityByChunk};
 use crate::geometry::{Camera, Pose, PoseEstimate};
 use crate::vector::{dot, normalise_rows};
 use nalgebra::Vector3;
@@ -397,7 +397,8 @@ pub struct Localizer<'m> {
     /// Database camera centres and directions, for images near a pose (`None`: no images).
     pub(super) viewpoints: Option<Viewpoints>,
     /// Image → points, borrowed from the map, or `None` (all points are candidates).
-    pub(super) visibility: Option<Visibility<'m>>,
+    /// Read where used: a query's images' points are checked when listed (1.2 chunks).
+    pub(super) visibility: Option<VisibilityByChunk<'m>>,
 }
 
 impl<'m> Localizer<'m> {
@@ -443,7 +444,7 @@ impl<'m> Localizer<'m> {
             .images()?
             .filter(|images| !images.is_empty())
             .map(|images| Viewpoints::new(&images.poses));
-        let visibility = map.visibility_points()?;
+        let visibility = map.visibility_by_chunk()?;
         Ok(Localizer {
             map,
             options,
@@ -522,7 +523,7 @@ impl<'m> Localizer<'m> {
 
         let mut tracking_lost = None;
         if let Some(prior) = prior {
-            match self.track(&sets, prior, camera, &mut times) {
+            match self.track(&sets, prior, camera, &mut times)? {
                 Ok(tracked) => {
                     times.total_ms = ms(t0);
                     return Ok(Localization {
@@ -542,7 +543,7 @@ impl<'m> Localizer<'m> {
             images: retrieved,
             method: retrieval,
             fallback: retrieval_fallback,
-        } = self.candidate_points(query);
+        } = self.candidate_points(query)?;
         times.retrieval_ms = ms(t1);
         let retrieved_images = retrieved.len();
         let ranked = if retrieval.is_some() {
@@ -578,7 +579,8 @@ impl<'m> Localizer<'m> {
         let mut result: Option<Localization> = None;
         let mut fine_ms = 0.0;
         for _ in 0..MAX_SEEDS {
-            let Some(seed) = self.next_coarse_pose(&mut search, &sets, query, camera, &mut times)
+            let Some(seed) =
+                self.next_coarse_pose(&mut search, &sets, query, camera, &mut times)?
             else {
                 break;
             };
@@ -587,11 +589,14 @@ impl<'m> Localizer<'m> {
                 (Some(viewpoints), Some(visibility)) if seed.narrowed => {
                     let mut images = viewpoints.near(&seed.estimate.pose, self.options.top_k);
                     images.extend(&retrieved);
-                    (!images.is_empty()).then(|| {
-                        super::retrieval::points_seen(&images, self.n_points(), |i| {
-                            visibility.points_of(i)
-                        })
-                    })
+                    match images.is_empty() {
+                        true => None,
+                        false => Some(super::retrieval::points_seen(
+                            &images,
+                            self.n_points(),
+                            |i| visibility.points_of(i),
+                        )?),
+                    }
                 }
                 _ => None,
             };
@@ -606,7 +611,7 @@ impl<'m> Localizer<'m> {
                 seed.estimate.pose,
                 self.options.gate_px,
                 camera,
-            );
+            )?;
             fine_ms += ms(t3);
             if best_coarse
                 .as_ref()
@@ -672,19 +677,19 @@ impl<'m> Localizer<'m> {
     /// The points the retrieved images see (ascending; `None` when that is every point, or
     /// without retrieval data or visibility), how many images were retrieved, the method that
     /// ranked them, and why there was no narrowing if there was none.
-    fn candidate_points(&self, query: &QueryFeatures) -> Retrieved {
+    fn candidate_points(&self, query: &QueryFeatures) -> Result<Retrieved, LocalizeError> {
         let n_images = self.map.n_images() as usize;
         let (images, ranked) = self.retrieval.retrieve(query, n_images, self.options.top_k);
         let seen = |images: &[usize]| match (&self.visibility, &ranked) {
             (Some(visibility), Ok(_)) => {
                 super::retrieval::points_seen(images, self.n_points(), |i| visibility.points_of(i))
             }
-            _ => None,
+            _ => Ok(None),
         };
-        let candidates = seen(&images);
+        let candidates = seen(&images)?;
         let few = coarse_images(n_images);
         let coarse_candidates = match &candidates {
-            Some(_) if images.len() > few => seen(&images[..few]),
+            Some(_) if images.len() > few => seen(&images[..few])?,
             _ => None,
         };
         let fallback = match ranked {
@@ -693,23 +698,35 @@ impl<'m> Localizer<'m> {
             Ok(_) if candidates.is_none() => Some(RetrievalFallback::EveryPointSeen),
             Ok(_) => None,
         };
-        Retrieved {
+        Ok(Retrieved {
             candidates,
             coarse_candidates,
             images,
             method: ranked.ok(),
             fallback,
-        }
+        })
     }
 
     /// The points the `k` best retrieved images see (`None`: no retrieval, or every point).
-    pub(super) fn retrieved_points(&self, query: &QueryFeatures, k: usize) -> Option<Vec<u32>> {
-        let visibility = self.visibility.as_ref()?;
+    pub(super) fn retrieved_points(
+        &self,
+        query: &QueryFeatures,
+        k: usize,
+    ) -> Result<Option<Vec<u32>>, LocalizeError> {
+        let Some(visibility) = self.visibility.as_ref() else {
+            return Ok(None);
+        };
         let (images, ranked) = self
             .retrieval
             .retrieve(query, self.map.n_images() as usize, k);
-        ranked.ok()?;
-        super::retrieval::points_seen(&images, self.n_points(), |i| visibility.points_of(i))
+        if ranked.is_err() {
+            return Ok(None);
+        }
+        Ok(super::retrieval::points_seen(
+            &images,
+            self.n_points(),
+            |i| visibility.points_of(i),
+        )?)
     }
 
     /// The query's feature set for `level`, checked against the level's descriptor space.

@@ -334,29 +334,30 @@ pub(crate) fn top_k_indices(scores: &[f32], k: usize) -> Vec<usize> {
 /// The map points `images` see, ascending and each once (`points_of(i)` lists image `i`'s
 /// points; indices past `n_points` are ignored). `None` when that is every point (no
 /// narrowing), or when there are no images. A bit per point marks the points already listed:
-/// cost O(n_points / 64) to clear plus O(points seen).
-pub(crate) fn points_seen<'a>(
+/// cost O(n_points / 64) to clear plus O(points seen). Fails where `points_of` does (a
+/// damaged chunk of the map's visibility).
+pub(crate) fn points_seen<'a, E>(
     images: &[usize],
     n_points: usize,
-    points_of: impl Fn(usize) -> &'a [u32],
-) -> Option<Vec<u32>> {
+    points_of: impl Fn(usize) -> Result<&'a [u32], E>,
+) -> Result<Option<Vec<u32>>, E> {
     if images.is_empty() {
-        return None;
+        return Ok(None);
     }
     let mut seen: BitVec = BitVec::repeat(false, n_points);
     let mut list = Vec::new();
     for &i in images {
-        for &p in points_of(i) {
+        for &p in points_of(i)? {
             if (p as usize) < n_points && !seen.replace(p as usize, true) {
                 list.push(p);
             }
         }
     }
     if list.len() == n_points {
-        return None;
+        return Ok(None);
     }
     list.sort_unstable();
-    Some(list)
+    Ok(Some(list))
 }
 
 #[cfg(test)]
@@ -516,16 +517,31 @@ mod tests {
         );
     }
 
+    fn ok(points: &[u32]) -> Result<&[u32], std::convert::Infallible> {
+        Ok(points)
+    }
+
     #[test]
     fn candidates_are_the_points_the_retrieved_images_see() {
         let visibility: [&[u32]; 3] = [&[0, 2], &[2, 3, 99], &[1, 4]];
-        let seen = points_seen(&[0, 1], 5, |i| visibility[i]).unwrap();
+        let seen = points_seen(&[0, 1], 5, |i| ok(visibility[i]))
+            .unwrap()
+            .unwrap();
         assert_eq!(seen, [0, 2, 3]);
         // Listed once, ascending, whatever order the images list them in.
         let repeated: [&[u32]; 2] = [&[3, 0, 3], &[2, 0]];
-        assert_eq!(points_seen(&[1, 0], 5, |i| repeated[i]).unwrap(), [0, 2, 3]);
+        assert_eq!(
+            points_seen(&[1, 0], 5, |i| ok(repeated[i]))
+                .unwrap()
+                .unwrap(),
+            [0, 2, 3]
+        );
         // Every point seen: no narrowing; no image: no narrowing either.
-        assert!(points_seen(&[0, 1, 2], 5, |i| visibility[i]).is_none());
-        assert!(points_seen(&[], 5, |i| visibility[i]).is_none());
+        assert!(points_seen(&[0, 1, 2], 5, |i| ok(visibility[i]))
+            .unwrap()
+            .is_none());
+        assert!(points_seen(&[], 5, |i| ok(visibility[i]))
+            .unwrap()
+            .is_none());
     }
 }
