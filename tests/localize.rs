@@ -31,6 +31,14 @@ fn scene() -> Scene {
 }
 
 fn map_bytes(s: &Scene) -> Vec<u8> {
+    let levels: Vec<Vec<u32>> = (0..3)
+        .map(|l| (l * 1000..(l + 1) * 1000).map(|p| p as u32).collect())
+        .collect();
+    map_bytes_with(s, &levels)
+}
+
+/// The scene's map with level `l` holding the points `levels[l]`.
+fn map_bytes_with(s: &Scene, levels: &[Vec<u32>]) -> Vec<u8> {
     let mut w = MapWriter::default();
     w.add_camera(sfpmap::format::CameraInfo {
         id: Some(1),
@@ -52,9 +60,6 @@ fn map_bytes(s: &Scene) -> Vec<u8> {
     let vis: Vec<u32> = all.iter().chain(all.iter()).copied().collect();
     let identity: Vec<f32> = (0..DIM * DIM)
         .map(|i| if i % (DIM + 1) == 0 { 1.0 } else { 0.0 })
-        .collect();
-    let levels: Vec<Vec<u32>> = (0..3)
-        .map(|l| (l * 1000..(l + 1) * 1000).map(|p| p as u32).collect())
         .collect();
     let mut w2 = w;
     for (l, pts) in levels.iter().enumerate() {
@@ -238,6 +243,42 @@ fn recovers_the_pose_from_product_quantised_levels() {
             .contains("32 dimensions, which 5 subspaces do not divide"),
         "{err}"
     );
+}
+
+/// (1.2) A map whose blocks span several chunks carries chunk checksums, which the localizer
+/// checks where it reads: the pose as from any map, and a damaged chunk of a block a query
+/// reads makes that query an error (not a pose, not a panic), though the map opened.
+#[test]
+fn chunks_are_checked_where_the_localizer_reads_them() {
+    use sfpmap::format::{Error as FormatError, SectionKind, CHUNK_LEN};
+    let s = scene();
+    let all: Vec<u32> = (0..N as u32).collect();
+    let bytes = map_bytes_with(&s, &[all]);
+    let map = Map::from_bytes(&bytes).unwrap();
+    assert_eq!(map.version(), "1.2");
+    let short = *map.find(SectionKind::LevelDescShort, Some(0)).unwrap();
+    assert!(short.stored_len() > CHUNK_LEN);
+    let q = query(&s, &truth(), 300, DIM);
+    let localizer = Localizer::new(&map, LocalizeOptions::default()).unwrap();
+    let r = localizer.localize(&q, &s.camera).unwrap();
+    let pose = *r
+        .pose()
+        .unwrap_or_else(|| panic!("failed: {:?}", r.failure()));
+    assert!(pose.rotation_error_deg(&truth()) < 0.1);
+
+    let mut bad = bytes.clone();
+    bad[(short.offset() + CHUNK_LEN + 10) as usize] ^= 0x40;
+    let map = Map::from_bytes(&bad).unwrap();
+    let localizer = Localizer::new(&map, LocalizeOptions::default()).unwrap();
+    let err = localizer.localize(&q, &s.camera).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            LocalizeError::Format(FormatError::ChunkChecksumMismatch { chunk: 1, .. })
+        ),
+        "{err}"
+    );
+    assert!(err.to_string().contains("level_desc_short"), "{err}");
 }
 
 #[test]

@@ -48,14 +48,17 @@ pub fn fix_checksums(data: &[u8]) -> Vec<u8> {
     else {
         return out;
     };
+    let stored_range = |entry: &RawEntry, len: usize| {
+        (entry.offset as usize)
+            .checked_add(entry.stored_len as usize)
+            .filter(|&end| end <= len)
+            .map(|end| entry.offset as usize..end)
+    };
+    fix_chunk_checksums(&mut out, table_end, entry_len);
     for at in (HEADER_LEN..table_end).step_by(entry_len) {
         let mut entry = RawEntry::decode(&out[at..at + ENTRY_LEN]);
-        let stored = (entry.offset as usize)
-            .checked_add(entry.stored_len as usize)
-            .filter(|&end| end <= out.len())
-            .map(|end| &out[entry.offset as usize..end]);
-        if let Some(stored) = stored {
-            entry.checksum = checksum(stored);
+        if let Some(range) = stored_range(&entry, out.len()) {
+            entry.checksum = checksum(&out[range]);
             out[at..at + ENTRY_LEN].copy_from_slice(&entry.encode());
         }
     }
@@ -72,6 +75,44 @@ pub fn fix_checksums(data: &[u8]) -> Vec<u8> {
     }
     out[..HEADER_LEN].copy_from_slice(&header.encode());
     out
+}
+
+/// (1.2) Rewrites the values of a `chunk_checksums` entry (the last of its kind) from the other
+/// entries' stored bytes, when every entry's bytes lie inside `out` and it has room for
+/// exactly their chunks; otherwise leaves `out` as it is.
+fn fix_chunk_checksums(out: &mut [u8], table_end: usize, entry_len: usize) {
+    let entries: Vec<RawEntry> = (HEADER_LEN..table_end)
+        .step_by(entry_len)
+        .map(|at| RawEntry::decode(&out[at..at + ENTRY_LEN]))
+        .collect();
+    let is_chunks = |e: &RawEntry| e.kind == super::layout::SectionKind::ChunkChecksums.code();
+    let Some(chunks) = entries.iter().rev().find(|e| is_chunks(e)) else {
+        return;
+    };
+    let stored: Option<Vec<&[u8]>> = entries
+        .iter()
+        .filter(|e| !is_chunks(e))
+        .map(|e| {
+            let start = e.offset as usize;
+            out.get(start..start.checked_add(e.stored_len as usize)?)
+        })
+        .collect();
+    let Some(stored) = stored else {
+        return;
+    };
+    let sums = super::chunks::chunk_checksums(stored);
+    let start = chunks.offset as usize;
+    if chunks.stored_len != sums.len() as u64 * 8 {
+        return;
+    }
+    if let Some(target) = start
+        .checked_add(sums.len() * 8)
+        .and_then(|end| out.get_mut(start..end))
+    {
+        for (bytes, sum) in target.chunks_exact_mut(8).zip(&sums) {
+            bytes.copy_from_slice(&sum.to_le_bytes());
+        }
+    }
 }
 
 /// `data` (a map whose header and table entries point inside it) with `metadata` as its
@@ -153,13 +194,33 @@ fn open_and_read_once(data: &[u8]) {
             let _ = vis.keypoints_of(i);
         }
     }
+    // (1.2) Read by chunk, as the localizer reads: row by row, then all of it.
+    let mut by_chunk = Vec::new();
     for level in map.levels() {
         let _ = level.points();
+        if let Ok(short) = level.desc_short_chunked() {
+            let row = level.dim_short().max(1);
+            let _ = short.check_rows((0..short.len() / row).step_by(7), row);
+            by_chunk.push(short.check_all());
+        }
+        if let Ok(Some(rest)) = level.desc_rest_chunked() {
+            by_chunk.push(rest.check_all());
+        }
         let _ = level.desc_short();
         let _ = level.desc_rest();
         let _ = level.projection();
     }
-    let _ = map.verify();
+    if let Ok(Some(vis)) = map.visibility_by_chunk() {
+        let checked =
+            (0..vis.offsets.len().saturating_sub(1)).try_for_each(|i| vis.points_of(i).map(|_| ()));
+        by_chunk.push(checked);
+    }
+    if map.verify().is_ok() {
+        assert!(
+            by_chunk.iter().all(Result::is_ok),
+            "verified, yet a chunk fails: {by_chunk:?}"
+        );
+    }
     assert!(
         map.decoded_bytes() <= map.decode_budget(),
         "decoded past the budget"
