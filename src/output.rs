@@ -14,6 +14,10 @@
 //!   that a signal handler can remove them ([`remove_pending_temps`]); after `kill -9`, the
 //!   next write into that folder removes temp files whose process is gone.
 //!
+//! [`AtomicPath`] is the same for a file that another library writes by its path (SQLite): a
+//! named temp file in the target folder, listed like the one above, renamed over the target
+//! at the commit.
+//!
 //! Errors name the path the caller gave, never a temp path. The library installs no signal
 //! handler; the CLI does.
 
@@ -251,14 +255,9 @@ enum Temp {
 /// 0666 less the umask.
 #[derive(Debug)]
 pub struct AtomicFile {
-    target: PathBuf,
-    dir: PathBuf,
-    /// The folder, open: for `openat`/`linkat`/`renameat` and its fsync.
-    dir_file: File,
-    name: OsString,
+    target: Target,
     out: BufWriter<File>,
     temp: Temp,
-    done: bool,
 }
 
 impl AtomicFile {
@@ -272,141 +271,42 @@ impl AtomicFile {
     }
 
     fn create_with(path: &Path, allow_unnamed: bool) -> Result<AtomicFile, OutputError> {
-        check_replaceable(path)?;
-        let name = path
-            .file_name()
-            .filter(|n| !n.is_empty())
-            .ok_or_else(|| OutputError::NoFileName {
-                path: path.to_path_buf(),
-            })?
-            .to_os_string();
-        let dir = path
-            .parent()
-            .filter(|d| !d.as_os_str().is_empty())
-            .unwrap_or(Path::new("."))
-            .to_path_buf();
-        let dir_file = File::open(&dir).map_err(OutputError::io(path, "cannot open its folder"))?;
-        remove_stale_temps(&dir);
+        let target = Target::open(path)?;
         let unnamed = if allow_unnamed {
-            open_unnamed(&dir_file).map_err(OutputError::io(path, "cannot create"))?
+            open_unnamed(&target.dir_file).map_err(OutputError::io(path, "cannot create"))?
         } else {
             None
         };
         let (file, temp) = match unnamed {
             Some(file) => (file, Temp::Unnamed),
             None => {
-                let (file, temp) = create_named(&dir, &name).map_err(OutputError::io(
-                    path,
-                    "cannot create a temp file in its folder",
-                ))?;
+                let (file, temp) = target.create_named()?;
                 (file, Temp::Named(temp))
             }
         };
         Ok(AtomicFile {
-            target: path.to_path_buf(),
-            dir,
-            dir_file,
-            name,
+            target,
             out: BufWriter::with_capacity(1 << 20, file),
             temp,
-            done: false,
         })
     }
 
     /// Flushes, fsyncs and renames the file over the target, then fsyncs the folder.
     pub fn commit(mut self) -> Result<(), OutputError> {
-        let path = self.target.clone();
+        let path = &self.target.path;
         self.out
             .flush()
-            .map_err(OutputError::io(&path, "cannot write"))?;
+            .map_err(OutputError::io(path, "cannot write"))?;
         self.out
             .get_ref()
             .sync_all()
-            .map_err(OutputError::io(&path, "cannot sync"))?;
-        // Checked again right before the rename: the target may have changed since `create`.
-        check_replaceable(&path)?;
-        {
-            // Locked from the temp name's creation to the rename: a signal handler's
-            // [`remove_pending_temps`] runs entirely before or entirely after.
-            let mut list = pending();
-            let temp = match &self.temp {
-                Temp::Named(temp) => temp.clone(),
-                Temp::Unnamed => {
-                    let temp = self.link_unnamed(&mut list)?;
-                    self.temp = Temp::Named(temp.clone());
-                    temp
-                }
-            };
-            let renamed = self
-                .rename_into_place(&temp)
-                .map_err(OutputError::io(&path, "cannot rename into place"));
-            if renamed.is_err() {
-                let _ = std::fs::remove_file(&temp);
-            }
-            list.retain(|p| p != &temp);
-            self.done = true;
-            renamed?;
-        }
-        sync_dir(&self.dir_file).map_err(OutputError::io(&path, "cannot sync its folder"))
-    }
-
-    /// Renames `temp` over the target relative to the open folder (`renameat`), so the file
-    /// lands in the folder it was created in even if that folder's path is swapped meanwhile.
-    fn rename_into_place(&self, temp: &Path) -> std::io::Result<()> {
-        #[cfg(unix)]
-        {
-            let temp_name = temp.file_name().unwrap_or(temp.as_os_str());
-            rustix::fs::renameat(&self.dir_file, temp_name, &self.dir_file, &self.name)
-                .map_err(std::io::Error::from)
-        }
-        #[cfg(not(unix))]
-        {
-            std::fs::rename(temp, &self.target)
-        }
-    }
-
-    /// Gives the unnamed file a temp name (listed in `list`), or copies it to a named temp
-    /// file where `linkat` through `/proc` is refused.
-    fn link_unnamed(&mut self, list: &mut Vec<PathBuf>) -> Result<PathBuf, OutputError> {
-        let path = self.target.clone();
-        for _ in 0..16 {
-            let temp = self.dir.join(temp_name(&self.name));
-            list.push(temp.clone());
-            match link_fd(self.out.get_ref(), &self.dir_file, &temp) {
-                Ok(()) => return Ok(temp),
-                Err(e) if e.kind() == io::ErrorKind::AlreadyExists => {
-                    list.pop();
-                }
-                Err(_) => {
-                    list.pop();
-                    return self.copy_to_named(list);
-                }
-            }
-        }
-        Err(OutputError::Io {
-            path,
-            action: "cannot name the temp file",
-            source: io::ErrorKind::AlreadyExists.into(),
+            .map_err(OutputError::io(path, "cannot sync"))?;
+        let AtomicFile { target, out, temp } = &mut self;
+        let target = &*target;
+        target.replace(|list| match temp {
+            Temp::Named(temp) => Ok(temp.clone()),
+            Temp::Unnamed => target.link_unnamed(out.get_mut(), list),
         })
-    }
-
-    fn copy_to_named(&mut self, list: &mut Vec<PathBuf>) -> Result<PathBuf, OutputError> {
-        let path = self.target.clone();
-        let (mut named, temp) = create_named_locked(&self.dir, &self.name, list).map_err(
-            OutputError::io(&path, "cannot create a temp file in its folder"),
-        )?;
-        let copied = (|| {
-            let file = self.out.get_mut();
-            file.seek(SeekFrom::Start(0))?;
-            io::copy(file, &mut named)?;
-            named.sync_all()
-        })();
-        if let Err(e) = copied {
-            let _ = std::fs::remove_file(&temp);
-            list.retain(|p| p != &temp);
-            return Err(OutputError::io(&path, "cannot write")(e));
-        }
-        Ok(temp)
     }
 }
 
@@ -430,14 +330,209 @@ impl Seek for AtomicFile {
 
 impl Drop for AtomicFile {
     fn drop(&mut self) {
-        if self.done {
-            return;
-        }
         if let Temp::Named(temp) = &self.temp {
-            let mut list = pending();
-            let _ = std::fs::remove_file(temp);
-            list.retain(|p| p != temp);
+            remove_if_pending(temp);
         }
+    }
+}
+
+/// The output a temp file replaces: the path the caller gave (the one errors name), its name
+/// and its folder, open. What [`AtomicFile`] and [`AtomicPath`] share: the checks, the temp
+/// names and the commit.
+#[derive(Debug)]
+struct Target {
+    path: PathBuf,
+    dir: PathBuf,
+    /// The folder, open: for `openat`/`linkat`/`renameat` and its fsync.
+    dir_file: File,
+    name: OsString,
+}
+
+impl Target {
+    /// Refuses a `path` that names no file or exists and is not a regular file; opens its
+    /// folder and removes temp files that dead processes left there.
+    fn open(path: &Path) -> Result<Target, OutputError> {
+        check_replaceable(path)?;
+        let name = path
+            .file_name()
+            .filter(|n| !n.is_empty())
+            .ok_or_else(|| OutputError::NoFileName {
+                path: path.to_path_buf(),
+            })?
+            .to_os_string();
+        let dir = path
+            .parent()
+            .filter(|d| !d.as_os_str().is_empty())
+            .unwrap_or(Path::new("."))
+            .to_path_buf();
+        let dir_file = File::open(&dir).map_err(OutputError::io(path, "cannot open its folder"))?;
+        remove_stale_temps(&dir);
+        Ok(Target {
+            path: path.to_path_buf(),
+            dir,
+            dir_file,
+            name,
+        })
+    }
+
+    /// A new named temp file in the folder, listed in [`PENDING`].
+    fn create_named(&self) -> Result<(File, PathBuf), OutputError> {
+        let mut list = pending();
+        self.create_named_locked(&mut list)
+    }
+
+    fn create_named_locked(&self, list: &mut Vec<PathBuf>) -> Result<(File, PathBuf), OutputError> {
+        create_named_locked(&self.dir, &self.name, list).map_err(OutputError::io(
+            &self.path,
+            "cannot create a temp file in its folder",
+        ))
+    }
+
+    /// The commit, once the temp file is complete and fsynced: checks the target again, renames
+    /// the temp file that `temp` names over it and fsyncs the folder. `temp` runs with
+    /// [`PENDING`] locked and returns a listed temp file; whether the rename succeeds or not,
+    /// that file is gone and unlisted afterwards.
+    fn replace(
+        &self,
+        temp: impl FnOnce(&mut Vec<PathBuf>) -> Result<PathBuf, OutputError>,
+    ) -> Result<(), OutputError> {
+        // Checked again right before the rename: the target may have changed since `open`.
+        check_replaceable(&self.path)?;
+        {
+            // Locked from the temp name's creation to the rename: a signal handler's
+            // [`remove_pending_temps`] runs entirely before or entirely after.
+            let mut list = pending();
+            let temp = temp(&mut list)?;
+            let renamed = self
+                .rename_into_place(&temp)
+                .map_err(OutputError::io(&self.path, "cannot rename into place"));
+            if renamed.is_err() {
+                let _ = std::fs::remove_file(&temp);
+            }
+            list.retain(|p| p != &temp);
+            renamed?;
+        }
+        sync_dir(&self.dir_file).map_err(OutputError::io(&self.path, "cannot sync its folder"))
+    }
+
+    /// Renames `temp` over the target relative to the open folder (`renameat`), so the file
+    /// lands in the folder it was created in even if that folder's path is swapped meanwhile.
+    fn rename_into_place(&self, temp: &Path) -> std::io::Result<()> {
+        #[cfg(unix)]
+        {
+            let temp_name = temp.file_name().unwrap_or(temp.as_os_str());
+            rustix::fs::renameat(&self.dir_file, temp_name, &self.dir_file, &self.name)
+                .map_err(std::io::Error::from)
+        }
+        #[cfg(not(unix))]
+        {
+            std::fs::rename(temp, &self.path)
+        }
+    }
+
+    /// Gives the unnamed `file` a temp name (listed in `list`), or copies it to a named temp
+    /// file where `linkat` through `/proc` is refused.
+    fn link_unnamed(
+        &self,
+        file: &mut File,
+        list: &mut Vec<PathBuf>,
+    ) -> Result<PathBuf, OutputError> {
+        for _ in 0..16 {
+            let temp = self.dir.join(temp_name(&self.name));
+            list.push(temp.clone());
+            match link_fd(file, &self.dir_file, &temp) {
+                Ok(()) => return Ok(temp),
+                Err(e) if e.kind() == io::ErrorKind::AlreadyExists => {
+                    list.pop();
+                }
+                Err(_) => {
+                    list.pop();
+                    return self.copy_to_named(file, list);
+                }
+            }
+        }
+        Err(OutputError::Io {
+            path: self.path.clone(),
+            action: "cannot name the temp file",
+            source: io::ErrorKind::AlreadyExists.into(),
+        })
+    }
+
+    fn copy_to_named(
+        &self,
+        file: &mut File,
+        list: &mut Vec<PathBuf>,
+    ) -> Result<PathBuf, OutputError> {
+        let (mut named, temp) = self.create_named_locked(list)?;
+        let copied = (|| {
+            file.seek(SeekFrom::Start(0))?;
+            io::copy(file, &mut named)?;
+            named.sync_all()
+        })();
+        if let Err(e) = copied {
+            let _ = std::fs::remove_file(&temp);
+            list.retain(|p| p != &temp);
+            return Err(OutputError::cannot_write(&self.path, e));
+        }
+        Ok(temp)
+    }
+}
+
+/// Removes the named temp file `temp` if it is still listed in [`PENDING`] (neither renamed
+/// into place nor removed yet): what a writer dropped without a commit leaves.
+fn remove_if_pending(temp: &Path) {
+    let mut list = pending();
+    if let Some(i) = list.iter().position(|p| p == temp) {
+        let _ = std::fs::remove_file(temp);
+        list.swap_remove(i);
+    }
+}
+
+/// A named temp file in the target's folder that another library writes by its path (SQLite
+/// writing a database), renamed over the target by [`AtomicPath::commit`]. It starts empty,
+/// is listed for [`remove_pending_temps`] like [`AtomicFile`]'s named temp files, and dropped
+/// without a commit it leaves the target as it was and no temp file behind. The same checks
+/// as [`AtomicFile`]: a target that exists and is not a regular file is refused, a symlink
+/// at the target is replaced, errors name the target, never the temp file.
+///
+/// Whatever writes the temp file must close it before [`AtomicPath::commit`] (or the drop),
+/// and must create no files of its own next to it (an SQLite journal, say), which would be
+/// left behind.
+#[derive(Debug)]
+pub struct AtomicPath {
+    target: Target,
+    temp: PathBuf,
+    /// Held open: for the fsync at the commit, and its lock marks the temp file as in use
+    /// for other processes' sweeps of stale temp files.
+    file: File,
+}
+
+impl AtomicPath {
+    /// Creates the empty temp file for `path`. Refuses a `path` that exists and is not a
+    /// regular file.
+    pub fn create(path: &Path) -> Result<AtomicPath, OutputError> {
+        let target = Target::open(path)?;
+        let (file, temp) = target.create_named()?;
+        Ok(AtomicPath { target, temp, file })
+    }
+
+    /// The temp file to write.
+    pub fn temp_path(&self) -> &Path {
+        &self.temp
+    }
+
+    /// Fsyncs the temp file and renames it over the target, then fsyncs the folder.
+    pub fn commit(self) -> Result<(), OutputError> {
+        self.file
+            .sync_all()
+            .map_err(OutputError::io(&self.target.path, "cannot sync"))?;
+        self.target.replace(|_| Ok(self.temp.clone()))
+    }
+}
+
+impl Drop for AtomicPath {
+    fn drop(&mut self) {
+        remove_if_pending(&self.temp);
     }
 }
 
@@ -489,11 +584,6 @@ fn random_u64() -> u64 {
         h.write_u128(t.as_nanos());
     }
     h.finish()
-}
-
-fn create_named(dir: &Path, name: &std::ffi::OsStr) -> io::Result<(File, PathBuf)> {
-    let mut list = pending();
-    create_named_locked(dir, name, &mut list)
 }
 
 /// A new named temp file in `dir`, listed in `list` before it exists (a handler that runs
@@ -755,6 +845,36 @@ mod tests {
     }
 
     #[test]
+    fn a_path_written_by_another_library_replaces_the_target_or_leaves_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("out.db");
+        std::fs::write(&path, b"old").unwrap();
+        let p = AtomicPath::create(&path).unwrap();
+        let temp = p.temp_path().to_path_buf();
+        assert_eq!(temp.parent(), Some(dir.path()));
+        assert_eq!(
+            temp_pid(&temp.file_name().unwrap().to_string_lossy()),
+            Some(std::process::id())
+        );
+        assert!(pending().contains(&temp));
+        std::fs::write(&temp, b"new").unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"old");
+        p.commit().unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"new");
+        assert_eq!(names(dir.path()), ["out.db"]);
+        assert!(!pending().contains(&temp));
+
+        let p = AtomicPath::create(&path).unwrap();
+        std::fs::write(p.temp_path(), b"partial").unwrap();
+        drop(p);
+        assert_eq!(names(dir.path()), ["out.db"]);
+        assert_eq!(std::fs::read(&path).unwrap(), b"new");
+        assert!(!pending().iter().any(|p| p.starts_with(dir.path())));
+        let e = AtomicPath::create(Path::new("/dev/null")).unwrap_err();
+        assert!(matches!(e, OutputError::NotRegular { .. }), "{e}");
+    }
+
+    #[test]
     fn seek_works_for_writers_that_patch_a_header() {
         for allow_unnamed in [true, false] {
             let dir = tempfile::tempdir().unwrap();
@@ -778,7 +898,7 @@ mod tests {
         f.out.flush().unwrap();
         let temp = {
             let mut list = pending();
-            let t = f.copy_to_named(&mut list).unwrap();
+            let t = f.target.copy_to_named(f.out.get_mut(), &mut list).unwrap();
             list.retain(|p| p != &t);
             t
         };

@@ -2,14 +2,23 @@
 //! current schema (plus its empty `matches` and `two_view_geometries` tables), readable by
 //! COLMAP, pycolmap and [`super::Database`].
 //!
-//! The database is built in memory and written at [`DatabaseWriter::write`] through the
-//! crate's one atomic writer (temp file, fsync, rename): SQLite writing in place would leave
-//! a half-written file (and journals) behind on a failure. The cost: the database is in
-//! memory once (SQLite's memdb, serialized without a copy; 1.6 GB for the 1 M-point street).
+//! SQLite writes the database into a named temp file next to the target
+//! ([`crate::output::AtomicPath`]), renamed over the target at [`DatabaseWriter::write`] after
+//! an fsync: readers see the old file or the complete new one, and a failure or a writer
+//! dropped without `write` leaves the target as it was and no temp file behind. SQLite
+//! writing the target in place would leave a half-written file (and journals) instead. The
+//! file is a throwaway until the rename, so it has no journal and no syncs, and only a small
+//! page cache: memory stays flat however large the database grows.
+//!
+//! Why not build it in memory (SQLite's memdb) and write it out at the end, as before: that
+//! holds the whole database in memory, and memdb keeps it in one buffer, which SQLite cannot
+//! grow past its ~2 GiB limit on one allocation (a 2.3 M-point street failed so).
 
 use std::path::{Path, PathBuf};
 
-use rusqlite::{params, Connection, OpenFlags, MAIN_DB};
+use rusqlite::{params, Connection, OpenFlags};
+
+use crate::output::AtomicPath;
 
 use super::error::{Error, Result};
 use super::model::Camera;
@@ -32,62 +41,36 @@ CREATE TABLE two_view_geometries (pair_id INTEGER PRIMARY KEY NOT NULL, rows INT
   tvec BLOB);
 ";
 
-/// The most a database may grow to in memory. memdb's default, 1 GiB, is less than the
-/// 1 M-point street's 1.6 GB; the buffer only grows as rows are added.
-const MEMDB_MAX_BYTES: i64 = 1 << 40;
-
-/// Sets the memdb VFS's size limit of `conn`'s main database to `bytes` (a negative value
-/// changes nothing) and returns the limit now in force.
-///
-/// Why unsafe: SQLite sets this limit only through `sqlite3_file_control`, which rusqlite
-/// does not wrap. The alternative, a compile-time `SQLITE_MEMDB_DEFAULT_MAXSIZE`, would not
-/// reach users who build the crate without this repository's build settings.
-#[allow(unsafe_code)]
-fn memdb_limit(conn: &Connection, bytes: i64) -> rusqlite::Result<i64> {
-    use rusqlite::ffi;
-    let mut limit: ffi::sqlite3_int64 = bytes;
-    // SAFETY: `handle` is `conn`'s open database, used on this thread only for the call;
-    // "main" is a NUL-terminated name; SQLITE_FCNTL_SIZE_LIMIT reads and writes one
-    // sqlite3_int64 through the pointer, which points at `limit`, alive for the call.
-    let rc = unsafe {
-        ffi::sqlite3_file_control(
-            conn.handle(),
-            c"main".as_ptr(),
-            ffi::SQLITE_FCNTL_SIZE_LIMIT,
-            (&mut limit as *mut ffi::sqlite3_int64).cast(),
-        )
-    };
-    if rc != ffi::SQLITE_OK {
-        return Err(rusqlite::Error::SqliteFailure(ffi::Error::new(rc), None));
-    }
-    Ok(limit)
-}
+/// Settings for a file that is thrown away on any failure: no rollback journal (it would be
+/// a second file next to the temp file), no syncs (the commit fsyncs once), a 64 MiB cache.
+const PRAGMAS: &str = "PRAGMA journal_mode = OFF; PRAGMA synchronous = OFF;
+PRAGMA cache_size = -65536;";
 
 /// A `database.db` being built. Keypoints are written in COLMAP's current 6-column affine
 /// layout from `(x, y, scale, orientation)`.
 pub struct DatabaseWriter {
+    /// Declared before `out`, so dropped first: SQLite closes the temp file before it goes.
     conn: Connection,
+    out: AtomicPath,
     /// Named in errors: the file this database is for.
     path: PathBuf,
 }
 
 impl DatabaseWriter {
-    /// An empty database in memory, for `path`.
+    /// An empty database for `path`, in a temp file next to it. Refuses a `path` that
+    /// exists and is not a regular file.
     pub fn new(path: &Path) -> Result<DatabaseWriter> {
         let err = |e| sqlite(path, e);
-        // SQLite's memdb VFS keeps the database in one buffer that `serialize` can hand out
-        // without a copy (a plain in-memory database is copied: twice the memory).
-        let flags = OpenFlags::SQLITE_OPEN_READ_WRITE
-            | OpenFlags::SQLITE_OPEN_CREATE
-            | OpenFlags::SQLITE_OPEN_URI
-            | OpenFlags::SQLITE_OPEN_NO_MUTEX;
-        let conn =
-            Connection::open_with_flags("file:sfpmap-database?vfs=memdb", flags).map_err(err)?;
-        memdb_limit(&conn, MEMDB_MAX_BYTES).map_err(err)?;
+        let out = AtomicPath::create(path)?;
+        // Not SQLITE_OPEN_URI: the temp path is a plain file name, whatever it contains.
+        let flags = OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_NO_MUTEX;
+        let conn = Connection::open_with_flags(out.temp_path(), flags).map_err(err)?;
+        conn.execute_batch(PRAGMAS).map_err(err)?;
         conn.execute_batch(SCHEMA).map_err(err)?;
         conn.execute_batch("BEGIN").map_err(err)?;
         Ok(DatabaseWriter {
             conn,
+            out,
             path: path.to_path_buf(),
         })
     }
@@ -164,12 +147,14 @@ impl DatabaseWriter {
         Ok(())
     }
 
-    /// Writes the database to its path through [`crate::output::write_atomic`].
+    /// Finishes the database and puts it at its path: commits, closes the temp file, fsyncs it
+    /// and renames it over the path ([`AtomicPath::commit`]).
     pub fn write(self) -> Result<()> {
-        let err = |e| sqlite(&self.path, e);
-        self.conn.execute_batch("COMMIT").map_err(err)?;
-        let bytes = self.conn.serialize(MAIN_DB).map_err(err)?;
-        Ok(crate::output::write_bytes(&self.path, &bytes)?)
+        let DatabaseWriter { conn, out, path } = self;
+        let err = |e| sqlite(&path, e);
+        conn.execute_batch("COMMIT").map_err(err)?;
+        conn.close().map_err(|(_, e)| err(e))?;
+        Ok(out.commit()?)
     }
 }
 
@@ -186,18 +171,20 @@ mod tests {
     use crate::colmap::{Database, KeypointLayout};
     use crate::geometry::CameraModel;
 
-    #[test]
-    fn a_database_may_grow_past_memdbs_default_gigabyte() {
-        let dir = tempfile::tempdir().unwrap();
-        let db = DatabaseWriter::new(&dir.path().join("database.db")).unwrap();
-        assert_eq!(memdb_limit(&db.conn, -1).unwrap(), MEMDB_MAX_BYTES);
-        const { assert!(MEMDB_MAX_BYTES > 2 << 30) };
+    fn names(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
     }
 
     #[test]
     fn a_written_database_reads_back() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("database.db");
+        std::fs::write(&path, b"an old file, replaced").unwrap();
         let mut db = DatabaseWriter::new(&path).unwrap();
         let camera = Camera {
             id: 3,
@@ -215,6 +202,8 @@ mod tests {
             .add_image(8, "b.jpg", 3, &keypoints, &descriptors, 3)
             .is_err());
         db.write().unwrap();
+        // Renamed into place: no temp file, no journal left.
+        assert_eq!(names(dir.path()), ["database.db"]);
 
         let read = Database::open(&path).unwrap();
         assert_eq!(read.cameras().unwrap(), vec![camera]);
@@ -227,5 +216,35 @@ mod tests {
         assert!((k.scale(0).unwrap() - 2.0).abs() < 1e-6);
         assert!((k.get(1).unwrap().orientation() + 1.0).abs() < 1e-6);
         assert_eq!(d.row(1), Some(&descriptors[4..]));
+    }
+
+    #[test]
+    fn a_writer_dropped_without_write_leaves_neither_target_nor_temp() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("database.db");
+        let mut db = DatabaseWriter::new(&path).unwrap();
+        let camera = Camera {
+            id: 1,
+            model: CameraModel::SimplePinhole,
+            width: 4,
+            height: 4,
+            params: vec![4.0, 2.0, 2.0],
+        };
+        db.add_camera(&camera).unwrap();
+        db.add_image(1, "a.jpg", 1, &[[1.0, 2.0, 3.0, 0.0]], &[9; 4], 4)
+            .unwrap();
+        // SQLite writes a temp file next to the target, not the target.
+        let [temp] = &names(dir.path())[..] else {
+            panic!("{:?}", names(dir.path()));
+        };
+        assert!(temp.starts_with(".database.db."), "{temp}");
+        drop(db);
+        assert!(names(dir.path()).is_empty(), "{:?}", names(dir.path()));
+        // Nor does it touch an existing target, and it refuses one that is not a file.
+        std::fs::write(&path, b"old").unwrap();
+        drop(DatabaseWriter::new(&path).unwrap());
+        assert_eq!(std::fs::read(&path).unwrap(), b"old");
+        assert_eq!(names(dir.path()), ["database.db"]);
+        assert!(DatabaseWriter::new(dir.path()).is_err());
     }
 }

@@ -245,6 +245,7 @@ impl Map<'_> {
             return Err(Error::ChunkChecksumMismatch {
                 section: section.reference(),
                 chunk: k,
+                bytes: start as u64..end as u64,
                 expected,
                 found,
             });
@@ -278,7 +279,7 @@ mod tests {
         assert_eq!(chunk_count(CHUNK_LEN), 1);
         assert_eq!(chunk_count(CHUNK_LEN + 1), 2);
         let a = vec![7u8; CHUNK_LEN as usize + 5];
-        let b = vec![];
+        let b: Vec<u8> = Vec::new();
         let c = vec![1u8; 3];
         let sums = chunk_checksums([&a[..], &b[..], &c[..]]);
         assert_eq!(

@@ -112,8 +112,10 @@ pub enum Error {
     /// (1.2) A chunk of a section's stored bytes does not match `chunk_checksums`.
     ChunkChecksumMismatch {
         section: SectionRef,
-        /// The chunk's position in the section (bytes from `chunk × CHUNK_LEN`).
+        /// The chunk's position in the section.
         chunk: u64,
+        /// Its bytes in the section's stored bytes.
+        bytes: std::ops::Range<u64>,
         expected: u64,
         found: u64,
     },
@@ -246,13 +248,13 @@ impl fmt::Display for Error {
             ChunkChecksumMismatch {
                 section,
                 chunk,
+                bytes,
                 expected,
                 found,
             } => write!(
                 f,
                 "{section}: checksum mismatch in bytes {} to {} (chunk {chunk}), expected {expected:016x}, found {found:016x}",
-                chunk * super::layout::CHUNK_LEN,
-                (chunk + 1) * super::layout::CHUNK_LEN
+                bytes.start, bytes.end
             ),
             Decode { section, message } => write!(f, "{section}: cannot decode: {message}"),
             DecodedTooLarge {

@@ -384,8 +384,6 @@ fn check_cameras(metadata: &Metadata) -> Result<(), Error> {
     Ok(())
 }
 
-/// Checks what one section's decoded contents must satisfy (indices in range, offsets
-/// monotonic). Runs once per section, on first access.
 /// The contents rules of a kind [`SectionKind::checked_by_chunk`] on one chunk's values: those
 /// rules hold value by value, so a chunk is checked without the rest of its section.
 pub(crate) fn check_chunk_contents(
@@ -397,6 +395,8 @@ pub(crate) fn check_chunk_contents(
     check_contents(map, section, bytes)
 }
 
+/// Checks what one section's decoded contents must satisfy (indices in range, offsets
+/// monotonic). Runs once per section, on first access (or per chunk, above).
 pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> Result<(), Error> {
     let bad = |what: String| {
         Err(Error::inconsistent(format!(
