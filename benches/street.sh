@@ -60,19 +60,21 @@ PY
       "$bin" eval --poses "$work/poses$run.txt" --gt "$work/one_gt.txt" --threshold 0.5,2 --json >"$work/first_eval$run.json"
     done
     python3 - "$n" "$variant" "$work" <<'PY'
-import json, os, statistics, sys
+import json, os, sys
 n, variant, work = sys.argv[1:4]
 runs = [json.load(open(f"{work}/first{i}.json")) for i in range(1, 6)]
 evals = [json.load(open(f"{work}/first_eval{i}.json")) for i in range(1, 6)]
 ms = [r["map_ms"]["open"] + r["map_ms"]["localizer"] + r["median_ms"]["total"] for r in runs]
-parts = [statistics.median(r["map_ms"][k] for r in runs) for k in ("open", "localizer")]
-first = statistics.median(r["median_ms"]["total"] for r in runs)
+# The median run, and its parts (open, Localizer::new, the first query).
+median = sorted(range(len(runs)), key=lambda i: ms[i])[len(runs) // 2]
+parts = [runs[median]["map_ms"]["open"], runs[median]["map_ms"]["localizer"]]
+first = runs[median]["median_ms"]["total"]
 rss = max(int(open(f"{work}/rss{i}").read().split()[-1]) for i in range(1, 6)) / 1024
 mb = os.path.getsize(f"{work}/{variant}.sfpm") / 1e6
 name = {"sift": "SIFT full", "l2": "level 2 short"}[variant]
 within = sum(round(e["recall"][0]["recall"]) for e in evals)
 path = f"open to first pose ({parts[0]:.1f}+{parts[1]:.1f}+{first:.1f})"
-print(f"{n:<9} {name:<14} {mb:8.1f} {path:<38} {statistics.median(ms):10.1f} {within:>5}/{len(runs):<6} {rss:12.0f}")
+print(f"{n:<9} {name:<14} {mb:8.1f} {path:<38} {ms[median]:10.1f} {within:>5}/{len(runs):<6} {rss:12.0f}")
 PY
   done
   rm -rf "$work"

@@ -381,7 +381,7 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         chunked.clone(),
         valid_expected_version(
             "1.2",
-            "chunk checksums: a 70,000-byte optional section (2 chunks of 64 KiB) and the positions (1), checked chunk by chunk",
+            "chunk checksums: a 70,000-byte optional section (2 chunks of 64 KiB) and the positions (1), every chunk checked by verify",
             &chunked,
             content,
             listed,
@@ -499,7 +499,6 @@ fn pq_levels_ordered(s: &Scene, order: &[u16]) -> Vec<u8> {
     w.to_bytes().unwrap()
 }
 
-/// (name, bytes, expected error kind, stage where it must be found).
 /// Bytes of the `chunk_checksums` vector's large section: more than one chunk.
 const CHUNKED_ROWS: u64 = 70_000;
 
@@ -524,6 +523,7 @@ fn chunked_map() -> Vec<u8> {
     w.to_bytes().unwrap()
 }
 
+/// (name, bytes, expected error kind, stage where it must be found).
 fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)> {
     let good = scene().writer(Codec::Raw).to_bytes().unwrap();
     let mut out = Vec::new();

@@ -7,8 +7,11 @@
 //! an fsync: readers see the old file or the complete new one, and a failure or a writer
 //! dropped without `write` leaves the target as it was and no temp file behind. SQLite
 //! writing the target in place would leave a half-written file (and journals) instead. The
-//! file is a throwaway until the rename, so it has no journal and no syncs, and only a small
-//! page cache: memory stays flat however large the database grows.
+//! file is a throwaway until the rename, so its journal stays in memory, it is not synced
+//! until the commit, and SQLite's page cache is small: the writer's memory does not grow with
+//! the database (the 2.4 M-point street's 12 GB is the generator's scene, not SQLite's). A
+//! process killed mid-write leaves the named temp file (`.database.db.sfpmap-tmp.*`), removed
+//! by the next sfpmap write into that folder: SQLite cannot write an unnamed file.
 //!
 //! Why not build it in memory (SQLite's memdb) and write it out at the end, as before: that
 //! holds the whole database in memory, and memdb keeps it in one buffer, which SQLite cannot
@@ -41,10 +44,12 @@ CREATE TABLE two_view_geometries (pair_id INTEGER PRIMARY KEY NOT NULL, rows INT
   tvec BLOB);
 ";
 
-/// Settings for a file that is thrown away on any failure: no rollback journal (it would be
-/// a second file next to the temp file), no syncs (the commit fsyncs once), a 64 MiB cache.
-const PRAGMAS: &str = "PRAGMA journal_mode = OFF; PRAGMA synchronous = OFF;
-PRAGMA cache_size = -65536;";
+/// Settings for a file that is thrown away on any failure: the rollback journal in memory (a
+/// failed statement is still undone, and no second file sits next to the temp file), no syncs
+/// (the commit fsyncs once), a 64 MiB cache, and 64 KiB pages (a street image's 180 KB of
+/// descriptors is then 3 overflow pages, not 44; set before the first table).
+const PRAGMAS: &str = "PRAGMA page_size = 65536; PRAGMA journal_mode = MEMORY;
+PRAGMA synchronous = OFF; PRAGMA cache_size = -65536;";
 
 /// A `database.db` being built. Keypoints are written in COLMAP's current 6-column affine
 /// layout from `(x, y, scale, orientation)`.
@@ -63,7 +68,10 @@ impl DatabaseWriter {
         let err = |e| sqlite(path, e);
         let out = AtomicPath::create(path)?;
         // Not SQLITE_OPEN_URI: the temp path is a plain file name, whatever it contains.
-        let flags = OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_NO_MUTEX;
+        // Nor through a symlink someone put at the temp name.
+        let flags = OpenFlags::SQLITE_OPEN_READ_WRITE
+            | OpenFlags::SQLITE_OPEN_NO_MUTEX
+            | OpenFlags::SQLITE_OPEN_NOFOLLOW;
         let conn = Connection::open_with_flags(out.temp_path(), flags).map_err(err)?;
         conn.execute_batch(PRAGMAS).map_err(err)?;
         conn.execute_batch(SCHEMA).map_err(err)?;
@@ -126,31 +134,33 @@ impl DatabaseWriter {
             .collect();
         let rows = keypoints.len() as i64;
         let err = |e| sqlite(&self.path, e);
-        self.conn
-            .execute(
-                "INSERT INTO images VALUES (?1, ?2, ?3)",
-                params![id, name, camera_id],
-            )
-            .map_err(err)?;
-        self.conn
-            .execute(
-                "INSERT INTO keypoints VALUES (?1, ?2, 6, ?3)",
-                params![id, rows, affine],
-            )
-            .map_err(err)?;
-        self.conn
-            .execute(
-                "INSERT INTO descriptors VALUES (?1, ?2, ?3, ?4)",
-                params![id, rows, dim as i64, descriptors],
-            )
-            .map_err(err)?;
+        // Prepared once per writer, not per image (19,200 images on the 2.4 M-point street).
+        let insert = |sql: &str, values: &[&dyn rusqlite::ToSql]| {
+            self.conn
+                .prepare_cached(sql)
+                .and_then(|mut statement| statement.execute(values))
+                .map_err(err)
+        };
+        insert(
+            "INSERT INTO images VALUES (?1, ?2, ?3)",
+            params![id, name, camera_id],
+        )?;
+        insert(
+            "INSERT INTO keypoints VALUES (?1, ?2, 6, ?3)",
+            params![id, rows, affine],
+        )?;
+        insert(
+            "INSERT INTO descriptors VALUES (?1, ?2, ?3, ?4)",
+            params![id, rows, dim as i64, descriptors],
+        )?;
         Ok(())
     }
 
     /// Finishes the database and puts it at its path: commits, closes the temp file, fsyncs it
     /// and renames it over the path ([`AtomicPath::commit`]).
     pub fn write(self) -> Result<()> {
-        let DatabaseWriter { conn, out, path } = self;
+        // Bound so that `conn` drops (closes the file) before `out` (removes it) on an error.
+        let DatabaseWriter { path, out, conn } = self;
         let err = |e| sqlite(&path, e);
         conn.execute_batch("COMMIT").map_err(err)?;
         conn.close().map_err(|(_, e)| err(e))?;

@@ -338,19 +338,6 @@ impl SectionKind {
         (1, level, rank)
     }
 
-    /// Whether a reader may check sections of this kind a chunk at a time where it reads them
-    /// (1.2, with `chunk_checksums`): kinds whose contents rules hold value by value, so a
-    /// chunk's values are checked without the rest (`views::check_chunk_contents`).
-    pub fn checked_by_chunk(self) -> bool {
-        matches!(
-            self,
-            SectionKind::LevelDescShort
-                | SectionKind::LevelDescRest
-                | SectionKind::VisibilityPoints
-                | SectionKind::VisibilityKeypoints
-        )
-    }
-
     /// Whether sections of this kind carry a level id (others use [`NO_LEVEL`]).
     pub fn is_per_level(self) -> bool {
         matches!(

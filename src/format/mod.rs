@@ -33,7 +33,7 @@ mod views;
 mod writer;
 
 pub use catalog::{Catalog, Listing, Place, CATALOG_KEY};
-pub use chunks::Chunked;
+pub use chunks::{CheckedByChunk, VisibilityByChunk};
 pub use error::{Error, SectionRef};
 pub use layout::{
     align_up, checksum, Codec, Dtype, SectionKind, ALIGN, CHUNK_LEN, ENDIAN_CHECK, ENTRY_LEN,
@@ -53,7 +53,7 @@ pub use pq::{gather as pq_gather, Pq, MAX_PQ_CENTROIDS};
 pub use reader::{decode_budget, decode_cap, Map, Section, Skipped};
 pub use slice::{slice, SliceOptions, SliceSummary};
 pub use source::{coalesce, RangeSource, SourceStats, Wanted, COALESCE_GAP, HEAD_READ};
-pub use views::{GlobalDescriptors, Images, Level, Visibility, VisibilityByChunk, Vlad};
+pub use views::{GlobalDescriptors, Images, Level, Visibility, Vlad};
 pub use writer::{Descriptors, MapWriter};
 
 /// Memory-maps a file read-only (see the safety note on sfpmap's own files in `mmap.rs`).

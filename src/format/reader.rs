@@ -443,10 +443,14 @@ impl<'a> Map<'a> {
         self.chunks.as_ref()
     }
 
-    /// Whether `section` was checked whole already (by its first access or `verify`).
-    pub(crate) fn is_checked_whole(&self, section: &Section) -> bool {
-        self.ready[section.index].get().is_some_and(|r| r.is_ok())
-            || self.checked[section.index].load(Ordering::Acquire)
+    /// How checking `section` whole (its first access, or `verify`) went, if it was checked.
+    pub(crate) fn whole_check(&self, section: &Section) -> Option<Result<(), Error>> {
+        if let Some(ready) = self.ready[section.index].get() {
+            return Some(ready.as_ref().map(|_| ()).map_err(Error::clone));
+        }
+        self.checked[section.index]
+            .load(Ordering::Acquire)
+            .then_some(Ok(()))
     }
 
     /// [`Map::own`] for the other modules of the reader.

@@ -1,6 +1,5 @@
 //! Typed views of a map's sections, and the checks that tie sections and metadata together.
 
-use super::chunks::Chunked;
 use super::error::Error;
 use super::layout::{SectionKind, MAX_CAMERA_PARAMS, MAX_DESCRIPTOR_DIM, MAX_IMAGE_SIDE};
 use super::metadata::{LevelInfo, Metadata};
@@ -252,7 +251,7 @@ pub(crate) fn check_shapes(
     }
     // (1.2) One checksum per chunk of every other section, so each chunk has one.
     if let Some(chunks) = find(SectionKind::ChunkChecksums, None) {
-        match super::chunks::expected_rows(sections) {
+        match super::chunks::chunk_rows(sections).map(|(_, rows)| rows) {
             Some(rows) if rows == chunks.rows => {}
             expected => {
                 return Err(Error::inconsistent(format!(
@@ -384,15 +383,18 @@ fn check_cameras(metadata: &Metadata) -> Result<(), Error> {
     Ok(())
 }
 
-/// The contents rules of a kind [`SectionKind::checked_by_chunk`] on one chunk's values: those
-/// rules hold value by value, so a chunk is checked without the rest of its section.
-pub(crate) fn check_chunk_contents(
-    map: &Map<'_>,
-    section: &Section,
-    bytes: &[u8],
-) -> Result<(), Error> {
-    debug_assert!(section.kind.checked_by_chunk());
-    check_contents(map, section, bytes)
+/// Whether [`check_contents`]' rules for `kind` hold value by value (none, or each value on
+/// its own), so that a part of a section is checked without the rest: what lets a reader
+/// check it a chunk at a time (1.2, `chunks.rs`). A kind given a rule across values (order,
+/// a total) must leave this list.
+pub(crate) fn rules_hold_per_value(kind: SectionKind) -> bool {
+    matches!(
+        kind,
+        SectionKind::LevelDescShort
+            | SectionKind::LevelDescRest
+            | SectionKind::VisibilityPoints
+            | SectionKind::VisibilityKeypoints
+    )
 }
 
 /// Checks what one section's decoded contents must satisfy (indices in range, offsets
@@ -567,21 +569,6 @@ impl Visibility<'_> {
     }
 }
 
-/// Image → point ids, in CSR form, the points checked where they are read (1.2, see
-/// [`Chunked`]): what a localizer that reads a few images' points per query takes.
-pub struct VisibilityByChunk<'m> {
-    pub offsets: Cow<'m, [u64]>,
-    pub points: Chunked<'m, u32>,
-}
-
-impl VisibilityByChunk<'_> {
-    /// The points image `i` sees, their chunks checked.
-    pub fn points_of(&self, i: usize) -> Result<&[u32], Error> {
-        self.points
-            .get(self.offsets[i] as usize..self.offsets[i + 1] as usize)
-    }
-}
-
 /// Image global descriptors, row-major `[images × dim]`, and `dim`.
 pub type GlobalDescriptors<'m> = (Cow<'m, [f16]>, usize);
 
@@ -601,11 +588,11 @@ pub struct Vlad<'m> {
 /// One level of a map: its points and descriptor blocks.
 #[derive(Debug, Clone, Copy)]
 pub struct Level<'m> {
-    map: &'m Map<'m>,
+    pub(super) map: &'m Map<'m>,
     info: &'m LevelInfo,
     points: &'m Section,
-    short: Option<&'m Section>,
-    rest: Option<&'m Section>,
+    pub(super) short: Option<&'m Section>,
+    pub(super) rest: Option<&'m Section>,
     projection: Option<&'m Section>,
     pq_codebook: Option<&'m Section>,
     pq_codes: Option<&'m Section>,
@@ -692,21 +679,6 @@ impl<'m> Level<'m> {
         self.rest.map(|s| self.map.section_array(s)).transpose()
     }
 
-    /// [`Level::desc_short`] checked where it is read, a chunk at a time (1.2, see
-    /// [`Chunked`]): what a localizer that reads a few rows per query takes.
-    pub fn desc_short_chunked(&self) -> Result<Chunked<'m, f16>, Error> {
-        let s = self.short.ok_or(Error::MissingSection {
-            kind: SectionKind::LevelDescShort,
-            level: Some(self.id()),
-        })?;
-        self.map.chunked(s)
-    }
-
-    /// [`Level::desc_rest`] checked where it is read (see [`Level::desc_short_chunked`]).
-    pub fn desc_rest_chunked(&self) -> Result<Option<Chunked<'m, f16>>, Error> {
-        self.rest.map(|s| self.map.chunked(s)).transpose()
-    }
-
     /// `[dim_full × d_in]` row-major f32: row k maps an extractor descriptor to stored dim k.
     pub fn projection(&self) -> Result<Option<Cow<'m, [f32]>>, Error> {
         self.projection
@@ -735,7 +707,7 @@ impl<'m> Level<'m> {
 }
 
 impl<'a> Map<'a> {
-    fn required(&self, kind: SectionKind) -> Result<&Section, Error> {
+    pub(super) fn required(&self, kind: SectionKind) -> Result<&Section, Error> {
         self.find(kind, None)
             .ok_or(Error::MissingSection { kind, level: None })
     }
@@ -835,18 +807,6 @@ impl<'a> Map<'a> {
     /// range never fetches them for a reader that does not use them.
     pub fn visibility_points(&self) -> Result<Option<Visibility<'_>>, Error> {
         self.visibility_with(false)
-    }
-
-    /// [`Map::visibility_points`] with the points checked where they are read (1.2, see
-    /// [`Chunked`]).
-    pub fn visibility_by_chunk(&self) -> Result<Option<VisibilityByChunk<'_>>, Error> {
-        let Some(offsets) = self.find(SectionKind::VisibilityOffsets, None) else {
-            return Ok(None);
-        };
-        Ok(Some(VisibilityByChunk {
-            offsets: self.section_array(offsets)?,
-            points: self.chunked(self.required(SectionKind::VisibilityPoints)?)?,
-        }))
     }
 
     fn visibility_with(&self, keypoints: bool) -> Result<Option<Visibility<'_>>, Error> {

@@ -4,8 +4,8 @@
 use super::error::Error;
 use super::layout::{
     align_up, checksum, index_checksum, Codec, Dtype, Header, RawEntry, SectionKind, ENTRY_LEN,
-    FEATURE_DELTA, HEADER_LEN, MAX_DESCRIPTOR_DIM, METADATA_MAX_BYTES, NO_LEVEL, SECTION_REQUIRED,
-    VERSION_MAJOR, VERSION_MINOR,
+    FEATURE_DELTA, HEADER_LEN, MAX_DESCRIPTOR_DIM, MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL,
+    SECTION_REQUIRED, VERSION_MAJOR, VERSION_MINOR,
 };
 use super::metadata::{CameraInfo, LevelInfo, Metadata, PositionGrid};
 use super::reader::{within_decode_ratio, Map, Section, DECODE_RATIO};
@@ -840,7 +840,7 @@ impl<'a> MapWriter<'a> {
         // (1.2) Chunk checksums, last, when a section spans more than one chunk, so a reader
         // checks a large section where it reads it (`format/chunks.rs`).
         let chunk_pending;
-        if super::chunks::worth_storing(blocks.iter().map(|b| b.1.len() as u64)) {
+        if super::chunks::writes_chunk_checksums(blocks.iter().map(|b| b.1.len() as u64)) {
             let sums = super::chunks::chunk_checksums(blocks.iter().map(|b| &b.1[..]));
             chunk_pending = PendingSection {
                 kind: SectionKind::ChunkChecksums,
@@ -857,6 +857,12 @@ impl<'a> MapWriter<'a> {
             let bytes = owned_bytes(sums);
             let raw_len = bytes.len() as u64;
             blocks.push((&chunk_pending, bytes, Codec::Raw, raw_len));
+        }
+        if blocks.len() > MAX_SECTIONS as usize {
+            return Err(Error::invalid(format!(
+                "{} sections, more than {MAX_SECTIONS} (with chunk checksums)",
+                blocks.len()
+            )));
         }
 
         let mut metadata =

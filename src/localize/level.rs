@@ -5,7 +5,7 @@
 //! needed. Nothing is computed per row at open.
 
 use super::{LocalizeError, LocalizeOptions};
-use crate::format::{f16, Chunked, Error as FormatError, Level, Pq};
+use crate::format::{f16, CheckedByChunk, Error as FormatError, Level, Pq};
 use std::borrow::Cow;
 
 /// One selected level, ready for matching. Everything here is sized by the level's own
@@ -36,8 +36,8 @@ pub(super) enum Stored<'m> {
     /// checked where they are read: [`LevelIndex::rows_of`] checks a query's rows before
     /// matching reads them.
     F16 {
-        short: Chunked<'m, f16>,
-        rest: Option<Chunked<'m, f16>>,
+        short: CheckedByChunk<'m, f16>,
+        rest: Option<CheckedByChunk<'m, f16>>,
         ds: usize,
         dr: usize,
     },
@@ -147,7 +147,11 @@ impl LevelIndex<'_> {
     /// are checked (1.2: the chunks holding them, once per map), so matching may read them.
     pub(super) fn rows_of(&self, points: Option<&[u32]>) -> Result<Option<Vec<u32>>, FormatError> {
         let Some(points) = points else {
-            self.check_rows(0..self.points.len())?;
+            // Every row: chunk by chunk (O(chunks), free once checked), not row by row.
+            if let Stored::F16 { short, rest, .. } = &self.stored {
+                short.check_all()?;
+                rest.as_ref().map_or(Ok(()), |rest| rest.check_all())?;
+            }
             return Ok(None);
         };
         let level = &self.points[..];
@@ -208,8 +212,8 @@ struct LevelParts<'m> {
     /// Whether the map holds the level's `rest` block (`rest` is it when it is matched).
     has_rest: bool,
     points: Cow<'m, [u32]>,
-    short: Chunked<'m, f16>,
-    rest: Option<Chunked<'m, f16>>,
+    short: CheckedByChunk<'m, f16>,
+    rest: Option<CheckedByChunk<'m, f16>>,
     /// The PQ codes (1.1), instead of `short` and `rest` (then empty and `None`).
     pq: Option<Pq<'m>>,
     /// `[dim_full × d_in]` and `d_in`.
@@ -230,15 +234,15 @@ pub(super) fn index_level<'m>(
         has_rest: level.has_rest(),
         points: level.points()?,
         short: if pq.is_some() {
-            Chunked::checked(Cow::Borrowed(&[]))
+            CheckedByChunk::from_checked(Cow::Borrowed(&[]))
         } else {
-            level.desc_short_chunked()?
+            level.desc_short_by_chunk()?
         },
         // A PQ level's codes cover what they cover: `short` cannot cut them.
         rest: if options.short || pq.is_some() {
             None
         } else {
-            level.desc_rest_chunked()?
+            level.desc_rest_by_chunk()?
         },
         pq,
         projection: level
@@ -351,8 +355,8 @@ fn f16_blocks<'m>(
     df: usize,
     has_rest: bool,
     n: usize,
-    short: Chunked<'m, f16>,
-    rest: Option<Chunked<'m, f16>>,
+    short: CheckedByChunk<'m, f16>,
+    rest: Option<CheckedByChunk<'m, f16>>,
     bad: &impl Fn(String) -> LocalizeError,
 ) -> Result<Result<(Stored<'m>, usize), String>, LocalizeError> {
     // `LevelInfo::matched_dims`, on the blocks actually read.
@@ -398,8 +402,8 @@ fn f16_blocks<'m>(
 mod tests {
     use super::*;
 
-    fn halves(n: usize) -> Chunked<'static, f16> {
-        Chunked::checked(Cow::Owned(vec![f16::from_f32(0.5); n]))
+    fn halves(n: usize) -> CheckedByChunk<'static, f16> {
+        CheckedByChunk::from_checked(Cow::Owned(vec![f16::from_f32(0.5); n]))
     }
 
     fn parts(points: Vec<u32>, ds: usize, df: usize) -> LevelParts<'static> {
@@ -544,11 +548,11 @@ mod tests {
         // 3 points, 32 short + 2 rest dims, every value distinct (and exact in f16).
         let (ds, dr) = (COARSE_PREFIX_MIN_DIMS, 2);
         let mut p = parts(vec![1, 4, 9], ds, ds + dr);
-        p.short = Chunked::checked(Cow::Owned(
+        p.short = CheckedByChunk::from_checked(Cow::Owned(
             (0..3 * ds).map(|v| f16::from_f32(v as f32 + 1.0)).collect(),
         ));
         p.has_rest = true;
-        p.rest = Some(Chunked::checked(Cow::Owned(
+        p.rest = Some(CheckedByChunk::from_checked(Cow::Owned(
             (0..3 * dr)
                 .map(|v| f16::from_f32(-(v as f32) - 1.0))
                 .collect(),
