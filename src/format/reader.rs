@@ -527,6 +527,14 @@ impl<'a> Map<'a> {
     ) -> Result<(), Error> {
         // Read by range, the selected sections are fetched together, in few requests.
         self.prefetch(&select)?;
+        // (1.2) Chunk sums are checked too, as a reader that reads by chunk would, unless a
+        // slice of a map read by range leaves them out: fetching checks each section whole,
+        // the slice gets chunk sums of its own, and they would cost a request at the file's
+        // end.
+        let chunks = self
+            .chunks
+            .as_ref()
+            .is_some_and(|c| self.source().is_none() || select(&self.sections[c.section]));
         for section in self.sections.iter().filter(|s| select(s)) {
             let names = section.skipped.is_none()
                 && matches!(
@@ -538,8 +546,9 @@ impl<'a> Map<'a> {
             } else {
                 self.check_section(section)?;
             }
-            // (1.2) And chunk by chunk, as a reader that reads it where it is used would.
-            self.check_chunks(section)?;
+            if chunks {
+                self.check_chunks(section)?;
+            }
         }
         super::views::check_cross_sections(self)
     }

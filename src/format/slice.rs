@@ -309,6 +309,8 @@ impl Keep<'_> {
     fn section(&self, section: &Section) -> bool {
         match section.kind {
             _ if section.skipped().is_some() => false,
+            // (1.2) The writer computes the slice's own.
+            SectionKind::ChunkChecksums => false,
             SectionKind::LevelDescRest if self.options.short => false,
             SectionKind::PointIds | SectionKind::PointColors | SectionKind::VisibilityKeypoints
                 if self.options.minimal =>
