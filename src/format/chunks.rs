@@ -232,6 +232,7 @@ impl<'m, T: bytemuck::Pod> CheckedByChunk<'m, T> {
     /// All values, checked or not: for callers that [`check`](Self::check) each range before
     /// they read it (the localizer checks a query's candidate rows once, then reads them in
     /// its kernels).
+    #[cfg(feature = "localize")]
     pub(crate) fn unchecked(&self) -> &[T] {
         &self.values
     }
