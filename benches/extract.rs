@@ -2,7 +2,8 @@
 //! 2 intra-op threads (the CLI default). The runtime is found or fetched as `sfpmap setup`
 //! does. Quoted in README as the median ms per image.
 //!
-//! `cargo bench --bench extract`
+//! `cargo bench --bench extract`; `SFPMAP_BENCH_MODEL=path.onnx` times another model of the
+//! same contract (issue 17's candidates), `SFPMAP_BENCH_THREADS=N` another thread count.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use sfpmap::extract::{image, DetectOptions, Extractor, ExtractorOptions};
@@ -31,17 +32,27 @@ fn input(weights: [f32; 3]) -> image::GrayInput {
 }
 
 fn bench(c: &mut Criterion) {
+    let model = std::env::var_os("SFPMAP_BENCH_MODEL")
+        .filter(|m| !m.is_empty())
+        .map(PathBuf::from);
+    let threads = std::env::var("SFPMAP_BENCH_THREADS").map_or(2, |t| {
+        t.parse()
+            .unwrap_or_else(|_| panic!("SFPMAP_BENCH_THREADS={t}: not a number"))
+    });
     let mut extractor = Extractor::new(
         &ExtractorOptions {
-            model: None,
-            threads: 2,
+            model: model.clone(),
+            threads,
         },
         &sfpmap::progress::Silent,
     )
     .expect("ONNX Runtime found or fetched");
     let input = input(extractor.contract().gray_weights);
     let options = DetectOptions::default();
-    let mut group = c.benchmark_group("extract");
+    let name = model.as_deref().map_or("sfp-v1 (embedded)".into(), |m| {
+        m.file_stem().unwrap_or_default().to_string_lossy().into_owned()
+    });
+    let mut group = c.benchmark_group(format!("extract {name}, {threads} thread(s)"));
     group.sample_size(20);
     group.bench_function("640x480_network", |b| {
         b.iter(|| black_box(extractor.run(black_box(&input)).unwrap()))
