@@ -50,7 +50,10 @@ fn bench(c: &mut Criterion) {
     let input = input(extractor.contract().gray_weights);
     let options = DetectOptions::default();
     let name = model.as_deref().map_or("sfp-v1 (embedded)".into(), |m| {
-        m.file_stem().unwrap_or_default().to_string_lossy().into_owned()
+        m.file_stem()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .into_owned()
     });
     let mut group = c.benchmark_group(format!("extract {name}, {threads} thread(s)"));
     group.sample_size(20);
