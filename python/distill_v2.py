@@ -20,6 +20,12 @@ Loss (weights `w`, per level `level_w`; weight 0 switches a term off):
          descriptors (only the direction counts), and the cells a map keeps matter most
   glob   1 - cos(g_s, g_t) of the GeM global descriptors
   hint   |h_s - h_t|^2 / mean(h_t^2) at the first block's input (student stem vs v1's pooled stem)
+Multi-view fine-tuning (weights `mv_*`, `glob_ret`; 0 by default): train_v2's InfoNCE on true track
+correspondences, detector repeatability/reliability/track terms on n_mv pairs of co-visible map images,
+and the co-visibility InfoNCE of the global descriptor (train_v2.GlobalTrainer), with the distillation
+terms kept as an anchor to the teacher on the same images (train_v2's multi-view runs alone drifted
+from v1's validation accuracy within 250 steps). `--from STATE` starts such a run from a trained
+student's weights (with `--set stem_steps=0`).
 For the first `stem_steps` steps only the stem learns (the other parameters get lr 0), so the fresh
 stem's early output does not pull the teacher-initialised blocks away. BatchNorm is frozen as in
 train_v2 (eval mode, affine parameters trained): training optimises the exported network.
@@ -77,7 +83,20 @@ CFG = {
     "stem_steps": 300,
     "desc_floor": 0.02,
     "level_w": [1.0, 1.0, 1.0, 1.0],
-    "w": {"score": 1.0, "desc": 1.0, "glob": 1.0, "hint": 0.1},
+    "w": {"score": 1.0, "desc": 1.0, "glob": 1.0, "hint": 0.1,
+          # multi-view terms on top of the distillation (0: off; train_v2.mv_terms / GlobalTrainer)
+          "mv_desc": 0.0, "mv_rep": 0.0, "mv_rel": 0.0, "mv_trk": 0.0, "glob_ret": 0.0},
+    # multi-view and retrieval data (used only when one of those weights is > 0)
+    "n_mv": 2,
+    "kmax_mv": 160,
+    "mv_min_shared": 30,
+    "mv_min_corr": 16,
+    "tau": 0.1,
+    "n_glob": 2,
+    "glob_side": 288,
+    "glob_tau": 0.05,
+    "glob_hard_negs": 8,
+    "glob_cache_every": 300,
     "ckpt_minutes": 5.0,
     "val_every": 250,
     "log_every": 10,
@@ -227,6 +246,8 @@ def main():
     ap.add_argument("--teacher", default=os.path.join(REPO, "models", "sfp-v1.onnx"),
                     help=".onnx (SFP weights) or .pt state with 'model'")
     ap.add_argument("--fresh", action="store_true", help="ignore an existing --state")
+    ap.add_argument("--from", dest="from_state", default=None,
+                    help="a fresh run starts from this student state's weights (.pt with 'model')")
     ap.add_argument("--curves", default=os.path.join(HERE, "curves"))
     ap.add_argument("--run-name", default=None)
     ap.add_argument("--best", default=os.path.join(HERE, "runs", "v2s-best.pt"),
@@ -236,24 +257,46 @@ def main():
     torch.set_num_threads(cfg["threads"])
     t_start = time.time()
     run = args.run_name or time.strftime("v2s-run-%Y%m%d-%H%M")
+    W = cfg["w"]
+    use_mv = any(W[k] > 0 for k in ("mv_desc", "mv_rep", "mv_rel", "mv_trk"))
+    use_gret = W["glob_ret"] > 0
+    if use_mv or use_gret:
+        import pycolmap  # noqa: F401  (glog installs a SIGTERM handler on import: ours must come after it)
     signal.signal(signal.SIGTERM, _on_signal)
     signal.signal(signal.SIGINT, _on_signal)
 
     # --- data (the query exclusion exactly as train_v2.py)
     qpaths = V.query_paths()
     hfiles = V.hom_files()
-    MV.assert_disjoint(hfiles, qpaths)
+    scenes = V.load_scenes() if use_mv or use_gret else []
+    MV.assert_disjoint(hfiles + [p for sc in scenes for p in sc.paths], qpaths)
     print(f"queries excluded (asserted by path and md5): {len(qpaths)} files", flush=True)
     imgs = [D.load_gray(p, 640) for p in hfiles] + D.skimage_images()
     print(f"images: {len(hfiles)} files + {len(imgs) - len(hfiles)} skimage", flush=True)
     hs = D.PairSampler(imgs, size=cfg["size"], seed=cfg["seed"])
     vs = D.PairSampler([D.load_gray(p, 640) for p in D.val_files()], size=256, seed=1234)
     val_h = [tuple(torch.from_numpy(a) for a in vs.batch(4)) for _ in range(4)]  # train_v2's val pairs
+    mvs = gt = None
+    val_mv = []
+    if use_mv:
+        mvs = MV.MVPairSampler(scenes, size=cfg["size"], kmax=cfg["kmax_mv"], min_shared=cfg["mv_min_shared"],
+                               min_corr=cfg["mv_min_corr"], seed=cfg["seed"] + 1)
+        vsc = MV.SfMScene(V.VAL_MODEL[0], os.path.join(V.DATA, V.VAL_MODEL[1]), os.path.join(V.DATA, V.VAL_MODEL[2]))
+        vmv = MV.MVPairSampler([vsc], size=256, kmax=256, min_shared=30, seed=4321, photo=0.0)
+        val_mv = [tuple(torch.from_numpy(a) for a in vmv.batch(4)) for _ in range(4)]  # train_v2's
+        print(f"multi-view pairs: {len(mvs.pairs)}", flush=True)
+    if use_gret:
+        gt = V.GlobalTrainer(MV.CovisIndex(scenes, glob_side=cfg["glob_side"]), cfg, cfg["seed"])
+        print(f"global: {len(gt.c)} images, {len(gt.c.anchors)} anchors", flush=True)
 
     # --- networks / state
     teacher = load_teacher(args.teacher)
     th = Hint(teacher)
     samplers = dict(hom=hs)
+    if mvs is not None:
+        samplers["mv"] = mvs
+    if gt is not None:
+        samplers["glob"] = gt
     step, meta = 0, dict(runs=[], total_minutes=0.0, init=None, best=float("inf"))
     if os.path.exists(args.state) and not args.fresh:
         ck = torch.load(args.state, map_location="cpu", weights_only=False)
@@ -262,7 +305,16 @@ def main():
             raise SystemExit(f"{args.state} holds a {net.stem_mode!r} stem, config says {cfg['stem']!r}")
         step, meta = ck["step"], ck["meta"]
         torch.set_rng_state(ck["torch_rng"])
-        hs.rng.bit_generator.state = ck["np_rng"]["hom"]
+        for k, smp in samplers.items():
+            if k in ck["np_rng"]:
+                smp.rng.bit_generator.state = ck["np_rng"][k]
+    elif args.from_state:
+        ck = None
+        net = SFP.for_state_dict(torch.load(args.from_state, map_location="cpu", weights_only=False)["model"])
+        if net.stem_mode != cfg["stem"]:
+            raise SystemExit(f"{args.from_state} holds a {net.stem_mode!r} stem, config says {cfg['stem']!r}")
+        meta["init"] = f"{os.path.relpath(args.from_state, REPO)} (student weights; optimiser fresh)"
+        print(f"fresh run: {meta['init']}", flush=True)
     else:
         ck = None
         net = SFP(stem_mode=cfg["stem"])
@@ -288,12 +340,15 @@ def main():
     os.makedirs(args.curves, exist_ok=True)
     os.makedirs(os.path.dirname(os.path.abspath(args.best)), exist_ok=True)
     L = len(net.strides)
-    terms = ["score", "desc", "glob", "hint"]
-    per_level = ["kl", "cos", "rate_s", "rate_t"]
+    terms = ["score", "desc", "glob", "hint"] + [k for k in ("mv_desc", "mv_rep", "mv_rel", "mv_trk", "glob_ret")
+                                                 if W[k] > 0]
+    per_level = ["kl", "cos", "rate_s", "rate_t"] + (["mvacc"] if use_mv else [])
     cols = (["step", "run_minutes", "total_minutes", "lr", "sec_per_step", "loss"] + terms + ["gcos"] +
-            [f"{k}{i}" for k in per_level for i in range(L)])
+            [f"{k}{i}" for k in per_level for i in range(L)] + (["glob_r1_batch"] if use_gret else []))
     vcols = (["step", "total_minutes", "who", "loss"] + terms + ["gcos"] + [f"cos{i}" for i in range(L)] +
-             [f"kl{i}" for i in range(L)] + [f"hom_acc{i}" for i in range(L)] + [f"rate{i}" for i in range(L)])
+             [f"kl{i}" for i in range(L)] + [f"hom_acc{i}" for i in range(L)] + [f"rate{i}" for i in range(L)] +
+             ([f"mv_acc{i}" for i in range(L)] if use_mv else []) +
+             (["glob_r1_train", "glob_r5_train"] if use_gret else []) + ["score_acc"])
     curve_path = os.path.join(args.curves, f"{run}.csv")
     val_path = os.path.join(args.curves, f"{run}-val.csv")
     cf = open(curve_path, "w", newline="")
@@ -318,18 +373,40 @@ def main():
         m = teacher if who == "teacher" else net
         h = th if who == "teacher" else sh
         r = validate(m, h, teacher, th, val_h, cfg)
+        accs = [r[f"hom_acc{i}"] for i in range(L)]
+        if use_mv:
+            mva = V.validate_mv(m, val_mv)
+            if who == "teacher":
+                m.eval()  # validate_mv leaves train mode: the teacher's BN must never see it
+            r.update({f"mv_acc{i}": float(a) for i, a in enumerate(mva)})
+            accs = [(a + b) / 2 for a, b in zip(accs, mva)]
+        if use_gret and who == "student":
+            gt.refresh(net)
+            r["glob_r1_train"], r["glob_r5_train"] = gt.recall_train()
+        r["score_acc"] = float(np.mean(accs))  # train_v2's score: mean held-out accuracy
         r.update(step=step, who=who, total_minutes=round(total0 + (time.time() - t_loop) / 60, 2))
         vw.writerow({k: (round(v, 5) if isinstance(v, float) else v) for k, v in r.items()})
         vf.flush()
         print(f"VAL {who} step {step}: loss={r['loss']:.4f} cos=" +
               ",".join(f"{r[f'cos{i}']:.3f}" for i in range(L)) + f" gcos={r['gcos']:.3f} hom_acc=" +
-              ",".join(f"{r[f'hom_acc{i}']:.3f}" for i in range(L)), flush=True)
-        if who == "student" and r["loss"] < meta.get("best", float("inf")):
+              ",".join(f"{r[f'hom_acc{i}']:.3f}" for i in range(L)) +
+              ("" if not use_mv else " mv_acc=" + ",".join(f"{r[f'mv_acc{i}']:.3f}" for i in range(L))) +
+              ("" if not use_gret or who != "student" else
+               f" glob_train r1={r['glob_r1_train']:.3f} r5={r['glob_r5_train']:.3f}") +
+              f" score_acc={r['score_acc']:.4f}", flush=True)
+        # best: the lowest distillation loss, or with multi-view terms the highest held-out accuracy
+        # (the anchor's loss rises by design there)
+        better = (r["score_acc"] > meta.get("best_acc", -1.0)) if use_mv else \
+            (r["loss"] < meta.get("best", float("inf")))
+        if who == "student" and better:
             meta["best"] = r["loss"]
+            meta["best_acc"] = r["score_acc"]
             torch.save(dict(model=net.state_dict(), step=step, val=r, model_name=extra["model_name"],
                             export_metadata=extra["export_metadata"]), args.best)  # export.py reads it
 
     do_val("teacher")  # the reference line: what the student's accuracies should reach
+    if gt is not None:
+        gt.refresh(net)
     if step == 0:
         do_val()
     while not STOP["flag"] and time.time() - t_start < args.minutes * 60 and \
@@ -342,22 +419,35 @@ def main():
         opt.param_groups[1]["lr"] = lr if step >= cfg["stem_steps"] else 0.0
         A, B, _H, _V = map(torch.from_numpy, hs.batch(cfg["n_img"]))
         x = torch.cat([A, B], 0)
+        if use_mv:
+            MA, MB, PA, PB, VV = map(torch.from_numpy, mvs.batch(cfg["n_mv"]))
+            x = torch.cat([x, MA[:, None], MB[:, None]], 0)
         with torch.no_grad():
             t_out = run_net(teacher, th, x)
         logs = {}
-        Ls = distill_terms(run_net(net, sh, x), t_out, cfg, logs)
+        s_out = run_net(net, sh, x)
+        Ls = distill_terms(s_out, t_out, cfg, logs)  # the anchor, on the multi-view crops too
+        if use_mv:
+            o, nm = 2 * cfg["n_img"], cfg["n_mv"]
+            out = dict(feats=s_out["feats"], probs=[torch.sigmoid(lg) for lg in s_out["logits"]])
+            Ls.update(V.mv_terms(net, out, (slice(o, o + nm), slice(o + nm, o + 2 * nm)), PA, PB, VV, cfg, logs))
+        if use_gret:
+            Ls["glob_ret"], logs["glob_r1_batch"] = gt.loss(net)
         loss = total_loss(Ls, cfg)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
         opt.step()
+        if use_gret and step > 0 and step % cfg["glob_cache_every"] == 0:
+            gt.refresh(net)
         row = dict(step=step, lr=lr, sec_per_step=time.time() - ts, loss=loss.item())
         row.update({k: float(v.detach()) if torch.is_tensor(v) else float(v) for k, v in Ls.items()})
         row.update(logs)
         acc_rows.append(row)
         step += 1
         if len(acc_rows) >= cfg["log_every"]:
-            agg = {k: float(np.mean([r[k] for r in acc_rows])) for k in cols if k in acc_rows[0]}
+            agg = {k: float(np.mean([r[k] for r in acc_rows if k in r])) for k in cols
+                   if any(k in r for r in acc_rows)}
             agg.update(step=step - 1, run_minutes=round((time.time() - t_loop) / 60, 3),
                        total_minutes=round(total0 + (time.time() - t_loop) / 60, 3))
             cw.writerow({k: (round(v, 5) if isinstance(v, float) else v) for k, v in agg.items()})
