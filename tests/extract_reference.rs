@@ -133,6 +133,24 @@ fn matches_the_python_onnxruntime_reference_on_a_real_image() {
             .extract(&input, &DetectOptions::default())
             .unwrap()
     );
+    // The same bytes whatever the thread count: levels are shared out over the threads
+    // (2 here; 1 and 3 share them differently), keypoints stay in score order.
+    let dense = extractor.run(&input).unwrap();
+    for threads in [1, 3] {
+        let other = Extractor::new(
+            &ExtractorOptions {
+                model: None,
+                threads,
+            },
+            &sfpmap::progress::Silent,
+        )
+        .unwrap();
+        assert_eq!(
+            features,
+            other.features(&dense, input.original_size, &DetectOptions::default()),
+            "{threads} thread(s)"
+        );
+    }
 
     let size: Vec<u32> = reference["image_size"]
         .as_array()

@@ -139,15 +139,23 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         max_keypoints: args.max_keypoints.clone(),
     };
     let mut results = Vec::with_capacity(images.len());
+    // Per image: the extraction (network + keypoints and descriptors) and its parts, and the
+    // decode before it (file read, decode, grey conversion, resize).
     let mut ms = Vec::with_capacity(images.len());
+    let (mut decode_ms, mut network_ms, mut keypoints_ms) = (Vec::new(), Vec::new(), Vec::new());
+    let since = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
     bars.start("extracting", Some(images.len() as u64));
     for (name, path) in &images {
-        let input = image::load(path, contract.gray_weights, args.resize_max)?;
         let t = Instant::now();
-        let features = extractor
-            .extract(&input, &detect)
-            .map_err(|e| e.on_image(path))?;
-        ms.push(t.elapsed().as_secs_f64() * 1e3);
+        let input = image::load(path, contract.gray_weights, args.resize_max)?;
+        decode_ms.push(since(t));
+        let t = Instant::now();
+        let dense = extractor.run(&input).map_err(|e| e.on_image(path))?;
+        network_ms.push(since(t));
+        let t_kp = Instant::now();
+        let features = extractor.features(&dense, input.original_size, &detect);
+        keypoints_ms.push(since(t_kp));
+        ms.push(since(t));
         results.push((name.clone(), features));
         bars.advance(1);
     }
@@ -183,9 +191,12 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             attributes,
         },
     )?;
-    let mut sorted = ms.clone();
-    sorted.sort_by(f64::total_cmp);
-    let median = sorted[sorted.len() / 2];
+    let median_of = |v: &[f64]| {
+        let mut sorted = v.to_vec();
+        sorted.sort_by(f64::total_cmp);
+        sorted[sorted.len() / 2]
+    };
+    let median = median_of(&ms);
     let per_level: Vec<_> = contract
         .level_ids
         .iter()
@@ -206,17 +217,27 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "keypoints": per_level.iter().map(|(l, n)| json!({"level": l, "keypoints": n})).collect::<Vec<_>>(),
             "ms_per_image": ms,
             "ms_median": median,
+            // medians of the parts; ms_per_image = network + keypoints_descriptors
+            "ms_median_parts": {
+                "decode": median_of(&decode_ms),
+                "network": median_of(&network_ms),
+                "keypoints_descriptors": median_of(&keypoints_ms),
+            },
             "threads": threads,
             "model": model.name,
             "model_xxh3": model.xxh3,
         }))?;
     } else if !quiet {
         println!(
-            "{}: {} images, {} bytes; median {median:.1} ms per image ({} threads)",
+            "{}: {} images, {} bytes; median {median:.1} ms per image ({} threads: network {:.1}, \
+             keypoints and descriptors {:.1}; decode before it {:.1})",
             args.output.display(),
             results.len(),
             bytes,
-            threads
+            threads,
+            median_of(&network_ms),
+            median_of(&keypoints_ms),
+            median_of(&decode_ms)
         );
         for (l, n) in per_level {
             println!(
