@@ -208,3 +208,47 @@ fn sift_queries_from_a_database_and_a_missing_query_is_listed_not_fatal() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--database"));
 }
+
+#[test]
+fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
+    let Some(s) = scene() else { return };
+    let t = tempfile::tempdir().unwrap();
+    let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
+    let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
+    // `--model NAME`: a built-in model by its sfp.model_name (no file of that name here).
+    run(&[
+        "convert",
+        "--colmap",
+        &sd("sparse-map"),
+        "--images",
+        &sd("images"),
+        "--model",
+        "sfp-v2s",
+        "-o",
+        &p("m.sfpm"),
+        "-q",
+    ]);
+    let localize = |extra: &[&str], out: &str| {
+        Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+            .args(["localize", "--map", &p("m.sfpm"), "--query-list"])
+            .args([sd("queries.txt"), "--images".into(), sd("images")])
+            .args(["-o", &p(out), "--json"])
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    // No --model: the map's own (built-in) model extracts the queries.
+    let o = localize(&[], "a.txt");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let a: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(a["localized"], 2, "{a}");
+    // Another model's features are refused, both models named, nothing written.
+    let o = localize(&["--model", "sfp-v1"], "b.txt");
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("sfp-v2s") && err.contains("sfp-v1") && err.contains("m.sfpm"),
+        "{err}"
+    );
+    assert!(!t.path().join("b.txt").exists());
+}

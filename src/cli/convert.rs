@@ -37,7 +37,8 @@ pub struct Args {
     #[cfg(feature = "onnx")]
     #[arg(long, conflicts_with_all = ["database", "short_dims", "aggregate", "strict"])]
     pub images: Option<PathBuf>,
-    /// With --images: an ONNX model of the sfp-extractor/1 contract (default: embedded sfp-v1).
+    /// With --images: an ONNX model of the sfp-extractor/1 contract or a built-in model's name
+    /// (sfp-v1, sfp-v2s); default: the built-in sfp-v1.
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images")]
     pub model: Option<PathBuf>,

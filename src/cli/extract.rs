@@ -24,7 +24,8 @@ pub struct Args {
     /// Output features.h5.
     #[arg(short, long)]
     pub output: PathBuf,
-    /// An ONNX model of the sfp-extractor/1 contract (default: the embedded sfp-v1).
+    /// An ONNX model of the sfp-extractor/1 contract or a built-in model's name
+    /// (sfp-v1, sfp-v2s); default: the built-in sfp-v1.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// ONNX Runtime intra-op threads (capped at 4 per core, at most 256, with a warning).

@@ -89,7 +89,8 @@ pub struct Args {
     /// hloc-style features.h5 with the queries' features (e.g. from `sfpmap extract`).
     #[arg(long, conflicts_with = "database")]
     pub features: Option<PathBuf>,
-    /// SFP model for query extraction (default: the embedded models/sfp-v1.onnx).
+    /// SFP model for query extraction: a file, or a built-in model's name (sfp-v1, sfp-v2s);
+    /// default: the built-in model the map was made with.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Levels to use (repeat); default all. Coarse matching uses the deepest.
@@ -198,10 +199,18 @@ fn sfp_extractor(
     descriptor: &str,
     bars: &super::Bars,
 ) -> anyhow::Result<sfpmap::extract::Extractor> {
-    let options = sfpmap::extract::ExtractorOptions {
-        model: args.model.clone(),
-        threads: 2,
+    // Without --model, the built-in model the map was made with.
+    let model = match &args.model {
+        Some(m) => Some(m.clone()),
+        None if sfpmap::extract::builtin_model(descriptor).is_some() => Some(descriptor.into()),
+        None => bail!(
+            "{}: the map's descriptors are {descriptor:?}, which no built-in model makes \
+             (built in: {}): pass its model with --model FILE.onnx",
+            args.map_path().display(),
+            sfpmap::extract::builtin_model_names()
+        ),
     };
+    let options = sfpmap::extract::ExtractorOptions { model, threads: 2 };
     let extractor = sfpmap::extract::Extractor::new(&options, bars)?;
     if extractor.contract().model_name != descriptor {
         bail!(

@@ -42,6 +42,32 @@ pub static DEFAULT_MODEL: &[u8] = include_bytes!("../../models/sfp-v1.onnx");
 /// How the embedded model is named in errors and provenance.
 pub const DEFAULT_MODEL_NAME: &str = "models/sfp-v1.onnx (embedded)";
 
+/// The models built into the library, by their `sfp.model_name`; the first is
+/// [`DEFAULT_MODEL`]. `sfp-v2s` is sfp-v1 distilled into a strided stem (issue 17: about 0.65x
+/// the network time, `models/sfp-v2s.md`). A map records its model's name, so `localize` finds
+/// the model a map was made with here; `--model NAME` picks one by name.
+pub static BUILTIN_MODELS: &[(&str, &[u8])] = &[
+    ("sfp-v1", DEFAULT_MODEL),
+    ("sfp-v2s", include_bytes!("../../models/sfp-v2s.onnx")),
+];
+
+/// The built-in model named `name` (`sfp.model_name`), if there is one.
+pub fn builtin_model(name: &str) -> Option<&'static [u8]> {
+    BUILTIN_MODELS
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|(_, bytes)| *bytes)
+}
+
+/// The built-in models' names, for messages: "sfp-v1, sfp-v2s".
+pub fn builtin_model_names() -> String {
+    BUILTIN_MODELS
+        .iter()
+        .map(|(n, _)| *n)
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 /// What can go wrong while extracting.
 #[derive(Debug)]
 #[non_exhaustive]
@@ -151,7 +177,8 @@ impl std::error::Error for ExtractError {}
 /// How the extractor is built.
 #[derive(Debug, Clone)]
 pub struct ExtractorOptions {
-    /// A model file; `None` = the embedded [`DEFAULT_MODEL`].
+    /// A model file; or, when no file has that path, the name of a built-in model
+    /// ([`BUILTIN_MODELS`]: `sfp-v2s`); `None` = the embedded [`DEFAULT_MODEL`].
     pub model: Option<PathBuf>,
     /// ONNX Runtime intra-op threads (spinning is off).
     pub threads: usize,
@@ -361,6 +388,14 @@ fn read_model(
     match path {
         None => Ok((DEFAULT_MODEL.into(), DEFAULT_MODEL_NAME.to_string())),
         Some(p) => {
+            // A file wins over a built-in name (a model file may well be called `sfp-v1`).
+            let builtin = p
+                .to_str()
+                .filter(|_| std::fs::symlink_metadata(p).is_err())
+                .and_then(|n| builtin_model(n).map(|b| (n, b)));
+            if let Some((n, bytes)) = builtin {
+                return Ok((bytes.into(), format!("models/{n}.onnx (embedded)")));
+            }
             let bytes = crate::input::read_regular(p).map_err(|e| ExtractError::Io {
                 path: p.to_path_buf(),
                 source: e.into(),
