@@ -85,10 +85,11 @@ class SFPRunner:
         return feats, scores, outs["global"][0]
 
 
-def sfp_features(runner, img01, topk, thr):
-    """Per level (pixels, short, full, scores), by the extractor's reference post-processing."""
+def sfp_features(runner, img01, topk, thr, refine=True):
+    """Per level (pixels, short, full, scores), by the extractor's reference post-processing
+    (with its coarse-to-fine refinement of levels 2 and deeper unless `refine` is False)."""
     feats, scores, _ = runner.run(img01)
-    return level_features(feats, scores, runner.strides, 1, thr, topk)
+    return level_features(feats, scores, runner.strides, 1, thr, topk, refine=refine)
 
 
 # --- matching / metrics ---------------------------------------------------------------------------
@@ -182,6 +183,8 @@ def main():
     ap.add_argument("--thr", type=float, default=0.05, help="SFP score threshold after NMS")
     ap.add_argument("--n-classic", type=int, default=1000, help="ORB / SIFT nfeatures")
     ap.add_argument("--no-classic", action="store_true")
+    ap.add_argument("--no-refine", action="store_true",
+                    help="levels 2+ as detected on their own score map (the extractor before stop 31)")
     ap.add_argument("--json")
     ap.add_argument("--label", default="SFP")
     args = ap.parse_args()
@@ -198,8 +201,8 @@ def main():
         acc: dict[str, list] = {}
         for (_, a, b, H) in ps:
             h, w = a.shape
-            fa = sfp_features(runner, a, topk, args.thr)
-            fb = sfp_features(runner, b, topk, args.thr)
+            fa = sfp_features(runner, a, topk, args.thr, not args.no_refine)
+            fb = sfp_features(runner, b, topk, args.thr, not args.no_refine)
             all_short, all_full = [], []
             for i in range(len(runner.strides)):
                 for kind, col in (("short", 1), ("full", 2)):

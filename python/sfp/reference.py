@@ -65,16 +65,53 @@ def l2n(x):
     return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
 
 
-def level_features(feats, scores, strides, radius, thr, topk):
+REFINE_FROM_LEVEL = 2  # src/extract/mod.rs: REFINE_FROM_LEVEL
+
+
+def refine_on(finer, finer_stride, radius, px):
+    """Coarse-to-fine refinement (spec/extractor.md): each pixel position (pixel-centre origin 0)
+    moves to the strongest interior cell of the finer score map within `radius` finer cells of it
+    (first in row order on ties; NaN never wins), refined by the quadratic fit there."""
+    h, w = finer.shape
+    out = px.astype(np.float32).copy()
+    if h < 3 or w < 3:
+        return out
+    for k, (x, y) in enumerate(px):
+        if not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        cx = np.floor(np.float32(x) / np.float32(finer_stride) + np.float32(0.5))
+        cy = np.floor(np.float32(y) / np.float32(finer_stride) + np.float32(0.5))
+        x0, x1 = max(cx - radius, 1), min(cx + radius, w - 2)
+        y0, y1 = max(cy - radius, 1), min(cy + radius, h - 2)
+        if x0 > x1 or y0 > y1:
+            continue
+        win = finer[int(y0):int(y1) + 1, int(x0):int(x1) + 1]
+        if np.isnan(win).all():
+            continue
+        win = np.where(np.isnan(win), -np.inf, win)
+        a = np.unravel_index(np.argmax(win), win.shape)
+        yy, xx = int(y0) + a[0], int(x0) + a[1]
+        dx = quad(finer[yy, xx - 1], finer[yy, xx], finer[yy, xx + 1])
+        dy = quad(finer[yy - 1, xx], finer[yy, xx], finer[yy + 1, xx])
+        out[k] = [(xx + dx) * finer_stride, (yy + dy) * finer_stride]
+    return out
+
+
+def level_features(feats, scores, strides, radius, thr, topk, refine=True):
     """Per level: (pixels with the pixel-centre origin at 0, short, full, scores).
 
     `feats[i]` is [C_i, h_i, w_i], `scores[i]` [h_i, w_i]; a level's full descriptor joins the
-    normalised samples of it and every deeper level at its keypoints, normalised again.
+    normalised samples of it and every deeper level at its keypoints, normalised again. Levels
+    from REFINE_FROM_LEVEL on are refined on the next finer level's score map (`refine`).
     """
     out = []
     for i, stride in enumerate(strides):
         cells, v = detect(scores[i], radius, thr, topk[i])
         px = cells * stride
+        if refine and i >= max(REFINE_FROM_LEVEL, 1):
+            r = max(1, int(round(stride / strides[i - 1] / 2)))
+            px = refine_on(scores[i - 1], strides[i - 1], r, px)
+            cells = px / stride
         short = l2n(bilinear(feats[i], cells))
         parts = [l2n(bilinear(feats[j], px / strides[j])) for j in range(i, len(strides))]
         out.append((px, short, l2n(np.concatenate(parts, 1)), v))

@@ -49,6 +49,10 @@ pub struct Args {
     /// Overwrite OUTPUT if it exists.
     #[arg(long)]
     pub force: bool,
+    /// Keep levels 2 and deeper where the quadratic fit on their own score map puts them
+    /// (no coarse-to-fine refinement on the next finer level; spec/extractor.md).
+    #[arg(long)]
+    pub no_refine: bool,
     /// Print one JSON object: images, keypoints per level, ms per image, output bytes.
     #[arg(long)]
     pub json: bool,
@@ -138,6 +142,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         threshold: args.threshold,
         nms_radius: args.nms_radius,
         max_keypoints: args.max_keypoints.clone(),
+        refine: Some(!args.no_refine),
     };
     let mut results = Vec::with_capacity(images.len());
     // Per image: the extraction (network + keypoints and descriptors) and its parts, and the

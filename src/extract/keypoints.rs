@@ -78,6 +78,60 @@ pub fn detect(map: ScoreMap<'_>, radius: usize, threshold: f32, max: usize) -> V
         .collect()
 }
 
+/// A keypoint of a coarse level at pixel (x, y) (pixel-index convention) moved to the
+/// strongest cell of the next finer level's score map `finer` (stride `finer_stride`) within
+/// `radius` finer cells of it, refined there like a detection ([`subpixel`]); the first
+/// strongest in row order wins, NaN cells never do. Unchanged when no interior cell of
+/// `finer` lies in the window. See `spec/extractor.md`, "Coarse-to-fine refinement".
+pub fn refine_on(
+    finer: ScoreMap<'_>,
+    finer_stride: f32,
+    radius: usize,
+    x: f32,
+    y: f32,
+) -> (f32, f32) {
+    let (h, w) = (finer.height, finer.width);
+    if h < 3 || w < 3 || !x.is_finite() || !y.is_finite() {
+        return (x, y);
+    }
+    let r = radius as f32;
+    let (cx, cy) = (
+        (x / finer_stride + 0.5).floor(),
+        (y / finer_stride + 0.5).floor(),
+    );
+    // Clipped to the interior (the quadratic fit needs both neighbours); as floats first, so
+    // that a position far outside the map cannot wrap.
+    let x0 = (cx - r).max(1.0);
+    let x1 = (cx + r).min((w - 2) as f32);
+    let y0 = (cy - r).max(1.0);
+    let y1 = (cy + r).min((h - 2) as f32);
+    if x0 > x1 || y0 > y1 {
+        return (x, y);
+    }
+    let (x0, x1, y0, y1) = (x0 as usize, x1 as usize, y0 as usize, y1 as usize);
+    let mut best: Option<(f32, usize, usize)> = None;
+    for rr in y0..=y1 {
+        for (cc, &v) in finer.values[rr * w..(rr + 1) * w]
+            .iter()
+            .enumerate()
+            .take(x1 + 1)
+            .skip(x0)
+        {
+            if best.is_none_or(|(b, _, _)| v > b) && !v.is_nan() {
+                best = Some((v, rr, cc));
+            }
+        }
+    }
+    let Some((_, rr, cc)) = best else {
+        return (x, y);
+    };
+    let (dx, dy) = subpixel(finer, rr, cc);
+    (
+        (cc as f32 + dx) * finer_stride,
+        (rr as f32 + dy) * finer_stride,
+    )
+}
+
 /// The 1-D quadratic offset through (−1, m), (0, c), (+1, p), clipped to ±0.5; 0 when the
 /// curvature is ~0.
 pub fn quadratic_offset(m: f32, c: f32, p: f32) -> f32 {
@@ -289,5 +343,61 @@ mod tests {
             values: &v[..h * w],
         };
         assert!((bilinear_at(plane, 0.5, 0.5) - (1.0 + 1.0 + 1.5)).abs() < 1e-6);
+    }
+
+    #[test]
+    fn refinement_moves_to_the_finer_peak_within_half_a_coarse_cell() {
+        // A finer level of stride 4 with a parabola peaked at cell (6.25, 5): a coarse
+        // keypoint at pixel (24, 20) = cell (6, 5) moves onto it.
+        let (h, w) = (12, 14);
+        let v = map(h, w, |r, c| {
+            10.0 - (c as f32 - 6.25).powi(2) - (r as f32 - 5.0).powi(2)
+        });
+        let finer = ScoreMap {
+            height: h,
+            width: w,
+            values: &v,
+        };
+        let (x, y) = refine_on(finer, 4.0, 1, 24.0, 20.0);
+        assert!(
+            (x - 25.0).abs() < 1e-4 && (y - 20.0).abs() < 1e-4,
+            "{x} {y}"
+        );
+        // From cell 10 the peak is out of the window (cells 9..=11): the window's best cell,
+        // 9, wins instead, and its fit (the parabola's vertex, 2.75 cells away) clips to -0.5.
+        let (x, y) = refine_on(finer, 4.0, 1, 40.0, 20.0);
+        assert!(
+            (x - 34.0).abs() < 1e-4 && (y - 20.0).abs() < 1e-4,
+            "{x} {y}"
+        );
+    }
+
+    #[test]
+    fn refinement_leaves_what_it_cannot_refine() {
+        let v = vec![0.5f32; 4 * 4];
+        let tiny = ScoreMap {
+            height: 2,
+            width: 8,
+            values: &v[..16],
+        };
+        assert_eq!(refine_on(tiny, 2.0, 1, 3.0, 1.0), (3.0, 1.0));
+        let finer = ScoreMap {
+            height: 4,
+            width: 4,
+            values: &v,
+        };
+        // Far outside the map: no interior cell in the window, and nothing wraps.
+        assert_eq!(refine_on(finer, 2.0, 1, 1e30, -1e30), (1e30, -1e30));
+        assert_eq!(refine_on(finer, 2.0, 1, f32::NAN, 1.0).1, 1.0);
+        // A window of NaN cells only.
+        let nan = vec![f32::NAN; 16];
+        let nan = ScoreMap {
+            height: 4,
+            width: 4,
+            values: &nan,
+        };
+        assert_eq!(refine_on(nan, 2.0, 1, 3.0, 3.0), (3.0, 3.0));
+        // Ties: the first in row order wins (a flat map: the window's top-left interior cell).
+        assert_eq!(refine_on(finer, 2.0, 1, 4.0, 4.0), (2.0, 2.0));
     }
 }

@@ -145,6 +145,7 @@ impl Extractor {
             threshold,
             nms_radius,
             max_keypoints,
+            refine: None,
         };
         let f = py
             .detach(|| {
