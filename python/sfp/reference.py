@@ -17,7 +17,7 @@ def sliding_max(score, r):
     out = np.full((h, w), -np.inf, np.float32)
     for dy in range(2 * r + 1):
         for dx in range(2 * r + 1):
-            out = np.maximum(out, pad[dy:dy + h, dx:dx + w])
+            out = np.fmax(out, pad[dy:dy + h, dx:dx + w])  # NaN cells ignored, as in Rust
     return out
 
 
@@ -86,10 +86,11 @@ def refine_on(finer, finer_stride, radius, px):
         if x0 > x1 or y0 > y1:
             continue
         win = finer[int(y0):int(y1) + 1, int(x0):int(x1) + 1]
-        if np.isnan(win).all():
+        flat = win.ravel()  # row order
+        ok = np.flatnonzero(~np.isnan(flat))
+        if ok.size == 0:
             continue
-        win = np.where(np.isnan(win), -np.inf, win)
-        a = np.unravel_index(np.argmax(win), win.shape)
+        a = np.unravel_index(ok[np.argmax(flat[ok])], win.shape)  # first strongest non-NaN
         yy, xx = int(y0) + a[0], int(x0) + a[1]
         dx = quad(finer[yy, xx - 1], finer[yy, xx], finer[yy, xx + 1])
         dy = quad(finer[yy - 1, xx], finer[yy, xx], finer[yy + 1, xx])
@@ -109,7 +110,7 @@ def level_features(feats, scores, strides, radius, thr, topk, refine=True):
         cells, v = detect(scores[i], radius, thr, topk[i])
         px = cells * stride
         if refine and i >= max(REFINE_FROM_LEVEL, 1):
-            r = max(1, int(round(stride / strides[i - 1] / 2)))
+            r = max(1, int(np.floor(stride / strides[i - 1] / 2 + 0.5)))  # half up, as Rust
             px = refine_on(scores[i - 1], strides[i - 1], r, px)
             cells = px / stride
         short = l2n(bilinear(feats[i], cells))

@@ -180,6 +180,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             sfpmap::format::Metadata::tool_string(),
         ),
     ];
+    // Whether levels 2+ were refined coarse to fine (spec/extractor.md step 4).
+    attributes.push(("sfp.refine".to_string(), (!args.no_refine).to_string()));
     attributes.push((
         "sfp.level_ids".to_string(),
         contract

@@ -179,6 +179,16 @@ fn descriptor_kind(map: &Map<'_>) -> String {
         .unwrap_or_default()
 }
 
+/// The XXH3 of the model the map's descriptors came from, as its provenance records it.
+fn map_model_xxh3<'a>(map: &'a Map<'_>) -> Option<&'a str> {
+    map.metadata()
+        .provenance
+        .model
+        .as_ref()
+        .map(|m| m.xxh3.as_str())
+        .filter(|h| !h.is_empty())
+}
+
 /// Refuses a map whose query features the SFP extractor cannot provide: one without
 /// descriptors, or a SIFT map (`sift_hint` says what to do instead).
 fn check_extractable(map_path: &Path, descriptor: &str, sift_hint: &str) -> anyhow::Result<()> {
@@ -197,21 +207,43 @@ fn check_extractable(map_path: &Path, descriptor: &str, sift_hint: &str) -> anyh
 fn sfp_extractor(
     args: &Args,
     descriptor: &str,
+    map_model_xxh3: Option<&str>,
     bars: &super::Bars,
 ) -> anyhow::Result<sfpmap::extract::Extractor> {
-    // Without --model, the built-in model the map was made with.
-    let model = match &args.model {
-        Some(m) => Some(m.clone()),
-        None if sfpmap::extract::builtin_model(descriptor).is_some() => Some(descriptor.into()),
-        None => bail!(
-            "{}: the map's descriptors are {descriptor:?}, which no built-in model makes \
-             (built in: {}): pass its model with --model FILE.onnx",
-            args.map_path().display(),
-            sfpmap::extract::builtin_model_names()
-        ),
+    let extractor = match &args.model {
+        Some(m) => {
+            let options = sfpmap::extract::ExtractorOptions {
+                model: Some(m.clone()),
+                threads: 2,
+            };
+            sfpmap::extract::Extractor::new(&options, bars)?
+        }
+        // Without --model, the built-in model the map was made with (never a file).
+        None => match sfpmap::extract::Extractor::builtin(descriptor, 2, bars) {
+            Some(extractor) => {
+                let extractor = extractor?;
+                // Same name, other weights (a retrained model exported under the same name):
+                // the map's descriptors would not match the queries'.
+                if let Some(made) = map_model_xxh3 {
+                    if made != extractor.model().xxh3 {
+                        bail!(
+                            "{}: the map was made with a {descriptor:?} model of hash {made}, \
+                             not the built-in one ({}): pass that model with --model FILE.onnx",
+                            args.map_path().display(),
+                            extractor.model().xxh3
+                        );
+                    }
+                }
+                extractor
+            }
+            None => bail!(
+                "{}: the map's descriptors are {descriptor:?}, which no built-in model makes \
+                 (built in: {}): pass its model with --model FILE.onnx",
+                args.map_path().display(),
+                sfpmap::extract::builtin_model_names()
+            ),
+        },
     };
-    let options = sfpmap::extract::ExtractorOptions { model, threads: 2 };
-    let extractor = sfpmap::extract::Extractor::new(&options, bars)?;
     if extractor.contract().model_name != descriptor {
         bail!(
             "{}: the map's descriptors are {descriptor:?} but the model is {:?}",
@@ -338,7 +370,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                     queries[0].name
                 );
             }
-            let extractor = sfp_extractor(&args, &descriptor, &bars)?;
+            let extractor = sfp_extractor(&args, &descriptor, map_model_xxh3(&map), &bars)?;
             Source::Extractor { extractor, images }
         }
         #[cfg(not(feature = "onnx"))]

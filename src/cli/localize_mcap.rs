@@ -255,7 +255,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
         &descriptor,
         "MCAP images need an SFP map (their features are extracted with the SFP model)",
     )?;
-    let extractor = super::sfp_extractor(args, &descriptor, bars)?;
+    let extractor = super::sfp_extractor(args, &descriptor, super::map_model_xxh3(&map), bars)?;
     let gray_weights = extractor.contract().gray_weights;
     let localizer = super::localizer(&map, args, args.map_path())?;
     super::warn_skipped(&localizer, args.map_path(), bars);

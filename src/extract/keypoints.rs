@@ -44,20 +44,29 @@ pub fn detect(map: ScoreMap<'_>, radius: usize, threshold: f32, max: usize) -> V
     if h < 3 || w < 3 || max == 0 {
         return Vec::new();
     }
+    // A cell is a maximum when no cell of its window is greater (NaN cells never are). Small
+    // windows test that directly, most cells above the threshold being beaten within a few
+    // reads; larger ones read a row-wise sliding maximum, so that a plateau (a saturated
+    // score map) costs O(cells x radius), not O(cells x radius^2).
+    let row_max = (radius > 2).then(|| sliding_max_rows(map, radius));
     let mut peaks: Vec<(f32, usize, usize)> = Vec::new();
     for r in 1..h - 1 {
-        let (r0, r1) = (r.saturating_sub(radius), (r + radius).min(h - 1));
+        let (r0, r1) = (
+            r.saturating_sub(radius),
+            r.saturating_add(radius).min(h - 1),
+        );
         let row = &map.values[r * w..(r + 1) * w];
         for (c, &v) in row.iter().enumerate().take(w - 1).skip(1) {
             if v.is_nan() || v <= threshold {
                 continue;
             }
-            // A maximum when no cell of the window is greater (NaN cells never are); most
-            // cells above the threshold are rejected by a neighbour within a few reads, so
-            // this beats a separable max filter over the whole map.
-            let (c0, c1) = (c.saturating_sub(radius), (c + radius).min(w - 1));
-            let beaten =
-                (r0..=r1).any(|rr| map.values[rr * w + c0..=rr * w + c1].iter().any(|&u| u > v));
+            let beaten = match &row_max {
+                Some(m) => (r0..=r1).any(|rr| m[rr * w + c] > v),
+                None => {
+                    let (c0, c1) = (c.saturating_sub(radius), (c + radius).min(w - 1));
+                    (r0..=r1).any(|rr| map.values[rr * w + c0..=rr * w + c1].iter().any(|&u| u > v))
+                }
+            };
             if !beaten {
                 peaks.push((v, r, c));
             }
@@ -132,11 +141,37 @@ pub fn refine_on(
     )
 }
 
+/// The maximum over each cell's horizontal window of half-width `radius` (clipped; NaN
+/// cells ignored).
+fn sliding_max_rows(map: ScoreMap<'_>, radius: usize) -> Vec<f32> {
+    let (h, w) = (map.height, map.width);
+    let mut out = vec![f32::NEG_INFINITY; h * w];
+    for (row, out) in map
+        .values
+        .chunks_exact(w)
+        .zip(out.chunks_exact_mut(w))
+        .take(h)
+    {
+        for (c, o) in out.iter_mut().enumerate() {
+            let (c0, c1) = (
+                c.saturating_sub(radius),
+                c.saturating_add(radius).min(w - 1),
+            );
+            *o = row[c0..=c1]
+                .iter()
+                .copied()
+                .fold(f32::NEG_INFINITY, f32::max);
+        }
+    }
+    out
+}
+
 /// The 1-D quadratic offset through (−1, m), (0, c), (+1, p), clipped to ±0.5; 0 when the
 /// curvature is ~0.
 pub fn quadratic_offset(m: f32, c: f32, p: f32) -> f32 {
     let den = m - 2.0 * c + p;
-    if den.abs() <= 1e-9 {
+    // NaN neighbours give a NaN curvature: 0 too, as in python/sfp/reference.py.
+    if den.is_nan() || den.abs() <= 1e-9 {
         return 0.0;
     }
     (0.5 * (m - p) / den).clamp(-0.5, 0.5)
@@ -399,5 +434,55 @@ mod tests {
         assert_eq!(refine_on(nan, 2.0, 1, 3.0, 3.0), (3.0, 3.0));
         // Ties: the first in row order wins (a flat map: the window's top-left interior cell).
         assert_eq!(refine_on(finer, 2.0, 1, 4.0, 4.0), (2.0, 2.0));
+    }
+
+    #[test]
+    fn both_nms_paths_agree_with_a_plain_window_test() {
+        // A bumpy map with plateaus and a NaN: radius 1-2 test the window directly, 3-5 read
+        // the sliding row maximum; each must keep exactly the cells no window cell beats.
+        let (h, w) = (23, 31);
+        let mut v = map(h, w, |r, c| {
+            (((r * 7 + c * 13) % 11) as f32 / 10.0).min(0.8)
+        });
+        v[5 * w + 9] = f32::NAN;
+        let m = ScoreMap {
+            height: h,
+            width: w,
+            values: &v,
+        };
+        for radius in 1..=5 {
+            let got = detect(m, radius, 0.1, usize::MAX);
+            let mut want = Vec::new();
+            for r in 1..h - 1 {
+                for c in 1..w - 1 {
+                    let x = v[r * w + c];
+                    if x.is_nan() || x <= 0.1 {
+                        continue;
+                    }
+                    let beaten = (r.saturating_sub(radius)..=(r + radius).min(h - 1)).any(|rr| {
+                        (c.saturating_sub(radius)..=(c + radius).min(w - 1))
+                            .any(|cc| v[rr * w + cc] > x)
+                    });
+                    if !beaten {
+                        want.push((r, c));
+                    }
+                }
+            }
+            assert!(
+                !want.is_empty(),
+                "radius {radius}: the map has no peak to test"
+            );
+            assert_eq!(got.len(), want.len(), "radius {radius}");
+            // Each kept cell is a wanted one (its sub-cell fit moves it by at most half a
+            // cell, plateaus by exactly half: compare the score at the cell too).
+            for p in &got {
+                assert!(
+                    want.iter().any(|&(r, c)| (p.x - c as f32).abs() <= 0.5
+                        && (p.y - r as f32).abs() <= 0.5
+                        && p.score == v[r * w + c]),
+                    "radius {radius}: {p:?}"
+                );
+            }
+        }
     }
 }

@@ -51,6 +51,11 @@ pub static BUILTIN_MODELS: &[(&str, &[u8])] = &[
     ("sfp-v2s", include_bytes!("../../models/sfp-v2s.onnx")),
 ];
 
+/// How the built-in model `name` is named in errors and provenance.
+fn builtin_name(name: &str) -> String {
+    format!("models/{name}.onnx (embedded)")
+}
+
 /// The built-in model named `name` (`sfp.model_name`), if there is one.
 pub fn builtin_model(name: &str) -> Option<&'static [u8]> {
     BUILTIN_MODELS
@@ -180,7 +185,8 @@ pub struct ExtractorOptions {
     /// A model file; or, when no file has that path, the name of a built-in model
     /// ([`BUILTIN_MODELS`]: `sfp-v2s`); `None` = the embedded [`DEFAULT_MODEL`].
     pub model: Option<PathBuf>,
-    /// ONNX Runtime intra-op threads (spinning is off).
+    /// ONNX Runtime intra-op threads (spinning is off), and the threads that sample
+    /// keypoints and descriptors ([`Extractor::features`]).
     pub threads: usize,
 }
 
@@ -398,13 +404,13 @@ fn read_model(
     match path {
         None => Ok((DEFAULT_MODEL.into(), DEFAULT_MODEL_NAME.to_string())),
         Some(p) => {
-            // A file wins over a built-in name (a model file may well be called `sfp-v1`).
-            let builtin = p
-                .to_str()
-                .filter(|_| std::fs::symlink_metadata(p).is_err())
-                .and_then(|n| builtin_model(n).map(|b| (n, b)));
-            if let Some((n, bytes)) = builtin {
-                return Ok((bytes.into(), format!("models/{n}.onnx (embedded)")));
+            // A file wins over a built-in name (a model file may well be called `sfp-v1`); the
+            // name applies only where nothing at all is at that path.
+            let absent = matches!(std::fs::symlink_metadata(p), Err(e) if e.kind() == std::io::ErrorKind::NotFound);
+            if let Some(n) = p.to_str().filter(|_| absent) {
+                if let Some(bytes) = builtin_model(n) {
+                    return Ok((bytes.into(), builtin_name(n)));
+                }
             }
             let bytes = crate::input::read_regular(p).map_err(|e| ExtractError::Io {
                 path: p.to_path_buf(),
@@ -419,6 +425,31 @@ impl Extractor {
     /// Loads the runtime (fetching it on first need), the model, and checks its contract.
     pub fn new(options: &ExtractorOptions, reporter: &dyn Reporter) -> Result<Self, ExtractError> {
         let (bytes, name) = read_model(options.model.as_deref())?;
+        Self::from_model(bytes, name, options.threads, reporter)
+    }
+
+    /// The built-in model `name` ([`BUILTIN_MODELS`]), never a file: what `localize` runs
+    /// for a map made with it. `None` when no built-in model has that name.
+    pub fn builtin(
+        name: &str,
+        threads: usize,
+        reporter: &dyn Reporter,
+    ) -> Option<Result<Self, ExtractError>> {
+        let bytes = builtin_model(name)?;
+        Some(Self::from_model(
+            bytes.into(),
+            builtin_name(name),
+            threads,
+            reporter,
+        ))
+    }
+
+    fn from_model(
+        bytes: std::borrow::Cow<'static, [u8]>,
+        name: String,
+        threads: usize,
+        reporter: &dyn Reporter,
+    ) -> Result<Self, ExtractError> {
         // A quick check before ORT: an ONNX ModelProto starts with field 1 (ir_version, varint).
         if bytes.first() != Some(&0x08) {
             return Err(ExtractError::Model {
@@ -441,7 +472,7 @@ impl Extractor {
             .map_err(model_err)?
             .with_optimization_level(GraphOptimizationLevel::Level3)
             .map_err(option_err)?
-            .with_intra_threads(options.threads.max(1))
+            .with_intra_threads(threads.max(1))
             .map_err(option_err)?
             .with_inter_threads(1)
             .map_err(option_err)?
@@ -485,7 +516,7 @@ impl Extractor {
             session,
             contract,
             model,
-            threads: options.threads.max(1),
+            threads: threads.max(1),
         })
     }
 
@@ -596,7 +627,8 @@ impl Extractor {
         } else {
             // Longest job first onto the least loaded thread.
             let mut jobs: Vec<usize> = (0..n).collect();
-            let cost = |i: usize| max_of(i).saturating_mul(c.full_dims[i]);
+            let cells = |i: usize| dense.levels[i].height.saturating_mul(dense.levels[i].width);
+            let cost = |i: usize| max_of(i).min(cells(i)).saturating_mul(c.full_dims[i]);
             jobs.sort_by_key(|&i| std::cmp::Reverse(cost(i)));
             let mut load = vec![0usize; threads];
             let mut share: Vec<Vec<usize>> = vec![Vec::new(); threads];
@@ -643,19 +675,24 @@ impl Extractor {
         let threshold = options.threshold.unwrap_or(c.default_threshold);
         let radius = options.nms_radius.unwrap_or(c.default_nms_radius) as usize;
         let level = &dense.levels[i];
-        let mut peaks = keypoints::detect(level.score_map(), radius, threshold, max);
+        let peaks = keypoints::detect(level.score_map(), radius, threshold, max);
         let s = level.stride as f32;
+        // Pixel positions (pixel-index convention), refined coarse to fine where it applies.
+        let mut px: Vec<(f32, f32)> = peaks.iter().map(|p| (p.x * s, p.y * s)).collect();
         if options.refine.unwrap_or(true) && i >= REFINE_FROM_LEVEL.max(1) {
             let finer = &dense.levels[i - 1];
             let fs = finer.stride as f32;
-            let radius = ((s / fs / 2.0).round() as usize).max(1);
-            for p in &mut peaks {
-                // In the coarse level's cell coordinates again, as the rest expects.
-                let (x, y) = keypoints::refine_on(finer.score_map(), fs, radius, p.x * s, p.y * s);
-                (p.x, p.y) = (x / s, y / s);
+            // round half up, as python/sfp/reference.py does
+            let radius = ((s / fs / 2.0 + 0.5).floor() as usize).max(1);
+            for p in &mut px {
+                *p = keypoints::refine_on(finer.score_map(), fs, radius, p.0, p.1);
             }
         }
-        let (n, ds, df) = (peaks.len(), c.dims[i], c.full_dims[i]);
+        // The levels' own channel counts (`run` checks them against the contract; a `Dense`
+        // built by hand may differ, and then gets descriptors of its own sizes, not a panic).
+        let ds = level.channels;
+        let df: usize = dense.levels[i..].iter().map(|l| l.channels).sum();
+        let n = peaks.len();
         let mut short32 = vec![0.0f32; n * ds];
         let mut full32 = vec![0.0f32; n * df];
         // Sampled in raster order, not score order: consecutive keypoints then read the same
@@ -663,11 +700,11 @@ impl Extractor {
         // a quarter of this stage's time).
         let mut order: Vec<usize> = (0..n).collect();
         order.sort_unstable_by(|&a, &b| {
-            (peaks[a].y.total_cmp(&peaks[b].y)).then(peaks[a].x.total_cmp(&peaks[b].x))
+            (px[a].1.total_cmp(&px[b].1)).then(px[a].0.total_cmp(&px[b].0))
         });
         for k in order {
             let row = &mut full32[k * df..(k + 1) * df];
-            dense.parts_into(i, peaks[k].x * s, peaks[k].y * s, row);
+            dense.parts_into(i, px[k].0, px[k].1, row);
             // Level i's own part is `short`; normalised with the rest it is `full`.
             short32[k * ds..(k + 1) * ds].copy_from_slice(&row[..ds]);
             crate::vector::l2_normalise(row);
@@ -679,12 +716,9 @@ impl Extractor {
         LevelFeatures {
             level: c.level_ids[i],
             stride: c.strides[i],
-            keypoints: peaks
+            keypoints: px
                 .iter()
-                .map(|p| {
-                    let (x, y) = (p.x * s, p.y * s);
-                    [(x + 0.5) * dense.scale[0], (y + 0.5) * dense.scale[1]]
-                })
+                .map(|&(x, y)| [(x + 0.5) * dense.scale[0], (y + 0.5) * dense.scale[1]])
                 .collect(),
             scores: peaks.iter().map(|p| p.score).collect(),
             dim_short: ds,
