@@ -97,6 +97,10 @@ CFG = {
     "glob_tau": 0.05,
     "glob_hard_negs": 8,
     "glob_cache_every": 300,
+    # a retrieval head on the deepest features (SFP(glob_head=True); fresh in a run --from a state
+    # without one) and which parameters train: "" = all, else a name prefix ("glob_head.")
+    "glob_head": False,
+    "train_only": "",
     "ckpt_minutes": 5.0,
     "val_every": 250,
     "log_every": 10,
@@ -154,7 +158,7 @@ class Hint:
 
 def run_net(net: SFP, hint: Hint, x):
     feats, logits = net.encode(x)
-    return dict(feats=feats, logits=logits, glob=SFP.global_desc(feats[-1]), hint=hint.x)
+    return dict(feats=feats, logits=logits, glob=net.global_desc(feats[-1]), hint=hint.x)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -260,6 +264,7 @@ def main():
     W = cfg["w"]
     use_mv = any(W[k] > 0 for k in ("mv_desc", "mv_rep", "mv_rel", "mv_trk"))
     use_gret = W["glob_ret"] > 0
+    distill_on = any(W[k] > 0 for k in ("score", "desc", "glob", "hint"))
     if use_mv or use_gret:
         import pycolmap  # noqa: F401  (glog installs a SIGTERM handler on import: ours must come after it)
     signal.signal(signal.SIGTERM, _on_signal)
@@ -310,7 +315,12 @@ def main():
                 smp.rng.bit_generator.state = ck["np_rng"][k]
     elif args.from_state:
         ck = None
-        net = SFP.for_state_dict(torch.load(args.from_state, map_location="cpu", weights_only=False)["model"])
+        sd = torch.load(args.from_state, map_location="cpu", weights_only=False)["model"]
+        net = SFP.for_state_dict(sd)
+        if cfg["glob_head"] and net.glob_head is None:
+            net = SFP(stem_mode=net.stem_mode, glob_head=True)
+            missing, unexpected = net.load_state_dict(sd, strict=False)
+            assert not unexpected and all(k.startswith("glob_head.") for k in missing), (missing, unexpected)
         if net.stem_mode != cfg["stem"]:
             raise SystemExit(f"{args.from_state} holds a {net.stem_mode!r} stem, config says {cfg['stem']!r}")
         meta["init"] = f"{os.path.relpath(args.from_state, REPO)} (student weights; optimiser fresh)"
@@ -322,6 +332,9 @@ def main():
         meta["init"] = f"{os.path.relpath(args.teacher, REPO)} ({n} tensors after the stem; stem fresh)"
         print(f"fresh run: {meta['init']}", flush=True)
     sh = Hint(net)
+    if cfg["train_only"]:
+        for k, p in net.named_parameters():
+            p.requires_grad_(k.startswith(cfg["train_only"]))
     stem_p = [p for k, p in net.named_parameters() if k.startswith("stem_s2.")]
     rest_p = [p for k, p in net.named_parameters() if not k.startswith("stem_s2.")]
     opt = torch.optim.AdamW([dict(params=stem_p), dict(params=rest_p)], lr=cfg["lr"],
@@ -417,16 +430,19 @@ def main():
         lr = V.lr_at(step, cfg)
         opt.param_groups[0]["lr"] = lr
         opt.param_groups[1]["lr"] = lr if step >= cfg["stem_steps"] else 0.0
-        A, B, _H, _V = map(torch.from_numpy, hs.batch(cfg["n_img"]))
-        x = torch.cat([A, B], 0)
-        if use_mv:
-            MA, MB, PA, PB, VV = map(torch.from_numpy, mvs.batch(cfg["n_mv"]))
-            x = torch.cat([x, MA[:, None], MB[:, None]], 0)
-        with torch.no_grad():
-            t_out = run_net(teacher, th, x)
         logs = {}
-        s_out = run_net(net, sh, x)
-        Ls = distill_terms(s_out, t_out, cfg, logs)  # the anchor, on the multi-view crops too
+        if distill_on or use_mv:
+            A, B, _H, _V = map(torch.from_numpy, hs.batch(cfg["n_img"]))
+            x = torch.cat([A, B], 0)
+            if use_mv:
+                MA, MB, PA, PB, VV = map(torch.from_numpy, mvs.batch(cfg["n_mv"]))
+                x = torch.cat([x, MA[:, None], MB[:, None]], 0)
+            with torch.no_grad():
+                t_out = run_net(teacher, th, x)
+            s_out = run_net(net, sh, x)
+            Ls = distill_terms(s_out, t_out, cfg, logs)  # the anchor, on the multi-view crops too
+        else:  # the retrieval head alone: no crops to distil
+            Ls = {}
         if use_mv:
             o, nm = 2 * cfg["n_img"], cfg["n_mv"]
             out = dict(feats=s_out["feats"], probs=[torch.sigmoid(lg) for lg in s_out["logits"]])
@@ -436,7 +452,7 @@ def main():
         loss = total_loss(Ls, cfg)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
+        torch.nn.utils.clip_grad_norm_([p for p in net.parameters() if p.requires_grad], 5.0)
         opt.step()
         if use_gret and step > 0 and step % cfg["glob_cache_every"] == 0:
             gt.refresh(net)
@@ -454,8 +470,8 @@ def main():
             cf.flush()
             acc_rows = []
             print(f"step {step - 1} t={agg['run_minutes']:.1f}m {agg['sec_per_step']:.2f}s/step "
-                  f"loss={agg['loss']:.4f} " + " ".join(f"{k}={agg[k]:.4f}" for k in terms) +
-                  " cos=" + ",".join(f"{agg[f'cos{i}']:.3f}" for i in range(L)) + f" gcos={agg['gcos']:.3f}",
+                  f"loss={agg['loss']:.4f} " + " ".join(f"{k}={agg[k]:.4f}" for k in terms if k in agg) +
+                  " cos=" + ",".join(f"{agg.get(f'cos{i}', 0):.3f}" for i in range(L)) + f" gcos={agg.get('gcos', 0):.3f}",
                   flush=True)
         if step % cfg["val_every"] == 0:
             do_val()

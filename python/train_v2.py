@@ -209,7 +209,7 @@ def freeze_bn(net):
 def global_of(net, im):
     x = torch.from_numpy(im)[None, None]
     feats, _ = net.encode(x)
-    return SFP.global_desc(feats[-1])[0]
+    return net.global_desc(feats[-1])[0]
 
 
 # ----------------------------------------------------------------------------------------------

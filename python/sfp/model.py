@@ -70,7 +70,7 @@ class SFP(nn.Module):
     (SFP.for_state_dict picks the mode from the names)."""
 
     def __init__(self, strides=STRIDES, dims=DIMS, stem=STEM, rate_init=(0.1, 0.15, 0.2, 0.3),
-                 stem_mode: str = "full"):
+                 stem_mode: str = "full", glob_head: bool = False):
         super().__init__()
         assert len(strides) == len(dims)
         for a, b in zip(strides, strides[1:]):
@@ -113,13 +113,21 @@ class SFP(nn.Module):
         self.dec = nn.ModuleList(dec)
         self.dec_full = DecoderBlock(cin, 0, stem)
         self.out = nn.Conv2d(stem, 1, 3, padding=1)
+        # Optional retrieval head (`glob_head.*`): 1x1 conv to 2x the deepest dims, ReLU, GeM, a
+        # linear whitening back to the deepest dims, L2. It reads the deepest features detached,
+        # so training it for retrieval leaves every local descriptor and score as it was
+        # (python/distill_v2.py --set glob_head=true). Without it: GeM of the features (v1).
+        self.glob_head = None
+        if glob_head:
+            d = dims[-1]
+            self.glob_head = nn.ModuleDict(dict(conv=nn.Conv2d(d, 2 * d, 1), white=nn.Linear(2 * d, d)))
 
     @classmethod
     def for_state_dict(cls, sd: dict, **kw) -> "SFP":
         """An SFP whose stem mode matches the state dict's weight names (loaded, strict)."""
         mode = ("strided" if "stem_s2.2.weight" in sd else "strided1" if "stem_s2.0.weight" in sd
                 else "full")
-        net = cls(stem_mode=mode, **kw)
+        net = cls(stem_mode=mode, glob_head=any(k.startswith("glob_head.") for k in sd), **kw)
         net.load_state_dict(sd)
         return net
 
@@ -139,10 +147,17 @@ class SFP(nn.Module):
         return feats, logits
 
     @staticmethod
-    def global_desc(f_deep, p: float = 3.0):
-        """GeM pooling of the (ReLU'd) deepest features, L2-normalised."""
-        g = F.relu(f_deep).clamp(min=1e-6).pow(p).mean(dim=(2, 3)).pow(1.0 / p)
-        return F.normalize(g, dim=1)
+    def gem(f, p: float = 3.0):
+        """GeM pooling of the (ReLU'd) features over the image, [N, C]."""
+        return F.relu(f).clamp(min=1e-6).pow(p).mean(dim=(2, 3)).pow(1.0 / p)
+
+    def global_desc(self, f_deep):
+        """The global descriptor of the deepest features: the retrieval head's if the net has one,
+        else their GeM; L2-normalised."""
+        if self.glob_head is None:
+            return F.normalize(self.gem(f_deep), dim=1)
+        g = self.gem(self.glob_head["conv"](f_deep.detach()))
+        return F.normalize(self.glob_head["white"](g), dim=1)
 
     # -- full autoencoder pass (training) --------------------------------------------------------
     def forward(self, x, hard: bool | None = None):
