@@ -180,6 +180,7 @@ fn descriptor_kind(map: &Map<'_>) -> String {
 }
 
 /// The XXH3 of the model the map's descriptors came from, as its provenance records it.
+#[cfg(feature = "onnx")]
 fn map_model_xxh3<'a>(map: &'a Map<'_>) -> Option<&'a str> {
     map.metadata()
         .provenance
