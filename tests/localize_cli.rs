@@ -40,16 +40,7 @@ fn sfp_queries_from_images_and_from_features_h5_agree_and_eval_reports() {
     let t = tempfile::tempdir().unwrap();
     let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
     let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
-    run(&[
-        "convert",
-        "--colmap",
-        &sd("sparse-map"),
-        "--images",
-        &sd("images"),
-        "-o",
-        &p("m.sfpm"),
-        "-q",
-    ]);
+    convert_sfp(&s, &p("m.sfpm"), None);
     let names: Vec<String> = std::fs::read_to_string(s.join("queries.txt"))
         .unwrap()
         .lines()
@@ -216,18 +207,7 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
     let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
     let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
     // `--model NAME`: a built-in model by its sfp.model_name (no file of that name here).
-    run(&[
-        "convert",
-        "--colmap",
-        &sd("sparse-map"),
-        "--images",
-        &sd("images"),
-        "--model",
-        "sfp-v2s",
-        "-o",
-        &p("m.sfpm"),
-        "-q",
-    ]);
+    convert_sfp(&s, &p("m.sfpm"), Some("sfp-v2s"));
     let localize = |extra: &[&str], out: &str| {
         Command::new(env!("CARGO_BIN_EXE_sfpmap"))
             .args(["localize", "--map", &p("m.sfpm"), "--query-list"])
@@ -251,4 +231,53 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
         "{err}"
     );
     assert!(!t.path().join("b.txt").exists());
+
+    // Same name, other bytes (a re-export): the map records the file's hash, and without
+    // --model the built-in sfp-v2s is refused for it; with the file named, it localizes.
+    // Appending ir_version again (field 1, 8) leaves the protobuf's meaning as it was.
+    let mut bytes = std::fs::read(root().join("models/sfp-v2s.onnx")).unwrap();
+    bytes.extend([0x08, 0x08]);
+    std::fs::write(t.path().join("re-export.onnx"), &bytes).unwrap();
+    convert_sfp(&s, &p("m2.sfpm"), Some(&p("re-export.onnx")));
+    let relocalize = |extra: &[&str], out: &str| {
+        Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+            .args(["localize", "--map", &p("m2.sfpm"), "--query-list"])
+            .args([sd("queries.txt"), "--images".into(), sd("images")])
+            .args(["-o", &p(out), "--json"])
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let o = relocalize(&[], "c.txt");
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("m2.sfpm") && err.contains("hash"), "{err}");
+    assert!(!t.path().join("c.txt").exists());
+    let o = relocalize(&["--model", &p("re-export.onnx")], "d.txt");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let d: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(d["localized"], 2, "{d}");
+}
+
+/// `convert --colmap sparse-map --images images [--model M] -o out` on the scene `s`.
+fn convert_sfp(s: &Path, out: &str, model: Option<&str>) {
+    let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
+    let mut args = vec![
+        "convert".to_string(),
+        "--colmap".into(),
+        sd("sparse-map"),
+        "--images".into(),
+        sd("images"),
+        "-o".into(),
+        out.into(),
+        "-q".into(),
+    ];
+    if let Some(m) = model {
+        args.extend(["--model".into(), m.into()]);
+    }
+    run(&args.iter().map(String::as_str).collect::<Vec<_>>());
+}
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
