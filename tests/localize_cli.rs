@@ -231,6 +231,26 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
         "{err}"
     );
     assert!(!t.path().join("b.txt").exists());
+    // sfp-v1 features from a features.h5 (the default model of `extract`): refused too.
+    let query_image = std::fs::read_to_string(s.join("queries.txt")).unwrap();
+    let query_image = sd(&format!(
+        "images/{}",
+        query_image.split(' ').next().unwrap()
+    ));
+    run(&["extract", &query_image, "-o", &p("q1.h5"), "-q"]);
+    let o = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+        .args(["localize", "--map", &p("m.sfpm"), "--query-list"])
+        .args([sd("queries.txt"), "--features".into(), p("q1.h5")])
+        .args(["-o", &p("e.txt")])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("q1.h5") && err.contains("sfp-v1") && err.contains("sfp-v2s"),
+        "{err}"
+    );
+    assert!(!t.path().join("e.txt").exists());
 
     // Same name, other bytes (a re-export): the map records the file's hash, and without
     // --model the built-in sfp-v2s is refused for it; with the file named, it localizes.

@@ -338,7 +338,21 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let descriptor = descriptor_kind(&map);
     #[cfg(feature = "onnx")]
     let from_h5 = match &args.features {
-        Some(path) => Some(sfpmap::io::features_h5::H5Features::open(path)?),
+        Some(path) => {
+            let h5 = sfpmap::io::features_h5::H5Features::open(path)?;
+            // Another model's descriptors live in another space: refused, both named.
+            if let Some(made) = h5.root_string("sfp.model_name")? {
+                if !matches!(descriptor.as_str(), "" | "sift") && made != descriptor {
+                    bail!(
+                        "{}: features of model {made:?}, but the map {} holds {descriptor:?} \
+                         descriptors: extract the queries with --model {descriptor}",
+                        path.display(),
+                        args.map_path().display()
+                    );
+                }
+            }
+            Some(h5)
+        }
         None => None,
     };
     #[cfg(not(feature = "onnx"))]

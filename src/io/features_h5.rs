@@ -307,6 +307,16 @@ impl H5Features {
         })
     }
 
+    /// A root attribute stored as a string (`sfp.model_name`, …), if the file has it.
+    pub fn root_string(&self, key: &str) -> Result<Option<String>, InputError> {
+        let attrs = self
+            .file
+            .root()
+            .attrs()
+            .map_err(|e| self.err(format!("root attributes: {e}")))?;
+        Ok(attrs.get(key).and_then(|v| v.as_str()).map(str::to_owned))
+    }
+
     fn err(&self, message: String) -> InputError {
         InputError {
             path: self.path.clone(),
