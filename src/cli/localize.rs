@@ -106,9 +106,9 @@ pub struct Args {
     /// descriptors, the extractor's global descriptor, or nothing (every point a candidate).
     #[arg(long, value_enum, default_value = "auto")]
     pub retrieval: RetrievalArg,
-    /// Lowe ratio for coarse matching.
-    #[arg(long, default_value_t = 0.9)]
-    pub ratio: f32,
+    /// Lowe ratio for coarse matching (default: 0.95 on SFP maps, 0.9 on SIFT maps).
+    #[arg(long)]
+    pub ratio: Option<f32>,
     /// Output poses.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -269,7 +269,9 @@ fn localizer<'m>(map: &'m Map<'m>, args: &Args, name: &Path) -> anyhow::Result<L
             RetrievalArg::Off => RetrievalMethod::Off,
         },
         matching: MatchOptions {
-            ratio: args.ratio,
+            ratio: args
+                .ratio
+                .unwrap_or_else(|| sfpmap::localize::default_ratio(&descriptor_kind(map))),
             ..MatchOptions::default()
         },
         ..LocalizeOptions::default()
