@@ -277,7 +277,7 @@ impl MapHandle {
         let options = LocalizeOptions {
             levels: key.levels.clone(),
             short: key.short,
-            ..LocalizeOptions::default()
+            ..LocalizeOptions::for_map(map)
         };
         let localizer = Localizer::new(map, options)
             .map_err(|e| FfiError::new(localize_error_code(&e), e.to_string()))?;

@@ -201,7 +201,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             &map,
             LocalizeOptions {
                 short: v.short,
-                ..LocalizeOptions::default()
+                ..LocalizeOptions::for_map(&map)
             },
         )?;
         let mut estimates = Vec::new();

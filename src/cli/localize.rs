@@ -258,6 +258,7 @@ fn sfp_extractor(
 /// The localizer with the options of `--level`, `--short`, `--top-k` and `--ratio`.
 /// The localizer of `map` (named `name` in errors) with the options `args` give.
 fn localizer<'m>(map: &'m Map<'m>, args: &Args, name: &Path) -> anyhow::Result<Localizer<'m>> {
+    let base = LocalizeOptions::for_map(map);
     let options = LocalizeOptions {
         levels: args.levels.clone(),
         short: args.short,
@@ -269,12 +270,10 @@ fn localizer<'m>(map: &'m Map<'m>, args: &Args, name: &Path) -> anyhow::Result<L
             RetrievalArg::Off => RetrievalMethod::Off,
         },
         matching: MatchOptions {
-            ratio: args
-                .ratio
-                .unwrap_or_else(|| sfpmap::localize::default_ratio(&descriptor_kind(map))),
-            ..MatchOptions::default()
+            ratio: args.ratio.unwrap_or(base.matching.ratio),
+            ..base.matching
         },
-        ..LocalizeOptions::default()
+        ..base
     };
     Localizer::new(map, options).with_context(|| name.display().to_string())
 }

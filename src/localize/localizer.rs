@@ -87,6 +87,21 @@ impl Default for LocalizeOptions {
     }
 }
 
+impl LocalizeOptions {
+    /// [`Default`], with Lowe's ratio for `map`'s descriptors ([`super::default_ratio`]:
+    /// 0.95 on SFP maps, 0.9 on SIFT maps). What the CLI, the demo and the C ABI start from.
+    pub fn for_map(map: &Map<'_>) -> Self {
+        let descriptor = map
+            .metadata()
+            .levels
+            .first()
+            .map_or("", |l| l.descriptor.as_str());
+        let mut options = Self::default();
+        options.matching.ratio = super::default_ratio(descriptor);
+        options
+    }
+}
+
 /// Milliseconds per stage.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct StageTimes {

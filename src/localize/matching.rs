@@ -26,7 +26,8 @@ impl Default for MatchOptions {
     }
 }
 
-/// Lowe's ratio `sfpmap localize` uses when `--ratio` is not given: [`MatchOptions`]'s 0.9
+/// Lowe's ratio for a map's descriptors ([`super::LocalizeOptions::for_map`]; `sfpmap
+/// localize` without `--ratio`, the demo, the C ABI): [`MatchOptions`]'s 0.9
 /// (SIFT's habit), and 0.95 for the SFP network's descriptors (`sfp-*`), whose short blocks
 /// separate neighbours less. On the shared scenes (2026-12-04, sfp-v1 and sfp-v2s, full and
 /// level-2 short maps) 0.95 localized Sacre-Coeur's level-2 slices 2/2 instead of 1/2 and 0/2
