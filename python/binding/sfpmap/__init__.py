@@ -479,7 +479,8 @@ class Localizer:
 
     Options as the CLI's ``localize``: ``levels`` (default all; coarse matching uses the
     deepest), ``short`` (match the short block only), ``top_k``, ``retrieval`` ("auto",
-    "vlad", "global", "off"), ``ratio``; and the localizer's ``mutual``, ``min_similarity``,
+    "vlad", "global", "off"), ``ratio`` (default the map's: 0.95 on SFP maps, 0.9 on SIFT
+    maps); and the localizer's ``mutual``, ``min_similarity``,
     ``coarse_error_px``, ``gate_px``, ``gate_ratio``, ``fine_error_px``, ``min_inliers``.
     The localizer keeps the map's mapping alive (closing the ``Map`` does not end it)."""
 

@@ -233,7 +233,7 @@ class Localizer:
         short: bool = False,
         top_k: int = 10,
         retrieval: str = "auto",
-        ratio: float = 0.9,
+        ratio: Optional[float] = None,
         mutual: bool = True,
         min_similarity: float = 0.0,
         coarse_error_px: float = 12.0,

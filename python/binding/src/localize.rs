@@ -467,7 +467,7 @@ fn check_options(
 #[pymethods]
 impl Localizer {
     #[new]
-    #[pyo3(signature = (map, levels=None, short=false, top_k=DEFAULT_TOP_K, retrieval="auto", ratio=0.9,
+    #[pyo3(signature = (map, levels=None, short=false, top_k=DEFAULT_TOP_K, retrieval="auto", ratio=None,
                         mutual=true, min_similarity=0.0, coarse_error_px=12.0, gate_px=24.0,
                         gate_ratio=0.95, fine_error_px=6.0, min_inliers=12))]
     #[allow(clippy::too_many_arguments, unsafe_code)]
@@ -478,7 +478,7 @@ impl Localizer {
         short: bool,
         top_k: i64,
         retrieval: &str,
-        ratio: f32,
+        ratio: Option<f32>,
         mutual: bool,
         min_similarity: f32,
         coarse_error_px: f64,
@@ -487,6 +487,11 @@ impl Localizer {
         fine_error_px: f64,
         min_inliers: usize,
     ) -> PyResult<Self> {
+        let opened = map.get().opened(py)?;
+        // None: the map's own (LocalizeOptions::for_map: 0.95 on SFP maps, 0.9 on SIFT), as
+        // the CLI's `localize` without --ratio.
+        let base = LocalizeOptions::for_map(&opened.map);
+        let ratio = ratio.unwrap_or(base.matching.ratio);
         let top_k = check_options(
             top_k,
             ratio,
@@ -496,7 +501,6 @@ impl Localizer {
             gate_ratio,
             fine_error_px,
         )?;
-        let opened = map.get().opened(py)?;
         let levels = level_ids(&opened.path, &levels.unwrap_or_default(), || {
             opened.map.level_ids()
         })?;
