@@ -254,9 +254,11 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
 
     // Same name, other bytes (a re-export): the map records the file's hash, and without
     // --model the built-in sfp-v2s is refused for it; with the file named, it localizes.
-    // Appending ir_version again (field 1, 8) leaves the protobuf's meaning as it was.
+    // Appending its first field (ir_version) again leaves the protobuf's meaning as it was.
     let mut bytes = std::fs::read(root().join("models/sfp-v2s.onnx")).unwrap();
-    bytes.extend([0x08, 0x08]);
+    assert_eq!(bytes[0], 0x08, "an ONNX model starts with ir_version");
+    let ir_version = bytes[..2].to_vec();
+    bytes.extend(ir_version);
     std::fs::write(t.path().join("re-export.onnx"), &bytes).unwrap();
     convert_sfp(&s, &p("m2.sfpm"), Some(&p("re-export.onnx")));
     let relocalize = |extra: &[&str], out: &str| {
@@ -273,6 +275,26 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("m2.sfpm") && err.contains("hash"), "{err}");
     assert!(!t.path().join("c.txt").exists());
+    // Features of the built-in sfp-v2s in a features.h5 against that map: same name, the
+    // file's sfp.model_xxh3 differs from the map's, refused.
+    run(&[
+        "extract",
+        &query_image,
+        "--model",
+        "sfp-v2s",
+        "-o",
+        &p("q2.h5"),
+        "-q",
+    ]);
+    let o = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+        .args(["localize", "--map", &p("m2.sfpm"), "--query-list"])
+        .args([sd("queries.txt"), "--features".into(), p("q2.h5")])
+        .args(["-o", &p("f.txt")])
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("q2.h5") && err.contains("hash"), "{err}");
     let o = relocalize(&["--model", &p("re-export.onnx")], "d.txt");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let d: Value = serde_json::from_slice(&o.stdout).unwrap();

@@ -203,6 +203,43 @@ fn check_extractable(map_path: &Path, descriptor: &str, sift_hint: &str) -> anyh
     }
 }
 
+/// Refuses query features of another model than the map's: another `sfp.model_name`, or the
+/// same name with another `sfp.model_xxh3` where the file and the map both record one (a
+/// re-export). An hloc file without these attributes is taken as it is.
+#[cfg(feature = "onnx")]
+fn check_h5_model(
+    h5: &sfpmap::io::features_h5::H5Features,
+    h5_path: &Path,
+    map_path: &Path,
+    descriptor: &str,
+    map_hash: Option<&str>,
+) -> anyhow::Result<()> {
+    if !sfpmap::localize::is_sfp_descriptor(descriptor) {
+        return Ok(());
+    }
+    if let Some(made) = h5.root_string("sfp.model_name")? {
+        if made != descriptor {
+            bail!(
+                "{}: features of model {made:?}, but the map {} holds {descriptor:?} \
+                 descriptors: extract the queries with --model {descriptor}",
+                h5_path.display(),
+                map_path.display()
+            );
+        }
+    }
+    if let (Some(hash), Some(map_hash)) = (h5.root_string("sfp.model_xxh3")?, map_hash) {
+        if hash != map_hash {
+            bail!(
+                "{}: features of a {descriptor:?} model of hash {hash}, but the map {} was \
+                 made with one of hash {map_hash}: extract the queries with that model",
+                h5_path.display(),
+                map_path.display()
+            );
+        }
+    }
+    Ok(())
+}
+
 /// The SFP extractor (`--model`, else the embedded one), checked against the map's descriptors.
 #[cfg(feature = "onnx")]
 fn sfp_extractor(
@@ -221,22 +258,7 @@ fn sfp_extractor(
         }
         // Without --model, the built-in model the map was made with (never a file).
         None => match sfpmap::extract::Extractor::builtin(descriptor, 2, bars) {
-            Some(extractor) => {
-                let extractor = extractor?;
-                // Same name, other weights (a retrained model exported under the same name):
-                // the map's descriptors would not match the queries'.
-                if let Some(made) = map_model_xxh3 {
-                    if made != extractor.model().xxh3 {
-                        bail!(
-                            "{}: the map was made with a {descriptor:?} model of hash {made}, \
-                             not the built-in one ({}): pass that model with --model FILE.onnx",
-                            args.map_path().display(),
-                            extractor.model().xxh3
-                        );
-                    }
-                }
-                extractor
-            }
+            Some(extractor) => extractor?,
             None => bail!(
                 "{}: the map's descriptors are {descriptor:?}, which no built-in model makes \
                  (built in: {}): pass its model with --model FILE.onnx",
@@ -245,6 +267,20 @@ fn sfp_extractor(
             ),
         },
     };
+    // A built-in model (by default, or `--model NAME`) of the map's name but other weights
+    // than the map's (a retrained model exported under the same name): the map's descriptors
+    // would not match the queries'. An explicit file is the user's choice.
+    let builtin = extractor.model().name.ends_with("(embedded)");
+    if let (true, Some(made)) = (builtin, map_model_xxh3) {
+        if made != extractor.model().xxh3 && extractor.contract().model_name == descriptor {
+            bail!(
+                "{}: the map was made with a {descriptor:?} model of hash {made}, not the \
+                 built-in one ({}): pass that model with --model FILE.onnx",
+                args.map_path().display(),
+                extractor.model().xxh3
+            );
+        }
+    }
     if extractor.contract().model_name != descriptor {
         bail!(
             "{}: the map's descriptors are {descriptor:?} but the model is {:?}",
@@ -341,17 +377,13 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let from_h5 = match &args.features {
         Some(path) => {
             let h5 = sfpmap::io::features_h5::H5Features::open(path)?;
-            // Another model's descriptors live in another space: refused, both named.
-            if let Some(made) = h5.root_string("sfp.model_name")? {
-                if !matches!(descriptor.as_str(), "" | "sift") && made != descriptor {
-                    bail!(
-                        "{}: features of model {made:?}, but the map {} holds {descriptor:?} \
-                         descriptors: extract the queries with --model {descriptor}",
-                        path.display(),
-                        args.map_path().display()
-                    );
-                }
-            }
+            check_h5_model(
+                &h5,
+                path,
+                args.map_path(),
+                &descriptor,
+                map_model_xxh3(&map),
+            )?;
             Some(h5)
         }
         None => None,

@@ -107,7 +107,11 @@ pub(super) fn run(
             Source::Database(DatabaseFeatures::open(db).with_context(|| db.display().to_string())?)
         }
         #[cfg(feature = "onnx")]
-        (None, Some(h5)) => Source::H5(sfpmap::io::features_h5::H5Features::open(h5)?),
+        (None, Some(h5)) => {
+            let file = sfpmap::io::features_h5::H5Features::open(h5)?;
+            super::check_h5_model(&file, h5, catalog_path, &catalog.listing.descriptor, None)?;
+            Source::H5(file)
+        }
         _ => bail!("--catalog needs the queries' features: --database queries.db or --features features.h5"),
     };
     let maps: Vec<OnceLock<Result<Map<'static>, String>>> =

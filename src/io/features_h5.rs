@@ -307,14 +307,21 @@ impl H5Features {
         })
     }
 
-    /// A root attribute stored as a string (`sfp.model_name`, …), if the file has it.
+    /// A root attribute stored as one string (`sfp.model_name`, …), if the file has it; an
+    /// attribute of that name holding anything else is an error, not a missing one.
     pub fn root_string(&self, key: &str) -> Result<Option<String>, InputError> {
         let attrs = self
             .file
             .root()
             .attrs()
             .map_err(|e| self.err(format!("root attributes: {e}")))?;
-        Ok(attrs.get(key).and_then(|v| v.as_str()).map(str::to_owned))
+        match attrs.get(key) {
+            None => Ok(None),
+            Some(v) => match v.as_str() {
+                Some(s) => Ok(Some(s.to_owned())),
+                None => Err(self.err(format!("root attribute {key}: not one string"))),
+            },
+        }
     }
 
     fn err(&self, message: String) -> InputError {

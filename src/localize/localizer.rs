@@ -70,6 +70,8 @@ pub struct LocalizeOptions {
     pub min_inliers: usize,
 }
 
+/// The same for every map (Lowe's ratio 0.9); [`LocalizeOptions::for_map`] picks the ratio
+/// for a map's descriptors.
 impl Default for LocalizeOptions {
     fn default() -> Self {
         LocalizeOptions {

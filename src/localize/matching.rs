@@ -34,11 +34,17 @@ impl Default for MatchOptions {
 /// (6–7 inliers of the 8 needed at 0.9), and left South Building and KITTI 06 at 100 % with
 /// median errors equal or lower.
 pub fn default_ratio(descriptor: &str) -> f32 {
-    if descriptor.starts_with("sfp") {
+    if is_sfp_descriptor(descriptor) {
         0.95
     } else {
         MatchOptions::default().ratio
     }
+}
+
+/// Whether a map's descriptor kind names an SFP model (its `sfp.model_name`, whatever it
+/// is): not `""` (geometry only), not `sift`, not a COLMAP database's `colmap-<dim>`.
+pub fn is_sfp_descriptor(descriptor: &str) -> bool {
+    !(descriptor.is_empty() || descriptor == "sift" || descriptor.starts_with("colmap-"))
 }
 
 /// A match: query row, map row, cosine similarity.
@@ -337,6 +343,22 @@ pub(crate) fn fails_ratio_test(best: f32, second: f32, ratio: f32) -> bool {
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn sfp_maps_get_the_looser_ratio_and_others_sift_s() {
+        for sfp in ["sfp-v1", "sfp-v2s", "unnamed", "my-model"] {
+            assert!(is_sfp_descriptor(sfp), "{sfp}");
+            assert_eq!(default_ratio(sfp), 0.95, "{sfp}");
+        }
+        for other in ["", "sift", "colmap-64", "colmap-128"] {
+            assert!(!is_sfp_descriptor(other), "{other}");
+            assert_eq!(
+                default_ratio(other),
+                MatchOptions::default().ratio,
+                "{other}"
+            );
+        }
+    }
     use super::*;
     use crate::vector::normalise_rows;
 

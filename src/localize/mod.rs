@@ -18,7 +18,7 @@ pub use localizer::{
     describe_skipped, FeatureSet, Localization, LocalizationPath, LocalizeError, LocalizeOptions,
     Localizer, QueryFailure, QueryFeatures, SkippedLevel, StageTimes, TrackingLost,
 };
-pub use matching::{default_ratio, MatchOptions};
+pub use matching::{default_ratio, is_sfp_descriptor, MatchOptions};
 pub use prior::MotionModel;
 pub use retrieval::{RetrievalFallback, RetrievalMethod};
 
