@@ -208,15 +208,27 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
     let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
     // `--model NAME`: a built-in model by its sfp.model_name (no file of that name here).
     convert_sfp(&s, &p("m.sfpm"), Some("sfp-v2s"));
-    let localize = |extra: &[&str], out: &str| {
+    // `localize --map MAP --query-list queries.txt ARGS -o OUT --json`, run as it is.
+    let localize_with = |map: &str, args: &[String], out: &str| {
         Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-            .args(["localize", "--map", &p("m.sfpm"), "--query-list"])
-            .args([sd("queries.txt"), "--images".into(), sd("images")])
+            .args([
+                "localize",
+                "--map",
+                &p(map),
+                "--query-list",
+                &sd("queries.txt"),
+            ])
+            .args(args)
             .args(["-o", &p(out), "--json"])
-            .args(extra)
             .output()
             .unwrap()
     };
+    let images = |map: &str, extra: &[&str], out: &str| {
+        let mut args = vec!["--images".to_string(), sd("images")];
+        args.extend(extra.iter().map(|a| a.to_string()));
+        localize_with(map, &args, out)
+    };
+    let localize = |extra: &[&str], out: &str| images("m.sfpm", extra, out);
     // No --model: the map's own (built-in) model extracts the queries.
     let o = localize(&[], "a.txt");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -238,12 +250,7 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
         query_image.split(' ').next().unwrap()
     ));
     run(&["extract", &query_image, "-o", &p("q1.h5"), "-q"]);
-    let o = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-        .args(["localize", "--map", &p("m.sfpm"), "--query-list"])
-        .args([sd("queries.txt"), "--features".into(), p("q1.h5")])
-        .args(["-o", &p("e.txt")])
-        .output()
-        .unwrap();
+    let o = localize_with("m.sfpm", &["--features".into(), p("q1.h5")], "e.txt");
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
@@ -261,15 +268,7 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
     bytes.extend(ir_version);
     std::fs::write(t.path().join("re-export.onnx"), &bytes).unwrap();
     convert_sfp(&s, &p("m2.sfpm"), Some(&p("re-export.onnx")));
-    let relocalize = |extra: &[&str], out: &str| {
-        Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-            .args(["localize", "--map", &p("m2.sfpm"), "--query-list"])
-            .args([sd("queries.txt"), "--images".into(), sd("images")])
-            .args(["-o", &p(out), "--json"])
-            .args(extra)
-            .output()
-            .unwrap()
-    };
+    let relocalize = |extra: &[&str], out: &str| images("m2.sfpm", extra, out);
     let o = relocalize(&[], "c.txt");
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
@@ -286,12 +285,7 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
         &p("q2.h5"),
         "-q",
     ]);
-    let o = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-        .args(["localize", "--map", &p("m2.sfpm"), "--query-list"])
-        .args([sd("queries.txt"), "--features".into(), p("q2.h5")])
-        .args(["-o", &p("f.txt")])
-        .output()
-        .unwrap();
+    let o = localize_with("m2.sfpm", &["--features".into(), p("q2.h5")], "f.txt");
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("q2.h5") && err.contains("hash"), "{err}");
