@@ -181,6 +181,8 @@ fn sift_queries_from_a_database_and_a_missing_query_is_listed_not_fatal() {
         "{out}"
     );
     assert_eq!(out["path"], serde_json::json!({ "retrieval": 2 }), "{out}");
+    // A SIFT map keeps Lowe's 0.9 (SFP maps 0.95: the built-in model test).
+    assert_eq!(out["ratio"], 0.9, "{out}");
     let text = std::fs::read_to_string(t.path().join("p.txt")).unwrap();
     assert!(text.contains("# failed missing.jpg"), "{text}");
     // A SIFT map without query features is a clear error, not a crash.
@@ -234,6 +236,11 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let a: Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(a["localized"], 2, "{a}");
+    assert_eq!(a["ratio"], 0.95, "{a}");
+    // --ratio outside (0, 1] is refused.
+    let o = localize(&["--ratio", "1.5"], "r.txt");
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--ratio 1.5"));
     // Another model's features are refused, both models named, nothing written.
     let o = localize(&["--model", "sfp-v1"], "b.txt");
     assert!(!o.status.success());

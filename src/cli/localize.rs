@@ -179,6 +179,11 @@ fn descriptor_kind(map: &Map<'_>) -> String {
         .unwrap_or_default()
 }
 
+/// An f32 as the f64 of its shortest decimal form (0.95, not 0.949999988079071).
+fn shortest_f64(v: f32) -> f64 {
+    v.to_string().parse().unwrap_or(f64::from(v))
+}
+
 /// The XXH3 of the model the map's descriptors came from, as its provenance records it.
 #[cfg(feature = "onnx")]
 fn map_model_xxh3<'a>(map: &'a Map<'_>) -> Option<&'a str> {
@@ -295,6 +300,9 @@ fn sfp_extractor(
 /// The localizer of `map` (named `name` in errors) with the options `args` give.
 fn localizer<'m>(map: &'m Map<'m>, args: &Args, name: &Path) -> anyhow::Result<Localizer<'m>> {
     let base = LocalizeOptions::for_map(map);
+    if let Some(r) = args.ratio.filter(|r| !(*r > 0.0 && *r <= 1.0)) {
+        bail!("--ratio {r}: a ratio in (0, 1]");
+    }
     let options = LocalizeOptions {
         levels: args.levels.clone(),
         short: args.short,
@@ -544,6 +552,8 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "seconds": start.elapsed().as_secs_f64(),
             "median_ms": median_ms(&results),
             "median_inliers": median(results.iter().filter(|r| r.pose().is_some()).map(|r| r.inliers as f64).collect()),
+            // Lowe's ratio used: --ratio, else the map's (LocalizeOptions::for_map)
+            "ratio": shortest_f64(args.ratio.unwrap_or(LocalizeOptions::for_map(&map).matching.ratio)),
             "transfer": super::transfer_json(&map),
             "map_ms": map_ms,
         }))?;
