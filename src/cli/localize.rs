@@ -553,7 +553,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "median_ms": median_ms(&results),
             "median_inliers": median(results.iter().filter(|r| r.pose().is_some()).map(|r| r.inliers as f64).collect()),
             // Lowe's ratio used: --ratio, else the map's (LocalizeOptions::for_map)
-            "ratio": shortest_f64(args.ratio.unwrap_or(LocalizeOptions::for_map(&map).matching.ratio)),
+            "ratio": shortest_f64(localizer.options().matching.ratio),
             "transfer": super::transfer_json(&map),
             "map_ms": map_ms,
         }))?;
