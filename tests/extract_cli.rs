@@ -502,3 +502,105 @@ fn resized_extraction_reports_keypoints_in_original_pixels() {
         "max ({max_x}, {max_y}), scale {scale}"
     );
 }
+
+/// The global descriptor is computed on a 512-px copy by default; the map records the side
+/// (metadata `global_max_side`), `--global-max-side 0` takes the input's own and records none,
+/// `extract` stores its side as `sfp.global_max_side`, and `localize` warns when a file's side
+/// is not the map's.
+#[test]
+fn global_descriptors_follow_the_side_the_map_records() {
+    use sfpmap::extract::{image, Extractor, ExtractorOptions, GLOBAL_MAX_SIDE};
+    let dir = tempfile::tempdir().unwrap();
+    let images = scene().join("images");
+    let mut extractor =
+        Extractor::new(&ExtractorOptions::default(), &sfpmap::progress::Silent).unwrap();
+    let cosine = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f32>();
+
+    let by_default = dir.path().join("default.sfpm");
+    assert!(convert(&images, &by_default, &[]).status.success());
+    let input_side = dir.path().join("input.sfpm");
+    assert!(convert(&images, &input_side, &["--global-max-side", "0"])
+        .status
+        .success());
+    let by_default = Map::open(&by_default).unwrap();
+    let input_side = Map::open(&input_side).unwrap();
+    assert_eq!(by_default.metadata().global_max_side, Some(GLOBAL_MAX_SIDE));
+    assert_eq!(
+        by_default.metadata().provenance.parameters["global_max_side"],
+        GLOBAL_MAX_SIDE
+    );
+    assert_eq!(input_side.metadata().global_max_side, None);
+
+    // Image 0's stored descriptors against the network on the file and on its 512-px copy.
+    let name = by_default
+        .images()
+        .unwrap()
+        .unwrap()
+        .name(0)
+        .unwrap()
+        .to_string();
+    let input = image::load(&images.join(&name), extractor.contract().gray_weights, None).unwrap();
+    let own = extractor.run(&input).unwrap().global;
+    let copy = input
+        .downscaled(GLOBAL_MAX_SIDE)
+        .expect("the image is larger");
+    let small = extractor.run(&copy).unwrap().global;
+    let first = |map: &Map<'_>| -> Vec<f32> {
+        let (g, dim) = map.image_global().unwrap().unwrap();
+        g[..dim].iter().map(|v| v.to_f32()).collect()
+    };
+    let (stored, stored_own) = (first(&by_default), first(&input_side));
+    assert!(cosine(&stored, &small) > 0.999);
+    assert!(cosine(&stored_own, &own) > 0.999);
+    assert!(
+        cosine(&own, &small) < 0.999,
+        "the copy changes the descriptor"
+    );
+
+    // Query features of the input's own size, against the 512-px map: a warning, not an error.
+    let h5 = dir.path().join("features.h5");
+    ok(&[
+        os("extract"),
+        images.as_os_str(),
+        os("-o"),
+        h5.as_os_str(),
+        os("--global-max-side"),
+        os("0"),
+        os("--json"),
+    ]);
+    let file = sfpmap::io::features_h5::H5Features::open(&h5).unwrap();
+    assert_eq!(
+        file.root_string("sfp.global_max_side").unwrap().as_deref(),
+        Some("0")
+    );
+    let from_file = file.features(&name).unwrap().unwrap().global.unwrap();
+    assert!(cosine(&from_file, &own) > 0.9999);
+    let localize = |map: &str| {
+        sfpmap(&[
+            os("localize"),
+            os("--map"),
+            dir.path().join(map).as_os_str(),
+            os("--query-list"),
+            scene().join("queries.txt").as_os_str(),
+            os("--features"),
+            h5.as_os_str(),
+            os("-o"),
+            dir.path().join("poses.txt").as_os_str(),
+            os("--force"),
+        ])
+    };
+    let warned = localize("default.sfpm");
+    let stderr = String::from_utf8_lossy(&warned.stderr);
+    assert!(warned.status.success(), "{stderr}");
+    assert!(
+        stderr.contains(&format!(
+            "{}: global descriptors computed at max side 0",
+            h5.display()
+        )) && stderr.contains("--global-max-side 512"),
+        "{stderr}"
+    );
+    let matching = localize("input.sfpm");
+    let stderr = String::from_utf8_lossy(&matching.stderr);
+    assert!(matching.status.success(), "{stderr}");
+    assert!(!stderr.contains("global descriptors computed"), "{stderr}");
+}

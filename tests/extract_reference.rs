@@ -9,7 +9,9 @@
 #![cfg(feature = "onnx")]
 
 use serde_json::Value;
-use sfpmap::extract::{image, DetectOptions, Extractor, ExtractorOptions, DEFAULT_MODEL};
+use sfpmap::extract::{
+    image, DetectOptions, Extractor, ExtractorOptions, GlobalSize, DEFAULT_MODEL, GLOBAL_MAX_SIDE,
+};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -123,16 +125,14 @@ fn matches_the_python_onnxruntime_reference_on_a_real_image() {
     .expect("runtime found or fetched, model loaded");
     let contract = extractor.contract().clone();
     let input = image::load(&png, contract.gray_weights, None).unwrap();
-    let features = extractor
-        .extract(&input, &DetectOptions::default())
-        .unwrap();
+    // The reference's global is the input's own inference's.
+    let own_size = DetectOptions {
+        global: GlobalSize::Input,
+        ..Default::default()
+    };
+    let features = extractor.extract(&input, &own_size).unwrap();
     // Deterministic: a second run gives the same bytes.
-    assert_eq!(
-        features,
-        extractor
-            .extract(&input, &DetectOptions::default())
-            .unwrap()
-    );
+    assert_eq!(features, extractor.extract(&input, &own_size).unwrap());
     // The same bytes whatever the thread count: levels are shared out over the threads
     // (2 here; 1 and 3 share them differently), keypoints stay in score order.
     let dense = extractor.run(&input).unwrap();
@@ -166,6 +166,31 @@ fn matches_the_python_onnxruntime_reference_on_a_real_image() {
         .map(|(a, b)| (a - b).abs())
         .fold(0.0, f32::max);
     assert!(worst < 1e-4, "global descriptor differs by {worst}");
+
+    // By default the global descriptor is the `global` of a 512-px copy (the image is larger),
+    // the same keypoints and descriptors otherwise: it is not the input's own.
+    assert!(input.width.max(input.height) > GLOBAL_MAX_SIDE as usize);
+    let by_default = extractor
+        .extract(&input, &DetectOptions::default())
+        .unwrap();
+    assert_eq!(by_default.levels, features.levels);
+    let small = input.downscaled(GLOBAL_MAX_SIDE).unwrap();
+    assert_eq!(small.width.max(small.height), GLOBAL_MAX_SIDE as usize);
+    assert_eq!(by_default.global, extractor.run(&small).unwrap().global);
+    let cosine = dot(&by_default.global, &features.global);
+    assert!(
+        cosine < 0.999,
+        "the copy's global is the input's: cosine {cosine}"
+    );
+    assert!((dot(&by_default.global, &by_default.global) - 1.0).abs() < 1e-4);
+    // Skipped: empty, and nothing else changes.
+    let skipped = DetectOptions {
+        global: GlobalSize::Skip,
+        ..Default::default()
+    };
+    let without = extractor.extract(&input, &skipped).unwrap();
+    assert!(without.global.is_empty());
+    assert_eq!(without.levels, features.levels);
 
     let levels = reference["levels"].as_array().unwrap();
     assert_eq!(levels.len(), features.levels.len());

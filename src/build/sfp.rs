@@ -18,7 +18,10 @@
 use super::geometry::{map_index, Geometry};
 use super::{read_model_with_sources, ConvertError, ConvertSummary, LevelSummary};
 use crate::colmap::Reconstruction;
-use crate::extract::{contract, image, ExtractError, Extractor, ExtractorOptions, ModelInfo};
+use crate::extract::{
+    contract, image, ExtractError, Extractor, ExtractorOptions, GlobalSize, ModelInfo,
+    GLOBAL_MAX_SIDE,
+};
 use crate::format::{self, Codec, Descriptors, LevelInfo, Metadata, SourceFile};
 use crate::progress::Reporter;
 use serde_json::json;
@@ -35,6 +38,10 @@ pub struct SfpMapOptions {
     pub extractor: ExtractorOptions,
     /// Resize images so the longer side is at most this before the network.
     pub resize_max: Option<u32>,
+    /// The longer side of the copy each image's global descriptor is computed on
+    /// ([`GLOBAL_MAX_SIDE`] by default; `None`: the network input itself). The map records it
+    /// (metadata `global_max_side`) and `localize` computes its queries' the same way.
+    pub global_max_side: Option<u32>,
     /// Level assignment threshold on the mean score (`None` = the model's
     /// `sfp.default_threshold`).
     pub score_threshold: Option<f32>,
@@ -57,6 +64,7 @@ impl SfpMapOptions {
             images: images.into(),
             extractor: ExtractorOptions::default(),
             resize_max: None,
+            global_max_side: Some(GLOBAL_MAX_SIDE),
             score_threshold: None,
             allow_missing: false,
             codec: Codec::Raw,
@@ -193,6 +201,7 @@ fn convert_images_of(
         counts: vec![0; n_points],
     };
     let mut global = vec![0.0f32; model.images().len() * contract.global_dim];
+    let global_size = GlobalSize::from_max_side(options.global_max_side);
     let mut ms = Vec::new();
     let mut image_bytes = 0;
     let mut buf = Vec::with_capacity(width);
@@ -218,8 +227,11 @@ fn convert_images_of(
         drop(bytes);
         let t = Instant::now();
         let dense = extractor.run(&input).map_err(|e| e.on_image(path))?;
+        let image_global = extractor
+            .global(&input, &dense, global_size)
+            .map_err(|e| e.on_image(path))?;
         global[k * contract.global_dim..(k + 1) * contract.global_dim]
-            .copy_from_slice(&dense.global);
+            .copy_from_slice(&image_global);
         // Observations are in the camera's pixels; an image file of another size (e.g. a
         // downscaled copy) is the same view scaled, so they are scaled to the file.
         let to_file = match model.camera(image.camera_id) {
@@ -280,7 +292,10 @@ fn convert_images_of(
     let map_index = map_index(&keep);
 
     let model_info = extractor.model().clone();
-    let mut metadata = Metadata::default();
+    let mut metadata = Metadata {
+        global_max_side: global_size.max_side(),
+        ..Metadata::default()
+    };
     metadata.provenance.model = Some(SourceFile {
         path: model_info.name.clone(),
         bytes: model_info.bytes,
@@ -298,6 +313,7 @@ fn convert_images_of(
         "level_rule": LEVEL_RULE,
         "aggregate": "mean of L2-normalised features per level, re-normalised",
         "resize_max": options.resize_max,
+        "global_max_side": global_size.max_side(),
         "allow_missing": options.allow_missing,
         "missing_images": missing,
         "codec": options.codec.name(),

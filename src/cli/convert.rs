@@ -55,6 +55,11 @@ pub struct Args {
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images", value_parser = clap::value_parser!(u32).range(16..))]
     pub resize_max: Option<u32>,
+    /// With --images: the longer side of the copy each image's global descriptor (retrieval)
+    /// is computed on; 0: the network input itself. The map records it; localize follows it.
+    #[cfg(feature = "onnx")]
+    #[arg(long, requires = "images", default_value_t = sfpmap::extract::GLOBAL_MAX_SIDE)]
+    pub global_max_side: u32,
     /// With --images: a point joins level i when its track's mean level-i score is at least
     /// this (default: the model's keypoint threshold, sfp.default_threshold).
     #[cfg(feature = "onnx")]
@@ -239,6 +244,7 @@ fn run_sfp(
             threads: super::cap_threads(args.threads as usize, &bars),
         },
         resize_max: args.resize_max,
+        global_max_side: Some(args.global_max_side).filter(|&m| m > 0),
         score_threshold: args.score_threshold,
         allow_missing: args.allow_missing,
         codec: Codec::from(args.codec),

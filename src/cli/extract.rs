@@ -2,7 +2,7 @@
 
 use anyhow::{bail, Context};
 use serde_json::json;
-use sfpmap::extract::{image, runtime, DetectOptions, Extractor, ExtractorOptions};
+use sfpmap::extract::{image, runtime, DetectOptions, Extractor, ExtractorOptions, GlobalSize};
 use sfpmap::io::features_h5::{self, H5Options};
 use sfpmap::progress::Reporter;
 use std::path::{Path, PathBuf};
@@ -49,6 +49,11 @@ pub struct Args {
     /// Overwrite OUTPUT if it exists.
     #[arg(long)]
     pub force: bool,
+    /// The longer side of the copy each image's global descriptor is computed on (images
+    /// larger than that are downscaled for it: one more, smaller, inference); 0: the network
+    /// input itself. Stored as `sfp.global_max_side`; match the map's (`sfpmap info`).
+    #[arg(long, default_value_t = sfpmap::extract::GLOBAL_MAX_SIDE)]
+    pub global_max_side: u32,
     /// Keep levels 2 and deeper where the quadratic fit on their own score map puts them
     /// (no coarse-to-fine refinement on the next finer level; spec/extractor.md).
     #[arg(long)]
@@ -143,12 +148,14 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         nms_radius: args.nms_radius,
         max_keypoints: args.max_keypoints.clone(),
         refine: Some(!args.no_refine),
+        global: GlobalSize::from_max_side(Some(args.global_max_side)),
     };
     let mut results = Vec::with_capacity(images.len());
     // Per image: the extraction (network + keypoints and descriptors) and its parts, and the
     // decode before it (file read, decode, grey conversion, resize).
     let mut ms = Vec::with_capacity(images.len());
-    let (mut decode_ms, mut network_ms, mut keypoints_ms) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut decode_ms, mut network_ms, mut keypoints_ms, mut global_ms) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let since = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
     bars.start("extracting", Some(images.len() as u64));
     for (name, path) in &images {
@@ -159,8 +166,13 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         let dense = extractor.run(&input).map_err(|e| e.on_image(path))?;
         network_ms.push(since(t));
         let t_kp = Instant::now();
-        let features = extractor.features(&dense, input.original_size, &detect);
+        let mut features = extractor.features(&dense, input.original_size, &detect);
         keypoints_ms.push(since(t_kp));
+        let t_global = Instant::now();
+        features.global = extractor
+            .global(&input, &dense, detect.global)
+            .map_err(|e| e.on_image(path))?;
+        global_ms.push(since(t_global));
         ms.push(since(t));
         results.push((name.clone(), features));
         bars.advance(1);
@@ -182,6 +194,12 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     ];
     // Whether levels 2+ were refined coarse to fine (spec/extractor.md step 4).
     attributes.push(("sfp.refine".to_string(), (!args.no_refine).to_string()));
+    // The size `global_descriptor` was computed at; 0: the network input (metadata
+    // `global_max_side` of a map; spec/extractor.md).
+    attributes.push((
+        "sfp.global_max_side".to_string(),
+        args.global_max_side.to_string(),
+    ));
     attributes.push((
         "sfp.level_ids".to_string(),
         contract
@@ -225,12 +243,15 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "keypoints": per_level.iter().map(|(l, n)| json!({"level": l, "keypoints": n})).collect::<Vec<_>>(),
             "ms_per_image": ms,
             "ms_median": median,
-            // medians of the parts; ms_per_image = network + keypoints_descriptors
+            // medians of the parts; ms_per_image = network + keypoints_descriptors + global
+            // (the downscaled copy's inference, 0 when the image fits `global_max_side`)
             "ms_median_parts": {
                 "decode": median_of(&decode_ms),
                 "network": median_of(&network_ms),
                 "keypoints_descriptors": median_of(&keypoints_ms),
+                "global": median_of(&global_ms),
             },
+            "global_max_side": args.global_max_side,
             "threads": threads,
             "model": model.name,
             "model_xxh3": model.xxh3,
@@ -238,13 +259,14 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     } else if !quiet {
         println!(
             "{}: {} images, {} bytes; median {median:.1} ms per image ({} threads: network {:.1}, \
-             keypoints and descriptors {:.1}; decode before it {:.1})",
+             keypoints and descriptors {:.1}, global {:.1}; decode before it {:.1})",
             args.output.display(),
             results.len(),
             bytes,
             threads,
             median_of(&network_ms),
             median_of(&keypoints_ms),
+            median_of(&global_ms),
             median_of(&decode_ms)
         );
         for (l, n) in per_level {

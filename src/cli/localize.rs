@@ -245,6 +245,31 @@ fn check_h5_model(
     Ok(())
 }
 
+/// Warns when the file's global descriptors were computed at another image size than the
+/// map's (`sfp.global_max_side` against metadata `global_max_side`): retrieval by them then
+/// compares unlike descriptors. A file without the attribute (hloc's) is taken as it is.
+#[cfg(feature = "onnx")]
+fn warn_h5_global_size(
+    h5: &sfpmap::io::features_h5::H5Features,
+    h5_path: &Path,
+    map: &Map<'_>,
+    bars: &super::Bars,
+) -> anyhow::Result<()> {
+    let Some(stated) = h5.root_string("sfp.global_max_side")? else {
+        return Ok(());
+    };
+    let map_side = map.metadata().global_max_side.unwrap_or(0);
+    if stated.trim() != map_side.to_string() {
+        bars.warn(&format!(
+            "{}: global descriptors computed at max side {stated}, the map's at {map_side} \
+             (0: the image's own size): retrieval by them will be poorer; extract with \
+             --global-max-side {map_side}",
+            h5_path.display()
+        ));
+    }
+    Ok(())
+}
+
 /// The SFP extractor (`--model`, else the embedded one), checked against the map's descriptors.
 #[cfg(feature = "onnx")]
 fn sfp_extractor(
@@ -392,6 +417,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 &descriptor,
                 map_model_xxh3(&map),
             )?;
+            warn_h5_global_size(&h5, path, &map, &bars)?;
             Some(h5)
         }
         None => None,
@@ -427,7 +453,13 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 );
             }
             let extractor = sfp_extractor(&args, &descriptor, map_model_xxh3(&map), &bars)?;
-            Source::Extractor { extractor, images }
+            // The queries' global descriptors are computed as the map's were.
+            let global = sfpmap::extract::GlobalSize::of_map(map.metadata());
+            Source::Extractor {
+                extractor,
+                images,
+                global,
+            }
         }
         #[cfg(not(feature = "onnx"))]
         (None, other) => {
@@ -635,6 +667,8 @@ enum Source {
     Extractor {
         extractor: sfpmap::extract::Extractor,
         images: PathBuf,
+        /// The map's (`GlobalSize::of_map`).
+        global: sfpmap::extract::GlobalSize,
     },
 }
 
@@ -652,7 +686,11 @@ impl Source {
                 .features(name)?
                 .map_or_else(|| missing("not in the features file"), Ok)),
             #[cfg(feature = "onnx")]
-            Source::Extractor { extractor, images } => {
+            Source::Extractor {
+                extractor,
+                images,
+                global,
+            } => {
                 use sfpmap::extract::ExtractError;
                 let path = images.join(name);
                 // A FIFO or folder goes on to `load`, whose regular-file rule names it.
@@ -676,8 +714,12 @@ impl Source {
                 {
                     return Ok(Err(reason));
                 }
+                let options = sfpmap::extract::DetectOptions {
+                    global: *global,
+                    ..Default::default()
+                };
                 let f = extractor
-                    .extract(&input, &sfpmap::extract::DetectOptions::default())
+                    .extract(&input, &options)
                     .map_err(|e| e.on_image(&path))?;
                 Ok(Ok(sfpmap::io::queries::sfp_query(&f)))
             }

@@ -257,6 +257,11 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     )?;
     let extractor = super::sfp_extractor(args, &descriptor, super::map_model_xxh3(&map), bars)?;
     let gray_weights = extractor.contract().gray_weights;
+    // The frames' global descriptors are computed as the map's were.
+    let detect = DetectOptions {
+        global: sfpmap::extract::GlobalSize::of_map(map.metadata()),
+        ..Default::default()
+    };
     let localizer = super::localizer(&map, args, args.map_path())?;
     super::warn_skipped(&localizer, args.map_path(), bars);
 
@@ -291,7 +296,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
                 // Every index must reach the localizer, which waits for them in order: a
                 // panic becomes the frame's failure instead of a hang.
                 let extracted = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    extract_message(&message, &camera, gray_weights, &extractor)
+                    extract_message(&message, &camera, gray_weights, &detect, &extractor)
                 }))
                 .unwrap_or_else(|_| {
                     let frame = Frame::of(&message);
@@ -553,6 +558,7 @@ fn extract_message(
     message: &mcap::Message<'_>,
     camera: &Camera,
     gray_weights: [f32; 3],
+    detect: &DetectOptions,
     extractor: &Mutex<Extractor>,
 ) -> (Frame, Result<QueryFeatures, String>) {
     let mut frame = Frame::of(message);
@@ -583,7 +589,7 @@ fn extract_message(
     let features = extractor
         .lock()
         .unwrap_or_else(|p| p.into_inner())
-        .extract(&input, &DetectOptions::default());
+        .extract(&input, detect);
     let features = features
         .map_err(|e| e.to_string())
         .map(|f| sfpmap::io::queries::sfp_query(&f));

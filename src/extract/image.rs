@@ -24,6 +24,32 @@ impl GrayInput {
     }
 }
 
+impl GrayInput {
+    /// A copy downscaled (triangle filter, as [`from_image`] resizes) so its longer side is
+    /// `max_side`, with the same `original_size`; `None` when it already fits.
+    pub fn downscaled(&self, max_side: u32) -> Option<GrayInput> {
+        let longer = self.width.max(self.height);
+        if max_side == 0 || longer <= max_side as usize {
+            return None;
+        }
+        let s = f64::from(max_side) / longer as f64;
+        let side = |v: usize| ((v as f64 * s).round() as u32).max(1);
+        let (w, h) = (side(self.width), side(self.height));
+        let buffer = image::ImageBuffer::<image::Luma<f32>, &[f32]>::from_raw(
+            self.width as u32,
+            self.height as u32,
+            &self.values[..],
+        )?;
+        let small = image::imageops::resize(&buffer, w, h, image::imageops::FilterType::Triangle);
+        Some(GrayInput {
+            width: w as usize,
+            height: h as usize,
+            values: small.into_raw(),
+            original_size: self.original_size,
+        })
+    }
+}
+
 /// Decodes an image file (format from its content) into the model's input.
 pub fn load(
     path: &Path,
@@ -260,6 +286,38 @@ mod tests {
     fn scan_start(jpg: &[u8]) -> usize {
         let sos = jpg.windows(2).position(|w| w == [0xFF, 0xDA]).unwrap();
         sos + 2 + usize::from(u16::from_be_bytes([jpg[sos + 2], jpg[sos + 3]]))
+    }
+
+    /// The global descriptor's copy: the longer side at the maximum, the aspect kept, the
+    /// file's size kept for scaling, the same picture (a 2x2 box of the input, near enough);
+    /// an input that fits gets no copy.
+    #[test]
+    fn a_downscaled_copy_keeps_the_picture_and_the_file_size() {
+        let input = from_image(
+            &DynamicImage::ImageRgb8(textured(640, 480)),
+            [0.299, 0.587, 0.114],
+            None,
+        );
+        assert!(input.downscaled(640).is_none() && input.downscaled(0).is_none());
+        let small = input.downscaled(320).unwrap();
+        assert_eq!((small.width, small.height), (320, 240));
+        assert_eq!(small.original_size, [640, 480]);
+        assert_eq!(small.scale(), [2.0, 2.0]);
+        // Same mean brightness, and a bright half stays bright.
+        let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32;
+        assert!((mean(&small.values) - mean(&input.values)).abs() < 0.005);
+        let left = |g: &GrayInput| {
+            mean(
+                &g.values
+                    .chunks(g.width)
+                    .flat_map(|r| &r[..g.width / 2])
+                    .copied()
+                    .collect::<Vec<_>>(),
+            )
+        };
+        assert!((left(&small) - left(&input)).abs() < 0.005);
+        let odd = input.downscaled(101).unwrap();
+        assert_eq!((odd.width, odd.height), (101, 76));
     }
 
     #[test]

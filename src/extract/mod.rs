@@ -209,6 +209,61 @@ pub struct DetectOptions {
     /// Coarse-to-fine refinement of the keypoints of levels from [`REFINE_FROM_LEVEL`] on
     /// (`spec/extractor.md`); `None` = on.
     pub refine: Option<bool>,
+    /// The image size the global descriptor is computed at; the default is
+    /// [`GLOBAL_MAX_SIDE`]. A query's must be its map's ([`GlobalSize::of_map`]).
+    pub global: GlobalSize,
+}
+
+/// The longer side, in pixels, of the copy of an image the global descriptor is computed on
+/// by default. sfp-v1's GeM global ranks a scene's images better on a small copy: recall@5 of
+/// the most co-visible database image on South Building's queries is 0.85 / 0.96 / 0.92 / 0.81
+/// at 384 / 512 / 640 / 1024 px, and 0.96 or more on the three shared scenes at 512
+/// (`python/eval_retrieval.py --max-side`): level 3's cells then span whole façades.
+pub const GLOBAL_MAX_SIDE: u32 = 512;
+
+/// The image size a global descriptor is computed at (`spec/extractor.md`, "Global
+/// descriptor"). Map and query must agree: a map records it (metadata `global_max_side`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GlobalSize {
+    /// The network input itself: the `global` output of the one inference every image gets
+    /// (maps without `global_max_side`, written before it existed, hold these).
+    Input,
+    /// A copy downscaled (triangle filter) so its longer side is at most this many pixels;
+    /// the input itself when it fits. A larger input costs one more, smaller, inference.
+    MaxSide(u32),
+    /// No global descriptor (`Features::global` empty): a query localized with a pose prior
+    /// does not retrieve, so a sequence skips it.
+    Skip,
+}
+
+impl Default for GlobalSize {
+    fn default() -> Self {
+        GlobalSize::MaxSide(GLOBAL_MAX_SIDE)
+    }
+}
+
+impl GlobalSize {
+    /// From a maximum side as a map's metadata and `--global-max-side` state it: `None` or 0
+    /// is [`GlobalSize::Input`].
+    pub fn from_max_side(max_side: Option<u32>) -> GlobalSize {
+        match max_side {
+            None | Some(0) => GlobalSize::Input,
+            Some(m) => GlobalSize::MaxSide(m),
+        }
+    }
+
+    /// What a map records (metadata `global_max_side`): `None` for [`GlobalSize::Input`].
+    pub fn max_side(self) -> Option<u32> {
+        match self {
+            GlobalSize::MaxSide(m) => Some(m),
+            GlobalSize::Input | GlobalSize::Skip => None,
+        }
+    }
+
+    /// The size a map's global descriptors were computed at, which its queries' must share.
+    pub fn of_map(metadata: &crate::format::Metadata) -> GlobalSize {
+        GlobalSize::from_max_side(metadata.global_max_side)
+    }
 }
 
 /// The first level (index) whose keypoints are moved to the strongest cell of the next finer
@@ -366,6 +421,7 @@ pub struct Features {
     /// (width, height) of the image file.
     pub image_size: [u32; 2],
     pub levels: Vec<LevelFeatures>,
+    /// L2-normalised, at [`DetectOptions::global`]'s size; empty when skipped.
     pub global: Vec<f32>,
 }
 
@@ -602,7 +658,9 @@ impl Extractor {
         })
     }
 
-    /// Keypoints and descriptors of every level from the network's outputs. With more than
+    /// Keypoints and descriptors of every level from the network's outputs, and the global
+    /// descriptor of this inference (`dense.global`, [`GlobalSize::Input`]; [`Extractor::extract`]
+    /// takes it at [`DetectOptions::global`]'s size). With more than
     /// one thread the levels are shared out by their expected work (keypoints × full
     /// dimensions: level 0 alone is about half of it); the result does not depend on it.
     pub fn features(
@@ -728,14 +786,36 @@ impl Extractor {
         }
     }
 
-    /// [`Extractor::run`] then [`Extractor::features`].
+    /// The global descriptor of `input` at `size`: `dense.global` (`input`'s own inference)
+    /// when the input fits, else the `global` of an inference on a downscaled copy; empty for
+    /// [`GlobalSize::Skip`].
+    pub fn global(
+        &mut self,
+        input: &GrayInput,
+        dense: &Dense,
+        size: GlobalSize,
+    ) -> Result<Vec<f32>, ExtractError> {
+        match size {
+            GlobalSize::Skip => Ok(Vec::new()),
+            GlobalSize::Input => Ok(dense.global.clone()),
+            GlobalSize::MaxSide(m) => match input.downscaled(m) {
+                None => Ok(dense.global.clone()),
+                Some(small) => Ok(self.run(&small)?.global),
+            },
+        }
+    }
+
+    /// [`Extractor::run`], [`Extractor::features`] and [`Extractor::global`] at
+    /// `options.global`.
     pub fn extract(
         &mut self,
         input: &GrayInput,
         options: &DetectOptions,
     ) -> Result<Features, ExtractError> {
         let dense = self.run(input)?;
-        Ok(self.features(&dense, input.original_size, options))
+        let mut features = self.features(&dense, input.original_size, options);
+        features.global = self.global(input, &dense, options.global)?;
+        Ok(features)
     }
 }
 

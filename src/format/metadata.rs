@@ -36,6 +36,12 @@ pub struct Metadata {
     /// kept and read as no preference (see [`Metadata::retrieval`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub retrieval: Option<String>,
+    /// 1.2: the longer side, in pixels, of the image copies `image_global` was computed on
+    /// (images larger than that were downscaled for it; spec/extractor.md, "Global
+    /// descriptor"); absent: at the extractor's input size. A query's global descriptor is
+    /// computed the same way.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub global_max_side: Option<u32>,
     /// 1.1: the grid of `point_positions_q16`, present exactly when that section is.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub position_grid: Option<PositionGrid>,
@@ -94,6 +100,7 @@ impl Default for Metadata {
             levels: Vec::new(),
             provenance: Provenance::default(),
             retrieval: None,
+            global_max_side: None,
             position_grid: None,
             extra: JsonMap::new(),
         }

@@ -199,9 +199,13 @@ fn build_group(
         group
             .create_dataset("image_size")
             .with_i64_data(&[i64::from(f.image_size[0]), i64::from(f.image_size[1])]);
-        group
-            .create_dataset("global_descriptor")
-            .with_f32_data(&f.global);
+        // Skipped ([`GlobalSize::Skip`](crate::extract::GlobalSize)): no dataset, as hloc's
+        // local-feature files have none.
+        if !f.global.is_empty() {
+            group
+                .create_dataset("global_descriptor")
+                .with_f32_data(&f.global);
+        }
         group.set_attr("level", AttrValue::I64(i64::from(main.level)));
         // Per level as prefixed datasets, not subgroups: hloc's readers load every item of an
         // image group as an array and list every group holding a dataset as an image name.

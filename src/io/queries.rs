@@ -126,6 +126,7 @@ pub fn sfp_query(f: &crate::extract::Features) -> QueryFeatures {
         .collect();
     QueryFeatures {
         sets,
-        global: Some(f.global.clone()),
+        // Empty when the extraction skipped it (`GlobalSize::Skip`).
+        global: (!f.global.is_empty()).then(|| f.global.clone()),
     }
 }

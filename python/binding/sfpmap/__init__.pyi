@@ -268,6 +268,8 @@ class Extractor:
         threshold: Optional[float] = None,
         nms_radius: Optional[int] = None,
         max_keypoints: Optional[Sequence[int]] = None,
+        refine: bool = True,
+        global_max_side: int = 512,
     ) -> Features: ...
 
 def convert(

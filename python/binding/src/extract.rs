@@ -122,7 +122,10 @@ impl Extractor {
 
     /// Keypoints and descriptors per level, and the global descriptor, of an image file
     /// (`str` / `os.PathLike`) or array. GIL released while the network runs.
-    #[pyo3(signature = (image, resize_max=None, threshold=None, nms_radius=None, max_keypoints=None))]
+    /// `global_max_side`: the global descriptor's image size (0: the network input; a map's
+    /// metadata `global_max_side`, absent meaning 0, is what its queries need).
+    #[pyo3(signature = (image, resize_max=None, threshold=None, nms_radius=None, max_keypoints=None, refine=true, global_max_side=sfpmap::extract::GLOBAL_MAX_SIDE))]
+    #[allow(clippy::too_many_arguments)]
     fn extract(
         &self,
         py: Python<'_>,
@@ -131,6 +134,8 @@ impl Extractor {
         threshold: Option<f32>,
         nms_radius: Option<u32>,
         max_keypoints: Option<Vec<usize>>,
+        refine: bool,
+        global_max_side: u32,
     ) -> PyResult<Features> {
         let weights = self.gray_weights;
         let path = image.extract::<PathBuf>().ok();
@@ -145,7 +150,8 @@ impl Extractor {
             threshold,
             nms_radius,
             max_keypoints,
-            refine: None,
+            refine: Some(refine),
+            global: sfpmap::extract::GlobalSize::from_max_side(Some(global_max_side)),
         };
         let f = py
             .detach(|| {
