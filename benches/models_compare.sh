@@ -2,8 +2,11 @@
 # SFP models side by side on the shared real scenes (issue 17's table): per scene and model,
 # the SFP map (`convert --images --model`) and its level-2 short slice, each localizing the
 # scene's queries with the same model (1 thread): bytes, queries localized, recall at
-# (0.1 x the median spacing of neighbouring map cameras, 2 deg), median errors, ms per query.
-# The SIFT level-2 short map is the reference row. Maps are rebuilt at every run.
+# (0.1 x the median spacing of neighbouring map cameras, 2 deg), median errors, ms per query,
+# and retrieval recall@1/5/10 of the ground-truth most co-visible database image over the
+# ranking `localize --format json` reports (python/eval_retrieval.py --localized: the SFP
+# map's global descriptor, the SIFT map's VLAD). The SIFT level-2 short map is the reference
+# row. Maps are rebuilt at every run.
 #
 # Usage: bash benches/models_compare.sh MODEL.onnx [MODEL.onnx ...] [-- scene ...]
 set -euo pipefail
@@ -16,17 +19,26 @@ source benches/scenes.sh
 cargo build --release --quiet --all-features
 bin=target/release/sfpmap
 
-row() { # SCENE LABEL MAP POSES LOC_JSON
+retrieval() { # SCENE MAP QUERY_FEATURE_ARGS...: r@1 / r@5 / r@10 of the map's retrieval
+  local scene=$1 map=$2; shift 2
+  local S; S=$(scene_dir "$scene")
+  "$bin" localize --map "$map" --query-list "$S/queries.txt" "$@" --top-k 10 --threads 1 \
+    --format json -o "$map.ranked.json" --force -q
+  python3 python/eval_retrieval.py --localized "map:$scene=$map.ranked.json" --json "$map.ret" >/dev/null
+  jget "$map.ret" "' / '.join(f\"{d['results']['map']['$scene'][k]:.2f}\" for k in ('r@1', 'r@5', 'r@10'))"
+}
+
+row() { # SCENE LABEL MAP POSES LOC_JSON RETRIEVAL
   local S=$(scene_dir "$1") ev=$5.ev
   "$bin" eval --poses "$4" --gt "$S/gt_poses.txt" --map "$3" --json >"$ev"
   local spacing; spacing=$(jget "$ev" "d['scale']")
   "$bin" eval --poses "$4" --gt "$S/gt_poses.txt" --map "$3" \
     --threshold "$(python3 -c "print(0.1*$spacing)"),2" --json >"$ev"
-  jget "$ev" "f\"| $1 | $2 | {d['map_bytes']/1e6:.2f} | {d['localized']}/{d['queries']} | {round(100*d['recall'][0]['recall'])} % | {'-' if d['median_translation'] is None else round(d['median_translation'],4)} | {'-' if d['median_rotation_deg'] is None else round(d['median_rotation_deg'],3)} | $(jget "$5" "round(d['median_ms']['total'],1)") |\""
+  jget "$ev" "f\"| $1 | $2 | {d['map_bytes']/1e6:.2f} | {d['localized']}/{d['queries']} | {round(100*d['recall'][0]['recall'])} % | {'-' if d['median_translation'] is None else round(d['median_translation'],4)} | {'-' if d['median_rotation_deg'] is None else round(d['median_rotation_deg'],3)} | $(jget "$5" "round(d['median_ms']['total'],1)") | $6 |\""
 }
 
-echo "| scene | map | MB | localized | recall (0.1 x spacing, 2°) | median transl. | median rot. (°) | ms/query |"
-echo "|---|---|---|---|---|---|---|---|"
+echo "| scene | map | MB | localized | recall (0.1 x spacing, 2°) | median transl. | median rot. (°) | ms/query | retrieval r@1 / 5 / 10 |"
+echo "|---|---|---|---|---|---|---|---|---|"
 for scene in $scenes; do
   S=$(scene_dir "$scene"); C="$CACHE/$scene-models"; mkdir -p "$C"
   scene_databases "$S" "$C"
@@ -34,17 +46,19 @@ for scene in $scenes; do
   "$bin" slice "$C/sift.sfpm" --level 2 --short -o "$C/sift-l2s.sfpm" --force -q
   "$bin" localize --map "$C/sift-l2s.sfpm" --short --query-list "$S/queries.txt" --database "$C/queries.db" \
     --threads 1 -o "$C/sift-l2s.poses" --force --json >"$C/sift-l2s.json"
-  row "$scene" "SIFT level 2 short" "$C/sift-l2s.sfpm" "$C/sift-l2s.poses" "$C/sift-l2s.json"
+  ret=$(retrieval "$scene" "$C/sift.sfpm" --database "$C/queries.db")
+  row "$scene" "SIFT level 2 short" "$C/sift-l2s.sfpm" "$C/sift-l2s.poses" "$C/sift-l2s.json" "$ret (VLAD)"
   for model in "${models[@]}"; do
     name=$(basename "$model" .onnx)
     "$bin" convert --colmap "$S/sparse-map" --images "$S/images" --model "$model" -o "$C/$name.sfpm" --force -q
     "$bin" slice "$C/$name.sfpm" --level 2 --short -o "$C/$name-l2s.sfpm" --force -q
+    ret=$(retrieval "$scene" "$C/$name.sfpm" --images "$S/images" --model "$model")
     for v in "$name" "$name-l2s"; do
       extra=(); [[ "$v" == *-l2s ]] && extra=(--short)
       "$bin" localize --map "$C/$v.sfpm" "${extra[@]}" --query-list "$S/queries.txt" --images "$S/images" \
         --model "$model" --threads 1 -o "$C/$v.poses" --force --json >"$C/$v.json"
       label="$name"; [[ "$v" == *-l2s ]] && label="$name level 2 short"
-      row "$scene" "$label" "$C/$v.sfpm" "$C/$v.poses" "$C/$v.json"
+      row "$scene" "$label" "$C/$v.sfpm" "$C/$v.poses" "$C/$v.json" "$ret"
     done
   done
 done

@@ -99,6 +99,8 @@ pub struct Retrieval<'m> {
     vlad: Option<serde_json::Value>,
     /// Dimensions of the stored global descriptors.
     global_dims: Option<u64>,
+    /// The image side they were computed at (metadata `global_max_side`).
+    global_max_side: Option<u32>,
 }
 
 impl<'m> Retrieval<'m> {
@@ -119,6 +121,7 @@ impl<'m> Retrieval<'m> {
             preference: meta.retrieval.as_deref(),
             vlad,
             global_dims,
+            global_max_side: meta.global_max_side,
         }
     }
 
@@ -132,7 +135,10 @@ impl<'m> Retrieval<'m> {
             ));
         }
         if let Some(d) = self.global_dims {
-            kinds.push(format!("global descriptors of {d} dims"));
+            kinds.push(match self.global_max_side {
+                Some(side) => format!("global descriptors of {d} dims (images at most {side} px)"),
+                None => format!("global descriptors of {d} dims"),
+            });
         }
         if kinds.is_empty() {
             return "retrieval: none (every point is a candidate)".into();
