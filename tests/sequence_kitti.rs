@@ -303,21 +303,85 @@ fn compressed_image(stamp_ns: u64, format: &str, data: &[u8]) -> Vec<u8> {
 
 const SEC: u64 = 1_000_000_000;
 
+/// The SFP map of the scene (the built-in model), built once per test binary.
+fn sfp_map() -> &'static (tempfile::TempDir, PathBuf) {
+    static MAP: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    MAP.get_or_init(|| {
+        let s = scene();
+        let dir = tempfile::tempdir().unwrap();
+        let map = dir.path().join("sfp.sfpm");
+        ok(&[
+            "convert",
+            "--colmap",
+            path_str(&s.root.join("sparse-map")),
+            "--images",
+            path_str(&s.root.join("images")),
+            "-o",
+            path_str(&map),
+            "--quiet",
+        ]);
+        (dir, map)
+    })
+}
+
+/// `--sequence --images` on the SFP map: every frame localized, the first retrieved by the
+/// map's global descriptor (computed on 512-px copies of the 1241x376 frames), the others
+/// tracked; a frame with a prior skips the global descriptor's extra inference, a run
+/// without `--sequence` skips none.
+#[test]
+fn sfp_map_sequence_skips_the_global_descriptor_of_tracked_frames() {
+    let s = scene();
+    let dir = tempfile::tempdir().unwrap();
+    let map = &sfp_map().1;
+    assert_eq!(
+        sfpmap::format::Map::open(map)
+            .unwrap()
+            .metadata()
+            .global_max_side,
+        Some(512)
+    );
+    let (query_list, images) = (s.root.join("queries.txt"), s.root.join("images"));
+    let run = |extra: &[&str]| {
+        let poses = dir.path().join("poses.json");
+        let mut args = vec![
+            "localize",
+            "--map",
+            path_str(map),
+            "--query-list",
+            path_str(&query_list),
+            "--images",
+            path_str(&images),
+            "--format",
+            "json",
+            "-o",
+            path_str(&poses),
+            "--force",
+            "--json",
+        ];
+        args.extend(extra);
+        let report = ok(&args);
+        let list: Value = serde_json::from_slice(&std::fs::read(&poses).unwrap()).unwrap();
+        (report, list.as_array().unwrap().clone())
+    };
+    let (report, list) = run(&["--sequence"]);
+    let paths = check_list_run("SFP sequence", &report, &list);
+    assert_eq!(paths[0], "retrieval", "{}", list[0]);
+    assert_eq!(list[0]["retrieval"], "global", "{}", list[0]);
+    let tracked = paths.iter().filter(|p| *p == "tracking").count();
+    assert!(tracked >= 11, "{tracked} of 12 tracked: {report}");
+    // Every frame after the first had a prior (the first was localized).
+    assert_eq!(report["global_skipped"], 12, "{report}");
+    let (report, list) = run(&[]);
+    check_list_run("SFP list", &report, &list);
+    assert_eq!(report["global_skipped"], 0, "{report}");
+    assert_eq!(report["retrieval"]["global"], 13, "{report}");
+}
+
 #[test]
 fn mcap_log_of_the_query_frames_is_tracked() {
     let s = scene();
     let dir = tempfile::tempdir().unwrap();
-    let map = dir.path().join("sfp.sfpm");
-    ok(&[
-        "convert",
-        "--colmap",
-        path_str(&s.root.join("sparse-map")),
-        "--images",
-        path_str(&s.root.join("images")),
-        "-o",
-        path_str(&map),
-        "--quiet",
-    ]);
+    let map = &sfp_map().1;
 
     // The query frames as the camera recorded them: KITTI runs at 10 Hz and the file name is
     // the frame number; the images are the scene's JPEGs, bytes unchanged.
@@ -361,7 +425,7 @@ fn mcap_log_of_the_query_frames_is_tracked() {
     let report = ok(&[
         "localize",
         "--map",
-        path_str(&map),
+        path_str(map),
         "--mcap",
         path_str(&input),
         "--topic",

@@ -459,6 +459,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 extractor,
                 images,
                 global,
+                skipped_global: 0,
             }
         }
         #[cfg(not(feature = "onnx"))]
@@ -492,12 +493,13 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(q) = queries.get(i) else { break };
                 // SQLite connections are not shared between threads: reads take turns.
+                // Only a sequence (one worker) touches the motion model.
+                let sequence = || motion.lock().unwrap_or_else(|p| p.into_inner());
+                let tracked = args.sequence && sequence().predict().is_some();
                 let f = features
                     .lock()
                     .unwrap_or_else(|p| p.into_inner())
-                    .features(&q.name);
-                // Only a sequence (one worker) touches the motion model.
-                let sequence = || motion.lock().unwrap_or_else(|p| p.into_inner());
+                    .features(&q.name, tracked);
                 let outcome = match f {
                     Ok(Ok(f)) if args.sequence => sequence()
                         .localize(&localizer, &f, &q.camera)
@@ -533,6 +535,10 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     if let Some(e) = first_error.into_inner().unwrap_or_else(|p| p.into_inner()) {
         return Err(e);
     }
+    let global_skipped = features
+        .into_inner()
+        .unwrap_or_else(|p| p.into_inner())
+        .skipped_global();
     let (results, read): (Vec<Localization>, Vec<bool>) = results
         .into_iter()
         .map(|m| {
@@ -580,6 +586,8 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "tracking_lost": paths.tracking_lost,
             "retrieval": paths.retrieval,
             "retrieval_fallback": paths.retrieval_fallback,
+            // Sequence frames with a pose prior, extracted without the global descriptor
+            "global_skipped": global_skipped,
             "output": args.output.display().to_string(),
             "seconds": start.elapsed().as_secs_f64(),
             "median_ms": median_ms(&results),
@@ -669,13 +677,31 @@ enum Source {
         images: PathBuf,
         /// The map's (`GlobalSize::of_map`).
         global: sfpmap::extract::GlobalSize,
+        /// Tracked frames extracted without it (`--json`'s `global_skipped`).
+        skipped_global: usize,
     },
 }
 
 impl Source {
+    /// How many frames the extractor gave no global descriptor (tracked frames).
+    fn skipped_global(&self) -> usize {
+        match self {
+            #[cfg(feature = "onnx")]
+            Source::Extractor { skipped_global, .. } => *skipped_global,
+            _ => 0,
+        }
+    }
+
     /// The query's features, or why they cannot be had for this query (missing, or an image
-    /// that does not decode completely): a failed query, not an error.
-    fn features(&mut self, name: &str) -> anyhow::Result<Result<QueryFeatures, String>> {
+    /// that does not decode completely): a failed query, not an error. `tracked`: a sequence's
+    /// frame with a pose prior, which does not retrieve, so the extractor skips the global
+    /// descriptor's extra inference (a frame that loses tracking then retrieves without it:
+    /// by the map's VLAD, else every point).
+    fn features(
+        &mut self,
+        name: &str,
+        tracked: bool,
+    ) -> anyhow::Result<Result<QueryFeatures, String>> {
         let missing = |what: &str| Err(format!("no features for {name:?} ({what})"));
         match self {
             Source::Database(db) => Ok(db
@@ -690,6 +716,7 @@ impl Source {
                 extractor,
                 images,
                 global,
+                skipped_global,
             } => {
                 use sfpmap::extract::ExtractError;
                 let path = images.join(name);
@@ -715,7 +742,12 @@ impl Source {
                     return Ok(Err(reason));
                 }
                 let options = sfpmap::extract::DetectOptions {
-                    global: *global,
+                    global: if tracked {
+                        *skipped_global += 1;
+                        sfpmap::extract::GlobalSize::Skip
+                    } else {
+                        *global
+                    },
                     ..Default::default()
                 };
                 let f = extractor

@@ -137,7 +137,7 @@ pub(super) fn run(
     let mut rankings: Vec<serde_json::Value> = Vec::with_capacity(queries.len());
     let mut read_any = false;
     for q in &queries {
-        let f = match features.features(&q.name)? {
+        let f = match features.features(&q.name, false)? {
             Ok(f) => f,
             Err(reason) => {
                 results.push(unread(reason));
