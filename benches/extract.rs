@@ -1,18 +1,20 @@
-//! Extractor speed: one 640×480 image through the network and keypoint/descriptor stages,
-//! 2 intra-op threads (the CLI default). The runtime is found or fetched as `sfpmap setup`
-//! does. Quoted in README as the median ms per image.
+//! Extractor speed: one 640×480 image (a JPEG in memory) through decoding, the network, the
+//! keypoint/descriptor stage and the global descriptor's 512-px copy, 2 intra-op threads (the
+//! CLI default); totals from the JPEG's bytes, for a tracked frame (no global descriptor, as
+//! `localize --sequence` extracts one) and with the global descriptor. The runtime is found
+//! or fetched as `sfpmap setup` does. Quoted in README as the median ms per image.
 //!
 //! `cargo bench --bench extract`; `SFPMAP_BENCH_MODEL=path.onnx` times another model of the
 //! same contract (issue 17's candidates), `SFPMAP_BENCH_THREADS=N` another thread count.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use sfpmap::extract::{image, DetectOptions, Extractor, ExtractorOptions};
+use sfpmap::extract::{image, DetectOptions, Extractor, ExtractorOptions, GlobalSize};
 use std::hint::black_box;
 use std::path::PathBuf;
 
-/// A real scene image resized to 640×480: the README quotes this figure, so without the
-/// shared data the bench stops instead of timing something else.
-fn input(weights: [f32; 3]) -> image::GrayInput {
+/// A real scene image resized to 640×480, as JPEG bytes (quality 90): the README quotes this
+/// figure, so without the shared data the bench stops instead of timing something else.
+fn jpeg() -> Vec<u8> {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../shared/data/scenes/south-building/images");
     let mut paths: Vec<PathBuf> = std::fs::read_dir(&dir)
@@ -27,8 +29,13 @@ fn input(weights: [f32; 3]) -> image::GrayInput {
         .unwrap_or_else(|| panic!("{}: no images", dir.display()));
     let decoded = ::image::open(&first)
         .unwrap_or_else(|e| panic!("{}: {e}", first.display()))
-        .resize_exact(640, 480, ::image::imageops::FilterType::Triangle);
-    image::from_image(&decoded, weights, None)
+        .resize_exact(640, 480, ::image::imageops::FilterType::Triangle)
+        .to_rgb8();
+    let mut bytes = Vec::new();
+    ::image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, 90)
+        .encode_image(&decoded)
+        .expect("JPEG encoding in memory");
+    bytes
 }
 
 fn bench(c: &mut Criterion) {
@@ -47,8 +54,17 @@ fn bench(c: &mut Criterion) {
         &sfpmap::progress::Silent,
     )
     .expect("ONNX Runtime found or fetched");
-    let input = input(extractor.contract().gray_weights);
-    let options = DetectOptions::default();
+    let weights = extractor.contract().gray_weights;
+    let jpeg = jpeg();
+    let path = std::path::Path::new("640x480.jpg");
+    let decode = |bytes: &[u8]| image::decode(bytes, path, weights, None).unwrap();
+    let input = decode(&jpeg);
+    assert_eq!((input.width, input.height), (640, 480));
+    let tracked = DetectOptions {
+        global: GlobalSize::Skip,
+        ..Default::default()
+    };
+    let with_global = DetectOptions::default();
     let name = model.as_deref().map_or("sfp-v1 (embedded)".into(), |m| {
         m.file_stem()
             .unwrap_or_default()
@@ -57,15 +73,38 @@ fn bench(c: &mut Criterion) {
     });
     let mut group = c.benchmark_group(format!("extract {name}, {threads} thread(s)"));
     group.sample_size(20);
+    group.bench_function("640x480_decode", |b| {
+        b.iter(|| black_box(decode(black_box(&jpeg))))
+    });
     group.bench_function("640x480_network", |b| {
         b.iter(|| black_box(extractor.run(black_box(&input)).unwrap()))
     });
     let dense = extractor.run(&input).unwrap();
     group.bench_function("640x480_keypoints_descriptors", |b| {
-        b.iter(|| black_box(extractor.features(black_box(&dense), [640, 480], &options)))
+        b.iter(|| black_box(extractor.features(black_box(&dense), [640, 480], &tracked)))
     });
+    group.bench_function("640x480_global_512", |b| {
+        b.iter(|| {
+            black_box(
+                extractor
+                    .global(black_box(&input), &dense, with_global.global)
+                    .unwrap(),
+            )
+        })
+    });
+    // Decode + network + keypoints and descriptors: a tracked frame.
     group.bench_function("640x480_total", |b| {
-        b.iter(|| black_box(extractor.extract(black_box(&input), &options).unwrap()))
+        b.iter(|| {
+            let input = decode(black_box(&jpeg));
+            black_box(extractor.extract(&input, &tracked).unwrap())
+        })
+    });
+    // ... + the global descriptor's 512-px copy: a frame that retrieves.
+    group.bench_function("640x480_total_with_global", |b| {
+        b.iter(|| {
+            let input = decode(black_box(&jpeg));
+            black_box(extractor.extract(&input, &with_global).unwrap())
+        })
     });
     group.finish();
 }
