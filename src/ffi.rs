@@ -116,7 +116,8 @@ pub struct SfpmCamera {
 }
 
 /// Localizer settings; pass NULL to `sfpm_localize` for the defaults (all levels, full
-/// descriptors).
+/// descriptors). Everything else is the map's own setting, as `sfpmap localize` uses it:
+/// Lowe's ratio is 0.95 on SFP maps and 0.9 on SIFT maps (`LocalizeOptions::for_map`).
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct SfpmLocalizeOptions {

@@ -39,6 +39,11 @@ fn map_bytes(s: &Scene) -> Vec<u8> {
 
 /// The scene's map with level `l` holding the points `levels[l]`.
 fn map_bytes_with(s: &Scene, levels: &[Vec<u32>]) -> Vec<u8> {
+    map_bytes_global(s, levels, None)
+}
+
+/// [`map_bytes_with`], with `(dim, values)` as its two images' global descriptors.
+fn map_bytes_global(s: &Scene, levels: &[Vec<u32>], global: Option<(usize, &[f32])>) -> Vec<u8> {
     let mut w = MapWriter::default();
     w.add_camera(sfpmap::format::CameraInfo {
         id: Some(1),
@@ -74,6 +79,9 @@ fn map_bytes_with(s: &Scene, levels: &[Vec<u32>]) -> Vec<u8> {
             .unwrap();
     }
     w2.set_visibility(&offsets, &vis, None).unwrap();
+    if let Some((dim, values)) = global {
+        w2.set_image_global(dim, values).unwrap();
+    }
     w2.to_bytes().unwrap()
 }
 
@@ -476,4 +484,67 @@ fn a_prior_whose_strided_round_is_too_thin_still_tracks() {
     assert!(r.inliers > 10, "{} inliers", r.inliers);
     let pose = *r.pose().unwrap();
     assert!(pose.rotation_error_deg(&t) < 0.5);
+}
+
+/// A sequence's frame extracted without its global descriptor (tracked frames need none):
+/// when tracking is lost, the localizer asks for it once and retrieves with it; a frame that
+/// tracks never asks; without one it retrieves without it, and says so.
+#[test]
+fn a_frame_that_loses_tracking_asks_for_its_global_descriptor() {
+    use sfpmap::localize::{LocalizationPath, RetrievalFallback};
+    let s = scene();
+    let levels: Vec<Vec<u32>> = (0..3)
+        .map(|l| (l * 1000..(l + 1) * 1000).map(|p| p as u32).collect())
+        .collect();
+    let bytes = map_bytes_global(&s, &levels, Some((2, &[1.0, 0.0, 0.0, 1.0])));
+    let map = Map::from_bytes(&bytes).unwrap();
+    let options = LocalizeOptions {
+        retrieval: sfpmap::localize::RetrievalMethod::Global,
+        ..LocalizeOptions::default()
+    };
+    let localizer = Localizer::new(&map, options).unwrap();
+    let q = query(&s, &truth(), 0, DIM);
+    assert!(q.global.is_none());
+    let t = truth();
+    // Turned around: no database image looks its way, tracking is lost.
+    let lost = Pose::new(
+        nalgebra::UnitQuaternion::from_euler_angles(0.0, std::f64::consts::PI, 0.0) * t.rotation,
+        t.translation,
+    );
+    let mut asked = 0;
+    let r = localizer
+        .localize_with_prior_then_global(&q, &s.camera, Some(&lost), &mut || {
+            asked += 1;
+            Some(vec![1.0, 0.0])
+        })
+        .unwrap();
+    assert_eq!(asked, 1, "{:?} {:?}", r.path, r.tracking_lost);
+    assert_eq!(r.path, LocalizationPath::Retrieval);
+    assert!(r.tracking_lost.is_some());
+    // Both images see every point, so retrieval cannot narrow them: but it ranked them.
+    assert_eq!(
+        r.retrieval_fallback,
+        Some(RetrievalFallback::EveryPointSeen)
+    );
+    assert!(r.pose().unwrap().rotation_error_deg(&t) < 0.5);
+
+    let mut asked = 0;
+    let r = localizer
+        .localize_with_prior_then_global(&q, &s.camera, Some(&lost), &mut || {
+            asked += 1;
+            None
+        })
+        .unwrap();
+    assert_eq!(asked, 1);
+    assert_eq!(
+        r.retrieval_fallback,
+        Some(RetrievalFallback::NoQueryDescriptor)
+    );
+
+    let r = localizer
+        .localize_with_prior_then_global(&q, &s.camera, Some(&t), &mut || {
+            panic!("a tracked frame needs no global descriptor")
+        })
+        .unwrap();
+    assert_eq!(r.path, LocalizationPath::Tracking, "{:?}", r.tracking_lost);
 }

@@ -502,7 +502,10 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                     .features(&q.name, tracked);
                 let outcome = match f {
                     Ok(Ok(f)) if args.sequence => sequence()
-                        .localize(&localizer, &f, &q.camera)
+                        .localize_then_global(&localizer, &f, &q.camera, &mut || {
+                            let mut source = features.lock().unwrap_or_else(|p| p.into_inner());
+                            source.global_of(&q.name)
+                        })
                         .with_context(|| {
                             format!("{}: query {:?}", args.map_path().display(), q.name)
                         })
@@ -683,6 +686,30 @@ enum Source {
 }
 
 impl Source {
+    /// The global descriptor of query `name`, for a tracked frame extracted without it that
+    /// lost tracking; `None` when this source gives none (or the image no longer reads, which
+    /// its features' extraction has just done).
+    fn global_of(&mut self, name: &str) -> Option<Vec<f32>> {
+        match self {
+            #[cfg(feature = "onnx")]
+            Source::Extractor {
+                extractor,
+                images,
+                global,
+                ..
+            } => {
+                let path = images.join(name);
+                let weights = extractor.contract().gray_weights;
+                let input = sfpmap::extract::image::load(&path, weights, None).ok()?;
+                extractor.global_of(&input, *global).ok()
+            }
+            _ => {
+                let _ = name;
+                None
+            }
+        }
+    }
+
     /// How many frames the extractor gave no global descriptor (tracked frames).
     fn skipped_global(&self) -> usize {
         match self {
@@ -741,8 +768,10 @@ impl Source {
                 {
                     return Ok(Err(reason));
                 }
+                // Skipped only where it costs an inference of its own.
+                let skip = tracked && global.needs_a_copy(input.width, input.height);
                 let options = sfpmap::extract::DetectOptions {
-                    global: if tracked {
+                    global: if skip {
                         *skipped_global += 1;
                         sfpmap::extract::GlobalSize::Skip
                     } else {

@@ -260,6 +260,13 @@ impl GlobalSize {
         }
     }
 
+    /// Whether an input of `width` x `height` gets its global descriptor from an inference of
+    /// its own (on a downscaled copy) at this size.
+    pub fn needs_a_copy(self, width: usize, height: usize) -> bool {
+        self.max_side()
+            .is_some_and(|m| width.max(height) > m as usize)
+    }
+
     /// The size a map's global descriptors were computed at, which its queries' must share.
     pub fn of_map(metadata: &crate::format::Metadata) -> GlobalSize {
         GlobalSize::from_max_side(metadata.global_max_side)
@@ -795,6 +802,7 @@ impl Extractor {
         dense: &Dense,
         size: GlobalSize,
     ) -> Result<Vec<f32>, ExtractError> {
+        self.check_values(input)?;
         match size {
             GlobalSize::Skip => Ok(Vec::new()),
             GlobalSize::Input => Ok(dense.global.clone()),
@@ -803,6 +811,39 @@ impl Extractor {
                 Some(small) => Ok(self.run(&small)?.global),
             },
         }
+    }
+
+    /// [`Extractor::global`] without the input's inference at hand: one inference, on the
+    /// downscaled copy where `size` asks for one, else on `input`.
+    pub fn global_of(
+        &mut self,
+        input: &GrayInput,
+        size: GlobalSize,
+    ) -> Result<Vec<f32>, ExtractError> {
+        self.check_values(input)?;
+        match (size, size.max_side().and_then(|m| input.downscaled(m))) {
+            (GlobalSize::Skip, _) => Ok(Vec::new()),
+            (_, Some(small)) => Ok(self.run(&small)?.global),
+            (_, None) => Ok(self.run(input)?.global),
+        }
+    }
+
+    /// A hand-made input whose values do not fill it is refused before any resize, which
+    /// would otherwise take the buffer for one that fits.
+    fn check_values(&self, input: &GrayInput) -> Result<(), ExtractError> {
+        if input.values.len() == input.width.saturating_mul(input.height) {
+            return Ok(());
+        }
+        Err(ExtractError::Inference {
+            model: self.model.name.clone(),
+            image: None,
+            reason: format!(
+                "the input holds {} values for {}x{} pixels",
+                input.values.len(),
+                input.width,
+                input.height
+            ),
+        })
     }
 
     /// [`Extractor::run`], [`Extractor::features`] and [`Extractor::global`] at

@@ -520,6 +520,20 @@ impl<'m> Localizer<'m> {
         camera: &Camera,
         prior: Option<&Pose>,
     ) -> Result<Localization, LocalizeError> {
+        self.localize_with_prior_then_global(query, camera, prior, &mut || None)
+    }
+
+    /// [`Self::localize_with_prior`] for a query extracted without its global descriptor (a
+    /// tracked frame needs none, and computing it can cost one more inference,
+    /// `extract::GlobalSize`): when tracking is lost and the query goes the retrieval path,
+    /// `global` is asked for it once (`None`: the query retrieves without it).
+    pub fn localize_with_prior_then_global(
+        &self,
+        query: &QueryFeatures,
+        camera: &Camera,
+        prior: Option<&Pose>,
+        global: &mut dyn FnMut() -> Option<Vec<f32>>,
+    ) -> Result<Localization, LocalizeError> {
         let t0 = Instant::now();
         let mut times = StageTimes::default();
         // The feature set each level matches, checked once; each level projects it into its
@@ -553,6 +567,22 @@ impl<'m> Localizer<'m> {
             }
         }
 
+        // Retrieval ranks by the global descriptor, so a query without one gets it now. Only
+        // retrieval reads it: the feature sets above stay the original query's.
+        let with_global;
+        let query = match (&query.global, tracking_lost.is_some()) {
+            (None, true) => match global() {
+                Some(g) => {
+                    with_global = QueryFeatures {
+                        sets: query.sets.clone(),
+                        global: Some(g),
+                    };
+                    &with_global
+                }
+                None => query,
+            },
+            _ => query,
+        };
         let t1 = Instant::now();
         let Retrieved {
             candidates,

@@ -105,8 +105,21 @@ impl MotionModel {
         query: &QueryFeatures,
         camera: &Camera,
     ) -> Result<Localization, LocalizeError> {
+        self.localize_then_global(localizer, query, camera, &mut || None)
+    }
+
+    /// [`Self::localize`] for a frame extracted without its global descriptor: `global`
+    /// gives it if tracking is lost ([`Localizer::localize_with_prior_then_global`]).
+    pub fn localize_then_global(
+        &mut self,
+        localizer: &Localizer<'_>,
+        query: &QueryFeatures,
+        camera: &Camera,
+        global: &mut dyn FnMut() -> Option<Vec<f32>>,
+    ) -> Result<Localization, LocalizeError> {
         let prior = self.predict();
-        let found = localizer.localize_with_prior(query, camera, prior.as_ref());
+        let found =
+            localizer.localize_with_prior_then_global(query, camera, prior.as_ref(), global);
         self.update(found.as_ref().ok().and_then(Localization::pose));
         found
     }
