@@ -594,11 +594,27 @@ fn global_descriptors_follow_the_side_the_map_records() {
     assert!(warned.status.success(), "{stderr}");
     assert!(
         stderr.contains(&format!(
-            "{}: global descriptors computed at max side 0",
+            "{}: global descriptors computed at max side \"0\"",
             h5.display()
         )) && stderr.contains("--global-max-side 512"),
         "{stderr}"
     );
+    // A side that would leave the deepest level a cell or two is refused, by name.
+    let tiny = sfpmap(&[
+        os("extract"),
+        images.as_os_str(),
+        os("-o"),
+        dir.path().join("tiny.h5").as_os_str(),
+        os("--global-max-side"),
+        os("8"),
+    ]);
+    let stderr = String::from_utf8_lossy(&tiny.stderr);
+    assert!(
+        !tiny.status.success() && stderr.contains("--global-max-side"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("at least 16"), "{stderr}");
+    assert!(!dir.path().join("tiny.h5").exists());
     let matching = localize("input.sfpm");
     let stderr = String::from_utf8_lossy(&matching.stderr);
     assert!(matching.status.success(), "{stderr}");

@@ -58,7 +58,8 @@ pub struct Args {
     /// With --images: the longer side of the copy each image's global descriptor (retrieval)
     /// is computed on; 0: the network input itself. The map records it; localize follows it.
     #[cfg(feature = "onnx")]
-    #[arg(long, requires = "images", default_value_t = sfpmap::extract::GLOBAL_MAX_SIDE)]
+    #[arg(long, requires = "images", default_value_t = sfpmap::extract::GLOBAL_MAX_SIDE,
+          value_parser = super::global_max_side)]
     pub global_max_side: u32,
     /// With --images: a point joins level i when its track's mean level-i score is at least
     /// this (default: the model's keypoint threshold, sfp.default_threshold).

@@ -52,7 +52,8 @@ pub struct Args {
     /// The longer side of the copy each image's global descriptor is computed on (images
     /// larger than that are downscaled for it: one more, smaller, inference); 0: the network
     /// input itself. Stored as `sfp.global_max_side`; match the map's (`sfpmap info`).
-    #[arg(long, default_value_t = sfpmap::extract::GLOBAL_MAX_SIDE)]
+    #[arg(long, default_value_t = sfpmap::extract::GLOBAL_MAX_SIDE,
+          value_parser = super::global_max_side)]
     pub global_max_side: u32,
     /// Keep levels 2 and deeper where the quadratic fit on their own score map puts them
     /// (no coarse-to-fine refinement on the next finer level; spec/extractor.md).
@@ -148,7 +149,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         nms_radius: args.nms_radius,
         max_keypoints: args.max_keypoints.clone(),
         refine: Some(!args.no_refine),
-        global: GlobalSize::from_max_side(Some(args.global_max_side)),
+        global: GlobalSize::from_flag(args.global_max_side).map_err(anyhow::Error::msg)?,
     };
     let mut results = Vec::with_capacity(images.len());
     // Per image: the extraction (network + keypoints and descriptors) and its parts, and the

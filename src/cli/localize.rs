@@ -247,7 +247,9 @@ fn check_h5_model(
 
 /// Warns when the file's global descriptors were computed at another image size than the
 /// map's (`sfp.global_max_side` against metadata `global_max_side`): retrieval by them then
-/// compares unlike descriptors. A file without the attribute (hloc's) is taken as it is.
+/// compares unlike descriptors. An `sfpmap extract` file without the attribute (written before
+/// it) computed them at the image's own size; an hloc file (no `sfp.model_name`) is taken as
+/// it is, and so is any file for a map without global descriptors.
 #[cfg(feature = "onnx")]
 fn warn_h5_global_size(
     h5: &sfpmap::io::features_h5::H5Features,
@@ -255,13 +257,24 @@ fn warn_h5_global_size(
     map: &Map<'_>,
     bars: &super::Bars,
 ) -> anyhow::Result<()> {
-    let Some(stated) = h5.root_string("sfp.global_max_side")? else {
+    if !matches!(map.image_global(), Ok(Some(_))) {
         return Ok(());
-    };
+    }
     let map_side = map.metadata().global_max_side.unwrap_or(0);
+    // Only a warning hangs on it: an attribute that is not one string is named, not fatal.
+    let stated = match h5.root_string("sfp.global_max_side") {
+        Ok(Some(side)) => side,
+        Ok(None) if matches!(h5.root_string("sfp.model_name"), Ok(Some(_))) => "0".to_string(),
+        Ok(None) => return Ok(()),
+        Err(_) => "(not one string)".to_string(),
+    };
     if stated.trim() != map_side.to_string() {
+        let mut shown: String = stated.chars().take(24).collect();
+        if shown.len() < stated.len() {
+            shown.push('…');
+        }
         bars.warn(&format!(
-            "{}: global descriptors computed at max side {stated}, the map's at {map_side} \
+            "{}: global descriptors computed at max side {shown:?}, the map's at {map_side} \
              (0: the image's own size): retrieval by them will be poorer; extract with \
              --global-max-side {map_side}",
             h5_path.display()

@@ -235,6 +235,16 @@ pub fn remove_temps_on_signal() {
     });
 }
 
+/// `--global-max-side N`: 0, or a side of at least `GLOBAL_MIN_SIDE` (`GlobalSize::from_flag`).
+#[cfg(feature = "onnx")]
+pub fn global_max_side(value: &str) -> Result<u32, String> {
+    let side: u32 = value
+        .parse()
+        .map_err(|_| format!("{value:?}: not a whole number of pixels"))?;
+    sfpmap::extract::GlobalSize::from_flag(side)?;
+    Ok(side)
+}
+
 /// `--threads` capped at [`sfpmap::progress::max_threads`] (4 per core, at most 256), with a
 /// warning (silent under `--quiet`) when it is cut; the Python package caps the same way.
 #[cfg(any(feature = "colmap", feature = "onnx"))]

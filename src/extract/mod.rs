@@ -221,6 +221,9 @@ pub struct DetectOptions {
 /// (`python/eval_retrieval.py --max-side`): level 3's cells then span whole façades.
 pub const GLOBAL_MAX_SIDE: u32 = 512;
 
+/// The smallest global descriptor side a flag may ask for (as `--resize-max`'s 16).
+pub const GLOBAL_MIN_SIDE: u32 = 16;
+
 /// The image size a global descriptor is computed at (`spec/extractor.md`, "Global
 /// descriptor"). Map and query must agree: a map records it (metadata `global_max_side`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -249,6 +252,19 @@ impl GlobalSize {
         match max_side {
             None | Some(0) => GlobalSize::Input,
             Some(m) => GlobalSize::MaxSide(m),
+        }
+    }
+
+    /// From `--global-max-side N` (and the Python binding's `global_max_side`): 0 is
+    /// [`GlobalSize::Input`]; a side under [`GLOBAL_MIN_SIDE`] is refused, as it would leave
+    /// the deepest level a cell or two and retrieval nothing to rank by.
+    pub fn from_flag(max_side: u32) -> Result<GlobalSize, String> {
+        match max_side {
+            0 => Ok(GlobalSize::Input),
+            m if m < GLOBAL_MIN_SIDE => Err(format!(
+                "{m}: 0 (the image's own size) or at least {GLOBAL_MIN_SIDE}"
+            )),
+            m => Ok(GlobalSize::MaxSide(m)),
         }
     }
 

@@ -151,7 +151,8 @@ impl Extractor {
             nms_radius,
             max_keypoints,
             refine: Some(refine),
-            global: sfpmap::extract::GlobalSize::from_max_side(Some(global_max_side)),
+            global: sfpmap::extract::GlobalSize::from_flag(global_max_side)
+                .map_err(|e| InputError::new_err(format!("global_max_side {e}")))?,
         };
         let f = py
             .detach(|| {
