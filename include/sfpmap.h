@@ -120,7 +120,8 @@ typedef struct SfpmCamera {
 } SfpmCamera;
 
 // Localizer settings; pass NULL to `sfpm_localize` for the defaults (all levels, full
-// descriptors).
+// descriptors). Everything else is the map's own setting, as `sfpmap localize` uses it:
+// Lowe's ratio is 0.95 on SFP maps and 0.9 on SIFT maps (`LocalizeOptions::for_map`).
 typedef struct SfpmLocalizeOptions {
   // Levels to match (`n_levels` ids); NULL or `n_levels == 0` means every level of the map.
   const uint16_t *levels;
