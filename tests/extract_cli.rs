@@ -615,6 +615,46 @@ fn global_descriptors_follow_the_side_the_map_records() {
     );
     assert!(stderr.contains("at least 16"), "{stderr}");
     assert!(!dir.path().join("tiny.h5").exists());
+    // `localize --images` computes the queries' global descriptors at the map's side: its
+    // ranking is the one of features extracted at that side, not at the default 512.
+    let ranking = |features: &[&std::ffi::OsStr]| -> Vec<Value> {
+        let out = dir.path().join("ranked.json");
+        let (map, queries) = (dir.path().join("input.sfpm"), scene().join("queries.txt"));
+        let mut args = vec![
+            os("localize"),
+            os("--map"),
+            map.as_os_str(),
+            os("--query-list"),
+            queries.as_os_str(),
+        ];
+        args.extend(features);
+        args.extend(["--top-k", "10", "--format", "json", "--force", "-q", "-o"].map(os));
+        args.push(out.as_os_str());
+        ok(&args);
+        let list: Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
+        list.as_array()
+            .unwrap()
+            .iter()
+            .map(|q| q["retrieved"].clone())
+            .collect()
+    };
+    let h5_default = dir.path().join("features-512.h5");
+    ok(&[
+        os("extract"),
+        images.as_os_str(),
+        os("-o"),
+        h5_default.as_os_str(),
+        os("-q"),
+    ]);
+    let by_images = ranking(&[os("--images"), images.as_os_str()]);
+    assert!(by_images
+        .iter()
+        .all(|r| r.as_array().is_some_and(|r| r.len() == 8)));
+    assert_eq!(by_images, ranking(&[os("--features"), h5.as_os_str()]));
+    assert_ne!(
+        by_images,
+        ranking(&[os("--features"), h5_default.as_os_str()])
+    );
     let matching = localize("input.sfpm");
     let stderr = String::from_utf8_lossy(&matching.stderr);
     assert!(matching.status.success(), "{stderr}");

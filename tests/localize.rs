@@ -521,7 +521,8 @@ fn a_frame_that_loses_tracking_asks_for_its_global_descriptor() {
     assert_eq!(asked, 1, "{:?} {:?}", r.path, r.tracking_lost);
     assert_eq!(r.path, LocalizationPath::Retrieval);
     assert!(r.tracking_lost.is_some());
-    // Both images see every point, so retrieval cannot narrow them: but it ranked them.
+    // Both images see every point, so retrieval cannot narrow them; it ran with the global
+    // descriptor given (without one, the fallback below says so instead).
     assert_eq!(
         r.retrieval_fallback,
         Some(RetrievalFallback::EveryPointSeen)

@@ -201,16 +201,9 @@ fn convert_images_of(
         counts: vec![0; n_points],
     };
     let mut global = vec![0.0f32; model.images().len() * contract.global_dim];
-    // The size the global descriptors end up computed at, as the map records it: a
-    // `resize_max` input is no larger than that, and a query is downscaled to the same.
-    let global_size = match (
-        GlobalSize::from_max_side(options.global_max_side),
-        options.resize_max,
-    ) {
-        (GlobalSize::MaxSide(g), Some(r)) => GlobalSize::MaxSide(g.min(r)),
-        (GlobalSize::Input, Some(r)) => GlobalSize::MaxSide(r),
-        (size, _) => size,
-    };
+    // As the map records it: a `resize_max` input is already no larger than that side.
+    let global_size =
+        GlobalSize::from_max_side(options.global_max_side).effective(options.resize_max);
     let mut ms = Vec::new();
     let mut image_bytes = 0;
     let mut buf = Vec::with_capacity(width);

@@ -232,7 +232,7 @@ fn run_sfp(
     start: Instant,
 ) -> anyhow::Result<ExitCode> {
     use sfpmap::build::{convert_with_images, SfpMapOptions};
-    use sfpmap::extract::ExtractorOptions;
+    use sfpmap::extract::{ExtractorOptions, GlobalSize};
     sfpmap::extract::runtime::disable_telemetry();
     if let Some(t) = args.score_threshold.filter(|t| !(0.0..=1.0).contains(t)) {
         anyhow::bail!("--score-threshold {t}: scores are in [0, 1]");
@@ -245,7 +245,9 @@ fn run_sfp(
             threads: super::cap_threads(args.threads as usize, &bars),
         },
         resize_max: args.resize_max,
-        global_max_side: Some(args.global_max_side).filter(|&m| m > 0),
+        global_max_side: GlobalSize::from_flag(args.global_max_side)
+            .map_err(anyhow::Error::msg)?
+            .max_side(),
         score_threshold: args.score_threshold,
         allow_missing: args.allow_missing,
         codec: Codec::from(args.codec),

@@ -138,6 +138,11 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let options = SfpMapOptions::new(&images);
     let summary = convert_with_images(&sparse, &options, &full, &bars)?;
     let map = super::open_map(&full)?;
+    // The queries' global descriptors are computed as the map's were.
+    let detect = DetectOptions {
+        global: sfpmap::extract::GlobalSize::of_map(map.metadata()),
+        ..Default::default()
+    };
     let (writer, _) = slice(
         &map,
         &SliceOptions {
@@ -170,7 +175,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         let path = images.join(&q.name);
         let input = sfpmap::extract::image::load(&path, extractor.contract().gray_weights, None)?;
         let extracted = extractor
-            .extract(&input, &DetectOptions::default())
+            .extract(&input, &detect)
             .map_err(|e| e.on_image(&path))?;
         features.push(sfp_query(&extracted));
     }

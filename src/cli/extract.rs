@@ -149,7 +149,10 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         nms_radius: args.nms_radius,
         max_keypoints: args.max_keypoints.clone(),
         refine: Some(!args.no_refine),
-        global: GlobalSize::from_flag(args.global_max_side).map_err(anyhow::Error::msg)?,
+        // As convert records it: after `--resize-max`, the effective side.
+        global: GlobalSize::from_flag(args.global_max_side)
+            .map_err(anyhow::Error::msg)?
+            .effective(args.resize_max),
     };
     let mut results = Vec::with_capacity(images.len());
     // Per image: the extraction (network + keypoints and descriptors) and its parts, and the
@@ -199,7 +202,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     // `global_max_side` of a map; spec/extractor.md).
     attributes.push((
         "sfp.global_max_side".to_string(),
-        args.global_max_side.to_string(),
+        detect.global.side().to_string(),
     ));
     attributes.push((
         "sfp.level_ids".to_string(),
@@ -252,7 +255,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 "keypoints_descriptors": median_of(&keypoints_ms),
                 "global": median_of(&global_ms),
             },
-            "global_max_side": args.global_max_side,
+            "global_max_side": detect.global.side(),
             "threads": threads,
             "model": model.name,
             "model_xxh3": model.xxh3,

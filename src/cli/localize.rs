@@ -260,7 +260,7 @@ fn warn_h5_global_size(
     if !matches!(map.image_global(), Ok(Some(_))) {
         return Ok(());
     }
-    let map_side = map.metadata().global_max_side.unwrap_or(0);
+    let map_size = sfpmap::extract::GlobalSize::of_map(map.metadata());
     // Only a warning hangs on it: an attribute that is not one string is named, not fatal.
     let stated = match h5.root_string("sfp.global_max_side") {
         Ok(Some(side)) => side,
@@ -268,13 +268,19 @@ fn warn_h5_global_size(
         Ok(None) => return Ok(()),
         Err(_) => "(not one string)".to_string(),
     };
-    if stated.trim() != map_side.to_string() {
+    let file_size = stated
+        .trim()
+        .parse::<u32>()
+        .ok()
+        .map(|side| sfpmap::extract::GlobalSize::from_max_side(Some(side)));
+    if file_size != Some(map_size) {
         let mut shown: String = stated.chars().take(24).collect();
         if shown.len() < stated.len() {
             shown.push('…');
         }
+        let map_side = map_size.side();
         bars.warn(&format!(
-            "{}: global descriptors computed at max side {shown:?}, the map's at {map_side} \
+            "{}: global descriptors computed at max side {shown:?}, the map's at \"{map_side}\" \
              (0: the image's own size): retrieval by them will be poorer; extract with \
              --global-max-side {map_side}",
             h5_path.display()

@@ -21,11 +21,13 @@
 //! Turning a model and its images into an SFP map is `build::sfp`'s.
 
 pub mod contract;
+mod global;
 pub mod image;
 pub mod keypoints;
 pub mod runtime;
 
 use self::contract::Contract;
+pub use self::global::{GlobalSize, GLOBAL_MAX_SIDE, GLOBAL_MIN_SIDE};
 use self::image::GrayInput;
 use self::keypoints::{FeatureMap, ScoreMap};
 use crate::format::f16;
@@ -214,81 +216,6 @@ pub struct DetectOptions {
     pub global: GlobalSize,
 }
 
-/// The longer side, in pixels, of the copy of an image the global descriptor is computed on
-/// by default. sfp-v1's GeM global ranks a scene's images better on a small copy: recall@5 of
-/// the most co-visible database image on South Building's queries is 0.85 / 0.96 / 0.92 / 0.81
-/// at 384 / 512 / 640 / 1024 px, and 0.96 or more on the three shared scenes at 512
-/// (`python/eval_retrieval.py --max-side`): level 3's cells then span whole façades.
-pub const GLOBAL_MAX_SIDE: u32 = 512;
-
-/// The smallest global descriptor side a flag may ask for (as `--resize-max`'s 16).
-pub const GLOBAL_MIN_SIDE: u32 = 16;
-
-/// The image size a global descriptor is computed at (`spec/extractor.md`, "Global
-/// descriptor"). Map and query must agree: a map records it (metadata `global_max_side`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum GlobalSize {
-    /// The network input itself: the `global` output of the one inference every image gets
-    /// (maps without `global_max_side`, written before it existed, hold these).
-    Input,
-    /// A copy downscaled (triangle filter) so its longer side is at most this many pixels;
-    /// the input itself when it fits. A larger input costs one more, smaller, inference.
-    MaxSide(u32),
-    /// No global descriptor (`Features::global` empty): a query localized with a pose prior
-    /// does not retrieve, so a sequence skips it.
-    Skip,
-}
-
-impl Default for GlobalSize {
-    fn default() -> Self {
-        GlobalSize::MaxSide(GLOBAL_MAX_SIDE)
-    }
-}
-
-impl GlobalSize {
-    /// From a maximum side as a map's metadata and `--global-max-side` state it: `None` or 0
-    /// is [`GlobalSize::Input`].
-    pub fn from_max_side(max_side: Option<u32>) -> GlobalSize {
-        match max_side {
-            None | Some(0) => GlobalSize::Input,
-            Some(m) => GlobalSize::MaxSide(m),
-        }
-    }
-
-    /// From `--global-max-side N` (and the Python binding's `global_max_side`): 0 is
-    /// [`GlobalSize::Input`]; a side under [`GLOBAL_MIN_SIDE`] is refused, as it would leave
-    /// the deepest level a cell or two and retrieval nothing to rank by.
-    pub fn from_flag(max_side: u32) -> Result<GlobalSize, String> {
-        match max_side {
-            0 => Ok(GlobalSize::Input),
-            m if m < GLOBAL_MIN_SIDE => Err(format!(
-                "{m}: 0 (the image's own size) or at least {GLOBAL_MIN_SIDE}"
-            )),
-            m => Ok(GlobalSize::MaxSide(m)),
-        }
-    }
-
-    /// What a map records (metadata `global_max_side`): `None` for [`GlobalSize::Input`].
-    pub fn max_side(self) -> Option<u32> {
-        match self {
-            GlobalSize::MaxSide(m) => Some(m),
-            GlobalSize::Input | GlobalSize::Skip => None,
-        }
-    }
-
-    /// Whether an input of `width` x `height` gets its global descriptor from an inference of
-    /// its own (on a downscaled copy) at this size.
-    pub fn needs_a_copy(self, width: usize, height: usize) -> bool {
-        self.max_side()
-            .is_some_and(|m| width.max(height) > m as usize)
-    }
-
-    /// The size a map's global descriptors were computed at, which its queries' must share.
-    pub fn of_map(metadata: &crate::format::Metadata) -> GlobalSize {
-        GlobalSize::from_max_side(metadata.global_max_side)
-    }
-}
-
 /// The first level (index) whose keypoints are moved to the strongest cell of the next finer
 /// level's score map within half a cell (`spec/extractor.md`, "Coarse-to-fine refinement").
 /// On the held-out viewpoint pairs of `python/eval_homography.py` (sfp-v1) it raises level
@@ -444,7 +371,8 @@ pub struct Features {
     /// (width, height) of the image file.
     pub image_size: [u32; 2],
     pub levels: Vec<LevelFeatures>,
-    /// L2-normalised, at [`DetectOptions::global`]'s size; empty when skipped.
+    /// L2-normalised. [`Extractor::extract`]'s is at [`DetectOptions::global`]'s size (empty
+    /// when skipped); [`Extractor::features`]'s is its inference's own.
     pub global: Vec<f32>,
 }
 
@@ -807,59 +735,6 @@ impl Extractor {
             short,
             full,
         }
-    }
-
-    /// The global descriptor of `input` at `size`: `dense.global` (`input`'s own inference)
-    /// when the input fits, else the `global` of an inference on a downscaled copy; empty for
-    /// [`GlobalSize::Skip`].
-    pub fn global(
-        &mut self,
-        input: &GrayInput,
-        dense: &Dense,
-        size: GlobalSize,
-    ) -> Result<Vec<f32>, ExtractError> {
-        self.check_values(input)?;
-        match size {
-            GlobalSize::Skip => Ok(Vec::new()),
-            GlobalSize::Input => Ok(dense.global.clone()),
-            GlobalSize::MaxSide(m) => match input.downscaled(m) {
-                None => Ok(dense.global.clone()),
-                Some(small) => Ok(self.run(&small)?.global),
-            },
-        }
-    }
-
-    /// [`Extractor::global`] without the input's inference at hand: one inference, on the
-    /// downscaled copy where `size` asks for one, else on `input`.
-    pub fn global_of(
-        &mut self,
-        input: &GrayInput,
-        size: GlobalSize,
-    ) -> Result<Vec<f32>, ExtractError> {
-        self.check_values(input)?;
-        match (size, size.max_side().and_then(|m| input.downscaled(m))) {
-            (GlobalSize::Skip, _) => Ok(Vec::new()),
-            (_, Some(small)) => Ok(self.run(&small)?.global),
-            (_, None) => Ok(self.run(input)?.global),
-        }
-    }
-
-    /// A hand-made input whose values do not fill it is refused before any resize, which
-    /// would otherwise take the buffer for one that fits.
-    fn check_values(&self, input: &GrayInput) -> Result<(), ExtractError> {
-        if input.values.len() == input.width.saturating_mul(input.height) {
-            return Ok(());
-        }
-        Err(ExtractError::Inference {
-            model: self.model.name.clone(),
-            image: None,
-            reason: format!(
-                "the input holds {} values for {}x{} pixels",
-                input.values.len(),
-                input.width,
-                input.height
-            ),
-        })
     }
 
     /// [`Extractor::run`], [`Extractor::features`] and [`Extractor::global`] at

@@ -82,6 +82,12 @@ impl Retrieval {
 }
 
 impl Metadata {
+    /// The side `image_global` was computed at (`global_max_side`); `None`: the extractor's
+    /// input size, which an absent key and 0 both mean.
+    pub fn global_side(&self) -> Option<u32> {
+        self.global_max_side.filter(|&side| side > 0)
+    }
+
     /// The map's stated retrieval preference, if it states one this version knows.
     pub fn retrieval(&self) -> Option<Retrieval> {
         self.retrieval.as_deref().and_then(Retrieval::from_name)

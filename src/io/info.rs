@@ -121,7 +121,7 @@ impl<'m> Retrieval<'m> {
             preference: meta.retrieval.as_deref(),
             vlad,
             global_dims,
-            global_max_side: meta.global_max_side.filter(|&side| side > 0),
+            global_max_side: meta.global_side(),
         }
     }
 

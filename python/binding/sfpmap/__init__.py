@@ -541,19 +541,25 @@ class Extractor:
         nms_radius: Optional[int] = None,
         max_keypoints: Optional[Sequence[int]] = None,
         refine: bool = True,
-        global_max_side: int = 512,
+        global_max_side: Optional[int] = None,
     ) -> Features:
         """Per-level keypoints and descriptors (and the global descriptor) of an image file
         or a uint8 / [0, 1] float array (H×W grey or H×W×3 RGB). ``refine``: coarse-to-fine
         keypoint refinement of levels 2+ (``extract --no-refine`` is ``False``).
         ``global_max_side``: the global descriptor is computed on a copy at most this large
-        (0: the network input); a map's queries need the map's
-        (``Map.metadata.get("global_max_side", 0)``)."""
+        (``None``: 512; 0: the network input; else at least 16); a map's queries need the
+        map's (``Map.metadata.get("global_max_side", 0)``)."""
         if not isinstance(image, _np.ndarray):
             image = _os.fspath(image)
         mk = None if max_keypoints is None else [int(k) for k in max_keypoints]
         return self._inner.extract(
-            image, resize_max, threshold, nms_radius, mk, bool(refine), int(global_max_side)
+            image,
+            resize_max,
+            threshold,
+            nms_radius,
+            mk,
+            bool(refine),
+            None if global_max_side is None else int(global_max_side),
         )
 
 

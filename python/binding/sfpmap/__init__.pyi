@@ -269,7 +269,7 @@ class Extractor:
         nms_radius: Optional[int] = None,
         max_keypoints: Optional[Sequence[int]] = None,
         refine: bool = True,
-        global_max_side: int = 512,
+        global_max_side: Optional[int] = None,
     ) -> Features: ...
 
 def convert(

@@ -39,6 +39,8 @@ struct Options {
     allow_missing: bool,
     threads: usize,
     resize_max: Option<u32>,
+    /// `SfpMapOptions::global_max_side` (None: the network input).
+    global_max_side: Option<u32>,
     score_threshold: Option<f32>,
     short_dims: Option<u32>,
     codec: Codec,
@@ -58,6 +60,7 @@ impl Options {
         allow_missing: bool,
         threads: usize,
         resize_max: Option<u32>,
+        global_max_side: Option<u32>,
         score_threshold: Option<f32>,
         short_dims: Option<u32>,
         codec_name: &str,
@@ -85,9 +88,21 @@ impl Options {
                 ));
             }
         }
-        if images.is_none() && (model.is_some() || allow_missing || resize_max.is_some()) {
-            return bad("model, allow_missing and resize_max need images".into());
+        if images.is_none()
+            && (model.is_some()
+                || allow_missing
+                || resize_max.is_some()
+                || global_max_side.is_some())
+        {
+            return bad("model, allow_missing, resize_max and global_max_side need images".into());
         }
+        // As `--global-max-side`: 0 or at least GLOBAL_MIN_SIDE; default GLOBAL_MAX_SIDE.
+        let global_max_side = match global_max_side {
+            None => Some(sfpmap::extract::GLOBAL_MAX_SIDE),
+            Some(side) => sfpmap::extract::GlobalSize::from_flag(side)
+                .map_err(|e| InputError::new_err(format!("global_max_side {e}")))?
+                .max_side(),
+        };
         if images.is_none() && score_threshold.is_some() {
             return bad("score_threshold needs images".into());
         }
@@ -124,6 +139,7 @@ impl Options {
             allow_missing,
             threads,
             resize_max,
+            global_max_side,
             score_threshold,
             short_dims,
             codec: codec(codec_name)?,
@@ -159,6 +175,7 @@ impl Options {
                 threads: self.threads,
             },
             resize_max: self.resize_max,
+            global_max_side: self.global_max_side,
             score_threshold: self.score_threshold,
             allow_missing: self.allow_missing,
             codec: self.codec,
@@ -190,8 +207,8 @@ impl Options {
 /// SFP map) into the map `out`. Returns what `convert --json` prints (as JSON text).
 #[pyfunction]
 #[pyo3(signature = (model_dir, database=None, images=None, *, out, force=false, model=None,
-                    allow_missing=false, threads=2, resize_max=None, score_threshold=None,
-                    short_dims=None, codec="raw", zstd_level=3, aggregate=None, strict=false,
+                    allow_missing=false, threads=2, resize_max=None, global_max_side=None,
+                    score_threshold=None, short_dims=None, codec="raw", zstd_level=3, aggregate=None, strict=false,
                     vlad_clusters=None, vlad_dims=None, pq=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn convert(
@@ -205,6 +222,7 @@ pub(crate) fn convert(
     allow_missing: bool,
     threads: i64,
     resize_max: Option<u32>,
+    global_max_side: Option<u32>,
     score_threshold: Option<f32>,
     short_dims: Option<u32>,
     codec: &str,
@@ -228,6 +246,7 @@ pub(crate) fn convert(
         allow_missing,
         threads,
         resize_max,
+        global_max_side,
         score_threshold,
         short_dims,
         codec,
@@ -535,7 +554,8 @@ fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
 #[pyfunction]
 #[pyo3(signature = (reconstruction, database=None, images=None, *, out, force=false,
                     source="pycolmap.Reconstruction", model=None, allow_missing=false, threads=2,
-                    resize_max=None, score_threshold=None, short_dims=None, codec="raw",
+                    resize_max=None, global_max_side=None, score_threshold=None,
+                    short_dims=None, codec="raw",
                     zstd_level=3, aggregate=None, strict=false,
                     vlad_clusters=None, vlad_dims=None, pq=None))]
 #[allow(clippy::too_many_arguments)]
@@ -551,6 +571,7 @@ pub(crate) fn from_pycolmap(
     allow_missing: bool,
     threads: i64,
     resize_max: Option<u32>,
+    global_max_side: Option<u32>,
     score_threshold: Option<f32>,
     short_dims: Option<u32>,
     codec: &str,
@@ -574,6 +595,7 @@ pub(crate) fn from_pycolmap(
         allow_missing,
         threads,
         resize_max,
+        global_max_side,
         score_threshold,
         short_dims,
         codec,

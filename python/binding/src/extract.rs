@@ -122,9 +122,10 @@ impl Extractor {
 
     /// Keypoints and descriptors per level, and the global descriptor, of an image file
     /// (`str` / `os.PathLike`) or array. GIL released while the network runs.
-    /// `global_max_side`: the global descriptor's image size (0: the network input; a map's
-    /// metadata `global_max_side`, absent meaning 0, is what its queries need).
-    #[pyo3(signature = (image, resize_max=None, threshold=None, nms_radius=None, max_keypoints=None, refine=true, global_max_side=sfpmap::extract::GLOBAL_MAX_SIDE))]
+    /// `global_max_side`: the global descriptor's image size (`None`: 512; 0: the network
+    /// input; else at least 16; a map's metadata `global_max_side`, absent meaning 0, is what
+    /// its queries need).
+    #[pyo3(signature = (image, resize_max=None, threshold=None, nms_radius=None, max_keypoints=None, refine=true, global_max_side=None))]
     #[allow(clippy::too_many_arguments)]
     fn extract(
         &self,
@@ -135,7 +136,7 @@ impl Extractor {
         nms_radius: Option<u32>,
         max_keypoints: Option<Vec<usize>>,
         refine: bool,
-        global_max_side: u32,
+        global_max_side: Option<u32>,
     ) -> PyResult<Features> {
         let weights = self.gray_weights;
         let path = image.extract::<PathBuf>().ok();
@@ -151,8 +152,11 @@ impl Extractor {
             nms_radius,
             max_keypoints,
             refine: Some(refine),
-            global: sfpmap::extract::GlobalSize::from_flag(global_max_side)
-                .map_err(|e| InputError::new_err(format!("global_max_side {e}")))?,
+            global: match global_max_side {
+                None => sfpmap::extract::GlobalSize::default(),
+                Some(side) => sfpmap::extract::GlobalSize::from_flag(side)
+                    .map_err(|e| InputError::new_err(format!("global_max_side {e}")))?,
+            },
         };
         let f = py
             .detach(|| {

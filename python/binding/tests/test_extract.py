@@ -39,6 +39,33 @@ def test_extract_equals_the_cli_features_h5(cli, shared, work, extractor):
     assert mine.global_descriptor is not None and mine.global_descriptor.ndim == 1
 
 
+def test_refine_and_global_max_side_are_the_cli_flags(cli, shared, work, extractor):
+    # `refine=False` is `--no-refine`, `global_max_side` is `--global-max-side` (512 unless
+    # given; 0: the image's own size; under 16 refused).
+    scene = shared / "scenes/south-building"
+    name = sorted(p.name for p in (scene / "images").iterdir())[3]
+    image = scene / "images" / name
+    for flags, kwargs in [
+        ([], {}),
+        (["--no-refine", "--global-max-side", "0"], {"refine": False, "global_max_side": 0}),
+    ]:
+        h5 = work / "flags.h5"
+        run_cli(cli, "extract", image, "-o", h5, "--force", *flags)
+        from_cli = sfpmap.read_features_h5(h5).features(name)
+        mine = extractor.extract(image, **kwargs)
+        for level in mine.levels:
+            assert np.array_equal(from_cli.keypoints(level), mine.keypoints(level)), (flags, level)
+        assert np.allclose(from_cli.global_descriptor, mine.global_descriptor, atol=1e-6), flags
+    own = extractor.extract(image, global_max_side=0).global_descriptor
+    small = extractor.extract(image).global_descriptor
+    assert float(own @ small) < 0.999
+    assert not np.array_equal(
+        extractor.extract(image, refine=False).keypoints(2), extractor.extract(image).keypoints(2)
+    )
+    with pytest.raises(sfpmap.InputError, match="global_max_side 8: 0 .* or at least 16"):
+        extractor.extract(image, global_max_side=8)
+
+
 def write_png(path, gray: np.ndarray) -> None:
     """An 8-bit greyscale PNG, by hand (no imaging package needed)."""
     import struct
