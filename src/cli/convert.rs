@@ -56,7 +56,8 @@ pub struct Args {
     #[arg(long, requires = "images", value_parser = clap::value_parser!(u32).range(16..))]
     pub resize_max: Option<u32>,
     /// With --images: the longer side of the copy each image's global descriptor (retrieval)
-    /// is computed on; 0: the network input itself. The map records it; localize follows it.
+    /// is computed on; 0: the network input itself; else at least 16. The map records it (at
+    /// most --resize-max); localize follows it.
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images", default_value_t = sfpmap::extract::GLOBAL_MAX_SIDE,
           value_parser = super::global_max_side)]

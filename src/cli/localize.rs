@@ -741,8 +741,8 @@ impl Source {
     /// The query's features, or why they cannot be had for this query (missing, or an image
     /// that does not decode completely): a failed query, not an error. `tracked`: a sequence's
     /// frame with a pose prior, which does not retrieve, so the extractor skips the global
-    /// descriptor's extra inference (a frame that loses tracking then retrieves without it:
-    /// by the map's VLAD, else every point).
+    /// descriptor's extra inference where it costs one (a frame that then loses tracking gets
+    /// it from [`Source::global_of`]).
     fn features(
         &mut self,
         name: &str,
