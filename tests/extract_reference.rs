@@ -112,7 +112,7 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
 fn matches_the_python_onnxruntime_reference_on_a_real_image() {
     let dir = tempfile::tempdir().unwrap();
     // The Python side reads the file the embedded DEFAULT_MODEL is include_bytes! of.
-    let model = root().join("models/sfp-v1.onnx");
+    let model = root().join("models/sfp-v2.onnx");
     let (png, reference) = reference(&model, &scene_image(), dir.path());
 
     let mut extractor = Extractor::new(

@@ -250,13 +250,21 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_refuses_v1() {
         "{err}"
     );
     assert!(!t.path().join("b.txt").exists());
-    // sfp-v1 features from a features.h5 (the default model of `extract`): refused too.
+    // sfp-v1 features from a features.h5: refused too.
     let query_image = std::fs::read_to_string(s.join("queries.txt")).unwrap();
     let query_image = sd(&format!(
         "images/{}",
         query_image.split(' ').next().unwrap()
     ));
-    run(&["extract", &query_image, "-o", &p("q1.h5"), "-q"]);
+    run(&[
+        "extract",
+        &query_image,
+        "--model",
+        "sfp-v1",
+        "-o",
+        &p("q1.h5"),
+        "-q",
+    ]);
     let o = localize_with("m.sfpm", &["--features".into(), p("q1.h5")], "e.txt");
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);

@@ -1,4 +1,5 @@
-"""Contract test for models/sfp-v1.onnx (spec/extractor.md). Needs only onnxruntime, numpy, pillow.
+"""Contract test for a shipped model (spec/extractor.md): `SFP_MODEL`, default models/sfp-v2.onnx
+(the embedded default; CI runs it on every file of models/). Needs only onnxruntime, numpy, pillow.
 
     python3 -m pytest -q python/tests          # or, without pytest:
     python3 python/tests/test_model_contract.py
@@ -16,7 +17,7 @@ from PIL import Image
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.normpath(os.path.join(HERE, "..", ".."))
-MODEL = os.environ.get("SFP_MODEL", os.path.join(REPO, "models", "sfp-v1.onnx"))
+MODEL = os.environ.get("SFP_MODEL", os.path.join(REPO, "models", "sfp-v2.onnx"))
 SHARED = os.environ.get("SFP_SHARED", os.path.normpath(os.path.join(REPO, "..", "shared")))
 SCENE_IMAGES = os.path.join(SHARED, "data", "scenes", "south-building", "images")
 

@@ -89,7 +89,7 @@ pub struct Args {
     /// hloc-style features.h5 with the queries' features (e.g. from `sfpmap extract`).
     #[arg(long, conflicts_with = "database")]
     pub features: Option<PathBuf>,
-    /// SFP model for query extraction: a file, or a built-in model's name (sfp-v1, sfp-v2s);
+    /// SFP model for query extraction: a file, or a built-in model's name (sfp-v2, sfp-v1, sfp-v2s);
     /// default: the built-in model the map was made with.
     #[arg(long)]
     pub model: Option<PathBuf>,

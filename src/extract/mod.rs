@@ -39,17 +39,21 @@ use ort::value::Tensor;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-/// The default model, embedded so the CLI works from any folder without `--model`.
-pub static DEFAULT_MODEL: &[u8] = include_bytes!("../../models/sfp-v1.onnx");
+/// The default model, embedded so the CLI works from any folder without `--model`: sfp-v2,
+/// sfp-v1 distilled into a stem of one stride-2 convolution (`models/sfp-v2.md`: the same
+/// localization and retrieval on the shared scenes at 0.57x sfp-v1's network time).
+pub static DEFAULT_MODEL: &[u8] = include_bytes!("../../models/sfp-v2.onnx");
 /// How the embedded model is named in errors and provenance.
-pub const DEFAULT_MODEL_NAME: &str = "models/sfp-v1.onnx (embedded)";
+pub const DEFAULT_MODEL_NAME: &str = "models/sfp-v2.onnx (embedded)";
 
 /// The models built into the library, by their `sfp.model_name`; the first is
-/// [`DEFAULT_MODEL`]. `sfp-v2s` is sfp-v1 distilled into a strided stem (issue 17: about 0.65x
-/// the network time, `models/sfp-v2s.md`). A map records its model's name, so `localize` finds
-/// the model a map was made with here; `--model NAME` picks one by name.
+/// [`DEFAULT_MODEL`]. `sfp-v1` was the default until sfp-v2 (`models/sfp-v1.md`), `sfp-v2s`
+/// is sfp-v1 distilled into a two-convolution strided stem (`models/sfp-v2s.md`). A map
+/// records its model's name, so `localize` finds the model a map was made with here;
+/// `--model NAME` picks one by name.
 pub static BUILTIN_MODELS: &[(&str, &[u8])] = &[
-    ("sfp-v1", DEFAULT_MODEL),
+    ("sfp-v2", DEFAULT_MODEL),
+    ("sfp-v1", include_bytes!("../../models/sfp-v1.onnx")),
     ("sfp-v2s", include_bytes!("../../models/sfp-v2s.onnx")),
 ];
 
@@ -66,7 +70,7 @@ pub fn builtin_model(name: &str) -> Option<&'static [u8]> {
         .map(|(_, bytes)| *bytes)
 }
 
-/// The built-in models' names, for messages: "sfp-v1, sfp-v2s".
+/// The built-in models' names, for messages: "sfp-v2, sfp-v1, sfp-v2s".
 pub fn builtin_model_names() -> String {
     BUILTIN_MODELS
         .iter()

@@ -114,7 +114,7 @@ impl Extractor {
         })
     }
 
-    /// The descriptor kind the model makes (`"sfp-v1"`, ...), as maps record it.
+    /// The descriptor kind the model makes (`"sfp-v2"`, ...), as maps record it.
     #[getter]
     fn descriptor(&self) -> String {
         self.model_name.clone()
