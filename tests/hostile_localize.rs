@@ -246,7 +246,7 @@ fn query_jpeg() -> (Vec<u8>, usize) {
     (bytes, start)
 }
 
-/// An SFP map the embedded extractor's queries fit: level 2 (stride 8) of sfp-v1, 192 full
+/// An SFP map the built-in sfp-v1's queries fit: level 2 (stride 8) of sfp-v1, 192 full
 /// dimensions of which 64 short, random descriptors.
 fn sfp_map(dir: &Path) -> PathBuf {
     write(dir, "sfp.sfpm", &common::sfp_level_2_map(&[]))

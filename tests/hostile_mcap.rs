@@ -380,7 +380,7 @@ fn a_flipped_byte_in_a_chunk_is_named_and_the_other_chunks_are_read() {
     }
 }
 
-/// An SFP map the embedded extractor's queries fit, built in a moment (random points and
+/// An SFP map the built-in sfp-v1's queries fit, built in a moment (random points and
 /// descriptors, so nothing localizes): level 2 (stride 8) of sfp-v1, 192 full dimensions of
 /// which 64 short, and level 3 with no points, which the localizer skips.
 fn map_with_an_empty_level(dir: &Path) -> String {

@@ -708,6 +708,7 @@ impl Source {
     /// The global descriptor of query `name`, for a tracked frame extracted without it that
     /// lost tracking; `None` when this source gives none (or the image no longer reads, which
     /// its features' extraction has just done).
+    #[cfg_attr(not(feature = "onnx"), allow(unused_variables))]
     fn global_of(&mut self, name: &str) -> Option<Vec<f32>> {
         match self {
             #[cfg(feature = "onnx")]
@@ -722,10 +723,7 @@ impl Source {
                 let input = sfpmap::extract::image::load(&path, weights, None).ok()?;
                 extractor.global_of(&input, *global).ok()
             }
-            _ => {
-                let _ = name;
-                None
-            }
+            _ => None,
         }
     }
 
@@ -743,6 +741,7 @@ impl Source {
     /// frame with a pose prior, which does not retrieve, so the extractor skips the global
     /// descriptor's extra inference where it costs one (a frame that then loses tracking gets
     /// it from [`Source::global_of`]).
+    #[cfg_attr(not(feature = "onnx"), allow(unused_variables))]
     fn features(
         &mut self,
         name: &str,

@@ -41,7 +41,7 @@ use std::path::{Path, PathBuf};
 
 /// The default model, embedded so the CLI works from any folder without `--model`: sfp-v2,
 /// sfp-v1 distilled into a stem of one stride-2 convolution (`models/sfp-v2.md`: the same
-/// localization and retrieval on the shared scenes at 0.57x sfp-v1's network time).
+/// localization and retrieval recall@5 on the shared scenes at 0.57x sfp-v1's network time).
 pub static DEFAULT_MODEL: &[u8] = include_bytes!("../../models/sfp-v2.onnx");
 /// How the embedded model is named in errors and provenance.
 pub const DEFAULT_MODEL_NAME: &str = "models/sfp-v2.onnx (embedded)";

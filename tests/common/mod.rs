@@ -790,7 +790,7 @@ pub fn colmap_schema(conn: &rusqlite::Connection) {
     .unwrap();
 }
 
-/// An SFP-like map the embedded extractor's queries fit, built in a moment: 500 random points at
+/// An SFP-like map the built-in sfp-v1's queries fit, built in a moment: 500 random points at
 /// depth 10, level 2 (stride 8) of sfp-v1 with 192 full dimensions of which 64 short, random
 /// descriptors (so nothing localizes), plus a level with no points for each of `empty_levels`
 /// (id, stride).

@@ -7,7 +7,11 @@ localize queries. The work runs in Rust with the GIL released.
 >>> import sfpmap
 >>> with sfpmap.Map("south-building.sfpm") as m:
 ...     loc = sfpmap.Localizer(m)
-...     r = loc.localize(sfpmap.Extractor().extract("query.jpg"), "SIMPLE_RADIAL 1024 768 850 512 384 0")
+...     # the map's own model (a built-in name) and global descriptor size
+...     model = m.metadata["levels"][0]["descriptor"]
+...     side = m.metadata.get("global_max_side", 0)
+...     f = sfpmap.Extractor(model).extract("query.jpg", global_max_side=side)
+...     r = loc.localize(f, "SIMPLE_RADIAL 1024 768 850 512 384 0")
 ...     print(r.cam_from_world)
 
 Threads: ``Map``, ``Localizer``, ``Extractor``, ``FeaturesFile`` and ``QueryDatabase`` may be
