@@ -151,6 +151,16 @@ fn check_pose(scene: &Scene, query: &Query, cam_from_world: &Pose, what: &str) {
     );
 }
 
+/// `convert --colmap SCENE/sparse-map SOURCE... -o map --quiet`: SOURCE is the features'
+/// (`--database DB` or `--images DIR`).
+fn convert_scene(map: &Path, source: &[&str]) {
+    let sparse = scene().root.join("sparse-map");
+    let mut args = vec!["convert", "--colmap", path_str(&sparse)];
+    args.extend(source);
+    args.extend(["-o", path_str(map), "--quiet"]);
+    ok(&args);
+}
+
 /// The SIFT map of the scene (from a copy of its database), built once per test binary.
 fn sift_map() -> &'static (tempfile::TempDir, PathBuf, PathBuf) {
     static MAP: OnceLock<(tempfile::TempDir, PathBuf, PathBuf)> = OnceLock::new();
@@ -160,16 +170,7 @@ fn sift_map() -> &'static (tempfile::TempDir, PathBuf, PathBuf) {
         let database = dir.path().join("database.db");
         std::fs::copy(s.root.join("database.db"), &database).unwrap();
         let map = dir.path().join("sift.sfpm");
-        ok(&[
-            "convert",
-            "--colmap",
-            path_str(&s.root.join("sparse-map")),
-            "--database",
-            path_str(&database),
-            "-o",
-            path_str(&map),
-            "--quiet",
-        ]);
+        convert_scene(&map, &["--database", path_str(&database)]);
         // The smallest useful slice: the coarsest level's short descriptors.
         let slice = dir.path().join("sift-l2s.sfpm");
         ok(&[
@@ -310,16 +311,7 @@ fn sfp_map() -> &'static (tempfile::TempDir, PathBuf) {
         let s = scene();
         let dir = tempfile::tempdir().unwrap();
         let map = dir.path().join("sfp.sfpm");
-        ok(&[
-            "convert",
-            "--colmap",
-            path_str(&s.root.join("sparse-map")),
-            "--images",
-            path_str(&s.root.join("images")),
-            "-o",
-            path_str(&map),
-            "--quiet",
-        ]);
+        convert_scene(&map, &["--images", path_str(&s.root.join("images"))]);
         (dir, map)
     })
 }

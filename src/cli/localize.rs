@@ -289,6 +289,20 @@ fn warn_h5_global_size(
     Ok(())
 }
 
+/// The size the queries' global descriptors are extracted at: the map's (`global_max_side`),
+/// or none where retrieval will not rank by them (the map stores none, or `--retrieval vlad`
+/// or `off`).
+#[cfg(feature = "onnx")]
+fn query_global_size(args: &Args, map: &Map<'_>) -> sfpmap::extract::GlobalSize {
+    let ranks_by_global = matches!(args.retrieval, RetrievalArg::Auto | RetrievalArg::Global)
+        && matches!(map.image_global(), Ok(Some(_)));
+    if ranks_by_global {
+        sfpmap::extract::GlobalSize::of_map(map.metadata())
+    } else {
+        sfpmap::extract::GlobalSize::Skip
+    }
+}
+
 /// The SFP extractor (`--model`, else the embedded one), checked against the map's descriptors.
 #[cfg(feature = "onnx")]
 fn sfp_extractor(
@@ -472,13 +486,13 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 );
             }
             let extractor = sfp_extractor(&args, &descriptor, map_model_xxh3(&map), &bars)?;
-            // The queries' global descriptors are computed as the map's were.
-            let global = sfpmap::extract::GlobalSize::of_map(map.metadata());
+            let global = query_global_size(&args, &map);
             Source::Extractor {
                 extractor,
                 images,
                 global,
                 skipped_global: 0,
+                skipped: None,
             }
         }
         #[cfg(not(feature = "onnx"))]
@@ -701,26 +715,30 @@ enum Source {
         global: sfpmap::extract::GlobalSize,
         /// Tracked frames extracted without it (`--json`'s `global_skipped`).
         skipped_global: usize,
+        /// The last such frame's name and input, for [`Source::global_of`] if it loses
+        /// tracking (no second read and decode).
+        skipped: Option<Box<(String, sfpmap::extract::image::GrayInput)>>,
     },
 }
 
 impl Source {
-    /// The global descriptor of query `name`, for a tracked frame extracted without it that
-    /// lost tracking; `None` when this source gives none (or the image no longer reads, which
-    /// its features' extraction has just done).
+    /// The global descriptor of query `name`, a tracked frame extracted without it that
+    /// lost tracking (its input is kept until the next query); `None` when this source gives
+    /// none, or the inference fails (the query then retrieves without it, which it reports).
     #[cfg_attr(not(feature = "onnx"), allow(unused_variables))]
     fn global_of(&mut self, name: &str) -> Option<Vec<f32>> {
         match self {
             #[cfg(feature = "onnx")]
             Source::Extractor {
                 extractor,
-                images,
                 global,
+                skipped,
                 ..
             } => {
-                let path = images.join(name);
-                let weights = extractor.contract().gray_weights;
-                let input = sfpmap::extract::image::load(&path, weights, None).ok()?;
+                let (skipped_name, input) = *skipped.take()?;
+                if skipped_name != name {
+                    return None;
+                }
                 extractor.global_of(&input, *global).ok()
             }
             _ => None,
@@ -762,8 +780,10 @@ impl Source {
                 images,
                 global,
                 skipped_global,
+                skipped,
             } => {
                 use sfpmap::extract::ExtractError;
+                *skipped = None;
                 let path = images.join(name);
                 // A FIFO or folder goes on to `load`, whose regular-file rule names it.
                 if !path.exists() {
@@ -800,6 +820,9 @@ impl Source {
                 let f = extractor
                     .extract(&input, &options)
                     .map_err(|e| e.on_image(&path))?;
+                if skip {
+                    *skipped = Some(Box::new((name.to_string(), input)));
+                }
                 Ok(Ok(sfpmap::io::queries::sfp_query(&f)))
             }
         }

@@ -257,9 +257,10 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
     )?;
     let extractor = super::sfp_extractor(args, &descriptor, super::map_model_xxh3(&map), bars)?;
     let gray_weights = extractor.contract().gray_weights;
-    // The frames' global descriptors are computed as the map's were.
+    // The frames' global descriptors are computed as the map's were (none where retrieval
+    // will not rank by them).
     let detect = DetectOptions {
-        global: sfpmap::extract::GlobalSize::of_map(map.metadata()),
+        global: super::query_global_size(args, &map),
         ..Default::default()
     };
     let localizer = super::localizer(&map, args, args.map_path())?;
