@@ -90,7 +90,8 @@ pub struct Args {
     #[arg(long, conflicts_with = "database")]
     pub features: Option<PathBuf>,
     /// SFP model for query extraction: a file, or a built-in model's name (sfp-v2, sfp-v1, sfp-v2s);
-    /// default: the built-in model the map was made with.
+    /// default: the built-in model the map was made with (another model runs as asked, with a
+    /// warning).
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Levels to use (repeat); default all. Coarse matching uses the deepest.
@@ -344,12 +345,15 @@ fn sfp_extractor(
             );
         }
     }
+    // Only `--model` can name another model (without it, the map's own runs): that is asked
+    // for on purpose (e.g. a faster student of the map's model), so it runs, said once.
     if extractor.contract().model_name != descriptor {
-        bail!(
-            "{}: the map's descriptors are {descriptor:?} but the model is {:?}",
+        bars.warn(&format!(
+            "{}: the map's descriptors are {descriptor:?} but --model is {:?}: localizing \
+             with another model's descriptors, as asked",
             args.map_path().display(),
             extractor.contract().model_name
-        );
+        ));
     }
     Ok(extractor)
 }
