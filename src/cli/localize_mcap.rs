@@ -13,7 +13,8 @@ use super::Args;
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::colmap::text::{escape_control_characters, quoted_name};
-use sfpmap::extract::{DetectOptions, Extractor};
+use sfpmap::extract::image::GrayInput;
+use sfpmap::extract::{DetectOptions, Extractor, GlobalSize};
 use sfpmap::geometry::Camera;
 use sfpmap::io::mcap_io::{self, Damage, LogReader, Skipped, Stamp};
 use sfpmap::io::poses::tum_line;
@@ -24,6 +25,7 @@ use std::collections::{BTreeMap, HashSet};
 use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
@@ -268,6 +270,10 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
 
     bars.start("localizing", expected_on_topic);
     let extractor = Mutex::new(extractor);
+    // Whether the sequence is tracking (the localizing thread's motion model predicts the next
+    // frame): a frame extracted meanwhile skips its global descriptor, as `--sequence` does.
+    let tracking = AtomicBool::new(false);
+    let global_skipped = AtomicUsize::new(0);
     let frames: Mutex<BTreeMap<usize, Frame>> = Mutex::new(BTreeMap::new());
     // Failure reasons, each kept once.
     let reasons: Mutex<HashSet<Arc<str>>> = Mutex::new(HashSet::new());
@@ -297,7 +303,19 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
                 // Every index must reach the localizer, which waits for them in order: a
                 // panic becomes the frame's failure instead of a hang.
                 let extracted = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    extract_message(&message, &camera, gray_weights, &detect, &extractor)
+                    let tracked = tracking.load(Ordering::Relaxed);
+                    let extracted = extract_message(
+                        &message,
+                        &camera,
+                        gray_weights,
+                        &detect,
+                        tracked,
+                        &extractor,
+                    );
+                    if matches!(&extracted.1, Ok(q) if q.skipped.is_some()) {
+                        global_skipped.fetch_add(1, Ordering::Relaxed);
+                    }
+                    extracted
                 }))
                 .unwrap_or_else(|_| {
                     let frame = Frame::of(&message);
@@ -317,8 +335,15 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             while let Some((index, (mut frame, features))) = pending.take_next() {
                 let outcome = match features {
                     Ok(q) => std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                        // A frame that skipped its global descriptor and lost tracking gets it
+                        // from its kept input.
+                        let mut global = || {
+                            let input = q.skipped.as_deref()?;
+                            let mut extractor = extractor.lock().unwrap_or_else(|p| p.into_inner());
+                            extractor.global_of(input, detect.global).ok()
+                        };
                         motion
-                            .localize(&localizer, &q, &camera)
+                            .localize_then_global(&localizer, &q.features, &camera, &mut global)
                             .map_err(|e| e.to_string())
                     }))
                     .unwrap_or_else(|_| {
@@ -330,6 +355,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
                         Err(reason)
                     }
                 };
+                tracking.store(motion.predict().is_some(), Ordering::Relaxed);
                 frame.outcome = match outcome {
                     Ok(l) => Ok(Box::new(l)),
                     Err(reason) => Err(share(reason)),
@@ -468,6 +494,8 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             tracking_lost: BTreeMap<String, usize>,
             retrieval: BTreeMap<&'static str, usize>,
             retrieval_fallback: BTreeMap<String, usize>,
+            /// Frames extracted while tracking, without the global descriptor's copy.
+            global_skipped: usize,
         }
         let report = Report {
             mcap: input.display().to_string(),
@@ -486,6 +514,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             tracking_lost: paths.tracking_lost,
             retrieval: paths.retrieval,
             retrieval_fallback: paths.retrieval_fallback,
+            global_skipped: global_skipped.load(Ordering::Relaxed),
         };
         use std::io::Write as _;
         let mut out = std::io::stdout().lock();
@@ -554,14 +583,23 @@ impl serde::Serialize for FailedFrames<'_> {
     }
 }
 
-/// The frame of one image message and its features, or why there are none.
+/// A frame's query features, and its input when its global descriptor was skipped (extracted
+/// while the sequence tracked): the descriptor is computed from it only if tracking is lost.
+struct FrameQuery {
+    features: QueryFeatures,
+    skipped: Option<Box<GrayInput>>,
+}
+
+/// The frame of one image message and its features, or why there are none. `tracked`: the
+/// sequence is tracking, so the global descriptor is skipped where it costs an inference.
 fn extract_message(
     message: &mcap::Message<'_>,
     camera: &Camera,
     gray_weights: [f32; 3],
     detect: &DetectOptions,
+    tracked: bool,
     extractor: &Mutex<Extractor>,
-) -> (Frame, Result<QueryFeatures, String>) {
+) -> (Frame, Result<FrameQuery, String>) {
     let mut frame = Frame::of(message);
     let schema = schema_name(&message.channel);
     let decoded =
@@ -586,14 +624,24 @@ fn extract_message(
     }
     let input = sfpmap::extract::image::from_image(&decoded.image, gray_weights, None);
     drop(decoded);
+    let skip = tracked && detect.global.needs_a_copy(input.width, input.height);
+    let options = DetectOptions {
+        global: if skip {
+            GlobalSize::Skip
+        } else {
+            detect.global
+        },
+        ..detect.clone()
+    };
     // One ONNX session: extraction takes turns, decoding runs in parallel.
     let features = extractor
         .lock()
         .unwrap_or_else(|p| p.into_inner())
-        .extract(&input, detect);
-    let features = features
-        .map_err(|e| e.to_string())
-        .map(|f| sfpmap::io::queries::sfp_query(&f));
+        .extract(&input, &options);
+    let features = features.map_err(|e| e.to_string()).map(|f| FrameQuery {
+        features: sfpmap::io::queries::sfp_query(&f),
+        skipped: skip.then(|| Box::new(input)),
+    });
     (frame, features)
 }
 
@@ -606,7 +654,7 @@ struct Ordered {
     capacity: usize,
 }
 
-type Extracted = (Frame, Result<QueryFeatures, String>);
+type Extracted = (Frame, Result<FrameQuery, String>);
 
 struct OrderedState {
     pending: BTreeMap<usize, Extracted>,
