@@ -190,26 +190,27 @@ fn sift_map() -> &'static (tempfile::TempDir, PathBuf, PathBuf) {
 /// `localize` on the query list with the queries' SIFT from a copy of queries.db: the
 /// `--json` report and the `--format json` per-query list.
 fn localize_list(map: &Path, extra: &[&str]) -> (Value, Vec<Value>) {
-    let s = scene();
     let dir = tempfile::tempdir().unwrap();
     let database = dir.path().join("queries.db");
-    std::fs::copy(s.root.join("queries.db"), &database).unwrap();
+    std::fs::copy(scene().root.join("queries.db"), &database).unwrap();
+    localize_json(map, &["--database", path_str(&database)], extra)
+}
+
+/// `localize --map MAP --query-list queries.txt FEATURES... --format json EXTRA...`: the
+/// `--json` report and the per-query list.
+fn localize_json(map: &Path, features: &[&str], extra: &[&str]) -> (Value, Vec<Value>) {
+    let dir = tempfile::tempdir().unwrap();
     let poses = dir.path().join("poses.json");
-    let query_list = s.root.join("queries.txt");
+    let query_list = scene().root.join("queries.txt");
     let mut args = vec![
         "localize",
         "--map",
         path_str(map),
         "--query-list",
         path_str(&query_list),
-        "--database",
-        path_str(&database),
-        "--format",
-        "json",
-        "-o",
-        path_str(&poses),
-        "--json",
     ];
+    args.extend(features);
+    args.extend(["--format", "json", "-o", path_str(&poses), "--json"]);
     args.extend(extra);
     let report = ok(&args);
     let list: Value = serde_json::from_slice(&std::fs::read(&poses).unwrap()).unwrap();
@@ -323,7 +324,6 @@ fn sfp_map() -> &'static (tempfile::TempDir, PathBuf) {
 #[test]
 fn sfp_map_sequence_skips_the_global_descriptor_of_tracked_frames() {
     let s = scene();
-    let dir = tempfile::tempdir().unwrap();
     let map = &sfp_map().1;
     assert_eq!(
         sfpmap::format::Map::open(map)
@@ -332,29 +332,8 @@ fn sfp_map_sequence_skips_the_global_descriptor_of_tracked_frames() {
             .global_max_side,
         Some(512)
     );
-    let (query_list, images) = (s.root.join("queries.txt"), s.root.join("images"));
-    let run = |extra: &[&str]| {
-        let poses = dir.path().join("poses.json");
-        let mut args = vec![
-            "localize",
-            "--map",
-            path_str(map),
-            "--query-list",
-            path_str(&query_list),
-            "--images",
-            path_str(&images),
-            "--format",
-            "json",
-            "-o",
-            path_str(&poses),
-            "--force",
-            "--json",
-        ];
-        args.extend(extra);
-        let report = ok(&args);
-        let list: Value = serde_json::from_slice(&std::fs::read(&poses).unwrap()).unwrap();
-        (report, list.as_array().unwrap().clone())
-    };
+    let images = s.root.join("images");
+    let run = |extra: &[&str]| localize_json(map, &["--images", path_str(&images)], extra);
     let (report, list) = run(&["--sequence"]);
     let paths = check_list_run("SFP sequence", &report, &list);
     assert_eq!(paths[0], "retrieval", "{}", list[0]);
