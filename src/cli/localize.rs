@@ -810,15 +810,11 @@ impl Source {
                 {
                     return Ok(Err(reason));
                 }
-                // Skipped only where it costs an inference of its own.
-                let skip = tracked && global.needs_a_copy(input.width, input.height);
+                let size = global.for_frame(tracked, input.width, input.height);
+                let skip = size != *global;
+                *skipped_global += usize::from(skip);
                 let options = sfpmap::extract::DetectOptions {
-                    global: if skip {
-                        *skipped_global += 1;
-                        sfpmap::extract::GlobalSize::Skip
-                    } else {
-                        *global
-                    },
+                    global: size,
                     ..Default::default()
                 };
                 let f = extractor

@@ -14,7 +14,7 @@ use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::colmap::text::{escape_control_characters, quoted_name};
 use sfpmap::extract::image::GrayInput;
-use sfpmap::extract::{DetectOptions, Extractor, GlobalSize};
+use sfpmap::extract::{DetectOptions, Extractor};
 use sfpmap::geometry::Camera;
 use sfpmap::io::mcap_io::{self, Damage, LogReader, Skipped, Stamp};
 use sfpmap::io::poses::tum_line;
@@ -624,13 +624,10 @@ fn extract_message(
     }
     let input = sfpmap::extract::image::from_image(&decoded.image, gray_weights, None);
     drop(decoded);
-    let skip = tracked && detect.global.needs_a_copy(input.width, input.height);
+    let size = detect.global.for_frame(tracked, input.width, input.height);
+    let skip = size != detect.global;
     let options = DetectOptions {
-        global: if skip {
-            GlobalSize::Skip
-        } else {
-            detect.global
-        },
+        global: size,
         ..detect.clone()
     };
     // One ONNX session: extraction takes turns, decoding runs in parallel.

@@ -90,6 +90,18 @@ impl GlobalSize {
             .is_some_and(|m| width.max(height) > m as usize)
     }
 
+    /// The size a sequence's frame of `width` x `height` is extracted at: [`GlobalSize::Skip`]
+    /// when `tracked` (a frame with a pose prior does not retrieve) and the descriptor would
+    /// cost an inference of its own, else `self`. A frame whose size differs from `self` was
+    /// skipped, and gets its descriptor from [`Extractor::global_of`] if it loses tracking.
+    pub fn for_frame(self, tracked: bool, width: usize, height: usize) -> GlobalSize {
+        if tracked && self.needs_a_copy(width, height) {
+            GlobalSize::Skip
+        } else {
+            self
+        }
+    }
+
     /// The size a map's global descriptors were computed at, which its queries' must share.
     pub fn of_map(metadata: &crate::format::Metadata) -> GlobalSize {
         GlobalSize::from_max_side(metadata.global_side())
@@ -106,14 +118,10 @@ impl Extractor {
         dense: &Dense,
         size: GlobalSize,
     ) -> Result<Vec<f32>, ExtractError> {
-        self.check_values(input)?;
         match size {
             GlobalSize::Skip => Ok(Vec::new()),
-            GlobalSize::Input => Ok(dense.global.clone()),
-            GlobalSize::MaxSide(m) => match input.downscaled(m) {
-                None => Ok(dense.global.clone()),
-                Some(small) => Ok(self.run(&small)?.global),
-            },
+            _ if size.needs_a_copy(input.width, input.height) => self.global_of(input, size),
+            _ => Ok(dense.global.clone()),
         }
     }
 

@@ -22,9 +22,7 @@ impl GrayInput {
             self.original_size[1] as f32 / self.height as f32,
         ]
     }
-}
 
-impl GrayInput {
     /// A copy downscaled (triangle filter, as [`from_image`] resizes) so its longer side is
     /// `max_side`, with the same `original_size`; `None` when it already fits.
     pub fn downscaled(&self, max_side: u32) -> Option<GrayInput> {
