@@ -1,0 +1,291 @@
+//! The Rust extractor against the Python ONNX Runtime reference (`tests/extract_reference.py`)
+//! on a real image: same keypoints, scores, short/full descriptors and global descriptor.
+//!
+//! Runs the real runtime: `Extractor::new` finds `libonnxruntime.so.1.31.1` or fetches it
+//! itself (what `sfpmap setup` does). The reference needs Python with numpy, pillow and
+//! onnxruntime==1.31.1: the interpreter `SFPMAP_PYTHON` names (`bash .ci/test` makes that
+//! venv), else `python3`. It fails, never skips.
+#![cfg(feature = "onnx")]
+
+use serde_json::Value;
+use sfpmap::extract::{
+    image, DetectOptions, Extractor, ExtractorOptions, GlobalSize, DEFAULT_MODEL, GLOBAL_MAX_SIDE,
+};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn scene_image() -> PathBuf {
+    let dir = root().join("../shared/data/scenes/south-building/images");
+    let mut images: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+        .map(|e| e.unwrap().path())
+        .collect();
+    images.sort();
+    images.pop().expect("south-building has images")
+}
+
+/// A Python that can run the reference (see the module docs).
+fn python() -> PathBuf {
+    static PYTHON: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    PYTHON
+        .get_or_init(|| crate::python::python_with("numpy, PIL, onnxruntime"))
+        .clone()
+}
+
+fn reference(model: &Path, image: &Path, dir: &Path) -> (PathBuf, Value) {
+    let png = dir.join("image.png");
+    let json = dir.join("reference.json");
+    let out = Command::new(python())
+        .arg(root().join("tests/extract_reference.py"))
+        .arg("--model")
+        .arg(model)
+        .arg("--image")
+        .arg(image)
+        .arg("--png")
+        .arg(&png)
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .expect("python3 runs");
+    assert!(
+        out.status.success(),
+        "the Python reference failed (pip install numpy pillow onnxruntime==1.31.1): {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    (png, value)
+}
+
+fn floats(v: &Value) -> Vec<f32> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap() as f32)
+        .collect()
+}
+
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+#[test]
+fn matches_the_python_onnxruntime_reference_on_a_real_image() {
+    let dir = tempfile::tempdir().unwrap();
+    // The Python side reads the file the embedded DEFAULT_MODEL is include_bytes! of.
+    let model = root().join("models/sfp-v2.onnx");
+    let (png, reference) = reference(&model, &scene_image(), dir.path());
+
+    let mut extractor = Extractor::new(
+        &ExtractorOptions {
+            model: None,
+            threads: 2,
+        },
+        &sfpmap::progress::Silent,
+    )
+    .expect("runtime found or fetched, model loaded");
+    let contract = extractor.contract().clone();
+    let input = image::load(&png, contract.gray_weights, None).unwrap();
+    // The reference's global is the input's own inference's.
+    let own_size = DetectOptions {
+        global: GlobalSize::Input,
+        ..Default::default()
+    };
+    let features = extractor.extract(&input, &own_size).unwrap();
+    // Deterministic: a second run gives the same bytes.
+    assert_eq!(features, extractor.extract(&input, &own_size).unwrap());
+    // The same bytes whatever the thread count: levels are shared out over the threads
+    // (2 here; 1 and 3 share them differently), keypoints stay in score order.
+    let dense = extractor.run(&input).unwrap();
+    for threads in [1, 3] {
+        let other = Extractor::new(
+            &ExtractorOptions {
+                model: None,
+                threads,
+            },
+            &sfpmap::progress::Silent,
+        )
+        .unwrap();
+        assert_eq!(
+            features,
+            other.features(&dense, input.original_size, &DetectOptions::default()),
+            "{threads} thread(s)"
+        );
+    }
+
+    let size: Vec<u32> = reference["image_size"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap() as u32)
+        .collect();
+    assert_eq!(features.image_size.to_vec(), size);
+    let global = floats(&reference["global"]);
+    let worst = global
+        .iter()
+        .zip(&features.global)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f32::max);
+    assert!(worst < 1e-4, "global descriptor differs by {worst}");
+
+    // By default the global descriptor is the `global` of a 512-px copy (the image is larger),
+    // the same keypoints and descriptors otherwise: it is not the input's own.
+    assert!(input.width.max(input.height) > GLOBAL_MAX_SIDE as usize);
+    let by_default = extractor
+        .extract(&input, &DetectOptions::default())
+        .unwrap();
+    assert_eq!(by_default.levels, features.levels);
+    let small = input.downscaled(GLOBAL_MAX_SIDE).unwrap();
+    assert_eq!(small.width.max(small.height), GLOBAL_MAX_SIDE as usize);
+    assert_eq!(by_default.global, extractor.run(&small).unwrap().global);
+    let cosine = dot(&by_default.global, &features.global);
+    assert!(
+        cosine < 0.999,
+        "the copy's global is the input's: cosine {cosine}"
+    );
+    assert!((dot(&by_default.global, &by_default.global) - 1.0).abs() < 1e-4);
+    // Skipped: empty, and nothing else changes.
+    let skipped = DetectOptions {
+        global: GlobalSize::Skip,
+        ..Default::default()
+    };
+    let without = extractor.extract(&input, &skipped).unwrap();
+    assert!(without.global.is_empty());
+    assert_eq!(without.levels, features.levels);
+
+    let levels = reference["levels"].as_array().unwrap();
+    assert_eq!(levels.len(), features.levels.len());
+    let mut total = 0;
+    for (r, ours) in levels.iter().zip(&features.levels) {
+        assert_eq!(r["level"].as_u64().unwrap() as u16, ours.level);
+        let kps: Vec<[f32; 2]> = r["keypoints"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|k| {
+                let k = floats(k);
+                [k[0], k[1]]
+            })
+            .collect();
+        let scores = floats(&r["scores"]);
+        let shorts: Vec<Vec<f32>> = r["short"].as_array().unwrap().iter().map(floats).collect();
+        let fulls: Vec<Vec<f32>> = r["full"].as_array().unwrap().iter().map(floats).collect();
+        let n = kps.len();
+        // Scores within float noise of the threshold or the cap may flip one keypoint in or out.
+        assert!(
+            ours.len().abs_diff(n) <= 1 + n / 200,
+            "level {}: {} keypoints, reference {n}",
+            ours.level,
+            ours.len()
+        );
+        let mut matched = 0;
+        for (i, k) in ours.keypoints.iter().enumerate() {
+            // Refinement may put two keypoints on one pixel: of the reference keypoints there,
+            // the one with the closest score.
+            let Some(j) = (0..n)
+                .filter(|&j| {
+                    (kps[j][0] - k[0]).abs() < 1e-3 * ours.stride as f32
+                        && (kps[j][1] - k[1]).abs() < 1e-3 * ours.stride as f32
+                })
+                .min_by(|&a, &b| {
+                    (scores[a] - ours.scores[i])
+                        .abs()
+                        .total_cmp(&(scores[b] - ours.scores[i]).abs())
+                })
+            else {
+                continue;
+            };
+            matched += 1;
+            assert!(
+                (scores[j] - ours.scores[i]).abs() < 1e-4,
+                "level {} keypoint {i}: score {} vs {}",
+                ours.level,
+                ours.scores[i],
+                scores[j]
+            );
+            let short: Vec<f32> = ours.short[i * ours.dim_short..(i + 1) * ours.dim_short]
+                .iter()
+                .map(|v| v.to_f32())
+                .collect();
+            let full: Vec<f32> = ours.full[i * ours.dim_full..(i + 1) * ours.dim_full]
+                .iter()
+                .map(|v| v.to_f32())
+                .collect();
+            assert!(
+                dot(&short, &shorts[j]) > 0.999,
+                "level {} short {i}",
+                ours.level
+            );
+            assert!(
+                dot(&full, &fulls[j]) > 0.999,
+                "level {} full {i}",
+                ours.level
+            );
+            // short is a scaled prefix of full.
+            let prefix = &full[..ours.dim_short];
+            let norm = dot(prefix, prefix).sqrt();
+            assert!(dot(prefix, &short) / norm > 0.999);
+        }
+        assert!(
+            matched * 100 >= ours.len() * 99,
+            "level {}: only {matched} of {} keypoints match the reference",
+            ours.level,
+            ours.len()
+        );
+        total += matched;
+    }
+    assert!(total > 100, "too few keypoints to compare: {total}");
+}
+
+#[test]
+fn bad_models_are_refused_with_the_file_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let corrupt = dir.path().join("corrupt.onnx");
+    let mut bytes = DEFAULT_MODEL.to_vec();
+    bytes.truncate(bytes.len() / 3);
+    std::fs::write(&corrupt, &bytes).unwrap();
+    let garbage = dir.path().join("garbage.onnx");
+    std::fs::write(&garbage, b"not a model at all").unwrap();
+    let missing = dir.path().join("missing.onnx");
+    // Same length, so the protobuf stays valid: only the contract's value changes.
+    let other = dir.path().join("other-contract.onnx");
+    let at = DEFAULT_MODEL
+        .windows(15)
+        .position(|w| w == b"sfp-extractor/1")
+        .expect("the model states its contract");
+    let mut bytes = DEFAULT_MODEL.to_vec();
+    bytes[at + 14] = b'9';
+    std::fs::write(&other, &bytes).unwrap();
+    let err = Extractor::new(
+        &ExtractorOptions {
+            model: Some(other.clone()),
+            threads: 1,
+        },
+        &sfpmap::progress::Silent,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("other-contract.onnx") && err.contains("sfp-extractor/9"),
+        "{err}"
+    );
+    for path in [&corrupt, &garbage, &missing] {
+        let err = Extractor::new(
+            &ExtractorOptions {
+                model: Some(path.clone()),
+                threads: 1,
+            },
+            &sfpmap::progress::Silent,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains(&path.display().to_string()),
+            "{}: {err}",
+            path.display()
+        );
+    }
+}

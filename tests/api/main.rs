@@ -1,0 +1,32 @@
+//! The library's API: format, COLMAP, geometry, localizer, extractor, C ABI in-process, vectors,
+//! fuzz replays.
+//!
+//! One test crate (one binary to link) per kind of test: `tests/api` (the library), `tests/cli`
+//! (the binary on small and crafted inputs), `tests/e2e` (real scenes end to end). Each file
+//! here is a module; `tests/support/` holds what they share.
+
+#[path = "../support/python.rs"]
+mod python;
+#[path = "../support/common.rs"]
+mod common;
+#[path = "../support/shared_data.rs"]
+mod shared_data;
+#[path = "../support/synthetic_scene.rs"]
+mod synthetic_scene;
+
+mod colmap_database;
+mod colmap_models;
+mod convert;
+mod embed_capi;
+mod extract_reference;
+mod format_chunks;
+mod format_errors;
+mod format_roundtrip;
+mod format_source;
+mod fuzz_replay;
+mod geometry_camera;
+mod geometry_pose;
+mod geometry_real;
+mod localize;
+mod street_scene;
+mod vectors;
