@@ -181,7 +181,9 @@ class TeacherCache:
         self.cfg = cfg
         self.rng = np.random.default_rng(seed + 17)
         os.makedirs(root, exist_ok=True)
-        self.files = sorted(glob.glob(os.path.join(root, "*.npz")))
+        for t in glob.glob(os.path.join(root, "*.tmp.npz")):  # a write cut short by SIGKILL
+            os.remove(t)
+        self.files = sorted(glob.glob(os.path.join(root, "[0-9]*[0-9].npz")))
         self.n_made = 0
         self.seconds = 0.0
         self.frac = 0.0  # carry of fresh_per_step
