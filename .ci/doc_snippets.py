@@ -11,7 +11,9 @@ are checked as the book renders them, from the including page.
 
 `run`: the fenced blocks ```sh and ```python of every page and of README.md run, per page in
 order, in one scratch folder per page (the convention is on docs/src/contributing.md, "Docs and
-their snippets"). A failure prints `page:line`, the exit status and the output's tail.
+their snippets"). A failure prints `page:line`, the exit status and the output's tail;
+SFPMAP_DOCS_VERBOSE=1 prints every block's. Pages named on the command line (a path suffix,
+e.g. `remote.md`) run alone.
 
 Exit status 0 when everything passed, 1 otherwise. Python 3.8+, standard library only.
 """
@@ -312,6 +314,8 @@ def run_snippets(only):
                     failed_here = True
                 else:
                     print(f"{where}: ok ({kind}, {seconds:.1f} s)")
+                    if os.environ.get("SFPMAP_DOCS_VERBOSE"):
+                        print(tail(output))
             timings.append((rel(page), time.time() - page_start))
             shutil.rmtree(scratch, ignore_errors=True)
     finally:
