@@ -37,32 +37,32 @@ fn sfpmap(args: &[&str]) -> Output {
         .expect("sfpmap runs")
 }
 
-/// The SFP map of the scene, built once per test binary.
+/// The SFP map of the scene, built once for all test processes (`tests/support/once.rs`).
 fn map() -> &'static str {
-    static MAP: OnceLock<(tempfile::TempDir, String)> = OnceLock::new();
-    &MAP.get_or_init(|| {
-        let dir = tempfile::tempdir().unwrap();
-        let out = dir.path().join("map.sfpm");
-        let s = scene();
-        let run = sfpmap(&[
-            "convert",
-            "--colmap",
-            s.join("sparse-map").to_str().unwrap(),
-            "--images",
-            s.join("images").to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-            "--quiet",
-        ]);
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
-        );
-        let out = out.to_str().unwrap().to_owned();
-        (dir, out)
+    static MAP: OnceLock<String> = OnceLock::new();
+    MAP.get_or_init(|| {
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("sacre-coeur-sfp");
+        let dir = crate::once::built_once(&dir, |dir| {
+            let out = dir.join("map.sfpm");
+            let s = scene();
+            let run = sfpmap(&[
+                "convert",
+                "--colmap",
+                s.join("sparse-map").to_str().unwrap(),
+                "--images",
+                s.join("images").to_str().unwrap(),
+                "-o",
+                out.to_str().unwrap(),
+                "--quiet",
+            ]);
+            assert!(
+                run.status.success(),
+                "{}",
+                String::from_utf8_lossy(&run.stderr)
+            );
+        });
+        dir.join("map.sfpm").to_str().unwrap().to_owned()
     })
-    .1
 }
 
 /// The first query of the scene: its JPEG and `MODEL W H params...`.

@@ -9,6 +9,8 @@
 mod python;
 #[path = "../support/common.rs"]
 mod common;
+#[path = "../support/once.rs"]
+mod once;
 #[path = "../support/shared_data.rs"]
 mod shared_data;
 

@@ -162,29 +162,30 @@ fn convert_scene(map: &Path, source: &[&str]) {
     ok(&args);
 }
 
-/// The SIFT map of the scene (from a copy of its database), built once per test binary.
-fn sift_map() -> &'static (tempfile::TempDir, PathBuf, PathBuf) {
-    static MAP: OnceLock<(tempfile::TempDir, PathBuf, PathBuf)> = OnceLock::new();
+/// The SIFT map of the scene (from a copy of its database) and its level-2 short slice, built
+/// once for all test processes (`tests/support/once.rs`).
+fn sift_map() -> &'static (PathBuf, PathBuf, PathBuf) {
+    static MAP: OnceLock<(PathBuf, PathBuf, PathBuf)> = OnceLock::new();
     MAP.get_or_init(|| {
-        let s = scene();
-        let dir = tempfile::tempdir().unwrap();
-        let database = dir.path().join("database.db");
-        std::fs::copy(s.root.join("database.db"), &database).unwrap();
-        let map = dir.path().join("sift.sfpm");
-        convert_scene(&map, &["--database", path_str(&database)]);
-        // The smallest useful slice: the coarsest level's short descriptors.
-        let slice = dir.path().join("sift-l2s.sfpm");
-        ok(&[
-            "slice",
-            path_str(&map),
-            "--level",
-            "2",
-            "--short",
-            "-o",
-            path_str(&slice),
-            "--quiet",
-        ]);
-        (dir, map, slice)
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("kitti06-sift");
+        let dir = crate::once::built_once(&dir, |dir| {
+            let s = scene();
+            let database = dir.join("database.db");
+            std::fs::copy(s.root.join("database.db"), &database).unwrap();
+            convert_scene(&dir.join("sift.sfpm"), &["--database", path_str(&database)]);
+            // The smallest useful slice: the coarsest level's short descriptors.
+            ok(&[
+                "slice",
+                path_str(&dir.join("sift.sfpm")),
+                "--level",
+                "2",
+                "--short",
+                "-o",
+                path_str(&dir.join("sift-l2s.sfpm")),
+                "--quiet",
+            ]);
+        });
+        (dir.clone(), dir.join("sift.sfpm"), dir.join("sift-l2s.sfpm"))
     })
 }
 
@@ -306,15 +307,16 @@ fn compressed_image(stamp_ns: u64, format: &str, data: &[u8]) -> Vec<u8> {
 
 const SEC: u64 = 1_000_000_000;
 
-/// The SFP map of the scene (the built-in model), built once per test binary.
-fn sfp_map() -> &'static (tempfile::TempDir, PathBuf) {
-    static MAP: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+/// The SFP map of the scene (the built-in model), built once for all test processes.
+fn sfp_map() -> &'static (PathBuf, PathBuf) {
+    static MAP: OnceLock<(PathBuf, PathBuf)> = OnceLock::new();
     MAP.get_or_init(|| {
-        let s = scene();
-        let dir = tempfile::tempdir().unwrap();
-        let map = dir.path().join("sfp.sfpm");
-        convert_scene(&map, &["--images", path_str(&s.root.join("images"))]);
-        (dir, map)
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("kitti06-sfp");
+        let dir = crate::once::built_once(&dir, |dir| {
+            let images = scene().root.join("images");
+            convert_scene(&dir.join("sfp.sfpm"), &["--images", path_str(&images)]);
+        });
+        (dir.clone(), dir.join("sfp.sfpm"))
     })
 }
 
