@@ -40,3 +40,9 @@ pub mod extract;
 
 #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
 pub mod demo;
+
+/// The user guide's Rust examples (docs/src/library.md) as doctests: `cargo test --doc`
+/// compiles and runs them, so the guide cannot drift from the API.
+#[cfg(all(doctest, feature = "colmap", feature = "localize"))]
+#[doc = include_str!("../docs/src/library.md")]
+pub struct GuideLibrary;
