@@ -11,7 +11,9 @@ Dense outputs at the SFP levels (pixel-index convention: the first pixel's centr
 of a stride-s level is centred on pixel s*r, spec/extractor.md):
   heat_at_strides  the full-resolution keypoint heat map max-pooled over each cell's window
                    [s*r - s/2, s*r + s/2] (kernel s+1, stride s, padding s/2): ceil(H/s) x ceil(W/s),
-                   exactly the level's size
+                   exactly the level's size (score_target "maxpool")
+  peaks_at_strides the heat map's local maxima at a per-level NMS radius drawn as Gaussians on the
+                   level's cells (score_target "peaks", the default)
   keypoints        ALIKED's own detection: NMS (radius 2) peaks, border removed, top-k, with DKD's
                    soft-argmax sub-pixel offset
   describe         ALIKED's SDDH descriptors (128-d, L2-normalised) at any pixel positions: the
@@ -105,6 +107,36 @@ class AlikedTeacher:
         out = []
         for s in strides:
             out.append(F.max_pool2d(heat, kernel_size=s + 1, stride=s, padding=s // 2))
+        return out
+
+    @staticmethod
+    def peaks_at_strides(heat, strides, radii, sigma=0.6, amin=0.05):
+        """Per stride s (NMS radius r px): the heat map's local maxima (window 2r+1, heat > amin)
+        drawn as Gaussians on the level's cells: target(c) = max_k a_k exp(-|c - x_k/s|^2 / 2 sigma^2)
+        with a_k the heat at maximum k and x_k its pixel (sigma in cells). Unlike the max-pooled
+        heat, whose wide plateaus leave the student's NMS few and unstable peaks, a peak sits
+        where the teacher's keypoint is, inside the cell too (what the extractor's quadratic
+        sub-pixel fit reads). [N,1,ceil(H/s),ceil(W/s)] per stride."""
+        N, _, H, W = heat.shape
+        out = []
+        for s, r in zip(strides, radii):
+            h, w = -(-H // s), -(-W // s)
+            k = 2 * r + 1  # a square max filter is separable: two 1-D passes
+            hmax = F.max_pool2d(F.max_pool2d(heat, (1, k), 1, (0, r)), (k, 1), 1, (r, 0))
+            peak = (heat >= hmax) & (heat > amin)
+            tgt = torch.zeros(N, h * w)
+            for n in range(N):
+                ys, xs = torch.nonzero(peak[n, 0], as_tuple=True)
+                a = heat[n, 0, ys, xs]
+                cx, cy = xs.float() / s, ys.float() / s
+                bx, by = cx.round().long(), cy.round().long()
+                for dy in range(-2, 3):
+                    for dx in range(-2, 3):
+                        gx, gy = bx + dx, by + dy
+                        ok = (gx >= 0) & (gx < w) & (gy >= 0) & (gy < h)
+                        v = a * torch.exp(-((gx - cx) ** 2 + (gy - cy) ** 2) / (2 * sigma ** 2))
+                        tgt[n].scatter_reduce_(0, (gy * w + gx)[ok], v[ok], reduce="amax")
+            out.append(tgt.view(N, 1, h, w))
         return out
 
     # -- keypoints and descriptors ---------------------------------------------------------------
