@@ -6,7 +6,8 @@
 //! runs the SFP network, [`build`] turns a model into a map, [`geometry`] holds cameras and
 //! the one pose type, [`localize`] localizes queries against a map, [`io`] reads and writes
 //! the external formats (poses, features.h5, query inputs, exports, MCAP, plots), [`demo`]
-//! is the built-in scene, `ffi` the C ABI. README's "Architecture" says what may use what.
+//! is the built-in scene, `ffi` the C ABI. The guide's Architecture page
+//! (`docs/src/architecture.md`) says what may use what.
 #![deny(unsafe_code)]
 
 pub mod format;

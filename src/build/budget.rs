@@ -1,17 +1,18 @@
 //! `sfpmap slice --budget`: the slice of a map expected to localize best within a byte
 //! budget — the paper's "adaptive reduction of keypoint map size" as a command.
 //!
-//! The rule (README, "Byte budgets") walks a fixed ladder and keeps the first candidate
-//! that fits:
+//! The rule (the guide, `docs/src/maps.md`, "Byte budgets") walks a fixed ladder and keeps the
+//! first candidate that fits:
 //! 1. level sets: every level (hierarchical, coarse to fine), then level 2 alone (the paper's
 //!    choice), then each other level alone, most points first;
 //! 2. for each set, descriptors from most to least faithful: full f16 as it is, full f16
 //!    `--minimal`, short f16 `--minimal`, then short `--minimal` PQ with 2, 4 and 8 dimensions
 //!    per one-byte code (each level its own `M = dim_short / dims per code`).
 //!
-//! The order comes from the accuracy-per-byte table (README): `--minimal` costs no accuracy,
-//! short costs little, PQ at 2 dims per byte little, at 8 dims per byte up to a third of
-//! the recall of SFP maps; so a set is cut down its own ladder before fewer levels are tried.
+//! The order comes from the accuracy-per-byte table (`docs/src/benchmarks.md`): `--minimal`
+//! costs no accuracy, short costs little, PQ at 2 dims per byte little, at 8 dims per byte up
+//! to a third of the recall of SFP maps; so a set is cut down its own ladder before fewer
+//! levels are tried.
 //! Candidates without PQ are sized exactly (encoded in memory); PQ candidates get a lower
 //! bound from their set's short minimal size and are confirmed by encoding when it fits.
 //! Empty levels are not tried alone, nor more than [`MAX_SINGLE_LEVELS`] single levels.
