@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 12's targets on the crafted maps, this build beside a reference build: median wall time
 # of 3 runs and peak RSS of each. Maps: SFPMAP_HOSTILE_OUT=DIR cargo test --all-features
-#   --test hostile_format write_crafted_maps -- --ignored
+#   --release --test cli hostile_format::write_crafted_maps -- --ignored
 # Usage: benches/hostile_inputs.sh NEW_BINARY REFERENCE_BINARY DIR
 set -u
 new=$1 ref=$2 dir=$3
