@@ -7,6 +7,7 @@ use std::process::ExitCode;
 mod bench_pose;
 #[cfg(feature = "colmap")]
 mod catalog;
+mod completions;
 #[cfg(feature = "colmap")]
 mod convert;
 #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
@@ -23,6 +24,7 @@ mod localize;
 #[cfg(feature = "localize")]
 mod plot;
 mod progress;
+mod reference;
 #[cfg(feature = "onnx")]
 mod setup;
 mod slice;
@@ -50,6 +52,7 @@ pub enum Command {
     BenchPose(bench_pose::Args),
     #[cfg(feature = "colmap")]
     Catalog(catalog::Args),
+    Completions(completions::Args),
     #[cfg(feature = "colmap")]
     Convert(convert::Args),
     #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
@@ -60,6 +63,8 @@ pub enum Command {
     ExportColmap(export_colmap::Args),
     #[cfg(feature = "onnx")]
     Extract(extract::Args),
+    #[command(hide = true)]
+    GenerateReference(reference::Args),
     Info(info::Args),
     #[cfg(all(feature = "localize", feature = "colmap"))]
     Localize(localize::Args),
@@ -78,6 +83,7 @@ pub fn run() -> anyhow::Result<ExitCode> {
         Command::BenchPose(args) => bench_pose::run(args, cli.quiet),
         #[cfg(feature = "colmap")]
         Command::Catalog(args) => catalog::run(args, cli.quiet),
+        Command::Completions(args) => completions::run(args, cli.quiet),
         #[cfg(feature = "colmap")]
         Command::Convert(args) => convert::run(args, cli.quiet),
         #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
@@ -88,6 +94,7 @@ pub fn run() -> anyhow::Result<ExitCode> {
         Command::ExportColmap(args) => export_colmap::run(args, cli.quiet),
         #[cfg(feature = "onnx")]
         Command::Extract(args) => extract::run(args, cli.quiet),
+        Command::GenerateReference(args) => reference::run(args, cli.quiet),
         Command::Info(args) => info::run(args, cli.quiet),
         #[cfg(all(feature = "localize", feature = "colmap"))]
         Command::Localize(args) => localize::run(args, cli.quiet),
