@@ -4,7 +4,7 @@
 //! The markdown page comes from clap-markdown (it reads a `clap::Command` as clap 4 builds
 //! it), the man pages from clap_mangen. Neither output holds a date, a path of this machine
 //! or anything that depends on the terminal's width, so the committed files can be compared
-//! byte for byte: tests/cli_reference.rs fails, naming the subcommand, when they are stale.
+//! byte for byte: tests/cli/cli_reference.rs fails, naming the subcommand, when they are stale.
 
 use clap::CommandFactory;
 use std::path::{Path, PathBuf};

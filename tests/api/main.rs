@@ -5,10 +5,10 @@
 //! (the binary on small and crafted inputs), `tests/e2e` (real scenes end to end). Each file
 //! here is a module; `tests/support/` holds what they share.
 
-#[path = "../support/python.rs"]
-mod python;
 #[path = "../support/common.rs"]
 mod common;
+#[path = "../support/python.rs"]
+mod python;
 #[path = "../support/shared_data.rs"]
 mod shared_data;
 #[path = "../support/synthetic_scene.rs"]

@@ -5,12 +5,12 @@
 //! (the binary on small and crafted inputs), `tests/e2e` (real scenes end to end). Each file
 //! here is a module; `tests/support/` holds what they share.
 
-#[path = "../support/python.rs"]
-mod python;
 #[path = "../support/common.rs"]
 mod common;
 #[path = "../support/once.rs"]
 mod once;
+#[path = "../support/python.rs"]
+mod python;
 #[path = "../support/servers.rs"]
 mod servers;
 #[path = "../support/shared_data.rs"]
@@ -20,6 +20,7 @@ mod street_cli;
 
 mod catalog;
 mod cli_format;
+mod cli_reference;
 mod export_plot;
 mod export_ply;
 mod extract_cli;

@@ -185,7 +185,11 @@ fn sift_map() -> &'static (PathBuf, PathBuf, PathBuf) {
                 "--quiet",
             ]);
         });
-        (dir.clone(), dir.join("sift.sfpm"), dir.join("sift-l2s.sfpm"))
+        (
+            dir.clone(),
+            dir.join("sift.sfpm"),
+            dir.join("sift-l2s.sfpm"),
+        )
     })
 }
 

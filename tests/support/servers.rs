@@ -56,7 +56,9 @@ pub struct Nginx {
 impl Nginx {
     pub fn start() -> Nginx {
         let nginx = which("nginx").unwrap_or_else(|| {
-            panic!("nginx is missing: `bash .ci/test` installs it (or: apt-get install nginx-light)")
+            panic!(
+                "nginx is missing: `bash .ci/test` installs it (or: apt-get install nginx-light)"
+            )
         });
         let dir = tempfile::tempdir().unwrap();
         let root = dir.path().join("www");

@@ -1,7 +1,7 @@
 //! The committed CLI reference (docs/src/reference/cli.md, docs/man/*.1) is what the binary
 //! generates now, and `sfpmap completions SHELL` prints a script for each shell.
 //!
-//! Self-contained on purpose: it needs nothing from tests/common.
+//! Self-contained on purpose: it needs nothing from tests/support.
 #![cfg(feature = "cli")]
 
 use std::collections::BTreeMap;
