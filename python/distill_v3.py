@@ -29,8 +29,9 @@ Loss (weights `w`, per level `level_w`; weight 0 switches a term off, for the ab
               teacher's keypoint heat map at that stride. `score_target` "peaks" (default): the heat
               map's local maxima (NMS radius `peak_radius[i]` px, heat > `peak_min`) drawn as
               Gaussians (sigma `peak_sigma` cells, height = the teacher's heat) on the level's cells;
-              "maxpool": the heat map max-pooled over each cell (first run: its plateaus cut the
-              student's NMS keypoints 510 -> 90 at level 0, 121 -> 54 at level 2 within 200 steps).
+              "maxpool": the heat map max-pooled over each cell; "ref": sfp-v2's own score map (the
+              level keeps v2's detector). One kind for all levels or a list per level (default
+              maxpool for levels 0-2, ref for level 3: python/TRAINING-v3.md has the measurements).
               `score_shift`: a per-level logit shift of the target
   desc_proj   per level a learned projection P_i: 128 -> d_i of the teacher's descriptors (training
               only, not exported); InfoNCE (tau_proj) between the student's level-i descriptors at
@@ -148,13 +149,21 @@ class ItemMaker:
         A8, B8 = to_u8(A), to_u8(B)
         x = torch.from_numpy(np.stack([A8, B8]).astype(np.float32) / 255.0)[:, None]
         fmap, heat = self.t.dense(x)
-        if cfg["score_target"] == "peaks":
-            tg = self.t.peaks_at_strides(heat, self.strides, cfg["peak_radius"], cfg["peak_sigma"], cfg["peak_min"])
-        else:
-            assert cfg["score_target"] == "maxpool", cfg["score_target"]
-            tg = self.t.heat_at_strides(heat, self.strides)
-        for i, h in enumerate(tg):
-            item[f"heat{i}"] = h.numpy().astype(np.float16)
+        kinds = cfg["score_target"]
+        kinds = [kinds] * len(self.strides) if isinstance(kinds, str) else kinds
+        feats, ref_logits = self.ref.encode(x)
+        made = {}
+        for i, k in enumerate(kinds):
+            if k not in made:
+                if k == "peaks":
+                    made[k] = self.t.peaks_at_strides(heat, self.strides, cfg["peak_radius"], cfg["peak_sigma"],
+                                                      cfg["peak_min"])
+                elif k == "maxpool":
+                    made[k] = self.t.heat_at_strides(heat, self.strides)
+                else:
+                    assert k == "ref", k
+                    made[k] = [torch.sigmoid(lg) for lg in ref_logits]
+            item[f"heat{i}"] = made[k][i].numpy().astype(np.float16)
         K = cfg["n_kpts"]
         kp, ksc = self.t.keypoints(heat, K)
         rnd = torch.from_numpy(self.rng.uniform(0, S - 1, (2, cfg["n_rand"], 2)).astype(np.float32))
@@ -178,7 +187,6 @@ class ItemMaker:
         item.update(A=A8, B=B8, pts=pts.numpy(), desc=desc.numpy().astype(np.float16),
                     kscore=ksc.numpy().astype(np.float16), mA=ia.numpy().astype(np.int16),
                     mB=m1[ia].numpy().astype(np.int16))
-        feats, _ = self.ref.encode(x)
         item["gref"] = self.ref.global_desc(feats[-1]).numpy()
         return item
 

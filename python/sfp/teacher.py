@@ -11,9 +11,9 @@ Dense outputs at the SFP levels (pixel-index convention: the first pixel's centr
 of a stride-s level is centred on pixel s*r, spec/extractor.md):
   heat_at_strides  the full-resolution keypoint heat map max-pooled over each cell's window
                    [s*r - s/2, s*r + s/2] (kernel s+1, stride s, padding s/2): ceil(H/s) x ceil(W/s),
-                   exactly the level's size (score_target "maxpool")
+                   exactly the level's size (score_target "maxpool", levels 0-2 by default)
   peaks_at_strides the heat map's local maxima at a per-level NMS radius drawn as Gaussians on the
-                   level's cells (score_target "peaks", the default)
+                   level's cells (score_target "peaks")
   keypoints        ALIKED's own detection: NMS (radius 2) peaks, border removed, top-k, with DKD's
                    soft-argmax sub-pixel offset
   describe         ALIKED's SDDH descriptors (128-d, L2-normalised) at any pixel positions: the
