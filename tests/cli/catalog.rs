@@ -8,6 +8,7 @@
     feature = "colmap"
 ))]
 
+use crate::once::Depends;
 use crate::servers;
 use crate::street_cli;
 
@@ -27,8 +28,8 @@ fn sfpmap(args: &[&str]) -> Output {
 fn streets() -> &'static Path {
     static STREETS: OnceLock<PathBuf> = OnceLock::new();
     STREETS.get_or_init(|| {
-        let root = Path::new(env!("CARGO_TARGET_TMPDIR")).join("catalog-streets");
-        crate::once::built_once(&root, |root| {
+        let recipe = "street_cli::street s1, s2, s3: 4000 points, 8 queries, seeds 1 to 3";
+        crate::once::built_once("catalog-streets", recipe, Depends::OnBinary, |root| {
             for seed in 1..=3u64 {
                 street_cli::street(&root.join(format!("s{seed}")), 4000, 8, seed);
             }

@@ -1,5 +1,6 @@
-//! The committed CLI reference (docs/src/reference/cli.md, docs/man/*.1) is what the binary
-//! generates now, and `sfpmap completions SHELL` prints a script for each shell.
+//! The committed CLI reference (docs/src/reference/cli.md, docs/man/man1/*.1) is what the binary
+//! generates now, `generate-reference` writes and removes only what it should, and
+//! `sfpmap completions SHELL` prints a script for each shell.
 //!
 //! Self-contained on purpose: it needs nothing from tests/support.
 #![cfg(feature = "cli")]
@@ -10,7 +11,9 @@ use std::process::{Command, Output};
 
 const REGENERATE: &str = "cargo run --release -- generate-reference --out docs";
 const MARKDOWN_PAGE: &str = "src/reference/cli.md";
-const MAN_DIR: &str = "man";
+const MAN_DIR: &str = "man/man1";
+/// The commands that are hidden: no completion, no section, no man page.
+const HIDDEN: [&str; 2] = ["generate-reference", "bench-pose"];
 
 fn sfpmap(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_sfpmap"))
@@ -21,6 +24,18 @@ fn sfpmap(args: &[&str]) -> Output {
 
 fn committed_docs() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("docs")
+}
+
+/// An empty folder that `generate-reference` accepts as the guide's: it holds a book.toml.
+fn docs_folder() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("book.toml"), "[book]\n").unwrap();
+    dir
+}
+
+/// `sfpmap -q generate-reference --out DIR`.
+fn generate(dir: &Path) -> Output {
+    sfpmap(&["-q", "generate-reference", "--out", dir.to_str().unwrap()])
 }
 
 #[test]
@@ -41,10 +56,9 @@ fn completions_name_real_subcommands_for_each_shell() {
             );
         }
         // Hidden commands stay out of completion.
-        assert!(
-            !script.contains("generate-reference"),
-            "{shell}: names a hidden command"
-        );
+        for hidden in HIDDEN {
+            assert!(!script.contains(hidden), "{shell}: names `{hidden}`");
+        }
     }
 }
 
@@ -188,7 +202,7 @@ fn check_man(
 ))]
 #[test]
 fn committed_reference_is_generated() {
-    let out = tempfile::tempdir().unwrap();
+    let out = docs_folder();
     let o = sfpmap(&["generate-reference", "--out", out.path().to_str().unwrap()]);
     assert!(
         o.status.success(),
@@ -215,7 +229,7 @@ fn committed_reference_is_generated() {
 
 #[test]
 fn generate_reference_is_deterministic_and_hidden() {
-    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let (a, b) = (docs_folder(), docs_folder());
     for dir in [&a, &b] {
         let o = sfpmap(&[
             "--quiet",
@@ -229,37 +243,180 @@ fn generate_reference_is_deterministic_and_hidden() {
     let page =
         |d: &tempfile::TempDir| std::fs::read_to_string(d.path().join(MARKDOWN_PAGE)).unwrap();
     assert_eq!(page(&a), page(&b));
-    assert_eq!(
-        man_pages(&a.path().join(MAN_DIR)),
-        man_pages(&b.path().join(MAN_DIR))
-    );
-    // Nothing of the machine it ran on: no temp path, no hidden command.
+    let man = man_pages(&a.path().join(MAN_DIR));
+    assert_eq!(man, man_pages(&b.path().join(MAN_DIR)));
+    assert!(man.contains_key("sfpmap-info.1"), "{:?}", man.keys());
+    // Nothing of the machine it ran on.
     let tmp = std::env::temp_dir();
     let tmp = tmp.to_str().unwrap();
-    for (name, text) in
-        std::iter::once(("cli.md".to_owned(), page(&a))).chain(man_pages(&a.path().join(MAN_DIR)))
-    {
+    for (name, text) in std::iter::once(("cli.md".to_owned(), page(&a))).chain(man) {
         assert!(!text.contains(tmp), "{name} names {tmp}");
+    }
+    // No hidden command: no section of its own, no man page. (`sfpmap info` has both, so
+    // the pattern is the one a leaked command would follow.)
+    let headings: Vec<String> = sections(&page(&a)).into_iter().map(|(n, _)| n).collect();
+    assert!(headings.iter().any(|h| h == "sfpmap info"), "{headings:?}");
+    for hidden in HIDDEN {
+        let command = format!("sfpmap {hidden}");
         assert!(
-            !text.contains("generate-reference --out DIR"),
-            "{name} documents a hidden command"
+            !headings.contains(&command),
+            "cli.md documents the hidden command `{command}`"
         );
         assert!(
-            !text.contains("bench-pose"),
-            "{name} documents a hidden command"
+            !page(&a).contains(&format!("## `{command}`")),
+            "cli.md documents the hidden command `{command}`"
+        );
+        let file = format!("sfpmap-{hidden}.1");
+        assert!(
+            !a.path().join(MAN_DIR).join(&file).exists(),
+            "a man page documents the hidden command `{command}`"
         );
     }
-    // A stale man page of a command that no longer exists is removed on regeneration.
-    let old = a.path().join(MAN_DIR).join("sfpmap-retired.1");
-    std::fs::write(&old, "stale").unwrap();
+}
+
+/// A man page as clap_mangen writes them, titled for `command` (`sfpmap-retired`): the
+/// generated `sfpmap.1` retitled.
+fn generated_page(docs: &Path, command: &str) -> String {
+    let root = std::fs::read_to_string(docs.join(MAN_DIR).join("sfpmap.1")).unwrap();
+    assert!(root.contains("\n.TH sfpmap 1 "), "{root}");
+    root.replacen("\n.TH sfpmap 1 ", &format!("\n.TH {command} 1 "), 1)
+}
+
+#[test]
+fn generate_reference_removes_only_its_own_stale_pages() {
+    let docs = docs_folder();
+    let o = generate(docs.path());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let man = docs.path().join(MAN_DIR);
+    // A page generated for a command that no longer exists: removed, also one left in the
+    // old flat folder docs/man.
+    let stale = man.join("sfpmap-retired.1");
+    std::fs::write(&stale, generated_page(docs.path(), "sfpmap-retired")).unwrap();
+    let old_layout = docs.path().join("man").join("sfpmap-info.1");
+    std::fs::write(&old_layout, generated_page(docs.path(), "sfpmap-info")).unwrap();
+    // What is not one of its pages: kept.
+    let notes = "\\\" my notes on sfpmap\n.TH sfpmap-notes 1\n";
+    let kept = [
+        // The name matches, the content is not a generated page.
+        (man.join("sfpmap-notes.1"), notes.to_owned()),
+        // A generated-looking page under a name clap_mangen never gives sfpmap.
+        (
+            man.join("sfpmapper.1"),
+            generated_page(docs.path(), "sfpmapper"),
+        ),
+        (
+            man.join("sfpmap-Upper.1"),
+            generated_page(docs.path(), "sfpmap-Upper"),
+        ),
+        // The header of another command than the file's name says.
+        (
+            man.join("sfpmap-mine.1"),
+            generated_page(docs.path(), "sfpmap-retired"),
+        ),
+        (man.join("sfpmap-empty.1"), String::new()),
+    ];
+    for (path, text) in &kept {
+        std::fs::write(path, text).unwrap();
+    }
+    // A folder with a page's name.
+    std::fs::create_dir(man.join("sfpmap-dir.1")).unwrap();
+    // A symlink with a stale page's name, to a generated page elsewhere.
+    #[cfg(unix)]
+    let outside = {
+        let outside = tempfile::tempdir().unwrap();
+        let target = outside.path().join("sfpmap-linked.1");
+        std::fs::write(&target, generated_page(docs.path(), "sfpmap-linked")).unwrap();
+        std::os::unix::fs::symlink(&target, man.join("sfpmap-linked.1")).unwrap();
+        (outside, target)
+    };
+
     let o = sfpmap(&[
-        "-q",
         "generate-reference",
         "--out",
-        a.path().to_str().unwrap(),
+        docs.path().to_str().unwrap(),
     ]);
-    assert!(o.status.success());
-    assert!(!old.exists());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(stderr.contains("removed 2 stale man page(s)"), "{stderr}");
+    assert!(!stale.exists(), "the stale page is left");
+    assert!(!old_layout.exists(), "the stale page of the old layout is left");
+    for (path, text) in &kept {
+        assert_eq!(&std::fs::read_to_string(path).unwrap(), text, "{path:?}");
+    }
+    assert!(man.join("sfpmap-dir.1").is_dir());
+    #[cfg(unix)]
+    {
+        let link = man.join("sfpmap-linked.1");
+        assert!(std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+        assert!(outside.1.exists());
+    }
+    // The generated pages themselves are all still there.
+    assert!(man.join("sfpmap.1").exists() && man.join("sfpmap-info.1").exists());
+}
+
+#[test]
+fn generate_reference_refuses_a_folder_without_book_toml() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = generate(dir.path());
+    assert!(!o.status.success());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr.contains(dir.path().to_str().unwrap()) && stderr.contains("book.toml"),
+        "{stderr}"
+    );
+    // Nothing created.
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+}
+
+#[cfg(unix)]
+#[test]
+fn generate_reference_refuses_symlinked_folders() {
+    for folder in ["man", MAN_DIR, "src", "src/reference"] {
+        let docs = docs_folder();
+        let elsewhere = tempfile::tempdir().unwrap();
+        let link = docs.path().join(folder);
+        std::fs::create_dir_all(link.parent().unwrap()).unwrap();
+        std::os::unix::fs::symlink(elsewhere.path(), &link).unwrap();
+        // A page of a retired command where the link points: must stay.
+        let victim = elsewhere.path().join("sfpmap-retired.1");
+        std::fs::write(&victim, "x").unwrap();
+        let o = generate(docs.path());
+        assert!(!o.status.success(), "{folder}: accepted");
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            stderr.contains(link.to_str().unwrap()) && stderr.contains("symlink"),
+            "{folder}: {stderr}"
+        );
+        // Nothing written through the link, nothing removed there.
+        let names: Vec<_> = std::fs::read_dir(elsewhere.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(names, ["sfpmap-retired.1"], "{folder}");
+    }
+}
+
+#[test]
+fn generate_reference_errors_name_the_path() {
+    // A file where the man folder goes.
+    let docs = docs_folder();
+    std::fs::write(docs.path().join("man"), "").unwrap();
+    let o = generate(docs.path());
+    assert!(!o.status.success());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    let man = docs.path().join("man");
+    assert!(stderr.contains(man.to_str().unwrap()), "{stderr}");
+    // A folder where the markdown page goes.
+    let docs = docs_folder();
+    std::fs::create_dir_all(docs.path().join(MARKDOWN_PAGE)).unwrap();
+    let o = generate(docs.path());
+    assert!(!o.status.success());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    let page = docs.path().join(MARKDOWN_PAGE);
+    assert!(stderr.contains(page.to_str().unwrap()), "{stderr}");
 }
 
 #[test]

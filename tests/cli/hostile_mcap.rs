@@ -5,6 +5,7 @@
 #![cfg(feature = "mcap")]
 
 use crate::common;
+use crate::once::{built_once, Depends};
 
 use serde_json::Value;
 use std::collections::BTreeMap;
@@ -41,26 +42,32 @@ fn sfpmap(args: &[&str]) -> Output {
 fn map() -> &'static str {
     static MAP: OnceLock<String> = OnceLock::new();
     MAP.get_or_init(|| {
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("sacre-coeur-sfp");
-        let dir = crate::once::built_once(&dir, |dir| {
-            let out = dir.join("map.sfpm");
-            let s = scene();
-            let run = sfpmap(&[
-                "convert",
-                "--colmap",
-                s.join("sparse-map").to_str().unwrap(),
-                "--images",
-                s.join("images").to_str().unwrap(),
-                "-o",
-                out.to_str().unwrap(),
-                "--quiet",
-            ]);
-            assert!(
-                run.status.success(),
-                "{}",
-                String::from_utf8_lossy(&run.stderr)
-            );
-        });
+        let recipe = "convert --colmap sacre-coeur/sparse-map --images sacre-coeur/images, \
+                      under ulimit -v";
+        let dir = built_once(
+            "sacre-coeur-sfp-limited",
+            recipe,
+            Depends::OnBinary,
+            |dir| {
+                let out = dir.join("map.sfpm");
+                let s = scene();
+                let run = sfpmap(&[
+                    "convert",
+                    "--colmap",
+                    s.join("sparse-map").to_str().unwrap(),
+                    "--images",
+                    s.join("images").to_str().unwrap(),
+                    "-o",
+                    out.to_str().unwrap(),
+                    "--quiet",
+                ]);
+                assert!(
+                    run.status.success(),
+                    "{}",
+                    String::from_utf8_lossy(&run.stderr)
+                );
+            },
+        );
         dir.join("map.sfpm").to_str().unwrap().to_owned()
     })
 }

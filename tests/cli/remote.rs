@@ -10,6 +10,7 @@
     feature = "colmap"
 ))]
 
+use crate::once::Depends;
 use crate::servers;
 use crate::street_cli;
 
@@ -24,8 +25,9 @@ use street_cli::{failed, json, localize, ok, sfpmap, street};
 fn scene() -> &'static Path {
     static SCENE: OnceLock<PathBuf> = OnceLock::new();
     SCENE.get_or_init(|| {
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("remote-street");
-        crate::once::built_once(&dir, |dir| {
+        let recipe = "street_cli::street: 6000 points, 4 queries, default seed; l2s.sfpm: \
+                      slice --level 2 --short";
+        crate::once::built_once("remote-street", recipe, Depends::OnBinary, |dir| {
             let seed = sfpmap::demo::street::StreetOptions::default().seed;
             street(dir, 6000, 4, seed);
             let p = |n: &str| dir.join(n).to_str().unwrap().to_string();

@@ -4,6 +4,7 @@
 #![cfg(feature = "mcap")]
 
 use crate::common;
+use crate::once::{built_once, Depends};
 
 use common::Cdr;
 use serde_json::Value;
@@ -46,8 +47,8 @@ fn fails(args: &[&str]) -> String {
 fn map() -> &'static str {
     static MAP: OnceLock<String> = OnceLock::new();
     MAP.get_or_init(|| {
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("sacre-coeur-sfp");
-        let dir = crate::once::built_once(&dir, |dir| {
+        let recipe = "convert --colmap sacre-coeur/sparse-map --images sacre-coeur/images";
+        let dir = built_once("sacre-coeur-sfp", recipe, Depends::OnBinary, |dir| {
             let out = dir.join("map.sfpm");
             let s = scene();
             ok(&[

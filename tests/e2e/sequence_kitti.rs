@@ -1,11 +1,10 @@
 //! Sequential localization on real frames with metric ground truth: KITTI odometry 06, frames
-//! 0–50 (`shared/data/sequences/kitti06`). The scene is built here, once per test binary, by
-//! `shared/data/tools/make_posed_scene.py` (map triangulated with the true poses held fixed,
-//! so errors are in metres; every 4th frame a query, 13 in all). It needs Python with
-//! pycolmap 4.2.1: `python3`, or the interpreter `SFPMAP_PYTHON` names. It fails, never skips.
-//! `SFPMAP_KITTI06_SCENE` names a scene that script built before, to skip the build (about a
-//! minute and a half): `bash .ci/test` builds it once into `target/scenes/kitti06` and sets it,
-//! since the test runner starts a process per test and each would build its own.
+//! 0–50 (`shared/data/sequences/kitti06`). The scene is built here, once for all test
+//! processes (`tests/support/once.rs`), by `shared/data/tools/make_posed_scene.py` (map
+//! triangulated with the true poses held fixed, so errors are in metres; every 4th frame a
+//! query, 13 in all). It needs Python with pycolmap 4.2.1: the interpreter `SFPMAP_PYTHON`
+//! names (`bash .ci/test` sets it), else `python3`. It fails, never skips.
+//! `SFPMAP_KITTI06_SCENE` names a scene that script built before, to use instead.
 //!
 //! `localize --sequence` on the query list (SIFT map and its level-2 short slice) and
 //! `localize --mcap` on a log of the query frames (SFP map): every frame localized, within a
@@ -15,6 +14,7 @@
 #![cfg(all(feature = "mcap", feature = "colmap"))]
 
 use crate::common;
+use crate::once::{built_once, Depends};
 
 use common::Cdr;
 use serde_json::Value;
@@ -59,8 +59,6 @@ struct Query {
 }
 
 struct Scene {
-    /// Holds the scene built here (`None`: `SFPMAP_KITTI06_SCENE`).
-    _dir: Option<tempfile::TempDir>,
     root: PathBuf,
     /// Median distance between neighbouring map cameras, metres (stats.json).
     spacing_m: f64,
@@ -72,31 +70,44 @@ fn python() -> PathBuf {
     crate::python::python_with("numpy, pycolmap")
 }
 
-/// The KITTI 06 scene, built once per test binary.
+/// The KITTI 06 scene, built once for all test processes (its folder is named by a hash of
+/// the script and the sequence's poses), or the one `SFPMAP_KITTI06_SCENE` names.
 fn scene() -> &'static Scene {
     static SCENE: OnceLock<Scene> = OnceLock::new();
     SCENE.get_or_init(|| {
-        let (dir, root) = match std::env::var_os("SFPMAP_KITTI06_SCENE") {
-            Some(root) => (None, PathBuf::from(root)),
+        let root = match std::env::var_os("SFPMAP_KITTI06_SCENE") {
+            Some(root) => PathBuf::from(root),
             None => {
-                let dir = tempfile::tempdir().unwrap();
-                let root = dir.path().join("kitti06");
+                let script = shared().join("tools/make_posed_scene.py");
                 let sequence = shared().join("sequences/kitti06");
-                let out = Command::new(python())
-                    .arg(shared().join("tools/make_posed_scene.py"))
-                    .arg(sequence.join("images"))
-                    .arg(sequence.join("poses.txt"))
-                    .arg(sequence.join("calib.txt"))
-                    .arg(&root)
-                    .output()
-                    .expect("python3 runs");
-                assert!(
-                    out.status.success(),
-                    "make_posed_scene.py failed (it needs pycolmap 4.2.1; SFPMAP_PYTHON names \
-                     another interpreter): {}",
-                    String::from_utf8_lossy(&out.stderr)
+                let inputs = [script.clone(), sequence.join("poses.txt")]
+                    .iter()
+                    .map(|p| std::fs::read(p).unwrap())
+                    .fold(Vec::new(), |mut all, bytes| {
+                        all.extend(bytes);
+                        all
+                    });
+                let recipe = format!(
+                    "make_posed_scene.py IMAGES POSES CALIB OUT, inputs xxh3 {:016x}",
+                    xxhash_rust::xxh3::xxh3_64(&inputs)
                 );
-                (Some(dir), root)
+                let dir = built_once("kitti06-scene", &recipe, Depends::OnRecipe, |dir| {
+                    let out = Command::new(python())
+                        .arg(&script)
+                        .arg(sequence.join("images"))
+                        .arg(sequence.join("poses.txt"))
+                        .arg(sequence.join("calib.txt"))
+                        .arg(dir.join("kitti06"))
+                        .output()
+                        .expect("python3 runs");
+                    assert!(
+                        out.status.success(),
+                        "make_posed_scene.py failed (it needs pycolmap 4.2.1; SFPMAP_PYTHON \
+                         names another interpreter): {}",
+                        String::from_utf8_lossy(&out.stderr)
+                    );
+                });
+                dir.join("kitti06")
             }
         };
         let stats: Value =
@@ -132,7 +143,6 @@ fn scene() -> &'static Scene {
         // About 1.2 m between map frames (a car at ~30 km/h, 10 Hz, 3 of 4 frames mapped).
         assert!((0.5..3.0).contains(&spacing_m), "spacing {spacing_m} m");
         Scene {
-            _dir: dir,
             root,
             spacing_m,
             queries,
@@ -167,9 +177,12 @@ fn convert_scene(map: &Path, source: &[&str]) {
 fn sift_map() -> &'static (PathBuf, PathBuf, PathBuf) {
     static MAP: OnceLock<(PathBuf, PathBuf, PathBuf)> = OnceLock::new();
     MAP.get_or_init(|| {
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("kitti06-sift");
-        let dir = crate::once::built_once(&dir, |dir| {
-            let s = scene();
+        let s = scene();
+        let recipe = format!(
+            "convert --database (a copy of) {0}/database.db, slice --level 2 --short",
+            s.root.display()
+        );
+        let dir = built_once("kitti06-sift", &recipe, Depends::OnBinary, |dir| {
             let database = dir.join("database.db");
             std::fs::copy(s.root.join("database.db"), &database).unwrap();
             convert_scene(&dir.join("sift.sfpm"), &["--database", path_str(&database)]);
@@ -315,9 +328,9 @@ const SEC: u64 = 1_000_000_000;
 fn sfp_map() -> &'static (PathBuf, PathBuf) {
     static MAP: OnceLock<(PathBuf, PathBuf)> = OnceLock::new();
     MAP.get_or_init(|| {
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("kitti06-sfp");
-        let dir = crate::once::built_once(&dir, |dir| {
-            let images = scene().root.join("images");
+        let images = scene().root.join("images");
+        let recipe = format!("convert --images {}", images.display());
+        let dir = built_once("kitti06-sfp", &recipe, Depends::OnBinary, |dir| {
             convert_scene(&dir.join("sfp.sfpm"), &["--images", path_str(&images)]);
         });
         (dir.clone(), dir.join("sfp.sfpm"))

@@ -1,5 +1,5 @@
 //! The Python that tests run reference scripts with: `SFPMAP_PYTHON` (the venv that
-//! `bash .ci/test` makes from `python/requirements-test.txt`), else `python3`. Tests install
+//! `bash .ci/test` makes from `python/requirements-ci.txt`), else `python3`. Tests install
 //! nothing: a Python that lacks a module fails the test, saying how to get it.
 #![allow(dead_code)]
 
@@ -17,7 +17,7 @@ pub fn python_with(modules: &str) -> PathBuf {
     assert!(
         out.status.success(),
         "{} cannot import {modules}: run the tests with `bash .ci/test` (it makes a venv from \
-         python/requirements-test.txt and sets SFPMAP_PYTHON), or point SFPMAP_PYTHON at a \
+         python/requirements-ci.txt and sets SFPMAP_PYTHON), or point SFPMAP_PYTHON at a \
          Python that has them\n{}",
         python.display(),
         String::from_utf8_lossy(&out.stderr)
