@@ -2,6 +2,7 @@
 """Checks the user guide (docs/src) and README.md: links and anchors, and runnable snippets.
 
     python3 .ci/doc_snippets.py links
+    python3 .ci/doc_snippets.py rust
     SFPMAP_BIN=... SFPMAP_PYTHON=... SFPMAP_SHARED_DATA=... python3 .ci/doc_snippets.py run [PAGE ...]
 
 `links`: every relative link and `#anchor` in docs/src/**/*.md and README.md must resolve to a
@@ -9,11 +10,20 @@ file, and an anchor to a heading of the target page (as mdBook and GitHub make h
 Pages that `{{#include}}` another file get that file's headings; the included file's own links
 are checked as the book renders them, from the including page.
 
+`rust`: a page with a ```rust block not marked `ignore` must be a doctest of the crate, i.e.
+included by src/lib.rs (`include_str!("../docs/src/PAGE.md")`); otherwise its code would never
+be compiled.
+
 `run`: the fenced blocks ```sh and ```python of every page and of README.md run, per page in
 order, in one scratch folder per page (the convention is on docs/src/contributing.md, "Docs and
 their snippets"). A failure prints `page:line`, the exit status and the output's tail;
 SFPMAP_DOCS_VERBOSE=1 prints every block's. Pages named on the command line (a path suffix,
-e.g. `remote.md`) run alone.
+e.g. `remote.md`) run alone. Each block runs in a process group of its own, killed whole on
+timeout; a block that leaves a process running fails. A `<!-- snippet-cwd: $SHARED/... -->`
+must name a folder under the shared data. The run fails when a snippet changed anything under
+$SFPMAP_SHARED_DATA (an entry added, removed, or of another type, size, mtime or inode) or the
+repository (`git status --porcelain`, with the size and mtime of each file it lists), and when
+no block or fewer blocks ran than were found.
 
 Exit status 0 when everything passed, 1 otherwise. Python 3.8+, standard library only.
 """
@@ -21,6 +31,8 @@ Exit status 0 when everything passed, 1 otherwise. Python 3.8+, standard library
 import os
 import re
 import shutil
+import signal
+import stat
 import subprocess
 import sys
 import tempfile
@@ -39,6 +51,8 @@ INLINE_LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s
 REFERENCE_DEF = re.compile(r"^ {0,3}\[[^\]]+\]:\s*<?(\S+?)>?(?:\s+\"[^\"]*\")?\s*$")
 HEADING = re.compile(r"^ {0,3}(#{1,6})\s+(.*?)\s*#*\s*$")
 SCHEME = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*:")
+RUST_INCLUDE = re.compile(r'include_str!\(\s*"([^"]+\.md)"\s*\)')
+SHARED_CWD = re.compile(r"^(?:\$SHARED|\$\{SHARED\})(/[^$`]*)?$")
 
 
 def pages():
@@ -136,7 +150,11 @@ def heading_id(text):
     return "".join(out)
 
 
-def anchors_of(path, cache={}):
+ANCHORS = {}  # resolved page -> its heading ids
+
+
+def anchors_of(path, cache=None):
+    cache = ANCHORS if cache is None else cache
     path = path.resolve()
     if path not in cache:
         text = expand_includes(path, path.read_text(encoding="utf-8"))
@@ -202,8 +220,9 @@ def link_ok(page, target):
     return anchor in anchors_of(resolved)
 
 
-def snippets(page):
-    """Runnable blocks of a page: (line of the fence, kind 'sh' | 'python', code, cwd or None)."""
+def fenced_blocks(page):
+    """Every fenced block of a page: (line of the fence, language, attributes, code, the
+    `snippet-cwd` directive right before it or None)."""
     lines = page.read_text(encoding="utf-8").split("\n")
     out, i = [], 0
     while i < len(lines):
@@ -222,16 +241,175 @@ def snippets(page):
             body.append(lines[i])
             i += 1
         i += 1
-        kind = {"sh": "sh", "bash": "sh", "shell": "sh", "python": "python", "py": "python"}.get(lang)
-        if kind is None or "ignore" in attrs:
-            continue
         cwd = None
         if start > 0:
             m = CWD_DIRECTIVE.match(lines[start - 1])
             if m:
                 cwd = m.group(1)
-        out.append((start + 1, kind, "\n".join(body) + "\n", cwd))
+        out.append((start + 1, lang, attrs, "\n".join(body) + "\n", cwd))
     return out
+
+
+def snippets(page):
+    """Runnable blocks of a page: (line of the fence, kind 'sh' | 'python', code, cwd or None)."""
+    out = []
+    for line, lang, attrs, code, cwd in fenced_blocks(page):
+        kind = {"sh": "sh", "bash": "sh", "shell": "sh", "python": "python", "py": "python"}.get(lang)
+        if kind is None or "ignore" in attrs:
+            continue
+        out.append((line, kind, code, cwd))
+    return out
+
+
+def doctest_pages():
+    """The pages src/lib.rs includes (`include_str!("../docs/src/PAGE.md")`), resolved."""
+    lib = ROOT / "src" / "lib.rs"
+    text = lib.read_text(encoding="utf-8") if lib.is_file() else ""
+    return {(lib.parent / m.group(1)).resolve() for m in RUST_INCLUDE.finditer(text)}
+
+
+def check_rust_pages():
+    """A ```rust block not marked `ignore` is only ever compiled as a doctest: its page must be
+    included by src/lib.rs."""
+    included = doctest_pages()
+    missing = 0
+    for page in pages():
+        if page.resolve() in included:
+            continue
+        for line, lang, attrs, _, _ in fenced_blocks(page):
+            if lang == "rust" and "ignore" not in attrs:
+                print(f"{rel(page)}:{line}: a ```rust block that no test compiles: include "
+                      f"{rel(page)} in src/lib.rs as a doctest (like GuideLibrary for "
+                      f"docs/src/library.md), or mark the block `rust,ignore`")
+                missing += 1
+    print(f"rust blocks: {len(included)} page(s) included by src/lib.rs, "
+          f"{missing} block(s) on other pages")
+    return missing == 0
+
+
+def snippet_cwd(cwd, shared, where):
+    """The folder a `<!-- snippet-cwd: ... -->` names, or (None, why) when it does not name an
+    existing folder under the shared data."""
+    m = SHARED_CWD.match(cwd)
+    if not m:
+        return None, (f"{where}: snippet-cwd {cwd!r} refused: it must name a folder under "
+                      f"$SHARED (e.g. $SHARED/scenes/south-building)")
+    folder = os.path.realpath(shared + (m.group(1) or ""))
+    root = os.path.realpath(shared)
+    if os.path.commonpath([folder, root]) != root:
+        return None, f"{where}: snippet-cwd {cwd!r} refused: {folder} is outside $SHARED ({root})"
+    if not os.path.isdir(folder):
+        return None, f"{where}: snippet-cwd {cwd!r} refused: {folder} is not a folder"
+    return folder, None
+
+
+def snapshot(root):
+    """Every entry under `root` (itself included, links not followed): relative path ->
+    (type, size, mtime_ns, inode)."""
+    def entry(path):
+        st = os.lstat(path)
+        kind = ("dir" if stat.S_ISDIR(st.st_mode) else "file" if stat.S_ISREG(st.st_mode)
+                else "symlink" if stat.S_ISLNK(st.st_mode) else "other")
+        return kind, st.st_size, st.st_mtime_ns, st.st_ino
+
+    out = {".": entry(root)}
+    for d, dirs, files in os.walk(root):
+        for name in dirs + files:
+            path = os.path.join(d, name)
+            try:
+                out[os.path.relpath(path, root)] = entry(path)
+            except FileNotFoundError:
+                pass  # gone between the listing and the lstat: the later snapshot says so
+    return out
+
+
+def snapshot_changes(before, after):
+    """Lines naming what differs between two snapshots."""
+    out = []
+    for path in sorted(set(before) | set(after)):
+        a, b = before.get(path), after.get(path)
+        if a == b:
+            continue
+        if a is None:
+            out.append(f"new {b[0]}: {path}")
+        elif b is None:
+            out.append(f"deleted {a[0]}: {path}")
+        else:
+            what = [name for name, x, y in zip(("type", "size", "mtime", "inode"), a, b) if x != y]
+            out.append(f"changed ({', '.join(what)}): {path}")
+    return out
+
+
+def git_status():
+    """`git status --porcelain` of the repository (untracked files listed one by one) as path
+    -> (status, size, mtime_ns) of the file, so that a snippet writing into a file that was
+    already modified shows too; None when ROOT is not a git work tree. --no-optional-locks:
+    never takes the index lock."""
+    try:
+        done = subprocess.run(["git", "--no-optional-locks", "status", "--porcelain", "-z",
+                               "--untracked-files=all"], cwd=ROOT, stdin=subprocess.DEVNULL,
+                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, check=True)
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    out = {}
+    records = done.stdout.decode("utf-8", "replace").split("\0")
+    i = 0
+    while i < len(records):
+        record = records[i]
+        i += 1
+        if not record:
+            continue
+        if record[0] in "RC":
+            i += 1  # a rename's or copy's source path follows
+        try:
+            st = os.lstat(ROOT / record[3:])
+            out[record[3:]] = (record[:2], st.st_size, st.st_mtime_ns)
+        except OSError:
+            out[record[3:]] = (record[:2], None, None)
+    return out
+
+
+def group_alive(pgid):
+    try:
+        os.killpg(pgid, 0)
+        return True
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+
+
+def run_block(command, workdir, env, log_path):
+    """Runs one snippet in a process group of its own; the whole group is killed on timeout,
+    and so is anything the snippet left running (reported). Returns (status, output,
+    leftover): status is the exit code or a text."""
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen(command, cwd=workdir, env=env, stdin=subprocess.DEVNULL,
+                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        pgid = proc.pid  # start_new_session: the child leads a new session and process group
+        try:
+            status = proc.wait(timeout=TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            status = f"timeout after {TIMEOUT_S} s; its process group was killed"
+            try:
+                os.killpg(pgid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+            proc.wait()
+        # A trap's `kill` may take a moment to land: give the group a second to empty.
+        leftover = False
+        deadline = time.time() + 2
+        while group_alive(pgid) and time.time() < deadline:
+            time.sleep(0.05)
+        if group_alive(pgid):
+            leftover = True
+            try:
+                os.killpg(pgid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+    with open(log_path, "rb") as log:
+        output = log.read().decode("utf-8", "replace")
+    return status, output, leftover
 
 
 def tail(output):
@@ -254,6 +432,29 @@ def run_snippets(only):
         print(f"SFPMAP_PYTHON is not an executable: {python!r}")
         return False
 
+    selected = [(page, snippets(page)) for page in pages()
+                if not only or any(rel(page).endswith(o) for o in only)]
+    selected = [(page, blocks) for page, blocks in selected if blocks]
+    found = sum(len(blocks) for _, blocks in selected)
+    # Every snippet-cwd is checked before anything runs.
+    refused = []
+    for page, blocks in selected:
+        for line, _, _, cwd in blocks:
+            if cwd is not None:
+                _, why = snippet_cwd(cwd, shared, f"{rel(page)}:{line}")
+                if why:
+                    refused.append(why)
+    for why in refused:
+        print(why)
+    if refused:
+        return False
+
+    shared_before = snapshot(shared)
+    repo_before = git_status()
+    if repo_before is None:
+        print(f"note: {ROOT} is not a git work tree: the check that snippets leave the "
+              "repository alone is skipped")
+
     # sfpmap first on PATH: the binary under test, whatever its file name.
     bindir = tempfile.mkdtemp(prefix="sfpmap-docs-bin-")
     os.symlink(binary, os.path.join(bindir, "sfpmap"))
@@ -262,12 +463,7 @@ def run_snippets(only):
     ran = not_run = 0
     timings = []
     try:
-        for page in pages():
-            if only and not any(rel(page).endswith(o) for o in only):
-                continue
-            blocks = snippets(page)
-            if not blocks:
-                continue
+        for page, blocks in selected:
             scratch = tempfile.mkdtemp(prefix="sfpmap-docs-")
             tmp = os.path.join(scratch, ".tmp")
             os.mkdir(tmp)
@@ -291,24 +487,24 @@ def run_snippets(only):
                     errors.append(where)
                     not_run += 1
                     continue
-                script = os.path.join(scripts, f"{len(timings)}-{number}.{'sh' if kind == 'sh' else 'py'}")
+                base = os.path.join(scripts, f"{len(timings)}-{number}")
+                script = f"{base}.{'sh' if kind == 'sh' else 'py'}"
                 with open(script, "w", encoding="utf-8") as f:
                     f.write("set -euo pipefail\n" + code if kind == "sh" else code)
                 command = ["bash", script] if kind == "sh" else [python, script]
-                workdir = os.path.expandvars(cwd.replace("$SHARED", shared)) if cwd else scratch
+                workdir = snippet_cwd(cwd, shared, where)[0] if cwd else scratch
                 block_start = time.time()
-                try:
-                    done = subprocess.run(command, cwd=workdir, env=env, stdin=subprocess.DEVNULL,
-                                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                          timeout=TIMEOUT_S)
-                    status, output = done.returncode, done.stdout.decode("utf-8", "replace")
-                except subprocess.TimeoutExpired as e:
-                    status = f"timeout after {TIMEOUT_S} s"
-                    output = (e.stdout or b"").decode("utf-8", "replace")
+                status, output, leftover = run_block(command, workdir, env, base + ".log")
                 seconds = time.time() - block_start
                 ran += 1
                 if status != 0:
                     print(f"{where}: {kind} snippet failed (exit {status}, {seconds:.1f} s); last lines:")
+                    print(tail(output))
+                    errors.append(where)
+                    failed_here = True
+                elif leftover:
+                    print(f"{where}: {kind} snippet left processes running (killed): end what "
+                          f"it starts, e.g. with `trap 'kill $pid' EXIT`; last lines:")
                     print(tail(output))
                     errors.append(where)
                     failed_here = True
@@ -322,26 +518,51 @@ def run_snippets(only):
         shutil.rmtree(bindir, ignore_errors=True)
         shutil.rmtree(scripts, ignore_errors=True)
 
-    # Snippets write only into their scratch folder: nothing in the shared data may be newer.
-    written = [os.path.join(d, f) for d, _, files in os.walk(shared) for f in files
-               if os.lstat(os.path.join(d, f)).st_mtime >= started]
-    for path in written[:20]:
-        print(f"a snippet wrote into the shared data folder: {path}")
-    if written:
-        errors.append("shared data written")
+    # Snippets write only into their scratch folder: the shared data and the repository are
+    # as they were.
+    changes = snapshot_changes(shared_before, snapshot(shared))
+    for change in changes[:50]:
+        print(f"a snippet changed the shared data ({shared}): {change}")
+    if len(changes) > 50:
+        print(f"... and {len(changes) - 50} more changes in the shared data")
+    if changes:
+        errors.append("shared data changed")
+    if repo_before is not None:
+        repo_after = git_status()
+        if repo_after is None:
+            print("git status failed after the snippets")
+            errors.append("repository status")
+        else:
+            changed = [path for path in sorted(set(repo_before) | set(repo_after))
+                       if repo_before.get(path) != repo_after.get(path)]
+            for path in changed:
+                was = repo_before.get(path, ("  ",))[0]
+                now = repo_after.get(path, ("  ",))[0]
+                how = "written" if was == now else f"git status `{was}` -> `{now}`"
+                print(f"a snippet changed the repository: {path} ({how})")
+            if changed:
+                errors.append("repository changed")
+
+    if ran == 0 or ran < found:
+        print(f"snippets: {found} runnable blocks found, only {ran} run")
+        errors.append("blocks not run")
 
     for name, seconds in timings:
         print(f"  {seconds:7.1f} s  {name}")
-    print(f"snippets: {ran} run, {not_run} not run, {len(errors)} failed or missing, "
+    print(f"snippets: {found} found, {ran} run, {not_run} not run, {len(errors)} failed or missing, "
           f"{time.time() - started:.0f} s")
     return not errors
 
 
 def main(argv):
-    if len(argv) < 2 or argv[1] not in ("links", "run"):
+    checks = {"links": check_links, "rust": check_rust_pages}
+    if len(argv) < 2 or argv[1] not in ("links", "rust", "run"):
         print(__doc__.strip().split("\n\n")[1])
         return 2
-    ok = check_links() if argv[1] == "links" else run_snippets(argv[2:])
+    if argv[1] == "run":
+        ok = run_snippets(argv[2:])
+    else:
+        ok = checks[argv[1]]()
     return 0 if ok else 1
 
 
