@@ -7,7 +7,8 @@ use std::process::ExitCode;
 /// Print a shell completion script for sfpmap on stdout.
 ///
 /// Example: `sfpmap completions bash > ~/.local/share/bash-completion/completions/sfpmap`
-/// (zsh: a file `_sfpmap` in a folder of `$fpath`; fish: `~/.config/fish/completions/sfpmap.fish`).
+/// (zsh: `sfpmap completions zsh > ~/.zfunc/_sfpmap`, with `fpath=(~/.zfunc $fpath)` in
+/// ~/.zshrc before `compinit`; fish: a file `~/.config/fish/completions/sfpmap.fish`).
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The shell to complete for.

@@ -73,6 +73,7 @@ pub struct Args {
     /// Dimensions of the short descriptor block (default: a quarter of the full dimension).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub short_dims: Option<u32>,
+    /// How sections are stored: raw (read in place, zero-copy) or zstd (smaller, decoded on read).
     #[arg(long, value_enum, default_value = "raw")]
     pub codec: CodecArg,
     /// zstd level when `--codec zstd`.

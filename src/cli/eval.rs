@@ -25,6 +25,7 @@ pub struct Args {
     /// Recall thresholds `meters,degrees` (repeat); default 0.25,2 0.5,5 5,10 (map units).
     #[arg(long = "threshold", value_parser = parse_threshold)]
     pub thresholds: Vec<(f64, f64)>,
+    /// Print one JSON object (medians, recall, map_bytes, scale, per_query) instead of text.
     #[arg(long)]
     pub json: bool,
 }

@@ -113,6 +113,7 @@ pub struct Args {
     /// Output poses.
     #[arg(short, long)]
     pub output: PathBuf,
+    /// Layout of OUTPUT: a line per query (colmap, tum) or a JSON list with each query's details.
     #[arg(long, value_enum, default_value = "colmap")]
     pub format: PoseFormat,
     /// Worker threads (queries run in parallel; the map is shared); capped at 4 per core, at

@@ -259,10 +259,6 @@ fn generate_reference_is_deterministic_and_hidden() {
     for hidden in HIDDEN {
         let command = format!("sfpmap {hidden}");
         assert!(
-            !headings.contains(&command),
-            "cli.md documents the hidden command `{command}`"
-        );
-        assert!(
             !page(&a).contains(&format!("## `{command}`")),
             "cli.md documents the hidden command `{command}`"
         );
@@ -330,16 +326,15 @@ fn generate_reference_removes_only_its_own_stale_pages() {
         (outside, target)
     };
 
-    let o = sfpmap(&[
-        "generate-reference",
-        "--out",
-        docs.path().to_str().unwrap(),
-    ]);
+    let o = sfpmap(&["generate-reference", "--out", docs.path().to_str().unwrap()]);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{stderr}");
     assert!(stderr.contains("removed 2 stale man page(s)"), "{stderr}");
     assert!(!stale.exists(), "the stale page is left");
-    assert!(!old_layout.exists(), "the stale page of the old layout is left");
+    assert!(
+        !old_layout.exists(),
+        "the stale page of the old layout is left"
+    );
     for (path, text) in &kept {
         assert_eq!(&std::fs::read_to_string(path).unwrap(), text, "{path:?}");
     }
