@@ -1,9 +1,8 @@
 //! The library's API: format, COLMAP, geometry, localizer, extractor, C ABI in-process, vectors,
 //! fuzz replays.
 //!
-//! One test crate (one binary to link) per kind of test: `tests/api` (the library), `tests/cli`
-//! (the binary on small and crafted inputs), `tests/e2e` (real scenes end to end). Each file
-//! here is a module; `tests/support/` holds what they share.
+//! One of the three test crates (the guide's Contributing page, "Tests", says which test goes
+//! where): each file here is a module, `tests/support/` holds what they share.
 
 #[path = "../support/common.rs"]
 mod common;

@@ -1,16 +1,10 @@
 //! The real `sfpmap` binary on temp copies of the conformance vectors.
 #![cfg(feature = "cli")]
 
+use crate::run::sfpmap;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn sfpmap(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-        .args(args)
-        .output()
-        .expect("run sfpmap")
-}
+use std::process::Output;
 
 fn vector(kind: &str, name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("spec/vectors/{kind}/{name}.sfpm"))

@@ -1,26 +1,18 @@
 //! The committed CLI reference (docs/src/reference/cli.md, docs/man/man1/*.1) is what the binary
 //! generates now, `generate-reference` writes and removes only what it should, and
 //! `sfpmap completions SHELL` prints a script for each shell.
-//!
-//! Self-contained on purpose: it needs nothing from tests/support.
 #![cfg(feature = "cli")]
 
+use crate::run::sfpmap;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 const REGENERATE: &str = "cargo run --release -- generate-reference --out docs";
 const MARKDOWN_PAGE: &str = "src/reference/cli.md";
 const MAN_DIR: &str = "man/man1";
 /// The commands that are hidden: no completion, no section, no man page.
 const HIDDEN: [&str; 2] = ["generate-reference", "bench-pose"];
-
-fn sfpmap(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-        .args(args)
-        .output()
-        .expect("run sfpmap")
-}
 
 fn committed_docs() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("docs")

@@ -2,16 +2,9 @@
 //! colours), and shows what was passed in.
 #![cfg(all(feature = "cli", feature = "localize"))]
 
+use crate::run::sfpmap;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn sfpmap(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-        .args(args)
-        .output()
-        .expect("run sfpmap")
-}
 
 fn vector(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("spec/vectors/valid/{name}.sfpm"))

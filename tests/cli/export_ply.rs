@@ -2,16 +2,9 @@
 //! TUM and images.txt poses, `--colmap` equal to `export-colmap`, and refusals.
 #![cfg(feature = "cli")]
 
+use crate::run::sfpmap;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn sfpmap(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-        .args(args)
-        .output()
-        .expect("run sfpmap")
-}
 
 fn vector() -> (PathBuf, Value) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("spec/vectors/valid");

@@ -3,6 +3,7 @@
 //! itself on first use), the embedded model.
 #![cfg(all(feature = "onnx", feature = "colmap", feature = "cli"))]
 
+use crate::run::sfpmap;
 use serde_json::Value;
 use sfpmap::format::Map;
 use std::path::{Path, PathBuf};
@@ -10,14 +11,6 @@ use std::process::{Command, Output};
 
 fn scene() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes/sacre-coeur")
-}
-
-fn sfpmap(args: &[&std::ffi::OsStr]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-        .args(args)
-        .env("ORT_DISABLE_TELEMETRY", "1")
-        .output()
-        .expect("sfpmap runs")
 }
 
 fn ok(args: &[&std::ffi::OsStr]) -> Value {

@@ -1,9 +1,8 @@
 //! The `sfpmap` binary on small and crafted inputs: each command's output, errors, hostile input,
 //! remote maps and catalogs on loopback servers.
 //!
-//! One test crate (one binary to link) per kind of test: `tests/api` (the library), `tests/cli`
-//! (the binary on small and crafted inputs), `tests/e2e` (real scenes end to end). Each file
-//! here is a module; `tests/support/` holds what they share.
+//! One of the three test crates (the guide's Contributing page, "Tests", says which test goes
+//! where): each file here is a module, `tests/support/` holds what they share.
 
 #[path = "../support/common.rs"]
 mod common;
@@ -11,6 +10,8 @@ mod common;
 mod once;
 #[path = "../support/python.rs"]
 mod python;
+#[path = "../support/run.rs"]
+mod run;
 #[path = "../support/servers.rs"]
 mod servers;
 #[path = "../support/shared_data.rs"]

@@ -1,9 +1,8 @@
 //! End to end on real scenes: localization of the shared scenes and KITTI 06 sequences, MCAP logs,
 //! the C example against the built library.
 //!
-//! One test crate (one binary to link) per kind of test: `tests/api` (the library), `tests/cli`
-//! (the binary on small and crafted inputs), `tests/e2e` (real scenes end to end). Each file
-//! here is a module; `tests/support/` holds what they share.
+//! One of the three test crates (the guide's Contributing page, "Tests", says which test goes
+//! where): each file here is a module, `tests/support/` holds what they share.
 
 #[path = "../support/common.rs"]
 mod common;
