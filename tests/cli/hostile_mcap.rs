@@ -80,30 +80,6 @@ fn query() -> (Vec<u8>, String) {
     (jpeg, camera.to_owned())
 }
 
-/// A ROS 2 `sensor_msgs/msg/CompressedImage` as CDR (little endian, aligned after the
-/// 4-byte encapsulation header).
-fn compressed_image(sec: u32, jpeg: &[u8]) -> Vec<u8> {
-    let mut out = vec![0, 1, 0, 0];
-    let string = |out: &mut Vec<u8>, s: &str| {
-        while (out.len() - 4) % 4 != 0 {
-            out.push(0);
-        }
-        out.extend((s.len() as u32 + 1).to_le_bytes());
-        out.extend(s.as_bytes());
-        out.push(0);
-    };
-    out.extend(sec.to_le_bytes());
-    out.extend(0u32.to_le_bytes());
-    string(&mut out, "cam");
-    string(&mut out, "jpeg");
-    while (out.len() - 4) % 4 != 0 {
-        out.push(0);
-    }
-    out.extend((jpeg.len() as u32).to_le_bytes());
-    out.extend(jpeg);
-    out
-}
-
 const TOPIC: &str = "/cam/compressed";
 
 /// A log of `images` copies of the query on [`TOPIC`], stamped 1, 2, ... s; chunked logs get
@@ -143,7 +119,7 @@ fn write_log_of(
                 log_time: time,
                 publish_time: time,
             },
-            &compressed_image(i, jpeg),
+            &common::compressed_image((i as i32, 0), "cam", "jpeg", jpeg),
         )
         .unwrap();
     }

@@ -28,7 +28,8 @@ fn built_cdylib() -> PathBuf {
         .to_path_buf();
     assert!(
         dir.join("libsfpmap.so").exists(),
-        "no libsfpmap.so in {}: build the tests with feature `capi` (bash .ci/test does)",
+        "no libsfpmap.so in {}: build the library first, with feature `capi` (`cargo build \
+         --release --all-features --lib --bins --tests`, as bash .ci/test does)",
         dir.display()
     );
     dir

@@ -101,9 +101,7 @@ fn queries() -> Vec<Query> {
 }
 
 fn compressed_image(stamp: (i32, u32), jpeg: &[u8]) -> Vec<u8> {
-    let mut c = Cdr::new();
-    c.header(stamp, "camera_a").string("jpeg").bytes(jpeg);
-    c.0
+    common::compressed_image(stamp, "camera_a", "jpeg", jpeg)
 }
 
 fn raw_image(stamp: (i32, u32), encoding: &str, image: &image::RgbImage) -> Vec<u8> {

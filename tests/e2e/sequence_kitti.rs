@@ -16,7 +16,6 @@
 use crate::common;
 use crate::once::{built_once, Depends};
 
-use common::Cdr;
 use serde_json::Value;
 use sfpmap::geometry::Pose;
 use std::collections::BTreeMap;
@@ -313,13 +312,8 @@ fn sift_level2_short_slice_sequence_tracks_and_without_it_retrieves() {
 
 /// A `sensor_msgs/msg/CompressedImage` as CDR.
 fn compressed_image(stamp_ns: u64, format: &str, data: &[u8]) -> Vec<u8> {
-    let mut c = Cdr::new();
-    c.u32((stamp_ns / SEC) as u32)
-        .u32((stamp_ns % SEC) as u32)
-        .string("camera_left")
-        .string(format)
-        .bytes(data);
-    c.0
+    let stamp = ((stamp_ns / SEC) as i32, (stamp_ns % SEC) as u32);
+    common::compressed_image(stamp, "camera_left", format, data)
 }
 
 const SEC: u64 = 1_000_000_000;

@@ -868,3 +868,11 @@ impl Cdr {
         self.u32(stamp.0 as u32).u32(stamp.1).string(frame_id)
     }
 }
+
+/// A ROS 2 `sensor_msgs/msg/CompressedImage` as CDR: header (stamp `(sec, nanosec)`,
+/// `frame_id`), `format` (e.g. "jpeg"), then the encoded image.
+pub fn compressed_image(stamp: (i32, u32), frame_id: &str, format: &str, data: &[u8]) -> Vec<u8> {
+    let mut c = Cdr::new();
+    c.header(stamp, frame_id).string(format).bytes(data);
+    c.0
+}
