@@ -7,7 +7,8 @@
 //!
 //! A crash's input is this target's own encoding; to replay it in `cargo test`, run the
 //! target on it with `SFPMAP_FUZZ_SAVE_MAP=path` set, which writes the map it built, and
-//! commit that map under `fuzz/regressions/open/`.
+//! commit that map under `fuzz/regressions/<body>/` for the body the backtrace names (`open`,
+//! `decode` or `slice`: each folder is replayed through its own body only).
 
 use libfuzzer_sys::arbitrary::{self, Arbitrary};
 use sfpmap::format::fuzzing::{all_format_bodies, fix_checksums, with_metadata};
