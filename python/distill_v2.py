@@ -63,6 +63,7 @@ import train as T  # noqa: E402  (validate: homography mutual-NN accuracy)
 import train_v2 as V  # noqa: E402  (data lists, teacher loading, state file, lr schedule, BN freezing)
 from sfp import data as D  # noqa: E402
 from sfp import multiview as MV  # noqa: E402
+from sfp.config import apply_sets  # noqa: E402
 from sfp.model import SFP  # noqa: E402
 
 REPO = V.REPO
@@ -229,16 +230,7 @@ def validate(student, sh, teacher, th, val_batches, cfg):
 
 
 def parse_cfg(sets):
-    cfg = copy.deepcopy(CFG)
-    for kv in sets:
-        k, v = kv.split("=", 1)
-        d = cfg
-        ks = k.split(".")
-        for kk in ks[:-1]:
-            d = d[kk]
-        assert ks[-1] in d, f"unknown config key {k}"
-        d[ks[-1]] = json.loads(v)
-    return cfg
+    return apply_sets(copy.deepcopy(CFG), sets)
 
 
 def main():

@@ -89,6 +89,7 @@ import train as T  # noqa: E402  (sample_map, warp_points)
 import train_v2 as V  # noqa: E402  (data lists, state file, lr schedule, BN freezing, validate_mv)
 from sfp import data as D  # noqa: E402
 from sfp import multiview as MV  # noqa: E402
+from sfp.config import apply_sets  # noqa: E402
 from sfp.model import SFP  # noqa: E402
 from sfp.reference import level_features  # noqa: E402
 
@@ -471,16 +472,8 @@ def validate_kap(net, heads, val_b, val_mv, cfg):
 # ----------------------------------------------------------------------------------------------
 
 def load_cfg(path, sets):
-    cfg = json.load(open(path))
-    for kv in sets:
-        k, v = kv.split("=", 1)
-        d = cfg
-        ks = k.split(".")
-        for kk in ks[:-1]:
-            d = d[kk]
-        assert ks[-1] in d, f"unknown config key {k}"
-        d[ks[-1]] = json.loads(v)
-    return cfg
+    with open(path) as f:
+        return apply_sets(json.load(f), sets)
 
 
 def main():

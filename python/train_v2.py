@@ -50,6 +50,7 @@ sys.path.insert(0, HERE)
 import train as T  # noqa: E402  (v1 helpers: warping, sampling, patch cosine, peakiness, validate)
 from sfp import data as D  # noqa: E402
 from sfp import multiview as MV  # noqa: E402
+from sfp.config import apply_sets  # noqa: E402
 from sfp.model import SFP  # noqa: E402
 
 REPO = os.path.normpath(os.path.join(HERE, ".."))
@@ -435,15 +436,8 @@ def main():
     ap.add_argument("--best", default=os.path.join(HERE, "runs", "v2-best.pt"),
                     help="weights of the best validation score (not committed)")
     args = ap.parse_args()
-    cfg = json.load(open(args.config))
-    for kv in args.set:
-        k, v = kv.split("=", 1)
-        d = cfg
-        ks = k.split(".")
-        for kk in ks[:-1]:
-            d = d[kk]
-        assert ks[-1] in d, f"unknown config key {k}"
-        d[ks[-1]] = json.loads(v)
+    with open(args.config) as f:
+        cfg = apply_sets(json.load(f), args.set)
     W = cfg["w"]
     torch.set_num_threads(cfg["threads"])
     t_start = time.time()
