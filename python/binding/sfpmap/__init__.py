@@ -16,7 +16,8 @@ localize queries. The work runs in Rust with the GIL released.
 
 Threads: ``Map``, ``Localizer``, ``Extractor``, ``FeaturesFile`` and ``QueryDatabase`` may be
 shared between threads. ``Localizer.localize`` runs concurrently from several Python threads;
-``Localizer.localize_many`` runs a batch on Rust threads. An ``Extractor`` runs one image at a
+``Localizer.localize_many`` runs a batch on Rust threads (a ``Localizer(map, sequence=True)``
+takes its queries one at a time, in order). An ``Extractor`` runs one image at a
 time (concurrent calls take turns).
 
 Zero copy: ``Map`` views (``map.points.positions``, ``map.levels[l].short``, ...) are read-only
@@ -486,6 +487,22 @@ class Localizer:
     "vlad", "global", "off"), ``ratio`` (default the map's: 0.95 on SFP maps, 0.9 on SIFT
     maps); and the localizer's ``mutual``, ``min_similarity``,
     ``coarse_error_px``, ``gate_px``, ``gate_ratio``, ``fine_error_px``, ``min_inliers``.
+    The library checks them (as for the CLI and the C ABI): one out of range is an
+    ``InputError`` in its words (``"top_k 0: 1 to 100000 images"``); a level the map lacks
+    is a ``NoSuchLevelError``.
+
+    ``sequence=True``: the queries are an ordered sequence (a camera moving), as the CLI's
+    ``localize --sequence``. Each is localized by guided matching around the pose predicted
+    from the last ones (``Localization.path == "tracking"``), through retrieval only when
+    tracking is lost or before the first pose. ``localize`` calls then take turns, in the
+    order they are made; ``localize_many`` runs its queries on one thread, in order.
+    ``is_tracking`` says whether the next query has a prediction; ``reset_tracking()``
+    forgets the motion (a cut in the sequence).
+
+    Features that record their model (``Extractor.extract``'s, those of a ``FeaturesFile``
+    made by ``sfpmap extract``) must be of the map's model: others raise ``LocalizeError``,
+    naming both. Features made from arrays are taken as they are.
+
     The localizer keeps the map's mapping alive (closing the ``Map`` does not end it)."""
 
     def __init__(self, map: Map, **options: Any) -> None:
@@ -499,6 +516,22 @@ class Localizer:
     def skipped_levels(self) -> List[Tuple[int, str]]:
         return list(self._inner.skipped_levels)
 
+    @property
+    def sequence(self) -> bool:
+        """Whether the queries are an ordered sequence (``sequence=True``)."""
+        return bool(self._inner.sequence)
+
+    @property
+    def is_tracking(self) -> bool:
+        """Whether the sequence predicts the next query's pose (it localized the last one);
+        always ``False`` outside a sequence."""
+        return bool(self._inner.is_tracking)
+
+    def reset_tracking(self) -> None:
+        """Forgets the sequence's motion: the next query goes through retrieval. Nothing
+        outside a sequence."""
+        self._inner.reset_tracking()
+
     def localize(
         self,
         features: FeaturesLike,
@@ -510,7 +543,9 @@ class Localizer:
         ``FeaturesFile``, ``QueryDatabase``), ``(keypoints (n, 2), descriptors (n, d))`` for
         every level, or ``{level: (keypoints, descriptors)}``. ``camera``: ``Camera``,
         ``"MODEL W H params..."``, a dict or a ``pycolmap.Camera``. A query that is not
-        localized gives ``success == False``; unusable input raises ``LocalizeError``."""
+        localized gives ``success == False``; unusable input raises ``LocalizeError``
+        (features of another model than the map's, descriptors of another size) or
+        ``InputError`` (arrays or a camera that cannot be read)."""
         g = None if global_descriptor is None else [float(x) for x in global_descriptor]
         return Localization(self._inner.localize(features, camera, g, name))
 
@@ -520,7 +555,8 @@ class Localizer:
         """Localizes an iterable of ``(features, camera)`` or ``(features, camera, name)`` on
         ``threads`` Rust threads (GIL released); results in input order. ``threads``:
         default the machine's available parallelism; 0 is an ``InputError``; more than 4 per
-        core (or 256) is capped, with a ``RuntimeWarning``, as the CLI caps ``--threads``."""
+        core (or 256) is capped, with a ``RuntimeWarning``, as the CLI caps ``--threads``.
+        A sequence's queries run on one thread, in order."""
         return [Localization(r) for r in self._inner.localize_many(queries, threads)]
 
 

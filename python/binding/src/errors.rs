@@ -7,6 +7,7 @@
 use pyo3::exceptions::{PyException, PyOverflowError};
 use pyo3::prelude::*;
 use pyo3::{create_exception, PyErr};
+use sfpmap::session::SessionError;
 use std::path::Path;
 
 create_exception!(
@@ -49,7 +50,7 @@ create_exception!(
     sfpmap,
     LocalizeError,
     Error,
-    "Query features or a map that cannot be localized against (not a failed query)."
+    "Query features or a map that cannot be localized against (not a failed query): features of another model than the map's, descriptors of another size."
 );
 create_exception!(
     sfpmap,
@@ -81,8 +82,11 @@ pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
 /// `e` and its causes, `: `-separated, as anyhow's `{:#}` prints them, on one line: the
 /// messages of ONNX Runtime, SQLite or HDF5 may hold line breaks (ORT ends some with one).
 pub(crate) fn chain(e: &dyn std::error::Error) -> String {
-    let mut text = one_line(&e.to_string());
-    let mut source = e.source();
+    causes(one_line(&e.to_string()), e.source())
+}
+
+/// `text`, then `source` and its own causes, each after `: `, on one line.
+fn causes(mut text: String, mut source: Option<&(dyn std::error::Error + 'static)>) -> String {
     while let Some(s) = source {
         text.push_str(": ");
         text.push_str(&one_line(&s.to_string()));
@@ -151,6 +155,85 @@ pub(crate) fn level_ids(
     ids.into_iter()
         .collect::<Result<Vec<u16>, String>>()
         .map_err(|bad| no_such_level(path, &bad, &available()))
+}
+
+/// An extractor's error: `FileError` for an image that cannot be read, else `ExtractError`.
+pub(crate) fn extract_error(e: sfpmap::extract::ExtractError) -> PyErr {
+    use sfpmap::extract::ExtractError as E;
+    match &e {
+        E::Io { .. } => FileError::new_err(chain(&e)),
+        _ => ExtractError::new_err(chain(&e)),
+    }
+}
+
+/// An option out of its range, in the library's words alone (`top_k 0: 1 to 100000 images`):
+/// an `InputError`, as any other argument the package refuses.
+pub(crate) fn option_error(e: &sfpmap::localize::OptionError) -> PyErr {
+    InputError::new_err(e.to_string())
+}
+
+/// The one place a session's error becomes an exception:
+///
+/// - an option out of range: `InputError`, the library's message alone (no map in front);
+/// - the map (a level it lacks, a damaged section), while building the localizer, while a
+///   query reads it, or otherwise: `NoSuchLevelError`, `FileError` or `MapError`, as
+///   [`format_error`] picks;
+/// - query features that do not fit the map (another model's, descriptors of another size,
+///   a level they lack), a map that cannot be localized against: `LocalizeError`;
+/// - a features file, a query database, a session asked for a query by name that it does
+///   not read: `InputError`;
+/// - the extractor: `ExtractError` (`FileError` for an image that cannot be read).
+///
+/// The text is the CLI's line: the session's message (the map or file in front) and its
+/// causes.
+pub(crate) fn session_error(e: SessionError) -> PyErr {
+    use sfpmap::format::Error as F;
+    use sfpmap::localize::LocalizeError as L;
+    use SessionError as S;
+    let text = session_text(&e);
+    let format = |f: &F, text: String| match f {
+        F::NoSuchLevel { .. } => NoSuchLevelError::new_err(text),
+        F::Io { .. } | F::NotARegularFile { .. } => FileError::new_err(text),
+        _ => MapError::new_err(text),
+    };
+    match &e {
+        S::Localize {
+            source: L::Option(o),
+            ..
+        } => option_error(o),
+        S::Localize {
+            source: L::Format(f),
+            ..
+        }
+        | S::Query {
+            source: L::Format(f),
+            ..
+        }
+        | S::Map { source: f, .. } => format(f, text),
+        S::Localize { .. } | S::Query { .. } | S::Mismatch(_) | S::NotExtractable { .. } => {
+            LocalizeError::new_err(text)
+        }
+        S::NoSource(_) | S::Input(_) | S::Database { .. } => InputError::new_err(text),
+        S::Extract(x) => match x {
+            sfpmap::extract::ExtractError::Io { .. } => FileError::new_err(text),
+            _ => ExtractError::new_err(text),
+        },
+        // A kind of error a later library adds.
+        _ => LocalizeError::new_err(text),
+    }
+}
+
+/// `e`'s text and its causes on one line. A session error's text holds its source's text
+/// already (`MAP: query NAME: {source}`): the line goes on from the source's own causes,
+/// so that nothing is said twice.
+fn session_text(e: &SessionError) -> String {
+    use std::error::Error as _;
+    let text = one_line(&e.to_string());
+    let source = match e.source() {
+        Some(s) if text.contains(&one_line(&s.to_string())) => s.source(),
+        other => other,
+    };
+    causes(text, source)
 }
 
 pub(crate) fn output_error(e: sfpmap::output::OutputError) -> PyErr {

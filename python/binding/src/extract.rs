@@ -1,12 +1,13 @@
 //! Query features: the SFP extractor, hloc's `features.h5`, COLMAP query databases.
 
-use crate::errors::{chain, ExtractError, FileError, InputError};
+use crate::errors::{chain, extract_error, InputError};
 use crate::localize::Features;
 use numpy::{PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use sfpmap::extract::{DetectOptions, Extractor as Inner, ExtractorOptions};
 use sfpmap::io::features_h5::H5Features;
 use sfpmap::io::queries::DatabaseFeatures;
+use sfpmap::localize::FeatureModel;
 use std::path::PathBuf;
 use std::sync::Mutex;
 
@@ -19,14 +20,6 @@ pub(crate) struct Extractor {
     /// The model's RGB-to-grey weights, read at construction: preparing an image takes no
     /// lock (and never waits for a network run while holding the GIL).
     gray_weights: [f32; 3],
-}
-
-fn extract_error(e: sfpmap::extract::ExtractError) -> PyErr {
-    use sfpmap::extract::ExtractError as E;
-    match &e {
-        E::Io { .. } => FileError::new_err(chain(&e)),
-        _ => ExtractError::new_err(chain(&e)),
-    }
 }
 
 /// An image from a numpy array: `(h, w)` or `(h, w, 1)` grey, `(h, w, 3)` RGB; uint8, or
@@ -158,12 +151,13 @@ impl Extractor {
                     .map_err(|e| InputError::new_err(format!("global_max_side {e}")))?,
             },
         };
-        let f = py
+        let (f, query) = py
             .detach(|| {
-                self.inner
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .extract(&input, &options)
+                let mut extractor = self.inner.lock().unwrap_or_else(|p| p.into_inner());
+                let f = extractor.extract(&input, &options)?;
+                // The features carry the model: a session refuses them for another map's.
+                let query = sfpmap::io::queries::sfp_query(&f, &extractor);
+                Ok::<_, sfpmap::extract::ExtractError>((f, query))
             })
             // Named as the CLI names them: the image in front.
             .map_err(|e| {
@@ -172,7 +166,7 @@ impl Extractor {
                     None => e,
                 })
             })?;
-        let mut features = Features::new(sfpmap::io::queries::sfp_query(&f));
+        let mut features = Features::new(query);
         features.scores = f.levels.iter().map(|l| Some(l.scores.clone())).collect();
         Ok(features)
     }
@@ -183,16 +177,30 @@ impl Extractor {
 #[pyclass(frozen, module = "sfpmap._sfpmap", name = "FeaturesFile")]
 pub(crate) struct FeaturesFile {
     inner: H5Features,
+    /// The model the file records (`sfp.model_name`, `sfp.model_xxh3`: `sfpmap extract`'s
+    /// files), which its features carry: a localizer refuses them for a map of another model,
+    /// as `sfpmap localize --features` refuses the file. `None` for an hloc file.
+    model: Option<FeatureModel>,
 }
 
 #[pymethods]
 impl FeaturesFile {
     #[new]
     fn new(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
-        let inner = py
-            .detach(|| H5Features::open(&path))
+        let (inner, model) = py
+            .detach(|| {
+                let inner = H5Features::open(&path)?;
+                let model = match inner.root_string("sfp.model_name")? {
+                    Some(name) => Some(FeatureModel {
+                        name,
+                        xxh3: inner.root_string("sfp.model_xxh3")?,
+                    }),
+                    None => None,
+                };
+                Ok::<_, sfpmap::io::InputError>((inner, model))
+            })
             .map_err(|e| InputError::new_err(chain(&e)))?;
-        Ok(FeaturesFile { inner })
+        Ok(FeaturesFile { inner, model })
     }
 
     /// The features of image `name`, or `None` if the file has none.
@@ -200,7 +208,10 @@ impl FeaturesFile {
         let f = py
             .detach(|| self.inner.features(name))
             .map_err(|e| InputError::new_err(chain(&e)))?;
-        Ok(f.map(Features::new))
+        Ok(f.map(|mut f| {
+            f.model = self.model.clone();
+            Features::new(f)
+        }))
     }
 }
 

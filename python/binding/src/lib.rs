@@ -2,16 +2,17 @@
 //! `sfpmap/__init__.py`, wraps it in the documented API).
 //!
 //! What lives where: `map.rs` opens maps and hands out numpy views of their sections (the
-//! first of its two `unsafe` blocks is there); `localize.rs` holds cameras, query features, the
-//! localizer and its results; `build.rs` convert, slice and `from_pycolmap`; `extract.rs`
+//! one `unsafe` block is there); `localize.rs` holds cameras, query features, the localizer
+//! (a library `Session`) and its results; `build.rs` convert, slice and `from_pycolmap`; `extract.rs`
 //! the SFP extractor, hloc's `features.h5` and COLMAP query databases; `errors.rs` the
 //! exception classes and the CLI's one-line messages.
 //!
 //! Every call that does real work (open, verify, convert, slice, extract, localize) runs with
 //! the GIL released (`Python::detach`).
 //!
-//! `unsafe` is denied but for two items, each with its `SAFETY` note: `map::view` (a numpy
-//! array over the mapping) and `Localizer::new` (the localizer borrowing the map it owns).
+//! `unsafe` is denied but for one item, with its `SAFETY` note: `map::view` (a numpy array
+//! over the mapping). The localizer and the map it borrows are owned together by the
+//! library's `Session` (no lifetime cast here).
 #![deny(unsafe_code)]
 
 mod build;

@@ -2,21 +2,24 @@
 //!
 //! A [`Localizer`] is built once per map and shared: `localize` can be called from several
 //! Python threads at once (the GIL is released while it runs), and `localize_many` runs the
-//! queries on Rust threads.
+//! queries on Rust threads. It localizes through the library's `Session`, which checks the
+//! options and that query features fit the map (their model), and in sequence mode tracks
+//! queries in order (calls then take turns).
 
-use crate::errors::{
-    chain, level_ids, within, InputError, LocalizeError, MapError, NoSuchLevelError,
-};
-use crate::map::{Map, Opened};
+use crate::errors::{chain, format_error, level_ids, option_error, session_error, InputError};
+use crate::map::Map;
+use crate::Warnings;
 use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 use sfpmap::geometry::Camera as GeoCamera;
 use sfpmap::localize::{
-    FeatureSet, Localization as Outcome, LocalizeOptions, Localizer as Inner, MatchOptions,
-    QueryFeatures, RetrievalMethod,
+    FeatureSet, Localization as Outcome, LocalizeOptions, MatchOptions, OptionError, QueryFeatures,
+    RetrievalMethod,
 };
+use sfpmap::session::Session;
+use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
@@ -231,6 +234,7 @@ impl Features {
         Ok(Features::new(QueryFeatures {
             sets,
             global: global_descriptor,
+            model: None,
         }))
     }
 
@@ -271,6 +275,15 @@ impl Features {
         Ok(self.scores[i]
             .as_ref()
             .map(|s| s.clone().into_pyarray(py).into_any()))
+    }
+
+    /// The model that made them (`"sfp-v2"`, as maps name their descriptors), when known:
+    /// features of `Extractor.extract`, or of a `FeaturesFile` that records its model. A
+    /// `Localizer` refuses them for a map of another model; features made from arrays
+    /// (`None`) are taken as they are.
+    #[getter]
+    fn model(&self) -> Option<String> {
+        self.inner.model.as_ref().map(|m| m.name.clone())
     }
 
     /// The global descriptor, if any.
@@ -331,6 +344,7 @@ fn features_of(
         Arc::new(QueryFeatures {
             sets: vec![feature_set(None, &pair.get_item(0)?, &pair.get_item(1)?)?],
             global: None,
+            model: None,
         })
     } else if let Ok(d) = obj.cast::<PyDict>() {
         Features::py_new(d, None)?.inner
@@ -353,19 +367,14 @@ fn features_of(
     })
 }
 
-/// The localizer and the map it borrows. Field order matters: `localizer` (which borrows the
-/// map) drops before `opened` (which owns it).
-struct Prepared {
-    localizer: Inner<'static>,
-    opened: Arc<Opened>,
-}
-
-/// A map prepared for localization; see the module docs for threads.
+/// A map prepared for localization: a library [`Session`] (which owns the map, shared with
+/// the `Map` and its views, and the localizer together); see the module docs for threads.
 #[pyclass(frozen, module = "sfpmap._sfpmap", name = "_Localizer")]
 pub(crate) struct Localizer {
-    prepared: Prepared,
+    session: Session,
 }
 
+/// `retrieval`'s names, as the CLI's `--retrieval` takes them (the library parses none).
 fn retrieval_method(name: &str) -> PyResult<RetrievalMethod> {
     Ok(match name {
         "auto" => RetrievalMethod::Auto,
@@ -380,23 +389,42 @@ fn retrieval_method(name: &str) -> PyResult<RetrievalMethod> {
     })
 }
 
+/// A count option (`top_k`, `min_inliers`) given as a Python int. The library checks its
+/// range ([`LocalizeOptions::validate`], when the session is built); a negative one, which no
+/// `usize` holds, is refused here in the library's words: its rule for 0 (which no count
+/// option takes), with the value as given (`top_k -1: 1 to 100000 images`).
+fn count(
+    option: &'static str,
+    value: i64,
+    set: fn(&mut LocalizeOptions, usize),
+) -> PyResult<usize> {
+    if let Ok(n) = usize::try_from(value) {
+        return Ok(n);
+    }
+    let mut probe = LocalizeOptions::default();
+    set(&mut probe, 0);
+    let expected = match probe.validate() {
+        Err(e) if e.option == option => e.expected,
+        _ => "a count, at least 0",
+    };
+    Err(option_error(&OptionError {
+        option,
+        value: value.to_string(),
+        expected,
+    }))
+}
+
 impl Localizer {
     /// One query (GIL released), errors named as the CLI names them (`MAP: query NAME: ...`),
     /// and the names of the images it retrieved, read from the map (checked on first access:
     /// a damaged names section is the map's `MapError`, not an empty list).
     fn run(&self, features: &QueryFeatures, camera: &GeoCamera, name: &str) -> PyResult<Ran> {
-        let opened = &self.prepared.opened;
         let outcome = self
-            .prepared
-            .localizer
-            .localize(features, camera)
-            .map_err(|e| {
-                LocalizeError::new_err(within(
-                    &format!("{}: query {name:?}", opened.path.display()),
-                    &e,
-                ))
-            })?;
-        let names = retrieved_names(opened, &outcome.retrieved).map_err(|e| opened.error(e))?;
+            .session
+            .localize_features(features, camera, name)
+            .map_err(session_error)?;
+        let names = retrieved_names(self.session.map(), &outcome.retrieved)
+            .map_err(|e| format_error(Path::new(self.session.map_name()), e))?;
         Ok((outcome, names))
     }
 }
@@ -406,13 +434,13 @@ type Ran = (Outcome, Vec<String>);
 
 /// The names of the images `retrieved` (map indices).
 fn retrieved_names(
-    opened: &Opened,
+    map: &sfpmap::format::Map<'_>,
     retrieved: &[usize],
 ) -> Result<Vec<String>, sfpmap::format::Error> {
     if retrieved.is_empty() {
         return Ok(Vec::new());
     }
-    let Some(images) = opened.map.images()? else {
+    let Some(images) = map.images()? else {
         return Ok(Vec::new());
     };
     retrieved
@@ -424,53 +452,16 @@ fn retrieved_names(
 /// The library's retrieval top-k (`sfpmap.Localizer`'s default).
 const DEFAULT_TOP_K: i64 = sfpmap::format::DEFAULT_RETRIEVAL_TOP_K as i64;
 
-/// The most images `top_k` may retrieve (the library multiplies it when widening a search).
-const MAX_TOP_K: i64 = 100_000;
-
-/// The localizer's numeric options, checked: `InputError` for one it cannot use.
-#[allow(clippy::too_many_arguments)]
-fn check_options(
-    top_k: i64,
-    ratio: f32,
-    min_similarity: f32,
-    coarse_error_px: f64,
-    gate_px: f64,
-    gate_ratio: f32,
-    fine_error_px: f64,
-) -> PyResult<usize> {
-    let bad = |m: String| Err(InputError::new_err(m));
-    if !(1..=MAX_TOP_K).contains(&top_k) {
-        return bad(format!("top_k {top_k}: 1 to {MAX_TOP_K} images"));
-    }
-    for (name, value) in [("ratio", ratio), ("gate_ratio", gate_ratio)] {
-        if !(value > 0.0 && value <= 1.0) {
-            return bad(format!("{name} {value}: a ratio in (0, 1]"));
-        }
-    }
-    if !(-1.0..=1.0).contains(&min_similarity) {
-        return bad(format!(
-            "min_similarity {min_similarity}: a cosine similarity in [-1, 1]"
-        ));
-    }
-    for (name, value) in [
-        ("coarse_error_px", coarse_error_px),
-        ("gate_px", gate_px),
-        ("fine_error_px", fine_error_px),
-    ] {
-        if !(value.is_finite() && value > 0.0) {
-            return bad(format!("{name} {value}: a finite number of pixels > 0"));
-        }
-    }
-    Ok(top_k as usize)
-}
-
 #[pymethods]
 impl Localizer {
+    /// Options are checked by the library (`LocalizeOptions::validate`): one out of range is an
+    /// `InputError` in its words. `sequence`: queries are an ordered sequence, each tracked
+    /// from the last ones (`Session` in sequence mode).
     #[new]
     #[pyo3(signature = (map, levels=None, short=false, top_k=DEFAULT_TOP_K, retrieval="auto", ratio=None,
                         mutual=true, min_similarity=0.0, coarse_error_px=12.0, gate_px=24.0,
-                        gate_ratio=0.95, fine_error_px=6.0, min_inliers=12))]
-    #[allow(clippy::too_many_arguments, unsafe_code)]
+                        gate_ratio=0.95, fine_error_px=6.0, min_inliers=12, sequence=false))]
+    #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
         map: &Bound<'_, Map>,
@@ -485,32 +476,23 @@ impl Localizer {
         gate_px: f64,
         gate_ratio: f32,
         fine_error_px: f64,
-        min_inliers: usize,
+        min_inliers: i64,
+        sequence: bool,
     ) -> PyResult<Self> {
         let opened = map.get().opened(py)?;
         // None: the map's own (LocalizeOptions::for_map: 0.95 on SFP maps, 0.9 on SIFT), as
         // the CLI's `localize` without --ratio.
         let base = LocalizeOptions::for_map(&opened.map);
-        let ratio = ratio.unwrap_or(base.matching.ratio);
-        let top_k = check_options(
-            top_k,
-            ratio,
-            min_similarity,
-            coarse_error_px,
-            gate_px,
-            gate_ratio,
-            fine_error_px,
-        )?;
         let levels = level_ids(&opened.path, &levels.unwrap_or_default(), || {
             opened.map.level_ids()
         })?;
         let options = LocalizeOptions {
             levels,
             short,
-            top_k,
+            top_k: count("top_k", top_k, |o, n| o.top_k = n)?,
             retrieval: retrieval_method(retrieval)?,
             matching: MatchOptions {
-                ratio,
+                ratio: ratio.unwrap_or(base.matching.ratio),
                 mutual,
                 min_similarity,
             },
@@ -518,46 +500,58 @@ impl Localizer {
             gate_px,
             gate_ratio,
             fine_error_px,
-            min_inliers,
+            min_inliers: count("min_inliers", min_inliers, |o, n| o.min_inliers = n)?,
         };
-        // SAFETY: the reference points into the `Arc`'s allocation, which does not move and
-        // lives as long as `Prepared::opened`; `Prepared` drops the localizer first.
-        let map_ref: &'static sfpmap::format::Map<'static> =
-            unsafe { &*std::ptr::addr_of!(opened.map) };
-        let localizer = py.detach(|| Inner::new(map_ref, options)).map_err(|e| {
-            let message = within(&opened.path.display().to_string(), &e);
-            match e {
-                sfpmap::localize::LocalizeError::Format(sfpmap::format::Error::NoSuchLevel {
-                    ..
-                }) => NoSuchLevelError::new_err(message),
-                sfpmap::localize::LocalizeError::Format(_) => MapError::new_err(message),
-                _ => LocalizeError::new_err(message),
-            }
-        })?;
-        Ok(Localizer {
-            prepared: Prepared { localizer, opened },
-        })
+        let warnings = Warnings::default();
+        let session = py.detach(|| {
+            Session::builder(opened.map.clone(), opened.path.display().to_string())
+                .options(options)
+                .sequence(sequence)
+                .build(&warnings)
+        });
+        let session = warnings.emit_then(py, session.map_err(session_error))?;
+        Ok(Localizer { session })
     }
 
     /// Level ids in matching order (deepest first).
     #[getter]
     fn level_order(&self) -> Vec<u16> {
-        self.prepared.localizer.level_order()
+        self.session.level_order()
     }
 
     /// Selected levels that are not matched, as `(level, reason)`.
     #[getter]
     fn skipped_levels(&self) -> Vec<(u16, String)> {
-        self.prepared
-            .localizer
+        self.session
             .skipped_levels()
-            .iter()
-            .map(|s| (s.level, s.reason.clone()))
+            .into_iter()
+            .map(|s| (s.level, s.reason))
             .collect()
     }
 
+    /// Whether queries are an ordered sequence (`sequence=True`).
+    #[getter]
+    fn sequence(&self) -> bool {
+        self.session.is_sequence()
+    }
+
+    /// Whether the sequence predicts the next query's pose (it localized the last one); always
+    /// false outside a sequence.
+    #[getter]
+    fn is_tracking(&self) -> bool {
+        self.session.is_tracking()
+    }
+
+    /// Forgets the sequence's motion (a cut, a query that could not be had): the next query
+    /// goes through retrieval. Nothing outside a sequence.
+    fn reset_tracking(&self, py: Python<'_>) {
+        // Waits for a query of the sequence that is running: the GIL released meanwhile.
+        py.detach(|| self.session.reset_tracking());
+    }
+
     /// Localizes one query (GIL released); a query that is not localized is a result whose
-    /// `success` is false, not an exception.
+    /// `success` is false, not an exception. In a sequence, calls take turns, each predicted
+    /// from the ones before.
     #[pyo3(signature = (features, camera, global_descriptor=None, name="query"))]
     fn localize(
         &self,
@@ -575,7 +569,8 @@ impl Localizer {
 
     /// Localizes `queries` (any iterable of `(features, camera)` or `(features, camera,
     /// name)`) on `threads` Rust threads sharing this localizer (default: the machine's
-    /// parallelism; capped as the CLI caps `--threads`), GIL released; results in order.
+    /// parallelism; capped as the CLI caps `--threads`), GIL released; results in order. A
+    /// sequence runs on one thread, in order, whatever `threads` says.
     #[pyo3(signature = (queries, threads=None))]
     fn localize_many(
         &self,
@@ -606,7 +601,11 @@ impl Localizer {
             };
             inputs.push((features_of(features, None)?, camera_of(camera)?, name));
         }
-        let workers = threads.min(inputs.len().max(1));
+        let workers = if self.session.is_sequence() {
+            1
+        } else {
+            threads.min(inputs.len().max(1))
+        };
         let outcomes = py.detach(|| {
             let results: Vec<Mutex<Option<PyResult<Ran>>>> =
                 inputs.iter().map(|_| Mutex::new(None)).collect();

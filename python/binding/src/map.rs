@@ -1,8 +1,9 @@
 //! `Map`: an open map and numpy views of its sections.
 //!
-//! Ownership: the mmap lives in an [`Opened`] behind an `Arc`. A `Map` holds it through one
-//! [`Mapping`] Python object, and every numpy view has that `Mapping` as its `base`, so the
-//! mapping stays while any view (or a `Localizer`, which holds the `Arc` too) is alive.
+//! Ownership: the mmap lives in the library's map behind an `Arc` (in an [`Opened`], itself
+//! behind an `Arc`). A `Map` holds it through one [`Mapping`] Python object, and every numpy
+//! view has that `Mapping` as its `base`, so the mapping stays while any view is alive; a
+//! `Localizer`'s session holds another `Arc` of the map itself, so it keeps the mapping too.
 //! `Map.close()` drops the `Map`'s own reference: the `Map` refuses every later call
 //! (`ClosedError`), and the file is unmapped when the last view is garbage-collected. No path
 //! leads to a use after unmap.
@@ -25,9 +26,11 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, OnceLock};
 
-/// An open map and the path it was opened from.
+/// An open map and the path it was opened from. The map is shared with the sessions of the
+/// `Localizer`s made of it (`sfpmap::session::Session` owns an `Arc` of it): never copied,
+/// unmapped when the last of them is dropped.
 pub(crate) struct Opened {
-    pub(crate) map: FormatMap<'static>,
+    pub(crate) map: Arc<FormatMap<'static>>,
     pub(crate) path: PathBuf,
 }
 
@@ -90,8 +93,10 @@ fn kind_named(name: &str) -> Option<SectionKind> {
 /// `section` names the map and section (`{path}: {section}`) in an error (made only then).
 ///
 /// SAFETY (of the one `unsafe` block): `bytes` lie in memory `owner` keeps alive and
-/// unchanged for as long as `owner` lives: the read-only mapping held by its `Arc<Opened>`,
-/// or decoded bytes the library keeps in that same map until it is dropped. The array holds
+/// unchanged for as long as `owner` lives: the read-only mapping of the map its `Arc<Opened>`
+/// holds (by an `Arc` of the map, which sessions may share: the map is dropped, and the file
+/// unmapped, only with the last of them, so never while `owner` lives), or decoded bytes the
+/// library keeps in that same map until it is dropped. The array holds
 /// a reference to `owner` as its base, so the memory outlives the array. It is made
 /// read-only before any Python code sees it, so nothing writes to the `PROT_READ` mapping.
 #[allow(unsafe_code)]
@@ -187,7 +192,7 @@ impl Map {
             .detach(|| FormatMap::open(&path))
             .map_err(|e| format_error(&path, e))?;
         let opened = Arc::new(Opened {
-            map,
+            map: Arc::new(map),
             path: path.clone(),
         });
         let mapping = Py::new(py, Mapping { opened })?;

@@ -291,3 +291,109 @@ def test_damaged_image_names_are_an_error_not_an_empty_list(south_sfp, south_que
     with sfpmap.Map(bad) as m:
         with pytest.raises(sfpmap.MapError, match=r"bad-names\.sfpm: section \d+ \(image_names\): checksum"):
             sfpmap.Localizer(m)
+
+
+def test_min_inliers_is_checked_by_the_library(south_sfp):
+    # The library's rule (LocalizeOptions::validate), in its words; a negative Python int too.
+    with sfpmap.Map(south_sfp) as m:
+        for value in (3, 0, -1, 1_000_001):
+            with pytest.raises(sfpmap.InputError) as e:
+                sfpmap.Localizer(m, min_inliers=value)
+            assert str(e.value) == f"min_inliers {value}: 4 to 1000000 inliers"
+        sfpmap.Localizer(m, min_inliers=4)
+        sfpmap.Localizer(m, min_inliers=1_000_000)
+
+
+def test_a_sequence_tracks_its_queries_in_order(south_sfp, south_queries, south_features):
+    scene, queries = south_queries
+    batch = [(south_features[n], c, n) for n, c in queries[:4]]
+    with sfpmap.Map(south_sfp) as m:
+        plain = sfpmap.Localizer(m)
+        assert not plain.sequence and not plain.is_tracking
+        alone = [plain.localize(f, c, name=n) for f, c, n in batch]
+        assert all(r.success and r.path == "retrieval" and r.tracking_lost is None for r in alone)
+        assert not plain.is_tracking
+        plain.reset_tracking()  # nothing outside a sequence
+
+        # A camera standing still: the first query has no prediction (retrieval), the next
+        # are tracked around the pose predicted from the ones before.
+        loc = sfpmap.Localizer(m, sequence=True)
+        assert loc.sequence and not loc.is_tracking
+        f, c, n = batch[0]
+        still = [loc.localize(f, c, name=n) for _ in range(3)]
+        assert [r.path for r in still] == ["retrieval", "tracking", "tracking"]
+        assert all(r.success and r.tracking_lost is None for r in still)
+        assert still[0].colmap == alone[0].colmap
+        for r in still[1:]:
+            assert np.allclose(r.cam_from_world, alone[0].cam_from_world, atol=1e-3)
+        assert loc.is_tracking
+
+        # Forgotten: the next query goes through retrieval again.
+        loc.reset_tracking()
+        assert not loc.is_tracking
+        again = loc.localize(f, c, name=n)
+        assert again.path == "retrieval" and again.colmap == alone[0].colmap
+
+        # The scene's queries in order (every 5th photo): each after the first is tried
+        # around its prediction, which holds or falls back to retrieval saying why.
+        loc.reset_tracking()
+        walk = [loc.localize(f, c, name=n) for f, c, n in batch]
+        assert walk[0].path == "retrieval" and walk[0].tracking_lost is None
+        assert all(r.success for r in walk)
+        assert all(r.path == "tracking" or r.tracking_lost for r in walk[1:])
+        for w, a in zip(walk, alone):
+            assert np.allclose(w.cam_from_world, a.cam_from_world, atol=0.05)
+
+        # localize_many runs a sequence on one thread, in order, whatever `threads` says.
+        loc.reset_tracking()
+        many = loc.localize_many(batch, threads=4)
+        assert [(r.path, r.tracking_lost, r.colmap) for r in many] == [
+            (r.path, r.tracking_lost, r.colmap) for r in walk
+        ]
+        loc.reset_tracking()
+        many = loc.localize_many([batch[0]] * 3, threads=4)
+        assert [r.path for r in many] == ["retrieval", "tracking", "tracking"]
+
+
+def test_features_of_another_model_are_refused(cli, south_sfp, south_queries, south_features, work):
+    scene, queries = south_queries
+    name, camera = queries[0]
+    ours = south_features[name]
+    other = sfpmap.Extractor("sfp-v1").extract(scene / "images" / name)
+    with sfpmap.Map(south_sfp) as m:
+        descriptor = m.metadata["levels"][0]["descriptor"]
+        assert ours.model == descriptor == "sfp-v2" and other.model == "sfp-v1"
+        loc = sfpmap.Localizer(m)
+        with pytest.raises(sfpmap.LocalizeError) as e:
+            loc.localize(other, camera, name=name)
+        message = str(e.value)
+        assert f'query "{name}": features of model "sfp-v1"' in message, message
+        assert f'the map {south_sfp} holds "sfp-v2" descriptors' in message, message
+        with pytest.raises(sfpmap.LocalizeError, match='features of model "sfp-v1"'):
+            loc.localize_many([(other, camera, name)])
+        # A sequence refuses them too, and goes on.
+        seq = sfpmap.Localizer(m, sequence=True)
+        with pytest.raises(sfpmap.LocalizeError, match='features of model "sfp-v1"'):
+            seq.localize(other, camera)
+        assert seq.localize(ours, camera).success
+
+        # Arrays record no model: they are taken as they are.
+        arrays = {l: (ours.keypoints(l), ours.descriptors(l)) for l in ours.levels}
+        as_arrays = sfpmap.Features(arrays, global_descriptor=ours.global_descriptor)
+        assert as_arrays.model is None
+        assert loc.localize(as_arrays, camera).colmap == loc.localize(ours, camera).colmap
+        foreign = {l: (other.keypoints(l), other.descriptors(l)) for l in other.levels}
+        try:
+            loc.localize(foreign, camera)
+        except sfpmap.LocalizeError as e:
+            # Whether they fit is the localizer's to say (their dimensions), not the model's.
+            assert "model" not in str(e), e
+
+    # A features file that records its model (`sfpmap extract`'s) gives features that carry it.
+    h5 = work / "queries-sfp-v1.h5"
+    run_cli(cli, "extract", scene / "images" / name, "--model", "sfp-v1", "-o", h5, "--force")
+    from_file = sfpmap.read_features_h5(h5).features(name)
+    assert from_file is not None and from_file.model == "sfp-v1"
+    with sfpmap.Map(south_sfp) as m:
+        with pytest.raises(sfpmap.LocalizeError, match='features of model "sfp-v1"'):
+            sfpmap.Localizer(m).localize(from_file, camera, name=name)
