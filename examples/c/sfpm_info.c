@@ -9,7 +9,7 @@
  *      -Wl,-rpath,"$PWD/target/release" -o sfpm_info
  *   ./sfpm_info spec/vectors/valid/levels.sfpm
  *
- * tests/e2e/embed_c.rs compiles and runs it against spec/vectors/valid/levels.sfpm.
+ * tests/api/embed_c.rs compiles and runs it against spec/vectors/valid/levels.sfpm.
  */
 #include "sfpmap.h"
 

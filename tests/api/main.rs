@@ -1,5 +1,5 @@
-//! The library's API: format, COLMAP, geometry, localizer, extractor, C ABI in-process, vectors,
-//! fuzz replays.
+//! The library's API: format, COLMAP, geometry, localizer, extractor, the C ABI in process and
+//! from C (the example against the built cdylib), vectors, fuzz replays.
 //!
 //! One of the three test crates (the guide's Contributing page, "Tests", says which test goes
 //! where): each file here is a module, `tests/support/` holds what they share.
@@ -16,6 +16,7 @@ mod synthetic_scene;
 mod colmap_database;
 mod colmap_models;
 mod convert;
+mod embed_c;
 mod embed_capi;
 mod extract_reference;
 mod format_chunks;

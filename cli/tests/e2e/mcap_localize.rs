@@ -15,7 +15,7 @@ use std::process::{Command, Output};
 use std::sync::OnceLock;
 
 fn scene() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes/sacre-coeur")
+    crate::shared_data::repo_root().join("../shared/data/scenes/sacre-coeur")
 }
 
 fn sfpmap(args: &[&str]) -> Output {

@@ -3,7 +3,7 @@
 //! models and databases, image names that would inject lines, maps whose coordinates a plot
 //! cannot show, and model files or databases that are not regular files. Each is refused
 //! with one line naming the file (and the record), or handled, in bounded time.
-#![cfg(all(feature = "cli", feature = "colmap"))]
+#![cfg(feature = "colmap")]
 
 use crate::common;
 

@@ -1,7 +1,6 @@
 //! The committed CLI reference (docs/src/reference/cli.md, docs/man/man1/*.1) is what the binary
 //! generates now, `generate-reference` writes and removes only what it should, and
 //! `sfpmap completions SHELL` prints a script for each shell.
-#![cfg(feature = "cli")]
 
 use crate::run::sfpmap;
 use std::collections::BTreeMap;
@@ -15,7 +14,7 @@ const MAN_DIR: &str = "man/man1";
 const HIDDEN: [&str; 2] = ["generate-reference", "bench-pose"];
 
 fn committed_docs() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("docs")
+    crate::shared_data::repo_root().join("docs")
 }
 
 /// An empty folder that `generate-reference` accepts as the guide's: it holds a book.toml.

@@ -386,7 +386,8 @@ fn zero_short_dims_need_a_rest_block() {
 }
 
 /// Writes the crafted maps to `$SFPMAP_HOSTILE_OUT` for measuring by hand (release binary,
-/// `/usr/bin/time -v`): `cargo test --test hostile_format write_crafted_maps -- --ignored`.
+/// `/usr/bin/time -v`): `cargo test --release --all-features --test cli
+/// hostile_format::write_crafted_maps -- --ignored`.
 #[test]
 #[ignore]
 fn write_crafted_maps() {

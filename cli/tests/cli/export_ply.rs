@@ -1,13 +1,12 @@
 //! `sfpmap export` on the `levels` spec vector: the PLY read back by a small parser here,
 //! TUM and images.txt poses, `--colmap` equal to `export-colmap`, and refusals.
-#![cfg(feature = "cli")]
 
 use crate::run::sfpmap;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 
 fn vector() -> (PathBuf, Value) {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("spec/vectors/valid");
+    let root = crate::shared_data::repo_root().join("spec/vectors/valid");
     let json = std::fs::read_to_string(root.join("levels.json")).unwrap();
     (
         root.join("levels.sfpm"),
@@ -295,7 +294,7 @@ fn refuses_no_output_existing_files_and_maps_without_images() {
     assert!(out.status.success());
 
     // minimal has no images: the TUM export says so and leaves nothing behind.
-    let minimal = Path::new(env!("CARGO_MANIFEST_DIR")).join("spec/vectors/valid/minimal.sfpm");
+    let minimal = crate::shared_data::repo_root().join("spec/vectors/valid/minimal.sfpm");
     let sfpm = sfpmap::format::Map::open(&minimal).unwrap();
     assert!(sfpm.images().unwrap().is_none());
     let tum = tmp.path().join("t.txt");

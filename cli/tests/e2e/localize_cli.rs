@@ -333,5 +333,5 @@ fn convert_sfp(s: &Path, out: &str, model: Option<&str>) {
 }
 
 fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+    crate::shared_data::repo_root()
 }

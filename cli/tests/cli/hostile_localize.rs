@@ -2,7 +2,7 @@
 //! checksums, damaged query images, a missing images folder, absurd `--threads`. Each test runs
 //! the real binary under an address-space cap and a timeout, so a regression to a panic, a
 //! huge allocation or a runaway loop fails instead of taking the machine down.
-#![cfg(all(feature = "cli", feature = "localize", feature = "onnx"))]
+#![cfg(all(feature = "localize", feature = "onnx"))]
 
 use crate::common;
 

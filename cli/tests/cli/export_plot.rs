@@ -1,13 +1,13 @@
 //! `sfpmap plot`: the PNG decodes at the asked size, is not blank (title text, several
 //! colours), and shows what was passed in.
-#![cfg(all(feature = "cli", feature = "localize"))]
+#![cfg(feature = "localize")]
 
 use crate::run::sfpmap;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 fn vector(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("spec/vectors/valid/{name}.sfpm"))
+    crate::shared_data::repo_root().join(format!("spec/vectors/valid/{name}.sfpm"))
 }
 
 /// Width, height and RGB pixels of a PNG.

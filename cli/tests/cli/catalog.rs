@@ -1,12 +1,7 @@
 //! `sfpmap catalog build` and `localize --catalog` on generated streets (different seeds, so
 //! different places): the right place is chosen, a place can be a URL (nginx on loopback),
 //! `--prior` filters places, and a catalog naming a missing or replaced map is an error.
-#![cfg(all(
-    feature = "remote",
-    feature = "cli",
-    feature = "localize",
-    feature = "colmap"
-))]
+#![cfg(all(feature = "localize", feature = "colmap"))]
 
 use crate::once::Depends;
 use crate::servers;

@@ -1,5 +1,4 @@
 //! The real `sfpmap` binary on temp copies of the conformance vectors.
-#![cfg(feature = "cli")]
 
 use crate::run::sfpmap;
 use serde_json::Value;
@@ -7,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 fn vector(kind: &str, name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("spec/vectors/{kind}/{name}.sfpm"))
+    crate::shared_data::repo_root().join(format!("spec/vectors/{kind}/{name}.sfpm"))
 }
 
 fn stderr(o: &Output) -> String {

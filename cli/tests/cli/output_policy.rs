@@ -4,7 +4,7 @@
 //! recognisable ones, which the next write into that folder removes).
 //!
 //! `SFPMAP_BIN` runs these tests against another build (e.g. an older release) to see them fail.
-#![cfg(all(feature = "cli", feature = "colmap", unix))]
+#![cfg(all(feature = "colmap", unix))]
 
 use crate::common;
 use crate::shared_data;
@@ -55,7 +55,7 @@ fn refused(o: &Output, path: &Path, what: &str) {
 fn map_in(dir: &Path) -> PathBuf {
     let map = dir.join("map.sfpm");
     std::fs::copy(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("spec/vectors/valid/levels.sfpm"),
+        crate::shared_data::repo_root().join("spec/vectors/valid/levels.sfpm"),
         &map,
     )
     .unwrap();

@@ -1,4 +1,6 @@
-//! Argument definitions (clap derive) and dispatch; each subcommand runs in its own file.
+//! The `sfpmap` command-line tool, a client of the `sfpmap` library: all logic is in the
+//! library; this only parses arguments, draws progress and prints results. Argument
+//! definitions (clap derive) and dispatch are here; each subcommand runs in its own file.
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -76,7 +78,27 @@ pub enum Command {
     Slice(slice::Args),
 }
 
-pub fn run() -> anyhow::Result<ExitCode> {
+fn main() -> ExitCode {
+    // Before any work: a Ctrl-C while writing must not leave a temp file behind.
+    remove_temps_on_signal();
+    match run() {
+        Ok(code) => code,
+        Err(err) => {
+            // `sfpmap info m.sfpm | head` closes the pipe early: that is not an error.
+            if err
+                .chain()
+                .filter_map(|e| e.downcast_ref::<std::io::Error>())
+                .any(|e| e.kind() == std::io::ErrorKind::BrokenPipe)
+            {
+                return ExitCode::SUCCESS;
+            }
+            eprintln!("error: {err:#}");
+            ExitCode::from(1)
+        }
+    }
+}
+
+fn run() -> anyhow::Result<ExitCode> {
     let cli = Cli::parse();
     match cli.command {
         #[cfg(feature = "localize")]

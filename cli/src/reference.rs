@@ -4,7 +4,8 @@
 //! The markdown page comes from clap-markdown (it reads a `clap::Command` as clap 4 builds
 //! it), the man pages from clap_mangen. Neither output holds a date, a path of this machine
 //! or anything that depends on the terminal's width, so the committed files can be compared
-//! byte for byte: tests/cli/cli_reference.rs fails, naming the subcommand, when they are stale.
+//! byte for byte: cli/tests/cli/cli_reference.rs fails, naming the subcommand, when they are
+//! stale.
 //!
 //! It writes only into the guide's folder (the one holding `book.toml`), never through a
 //! symlinked folder under it, and removes only man pages it generated itself: regular files

@@ -1,7 +1,7 @@
 //! `sfpmap extract` and `sfpmap convert --images` end to end on the real sacre-coeur scene
 //! (10 images, ~1000 px): the real binary, the real runtime (found, or fetched by the binary
 //! itself on first use), the embedded model.
-#![cfg(all(feature = "onnx", feature = "colmap", feature = "cli"))]
+#![cfg(all(feature = "onnx", feature = "colmap"))]
 
 use crate::run::sfpmap;
 use serde_json::Value;
@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 fn scene() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes/sacre-coeur")
+    crate::shared_data::repo_root().join("../shared/data/scenes/sacre-coeur")
 }
 
 fn ok(args: &[&std::ffi::OsStr]) -> Value {

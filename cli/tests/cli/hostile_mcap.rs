@@ -22,7 +22,7 @@ const ADDRESS_SPACE_KIB: u64 = 3 << 20;
 const SKIPPED_EXIT: i32 = 3;
 
 fn scene() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes/sacre-coeur")
+    crate::shared_data::repo_root().join("../shared/data/scenes/sacre-coeur")
 }
 
 /// The binary under `ulimit -v`.

@@ -4,19 +4,19 @@
 //! One of the three test crates (the guide's Contributing page, "Tests", says which test goes
 //! where): each file here is a module, `tests/support/` holds what they share.
 
-#[path = "../support/common.rs"]
+#[path = "../../../tests/support/common.rs"]
 mod common;
-#[path = "../support/once.rs"]
+#[path = "../../../tests/support/once.rs"]
 mod once;
-#[path = "../support/python.rs"]
+#[path = "../../../tests/support/python.rs"]
 mod python;
-#[path = "../support/run.rs"]
+#[path = "../../../tests/support/run.rs"]
 mod run;
-#[path = "../support/servers.rs"]
+#[path = "../../../tests/support/servers.rs"]
 mod servers;
-#[path = "../support/shared_data.rs"]
+#[path = "../../../tests/support/shared_data.rs"]
 mod shared_data;
-#[path = "../support/street_cli.rs"]
+#[path = "../../../tests/support/street_cli.rs"]
 mod street_cli;
 
 mod catalog;

@@ -24,7 +24,7 @@ use std::process::{Command, Output};
 use std::sync::OnceLock;
 
 fn shared() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data")
+    crate::shared_data::repo_root().join("../shared/data")
 }
 
 fn sfpmap(args: &[&str]) -> Output {

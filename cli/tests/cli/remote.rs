@@ -2,13 +2,7 @@
 //! s3s-fs over S3. Each command that reads a map takes a URL; the tests check the results
 //! equal the local file's, count what crossed the wire, and feed the bad cases (404, 403, no
 //! server, a server that ignores `Range`, a damaged byte, an object replaced mid-read).
-#![cfg(all(
-    feature = "remote",
-    feature = "cli",
-    feature = "onnx",
-    feature = "localize",
-    feature = "colmap"
-))]
+#![cfg(all(feature = "onnx", feature = "localize", feature = "colmap"))]
 
 use crate::once::Depends;
 use crate::servers;

@@ -1,0 +1,18 @@
+//! End to end on real scenes: localization of the shared scenes and KITTI 06 sequences, MCAP
+//! logs.
+//!
+//! One of the three test crates (the guide's Contributing page, "Tests", says which test goes
+//! where): each file here is a module, `tests/support/` holds what they share.
+
+#[path = "../../../tests/support/common.rs"]
+mod common;
+#[path = "../../../tests/support/once.rs"]
+mod once;
+#[path = "../../../tests/support/python.rs"]
+mod python;
+#[path = "../../../tests/support/shared_data.rs"]
+mod shared_data;
+
+mod localize_cli;
+mod mcap_localize;
+mod sequence_kitti;
