@@ -405,6 +405,7 @@ mod localize {
         QueryFeatures {
             sets,
             global: Some(global_descriptor(&s.truth)),
+            model: None,
         }
     }
 

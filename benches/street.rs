@@ -19,9 +19,7 @@ mod street {
     use sfpmap::demo::street::{write_street, StreetOptions};
     use sfpmap::format::{slice, Map, SliceOptions};
     use sfpmap::io::queries::{read_query_list, DatabaseFeatures};
-    use sfpmap::localize::{
-        LocalizationPath, LocalizeOptions, Localizer, MotionModel, RetrievalMethod,
-    };
+    use sfpmap::localize::{LocalizationPath, LocalizeOptions, Localizer, RetrievalMethod};
 
     /// The scene and its two maps, made once per size.
     fn prepared(points: usize) -> PathBuf {
@@ -107,11 +105,14 @@ mod street {
                 ..LocalizeOptions::default()
             };
             let localizer = Localizer::new(&map, options).unwrap();
-            let mut motion = MotionModel::new();
-            for (frame, f) in walk.iter().zip(&frames).take(2) {
-                motion.localize(&localizer, f, &frame.camera).unwrap();
-            }
-            let prior = motion.predict().expect("two frames localized");
+            // The constant-velocity prior of the third frame, as a sequence session makes it:
+            // the second pose moved by the step from the first to the second.
+            let pose = |i: usize| {
+                let r = localizer.localize(&frames[i], &walk[i].camera).unwrap();
+                *r.pose().expect("the first two frames localize")
+            };
+            let (first, second) = (pose(0), pose(1));
+            let prior = second.compose(&first.inverse()).compose(&second);
             let (frame, f) = (&walk[2], &frames[2]);
             let r = localizer
                 .localize_with_prior(f, &frame.camera, Some(&prior))

@@ -32,6 +32,8 @@ pub mod colmap;
 
 #[cfg(feature = "localize")]
 pub mod localize;
+#[cfg(feature = "localize")]
+pub mod session;
 
 #[cfg(feature = "capi")]
 pub mod ffi;

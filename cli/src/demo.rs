@@ -177,7 +177,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         let extracted = extractor
             .extract(&input, &detect)
             .map_err(|e| e.on_image(&path))?;
-        features.push(sfp_query(&extracted));
+        features.push(sfp_query(&extracted, &extractor));
     }
     let variants = [
         Variant {

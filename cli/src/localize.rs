@@ -6,18 +6,19 @@ use sfpmap::colmap::text::{escape_control_characters, quoted_name, text_name_pro
 use sfpmap::format::Map;
 use sfpmap::geometry::Camera;
 use sfpmap::io::poses::{colmap_pose_line, tum_line};
-use sfpmap::io::queries::{read_query_list, DatabaseFeatures, Query};
+use sfpmap::io::queries::{read_query_list, Query};
 use sfpmap::localize::eval::median;
 use sfpmap::localize::{
-    describe_skipped, Localization, LocalizeOptions, Localizer, MatchOptions, MotionModel,
-    QueryFailure, QueryFeatures, RetrievalMethod,
+    describe_skipped, Localization, LocalizeOptions, MatchOptions, QueryFailure, RetrievalMethod,
+    SkippedLevel,
 };
 use sfpmap::progress::Reporter;
+use sfpmap::session::{QuerySource, Session, SessionError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -172,201 +173,16 @@ where
     })
 }
 
-/// The descriptor kind of the map's levels (`""` for a map without descriptors).
-fn descriptor_kind(map: &Map<'_>) -> String {
-    map.metadata()
-        .levels
-        .first()
-        .map(|l| l.descriptor.clone())
-        .unwrap_or_default()
-}
-
 /// An f32 as the f64 of its shortest decimal form (0.95, not 0.949999988079071).
 fn shortest_f64(v: f32) -> f64 {
     v.to_string().parse().unwrap_or(f64::from(v))
 }
 
-/// The XXH3 of the model the map's descriptors came from, as its provenance records it.
-#[cfg(feature = "onnx")]
-fn map_model_xxh3<'a>(map: &'a Map<'_>) -> Option<&'a str> {
-    map.metadata()
-        .provenance
-        .model
-        .as_ref()
-        .map(|m| m.xxh3.as_str())
-        .filter(|h| !h.is_empty())
-}
-
-/// Refuses a map whose query features the SFP extractor cannot provide: one without
-/// descriptors, or a SIFT map (`sift_hint` says what to do instead).
-fn check_extractable(map_path: &Path, descriptor: &str, sift_hint: &str) -> anyhow::Result<()> {
-    match descriptor {
-        "" => bail!(
-            "{}: the map has no descriptors (geometry only)",
-            map_path.display()
-        ),
-        "sift" => bail!("{}: a SIFT map; {sift_hint}", map_path.display()),
-        _ => Ok(()),
-    }
-}
-
-/// Refuses query features of another model than the map's: another `sfp.model_name`, or the
-/// same name with another `sfp.model_xxh3` where the file and the map both record one (a
-/// re-export). An hloc file without these attributes is taken as it is.
-#[cfg(feature = "onnx")]
-fn check_h5_model(
-    h5: &sfpmap::io::features_h5::H5Features,
-    h5_path: &Path,
-    map_path: &Path,
-    descriptor: &str,
-    map_hash: Option<&str>,
-) -> anyhow::Result<()> {
-    if !sfpmap::localize::is_sfp_descriptor(descriptor) {
-        return Ok(());
-    }
-    if let Some(made) = h5.root_string("sfp.model_name")? {
-        if made != descriptor {
-            bail!(
-                "{}: features of model {made:?}, but the map {} holds {descriptor:?} \
-                 descriptors: extract the queries with --model {descriptor}",
-                h5_path.display(),
-                map_path.display()
-            );
-        }
-    }
-    if let (Some(hash), Some(map_hash)) = (h5.root_string("sfp.model_xxh3")?, map_hash) {
-        if hash != map_hash {
-            bail!(
-                "{}: features of a {descriptor:?} model of hash {hash}, but the map {} was \
-                 made with one of hash {map_hash}: extract the queries with that model",
-                h5_path.display(),
-                map_path.display()
-            );
-        }
-    }
-    Ok(())
-}
-
-/// Warns when the file's global descriptors were computed at another image size than the
-/// map's (`sfp.global_max_side` against metadata `global_max_side`): retrieval by them then
-/// compares unlike descriptors. An `sfpmap extract` file without the attribute (written before
-/// it) computed them at the image's own size; an hloc file (no `sfp.model_name`) is taken as
-/// it is, and so is any file for a map without global descriptors.
-#[cfg(feature = "onnx")]
-fn warn_h5_global_size(
-    h5: &sfpmap::io::features_h5::H5Features,
-    h5_path: &Path,
-    map: &Map<'_>,
-    bars: &super::Bars,
-) -> anyhow::Result<()> {
-    if !matches!(map.image_global(), Ok(Some(_))) {
-        return Ok(());
-    }
-    let map_size = sfpmap::extract::GlobalSize::of_map(map.metadata());
-    // Only a warning hangs on it: an attribute that is not one string is named, not fatal.
-    let stated = match h5.root_string("sfp.global_max_side") {
-        Ok(Some(side)) => side,
-        Ok(None) if matches!(h5.root_string("sfp.model_name"), Ok(Some(_))) => "0".to_string(),
-        Ok(None) => return Ok(()),
-        Err(_) => "(not one string)".to_string(),
-    };
-    let file_size = stated
-        .trim()
-        .parse::<u32>()
-        .ok()
-        .map(|side| sfpmap::extract::GlobalSize::from_max_side(Some(side)));
-    if file_size != Some(map_size) {
-        let mut shown: String = stated.chars().take(24).collect();
-        if shown.len() < stated.len() {
-            shown.push('…');
-        }
-        let map_side = map_size.side();
-        bars.warn(&format!(
-            "{}: global descriptors computed at max side {shown:?}, the map's at \"{map_side}\" \
-             (0: the image's own size): retrieval by them will be poorer; extract with \
-             --global-max-side {map_side}",
-            h5_path.display()
-        ));
-    }
-    Ok(())
-}
-
-/// The size the queries' global descriptors are extracted at: the map's (`global_max_side`),
-/// or none where retrieval will not rank by them (the map stores none, or `--retrieval vlad`
-/// or `off`).
-#[cfg(feature = "onnx")]
-fn query_global_size(args: &Args, map: &Map<'_>) -> sfpmap::extract::GlobalSize {
-    let ranks_by_global = matches!(args.retrieval, RetrievalArg::Auto | RetrievalArg::Global)
-        && matches!(map.image_global(), Ok(Some(_)));
-    if ranks_by_global {
-        sfpmap::extract::GlobalSize::of_map(map.metadata())
-    } else {
-        sfpmap::extract::GlobalSize::Skip
-    }
-}
-
-/// The SFP extractor (`--model`, else the embedded one), checked against the map's descriptors.
-#[cfg(feature = "onnx")]
-fn sfp_extractor(
-    args: &Args,
-    descriptor: &str,
-    map_model_xxh3: Option<&str>,
-    bars: &super::Bars,
-) -> anyhow::Result<sfpmap::extract::Extractor> {
-    let extractor = match &args.model {
-        Some(m) => {
-            let options = sfpmap::extract::ExtractorOptions {
-                model: Some(m.clone()),
-                threads: 2,
-            };
-            sfpmap::extract::Extractor::new(&options, bars)?
-        }
-        // Without --model, the built-in model the map was made with (never a file).
-        None => match sfpmap::extract::Extractor::builtin(descriptor, 2, bars) {
-            Some(extractor) => extractor?,
-            None => bail!(
-                "{}: the map's descriptors are {descriptor:?}, which no built-in model makes \
-                 (built in: {}): pass its model with --model FILE.onnx",
-                args.map_path().display(),
-                sfpmap::extract::builtin_model_names()
-            ),
-        },
-    };
-    // A built-in model (by default, or `--model NAME`) of the map's name but other weights
-    // than the map's (a retrained model exported under the same name): the map's descriptors
-    // would not match the queries'. An explicit file is the user's choice.
-    let builtin = extractor.model().name.ends_with("(embedded)");
-    if let (true, Some(made)) = (builtin, map_model_xxh3) {
-        if made != extractor.model().xxh3 && extractor.contract().model_name == descriptor {
-            bail!(
-                "{}: the map was made with a {descriptor:?} model of hash {made}, not the \
-                 built-in one ({}): pass that model with --model FILE.onnx",
-                args.map_path().display(),
-                extractor.model().xxh3
-            );
-        }
-    }
-    // Only `--model` can name another model (without it, the map's own runs): that is asked
-    // for on purpose (e.g. a faster student of the map's model), so it runs, said once.
-    if extractor.contract().model_name != descriptor {
-        bars.warn(&format!(
-            "{}: the map's descriptors are {descriptor:?} but --model is {:?}: localizing \
-             with another model's descriptors, as asked",
-            args.map_path().display(),
-            extractor.contract().model_name
-        ));
-    }
-    Ok(extractor)
-}
-
-/// The localizer with the options of `--level`, `--short`, `--top-k` and `--ratio`.
-/// The localizer of `map` (named `name` in errors) with the options `args` give.
-fn localizer<'m>(map: &'m Map<'m>, args: &Args, name: &Path) -> anyhow::Result<Localizer<'m>> {
+/// The localizer's options: the map's defaults ([`LocalizeOptions::for_map`]) with
+/// `--level`, `--short`, `--top-k`, `--retrieval` and `--ratio`. The session checks them.
+fn options(map: &Map<'_>, args: &Args) -> LocalizeOptions {
     let base = LocalizeOptions::for_map(map);
-    if let Some(r) = args.ratio.filter(|r| !(*r > 0.0 && *r <= 1.0)) {
-        bail!("--ratio {r}: a ratio in (0, 1]");
-    }
-    let options = LocalizeOptions {
+    LocalizeOptions {
         levels: args.levels.clone(),
         short: args.short,
         top_k: args.top_k,
@@ -381,13 +197,36 @@ fn localizer<'m>(map: &'m Map<'m>, args: &Args, name: &Path) -> anyhow::Result<L
             ..base.matching
         },
         ..base
-    };
-    Localizer::new(map, options).with_context(|| name.display().to_string())
+    }
+}
+
+/// The session over `map` (`--map`) with the options `args` give and `source`; a sequence
+/// with `--sequence`. `not_extractable` says what to do instead when the map's queries
+/// cannot be extracted (a SIFT map).
+fn session(
+    args: &Args,
+    map: Arc<Map<'static>>,
+    source: QuerySource,
+    sequence: bool,
+    not_extractable: &str,
+    bars: &super::Bars,
+) -> anyhow::Result<Session> {
+    let options = options(&map, args);
+    let session = Session::builder(map, args.map_path().display().to_string())
+        .options(options)
+        .source(source)
+        .sequence(sequence)
+        .build(bars)
+        .map_err(|e| match e {
+            SessionError::NotExtractable { .. } => anyhow::anyhow!("{e}; {not_extractable}"),
+            e => e.into(),
+        })?;
+    warn_skipped(&session.skipped_levels(), args.map_path(), bars);
+    Ok(session)
 }
 
 /// Warns about the selected levels the localizer does not match (one line for all).
-fn warn_skipped(localizer: &Localizer<'_>, map: &Path, reporter: &dyn Reporter) {
-    let skipped = localizer.skipped_levels();
+fn warn_skipped(skipped: &[SkippedLevel], map: &Path, reporter: &dyn Reporter) {
     if !skipped.is_empty() {
         reporter.warn(&format!(
             "{}: {} level(s) not matched: {}",
@@ -407,6 +246,55 @@ fn check_images_dir(dir: &Path) -> anyhow::Result<()> {
             bail!("{}: no such folder (--images)", dir.display())
         }
         Err(e) => bail!("{}: {e}", dir.display()),
+    }
+}
+
+/// Where the queries' features come from: `--features`, `--database`, else the images of
+/// `--images` (extracted with `--model` or the map's own).
+fn query_source(args: &Args, queries: &[Query], query_list: &Path) -> anyhow::Result<QuerySource> {
+    #[cfg(feature = "onnx")]
+    if let Some(path) = &args.features {
+        return Ok(QuerySource::FeaturesFile(path.clone()));
+    }
+    #[cfg(not(feature = "onnx"))]
+    if let Some(path) = &args.features {
+        bail!(
+            "{}: reading features.h5 needs the onnx feature",
+            path.display()
+        );
+    }
+    if let Some(db) = &args.database {
+        return Ok(QuerySource::Database(db.clone()));
+    }
+    #[cfg(feature = "onnx")]
+    {
+        let Some(images) = args.images.clone() else {
+            // A SIFT map's refusal names what to pass instead, before --images is asked for.
+            return Ok(QuerySource::Images {
+                folder: None,
+                model: args.model.clone(),
+            });
+        };
+        // A list naming none of the folder's images is a mistake, not N failed queries.
+        // `exists`, not `is_file`: a FIFO or folder there is reported as what it is, later.
+        if !queries.iter().any(|q| images.join(&q.name).exists()) {
+            bail!(
+                "{}: none of the {} images {} names is in this folder (first: {:?})",
+                images.display(),
+                queries.len(),
+                query_list.display(),
+                queries[0].name
+            );
+        }
+        Ok(QuerySource::Images {
+            folder: Some(images),
+            model: args.model.clone(),
+        })
+    }
+    #[cfg(not(feature = "onnx"))]
+    {
+        let _ = (queries, query_list);
+        bail!("query features from images need the extractor (feature onnx): pass --database")
     }
 }
 
@@ -440,132 +328,41 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         None => Vec::new(),
     };
     check_outputs(&args, &[&query_list], &images)?;
+    let source = query_source(&args, &queries, &query_list)?;
     let opening = Instant::now();
-    let map = super::open_map(args.map_path())?;
+    let map = Arc::new(super::open_map(args.map_path())?);
     let open_ms = opening.elapsed().as_secs_f64() * 1e3;
-    let descriptor = descriptor_kind(&map);
-    #[cfg(feature = "onnx")]
-    let from_h5 = match &args.features {
-        Some(path) => {
-            let h5 = sfpmap::io::features_h5::H5Features::open(path)?;
-            check_h5_model(
-                &h5,
-                path,
-                args.map_path(),
-                &descriptor,
-                map_model_xxh3(&map),
-            )?;
-            warn_h5_global_size(&h5, path, &map, &bars)?;
-            Some(h5)
-        }
-        None => None,
-    };
-    #[cfg(not(feature = "onnx"))]
-    if let Some(path) = &args.features {
+    let indexing = Instant::now();
+    let images_missing = matches!(&source, QuerySource::Images { folder: None, .. });
+    let session = session(&args, map.clone(), source, args.sequence, SIFT_HINT, &bars)?;
+    if images_missing {
         bail!(
-            "{}: reading features.h5 needs the onnx feature",
-            path.display()
+            "{}: pass the query images with --images DIR (features are extracted with the SFP model)",
+            query_list.display()
         );
     }
-    let features = match (&args.database, descriptor.as_str()) {
-        #[cfg(feature = "onnx")]
-        _ if from_h5.is_some() => Source::H5(from_h5.expect("checked")),
-        (Some(db), _) => {
-            Source::Database(DatabaseFeatures::open(db).with_context(|| db.display().to_string())?)
-        }
-        #[cfg(feature = "onnx")]
-        (None, _) => {
-            check_extractable(args.map_path(), &descriptor, SIFT_HINT)?;
-            let Some(images) = args.images.clone() else {
-                bail!("{}: pass the query images with --images DIR (features are extracted with the SFP model)", query_list.display());
-            };
-            // A list naming none of the folder's images is a mistake, not N failed queries.
-            // `exists`, not `is_file`: a FIFO or folder there is reported as what it is, below.
-            if !queries.iter().any(|q| images.join(&q.name).exists()) {
-                bail!(
-                    "{}: none of the {} images {} names is in this folder (first: {:?})",
-                    images.display(),
-                    queries.len(),
-                    query_list.display(),
-                    queries[0].name
-                );
-            }
-            let extractor = sfp_extractor(&args, &descriptor, map_model_xxh3(&map), &bars)?;
-            let global = query_global_size(&args, &map);
-            Source::Extractor {
-                extractor,
-                images,
-                global,
-                skipped_global: 0,
-                skipped: None,
-            }
-        }
-        #[cfg(not(feature = "onnx"))]
-        (None, other) => {
-            check_extractable(args.map_path(), other, SIFT_HINT)?;
-            bail!(
-                "{}: query features for {other:?} maps need the extractor (feature onnx)",
-                args.map_path().display()
-            )
-        }
-    };
-    let indexing = Instant::now();
-    let localizer = localizer(&map, &args, args.map_path())?;
     // Opening the map and building the localizer: all a remote map's reads (with the
     // first query's time, when its first pose is ready).
     let map_ms = json!({ "open": open_ms, "localizer": indexing.elapsed().as_secs_f64() * 1e3 });
-    warn_skipped(&localizer, args.map_path(), &bars);
     bars.start("localizing", Some(queries.len() as u64));
-    // Each query's outcome, and whether its features could be read at all.
-    let results: Vec<Mutex<Option<(Localization, bool)>>> =
+    let results: Vec<Mutex<Option<Localization>>> =
         queries.iter().map(|_| Mutex::new(None)).collect();
     let next = AtomicUsize::new(0);
-    let features = Mutex::new(features);
-    // A sequence runs in order: one worker, which predicts each query from the last ones.
+    // A sequence runs in order: one worker (the session tracks it).
     let workers = if args.sequence { 1 } else { args.threads };
-    let motion = Mutex::new(MotionModel::new());
     let first_error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
     std::thread::scope(|s| {
         for _ in 0..workers {
             s.spawn(|| loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(q) = queries.get(i) else { break };
-                // SQLite connections are not shared between threads: reads take turns.
-                // Only a sequence (one worker) touches the motion model.
-                let sequence = || motion.lock().unwrap_or_else(|p| p.into_inner());
-                let tracked = args.sequence && sequence().predict().is_some();
-                let f = features
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .features(&q.name, tracked);
-                let outcome = match f {
-                    Ok(Ok(f)) if args.sequence => sequence()
-                        .localize_then_global(&localizer, &f, &q.camera, &mut || {
-                            let mut source = features.lock().unwrap_or_else(|p| p.into_inner());
-                            source.global_of(&q.name)
-                        })
-                        .with_context(|| {
-                            format!("{}: query {:?}", args.map_path().display(), q.name)
-                        })
-                        .map(|l| (l, true)),
-                    Ok(Ok(f)) => {
-                        localize_one(&localizer, args.map_path(), q, &f).map(|l| (l, true))
-                    }
-                    Ok(Err(reason)) => {
-                        if args.sequence {
-                            sequence().update(None);
-                        }
-                        Ok((unread(reason), false))
-                    }
-                    Err(e) => Err(e),
-                };
-                match outcome {
+                match session.localize(&q.name, &q.camera) {
                     Ok(l) => *results[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(l),
                     Err(e) => {
                         first_error
                             .lock()
                             .unwrap_or_else(|p| p.into_inner())
-                            .get_or_insert(e);
+                            .get_or_insert(e.into());
                     }
                 }
                 bars.advance(1);
@@ -576,21 +373,18 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     if let Some(e) = first_error.into_inner().unwrap_or_else(|p| p.into_inner()) {
         return Err(e);
     }
-    let global_skipped = features
-        .into_inner()
-        .unwrap_or_else(|p| p.into_inner())
-        .skipped_global();
-    let (results, read): (Vec<Localization>, Vec<bool>) = results
+    let global_skipped = session.global_deferred();
+    let results: Vec<Localization> = results
         .into_iter()
         .map(|m| {
             m.into_inner()
                 .unwrap_or_else(|p| p.into_inner())
                 .expect("every query ran")
         })
-        .unzip();
+        .collect();
     // Queries that merely fail to localize are listed in the output; a run that could read no
     // query at all is an error.
-    if !read.contains(&true) {
+    if results.iter().all(unread_query) {
         return Err(none_read(&query_list, &queries, &results));
     }
     // Names of the retrieved images, for `--format json`.
@@ -614,10 +408,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .zip(&results)
         .filter_map(|(q, r)| Some(json!({ "name": q.name, "reason": r.failure()?.to_string() })))
         .collect();
-    let paths = PathCounts::of(results.iter().filter(|&r| {
-        !r.failure()
-            .is_some_and(|f| matches!(f, QueryFailure::NoFeatures(_)))
-    }));
+    let paths = PathCounts::of(results.iter().filter(|r| !unread_query(r)));
     if args.json {
         super::print_json(&json!({
             "queries": queries.len(),
@@ -634,7 +425,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             "median_ms": median_ms(&results),
             "median_inliers": median(results.iter().filter(|r| r.pose().is_some()).map(|r| r.inliers as f64).collect()),
             // Lowe's ratio used: --ratio, else the map's (LocalizeOptions::for_map)
-            "ratio": shortest_f64(localizer.options().matching.ratio),
+            "ratio": shortest_f64(session.options().matching.ratio),
             "transfer": super::transfer_json(&map),
             "map_ms": map_ms,
         }))?;
@@ -707,139 +498,9 @@ impl PathCounts {
 /// What to do instead when a query-list run meets a SIFT map without `--database`.
 const SIFT_HINT: &str = "pass the queries' features with --database queries.db";
 
-/// Where query features come from.
-enum Source {
-    Database(DatabaseFeatures),
-    #[cfg(feature = "onnx")]
-    H5(sfpmap::io::features_h5::H5Features),
-    #[cfg(feature = "onnx")]
-    Extractor {
-        extractor: sfpmap::extract::Extractor,
-        images: PathBuf,
-        /// The map's (`GlobalSize::of_map`).
-        global: sfpmap::extract::GlobalSize,
-        /// Tracked frames extracted without it (`--json`'s `global_skipped`).
-        skipped_global: usize,
-        /// The last such frame's name and input, for [`Source::global_of`] if it loses
-        /// tracking (no second read and decode).
-        skipped: Option<Box<(String, sfpmap::extract::image::GrayInput)>>,
-    },
-}
-
-impl Source {
-    /// The global descriptor of query `name`, a tracked frame extracted without it that
-    /// lost tracking (its input is kept until the next query); `None` when this source gives
-    /// none, or the inference fails (the query then retrieves without it, which it reports).
-    #[cfg_attr(not(feature = "onnx"), allow(unused_variables))]
-    fn global_of(&mut self, name: &str) -> Option<Vec<f32>> {
-        match self {
-            #[cfg(feature = "onnx")]
-            Source::Extractor {
-                extractor,
-                global,
-                skipped,
-                ..
-            } => {
-                let (skipped_name, input) = *skipped.take()?;
-                if skipped_name != name {
-                    return None;
-                }
-                extractor.global_of(&input, *global).ok()
-            }
-            _ => None,
-        }
-    }
-
-    /// How many frames the extractor gave no global descriptor (tracked frames).
-    fn skipped_global(&self) -> usize {
-        match self {
-            #[cfg(feature = "onnx")]
-            Source::Extractor { skipped_global, .. } => *skipped_global,
-            _ => 0,
-        }
-    }
-
-    /// The query's features, or why they cannot be had for this query (missing, or an image
-    /// that does not decode completely): a failed query, not an error. `tracked`: a sequence's
-    /// frame with a pose prior, which does not retrieve, so the extractor skips the global
-    /// descriptor's extra inference where it costs one (a frame that then loses tracking gets
-    /// it from [`Source::global_of`]).
-    #[cfg_attr(not(feature = "onnx"), allow(unused_variables))]
-    fn features(
-        &mut self,
-        name: &str,
-        tracked: bool,
-    ) -> anyhow::Result<Result<QueryFeatures, String>> {
-        let missing = |what: &str| Err(format!("no features for {name:?} ({what})"));
-        match self {
-            Source::Database(db) => Ok(db
-                .features(name)?
-                .map_or_else(|| missing("not in the database"), Ok)),
-            #[cfg(feature = "onnx")]
-            Source::H5(h5) => Ok(h5
-                .features(name)?
-                .map_or_else(|| missing("not in the features file"), Ok)),
-            #[cfg(feature = "onnx")]
-            Source::Extractor {
-                extractor,
-                images,
-                global,
-                skipped_global,
-                skipped,
-            } => {
-                use sfpmap::extract::ExtractError;
-                *skipped = None;
-                let path = images.join(name);
-                // A FIFO or folder goes on to `load`, whose regular-file rule names it.
-                if !path.exists() {
-                    return Ok(missing("no such image"));
-                }
-                let weights = extractor.contract().gray_weights;
-                let input = match sfpmap::extract::image::load(&path, weights, None) {
-                    Ok(input) => input,
-                    Err(ExtractError::Image { source, .. }) => {
-                        return Ok(Err(format!("the image does not decode: {source}")))
-                    }
-                    Err(ExtractError::Io { source, .. }) => {
-                        return Ok(Err(format!("the image cannot be read: {source}")))
-                    }
-                    Err(e) => return Err(e.into()),
-                };
-                // One oversized query is a failed query, not an aborted run.
-                if let Some(reason) =
-                    sfpmap::extract::too_large_for_the_network(input.width, input.height)
-                {
-                    return Ok(Err(reason));
-                }
-                let size = global.for_frame(tracked, input.width, input.height);
-                let skip = size != *global;
-                *skipped_global += usize::from(skip);
-                let options = sfpmap::extract::DetectOptions {
-                    global: size,
-                    ..Default::default()
-                };
-                let f = extractor
-                    .extract(&input, &options)
-                    .map_err(|e| e.on_image(&path))?;
-                if skip {
-                    *skipped = Some(Box::new((name.to_string(), input)));
-                }
-                Ok(Ok(sfpmap::io::queries::sfp_query(&f)))
-            }
-        }
-    }
-}
-
-/// Localizes one query; an error (features that do not fit the map) names the map and query.
-fn localize_one(
-    localizer: &Localizer<'_>,
-    map: &Path,
-    q: &Query,
-    f: &QueryFeatures,
-) -> anyhow::Result<Localization> {
-    localizer
-        .localize(f, &q.camera)
-        .with_context(|| format!("{}: query {:?}", map.display(), q.name))
+/// Whether `r` is a query whose features could not be read.
+fn unread_query(r: &Localization) -> bool {
+    matches!(r.failure(), Some(QueryFailure::NoFeatures(_)))
 }
 
 /// The error of a run that could read no query's features, naming the first one's reason.

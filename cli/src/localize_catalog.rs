@@ -4,19 +4,20 @@
 //! the localizer reads) and localize the query; the pose with the most inliers wins. Poses
 //! are in the chosen place's frame; `--json` says which place each query went to.
 
-use super::{localizer, none_read, unread, write_poses, Args, Source};
+use super::{none_read, options, unread, warn_skipped, write_poses, Args};
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::colmap::text::escape_control_characters;
 use sfpmap::format::{Catalog, Map, Place};
-use sfpmap::io::queries::{read_query_list, DatabaseFeatures};
+use sfpmap::io::queries::read_query_list;
 use sfpmap::localize::catalog::PlaceRanker;
-use sfpmap::localize::{Localization, Localizer};
+use sfpmap::localize::Localization;
 use sfpmap::progress::Reporter;
+use sfpmap::session::{QueryReader, QuerySource, Session};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 /// Where place `location` is: a URL as is; a path from the catalog's folder (absolute ones
 /// as they are). A catalog read from a URL names no local file: its other locations are
@@ -102,31 +103,33 @@ pub(super) fn run(
     inputs.extend(place_paths.iter().map(PathBuf::as_path));
     super::super::check_outputs(&[&args.output], &inputs, args.force)?;
     let ranker = PlaceRanker::new(&catalog).map_err(super::super::naming(catalog_path))?;
-    let mut features = match (&args.database, &args.features) {
-        (Some(db), _) => {
-            Source::Database(DatabaseFeatures::open(db).with_context(|| db.display().to_string())?)
-        }
+    let source = match (&args.database, &args.features) {
+        (Some(db), _) => QuerySource::Database(db.clone()),
         #[cfg(feature = "onnx")]
-        (None, Some(h5)) => {
-            let file = sfpmap::io::features_h5::H5Features::open(h5)?;
-            super::check_h5_model(&file, h5, catalog_path, &catalog.listing.descriptor, None)?;
-            Source::H5(file)
-        }
+        (None, Some(h5)) => QuerySource::FeaturesFile(h5.clone()),
         _ => bail!("--catalog needs the queries' features: --database queries.db or --features features.h5"),
     };
-    let maps: Vec<OnceLock<Result<Map<'static>, String>>> =
+    let catalog_name = catalog_path.display().to_string();
+    let mut features =
+        QueryReader::for_catalog(source, &catalog_name, &catalog.listing.descriptor, bars)?;
+    // Each place's session, made on first use: its map opened (only the sections the
+    // localizer reads, for URLs) and checked against what the catalog recorded.
+    let sessions: Vec<OnceLock<Result<Session, String>>> =
         places.iter().map(|_| OnceLock::new()).collect();
-    let localizers: Vec<OnceLock<Result<Localizer<'_>, String>>> =
-        places.iter().map(|_| OnceLock::new()).collect();
-    let place_localizer = |i: usize| -> anyhow::Result<&Localizer<'_>> {
-        let map = maps[i]
+    let place_session = |i: usize| -> anyhow::Result<&Session> {
+        sessions[i]
             .get_or_init(|| {
-                open_place(catalog_path, &places[i], &place_paths[i]).map_err(|e| format!("{e:#}"))
+                let map = open_place(catalog_path, &places[i], &place_paths[i])
+                    .map_err(|e| format!("{e:#}"))?;
+                let options = options(&map, args);
+                let path = &place_paths[i];
+                let session = Session::builder(Arc::new(map), path.display().to_string())
+                    .options(options)
+                    .build(bars)
+                    .map_err(|e| e.to_string())?;
+                warn_skipped(&session.skipped_levels(), path, bars);
+                Ok(session)
             })
-            .as_ref()
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
-        localizers[i]
-            .get_or_init(|| localizer(map, args, &place_paths[i]).map_err(|e| format!("{e:#}")))
             .as_ref()
             .map_err(|e| anyhow::anyhow!("{e}"))
     };
@@ -137,7 +140,7 @@ pub(super) fn run(
     let mut rankings: Vec<serde_json::Value> = Vec::with_capacity(queries.len());
     let mut read_any = false;
     for q in &queries {
-        let f = match features.features(&q.name, false)? {
+        let f = match features.read(&q.name)? {
             Ok(f) => f,
             Err(reason) => {
                 results.push(unread(reason));
@@ -159,9 +162,9 @@ pub(super) fn run(
             .collect::<Vec<_>>()));
         let mut best: Option<(Localization, usize)> = None;
         for candidate in ranked.iter().take(args.places) {
-            let l = place_localizer(candidate.place)?
-                .localize(&f, &q.camera)
-                .with_context(|| format!("{}: query {:?}", places[candidate.place].name, q.name))?;
+            let l = place_session(candidate.place)?
+                .localize_features(&f, &q.camera, &q.name)
+                .with_context(|| format!("place {:?}", places[candidate.place].name))?;
             let better = match &best {
                 None => true,
                 Some((b, _)) => l.pose().is_some() && (b.pose().is_none() || l.inliers > b.inliers),
@@ -200,8 +203,9 @@ pub(super) fn run(
         *per_place.entry(places[*p].name.as_str()).or_default() += 1;
     }
     let mut transfer = serde_json::Map::new();
-    for (i, m) in maps.iter().enumerate() {
-        if let Some(Ok(map)) = m.get() {
+    for (i, s) in sessions.iter().enumerate() {
+        if let Some(Ok(session)) = s.get() {
+            let map = session.map();
             transfer.insert(places[i].name.clone(), super::super::transfer_json(map));
         }
     }

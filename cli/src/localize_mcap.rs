@@ -13,19 +13,17 @@ use super::Args;
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::colmap::text::{escape_control_characters, quoted_name};
-use sfpmap::extract::image::GrayInput;
-use sfpmap::extract::{DetectOptions, Extractor};
 use sfpmap::geometry::Camera;
 use sfpmap::io::mcap_io::{self, Damage, LogReader, Skipped, Stamp};
 use sfpmap::io::poses::tum_line;
 use sfpmap::localize::eval::median;
-use sfpmap::localize::{Localization, MotionModel, QueryFeatures};
+use sfpmap::localize::Localization;
 use sfpmap::progress::Reporter;
+use sfpmap::session::{self, QuerySource, Session, SessionError};
 use std::collections::{BTreeMap, HashSet};
 use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
@@ -250,30 +248,17 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
         (None, None) => bail!("--mcap needs the intrinsics: --camera \"MODEL W H params...\" or --camera-info-topic TOPIC"),
     };
 
-    let map = super::super::open_map(args.map_path())?;
-    let descriptor = super::descriptor_kind(&map);
-    super::check_extractable(
-        args.map_path(),
-        &descriptor,
-        "MCAP images need an SFP map (their features are extracted with the SFP model)",
-    )?;
-    let extractor = super::sfp_extractor(args, &descriptor, super::map_model_xxh3(&map), bars)?;
-    let gray_weights = extractor.contract().gray_weights;
-    // The frames' global descriptors are computed as the map's were (none where retrieval
-    // will not rank by them).
-    let detect = DetectOptions {
-        global: super::query_global_size(args, &map),
-        ..Default::default()
+    let map = Arc::new(super::super::open_map(args.map_path())?);
+    let source = QuerySource::Images {
+        folder: None,
+        model: args.model.clone(),
     };
-    let localizer = super::localizer(&map, args, args.map_path())?;
-    super::warn_skipped(&localizer, args.map_path(), bars);
+    let not_sfp = "MCAP images need an SFP map (their features are extracted with the SFP model)";
+    // A log is a sequence: each frame is predicted from the last ones and tracked.
+    let session = super::session(args, map, source, true, not_sfp, bars)?;
+    let gray_weights = session.gray_weights().expect("a session that extracts");
 
     bars.start("localizing", expected_on_topic);
-    let extractor = Mutex::new(extractor);
-    // Whether the sequence is tracking (the localizing thread's motion model predicts the next
-    // frame): a frame extracted meanwhile skips its global descriptor, as `--sequence` does.
-    let tracking = AtomicBool::new(false);
-    let global_skipped = AtomicUsize::new(0);
     let frames: Mutex<BTreeMap<usize, Frame>> = Mutex::new(BTreeMap::new());
     // Failure reasons, each kept once.
     let reasons: Mutex<HashSet<Arc<str>>> = Mutex::new(HashSet::new());
@@ -303,19 +288,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
                 // Every index must reach the localizer, which waits for them in order: a
                 // panic becomes the frame's failure instead of a hang.
                 let extracted = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    let tracked = tracking.load(Ordering::Relaxed);
-                    let extracted = extract_message(
-                        &message,
-                        &camera,
-                        gray_weights,
-                        &detect,
-                        tracked,
-                        &extractor,
-                    );
-                    if matches!(&extracted.1, Ok(q) if q.skipped.is_some()) {
-                        global_skipped.fetch_add(1, Ordering::Relaxed);
-                    }
-                    extracted
+                    extract_message(&message, &camera, gray_weights, &session)
                 }))
                 .unwrap_or_else(|_| {
                     let frame = Frame::of(&message);
@@ -329,33 +302,29 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             });
         }
         s.spawn(|| {
-            let mut motion = MotionModel::new();
             // Should this thread panic, the workers and the reader must not wait for it.
             let _close = pending.close_on_panic();
             while let Some((index, (mut frame, features))) = pending.take_next() {
                 let outcome = match features {
-                    Ok(q) => std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                        // A frame that skipped its global descriptor and lost tracking gets it
-                        // from its kept input.
-                        let mut global = || {
-                            let input = q.skipped.as_deref()?;
-                            let mut extractor = extractor.lock().unwrap_or_else(|p| p.into_inner());
-                            extractor.global_of(input, detect.global).ok()
-                        };
-                        motion
-                            .localize_then_global(&localizer, &q.features, &camera, &mut global)
-                            .map_err(|e| e.to_string())
+                    Ok(query) => std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                        // A frame that deferred its global descriptor and loses tracking gets
+                        // it from its kept input.
+                        session
+                            .localize_frame(query, &camera, &format!("image {index}"))
+                            .map_err(|e| match e {
+                                SessionError::Query { source, .. } => source.to_string(),
+                                e => e.to_string(),
+                            })
                     }))
                     .unwrap_or_else(|_| {
-                        motion.update(None);
+                        session.reset_tracking();
                         Err("internal error while localizing (a bug)".to_string())
                     }),
                     Err(reason) => {
-                        motion.update(None);
+                        session.reset_tracking();
                         Err(reason)
                     }
                 };
-                tracking.store(motion.predict().is_some(), Ordering::Relaxed);
                 frame.outcome = match outcome {
                     Ok(l) => Ok(Box::new(l)),
                     Err(reason) => Err(share(reason)),
@@ -514,7 +483,7 @@ pub fn run(args: &Args, quiet: bool, bars: &Bars) -> anyhow::Result<ExitCode> {
             tracking_lost: paths.tracking_lost,
             retrieval: paths.retrieval,
             retrieval_fallback: paths.retrieval_fallback,
-            global_skipped: global_skipped.load(Ordering::Relaxed),
+            global_skipped: session.global_deferred(),
         };
         use std::io::Write as _;
         let mut out = std::io::stdout().lock();
@@ -583,23 +552,14 @@ impl serde::Serialize for FailedFrames<'_> {
     }
 }
 
-/// A frame's query features, and its input when its global descriptor was skipped (extracted
-/// while the sequence tracked): the descriptor is computed from it only if tracking is lost.
-struct FrameQuery {
-    features: QueryFeatures,
-    skipped: Option<Box<GrayInput>>,
-}
-
-/// The frame of one image message and its features, or why there are none. `tracked`: the
-/// sequence is tracking, so the global descriptor is skipped where it costs an inference.
+/// The frame of one image message and its features, or why there are none. While the
+/// sequence tracks, the session defers the global descriptor where it costs an inference.
 fn extract_message(
     message: &mcap::Message<'_>,
     camera: &Camera,
     gray_weights: [f32; 3],
-    detect: &DetectOptions,
-    tracked: bool,
-    extractor: &Mutex<Extractor>,
-) -> (Frame, Result<FrameQuery, String>) {
+    session: &Session,
+) -> (Frame, Result<session::Frame, String>) {
     let mut frame = Frame::of(message);
     let schema = schema_name(&message.channel);
     let decoded =
@@ -624,20 +584,10 @@ fn extract_message(
     }
     let input = sfpmap::extract::image::from_image(&decoded.image, gray_weights, None);
     drop(decoded);
-    let size = detect.global.for_frame(tracked, input.width, input.height);
-    let skip = size != detect.global;
-    let options = DetectOptions {
-        global: size,
-        ..detect.clone()
-    };
     // One ONNX session: extraction takes turns, decoding runs in parallel.
-    let features = extractor
-        .lock()
-        .unwrap_or_else(|p| p.into_inner())
-        .extract(&input, &options);
-    let features = features.map_err(|e| e.to_string()).map(|f| FrameQuery {
-        features: sfpmap::io::queries::sfp_query(&f),
-        skipped: skip.then(|| Box::new(input)),
+    let features = session.extract(input).map_err(|e| match e {
+        SessionError::Extract(e) => e.to_string(),
+        e => e.to_string(),
     });
     (frame, features)
 }
@@ -651,7 +601,7 @@ struct Ordered {
     capacity: usize,
 }
 
-type Extracted = (Frame, Result<FrameQuery, String>);
+type Extracted = (Frame, Result<session::Frame, String>);
 
 struct OrderedState {
     pending: BTreeMap<usize, Extracted>,

@@ -514,7 +514,11 @@ impl H5Features {
         {
             return Err(self.err(format!("{name}/global_descriptor: a value is {v}")));
         }
-        Ok(Some(QueryFeatures { sets, global }))
+        Ok(Some(QueryFeatures {
+            sets,
+            global,
+            model: None,
+        }))
     }
 }
 

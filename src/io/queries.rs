@@ -101,6 +101,7 @@ impl DatabaseFeatures {
         Ok(Some(QueryFeatures {
             sets: vec![set],
             global: None,
+            model: None,
         }))
     }
 }
@@ -108,8 +109,13 @@ impl DatabaseFeatures {
 /// Extractor output as localizer input: one feature set per level with the full descriptors
 /// (SFP maps keep descriptors in the extractor's basis; the localizer truncates for `short`),
 /// and the global descriptor for retrieval.
+/// `extractor` made `f`: the features carry its model (a session refuses them for a map of
+/// another model).
 #[cfg(feature = "onnx")]
-pub fn sfp_query(f: &crate::extract::Features) -> QueryFeatures {
+pub fn sfp_query(
+    f: &crate::extract::Features,
+    extractor: &crate::extract::Extractor,
+) -> QueryFeatures {
     let sets = f
         .levels
         .iter()
@@ -128,5 +134,9 @@ pub fn sfp_query(f: &crate::extract::Features) -> QueryFeatures {
         sets,
         // Empty when the extraction skipped it (`GlobalSize::Skip`).
         global: (!f.global.is_empty()).then(|| f.global.clone()),
+        model: Some(crate::localize::FeatureModel {
+            name: extractor.contract().model_name.clone(),
+            xxh3: Some(extractor.model().xxh3.clone()),
+        }),
     }
 }

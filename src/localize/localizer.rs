@@ -44,6 +44,17 @@ pub struct QueryFeatures {
     pub sets: Vec<FeatureSet>,
     /// Global descriptor for retrieval, if the extractor gives one.
     pub global: Option<Vec<f32>>,
+    /// The model that made these features, when known (the SFP extractor's, a features
+    /// file's `sfp.model_name`): a session refuses features of another model than its map's.
+    pub model: Option<FeatureModel>,
+}
+
+/// The model features came from: its descriptor kind (`sfp-v2`, as maps record it) and, when
+/// known, the XXH3 of its ONNX file (a retrained model keeps its name, not its hash).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FeatureModel {
+    pub name: String,
+    pub xxh3: Option<String>,
 }
 
 /// Localizer settings.
@@ -102,7 +113,76 @@ impl LocalizeOptions {
         options.matching.ratio = super::default_ratio(descriptor);
         options
     }
+
+    /// The one home of the options' rules: the CLI, the Python package and the C ABI all
+    /// reach them through [`Localizer::new`], so a value out of range gets the same message
+    /// from each (`ratio 1.5: a ratio in (0, 1]`). Which levels exist is the map's to say.
+    pub fn validate(&self) -> Result<(), OptionError> {
+        let bad = |option, value: String, expected| {
+            Err(OptionError {
+                option,
+                value,
+                expected,
+            })
+        };
+        if !(1..=MAX_TOP_K).contains(&self.top_k) {
+            return bad("top_k", self.top_k.to_string(), "1 to 100000 images");
+        }
+        let m = &self.matching;
+        for (option, value) in [("ratio", m.ratio), ("gate_ratio", self.gate_ratio)] {
+            if !(value > 0.0 && value <= 1.0) {
+                return bad(option, value.to_string(), "a ratio in (0, 1]");
+            }
+        }
+        if !(-1.0..=1.0).contains(&m.min_similarity) {
+            let value = m.min_similarity.to_string();
+            return bad("min_similarity", value, "a cosine similarity in [-1, 1]");
+        }
+        for (option, value) in [
+            ("coarse_error_px", self.coarse_error_px),
+            ("gate_px", self.gate_px),
+            ("fine_error_px", self.fine_error_px),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return bad(option, value.to_string(), "a finite number of pixels > 0");
+            }
+        }
+        // At least what P3P takes plus one that checks it; at most what keeps the search's
+        // multiples of it (`coarse::sure_inliers`, 4 × for a seed) far from overflow.
+        if !(4..=MAX_MIN_INLIERS).contains(&self.min_inliers) {
+            let value = self.min_inliers.to_string();
+            return bad("min_inliers", value, "4 to 1000000 inliers");
+        }
+        Ok(())
+    }
 }
+
+/// The most images [`LocalizeOptions::top_k`] may retrieve (retrieval widens a search by
+/// multiples of it).
+pub const MAX_TOP_K: usize = 100_000;
+
+/// The most inliers [`LocalizeOptions::min_inliers`] may ask for.
+const MAX_MIN_INLIERS: usize = 1_000_000;
+
+/// An option of [`LocalizeOptions`] out of its range: `ratio 1.5: a ratio in (0, 1]`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OptionError {
+    /// The option's name, as the Python package and the C ABI spell it (the CLI's flag is
+    /// the same name with dashes).
+    pub option: &'static str,
+    /// The value given, as text.
+    pub value: String,
+    /// What the option takes.
+    pub expected: &'static str,
+}
+
+impl std::fmt::Display for OptionError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} {}: {}", self.option, self.value, self.expected)
+    }
+}
+
+impl std::error::Error for OptionError {}
 
 /// Milliseconds per stage.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -263,6 +343,8 @@ impl std::fmt::Display for QueryFailure {
 #[non_exhaustive]
 pub enum LocalizeError {
     Format(FormatError),
+    /// An option out of its range ([`LocalizeOptions::validate`]).
+    Option(OptionError),
     /// The map has no descriptors (geometry only).
     NoDescriptors,
     /// Query features do not fit the map's descriptor space.
@@ -326,6 +408,7 @@ impl std::fmt::Display for LocalizeError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             LocalizeError::Format(e) => e.fmt(f),
+            LocalizeError::Option(e) => e.fmt(f),
             LocalizeError::NoDescriptors => f.write_str("the map has no descriptors (geometry only); convert it with --database or --images"),
             LocalizeError::DescriptorMismatch { level, expected, found } => write!(
                 f,
@@ -420,6 +503,7 @@ pub struct Localizer<'m> {
 
 impl<'m> Localizer<'m> {
     pub fn new(map: &'m Map<'m>, options: LocalizeOptions) -> Result<Localizer<'m>, LocalizeError> {
+        options.validate().map_err(LocalizeError::Option)?;
         if map.metadata().geometry_only || map.level_ids().is_empty() {
             return Err(LocalizeError::NoDescriptors);
         }
@@ -576,6 +660,7 @@ impl<'m> Localizer<'m> {
                     with_global = QueryFeatures {
                         sets: query.sets.clone(),
                         global: Some(g),
+                        model: query.model.clone(),
                     };
                     &with_global
                 }

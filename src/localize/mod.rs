@@ -15,11 +15,12 @@ mod retrieval;
 mod scratch;
 
 pub use localizer::{
-    describe_skipped, FeatureSet, Localization, LocalizationPath, LocalizeError, LocalizeOptions,
-    Localizer, QueryFailure, QueryFeatures, SkippedLevel, StageTimes, TrackingLost,
+    describe_skipped, FeatureModel, FeatureSet, Localization, LocalizationPath, LocalizeError,
+    LocalizeOptions, Localizer, OptionError, QueryFailure, QueryFeatures, SkippedLevel,
+    StageTimes, TrackingLost, MAX_TOP_K,
 };
 pub use matching::{default_ratio, is_sfp_descriptor, MatchOptions};
-pub use prior::MotionModel;
+pub(crate) use prior::MotionModel;
 pub use retrieval::{RetrievalFallback, RetrievalMethod};
 
 /// The matching kernels, for the benches that measure them (feature `fuzzing`, which the

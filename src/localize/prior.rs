@@ -6,8 +6,7 @@
 //! global descriptor and no coarse matching at all.
 
 use super::retrieval::top_k_indices;
-use super::{Localization, LocalizeError, Localizer, QueryFeatures};
-use crate::geometry::{Camera, Pose};
+use crate::geometry::Pose;
 use nalgebra::Vector3;
 
 /// Each database image's camera centre and viewing direction, in world coordinates.
@@ -74,7 +73,8 @@ fn viewing_direction(pose: &Pose) -> Vector3<f64> {
 
 /// Constant velocity: the next `cam_from_world` is the last one moved by the motion between
 /// the last two frames. A frame that is not localized resets it (the next frame goes through
-/// retrieval, then tracking resumes).
+/// retrieval, then tracking resumes). A [`Session`](crate::session::Session) in sequence mode
+/// keeps one.
 #[derive(Debug, Clone, Default)]
 pub struct MotionModel {
     last: Option<Pose>,
@@ -95,33 +95,6 @@ impl MotionModel {
             Some(step) => step.compose(last),
             None => *last,
         })
-    }
-
-    /// One frame of a sequence: localized with the prediction as its prior, then recorded
-    /// (a frame that is not localized, or an error, resets the model).
-    pub fn localize(
-        &mut self,
-        localizer: &Localizer<'_>,
-        query: &QueryFeatures,
-        camera: &Camera,
-    ) -> Result<Localization, LocalizeError> {
-        self.localize_then_global(localizer, query, camera, &mut || None)
-    }
-
-    /// [`Self::localize`] for a frame extracted without its global descriptor: `global`
-    /// gives it if tracking is lost ([`Localizer::localize_with_prior_then_global`]).
-    pub fn localize_then_global(
-        &mut self,
-        localizer: &Localizer<'_>,
-        query: &QueryFeatures,
-        camera: &Camera,
-        global: &mut dyn FnMut() -> Option<Vec<f32>>,
-    ) -> Result<Localization, LocalizeError> {
-        let prior = self.predict();
-        let found =
-            localizer.localize_with_prior_then_global(query, camera, prior.as_ref(), global);
-        self.update(found.as_ref().ok().and_then(Localization::pose));
-        found
     }
 
     /// Records the frame's pose (`None`: not localized, which resets the model).

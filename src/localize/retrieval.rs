@@ -28,6 +28,28 @@ pub enum RetrievalMethod {
     Off,
 }
 
+/// `auto`, `vlad`, `global` or `off`, as the CLI's `--retrieval` and the Python package's
+/// `retrieval` take it.
+impl std::str::FromStr for RetrievalMethod {
+    type Err = super::OptionError;
+
+    fn from_str(name: &str) -> Result<Self, Self::Err> {
+        Ok(match name {
+            "auto" => RetrievalMethod::Auto,
+            "vlad" => RetrievalMethod::Vlad,
+            "global" => RetrievalMethod::Global,
+            "off" => RetrievalMethod::Off,
+            other => {
+                return Err(super::OptionError {
+                    option: "retrieval",
+                    value: format!("{other:?}"),
+                    expected: "one of \"auto\", \"vlad\", \"global\", \"off\"",
+                })
+            }
+        })
+    }
+}
+
 /// Why a query's candidates are every point of the map instead of those of its retrieved
 /// images: what `localize` reports per query.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -416,7 +438,11 @@ mod tests {
     }
 
     fn query(global: Option<Vec<f32>>, sets: Vec<FeatureSet>) -> QueryFeatures {
-        QueryFeatures { sets, global }
+        QueryFeatures {
+            sets,
+            global,
+            model: None,
+        }
     }
 
     fn set(level: Option<u16>, dim: usize, rows: &[f32]) -> FeatureSet {

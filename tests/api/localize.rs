@@ -11,16 +11,16 @@ use sfpmap::localize::{
 };
 use synthetic_scene::{level_info, points_and_descriptors, truth, unit, Rng};
 
-const DIM: usize = 32;
+pub(crate) const DIM: usize = 32;
 const N: usize = 3000;
 
-struct Scene {
+pub(crate) struct Scene {
     points: Vec<[f64; 3]>,
     descriptors: Vec<f32>,
-    camera: Camera,
+    pub(crate) camera: Camera,
 }
 
-fn scene() -> Scene {
+pub(crate) fn scene() -> Scene {
     let (points, descriptors) = points_and_descriptors(N, DIM);
     let camera = Camera::parse("SIMPLE_RADIAL 640 480 500 320 240 0.01").unwrap();
     Scene {
@@ -30,7 +30,7 @@ fn scene() -> Scene {
     }
 }
 
-fn map_bytes(s: &Scene) -> Vec<u8> {
+pub(crate) fn map_bytes(s: &Scene) -> Vec<u8> {
     let levels: Vec<Vec<u32>> = (0..3)
         .map(|l| (l * 1000..(l + 1) * 1000).map(|p| p as u32).collect())
         .collect();
@@ -86,7 +86,7 @@ fn map_bytes_global(s: &Scene, levels: &[Vec<u32>], global: Option<(usize, &[f32
 }
 
 /// Keypoints where the map's points project (0.5 px noise, descriptor noise) plus outliers.
-fn query(s: &Scene, pose: &Pose, outliers: usize, dim: usize) -> QueryFeatures {
+pub(crate) fn query(s: &Scene, pose: &Pose, outliers: usize, dim: usize) -> QueryFeatures {
     let mut rng = Rng(7);
     let mut set = FeatureSet {
         level: None,
@@ -119,6 +119,7 @@ fn query(s: &Scene, pose: &Pose, outliers: usize, dim: usize) -> QueryFeatures {
     QueryFeatures {
         sets: vec![set],
         global: None,
+        model: None,
     }
 }
 
@@ -321,6 +322,7 @@ fn a_query_of_noise_fails_with_a_reason_not_a_panic() {
             dim: DIM,
         }],
         global: None,
+        model: None,
     };
     assert!(localizer
         .localize(&empty, &s.camera)

@@ -28,5 +28,6 @@ mod geometry_camera;
 mod geometry_pose;
 mod geometry_real;
 mod localize;
+mod session;
 mod street_scene;
 mod vectors;

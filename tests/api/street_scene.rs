@@ -10,8 +10,9 @@ use sfpmap::format::Retrieval;
 use sfpmap::io::poses::read_poses;
 use sfpmap::io::queries::{read_query_list, DatabaseFeatures};
 use sfpmap::localize::{
-    LocalizationPath, LocalizeOptions, Localizer, MotionModel, RetrievalFallback, RetrievalMethod,
+    LocalizationPath, LocalizeOptions, Localizer, RetrievalFallback, RetrievalMethod,
 };
+use sfpmap::session::{QuerySource, Session};
 
 #[test]
 fn a_small_street_converts_and_every_query_localizes() {
@@ -109,26 +110,27 @@ fn a_small_street_converts_and_every_query_localizes() {
     // tracked from the constant-velocity prediction, all within the bar.
     let frames = read_query_list(&dir.path().join("sequence.txt"), None).unwrap();
     let truth = read_poses(&dir.path().join("sequence_gt.txt")).unwrap();
-    let features = DatabaseFeatures::open(&dir.path().join("sequence.db")).unwrap();
-    let mut motion = MotionModel::new();
+    // The session reads each frame from the database and tracks the sequence.
+    let sequence = Session::builder(std::sync::Arc::new(Map::open(&map_path).unwrap()), "street")
+        .options(LocalizeOptions::default())
+        .source(QuerySource::Database(dir.path().join("sequence.db")))
+        .sequence(true)
+        .build(&sfpmap::progress::Silent)
+        .unwrap();
     let mut tracked = 0;
-    for (frame, (name, gt)) in frames.iter().zip(&truth) {
+    for (i, (frame, (name, gt))) in frames.iter().zip(&truth).enumerate() {
         assert_eq!(&frame.name, name);
-        let f = features.features(name).unwrap().unwrap();
-        let prior = motion.predict();
-        let r = localizer
-            .localize_with_prior(&f, &frame.camera, prior.as_ref())
-            .unwrap();
+        assert_eq!(sequence.is_tracking(), i > 0, "{name}");
+        let r = sequence.localize(name, &frame.camera).unwrap();
         let pose = r
             .pose()
             .unwrap_or_else(|| panic!("{name}: {:?}", r.failure()));
         let (t, deg) = (pose.center_distance(gt), pose.rotation_error_deg(gt));
         assert!(t < 0.5 && deg < 2.0, "{name}: {t} m, {deg}°");
-        if prior.is_none() {
+        if i == 0 {
             assert_eq!(r.path, LocalizationPath::Retrieval, "{name}");
         }
         tracked += usize::from(r.path == LocalizationPath::Tracking);
-        motion.update(r.pose());
     }
     assert_eq!(frames.len(), 6);
     assert_eq!(tracked, 5, "every frame after the first is tracked");

@@ -692,6 +692,7 @@ fn hostile_vlad_values_rank_last_and_never_panic() {
             dim: d_in,
         }],
         global: None,
+        model: None,
     };
     let camera = Camera::parse("SIMPLE_RADIAL 640 480 500 320 240 0.01").unwrap();
     let r = localizer.localize(&query, &camera).unwrap();

@@ -237,10 +237,15 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_with_v1_only_o
     let a: Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(a["localized"], 2, "{a}");
     assert_eq!(a["ratio"], 0.95, "{a}");
-    // --ratio outside (0, 1] is refused.
+    // --ratio outside (0, 1] is refused, in the library's words (Python and C say the same).
     let o = localize(&["--ratio", "1.5"], "r.txt");
     assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("--ratio 1.5"));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("m.sfpm: ratio 1.5: a ratio in (0, 1]"),
+        "{err}"
+    );
+    assert!(!t.path().join("r.txt").exists());
     // `--model` naming another model is asked for on purpose: it runs (sfp-v2s is sfp-v1's
     // student, so their descriptors still match), with a warning naming both models.
     let o = localize(&["--model", "sfp-v1"], "b.txt");

@@ -374,21 +374,6 @@ pub(crate) struct Localizer {
     session: Session,
 }
 
-/// `retrieval`'s names, as the CLI's `--retrieval` takes them (the library parses none).
-fn retrieval_method(name: &str) -> PyResult<RetrievalMethod> {
-    Ok(match name {
-        "auto" => RetrievalMethod::Auto,
-        "vlad" => RetrievalMethod::Vlad,
-        "global" => RetrievalMethod::Global,
-        "off" => RetrievalMethod::Off,
-        other => {
-            return Err(InputError::new_err(format!(
-                "retrieval {other:?}: one of \"auto\", \"vlad\", \"global\", \"off\""
-            )))
-        }
-    })
-}
-
 /// A count option (`top_k`, `min_inliers`) given as a Python int. The library checks its
 /// range ([`LocalizeOptions::validate`], when the session is built); a negative one, which no
 /// `usize` holds, is refused here in the library's words: its rule for 0 (which no count
@@ -490,7 +475,9 @@ impl Localizer {
             levels,
             short,
             top_k: count("top_k", top_k, |o, n| o.top_k = n)?,
-            retrieval: retrieval_method(retrieval)?,
+            retrieval: retrieval
+                .parse::<RetrievalMethod>()
+                .map_err(|e| InputError::new_err(e.to_string()))?,
             matching: MatchOptions {
                 ratio: ratio.unwrap_or(base.matching.ratio),
                 mutual,

@@ -1,0 +1,534 @@
+//! One query, from its source to its pose: a [`Session`] owns the localizer of a shared map,
+//! where the queries' features come from ([`QuerySource`]: extracted from images with the
+//! map's model, a features file, a COLMAP database, or handed in), the checks that map and
+//! features fit, and a sequence's tracking (the pose prior, and the global descriptor
+//! computed late when tracking is lost). The CLI, the Python package and the C ABI all
+//! localize through it; [`LocalizeOptions::validate`] is the one home of the options' rules.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! use sfpmap::format::Map;
+//! use sfpmap::geometry::Camera;
+//! use sfpmap::session::{QuerySource, Session};
+//! use std::sync::Arc;
+//!
+//! let map = Arc::new(Map::open("south-building.sfpm")?);
+//! let session = Session::builder(map, "south-building.sfpm")
+//!     .source(QuerySource::Database("queries.db".into()))
+//!     .build(&sfpmap::progress::Silent)?;
+//! let camera = Camera::parse("SIMPLE_RADIAL 3072 2304 2559.81 1536 1152 -0.0204")?;
+//! let found = session.localize("P1180141.JPG", &camera)?;
+//! println!("{:?}", found.pose());
+//! # Ok(())
+//! # }
+//! ```
+
+mod source;
+
+pub use source::{QueryReader, QuerySource};
+
+use crate::format::{Error as FormatError, Map};
+use crate::geometry::Camera;
+use crate::localize::{
+    FeatureModel, Localization, LocalizeError, LocalizeOptions, Localizer, MotionModel,
+    QueryFailure, QueryFeatures, SkippedLevel,
+};
+use crate::progress::Reporter;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+
+self_cell::self_cell!(
+    /// The map and the localizer that borrows it, owned together: a session lives as long
+    /// as it likes, and the map as long as any session over it.
+    struct Prepared {
+        owner: Arc<Map<'static>>,
+        #[not_covariant]
+        dependent: Localizer,
+    }
+);
+
+/// A map prepared for queries, with where their features come from. `Send + Sync`: threads
+/// share one session (a query source that reads a file or runs the extractor takes turns).
+pub struct Session {
+    prepared: Prepared,
+    /// The map as the user named it (a path or a URL), in front of every error, and what
+    /// its queries' features must be.
+    fit: Fit,
+    reader: Mutex<QueryReader>,
+    /// Sequence mode: each query is predicted from the last ones and tracked.
+    tracking: Option<Mutex<MotionModel>>,
+    /// Whether the motion model predicts the next query, for the extraction of frames that
+    /// runs beside the localizing thread ([`Session::extract`]).
+    tracked: AtomicBool,
+}
+
+/// How a [`Session`] is made: [`Session::builder`], then options, a source, and
+/// [`SessionBuilder::build`].
+pub struct SessionBuilder {
+    map: Arc<Map<'static>>,
+    map_name: String,
+    options: Option<LocalizeOptions>,
+    source: QuerySource,
+    sequence: bool,
+    extractor_threads: usize,
+}
+
+impl SessionBuilder {
+    /// The localizer's options; default [`LocalizeOptions::for_map`]. Checked by
+    /// [`LocalizeOptions::validate`] when the session is built.
+    pub fn options(mut self, options: LocalizeOptions) -> Self {
+        self.options = Some(options);
+        self
+    }
+
+    /// Where the queries' features come from; default [`QuerySource::Given`].
+    pub fn source(mut self, source: QuerySource) -> Self {
+        self.source = source;
+        self
+    }
+
+    /// Queries are an ordered sequence (a camera moving): each is localized by guided
+    /// matching around the pose predicted from the last ones (constant velocity), through
+    /// retrieval only when tracking is lost. Queries must then come one at a time, in order.
+    pub fn sequence(mut self, sequence: bool) -> Self {
+        self.sequence = sequence;
+        self
+    }
+
+    /// Threads of the extractor's inference (default 2).
+    pub fn extractor_threads(mut self, threads: usize) -> Self {
+        self.extractor_threads = threads.max(1);
+        self
+    }
+
+    /// Checks the options and that the source fits the map (its model, its descriptors),
+    /// opens the source, and indexes the map's levels. Warnings (a features file's global
+    /// descriptors of another size, another model asked for on purpose) go to `reporter`.
+    pub fn build(self, reporter: &dyn Reporter) -> Result<Session, SessionError> {
+        let SessionBuilder {
+            map,
+            map_name,
+            options,
+            source,
+            sequence,
+            extractor_threads,
+        } = self;
+        let options = options.unwrap_or_else(|| LocalizeOptions::for_map(&map));
+        let fit = Fit::of(&map, map_name);
+        // The options first: a value out of range is refused before any file is opened.
+        options.validate().map_err(|e| SessionError::Localize {
+            map: fit.map_name.clone(),
+            source: LocalizeError::Option(e),
+        })?;
+        let reader = QueryReader::open_for(
+            source,
+            fit.clone(),
+            Some(&map),
+            &options,
+            extractor_threads,
+            reporter,
+        )?;
+        let prepared =
+            Prepared::try_new(map, |map| Localizer::new(map, options)).map_err(|source| {
+                SessionError::Localize {
+                    map: fit.map_name.clone(),
+                    source,
+                }
+            })?;
+        Ok(Session {
+            prepared,
+            fit,
+            reader: Mutex::new(reader),
+            tracking: sequence.then(|| Mutex::new(MotionModel::new())),
+            tracked: AtomicBool::new(false),
+        })
+    }
+}
+
+/// A query's features as its source gave them, and, for a frame extracted without its
+/// global descriptor (the sequence was tracking), the image to compute it from should
+/// tracking be lost.
+pub struct Frame {
+    pub features: QueryFeatures,
+    #[cfg(feature = "onnx")]
+    deferred: Option<Box<crate::extract::image::GrayInput>>,
+}
+
+/// The image a frame deferred its global descriptor for (nothing without the extractor).
+#[cfg(feature = "onnx")]
+type Deferred = crate::extract::image::GrayInput;
+#[cfg(not(feature = "onnx"))]
+type Deferred = std::convert::Infallible;
+
+impl Frame {
+    /// Features handed in.
+    pub fn new(features: QueryFeatures) -> Frame {
+        Frame {
+            features,
+            #[cfg(feature = "onnx")]
+            deferred: None,
+        }
+    }
+
+    fn deferred(&self) -> Option<&Deferred> {
+        #[cfg(feature = "onnx")]
+        return self.deferred.as_deref();
+        #[cfg(not(feature = "onnx"))]
+        None
+    }
+}
+
+/// What the map says its query features must be: the descriptor kind, and the model's hash
+/// where the map records it.
+#[derive(Clone)]
+pub(crate) struct Fit {
+    pub(crate) map_name: String,
+    pub(crate) descriptor: String,
+    pub(crate) model_xxh3: Option<String>,
+}
+
+impl Fit {
+    fn of(map: &Map<'_>, map_name: String) -> Fit {
+        let descriptor = map
+            .metadata()
+            .levels
+            .first()
+            .map(|l| l.descriptor.clone())
+            .unwrap_or_default();
+        let model_xxh3 = map
+            .metadata()
+            .provenance
+            .model
+            .as_ref()
+            .map(|m| m.xxh3.clone())
+            .filter(|h| !h.is_empty());
+        Fit {
+            map_name,
+            descriptor,
+            model_xxh3,
+        }
+    }
+
+    /// Refuses features of another model than the map's: another descriptor kind, or the
+    /// same kind with another hash where both record one (a retrained model exported under
+    /// the same name). `origin` names where the features came from. Features of unknown
+    /// origin (an hloc file, arrays handed in) and maps of other descriptors are taken as
+    /// they are.
+    pub(crate) fn check_model(
+        &self,
+        model: &FeatureModel,
+        origin: &str,
+    ) -> Result<(), SessionError> {
+        let descriptor = &self.descriptor;
+        if !crate::localize::is_sfp_descriptor(descriptor) {
+            return Ok(());
+        }
+        let map = &self.map_name;
+        if model.name != *descriptor {
+            return Err(SessionError::Mismatch(format!(
+                "{origin}: features of model {:?}, but the map {map} holds {descriptor:?} \
+                 descriptors: extract the queries with model {descriptor}",
+                model.name
+            )));
+        }
+        if let (Some(hash), Some(map_hash)) = (&model.xxh3, &self.model_xxh3) {
+            if hash != map_hash {
+                return Err(SessionError::Mismatch(format!(
+                    "{origin}: features of a {descriptor:?} model of hash {hash}, but the map \
+                     {map} was made with one of hash {map_hash}: extract the queries with that \
+                     model"
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Session {
+    /// A session over `map`, which errors call `map_name` (the path or URL it was opened
+    /// from).
+    pub fn builder(map: Arc<Map<'static>>, map_name: impl Into<String>) -> SessionBuilder {
+        SessionBuilder {
+            map,
+            map_name: map_name.into(),
+            options: None,
+            source: QuerySource::Given,
+            sequence: false,
+            extractor_threads: 2,
+        }
+    }
+
+    /// The map.
+    pub fn map(&self) -> &Arc<Map<'static>> {
+        self.prepared.borrow_owner()
+    }
+
+    /// The map's name as errors give it.
+    pub fn map_name(&self) -> &str {
+        &self.fit.map_name
+    }
+
+    /// The options, as validated.
+    pub fn options(&self) -> LocalizeOptions {
+        self.prepared.with_dependent(|_, l| l.options().clone())
+    }
+
+    /// Level ids in matching order (deepest first).
+    pub fn level_order(&self) -> Vec<u16> {
+        self.prepared.with_dependent(|_, l| l.level_order())
+    }
+
+    /// Selected levels that are not matched, and why.
+    pub fn skipped_levels(&self) -> Vec<SkippedLevel> {
+        self.prepared
+            .with_dependent(|_, l| l.skipped_levels().to_vec())
+    }
+
+    /// Whether queries are a sequence ([`SessionBuilder::sequence`]).
+    pub fn is_sequence(&self) -> bool {
+        self.tracking.is_some()
+    }
+
+    /// Whether the sequence predicts the next query's pose (it has localized the last one).
+    pub fn is_tracking(&self) -> bool {
+        self.tracked.load(Ordering::Relaxed)
+    }
+
+    /// Queries extracted without their global descriptor because the sequence was tracking.
+    pub fn global_deferred(&self) -> usize {
+        self.lock_reader().global_deferred()
+    }
+
+    /// The query `name` from the session's source (an image of its folder, an entry of its
+    /// features file or database), localized. A query whose features cannot be had (missing,
+    /// an image that does not decode) is a [`QueryFailure::NoFeatures`], not an error.
+    pub fn localize(&self, name: &str, camera: &Camera) -> Result<Localization, SessionError> {
+        let mut tracking = self.tracking_lock();
+        let tracked = tracking.as_ref().is_some_and(|m| m.predict().is_some());
+        let frame = self.lock_reader().frame(name, tracked)?;
+        match frame {
+            Ok(frame) => {
+                let deferred = frame.deferred();
+                self.localize_tracked(
+                    tracking.as_deref_mut(),
+                    &frame.features,
+                    deferred,
+                    camera,
+                    name,
+                )
+            }
+            Err(reason) => {
+                if let Some(motion) = tracking.as_deref_mut() {
+                    self.update(motion, None);
+                }
+                Ok(Localization::failed(QueryFailure::NoFeatures(reason)))
+            }
+        }
+    }
+
+    /// `features` handed in (the caller's own extractor, or a query of any source),
+    /// localized; `name` names the query in errors. Features that record their model are
+    /// refused for a map of another model.
+    pub fn localize_features(
+        &self,
+        features: &QueryFeatures,
+        camera: &Camera,
+        name: &str,
+    ) -> Result<Localization, SessionError> {
+        if let Some(model) = &features.model {
+            let origin = format!("{}: query {name:?}", self.fit.map_name);
+            self.fit.check_model(model, &origin)?;
+        }
+        let mut tracking = self.tracking_lock();
+        self.localize_tracked(tracking.as_deref_mut(), features, None, camera, name)
+    }
+
+    /// `input` (an image decoded by the caller: an MCAP message, a camera) extracted with
+    /// the session's model. While the sequence tracks, the global descriptor is deferred
+    /// where it costs another inference: [`Session::localize_frame`] computes it only if
+    /// tracking is lost. Extraction takes turns on the one model; callers may decode and
+    /// call this from several threads while another localizes.
+    #[cfg(feature = "onnx")]
+    pub fn extract(&self, input: crate::extract::image::GrayInput) -> Result<Frame, SessionError> {
+        let tracked = self.is_sequence() && self.is_tracking();
+        self.lock_reader().extract(input, tracked)
+    }
+
+    /// The RGB-to-grey weights of the session's model, to prepare an image for
+    /// [`Session::extract`]; `None` when the session does not extract.
+    #[cfg(feature = "onnx")]
+    pub fn gray_weights(&self) -> Option<[f32; 3]> {
+        self.lock_reader().gray_weights()
+    }
+
+    /// A frame from [`Session::extract`] (or [`Frame::new`]), localized; in a sequence, in
+    /// order. `name` names it in errors.
+    pub fn localize_frame(
+        &self,
+        frame: Frame,
+        camera: &Camera,
+        name: &str,
+    ) -> Result<Localization, SessionError> {
+        let mut tracking = self.tracking_lock();
+        let deferred = frame.deferred();
+        self.localize_tracked(
+            tracking.as_deref_mut(),
+            &frame.features,
+            deferred,
+            camera,
+            name,
+        )
+    }
+
+    /// A query of the sequence that has no features (it could not be read or decoded):
+    /// tracking restarts, and the next query goes through retrieval.
+    pub fn reset_tracking(&self) {
+        if let Some(motion) = self.tracking_lock().as_deref_mut() {
+            self.update(motion, None);
+        }
+    }
+
+    /// `features` localized (with the sequence's prior, which it then updates); `deferred`:
+    /// the image to compute the global descriptor from, if it was deferred and tracking is
+    /// lost.
+    fn localize_tracked(
+        &self,
+        motion: Option<&mut MotionModel>,
+        features: &QueryFeatures,
+        deferred: Option<&Deferred>,
+        camera: &Camera,
+        name: &str,
+    ) -> Result<Localization, SessionError> {
+        let prior = motion.as_ref().and_then(|m| m.predict());
+        #[cfg(feature = "onnx")]
+        let mut global = || self.lock_reader().global_of(deferred?);
+        #[cfg(not(feature = "onnx"))]
+        let mut global = || deferred.and(None);
+        let found = self.prepared.with_dependent(|_, localizer| {
+            localizer.localize_with_prior_then_global(features, camera, prior.as_ref(), &mut global)
+        });
+        if let Some(motion) = motion {
+            self.update(motion, found.as_ref().ok().and_then(Localization::pose));
+        }
+        found.map_err(|source| SessionError::Query {
+            map: self.fit.map_name.clone(),
+            query: name.to_string(),
+            source,
+        })
+    }
+
+    fn update(&self, motion: &mut MotionModel, pose: Option<&crate::geometry::Pose>) {
+        motion.update(pose);
+        self.tracked
+            .store(motion.predict().is_some(), Ordering::Relaxed);
+    }
+
+    /// The motion model of a sequence, held for one query so queries run in order (`None`
+    /// outside sequences: queries run in parallel).
+    fn tracking_lock(&self) -> Option<MutexGuard<'_, MotionModel>> {
+        self.tracking
+            .as_ref()
+            .map(|m| m.lock().unwrap_or_else(|p| p.into_inner()))
+    }
+
+    fn lock_reader(&self) -> MutexGuard<'_, QueryReader> {
+        self.reader.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// What stops a session from being made or a query from being run (a query that is merely
+/// not localized is a [`Localization`] with its [`QueryFailure`]). Each names the map, the
+/// file or the query it is about.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum SessionError {
+    /// The localizer cannot be built: an option out of range, a level the map lacks, a map
+    /// without descriptors.
+    Localize { map: String, source: LocalizeError },
+    /// A query's features do not fit the map (dimensions, levels).
+    Query {
+        map: String,
+        query: String,
+        source: LocalizeError,
+    },
+    /// The source does not fit the map: features of another model, a SIFT map asked to
+    /// extract its queries, a model no built-in one matches.
+    Mismatch(String),
+    /// A SIFT map (or one without descriptors) asked to extract its queries with the SFP
+    /// model: its queries' features come from a database or a features file.
+    NotExtractable { map: String, descriptor: String },
+    /// The source is not one this call reads from (a name asked of handed-in features).
+    NoSource(String),
+    /// The map itself (a damaged section while reading it).
+    Map { map: String, source: FormatError },
+    /// A features file or a query list.
+    Input(crate::io::InputError),
+    /// A COLMAP database.
+    #[cfg(feature = "colmap")]
+    Database {
+        path: std::path::PathBuf,
+        source: crate::colmap::Error,
+    },
+    /// The extractor (its model, the runtime, an inference).
+    #[cfg(feature = "onnx")]
+    Extract(crate::extract::ExtractError),
+}
+
+impl std::fmt::Display for SessionError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SessionError::Localize { map, source } => write!(f, "{map}: {source}"),
+            SessionError::Query { map, query, source } => {
+                write!(f, "{map}: query {query:?}: {source}")
+            }
+            SessionError::Mismatch(m) | SessionError::NoSource(m) => f.write_str(m),
+            SessionError::NotExtractable { map, descriptor } if descriptor.is_empty() => {
+                write!(f, "{map}: the map has no descriptors (geometry only)")
+            }
+            SessionError::NotExtractable { map, descriptor } => write!(
+                f,
+                "{map}: a map of {descriptor:?} descriptors, which the SFP extractor does not \
+                 make: its queries' features come from a COLMAP database or a features file"
+            ),
+            SessionError::Map { map, source } => write!(f, "{map}: {source}"),
+            SessionError::Input(e) => e.fmt(f),
+            #[cfg(feature = "colmap")]
+            SessionError::Database { path, source } => write!(f, "{}: {source}", path.display()),
+            #[cfg(feature = "onnx")]
+            SessionError::Extract(e) => e.fmt(f),
+        }
+    }
+}
+
+/// Each variant prints its cause's text as its own (after the map or file it names), so its
+/// `source()` is the cause's own source: a chain printed whole says each thing once.
+impl std::error::Error for SessionError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        use std::error::Error as _;
+        match self {
+            SessionError::Localize { source, .. } | SessionError::Query { source, .. } => {
+                source.source()
+            }
+            SessionError::Map { source, .. } => source.source(),
+            SessionError::Input(e) => e.source(),
+            #[cfg(feature = "colmap")]
+            SessionError::Database { source, .. } => source.source(),
+            #[cfg(feature = "onnx")]
+            SessionError::Extract(e) => e.source(),
+            _ => None,
+        }
+    }
+}
+
+#[cfg(feature = "onnx")]
+impl From<crate::extract::ExtractError> for SessionError {
+    fn from(e: crate::extract::ExtractError) -> Self {
+        SessionError::Extract(e)
+    }
+}
+
+impl From<crate::io::InputError> for SessionError {
+    fn from(e: crate::io::InputError) -> Self {
+        SessionError::Input(e)
+    }
+}

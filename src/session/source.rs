@@ -1,0 +1,447 @@
+//! Where a session's query features come from, opened and checked against the map.
+
+use super::{Fit, Frame, SessionError};
+use crate::format::Map;
+#[cfg(feature = "onnx")]
+use crate::localize::{FeatureModel, RetrievalMethod};
+use crate::localize::{LocalizeOptions, QueryFeatures};
+use crate::progress::Reporter;
+#[cfg(any(feature = "colmap", feature = "onnx"))]
+use std::path::PathBuf;
+
+/// Where a session's query features come from.
+#[derive(Debug, Clone)]
+#[non_exhaustive]
+pub enum QuerySource {
+    /// Handed to each call ([`Session::localize_features`], [`Session::localize_frame`]):
+    /// the caller's own extractor, or features of any origin.
+    Given,
+    /// A COLMAP database holding the queries' keypoints and descriptors (SIFT maps), by
+    /// image name.
+    #[cfg(feature = "colmap")]
+    Database(PathBuf),
+    /// An hloc-style features.h5 (`sfpmap extract`'s, or hloc's), by image name; one that
+    /// records its model (`sfp.model_name`, `sfp.model_xxh3`) must be the map's.
+    #[cfg(feature = "onnx")]
+    FeaturesFile(PathBuf),
+    /// Extracted with an SFP model from the images of `folder`, by name (`None`: images are
+    /// handed to [`Session::extract`], as decoded from an MCAP log). `model`: an ONNX file or
+    /// a built-in model's name; `None`: the built-in model the map was made with.
+    #[cfg(feature = "onnx")]
+    Images {
+        folder: Option<PathBuf>,
+        model: Option<PathBuf>,
+    },
+}
+
+/// A source, opened.
+pub(super) enum Source {
+    Given,
+    #[cfg(feature = "colmap")]
+    Database {
+        db: crate::io::queries::DatabaseFeatures,
+        path: PathBuf,
+    },
+    #[cfg(feature = "onnx")]
+    FeaturesFile(crate::io::features_h5::H5Features),
+    #[cfg(feature = "onnx")]
+    Images {
+        extractor: crate::extract::Extractor,
+        folder: Option<PathBuf>,
+        /// The size of the map's global descriptors ([`GlobalSize::of_map`]), or `Skip` where
+        /// retrieval will not rank by them.
+        ///
+        /// [`GlobalSize::of_map`]: crate::extract::GlobalSize::of_map
+        global: crate::extract::GlobalSize,
+    },
+}
+
+/// A [`QuerySource`], opened and checked against a map: the queries' features by name. A
+/// [`Session`](super::Session) keeps one; a catalog's places share one (their features are
+/// read once and localized in several places).
+pub struct QueryReader {
+    source: Source,
+    fit: Fit,
+    /// Queries extracted without their global descriptor (tracked frames).
+    global_deferred: usize,
+}
+
+impl QueryReader {
+    /// `source` for the queries of `map` (named `map_name` in errors), whose localizer runs
+    /// with `options` (the retrieval they choose decides whether query global descriptors
+    /// are extracted).
+    pub fn open(
+        source: QuerySource,
+        map: &Map<'_>,
+        map_name: &str,
+        options: &LocalizeOptions,
+        extractor_threads: usize,
+        reporter: &dyn Reporter,
+    ) -> Result<QueryReader, SessionError> {
+        let fit = Fit::of(map, map_name.to_string());
+        Self::open_for(source, fit, Some(map), options, extractor_threads, reporter)
+    }
+
+    /// `source` for the queries of a catalog's places, whose descriptors are `descriptor`
+    /// (features files are checked against it; images cannot be extracted for several maps).
+    pub fn for_catalog(
+        source: QuerySource,
+        catalog_name: &str,
+        descriptor: &str,
+        reporter: &dyn Reporter,
+    ) -> Result<QueryReader, SessionError> {
+        let fit = Fit {
+            map_name: catalog_name.to_string(),
+            descriptor: descriptor.to_string(),
+            model_xxh3: None,
+        };
+        let options = LocalizeOptions::default();
+        Self::open_for(source, fit, None, &options, 1, reporter)
+    }
+
+    pub(super) fn open_for(
+        source: QuerySource,
+        fit: Fit,
+        map: Option<&Map<'_>>,
+        options: &LocalizeOptions,
+        extractor_threads: usize,
+        reporter: &dyn Reporter,
+    ) -> Result<QueryReader, SessionError> {
+        let source = Source::open(source, &fit, map, options, extractor_threads, reporter)?;
+        Ok(QueryReader {
+            source,
+            fit,
+            global_deferred: 0,
+        })
+    }
+
+    /// The query `name`'s features, or why it has none (missing, an image that does not
+    /// decode): a failed query, not an error.
+    pub fn read(&mut self, name: &str) -> Result<Result<QueryFeatures, String>, SessionError> {
+        Ok(self.frame(name, false)?.map(|f| f.features))
+    }
+
+    /// Queries extracted without their global descriptor (tracked frames).
+    pub fn global_deferred(&self) -> usize {
+        self.global_deferred
+    }
+}
+
+impl Source {
+    fn open(
+        source: QuerySource,
+        fit: &Fit,
+        map: Option<&Map<'_>>,
+        options: &LocalizeOptions,
+        extractor_threads: usize,
+        reporter: &dyn Reporter,
+    ) -> Result<Source, SessionError> {
+        #[cfg(not(feature = "onnx"))]
+        let _ = (fit, map, options, extractor_threads, reporter);
+        Ok(match source {
+            QuerySource::Given => Source::Given,
+            #[cfg(feature = "colmap")]
+            QuerySource::Database(path) => {
+                let db = crate::io::queries::DatabaseFeatures::open(&path).map_err(|source| {
+                    SessionError::Database {
+                        path: path.clone(),
+                        source,
+                    }
+                })?;
+                Source::Database { db, path }
+            }
+            #[cfg(feature = "onnx")]
+            QuerySource::FeaturesFile(path) => {
+                let h5 = crate::io::features_h5::H5Features::open(&path)?;
+                // An hloc file without these attributes is taken as it is.
+                if let Some(name) = h5.root_string("sfp.model_name")? {
+                    let model = FeatureModel {
+                        name,
+                        xxh3: h5.root_string("sfp.model_xxh3")?,
+                    };
+                    fit.check_model(&model, &path.display().to_string())?;
+                }
+                if let Some(map) = map {
+                    warn_global_size(&h5, &path, map, reporter);
+                }
+                Source::FeaturesFile(h5)
+            }
+            #[cfg(feature = "onnx")]
+            QuerySource::Images { folder, model } => {
+                let Some(map) = map else {
+                    return Err(SessionError::NoSource(format!(
+                        "{}: query features for a catalog's places come from a database or a \
+                         features file, not from images",
+                        fit.map_name
+                    )));
+                };
+                let extractor = extractor(fit, model, extractor_threads, reporter)?;
+                Source::Images {
+                    extractor,
+                    folder,
+                    global: global_size(options, map),
+                }
+            }
+        })
+    }
+}
+
+impl QueryReader {
+    /// The query `name`'s features, or why it has none (a failed query, not an error).
+    /// `tracked`: a sequence's frame with a pose prior, which does not retrieve, so the
+    /// extractor defers the global descriptor where it costs another inference.
+    #[cfg_attr(
+        not(any(feature = "colmap", feature = "onnx")),
+        allow(unreachable_code, unused_variables)
+    )]
+    pub(super) fn frame(
+        &mut self,
+        name: &str,
+        tracked: bool,
+    ) -> Result<Result<Frame, String>, SessionError> {
+        #[cfg(not(feature = "onnx"))]
+        let _ = tracked;
+        let missing = |what: &str| Err(format!("no features for {name:?} ({what})"));
+        let map_name = &self.fit.map_name;
+        let features = match &mut self.source {
+            Source::Given => {
+                return Err(SessionError::NoSource(format!(
+                    "{}: query {name:?}: this session's features are handed in, not read by name",
+                    map_name
+                )))
+            }
+            #[cfg(feature = "colmap")]
+            Source::Database { db, path } => {
+                db.features(name).map_err(|source| SessionError::Database {
+                    path: path.clone(),
+                    source,
+                })?
+            }
+            #[cfg(feature = "onnx")]
+            Source::FeaturesFile(h5) => h5.features(name)?,
+            #[cfg(feature = "onnx")]
+            Source::Images {
+                folder, extractor, ..
+            } => {
+                use crate::extract::ExtractError;
+                let Some(folder) = folder else {
+                    return Err(SessionError::NoSource(format!(
+                        "{}: query {name:?}: this session's images are handed in, not read by name",
+                        map_name
+                    )));
+                };
+                let path = folder.join(name);
+                // A FIFO or folder goes on to `load`, whose regular-file rule names it.
+                if !path.exists() {
+                    return Ok(missing("no such image"));
+                }
+                let weights = extractor.contract().gray_weights;
+                let input = match crate::extract::image::load(&path, weights, None) {
+                    Ok(input) => input,
+                    Err(ExtractError::Image { source, .. }) => {
+                        return Ok(Err(format!("the image does not decode: {source}")))
+                    }
+                    Err(ExtractError::Io { source, .. }) => {
+                        return Ok(Err(format!("the image cannot be read: {source}")))
+                    }
+                    Err(e) => return Err(e.into()),
+                };
+                // One oversized query is a failed query, not an aborted run.
+                if let Some(reason) =
+                    crate::extract::too_large_for_the_network(input.width, input.height)
+                {
+                    return Ok(Err(reason));
+                }
+                return self.extract(input, tracked).map(Ok).map_err(|e| match e {
+                    SessionError::Extract(e) => SessionError::Extract(e.on_image(&path)),
+                    e => e,
+                });
+            }
+        };
+        Ok(match features {
+            Some(features) => Ok(Frame::new(features)),
+            #[cfg(feature = "colmap")]
+            None if matches!(self.source, Source::Database { .. }) => {
+                missing("not in the database")
+            }
+            None => missing("not in the features file"),
+        })
+    }
+
+    /// The RGB-to-grey weights of the extractor's model.
+    #[cfg(feature = "onnx")]
+    pub(super) fn gray_weights(&self) -> Option<[f32; 3]> {
+        match &self.source {
+            Source::Images { extractor, .. } => Some(extractor.contract().gray_weights),
+            _ => None,
+        }
+    }
+
+    /// `input` extracted (see [`Session::extract`](super::Session::extract)).
+    #[cfg(feature = "onnx")]
+    pub(super) fn extract(
+        &mut self,
+        input: crate::extract::image::GrayInput,
+        tracked: bool,
+    ) -> Result<Frame, SessionError> {
+        let map_name = &self.fit.map_name;
+        let Source::Images {
+            extractor, global, ..
+        } = &mut self.source
+        else {
+            return Err(SessionError::NoSource(format!(
+                "{}: this session's features are not extracted from images",
+                map_name
+            )));
+        };
+        let size = global.for_frame(tracked, input.width, input.height);
+        let defer = size != *global;
+        let options = crate::extract::DetectOptions {
+            global: size,
+            ..Default::default()
+        };
+        let f = extractor.extract(&input, &options)?;
+        self.global_deferred += usize::from(defer);
+        Ok(Frame {
+            features: crate::io::queries::sfp_query(&f, extractor),
+            deferred: defer.then(|| Box::new(input)),
+        })
+    }
+
+    /// The global descriptor of `input`, a frame that deferred it and lost tracking; `None`
+    /// when the inference fails (the query then retrieves without it, which it reports).
+    #[cfg(feature = "onnx")]
+    pub(super) fn global_of(
+        &mut self,
+        input: &crate::extract::image::GrayInput,
+    ) -> Option<Vec<f32>> {
+        match &mut self.source {
+            Source::Images {
+                extractor, global, ..
+            } => extractor.global_of(input, *global).ok(),
+            _ => None,
+        }
+    }
+}
+
+/// The size the queries' global descriptors are extracted at: the map's (`global_max_side`),
+/// or none where retrieval will not rank by them (the map stores none, or retrieval is VLAD
+/// or off).
+#[cfg(feature = "onnx")]
+fn global_size(options: &LocalizeOptions, map: &Map<'_>) -> crate::extract::GlobalSize {
+    let ranks_by_global = matches!(
+        options.retrieval,
+        RetrievalMethod::Auto | RetrievalMethod::Global
+    ) && matches!(map.image_global(), Ok(Some(_)));
+    if ranks_by_global {
+        crate::extract::GlobalSize::of_map(map.metadata())
+    } else {
+        crate::extract::GlobalSize::Skip
+    }
+}
+
+/// The SFP extractor (`model`, else the built-in one the map was made with), checked against
+/// the map's descriptors.
+#[cfg(feature = "onnx")]
+fn extractor(
+    fit: &Fit,
+    model: Option<PathBuf>,
+    threads: usize,
+    reporter: &dyn Reporter,
+) -> Result<crate::extract::Extractor, SessionError> {
+    use crate::extract::{builtin_model_names, Extractor, ExtractorOptions};
+    let (map, descriptor) = (&fit.map_name, &fit.descriptor);
+    if descriptor.is_empty() || descriptor == "sift" {
+        return Err(SessionError::NotExtractable {
+            map: map.to_string(),
+            descriptor: descriptor.clone(),
+        });
+    }
+    let extractor = match model {
+        Some(model) => Extractor::new(
+            &ExtractorOptions {
+                model: Some(model),
+                threads,
+            },
+            reporter,
+        )?,
+        // The built-in model the map was made with (never a file).
+        None => match Extractor::builtin(descriptor, threads, reporter) {
+            Some(extractor) => extractor?,
+            None => {
+                return Err(SessionError::Mismatch(format!(
+                    "{map}: the map's descriptors are {descriptor:?}, which no built-in model \
+                     makes (built in: {}): pass its model file",
+                    builtin_model_names()
+                )))
+            }
+        },
+    };
+    // A built-in model (by default, or asked for by name) of the map's name but other weights
+    // than the map's (a retrained model exported under the same name): the map's descriptors
+    // would not match the queries'. An explicit file is the user's choice.
+    let builtin = extractor.model().name.ends_with("(embedded)");
+    if let (true, Some(made)) = (builtin, &fit.model_xxh3) {
+        if *made != extractor.model().xxh3 && extractor.contract().model_name == *descriptor {
+            return Err(SessionError::Mismatch(format!(
+                "{map}: the map was made with a {descriptor:?} model of hash {made}, not the \
+                 built-in one ({}): pass that model's file",
+                extractor.model().xxh3
+            )));
+        }
+    }
+    // Only an explicit model can be another one (without it, the map's own runs): that is
+    // asked for on purpose (e.g. a faster student of the map's model), so it runs, said once.
+    if extractor.contract().model_name != *descriptor {
+        reporter.warn(&format!(
+            "{map}: the map's descriptors are {descriptor:?} but the model is {:?}: localizing \
+             with another model's descriptors, as asked",
+            extractor.contract().model_name
+        ));
+    }
+    Ok(extractor)
+}
+
+/// Warns when the file's global descriptors were computed at another image size than the
+/// map's (`sfp.global_max_side` against metadata `global_max_side`): retrieval by them then
+/// compares unlike descriptors. An `sfpmap extract` file without the attribute (written before
+/// it) computed them at the image's own size; an hloc file (no `sfp.model_name`) is taken as
+/// it is, and so is any file for a map without global descriptors.
+#[cfg(feature = "onnx")]
+fn warn_global_size(
+    h5: &crate::io::features_h5::H5Features,
+    path: &std::path::Path,
+    map: &Map<'_>,
+    reporter: &dyn Reporter,
+) {
+    use crate::extract::GlobalSize;
+    if !matches!(map.image_global(), Ok(Some(_))) {
+        return;
+    }
+    let map_size = GlobalSize::of_map(map.metadata());
+    // Only a warning hangs on it: an attribute that is not one string is named, not fatal.
+    let stated = match h5.root_string("sfp.global_max_side") {
+        Ok(Some(side)) => side,
+        Ok(None) if matches!(h5.root_string("sfp.model_name"), Ok(Some(_))) => "0".to_string(),
+        Ok(None) => return,
+        Err(_) => "(not one string)".to_string(),
+    };
+    let file_size = stated
+        .trim()
+        .parse::<u32>()
+        .ok()
+        .map(|side| GlobalSize::from_max_side(Some(side)));
+    if file_size != Some(map_size) {
+        let mut shown: String = stated.chars().take(24).collect();
+        if shown.len() < stated.len() {
+            shown.push('…');
+        }
+        let map_side = map_size.side();
+        reporter.warn(&format!(
+            "{}: global descriptors computed at max side {shown:?}, the map's at \"{map_side}\" \
+             (0: the image's own size): retrieval by them will be poorer; extract with \
+             --global-max-side {map_side}",
+            path.display()
+        ));
+    }
+}
