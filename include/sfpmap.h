@@ -3,14 +3,21 @@
  *
  * Build: cargo build --release --features capi  ->  target/release/libsfpmap.so
  *
- * Handles. sfpm_open gives an SfpmMap, a plain integer (never 0). sfpm_close invalidates it;
- * any later call with it, including a second close, returns SFPM_ERR_INVALID_HANDLE rather
- * than touching freed memory.
+ * Handles. sfpm_open gives an SfpmMap, sfpm_session_open an SfpmSession: plain integers
+ * (never 0, and never one of the other kind). sfpm_close / sfpm_session_close invalidate
+ * them; any later call with one, including a second close, returns SFPM_ERR_INVALID_HANDLE
+ * rather than touching freed memory. A session holds its map: it keeps working after
+ * sfpm_close of the map, until sfpm_session_close.
+ *
+ * Localizing. sfpm_localize localizes one query with the map's own settings (levels and the
+ * short block chosen per call). A session (sfpm_session_open) takes every setting, checked
+ * when it opens (SFPM_ERR_ARGUMENT and a message like "ratio 1.5: a ratio in (0, 1]"), and a
+ * sequence mode that tracks a moving camera from one sfpm_session_localize to the next.
  *
  * Errors. Every function returns an int32_t status: SFPM_OK (0), SFPM_NOT_LOCALIZED (1, from
- * sfpm_localize only) or a negative SFPM_ERR_* code. NULL pointers and bad arguments are
- * errors, never crashes; internal panics are caught (SFPM_ERR_PANIC). sfpm_last_error()
- * describes the last failure on the calling thread.
+ * sfpm_localize and sfpm_session_localize only) or a negative SFPM_ERR_* code. NULL pointers
+ * and bad arguments are errors, never crashes; internal panics are caught (SFPM_ERR_PANIC).
+ * sfpm_last_error() describes the last failure on the calling thread.
  *
  * Ownership. Arrays returned through `const T**` out-parameters are owned by the map handle
  * and are zero-copy views of the memory-mapped file (or, for zstd-compressed sections, of a
@@ -19,7 +26,8 @@
  * during the call. Descriptors are IEEE 754 binary16 bit patterns (uint16_t).
  *
  * Threads. All functions are thread-safe: one handle may be used from any number of threads
- * at once, including sfpm_localize. Only closing is the caller's to order: close a handle
+ * at once, including sfpm_localize and sfpm_session_localize (a sequence's queries take
+ * turns, in the order of the calls). Only closing is the caller's to order: close a handle
  * after the other threads are done with it and with the pointers it gave them.
  */
 
@@ -32,7 +40,8 @@
 #include <stdint.h>
 
 // The status every function returns: `SFPM_OK`, `SFPM_NOT_LOCALIZED` (from `sfpm_localize`
-// only) or a negative error; `sfpm_last_error` gives the message of the last error.
+// and `sfpm_session_localize` only) or a negative error; `sfpm_last_error` gives the message
+// of the last error.
 enum SfpmStatus
 #if defined(__cplusplus) || __STDC_VERSION__ >= 202311L
   : int32_t
@@ -40,13 +49,16 @@ enum SfpmStatus
  {
   // Success.
   SFPM_OK = 0,
-  // `sfpm_localize` ran but found no pose (too few inliers, ...); `sfpm_last_error` says why.
+  // `sfpm_localize` or `sfpm_session_localize` ran but found no pose (too few inliers,
+  // ...); `sfpm_last_error` says why.
   SFPM_NOT_LOCALIZED = 1,
   // A required pointer argument was NULL.
   SFPM_ERR_NULL = -1,
-  // The handle is 0, was closed, or never came from `sfpm_open`.
+  // The handle is 0, was closed, never came from `sfpm_open` (`sfpm_session_open` for a
+  // session), or is a handle of the other kind.
   SFPM_ERR_INVALID_HANDLE = -2,
-  // An argument is out of range or malformed (index past the end, bad camera, not UTF-8, ...).
+  // An argument is out of range or malformed (index past the end, bad camera, not UTF-8,
+  // an option out of its range, ...).
   SFPM_ERR_ARGUMENT = -3,
   // The file could not be read.
   SFPM_ERR_IO = -4,
@@ -121,7 +133,8 @@ typedef struct SfpmCamera {
 
 // Localizer settings; pass NULL to `sfpm_localize` for the defaults (all levels, full
 // descriptors). Everything else is the map's own setting, as `sfpmap localize` uses it:
-// Lowe's ratio is 0.95 on SFP maps and 0.9 on SIFT maps (`LocalizeOptions::for_map`).
+// Lowe's ratio is 0.95 on SFP maps and 0.9 on SIFT maps (`LocalizeOptions::for_map`). A
+// session (`SfpmSessionOptions`) sets the others too.
 typedef struct SfpmLocalizeOptions {
   // Levels to match (`n_levels` ids); NULL or `n_levels == 0` means every level of the map.
   const uint16_t *levels;
@@ -139,6 +152,50 @@ typedef struct SfpmLocalization {
   // Tentative matches the estimate was drawn from.
   uint64_t matches;
 } SfpmLocalization;
+
+// Every setting of a session (`sfpm_session_open`). Values are taken as they are, with no
+// "0 means default": start from `sfpm_session_options_default`, which fills in the map's
+// own settings (those `sfpm_localize` and `sfpmap localize` use), and change what you need.
+// A value out of its range is refused by `sfpm_session_open` with `SFPM_ERR_ARGUMENT` and
+// the library's message in `sfpm_last_error`, e.g. "ratio 1.5: a ratio in (0, 1]" (the
+// same text the CLI and the Python package give).
+typedef struct SfpmSessionOptions {
+  // Levels to match (`n_levels` ids, read during `sfpm_session_open` only); NULL or
+  // `n_levels == 0` means every level of the map.
+  const uint16_t *levels;
+  size_t n_levels;
+  // Non-zero: match with the `short` descriptor block only (faster, coarser).
+  uint8_t short_only;
+  // Database images retrieval keeps (1 to 100000).
+  size_t top_k;
+  // Lowe's ratio, in (0, 1]: 1 turns the test off. The map's default is 0.95 on SFP maps
+  // and 0.9 on SIFT maps.
+  float ratio;
+  // Matches below this cosine similarity are dropped, in [-1, 1].
+  float min_similarity;
+  // Non-zero: keep mutual nearest neighbours only.
+  uint8_t mutual;
+  // Coarse RANSAC threshold in pixels (finite, > 0).
+  double coarse_error_px;
+  // Gate radius of guided matching around projected points in pixels (finite, > 0).
+  double gate_px;
+  // Ratio test among the gated candidates, in (0, 1].
+  float gate_ratio;
+  // Final RANSAC threshold in pixels (finite, > 0).
+  double fine_error_px;
+  // Fewer final inliers is "not localized" (4 to 1000000).
+  size_t min_inliers;
+  // Non-zero: the queries are an ordered sequence (a moving camera). Each is localized by
+  // guided matching around the pose predicted from the last ones (the tracking path) and
+  // through retrieval only when tracking is lost; queries then run one at a time, in the
+  // order of the calls. Needs a map with images and visibility to track.
+  uint8_t sequence;
+} SfpmSessionOptions;
+
+// An open localization session (`sfpm_session_open`): a map prepared for queries with a
+// fixed set of options, and a sequence's tracking. A plain integer like `SfpmMap`, never 0,
+// never equal to a map handle; a handle used after `sfpm_session_close` is detected.
+typedef uint64_t SfpmSession;
 
 #ifdef __cplusplus
 extern "C" {
@@ -160,12 +217,13 @@ const char *sfpm_last_error(void);
 // `path` must be a NUL-terminated string and `out` writable, or NULL (an error).
 SfpmStatus sfpm_open(const char *path, SfpmMap *out);
 
-// Closes a map: unmaps it and frees what the handle lent out. Every pointer obtained from
-// this handle becomes invalid; the handle itself becomes invalid, and using it again
-// (including a second close) returns `SFPM_ERR_INVALID_HANDLE`. A call running on another
-// thread with the same handle finishes safely first (the map is freed after it), but the
-// pointers it returns are dangling once close has returned: do not close a map other threads
-// still read.
+// Closes a map: frees what the handle lent out, and unmaps the file unless a session still
+// holds it. Every pointer obtained from this handle becomes invalid; the handle itself
+// becomes invalid, and using it again (including a second close) returns
+// `SFPM_ERR_INVALID_HANDLE`. Sessions opened on the map (`sfpm_session_open`) keep working:
+// each holds the map until `sfpm_session_close`. A call running on another thread with the
+// same handle finishes safely first (the map is freed after it), but the pointers it returns
+// are dangling once close has returned: do not close a map other threads still read.
 SfpmStatus sfpm_close(SfpmMap map);
 
 // Number of levels in the map.
@@ -308,7 +366,8 @@ SfpmStatus sfpm_visibility(SfpmMap map,
 // pose was found (reason in `sfpm_last_error`; `*out` holds zeros and the match count), or
 // an error code. The first call for a given set of options prepares the levels (decodes
 // descriptors to f32, noticeable on a large map); later calls reuse that until close.
-// Thread-safe: any number of threads may localize with the same handle at once.
+// Thread-safe: any number of threads may localize with the same handle at once. For the
+// other options, or a sequence's tracking, open a session (`sfpm_session_open`).
 //
 // # Safety
 // `keypoints` must be valid for `2 × n` doubles, `descriptors` for `n × dim` floats (both
@@ -322,6 +381,70 @@ SfpmStatus sfpm_localize(SfpmMap map,
                          const struct SfpmCamera *camera,
                          const struct SfpmLocalizeOptions *options,
                          struct SfpmLocalization *out);
+
+// Writes the map's own settings to `*out`: every level, full descriptors, and the values
+// `sfpm_localize` and `sfpmap localize` use (Lowe's ratio 0.95 on SFP maps, 0.9 on SIFT
+// maps), not a sequence. Start a session's options from these and change what you need.
+//
+// # Safety
+// `out` must be writable or NULL (an error).
+SfpmStatus sfpm_session_options_default(SfpmMap map, struct SfpmSessionOptions *out);
+
+// Opens a session on `map`: the localizer prepared with `options` (NULL: the map's own
+// settings, as `sfpm_session_options_default` gives them), its handle written to `*out`.
+// Options out of range are refused (`SFPM_ERR_ARGUMENT`, and `sfpm_last_error` names the
+// option, e.g. "ratio 1.5: a ratio in (0, 1]"), as are levels the map lacks
+// (`SFPM_ERR_NO_SUCH_LEVEL`). Opening prepares the levels (decodes descriptors to f32,
+// noticeable on a large map).
+//
+// The session holds the map: closing the map handle first is allowed, and the session goes
+// on working until `sfpm_session_close` (the file is unmapped when both are closed). Close
+// every session with `sfpm_session_close`.
+//
+// # Safety
+// `options` must be NULL or point to a valid `SfpmSessionOptions` (its `levels` valid for
+// `n_levels` ids during the call); `out` must be writable or NULL (an error).
+SfpmStatus sfpm_session_open(SfpmMap map,
+                             const struct SfpmSessionOptions *options,
+                             SfpmSession *out);
+
+// Localizes one query image with the session's options: the arguments, results and status
+// of `sfpm_localize`. In a sequence (`SfpmSessionOptions::sequence`), each call is the next
+// frame: it is localized around the pose predicted from the last ones when the session is
+// tracking, through retrieval otherwise, and calls run one at a time in the order they are
+// made. `tracked`, when not NULL, receives 1 when the query was localized (or last tried) on
+// the tracking path, 0 when through retrieval. Thread-safe; outside a sequence any number of
+// threads may localize with one session at once.
+//
+// # Safety
+// `keypoints` must be valid for `2 × n` doubles, `descriptors` for `n × dim` floats (both
+// may be NULL when `n == 0`), `camera` must point to a valid `SfpmCamera`, `out` must be
+// writable and `tracked` writable or NULL.
+SfpmStatus sfpm_session_localize(SfpmSession session,
+                                 const double *keypoints,
+                                 const float *descriptors,
+                                 size_t n,
+                                 size_t dim,
+                                 const struct SfpmCamera *camera,
+                                 struct SfpmLocalization *out,
+                                 uint8_t *tracked);
+
+// Writes 1 to `*out` when the session predicts the next query's pose (a sequence that
+// localized its last query), so that the next `sfpm_session_localize` tries the tracking
+// path first; 0 otherwise, and always outside a sequence.
+//
+// # Safety
+// `out` must be writable or NULL (an error).
+SfpmStatus sfpm_session_is_tracking(SfpmSession session, uint8_t *out);
+
+// Forgets a sequence's motion (a frame that could not be read, a cut): the next query goes
+// through retrieval, and tracking resumes from it. Does nothing outside a sequence.
+SfpmStatus sfpm_session_reset_tracking(SfpmSession session);
+
+// Closes a session and releases the map if its handle was closed already. The handle
+// becomes invalid: using it again, including a second close, returns
+// `SFPM_ERR_INVALID_HANDLE`. A call running on another thread with it finishes first.
+SfpmStatus sfpm_session_close(SfpmSession session);
 
 #ifdef __cplusplus
 }  // extern "C"

@@ -1,24 +1,31 @@
 //! The C ABI (feature `capi`): open a map, read its levels, descriptors, points, images and
-//! visibility without copying, and localize one query. `include/sfpmap.h` is generated from
-//! this file by cbindgen (`include/cbindgen.toml`); the doc comments below are the header's.
+//! visibility without copying, and localize queries, one at a time (`sfpm_localize`) or
+//! through a session with every option and a sequence's tracking (`sfpm_session_*`, a
+//! [`Session`] behind a handle). `include/sfpmap.h` is generated from this file by cbindgen
+//! (`include/cbindgen.toml`); the doc comments below are the header's.
 //!
 //! Why handles are integers, not pointers: a freed pointer cannot be told apart from a live
 //! one, so a use after `sfpm_close` would be undefined behaviour. A handle is a slot index
-//! plus a generation counter in a process-wide registry; after close the generation moves on
-//! and every call with the old handle returns `SFPM_ERR_INVALID_HANDLE` (double close too).
+//! plus a generation counter in a process-wide registry (one for maps, one for sessions, told
+//! apart by the handle's top bit); after close the generation moves on and every call with
+//! the old handle returns `SFPM_ERR_INVALID_HANDLE` (double close too).
 //!
 //! Every entry point catches panics (`catch_unwind`) and returns `SFPM_ERR_PANIC` instead of
 //! unwinding into C. All `unsafe` of the crate that is not in the format module lives here:
-//! each block is a dereference of a pointer the C caller passed in (checked non-null first;
-//! its validity and size are the caller's contract, stated per function) or the one lifetime
-//! extension in [`MapHandle::localizer`].
+//! each block is a read of a pointer the C caller passed in or a write through one (checked
+//! non-null first; its validity and size are the caller's contract, stated per function).
+//! Nothing here extends a lifetime: a map handle and its sessions share the map by `Arc`,
+//! and each session owns its localizer beside it.
 
 #![allow(unsafe_code)]
 #![deny(unsafe_op_in_unsafe_fn)]
 
 use crate::format::{Error as FormatError, Images, Map, SectionKind};
 use crate::geometry::Camera;
-use crate::localize::{FeatureSet, LocalizeOptions, Localizer, QueryFeatures};
+use crate::localize::{
+    FeatureSet, Localization, LocalizationPath, LocalizeError, LocalizeOptions, QueryFeatures,
+};
+use crate::session::{Session, SessionError};
 use std::any::Any;
 use std::borrow::Cow;
 use std::cell::RefCell;
@@ -31,21 +38,30 @@ use std::sync::{Arc, Mutex, MutexGuard};
 /// generation), so a handle used after `sfpm_close` is detected, never undefined behaviour.
 pub type SfpmMap = u64;
 
+/// An open localization session (`sfpm_session_open`): a map prepared for queries with a
+/// fixed set of options, and a sequence's tracking. A plain integer like `SfpmMap`, never 0,
+/// never equal to a map handle; a handle used after `sfpm_session_close` is detected.
+pub type SfpmSession = u64;
+
 /// The status every function returns: `SFPM_OK`, `SFPM_NOT_LOCALIZED` (from `sfpm_localize`
-/// only) or a negative error; `sfpm_last_error` gives the message of the last error.
+/// and `sfpm_session_localize` only) or a negative error; `sfpm_last_error` gives the message
+/// of the last error.
 #[repr(i32)]
 #[allow(non_camel_case_types)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SfpmStatus {
     /// Success.
     SFPM_OK = 0,
-    /// `sfpm_localize` ran but found no pose (too few inliers, ...); `sfpm_last_error` says why.
+    /// `sfpm_localize` or `sfpm_session_localize` ran but found no pose (too few inliers,
+    /// ...); `sfpm_last_error` says why.
     SFPM_NOT_LOCALIZED = 1,
     /// A required pointer argument was NULL.
     SFPM_ERR_NULL = -1,
-    /// The handle is 0, was closed, or never came from `sfpm_open`.
+    /// The handle is 0, was closed, never came from `sfpm_open` (`sfpm_session_open` for a
+    /// session), or is a handle of the other kind.
     SFPM_ERR_INVALID_HANDLE = -2,
-    /// An argument is out of range or malformed (index past the end, bad camera, not UTF-8, ...).
+    /// An argument is out of range or malformed (index past the end, bad camera, not UTF-8,
+    /// an option out of its range, ...).
     SFPM_ERR_ARGUMENT = -3,
     /// The file could not be read.
     SFPM_ERR_IO = -4,
@@ -117,7 +133,8 @@ pub struct SfpmCamera {
 
 /// Localizer settings; pass NULL to `sfpm_localize` for the defaults (all levels, full
 /// descriptors). Everything else is the map's own setting, as `sfpmap localize` uses it:
-/// Lowe's ratio is 0.95 on SFP maps and 0.9 on SIFT maps (`LocalizeOptions::for_map`).
+/// Lowe's ratio is 0.95 on SFP maps and 0.9 on SIFT maps (`LocalizeOptions::for_map`). A
+/// session (`SfpmSessionOptions`) sets the others too.
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct SfpmLocalizeOptions {
@@ -126,6 +143,47 @@ pub struct SfpmLocalizeOptions {
     pub n_levels: usize,
     /// Non-zero: match with the `short` descriptor block only (faster, coarser).
     pub short_only: u8,
+}
+
+/// Every setting of a session (`sfpm_session_open`). Values are taken as they are, with no
+/// "0 means default": start from `sfpm_session_options_default`, which fills in the map's
+/// own settings (those `sfpm_localize` and `sfpmap localize` use), and change what you need.
+/// A value out of its range is refused by `sfpm_session_open` with `SFPM_ERR_ARGUMENT` and
+/// the library's message in `sfpm_last_error`, e.g. "ratio 1.5: a ratio in (0, 1]" (the
+/// same text the CLI and the Python package give).
+#[repr(C)]
+#[derive(Debug, Clone, Copy)]
+pub struct SfpmSessionOptions {
+    /// Levels to match (`n_levels` ids, read during `sfpm_session_open` only); NULL or
+    /// `n_levels == 0` means every level of the map.
+    pub levels: *const u16,
+    pub n_levels: usize,
+    /// Non-zero: match with the `short` descriptor block only (faster, coarser).
+    pub short_only: u8,
+    /// Database images retrieval keeps (1 to 100000).
+    pub top_k: usize,
+    /// Lowe's ratio, in (0, 1]: 1 turns the test off. The map's default is 0.95 on SFP maps
+    /// and 0.9 on SIFT maps.
+    pub ratio: f32,
+    /// Matches below this cosine similarity are dropped, in [-1, 1].
+    pub min_similarity: f32,
+    /// Non-zero: keep mutual nearest neighbours only.
+    pub mutual: u8,
+    /// Coarse RANSAC threshold in pixels (finite, > 0).
+    pub coarse_error_px: f64,
+    /// Gate radius of guided matching around projected points in pixels (finite, > 0).
+    pub gate_px: f64,
+    /// Ratio test among the gated candidates, in (0, 1].
+    pub gate_ratio: f32,
+    /// Final RANSAC threshold in pixels (finite, > 0).
+    pub fine_error_px: f64,
+    /// Fewer final inliers is "not localized" (4 to 1000000).
+    pub min_inliers: usize,
+    /// Non-zero: the queries are an ordered sequence (a moving camera). Each is localized by
+    /// guided matching around the pose predicted from the last ones (the tracking path) and
+    /// through retrieval only when tracking is lost; queries then run one at a time, in the
+    /// order of the calls. Needs a map with images and visibility to track.
+    pub sequence: u8,
 }
 
 /// What `sfpm_localize` found.
@@ -207,15 +265,20 @@ fn guard(f: impl FnOnce() -> FfiResult<SfpmStatus>) -> SfpmStatus {
     }
 }
 
-/// Owns the map and whatever the handle lends out. Fields drop in declaration order: the
-/// localizers (which borrow `map`) and pinned copies go before the map itself.
+/// Owns the map and whatever the handle lends out.
 struct MapHandle {
-    localizers: Mutex<Vec<(LocalizerKey, Arc<Localizer<'static>>)>>,
+    /// Shared with the handle's sessions (`sfpm_session_open`), which keep it open after
+    /// `sfpm_close`.
+    map: Arc<Map<'static>>,
+    /// The path it was opened from: the name sessions give it.
+    path: String,
+    /// `sfpm_localize`'s sessions, one per set of options, built on first use (each decodes
+    /// the descriptors it matches to f32 once) and kept until close.
+    sessions: Mutex<Vec<(LocalizerKey, Arc<Session>)>>,
     /// Arrays the map could only give as owned copies (a buffer not aligned for the type),
     /// kept so their pointers stay valid until close. With `sfpm_open` (mmap, page-aligned)
     /// every section is borrowed and this stays empty.
     pinned: Mutex<HashMap<(SectionKind, u16), Box<dyn Any + Send + Sync>>>,
-    map: Box<Map<'static>>,
 }
 
 #[derive(PartialEq, Eq, Default)]
@@ -245,7 +308,7 @@ impl MapHandle {
     ) {
         let (p, n) = match data {
             // Borrowed from the mmap or from the map's decoded-section cache: both live as
-            // long as `map`.
+            // long as `map`, which outlives the handle.
             Cow::Borrowed(s) => (s.as_ptr(), s.len()),
             Cow::Owned(v) => {
                 let mut pinned = lock(&self.pinned);
@@ -263,87 +326,174 @@ impl MapHandle {
         }
     }
 
-    /// The localizer for these options, built on first use (it decodes the descriptors to
-    /// f32 once) and kept until close.
-    fn localizer(&self, key: LocalizerKey) -> FfiResult<Arc<Localizer<'static>>> {
-        let mut cache = lock(&self.localizers);
-        if let Some((_, l)) = cache.iter().find(|(k, _)| *k == key) {
-            return Ok(l.clone());
+    /// `sfpm_localize`'s session for these options: the map's own settings with `key`'s
+    /// levels and block, built on first use and kept until close.
+    fn session(&self, key: LocalizerKey) -> FfiResult<Arc<Session>> {
+        let mut cache = lock(&self.sessions);
+        if let Some((_, s)) = cache.iter().find(|(k, _)| *k == key) {
+            return Ok(s.clone());
         }
-        // SAFETY: `map` is boxed, never moved out of or mutated, and dropped only after
-        // `localizers` (field order) when the last `Arc<MapHandle>` goes. Every
-        // `Arc<Localizer>` handed out is held by a call that also holds the `Arc<MapHandle>`
-        // and drops the localizer first, so no localizer outlives the map it borrows.
-        let map: &'static Map<'static> = unsafe { &*(self.map.as_ref() as *const Map<'static>) };
         let options = LocalizeOptions {
             levels: key.levels.clone(),
             short: key.short,
-            ..LocalizeOptions::for_map(map)
+            ..LocalizeOptions::for_map(&self.map)
         };
-        let localizer = Localizer::new(map, options)
-            .map_err(|e| FfiError::new(localize_error_code(&e), e.to_string()))?;
-        let localizer = Arc::new(localizer);
-        cache.push((key, localizer.clone()));
-        Ok(localizer)
+        let session = Session::builder(self.map.clone(), self.path.clone())
+            .options(options)
+            .build(&crate::progress::Silent)
+            .map_err(session_error)?;
+        let session = Arc::new(session);
+        cache.push((key, session.clone()));
+        Ok(session)
     }
 }
 
-fn localize_error_code(e: &crate::localize::LocalizeError) -> SfpmStatus {
-    use crate::localize::LocalizeError as E;
+fn localize_error_code(e: &LocalizeError) -> SfpmStatus {
+    use LocalizeError as E;
     match e {
         E::Format(FormatError::NoSuchLevel { .. }) => SFPM_ERR_NO_SUCH_LEVEL,
         E::Format(_) => SFPM_ERR_FORMAT,
+        E::Option(_) => SFPM_ERR_ARGUMENT,
         E::NoDescriptors => SFPM_ERR_MISSING,
         _ => SFPM_ERR_LOCALIZE,
     }
 }
 
-struct Slot {
-    generation: u32,
-    handle: Option<Arc<MapHandle>>,
-}
-
-static REGISTRY: Mutex<Vec<Slot>> = Mutex::new(Vec::new());
-
-fn register(handle: MapHandle) -> SfpmMap {
-    let mut slots = lock(&REGISTRY);
-    let index = match slots.iter().position(|s| s.handle.is_none()) {
-        Some(i) => i,
-        None => {
-            slots.push(Slot {
-                generation: 1,
-                handle: None,
-            });
-            slots.len() - 1
+/// A session's error as C sees it: the localizer's own message (an option's "ratio 1.5: a
+/// ratio in (0, 1]", a query's dimension mismatch) without the map's path in front, as
+/// `sfpm_localize` always gave it.
+fn session_error(e: SessionError) -> FfiError {
+    match e {
+        SessionError::Localize { source, .. } | SessionError::Query { source, .. } => {
+            FfiError::new(localize_error_code(&source), source.to_string())
         }
-    };
-    slots[index].handle = Some(Arc::new(handle));
-    (u64::from(slots[index].generation) << 32) | (index as u64 + 1)
-}
-
-fn split(map: SfpmMap) -> Option<(usize, u32)> {
-    let index = (map & 0xffff_ffff).checked_sub(1)? as usize;
-    Some((index, (map >> 32) as u32))
-}
-
-/// The live handle, or `SFPM_ERR_INVALID_HANDLE`. The `Arc` keeps the map alive for the call
-/// even if another thread closes the handle meanwhile.
-fn get(map: SfpmMap) -> FfiResult<Arc<MapHandle>> {
-    let invalid = || {
-        FfiError::new(
-            SFPM_ERR_INVALID_HANDLE,
-            format!("invalid map handle {map:#x} (closed, or not from sfpm_open)"),
-        )
-    };
-    let (index, generation) = split(map).ok_or_else(invalid)?;
-    let slots = lock(&REGISTRY);
-    match slots.get(index) {
-        Some(Slot {
-            generation: g,
-            handle: Some(h),
-        }) if *g == generation => Ok(h.clone()),
-        _ => Err(invalid()),
+        SessionError::Map { source, .. } => source.into(),
+        other => FfiError::new(SFPM_ERR_LOCALIZE, other.to_string()),
     }
+}
+
+struct Slot<T> {
+    generation: u32,
+    value: Option<Arc<T>>,
+}
+
+/// The live handles of one kind. A handle is `kind << 63 | generation << 32 | (slot + 1)`:
+/// never 0, and a map handle is never a session handle.
+struct Registry<T> {
+    slots: Mutex<Vec<Slot<T>>>,
+    /// The handle's top bit.
+    kind: u64,
+    /// "map" or "session", in errors.
+    what: &'static str,
+    /// The function that makes a handle of this kind, in errors.
+    opener: &'static str,
+}
+
+/// Generations run from 1 to this and wrap to 1, so they fit beside the kind bit.
+const MAX_GENERATION: u32 = (1 << 31) - 1;
+
+static MAPS: Registry<MapHandle> = Registry::new(0, "map", "sfpm_open");
+static SESSIONS: Registry<Session> = Registry::new(1, "session", "sfpm_session_open");
+
+impl<T> Registry<T> {
+    const fn new(kind: u64, what: &'static str, opener: &'static str) -> Self {
+        Registry {
+            slots: Mutex::new(Vec::new()),
+            kind,
+            what,
+            opener,
+        }
+    }
+
+    fn register(&self, value: T) -> u64 {
+        let mut slots = lock(&self.slots);
+        let index = match slots.iter().position(|s| s.value.is_none()) {
+            Some(i) => i,
+            None => {
+                slots.push(Slot {
+                    generation: 1,
+                    value: None,
+                });
+                slots.len() - 1
+            }
+        };
+        slots[index].value = Some(Arc::new(value));
+        (self.kind << 63) | (u64::from(slots[index].generation) << 32) | (index as u64 + 1)
+    }
+
+    /// The slot and generation of `handle`, or why it cannot be one of this registry's.
+    fn split(&self, handle: u64) -> FfiResult<(usize, u32)> {
+        let what = self.what;
+        if handle >> 63 != self.kind {
+            let other = if self.kind == 0 { "a session" } else { "a map" };
+            return Err(FfiError::new(
+                SFPM_ERR_INVALID_HANDLE,
+                format!("invalid {what} handle {handle:#x} ({other} handle?)"),
+            ));
+        }
+        let index = (handle & 0xffff_ffff).checked_sub(1).ok_or_else(|| {
+            FfiError::new(
+                SFPM_ERR_INVALID_HANDLE,
+                format!("invalid {what} handle {handle:#x}"),
+            )
+        })?;
+        Ok((index as usize, ((handle >> 32) as u32) & MAX_GENERATION))
+    }
+
+    /// The live value, or `SFPM_ERR_INVALID_HANDLE`. The `Arc` keeps it alive for the call
+    /// even if another thread closes the handle meanwhile.
+    fn get(&self, handle: u64) -> FfiResult<Arc<T>> {
+        let (index, generation) = self.split(handle)?;
+        let slots = lock(&self.slots);
+        match slots.get(index) {
+            Some(Slot {
+                generation: g,
+                value: Some(v),
+            }) if *g == generation => Ok(v.clone()),
+            _ => Err(FfiError::new(
+                SFPM_ERR_INVALID_HANDLE,
+                format!(
+                    "invalid {} handle {handle:#x} (closed, or not from {})",
+                    self.what, self.opener
+                ),
+            )),
+        }
+    }
+
+    /// Ends `handle`: its slot's generation moves on, so it is invalid from now on. The value
+    /// is dropped outside the registry's lock (unmapping may take a moment), once the calls
+    /// still running with it have returned.
+    fn close(&self, handle: u64) -> FfiResult {
+        let (index, generation) = self.split(handle)?;
+        let taken = {
+            let mut slots = lock(&self.slots);
+            match slots.get_mut(index) {
+                Some(slot) if slot.generation == generation && slot.value.is_some() => {
+                    slot.generation = if slot.generation >= MAX_GENERATION {
+                        1
+                    } else {
+                        slot.generation + 1
+                    };
+                    slot.value.take()
+                }
+                _ => None,
+            }
+        };
+        match taken {
+            Some(value) => {
+                drop(value);
+                Ok(())
+            }
+            None => Err(FfiError::new(
+                SFPM_ERR_INVALID_HANDLE,
+                format!("invalid {} handle {handle:#x} (already closed?)", self.what),
+            )),
+        }
+    }
+}
+
+fn get(map: SfpmMap) -> FfiResult<Arc<MapHandle>> {
+    MAPS.get(map)
 }
 
 /// Checks every out pointer of a call before anything is written, so a call that fails for
@@ -471,10 +621,11 @@ pub unsafe extern "C" fn sfpm_open(path: *const c_char, out: *mut SfpmMap) -> Sf
             .to_str()
             .map_err(|_| FfiError::argument("path is not UTF-8"))?;
         let map = Map::open(path)?;
-        let handle = register(MapHandle {
-            localizers: Mutex::new(Vec::new()),
+        let handle = MAPS.register(MapHandle {
+            map: Arc::new(map),
+            path: path.to_string(),
+            sessions: Mutex::new(Vec::new()),
             pinned: Mutex::new(HashMap::new()),
-            map: Box::new(map),
         });
         // SAFETY: checked non-null above; writable per contract.
         unsafe { put(out, handle, "out") }?;
@@ -482,39 +633,18 @@ pub unsafe extern "C" fn sfpm_open(path: *const c_char, out: *mut SfpmMap) -> Sf
     })
 }
 
-/// Closes a map: unmaps it and frees what the handle lent out. Every pointer obtained from
-/// this handle becomes invalid; the handle itself becomes invalid, and using it again
-/// (including a second close) returns `SFPM_ERR_INVALID_HANDLE`. A call running on another
-/// thread with the same handle finishes safely first (the map is freed after it), but the
-/// pointers it returns are dangling once close has returned: do not close a map other threads
-/// still read.
+/// Closes a map: frees what the handle lent out, and unmaps the file unless a session still
+/// holds it. Every pointer obtained from this handle becomes invalid; the handle itself
+/// becomes invalid, and using it again (including a second close) returns
+/// `SFPM_ERR_INVALID_HANDLE`. Sessions opened on the map (`sfpm_session_open`) keep working:
+/// each holds the map until `sfpm_session_close`. A call running on another thread with the
+/// same handle finishes safely first (the map is freed after it), but the pointers it returns
+/// are dangling once close has returned: do not close a map other threads still read.
 #[no_mangle]
 pub extern "C" fn sfpm_close(map: SfpmMap) -> SfpmStatus {
     guard(|| {
-        let (index, generation) = split(map)
-            .ok_or_else(|| FfiError::new(SFPM_ERR_INVALID_HANDLE, "invalid map handle 0"))?;
-        let taken = {
-            let mut slots = lock(&REGISTRY);
-            match slots.get_mut(index) {
-                Some(slot) if slot.generation == generation && slot.handle.is_some() => {
-                    // Skip 0 on wrap-around so a handle is never 0.
-                    slot.generation = slot.generation.checked_add(1).unwrap_or(1);
-                    slot.handle.take()
-                }
-                _ => None,
-            }
-        };
-        match taken {
-            // Dropped outside the registry lock: unmapping may take a moment.
-            Some(handle) => {
-                drop(handle);
-                Ok(SFPM_OK)
-            }
-            None => Err(FfiError::new(
-                SFPM_ERR_INVALID_HANDLE,
-                format!("invalid map handle {map:#x} (already closed?)"),
-            )),
-        }
+        MAPS.close(map)?;
+        Ok(SFPM_OK)
     })
 }
 
@@ -927,6 +1057,119 @@ pub unsafe extern "C" fn sfpm_visibility(
     })
 }
 
+/// A query as the caller passed it: `2n` keypoint coordinates, `n × dim` descriptor values
+/// and the camera, checked.
+struct QueryInput<'a> {
+    xy: &'a [f64],
+    desc: &'a [f32],
+    dim: usize,
+    camera: Camera,
+}
+
+/// Reads the query arguments of `sfpm_localize` and `sfpm_session_localize`.
+///
+/// # Safety
+/// `keypoints` must be valid for `2 × n` doubles and `descriptors` for `n × dim` floats for
+/// the call (both may be NULL when `n == 0`); `camera` must be NULL (an error) or point to a
+/// valid `SfpmCamera`.
+unsafe fn read_query<'a>(
+    keypoints: *const f64,
+    descriptors: *const f32,
+    n: usize,
+    dim: usize,
+    camera: *const SfpmCamera,
+) -> FfiResult<QueryInput<'a>> {
+    non_null(&[(camera.is_null(), "camera")])?;
+    if dim == 0 {
+        return Err(FfiError::argument("dim is 0"));
+    }
+    let n2 = n
+        .checked_mul(2)
+        .ok_or_else(|| FfiError::argument("n too large"))?;
+    let nd = n
+        .checked_mul(dim)
+        .ok_or_else(|| FfiError::argument("n × dim too large"))?;
+    // SAFETY: per contract: `2n` doubles.
+    let xy = unsafe { input(keypoints, n2, "keypoints")? };
+    // SAFETY: per contract: `n × dim` floats.
+    let desc = unsafe { input(descriptors, nd, "descriptors")? };
+    // SAFETY: non-null (checked), points to a valid SfpmCamera per contract.
+    let cam = unsafe { &*camera };
+    non_null(&[(cam.model.is_null(), "camera.model")])?;
+    // SAFETY: non-null, NUL-terminated per contract.
+    let model = unsafe { CStr::from_ptr(cam.model) }
+        .to_str()
+        .map_err(|_| FfiError::argument("camera.model is not UTF-8"))?;
+    // SAFETY: per contract: `n_params` doubles.
+    let params = unsafe { input(cam.params, cam.n_params, "camera.params")? };
+    let too_large = |what| FfiError::argument(format!("camera.{what} is above {}", u32::MAX));
+    let width = u32::try_from(cam.width).map_err(|_| too_large("width"))?;
+    let height = u32::try_from(cam.height).map_err(|_| too_large("height"))?;
+    let camera = Camera::from_model_name(model, width, height, params)
+        .map_err(|e| FfiError::argument(format!("camera: {e}")))?;
+    Ok(QueryInput {
+        xy,
+        desc,
+        dim,
+        camera,
+    })
+}
+
+impl QueryInput<'_> {
+    /// The features, one set for every level; NaN and infinity refused.
+    fn features(&self) -> FfiResult<QueryFeatures> {
+        if self.xy.iter().any(|v| !v.is_finite()) || self.desc.iter().any(|v| !v.is_finite()) {
+            return Err(FfiError::argument(
+                "keypoints or descriptors hold NaN or infinity",
+            ));
+        }
+        Ok(QueryFeatures {
+            sets: vec![FeatureSet {
+                level: None,
+                keypoints: self.xy.chunks_exact(2).map(|p| [p[0], p[1]]).collect(),
+                descriptors: self.desc.to_vec(),
+                dim: self.dim,
+            }],
+            global: None,
+            model: None,
+        })
+    }
+}
+
+/// Writes what a query found to `*out` (and its path to `*tracked` if not NULL): `SFPM_OK`
+/// with the pose, or `SFPM_NOT_LOCALIZED` with the reason as the last error.
+///
+/// # Safety
+/// `out` must be NULL (an error) or writable; `tracked` NULL or writable.
+unsafe fn report(
+    found: &Localization,
+    out: *mut SfpmLocalization,
+    tracked: *mut u8,
+) -> FfiResult<SfpmStatus> {
+    let mut value = SfpmLocalization {
+        matches: found.matches as u64,
+        inliers: found.inliers as u64,
+        ..SfpmLocalization::default()
+    };
+    let code = match &found.outcome {
+        Ok(pose) => {
+            value.cam_from_world = pose.to_colmap();
+            SFPM_OK
+        }
+        Err(failure) => {
+            value.inliers = 0;
+            set_last_error(&failure.to_string());
+            SFPM_NOT_LOCALIZED
+        }
+    };
+    // SAFETY: per this function's contract.
+    unsafe {
+        put(out, value, "out")?;
+        put_opt(tracked, u8::from(found.path == LocalizationPath::Tracking));
+    }
+    Ok(code)
+}
+
 /// Localizes one query image against the map.
 ///
 /// `keypoints` holds `n` pixel positions as x, y doubles (COLMAP convention: the top-left
@@ -938,7 +1181,8 @@ pub unsafe extern "C" fn sfpm_visibility(
 /// pose was found (reason in `sfpm_last_error`; `*out` holds zeros and the match count), or
 /// an error code. The first call for a given set of options prepares the levels (decodes
 /// descriptors to f32, noticeable on a large map); later calls reuse that until close.
-/// Thread-safe: any number of threads may localize with the same handle at once.
+/// Thread-safe: any number of threads may localize with the same handle at once. For the
+/// other options, or a sequence's tracking, open a session (`sfpm_session_open`).
 ///
 /// # Safety
 /// `keypoints` must be valid for `2 × n` doubles, `descriptors` for `n × dim` floats (both
@@ -958,85 +1202,207 @@ pub unsafe extern "C" fn sfpm_localize(
     guard(|| {
         let h = get(map)?;
         non_null(&[(out.is_null(), "out"), (camera.is_null(), "camera")])?;
-        if dim == 0 {
-            return Err(FfiError::argument("dim is 0"));
-        }
-        let n2 = n
-            .checked_mul(2)
-            .ok_or_else(|| FfiError::argument("n too large"))?;
-        let nd = n
-            .checked_mul(dim)
-            .ok_or_else(|| FfiError::argument("n × dim too large"))?;
-        // SAFETY: per contract: `2n` doubles.
-        let xy = unsafe { input(keypoints, n2, "keypoints")? };
-        // SAFETY: per contract: `n × dim` floats.
-        let desc = unsafe { input(descriptors, nd, "descriptors")? };
-        // SAFETY: non-null (checked), points to a valid SfpmCamera per contract.
-        let cam = unsafe { &*camera };
-        non_null(&[(cam.model.is_null(), "camera.model")])?;
-        // SAFETY: non-null, NUL-terminated per contract.
-        let model = unsafe { CStr::from_ptr(cam.model) }
-            .to_str()
-            .map_err(|_| FfiError::argument("camera.model is not UTF-8"))?;
-        // SAFETY: per contract: `n_params` doubles.
-        let params = unsafe { input(cam.params, cam.n_params, "camera.params")? };
-        let too_large = |what| FfiError::argument(format!("camera.{what} is above {}", u32::MAX));
-        let width = u32::try_from(cam.width).map_err(|_| too_large("width"))?;
-        let height = u32::try_from(cam.height).map_err(|_| too_large("height"))?;
-        let camera = Camera::from_model_name(model, width, height, params)
-            .map_err(|e| FfiError::argument(format!("camera: {e}")))?;
+        // SAFETY: the arrays and the camera per this function's contract.
+        let query = unsafe { read_query(keypoints, descriptors, n, dim, camera)? };
         let key = if options.is_null() {
             LocalizerKey::default()
         } else {
             // SAFETY: non-null, points to a valid SfpmLocalizeOptions per contract.
             let o = unsafe { &*options };
-            // SAFETY: per contract: `n_levels` ids (NULL allowed when 0).
-            let levels = unsafe { input(o.levels, o.n_levels, "options.levels")? };
-            let mut levels = levels.to_vec();
-            levels.sort_unstable();
-            levels.dedup();
             LocalizerKey {
-                levels,
+                // SAFETY: per contract: `n_levels` ids (NULL allowed when 0).
+                levels: unsafe { read_levels(o.levels, o.n_levels)? },
                 short: o.short_only != 0,
             }
         };
-        if xy.iter().any(|v| !v.is_finite()) || desc.iter().any(|v| !v.is_finite()) {
-            return Err(FfiError::argument(
-                "keypoints or descriptors hold NaN or infinity",
-            ));
-        }
-        let query = QueryFeatures {
-            sets: vec![FeatureSet {
-                level: None,
-                keypoints: xy.chunks_exact(2).map(|p| [p[0], p[1]]).collect(),
-                descriptors: desc.to_vec(),
-                dim,
-            }],
-            global: None,
-        };
-        let localizer = h.localizer(key)?;
-        let result = localizer
-            .localize(&query, &camera)
-            .map_err(|e| FfiError::new(localize_error_code(&e), e.to_string()))?;
-        let mut found = SfpmLocalization {
-            matches: result.matches as u64,
-            inliers: result.inliers as u64,
-            ..SfpmLocalization::default()
-        };
-        let code = match &result.outcome {
-            Ok(pose) => {
-                found.cam_from_world = pose.to_colmap();
-                SFPM_OK
-            }
-            Err(failure) => {
-                found.inliers = 0;
-                set_last_error(&failure.to_string());
-                SFPM_NOT_LOCALIZED
-            }
-        };
+        let features = query.features()?;
+        let session = h.session(key)?;
+        let found = session
+            .localize_features(&features, &query.camera, "query")
+            .map_err(session_error)?;
         // SAFETY: checked non-null; writable per contract.
-        unsafe { put(out, found, "out") }?;
-        Ok(code)
+        unsafe { report(&found, out, std::ptr::null_mut()) }
+    })
+}
+
+/// Level ids from a caller's array, ascending, each once.
+///
+/// # Safety
+/// `levels` must be NULL or valid for `n` reads (NULL is allowed when `n == 0`).
+unsafe fn read_levels(levels: *const u16, n: usize) -> FfiResult<Vec<u16>> {
+    // SAFETY: per this function's contract.
+    let mut levels = unsafe { input(levels, n, "options.levels")? }.to_vec();
+    levels.sort_unstable();
+    levels.dedup();
+    Ok(levels)
+}
+
+/// Writes the map's own settings to `*out`: every level, full descriptors, and the values
+/// `sfpm_localize` and `sfpmap localize` use (Lowe's ratio 0.95 on SFP maps, 0.9 on SIFT
+/// maps), not a sequence. Start a session's options from these and change what you need.
+///
+/// # Safety
+/// `out` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_session_options_default(
+    map: SfpmMap,
+    out: *mut SfpmSessionOptions,
+) -> SfpmStatus {
+    guard(|| {
+        non_null(&[(out.is_null(), "out")])?;
+        let h = get(map)?;
+        let o = LocalizeOptions::for_map(&h.map);
+        let value = SfpmSessionOptions {
+            levels: std::ptr::null(),
+            n_levels: 0,
+            short_only: u8::from(o.short),
+            top_k: o.top_k,
+            ratio: o.matching.ratio,
+            min_similarity: o.matching.min_similarity,
+            mutual: u8::from(o.matching.mutual),
+            coarse_error_px: o.coarse_error_px,
+            gate_px: o.gate_px,
+            gate_ratio: o.gate_ratio,
+            fine_error_px: o.fine_error_px,
+            min_inliers: o.min_inliers,
+            sequence: 0,
+        };
+        // SAFETY: checked non-null above; writable per contract.
+        unsafe { put(out, value, "out") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// Opens a session on `map`: the localizer prepared with `options` (NULL: the map's own
+/// settings, as `sfpm_session_options_default` gives them), its handle written to `*out`.
+/// Options out of range are refused (`SFPM_ERR_ARGUMENT`, and `sfpm_last_error` names the
+/// option, e.g. "ratio 1.5: a ratio in (0, 1]"), as are levels the map lacks
+/// (`SFPM_ERR_NO_SUCH_LEVEL`). Opening prepares the levels (decodes descriptors to f32,
+/// noticeable on a large map).
+///
+/// The session holds the map: closing the map handle first is allowed, and the session goes
+/// on working until `sfpm_session_close` (the file is unmapped when both are closed). Close
+/// every session with `sfpm_session_close`.
+///
+/// # Safety
+/// `options` must be NULL or point to a valid `SfpmSessionOptions` (its `levels` valid for
+/// `n_levels` ids during the call); `out` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_session_open(
+    map: SfpmMap,
+    options: *const SfpmSessionOptions,
+    out: *mut SfpmSession,
+) -> SfpmStatus {
+    guard(|| {
+        non_null(&[(out.is_null(), "out")])?;
+        let h = get(map)?;
+        let mut settings = LocalizeOptions::for_map(&h.map);
+        let mut sequence = false;
+        if !options.is_null() {
+            // SAFETY: non-null, points to a valid SfpmSessionOptions per contract.
+            let o = unsafe { &*options };
+            // SAFETY: per contract: `n_levels` ids (NULL allowed when 0).
+            settings.levels = unsafe { read_levels(o.levels, o.n_levels)? };
+            settings.short = o.short_only != 0;
+            settings.top_k = o.top_k;
+            settings.matching.ratio = o.ratio;
+            settings.matching.min_similarity = o.min_similarity;
+            settings.matching.mutual = o.mutual != 0;
+            settings.coarse_error_px = o.coarse_error_px;
+            settings.gate_px = o.gate_px;
+            settings.gate_ratio = o.gate_ratio;
+            settings.fine_error_px = o.fine_error_px;
+            settings.min_inliers = o.min_inliers;
+            sequence = o.sequence != 0;
+        }
+        let session = Session::builder(h.map.clone(), h.path.clone())
+            .options(settings)
+            .sequence(sequence)
+            .build(&crate::progress::Silent)
+            .map_err(session_error)?;
+        let handle = SESSIONS.register(session);
+        // SAFETY: checked non-null above; writable per contract.
+        unsafe { put(out, handle, "out") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// Localizes one query image with the session's options: the arguments, results and status
+/// of `sfpm_localize`. In a sequence (`SfpmSessionOptions::sequence`), each call is the next
+/// frame: it is localized around the pose predicted from the last ones when the session is
+/// tracking, through retrieval otherwise, and calls run one at a time in the order they are
+/// made. `tracked`, when not NULL, receives 1 when the query was localized (or last tried) on
+/// the tracking path, 0 when through retrieval. Thread-safe; outside a sequence any number of
+/// threads may localize with one session at once.
+///
+/// # Safety
+/// `keypoints` must be valid for `2 × n` doubles, `descriptors` for `n × dim` floats (both
+/// may be NULL when `n == 0`), `camera` must point to a valid `SfpmCamera`, `out` must be
+/// writable and `tracked` writable or NULL.
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_session_localize(
+    session: SfpmSession,
+    keypoints: *const f64,
+    descriptors: *const f32,
+    n: usize,
+    dim: usize,
+    camera: *const SfpmCamera,
+    out: *mut SfpmLocalization,
+    tracked: *mut u8,
+) -> SfpmStatus {
+    guard(|| {
+        let s = SESSIONS.get(session)?;
+        non_null(&[(out.is_null(), "out"), (camera.is_null(), "camera")])?;
+        // SAFETY: the arrays and the camera per this function's contract.
+        let query = unsafe { read_query(keypoints, descriptors, n, dim, camera)? };
+        let features = query.features()?;
+        let found = s
+            .localize_features(&features, &query.camera, "query")
+            .map_err(session_error)?;
+        // SAFETY: `out` checked non-null, writable; `tracked` NULL or writable (contract).
+        unsafe { report(&found, out, tracked) }
+    })
+}
+
+/// Writes 1 to `*out` when the session predicts the next query's pose (a sequence that
+/// localized its last query), so that the next `sfpm_session_localize` tries the tracking
+/// path first; 0 otherwise, and always outside a sequence.
+///
+/// # Safety
+/// `out` must be writable or NULL (an error).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_session_is_tracking(
+    session: SfpmSession,
+    out: *mut u8,
+) -> SfpmStatus {
+    guard(|| {
+        non_null(&[(out.is_null(), "out")])?;
+        let s = SESSIONS.get(session)?;
+        let tracking = s.is_sequence() && s.is_tracking();
+        // SAFETY: checked non-null above; writable per contract.
+        unsafe { put(out, u8::from(tracking), "out") }?;
+        Ok(SFPM_OK)
+    })
+}
+
+/// Forgets a sequence's motion (a frame that could not be read, a cut): the next query goes
+/// through retrieval, and tracking resumes from it. Does nothing outside a sequence.
+#[no_mangle]
+pub extern "C" fn sfpm_session_reset_tracking(session: SfpmSession) -> SfpmStatus {
+    guard(|| {
+        SESSIONS.get(session)?.reset_tracking();
+        Ok(SFPM_OK)
+    })
+}
+
+/// Closes a session and releases the map if its handle was closed already. The handle
+/// becomes invalid: using it again, including a second close, returns
+/// `SFPM_ERR_INVALID_HANDLE`. A call running on another thread with it finishes first.
+#[no_mangle]
+pub extern "C" fn sfpm_session_close(session: SfpmSession) -> SfpmStatus {
+    guard(|| {
+        SESSIONS.close(session)?;
+        Ok(SFPM_OK)
     })
 }
 

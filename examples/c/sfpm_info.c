@@ -1,8 +1,10 @@
 /*
  * sfpm_info: prints what a map holds through the sfpmap C API, one fact per line
  * ("key value ..."), then shows that bad input is reported, never a crash: a camera model
- * that does not exist, a query whose descriptor dimension does not fit level 0, and a camera
- * wider than the localizer takes.
+ * that does not exist, a query whose descriptor dimension does not fit level 0, a camera
+ * wider than the localizer takes, and a session whose Lowe's ratio is out of range. A
+ * session (the map's settings, level 0, a sequence) then runs the same query, before and
+ * after the map handle is closed: the session holds the map.
  *
  *   cargo build --release --features capi
  *   cc -std=c11 -Wall -Wextra -Iinclude examples/c/sfpm_info.c -Ltarget/release -lsfpmap \
@@ -150,8 +152,33 @@ int main(int argc, char **argv) {
   printf("too_wide_camera %d\n",
          (int)sfpm_localize(map, keypoint, descriptor, 1, 4, &too_wide, &options, &found));
 
+  /* A session: every setting, starting from the map's own, checked when it opens. */
+  SfpmSessionOptions session_options;
+  CHECK(sfpm_session_options_default(map, &session_options));
+  printf("session_defaults ratio %.9g top_k %zu min_inliers %zu\n", (double)session_options.ratio,
+         session_options.top_k, session_options.min_inliers);
+  SfpmSessionOptions bad_ratio = session_options;
+  bad_ratio.ratio = 1.5f;
+  SfpmSession session = 0;
+  status = sfpm_session_open(map, &bad_ratio, &session);
+  printf("session_bad_ratio %d %s\n", (int)status, sfpm_last_error());
+
+  session_options.levels = &level0;
+  session_options.n_levels = 1;
+  session_options.sequence = 1;
+  CHECK(sfpm_session_open(map, &session_options, &session));
+  uint8_t tracked = 0;
+  status = sfpm_session_localize(session, keypoint, descriptor, 1, 4, &camera, &found, &tracked);
+  printf("session_localize %d\n", (int)status);
+
   CHECK(sfpm_close(map));
   printf("double_close %d\n", (int)sfpm_close(map));
   printf("use_after_close %d\n", (int)sfpm_level_count(map, &n_levels));
+
+  /* The session holds the map: still usable (the same dimension mismatch, -8). */
+  status = sfpm_session_localize(session, keypoint, descriptor, 1, 4, &camera, &found, &tracked);
+  printf("session_after_map_close %d\n", (int)status);
+  CHECK(sfpm_session_close(session));
+  printf("session_double_close %d\n", (int)sfpm_session_close(session));
   return 0;
 }
