@@ -10,6 +10,9 @@
 //! (`docs/src/architecture.md`) says what may use what.
 #![deny(unsafe_code)]
 
+pub use error::{Error, Result};
+
+mod error;
 pub mod format;
 pub mod geometry;
 pub mod input;

@@ -504,7 +504,6 @@ impl std::fmt::Display for SessionError {
 /// `source()` is the cause's own source: a chain printed whole says each thing once.
 impl std::error::Error for SessionError {
     fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        use std::error::Error as _;
         match self {
             SessionError::Localize { source, .. } | SessionError::Query { source, .. } => {
                 source.source()

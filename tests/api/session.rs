@@ -64,12 +64,13 @@ fn options_out_of_range_are_refused_with_one_message_before_any_file_is_opened()
     ];
     for (options, expected) in cases {
         // The database does not exist: the options are refused first.
-        let e = Session::builder(map.clone(), "m.sfpm")
+        let built = Session::builder(map.clone(), "m.sfpm")
             .options(options)
             .source(QuerySource::Database("/nonexistent/queries.db".into()))
-            .build(&Silent)
-            .err()
-            .expect("refused");
+            .build(&Silent);
+        let Err(e) = built else {
+            panic!("{expected}: not refused")
+        };
         assert_eq!(e.to_string(), expected);
     }
 }
@@ -121,10 +122,9 @@ fn features_of_another_model_are_refused_and_unknown_ones_are_taken() {
         name: "sfp-v2".into(),
         xxh3: None,
     });
-    let e = session
-        .localize_features(&q, &s.camera, "q.jpg")
-        .err()
-        .expect("refused");
+    let Err(e) = session.localize_features(&q, &s.camera, "q.jpg") else {
+        panic!("features of another model taken")
+    };
     assert!(matches!(e, SessionError::Mismatch(_)), "{e:?}");
     let text = e.to_string();
     assert!(
@@ -153,7 +153,9 @@ fn a_session_of_handed_in_features_reads_no_query_by_name() {
     let (_dir, map) = map();
     let s = scene();
     let session = build(&map, LocalizeOptions::default()).unwrap();
-    let e = session.localize("q.jpg", &s.camera).err().expect("refused");
+    let Err(e) = session.localize("q.jpg", &s.camera) else {
+        panic!("refused")
+    };
     assert!(matches!(e, SessionError::NoSource(_)), "{e:?}");
     assert!(e.to_string().starts_with("m.sfpm: query \"q.jpg\""), "{e}");
 }
