@@ -26,7 +26,6 @@ pub use retrieval::{RetrievalFallback, RetrievalMethod};
 /// The matching kernels, for the benches that measure them (feature `fuzzing`, which the
 /// crate's tests and benches enable); not part of the API.
 #[cfg(feature = "fuzzing")]
-#[doc(hidden)]
 pub mod internals {
     pub use super::adc::match_pq_descriptors;
     pub use super::kernels::sgemm_abt;
