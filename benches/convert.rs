@@ -19,10 +19,8 @@ use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Through
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use sfpmap::build::{convert, ConvertOptions};
 use sfpmap::colmap::bin::{write_cameras, write_images, write_points3d};
-use sfpmap::colmap::{
-    read_model_bin, Camera, CameraModel, Image, Point2D, Reconstruction, TrackElement,
-};
-use sfpmap::geometry::Pose;
+use sfpmap::colmap::{read_model_bin, Camera, Image, Point2D, Reconstruction, TrackElement};
+use sfpmap::geometry::{CameraModel, Pose};
 use sfpmap::progress::Silent;
 use std::path::{Path, PathBuf};
 

@@ -10,9 +10,9 @@ mod geometry {
 
     use criterion::{BenchmarkId, Criterion};
     use nalgebra::{UnitQuaternion, Vector2, Vector3};
+    use sfpmap::fuzzing::SplitMix64;
     use sfpmap::geometry::{
         estimate_absolute_pose, p3p, refine_pose, Camera, Pose, RansacOptions, RefineOptions,
-        SplitMix64,
     };
 
     struct Scene {

@@ -37,10 +37,10 @@ mod localize {
     use sfpmap::build::pq::Quantiser;
     use sfpmap::format::Pq;
     use sfpmap::format::{slice, CameraInfo, Descriptors, LevelInfo, Map, MapWriter, SliceOptions};
-    use sfpmap::geometry::{Camera, Pose, SplitMix64};
-    use sfpmap::localize::internals::{
-        match_descriptors, match_pq_descriptors, normalise_rows, sgemm_abt,
+    use sfpmap::fuzzing::{
+        match_descriptors, match_pq_descriptors, normalise_rows, sgemm_abt, SplitMix64,
     };
+    use sfpmap::geometry::{Camera, Pose};
     use sfpmap::localize::{FeatureSet, LocalizeOptions, Localizer, MatchOptions, QueryFeatures};
     use std::borrow::Cow;
 

@@ -87,6 +87,7 @@ typedef uint64_t SfpmMap;
 
 // Dimensions and size of one level.
 typedef struct SfpmLevelInfo {
+  // The level id.
   uint16_t level;
   // Dimensions of the full descriptor (`short` + `rest`).
   uint32_t dim_full;
@@ -107,14 +108,23 @@ typedef struct SfpmLevelInfo {
 // permutation; NULL and 0 when the level has no `level_pq_order`, i.e. the identity).
 // Zero-copy for raw sections; valid until `sfpm_close`.
 typedef struct SfpmLevelPq {
+  // Codes per point (`M`).
   uint32_t subspaces;
+  // Centroids per subspace (`K`).
   uint32_t centroids;
+  // Dimensions per subspace.
   uint32_t sub_dims;
+  // `points × subspaces` codes, row-major.
   const uint8_t *codes;
+  // Length of `codes`.
   size_t codes_len;
+  // `subspaces × centroids` rows of `sub_dims` floats.
   const float *codebook;
+  // Length of `codebook`, in floats.
   size_t codebook_len;
+  // The quantised dimensions' order; NULL for the identity.
   const uint16_t *order;
+  // Length of `order` (0 for the identity).
   size_t order_len;
 } SfpmLevelPq;
 
@@ -125,9 +135,11 @@ typedef struct SfpmCamera {
   // Image size in pixels, as `sfpm_camera` gives it. `sfpm_localize` takes sizes up to
   // `UINT32_MAX` and rejects larger ones (`SFPM_ERR_ARGUMENT`).
   uint64_t width;
+  // Image height in pixels (see `width`).
   uint64_t height;
   // `n_params` doubles in COLMAP order for the model.
   const double *params;
+  // Length of `params`.
   size_t n_params;
 } SfpmCamera;
 
@@ -138,6 +150,7 @@ typedef struct SfpmCamera {
 typedef struct SfpmLocalizeOptions {
   // Levels to match (`n_levels` ids); NULL or `n_levels == 0` means every level of the map.
   const uint16_t *levels;
+  // Length of `levels`.
   size_t n_levels;
   // Non-zero: match with the `short` descriptor block only (faster, coarser).
   uint8_t short_only;
@@ -163,6 +176,7 @@ typedef struct SfpmSessionOptions {
   // Levels to match (`n_levels` ids, read during `sfpm_session_open` only); NULL or
   // `n_levels == 0` means every level of the map.
   const uint16_t *levels;
+  // Length of `levels`.
   size_t n_levels;
   // Non-zero: match with the `short` descriptor block only (faster, coarser).
   uint8_t short_only;

@@ -19,11 +19,12 @@ use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 use crate::colmap::{text, Camera, Image, Point2D, Reconstruction, TrackElement};
 use crate::geometry::{CameraModel, Pose};
 
-/// Image size of the demo camera.
+/// Image width of the demo camera, pixels.
 pub const WIDTH: u32 = 640;
+/// Image height of the demo camera, pixels.
 pub const HEIGHT: u32 = 480;
 /// PINHOLE f, f, cx, cy (COLMAP pixel convention).
-pub const FOCAL: f64 = 420.0;
+pub(crate) const FOCAL: f64 = 420.0;
 
 type V3 = Vector3<f64>;
 
@@ -38,7 +39,7 @@ struct Cuboid {
 
 /// A camera at `center` looking at `target`, y down (COLMAP: x right, y down, z forward), as
 /// `cam_from_world` with `qw >= 0`.
-pub fn look_at(center: V3, target: V3) -> Pose {
+pub(crate) fn look_at(center: V3, target: V3) -> Pose {
     let z = (target - center).normalize();
     let x = z.cross(&V3::new(0.0, -1.0, 0.0)).normalize();
     let y = z.cross(&x);
@@ -74,8 +75,11 @@ fn pinhole(width: u32, height: u32, focal: f64) -> Camera {
 #[derive(Debug, Clone)]
 pub struct DemoScene {
     boxes: Vec<Cuboid>,
+    /// The database images: name and `cam_from_world`.
     pub database: Vec<(String, Pose)>,
+    /// The query images: name and true `cam_from_world`.
     pub queries: Vec<(String, Pose)>,
+    /// The 3D points sampled on the surfaces, world coordinates.
     pub points: Vec<V3>,
 }
 

@@ -34,6 +34,9 @@ pub enum Error {
     /// A session: its source, the map/model fit ([`crate::session::SessionError`]).
     #[cfg(feature = "localize")]
     Session(crate::session::SessionError),
+    /// Writing a features file ([`crate::io::features_h5::H5Error`]).
+    #[cfg(feature = "onnx")]
+    FeaturesH5(crate::io::features_h5::H5Error),
     /// An MCAP log ([`crate::io::mcap_io::McapIoError`]).
     #[cfg(feature = "mcap")]
     Mcap(crate::io::mcap_io::McapIoError),
@@ -64,6 +67,8 @@ macro_rules! each_variant {
         $m!(Localize, crate::localize::LocalizeError);
         #[cfg(feature = "localize")]
         $m!(Session, crate::session::SessionError);
+        #[cfg(feature = "onnx")]
+        $m!(FeaturesH5, crate::io::features_h5::H5Error);
         #[cfg(feature = "mcap")]
         $m!(Mcap, crate::io::mcap_io::McapIoError);
         #[cfg(feature = "plot")]
@@ -102,6 +107,8 @@ impl Error {
             Error::Localize(e) => e,
             #[cfg(feature = "localize")]
             Error::Session(e) => e,
+            #[cfg(feature = "onnx")]
+            Error::FeaturesH5(e) => e,
             #[cfg(feature = "mcap")]
             Error::Mcap(e) => e,
             #[cfg(feature = "plot")]

@@ -83,6 +83,7 @@ use SfpmStatus::*;
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default)]
 pub struct SfpmLevelInfo {
+    /// The level id.
     pub level: u16,
     /// Dimensions of the full descriptor (`short` + `rest`).
     pub dim_full: u32,
@@ -105,14 +106,23 @@ pub struct SfpmLevelInfo {
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct SfpmLevelPq {
+    /// Codes per point (`M`).
     pub subspaces: u32,
+    /// Centroids per subspace (`K`).
     pub centroids: u32,
+    /// Dimensions per subspace.
     pub sub_dims: u32,
+    /// `points × subspaces` codes, row-major.
     pub codes: *const u8,
+    /// Length of `codes`.
     pub codes_len: usize,
+    /// `subspaces × centroids` rows of `sub_dims` floats.
     pub codebook: *const f32,
+    /// Length of `codebook`, in floats.
     pub codebook_len: usize,
+    /// The quantised dimensions' order; NULL for the identity.
     pub order: *const u16,
+    /// Length of `order` (0 for the identity).
     pub order_len: usize,
 }
 
@@ -125,9 +135,11 @@ pub struct SfpmCamera {
     /// Image size in pixels, as `sfpm_camera` gives it. `sfpm_localize` takes sizes up to
     /// `UINT32_MAX` and rejects larger ones (`SFPM_ERR_ARGUMENT`).
     pub width: u64,
+    /// Image height in pixels (see `width`).
     pub height: u64,
     /// `n_params` doubles in COLMAP order for the model.
     pub params: *const f64,
+    /// Length of `params`.
     pub n_params: usize,
 }
 
@@ -140,6 +152,7 @@ pub struct SfpmCamera {
 pub struct SfpmLocalizeOptions {
     /// Levels to match (`n_levels` ids); NULL or `n_levels == 0` means every level of the map.
     pub levels: *const u16,
+    /// Length of `levels`.
     pub n_levels: usize,
     /// Non-zero: match with the `short` descriptor block only (faster, coarser).
     pub short_only: u8,
@@ -157,6 +170,7 @@ pub struct SfpmSessionOptions {
     /// Levels to match (`n_levels` ids, read during `sfpm_session_open` only); NULL or
     /// `n_levels == 0` means every level of the map.
     pub levels: *const u16,
+    /// Length of `levels`.
     pub n_levels: usize,
     /// Non-zero: match with the `short` descriptor block only (faster, coarser).
     pub short_only: u8,

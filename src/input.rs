@@ -40,7 +40,7 @@ impl From<OpenError> for std::io::Error {
 
 /// What a file is when it is not a regular file (`None` for a regular file): `"a folder"`,
 /// `"a FIFO"`, `"a character device"`, `"a block device"`, `"a socket"`.
-pub fn not_regular(t: &FileType) -> Option<&'static str> {
+pub(crate) fn not_regular(t: &FileType) -> Option<&'static str> {
     if t.is_file() {
         return None;
     }
@@ -75,7 +75,7 @@ fn check(meta: &Metadata) -> Result<(), OpenError> {
 
 /// Checks that `path` is a regular file without opening it (for SQLite, which opens the
 /// file itself).
-pub fn check_regular_path(path: &Path) -> Result<Metadata, OpenError> {
+pub(crate) fn check_regular_path(path: &Path) -> Result<Metadata, OpenError> {
     let meta = std::fs::metadata(path).map_err(OpenError::Io)?;
     check(&meta)?;
     Ok(meta)
@@ -87,7 +87,7 @@ pub fn check_regular_path(path: &Path) -> Result<Metadata, OpenError> {
 /// comes); it is opened with `O_NONBLOCK`, so a path swapped for a FIFO in between cannot
 /// block either (the flag means nothing for a regular file); and the opened file is checked
 /// again (`fstat`), since that is the one that is read.
-pub fn open_regular(path: &Path) -> Result<File, OpenError> {
+pub(crate) fn open_regular(path: &Path) -> Result<File, OpenError> {
     check_regular_path(path)?;
     let mut options = std::fs::OpenOptions::new();
     options.read(true);
@@ -103,7 +103,8 @@ pub fn open_regular(path: &Path) -> Result<File, OpenError> {
 
 /// The whole of `path`, read only if it is a regular file (so a FIFO never blocks and a
 /// device such as `/dev/zero` is never read without end).
-pub fn read_regular(path: &Path) -> Result<Vec<u8>, OpenError> {
+#[cfg(any(feature = "onnx", feature = "colmap-model", feature = "localize"))]
+pub(crate) fn read_regular(path: &Path) -> Result<Vec<u8>, OpenError> {
     use std::io::Read;
     let mut file = open_regular(path)?;
     let len = file.metadata().map_err(OpenError::Io)?.len();
@@ -113,7 +114,8 @@ pub fn read_regular(path: &Path) -> Result<Vec<u8>, OpenError> {
 }
 
 /// [`read_regular`] as UTF-8 text.
-pub fn read_regular_to_string(path: &Path) -> Result<String, OpenError> {
+#[cfg(any(feature = "colmap-model", feature = "localize"))]
+pub(crate) fn read_regular_to_string(path: &Path) -> Result<String, OpenError> {
     String::from_utf8(read_regular(path)?)
         .map_err(|e| OpenError::Io(std::io::Error::new(std::io::ErrorKind::InvalidData, e)))
 }

@@ -39,17 +39,36 @@ const TEMP_NAME_PREFIX_MAX: usize = 160;
 #[non_exhaustive]
 pub enum OutputError {
     /// The output exists and replacing it was not asked for.
-    Exists { path: PathBuf },
-    /// The output is one of the command's inputs (the same file, by device and inode).
-    IsInput { path: PathBuf, input: PathBuf },
-    /// The output exists and is not a regular file; `kind` says what it is.
-    NotRegular { path: PathBuf, kind: &'static str },
-    /// The path names no file (`/`, `..`, empty).
-    NoFileName { path: PathBuf },
-    /// Creating, writing, syncing or renaming failed; `action` says which.
-    Io {
+    Exists {
+        /// The output.
         path: PathBuf,
+    },
+    /// The output is one of the command's inputs (the same file, by device and inode).
+    IsInput {
+        /// The output.
+        path: PathBuf,
+        /// The input it is, as the caller named it.
+        input: PathBuf,
+    },
+    /// The output exists and is not a regular file.
+    NotRegular {
+        /// The output.
+        path: PathBuf,
+        /// What it is (`"a folder"`).
+        kind: &'static str,
+    },
+    /// The path names no file (`/`, `..`, empty).
+    NoFileName {
+        /// The path given.
+        path: PathBuf,
+    },
+    /// Creating, writing, syncing or renaming failed.
+    Io {
+        /// The output.
+        path: PathBuf,
+        /// Which step failed, in words (`"cannot name the temp file"`).
         action: &'static str,
+        /// The operating system's error.
         source: io::Error,
     },
 }

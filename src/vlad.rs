@@ -16,26 +16,26 @@ use crate::vector::{normalise_rows, Nearest};
 
 /// Centroids of the codebook learned by default for a map of up to [`LARGE_MAP_IMAGES`]
 /// images.
-pub const DEFAULT_CLUSTERS: usize = 16;
+pub(crate) const DEFAULT_CLUSTERS: usize = 16;
 /// Leading dimensions of the level basis the codebook covers by default, up to
 /// [`LARGE_MAP_IMAGES`] images.
-pub const DEFAULT_DIMS: usize = 32;
-/// From this many images on, the default codebook is [`LARGE_CLUSTERS`] × [`LARGE_DIMS`]: it
-/// has more images to tell apart. On the 1 M-point street (7,934 images), 16 × 32 ranked the
+pub(crate) const DEFAULT_DIMS: usize = 32;
+/// From this many images on, the default codebook ([`default_shape`]) is 64 clusters × 16
+/// dims, not 16 × 32: it has more images to tell apart. On the 1 M-point street (7,934 images), 16 × 32 ranked the
 /// first image that sees half of a query's view past 5th for 5 of 20 queries (up to 18th),
 /// and 64 × 16 for none (at most 3rd, as 64 × 32 at twice the bytes); its level-2 short map
 /// localized in 16 ms a query instead of 24, the SIFT map in 45 instead of 75. The 100 k
 /// street's 800 images gained nothing from it.
 pub const LARGE_MAP_IMAGES: usize = 2_000;
 /// Centroids of the default codebook from [`LARGE_MAP_IMAGES`] images on.
-pub const LARGE_CLUSTERS: usize = 64;
+pub(crate) const LARGE_CLUSTERS: usize = 64;
 /// Leading dimensions of the default codebook from [`LARGE_MAP_IMAGES`] images on: 64 × 16
 /// values an image, twice the small maps' 16 × 32.
-pub const LARGE_DIMS: usize = 16;
+pub(crate) const LARGE_DIMS: usize = 16;
 
 /// Whether a map of `images` images is large: its retrieval has more images to tell apart
 /// (a larger default codebook, and coarse matching starts from more retrieved images).
-pub fn is_large_map(images: usize) -> bool {
+pub(crate) fn is_large_map(images: usize) -> bool {
     images >= LARGE_MAP_IMAGES
 }
 
@@ -47,13 +47,17 @@ pub fn default_shape(images: usize) -> (usize, usize) {
         (DEFAULT_CLUSTERS, DEFAULT_DIMS)
     }
 }
+
 /// Descriptors k-means sees at most (a seeded sample): enough for 16–64 centroids, and it
 /// bounds training time whatever the map's size.
+#[cfg(feature = "colmap")]
 const MAX_TRAIN: usize = 32_768;
+#[cfg(feature = "colmap")]
 const ITERATIONS: usize = 25;
 
 /// How a codebook is learned and a VLAD made, in words (recorded in the map's metadata).
-pub fn rule() -> String {
+#[cfg(feature = "colmap")]
+pub(crate) fn rule() -> String {
     format!(
         "k-means++ then Lloyd ({ITERATIONS} iterations at most, seeded) on at most {MAX_TRAIN} descriptors (the leading dims of the level basis, renormalised); per image, the residuals of its descriptors to their nearest centroids summed per centroid, each centroid's sum L2-normalised, then the whole"
     )
@@ -98,10 +102,12 @@ impl Codebook {
         Codebook::new(kmeans.train(rows, dims)?, dims)
     }
 
+    /// Centroids.
     pub fn clusters(&self) -> usize {
         self.clusters
     }
 
+    /// Dimensions of each centroid.
     pub fn dims(&self) -> usize {
         self.dims
     }

@@ -12,7 +12,7 @@ mod catalog;
 mod completions;
 #[cfg(feature = "colmap")]
 mod convert;
-#[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
+#[cfg(feature = "demo")]
 mod demo;
 #[cfg(feature = "localize")]
 mod eval;
@@ -57,7 +57,7 @@ pub enum Command {
     Completions(completions::Args),
     #[cfg(feature = "colmap")]
     Convert(convert::Args),
-    #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
+    #[cfg(feature = "demo")]
     Demo(demo::Args),
     #[cfg(feature = "localize")]
     Eval(eval::Args),
@@ -108,7 +108,7 @@ fn run() -> anyhow::Result<ExitCode> {
         Command::Completions(args) => completions::run(args, cli.quiet),
         #[cfg(feature = "colmap")]
         Command::Convert(args) => convert::run(args, cli.quiet),
-        #[cfg(all(feature = "onnx", feature = "colmap", feature = "localize"))]
+        #[cfg(feature = "demo")]
         Command::Demo(args) => demo::run(args, cli.quiet),
         #[cfg(feature = "localize")]
         Command::Eval(args) => eval::run(args, cli.quiet),

@@ -3,7 +3,7 @@
 //! cameras, images, visibility, levels with short/rest/projection, unknown sections, raw or
 //! zstd), then makes absurd but checksum-correct edits to it: numbers in the metadata JSON,
 //! table fields, single bytes. Every format body runs on the result
-//! (`sfpmap::format::fuzzing::all_format_bodies`).
+//! (`sfpmap::fuzzing::all_format_bodies`).
 //!
 //! A crash's input is this target's own encoding; to replay it in `cargo test`, run the
 //! target on it with `SFPMAP_FUZZ_SAVE_MAP=path` set, which writes the map it built, and
@@ -11,10 +11,10 @@
 //! `decode` or `slice`: each folder is replayed through its own body only).
 
 use libfuzzer_sys::arbitrary::{self, Arbitrary};
-use sfpmap::format::fuzzing::{all_format_bodies, fix_checksums, with_metadata};
-use sfpmap::format::{
-    CameraInfo, Codec, Descriptors, Dtype, Header, LevelInfo, MapWriter, RawEntry, SectionKind,
-    ENTRY_LEN, HEADER_LEN, NO_LEVEL,
+use sfpmap::format::{CameraInfo, Codec, Descriptors, Dtype, LevelInfo, MapWriter, SectionKind};
+use sfpmap::fuzzing::{
+    all_format_bodies, fix_checksums, with_metadata, Header, RawEntry, ENTRY_LEN, HEADER_LEN,
+    NO_LEVEL,
 };
 use std::borrow::Cow;
 

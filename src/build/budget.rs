@@ -15,7 +15,7 @@
 //! levels are tried.
 //! Candidates without PQ are sized exactly (encoded in memory); PQ candidates get a lower
 //! bound from their set's short minimal size and are confirmed by encoding when it fits.
-//! Empty levels are not tried alone, nor more than [`MAX_SINGLE_LEVELS`] single levels.
+//! Empty levels are not tried alone, nor more than 16 single levels.
 
 use super::pq::{centroids_for, quantise_levels, slice_quantised, PqOptions, SlicedMap};
 use crate::format::{Error, Map, SliceOptions};
@@ -23,8 +23,11 @@ use crate::format::{Error, Map, SliceOptions};
 /// One point of the ladder.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Candidate {
+    /// The levels kept, in the map's numbering.
     pub levels: Vec<u16>,
+    /// Only the short descriptor blocks (`slice --short`).
     pub short: bool,
+    /// Without what localization does not read (`slice --minimal`).
     pub minimal: bool,
     /// Product-quantised short blocks with this many dimensions per one-byte code: level L
     /// gets `M = dim_short(L) / dims_per_code` codes per point.
@@ -92,18 +95,25 @@ impl Candidate {
 /// A candidate with its size: exact (encoded) or estimated (PQ, before training).
 #[derive(Debug, Clone)]
 pub struct Sized {
+    /// The candidate sized.
     pub candidate: Candidate,
+    /// [`Candidate::describe`]'s words for it.
     pub description: String,
+    /// Its encoded length, or the lower bound when `estimated`.
     pub bytes: u64,
+    /// `bytes` is a lower bound (a PQ candidate not encoded yet).
     pub estimated: bool,
 }
 
 /// What [`slice_to_budget`] chose, and every candidate it sized on the way.
 pub struct BudgetSlice<'m> {
+    /// The first candidate of the ladder that fits the budget.
     pub chosen: Candidate,
+    /// Its slice, ready to write.
     pub sliced: SlicedMap<'m>,
     /// The chosen slice's encoded length.
     pub bytes: u64,
+    /// Every candidate sized, in ladder order, up to the chosen one.
     pub sized: Vec<Sized>,
 }
 
@@ -132,10 +142,10 @@ impl BudgetSlice<'_> {
 }
 
 /// Single levels tried at most (most points first).
-pub const MAX_SINGLE_LEVELS: usize = 16;
+pub(crate) const MAX_SINGLE_LEVELS: usize = 16;
 
 /// The ladder in one line, for reports.
-pub const RULE: &str = "level sets: all levels, level 2, each other level (most points first); per set: full, full --minimal, --short --minimal, --short --minimal with PQ of 2, 4, 8 dims per one-byte code; the first that fits";
+pub(crate) const RULE: &str = "level sets: all levels, level 2, each other level (most points first); per set: full, full --minimal, --short --minimal, --short --minimal with PQ of 2, 4, 8 dims per one-byte code; the first that fits";
 
 /// The ladder of `map` (`levels`: the only level set to try, if given), most accurate first.
 pub fn ladder(map: &Map<'_>, levels: Option<&[u16]>) -> Result<Vec<Candidate>, Error> {

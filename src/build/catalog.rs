@@ -5,7 +5,7 @@
 //! Each place's descriptors are taken back to the descriptor space they were extracted in
 //! (the transpose of the level's orthonormal projection), so places converted with different
 //! bases meet in one space; an uncentred PCA of a sample from every place keeps
-//! [`CATALOG_DIMS`] dimensions, a k-means of [`CATALOG_CLUSTERS`] centroids is the codebook,
+//! 32 dimensions, a k-means of 32 centroids is the codebook,
 //! and each image's VLAD aggregates the points it sees, as `convert` does for one map.
 
 use super::basis::Basis;
@@ -15,8 +15,8 @@ use crate::vlad::Codebook;
 
 /// Dimensions of the catalog's basis, and centroids of its codebook: an image's VLAD is
 /// `32 × 32` f16 values, 2 KiB, so a catalog of 10,000 images is 20 MiB.
-pub const CATALOG_DIMS: usize = 32;
-pub const CATALOG_CLUSTERS: usize = 32;
+pub(crate) const CATALOG_DIMS: usize = 32;
+pub(crate) const CATALOG_CLUSTERS: usize = 32;
 
 /// Rows of each place in the basis and codebook sample.
 const SAMPLE_PER_PLACE: usize = 20_000;
@@ -30,6 +30,7 @@ pub struct PlaceMap<'m> {
     pub name: String,
     /// Where the catalog says the map is: a URL, or a path relative to the catalog's folder.
     pub location: String,
+    /// The place's map, open.
     pub map: &'m Map<'m>,
 }
 

@@ -9,42 +9,64 @@ use std::path::PathBuf;
 #[derive(Debug)]
 #[non_exhaustive]
 pub enum ConvertError {
+    /// Reading the COLMAP model or database.
     Colmap(ColmapError),
+    /// Writing the map (or reading the one a conversion starts from).
     Format(format::Error),
     /// The database's image `image_id` has another name than the model's.
     NameMismatch {
+        /// The database.
         database: PathBuf,
+        /// The image's id in both.
         image_id: u32,
+        /// Its name in the model.
         model: String,
+        /// Its name in the database.
         found: String,
     },
     /// An observation's keypoint row does not exist in the database.
     KeypointOutOfRange {
+        /// The database.
         database: PathBuf,
+        /// The image's name.
         image: String,
+        /// The observation's 2D point index.
         point2d_idx: usize,
+        /// How many keypoints the database holds for the image.
         keypoints: usize,
     },
     /// An observed keypoint's scale is NaN or infinite.
     KeypointScaleNotFinite {
+        /// The database.
         database: PathBuf,
+        /// The image's name.
         image: String,
+        /// The observation's 2D point index.
         point2d_idx: usize,
     },
     /// An image has no features in the database and `strict` is set.
     MissingFeatures {
+        /// The database.
         database: PathBuf,
+        /// The image's name.
         image: String,
     },
     /// Descriptor lengths differ between images.
     DescriptorDim {
+        /// The database.
         database: PathBuf,
+        /// The image whose descriptors differ.
         image: String,
+        /// The dimension of the images before it.
         expected: usize,
+        /// Its dimension.
         found: usize,
     },
+    /// Reading an input file or the images folder failed.
     Io {
+        /// The file or folder.
         path: PathBuf,
+        /// The operating system's error.
         source: std::io::Error,
     },
     /// `convert --images`: the network failed on an image.
@@ -54,8 +76,11 @@ pub enum ConvertError {
     Output(crate::output::OutputError),
     /// `convert --images`: model images with no file under the images folder.
     MissingImages {
+        /// The images folder.
         images: PathBuf,
+        /// Every model image without a file, by name.
         missing: Vec<String>,
+        /// How many model images there are.
         total: usize,
     },
 }

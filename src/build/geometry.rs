@@ -434,12 +434,13 @@ fn scan_part(
     Some((vis, sum))
 }
 
-/// Fuzz entry point: parses `data` as each binary model file, then as a whole model (so
+/// Fuzz entry point (`crate::fuzzing`): parses `data` as each binary model file, then as a whole model (so
 /// validation is fuzzed too) laid out as `u16 BE cameras_len, u16 BE images_len, cameras,
 /// images, points3D` (lengths are taken modulo what is left). Never panics (that is the
 /// test), and the whole model goes through convert's fast path too, which must accept
 /// only what the general reader accepts, with the same geometry.
-pub fn fuzz_read_bin(data: &[u8]) {
+#[cfg(any(test, feature = "fuzzing"))]
+pub fn read_colmap_bin(data: &[u8]) {
     let path = std::path::Path::new("fuzz.bin");
     let _ = crate::colmap::bin::parse_cameras(data, path);
     let _ = crate::colmap::bin::parse_images(data, path);
@@ -681,7 +682,7 @@ mod tests {
         let path = Path::new("seed");
         let fast = from_bin((c, path), (i, path), (p, path)).expect("fast path");
         assert_eq!(fast.ids, [10, 25, 40]);
-        fuzz_read_bin(&data);
+        read_colmap_bin(&data);
     }
 
     #[test]

@@ -1,12 +1,18 @@
 //! Map building: everything that turns a COLMAP model into a map.
 //!
-//! - `geometry` (`colmap-model`): the arrays a map stores of a model (cameras, points,
-//!   images with poses, visibility), from a [`Reconstruction`] or straight from a binary
-//!   model's bytes.
-//! - [`sift`] (`colmap`): SIFT maps from the model's `database.db` (descriptor aggregation
-//!   per track, scale levels, a per-level PCA basis in `basis`) — `sfpmap convert --colmap`.
-//! - [`sfp`] (`colmap` + `onnx`): SFP maps from the model's images through the extractor —
-//!   `sfpmap convert --images`.
+//! - [`convert`] (`colmap`): a SIFT map from a model and its `database.db` (descriptor
+//!   aggregation per track, scale levels, a per-level PCA basis) — `sfpmap convert --colmap`;
+//!   [`convert_model`] from a model in memory.
+//! - [`convert_with_images`] (`colmap` + `onnx`): an SFP map from a model's images through the
+//!   extractor — `sfpmap convert --images`; [`convert_model_with_images`] from a model in
+//!   memory.
+//! - [`pq`]: product quantisation of a map's levels (`slice --pq`, `convert --pq`);
+//!   [`budget`]: the largest slice under a byte budget (`slice --budget`); [`catalog`]: a
+//!   catalog of place maps (`sfpmap catalog`).
+//!
+//! The arrays a map stores of a model (cameras, points, images with poses, visibility) come
+//! from a [`crate::colmap::Reconstruction`] or straight from a binary model's
+//! bytes (a crate-private fast path).
 //!
 //! [`crate::colmap`] only reads and writes COLMAP files and databases and [`crate::extract`]
 //! only runs the network; both are inputs here. Every map is written by
@@ -19,18 +25,20 @@ pub mod budget;
 pub mod catalog;
 #[cfg(feature = "colmap")]
 mod error;
+// Maps are built with `colmap`; the fuzz body of binary models (`fuzzing`) compares its fast
+// path with the general reader.
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
 pub(crate) mod geometry;
 pub mod pq;
 #[cfg(feature = "colmap")]
 mod retrieval;
 #[cfg(all(feature = "colmap", feature = "onnx"))]
-pub mod sfp;
+mod sfp;
 #[cfg(feature = "colmap")]
-pub mod sift;
+mod sift;
 
 #[cfg(feature = "colmap")]
 pub use error::ConvertError;
-pub use geometry::fuzz_read_bin;
 #[cfg(feature = "colmap")]
 pub use retrieval::{StoredVlad, VladOptions};
 #[cfg(all(feature = "colmap", feature = "onnx"))]
@@ -53,9 +61,13 @@ use std::path::Path;
 /// What one level of the converted map holds.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LevelSummary {
+    /// The level.
     pub level: u16,
+    /// Points in it.
     pub points: usize,
+    /// Dimensions of its `full` descriptors.
     pub dim_full: u32,
+    /// Dimensions of its `short` block (a prefix of `full`).
     pub dim_short: u32,
     /// Share of the descriptors' energy the `short` block keeps.
     pub variance_short: f64,
@@ -63,16 +75,23 @@ pub struct LevelSummary {
     pub scale_range: [f32; 2],
 }
 
+/// What a conversion wrote: counts, sizes and each level (`sfpmap convert --json`).
 #[cfg(feature = "colmap")]
 #[derive(Debug, Clone, PartialEq)]
 pub struct ConvertSummary {
+    /// Points in the map (the model's, less those dropped).
     pub points: usize,
+    /// Images in the map.
     pub images: usize,
+    /// Observations (visibility entries) in the map.
     pub observations: usize,
     /// Model files plus database, in bytes.
     pub input_bytes: u64,
+    /// The map's length in bytes.
     pub output_bytes: u64,
+    /// No level holds descriptors: the database had none (a map for its geometry).
     pub geometry_only: bool,
+    /// Each level, in order.
     pub levels: Vec<LevelSummary>,
     /// Images whose keypoints or descriptors are missing from the database.
     pub images_without_features: usize,

@@ -11,7 +11,7 @@ use crate::kmeans::KMeans;
 use crate::vector::{l2_normalise, Nearest};
 
 /// Centroids per subspace at most: every value of a one-byte code.
-pub const CENTROIDS: usize = 256;
+pub(crate) const CENTROIDS: usize = 256;
 /// Level points per centroid at least: a small level gets the largest power of two of
 /// centroids with this many points each (a level of 345 points 32, one of 2,048 or more 256),
 /// so its codebook stays small beside its codes and every centroid is learned from data.
@@ -38,21 +38,26 @@ pub struct PqOptions {
 /// What quantising one level did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PqLevelSummary {
+    /// The level.
     pub level: u16,
+    /// Points coded.
     pub points: usize,
     /// Dimensions quantised (`dim_short`, or `dim_full` with the rest).
     pub dims: usize,
+    /// Codes per point (`M`).
     pub subspaces: usize,
+    /// Centroids per subspace (`K`, at most 256).
     pub centroids: usize,
-    /// Descriptor bytes before (f16 blocks kept) and after (codes + codebook).
+    /// Descriptor bytes before quantising (the f16 blocks kept).
     pub bytes_before: u64,
+    /// Descriptor bytes after quantising (codes + codebook).
     pub bytes_after: u64,
     /// Mean squared distance between a unit descriptor and its reconstruction.
     pub mean_squared_error: f64,
 }
 
 /// How the codes are made, in words (recorded in each level's metadata).
-pub fn rule() -> String {
+pub(crate) fn rule() -> String {
     format!(
         "descriptors L2-normalised over the quantised dims; where consecutive subspaces' energies (sums of squares over the sample) are more than {BALANCED}x apart, dims sorted by decreasing energy dealt to the subspaces in snake order (level_pq_order), else in place; per subspace, k-means++ then Lloyd ({ITERATIONS} iterations at most, seeded) on a seeded sample of at most {MAX_TRAIN} rows, {CENTROIDS} centroids (fewer for small levels: at least {POINTS_PER_CENTROID} points each); each subvector coded by its nearest centroid"
     )
@@ -91,7 +96,7 @@ pub struct Quantiser {
 /// a95c593); OPQ's learned rotation on top changed either by under 1 %. The
 /// SFP levels' energies are flat (within 1.9×) and the order changed their error by under
 /// 1 %, so they keep the identity.
-pub fn dimension_order(rows: &[f32], dims: usize, subspaces: usize) -> Vec<u16> {
+pub(crate) fn dimension_order(rows: &[f32], dims: usize, subspaces: usize) -> Vec<u16> {
     let identity = |dims: usize| (0..dims as u16).collect::<Vec<u16>>();
     let mut energy = vec![0.0f64; dims];
     for row in rows.chunks_exact(dims.max(1)) {
@@ -224,16 +229,18 @@ impl Quantiser {
         })
     }
 
-    /// The row dimension at each position of the quantised vector ([`dimension_order`]),
+    /// The row dimension at each position of the quantised vector (by subspace energy),
     /// `None` for the identity.
     pub fn order(&self) -> Option<&[u16]> {
         self.order.as_deref()
     }
 
+    /// Codes per vector (`M`).
     pub fn subspaces(&self) -> usize {
         self.subspaces
     }
 
+    /// Centroids per subspace (`K`).
     pub fn centroids(&self) -> usize {
         self.centroids
     }
@@ -251,7 +258,7 @@ impl Quantiser {
 
     /// Codes of unit rows (`[n × dims]`) into `codes` (`[n × subspaces]`, as many rows as
     /// both hold); returns the summed squared reconstruction error. Each subspace's rows go
-    /// through [`Nearest::find_each`] together.
+    /// through the nearest-centroid search together.
     pub fn encode_rows(&self, rows: &[f32], codes: &mut [u8]) -> f64 {
         let (d, m) = (self.sub_dims, self.subspaces);
         let dims = d * m;
@@ -418,7 +425,7 @@ pub fn quantise_levels(
 
 /// Centroids per subspace for a level of `n` points: the largest power of two up to 256 with
 /// at least [`POINTS_PER_CENTROID`] points each (at least 1).
-pub fn centroids_for(n: usize) -> usize {
+pub(crate) fn centroids_for(n: usize) -> usize {
     let most = (n / POINTS_PER_CENTROID).clamp(1, CENTROIDS);
     1 << most.ilog2()
 }
@@ -426,7 +433,9 @@ pub fn centroids_for(n: usize) -> usize {
 /// A slice of a map (`format::slice`) with its kept levels optionally product-quantised:
 /// what `sfpmap slice` and the Python package's `slice` write and report.
 pub struct SlicedMap<'m> {
+    /// The slice, ready to write.
     pub writer: MapWriter<'m>,
+    /// What the slice kept.
     pub summary: crate::format::SliceSummary,
     /// Each quantised level, empty without `--pq`.
     pub pq: Vec<PqLevelSummary>,

@@ -30,7 +30,9 @@ impl VladOptions {
 pub struct StoredVlad {
     /// The level whose basis (and codebook section) it is on.
     pub level: u16,
+    /// Centroids of its codebook.
     pub clusters: usize,
+    /// Leading dimensions of the level basis it aggregates.
     pub dims: usize,
 }
 

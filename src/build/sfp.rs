@@ -29,12 +29,15 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The level rule, as recorded in each level's metadata.
-pub const LEVEL_RULE: &str = "a point is in level i when the mean of score_i (bilinear at its observations) over its track is >= score_threshold; points in no level are dropped";
+pub(crate) const LEVEL_RULE: &str = "a point is in level i when the mean of score_i (bilinear at its observations) over its track is >= score_threshold; points in no level are dropped";
 
+/// How [`convert_with_images`](super::convert_with_images) makes an SFP map from a model's images
+/// (`sfpmap convert --images`).
 #[derive(Debug, Clone)]
 pub struct SfpMapOptions {
     /// Folder the model's image names are relative to.
     pub images: PathBuf,
+    /// The extractor: its model and runtime.
     pub extractor: ExtractorOptions,
     /// Resize images so the longer side is at most this before the network.
     pub resize_max: Option<u32>,
@@ -47,7 +50,9 @@ pub struct SfpMapOptions {
     pub score_threshold: Option<f32>,
     /// Skip model images whose file is missing (default: error).
     pub allow_missing: bool,
+    /// How the descriptor sections are stored.
     pub codec: Codec,
+    /// zstd's level when `codec` is zstd.
     pub zstd_level: i32,
     /// Retrieval data besides the network's global descriptor: a VLAD codebook on level 2.
     pub vlad: super::VladOptions,
@@ -59,6 +64,8 @@ pub struct SfpMapOptions {
 const VLAD_LEVEL: u16 = 2;
 
 impl SfpMapOptions {
+    /// The defaults for the images under `images`: the embedded model, the global descriptor
+    /// on a copy of at most [`GLOBAL_MAX_SIDE`] pixels, the model's threshold, raw sections.
     pub fn new(images: impl Into<PathBuf>) -> Self {
         SfpMapOptions {
             images: images.into(),
@@ -86,9 +93,11 @@ pub struct SfpMapSummary {
     pub missing_images: Vec<String>,
     /// Bytes of the images read.
     pub image_bytes: u64,
+    /// The model that ran.
     pub model: ModelInfo,
     /// Median network + sampling time per image, ms.
     pub ms_per_image: f64,
+    /// The level threshold used (the option, or the model's default).
     pub score_threshold: f32,
 }
 

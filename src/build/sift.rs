@@ -27,6 +27,7 @@ pub enum Aggregate {
 }
 
 impl Aggregate {
+    /// The name the metadata and `--aggregate` use (`mean`, `medoid`).
     pub fn name(self) -> &'static str {
         match self {
             Aggregate::Mean => "mean",
@@ -35,14 +36,19 @@ impl Aggregate {
     }
 }
 
+/// How [`convert`](super::convert) makes a SIFT map from a model and its database
+/// (`sfpmap convert --colmap`).
 #[derive(Debug, Clone)]
 pub struct ConvertOptions {
     /// `database.db` with the model's keypoints and descriptors; `None` = geometry only.
     pub database: Option<PathBuf>,
     /// Dimensions of the `short` block; `None` = a quarter of the descriptor dimension.
     pub short_dims: Option<u32>,
+    /// How the descriptor sections are stored.
     pub codec: Codec,
+    /// zstd's level when `codec` is zstd.
     pub zstd_level: i32,
+    /// How a point's observation descriptors become its one descriptor.
     pub aggregate: Aggregate,
     /// Fail when an image's features are missing from the database (default: warn, skip).
     pub strict: bool,

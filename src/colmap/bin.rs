@@ -211,6 +211,8 @@ pub(crate) struct ImageRecord<'a> {
     pub points2d: &'a [u8],
 }
 
+// The fast path of `build::geometry` reads the points as bytes (maps, and its fuzz body).
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
 impl ImageRecord<'_> {
     pub fn num_points2d(&self) -> usize {
         self.points2d.len() / POINT2D
@@ -338,6 +340,7 @@ pub(crate) struct Point3DRecord<'a> {
 }
 
 impl Point3DRecord<'_> {
+    #[cfg(any(feature = "colmap", feature = "fuzzing", test))]
     pub fn track_len(&self) -> usize {
         self.track.len() / TRACK_ELEMENT
     }

@@ -18,8 +18,11 @@ use crate::geometry::CameraModel;
 /// An image row of the database.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct DbImage {
+    /// `image_id`.
     pub id: u32,
+    /// The image's name, relative to the images folder.
     pub name: String,
+    /// The camera it was taken with (the `cameras` table's `camera_id`).
     pub camera_id: u32,
 }
 
@@ -59,11 +62,18 @@ impl KeypointLayout {
 /// One keypoint in COLMAP's affine form (`FeatureKeypoint`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Keypoint {
+    /// x of the keypoint, COLMAP pixels (the top-left pixel's centre at 0.5).
     pub x: f32,
+    /// y of the keypoint, COLMAP pixels.
     pub y: f32,
+    /// Affine shape `A = [[a11, a12], [a21, a22]]`: maps the unit circle to the feature's
+    /// ellipse (scale and orientation in one).
     pub a11: f32,
+    /// See `a11`.
     pub a12: f32,
+    /// See `a11`.
     pub a21: f32,
+    /// See `a11`.
     pub a22: f32,
 }
 
@@ -101,14 +111,17 @@ impl Keypoints {
         (data.len() % layout.cols() == 0).then_some(Keypoints { layout, data })
     }
 
+    /// What the rows' columns mean.
     pub fn layout(&self) -> KeypointLayout {
         self.layout
     }
 
+    /// How many keypoints.
     pub fn len(&self) -> usize {
         self.data.len() / self.layout.cols()
     }
 
+    /// Whether there are none.
     pub fn is_empty(&self) -> bool {
         self.data.is_empty()
     }
@@ -203,10 +216,12 @@ pub struct Descriptors {
 }
 
 impl Descriptors {
+    /// How many descriptors (rows).
     pub fn len(&self) -> usize {
         self.data.len().checked_div(self.cols).unwrap_or(0)
     }
 
+    /// Whether there are none.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -221,8 +236,11 @@ impl Descriptors {
 /// One image with its features; either may be absent from the database.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ImageFeatures {
+    /// The image row.
     pub image: DbImage,
+    /// Its keypoints, if the database has any.
     pub keypoints: Option<Keypoints>,
+    /// Its descriptors, if the database has any.
     pub descriptors: Option<Descriptors>,
 }
 

@@ -14,7 +14,9 @@ use std::path::{Path, PathBuf};
 pub enum Error {
     /// Reading a file failed.
     Io {
+        /// The file.
         path: PathBuf,
+        /// The operating system's error.
         source: std::io::Error,
     },
     /// Writing a model file or database failed (the output policy's error, path included).
@@ -22,44 +24,58 @@ pub enum Error {
     /// A model file or database is not a regular file (a folder, a FIFO, a device): read
     /// only after this check, so a FIFO never blocks the reader.
     NotAFile {
+        /// The file.
         path: PathBuf,
         /// What it is instead (`"a folder"`, `"a FIFO"`).
         kind: &'static str,
     },
     /// A number is NaN or infinite (a map, whose metadata is JSON, cannot store it).
     NotFinite {
+        /// The file.
         path: PathBuf,
         /// The 1-based line of a text file; `None` in a binary file.
         line: Option<u64>,
         /// `"camera"`, `"image"` or `"point3D"`.
         kind: &'static str,
+        /// The record's id.
         id: u64,
         /// Which value (`"parameter 0"`, `"rotation"`, `"point2D 3 position"`).
         field: String,
     },
     /// An image's rotation is the zero quaternion.
     ZeroRotation {
+        /// The file.
         path: PathBuf,
         /// As [`Error::NotFinite::line`].
         line: Option<u64>,
+        /// The image's id.
         image_id: u32,
     },
     /// An image name holds a control character (a newline, a tab, an escape): no COLMAP text
     /// file can hold it, and it would inject lines into line-based exports.
     BadImageName {
+        /// The file.
         path: PathBuf,
         /// As [`Error::NotFinite::line`].
         line: Option<u64>,
+        /// The image's id.
         image_id: u32,
         /// The name, quoted, escaped and shortened for the message.
         name: String,
     },
     /// A folder has neither `cameras.bin` … nor `cameras.txt` ….
-    NoModel { dir: PathBuf },
+    NoModel {
+        /// The folder.
+        dir: PathBuf,
+    },
     /// One file of a model is present but another is not (`images.bin` without `points3D.bin`).
-    MissingFile { path: PathBuf },
+    MissingFile {
+        /// The file missing.
+        path: PathBuf,
+    },
     /// A binary file ends inside a record.
     Truncated {
+        /// The file.
         path: PathBuf,
         /// Byte offset where the read started.
         offset: u64,
@@ -72,128 +88,202 @@ pub enum Error {
     },
     /// A binary file has bytes after its last record.
     TrailingBytes {
+        /// The file.
         path: PathBuf,
+        /// Where the bytes after the last record start.
         offset: u64,
+        /// The file's length.
         len: u64,
     },
     /// A text file has a line that does not parse.
     BadLine {
+        /// The file.
         path: PathBuf,
         /// 1-based line number.
         line: u64,
+        /// What does not parse.
         what: String,
     },
     /// A binary file has a value that is not valid (not a length problem).
     BadValue {
+        /// The file.
         path: PathBuf,
+        /// Byte offset in the file.
         offset: u64,
+        /// Which value, and why.
         what: String,
     },
     /// A camera has a model id this crate does not know.
     UnknownCameraModelId {
+        /// The file.
         path: PathBuf,
+        /// The camera's id.
         camera_id: u32,
+        /// The model id found.
         model_id: i64,
     },
     /// A camera has a model name this crate does not know.
     UnknownCameraModelName {
+        /// The file.
         path: PathBuf,
+        /// 1-based line of the text file.
         line: u64,
+        /// The model name found.
         name: String,
     },
     /// A camera has the wrong number of parameters for its model.
     ParamCount {
+        /// The file.
         path: PathBuf,
+        /// The camera's id.
         camera_id: u32,
+        /// The camera's model name.
         model: &'static str,
+        /// Parameters the model has.
         expected: usize,
+        /// Parameters found.
         found: usize,
     },
     /// The same id appears twice (`kind` is `"camera"`, `"image"` or `"point3D"`).
     DuplicateId {
+        /// The file.
         path: PathBuf,
+        /// `"camera"`, `"image"` or `"point3D"`.
         kind: &'static str,
+        /// The duplicated id.
         id: u64,
     },
     /// An image refers to a camera that does not exist.
     MissingCamera {
+        /// The file.
         path: PathBuf,
+        /// The image's id.
         image_id: u32,
+        /// The camera's id.
         camera_id: u32,
     },
     /// A 3D point's track refers to an image that does not exist.
     TrackImageMissing {
+        /// The file.
         path: PathBuf,
+        /// The 3D point's id.
         point3d_id: u64,
+        /// The image's id.
         image_id: u32,
     },
     /// A 3D point's track refers to a 2D point index past the end of the image's points.
     TrackPoint2DOutOfRange {
+        /// The file.
         path: PathBuf,
+        /// The 3D point's id.
         point3d_id: u64,
+        /// The image's id.
         image_id: u32,
+        /// The 2D point's index in the image.
         point2d_idx: u32,
+        /// How many 2D points the image has.
         num_points2d: usize,
     },
     /// A track element's 2D point does not point back at the 3D point (COLMAP's
     /// `point2D.point3D_id == point3D_id` check).
     TrackMismatch {
+        /// The file.
         path: PathBuf,
+        /// The 3D point's id.
         point3d_id: u64,
+        /// The image's id.
         image_id: u32,
+        /// The 2D point's index in the image.
         point2d_idx: u32,
         /// The `point3D_id` stored on the 2D point (`None`: the 2D point has none).
         found: Option<u64>,
     },
     /// The same (image, point2D) appears twice in tracks.
     DuplicateTrackElement {
+        /// The file.
         path: PathBuf,
+        /// The 3D point's id.
         point3d_id: u64,
+        /// The image's id.
         image_id: u32,
+        /// The 2D point's index in the image.
         point2d_idx: u32,
     },
     /// A 2D point refers to a 3D point whose track does not contain it (or that does not exist).
     Point2DNotInTrack {
+        /// The file.
         path: PathBuf,
+        /// The image's id.
         image_id: u32,
+        /// The 2D point's index in the image.
         point2d_idx: u32,
+        /// The 3D point's id.
         point3d_id: u64,
         /// Whether the 3D point exists at all.
         point3d_exists: bool,
     },
     /// `.bin` and `.txt` models in one folder disagree.
     ModelsDisagree {
+        /// The binary files (`DIR/*.bin`).
         bin: PathBuf,
+        /// The text files (`DIR/*.txt`).
         txt: PathBuf,
+        /// The first difference.
         what: String,
     },
     /// A database has a non-empty `-wal` file next to it: changes an immutable open would not
     /// see (SQLite ignores the write-ahead log then), so reading would silently miss them.
-    PendingWal { path: PathBuf, wal: PathBuf },
+    PendingWal {
+        /// The database.
+        path: PathBuf,
+        /// Its `-wal` file.
+        wal: PathBuf,
+    },
     /// A file is not an SQLite database.
-    NotADatabase { path: PathBuf },
+    NotADatabase {
+        /// The file.
+        path: PathBuf,
+    },
     /// A database lacks a table COLMAP always creates.
-    MissingTable { path: PathBuf, table: &'static str },
+    MissingTable {
+        /// The database.
+        path: PathBuf,
+        /// The table.
+        table: &'static str,
+    },
     /// A database table lacks a column.
     MissingColumn {
+        /// The file.
         path: PathBuf,
+        /// The table.
         table: &'static str,
+        /// The column.
         column: &'static str,
     },
     /// A database row holds a value that does not fit its schema.
     BadRow {
+        /// The file.
         path: PathBuf,
+        /// The table.
         table: &'static str,
         /// The row's key (`image_id` or `camera_id`).
         id: i64,
+        /// Which value, and why.
         what: String,
     },
     /// The database has no row for an image the caller asked for.
-    ImageNotInDatabase { path: PathBuf, image_id: u32 },
+    ImageNotInDatabase {
+        /// The database.
+        path: PathBuf,
+        /// The image's id.
+        image_id: u32,
+    },
     /// An SQLite call failed.
     #[cfg(feature = "colmap")]
     Sqlite {
+        /// The database.
         path: PathBuf,
+        /// SQLite's error.
         source: rusqlite::Error,
     },
 }

@@ -45,7 +45,6 @@ pub mod text;
 
 use std::path::{Path, PathBuf};
 
-pub use crate::geometry::CameraModel;
 #[cfg(feature = "colmap")]
 pub use database::{
     Database, DbImage, Descriptors, ImageFeatures, ImageFeaturesIter, Keypoint, KeypointLayout,
@@ -56,6 +55,8 @@ pub use database_writer::DatabaseWriter;
 #[cfg(feature = "colmap")]
 pub(crate) use error::shown_name;
 pub use error::{Error, Result};
+// The binary models' fast path in `build` (maps, and its fuzz body).
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
 pub(crate) use model::IdIndex;
 pub use model::{
     Camera, Image, Point2D, Point3D, Reconstruction, ReconstructionBuilder, TrackElement,
@@ -79,6 +80,7 @@ pub enum ModelFormat {
 /// The model files found in a folder.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ModelFiles {
+    /// Which encoding the folder holds.
     pub format: ModelFormat,
     /// Every model file that [`read_model`] reads (3 or 6), for provenance (sizes, hashes).
     /// `rigs.bin` / `frames.bin` are not listed: they are not read.
@@ -308,18 +310,8 @@ fn compare(a: &Reconstruction, b: &Reconstruction) -> Result<(), String> {
     Ok(())
 }
 
-/// Fuzz entry point: like `build::fuzz_read_bin` (the binary files, which also go through
-/// convert's fast path there) for the text files.
-pub fn fuzz_read_txt(data: &[u8]) {
-    let path = Path::new("fuzz.txt");
-    let _ = text::parse_cameras(data, path);
-    let _ = text::parse_images(data, path);
-    let _ = text::parse_model((b"", path), (b"", path), (data, path));
-    let [c, i, p] = split3(data);
-    let _ = text::parse_model((c, path), (i, path), (p, path));
-}
-
 /// Three consecutive parts of `data[4..]`, their lengths from `data[0..4]`.
+#[cfg(any(test, feature = "fuzzing"))]
 pub(crate) fn split3(data: &[u8]) -> [&[u8]; 3] {
     let (head, rest) = data.split_at(data.len().min(4));
     let mut lens = [0usize; 2];

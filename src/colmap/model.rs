@@ -13,9 +13,13 @@ use crate::geometry::{CameraModel, Pose};
 /// A camera: intrinsics in COLMAP's parameter order for its model.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Camera {
+    /// `camera_id`.
     pub id: u32,
+    /// The camera model, which fixes the parameters' meaning and order.
     pub model: CameraModel,
+    /// Image width in pixels.
     pub width: u64,
+    /// Image height in pixels.
     pub height: u64,
     /// `model.num_params()` values; the reader checks the count.
     pub params: Vec<f64>,
@@ -34,8 +38,11 @@ pub struct Point2D {
 /// A registered image.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Image {
+    /// `image_id`.
     pub id: u32,
+    /// The file name, relative to the images folder.
     pub name: String,
+    /// The camera it was taken with.
     pub camera_id: u32,
     /// As stored, up to [`Pose::from_colmap`]'s normalisation of a non-unit quaternion.
     pub cam_from_world: Pose,
@@ -47,7 +54,9 @@ pub struct Image {
 /// One observation of a 3D point: the `point2d_idx`-th 2D point of image `image_id`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct TrackElement {
+    /// The image.
     pub image_id: u32,
+    /// The index of the 2D point in the image's `points2d`.
     pub point2d_idx: u32,
 }
 
@@ -56,8 +65,11 @@ pub struct TrackElement {
 /// Equality compares the public fields and the track length, not where the track is stored.
 #[derive(Debug, Clone, Copy)]
 pub struct Point3D {
+    /// `point3D_id`.
     pub id: u64,
+    /// Position in world coordinates.
     pub xyz: [f64; 3],
+    /// Colour, 8-bit RGB.
     pub rgb: [u8; 3],
     /// Mean reprojection error in pixels, as COLMAP stored it.
     pub error: f64,
@@ -352,10 +364,12 @@ impl ReconstructionBuilder {
         self.tracks.reserve(observations);
     }
 
+    /// Adds a camera (ids are checked by [`ReconstructionBuilder::build`]).
     pub fn add_camera(&mut self, camera: Camera) {
         self.cameras.push(camera);
     }
 
+    /// Adds an image (its camera and 2D points are checked by `build`).
     pub fn add_image(&mut self, image: Image) {
         self.images.push(image);
     }

@@ -482,8 +482,8 @@ pub fn escape_control_characters(s: &str) -> std::borrow::Cow<'_, str> {
 /// At most this many characters of a name go into a message.
 const SHOWN_NAME: usize = 60;
 
-/// `name` for a one-line message: quoted, control characters escaped, cut after
-/// [`SHOWN_NAME`] characters.
+/// `name` for a one-line message: quoted, control characters escaped, cut after 60
+/// characters.
 pub fn quoted_name(name: &str) -> String {
     let shown: String = name.chars().take(SHOWN_NAME).collect();
     let cut = if shown.len() < name.len() { "…" } else { "" };

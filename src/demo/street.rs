@@ -47,7 +47,9 @@ const DIM: usize = 128;
 pub struct StreetOptions {
     /// Façade points before thinning (those seen by fewer than 2 images are dropped).
     pub points: usize,
+    /// Query images (each with its features in `queries.db` and its true pose).
     pub queries: usize,
+    /// Seed of every random choice: the same options give the same files.
     pub seed: u64,
     /// Share of a query's keypoints that are outliers (taken as at most 0.9).
     pub outlier_share: f64,
@@ -70,11 +72,15 @@ impl Default for StreetOptions {
 /// What was written.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StreetSummary {
+    /// The street's length in metres.
     pub length_m: f64,
     /// 3D points in the model.
     pub points: usize,
+    /// Database images.
     pub images: usize,
+    /// Observations in the model's tracks.
     pub observations: usize,
+    /// Query images.
     pub queries: usize,
 }
 

@@ -10,6 +10,7 @@ pub const CONTRACT: &str = "sfp-extractor/1";
 /// What a model promises, parsed and checked for consistency.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Contract {
+    /// `sfp.model_name`: the descriptor kind maps record (`sfp-v2`).
     pub model_name: String,
     /// Level ids as maps and the CLI use them, finest first (`sfp.level_ids`).
     pub level_ids: Vec<u16>,
@@ -19,12 +20,17 @@ pub struct Contract {
     pub dims: Vec<usize>,
     /// Full descriptor dims per level (`dims[i] + … + dims[L−1]`).
     pub full_dims: Vec<usize>,
+    /// Dimensions of the global descriptor.
     pub global_dim: usize,
+    /// The network's input tensor name.
     pub input_name: String,
     /// RGB → grey weights.
     pub gray_weights: [f32; 3],
+    /// Detection threshold when the caller gives none (`sfp.default_threshold`).
     pub default_threshold: f32,
+    /// NMS radius when the caller gives none, in cells.
     pub default_nms_radius: u32,
+    /// Keypoint cap per level when the caller gives none.
     pub default_max_keypoints: Vec<usize>,
     /// Every `sfp.*` key, for provenance.
     pub raw: BTreeMap<String, String>,
@@ -172,6 +178,7 @@ impl Contract {
         })
     }
 
+    /// How many levels the model outputs.
     pub fn levels(&self) -> usize {
         self.level_ids.len()
     }

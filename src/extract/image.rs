@@ -7,8 +7,11 @@ use std::path::Path;
 /// A grey image with values in [0, 1], row-major, and how it relates to the file.
 #[derive(Debug, Clone)]
 pub struct GrayInput {
+    /// Width in pixels (after any resize).
     pub width: usize,
+    /// Height in pixels (after any resize).
     pub height: usize,
+    /// `[height × width]` grey values, row-major.
     pub values: Vec<f32>,
     /// Size of the image as stored in the file (before any resize).
     pub original_size: [u32; 2],
@@ -76,7 +79,7 @@ pub fn decode(
 }
 
 /// Most bytes a decoded image may take (the `image` crate's default allocation limit).
-pub const MAX_DECODED_BYTES: u64 = 512 << 20;
+pub(crate) const MAX_DECODED_BYTES: u64 = 512 << 20;
 
 /// Decodes an image file's bytes (format from its content), refusing any that does not decode
 /// completely. PNG carries CRCs, which the `png` crate checks. JPEG carries no checksum, and the
@@ -84,7 +87,7 @@ pub const MAX_DECODED_BYTES: u64 = 512 << 20;
 /// success), so JPEG goes through zune-jpeg in strict mode, and the scan must end in an
 /// end-of-image marker. A flip that leaves a well-formed stream still decodes (to other
 /// pixels): no decoder can tell.
-pub fn decode_complete(bytes: &[u8]) -> Result<DynamicImage, image::ImageError> {
+pub(crate) fn decode_complete(bytes: &[u8]) -> Result<DynamicImage, image::ImageError> {
     if image::guess_format(bytes).ok() != Some(image::ImageFormat::Jpeg) {
         return image::load_from_memory(bytes);
     }
@@ -186,7 +189,7 @@ fn ends_with_eoi(bytes: &[u8]) -> bool {
 
 /// Grey values as 8-bit, rounded like PIL's `convert("L")` and OpenCV's grey decode: the
 /// network was trained on such images, and the Python reference reads them that way.
-pub fn to_gray8(image: &DynamicImage, weights: [f32; 3]) -> GrayImage {
+pub(crate) fn to_gray8(image: &DynamicImage, weights: [f32; 3]) -> GrayImage {
     match image {
         DynamicImage::ImageLuma8(g) => g.clone(),
         other => {
@@ -206,8 +209,9 @@ pub fn to_gray8(image: &DynamicImage, weights: [f32; 3]) -> GrayImage {
     }
 }
 
-/// [`to_gray8`], resized so its longer side is at most `resize_max` (triangle filter), in [0, 1];
-/// then, if it is still past [`MAX_INPUT_PIXELS`](super::MAX_INPUT_PIXELS), downscaled to fit
+/// The image in grey (the contract's `weights`), resized so its longer side is at most
+/// `resize_max` (triangle filter), in [0, 1]; then, if it is still past the network's limit
+/// (16 M pixels), downscaled to fit
 /// (a 20–24 MP camera photo is an ordinary query). Keypoints come back in the original pixels
 /// through `original_size`.
 pub fn from_image(image: &DynamicImage, weights: [f32; 3], resize_max: Option<u32>) -> GrayInput {

@@ -92,7 +92,7 @@ pub fn detect(map: ScoreMap<'_>, radius: usize, threshold: f32, max: usize) -> V
 /// `radius` finer cells of it, refined there like a detection ([`subpixel`]); the first
 /// strongest in row order wins, NaN cells never do. Unchanged when no interior cell of
 /// `finer` lies in the window. See `spec/extractor.md`, "Coarse-to-fine refinement".
-pub fn refine_on(
+pub(crate) fn refine_on(
     finer: ScoreMap<'_>,
     finer_stride: f32,
     radius: usize,
@@ -168,7 +168,7 @@ fn sliding_max_rows(map: ScoreMap<'_>, radius: usize) -> Vec<f32> {
 
 /// The 1-D quadratic offset through (−1, m), (0, c), (+1, p), clipped to ±0.5; 0 when the
 /// curvature is ~0.
-pub fn quadratic_offset(m: f32, c: f32, p: f32) -> f32 {
+pub(crate) fn quadratic_offset(m: f32, c: f32, p: f32) -> f32 {
     let den = m - 2.0 * c + p;
     // NaN neighbours give a NaN curvature: 0 too, as in python/sfp/reference.py.
     if den.is_nan() || den.abs() <= 1e-9 {
@@ -178,7 +178,7 @@ pub fn quadratic_offset(m: f32, c: f32, p: f32) -> f32 {
 }
 
 /// Sub-cell offsets (dx, dy) of an interior cell, one quadratic fit per axis.
-pub fn subpixel(map: ScoreMap<'_>, r: usize, c: usize) -> (f32, f32) {
+pub(crate) fn subpixel(map: ScoreMap<'_>, r: usize, c: usize) -> (f32, f32) {
     let v = map.at(r, c);
     let dx = quadratic_offset(map.at(r, c - 1), v, map.at(r, c + 1));
     let dy = quadratic_offset(map.at(r - 1, c), v, map.at(r + 1, c));
@@ -187,7 +187,8 @@ pub fn subpixel(map: ScoreMap<'_>, r: usize, c: usize) -> (f32, f32) {
 
 /// Bilinear sample of every channel at cell coordinates (x, y), clamped to the map
 /// (`align_corners = true`: integer coordinates hit cell centres). Appends `channels` values.
-pub fn sample_bilinear(map: FeatureMap<'_>, x: f32, y: f32, out: &mut Vec<f32>) {
+#[cfg(test)]
+pub(crate) fn sample_bilinear(map: FeatureMap<'_>, x: f32, y: f32, out: &mut Vec<f32>) {
     let start = out.len();
     out.resize(start + map.channels, 0.0);
     sample_into(map, x, y, &mut out[start..]);
@@ -225,7 +226,7 @@ pub(crate) fn sample_into(map: FeatureMap<'_>, x: f32, y: f32, out: &mut [f32]) 
 
 /// Bilinear sample of a one-channel map at cell coordinates (x, y), clamped like
 /// [`sample_bilinear`].
-pub fn bilinear_at(map: ScoreMap<'_>, x: f32, y: f32) -> f32 {
+pub(crate) fn bilinear_at(map: ScoreMap<'_>, x: f32, y: f32) -> f32 {
     let mut out = [0.0f32; 1];
     let one = FeatureMap {
         channels: 1,

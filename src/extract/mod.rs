@@ -16,14 +16,15 @@
 //! - [`runtime`]: finding/fetching `libonnxruntime.so.1.31.1`, one process-wide environment.
 //! - [`contract`]: the model's metadata, checked.
 //! - [`image`]: JPEG/PNG → grey input.
-//! - [`keypoints`]: NMS, sub-pixel refinement, bilinear sampling.
+//! - `keypoints.rs`: NMS, sub-pixel refinement, bilinear sampling (crate-private).
 //!
-//! Turning a model and its images into an SFP map is `build::sfp`'s.
+//! Turning a model and its images into an SFP map is [`crate::build`]'s
+//! ([`convert_with_images`](crate::build::convert_with_images)).
 
 pub mod contract;
 mod global;
 pub mod image;
-pub mod keypoints;
+mod keypoints;
 pub mod runtime;
 
 use self::contract::Contract;
@@ -44,7 +45,7 @@ use std::path::{Path, PathBuf};
 /// localization and retrieval recall@5 on the shared scenes at 0.57x sfp-v1's network time).
 pub static DEFAULT_MODEL: &[u8] = include_bytes!("../../models/sfp-v2.onnx");
 /// How the embedded model is named in errors and provenance.
-pub const DEFAULT_MODEL_NAME: &str = "models/sfp-v2.onnx (embedded)";
+pub(crate) const DEFAULT_MODEL_NAME: &str = "models/sfp-v2.onnx (embedded)";
 
 /// The models built into the library, by their `sfp.model_name`; the first is
 /// [`DEFAULT_MODEL`]. `sfp-v1` was the default until sfp-v2 (`models/sfp-v1.md`), `sfp-v2s`
@@ -63,7 +64,7 @@ fn builtin_name(name: &str) -> String {
 }
 
 /// The built-in model named `name` (`sfp.model_name`), if there is one.
-pub fn builtin_model(name: &str) -> Option<&'static [u8]> {
+pub(crate) fn builtin_model(name: &str) -> Option<&'static [u8]> {
     BUILTIN_MODELS
         .iter()
         .find(|(n, _)| *n == name)
@@ -71,7 +72,8 @@ pub fn builtin_model(name: &str) -> Option<&'static [u8]> {
 }
 
 /// The built-in models' names, for messages: "sfp-v2, sfp-v1, sfp-v2s".
-pub fn builtin_model_names() -> String {
+#[cfg(feature = "localize")]
+pub(crate) fn builtin_model_names() -> String {
     BUILTIN_MODELS
         .iter()
         .map(|(n, _)| *n)
@@ -83,31 +85,54 @@ pub fn builtin_model_names() -> String {
 #[derive(Debug)]
 #[non_exhaustive]
 pub enum ExtractError {
+    /// Reading a model or image file failed.
     Io {
+        /// The file.
         path: PathBuf,
+        /// The operating system's error.
         source: std::io::Error,
     },
     /// ONNX Runtime is not where discovery looked.
-    RuntimeNotFound { searched: Vec<PathBuf> },
+    RuntimeNotFound {
+        /// The places looked in, in order.
+        searched: Vec<PathBuf>,
+    },
     /// ONNX Runtime could not be fetched, loaded or started.
     Runtime {
+        /// The library, when one was found.
         path: Option<PathBuf>,
+        /// ONNX Runtime's or the loader's message.
         reason: String,
     },
     /// The model file is not an ONNX model ORT can load.
-    Model { model: String, reason: String },
+    Model {
+        /// The model (path or built-in name).
+        model: String,
+        /// ONNX Runtime's message.
+        reason: String,
+    },
     /// The model's metadata does not state a contract this extractor implements.
-    Contract { model: String, reason: String },
+    Contract {
+        /// The model (path or built-in name).
+        model: String,
+        /// What its metadata lacks or breaks.
+        reason: String,
+    },
     /// An image could not be decoded.
     Image {
+        /// The image file.
         path: PathBuf,
+        /// The decoder's error.
         source: ::image::ImageError,
     },
     /// Running the model failed, or it returned outputs that break its contract; `image` is
     /// the file the input came from, when the caller says ([`ExtractError::on_image`]).
     Inference {
+        /// The model (path or built-in name).
         model: String,
+        /// The image file, when known.
         image: Option<PathBuf>,
+        /// ONNX Runtime's message, or the broken rule.
         reason: String,
     },
 }
@@ -208,11 +233,13 @@ impl Default for ExtractorOptions {
 /// Keypoint selection; `None` fields take the model's defaults (`sfp.default_*`).
 #[derive(Debug, Clone, Default)]
 pub struct DetectOptions {
+    /// Minimum detection score.
     pub threshold: Option<f32>,
+    /// Non-maximum suppression radius, in cells of the level's score map.
     pub nms_radius: Option<u32>,
     /// Cap per level, in level order; one value applies to every level.
     pub max_keypoints: Option<Vec<usize>>,
-    /// Coarse-to-fine refinement of the keypoints of levels from [`REFINE_FROM_LEVEL`] on
+    /// Coarse-to-fine refinement of the keypoints of levels from 2 on
     /// (`spec/extractor.md`); `None` = on.
     pub refine: Option<bool>,
     /// The image size the global descriptor is computed at; the default is
@@ -225,13 +252,14 @@ pub struct DetectOptions {
 /// On the held-out viewpoint pairs of `python/eval_homography.py` (sfp-v1) it raises level
 /// 2's MMA@3 from 0.56 to 0.77 and level 3's from 0.22 to 0.53; level 1, refined on level 0,
 /// gains at 1 px but loses repeatability, so it is left as detected.
-pub const REFINE_FROM_LEVEL: usize = 2;
+pub(crate) const REFINE_FROM_LEVEL: usize = 2;
 
 /// The model file an extractor runs, for provenance.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ModelInfo {
-    /// The path given, or [`DEFAULT_MODEL_NAME`].
+    /// The path given, or `models/NAME.onnx (embedded)` for a built-in model.
     pub name: String,
+    /// The file's length.
     pub bytes: u64,
     /// XXH3-64 of the file, hex (as map provenance stores it).
     pub xxh3: String,
@@ -240,9 +268,13 @@ pub struct ModelInfo {
 /// One level's dense outputs for one image.
 #[derive(Debug, Clone)]
 pub struct DenseLevel {
+    /// Input pixels per cell.
     pub stride: u32,
+    /// Feature channels.
     pub channels: usize,
+    /// Rows of cells.
     pub height: usize,
+    /// Columns of cells.
     pub width: usize,
     /// `[channels × height × width]`.
     pub feat: Vec<f32>,
@@ -251,7 +283,7 @@ pub struct DenseLevel {
 }
 
 impl DenseLevel {
-    pub fn feature_map(&self) -> FeatureMap<'_> {
+    pub(crate) fn feature_map(&self) -> FeatureMap<'_> {
         FeatureMap {
             channels: self.channels,
             height: self.height,
@@ -260,7 +292,7 @@ impl DenseLevel {
         }
     }
 
-    pub fn score_map(&self) -> ScoreMap<'_> {
+    pub(crate) fn score_map(&self) -> ScoreMap<'_> {
         ScoreMap {
             height: self.height,
             width: self.width,
@@ -298,6 +330,7 @@ pub struct Dense {
     pub input_size: [usize; 2],
     /// Input pixel → original pixel factor per axis.
     pub scale: [f32; 2],
+    /// Each level, in the model's order.
     pub levels: Vec<DenseLevel>,
     /// L2-normalised global descriptor.
     pub global: Vec<f32>,
@@ -345,12 +378,16 @@ impl Dense {
 pub struct LevelFeatures {
     /// Level id (`sfp.level_ids`).
     pub level: u16,
+    /// Input pixels per cell of the level's maps.
     pub stride: u32,
     /// (x, y) in the original image, COLMAP convention (top-left corner of the first pixel
     /// is 0, its centre 0.5).
     pub keypoints: Vec<[f32; 2]>,
+    /// Detection score of each keypoint.
     pub scores: Vec<f32>,
+    /// Dimensions of `short`.
     pub dim_short: usize,
+    /// Dimensions of `full`.
     pub dim_full: usize,
     /// `[keypoints × dim_short]`, L2-normalised.
     pub short: Vec<f16>,
@@ -360,10 +397,12 @@ pub struct LevelFeatures {
 }
 
 impl LevelFeatures {
+    /// How many keypoints.
     pub fn len(&self) -> usize {
         self.keypoints.len()
     }
 
+    /// Whether there are none.
     pub fn is_empty(&self) -> bool {
         self.keypoints.is_empty()
     }
@@ -374,6 +413,7 @@ impl LevelFeatures {
 pub struct Features {
     /// (width, height) of the image file.
     pub image_size: [u32; 2],
+    /// Each level's features, in the model's order.
     pub levels: Vec<LevelFeatures>,
     /// L2-normalised. [`Extractor::extract`]'s is at [`DetectOptions::global`]'s size (empty
     /// when skipped); [`Extractor::features`]'s is its inference's own.
@@ -381,10 +421,12 @@ pub struct Features {
 }
 
 impl Features {
+    /// The features of level `level` (`sfp.level_ids`), if the model has it.
     pub fn level(&self, level: u16) -> Option<&LevelFeatures> {
         self.levels.iter().find(|l| l.level == level)
     }
 
+    /// Keypoints over all levels.
     pub fn num_keypoints(&self) -> usize {
         self.levels.iter().map(LevelFeatures::len).sum()
     }
@@ -531,10 +573,12 @@ impl Extractor {
         })
     }
 
+    /// The model's contract metadata, checked.
     pub fn contract(&self) -> &Contract {
         &self.contract
     }
 
+    /// The model file it runs.
     pub fn model(&self) -> &ModelInfo {
         &self.model
     }
@@ -758,10 +802,10 @@ impl Extractor {
 /// The most pixels the network is run on: its activations take about 70 bytes a pixel
 /// (a 120 MP PNG of 117 KB took 8.7 GB), so 16 MP keeps one inference near 1.2 GB. A 12 MP
 /// phone photo fits; larger decoded images are downscaled to fit ([`image::from_image`]).
-pub const MAX_INPUT_PIXELS: u64 = 1 << 24;
+pub(crate) const MAX_INPUT_PIXELS: u64 = 1 << 24;
 
 /// Why an input of `w x h` pixels is refused, if it is.
-pub fn too_large_for_the_network(w: usize, h: usize) -> Option<String> {
+pub(crate) fn too_large_for_the_network(w: usize, h: usize) -> Option<String> {
     let pixels = (w as u64).saturating_mul(h as u64);
     (pixels > MAX_INPUT_PIXELS).then(|| {
         format!(

@@ -17,9 +17,9 @@ use std::sync::{Mutex, OnceLock};
 /// The ONNX Runtime release this build is made for (ort 2.0.0-rc.15, API 31).
 pub const ORT_VERSION: &str = "1.31.1";
 /// The library's file name in the wheel and in the cache.
-pub const LIB_NAME: &str = "libonnxruntime.so.1.31.1";
+pub(crate) const LIB_NAME: &str = "libonnxruntime.so.1.31.1";
 /// Its path inside the `onnxruntime` wheel.
-pub const WHEEL_MEMBER: &str = "onnxruntime/capi/libonnxruntime.so.1.31.1";
+pub(crate) const WHEEL_MEMBER: &str = "onnxruntime/capi/libonnxruntime.so.1.31.1";
 
 /// Where a runtime was found.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -28,21 +28,25 @@ pub enum RuntimeSource {
     EnvVar,
     /// Beside the executable.
     BesideExecutable,
-    /// The cache folder ([`cache_dir`]).
+    /// The cache folder: `$XDG_CACHE_HOME/sfpmap/onnxruntime-1.31.1`, else under
+    /// `$HOME/.cache`.
     Cache,
     /// Fetched just now by [`setup`].
     Fetched,
 }
 
+/// Where the ONNX Runtime library was found, and how.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct RuntimeLocation {
+    /// The library file.
     pub path: PathBuf,
+    /// Which place of the search it was in.
     pub source: RuntimeSource,
 }
 
 /// `$XDG_CACHE_HOME/sfpmap/onnxruntime-1.31.1` (XDG: a relative `XDG_CACHE_HOME` is ignored),
 /// else `$HOME/.cache/…`; `None` when neither is set.
-pub fn cache_dir() -> Option<PathBuf> {
+pub(crate) fn cache_dir() -> Option<PathBuf> {
     let base = std::env::var_os("XDG_CACHE_HOME")
         .map(PathBuf::from)
         .filter(|p| p.is_absolute())
@@ -80,7 +84,7 @@ fn is_runtime_name(name: &str) -> bool {
 
 /// The runtime's location by the discovery order, without fetching; the error lists where it
 /// looked.
-pub fn find_runtime() -> Result<RuntimeLocation, ExtractError> {
+pub(crate) fn find_runtime() -> Result<RuntimeLocation, ExtractError> {
     let mut searched = Vec::new();
     if let Some(p) = std::env::var_os("ORT_DYLIB_PATH").filter(|p| !p.is_empty()) {
         let path = PathBuf::from(p);
@@ -137,14 +141,17 @@ pub fn find_runtime() -> Result<RuntimeLocation, ExtractError> {
 /// What [`setup`] did.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct SetupReport {
+    /// The library in the cache.
     pub path: PathBuf,
+    /// Its length.
     pub bytes: u64,
     /// False when the library was already in the cache (and `force` was not set).
     pub fetched: bool,
 }
 
 /// Fetches `onnxruntime==1.31.1` from PyPI with `python3 -m pip download --no-deps` into a
-/// temporary folder and extracts [`WHEEL_MEMBER`] into [`cache_dir`] (temp file + rename).
+/// temporary folder and extracts its `libonnxruntime.so.1.31.1` into the cache folder
+/// ([`RuntimeSource::Cache`]; temp file + rename).
 ///
 /// The wheel is a zip; it is unpacked with `python3 -m zipfile`'s module from the same
 /// `python3` that pip needs anyway, so the extractor adds no zip/deflate crate for one file.
@@ -303,7 +310,7 @@ fn check_library_file(path: &Path) -> Result<String, ExtractError> {
 /// The release an ONNX Runtime library declares: its exported symbols carry the ELF symbol
 /// version `VERS_<release>` (ORT's linker version script). `ort` itself only checks that the
 /// API level is at least 31, and the build string names no release, so this is the exact check.
-pub fn declared_version(library: &[u8]) -> Option<String> {
+pub(crate) fn declared_version(library: &[u8]) -> Option<String> {
     const TAG: &[u8] = b"VERS_";
     let mut from = 0;
     while let Some(pos) = library[from..].windows(TAG.len()).position(|w| w == TAG) {
@@ -325,12 +332,15 @@ pub fn declared_version(library: &[u8]) -> Option<String> {
 /// The loaded runtime: where it came from and the release it declares.
 #[derive(Debug, Clone)]
 pub struct Runtime {
+    /// Where it was loaded from.
     pub location: RuntimeLocation,
+    /// The release the library declares (`1.31.1`).
     pub version: String,
     environment: ort::environment::Environment,
 }
 
 impl Runtime {
+    /// The process-wide ONNX Runtime environment sessions are built in.
     pub fn environment(&self) -> &ort::environment::Environment {
         &self.environment
     }

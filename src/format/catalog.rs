@@ -21,14 +21,18 @@ pub struct Place {
     pub map: String,
     /// The map's origin: world = origin + stored position.
     pub origin: [f64; 3],
-    /// The world bounding box of the map's points.
+    /// The smallest corner of the world bounding box of the map's points.
     pub bbox_min: [f64; 3],
+    /// The largest corner of that box.
     pub bbox_max: [f64; 3],
+    /// Points in the map.
     pub points: u64,
+    /// Images in the map.
     pub images: u64,
     /// The map's file length and index checksum (hex) when the catalog was built: a map
     /// replaced since is reported, not silently used.
     pub file_bytes: u64,
+    /// See `file_bytes`.
     pub index_checksum: String,
 }
 
@@ -43,18 +47,21 @@ impl Place {
 /// The metadata key under which a catalog lists its places.
 pub const CATALOG_KEY: &str = "catalog";
 
-/// What a catalog's metadata holds under [`CATALOG_KEY`].
+/// What a catalog's metadata holds under the key `catalog`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Listing {
+    /// The places, in the order of `place_images`.
     pub places: Vec<Place>,
     /// The places' common descriptor (`sift`, an SFP model's name), their dimension `d_in`.
     pub descriptor: String,
+    /// Their descriptors' dimension.
     pub d_in: u32,
 }
 
 /// A catalog, read from a map that is one; its arrays are checked against each other here.
 #[derive(Debug)]
 pub struct Catalog<'m> {
+    /// The places and their common descriptor.
     pub listing: Listing,
     /// Place `i`'s images are rows `place_images[i]..place_images[i + 1]` of `image_vlad`.
     pub place_images: Cow<'m, [u64]>,
@@ -62,6 +69,7 @@ pub struct Catalog<'m> {
     pub projection: Cow<'m, [f32]>,
     /// `[clusters × dims]`.
     pub centroids: Cow<'m, [f32]>,
+    /// Dimensions of the common space.
     pub dims: usize,
     /// `[images × clusters·dims]`, unit rows.
     pub image_vlad: Cow<'m, [f16]>,
@@ -139,6 +147,7 @@ impl<'m> Catalog<'m> {
         }))
     }
 
+    /// The places.
     pub fn places(&self) -> &[Place] {
         &self.listing.places
     }

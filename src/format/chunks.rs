@@ -145,6 +145,7 @@ impl<'m, T: bytemuck::Pod> CheckedByChunk<'m, T> {
         self.values.len()
     }
 
+    /// Whether the array is empty.
     pub fn is_empty(&self) -> bool {
         self.values.is_empty()
     }
@@ -331,7 +332,9 @@ impl<'m> Level<'m> {
 /// Image → point ids, in CSR form, the points checked where they are read (1.2, see
 /// [`CheckedByChunk`]): what a localizer that reads a few images' points per query takes.
 pub struct VisibilityByChunk<'m> {
+    /// `[images + 1]`: image `i`'s points are `points[offsets[i]..offsets[i + 1]]`.
     pub offsets: Cow<'m, [u64]>,
+    /// The images' point ids, end to end.
     pub points: CheckedByChunk<'m, u32>,
 }
 

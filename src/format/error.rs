@@ -7,8 +7,11 @@ use std::path::PathBuf;
 /// Names a section in errors: its kind, its level (if any) and its table index.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SectionRef {
+    /// Its position in the section table (0 = the first entry).
     pub index: usize,
+    /// What it holds.
     pub kind: SectionKind,
+    /// The level it belongs to; `None` for map-wide sections.
     pub level: Option<u16>,
 }
 
@@ -25,126 +28,232 @@ impl fmt::Display for SectionRef {
 /// Everything that can be wrong with a map file or a request made of it.
 ///
 /// Variants carry the numbers that explain the problem, so a message can say what was
-/// expected and what was found.
+/// expected and what was found. Offsets and lengths are in bytes, from the start of the file
+/// unless a field says otherwise; checksums are XXH3-64.
 #[derive(Debug, Clone, PartialEq)]
 #[non_exhaustive]
 pub enum Error {
     /// Reading or writing the file failed.
-    Io { path: PathBuf, message: String },
-    /// The path names a folder, FIFO, device or socket; `what` says which (`"a folder"`).
-    NotARegularFile { what: &'static str },
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The operating system's error, as text (so the error stays `Clone + PartialEq`).
+        message: String,
+    },
+    /// The path names a folder, FIFO, device or socket.
+    NotARegularFile {
+        /// Which (`"a folder"`).
+        what: &'static str,
+    },
     /// The file does not start with the sfpmap magic.
     BadMagic,
     /// The file's major version is not one this reader understands.
     VersionMismatch {
+        /// The major version this reader reads.
         expected: u16,
+        /// The file's major version.
         found: u16,
+        /// The file's minor version.
         minor: u16,
     },
     /// The endianness check field holds other bytes than expected.
-    BadEndianCheck { found: u32 },
+    BadEndianCheck {
+        /// The field's value, read little-endian.
+        found: u32,
+    },
     /// The file ends before something the index says is there.
     Truncated {
+        /// What was being read.
         what: &'static str,
+        /// The file length it needs.
         needed: u64,
+        /// The file's length.
         file_len: u64,
     },
     /// The file is longer than the index accounts for.
-    TrailingBytes { expected: u64, file_len: u64 },
+    TrailingBytes {
+        /// The length the header and table account for.
+        expected: u64,
+        /// The file's length.
+        file_len: u64,
+    },
     /// The header's table or metadata description is impossible.
-    BadIndex { what: &'static str },
+    BadIndex {
+        /// Which field, and why.
+        what: &'static str,
+    },
     /// The checksum over header, table and metadata does not match.
-    IndexChecksumMismatch { expected: u64, found: u64 },
-    /// The metadata is larger than [`super::METADATA_MAX_BYTES`].
-    MetadataTooLarge { len: u64, max: u64 },
+    IndexChecksumMismatch {
+        /// The header's checksum.
+        expected: u64,
+        /// The checksum of the bytes.
+        found: u64,
+    },
+    /// The metadata is larger than the format's limit.
+    MetadataTooLarge {
+        /// The metadata's length.
+        len: u64,
+        /// The limit (16 MiB).
+        max: u64,
+    },
     /// The metadata is not valid JSON of the expected shape.
-    BadMetadata { message: String },
+    BadMetadata {
+        /// The JSON parser's or the check's message.
+        message: String,
+    },
     /// A table entry has nonzero reserved fields, or a required entry an unknown dtype, codec
     /// or flag bit.
-    BadEntry { section: SectionRef, what: String },
+    BadEntry {
+        /// The entry.
+        section: SectionRef,
+        /// Which field, and why.
+        what: String,
+    },
     /// rows × cols × dtype size overflows or disagrees with the raw length.
     SizeMismatch {
+        /// The section.
         section: SectionRef,
+        /// Its declared rows.
         rows: u64,
+        /// Its declared columns.
         cols: u64,
+        /// Its declared decoded length.
         raw_len: u64,
     },
     /// A known section kind has another dtype or column count than the spec fixes.
     WrongLayout {
+        /// The section.
         section: SectionRef,
+        /// The layout the spec fixes (`"f32 x 3"`).
         expected: String,
+        /// The layout the table declares.
         found: String,
     },
     /// A section reaches past the end of the file.
     SectionOutOfBounds {
+        /// The section.
         section: SectionRef,
+        /// Where its stored bytes start.
         offset: u64,
+        /// Its stored length.
         len: u64,
+        /// The file's length.
         file_len: u64,
     },
-    /// A section does not start on the format's alignment.
-    Misaligned { section: SectionRef, offset: u64 },
+    /// A section does not start on the format's 64-byte alignment.
+    Misaligned {
+        /// The section.
+        section: SectionRef,
+        /// Where it starts.
+        offset: u64,
+    },
     /// Two regions of the file overlap (or are not in file order).
     Overlap {
+        /// The later section.
         section: SectionRef,
+        /// Where it starts.
         offset: u64,
+        /// Where the region before it ends.
         previous_end: u64,
     },
     /// Bytes between regions are not the zero padding the layout requires.
-    BadPadding { offset: u64, len: u64 },
+    BadPadding {
+        /// Where the padding starts.
+        offset: u64,
+        /// Its length.
+        len: u64,
+    },
     /// A required section of a kind this reader does not know.
-    UnknownRequiredSection { section: SectionRef },
+    UnknownRequiredSection {
+        /// The section (its kind is `SectionKind::Unknown`).
+        section: SectionRef,
+    },
     /// The header's `flags` name a required feature this reader does not know (1.1).
-    UnknownRequiredFeature { bits: u64 },
+    UnknownRequiredFeature {
+        /// The header's flags.
+        bits: u64,
+    },
     /// A section the metadata or another section needs is absent.
     MissingSection {
+        /// The kind missing.
         kind: SectionKind,
+        /// Its level; `None` for a map-wide section.
         level: Option<u16>,
     },
     /// The same kind (and level) appears twice.
-    DuplicateSection { section: SectionRef },
+    DuplicateSection {
+        /// The second of the two.
+        section: SectionRef,
+    },
     /// The stored bytes' checksum does not match the table.
     ChecksumMismatch {
+        /// The section.
         section: SectionRef,
+        /// The table's checksum.
         expected: u64,
+        /// The checksum of the stored bytes.
         found: u64,
     },
     /// (1.2) A chunk of a section's stored bytes does not match `chunk_checksums`.
     ChunkChecksumMismatch {
+        /// The section.
         section: SectionRef,
         /// The chunk's position in the section.
         chunk: u64,
         /// Its bytes in the section's stored bytes.
         bytes: std::ops::Range<u64>,
+        /// The chunk's checksum in `chunk_checksums`.
         expected: u64,
+        /// The checksum of the chunk's bytes.
         found: u64,
     },
     /// A compressed section does not decode to its declared raw length.
     Decode {
+        /// The section.
         section: SectionRef,
+        /// The decoder's message, or the lengths that disagree.
         message: String,
     },
     /// A compressed section declares a raw length beyond the cap derived from the file length.
     DecodedTooLarge {
+        /// The section.
         section: SectionRef,
+        /// Its declared decoded length.
         raw_len: u64,
+        /// The cap: 256 × the file's length, at least 1 MiB (read by range, also 256 × the
+        /// section's stored length).
         cap: u64,
     },
     /// Decoding a zstd section would take the bytes decoded from this open map past its
-    /// decode budget ([`super::decode_budget`]); at open: the zstd sections of known kinds
-    /// declare more than it together.
+    /// decode budget ([`Map::decode_budget`](super::Map::decode_budget)); at open: the zstd
+    /// sections of known kinds declare more than it together.
     DecodeBudgetExceeded {
+        /// The section.
         section: SectionRef,
+        /// Its declared decoded length.
         raw_len: u64,
+        /// What the map decoded before it.
         decoded: u64,
+        /// The budget: 256 × the file's length, at least 64 MiB.
         budget: u64,
     },
     /// Section contents or metadata contradict each other.
-    Inconsistent { what: String },
+    Inconsistent {
+        /// What disagrees with what.
+        what: String,
+    },
     /// A level was asked for that the map does not hold.
-    NoSuchLevel { level: u16, available: Vec<u16> },
+    NoSuchLevel {
+        /// The level asked for.
+        level: u16,
+        /// The map's levels.
+        available: Vec<u16>,
+    },
     /// Writer input is invalid (wrong lengths, bad dims, ...).
-    InvalidInput { what: String },
+    InvalidInput {
+        /// What, and why.
+        what: String,
+    },
 }
 
 impl fmt::Display for Error {

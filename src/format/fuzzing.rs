@@ -7,9 +7,17 @@
 //! which reaches the table, metadata, content and decoding checks behind them. Fixing up in
 //! the body, not in the target, keeps a crash reproducible by replaying its input file.
 
-use super::layout::{checksum, index_checksum, Header, RawEntry, ENTRY_LEN, HEADER_LEN};
+use super::layout::index_checksum;
 use super::{slice, Catalog, Error, Map, RangeSource, SliceOptions, Wanted};
 use std::ops::Range;
+
+// The raw layout the fuzz crate and the tests craft maps with.
+pub use super::layout::{
+    align_up, checksum, Header, RawEntry, CHUNK_LEN, ENTRY_LEN, HEADER_LEN, METADATA_MAX_BYTES,
+    NO_LEVEL, SECTION_REQUIRED,
+};
+pub use super::reader::{decode_budget, decode_cap};
+pub use super::source::{COALESCE_GAP, HEAD_READ};
 
 /// A [`RangeSource`] over bytes in memory: what a server holding them would answer.
 pub struct BytesSource(pub Vec<u8>);

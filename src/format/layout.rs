@@ -56,16 +56,24 @@ pub const HEADER_FEATURES_KNOWN: u64 = FEATURE_DELTA;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 #[repr(u8)]
 pub enum Dtype {
+    /// Unsigned 8-bit integer.
     U8 = 1,
+    /// Unsigned 16-bit integer.
     U16 = 2,
+    /// Unsigned 32-bit integer.
     U32 = 3,
+    /// Unsigned 64-bit integer.
     U64 = 4,
+    /// IEEE 754 half-precision float.
     F16 = 5,
+    /// IEEE 754 single-precision float.
     F32 = 6,
+    /// IEEE 754 double-precision float.
     F64 = 7,
 }
 
 impl Dtype {
+    /// The dtype of a table entry's `dtype` byte; `None` for a code this version does not know.
     pub fn from_code(code: u8) -> Option<Dtype> {
         Some(match code {
             1 => Dtype::U8,
@@ -89,6 +97,7 @@ impl Dtype {
         }
     }
 
+    /// The spec's name (`f16`), as messages and `info --json` print it.
     pub fn name(self) -> &'static str {
         match self {
             Dtype::U8 => "u8",
@@ -113,11 +122,12 @@ pub enum Codec {
     Zstd = 1,
     /// (1.1) u32/u64 arrays: one zstd frame of the LEB128 varints of the zigzag differences
     /// of consecutive values (`format/delta.rs`). In a required section only behind the header
-    /// feature [`FEATURE_DELTA`].
+    /// feature bit for it (`FEATURE_DELTA`).
     Delta = 2,
 }
 
 impl Codec {
+    /// The codec of a table entry's `codec` byte; `None` for a code this version does not know.
     pub fn from_code(code: u8) -> Option<Codec> {
         match code {
             0 => Some(Codec::Raw),
@@ -127,6 +137,7 @@ impl Codec {
         }
     }
 
+    /// The spec's name (`raw`, `zstd`, `delta`).
     pub fn name(self) -> &'static str {
         match self {
             Codec::Raw => "raw",
@@ -239,6 +250,7 @@ impl SectionKind {
         (80, SectionKind::ChunkChecksums, "chunk_checksums"),
     ];
 
+    /// The kind of a table entry's `kind` field; an unknown code is [`SectionKind::Unknown`].
     pub fn from_code(code: u16) -> SectionKind {
         Self::KNOWN
             .iter()
@@ -247,6 +259,7 @@ impl SectionKind {
             .unwrap_or(SectionKind::Unknown(code))
     }
 
+    /// The `kind` code written in the table.
     pub fn code(self) -> u16 {
         match self {
             SectionKind::Unknown(c) => c,
@@ -386,14 +399,23 @@ impl std::fmt::Display for SectionKind {
 /// The fixed header, decoded.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Header {
+    /// Major version (offset 8).
     pub major: u16,
+    /// Minor version (offset 10).
     pub minor: u16,
+    /// Required-feature bits (offset 16; 1.1).
     pub flags: u64,
+    /// Entries in the section table (offset 24).
     pub section_count: u32,
+    /// Bytes per table entry (offset 28): at least 64, at most 1024.
     pub entry_len: u32,
+    /// Where the metadata JSON starts (offset 32).
     pub metadata_offset: u64,
+    /// Its length (offset 40).
     pub metadata_len: u64,
+    /// The file's length as written (offset 48).
     pub file_len: u64,
+    /// XXH3-64 of header (this field zeroed), table and metadata (offset 56).
     pub index_checksum: u64,
 }
 
@@ -437,6 +459,7 @@ impl Header {
         })
     }
 
+    /// The header's 64 bytes.
     pub fn encode(&self) -> [u8; HEADER_LEN] {
         let mut b = [0u8; HEADER_LEN];
         b[..8].copy_from_slice(&MAGIC);
@@ -457,22 +480,36 @@ impl Header {
 /// One section-table entry, decoded but not yet validated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct RawEntry {
+    /// The section kind's code ([`SectionKind::code`]).
     pub kind: u16,
+    /// The level, or `NO_LEVEL` for a map-wide section.
     pub level: u16,
+    /// The element type's code ([`Dtype`]).
     pub dtype: u8,
+    /// The codec's code ([`Codec`]).
     pub codec: u8,
+    /// Section flags (`SECTION_REQUIRED`).
     pub flags: u8,
+    /// Zero in this version.
     pub reserved: u8,
+    /// Rows of the array.
     pub rows: u64,
+    /// Columns of the array.
     pub cols: u64,
+    /// Where the stored bytes start in the file (a multiple of 64).
     pub offset: u64,
+    /// Stored bytes (after the codec).
     pub stored_len: u64,
+    /// Decoded bytes: rows × cols × the dtype's size.
     pub raw_len: u64,
+    /// XXH3-64 of the stored bytes.
     pub checksum: u64,
+    /// Zero in this version.
     pub reserved2: u64,
 }
 
 impl RawEntry {
+    /// The first 64 bytes of an entry, decoded without any check.
     pub fn decode(b: &[u8]) -> RawEntry {
         RawEntry {
             kind: le_u16(b, 0),
@@ -491,6 +528,7 @@ impl RawEntry {
         }
     }
 
+    /// The entry's 64 bytes.
     pub fn encode(&self) -> [u8; ENTRY_LEN] {
         let mut b = [0u8; ENTRY_LEN];
         b[0..2].copy_from_slice(&self.kind.to_le_bytes());
@@ -524,7 +562,8 @@ pub fn index_checksum(header_prefix: &[u8], table: &[u8], metadata: &[u8]) -> u6
     h.digest()
 }
 
-/// Rounds `n` up to the next multiple of [`ALIGN`], or `None` on overflow.
+/// Rounds `n` up to the next multiple of the sections' alignment (`ALIGN`, 64), or `None` on
+/// overflow.
 pub fn align_up(n: u64) -> Option<u64> {
     n.checked_add(ALIGN - 1).map(|v| v & !(ALIGN - 1))
 }

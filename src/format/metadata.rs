@@ -9,6 +9,9 @@ pub const FORMAT_NAME: &str = "sfpmap";
 /// The coordinate convention every map uses (see spec, "Metadata").
 pub const CONVENTION: &str = "colmap";
 
+/// The map's JSON metadata block (`spec/format.md`, "Metadata"): what the arrays mean,
+/// their cameras and levels, and where the map came from. Keys this version does not know
+/// are kept in `extra`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Metadata {
     /// Always `"sfpmap"`.
@@ -29,6 +32,7 @@ pub struct Metadata {
     /// The levels, sorted by `level`.
     #[serde(default)]
     pub levels: Vec<LevelInfo>,
+    /// Where the map came from.
     #[serde(default)]
     pub provenance: Provenance,
     /// 1.1: which stored global descriptor the map retrieves with by default: `"vlad"`
@@ -65,6 +69,7 @@ pub enum Retrieval {
 }
 
 impl Retrieval {
+    /// The metadata's name for it (`vlad`, `global`).
     pub fn name(self) -> &'static str {
         match self {
             Retrieval::Vlad => "vlad",
@@ -72,6 +77,7 @@ impl Retrieval {
         }
     }
 
+    /// The retrieval named `name`; `None` for a name this version does not know.
     pub fn from_name(name: &str) -> Option<Retrieval> {
         match name {
             "vlad" => Some(Retrieval::Vlad),
@@ -118,7 +124,9 @@ impl Default for Metadata {
 /// quantised.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct PositionGrid {
+    /// The grid's corner, relative to the metadata `origin`.
     pub min: [f64; 3],
+    /// Step per axis.
     pub step: [f64; 3],
 }
 
@@ -184,7 +192,9 @@ pub struct CameraInfo {
     pub id: Option<u32>,
     /// COLMAP model name, e.g. `SIMPLE_RADIAL`.
     pub model: String,
+    /// Image width in pixels.
     pub width: u64,
+    /// Image height in pixels.
     pub height: u64,
     /// COLMAP parameter order for the model.
     pub params: Vec<f64>,
@@ -193,6 +203,7 @@ pub struct CameraInfo {
 /// One level of the pyramid: its keypoint stride and descriptor layout.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LevelInfo {
+    /// The level's id (0 = finest).
     pub level: u16,
     /// Feature-map stride in pixels (SFP) or the nominal scale of the level's bucket (SIFT).
     pub stride: f64,
@@ -229,6 +240,7 @@ pub struct Provenance {
     /// `sfpmap <version>`.
     #[serde(default)]
     pub tool: String,
+    /// The input files (model files, database, images folder's images).
     #[serde(default)]
     pub sources: Vec<SourceFile>,
     /// Extractor model, if descriptors came from one.
@@ -245,8 +257,11 @@ pub struct Provenance {
 /// A file that went into the map, with its size and XXH3-64 hash.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SourceFile {
+    /// The path as given.
     pub path: String,
+    /// Its length.
     pub bytes: u64,
+    /// XXH3-64 of its bytes (hex).
     pub xxh3: String,
 }
 

@@ -20,8 +20,11 @@ pub const MAX_PQ_CENTROIDS: u64 = 256;
 /// one (position `j` of the quantised vector is level dimension `order[j]`).
 #[derive(Debug, Clone)]
 pub struct Pq<'m> {
+    /// Codes per point (`M`).
     pub subspaces: usize,
+    /// Centroids per subspace (`K`).
     pub centroids: usize,
+    /// Dimensions per subspace.
     pub sub_dims: usize,
     /// `[M·K × sub_dims]` f32: subspace m's centroid k is row `m·K + k`.
     pub codebook: Cow<'m, [f32]>,
@@ -59,6 +62,7 @@ impl Pq<'_> {
 /// `row` (level dimensions) in quantisation order into `out`: `out[j] = row[order[j]]`, a
 /// copy without an order. The one gather every PQ user shares (the writer's encoder, the
 /// localizer's query tables); [`Pq::decode_row`] is its inverse.
+#[cfg(any(feature = "localize", feature = "colmap-model", test))]
 pub fn gather(order: Option<&[u16]>, row: &[f32], out: &mut [f32]) {
     match order {
         None => out.copy_from_slice(&row[..out.len()]),

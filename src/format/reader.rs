@@ -143,6 +143,7 @@ impl Section {
         self.checksum
     }
 
+    /// How errors name this section.
     pub fn reference(&self) -> SectionRef {
         SectionRef {
             index: self.index,
@@ -365,6 +366,7 @@ impl<'a> Map<'a> {
         format!("{}.{}", self.header.major, self.header.minor)
     }
 
+    /// The file's length in bytes.
     pub fn file_len(&self) -> u64 {
         self.header.file_len
     }
@@ -375,6 +377,7 @@ impl<'a> Map<'a> {
         self.header.index_checksum
     }
 
+    /// The metadata block, parsed and checked at open.
     pub fn metadata(&self) -> &Metadata {
         &self.metadata
     }
@@ -390,10 +393,12 @@ impl<'a> Map<'a> {
         self.sections.iter().filter(|s| s.skipped.is_some())
     }
 
+    /// Points in the map.
     pub fn n_points(&self) -> u64 {
         self.n_points
     }
 
+    /// Images in the map.
     pub fn n_images(&self) -> u64 {
         self.n_images
     }

@@ -17,6 +17,7 @@ pub struct SliceOptions {
     /// Re-encode every kept section with this codec; `None` keeps each section's codec
     /// (and its stored bytes, copied without decoding).
     pub codec: Option<Codec>,
+    /// zstd's level for sections re-encoded with zstd.
     pub zstd_level: i32,
     /// (1.1) Keep only what localization reads, compactly: drop point ids and colours and the
     /// visibility keypoints, store positions on a grid (`point_positions_q16`, 6 bytes a point)
@@ -29,7 +30,9 @@ pub struct SliceOptions {
 /// What a slice kept and dropped.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct SliceSummary {
+    /// Points in the map.
     pub points_before: u64,
+    /// Points in the slice.
     pub points_after: u64,
     /// Sections whose stored bytes were copied without decoding.
     pub sections_copied: usize,

@@ -84,8 +84,9 @@ pub struct SourceStats {
     pub requests: u64,
     /// Body bytes received from the origin.
     pub bytes: u64,
-    /// Sections served from the cache, and their bytes.
+    /// Sections served from the cache.
     pub cache_hits: u64,
+    /// Bytes served from the cache.
     pub cache_bytes: u64,
     /// Sections read again from the origin because the bytes first read were damaged.
     pub refetched: u64,
@@ -95,10 +96,12 @@ pub struct SourceStats {
 
 /// Ranges closer than this are read as one request (the bytes between are read and dropped):
 /// one round trip costs more than this many bytes on any link a map is read over.
+#[cfg(any(feature = "remote", feature = "fuzzing", test))]
 pub const COALESCE_GAP: u64 = 64 << 10;
 
 /// Groups sorted `wanted` into runs that one ranged read can serve: each run is the range
 /// covering it and the positions of its members.
+#[cfg(any(feature = "remote", test))]
 pub fn coalesce(wanted: &[&Wanted]) -> Vec<(Range<u64>, Vec<usize>)> {
     let mut order: Vec<usize> = (0..wanted.len()).collect();
     order.sort_by_key(|&i| wanted[i].range.start);
@@ -116,7 +119,7 @@ pub fn coalesce(wanted: &[&Wanted]) -> Vec<(Range<u64>, Vec<usize>)> {
     runs
 }
 
-/// How much of a map [`Map::open_source`] reads first: the header, a table of ~1,000 sections
+/// How much of a map [`Map::open_source`](super::Map::open_source) reads first: the header, a table of ~1,000 sections
 /// and the metadata of most maps.
 pub const HEAD_READ: u64 = 64 << 10;
 

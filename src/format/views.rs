@@ -533,10 +533,12 @@ pub struct Images<'m> {
 }
 
 impl<'m> Images<'m> {
+    /// How many images.
     pub fn len(&self) -> usize {
         self.poses.len()
     }
 
+    /// Whether there are none.
     pub fn is_empty(&self) -> bool {
         self.poses.is_empty()
     }
@@ -550,7 +552,9 @@ impl<'m> Images<'m> {
 /// Image → point ids, in CSR form.
 #[derive(Debug, Clone)]
 pub struct Visibility<'m> {
+    /// `[images + 1]`: image `i`'s points are `points[offsets[i]..offsets[i + 1]]`.
     pub offsets: Cow<'m, [u64]>,
+    /// The images' point ids, end to end.
     pub points: Cow<'m, [u32]>,
     /// The pixel of each entry, if stored.
     pub keypoints: Option<Cow<'m, [[f32; 2]]>>,
@@ -576,8 +580,11 @@ pub type GlobalDescriptors<'m> = (Cow<'m, [f16]>, usize);
 /// dimensions of `level`'s descriptors, and one VLAD of `clusters × dims` values per image.
 #[derive(Debug, Clone)]
 pub struct Vlad<'m> {
+    /// The level whose basis the codebook is on.
     pub level: u16,
+    /// Centroids of the codebook.
     pub clusters: usize,
+    /// Leading stored dimensions the codebook covers.
     pub dims: usize,
     /// `[clusters × dims]`.
     pub centroids: Cow<'m, [f32]>,
@@ -600,10 +607,12 @@ pub struct Level<'m> {
 }
 
 impl<'m> Level<'m> {
+    /// The level's id.
     pub fn id(&self) -> u16 {
         self.info.level
     }
 
+    /// Its metadata entry.
     pub fn info(&self) -> &'m LevelInfo {
         self.info
     }
@@ -613,14 +622,17 @@ impl<'m> Level<'m> {
         self.points.rows as usize
     }
 
+    /// Whether it holds no points.
     pub fn is_empty(&self) -> bool {
         self.points.rows == 0
     }
 
+    /// Dimensions of the `short` block.
     pub fn dim_short(&self) -> usize {
         self.info.dim_short as usize
     }
 
+    /// Dimensions of the full descriptor (`short` + `rest`).
     pub fn dim_full(&self) -> usize {
         self.info.dim_full as usize
     }
@@ -741,10 +753,12 @@ impl<'a> Map<'a> {
         ]
     }
 
+    /// Each point's 8-bit RGB colour, if the map stores them (`slice --minimal` drops them).
     pub fn point_colors(&self) -> Result<Option<Cow<'_, [[u8; 3]]>>, Error> {
         self.optional(SectionKind::PointColors)
     }
 
+    /// Each point's source id (COLMAP `point3D_id`), if the map stores them.
     pub fn point_ids(&self) -> Result<Option<Cow<'_, [u64]>>, Error> {
         self.optional(SectionKind::PointIds)
     }
@@ -799,6 +813,8 @@ impl<'a> Map<'a> {
             .find(|s| s.kind == SectionKind::LevelVladCentroids && s.skipped.is_none())
     }
 
+    /// Which points each image sees, with the keypoints where it sees them, if the map stores
+    /// visibility.
     pub fn visibility(&self) -> Result<Option<Visibility<'_>>, Error> {
         self.visibility_with(true)
     }
@@ -836,6 +852,7 @@ impl<'a> Map<'a> {
             .map(|info| self.make_level(info))
     }
 
+    /// The level with id `level`.
     pub fn level(&self, level: u16) -> Result<Level<'_>, Error> {
         let info = self
             .metadata()

@@ -21,6 +21,7 @@ use std::path::Path;
 pub enum Descriptors<'a> {
     /// Converted to f16 with round-to-nearest-even.
     F32(&'a [f32]),
+    /// Stored as they are.
     F16(Cow<'a, [f16]>),
 }
 
@@ -82,6 +83,7 @@ pub(super) fn owned_bytes<T: bytemuck::Pod>(values: Vec<T>) -> Cow<'static, [u8]
 }
 
 impl<'a> MapWriter<'a> {
+    /// A writer of a map with `metadata` and no sections yet.
     pub fn new(metadata: Metadata) -> Self {
         MapWriter {
             metadata,
@@ -103,10 +105,12 @@ impl<'a> MapWriter<'a> {
         self
     }
 
+    /// The metadata the map will hold.
     pub fn metadata(&self) -> &Metadata {
         &self.metadata
     }
 
+    /// The metadata, to change before writing.
     pub fn metadata_mut(&mut self) -> &mut Metadata {
         &mut self.metadata
     }
@@ -243,6 +247,7 @@ impl<'a> MapWriter<'a> {
         self
     }
 
+    /// Each point's 8-bit RGB colour (section `point_colors`).
     pub fn set_point_colors(&mut self, colors: &'a [[u8; 3]]) -> &mut Self {
         self.push_array(
             SectionKind::PointColors,
@@ -255,6 +260,7 @@ impl<'a> MapWriter<'a> {
         self
     }
 
+    /// Each point's source id, COLMAP `point3D_id` (section `point_ids`).
     pub fn set_point_ids(&mut self, ids: &'a [u64]) -> &mut Self {
         self.push_array(
             SectionKind::PointIds,

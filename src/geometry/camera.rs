@@ -377,14 +377,17 @@ impl Camera {
         (self.intrinsics.fx, self.intrinsics.fy)
     }
 
+    /// The COLMAP camera model.
     pub fn model(&self) -> CameraModel {
         self.model
     }
 
+    /// Image width in pixels.
     pub fn width(&self) -> u32 {
         self.width
     }
 
+    /// Image height in pixels.
     pub fn height(&self) -> u32 {
         self.height
     }

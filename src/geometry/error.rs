@@ -12,46 +12,90 @@ use super::{CameraModel, SUPPORTED};
 #[non_exhaustive]
 pub enum GeometryError {
     /// A camera model name that is not one of COLMAP's.
-    UnknownCameraModel { name: String },
+    UnknownCameraModel {
+        /// The name given.
+        name: String,
+    },
     /// A COLMAP camera model the localizer does not project (see [`SUPPORTED`]).
-    UnsupportedCameraModel { model: CameraModel },
+    UnsupportedCameraModel {
+        /// The model.
+        model: CameraModel,
+    },
     /// The number of intrinsic parameters does not match the model.
     WrongParamCount {
+        /// The model.
         model: CameraModel,
+        /// Parameters it takes.
         expected: usize,
+        /// Parameters given.
         found: usize,
     },
     /// A camera description string could not be parsed.
-    ParseCamera { input: String, reason: String },
+    ParseCamera {
+        /// The string.
+        input: String,
+        /// What does not parse.
+        reason: String,
+    },
     /// Intrinsics that cannot describe a camera (zero size, non-positive focal, NaN).
-    InvalidCamera { reason: &'static str },
+    InvalidCamera {
+        /// Which value, and why.
+        reason: &'static str,
+    },
     /// The pixel and point slices (or a mask) have different lengths.
     LengthMismatch {
+        /// Which slice.
         what: &'static str,
+        /// Its length should be this (the correspondences').
         expected: usize,
+        /// Its length.
         found: usize,
     },
     /// Fewer correspondences than the estimator needs.
-    TooFewCorrespondences { found: usize, required: usize },
+    TooFewCorrespondences {
+        /// Correspondences given.
+        found: usize,
+        /// Correspondences needed.
+        required: usize,
+    },
     /// A NaN or infinite value in the input.
-    NonFinite { what: &'static str, index: usize },
+    NonFinite {
+        /// Which input (`"pixels"`, `"points"`, `"initial pose"`).
+        what: &'static str,
+        /// Its index.
+        index: usize,
+    },
     /// The input cannot determine a pose (coincident or collinear points, coincident pixels).
-    Degenerate { reason: &'static str },
+    Degenerate {
+        /// What is degenerate.
+        reason: &'static str,
+    },
     /// RANSAC ran its iterations without any minimal sample producing a pose.
-    NoModel { iterations: usize },
+    NoModel {
+        /// Iterations run.
+        iterations: usize,
+    },
     /// The best pose is supported by fewer inliers than required.
     TooFewInliers {
+        /// Its inliers.
         found: usize,
+        /// Inliers required.
         required: usize,
+        /// Iterations run.
         iterations: usize,
     },
     /// Options outside their valid range.
     InvalidOptions {
+        /// The option.
         field: &'static str,
+        /// Its valid range, or why the value is refused.
         reason: &'static str,
     },
     /// The pose refinement produced a non-finite pose or could not start.
-    RefinementFailed { reason: &'static str },
+    RefinementFailed {
+        /// Why.
+        reason: &'static str,
+    },
 }
 
 fn supported_names() -> String {

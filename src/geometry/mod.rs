@@ -61,7 +61,7 @@ mod ransac;
 #[cfg(feature = "geometry")]
 mod refine;
 #[cfg(feature = "geometry")]
-mod rng;
+pub(crate) mod rng;
 
 #[cfg(feature = "geometry")]
 pub use camera::{Camera, SUPPORTED};
@@ -74,9 +74,12 @@ pub use pose::Pose;
 #[cfg(feature = "geometry")]
 pub use ransac::{
     estimate_absolute_pose, estimate_absolute_pose_with_prior, reprojection_inliers,
-    required_iterations, PoseEstimate, RansacOptions, MIN_CORRESPONDENCES,
+    required_iterations, PoseEstimate, RansacOptions,
 };
+
 #[cfg(feature = "geometry")]
 pub use refine::{refine_pose, refine_pose_masked, RefineOptions, Refinement, RobustLoss};
-#[cfg(feature = "geometry")]
-pub use rng::SplitMix64;
+// The seeded generator of RANSAC's samples, k-means' too; the tests and benches draw from it
+// (`crate::fuzzing`).
+#[cfg(all(feature = "geometry", any(feature = "colmap-model", test)))]
+pub(crate) use rng::SplitMix64;

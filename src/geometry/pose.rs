@@ -14,7 +14,9 @@ const UNIT_TOLERANCE: f64 = 8.0 * f64::EPSILON;
 /// `gt_poses.txt` and `sfpmap localize` write.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Pose {
+    /// World-to-camera rotation.
     pub rotation: UnitQuaternion<f64>,
+    /// World origin in camera coordinates.
     pub translation: Vector3<f64>,
 }
 
@@ -25,6 +27,7 @@ impl Default for Pose {
 }
 
 impl Pose {
+    /// The pose `p_cam = rotation · p_world + translation`.
     pub fn new(rotation: UnitQuaternion<f64>, translation: Vector3<f64>) -> Self {
         Self {
             rotation,
@@ -32,6 +35,7 @@ impl Pose {
         }
     }
 
+    /// The camera at the world origin, looking along +z.
     pub fn identity() -> Self {
         Self::new(UnitQuaternion::identity(), Vector3::zeros())
     }
@@ -122,6 +126,7 @@ impl Pose {
         )
     }
 
+    /// The rotation as a matrix.
     pub fn rotation_matrix(&self) -> Rotation3<f64> {
         self.rotation.to_rotation_matrix()
     }

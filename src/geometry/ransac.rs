@@ -128,6 +128,7 @@ pub struct PoseEstimate {
     pub pose: Pose,
     /// One entry per correspondence: reprojection error below the threshold.
     pub inliers: Vec<bool>,
+    /// How many `inliers` are true.
     pub num_inliers: usize,
     /// RANSAC iterations (minimal samples drawn).
     pub iterations: usize,

@@ -18,9 +18,15 @@ pub enum RobustLoss {
     /// Plain least squares, `ρ(s) = s`.
     Trivial,
     /// Quadratic up to `scale` pixels, linear beyond.
-    Huber { scale: f64 },
+    Huber {
+        /// Where the loss turns linear, in pixels.
+        scale: f64,
+    },
     /// `ρ(s) = c²·ln(1 + s/c²)`: outliers far beyond `scale` pixels barely pull.
-    Cauchy { scale: f64 },
+    Cauchy {
+        /// `c`, in pixels.
+        scale: f64,
+    },
 }
 
 impl RobustLoss {
@@ -78,7 +84,9 @@ impl RobustLoss {
 /// Options of [`refine_pose`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct RefineOptions {
+    /// The robust loss on squared pixel residuals.
     pub loss: RobustLoss,
+    /// Most Levenberg–Marquardt iterations.
     pub max_iterations: usize,
     /// Stop when the largest gradient component falls below this.
     pub gradient_tolerance: f64,
@@ -131,6 +139,7 @@ impl RefineOptions {
 /// Result of [`refine_pose`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Refinement {
+    /// The refined `cam_from_world`.
     pub pose: Pose,
     /// `½·Σ ρ(|r|²)` at the initial pose.
     pub initial_cost: f64,

@@ -16,9 +16,13 @@ pub const COLMAP_FILES: [&str; 3] = ["cameras.txt", "images.txt", "points3D.txt"
 /// Counts of what was written.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ExportSummary {
+    /// Cameras written.
     pub cameras: usize,
+    /// Images written.
     pub images: usize,
+    /// 3D points written.
     pub points: usize,
+    /// Observations (2D points with a 3D point) written.
     pub observations: usize,
 }
 

@@ -22,24 +22,32 @@ const PYRAMID_LEVELS: u16 = 32;
 
 /// Keypoints in the file are in hloc's convention: the first pixel's centre is (0, 0), so
 /// COLMAP's coordinates are these + 0.5 (hloc adds it when it imports into COLMAP).
-pub const KEYPOINT_CONVENTION: &str =
+pub(crate) const KEYPOINT_CONVENTION: &str =
     "pixel centre of the first pixel = (0, 0) (hloc); COLMAP = value + 0.5";
 
 /// What went wrong writing or reading a features file.
 #[derive(Debug)]
 #[non_exhaustive]
 pub enum H5Error {
+    /// The HDF5 writer failed.
     Hdf5 {
+        /// The file.
         path: PathBuf,
+        /// The writer's message.
         reason: String,
     },
     /// Two images map to the same group, or a name cannot be a group path.
     BadName {
+        /// The image name.
         name: String,
+        /// Why it cannot be a group.
         reason: String,
     },
+    /// Writing the file failed.
     Io {
+        /// The file.
         path: PathBuf,
+        /// The operating system's error.
         source: std::io::Error,
     },
     /// The output cannot be written ([`crate::output`]'s policy or its I/O).
@@ -288,6 +296,8 @@ impl H5Features {
     /// The most bytes of metadata (group indexes, object headers) kept between queries.
     pub const METADATA_CACHE_BYTES: usize = 8 << 20;
 
+    /// Opens a features file and checks its root attributes; groups are read by name as
+    /// queries ask for them.
     pub fn open(path: &Path) -> Result<H5Features, InputError> {
         use hdf5_pure::Source;
         let err = |message: String| InputError {

@@ -104,6 +104,7 @@ pub struct Retrieval<'m> {
 }
 
 impl<'m> Retrieval<'m> {
+    /// What `map` (with metadata `meta`) stores for retrieval.
     pub fn of(map: &'m Map<'_>, meta: &'m Metadata) -> Retrieval<'m> {
         let vlad = map
             .sections()

@@ -10,7 +10,9 @@ pub mod features_h5;
 /// `info` needs `colmap-model` only to escape text (`colmap::text`).
 #[cfg(feature = "colmap-model")]
 pub mod info;
+// Documented item by item when the MCAP pipeline's move into the library (issue 30) lands.
 #[cfg(feature = "mcap")]
+#[allow(missing_docs)]
 pub mod mcap_io;
 #[cfg(feature = "plot")]
 pub mod plot;
@@ -27,8 +29,11 @@ use std::path::PathBuf;
 #[derive(Debug)]
 #[non_exhaustive]
 pub struct InputError {
+    /// The file.
     pub path: PathBuf,
+    /// 1-based line, for line-based files.
     pub line: Option<usize>,
+    /// What is wrong.
     pub message: String,
 }
 

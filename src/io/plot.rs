@@ -41,10 +41,13 @@ const GROUND_TRUTH: RGBColor = RGBColor(0, 128, 0);
 /// What to draw besides the map.
 #[derive(Debug, Clone)]
 pub struct PlotOptions {
+    /// PNG width in pixels.
     pub width: u32,
+    /// PNG height in pixels.
     pub height: u32,
     /// Points beyond this are subsampled (every k-th point) to keep the PNG readable.
     pub max_points: usize,
+    /// The caption.
     pub title: String,
     /// Localized camera centres by query name.
     pub estimated: Vec<(String, [f64; 3])>,
@@ -70,15 +73,19 @@ impl Default for PlotOptions {
 pub struct PlotSummary {
     /// World axes shown, horizontal then vertical (0 = x, 1 = y, 2 = z).
     pub axes: (usize, usize),
+    /// Map points drawn (after subsampling).
     pub points_drawn: usize,
+    /// Database cameras drawn.
     pub cameras: usize,
     /// Estimated poses that had a ground-truth pose of the same name.
     pub pairs: usize,
 }
 
+/// What can stop a plot.
 #[derive(Debug)]
 #[non_exhaustive]
 pub enum PlotError {
+    /// Reading the map.
     Format(Error),
     /// Plotters could not draw or encode the image.
     Draw(String),

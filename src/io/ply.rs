@@ -17,6 +17,7 @@ use std::io::Write;
 /// What a PLY export wrote.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PlySummary {
+    /// Points written.
     pub points: usize,
     /// Points in at least one level.
     pub points_in_levels: usize,

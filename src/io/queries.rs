@@ -11,7 +11,9 @@ use std::path::Path;
 /// One query: its image name and camera.
 #[derive(Debug, Clone)]
 pub struct Query {
+    /// The image name, as the list gives it.
     pub name: String,
+    /// Its camera.
     pub camera: Camera,
 }
 
@@ -54,6 +56,7 @@ pub struct DatabaseFeatures {
 
 #[cfg(feature = "colmap")]
 impl DatabaseFeatures {
+    /// Opens a COLMAP database of query features (read-only) and indexes its images by name.
     pub fn open(path: &Path) -> Result<DatabaseFeatures, crate::colmap::Error> {
         let db = crate::colmap::Database::open(path)?;
         let ids = db.images()?.into_iter().map(|i| (i.name, i.id)).collect();

@@ -333,7 +333,7 @@ pub(super) fn match_pq(
     )
 }
 
-/// [`match_pq`] against every row of `pq` (the benches' entry).
+/// `match_pq` against every row of `pq` (the benches' entry).
 #[cfg(any(test, feature = "fuzzing"))]
 pub fn match_pq_descriptors(
     query: &[f32],

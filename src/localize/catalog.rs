@@ -30,6 +30,7 @@ pub struct PlaceScore {
 }
 
 impl PlaceRanker {
+    /// The ranker of `catalog`'s places: its codebook, projection and image VLADs, widened to f32.
     pub fn new(catalog: &Catalog<'_>) -> Result<PlaceRanker, FormatError> {
         let codebook = Codebook::new(catalog.centroids.to_vec(), catalog.dims)
             .ok_or_else(|| FormatError::inconsistent("catalog: a codebook of no centroids"))?;

@@ -1,7 +1,7 @@
 //! The localizer's one unsafe call: matrixmultiply's sgemm, whose API takes raw pointers.
 #![allow(unsafe_code)]
 
-/// `out[n × m] = a[n × k] · b[m × k]ᵀ`, all row-major (`pub` only for `localize::internals`). Panics if a slice is too short, so
+/// `out[n × m] = a[n × k] · b[m × k]ᵀ`, all row-major (`pub` only for `crate::fuzzing`). Panics if a slice is too short, so
 /// the unsafe call below never reads or writes outside them.
 pub fn sgemm_abt(a: &[f32], b: &[f32], out: &mut [f32], n: usize, m: usize, k: usize) {
     // Checked products: a wrapped one could pass the check with slices far too short.

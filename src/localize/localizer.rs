@@ -35,12 +35,14 @@ pub struct FeatureSet {
     pub keypoints: Vec<[f64; 2]>,
     /// `[keypoints × dim]`, in the extractor's own space (before the level's projection).
     pub descriptors: Vec<f32>,
+    /// Dimensions per descriptor.
     pub dim: usize,
 }
 
 /// Everything known about one query image.
 #[derive(Debug, Clone, Default)]
 pub struct QueryFeatures {
+    /// Per-level feature sets (SFP), or one set for every level (SIFT).
     pub sets: Vec<FeatureSet>,
     /// Global descriptor for retrieval, if the extractor gives one.
     pub global: Option<Vec<f32>>,
@@ -53,7 +55,9 @@ pub struct QueryFeatures {
 /// known, the XXH3 of its ONNX file (a retrained model keeps its name, not its hash).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct FeatureModel {
+    /// The descriptor kind (`sfp-v2`, `sift`), as maps record it.
     pub name: String,
+    /// XXH3-64 of the model's ONNX file (hex), when known.
     pub xxh3: Option<String>,
 }
 
@@ -68,6 +72,7 @@ pub struct LocalizeOptions {
     pub top_k: usize,
     /// Which stored descriptor ranks the database images.
     pub retrieval: RetrievalMethod,
+    /// Descriptor matching: Lowe's ratio, mutual nearest neighbours.
     pub matching: MatchOptions,
     /// Coarse RANSAC threshold (px).
     pub coarse_error_px: f64,
@@ -101,8 +106,8 @@ impl Default for LocalizeOptions {
 }
 
 impl LocalizeOptions {
-    /// [`Default`], with Lowe's ratio for `map`'s descriptors ([`super::default_ratio`]:
-    /// 0.95 on SFP maps, 0.9 on SIFT maps). What the CLI, the demo and the C ABI start from.
+    /// [`Default`], with Lowe's ratio for `map`'s descriptors (`default_ratio`: 0.95 on SFP
+    /// maps, 0.9 on SIFT maps). What the CLI, the demo and the C ABI start from.
     pub fn for_map(map: &Map<'_>) -> Self {
         let descriptor = map
             .metadata()
@@ -187,10 +192,15 @@ impl std::error::Error for OptionError {}
 /// Milliseconds per stage.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct StageTimes {
+    /// Ranking the database images.
     pub retrieval_ms: f64,
+    /// Matching against the retrieved images' points on the coarse level.
     pub coarse_match_ms: f64,
+    /// LO-RANSAC on the coarse matches.
     pub coarse_ransac_ms: f64,
+    /// Guided matching and refinement on the finer levels.
     pub fine_ms: f64,
+    /// The whole query.
     pub total_ms: f64,
 }
 
@@ -201,8 +211,11 @@ pub struct Localization {
     pub outcome: Result<Pose, QueryFailure>,
     /// (level, inliers) of the final estimate.
     pub inliers_per_level: Vec<(u16, usize)>,
+    /// Matches of the final estimate (2D–3D correspondences tried).
     pub matches: usize,
+    /// Inliers of the final estimate.
     pub inliers: usize,
+    /// Database images retrieval kept (0 on the tracking path).
     pub retrieved_images: usize,
     /// The retrieved database images, best first (image indices of the map; empty on the
     /// tracking path and without retrieval).
@@ -215,6 +228,7 @@ pub struct Localization {
     pub path: LocalizationPath,
     /// With a pose prior: why tracking did not hold, so that the retrieval path ran.
     pub tracking_lost: Option<TrackingLost>,
+    /// Where the query's time went.
     pub times: StageTimes,
 }
 
@@ -229,6 +243,7 @@ pub enum LocalizationPath {
 }
 
 impl LocalizationPath {
+    /// `retrieval` or `tracking`, as `--json` prints it.
     pub fn name(self) -> &'static str {
         match self {
             LocalizationPath::Retrieval => "retrieval",
@@ -247,8 +262,11 @@ pub enum TrackingLost {
     /// Guided matching around the prior found fewer inliers than `needed`: `min_inliers`, or
     /// 30 % of its `matches` if more.
     TooFewInliers {
+        /// Inliers found.
         inliers: usize,
+        /// Inliers needed.
         needed: usize,
+        /// Matches tried.
         matches: usize,
     },
 }
@@ -307,11 +325,16 @@ impl Localization {
 pub enum QueryFailure {
     /// No pose from the coarse matches (too few, or no consistent subset).
     NoCoarsePose {
+        /// Why pose estimation failed.
         error: crate::geometry::GeometryError,
+        /// Coarse matches tried.
         matches: usize,
     },
     /// The best pose has fewer inliers than [`LocalizeOptions::min_inliers`].
-    TooFewInliers { inliers: usize },
+    TooFewInliers {
+        /// Its inliers.
+        inliers: usize,
+    },
     /// The caller could not produce the query's features (an unreadable image, a query
     /// missing from the features file); the caller's one-line reason.
     NoFeatures(String),
@@ -342,6 +365,7 @@ impl std::fmt::Display for QueryFailure {
 #[derive(Debug)]
 #[non_exhaustive]
 pub enum LocalizeError {
+    /// Reading the map's sections.
     Format(FormatError),
     /// An option out of its range ([`LocalizeOptions::validate`]).
     Option(OptionError),
@@ -349,28 +373,38 @@ pub enum LocalizeError {
     NoDescriptors,
     /// Query features do not fit the map's descriptor space.
     DescriptorMismatch {
+        /// The level.
         level: u16,
+        /// The dimension the level's descriptors (or projection) take.
         expected: usize,
+        /// The query's dimension.
         found: usize,
     },
     /// The query has no features for a level that is to be matched.
     NoFeaturesForLevel {
+        /// The level.
         level: u16,
     },
     /// A feature set's descriptors are not `keypoints × dim` values.
     FeatureShape {
+        /// Keypoints in the set.
         keypoints: usize,
+        /// The set's `dim`.
         dim: usize,
+        /// Descriptor values in the set.
         values: usize,
     },
     /// A level's sections disagree with its dimensions (the reader's checks should have
     /// caught it; the localizer sizes nothing from a claim it has not checked).
     BadLevel {
+        /// The level.
         level: u16,
+        /// What disagrees.
         message: String,
     },
     /// Every selected level was skipped (see [`SkippedLevel`]): nothing can be matched.
     NoUsableLevel {
+        /// Every selected level, and why it was skipped.
         skipped: Vec<SkippedLevel>,
     },
 }
@@ -379,7 +413,9 @@ pub enum LocalizeError {
 /// dimensions, a projection no query can fit).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct SkippedLevel {
+    /// The level.
     pub level: u16,
+    /// Why it is not matched.
     pub reason: String,
 }
 
@@ -502,6 +538,9 @@ pub struct Localizer<'m> {
 }
 
 impl<'m> Localizer<'m> {
+    /// Prepares `map` for localization with `options` (checked first,
+    /// [`LocalizeOptions::validate`]): the selected levels indexed over the map's own descriptor
+    /// blocks, its retrieval data, its images' viewpoints. Reads the sections it needs.
     pub fn new(map: &'m Map<'m>, options: LocalizeOptions) -> Result<Localizer<'m>, LocalizeError> {
         options.validate().map_err(LocalizeError::Option)?;
         if map.metadata().geometry_only || map.level_ids().is_empty() {
@@ -558,6 +597,7 @@ impl<'m> Localizer<'m> {
         })
     }
 
+    /// The options it was built with.
     pub fn options(&self) -> &LocalizeOptions {
         &self.options
     }
@@ -593,8 +633,8 @@ impl<'m> Localizer<'m> {
         self.localize_with_prior(query, camera, None)
     }
 
-    /// [`Self::localize`] with a pose prior (a sequence's prediction, see
-    /// [`MotionModel`](super::MotionModel)): the points of the database images nearest the
+    /// [`Self::localize`] with a pose prior (a sequence's prediction, as a
+    /// [`Session`](crate::session::Session) built with `.sequence(true)` makes): the points of the database images nearest the
     /// prior are matched by reprojection around it, with no retrieval and no coarse matching.
     /// If that gives fewer than `min_inliers` (tracking lost, [`TrackingLost`]), the query
     /// goes the retrieval path; [`Localization::path`] says which path localized it.

@@ -66,7 +66,7 @@ const BLOCK_BY_ROW: usize = 256;
 
 /// Matches unit-norm `query` rows (`[n_q × dim]`) against unit-norm `map` rows
 /// (`[n_m × dim]`), both row-major f32 (the benches' and tests' entry; the localizer decodes
-/// its rows through [`match_rows`]).
+/// its rows through `match_rows`).
 #[cfg(any(test, feature = "fuzzing"))]
 pub fn match_descriptors(
     query: &[f32],

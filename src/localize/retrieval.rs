@@ -61,9 +61,17 @@ pub enum RetrievalFallback {
     /// The query has no global descriptor (SIFT features, a features.h5 without one).
     NoQueryDescriptor,
     /// The query has no features for the level the map's VLAD aggregates.
-    NoQueryFeatures { level: u16 },
+    NoQueryFeatures {
+        /// The level.
+        level: u16,
+    },
     /// The query's descriptors have another length than the map's (another model).
-    DimensionMismatch { map: usize, query: usize },
+    DimensionMismatch {
+        /// The map's global descriptor dimension.
+        map: usize,
+        /// The query's.
+        query: usize,
+    },
     /// The map has no images, or no visibility to turn images into points.
     NoVisibility,
     /// The retrieved images see every point (`top_k` covers the map).

@@ -1,8 +1,7 @@
 //! Maps in object storage, read by range: `http://`, `https://` and `s3://` URLs through
-//! the `object_store` crate, with an on-disk cache of checked sections ([`cache`]).
+//! the `object_store` crate, with an on-disk cache of checked sections (`cache.rs`).
 //!
-//! [`open`] reads the first [`HEAD_READ`](crate::format::HEAD_READ) bytes in one GET (the
-//! header and, usually, the whole index), then [`Map`] fetches the sections it uses, merging
+//! [`open`] reads the first 64 KiB in one GET (the header and, usually, the whole index), then [`Map`] fetches the sections it uses, merging
 //! neighbours into one request. Every section GET carries `If-Match` with the ETag of the
 //! first response, so an object replaced meanwhile is an error, not a mix of two maps.
 //!
@@ -62,13 +61,13 @@ impl RemoteOptions {
 }
 
 /// The most bytes one GET asks for: a longer range is read in pieces.
-pub const MAX_REQUEST: u64 = 32 << 20;
+pub(crate) const MAX_REQUEST: u64 = 32 << 20;
 
 /// The largest object read whole from a server that ignores range requests.
-pub const MAX_WHOLE_OBJECT: u64 = 512 << 20;
+pub(crate) const MAX_WHOLE_OBJECT: u64 = 512 << 20;
 
 /// The cache's default cap.
-pub const DEFAULT_CACHE_MAX_BYTES: u64 = 2 << 30;
+pub(crate) const DEFAULT_CACHE_MAX_BYTES: u64 = 2 << 30;
 
 /// Opens the map at `url` by range.
 pub fn open(url: &str, options: &RemoteOptions) -> Result<Map<'static>, Error> {
@@ -77,7 +76,7 @@ pub fn open(url: &str, options: &RemoteOptions) -> Result<Map<'static>, Error> {
 }
 
 /// An object in an HTTP server or S3 bucket, read by range.
-pub struct RemoteSource {
+pub(crate) struct RemoteSource {
     url: String,
     store: Box<dyn ObjectStore>,
     path: StorePath,

@@ -7,10 +7,9 @@ use crate::shared_data;
 use std::path::{Path, PathBuf};
 
 use sfpmap::colmap::{
-    self, bin, text, Camera, CameraModel, Error, Image, ModelFormat, Point2D, Reconstruction,
-    TrackElement,
+    self, bin, text, Camera, Error, Image, ModelFormat, Point2D, Reconstruction, TrackElement,
 };
-use sfpmap::geometry::Pose;
+use sfpmap::geometry::{CameraModel, Pose};
 
 fn data_root() -> Option<PathBuf> {
     shared_data::shared_data("colmap")
@@ -603,8 +602,8 @@ fn fuzz_entry_points_take_anything() {
                 let at = (next() % data.len() as u64) as usize;
                 data[at] = next() as u8;
             }
-            sfpmap::build::fuzz_read_bin(&data);
-            colmap::fuzz_read_txt(&data);
+            sfpmap::fuzzing::read_colmap_bin(&data);
+            sfpmap::fuzzing::read_colmap_txt(&data);
         }
     }
 }

@@ -6,9 +6,9 @@ use crate::shared_data;
 
 use rusqlite::{params, Connection};
 use sfpmap::build::{convert, Aggregate, ConvertError, ConvertOptions};
-use sfpmap::colmap::{bin, Camera, CameraModel, Image, Point2D, Reconstruction, TrackElement};
+use sfpmap::colmap::{bin, Camera, Image, Point2D, Reconstruction, TrackElement};
 use sfpmap::format::{Codec, Map};
-use sfpmap::geometry::Pose;
+use sfpmap::geometry::{CameraModel, Pose};
 use sfpmap::progress::Silent;
 use std::path::{Path, PathBuf};
 

@@ -3,9 +3,9 @@
 #![cfg(feature = "fuzzing")]
 
 use sfpmap::format::{
-    checksum, slice, Codec, Descriptors, Error, LevelInfo, Map, MapWriter, SectionKind,
-    SliceOptions, CHUNK_LEN, ENTRY_LEN, HEADER_LEN,
+    slice, Codec, Descriptors, Error, LevelInfo, Map, MapWriter, SectionKind, SliceOptions,
 };
+use sfpmap::fuzzing::{checksum, CHUNK_LEN, ENTRY_LEN, HEADER_LEN};
 
 /// Points on a line, one level holding all of them (8 full, 2 short dims), one image seeing
 /// every point: positions 240 KB, the blocks 80 and 240 KB, visibility 80 KB for 20,000.
@@ -182,7 +182,7 @@ fn a_visibility_chunk_holding_an_index_past_the_points_is_refused_when_read() {
     let at = (vis.offset() + CHUNK_LEN + 8) as usize;
     bad[at..at + 4].copy_from_slice(&u32::MAX.to_le_bytes());
     // Every checksum fixed: only the contents rule can tell.
-    let bad = sfpmap::format::fuzzing::fix_checksums(&bad);
+    let bad = sfpmap::fuzzing::fix_checksums(&bad);
     let m = Map::from_bytes(&bad).unwrap();
     let v = m.visibility_by_chunk().unwrap().unwrap();
     let err = v.points_of(0).unwrap_err();
@@ -206,7 +206,7 @@ fn a_wrong_chunk_count_is_refused_at_open() {
     }
     let len = bad.len() as u64;
     bad[48..56].copy_from_slice(&len.to_le_bytes());
-    let bad = sfpmap::format::fuzzing::fix_checksums(&bad);
+    let bad = sfpmap::fuzzing::fix_checksums(&bad);
     let err = Map::from_bytes(&bad).unwrap_err();
     assert_eq!(err.kind_name(), "inconsistent", "{err}");
     assert!(err.to_string().contains("chunk_checksums"), "{err}");

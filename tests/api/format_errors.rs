@@ -3,10 +3,8 @@
 use crate::common;
 
 use common::{level_info, minimal, patch, with_extra_section, Scene};
-use sfpmap::format::{
-    checksum, Codec, Dtype, Error, Map, MapWriter, RawEntry, SectionKind, Skipped, HEADER_LEN,
-    METADATA_MAX_BYTES, NO_LEVEL,
-};
+use sfpmap::format::{Codec, Dtype, Error, Map, MapWriter, SectionKind, Skipped};
+use sfpmap::fuzzing::{checksum, RawEntry, HEADER_LEN, METADATA_MAX_BYTES, NO_LEVEL};
 use std::borrow::Cow;
 
 fn open_err(bytes: &[u8]) -> Error {
@@ -779,7 +777,7 @@ fn a_nonfinite_vlad_centroid_is_inconsistent() {
         .offset() as usize;
     let mut b = good.clone();
     b[at..at + 4].copy_from_slice(&f32::NAN.to_le_bytes());
-    let b = sfpmap::format::fuzzing::fix_checksums(&b);
+    let b = sfpmap::fuzzing::fix_checksums(&b);
     let err = Map::from_bytes(&b).unwrap().verify().unwrap_err();
     assert!(
         matches!(err, Error::Inconsistent { .. }) && err.to_string().contains("not finite"),

@@ -220,7 +220,7 @@ fn stored_sections_past_the_decode_cap_are_written_decoded() {
     // small new map.
     let kind = SectionKind::Unknown(0x7000);
     let zstd = common::Crafted::zstd(kind, u16::MAX, Dtype::U8, raw.len() as u64, 1, &raw);
-    assert!((raw.len() as u64) > sfpmap::format::decode_cap(zstd.stored.len() as u64));
+    assert!((raw.len() as u64) > sfpmap::fuzzing::decode_cap(zstd.stored.len() as u64));
     let other = SectionKind::Unknown(0x7001);
     let filler = common::Crafted::raw(other, u16::MAX, Dtype::U8, 20_000, 1, vec![0; 20_000]);
     let source = common::craft(
@@ -428,7 +428,7 @@ fn files_without_1_1_sections_stay_1_0() {
     }
     let unknown = common::with_extra_section(
         SectionKind::Unknown(0x7F01),
-        sfpmap::format::NO_LEVEL,
+        sfpmap::fuzzing::NO_LEVEL,
         false,
         None,
     );

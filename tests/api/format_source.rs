@@ -4,9 +4,8 @@
 
 use crate::common;
 
-use sfpmap::format::{
-    Error, Map, MapWriter, RangeSource, SectionKind, SourceStats, Wanted, HEAD_READ,
-};
+use sfpmap::format::{Error, Map, MapWriter, RangeSource, SectionKind, SourceStats, Wanted};
+use sfpmap::fuzzing::HEAD_READ;
 use std::ops::Range;
 use std::sync::Mutex;
 

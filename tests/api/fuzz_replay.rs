@@ -40,7 +40,7 @@ const VECTOR_DIRS: [&str; 2] = ["spec/vectors/valid", "spec/vectors/invalid"];
 
 #[test]
 fn format_targets_survive_their_corpus() {
-    use sfpmap::format::fuzzing::*;
+    use sfpmap::fuzzing::*;
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let vectors = VECTOR_DIRS
         .iter()
@@ -68,8 +68,8 @@ fn format_targets_survive_their_corpus() {
 #[test]
 fn colmap_targets_survive_their_corpus() {
     for (target, body) in [
-        ("colmap_bin", sfpmap::build::fuzz_read_bin as fn(&[u8])),
-        ("colmap_txt", sfpmap::colmap::fuzz_read_txt),
+        ("colmap_bin", sfpmap::fuzzing::read_colmap_bin as fn(&[u8])),
+        ("colmap_txt", sfpmap::fuzzing::read_colmap_txt),
     ] {
         let n = replay(target, body);
         assert!(n >= 3, "{target}: only {n} inputs");

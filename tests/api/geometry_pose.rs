@@ -3,10 +3,11 @@
 
 use nalgebra::{UnitQuaternion, Vector2, Vector3};
 use proptest::prelude::*;
+use sfpmap::fuzzing::SplitMix64;
 use sfpmap::geometry::{
     estimate_absolute_pose, estimate_absolute_pose_with_prior, p3p, refine_pose,
     refine_pose_masked, reprojection_inliers, required_iterations, Camera, GeometryError, Pose,
-    RansacOptions, RefineOptions, RobustLoss, SplitMix64,
+    RansacOptions, RefineOptions, RobustLoss,
 };
 
 struct Scene {

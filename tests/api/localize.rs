@@ -259,7 +259,8 @@ fn recovers_the_pose_from_product_quantised_levels() {
 /// reads makes that query an error (not a pose, not a panic), though the map opened.
 #[test]
 fn chunks_are_checked_where_the_localizer_reads_them() {
-    use sfpmap::format::{Error as FormatError, SectionKind, CHUNK_LEN};
+    use sfpmap::format::{Error as FormatError, SectionKind};
+    use sfpmap::fuzzing::CHUNK_LEN;
     let s = scene();
     let all: Vec<u32> = (0..N as u32).collect();
     let bytes = map_bytes_with(&s, &[all]);

@@ -1,7 +1,7 @@
 //! The generated street (`sfpmap::demo::street`) at a small size: its files are what COLMAP
 //! tools read, it converts, and every query localizes within 0.5 m and 2° (issue 11's bar
 //! for generated scenes).
-#![cfg(all(feature = "colmap", feature = "localize", feature = "onnx"))]
+#![cfg(feature = "demo")]
 
 use sfpmap::build::{convert, ConvertOptions};
 use sfpmap::demo::street::{write_street, StreetOptions};

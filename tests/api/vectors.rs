@@ -10,9 +10,9 @@ use common::{
     Scene, VladData,
 };
 use serde_json::{json, Value};
-use sfpmap::format::{
-    checksum, f16, slice, Codec, Dtype, Header, Map, MapWriter, RawEntry, SectionKind,
-    SliceOptions, ENTRY_LEN, HEADER_LEN, NO_LEVEL, SECTION_REQUIRED,
+use sfpmap::format::{f16, slice, Codec, Dtype, Map, MapWriter, SectionKind, SliceOptions};
+use sfpmap::fuzzing::{
+    checksum, Header, RawEntry, ENTRY_LEN, HEADER_LEN, NO_LEVEL, SECTION_REQUIRED,
 };
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
@@ -452,7 +452,7 @@ fn patched(file: &[u8], kind: SectionKind, at: usize, bytes: &[u8]) -> Vec<u8> {
     let start = section.offset() as usize + at;
     let mut b = file.to_vec();
     b[start..start + bytes.len()].copy_from_slice(bytes);
-    sfpmap::format::fuzzing::fix_checksums(&b)
+    sfpmap::fuzzing::fix_checksums(&b)
 }
 
 /// The scene (with level 1 product-quantised as in the `pq` vector when `pq`) plus one raw

@@ -3,10 +3,8 @@
 #![allow(dead_code)]
 
 use serde_json::{json, Value};
-use sfpmap::format::{
-    checksum, f16, CameraInfo, Codec, Descriptors, Header, LevelInfo, Map, MapWriter, RawEntry,
-    SectionKind, ENTRY_LEN, HEADER_LEN,
-};
+use sfpmap::format::{f16, CameraInfo, Codec, Descriptors, LevelInfo, Map, MapWriter, SectionKind};
+use sfpmap::fuzzing::{checksum, Header, RawEntry, ENTRY_LEN, HEADER_LEN};
 use std::borrow::Cow;
 
 /// Deterministic pseudo-random numbers (SplitMix64), so fixtures are the same everywhere.
@@ -579,7 +577,7 @@ impl Crafted {
             level,
             dtype: dtype as u8,
             codec: Codec::Raw as u8,
-            flags: sfpmap::format::SECTION_REQUIRED,
+            flags: sfpmap::fuzzing::SECTION_REQUIRED,
             rows,
             cols,
             raw_len: bytes.len() as u64,
@@ -606,7 +604,7 @@ impl Crafted {
 
     /// Clears the required flag (for unknown kinds a reader must skip).
     pub fn optional(mut self) -> Crafted {
-        self.flags &= !sfpmap::format::SECTION_REQUIRED;
+        self.flags &= !sfpmap::fuzzing::SECTION_REQUIRED;
         self
     }
 }
@@ -638,7 +636,7 @@ pub fn craft_level(level: u16, dim_full: u64, dim_short: u64) -> Value {
 pub fn craft_points(n: u64) -> Crafted {
     Crafted::raw(
         SectionKind::PointPositions,
-        sfpmap::format::NO_LEVEL,
+        sfpmap::fuzzing::NO_LEVEL,
         sfpmap::format::Dtype::F32,
         n,
         3,
@@ -668,7 +666,8 @@ pub fn craft(metadata: &Value, sections: &[Crafted]) -> Vec<u8> {
 
 /// [`craft`] with the metadata block given as bytes (which need not be JSON at all).
 pub fn craft_with_metadata_bytes(metadata: &[u8], sections: &[Crafted]) -> Vec<u8> {
-    use sfpmap::format::{align_up, VERSION_MAJOR};
+    use sfpmap::format::VERSION_MAJOR;
+    use sfpmap::fuzzing::align_up;
     let table_end = (HEADER_LEN + sections.len() * ENTRY_LEN) as u64;
     let mut out = vec![0u8; table_end as usize];
     out.extend_from_slice(metadata);

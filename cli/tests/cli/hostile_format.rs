@@ -8,7 +8,8 @@ use common::{
     craft, craft_level, craft_level_points, craft_metadata, craft_points, run_limited, Crafted,
     Limited,
 };
-use sfpmap::format::{Dtype, Map, SectionKind, NO_LEVEL};
+use sfpmap::format::{Dtype, Map, SectionKind};
+use sfpmap::fuzzing::NO_LEVEL;
 use std::ffi::OsStr;
 use std::path::Path;
 use std::time::Duration;
@@ -192,7 +193,7 @@ fn decode_budget_bomb() -> Vec<u8> {
 fn zstd_sections_share_one_decode_budget() {
     let bytes = decode_budget_bomb();
     assert!(bytes.len() < 400_000, "{} bytes", bytes.len());
-    let cap = sfpmap::format::decode_cap(bytes.len() as u64);
+    let cap = sfpmap::fuzzing::decode_cap(bytes.len() as u64);
     assert!(
         64 << 20 < cap,
         "each section must be under the per-section cap"
@@ -522,7 +523,7 @@ fn verify_streams_sections() {
 /// The fuzz bodies' checksum fix-up makes a damaged map reach the checks behind the checksums.
 #[test]
 fn fuzz_fixup_reaches_past_the_checksums() {
-    use sfpmap::format::fuzzing::fix_checksums;
+    use sfpmap::fuzzing::fix_checksums;
     let good = common::minimal();
     let mut bad = good.clone();
     // The low mantissa byte of the last position (a flip in its exponent byte could make it
@@ -537,7 +538,7 @@ fn fuzz_fixup_reaches_past_the_checksums() {
         .unwrap();
     // A metadata byte: the index checksum first, then the JSON itself.
     let mut bad = good.clone();
-    let header = sfpmap::format::Header::decode(&good).unwrap();
+    let header = sfpmap::fuzzing::Header::decode(&good).unwrap();
     bad[header.metadata_offset as usize] = b'[';
     assert_eq!(
         Map::from_bytes(&bad).unwrap_err().kind_name(),

@@ -9,11 +9,9 @@ use crate::common;
 
 use common::{run_limited, Limited};
 use rusqlite::{params, Connection};
-use sfpmap::colmap::{
-    bin, text, Camera, CameraModel, Image, Point2D, Reconstruction, TrackElement,
-};
+use sfpmap::colmap::{bin, text, Camera, Image, Point2D, Reconstruction, TrackElement};
 use sfpmap::format::{CameraInfo, MapWriter};
-use sfpmap::geometry::Pose;
+use sfpmap::geometry::{CameraModel, Pose};
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -666,7 +664,7 @@ fn write_map_at(path: &Path, origin: [f64; 3], relative: &[[f32; 3]], poses: &[[
             .collect();
         let positions = common::Crafted::raw(
             sfpmap::format::SectionKind::PointPositions,
-            sfpmap::format::NO_LEVEL,
+            sfpmap::fuzzing::NO_LEVEL,
             sfpmap::format::Dtype::F32,
             relative.len() as u64,
             3,

@@ -108,7 +108,7 @@ fn http_slice_info_verify_read_only_what_they_use() {
     let transfer = &report["transfer"];
     let bytes = transfer["bytes"].as_u64().unwrap();
     assert!(
-        bytes <= kept + sfpmap::format::COALESCE_GAP,
+        bytes <= kept + sfpmap::fuzzing::COALESCE_GAP,
         "{bytes} > {kept}"
     );
     assert!(bytes < map.file_len(), "{bytes} of {}", map.file_len());
@@ -165,7 +165,7 @@ fn http_localize_equals_local_and_runs_from_the_cache_the_second_time() {
     });
     let bytes = first["transfer"]["bytes"].as_u64().unwrap();
     assert!(
-        bytes <= used + 3 * sfpmap::format::COALESCE_GAP,
+        bytes <= used + 3 * sfpmap::fuzzing::COALESCE_GAP,
         "{bytes} > {used}"
     );
     assert!(bytes < map.file_len());
@@ -332,7 +332,7 @@ fn a_truncated_response_is_an_error() {
             };
             let mut request = [0u8; 4096];
             let _ = s.read(&mut request);
-            let len = map.len().min(sfpmap::format::HEAD_READ as usize);
+            let len = map.len().min(sfpmap::fuzzing::HEAD_READ as usize);
             let head = format!(
                 "HTTP/1.1 206 Partial Content\r\nContent-Length: {len}\r\nContent-Range: bytes 0-{}/{}\r\nETag: \"x\"\r\nConnection: close\r\n\r\n",
                 len - 1,
