@@ -5,20 +5,18 @@ use serde_json::json;
 use sfpmap::colmap::text::{escape_control_characters, quoted_name, text_name_problem};
 use sfpmap::format::Map;
 use sfpmap::geometry::Camera;
-use sfpmap::io::poses::{colmap_pose_line, tum_line};
+use sfpmap::io::poses::{write_query_poses, QueryPoseFormat};
 use sfpmap::io::queries::{read_query_list, Query};
-use sfpmap::localize::eval::median;
+use sfpmap::localize::eval::{median, PathCounts};
 use sfpmap::localize::{
     describe_skipped, Localization, LocalizeOptions, MatchOptions, QueryFailure, RetrievalMethod,
     SkippedLevel,
 };
 use sfpmap::progress::Reporter;
 use sfpmap::session::{QuerySource, Session, SessionError};
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Instant;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -41,6 +39,16 @@ pub enum PoseFormat {
     Tum,
     /// One JSON object per query, in a list.
     Json,
+}
+
+impl From<PoseFormat> for QueryPoseFormat {
+    fn from(format: PoseFormat) -> QueryPoseFormat {
+        match format {
+            PoseFormat::Colmap => QueryPoseFormat::Colmap,
+            PoseFormat::Tum => QueryPoseFormat::Tum,
+            PoseFormat::Json => QueryPoseFormat::Json,
+        }
+    }
 }
 
 /// Localize query images in a map: retrieval, coarse matching on the deepest level, P3P
@@ -315,78 +323,16 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         check_images_dir(dir)?;
     }
     let start = Instant::now();
-    let camera = args
-        .camera
-        .as_deref()
-        .map(Camera::parse)
-        .transpose()
-        .context("--camera")?;
-    let queries = read_query_list(&query_list, camera.as_ref())?;
-    check_pose_names(&query_list, args.format, &queries)?;
-    let images: Vec<PathBuf> = match &args.images {
-        Some(dir) => queries.iter().map(|q| dir.join(&q.name)).collect(),
-        None => Vec::new(),
-    };
-    check_outputs(&args, &[&query_list], &images)?;
+    let queries = read_queries(&args, &query_list)?;
     let source = query_source(&args, &queries, &query_list)?;
-    let opening = Instant::now();
-    let map = Arc::new(super::open_map(args.map_path())?);
-    let open_ms = opening.elapsed().as_secs_f64() * 1e3;
-    let indexing = Instant::now();
-    let images_missing = matches!(&source, QuerySource::Images { folder: None, .. });
-    let session = session(&args, map.clone(), source, args.sequence, SIFT_HINT, &bars)?;
-    if images_missing {
-        bail!(
-            "{}: pass the query images with --images DIR (features are extracted with the SFP model)",
-            query_list.display()
-        );
-    }
-    // Opening the map and building the localizer: all a remote map's reads (with the
-    // first query's time, when its first pose is ready).
-    let map_ms = json!({ "open": open_ms, "localizer": indexing.elapsed().as_secs_f64() * 1e3 });
-    bars.start("localizing", Some(queries.len() as u64));
-    let results: Vec<Mutex<Option<Localization>>> =
-        queries.iter().map(|_| Mutex::new(None)).collect();
-    let next = AtomicUsize::new(0);
-    // A sequence runs in order: one worker (the session tracks it).
-    let workers = if args.sequence { 1 } else { args.threads };
-    let first_error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
-    std::thread::scope(|s| {
-        for _ in 0..workers {
-            s.spawn(|| loop {
-                let i = next.fetch_add(1, Ordering::Relaxed);
-                let Some(q) = queries.get(i) else { break };
-                match session.localize(&q.name, &q.camera) {
-                    Ok(l) => *results[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(l),
-                    Err(e) => {
-                        first_error
-                            .lock()
-                            .unwrap_or_else(|p| p.into_inner())
-                            .get_or_insert(e.into());
-                    }
-                }
-                bars.advance(1);
-            });
-        }
-    });
-    bars.finish();
-    if let Some(e) = first_error.into_inner().unwrap_or_else(|p| p.into_inner()) {
-        return Err(e);
-    }
-    let global_skipped = session.global_deferred();
-    let results: Vec<Localization> = results
-        .into_iter()
-        .map(|m| {
-            m.into_inner()
-                .unwrap_or_else(|p| p.into_inner())
-                .expect("every query ran")
-        })
-        .collect();
+    let (session, map_ms) = open_session(&args, source, &query_list, &bars)?;
+    let results = session.localize_all(&queries, args.threads, &bars)?;
     // Queries that merely fail to localize are listed in the output; a run that could read no
     // query at all is an error.
     if results.iter().all(unread_query) {
         return Err(none_read(&query_list, &queries, &results));
     }
+    let map = session.map();
     // Names of the retrieved images, for `--format json`.
     let image_names: Vec<&str> = match (args.format, map.images()?) {
         (PoseFormat::Json, Some(images)) => (0..images.len())
@@ -402,43 +348,139 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         &results,
         &image_names,
     )?;
-    let localized = results.iter().filter(|r| r.pose().is_some()).count();
-    let failed: Vec<_> = queries
-        .iter()
-        .zip(&results)
-        .filter_map(|(q, r)| Some(json!({ "name": q.name, "reason": r.failure()?.to_string() })))
-        .collect();
-    let paths = PathCounts::of(results.iter().filter(|r| !unread_query(r)));
+    let run = Finished {
+        session: &session,
+        queries: &queries,
+        results: &results,
+        start,
+        map_ms,
+    };
     if args.json {
+        run.print_json(&args)?;
+    } else if !quiet {
+        run.print(&args, quiet);
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The queries of `query_list` (with `--camera` for all, if given), checked before any work:
+/// their names against `--format`, the outputs against the inputs.
+fn read_queries(args: &Args, query_list: &Path) -> anyhow::Result<Vec<Query>> {
+    let camera = args
+        .camera
+        .as_deref()
+        .map(Camera::parse)
+        .transpose()
+        .context("--camera")?;
+    let queries = read_query_list(query_list, camera.as_ref())?;
+    check_pose_names(query_list, args.format, &queries)?;
+    let images: Vec<PathBuf> = match &args.images {
+        Some(dir) => queries.iter().map(|q| dir.join(&q.name)).collect(),
+        None => Vec::new(),
+    };
+    check_outputs(args, &[query_list], &images)?;
+    Ok(queries)
+}
+
+/// The map opened and the session over it, with the times they took for `--json`'s
+/// `map_ms`: all a remote map's reads (with the first query's time, when its first pose is
+/// ready).
+fn open_session(
+    args: &Args,
+    source: QuerySource,
+    query_list: &Path,
+    bars: &super::Bars,
+) -> anyhow::Result<(Session, serde_json::Value)> {
+    let opening = Instant::now();
+    let map = Arc::new(super::open_map(args.map_path())?);
+    let open_ms = opening.elapsed().as_secs_f64() * 1e3;
+    let indexing = Instant::now();
+    // Without the extractor `query_source` has refused a run without --database already.
+    #[cfg(feature = "onnx")]
+    let images_missing = matches!(&source, QuerySource::Images { folder: None, .. });
+    #[cfg(not(feature = "onnx"))]
+    let images_missing = false;
+    let session = session(args, map, source, args.sequence, SIFT_HINT, bars)?;
+    if images_missing {
+        bail!(
+            "{}: pass the query images with --images DIR (features are extracted with the SFP model)",
+            query_list.display()
+        );
+    }
+    let localizer_ms = indexing.elapsed().as_secs_f64() * 1e3;
+    Ok((
+        session,
+        json!({ "open": open_ms, "localizer": localizer_ms }),
+    ))
+}
+
+/// A query-list run that wrote its poses, for its summary.
+struct Finished<'a> {
+    session: &'a Session,
+    queries: &'a [Query],
+    results: &'a [Localization],
+    start: Instant,
+    map_ms: serde_json::Value,
+}
+
+impl Finished<'_> {
+    /// The queries that were not localized, with why.
+    fn failed(&self) -> Vec<serde_json::Value> {
+        self.queries
+            .iter()
+            .zip(self.results)
+            .filter_map(|(q, r)| {
+                Some(json!({ "name": q.name, "reason": r.failure()?.to_string() }))
+            })
+            .collect()
+    }
+
+    fn localized(&self) -> usize {
+        self.results.iter().filter(|r| r.pose().is_some()).count()
+    }
+
+    fn paths(&self) -> PathCounts {
+        PathCounts::of(self.results.iter().filter(|r| !unread_query(r)))
+    }
+
+    /// `--json`: counts, paths, per-stage median times, what the map cost.
+    fn print_json(&self, args: &Args) -> anyhow::Result<()> {
+        let (results, map) = (self.results, self.session.map());
+        let paths = self.paths();
+        let inliers = results.iter().filter(|r| r.pose().is_some());
         super::print_json(&json!({
-            "queries": queries.len(),
-            "localized": localized,
-            "failed": failed,
+            "queries": self.queries.len(),
+            "localized": self.localized(),
+            "failed": self.failed(),
             "path": paths.path,
             "tracking_lost": paths.tracking_lost,
             "retrieval": paths.retrieval,
             "retrieval_fallback": paths.retrieval_fallback,
             // Sequence frames with a pose prior, extracted without the global descriptor
-            "global_skipped": global_skipped,
+            "global_skipped": self.session.global_deferred(),
             "output": args.output.display().to_string(),
-            "seconds": start.elapsed().as_secs_f64(),
-            "median_ms": median_ms(&results),
-            "median_inliers": median(results.iter().filter(|r| r.pose().is_some()).map(|r| r.inliers as f64).collect()),
+            "seconds": self.start.elapsed().as_secs_f64(),
+            "median_ms": median_ms(results),
+            "median_inliers": median(inliers.map(|r| r.inliers as f64).collect()),
             // Lowe's ratio used: --ratio, else the map's (LocalizeOptions::for_map)
-            "ratio": shortest_f64(session.options().matching.ratio),
-            "transfer": super::transfer_json(&map),
-            "map_ms": map_ms,
-        }))?;
-    } else if !quiet {
-        super::report_transfer(&map, quiet);
+            "ratio": shortest_f64(self.session.options().matching.ratio),
+            "transfer": super::transfer_json(map),
+            "map_ms": self.map_ms,
+        }))
+    }
+
+    /// The lines a person reads: counts, the median time, fallbacks and failures.
+    fn print(&self, args: &Args, quiet: bool) {
+        super::report_transfer(self.session.map(), quiet);
+        let total = self.queries.len();
         println!(
-            "{}: {localized}/{} localized, median {:.1} ms per query (after features)",
+            "{}: {}/{total} localized, median {:.1} ms per query (after features)",
             args.output.display(),
-            queries.len(),
-            median(results.iter().map(|r| r.times.total_ms).collect()).unwrap_or(f64::NAN)
+            self.localized(),
+            median(self.results.iter().map(|r| r.times.total_ms).collect()).unwrap_or(f64::NAN)
         );
-        paths.print(queries.len());
-        for f in &failed {
+        print_paths(&self.paths(), total);
+        for f in &self.failed() {
             // JSON escapes C0 controls but not DEL or C1 ones: escape them all for the terminal.
             println!(
                 "failed: {} ({})",
@@ -447,51 +489,18 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             );
         }
     }
-    Ok(ExitCode::SUCCESS)
 }
 
-/// How the queries were localized, counted: the path (retrieval or tracking), why tracking
-/// was lost, which stored descriptor ranked the images, and retrieval's fallbacks (queries
-/// matched against every point), each reason with its count.
-#[derive(Default)]
-pub(super) struct PathCounts {
-    pub path: BTreeMap<&'static str, usize>,
-    pub tracking_lost: BTreeMap<String, usize>,
-    pub retrieval: BTreeMap<&'static str, usize>,
-    pub retrieval_fallback: BTreeMap<String, usize>,
-}
-
-impl PathCounts {
-    pub(super) fn of<'a>(results: impl Iterator<Item = &'a Localization>) -> PathCounts {
-        let mut counts = PathCounts::default();
-        for r in results {
-            *counts.path.entry(r.path.name()).or_default() += 1;
-            if let Some(why) = r.tracking_lost {
-                *counts.tracking_lost.entry(why.to_string()).or_default() += 1;
-            }
-            if let Some(method) = r.retrieval {
-                *counts.retrieval.entry(method.name()).or_default() += 1;
-            }
-            if let Some(why) = r.retrieval_fallback {
-                *counts
-                    .retrieval_fallback
-                    .entry(why.to_string())
-                    .or_default() += 1;
-            }
-        }
-        counts
+/// The lines a person reads of how queries were localized: fallbacks and lost tracking,
+/// with counts of `total`.
+fn print_paths(paths: &PathCounts, total: usize) {
+    for (why, n) in &paths.retrieval_fallback {
+        println!(
+            "retrieval not used for {n} of {total} queries: {why}; every point was a candidate"
+        );
     }
-
-    /// The lines a person reads: fallbacks and lost tracking, with counts of `total`.
-    pub(super) fn print(&self, total: usize) {
-        for (why, n) in &self.retrieval_fallback {
-            println!(
-                "retrieval not used for {n} of {total} queries: {why}; every point was a candidate"
-            );
-        }
-        for (why, n) in &self.tracking_lost {
-            println!("tracking lost for {n} of {total} queries: {why}; retrieval was used");
-        }
+    for (why, n) in &paths.tracking_lost {
+        println!("tracking lost for {n} of {total} queries: {why}; retrieval was used");
     }
 }
 
@@ -560,7 +569,8 @@ fn check_pose_names(
     Ok(())
 }
 
-/// Writes all results through [`super::write_atomic`]; `query_list` names refused names.
+/// Writes all results through [`super::write_atomic`] ([`write_query_poses`]); `query_list`
+/// names refused names.
 pub(super) fn write_poses(
     path: &Path,
     format: PoseFormat,
@@ -570,76 +580,22 @@ pub(super) fn write_poses(
     image_names: &[&str],
 ) -> anyhow::Result<()> {
     check_pose_names(query_list, format, queries)?;
+    let names: Vec<&str> = queries.iter().map(|q| q.name.as_str()).collect();
     super::write_atomic(path, |out| {
-        pose_text(out, format, queries, results, image_names)
+        Ok(write_query_poses(
+            out,
+            format.into(),
+            &names,
+            results,
+            image_names,
+        )?)
     })
 }
 
-/// Why a query failed, on one line (a comment in the text formats).
+/// Why a query failed, on one line.
 fn failure(r: &Localization) -> String {
     let reason = r
         .failure()
         .map_or_else(|| "unknown".to_string(), |f| f.to_string());
     escape_control_characters(&reason).into_owned()
-}
-
-/// The results as `--format` says.
-fn pose_text(
-    out: &mut impl std::io::Write,
-    format: PoseFormat,
-    queries: &[Query],
-    results: &[Localization],
-    image_names: &[&str],
-) -> anyhow::Result<()> {
-    match format {
-        PoseFormat::Colmap => {
-            writeln!(out, "# name qw qx qy qz tx ty tz (COLMAP cam_from_world)")?;
-            for (q, r) in queries.iter().zip(results) {
-                match r.pose() {
-                    Some(p) => writeln!(out, "{}", colmap_pose_line(&q.name, p))?,
-                    None => writeln!(out, "# failed {}: {}", q.name, failure(r))?,
-                }
-            }
-        }
-        PoseFormat::Tum => {
-            writeln!(out, "# index tx ty tz qx qy qz qw (TUM: world_from_cam); query names in order of the list")?;
-            for (i, (q, r)) in queries.iter().zip(results).enumerate() {
-                match r.pose() {
-                    Some(p) => writeln!(out, "{}", tum_line(i, p))?,
-                    None => writeln!(
-                        out,
-                        "# failed {i} {}: {}",
-                        escape_control_characters(&q.name),
-                        failure(r)
-                    )?,
-                }
-            }
-        }
-        PoseFormat::Json => {
-            let list: Vec<_> = queries
-                .iter()
-                .zip(results)
-                .map(|(q, r)| {
-                    json!({
-                        "name": q.name,
-                        "cam_from_world": r.pose().map(|p| p.to_colmap()),
-                        "failure": r.failure().map(|f| f.to_string()),
-                        "inliers": r.inliers,
-                        "inliers_per_level": r.inliers_per_level,
-                        "matches": r.matches,
-                        "retrieved_images": r.retrieved_images,
-                        "retrieved": r.retrieved.iter().filter_map(|&i| image_names.get(i)).collect::<Vec<_>>(),
-                        "path": r.path.name(),
-                        "tracking_lost": r.tracking_lost.map(|w| w.to_string()),
-                        "retrieval": r.retrieval.map(|m| m.name()),
-                        "retrieval_fallback": r.retrieval_fallback.map(|w| w.to_string()),
-                        "ms": r.times.total_ms,
-                    })
-                })
-                .collect();
-            serde_json::to_writer_pretty(&mut *out, &list)?;
-            writeln!(out)?;
-        }
-    }
-    Ok(())
 }

@@ -9,7 +9,7 @@ use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::colmap::text::escape_control_characters;
 use sfpmap::format::{Catalog, Map, Place};
-use sfpmap::io::queries::read_query_list;
+use sfpmap::io::queries::{read_query_list, Query};
 use sfpmap::localize::catalog::PlaceRanker;
 use sfpmap::localize::Localization;
 use sfpmap::progress::Reporter;
@@ -95,8 +95,8 @@ pub(super) fn run(
         })?;
     // The place maps are inputs too: no output may replace one. Checked once, before any
     // query is read.
-    let places = catalog.places();
-    let place_paths = places
+    let place_paths = catalog
+        .places()
         .iter()
         .map(|p| resolve(catalog_path, &p.map))
         .collect::<anyhow::Result<Vec<_>>>()?;
@@ -112,59 +112,136 @@ pub(super) fn run(
     let catalog_name = catalog_path.display().to_string();
     let mut features =
         QueryReader::for_catalog(source, &catalog_name, &catalog.listing.descriptor, bars)?;
-    // Each place's session, made on first use: its map opened (only the sections the
-    // localizer reads, for URLs) and checked against what the catalog recorded.
-    let sessions: Vec<OnceLock<Result<Session, String>>> =
-        places.iter().map(|_| OnceLock::new()).collect();
-    let place_session = |i: usize| -> anyhow::Result<&Session> {
-        sessions[i]
+    let places = Places::new(args, catalog_path, catalog.places(), place_paths, bars);
+    let near = |i: usize| prior.is_none_or(|p| places.places[i].near(p, args.radius));
+    let found = localize_queries(&queries, &mut features, &ranker, &places, near, bars)?;
+    if !found.read_any {
+        return Err(none_read(query_list, &queries, &found.results));
+    }
+    write_poses(
+        &args.output,
+        args.format,
+        query_list,
+        &queries,
+        &found.results,
+        &[],
+    )?;
+    let summary = Summary {
+        catalog_path,
+        catalog_map: &catalog_map,
+        queries: &queries,
+        places: &places,
+        found: &found,
+    };
+    if args.json {
+        summary.print_json(args, start)?;
+    } else if !quiet {
+        summary.print(args);
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The catalog's places and each one's session, made on first use: its map opened (only the
+/// sections the localizer reads, for URLs) and checked against what the catalog recorded.
+struct Places<'a> {
+    args: &'a Args,
+    catalog_path: &'a Path,
+    places: &'a [Place],
+    paths: Vec<PathBuf>,
+    sessions: Vec<OnceLock<Result<Session, String>>>,
+    bars: &'a super::super::Bars,
+}
+
+impl<'a> Places<'a> {
+    fn new(
+        args: &'a Args,
+        catalog_path: &'a Path,
+        places: &'a [Place],
+        paths: Vec<PathBuf>,
+        bars: &'a super::super::Bars,
+    ) -> Places<'a> {
+        Places {
+            args,
+            catalog_path,
+            places,
+            paths,
+            sessions: places.iter().map(|_| OnceLock::new()).collect(),
+            bars,
+        }
+    }
+
+    /// Place `i`'s session.
+    fn session(&self, i: usize) -> anyhow::Result<&Session> {
+        self.sessions[i]
             .get_or_init(|| {
-                let map = open_place(catalog_path, &places[i], &place_paths[i])
+                let map = open_place(self.catalog_path, &self.places[i], &self.paths[i])
                     .map_err(|e| format!("{e:#}"))?;
-                let options = options(&map, args);
-                let path = &place_paths[i];
+                let options = options(&map, self.args);
+                let path = &self.paths[i];
                 let session = Session::builder(Arc::new(map), path.display().to_string())
                     .options(options)
-                    .build(bars)
+                    .build(self.bars)
                     .map_err(|e| e.to_string())?;
-                warn_skipped(&session.skipped_levels(), path, bars);
+                warn_skipped(&session.skipped_levels(), path, self.bars);
                 Ok(session)
             })
             .as_ref()
             .map_err(|e| anyhow::anyhow!("{e}"))
-    };
+    }
+}
 
+/// Each query's result, the place it went to and how the places ranked for it.
+struct Found {
+    results: Vec<Localization>,
+    chosen: Vec<Option<usize>>,
+    rankings: Vec<serde_json::Value>,
+    /// Whether any query's features could be read.
+    read_any: bool,
+}
+
+/// Each query localized in the best `--places` of those `near` allows, ranked for it; the
+/// pose with the most inliers wins.
+fn localize_queries(
+    queries: &[Query],
+    features: &mut QueryReader,
+    ranker: &PlaceRanker,
+    places: &Places<'_>,
+    near: impl Fn(usize) -> bool,
+    bars: &super::super::Bars,
+) -> anyhow::Result<Found> {
     bars.start("localizing", Some(queries.len() as u64));
-    let mut results = Vec::with_capacity(queries.len());
-    let mut chosen: Vec<Option<usize>> = Vec::with_capacity(queries.len());
-    let mut rankings: Vec<serde_json::Value> = Vec::with_capacity(queries.len());
-    let mut read_any = false;
-    for q in &queries {
+    let mut found = Found {
+        results: Vec::with_capacity(queries.len()),
+        chosen: Vec::with_capacity(queries.len()),
+        rankings: Vec::with_capacity(queries.len()),
+        read_any: false,
+    };
+    for q in queries {
         let f = match features.read(&q.name)? {
             Ok(f) => f,
             Err(reason) => {
-                results.push(unread(reason));
-                chosen.push(None);
-                rankings.push(json!([]));
+                found.results.push(unread(reason));
+                found.chosen.push(None);
+                found.rankings.push(json!([]));
                 bars.advance(1);
                 continue;
             }
         };
-        read_any = true;
-        let near = |i: usize| prior.is_none_or(|p| places[i].near(p, args.radius));
-        let ranked = ranker.rank(&f, near);
-        rankings.push(json!(ranked
+        found.read_any = true;
+        let ranked = ranker.rank(&f, &near);
+        found.rankings.push(json!(ranked
             .iter()
             .map(|r| json!({
-                "place": places[r.place].name,
+                "place": places.places[r.place].name,
                 "score": r.score,
             }))
             .collect::<Vec<_>>()));
         let mut best: Option<(Localization, usize)> = None;
-        for candidate in ranked.iter().take(args.places) {
-            let l = place_session(candidate.place)?
+        for candidate in ranked.iter().take(places.args.places) {
+            let l = places
+                .session(candidate.place)?
                 .localize_features(&f, &q.camera, &q.name)
-                .with_context(|| format!("place {:?}", places[candidate.place].name))?;
+                .with_context(|| format!("place {:?}", places.places[candidate.place].name))?;
             let better = match &best {
                 None => true,
                 Some((b, _)) => l.pose().is_some() && (b.pose().is_none() || l.inliers > b.inliers),
@@ -175,66 +252,94 @@ pub(super) fn run(
         }
         match best {
             Some((l, place)) => {
-                chosen.push(l.pose().is_some().then_some(place));
-                results.push(l);
+                found.chosen.push(l.pose().is_some().then_some(place));
+                found.results.push(l);
             }
             None => {
-                chosen.push(None);
-                results.push(unread("no place of the catalog could rank the query (none near --prior, or no retrieval data for its features)".into()));
+                found.chosen.push(None);
+                found.results.push(unread("no place of the catalog could rank the query (none near --prior, or no retrieval data for its features)".into()));
             }
         }
         bars.advance(1);
     }
     bars.finish();
-    if !read_any {
-        return Err(none_read(query_list, &queries, &results));
+    Ok(found)
+}
+
+/// A catalog run that wrote its poses, for its summary.
+struct Summary<'a> {
+    catalog_path: &'a Path,
+    catalog_map: &'a Map<'static>,
+    queries: &'a [Query],
+    places: &'a Places<'a>,
+    found: &'a Found,
+}
+
+impl Summary<'_> {
+    fn localized(&self) -> usize {
+        self.found
+            .results
+            .iter()
+            .filter(|r| r.pose().is_some())
+            .count()
     }
-    write_poses(
-        &args.output,
-        args.format,
-        query_list,
-        &queries,
-        &results,
-        &[],
-    )?;
-    let localized = results.iter().filter(|r| r.pose().is_some()).count();
-    let mut per_place: BTreeMap<&str, usize> = BTreeMap::new();
-    for p in chosen.iter().flatten() {
-        *per_place.entry(places[*p].name.as_str()).or_default() += 1;
-    }
-    let mut transfer = serde_json::Map::new();
-    for (i, s) in sessions.iter().enumerate() {
-        if let Some(Ok(session)) = s.get() {
-            let map = session.map();
-            transfer.insert(places[i].name.clone(), super::super::transfer_json(map));
+
+    /// How many queries each place localized.
+    fn per_place(&self) -> BTreeMap<&str, usize> {
+        let mut per_place: BTreeMap<&str, usize> = BTreeMap::new();
+        for p in self.found.chosen.iter().flatten() {
+            *per_place
+                .entry(self.places.places[*p].name.as_str())
+                .or_default() += 1;
         }
+        per_place
     }
-    if args.json {
+
+    /// `--json`: counts, each query's place and ranking, what the maps cost.
+    fn print_json(&self, args: &Args, start: std::time::Instant) -> anyhow::Result<()> {
+        let places = self.places.places;
+        let mut transfer = serde_json::Map::new();
+        for (i, s) in self.places.sessions.iter().enumerate() {
+            if let Some(Ok(session)) = s.get() {
+                let map = session.map();
+                transfer.insert(places[i].name.clone(), super::super::transfer_json(map));
+            }
+        }
+        let found = self.found;
+        let each = self.queries.iter().zip(&found.chosen).zip(&found.rankings);
+        let chosen: Vec<_> = each
+            .map(|((q, c), ranked)| {
+                json!({
+                    "name": q.name,
+                    "place": c.map(|p| places[p].name.clone()),
+                    "ranked": ranked,
+                })
+            })
+            .collect();
         super::super::print_json(&json!({
-            "queries": queries.len(),
-            "localized": localized,
-            "places": per_place,
-            "chosen": queries.iter().zip(&chosen).zip(&rankings).map(|((q, c), ranked)| json!({
-                "name": q.name,
-                "place": c.map(|p| places[p].name.clone()),
-                "ranked": ranked,
-            })).collect::<Vec<_>>(),
-            "catalog_transfer": super::super::transfer_json(&catalog_map),
+            "queries": self.queries.len(),
+            "localized": self.localized(),
+            "places": self.per_place(),
+            "chosen": chosen,
+            "catalog_transfer": super::super::transfer_json(self.catalog_map),
             "transfer": transfer,
             "output": args.output.display().to_string(),
             "seconds": start.elapsed().as_secs_f64(),
-        }))?;
-    } else if !quiet {
+        }))
+    }
+
+    /// The lines a person reads: the count and each place's share.
+    fn print(&self, args: &Args) {
         println!(
-            "{}: {localized}/{} localized with catalog {}",
+            "{}: {}/{} localized with catalog {}",
             args.output.display(),
-            queries.len(),
-            catalog_path.display()
+            self.localized(),
+            self.queries.len(),
+            self.catalog_path.display()
         );
-        for (name, n) in &per_place {
+        for (name, n) in &self.per_place() {
             // The catalog's text: control characters escaped, so it cannot drive the terminal.
             println!("  place {}: {n}", escape_control_characters(name));
         }
     }
-    Ok(ExitCode::SUCCESS)
 }

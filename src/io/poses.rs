@@ -2,7 +2,8 @@
 //! `gt_poses.txt` and `sfpmap localize` write them) read by [`read_poses`] and written by
 //! [`colmap_pose_line`]; and database image poses out to trajectory tools: TUM (`timestamp tx ty tz qx qy qz qw`,
 //! `world_from_cam`, what evo and the TUM scripts read) and COLMAP `images.txt` without
-//! observations.
+//! observations; and a list of localized queries in one of three layouts
+//! ([`write_query_poses`], what `sfpmap localize -o` writes).
 
 use super::InputError;
 use crate::colmap::text::escape_control_characters;
@@ -81,6 +82,115 @@ pub fn images_txt(map: &Map<'_>) -> Result<String, Error> {
 pub fn colmap_pose_line(name: &str, cam_from_world: &Pose) -> String {
     let [qw, qx, qy, qz, tx, ty, tz] = cam_from_world.to_colmap();
     format!("{name} {qw} {qx} {qy} {qz} {tx} {ty} {tz}")
+}
+
+/// How [`write_query_poses`] lays out a list of localized queries.
+#[cfg(feature = "localize")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum QueryPoseFormat {
+    /// `name qw qx qy qz tx ty tz` (COLMAP `cam_from_world`, [`colmap_pose_line`]), like
+    /// `gt_poses.txt`; a failed query as `# failed NAME: reason`.
+    Colmap,
+    /// `index tx ty tz qx qy qz qw` (TUM: the camera's pose in the world, [`tum_line`]); a
+    /// failed query as `# failed INDEX NAME: reason`.
+    Tum,
+    /// One JSON object per query (its pose, failure, inliers, retrieved images, path and
+    /// time), in a list.
+    Json,
+}
+
+/// The queries `names` and their `results` in `format`; `image_names` names the map's images
+/// the JSON lists as retrieved (empty: none named). A name a COLMAP row cannot hold
+/// ([`text_name_problem`](crate::colmap::text::text_name_problem)) is an `InvalidInput`
+/// error: refuse it before any work, as `sfpmap localize` does.
+#[cfg(feature = "localize")]
+pub fn write_query_poses(
+    out: &mut impl std::io::Write,
+    format: QueryPoseFormat,
+    names: &[&str],
+    results: &[crate::localize::Localization],
+    image_names: &[&str],
+) -> std::io::Result<()> {
+    use crate::colmap::text::{quoted_name, text_name_problem};
+    match format {
+        QueryPoseFormat::Colmap => {
+            writeln!(out, "# name qw qx qy qz tx ty tz (COLMAP cam_from_world)")?;
+            for (i, (name, r)) in names.iter().zip(results).enumerate() {
+                if let Some(problem) = text_name_problem(name) {
+                    return Err(std::io::Error::new(
+                        std::io::ErrorKind::InvalidInput,
+                        format!("query {} {} {problem}", i + 1, quoted_name(name)),
+                    ));
+                }
+                match r.pose() {
+                    Some(p) => writeln!(out, "{}", colmap_pose_line(name, p))?,
+                    None => writeln!(out, "# failed {name}: {}", failure(r))?,
+                }
+            }
+        }
+        QueryPoseFormat::Tum => {
+            writeln!(out, "# index tx ty tz qx qy qz qw (TUM: world_from_cam); query names in order of the list")?;
+            for (i, (name, r)) in names.iter().zip(results).enumerate() {
+                match r.pose() {
+                    Some(p) => writeln!(out, "{}", tum_line(i, p))?,
+                    None => writeln!(
+                        out,
+                        "# failed {i} {}: {}",
+                        escape_control_characters(name),
+                        failure(r)
+                    )?,
+                }
+            }
+        }
+        QueryPoseFormat::Json => {
+            let list: Vec<_> = names
+                .iter()
+                .zip(results)
+                .map(|(name, r)| query_json(name, r, image_names))
+                .collect();
+            serde_json::to_writer_pretty(&mut *out, &list)?;
+            writeln!(out)?;
+        }
+    }
+    Ok(())
+}
+
+/// A query's object in [`QueryPoseFormat::Json`].
+#[cfg(feature = "localize")]
+fn query_json(
+    name: &str,
+    r: &crate::localize::Localization,
+    image_names: &[&str],
+) -> serde_json::Value {
+    let retrieved: Vec<_> = r
+        .retrieved
+        .iter()
+        .filter_map(|&i| image_names.get(i))
+        .collect();
+    serde_json::json!({
+        "name": name,
+        "cam_from_world": r.pose().map(|p| p.to_colmap()),
+        "failure": r.failure().map(|f| f.to_string()),
+        "inliers": r.inliers,
+        "inliers_per_level": r.inliers_per_level,
+        "matches": r.matches,
+        "retrieved_images": r.retrieved_images,
+        "retrieved": retrieved,
+        "path": r.path.name(),
+        "tracking_lost": r.tracking_lost.map(|w| w.to_string()),
+        "retrieval": r.retrieval.map(|m| m.name()),
+        "retrieval_fallback": r.retrieval_fallback.map(|w| w.to_string()),
+        "ms": r.times.total_ms,
+    })
+}
+
+/// Why a query failed, on one line (a comment in the text formats).
+#[cfg(feature = "localize")]
+fn failure(r: &crate::localize::Localization) -> String {
+    let reason = r
+        .failure()
+        .map_or_else(|| "unknown".to_string(), |f| f.to_string());
+    escape_control_characters(&reason).into_owned()
 }
 
 /// Reads `name qw qx qy qz tx ty tz` lines (COLMAP `cam_from_world`); `#` lines are comments

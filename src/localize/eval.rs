@@ -1,20 +1,25 @@
 //! Pose evaluation against ground truth: median errors, recall at thresholds, and errors
 //! relative to the map's median nearest-camera distance (SfM scale is arbitrary).
 
+use super::Localization;
 use crate::format::{Error as FormatError, Map};
 use crate::geometry::Pose;
 use serde_json::json;
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 
 /// Evaluation of a set of estimated poses.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Evaluation {
+    /// The queries with ground truth.
     pub queries: usize,
+    /// How many of them were localized.
     pub localized: usize,
     /// Medians over all ground-truth queries, failures counted as infinite error (so a median
     /// is `None` when half or more failed).
     pub median_translation: Option<f64>,
+    /// The median rotation error, in degrees.
     pub median_rotation_deg: Option<f64>,
+    /// The median translation error over [`Evaluation::scale`].
     pub median_translation_rel: Option<f64>,
     /// (translation threshold, rotation threshold, share of queries within both).
     pub recall: Vec<(f64, f64, f64)>,
@@ -45,6 +50,47 @@ impl Evaluation {
             .iter()
             .map(|(t, r, v)| json!({ "translation": t, "rotation_deg": r, "recall": v }))
             .collect()
+    }
+}
+
+/// How localized queries went, counted: the path (retrieval or tracking), why tracking was
+/// lost, which stored descriptor ranked the images, and retrieval's fallbacks (queries
+/// matched against every point), each reason with its count (what `sfpmap localize --json`
+/// reports).
+#[derive(Debug, Default, Clone, PartialEq, Eq)]
+pub struct PathCounts {
+    /// Queries per [`LocalizationPath`](super::LocalizationPath) (`"retrieval"`,
+    /// `"tracking"`).
+    pub path: BTreeMap<&'static str, usize>,
+    /// Queries per reason tracking was lost ([`TrackingLost`](super::TrackingLost)).
+    pub tracking_lost: BTreeMap<String, usize>,
+    /// Queries per stored descriptor that ranked their images (`"vlad"`, `"global"`).
+    pub retrieval: BTreeMap<&'static str, usize>,
+    /// Queries per reason retrieval fell back to every point
+    /// ([`RetrievalFallback`](super::RetrievalFallback)).
+    pub retrieval_fallback: BTreeMap<String, usize>,
+}
+
+impl PathCounts {
+    /// The counts over `results`.
+    pub fn of<'a>(results: impl IntoIterator<Item = &'a Localization>) -> PathCounts {
+        let mut counts = PathCounts::default();
+        for r in results {
+            *counts.path.entry(r.path.name()).or_default() += 1;
+            if let Some(why) = r.tracking_lost {
+                *counts.tracking_lost.entry(why.to_string()).or_default() += 1;
+            }
+            if let Some(method) = r.retrieval {
+                *counts.retrieval.entry(method.name()).or_default() += 1;
+            }
+            if let Some(why) = r.retrieval_fallback {
+                *counts
+                    .retrieval_fallback
+                    .entry(why.to_string())
+                    .or_default() += 1;
+            }
+        }
+        counts
     }
 }
 

@@ -4,6 +4,8 @@
 //! features fit, and a sequence's tracking (the pose prior, and the global descriptor
 //! computed late when tracking is lost). The CLI, the Python package and the C ABI all
 //! localize through it; [`LocalizeOptions::validate`] is the one home of the options' rules.
+//! A list of queries runs on threads with [`Session::localize_all`]; the images of an MCAP
+//! log with [`mcap_log`] (feature `mcap`).
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -23,12 +25,15 @@
 //! # }
 //! ```
 
+#[cfg(feature = "mcap")]
+pub mod mcap_log;
 mod source;
 
 pub use source::{QueryReader, QuerySource};
 
 use crate::format::{Error as FormatError, Map};
 use crate::geometry::Camera;
+use crate::io::queries::Query;
 use crate::localize::{
     FeatureModel, Localization, LocalizeError, LocalizeOptions, Localizer, MotionModel,
     QueryFailure, QueryFeatures, SkippedLevel,
@@ -149,6 +154,7 @@ impl SessionBuilder {
 /// global descriptor (the sequence was tracking), the image to compute it from should
 /// tracking be lost.
 pub struct Frame {
+    /// The query's features.
     pub features: QueryFeatures,
     #[cfg(feature = "onnx")]
     deferred: Option<Box<crate::extract::image::GrayInput>>,
@@ -326,6 +332,55 @@ impl Session {
         }
     }
 
+    /// Each of `queries` from the session's source, localized as [`Session::localize`] does,
+    /// on `threads` workers (one for a sequence, whose queries run in order); the results in
+    /// the order of `queries`. Progress goes to `reporter`, one item per query. The first
+    /// error of any query stops the run.
+    pub fn localize_all(
+        &self,
+        queries: &[Query],
+        threads: usize,
+        reporter: &dyn Reporter,
+    ) -> Result<Vec<Localization>, SessionError> {
+        reporter.start("localizing", Some(queries.len() as u64));
+        let results: Vec<Mutex<Option<Localization>>> =
+            queries.iter().map(|_| Mutex::new(None)).collect();
+        let next = std::sync::atomic::AtomicUsize::new(0);
+        let workers = if self.is_sequence() {
+            1
+        } else {
+            threads.max(1)
+        };
+        let first_error: Mutex<Option<SessionError>> = Mutex::new(None);
+        std::thread::scope(|s| {
+            for _ in 0..workers {
+                s.spawn(|| loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(q) = queries.get(i) else { break };
+                    match self.localize(&q.name, &q.camera) {
+                        Ok(l) => *results[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(l),
+                        Err(e) => {
+                            let mut first = first_error.lock().unwrap_or_else(|p| p.into_inner());
+                            first.get_or_insert(e);
+                        }
+                    }
+                    reporter.advance(1);
+                });
+            }
+        });
+        reporter.finish();
+        if let Some(e) = first_error.into_inner().unwrap_or_else(|p| p.into_inner()) {
+            return Err(e);
+        }
+        Ok(results
+            .into_iter()
+            .map(|m| {
+                let result = m.into_inner().unwrap_or_else(|p| p.into_inner());
+                result.expect("every query ran")
+            })
+            .collect())
+    }
+
     /// `features` handed in (the caller's own extractor, or a query of any source),
     /// localized; `name` names the query in errors. Features that record their model are
     /// refused for a map of another model.
@@ -444,11 +499,19 @@ impl Session {
 pub enum SessionError {
     /// The localizer cannot be built: an option out of range, a level the map lacks, a map
     /// without descriptors.
-    Localize { map: String, source: LocalizeError },
+    Localize {
+        /// The map's name.
+        map: String,
+        /// Why.
+        source: LocalizeError,
+    },
     /// A query's features do not fit the map (dimensions, levels).
     Query {
+        /// The map's name.
         map: String,
+        /// The query's name.
         query: String,
+        /// Why.
         source: LocalizeError,
     },
     /// The source does not fit the map: features of another model, a SIFT map asked to
@@ -456,17 +519,29 @@ pub enum SessionError {
     Mismatch(String),
     /// A SIFT map (or one without descriptors) asked to extract its queries with the SFP
     /// model: its queries' features come from a database or a features file.
-    NotExtractable { map: String, descriptor: String },
+    NotExtractable {
+        /// The map's name.
+        map: String,
+        /// The map's descriptor kind (empty: none).
+        descriptor: String,
+    },
     /// The source is not one this call reads from (a name asked of handed-in features).
     NoSource(String),
     /// The map itself (a damaged section while reading it).
-    Map { map: String, source: FormatError },
+    Map {
+        /// The map's name.
+        map: String,
+        /// Why.
+        source: FormatError,
+    },
     /// A features file or a query list.
     Input(crate::io::InputError),
     /// A COLMAP database.
     #[cfg(feature = "colmap")]
     Database {
+        /// The database.
         path: std::path::PathBuf,
+        /// Why.
         source: crate::colmap::Error,
     },
     /// The extractor (its model, the runtime, an inference).

@@ -28,6 +28,7 @@ mod geometry_camera;
 mod geometry_pose;
 mod geometry_real;
 mod localize;
+mod mcap_log;
 mod session;
 mod street_scene;
 mod vectors;
