@@ -180,9 +180,7 @@ pub mod colmap;
 
 #[cfg(feature = "localize")]
 pub mod localize;
-// Documented item by item when the MCAP pipeline's move into the library (issue 30) lands.
 #[cfg(feature = "localize")]
-#[allow(missing_docs)]
 pub mod session;
 
 #[cfg(feature = "capi")]

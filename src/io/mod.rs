@@ -10,9 +10,7 @@ pub mod features_h5;
 /// `info` needs `colmap-model` only to escape text (`colmap::text`).
 #[cfg(feature = "colmap-model")]
 pub mod info;
-// Documented item by item when the MCAP pipeline's move into the library (issue 30) lands.
 #[cfg(feature = "mcap")]
-#[allow(missing_docs)]
 pub mod mcap_io;
 #[cfg(feature = "plot")]
 pub mod plot;

@@ -4,8 +4,6 @@
 mod adc;
 pub mod catalog;
 mod coarse;
-// Documented item by item when the MCAP pipeline's move into the library (issue 30) lands.
-#[allow(missing_docs)]
 pub mod eval;
 mod guided;
 mod kernels;

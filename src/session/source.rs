@@ -15,6 +15,9 @@ use std::path::PathBuf;
 pub enum QuerySource {
     /// Handed to each call ([`Session::localize_features`], [`Session::localize_frame`]):
     /// the caller's own extractor, or features of any origin.
+    ///
+    /// [`Session::localize_features`]: super::Session::localize_features
+    /// [`Session::localize_frame`]: super::Session::localize_frame
     Given,
     /// A COLMAP database holding the queries' keypoints and descriptors (SIFT maps), by
     /// image name.
@@ -27,14 +30,20 @@ pub enum QuerySource {
     /// Extracted with an SFP model from the images of `folder`, by name (`None`: images are
     /// handed to [`Session::extract`], as decoded from an MCAP log). `model`: an ONNX file or
     /// a built-in model's name; `None`: the built-in model the map was made with.
+    ///
+    /// [`Session::extract`]: super::Session::extract
     #[cfg(feature = "onnx")]
     Images {
+        /// The images' folder.
         folder: Option<PathBuf>,
+        /// The model.
         model: Option<PathBuf>,
     },
 }
 
-/// A source, opened.
+/// A source, opened. One per session (or catalog): the size of its largest variant does not
+/// matter, and which variant is largest depends on the features.
+#[allow(clippy::large_enum_variant)]
 pub(super) enum Source {
     Given,
     #[cfg(feature = "colmap")]

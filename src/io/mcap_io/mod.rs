@@ -55,25 +55,44 @@ pub enum McapIoError {
     /// A CDR message that does not hold the fields of its type.
     Cdr(CdrError),
     /// A channel whose schema and message encoding are not what the decoder reads (an image,
-    /// or camera info); `expected` lists what it does read.
+    /// or camera info).
     UnsupportedSchema {
+        /// The channel's schema name.
         schema: String,
+        /// The channel's message encoding.
         encoding: String,
+        /// What the decoder reads.
         expected: &'static str,
     },
     /// A raw image encoding (or compressed format) we do not turn into pixels.
-    UnsupportedImageEncoding { encoding: String },
+    UnsupportedImageEncoding {
+        /// The encoding (or format) the message gives.
+        encoding: String,
+    },
     /// Raw image fields that do not fit together (step, size, data length).
-    BadImage { reason: String },
+    BadImage {
+        /// Which, and how.
+        reason: String,
+    },
     /// JPEG/PNG decoding failed.
     ImageDecode {
+        /// The format the message gives.
         format: String,
+        /// The decoder's error.
         source: image::ImageError,
     },
     /// A JSON or protobuf message that does not hold the fields of its schema.
-    BadMessage { schema: String, reason: String },
+    BadMessage {
+        /// The schema name.
+        schema: String,
+        /// Which field, and how.
+        reason: String,
+    },
     /// Camera info we cannot express as a COLMAP camera.
-    Camera { reason: String },
+    Camera {
+        /// Why.
+        reason: String,
+    },
     /// The file does not start with the MCAP magic.
     NotMcap,
     /// The log is a directory, FIFO or device, not a file; the value says which (`"a FIFO"`).
@@ -82,49 +101,89 @@ pub enum McapIoError {
     Io(std::io::Error),
     /// A record's fields do not fit together or in the record.
     BadRecord {
+        /// The record's kind (`"chunk"`, `"message"`, ...).
         record: &'static str,
+        /// Which field, and how.
         reason: String,
     },
     /// A record's length runs past the end of what holds it (the data section, the summary
     /// or a chunk).
     RecordTooLong {
+        /// The record's kind.
         record: &'static str,
+        /// The length it gives.
         len: u64,
+        /// The bytes left in what holds it.
         available: u64,
+        /// What holds it (`"data section"`, `"summary"`, `"chunk"`).
         within: &'static str,
     },
     /// A record longer than [`MAX_RECORD`].
-    RecordOverLimit { record: &'static str, len: u64 },
+    RecordOverLimit {
+        /// The record's kind.
+        record: &'static str,
+        /// The length it gives.
+        len: u64,
+    },
     /// The log ends without a footer: it was cut off.
     CutOff,
     /// Fewer bytes than a record header left at the end of the data section, summary or chunk.
     Truncated {
+        /// The bytes of a record header.
         needed: u64,
+        /// The bytes left.
         available: u64,
+        /// What ends there.
         within: &'static str,
     },
     /// A chunk that says it decompresses to more than this file may ([`Limits`]).
-    ChunkTooLarge { uncompressed: u64, limit: u64 },
+    ChunkTooLarge {
+        /// The size the chunk gives.
+        uncompressed: u64,
+        /// [`Limits::chunk_uncompressed`].
+        limit: u64,
+    },
     /// A chunk that would take the log's chunks together past what they may decompress to
     /// ([`Limits::log_uncompressed`]).
     LogBudgetSpent {
+        /// The size the chunk gives.
         uncompressed: u64,
+        /// What the chunks before it took.
         spent: u64,
+        /// [`Limits::log_uncompressed`].
         limit: u64,
     },
     /// A chunk whose records do not match its CRC.
-    ChunkCrc { stored: u32, computed: u32 },
+    ChunkCrc {
+        /// The CRC the chunk gives.
+        stored: u32,
+        /// The CRC of its records.
+        computed: u32,
+    },
     /// A summary section that does not match the footer's CRC.
-    SummaryCrc { stored: u32, computed: u32 },
+    SummaryCrc {
+        /// The CRC the footer gives.
+        stored: u32,
+        /// The CRC of the summary.
+        computed: u32,
+    },
     /// A chunk's compressed records do not decompress.
     Decompress {
+        /// `"zstd"` or `"lz4"`.
         compression: &'static str,
+        /// The decompressor's error.
         reason: String,
     },
     /// A chunk compression other than zstd and lz4.
-    UnsupportedCompression { compression: String },
+    UnsupportedCompression {
+        /// The compression the chunk gives.
+        compression: String,
+    },
     /// A message on a channel no channel record defines.
-    UnknownChannel { id: u16 },
+    UnknownChannel {
+        /// The message's channel id.
+        id: u16,
+    },
     /// Writing the output MCAP.
     Mcap(mcap::McapError),
 }
@@ -244,7 +303,9 @@ impl From<mcap::McapError> for McapIoError {
 pub struct ImageMessage {
     /// The message's own stamp (`header.stamp`, `timestamp`); `None` when the message has none.
     pub stamp: Option<Stamp>,
+    /// The message's `frame_id` (empty when it has none).
     pub frame_id: String,
+    /// The pixels.
     pub image: DynamicImage,
 }
 

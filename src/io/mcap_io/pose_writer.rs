@@ -85,6 +85,7 @@ pub struct PoseWriter<W: Write + Seek> {
 }
 
 impl<W: Write + Seek> PoseWriter<W> {
+    /// A writer of an MCAP to `out` with the pose channel on `topic` (channel id 0).
     pub fn new(out: W, topic: &str) -> Result<Self, McapIoError> {
         let mut writer = mcap::WriteOptions::new()
             .library(concat!("sfpmap/", env!("CARGO_PKG_VERSION")))

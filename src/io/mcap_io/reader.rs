@@ -35,6 +35,7 @@ pub const CHUNK_FLOOR: u64 = 64 << 20;
 /// The size limits of one file, from its length.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Limits {
+    /// The file's length.
     pub file_len: u64,
     /// The most a chunk may decompress to.
     pub chunk_uncompressed: u64,
@@ -43,6 +44,7 @@ pub struct Limits {
 }
 
 impl Limits {
+    /// The limits of a file of `file_len` bytes.
     pub fn for_file(file_len: u64) -> Limits {
         let budget = file_len.saturating_mul(CHUNK_RATIO).max(CHUNK_FLOOR);
         Limits {
@@ -58,6 +60,7 @@ impl Limits {
 /// What the summary section says, when it is there and its CRC holds.
 #[derive(Debug, Default, Clone)]
 pub struct LogSummary {
+    /// The channels, by id.
     pub channels: BTreeMap<u16, Arc<Channel<'static>>>,
     /// Messages per channel id, from the statistics record.
     pub message_counts: Option<BTreeMap<u16, u64>>,
@@ -90,7 +93,9 @@ pub struct Damage {
     pub record: &'static str,
     /// The chunk's number (1-based) and the chunk count, when the chunk index lists it.
     pub chunk: Option<(usize, usize)>,
+    /// What is wrong with it.
     pub error: McapIoError,
+    /// What was skipped.
     pub skipped: Skipped,
 }
 

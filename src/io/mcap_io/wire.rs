@@ -9,7 +9,9 @@ use std::fmt;
 /// A time as ROS and Foxglove carry it: seconds and nanoseconds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Default)]
 pub struct Stamp {
+    /// Whole seconds since the epoch.
     pub sec: i64,
+    /// Nanoseconds past `sec` (below 10⁹).
     pub nsec: u32,
 }
 
@@ -29,15 +31,25 @@ impl Stamp {
 pub enum CdrError {
     /// The message ends before the field.
     Truncated {
+        /// The field.
         field: &'static str,
+        /// Where it starts in the message.
         offset: usize,
+        /// The bytes it needs.
         needed: usize,
+        /// The message's length.
         len: usize,
     },
     /// The 4-byte encapsulation header names a representation we do not read.
-    Encapsulation { id: [u8; 2] },
+    Encapsulation {
+        /// The representation id the header gives.
+        id: [u8; 2],
+    },
     /// A string field without its terminating NUL or not UTF-8.
-    BadString { field: &'static str },
+    BadString {
+        /// The field.
+        field: &'static str,
+    },
 }
 
 impl fmt::Display for CdrError {
