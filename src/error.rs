@@ -40,6 +40,9 @@ pub enum Error {
     /// An MCAP log ([`crate::io::mcap_io::McapIoError`]).
     #[cfg(feature = "mcap")]
     Mcap(crate::io::mcap_io::McapIoError),
+    /// Localizing the images of an MCAP log ([`crate::session::mcap_log::LogError`]).
+    #[cfg(feature = "mcap")]
+    McapLog(crate::session::mcap_log::LogError),
     /// Rendering a plot ([`crate::io::plot::PlotError`]).
     #[cfg(feature = "plot")]
     Plot(crate::io::plot::PlotError),
@@ -71,6 +74,8 @@ macro_rules! each_variant {
         $m!(FeaturesH5, crate::io::features_h5::H5Error);
         #[cfg(feature = "mcap")]
         $m!(Mcap, crate::io::mcap_io::McapIoError);
+        #[cfg(feature = "mcap")]
+        $m!(McapLog, crate::session::mcap_log::LogError);
         #[cfg(feature = "plot")]
         $m!(Plot, crate::io::plot::PlotError);
     };
@@ -111,6 +116,8 @@ impl Error {
             Error::FeaturesH5(e) => e,
             #[cfg(feature = "mcap")]
             Error::Mcap(e) => e,
+            #[cfg(feature = "mcap")]
+            Error::McapLog(e) => e,
             #[cfg(feature = "plot")]
             Error::Plot(e) => e,
         }

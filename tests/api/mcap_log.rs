@@ -219,4 +219,7 @@ fn a_session_that_does_not_extract_is_refused() {
         "{e:?}"
     );
     assert!(e.to_string().starts_with("m.sfpm: MCAP images need"), "{e}");
+    // The crate's error keeps the text.
+    let text = e.to_string();
+    assert_eq!(sfpmap::Error::from(e).to_string(), text);
 }
