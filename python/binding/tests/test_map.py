@@ -95,6 +95,25 @@ def test_close_keeps_views_valid_and_refuses_the_map(sacre_sift):
     gc.collect()
 
 
+def test_a_closed_map_makes_no_localizer_and_a_localizer_outlives_its_close(sacre_sift, shared):
+    scene = shared / "scenes/sacre-coeur"
+    database = sfpmap.QueryDatabase(str(scene / "queries.db"))
+    name, camera = sfpmap.read_queries(str(scene / "queries.txt"))[0]
+    m = sfpmap.Map(sacre_sift)
+    localizer = sfpmap.Localizer(m)
+    order = localizer.level_order
+    before = localizer.localize(database.features(name), camera)
+    m.close()
+    # A session over a closed map cannot be made; one made before holds the map it needs.
+    with pytest.raises(sfpmap.ClosedError, match="the map is closed"):
+        sfpmap.Localizer(m)
+    gc.collect()
+    assert localizer.level_order == order and order
+    # It still localizes from the mapping it keeps, as it did before the close.
+    after = localizer.localize(database.features(name), camera)
+    assert (after.success, after.colmap, after.inliers) == (before.success, before.colmap, before.inliers)
+
+
 def test_context_manager_closes(sacre_sift):
     with sfpmap.Map(sacre_sift) as m:
         pass
