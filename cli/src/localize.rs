@@ -225,12 +225,18 @@ fn session(
         .source(source)
         .sequence(sequence)
         .build(bars)
-        .map_err(|e| match e {
-            SessionError::NotExtractable { .. } => anyhow::anyhow!("{e}; {not_extractable}"),
-            e => e.into(),
-        })?;
+        .map_err(|e| with_hint(e, not_extractable))?;
     warn_skipped(&session.skipped_levels(), args.map_path(), bars);
     Ok(session)
+}
+
+/// A session error, with `not_extractable` (what to pass instead) after a map whose queries
+/// cannot be extracted.
+fn with_hint(e: SessionError, not_extractable: &str) -> anyhow::Error {
+    match e {
+        SessionError::NotExtractable { .. } => anyhow::anyhow!("{e}; {not_extractable}"),
+        e => e.into(),
+    }
 }
 
 /// Warns about the selected levels the localizer does not match (one line for all).
@@ -400,13 +406,17 @@ fn open_session(
     let images_missing = matches!(&source, QuerySource::Images { folder: None, .. });
     #[cfg(not(feature = "onnx"))]
     let images_missing = false;
-    let session = session(args, map, source, args.sequence, SIFT_HINT, bars)?;
+    // Refused before the session is built: that loads the model and reads the map's levels
+    // (all of them, for a URL).
     if images_missing {
+        let name = args.map_path().display().to_string();
+        sfpmap::session::check_extractable(&map, &name).map_err(|e| with_hint(e, SIFT_HINT))?;
         bail!(
             "{}: pass the query images with --images DIR (features are extracted with the SFP model)",
             query_list.display()
         );
     }
+    let session = session(args, map, source, args.sequence, SIFT_HINT, bars)?;
     let localizer_ms = indexing.elapsed().as_secs_f64() * 1e3;
     Ok((
         session,

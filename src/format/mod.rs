@@ -18,7 +18,7 @@ mod catalog;
 mod chunks;
 mod delta;
 mod error;
-// Fuzz-target bodies and the raw layout they edit: public at `crate::fuzzing`.
+// Fuzz-target bodies and the raw layout they edit: public at `sfpmap::fuzzing`.
 #[cfg(feature = "fuzzing")]
 pub(crate) mod fuzzing;
 mod layout;
@@ -52,7 +52,7 @@ pub use writer::{Descriptors, MapWriter};
 pub use half::f16;
 
 // The rest of the crate's view of the format's internals (the fuzzing hooks add the raw
-// layout, `crate::fuzzing`).
+// layout, `sfpmap::fuzzing`).
 #[cfg(any(feature = "colmap", feature = "onnx", feature = "remote"))]
 pub(crate) use layout::checksum;
 #[cfg(feature = "colmap-model")]

@@ -29,7 +29,7 @@
 pub mod mcap_log;
 mod source;
 
-pub use source::{QueryReader, QuerySource};
+pub use source::{check_extractable, QueryReader, QuerySource};
 
 use crate::format::{Error as FormatError, Map};
 use crate::geometry::Camera;
@@ -217,13 +217,13 @@ impl Fit {
 
     /// Refuses features of another model than the map's: another descriptor kind, or the
     /// same kind with another hash where both record one (a retrained model exported under
-    /// the same name). `origin` names where the features came from. Features of unknown
-    /// origin (an hloc file, arrays handed in) and maps of other descriptors are taken as
-    /// they are.
+    /// the same name). `origin` names where the features came from (made only for an error).
+    /// Features of unknown origin (an hloc file, arrays handed in) and maps of other
+    /// descriptors are taken as they are.
     pub(crate) fn check_model(
         &self,
         model: &FeatureModel,
-        origin: &str,
+        origin: impl Fn() -> String,
     ) -> Result<(), SessionError> {
         let descriptor = &self.descriptor;
         if !crate::localize::is_sfp_descriptor(descriptor) {
@@ -231,6 +231,7 @@ impl Fit {
         }
         let map = &self.map_name;
         if model.name != *descriptor {
+            let origin = origin();
             return Err(SessionError::Mismatch(format!(
                 "{origin}: features of model {:?}, but the map {map} holds {descriptor:?} \
                  descriptors: extract the queries with model {descriptor}",
@@ -239,6 +240,7 @@ impl Fit {
         }
         if let (Some(hash), Some(map_hash)) = (&model.xxh3, &self.model_xxh3) {
             if hash != map_hash {
+                let origin = origin();
                 return Err(SessionError::Mismatch(format!(
                     "{origin}: features of a {descriptor:?} model of hash {hash}, but the map \
                      {map} was made with one of hash {map_hash}: extract the queries with that \
@@ -314,14 +316,8 @@ impl Session {
         let frame = self.lock_reader().frame(name, tracked)?;
         match frame {
             Ok(frame) => {
-                let deferred = frame.deferred();
-                self.localize_tracked(
-                    tracking.as_deref_mut(),
-                    &frame.features,
-                    deferred,
-                    camera,
-                    name,
-                )
+                let (features, deferred) = (&frame.features, frame.deferred());
+                self.localize_tracked(tracking.as_deref_mut(), features, deferred, camera, name)
             }
             Err(reason) => {
                 if let Some(motion) = tracking.as_deref_mut() {
@@ -352,14 +348,21 @@ impl Session {
             threads.max(1)
         };
         let first_error: Mutex<Option<SessionError>> = Mutex::new(None);
+        // Set by the first error: the other workers take no further query (an error that
+        // every query meets must not cost the whole list first).
+        let stop = AtomicBool::new(false);
         std::thread::scope(|s| {
             for _ in 0..workers {
                 s.spawn(|| loop {
+                    if stop.load(Ordering::Relaxed) {
+                        break;
+                    }
                     let i = next.fetch_add(1, Ordering::Relaxed);
                     let Some(q) = queries.get(i) else { break };
                     match self.localize(&q.name, &q.camera) {
                         Ok(l) => *results[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(l),
                         Err(e) => {
+                            stop.store(true, Ordering::Relaxed);
                             let mut first = first_error.lock().unwrap_or_else(|p| p.into_inner());
                             first.get_or_insert(e);
                         }
@@ -391,8 +394,8 @@ impl Session {
         name: &str,
     ) -> Result<Localization, SessionError> {
         if let Some(model) = &features.model {
-            let origin = format!("{}: query {name:?}", self.fit.map_name);
-            self.fit.check_model(model, &origin)?;
+            let origin = || format!("{}: query {name:?}", self.fit.map_name);
+            self.fit.check_model(model, origin)?;
         }
         let mut tracking = self.tracking_lock();
         self.localize_tracked(tracking.as_deref_mut(), features, None, camera, name)
@@ -425,14 +428,8 @@ impl Session {
         name: &str,
     ) -> Result<Localization, SessionError> {
         let mut tracking = self.tracking_lock();
-        let deferred = frame.deferred();
-        self.localize_tracked(
-            tracking.as_deref_mut(),
-            &frame.features,
-            deferred,
-            camera,
-            name,
-        )
+        let (features, deferred) = (&frame.features, frame.deferred());
+        self.localize_tracked(tracking.as_deref_mut(), features, deferred, camera, name)
     }
 
     /// A query of the sequence that has no features (it could not be read or decoded):
@@ -456,7 +453,12 @@ impl Session {
     ) -> Result<Localization, SessionError> {
         let prior = motion.as_ref().and_then(|m| m.predict());
         #[cfg(feature = "onnx")]
-        let mut global = || self.lock_reader().global_of(deferred?);
+        // The reader is locked only for a frame that deferred its descriptor: others must not
+        // wait behind an extraction for a `None`.
+        let mut global = || {
+            let deferred = deferred?;
+            self.lock_reader().global_of(deferred)
+        };
         #[cfg(not(feature = "onnx"))]
         let mut global = || deferred.and(None);
         let found = self.prepared.with_dependent(|_, localizer| {

@@ -168,7 +168,7 @@ impl Source {
                         name,
                         xxh3: h5.root_string("sfp.model_xxh3")?,
                     };
-                    fit.check_model(&model, &path.display().to_string())?;
+                    fit.check_model(&model, || path.display().to_string())?;
                 }
                 if let Some(map) = map {
                     warn_global_size(&h5, &path, map, reporter);
@@ -349,6 +349,26 @@ fn global_size(options: &LocalizeOptions, map: &Map<'_>) -> crate::extract::Glob
     }
 }
 
+/// Refuses `map` (named `map_name` in the error) when the SFP extractor cannot make its
+/// queries' features: a map without descriptors, or of SIFT ones. What
+/// [`QuerySource::Images`] checks first; a caller may ask before anything costly (building
+/// a session loads the model and indexes the map).
+pub fn check_extractable(map: &Map<'_>, map_name: &str) -> Result<(), SessionError> {
+    Fit::of(map, map_name.to_string()).check_extractable()
+}
+
+impl Fit {
+    fn check_extractable(&self) -> Result<(), SessionError> {
+        if self.descriptor.is_empty() || self.descriptor == "sift" {
+            return Err(SessionError::NotExtractable {
+                map: self.map_name.clone(),
+                descriptor: self.descriptor.clone(),
+            });
+        }
+        Ok(())
+    }
+}
+
 /// The SFP extractor (`model`, else the built-in one the map was made with), checked against
 /// the map's descriptors.
 #[cfg(feature = "onnx")]
@@ -359,13 +379,8 @@ fn extractor(
     reporter: &dyn Reporter,
 ) -> Result<crate::extract::Extractor, SessionError> {
     use crate::extract::{builtin_model_names, Extractor, ExtractorOptions};
+    fit.check_extractable()?;
     let (map, descriptor) = (&fit.map_name, &fit.descriptor);
-    if descriptor.is_empty() || descriptor == "sift" {
-        return Err(SessionError::NotExtractable {
-            map: map.to_string(),
-            descriptor: descriptor.clone(),
-        });
-    }
     let extractor = match model {
         Some(model) => Extractor::new(
             &ExtractorOptions {
