@@ -148,7 +148,8 @@ typedef struct SfpmCamera {
 // Lowe's ratio is 0.95 on SFP maps and 0.9 on SIFT maps (`LocalizeOptions::for_map`). A
 // session (`SfpmSessionOptions`) sets the others too.
 typedef struct SfpmLocalizeOptions {
-  // Levels to match (`n_levels` ids); NULL or `n_levels == 0` means every level of the map.
+  // Levels to match (`n_levels` ids); `n_levels == 0` (with `levels` NULL or not) means
+  // every level of the map. NULL with `n_levels > 0` is `SFPM_ERR_NULL`.
   const uint16_t *levels;
   // Length of `levels`.
   size_t n_levels;
@@ -173,8 +174,9 @@ typedef struct SfpmLocalization {
 // the library's message in `sfpm_last_error`, e.g. "ratio 1.5: a ratio in (0, 1]" (the
 // same text the CLI and the Python package give).
 typedef struct SfpmSessionOptions {
-  // Levels to match (`n_levels` ids, read during `sfpm_session_open` only); NULL or
-  // `n_levels == 0` means every level of the map.
+  // Levels to match (`n_levels` ids, read during `sfpm_session_open` only); `n_levels ==
+  // 0` (with `levels` NULL or not) means every level of the map. NULL with `n_levels > 0`
+  // is `SFPM_ERR_NULL`.
   const uint16_t *levels;
   // Length of `levels`.
   size_t n_levels;

@@ -92,6 +92,15 @@ macro_rules! from_variant {
 }
 each_variant!(from_variant);
 
+/// An option out of range ([`crate::localize::LocalizeOptions::validate`]) is the localizer's
+/// error, as [`crate::localize::Localizer::new`] returns it.
+#[cfg(feature = "localize")]
+impl From<crate::localize::OptionError> for Error {
+    fn from(e: crate::localize::OptionError) -> Self {
+        Error::Localize(crate::localize::LocalizeError::Option(e))
+    }
+}
+
 impl Error {
     /// The module error inside, as a trait object (what `Display` and `source` defer to).
     fn inner(&self) -> &(dyn std::error::Error + 'static) {

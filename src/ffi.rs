@@ -11,8 +11,9 @@
 //! the old handle returns `SFPM_ERR_INVALID_HANDLE` (double close too).
 //!
 //! Every entry point catches panics (`catch_unwind`) and returns `SFPM_ERR_PANIC` instead of
-//! unwinding into C. All `unsafe` of the crate that is not in the format module lives here:
-//! each block is a read of a pointer the C caller passed in or a write through one (checked
+//! unwinding into C. The crate's other `unsafe` is the map's mmap (`format::mmap`) and the
+//! SIMD kernels (`vector`, `localize::kernels`); here each block is a read of a pointer the C
+//! caller passed in or a write through one (checked
 //! non-null first; its validity and size are the caller's contract, stated per function).
 //! Nothing here extends a lifetime: a map handle and its sessions share the map by `Arc`,
 //! and each session owns its localizer beside it.
@@ -150,7 +151,8 @@ pub struct SfpmCamera {
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct SfpmLocalizeOptions {
-    /// Levels to match (`n_levels` ids); NULL or `n_levels == 0` means every level of the map.
+    /// Levels to match (`n_levels` ids); `n_levels == 0` (with `levels` NULL or not) means
+    /// every level of the map. NULL with `n_levels > 0` is `SFPM_ERR_NULL`.
     pub levels: *const u16,
     /// Length of `levels`.
     pub n_levels: usize,
@@ -167,8 +169,9 @@ pub struct SfpmLocalizeOptions {
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct SfpmSessionOptions {
-    /// Levels to match (`n_levels` ids, read during `sfpm_session_open` only); NULL or
-    /// `n_levels == 0` means every level of the map.
+    /// Levels to match (`n_levels` ids, read during `sfpm_session_open` only); `n_levels ==
+    /// 0` (with `levels` NULL or not) means every level of the map. NULL with `n_levels > 0`
+    /// is `SFPM_ERR_NULL`.
     pub levels: *const u16,
     /// Length of `levels`.
     pub n_levels: usize,
@@ -286,8 +289,8 @@ struct MapHandle {
     map: Arc<Map<'static>>,
     /// The path it was opened from: the name sessions give it.
     path: String,
-    /// `sfpm_localize`'s sessions, one per set of options, built on first use (each decodes
-    /// the descriptors it matches to f32 once) and kept until close.
+    /// `sfpm_localize`'s sessions, one per set of options, built on first use (each indexes
+    /// the levels it matches: projections, retrieval, viewpoints) and kept until close.
     sessions: Mutex<Vec<(LocalizerKey, Arc<Session>)>>,
     /// Arrays the map could only give as owned copies (a buffer not aligned for the type),
     /// kept so their pointers stay valid until close. With `sfpm_open` (mmap, page-aligned)

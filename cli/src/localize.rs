@@ -313,6 +313,10 @@ fn query_source(args: &Args, queries: &[Query], query_list: &Path) -> anyhow::Re
 }
 
 pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    // Before any thread starts (a remote map's runtime, the workers): the extractor's runtime
+    // reads its settings from the environment.
+    #[cfg(feature = "onnx")]
+    sfpmap::extract::runtime::disable_telemetry();
     let bars = super::Bars::new(quiet, args.json);
     args.threads = super::cap_threads(args.threads, &bars);
     #[cfg(feature = "mcap")]
@@ -528,7 +532,8 @@ fn none_read(query_list: &Path, queries: &[Query], results: &[Localization]) -> 
         "{}: none of the {} queries could be read ({}: {})",
         query_list.display(),
         queries.len(),
-        queries[0].name,
+        // From the list as it is: escaped for the terminal.
+        quoted_name(&queries[0].name),
         failure(&results[0])
     )
 }

@@ -18,8 +18,8 @@
 //! - [`image`]: JPEG/PNG → grey input.
 //! - `keypoints.rs`: NMS, sub-pixel refinement, bilinear sampling (crate-private).
 //!
-//! Turning a model and its images into an SFP map is [`crate::build`]'s
-//! ([`convert_with_images`](crate::build::convert_with_images)).
+//! Turning a model and its images into an SFP map is the `build` module's
+//! (`build::convert_with_images`): extraction knows nothing of maps being built.
 
 pub mod contract;
 mod global;

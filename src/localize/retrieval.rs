@@ -28,8 +28,8 @@ pub enum RetrievalMethod {
     Off,
 }
 
-/// `auto`, `vlad`, `global` or `off`, as the CLI's `--retrieval` and the Python package's
-/// `retrieval` take it.
+/// `auto`, `vlad`, `global` or `off`: the names the Python package's `retrieval` takes (and
+/// the CLI's `--retrieval` lists, through its own clap value enum for the help text).
 impl std::str::FromStr for RetrievalMethod {
     type Err = super::OptionError;
 

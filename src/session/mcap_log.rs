@@ -200,7 +200,8 @@ impl ImageLog {
                 session.map_name()
             ))));
         };
-        let threads = threads.max(1);
+        // Bounded as the CLI bounds --threads: the hand-over sizes its queue by it.
+        let threads = threads.clamp(1, crate::progress::max_threads());
         reporter.start("localizing", self.expected_on_topic);
         let frames = Mutex::new(Vec::new());
         let (sender, receiver) = std::sync::mpsc::sync_channel::<(usize, mcap::Message)>(threads);
@@ -381,6 +382,8 @@ impl LogLocalization {
         frame_id: &str,
         passthrough_images: bool,
     ) -> Result<(), LogError> {
+        // Never onto the log itself (its second pass reads it, the rename would replace it).
+        crate::output::check_output(out, &[&self.path], true).map_err(LogError::Output)?;
         let writing = |source| LogError::Write {
             path: out.to_path_buf(),
             source,
@@ -442,6 +445,7 @@ impl LogLocalization {
     /// with the images' own times in seconds, written atomically to `out`.
     pub fn write_tum(&self, out: &Path) -> Result<(), LogError> {
         use std::io::Write as _;
+        crate::output::check_output(out, &[&self.path], true).map_err(LogError::Output)?;
         crate::output::write_atomic(out, |file| {
             let mut write = || -> std::io::Result<()> {
                 writeln!(

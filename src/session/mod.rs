@@ -94,7 +94,8 @@ impl SessionBuilder {
 
     /// Queries are an ordered sequence (a camera moving): each is localized by guided
     /// matching around the pose predicted from the last ones (constant velocity), through
-    /// retrieval only when tracking is lost. Queries must then come one at a time, in order.
+    /// retrieval only when tracking is lost. Queries must then come in order from one thread
+    /// (calls from several run one at a time, in whichever order they take the lock).
     pub fn sequence(mut self, sequence: bool) -> Self {
         self.sequence = sequence;
         self
@@ -158,6 +159,9 @@ pub struct Frame {
     pub features: QueryFeatures,
     #[cfg(feature = "onnx")]
     deferred: Option<Box<crate::extract::image::GrayInput>>,
+    /// Made by the caller ([`Frame::new`]), not by the session's own source: its features'
+    /// model is checked against the map as [`Session::localize_features`] checks it.
+    handed_in: bool,
 }
 
 /// The image a frame deferred its global descriptor for (nothing without the extractor).
@@ -173,6 +177,16 @@ impl Frame {
             features,
             #[cfg(feature = "onnx")]
             deferred: None,
+            handed_in: true,
+        }
+    }
+
+    /// Features the session's source read or extracted (a `--model` asked for on purpose
+    /// may be another model than the map's: the source warned when it opened).
+    pub(crate) fn from_source(features: QueryFeatures) -> Frame {
+        Frame {
+            handed_in: false,
+            ..Frame::new(features)
         }
     }
 
@@ -234,7 +248,7 @@ impl Fit {
             let origin = origin();
             return Err(SessionError::Mismatch(format!(
                 "{origin}: features of model {:?}, but the map {map} holds {descriptor:?} \
-                 descriptors: extract the queries with model {descriptor}",
+                 descriptors: extract the queries with model {descriptor:?}",
                 model.name
             )));
         }
@@ -242,8 +256,8 @@ impl Fit {
             if hash != map_hash {
                 let origin = origin();
                 return Err(SessionError::Mismatch(format!(
-                    "{origin}: features of a {descriptor:?} model of hash {hash}, but the map \
-                     {map} was made with one of hash {map_hash}: extract the queries with that \
+                    "{origin}: features of a {descriptor:?} model of hash {hash:?}, but the map \
+                     {map} was made with one of hash {map_hash:?}: extract the queries with that \
                      model"
                 )));
             }
@@ -342,10 +356,13 @@ impl Session {
         let results: Vec<Mutex<Option<Localization>>> =
             queries.iter().map(|_| Mutex::new(None)).collect();
         let next = std::sync::atomic::AtomicUsize::new(0);
+        // No more workers than queries, nor than any thread setting gets (`max_threads`).
         let workers = if self.is_sequence() {
             1
         } else {
-            threads.max(1)
+            threads
+                .clamp(1, crate::progress::max_threads())
+                .min(queries.len().max(1))
         };
         let first_error: Mutex<Option<SessionError>> = Mutex::new(None);
         // Set by the first error: the other workers take no further query (an error that
@@ -427,6 +444,10 @@ impl Session {
         camera: &Camera,
         name: &str,
     ) -> Result<Localization, SessionError> {
+        if let (true, Some(model)) = (frame.handed_in, &frame.features.model) {
+            let origin = || format!("{}: query {name:?}", self.fit.map_name);
+            self.fit.check_model(model, origin)?;
+        }
         let mut tracking = self.tracking_lock();
         let (features, deferred) = (&frame.features, frame.deferred());
         self.localize_tracked(tracking.as_deref_mut(), features, deferred, camera, name)
@@ -516,8 +537,8 @@ pub enum SessionError {
         /// Why.
         source: LocalizeError,
     },
-    /// The source does not fit the map: features of another model, a SIFT map asked to
-    /// extract its queries, a model no built-in one matches.
+    /// The source does not fit the map: features of another model, a map whose model no
+    /// built-in one matches.
     Mismatch(String),
     /// A SIFT map (or one without descriptors) asked to extract its queries with the SFP
     /// model: its queries' features come from a database or a features file.

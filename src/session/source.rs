@@ -27,7 +27,8 @@ pub enum QuerySource {
     /// records its model (`sfp.model_name`, `sfp.model_xxh3`) must be the map's.
     #[cfg(feature = "onnx")]
     FeaturesFile(PathBuf),
-    /// Extracted with an SFP model from the images of `folder`, by name (`None`: images are
+    /// Extracted with an SFP model from the images of `folder`, by name (joined to the
+    /// folder as given: a caller passing names it did not choose checks them; `None`: images are
     /// handed to [`Session::extract`], as decoded from an MCAP log). `model`: an ONNX file or
     /// a built-in model's name; `None`: the built-in model the map was made with.
     ///
@@ -268,7 +269,7 @@ impl QueryReader {
             }
         };
         Ok(match features {
-            Some(features) => Ok(Frame::new(features)),
+            Some(features) => Ok(Frame::from_source(features)),
             #[cfg(feature = "colmap")]
             None if matches!(self.source, Source::Database { .. }) => {
                 missing("not in the database")
@@ -312,8 +313,8 @@ impl QueryReader {
         let f = extractor.extract(&input, &options)?;
         self.global_deferred += usize::from(defer);
         Ok(Frame {
-            features: crate::io::queries::sfp_query(&f, extractor),
             deferred: defer.then(|| Box::new(input)),
+            ..Frame::from_source(crate::io::queries::sfp_query(&f, extractor))
         })
     }
 
@@ -350,7 +351,7 @@ fn global_size(options: &LocalizeOptions, map: &Map<'_>) -> crate::extract::Glob
 }
 
 /// Refuses `map` (named `map_name` in the error) when the SFP extractor cannot make its
-/// queries' features: a map without descriptors, or of SIFT ones. What
+/// queries' features: a map without descriptors, or of SIFT or other COLMAP ones. What
 /// [`QuerySource::Images`] checks first; a caller may ask before anything costly (building
 /// a session loads the model and indexes the map).
 pub fn check_extractable(map: &Map<'_>, map_name: &str) -> Result<(), SessionError> {
@@ -359,7 +360,9 @@ pub fn check_extractable(map: &Map<'_>, map_name: &str) -> Result<(), SessionErr
 
 impl Fit {
     fn check_extractable(&self) -> Result<(), SessionError> {
-        if self.descriptor.is_empty() || self.descriptor == "sift" {
+        // What the localizer matches as SFP descriptors is what the extractor makes: not SIFT,
+        // nor COLMAP's other typed descriptors (`colmap-<dim>`), nor none.
+        if !crate::localize::is_sfp_descriptor(&self.descriptor) {
             return Err(SessionError::NotExtractable {
                 map: self.map_name.clone(),
                 descriptor: self.descriptor.clone(),
@@ -408,7 +411,7 @@ fn extractor(
     if let (true, Some(made)) = (builtin, &fit.model_xxh3) {
         if *made != extractor.model().xxh3 && extractor.contract().model_name == *descriptor {
             return Err(SessionError::Mismatch(format!(
-                "{map}: the map was made with a {descriptor:?} model of hash {made}, not the \
+                "{map}: the map was made with a {descriptor:?} model of hash {made:?}, not the \
                  built-in one ({}): pass that model's file",
                 extractor.model().xxh3
             )));

@@ -166,6 +166,15 @@ fn a_damaged_chunk_is_skipped_and_reported_and_the_other_frames_are_read() {
     let tum = dir.path().join("out.tum");
     found.write_tum(&tum).unwrap();
     assert_eq!(std::fs::read_to_string(&tum).unwrap().lines().count(), 1);
+    // Neither output may be the log it read: refused, the log untouched.
+    for e in [
+        found.write_mcap(&input, "/pose", "map", true).unwrap_err(),
+        found.write_tum(&input).unwrap_err(),
+    ] {
+        assert!(matches!(e, LogError::Output(_)), "{e:?}");
+        assert!(e.to_string().contains("damaged.mcap"), "{e}");
+    }
+    assert_eq!(std::fs::read(&input).unwrap(), damaged);
 
     // The clean log: all read, no warning.
     let reporter = Recorder::default();

@@ -126,6 +126,12 @@ fn features_of_another_model_are_refused_and_unknown_ones_are_taken() {
         panic!("features of another model taken")
     };
     assert!(matches!(e, SessionError::Mismatch(_)), "{e:?}");
+    // A frame handed in is checked the same way.
+    let frame = sfpmap::session::Frame::new(q.clone());
+    let Err(again) = session.localize_frame(frame, &s.camera, "q.jpg") else {
+        panic!("a frame of another model taken")
+    };
+    assert_eq!(again.to_string(), e.to_string());
     let text = e.to_string();
     assert!(
         text.contains("\"sfp-v2\"") && text.contains("\"test\"") && text.contains("m.sfpm"),
@@ -181,4 +187,93 @@ fn a_session_keeps_its_map_alive_and_is_shared_by_threads() {
         }
     });
     assert_eq!(Arc::strong_count(session.map()), 1);
+}
+
+/// A map of two points whose one level holds `descriptor` descriptors (none: `None`).
+fn map_of(dir: &std::path::Path, descriptor: Option<&str>) -> Arc<Map<'static>> {
+    use sfpmap::format::{Descriptors, MapWriter};
+    let mut w = MapWriter::default();
+    w.set_points_world(&[[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]]);
+    if let Some(descriptor) = descriptor {
+        let mut info = crate::synthetic_scene::level_info(0, DIM);
+        info.descriptor = descriptor.into();
+        let values = vec![0.25f32; 2 * DIM];
+        w.add_level(info, &[0, 1], Some(Descriptors::F32(&values)), true)
+            .unwrap();
+    }
+    let path = dir.join(format!("{}.sfpm", descriptor.unwrap_or("none")));
+    std::fs::write(&path, w.to_bytes().unwrap()).unwrap();
+    Arc::new(Map::open(&path).unwrap())
+}
+
+#[test]
+fn only_maps_of_sfp_descriptors_extract_their_queries() {
+    let dir = tempfile::tempdir().unwrap();
+    for (descriptor, refused) in [
+        (None, Some("the map has no descriptors")),
+        (Some("sift"), Some("a map of \"sift\" descriptors")),
+        (
+            Some("colmap-64"),
+            Some("a map of \"colmap-64\" descriptors"),
+        ),
+        (Some("sfp-v2"), None),
+    ] {
+        let map = map_of(dir.path(), descriptor);
+        let checked = sfpmap::session::check_extractable(&map, "m.sfpm");
+        match (checked, refused) {
+            (Ok(()), None) => {}
+            (Err(e), Some(expected)) => {
+                assert!(matches!(e, SessionError::NotExtractable { .. }), "{e:?}");
+                let text = e.to_string();
+                assert!(
+                    text.starts_with("m.sfpm: ") && text.contains(expected),
+                    "{text}"
+                );
+            }
+            (checked, _) => panic!("{descriptor:?}: {checked:?}"),
+        }
+    }
+    // A session over such a map with images as its source is refused the same way, before
+    // any model is loaded.
+    let sift = map_of(dir.path(), Some("sift"));
+    let built = Session::builder(sift, "m.sfpm")
+        .source(QuerySource::Images {
+            folder: None,
+            model: None,
+        })
+        .build(&Silent);
+    assert!(matches!(built, Err(SessionError::NotExtractable { .. })));
+}
+
+#[test]
+fn a_query_list_stops_at_its_first_error() {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    #[derive(Default)]
+    struct Count(AtomicU64);
+    impl sfpmap::progress::Reporter for Count {
+        fn advance(&self, n: u64) {
+            self.0.fetch_add(n, Ordering::Relaxed);
+        }
+    }
+    let (_dir, map) = map();
+    let s = scene();
+    // Handed-in features: every query read by name is an error.
+    let session = build(&map, LocalizeOptions::default()).unwrap();
+    let queries: Vec<sfpmap::io::queries::Query> = (0..1000)
+        .map(|i| sfpmap::io::queries::Query {
+            name: format!("q{i}.jpg"),
+            camera: s.camera.clone(),
+        })
+        .collect();
+    let count = Count::default();
+    let Err(e) = session.localize_all(&queries, 2, &count) else {
+        panic!("no error")
+    };
+    assert!(matches!(e, SessionError::NoSource(_)), "{e:?}");
+    // Each of the two workers stops after its first error.
+    assert!(
+        count.0.load(Ordering::Relaxed) <= 2,
+        "{}",
+        count.0.load(Ordering::Relaxed)
+    );
 }

@@ -382,12 +382,10 @@ def test_features_of_another_model_are_refused(cli, south_sfp, south_queries, so
         as_arrays = sfpmap.Features(arrays, global_descriptor=ours.global_descriptor)
         assert as_arrays.model is None
         assert loc.localize(as_arrays, camera).colmap == loc.localize(ours, camera).colmap
+        # The other model's features as arrays: no model to refuse, so they are matched (sfp-v1
+        # and sfp-v2 share their dimensions; these localize, as v1's student's would).
         foreign = {l: (other.keypoints(l), other.descriptors(l)) for l in other.levels}
-        try:
-            loc.localize(foreign, camera)
-        except sfpmap.LocalizeError as e:
-            # Whether they fit is the localizer's to say (their dimensions), not the model's.
-            assert "model" not in str(e), e
+        assert loc.localize(foreign, camera).success
 
     # A features file that records its model (`sfpmap extract`'s) gives features that carry it.
     h5 = work / "queries-sfp-v1.h5"

@@ -20,7 +20,9 @@ pub use reader::{
     Damage, Limits, LogReader, LogSummary, Skipped, CHUNK_FLOOR, CHUNK_RATIO, MAX_RECORD,
 };
 pub use records::ChunkIndex;
-pub use wire::{base64_decode, base64_encode, fuzz_wire, CdrError, Stamp};
+#[cfg(test)]
+use wire::fuzz_wire;
+pub use wire::{base64_decode, base64_encode, CdrError, Stamp};
 
 use crate::geometry::{Camera, CameraModel};
 use image::DynamicImage;

@@ -134,10 +134,7 @@ impl Worker<'_> {
         let input = crate::extract::image::from_image(&decoded.image, self.gray_weights, None);
         drop(decoded);
         // One ONNX session: extraction takes turns, decoding runs in parallel.
-        let features = self.session.extract(input).map_err(|e| match e {
-            SessionError::Extract(e) => e.to_string(),
-            e => e.to_string(),
-        });
+        let features = self.session.extract(input).map_err(|e| e.to_string());
         (frame, features)
     }
 
