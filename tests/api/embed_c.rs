@@ -1,7 +1,7 @@
 //! The C ABI from C: takes the cdylib this test build made (feature `capi`), compiles
 //! `examples/c/sfpm_info.c` with the system C compiler against the committed `include/sfpmap.h`, runs it on the
 //! `levels` spec vector and checks its output against the vector's JSON. That the committed
-//! header is what cbindgen makes of `src/ffi.rs` is checked by `.ci/run` (a pinned cbindgen
+//! header is what cbindgen makes of `src/ffi/` is checked by `.ci/run` (a pinned cbindgen
 //! and a diff that fails the run), not here: the test must not depend on a tool's version.
 
 #![cfg(feature = "capi")]

@@ -18,6 +18,8 @@ mod colmap_models;
 mod convert;
 mod embed_c;
 mod embed_capi;
+mod embed_capi_localize;
+mod embed_capi_session;
 mod extract_reference;
 mod format_chunks;
 mod format_errors;
