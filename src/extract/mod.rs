@@ -46,6 +46,8 @@ use std::path::{Path, PathBuf};
 pub static DEFAULT_MODEL: &[u8] = include_bytes!("../../models/sfp-v2.onnx");
 /// How the embedded model is named in errors and provenance.
 pub(crate) const DEFAULT_MODEL_NAME: &str = "models/sfp-v2.onnx (embedded)";
+/// How a built-in model's name ends ([`builtin_name`]).
+const BUILTIN_SUFFIX: &str = " (embedded)";
 
 /// The models built into the library, by their `sfp.model_name`; the first is
 /// [`DEFAULT_MODEL`]. `sfp-v1` was the default until sfp-v2 (`models/sfp-v1.md`), `sfp-v2s`
@@ -60,7 +62,7 @@ pub static BUILTIN_MODELS: &[(&str, &[u8])] = &[
 
 /// How the built-in model `name` is named in errors and provenance.
 fn builtin_name(name: &str) -> String {
-    format!("models/{name}.onnx (embedded)")
+    format!("models/{name}.onnx{BUILTIN_SUFFIX}")
 }
 
 /// The built-in model named `name` (`sfp.model_name`), if there is one.
@@ -571,6 +573,12 @@ impl Extractor {
             model,
             threads: threads.max(1),
         })
+    }
+
+    /// Whether the model is one of [`BUILTIN_MODELS`] (loaded by [`Extractor::builtin`], or
+    /// the default), not a file the caller named.
+    pub fn is_builtin(&self) -> bool {
+        self.model.name.ends_with(BUILTIN_SUFFIX)
     }
 
     /// The model's contract metadata, checked.

@@ -407,7 +407,7 @@ fn extractor(
     // A built-in model (by default, or asked for by name) of the map's name but other weights
     // than the map's (a retrained model exported under the same name): the map's descriptors
     // would not match the queries'. An explicit file is the user's choice.
-    let builtin = extractor.model().name.ends_with("(embedded)");
+    let builtin = extractor.is_builtin();
     if let (true, Some(made)) = (builtin, &fit.model_xxh3) {
         if *made != extractor.model().xxh3 && extractor.contract().model_name == *descriptor {
             return Err(SessionError::Mismatch(format!(
