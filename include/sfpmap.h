@@ -81,6 +81,31 @@ typedef int32_t SfpmStatus;
 #endif // __STDC_VERSION__ >= 202311L
 #endif // __cplusplus
 
+// Which stored global descriptor ranks the map's images (`SfpmSessionOptions::retrieval`,
+// a `uint32_t` holding one of these values).
+enum SfpmRetrieval
+#if defined(__cplusplus) || __STDC_VERSION__ >= 202311L
+  : uint32_t
+#endif // defined(__cplusplus) || __STDC_VERSION__ >= 202311L
+ {
+  // The map's stated preference when the query can use it, else the other kind the map
+  // stores (the default).
+  SFPM_RETRIEVAL_AUTO = 0,
+  // Only VLAD.
+  SFPM_RETRIEVAL_VLAD = 1,
+  // Only the extractor's global descriptor.
+  SFPM_RETRIEVAL_GLOBAL = 2,
+  // No retrieval: every point of the map is a candidate.
+  SFPM_RETRIEVAL_OFF = 3,
+};
+#ifndef __cplusplus
+#if __STDC_VERSION__ >= 202311L
+typedef enum SfpmRetrieval SfpmRetrieval;
+#else
+typedef uint32_t SfpmRetrieval;
+#endif // __STDC_VERSION__ >= 202311L
+#endif // __cplusplus
+
 // An open map: `0` is never a valid handle. Handles are plain integers (a registry slot and a
 // generation), so a handle used after `sfpm_close` is detected, never undefined behaviour.
 typedef uint64_t SfpmMap;
@@ -169,11 +194,18 @@ typedef struct SfpmLocalization {
 
 // Every setting of a session (`sfpm_session_open`). Values are taken as they are, with no
 // "0 means default": start from `sfpm_session_options_default`, which fills in the map's
-// own settings (those `sfpm_localize` and `sfpmap localize` use), and change what you need.
-// A value out of its range is refused by `sfpm_session_open` with `SFPM_ERR_ARGUMENT` and
-// the library's message in `sfpm_last_error`, e.g. "ratio 1.5: a ratio in (0, 1]" (the
-// same text the CLI and the Python package give).
+// own settings (those `sfpm_localize` and `sfpmap localize` use) and `struct_size`, and
+// change what you need. A value out of its range is refused by `sfpm_session_open` with
+// `SFPM_ERR_ARGUMENT` and the library's message in `sfpm_last_error`, e.g. "ratio 1.5: a
+// ratio in (0, 1]" (the same text the CLI and the Python package give).
+//
+// Versioned by its size: a later library appends fields, and takes the struct of an
+// earlier header by its `struct_size` (the fields it lacks at their defaults).
 typedef struct SfpmSessionOptions {
+  // `sizeof(SfpmSessionOptions)` of the header the caller was built with, as
+  // `sfpm_session_options_default` writes it; `sfpm_session_open` refuses a size it does
+  // not know (`SFPM_ERR_ARGUMENT`, naming the size it expects).
+  size_t struct_size;
   // Levels to match (`n_levels` ids, read during `sfpm_session_open` only); `n_levels ==
   // 0` (with `levels` NULL or not) means every level of the map. NULL with `n_levels > 0`
   // is `SFPM_ERR_NULL`.
@@ -206,6 +238,10 @@ typedef struct SfpmSessionOptions {
   // through retrieval only when tracking is lost; queries then run one at a time, in the
   // order of the calls. Needs a map with images and visibility to track.
   uint8_t sequence;
+  // How the map's images are ranked for a query: one of `SfpmRetrieval`'s values
+  // (`SFPM_RETRIEVAL_AUTO`, the default; `SFPM_RETRIEVAL_VLAD`, `SFPM_RETRIEVAL_GLOBAL`,
+  // `SFPM_RETRIEVAL_OFF`: every point a candidate). Another value is `SFPM_ERR_ARGUMENT`.
+  uint32_t retrieval;
 } SfpmSessionOptions;
 
 // An open localization session (`sfpm_session_open`): a map prepared for queries with a
@@ -381,7 +417,9 @@ SfpmStatus sfpm_visibility(SfpmMap map,
 // Returns `SFPM_OK` with the pose in `*out`, `SFPM_NOT_LOCALIZED` when the query ran but no
 // pose was found (reason in `sfpm_last_error`; `*out` holds zeros and the match count), or
 // an error code. The first call for a given set of options prepares the levels (decodes
-// descriptors to f32, noticeable on a large map); later calls reuse that until close.
+// descriptors to f32, noticeable on a large map); later calls reuse that until close, for
+// the 4 sets of options used last (a fifth prepares its levels in place of the least
+// recently used).
 // Thread-safe: any number of threads may localize with the same handle at once. For the
 // other options, or a sequence's tracking, open a session (`sfpm_session_open`).
 //
@@ -400,7 +438,8 @@ SfpmStatus sfpm_localize(SfpmMap map,
 
 // Writes the map's own settings to `*out`: every level, full descriptors, and the values
 // `sfpm_localize` and `sfpmap localize` use (Lowe's ratio 0.95 on SFP maps, 0.9 on SIFT
-// maps), not a sequence. Start a session's options from these and change what you need.
+// maps, `SFPM_RETRIEVAL_AUTO`), not a sequence; and `struct_size`. Start a session's options
+// from these and change what you need.
 //
 // # Safety
 // `out` must be writable or NULL (an error).
@@ -409,17 +448,18 @@ SfpmStatus sfpm_session_options_default(SfpmMap map, struct SfpmSessionOptions *
 // Opens a session on `map`: the localizer prepared with `options` (NULL: the map's own
 // settings, as `sfpm_session_options_default` gives them), its handle written to `*out`.
 // Options out of range are refused (`SFPM_ERR_ARGUMENT`, and `sfpm_last_error` names the
-// option, e.g. "ratio 1.5: a ratio in (0, 1]"), as are levels the map lacks
-// (`SFPM_ERR_NO_SUCH_LEVEL`). Opening prepares the levels (decodes descriptors to f32,
-// noticeable on a large map).
+// option, e.g. "ratio 1.5: a ratio in (0, 1]"), as are a `struct_size` this library does
+// not know (`SFPM_ERR_ARGUMENT`) and levels the map lacks (`SFPM_ERR_NO_SUCH_LEVEL`).
+// Opening prepares the levels (decodes descriptors to f32, noticeable on a large map).
 //
 // The session holds the map: closing the map handle first is allowed, and the session goes
 // on working until `sfpm_session_close` (the file is unmapped when both are closed). Close
 // every session with `sfpm_session_close`.
 //
 // # Safety
-// `options` must be NULL or point to a valid `SfpmSessionOptions` (its `levels` valid for
-// `n_levels` ids during the call); `out` must be writable or NULL (an error).
+// `options` must be NULL or point to a valid `SfpmSessionOptions` of `options->struct_size`
+// bytes (its `levels` valid for `n_levels` ids during the call); `out` must be writable or
+// NULL (an error).
 SfpmStatus sfpm_session_open(SfpmMap map,
                              const struct SfpmSessionOptions *options,
                              SfpmSession *out);

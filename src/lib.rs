@@ -153,7 +153,7 @@
 #![deny(unsafe_code)]
 #![warn(missing_docs)]
 
-pub use error::{Error, Result};
+pub use error::{Error, ErrorKind, Result};
 
 mod error;
 pub mod format;

@@ -71,7 +71,8 @@ pub(super) struct MapHandle {
     /// The path it was opened from: the name sessions give it.
     pub(super) path: String,
     /// `sfpm_localize`'s sessions, one per set of options, built on first use (each indexes
-    /// the levels it matches: projections, retrieval, viewpoints) and kept until close.
+    /// the levels it matches: projections, retrieval, viewpoints): the [`SESSION_CACHE`] most
+    /// recently used, least recently used first.
     sessions: Mutex<Vec<(LocalizerKey, Arc<Session>)>>,
     /// Arrays the map could only give as owned copies (a buffer not aligned for the type),
     /// kept so their pointers stay valid until close. With `sfpm_open` (mmap, page-aligned)
@@ -79,7 +80,14 @@ pub(super) struct MapHandle {
     pinned: Mutex<HashMap<(SectionKind, u16), Box<dyn Any + Send + Sync>>>,
 }
 
-#[derive(PartialEq, Eq, Default)]
+/// How many of `sfpm_localize`'s sessions a map handle keeps (its last sets of options). Each
+/// holds its levels decoded to f32, as large as the map's descriptors: a caller cycling
+/// through more sets of options pays for preparing the levels again, never for memory
+/// without bound. An application with more settings opens sessions (`sfpm_session_open`).
+/// `sfpm_localize`'s doc (the header's) states the number.
+pub(super) const SESSION_CACHE: usize = 4;
+
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub(super) struct LocalizerKey {
     pub(super) levels: Vec<u16>,
     pub(super) short: bool,
@@ -119,24 +127,59 @@ impl MapHandle {
     }
 
     /// `sfpm_localize`'s session for these options: the map's own settings with `key`'s
-    /// levels and block, built on first use and kept until close.
+    /// levels and block, built on first use (outside the lock: preparing the levels takes a
+    /// while, and other options' queries go on meanwhile) and kept among the
+    /// [`SESSION_CACHE`] most recently used. Two threads that build the same session at once
+    /// both use the first one kept; the other is dropped.
     pub(super) fn session(&self, key: LocalizerKey) -> FfiResult<Arc<Session>> {
-        let mut cache = lock(&self.sessions);
-        if let Some((_, s)) = cache.iter().find(|(k, _)| *k == key) {
-            return Ok(s.clone());
+        if let Some(session) = self.cached(&key) {
+            return Ok(session);
         }
         let options = LocalizeOptions {
             levels: key.levels.clone(),
             short: key.short,
             ..LocalizeOptions::for_map(&self.map)
         };
-        let session = Session::builder(self.map.clone(), self.path.clone())
+        let built = Session::builder(self.map.clone(), self.path.clone())
             .options(options)
             .build(&crate::progress::Silent)
             .map_err(session_error)?;
-        let session = Arc::new(session);
+        let mut cache = lock(&self.sessions);
+        if let Some(i) = cache.iter().position(|(k, _)| *k == key) {
+            // Another thread built it meanwhile: that one is kept, this one dropped (after
+            // the lock, as `built` was made before the guard).
+            let entry = cache.remove(i);
+            let session = entry.1.clone();
+            cache.push(entry);
+            return Ok(session);
+        }
+        // The least recently used goes, freed outside the lock (a call still running with
+        // it holds its `Arc`).
+        let evicted = (cache.len() >= SESSION_CACHE).then(|| cache.remove(0));
+        let session = Arc::new(built);
         cache.push((key, session.clone()));
+        drop(cache);
+        drop(evicted);
         Ok(session)
+    }
+
+    /// The kept session for `key`, now the most recently used.
+    fn cached(&self, key: &LocalizerKey) -> Option<Arc<Session>> {
+        let mut cache = lock(&self.sessions);
+        let i = cache.iter().position(|(k, _)| k == key)?;
+        let entry = cache.remove(i);
+        let session = entry.1.clone();
+        cache.push(entry);
+        Some(session)
+    }
+
+    /// The options of the kept sessions, least recently used first (for the tests).
+    #[cfg(test)]
+    fn cached_keys(&self) -> Vec<LocalizerKey> {
+        lock(&self.sessions)
+            .iter()
+            .map(|(k, _)| k.clone())
+            .collect()
     }
 }
 
@@ -622,4 +665,97 @@ fn out_of_range(what: &str, index: usize, len: usize) -> FfiError {
     FfiError::argument(format!(
         "{what} index {index} out of range (the map has {len})"
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn levels_map() -> MapHandle {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/spec/vectors/valid/levels.sfpm"
+        );
+        MapHandle {
+            map: Arc::new(Map::open(path).unwrap()),
+            path: path.to_string(),
+            sessions: Mutex::default(),
+            pinned: Mutex::default(),
+        }
+    }
+
+    fn key(levels: &[u16], short: bool) -> LocalizerKey {
+        LocalizerKey {
+            levels: levels.to_vec(),
+            short,
+        }
+    }
+
+    fn session(handle: &MapHandle, key: &LocalizerKey) -> Arc<Session> {
+        match handle.session(key.clone()) {
+            Ok(s) => s,
+            Err(e) => panic!("{}", e.message),
+        }
+    }
+
+    /// `sfpm_localize`'s sessions: at most `SESSION_CACHE` kept, the least recently used
+    /// dropped first, a kept one reused (the same session), a dropped one built again.
+    #[test]
+    fn the_session_cache_keeps_the_most_recently_used() {
+        let handle = levels_map();
+        let keys = [
+            key(&[], false),
+            key(&[0], false),
+            key(&[1], false),
+            key(&[2], false),
+            key(&[0], true),
+            key(&[1], true),
+        ];
+        assert!(keys.len() > SESSION_CACHE + 1);
+        let first = session(&handle, &keys[0]);
+        for k in &keys[1..SESSION_CACHE] {
+            session(&handle, k);
+        }
+        assert_eq!(handle.cached_keys(), keys[..SESSION_CACHE]);
+        // Used again: the same session, now the most recently used.
+        assert!(Arc::ptr_eq(&first, &session(&handle, &keys[0])));
+        for k in &keys[SESSION_CACHE..] {
+            session(&handle, k);
+        }
+        let kept = handle.cached_keys();
+        assert_eq!(kept.len(), SESSION_CACHE, "{kept:?}");
+        assert!(kept.contains(&keys[0]), "used recently: kept");
+        let dropped = &keys[1..=keys.len() - SESSION_CACHE];
+        assert!(dropped.iter().all(|k| !kept.contains(k)), "{kept:?}");
+        assert_eq!(kept.last(), keys.last());
+        assert!(Arc::ptr_eq(&first, &session(&handle, &keys[0])));
+        // A dropped one is made again, and evicts the least recently used in turn.
+        session(&handle, &keys[1]);
+        let again = handle.cached_keys();
+        assert_eq!(again.len(), SESSION_CACHE);
+        assert_eq!(again.last(), Some(&keys[1]));
+        assert!(!again.contains(&kept[0]), "{again:?}");
+    }
+
+    /// Threads asking for the same new options at once each get a session, all the one
+    /// kept: a duplicate built meanwhile is dropped, not cached beside it.
+    #[test]
+    fn threads_building_the_same_session_share_the_one_kept() {
+        let handle = levels_map();
+        let k = key(&[2], true);
+        let barrier = std::sync::Barrier::new(4);
+        let sessions: Vec<Arc<Session>> = std::thread::scope(|s| {
+            let threads: Vec<_> = (0..4)
+                .map(|_| {
+                    s.spawn(|| {
+                        barrier.wait();
+                        session(&handle, &k)
+                    })
+                })
+                .collect();
+            threads.into_iter().map(|t| t.join().unwrap()).collect()
+        });
+        assert!(sessions.iter().all(|s| Arc::ptr_eq(s, &sessions[0])));
+        assert_eq!(handle.cached_keys(), [k]);
+    }
 }

@@ -42,12 +42,12 @@ pub use map::{
 pub use session::{
     sfpm_localize, sfpm_session_close, sfpm_session_is_tracking, sfpm_session_localize,
     sfpm_session_open, sfpm_session_options_default, sfpm_session_reset_tracking, SfpmCamera,
-    SfpmLocalization, SfpmLocalizeOptions, SfpmSessionOptions,
+    SfpmLocalization, SfpmLocalizeOptions, SfpmRetrieval, SfpmSessionOptions,
 };
 
 use crate::format::Error as FormatError;
-use crate::localize::LocalizeError;
 use crate::session::SessionError;
+use crate::ErrorKind;
 use std::cell::RefCell;
 use std::ffi::{c_char, CString};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -111,15 +111,29 @@ impl FfiError {
     }
 }
 
+/// The status of a library error: the one place C's codes are made from the library's
+/// [`ErrorKind`]s (which the Python package's exception classes are made from too).
+fn status(kind: ErrorKind) -> SfpmStatus {
+    match kind {
+        ErrorKind::Io => SFPM_ERR_IO,
+        ErrorKind::Format => SFPM_ERR_FORMAT,
+        ErrorKind::NoSuchLevel => SFPM_ERR_NO_SUCH_LEVEL,
+        ErrorKind::Missing | ErrorKind::NoDescriptors => SFPM_ERR_MISSING,
+        ErrorKind::InvalidArgument | ErrorKind::Input => SFPM_ERR_ARGUMENT,
+        // What stops a query (C sessions neither extract nor convert; were they to, the
+        // query could not run either).
+        ErrorKind::Mismatch
+        | ErrorKind::Localize
+        | ErrorKind::Extract
+        | ErrorKind::Convert
+        | ErrorKind::Other => SFPM_ERR_LOCALIZE,
+    }
+}
+
 impl From<FormatError> for FfiError {
     fn from(e: FormatError) -> Self {
-        let code = match &e {
-            FormatError::Io { .. } | FormatError::NotARegularFile { .. } => SFPM_ERR_IO,
-            FormatError::NoSuchLevel { .. } => SFPM_ERR_NO_SUCH_LEVEL,
-            FormatError::MissingSection { .. } => SFPM_ERR_MISSING,
-            _ => SFPM_ERR_FORMAT,
-        };
-        FfiError::new(code, e.to_string())
+        let e = crate::Error::from(e);
+        FfiError::new(status(e.kind()), e.to_string())
     }
 }
 
@@ -162,27 +176,17 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-fn localize_error_code(e: &LocalizeError) -> SfpmStatus {
-    use LocalizeError as E;
-    match e {
-        E::Format(FormatError::NoSuchLevel { .. }) => SFPM_ERR_NO_SUCH_LEVEL,
-        E::Format(_) => SFPM_ERR_FORMAT,
-        E::Option(_) => SFPM_ERR_ARGUMENT,
-        E::NoDescriptors => SFPM_ERR_MISSING,
-        _ => SFPM_ERR_LOCALIZE,
-    }
-}
-
-/// A session's error as C sees it: the localizer's own message (an option's "ratio 1.5: a
-/// ratio in (0, 1]", a query's dimension mismatch) without the map's path in front, as
-/// `sfpm_localize` always gave it.
+/// A session's error as C sees it: the code of its [`ErrorKind`], and the localizer's own
+/// message (an option's "ratio 1.5: a ratio in (0, 1]", a query's dimension mismatch) without
+/// the map's path in front, as `sfpm_localize` always gave it.
 fn session_error(e: SessionError) -> FfiError {
+    let code = status(e.kind());
     match e {
         SessionError::Localize { source, .. } | SessionError::Query { source, .. } => {
-            FfiError::new(localize_error_code(&source), source.to_string())
+            FfiError::new(code, source.to_string())
         }
-        SessionError::Map { source, .. } => source.into(),
-        other => FfiError::new(SFPM_ERR_LOCALIZE, other.to_string()),
+        SessionError::Map { source, .. } => FfiError::new(code, source.to_string()),
+        other => FfiError::new(code, other.to_string()),
     }
 }
 

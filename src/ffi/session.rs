@@ -9,7 +9,9 @@ use super::{
     SfpmStatus,
 };
 use crate::geometry::Camera;
-use crate::localize::{FeatureSet, Localization, LocalizationPath, LocalizeOptions, QueryFeatures};
+use crate::localize::{
+    FeatureSet, Localization, LocalizationPath, LocalizeOptions, QueryFeatures, RetrievalMethod,
+};
 use crate::session::Session;
 use std::ffi::{c_char, CStr};
 
@@ -46,15 +48,74 @@ pub struct SfpmLocalizeOptions {
     pub short_only: u8,
 }
 
+/// Which stored global descriptor ranks the map's images (`SfpmSessionOptions::retrieval`,
+/// a `uint32_t` holding one of these values).
+#[repr(u32)]
+#[allow(non_camel_case_types)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SfpmRetrieval {
+    /// The map's stated preference when the query can use it, else the other kind the map
+    /// stores (the default).
+    SFPM_RETRIEVAL_AUTO = 0,
+    /// Only VLAD.
+    SFPM_RETRIEVAL_VLAD = 1,
+    /// Only the extractor's global descriptor.
+    SFPM_RETRIEVAL_GLOBAL = 2,
+    /// No retrieval: every point of the map is a candidate.
+    SFPM_RETRIEVAL_OFF = 3,
+}
+
+impl SfpmRetrieval {
+    const ALL: [(SfpmRetrieval, RetrievalMethod); 4] = [
+        (SfpmRetrieval::SFPM_RETRIEVAL_AUTO, RetrievalMethod::Auto),
+        (SfpmRetrieval::SFPM_RETRIEVAL_VLAD, RetrievalMethod::Vlad),
+        (
+            SfpmRetrieval::SFPM_RETRIEVAL_GLOBAL,
+            RetrievalMethod::Global,
+        ),
+        (SfpmRetrieval::SFPM_RETRIEVAL_OFF, RetrievalMethod::Off),
+    ];
+
+    /// The library's method for a caller's value; another value is `SFPM_ERR_ARGUMENT`, in
+    /// the words of the library's option errors (`retrieval "bogus": one of "auto", ...`).
+    fn method(value: u32) -> FfiResult<RetrievalMethod> {
+        Self::ALL
+            .iter()
+            .find(|(c, _)| *c as u32 == value)
+            .map(|(_, method)| *method)
+            .ok_or_else(|| {
+                FfiError::argument(format!(
+                    "retrieval {value}: one of SFPM_RETRIEVAL_AUTO (0), SFPM_RETRIEVAL_VLAD (1), \
+                     SFPM_RETRIEVAL_GLOBAL (2), SFPM_RETRIEVAL_OFF (3)"
+                ))
+            })
+    }
+
+    /// The caller's value of the library's method.
+    fn value(method: RetrievalMethod) -> u32 {
+        Self::ALL
+            .iter()
+            .find(|(_, m)| *m == method)
+            .map_or(SfpmRetrieval::SFPM_RETRIEVAL_AUTO, |(c, _)| *c) as u32
+    }
+}
+
 /// Every setting of a session (`sfpm_session_open`). Values are taken as they are, with no
 /// "0 means default": start from `sfpm_session_options_default`, which fills in the map's
-/// own settings (those `sfpm_localize` and `sfpmap localize` use), and change what you need.
-/// A value out of its range is refused by `sfpm_session_open` with `SFPM_ERR_ARGUMENT` and
-/// the library's message in `sfpm_last_error`, e.g. "ratio 1.5: a ratio in (0, 1]" (the
-/// same text the CLI and the Python package give).
+/// own settings (those `sfpm_localize` and `sfpmap localize` use) and `struct_size`, and
+/// change what you need. A value out of its range is refused by `sfpm_session_open` with
+/// `SFPM_ERR_ARGUMENT` and the library's message in `sfpm_last_error`, e.g. "ratio 1.5: a
+/// ratio in (0, 1]" (the same text the CLI and the Python package give).
+///
+/// Versioned by its size: a later library appends fields, and takes the struct of an
+/// earlier header by its `struct_size` (the fields it lacks at their defaults).
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct SfpmSessionOptions {
+    /// `sizeof(SfpmSessionOptions)` of the header the caller was built with, as
+    /// `sfpm_session_options_default` writes it; `sfpm_session_open` refuses a size it does
+    /// not know (`SFPM_ERR_ARGUMENT`, naming the size it expects).
+    pub struct_size: usize,
     /// Levels to match (`n_levels` ids, read during `sfpm_session_open` only); `n_levels ==
     /// 0` (with `levels` NULL or not) means every level of the map. NULL with `n_levels > 0`
     /// is `SFPM_ERR_NULL`.
@@ -87,6 +148,10 @@ pub struct SfpmSessionOptions {
     /// through retrieval only when tracking is lost; queries then run one at a time, in the
     /// order of the calls. Needs a map with images and visibility to track.
     pub sequence: u8,
+    /// How the map's images are ranked for a query: one of `SfpmRetrieval`'s values
+    /// (`SFPM_RETRIEVAL_AUTO`, the default; `SFPM_RETRIEVAL_VLAD`, `SFPM_RETRIEVAL_GLOBAL`,
+    /// `SFPM_RETRIEVAL_OFF`: every point a candidate). Another value is `SFPM_ERR_ARGUMENT`.
+    pub retrieval: u32,
 }
 
 /// What `sfpm_localize` found.
@@ -224,7 +289,9 @@ unsafe fn report(
 /// Returns `SFPM_OK` with the pose in `*out`, `SFPM_NOT_LOCALIZED` when the query ran but no
 /// pose was found (reason in `sfpm_last_error`; `*out` holds zeros and the match count), or
 /// an error code. The first call for a given set of options prepares the levels (decodes
-/// descriptors to f32, noticeable on a large map); later calls reuse that until close.
+/// descriptors to f32, noticeable on a large map); later calls reuse that until close, for
+/// the 4 sets of options used last (a fifth prepares its levels in place of the least
+/// recently used).
 /// Thread-safe: any number of threads may localize with the same handle at once. For the
 /// other options, or a sequence's tracking, open a session (`sfpm_session_open`).
 ///
@@ -283,7 +350,8 @@ unsafe fn read_levels(levels: *const u16, n: usize) -> FfiResult<Vec<u16>> {
 
 /// Writes the map's own settings to `*out`: every level, full descriptors, and the values
 /// `sfpm_localize` and `sfpmap localize` use (Lowe's ratio 0.95 on SFP maps, 0.9 on SIFT
-/// maps), not a sequence. Start a session's options from these and change what you need.
+/// maps, `SFPM_RETRIEVAL_AUTO`), not a sequence; and `struct_size`. Start a session's options
+/// from these and change what you need.
 ///
 /// # Safety
 /// `out` must be writable or NULL (an error).
@@ -297,6 +365,7 @@ pub unsafe extern "C" fn sfpm_session_options_default(
         let h = get(map)?;
         let o = LocalizeOptions::for_map(&h.map);
         let value = SfpmSessionOptions {
+            struct_size: std::mem::size_of::<SfpmSessionOptions>(),
             levels: std::ptr::null(),
             n_levels: 0,
             short_only: u8::from(o.short),
@@ -310,6 +379,7 @@ pub unsafe extern "C" fn sfpm_session_options_default(
             fine_error_px: o.fine_error_px,
             min_inliers: o.min_inliers,
             sequence: 0,
+            retrieval: SfpmRetrieval::value(o.retrieval),
         };
         // SAFETY: checked non-null above; writable per contract.
         unsafe { put(out, value, "out") }?;
@@ -320,17 +390,18 @@ pub unsafe extern "C" fn sfpm_session_options_default(
 /// Opens a session on `map`: the localizer prepared with `options` (NULL: the map's own
 /// settings, as `sfpm_session_options_default` gives them), its handle written to `*out`.
 /// Options out of range are refused (`SFPM_ERR_ARGUMENT`, and `sfpm_last_error` names the
-/// option, e.g. "ratio 1.5: a ratio in (0, 1]"), as are levels the map lacks
-/// (`SFPM_ERR_NO_SUCH_LEVEL`). Opening prepares the levels (decodes descriptors to f32,
-/// noticeable on a large map).
+/// option, e.g. "ratio 1.5: a ratio in (0, 1]"), as are a `struct_size` this library does
+/// not know (`SFPM_ERR_ARGUMENT`) and levels the map lacks (`SFPM_ERR_NO_SUCH_LEVEL`).
+/// Opening prepares the levels (decodes descriptors to f32, noticeable on a large map).
 ///
 /// The session holds the map: closing the map handle first is allowed, and the session goes
 /// on working until `sfpm_session_close` (the file is unmapped when both are closed). Close
 /// every session with `sfpm_session_close`.
 ///
 /// # Safety
-/// `options` must be NULL or point to a valid `SfpmSessionOptions` (its `levels` valid for
-/// `n_levels` ids during the call); `out` must be writable or NULL (an error).
+/// `options` must be NULL or point to a valid `SfpmSessionOptions` of `options->struct_size`
+/// bytes (its `levels` valid for `n_levels` ids during the call); `out` must be writable or
+/// NULL (an error).
 #[no_mangle]
 pub unsafe extern "C" fn sfpm_session_open(
     map: SfpmMap,
@@ -343,7 +414,19 @@ pub unsafe extern "C" fn sfpm_session_open(
         let mut settings = LocalizeOptions::for_map(&h.map);
         let mut sequence = false;
         if !options.is_null() {
-            // SAFETY: non-null, points to a valid SfpmSessionOptions per contract.
+            // SAFETY: non-null, and per contract the caller's struct, which starts with its
+            // size whatever header it was built with: the first field is readable (and
+            // aligned for a `usize`, the struct's first field).
+            let size = unsafe { options.cast::<usize>().read() };
+            let expected = std::mem::size_of::<SfpmSessionOptions>();
+            if size != expected {
+                return Err(FfiError::argument(format!(
+                    "struct_size {size}: {expected}, sizeof(SfpmSessionOptions) of this library \
+                     (fill the options with sfpm_session_options_default)"
+                )));
+            }
+            // SAFETY: non-null, of this library's size, a valid SfpmSessionOptions per
+            // contract.
             let o = unsafe { &*options };
             // SAFETY: per contract: `n_levels` ids (NULL allowed when 0).
             settings.levels = unsafe { read_levels(o.levels, o.n_levels)? };
@@ -357,6 +440,7 @@ pub unsafe extern "C" fn sfpm_session_open(
             settings.gate_ratio = o.gate_ratio;
             settings.fine_error_px = o.fine_error_px;
             settings.min_inliers = o.min_inliers;
+            settings.retrieval = SfpmRetrieval::method(o.retrieval)?;
             sequence = o.sequence != 0;
         }
         let session = Session::builder(h.map.clone(), h.path.clone())

@@ -289,7 +289,12 @@ fn session_options_out_of_range_are_refused_with_the_library_message() {
         assert_eq!(last_error(), message);
         assert_eq!(session, 77, "nothing written");
     }
-    let zeroed = unsafe { std::mem::MaybeUninit::<SfpmSessionOptions>::zeroed().assume_init() };
+    // Zeroed but for the struct's size (a zeroed size is refused first: see
+    // `session_options_are_versioned_by_their_size`).
+    let zeroed = SfpmSessionOptions {
+        struct_size: std::mem::size_of::<SfpmSessionOptions>(),
+        ..unsafe { std::mem::MaybeUninit::<SfpmSessionOptions>::zeroed().assume_init() }
+    };
     let mut session: SfpmSession = 0;
     assert_eq!(
         unsafe { sfpm_session_open(map, &zeroed, &mut session) },
@@ -331,6 +336,125 @@ fn session_options_out_of_range_are_refused_with_the_library_message() {
         SfpmStatus::SFPM_ERR_NULL
     );
     assert_eq!(session, 0);
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+}
+
+/// `struct_size` versions the options: `sfpm_session_options_default` writes this library's
+/// `sizeof(SfpmSessionOptions)`, and `sfpm_session_open` refuses any other size (an older or
+/// newer header's, a struct never filled in) with `SFPM_ERR_ARGUMENT`, naming the size it
+/// expects, before reading anything past the size.
+#[test]
+fn session_options_are_versioned_by_their_size() {
+    let map = open(&vector_path("levels"));
+    let defaults = default_options(map);
+    let size = std::mem::size_of::<SfpmSessionOptions>();
+    assert_eq!(defaults.struct_size, size);
+    for wrong in [0, size - 8, size + 8, usize::MAX] {
+        let options = SfpmSessionOptions {
+            struct_size: wrong,
+            ..defaults
+        };
+        let mut session: SfpmSession = 77;
+        let status = unsafe { sfpm_session_open(map, &options, &mut session) };
+        assert_eq!(status, SfpmStatus::SFPM_ERR_ARGUMENT, "struct_size {wrong}");
+        assert_eq!(session, 77, "nothing written");
+        assert!(
+            last_error().starts_with(&format!(
+                "struct_size {wrong}: {size}, sizeof(SfpmSessionOptions)"
+            )),
+            "{}",
+            last_error()
+        );
+    }
+    // Only the size is read of a struct of another size: a caller's struct of just a
+    // `size_t` is refused, not read past its end.
+    let only_a_size: usize = 8;
+    let mut session: SfpmSession = 0;
+    let status = unsafe {
+        sfpm_session_open(
+            map,
+            (&only_a_size as *const usize).cast::<SfpmSessionOptions>(),
+            &mut session,
+        )
+    };
+    assert_eq!(status, SfpmStatus::SFPM_ERR_ARGUMENT);
+    assert_eq!(session, 0);
+    let session = open_session(map, Some(&defaults));
+    assert_eq!(sfpm_session_close(session), SfpmStatus::SFPM_OK);
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+}
+
+/// `retrieval` reaches the session's localizer. On the `vlad` vector with its images' VLAD
+/// damaged, the methods that read VLAD (`SFPM_RETRIEVAL_AUTO`, the default, and
+/// `SFPM_RETRIEVAL_VLAD`) meet the damage when the session opens (`SFPM_ERR_FORMAT`, the
+/// section's checksum), those that do not (`SFPM_RETRIEVAL_GLOBAL`: the map stores no global
+/// descriptors; `SFPM_RETRIEVAL_OFF`) open. A value past them is
+/// `SFPM_ERR_ARGUMENT`, in the words of the library's option errors.
+#[test]
+fn session_retrieval_is_passed_through_and_checked() {
+    use sfpmap::format::{Map, SectionKind};
+    use SfpmRetrieval::*;
+    let intact = vector_path("vlad");
+    let intact = intact.to_str().unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let damaged = tmp.path().join("damaged-vlad.sfpm");
+    let mut bytes = std::fs::read(intact).unwrap();
+    let section = *Map::open(intact)
+        .unwrap()
+        .find(SectionKind::ImageVlad, None)
+        .expect("the vlad vector stores its images' VLAD");
+    let at = usize::try_from(section.offset() + section.stored_len() / 2).unwrap();
+    bytes[at] ^= 0x55;
+    std::fs::write(&damaged, bytes).unwrap();
+
+    let map = open(&CString::new(damaged.to_str().unwrap()).unwrap());
+    let defaults = default_options(map);
+    assert_eq!(defaults.retrieval, SFPM_RETRIEVAL_AUTO as u32);
+    let with = |retrieval: u32| SfpmSessionOptions {
+        retrieval,
+        ..defaults
+    };
+    for (retrieval, opens) in [
+        (SFPM_RETRIEVAL_AUTO, false),
+        (SFPM_RETRIEVAL_VLAD, false),
+        (SFPM_RETRIEVAL_GLOBAL, true),
+        (SFPM_RETRIEVAL_OFF, true),
+    ] {
+        let mut session: SfpmSession = 0;
+        let status = unsafe { sfpm_session_open(map, &with(retrieval as u32), &mut session) };
+        if opens {
+            assert_eq!(
+                status,
+                SfpmStatus::SFPM_OK,
+                "{retrieval:?}: {}",
+                last_error()
+            );
+            assert_eq!(sfpm_session_close(session), SfpmStatus::SFPM_OK);
+        } else {
+            assert_eq!(status, SfpmStatus::SFPM_ERR_FORMAT, "{retrieval:?}");
+            assert!(last_error().contains("checksum"), "{}", last_error());
+            assert_eq!(session, 0);
+        }
+    }
+    // NULL options are the defaults: AUTO, which reads the damaged VLAD.
+    let mut session: SfpmSession = 0;
+    assert_eq!(
+        unsafe { sfpm_session_open(map, null(), &mut session) },
+        SfpmStatus::SFPM_ERR_FORMAT
+    );
+    for bad in [SFPM_RETRIEVAL_OFF as u32 + 1, 42, u32::MAX] {
+        let mut session: SfpmSession = 77;
+        let status = unsafe { sfpm_session_open(map, &with(bad), &mut session) };
+        assert_eq!(status, SfpmStatus::SFPM_ERR_ARGUMENT, "{bad}");
+        assert_eq!(session, 77);
+        assert_eq!(
+            last_error(),
+            format!(
+                "retrieval {bad}: one of SFPM_RETRIEVAL_AUTO (0), SFPM_RETRIEVAL_VLAD (1), \
+                 SFPM_RETRIEVAL_GLOBAL (2), SFPM_RETRIEVAL_OFF (3)"
+            )
+        );
+    }
     assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
 }
 

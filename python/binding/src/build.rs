@@ -16,6 +16,9 @@ use sfpmap::progress::Silent;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+/// Every failure of a conversion is a `ConvertError`, its files' and its extractor's included
+/// (which `sfpmap::ErrorKind` tells apart): not a classification by kind but what the class
+/// has always stood for, "this model cannot be converted".
 fn convert_error(e: sfpmap::build::ConvertError) -> PyErr {
     ConvertError::new_err(chain(&e))
 }

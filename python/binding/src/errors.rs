@@ -8,6 +8,7 @@ use pyo3::exceptions::{PyException, PyOverflowError};
 use pyo3::prelude::*;
 use pyo3::{create_exception, PyErr};
 use sfpmap::session::SessionError;
+use sfpmap::ErrorKind;
 use std::path::Path;
 
 create_exception!(
@@ -79,6 +80,25 @@ pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     Ok(())
 }
 
+/// The exception of a library error of kind `kind` with the text `text`: the one place the
+/// classes are made from the library's [`ErrorKind`]s (which the C ABI's status codes are made
+/// from too).
+pub(crate) fn exception(kind: ErrorKind, text: String) -> PyErr {
+    match kind {
+        ErrorKind::Io => FileError::new_err(text),
+        ErrorKind::Format | ErrorKind::Missing => MapError::new_err(text),
+        ErrorKind::NoSuchLevel => NoSuchLevelError::new_err(text),
+        ErrorKind::InvalidArgument | ErrorKind::Input => InputError::new_err(text),
+        ErrorKind::NoDescriptors | ErrorKind::Mismatch | ErrorKind::Localize => {
+            LocalizeError::new_err(text)
+        }
+        ErrorKind::Extract => ExtractError::new_err(text),
+        ErrorKind::Convert => ConvertError::new_err(text),
+        // `Other`, and a kind a later library adds.
+        _ => Error::new_err(text),
+    }
+}
+
 /// `e` and its causes, `: `-separated, as anyhow's `{:#}` prints them, on one line: the
 /// messages of ONNX Runtime, SQLite or HDF5 may hold line breaks (ORT ends some with one).
 pub(crate) fn chain(e: &dyn std::error::Error) -> String {
@@ -116,13 +136,11 @@ pub(crate) fn within(context: &str, e: &dyn std::error::Error) -> String {
 /// A format error of the map at `path`, as the CLI's `open_map` reports it: the path in
 /// front unless the error (an I/O error) names it already.
 pub(crate) fn format_error(path: &Path, e: sfpmap::format::Error) -> PyErr {
-    use sfpmap::format::Error as E;
-    match &e {
-        E::Io { .. } => FileError::new_err(chain(&e)),
-        E::NotARegularFile { .. } => FileError::new_err(within(&path.display().to_string(), &e)),
-        E::NoSuchLevel { .. } => NoSuchLevelError::new_err(within(&path.display().to_string(), &e)),
-        _ => MapError::new_err(within(&path.display().to_string(), &e)),
-    }
+    let text = match &e {
+        sfpmap::format::Error::Io { .. } => chain(&e),
+        _ => within(&path.display().to_string(), &e),
+    };
+    exception(sfpmap::Error::from(e).kind(), text)
 }
 
 /// A level argument (any Python int): `Ok(id)`, or `Err(its decimal text)` for an int no
@@ -159,20 +177,18 @@ pub(crate) fn level_ids(
 
 /// An extractor's error: `FileError` for an image that cannot be read, else `ExtractError`.
 pub(crate) fn extract_error(e: sfpmap::extract::ExtractError) -> PyErr {
-    use sfpmap::extract::ExtractError as E;
-    match &e {
-        E::Io { .. } => FileError::new_err(chain(&e)),
-        _ => ExtractError::new_err(chain(&e)),
-    }
+    let text = chain(&e);
+    exception(sfpmap::Error::from(e).kind(), text)
 }
 
 /// An option out of its range, in the library's words alone (`top_k 0: 1 to 100000 images`):
 /// an `InputError`, as any other argument the package refuses.
 pub(crate) fn option_error(e: &sfpmap::localize::OptionError) -> PyErr {
-    InputError::new_err(e.to_string())
+    exception(sfpmap::Error::from(e.clone()).kind(), e.to_string())
 }
 
-/// The one place a session's error becomes an exception:
+/// The one place a session's error becomes an exception, by its kind
+/// ([`SessionError::kind`]):
 ///
 /// - an option out of range: `InputError`, the library's message alone (no map in front);
 /// - the map (a level it lacks, a damaged section), while building the localizer, while a
@@ -187,40 +203,14 @@ pub(crate) fn option_error(e: &sfpmap::localize::OptionError) -> PyErr {
 /// The text is the CLI's line: the session's message (the map or file in front) and its
 /// causes.
 pub(crate) fn session_error(e: SessionError) -> PyErr {
-    use sfpmap::format::Error as F;
-    use sfpmap::localize::LocalizeError as L;
-    use SessionError as S;
-    let text = session_text(&e);
-    let format = |f: &F, text: String| match f {
-        F::NoSuchLevel { .. } => NoSuchLevelError::new_err(text),
-        F::Io { .. } | F::NotARegularFile { .. } => FileError::new_err(text),
-        _ => MapError::new_err(text),
+    let text = match &e {
+        SessionError::Localize {
+            source: sfpmap::localize::LocalizeError::Option(o),
+            ..
+        } => o.to_string(),
+        _ => session_text(&e),
     };
-    match &e {
-        S::Localize {
-            source: L::Option(o),
-            ..
-        } => option_error(o),
-        S::Localize {
-            source: L::Format(f),
-            ..
-        }
-        | S::Query {
-            source: L::Format(f),
-            ..
-        }
-        | S::Map { source: f, .. } => format(f, text),
-        S::Localize { .. } | S::Query { .. } | S::Mismatch(_) | S::NotExtractable { .. } => {
-            LocalizeError::new_err(text)
-        }
-        S::NoSource(_) | S::Input(_) | S::Database { .. } => InputError::new_err(text),
-        S::Extract(x) => match x {
-            sfpmap::extract::ExtractError::Io { .. } => FileError::new_err(text),
-            _ => ExtractError::new_err(text),
-        },
-        // A kind of error a later library adds.
-        _ => LocalizeError::new_err(text),
-    }
+    exception(e.kind(), text)
 }
 
 /// `e`'s text and its causes on one line. A session error's text holds its source's text
@@ -237,5 +227,6 @@ fn session_text(e: &SessionError) -> String {
 }
 
 pub(crate) fn output_error(e: sfpmap::output::OutputError) -> PyErr {
-    FileError::new_err(chain(&e))
+    let text = chain(&e);
+    exception(sfpmap::Error::from(e).kind(), text)
 }
