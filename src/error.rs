@@ -237,6 +237,7 @@ impl crate::session::SessionError {
             S::NotExtractable { .. } => ErrorKind::Mismatch,
             S::NoSource(_) | S::Input(_) => ErrorKind::Input,
             S::Map { source, .. } => format_kind(source),
+            S::Place { source, .. } => source.kind(),
             // A query database is an input whatever failed in it, its file included.
             #[cfg(feature = "colmap")]
             S::Database { .. } => ErrorKind::Input,

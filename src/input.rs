@@ -6,6 +6,16 @@
 use std::fs::{File, FileType, Metadata};
 use std::path::Path;
 
+/// Whether `name` is a URL (`http://`, `https://`, `s3://`, any case) rather than a local
+/// path: maps by these names are read by range (`sfpmap::remote`, feature `remote`).
+pub fn is_url(name: &str) -> bool {
+    // Bytes, not a str slice: a name may start with a multi-byte character.
+    ["http://", "https://", "s3://"].iter().any(|scheme| {
+        name.len() > scheme.len()
+            && name.as_bytes()[..scheme.len()].eq_ignore_ascii_case(scheme.as_bytes())
+    })
+}
+
 /// Why an input cannot be read as a file.
 #[derive(Debug)]
 pub enum OpenError {

@@ -55,7 +55,7 @@ fn location(map: &Path, dir: &Path) -> anyhow::Result<String> {
     let text = map
         .to_str()
         .with_context(|| format!("{}: not UTF-8", map.display()))?;
-    if sfpmap::remote::is_url(text) {
+    if sfpmap::input::is_url(text) {
         return Ok(text.to_string());
     }
     let absolute = map

@@ -186,25 +186,29 @@ fn shortest_f64(v: f32) -> f64 {
     v.to_string().parse().unwrap_or(f64::from(v))
 }
 
-/// The localizer's options: the map's defaults ([`LocalizeOptions::for_map`]) with
+/// The localizer's options for a map: its defaults ([`LocalizeOptions::for_map`]) with
 /// `--level`, `--short`, `--top-k`, `--retrieval` and `--ratio`. The session checks them.
-fn options(map: &Map<'_>, args: &Args) -> LocalizeOptions {
-    let base = LocalizeOptions::for_map(map);
-    LocalizeOptions {
-        levels: args.levels.clone(),
-        short: args.short,
-        top_k: args.top_k,
-        retrieval: match args.retrieval {
-            RetrievalArg::Auto => RetrievalMethod::Auto,
-            RetrievalArg::Vlad => RetrievalMethod::Vlad,
-            RetrievalArg::Global => RetrievalMethod::Global,
-            RetrievalArg::Off => RetrievalMethod::Off,
-        },
-        matching: MatchOptions {
-            ratio: args.ratio.unwrap_or(base.matching.ratio),
-            ..base.matching
-        },
-        ..base
+fn options(args: &Args) -> impl Fn(&Map<'_>) -> LocalizeOptions + Send + Sync + 'static {
+    let (levels, short, top_k, ratio) = (args.levels.clone(), args.short, args.top_k, args.ratio);
+    let retrieval = match args.retrieval {
+        RetrievalArg::Auto => RetrievalMethod::Auto,
+        RetrievalArg::Vlad => RetrievalMethod::Vlad,
+        RetrievalArg::Global => RetrievalMethod::Global,
+        RetrievalArg::Off => RetrievalMethod::Off,
+    };
+    move |map| {
+        let base = LocalizeOptions::for_map(map);
+        LocalizeOptions {
+            levels: levels.clone(),
+            short,
+            top_k,
+            retrieval,
+            matching: MatchOptions {
+                ratio: ratio.unwrap_or(base.matching.ratio),
+                ..base.matching
+            },
+            ..base
+        }
     }
 }
 
@@ -219,7 +223,7 @@ fn session(
     not_extractable: &str,
     bars: &super::Bars,
 ) -> anyhow::Result<Session> {
-    let options = options(&map, args);
+    let options = options(args)(&map);
     let session = Session::builder(map, args.map_path().display().to_string())
         .options(options)
         .source(source)
@@ -536,11 +540,6 @@ fn none_read(query_list: &Path, queries: &[Query], results: &[Localization]) -> 
         quoted_name(&queries[0].name),
         failure(&results[0])
     )
-}
-
-/// The failed localization of a query whose features could not be read.
-fn unread(reason: String) -> Localization {
-    Localization::failed(QueryFailure::NoFeatures(reason))
 }
 
 /// The output policy for `-o` (and the MCAP mode's `--tum`): none may be the map, the query

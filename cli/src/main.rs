@@ -141,11 +141,8 @@ pub fn print_json(value: &serde_json::Value) -> anyhow::Result<()> {
 /// Opens a map, a file or an `http(s)://` / `s3://` URL read by range (cache and S3 settings
 /// from the environment, `sfpmap::remote::RemoteOptions::from_env`); errors name it once.
 pub fn open_map(path: &std::path::Path) -> anyhow::Result<sfpmap::format::Map<'static>> {
-    if let Some(url) = path.to_str().filter(|p| sfpmap::remote::is_url(p)) {
-        let options = sfpmap::remote::RemoteOptions::from_env();
-        return sfpmap::remote::open(url, &options).map_err(naming(path));
-    }
-    sfpmap::format::Map::open(path).map_err(naming(path))
+    let options = sfpmap::remote::RemoteOptions::from_env();
+    sfpmap::remote::open_location(path, &options).map_err(naming(path))
 }
 
 /// What reading a map by range cost (`None` for a local map), for `--json`.

@@ -9,7 +9,7 @@ use crate::vector::project_rows;
 use crate::vlad::Codebook;
 
 /// A catalog's places, ready to rank queries.
-pub struct PlaceRanker {
+pub(crate) struct PlaceRanker {
     codebook: Codebook,
     /// `[dims × d_in]`.
     projection: Vec<f32>,
@@ -31,7 +31,7 @@ pub struct PlaceScore {
 
 impl PlaceRanker {
     /// The ranker of `catalog`'s places: its codebook, projection and image VLADs, widened to f32.
-    pub fn new(catalog: &Catalog<'_>) -> Result<PlaceRanker, FormatError> {
+    pub(crate) fn new(catalog: &Catalog<'_>) -> Result<PlaceRanker, FormatError> {
         let codebook = Codebook::new(catalog.centroids.to_vec(), catalog.dims)
             .ok_or_else(|| FormatError::inconsistent("catalog: a codebook of no centroids"))?;
         let mut images = vec![0.0f32; catalog.image_vlad.len()];
@@ -73,7 +73,7 @@ impl PlaceRanker {
 
     /// The places among `allowed`, best first (ties: lower index); empty when the query has
     /// no features of the catalog's descriptor.
-    pub fn rank(&self, query: &QueryFeatures, allowed: impl Fn(usize) -> bool) -> Vec<PlaceScore> {
+    pub(crate) fn rank(&self, query: &QueryFeatures, allowed: impl Fn(usize) -> bool) -> Vec<PlaceScore> {
         let Some(q) = self.query_vlad(query) else {
             return Vec::new();
         };

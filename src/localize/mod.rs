@@ -2,7 +2,7 @@
 //! pose refinement).
 
 mod adc;
-pub mod catalog;
+pub(crate) mod catalog;
 mod coarse;
 pub mod eval;
 mod guided;

@@ -19,22 +19,24 @@ use std::ops::Range;
 use std::path::PathBuf;
 use std::sync::{Mutex, OnceLock};
 
-/// Whether `name` is a URL this module reads (rather than a local path).
-pub fn is_url(name: &str) -> bool {
-    // Bytes, not a str slice: a name may start with a multi-byte character.
-    ["http://", "https://", "s3://"].iter().any(|scheme| {
-        name.len() > scheme.len()
-            && name.as_bytes()[..scheme.len()].eq_ignore_ascii_case(scheme.as_bytes())
-    })
-}
+use crate::input::is_url;
 
-/// How remote maps are read.
+/// How remote maps are read. The default keeps no cache.
 #[derive(Debug, Clone)]
 pub struct RemoteOptions {
     /// The cache folder, `None` for no cache.
     pub cache_dir: Option<PathBuf>,
     /// The most bytes the cache keeps; the least recently used sections go first.
     pub cache_max_bytes: u64,
+}
+
+impl Default for RemoteOptions {
+    fn default() -> RemoteOptions {
+        RemoteOptions {
+            cache_dir: None,
+            cache_max_bytes: DEFAULT_CACHE_MAX_BYTES,
+        }
+    }
 }
 
 impl RemoteOptions {
@@ -73,6 +75,18 @@ pub(crate) const DEFAULT_CACHE_MAX_BYTES: u64 = 2 << 30;
 pub fn open(url: &str, options: &RemoteOptions) -> Result<Map<'static>, Error> {
     let source = RemoteSource::connect(url, options)?;
     Map::open_source(Box::new(source))
+}
+
+/// Opens the map at `location`: an `http(s)://` / `s3://` URL ([`is_url`]) by range, any
+/// other name as a local file ([`Map::open`]).
+pub fn open_location(
+    location: &std::path::Path,
+    options: &RemoteOptions,
+) -> Result<Map<'static>, Error> {
+    match location.to_str().filter(|l| is_url(l)) {
+        Some(url) => open(url, options),
+        None => Map::open(location),
+    }
 }
 
 /// An object in an HTTP server or S3 bucket, read by range.

@@ -25,11 +25,13 @@
 //! # }
 //! ```
 
+pub mod catalog;
 #[cfg(feature = "mcap")]
 pub mod mcap_log;
 mod source;
 
-pub use source::{check_extractable, QueryReader, QuerySource};
+pub(crate) use source::QueryReader;
+pub use source::{check_extractable, QuerySource};
 
 use crate::format::{Error as FormatError, Map};
 use crate::geometry::Camera;
@@ -550,7 +552,17 @@ pub enum SessionError {
     },
     /// The source is not one this call reads from (a name asked of handed-in features).
     NoSource(String),
-    /// The map itself (a damaged section while reading it).
+    /// A place of a catalog ([`catalog::CatalogSession`]): its map cannot be opened, is not
+    /// the one the catalog recorded, or its session cannot be made.
+    Place {
+        /// The catalog's name.
+        catalog: String,
+        /// The place's name.
+        place: String,
+        /// Why.
+        source: Box<SessionError>,
+    },
+    /// The map itself (it cannot be opened, or a damaged section while reading it).
     Map {
         /// The map's name.
         map: String,
@@ -588,7 +600,17 @@ impl std::fmt::Display for SessionError {
                 "{map}: a map of {descriptor:?} descriptors, which the SFP extractor does not \
                  make: its queries' features come from a COLMAP database or a features file"
             ),
+            // An I/O error names its file already.
+            SessionError::Map {
+                source: source @ FormatError::Io { .. },
+                ..
+            } => source.fmt(f),
             SessionError::Map { map, source } => write!(f, "{map}: {source}"),
+            SessionError::Place {
+                catalog,
+                place,
+                source,
+            } => write!(f, "{catalog}: place {place:?}: {source}"),
             SessionError::Input(e) => e.fmt(f),
             #[cfg(feature = "colmap")]
             SessionError::Database { path, source } => write!(f, "{}: {source}", path.display()),
@@ -607,6 +629,7 @@ impl std::error::Error for SessionError {
                 source.source()
             }
             SessionError::Map { source, .. } => source.source(),
+            SessionError::Place { source, .. } => source.source(),
             SessionError::Input(e) => e.source(),
             #[cfg(feature = "colmap")]
             SessionError::Database { source, .. } => source.source(),

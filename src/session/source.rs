@@ -69,7 +69,7 @@ pub(super) enum Source {
 /// A [`QuerySource`], opened and checked against a map: the queries' features by name. A
 /// [`Session`](super::Session) keeps one; a catalog's places share one (their features are
 /// read once and localized in several places).
-pub struct QueryReader {
+pub(crate) struct QueryReader {
     source: Source,
     fit: Fit,
     /// Queries extracted without their global descriptor (tracked frames).
@@ -77,24 +77,9 @@ pub struct QueryReader {
 }
 
 impl QueryReader {
-    /// `source` for the queries of `map` (named `map_name` in errors), whose localizer runs
-    /// with `options` (the retrieval they choose decides whether query global descriptors
-    /// are extracted).
-    pub fn open(
-        source: QuerySource,
-        map: &Map<'_>,
-        map_name: &str,
-        options: &LocalizeOptions,
-        extractor_threads: usize,
-        reporter: &dyn Reporter,
-    ) -> Result<QueryReader, SessionError> {
-        let fit = Fit::of(map, map_name.to_string());
-        Self::open_for(source, fit, Some(map), options, extractor_threads, reporter)
-    }
-
     /// `source` for the queries of a catalog's places, whose descriptors are `descriptor`
     /// (features files are checked against it; images cannot be extracted for several maps).
-    pub fn for_catalog(
+    pub(crate) fn for_catalog(
         source: QuerySource,
         catalog_name: &str,
         descriptor: &str,
@@ -127,12 +112,15 @@ impl QueryReader {
 
     /// The query `name`'s features, or why it has none (missing, an image that does not
     /// decode): a failed query, not an error.
-    pub fn read(&mut self, name: &str) -> Result<Result<QueryFeatures, String>, SessionError> {
+    pub(crate) fn read(
+        &mut self,
+        name: &str,
+    ) -> Result<Result<QueryFeatures, String>, SessionError> {
         Ok(self.frame(name, false)?.map(|f| f.features))
     }
 
     /// Queries extracted without their global descriptor (tracked frames).
-    pub fn global_deferred(&self) -> usize {
+    pub(crate) fn global_deferred(&self) -> usize {
         self.global_deferred
     }
 }

@@ -13,6 +13,7 @@ mod shared_data;
 #[path = "../support/synthetic_scene.rs"]
 mod synthetic_scene;
 
+mod catalog_session;
 mod colmap_database;
 mod colmap_models;
 mod convert;

@@ -1,0 +1,445 @@
+//! A catalog of place maps (`sfpmap catalog build`, [`Catalog`]) queried as one map: each
+//! query's candidate places are ranked by retrieval on the catalog's place summaries
+//! ([`PlaceRanker`]), optionally only those near a prior position; the best few are opened
+//! on first use (files, or URLs read by range: only the sections the localizer reads),
+//! checked against what the catalog recorded, and localize the query; the pose with the
+//! most inliers wins. Poses are in the chosen place's frame.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! use sfpmap::format::Map;
+//! use sfpmap::geometry::Camera;
+//! use sfpmap::session::catalog::CatalogSession;
+//! use sfpmap::session::QuerySource;
+//! use std::sync::Arc;
+//!
+//! let catalog = Arc::new(Map::open("city.sfpc")?);
+//! let session = CatalogSession::builder(catalog, "city.sfpc")
+//!     .source(QuerySource::Database("queries.db".into()))
+//!     .build(&sfpmap::progress::Silent)?;
+//! let camera = Camera::parse("SIMPLE_RADIAL 3072 2304 2559.81 1536 1152 -0.0204")?;
+//! let found = session.localize("P1180141.JPG", &camera, None)?;
+//! if let Some(place) = found.place {
+//!     println!("{}: {:?}", session.places()[place].name, found.localization.pose());
+//! }
+//! # Ok(())
+//! # }
+//! ```
+
+use super::{QueryReader, QuerySource, Session, SessionError};
+use crate::format::{Catalog, Map, Place};
+use crate::geometry::Camera;
+use crate::input::is_url;
+use crate::io::queries::Query;
+use crate::localize::catalog::PlaceRanker;
+pub use crate::localize::catalog::PlaceScore;
+use crate::localize::{Localization, LocalizeOptions, QueryFailure, QueryFeatures};
+use crate::progress::Reporter;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, OnceLock};
+
+/// The localizer options of a place: its map's, from [`LocalizeOptions::for_map`] unless the
+/// caller changes them.
+type PlaceOptions = Box<dyn Fn(&Map<'_>) -> LocalizeOptions + Send + Sync>;
+
+/// A catalog prepared for queries: its places ranked per query, each place's [`Session`]
+/// made on first use. `Send + Sync`; queries read from the source take turns.
+pub struct CatalogSession {
+    /// The catalog as the user named it (a path or a URL), in front of every error.
+    name: String,
+    catalog: Arc<Map<'static>>,
+    places: Vec<Place>,
+    /// Where each place's map is ([`CatalogSession::locations`]).
+    locations: Vec<PathBuf>,
+    ranker: PlaceRanker,
+    reader: Mutex<QueryReader>,
+    place_options: PlaceOptions,
+    places_per_query: usize,
+    sessions: Vec<OnceLock<Session>>,
+    #[cfg(feature = "remote")]
+    remote: crate::remote::RemoteOptions,
+}
+
+/// How a [`CatalogSession`] is made: [`CatalogSession::builder`], then its settings, then
+/// [`CatalogSessionBuilder::build`].
+pub struct CatalogSessionBuilder {
+    catalog: Arc<Map<'static>>,
+    name: String,
+    source: QuerySource,
+    place_options: PlaceOptions,
+    places_per_query: usize,
+    #[cfg(feature = "remote")]
+    remote: crate::remote::RemoteOptions,
+}
+
+impl CatalogSessionBuilder {
+    /// Where the queries' features come from; default [`QuerySource::Given`]. A features
+    /// file must be of the catalog's descriptor; images cannot be extracted for a catalog.
+    pub fn source(mut self, source: QuerySource) -> Self {
+        self.source = source;
+        self
+    }
+
+    /// Each place's localizer options, made from its map (default
+    /// [`LocalizeOptions::for_map`]); checked when the place is first opened.
+    pub fn place_options(
+        mut self,
+        options: impl Fn(&Map<'_>) -> LocalizeOptions + Send + Sync + 'static,
+    ) -> Self {
+        self.place_options = Box::new(options);
+        self
+    }
+
+    /// How many of the best-ranked places each query is localized in (default 2; at least 1).
+    pub fn places_per_query(mut self, n: usize) -> Self {
+        self.places_per_query = n;
+        self
+    }
+
+    /// How place maps named by URL are read (default
+    /// [`RemoteOptions::default`](crate::remote::RemoteOptions): no cache; the CLI passes
+    /// [`RemoteOptions::from_env`](crate::remote::RemoteOptions::from_env)).
+    #[cfg(feature = "remote")]
+    pub fn remote(mut self, options: crate::remote::RemoteOptions) -> Self {
+        self.remote = options;
+        self
+    }
+
+    /// Reads the catalog's places and ranking data, resolves where each place's map is, and
+    /// opens the query source. No place map is opened yet.
+    pub fn build(self, reporter: &dyn Reporter) -> Result<CatalogSession, SessionError> {
+        let name = self.name;
+        if self.places_per_query == 0 {
+            return Err(SessionError::Mismatch(format!(
+                "{name}: places per query 0: at least one place must be tried"
+            )));
+        }
+        let map_error = |source| SessionError::Map {
+            map: name.clone(),
+            source,
+        };
+        let catalog = Catalog::of(&self.catalog)
+            .map_err(map_error)?
+            .ok_or_else(|| {
+                SessionError::Mismatch(format!(
+                    "{name}: not a catalog (its metadata lists no places)"
+                ))
+            })?;
+        let places = catalog.places().to_vec();
+        let locations = places
+            .iter()
+            .map(|p| resolve(&name, p))
+            .collect::<Result<Vec<_>, _>>()?;
+        let ranker = PlaceRanker::new(&catalog).map_err(map_error)?;
+        let reader =
+            QueryReader::for_catalog(self.source, &name, &catalog.listing.descriptor, reporter)?;
+        Ok(CatalogSession {
+            sessions: places.iter().map(|_| OnceLock::new()).collect(),
+            name,
+            catalog: self.catalog,
+            places,
+            locations,
+            ranker,
+            reader: Mutex::new(reader),
+            place_options: self.place_options,
+            places_per_query: self.places_per_query,
+            #[cfg(feature = "remote")]
+            remote: self.remote,
+        })
+    }
+}
+
+/// Where place `place`'s map is: a URL as is; a path from the catalog's folder (absolute ones
+/// as they are). A catalog read from a URL names no local file: its places' locations are
+/// resolved against its URL and must stay URLs, so a downloaded catalog cannot make the
+/// reader open local files.
+fn resolve(catalog: &str, place: &Place) -> Result<PathBuf, SessionError> {
+    let location = place.map.as_str();
+    if is_url(location) {
+        return Ok(PathBuf::from(location));
+    }
+    if is_url(catalog) {
+        return join_url(catalog, location)
+            .filter(|joined| is_url(joined))
+            .map(PathBuf::from)
+            .ok_or_else(|| {
+                SessionError::Mismatch(format!(
+                    "{catalog}: place {:?}: map {location:?} is not a location on the catalog's \
+                     server",
+                    place.name
+                ))
+            });
+    }
+    let folder = Path::new(catalog).parent().unwrap_or(Path::new("."));
+    Ok(folder.join(location))
+}
+
+#[cfg(feature = "remote")]
+fn join_url(base: &str, location: &str) -> Option<String> {
+    let joined = url::Url::parse(base).ok()?.join(location).ok()?;
+    Some(joined.as_str().to_string())
+}
+
+#[cfg(not(feature = "remote"))]
+fn join_url(_base: &str, _location: &str) -> Option<String> {
+    None
+}
+
+/// Only places whose bounding box lies within `radius` of `position` (world coordinates of
+/// the catalog) are ranked.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Near {
+    /// The prior position.
+    pub position: [f64; 3],
+    /// How far from a place's bounding box it may be.
+    pub radius: f64,
+}
+
+/// A query localized against a catalog.
+#[derive(Debug, Clone)]
+pub struct CatalogLocalization {
+    /// The best place's localization (the most inliers of those with a pose), or the
+    /// failure of the best-ranked place when none found a pose; a
+    /// [`QueryFailure::NoFeatures`] when the query's features could not be read or no place
+    /// could rank it.
+    pub localization: Localization,
+    /// The place the pose is in (an index into [`CatalogSession::places`]); `None` without
+    /// a pose.
+    pub place: Option<usize>,
+    /// Every place the query could go to, best ranked first.
+    pub ranked: Vec<PlaceScore>,
+    /// Whether the query's features were read (false: the source has none for it).
+    pub read: bool,
+}
+
+impl CatalogSession {
+    /// A catalog session over `catalog` (a map whose metadata lists places), named
+    /// `catalog_name` in errors; relative place locations are resolved from its folder (or
+    /// against its URL).
+    pub fn builder(
+        catalog: Arc<Map<'static>>,
+        catalog_name: impl Into<String>,
+    ) -> CatalogSessionBuilder {
+        CatalogSessionBuilder {
+            catalog,
+            name: catalog_name.into(),
+            source: QuerySource::Given,
+            place_options: Box::new(LocalizeOptions::for_map),
+            places_per_query: 2,
+            #[cfg(feature = "remote")]
+            remote: crate::remote::RemoteOptions::default(),
+        }
+    }
+
+    /// The catalog map.
+    pub fn catalog(&self) -> &Arc<Map<'static>> {
+        &self.catalog
+    }
+
+    /// The catalog's places, in its order.
+    pub fn places(&self) -> &[Place] {
+        &self.places
+    }
+
+    /// Where each place's map is, resolved (a path, or a URL): inputs no output may replace.
+    pub fn locations(&self) -> &[PathBuf] {
+        &self.locations
+    }
+
+    /// The places opened so far and their sessions.
+    pub fn opened(&self) -> impl Iterator<Item = (usize, &Session)> {
+        (self.sessions.iter().enumerate()).filter_map(|(i, s)| s.get().map(|s| (i, s)))
+    }
+
+    /// The query `name` from the session's source, localized in its best-ranked places
+    /// (those `near` allows). A query whose features cannot be read is a
+    /// [`QueryFailure::NoFeatures`] with `read` false, not an error.
+    pub fn localize(
+        &self,
+        name: &str,
+        camera: &Camera,
+        near: Option<Near>,
+    ) -> Result<CatalogLocalization, SessionError> {
+        let read = self
+            .reader
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .read(name)?;
+        match read {
+            Ok(features) => self.localize_features(&features, camera, name, near),
+            Err(reason) => Ok(CatalogLocalization {
+                localization: Localization::failed(QueryFailure::NoFeatures(reason)),
+                place: None,
+                ranked: Vec::new(),
+                read: false,
+            }),
+        }
+    }
+
+    /// Each of `queries` localized as [`CatalogSession::localize`] does, in order; progress
+    /// to `reporter`, one item per query. The first error stops the run.
+    pub fn localize_all(
+        &self,
+        queries: &[Query],
+        near: Option<Near>,
+        reporter: &dyn Reporter,
+    ) -> Result<Vec<CatalogLocalization>, SessionError> {
+        reporter.start("localizing", Some(queries.len() as u64));
+        let mut found = Vec::with_capacity(queries.len());
+        for q in queries {
+            found.push(self.localize(&q.name, &q.camera, near)?);
+            reporter.advance(1);
+        }
+        reporter.finish();
+        Ok(found)
+    }
+
+    /// `features` handed in, localized in the best-ranked places `near` allows; `name`
+    /// names the query in errors.
+    pub fn localize_features(
+        &self,
+        features: &QueryFeatures,
+        camera: &Camera,
+        name: &str,
+        near: Option<Near>,
+    ) -> Result<CatalogLocalization, SessionError> {
+        let allowed = |i: usize| near.is_none_or(|n| self.places[i].near(n.position, n.radius));
+        let ranked = self.ranker.rank(features, allowed);
+        let mut best: Option<(Localization, usize)> = None;
+        for candidate in ranked.iter().take(self.places_per_query) {
+            let l = self
+                .place_session(candidate.place)?
+                .localize_features(features, camera, name)
+                .map_err(|e| self.place_error(candidate.place, e))?;
+            let better = match &best {
+                None => true,
+                Some((b, _)) => l.pose().is_some() && (b.pose().is_none() || l.inliers > b.inliers),
+            };
+            if better {
+                best = Some((l, candidate.place));
+            }
+        }
+        let (localization, place) = match best {
+            Some((l, place)) => {
+                let place = l.pose().is_some().then_some(place);
+                (l, place)
+            }
+            None => (
+                Localization::failed(QueryFailure::NoFeatures(
+                    "no place of the catalog could rank the query (none near the prior, or no \
+                     retrieval data for its features)"
+                        .into(),
+                )),
+                None,
+            ),
+        };
+        Ok(CatalogLocalization {
+            localization,
+            place,
+            ranked,
+            read: true,
+        })
+    }
+
+    /// Place `i`'s session, made on first use: its map opened and checked against what the
+    /// catalog recorded. Two threads may both make it; one is kept.
+    fn place_session(&self, i: usize) -> Result<&Session, SessionError> {
+        if let Some(session) = self.sessions[i].get() {
+            return Ok(session);
+        }
+        let map = self.open_place(i).map_err(|e| self.place_error(i, e))?;
+        let options = (self.place_options)(&map);
+        let location = self.locations[i].display().to_string();
+        let session = Session::builder(Arc::new(map), location)
+            .options(options)
+            .build(&crate::progress::Silent)
+            .map_err(|e| self.place_error(i, e))?;
+        Ok(self.sessions[i].get_or_init(|| session))
+    }
+
+    fn open_place(&self, i: usize) -> Result<Map<'static>, SessionError> {
+        let location = &self.locations[i];
+        let map_error = |source| SessionError::Map {
+            map: location.display().to_string(),
+            source,
+        };
+        #[cfg(feature = "remote")]
+        let map = crate::remote::open_location(location, &self.remote).map_err(map_error)?;
+        #[cfg(not(feature = "remote"))]
+        let map = match location.to_str().filter(|l| is_url(l)) {
+            Some(url) => {
+                return Err(SessionError::NoSource(format!(
+                    "{url}: a URL, and this build reads no URLs (feature `remote`)"
+                )))
+            }
+            None => Map::open(location).map_err(map_error)?,
+        };
+        let found = format!("{:016x}", map.index_checksum());
+        let recorded = &self.places[i].index_checksum;
+        if found != *recorded {
+            return Err(SessionError::Mismatch(format!(
+                "{}: not the map the catalog was built from (index checksum {found}, catalog \
+                 says {recorded}); rebuild the catalog",
+                location.display()
+            )));
+        }
+        Ok(map)
+    }
+
+    fn place_error(&self, i: usize, source: SessionError) -> SessionError {
+        SessionError::Place {
+            catalog: self.name.clone(),
+            place: self.places[i].name.clone(),
+            source: Box::new(source),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn place(map: &str) -> Place {
+        Place {
+            name: "p".into(),
+            map: map.into(),
+            origin: [0.0; 3],
+            bbox_min: [0.0; 3],
+            bbox_max: [0.0; 3],
+            points: 0,
+            images: 0,
+            file_bytes: 0,
+            index_checksum: String::new(),
+        }
+    }
+
+    #[test]
+    fn a_local_catalog_s_places_are_found_from_its_folder() {
+        let r = |c, m| resolve(c, &place(m)).unwrap();
+        assert_eq!(r("city/city.sfpc", "a/m.sfpm"), Path::new("city/a/m.sfpm"));
+        assert_eq!(r("city.sfpc", "m.sfpm"), Path::new("m.sfpm"));
+        assert_eq!(r("city/city.sfpc", "/abs/m.sfpm"), Path::new("/abs/m.sfpm"));
+        assert_eq!(
+            r("city/city.sfpc", "https://h/m.sfpm"),
+            Path::new("https://h/m.sfpm")
+        );
+    }
+
+    #[cfg(feature = "remote")]
+    #[test]
+    fn a_downloaded_catalog_names_no_local_file() {
+        let r = |m| resolve("https://h/maps/city.sfpc", &place(m));
+        assert_eq!(r("a/m.sfpm").unwrap(), Path::new("https://h/maps/a/m.sfpm"));
+        assert_eq!(r("../m.sfpm").unwrap(), Path::new("https://h/m.sfpm"));
+        // An absolute path stays on the catalog's server.
+        assert_eq!(r("/etc/passwd").unwrap(), Path::new("https://h/etc/passwd"));
+        // Another scheme is not a location on the server.
+        for bad in ["file:///etc/passwd", "data:,x"] {
+            let e = r(bad).unwrap_err().to_string();
+            assert!(
+                e.contains("not a location on the catalog's server"),
+                "{bad}: {e}"
+            );
+        }
+    }
+}
