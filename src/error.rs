@@ -265,6 +265,7 @@ fn localize_kind(e: &crate::localize::LocalizeError) -> ErrorKind {
     match e {
         E::Format(e) => format_kind(e),
         E::Option(_) => ErrorKind::InvalidArgument,
+        E::NonFinite(_) => ErrorKind::Input,
         E::NoDescriptors => ErrorKind::NoDescriptors,
         E::DescriptorMismatch { .. }
         | E::NoFeaturesForLevel { .. }

@@ -225,14 +225,10 @@ unsafe fn read_query<'a>(
 }
 
 impl QueryInput<'_> {
-    /// The features, one set for every level; NaN and infinity refused.
-    fn features(&self) -> FfiResult<QueryFeatures> {
-        if self.xy.iter().any(|v| !v.is_finite()) || self.desc.iter().any(|v| !v.is_finite()) {
-            return Err(FfiError::argument(
-                "keypoints or descriptors hold NaN or infinity",
-            ));
-        }
-        Ok(QueryFeatures {
+    /// The features, one set for every level (the session refuses NaN and infinity,
+    /// `SFPM_ERR_ARGUMENT`).
+    fn features(&self) -> QueryFeatures {
+        QueryFeatures {
             sets: vec![FeatureSet {
                 level: None,
                 keypoints: self.xy.chunks_exact(2).map(|p| [p[0], p[1]]).collect(),
@@ -241,7 +237,7 @@ impl QueryInput<'_> {
             }],
             global: None,
             model: None,
-        })
+        }
     }
 }
 
@@ -326,7 +322,7 @@ pub unsafe extern "C" fn sfpm_localize(
                 short: o.short_only != 0,
             }
         };
-        let features = query.features()?;
+        let features = query.features();
         let session = h.session(key)?;
         let found = session
             .localize_features(&features, &query.camera, "query")
@@ -483,7 +479,7 @@ pub unsafe extern "C" fn sfpm_session_localize(
         non_null(&[(out.is_null(), "out"), (camera.is_null(), "camera")])?;
         // SAFETY: the arrays and the camera per this function's contract.
         let query = unsafe { read_query(keypoints, descriptors, n, dim, camera)? };
-        let features = query.features()?;
+        let features = query.features();
         let found = s
             .localize_features(&features, &query.camera, "query")
             .map_err(session_error)?;

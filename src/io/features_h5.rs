@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 #[cfg(feature = "localize")]
 use {
     super::InputError,
-    crate::localize::{FeatureSet, QueryFeatures},
+    crate::localize::{FeatureSet, NonFiniteValue, QueryFeatures},
     std::collections::HashMap,
 };
 
@@ -441,22 +441,6 @@ impl H5Features {
                 "{name}/{prefix}: {n} keypoints x {two}, descriptors {dim} x {n_desc}"
             )));
         }
-        // As for database keypoints: a NaN would pass every check of the pose solver's input.
-        if let Some(i) = kp.iter().position(|v| !v.is_finite()) {
-            return Err(self.err(format!(
-                "{name}/{prefix}keypoints: keypoint {}: {} is {}",
-                i / 2,
-                ["x", "y"][i % 2],
-                kp[i]
-            )));
-        }
-        if let Some(i) = desc.iter().position(|v| !v.is_finite()) {
-            return Err(self.err(format!(
-                "{name}/{prefix}descriptors: keypoint {}: a value is {}",
-                i % n.max(1),
-                desc[i]
-            )));
-        }
         // [D × N] → [N × D].
         let mut descriptors = vec![0.0f32; n * dim];
         for d in 0..dim {
@@ -464,17 +448,31 @@ impl H5Features {
                 descriptors[k * dim + d] = desc[d * n + k];
             }
         }
-        crate::vector::normalise_rows(&mut descriptors, dim);
         let keypoints = kp
             .chunks_exact(2)
             .map(|p| [f64::from(p[0]) + 0.5, f64::from(p[1]) + 0.5])
             .collect();
-        Ok(Some(FeatureSet {
+        let mut set = FeatureSet {
             level,
             keypoints,
             descriptors,
             dim,
-        }))
+        };
+        // The localizer's rule (`FeatureSet::check_finite`), before normalisation turns an
+        // infinity into NaN; named by dataset and keypoint as the file holds them.
+        if let Err(e) = set.check_finite() {
+            return Err(self.err(match e.what {
+                NonFiniteValue::Keypoint { row, axis, value } => {
+                    format!("{name}/{prefix}keypoints: keypoint {row}: {axis} is {value}")
+                }
+                NonFiniteValue::Descriptor { row, value } => {
+                    format!("{name}/{prefix}descriptors: keypoint {row}: a value is {value}")
+                }
+                _ => format!("{name}/{prefix}: {e}"),
+            }));
+        }
+        crate::vector::normalise_rows(&mut set.descriptors, dim);
+        Ok(Some(set))
     }
 
     /// The query's features, `Ok(None)` if the file has no group for it. The image's group
@@ -517,12 +515,9 @@ impl H5Features {
             .map(|ds| self.matrix(&format!("{name}/global_descriptor"), ds))
             .transpose()?
             .map(|(v, _, _)| v);
-        // As for descriptors: a NaN would rank every database image equal, silently.
-        if let Some(v) = global
-            .as_ref()
-            .and_then(|g| g.iter().find(|v| !v.is_finite()))
-        {
-            return Err(self.err(format!("{name}/global_descriptor: a value is {v}")));
+        // A NaN would rank every database image equal, silently.
+        if let Err(e) = crate::localize::check_global_finite(global.as_deref()) {
+            return Err(self.err(format!("{name}/{e}")));
         }
         Ok(Some(QueryFeatures {
             sets,

@@ -4,8 +4,9 @@
 //! matching starts from, one tier at a time ([`CoarseSearch`]).
 
 use super::adc::match_pq;
+use super::features::QueryFeatures;
 use super::level::{LevelIndex, Stored};
-use super::localizer::{ms, Query, QueryFailure, QueryFeatures, StageTimes};
+use super::localizer::{ms, Query, QueryFailure, StageTimes};
 use super::matching::match_rows;
 use super::{LocalizeError, Localizer};
 use crate::geometry::{estimate_absolute_pose_with_prior, Camera, PoseEstimate, RansacOptions};

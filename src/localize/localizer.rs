@@ -12,6 +12,7 @@
 //! its own per map point.
 
 use super::coarse::{sure_inliers, CoarseSearch, MAX_SEEDS};
+use super::features::{FeatureSet, NonFinite, QueryFeatures};
 use super::kernels::sgemm_abt;
 use super::level::{index_level, LevelIndex};
 use super::matching::MatchOptions;
@@ -24,42 +25,6 @@ use nalgebra::Vector3;
 use std::borrow::Cow;
 use std::cell::OnceCell;
 use std::time::Instant;
-
-/// Keypoints and descriptors of one query image, for one level or for all.
-#[derive(Debug, Clone, Default)]
-pub struct FeatureSet {
-    /// The map level these features are for; `None`: the same features serve every level
-    /// (SIFT queries against a SIFT map, whose levels are scale buckets of one descriptor).
-    pub level: Option<u16>,
-    /// Pixels, COLMAP convention.
-    pub keypoints: Vec<[f64; 2]>,
-    /// `[keypoints × dim]`, in the extractor's own space (before the level's projection).
-    pub descriptors: Vec<f32>,
-    /// Dimensions per descriptor.
-    pub dim: usize,
-}
-
-/// Everything known about one query image.
-#[derive(Debug, Clone, Default)]
-pub struct QueryFeatures {
-    /// Per-level feature sets (SFP), or one set for every level (SIFT).
-    pub sets: Vec<FeatureSet>,
-    /// Global descriptor for retrieval, if the extractor gives one.
-    pub global: Option<Vec<f32>>,
-    /// The model that made these features, when known (the SFP extractor's, a features
-    /// file's `sfp.model_name`): a session refuses features of another model than its map's.
-    pub model: Option<FeatureModel>,
-}
-
-/// The model features came from: its descriptor kind (`sfp-v2`, as maps record it) and, when
-/// known, the XXH3 of its ONNX file (a retrained model keeps its name, not its hash).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct FeatureModel {
-    /// The descriptor kind (`sfp-v2`, `sift`), as maps record it.
-    pub name: String,
-    /// XXH3-64 of the model's ONNX file (hex), when known.
-    pub xxh3: Option<String>,
-}
 
 /// Localizer settings.
 #[derive(Debug, Clone)]
@@ -394,6 +359,9 @@ pub enum LocalizeError {
         /// Descriptor values in the set.
         values: usize,
     },
+    /// A keypoint, descriptor or global descriptor value is NaN or infinite
+    /// ([`QueryFeatures::check_finite`]).
+    NonFinite(NonFinite),
     /// A level's sections disagree with its dimensions (the reader's checks should have
     /// caught it; the localizer sizes nothing from a claim it has not checked).
     BadLevel {
@@ -456,6 +424,7 @@ impl std::fmt::Display for LocalizeError {
                 "query features: {values} descriptor values for {keypoints} keypoints of {dim} dimensions"
             ),
             LocalizeError::BadLevel { level, message } => write!(f, "level {level}: {message}"),
+            LocalizeError::NonFinite(e) => e.fmt(f),
             LocalizeError::NoUsableLevel { skipped } => write!(
                 f,
                 "no selected level can be matched ({})",

@@ -5,6 +5,7 @@ mod adc;
 pub(crate) mod catalog;
 mod coarse;
 pub mod eval;
+mod features;
 mod guided;
 mod kernels;
 mod level;
@@ -14,10 +15,12 @@ mod prior;
 mod retrieval;
 mod scratch;
 
+pub use features::{
+    check_global_finite, FeatureModel, FeatureSet, NonFinite, NonFiniteValue, QueryFeatures,
+};
 pub use localizer::{
-    describe_skipped, FeatureModel, FeatureSet, Localization, LocalizationPath, LocalizeError,
-    LocalizeOptions, Localizer, OptionError, QueryFailure, QueryFeatures, SkippedLevel, StageTimes,
-    TrackingLost,
+    describe_skipped, Localization, LocalizationPath, LocalizeError, LocalizeOptions, Localizer,
+    OptionError, QueryFailure, SkippedLevel, StageTimes, TrackingLost,
 };
 pub use matching::MatchOptions;
 pub(crate) use matching::{default_ratio, is_sfp_descriptor};

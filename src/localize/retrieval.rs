@@ -5,7 +5,7 @@
 //! neither, the query lacks what they need, lengths differ) is every image, so every point is
 //! a candidate.
 
-use super::localizer::QueryFeatures;
+use super::features::QueryFeatures;
 use crate::format::{Error as FormatError, Map, Retrieval};
 use crate::vector::{dot, normalise_rows};
 use crate::vlad::Codebook;

@@ -354,9 +354,37 @@ impl Session {
         threads: usize,
         reporter: &dyn Reporter,
     ) -> Result<Vec<Localization>, SessionError> {
-        reporter.start("localizing", Some(queries.len() as u64));
-        let results: Vec<Mutex<Option<Localization>>> =
-            queries.iter().map(|_| Mutex::new(None)).collect();
+        self.run_all(queries.len(), threads, reporter, |i| {
+            self.localize(&queries[i].name, &queries[i].camera)
+        })
+    }
+
+    /// Each of `queries`, features handed in with their camera and name, localized as
+    /// [`Session::localize_features`] does, on threads as [`Session::localize_all`] runs
+    /// them; the results in the order of `queries`. The first error stops the run.
+    pub fn localize_features_all(
+        &self,
+        queries: &[(&QueryFeatures, &Camera, &str)],
+        threads: usize,
+        reporter: &dyn Reporter,
+    ) -> Result<Vec<Localization>, SessionError> {
+        self.run_all(queries.len(), threads, reporter, |i| {
+            let (features, camera, name) = queries[i];
+            self.localize_features(features, camera, name)
+        })
+    }
+
+    /// `run(i)` for each of `n` queries on `threads` workers (one for a sequence), results
+    /// in order; the first error stops the workers taking further queries.
+    fn run_all(
+        &self,
+        n: usize,
+        threads: usize,
+        reporter: &dyn Reporter,
+        run: impl Fn(usize) -> Result<Localization, SessionError> + Sync,
+    ) -> Result<Vec<Localization>, SessionError> {
+        reporter.start("localizing", Some(n as u64));
+        let results: Vec<Mutex<Option<Localization>>> = (0..n).map(|_| Mutex::new(None)).collect();
         let next = std::sync::atomic::AtomicUsize::new(0);
         // No more workers than queries, nor than any thread setting gets (`max_threads`).
         let workers = if self.is_sequence() {
@@ -364,7 +392,7 @@ impl Session {
         } else {
             threads
                 .clamp(1, crate::progress::max_threads())
-                .min(queries.len().max(1))
+                .min(n.max(1))
         };
         let first_error: Mutex<Option<SessionError>> = Mutex::new(None);
         // Set by the first error: the other workers take no further query (an error that
@@ -377,8 +405,10 @@ impl Session {
                         break;
                     }
                     let i = next.fetch_add(1, Ordering::Relaxed);
-                    let Some(q) = queries.get(i) else { break };
-                    match self.localize(&q.name, &q.camera) {
+                    if i >= n {
+                        break;
+                    }
+                    match run(i) {
                         Ok(l) => *results[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(l),
                         Err(e) => {
                             stop.store(true, Ordering::Relaxed);
@@ -412,10 +442,7 @@ impl Session {
         camera: &Camera,
         name: &str,
     ) -> Result<Localization, SessionError> {
-        if let Some(model) = &features.model {
-            let origin = || format!("{}: query {name:?}", self.fit.map_name);
-            self.fit.check_model(model, origin)?;
-        }
+        self.check_handed_in(features, name)?;
         let mut tracking = self.tracking_lock();
         self.localize_tracked(tracking.as_deref_mut(), features, None, camera, name)
     }
@@ -446,13 +473,27 @@ impl Session {
         camera: &Camera,
         name: &str,
     ) -> Result<Localization, SessionError> {
-        if let (true, Some(model)) = (frame.handed_in, &frame.features.model) {
-            let origin = || format!("{}: query {name:?}", self.fit.map_name);
-            self.fit.check_model(model, origin)?;
+        if frame.handed_in {
+            self.check_handed_in(&frame.features, name)?;
         }
         let mut tracking = self.tracking_lock();
         let (features, deferred) = (&frame.features, frame.deferred());
         self.localize_tracked(tracking.as_deref_mut(), features, deferred, camera, name)
+    }
+
+    /// Features from outside the session's source: every value finite
+    /// ([`QueryFeatures::check_finite`]) and, where they record their model, the map's.
+    fn check_handed_in(&self, features: &QueryFeatures, name: &str) -> Result<(), SessionError> {
+        features.check_finite().map_err(|e| SessionError::Query {
+            map: self.fit.map_name.clone(),
+            query: name.to_string(),
+            source: LocalizeError::NonFinite(e),
+        })?;
+        if let Some(model) = &features.model {
+            let origin = || format!("{}: query {name:?}", self.fit.map_name);
+            self.fit.check_model(model, origin)?;
+        }
+        Ok(())
     }
 
     /// A query of the sequence that has no features (it could not be read or decoded):

@@ -277,3 +277,53 @@ fn a_query_list_stops_at_its_first_error() {
         count.0.load(Ordering::Relaxed)
     );
 }
+
+#[test]
+fn handed_in_features_with_a_nan_or_infinity_are_refused_naming_the_value() {
+    let (_dir, map) = map();
+    let s = scene();
+    let session = build(&map, LocalizeOptions::default()).unwrap();
+    let good = query(&s, &truth(), 20, DIM);
+    let mut bad = good.clone();
+    bad.sets[0].keypoints[3][0] = f64::NAN;
+    let level = bad.sets[0].level;
+    let e = session.localize_features(&bad, &s.camera, "q.jpg").unwrap_err();
+    assert_eq!(e.kind(), sfpmap::ErrorKind::Input);
+    let level = level.map_or("None (every level)".to_string(), |l| l.to_string());
+    assert_eq!(
+        e.to_string(),
+        format!("m.sfpm: query \"q.jpg\": level {level}: keypoints row 3: x is NaN")
+    );
+    let mut global = good.clone();
+    global.global = Some(vec![f32::INFINITY; 4]);
+    let e = session.localize_features(&global, &s.camera, "g").unwrap_err();
+    assert!(e.to_string().ends_with("global_descriptor: value 0 is inf"), "{e}");
+    // A frame handed in is checked as well.
+    let frame = sfpmap::session::Frame::new(bad.clone());
+    assert!(session.localize_frame(frame, &s.camera, "f").is_err());
+
+    // A batch stops at the bad query; the good ones alone come back in order, each as
+    // `localize_features` finds it.
+    let e = session
+        .localize_features_all(
+            &[(&good, &s.camera, "a"), (&bad, &s.camera, "b")],
+            2,
+            &Silent,
+        )
+        .unwrap_err();
+    assert!(e.to_string().contains("query \"b\""), "{e}");
+    let many = query(&s, &truth(), 50, DIM);
+    let batch = session
+        .localize_features_all(
+            &[(&good, &s.camera, "a"), (&many, &s.camera, "b")],
+            2,
+            &Silent,
+        )
+        .unwrap();
+    for (r, q) in batch.iter().zip([&good, &many]) {
+        let one = session.localize_features(q, &s.camera, "x").unwrap();
+        assert_eq!(r.pose(), one.pose());
+        assert_eq!(r.inliers, one.inliers);
+    }
+    assert_ne!(batch[0].matches, batch[1].matches, "results stay in query order");
+}

@@ -15,13 +15,12 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 use sfpmap::geometry::Camera as GeoCamera;
 use sfpmap::localize::{
-    FeatureSet, Localization as Outcome, LocalizeOptions, MatchOptions, OptionError, QueryFeatures,
-    RetrievalMethod,
+    check_global_finite, FeatureSet, Localization as Outcome, LocalizeOptions, MatchOptions,
+    OptionError, QueryFeatures, RetrievalMethod,
 };
 use sfpmap::session::Session;
 use std::path::Path;
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 /// A camera: a COLMAP model name, the image size and the model's parameters in COLMAP order.
 #[pyclass(frozen, module = "sfpmap._sfpmap", name = "Camera")]
@@ -182,32 +181,16 @@ fn feature_set(
     let keypoints: Vec<[f64; 2]> = (0..n).map(|i| [k[[i, 0]], k[[i, 1]]]).collect();
     let dim = d.shape()[1];
     let descriptors: Vec<f32> = d.as_array().iter().copied().collect();
-    // As the features.h5 and database readers: a NaN would pass every check of the pose
-    // solver's input, an infinity wreck the matching.
-    let set = || level.map_or("None (every level)".to_string(), |l| l.to_string());
-    if let Some((i, axis, v)) = keypoints.iter().enumerate().find_map(|(i, xy)| {
-        let axis = xy.iter().position(|v| !v.is_finite())?;
-        Some((i, ["x", "y"][axis], xy[axis]))
-    }) {
-        return Err(InputError::new_err(format!(
-            "level {}: keypoints row {i}: {axis} is {v}",
-            set()
-        )));
-    }
-    if let Some(at) = descriptors.iter().position(|v| !v.is_finite()) {
-        return Err(InputError::new_err(format!(
-            "level {}: descriptors row {}: a value is {}",
-            set(),
-            at / dim.max(1),
-            descriptors[at]
-        )));
-    }
-    Ok(FeatureSet {
+    let set = FeatureSet {
         level,
         keypoints,
         descriptors,
         dim,
-    })
+    };
+    // The library's rule, at once: the error names the array as the caller made it.
+    set.check_finite()
+        .map_err(|e| InputError::new_err(e.to_string()))?;
+    Ok(set)
 }
 
 #[pymethods]
@@ -317,14 +300,9 @@ impl Features {
     }
 }
 
-/// A global descriptor holds finite values only (as the features.h5 reader requires).
+/// A global descriptor holds finite values only (the library's rule, at once).
 fn check_global(global: Option<&[f32]>) -> PyResult<()> {
-    match global.and_then(|g| g.iter().position(|v| !v.is_finite()).map(|i| (i, g[i]))) {
-        Some((i, v)) => Err(InputError::new_err(format!(
-            "global_descriptor: value {i} is {v}"
-        ))),
-        None => Ok(()),
-    }
+    check_global_finite(global).map_err(|e| InputError::new_err(e.to_string()))
 }
 
 /// Query features from a `Features`, a `(keypoints, descriptors)` tuple (one set for every
@@ -588,40 +566,27 @@ impl Localizer {
             };
             inputs.push((features_of(features, None)?, camera_of(camera)?, name));
         }
-        let workers = if self.session.is_sequence() {
-            1
-        } else {
-            threads.min(inputs.len().max(1))
-        };
+        let queries: Vec<_> = (inputs.iter())
+            .map(|(f, c, name)| (&**f, c, name.as_str()))
+            .collect();
+        let session = &self.session;
         let outcomes = py.detach(|| {
-            let results: Vec<Mutex<Option<PyResult<Ran>>>> =
-                inputs.iter().map(|_| Mutex::new(None)).collect();
-            let next = AtomicUsize::new(0);
-            std::thread::scope(|s| {
-                for _ in 0..workers {
-                    s.spawn(|| loop {
-                        let i = next.fetch_add(1, Ordering::Relaxed);
-                        let Some((f, c, name)) = inputs.get(i) else {
-                            break;
-                        };
-                        let r = self.run(f, c, name);
-                        *results[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(r);
-                    });
-                }
-            });
-            results
+            let found = session
+                .localize_features_all(&queries, threads, &sfpmap::progress::Silent)
+                .map_err(session_error)?;
+            found
                 .into_iter()
-                .map(|m| {
-                    m.into_inner()
-                        .unwrap_or_else(|p| p.into_inner())
-                        .expect("every query ran")
+                .map(|o| {
+                    let names = retrieved_names(session.map(), &o.retrieved)
+                        .map_err(|e| format_error(Path::new(session.map_name()), e))?;
+                    Ok((o, names))
                 })
-                .collect::<Vec<_>>()
-        });
-        outcomes
+                .collect::<PyResult<Vec<Ran>>>()
+        })?;
+        Ok(outcomes
             .into_iter()
-            .map(|o| o.map(|(o, names)| Localization::new(o, names)))
-            .collect()
+            .map(|(o, names)| Localization::new(o, names))
+            .collect())
     }
 }
 
