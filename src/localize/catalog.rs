@@ -73,7 +73,11 @@ impl PlaceRanker {
 
     /// The places among `allowed`, best first (ties: lower index); empty when the query has
     /// no features of the catalog's descriptor.
-    pub(crate) fn rank(&self, query: &QueryFeatures, allowed: impl Fn(usize) -> bool) -> Vec<PlaceScore> {
+    pub(crate) fn rank(
+        &self,
+        query: &QueryFeatures,
+        allowed: impl Fn(usize) -> bool,
+    ) -> Vec<PlaceScore> {
         let Some(q) = self.query_vlad(query) else {
             return Vec::new();
         };
