@@ -156,6 +156,7 @@
 pub use error::{Error, ErrorKind, Result};
 
 mod error;
+pub mod escape;
 pub mod format;
 #[cfg(feature = "fuzzing")]
 pub mod fuzzing;

@@ -142,7 +142,7 @@ fn build(args: BuildArgs, quiet: bool) -> anyhow::Result<ExitCode> {
         for (p, m) in places.iter().zip(&maps) {
             println!(
                 "  {}: {} ({} points, {} images)",
-                sfpmap::colmap::text::escape_control_characters(&p.name),
+                sfpmap::escape::escape_control_characters(&p.name),
                 p.location,
                 m.n_points(),
                 m.n_images()

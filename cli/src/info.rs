@@ -67,7 +67,7 @@ fn print_info_text(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
             l.id(),
             l.len(),
             // The file's text: control characters escaped, so a map cannot drive the terminal.
-            sfpmap::colmap::text::escape_control_characters(&l.info().descriptor),
+            sfpmap::escape::escape_control_characters(&l.info().descriptor),
             l.info().stride,
             l.dim_full(),
             l.dim_short(),

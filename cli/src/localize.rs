@@ -2,7 +2,8 @@
 
 use anyhow::{bail, Context};
 use serde_json::json;
-use sfpmap::colmap::text::{escape_control_characters, quoted_name, text_name_problem};
+use sfpmap::colmap::text::text_name_problem;
+use sfpmap::escape::{escape_control_characters, quoted_name};
 use sfpmap::format::Map;
 use sfpmap::geometry::Camera;
 use sfpmap::io::poses::{write_query_poses, QueryPoseFormat};

@@ -7,7 +7,7 @@
 use super::{none_read, options, warn_skipped, write_poses, Args};
 use anyhow::{bail, Context};
 use serde_json::json;
-use sfpmap::colmap::text::escape_control_characters;
+use sfpmap::escape::escape_control_characters;
 use sfpmap::format::Map;
 use sfpmap::io::queries::{read_query_list, Query};
 use sfpmap::session::catalog::{CatalogLocalization, CatalogSession, Near};

@@ -11,7 +11,7 @@ use super::super::Bars;
 use super::Args;
 use anyhow::{bail, Context};
 use serde_json::json;
-use sfpmap::colmap::text::escape_control_characters;
+use sfpmap::escape::escape_control_characters;
 use sfpmap::geometry::Camera;
 use sfpmap::localize::eval::{median, PathCounts};
 use sfpmap::progress::Reporter;

@@ -305,7 +305,7 @@ fn at(path: &Path, line: Option<u64>) -> String {
 
 /// `name` quoted for a message, control characters escaped (the one rule for all messages).
 pub(crate) fn shown_name(name: &str) -> String {
-    super::text::quoted_name(name)
+    crate::escape::quoted_name(name)
 }
 
 fn opt_id(id: Option<u64>) -> String {

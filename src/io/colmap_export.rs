@@ -4,7 +4,8 @@
 //! Each image's points2D are the map's visibility entries for it, in order, so a point's
 //! track element `(image_id, point2D_idx)` is the entry's index within its image.
 
-use crate::colmap::text::{self, quoted_name, text_name_problem};
+use crate::colmap::text::{self, text_name_problem};
+use crate::escape::quoted_name;
 use crate::format::{CameraInfo, Error, Images, Map};
 use crate::geometry::{CameraModel, Pose};
 use std::fmt::Write as _;

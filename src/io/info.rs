@@ -145,10 +145,7 @@ impl<'m> Retrieval<'m> {
             return "retrieval: none (every point is a candidate)".into();
         }
         let preference = self.preference.map_or(String::new(), |p| {
-            format!(
-                "; prefers {}",
-                crate::colmap::text::escape_control_characters(p)
-            )
+            format!("; prefers {}", crate::escape::escape_control_characters(p))
         });
         format!("retrieval: {}{preference}", kinds.join(", "))
     }

@@ -6,7 +6,7 @@
 //! ([`write_query_poses`], what `sfpmap localize -o` writes).
 
 use super::InputError;
-use crate::colmap::text::escape_control_characters;
+use crate::escape::escape_control_characters;
 use crate::format::{Error, Map};
 use crate::geometry::Pose;
 use std::fmt::Write as _;
@@ -111,7 +111,8 @@ pub fn write_query_poses(
     results: &[crate::localize::Localization],
     image_names: &[&str],
 ) -> std::io::Result<()> {
-    use crate::colmap::text::{quoted_name, text_name_problem};
+    use crate::colmap::text::text_name_problem;
+    use crate::escape::quoted_name;
     match format {
         QueryPoseFormat::Colmap => {
             writeln!(out, "# name qw qx qy qz tx ty tz (COLMAP cam_from_world)")?;

@@ -81,7 +81,7 @@ impl DatabaseFeatures {
                 id: i64::from(id),
                 what: format!(
                     "image {}, keypoint {i}: {field} is {value}",
-                    crate::colmap::text::quoted_name(name)
+                    crate::escape::quoted_name(name)
                 ),
             });
         }

@@ -41,7 +41,7 @@
 mod pipeline;
 
 use super::{Session, SessionError};
-use crate::colmap::text::quoted_name;
+use crate::escape::quoted_name;
 use crate::geometry::{Camera, Pose};
 use crate::io::mcap_io::{self, LogReader, McapIoError, PoseWriter, Skipped, Stamp};
 use crate::io::poses::tum_line;
