@@ -329,7 +329,7 @@ impl Session {
     pub fn localize(&self, name: &str, camera: &Camera) -> Result<Localization, SessionError> {
         let mut tracking = self.tracking_lock();
         let tracked = tracking.as_ref().is_some_and(|m| m.predict().is_some());
-        let frame = self.lock_reader().frame(name, tracked)?;
+        let frame = self.lock_reader().frame(name, tracked, Some(camera))?;
         match frame {
             Ok(frame) => {
                 let (features, deferred) = (&frame.features, frame.deferred());

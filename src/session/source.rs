@@ -2,6 +2,7 @@
 
 use super::{Fit, Frame, SessionError};
 use crate::format::Map;
+use crate::geometry::Camera;
 #[cfg(feature = "onnx")]
 use crate::localize::{FeatureModel, RetrievalMethod};
 use crate::localize::{LocalizeOptions, QueryFeatures};
@@ -116,7 +117,7 @@ impl QueryReader {
         &mut self,
         name: &str,
     ) -> Result<Result<QueryFeatures, String>, SessionError> {
-        Ok(self.frame(name, false)?.map(|f| f.features))
+        Ok(self.frame(name, false, None)?.map(|f| f.features))
     }
 
     /// Queries extracted without their global descriptor (tracked frames).
@@ -196,9 +197,10 @@ impl QueryReader {
         &mut self,
         name: &str,
         tracked: bool,
+        camera: Option<&Camera>,
     ) -> Result<Result<Frame, String>, SessionError> {
         #[cfg(not(feature = "onnx"))]
-        let _ = tracked;
+        let _ = (tracked, camera);
         let missing = |what: &str| Err(format!("no features for {name:?} ({what})"));
         let map_name = &self.fit.map_name;
         let features = match &mut self.source {
@@ -244,9 +246,11 @@ impl QueryReader {
                     }
                     Err(e) => return Err(e.into()),
                 };
-                // One oversized query is a failed query, not an aborted run.
+                // One oversized query, or one whose camera is of another size, is a failed
+                // query, not an aborted run.
                 if let Some(reason) =
                     crate::extract::too_large_for_the_network(input.width, input.height)
+                        .or_else(|| image_misfits_camera(input.width, input.height, camera?))
                 {
                     return Ok(Err(reason));
                 }
@@ -320,6 +324,21 @@ impl QueryReader {
             _ => None,
         }
     }
+}
+
+/// Why an image of `width × height` cannot be the query of `camera`: its intrinsics are in
+/// the pixels of an image of the camera's size, so keypoints of another size would give a
+/// wrong pose, not a failed one. `None` when the sizes agree.
+pub(crate) fn image_misfits_camera(width: usize, height: usize, camera: &Camera) -> Option<String> {
+    let fits = u32::try_from(width).ok() == Some(camera.width())
+        && u32::try_from(height).ok() == Some(camera.height());
+    (!fits).then(|| {
+        format!(
+            "the image is {width}x{height} but the camera is {}x{}",
+            camera.width(),
+            camera.height()
+        )
+    })
 }
 
 /// The size the queries' global descriptors are extracted at: the map's (`global_max_side`),

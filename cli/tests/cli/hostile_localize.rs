@@ -310,6 +310,49 @@ fn finding_17_a_damaged_query_image_is_a_failed_query_with_the_reason() {
     );
 }
 
+/// An image of another size than its query's camera: the camera's intrinsics are in pixels
+/// of its own size, so the pose would be wrong, not failed. It is a failed query saying both
+/// sizes (as a log's frame is); the other queries run.
+#[test]
+fn an_image_of_another_size_than_its_camera_is_a_failed_query() {
+    let t = tempfile::tempdir().unwrap();
+    let images = t.path().join("images");
+    std::fs::create_dir(&images).unwrap();
+    write(&images, "good.jpg", &query_jpeg().0);
+    let small =
+        image::imageops::thumbnail(&image::load_from_memory(&query_jpeg().0).unwrap(), 320, 240);
+    small.save(images.join("small.png")).unwrap();
+    let list = query_list(t.path(), &["good.jpg", "small.png"]);
+    let map = sfp_map(t.path());
+    let out = t.path().join("poses.txt");
+    let run = sfpmap(
+        &args![
+            "localize",
+            "--map",
+            map,
+            "--query-list",
+            list,
+            "--images",
+            images,
+            "--level",
+            "2",
+            "-o",
+            out
+        ],
+        4 * GIB,
+    );
+    assert_eq!(run.code, Some(0), "{run:?}");
+    let poses = std::fs::read_to_string(&out).unwrap();
+    assert!(
+        poses.contains("# failed small.png: the image is 320x240 but the camera is 640x480"),
+        "{poses}"
+    );
+    assert!(
+        !poses.contains("# failed good.jpg: the image is"),
+        "{poses}"
+    );
+}
+
 /// Finding 17: `--images` naming a missing folder ran every query and exited 0 with all
 /// failed. Now it is an error naming the folder, before any work (no model is loaded); so is
 /// a folder holding none of the listed images, and a run that could read no query at all.

@@ -121,14 +121,9 @@ impl Worker<'_> {
         if let Some(stamp) = decoded.stamp {
             frame.stamp = stamp;
         }
-        let camera = self.camera;
-        let (w, h) = (decoded.image.width(), decoded.image.height());
-        if (w, h) != (camera.width(), camera.height()) {
-            let reason = format!(
-                "the image is {w}x{h} but the camera is {}x{}",
-                camera.width(),
-                camera.height()
-            );
+        let size = |n: u32| usize::try_from(n).unwrap_or(usize::MAX);
+        let (w, h) = (size(decoded.image.width()), size(decoded.image.height()));
+        if let Some(reason) = super::super::source::image_misfits_camera(w, h, self.camera) {
             return (frame, Err(reason));
         }
         let input = crate::extract::image::from_image(&decoded.image, self.gray_weights, None);
