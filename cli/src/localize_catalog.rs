@@ -69,12 +69,12 @@ pub(super) fn run(
     // is read.
     inputs.extend(session.locations().iter().map(PathBuf::as_path));
     super::super::check_outputs(&[&args.output], &inputs, args.force)?;
-    let found = session.localize_all(&queries, near, bars)?;
+    let found = session.localize_all(&queries, near, args.threads, bars)?;
     for (i, place) in session.opened() {
         warn_skipped(&place.skipped_levels(), &session.locations()[i], bars);
     }
     let results: Vec<_> = found.iter().map(|f| f.localization.clone()).collect();
-    if !found.iter().any(|f| f.read) {
+    if !found.iter().any(|f| f.features_read) {
         return Err(none_read(query_list, &queries, &results));
     }
     write_poses(

@@ -629,6 +629,9 @@ impl<'m> Localizer<'m> {
     ) -> Result<Localization, LocalizeError> {
         let t0 = Instant::now();
         let mut times = StageTimes::default();
+        // The fields are public: a NaN would pass every check of the pose solver's input, an
+        // infinity wreck the matching; refused whoever made the features.
+        query.check_finite().map_err(LocalizeError::NonFinite)?;
         // The feature set each level matches, checked once; each level projects it into its
         // basis once, when it is first matched, and keeps it for the query (the coarse stage
         // and both fine rounds use it).

@@ -1,6 +1,6 @@
 //! A catalog of place maps (`sfpmap catalog build`, [`Catalog`]) queried as one map: each
-//! query's candidate places are ranked by retrieval on the catalog's place summaries
-//! ([`PlaceRanker`]), optionally only those near a prior position; the best few are opened
+//! query's candidate places are ranked by retrieval on the catalog's place summaries (a
+//! VLAD of the query on the catalog's codebook against each place's images), optionally only those near a prior position; the best few are opened
 //! on first use (files, or URLs read by range: only the sections the localizer reads),
 //! checked against what the catalog recorded, and localize the query; the pose with the
 //! most inliers wins. Poses are in the chosen place's frame.
@@ -33,10 +33,13 @@ use crate::input::is_url;
 use crate::io::queries::Query;
 use crate::localize::catalog::PlaceRanker;
 pub use crate::localize::catalog::PlaceScore;
-use crate::localize::{Localization, LocalizeOptions, QueryFailure, QueryFeatures};
+use crate::localize::{
+    Localization, LocalizeError, LocalizeOptions, OptionError, QueryFailure, QueryFeatures,
+};
 use crate::progress::Reporter;
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, Mutex, MutexGuard};
 
 /// The localizer options of a place: its map's, from [`LocalizeOptions::for_map`] unless the
 /// caller changes them.
@@ -55,9 +58,25 @@ pub struct CatalogSession {
     reader: Mutex<QueryReader>,
     place_options: PlaceOptions,
     places_per_query: usize,
-    sessions: Vec<OnceLock<Session>>,
+    max_open_places: usize,
+    /// The places open now, and those that failed to open.
+    open: Mutex<OpenPlaces>,
+    /// One lock a place, held while it is opened: threads that rank the same place first
+    /// wait for one opening rather than each reading the map.
+    opening: Vec<Mutex<()>>,
     #[cfg(feature = "remote")]
     remote: crate::remote::RemoteOptions,
+}
+
+/// The places a catalog session holds open (at most `max_open_places`, the least recently
+/// used closed first) and those that could not be opened (each fails again without another
+/// attempt).
+#[derive(Default)]
+struct OpenPlaces {
+    sessions: HashMap<usize, (Arc<Session>, u64)>,
+    failed: HashMap<usize, Arc<SessionError>>,
+    /// Ticks of use, for the least recently used.
+    clock: u64,
 }
 
 /// How a [`CatalogSession`] is made: [`CatalogSession::builder`], then its settings, then
@@ -68,9 +87,17 @@ pub struct CatalogSessionBuilder {
     source: QuerySource,
     place_options: PlaceOptions,
     places_per_query: usize,
+    max_open_places: usize,
     #[cfg(feature = "remote")]
     remote: crate::remote::RemoteOptions,
 }
+
+/// How many places a catalog session holds open by default: a place is a map and its
+/// localizer (a 1 M-point map read by range holds about its file size in memory).
+pub const DEFAULT_MAX_OPEN_PLACES: usize = 16;
+
+/// How many of a query's ranked places [`CatalogLocalization::ranked`] keeps.
+pub const RANKED_KEPT: usize = 16;
 
 impl CatalogSessionBuilder {
     /// Where the queries' features come from; default [`QuerySource::Given`]. A features
@@ -96,6 +123,13 @@ impl CatalogSessionBuilder {
         self
     }
 
+    /// How many places are held open at once (default [`DEFAULT_MAX_OPEN_PLACES`]; at least
+    /// 1): opening one more closes the least recently used.
+    pub fn max_open_places(mut self, n: usize) -> Self {
+        self.max_open_places = n.max(1);
+        self
+    }
+
     /// How place maps named by URL are read (default
     /// [`RemoteOptions::default`](crate::remote::RemoteOptions): no cache; the CLI passes
     /// [`RemoteOptions::from_env`](crate::remote::RemoteOptions::from_env)).
@@ -110,9 +144,12 @@ impl CatalogSessionBuilder {
     pub fn build(self, reporter: &dyn Reporter) -> Result<CatalogSession, SessionError> {
         let name = self.name;
         if self.places_per_query == 0 {
-            return Err(SessionError::Mismatch(format!(
-                "{name}: places per query 0: at least one place must be tried"
-            )));
+            return Err(option_error(
+                &name,
+                "places_per_query",
+                "0",
+                "at least 1 place",
+            ));
         }
         let map_error = |source| SessionError::Map {
             map: name.clone(),
@@ -134,7 +171,9 @@ impl CatalogSessionBuilder {
         let reader =
             QueryReader::for_catalog(self.source, &name, &catalog.listing.descriptor, reporter)?;
         Ok(CatalogSession {
-            sessions: places.iter().map(|_| OnceLock::new()).collect(),
+            opening: places.iter().map(|_| Mutex::new(())).collect(),
+            open: Mutex::new(OpenPlaces::default()),
+            max_open_places: self.max_open_places,
             name,
             catalog: self.catalog,
             places,
@@ -149,18 +188,34 @@ impl CatalogSessionBuilder {
     }
 }
 
+/// An option of the catalog session out of its range, as the localizer's options are
+/// refused ([`OptionError`]).
+fn option_error(
+    catalog: &str,
+    option: &'static str,
+    value: &str,
+    expected: &'static str,
+) -> SessionError {
+    SessionError::Localize {
+        map: catalog.to_string(),
+        source: LocalizeError::Option(OptionError {
+            option,
+            value: value.to_string(),
+            expected,
+        }),
+    }
+}
+
 /// Where place `place`'s map is: a URL as is; a path from the catalog's folder (absolute ones
-/// as they are). A catalog read from a URL names no local file: its places' locations are
-/// resolved against its URL and must stay URLs, so a downloaded catalog cannot make the
-/// reader open local files.
+/// as they are). A catalog read from a URL names only locations on its own server: its
+/// places' locations are resolved against its URL and must keep its scheme, host and port (an
+/// S3 catalog: its bucket), so a downloaded catalog can make the reader open neither a local
+/// file, nor another host (an internal address, another bucket signed with the user's
+/// credentials), nor plain HTTP for an HTTPS catalog.
 fn resolve(catalog: &str, place: &Place) -> Result<PathBuf, SessionError> {
     let location = place.map.as_str();
-    if is_url(location) {
-        return Ok(PathBuf::from(location));
-    }
     if is_url(catalog) {
-        return join_url(catalog, location)
-            .filter(|joined| is_url(joined))
+        return join_same_origin(catalog, location)
             .map(PathBuf::from)
             .ok_or_else(|| {
                 SessionError::Mismatch(format!(
@@ -170,23 +225,37 @@ fn resolve(catalog: &str, place: &Place) -> Result<PathBuf, SessionError> {
                 ))
             });
     }
+    if is_url(location) {
+        return Ok(PathBuf::from(location));
+    }
     let folder = Path::new(catalog).parent().unwrap_or(Path::new("."));
     Ok(folder.join(location))
 }
 
+/// `location` joined to the URL `base`, when the result is a URL of the same scheme, host
+/// and port (`None` otherwise, or without the `remote` feature).
 #[cfg(feature = "remote")]
-fn join_url(base: &str, location: &str) -> Option<String> {
-    let joined = url::Url::parse(base).ok()?.join(location).ok()?;
-    Some(joined.as_str().to_string())
+fn join_same_origin(base: &str, location: &str) -> Option<String> {
+    let base = url::Url::parse(base).ok()?;
+    let joined = base.join(location).ok()?;
+    let origin = |u: &url::Url| {
+        (
+            u.scheme().to_string(),
+            u.host_str().map(str::to_string),
+            u.port_or_known_default(),
+        )
+    };
+    (is_url(joined.as_str()) && origin(&joined) == origin(&base))
+        .then(|| joined.as_str().to_string())
 }
 
 #[cfg(not(feature = "remote"))]
-fn join_url(_base: &str, _location: &str) -> Option<String> {
+fn join_same_origin(_base: &str, _location: &str) -> Option<String> {
     None
 }
 
 /// Only places whose bounding box lies within `radius` of `position` (world coordinates of
-/// the catalog) are ranked.
+/// the catalog) are ranked. Every value finite, the radius at least 0.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Near {
     /// The prior position.
@@ -206,10 +275,10 @@ pub struct CatalogLocalization {
     /// The place the pose is in (an index into [`CatalogSession::places`]); `None` without
     /// a pose.
     pub place: Option<usize>,
-    /// Every place the query could go to, best ranked first.
+    /// The places the query could go to, best ranked first (at most [`RANKED_KEPT`]).
     pub ranked: Vec<PlaceScore>,
     /// Whether the query's features were read (false: the source has none for it).
-    pub read: bool,
+    pub features_read: bool,
 }
 
 impl CatalogSession {
@@ -226,6 +295,7 @@ impl CatalogSession {
             source: QuerySource::Given,
             place_options: Box::new(LocalizeOptions::for_map),
             places_per_query: 2,
+            max_open_places: DEFAULT_MAX_OPEN_PLACES,
             #[cfg(feature = "remote")]
             remote: crate::remote::RemoteOptions::default(),
         }
@@ -246,9 +316,14 @@ impl CatalogSession {
         &self.locations
     }
 
-    /// The places opened so far and their sessions.
-    pub fn opened(&self) -> impl Iterator<Item = (usize, &Session)> {
-        (self.sessions.iter().enumerate()).filter_map(|(i, s)| s.get().map(|s| (i, s)))
+    /// The places open now and their sessions, in the catalog's order.
+    pub fn opened(&self) -> Vec<(usize, Arc<Session>)> {
+        let open = self.lock_open();
+        let mut opened: Vec<_> = (open.sessions.iter())
+            .map(|(&i, (session, _))| (i, session.clone()))
+            .collect();
+        opened.sort_by_key(|(i, _)| *i);
+        opened
     }
 
     /// The query `name` from the session's source, localized in its best-ranked places
@@ -271,27 +346,24 @@ impl CatalogSession {
                 localization: Localization::failed(QueryFailure::NoFeatures(reason)),
                 place: None,
                 ranked: Vec::new(),
-                read: false,
+                features_read: false,
             }),
         }
     }
 
-    /// Each of `queries` localized as [`CatalogSession::localize`] does, in order; progress
-    /// to `reporter`, one item per query. The first error stops the run.
+    /// Each of `queries` localized as [`CatalogSession::localize`] does, on `threads`
+    /// workers; the results in the order of `queries`, progress to `reporter`, one item per
+    /// query. The first error stops the run.
     pub fn localize_all(
         &self,
         queries: &[Query],
         near: Option<Near>,
+        threads: usize,
         reporter: &dyn Reporter,
     ) -> Result<Vec<CatalogLocalization>, SessionError> {
-        reporter.start("localizing", Some(queries.len() as u64));
-        let mut found = Vec::with_capacity(queries.len());
-        for q in queries {
-            found.push(self.localize(&q.name, &q.camera, near)?);
-            reporter.advance(1);
-        }
-        reporter.finish();
-        Ok(found)
+        super::run_all(queries.len(), threads, reporter, |i| {
+            self.localize(&queries[i].name, &queries[i].camera, near)
+        })
     }
 
     /// `features` handed in, localized in the best-ranked places `near` allows; `name`
@@ -303,8 +375,32 @@ impl CatalogSession {
         name: &str,
         near: Option<Near>,
     ) -> Result<CatalogLocalization, SessionError> {
+        if let Some(n) = near {
+            if !n.position.iter().all(|v| v.is_finite()) {
+                let value = format!("{:?}", n.position);
+                return Err(option_error(
+                    &self.name,
+                    "near",
+                    &value,
+                    "a finite position",
+                ));
+            }
+            if !(n.radius.is_finite() && n.radius >= 0.0) {
+                let value = n.radius.to_string();
+                return Err(option_error(
+                    &self.name,
+                    "radius",
+                    &value,
+                    "a finite distance >= 0",
+                ));
+            }
+        }
+        // Before ranking: the ranker skips rows that are not finite, and a query of nothing
+        // but NaN would rank no place instead of being refused.
+        Session::check_finite(features, &self.name, name)?;
         let allowed = |i: usize| near.is_none_or(|n| self.places[i].near(n.position, n.radius));
-        let ranked = self.ranker.rank(features, allowed);
+        let mut ranked = self.ranker.rank(features, allowed);
+        ranked.truncate(RANKED_KEPT.max(self.places_per_query));
         let mut best: Option<(Localization, usize)> = None;
         for candidate in ranked.iter().take(self.places_per_query) {
             let l = self
@@ -337,24 +433,69 @@ impl CatalogSession {
             localization,
             place,
             ranked,
-            read: true,
+            features_read: true,
         })
     }
 
     /// Place `i`'s session, made on first use: its map opened and checked against what the
-    /// catalog recorded. Two threads may both make it; one is kept.
-    fn place_session(&self, i: usize) -> Result<&Session, SessionError> {
-        if let Some(session) = self.sessions[i].get() {
-            return Ok(session);
+    /// catalog recorded, once (other threads wait for it); a place that fails to open fails
+    /// the same way again. Opening one more than `max_open_places` closes the least recently
+    /// used (queries running in it keep it until they end).
+    fn place_session(&self, i: usize) -> Result<Arc<Session>, SessionError> {
+        if let Some(found) = self.cached(i) {
+            return found;
         }
-        let map = self.open_place(i).map_err(|e| self.place_error(i, e))?;
-        let options = (self.place_options)(&map);
-        let location = self.locations[i].display().to_string();
-        let session = Session::builder(Arc::new(map), location)
-            .options(options)
-            .build(&crate::progress::Silent)
-            .map_err(|e| self.place_error(i, e))?;
-        Ok(self.sessions[i].get_or_init(|| session))
+        let _opening = self.opening[i].lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(found) = self.cached(i) {
+            return found;
+        }
+        let made = self.open_place(i).and_then(|map| {
+            let options = (self.place_options)(&map);
+            let location = self.locations[i].display().to_string();
+            Session::builder(Arc::new(map), location)
+                .options(options)
+                .build(&crate::progress::Silent)
+        });
+        let mut open = self.lock_open();
+        match made {
+            Ok(session) => {
+                let session = Arc::new(session);
+                if open.sessions.len() >= self.max_open_places {
+                    let oldest = (open.sessions.iter())
+                        .min_by_key(|(_, (_, used))| *used)
+                        .map(|(&p, _)| p);
+                    if let Some(p) = oldest {
+                        open.sessions.remove(&p);
+                    }
+                }
+                open.clock += 1;
+                let tick = open.clock;
+                open.sessions.insert(i, (session.clone(), tick));
+                Ok(session)
+            }
+            Err(e) => {
+                let e = Arc::new(e);
+                open.failed.insert(i, e.clone());
+                Err(self.place_error_shared(i, e))
+            }
+        }
+    }
+
+    /// Place `i`'s open session (its use recorded), or its failure; `None`: not opened yet.
+    fn cached(&self, i: usize) -> Option<Result<Arc<Session>, SessionError>> {
+        let mut open = self.lock_open();
+        if let Some(e) = open.failed.get(&i) {
+            return Some(Err(self.place_error_shared(i, e.clone())));
+        }
+        open.clock += 1;
+        let tick = open.clock;
+        let (session, used) = open.sessions.get_mut(&i)?;
+        *used = tick;
+        Some(Ok(session.clone()))
+    }
+
+    fn lock_open(&self) -> MutexGuard<'_, OpenPlaces> {
+        self.open.lock().unwrap_or_else(|p| p.into_inner())
     }
 
     fn open_place(&self, i: usize) -> Result<Map<'static>, SessionError> {
@@ -387,10 +528,14 @@ impl CatalogSession {
     }
 
     fn place_error(&self, i: usize, source: SessionError) -> SessionError {
+        self.place_error_shared(i, Arc::new(source))
+    }
+
+    fn place_error_shared(&self, i: usize, source: Arc<SessionError>) -> SessionError {
         SessionError::Place {
             catalog: self.name.clone(),
             place: self.places[i].name.clone(),
-            source: Box::new(source),
+            source,
         }
     }
 }
@@ -427,19 +572,40 @@ mod tests {
 
     #[cfg(feature = "remote")]
     #[test]
-    fn a_downloaded_catalog_names_no_local_file() {
+    fn a_downloaded_catalog_names_only_its_own_server() {
         let r = |m| resolve("https://h/maps/city.sfpc", &place(m));
         assert_eq!(r("a/m.sfpm").unwrap(), Path::new("https://h/maps/a/m.sfpm"));
         assert_eq!(r("../m.sfpm").unwrap(), Path::new("https://h/m.sfpm"));
-        // An absolute path stays on the catalog's server.
+        // An absolute path stays on the catalog's server, and so may a full URL.
         assert_eq!(r("/etc/passwd").unwrap(), Path::new("https://h/etc/passwd"));
-        // Another scheme is not a location on the server.
-        for bad in ["file:///etc/passwd", "data:,x"] {
+        assert_eq!(
+            r("https://h/x.sfpm").unwrap(),
+            Path::new("https://h/x.sfpm")
+        );
+        assert_eq!(
+            r("https://H:443/x.sfpm").unwrap(),
+            Path::new("https://h/x.sfpm")
+        );
+        // Another scheme, host, port or bucket is not a location on the server.
+        for bad in [
+            "file:///etc/passwd",
+            "data:,x",
+            "//evil.com/m.sfpm",
+            "\\\\evil.com\\m.sfpm",
+            "/\\evil.com/x",
+            "http://h/x.sfpm",
+            "https://h:8443/x.sfpm",
+            "http://169.254.169.254/latest/meta-data/",
+            "s3://victim-bucket/k",
+        ] {
             let e = r(bad).unwrap_err().to_string();
             assert!(
                 e.contains("not a location on the catalog's server"),
                 "{bad}: {e}"
             );
         }
+        let s3 = |m| resolve("s3://maps/city/city.sfpc", &place(m));
+        assert_eq!(s3("a.sfpm").unwrap(), Path::new("s3://maps/city/a.sfpm"));
+        assert!(s3("s3://other/a.sfpm").is_err());
     }
 }

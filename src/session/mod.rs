@@ -374,8 +374,7 @@ impl Session {
         })
     }
 
-    /// `run(i)` for each of `n` queries on `threads` workers (one for a sequence), results
-    /// in order; the first error stops the workers taking further queries.
+    /// `run(i)` for each of `n` queries on `threads` workers (one for a sequence).
     fn run_all(
         &self,
         n: usize,
@@ -383,54 +382,8 @@ impl Session {
         reporter: &dyn Reporter,
         run: impl Fn(usize) -> Result<Localization, SessionError> + Sync,
     ) -> Result<Vec<Localization>, SessionError> {
-        reporter.start("localizing", Some(n as u64));
-        let results: Vec<Mutex<Option<Localization>>> = (0..n).map(|_| Mutex::new(None)).collect();
-        let next = std::sync::atomic::AtomicUsize::new(0);
-        // No more workers than queries, nor than any thread setting gets (`max_threads`).
-        let workers = if self.is_sequence() {
-            1
-        } else {
-            threads
-                .clamp(1, crate::progress::max_threads())
-                .min(n.max(1))
-        };
-        let first_error: Mutex<Option<SessionError>> = Mutex::new(None);
-        // Set by the first error: the other workers take no further query (an error that
-        // every query meets must not cost the whole list first).
-        let stop = AtomicBool::new(false);
-        std::thread::scope(|s| {
-            for _ in 0..workers {
-                s.spawn(|| loop {
-                    if stop.load(Ordering::Relaxed) {
-                        break;
-                    }
-                    let i = next.fetch_add(1, Ordering::Relaxed);
-                    if i >= n {
-                        break;
-                    }
-                    match run(i) {
-                        Ok(l) => *results[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(l),
-                        Err(e) => {
-                            stop.store(true, Ordering::Relaxed);
-                            let mut first = first_error.lock().unwrap_or_else(|p| p.into_inner());
-                            first.get_or_insert(e);
-                        }
-                    }
-                    reporter.advance(1);
-                });
-            }
-        });
-        reporter.finish();
-        if let Some(e) = first_error.into_inner().unwrap_or_else(|p| p.into_inner()) {
-            return Err(e);
-        }
-        Ok(results
-            .into_iter()
-            .map(|m| {
-                let result = m.into_inner().unwrap_or_else(|p| p.into_inner());
-                result.expect("every query ran")
-            })
-            .collect())
+        let threads = if self.is_sequence() { 1 } else { threads };
+        run_all(n, threads, reporter, run)
     }
 
     /// `features` handed in (the caller's own extractor, or a query of any source),
@@ -481,14 +434,28 @@ impl Session {
         self.localize_tracked(tracking.as_deref_mut(), features, deferred, camera, name)
     }
 
-    /// Features from outside the session's source: every value finite
-    /// ([`QueryFeatures::check_finite`]) and, where they record their model, the map's.
+    /// Features from outside the session's source: where they record their model, the
+    /// map's (every value finite is the localizer's own check, [`QueryFeatures::check_finite`],
+    /// whoever made them).
     fn check_handed_in(&self, features: &QueryFeatures, name: &str) -> Result<(), SessionError> {
+        self.check_fit(features, name)
+    }
+
+    /// Every value of `features` finite, else the error naming `map` and the query.
+    pub(crate) fn check_finite(
+        features: &QueryFeatures,
+        map: &str,
+        name: &str,
+    ) -> Result<(), SessionError> {
         features.check_finite().map_err(|e| SessionError::Query {
-            map: self.fit.map_name.clone(),
+            map: map.to_string(),
             query: name.to_string(),
             source: LocalizeError::NonFinite(e),
-        })?;
+        })
+    }
+
+    /// Features that record their model are the map's.
+    fn check_fit(&self, features: &QueryFeatures, name: &str) -> Result<(), SessionError> {
         if let Some(model) = &features.model {
             let origin = || format!("{}: query {name:?}", self.fit.map_name);
             self.fit.check_model(model, origin)?;
@@ -557,6 +524,59 @@ impl Session {
     }
 }
 
+/// `run(i)` for each of `n` queries on `threads` workers (capped: no more than the queries,
+/// nor than any thread setting gets, `max_threads`), results in order; progress to
+/// `reporter`, one item a query. The first error stops the workers taking further queries
+/// (an error every query meets must not cost the whole list first).
+pub(crate) fn run_all<T: Send>(
+    n: usize,
+    threads: usize,
+    reporter: &dyn Reporter,
+    run: impl Fn(usize) -> Result<T, SessionError> + Sync,
+) -> Result<Vec<T>, SessionError> {
+    reporter.start("localizing", Some(n as u64));
+    let results: Vec<Mutex<Option<T>>> = (0..n).map(|_| Mutex::new(None)).collect();
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let workers = threads
+        .clamp(1, crate::progress::max_threads())
+        .min(n.max(1));
+    let first_error: Mutex<Option<SessionError>> = Mutex::new(None);
+    let stop = AtomicBool::new(false);
+    std::thread::scope(|s| {
+        for _ in 0..workers {
+            s.spawn(|| loop {
+                if stop.load(Ordering::Relaxed) {
+                    break;
+                }
+                let i = next.fetch_add(1, Ordering::Relaxed);
+                if i >= n {
+                    break;
+                }
+                match run(i) {
+                    Ok(r) => *results[i].lock().unwrap_or_else(|p| p.into_inner()) = Some(r),
+                    Err(e) => {
+                        stop.store(true, Ordering::Relaxed);
+                        let mut first = first_error.lock().unwrap_or_else(|p| p.into_inner());
+                        first.get_or_insert(e);
+                    }
+                }
+                reporter.advance(1);
+            });
+        }
+    });
+    reporter.finish();
+    if let Some(e) = first_error.into_inner().unwrap_or_else(|p| p.into_inner()) {
+        return Err(e);
+    }
+    Ok(results
+        .into_iter()
+        .map(|m| {
+            let result = m.into_inner().unwrap_or_else(|p| p.into_inner());
+            result.expect("every query ran")
+        })
+        .collect())
+}
+
 /// What stops a session from being made or a query from being run (a query that is merely
 /// not localized is a [`Localization`] with its [`QueryFailure`]). Each names the map, the
 /// file or the query it is about.
@@ -600,8 +620,9 @@ pub enum SessionError {
         catalog: String,
         /// The place's name.
         place: String,
-        /// Why.
-        source: Box<SessionError>,
+        /// Why (shared: a place that failed to open fails each query that ranks it the
+        /// same way, without opening it again).
+        source: Arc<SessionError>,
     },
     /// The map itself (it cannot be opened, or a damaged section while reading it).
     Map {

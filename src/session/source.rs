@@ -249,8 +249,16 @@ impl QueryReader {
                 // One oversized query, or one whose camera is of another size, is a failed
                 // query, not an aborted run.
                 if let Some(reason) =
-                    crate::extract::too_large_for_the_network(input.width, input.height)
-                        .or_else(|| image_misfits_camera(input.width, input.height, camera?))
+                    crate::extract::too_large_for_the_network(input.width, input.height).or_else(
+                        || {
+                            // The size as decoded, before any shrinking to the network's
+                            // budget (keypoints are scaled back to it).
+                            let [w, h] = input
+                                .original_size
+                                .map(|n| usize::try_from(n).unwrap_or(usize::MAX));
+                            image_misfits_camera(w, h, camera?)
+                        },
+                    )
                 {
                     return Ok(Err(reason));
                 }

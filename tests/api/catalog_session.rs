@@ -78,18 +78,18 @@ fn each_street_s_queries_go_to_that_street_and_a_prior_keeps_them_out_of_another
             root.path().join(s).join("map.sfpm")
         );
         assert_eq!(
-            session.opened().count(),
+            session.opened().len(),
             0,
             "no place is opened before a query"
         );
         let queries = read_query_list(&dir.join("queries.txt"), None).unwrap();
-        let found = session.localize_all(&queries, None, &Silent).unwrap();
+        let found = session.localize_all(&queries, None, 2, &Silent).unwrap();
         // The generator leaves some queries facing nothing (no keypoints): those rank no
         // place; every other one goes to its own street.
         let db = DatabaseFeatures::open(&dir.join("queries.db")).unwrap();
         let mut seen = 0;
         for (q, f) in queries.iter().zip(&found) {
-            assert!(f.read, "{}", q.name);
+            assert!(f.features_read, "{}", q.name);
             let keypoints: usize = db
                 .features(&q.name)
                 .unwrap()
@@ -120,7 +120,7 @@ fn each_street_s_queries_go_to_that_street_and_a_prior_keeps_them_out_of_another
         assert!(seen >= 2, "{s}: {seen} queries with features");
         // Only the place that was tried is open.
         assert_eq!(
-            session.opened().map(|(i, _)| i).collect::<Vec<_>>(),
+            session.opened().iter().map(|(i, _)| *i).collect::<Vec<_>>(),
             vec![index]
         );
 
@@ -146,11 +146,26 @@ fn each_street_s_queries_go_to_that_street_and_a_prior_keeps_them_out_of_another
         assert_eq!(r.place, None);
         assert!(r.localization.pose().is_none());
 
+        // A prior that is not a position, or a negative radius, is refused as options are.
+        for bad in [
+            Near {
+                position: [f64::NAN, 0.0, 0.0],
+                radius: 1.0,
+            },
+            Near {
+                position,
+                radius: -1.0,
+            },
+        ] {
+            let e = session.localize(&q.name, &q.camera, Some(bad)).unwrap_err();
+            assert_eq!(e.kind(), sfpmap::ErrorKind::InvalidArgument, "{e}");
+        }
+
         // A query the source does not hold is a failed query, not an error.
         let missing = session
             .localize("no-such-image.png", &queries[0].camera, None)
             .unwrap();
-        assert!(!missing.read);
+        assert!(!missing.features_read);
         assert!(missing.localization.pose().is_none());
     }
 }
@@ -174,9 +189,18 @@ fn a_replaced_place_map_is_refused_naming_the_place() {
         .build(&Silent)
         .unwrap();
     let queries = read_query_list(&dir.join("queries.txt"), None).unwrap();
-    let e = session
-        .localize(&queries[0].name, &queries[0].camera, None)
-        .unwrap_err();
+    let db = DatabaseFeatures::open(&dir.join("queries.db")).unwrap();
+    let q = (queries.iter())
+        .find(|q| {
+            !db.features(&q.name).unwrap().unwrap().sets[0]
+                .keypoints
+                .is_empty()
+        })
+        .unwrap();
+    let e = session.localize(&q.name, &q.camera, None).unwrap_err();
+    // The failure is kept: the next query that ranks the place gets it again.
+    let again = session.localize(&q.name, &q.camera, None).unwrap_err();
+    assert_eq!(again.to_string(), e.to_string());
     assert!(
         matches!(e, SessionError::Place { ref place, .. } if place == "s1"),
         "{e:?}"
@@ -207,5 +231,31 @@ fn a_map_without_places_is_not_a_catalog_and_zero_places_per_query_is_refused() 
         .build(&Silent)
         .err()
         .unwrap();
-    assert!(e.to_string().contains("places per query 0"), "{e}");
+    assert_eq!(e.kind(), sfpmap::ErrorKind::InvalidArgument);
+    assert_eq!(
+        e.to_string(),
+        "s1/map.sfpm: places_per_query 0: at least 1 place"
+    );
+}
+
+#[test]
+fn at_most_max_open_places_stay_open() {
+    let root = tempfile::tempdir().unwrap();
+    street(&root.path().join("s1"), 1);
+    street(&root.path().join("s2"), 2);
+    let catalog = city(root.path());
+    let dir = root.path().join("s1");
+    let name = root.path().join("city.sfpc").display().to_string();
+    let session = CatalogSession::builder(catalog, name)
+        .source(QuerySource::Database(dir.join("queries.db")))
+        .places_per_query(2)
+        .max_open_places(1)
+        .build(&Silent)
+        .unwrap();
+    let queries = read_query_list(&dir.join("queries.txt"), None).unwrap();
+    let found = session.localize_all(&queries, None, 1, &Silent).unwrap();
+    // Both places were tried for a query with features, one stays open: the last used.
+    assert!(found.iter().any(|f| f.ranked.len() == 2), "{found:?}");
+    assert!(found.iter().any(|f| f.place == Some(0)), "{found:?}");
+    assert_eq!(session.opened().len(), 1);
 }

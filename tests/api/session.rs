@@ -287,7 +287,9 @@ fn handed_in_features_with_a_nan_or_infinity_are_refused_naming_the_value() {
     let mut bad = good.clone();
     bad.sets[0].keypoints[3][0] = f64::NAN;
     let level = bad.sets[0].level;
-    let e = session.localize_features(&bad, &s.camera, "q.jpg").unwrap_err();
+    let e = session
+        .localize_features(&bad, &s.camera, "q.jpg")
+        .unwrap_err();
     assert_eq!(e.kind(), sfpmap::ErrorKind::Input);
     let level = level.map_or("None (every level)".to_string(), |l| l.to_string());
     assert_eq!(
@@ -296,11 +298,18 @@ fn handed_in_features_with_a_nan_or_infinity_are_refused_naming_the_value() {
     );
     let mut global = good.clone();
     global.global = Some(vec![f32::INFINITY; 4]);
-    let e = session.localize_features(&global, &s.camera, "g").unwrap_err();
-    assert!(e.to_string().ends_with("global_descriptor: value 0 is inf"), "{e}");
+    let e = session
+        .localize_features(&global, &s.camera, "g")
+        .unwrap_err();
+    assert!(
+        e.to_string().ends_with("global_descriptor: value 0 is inf"),
+        "{e}"
+    );
     // A frame handed in is checked as well.
     let frame = sfpmap::session::Frame::new(bad.clone());
-    assert!(session.localize_frame(frame, &s.camera, "f").is_err());
+    let e = session.localize_frame(frame, &s.camera, "f").unwrap_err();
+    assert_eq!(e.kind(), sfpmap::ErrorKind::Input);
+    assert!(e.to_string().ends_with("keypoints row 3: x is NaN"), "{e}");
 
     // A batch stops at the bad query; the good ones alone come back in order, each as
     // `localize_features` finds it.
@@ -325,5 +334,8 @@ fn handed_in_features_with_a_nan_or_infinity_are_refused_naming_the_value() {
         assert_eq!(r.pose(), one.pose());
         assert_eq!(r.inliers, one.inliers);
     }
-    assert_ne!(batch[0].matches, batch[1].matches, "results stay in query order");
+    assert_ne!(
+        batch[0].matches, batch[1].matches,
+        "results stay in query order"
+    );
 }

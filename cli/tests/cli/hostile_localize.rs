@@ -351,6 +351,46 @@ fn an_image_of_another_size_than_its_camera_is_a_failed_query() {
         !poses.contains("# failed good.jpg: the image is"),
         "{poses}"
     );
+    assert!(
+        poses
+            .lines()
+            .any(|l| l.starts_with("good.jpg ") || l.starts_with("# failed good.jpg")),
+        "good.jpg ran: {poses}"
+    );
+
+    // A photo over the network's pixel budget is shrunk before extraction; its camera is
+    // compared with the size as decoded, so a matching camera is no failure.
+    let big = image::RgbImage::from_fn(4400, 4000, |x, y| {
+        image::Rgb([(x % 251) as u8, (y % 241) as u8, ((x ^ y) % 256) as u8])
+    });
+    big.save(images.join("big.png")).unwrap();
+    let list = t.path().join("big.txt");
+    std::fs::write(&list, "big.png PINHOLE 4400 4000 3000 3000 2200 2000\n").unwrap();
+    let run = sfpmap(
+        &args![
+            "localize",
+            "--map",
+            map,
+            "--query-list",
+            list,
+            "--images",
+            images,
+            "--level",
+            "2",
+            "-o",
+            out,
+            "--force"
+        ],
+        4 * GIB,
+    );
+    let poses = std::fs::read_to_string(&out).unwrap_or_default();
+    assert!(
+        poses
+            .lines()
+            .any(|l| l.starts_with("big.png ") || l.starts_with("# failed big.png"))
+            && !poses.contains("the image is"),
+        "{run:?} {poses}"
+    );
 }
 
 /// Finding 17: `--images` naming a missing folder ran every query and exited 0 with all
@@ -738,6 +778,11 @@ fn hostile_vlad_values_rank_last_and_never_panic() {
         model: None,
     };
     let camera = Camera::parse("SIMPLE_RADIAL 640 480 500 320 240 0.01").unwrap();
+    // A query row of NaN is refused by the localizer itself, naming it.
+    let e = localizer.localize(&query, &camera).unwrap_err().to_string();
+    assert!(e.contains("descriptors row 0: a value is NaN"), "{e}");
+    let mut query = query;
+    query.sets[0].descriptors[..d_in].fill(0.25);
     let r = localizer.localize(&query, &camera).unwrap();
     assert_eq!(r.retrieval, Some(Retrieval::Vlad), "{r:?}");
     assert_eq!(r.retrieved.len(), 3, "{r:?}");
