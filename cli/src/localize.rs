@@ -539,7 +539,7 @@ fn none_read(query_list: &Path, queries: &[Query], results: &[Localization]) -> 
         queries.len(),
         // From the list as it is: escaped for the terminal.
         quoted_name(&queries[0].name),
-        failure(&results[0])
+        results[0].failure_line()
     )
 }
 
@@ -605,12 +605,4 @@ pub(super) fn write_poses(
             image_names,
         )?)
     })
-}
-
-/// Why a query failed, on one line.
-fn failure(r: &Localization) -> String {
-    let reason = r
-        .failure()
-        .map_or_else(|| "unknown".to_string(), |f| f.to_string());
-    escape_control_characters(&reason).into_owned()
 }

@@ -107,8 +107,9 @@ impl SfpmRetrieval {
 /// `SFPM_ERR_ARGUMENT` and the library's message in `sfpm_last_error`, e.g. "ratio 1.5: a
 /// ratio in (0, 1]" (the same text the CLI and the Python package give).
 ///
-/// Versioned by its size: a later library appends fields, and takes the struct of an
-/// earlier header by its `struct_size` (the fields it lacks at their defaults).
+/// Versioned by its size: a later library will append fields and take the struct of an
+/// earlier header by its `struct_size` (the fields it lacks at their defaults); this one
+/// takes only its own size.
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct SfpmSessionOptions {

@@ -125,7 +125,7 @@ pub fn write_query_poses(
                 }
                 match r.pose() {
                     Some(p) => writeln!(out, "{}", colmap_pose_line(name, p))?,
-                    None => writeln!(out, "# failed {name}: {}", failure(r))?,
+                    None => writeln!(out, "# failed {name}: {}", r.failure_line())?,
                 }
             }
         }
@@ -138,7 +138,7 @@ pub fn write_query_poses(
                         out,
                         "# failed {i} {}: {}",
                         escape_control_characters(name),
-                        failure(r)
+                        r.failure_line()
                     )?,
                 }
             }
@@ -183,15 +183,6 @@ fn query_json(
         "retrieval_fallback": r.retrieval_fallback.map(|w| w.to_string()),
         "ms": r.times.total_ms,
     })
-}
-
-/// Why a query failed, on one line (a comment in the text formats).
-#[cfg(feature = "localize")]
-fn failure(r: &crate::localize::Localization) -> String {
-    let reason = r
-        .failure()
-        .map_or_else(|| "unknown".to_string(), |f| f.to_string());
-    escape_control_characters(&reason).into_owned()
 }
 
 /// Reads `name qw qx qy qz tx ty tz` lines (COLMAP `cam_from_world`); `#` lines are comments

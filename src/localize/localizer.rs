@@ -265,6 +265,15 @@ impl Localization {
         self.outcome.as_ref().err()
     }
 
+    /// Why the query failed, on one line for a report (control characters escaped;
+    /// `unknown` for a localized query): what `# failed NAME: …` lines say.
+    pub fn failure_line(&self) -> String {
+        let reason = self
+            .failure()
+            .map_or_else(|| "unknown".to_string(), |f| f.to_string());
+        crate::escape::escape_control_characters(&reason).into_owned()
+    }
+
     /// A query that was not localized for `failure`, before any matching.
     pub fn failed(failure: QueryFailure) -> Localization {
         Localization {
