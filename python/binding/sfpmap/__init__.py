@@ -487,6 +487,8 @@ class Localizer:
     "vlad", "global", "off"), ``ratio`` (default the map's: 0.95 on SFP maps, 0.9 on SIFT
     maps); and the localizer's ``mutual``, ``min_similarity``,
     ``coarse_error_px``, ``gate_px``, ``gate_ratio``, ``fine_error_px``, ``min_inliers``.
+    An option left out (``None``) is the library's default for the map, the one the CLI and
+    the C ABI (``sfpm_session_options_default``) start from.
     The library checks them (as for the CLI and the C ABI): one out of range is an
     ``InputError`` in its words (``"top_k 0: 1 to 100000 images"``); a level the map lacks
     is a ``NoSuchLevelError``.

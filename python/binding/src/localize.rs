@@ -413,7 +413,6 @@ fn retrieved_names(
 }
 
 /// The library's retrieval top-k (`sfpmap.Localizer`'s default).
-const DEFAULT_TOP_K: i64 = sfpmap::format::DEFAULT_RETRIEVAL_TOP_K as i64;
 
 #[pymethods]
 impl Localizer {
@@ -421,51 +420,60 @@ impl Localizer {
     /// `InputError` in its words. `sequence`: queries are an ordered sequence, each tracked
     /// from the last ones (`Session` in sequence mode).
     #[new]
-    #[pyo3(signature = (map, levels=None, short=false, top_k=DEFAULT_TOP_K, retrieval="auto", ratio=None,
-                        mutual=true, min_similarity=0.0, coarse_error_px=12.0, gate_px=24.0,
-                        gate_ratio=0.95, fine_error_px=6.0, min_inliers=12, sequence=false))]
+    #[pyo3(signature = (map, levels=None, short=false, top_k=None, retrieval="auto", ratio=None,
+                        mutual=None, min_similarity=None, coarse_error_px=None, gate_px=None,
+                        gate_ratio=None, fine_error_px=None, min_inliers=None, sequence=false))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
         map: &Bound<'_, Map>,
         levels: Option<Vec<Bound<'_, PyAny>>>,
         short: bool,
-        top_k: i64,
+        top_k: Option<i64>,
         retrieval: &str,
         ratio: Option<f32>,
-        mutual: bool,
-        min_similarity: f32,
-        coarse_error_px: f64,
-        gate_px: f64,
-        gate_ratio: f32,
-        fine_error_px: f64,
-        min_inliers: i64,
+        mutual: Option<bool>,
+        min_similarity: Option<f32>,
+        coarse_error_px: Option<f64>,
+        gate_px: Option<f64>,
+        gate_ratio: Option<f32>,
+        fine_error_px: Option<f64>,
+        min_inliers: Option<i64>,
         sequence: bool,
     ) -> PyResult<Self> {
         let opened = map.get().opened(py)?;
-        // None: the map's own (LocalizeOptions::for_map: 0.95 on SFP maps, 0.9 on SIFT), as
-        // the CLI's `localize` without --ratio.
+        // Each option left out (None) is the map's own default (LocalizeOptions::for_map:
+        // the library's defaults, with Lowe's ratio 0.95 on SFP maps and 0.9 on SIFT), as
+        // the CLI's `localize` without the flag: the defaults have one home, the library.
         let base = LocalizeOptions::for_map(&opened.map);
         let levels = level_ids(&opened.path, &levels.unwrap_or_default(), || {
             opened.map.level_ids()
         })?;
+        let top_k = match top_k {
+            Some(n) => count("top_k", n, |o, n| o.top_k = n)?,
+            None => base.top_k,
+        };
+        let min_inliers = match min_inliers {
+            Some(n) => count("min_inliers", n, |o, n| o.min_inliers = n)?,
+            None => base.min_inliers,
+        };
         let options = LocalizeOptions {
             levels,
             short,
-            top_k: count("top_k", top_k, |o, n| o.top_k = n)?,
+            top_k,
             retrieval: retrieval
                 .parse::<RetrievalMethod>()
                 .map_err(|e| InputError::new_err(e.to_string()))?,
             matching: MatchOptions {
                 ratio: ratio.unwrap_or(base.matching.ratio),
-                mutual,
-                min_similarity,
+                mutual: mutual.unwrap_or(base.matching.mutual),
+                min_similarity: min_similarity.unwrap_or(base.matching.min_similarity),
             },
-            coarse_error_px,
-            gate_px,
-            gate_ratio,
-            fine_error_px,
-            min_inliers: count("min_inliers", min_inliers, |o, n| o.min_inliers = n)?,
+            coarse_error_px: coarse_error_px.unwrap_or(base.coarse_error_px),
+            gate_px: gate_px.unwrap_or(base.gate_px),
+            gate_ratio: gate_ratio.unwrap_or(base.gate_ratio),
+            fine_error_px: fine_error_px.unwrap_or(base.fine_error_px),
+            min_inliers,
         };
         let warnings = Warnings::default();
         let session = py.detach(|| {

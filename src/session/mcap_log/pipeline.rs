@@ -134,7 +134,8 @@ impl Worker<'_> {
     }
 
     /// The localizing thread: takes the extracted frames in log order and localizes them
-    /// (a log is a sequence: each frame is predicted from the last ones and tracked).
+    /// (in a session built with `.sequence(true)`, as the CLI builds it, each frame is
+    /// predicted from the last ones and tracked; otherwise each is localized on its own).
     pub(super) fn localize_in_order(
         &self,
         pending: &Ordered,
