@@ -199,8 +199,9 @@ typedef struct SfpmLocalization {
 // `SFPM_ERR_ARGUMENT` and the library's message in `sfpm_last_error`, e.g. "ratio 1.5: a
 // ratio in (0, 1]" (the same text the CLI and the Python package give).
 //
-// Versioned by its size: a later library appends fields, and takes the struct of an
-// earlier header by its `struct_size` (the fields it lacks at their defaults).
+// Versioned by its size: a later library will append fields and take the struct of an
+// earlier header by its `struct_size` (the fields it lacks at their defaults); this one
+// takes only its own size.
 typedef struct SfpmSessionOptions {
   // `sizeof(SfpmSessionOptions)` of the header the caller was built with, as
   // `sfpm_session_options_default` writes it; `sfpm_session_open` refuses a size it does
