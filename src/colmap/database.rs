@@ -203,6 +203,22 @@ impl Keypoints {
     }
 }
 
+/// The `type` of SIFT descriptors in COLMAP's `descriptors` table (`FeatureExtractorType`).
+const SIFT_DESCRIPTOR_TYPE: i64 = 0;
+
+/// The name COLMAP 4.2 gives a descriptor `type` (`pycolmap.FeatureExtractorType`).
+fn descriptor_type_name(t: i64) -> &'static str {
+    match t {
+        -1 => "UNDEFINED",
+        0 => "SIFT",
+        1 => "ALIKED_N16ROT",
+        2 => "ALIKED_N32",
+        3 => "LOMA_B",
+        4 => "LOMA_B128",
+        _ => "a type COLMAP 4.2 does not define",
+    }
+}
+
 /// The descriptors of one image: `rows × cols` bytes, row `i` for keypoint `i`.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Descriptors {
@@ -621,6 +637,19 @@ impl Database {
         else {
             return Ok(None);
         };
+        // COLMAP ≥ 3.12 types its descriptors; only SIFT's are u8 rows. Another type's bytes
+        // (ALIKED's f32 values, 4 bytes each) read as SIFT would be silently wrong.
+        if let Some(t) = type_id.filter(|&t| t != SIFT_DESCRIPTOR_TYPE) {
+            return Err(self.bad_row(
+                "descriptors",
+                i64::from(image_id),
+                format!(
+                    "type {t} ({}): descriptors of another feature than SIFT, which this \
+                     reader does not take yet (SIFT is type 0)",
+                    descriptor_type_name(t)
+                ),
+            ));
+        }
         Ok(Some(Descriptors {
             cols,
             type_id,

@@ -330,3 +330,57 @@ fn keypoint_scale_follows_colmap() {
     assert_eq!(k.get(0).unwrap().scale(), 1.0);
     assert!(Keypoints::new(KeypointLayout::Affine, vec![0.0; 5]).is_none());
 }
+
+/// COLMAP ≥ 3.12 types descriptors (`FeatureExtractorType`): a database pycolmap 4.2.1 wrote
+/// with each type. SIFT (type 0) reads as before; every other type (ALIKED's and LoMa's f32
+/// values, stored 4 bytes each) is a one-line error naming the database, the image and the
+/// type, never SIFT bytes misread.
+#[test]
+fn typed_descriptors_are_sift_or_an_error_naming_the_type_and_image() {
+    let t = tempfile::tempdir().unwrap();
+    let db_path = t.path().join("typed.db");
+    let script = r#"
+import sys, numpy as np, pycolmap
+db = pycolmap.Database.open(sys.argv[1])
+cid = db.write_camera(pycolmap.Camera(model="SIMPLE_PINHOLE", width=640, height=480, params=[500, 320, 240]))
+T = pycolmap.FeatureExtractorType
+rng = np.random.default_rng(0)
+for t in [T.SIFT, T.ALIKED_N16ROT, T.ALIKED_N32, T.LOMA_B, T.LOMA_B128]:
+    iid = db.write_image(pycolmap.Image(name=f"type{t.value}.jpg", camera_id=cid))
+    if t == T.SIFT:
+        d = pycolmap.FeatureDescriptors(t, rng.integers(1, 255, (3, 128)).astype(np.uint8))
+    else:
+        d = pycolmap.FeatureDescriptorsFloat(t, rng.random((3, 128)).astype(np.float32)).to_bytes()
+    db.write_descriptors(iid, d)
+    db.write_keypoints(iid, (rng.random((3, 2)) * 100).astype(np.float32))
+db.close()
+"#;
+    let out = std::process::Command::new(crate::python::python_with("numpy, pycolmap"))
+        .args(["-c", script])
+        .arg(&db_path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let db = Database::open(&db_path).unwrap();
+    assert!(db.descriptors_have_type());
+    let sift = db.features(1).unwrap().descriptors.unwrap();
+    assert_eq!((sift.len(), sift.cols, sift.type_id), (3, 128, Some(0)));
+    for (id, name) in [
+        (2, "ALIKED_N16ROT"),
+        (3, "ALIKED_N32"),
+        (4, "LOMA_B"),
+        (5, "LOMA_B128"),
+    ] {
+        let e = db.features(id).unwrap_err().to_string();
+        assert!(e.starts_with(&db_path.display().to_string()), "{e}");
+        assert!(
+            e.contains(&format!("type {} ({name})", id - 1)) && e.contains(&id.to_string()),
+            "{e}"
+        );
+        assert!(!e.contains('\n'), "{e}");
+    }
+}
