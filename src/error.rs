@@ -314,7 +314,11 @@ fn convert_kind(e: &crate::build::ConvertError) -> ErrorKind {
         | E::KeypointScaleNotFinite { .. }
         | E::MissingFeatures { .. }
         | E::DescriptorDim { .. }
-        | E::MissingImages { .. } => ErrorKind::Convert,
+        | E::MissingImages { .. }
+        // A features file's contents, like a database's.
+        | E::Input(_)
+        | E::KeypointOutsideImage { .. } => ErrorKind::Convert,
+        E::Options(_) => ErrorKind::InvalidArgument,
     }
 }
 

@@ -21,6 +21,11 @@ pub enum AggregateArg {
 /// geometry only. Example:
 /// `sfpmap convert --colmap sparse/0 --database database.db -o building.sfpm`
 ///
+/// With --features instead of --database, the descriptors are any local feature's from an hloc
+/// features.h5 (one level unless the file has keypoint scales), and --global-features stores
+/// each image's global descriptor for retrieval. Example:
+/// `sfpmap convert --colmap sfm --features feats-aliked-n16.h5 -o aliked.sfpm`
+///
 /// With --images instead of --database, the SFP extractor runs on every model image and each
 /// point gets the network's multi-level descriptors; points the network scores low on every
 /// level are dropped. Example: `sfpmap convert --colmap sparse/0 --images images -o sfp.sfpm`
@@ -29,13 +34,29 @@ pub struct Args {
     /// The model folder (cameras, images, points3D as .bin or .txt).
     #[arg(long)]
     pub colmap: PathBuf,
-    /// The COLMAP database with the model's keypoints and descriptors (opened read-only).
+    /// The COLMAP database with the model's keypoints and descriptors (opened read-only):
+    /// SIFT, or a learned feature by its descriptor type (COLMAP 4's ALIKED).
     #[arg(long)]
     pub database: Option<PathBuf>,
+    /// An hloc features.h5 with the model's keypoints and descriptors by image name (hloc's
+    /// layout: keypoints N x 2, pixel centres at integers; descriptors D x N, f16 or f32).
+    #[cfg(feature = "hdf5")]
+    #[arg(long, conflicts_with = "database")]
+    pub features: Option<PathBuf>,
+    /// With --features: the feature's name the map records, which query features must match
+    /// (default: the file's sfp.model_name, or the conf of hloc's feats-<conf>.h5).
+    #[cfg(feature = "hdf5")]
+    #[arg(long, requires = "features")]
+    pub feature_name: Option<String>,
+    /// An hloc global-feats.h5 (global_descriptor per image name): every map image's global
+    /// descriptor, stored for retrieval and preferred to VLAD.
+    #[cfg(feature = "hdf5")]
+    #[arg(long)]
+    pub global_features: Option<PathBuf>,
     /// The model's images: build an SFP map with the extractor instead of SIFT descriptors
     /// (levels chosen by the network's scores; see spec/extractor.md).
     #[cfg(feature = "onnx")]
-    #[arg(long, conflicts_with_all = ["database", "short_dims", "aggregate", "strict"])]
+    #[arg(long, conflicts_with_all = ["database", "features", "global_features", "short_dims", "aggregate", "strict"])]
     pub images: Option<PathBuf>,
     /// With --images: an ONNX model of the sfp-extractor/1 contract or a built-in model's name
     /// (sfp-v2, sfp-v1, sfp-v2s); default: the built-in sfp-v2.
@@ -114,6 +135,12 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     }
     let options = ConvertOptions {
         database: args.database.clone(),
+        #[cfg(feature = "hdf5")]
+        features: args.features.clone(),
+        #[cfg(feature = "hdf5")]
+        feature_name: args.feature_name.clone(),
+        #[cfg(feature = "hdf5")]
+        global_features: args.global_features.clone(),
         short_dims: args.short_dims,
         codec: Codec::from(args.codec),
         zstd_level: args.zstd_level,
@@ -124,6 +151,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         strict: args.strict,
         vlad: vlad_options(&args),
         pq: args.pq.map(usize::from),
+        ..ConvertOptions::default()
     };
     let bars = super::Bars::new(quiet, args.json);
     // Errors name the file at fault themselves.
@@ -210,6 +238,13 @@ fn check_output(args: &Args) -> anyhow::Result<()> {
         .unwrap_or_default();
     let mut inputs: Vec<&std::path::Path> = model.iter().map(|p| p.as_path()).collect();
     inputs.extend(args.database.as_deref());
+    #[cfg(feature = "hdf5")]
+    inputs.extend(
+        args.features
+            .iter()
+            .chain(&args.global_features)
+            .map(|p| p.as_path()),
+    );
     #[cfg(feature = "onnx")]
     inputs.extend(args.model.as_deref());
     #[cfg(feature = "onnx")]

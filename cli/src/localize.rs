@@ -96,9 +96,16 @@ pub struct Args {
     /// COLMAP database with the queries' SIFT keypoints and descriptors (SIFT maps).
     #[arg(long)]
     pub database: Option<PathBuf>,
-    /// hloc-style features.h5 with the queries' features (e.g. from `sfpmap extract`).
+    /// hloc-style features.h5 with the queries' features (hloc's, or `sfpmap extract`'s).
+    /// A file that names its feature (sfp.model_name, hloc's feats-<conf>.h5) must hold the
+    /// map's.
     #[arg(long, conflicts_with = "database")]
     pub features: Option<PathBuf>,
+    /// hloc global-feats.h5 with the queries' global descriptors, for retrieval in a map
+    /// converted with --global-features.
+    #[cfg(feature = "hdf5")]
+    #[arg(long, conflicts_with = "catalog")]
+    pub global_features: Option<PathBuf>,
     /// SFP model for query extraction: a file, or a built-in model's name (sfp-v2, sfp-v1, sfp-v2s);
     /// default: the built-in model the map was made with (another model runs as asked, with a
     /// warning).
@@ -225,10 +232,13 @@ fn session(
     bars: &super::Bars,
 ) -> anyhow::Result<Session> {
     let options = options(args)(&map);
-    let session = Session::builder(map, args.map_path().display().to_string())
+    let builder = Session::builder(map, args.map_path().display().to_string())
         .options(options)
         .source(source)
-        .sequence(sequence)
+        .sequence(sequence);
+    #[cfg(feature = "hdf5")]
+    let builder = builder.global_features(args.global_features.clone());
+    let session = builder
         .build(bars)
         .map_err(|e| with_hint(e, not_extractable))?;
     warn_skipped(&session.skipped_levels(), args.map_path(), bars);
@@ -554,6 +564,8 @@ fn check_outputs(args: &Args, query_inputs: &[&Path], images: &[PathBuf]) -> any
     inputs.extend(query_inputs);
     inputs.extend(args.database.as_deref());
     inputs.extend(args.features.as_deref());
+    #[cfg(feature = "hdf5")]
+    inputs.extend(args.global_features.as_deref());
     inputs.extend(args.model.as_deref());
     inputs.extend(images.iter().map(|p| p.as_path()));
     super::check_outputs(&outputs, &inputs, args.force)

@@ -16,7 +16,7 @@ pub enum ConvertError {
     /// The database's image `image_id` has another name than the model's.
     NameMismatch {
         /// The database.
-        database: PathBuf,
+        features: PathBuf,
         /// The image's id in both.
         image_id: u32,
         /// Its name in the model.
@@ -24,10 +24,11 @@ pub enum ConvertError {
         /// Its name in the database.
         found: String,
     },
-    /// An observation's keypoint row does not exist in the database.
+    /// An observation's keypoint does not exist in the features (database, features file,
+    /// kapture folder).
     KeypointOutOfRange {
-        /// The database.
-        database: PathBuf,
+        /// The features' file or folder.
+        features: PathBuf,
         /// The image's name.
         image: String,
         /// The observation's 2D point index.
@@ -37,24 +38,24 @@ pub enum ConvertError {
     },
     /// An observed keypoint's scale is NaN or infinite.
     KeypointScaleNotFinite {
-        /// The database.
-        database: PathBuf,
+        /// The features' file or folder.
+        features: PathBuf,
         /// The image's name.
         image: String,
         /// The observation's 2D point index.
         point2d_idx: usize,
     },
-    /// An image has no features in the database and `strict` is set.
+    /// An image has no features in the database or features file and `strict` is set.
     MissingFeatures {
-        /// The database.
-        database: PathBuf,
+        /// The features' file or folder.
+        features: PathBuf,
         /// The image's name.
         image: String,
     },
-    /// Descriptor lengths differ between images.
+    /// Descriptor lengths (or kinds) differ between images.
     DescriptorDim {
-        /// The database.
-        database: PathBuf,
+        /// The features' file or folder.
+        features: PathBuf,
         /// The image whose descriptors differ.
         image: String,
         /// The dimension of the images before it.
@@ -62,6 +63,24 @@ pub enum ConvertError {
         /// Its dimension.
         found: usize,
     },
+    /// A features file (hloc `features.h5`, kapture) is malformed: its file, and the image
+    /// and dataset in the message.
+    Input(crate::io::InputError),
+    /// An observed keypoint lies outside its image.
+    KeypointOutsideImage {
+        /// The features' file or folder.
+        features: PathBuf,
+        /// The image's name.
+        image: String,
+        /// The keypoint's index.
+        keypoint: usize,
+        /// Its position (COLMAP's convention: the image spans `[0, width] × [0, height]`).
+        xy: [f32; 2],
+        /// The image's size.
+        size: [u64; 2],
+    },
+    /// Options that contradict each other (a database and a features file, …).
+    Options(String),
     /// Reading an input file or the images folder failed.
     Io {
         /// The file or folder.
@@ -90,31 +109,43 @@ impl fmt::Display for ConvertError {
         match self {
             ConvertError::Colmap(e) => e.fmt(f),
             ConvertError::Format(e) => e.fmt(f),
-            ConvertError::NameMismatch { database, image_id, model, found } => write!(
+            ConvertError::NameMismatch { features, image_id, model, found } => write!(
                 f,
                 "{}: image {image_id} is {found:?} in the database but {model:?} in the model (a database of another reconstruction?)",
-                database.display()
+                features.display()
             ),
-            ConvertError::KeypointOutOfRange { database, image, point2d_idx, keypoints } => write!(
+            ConvertError::KeypointOutOfRange { features, image, point2d_idx, keypoints } => write!(
                 f,
                 "{}: image {image:?} has {keypoints} keypoints but the model observes point2D {point2d_idx}",
-                database.display()
+                features.display()
             ),
-            ConvertError::KeypointScaleNotFinite { database, image, point2d_idx } => write!(
+            ConvertError::KeypointScaleNotFinite { features, image, point2d_idx } => write!(
                 f,
                 "{}: image {}: keypoint {point2d_idx}: scale is not finite",
-                database.display(),
+                features.display(),
                 crate::colmap::shown_name(image)
             ),
-            ConvertError::MissingFeatures { database, image } => write!(
+            ConvertError::MissingFeatures { features, image } => write!(
                 f,
                 "{}: image {image:?} has no keypoints or descriptors (without --strict it would be skipped)",
-                database.display()
+                features.display()
             ),
-            ConvertError::DescriptorDim { database, image, expected, found } => write!(
+            ConvertError::DescriptorDim { features, image, expected, found } => write!(
                 f,
-                "{}: image {image:?} has {found}-byte descriptors, others have {expected}",
-                database.display()
+                "{}: image {image:?} has {found}-dimensional descriptors, others have {expected}",
+                features.display()
+            ),
+            ConvertError::Input(e) => e.fmt(f),
+            ConvertError::Options(message) => f.write_str(message),
+            ConvertError::KeypointOutsideImage { features, image, keypoint, xy, size } => write!(
+                f,
+                "{}: image {}: keypoint {keypoint} at ({}, {}) lies outside the {} x {} image",
+                features.display(),
+                crate::colmap::shown_name(image),
+                xy[0],
+                xy[1],
+                size[0],
+                size[1]
             ),
             ConvertError::Io { path, source } => write!(f, "{}: {source}", path.display()),
             #[cfg(feature = "onnx")]
@@ -155,6 +186,12 @@ impl std::error::Error for ConvertError {
 impl From<ColmapError> for ConvertError {
     fn from(e: ColmapError) -> Self {
         ConvertError::Colmap(e)
+    }
+}
+
+impl From<crate::io::InputError> for ConvertError {
+    fn from(e: crate::io::InputError) -> Self {
+        ConvertError::Input(e)
     }
 }
 

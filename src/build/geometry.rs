@@ -56,6 +56,15 @@ pub(crate) fn map_index(keep: &[bool]) -> Vec<u32> {
 }
 
 impl Geometry {
+    /// Image `i`'s camera size in pixels, `[width, height]` (`[0, 0]` for a camera index out
+    /// of range, which the builder's checks exclude).
+    pub(crate) fn image_size(&self, i: usize) -> [u64; 2] {
+        self.image_cameras
+            .get(i)
+            .and_then(|&c| self.cameras.get(c as usize))
+            .map_or([0, 0], |c| [c.width, c.height])
+    }
+
     /// `keep[i]` says whether model point `i` goes into the map (`None`: every point).
     pub(crate) fn new(model: &Reconstruction, keep: Option<&[bool]>) -> Geometry {
         let points = model.points3d();

@@ -25,6 +25,8 @@ pub mod budget;
 pub mod catalog;
 #[cfg(feature = "colmap")]
 mod error;
+#[cfg(feature = "colmap")]
+pub(crate) mod features;
 // Maps are built with `colmap`; the fuzz body of binary models (`fuzzing`) compares its fast
 // path with the general reader.
 #[cfg(any(feature = "colmap", feature = "fuzzing", test))]

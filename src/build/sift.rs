@@ -8,9 +8,12 @@
 //! stores its descriptors in its own uncentred-PCA basis so a prefix (`short`) is meaningful.
 
 use super::basis::Basis;
+#[cfg(feature = "hdf5")]
+use super::features::H5Source;
+use super::features::{DatabaseSource, FeatureSource, ModelImage};
 use super::geometry::Geometry;
 use super::{read_geometry_with_sources, source_file, ConvertError, ConvertSummary, LevelSummary};
-use crate::colmap::{Database, Reconstruction};
+use crate::colmap::Reconstruction;
 use crate::format::{Codec, Descriptors, LevelInfo, Metadata, SourceFile};
 use crate::progress::Reporter;
 use serde_json::json;
@@ -40,8 +43,18 @@ impl Aggregate {
 /// (`sfpmap convert --colmap`).
 #[derive(Debug, Clone)]
 pub struct ConvertOptions {
-    /// `database.db` with the model's keypoints and descriptors; `None` = geometry only.
+    /// `database.db` with the model's keypoints and descriptors (SIFT, or a learned feature
+    /// by its `type`); `None` and no `features` = geometry only.
     pub database: Option<PathBuf>,
+    /// hloc `features.h5` with the model's keypoints and descriptors, by image name (instead
+    /// of `database`).
+    pub features: Option<PathBuf>,
+    /// The feature the map records (`aliked-n16`); `None`: the features file's own name for
+    /// it (its `sfp.model_name`, or the conf in hloc's `feats-<conf>.h5`).
+    pub feature_name: Option<String>,
+    /// hloc `global-feats-*.h5`: every map image's `global_descriptor`, stored as the map's
+    /// retrieval descriptors.
+    pub global_features: Option<PathBuf>,
     /// Dimensions of the `short` block; `None` = a quarter of the descriptor dimension.
     pub short_dims: Option<u32>,
     /// How the descriptor sections are stored.
@@ -62,6 +75,9 @@ impl Default for ConvertOptions {
     fn default() -> Self {
         ConvertOptions {
             database: None,
+            features: None,
+            feature_name: None,
+            global_features: None,
             short_dims: None,
             codec: Codec::Raw,
             zstd_level: 3,
@@ -73,9 +89,15 @@ impl Default for ConvertOptions {
     }
 }
 
-/// Per-observation features gathered from the database, flat and sorted by point.
+/// Per-observation features gathered from the source, flat and sorted by point.
 struct Observations {
     dim: usize,
+    /// The feature the map records as its levels' `descriptor`.
+    feature: String,
+    /// What `feature_source` records: where the descriptors came from.
+    source_kind: &'static str,
+    /// Whether every image's keypoints had a scale (levels by scale; else one level).
+    scaled: bool,
     /// (point index, keypoint scale), one per observation with a descriptor.
     scales: Vec<(u32, f32)>,
     /// Mean: `[points × dim]` sums of normalised descriptors.
@@ -95,7 +117,18 @@ pub fn convert(
 ) -> Result<ConvertSummary, ConvertError> {
     let (geometry, sources) = read_geometry_with_sources(model_dir, reporter)?;
     let colmap = model_dir.display().to_string();
-    convert_geometry(&geometry, sources, &colmap, options, output, reporter)
+    let mut source = open_source(options)?;
+    convert_geometry(
+        &geometry,
+        sources,
+        &colmap,
+        source
+            .as_mut()
+            .map(|s| s.as_mut() as &mut dyn FeatureSource),
+        options,
+        output,
+        reporter,
+    )
 }
 
 /// [`convert`] of a model already in memory (the Python package's `from_pycolmap`): the same
@@ -108,7 +141,64 @@ pub fn convert_model(
     reporter: &dyn Reporter,
 ) -> Result<ConvertSummary, ConvertError> {
     let geometry = Geometry::new(model, None);
-    convert_geometry(&geometry, Vec::new(), source, options, output, reporter)
+    let mut features = open_source(options)?;
+    convert_geometry(
+        &geometry,
+        Vec::new(),
+        source,
+        features
+            .as_mut()
+            .map(|s| s.as_mut() as &mut dyn FeatureSource),
+        options,
+        output,
+        reporter,
+    )
+}
+
+/// [`convert_model`] with the features of `source` (a kapture folder, …): `model_desc` is
+/// what provenance records as the model; `options.database` and `options.features` are not
+/// read.
+#[allow(dead_code)] // kapture's convert (in progress) is its caller
+pub(crate) fn convert_with_source(
+    model: &Reconstruction,
+    source: &mut dyn FeatureSource,
+    model_desc: &str,
+    options: &ConvertOptions,
+    output: &Path,
+    reporter: &dyn Reporter,
+) -> Result<ConvertSummary, ConvertError> {
+    let geometry = Geometry::new(model, None);
+    convert_geometry(
+        &geometry,
+        Vec::new(),
+        model_desc,
+        Some(source),
+        options,
+        output,
+        reporter,
+    )
+}
+
+/// The features `options` name: the database or the features file (not both), or none.
+fn open_source(options: &ConvertOptions) -> Result<Option<Box<dyn FeatureSource>>, ConvertError> {
+    match (&options.database, &options.features) {
+        (Some(_), Some(_)) => Err(ConvertError::Options(
+            "a database and a features file were both given: the model's features come from one"
+                .into(),
+        )),
+        (Some(db), None) => Ok(Some(Box::new(DatabaseSource::open(db)?))),
+        #[cfg(feature = "hdf5")]
+        (None, Some(h5)) => Ok(Some(Box::new(H5Source::open(
+            h5,
+            options.feature_name.clone(),
+        )?))),
+        #[cfg(not(feature = "hdf5"))]
+        (None, Some(h5)) => Err(ConvertError::Options(format!(
+            "{}: features files need sfpmap built with the hdf5 feature",
+            h5.display()
+        ))),
+        (None, None) => Ok(None),
+    }
 }
 
 /// The map of `geometry`; `sources` are its files for provenance, `colmap` what provenance
@@ -117,14 +207,25 @@ fn convert_geometry(
     geometry: &Geometry,
     mut sources: Vec<SourceFile>,
     colmap: &str,
+    source: Option<&mut dyn FeatureSource>,
     options: &ConvertOptions,
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<ConvertSummary, ConvertError> {
-    let observations = match &options.database {
-        Some(db_path) => {
-            sources.push(source_file(db_path)?);
-            Some(gather(geometry, db_path, options, reporter)?)
+    let observations = match source {
+        Some(source) => {
+            // A folder (kapture) is recorded by its files' own provenance, not hashed whole.
+            if source.path().is_file() {
+                sources.push(source_file(source.path())?);
+            }
+            Some(gather(geometry, source, options, reporter)?)
+        }
+        None => None,
+    };
+    let global = match &options.global_features {
+        Some(path) => {
+            sources.push(source_file(path)?);
+            Some(read_global(geometry, path, reporter)?)
         }
         None => None,
     };
@@ -138,6 +239,9 @@ fn convert_geometry(
         "operation": "convert",
         "colmap": colmap,
         "database": options.database.as_ref().map(|p| p.display().to_string()),
+        "features": options.features.as_ref().map(|p| p.display().to_string()),
+        "global_features": options.global_features.as_ref().map(|p| p.display().to_string()),
+        "feature": observations.as_ref().map(|o| o.feature.clone()),
         "aggregate": options.aggregate.name(),
         "short_dims": options.short_dims,
         "codec": options.codec.name(),
@@ -203,6 +307,11 @@ fn convert_geometry(
         Some(m) => super::pq::quantise_all(&mut writer, m)?,
         None => Vec::new(),
     };
+    if let Some((dim, global)) = &global {
+        writer.set_image_global(*dim, global)?;
+        // Descriptors trained for retrieval (NetVLAD, …) rank better than a VLAD of local ones.
+        writer.metadata_mut().retrieval = Some(crate::format::Retrieval::Global.name().to_string());
+    }
     let output_bytes = writer.write(output, reporter)?;
     Ok(ConvertSummary {
         points: geometry.positions.len(),
@@ -219,18 +328,21 @@ fn convert_geometry(
     })
 }
 
-/// Reads every model image's features and gathers, per observation of a 3D point, its
-/// normalised descriptor and keypoint scale.
+/// Reads every model image's features from `source` and gathers, per observation of a 3D
+/// point, its normalised descriptor and keypoint scale.
 fn gather(
     geometry: &Geometry,
-    db_path: &Path,
+    source: &mut dyn FeatureSource,
     options: &ConvertOptions,
     reporter: &dyn Reporter,
 ) -> Result<Observations, ConvertError> {
-    let db = Database::open(db_path)?;
+    let path = source.path().to_path_buf();
     let n_points = geometry.positions.len();
     let mut obs = Observations {
         dim: 0,
+        feature: String::new(),
+        source_kind: source.kind(),
+        scaled: true,
         scales: Vec::with_capacity(geometry.vis_points.len()),
         sums: Vec::new(),
         counts: vec![0; n_points],
@@ -241,45 +353,41 @@ fn gather(
     reporter.start("reading features", Some(n_images as u64));
     let mut normalised = Vec::new();
     for (i, (&image_id, name)) in geometry.image_ids.iter().zip(&geometry.names).enumerate() {
-        let features = db.features(image_id)?;
-        if features.image.name != *name {
-            return Err(ConvertError::NameMismatch {
-                database: db_path.to_path_buf(),
-                image_id,
-                model: name.clone(),
-                found: features.image.name,
-            });
-        }
-        let (Some(keypoints), Some(descriptors)) = (features.keypoints, features.descriptors)
-        else {
+        let image = ModelImage {
+            id: image_id,
+            name,
+            size: geometry.image_size(i),
+        };
+        let Some(features) = source.image(image)? else {
             if options.strict {
                 return Err(ConvertError::MissingFeatures {
-                    database: db_path.to_path_buf(),
+                    features: path,
                     image: name.clone(),
                 });
             }
             obs.images_without_features += 1;
             reporter.warn(&format!(
-                "{}: image {:?} has no features; its observations get no descriptor",
-                db_path.display(),
-                name
+                "{}: image {} has no features; its observations get no descriptor",
+                path.display(),
+                crate::escape::quoted_name(name)
             ));
             reporter.advance(1);
             continue;
         };
         if obs.dim == 0 {
-            obs.dim = descriptors.cols;
+            obs.dim = features.dim;
             if options.aggregate == Aggregate::Mean {
                 obs.sums = vec![0.0; n_points * obs.dim];
             }
-        } else if descriptors.cols != obs.dim {
+        } else if features.dim != obs.dim {
             return Err(ConvertError::DescriptorDim {
-                database: db_path.to_path_buf(),
+                features: path,
                 image: name.clone(),
                 expected: obs.dim,
-                found: descriptors.cols,
+                found: features.dim,
             });
         }
+        obs.scaled &= features.scales.is_some();
         let dim = obs.dim;
         let entries = geometry.vis_offsets[i] as usize..geometry.vis_offsets[i + 1] as usize;
         for (&point, &idx) in geometry.vis_points[entries.clone()]
@@ -287,31 +395,35 @@ fn gather(
             .zip(&geometry.vis_point2d[entries])
         {
             let (point, idx) = (point as usize, idx as usize);
-            // Keypoints without a shape (x, y only) have no scale: one bucket for all.
-            let scale = if idx < keypoints.len() {
-                keypoints.scale(idx).or(Some(1.0))
-            } else {
-                None
-            };
-            let (Some(row), Some(scale)) = (descriptors.row(idx), scale) else {
+            if idx >= features.keypoints || !features.values.row_into(dim, idx, &mut normalised) {
                 return Err(ConvertError::KeypointOutOfRange {
-                    database: db_path.to_path_buf(),
+                    features: path,
                     image: name.clone(),
                     point2d_idx: idx,
-                    keypoints: keypoints.len(),
+                    keypoints: features.keypoints,
                 });
-            };
+            }
+            // Without scales every observation is alike: one level.
+            let scale = features.scales.as_ref().map_or(1.0, |s| s[idx]);
             // A NaN scale would drop the point from every level without a word; the level
             // assignment and the metadata's scale ranges need finite scales.
             if !scale.is_finite() {
                 return Err(ConvertError::KeypointScaleNotFinite {
-                    database: db_path.to_path_buf(),
+                    features: path,
                     image: name.clone(),
                     point2d_idx: idx,
                 });
             }
-            normalised.clear();
-            normalised.extend(row.iter().map(|&b| f32::from(b)));
+            if let Some(v) = normalised.iter().find(|v| !v.is_finite()) {
+                return Err(ConvertError::Input(crate::io::InputError {
+                    path,
+                    line: None,
+                    message: format!(
+                        "image {}: keypoint {idx}: a descriptor value is {v}",
+                        crate::escape::quoted_name(name)
+                    ),
+                }));
+            }
             crate::vector::l2_normalise(&mut normalised);
             obs.scales.push((point as u32, scale));
             obs.counts[point] += 1;
@@ -335,10 +447,64 @@ fn gather(
             "{} of {} images have no features in {}",
             obs.images_without_features,
             n_images,
-            db_path.display()
+            path.display()
         ));
     }
+    obs.feature = source
+        .feature_name()
+        .unwrap_or_else(|| format!("{}{}", crate::format::UNNAMED_FEATURE_PREFIX, obs.dim));
     Ok(obs)
+}
+
+/// Every model image's global descriptor from hloc's `global-feats-*.h5`
+/// (`global_descriptor`), `[images × dim]`: each image must have one, all of one dimension.
+#[cfg(feature = "hdf5")]
+fn read_global(
+    geometry: &Geometry,
+    path: &Path,
+    reporter: &dyn Reporter,
+) -> Result<(usize, Vec<f32>), ConvertError> {
+    let h5 = crate::io::features_h5::H5Features::open(path)?;
+    reporter.start(
+        "reading global descriptors",
+        Some(geometry.names.len() as u64),
+    );
+    let mut dim = 0;
+    let mut out = Vec::new();
+    for name in &geometry.names {
+        let shown = crate::escape::quoted_name(name);
+        let g = h5
+            .global(name)?
+            .ok_or_else(|| h5.err(format!("image {shown}: no global_descriptor")))?;
+        if dim == 0 {
+            dim = g.len();
+            out.reserve(dim * geometry.names.len());
+        }
+        if g.len() != dim || dim == 0 {
+            return Err(h5
+                .err(format!(
+                    "{name}/global_descriptor: {} values, the images before it have {dim}",
+                    g.len()
+                ))
+                .into());
+        }
+        out.extend_from_slice(&g);
+        reporter.advance(1);
+    }
+    reporter.finish();
+    Ok((dim, out))
+}
+
+#[cfg(not(feature = "hdf5"))]
+fn read_global(
+    _: &Geometry,
+    path: &Path,
+    _: &dyn Reporter,
+) -> Result<(usize, Vec<f32>), ConvertError> {
+    Err(ConvertError::Options(format!(
+        "{}: global features files need sfpmap built with the hdf5 feature",
+        path.display()
+    )))
 }
 
 /// One descriptor per point (`[points × dim]`) and whether the point has one.
@@ -389,6 +555,9 @@ struct BuiltLevel {
 /// The rule, as recorded in each level's metadata.
 const LEVEL_RULE: &str = "median keypoint scale of the point's observations, split at the map's tertiles; level 0 = smallest scales (finest), level 2 = largest (deepest)";
 
+/// The rule when the keypoints have no scale (hloc's learned features, x/y-only keypoints).
+const ONE_LEVEL_RULE: &str = "one level: the features' keypoints have no scale";
+
 fn build_levels(
     obs: &Observations,
     descriptors: &[f32],
@@ -418,7 +587,7 @@ fn build_levels(
         (quantile(1.0 / 3.0), quantile(2.0 / 3.0))
     };
     let level_of = |m: f32| -> u16 {
-        if m <= t1 {
+        if !obs.scaled || m <= t1 {
             0
         } else if m <= t2 {
             1
@@ -461,18 +630,21 @@ fn build_levels(
         let mut info = LevelInfo {
             level,
             stride: f64::from(mid[mid.len() / 2]),
-            descriptor: if dim == 128 {
-                "sift".into()
-            } else {
-                format!("colmap-{dim}")
-            },
+            descriptor: obs.feature.clone(),
             dim_full: dim as u32,
             dim_short: short,
             normalization: "l2".into(),
             extra: Default::default(),
         };
         info.extra.insert("scale_range".into(), json!([lo, hi]));
-        info.extra.insert("assignment".into(), json!(LEVEL_RULE));
+        let rule = if obs.scaled {
+            LEVEL_RULE
+        } else {
+            ONE_LEVEL_RULE
+        };
+        info.extra.insert("assignment".into(), json!(rule));
+        info.extra
+            .insert("feature_source".into(), json!(obs.source_kind));
         info.extra.insert("basis".into(), json!("uncentred pca"));
         info.extra
             .insert("variance_short".into(), json!(variance_short));

@@ -5,7 +5,8 @@
 //! data)` and `descriptors(image_id, rows, cols, data)`, plus a `type` column in
 //! `descriptors` since COLMAP 3.12 (0 = SIFT). Columns are found with `PRAGMA table_info`, so
 //! both schemas (and extra columns such as the old `prior_*`) work. Blobs are little-endian
-//! row-major matrices: keypoints `f32`, descriptors `u8`, camera params `f64`.
+//! row-major matrices: keypoints `f32`, descriptors `u8` (SIFT) or `f32` (a learned feature's
+//! `type`), camera params `f64`.
 
 use std::path::{Path, PathBuf};
 
@@ -206,35 +207,93 @@ impl Keypoints {
 /// The `type` of SIFT descriptors in COLMAP's `descriptors` table (`FeatureExtractorType`).
 const SIFT_DESCRIPTOR_TYPE: i64 = 0;
 
-/// The name COLMAP 4.2 gives a descriptor `type` (`pycolmap.FeatureExtractorType`).
+/// A descriptor `type` of COLMAP's `descriptors` table (`pycolmap.FeatureExtractorType`, COLMAP
+/// 4.2): its name there, the name maps record for it, and whether its rows are f32 values.
+/// COLMAP keeps every learned feature's descriptors as little-endian f32 bytes (`cols` = 4 ×
+/// dimensions); only SIFT's are u8.
+struct DescriptorType {
+    colmap: &'static str,
+    feature: &'static str,
+    float: bool,
+}
+
+/// The types COLMAP 4.2 defines with a fixed layout; `UNDEFINED` (-1) and any other value are
+/// refused (no layout to read them by).
+fn descriptor_type(t: i64) -> Option<DescriptorType> {
+    let (colmap, feature, float) = match t {
+        0 => ("SIFT", "sift", false),
+        1 => ("ALIKED_N16ROT", "aliked-n16rot", true),
+        2 => ("ALIKED_N32", "aliked-n32", true),
+        3 => ("LOMA_B", "loma-b", true),
+        4 => ("LOMA_B128", "loma-b128", true),
+        _ => return None,
+    };
+    Some(DescriptorType {
+        colmap,
+        feature,
+        float,
+    })
+}
+
+/// The name COLMAP 4.2 gives a descriptor `type`, for messages.
 fn descriptor_type_name(t: i64) -> &'static str {
-    match t {
-        -1 => "UNDEFINED",
-        0 => "SIFT",
-        1 => "ALIKED_N16ROT",
-        2 => "ALIKED_N32",
-        3 => "LOMA_B",
-        4 => "LOMA_B128",
+    match (t, descriptor_type(t)) {
+        (_, Some(d)) => d.colmap,
+        (-1, None) => "UNDEFINED",
         _ => "a type COLMAP 4.2 does not define",
     }
 }
 
-/// The descriptors of one image: `rows × cols` bytes, row `i` for keypoint `i`.
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// Descriptor values as a database (or another feature store) keeps them, row-major.
+#[derive(Debug, Clone, PartialEq)]
+pub enum DescriptorValues {
+    /// SIFT's bytes.
+    U8(Vec<u8>),
+    /// A learned feature's floats (ALIKED, DISK, LoMa, …).
+    F32(Vec<f32>),
+}
+
+impl DescriptorValues {
+    /// Row `i` of `dim` values widened to f32 into `out` (cleared first); `false` if there is
+    /// no such row.
+    pub fn row_into(&self, dim: usize, i: usize, out: &mut Vec<f32>) -> bool {
+        out.clear();
+        let Some(range) = i
+            .checked_mul(dim)
+            .and_then(|s| Some(s..s.checked_add(dim)?))
+        else {
+            return false;
+        };
+        match self {
+            DescriptorValues::U8(v) => v
+                .get(range)
+                .map(|r| out.extend(r.iter().map(|&b| f32::from(b)))),
+            DescriptorValues::F32(v) => v.get(range).map(|r| out.extend_from_slice(r)),
+        }
+        .is_some()
+    }
+}
+
+/// The descriptors of one image: `len() × dim` values, row `i` for keypoint `i`.
+#[derive(Debug, Clone, PartialEq)]
 pub struct Descriptors {
-    /// Bytes per descriptor (128 for SIFT).
-    pub cols: usize,
+    /// Values per descriptor (128 for SIFT; a float type's `cols` is 4 × this).
+    pub dim: usize,
     /// The `type` column where the schema has one (COLMAP ≥ 3.12; 0 = SIFT), else `None`
     /// (older databases only held SIFT).
     pub type_id: Option<i64>,
-    /// Row-major.
-    pub data: Vec<u8>,
+    /// Row-major values.
+    pub values: DescriptorValues,
 }
 
 impl Descriptors {
     /// How many descriptors (rows).
     pub fn len(&self) -> usize {
-        self.data.len().checked_div(self.cols).unwrap_or(0)
+        let n = match &self.values {
+            DescriptorValues::U8(v) => v.len(),
+            DescriptorValues::F32(v) => v.len(),
+        };
+        n.checked_div(self.dim).unwrap_or(0)
     }
 
     /// Whether there are none.
@@ -242,10 +301,20 @@ impl Descriptors {
         self.len() == 0
     }
 
-    /// Descriptor `i`.
-    pub fn row(&self, i: usize) -> Option<&[u8]> {
-        let start = i.checked_mul(self.cols)?;
-        self.data.get(start..start.checked_add(self.cols)?)
+    /// The feature maps record for these descriptors: `sift`, `aliked-n16rot`, `aliked-n32`,
+    /// `loma-b`, `loma-b128`; SIFT-like bytes of another length than 128 (an old tool's)
+    /// `colmap-<dim>`.
+    pub fn feature(&self) -> String {
+        match self.type_id.and_then(descriptor_type) {
+            Some(t) if t.float => t.feature.to_owned(),
+            _ if self.dim == 128 => "sift".to_owned(),
+            _ => format!("colmap-{}", self.dim),
+        }
+    }
+
+    /// Descriptor `i` widened to f32 into `out` (cleared first); `false` if there is none.
+    pub fn row_into(&self, i: usize, out: &mut Vec<f32>) -> bool {
+        self.values.row_into(self.dim, i, out)
     }
 }
 
@@ -621,7 +690,9 @@ impl Database {
         Ok(Some(Keypoints { layout, data }))
     }
 
-    /// The descriptors of image `image_id`; `None` if it has no descriptors row.
+    /// The descriptors of image `image_id`; `None` if it has no descriptors row. A typed
+    /// database's rows are read by their `type` (SIFT's u8, a learned feature's f32); a type
+    /// without a layout is an error naming it and the image, never bytes misread.
     pub fn descriptors(&self, image_id: u32) -> Result<Option<Descriptors>> {
         let sql = if self.descriptors_have_type {
             "SELECT rows, cols, data, type FROM descriptors WHERE image_id = ?1"
@@ -637,23 +708,41 @@ impl Database {
         else {
             return Ok(None);
         };
-        // COLMAP ≥ 3.12 types its descriptors; only SIFT's are u8 rows. Another type's bytes
-        // (ALIKED's f32 values, 4 bytes each) read as SIFT would be silently wrong.
-        if let Some(t) = type_id.filter(|&t| t != SIFT_DESCRIPTOR_TYPE) {
+        let id = i64::from(image_id);
+        let t = type_id.unwrap_or(SIFT_DESCRIPTOR_TYPE);
+        let Some(kind) = descriptor_type(t) else {
             return Err(self.bad_row(
                 "descriptors",
-                i64::from(image_id),
+                id,
                 format!(
-                    "type {t} ({}): descriptors of another feature than SIFT, which this \
-                     reader does not take yet (SIFT is type 0)",
+                    "type {t} ({}): no descriptor layout is known for it (SIFT is type 0)",
                     descriptor_type_name(t)
                 ),
             ));
-        }
+        };
+        let (dim, values) = if kind.float {
+            if cols % 4 != 0 {
+                return Err(self.bad_row(
+                    "descriptors",
+                    id,
+                    format!(
+                        "type {t} ({}): {cols} columns are not whole f32 values",
+                        kind.colmap
+                    ),
+                ));
+            }
+            let values = data
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            (cols / 4, DescriptorValues::F32(values))
+        } else {
+            (cols, DescriptorValues::U8(data))
+        };
         Ok(Some(Descriptors {
-            cols,
+            dim,
             type_id,
-            data,
+            values,
         }))
     }
 

@@ -225,7 +225,10 @@ mod tests {
         assert_eq!(k.xy(1), Some([1.0, 2.0]));
         assert!((k.scale(0).unwrap() - 2.0).abs() < 1e-6);
         assert!((k.get(1).unwrap().orientation() + 1.0).abs() < 1e-6);
-        assert_eq!(d.row(1), Some(&descriptors[4..]));
+        let mut row = Vec::new();
+        assert!(d.row_into(1, &mut row));
+        assert_eq!(row, [4.0, 5.0, 6.0, 7.0]);
+        assert_eq!((d.dim, d.feature()), (4, "sift"));
     }
 
     #[test]

@@ -27,8 +27,11 @@
 //!         let Some(point) = point2d.point3d_id.and_then(|id| model.point3d(id)) else {
 //!             continue;
 //!         };
-//!         let (scale, descriptor) = (keypoints.scale(idx), descriptors.row(idx));
-//!         let _ = (point.xyz, scale, descriptor);
+//!         let mut descriptor = Vec::new();
+//!         let scale = keypoints.scale(idx);
+//!         if descriptors.row_into(idx, &mut descriptor) {
+//!             let _ = (point.xyz, scale, &descriptor);
+//!         }
 //!     }
 //! }
 //! # Ok::<(), sfpmap::colmap::Error>(())
@@ -47,8 +50,8 @@ use std::path::{Path, PathBuf};
 
 #[cfg(feature = "colmap")]
 pub use database::{
-    Database, DbImage, Descriptors, ImageFeatures, ImageFeaturesIter, Keypoint, KeypointLayout,
-    Keypoints,
+    Database, DbImage, DescriptorValues, Descriptors, ImageFeatures, ImageFeaturesIter, Keypoint,
+    KeypointLayout, Keypoints,
 };
 #[cfg(feature = "colmap")]
 pub use database_writer::DatabaseWriter;

@@ -207,7 +207,8 @@ pub struct LevelInfo {
     pub level: u16,
     /// Feature-map stride in pixels (SFP) or the nominal scale of the level's bucket (SIFT).
     pub stride: f64,
-    /// Descriptor kind: `sfp-v1`, `sift`, ...
+    /// Descriptor kind: `sfp-v1`, `sift`, `aliked-n16`, …; `colmap-<dim>` and
+    /// `features-<dim>` for descriptors whose source did not name them.
     pub descriptor: String,
     /// Dimensions of the full descriptor (`short` + `rest`).
     pub dim_full: u32,
@@ -220,7 +221,33 @@ pub struct LevelInfo {
     pub extra: JsonMap<String, Value>,
 }
 
+/// What a map records as the feature of descriptors whose source does not name it
+/// (`features-<dim>`, an hloc file called `feats.h5`): any query features of that dimension
+/// are taken for it.
+pub(crate) const UNNAMED_FEATURE_PREFIX: &str = "features-";
+
+/// Whether a level's `descriptor` names a feature a query's must be: not geometry only
+/// (`""`), not an unnamed `colmap-<dim>` or `features-<dim>`.
+pub(crate) fn descriptor_names_feature(d: &str) -> bool {
+    !(d.is_empty() || d.starts_with("colmap-") || d.starts_with(UNNAMED_FEATURE_PREFIX))
+}
+
 impl LevelInfo {
+    /// Whether [`descriptor`](Self::descriptor) names a feature a query's must be: not
+    /// geometry only (`""`), not an unnamed `colmap-<dim>` or `features-<dim>`.
+    pub fn names_feature(&self) -> bool {
+        descriptor_names_feature(&self.descriptor)
+    }
+
+    /// Whether the level's descriptors came from a features source (a COLMAP database, an
+    /// hloc file, kapture: its `feature_source`, or an older map's SIFT) rather than an
+    /// extractor sfpmap runs.
+    pub fn from_feature_source(&self) -> bool {
+        self.extra.contains_key("feature_source")
+            || self.descriptor == "sift"
+            || self.descriptor.starts_with("colmap-")
+    }
+
     /// The descriptor dimensions a reader matches this level with: all of them when the `rest`
     /// block is stored and used, else the `short` block's. Zero means nothing to match with:
     /// the one rule behind the writer's and `open`'s refusal, `slice --short`'s and the

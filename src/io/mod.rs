@@ -5,7 +5,7 @@
 
 #[cfg(feature = "colmap-model")]
 pub mod colmap_export;
-#[cfg(feature = "onnx")]
+#[cfg(feature = "hdf5")]
 pub mod features_h5;
 /// `info` needs `colmap-model` only to escape text (`colmap::text`).
 #[cfg(feature = "colmap-model")]

@@ -86,25 +86,42 @@ impl DatabaseFeatures {
             });
         }
         let n = keypoints.len().min(descriptors.len());
-        let dim = descriptors.cols;
+        let dim = descriptors.dim;
         let mut set = FeatureSet {
             level: None,
             keypoints: Vec::with_capacity(n),
             descriptors: Vec::with_capacity(n * dim),
             dim,
         };
+        let mut row = Vec::with_capacity(dim);
         for i in 0..n {
-            let (Some(xy), Some(row)) = (keypoints.xy(i), descriptors.row(i)) else {
+            let Some(xy) = keypoints.xy(i) else {
                 continue;
             };
+            if !descriptors.row_into(i, &mut row) {
+                continue;
+            }
             set.keypoints.push([f64::from(xy[0]), f64::from(xy[1])]);
-            set.descriptors.extend(row.iter().map(|&b| f32::from(b)));
+            set.descriptors.extend_from_slice(&row);
+        }
+        // Typed f32 rows may hold NaN: the localizer's rule, named by image here.
+        if let Err(e) = set.check_finite() {
+            return Err(crate::colmap::Error::BadRow {
+                path: self.db.path().to_path_buf(),
+                table: "descriptors",
+                id: i64::from(id),
+                what: format!("image {}: {e}", crate::escape::quoted_name(name)),
+            });
         }
         crate::vector::normalise_rows(&mut set.descriptors, dim);
         Ok(Some(QueryFeatures {
             sets: vec![set],
             global: None,
-            model: None,
+            // The database says which feature its rows are: a map of another is refused.
+            model: Some(crate::localize::FeatureModel {
+                name: descriptors.feature(),
+                xxh3: None,
+            }),
         }))
     }
 }

@@ -76,6 +76,8 @@ pub struct SessionBuilder {
     map_name: String,
     options: Option<LocalizeOptions>,
     source: QuerySource,
+    #[cfg(feature = "hdf5")]
+    global_features: Option<std::path::PathBuf>,
     sequence: bool,
     extractor_threads: usize,
 }
@@ -103,6 +105,15 @@ impl SessionBuilder {
         self
     }
 
+    /// An hloc `global-feats.h5` with the queries' global descriptors (`global_descriptor`
+    /// by image name, NetVLAD's or any other's): they replace what the source gives, for
+    /// retrieval against a map that stores the same kind (`convert --global-features`).
+    #[cfg(feature = "hdf5")]
+    pub fn global_features(mut self, path: Option<std::path::PathBuf>) -> Self {
+        self.global_features = path;
+        self
+    }
+
     /// Threads of the extractor's inference (default 2).
     pub fn extractor_threads(mut self, threads: usize) -> Self {
         self.extractor_threads = threads.max(1);
@@ -118,6 +129,8 @@ impl SessionBuilder {
             map_name,
             options,
             source,
+            #[cfg(feature = "hdf5")]
+            global_features,
             sequence,
             extractor_threads,
         } = self;
@@ -128,7 +141,8 @@ impl SessionBuilder {
             map: fit.map_name.clone(),
             source: LocalizeError::Option(e),
         })?;
-        let reader = QueryReader::open_for(
+        #[allow(unused_mut)]
+        let mut reader = QueryReader::open_for(
             source,
             fit.clone(),
             Some(&map),
@@ -136,6 +150,10 @@ impl SessionBuilder {
             extractor_threads,
             reporter,
         )?;
+        #[cfg(feature = "hdf5")]
+        if let Some(path) = global_features {
+            reader.set_global_features(crate::io::features_h5::H5Features::open(&path)?);
+        }
         let prepared =
             Prepared::try_new(map, |map| Localizer::new(map, options)).map_err(|source| {
                 SessionError::Localize {
@@ -206,17 +224,17 @@ impl Frame {
 pub(crate) struct Fit {
     pub(crate) map_name: String,
     pub(crate) descriptor: String,
+    /// Whether the descriptor names a feature queries must be (not an unnamed one).
+    pub(crate) named: bool,
+    /// Whether the map's descriptors came from a features source, not an extractor.
+    pub(crate) from_feature_source: bool,
     pub(crate) model_xxh3: Option<String>,
 }
 
 impl Fit {
     fn of(map: &Map<'_>, map_name: String) -> Fit {
-        let descriptor = map
-            .metadata()
-            .levels
-            .first()
-            .map(|l| l.descriptor.clone())
-            .unwrap_or_default();
+        let first = map.metadata().levels.first();
+        let descriptor = first.map(|l| l.descriptor.clone()).unwrap_or_default();
         let model_xxh3 = map
             .metadata()
             .provenance
@@ -227,30 +245,39 @@ impl Fit {
         Fit {
             map_name,
             descriptor,
+            named: first.is_some_and(|l| l.names_feature()),
+            from_feature_source: first.is_some_and(|l| l.from_feature_source()),
             model_xxh3,
         }
     }
 
-    /// Refuses features of another model than the map's: another descriptor kind, or the
-    /// same kind with another hash where both record one (a retrained model exported under
-    /// the same name). `origin` names where the features came from (made only for an error).
-    /// Features of unknown origin (an hloc file, arrays handed in) and maps of other
-    /// descriptors are taken as they are.
+    /// Refuses features of another model than the map's: another feature (`sift` for an
+    /// `aliked-n16` map, one SFP model for another), or the same model with another hash where
+    /// both record one (a retrained model exported under the same name). `origin` names where
+    /// the features came from (made only for an error). Features that do not say what they
+    /// are (arrays handed in, a features file of no name) and maps whose feature has no name
+    /// (`features-<dim>`, `colmap-<dim>`) are taken as they are: the localizer still refuses
+    /// another dimension.
     pub(crate) fn check_model(
         &self,
         model: &FeatureModel,
         origin: impl Fn() -> String,
     ) -> Result<(), SessionError> {
         let descriptor = &self.descriptor;
-        if !crate::localize::is_sfp_descriptor(descriptor) {
+        if !self.named {
             return Ok(());
         }
         let map = &self.map_name;
         if model.name != *descriptor {
             let origin = origin();
+            let fix = if self.from_feature_source {
+                format!("give query features of {descriptor:?}")
+            } else {
+                format!("extract the queries with model {descriptor:?}")
+            };
             return Err(SessionError::Mismatch(format!(
                 "{origin}: features of model {:?}, but the map {map} holds {descriptor:?} \
-                 descriptors: extract the queries with model {descriptor:?}",
+                 descriptors: {fix}",
                 model.name
             )));
         }
@@ -277,6 +304,8 @@ impl Session {
             map_name: map_name.into(),
             options: None,
             source: QuerySource::Given,
+            #[cfg(feature = "hdf5")]
+            global_features: None,
             sequence: false,
             extractor_threads: 2,
         }

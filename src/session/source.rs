@@ -72,6 +72,9 @@ pub(super) enum Source {
 /// read once and localized in several places).
 pub(crate) struct QueryReader {
     source: Source,
+    /// The queries' global descriptors from their own file (hloc's `global-feats.h5`).
+    #[cfg(feature = "hdf5")]
+    global: Option<crate::io::features_h5::H5Features>,
     fit: Fit,
     /// Queries extracted without their global descriptor (tracked frames).
     global_deferred: usize,
@@ -89,6 +92,9 @@ impl QueryReader {
         let fit = Fit {
             map_name: catalog_name.to_string(),
             descriptor: descriptor.to_string(),
+            named: crate::format::descriptor_names_feature(descriptor),
+            // Catalog queries come from files, never an extractor: only the hint's wording.
+            from_feature_source: !crate::localize::is_sfp_descriptor(descriptor),
             model_xxh3: None,
         };
         let options = LocalizeOptions::default();
@@ -106,9 +112,17 @@ impl QueryReader {
         let source = Source::open(source, &fit, map, options, extractor_threads, reporter)?;
         Ok(QueryReader {
             source,
+            #[cfg(feature = "hdf5")]
+            global: None,
             fit,
             global_deferred: 0,
         })
+    }
+
+    /// Every query's global descriptor comes from `h5` (by name; none if it has none).
+    #[cfg(feature = "hdf5")]
+    pub(crate) fn set_global_features(&mut self, h5: crate::io::features_h5::H5Features) {
+        self.global = Some(h5);
     }
 
     /// The query `name`'s features, or why it has none (missing, an image that does not
@@ -152,8 +166,9 @@ impl Source {
             #[cfg(feature = "onnx")]
             QuerySource::FeaturesFile(path) => {
                 let h5 = crate::io::features_h5::H5Features::open(&path)?;
-                // An hloc file without these attributes is taken as it is.
-                if let Some(name) = h5.root_string("sfp.model_name")? {
+                // A file that names its feature (`sfp.model_name`, hloc's `feats-<conf>.h5`)
+                // must hold the map's; one that does not is taken as it is.
+                if let Some(name) = h5.feature_name()? {
                     let model = FeatureModel {
                         name,
                         xxh3: h5.root_string("sfp.model_xxh3")?,
@@ -268,6 +283,14 @@ impl QueryReader {
                 });
             }
         };
+        #[cfg(feature = "hdf5")]
+        let features = match (features, &self.global) {
+            (Some(mut f), Some(global)) => {
+                f.global = global.global(name)?;
+                Some(f)
+            }
+            (f, _) => f,
+        };
         Ok(match features {
             Some(features) => Ok(Frame::from_source(features)),
             #[cfg(feature = "colmap")]
@@ -377,8 +400,8 @@ pub fn check_extractable(map: &Map<'_>, map_name: &str) -> Result<(), SessionErr
 impl Fit {
     fn check_extractable(&self) -> Result<(), SessionError> {
         // What the localizer matches as SFP descriptors is what the extractor makes: not SIFT,
-        // nor COLMAP's other typed descriptors (`colmap-<dim>`), nor none.
-        if !crate::localize::is_sfp_descriptor(&self.descriptor) {
+        // nor a features file's or a database's learned features, nor none.
+        if self.from_feature_source || !crate::localize::is_sfp_descriptor(&self.descriptor) {
             return Err(SessionError::NotExtractable {
                 map: self.map_name.clone(),
                 descriptor: self.descriptor.clone(),

@@ -37,6 +37,11 @@ fn codec(name: &str) -> PyResult<Codec> {
 #[derive(Clone)]
 struct Options {
     database: Option<PathBuf>,
+    /// hloc features.h5 (`--features`), its feature's name (`--feature-name`) and global
+    /// descriptors (`--global-features`).
+    features: Option<PathBuf>,
+    feature_name: Option<String>,
+    global_features: Option<PathBuf>,
     images: Option<PathBuf>,
     model: Option<PathBuf>,
     allow_missing: bool,
@@ -137,6 +142,9 @@ impl Options {
         };
         Ok(Options {
             database,
+            features: None,
+            feature_name: None,
+            global_features: None,
             images,
             model,
             allow_missing,
@@ -157,9 +165,36 @@ impl Options {
         })
     }
 
+    /// `features`, `feature_name` and `global_features`, refused where the CLI's parser
+    /// refuses them (`--features` with `--database` or `--images`, …).
+    fn with_features(
+        mut self,
+        features: Option<PathBuf>,
+        feature_name: Option<String>,
+        global_features: Option<PathBuf>,
+    ) -> PyResult<Options> {
+        let bad = |m: &str| Err(InputError::new_err(m.to_string()));
+        if features.is_some() && self.database.is_some() {
+            return bad("the argument '--features <FEATURES>' cannot be used with '--database <DATABASE>'");
+        }
+        if self.images.is_some() && (features.is_some() || global_features.is_some()) {
+            return bad("images cannot be used with features or global_features");
+        }
+        if feature_name.is_some() && features.is_none() {
+            return bad("feature_name needs features");
+        }
+        self.features = features;
+        self.feature_name = feature_name;
+        self.global_features = global_features;
+        Ok(self)
+    }
+
     fn sift(&self) -> ConvertOptions {
         ConvertOptions {
             database: self.database.clone(),
+            features: self.features.clone(),
+            feature_name: self.feature_name.clone(),
+            global_features: self.global_features.clone(),
             short_dims: self.short_dims,
             codec: self.codec,
             zstd_level: self.zstd_level,
@@ -192,6 +227,8 @@ impl Options {
     fn check_output(&self, model_files: &[PathBuf], out: &Path, force: bool) -> PyResult<()> {
         let mut inputs: Vec<&Path> = model_files.iter().map(|p| p.as_path()).collect();
         inputs.extend(self.database.as_deref());
+        inputs.extend(self.features.as_deref());
+        inputs.extend(self.global_features.as_deref());
         inputs.extend(self.model.as_deref());
         let in_images = self.images.as_deref().is_some_and(|images| {
             match (out.canonicalize(), images.canonicalize()) {
@@ -212,7 +249,8 @@ impl Options {
 #[pyo3(signature = (model_dir, database=None, images=None, *, out, force=false, model=None,
                     allow_missing=false, threads=2, resize_max=None, global_max_side=None,
                     score_threshold=None, short_dims=None, codec="raw", zstd_level=3, aggregate=None, strict=false,
-                    vlad_clusters=None, vlad_dims=None, pq=None))]
+                    vlad_clusters=None, vlad_dims=None, pq=None, features=None, feature_name=None,
+                    global_features=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn convert(
     py: Python<'_>,
@@ -235,6 +273,9 @@ pub(crate) fn convert(
     vlad_clusters: Option<usize>,
     vlad_dims: Option<usize>,
     pq: Option<usize>,
+    features: Option<PathBuf>,
+    feature_name: Option<String>,
+    global_features: Option<PathBuf>,
 ) -> PyResult<String> {
     let start = Instant::now();
     // As the CLI: 0 is refused, the cap (and its warning) applies where threads are used.
@@ -259,7 +300,8 @@ pub(crate) fn convert(
         vlad_clusters,
         vlad_dims,
         pq,
-    )?;
+    )?
+    .with_features(features, feature_name, global_features)?;
     let files = sfpmap::colmap::model_files(&model_dir)
         .map(|f| f.paths)
         .unwrap_or_default();
@@ -560,7 +602,8 @@ fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
                     resize_max=None, global_max_side=None, score_threshold=None,
                     short_dims=None, codec="raw",
                     zstd_level=3, aggregate=None, strict=false,
-                    vlad_clusters=None, vlad_dims=None, pq=None))]
+                    vlad_clusters=None, vlad_dims=None, pq=None, features=None,
+                    feature_name=None, global_features=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn from_pycolmap(
     py: Python<'_>,
@@ -584,6 +627,9 @@ pub(crate) fn from_pycolmap(
     vlad_clusters: Option<usize>,
     vlad_dims: Option<usize>,
     pq: Option<usize>,
+    features: Option<PathBuf>,
+    feature_name: Option<String>,
+    global_features: Option<PathBuf>,
 ) -> PyResult<String> {
     let start = Instant::now();
     // As the CLI: 0 is refused, the cap (and its warning) applies where threads are used.
@@ -608,7 +654,8 @@ pub(crate) fn from_pycolmap(
         vlad_clusters,
         vlad_dims,
         pq,
-    )?;
+    )?
+    .with_features(features, feature_name, global_features)?;
     o.check_output(&[], &out, force)?;
     let rec = reconstruction_of(reconstruction)?;
     let warnings = Warnings::default();
