@@ -177,14 +177,15 @@ impl FeatureSource for H5Source {
             .iter()
             .position(|&[x, y]| !((0.0..=w).contains(&x) && (0.0..=h).contains(&y)))
         {
-            let [x, y] = local.keypoints[k];
-            return Err(ConvertError::KeypointOutsideImage {
-                features: self.h5.path().to_path_buf(),
-                image: image.name.to_owned(),
-                keypoint: k,
-                xy: [x as f32, y as f32],
-                size: image.size,
-            });
+            // Named as the file holds it (hloc's convention), with its dataset.
+            let [x, y] = local.keypoints[k].map(|v| v - 0.5);
+            return Err(self
+                .h5
+                .err(format!(
+                    "{}/keypoints: keypoint {k} at ({x}, {y}) lies outside the {} x {} image",
+                    image.name, image.size[0], image.size[1]
+                ))
+                .into());
         }
         let keypoints = local.keypoints.len();
         let scales = self.h5.scales(image.name, &datasets, keypoints)?;

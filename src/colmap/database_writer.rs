@@ -228,7 +228,7 @@ mod tests {
         let mut row = Vec::new();
         assert!(d.row_into(1, &mut row));
         assert_eq!(row, [4.0, 5.0, 6.0, 7.0]);
-        assert_eq!((d.dim, d.feature()), (4, "sift"));
+        assert_eq!((d.dim, d.feature()), (4, "colmap-4".to_string()));
     }
 
     #[test]

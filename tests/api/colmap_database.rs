@@ -40,7 +40,7 @@ fn check_database(db_path: &Path, model_dir: &Path, layout: KeypointLayout, has_
         assert_eq!(keypoints.len(), n, "image {}", image.id);
         assert_eq!(keypoints.layout(), layout);
         let descriptors = features.descriptors.unwrap();
-        assert_eq!((descriptors.len(), descriptors.cols), (n, 128));
+        assert_eq!((descriptors.len(), descriptors.dim), (n, 128));
         assert_eq!(descriptors.type_id, has_type.then_some(0));
         // Keypoints are the model's points2D (kapture's text model rounds to ~5e-3 px).
         for (i, p) in image.points2d.iter().enumerate().step_by(37) {
@@ -57,9 +57,11 @@ fn check_database(db_path: &Path, model_dir: &Path, layout: KeypointLayout, has_
             );
             let scale = keypoints.scale(i).unwrap();
             assert!(scale.is_finite() && scale > 0.0, "scale {scale}");
-            assert!(descriptors.row(i).unwrap().iter().any(|&b| b != 0));
+            let mut row = Vec::new();
+            assert!(descriptors.row_into(i, &mut row));
+            assert!(row.iter().any(|&v| v != 0.0));
         }
-        assert!(keypoints.xy(n).is_none() && descriptors.row(n).is_none());
+        assert!(keypoints.xy(n).is_none() && !descriptors.row_into(n, &mut Vec::new()));
     }
     // Streaming visits every image once, in id order.
     let streamed: Vec<u32> = db
@@ -331,29 +333,33 @@ fn keypoint_scale_follows_colmap() {
     assert!(Keypoints::new(KeypointLayout::Affine, vec![0.0; 5]).is_none());
 }
 
-/// COLMAP ≥ 3.12 types descriptors (`FeatureExtractorType`): a database pycolmap 4.2.1 wrote
-/// with each type. SIFT (type 0) reads as before; every other type (ALIKED's and LoMa's f32
-/// values, stored 4 bytes each) is a one-line error naming the database, the image and the
-/// type, never SIFT bytes misread.
+/// COLMAP 4's typed descriptors, as pycolmap 4.2.1 writes each type: SIFT's u8 rows and the
+/// learned features' f32 rows read back exactly, each named as maps record it; a type with no
+/// layout (`UNDEFINED`, or one COLMAP does not define) is a one-line error naming the
+/// database, the image and the type, never bytes misread.
 #[test]
-fn typed_descriptors_are_sift_or_an_error_naming_the_type_and_image() {
+fn typed_descriptors_are_read_by_their_type_or_an_error_naming_the_type_and_image() {
     let t = tempfile::tempdir().unwrap();
     let db_path = t.path().join("typed.db");
     let script = r#"
-import sys, numpy as np, pycolmap
+import sys, sqlite3, numpy as np, pycolmap
 db = pycolmap.Database.open(sys.argv[1])
 cid = db.write_camera(pycolmap.Camera(model="SIMPLE_PINHOLE", width=640, height=480, params=[500, 320, 240]))
 T = pycolmap.FeatureExtractorType
-rng = np.random.default_rng(0)
-for t in [T.SIFT, T.ALIKED_N16ROT, T.ALIKED_N32, T.LOMA_B, T.LOMA_B128]:
-    iid = db.write_image(pycolmap.Image(name=f"type{t.value}.jpg", camera_id=cid))
+for k, t in enumerate([T.SIFT, T.ALIKED_N16ROT, T.ALIKED_N32, T.LOMA_B, T.LOMA_B128, T.SIFT, T.SIFT]):
+    iid = db.write_image(pycolmap.Image(name=f"image{k + 1}.jpg", camera_id=cid))
     if t == T.SIFT:
-        d = pycolmap.FeatureDescriptors(t, rng.integers(1, 255, (3, 128)).astype(np.uint8))
+        d = pycolmap.FeatureDescriptors(t, (np.arange(3 * 128).reshape(3, 128) % 251).astype(np.uint8))
     else:
-        d = pycolmap.FeatureDescriptorsFloat(t, rng.random((3, 128)).astype(np.float32)).to_bytes()
+        d = pycolmap.FeatureDescriptorsFloat(t, (np.arange(3 * 96).reshape(3, 96) / 7.0).astype(np.float32)).to_bytes()
     db.write_descriptors(iid, d)
-    db.write_keypoints(iid, (rng.random((3, 2)) * 100).astype(np.float32))
+    db.write_keypoints(iid, (np.arange(6).reshape(3, 2) * 10.0).astype(np.float32))
 db.close()
+# Types with no layout: UNDEFINED and one COLMAP 4.2 does not define.
+c = sqlite3.connect(sys.argv[1])
+c.execute("UPDATE descriptors SET type = -1 WHERE image_id = 6")
+c.execute("UPDATE descriptors SET type = 9 WHERE image_id = 7")
+c.commit()
 "#;
     let out = std::process::Command::new(crate::python::python_with("numpy, pycolmap"))
         .args(["-c", script])
@@ -368,17 +374,36 @@ db.close()
     let db = Database::open(&db_path).unwrap();
     assert!(db.descriptors_have_type());
     let sift = db.features(1).unwrap().descriptors.unwrap();
-    assert_eq!((sift.len(), sift.cols, sift.type_id), (3, 128, Some(0)));
-    for (id, name) in [
-        (2, "ALIKED_N16ROT"),
-        (3, "ALIKED_N32"),
-        (4, "LOMA_B"),
-        (5, "LOMA_B128"),
+    assert_eq!(
+        (sift.len(), sift.dim, sift.type_id, sift.feature()),
+        (3, 128, Some(0), "sift".to_string())
+    );
+    let mut row = Vec::new();
+    assert!(sift.row_into(2, &mut row));
+    assert_eq!(row[..2], [(256 % 251) as f32, (257 % 251) as f32]);
+    for (id, feature) in [
+        (2, "aliked-n16rot"),
+        (3, "aliked-n32"),
+        (4, "loma-b"),
+        (5, "loma-b128"),
+    ] {
+        let d = db.features(id).unwrap().descriptors.unwrap();
+        assert_eq!(
+            (d.len(), d.dim, d.type_id, d.feature()),
+            (3, 96, Some(id as i64 - 1), feature.to_string())
+        );
+        assert!(d.row_into(1, &mut row));
+        assert_eq!(row[0], 96.0f32 / 7.0, "{feature}: f32 values, not bytes");
+        assert_eq!(row[95], 191.0f32 / 7.0);
+    }
+    for (id, t, name) in [
+        (6, -1, "UNDEFINED"),
+        (7, 9, "a type COLMAP 4.2 does not define"),
     ] {
         let e = db.features(id).unwrap_err().to_string();
         assert!(e.starts_with(&db_path.display().to_string()), "{e}");
         assert!(
-            e.contains(&format!("type {} ({name})", id - 1)) && e.contains(&id.to_string()),
+            e.contains(&format!("type {t} ({name})")) && e.contains(&id.to_string()),
             "{e}"
         );
         assert!(!e.contains('\n'), "{e}");

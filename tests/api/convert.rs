@@ -12,8 +12,8 @@ use sfpmap::geometry::{CameraModel, Pose};
 use sfpmap::progress::Silent;
 use std::path::{Path, PathBuf};
 
-const POINTS: usize = 9;
-const IMAGES: u32 = 3;
+pub(crate) const POINTS: usize = 9;
+pub(crate) const IMAGES: u32 = 3;
 
 /// Point j's observation in image i: a descriptor around a per-point pattern.
 fn descriptor(point: usize, image: u32) -> Vec<u8> {
@@ -24,7 +24,7 @@ fn descriptor(point: usize, image: u32) -> Vec<u8> {
 
 /// 3 images that each see 9 points (the 10th point2D is not triangulated); point j's
 /// keypoints have scale j + 1, so the tertiles put points 0-2, 3-5, 6-8 in levels 0, 1, 2.
-fn model() -> Reconstruction {
+pub(crate) fn model() -> Reconstruction {
     let mut b = Reconstruction::builder();
     b.add_camera(Camera {
         id: 1,
@@ -72,7 +72,7 @@ fn model() -> Reconstruction {
     b.build().unwrap()
 }
 
-fn write_model(dir: &Path, rec: &Reconstruction) {
+pub(crate) fn write_model(dir: &Path, rec: &Reconstruction) {
     std::fs::create_dir_all(dir).unwrap();
     std::fs::write(dir.join("cameras.bin"), bin::write_cameras(rec)).unwrap();
     std::fs::write(dir.join("images.bin"), bin::write_images(rec)).unwrap();
