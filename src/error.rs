@@ -28,6 +28,9 @@ pub enum Error {
     /// Building a map ([`crate::build::ConvertError`]).
     #[cfg(feature = "colmap")]
     Convert(crate::build::ConvertError),
+    /// A kapture folder read or written ([`crate::io::kapture::KaptureError`]).
+    #[cfg(feature = "colmap")]
+    Kapture(crate::io::kapture::KaptureError),
     /// Cameras and pose estimation ([`crate::geometry::GeometryError`]).
     #[cfg(feature = "geometry")]
     Geometry(crate::geometry::GeometryError),
@@ -68,6 +71,8 @@ macro_rules! each_variant {
         $m!(Colmap, crate::colmap::Error);
         #[cfg(feature = "colmap")]
         $m!(Convert, crate::build::ConvertError);
+        #[cfg(feature = "colmap")]
+        $m!(Kapture, crate::io::kapture::KaptureError);
         #[cfg(feature = "geometry")]
         $m!(Geometry, crate::geometry::GeometryError);
         #[cfg(feature = "onnx")]
@@ -119,6 +124,8 @@ impl Error {
             Error::Colmap(e) => e,
             #[cfg(feature = "colmap")]
             Error::Convert(e) => e,
+            #[cfg(feature = "colmap")]
+            Error::Kapture(e) => e,
             #[cfg(feature = "geometry")]
             Error::Geometry(e) => e,
             #[cfg(feature = "onnx")]
@@ -199,6 +206,8 @@ impl Error {
             Error::Colmap(e) => colmap_kind(e),
             #[cfg(feature = "colmap")]
             Error::Convert(e) => convert_kind(e),
+            #[cfg(feature = "colmap")]
+            Error::Kapture(e) => kapture_kind(e),
             #[cfg(feature = "geometry")]
             Error::Geometry(e) => geometry_kind(e),
             #[cfg(feature = "onnx")]
@@ -319,6 +328,20 @@ fn convert_kind(e: &crate::build::ConvertError) -> ErrorKind {
         | E::Input(_)
         | E::KeypointOutsideImage { .. } => ErrorKind::Convert,
         E::Options(_) => ErrorKind::InvalidArgument,
+        E::Kapture(e) => kapture_kind(e),
+    }
+}
+
+#[cfg(feature = "colmap")]
+fn kapture_kind(e: &crate::io::kapture::KaptureError) -> ErrorKind {
+    use crate::io::kapture::KaptureError as E;
+    match e {
+        E::Missing { .. } | E::Read { .. } | E::Output(_) => ErrorKind::Io,
+        E::Map(e) => format_kind(e),
+        E::Model(e) => colmap_kind(e),
+        E::Unwritable { .. } => ErrorKind::InvalidArgument,
+        // A folder's contents, as a model's or a database's are.
+        _ => ErrorKind::Convert,
     }
 }
 

@@ -32,8 +32,21 @@ pub enum AggregateArg {
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The model folder (cameras, images, points3D as .bin or .txt).
-    #[arg(long)]
-    pub colmap: PathBuf,
+    #[arg(long, required_unless_present = "kapture")]
+    pub colmap: Option<PathBuf>,
+    /// A kapture folder instead of a model and its features: cameras, records and
+    /// trajectories, points3d and observations, and its keypoints and descriptors (none: a
+    /// geometry map). Example: `sfpmap convert --kapture maupertuis/ -o maupertuis.sfpm`
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["colmap", "database"])]
+    pub kapture: Option<PathBuf>,
+    /// With --kapture: the keypoints type to read (a folder of reconstruction/keypoints;
+    /// default: the only one there).
+    #[arg(long, value_name = "TYPE", requires = "kapture")]
+    pub keypoints_type: Option<String>,
+    /// With --kapture: the descriptors type to read (default: the only one of those
+    /// keypoints).
+    #[arg(long, value_name = "TYPE", requires = "kapture")]
+    pub descriptors_type: Option<String>,
     /// The COLMAP database with the model's keypoints and descriptors (opened read-only):
     /// SIFT, or a learned feature by its descriptor type (COLMAP 4's ALIKED).
     #[arg(long)]
@@ -155,7 +168,11 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     };
     let bars = super::Bars::new(quiet, args.json);
     // Errors name the file at fault themselves.
-    let summary = convert(&args.colmap, &options, &args.output, &bars)?;
+    let summary = match (&args.colmap, &args.kapture) {
+        (Some(colmap), _) => convert(colmap, &options, &args.output, &bars)?,
+        (None, Some(kapture)) => convert_kapture(&args, kapture, &options, &bars)?,
+        (None, None) => anyhow::bail!("pass --colmap or --kapture"),
+    };
     let seconds = start.elapsed().as_secs_f64();
     let ratio = summary.input_bytes as f64 / summary.output_bytes.max(1) as f64;
     if args.json {
@@ -233,9 +250,13 @@ fn vlad_dims(s: &str) -> Result<usize, String> {
 /// database, the extractor's model and, with `--images`, an existing output inside the
 /// images folder (it may be a model image: refused rather than read the model twice).
 fn check_output(args: &Args) -> anyhow::Result<()> {
-    let model = sfpmap::colmap::model_files(&args.colmap)
-        .map(|f| f.paths)
-        .unwrap_or_default();
+    let mut model = match &args.colmap {
+        Some(colmap) => sfpmap::colmap::model_files(colmap)
+            .map(|f| f.paths)
+            .unwrap_or_default(),
+        None => Vec::new(),
+    };
+    model.extend(args.kapture.iter().flat_map(|k| kapture_tables(k)));
     let mut inputs: Vec<&std::path::Path> = model.iter().map(|p| p.as_path()).collect();
     inputs.extend(args.database.as_deref());
     #[cfg(feature = "hdf5")]
@@ -292,7 +313,10 @@ fn run_sfp(
         vlad: vlad_options(args),
         pq: args.pq.map(usize::from),
     };
-    let summary = convert_with_images(&args.colmap, &options, &args.output, &bars)?;
+    let colmap = args.colmap.as_deref().ok_or_else(|| {
+        anyhow::anyhow!("--images builds from a COLMAP model: pass --colmap, not --kapture")
+    })?;
+    let summary = convert_with_images(colmap, &options, &args.output, &bars)?;
     let seconds = start.elapsed().as_secs_f64();
     let c = &summary.convert;
     let ratio = c.input_bytes as f64 / c.output_bytes.max(1) as f64;
@@ -326,4 +350,43 @@ fn run_sfp(
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The tables of a kapture folder, as inputs of the output policy.
+fn kapture_tables(dir: &std::path::Path) -> Vec<PathBuf> {
+    use sfpmap::io::kapture as k;
+    [
+        k::SENSORS,
+        k::RIGS,
+        k::TRAJECTORIES,
+        k::RECORDS_CAMERA,
+        k::POINTS3D,
+        k::OBSERVATIONS,
+    ]
+    .iter()
+    .map(|f| dir.join(f))
+    .collect()
+}
+
+/// `convert --kapture`: the folder's model and features through the SIFT path.
+fn convert_kapture(
+    args: &Args,
+    dir: &std::path::Path,
+    options: &ConvertOptions,
+    bars: &super::Bars,
+) -> anyhow::Result<sfpmap::build::ConvertSummary> {
+    if options.features.is_some() {
+        anyhow::bail!("--kapture holds its own features: drop --features");
+    }
+    let kapture_options = sfpmap::io::kapture::KaptureOptions {
+        keypoints_type: args.keypoints_type.clone(),
+        descriptors_type: args.descriptors_type.clone(),
+    };
+    Ok(sfpmap::build::convert_kapture(
+        dir,
+        &kapture_options,
+        options,
+        &args.output,
+        bars,
+    )?)
 }

@@ -12,7 +12,9 @@ use std::process::ExitCode;
 ///
 /// --ply writes a binary PLY (x y z as double world coordinates, red green blue, `level` =
 /// deepest level holding the point or -1, `level_mask`) that CloudCompare and MeshLab open.
-/// --colmap writes a COLMAP text model (same as `export-colmap`). --tum and --images-txt
+/// --colmap writes a COLMAP text model (same as `export-colmap`). --kapture writes a kapture
+/// folder (sensors, records, trajectories, points3d; the observed keypoints and observations
+/// where the map stores keypoints; no descriptors: a map keeps one per point, not per image). --tum and --images-txt
 /// write the database images' poses as a TUM trajectory (world_from_cam) or a COLMAP
 /// images.txt (cam_from_world, no observations).
 ///
@@ -27,6 +29,9 @@ pub struct Args {
     /// A COLMAP text model (cameras.txt, images.txt, points3D.txt) in this folder.
     #[arg(long, value_name = "DIR")]
     pub colmap: Option<PathBuf>,
+    /// A kapture 1.1 folder (sensors, trajectories, records, points3d, keypoints, observations).
+    #[arg(long, value_name = "DIR")]
+    pub kapture: Option<PathBuf>,
     /// Database image poses as a TUM trajectory (`timestamp tx ty tz qx qy qz qw`).
     #[arg(long, value_name = "OUT.txt")]
     pub tum: Option<PathBuf>,
@@ -70,8 +75,9 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         && args.colmap.is_none()
         && args.tum.is_none()
         && args.images_txt.is_none()
+        && args.kapture.is_none()
     {
-        bail!("nothing to export: pass --ply, --colmap, --tum and/or --images-txt");
+        bail!("nothing to export: pass --ply, --colmap, --kapture, --tum and/or --images-txt");
     }
     let colmap_files: Vec<PathBuf> = args
         .colmap
@@ -131,6 +137,26 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
             s.observations
         ));
         colmap = Some(s);
+    }
+    if let Some(dir) = &args.kapture {
+        let s = sfpmap::io::kapture::export_kapture(&map, dir, &[&args.map], args.force).map_err(
+            |e| match e {
+                sfpmap::io::kapture::KaptureError::Map(e) => super::naming(&args.map)(e),
+                e => anyhow::Error::new(e),
+            },
+        )?;
+        report.insert(
+            "kapture".into(),
+            json!({"path": dir.display().to_string(), "cameras": s.cameras, "images": s.images, "points": s.points, "observations": s.observations}),
+        );
+        lines.push(format!(
+            "{}: kapture with {} cameras, {} images, {} points, {} observations",
+            dir.display(),
+            s.cameras,
+            s.images,
+            s.points,
+            s.observations
+        ));
     }
     for (path, text, key) in [
         (&args.tum, poses::images_tum as fn(&Map<'_>) -> _, "tum"),

@@ -30,6 +30,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         map: args.map,
         ply: None,
         colmap: Some(args.output.clone()),
+        kapture: None,
         tum: None,
         images_txt: None,
         force: args.force,

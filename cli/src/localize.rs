@@ -40,15 +40,31 @@ pub enum PoseFormat {
     Tum,
     /// One JSON object per query, in a list.
     Json,
+    /// A kapture 1.1 folder at OUTPUT: sensors.txt (the query cameras), records_camera.txt
+    /// (every query) and trajectories.txt (the localized ones).
+    Kapture,
 }
 
-impl From<PoseFormat> for QueryPoseFormat {
-    fn from(format: PoseFormat) -> QueryPoseFormat {
-        match format {
-            PoseFormat::Colmap => QueryPoseFormat::Colmap,
-            PoseFormat::Tum => QueryPoseFormat::Tum,
-            PoseFormat::Json => QueryPoseFormat::Json,
+impl PoseFormat {
+    /// The library's layout of a one-file format; `None` for kapture (a folder).
+    fn lines(self) -> Option<QueryPoseFormat> {
+        match self {
+            PoseFormat::Colmap => Some(QueryPoseFormat::Colmap),
+            PoseFormat::Tum => Some(QueryPoseFormat::Tum),
+            PoseFormat::Json => Some(QueryPoseFormat::Json),
+            PoseFormat::Kapture => None,
         }
+    }
+}
+
+/// The files `-o` names: OUTPUT itself, or the three files of a kapture folder at OUTPUT.
+pub(super) fn output_files(args: &Args) -> Vec<PathBuf> {
+    match args.format {
+        PoseFormat::Kapture => sfpmap::io::kapture::QUERY_FILES
+            .iter()
+            .map(|f| args.output.join(f))
+            .collect(),
+        _ => vec![args.output.clone()],
     }
 }
 
@@ -556,8 +572,9 @@ fn none_read(query_list: &Path, queries: &[Query], results: &[Localization]) -> 
 /// The output policy for `-o` (and the MCAP mode's `--tum`): none may be the map, the query
 /// list or MCAP log, `--database`, `--features`, `--model` or one of `query_inputs`.
 fn check_outputs(args: &Args, query_inputs: &[&Path], images: &[PathBuf]) -> anyhow::Result<()> {
+    let files = output_files(args);
     #[cfg_attr(not(feature = "mcap"), allow(unused_mut))]
-    let mut outputs = vec![args.output.as_path()];
+    let mut outputs: Vec<&Path> = files.iter().map(PathBuf::as_path).collect();
     #[cfg(feature = "mcap")]
     outputs.extend(args.mcap.tum.as_deref());
     let mut inputs = vec![args.map_path()];
@@ -580,6 +597,18 @@ fn check_pose_names(
     format: PoseFormat,
     queries: &[Query],
 ) -> anyhow::Result<()> {
+    if format == PoseFormat::Kapture {
+        for (i, q) in queries.iter().enumerate() {
+            if let Some(problem) = sfpmap::io::kapture::name_problem(&q.name) {
+                bail!(
+                    "{}: query {} {} {problem}, which --format kapture cannot hold (--format json keeps any name)",
+                    query_list.display(),
+                    i + 1,
+                    quoted_name(&q.name)
+                );
+            }
+        }
+    }
     if format != PoseFormat::Colmap {
         return Ok(());
     }
@@ -607,14 +636,18 @@ pub(super) fn write_poses(
     image_names: &[&str],
 ) -> anyhow::Result<()> {
     check_pose_names(query_list, format, queries)?;
+    let Some(lines) = format.lines() else {
+        let named: Vec<_> = queries
+            .iter()
+            .map(|q| (q.name.as_str(), &q.camera))
+            .collect();
+        // No inputs and `force`: the caller applied the output policy to the folder's files
+        // (`output_files`), with every input, before any query ran.
+        sfpmap::io::kapture::write_query_trajectories(path, &named, results, &[], true)?;
+        return Ok(());
+    };
     let names: Vec<&str> = queries.iter().map(|q| q.name.as_str()).collect();
     super::write_atomic(path, |out| {
-        Ok(write_query_poses(
-            out,
-            format.into(),
-            &names,
-            results,
-            image_names,
-        )?)
+        Ok(write_query_poses(out, lines, &names, results, image_names)?)
     })
 }

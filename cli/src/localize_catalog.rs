@@ -68,7 +68,9 @@ pub(super) fn run(
     // The place maps are inputs too: no output may replace one. Checked before any query
     // is read.
     inputs.extend(session.locations().iter().map(PathBuf::as_path));
-    super::super::check_outputs(&[&args.output], &inputs, args.force)?;
+    let outputs = super::output_files(args);
+    let outputs: Vec<&Path> = outputs.iter().map(PathBuf::as_path).collect();
+    super::super::check_outputs(&outputs, &inputs, args.force)?;
     let found = session.localize_all(&queries, near, args.threads, bars)?;
     for (i, place) in session.opened() {
         warn_skipped(&place.skipped_levels(), &session.locations()[i], bars);

@@ -81,6 +81,8 @@ pub enum ConvertError {
     },
     /// Options that contradict each other (a database and a features file, …).
     Options(String),
+    /// A kapture folder (`convert --kapture`): its file and line in the message.
+    Kapture(crate::io::kapture::KaptureError),
     /// Reading an input file or the images folder failed.
     Io {
         /// The file or folder.
@@ -148,6 +150,7 @@ impl fmt::Display for ConvertError {
                 size[1]
             ),
             ConvertError::Io { path, source } => write!(f, "{}: {source}", path.display()),
+            ConvertError::Kapture(e) => e.fmt(f),
             #[cfg(feature = "onnx")]
             ConvertError::Extract(e) => e.fmt(f),
             ConvertError::Output(e) => e.fmt(f),
@@ -175,6 +178,7 @@ impl std::error::Error for ConvertError {
         match self {
             ConvertError::Colmap(e) => e.source(),
             ConvertError::Format(e) => e.source(),
+            ConvertError::Kapture(e) => e.source(),
             #[cfg(feature = "onnx")]
             ConvertError::Extract(e) => e.source(),
             ConvertError::Output(e) => e.source(),

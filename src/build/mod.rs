@@ -31,6 +31,8 @@ pub(crate) mod features;
 // path with the general reader.
 #[cfg(any(feature = "colmap", feature = "fuzzing", test))]
 pub(crate) mod geometry;
+#[cfg(feature = "colmap")]
+mod kapture;
 pub mod pq;
 #[cfg(feature = "colmap")]
 mod retrieval;
@@ -41,6 +43,8 @@ mod sift;
 
 #[cfg(feature = "colmap")]
 pub use error::ConvertError;
+#[cfg(feature = "colmap")]
+pub use kapture::convert_kapture;
 #[cfg(feature = "colmap")]
 pub use retrieval::{StoredVlad, VladOptions};
 #[cfg(all(feature = "colmap", feature = "onnx"))]

@@ -10,6 +10,10 @@ pub mod features_h5;
 /// `info` needs `colmap-model` only to escape text (`colmap::text`).
 #[cfg(feature = "colmap-model")]
 pub mod info;
+/// kapture folders in (`convert --kapture`) and out (`export --kapture`, `localize --format
+/// kapture`); reading keeps COLMAP's keypoint-scale rule, so it comes with `colmap`.
+#[cfg(feature = "colmap")]
+pub mod kapture;
 #[cfg(feature = "mcap")]
 pub mod mcap_io;
 #[cfg(feature = "plot")]

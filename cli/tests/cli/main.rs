@@ -29,5 +29,6 @@ mod hostile_format;
 mod hostile_inputs;
 mod hostile_localize;
 mod hostile_mcap;
+mod kapture;
 mod output_policy;
 mod remote;
