@@ -13,6 +13,7 @@ mod python;
 #[path = "../../../tests/support/shared_data.rs"]
 mod shared_data;
 
+mod hloc_features;
 mod localize_cli;
 mod mcap_localize;
 mod sequence_kitti;
