@@ -81,7 +81,13 @@ fn bench(c: &mut Criterion) {
     });
     let dense = extractor.run(&input).unwrap();
     group.bench_function("640x480_keypoints_descriptors", |b| {
-        b.iter(|| black_box(extractor.features(black_box(&dense), [640, 480], &tracked)))
+        b.iter(|| {
+            black_box(
+                extractor
+                    .features(black_box(&dense), [640, 480], &tracked)
+                    .unwrap(),
+            )
+        })
     });
     group.bench_function("640x480_global_512", |b| {
         b.iter(|| {

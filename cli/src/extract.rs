@@ -170,7 +170,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         let dense = extractor.run(&input).map_err(|e| e.on_image(path))?;
         network_ms.push(since(t));
         let t_kp = Instant::now();
-        let mut features = extractor.features(&dense, input.original_size, &detect);
+        let mut features = extractor
+            .features(&dense, input.original_size, &detect)
+            .map_err(|e| e.on_image(path))?;
         keypoints_ms.push(since(t_kp));
         let t_global = Instant::now();
         features.global = extractor

@@ -32,8 +32,41 @@ pub struct Contract {
     pub default_nms_radius: u32,
     /// Keypoint cap per level when the caller gives none.
     pub default_max_keypoints: Vec<usize>,
+    /// How keypoints are found on a score map (`sfp.detector`).
+    pub detector: Detector,
+    /// Where descriptors come from (`sfp.descriptor_head`).
+    pub descriptor_head: DescriptorHead,
+    /// The longest side the network is run on (`sfp.max_side`): a larger input is downscaled
+    /// first, and keypoints are scaled back. `None`: no cap but the pixel count's.
+    pub max_side: Option<u32>,
+    /// The shortest side the network takes (`sfp.min_input_side`, default 1).
+    pub min_input_side: usize,
     /// Every `sfp.*` key, for provenance.
     pub raw: BTreeMap<String, String>,
+}
+
+/// How a model's keypoints are found on its score maps (`sfp.detector`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum Detector {
+    /// `nms` (the default, SFP's): per level, NMS in a window, threshold, border ring, top-k,
+    /// quadratic sub-pixel fit, coarse-to-fine refinement.
+    Nms,
+    /// `dkd` (ALIKED's differentiable keypoint detection): NMS with two suppression rounds,
+    /// a border of the NMS radius, threshold (the map's mean when nothing passes it), cap by
+    /// score, soft-argmax sub-pixel position (temperature 0.1) and the score bilinear there.
+    Dkd,
+}
+
+/// Where a model's descriptors come from (`sfp.descriptor_head`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum DescriptorHead {
+    /// `bilinear` (the default, SFP's): `feat_i` sampled at the keypoint, L2-normalised.
+    Bilinear,
+    /// `sddh` (ALIKED's): the graph's `descriptors` output for the inputs `features` (a
+    /// `feat_0`) and `keypoints` (`[N, 2]` input pixels, pixel-index convention); one level.
+    Sddh,
 }
 
 fn list<T: std::str::FromStr>(value: &str) -> Option<Vec<T>> {
@@ -157,6 +190,36 @@ impl Contract {
             .trim()
             .parse()
             .map_err(|_| bad("sfp.default_nms_radius is not a number".into()))?;
+        let detector = match get("sfp.detector").as_deref().map(str::trim) {
+            None | Some("nms") => Detector::Nms,
+            Some("dkd") => Detector::Dkd,
+            Some(other) => return Err(bad(format!("sfp.detector = {other:?} is not nms or dkd"))),
+        };
+        let descriptor_head = match get("sfp.descriptor_head").as_deref().map(str::trim) {
+            None | Some("bilinear") => DescriptorHead::Bilinear,
+            Some("sddh") => DescriptorHead::Sddh,
+            Some(other) => {
+                return Err(bad(format!(
+                    "sfp.descriptor_head = {other:?} is not bilinear or sddh"
+                )))
+            }
+        };
+        if descriptor_head == DescriptorHead::Sddh && levels != 1 {
+            return Err(bad(format!(
+                "sfp.descriptor_head = sddh describes one level, not sfp.levels = {levels}"
+            )));
+        }
+        let number = |key: &str| -> Result<Option<u32>, ExtractError> {
+            get(key)
+                .map(|v| {
+                    v.trim()
+                        .parse()
+                        .map_err(|_| bad(format!("{key} = {v:?} is not a number")))
+                })
+                .transpose()
+        };
+        let max_side = number("sfp.max_side")?.filter(|&s| s > 0);
+        let min_input_side = number("sfp.min_input_side")?.unwrap_or(1).max(1) as usize;
         let raw = keys
             .iter()
             .filter(|k| k.starts_with("sfp."))
@@ -174,6 +237,10 @@ impl Contract {
             default_threshold,
             default_nms_radius,
             default_max_keypoints: max_kp,
+            detector,
+            descriptor_head,
+            max_side,
+            min_input_side,
             raw,
         })
     }
@@ -259,5 +326,43 @@ mod tests {
         let mut m = sfp_v1();
         m.insert("sfp.padding".into(), "multiple".into());
         assert!(parse(&m).is_err());
+        let mut m = sfp_v1();
+        m.insert("sfp.descriptor_head".into(), "sddh".into());
+        assert!(parse(&m).unwrap_err().to_string().contains("one level"));
+        let mut m = sfp_v1();
+        m.insert("sfp.detector".into(), "sift".into());
+        assert!(parse(&m).unwrap_err().to_string().contains("sfp.detector"));
+    }
+
+    #[test]
+    fn sfp_models_keep_their_rules_and_aliked_declares_its_own() {
+        let c = parse(&sfp_v1()).unwrap();
+        assert_eq!(
+            (c.detector, c.descriptor_head, c.max_side, c.min_input_side),
+            (Detector::Nms, DescriptorHead::Bilinear, None, 1)
+        );
+        let mut m = sfp_v1();
+        for (k, v) in [
+            ("sfp.levels", "1"),
+            ("sfp.level_ids", "0"),
+            ("sfp.strides", "1"),
+            ("sfp.dims", "128"),
+            ("sfp.short_dims", "128"),
+            ("sfp.full_dims", "128"),
+            ("sfp.global_dim", "0"),
+            ("sfp.default_max_keypoints", "20000"),
+            ("sfp.detector", "dkd"),
+            ("sfp.descriptor_head", "sddh"),
+            ("sfp.max_side", "1024"),
+            ("sfp.min_input_side", "4"),
+        ] {
+            m.insert(k.into(), v.into());
+        }
+        let c = parse(&m).unwrap();
+        assert_eq!(
+            (c.detector, c.descriptor_head, c.max_side, c.min_input_side),
+            (Detector::Dkd, DescriptorHead::Sddh, Some(1024), 4)
+        );
+        assert_eq!((c.levels(), c.global_dim, c.full_dims[0]), (1, 0, 128));
     }
 }

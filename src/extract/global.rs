@@ -119,6 +119,8 @@ impl Extractor {
         size: GlobalSize,
     ) -> Result<Vec<f32>, ExtractError> {
         match size {
+            // A model without a global head (`sfp.global_dim = 0`) has none at any size.
+            _ if self.contract.global_dim == 0 => Ok(Vec::new()),
             GlobalSize::Skip => Ok(Vec::new()),
             _ if size.needs_a_copy(input.width, input.height) => self.global_of(input, size),
             _ => Ok(dense.global.clone()),
@@ -133,6 +135,9 @@ impl Extractor {
         size: GlobalSize,
     ) -> Result<Vec<f32>, ExtractError> {
         self.check_values(input)?;
+        if self.contract.global_dim == 0 {
+            return Ok(Vec::new());
+        }
         match (size, size.max_side().and_then(|m| input.downscaled(m))) {
             (GlobalSize::Skip, _) => Ok(Vec::new()),
             (_, Some(small)) => Ok(self.run(&small)?.global),

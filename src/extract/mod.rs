@@ -22,12 +22,13 @@
 //! (`build::convert_with_images`): extraction knows nothing of maps being built.
 
 pub mod contract;
+mod dkd;
 mod global;
 pub mod image;
 mod keypoints;
 pub mod runtime;
 
-use self::contract::Contract;
+use self::contract::{Contract, DescriptorHead, Detector};
 pub use self::global::{GlobalSize, GLOBAL_MAX_SIDE, GLOBAL_MIN_SIDE};
 use self::image::GrayInput;
 use self::keypoints::{FeatureMap, ScoreMap};
@@ -36,9 +37,10 @@ use crate::progress::Reporter;
 use half::slice::HalfFloatSliceExt;
 use ort::session::builder::GraphOptimizationLevel;
 use ort::session::Session;
-use ort::value::Tensor;
+use ort::value::{Tensor, TensorRef};
 use std::fmt;
 use std::path::{Path, PathBuf};
+use std::sync::{Mutex, MutexGuard};
 
 /// The default model, embedded so the CLI works from any folder without `--model`: sfp-v2,
 /// sfp-v1 distilled into a stem of one stride-2 convolution (`models/sfp-v2.md`: the same
@@ -51,13 +53,15 @@ const BUILTIN_SUFFIX: &str = " (embedded)";
 
 /// The models built into the library, by their `sfp.model_name`; the first is
 /// [`DEFAULT_MODEL`]. `sfp-v1` was the default until sfp-v2 (`models/sfp-v1.md`), `sfp-v2s`
-/// is sfp-v1 distilled into a two-convolution strided stem (`models/sfp-v2s.md`). A map
-/// records its model's name, so `localize` finds the model a map was made with here;
-/// `--model NAME` picks one by name.
+/// is sfp-v1 distilled into a two-convolution strided stem (`models/sfp-v2s.md`), `aliked-n16`
+/// is ALIKED-N16 (BSD-3-Clause; `models/aliked-n16.md`: one level of 128-d descriptors from
+/// its SDDH head, no global descriptor). A map records its model's name, so `localize` finds
+/// the model a map was made with here; `--model NAME` picks one by name.
 pub static BUILTIN_MODELS: &[(&str, &[u8])] = &[
     ("sfp-v2", DEFAULT_MODEL),
     ("sfp-v1", include_bytes!("../../models/sfp-v1.onnx")),
     ("sfp-v2s", include_bytes!("../../models/sfp-v2s.onnx")),
+    ("aliked-n16", include_bytes!("../../models/aliked-n16.onnx")),
 ];
 
 /// How the built-in model `name` is named in errors and provenance.
@@ -256,6 +260,23 @@ pub struct DetectOptions {
 /// gains at 1 px but loses repeatability, so it is left as detected.
 pub(crate) const REFINE_FROM_LEVEL: usize = 2;
 
+/// The inputs of a descriptor head's branch (`sfp.descriptor_head = sddh`): a `feat_0` and
+/// `[N, 2]` keypoints (input pixels, pixel-index convention).
+const SDDH_INPUTS: [&str; 2] = ["features", "keypoints"];
+/// The output of a descriptor head's branch: `[N, dims[0]]`, L2-normalised.
+const SDDH_OUTPUT: &str = "descriptors";
+
+/// What the describe branch is fed while the dense branch runs: ORT runs every node of the
+/// graph each time, so the branch not wanted gets an input that costs nothing (a 4x4 map, one
+/// keypoint at its centre).
+fn sddh_placeholders(dim: usize) -> Result<(Tensor<f32>, Tensor<f32>), String> {
+    let features = Tensor::from_array(([1usize, dim, 4, 4], vec![0.0f32; dim * 16]))
+        .map_err(|e| e.to_string())?;
+    let keypoints =
+        Tensor::from_array(([1usize, 2], vec![1.5f32, 1.5])).map_err(|e| e.to_string())?;
+    Ok((features, keypoints))
+}
+
 /// The model file an extractor runs, for provenance.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ModelInfo {
@@ -436,7 +457,9 @@ impl Features {
 
 /// A loaded model with its session.
 pub struct Extractor {
-    session: Session,
+    /// Locked for each inference: [`Extractor::features`] runs a descriptor head's graph from
+    /// `&self` (ORT's `run` takes `&mut`).
+    session: Mutex<Session>,
     contract: Contract,
     model: ModelInfo,
     /// `ExtractorOptions::threads`: ORT's intra-op threads, and the threads that sample
@@ -546,21 +569,37 @@ impl Extractor {
             .iter()
             .map(|o| o.name().to_string())
             .collect();
-        for i in 0..contract.levels() {
-            for out in [format!("feat_{i}"), format!("score_{i}")] {
-                if !output_names.contains(&out) {
-                    return Err(ExtractError::Contract {
-                        model: name,
-                        reason: format!("the model has no output {out:?}"),
-                    });
-                }
+        let input_names: Vec<String> = session
+            .inputs()
+            .iter()
+            .map(|i| i.name().to_string())
+            .collect();
+        let mut outputs: Vec<String> = (0..contract.levels())
+            .flat_map(|i| [format!("feat_{i}"), format!("score_{i}")])
+            .collect();
+        if contract.global_dim > 0 {
+            outputs.push("global".into());
+        }
+        let mut inputs = vec![contract.input_name.clone()];
+        if contract.descriptor_head == DescriptorHead::Sddh {
+            outputs.push(SDDH_OUTPUT.into());
+            inputs.extend(SDDH_INPUTS.iter().map(|s| s.to_string()));
+        }
+        for out in outputs {
+            if !output_names.contains(&out) {
+                return Err(ExtractError::Contract {
+                    model: name,
+                    reason: format!("the model has no output {out:?}"),
+                });
             }
         }
-        if !output_names.iter().any(|n| n == "global") {
-            return Err(ExtractError::Contract {
-                model: name,
-                reason: "the model has no output \"global\"".into(),
-            });
+        for input in inputs {
+            if !input_names.contains(&input) {
+                return Err(ExtractError::Contract {
+                    model: name,
+                    reason: format!("the model has no input {input:?}"),
+                });
+            }
         }
         let model = ModelInfo {
             name,
@@ -568,7 +607,7 @@ impl Extractor {
             xxh3: crate::format::file_hash(&bytes),
         };
         Ok(Extractor {
-            session,
+            session: Mutex::new(session),
             contract,
             model,
             threads: threads.max(1),
@@ -591,17 +630,35 @@ impl Extractor {
         &self.model
     }
 
-    /// Runs the network on one grey input.
-    pub fn run(&mut self, input: &GrayInput) -> Result<Dense, ExtractError> {
-        let (w, h) = (input.width, input.height);
-        let name = self.model.name.clone();
-        let infer = |reason: String| ExtractError::Inference {
-            model: name.clone(),
+    fn session(&self) -> MutexGuard<'_, Session> {
+        // A panic during an inference leaves nothing half-written that a later one reads.
+        self.session.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn inference_error(&self, reason: String) -> ExtractError {
+        ExtractError::Inference {
+            model: self.model.name.clone(),
             image: None,
             reason,
-        };
+        }
+    }
+
+    /// Runs the network on one grey input; an input longer than the model's `sfp.max_side`
+    /// is downscaled to it first (`Dense::scale` maps back to the input's file).
+    pub fn run(&mut self, input: &GrayInput) -> Result<Dense, ExtractError> {
+        let (w, h) = (input.width, input.height);
+        if let Some(small) = self.contract.max_side.and_then(|m| input.downscaled(m)) {
+            return self.run(&small);
+        }
+        let infer = |reason: String| self.inference_error(reason);
         if w == 0 || h == 0 {
             return Err(infer("empty image".into()));
+        }
+        let min = self.contract.min_input_side;
+        if w < min || h < min {
+            return Err(infer(format!(
+                "the image is {w}x{h} pixels; the model takes at least {min} a side"
+            )));
         }
         if let Some(reason) = too_large_for_the_network(w, h) {
             return Err(infer(reason));
@@ -609,17 +666,24 @@ impl Extractor {
         let tensor = Tensor::from_array(([1usize, 1, h, w], input.values.clone()))
             .map_err(|e| infer(e.to_string()))?;
         let input_name = self.contract.input_name.clone();
-        let outputs = self
-            .session
-            .run(ort::inputs![input_name.as_str() => tensor])
-            .map_err(|e| infer(e.to_string()))?;
-        let mut levels = Vec::with_capacity(self.contract.levels());
-        for i in 0..self.contract.levels() {
-            let (lh, lw) = (
-                self.contract.level_side(i, h),
-                self.contract.level_side(i, w),
-            );
-            let c = self.contract.dims[i];
+        let c = &self.contract;
+        let mut session = self.session();
+        let outputs = if c.descriptor_head == DescriptorHead::Sddh {
+            // The describe branch runs on every run: a 4x4 map and one keypoint cost nothing.
+            let (features, keypoints) = sddh_placeholders(c.dims[0]).map_err(&infer)?;
+            session.run(ort::inputs![
+                input_name.as_str() => tensor,
+                SDDH_INPUTS[0] => features,
+                SDDH_INPUTS[1] => keypoints,
+            ])
+        } else {
+            session.run(ort::inputs![input_name.as_str() => tensor])
+        }
+        .map_err(|e| infer(e.to_string()))?;
+        let mut levels = Vec::with_capacity(c.levels());
+        for i in 0..c.levels() {
+            let (lh, lw) = (c.level_side(i, h), c.level_side(i, w));
+            let channels = c.dims[i];
             let take = |out: &str, channels: usize| -> Result<Vec<f32>, ExtractError> {
                 let value = outputs
                     .get(out)
@@ -636,33 +700,92 @@ impl Extractor {
                 }
                 Ok(data.to_vec())
             };
-            let feat = take(&format!("feat_{i}"), c)?;
+            let feat = take(&format!("feat_{i}"), channels)?;
             let score = take(&format!("score_{i}"), 1)?;
             levels.push(DenseLevel {
-                stride: self.contract.strides[i],
-                channels: c,
+                stride: c.strides[i],
+                channels,
                 height: lh,
                 width: lw,
                 feat,
                 score,
             });
         }
-        let value = outputs
-            .get("global")
-            .ok_or_else(|| infer("no output \"global\"".into()))?;
-        let (shape, data) = value
-            .try_extract_tensor::<f32>()
-            .map_err(|e| infer(format!("global: {e}")))?;
-        if **shape != [1, self.contract.global_dim as i64] {
-            return Err(infer(format!("global has shape {:?}", &**shape)));
-        }
-        let global = data.to_vec();
+        let global = if c.global_dim == 0 {
+            Vec::new()
+        } else {
+            let value = outputs
+                .get("global")
+                .ok_or_else(|| infer("no output \"global\"".into()))?;
+            let (shape, data) = value
+                .try_extract_tensor::<f32>()
+                .map_err(|e| infer(format!("global: {e}")))?;
+            if **shape != [1, c.global_dim as i64] {
+                return Err(infer(format!("global has shape {:?}", &**shape)));
+            }
+            data.to_vec()
+        };
         Ok(Dense {
             input_size: [w, h],
             scale: input.scale(),
             levels,
             global,
         })
+    }
+
+    /// Each point's `full` descriptor on the model's first level, `[points × full_dims[0]]`
+    /// L2-normalised; points are pixels of the network input (pixel-index convention, as
+    /// [`Dense::input_pixel`] gives them). A descriptor head (`sfp.descriptor_head = sddh`)
+    /// runs its graph once for all points; other models sample `dense` as
+    /// [`Dense::full_descriptor_at`] does.
+    pub fn describe(&self, dense: &Dense, points: &[[f32; 2]]) -> Result<Vec<f32>, ExtractError> {
+        let Some(level) = dense.levels.first() else {
+            return Ok(Vec::new());
+        };
+        if self.contract.descriptor_head == DescriptorHead::Bilinear {
+            let mut out = Vec::new();
+            for &[x, y] in points {
+                dense.full_descriptor_at(0, x, y, &mut out);
+            }
+            return Ok(out);
+        }
+        let dim = level.channels;
+        if points.is_empty() {
+            return Ok(Vec::new());
+        }
+        let infer = |reason: String| self.inference_error(reason);
+        let features =
+            TensorRef::from_array_view(([1, dim, level.height, level.width], &level.feat[..]))
+                .map_err(|e| infer(e.to_string()))?;
+        let flat: Vec<f32> = points.iter().flatten().copied().collect();
+        let keypoints =
+            Tensor::from_array(([points.len(), 2], flat)).map_err(|e| infer(e.to_string()))?;
+        let side = self.contract.min_input_side.max(32);
+        let image = Tensor::from_array(([1usize, 1, side, side], vec![0.0f32; side * side]))
+            .map_err(|e| infer(e.to_string()))?;
+        let input_name = self.contract.input_name.clone();
+        let mut session = self.session();
+        let outputs = session
+            .run(ort::inputs![
+                input_name.as_str() => image,
+                SDDH_INPUTS[0] => features,
+                SDDH_INPUTS[1] => keypoints,
+            ])
+            .map_err(|e| infer(e.to_string()))?;
+        let value = outputs
+            .get(SDDH_OUTPUT)
+            .ok_or_else(|| infer(format!("no output {SDDH_OUTPUT:?}")))?;
+        let (shape, data) = value
+            .try_extract_tensor::<f32>()
+            .map_err(|e| infer(format!("{SDDH_OUTPUT}: {e}")))?;
+        let want = [points.len() as i64, dim as i64];
+        if **shape != want {
+            return Err(infer(format!(
+                "{SDDH_OUTPUT} has shape {:?}, the contract says {want:?}",
+                &**shape
+            )));
+        }
+        Ok(data.to_vec())
     }
 
     /// Keypoints and descriptors of every level from the network's outputs, and the global
@@ -675,7 +798,7 @@ impl Extractor {
         dense: &Dense,
         original_size: [u32; 2],
         options: &DetectOptions,
-    ) -> Features {
+    ) -> Result<Features, ExtractError> {
         let c = &self.contract;
         let max_of = |i: usize| match options.max_keypoints.as_deref() {
             Some([one]) => *one,
@@ -687,7 +810,7 @@ impl Extractor {
         let mut levels: Vec<Option<LevelFeatures>> = vec![None; n];
         if threads == 1 {
             for (i, out) in levels.iter_mut().enumerate() {
-                *out = Some(self.level_features(dense, i, max_of(i), options));
+                *out = Some(self.level_features(dense, i, max_of(i), options)?);
             }
         } else {
             // Longest job first onto the least loaded thread.
@@ -702,30 +825,31 @@ impl Extractor {
                 load[t] = load[t].saturating_add(cost(i));
                 share[t].push(i);
             }
-            let done: Vec<Vec<(usize, LevelFeatures)>> = std::thread::scope(|s| {
-                let work = |mine: &Vec<usize>| {
-                    mine.iter()
-                        .map(|&i| (i, self.level_features(dense, i, max_of(i), options)))
-                        .collect::<Vec<_>>()
-                };
-                let (first, rest) = share.split_first().expect("threads >= 1");
-                let handles: Vec<_> = rest.iter().map(|m| s.spawn(move || work(m))).collect();
-                let mut done = vec![work(first)];
-                for h in handles {
-                    // A panic in a worker is a bug here; re-raise it on the caller's thread.
-                    done.push(h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)));
-                }
-                done
-            });
+            let done: Vec<Vec<(usize, Result<LevelFeatures, ExtractError>)>> =
+                std::thread::scope(|s| {
+                    let work = |mine: &Vec<usize>| {
+                        mine.iter()
+                            .map(|&i| (i, self.level_features(dense, i, max_of(i), options)))
+                            .collect::<Vec<_>>()
+                    };
+                    let (first, rest) = share.split_first().expect("threads >= 1");
+                    let handles: Vec<_> = rest.iter().map(|m| s.spawn(move || work(m))).collect();
+                    let mut done = vec![work(first)];
+                    for h in handles {
+                        // A panic in a worker is a bug here; re-raise it on the caller's thread.
+                        done.push(h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)));
+                    }
+                    done
+                });
             for (i, f) in done.into_iter().flatten() {
-                levels[i] = Some(f);
+                levels[i] = Some(f?);
             }
         }
-        Features {
+        Ok(Features {
             image_size: original_size,
             levels: levels.into_iter().flatten().collect(),
             global: dense.global.clone(),
-        }
+        })
     }
 
     /// Level `i`'s keypoints (at most `max`) and their short and full descriptors.
@@ -735,15 +859,21 @@ impl Extractor {
         i: usize,
         max: usize,
         options: &DetectOptions,
-    ) -> LevelFeatures {
+    ) -> Result<LevelFeatures, ExtractError> {
         let c = &self.contract;
         let threshold = options.threshold.unwrap_or(c.default_threshold);
         let radius = options.nms_radius.unwrap_or(c.default_nms_radius) as usize;
         let level = &dense.levels[i];
-        let peaks = keypoints::detect(level.score_map(), radius, threshold, max);
+        let peaks = match c.detector {
+            Detector::Nms => keypoints::detect(level.score_map(), radius, threshold, max),
+            Detector::Dkd => dkd::detect(level.score_map(), radius, threshold, max),
+        };
         let s = level.stride as f32;
         // Pixel positions (pixel-index convention), refined coarse to fine where it applies.
         let mut px: Vec<(f32, f32)> = peaks.iter().map(|p| (p.x * s, p.y * s)).collect();
+        if c.descriptor_head == DescriptorHead::Sddh {
+            return self.described_level(dense, i, &peaks, &px);
+        }
         if options.refine.unwrap_or(true) && i >= REFINE_FROM_LEVEL.max(1) {
             let finer = &dense.levels[i - 1];
             let fs = finer.stride as f32;
@@ -778,7 +908,7 @@ impl Extractor {
         short.convert_from_f32_slice(&short32);
         let mut full = vec![f16::ZERO; n * df];
         full.convert_from_f32_slice(&full32);
-        LevelFeatures {
+        Ok(LevelFeatures {
             level: c.level_ids[i],
             stride: c.strides[i],
             keypoints: px
@@ -790,7 +920,37 @@ impl Extractor {
             dim_full: df,
             short,
             full,
-        }
+        })
+    }
+
+    /// Level `i` of a model with a descriptor head: its descriptors at the keypoints `px`
+    /// (input pixels), both `short` and `full` (one level: the same vectors).
+    fn described_level(
+        &self,
+        dense: &Dense,
+        i: usize,
+        peaks: &[keypoints::Peak],
+        px: &[(f32, f32)],
+    ) -> Result<LevelFeatures, ExtractError> {
+        let c = &self.contract;
+        let points: Vec<[f32; 2]> = px.iter().map(|&(x, y)| [x, y]).collect();
+        let described = self.describe(dense, &points)?;
+        let mut full = vec![f16::ZERO; described.len()];
+        full.convert_from_f32_slice(&described);
+        let dim = dense.levels[i].channels;
+        Ok(LevelFeatures {
+            level: c.level_ids[i],
+            stride: c.strides[i],
+            keypoints: px
+                .iter()
+                .map(|&(x, y)| [(x + 0.5) * dense.scale[0], (y + 0.5) * dense.scale[1]])
+                .collect(),
+            scores: peaks.iter().map(|p| p.score).collect(),
+            dim_short: dim,
+            dim_full: dim,
+            short: full.clone(),
+            full,
+        })
     }
 
     /// [`Extractor::run`], [`Extractor::features`] and [`Extractor::global`] at
@@ -801,7 +961,7 @@ impl Extractor {
         options: &DetectOptions,
     ) -> Result<Features, ExtractError> {
         let dense = self.run(input)?;
-        let mut features = self.features(&dense, input.original_size, options);
+        let mut features = self.features(&dense, input.original_size, options)?;
         features.global = self.global(input, &dense, options.global)?;
         Ok(features)
     }

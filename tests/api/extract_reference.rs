@@ -111,7 +111,9 @@ fn matches_the_python_onnxruntime_reference_on_a_real_image() {
         .unwrap();
         assert_eq!(
             features,
-            other.features(&dense, input.original_size, &DetectOptions::default()),
+            other
+                .features(&dense, input.original_size, &DetectOptions::default())
+                .unwrap(),
             "{threads} thread(s)"
         );
     }

@@ -23,6 +23,7 @@ mod embed_capi;
 mod embed_capi_localize;
 mod embed_capi_session;
 mod extract_aliked;
+mod extract_aliked;
 mod extract_reference;
 mod format_chunks;
 mod format_errors;
