@@ -146,14 +146,12 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     if let Some(images) = &args.images {
         return run_sfp(&args, images, quiet, start);
     }
-    let options = ConvertOptions {
+    #[allow(unused_mut)] // set below with `hdf5`
+    let mut options = ConvertOptions {
         database: args.database.clone(),
-        #[cfg(feature = "hdf5")]
-        features: args.features.clone(),
-        #[cfg(feature = "hdf5")]
-        feature_name: args.feature_name.clone(),
-        #[cfg(feature = "hdf5")]
-        global_features: args.global_features.clone(),
+        features: None,
+        feature_name: None,
+        global_features: None,
         short_dims: args.short_dims,
         codec: Codec::from(args.codec),
         zstd_level: args.zstd_level,
@@ -164,8 +162,13 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         strict: args.strict,
         vlad: vlad_options(&args),
         pq: args.pq.map(usize::from),
-        ..ConvertOptions::default()
     };
+    #[cfg(feature = "hdf5")]
+    {
+        options.features = args.features.clone();
+        options.feature_name = args.feature_name.clone();
+        options.global_features = args.global_features.clone();
+    }
     let bars = super::Bars::new(quiet, args.json);
     // Errors name the file at fault themselves.
     let summary = match (&args.colmap, &args.kapture) {

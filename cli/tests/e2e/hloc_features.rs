@@ -153,28 +153,50 @@ fn an_hloc_map_converts_and_localizes_every_query_from_its_features_files() {
         info.contains("feats-sift") || info.contains("sift ("),
         "{info}"
     );
-    let out = dir.path().join("poses.txt");
+    // The full map, and its short PQ slice (what a robot would carry): every query
+    // localized as precisely.
+    let slice = dir.path().join("hloc-short-pq16.sfpm");
     ok(&[
-        "localize",
-        "--map",
+        "slice",
         s(&map),
-        "--query-list",
-        s(&scene.queries),
-        "--features",
-        s(&scene.features),
+        "--level",
+        "0",
+        "--short",
+        "--pq",
+        "16",
         "-o",
-        s(&out),
+        s(&slice),
     ]);
-    let got = poses(&out);
-    assert_eq!(got.len(), scene.gt.len(), "every query localized: {got:?}");
-    for (name, gt) in &scene.gt {
-        let pose = got[name];
-        let (dt, dr) = (pose.center_distance(gt), pose.rotation_error_deg(gt));
-        assert!(
-            dt <= 0.1 * scene.spacing && dr <= 2.0,
-            "{name}: {dt} units (spacing {}), {dr}°",
-            scene.spacing
+    assert!(std::fs::metadata(&slice).unwrap().len() < std::fs::metadata(&map).unwrap().len());
+    for map in [&map, &slice] {
+        let out = dir.path().join("poses.txt");
+        ok(&[
+            "localize",
+            "--map",
+            s(map),
+            "--query-list",
+            s(&scene.queries),
+            "--features",
+            s(&scene.features),
+            "-o",
+            s(&out),
+            "--force",
+        ]);
+        let got = poses(&out);
+        assert_eq!(
+            got.len(),
+            scene.gt.len(),
+            "{map:?}: every query localized: {got:?}"
         );
+        for (name, gt) in &scene.gt {
+            let pose = got[name];
+            let (dt, dr) = (pose.center_distance(gt), pose.rotation_error_deg(gt));
+            assert!(
+                dt <= 0.1 * scene.spacing && dr <= 2.0,
+                "{map:?} {name}: {dt} units (spacing {}), {dr}°",
+                scene.spacing
+            );
+        }
     }
 }
 
