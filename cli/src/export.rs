@@ -139,24 +139,31 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         colmap = Some(s);
     }
     if let Some(dir) = &args.kapture {
-        let s = sfpmap::io::kapture::export_kapture(&map, dir, &[&args.map], args.force).map_err(
-            |e| match e {
-                sfpmap::io::kapture::KaptureError::Map(e) => super::naming(&args.map)(e),
-                e => anyhow::Error::new(e),
-            },
-        )?;
-        report.insert(
-            "kapture".into(),
-            json!({"path": dir.display().to_string(), "cameras": s.cameras, "images": s.images, "points": s.points, "observations": s.observations}),
+        #[cfg(not(feature = "colmap"))]
+        bail!(
+            "{}: kapture export needs sfpmap built with the colmap feature",
+            dir.display()
         );
-        lines.push(format!(
-            "{}: kapture with {} cameras, {} images, {} points, {} observations",
-            dir.display(),
-            s.cameras,
-            s.images,
-            s.points,
-            s.observations
-        ));
+        #[cfg(feature = "colmap")]
+        {
+            let s = sfpmap::io::kapture::export_kapture(&map, dir, &[&args.map], args.force)
+                .map_err(|e| match e {
+                    sfpmap::io::kapture::KaptureError::Map(e) => super::naming(&args.map)(e),
+                    e => anyhow::Error::new(e),
+                })?;
+            report.insert(
+                "kapture".into(),
+                json!({"path": dir.display().to_string(), "cameras": s.cameras, "images": s.images, "points": s.points, "observations": s.observations}),
+            );
+            lines.push(format!(
+                "{}: kapture with {} cameras, {} images, {} points, {} observations",
+                dir.display(),
+                s.cameras,
+                s.images,
+                s.points,
+                s.observations
+            ));
+        }
     }
     for (path, text, key) in [
         (&args.tum, poses::images_tum as fn(&Map<'_>) -> _, "tum"),

@@ -37,7 +37,10 @@ pub use error::{Error, SectionRef};
 pub use layout::{
     Codec, Dtype, SectionKind, MAGIC, MAX_DESCRIPTOR_DIM, VERSION_MAJOR, VERSION_MINOR,
 };
-pub(crate) use metadata::{descriptor_names_feature, UNNAMED_FEATURE_PREFIX};
+#[cfg(feature = "localize")]
+pub(crate) use metadata::descriptor_names_feature;
+#[cfg(feature = "colmap")]
+pub(crate) use metadata::UNNAMED_FEATURE_PREFIX;
 pub use metadata::{
     CameraInfo, LevelInfo, Metadata, PositionGrid, Provenance, Retrieval, SourceFile,
     DEFAULT_RETRIEVAL_TOP_K,

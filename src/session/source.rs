@@ -218,7 +218,7 @@ impl QueryReader {
         let _ = (tracked, camera);
         let missing = |what: &str| Err(format!("no features for {name:?} ({what})"));
         let map_name = &self.fit.map_name;
-        let features = match &mut self.source {
+        let features: Option<QueryFeatures> = match &mut self.source {
             Source::Given => {
                 return Err(SessionError::NoSource(format!(
                     "{}: query {name:?}: this session's features are handed in, not read by name",

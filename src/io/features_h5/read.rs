@@ -7,6 +7,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 /// One image's local features as the file holds them, in sfpmap's conventions.
+#[cfg(any(feature = "colmap", feature = "localize"))]
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) struct LocalFeatures {
     /// Keypoints in COLMAP's convention (the file's + 0.5).
@@ -207,6 +208,7 @@ impl H5Features {
     /// `None` if either is missing. Refused, naming the image and dataset: keypoints that
     /// are not `N × 2`, descriptors that are not `D × N` (`N × D` is named as a
     /// transposition), NaN or infinite values.
+    #[cfg(any(feature = "colmap", feature = "localize"))]
     pub(crate) fn local(
         &self,
         name: &str,
@@ -275,6 +277,7 @@ impl H5Features {
 
     /// Image `name`'s per-keypoint `scales` (hloc's DoG stores them), if the group has them;
     /// `keypoints` of them, finite and positive, or an error naming the dataset.
+    #[cfg(feature = "colmap")]
     pub(crate) fn scales(
         &self,
         name: &str,
