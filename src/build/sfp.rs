@@ -14,10 +14,18 @@
 //! normalised, concatenated, normalised), so `short` (the first `C_i` dims) is the level's own
 //! feature; descriptors stay in the extractor's basis (identity projection, no
 //! `level_projection` section), so query descriptors from [`Extractor`] match them directly.
+//!
+//! A model with a descriptor head (`sfp.descriptor_head = sddh`, ALIKED-N16) describes each
+//! image's observations in one run of its head and has one level and no global descriptor:
+//! every described point is kept (unless `score_threshold` is given), the level is stored in
+//! its uncentred PCA basis (`level_projection`, as SIFT maps; `short` = the leading quarter)
+//! and retrieval is the VLAD of those leading dimensions.
 
+use super::basis::Basis;
 use super::geometry::{map_index, Geometry};
 use super::{read_model_with_sources, ConvertError, ConvertSummary, LevelSummary};
 use crate::colmap::Reconstruction;
+use crate::extract::contract::DescriptorHead;
 use crate::extract::{
     contract, image, ExtractError, Extractor, ExtractorOptions, GlobalSize, ModelInfo,
     GLOBAL_MAX_SIDE,
@@ -62,6 +70,13 @@ pub struct SfpMapOptions {
 
 /// The level whose descriptors SFP maps' VLAD aggregates, when the map has it.
 const VLAD_LEVEL: u16 = 2;
+
+/// `short` of a descriptor head's level: this fraction of its dimensions (SIFT maps' rule).
+const HEAD_SHORT_FRACTION: usize = 4;
+
+/// The level rule of a model with a descriptor head (ALIKED: one level, no levels to choose
+/// between), as recorded in the level's metadata.
+const ONE_LEVEL_RULE: &str = "one level: every point with an observation whose mean score (bilinear at its observations) is >= score_threshold (0 unless asked)";
 
 impl SfpMapOptions {
     /// The defaults for the images under `images`: the embedded model, the global descriptor
@@ -191,9 +206,15 @@ fn convert_images_of(
     let mut extractor = Extractor::new(&options.extractor, reporter)?;
     let contract = extractor.contract().clone();
     let levels = contract.levels();
-    let threshold = options
-        .score_threshold
-        .unwrap_or(contract.default_threshold);
+    // A descriptor head's model (ALIKED) has one level and a keypoint score that is no map
+    // compression rule (its peaks are sharp; a COLMAP point's observations are not its
+    // peaks): every described point is kept unless a threshold is asked for.
+    let head = contract.descriptor_head == DescriptorHead::Sddh;
+    let threshold = options.score_threshold.unwrap_or(if head {
+        0.0
+    } else {
+        contract.default_threshold
+    });
     let n_points = model.points3d().len();
     let mut offsets = Vec::with_capacity(levels);
     let mut width = 0;
@@ -211,8 +232,11 @@ fn convert_images_of(
     };
     let mut global = vec![0.0f32; model.images().len() * contract.global_dim];
     // As the map records it: a `resize_max` input is already no larger than that side.
-    let global_size =
-        GlobalSize::from_max_side(options.global_max_side).effective(options.resize_max);
+    let global_size = if contract.global_dim == 0 {
+        GlobalSize::Skip
+    } else {
+        GlobalSize::from_max_side(options.global_max_side).effective(options.resize_max)
+    };
     let mut ms = Vec::new();
     let mut image_bytes = 0;
     let mut buf = Vec::with_capacity(width);
@@ -265,12 +289,32 @@ fn convert_images_of(
                 ));
             }
         }
-        for p in &image.points2d {
-            let Some(point) = p.point3d_id.and_then(|id| model.point3d_index(id)) else {
-                continue;
-            };
-            let [x, y] =
-                dense.input_pixel([p.xy[0] as f32 * to_file[0], p.xy[1] as f32 * to_file[1]]);
+        let observed: Vec<(usize, [f32; 2])> = image
+            .points2d
+            .iter()
+            .filter_map(|p| {
+                let point = p.point3d_id.and_then(|id| model.point3d_index(id))?;
+                let xy = [p.xy[0] as f32 * to_file[0], p.xy[1] as f32 * to_file[1]];
+                Some((point, dense.input_pixel(xy)))
+            })
+            .collect();
+        if head {
+            // The head describes the image's observations in one run of its graph.
+            let at: Vec<[f32; 2]> = observed.iter().map(|o| o.1).collect();
+            let described = extractor
+                .describe(&dense, &at)
+                .map_err(|e| e.on_image(path))?;
+            let level = &dense.levels[0];
+            for (&(point, [x, y]), d) in observed.iter().zip(described.chunks_exact(width)) {
+                let row = &mut tracks.features[point * width..(point + 1) * width];
+                for (s, v) in row.iter_mut().zip(d) {
+                    *s += v;
+                }
+                tracks.scores[point] += level.score_at(x, y);
+                tracks.counts[point] += 1;
+            }
+        }
+        for &(point, [x, y]) in observed.iter().filter(|_| !head) {
             let row = &mut tracks.features[point * tracks.width..(point + 1) * tracks.width];
             for (j, level) in dense.levels.iter().enumerate() {
                 buf.clear();
@@ -304,7 +348,9 @@ fn convert_images_of(
 
     let model_info = extractor.model().clone();
     let mut metadata = Metadata {
-        global_max_side: global_size.max_side(),
+        global_max_side: (contract.global_dim > 0)
+            .then(|| global_size.max_side())
+            .flatten(),
         ..Metadata::default()
     };
     metadata.provenance.model = Some(SourceFile {
@@ -331,7 +377,9 @@ fn convert_images_of(
     });
     let codec = (options.codec, options.zstd_level);
     let mut writer = super::map_writer(metadata, sources, parameters, codec, &geometry)?;
-    writer.set_image_global(contract.global_dim, &global)?;
+    if contract.global_dim > 0 {
+        writer.set_image_global(contract.global_dim, &global)?;
+    }
 
     reporter.start("levels", Some(levels as u64));
     let mut built = Vec::new();
@@ -341,7 +389,7 @@ fn convert_images_of(
             reporter.advance(1);
             continue;
         }
-        let (dim_short, dim_full) = (contract.dims[j], contract.full_dims[j]);
+        let (mut dim_short, dim_full) = (contract.dims[j], contract.full_dims[j]);
         let mut descriptors = Vec::with_capacity(members.len() * dim_full);
         let mut energy_short = 0.0f64;
         for &p in &members {
@@ -358,9 +406,26 @@ fn convert_images_of(
                 .map(|v| f64::from(v * v))
                 .sum::<f64>();
         }
+        let mut variance_short = energy_short / members.len() as f64;
+        // A descriptor head has no short head: the level is stored in its uncentred PCA basis
+        // (as SIFT maps are, `basis.rs`), so `short` is the leading quarter of the energy-
+        // ordered dimensions and a query's descriptors are projected on `level_projection`.
+        let basis = head.then(|| {
+            let basis = Basis::fit(&descriptors, dim_full);
+            let mut projected = vec![0.0; descriptors.len()];
+            for (src, dst) in descriptors
+                .chunks_exact(dim_full)
+                .zip(projected.chunks_exact_mut(dim_full))
+            {
+                basis.project(src, dst);
+            }
+            descriptors = projected;
+            dim_short = (dim_full / HEAD_SHORT_FRACTION).max(1);
+            variance_short = basis.energy_kept(dim_short);
+            basis
+        });
         let points: Vec<u32> = members.iter().map(|&p| map_index[p]).collect();
         let scores: Vec<f32> = members.iter().map(|&p| mean_score(p, j)).collect();
-        let variance_short = energy_short / members.len() as f64;
         let stride = contract.strides[j];
         let mut info = LevelInfo {
             level: contract.level_ids[j],
@@ -372,28 +437,37 @@ fn convert_images_of(
             extra: Default::default(),
         };
         let mean = scores.iter().map(|&s| f64::from(s)).sum::<f64>() / scores.len() as f64;
-        info.extra.insert("assignment".into(), json!(LEVEL_RULE));
+        let rule = if head { ONE_LEVEL_RULE } else { LEVEL_RULE };
+        info.extra.insert("assignment".into(), json!(rule));
         info.extra
             .insert("score_threshold".into(), json!(threshold));
         info.extra.insert("mean_score".into(), json!(mean));
-        info.extra.insert(
-            "basis".into(),
-            json!("identity (the extractor's own; no level_projection)"),
-        );
-        info.extra.insert(
-            "full_layout".into(),
-            json!("levels i.. features, each L2-normalised, concatenated, L2-normalised; short = level i's part"),
-        );
+        if head {
+            info.extra.insert("basis".into(), json!("uncentred pca"));
+            info.extra.insert(
+                "full_layout".into(),
+                json!("the descriptor head's output (normalised mean over the track), in the level's PCA basis; short = the leading dimensions"),
+            );
+        } else {
+            info.extra.insert(
+                "basis".into(),
+                json!("identity (the extractor's own; no level_projection)"),
+            );
+            info.extra.insert(
+                "full_layout".into(),
+                json!("levels i.. features, each L2-normalised, concatenated, L2-normalised; short = level i's part"),
+            );
+        }
         info.extra
             .insert("contract".into(), json!(contract::CONTRACT));
         info.extra
             .insert("variance_short".into(), json!(variance_short));
-        built.push((info, points, descriptors, variance_short));
+        built.push((info, points, descriptors, variance_short, basis));
         reporter.advance(1);
     }
     reporter.finish();
     let mut summaries = Vec::new();
-    for (info, points, descriptors, variance_short) in &built {
+    for (info, points, descriptors, variance_short, basis) in &built {
         summaries.push(LevelSummary {
             level: info.level,
             points: points.len(),
@@ -408,6 +482,9 @@ fn convert_images_of(
             Some(Descriptors::F32(descriptors)),
             true,
         )?;
+        if let Some(basis) = basis {
+            writer.set_level_projection(info.level, basis.dim, basis.rows.clone())?;
+        }
     }
     // Retrieval over level 2's descriptors (the level a `level 2, short` slice keeps), or the
     // deepest level without one; the network's global descriptor stays the default.
@@ -416,7 +493,7 @@ fn convert_images_of(
         .find(|b| b.0.level == VLAD_LEVEL)
         .or(built.last())
         .map(
-            |(info, points, descriptors, _)| -> Result<Option<super::StoredVlad>, ConvertError> {
+            |(info, points, descriptors, _, _)| -> Result<Option<super::StoredVlad>, ConvertError> {
                 let (clusters, dims) = options.vlad.shape(geometry.names.len());
                 let dims = dims.min(info.dim_short as usize);
                 if clusters == 0 || dims == 0 {
@@ -443,8 +520,14 @@ fn convert_images_of(
         )
         .transpose()?
         .flatten();
-    // The extractor's global descriptor, trained for retrieval, stays the default.
-    writer.metadata_mut().retrieval = Some(crate::format::Retrieval::Global.name().to_string());
+    // The extractor's global descriptor, trained for retrieval, stays the default; a model
+    // without one (ALIKED) ranks by the VLAD of its level's leading PCA dimensions.
+    let retrieval = if contract.global_dim > 0 {
+        Some(crate::format::Retrieval::Global)
+    } else {
+        vlad.map(|_| crate::format::Retrieval::Vlad)
+    };
+    writer.metadata_mut().retrieval = retrieval.map(|r| r.name().to_string());
     let pq = match options.pq {
         Some(m) => super::pq::quantise_all(&mut writer, m)?,
         None => Vec::new(),
