@@ -4,6 +4,9 @@
 //! `localize --sequence` extracts one) and with the global descriptor. The runtime is found
 //! or fetched as `sfpmap setup` does. Quoted in README as the median ms per image.
 //!
+//! The built-in `aliked-n16` runs on the same image beside it (its own group: the network,
+//! DKD detection with the SDDH head's descriptors, the total; it has no global descriptor).
+//!
 //! `cargo bench --bench extract`; `SFPMAP_BENCH_MODEL=path.onnx` times another model of the
 //! same contract (issue 17's candidates), `SFPMAP_BENCH_THREADS=N` another thread count.
 
@@ -115,5 +118,43 @@ fn bench(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench);
+/// ALIKED-N16 (`models/aliked-n16.md`) on the same 640×480 JPEG, at hloc's defaults.
+fn aliked(c: &mut Criterion) {
+    let threads = std::env::var("SFPMAP_BENCH_THREADS").map_or(2, |t| t.parse().unwrap_or(2));
+    let mut extractor = Extractor::builtin("aliked-n16", threads, &sfpmap::progress::Silent)
+        .expect("aliked-n16 is built in")
+        .expect("ONNX Runtime found or fetched");
+    let weights = extractor.contract().gray_weights;
+    let jpeg = jpeg();
+    let path = std::path::Path::new("640x480.jpg");
+    let decode = |bytes: &[u8]| image::decode(bytes, path, weights, None).unwrap();
+    let input = decode(&jpeg);
+    let options = DetectOptions::default();
+    let mut group = c.benchmark_group(format!(
+        "extract aliked-n16 (embedded), {threads} thread(s)"
+    ));
+    group.sample_size(10);
+    group.bench_function("640x480_network", |b| {
+        b.iter(|| black_box(extractor.run(black_box(&input)).unwrap()))
+    });
+    let dense = extractor.run(&input).unwrap();
+    group.bench_function("640x480_keypoints_descriptors", |b| {
+        b.iter(|| {
+            black_box(
+                extractor
+                    .features(black_box(&dense), [640, 480], &options)
+                    .unwrap(),
+            )
+        })
+    });
+    group.bench_function("640x480_total", |b| {
+        b.iter(|| {
+            let input = decode(black_box(&jpeg));
+            black_box(extractor.extract(&input, &options).unwrap())
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench, aliked);
 criterion_main!(benches);

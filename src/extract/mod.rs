@@ -77,7 +77,7 @@ pub(crate) fn builtin_model(name: &str) -> Option<&'static [u8]> {
         .map(|(_, bytes)| *bytes)
 }
 
-/// The built-in models' names, for messages: "sfp-v2, sfp-v1, sfp-v2s".
+/// The built-in models' names, for messages: "sfp-v2, sfp-v1, sfp-v2s, aliked-n16".
 #[cfg(feature = "localize")]
 pub(crate) fn builtin_model_names() -> String {
     BUILTIN_MODELS
