@@ -2,7 +2,7 @@
 
 use crate::errors::{chain, extract_error, InputError};
 use crate::localize::Features;
-use numpy::{PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use numpy::{IntoPyArray, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use sfpmap::extract::{DetectOptions, Extractor as Inner, ExtractorOptions};
 use sfpmap::io::features_h5::H5Features;
@@ -177,9 +177,10 @@ impl Extractor {
 #[pyclass(frozen, module = "sfpmap._sfpmap", name = "FeaturesFile")]
 pub(crate) struct FeaturesFile {
     inner: H5Features,
-    /// The model the file records (`sfp.model_name`, `sfp.model_xxh3`: `sfpmap extract`'s
-    /// files), which its features carry: a localizer refuses them for a map of another model,
-    /// as `sfpmap localize --features` refuses the file. `None` for an hloc file.
+    /// The feature the file names (`sfp.model_name` and `sfp.model_xxh3`: `sfpmap extract`'s
+    /// files; else the conf of hloc's `feats-<conf>.h5` name), which its features carry: a
+    /// localizer refuses them for a map of another feature, as `sfpmap localize --features`
+    /// refuses the file. `None` for a file that names none.
     model: Option<FeatureModel>,
 }
 
@@ -190,7 +191,7 @@ impl FeaturesFile {
         let (inner, model) = py
             .detach(|| {
                 let inner = H5Features::open(&path)?;
-                let model = match inner.root_string("sfp.model_name")? {
+                let model = match inner.feature_name()? {
                     Some(name) => Some(FeatureModel {
                         name,
                         xxh3: inner.root_string("sfp.model_xxh3")?,
@@ -212,6 +213,27 @@ impl FeaturesFile {
             f.model = self.model.clone();
             Features::new(f)
         }))
+    }
+
+    /// The feature the file names (its `sfp.model_name`, else the conf of hloc's
+    /// `feats-<conf>.h5` name), or `None`: what its features' `model` is.
+    #[getter]
+    fn feature(&self) -> Option<String> {
+        self.model.as_ref().map(|m| m.name.clone())
+    }
+
+    /// Image `name`'s `global_descriptor` (hloc's `global-feats.h5`: NetVLAD's or any
+    /// other's), float32, or `None` if the file has none for it; `Localizer.localize`'s
+    /// `global_descriptor`, as `sfpmap localize --global-features` reads it.
+    fn global_descriptor<'py>(
+        &self,
+        py: Python<'py>,
+        name: &str,
+    ) -> PyResult<Option<Bound<'py, PyAny>>> {
+        let g = py
+            .detach(|| self.inner.global(name))
+            .map_err(|e| InputError::new_err(chain(&e)))?;
+        Ok(g.map(|g| g.into_pyarray(py).into_any()))
     }
 }
 
