@@ -56,10 +56,11 @@ pub struct Args {
     #[cfg(feature = "hdf5")]
     #[arg(long, conflicts_with = "database")]
     pub features: Option<PathBuf>,
-    /// With --features: the feature's name the map records, which query features must match
-    /// (default: the file's sfp.model_name, or the conf of hloc's feats-<conf>.h5).
+    /// With --features or --kapture: the feature's name the map records, which query
+    /// features must match (default: the file's sfp.model_name, or the conf of hloc's
+    /// feats-<conf>.h5, or kapture's descriptors type).
     #[cfg(feature = "hdf5")]
-    #[arg(long, requires = "features")]
+    #[arg(long)]
     pub feature_name: Option<String>,
     /// An hloc global-feats.h5 (global_descriptor per image name): every map image's global
     /// descriptor, stored for retrieval and preferred to VLAD.
@@ -165,6 +166,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     };
     #[cfg(feature = "hdf5")]
     {
+        if args.feature_name.is_some() && args.features.is_none() && args.kapture.is_none() {
+            anyhow::bail!("--feature-name names the features of --features or --kapture");
+        }
         options.features = args.features.clone();
         options.feature_name = args.feature_name.clone();
         options.global_features = args.global_features.clone();
@@ -282,7 +286,29 @@ fn check_output(args: &Args) -> anyhow::Result<()> {
     if in_images {
         inputs.push(&args.output);
     }
+    // Anything inside a kapture folder is its own (a .kpt or .desc the tables do not list):
+    // the output may not be written there.
+    if args
+        .kapture
+        .as_deref()
+        .is_some_and(|k| inside(&args.output, k))
+    {
+        inputs.push(&args.output);
+    }
     super::check_outputs(&[&args.output], &inputs, args.force)
+}
+
+/// Whether `path` (which may not exist yet) lies inside the folder `dir`, through links and
+/// `..` alike.
+fn inside(path: &std::path::Path, dir: &std::path::Path) -> bool {
+    let Ok(dir) = dir.canonicalize() else {
+        return false;
+    };
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => std::path::Path::new("."),
+    };
+    parent.canonicalize().is_ok_and(|p| p.starts_with(&dir))
 }
 
 #[cfg(feature = "onnx")]

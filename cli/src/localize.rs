@@ -297,14 +297,14 @@ fn check_images_dir(dir: &Path) -> anyhow::Result<()> {
 /// Where the queries' features come from: `--features`, `--database`, else the images of
 /// `--images` (extracted with `--model` or the map's own).
 fn query_source(args: &Args, queries: &[Query], query_list: &Path) -> anyhow::Result<QuerySource> {
-    #[cfg(feature = "onnx")]
+    #[cfg(feature = "hdf5")]
     if let Some(path) = &args.features {
         return Ok(QuerySource::FeaturesFile(path.clone()));
     }
-    #[cfg(not(feature = "onnx"))]
+    #[cfg(not(feature = "hdf5"))]
     if let Some(path) = &args.features {
         bail!(
-            "{}: reading features.h5 needs the onnx feature",
+            "{}: reading features.h5 needs the hdf5 feature",
             path.display()
         );
     }

@@ -55,7 +55,7 @@ pub(super) fn run(
     let catalog_map = Arc::new(super::super::open_map(catalog_path)?);
     let source = match (&args.database, &args.features) {
         (Some(db), _) => QuerySource::Database(db.clone()),
-        #[cfg(feature = "onnx")]
+        #[cfg(feature = "hdf5")]
         (None, Some(h5)) => QuerySource::FeaturesFile(h5.clone()),
         _ => bail!("--catalog needs the queries' features: --database queries.db or --features features.h5"),
     };

@@ -9,6 +9,26 @@ use super::ConvertError;
 use crate::colmap::{Database, DescriptorValues};
 use std::path::{Path, PathBuf};
 
+/// The most descriptor dimensions a map is built from: the per-level PCA basis is `dim²` f64
+/// and its eigendecomposition `dim³`, so a small file claiming 20,000 dimensions would cost
+/// gigabytes and hours. Local features in use stay far below (SIFT, ALIKED, DISK 128,
+/// SuperPoint 256, D2-Net 512).
+pub(crate) const MAX_DESCRIPTOR_DIM: usize = 1024;
+
+/// How far outside its image a keypoint may lie and still be taken, as a share of the longer
+/// side: real extractors' keypoints overshoot the border by a few pixels (COLMAP's SIFT on
+/// the bartoszek fixture: x = 3035.1 in a 3031-pixel-wide image), while keypoints of another
+/// resolution, or x and y swapped, miss by far more.
+const OUTSIDE_MARGIN: f64 = 0.01;
+
+/// Whether `[x, y]` (COLMAP's convention: the image spans `[0, w] × [0, h]`) lies outside an
+/// image of `size`, beyond [`OUTSIDE_MARGIN`]; NaN lies outside.
+pub(crate) fn outside_image([x, y]: [f64; 2], size: [u64; 2]) -> bool {
+    let [w, h] = size.map(|v| v as f64);
+    let margin = OUTSIDE_MARGIN * w.max(h);
+    !((-margin..=w + margin).contains(&x) && (-margin..=h + margin).contains(&y))
+}
+
 /// One model image, as a source is asked for its features.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct ModelImage<'a> {
@@ -171,11 +191,10 @@ impl FeatureSource for H5Source {
         let Some(local) = self.h5.local(image.name, &datasets, "")? else {
             return Ok(None);
         };
-        let [w, h] = image.size.map(|v| v as f64);
         if let Some(k) = local
             .keypoints
             .iter()
-            .position(|&[x, y]| !((0.0..=w).contains(&x) && (0.0..=h).contains(&y)))
+            .position(|&xy| outside_image(xy, image.size))
         {
             // Named as the file holds it (hloc's convention), with its dataset.
             let [x, y] = local.keypoints[k].map(|v| v - 0.5);

@@ -74,11 +74,10 @@ impl FeatureSource for KaptureSource<'_> {
             }
             .into());
         }
-        let [w, h] = image.size.map(|v| v as f32);
         if let Some(k) = (0..keypoints.len()).find(|&i| {
-            keypoints
-                .xy(i)
-                .is_some_and(|[x, y]| !((0.0..=w).contains(&x) && (0.0..=h).contains(&y)))
+            keypoints.xy(i).is_some_and(|[x, y]| {
+                super::features::outside_image([f64::from(x), f64::from(y)], image.size)
+            })
         }) {
             return Err(ConvertError::KeypointOutsideImage {
                 features: self.kapture.keypoints_path(image.name).unwrap_or_default(),

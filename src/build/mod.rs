@@ -1,8 +1,9 @@
 //! Map building: everything that turns a COLMAP model into a map.
 //!
-//! - [`convert`] (`colmap`): a SIFT map from a model and its `database.db` (descriptor
-//!   aggregation per track, scale levels, a per-level PCA basis) — `sfpmap convert --colmap`;
-//!   [`convert_model`] from a model in memory.
+//! - [`convert`] (`colmap`): a map of any local feature from a model and its `database.db`
+//!   (SIFT, or a learned feature's typed rows) or hloc `features.h5` (descriptor aggregation
+//!   per track, scale levels, a per-level PCA basis) — `sfpmap convert --colmap`;
+//!   [`convert_model`] from a model in memory; [`convert_kapture`] from a kapture folder.
 //! - [`convert_with_images`] (`colmap` + `onnx`): an SFP map from a model's images through the
 //!   extractor — `sfpmap convert --images`; [`convert_model_with_images`] from a model in
 //!   memory.

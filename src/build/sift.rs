@@ -1,16 +1,19 @@
-//! SIFT maps: a COLMAP model (and optionally its `database.db`) into an sfpmap map
-//! (`sfpmap convert --colmap`).
+//! Maps of any local feature: a COLMAP model and its features (a `database.db` of SIFT or a
+//! learned feature's typed rows, an hloc `features.h5`, a kapture folder: one
+//! [`FeatureSource`] each) into an sfpmap map (`sfpmap convert --colmap`, `--kapture`). SIFT
+//! maps were the first; the name stayed.
 //!
-//! Each 3D point's descriptor aggregates its track's SIFT descriptors (normalised mean or
-//! medoid). Points are assigned to 3 levels by the median keypoint scale of their
-//! observations (tertiles; level 0 = smallest scale = finest, level 2 = largest = deepest,
-//! matching the SFP extractor's convention that deeper levels have larger ids). Each level
-//! stores its descriptors in its own uncentred-PCA basis so a prefix (`short`) is meaningful.
+//! Each 3D point's descriptor aggregates its track's descriptors (normalised mean or
+//! medoid). Where every keypoint has a scale, points are assigned to 3 levels by the median
+//! keypoint scale of their observations (tertiles; level 0 = smallest scale = finest, level 2
+//! = largest = deepest, matching the SFP extractor's convention that deeper levels have larger
+//! ids); otherwise all go to level 0. Each level stores its descriptors in its own
+//! uncentred-PCA basis so a prefix (`short`) is meaningful.
 
 use super::basis::Basis;
 #[cfg(feature = "hdf5")]
 use super::features::H5Source;
-use super::features::{DatabaseSource, FeatureSource, ModelImage};
+use super::features::{DatabaseSource, FeatureSource, ModelImage, MAX_DESCRIPTOR_DIM};
 use super::geometry::Geometry;
 use super::{read_geometry_with_sources, source_file, ConvertError, ConvertSummary, LevelSummary};
 use crate::colmap::Reconstruction;
@@ -158,7 +161,6 @@ pub fn convert_model(
 /// [`convert_model`] with the features of `source` (a kapture folder, …): `model_desc` is
 /// what provenance records as the model; `options.database` and `options.features` are not
 /// read.
-#[allow(dead_code)] // kapture's convert (in progress) is its caller
 pub(crate) fn convert_with_source(
     model: &Reconstruction,
     source: &mut dyn FeatureSource,
@@ -374,6 +376,17 @@ fn gather(
             reporter.advance(1);
             continue;
         };
+        if features.dim == 0 || features.dim > MAX_DESCRIPTOR_DIM {
+            return Err(ConvertError::Input(crate::io::InputError {
+                path,
+                line: None,
+                message: format!(
+                    "image {}: descriptors of {} dimensions (1 to {MAX_DESCRIPTOR_DIM} are taken)",
+                    crate::escape::quoted_name(name),
+                    features.dim
+                ),
+            }));
+        }
         if obs.dim == 0 {
             obs.dim = features.dim;
             if options.aggregate == Aggregate::Mean {
@@ -476,11 +489,16 @@ fn read_global(
         let g = h5
             .global(name)?
             .ok_or_else(|| h5.err(format!("image {shown}: no global_descriptor")))?;
+        if g.is_empty() {
+            return Err(h5
+                .err(format!("{name}/global_descriptor: no values"))
+                .into());
+        }
         if dim == 0 {
             dim = g.len();
             out.reserve(dim * geometry.names.len());
         }
-        if g.len() != dim || dim == 0 {
+        if g.len() != dim {
             return Err(h5
                 .err(format!(
                     "{name}/global_descriptor: {} values, the images before it have {dim}",

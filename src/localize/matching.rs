@@ -32,7 +32,9 @@ impl Default for MatchOptions {
 /// separate neighbours less. On the shared scenes (2026-12-04, sfp-v1 and sfp-v2s, full and
 /// level-2 short maps) 0.95 localized Sacre-Coeur's level-2 slices 2/2 instead of 1/2 and 0/2
 /// (6–7 inliers of the 8 needed at 0.9), and left South Building and KITTI 06 at 100 % with
-/// median errors equal or lower.
+/// median errors equal or lower. Learned features from files (`aliked-n16`, `rootsift`,
+/// `features-<dim>`, …) get 0.95 too: on hloc-style ALIKED South Building
+/// (`benches/hloc_south_building.py`) it localized 26/26 at the reference's errors.
 pub fn default_ratio(descriptor: &str) -> f32 {
     if is_sfp_descriptor(descriptor) {
         0.95
@@ -41,8 +43,10 @@ pub fn default_ratio(descriptor: &str) -> f32 {
     }
 }
 
-/// Whether a map's descriptor kind names an SFP model (its `sfp.model_name`, whatever it
-/// is): not `""` (geometry only), not `sift`, not a COLMAP database's `colmap-<dim>`.
+/// Whether a map's descriptor kind is a learned one (an SFP model's `sfp.model_name`, whatever
+/// it is, or a learned feature from a file): not `""` (geometry only), not `sift`, not a COLMAP
+/// database's `colmap-<dim>`. Whether an extractor makes it is the session's question
+/// (`Fit::check_extractable`, which also asks where the map's descriptors came from).
 pub fn is_sfp_descriptor(descriptor: &str) -> bool {
     !(descriptor.is_empty() || descriptor == "sift" || descriptor.starts_with("colmap-"))
 }

@@ -152,7 +152,11 @@ impl SessionBuilder {
         )?;
         #[cfg(feature = "hdf5")]
         if let Some(path) = global_features {
-            reader.set_global_features(crate::io::features_h5::H5Features::open(&path)?);
+            let map_dim = match map.image_global() {
+                Ok(Some((_, dim))) => Some(dim),
+                _ => None,
+            };
+            reader.set_global_features(crate::io::features_h5::H5Features::open(&path)?, map_dim);
         }
         let prepared =
             Prepared::try_new(map, |map| Localizer::new(map, options)).map_err(|source| {

@@ -26,7 +26,7 @@ pub enum QuerySource {
     Database(PathBuf),
     /// An hloc-style features.h5 (`sfpmap extract`'s, or hloc's), by image name; one that
     /// records its model (`sfp.model_name`, `sfp.model_xxh3`) must be the map's.
-    #[cfg(feature = "onnx")]
+    #[cfg(feature = "hdf5")]
     FeaturesFile(PathBuf),
     /// Extracted with an SFP model from the images of `folder`, by name (joined to the
     /// folder as given: a caller passing names it did not choose checks them; `None`: images are
@@ -53,7 +53,7 @@ pub(super) enum Source {
         db: crate::io::queries::DatabaseFeatures,
         path: PathBuf,
     },
-    #[cfg(feature = "onnx")]
+    #[cfg(feature = "hdf5")]
     FeaturesFile(crate::io::features_h5::H5Features),
     #[cfg(feature = "onnx")]
     Images {
@@ -72,9 +72,10 @@ pub(super) enum Source {
 /// read once and localized in several places).
 pub(crate) struct QueryReader {
     source: Source,
-    /// The queries' global descriptors from their own file (hloc's `global-feats.h5`).
+    /// The queries' global descriptors from their own file (hloc's `global-feats.h5`), and
+    /// the map's global descriptors' dimension they must have.
     #[cfg(feature = "hdf5")]
-    global: Option<crate::io::features_h5::H5Features>,
+    global: Option<(crate::io::features_h5::H5Features, Option<usize>)>,
     fit: Fit,
     /// Queries extracted without their global descriptor (tracked frames).
     global_deferred: usize,
@@ -119,10 +120,15 @@ impl QueryReader {
         })
     }
 
-    /// Every query's global descriptor comes from `h5` (by name; none if it has none).
+    /// Every query's global descriptor comes from `h5` (by name), of `map_dim` dimensions
+    /// (the map's; `None`: the map stores none).
     #[cfg(feature = "hdf5")]
-    pub(crate) fn set_global_features(&mut self, h5: crate::io::features_h5::H5Features) {
-        self.global = Some(h5);
+    pub(crate) fn set_global_features(
+        &mut self,
+        h5: crate::io::features_h5::H5Features,
+        map_dim: Option<usize>,
+    ) {
+        self.global = Some((h5, map_dim));
     }
 
     /// The query `name`'s features, or why it has none (missing, an image that does not
@@ -163,7 +169,7 @@ impl Source {
                 })?;
                 Source::Database { db, path }
             }
-            #[cfg(feature = "onnx")]
+            #[cfg(feature = "hdf5")]
             QuerySource::FeaturesFile(path) => {
                 let h5 = crate::io::features_h5::H5Features::open(&path)?;
                 // A file that names its feature (`sfp.model_name`, hloc's `feats-<conf>.h5`)
@@ -175,6 +181,7 @@ impl Source {
                     };
                     fit.check_model(&model, || path.display().to_string())?;
                 }
+                #[cfg(feature = "onnx")]
                 if let Some(map) = map {
                     warn_global_size(&h5, &path, map, reporter);
                 }
@@ -232,7 +239,7 @@ impl QueryReader {
                     source,
                 })?
             }
-            #[cfg(feature = "onnx")]
+            #[cfg(feature = "hdf5")]
             Source::FeaturesFile(h5) => h5.features(name)?,
             #[cfg(feature = "onnx")]
             Source::Images {
@@ -285,10 +292,34 @@ impl QueryReader {
         };
         #[cfg(feature = "hdf5")]
         let features = match (features, &self.global) {
-            (Some(mut f), Some(global)) => {
-                f.global = global.global(name)?;
-                Some(f)
-            }
+            // As convert refuses a map image without one: a query retrieving by a global
+            // descriptor it does not have would rank by nothing.
+            (Some(mut f), Some((global, map_dim))) => match global.global(name)? {
+                // Another network's (or none in the map): retrieval would fall back in silence.
+                Some(g) if map_dim.is_some_and(|d| d != g.len()) || map_dim.is_none() => {
+                    return Err(global
+                        .err(format!(
+                            "{name}/global_descriptor: {} values, but the map {} {}",
+                            g.len(),
+                            self.fit.map_name,
+                            match map_dim {
+                                Some(d) => format!("stores global descriptors of {d}"),
+                                None => "stores no global descriptors".to_string(),
+                            }
+                        ))
+                        .into())
+                }
+                Some(g) => {
+                    f.global = Some(g);
+                    Some(f)
+                }
+                None => {
+                    return Ok(Err(format!(
+                        "no global_descriptor for it in {}",
+                        global.path().display()
+                    )))
+                }
+            },
             (f, _) => f,
         };
         Ok(match features {

@@ -32,6 +32,10 @@ with h5py.File(path, "w") as f:
         d = np.stack([descriptor(j % points, i) for j in range(n)], 1)  # D x N
         if mutation == "outside" and i == 2:
             xy[3, 0] = 700.0
+        if mutation == "edge" and i == 2:
+            xy[3, 0] = 643.0  # past the border by less than 1 % of the image: real extractors do
+        if mutation == "dim0" and i == 1:
+            d = d[:0]
         if mutation == "nan" and i == 2:
             d[5, 4] = np.nan
         if mutation == "dim" and i == 3:
@@ -46,7 +50,7 @@ with h5py.File(path, "w") as f:
         if mutation == "scales":
             g["scales"] = np.array([j % points + 1.0 for j in range(n)], np.float32)
         if mutation.startswith("global") and not (mutation == "global-missing" and i == 3):
-            g["global_descriptor"] = np.full(16, float(i), np.float32)
+            g["global_descriptor"] = np.full(8 if mutation == "global8" else 16, float(i), np.float32)
 "#;
 
 struct Files {
@@ -254,6 +258,10 @@ fn a_malformed_features_file_is_named_with_the_image_and_dataset() {
             "img2.jpg/descriptors: keypoint 4: a value is NaN",
         ),
         (
+            "dim0",
+            "image \"img1.jpg\": descriptors of 0 dimensions (1 to 1024 are taken)",
+        ),
+        (
             "transposed",
             "img1.jpg/descriptors: 10 x 64 is keypoints x dimensions; hloc stores descriptors transposed, dimensions x keypoints (64 x 10)",
         ),
@@ -279,6 +287,15 @@ fn a_malformed_features_file_is_named_with_the_image_and_dataset() {
         assert_eq!(std::fs::read(&h5).unwrap(), before, "{mutation}: modified");
         assert!(!out.exists(), "{mutation}: a map was written");
     }
+    // Past the border by less than 1 % of the image, as real extractors' keypoints are.
+    let edge = f.h5("feats-edge.h5", "edge");
+    convert(
+        &f.model,
+        &features(&edge),
+        &f.dir.path().join("edge.sfpm"),
+        &Silent,
+    )
+    .unwrap();
     // A database and a features file at once: which one would be a guess.
     let h5 = f.h5("feats-x.h5", "plain");
     let both = ConvertOptions {
@@ -318,6 +335,30 @@ fn a_query_features_file_of_another_feature_is_refused_naming_both() {
     );
     session(&h5).unwrap();
     session(&f.h5("queries.h5", "plain")).unwrap();
+    // Query global descriptors of another size than the map's (here: it stores none) are an
+    // error naming the file and both, not a retrieval that falls back in silence.
+    let global = f.h5("global-feats-8.h5", "global8");
+    let with_global = Session::builder(map.clone(), "m.sfpm")
+        .source(QuerySource::FeaturesFile(h5.clone()))
+        .global_features(Some(global.clone()))
+        .build(&Silent)
+        .unwrap();
+    let camera = sfpmap::geometry::Camera::new(
+        sfpmap::geometry::CameraModel::SimplePinhole,
+        640,
+        480,
+        vec![500.0, 320.0, 240.0],
+    )
+    .unwrap();
+    let e = with_global.localize("img1.jpg", &camera).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        format!(
+            "{}: img1.jpg/global_descriptor: 8 values, but the map m.sfpm stores no global \
+             descriptors",
+            global.display()
+        )
+    );
 }
 
 /// COLMAP 4's typed float descriptors, as pycolmap 4.2.1 writes them, make a map of that

@@ -148,11 +148,9 @@ fn an_hloc_map_converts_and_localizes_every_query_from_its_features_files() {
         "features file modified"
     );
     assert_eq!(report["points_without_descriptors"], 0, "{report}");
-    let info = ok(&["info", s(&map)]);
-    assert!(
-        info.contains("feats-sift") || info.contains("sift ("),
-        "{info}"
-    );
+    // hloc's `sift` conf is RootSIFT: named so, never COLMAP's `sift`.
+    let info: Value = serde_json::from_str(&ok(&["info", s(&map), "--json"])).unwrap();
+    assert_eq!(info["levels"][0]["descriptor"], "rootsift", "{info}");
     // The full map, and its short PQ slice (what a robot would carry): every query
     // localized as precisely.
     let slice = dir.path().join("hloc-short-pq16.sfpm");
@@ -233,8 +231,8 @@ fn query_features_of_another_feature_are_refused_naming_both() {
     assert_eq!(
         err.trim_end(),
         format!(
-            "error: {}: features of model \"disk\", but the map {} holds \"sift\" descriptors: \
-             give query features of \"sift\"",
+            "error: {}: features of model \"disk\", but the map {} holds \"rootsift\" \
+             descriptors: give query features of \"rootsift\"",
             disk.display(),
             map.display()
         )

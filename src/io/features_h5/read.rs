@@ -94,7 +94,8 @@ impl H5Features {
 
     /// The feature the file holds, as maps record it: its `sfp.model_name` attribute
     /// (`sfpmap extract`), else the conf in hloc's file name (`feats-aliked-n16.h5` →
-    /// `aliked-n16`); `None` if neither says.
+    /// `aliked-n16`); `None` if neither says. hloc's `sift` conf describes with RootSIFT, not
+    /// COLMAP's SIFT bytes: it is `rootsift` here, so neither is taken for the other.
     pub fn feature_name(&self) -> Result<Option<String>, InputError> {
         if let Some(name) = self.root_string("sfp.model_name")? {
             return Ok(Some(name));
@@ -105,14 +106,19 @@ impl H5Features {
             .and_then(|s| s.to_str())
             .and_then(|s| s.strip_prefix(HLOC_PREFIX))
             .filter(|conf| !conf.is_empty())
-            .map(str::to_owned))
+            .map(|conf| match conf {
+                "sift" => "rootsift".to_owned(),
+                conf => conf.to_owned(),
+            }))
     }
 
+    /// An error about this file; image and dataset names in `message` are the user's and
+    /// may hold anything: control characters are escaped so the error stays one line.
     pub(crate) fn err(&self, message: String) -> InputError {
         InputError {
             path: self.path.clone(),
             line: None,
-            message,
+            message: crate::escape::escape_control_characters(&message).into_owned(),
         }
     }
 
@@ -155,8 +161,13 @@ impl H5Features {
                 ..
             }
         ) {
+            let found = match datatype {
+                Datatype::FloatingPoint { size, .. } => format!("{}-bit floats", size * 8),
+                Datatype::FixedPoint { size, .. } => format!("{}-bit integers", size * 8),
+                other => format!("{other:?}"),
+            };
             return Err(self.err(format!(
-                "{name}: values of type {datatype:?} (little-endian f16 or f32 expected)"
+                "{name}: values of {found} (little-endian f16 or f32 expected)"
             )));
         }
         // At least 2 bytes a value (f16): a shape the file cannot hold is refused before
