@@ -175,7 +175,9 @@ impl Options {
     ) -> PyResult<Options> {
         let bad = |m: &str| Err(InputError::new_err(m.to_string()));
         if features.is_some() && self.database.is_some() {
-            return bad("the argument '--features <FEATURES>' cannot be used with '--database <DATABASE>'");
+            return bad(
+                "the argument '--features <FEATURES>' cannot be used with '--database <DATABASE>'",
+            );
         }
         if self.images.is_some() && (features.is_some() || global_features.is_some()) {
             return bad("images cannot be used with features or global_features");
