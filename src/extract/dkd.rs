@@ -155,9 +155,9 @@ mod tests {
     }
 
     #[test]
-    fn detect_thresholds_caps_and_refines_symmetrically() {
+    fn detect_keeps_ties_thresholds_caps_and_refines() {
         let (h, w) = (20, 24);
-        // Two Gaussian blobs centred between pixels on x (soft-argmax lands half-way).
+        // Two Gaussian blobs, the first centred between two pixels.
         let values = map(h, w, |y, x| {
             let g = |cx: f32, cy: f32, a: f32| {
                 let d = (x as f32 - cx).powi(2) + (y as f32 - cy).powi(2);
@@ -171,13 +171,17 @@ mod tests {
             values: &values,
         };
         let peaks = detect(m, 2, 0.2, 10);
-        assert_eq!(peaks.len(), 2, "{peaks:?}");
-        assert!((peaks[0].x - 6.5).abs() < 1e-3 && (peaks[0].y - 8.0).abs() < 1e-4);
-        assert!((peaks[1].x - 16.0).abs() < 1e-4 && (peaks[1].y - 12.0).abs() < 1e-4);
-        assert!(peaks[0].score > peaks[1].score);
+        // The first blob's two middle cells tie: both are maxima (as in simple_nms), and the
+        // soft-argmax of their windows lands symmetrically about the centre.
+        assert_eq!(peaks.len(), 3, "{peaks:?}");
+        assert_eq!(peaks[0].score, peaks[1].score);
+        assert!((peaks[0].x + peaks[1].x - 13.0).abs() < 1e-4, "{peaks:?}");
+        assert!(peaks[0].x < 6.5 && (peaks[0].y - 8.0).abs() < 1e-4);
+        assert!((peaks[2].x - 16.0).abs() < 1e-4 && (peaks[2].y - 12.0).abs() < 1e-4);
+        assert!(peaks[1].score > peaks[2].score);
         assert_eq!(detect(m, 2, 0.2, 1).len(), 1);
         // Nothing above 0.95: the fallback threshold is the map's mean.
-        assert_eq!(detect(m, 2, 0.95, 10).len(), 2);
+        assert_eq!(detect(m, 2, 0.95, 10).len(), 3);
         // Border cells (within r) never count.
         let edge = map(h, w, |y, x| if (y, x) == (1, 10) { 1.0 } else { 0.0 });
         let e = ScoreMap {
