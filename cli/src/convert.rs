@@ -73,7 +73,7 @@ pub struct Args {
     #[arg(long, conflicts_with_all = ["database", "features", "global_features", "short_dims", "aggregate", "strict"])]
     pub images: Option<PathBuf>,
     /// With --images: an ONNX model of the sfp-extractor/1 contract or a built-in model's name
-    /// (sfp-v2, sfp-v1, sfp-v2s); default: the built-in sfp-v2.
+    /// (sfp-v2, sfp-v1, sfp-v2s, aliked-n16); default: the built-in sfp-v2.
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images")]
     pub model: Option<PathBuf>,

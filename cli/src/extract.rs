@@ -25,7 +25,7 @@ pub struct Args {
     #[arg(short, long)]
     pub output: PathBuf,
     /// An ONNX model of the sfp-extractor/1 contract or a built-in model's name
-    /// (sfp-v2, sfp-v1, sfp-v2s); default: the built-in sfp-v2.
+    /// (sfp-v2, sfp-v1, sfp-v2s, aliked-n16); default: the built-in sfp-v2.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// ONNX Runtime intra-op threads (capped at 4 per core, at most 256, with a warning).

@@ -109,7 +109,8 @@ pub struct Args {
     /// One camera for every query: "MODEL W H params...".
     #[arg(long)]
     pub camera: Option<String>,
-    /// COLMAP database with the queries' SIFT keypoints and descriptors (SIFT maps).
+    /// COLMAP database with the queries' keypoints and descriptors (SIFT, or a learned feature
+    /// by its descriptor type), for maps of that feature.
     #[arg(long)]
     pub database: Option<PathBuf>,
     /// hloc-style features.h5 with the queries' features (hloc's, or `sfpmap extract`'s).
@@ -122,9 +123,9 @@ pub struct Args {
     #[cfg(feature = "hdf5")]
     #[arg(long, conflicts_with = "catalog")]
     pub global_features: Option<PathBuf>,
-    /// SFP model for query extraction: a file, or a built-in model's name (sfp-v2, sfp-v1, sfp-v2s);
-    /// default: the built-in model the map was made with (another model runs as asked, with a
-    /// warning).
+    /// Model for query extraction: a file, or a built-in model's name (sfp-v2, sfp-v1, sfp-v2s,
+    /// aliked-n16); default: the built-in model the map was made with (another model runs as
+    /// asked, with a warning).
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Levels to use (repeat); default all. Coarse matching uses the deepest.

@@ -5,6 +5,7 @@ use super::super::InputError;
 use hdf5_pure::{Datatype, DatatypeByteOrder};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 
 /// One image's local features as the file holds them, in sfpmap's conventions.
 #[cfg(any(feature = "colmap", feature = "localize"))]
@@ -37,7 +38,15 @@ pub struct H5Features {
     /// Bounds every dataset's declared size before it is read (an unwritten dataset of a
     /// declared 2^31 values would otherwise be allocated as its fill value).
     file_len: u64,
+    /// Each group walked so far (by path, `""` the root): its child groups by name. Why:
+    /// hdf5-pure finds a child by listing its group, so looking up 10,000 images one by one
+    /// listed the root 10,000 times (convert was quadratic: 4,000 images 3.8 s); listed once,
+    /// every lookup is a hash probe.
+    children: Mutex<HashMap<String, Arc<Children>>>,
 }
+
+/// A group's child groups by name.
+type Children = HashMap<String, hdf5_pure::Group>;
 
 /// An image group's datasets by name.
 pub(crate) type Datasets = HashMap<String, hdf5_pure::Dataset>;
@@ -67,6 +76,7 @@ impl H5Features {
             file,
             path: path.into(),
             file_len,
+            children: Mutex::default(),
         })
     }
 
@@ -127,7 +137,7 @@ impl H5Features {
     /// whatever the number of images or levels.
     pub(crate) fn datasets(&self, name: &str) -> Result<Option<Datasets>, InputError> {
         // No such group (or a dataset of that name): the file has no features for it.
-        let Ok(group) = self.file.group(name) else {
+        let Some(group) = self.group(name)? else {
             return Ok(None);
         };
         let datasets = group
@@ -135,6 +145,47 @@ impl H5Features {
             .map_err(|e| self.err(format!("{name}: {e}")))?
             .collect();
         Ok(Some(datasets))
+    }
+
+    /// The group `name` (`a/b/c.jpg`: one component a level), through the index of the
+    /// groups walked so far; `None` if a component is not a group.
+    fn group(&self, name: &str) -> Result<Option<hdf5_pure::Group>, InputError> {
+        let mut group = self.file.root();
+        let mut at = String::new();
+        for component in name.split('/') {
+            let children = self.children_of(&at, &group)?;
+            match children.get(component) {
+                Some(child) => group = child.clone(),
+                None => return Ok(None),
+            }
+            if !at.is_empty() {
+                at.push('/');
+            }
+            at.push_str(component);
+        }
+        Ok(Some(group))
+    }
+
+    /// The child groups of `group` (at `path`), listed once per file.
+    fn children_of(
+        &self,
+        path: &str,
+        group: &hdf5_pure::Group,
+    ) -> Result<Arc<Children>, InputError> {
+        let mut index = self.children.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(children) = index.get(path) {
+            return Ok(Arc::clone(children));
+        }
+        let children: Arc<Children> = Arc::new(
+            group
+                .iter_groups()
+                .map_err(|e| {
+                    self.err(format!("{}: {e}", if path.is_empty() { "/" } else { path }))
+                })?
+                .collect(),
+        );
+        index.insert(path.to_owned(), Arc::clone(&children));
+        Ok(children)
     }
 
     /// `[rows × cols]` values of the dataset `ds` (`name` in errors): little-endian f16 or
