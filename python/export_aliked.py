@@ -241,8 +241,23 @@ def export(net, out: str):
         e = m.metadata_props.add()
         e.key, e.value = k, v
     m.producer_name = "sfpmap python/export_aliked.py"
+    with_defaults(m)
     onnx.checker.check_model(m)
     onnx.save(m, out)
+
+
+def with_defaults(m):
+    """The describe branch's inputs get defaults (initializers of the same names, a 4x4 map and
+    one keypoint: what the extractor feeds the branch it does not need), so the model runs on an
+    image alone, as every shipped model does (ONNX Runtime lists them as overridable
+    initializers; the extractor still feeds its own)."""
+    from onnx import numpy_helper
+
+    have = {i.name for i in m.graph.initializer}
+    for name, value in (("features", np.zeros((1, 128, 4, 4), np.float32)),
+                        ("keypoints", np.zeros((1, 2), np.float32))):
+        if name not in have:
+            m.graph.initializer.append(numpy_helper.from_array(value, name))
 
 
 def session(path):

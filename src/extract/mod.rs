@@ -569,10 +569,18 @@ impl Extractor {
             .iter()
             .map(|o| o.name().to_string())
             .collect();
+        // An input with a default (an initializer of its name: aliked-n16's describe branch, so
+        // the model runs on an image alone) is listed apart by ONNX Runtime; it is fed alike.
         let input_names: Vec<String> = session
             .inputs()
             .iter()
             .map(|i| i.name().to_string())
+            .chain(
+                session
+                    .overridable_initializers()
+                    .iter()
+                    .map(|i| i.name().to_string()),
+            )
             .collect();
         let mut outputs: Vec<String> = (0..contract.levels())
             .flat_map(|i| [format!("feat_{i}"), format!("score_{i}")])
