@@ -58,7 +58,7 @@ pub struct Args {
     pub features: Option<PathBuf>,
     /// With --features or --kapture: the feature's name the map records, which query
     /// features must match (default: the file's sfp.model_name, or the conf of hloc's
-    /// feats-<conf>.h5, or kapture's descriptors type).
+    /// feats-CONF.h5, or kapture's descriptors type).
     #[cfg(feature = "hdf5")]
     #[arg(long)]
     pub feature_name: Option<String>,

@@ -114,7 +114,7 @@ pub struct Args {
     #[arg(long)]
     pub database: Option<PathBuf>,
     /// hloc-style features.h5 with the queries' features (hloc's, or `sfpmap extract`'s).
-    /// A file that names its feature (sfp.model_name, hloc's feats-<conf>.h5) must hold the
+    /// A file that names its feature (sfp.model_name, hloc's feats-CONF.h5) must hold the
     /// map's.
     #[arg(long, conflicts_with = "database")]
     pub features: Option<PathBuf>,
