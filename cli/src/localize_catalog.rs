@@ -63,7 +63,7 @@ pub(super) fn run(
         .source(source)
         .places_per_query(args.places)
         .place_options(options(args))
-        .remote(sfpmap::remote::RemoteOptions::from_env())
+        .remote(super::super::remote_options())
         .build(bars)?;
     // The place maps are inputs too: no output may replace one. Checked before any query
     // is read.

@@ -41,6 +41,20 @@ pub struct Cli {
     /// Print nothing but errors (no progress bars, no warnings).
     #[arg(long, short, global = true)]
     pub quiet: bool,
+    /// Follow HTTP redirects of map and catalog URLs to another scheme, host or port (also
+    /// SFPMAP_ALLOW_REDIRECTS=1).
+    ///
+    /// The outbound policy, for every request: without this a server may redirect only to
+    /// itself; a redirect never goes from https to http. Link-local addresses (169.254.0.0/16,
+    /// where cloud metadata services answer, and fe80::/10) are never connected to, loopback
+    /// and private ones only from a URL you named (a redirect: from a URL on one). A catalog
+    /// file on disk names places on public hosts only (SFPMAP_ALLOW_PRIVATE_PLACES=1 allows
+    /// loopback and private ones); one read from a URL, only maps on its own server. s3:// URLs
+    /// need AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_SKIP_SIGNATURE=true (a public
+    /// bucket) or SFPMAP_AWS_INSTANCE_METADATA=1 (the EC2 instance's role): no metadata
+    /// service is asked otherwise.
+    #[arg(long, global = true)]
+    pub allow_redirects: bool,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -98,8 +112,12 @@ fn main() -> ExitCode {
     }
 }
 
+/// `--allow-redirects`, for [`remote_options`].
+static ALLOW_REDIRECTS: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
 fn run() -> anyhow::Result<ExitCode> {
     let cli = Cli::parse();
+    ALLOW_REDIRECTS.store(cli.allow_redirects, std::sync::atomic::Ordering::Relaxed);
     match cli.command {
         #[cfg(feature = "localize")]
         Command::BenchPose(args) => bench_pose::run(args, cli.quiet),
@@ -138,11 +156,18 @@ pub fn print_json(value: &serde_json::Value) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Opens a map, a file or an `http(s)://` / `s3://` URL read by range (cache and S3 settings
-/// from the environment, `sfpmap::remote::RemoteOptions::from_env`); errors name it once.
+/// How maps by URL are read: cache, S3 settings and the outbound policy's opt-ins from the
+/// environment (`sfpmap::remote::RemoteOptions::from_env`), and `--allow-redirects`.
+pub fn remote_options() -> sfpmap::remote::RemoteOptions {
+    let mut options = sfpmap::remote::RemoteOptions::from_env();
+    options.allow_redirects |= ALLOW_REDIRECTS.load(std::sync::atomic::Ordering::Relaxed);
+    options
+}
+
+/// Opens a map, a file or an `http(s)://` / `s3://` URL read by range ([`remote_options`]);
+/// errors name it once.
 pub fn open_map(path: &std::path::Path) -> anyhow::Result<sfpmap::format::Map<'static>> {
-    let options = sfpmap::remote::RemoteOptions::from_env();
-    sfpmap::remote::open_location(path, &options).map_err(naming(path))
+    sfpmap::remote::open_location(path, &remote_options()).map_err(naming(path))
 }
 
 /// What reading a map by range cost (`None` for a local map), for `--json`.

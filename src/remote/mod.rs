@@ -8,8 +8,14 @@
 //! S3 takes its endpoint, region and credentials from the usual `AWS_*` variables
 //! (`AWS_ENDPOINT_URL`, `AWS_REGION`, `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, or
 //! `AWS_SKIP_SIGNATURE=true` for a public bucket).
+//!
+//! Every request follows the outbound policy (`policy.rs`): redirects only to the same
+//! scheme, host and port unless [`RemoteOptions::allow_redirects`]; never a link-local address;
+//! loopback and private ones only from a URL the user named; no credential lookup the user's
+//! configuration did not ask for.
 
 mod cache;
+pub(crate) mod policy;
 
 use crate::format::{coalesce, Error, Map, RangeSource, SourceStats, Wanted, HEAD_READ};
 use cache::Cache;
@@ -20,6 +26,7 @@ use std::path::PathBuf;
 use std::sync::{Mutex, OnceLock};
 
 use crate::input::is_url;
+pub(crate) use policy::NamedBy;
 
 /// How remote maps are read. The default keeps no cache.
 #[derive(Debug, Clone)]
@@ -28,6 +35,15 @@ pub struct RemoteOptions {
     pub cache_dir: Option<PathBuf>,
     /// The most bytes the cache keeps; the least recently used sections go first.
     pub cache_max_bytes: u64,
+    /// Follow redirects to another scheme, host or port (never to a link-local address, nor
+    /// from https to http; to loopback or private ones only from a URL on one).
+    pub allow_redirects: bool,
+    /// Let a catalog file on disk name places on loopback and private addresses (a catalog
+    /// is an untrusted file: by default its places may name only public hosts).
+    pub allow_private_places: bool,
+    /// Let S3 without configured credentials take the EC2 instance's role from the instance
+    /// metadata service (by default such a URL is refused before any request).
+    pub instance_metadata: bool,
 }
 
 impl Default for RemoteOptions {
@@ -35,13 +51,18 @@ impl Default for RemoteOptions {
         RemoteOptions {
             cache_dir: None,
             cache_max_bytes: DEFAULT_CACHE_MAX_BYTES,
+            allow_redirects: false,
+            allow_private_places: false,
+            instance_metadata: false,
         }
     }
 }
 
 impl RemoteOptions {
     /// From the environment: `SFPMAP_CACHE_DIR` (default `$XDG_CACHE_HOME/sfpmap` or
-    /// `~/.cache/sfpmap`; `off` for none) and `SFPMAP_CACHE_MAX_BYTES` (default 2 GiB).
+    /// `~/.cache/sfpmap`; `off` for none), `SFPMAP_CACHE_MAX_BYTES` (default 2 GiB), and
+    /// `1` (or `true`) in `SFPMAP_ALLOW_REDIRECTS`, `SFPMAP_ALLOW_PRIVATE_PLACES`,
+    /// `SFPMAP_AWS_INSTANCE_METADATA` for the policy's opt-ins.
     pub fn from_env() -> RemoteOptions {
         let cache_dir = match std::env::var_os("SFPMAP_CACHE_DIR") {
             Some(dir) if dir == "off" => None,
@@ -55,9 +76,15 @@ impl RemoteOptions {
             .ok()
             .and_then(|v| v.parse().ok())
             .unwrap_or(DEFAULT_CACHE_MAX_BYTES);
+        let flag = |name: &str| {
+            std::env::var(name).is_ok_and(|v| v == "1" || v.eq_ignore_ascii_case("true"))
+        };
         RemoteOptions {
             cache_dir,
             cache_max_bytes,
+            allow_redirects: flag(policy::ALLOW_REDIRECTS_ENV),
+            allow_private_places: flag(policy::ALLOW_PRIVATE_PLACES_ENV),
+            instance_metadata: flag(policy::INSTANCE_METADATA_ENV),
         }
     }
 }
@@ -73,7 +100,11 @@ pub(crate) const DEFAULT_CACHE_MAX_BYTES: u64 = 2 << 30;
 
 /// Opens the map at `url` by range.
 pub fn open(url: &str, options: &RemoteOptions) -> Result<Map<'static>, Error> {
-    let source = RemoteSource::connect(url, options)?;
+    open_named(url, options, NamedBy::User)
+}
+
+fn open_named(url: &str, options: &RemoteOptions, named: NamedBy) -> Result<Map<'static>, Error> {
+    let source = RemoteSource::connect(url, options, named)?;
     Map::open_source(Box::new(source))
 }
 
@@ -85,6 +116,19 @@ pub fn open_location(
 ) -> Result<Map<'static>, Error> {
     match location.to_str().filter(|l| is_url(l)) {
         Some(url) => open(url, options),
+        None => Map::open(location),
+    }
+}
+
+/// Opens a catalog's place at `location` (resolved by `session::catalog`), as
+/// [`open_location`] does, with the outbound policy's rule for URLs that `named` names.
+pub(crate) fn open_place(
+    location: &std::path::Path,
+    options: &RemoteOptions,
+    named: NamedBy,
+) -> Result<Map<'static>, Error> {
+    match location.to_str().filter(|l| is_url(l)) {
+        Some(url) => open_named(url, options, named),
         None => Map::open(location),
     }
 }
@@ -116,15 +160,20 @@ impl std::fmt::Debug for RemoteSource {
 }
 
 impl RemoteSource {
-    /// Parses `url`, builds its store and reads the object's first bytes (one GET), which
-    /// give its length and ETag.
-    pub fn connect(url: &str, options: &RemoteOptions) -> Result<RemoteSource, Error> {
+    /// Parses `url`, builds its store under the outbound policy for a URL `named` names
+    /// (refused there, before any request, when the policy says no) and reads the object's
+    /// first bytes (one GET), which give its length and ETag.
+    pub fn connect(
+        url: &str,
+        options: &RemoteOptions,
+        named: NamedBy,
+    ) -> Result<RemoteSource, Error> {
         let fail = |message: String| Error::Io {
             path: url.into(),
             message,
         };
         let parsed = url::Url::parse(url).map_err(|e| fail(format!("not a URL: {e}")))?;
-        let (store, path) = build_store(&parsed).map_err(|e| fail(describe(&e)))?;
+        let (store, path) = policy::build_store(&parsed, named, options).map_err(fail)?;
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
@@ -379,43 +428,4 @@ fn describe(e: &(dyn std::error::Error + 'static)) -> String {
         cause = c.source();
     }
     message.replace('\n', " ")
-}
-
-/// The store and object path for `url`: an HTTP(S) server, or an S3 bucket configured from
-/// `AWS_*` variables.
-fn build_store(url: &url::Url) -> Result<(Box<dyn ObjectStore>, StorePath), object_store::Error> {
-    use object_store::{BackoffConfig, ClientOptions, RetryConfig};
-    use std::time::Duration;
-    // Plain http is what the user asked for when the URL (or the S3 endpoint) says so.
-    let client = ClientOptions::new()
-        .with_allow_http(true)
-        .with_connect_timeout(Duration::from_secs(5))
-        .with_timeout(Duration::from_secs(120));
-    // Bounded time: an unreachable or failing server is reported within seconds, not after
-    // the crate's default of ten retries over three minutes.
-    let retry = RetryConfig {
-        backoff: BackoffConfig::default(),
-        max_retries: 2,
-        retry_timeout: Duration::from_secs(15),
-    };
-    let path = StorePath::from_url_path(url.path())?;
-    match url.scheme() {
-        "s3" => {
-            let store = object_store::aws::AmazonS3Builder::from_env()
-                .with_url(url.as_str())
-                .with_client_options(client)
-                .with_retry(retry)
-                .build()?;
-            Ok((Box::new(store), path))
-        }
-        _ => {
-            let base = &url[..url::Position::BeforePath];
-            let store = object_store::http::HttpBuilder::new()
-                .with_url(base)
-                .with_client_options(client)
-                .with_retry(retry)
-                .build()?;
-            Ok((Box::new(store), path))
-        }
-    }
 }

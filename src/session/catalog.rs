@@ -165,7 +165,14 @@ impl CatalogSessionBuilder {
         let places = catalog.places().to_vec();
         let locations = places
             .iter()
-            .map(|p| resolve(&name, p))
+            .map(|p| {
+                resolve(
+                    &name,
+                    p,
+                    #[cfg(feature = "remote")]
+                    &self.remote,
+                )
+            })
             .collect::<Result<Vec<_>, _>>()?;
         let ranker = PlaceRanker::new(&catalog).map_err(map_error)?;
         let reader =
@@ -206,52 +213,57 @@ fn option_error(
     }
 }
 
-/// Where place `place`'s map is: a URL as is; a path from the catalog's folder (absolute ones
-/// as they are). A catalog read from a URL names only locations on its own server: its
-/// places' locations are resolved against its URL and must keep its scheme, host and port (an
-/// S3 catalog: its bucket), so a downloaded catalog can make the reader open neither a local
-/// file, nor another host (an internal address, another bucket signed with the user's
-/// credentials), nor plain HTTP for an HTTPS catalog.
-fn resolve(catalog: &str, place: &Place) -> Result<PathBuf, SessionError> {
+/// Where place `place`'s map is, under the outbound policy (`remote::policy`): a URL as is,
+/// if the policy admits a catalog file's URL (public hosts only, unless the user allows
+/// private ones; never link-local; only http, https and s3); a path from the catalog's folder
+/// (absolute ones as they are). A catalog read from a URL names only locations on its own
+/// server: its places' locations are resolved against its URL and must keep its scheme, host
+/// and port (an S3 catalog: its bucket), so a downloaded catalog can make the reader open
+/// neither a local file, nor another host (an internal address, another bucket signed with the
+/// user's credentials), nor plain HTTP for an HTTPS catalog. Refused here, before any request.
+fn resolve(
+    catalog: &str,
+    place: &Place,
+    #[cfg(feature = "remote")] options: &crate::remote::RemoteOptions,
+) -> Result<PathBuf, SessionError> {
     let location = place.map.as_str();
+    let refused = |rule: String| {
+        SessionError::Mismatch(format!(
+            "{}: place {}: map {}: {rule}",
+            crate::escape::escape_control_characters(catalog),
+            crate::escape::quoted_name(&place.name),
+            crate::escape::escape_control_characters(location),
+        ))
+    };
+    #[cfg(feature = "remote")]
+    {
+        use crate::remote::policy;
+        if is_url(catalog) {
+            return policy::place_of_remote_catalog(catalog, location)
+                .map(PathBuf::from)
+                .map_err(|rule| refused(policy::refused(rule)));
+        }
+        if is_url(location) {
+            let url = url::Url::parse(location).map_err(|e| refused(format!("not a URL: {e}")))?;
+            policy::admit(&url, policy::NamedBy::LocalCatalog, options)
+                .map_err(|rule| refused(policy::refused(rule)))?;
+            return Ok(PathBuf::from(location));
+        }
+        if let Some(rule) = policy::foreign_scheme(location) {
+            return Err(refused(policy::refused(rule)));
+        }
+    }
+    #[cfg(not(feature = "remote"))]
     if is_url(catalog) {
-        return join_same_origin(catalog, location)
-            .map(PathBuf::from)
-            .ok_or_else(|| {
-                SessionError::Mismatch(format!(
-                    "{catalog}: place {:?}: map {location:?} is not a location on the catalog's \
-                     server",
-                    place.name
-                ))
-            });
+        return Err(refused(
+            "a catalog read from a URL, and this build reads no URLs (feature `remote`)".into(),
+        ));
     }
     if is_url(location) {
         return Ok(PathBuf::from(location));
     }
     let folder = Path::new(catalog).parent().unwrap_or(Path::new("."));
     Ok(folder.join(location))
-}
-
-/// `location` joined to the URL `base`, when the result is a URL of the same scheme, host
-/// and port (`None` otherwise, or without the `remote` feature).
-#[cfg(feature = "remote")]
-fn join_same_origin(base: &str, location: &str) -> Option<String> {
-    let base = url::Url::parse(base).ok()?;
-    let joined = base.join(location).ok()?;
-    let origin = |u: &url::Url| {
-        (
-            u.scheme().to_string(),
-            u.host_str().map(str::to_string),
-            u.port_or_known_default(),
-        )
-    };
-    (is_url(joined.as_str()) && origin(&joined) == origin(&base))
-        .then(|| joined.as_str().to_string())
-}
-
-#[cfg(not(feature = "remote"))]
-fn join_same_origin(_base: &str, _location: &str) -> Option<String> {
-    None
 }
 
 /// Only places whose bounding box lies within `radius` of `position` (world coordinates of
@@ -505,7 +517,14 @@ impl CatalogSession {
             source,
         };
         #[cfg(feature = "remote")]
-        let map = crate::remote::open_location(location, &self.remote).map_err(map_error)?;
+        let map = {
+            use crate::remote::NamedBy;
+            let named = match is_url(&self.name) {
+                true => NamedBy::RemoteCatalog,
+                false => NamedBy::LocalCatalog,
+            };
+            crate::remote::open_place(location, &self.remote, named).map_err(map_error)?
+        };
         #[cfg(not(feature = "remote"))]
         let map = match location.to_str().filter(|l| is_url(l)) {
             Some(url) => {
@@ -558,9 +577,19 @@ mod tests {
         }
     }
 
+    /// Where the catalog `catalog` finds a place whose map is `map`, by default options.
+    fn resolved(catalog: &str, map: &str) -> Result<PathBuf, SessionError> {
+        resolve(
+            catalog,
+            &place(map),
+            #[cfg(feature = "remote")]
+            &crate::remote::RemoteOptions::default(),
+        )
+    }
+
     #[test]
     fn a_local_catalog_s_places_are_found_from_its_folder() {
-        let r = |c, m| resolve(c, &place(m)).unwrap();
+        let r = |c, m| resolved(c, m).unwrap();
         assert_eq!(r("city/city.sfpc", "a/m.sfpm"), Path::new("city/a/m.sfpm"));
         assert_eq!(r("city.sfpc", "m.sfpm"), Path::new("m.sfpm"));
         assert_eq!(r("city/city.sfpc", "/abs/m.sfpm"), Path::new("/abs/m.sfpm"));
@@ -573,7 +602,7 @@ mod tests {
     #[cfg(feature = "remote")]
     #[test]
     fn a_downloaded_catalog_names_only_its_own_server() {
-        let r = |m| resolve("https://h/maps/city.sfpc", &place(m));
+        let r = |m| resolved("https://h/maps/city.sfpc", m);
         assert_eq!(r("a/m.sfpm").unwrap(), Path::new("https://h/maps/a/m.sfpm"));
         assert_eq!(r("../m.sfpm").unwrap(), Path::new("https://h/m.sfpm"));
         // An absolute path stays on the catalog's server, and so may a full URL.
@@ -600,11 +629,11 @@ mod tests {
         ] {
             let e = r(bad).unwrap_err().to_string();
             assert!(
-                e.contains("not a location on the catalog's server"),
+                e.contains("refused by the outbound policy") && e.contains("its own server"),
                 "{bad}: {e}"
             );
         }
-        let s3 = |m| resolve("s3://maps/city/city.sfpc", &place(m));
+        let s3 = |m| resolved("s3://maps/city/city.sfpc", m);
         assert_eq!(s3("a.sfpm").unwrap(), Path::new("s3://maps/city/a.sfpm"));
         assert!(s3("s3://other/a.sfpm").is_err());
     }

@@ -152,12 +152,23 @@ fn a_place_read_from_a_url_is_fetched_by_range() {
         "-o",
         catalog.to_str().unwrap(),
     ]));
-    let r = localize_catalog(
-        &catalog,
-        &root.join("s3"),
-        &t.path().join("p.txt"),
-        &["--places", "1"],
-    );
+    // A catalog file names loopback places only when the user allows it (outbound policy).
+    let run = |env: &[(&str, String)]| {
+        localize(
+            ["--catalog", catalog.to_str().unwrap()],
+            &root.join("s3"),
+            &t.path().join("p.txt"),
+            &["--places", "1"],
+            env,
+        )
+    };
+    let no_cache = ("SFPMAP_CACHE_DIR", "off".to_string());
+    let err = failed(&run(std::slice::from_ref(&no_cache)));
+    assert!(err.contains("SFPMAP_ALLOW_PRIVATE_PLACES=1"), "{err}");
+    let r = json(&run(&[
+        no_cache,
+        ("SFPMAP_ALLOW_PRIVATE_PLACES", "1".to_string()),
+    ]));
     let direct = direct_localized(&root.join("s3"), &t.path().join("d.txt"));
     assert!(direct.as_u64().unwrap() > 0);
     assert_eq!(r["localized"], direct, "{r}");

@@ -30,5 +30,6 @@ mod hostile_inputs;
 mod hostile_localize;
 mod hostile_mcap;
 mod kapture;
+mod outbound_policy;
 mod output_policy;
 mod remote;

@@ -276,6 +276,7 @@ fn an_object_replaced_after_its_index_was_read_is_an_error() {
     let options = sfpmap::remote::RemoteOptions {
         cache_dir: None,
         cache_max_bytes: 0,
+        ..Default::default()
     };
     let map = sfpmap::remote::open(&nginx.url("m.sfpm"), &options).unwrap();
     // Another map at the same URL (another size, so another ETag).
