@@ -186,6 +186,13 @@ pub fn report_transfer(map: &sfpmap::format::Map<'_>, quiet: bool) {
         return;
     }
     warn_whole_object(map, quiet);
+    let links = source.stats().cache_links_skipped;
+    if links > 0 {
+        eprintln!(
+            "warning: {}: {links} folder(s) in the cache (SFPMAP_CACHE_DIR) are symbolic links or not folders: left alone, never followed",
+            sfpmap::escape::escape_control_characters(source.name())
+        );
+    }
     eprintln!("{}", transfer_line(source.name(), &source.stats()));
 }
 

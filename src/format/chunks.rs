@@ -269,27 +269,50 @@ impl Map<'_> {
         if index.is_checked(section, k) {
             return Ok(());
         }
+        let stored = self.stored_bytes(section)?;
+        self.check_chunk_in(section, k, 0, stored)
+    }
+
+    /// [`Map::check_chunk`] of a chunk in `bytes`, the section's stored bytes from position
+    /// `from` on (a piece `verify` read without keeping the section), up to the chunk's end
+    /// or the section's.
+    pub(crate) fn check_chunk_in(
+        &self,
+        section: &Section,
+        k: u64,
+        from: u64,
+        bytes: &[u8],
+    ) -> Result<(), Error> {
+        let index = self
+            .chunk_index()
+            .expect("views checked by chunk exist only with chunk checksums");
+        if index.is_checked(section, k) {
+            return Ok(());
+        }
         // The chunk section is checked whole (its own checksum) on its first use.
         let sums = self.section_bytes(&self.sections()[index.section])?;
-        let stored = self.stored_bytes(section)?;
         // Views ask only for chunks of their values, and `verify` for chunks of the stored
         // length; `rows` of `chunk_checksums` was checked against those at open.
         let no_chunk = || Error::invalid(format!("{}: no chunk {k}", section.reference()));
-        let (Some(row), Ok(start)) = (index.row(section, k), usize::try_from(k * CHUNK_LEN)) else {
+        let start = k * CHUNK_LEN;
+        let (Some(row), Some(Ok(local))) = (
+            index.row(section, k),
+            start.checked_sub(from).map(usize::try_from),
+        ) else {
             return Err(no_chunk());
         };
-        let end = stored.len().min(start.saturating_add(CHUNK_LEN as usize));
-        let (Some(sum), Some(bytes)) = (sums.get(row * 8..row * 8 + 8), stored.get(start..end))
+        let end = bytes.len().min(local.saturating_add(CHUNK_LEN as usize));
+        let (Some(sum), Some(chunk)) = (sums.get(row * 8..row * 8 + 8), bytes.get(local..end))
         else {
             return Err(no_chunk());
         };
         let expected = u64::from_le_bytes(sum.try_into().expect("8 bytes"));
-        let found = checksum(bytes);
+        let found = checksum(chunk);
         if found != expected {
             return Err(Error::ChunkChecksumMismatch {
                 section: section.reference(),
                 chunk: k,
-                bytes: start as u64..end as u64,
+                bytes: start..from + end as u64,
                 expected,
                 found,
             });
@@ -297,10 +320,27 @@ impl Map<'_> {
         // Another section (`verify` walks every chunk of every section), or one checked whole
         // already, has its contents checked whole.
         if reads_by_chunk(self, section) && self.whole_check(section).is_none() {
-            super::views::check_contents(self, section, bytes)?;
+            super::views::check_contents(self, section, chunk)?;
         }
         index.mark_checked(section, k);
         Ok(())
+    }
+
+    /// Checks the chunks of `section` that lie in `bytes`, its stored bytes from position
+    /// `from` (a multiple of [`CHUNK_LEN`]) on (by `verify`, which read them without keeping
+    /// the section).
+    pub(crate) fn check_chunks_in(
+        &self,
+        section: &Section,
+        from: u64,
+        bytes: &[u8],
+    ) -> Result<(), Error> {
+        if self.chunk_index().is_none() || section.kind == SectionKind::ChunkChecksums {
+            return Ok(());
+        }
+        let first = from / CHUNK_LEN;
+        (first..first + chunk_count(bytes.len() as u64))
+            .try_for_each(|k| self.check_chunk_in(section, k, from, bytes))
     }
 
     /// Checks every chunk of `section` (by `verify`, which also checks the section whole).

@@ -10,7 +10,10 @@ use super::layout::{
     MAX_SECTIONS, METADATA_MAX_BYTES, NO_LEVEL, SECTION_FLAGS_KNOWN, SECTION_REQUIRED,
 };
 use super::metadata::Metadata;
-use super::source::{fetch, index_end, RangeSource, HEAD_READ};
+use super::source::{
+    fetch, index_end, keep as keep_fetched, read_checked, read_in_pieces, RangeSource, HEAD_READ,
+    VERIFY_BATCH, VERIFY_PIECE,
+};
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::path::Path;
@@ -338,6 +341,9 @@ impl<'a> Map<'a> {
     /// Fetches, in as few reads as the source allows, the sections `wanted` selects that are
     /// not fetched yet; a no-op for a map in memory. Reading a section fetches it anyway:
     /// this only saves round trips (a command that knows what it reads calls it first).
+    /// [Skipped](Section::skipped) sections are never prefetched, whatever `wanted` says:
+    /// nothing reads them but [`Map::verify`], which reads them itself, so a map's optional
+    /// sections of kinds this reader does not know cost a command that uses the map nothing.
     pub fn prefetch(&self, wanted: impl Fn(&Section) -> bool) -> Result<(), Error> {
         let Backing::Source { source, fetched } = &self.backing else {
             return Ok(());
@@ -345,7 +351,7 @@ impl<'a> Map<'a> {
         let missing: Vec<&Section> = self
             .sections
             .iter()
-            .filter(|s| fetched[s.index].get().is_none() && wanted(s))
+            .filter(|s| s.skipped.is_none() && fetched[s.index].get().is_none() && wanted(s))
             .collect();
         fetch(
             source.as_ref(),
@@ -511,7 +517,10 @@ impl<'a> Map<'a> {
     /// Checks every section: checksums, decoding and contents, in table order, then what ties
     /// sections together. Stops at the first error. Streams: a zstd section not already
     /// decoded is decoded, checked and dropped (the image names excepted, which the last
-    /// check needs whole), so memory stays at about one section whatever the map holds.
+    /// check needs whole), so memory stays at about one section whatever the map holds. Read
+    /// by range, the same: sections are read in batches of neighbours (at most 32 MiB but for
+    /// one larger section), checked and dropped, and a large skipped section is read and
+    /// hashed in pieces, never held.
     pub fn verify(&self) -> Result<(), Error> {
         self.verify_keeping(|_| false)
     }
@@ -519,19 +528,19 @@ impl<'a> Map<'a> {
     /// [`Map::verify`], keeping the decoded bytes of the sections `keep` selects (those the
     /// caller reads next, so no section is decoded twice).
     pub(crate) fn verify_keeping(&self, keep: impl Fn(&Section) -> bool) -> Result<(), Error> {
-        self.verify_selected(|_| true, keep)
+        self.verify_selected(|_| true, keep, |_| false)
     }
 
     /// [`Map::verify_keeping`] of the sections `select` picks (all of them but those a slice
     /// of a map read by range drops, which are then never downloaded), then what ties
-    /// sections together.
+    /// sections together. Read by range, the stored bytes of the sections `hold` picks stay
+    /// fetched (a slice copies them next); the others are dropped once checked.
     pub(crate) fn verify_selected(
         &self,
         select: impl Fn(&Section) -> bool,
         keep: impl Fn(&Section) -> bool,
+        hold: impl Fn(&Section) -> bool,
     ) -> Result<(), Error> {
-        // Read by range, the selected sections are fetched together, in few requests.
-        self.prefetch(&select)?;
         // (1.2) Chunk sums are checked too, as a reader that reads by chunk would, unless a
         // slice of a map read by range leaves them out: fetching checks each section whole,
         // the slice gets chunk sums of its own, and they would cost a request at the file's
@@ -540,22 +549,180 @@ impl<'a> Map<'a> {
             .chunks
             .as_ref()
             .is_some_and(|c| self.source().is_none() || select(&self.sections[c.section]));
-        for section in self.sections.iter().filter(|s| select(s)) {
-            let names = section.skipped.is_none()
-                && matches!(
-                    section.kind,
-                    SectionKind::ImageNameOffsets | SectionKind::ImageNames
-                );
-            if names || keep(section) {
-                self.section_bytes(section)?;
-            } else {
-                self.check_section(section)?;
-            }
-            if chunks {
-                self.check_chunks(section)?;
+        // Kept: what the caller reads next, the image names, which the last check needs, and
+        // the chunk sums, which every section's check reads.
+        let kept = |section: &Section| {
+            keep(section)
+                || section.skipped.is_none()
+                    && (matches!(
+                        section.kind,
+                        SectionKind::ImageNameOffsets | SectionKind::ImageNames
+                    ) || chunks && section.kind == SectionKind::ChunkChecksums)
+        };
+        let selected = self.sections.iter().filter(|s| select(s));
+        if let Backing::Source { source, fetched } = &self.backing {
+            let held = |s: &Section| kept(s) || hold(s);
+            self.verify_by_range(source.as_ref(), fetched, selected, &kept, &held, chunks)?;
+        } else {
+            for section in selected {
+                self.verify_one(section, kept(section), chunks)?;
             }
         }
         super::views::check_cross_sections(self)
+    }
+
+    /// [`Map::verify_selected`]'s check of one section in memory, or fetched already.
+    fn verify_one(&self, section: &Section, kept: bool, chunks: bool) -> Result<(), Error> {
+        if kept {
+            self.section_bytes(section)?;
+        } else {
+            self.check_section(section)?;
+        }
+        if chunks {
+            self.check_chunks(section)?;
+        }
+        Ok(())
+    }
+
+    /// [`Map::verify_selected`] of a map read by range: the sections not fetched yet are read
+    /// in batches of table neighbours of at most [`VERIFY_BATCH`] bytes (one request each,
+    /// usually), checked from the batch's buffers and dropped (those `held` picks kept
+    /// fetched, and those `kept` picks decoded), and a
+    /// skipped section larger than [`VERIFY_PIECE`], which has only its checksums to check, is
+    /// read and hashed a piece at a time. Memory: one batch, or one section of a known kind
+    /// (its contents are checked whole), or one piece; never the map.
+    fn verify_by_range<'s>(
+        &self,
+        source: &dyn RangeSource,
+        fetched: &[OnceLock<Decoded>],
+        selected: impl Iterator<Item = &'s Section>,
+        kept: &dyn Fn(&Section) -> bool,
+        held: &dyn Fn(&Section) -> bool,
+        chunks: bool,
+    ) -> Result<(), Error> {
+        let pending =
+            |s: &Section| fetched[s.index].get().is_none() && self.whole_check(s).is_none();
+        let mut batch: Vec<&Section> = Vec::new();
+        let mut batch_len = 0u64;
+        for section in selected {
+            let len = section.offset + section.stored_len - section.padding_start;
+            let streamed = pending(section)
+                && !held(section)
+                && len > VERIFY_PIECE
+                && section
+                    .skipped
+                    .is_some_and(|why| why.hides_encoding() || section.codec == Codec::Raw);
+            if streamed {
+                self.verify_batch(
+                    source,
+                    fetched,
+                    &std::mem::take(&mut batch),
+                    kept,
+                    held,
+                    chunks,
+                )?;
+                batch_len = 0;
+                self.verify_in_pieces(source, section, chunks)?;
+                continue;
+            }
+            if pending(section) && batch_len > 0 && batch_len.saturating_add(len) > VERIFY_BATCH {
+                self.verify_batch(
+                    source,
+                    fetched,
+                    &std::mem::take(&mut batch),
+                    kept,
+                    held,
+                    chunks,
+                )?;
+                batch_len = 0;
+            }
+            if pending(section) {
+                batch_len = batch_len.saturating_add(len);
+            }
+            batch.push(section);
+        }
+        self.verify_batch(source, fetched, &batch, kept, held, chunks)
+    }
+
+    /// Reads the sections of `batch` not fetched yet (in as few requests as the source
+    /// allows), then checks every section of it in order.
+    fn verify_batch(
+        &self,
+        source: &dyn RangeSource,
+        fetched: &[OnceLock<Decoded>],
+        batch: &[&Section],
+        kept: &dyn Fn(&Section) -> bool,
+        held: &dyn Fn(&Section) -> bool,
+        chunks: bool,
+    ) -> Result<(), Error> {
+        let pending: Vec<&Section> = batch
+            .iter()
+            .copied()
+            .filter(|s| fetched[s.index].get().is_none() && self.whole_check(s).is_none())
+            .collect();
+        let mut got = HashMap::new();
+        for (section, (want, bytes)) in
+            pending
+                .iter()
+                .zip(read_checked(source, self.header.index_checksum, &pending)?)
+        {
+            // The held ones first: the chunk sums are read by the checks of the others.
+            if held(section) {
+                keep_fetched(&fetched[section.index], &want, &bytes);
+            } else {
+                got.insert(section.index, (want, bytes));
+            }
+        }
+        for section in batch {
+            let Some((want, bytes)) = got.remove(&section.index) else {
+                self.verify_one(section, kept(section), chunks)?;
+                continue;
+            };
+            let stored = &bytes[(want.offset - want.range.start) as usize..];
+            self.prepare_from(section, stored)?;
+            self.checked[section.index].store(true, Ordering::Release);
+            if chunks {
+                self.check_chunks_in(section, 0, stored)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks a skipped `section` (only its checksums can be checked) read a
+    /// [`VERIFY_PIECE`] at a time, hashing as the pieces arrive; read once more when it
+    /// does not match, as a fetched section is.
+    fn verify_in_pieces(
+        &self,
+        source: &dyn RangeSource,
+        section: &Section,
+        chunks: bool,
+    ) -> Result<(), Error> {
+        let mut last = None;
+        for _ in 0..2 {
+            let mut whole = xxhash_rust::xxh3::Xxh3::new();
+            let mut chunk_error = None;
+            read_in_pieces(source, section, |at, piece| {
+                whole.update(piece);
+                if chunks && chunk_error.is_none() {
+                    chunk_error = self.check_chunks_in(section, at, piece).err();
+                }
+                Ok(())
+            })?;
+            let found = whole.digest();
+            last = Some(if found != section.checksum {
+                Error::ChecksumMismatch {
+                    section: section.reference(),
+                    expected: section.checksum,
+                    found,
+                }
+            } else if let Some(e) = chunk_error {
+                e
+            } else {
+                self.checked[section.index].store(true, Ordering::Release);
+                return Ok(());
+            });
+        }
+        Err(last.expect("two tries"))
     }
 
     /// Checks one section as its first access would (checksum, decoding, contents) without
@@ -603,7 +770,12 @@ impl<'a> Map<'a> {
     }
 
     fn prepare(&self, section: &Section) -> Result<Option<Decoded>, Error> {
-        let stored = self.stored_bytes(section)?;
+        self.prepare_from(section, self.stored_bytes(section)?)
+    }
+
+    /// [`Map::prepare`] of `stored`, the section's stored bytes as read (by `verify`, without
+    /// keeping them).
+    fn prepare_from(&self, section: &Section, stored: &[u8]) -> Result<Option<Decoded>, Error> {
         let found = checksum(stored);
         if found != section.checksum {
             return Err(Error::ChecksumMismatch {

@@ -103,6 +103,7 @@ pub fn slice<'m>(
     map.verify_selected(
         |s| in_memory || keeps.section(s),
         |s| keeps.reads_contents(s),
+        |s| keeps.section(s),
     )?;
 
     // Old point index → new index, u32::MAX for dropped points.

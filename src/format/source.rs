@@ -5,7 +5,8 @@
 
 use super::error::Error;
 use super::layout::{
-    align_up, checksum, Header, HEADER_LEN, MAX_ENTRY_LEN, MAX_SECTIONS, METADATA_MAX_BYTES,
+    align_up, checksum, Header, CHUNK_LEN, HEADER_LEN, MAX_ENTRY_LEN, MAX_SECTIONS,
+    METADATA_MAX_BYTES,
 };
 use super::reader::{Decoded, Section};
 use std::ops::Range;
@@ -92,6 +93,9 @@ pub struct SourceStats {
     pub refetched: u64,
     /// The origin ignored range requests, so the whole object was read once.
     pub whole_object: bool,
+    /// Folders of the on-disk cache found to be symbolic links (or not folders) and left
+    /// alone, never followed; when the URL's own folder is one, its sections are not cached.
+    pub cache_links_skipped: u64,
 }
 
 /// Ranges closer than this are read as one request (the bytes between are read and dropped):
@@ -141,8 +145,34 @@ pub(super) fn fetch(
     index_checksum: u64,
     sections: &[&Section],
 ) -> Result<(), Error> {
+    let got = read_checked(source, index_checksum, sections)?;
+    // Consumed one by one: each read buffer goes once its aligned copy is kept.
+    for (section, (want, bytes)) in sections.iter().zip(got) {
+        keep(&fetched[section.index], &want, &bytes);
+    }
+    Ok(())
+}
+
+/// The bytes `verify` holds at most of one batch of neighbouring sections it reads from a
+/// source (a larger section is read alone): the map is checked a batch at a time, in few
+/// requests, never held whole.
+pub(super) const VERIFY_BATCH: u64 = 32 << 20;
+
+/// A skipped section longer than this is checked by `verify` without being held: read and
+/// hashed in pieces of this many bytes (a multiple of [`CHUNK_LEN`]).
+pub(super) const VERIFY_PIECE: u64 = 16 << 20;
+const _: () = assert!(VERIFY_PIECE % CHUNK_LEN == 0);
+
+/// Reads `sections` from `source` and checks each (length, padding, checksum), reading the
+/// damaged ones once more from the origin: each one's request and bytes as read (the
+/// padding first), in order.
+pub(super) fn read_checked(
+    source: &dyn RangeSource,
+    index_checksum: u64,
+    sections: &[&Section],
+) -> Result<Vec<(Wanted, Vec<u8>)>, Error> {
     if sections.is_empty() {
-        return Ok(());
+        return Ok(Vec::new());
     }
     let wanted: Vec<Wanted> = sections
         .iter()
@@ -155,47 +185,93 @@ pub(super) fn fetch(
         .collect();
     let got = source.read_sections(index_checksum, &wanted, false)?;
     check_count(source, &got, &wanted)?;
-    let mut damaged = Vec::new();
-    for ((section, want), bytes) in sections.iter().zip(&wanted).zip(got) {
-        if want.matches(&bytes) {
-            keep(&fetched[section.index], want, &bytes);
-        } else {
-            damaged.push((*section, want.clone()));
-        }
-    }
+    let mut out: Vec<(Wanted, Vec<u8>)> = wanted.into_iter().zip(got).collect();
+    let damaged: Vec<usize> = (0..out.len())
+        .filter(|&i| !out[i].0.matches(&out[i].1))
+        .collect();
     if damaged.is_empty() {
-        return Ok(());
+        return Ok(out);
     }
-    let again: Vec<Wanted> = damaged.iter().map(|(_, w)| w.clone()).collect();
+    let again: Vec<Wanted> = damaged.iter().map(|&i| out[i].0.clone()).collect();
     let got = source.read_sections(index_checksum, &again, true)?;
     check_count(source, &got, &again)?;
-    for ((section, want), bytes) in damaged.iter().zip(got) {
+    for (&i, bytes) in damaged.iter().zip(got) {
+        let (section, want) = (sections[i], &out[i].0);
         if !want.matches(&bytes) {
-            let len = want.range.end - want.range.start;
-            if bytes.len() as u64 != len {
-                return Err(Error::Io {
-                    path: source.name().into(),
-                    message: format!(
-                        "{}: the source returned {} bytes for a range of {len}",
-                        section.reference(),
-                        bytes.len()
-                    ),
-                });
-            }
-            let pad = (want.offset - want.range.start) as usize;
-            if bytes[..pad].iter().any(|&b| b != 0) {
-                return Err(Error::BadPadding {
-                    offset: want.range.start,
-                    len: pad as u64,
-                });
-            }
-            return Err(Error::ChecksumMismatch {
-                section: section.reference(),
-                expected: section.checksum,
-                found: checksum(&bytes[pad..]),
+            return Err(mismatch(source, section, want, &bytes));
+        }
+        out[i].1 = bytes;
+    }
+    Ok(out)
+}
+
+/// What is wrong with `bytes`, read for `want`, which do not match it.
+fn mismatch(source: &dyn RangeSource, section: &Section, want: &Wanted, bytes: &[u8]) -> Error {
+    let len = want.range.end - want.range.start;
+    if bytes.len() as u64 != len {
+        return Error::Io {
+            path: source.name().into(),
+            message: format!(
+                "{}: the source returned {} bytes for a range of {len}",
+                section.reference(),
+                bytes.len()
+            ),
+        };
+    }
+    let pad = (want.offset - want.range.start) as usize;
+    if bytes[..pad].iter().any(|&b| b != 0) {
+        return Error::BadPadding {
+            offset: want.range.start,
+            len: pad as u64,
+        };
+    }
+    Error::ChecksumMismatch {
+        section: section.reference(),
+        expected: section.checksum,
+        found: checksum(&bytes[pad..]),
+    }
+}
+
+/// Reads `section`'s padding and stored bytes from `source` a [`VERIFY_PIECE`] at a time,
+/// handing each piece of the stored bytes to `piece` with its position in them; only one
+/// piece is held. Non-zero padding is an error.
+pub(super) fn read_in_pieces(
+    source: &dyn RangeSource,
+    section: &Section,
+    mut piece: impl FnMut(u64, &[u8]) -> Result<(), Error>,
+) -> Result<(), Error> {
+    let mut at = 0u64;
+    let mut first = true;
+    while first || at < section.stored_len {
+        let end = section.stored_len.min(at.saturating_add(VERIFY_PIECE));
+        let from = if first {
+            section.padding_start
+        } else {
+            section.offset + at
+        };
+        let bytes = source.read_range(from..section.offset + end)?;
+        let expected = section.offset + end - from;
+        if bytes.len() as u64 != expected {
+            return Err(Error::Io {
+                path: source.name().into(),
+                message: format!(
+                    "{}: the source returned {} bytes for a range of {expected}",
+                    section.reference(),
+                    bytes.len()
+                ),
             });
         }
-        keep(&fetched[section.index], want, &bytes);
+        // Only the first piece starts at the padding.
+        let pad = section.offset.saturating_sub(from) as usize;
+        if bytes[..pad].iter().any(|&b| b != 0) {
+            return Err(Error::BadPadding {
+                offset: from,
+                len: pad as u64,
+            });
+        }
+        piece(at, &bytes[pad..])?;
+        at = end;
+        first = false;
     }
     Ok(())
 }
@@ -217,7 +293,7 @@ fn check_count(source: &dyn RangeSource, got: &[Vec<u8>], wanted: &[Wanted]) -> 
 
 /// Keeps a fetched section's stored bytes (the padding before them dropped); a second thread
 /// that fetched the same section meanwhile keeps the first copy.
-fn keep(slot: &OnceLock<Decoded>, want: &Wanted, bytes: &[u8]) {
+pub(super) fn keep(slot: &OnceLock<Decoded>, want: &Wanted, bytes: &[u8]) {
     let pad = (want.offset - want.range.start) as usize;
     let _ = slot.get_or_init(|| Decoded::aligned(&bytes[pad..]));
 }

@@ -3,7 +3,9 @@
 //!
 //! [`open`] reads the first 64 KiB in one GET (the header and, usually, the whole index), then [`Map`] fetches the sections it uses, merging
 //! neighbours into one request. Every section GET carries `If-Match` with the ETag of the
-//! first response, so an object replaced meanwhile is an error, not a mix of two maps.
+//! first response, and every response's ETag (its Last-Modified when it has none) is compared
+//! with the first one's, so an object replaced meanwhile is an error, not a mix of two maps,
+//! even from a server that ignores `If-Match`.
 //!
 //! S3 takes its endpoint, region and credentials from the usual `AWS_*` variables
 //! (`AWS_ENDPOINT_URL`, `AWS_REGION`, `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, or
@@ -142,6 +144,9 @@ pub(crate) struct RemoteSource {
     len: u64,
     /// The ETag of the first response; every later GET must match it.
     e_tag: Option<String>,
+    /// The object's version in the first response ([`version_of`]); every later response
+    /// must carry the same.
+    version: Option<String>,
     /// The first bytes, read at connect.
     head: Vec<u8>,
     /// The whole object, when the server ignored the first range request.
@@ -185,6 +190,7 @@ impl RemoteSource {
             runtime,
             len: 0,
             e_tag: None,
+            version: None,
             head: Vec::new(),
             whole: OnceLock::new(),
             cache: None,
@@ -212,6 +218,7 @@ impl RemoteSource {
             Err(e) => return Err(source.error(e)),
         };
         source.len = meta.size;
+        source.version = Some(version_of(&meta));
         // If-Match compares strongly: a weak ETag (a proxy's) would fail every later read.
         // Without one, the per-section checksums still catch a replaced object.
         source.e_tag = meta.e_tag.filter(|t| !t.starts_with("W/"));
@@ -229,13 +236,17 @@ impl RemoteSource {
             source.head = bytes;
         }
         if let Some(dir) = &options.cache_dir {
-            source.cache = Some(Cache::open(
+            match Cache::open(
                 dir,
                 url,
                 source.e_tag.as_deref(),
                 meta.last_modified,
                 options.cache_max_bytes,
-            ));
+            ) {
+                Ok(cache) => source.cache = Some(cache),
+                Err(cache::Unusable::Link) => source.stats_mut().cache_links_skipped = 1,
+                Err(cache::Unusable::Unavailable) => {}
+            }
         }
         Ok(source)
     }
@@ -250,6 +261,7 @@ impl RemoteSource {
             message: match e {
                 GetError::NotPartial => "the server answered a range request with the whole object".into(),
                 GetError::Changed => "the object changed since its index was read (ETag no longer matches); open it again".into(),
+                GetError::Replaced { first, now } => format!("the object changed while reading: the first response had {first}, a later one {now}; open it again"),
                 GetError::Short { got, wanted } => format!("truncated response: {got} bytes of {wanted}"),
                 GetError::Store(message) => message,
             },
@@ -283,6 +295,17 @@ impl RemoteSource {
         stats.requests += 1;
         stats.bytes += bytes.len() as u64;
         drop(stats);
+        // `If-Match` is only a request: a server may ignore it and answer from another
+        // object. The response says which object it came from.
+        if let Some(first) = &self.version {
+            let now = version_of(&meta);
+            if &now != first {
+                return Err(GetError::Replaced {
+                    first: first.clone(),
+                    now,
+                });
+            }
+        }
         let wanted = returned.end - returned.start;
         if bytes.len() as u64 != wanted {
             return Err(GetError::Short {
@@ -368,7 +391,9 @@ impl RangeSource for RemoteSource {
             }
         }
         if let Some(cache) = &self.cache {
-            cache.trim();
+            let trimmed = cache.trim();
+            let mut stats = self.stats_mut();
+            stats.cache_links_skipped = stats.cache_links_skipped.max(trimmed.links_skipped);
         }
         Ok(out.into_iter().map(|b| b.unwrap_or_default()).collect())
     }
@@ -383,6 +408,12 @@ enum GetError {
     NotPartial,
     /// `If-Match` failed: the object is not the one whose index was read.
     Changed,
+    /// A response came from another version of the object than the first (ETag, or
+    /// Last-Modified without one): a server that ignores `If-Match`.
+    Replaced {
+        first: String,
+        now: String,
+    },
     /// Fewer body bytes than the response announced.
     Short {
         got: u64,
@@ -411,6 +442,15 @@ impl From<object_store::Error> for GetError {
             }
             _ => GetError::Store(text),
         }
+    }
+}
+
+/// What identifies the version of the object a response came from: its ETag (weak ones
+/// too: they still change with the object), or its Last-Modified when it has none.
+fn version_of(meta: &object_store::ObjectMeta) -> String {
+    match &meta.e_tag {
+        Some(tag) => format!("ETag {tag}"),
+        None => format!("Last-Modified {}", meta.last_modified),
     }
 }
 

@@ -33,3 +33,4 @@ mod kapture;
 mod outbound_policy;
 mod output_policy;
 mod remote;
+mod remote_bytes;

@@ -16,7 +16,7 @@ use street_cli::{failed, json, localize, ok, sfpmap, street};
 
 /// A generated street (`street_cli::street`: model, databases, its SIFT map `map.sfpm`) and
 /// the map's level 2 short slice (`l2s.sfpm`), made once for all test processes.
-fn scene() -> &'static Path {
+pub(crate) fn scene() -> &'static Path {
     static SCENE: OnceLock<PathBuf> = OnceLock::new();
     SCENE.get_or_init(|| {
         let recipe = "street_cli::street: 6000 points, 4 queries, default seed; l2s.sfpm: \
@@ -61,7 +61,10 @@ fn cache(dir: &tempfile::TempDir) -> (&'static str, String) {
 
 /// Bytes of the sections `keep` selects, plus the index (header, table, metadata) and the
 /// padding before each.
-fn expected_bytes(map: &Map<'_>, keep: impl Fn(SectionKind, Option<u16>) -> bool) -> u64 {
+pub(crate) fn expected_bytes(
+    map: &Map<'_>,
+    keep: impl Fn(SectionKind, Option<u16>) -> bool,
+) -> u64 {
     let first = map
         .sections()
         .first()
