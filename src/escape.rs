@@ -37,3 +37,39 @@ pub fn quoted_name(name: &str) -> String {
     let cut = if shown.len() < name.len() { "…" } else { "" };
     format!("\"{}{cut}\"", escape_control_characters(&shown))
 }
+
+/// `path` for a message, as [`Path::display`](std::path::Path::display) shows it with its
+/// control characters escaped ([`escape_control_characters`]): a path a user or a file gave
+/// (a catalog's place, a query list's image) may hold ESC, BEL or a newline, which would
+/// drive the terminal or forge a line. Every error and progress line that names a path
+/// shows it through this.
+pub fn path(path: &std::path::Path) -> impl std::fmt::Display + '_ {
+    EscapedPath(path)
+}
+
+/// [`path`]'s value.
+struct EscapedPath<'a>(&'a std::path::Path);
+
+impl std::fmt::Display for EscapedPath<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&escape_control_characters(&self.0.to_string_lossy()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paths_are_shown_with_control_characters_escaped() {
+        let p = std::path::Path::new("maps/p\u{1b}[2J\u{7}\nerror: forged.sfpm");
+        assert_eq!(
+            path(p).to_string(),
+            r"maps/p\x1b[2J\x07\nerror: forged.sfpm"
+        );
+        assert_eq!(
+            path(std::path::Path::new("a b.sfpm")).to_string(),
+            "a b.sfpm"
+        );
+    }
+}

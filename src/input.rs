@@ -16,6 +16,27 @@ pub fn is_url(name: &str) -> bool {
     })
 }
 
+/// `name`, a name a file gave (a query list's image), joined to `folder`, the folder the user
+/// named for it (`localize --images`), if it stays inside: a relative path of plain
+/// components. An absolute path, a `..` component or a drive prefix is refused with why, so
+/// a list cannot make the tool read `/etc/passwd` or `/proc/self/mem`. The one rule for
+/// such names: the session's image source and the CLI ask here.
+pub fn join_inside(folder: &Path, name: &str) -> Result<std::path::PathBuf, &'static str> {
+    use std::path::Component;
+    for component in Path::new(name).components() {
+        match component {
+            Component::Normal(_) | Component::CurDir => {}
+            Component::RootDir | Component::Prefix(_) => {
+                return Err("an absolute path, not a name inside the images' folder")
+            }
+            Component::ParentDir => {
+                return Err("a name with a \"..\" component, which leaves the images' folder")
+            }
+        }
+    }
+    Ok(folder.join(name))
+}
+
 /// Why an input cannot be read as a file.
 #[derive(Debug)]
 pub enum OpenError {
@@ -133,6 +154,22 @@ pub(crate) fn read_regular_to_string(path: &Path) -> Result<String, OpenError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn names_stay_inside_their_folder() {
+        let folder = Path::new("images");
+        for name in ["a.jpg", "db/a.jpg", "./a.jpg", "a..b.jpg", "..a.jpg"] {
+            assert_eq!(join_inside(folder, name), Ok(folder.join(name)), "{name}");
+        }
+        for name in ["/etc/passwd", "/proc/self/mem", "//x"] {
+            let why = join_inside(folder, name).unwrap_err();
+            assert!(why.starts_with("an absolute path"), "{name}: {why}");
+        }
+        for name in ["..", "../a.jpg", "db/../../a.jpg", "./../a.jpg"] {
+            let why = join_inside(folder, name).unwrap_err();
+            assert!(why.contains(r#"a ".." component"#), "{name}: {why}");
+        }
+    }
 
     #[test]
     fn regular_files_open_and_everything_else_says_what_it_is() {

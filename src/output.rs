@@ -105,7 +105,7 @@ impl OutputError {
             }
             OutputError::IsInput { input, .. } => format!(
                 "is the same file as the input {}; choose another output",
-                input.display()
+                crate::escape::path(input)
             ),
             OutputError::NotRegular { kind, .. } => {
                 format!("is {kind}, not a regular file; choose a file path")
@@ -131,7 +131,7 @@ impl OutputError {
 
 impl std::fmt::Display for OutputError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}: {}", self.path().display(), self.what())
+        write!(f, "{}: {}", crate::escape::path(self.path()), self.what())
     }
 }
 

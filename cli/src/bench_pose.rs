@@ -23,8 +23,9 @@ pub struct Args {
     /// Correspondences and options (JSON).
     #[arg(long)]
     pub input: PathBuf,
-    /// Timed runs (after one untimed warm-up run).
-    #[arg(long, default_value_t = 10)]
+    /// Timed runs, 1 or more (after one untimed warm-up run).
+    #[arg(long, default_value_t = 10,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub repeats: usize,
     #[arg(long)]
     pub json: bool,
@@ -43,9 +44,9 @@ struct Input {
 
 pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {
     let text = std::fs::read_to_string(&args.input)
-        .with_context(|| format!("reading {}", args.input.display()))?;
-    let input: Input =
-        serde_json::from_str(&text).with_context(|| format!("parsing {}", args.input.display()))?;
+        .with_context(|| format!("reading {}", sfpmap::escape::path(&args.input)))?;
+    let input: Input = serde_json::from_str(&text)
+        .with_context(|| format!("parsing {}", sfpmap::escape::path(&args.input)))?;
     if input.pixels.len() != input.points.len() {
         bail!(
             "{} pixels but {} points",

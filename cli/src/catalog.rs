@@ -54,13 +54,13 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
 fn location(map: &Path, dir: &Path) -> anyhow::Result<String> {
     let text = map
         .to_str()
-        .with_context(|| format!("{}: not UTF-8", map.display()))?;
+        .with_context(|| format!("{}: not UTF-8", sfpmap::escape::path(map)))?;
     if sfpmap::input::is_url(text) {
         return Ok(text.to_string());
     }
     let absolute = map
         .canonicalize()
-        .with_context(|| map.display().to_string())?;
+        .with_context(|| sfpmap::escape::path(map).to_string())?;
     let relative = dir
         .canonicalize()
         .ok()
@@ -68,7 +68,7 @@ fn location(map: &Path, dir: &Path) -> anyhow::Result<String> {
     let chosen = relative.unwrap_or(absolute);
     Ok(chosen
         .to_str()
-        .with_context(|| format!("{}: not UTF-8", map.display()))?
+        .with_context(|| format!("{}: not UTF-8", sfpmap::escape::path(map)))?
         .to_string())
 }
 
@@ -115,7 +115,10 @@ fn build(args: BuildArgs, quiet: bool) -> anyhow::Result<ExitCode> {
         bail!("two places are named {twice:?}: give each a --name");
     }
     let writer = build_catalog(&places).map_err(|e| {
-        anyhow::anyhow!("{e}").context(format!("{}: building the catalog", args.output.display()))
+        anyhow::anyhow!("{e}").context(format!(
+            "{}: building the catalog",
+            sfpmap::escape::path(&args.output)
+        ))
     })?;
     let bars = super::Bars::new(quiet, args.json);
     let written = writer
@@ -136,14 +139,14 @@ fn build(args: BuildArgs, quiet: bool) -> anyhow::Result<ExitCode> {
     } else if !quiet {
         println!(
             "{}: {} places, {written} bytes",
-            args.output.display(),
+            sfpmap::escape::path(&args.output),
             places.len()
         );
         for (p, m) in places.iter().zip(&maps) {
             println!(
                 "  {}: {} ({} points, {} images)",
                 sfpmap::escape::escape_control_characters(&p.name),
-                p.location,
+                sfpmap::escape::escape_control_characters(&p.location),
                 m.n_points(),
                 m.n_images()
             );

@@ -98,9 +98,10 @@ pub struct Args {
           value_parser = super::global_max_side)]
     pub global_max_side: u32,
     /// With --images: a point joins level i when its track's mean level-i score is at least
-    /// this (default: the model's keypoint threshold, sfp.default_threshold).
+    /// this (finite, 0 or more; default: the model's keypoint threshold,
+    /// sfp.default_threshold).
     #[cfg(feature = "onnx")]
-    #[arg(long, requires = "images")]
+    #[arg(long, requires = "images", value_parser = super::args::score)]
     pub score_threshold: Option<f32>,
     /// Output map.
     #[arg(short, long)]
@@ -187,7 +188,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     } else if !quiet {
         println!(
             "{}: {} points, {} images, {} observations; {} bytes in -> {} bytes out ({ratio:.2}x) in {seconds:.2} s",
-            args.output.display(),
+            sfpmap::escape::path(&args.output),
             summary.points,
             summary.images,
             summary.observations,
@@ -354,7 +355,7 @@ fn run_sfp(
     } else if !quiet {
         println!(
             "{}: {} of {} points kept, {} images, {} observations; model {} bytes -> map {} bytes ({ratio:.2}x) in {seconds:.1} s ({:.0} ms per image)",
-            args.output.display(),
+            sfpmap::escape::path(&args.output),
             c.points,
             summary.model_points,
             c.images,

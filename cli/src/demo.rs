@@ -75,7 +75,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let outputs: Vec<&Path> = outputs.iter().map(|p| p.as_path()).collect();
     super::check_outputs(&outputs, &[], args.force || args.out.is_none())?;
     for dir in [&images, &sparse] {
-        std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
+        std::fs::create_dir_all(dir).with_context(|| sfpmap::escape::path(dir).to_string())?;
     }
     let bars = super::Bars::new(quiet, args.json);
     let say = |line: String| {
@@ -129,7 +129,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         scene.database.len(),
         scene.queries.len(),
         scene.points.len(),
-        out.display()
+        sfpmap::escape::path(&out)
     ));
 
     // 2. Convert with the SFP model, then slice.
@@ -246,7 +246,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             };
             plotted = Some(
                 plot_map(&map, &options, &plot_png)
-                    .map_err(|e| anyhow::anyhow!("{}: {e}", plot_png.display()))?,
+                    .map_err(|e| anyhow::anyhow!("{}: {e}", sfpmap::escape::path(&plot_png)))?,
             );
         }
         let median_ms = median(ms).unwrap_or(f64::NAN);
@@ -280,8 +280,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     ));
     say(format!(
         "poses of the full map: {}\nplot of the map with localized and true cameras: {}",
-        poses_txt.display(),
-        plot_png.display()
+        sfpmap::escape::path(&poses_txt),
+        sfpmap::escape::path(&plot_png)
     ));
     if args.json {
         super::print_json(&json!({
@@ -301,7 +301,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     if let Some(row) = rows.iter().find(|r| r["localized"] == 0) {
         anyhow::bail!(
             "{}: the demo localized none of its {} queries with the {} map",
-            out.display(),
+            sfpmap::escape::path(&out),
             scene.queries.len(),
             row["map"].as_str().unwrap_or("?")
         );

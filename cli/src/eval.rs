@@ -22,20 +22,13 @@ pub struct Args {
     /// The map, for relative errors and its size.
     #[arg(long)]
     pub map: Option<PathBuf>,
-    /// Recall thresholds `meters,degrees` (repeat); default 0.25,2 0.5,5 5,10 (map units).
-    #[arg(long = "threshold", value_parser = parse_threshold)]
+    /// Recall thresholds `meters,degrees` (repeat): a finite distance over 0 (map units) and
+    /// an angle in (0, 180]; default 0.25,2 0.5,5 5,10.
+    #[arg(long = "threshold", value_parser = super::args::recall_threshold)]
     pub thresholds: Vec<(f64, f64)>,
     /// Print one JSON object (medians, recall, map_bytes, scale, per_query) instead of text.
     #[arg(long)]
     pub json: bool,
-}
-
-fn parse_threshold(s: &str) -> Result<(f64, f64), String> {
-    let (t, r) = s.split_once(',').ok_or("expected TRANSLATION,DEGREES")?;
-    Ok((
-        t.trim().parse().map_err(|_| "bad translation")?,
-        r.trim().parse().map_err(|_| "bad degrees")?,
-    ))
 }
 
 pub fn run(args: Args, _quiet: bool) -> anyhow::Result<ExitCode> {

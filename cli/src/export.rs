@@ -92,7 +92,7 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         .collect();
     check_outputs(&outputs, &[&args.map], args.force)?;
     let map = super::open_map(&args.map)?;
-    let source = args.map.display().to_string();
+    let source = sfpmap::escape::path(&args.map).to_string();
     let mut report = serde_json::Map::new();
     let mut lines = Vec::new();
     let mut colmap = None;
@@ -117,7 +117,7 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         );
         lines.push(format!(
             "{}: {} points ({} in levels)",
-            path.display(),
+            sfpmap::escape::path(path),
             s.points,
             s.points_in_levels
         ));
@@ -130,7 +130,7 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         );
         lines.push(format!(
             "{}: {} cameras, {} images, {} points, {} observations",
-            dir.display(),
+            sfpmap::escape::path(dir),
             s.cameras,
             s.images,
             s.points,
@@ -142,7 +142,7 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         #[cfg(not(feature = "colmap"))]
         bail!(
             "{}: kapture export needs sfpmap built with the colmap feature",
-            dir.display()
+            sfpmap::escape::path(&dir)
         );
         #[cfg(feature = "colmap")]
         {
@@ -157,7 +157,7 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
             );
             lines.push(format!(
                 "{}: kapture with {} cameras, {} images, {} points, {} observations",
-                dir.display(),
+                sfpmap::escape::path(dir),
                 s.cameras,
                 s.images,
                 s.points,
@@ -184,7 +184,10 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
             key.into(),
             json!({"path": path.display().to_string(), "images": n_images}),
         );
-        lines.push(format!("{}: {n_images} image poses", path.display()));
+        lines.push(format!(
+            "{}: {n_images} image poses",
+            sfpmap::escape::path(path)
+        ));
     }
     if map.source().is_some() {
         report.insert("transfer".into(), super::transfer_json(&map));

@@ -34,8 +34,9 @@ pub struct Args {
     /// Resize images so the longer side is at most this (keypoints are scaled back).
     #[arg(long, value_parser = clap::value_parser!(u32).range(16..))]
     pub resize_max: Option<u32>,
-    /// Score threshold after NMS (default: the model's sfp.default_threshold).
-    #[arg(long)]
+    /// Score threshold after NMS (finite, 0 or more; default: the model's
+    /// sfp.default_threshold).
+    #[arg(long, value_parser = super::args::score)]
     pub threshold: Option<f32>,
     /// NMS radius in cells (default: the model's).
     #[arg(long)]
@@ -72,10 +73,10 @@ fn is_image(p: &Path) -> bool {
 
 fn walk(dir: &Path, root: &Path, out: &mut Vec<(String, PathBuf)>) -> anyhow::Result<()> {
     let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
-        .with_context(|| dir.display().to_string())?
+        .with_context(|| sfpmap::escape::path(dir).to_string())?
         .map(|e| e.map(|e| e.path()))
         .collect::<Result<_, _>>()
-        .with_context(|| dir.display().to_string())?;
+        .with_context(|| sfpmap::escape::path(dir).to_string())?;
     entries.sort();
     for p in entries {
         if p.is_dir() {
@@ -107,7 +108,7 @@ pub fn collect_images(inputs: &[PathBuf]) -> anyhow::Result<Vec<(String, PathBuf
                 .unwrap_or_default();
             images.push((name, input.clone()));
         } else {
-            bail!("{}: no such file or folder", input.display());
+            bail!("{}: no such file or folder", sfpmap::escape::path(input));
         }
     }
     if images.is_empty() {
@@ -266,7 +267,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         println!(
             "{}: {} images, {} bytes; median {median:.1} ms per image ({} threads: network {:.1}, \
              keypoints and descriptors {:.1}, global {:.1}; decode before it {:.1})",
-            args.output.display(),
+            sfpmap::escape::path(&args.output),
             results.len(),
             bytes,
             threads,

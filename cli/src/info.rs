@@ -48,7 +48,7 @@ fn print_info_text(map: &Map<'_>, meta: &Metadata, path: &std::path::Path) -> an
     writeln!(
         out,
         "{}: sfpmap {}, {} bytes, {} points, {} images, {} cameras{}",
-        path.display(),
+        sfpmap::escape::path(path),
         map.version(),
         map.file_len(),
         map.n_points(),

@@ -75,7 +75,9 @@ pub(super) fn output_files(args: &Args) -> Vec<PathBuf> {
 /// `--camera` for all. Query features: for SFP maps extracted from the images in --images
 /// with the map's model (embedded by default); for SIFT maps from a COLMAP database holding
 /// the queries' keypoints and descriptors (`--database queries.db`). Failed queries are written
-/// as `# failed NAME: reason` lines. Example:
+/// as `# failed NAME: reason` lines; a query whose features cannot be read (missing, an image
+/// that does not decode, a name outside --images, a malformed entry of --features or
+/// --database) fails alone, and the exit status is then 3. Example:
 /// `sfpmap localize --map sb.sfpm --query-list queries.txt --database queries.db -o poses.txt`
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -93,11 +95,12 @@ pub struct Args {
           value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub places: usize,
     /// With --catalog: only places whose bounding box lies within --radius of this world
-    /// point ("x,y,z").
-    #[arg(long, requires = "catalog", value_name = "X,Y,Z")]
-    pub prior: Option<String>,
-    /// With --prior: how far from a place's bounding box the prior may be (map units).
-    #[arg(long, default_value_t = 50.0, requires = "prior")]
+    /// point ("x,y,z", three finite numbers).
+    #[arg(long, requires = "catalog", value_name = "X,Y,Z", value_parser = super::args::point)]
+    pub prior: Option<[f64; 3]>,
+    /// With --prior: how far from a place's bounding box the prior may be (map units; finite,
+    /// 0 or more).
+    #[arg(long, default_value_t = 50.0, requires = "prior", value_parser = super::args::distance)]
     pub radius: f64,
     /// Query list: `name MODEL W H params...` per line (or names only with --camera).
     #[cfg_attr(feature = "mcap", arg(long, required_unless_present = "mcap"))]
@@ -134,14 +137,16 @@ pub struct Args {
     /// Match with the short descriptor block only.
     #[arg(long)]
     pub short: bool,
-    /// Database images retrieved per query (maps with global descriptors or VLAD).
+    /// Database images retrieved per query (maps with global descriptors or VLAD; 1 to
+    /// 100000).
     #[arg(long, default_value_t = sfpmap::format::DEFAULT_RETRIEVAL_TOP_K)]
     pub top_k: usize,
     /// What ranks the database images: the map's stated preference (auto), its VLAD of local
     /// descriptors, the extractor's global descriptor, or nothing (every point a candidate).
     #[arg(long, value_enum, default_value = "auto")]
     pub retrieval: RetrievalArg,
-    /// Lowe ratio for coarse matching (default: 0.95 on SFP maps, 0.9 on SIFT maps).
+    /// Lowe ratio for coarse matching, in (0, 1] (default: 0.95 on SFP maps, 0.9 on SIFT
+    /// maps).
     #[arg(long)]
     pub ratio: Option<f32>,
     /// Output poses.
@@ -276,7 +281,7 @@ fn warn_skipped(skipped: &[SkippedLevel], map: &Path, reporter: &dyn Reporter) {
     if !skipped.is_empty() {
         reporter.warn(&format!(
             "{}: {} level(s) not matched: {}",
-            map.display(),
+            sfpmap::escape::path(map),
             skipped.len(),
             describe_skipped(skipped)
         ));
@@ -287,11 +292,11 @@ fn warn_skipped(skipped: &[SkippedLevel], map: &Path, reporter: &dyn Reporter) {
 fn check_images_dir(dir: &Path) -> anyhow::Result<()> {
     match std::fs::metadata(dir) {
         Ok(m) if m.is_dir() => Ok(()),
-        Ok(_) => bail!("{}: --images is not a folder", dir.display()),
+        Ok(_) => bail!("{}: --images is not a folder", sfpmap::escape::path(dir)),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            bail!("{}: no such folder (--images)", dir.display())
+            bail!("{}: no such folder (--images)", sfpmap::escape::path(dir))
         }
-        Err(e) => bail!("{}: {e}", dir.display()),
+        Err(e) => bail!("{}: {e}", sfpmap::escape::path(dir)),
     }
 }
 
@@ -306,7 +311,7 @@ fn query_source(args: &Args, queries: &[Query], query_list: &Path) -> anyhow::Re
     if let Some(path) = &args.features {
         bail!(
             "{}: reading features.h5 needs the hdf5 feature",
-            path.display()
+            sfpmap::escape::path(&path)
         );
     }
     if let Some(db) = &args.database {
@@ -323,12 +328,13 @@ fn query_source(args: &Args, queries: &[Query], query_list: &Path) -> anyhow::Re
         };
         // A list naming none of the folder's images is a mistake, not N failed queries.
         // `exists`, not `is_file`: a FIFO or folder there is reported as what it is, later.
-        if !queries.iter().any(|q| images.join(&q.name).exists()) {
+        let inside = |q: &Query| sfpmap::input::join_inside(&images, &q.name).ok();
+        if !queries.iter().filter_map(inside).any(|p| p.exists()) {
             bail!(
                 "{}: none of the {} images {} names is in this folder (first: {:?})",
-                images.display(),
+                sfpmap::escape::path(&images),
                 queries.len(),
-                query_list.display(),
+                sfpmap::escape::path(query_list),
                 queries[0].name
             );
         }
@@ -402,7 +408,8 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     } else if !quiet {
         run.print(&args, quiet);
     }
-    Ok(ExitCode::SUCCESS)
+    let unread = results.iter().filter(|r| unread_query(r)).count();
+    Ok(exit_status(&args.output, unread, results.len(), &bars))
 }
 
 /// The queries of `query_list` (with `--camera` for all, if given), checked before any work:
@@ -417,7 +424,10 @@ fn read_queries(args: &Args, query_list: &Path) -> anyhow::Result<Vec<Query>> {
     let queries = read_query_list(query_list, camera.as_ref())?;
     check_pose_names(query_list, args.format, &queries)?;
     let images: Vec<PathBuf> = match &args.images {
-        Some(dir) => queries.iter().map(|q| dir.join(&q.name)).collect(),
+        Some(dir) => queries
+            .iter()
+            .filter_map(|q| sfpmap::input::join_inside(dir, &q.name).ok())
+            .collect(),
         None => Vec::new(),
     };
     check_outputs(args, &[query_list], &images)?;
@@ -449,7 +459,7 @@ fn open_session(
         sfpmap::session::check_extractable(&map, &name).map_err(|e| with_hint(e, SIFT_HINT))?;
         bail!(
             "{}: pass the query images with --images DIR (features are extracted with the SFP model)",
-            query_list.display()
+            sfpmap::escape::path(query_list)
         );
     }
     let session = session(args, map, source, args.sequence, SIFT_HINT, bars)?;
@@ -521,7 +531,7 @@ impl Finished<'_> {
         let total = self.queries.len();
         println!(
             "{}: {}/{total} localized, median {:.1} ms per query (after features)",
-            args.output.display(),
+            sfpmap::escape::path(&args.output),
             self.localized(),
             median(self.results.iter().map(|r| r.times.total_ms).collect()).unwrap_or(f64::NAN)
         );
@@ -550,6 +560,28 @@ fn print_paths(paths: &PathCounts, total: usize) {
     }
 }
 
+/// The exit status of a run that skipped what it could not read and did the rest: damaged
+/// parts of an MCAP log, queries of a list whose features could not be read (missing, an image
+/// that does not decode, a features file's or database's entry that is malformed or does not
+/// fit the map). 1 is an error, 2 a usage error.
+pub const SKIPPED_EXIT: u8 = 3;
+
+/// The exit status of a query-list run that wrote its poses: [`SKIPPED_EXIT`] when some
+/// queries could not be read (each is a `# failed NAME: reason` line of the output), with one
+/// warning saying how many.
+fn exit_status(output: &Path, unread: usize, total: usize, reporter: &dyn Reporter) -> ExitCode {
+    if unread == 0 {
+        return ExitCode::SUCCESS;
+    }
+    reporter.warn(&format!(
+        "{}: {unread} of {} queries could not be read (exit status {SKIPPED_EXIT}); each is a \
+         \"# failed\" line there",
+        sfpmap::escape::path(output),
+        total
+    ));
+    ExitCode::from(SKIPPED_EXIT)
+}
+
 /// What to do instead when a query-list run meets a SIFT map without `--database`.
 const SIFT_HINT: &str = "pass the queries' features with --database queries.db";
 
@@ -562,7 +594,7 @@ fn unread_query(r: &Localization) -> bool {
 fn none_read(query_list: &Path, queries: &[Query], results: &[Localization]) -> anyhow::Error {
     anyhow::anyhow!(
         "{}: none of the {} queries could be read ({}: {})",
-        query_list.display(),
+        sfpmap::escape::path(query_list),
         queries.len(),
         // From the list as it is: escaped for the terminal.
         quoted_name(&queries[0].name),
@@ -603,7 +635,7 @@ fn check_pose_names(
             if let Some(problem) = sfpmap::io::kapture::name_problem(&q.name) {
                 bail!(
                     "{}: query {} {} {problem}, which --format kapture cannot hold (--format json keeps any name)",
-                    query_list.display(),
+                    sfpmap::escape::path(query_list),
                     i + 1,
                     quoted_name(&q.name)
                 );
@@ -617,7 +649,7 @@ fn check_pose_names(
         if let Some(problem) = text_name_problem(&q.name) {
             bail!(
                 "{}: query {} {} {problem}, which --format colmap cannot hold (--format json keeps any name)",
-                query_list.display(),
+                sfpmap::escape::path(query_list),
                 i + 1,
                 quoted_name(&q.name)
             );

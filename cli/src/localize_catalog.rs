@@ -17,18 +17,6 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::sync::Arc;
 
-fn parse_prior(text: &str) -> anyhow::Result<[f64; 3]> {
-    let v: Vec<f64> = text
-        .split(',')
-        .map(|x| x.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .with_context(|| format!("--prior {text:?}: expected x,y,z"))?;
-    match v[..] {
-        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([x, y, z]),
-        _ => bail!("--prior {text:?}: expected three finite numbers x,y,z"),
-    }
-}
-
 pub(super) fn run(
     args: &Args,
     catalog_path: &Path,
@@ -47,8 +35,7 @@ pub(super) fn run(
     let mut inputs = vec![catalog_path, query_list];
     inputs.extend(args.database.as_deref());
     inputs.extend(args.features.as_deref());
-    let prior = args.prior.as_deref().map(parse_prior).transpose()?;
-    let near = prior.map(|position| Near {
+    let near = args.prior.map(|position| Near {
         position,
         radius: args.radius,
     });
@@ -98,7 +85,8 @@ pub(super) fn run(
     } else if !quiet {
         summary.print(args);
     }
-    Ok(ExitCode::SUCCESS)
+    let unread = found.iter().filter(|f| !f.features_read).count();
+    Ok(super::exit_status(&args.output, unread, found.len(), bars))
 }
 
 /// A catalog run that wrote its poses, for its summary.
@@ -165,10 +153,10 @@ impl Summary<'_> {
     fn print(&self, args: &Args) {
         println!(
             "{}: {}/{} localized with catalog {}",
-            args.output.display(),
+            sfpmap::escape::path(&args.output),
             self.localized(),
             self.queries.len(),
-            self.catalog_path.display()
+            sfpmap::escape::path(self.catalog_path)
         );
         for (name, n) in &self.per_place() {
             // The catalog's text: control characters escaped, so it cannot drive the terminal.

@@ -8,7 +8,7 @@
 //! read or decoded at all.
 
 use super::super::Bars;
-use super::Args;
+use super::{Args, SKIPPED_EXIT};
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::escape::escape_control_characters;
@@ -22,10 +22,6 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::Instant;
-
-/// The exit status of a run that skipped damaged parts of the log (1 is an error, 2 a usage
-/// error).
-pub const SKIPPED_EXIT: u8 = 3;
 
 /// The MCAP flags of `sfpmap localize`.
 #[derive(Debug, clap::Args)]
@@ -128,7 +124,7 @@ fn warn_damage(found: &LogLocalization, bars: &Bars) {
     };
     bars.warn(&format!(
         "{}: {parts} of the log skipped (exit status {SKIPPED_EXIT}); image messages on {}: {} read, {lost}",
-        found.path().display(),
+        sfpmap::escape::path(found.path()),
         found.topic(),
         found.images()
     ));
@@ -205,10 +201,10 @@ fn print(args: &Args, found: &LogLocalization) {
     let results = found.results();
     println!(
         "{}: {}/{} images of {} localized, median {:.1} ms per image (after features)",
-        args.output.display(),
+        sfpmap::escape::path(&args.output),
         found.localized(),
         found.images(),
-        found.topic(),
+        escape_control_characters(found.topic()),
         median(results.clone().map(|r| r.times.total_ms).collect()).unwrap_or(f64::NAN)
     );
     super::print_paths(&PathCounts::of(results), found.images());

@@ -5,6 +5,7 @@
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
+mod args;
 #[cfg(feature = "localize")]
 mod bench_pose;
 #[cfg(feature = "colmap")]
@@ -106,7 +107,13 @@ fn main() -> ExitCode {
             {
                 return ExitCode::SUCCESS;
             }
-            eprintln!("error: {err:#}");
+            // Every path and name in it is escaped where it is shown; this holds the line to
+            // one, whatever a dependency's message quotes.
+            let text = format!("{err:#}");
+            eprintln!(
+                "error: {}",
+                sfpmap::escape::escape_control_characters(&text)
+            );
             ExitCode::from(1)
         }
     }
@@ -201,7 +208,7 @@ fn warn_whole_object(map: &sfpmap::format::Map<'_>, quiet: bool) {
     if let Some(source) = map.source().filter(|s| !quiet && s.stats().whole_object) {
         eprintln!(
             "warning: {}: the server ignores range requests; the whole object ({} bytes) was read",
-            source.name(),
+            sfpmap::escape::escape_control_characters(source.name()),
             source.len()
         );
     }
@@ -209,6 +216,7 @@ fn warn_whole_object(map: &sfpmap::format::Map<'_>, quiet: bool) {
 
 /// `URL: read N bytes in K requests (C sections, B bytes from the cache)`.
 pub fn transfer_line(name: &str, s: &sfpmap::format::SourceStats) -> String {
+    let name = sfpmap::escape::escape_control_characters(name);
     let mut line = format!(
         "{name}: read {} bytes in {} request{}",
         s.bytes,
@@ -231,7 +239,7 @@ pub fn transfer_line(name: &str, s: &sfpmap::format::SourceStats) -> String {
 pub fn naming(path: &std::path::Path) -> impl FnOnce(sfpmap::format::Error) -> anyhow::Error + '_ {
     move |e| match e {
         sfpmap::format::Error::Io { .. } => anyhow::Error::new(e),
-        e => anyhow::Error::new(e).context(path.display().to_string()),
+        e => anyhow::Error::new(e).context(sfpmap::escape::path(path).to_string()),
     }
 }
 
@@ -257,8 +265,8 @@ pub fn check_outputs(
         if let Some(j) = places[..i].iter().position(|b| a.is_some() && b == a) {
             anyhow::bail!(
                 "{}: named as two outputs (also as {}); give each output its own file",
-                outputs[i].display(),
-                outputs[j].display()
+                sfpmap::escape::path(outputs[i]),
+                sfpmap::escape::path(outputs[j])
             );
         }
     }
@@ -273,7 +281,7 @@ pub fn write_atomic<T>(
 ) -> anyhow::Result<T> {
     use anyhow::Context;
     sfpmap::output::write_atomic(path, |out| {
-        write(out).with_context(|| path.display().to_string())
+        write(out).with_context(|| sfpmap::escape::path(path).to_string())
     })
 }
 

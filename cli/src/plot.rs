@@ -26,14 +26,15 @@ pub struct Args {
     /// The PNG to write.
     #[arg(short, long)]
     pub output: PathBuf,
-    /// Image width in pixels.
-    #[arg(long, default_value_t = 1600)]
+    /// Image width in pixels (64 to 16384).
+    #[arg(long, default_value_t = 1600, value_parser = clap::value_parser!(u32).range(64..=16384))]
     pub width: u32,
-    /// Image height in pixels.
-    #[arg(long, default_value_t = 1200)]
+    /// Image height in pixels (64 to 16384).
+    #[arg(long, default_value_t = 1200, value_parser = clap::value_parser!(u32).range(64..=16384))]
     pub height: u32,
-    /// Draw at most this many points (every k-th point beyond it).
-    #[arg(long, default_value_t = 200_000)]
+    /// Draw at most this many points, 1 or more (every k-th point beyond it).
+    #[arg(long, default_value_t = 200_000,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub max_points: usize,
     /// Title (default: the map's file name and counts).
     #[arg(long)]
@@ -54,10 +55,6 @@ fn centres(path: &Path) -> anyhow::Result<Vec<(String, [f64; 3])>> {
 }
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
-    anyhow::ensure!(
-        (64..=16384).contains(&args.width) && (64..=16384).contains(&args.height),
-        "--width and --height must be between 64 and 16384"
-    );
     let inputs: Vec<&Path> = std::iter::once(args.map.as_path())
         .chain(args.poses.as_deref())
         .chain(args.gt.as_deref())
@@ -77,7 +74,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .transpose()?
         .unwrap_or_default();
     let name = args.map.file_name().map_or_else(
-        || args.map.display().to_string(),
+        || sfpmap::escape::path(&args.map).to_string(),
         |n| n.to_string_lossy().into(),
     );
     let title = args.title.clone().unwrap_or_else(|| {
@@ -101,10 +98,10 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         PlotError::Output(e) => anyhow::Error::new(e),
         // About what the map holds: name the map.
         e @ (PlotError::Empty | PlotError::Unplottable(_)) => {
-            anyhow::Error::new(e).context(args.map.display().to_string())
+            anyhow::Error::new(e).context(sfpmap::escape::path(&args.map).to_string())
         }
         PlotError::Format(e) => super::naming(&args.map)(e),
-        e => anyhow::Error::new(e).context(args.output.display().to_string()),
+        e => anyhow::Error::new(e).context(sfpmap::escape::path(&args.output).to_string()),
     })?;
     let axes = ["x", "y", "z"];
     if args.json {
@@ -118,7 +115,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     } else if !quiet {
         println!(
             "{}: {}–{} view, {} points, {} cameras, {} localized/ground-truth pairs",
-            args.output.display(),
+            sfpmap::escape::path(&args.output),
             axes[summary.axes.0],
             axes[summary.axes.1],
             summary.points_drawn,

@@ -61,6 +61,8 @@ impl Reporter for Bars {
 
     fn warn(&self, message: &str) {
         if !self.quiet {
+            // One line, whatever the library quotes (paths and names are escaped there too).
+            let message = sfpmap::escape::escape_control_characters(message);
             let bar = self.bar.lock().unwrap_or_else(|p| p.into_inner());
             match bar.as_ref() {
                 Some(b) => b.suspend(|| eprintln!("warning: {message}")),

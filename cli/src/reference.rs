@@ -54,9 +54,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => bail!(
             "{}: not the guide's folder (it has no {BOOK_TOML}); pass the docs folder, \
              e.g. --out docs",
-            out.display()
+            sfpmap::escape::path(out)
         ),
-        Err(e) => return Err(e).with_context(|| book.display().to_string()),
+        Err(e) => return Err(e).with_context(|| sfpmap::escape::path(&book).to_string()),
     }
     let files = reference_files()?;
     // All checked before any is created: a refusal leaves nothing behind.
@@ -66,8 +66,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     for folder in FOLDERS {
         let path = out.join(folder);
         if !check_folder(&path)? {
-            std::fs::create_dir(&path)
-                .with_context(|| format!("{}: cannot create the folder", path.display()))?;
+            std::fs::create_dir(&path).with_context(|| {
+                format!("{}: cannot create the folder", sfpmap::escape::path(&path))
+            })?;
         }
     }
     for (name, bytes) in &files {
@@ -84,7 +85,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     if !quiet {
         eprintln!(
             "{}: wrote {} files of the CLI reference{}",
-            out.display(),
+            sfpmap::escape::path(out),
             files.len(),
             match removed {
                 0 => String::new(),
@@ -101,12 +102,12 @@ fn check_folder(path: &Path) -> anyhow::Result<bool> {
     match std::fs::symlink_metadata(path) {
         Ok(meta) if meta.file_type().is_symlink() => bail!(
             "{}: is a symlink; the CLI reference is only written into real folders",
-            path.display()
+            sfpmap::escape::path(path)
         ),
         Ok(meta) if meta.is_dir() => Ok(true),
-        Ok(_) => bail!("{}: exists and is not a folder", path.display()),
+        Ok(_) => bail!("{}: exists and is not a folder", sfpmap::escape::path(path)),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
-        Err(e) => Err(e).with_context(|| path.display().to_string()),
+        Err(e) => Err(e).with_context(|| sfpmap::escape::path(path).to_string()),
     }
 }
 
@@ -134,16 +135,17 @@ fn remove_stale(
     let folder = out.join(dir);
     match std::fs::symlink_metadata(&folder) {
         Ok(meta) if meta.is_dir() => {}
-        Ok(_) => bail!("{}: is not a folder", folder.display()),
+        Ok(_) => bail!("{}: is not a folder", sfpmap::escape::path(&folder)),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
-        Err(e) => return Err(e).with_context(|| folder.display().to_string()),
+        Err(e) => return Err(e).with_context(|| sfpmap::escape::path(&folder).to_string()),
     }
     let entries = std::fs::read_dir(&folder)
-        .with_context(|| format!("{}: cannot list the folder", folder.display()))?;
+        .with_context(|| format!("{}: cannot list the folder", sfpmap::escape::path(&folder)))?;
     let mut removed = 0;
     for entry in entries {
-        let entry =
-            entry.with_context(|| format!("{}: cannot list the folder", folder.display()))?;
+        let entry = entry.with_context(|| {
+            format!("{}: cannot list the folder", sfpmap::escape::path(&folder))
+        })?;
         let path = entry.path();
         let Some(name) = entry.file_name().to_str().map(str::to_owned) else {
             continue;
@@ -157,12 +159,16 @@ fn remove_stale(
         // The entry itself, not what a symlink points at.
         let kind = entry
             .file_type()
-            .with_context(|| path.display().to_string())?;
+            .with_context(|| sfpmap::escape::path(&path).to_string())?;
         if !kind.is_file() || !generated_by_us(&path, command, preamble)? {
             continue;
         }
-        std::fs::remove_file(&path)
-            .with_context(|| format!("{}: cannot remove the stale man page", path.display()))?;
+        std::fs::remove_file(&path).with_context(|| {
+            format!(
+                "{}: cannot remove the stale man page",
+                sfpmap::escape::path(&path)
+            )
+        })?;
         removed += 1;
     }
     Ok(removed)
@@ -198,18 +204,20 @@ fn generated_by_us(path: &Path, command: &str, preamble: &[u8]) -> anyhow::Resul
         Ok(file) => file,
         // Swapped for a symlink since it was listed (ELOOP), or gone: not ours to remove.
         Err(_) if !std::fs::symlink_metadata(path).is_ok_and(|m| m.is_file()) => return Ok(false),
-        Err(e) => return Err(e).with_context(|| format!("{}: cannot open", path.display())),
+        Err(e) => {
+            return Err(e).with_context(|| format!("{}: cannot open", sfpmap::escape::path(path)))
+        }
     };
     let meta = file
         .metadata()
-        .with_context(|| format!("{}: cannot read", path.display()))?;
+        .with_context(|| format!("{}: cannot read", sfpmap::escape::path(path)))?;
     if !meta.is_file() {
         return Ok(false);
     }
     let mut head = Vec::new();
     file.take(HEADER_MAX)
         .read_to_end(&mut head)
-        .with_context(|| format!("{}: cannot read", path.display()))?;
+        .with_context(|| format!("{}: cannot read", sfpmap::escape::path(path)))?;
     let Some(rest) = head.strip_prefix(preamble) else {
         return Ok(false);
     };

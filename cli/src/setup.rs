@@ -40,7 +40,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         {
             bars.warn(&format!(
                 "the runtime in use is {} (ORT_DYLIB_PATH or beside the executable), not the cached one",
-                rt.location.path.display()
+                sfpmap::escape::path(&rt.location.path)
             ));
         }
     }
@@ -55,7 +55,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     } else if !quiet {
         println!(
             "{}: ONNX Runtime {ORT_VERSION}, {} bytes ({})",
-            report.path.display(),
+            sfpmap::escape::path(&report.path),
             report.bytes,
             if report.fetched {
                 "fetched"

@@ -89,7 +89,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         Some(budget) => {
             let levels = (!args.levels.is_empty()).then_some(&args.levels[..]);
             let chosen = slice_to_budget(&map, budget, levels)
-                .with_context(|| input.display().to_string())?;
+                .with_context(|| sfpmap::escape::path(input).to_string())?;
             budget_report = Some(chosen.report(budget));
             if !quiet && !args.json {
                 println!(
@@ -109,7 +109,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 minimal: args.minimal,
             };
             slice_quantised(&map, &options, args.pq.map(usize::from))
-                .with_context(|| input.display().to_string())?
+                .with_context(|| sfpmap::escape::path(input).to_string())?
         }
     };
     let bars = super::Bars::new(quiet, args.json);
@@ -131,8 +131,8 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         super::report_transfer(&map, quiet);
         println!(
             "{}: {before} bytes -> {}: {written} bytes ({:.2}x smaller), points {} -> {}",
-            input.display(),
-            output.display(),
+            sfpmap::escape::path(input),
+            sfpmap::escape::path(output),
             before as f64 / written.max(1) as f64,
             summary.points_before,
             summary.points_after

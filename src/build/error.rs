@@ -114,42 +114,45 @@ impl fmt::Display for ConvertError {
             ConvertError::NameMismatch { features, image_id, model, found } => write!(
                 f,
                 "{}: image {image_id} is {found:?} in the database but {model:?} in the model (a database of another reconstruction?)",
-                features.display()
+                crate::escape::path(features)
             ),
             ConvertError::KeypointOutOfRange { features, image, point2d_idx, keypoints } => write!(
                 f,
                 "{}: image {image:?} has {keypoints} keypoints but the model observes point2D {point2d_idx}",
-                features.display()
+                crate::escape::path(features)
             ),
             ConvertError::KeypointScaleNotFinite { features, image, point2d_idx } => write!(
                 f,
                 "{}: image {}: keypoint {point2d_idx}: scale is not finite",
-                features.display(),
+                crate::escape::path(features),
                 crate::colmap::shown_name(image)
             ),
             ConvertError::MissingFeatures { features, image } => write!(
                 f,
                 "{}: image {image:?} has no keypoints or descriptors (without --strict it would be skipped)",
-                features.display()
+                crate::escape::path(features)
             ),
             ConvertError::DescriptorDim { features, image, expected, found } => write!(
                 f,
                 "{}: image {image:?} has {found}-dimensional descriptors, others have {expected}",
-                features.display()
+                crate::escape::path(features)
             ),
             ConvertError::Input(e) => e.fmt(f),
-            ConvertError::Options(message) => f.write_str(message),
+            // Options' messages name paths and names a user gave.
+            ConvertError::Options(message) => {
+                f.write_str(&crate::escape::escape_control_characters(message))
+            }
             ConvertError::KeypointOutsideImage { features, image, keypoint, xy, size } => write!(
                 f,
                 "{}: image {}: keypoint {keypoint} at ({}, {}) lies outside the {} x {} image",
-                features.display(),
+                crate::escape::path(features),
                 crate::colmap::shown_name(image),
                 xy[0],
                 xy[1],
                 size[0],
                 size[1]
             ),
-            ConvertError::Io { path, source } => write!(f, "{}: {source}", path.display()),
+            ConvertError::Io { path, source } => write!(f, "{}: {source}", crate::escape::path(path)),
             ConvertError::Kapture(e) => e.fmt(f),
             #[cfg(feature = "onnx")]
             ConvertError::Extract(e) => e.fmt(f),
@@ -163,9 +166,9 @@ impl fmt::Display for ConvertError {
                 write!(
                     f,
                     "{}: {} of {total} model images missing ({}{}); pass --allow-missing to skip them",
-                    images.display(),
+                    crate::escape::path(images),
                     missing.len(),
-                    shown.join(", "),
+                    crate::escape::escape_control_characters(&shown.join(", ")),
                     if missing.len() > 5 { ", …" } else { "" }
                 )
             }

@@ -116,14 +116,14 @@ pub fn convert_kapture(
     if kapture.records_without_pose > 0 {
         reporter.warn(&format!(
             "{}: {} camera records have no pose; their images are not in the map",
-            dir.display(),
+            crate::escape::path(dir),
             kapture.records_without_pose
         ));
     }
     if kapture.observations_skipped > 0 {
         reporter.warn(&format!(
             "{}: {} observations of images without a pose left out",
-            dir.display(),
+            crate::escape::path(dir),
             kapture.observations_skipped
         ));
     }

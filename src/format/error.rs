@@ -260,7 +260,7 @@ impl fmt::Display for Error {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         use Error::*;
         match self {
-            Io { path, message } => write!(f, "{}: {message}", path.display()),
+            Io { path, message } => write!(f, "{}: {message}", crate::escape::path(path)),
             NotARegularFile { what } => write!(f, "is {what}, not a regular file"),
             BadMagic => f.write_str("not an sfpmap file (bad magic)"),
             VersionMismatch {

@@ -41,9 +41,11 @@ pub struct InputError {
 
 impl std::fmt::Display for InputError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // The message quotes the file's text (names, values): escaped, so the line stays one.
+        let message = crate::escape::escape_control_characters(&self.message);
         match self.line {
-            Some(line) => write!(f, "{}:{line}: {}", self.path.display(), self.message),
-            None => write!(f, "{}: {}", self.path.display(), self.message),
+            Some(line) => write!(f, "{}:{line}: {message}", crate::escape::path(&self.path)),
+            None => write!(f, "{}: {message}", crate::escape::path(&self.path)),
         }
     }
 }

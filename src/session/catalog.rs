@@ -339,8 +339,8 @@ impl CatalogSession {
     }
 
     /// The query `name` from the session's source, localized in its best-ranked places
-    /// (those `near` allows). A query whose features cannot be read is a
-    /// [`QueryFailure::NoFeatures`] with `read` false, not an error.
+    /// (those `near` allows). A query whose features cannot be read, or do not fit the
+    /// places, is a [`QueryFailure::NoFeatures`] with `read` false, not an error.
     pub fn localize(
         &self,
         name: &str,
@@ -352,15 +352,21 @@ impl CatalogSession {
             .lock()
             .unwrap_or_else(|p| p.into_inner())
             .read(name)?;
-        match read {
-            Ok(features) => self.localize_features(&features, camera, name, near),
-            Err(reason) => Ok(CatalogLocalization {
-                localization: Localization::failed(QueryFailure::NoFeatures(reason)),
-                place: None,
-                ranked: Vec::new(),
-                features_read: false,
-            }),
-        }
+        // Features read by name that do not fit the places fail this query alone, as
+        // features that cannot be read do.
+        let reason = match read {
+            Ok(features) => match self.localize_features(&features, camera, name, near) {
+                Err(e) => e.unusable_query().ok_or(e)?,
+                found => return found,
+            },
+            Err(reason) => reason,
+        };
+        Ok(CatalogLocalization {
+            localization: Localization::failed(QueryFailure::NoFeatures(reason)),
+            place: None,
+            ranked: Vec::new(),
+            features_read: false,
+        })
     }
 
     /// Each of `queries` localized as [`CatalogSession::localize`] does, on `threads`
@@ -463,7 +469,7 @@ impl CatalogSession {
         }
         let made = self.open_place(i).and_then(|map| {
             let options = (self.place_options)(&map);
-            let location = self.locations[i].display().to_string();
+            let location = crate::escape::path(&self.locations[i]).to_string();
             Session::builder(Arc::new(map), location)
                 .options(options)
                 .build(&crate::progress::Silent)
@@ -513,7 +519,7 @@ impl CatalogSession {
     fn open_place(&self, i: usize) -> Result<Map<'static>, SessionError> {
         let location = &self.locations[i];
         let map_error = |source| SessionError::Map {
-            map: location.display().to_string(),
+            map: crate::escape::path(location).to_string(),
             source,
         };
         #[cfg(feature = "remote")]
@@ -540,7 +546,7 @@ impl CatalogSession {
             return Err(SessionError::Mismatch(format!(
                 "{}: not the map the catalog was built from (index checksum {found}, catalog \
                  says {recorded}); rebuild the catalog",
-                location.display()
+                crate::escape::path(location)
             )));
         }
         Ok(map)

@@ -83,7 +83,7 @@ impl ImageLog {
         if let Some(e) = reader.summary_error() {
             reporter.warn(&format!(
                 "{}: the summary section is not used ({e}); damage in the log cannot be skipped by its chunk index",
-                path.display()
+                crate::escape::path(path)
             ));
         }
         let mut log = ImageLog {
@@ -558,7 +558,7 @@ impl std::fmt::Display for LogError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             LogError::Open { path, source } | LogError::Write { path, source } => {
-                write!(f, "{}: {source}", path.display())
+                write!(f, "{}: {source}", crate::escape::path(path))
             }
             LogError::NoTopic {
                 path,
@@ -567,7 +567,7 @@ impl std::fmt::Display for LogError {
             } => write!(
                 f,
                 "{}: no topic {topic:?}; topics present: {topics}",
-                path.display()
+                crate::escape::path(path)
             ),
             LogError::NoCameraInfo {
                 path,
@@ -577,13 +577,13 @@ impl std::fmt::Display for LogError {
             } => write!(
                 f,
                 "{}: no message on camera-info topic {topic:?} before the log became unreadable ({damage}); topics seen: {topics}",
-                path.display()
+                crate::escape::path(path)
             ),
             LogError::CameraInfo {
                 path,
                 topic,
                 source,
-            } => write!(f, "{}: topic {topic}: {source}", path.display()),
+            } => write!(f, "{}: topic {topic}: {source}", crate::escape::path(path)),
             LogError::Unreadable {
                 path,
                 topic,
@@ -593,10 +593,10 @@ impl std::fmt::Display for LogError {
             } => write!(
                 f,
                 "{}: no message on topic {topic:?} could be read; {skipped} damaged parts skipped, the first: {first}; topics seen: {topics}",
-                path.display()
+                crate::escape::path(path)
             ),
             LogError::NoMessages { path, topic } => {
-                write!(f, "{}: topic {topic:?} has no messages", path.display())
+                write!(f, "{}: topic {topic:?} has no messages", crate::escape::path(path))
             }
             LogError::Undecodable {
                 path,
@@ -606,7 +606,7 @@ impl std::fmt::Display for LogError {
             } => write!(
                 f,
                 "{}: topic {topic:?}: none of its {images} images could be decoded: {first}",
-                path.display()
+                crate::escape::path(path)
             ),
             LogError::Session(e) => e.fmt(f),
             LogError::Output(e) => e.fmt(f),

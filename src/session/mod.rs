@@ -366,7 +366,22 @@ impl Session {
         match frame {
             Ok(frame) => {
                 let (features, deferred) = (&frame.features, frame.deferred());
-                self.localize_tracked(tracking.as_deref_mut(), features, deferred, camera, name)
+                let found = self.localize_tracked(
+                    tracking.as_deref_mut(),
+                    features,
+                    deferred,
+                    camera,
+                    name,
+                );
+                // Read from the source, not handed in: features that do not fit the map fail
+                // this query alone, as features that cannot be read do.
+                match found {
+                    Err(e) => match e.unusable_query() {
+                        Some(reason) => Ok(Localization::failed(QueryFailure::NoFeatures(reason))),
+                        None => Err(e),
+                    },
+                    found => found,
+                }
             }
             Err(reason) => {
                 if let Some(motion) = tracking.as_deref_mut() {
@@ -680,37 +695,74 @@ pub enum SessionError {
 }
 
 impl std::fmt::Display for SessionError {
+    /// Map and catalog names are the caller's (a path, a URL) and messages quote paths and
+    /// files: control characters escaped ([`crate::escape`]); query and place names are
+    /// quoted with Rust's escapes.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            SessionError::Localize { map, source } => write!(f, "{map}: {source}"),
+            SessionError::Localize { map, source } => write!(f, "{}: {source}", text(map)),
             SessionError::Query { map, query, source } => {
-                write!(f, "{map}: query {query:?}: {source}")
+                write!(f, "{}: query {query:?}: {source}", text(map))
             }
-            SessionError::Mismatch(m) | SessionError::NoSource(m) => f.write_str(m),
+            SessionError::Mismatch(m) | SessionError::NoSource(m) => f.write_str(&text(m)),
             SessionError::NotExtractable { map, descriptor } if descriptor.is_empty() => {
+                let map = text(map);
                 write!(f, "{map}: the map has no descriptors (geometry only)")
             }
             SessionError::NotExtractable { map, descriptor } => write!(
                 f,
-                "{map}: a map of {descriptor:?} descriptors, which the SFP extractor does not \
-                 make: its queries' features come from a COLMAP database or a features file"
+                "{}: a map of {descriptor:?} descriptors, which the SFP extractor does not \
+                 make: its queries' features come from a COLMAP database or a features file",
+                text(map)
             ),
             // An I/O error names its file already.
             SessionError::Map {
                 source: source @ FormatError::Io { .. },
                 ..
             } => source.fmt(f),
-            SessionError::Map { map, source } => write!(f, "{map}: {source}"),
+            SessionError::Map { map, source } => write!(f, "{}: {source}", text(map)),
             SessionError::Place {
                 catalog,
                 place,
                 source,
-            } => write!(f, "{catalog}: place {place:?}: {source}"),
+            } => write!(f, "{}: place {place:?}: {source}", text(catalog)),
             SessionError::Input(e) => e.fmt(f),
             #[cfg(feature = "colmap")]
-            SessionError::Database { path, source } => write!(f, "{}: {source}", path.display()),
+            SessionError::Database { path, source } => {
+                write!(f, "{}: {source}", crate::escape::path(path))
+            }
             #[cfg(feature = "onnx")]
             SessionError::Extract(e) => e.fmt(f),
+        }
+    }
+}
+
+/// A name or message for [`SessionError`]'s text, control characters escaped.
+fn text(s: &str) -> std::borrow::Cow<'_, str> {
+    crate::escape::escape_control_characters(s)
+}
+
+impl SessionError {
+    /// Why a query's own features cannot be localized (they do not fit the map's levels,
+    /// or hold a value that is not finite), `None` for any other error. An error for features
+    /// a caller hands in; a failed query ([`QueryFailure::NoFeatures`]) for a query a session
+    /// reads by name from its source (a features file, a database), so one bad entry does not
+    /// end a run.
+    pub(crate) fn unusable_query(&self) -> Option<String> {
+        match self {
+            SessionError::Query { source, .. } => matches!(
+                source,
+                LocalizeError::DescriptorMismatch { .. }
+                    | LocalizeError::NoFeaturesForLevel { .. }
+                    | LocalizeError::FeatureShape { .. }
+                    | LocalizeError::NonFinite(_)
+            )
+            .then(|| source.to_string()),
+            SessionError::Place { place, source, .. } => {
+                let reason = source.unusable_query()?;
+                Some(format!("place {place:?}: {reason}"))
+            }
+            _ => None,
         }
     }
 }

@@ -28,10 +28,11 @@ pub enum QuerySource {
     /// records its model (`sfp.model_name`, `sfp.model_xxh3`) must be the map's.
     #[cfg(feature = "hdf5")]
     FeaturesFile(PathBuf),
-    /// Extracted with an SFP model from the images of `folder`, by name (joined to the
-    /// folder as given: a caller passing names it did not choose checks them; `None`: images are
-    /// handed to [`Session::extract`], as decoded from an MCAP log). `model`: an ONNX file or
-    /// a built-in model's name; `None`: the built-in model the map was made with.
+    /// Extracted with an SFP model from the images of `folder`, by name (a name that is an
+    /// absolute path or has a `..` component fails its query: [`crate::input::join_inside`];
+    /// `None`: images are handed to [`Session::extract`], as decoded from an MCAP log).
+    /// `model`: an ONNX file or a built-in model's name; `None`: the built-in model the map
+    /// was made with.
     ///
     /// [`Session::extract`]: super::Session::extract
     #[cfg(feature = "onnx")]
@@ -179,7 +180,7 @@ impl Source {
                         name,
                         xxh3: h5.root_string("sfp.model_xxh3")?,
                     };
-                    fit.check_model(&model, || path.display().to_string())?;
+                    fit.check_model(&model, || crate::escape::path(&path).to_string())?;
                 }
                 #[cfg(feature = "onnx")]
                 if let Some(map) = map {
@@ -232,15 +233,22 @@ impl QueryReader {
                     map_name
                 )))
             }
+            // A query the file holds but that cannot be used (a NaN keypoint, descriptors
+            // that do not fit its keypoints) fails alone, as a missing one does; the error
+            // names the file, the query and what is wrong.
             #[cfg(feature = "colmap")]
-            Source::Database { db, path } => {
-                db.features(name).map_err(|source| SessionError::Database {
-                    path: path.clone(),
-                    source,
-                })?
-            }
+            Source::Database { db, path } => match db.features(name) {
+                Ok(features) => features,
+                Err(source) => {
+                    let path = path.clone();
+                    return Ok(Err(SessionError::Database { path, source }.to_string()));
+                }
+            },
             #[cfg(feature = "hdf5")]
-            Source::FeaturesFile(h5) => h5.features(name)?,
+            Source::FeaturesFile(h5) => match h5.features(name) {
+                Ok(features) => features,
+                Err(e) => return Ok(Err(e.to_string())),
+            },
             #[cfg(feature = "onnx")]
             Source::Images {
                 folder, extractor, ..
@@ -252,7 +260,11 @@ impl QueryReader {
                         map_name
                     )));
                 };
-                let path = folder.join(name);
+                // A name the list gave stays inside the folder the user named.
+                let path = match crate::input::join_inside(folder, name) {
+                    Ok(path) => path,
+                    Err(why) => return Ok(Err(why.to_owned())),
+                };
                 // A FIFO or folder goes on to `load`, whose regular-file rule names it.
                 if !path.exists() {
                     return Ok(missing("no such image"));
@@ -294,9 +306,11 @@ impl QueryReader {
         let features = match (features, &self.global) {
             // As convert refuses a map image without one: a query retrieving by a global
             // descriptor it does not have would rank by nothing.
-            (Some(mut f), Some((global, map_dim))) => match global.global(name)? {
+            (Some(mut f), Some((global, map_dim))) => match global.global(name) {
+                // A query's unusable descriptor (NaN) fails that query alone.
+                Err(e) => return Ok(Err(e.to_string())),
                 // Another network's (or none in the map): retrieval would fall back in silence.
-                Some(g) if map_dim.is_some_and(|d| d != g.len()) || map_dim.is_none() => {
+                Ok(Some(g)) if map_dim.is_some_and(|d| d != g.len()) || map_dim.is_none() => {
                     return Err(global
                         .err(format!(
                             "{name}/global_descriptor: {} values, but the map {} {}",
@@ -309,14 +323,14 @@ impl QueryReader {
                         ))
                         .into())
                 }
-                Some(g) => {
+                Ok(Some(g)) => {
                     f.global = Some(g);
                     Some(f)
                 }
-                None => {
+                Ok(None) => {
                     return Ok(Err(format!(
                         "no global_descriptor for it in {}",
-                        global.path().display()
+                        crate::escape::path(global.path())
                     )))
                 }
             },
@@ -538,7 +552,7 @@ fn warn_global_size(
             "{}: global descriptors computed at max side {shown:?}, the map's at \"{map_side}\" \
              (0: the image's own size): retrieval by them will be poorer; extract with \
              --global-max-side {map_side}",
-            path.display()
+            crate::escape::path(path)
         ));
     }
 }

@@ -20,7 +20,7 @@ fn sfpmap(args: &[&str]) -> Output {
 }
 
 /// Three generated streets (seeds 1, 2, 3), each with its SIFT map: `streets/sN/`.
-fn streets() -> &'static Path {
+pub(crate) fn streets() -> &'static Path {
     static STREETS: OnceLock<PathBuf> = OnceLock::new();
     STREETS.get_or_init(|| {
         let recipe = "street_cli::street s1, s2, s3: 4000 points, 8 queries, seeds 1 to 3";

@@ -17,6 +17,10 @@ use std::time::Duration;
 
 const GIB: u64 = 1 << 30;
 
+/// The exit status of a run that skipped queries it could not read (README, `localize
+/// --help`): as for a log's damaged parts.
+const SKIPPED_EXIT: i32 = 3;
+
 fn sfpmap(args: &[&OsStr], max_bytes: u64) -> Limited {
     run_limited(
         env!("CARGO_BIN_EXE_sfpmap"),
@@ -41,6 +45,16 @@ fn assert_one_line_error(run: &Limited, file: &Path) {
         "{run:?}"
     );
     assert!(!run.stderr.contains("panicked"), "{run:?}");
+}
+
+/// Neither stdout nor stderr holds a control character but the line ends.
+fn assert_no_raw_control_characters(run: &Limited) {
+    for text in [&run.stdout, &run.stderr] {
+        assert!(
+            !text.chars().any(|c| c.is_control() && c != '\n'),
+            "raw control character: {run:?}"
+        );
+    }
 }
 
 /// A query list of `names`, one pinhole camera for all (640 × 480).
@@ -292,8 +306,9 @@ fn finding_17_a_damaged_query_image_is_a_failed_query_with_the_reason() {
         ],
         4 * GIB,
     );
-    // Some queries were read: the run succeeds and lists the others as failed.
-    assert_eq!(run.code, Some(0), "{run:?}");
+    // Some queries were read: the run writes every pose and lists the others as failed,
+    // exit status 3 (queries skipped, as for a log's damaged parts).
+    assert_eq!(run.code, Some(SKIPPED_EXIT), "{run:?}");
     let poses = std::fs::read_to_string(&out).unwrap();
     for name in &names[1..] {
         let line = poses
@@ -562,8 +577,11 @@ fn query_names_with_control_characters_are_refused_or_escaped() {
     );
     assert!(!out.exists(), "no output for a refused run");
 
+    // The two names the features file lacks fail alone: exit status 3. Nothing printed holds
+    // the names' control characters raw (the summary's `failed:` lines, the warning).
     let (run, out) = run_format("tum");
-    assert_eq!(run.code, Some(0), "{run:?}");
+    assert_eq!(run.code, Some(SKIPPED_EXIT), "{run:?}");
+    assert_no_raw_control_characters(&run);
     let text = std::fs::read_to_string(&out).unwrap();
     assert!(
         !text.chars().any(|c| c.is_control() && c != '\n'),
@@ -574,7 +592,8 @@ fn query_names_with_control_characters_are_refused_or_escaped() {
     assert_eq!(text.lines().count(), 4, "{text:?}");
 
     let (run, out) = run_format("json");
-    assert_eq!(run.code, Some(0), "{run:?}");
+    assert_eq!(run.code, Some(SKIPPED_EXIT), "{run:?}");
+    assert_no_raw_control_characters(&run);
     let list: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
     let read: Vec<&str> = list
@@ -616,7 +635,8 @@ fn query_database(dir: &Path, name: &str, cols: usize, keypoints: &[f32]) -> Pat
 
 /// Issue 12 (NaN/inf in COLMAP inputs) for query databases: a keypoint with a NaN or
 /// infinite x, y or scale went into matching and pose estimation unchecked. Now it is a
-/// one-line error naming the database, the image and the keypoint.
+/// failed query naming the database, the image and the keypoint (issue 32: it fails alone);
+/// a list of that query alone reads nothing, a one-line error naming the list and the reason.
 #[cfg(feature = "colmap")]
 #[test]
 fn a_non_finite_query_keypoint_is_an_error_naming_database_image_and_keypoint() {
@@ -671,9 +691,12 @@ fn a_non_finite_query_keypoint_is_an_error_naming_database_image_and_keypoint() 
             ],
             2 * GIB,
         );
-        assert_one_line_error(&run, &db);
+        assert_one_line_error(&run, &list);
         assert!(
-            run.stderr.contains(r#"image "q.jpg""#) && run.stderr.contains(expected),
+            run.stderr.contains("none of the 1 queries could be read")
+                && run.stderr.contains(&db.display().to_string())
+                && run.stderr.contains(r#"image "q.jpg""#)
+                && run.stderr.contains(expected),
             "{expected}: {run:?}"
         );
         std::fs::remove_file(&db).unwrap();
@@ -791,4 +814,161 @@ fn hostile_vlad_values_rank_last_and_never_panic() {
         "the NaN image ranks last: {:?}",
         r.retrieved
     );
+}
+
+/// Issue 32, case 10: a query list naming an absolute path (`/etc/passwd`, `/proc/self/mem`)
+/// or a `../` name was read from outside `--images`. Now each such name is a failed query
+/// saying why (the decodable image beside the folder is not read), the rest run, exit 3.
+#[test]
+fn query_names_outside_the_images_folder_fail_naming_why() {
+    let t = tempfile::tempdir().unwrap();
+    let images = t.path().join("images");
+    std::fs::create_dir(&images).unwrap();
+    let (jpg, _) = query_jpeg();
+    write(&images, "good.jpg", &jpg);
+    // A decodable query image beside the folder, by a `..` name and by its absolute path.
+    let outside = write(t.path(), "outside.jpg", &jpg);
+    let outside = outside.to_str().unwrap();
+    let names = [
+        "good.jpg",
+        "../outside.jpg",
+        "./../outside.jpg",
+        outside,
+        "/etc/passwd",
+        "/proc/self/mem",
+    ];
+    let list = query_list(t.path(), &names);
+    let map = sfp_map(t.path());
+    let out = t.path().join("poses.txt");
+    let run = sfpmap(
+        &args![
+            "localize",
+            "--map",
+            map,
+            "--query-list",
+            list,
+            "--images",
+            images,
+            "--level",
+            "2",
+            "-o",
+            out
+        ],
+        4 * GIB,
+    );
+    assert_eq!(run.code, Some(SKIPPED_EXIT), "{run:?}");
+    assert!(
+        run.stderr.contains("5 of 6 queries could not be read"),
+        "{run:?}"
+    );
+    let poses = std::fs::read_to_string(&out).unwrap();
+    for (name, why) in [
+        ("../outside.jpg", r#"a name with a ".." component"#),
+        ("./../outside.jpg", r#"a name with a ".." component"#),
+        (outside, "an absolute path"),
+        ("/etc/passwd", "an absolute path"),
+        ("/proc/self/mem", "an absolute path"),
+    ] {
+        let line = poses
+            .lines()
+            .find(|l| l.starts_with(&format!("# failed {name}: ")))
+            .unwrap_or_else(|| panic!("{name} not failed: {poses}"));
+        assert!(line.contains(why), "{line}");
+    }
+    assert!(
+        !poses.contains("# failed good.jpg: a name") && !poses.contains("# failed good.jpg: an"),
+        "{poses}"
+    );
+}
+
+/// Writes, with h5py, a features.h5 of `good.jpg` and `bad.jpg` (200 random keypoints of
+/// 128-dimensional descriptors each) with `bad.jpg` broken by `mutation`: `nan` (keypoint 3's
+/// x), `dim` (64-dimensional descriptors), `count` (150 descriptors for 200 keypoints).
+const TWO_QUERIES_H5: &str = r#"
+import sys, numpy as np, h5py
+path, mutation = sys.argv[1], sys.argv[2]
+rng = np.random.default_rng(3)
+with h5py.File(path, "w") as f:
+    for name in ["good.jpg", "bad.jpg"]:
+        xy = (rng.random((200, 2)) * [640, 480]).astype(np.float32)
+        d = rng.random((128, 200)).astype(np.float32)
+        if name == "bad.jpg":
+            if mutation == "nan":
+                xy[3, 0] = np.nan
+            if mutation == "dim":
+                d = d[:64]
+            if mutation == "count":
+                d = d[:, :150]
+        g = f.create_group(name)
+        g["keypoints"] = xy
+        g["descriptors"] = d.astype(np.float16)
+"#;
+
+/// Issue 32, case 11: one malformed query of a features file (a NaN keypoint, descriptors
+/// of another dimension than the map's, N keypoints and M descriptors) ended the whole run,
+/// no poses written. Now that query fails alone with the reason, the other is localized (here
+/// read: the map is random), the poses are written and the exit status is 3.
+#[test]
+fn a_malformed_query_in_a_features_file_fails_alone() {
+    let t = tempfile::tempdir().unwrap();
+    let map = small_map(t.path(), 128);
+    let list = query_list(t.path(), &["good.jpg", "bad.jpg"]);
+    for (mutation, expected) in [
+        ("nan", "bad.jpg/keypoints: keypoint 3: x is NaN"),
+        (
+            "dim",
+            "query descriptors have 64 dimensions but level 0 of the map expects 128",
+        ),
+        (
+            "count",
+            "bad.jpg/descriptors: 128 x 150 values for 200 keypoints",
+        ),
+    ] {
+        let h5 = t.path().join(format!("{mutation}.h5"));
+        let python = crate::python::python_with("numpy, h5py");
+        let wrote = std::process::Command::new(python)
+            .args(["-c", TWO_QUERIES_H5])
+            .arg(&h5)
+            .arg(mutation)
+            .output()
+            .unwrap();
+        assert!(wrote.status.success(), "{wrote:?}");
+        let out = t.path().join(format!("{mutation}.txt"));
+        let run = sfpmap(
+            &args![
+                "localize",
+                "--map",
+                map,
+                "--query-list",
+                list,
+                "--features",
+                h5,
+                "-o",
+                out,
+                "--json"
+            ],
+            2 * GIB,
+        );
+        assert_eq!(run.code, Some(SKIPPED_EXIT), "{mutation}: {run:?}");
+        assert!(
+            run.stderr.contains("1 of 2 queries could not be read"),
+            "{mutation}: {run:?}"
+        );
+        let poses = std::fs::read_to_string(&out).unwrap();
+        let bad = poses
+            .lines()
+            .find(|l| l.starts_with("# failed bad.jpg: "))
+            .unwrap_or_else(|| panic!("{mutation}: bad.jpg not failed: {poses}"));
+        assert!(bad.contains(expected), "{mutation}: {bad}");
+        // good.jpg was read: localized, or failed by the localizer, not for its features.
+        assert!(
+            poses.lines().any(|l| l.starts_with("good.jpg "))
+                || poses
+                    .lines()
+                    .any(|l| l.starts_with("# failed good.jpg: ") && !l.contains(".h5")),
+            "{mutation}: {poses}"
+        );
+        let summary: serde_json::Value = serde_json::from_str(&run.stdout).unwrap();
+        assert_eq!(summary["queries"], 2, "{summary}");
+    }
 }

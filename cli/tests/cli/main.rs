@@ -29,6 +29,7 @@ mod hostile_format;
 mod hostile_inputs;
 mod hostile_localize;
 mod hostile_mcap;
+mod hostile_names_flags;
 mod kapture;
 mod outbound_policy;
 mod output_policy;

@@ -52,9 +52,11 @@ impl From<crate::output::OutputError> for H5Error {
 impl std::fmt::Display for H5Error {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            H5Error::Hdf5 { path, reason } => write!(f, "{}: hdf5: {reason}", path.display()),
+            H5Error::Hdf5 { path, reason } => {
+                write!(f, "{}: hdf5: {reason}", crate::escape::path(path))
+            }
             H5Error::BadName { name, reason } => write!(f, "image name {name:?}: {reason}"),
-            H5Error::Io { path, source } => write!(f, "{}: {source}", path.display()),
+            H5Error::Io { path, source } => write!(f, "{}: {source}", crate::escape::path(path)),
             H5Error::Output(e) => e.fmt(f),
         }
     }

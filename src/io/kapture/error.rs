@@ -99,31 +99,31 @@ impl fmt::Display for KaptureError {
                 write!(
                     f,
                     "{}: missing (a kapture folder needs it for {needed_for})",
-                    path.display()
+                    crate::escape::path(path)
                 )
             }
-            E::Read { path, reason } => write!(f, "{}: {reason}", path.display()),
+            E::Read { path, reason } => write!(f, "{}: {reason}", crate::escape::path(path)),
             E::Line {
                 path,
                 line,
                 message,
-            } => write!(f, "{}:{line}: {message}", path.display()),
+            } => write!(f, "{}:{line}: {message}", crate::escape::path(path)),
             E::UnknownDevice { path, line, device } => write!(
                 f,
                 "{}:{line}: device {} is not in sensors/sensors.txt or sensors/rigs.txt",
-                path.display(),
+                crate::escape::path(path),
                 crate::escape::quoted_name(device)
             ),
             E::Version { path, found } => write!(
                 f,
                 "{}:1: kapture format {} (this reader knows 1.0 and 1.1)",
-                path.display(),
+                crate::escape::path(path),
                 crate::escape::quoted_name(found)
             ),
             E::Truncated { path, len, record } => write!(
                 f,
                 "{}: {len} bytes is not a whole number of {record}-byte records (truncated?)",
-                path.display()
+                crate::escape::path(path)
             ),
             E::CountMismatch {
                 path,
@@ -132,12 +132,12 @@ impl fmt::Display for KaptureError {
             } => write!(
                 f,
                 "{}: {descriptors} descriptors but the image has {keypoints} keypoints",
-                path.display()
+                crate::escape::path(path)
             ),
             E::Ambiguous { path, what, found } => write!(
                 f,
                 "{}: {} {what} types ({}); choose one",
-                path.display(),
+                crate::escape::path(path),
                 found.len(),
                 found.join(", ")
             ),

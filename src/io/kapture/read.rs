@@ -852,7 +852,7 @@ impl Kapture {
                     return Err(err(format!(
                         "keypoint {keypoint} of image {} is not in {} ({n} keypoints)",
                         crate::escape::quoted_name(&image.name),
-                        file.display()
+                        crate::escape::path(&file)
                     )));
                 };
                 if let Some(other) = p2d.point3d_id {

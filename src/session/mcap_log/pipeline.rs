@@ -62,7 +62,7 @@ impl Scan {
     /// list entries.
     fn skip(&mut self, path: &Path, damage: &Damage, reporter: &dyn Reporter) {
         if self.skipped_count < MAX_DAMAGE_WARNINGS {
-            reporter.warn(&format!("{}: {damage}", path.display()));
+            reporter.warn(&format!("{}: {damage}", crate::escape::path(path)));
         }
         if self.skipped.len() < MAX_DAMAGE_LISTED {
             self.skipped.push(damage.to_string());
