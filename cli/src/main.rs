@@ -47,8 +47,9 @@ pub struct Cli {
     ///
     /// The outbound policy, for every request: without this a server may redirect only to
     /// itself; a redirect never goes from https to http. Link-local addresses (169.254.0.0/16,
-    /// where cloud metadata services answer, and fe80::/10) are never connected to, loopback
-    /// and private ones only from a URL you named (a redirect: from a URL on one). A catalog
+    /// where cloud metadata services answer, and fe80::/10) are never connected to (but for an
+    /// S3 credential service you ask for), loopback and private ones only from a URL you named
+    /// (a redirect: from a URL on one). A catalog
     /// file on disk names places on public hosts only (SFPMAP_ALLOW_PRIVATE_PLACES=1 allows
     /// loopback and private ones); one read from a URL, only maps on its own server. s3:// URLs
     /// need AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_SKIP_SIGNATURE=true (a public

@@ -9,7 +9,9 @@
 //! 1. Only `http`, `https` and `s3` URLs are read.
 //! 2. Link-local addresses (169.254.0.0/16, where cloud metadata services answer, and
 //!    fe80::/10), AWS's IPv6 metadata address (fd00:ec2::254), multicast and broadcast are never
-//!    connected to: neither a URL's literal address nor one a host name resolves to.
+//!    connected to: neither a URL's literal address nor one a host name resolves to. The one
+//!    exception is the credential service rule 5 lets the user's configuration ask for (the
+//!    instance metadata service, container credentials), which object_store reaches there.
 //! 3. Loopback and private addresses (127.0.0.0/8, 10.0.0.0/8, 172.16.0.0/12, 192.168.0.0/16,
 //!    100.64.0.0/10, 0.0.0.0, ::1, fc00::/7) are reached only by a URL the user named (or a
 //!    host the user's configuration names: an S3 endpoint), or by a redirect from a URL that was
