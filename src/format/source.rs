@@ -311,6 +311,78 @@ mod tests {
         }
     }
 
+    /// Bytes in memory, recording the longest range asked of it in one read.
+    struct Recording {
+        bytes: Vec<u8>,
+        longest: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    }
+
+    impl RangeSource for Recording {
+        fn name(&self) -> &str {
+            "memory"
+        }
+        fn len(&self) -> u64 {
+            self.bytes.len() as u64
+        }
+        fn read_range(&self, range: Range<u64>) -> Result<Vec<u8>, Error> {
+            let len = range.end - range.start;
+            self.longest
+                .fetch_max(len, std::sync::atomic::Ordering::Relaxed);
+            Ok(self.bytes[range.start as usize..range.end as usize].to_vec())
+        }
+        fn read_sections(&self, _: u64, wanted: &[Wanted], _: bool) -> Result<Vec<Vec<u8>>, Error> {
+            wanted
+                .iter()
+                .map(|w| self.read_range(w.range.clone()))
+                .collect()
+        }
+    }
+
+    #[test]
+    fn verify_by_range_reads_a_large_skipped_section_in_pieces() {
+        use crate::format::{Codec, Dtype, MapWriter, SectionKind};
+        let len = 2 * VERIFY_PIECE as usize + 1000;
+        let unknown: Vec<u8> = (0..len).map(|i| (i % 251) as u8).collect();
+        let mut w = MapWriter::default();
+        w.set_points_world(&[[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]);
+        w.add_raw_section(
+            SectionKind::Unknown(0x7F10),
+            super::super::layout::NO_LEVEL,
+            Dtype::U8,
+            len as u64,
+            1,
+            false,
+            std::borrow::Cow::Borrowed(&unknown),
+            Some(Codec::Raw),
+        )
+        .unwrap();
+        let bytes = w.to_bytes().unwrap();
+        let verify = |bytes: Vec<u8>| {
+            let longest = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+            let source = Recording {
+                bytes,
+                longest: longest.clone(),
+            };
+            let map = super::super::Map::open_source(Box::new(source)).unwrap();
+            let verified = map.verify();
+            (verified, longest.load(std::sync::atomic::Ordering::Relaxed))
+        };
+        let (verified, longest) = verify(bytes.clone());
+        verified.unwrap();
+        // One piece (and the padding before the first) at a time, never the section.
+        assert!(longest <= VERIFY_PIECE + 64, "{longest}");
+        // A byte changed in the second piece is found.
+        let map = super::super::Map::from_bytes(&bytes).unwrap();
+        let s = *map.skipped_sections().next().unwrap();
+        let mut damaged = bytes.clone();
+        damaged[(s.offset + VERIFY_PIECE + 5) as usize] ^= 1;
+        let (verified, _) = verify(damaged);
+        assert!(
+            matches!(verified, Err(Error::ChecksumMismatch { .. })),
+            "{verified:?}"
+        );
+    }
+
     #[test]
     fn neighbours_merge_and_far_ranges_do_not() {
         let a = wanted(0, 0..100);
