@@ -305,7 +305,9 @@ fn convert_never_writes_over_a_model_file_or_the_database() {
     };
     refused(&convert_images_to(&image), &image, "input");
     assert_eq!(std::fs::read(&image).unwrap(), b"not really a jpeg");
-    // Outside the folder, through `..` in a model image's name: the same-file rule per image.
+    // Outside the folder, through `..` in a model image's name: refused before anything is
+    // read or written, naming the image (issue 32: names a file gives stay inside the folder
+    // the user named; the same-file rule per image stays behind it).
     let images_txt = std::fs::read_to_string(model.join("images.txt")).unwrap();
     let first = images_txt
         .lines()
@@ -320,7 +322,7 @@ fn convert_never_writes_over_a_model_file_or_the_database() {
     .unwrap();
     let out = dir.path().join("out.sfpm");
     std::fs::write(&out, b"an image of the model").unwrap();
-    refused(&convert_images_to(&out), &out, "input");
+    refused(&convert_images_to(&out), &images, r#"model image "../out.sfpm""#);
     assert_eq!(std::fs::read(&out).unwrap(), b"an image of the model");
 }
 
