@@ -256,11 +256,23 @@ pub enum Error {
     },
 }
 
+/// Messages quote a file's own text (metadata values, names): the whole text is escaped
+/// ([`crate::escape`]), so it stays one line whatever the file holds.
 impl fmt::Display for Error {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let text = Unescaped(self).to_string();
+        f.write_str(&crate::escape::escape_control_characters(&text))
+    }
+}
+
+/// [`Error`]'s text before its control characters are escaped.
+struct Unescaped<'a>(&'a Error);
+
+impl fmt::Display for Unescaped<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         use Error::*;
-        match self {
-            Io { path, message } => write!(f, "{}: {message}", crate::escape::path(path)),
+        match self.0 {
+            Io { path, message } => write!(f, "{}: {message}", path.display()),
             NotARegularFile { what } => write!(f, "is {what}, not a regular file"),
             BadMagic => f.write_str("not an sfpmap file (bad magic)"),
             VersionMismatch {

@@ -436,6 +436,12 @@ impl From<object_store::Error> for GetError {
             {
                 GetError::NotPartial
             }
+            // A redirect or a resolved address the outbound policy refused: its words say all
+            // (the URL is in front of the message already), not the layers it came through.
+            _ if text.contains(policy::REFUSED) => {
+                let at = text.find(policy::REFUSED).unwrap_or(0);
+                GetError::Store(text[at..].to_string())
+            }
             // hyper's words for a body that ends before its Content-Length.
             _ if text.contains("before message length reached") => {
                 GetError::Store(format!("truncated response: {text}"))

@@ -174,9 +174,12 @@ pub(crate) fn admit(url: &Url, named: NamedBy, options: &RemoteOptions) -> Resul
     }
 }
 
+/// What every refusal's message starts with.
+pub(crate) const REFUSED: &str = "refused by the outbound policy";
+
 /// A rule's words as the refusal's message.
 pub(crate) fn refused(rule: String) -> String {
-    format!("refused by the outbound policy: {rule}")
+    format!("{REFUSED}: {rule}")
 }
 
 fn never(address: &str, what: &str) -> String {

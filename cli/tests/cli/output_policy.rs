@@ -322,7 +322,11 @@ fn convert_never_writes_over_a_model_file_or_the_database() {
     .unwrap();
     let out = dir.path().join("out.sfpm");
     std::fs::write(&out, b"an image of the model").unwrap();
-    refused(&convert_images_to(&out), &images, r#"model image "../out.sfpm""#);
+    refused(
+        &convert_images_to(&out),
+        &images,
+        r#"model image "../out.sfpm""#,
+    );
     assert_eq!(std::fs::read(&out).unwrap(), b"an image of the model");
 }
 
