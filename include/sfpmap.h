@@ -486,6 +486,27 @@ SfpmStatus sfpm_session_localize(SfpmSession session,
                                  struct SfpmLocalization *out,
                                  uint8_t *tracked);
 
+// `sfpm_session_localize` with the query's global descriptor (`global_dim` floats), for a
+// map whose retrieval ranks images by global descriptors (an hloc `global-feats.h5` given to
+// `sfpmap convert --global-features`, or the SFP network's): the query's must have the
+// map's dimensions (another size is `SFPM_ERR_ARGUMENT`; a map without global descriptors
+// ranks by its VLAD and ignores it). A NULL `global` with `global_dim == 0` is
+// `sfpm_session_localize`. NaN or infinity in it is `SFPM_ERR_ARGUMENT`.
+//
+// # Safety
+// As `sfpm_session_localize`, and `global` must be valid for `global_dim` floats (NULL when
+// `global_dim == 0`).
+SfpmStatus sfpm_session_localize_global(SfpmSession session,
+                                        const double *keypoints,
+                                        const float *descriptors,
+                                        size_t n,
+                                        size_t dim,
+                                        const float *global,
+                                        size_t global_dim,
+                                        const struct SfpmCamera *camera,
+                                        struct SfpmLocalization *out,
+                                        uint8_t *tracked);
+
 // Writes 1 to `*out` when the session predicts the next query's pose (a sequence that
 // localized its last query), so that the next `sfpm_session_localize` tries the tracking
 // path first; 0 otherwise, and always outside a sequence.

@@ -224,9 +224,17 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
 /// (`pick` takes it from a (clusters, dims) shape), from the library's rule.
 fn vlad_help(what: &str, pick: fn((usize, usize)) -> usize) -> String {
     let large = sfpmap::vlad::LARGE_MAP_IMAGES;
-    format!(
-        "Retrieval: {what}. [default: {}, or {} from {large} images on]",
+    let (small, head) = (
         pick(sfpmap::vlad::default_shape(0)),
+        pick(sfpmap::vlad::head_default_shape(0)),
+    );
+    let head = if head == small {
+        String::new()
+    } else {
+        format!("; at least {head} for the built-in aliked-n16")
+    };
+    format!(
+        "Retrieval: {what}. [default: {small}, or {} from {large} images on{head}]",
         pick(sfpmap::vlad::default_shape(large)),
     )
 }

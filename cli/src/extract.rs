@@ -202,11 +202,14 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     // Whether levels 2+ were refined coarse to fine (spec/extractor.md step 4).
     attributes.push(("sfp.refine".to_string(), (!args.no_refine).to_string()));
     // The size `global_descriptor` was computed at; 0: the network input (metadata
-    // `global_max_side` of a map; spec/extractor.md).
-    attributes.push((
-        "sfp.global_max_side".to_string(),
-        detect.global.side().to_string(),
-    ));
+    // `global_max_side` of a map; spec/extractor.md). A model without a global head (ALIKED)
+    // writes no `global_descriptor`, so no size either.
+    if contract.global_dim > 0 {
+        attributes.push((
+            "sfp.global_max_side".to_string(),
+            detect.global.side().to_string(),
+        ));
+    }
     attributes.push((
         "sfp.level_ids".to_string(),
         contract

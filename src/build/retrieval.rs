@@ -20,7 +20,16 @@ pub struct VladOptions {
 impl VladOptions {
     /// (clusters, dims) for a map of `images` images.
     pub fn shape(&self, images: usize) -> (usize, usize) {
-        let (clusters, dims) = crate::vlad::default_shape(images);
+        self.or(crate::vlad::default_shape(images))
+    }
+
+    /// (clusters, dims) for a map of `images` images a descriptor head describes
+    /// ([`crate::vlad::head_default_shape`]).
+    pub(crate) fn head_shape(&self, images: usize) -> (usize, usize) {
+        self.or(crate::vlad::head_default_shape(images))
+    }
+
+    fn or(&self, (clusters, dims): (usize, usize)) -> (usize, usize) {
         (self.clusters.unwrap_or(clusters), self.dims.unwrap_or(dims))
     }
 }

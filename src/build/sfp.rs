@@ -503,7 +503,12 @@ fn convert_images_of(
         .or(built.last())
         .map(
             |(info, points, descriptors, _, _)| -> Result<Option<super::StoredVlad>, ConvertError> {
-                let (clusters, dims) = options.vlad.shape(geometry.names.len());
+                let images = geometry.names.len();
+                let (clusters, dims) = if head {
+                    options.vlad.head_shape(images)
+                } else {
+                    options.vlad.shape(images)
+                };
                 let dims = dims.min(info.dim_short as usize);
                 if clusters == 0 || dims == 0 {
                     return Ok(None);

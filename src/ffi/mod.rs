@@ -41,8 +41,9 @@ pub use map::{
 };
 pub use session::{
     sfpm_localize, sfpm_session_close, sfpm_session_is_tracking, sfpm_session_localize,
-    sfpm_session_open, sfpm_session_options_default, sfpm_session_reset_tracking, SfpmCamera,
-    SfpmLocalization, SfpmLocalizeOptions, SfpmRetrieval, SfpmSessionOptions,
+    sfpm_session_localize_global, sfpm_session_open, sfpm_session_options_default,
+    sfpm_session_reset_tracking, SfpmCamera, SfpmLocalization, SfpmLocalizeOptions, SfpmRetrieval,
+    SfpmSessionOptions,
 };
 
 use crate::format::Error as FormatError;

@@ -475,12 +475,69 @@ pub unsafe extern "C" fn sfpm_session_localize(
     out: *mut SfpmLocalization,
     tracked: *mut u8,
 ) -> SfpmStatus {
+    // SAFETY: this function's contract is that one's with no global descriptor.
+    unsafe {
+        sfpm_session_localize_global(
+            session,
+            keypoints,
+            descriptors,
+            n,
+            dim,
+            std::ptr::null(),
+            0,
+            camera,
+            out,
+            tracked,
+        )
+    }
+}
+
+/// `sfpm_session_localize` with the query's global descriptor (`global_dim` floats), for a
+/// map whose retrieval ranks images by global descriptors (an hloc `global-feats.h5` given to
+/// `sfpmap convert --global-features`, or the SFP network's): the query's must have the
+/// map's dimensions (another size is `SFPM_ERR_ARGUMENT`; a map without global descriptors
+/// ranks by its VLAD and ignores it). A NULL `global` with `global_dim == 0` is
+/// `sfpm_session_localize`. NaN or infinity in it is `SFPM_ERR_ARGUMENT`.
+///
+/// # Safety
+/// As `sfpm_session_localize`, and `global` must be valid for `global_dim` floats (NULL when
+/// `global_dim == 0`).
+#[no_mangle]
+pub unsafe extern "C" fn sfpm_session_localize_global(
+    session: SfpmSession,
+    keypoints: *const f64,
+    descriptors: *const f32,
+    n: usize,
+    dim: usize,
+    global: *const f32,
+    global_dim: usize,
+    camera: *const SfpmCamera,
+    out: *mut SfpmLocalization,
+    tracked: *mut u8,
+) -> SfpmStatus {
     guard(|| {
         let s = SESSIONS.get(session)?;
         non_null(&[(out.is_null(), "out"), (camera.is_null(), "camera")])?;
         // SAFETY: the arrays and the camera per this function's contract.
         let query = unsafe { read_query(keypoints, descriptors, n, dim, camera)? };
-        let features = query.features();
+        let mut features = query.features();
+        if global_dim > 0 {
+            // SAFETY: per contract: `global_dim` floats.
+            let global = unsafe { input(global, global_dim, "global")? };
+            crate::localize::check_global_finite(Some(global))
+                .map_err(|e| FfiError::argument(e.to_string()))?;
+            // Another size than the map's would make retrieval fall back to every point in
+            // silence: a caller who hands one in wants to know.
+            if let Ok(Some((_, map_dim))) = s.map().image_global() {
+                if map_dim != global_dim {
+                    return Err(FfiError::argument(format!(
+                        "global: {global_dim} values, but the map stores global descriptors of \
+                         {map_dim}"
+                    )));
+                }
+            }
+            features.global = Some(global.to_vec());
+        }
         let found = s
             .localize_features(&features, &query.camera, "query")
             .map_err(session_error)?;

@@ -233,6 +233,9 @@ pub(crate) struct Fit {
     /// Whether the map's descriptors came from a features source, not an extractor.
     pub(crate) from_feature_source: bool,
     pub(crate) model_xxh3: Option<String>,
+    /// The map's levels as (level id, full dimensions): what another model than the map's
+    /// must make to be matched against it.
+    pub(crate) levels: Vec<(u16, u32)>,
 }
 
 impl Fit {
@@ -252,6 +255,12 @@ impl Fit {
             named: first.is_some_and(|l| l.names_feature()),
             from_feature_source: first.is_some_and(|l| l.from_feature_source()),
             model_xxh3,
+            levels: map
+                .metadata()
+                .levels
+                .iter()
+                .map(|l| (l.level, l.dim_full))
+                .collect(),
         }
     }
 

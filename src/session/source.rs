@@ -98,6 +98,7 @@ impl QueryReader {
             // Catalog queries come from files, never an extractor: only the hint's wording.
             from_feature_source: !crate::localize::is_sfp_descriptor(descriptor),
             model_xxh3: None,
+            levels: Vec::new(),
         };
         let options = LocalizeOptions::default();
         Self::open_for(source, fit, None, &options, 1, reporter)
@@ -502,8 +503,22 @@ fn extractor(
         }
     }
     // Only an explicit model can be another one (without it, the map's own runs): that is
-    // asked for on purpose (e.g. a faster student of the map's model), so it runs, said once.
-    if extractor.contract().model_name != *descriptor {
+    // asked for on purpose (e.g. a faster student of the map's model), so it runs, said once,
+    // when it makes the map's levels at the map's dimensions; otherwise no query could match.
+    let contract = extractor.contract();
+    if contract.model_name != *descriptor {
+        let makes = |&(level, dim): &(u16, u32)| {
+            contract
+                .level_index(level)
+                .is_some_and(|i| contract.full_dims[i] == dim as usize)
+        };
+        if let Some((level, dim)) = fit.levels.iter().find(|l| !makes(l)) {
+            return Err(SessionError::Mismatch(format!(
+                "{map}: the map's descriptors are {descriptor:?} (level {level}: {dim} \
+                 dimensions), which model {:?} does not make: localize with the map's model",
+                contract.model_name
+            )));
+        }
         reporter.warn(&format!(
             "{map}: the map's descriptors are {descriptor:?} but the model is {:?}: localizing \
              with another model's descriptors, as asked",

@@ -55,6 +55,30 @@ with h5py.File(r["features"], "r") as f:
         d.tofile(out / f"{name}.desc")
         lines.append("query " + line)
         lines.append("gt " + " ".join(repr(float(v)) for v in r["gt"][name]))
+# Global descriptors that rank by camera position, as a retrieval network's would rank by view:
+# one Gaussian per map camera centre (sigma: twice the median spacing). The map images' go to
+# `global-feats-pose.h5` (hloc's layout), each query's (from its ground truth) to `<name>.global`.
+import pycolmap
+sfm = pycolmap.Reconstruction(str(r["sfm"]))
+names = sorted(im.name for im in sfm.images.values())
+centres = {im.name: np.asarray(im.projection_center()) for im in sfm.images.values()}
+anchors = np.stack([centres[n] for n in names])
+gaps = np.linalg.norm(anchors[:, None] - anchors[None], axis=-1)
+sigma = 2 * np.median(np.sort(gaps, axis=1)[:, 1])
+embed = lambda c: np.exp(-np.sum((anchors - c) ** 2, axis=1) / sigma**2).astype("<f4")
+with h5py.File(out / "map" / "global-feats-pose.h5", "w") as g:
+    for n in names:
+        g.create_group(n).create_dataset("global_descriptor", data=embed(centres[n]))
+lines.append("global_map map/global-feats-pose.h5")
+def centre(gt):
+    w, x, y, z, *t = gt
+    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return -rot.T @ np.asarray(t)
+for line in Path(r["queries"]).read_text().splitlines():
+    name = line.split()[0]
+    embed(centre(r["gt"][name])).tofile(out / f"{name}.global")
 (out / "manifest.txt").write_text("\n".join(lines) + "\n")
 "#;
 
@@ -69,11 +93,15 @@ struct Query {
     gt: [f64; 7],
     xy: Vec<f64>,
     desc: Vec<f32>,
+    /// Its global descriptor in `Scene::global_map`'s space (near cameras, near descriptors).
+    global: Vec<f32>,
 }
 
 struct Scene {
     sfm: PathBuf,
     features_map: PathBuf,
+    /// The map images' global descriptors, hloc's `global-feats.h5` layout.
+    global_map: PathBuf,
     queries: Vec<Query>,
 }
 
@@ -114,7 +142,7 @@ fn scene_dir(scene: &Path) -> PathBuf {
 
 fn read_scene(dir: &Path) -> Scene {
     let text = std::fs::read_to_string(dir.join("manifest.txt")).unwrap();
-    let (mut sfm, mut features_map, mut queries) = (None, None, Vec::new());
+    let (mut sfm, mut features_map, mut global_map, mut queries) = (None, None, None, Vec::new());
     let floats =
         |s: &str| -> Vec<f64> { s.split_whitespace().map(|v| v.parse().unwrap()).collect() };
     for line in text.lines() {
@@ -122,6 +150,7 @@ fn read_scene(dir: &Path) -> Scene {
         match key {
             "sfm" => sfm = Some(dir.join(rest)),
             "features_map" => features_map = Some(dir.join(rest)),
+            "global_map" => global_map = Some(dir.join(rest)),
             "query" => {
                 let mut f = rest.split_whitespace();
                 let name = f.next().unwrap().to_string();
@@ -134,10 +163,13 @@ fn read_scene(dir: &Path) -> Scene {
                     .chunks_exact(8)
                     .map(|b| f64::from_le_bytes(b.try_into().unwrap()))
                     .collect();
-                let desc = bytes("desc")
-                    .chunks_exact(4)
-                    .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
-                    .collect();
+                let floats32 = |ext: &str| -> Vec<f32> {
+                    bytes(ext)
+                        .chunks_exact(4)
+                        .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+                        .collect()
+                };
+                let (desc, global) = (floats32("desc"), floats32("global"));
                 queries.push(Query {
                     name,
                     model,
@@ -147,6 +179,7 @@ fn read_scene(dir: &Path) -> Scene {
                     gt: [0.0; 7],
                     xy,
                     desc,
+                    global,
                 });
             }
             "gt" => {
@@ -158,6 +191,7 @@ fn read_scene(dir: &Path) -> Scene {
     Scene {
         sfm: sfm.unwrap(),
         features_map: features_map.unwrap(),
+        global_map: global_map.unwrap(),
         queries,
     }
 }
@@ -171,6 +205,31 @@ impl Query {
             params: self.params.as_ptr(),
             n_params: self.params.len(),
         })
+    }
+
+    /// The arrays as the library takes them: one set for every level, as the C ABI makes.
+    fn features(&self) -> sfpmap::localize::QueryFeatures {
+        let descriptors = self.desc.clone();
+        sfpmap::localize::QueryFeatures {
+            sets: vec![sfpmap::localize::FeatureSet {
+                level: None,
+                keypoints: self.xy.chunks_exact(2).map(|p| [p[0], p[1]]).collect(),
+                descriptors,
+                dim: DIM,
+            }],
+            global: None,
+            model: None,
+        }
+    }
+
+    fn geo_camera(&self) -> sfpmap::geometry::Camera {
+        sfpmap::geometry::Camera::from_model_name(
+            self.model.to_str().unwrap(),
+            self.width as u32,
+            self.height as u32,
+            &self.params,
+        )
+        .unwrap()
     }
 
     fn n(&self) -> usize {
@@ -280,6 +339,133 @@ fn a_map_from_an_hloc_features_file_localizes_arrays_through_a_session() {
     });
     assert_eq!(status, SfpmStatus::SFPM_ERR_LOCALIZE, "{}", last_error());
     assert!(last_error().contains("dimensions"), "{}", last_error());
+    assert_eq!(sfpm_session_close(session), SfpmStatus::SFPM_OK);
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+}
+
+/// `sfpm_session_localize_global` on a map whose retrieval ranks images by hloc global
+/// descriptors (`--global-features`), one image retrieved: each query's own descriptor
+/// localizes it near the ground truth; the C call gives, to the last bit, the library
+/// session's pose for the same global descriptor, whose retrieval ranked first the image the
+/// descriptor points at (the query's nearest camera, or the farthest one's own descriptor);
+/// a descriptor of other dimensions or with a NaN is refused.
+#[test]
+fn query_global_descriptors_rank_a_global_map_through_the_c_abi() {
+    let Some(south) = shared_data("scenes/south-building") else {
+        return;
+    };
+    let scene = read_scene(&scene_dir(&south));
+    let tmp = tempfile::tempdir().unwrap();
+    let path = tmp.path().join("hloc-global.sfpm");
+    let options = ConvertOptions {
+        features: Some(scene.features_map.clone()),
+        global_features: Some(scene.global_map.clone()),
+        ..ConvertOptions::default()
+    };
+    convert(&scene.sfm, &options, &path, &Silent).unwrap();
+    let on_disk = sfpmap::format::Map::open(&path).unwrap();
+    assert_eq!(on_disk.metadata().retrieval.as_deref(), Some("global"));
+    let (stored, dim) = on_disk.image_global().unwrap().unwrap();
+    let globals: Vec<Vec<f32>> = stored
+        .chunks_exact(dim)
+        .map(|g| g.iter().map(|v| v.to_f32()).collect())
+        .collect();
+
+    let map = open(&CString::new(path.to_str().unwrap()).unwrap());
+    let mut o = crate::embed_capi_session::default_options(map);
+    o.top_k = 1;
+    let mut settings = sfpmap::localize::LocalizeOptions::for_map(&on_disk);
+    settings.top_k = 1;
+    let rust_session = sfpmap::session::Session::builder(std::sync::Arc::new(on_disk), "m.sfpm")
+        .options(settings)
+        .build(&Silent)
+        .unwrap();
+    let mut session = 0;
+    let status = unsafe { sfpm_session_open(map, &o, &mut session) };
+    assert_eq!(status, SfpmStatus::SFPM_OK, "{}", last_error());
+    let localize = |q: &Query, global: &[f32], out: &mut SfpmLocalization| {
+        q.camera(|camera| unsafe {
+            sfpm_session_localize_global(
+                session,
+                q.xy.as_ptr(),
+                q.desc.as_ptr(),
+                q.n(),
+                DIM,
+                global.as_ptr(),
+                global.len(),
+                camera,
+                out,
+                std::ptr::null_mut(),
+            )
+        })
+    };
+    let cosine = |a: &[f32], b: &[f32]| {
+        let dot = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f32>();
+        dot(a, b) / (dot(a, a) * dot(b, b)).sqrt()
+    };
+    for q in &scene.queries {
+        assert_eq!(q.global.len(), dim, "{}", q.name);
+        let mut right = SfpmLocalization::default();
+        let status = localize(q, &q.global, &mut right);
+        assert_eq!(status, SfpmStatus::SFPM_OK, "{}: {}", q.name, last_error());
+        let pose = Pose::from_colmap_array(right.cam_from_world).unwrap();
+        let gt = Pose::from_colmap_array(q.gt).unwrap();
+        let (centre, degrees) = (pose.center_distance(&gt), pose.rotation_error_deg(&gt));
+        assert!(
+            centre < 0.05 && degrees < 1.0,
+            "{}: {centre} units, {degrees} deg ({} inliers)",
+            q.name,
+            right.inliers
+        );
+        // The map image farthest from the query, by the descriptors: its own descriptor
+        // retrieves it, where the query's retrieves one of the most alike (two neighbours
+        // of a query may be alike to the third decimal).
+        let likeness = |i: usize, g: &[f32]| cosine(&globals[i], g);
+        let far = (0..globals.len())
+            .min_by(|&a, &b| likeness(a, &q.global).total_cmp(&likeness(b, &q.global)))
+            .unwrap();
+        let best = (0..globals.len())
+            .map(|i| likeness(i, &q.global))
+            .fold(f32::MIN, f32::max);
+        for global in [&q.global, &globals[far]] {
+            let mut features = q.features();
+            features.global = Some(global.clone());
+            let library = rust_session
+                .localize_features(&features, &q.geo_camera(), &q.name)
+                .unwrap();
+            let [first] = library.retrieved[..] else {
+                panic!("{}: retrieved {:?}", q.name, library.retrieved)
+            };
+            if std::ptr::eq(global, &q.global) {
+                assert!(likeness(first, global) > best - 1e-3, "{}", q.name);
+                assert_ne!(first, far, "{}", q.name);
+            } else {
+                assert_eq!(first, far, "{}", q.name);
+            }
+            let mut from_c = SfpmLocalization::default();
+            localize(q, global, &mut from_c);
+            match library.outcome {
+                Ok(pose) => assert_eq!(from_c.cam_from_world, pose.to_colmap()),
+                Err(_) => assert_eq!(from_c.inliers, 0),
+            }
+        }
+    }
+    let q = &scene.queries[0];
+    let mut out = SfpmLocalization::default();
+    let status = localize(q, &q.global[..dim - 1], &mut out);
+    assert_eq!(status, SfpmStatus::SFPM_ERR_ARGUMENT, "{}", last_error());
+    assert_eq!(
+        last_error(),
+        format!(
+            "global: {} values, but the map stores global descriptors of {dim}",
+            dim - 1
+        )
+    );
+    let mut nan = q.global.clone();
+    nan[1] = f32::NAN;
+    let status = localize(q, &nan, &mut out);
+    assert_eq!(status, SfpmStatus::SFPM_ERR_ARGUMENT, "{}", last_error());
+    assert!(last_error().contains("NaN"), "{}", last_error());
     assert_eq!(sfpm_session_close(session), SfpmStatus::SFPM_OK);
     assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
 }

@@ -52,7 +52,7 @@ fn session_localize(
     (status, out, tracked)
 }
 
-fn default_options(map: SfpmMap) -> SfpmSessionOptions {
+pub(crate) fn default_options(map: SfpmMap) -> SfpmSessionOptions {
     let mut out = std::mem::MaybeUninit::<SfpmSessionOptions>::zeroed();
     let status = unsafe { sfpm_session_options_default(map, out.as_mut_ptr()) };
     assert_eq!(status, SfpmStatus::SFPM_OK, "{}", last_error());

@@ -340,6 +340,105 @@ fn extract_writes_hloc_features_h5() {
     assert!(!again.status.success());
 }
 
+/// `extract --model aliked-n16`: hloc's layout with the built-in ALIKED's 128-dim descriptors
+/// and its name; no `global_descriptor` and so no `sfp.global_max_side` (the model has no
+/// global head).
+#[test]
+fn extract_with_aliked_writes_no_global_side() {
+    let dir = tempfile::tempdir().unwrap();
+    let images = dir.path().join("images");
+    std::fs::create_dir(&images).unwrap();
+    let name = std::fs::read_dir(scene().join("images"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .min()
+        .unwrap();
+    std::fs::copy(scene().join("images").join(&name), images.join(&name)).unwrap();
+    let name = name.to_string_lossy().into_owned();
+    let out = dir.path().join("feats-aliked-n16.h5");
+    let summary = ok(&[
+        os("extract"),
+        images.as_os_str(),
+        os("--model"),
+        os("aliked-n16"),
+        os("-o"),
+        out.as_os_str(),
+        os("--json"),
+    ]);
+    assert_eq!(summary["images"], 1);
+    let file = sfpmap::io::features_h5::H5Features::open(&out).unwrap();
+    assert_eq!(file.feature_name().unwrap().as_deref(), Some("aliked-n16"));
+    assert_eq!(file.root_string("sfp.global_max_side").unwrap(), None);
+    let features = file.features(&name).unwrap().unwrap();
+    assert!(features.global.is_none());
+    let [set] = &features.sets[..] else {
+        panic!("one feature set, not {}", features.sets.len())
+    };
+    assert_eq!(set.dim, 128);
+    let n = set.keypoints.len();
+    assert!(n > 100, "{n} keypoints");
+    assert_eq!(set.descriptors.len(), n * 128);
+}
+
+/// `localize --model` with another model than the map's runs only when it makes the map's
+/// levels at the map's dimensions: an ALIKED map (level 0, 128 dims) with SFP, and an SFP map
+/// with ALIKED, are refused up front, naming the map, both models and the level, before any
+/// query is extracted and without writing the output.
+#[test]
+fn another_model_of_other_dimensions_is_refused_up_front() {
+    let dir = tempfile::tempdir().unwrap();
+    let images = scene().join("images");
+    let (aliked, sfp) = (dir.path().join("aliked.sfpm"), dir.path().join("sfp.sfpm"));
+    for (map, extra) in [(&aliked, &["--model", "aliked-n16"][..]), (&sfp, &[])] {
+        let run = convert(&images, map, extra);
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+    }
+    let sfp_v2 = crate::shared_data::repo_root().join("models/sfp-v2.onnx");
+    for (map, model, holds, other) in [
+        (
+            &aliked,
+            sfp_v2.as_os_str(),
+            "\"aliked-n16\" (level 0: 128 dimensions)",
+            "\"sfp-v2\"",
+        ),
+        (
+            &sfp,
+            os("aliked-n16"),
+            "(level 0: 240 dimensions)",
+            "\"aliked-n16\"",
+        ),
+    ] {
+        let poses = dir.path().join("poses.txt");
+        let run = sfpmap(&[
+            os("localize"),
+            os("--map"),
+            map.as_os_str(),
+            os("--model"),
+            model,
+            os("--query-list"),
+            scene().join("queries.txt").as_os_str(),
+            os("--images"),
+            images.as_os_str(),
+            os("-o"),
+            poses.as_os_str(),
+        ]);
+        let stderr = String::from_utf8_lossy(&run.stderr);
+        assert!(!run.status.success(), "{stderr}");
+        assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
+        assert!(
+            stderr.contains(&map.display().to_string())
+                && stderr.contains(holds)
+                && stderr.contains(&format!("which model {other} does not make")),
+            "{stderr}"
+        );
+        assert!(!poses.exists());
+    }
+}
+
 /// A fresh machine: no runtime anywhere. The first command that needs it fetches it into the
 /// XDG cache (with a warning), `setup` then finds it there; a bad `ORT_DYLIB_PATH` is an error.
 #[test]
