@@ -5,6 +5,12 @@
 //! decimals, which Rust's `parse` reads as NaN or infinity too. The localizer's options
 //! (`--ratio`, `--top-k`) are checked by the library (`LocalizeOptions::validate`), in the
 //! words Python and C get too; their help states the same ranges.
+// The commands that take these flags are features' (localize, colmap, onnx): a build without
+// them leaves some parsers unused.
+#![cfg_attr(
+    not(all(feature = "localize", feature = "colmap", feature = "onnx")),
+    allow(dead_code)
+)]
 
 /// `text` as a finite number in `[min, max]` (`max` may be infinite), else what is
 /// expected.

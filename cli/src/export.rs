@@ -142,7 +142,7 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         #[cfg(not(feature = "colmap"))]
         bail!(
             "{}: kapture export needs sfpmap built with the colmap feature",
-            sfpmap::escape::path(&dir)
+            sfpmap::escape::path(dir)
         );
         #[cfg(feature = "colmap")]
         {

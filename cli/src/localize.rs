@@ -311,7 +311,7 @@ fn query_source(args: &Args, queries: &[Query], query_list: &Path) -> anyhow::Re
     if let Some(path) = &args.features {
         bail!(
             "{}: reading features.h5 needs the hdf5 feature",
-            sfpmap::escape::path(&path)
+            sfpmap::escape::path(path)
         );
     }
     if let Some(db) = &args.database {

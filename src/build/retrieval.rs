@@ -25,6 +25,7 @@ impl VladOptions {
 
     /// (clusters, dims) for a map of `images` images a descriptor head describes
     /// ([`crate::vlad::head_default_shape`]).
+    #[cfg(all(feature = "colmap", feature = "onnx"))]
     pub(crate) fn head_shape(&self, images: usize) -> (usize, usize) {
         self.or(crate::vlad::head_default_shape(images))
     }

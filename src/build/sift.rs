@@ -197,7 +197,7 @@ fn open_source(options: &ConvertOptions) -> Result<Option<Box<dyn FeatureSource>
         #[cfg(not(feature = "hdf5"))]
         (None, Some(h5)) => Err(ConvertError::Options(format!(
             "{}: features files need sfpmap built with the hdf5 feature",
-            crate::escape::path(&h5)
+            crate::escape::path(h5)
         ))),
         (None, None) => Ok(None),
     }
@@ -521,7 +521,7 @@ fn read_global(
 ) -> Result<(usize, Vec<f32>), ConvertError> {
     Err(ConvertError::Options(format!(
         "{}: global features files need sfpmap built with the hdf5 feature",
-        crate::escape::path(&path)
+        crate::escape::path(path)
     )))
 }
 

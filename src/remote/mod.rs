@@ -124,6 +124,7 @@ pub fn open_location(
 
 /// Opens a catalog's place at `location` (resolved by `session::catalog`), as
 /// [`open_location`] does, with the outbound policy's rule for URLs that `named` names.
+#[cfg(feature = "localize")]
 pub(crate) fn open_place(
     location: &std::path::Path,
     options: &RemoteOptions,

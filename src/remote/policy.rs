@@ -59,8 +59,10 @@ pub(crate) enum NamedBy {
     /// The user: a command line, an API call.
     User,
     /// A catalog read from a URL: its places are on the catalog's own server.
+    #[cfg_attr(not(feature = "localize"), allow(dead_code))]
     RemoteCatalog,
     /// A catalog file on disk.
+    #[cfg_attr(not(feature = "localize"), allow(dead_code))]
     LocalCatalog,
 }
 
@@ -197,6 +199,7 @@ fn internal_from_catalog(address: &str, what: &str) -> String {
 /// against the catalog's URL; it must keep the catalog's scheme, host and port (an S3
 /// catalog: its bucket), so a downloaded catalog opens neither a local file (`file://`, a
 /// path), nor another host, nor plain HTTP for an HTTPS catalog.
+#[cfg(feature = "localize")]
 pub(crate) fn place_of_remote_catalog(catalog: &str, location: &str) -> Result<String, String> {
     let base = Url::parse(catalog).map_err(|e| format!("the catalog's URL: {e}"))?;
     let joined = base.join(location).map_err(|e| format!("not a URL: {e}"))?;
@@ -220,6 +223,7 @@ pub(crate) fn place_of_remote_catalog(catalog: &str, location: &str) -> Result<S
 
 /// Whether a local catalog's place `location` is a URL of a scheme that is not read
 /// (`file://`, `ftp://`): such a place is refused rather than taken for a relative path.
+#[cfg(feature = "localize")]
 pub(crate) fn foreign_scheme(location: &str) -> Option<String> {
     let (scheme, _) = location.split_once("://")?;
     let is_scheme = !scheme.is_empty()
@@ -733,6 +737,7 @@ mod tests {
     }
 
     #[test]
+    #[cfg(feature = "localize")]
     fn remote_catalog_places_stay_on_its_server() {
         let c = "http://127.0.0.1:8080/cat/city.sfpc";
         assert_eq!(

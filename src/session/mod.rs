@@ -235,6 +235,7 @@ pub(crate) struct Fit {
     pub(crate) model_xxh3: Option<String>,
     /// The map's levels as (level id, full dimensions): what another model than the map's
     /// must make to be matched against it.
+    #[cfg(feature = "onnx")]
     pub(crate) levels: Vec<(u16, u32)>,
 }
 
@@ -255,6 +256,7 @@ impl Fit {
             named: first.is_some_and(|l| l.names_feature()),
             from_feature_source: first.is_some_and(|l| l.from_feature_source()),
             model_xxh3,
+            #[cfg(feature = "onnx")]
             levels: map
                 .metadata()
                 .levels

@@ -98,6 +98,7 @@ impl QueryReader {
             // Catalog queries come from files, never an extractor: only the hint's wording.
             from_feature_source: !crate::localize::is_sfp_descriptor(descriptor),
             model_xxh3: None,
+            #[cfg(feature = "onnx")]
             levels: Vec::new(),
         };
         let options = LocalizeOptions::default();
