@@ -9,7 +9,8 @@
 //! COLMAP database): `convert` learns the codebook from the map's own descriptors (one level's
 //! first `dims` stored dimensions) and stores each database image's VLAD over the points it
 //! sees; a query's VLAD comes from its keypoints' descriptors in the same level basis. The
-//! codebook is small (16 × 32 by default; 64 × 16 from 2,000 images on, [`default_shape`])
+//! codebook is small (16 × 32 by default; 64 × 16 from 2,000 images on; at least 64 centroids
+//! for descriptors computed at another detector's keypoints: [`default_shape`])
 //! because it only has to rank images of one map.
 
 use crate::vector::{normalise_rows, Nearest};
@@ -39,28 +40,36 @@ pub(crate) fn is_large_map(images: usize) -> bool {
     images >= LARGE_MAP_IMAGES
 }
 
-/// The default codebook's (clusters, dims) for a map of `images` images.
-pub fn default_shape(images: usize) -> (usize, usize) {
-    if is_large_map(images) {
+/// Where a map's descriptors were computed, which decides its default codebook.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DescribedAt {
+    /// Where the feature's own detector found them, as the queries' are (SIFT, features
+    /// files, SFP's levels).
+    OwnKeypoints,
+    /// At another detector's keypoints: a descriptor head (the built-in ALIKED) describing a
+    /// COLMAP model's SIFT observations, while its queries are described where it detects.
+    ModelObservations,
+}
+
+/// Centroids of the default codebook, at least, of a map [`DescribedAt::ModelObservations`]
+/// (`convert --images --model aliked-n16`). 16 centroids ranked the same four South Building
+/// images first for 4 of 26 queries (each then localized 5 scene units off with ~100 inliers,
+/// against ~1,400 without retrieval); 64 ranked an image of the query's own view first for
+/// all 26, and kept Sacre Coeur and KITTI at 100 %.
+pub const MODEL_OBSERVATION_CLUSTERS: usize = 64;
+
+/// The default codebook's (clusters, dims) for a map of `images` images whose descriptors
+/// were computed `at`.
+pub fn default_shape(images: usize, at: DescribedAt) -> (usize, usize) {
+    let (clusters, dims) = if is_large_map(images) {
         (LARGE_CLUSTERS, LARGE_DIMS)
     } else {
         (DEFAULT_CLUSTERS, DEFAULT_DIMS)
+    };
+    match at {
+        DescribedAt::OwnKeypoints => (clusters, dims),
+        DescribedAt::ModelObservations => (clusters.max(MODEL_OBSERVATION_CLUSTERS), dims),
     }
-}
-
-/// Centroids of the default codebook of a map a descriptor head describes at the COLMAP
-/// model's observations (`convert --images --model aliked-n16`), whatever its size. Its points
-/// are described where SIFT found them and its queries where ALIKED does, and 16 centroids
-/// ranked the same four South Building images first for 4 of 26 queries (each then localized
-/// 5 scene units off with ~100 inliers, against ~1,400 without retrieval); 64 ranked an image
-/// of the query's own view first for all 26, and kept Sacre Coeur and KITTI at 100 %.
-pub const HEAD_CLUSTERS: usize = 64;
-
-/// The default codebook's (clusters, dims) for a map of `images` images a descriptor head
-/// describes: [`default_shape`] with at least [`HEAD_CLUSTERS`] centroids.
-pub fn head_default_shape(images: usize) -> (usize, usize) {
-    let (clusters, dims) = default_shape(images);
-    (clusters.max(HEAD_CLUSTERS), dims)
 }
 
 /// Descriptors k-means sees at most (a seeded sample): enough for 16–64 centroids, and it
@@ -226,10 +235,15 @@ mod tests {
 
     #[test]
     fn the_default_codebook_grows_with_the_images() {
-        assert_eq!(default_shape(0), (16, 32));
-        assert_eq!(default_shape(1_999), (16, 32));
-        assert_eq!(default_shape(2_000), (64, 16));
-        assert_eq!(default_shape(1_000_000), (64, 16));
+        let own = |n| default_shape(n, DescribedAt::OwnKeypoints);
+        assert_eq!(own(0), (16, 32));
+        assert_eq!(own(1_999), (16, 32));
+        assert_eq!(own(2_000), (64, 16));
+        assert_eq!(own(1_000_000), (64, 16));
+        let observed = |n| default_shape(n, DescribedAt::ModelObservations);
+        assert_eq!(observed(0), (64, 32));
+        assert_eq!(observed(1_999), (64, 32));
+        assert_eq!(observed(2_000), (64, 16));
     }
 
     /// `n` unit rows of `dims` around `groups` well-separated directions.

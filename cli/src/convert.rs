@@ -224,18 +224,23 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
 /// (`pick` takes it from a (clusters, dims) shape), from the library's rule.
 fn vlad_help(what: &str, pick: fn((usize, usize)) -> usize) -> String {
     let large = sfpmap::vlad::LARGE_MAP_IMAGES;
-    let (small, head) = (
-        pick(sfpmap::vlad::default_shape(0)),
-        pick(sfpmap::vlad::head_default_shape(0)),
+    use sfpmap::vlad::{default_shape, DescribedAt};
+    let own = |images| pick(default_shape(images, DescribedAt::OwnKeypoints));
+    let (small, observed) = (
+        own(0),
+        pick(default_shape(0, DescribedAt::ModelObservations)),
     );
-    let head = if head == small {
+    let observed = if observed == small {
         String::new()
     } else {
-        format!("; at least {head} for the built-in aliked-n16")
+        format!(
+            "; at least {observed} for a descriptor head describing the model's observations \
+             (--model aliked-n16)"
+        )
     };
     format!(
-        "Retrieval: {what}. [default: {small}, or {} from {large} images on{head}]",
-        pick(sfpmap::vlad::default_shape(large)),
+        "Retrieval: {what}. [default: {small}, or {} from {large} images on{observed}]",
+        own(large),
     )
 }
 

@@ -18,19 +18,9 @@ pub struct VladOptions {
 }
 
 impl VladOptions {
-    /// (clusters, dims) for a map of `images` images.
-    pub fn shape(&self, images: usize) -> (usize, usize) {
-        self.or(crate::vlad::default_shape(images))
-    }
-
-    /// (clusters, dims) for a map of `images` images a descriptor head describes
-    /// ([`crate::vlad::head_default_shape`]).
-    #[cfg(all(feature = "colmap", feature = "onnx"))]
-    pub(crate) fn head_shape(&self, images: usize) -> (usize, usize) {
-        self.or(crate::vlad::head_default_shape(images))
-    }
-
-    fn or(&self, (clusters, dims): (usize, usize)) -> (usize, usize) {
+    /// (clusters, dims) for a map of `images` images whose descriptors were computed `at`.
+    pub fn shape(&self, images: usize, at: crate::vlad::DescribedAt) -> (usize, usize) {
+        let (clusters, dims) = crate::vlad::default_shape(images, at);
         (self.clusters.unwrap_or(clusters), self.dims.unwrap_or(dims))
     }
 }
@@ -108,13 +98,20 @@ mod tests {
     #[test]
     fn a_stated_shape_wins_over_the_images_rule() {
         let by_images = VladOptions::default();
-        assert_eq!(by_images.shape(100), crate::vlad::default_shape(100));
-        assert_eq!(by_images.shape(10_000), crate::vlad::default_shape(10_000));
+        let own = crate::vlad::DescribedAt::OwnKeypoints;
+        assert_eq!(
+            by_images.shape(100, own),
+            crate::vlad::default_shape(100, own)
+        );
+        assert_eq!(
+            by_images.shape(10_000, own),
+            crate::vlad::default_shape(10_000, own)
+        );
         let stated = VladOptions {
             clusters: Some(0),
             dims: None,
         };
-        assert_eq!(stated.shape(10_000).0, 0);
-        assert_eq!(stated.shape(10_000).1, crate::vlad::LARGE_DIMS);
+        assert_eq!(stated.shape(10_000, own).0, 0);
+        assert_eq!(stated.shape(10_000, own).1, crate::vlad::LARGE_DIMS);
     }
 }

@@ -504,11 +504,13 @@ fn convert_images_of(
         .map(
             |(info, points, descriptors, _, _)| -> Result<Option<super::StoredVlad>, ConvertError> {
                 let images = geometry.names.len();
-                let (clusters, dims) = if head {
-                    options.vlad.head_shape(images)
+                // A head describes the model's observations, not its own detections.
+                let at = if head {
+                    crate::vlad::DescribedAt::ModelObservations
                 } else {
-                    options.vlad.shape(images)
+                    crate::vlad::DescribedAt::OwnKeypoints
                 };
+                let (clusters, dims) = options.vlad.shape(images, at);
                 let dims = dims.min(info.dim_short as usize);
                 if clusters == 0 || dims == 0 {
                     return Ok(None);

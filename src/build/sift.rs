@@ -266,7 +266,9 @@ fn convert_geometry(
             reporter.finish();
             points_without_descriptors = has.iter().filter(|h| !**h).count();
             let levels = build_levels(obs, &descriptors, &has, options.short_dims, reporter)?;
-            let (clusters, dims) = options.vlad.shape(geometry.names.len());
+            let (clusters, dims) = options
+                .vlad
+                .shape(geometry.names.len(), crate::vlad::DescribedAt::OwnKeypoints);
             let rows = levels.last().and_then(|deepest| {
                 let dims = dims.min(deepest.info.dim_short as usize);
                 (clusters > 0 && dims > 0).then(|| {

@@ -495,9 +495,10 @@ pub unsafe extern "C" fn sfpm_session_localize(
 /// `sfpm_session_localize` with the query's global descriptor (`global_dim` floats), for a
 /// map whose retrieval ranks images by global descriptors (an hloc `global-feats.h5` given to
 /// `sfpmap convert --global-features`, or the SFP network's): the query's must have the
-/// map's dimensions (another size is `SFPM_ERR_ARGUMENT`; a map without global descriptors
-/// ranks by its VLAD and ignores it). A NULL `global` with `global_dim == 0` is
-/// `sfpm_session_localize`. NaN or infinity in it is `SFPM_ERR_ARGUMENT`.
+/// map's dimensions: another size, or a map without global descriptors (it ranks by VLAD),
+/// is `SFPM_ERR_ARGUMENT`, checked before `global` is read. A NULL `global` with
+/// `global_dim == 0` is `sfpm_session_localize`. NaN or infinity in it is
+/// `SFPM_ERR_ARGUMENT`. On any error `*out` and `*tracked` are left as they were.
 ///
 /// # Safety
 /// As `sfpm_session_localize`, and `global` must be valid for `global_dim` floats (NULL when
@@ -522,19 +523,32 @@ pub unsafe extern "C" fn sfpm_session_localize_global(
         let query = unsafe { read_query(keypoints, descriptors, n, dim, camera)? };
         let mut features = query.features();
         if global_dim > 0 {
+            // Another size than the map's (or a map without global descriptors) would make
+            // retrieval fall back in silence: a caller who hands one in wants to know. Checked
+            // from the section table before a value is read, so a length past the caller's
+            // buffer is refused, not read.
+            let map_dim = s
+                .map()
+                .find(crate::format::SectionKind::ImageGlobal, None)
+                .map(|section| section.cols as usize);
+            if map_dim != Some(global_dim) {
+                return Err(FfiError::argument(match map_dim {
+                    Some(d) => format!(
+                        "global: {global_dim} values, but the map stores global descriptors of {d}"
+                    ),
+                    None => format!(
+                        "global: {global_dim} values, but the map stores no global descriptors \
+                         (it ranks its images by VLAD): use sfpm_session_localize"
+                    ),
+                }));
+            }
             // SAFETY: per contract: `global_dim` floats.
             let global = unsafe { input(global, global_dim, "global")? };
-            crate::localize::check_global_finite(Some(global))
-                .map_err(|e| FfiError::argument(e.to_string()))?;
-            // Another size than the map's would make retrieval fall back to every point in
-            // silence: a caller who hands one in wants to know.
-            if let Ok(Some((_, map_dim))) = s.map().image_global() {
-                if map_dim != global_dim {
-                    return Err(FfiError::argument(format!(
-                        "global: {global_dim} values, but the map stores global descriptors of \
-                         {map_dim}"
-                    )));
-                }
+            if let Some(i) = global.iter().position(|v| !v.is_finite()) {
+                return Err(FfiError::argument(format!(
+                    "global: value {i} is {}",
+                    global[i]
+                )));
             }
             features.global = Some(global.to_vec());
         }

@@ -443,17 +443,27 @@ fn query_global_descriptors_rank_a_global_map_through_the_c_abi() {
                 assert_eq!(first, far, "{}", q.name);
             }
             let mut from_c = SfpmLocalization::default();
-            localize(q, global, &mut from_c);
+            let status = localize(q, global, &mut from_c);
             match library.outcome {
-                Ok(pose) => assert_eq!(from_c.cam_from_world, pose.to_colmap()),
-                Err(_) => assert_eq!(from_c.inliers, 0),
+                Ok(pose) => {
+                    assert_eq!(status, SfpmStatus::SFPM_OK, "{}", q.name);
+                    assert_eq!(from_c.cam_from_world, pose.to_colmap());
+                }
+                Err(_) => assert_eq!(status, SfpmStatus::SFPM_NOT_LOCALIZED, "{}", q.name),
             }
         }
     }
+    // Refusals leave `out` as it was.
     let q = &scene.queries[0];
-    let mut out = SfpmLocalization::default();
+    let untouched = SfpmLocalization {
+        cam_from_world: [7.0; 7],
+        inliers: 7,
+        matches: 7,
+    };
+    let mut out = untouched;
     let status = localize(q, &q.global[..dim - 1], &mut out);
     assert_eq!(status, SfpmStatus::SFPM_ERR_ARGUMENT, "{}", last_error());
+    assert_eq!(out.cam_from_world, untouched.cam_from_world);
     assert_eq!(
         last_error(),
         format!(
@@ -465,7 +475,59 @@ fn query_global_descriptors_rank_a_global_map_through_the_c_abi() {
     nan[1] = f32::NAN;
     let status = localize(q, &nan, &mut out);
     assert_eq!(status, SfpmStatus::SFPM_ERR_ARGUMENT, "{}", last_error());
-    assert!(last_error().contains("NaN"), "{}", last_error());
+    assert_eq!(last_error(), "global: value 1 is NaN");
+    assert_eq!(out.cam_from_world, untouched.cam_from_world);
+    // NULL with a length: named.
+    let status = q.camera(|camera| unsafe {
+        sfpm_session_localize_global(
+            session,
+            q.xy.as_ptr(),
+            q.desc.as_ptr(),
+            q.n(),
+            DIM,
+            null(),
+            dim,
+            camera,
+            &mut out,
+            std::ptr::null_mut(),
+        )
+    });
+    assert_eq!(status, SfpmStatus::SFPM_ERR_NULL, "{}", last_error());
+    assert_eq!(sfpm_session_close(session), SfpmStatus::SFPM_OK);
+    assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
+
+    // A map without global descriptors ranks by VLAD: a global handed in is refused, before
+    // a value of it is read.
+    let plain = tmp.path().join("hloc.sfpm");
+    let options = ConvertOptions {
+        features: Some(scene.features_map.clone()),
+        ..ConvertOptions::default()
+    };
+    convert(&scene.sfm, &options, &plain, &Silent).unwrap();
+    let map = open(&CString::new(plain.to_str().unwrap()).unwrap());
+    let mut session = 0;
+    let status = unsafe { sfpm_session_open(map, null(), &mut session) };
+    assert_eq!(status, SfpmStatus::SFPM_OK, "{}", last_error());
+    let status = q.camera(|camera| unsafe {
+        sfpm_session_localize_global(
+            session,
+            q.xy.as_ptr(),
+            q.desc.as_ptr(),
+            q.n(),
+            DIM,
+            q.global.as_ptr(),
+            dim,
+            camera,
+            &mut out,
+            std::ptr::null_mut(),
+        )
+    });
+    assert_eq!(status, SfpmStatus::SFPM_ERR_ARGUMENT, "{}", last_error());
+    assert!(
+        last_error().contains("stores no global descriptors"),
+        "{}",
+        last_error()
+    );
     assert_eq!(sfpm_session_close(session), SfpmStatus::SFPM_OK);
     assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
 }

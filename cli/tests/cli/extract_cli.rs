@@ -397,6 +397,10 @@ fn another_model_of_other_dimensions_is_refused_up_front() {
             String::from_utf8_lossy(&run.stderr)
         );
     }
+    // The ALIKED map's descriptors are at the SIFT model's observations: its VLAD codebook
+    // has at least 64 centroids (vlad::DescribedAt::ModelObservations).
+    let info = ok(&[os("info"), aliked.as_os_str(), os("--json")]);
+    assert_eq!(info["retrieval"]["vlad"]["clusters"], 64, "{info}");
     let sfp_v2 = crate::shared_data::repo_root().join("models/sfp-v2.onnx");
     for (map, model, holds, other) in [
         (
@@ -408,7 +412,7 @@ fn another_model_of_other_dimensions_is_refused_up_front() {
         (
             &sfp,
             os("aliked-n16"),
-            "(level 0: 240 dimensions)",
+            "\"sfp-v2\" (level 0: 240 dimensions)",
             "\"aliked-n16\"",
         ),
     ] {
