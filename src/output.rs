@@ -18,6 +18,12 @@
 //! named temp file in the target folder, listed like the one above, renamed over the target
 //! at the commit.
 //!
+//! Every step after the folder is opened is relative to that open folder (`openat` with
+//! `O_EXCL|O_NOFOLLOW` for a named temp file, `linkat`, `renameat`, `unlinkat`), so a folder
+//! swapped for a link meanwhile cannot aim the write elsewhere. Where the folder itself comes
+//! open (the remote-read cache, whose folders another user might swap), [`write_bytes_in`]
+//! never looks a path up at all; its temp files are `0600`.
+//!
 //! Errors name the path the caller gave, never a temp path. The library installs no signal
 //! handler; the CLI does.
 
@@ -286,13 +292,32 @@ impl AtomicFile {
     /// `O_TMPFILE` works (the tests of that way; a file system that claims `O_TMPFILE` and
     /// fails it).
     pub fn create(path: &Path) -> Result<AtomicFile, OutputError> {
-        AtomicFile::create_with(path, std::env::var_os("SFPMAP_NO_TMPFILE").is_none())
+        AtomicFile::create_with(path, allow_unnamed())
+    }
+
+    /// Starts writing `name` in the open folder `dir`, never looking a path up: the folder is
+    /// the one opened, whatever its path leads to by now. `name` is a plain file name (no
+    /// `/`); an entry there that is a link is replaced, not followed; one that is not a
+    /// regular file is refused. `dir_path` names the folder in errors only. The temp file is
+    /// `0600`, and stale temp files of dead processes are not swept here (on Linux the data
+    /// has no name until the commit anyway).
+    #[cfg(unix)]
+    pub(crate) fn create_in(
+        dir: std::os::fd::BorrowedFd<'_>,
+        dir_path: &Path,
+        name: &str,
+    ) -> Result<AtomicFile, OutputError> {
+        AtomicFile::start(Target::open_in(dir, dir_path, name)?, allow_unnamed())
     }
 
     fn create_with(path: &Path, allow_unnamed: bool) -> Result<AtomicFile, OutputError> {
-        let target = Target::open(path)?;
+        AtomicFile::start(Target::open(path)?, allow_unnamed)
+    }
+
+    fn start(target: Target, allow_unnamed: bool) -> Result<AtomicFile, OutputError> {
         let unnamed = if allow_unnamed {
-            open_unnamed(&target.dir_file).map_err(OutputError::io(path, "cannot create"))?
+            open_unnamed(&target.dir_file, target.private)
+                .map_err(OutputError::io(&target.path, "cannot create"))?
         } else {
             None
         };
@@ -350,7 +375,7 @@ impl Seek for AtomicFile {
 impl Drop for AtomicFile {
     fn drop(&mut self) {
         if let Temp::Named(temp) = &self.temp {
-            remove_if_pending(temp);
+            remove_if_pending(&self.target, temp);
         }
     }
 }
@@ -362,9 +387,12 @@ impl Drop for AtomicFile {
 struct Target {
     path: PathBuf,
     dir: PathBuf,
-    /// The folder, open: for `openat`/`linkat`/`renameat` and its fsync.
+    /// The folder, open: for `openat`/`linkat`/`renameat`/`unlinkat` and its fsync.
     dir_file: File,
     name: OsString,
+    /// The folder was given open ([`AtomicFile::create_in`]): `path` and `dir` name it in
+    /// messages only and are never looked up; the temp file is `0600`.
+    private: bool,
 }
 
 impl Target {
@@ -391,7 +419,75 @@ impl Target {
             dir,
             dir_file,
             name,
+            private: false,
         })
+    }
+
+    /// The target `name` in the open folder `dir` ([`AtomicFile::create_in`]).
+    #[cfg(unix)]
+    fn open_in(
+        dir: std::os::fd::BorrowedFd<'_>,
+        dir_path: &Path,
+        name: &str,
+    ) -> Result<Target, OutputError> {
+        let path = dir_path.join(name);
+        if name.is_empty() || name == "." || name == ".." || name.contains('/') {
+            return Err(OutputError::NoFileName { path });
+        }
+        let dir_file = File::from(
+            dir.try_clone_to_owned()
+                .map_err(OutputError::io(&path, "cannot open its folder"))?,
+        );
+        let target = Target {
+            path,
+            dir: dir_path.to_path_buf(),
+            dir_file,
+            name: name.into(),
+            private: true,
+        };
+        target.check_replaceable()?;
+        Ok(target)
+    }
+
+    /// [`check_replaceable`], for a target in a folder given open: looked up in that folder,
+    /// a link not followed (it is replaced).
+    fn check_replaceable(&self) -> Result<(), OutputError> {
+        #[cfg(unix)]
+        if self.private {
+            use rustix::fs::{AtFlags, FileType};
+            let kind =
+                match rustix::fs::statat(&self.dir_file, &*self.name, AtFlags::SYMLINK_NOFOLLOW) {
+                    Ok(st) => match FileType::from_raw_mode(st.st_mode) {
+                        FileType::RegularFile | FileType::Symlink => None,
+                        FileType::Directory => Some("a folder"),
+                        FileType::Fifo => Some("a FIFO"),
+                        FileType::CharacterDevice => Some("a character device"),
+                        FileType::BlockDevice => Some("a block device"),
+                        FileType::Socket => Some("a socket"),
+                        _ => Some("not a regular file"),
+                    },
+                    Err(_) => None,
+                };
+            return match kind {
+                Some(kind) => Err(OutputError::NotRegular {
+                    path: self.path.clone(),
+                    kind,
+                }),
+                None => Ok(()),
+            };
+        }
+        check_replaceable(&self.path)
+    }
+
+    /// Removes the temp file `temp` (in the open folder, by its name there).
+    fn remove_temp(&self, temp: &Path) {
+        #[cfg(unix)]
+        {
+            let name = temp.file_name().unwrap_or(temp.as_os_str());
+            let _ = rustix::fs::unlinkat(&self.dir_file, name, rustix::fs::AtFlags::empty());
+        }
+        #[cfg(not(unix))]
+        let _ = std::fs::remove_file(temp);
     }
 
     /// A new named temp file in the folder, listed in [`PENDING`].
@@ -401,7 +497,7 @@ impl Target {
     }
 
     fn create_named_locked(&self, list: &mut Vec<PathBuf>) -> Result<(File, PathBuf), OutputError> {
-        create_named_locked(&self.dir, &self.name, list).map_err(OutputError::io(
+        create_named_locked(self, list).map_err(OutputError::io(
             &self.path,
             "cannot create a temp file in its folder",
         ))
@@ -416,7 +512,7 @@ impl Target {
         temp: impl FnOnce(&mut Vec<PathBuf>) -> Result<PathBuf, OutputError>,
     ) -> Result<(), OutputError> {
         // Checked again right before the rename: the target may have changed since `open`.
-        check_replaceable(&self.path)?;
+        self.check_replaceable()?;
         {
             // Locked from the temp name's creation to the rename: a signal handler's
             // [`remove_pending_temps`] runs entirely before or entirely after.
@@ -426,7 +522,7 @@ impl Target {
                 .rename_into_place(&temp)
                 .map_err(OutputError::io(&self.path, "cannot rename into place"));
             if renamed.is_err() {
-                let _ = std::fs::remove_file(&temp);
+                self.remove_temp(&temp);
             }
             list.retain(|p| p != &temp);
             renamed?;
@@ -489,7 +585,7 @@ impl Target {
             named.sync_all()
         })();
         if let Err(e) = copied {
-            let _ = std::fs::remove_file(&temp);
+            self.remove_temp(&temp);
             list.retain(|p| p != &temp);
             return Err(OutputError::cannot_write(&self.path, e));
         }
@@ -499,10 +595,10 @@ impl Target {
 
 /// Removes the named temp file `temp` if it is still listed in [`PENDING`] (neither renamed
 /// into place nor removed yet): what a writer dropped without a commit leaves.
-fn remove_if_pending(temp: &Path) {
+fn remove_if_pending(target: &Target, temp: &Path) {
     let mut list = pending();
     if let Some(i) = list.iter().position(|p| p == temp) {
-        let _ = std::fs::remove_file(temp);
+        target.remove_temp(temp);
         list.swap_remove(i);
     }
 }
@@ -551,7 +647,7 @@ impl AtomicPath {
 
 impl Drop for AtomicPath {
     fn drop(&mut self) {
-        remove_if_pending(&self.temp);
+        remove_if_pending(&self.target, &self.temp);
     }
 }
 
@@ -575,6 +671,27 @@ pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<(), OutputError> {
     write_atomic(path, |out| {
         io::Write::write_all(out, bytes).map_err(|e| OutputError::cannot_write(path, e))
     })
+}
+
+/// Writes `bytes` as `name` in the open folder `dir` ([`AtomicFile::create_in`]): committed
+/// when written, nothing left otherwise. `dir_path` names the folder in errors only.
+#[cfg(unix)]
+#[cfg_attr(not(feature = "remote"), allow(dead_code))] // the remote-read cache's writer
+pub(crate) fn write_bytes_in(
+    dir: std::os::fd::BorrowedFd<'_>,
+    dir_path: &Path,
+    name: &str,
+    bytes: &[u8],
+) -> Result<(), OutputError> {
+    let mut out = AtomicFile::create_in(dir, dir_path, name)?;
+    io::Write::write_all(&mut out, bytes)
+        .map_err(|e| OutputError::cannot_write(&dir_path.join(name), e))?;
+    out.commit()
+}
+
+/// Whether [`AtomicFile`] may use an unnamed temp file (`SFPMAP_NO_TMPFILE` unset).
+fn allow_unnamed() -> bool {
+    std::env::var_os("SFPMAP_NO_TMPFILE").is_none()
 }
 
 /// A fresh temp name for an output called `name`: `.NAME.sfpmap-tmp.PID.RANDOM`.
@@ -605,23 +722,14 @@ fn random_u64() -> u64 {
     h.finish()
 }
 
-/// A new named temp file in `dir`, listed in `list` before it exists (a handler that runs
-/// after this returns finds it; `list` is locked, so none runs in between).
-fn create_named_locked(
-    dir: &Path,
-    name: &std::ffi::OsStr,
-    list: &mut Vec<PathBuf>,
-) -> io::Result<(File, PathBuf)> {
+/// A new named temp file in `target`'s open folder, listed in `list` before it exists (a
+/// handler that runs after this returns finds it; `list` is locked, so none runs in between).
+fn create_named_locked(target: &Target, list: &mut Vec<PathBuf>) -> io::Result<(File, PathBuf)> {
     let mut last = io::Error::from(io::ErrorKind::AlreadyExists);
     for _ in 0..16 {
-        let temp = dir.join(temp_name(name));
+        let temp = target.dir.join(temp_name(&target.name));
         list.push(temp.clone());
-        match std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create_new(true)
-            .open(&temp)
-        {
+        match open_new(target, &temp) {
             Ok(file) => {
                 lock_temp(&file);
                 return Ok((file, temp));
@@ -636,6 +744,37 @@ fn create_named_locked(
         }
     }
     Err(last)
+}
+
+/// Creates the temp file `temp` in `target`'s open folder (`O_EXCL`, a link not followed).
+#[cfg(unix)]
+fn open_new(target: &Target, temp: &Path) -> io::Result<File> {
+    use rustix::fs::OFlags;
+    let name = temp.file_name().unwrap_or(temp.as_os_str());
+    let flags = OFlags::RDWR | OFlags::CREATE | OFlags::EXCL | OFlags::NOFOLLOW | OFlags::CLOEXEC;
+    let fd = rustix::fs::openat(&target.dir_file, name, flags, temp_mode(target.private))?;
+    Ok(File::from(fd))
+}
+
+#[cfg(not(unix))]
+fn open_new(_: &Target, temp: &Path) -> io::Result<File> {
+    std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create_new(true)
+        .open(temp)
+}
+
+/// A temp file's mode (less the umask): `0600` when `private`, else `0666`.
+#[cfg(unix)]
+fn temp_mode(private: bool) -> rustix::fs::Mode {
+    use rustix::fs::Mode;
+    let owner = Mode::RUSR | Mode::WUSR;
+    if private {
+        owner
+    } else {
+        owner | Mode::RGRP | Mode::WGRP | Mode::ROTH | Mode::WOTH
+    }
 }
 
 /// Removes temp files in `dir` left by processes that no longer run (best effort), once per
@@ -740,8 +879,8 @@ fn process_alive(_: u32) -> bool {
 
 /// An unnamed file in the folder, or `None` where the file system (or kernel) has none.
 #[cfg(target_os = "linux")]
-fn open_unnamed(dir: &File) -> io::Result<Option<File>> {
-    use rustix::fs::{Mode, OFlags};
+fn open_unnamed(dir: &File, private: bool) -> io::Result<Option<File>> {
+    use rustix::fs::OFlags;
     use rustix::io::Errno;
     // `linkat` needs /proc/self/fd to give the file a name.
     if !Path::new("/proc/self/fd").is_dir() {
@@ -751,7 +890,7 @@ fn open_unnamed(dir: &File) -> io::Result<Option<File>> {
         dir,
         ".",
         OFlags::TMPFILE | OFlags::RDWR | OFlags::CLOEXEC,
-        Mode::from_raw_mode(0o666),
+        temp_mode(private),
     ) {
         Ok(fd) => {
             let file = File::from(fd);
@@ -766,7 +905,7 @@ fn open_unnamed(dir: &File) -> io::Result<Option<File>> {
 }
 
 #[cfg(not(target_os = "linux"))]
-fn open_unnamed(_: &File) -> io::Result<Option<File>> {
+fn open_unnamed(_: &File, _: bool) -> io::Result<Option<File>> {
     Ok(None)
 }
 
@@ -1067,5 +1206,66 @@ mod tests {
         let e = AtomicFile::create(&proc_link).unwrap_err();
         assert!(e.to_string().contains("file descriptor"), "{e}");
         assert_eq!(std::fs::read_link(&proc_link).unwrap(), Path::new(&target));
+    }
+
+    /// Writes `body` as `name` in the open folder `dir` ([`AtomicFile::create_in`]), the
+    /// named or the unnamed way.
+    fn write_in(
+        dir: &File,
+        name: &str,
+        allow_unnamed: bool,
+        body: &[u8],
+    ) -> Result<(), OutputError> {
+        use std::os::fd::AsFd;
+        let target = Target::open_in(dir.as_fd(), Path::new("cache/dir"), name)?;
+        let mut f = AtomicFile::start(target, allow_unnamed)?;
+        f.write_all(body).unwrap();
+        f.commit()
+    }
+
+    #[test]
+    fn a_write_in_an_open_folder_lands_there_even_after_its_path_is_swapped_for_a_link() {
+        use std::os::unix::fs::PermissionsExt;
+        for allow_unnamed in [true, false] {
+            let root = tempfile::tempdir().unwrap();
+            let folder = root.path().join("folder");
+            std::fs::create_dir(&folder).unwrap();
+            let open = File::open(&folder).unwrap();
+            // The folder's path now leads elsewhere: moved aside, a link to a victim in its place.
+            let moved = root.path().join("moved");
+            std::fs::rename(&folder, &moved).unwrap();
+            let victim = root.path().join("victim");
+            std::fs::create_dir(&victim).unwrap();
+            std::os::unix::fs::symlink(&victim, &folder).unwrap();
+            write_in(&open, "f.bin", allow_unnamed, b"bytes").unwrap();
+            assert!(names(&victim).is_empty(), "written through the link");
+            assert_eq!(names(&moved), ["f.bin"], "a temp file was left");
+            assert_eq!(std::fs::read(moved.join("f.bin")).unwrap(), b"bytes");
+            // Private: the cache's files are its user's alone.
+            let mode = std::fs::metadata(moved.join("f.bin"))
+                .unwrap()
+                .permissions()
+                .mode();
+            assert_eq!(mode & 0o077, 0, "{mode:o}");
+            // A link at the name is replaced, not written through.
+            std::os::unix::fs::symlink(victim.join("g.bin"), moved.join("g.bin")).unwrap();
+            write_in(&open, "g.bin", allow_unnamed, b"new").unwrap();
+            assert!(
+                names(&victim).is_empty(),
+                "written through a link at the name"
+            );
+            assert_eq!(std::fs::read(moved.join("g.bin")).unwrap(), b"new");
+            // Not a plain name, or a folder there: refused, nothing left.
+            for bad in ["", ".", "..", "../victim/x.bin"] {
+                let e = write_in(&open, bad, allow_unnamed, b"x").unwrap_err();
+                assert!(matches!(e, OutputError::NoFileName { .. }), "{bad}: {e}");
+            }
+            std::fs::create_dir(moved.join("sub")).unwrap();
+            let e = write_in(&open, "sub", allow_unnamed, b"x").unwrap_err();
+            assert!(matches!(e, OutputError::NotRegular { .. }), "{e}");
+            assert_eq!(e.path(), Path::new("cache/dir/sub"));
+            assert_eq!(names(&moved), ["f.bin", "g.bin", "sub"]);
+            assert!(names(&victim).is_empty());
+        }
     }
 }

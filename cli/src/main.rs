@@ -197,7 +197,7 @@ pub fn report_transfer(map: &sfpmap::format::Map<'_>, quiet: bool) {
     let links = source.stats().cache_links_skipped;
     if links > 0 {
         eprintln!(
-            "warning: {}: {links} folder(s) in the cache (SFPMAP_CACHE_DIR) are symbolic links or not folders: left alone, never followed",
+            "warning: {}: {links} folder(s) in the cache (SFPMAP_CACHE_DIR) are symbolic links, not folders, another user's or writable by others: left alone, never followed",
             sfpmap::escape::escape_control_characters(source.name())
         );
     }

@@ -93,8 +93,9 @@ pub struct SourceStats {
     pub refetched: u64,
     /// The origin ignored range requests, so the whole object was read once.
     pub whole_object: bool,
-    /// Folders of the on-disk cache found to be symbolic links (or not folders) and left
-    /// alone, never followed; when the URL's own folder is one, its sections are not cached.
+    /// Folders of the on-disk cache found to be symbolic links, not folders, another user's,
+    /// or writable by group or others, and left alone, never followed or written in; when
+    /// the URL's own folder (or `remote-sections`) is one, its sections are not cached.
     pub cache_links_skipped: u64,
 }
 

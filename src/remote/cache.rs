@@ -4,18 +4,23 @@
 //! last-modified of the object the entries came from) and one file per section,
 //! `<index checksum>-<section index>.bin`, holding exactly the bytes a
 //! [`Wanted`](crate::format::Wanted) names. An entry is written only after it matched its
-//! checksum, through the one atomic writer, so a partial download is never left; it is
+//! checksum, through the one atomic writer (relative to the URL's open folder), so a partial
+//! download is never left; it is
 //! checked again when read, and a damaged one is removed. When the object's ETag or
 //! last-modified differs from the recorded one, the URL's entries are dropped. Past the size
 //! cap, the least recently used entries (by modification time, touched on every hit) go.
 //!
 //! Why file descriptors: the cache folder may be shared, or written by someone else, so a
 //! folder in it may be a symbolic link planted to aim our reads, touches and unlinks at
-//! another folder's files. Every open, stat and unlink below is relative to an open folder
-//! (`openat`/`unlinkat`, `O_NOFOLLOW`), and a folder that is a link is never entered: the
-//! URL's own folder being one turns the cache off for that URL, and trimming leaves such
-//! folders alone; both are counted ([`Unusable::Link`], [`Trimmed::links_skipped`]) for
-//! the caller to report. Off Unix the cache is not used.
+//! another folder's files. Every open, stat, write and unlink below is relative to an open
+//! folder (`openat`/`renameat`/`unlinkat`, `O_NOFOLLOW`; writes through
+//! [`output::write_bytes_in`](crate::output::write_bytes_in)), so swapping a folder for a
+//! link after it was opened aims nothing elsewhere. A folder that is a link, or that is not
+//! safely ours (another user's, or writable by group or others, who could swap what is in
+//! it), is never entered: `remote-sections` or the URL's own folder being one turns the cache
+//! off for that URL, and trimming leaves such folders alone; both are counted
+//! ([`Unusable::Unsafe`], [`Trimmed::links_skipped`]) for the caller to report. Off Unix the
+//! cache is not used.
 
 use crate::format::{checksum, Wanted};
 use serde::{Deserialize, Serialize};
@@ -56,9 +61,9 @@ struct ObjectVersion {
 pub enum Unusable {
     /// The folders could not be made or opened (read-only, off Unix): quietly no cache.
     Unavailable,
-    /// The URL's folder (or the cache's own) is a symbolic link or not a folder: never
-    /// followed, and reported.
-    Link,
+    /// The URL's folder (or the cache's own) is a symbolic link, not a folder, another
+    /// user's, or writable by group or others: never used, and reported.
+    Unsafe,
 }
 
 /// What [`Cache::trim`] did.
@@ -66,7 +71,7 @@ pub enum Unusable {
 pub struct Trimmed {
     /// Entries removed.
     pub removed: u64,
-    /// Per-URL folders that are symbolic links (or not folders), left alone.
+    /// Per-URL folders that are symbolic links, not folders, or not safely ours, left alone.
     pub links_skipped: u64,
 }
 
@@ -74,8 +79,7 @@ pub struct Trimmed {
 /// the cache is an optimisation, and the origin is always there to read from.
 #[derive(Debug)]
 pub struct Cache {
-    /// `<root>/remote-sections`, and the URL's folder in it: paths for the atomic writer
-    /// (checked against the open folder first) and for messages.
+    /// `<root>/remote-sections/<hash>`: the URL's folder, for messages (never looked up).
     dir: PathBuf,
     #[cfg(unix)]
     root_fd: std::os::fd::OwnedFd,
@@ -91,15 +95,25 @@ mod at {
     use rustix::io::Errno;
     use std::os::fd::{AsFd, OwnedFd};
 
-    /// Opens the folder `name` in `dir`: `Err(None)` when it is a link or not a folder,
-    /// `Err(Some(errno))` for any other failure.
+    /// Opens the folder `name` in `dir`: `Err(None)` when it is a link, not a folder, or
+    /// not [`safe`], `Err(Some(errno))` for any other failure.
     pub fn open_folder(dir: impl AsFd, name: &str) -> Result<OwnedFd, Option<Errno>> {
         let flags = OFlags::RDONLY | OFlags::DIRECTORY | OFlags::NOFOLLOW | OFlags::CLOEXEC;
         match rustix::fs::openat(dir, name, flags, Mode::empty()) {
-            Ok(fd) => Ok(fd),
-            Err(Errno::LOOP | Errno::NOTDIR) => Err(None),
+            Ok(fd) if safe(&fd) => Ok(fd),
+            Ok(_) | Err(Errno::LOOP | Errno::NOTDIR) => Err(None),
             Err(e) => Err(Some(e)),
         }
+    }
+
+    /// Whether the open folder is ours alone: owned by this process's user and writable by
+    /// neither group nor others (who could otherwise swap what is in it, or have planted it).
+    pub fn safe(fd: impl AsFd) -> bool {
+        rustix::fs::fstat(fd).is_ok_and(|st| {
+            st.st_uid == rustix::process::geteuid().as_raw()
+                && Mode::from_raw_mode(st.st_mode).intersection(Mode::WGRP | Mode::WOTH)
+                    == Mode::empty()
+        })
     }
 
     /// [`open_folder`], making the folder first when it is missing.
@@ -157,19 +171,12 @@ mod at {
             .filter(|n| n != "." && n != "..")
             .collect()
     }
-
-    /// Device and inode of an open file or folder.
-    pub fn identity(fd: impl AsFd) -> Option<(u64, u64)> {
-        let st = rustix::fs::fstat(fd).ok()?;
-        #[allow(clippy::unnecessary_cast)]
-        Some((st.st_dev as u64, st.st_ino as u64))
-    }
 }
 
 impl Cache {
     /// The cache for `url` in `root`, emptied first if the object changed since its entries
-    /// were written. [`Unusable::Link`] when the URL's folder (or `remote-sections`) is a
-    /// symbolic link: it is never entered.
+    /// were written. [`Unusable::Unsafe`] when the URL's folder (or `remote-sections`) is a
+    /// symbolic link, not a folder, another user's or writable by others: it is never used.
     pub fn open(
         root: &Path,
         url: &str,
@@ -192,7 +199,7 @@ impl Cache {
             let base = std::fs::File::open(root).map_err(|_| Unusable::Unavailable)?;
             let folder = |dir: &dyn std::os::fd::AsFd, name: &str| {
                 at::open_or_make_folder(dir.as_fd(), name).map_err(|e| match e {
-                    None => Unusable::Link,
+                    None => Unusable::Unsafe,
                     Some(_) => Unusable::Unavailable,
                 })
             };
@@ -263,22 +270,13 @@ impl Cache {
         self.write(&Cache::entry_name(index_checksum, want), bytes);
     }
 
-    /// Writes `name` in the URL's folder through the one atomic writer, which works by path:
-    /// only while that path still leads to the folder we opened (not a link swapped in since).
+    /// Writes `name` in the URL's folder through the one atomic writer, relative to the folder
+    /// we opened: its path is never looked up again (it may lead elsewhere by now).
     fn write(&self, name: &str, bytes: &[u8]) {
         #[cfg(unix)]
         {
-            let here = std::fs::symlink_metadata(&self.dir)
-                .ok()
-                .filter(|m| m.is_dir());
-            let same = here.is_some()
-                && std::fs::File::open(&self.dir)
-                    .ok()
-                    .and_then(at::identity)
-                    .is_some_and(|id| Some(id) == at::identity(&self.dir_fd));
-            if same {
-                let _ = crate::output::write_bytes(&self.dir.join(name), bytes);
-            }
+            use std::os::fd::AsFd;
+            let _ = crate::output::write_bytes_in(self.dir_fd.as_fd(), &self.dir, name, bytes);
         }
         #[cfg(not(unix))]
         let _ = (name, bytes);
@@ -460,7 +458,7 @@ mod tests {
         let link = root.path().join(CACHE_FOLDER).join(name);
         std::os::unix::fs::symlink(outside.path(), &link).unwrap();
         let opened = Cache::open(root.path(), url, Some("\"e\""), "t", 1 << 20);
-        assert_eq!(opened.unwrap_err(), Unusable::Link);
+        assert_eq!(opened.unwrap_err(), Unusable::Unsafe);
         assert!(entry.exists());
         assert_eq!(std::fs::read(outside.path().join(RECORD)).unwrap(), b"{}");
         assert!(std::fs::symlink_metadata(&link).unwrap().is_symlink());
@@ -475,5 +473,81 @@ mod tests {
         std::os::unix::fs::symlink(&target, cache.entry(1, &want)).unwrap();
         assert_eq!(cache.get(1, &want), None);
         assert!(target.exists());
+    }
+
+    #[test]
+    fn a_folder_swapped_for_a_link_after_opening_gets_no_write_outside() {
+        let root = tempfile::tempdir().unwrap();
+        let cache = Cache::open(root.path(), "http://h/m", None, "t", 1 << 20).unwrap();
+        let (outside, entry) = victim();
+        let before = std::fs::read_dir(outside.path()).unwrap().count();
+        // The race the review ran, made deterministic: between the open and the write, the
+        // URL's folder moves aside and a link to another folder takes its path.
+        let moved = root.path().join(CACHE_FOLDER).join("moved");
+        std::fs::rename(&cache.dir, &moved).unwrap();
+        std::os::unix::fs::symlink(outside.path(), &cache.dir).unwrap();
+        let want = wanted(7, b"server-chosen bytes");
+        cache.put(1, &want, b"server-chosen bytes");
+        // Nothing new outside (no entry, no temp file), the victim's files untouched.
+        assert_eq!(std::fs::read_dir(outside.path()).unwrap().count(), before);
+        assert!(!outside.path().join(Cache::entry_name(1, &want)).exists());
+        assert_eq!(std::fs::read(&entry).unwrap(), vec![7u8; 100]);
+        assert_eq!(std::fs::read(outside.path().join(RECORD)).unwrap(), b"{}");
+        // It went to the folder the cache opened, and reads back from there.
+        let name = Cache::entry_name(1, &want);
+        assert_eq!(
+            std::fs::read(moved.join(&name)).unwrap(),
+            b"server-chosen bytes"
+        );
+        assert_eq!(
+            cache.get(1, &want).as_deref(),
+            Some(&b"server-chosen bytes"[..])
+        );
+        let mut names = at::names(&cache.dir_fd);
+        names.sort();
+        assert_eq!(names, [name.as_str(), RECORD]);
+    }
+
+    #[test]
+    fn a_folder_writable_by_group_or_others_is_refused() {
+        use std::os::unix::fs::PermissionsExt;
+        let url = "http://h/m";
+        let name = format!("{:016x}", checksum(url.as_bytes()));
+        let mode = |p: &Path, m: u32| {
+            std::fs::set_permissions(p, std::fs::Permissions::from_mode(m)).unwrap();
+        };
+        // The URL's folder, made in advance and group-writable (or others-writable).
+        for loose in [0o775, 0o757] {
+            let root = tempfile::tempdir().unwrap();
+            let folder = root.path().join(CACHE_FOLDER).join(&name);
+            std::fs::create_dir_all(&folder).unwrap();
+            mode(&root.path().join(CACHE_FOLDER), 0o755);
+            mode(&folder, loose);
+            let opened = Cache::open(root.path(), url, Some("\"e\""), "t", 1 << 20);
+            assert_eq!(opened.unwrap_err(), Unusable::Unsafe);
+            assert_eq!(std::fs::read_dir(&folder).unwrap().count(), 0, "written in");
+            // Once it is ours alone, it is used.
+            mode(&folder, 0o755);
+            assert!(Cache::open(root.path(), url, Some("\"e\""), "t", 1 << 20).is_ok());
+        }
+        // `remote-sections` itself group-writable: nothing made or written in it.
+        let root = tempfile::tempdir().unwrap();
+        let sections = root.path().join(CACHE_FOLDER);
+        std::fs::create_dir(&sections).unwrap();
+        mode(&sections, 0o770);
+        let opened = Cache::open(root.path(), url, None, "t", 1 << 20);
+        assert_eq!(opened.unwrap_err(), Unusable::Unsafe);
+        assert_eq!(std::fs::read_dir(&sections).unwrap().count(), 0);
+        // Trimming leaves a group-writable URL folder alone, and counts it.
+        mode(&sections, 0o755);
+        let cache = Cache::open(root.path(), url, None, "t", 0).unwrap();
+        let other = sections.join("00000000000000aa");
+        std::fs::create_dir(&other).unwrap();
+        std::fs::write(other.join(RECORD), b"{}").unwrap();
+        std::fs::write(other.join("0123456789abcdef-0.bin"), [7u8; 100]).unwrap();
+        mode(&other, 0o775);
+        let trimmed = cache.trim();
+        assert!(other.join("0123456789abcdef-0.bin").exists());
+        assert_eq!(trimmed.links_skipped, 1);
     }
 }

@@ -5,7 +5,9 @@
 //! neighbours into one request. Every section GET carries `If-Match` with the ETag of the
 //! first response, and every response's ETag (its Last-Modified when it has none) is compared
 //! with the first one's, so an object replaced meanwhile is an error, not a mix of two maps,
-//! even from a server that ignores `If-Match`.
+//! even from a server that ignores `If-Match`. A body is read a frame at a time and never past
+//! the bytes asked for, whatever its Content-Length says (a server that ignores ranges: the
+//! size its HEAD gave, at most 512 MiB).
 //!
 //! S3 takes its endpoint, region and credentials from the usual `AWS_*` variables
 //! (`AWS_ENDPOINT_URL`, `AWS_REGION`, `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, or
@@ -197,7 +199,7 @@ impl RemoteSource {
             cache: None,
             stats: Mutex::new(SourceStats::default()),
         };
-        let first = source.get(Some(0..HEAD_READ), false);
+        let first = source.get(Ask::Range(0..HEAD_READ), false);
         let (bytes, meta) = match first {
             Ok(got) => got,
             Err(GetError::NotPartial) => {
@@ -212,7 +214,9 @@ impl RemoteSource {
                         "the server ignores range requests and the object is {size} bytes (more than {MAX_WHOLE_OBJECT} to hold whole); download it and open the file"
                     )));
                 }
-                let (bytes, meta) = source.get(None, false).map_err(|e| source.error(e))?;
+                let (bytes, meta) = source
+                    .get(Ask::Whole { size }, false)
+                    .map_err(|e| source.error(e))?;
                 source.stats_mut().whole_object = true;
                 (bytes, meta)
             }
@@ -264,19 +268,26 @@ impl RemoteSource {
                 GetError::Changed => "the object changed since its index was read (ETag no longer matches); open it again".into(),
                 GetError::Replaced { first, now } => format!("the object changed while reading: the first response had {first}, a later one {now}; open it again"),
                 GetError::Short { got, wanted } => format!("truncated response: {got} bytes of {wanted}"),
+                GetError::TooLong { asked } => format!("the server sent more than the {asked} bytes asked for"),
+                GetError::WholeSize { head, got } => format!("the server ignores range requests and its whole-object answer is {got} bytes, not the {head} its HEAD gave"),
                 GetError::Store(message) => message,
             },
         }
     }
 
-    /// One GET of `range` (the whole object for `None`), `If-Match` the first ETag once known.
+    /// One GET of a range or of the whole object, `If-Match` the first ETag once known. The
+    /// body is read a frame at a time into a buffer of the bytes asked for, never of a size the
+    /// server claims ([`read_body`]).
     fn get(
         &self,
-        range: Option<Range<u64>>,
+        ask: Ask,
         conditional: bool,
     ) -> Result<(Vec<u8>, object_store::ObjectMeta), GetError> {
         let options = GetOptions {
-            range: range.clone().map(GetRange::Bounded),
+            range: match &ask {
+                Ask::Range(range) => Some(GetRange::Bounded(range.clone())),
+                Ask::Whole { .. } => None,
+            },
             if_match: if conditional {
                 self.e_tag.clone()
             } else {
@@ -284,14 +295,29 @@ impl RemoteSource {
             },
             ..GetOptions::default()
         };
-        let result = self.runtime.block_on(async {
+        let (bytes, meta) = self.runtime.block_on(async {
             let got = self.store.get_opts(&self.path, options).await?;
+            // The most body bytes the answer may carry, decided before reading any.
+            let limit = match ask {
+                // object_store checked the Content-Range against the range asked for (the
+                // object's end may shorten it), never the Content-Length.
+                Ask::Range(asked) => (got.range.end - got.range.start).min(asked.end - asked.start),
+                // The whole object's size is its Content-Length: it must be the one HEAD gave,
+                // which was checked against what can be held.
+                Ask::Whole { size } => {
+                    if got.meta.size != size || size > MAX_WHOLE_OBJECT {
+                        return Err(GetError::WholeSize {
+                            head: size,
+                            got: got.meta.size,
+                        });
+                    }
+                    size
+                }
+            };
             let meta = got.meta.clone();
-            let returned = got.range.clone();
-            let bytes = got.bytes().await?;
-            Ok::<_, object_store::Error>((bytes, meta, returned))
-        });
-        let (bytes, meta, returned) = result.map_err(GetError::from)?;
+            let bytes = read_body(got, limit).await?;
+            Ok::<_, GetError>((bytes, meta))
+        })?;
         let mut stats = self.stats_mut();
         stats.requests += 1;
         stats.bytes += bytes.len() as u64;
@@ -307,14 +333,7 @@ impl RemoteSource {
                 });
             }
         }
-        let wanted = returned.end - returned.start;
-        if bytes.len() as u64 != wanted {
-            return Err(GetError::Short {
-                got: bytes.len() as u64,
-                wanted,
-            });
-        }
-        Ok((bytes.to_vec(), meta))
+        Ok((bytes, meta))
     }
 
     /// Bytes `range`, from the first read, the whole object, or conditional GETs of at most
@@ -331,9 +350,11 @@ impl RemoteSource {
         let mut at = range.start;
         while at < range.end {
             let end = range.end.min(at.saturating_add(MAX_REQUEST));
-            // `get` checked the body against the range the server confirmed, and object_store
-            // that range against the one asked for.
-            let (bytes, _) = self.get(Some(at..end), true).map_err(|e| self.error(e))?;
+            // `get` read no more than the range asked for, and all of the part of it that the
+            // server confirmed (object_store checked that part against the range asked for).
+            let (bytes, _) = self
+                .get(Ask::Range(at..end), true)
+                .map_err(|e| self.error(e))?;
             out.extend_from_slice(&bytes);
             at = end;
         }
@@ -404,6 +425,40 @@ impl RangeSource for RemoteSource {
     }
 }
 
+/// What one GET asks for.
+enum Ask {
+    /// These bytes.
+    Range(Range<u64>),
+    /// The whole object, of `size` bytes by its HEAD (at most [`MAX_WHOLE_OBJECT`]).
+    Whole { size: u64 },
+}
+
+/// A response's body, read a frame at a time: it must be `limit` bytes, and a byte more is an
+/// error as soon as it arrives. `limit` is the range asked for, or a whole object's size that
+/// its HEAD gave (checked against [`MAX_WHOLE_OBJECT`]); the buffer reserves at most
+/// [`MAX_REQUEST`] up front and grows with the bytes that came. The server's Content-Length is
+/// never reserved, nor read past.
+async fn read_body(got: object_store::GetResult, limit: u64) -> Result<Vec<u8>, GetError> {
+    let mut body = got.into_stream();
+    let mut out = Vec::with_capacity(limit.min(MAX_REQUEST) as usize);
+    while let Some(frame) =
+        std::future::poll_fn(|cx| futures_core::Stream::poll_next(body.as_mut(), cx)).await
+    {
+        let frame = frame?;
+        if (out.len() + frame.len()) as u64 > limit {
+            return Err(GetError::TooLong { asked: limit });
+        }
+        out.extend_from_slice(&frame);
+    }
+    if out.len() as u64 != limit {
+        return Err(GetError::Short {
+            got: out.len() as u64,
+            wanted: limit,
+        });
+    }
+    Ok(out)
+}
+
 enum GetError {
     /// A range request answered `200` with the whole body.
     NotPartial,
@@ -419,6 +474,15 @@ enum GetError {
     Short {
         got: u64,
         wanted: u64,
+    },
+    /// More body bytes than the range asked for (whatever the Content-Length said).
+    TooLong {
+        asked: u64,
+    },
+    /// A whole-object answer whose size is not the one HEAD gave (or more than can be held).
+    WholeSize {
+        head: u64,
+        got: u64,
     },
     Store(String),
 }
