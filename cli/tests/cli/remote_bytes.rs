@@ -196,66 +196,88 @@ enum Version {
     LastModified,
 }
 
-/// A loopback HTTP server for `bytes` that honours `Range` but answers each response as
-/// another version of the object (a new ETag, or a new Last-Modified and no ETag) and
-/// ignores `If-Match`: what a careless server does while the object is replaced.
-fn changing_server(bytes: Vec<u8>, version: Version) -> String {
-    use std::io::{BufRead, BufReader, Write};
+/// A request as a test server read it.
+struct Request {
+    /// A HEAD (no body in the answer).
+    head: bool,
+    /// `Range: bytes=A-B` (B absent for `A-`).
+    range: Option<(u64, Option<u64>)>,
+}
+
+/// A loopback HTTP server (one thread, 64 connections at most, one request each): `respond`
+/// writes the answer to the `n`th request on its stream. Its URL, `/m.sfpm` on it.
+fn loopback_server(
+    mut respond: impl FnMut(usize, &Request, &std::net::TcpStream) + Send + 'static,
+) -> String {
+    use std::io::{BufRead, BufReader};
     let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let port = listener.local_addr().unwrap().port();
     std::thread::spawn(move || {
         for (n, stream) in listener.incoming().enumerate().take(64) {
             let Ok(stream) = stream else { return };
             let mut reader = BufReader::new(&stream);
-            let (mut head, mut range) = (false, None);
+            let mut request = Request {
+                head: false,
+                range: None,
+            };
             let mut line = String::new();
             while reader.read_line(&mut line).is_ok_and(|r| r > 0) {
                 let l = line.trim_end().to_ascii_lowercase();
                 if l.is_empty() {
                     break;
                 }
-                head |= l.starts_with("head ");
+                request.head |= l.starts_with("head ");
                 if let Some(r) = l.strip_prefix("range: bytes=") {
                     let (a, b) = r.split_once('-').unwrap();
-                    let a: usize = a.parse().unwrap();
-                    let b = b
-                        .parse::<usize>()
-                        .map_or(bytes.len() - 1, |b| b.min(bytes.len() - 1));
-                    range = Some(a..b + 1);
+                    request.range = Some((a.parse().unwrap(), b.parse().ok()));
                 }
                 line.clear();
             }
-            let stamp = match version {
-                Version::ETag => format!("ETag: \"v{n}\""),
-                Version::LastModified => {
-                    format!("Last-Modified: Sun, 06 Dec 2026 01:{:02}:00 GMT", n % 60)
-                }
-            };
-            let (status, body, extra) = match range {
-                Some(r) => (
-                    "206 Partial Content",
-                    &bytes[r.clone()],
-                    format!(
-                        "Content-Range: bytes {}-{}/{}\r\n",
-                        r.start,
-                        r.end - 1,
-                        bytes.len()
-                    ),
-                ),
-                None => ("200 OK", &bytes[..], String::new()),
-            };
-            let mut s = &stream;
-            let _ = write!(
-                s,
-                "HTTP/1.1 {status}\r\nContent-Length: {}\r\n{extra}{stamp}\r\nConnection: close\r\n\r\n",
-                body.len()
-            );
-            if !head {
-                let _ = s.write_all(body);
-            }
+            respond(n, &request, &stream);
         }
     });
     format!("http://127.0.0.1:{port}/m.sfpm")
+}
+
+/// A loopback HTTP server for `bytes` that honours `Range` but answers each response as
+/// another version of the object (a new ETag, or a new Last-Modified and no ETag) and
+/// ignores `If-Match`: what a careless server does while the object is replaced.
+fn changing_server(bytes: Vec<u8>, version: Version) -> String {
+    use std::io::Write;
+    loopback_server(move |n, request, stream| {
+        let range = request.range.map(|(a, b)| {
+            let b = b.map_or(bytes.len() - 1, |b| (b as usize).min(bytes.len() - 1));
+            a as usize..b + 1
+        });
+        let stamp = match version {
+            Version::ETag => format!("ETag: \"v{n}\""),
+            Version::LastModified => {
+                format!("Last-Modified: Sun, 06 Dec 2026 01:{:02}:00 GMT", n % 60)
+            }
+        };
+        let (status, body, extra) = match range {
+            Some(r) => (
+                "206 Partial Content",
+                &bytes[r.clone()],
+                format!(
+                    "Content-Range: bytes {}-{}/{}\r\n",
+                    r.start,
+                    r.end - 1,
+                    bytes.len()
+                ),
+            ),
+            None => ("200 OK", &bytes[..], String::new()),
+        };
+        let mut s = stream;
+        let _ = write!(
+            s,
+            "HTTP/1.1 {status}\r\nContent-Length: {}\r\n{extra}{stamp}\r\nConnection: close\r\n\r\n",
+            body.len()
+        );
+        if !request.head {
+            let _ = s.write_all(body);
+        }
+    })
 }
 
 /// Case 9: every response is compared with the first; another version is an error naming the
@@ -364,4 +386,105 @@ fn evict_beside_a_link(bin: &Path, url: &str) -> (usize, std::process::Output) {
         .unwrap()
         .is_symlink());
     (entries.iter().filter(|e| e.exists()).count(), o)
+}
+
+/// What a hostile server streams at most after its headers: enough that a client holding it
+/// all is far over the tests' 200 MB, little enough to be quick on loopback.
+const FLOOD: usize = 320 << 20;
+
+/// Writes `FLOOD` bytes of `b'z'` to `stream` a MiB at a time, until the client hangs up.
+fn flood(mut stream: &std::net::TcpStream) {
+    use std::io::Write;
+    let chunk = vec![b'z'; 1 << 20];
+    for _ in 0..FLOOD >> 20 {
+        if stream.write_all(&chunk).is_err() {
+            return;
+        }
+    }
+}
+
+/// `verify URL` by this build under GNU time, printing `SFPMAP_COMPARE_BIN`'s figures first
+/// when set (each against a server of its own from `server`): exit 1, a one-line error that
+/// names the URL and contains `what`, and a peak RSS of at most 200 MB.
+fn verify_fails_small(server: impl Fn() -> String, what: &str) {
+    if let Some(bin) = compare_bin() {
+        let url = server();
+        let (rss, out) = peak_rss(&bin, &["verify", &url], &no_cache());
+        eprintln!(
+            "{}: peak RSS {rss} bytes, {}: {}",
+            bin.display(),
+            out.status,
+            String::from_utf8_lossy(&out.stderr).trim()
+        );
+    }
+    let url = server();
+    let (rss, out) = peak_rss(
+        Path::new(env!("CARGO_BIN_EXE_sfpmap")),
+        &["verify", &url],
+        &no_cache(),
+    );
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    eprintln!("verify URL: peak RSS {rss} bytes: {err}");
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    assert!(err.contains(&url) && err.contains(what), "{err}");
+    assert!(rss <= 200_000_000, "peak RSS {rss} bytes");
+}
+
+/// A server that answers every range request with `200` and 1000 bytes (it ignores ranges),
+/// HEAD with 1000 bytes, and the unranged GET that follows with a Content-Length of `claimed`
+/// and up to [`FLOOD`] bytes.
+fn ignoring_range_server(claimed: u64) -> String {
+    use std::io::Write;
+    loopback_server(move |_, request, stream| {
+        let stamp =
+            "ETag: \"a\"\r\nLast-Modified: Mon, 01 Jan 2024 00:00:00 GMT\r\nConnection: close";
+        let mut s = stream;
+        if request.head || request.range.is_some() {
+            let _ = write!(
+                s,
+                "HTTP/1.1 200 OK\r\nContent-Length: 1000\r\n{stamp}\r\n\r\n"
+            );
+            if !request.head {
+                let _ = s.write_all(&[b'x'; 1000]);
+            }
+            return;
+        }
+        let _ = write!(
+            s,
+            "HTTP/1.1 200 OK\r\nContent-Length: {claimed}\r\n{stamp}\r\n\r\n"
+        );
+        flood(stream);
+    })
+}
+
+/// A server that ignores range requests and whose whole-object answer claims more than its
+/// HEAD gave (2^62 bytes: reserved up front, it aborted the process; 4 GiB: held as it came):
+/// an error naming the URL before any of the body is held, in little memory.
+#[test]
+fn remote_whole_object_answer_larger_than_its_head_is_an_error_in_little_memory() {
+    for claimed in [1u64 << 62, 4 << 30] {
+        verify_fails_small(|| ignoring_range_server(claimed), "its HEAD gave");
+    }
+}
+
+/// A server that answers each range with `206` and the right Content-Range, but a
+/// Content-Length of 100 GB and a flood of bytes: an error naming the URL as soon as more than
+/// the range arrives, in little memory.
+#[test]
+fn remote_ranged_answer_longer_than_the_range_is_an_error_in_little_memory() {
+    let server = || {
+        loopback_server(|_, request, stream| {
+            use std::io::Write;
+            let (a, b) = request.range.map_or((0, None), |r| r);
+            let b = b.unwrap_or(999_999).min(999_999);
+            let mut s = stream;
+            let _ = write!(
+                s,
+                "HTTP/1.1 206 Partial Content\r\nContent-Range: bytes {a}-{b}/1000000\r\nContent-Length: 100000000000\r\nETag: \"a\"\r\nLast-Modified: Mon, 01 Jan 2024 00:00:00 GMT\r\nConnection: close\r\n\r\n"
+            );
+            flood(stream);
+        })
+    };
+    verify_fails_small(server, "sent more than the 65536 bytes asked for");
 }
