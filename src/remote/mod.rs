@@ -249,7 +249,7 @@ impl RemoteSource {
                 options.cache_max_bytes,
             ) {
                 Ok(cache) => source.cache = Some(cache),
-                Err(cache::Unusable::Link) => source.stats_mut().cache_links_skipped = 1,
+                Err(cache::Unusable::Unsafe) => source.stats_mut().cache_links_skipped = 1,
                 Err(cache::Unusable::Unavailable) => {}
             }
         }
