@@ -3,8 +3,9 @@
 //! the flag named (exit status 2) instead of running and finding nothing. Whole numbers use
 //! clap's own ranged parsers (`clap::value_parser!(u32).range(..)`); the ones here take
 //! decimals, which Rust's `parse` reads as NaN or infinity too. The localizer's options
-//! (`--ratio`, `--top-k`) are checked by the library (`LocalizeOptions::validate`), in the
-//! words Python and C get too; their help states the same ranges.
+//! (`--ratio`, `--top-k`) are checked by the library's rules (`LocalizeOptions::validate`), in
+//! the words Python and C get too, before `localize` opens any map or catalog place, and
+//! refused the same way (exit status 2, the flag named); their help states the same ranges.
 // The commands that take these flags are features' (localize, colmap, onnx): a build without
 // them leaves some parsers unused.
 #![cfg_attr(

@@ -216,30 +216,72 @@ fn shortest_f64(v: f32) -> f64 {
     v.to_string().parse().unwrap_or(f64::from(v))
 }
 
-/// The localizer's options for a map: its defaults ([`LocalizeOptions::for_map`]) with
-/// `--level`, `--short`, `--top-k`, `--retrieval` and `--ratio`. The session checks them.
-fn options(args: &Args) -> impl Fn(&Map<'_>) -> LocalizeOptions + Send + Sync + 'static {
-    let (levels, short, top_k, ratio) = (args.levels.clone(), args.short, args.top_k, args.ratio);
-    let retrieval = match args.retrieval {
-        RetrievalArg::Auto => RetrievalMethod::Auto,
-        RetrievalArg::Vlad => RetrievalMethod::Vlad,
-        RetrievalArg::Global => RetrievalMethod::Global,
-        RetrievalArg::Off => RetrievalMethod::Off,
-    };
-    move |map| {
-        let base = LocalizeOptions::for_map(map);
+/// `--level`, `--short`, `--top-k`, `--retrieval` and `--ratio`, as options of the localizer.
+#[derive(Clone)]
+struct Flags {
+    levels: Vec<u16>,
+    short: bool,
+    top_k: usize,
+    retrieval: RetrievalMethod,
+    ratio: Option<f32>,
+}
+
+impl Flags {
+    fn of(args: &Args) -> Flags {
+        Flags {
+            levels: args.levels.clone(),
+            short: args.short,
+            top_k: args.top_k,
+            retrieval: match args.retrieval {
+                RetrievalArg::Auto => RetrievalMethod::Auto,
+                RetrievalArg::Vlad => RetrievalMethod::Vlad,
+                RetrievalArg::Global => RetrievalMethod::Global,
+                RetrievalArg::Off => RetrievalMethod::Off,
+            },
+            ratio: args.ratio,
+        }
+    }
+
+    /// `base` with these flags.
+    fn over(&self, base: LocalizeOptions) -> LocalizeOptions {
         LocalizeOptions {
-            levels: levels.clone(),
-            short,
-            top_k,
-            retrieval,
+            levels: self.levels.clone(),
+            short: self.short,
+            top_k: self.top_k,
+            retrieval: self.retrieval,
             matching: MatchOptions {
-                ratio: ratio.unwrap_or(base.matching.ratio),
+                ratio: self.ratio.unwrap_or(base.matching.ratio),
                 ..base.matching
             },
             ..base
         }
     }
+}
+
+/// The localizer's options for a map: its defaults ([`LocalizeOptions::for_map`]) with
+/// `--level`, `--short`, `--top-k`, `--retrieval` and `--ratio`. The session checks them;
+/// [`check_options`] did before any map was opened.
+fn options(args: &Args) -> impl Fn(&Map<'_>) -> LocalizeOptions + Send + Sync + 'static {
+    let flags = Flags::of(args);
+    move |map| flags.over(LocalizeOptions::for_map(map))
+}
+
+/// `--ratio` and `--top-k` checked by the library's rules ([`LocalizeOptions::validate`],
+/// the words Python and C get) before any map, catalog place or query is opened: a value
+/// out of range is a usage error naming the flag (exit status 2), as clap's parsers give,
+/// for one map, a catalog (whose places are opened only as queries reach them) and a log
+/// alike. The map's own defaults are in range, so the default options stand in for them.
+fn check_options(args: &Args) -> Result<(), clap::Error> {
+    Flags::of(args)
+        .over(LocalizeOptions::default())
+        .validate()
+        .map_err(|e| {
+            let flag = format!("--{}", e.option.replace('_', "-"));
+            clap::Error::raw(
+                clap::error::ErrorKind::ValueValidation,
+                format!("invalid value '{}' for '{flag}': {}\n", e.value, e.expected),
+            )
+        })
 }
 
 /// The session over `map` (`--map`) with the options `args` give and `source`; a sequence
@@ -355,6 +397,10 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     // reads its settings from the environment.
     #[cfg(feature = "onnx")]
     sfpmap::extract::runtime::disable_telemetry();
+    if let Err(e) = check_options(&args) {
+        e.print()?;
+        return Ok(ExitCode::from(2));
+    }
     let bars = super::Bars::new(quiet, args.json);
     args.threads = super::cap_threads(args.threads, &bars);
     #[cfg(feature = "mcap")]

@@ -141,7 +141,12 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             let e = g.max_error();
             println!(
                 "  positions on a 16-bit grid: at most {:.3e}, {:.3e}, {:.3e} {} from where they were (x, y, z)",
-                e[0], e[1], e[2], map.metadata().units
+                e[0],
+                e[1],
+                e[2],
+                // The file's text: control characters escaped, so a map cannot drive the
+                // terminal.
+                sfpmap::escape::escape_control_characters(&map.metadata().units)
             );
         }
         for l in pq {

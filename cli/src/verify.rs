@@ -17,12 +17,13 @@ pub struct Args {
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let path = &args.map;
     let map = super::open_map(path)?;
-    map.verify().with_context(|| path.display().to_string())?;
+    map.verify()
+        .with_context(|| sfpmap::escape::path(path).to_string())?;
     super::report_transfer(&map, quiet);
     if !quiet {
         println!(
             "{}: ok (sfpmap {}, {} sections, {} bytes)",
-            path.display(),
+            sfpmap::escape::path(path),
             map.version(),
             map.sections().len(),
             map.file_len()

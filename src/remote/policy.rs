@@ -23,9 +23,11 @@
 //!    rules 2 and 3 still hold for its target.
 //! 5. No credential provider asks a metadata service unless the user's configuration says
 //!    so: `s3://` needs `AWS_ACCESS_KEY_ID` and `AWS_SECRET_ACCESS_KEY`,
-//!    `AWS_SKIP_SIGNATURE=true` (a public bucket), a web identity, container credentials, or
+//!    `AWS_SKIP_SIGNATURE=true` (a public bucket; any of object_store's true values), a web
+//!    identity, container credentials (a relative URI, or a full URI with its token file), or
 //!    `SFPMAP_AWS_INSTANCE_METADATA=1` (the EC2 instance's role, from its metadata service);
-//!    otherwise it is refused before any request.
+//!    otherwise it is refused before any request. The provider counted is the one
+//!    object_store will use, in its order: a variable it passes over does not count.
 //!
 //! Behind an HTTP proxy (`HTTP_PROXY`), the proxy resolves host names: rules 1, 2 and 3 hold
 //! for literal addresses and redirects, the proxy decides what a name reaches.
@@ -86,19 +88,38 @@ pub(crate) enum Class {
     Never(&'static str),
 }
 
-/// The class of `ip` (an IPv4 address inside an IPv6 one, mapped or NAT64, is classed as
-/// the IPv4 address).
+/// The class of `ip`. An IPv6 address that carries an IPv4 one is classed as the IPv4
+/// address it reaches: IPv4-mapped (`::ffff:a.b.c.d`), IPv4-compatible (`::a.b.c.d`), 6to4
+/// (`2002:AABB:CCDD::/48`, the IPv4 address in bits 16 to 48), NAT64's well-known prefix
+/// (`64:ff9b::/96`) and Teredo (`2001::/32`, the client's address inverted in the last 32
+/// bits). NAT64's local-use prefix (`64:ff9b:1::/48`) is a translator of the site's own:
+/// internal at least, and the most restrictive class of the IPv4 addresses it may embed
+/// (RFC 6052's positions for its /48 to /96 prefixes). Site-local `fec0::/10` is internal.
 pub(crate) fn classify(ip: IpAddr) -> Class {
     match ip {
         IpAddr::V4(v4) => classify_v4(v4),
         IpAddr::V6(v6) => {
-            if let Some(v4) = v6.to_ipv4_mapped() {
+            if let Some(v4) = embedded_v4(v6) {
                 return classify_v4(v4);
             }
             let s = v6.segments();
-            // NAT64 (64:ff9b::/96) reaches the IPv4 address in its last 32 bits.
-            if s[..6] == [0x64, 0xff9b, 0, 0, 0, 0] {
-                return classify_v4(Ipv4Addr::from((u32::from(s[6]) << 16) | u32::from(s[7])));
+            let b = v6.octets();
+            if s[..3] == [0x64, 0xff9b, 1] {
+                // RFC 6052's IPv4 positions for a /48, /56, /64 and /96 prefix (bits 64 to 71
+                // are the reserved u octet).
+                let candidates = [
+                    [b[6], b[7], b[9], b[10]],
+                    [b[7], b[9], b[10], b[11]],
+                    [b[9], b[10], b[11], b[12]],
+                    [b[12], b[13], b[14], b[15]],
+                ];
+                return candidates
+                    .into_iter()
+                    .map(|o| classify_v4(Ipv4Addr::from(o)))
+                    .fold(
+                        Class::Internal("NAT64 local-use (64:ff9b:1::/48)"),
+                        stricter,
+                    );
             }
             if v6 == Ipv6Addr::new(0xfd00, 0xec2, 0, 0, 0, 0, 0, 0x254) {
                 Class::Never("AWS's IPv6 instance metadata service")
@@ -112,10 +133,42 @@ pub(crate) fn classify(ip: IpAddr) -> Class {
                 Class::Internal("unspecified (this host)")
             } else if s[0] & 0xfe00 == 0xfc00 {
                 Class::Internal("unique local (fc00::/7)")
+            } else if s[0] & 0xffc0 == 0xfec0 {
+                Class::Internal("site-local (fec0::/10)")
             } else {
                 Class::Public
             }
         }
+    }
+}
+
+/// The IPv4 address an IPv6 one reaches, for the forms with one place for it: mapped,
+/// compatible (not `::` and `::1`, which are IPv6's own), 6to4, NAT64's well-known prefix and
+/// Teredo.
+fn embedded_v4(v6: Ipv6Addr) -> Option<Ipv4Addr> {
+    let s = v6.segments();
+    let join = |hi: u16, lo: u16| Ipv4Addr::from((u32::from(hi) << 16) | u32::from(lo));
+    if let Some(v4) = v6.to_ipv4_mapped() {
+        Some(v4)
+    } else if s[..6] == [0; 6] && !v6.is_unspecified() && !v6.is_loopback() {
+        Some(join(s[6], s[7]))
+    } else if s[0] == 0x2002 {
+        Some(join(s[1], s[2]))
+    } else if s[..6] == [0x64, 0xff9b, 0, 0, 0, 0] {
+        Some(join(s[6], s[7]))
+    } else if s[..2] == [0x2001, 0] {
+        Some(join(!s[6], !s[7]))
+    } else {
+        None
+    }
+}
+
+/// The more restrictive of two classes (never, then internal, then public).
+fn stricter(a: Class, b: Class) -> Class {
+    match (a, b) {
+        (Class::Never(w), _) | (_, Class::Never(w)) => Class::Never(w),
+        (Class::Internal(w), _) | (_, Class::Internal(w)) => Class::Internal(w),
+        _ => Class::Public,
     }
 }
 
@@ -239,8 +292,57 @@ pub(crate) fn foreign_scheme(location: &str) -> Option<String> {
     })
 }
 
+/// The credential provider object_store 0.14's `AmazonS3Builder::build` takes for a builder
+/// configured from the environment, in its order (`aws/builder.rs`): static keys, a web
+/// identity, ECS task credentials, EKS Pod Identity (a full URI only with a token file), else
+/// the EC2 instance metadata service.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum S3Provider {
+    /// `AWS_ACCESS_KEY_ID` / `AWS_SECRET_ACCESS_KEY` (either set: the build fails without
+    /// the other, before any request).
+    Static,
+    /// `AWS_WEB_IDENTITY_TOKEN_FILE` and `AWS_ROLE_ARN`: STS.
+    WebIdentity,
+    /// `AWS_CONTAINER_CREDENTIALS_RELATIVE_URI`: the ECS task metadata service.
+    Task,
+    /// `AWS_CONTAINER_CREDENTIALS_FULL_URI` and `AWS_CONTAINER_AUTHORIZATION_TOKEN_FILE`.
+    EksPod,
+    /// None of those: the instance metadata service (`AWS_METADATA_ENDPOINT`, else
+    /// 169.254.169.254).
+    Instance,
+}
+
+/// Which provider object_store builds for `builder`: a variable set to an empty value is
+/// set to it, as to object_store.
+fn s3_provider(builder: &object_store::aws::AmazonS3Builder) -> S3Provider {
+    use object_store::aws::AmazonS3ConfigKey as Key;
+    let some = |key: Key| builder.get_config_value(&key).is_some();
+    if some(Key::AccessKeyId) || some(Key::SecretAccessKey) {
+        S3Provider::Static
+    } else if some(Key::WebIdentityTokenFile) && some(Key::RoleArn) {
+        S3Provider::WebIdentity
+    } else if some(Key::ContainerCredentialsRelativeUri) {
+        S3Provider::Task
+    } else if some(Key::ContainerCredentialsFullUri) && some(Key::ContainerAuthorizationTokenFile) {
+        S3Provider::EksPod
+    } else {
+        S3Provider::Instance
+    }
+}
+
+/// A boolean setting as object_store parses it (`config.rs`, `impl Parse for bool`): `true`,
+/// `1`, `on`, `yes`, `y` in any case.
+fn object_store_true(value: &str) -> bool {
+    matches!(
+        value.to_ascii_lowercase().as_str(),
+        "1" | "true" | "on" | "yes" | "y"
+    )
+}
+
 /// Rule 5: why an S3 store configured as `builder` may not be built (no credentials the
-/// user's configuration asks for), before any request.
+/// user's configuration asks for), before any request. Accepted only where the provider
+/// object_store will use ([`s3_provider`]) is one the configuration names: a variable that
+/// object_store would pass over (a full URI without its token file) does not count.
 pub(crate) fn s3_credentials(
     builder: &object_store::aws::AmazonS3Builder,
     options: &RemoteOptions,
@@ -251,24 +353,58 @@ pub(crate) fn s3_credentials(
             .get_config_value(&key)
             .is_some_and(|v| !v.is_empty())
     };
-    let configured = set(Key::AccessKeyId)
-        || set(Key::SecretAccessKey)
-        || builder
-            .get_config_value(&Key::SkipSignature)
-            .is_some_and(|v| v == "true")
-        || (set(Key::WebIdentityTokenFile) && set(Key::RoleArn))
-        || set(Key::ContainerCredentialsRelativeUri)
-        || set(Key::ContainerCredentialsFullUri)
-        || set(Key::MetadataEndpoint)
-        || options.instance_metadata;
+    // Unsigned requests never ask the provider for credentials, whichever it is.
+    let unsigned = builder
+        .get_config_value(&Key::SkipSignature)
+        .is_some_and(|v| object_store_true(&v));
+    let configured = unsigned
+        || match s3_provider(builder) {
+            S3Provider::Static => true,
+            S3Provider::WebIdentity => set(Key::WebIdentityTokenFile) && set(Key::RoleArn),
+            S3Provider::Task => set(Key::ContainerCredentialsRelativeUri),
+            S3Provider::EksPod => {
+                set(Key::ContainerCredentialsFullUri) && set(Key::ContainerAuthorizationTokenFile)
+            }
+            S3Provider::Instance => set(Key::MetadataEndpoint) || options.instance_metadata,
+        };
     if configured {
         return Ok(());
     }
     Err(format!(
         "no S3 credentials configured, and sfpmap asks no metadata service for them unless told \
          to: set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_SKIP_SIGNATURE=true for a \
-         public bucket, or {INSTANCE_METADATA_ENV}=1 for the EC2 instance's role"
+         public bucket, AWS_CONTAINER_CREDENTIALS_FULL_URI together with \
+         AWS_CONTAINER_AUTHORIZATION_TOKEN_FILE, or {INSTANCE_METADATA_ENV}=1 for the EC2 \
+         instance's role"
     ))
+}
+
+/// The EKS Pod Identity token file (`AWS_CONTAINER_AUTHORIZATION_TOKEN_FILE`), when
+/// object_store will send it: its contents go into a request header as they are, and a
+/// control character there (a trailing newline, as `echo` writes) makes object_store panic
+/// building the request. Checked when the store is built, naming the file.
+fn s3_token_file(builder: &object_store::aws::AmazonS3Builder) -> Result<(), String> {
+    use object_store::aws::AmazonS3ConfigKey as Key;
+    let unsigned = builder
+        .get_config_value(&Key::SkipSignature)
+        .is_some_and(|v| object_store_true(&v));
+    if unsigned || s3_provider(builder) != S3Provider::EksPod {
+        return Ok(());
+    }
+    let Some(file) = builder.get_config_value(&Key::ContainerAuthorizationTokenFile) else {
+        return Ok(());
+    };
+    let shown = crate::escape::escape_control_characters(&file);
+    let token = std::fs::read_to_string(&file)
+        .map_err(|e| format!("AWS_CONTAINER_AUTHORIZATION_TOKEN_FILE {shown}: {e}"))?;
+    if token.is_empty() || token.chars().any(char::is_control) {
+        return Err(format!(
+            "AWS_CONTAINER_AUTHORIZATION_TOKEN_FILE {shown}: the token is empty or holds a \
+             control character (a trailing newline?), which no request header may: write the \
+             token alone, without a line end"
+        ));
+    }
+    Ok(())
 }
 
 /// The hosts of the URLs in the user's S3 configuration (endpoints, credential services):
@@ -316,6 +452,7 @@ pub(crate) fn build_store(
         "s3" => {
             // `admit` checked its credentials (rule 5) in the same environment.
             let builder = object_store::aws::AmazonS3Builder::from_env().with_url(url.as_str());
+            s3_token_file(&builder)?;
             let connector = PolicyConnector::new(s3_configured_hosts(&builder), false, options);
             let store = builder
                 .with_client_options(client)
@@ -567,6 +704,13 @@ mod tests {
             "fd00:ec2::254",
             "::ffff:169.254.169.254",
             "64:ff9b::a9fe:a9fe",
+            // IPv4-compatible, 6to4, NAT64 local-use and Teredo forms of 169.254.169.254.
+            "::169.254.169.254",
+            "::a9fe:a9fe",
+            "2002:a9fe:a9fe::1",
+            "64:ff9b:1::a9fe:a9fe",
+            "64:ff9b:1:a9fe:a9:fe00::",
+            "2001:0:4136:e378:8000:63bf:5601:5601",
             "255.255.255.255",
             "224.0.0.1",
             "ff02::1",
@@ -586,6 +730,15 @@ mod tests {
             "::",
             "fd12::1",
             "::ffff:127.0.0.1",
+            "::127.0.0.1",
+            "::10.0.0.1",
+            "2002:7f00:1::",
+            "2002:c0a8:101::1",
+            "64:ff9b::7f00:1",
+            "64:ff9b::a00:1",
+            "64:ff9b:1::808:808",
+            "fec0::1",
+            "feff::1",
         ] {
             assert!(
                 matches!(classify(ip(internal)), Class::Internal(_)),
@@ -598,6 +751,10 @@ mod tests {
             "100.128.0.1",
             "2001:db8::1",
             "1.1.1.1",
+            "::8.8.8.8",
+            "2002:808:808::1",
+            "64:ff9b::808:808",
+            "2001:0:4136:e378:8000:63bf:f7f7:f7f7",
         ] {
             assert_eq!(classify(ip(public)), Class::Public, "{public}");
         }
@@ -787,5 +944,113 @@ mod tests {
             ..RemoteOptions::default()
         };
         assert!(s3_credentials(&bare, &instance).is_ok());
+    }
+
+    /// Finding 4 and 11 of issue 32's review: a variable counts only where object_store's
+    /// builder takes the provider it names, in its order (`AWS_CONTAINER_CREDENTIALS_FULL_URI`
+    /// needs `AWS_CONTAINER_AUTHORIZATION_TOKEN_FILE`, or object_store asks the instance
+    /// metadata service), and `AWS_SKIP_SIGNATURE` takes object_store's true values.
+    #[test]
+    fn s3_credentials_count_only_the_provider_object_store_uses() {
+        use object_store::aws::{AmazonS3Builder, AmazonS3ConfigKey as Key};
+        let options = RemoteOptions::default();
+        let bare = AmazonS3Builder::new().with_url("s3://bucket/m.sfpm");
+        let with = |pairs: &[(Key, &str)]| {
+            pairs
+                .iter()
+                .fold(bare.clone(), |b, (k, v)| b.with_config(*k, *v))
+        };
+        let full = (Key::ContainerCredentialsFullUri, "http://127.0.0.1:9/creds");
+        let token = (Key::ContainerAuthorizationTokenFile, "/run/token");
+        // A full URI alone: object_store falls back to the instance provider.
+        let b = with(&[full]);
+        assert_eq!(s3_provider(&b), S3Provider::Instance);
+        let err = s3_credentials(&b, &options).unwrap_err();
+        assert!(
+            err.contains("AWS_CONTAINER_AUTHORIZATION_TOKEN_FILE") && err.contains("FULL_URI"),
+            "{err}"
+        );
+        // With its token file: EKS Pod Identity.
+        let b = with(&[full, token]);
+        assert_eq!(s3_provider(&b), S3Provider::EksPod);
+        assert!(s3_credentials(&b, &options).is_ok());
+        // The token file alone, an empty full URI, or a role without its token: nothing.
+        for pairs in [
+            vec![token],
+            vec![(Key::ContainerCredentialsFullUri, ""), token],
+            vec![(Key::RoleArn, "arn:aws:iam::1:role/r")],
+            vec![(Key::WebIdentityTokenFile, "/run/wi")],
+            // object_store takes an empty relative URI (169.254.170.2 itself): refused.
+            vec![(Key::ContainerCredentialsRelativeUri, "")],
+        ] {
+            let b = with(&pairs);
+            assert!(s3_credentials(&b, &options).is_err(), "{pairs:?}");
+        }
+        // The order: static keys first, then a web identity, a relative URI, a full URI.
+        let b = with(&[(Key::AccessKeyId, "id"), full]);
+        assert_eq!(s3_provider(&b), S3Provider::Static);
+        let b = with(&[
+            (Key::WebIdentityTokenFile, "/run/wi"),
+            (Key::RoleArn, "arn:aws:iam::1:role/r"),
+            full,
+            token,
+        ]);
+        assert_eq!(s3_provider(&b), S3Provider::WebIdentity);
+        assert!(s3_credentials(&b, &options).is_ok());
+        let b = with(&[(Key::ContainerCredentialsRelativeUri, "/v2/c"), full]);
+        assert_eq!(s3_provider(&b), S3Provider::Task);
+        assert!(s3_credentials(&b, &options).is_ok());
+        // AWS_SKIP_SIGNATURE: what object_store reads as true, in any case.
+        for yes in ["true", "True", "TRUE", "1", "yes", "Y", "on"] {
+            let b = with(&[(Key::SkipSignature, yes)]);
+            assert!(s3_credentials(&b, &options).is_ok(), "{yes}");
+        }
+        for no in ["false", "False", "0", "no", "off", "", "maybe"] {
+            let b = with(&[(Key::SkipSignature, no)]);
+            assert!(s3_credentials(&b, &options).is_err(), "{no}");
+        }
+    }
+
+    /// The EKS token file goes into a header as it is: one ending in a newline made
+    /// object_store panic building the request. Refused when the store is built, naming it.
+    #[test]
+    fn an_eks_token_file_with_a_control_character_is_refused_naming_it() {
+        use object_store::aws::{AmazonS3Builder, AmazonS3ConfigKey as Key};
+        let t = tempfile::tempdir().unwrap();
+        let file = |name: &str, text: &str| {
+            let path = t.path().join(name);
+            std::fs::write(&path, text).unwrap();
+            path.to_str().unwrap().to_string()
+        };
+        let builder = |token_file: &str| {
+            AmazonS3Builder::new()
+                .with_url("s3://bucket/m.sfpm")
+                .with_config(Key::ContainerCredentialsFullUri, "http://127.0.0.1:9/c")
+                .with_config(Key::ContainerAuthorizationTokenFile, token_file)
+        };
+        assert!(s3_token_file(&builder(&file("good", "eyJhbGciOi.x.y"))).is_ok());
+        for (name, text) in [
+            ("newline", "eyJhbGciOi.x.y\n"),
+            ("cr", "eyJ\r\nX-Evil: 1"),
+            ("empty", ""),
+        ] {
+            let path = file(name, text);
+            let err = s3_token_file(&builder(&path)).unwrap_err();
+            assert!(
+                err.contains(&path) && err.contains("control character"),
+                "{name}: {err}"
+            );
+        }
+        let missing = t.path().join("missing").to_str().unwrap().to_string();
+        let err = s3_token_file(&builder(&missing)).unwrap_err();
+        assert!(err.contains(&missing), "{err}");
+        // Not read where object_store does not send it: static keys, unsigned requests.
+        let bad = file("bad", "tok\n");
+        let keyed = builder(&bad)
+            .with_config(Key::AccessKeyId, "id")
+            .with_config(Key::SecretAccessKey, "secret");
+        assert!(s3_token_file(&keyed).is_ok());
+        let unsigned = builder(&bad).with_config(Key::SkipSignature, "true");
+        assert!(s3_token_file(&unsigned).is_ok());
     }
 }

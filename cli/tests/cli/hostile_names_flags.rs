@@ -297,3 +297,84 @@ fn numeric_flags_out_of_range_are_refused_naming_the_flag() {
     let help = ok(&sfpmap(&["eval", "--help"]));
     assert!(help.contains("an angle in (0, 180]"), "{help}");
 }
+
+/// Review finding 6: a map's own text and path printed on success were not escaped: `slice`
+/// printed the map's `units` raw (ESC[2J cleared the screen), `verify` its path. Now both
+/// are escaped, as `info` escapes them.
+#[test]
+fn a_map_whose_text_and_path_hold_control_characters_is_printed_escaped() {
+    use sfpmap::format::Codec;
+    let t = tempfile::tempdir().unwrap();
+    let scene = crate::common::Scene::new(7, 300, 6, &[(0, 2.0, 8, 4), (1, 4.0, 8, 4)]);
+    let mut w = scene.writer(Codec::Raw);
+    w.metadata_mut().units = HOSTILE.into();
+    let map = t.path().join(format!("{HOSTILE}.sfpm"));
+    w.write(&map, &sfpmap::progress::Silent).unwrap();
+    let map = map.to_str().unwrap();
+    // verify's success line: the path.
+    let o = sfpmap(&["verify", map]);
+    let printed = ok(&o);
+    assert_no_raw_control_characters(&o);
+    assert!(
+        printed.contains(&format!("{ESCAPED}.sfpm: ok")),
+        "{printed}"
+    );
+    // slice's grid line: the units.
+    let out = t.path().join("s.sfpm");
+    let o = sfpmap(&[
+        "slice",
+        map,
+        "--level",
+        "1",
+        "--minimal",
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    let printed = ok(&o);
+    assert_no_raw_control_characters(&o);
+    assert!(
+        printed.contains("positions on a 16-bit grid") && printed.contains(ESCAPED),
+        "{printed}"
+    );
+    // info's lines, as before.
+    let o = sfpmap(&["info", map]);
+    ok(&o);
+    assert_no_raw_control_characters(&o);
+}
+
+/// Review finding 7: `extract --nms-radius` and `--max-keypoints` took any whole number;
+/// now their ranges are stated in `--help` and a value outside is refused as clap parses it
+/// (exit status 2, the flag named), before any model or image is read.
+#[cfg(feature = "onnx")]
+#[test]
+fn extract_whole_number_flags_have_stated_ranges() {
+    let t = tempfile::tempdir().unwrap();
+    let out = t.path().join("f.h5");
+    let out = out.to_str().unwrap();
+    let extract = |extra: &[&str]| {
+        let mut a = vec!["extract", "missing.jpg", "-o", out];
+        a.extend(extra);
+        sfpmap(&a)
+    };
+    for (extra, flag) in [
+        (&["--nms-radius", "65"][..], "--nms-radius"),
+        (&["--nms-radius", "4294967295"][..], "--nms-radius"),
+        (&["--max-keypoints", "0"][..], "--max-keypoints"),
+        (&["--max-keypoints", "500,0"][..], "--max-keypoints"),
+        (&["--max-keypoints", "1000001"][..], "--max-keypoints"),
+    ] {
+        let o = extract(extra);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
+        assert!(
+            err.starts_with("error: invalid value") && err.contains(flag),
+            "{extra:?}: {err}"
+        );
+    }
+    assert!(!Path::new(out).exists());
+    let help = ok(&sfpmap(&["extract", "--help"]));
+    assert!(
+        help.contains("0 to 64") && help.contains("1 to 1000000"),
+        "{help}"
+    );
+}

@@ -157,6 +157,16 @@ fn catalog_naming(maps: &[&str], out: &Path) {
 /// `localize --catalog catalog` with a query list and a database (never read: the run
 /// stops at the catalog's places).
 fn localize_catalog(catalog: &str, dir: &Path, env: &[(&str, String)]) -> Output {
+    localize_catalog_with(catalog, dir, &[], env)
+}
+
+/// [`localize_catalog`] with `extra` arguments.
+fn localize_catalog_with(
+    catalog: &str,
+    dir: &Path,
+    extra: &[&str],
+    env: &[(&str, String)],
+) -> Output {
     let list = dir.join("queries.txt");
     std::fs::write(&list, "q.jpg SIMPLE_PINHOLE 640 480 500 320 240\n").unwrap();
     let (db, out) = (dir.join("queries.db"), dir.join("poses.txt"));
@@ -172,6 +182,8 @@ fn localize_catalog(catalog: &str, dir: &Path, env: &[(&str, String)]) -> Output
         out.to_str().unwrap(),
         "--force",
     ];
+    let mut args = args.to_vec();
+    args.extend(extra);
     sfpmap(&args, env)
 }
 
@@ -260,6 +272,56 @@ fn a_catalog_file_names_only_public_hosts_and_only_urls_it_can_read() {
     }
     assert_eq!(trap.connections(), 0);
     assert_eq!(other.connections(), 0);
+}
+
+/// Review finding 7 of issue 32: `--ratio NaN` and `--top-k 0` with `--catalog` were checked
+/// only when a place was opened (exit 0, "0/8 localized", or exit 1 mid-run). Now they are
+/// usage errors naming the flag (exit status 2) before any place is opened: the catalog's
+/// one place is a loopback port nobody listens on, whose connection error the run with
+/// valid flags reports instead.
+#[test]
+fn localizer_flags_out_of_range_are_refused_before_a_catalog_place_is_opened() {
+    let t = tempfile::tempdir().unwrap();
+    let port = {
+        let closed = TcpListener::bind("127.0.0.1:0").unwrap();
+        closed.local_addr().unwrap().port()
+    };
+    let catalog = t.path().join("c.sfpc");
+    catalog_naming(&[&format!("http://127.0.0.1:{port}/m.sfpm")], &catalog);
+    let catalog = catalog.to_str().unwrap();
+    let env = [("SFPMAP_ALLOW_PRIVATE_PLACES", "1".to_string())];
+    for (extra, expected) in [
+        (
+            ["--ratio", "NaN"],
+            "invalid value 'NaN' for '--ratio': a ratio in (0, 1]",
+        ),
+        (
+            ["--ratio", "1.5"],
+            "invalid value '1.5' for '--ratio': a ratio in (0, 1]",
+        ),
+        (
+            ["--top-k", "0"],
+            "invalid value '0' for '--top-k': 1 to 100000 images",
+        ),
+        (
+            ["--top-k", "100001"],
+            "invalid value '100001' for '--top-k': 1 to 100000 images",
+        ),
+    ] {
+        let o = localize_catalog_with(catalog, t.path(), &extra, &env);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{extra:?}: {err}");
+        assert!(
+            err.starts_with("error: ") && err.contains(expected),
+            "{extra:?}: {err}"
+        );
+        assert!(!t.path().join("poses.txt").exists());
+    }
+    // With valid flags the same run gets as far as the place (or the queries' database),
+    // and fails there: the refusals above came first.
+    let o = localize_catalog_with(catalog, t.path(), &["--ratio", "0.9"], &env);
+    let err = failed(&o);
+    assert!(!err.contains("invalid value"), "{err}");
 }
 
 #[test]

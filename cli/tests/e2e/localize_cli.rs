@@ -237,12 +237,13 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_with_v1_only_o
     let a: Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(a["localized"], 2, "{a}");
     assert_eq!(a["ratio"], 0.95, "{a}");
-    // --ratio outside (0, 1] is refused, in the library's words (Python and C say the same).
+    // --ratio outside (0, 1] is refused before the map is opened, a usage error naming the
+    // flag, in the library's words (Python and C say the same).
     let o = localize(&["--ratio", "1.5"], "r.txt");
-    assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(
-        err.contains("m.sfpm: ratio 1.5: a ratio in (0, 1]"),
+        err.contains("invalid value '1.5' for '--ratio': a ratio in (0, 1]"),
         "{err}"
     );
     assert!(!t.path().join("r.txt").exists());
