@@ -312,8 +312,9 @@ impl QueryReader {
                 // A query's unusable descriptor (NaN) fails that query alone.
                 Err(e) => return Ok(Err(e.to_string())),
                 // Another network's (or none in the map): retrieval would fall back in silence.
+                // Said for the query, which fails alone as one of another dimension does.
                 Ok(Some(g)) if map_dim.is_some_and(|d| d != g.len()) || map_dim.is_none() => {
-                    return Err(global
+                    return Ok(Err(global
                         .err(format!(
                             "{name}/global_descriptor: {} values, but the map {} {}",
                             g.len(),
@@ -323,7 +324,7 @@ impl QueryReader {
                                 None => "stores no global descriptors".to_string(),
                             }
                         ))
-                        .into())
+                        .to_string()))
                 }
                 Ok(Some(g)) => {
                     f.global = Some(g);

@@ -335,8 +335,8 @@ fn a_query_features_file_of_another_feature_is_refused_naming_both() {
     );
     session(&h5).unwrap();
     session(&f.h5("queries.h5", "plain")).unwrap();
-    // Query global descriptors of another size than the map's (here: it stores none) are an
-    // error naming the file and both, not a retrieval that falls back in silence.
+    // Query global descriptors of another size than the map's (here: it stores none) fail the
+    // query, naming the file and both, not a retrieval that falls back in silence.
     let global = f.h5("global-feats-8.h5", "global8");
     let with_global = Session::builder(map.clone(), "m.sfpm")
         .source(QuerySource::FeaturesFile(h5.clone()))
@@ -350,14 +350,14 @@ fn a_query_features_file_of_another_feature_is_refused_naming_both() {
         vec![500.0, 320.0, 240.0],
     )
     .unwrap();
-    let e = with_global.localize("img1.jpg", &camera).unwrap_err();
+    let failed = with_global.localize("img1.jpg", &camera).unwrap();
     assert_eq!(
-        e.to_string(),
-        format!(
+        failed.outcome,
+        Err(sfpmap::localize::QueryFailure::NoFeatures(format!(
             "{}: img1.jpg/global_descriptor: 8 values, but the map m.sfpm stores no global \
              descriptors",
             global.display()
-        )
+        )))
     );
 }
 
