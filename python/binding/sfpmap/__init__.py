@@ -611,26 +611,35 @@ def read_features_h5(path: PathLike) -> FeaturesFile:
 
 
 def convert(
-    model_dir: PathLike,
+    model_dir: Optional[PathLike] = None,
     database: Optional[PathLike] = None,
     images: Optional[PathLike] = None,
     out: Optional[PathLike] = None,
+    *,
+    kapture: Optional[PathLike] = None,
     **options: Any,
 ) -> Dict[str, Any]:
     """``sfpmap convert``: a COLMAP model folder into the map ``out`` (a SIFT map with
-    ``database``, an SFP map with ``images``, else geometry only). ``options`` are the
-    CLI's flags (``force``, ``codec``, ``short_dims``, ``aggregate``, ``vlad_clusters``,
-    ``pq``, ``model``, ``resize_max``, ``threads``, ...), checked as the CLI checks them:
-    ``images`` with ``database``, ``short_dims``, ``aggregate`` or ``strict`` is the CLI's
-    ``InputError``. Returns what ``convert --json`` prints."""
+    ``database``, an SFP map with ``images``, else geometry only), or with ``kapture`` instead
+    of ``model_dir`` a kapture folder (``convert --kapture``: its model and its own keypoints
+    and descriptors, chosen by ``keypoints_type``/``descriptors_type`` where it has several;
+    none: a geometry map). ``options`` are the CLI's flags (``force``, ``codec``,
+    ``short_dims``, ``aggregate``, ``vlad_clusters``, ``pq``, ``model``, ``resize_max``,
+    ``threads``, ``feature_name``, ...), checked as the CLI checks them: ``images`` with
+    ``database``, ``short_dims``, ``aggregate`` or ``strict``, both or neither of
+    ``model_dir`` and ``kapture``, ``kapture`` with ``database``, ``images`` or ``features``
+    are the CLI's ``InputError``; as the CLI, a file already inside the kapture folder is an
+    input, refused as ``out`` even with ``force``.
+    Returns what ``convert --json`` prints."""
     if out is None:
         raise InputError("out: the map to write")
     return _json.loads(
         _sfpmap.convert(
-            _os.fspath(model_dir),
+            None if model_dir is None else _os.fspath(model_dir),
             None if database is None else _os.fspath(database),
             None if images is None else _os.fspath(images),
             out=_os.fspath(out),
+            kapture=None if kapture is None else _os.fspath(kapture),
             **options,
         )
     )

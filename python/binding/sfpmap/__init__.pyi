@@ -286,10 +286,12 @@ class Extractor:
     ) -> Features: ...
 
 def convert(
-    model_dir: PathLike,
+    model_dir: Optional[PathLike] = None,
     database: Optional[PathLike] = None,
     images: Optional[PathLike] = None,
     out: Optional[PathLike] = None,
+    *,
+    kapture: Optional[PathLike] = None,
     **options: Any,
 ) -> Dict[str, Any]: ...
 def slice(

@@ -172,6 +172,7 @@ impl Options {
         features: Option<PathBuf>,
         feature_name: Option<String>,
         global_features: Option<PathBuf>,
+        kapture: bool,
     ) -> PyResult<Options> {
         let bad = |m: &str| Err(InputError::new_err(m.to_string()));
         if features.is_some() && self.database.is_some() {
@@ -182,8 +183,8 @@ impl Options {
         if self.images.is_some() && (features.is_some() || global_features.is_some()) {
             return bad("images cannot be used with features or global_features");
         }
-        if feature_name.is_some() && features.is_none() {
-            return bad("feature_name needs features");
+        if feature_name.is_some() && features.is_none() && !kapture {
+            return bad("feature_name needs features or kapture");
         }
         self.features = features;
         self.feature_name = feature_name;
@@ -226,7 +227,14 @@ impl Options {
     }
 
     /// The CLI's output policy: `out` may not be an input, or exist without `force`.
-    fn check_output(&self, model_files: &[PathBuf], out: &Path, force: bool) -> PyResult<()> {
+    /// `out_is_input`: `out` is an input whatever it is (it lies inside a kapture folder).
+    fn check_output(
+        &self,
+        model_files: &[PathBuf],
+        out: &Path,
+        force: bool,
+        out_is_input: bool,
+    ) -> PyResult<()> {
         let mut inputs: Vec<&Path> = model_files.iter().map(|p| p.as_path()).collect();
         inputs.extend(self.database.as_deref());
         inputs.extend(self.features.as_deref());
@@ -238,25 +246,99 @@ impl Options {
                 _ => false,
             }
         });
-        if in_images {
+        if in_images || out_is_input {
             inputs.push(out);
         }
         sfpmap::output::check_output(out, &inputs, force).map_err(output_error)
     }
 }
 
+/// What `convert` reads its model from: a COLMAP model folder (`--colmap`) or a kapture
+/// folder (`--kapture`) with the keypoints and descriptors types to read there.
+enum Source {
+    Colmap(PathBuf),
+    Kapture(PathBuf, sfpmap::io::kapture::KaptureOptions),
+}
+
+/// `model_dir` or `kapture`, exactly one, refused as `sfpmap convert`'s parser refuses
+/// `--colmap` with `--kapture` (or neither), `--kapture` with `--database`, and the kapture
+/// types without `--kapture`.
+fn source(
+    model_dir: Option<PathBuf>,
+    kapture: Option<PathBuf>,
+    database: bool,
+    keypoints_type: Option<String>,
+    descriptors_type: Option<String>,
+) -> PyResult<Source> {
+    let bad = |m: &str| Err(InputError::new_err(m.to_string()));
+    match (model_dir, kapture) {
+        (Some(_), Some(_)) => {
+            bad("the argument '--colmap <COLMAP>' cannot be used with '--kapture <DIR>'")
+        }
+        (None, None) => {
+            bad("the following required arguments were not provided: --colmap <COLMAP>")
+        }
+        (Some(model_dir), None) => {
+            if keypoints_type.is_some() || descriptors_type.is_some() {
+                return bad("keypoints_type and descriptors_type need kapture");
+            }
+            Ok(Source::Colmap(model_dir))
+        }
+        (None, Some(_)) if database => {
+            bad("the argument '--kapture <DIR>' cannot be used with '--database <DATABASE>'")
+        }
+        (None, Some(dir)) => Ok(Source::Kapture(
+            dir,
+            sfpmap::io::kapture::KaptureOptions {
+                keypoints_type,
+                descriptors_type,
+            },
+        )),
+    }
+}
+
+/// The tables of a kapture folder, as inputs of the output policy (as the CLI lists them).
+fn kapture_tables(dir: &Path) -> Vec<PathBuf> {
+    use sfpmap::io::kapture as k;
+    [
+        k::SENSORS,
+        k::RIGS,
+        k::TRAJECTORIES,
+        k::RECORDS_CAMERA,
+        k::POINTS3D,
+        k::OBSERVATIONS,
+    ]
+    .iter()
+    .map(|f| dir.join(f))
+    .collect()
+}
+
+/// Whether `path` (which may not exist yet) lies inside the folder `dir`, through links and
+/// `..` alike (the CLI's rule).
+fn inside(path: &Path, dir: &Path) -> bool {
+    let Ok(dir) = dir.canonicalize() else {
+        return false;
+    };
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    parent.canonicalize().is_ok_and(|p| p.starts_with(&dir))
+}
+
 /// `sfpmap convert`: a COLMAP model folder (+ `database` for a SIFT map, or `images` for an
-/// SFP map) into the map `out`. Returns what `convert --json` prints (as JSON text).
+/// SFP map), or a kapture folder (`kapture`, with its own keypoints and descriptors), into the
+/// map `out`. Returns what `convert --json` prints (as JSON text).
 #[pyfunction]
-#[pyo3(signature = (model_dir, database=None, images=None, *, out, force=false, model=None,
+#[pyo3(signature = (model_dir=None, database=None, images=None, *, out, force=false, model=None,
                     allow_missing=false, threads=2, resize_max=None, global_max_side=None,
                     score_threshold=None, short_dims=None, codec="raw", zstd_level=3, aggregate=None, strict=false,
                     vlad_clusters=None, vlad_dims=None, pq=None, features=None, feature_name=None,
-                    global_features=None))]
+                    global_features=None, kapture=None, keypoints_type=None, descriptors_type=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn convert(
     py: Python<'_>,
-    model_dir: PathBuf,
+    model_dir: Option<PathBuf>,
     database: Option<PathBuf>,
     images: Option<PathBuf>,
     out: PathBuf,
@@ -278,8 +360,31 @@ pub(crate) fn convert(
     features: Option<PathBuf>,
     feature_name: Option<String>,
     global_features: Option<PathBuf>,
+    kapture: Option<PathBuf>,
+    keypoints_type: Option<String>,
+    descriptors_type: Option<String>,
 ) -> PyResult<String> {
     let start = Instant::now();
+    let source = source(
+        model_dir,
+        kapture,
+        database.is_some(),
+        keypoints_type,
+        descriptors_type,
+    )?;
+    if matches!(source, Source::Kapture(..)) {
+        // `convert --kapture`'s own refusals, in its words (cli/convert.rs).
+        if images.is_some() {
+            return Err(InputError::new_err(
+                "--images builds from a COLMAP model: pass --colmap, not --kapture",
+            ));
+        }
+        if features.is_some() {
+            return Err(InputError::new_err(
+                "--kapture holds its own features: drop --features",
+            ));
+        }
+    }
     // As the CLI: 0 is refused, the cap (and its warning) applies where threads are used.
     let threads = match (&images, threads) {
         (Some(_), _) | (None, ..=0) => crate::thread_count(py, Some(threads))?,
@@ -303,25 +408,48 @@ pub(crate) fn convert(
         vlad_dims,
         pq,
     )?
-    .with_features(features, feature_name, global_features)?;
-    let files = sfpmap::colmap::model_files(&model_dir)
-        .map(|f| f.paths)
-        .unwrap_or_default();
-    o.check_output(&files, &out, force)?;
+    .with_features(
+        features,
+        feature_name,
+        global_features,
+        matches!(source, Source::Kapture(..)),
+    )?;
+    let files = match &source {
+        Source::Colmap(model_dir) => sfpmap::colmap::model_files(model_dir)
+            .map(|f| f.paths)
+            .unwrap_or_default(),
+        Source::Kapture(dir, _) => kapture_tables(dir),
+    };
+    // Anything inside a kapture folder is its own (a .kpt or .desc the tables do not list):
+    // the output may not be written there.
+    let out_is_input = matches!(&source, Source::Kapture(dir, _) if inside(&out, dir));
+    o.check_output(&files, &out, force, out_is_input)?;
     // The library's warnings (ONNX Runtime fetched, images missing or without features) as
     // `RuntimeWarning`s, as the CLI prints them.
     let warnings = Warnings::default();
     let value = py.detach(|| -> PyResult<serde_json::Value> {
-        match &o.images {
-            Some(images) => {
+        match (&source, &o.images) {
+            (Source::Colmap(model_dir), Some(images)) => {
                 let s =
-                    sfpmap::build::convert_with_images(&model_dir, &o.sfp(images), &out, &warnings)
+                    sfpmap::build::convert_with_images(model_dir, &o.sfp(images), &out, &warnings)
                         .map_err(convert_error)?;
                 Ok(s.report(&out, start.elapsed().as_secs_f64()))
             }
-            None => {
-                let s = sfpmap::build::convert(&model_dir, &o.sift(), &out, &warnings)
+            (Source::Colmap(model_dir), None) => {
+                let s = sfpmap::build::convert(model_dir, &o.sift(), &out, &warnings)
                     .map_err(convert_error)?;
+                Ok(s.report(&out, start.elapsed().as_secs_f64()))
+            }
+            // Refused above: `images` with `kapture`.
+            (Source::Kapture(dir, kapture_options), _) => {
+                let s = sfpmap::build::convert_kapture(
+                    dir,
+                    kapture_options,
+                    &o.sift(),
+                    &out,
+                    &warnings,
+                )
+                .map_err(convert_error)?;
                 Ok(s.report(&out, start.elapsed().as_secs_f64()))
             }
         }
@@ -657,8 +785,8 @@ pub(crate) fn from_pycolmap(
         vlad_dims,
         pq,
     )?
-    .with_features(features, feature_name, global_features)?;
-    o.check_output(&[], &out, force)?;
+    .with_features(features, feature_name, global_features, false)?;
+    o.check_output(&[], &out, force, false)?;
     let rec = reconstruction_of(reconstruction)?;
     let warnings = Warnings::default();
     let value = py.detach(|| -> PyResult<serde_json::Value> {
