@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import sfpmap
 
-from conftest import REPO, copy_db, need_module
+from conftest import REPO, _need, copy_db, need_module
 
 # The maupertuis sample's camera (cli/tests/cli/kapture.rs).
 MAUPERTUIS_CAMERA = "SIMPLE_PINHOLE 1919 1079 1847.53 959.5 539.5"
@@ -48,9 +48,7 @@ def rotation_deg(q: np.ndarray, r: np.ndarray) -> float:
 def maupertuis(shared, tmp_path_factory) -> dict:
     """The maupertuis sample (model, a database copy) and its kapture folder as NAVER's PyPI
     `kapture` (1.1.12) imports it from COLMAP, as cli/tests/cli/kapture.rs makes it."""
-    sample = shared / "colmap/kapture_maupertuis"
-    if not sample.exists():
-        pytest.fail(f"shared data absent: {sample}")
+    sample = _need(shared / "colmap/kapture_maupertuis", "the kapture_maupertuis sample")
     tmp = tmp_path_factory.mktemp("kapture")
     # SQLite may write beside a database it opens: a copy.
     db = tmp / "colmap.db"
