@@ -16,7 +16,6 @@ use sfpmap::format::{Listing, MapWriter, Metadata, Place};
 use std::net::TcpListener;
 use std::path::Path;
 use std::process::{Command, Output};
-use std::time::{Duration, Instant};
 
 /// A listener that answers nothing and counts the connections made to it.
 struct Trap {
@@ -258,7 +257,6 @@ fn a_catalog_file_names_only_public_hosts_and_only_urls_it_can_read() {
     for (i, (place, rule)) in cases.iter().enumerate() {
         let catalog = t.path().join(format!("c{i}.sfpc"));
         catalog_naming(&["here.sfpm", place], &catalog);
-        let start = Instant::now();
         let o = localize_catalog(catalog.to_str().unwrap(), t.path(), &trap.as_proxy(""));
         let err = failed(&o);
         assert!(
@@ -268,7 +266,6 @@ fn a_catalog_file_names_only_public_hosts_and_only_urls_it_can_read() {
                 && err.contains(rule),
             "{place}: {err}"
         );
-        assert!(start.elapsed() < Duration::from_secs(10), "{place}");
     }
     assert_eq!(trap.connections(), 0);
     assert_eq!(other.connections(), 0);
@@ -329,7 +326,6 @@ fn s3_without_configured_credentials_is_refused_before_any_request() {
     let t = tempfile::tempdir().unwrap();
     let trap = Trap::on("127.0.0.1");
     let url = "s3://maps/place/m.sfpm";
-    let start = Instant::now();
     let err = failed(&sfpmap(&["info", url], &trap.as_proxy("")));
     assert!(
         err.contains(url)
@@ -339,7 +335,6 @@ fn s3_without_configured_credentials_is_refused_before_any_request() {
             && err.contains("SFPMAP_AWS_INSTANCE_METADATA=1"),
         "{err}"
     );
-    assert!(start.elapsed() < Duration::from_secs(5));
     // A catalog file's place: refused when the catalog is read, before any query.
     let catalog = t.path().join("c.sfpc");
     catalog_naming(&[url], &catalog);
@@ -360,6 +355,10 @@ fn a_remote_catalog_names_only_maps_on_its_own_server() {
     let nginx = Nginx::start();
     let t = tempfile::tempdir().unwrap();
     let other = Trap::on("127.0.0.2");
+    // Anything but the catalog's own server goes to a trap, so a regression is seen there,
+    // never sent off loopback (an s3:// place would ask AWS and its metadata service).
+    let trap = Trap::on("127.0.0.1");
+    let env = trap.as_proxy("127.0.0.1");
     for place in [
         "file:///etc/passwd".to_string(),
         "file:m.sfpm".to_string(),
@@ -368,13 +367,13 @@ fn a_remote_catalog_names_only_maps_on_its_own_server() {
         "s3://maps/m.sfpm".to_string(),
     ] {
         catalog_naming(&[&place], &nginx.root.join("c.sfpc"));
-        let err = failed(&localize_catalog(&nginx.url("c.sfpc"), t.path(), &[]));
+        let err = failed(&localize_catalog(&nginx.url("c.sfpc"), t.path(), &env));
         assert!(
             err.contains("refused by the outbound policy") && err.contains("its own server"),
             "{place}: {err}"
         );
     }
-    assert_eq!(other.connections(), 0);
+    assert_eq!((other.connections(), trap.connections()), (0, 0));
     // Only the catalog itself was read, never a place.
     assert!(
         nginx.requests().iter().all(|r| r.contains(" /c.sfpc ")),
