@@ -397,22 +397,33 @@ impl RangeSource for RemoteSource {
         let missing: Vec<usize> = (0..wanted.len()).filter(|&i| out[i].is_none()).collect();
         let refs: Vec<&Wanted> = missing.iter().map(|&i| &wanted[i]).collect();
         // Neighbouring sections are read in one run (damaged ones read again are few).
+        let mut cached = false;
         for (run, members) in coalesce(&refs) {
-            let bytes = self.read(run.clone())?;
+            let mut bytes = self.read(run.clone())?;
+            let whole_run = members.len() == 1;
             for m in members {
                 let want = refs[m];
                 let from = (want.range.start - run.start) as usize;
                 let to = (want.range.end - run.start) as usize;
-                let part = bytes[from..to].to_vec();
+                // A section that is its run alone (a large one, read by itself) is moved out,
+                // not copied: a 1 GiB section is held once.
+                let part = if whole_run && from == 0 && to == bytes.len() {
+                    std::mem::take(&mut bytes)
+                } else {
+                    bytes[from..to].to_vec()
+                };
                 if let Some(cache) = &self.cache {
                     if want.matches(&part) {
                         cache.put(index_checksum, want, &part);
+                        cached = true;
                     }
                 }
                 out[missing[m]] = Some(part);
             }
         }
-        if let Some(cache) = &self.cache {
+        // Trimming lists the whole cache: only after this batch added to it, so a catalog
+        // opening its places from a warm cache of 100,000 entries does not list it per place.
+        if let (Some(cache), true) = (&self.cache, cached) {
             let trimmed = cache.trim();
             let mut stats = self.stats_mut();
             stats.cache_links_skipped = stats.cache_links_skipped.max(trimmed.links_skipped);
