@@ -489,9 +489,10 @@ SfpmStatus sfpm_session_localize(SfpmSession session,
 // `sfpm_session_localize` with the query's global descriptor (`global_dim` floats), for a
 // map whose retrieval ranks images by global descriptors (an hloc `global-feats.h5` given to
 // `sfpmap convert --global-features`, or the SFP network's): the query's must have the
-// map's dimensions (another size is `SFPM_ERR_ARGUMENT`; a map without global descriptors
-// ranks by its VLAD and ignores it). A NULL `global` with `global_dim == 0` is
-// `sfpm_session_localize`. NaN or infinity in it is `SFPM_ERR_ARGUMENT`.
+// map's dimensions: another size, or a map without global descriptors (it ranks by VLAD),
+// is `SFPM_ERR_ARGUMENT`, checked before `global` is read. A NULL `global` with
+// `global_dim == 0` is `sfpm_session_localize`. NaN or infinity in it is
+// `SFPM_ERR_ARGUMENT`. On any error `*out` and `*tracked` are left as they were.
 //
 // # Safety
 // As `sfpm_session_localize`, and `global` must be valid for `global_dim` floats (NULL when
