@@ -348,7 +348,7 @@ mod tests {
         w.set_points_world(&[[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]);
         w.add_raw_section(
             SectionKind::Unknown(0x7F10),
-            super::super::layout::NO_LEVEL,
+            crate::format::layout::NO_LEVEL,
             Dtype::U8,
             len as u64,
             1,
@@ -364,7 +364,7 @@ mod tests {
                 bytes,
                 longest: longest.clone(),
             };
-            let map = super::super::Map::open_source(Box::new(source)).unwrap();
+            let map = crate::format::Map::open_source(Box::new(source)).unwrap();
             let verified = map.verify();
             (verified, longest.load(std::sync::atomic::Ordering::Relaxed))
         };
@@ -373,7 +373,7 @@ mod tests {
         // One piece (and the padding before the first) at a time, never the section.
         assert!(longest <= VERIFY_PIECE + 64, "{longest}");
         // A byte changed in the second piece is found.
-        let map = super::super::Map::from_bytes(&bytes).unwrap();
+        let map = crate::format::Map::from_bytes(&bytes).unwrap();
         let s = *map.skipped_sections().next().unwrap();
         let mut damaged = bytes.clone();
         damaged[(s.offset + VERIFY_PIECE + 5) as usize] ^= 1;
