@@ -160,6 +160,19 @@ impl From<OutputError> for crate::format::Error {
     }
 }
 
+/// Whether `path` (which may not exist yet) lies inside the folder `dir`, through links and
+/// `..` alike: an output written there would land among a folder input's own files.
+pub fn is_inside(path: &Path, dir: &Path) -> bool {
+    let Ok(dir) = dir.canonicalize() else {
+        return false;
+    };
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    parent.canonicalize().is_ok_and(|p| p.starts_with(&dir))
+}
+
 /// The policy for one output of a command that reads `inputs`: refuses an output that is one
 /// of the inputs (also through symlinks, hard links or `..`), one that exists and is not a
 /// regular file, and an existing one unless `force`. An output that does not exist yet is free.

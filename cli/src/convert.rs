@@ -277,7 +277,11 @@ fn check_output(args: &Args) -> anyhow::Result<()> {
             .unwrap_or_default(),
         None => Vec::new(),
     };
-    model.extend(args.kapture.iter().flat_map(|k| kapture_tables(k)));
+    model.extend(
+        args.kapture
+            .iter()
+            .flat_map(|k| sfpmap::io::kapture::tables(k)),
+    );
     let mut inputs: Vec<&std::path::Path> = model.iter().map(|p| p.as_path()).collect();
     inputs.extend(args.database.as_deref());
     #[cfg(feature = "hdf5")]
@@ -305,24 +309,11 @@ fn check_output(args: &Args) -> anyhow::Result<()> {
     if args
         .kapture
         .as_deref()
-        .is_some_and(|k| inside(&args.output, k))
+        .is_some_and(|k| sfpmap::output::is_inside(&args.output, k))
     {
         inputs.push(&args.output);
     }
     super::check_outputs(&[&args.output], &inputs, args.force)
-}
-
-/// Whether `path` (which may not exist yet) lies inside the folder `dir`, through links and
-/// `..` alike.
-fn inside(path: &std::path::Path, dir: &std::path::Path) -> bool {
-    let Ok(dir) = dir.canonicalize() else {
-        return false;
-    };
-    let parent = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => std::path::Path::new("."),
-    };
-    parent.canonicalize().is_ok_and(|p| p.starts_with(&dir))
 }
 
 #[cfg(feature = "onnx")]
@@ -393,22 +384,6 @@ fn run_sfp(
         }
     }
     Ok(ExitCode::SUCCESS)
-}
-
-/// The tables of a kapture folder, as inputs of the output policy.
-fn kapture_tables(dir: &std::path::Path) -> Vec<PathBuf> {
-    use sfpmap::io::kapture as k;
-    [
-        k::SENSORS,
-        k::RIGS,
-        k::TRAJECTORIES,
-        k::RECORDS_CAMERA,
-        k::POINTS3D,
-        k::OBSERVATIONS,
-    ]
-    .iter()
-    .map(|f| dir.join(f))
-    .collect()
 }
 
 /// `convert --kapture`: the folder's model and features through the SIFT path.

@@ -297,35 +297,6 @@ fn source(
     }
 }
 
-/// The tables of a kapture folder, as inputs of the output policy (as the CLI lists them).
-fn kapture_tables(dir: &Path) -> Vec<PathBuf> {
-    use sfpmap::io::kapture as k;
-    [
-        k::SENSORS,
-        k::RIGS,
-        k::TRAJECTORIES,
-        k::RECORDS_CAMERA,
-        k::POINTS3D,
-        k::OBSERVATIONS,
-    ]
-    .iter()
-    .map(|f| dir.join(f))
-    .collect()
-}
-
-/// Whether `path` (which may not exist yet) lies inside the folder `dir`, through links and
-/// `..` alike (the CLI's rule).
-fn inside(path: &Path, dir: &Path) -> bool {
-    let Ok(dir) = dir.canonicalize() else {
-        return false;
-    };
-    let parent = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    };
-    parent.canonicalize().is_ok_and(|p| p.starts_with(&dir))
-}
-
 /// `sfpmap convert`: a COLMAP model folder (+ `database` for a SIFT map, or `images` for an
 /// SFP map), or a kapture folder (`kapture`, with its own keypoints and descriptors), into the
 /// map `out`. Returns what `convert --json` prints (as JSON text).
@@ -418,11 +389,12 @@ pub(crate) fn convert(
         Source::Colmap(model_dir) => sfpmap::colmap::model_files(model_dir)
             .map(|f| f.paths)
             .unwrap_or_default(),
-        Source::Kapture(dir, _) => kapture_tables(dir),
+        Source::Kapture(dir, _) => sfpmap::io::kapture::tables(dir),
     };
     // Anything inside a kapture folder is its own (a .kpt or .desc the tables do not list):
     // the output may not be written there.
-    let out_is_input = matches!(&source, Source::Kapture(dir, _) if inside(&out, dir));
+    let out_is_input =
+        matches!(&source, Source::Kapture(dir, _) if sfpmap::output::is_inside(&out, dir));
     o.check_output(&files, &out, force, out_is_input)?;
     // The library's warnings (ONNX Runtime fetched, images missing or without features) as
     // `RuntimeWarning`s, as the CLI prints them.

@@ -55,6 +55,22 @@ pub const RECORDS_CAMERA: &str = "sensors/records_camera.txt";
 pub const POINTS3D: &str = "reconstruction/points3d.txt";
 /// `reconstruction/observations.txt`.
 pub const OBSERVATIONS: &str = "reconstruction/observations.txt";
+/// The tables of the kapture folder `dir` that `convert --kapture` reads (the output policy's
+/// inputs besides the feature files).
+pub fn tables(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    [
+        SENSORS,
+        RIGS,
+        TRAJECTORIES,
+        RECORDS_CAMERA,
+        POINTS3D,
+        OBSERVATIONS,
+    ]
+    .iter()
+    .map(|f| dir.join(f))
+    .collect()
+}
+
 /// `reconstruction/keypoints` (one folder per keypoints type).
 pub const KEYPOINTS_DIR: &str = "reconstruction/keypoints";
 /// `reconstruction/descriptors` (one folder per descriptors type).
