@@ -83,33 +83,33 @@ for line in Path(r["queries"]).read_text().splitlines():
 "#;
 
 /// One query: its name, hloc camera line, ground truth and features.
-struct Query {
-    name: String,
-    model: CString,
-    width: u64,
-    height: u64,
-    params: Vec<f64>,
+pub(crate) struct Query {
+    pub(crate) name: String,
+    pub(crate) model: CString,
+    pub(crate) width: u64,
+    pub(crate) height: u64,
+    pub(crate) params: Vec<f64>,
     /// `cam_from_world`, COLMAP's qw qx qy qz tx ty tz.
-    gt: [f64; 7],
-    xy: Vec<f64>,
-    desc: Vec<f32>,
+    pub(crate) gt: [f64; 7],
+    pub(crate) xy: Vec<f64>,
+    pub(crate) desc: Vec<f32>,
     /// Its global descriptor in `Scene::global_map`'s space (near cameras, near descriptors).
-    global: Vec<f32>,
+    pub(crate) global: Vec<f32>,
 }
 
-struct Scene {
-    sfm: PathBuf,
-    features_map: PathBuf,
+pub(crate) struct Scene {
+    pub(crate) sfm: PathBuf,
+    pub(crate) features_map: PathBuf,
     /// The map images' global descriptors, hloc's `global-feats.h5` layout.
-    global_map: PathBuf,
-    queries: Vec<Query>,
+    pub(crate) global_map: PathBuf,
+    pub(crate) queries: Vec<Query>,
 }
 
 /// The scene's folder: built once per bench script (its hash names the folder) and kept in
 /// the test target's temporary folder; a build goes to a folder of its own and is renamed
 /// into place when finished, so a build killed halfway or one racing another leaves nothing
 /// half-made under that name.
-fn scene_dir(scene: &Path) -> PathBuf {
+pub(crate) fn scene_dir(scene: &Path) -> PathBuf {
     let bench = repo_root().join("benches/hloc_south_building.py");
     let recipe = [std::fs::read(&bench).unwrap(), BUILD.as_bytes().to_vec()].concat();
     let root = Path::new(env!("CARGO_TARGET_TMPDIR"));
@@ -140,7 +140,7 @@ fn scene_dir(scene: &Path) -> PathBuf {
     dir
 }
 
-fn read_scene(dir: &Path) -> Scene {
+pub(crate) fn read_scene(dir: &Path) -> Scene {
     let text = std::fs::read_to_string(dir.join("manifest.txt")).unwrap();
     let (mut sfm, mut features_map, mut global_map, mut queries) = (None, None, None, Vec::new());
     let floats =
@@ -197,7 +197,7 @@ fn read_scene(dir: &Path) -> Scene {
 }
 
 impl Query {
-    fn camera<R>(&self, f: impl FnOnce(&SfpmCamera) -> R) -> R {
+    pub(crate) fn camera<R>(&self, f: impl FnOnce(&SfpmCamera) -> R) -> R {
         f(&SfpmCamera {
             model: self.model.as_ptr(),
             width: self.width,
@@ -232,7 +232,7 @@ impl Query {
         .unwrap()
     }
 
-    fn n(&self) -> usize {
+    pub(crate) fn n(&self) -> usize {
         assert_eq!(self.xy.len() / 2 * DIM, self.desc.len(), "{}", self.name);
         self.xy.len() / 2
     }

@@ -21,6 +21,7 @@ mod convert_features;
 mod embed_c;
 mod embed_capi;
 mod embed_capi_features;
+mod embed_capi_inputs;
 mod embed_capi_localize;
 mod embed_capi_session;
 mod extract_aliked;
