@@ -2,8 +2,9 @@
 //! torch-free: hloc's `sift` conf, DoG + RootSIFT, mutual NN-ratio matches, triangulated with
 //! pycolmap at the `sparse-map` poses), then `convert --features` and `localize --features`
 //! from the CLI: every query localized within a tenth of the map's camera spacing and 2°, as
-//! close as the hloc-style reference (pycolmap on the same matches) or within that bound, and
-//! features files of another feature refused naming both. Built once for all test processes
+//! close as the hloc-style reference (pycolmap on the same matches) or within that bound, the
+//! same from its `--budget` slice and from nginx by range, and features files of another
+//! feature refused naming both. Built once for all test processes
 //! (`tests/support/once.rs`); it needs the CI venv (numpy, h5py, pycolmap 4.2.1) and fails,
 //! never skips.
 #![cfg(all(feature = "colmap", feature = "onnx"))]
@@ -20,6 +21,8 @@ fn sfpmap(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_sfpmap"))
         .args(args)
         .env("ORT_DISABLE_TELEMETRY", "1")
+        // Remote reads go to the server each time; nothing lands in the user's cache.
+        .env("SFPMAP_CACHE_DIR", "off")
         .output()
         .expect("sfpmap runs")
 }
@@ -167,35 +170,86 @@ fn an_hloc_map_converts_and_localizes_every_query_from_its_features_files() {
     ]);
     assert!(std::fs::metadata(&slice).unwrap().len() < std::fs::metadata(&map).unwrap().len());
     for map in [&map, &slice] {
-        let out = dir.path().join("poses.txt");
-        ok(&[
-            "localize",
-            "--map",
-            s(map),
-            "--query-list",
-            s(&scene.queries),
-            "--features",
-            s(&scene.features),
-            "-o",
-            s(&out),
-            "--force",
-        ]);
-        let got = poses(&out);
-        assert_eq!(
-            got.len(),
-            scene.gt.len(),
-            "{map:?}: every query localized: {got:?}"
-        );
-        for (name, gt) in &scene.gt {
-            let pose = got[name];
-            let (dt, dr) = (pose.center_distance(gt), pose.rotation_error_deg(gt));
-            assert!(
-                dt <= 0.1 * scene.spacing && dr <= 2.0,
-                "{map:?} {name}: {dt} units (spacing {}), {dr}°",
-                scene.spacing
-            );
-        }
+        localizes_every_query(s(map), dir.path());
     }
+}
+
+/// `localize --map MAP` (a path or URL) with the scene's query features: every query within a
+/// tenth of the camera spacing and 2° of the ground truth.
+fn localizes_every_query(map: &str, dir: &Path) {
+    let scene = scene();
+    let out = dir.join("poses.txt");
+    ok(&[
+        "localize",
+        "--map",
+        map,
+        "--query-list",
+        s(&scene.queries),
+        "--features",
+        s(&scene.features),
+        "-o",
+        s(&out),
+        "--force",
+    ]);
+    let got = poses(&out);
+    assert_eq!(
+        got.len(),
+        scene.gt.len(),
+        "{map}: every query localized: {got:?}"
+    );
+    for (name, gt) in &scene.gt {
+        let pose = got[name];
+        let (dt, dr) = (pose.center_distance(gt), pose.rotation_error_deg(gt));
+        assert!(
+            dt <= 0.1 * scene.spacing && dr <= 2.0,
+            "{map} {name}: {dt} units (spacing {}), {dr}°",
+            scene.spacing
+        );
+    }
+}
+
+/// An hloc map as any other map: `slice --budget` fits it into a quarter of its bytes, and it
+/// and its budget slice are read from an HTTP server by range (nginx on loopback) and
+/// localize every query as the local file does.
+#[test]
+fn an_hloc_map_slices_to_a_budget_and_localizes_from_a_server() {
+    let scene = scene();
+    let nginx = crate::servers::Nginx::start();
+    let dir = tempfile::tempdir().unwrap();
+    let map = nginx.root.join("hloc.sfpm");
+    ok(&[
+        "convert",
+        "--colmap",
+        s(&scene.sfm),
+        "--features",
+        s(&scene.features_map),
+        "-o",
+        s(&map),
+    ]);
+    let full = std::fs::metadata(&map).unwrap().len();
+    let budget = full / 4;
+    let slice = nginx.root.join("hloc-budget.sfpm");
+    let report: Value = serde_json::from_str(&ok(&[
+        "slice",
+        s(&map),
+        "--budget",
+        &budget.to_string(),
+        "-o",
+        s(&slice),
+        "--json",
+    ]))
+    .unwrap();
+    let bytes = std::fs::metadata(&slice).unwrap().len();
+    assert!(bytes <= budget, "{bytes} > {budget}: {report}");
+    for name in ["hloc.sfpm", "hloc-budget.sfpm"] {
+        localizes_every_query(&nginx.url(name), dir.path());
+    }
+    // Read by range: the server saw partial requests only.
+    let requests = nginx.requests();
+    assert!(
+        !requests.is_empty() && requests.iter().all(|r| r.split(' ').nth(2) == Some("206")),
+        "{requests:?}"
+    );
 }
 
 #[test]

@@ -10,6 +10,8 @@ mod common;
 mod once;
 #[path = "../../../tests/support/python.rs"]
 mod python;
+#[path = "../../../tests/support/servers.rs"]
+mod servers;
 #[path = "../../../tests/support/shared_data.rs"]
 mod shared_data;
 
