@@ -56,6 +56,14 @@ pub enum OutputError {
         /// The input it is, as the caller named it.
         input: PathBuf,
     },
+    /// The output, existing or not, lies inside a folder the command reads (a kapture folder,
+    /// the images folder): writing there would add to an input.
+    InsideInput {
+        /// The output.
+        path: PathBuf,
+        /// The input folder, as the caller named it.
+        folder: PathBuf,
+    },
     /// The output exists and is not a regular file.
     NotRegular {
         /// The output.
@@ -85,6 +93,7 @@ impl OutputError {
         match self {
             OutputError::Exists { path }
             | OutputError::IsInput { path, .. }
+            | OutputError::InsideInput { path, .. }
             | OutputError::NotRegular { path, .. }
             | OutputError::NoFileName { path }
             | OutputError::Io { path, .. } => path,
@@ -112,6 +121,10 @@ impl OutputError {
             OutputError::IsInput { input, .. } => format!(
                 "is the same file as the input {}; choose another output",
                 crate::escape::path(input)
+            ),
+            OutputError::InsideInput { folder, .. } => format!(
+                "lies inside the input folder {}; write it outside that folder",
+                crate::escape::path(folder)
             ),
             OutputError::NotRegular { kind, .. } => {
                 format!("is {kind}, not a regular file; choose a file path")
@@ -160,17 +173,26 @@ impl From<OutputError> for crate::format::Error {
     }
 }
 
-/// Whether `path` (which may not exist yet) lies inside the folder `dir`, through links and
-/// `..` alike: an output written there would land among a folder input's own files.
-pub fn is_inside(path: &Path, dir: &Path) -> bool {
-    let Ok(dir) = dir.canonicalize() else {
-        return false;
-    };
-    let parent = match path.parent() {
+/// Refuses an output (which may not exist yet) that lies inside one of the input `folders`,
+/// through links and `..` alike: it would land among a folder input's own files (a kapture
+/// folder's `.kpt` files, a model's images), which the command must leave as they were.
+pub fn check_outside(out: &Path, folders: &[&Path]) -> Result<(), OutputError> {
+    let parent = match out.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
     };
-    parent.canonicalize().is_ok_and(|p| p.starts_with(&dir))
+    let Ok(parent) = parent.canonicalize() else {
+        return Ok(());
+    };
+    for folder in folders {
+        if folder.canonicalize().is_ok_and(|f| parent.starts_with(f)) {
+            return Err(OutputError::InsideInput {
+                path: out.to_path_buf(),
+                folder: folder.to_path_buf(),
+            });
+        }
+    }
+    Ok(())
 }
 
 /// The policy for one output of a command that reads `inputs`: refuses an output that is one

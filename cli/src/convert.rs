@@ -293,26 +293,12 @@ fn check_output(args: &Args) -> anyhow::Result<()> {
     );
     #[cfg(feature = "onnx")]
     inputs.extend(args.model.as_deref());
+    // A folder input (the model's images, a kapture folder with files its tables do not list)
+    // gets nothing new inside it.
+    let mut folders: Vec<&std::path::Path> = args.kapture.iter().map(|p| p.as_path()).collect();
     #[cfg(feature = "onnx")]
-    let in_images = args.images.as_deref().is_some_and(|images| {
-        match (args.output.canonicalize(), images.canonicalize()) {
-            (Ok(out), Ok(images)) => out.starts_with(images),
-            _ => false,
-        }
-    });
-    #[cfg(feature = "onnx")]
-    if in_images {
-        inputs.push(&args.output);
-    }
-    // Anything inside a kapture folder is its own (a .kpt or .desc the tables do not list):
-    // the output may not be written there.
-    if args
-        .kapture
-        .as_deref()
-        .is_some_and(|k| sfpmap::output::is_inside(&args.output, k))
-    {
-        inputs.push(&args.output);
-    }
+    folders.extend(args.images.as_deref());
+    sfpmap::output::check_outside(&args.output, &folders)?;
     super::check_outputs(&[&args.output], &inputs, args.force)
 }
 

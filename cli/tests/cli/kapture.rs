@@ -370,6 +370,35 @@ fn bad_kapture_folders_are_one_line_naming_file_and_line() {
     assert!(!out.exists(), "a refused conversion left an output");
 }
 
+/// A kapture folder holds files its tables do not list: `convert --kapture` writes nothing
+/// inside it, a new file or one already there, with or without `--force`.
+#[test]
+fn convert_writes_nothing_inside_its_kapture_folder() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("k");
+    small_kapture(&dir);
+    let stray = dir.join("reconstruction/stray.sfpm");
+    std::fs::write(&stray, b"not a map").unwrap();
+    let before = tree(&dir);
+    for out in [dir.join("new.sfpm"), dir.join("sensors/new.sfpm"), stray] {
+        for force in [false, true] {
+            let mut args = os!["convert", "--kapture", &dir, "-o", &out].to_vec();
+            if force {
+                args.push(std::ffi::OsStr::new("--force"));
+            }
+            assert_eq!(
+                err(&args),
+                format!(
+                    "error: {}: lies inside the input folder {}; write it outside that folder\n",
+                    out.display(),
+                    dir.display()
+                )
+            );
+        }
+    }
+    assert_eq!(tree(&dir), before, "convert --kapture wrote into its input");
+}
+
 #[test]
 fn export_kapture_refuses_names_kapture_cannot_hold_and_leaves_inputs() {
     let tmp = tempfile::tempdir().unwrap();

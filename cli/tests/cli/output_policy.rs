@@ -293,7 +293,7 @@ fn convert_never_writes_over_a_model_file_or_the_database() {
     ]);
     refused(&o, &db, "input");
     assert_eq!(std::fs::read(&db).unwrap(), before);
-    // With --images, an existing file in the images folder may be a model image: refused
+    // With --images, a file in the images folder may be a model image: refused
     // before the extractor runs (no ONNX Runtime needed to get this far).
     let images = dir.path().join("images");
     std::fs::create_dir(&images).unwrap();
@@ -303,8 +303,20 @@ fn convert_never_writes_over_a_model_file_or_the_database() {
         let args = ["convert", "--colmap", s(&model), "--images", s(&images)];
         sfpmap(&[&args[..], &["-o", s(out), "--force"]].concat())
     };
-    refused(&convert_images_to(&image), &image, "input");
+    refused(
+        &convert_images_to(&image),
+        &image,
+        "lies inside the input folder",
+    );
     assert_eq!(std::fs::read(&image).unwrap(), b"not really a jpeg");
+    // Nor is anything new written among the images.
+    let new = images.join("new.sfpm");
+    refused(
+        &convert_images_to(&new),
+        &images,
+        "lies inside the input folder",
+    );
+    assert!(!new.exists());
     // Outside the folder, through `..` in a model image's name: refused before anything is
     // read or written, naming the image (issue 32: names a file gives stay inside the folder
     // the user named; the same-file rule per image stays behind it).

@@ -226,29 +226,24 @@ impl Options {
         }
     }
 
-    /// The CLI's output policy: `out` may not be an input, or exist without `force`.
-    /// `out_is_input`: `out` is an input whatever it is (it lies inside a kapture folder).
+    /// The CLI's output policy: `out` may not be an input, lie inside an input folder (the
+    /// images, `kapture`), or exist without `force`.
     fn check_output(
         &self,
         model_files: &[PathBuf],
         out: &Path,
         force: bool,
-        out_is_input: bool,
+        kapture: Option<&Path>,
     ) -> PyResult<()> {
         let mut inputs: Vec<&Path> = model_files.iter().map(|p| p.as_path()).collect();
         inputs.extend(self.database.as_deref());
         inputs.extend(self.features.as_deref());
         inputs.extend(self.global_features.as_deref());
         inputs.extend(self.model.as_deref());
-        let in_images = self.images.as_deref().is_some_and(|images| {
-            match (out.canonicalize(), images.canonicalize()) {
-                (Ok(out), Ok(images)) => out.starts_with(images),
-                _ => false,
-            }
-        });
-        if in_images || out_is_input {
-            inputs.push(out);
-        }
+        // A folder input (the model's images, a kapture folder with files its tables do not
+        // list) gets nothing new inside it.
+        let folders: Vec<&Path> = kapture.into_iter().chain(self.images.as_deref()).collect();
+        sfpmap::output::check_outside(out, &folders).map_err(output_error)?;
         sfpmap::output::check_output(out, &inputs, force).map_err(output_error)
     }
 }
@@ -391,11 +386,11 @@ pub(crate) fn convert(
             .unwrap_or_default(),
         Source::Kapture(dir, _) => sfpmap::io::kapture::tables(dir),
     };
-    // Anything inside a kapture folder is its own (a .kpt or .desc the tables do not list):
-    // the output may not be written there.
-    let out_is_input =
-        matches!(&source, Source::Kapture(dir, _) if sfpmap::output::is_inside(&out, dir));
-    o.check_output(&files, &out, force, out_is_input)?;
+    let kapture = match &source {
+        Source::Kapture(dir, _) => Some(dir.as_path()),
+        Source::Colmap(_) => None,
+    };
+    o.check_output(&files, &out, force, kapture)?;
     // The library's warnings (ONNX Runtime fetched, images missing or without features) as
     // `RuntimeWarning`s, as the CLI prints them.
     let warnings = Warnings::default();
@@ -758,7 +753,7 @@ pub(crate) fn from_pycolmap(
         pq,
     )?
     .with_features(features, feature_name, global_features, false)?;
-    o.check_output(&[], &out, force, false)?;
+    o.check_output(&[], &out, force, None)?;
     let rec = reconstruction_of(reconstruction)?;
     let warnings = Warnings::default();
     let value = py.detach(|| -> PyResult<serde_json::Value> {

@@ -126,18 +126,18 @@ def test_kapture_types_need_kapture_and_the_output_stays_out_of_the_folder(maupe
     kapture = maupertuis["kapture"]
     with pytest.raises(sfpmap.InputError, match="keypoints_type and descriptors_type need kapture"):
         sfpmap.convert(maupertuis["model"], keypoints_type="sift", out=tmp_path / "x.sfpm")
-    # As the CLI: a file already inside the kapture folder (one its tables do not list too)
-    # is the folder's own, an input, refused with or without force and left as it was.
+    # As the CLI: nothing is written inside the kapture folder, a new file or one already
+    # there (one its tables do not list too), with or without force.
     stray = kapture / "reconstruction" / "stray.sfpm"
     stray.write_bytes(b"not a map")
     before = tree(kapture)
-    for force in (False, True):
-        with pytest.raises(sfpmap.Error) as e:
-            sfpmap.convert(kapture=kapture, out=stray, force=force)
-        assert str(e.value) == f"{stray}: is an input of this command; choose another output"
     table = kapture / "reconstruction" / "points3d.txt"
-    with pytest.raises(sfpmap.Error, match="is an input of this command"):
-        sfpmap.convert(kapture=kapture, out=table, force=True)
+    for out in (kapture / "new.sfpm", stray, table):
+        for force in (False, True):
+            with pytest.raises(sfpmap.Error) as e:
+                sfpmap.convert(kapture=kapture, out=out, force=force)
+            assert str(e.value) == (
+                f"{out}: lies inside the input folder {kapture}; write it outside that folder")
     assert tree(kapture) == before
     stray.unlink()
     # An existing output without force is refused as the CLI refuses it; with force, written.
