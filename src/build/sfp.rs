@@ -110,6 +110,9 @@ pub struct SfpMapSummary {
     pub image_bytes: u64,
     /// The model that ran.
     pub model: ModelInfo,
+    /// What the map's descriptors are: `sfp` for a pyramid model, a descriptor head's model
+    /// name otherwise (`aliked-n16`), as the report and provenance record it.
+    pub descriptors: String,
     /// Median network + sampling time per image, ms.
     pub ms_per_image: f64,
     /// The level threshold used (the option, or the model's default).
@@ -219,6 +222,11 @@ fn convert_images_of(
     // compression rule (its peaks are sharp; a COLMAP point's observations are not its
     // peaks): every described point is kept unless a threshold is asked for.
     let head = contract.descriptor_head == DescriptorHead::Sddh;
+    let descriptors = if head {
+        contract.model_name.clone()
+    } else {
+        "sfp".to_string()
+    };
     let threshold = options.score_threshold.unwrap_or(if head {
         0.0
     } else {
@@ -371,12 +379,12 @@ fn convert_images_of(
         "operation": "convert",
         "colmap": colmap,
         "images": options.images.display().to_string(),
-        "descriptors": "sfp",
+        "descriptors": descriptors,
         "model": model_info.name,
         "model_xxh3": model_info.xxh3,
         "contract": contract.raw,
         "score_threshold": threshold,
-        "level_rule": LEVEL_RULE,
+        "level_rule": if head { ONE_LEVEL_RULE } else { LEVEL_RULE },
         "aggregate": "mean of L2-normalised features per level, re-normalised",
         "resize_max": options.resize_max,
         "global_max_side": global_size.max_side(),
@@ -568,6 +576,7 @@ fn convert_images_of(
         missing_images: missing,
         image_bytes,
         model: model_info,
+        descriptors,
         ms_per_image: ms.get(ms.len() / 2).copied().unwrap_or(0.0),
         score_threshold: threshold,
     })
@@ -590,7 +599,7 @@ impl SfpMapSummary {
             .collect();
         serde_json::json!({
             "output": out.display().to_string(),
-            "descriptors": "sfp",
+            "descriptors": summary.descriptors,
             "points": c.points,
             "model_points": summary.model_points,
             "dropped_points": summary.model_points - c.points,

@@ -389,12 +389,27 @@ fn another_model_of_other_dimensions_is_refused_up_front() {
     let dir = tempfile::tempdir().unwrap();
     let images = scene().join("images");
     let (aliked, sfp) = (dir.path().join("aliked.sfpm"), dir.path().join("sfp.sfpm"));
-    for (map, extra) in [(&aliked, &["--model", "aliked-n16"][..]), (&sfp, &[])] {
+    for (map, extra, descriptors) in [
+        (&aliked, &["--model", "aliked-n16"][..], "aliked-n16"),
+        (&sfp, &[][..], "sfp"),
+    ] {
         let run = convert(&images, map, extra);
         assert!(
             run.status.success(),
             "{}",
             String::from_utf8_lossy(&run.stderr)
+        );
+        // The report and the provenance say what the descriptors are, and the level rule
+        // the map was made by (ALIKED: one level).
+        let report: Value = serde_json::from_slice(&run.stdout).unwrap();
+        assert_eq!(report["descriptors"], descriptors, "{report}");
+        let provenance = Map::open(map).unwrap().metadata().provenance.clone();
+        assert_eq!(provenance.parameters["descriptors"], descriptors);
+        let rule = provenance.parameters["level_rule"].as_str().unwrap();
+        assert_eq!(
+            rule.starts_with("one level"),
+            descriptors == "aliked-n16",
+            "{rule}"
         );
     }
     // The ALIKED map's descriptors are at the SIFT model's observations: its VLAD codebook
