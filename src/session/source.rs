@@ -199,7 +199,8 @@ impl Source {
                         fit.map_name
                     )));
                 };
-                let extractor = extractor(fit, model, extractor_threads, reporter)?;
+                let extractor =
+                    extractor(fit, model, &options.levels, extractor_threads, reporter)?;
                 Source::Images {
                     extractor,
                     folder,
@@ -460,11 +461,12 @@ impl Fit {
 }
 
 /// The SFP extractor (`model`, else the built-in one the map was made with), checked against
-/// the map's descriptors.
+/// the map's descriptors at `levels` (the levels localization uses; empty: all the map's).
 #[cfg(feature = "onnx")]
 fn extractor(
     fit: &Fit,
     model: Option<PathBuf>,
+    levels: &[u16],
     threads: usize,
     reporter: &dyn Reporter,
 ) -> Result<crate::extract::Extractor, SessionError> {
@@ -506,21 +508,23 @@ fn extractor(
     }
     // Only an explicit model can be another one (without it, the map's own runs): that is
     // asked for on purpose (e.g. a faster student of the map's model), so it runs, said once,
-    // when it makes the map's levels at the map's dimensions; otherwise no query could match.
+    // when it makes the levels used at the map's dimensions; otherwise no query could match.
+    // A file under the map's model name is held to the same (it may be another export).
     let contract = extractor.contract();
+    let makes = |&(level, dim): &(u16, u32)| {
+        contract
+            .level_index(level)
+            .is_some_and(|i| contract.full_dims[i] == dim as usize)
+    };
+    let used = |(level, _): &&(u16, u32)| levels.is_empty() || levels.contains(level);
+    if let Some((level, dim)) = fit.levels.iter().filter(used).find(|l| !makes(l)) {
+        return Err(SessionError::Mismatch(format!(
+            "{map}: the map's descriptors are {descriptor:?} (level {level}: {dim} \
+             dimensions), which model {:?} does not make: localize with the map's model",
+            contract.model_name
+        )));
+    }
     if contract.model_name != *descriptor {
-        let makes = |&(level, dim): &(u16, u32)| {
-            contract
-                .level_index(level)
-                .is_some_and(|i| contract.full_dims[i] == dim as usize)
-        };
-        if let Some((level, dim)) = fit.levels.iter().find(|l| !makes(l)) {
-            return Err(SessionError::Mismatch(format!(
-                "{map}: the map's descriptors are {descriptor:?} (level {level}: {dim} \
-                 dimensions), which model {:?} does not make: localize with the map's model",
-                contract.model_name
-            )));
-        }
         reporter.warn(&format!(
             "{map}: the map's descriptors are {descriptor:?} but the model is {:?}: localizing \
              with another model's descriptors, as asked",
