@@ -167,6 +167,7 @@ pub mod io;
 pub(crate) mod kmeans;
 pub mod output;
 pub mod progress;
+pub mod ranges;
 #[cfg(feature = "remote")]
 pub mod remote;
 #[cfg(any(feature = "colmap-model", feature = "localize", feature = "onnx"))]

@@ -2,8 +2,9 @@
 //! the range its `--help` states, so `--radius NaN` or `--threshold=-1,-5` is refused with
 //! the flag named (exit status 2) instead of running and finding nothing. Whole numbers use
 //! clap's own ranged parsers (`clap::value_parser!(u32).range(..)`); the ones here take
-//! decimals, which Rust's `parse` reads as NaN or infinity too. The localizer's options
-//! (`--ratio`, `--top-k`) are checked by the library's rules (`LocalizeOptions::validate`), in
+//! decimals, which Rust's `parse` reads as NaN or infinity too, and hold them to the library's
+//! rule for that kind of value (`sfpmap::ranges`), so the CLI, Python and C refuse alike. The
+//! localizer's options (`--ratio`, `--top-k`) are checked by `LocalizeOptions::validate`, in
 //! the words Python and C get too, before `localize` opens any map or catalog place, and
 //! refused the same way (exit status 2, the flag named); their help states the same ranges.
 // The commands that take these flags are features' (localize, colmap, onnx): a build without
@@ -13,54 +14,51 @@
     allow(dead_code)
 )]
 
-/// `text` as a finite number in `[min, max]` (`max` may be infinite), else what is
-/// expected.
-fn number(text: &str, min: f64, max: f64, expected: &str) -> Result<f64, String> {
-    match text.trim().parse::<f64>() {
-        Ok(v) if v.is_finite() && v >= min && v <= max => Ok(v),
-        _ => Err(format!("expected {expected}")),
-    }
+use sfpmap::ranges::{self, Range};
+
+/// `text` as a number in `range`, else what the range expects.
+fn number(text: &str, range: Range) -> Result<f64, String> {
+    let expected = || format!("expected {}", range.expected);
+    let v = text.trim().parse::<f64>().map_err(|_| expected())?;
+    range.check(v).map_err(|_| expected())
 }
 
-/// A distance in map units (`localize --radius`): finite, 0 or more.
+/// A distance in map units (`localize --radius`): [`ranges::DISTANCE`].
 pub fn distance(text: &str) -> Result<f64, String> {
-    number(text, 0.0, f64::INFINITY, "a finite distance of 0 or more")
+    number(text, ranges::DISTANCE)
 }
 
-/// A keypoint score threshold (`extract --threshold`, `convert --score-threshold`): finite,
-/// 0 or more.
+/// A keypoint score threshold (`extract --threshold`, `convert --score-threshold`):
+/// [`ranges::SCORE`].
 pub fn score(text: &str) -> Result<f32, String> {
-    let v = number(
-        text,
-        0.0,
-        f64::from(f32::MAX),
-        "a finite score of 0 or more",
-    )?;
-    #[allow(clippy::cast_possible_truncation)] // within f32's range
-    Ok(v as f32)
+    #[allow(clippy::cast_possible_truncation)] // in [0, 1]
+    number(text, ranges::SCORE).map(|v| v as f32)
 }
 
-/// A world point `x,y,z` (`localize --prior`): three finite numbers.
+/// A world point `x,y,z` (`localize --prior`): three [`ranges::COORDINATE`]s.
 pub fn point(text: &str) -> Result<[f64; 3], String> {
-    let coordinate = |c: &str| number(c, f64::MIN, f64::MAX, "three finite numbers x,y,z");
+    let expected = || format!("expected x,y,z: three of {}", ranges::COORDINATE.expected);
+    let coordinate = |c: &str| number(c, ranges::COORDINATE).map_err(|_| expected());
     match text.split(',').collect::<Vec<_>>()[..] {
         [x, y, z] => Ok([coordinate(x)?, coordinate(y)?, coordinate(z)?]),
-        _ => Err("expected three finite numbers x,y,z".to_owned()),
+        _ => Err(expected()),
     }
 }
 
-/// A recall threshold `METERS,DEGREES` (`eval --threshold`): a finite distance over 0 and an
-/// angle over 0 and at most 180 degrees.
+/// A recall threshold `METERS,DEGREES` (`eval --threshold`): [`ranges::RECALL_DISTANCE`]
+/// and [`ranges::RECALL_DEGREES`].
 pub fn recall_threshold(text: &str) -> Result<(f64, f64), String> {
-    const EXPECTED: &str = "METERS,DEGREES: a finite distance over 0 and an angle in (0, 180]";
-    let (t, r) = text.split_once(',').ok_or(EXPECTED)?;
-    let t = number(t, 0.0, f64::INFINITY, EXPECTED)?;
-    let r = number(r, 0.0, 180.0, EXPECTED)?;
-    if t > 0.0 && r > 0.0 {
-        Ok((t, r))
-    } else {
-        Err(EXPECTED.to_owned())
-    }
+    let expected = || {
+        format!(
+            "expected METERS,DEGREES: {} and {}",
+            ranges::RECALL_DISTANCE.expected,
+            ranges::RECALL_DEGREES.expected
+        )
+    };
+    let (t, r) = text.split_once(',').ok_or_else(expected)?;
+    let t = number(t, ranges::RECALL_DISTANCE).map_err(|_| expected())?;
+    let r = number(r, ranges::RECALL_DEGREES).map_err(|_| expected())?;
+    Ok((t, r))
 }
 
 #[cfg(test)]
@@ -73,6 +71,7 @@ mod tests {
             assert!(distance(bad).is_err(), "{bad}");
             assert!(score(bad).is_err(), "{bad}");
         }
+        assert_eq!(score("1.5").unwrap_err(), "expected a score in [0, 1]");
         for bad in [
             "nan,nan", "-1,-5", "0,5", "1,0", "1,181", "inf,2", "1", "1,2,3",
         ] {

@@ -98,7 +98,7 @@ pub struct Args {
           value_parser = super::global_max_side)]
     pub global_max_side: u32,
     /// With --images: a point joins level i when its track's mean level-i score is at least
-    /// this (finite, 0 or more; default: the model's keypoint threshold,
+    /// this (a score in [0, 1]; default: the model's keypoint threshold,
     /// sfp.default_threshold).
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images", value_parser = super::args::score)]
@@ -312,9 +312,6 @@ fn run_sfp(
     use sfpmap::build::{convert_with_images, SfpMapOptions};
     use sfpmap::extract::{ExtractorOptions, GlobalSize};
     sfpmap::extract::runtime::disable_telemetry();
-    if let Some(t) = args.score_threshold.filter(|t| !(0.0..=1.0).contains(t)) {
-        anyhow::bail!("--score-threshold {t}: scores are in [0, 1]");
-    }
     let bars = super::Bars::new(quiet, args.json);
     let options = SfpMapOptions {
         images: images.to_path_buf(),

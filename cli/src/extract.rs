@@ -34,7 +34,7 @@ pub struct Args {
     /// Resize images so the longer side is at most this (keypoints are scaled back).
     #[arg(long, value_parser = clap::value_parser!(u32).range(16..))]
     pub resize_max: Option<u32>,
-    /// Score threshold after NMS (finite, 0 or more; default: the model's
+    /// Score threshold after NMS (a score in [0, 1]; default: the model's
     /// sfp.default_threshold).
     #[arg(long, value_parser = super::args::score)]
     pub threshold: Option<f32>,

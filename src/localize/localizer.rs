@@ -98,24 +98,30 @@ impl LocalizeOptions {
         if !(1..=MAX_TOP_K).contains(&self.top_k) {
             return bad("top_k", self.top_k.to_string(), "1 to 100000 images");
         }
+        use crate::ranges::{Range, COSINE, PIXELS, RATIO};
         let m = &self.matching;
-        for (option, value) in [("ratio", m.ratio), ("gate_ratio", self.gate_ratio)] {
-            if !(value > 0.0 && value <= 1.0) {
-                return bad(option, value.to_string(), "a ratio in (0, 1]");
-            }
-        }
-        if !(-1.0..=1.0).contains(&m.min_similarity) {
-            let value = m.min_similarity.to_string();
-            return bad("min_similarity", value, "a cosine similarity in [-1, 1]");
-        }
+        // `text`: the value as given (an f32 widened to f64 prints more digits).
+        let check = |option, value: f64, text: &dyn std::fmt::Display, range: Range| {
+            range.check(value).map_or_else(
+                |expected| bad(option, text.to_string(), expected),
+                |_| Ok(()),
+            )
+        };
+        check("ratio", m.ratio.into(), &m.ratio, RATIO)?;
+        check(
+            "gate_ratio",
+            self.gate_ratio.into(),
+            &self.gate_ratio,
+            RATIO,
+        )?;
+        let cosine = m.min_similarity;
+        check("min_similarity", cosine.into(), &cosine, COSINE)?;
         for (option, value) in [
             ("coarse_error_px", self.coarse_error_px),
             ("gate_px", self.gate_px),
             ("fine_error_px", self.fine_error_px),
         ] {
-            if !(value.is_finite() && value > 0.0) {
-                return bad(option, value.to_string(), "a finite number of pixels > 0");
-            }
+            check(option, value, &value, PIXELS)?;
         }
         // At least what P3P takes plus one that checks it; at most what keeps the search's
         // multiples of it (`coarse::sure_inliers`, 4 × for a seed) far from overflow.

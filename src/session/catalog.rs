@@ -267,7 +267,8 @@ fn resolve(
 }
 
 /// Only places whose bounding box lies within `radius` of `position` (world coordinates of
-/// the catalog) are ranked. Every value finite, the radius at least 0.
+/// the catalog) are ranked. Every value finite, the radius at least 0
+/// ([`crate::ranges::COORDINATE`], [`crate::ranges::DISTANCE`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Near {
     /// The prior position.
@@ -394,23 +395,19 @@ impl CatalogSession {
         near: Option<Near>,
     ) -> Result<CatalogLocalization, SessionError> {
         if let Some(n) = near {
-            if !n.position.iter().all(|v| v.is_finite()) {
+            use crate::ranges::{COORDINATE, DISTANCE};
+            if n.position.iter().any(|&v| !COORDINATE.contains(v)) {
                 let value = format!("{:?}", n.position);
                 return Err(option_error(
                     &self.name,
                     "near",
                     &value,
-                    "a finite position",
+                    COORDINATE.expected,
                 ));
             }
-            if !(n.radius.is_finite() && n.radius >= 0.0) {
+            if let Err(expected) = DISTANCE.check(n.radius) {
                 let value = n.radius.to_string();
-                return Err(option_error(
-                    &self.name,
-                    "radius",
-                    &value,
-                    "a finite distance >= 0",
-                ));
+                return Err(option_error(&self.name, "radius", &value, expected));
             }
         }
         // Before ranking: the ranker skips rows that are not finite, and a query of nothing

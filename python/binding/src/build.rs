@@ -114,8 +114,10 @@ impl Options {
         if images.is_none() && score_threshold.is_some() {
             return bad("score_threshold needs images".into());
         }
-        if let Some(t) = score_threshold.filter(|t| !(0.0..=1.0).contains(t)) {
-            return bad(format!("score_threshold {t}: scores are in [0, 1]"));
+        if let Some(t) = score_threshold {
+            if let Err(expected) = sfpmap::ranges::SCORE.check(t.into()) {
+                return bad(format!("score_threshold {t}: {expected}"));
+            }
         }
         if short_dims == Some(0) {
             return bad("short_dims: at least 1".into());
