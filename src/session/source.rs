@@ -241,7 +241,24 @@ impl QueryReader {
             // names the file, the query and what is wrong.
             #[cfg(feature = "colmap")]
             Source::Database { db, path } => match db.features(name) {
-                Ok(features) => features,
+                // Each image's row says its feature (COLMAP 4's `type`): one of another
+                // feature than the map's fails alone, named with the database and the query.
+                Ok(Some(features)) => {
+                    if let Some(model) = &features.model {
+                        let origin = || {
+                            format!(
+                                "{}: query {}",
+                                crate::escape::path(path),
+                                crate::escape::quoted_name(name)
+                            )
+                        };
+                        if let Err(e) = self.fit.check_model(model, origin) {
+                            return Ok(Err(e.to_string()));
+                        }
+                    }
+                    Some(features)
+                }
+                Ok(None) => None,
                 Err(source) => {
                     let path = path.clone();
                     return Ok(Err(SessionError::Database { path, source }.to_string()));

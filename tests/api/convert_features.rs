@@ -361,16 +361,14 @@ fn a_query_features_file_of_another_feature_is_refused_naming_both() {
     );
 }
 
-/// COLMAP 4's typed float descriptors, as pycolmap 4.2.1 writes them, make a map of that
-/// feature (one level: its keypoints have no scale).
-#[test]
-fn a_database_of_aliked_descriptors_makes_an_aliked_map() {
-    let f = Files::new();
-    let db = f.dir.path().join("database.db");
+/// Writes a COLMAP database of `IMAGES` images with `POINTS + 1` keypoints each, as pycolmap
+/// 4.2.1 writes it, the descriptors of type `kind` (`aliked`: type 1, f32; `sift`: type 0,
+/// u8), `dim` wide.
+fn typed_database(db: &Path, kind: &str, dim: usize) {
     let script = r#"
 import sys, numpy as np, pycolmap
 db = pycolmap.Database.open(sys.argv[1])
-dim, images, points = int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+kind, dim, images, points = sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
 cid = db.write_camera(pycolmap.Camera(model="SIMPLE_PINHOLE", width=640, height=480, params=[500, 320, 240]))
 for i in range(1, images + 1):
     iid = db.write_image(pycolmap.Image(name=f"img{i}.jpg", camera_id=cid))
@@ -378,13 +376,22 @@ for i in range(1, images + 1):
     xy = np.array([[10.0 * j + i, 20.0 + j] for j in range(points)] + [[1.0, 1.0]], np.float32)
     d = np.stack([np.roll(np.linspace(0.1, 1.0, dim, dtype=np.float32), j % points) for j in range(points + 1)])
     db.write_keypoints(iid, xy)
-    db.write_descriptors(iid, pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.ALIKED_N16ROT, d).to_bytes())
+    if kind == "aliked":
+        rows = pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.ALIKED_N16ROT, d)
+    else:
+        rows = pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, (d * 255).astype(np.uint8))
+    db.write_descriptors(iid, rows.to_bytes() if kind == "aliked" else rows)
 db.close()
 "#;
     let out = std::process::Command::new(crate::python::python_with("numpy, pycolmap"))
         .args(["-c", script])
-        .arg(&db)
-        .args([DIM.to_string(), IMAGES.to_string(), POINTS.to_string()])
+        .arg(db)
+        .args([
+            kind.to_string(),
+            dim.to_string(),
+            IMAGES.to_string(),
+            POINTS.to_string(),
+        ])
         .output()
         .unwrap();
     assert!(
@@ -392,6 +399,19 @@ db.close()
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+}
+
+/// COLMAP 4's typed float descriptors, as pycolmap 4.2.1 writes them, make a map of that
+/// feature (one level: its keypoints have no scale). A query database of SIFT rows, of the
+/// same width, fails each of its queries naming both features (not matched as if alike).
+#[test]
+fn a_database_of_aliked_descriptors_makes_an_aliked_map() {
+    use sfpmap::localize::QueryFailure;
+    use sfpmap::session::{QuerySource, Session};
+    const WIDE: usize = 128;
+    let f = Files::new();
+    let db = f.dir.path().join("database.db");
+    typed_database(&db, "aliked", WIDE);
     let options = ConvertOptions {
         database: Some(db),
         ..ConvertOptions::default()
@@ -403,7 +423,30 @@ db.close()
     assert_eq!(levels.len(), 1);
     assert_eq!(
         (levels[0].descriptor.as_str(), levels[0].dim_full),
-        ("aliked-n16rot", DIM as u32)
+        ("aliked-n16rot", WIDE as u32)
     );
     assert_eq!(levels[0].extra["feature_source"], "colmap database");
+
+    let sift = f.dir.path().join("sift.db");
+    typed_database(&sift, "sift", WIDE);
+    let session = Session::builder(std::sync::Arc::new(map), "m.sfpm")
+        .source(QuerySource::Database(sift.clone()))
+        .build(&Silent)
+        .unwrap();
+    let camera = sfpmap::geometry::Camera::from_model_name(
+        "SIMPLE_PINHOLE",
+        640,
+        480,
+        &[500.0, 320.0, 240.0],
+    )
+    .unwrap();
+    let failed = session.localize("img1.jpg", &camera).unwrap();
+    assert_eq!(
+        failed.outcome,
+        Err(QueryFailure::NoFeatures(format!(
+            "{}: query \"img1.jpg\": features of model \"sift\", but the map m.sfpm holds \
+             \"aliked-n16rot\" descriptors: give query features of \"aliked-n16rot\"",
+            sift.display()
+        )))
+    );
 }
