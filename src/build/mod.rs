@@ -130,22 +130,56 @@ fn map_writer<'a>(
 }
 
 #[cfg(feature = "colmap")]
-/// A file's size and XXH3 for `provenance.sources`.
-pub(crate) fn source_file(path: &Path) -> Result<SourceFile, ConvertError> {
-    // Mapped, not read: the model was just parsed from the page cache, so hashing it again
-    // costs no copy and no allocation of its size.
-    // Checked to be a regular file first: opening a FIFO would block.
-    let file = crate::colmap::open_regular(path)?;
-    let bytes = format::map_file(&file).map_err(|source| ConvertError::Io {
+/// A file's size and XXH3 for `provenance.sources`, read through a fixed buffer (a features
+/// file or database may be tens of GB: neither mapped nor held); a file over
+/// [`HASH_PROGRESS_BYTES`] reports its bytes to `reporter` as it goes.
+pub(crate) fn source_file(
+    path: &Path,
+    reporter: &dyn Reporter,
+) -> Result<SourceFile, ConvertError> {
+    use std::io::Read;
+    let io = |source| ConvertError::Io {
         path: path.to_path_buf(),
         source,
-    })?;
+    };
+    // Checked to be a regular file first: opening a FIFO would block.
+    let mut file = crate::colmap::open_regular(path)?;
+    let len = file.metadata().map_err(io)?.len();
+    let shown = len > HASH_PROGRESS_BYTES;
+    if shown {
+        let name = path.file_name().unwrap_or(path.as_os_str());
+        let stage = format!("hashing {}", crate::escape::path(Path::new(name)));
+        reporter.start(&stage, Some(len));
+    }
+    let mut hasher = xxhash_rust::xxh3::Xxh3::new();
+    let mut buf = vec![0u8; 1 << 20];
+    let mut bytes = 0u64;
+    loop {
+        let n = match file.read(&mut buf) {
+            Ok(0) => break,
+            Ok(n) => n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(io(e)),
+        };
+        hasher.update(&buf[..n]);
+        bytes += n as u64;
+        if shown {
+            reporter.advance(n as u64);
+        }
+    }
+    if shown {
+        reporter.finish();
+    }
     Ok(SourceFile {
         path: path.display().to_string(),
-        bytes: bytes.len() as u64,
-        xxh3: format::file_hash(&bytes),
+        bytes,
+        xxh3: format!("{:016x}", hasher.digest()),
     })
 }
+
+/// Source files larger than this show their hashing as a stage of its own.
+#[cfg(feature = "colmap")]
+const HASH_PROGRESS_BYTES: u64 = 256 << 20;
 
 #[cfg(feature = "colmap")]
 /// Reads the model in `model_dir` and describes its files (size, hash) for provenance.
@@ -160,7 +194,7 @@ pub(crate) fn read_model_with_sources(
     let sources = files
         .paths
         .iter()
-        .map(|p| source_file(p))
+        .map(|p| source_file(p, reporter))
         .collect::<Result<Vec<_>, _>>()?;
     Ok((model, sources))
 }
@@ -178,11 +212,12 @@ fn read_geometry_with_sources(
     if files.format == ModelFormat::Binary {
         reporter.start("reading model", None);
         let (geometry, sources) = std::thread::scope(|s| {
+            // Silent: the "reading model" stage is the one shown meanwhile.
             let sources = s.spawn(|| {
                 files
                     .paths
                     .iter()
-                    .map(|p| source_file(p))
+                    .map(|p| source_file(p, &crate::progress::Silent))
                     .collect::<Result<Vec<_>, _>>()
             });
             let geometry = geometry::read_bin(model_dir);

@@ -218,7 +218,7 @@ fn convert_geometry(
         Some(source) => {
             // A folder (kapture) is recorded by its files' own provenance, not hashed whole.
             if source.path().is_file() {
-                sources.push(source_file(source.path())?);
+                sources.push(source_file(source.path(), reporter)?);
             }
             Some(gather(geometry, source, options, reporter)?)
         }
@@ -226,7 +226,7 @@ fn convert_geometry(
     };
     let global = match &options.global_features {
         Some(path) => {
-            sources.push(source_file(path)?);
+            sources.push(source_file(path, reporter)?);
             Some(read_global(geometry, path, reporter)?)
         }
         None => None,
