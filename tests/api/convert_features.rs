@@ -49,7 +49,14 @@ with h5py.File(path, "w") as f:
         g["image_size"] = np.array([640, 480])
         if mutation == "scales":
             g["scales"] = np.array([j % points + 1.0 for j in range(n)], np.float32)
-        if mutation.startswith("global") and not (mutation == "global-missing" and i == 3):
+        if mutation == "global-linked":
+            # One dataset of more values than a map holds, that every image's group links to:
+            # counted once in the file, read once per image.
+            if i == 1:
+                g["global_descriptor"] = np.zeros(5000, np.float16)
+            else:
+                g["global_descriptor"] = f["img1.jpg/global_descriptor"]
+        elif mutation.startswith("global") and not (mutation == "global-missing" and i == 3):
             g["global_descriptor"] = np.full(8 if mutation == "global8" else 16, float(i), np.float32)
 "#;
 
@@ -232,6 +239,20 @@ fn global_features_are_stored_for_retrieval_and_every_image_needs_one() {
         format!(
             "{}: image \"img3.jpg\": no global_descriptor",
             partial.display()
+        )
+    );
+    // A dataset linked from every group is refused by its shape, before it is read at all.
+    let linked = f.h5("global-linked.h5", "global-linked");
+    let options = ConvertOptions {
+        global_features: Some(linked.clone()),
+        ..features(&h5)
+    };
+    let e = convert(&f.model, &options, &f.dir.path().join("n.sfpm"), &Silent).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        format!(
+            "{}: img1.jpg/global_descriptor: 1 x 5000 values, more than the 4096 it may hold",
+            linked.display()
         )
     );
 }

@@ -51,6 +51,9 @@ type Children = HashMap<String, hdf5_pure::Group>;
 /// An image group's datasets by name.
 pub(crate) type Datasets = HashMap<String, hdf5_pure::Dataset>;
 
+/// The most dimensions a descriptor, local or global, may have: the format's limit.
+const MAX_DIM: usize = crate::format::MAX_DESCRIPTOR_DIM as usize;
+
 impl H5Features {
     /// The most bytes of metadata (group indexes, object headers) kept between images.
     pub const METADATA_CACHE_BYTES: usize = 8 << 20;
@@ -194,6 +197,7 @@ impl H5Features {
         &self,
         name: &str,
         ds: &hdf5_pure::Dataset,
+        max_values: usize,
     ) -> Result<(Vec<f32>, usize, usize), InputError> {
         let shape = ds.shape().map_err(|e| self.err(format!("{name}: {e}")))?;
         let (rows, cols) = match shape.as_slice() {
@@ -219,6 +223,13 @@ impl H5Features {
             };
             return Err(self.err(format!(
                 "{name}: values of {found} (little-endian f16 or f32 expected)"
+            )));
+        }
+        // A dataset many groups link to is counted once in the file but read once per group:
+        // what the caller allows of it is checked before anything is read.
+        if rows.checked_mul(cols).is_none_or(|n| n > max_values as u64) {
+            return Err(self.err(format!(
+                "{name}: {rows} x {cols} values, more than the {max_values} it may hold"
             )));
         }
         // At least 2 bytes a value (f16): a shape the file cannot hold is refused before
@@ -285,11 +296,11 @@ impl H5Features {
         };
         let kp_name = format!("{name}/{prefix}keypoints");
         let desc_name = format!("{name}/{prefix}descriptors");
-        let (kp, n, two) = self.matrix(&kp_name, kp)?;
+        let (kp, n, two) = self.matrix(&kp_name, kp, usize::MAX)?;
         if two != 2 {
             return Err(self.err(format!("{kp_name}: {n} x {two} (N x 2 expected)")));
         }
-        let (desc, dim, n_desc) = self.matrix(&desc_name, desc)?;
+        let (desc, dim, n_desc) = self.matrix(&desc_name, desc, usize::MAX)?;
         if n_desc != n {
             return Err(self.err(if dim == n {
                 format!(
@@ -317,6 +328,12 @@ impl H5Features {
                 "{desc_name}: keypoint {}: a value is {}",
                 i % n.max(1),
                 desc[i]
+            )));
+        }
+        // Before the loops: `D x 0` holds no values whatever D claims.
+        if dim > MAX_DIM {
+            return Err(self.err(format!(
+                "{desc_name}: {dim} dimensions, more than a map holds ({MAX_DIM})"
             )));
         }
         // [D × N] → [N × D].
@@ -350,7 +367,7 @@ impl H5Features {
             return Ok(None);
         };
         let ds_name = format!("{name}/scales");
-        let (scales, rows, cols) = self.matrix(&ds_name, ds)?;
+        let (scales, rows, cols) = self.matrix(&ds_name, ds, usize::MAX)?;
         if rows * cols != keypoints {
             return Err(self.err(format!(
                 "{ds_name}: {} values for {keypoints} keypoints",
@@ -385,7 +402,7 @@ impl H5Features {
             return Ok(None);
         };
         let ds_name = format!("{name}/global_descriptor");
-        let (values, _, _) = self.matrix(&ds_name, ds)?;
+        let (values, _, _) = self.matrix(&ds_name, ds, MAX_DIM)?;
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
             return Err(self.err(format!("{ds_name}: value {i} is {}", values[i])));
         }
