@@ -97,6 +97,35 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
     let mut lines = Vec::new();
     let mut colmap = None;
 
+    // kapture first: it refuses what it cannot write (names, existing files) before it
+    // writes anything, so a refusal leaves none of the other outputs behind.
+    if let Some(dir) = &args.kapture {
+        #[cfg(not(feature = "colmap"))]
+        bail!(
+            "{}: kapture export needs sfpmap built with the colmap feature",
+            sfpmap::escape::path(dir)
+        );
+        #[cfg(feature = "colmap")]
+        {
+            let s = sfpmap::io::kapture::export_kapture(&map, dir, &[&args.map], args.force)
+                .map_err(|e| match e {
+                    sfpmap::io::kapture::KaptureError::Map(e) => super::naming(&args.map)(e),
+                    e => anyhow::Error::new(e),
+                })?;
+            report.insert(
+                "kapture".into(),
+                json!({"path": dir.display().to_string(), "cameras": s.cameras, "images": s.images, "points": s.points, "observations": s.observations}),
+            );
+            lines.push(format!(
+                "{}: kapture with {} cameras, {} images, {} points, {} observations",
+                sfpmap::escape::path(dir),
+                s.cameras,
+                s.images,
+                s.points,
+                s.observations
+            ));
+        }
+    }
     if let Some(path) = &args.ply {
         // What the PLY reads is checked first, so a damaged map is reported as the map's
         // error (sections are checked once, so the writer below reads them at no cost).
@@ -137,33 +166,6 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
             s.observations
         ));
         colmap = Some(s);
-    }
-    if let Some(dir) = &args.kapture {
-        #[cfg(not(feature = "colmap"))]
-        bail!(
-            "{}: kapture export needs sfpmap built with the colmap feature",
-            sfpmap::escape::path(dir)
-        );
-        #[cfg(feature = "colmap")]
-        {
-            let s = sfpmap::io::kapture::export_kapture(&map, dir, &[&args.map], args.force)
-                .map_err(|e| match e {
-                    sfpmap::io::kapture::KaptureError::Map(e) => super::naming(&args.map)(e),
-                    e => anyhow::Error::new(e),
-                })?;
-            report.insert(
-                "kapture".into(),
-                json!({"path": dir.display().to_string(), "cameras": s.cameras, "images": s.images, "points": s.points, "observations": s.observations}),
-            );
-            lines.push(format!(
-                "{}: kapture with {} cameras, {} images, {} points, {} observations",
-                sfpmap::escape::path(dir),
-                s.cameras,
-                s.images,
-                s.points,
-                s.observations
-            ));
-        }
     }
     for (path, text, key) in [
         (&args.tum, poses::images_tum as fn(&Map<'_>) -> _, "tum"),

@@ -400,7 +400,7 @@ fn convert_writes_nothing_inside_its_kapture_folder() {
 }
 
 #[test]
-fn export_kapture_refuses_names_kapture_cannot_hold_and_leaves_inputs() {
+fn export_kapture_overwrites_nothing_without_force_and_leaves_its_map() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("k");
     small_kapture(&dir);
@@ -430,4 +430,82 @@ fn export_kapture_refuses_names_kapture_cannot_hold_and_leaves_inputs() {
     ]);
     assert!(e.contains("is an input of this command"), "{e}");
     assert_eq!(std::fs::read(&map).unwrap(), map_bytes);
+}
+
+/// A COLMAP text model of one camera and the images `names` (identity poses), each seeing
+/// the one point at keypoint 0.
+fn text_model(dir: &Path, names: &[&str]) {
+    std::fs::create_dir_all(dir).unwrap();
+    std::fs::write(
+        dir.join("cameras.txt"),
+        "1 SIMPLE_PINHOLE 640 480 500 320 240\n",
+    )
+    .unwrap();
+    let mut images = String::new();
+    let mut track = String::new();
+    for (i, name) in names.iter().enumerate() {
+        let id = i + 1;
+        images.push_str(&format!("{id} 1 0 0 0 0 0 {i} 1 {name}\n320 240 1\n"));
+        track.push_str(&format!(" {id} 0"));
+    }
+    std::fs::write(dir.join("images.txt"), images).unwrap();
+    std::fs::write(
+        dir.join("points3D.txt"),
+        format!("1 0 0 5 1 2 3 0.5{track}\n"),
+    )
+    .unwrap();
+}
+
+/// What a kapture table cannot hold (a comma in a name, two images of one name) is refused
+/// before anything is written: by `export --kapture`, whatever other outputs it is asked
+/// for, and by `localize --format kapture`, before any query is localized.
+#[test]
+fn names_kapture_cannot_hold_are_refused_before_anything_is_written() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ply = tmp.path().join("m.ply");
+    let kapture = tmp.path().join("k");
+    for (names, words) in [
+        (&["a.jpg", "a,b.jpg"][..], r#"image 2: name "a,b.jpg" "#),
+        (
+            &["a.jpg", "b.jpg", "a.jpg"][..],
+            r#"image 3: its name "a.jpg" is image 1's too"#,
+        ),
+    ] {
+        let model = tmp.path().join("model");
+        text_model(&model, names);
+        let map = tmp.path().join("m.sfpm");
+        ok(&os!["convert", "--colmap", &model, "-o", &map, "--force"]);
+        let e = err(&os!["export", &map, "--ply", &ply, "--kapture", &kapture]);
+        assert!(e.contains(words), "{e}");
+        assert_eq!(e.lines().count(), 1, "{e}");
+        assert!(!ply.exists(), "the PLY was written before the refusal");
+        assert!(!kapture.exists(), "the kapture folder was made: {e}");
+    }
+
+    // A query list naming "a,b.jpg": refused for kapture output before any query runs.
+    let model = tmp.path().join("model");
+    text_model(&model, &["a.jpg", "b.jpg"]);
+    let map = tmp.path().join("ok.sfpm");
+    ok(&os!["convert", "--colmap", &model, "-o", &map]);
+    let list = tmp.path().join("queries.txt");
+    std::fs::write(&list, "a,b.jpg SIMPLE_PINHOLE 640 480 500 320 240\n").unwrap();
+    let poses = tmp.path().join("poses");
+    let e = err(&os![
+        "localize",
+        "--map",
+        &map,
+        "--query-list",
+        &list,
+        "--database",
+        &tmp.path().join("none.db"),
+        "-o",
+        &poses,
+        "--format",
+        "kapture"
+    ]);
+    assert!(
+        e.contains(r#""a,b.jpg""#) && e.contains("--format kapture cannot hold"),
+        "{e}"
+    );
+    assert!(!poses.exists());
 }

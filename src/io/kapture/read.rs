@@ -3,7 +3,7 @@
 use super::{fields, name_problem, KaptureError};
 use crate::colmap::{Camera, DescriptorValues, Image, Point2D, Reconstruction, TrackElement};
 use crate::geometry::{CameraModel, Pose};
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
 
@@ -365,12 +365,13 @@ fn read_sensors(path: &Path) -> Result<Sensors, KaptureError> {
     Ok(s)
 }
 
-/// `rigs.txt`: sensor id → `(rig id, sensor_from_rig)` for each rig holding it.
-type Rigs = HashMap<String, Vec<(String, Pose)>>;
+/// `rigs.txt`: sensor id → rig id → (the row's order, `sensor_from_rig`) for each rig
+/// holding it. Looked up by hash, never scanned: a folder may list many rigs.
+type Rigs = HashMap<String, HashMap<String, (usize, Pose)>>;
 
-fn read_rigs(path: &Path, sensors: &Sensors) -> Result<(Rigs, Vec<String>), KaptureError> {
+fn read_rigs(path: &Path, sensors: &Sensors) -> Result<(Rigs, HashSet<String>), KaptureError> {
     let mut rigs = Rigs::new();
-    let mut rig_ids = Vec::new();
+    let mut rig_ids = HashSet::new();
     for_each_row(path, None, |line, f| {
         let err = line_error(path, line);
         if f.len() != 9 {
@@ -386,11 +387,12 @@ fn read_rigs(path: &Path, sensors: &Sensors) -> Result<(Rigs, Vec<String>), Kapt
             )));
         }
         if let Some(pose) = parse_pose(&f[2..]).map_err(&err)? {
-            rigs.entry(f[1].to_string())
-                .or_default()
-                .push((f[0].to_string(), pose));
+            let of_sensor = rigs.entry(f[1].to_string()).or_default();
+            let order = of_sensor.len();
+            // The first row of a rig and sensor counts, as the list this was kept in did.
+            of_sensor.entry(f[0].to_string()).or_insert((order, pose));
         }
-        rig_ids.push(f[0].to_string());
+        rig_ids.insert(f[0].to_string());
         Ok(())
     })?;
     Ok((rigs, rig_ids))
@@ -400,7 +402,7 @@ fn read_rigs(path: &Path, sensors: &Sensors) -> Result<(Rigs, Vec<String>), Kapt
 fn read_trajectories(
     path: &Path,
     sensors: &Sensors,
-    rig_ids: &[String],
+    rig_ids: &HashSet<String>,
 ) -> Result<HashMap<(i64, String), Pose>, KaptureError> {
     let mut poses = HashMap::new();
     for_each_row(path, Some("the image poses"), |line, f| {
@@ -412,7 +414,7 @@ fn read_trajectories(
             )));
         }
         let timestamp = parse_timestamp(f[0]).map_err(&err)?;
-        if !sensors.types.contains_key(f[1]) && !rig_ids.iter().any(|r| r == f[1]) {
+        if !sensors.types.contains_key(f[1]) && !rig_ids.contains(f[1]) {
             return Err(KaptureError::UnknownDevice {
                 path: path.to_path_buf(),
                 line,
@@ -663,6 +665,12 @@ impl Kapture {
     ) -> Result<Kapture, KaptureError> {
         let mut images: Vec<Image> = Vec::new();
         let mut by_name: HashMap<String, usize> = HashMap::new();
+        // The devices with a pose at each timestamp: a record of a rig's sensor finds its
+        // rig's pose among them (a few), not by trying every rig that holds the sensor.
+        let mut posed_at: HashMap<i64, Vec<&str>> = HashMap::new();
+        for (timestamp, device) in trajectories.keys() {
+            posed_at.entry(*timestamp).or_default().push(device);
+        }
         let mut recorded: HashMap<String, usize> = HashMap::new();
         for_each_row(records_path, Some("the images"), |line, f| {
             let err = line_error(records_path, line);
@@ -703,10 +711,15 @@ impl Kapture {
                 .get(&(timestamp, device.to_string()))
                 .copied()
                 .or_else(|| {
-                    rigs.get(device)?.iter().find_map(|(rig, sensor_from_rig)| {
-                        let rig_from_world = trajectories.get(&(timestamp, rig.clone()))?;
-                        Some(sensor_from_rig.compose(rig_from_world))
-                    })
+                    let of_sensor = rigs.get(device)?;
+                    // Of the sensor's rigs posed then, the first in rigs.txt.
+                    let (_, sensor_from_rig, rig) = posed_at
+                        .get(&timestamp)?
+                        .iter()
+                        .filter_map(|rig| of_sensor.get(*rig).map(|(o, p)| (*o, p, *rig)))
+                        .min_by_key(|(order, _, _)| *order)?;
+                    let rig_from_world = trajectories.get(&(timestamp, rig.to_string()))?;
+                    Some(sensor_from_rig.compose(rig_from_world))
                 });
             let Some(pose) = pose else {
                 self.records_without_pose += 1;

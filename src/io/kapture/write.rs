@@ -154,10 +154,19 @@ pub fn export_kapture(
     let mut records = table("timestamp, device_id, image_path");
     let mut trajectories = table("timestamp, device_id, qw, qx, qy, qz, tx, ty, tz");
     let mut names = Vec::with_capacity(images.len());
+    // kapture keys an image's files by its path: two images of one name would share a .kpt
+    // file (the second written over the first) and its records would not read back.
+    let mut seen: std::collections::HashMap<&str, usize> = std::collections::HashMap::new();
     for i in 0..images.len() {
         let id = images.ids.as_ref().map_or(i as u32 + 1, |ids| ids[i]) as usize;
         let name = images.name(i)?;
         check_name(|| format!("image {id}"), name)?;
+        if let Some(first) = seen.insert(name, id) {
+            return Err(unwritable(format!("image {id}"))(format!(
+                "its name {} is image {first}'s too, and a kapture folder keys images by name",
+                crate::escape::quoted_name(name)
+            )));
+        }
         let sensor = sensor_id(&meta.cameras, images.cameras[i] as usize);
         let pose = Pose::from_colmap_array(images.poses[i])
             .map_err(|e| unwritable(format!("image {id}"))(format!("pose: {e}")))?;
