@@ -85,6 +85,20 @@ mod tests {
         .is_err());
     }
 
+    /// A name with empty components is the group HDF5 reads under it (h5py drops them, as
+    /// the writer does): `sub//b.png` and `/a.jpg` find the groups `sub/b.png` and `a.jpg`.
+    #[test]
+    fn empty_name_components_are_skipped_as_hdf5_skips_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, _, _) = two_images(dir.path());
+        let h5 = H5Features::open(&path).unwrap();
+        for (name, same) in [("sub//b.png", "sub/b.png"), ("/a.jpg", "a.jpg")] {
+            let (a, b) = (h5.global(name).unwrap(), h5.global(same).unwrap());
+            assert!(a.is_some() && a == b, "{name}");
+        }
+        assert_eq!(h5.global("sub/x.png").unwrap(), None);
+    }
+
     /// The writer and the query reader ([`H5Features`]) agree: every level's
     /// keypoints in sfpmap's pixel convention, its descriptors (normalised, as the reader
     /// hands them out), and the global descriptor.

@@ -151,11 +151,13 @@ impl H5Features {
     }
 
     /// The group `name` (`a/b/c.jpg`: one component a level), through the index of the
-    /// groups walked so far; `None` if a component is not a group.
+    /// groups walked so far; `None` if a component is not a group. Empty components are
+    /// skipped (`d//a.jpg` is `d/a.jpg`, `/b.jpg` is `b.jpg`), as HDF5 paths (h5py's, and
+    /// this module's writer) read them.
     fn group(&self, name: &str) -> Result<Option<hdf5_pure::Group>, InputError> {
         let mut group = self.file.root();
         let mut at = String::new();
-        for component in name.split('/') {
+        for component in name.split('/').filter(|c| !c.is_empty()) {
             let children = self.children_of(&at, &group)?;
             match children.get(component) {
                 Some(child) => group = child.clone(),
