@@ -527,20 +527,9 @@ pub unsafe extern "C" fn sfpm_session_localize_global(
             // retrieval fall back in silence: a caller who hands one in wants to know. Checked
             // from the section table before a value is read, so a length past the caller's
             // buffer is refused, not read.
-            let map_dim = s
-                .map()
-                .find(crate::format::SectionKind::ImageGlobal, None)
-                .map(|section| section.cols as usize);
-            if map_dim != Some(global_dim) {
-                return Err(FfiError::argument(match map_dim {
-                    Some(d) => format!(
-                        "global: {global_dim} values, but the map stores global descriptors of {d}"
-                    ),
-                    None => format!(
-                        "global: {global_dim} values, but the map stores no global descriptors \
-                         (it ranks its images by VLAD): use sfpm_session_localize"
-                    ),
-                }));
+            let why = crate::session::global_mismatch(global_dim, s.global_dim(), s.map_name());
+            if let Some(why) = why {
+                return Err(FfiError::argument(format!("global: {why}")));
             }
             // SAFETY: per contract: `global_dim` floats.
             let global = unsafe { input(global, global_dim, "global")? };

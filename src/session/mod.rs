@@ -152,10 +152,7 @@ impl SessionBuilder {
         )?;
         #[cfg(feature = "hdf5")]
         if let Some(path) = global_features {
-            let map_dim = match map.image_global() {
-                Ok(Some((_, dim))) => Some(dim),
-                _ => None,
-            };
+            let map_dim = map_global_dim(&map);
             reader.set_global_features(crate::io::features_h5::H5Features::open(&path)?, map_dim);
         }
         let prepared =
@@ -307,6 +304,34 @@ impl Fit {
             }
         }
         Ok(())
+    }
+}
+
+/// The dimensions of `map`'s global descriptors, from its section table (nothing is read);
+/// `None` when it stores none.
+pub(crate) fn map_global_dim(map: &Map<'_>) -> Option<usize> {
+    map.find(crate::format::SectionKind::ImageGlobal, None)
+        .map(|section| section.cols as usize)
+}
+
+/// Why a query's global descriptor of `len` values cannot rank the images of the map named
+/// `map_name`, whose global descriptors have `map_dim` dimensions (`None`: it stores none):
+/// retrieval would fall back in silence. The one rule for features files, descriptors handed
+/// in (Python) and the C ABI. `None` when it fits.
+pub(crate) fn global_mismatch(
+    len: usize,
+    map_dim: Option<usize>,
+    map_name: &str,
+) -> Option<String> {
+    match map_dim {
+        Some(d) if d == len => None,
+        Some(d) => Some(format!(
+            "{len} values, but the map {map_name} stores global descriptors of {d}"
+        )),
+        None => Some(format!(
+            "{len} values, but the map {map_name} stores no global descriptors (it ranks its \
+             images by VLAD)"
+        )),
     }
 }
 
@@ -513,13 +538,29 @@ impl Session {
         })
     }
 
-    /// Features that record their model are the map's.
+    /// Features that record their model are the map's, and a global descriptor has the
+    /// map's global descriptors' size ([`global_mismatch`]).
     fn check_fit(&self, features: &QueryFeatures, name: &str) -> Result<(), SessionError> {
+        let origin = || format!("{}: query {name:?}", self.fit.map_name);
         if let Some(model) = &features.model {
-            let origin = || format!("{}: query {name:?}", self.fit.map_name);
             self.fit.check_model(model, origin)?;
         }
+        if let Some(global) = &features.global {
+            let map_dim = map_global_dim(self.map());
+            if let Some(why) = global_mismatch(global.len(), map_dim, &self.fit.map_name) {
+                return Err(SessionError::Mismatch(format!(
+                    "{}: global: {why}",
+                    origin()
+                )));
+            }
+        }
         Ok(())
+    }
+
+    /// The dimensions of the map's global descriptors; `None` when it stores none (it
+    /// ranks its images by VLAD).
+    pub fn global_dim(&self) -> Option<usize> {
+        map_global_dim(self.map())
     }
 
     /// A query of the sequence that has no features (it could not be read or decoded):

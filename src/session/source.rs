@@ -331,20 +331,12 @@ impl QueryReader {
                 Err(e) => return Ok(Err(e.to_string())),
                 // Another network's (or none in the map): retrieval would fall back in silence.
                 // Said for the query, which fails alone as one of another dimension does.
-                Ok(Some(g)) if map_dim.is_some_and(|d| d != g.len()) || map_dim.is_none() => {
-                    return Ok(Err(global
-                        .err(format!(
-                            "{name}/global_descriptor: {} values, but the map {} {}",
-                            g.len(),
-                            self.fit.map_name,
-                            match map_dim {
-                                Some(d) => format!("stores global descriptors of {d}"),
-                                None => "stores no global descriptors".to_string(),
-                            }
-                        ))
-                        .to_string()))
-                }
                 Ok(Some(g)) => {
+                    if let Some(why) = super::global_mismatch(g.len(), *map_dim, &self.fit.map_name)
+                    {
+                        let what = format!("{name}/global_descriptor: {why}");
+                        return Ok(Err(global.err(what).to_string()));
+                    }
                     f.global = Some(g);
                     Some(f)
                 }

@@ -376,9 +376,25 @@ fn a_query_features_file_of_another_feature_is_refused_naming_both() {
         failed.outcome,
         Err(sfpmap::localize::QueryFailure::NoFeatures(format!(
             "{}: img1.jpg/global_descriptor: 8 values, but the map m.sfpm stores no global \
-             descriptors",
+             descriptors (it ranks its images by VLAD)",
             global.display()
         )))
+    );
+    // The same rule for a global descriptor handed in (as Python hands them in): refused,
+    // never ranked by VLAD in silence.
+    let mut features = sfpmap::io::features_h5::H5Features::open(&h5)
+        .unwrap()
+        .features("img1.jpg")
+        .unwrap()
+        .unwrap();
+    features.global = Some(vec![1.0; 8]);
+    let e = with_global
+        .localize_features(&features, &camera, "img1.jpg")
+        .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "m.sfpm: query \"img1.jpg\": global: 8 values, but the map m.sfpm stores no global \
+         descriptors (it ranks its images by VLAD)"
     );
 }
 

@@ -467,8 +467,9 @@ fn query_global_descriptors_rank_a_global_map_through_the_c_abi() {
     assert_eq!(
         last_error(),
         format!(
-            "global: {} values, but the map stores global descriptors of {dim}",
-            dim - 1
+            "global: {} values, but the map {} stores global descriptors of {dim}",
+            dim - 1,
+            path.display()
         )
     );
     let mut nan = q.global.clone();
