@@ -401,11 +401,13 @@ c.commit()
         (7, 9, "a type COLMAP 4.2 does not define"),
     ] {
         let e = db.features(id).unwrap_err().to_string();
-        assert!(e.starts_with(&db_path.display().to_string()), "{e}");
-        assert!(
-            e.contains(&format!("type {t} ({name})")) && e.contains(&id.to_string()),
-            "{e}"
+        assert_eq!(
+            e,
+            format!(
+                "{}: table descriptors, id {id}: type {t} ({name}): no descriptor layout is \
+                 known for it (SIFT is type 0)",
+                db_path.display()
+            )
         );
-        assert!(!e.contains('\n'), "{e}");
     }
 }

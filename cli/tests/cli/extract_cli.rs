@@ -758,6 +758,7 @@ fn global_descriptors_follow_the_side_the_map_records() {
         os("-q"),
     ]);
     let by_images = ranking(&[os("--images"), images.as_os_str()]);
+    assert!(!by_images.is_empty());
     assert!(by_images
         .iter()
         .all(|r| r.as_array().is_some_and(|r| r.len() == 8)));

@@ -143,7 +143,7 @@ def test_kapture_types_need_kapture_and_the_output_stays_out_of_the_folder(maupe
     # An existing output without force is refused as the CLI refuses it; with force, written.
     out = tmp_path / "m.sfpm"
     out.write_bytes(b"x")
-    with pytest.raises(sfpmap.Error, match="pass --force|force"):
+    with pytest.raises(sfpmap.Error, match="exists; pass --force to overwrite"):
         sfpmap.convert(kapture=kapture, out=out)
     assert out.read_bytes() == b"x"
     s = sfpmap.convert(kapture=kapture, out=out, force=True, feature_name="my-sift")
