@@ -13,12 +13,14 @@ pub enum AggregateArg {
     Medoid,
 }
 
-/// Convert a COLMAP model (binary or text) and optionally its database.db into a map.
+/// Convert a COLMAP model (binary or text) or a kapture folder into a map, with descriptors
+/// from its database, an hloc features file, the kapture folder's own, or an extractor.
 ///
-/// Each 3D point gets its track's aggregated SIFT descriptor; points are split into 3 levels
-/// by keypoint scale; each level's descriptors are stored in a PCA basis so that `short`
-/// (the first --short-dims dims) keeps most of the variance. Without --database the map is
-/// geometry only. Example:
+/// With --database, each 3D point gets its track's aggregated descriptor of the database's
+/// feature (SIFT, or the type COLMAP 4 recorded: ALIKED, LoMa); points with keypoint scales
+/// (SIFT's) are split into 3 levels by scale, others make one level; each level's
+/// descriptors are stored in a PCA basis so that `short` (the first --short-dims dims) keeps
+/// most of the variance. Without descriptors the map is geometry only. Example:
 /// `sfpmap convert --colmap sparse/0 --database database.db -o building.sfpm`
 ///
 /// With --features instead of --database, the descriptors are any local feature's from an hloc
@@ -26,9 +28,14 @@ pub enum AggregateArg {
 /// each image's global descriptor for retrieval. Example:
 /// `sfpmap convert --colmap sfm --features feats-aliked-n16.h5 -o aliked.sfpm`
 ///
-/// With --images instead of --database, the SFP extractor runs on every model image and each
-/// point gets the network's multi-level descriptors; points the network scores low on every
-/// level are dropped. Example: `sfpmap convert --colmap sparse/0 --images images -o sfp.sfpm`
+/// With --kapture instead of --colmap, the model, keypoints and descriptors are the kapture
+/// folder's (--keypoints-type, --descriptors-type choose among several). Example:
+/// `sfpmap convert --kapture mapping -o mapping.sfpm`
+///
+/// With --images instead of --database, an extractor runs on every model image: the built-in
+/// SFP model gives each point multi-level descriptors (points it scores low on every level
+/// are dropped), `--model aliked-n16` one level of ALIKED's. Example:
+/// `sfpmap convert --colmap sparse/0 --images images -o sfp.sfpm`
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// The model folder (cameras, images, points3D as .bin or .txt).
@@ -118,7 +125,8 @@ pub struct Args {
     /// How a point's descriptor is made from its track's.
     #[arg(long, value_enum, default_value = "mean")]
     pub aggregate: AggregateArg,
-    /// Fail if an image's features are missing from the database (default: warn and go on).
+    /// Fail if an image's features are missing from the database, features file or kapture
+    /// folder (default: warn and go on).
     #[arg(long)]
     pub strict: bool,
     /// Retrieval: centroids of the VLAD codebook stored with the map (0: none). Queries are
@@ -208,7 +216,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             );
         }
         if summary.geometry_only {
-            println!("geometry only (no --database): no levels, no descriptors");
+            println!("geometry only (no descriptors given or found): no levels");
         }
         if let Some(v) = summary.vlad {
             println!(

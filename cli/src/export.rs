@@ -1,4 +1,4 @@
-//! `sfpmap export`: a map's points and poses to other tools (PLY, COLMAP text, TUM).
+//! `sfpmap export`: a map's points and poses to other tools (PLY, COLMAP text, kapture, TUM).
 
 use anyhow::{bail, Context};
 use serde_json::json;

@@ -667,10 +667,11 @@ fn check_outputs(args: &Args, query_inputs: &[&Path], images: &[PathBuf]) -> any
     super::check_outputs(&outputs, &inputs, args.force)
 }
 
-/// Refuses, for `--format colmap`, a query name its rows cannot hold, by the rule of the
-/// COLMAP exporters ([`text_name_problem`]): rows start with the name and have no escape
-/// syntax, so a control character would corrupt or inject a row. Checked before any work.
-/// TUM rows hold no names (its comments escape them) and JSON escapes them itself.
+/// Refuses, for `--format colmap` and `--format kapture`, a query name their rows cannot
+/// hold, by the rules of the COLMAP exporters ([`text_name_problem`]) and of kapture's tables
+/// (`io::kapture::name_problem`): rows start with the name or split at commas and have no
+/// escape syntax, so a control character or comma would corrupt or inject a row. Checked
+/// before any work. TUM rows hold no names (its comments escape them) and JSON escapes them.
 fn check_pose_names(
     query_list: &Path,
     format: PoseFormat,

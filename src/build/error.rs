@@ -129,7 +129,7 @@ impl fmt::Display for ConvertError {
             ),
             ConvertError::MissingFeatures { features, image } => write!(
                 f,
-                "{}: image {image:?} has no keypoints or descriptors (without --strict it would be skipped)",
+                "{}: image {image:?} has no keypoints or descriptors (it would be skipped, not strict)",
                 crate::escape::path(features)
             ),
             ConvertError::DescriptorDim { features, image, expected, found } => write!(

@@ -42,8 +42,8 @@ impl Aggregate {
     }
 }
 
-/// How [`convert`](super::convert) makes a SIFT map from a model and its database
-/// (`sfpmap convert --colmap`).
+/// How [`convert`](super::convert) makes a map of any local feature from a model and its
+/// database, an hloc features file or a kapture folder's features (`sfpmap convert`).
 #[derive(Debug, Clone)]
 pub struct ConvertOptions {
     /// `database.db` with the model's keypoints and descriptors (SIFT, or a learned feature

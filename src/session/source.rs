@@ -20,15 +20,16 @@ pub enum QuerySource {
     /// [`Session::localize_features`]: super::Session::localize_features
     /// [`Session::localize_frame`]: super::Session::localize_frame
     Given,
-    /// A COLMAP database holding the queries' keypoints and descriptors (SIFT maps), by
-    /// image name.
+    /// A COLMAP database holding the queries' keypoints and descriptors (SIFT, or the
+    /// feature its `type` records), by image name; rows of another feature than the map's
+    /// fail their query.
     #[cfg(feature = "colmap")]
     Database(PathBuf),
     /// An hloc-style features.h5 (`sfpmap extract`'s, or hloc's), by image name; one that
     /// records its model (`sfp.model_name`, `sfp.model_xxh3`) must be the map's.
     #[cfg(feature = "hdf5")]
     FeaturesFile(PathBuf),
-    /// Extracted with an SFP model from the images of `folder`, by name (a name that is an
+    /// Extracted with the map's model (SFP or ALIKED) from the images of `folder`, by name (a name that is an
     /// absolute path or has a `..` component fails its query: [`crate::input::join_inside`];
     /// `None`: images are handed to [`Session::extract`], as decoded from an MCAP log).
     /// `model`: an ONNX file or a built-in model's name; `None`: the built-in model the map

@@ -264,7 +264,7 @@ fn a_malformed_features_file_is_named_with_the_image_and_dataset() {
     let cases = [
         (
             "missing",
-            "image \"img2.jpg\" has no keypoints or descriptors (without --strict it would be skipped)",
+            "image \"img2.jpg\" has no keypoints or descriptors (it would be skipped, not strict)",
         ),
         (
             "dim",
