@@ -45,16 +45,10 @@ pub struct Cli {
     /// Follow HTTP redirects of map and catalog URLs to another scheme, host or port (also
     /// SFPMAP_ALLOW_REDIRECTS=1).
     ///
-    /// The outbound policy, for every request: without this a server may redirect only to
-    /// itself; a redirect never goes from https to http. Link-local addresses (169.254.0.0/16,
-    /// where cloud metadata services answer, and fe80::/10) are never connected to (but for an
-    /// S3 credential service you ask for), loopback and private ones only from a URL you named
-    /// (a redirect: from a URL on one). A catalog
-    /// file on disk names places on public hosts only (SFPMAP_ALLOW_PRIVATE_PLACES=1 allows
-    /// loopback and private ones); one read from a URL, only maps on its own server. s3:// URLs
-    /// need AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_SKIP_SIGNATURE=true (a public
-    /// bucket) or SFPMAP_AWS_INSTANCE_METADATA=1 (the EC2 instance's role): no metadata
-    /// service is asked otherwise.
+    /// Without it a server may redirect only to itself. Either way a redirect never goes from
+    /// https to http, and the rest of the outbound policy holds for its target: no link-local
+    /// address (cloud metadata services), loopback or private ones only from a URL you named.
+    /// The whole policy (catalogs, S3 credentials) is in the guide's "Remote maps" page.
     #[arg(long, global = true)]
     pub allow_redirects: bool,
     #[command(subcommand)]

@@ -78,8 +78,10 @@ pub trait RangeSource: Send + Sync {
     }
 }
 
-/// What a [`RangeSource`] has read: from the origin, and from its cache.
+/// What a [`RangeSource`] has read: from the origin, and from its cache. Non-exhaustive: a
+/// source of its own starts from `SourceStats::default()` and sets the fields it counts.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+#[non_exhaustive]
 pub struct SourceStats {
     /// Requests sent to the origin.
     pub requests: u64,

@@ -32,8 +32,10 @@ use std::sync::{Mutex, OnceLock};
 use crate::input::is_url;
 pub(crate) use policy::NamedBy;
 
-/// How remote maps are read. The default keeps no cache.
+/// How remote maps are read. The default keeps no cache. Non-exhaustive: start from
+/// [`RemoteOptions::default`] or [`RemoteOptions::from_env`] and set fields.
 #[derive(Debug, Clone)]
+#[non_exhaustive]
 pub struct RemoteOptions {
     /// The cache folder, `None` for no cache.
     pub cache_dir: Option<PathBuf>,

@@ -73,10 +73,9 @@ impl RangeSource for Fake {
     /// Reads of the head and batches of sections, as `requests`.
     fn stats(&self) -> SourceStats {
         let heads = *self.heads.lock().unwrap();
-        SourceStats {
-            requests: (heads + *self.batches.lock().unwrap()) as u64,
-            ..SourceStats::default()
-        }
+        let mut stats = SourceStats::default();
+        stats.requests = (heads + *self.batches.lock().unwrap()) as u64;
+        stats
     }
 }
 
