@@ -555,9 +555,7 @@ impl State {
                 &origin[url::Position::BeforeHost..url::Position::AfterPort]
             ));
         }
-        if origin.scheme() == "https" && target.scheme() == "http" {
-            return Err("from https to plain http".into());
-        }
+        downgrade(origin, target)?;
         match literal(target).map(classify) {
             Some(Class::Never(what)) => Err(never(target.host_str().unwrap_or(""), what)),
             Some(Class::Internal(what)) if !self.origin_internal.load(Ordering::Relaxed) => {
@@ -576,9 +574,13 @@ impl State {
             let error = Refused(format!("more than {MAX_REDIRECTS} redirects"));
             return attempt.error(error);
         }
-        let checked = match previous.first() {
-            Some(origin) => self.check_redirect(origin, attempt.url()),
-            None => Ok(()),
+        let checked = match (previous.first(), previous.last()) {
+            (Some(origin), Some(last)) => {
+                // Never down to http from any https hop of the chain, not only the first.
+                downgrade(last, attempt.url())
+                    .and_then(|()| self.check_redirect(origin, attempt.url()))
+            }
+            _ => Ok(()),
         };
         match checked {
             Ok(()) => attempt.follow(),
@@ -587,6 +589,15 @@ impl State {
                 attempt.error(error)
             }
         }
+    }
+}
+
+/// Refuses a redirect from an https URL to a plain http one.
+fn downgrade(from: &Url, to: &Url) -> Result<(), String> {
+    if from.scheme() == "https" && to.scheme() == "http" {
+        Err(format!("from https ({from}) to plain http"))
+    } else {
+        Ok(())
     }
 }
 
@@ -827,6 +838,10 @@ mod tests {
         assert!(public
             .check_redirect(&from, &url("https://cdn.example/m"))
             .is_ok());
+        // Any https hop of a chain (`redirect` checks the last one too), not only the first.
+        let hop = url("https://cdn.example/m");
+        assert!(downgrade(&hop, &url("http://cdn.example/m")).is_err());
+        assert!(downgrade(&url("http://a.example/m"), &hop).is_ok());
     }
 
     #[test]

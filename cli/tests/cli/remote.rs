@@ -276,11 +276,9 @@ fn an_object_replaced_after_its_index_was_read_is_an_error() {
     let d = scene();
     let served = nginx.root.join("m.sfpm");
     std::fs::copy(d.join("map.sfpm"), &served).unwrap();
-    let options = sfpmap::remote::RemoteOptions {
-        cache_dir: None,
-        cache_max_bytes: 0,
-        ..Default::default()
-    };
+    let mut options = sfpmap::remote::RemoteOptions::default();
+    options.cache_dir = None;
+    options.cache_max_bytes = 0;
     let map = sfpmap::remote::open(&nginx.url("m.sfpm"), &options).unwrap();
     // Another map at the same URL (another size, so another ETag).
     std::fs::copy(d.join("l2s.sfpm"), nginx.root.join("tmp.sfpm")).unwrap();
