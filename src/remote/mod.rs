@@ -530,10 +530,12 @@ impl From<object_store::Error> for GetError {
 }
 
 /// What identifies the version of the object a response came from: its ETag (weak ones
-/// too: they still change with the object), or its Last-Modified when it has none.
+/// too: they still change with the object), or its Last-Modified when it has none. ETags
+/// compare weakly (RFC 9110, 8.8.3.2): `W/"x"` and `"x"` are one version, as a server that
+/// marks some responses weak (a compressing proxy) still sends the same object.
 fn version_of(meta: &object_store::ObjectMeta) -> String {
     match &meta.e_tag {
-        Some(tag) => format!("ETag {tag}"),
+        Some(tag) => format!("ETag {}", tag.strip_prefix("W/").unwrap_or(tag)),
         None => format!("Last-Modified {}", meta.last_modified),
     }
 }
@@ -552,4 +554,32 @@ fn describe(e: &(dyn std::error::Error + 'static)) -> String {
         cause = c.source();
     }
     message.replace('\n', " ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::version_of;
+
+    fn meta(e_tag: Option<&str>) -> object_store::ObjectMeta {
+        object_store::ObjectMeta {
+            location: "m.sfpm".into(),
+            last_modified: Default::default(),
+            size: 1,
+            e_tag: e_tag.map(String::from),
+            version: None,
+        }
+    }
+
+    #[test]
+    fn etags_compare_weakly_and_last_modified_stands_in() {
+        assert_eq!(
+            version_of(&meta(Some("W/\"abc\""))),
+            version_of(&meta(Some("\"abc\"")))
+        );
+        assert_ne!(
+            version_of(&meta(Some("\"abc\""))),
+            version_of(&meta(Some("\"abd\"")))
+        );
+        assert!(version_of(&meta(None)).starts_with("Last-Modified "));
+    }
 }
