@@ -58,6 +58,7 @@ pub(crate) fn map_index(keep: &[bool]) -> Vec<u32> {
 impl Geometry {
     /// Image `i`'s camera size in pixels, `[width, height]` (`[0, 0]` for a camera index out
     /// of range, which the builder's checks exclude).
+    #[cfg(feature = "colmap")]
     pub(crate) fn image_size(&self, i: usize) -> [u64; 2] {
         self.image_cameras
             .get(i)
