@@ -173,7 +173,7 @@ pub(crate) fn source_file(
     Ok(SourceFile {
         path: path.display().to_string(),
         bytes,
-        xxh3: format!("{:016x}", hasher.digest()),
+        xxh3: format::hash_hex(hasher.digest()),
     })
 }
 

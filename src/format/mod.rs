@@ -70,7 +70,13 @@ pub(crate) use pq::gather as pq_gather;
 pub(crate) use source::{coalesce, HEAD_READ};
 
 /// XXH3-64 of a file's bytes, as provenance stores it (hex).
-#[cfg(any(feature = "colmap", feature = "onnx"))]
+#[cfg(feature = "onnx")]
 pub(crate) fn file_hash(bytes: &[u8]) -> String {
-    format!("{:016x}", checksum(bytes))
+    hash_hex(checksum(bytes))
+}
+
+/// An XXH3-64 as provenance stores it: 16 hex digits.
+#[cfg(any(feature = "colmap", feature = "onnx"))]
+pub(crate) fn hash_hex(hash: u64) -> String {
+    format!("{hash:016x}")
 }
