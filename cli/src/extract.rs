@@ -39,12 +39,12 @@ pub struct Args {
     #[arg(long, value_parser = super::args::score)]
     pub threshold: Option<f32>,
     /// NMS radius in cells, 0 to 64 (0: no suppression; default: the model's).
-    #[arg(long, value_parser = clap::value_parser!(u32).range(0..=64))]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(0..=i64::from(sfpmap::extract::contract::MAX_NMS_RADIUS)))]
     pub nms_radius: Option<u32>,
     /// Keypoints per level, finest first: one number for all levels, or one per level (each
     /// 1 to 1000000).
     #[arg(long, value_delimiter = ',',
-          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=1_000_000))]
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=sfpmap::extract::contract::MAX_KEYPOINTS as u64))]
     pub max_keypoints: Option<Vec<usize>>,
     /// The level whose features fill each group's hloc datasets (default: 2, else the middle one).
     #[arg(long)]

@@ -7,6 +7,13 @@ use std::collections::BTreeMap;
 /// The only contract this extractor implements.
 pub const CONTRACT: &str = "sfp-extractor/1";
 
+/// The largest NMS radius, in cells, a model's default or `--nms-radius` may ask for: the
+/// suppression (and DKD's window) costs its square per keypoint.
+pub const MAX_NMS_RADIUS: u32 = 64;
+
+/// The most keypoints a level may keep, by a model's default or `--max-keypoints`.
+pub const MAX_KEYPOINTS: usize = 1_000_000;
+
 /// What a model promises, parsed and checked for consistency.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Contract {
@@ -190,6 +197,23 @@ impl Contract {
             .trim()
             .parse()
             .map_err(|_| bad("sfp.default_nms_radius is not a number".into()))?;
+        // A model file is an input like any other: its defaults are held to the ranges a
+        // user's flags are (a radius of 10^6 cells would run for hours).
+        if default_nms_radius > MAX_NMS_RADIUS {
+            return Err(bad(format!(
+                "sfp.default_nms_radius = {default_nms_radius} is over {MAX_NMS_RADIUS}"
+            )));
+        }
+        if let Some(&n) = max_kp.iter().find(|&&n| !(1..=MAX_KEYPOINTS).contains(&n)) {
+            return Err(bad(format!(
+                "sfp.default_max_keypoints has {n}: 1 to {MAX_KEYPOINTS} a level"
+            )));
+        }
+        if let Err(expected) = crate::ranges::SCORE.check(default_threshold.into()) {
+            return Err(bad(format!(
+                "sfp.default_threshold = {default_threshold} is not {expected}"
+            )));
+        }
         let detector = match get("sfp.detector").as_deref().map(str::trim) {
             None | Some("nms") => Detector::Nms,
             Some("dkd") => Detector::Dkd,
@@ -332,6 +356,22 @@ mod tests {
         let mut m = sfp_v1();
         m.insert("sfp.detector".into(), "sift".into());
         assert!(parse(&m).unwrap_err().to_string().contains("sfp.detector"));
+        // Defaults a user's model file gives are held to the flags' ranges.
+        for (key, value, words) in [
+            ("sfp.default_nms_radius", "1000000", "is over 64"),
+            ("sfp.default_max_keypoints", "1000,1000,0,250", "has 0"),
+            (
+                "sfp.default_max_keypoints",
+                "1000,1000,2000000,250",
+                "has 2000000",
+            ),
+            ("sfp.default_threshold", "NaN", "is not a score in [0, 1]"),
+        ] {
+            let mut m = sfp_v1();
+            m.insert(key.into(), value.into());
+            let e = parse(&m).unwrap_err().to_string();
+            assert!(e.contains(key) && e.contains(words), "{key}: {e}");
+        }
     }
 
     #[test]
