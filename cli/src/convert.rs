@@ -303,9 +303,9 @@ fn check_output(args: &Args) -> anyhow::Result<()> {
     inputs.extend(args.model.as_deref());
     // A folder input (the model's images, a kapture folder with files its tables do not list)
     // gets nothing new inside it.
-    let mut folders: Vec<&std::path::Path> = args.kapture.iter().map(|p| p.as_path()).collect();
+    let folders: Vec<&std::path::Path> = args.kapture.iter().map(|p| p.as_path()).collect();
     #[cfg(feature = "onnx")]
-    folders.extend(args.images.as_deref());
+    let folders = [folders, args.images.iter().map(|p| p.as_path()).collect()].concat();
     sfpmap::output::check_outside(&args.output, &folders)?;
     super::check_outputs(&[&args.output], &inputs, args.force)
 }

@@ -57,7 +57,7 @@ pub use half::f16;
 
 // The rest of the crate's view of the format's internals (the fuzzing hooks add the raw
 // layout, `sfpmap::fuzzing`).
-#[cfg(any(feature = "colmap", feature = "onnx", feature = "remote"))]
+#[cfg(any(feature = "onnx", feature = "remote"))]
 pub(crate) use layout::checksum;
 #[cfg(feature = "colmap-model")]
 pub(crate) use mmap::map_file;
