@@ -110,6 +110,10 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
             let s = sfpmap::io::kapture::export_kapture(&map, dir, &[&args.map], args.force)
                 .map_err(|e| match e {
                     sfpmap::io::kapture::KaptureError::Map(e) => super::naming(&args.map)(e),
+                    // What of the map kapture cannot hold: named with the map it is in.
+                    e @ sfpmap::io::kapture::KaptureError::Unwritable { .. } => {
+                        anyhow::anyhow!("{}: {e}", sfpmap::escape::path(&args.map))
+                    }
                     e => anyhow::Error::new(e),
                 })?;
             report.insert(

@@ -476,6 +476,7 @@ fn names_kapture_cannot_hold_are_refused_before_anything_is_written() {
         let map = tmp.path().join("m.sfpm");
         ok(&os!["convert", "--colmap", &model, "-o", &map, "--force"]);
         let e = err(&os!["export", &map, "--ply", &ply, "--kapture", &kapture]);
+        assert!(e.starts_with(&format!("error: {}: ", map.display())), "{e}");
         assert!(e.contains(words), "{e}");
         assert_eq!(e.lines().count(), 1, "{e}");
         assert!(!ply.exists(), "the PLY was written before the refusal");
