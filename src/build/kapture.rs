@@ -100,9 +100,9 @@ impl FeatureSource for KaptureSource<'_> {
 }
 
 /// Converts the kapture folder `dir` into a map at `output`: its model's geometry and, where
-/// it has them, its keypoints and descriptors (`options.database` and `options.features` are
-/// not read; `options.feature_name` names the feature). Records without a pose and
-/// observations of unregistered images are left out, with a warning through `reporter`.
+/// it has them, its keypoints and descriptors (`options.feature_name` names the feature; a
+/// `database` or `features` file is refused: the folder holds its own). Records without a pose
+/// and observations of unregistered images are left out, with a warning through `reporter`.
 pub fn convert_kapture(
     dir: &Path,
     kapture_options: &KaptureOptions,
@@ -110,6 +110,13 @@ pub fn convert_kapture(
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<ConvertSummary, ConvertError> {
+    if options.database.is_some() || options.features.is_some() {
+        return Err(ConvertError::Options(format!(
+            "{}: a kapture folder holds its own keypoints and descriptors: a database or \
+             features file is not read with it",
+            dir.display()
+        )));
+    }
     reporter.start("reading kapture", None);
     let kapture = read_kapture(dir, kapture_options)?;
     reporter.finish();

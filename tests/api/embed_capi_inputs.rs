@@ -216,6 +216,22 @@ fn maps_from_a_typed_database_and_a_kapture_folder_localize_arrays_through_the_c
     .unwrap();
     assert_eq!(summary.points_without_descriptors, 0);
     assert_eq!(descriptor_names(&from_kapture), ["rootsift"]);
+    // The folder holds its own features: a database beside it is refused, not ignored.
+    let with_db = ConvertOptions {
+        database: Some(scene.features_map.clone()),
+        ..ConvertOptions::default()
+    };
+    let other = tmp.path().join("other.sfpm");
+    let e = convert_kapture(
+        &kapture,
+        &KaptureOptions::default(),
+        &with_db,
+        &other,
+        &Silent,
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("holds its own keypoints"), "{e}");
+    assert!(!other.exists());
     localizes_every_query(&from_kapture, &scene.queries, 0.05, own);
 }
 
