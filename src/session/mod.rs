@@ -230,8 +230,8 @@ pub(crate) struct Fit {
     /// Whether the map's descriptors came from a features source, not an extractor.
     pub(crate) from_feature_source: bool,
     pub(crate) model_xxh3: Option<String>,
-    /// The map's levels as (level id, full dimensions): what another model than the map's
-    /// must make to be matched against it.
+    /// The map's levels with points as (level id, full dimensions): what a model must make
+    /// to be matched against it.
     #[cfg(feature = "onnx")]
     pub(crate) levels: Vec<(u16, u32)>,
 }
@@ -253,11 +253,16 @@ impl Fit {
             named: first.is_some_and(|l| l.names_feature()),
             from_feature_source: first.is_some_and(|l| l.from_feature_source()),
             model_xxh3,
+            // Levels without points are skipped by the localizer: nothing to match there.
             #[cfg(feature = "onnx")]
             levels: map
                 .metadata()
                 .levels
                 .iter()
+                .filter(|l| {
+                    map.find(crate::format::SectionKind::LevelPoints, Some(l.level))
+                        .is_some_and(|s| s.rows() > 0)
+                })
                 .map(|l| (l.level, l.dim_full))
                 .collect(),
         }
@@ -546,6 +551,14 @@ impl Session {
             self.fit.check_model(model, origin)?;
         }
         if let Some(global) = &features.global {
+            // A value that is not finite is named first, as the localizer names it.
+            crate::localize::check_global_finite(Some(global)).map_err(|e| {
+                SessionError::Query {
+                    map: self.fit.map_name.clone(),
+                    query: name.to_string(),
+                    source: LocalizeError::NonFinite(e),
+                }
+            })?;
             let map_dim = map_global_dim(self.map());
             if let Some(why) = global_mismatch(global.len(), map_dim, &self.fit.map_name) {
                 return Err(SessionError::Mismatch(format!(
