@@ -97,8 +97,16 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
     let mut lines = Vec::new();
     let mut colmap = None;
 
-    // kapture first: it refuses what it cannot write (names, existing files) before it
-    // writes anything, so a refusal leaves none of the other outputs behind.
+    // What each output can hold (names, camera models, poses) is checked before any is
+    // written, and kapture's existing files go first: a refusal leaves no output behind.
+    if args.colmap.is_some() || args.images_txt.is_some() {
+        sfpmap::io::colmap_export::check_images_exportable(&map)
+            .map_err(super::naming(&args.map))?;
+    }
+    #[cfg(feature = "colmap")]
+    if args.kapture.is_some() {
+        sfpmap::io::kapture::check_exportable(&map).map_err(|e| kapture_error(&args.map, e))?;
+    }
     if let Some(dir) = &args.kapture {
         #[cfg(not(feature = "colmap"))]
         bail!(
@@ -108,14 +116,7 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         #[cfg(feature = "colmap")]
         {
             let s = sfpmap::io::kapture::export_kapture(&map, dir, &[&args.map], args.force)
-                .map_err(|e| match e {
-                    sfpmap::io::kapture::KaptureError::Map(e) => super::naming(&args.map)(e),
-                    // What of the map kapture cannot hold: named with the map it is in.
-                    e @ sfpmap::io::kapture::KaptureError::Unwritable { .. } => {
-                        anyhow::anyhow!("{}: {e}", sfpmap::escape::path(&args.map))
-                    }
-                    e => anyhow::Error::new(e),
-                })?;
+                .map_err(|e| kapture_error(&args.map, e))?;
             report.insert(
                 "kapture".into(),
                 json!({"path": dir.display().to_string(), "cameras": s.cameras, "images": s.images, "points": s.points, "observations": s.observations}),
@@ -203,4 +204,18 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         lines,
         colmap,
     })
+}
+
+/// A kapture export's error, named with the map where it is about the map.
+#[cfg(feature = "colmap")]
+fn kapture_error(map: &Path, e: sfpmap::io::kapture::KaptureError) -> anyhow::Error {
+    use sfpmap::io::kapture::KaptureError;
+    match e {
+        KaptureError::Map(e) => super::naming(map)(e),
+        // What of the map kapture cannot hold: named with the map it is in.
+        e @ KaptureError::Unwritable { .. } => {
+            anyhow::anyhow!("{}: {e}", sfpmap::escape::path(map))
+        }
+        e => anyhow::Error::new(e),
+    }
 }

@@ -27,6 +27,16 @@ pub struct ExportSummary {
     pub observations: usize,
 }
 
+/// Whether `map`'s images can be written as COLMAP text: names `images.txt` can hold and
+/// poses that are rotations (what [`export_colmap`] and `--images-txt` check before writing);
+/// a caller writing other outputs too asks first, so a refusal leaves none of them behind.
+pub fn check_images_exportable(map: &Map<'_>) -> Result<(), Error> {
+    if let Some(images) = map.images()? {
+        ImageLines::new(map.metadata().cameras.as_slice(), &images)?;
+    }
+    Ok(())
+}
+
 /// Writes the model into `dir` (created if needed), each file through
 /// [`crate::output::write_atomic`] (temp file, fsync, rename), streamed: lines go out in
 /// chunks, so a million-point map never has its text (or a model) in memory whole. Needs

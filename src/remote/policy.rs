@@ -30,9 +30,10 @@
 //!    object_store will use, in its order: a variable it passes over does not count.
 //!
 //! Behind an HTTP proxy (`HTTP_PROXY`), the proxy resolves host names: rules 1, 2 and 3 hold
-//! for literal addresses and redirects, the proxy decides what a name reaches. The proxy
-//! itself is the user's configuration: its loopback or private address is reached (never a
-//! link-local one), without counting as the origin's.
+//! for literal addresses and redirects, the proxy decides what a name reaches. The proxy's own
+//! host name is resolved through rules 2 and 3 like any other (the resolver cannot tell the
+//! proxy's connection from a request's): a proxy on a private address is named by that
+//! address (`HTTP_PROXY=http://10.0.0.5:3128`), which is connected to without a lookup.
 
 use super::RemoteOptions;
 use object_store::client::{HttpClient, HttpConnector};
@@ -494,10 +495,6 @@ struct State {
     /// The URL named was on a loopback or private address: redirects may go to one.
     origin_internal: AtomicBool,
     allow_redirects: bool,
-    /// The proxies the environment names (`HTTPS_PROXY`, `HTTP_PROXY`, `ALL_PROXY`): the
-    /// user's configuration, so their private addresses are reached (a company's proxy is on
-    /// one) without making the origin internal.
-    proxy_hosts: Vec<String>,
 }
 
 /// A refusal by the policy, as the error a client's request fails with.
@@ -515,12 +512,13 @@ impl std::error::Error for Refused {}
 impl State {
     /// Rules 2 and 3 for the addresses `host` resolved to.
     fn check_resolved(&self, host: &str, addrs: &[IpAddr]) -> Result<(), String> {
-        let named = |hosts: &[String]| hosts.iter().any(|t| t.eq_ignore_ascii_case(host));
-        let (trusted, proxy) = (named(&self.trusted_hosts), named(&self.proxy_hosts));
+        let trusted = self
+            .trusted_hosts
+            .iter()
+            .any(|t| t.eq_ignore_ascii_case(host));
         for &ip in addrs {
             match classify(ip) {
                 Class::Never(what) => return Err(never(&format!("{host} ({ip})"), what)),
-                Class::Internal(_) if proxy => {}
                 Class::Internal(_) if trusted => {
                     self.origin_internal.store(true, Ordering::Relaxed)
                 }
@@ -648,30 +646,9 @@ impl PolicyConnector {
                 trusted_hosts,
                 origin_internal: AtomicBool::new(origin_internal),
                 allow_redirects: options.allow_redirects,
-                proxy_hosts: proxy_hosts(|name| std::env::var(name).ok()),
             }),
         }
     }
-}
-
-/// The hosts of the proxies `var` gives (reqwest's variables, upper and lower case); a value
-/// without a scheme is a host (and port), as reqwest reads it.
-fn proxy_hosts(var: impl Fn(&str) -> Option<String>) -> Vec<String> {
-    let names = ["HTTPS_PROXY", "HTTP_PROXY", "ALL_PROXY"];
-    names
-        .iter()
-        .flat_map(|n| [n.to_string(), n.to_ascii_lowercase()])
-        .filter_map(|n| var(&n))
-        .filter_map(|v| {
-            let v = v.trim();
-            let url = if v.contains("://") {
-                Url::parse(v)
-            } else {
-                Url::parse(&format!("http://{v}"))
-            };
-            Some(url.ok()?.host_str()?.trim_matches(['[', ']']).to_string())
-        })
-        .collect()
 }
 
 impl PolicyConnector {
@@ -732,27 +709,7 @@ mod tests {
             trusted_hosts: trusted.iter().map(|s| s.to_string()).collect(),
             origin_internal: AtomicBool::new(origin_internal),
             allow_redirects,
-            proxy_hosts: vec!["proxy.corp".into()],
         }
-    }
-
-    #[test]
-    fn the_environments_proxies_are_reached_without_making_the_origin_internal() {
-        let env = |n: &str| match n {
-            "HTTPS_PROXY" => Some("http://proxy.corp:3128".to_string()),
-            "http_proxy" => Some("10.1.2.3:8080".to_string()),
-            "ALL_PROXY" => Some("socks5://[fd00::1]:1080".to_string()),
-            _ => None,
-        };
-        assert_eq!(proxy_hosts(env), ["proxy.corp", "10.1.2.3", "fd00::1"]);
-        let s = state(&[], false, true);
-        assert!(s.check_resolved("proxy.corp", &[ip("10.0.0.3")]).is_ok());
-        assert!(!s.origin_internal.load(Ordering::Relaxed));
-        assert!(s.check_resolved("cdn.corp", &[ip("10.0.0.4")]).is_err());
-        // Never link-local, a proxy's name or not.
-        assert!(s
-            .check_resolved("proxy.corp", &[ip("169.254.169.254")])
-            .is_err());
     }
 
     #[test]

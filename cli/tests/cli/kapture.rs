@@ -482,6 +482,36 @@ fn names_kapture_cannot_hold_are_refused_before_anything_is_written() {
         assert!(!ply.exists(), "the PLY was written before the refusal");
         assert!(!kapture.exists(), "the kapture folder was made: {e}");
     }
+    // A name kapture holds but COLMAP's images.txt does not: the kapture folder is not
+    // written either when --colmap refuses.
+    let spaced = tmp.path().join("spaced");
+    small_kapture(&spaced);
+    let h = "# kapture format: 1.1\n";
+    std::fs::write(
+        spaced.join("sensors/records_camera.txt"),
+        format!("{h}0, cam0, IMG 01.jpg\n"),
+    )
+    .unwrap();
+    std::fs::write(
+        spaced.join("reconstruction/observations.txt"),
+        format!("{h}0, kp, IMG 01.jpg, 0\n"),
+    )
+    .unwrap();
+    let kp = spaced.join("reconstruction/keypoints/kp");
+    std::fs::rename(kp.join("a.jpg.kpt"), kp.join("IMG 01.jpg.kpt")).unwrap();
+    let map = tmp.path().join("m.sfpm");
+    ok(&os!["convert", "--kapture", &spaced, "-o", &map, "--force"]);
+    let colmap = tmp.path().join("c");
+    let e = err(&os![
+        "export",
+        &map,
+        "--kapture",
+        &kapture,
+        "--colmap",
+        &colmap
+    ]);
+    assert!(e.contains("which a COLMAP images.txt cannot hold"), "{e}");
+    assert!(!kapture.exists() && !colmap.exists(), "{e}");
 
     // A query list naming "a,b.jpg": refused for kapture output before any query runs.
     let model = tmp.path().join("model");

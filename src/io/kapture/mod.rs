@@ -38,7 +38,7 @@ pub use read::{
 };
 #[cfg(feature = "localize")]
 pub use write::write_query_trajectories;
-pub use write::{export_kapture, KaptureExportSummary, EXPORT_KEYPOINTS_TYPE};
+pub use write::{check_exportable, export_kapture, KaptureExportSummary, EXPORT_KEYPOINTS_TYPE};
 
 /// The first line of every kapture text file this module writes (format 1.1).
 pub const KAPTURE_HEADER: &str = "# kapture format: 1.1";

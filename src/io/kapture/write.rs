@@ -127,15 +127,53 @@ fn table(header: &str) -> String {
     format!("{KAPTURE_HEADER}\n# {header}\n")
 }
 
+/// Whether `map` can be written as kapture at all: images to record, camera models kapture
+/// knows, image names its tables and `.kpt` paths can hold, no two images of one name, poses
+/// that are rotations. What [`export_kapture`] checks before it writes anything; a caller
+/// writing other outputs too (`sfpmap export --ply ... --kapture ...`) asks first, so a
+/// refusal leaves none of them behind.
+pub fn check_exportable(map: &Map<'_>) -> Result<(), KaptureError> {
+    let meta = map.metadata();
+    let images = map.images()?.ok_or_else(|| KaptureError::Unwritable {
+        what: "the map".into(),
+        reason: "has no images; kapture records and trajectories need them".into(),
+    })?;
+    let mut scratch = String::new();
+    for (i, c) in meta.cameras.iter().enumerate() {
+        let id = sensor_id(&meta.cameras, i);
+        camera_row(&mut scratch, &id, &c.model, [c.width, c.height], &c.params)
+            .map_err(unwritable(format!("camera {}", &id[4..])))?;
+    }
+    // kapture keys an image's files by its path: two images of one name would share a .kpt
+    // file (the second written over the first) and its records would not read back.
+    let mut seen: std::collections::HashMap<&str, usize> = std::collections::HashMap::new();
+    for i in 0..images.len() {
+        let id = images.ids.as_ref().map_or(i as u32 + 1, |ids| ids[i]) as usize;
+        let name = images.name(i)?;
+        check_name(|| format!("image {id}"), name)?;
+        if let Some(first) = seen.insert(name, id) {
+            return Err(unwritable(format!("image {id}"))(format!(
+                "its name {} is image {first}'s too, and a kapture folder keys images by name",
+                crate::escape::quoted_name(name)
+            )));
+        }
+        Pose::from_colmap_array(images.poses[i])
+            .map_err(|e| unwritable(format!("image {id}"))(format!("pose: {e}")))?;
+    }
+    Ok(())
+}
+
 /// Writes `map` as a kapture folder in `dir` (see the [module docs](self) for what is in
-/// it). Every output is checked first against `inputs` (never written over) and, unless
-/// `force`, refused if it exists; then each file is written through the atomic writer.
+/// it). The map is checked first ([`check_exportable`]), every output against `inputs`
+/// (never written over) and, unless `force`, refused if it exists; then each file is written
+/// through the atomic writer.
 pub fn export_kapture(
     map: &Map<'_>,
     dir: &Path,
     inputs: &[&Path],
     force: bool,
 ) -> Result<KaptureExportSummary, KaptureError> {
+    check_exportable(map)?;
     let meta = map.metadata();
     let images = map.images()?.ok_or_else(|| KaptureError::Unwritable {
         what: "the map".into(),
@@ -154,19 +192,10 @@ pub fn export_kapture(
     let mut records = table("timestamp, device_id, image_path");
     let mut trajectories = table("timestamp, device_id, qw, qx, qy, qz, tx, ty, tz");
     let mut names = Vec::with_capacity(images.len());
-    // kapture keys an image's files by its path: two images of one name would share a .kpt
-    // file (the second written over the first) and its records would not read back.
-    let mut seen: std::collections::HashMap<&str, usize> = std::collections::HashMap::new();
+    // Names, models and poses were checked above (`check_exportable`).
     for i in 0..images.len() {
         let id = images.ids.as_ref().map_or(i as u32 + 1, |ids| ids[i]) as usize;
         let name = images.name(i)?;
-        check_name(|| format!("image {id}"), name)?;
-        if let Some(first) = seen.insert(name, id) {
-            return Err(unwritable(format!("image {id}"))(format!(
-                "its name {} is image {first}'s too, and a kapture folder keys images by name",
-                crate::escape::quoted_name(name)
-            )));
-        }
         let sensor = sensor_id(&meta.cameras, images.cameras[i] as usize);
         let pose = Pose::from_colmap_array(images.poses[i])
             .map_err(|e| unwritable(format!("image {id}"))(format!("pose: {e}")))?;
