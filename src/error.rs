@@ -280,7 +280,8 @@ fn localize_kind(e: &crate::localize::LocalizeError) -> ErrorKind {
         | E::NoFeaturesForLevel { .. }
         | E::FeatureShape { .. }
         | E::BadLevel { .. }
-        | E::NoUsableLevel { .. } => ErrorKind::Localize,
+        | E::NoUsableLevel { .. }
+        | E::GlobalDescriptor(_) => ErrorKind::Localize,
     }
 }
 

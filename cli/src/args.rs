@@ -37,7 +37,8 @@ pub fn score(text: &str) -> Result<f32, String> {
 
 /// A world point `x,y,z` (`localize --prior`): three [`ranges::COORDINATE`]s.
 pub fn point(text: &str) -> Result<[f64; 3], String> {
-    let expected = || format!("expected x,y,z: three of {}", ranges::COORDINATE.expected);
+    // Three of `ranges::COORDINATE`.
+    let expected = || "expected x,y,z: three finite coordinates".to_owned();
     let coordinate = |c: &str| number(c, ranges::COORDINATE).map_err(|_| expected());
     match text.split(',').collect::<Vec<_>>()[..] {
         [x, y, z] => Ok([coordinate(x)?, coordinate(y)?, coordinate(z)?]),

@@ -265,6 +265,37 @@ pub struct DetectOptions {
     pub global: GlobalSize,
 }
 
+impl DetectOptions {
+    /// Why these options cannot run, if they cannot: a threshold that is not a score
+    /// ([`crate::ranges::SCORE`]), an NMS radius over [`contract::MAX_NMS_RADIUS`] cells, a
+    /// keypoint cap outside 1 to [`contract::MAX_KEYPOINTS`]: the ranges the CLI's flags and a
+    /// model's defaults are held to, for callers that build options themselves (Python).
+    pub fn check(&self) -> Result<(), String> {
+        if let Some(t) = self.threshold {
+            crate::ranges::SCORE
+                .check(t.into())
+                .map_err(|expected| format!("threshold {t}: {expected}"))?;
+        }
+        if let Some(r) = self.nms_radius.filter(|&r| r > contract::MAX_NMS_RADIUS) {
+            return Err(format!(
+                "nms_radius {r}: 0 to {} cells",
+                contract::MAX_NMS_RADIUS
+            ));
+        }
+        let caps = self.max_keypoints.as_deref().unwrap_or_default();
+        if let Some(n) = caps
+            .iter()
+            .find(|&&n| !(1..=contract::MAX_KEYPOINTS).contains(&n))
+        {
+            return Err(format!(
+                "max_keypoints {n}: 1 to {} a level",
+                contract::MAX_KEYPOINTS
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// The first level (index) whose keypoints are moved to the strongest cell of the next finer
 /// level's score map within half a cell (`spec/extractor.md`, "Coarse-to-fine refinement").
 /// On the held-out viewpoint pairs of `python/eval_homography.py` (sfp-v1) it raises level

@@ -390,6 +390,9 @@ pub enum LocalizeError {
         /// Every selected level, and why it was skipped.
         skipped: Vec<SkippedLevel>,
     },
+    /// A query's global descriptor cannot rank the map's images (another size than the map's
+    /// global descriptors, or the map stores none): `session::global_mismatch`'s words.
+    GlobalDescriptor(String),
 }
 
 /// A selected level the localizer does not match, and why (no points, no descriptor
@@ -440,6 +443,7 @@ impl std::fmt::Display for LocalizeError {
             ),
             LocalizeError::BadLevel { level, message } => write!(f, "level {level}: {message}"),
             LocalizeError::NonFinite(e) => e.fmt(f),
+            LocalizeError::GlobalDescriptor(why) => write!(f, "global descriptor: {why}"),
             LocalizeError::NoUsableLevel { skipped } => write!(
                 f,
                 "no selected level can be matched ({})",

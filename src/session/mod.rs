@@ -334,8 +334,7 @@ pub(crate) fn global_mismatch(
             "{len} values, but the map {map_name} stores global descriptors of {d}"
         )),
         None => Some(format!(
-            "{len} values, but the map {map_name} stores no global descriptors (it ranks its \
-             images by VLAD)"
+            "{len} values, but the map {map_name} stores no global descriptors"
         )),
     }
 }
@@ -559,12 +558,23 @@ impl Session {
                     source: LocalizeError::NonFinite(e),
                 }
             })?;
+            // Only where retrieval would rank by it (`--retrieval vlad` or `off` never does).
+            let ranks = self.prepared.with_dependent(|_, l| {
+                matches!(
+                    l.options().retrieval,
+                    crate::localize::RetrievalMethod::Auto
+                        | crate::localize::RetrievalMethod::Global
+                )
+            });
             let map_dim = map_global_dim(self.map());
-            if let Some(why) = global_mismatch(global.len(), map_dim, &self.fit.map_name) {
-                return Err(SessionError::Mismatch(format!(
-                    "{}: global: {why}",
-                    origin()
-                )));
+            if let Some(why) =
+                global_mismatch(global.len(), map_dim, &self.fit.map_name).filter(|_| ranks)
+            {
+                return Err(SessionError::Query {
+                    map: self.fit.map_name.clone(),
+                    query: name.to_string(),
+                    source: LocalizeError::GlobalDescriptor(why),
+                });
             }
         }
         Ok(())
@@ -820,6 +830,7 @@ impl SessionError {
                 LocalizeError::DescriptorMismatch { .. }
                     | LocalizeError::NoFeaturesForLevel { .. }
                     | LocalizeError::FeatureShape { .. }
+                    | LocalizeError::GlobalDescriptor(_)
                     | LocalizeError::NonFinite(_)
             )
             .then(|| source.to_string()),

@@ -376,7 +376,7 @@ fn a_query_features_file_of_another_feature_is_refused_naming_both() {
         failed.outcome,
         Err(sfpmap::localize::QueryFailure::NoFeatures(format!(
             "{}: img1.jpg/global_descriptor: 8 values, but the map m.sfpm stores no global \
-             descriptors (it ranks its images by VLAD)",
+             descriptors",
             global.display()
         )))
     );
@@ -393,9 +393,19 @@ fn a_query_features_file_of_another_feature_is_refused_naming_both() {
         .unwrap_err();
     assert_eq!(
         e.to_string(),
-        "m.sfpm: query \"img1.jpg\": global: 8 values, but the map m.sfpm stores no global \
-         descriptors (it ranks its images by VLAD)"
+        "m.sfpm: query \"img1.jpg\": global descriptor: 8 values, but the map m.sfpm stores no global \
+         descriptors"
     );
+    // Where retrieval never ranks by it, it is not refused.
+    let vlad = Session::builder(map.clone(), "m.sfpm")
+        .options(sfpmap::localize::LocalizeOptions {
+            retrieval: sfpmap::localize::RetrievalMethod::Vlad,
+            ..Default::default()
+        })
+        .build(&Silent)
+        .unwrap();
+    vlad.localize_features(&features, &camera, "img1.jpg")
+        .unwrap();
 }
 
 /// Writes a COLMAP database of `IMAGES` images with `POINTS + 1` keypoints each, as pycolmap

@@ -151,6 +151,8 @@ impl Extractor {
                     .map_err(|e| InputError::new_err(format!("global_max_side {e}")))?,
             },
         };
+        // The ranges the CLI's flags are held to (a radius of 10^6 cells would run for hours).
+        options.check().map_err(InputError::new_err)?;
         let (f, query) = py
             .detach(|| {
                 let mut extractor = self.inner.lock().unwrap_or_else(|p| p.into_inner());

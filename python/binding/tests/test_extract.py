@@ -126,6 +126,15 @@ def test_hostile_inputs_raise(tmp_path, extractor):
         sfpmap.QueryDatabase(junk)
     with pytest.raises(sfpmap.InputError):
         sfpmap.read_queries(junk)
+    # The CLI's ranges: a radius of 10^6 cells would run for hours.
+    image = np.zeros((64, 64), np.uint8)
+    for kwargs, words in [
+        ({"nms_radius": 10**6}, "nms_radius 1000000: 0 to 64 cells"),
+        ({"threshold": float("nan")}, "threshold NaN: a score in [0, 1]"),
+        ({"max_keypoints": [0]}, "max_keypoints 0: 1 to 1000000 a level"),
+    ]:
+        with pytest.raises(sfpmap.InputError, match=re.escape(words)):
+            extractor.extract(image, **kwargs)
 
 
 def test_hloc_features_h5_written_by_h5py(tmp_path):
