@@ -127,6 +127,14 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         .map(|(_, p)| p.as_path())
         .chain(args.model.as_deref())
         .collect();
+    // A folder of images gets nothing new inside it (its next walk would find the output).
+    let folders: Vec<&Path> = args
+        .inputs
+        .iter()
+        .filter(|p| p.is_dir())
+        .map(PathBuf::as_path)
+        .collect();
+    sfpmap::output::check_outside(&args.output, &folders)?;
     super::check_outputs(&[&args.output], &inputs, args.force)?;
     let bars = super::Bars::new(quiet, args.json);
     let threads = super::cap_threads(args.threads as usize, &bars);

@@ -664,6 +664,11 @@ fn check_outputs(args: &Args, query_inputs: &[&Path], images: &[PathBuf]) -> any
     inputs.extend(args.global_features.as_deref());
     inputs.extend(args.model.as_deref());
     inputs.extend(images.iter().map(|p| p.as_path()));
+    // Nothing new among the query images either.
+    let folders: Vec<&Path> = args.images.iter().map(PathBuf::as_path).collect();
+    for out in &outputs {
+        sfpmap::output::check_outside(out, &folders)?;
+    }
     super::check_outputs(&outputs, &inputs, args.force)
 }
 

@@ -309,7 +309,7 @@ fn convert_never_writes_over_a_model_file_or_the_database() {
         "lies inside the input folder",
     );
     assert_eq!(std::fs::read(&image).unwrap(), b"not really a jpeg");
-    // Nor is anything new written among the images.
+    // Nor is anything new written among the images, by convert, extract or localize.
     let new = images.join("new.sfpm");
     refused(
         &convert_images_to(&new),
@@ -317,6 +317,29 @@ fn convert_never_writes_over_a_model_file_or_the_database() {
         "lies inside the input folder",
     );
     assert!(!new.exists());
+    let h5 = images.join("features.h5");
+    refused(
+        &sfpmap(&["extract", s(&images), "-o", s(&h5)]),
+        &images,
+        "lies inside the input folder",
+    );
+    assert!(!h5.exists());
+    let list = dir.path().join("queries.txt");
+    std::fs::write(&list, "a.jpg SIMPLE_PINHOLE 640 480 500 320 240\n").unwrap();
+    let poses = images.join("poses.txt");
+    let localize = [
+        "localize",
+        "--map",
+        s(&map),
+        "--query-list",
+        s(&list),
+        "--images",
+        s(&images),
+        "-o",
+        s(&poses),
+    ];
+    refused(&sfpmap(&localize), &images, "lies inside the input folder");
+    assert!(!poses.exists());
     // Outside the folder, through `..` in a model image's name: refused before anything is
     // read or written, naming the image (issue 32: names a file gives stay inside the folder
     // the user named; the same-file rule per image stays behind it).
