@@ -117,18 +117,10 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         {
             let s = sfpmap::io::kapture::export_kapture(&map, dir, &[&args.map], args.force)
                 .map_err(|e| kapture_error(&args.map, e))?;
-            report.insert(
-                "kapture".into(),
-                json!({"path": dir.display().to_string(), "cameras": s.cameras, "images": s.images, "points": s.points, "observations": s.observations}),
-            );
-            lines.push(format!(
-                "{}: kapture with {} cameras, {} images, {} points, {} observations",
-                sfpmap::escape::path(dir),
-                s.cameras,
-                s.images,
-                s.points,
-                s.observations
-            ));
+            let counts = [s.cameras, s.images, s.points, s.observations];
+            let (entry, line) = model_written(dir, "kapture with ", counts);
+            report.insert("kapture".into(), entry);
+            lines.push(line);
         }
     }
     if let Some(path) = &args.ply {
@@ -158,18 +150,10 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
     }
     if let Some(dir) = &args.colmap {
         let s = export_colmap(&map, dir).map_err(super::naming(&args.map))?;
-        report.insert(
-            "colmap".into(),
-            json!({"path": dir.display().to_string(), "cameras": s.cameras, "images": s.images, "points": s.points, "observations": s.observations}),
-        );
-        lines.push(format!(
-            "{}: {} cameras, {} images, {} points, {} observations",
-            sfpmap::escape::path(dir),
-            s.cameras,
-            s.images,
-            s.points,
-            s.observations
-        ));
+        let counts = [s.cameras, s.images, s.points, s.observations];
+        let (entry, line) = model_written(dir, "", counts);
+        report.insert("colmap".into(), entry);
+        lines.push(line);
         colmap = Some(s);
     }
     for (path, text, key) in [
@@ -218,4 +202,19 @@ fn kapture_error(map: &Path, e: sfpmap::io::kapture::KaptureError) -> anyhow::Er
         }
         e => anyhow::Error::new(e),
     }
+}
+
+/// The `--json` entry and the line of a model written to `dir` (COLMAP text or kapture):
+/// its cameras, images, points and observations; `what` leads the counts in the line.
+fn model_written(
+    dir: &Path,
+    what: &str,
+    [cameras, images, points, observations]: [usize; 4],
+) -> (serde_json::Value, String) {
+    let entry = json!({"path": dir.display().to_string(), "cameras": cameras, "images": images, "points": points, "observations": observations});
+    let line = format!(
+        "{}: {what}{cameras} cameras, {images} images, {points} points, {observations} observations",
+        sfpmap::escape::path(dir)
+    );
+    (entry, line)
 }

@@ -128,6 +128,20 @@ fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
+/// `convert --colmap SFM --features FEATS_MAP -o map`: the scene's hloc map.
+fn convert_map(map: &Path) {
+    let scene = scene();
+    ok(&[
+        "convert",
+        "--colmap",
+        s(&scene.sfm),
+        "--features",
+        s(&scene.features_map),
+        "-o",
+        s(map),
+    ]);
+}
+
 #[test]
 fn an_hloc_map_converts_and_localizes_every_query_from_its_features_files() {
     let scene = scene();
@@ -213,19 +227,10 @@ fn localizes_every_query(map: &str, dir: &Path) {
 /// localize every query as the local file does.
 #[test]
 fn an_hloc_map_slices_to_a_budget_and_localizes_from_a_server() {
-    let scene = scene();
     let nginx = crate::servers::Nginx::start();
     let dir = tempfile::tempdir().unwrap();
     let map = nginx.root.join("hloc.sfpm");
-    ok(&[
-        "convert",
-        "--colmap",
-        s(&scene.sfm),
-        "--features",
-        s(&scene.features_map),
-        "-o",
-        s(&map),
-    ]);
+    convert_map(&map);
     let full = std::fs::metadata(&map).unwrap().len();
     let budget = full / 4;
     let slice = nginx.root.join("hloc-budget.sfpm");
@@ -257,15 +262,7 @@ fn query_features_of_another_feature_are_refused_naming_both() {
     let scene = scene();
     let dir = tempfile::tempdir().unwrap();
     let map = dir.path().join("hloc.sfpm");
-    ok(&[
-        "convert",
-        "--colmap",
-        s(&scene.sfm),
-        "--features",
-        s(&scene.features_map),
-        "-o",
-        s(&map),
-    ]);
+    convert_map(&map);
     // The same bytes under hloc's name for DISK features.
     let disk = dir.path().join("feats-disk.h5");
     std::fs::copy(&scene.features, &disk).unwrap();

@@ -94,6 +94,12 @@ impl Map<'_> {
             |s: &Section| fetched[s.index].get().is_none() && self.whole_check(s).is_none();
         let mut batch: Vec<&Section> = Vec::new();
         let mut batch_len = 0u64;
+        // Checks the batch so far and starts the next one empty.
+        let flush = |batch: &mut Vec<&Section>, batch_len: &mut u64| {
+            *batch_len = 0;
+            let done = std::mem::take(batch);
+            self.verify_batch(source, fetched, &done, kept, held, chunks)
+        };
         for section in selected {
             let len = section.offset + section.stored_len - section.padding_start;
             let streamed = pending(section)
@@ -103,35 +109,19 @@ impl Map<'_> {
                     .skipped
                     .is_some_and(|why| why.hides_encoding() || section.codec == Codec::Raw);
             if streamed {
-                self.verify_batch(
-                    source,
-                    fetched,
-                    &std::mem::take(&mut batch),
-                    kept,
-                    held,
-                    chunks,
-                )?;
-                batch_len = 0;
+                flush(&mut batch, &mut batch_len)?;
                 self.verify_in_pieces(source, section, chunks)?;
                 continue;
             }
             if pending(section) && batch_len > 0 && batch_len.saturating_add(len) > VERIFY_BATCH {
-                self.verify_batch(
-                    source,
-                    fetched,
-                    &std::mem::take(&mut batch),
-                    kept,
-                    held,
-                    chunks,
-                )?;
-                batch_len = 0;
+                flush(&mut batch, &mut batch_len)?;
             }
             if pending(section) {
                 batch_len = batch_len.saturating_add(len);
             }
             batch.push(section);
         }
-        self.verify_batch(source, fetched, &batch, kept, held, chunks)
+        flush(&mut batch, &mut batch_len)
     }
 
     /// Reads the sections of `batch` not fetched yet (in as few requests as the source
