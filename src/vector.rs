@@ -97,22 +97,52 @@ fn widen_one(h: half::f16) -> f32 {
 ))]
 pub(crate) fn dots_f16(rows: &[half::f16], dim: usize, q: &[f32]) -> Vec<f32> {
     assert_eq!(q.len(), dim, "dots_f16: the query is not a row");
-    const STRETCH: usize = 256;
     let mut buffer = [0.0f32; STRETCH];
     let mut sums = Vec::with_capacity(rows.len() / dim.max(1));
     // Loops, not iterator closures: a closure is compiled apart, without the target features.
     for row in rows.chunks_exact(dim.max(1)) {
-        let mut sum = 0.0;
-        for (part, qs) in row.chunks(STRETCH).zip(q.chunks(STRETCH)) {
-            let b = &mut buffer[..part.len()];
-            for (h, out) in part.iter().zip(b.iter_mut()) {
-                *out = widen_one(*h);
-            }
-            sum += dot(b, qs);
-        }
-        sums.push(sum);
+        sums.push(row_dot_f16(row, q, &mut buffer));
     }
     sums
+}
+
+/// [`dots_f16`] for the rows `picks` names only (each below `rows.len() / dim`), in that
+/// order: what an image index's lists score.
+#[cfg(feature = "localize")]
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512bw+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+avx"
+))]
+pub(crate) fn dots_f16_picked(rows: &[half::f16], dim: usize, q: &[f32], picks: &[u32]) -> Vec<f32> {
+    assert_eq!(q.len(), dim, "dots_f16_picked: the query is not a row");
+    let mut buffer = [0.0f32; STRETCH];
+    let mut sums = Vec::with_capacity(picks.len());
+    for &i in picks {
+        let start = i as usize * dim;
+        sums.push(row_dot_f16(&rows[start..start + dim], q, &mut buffer));
+    }
+    sums
+}
+
+/// Values of an f16 row widened at a time: a buffer that stays in L1.
+#[cfg(feature = "localize")]
+const STRETCH: usize = 256;
+
+/// One f16 row dotted with `q`, a [`STRETCH`] at a time (inlined into the multiversioned
+/// callers, so it gets their target features).
+#[cfg(feature = "localize")]
+#[inline(always)]
+fn row_dot_f16(row: &[half::f16], q: &[f32], buffer: &mut [f32; STRETCH]) -> f32 {
+    let mut sum = 0.0;
+    for (part, qs) in row.chunks(STRETCH).zip(q.chunks(STRETCH)) {
+        let b = &mut buffer[..part.len()];
+        for (h, out) in part.iter().zip(b.iter_mut()) {
+            *out = widen_one(*h);
+        }
+        sum += dot(b, qs);
+    }
+    sum
 }
 
 /// Dot product over 8 independent lanes, so it vectorizes (inlined, so that multiversioned

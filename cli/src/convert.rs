@@ -133,6 +133,11 @@ pub struct Args {
     /// ranked against the map's images by their VLAD of the same level's descriptors.
     #[arg(long, value_parser = vlad_clusters, long_help = vlad_help("centroids of the VLAD codebook stored with the map (0: none); queries are ranked against the map's images by their VLAD of the same level's descriptors", |(c, _)| c))]
     pub vlad_clusters: Option<usize>,
+    /// Retrieval: lists of the image index stored over the rows the map ranks its images
+    /// with (format 1.3; 0: none). Default: none below 2000 images, else about the square
+    /// root of the image count; a query then scores a few lists instead of every image.
+    #[arg(long, value_name = "LISTS", value_parser = index_lists)]
+    pub index_lists: Option<usize>,
     /// Product-quantise every level into M one-byte codes per point (M dividing each level's
     /// dims; format 1.1). `sfpmap slice --pq` does it for some levels of a map.
     #[arg(long, value_name = "M", value_parser = clap::value_parser!(u16).range(1..=4096))]
@@ -224,6 +229,15 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 v.clusters, v.dims, v.level
             );
         }
+        if let Some(i) = &summary.index {
+            println!(
+                "image index: {} lists over {}, {} probed (calibration recall {:.3})",
+                i.lists,
+                i.of.name(),
+                i.probe,
+                i.recall
+            );
+        }
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -256,6 +270,19 @@ fn vlad_options(args: &Args) -> sfpmap::build::VladOptions {
     sfpmap::build::VladOptions {
         clusters: args.vlad_clusters,
         dims: args.vlad_dims,
+        index_lists: args.index_lists,
+    }
+}
+
+/// At most 65536 lists: more than the images of any map we know, and each list costs its
+/// centroid's bytes.
+fn index_lists(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(n) if n <= sfpmap::build::MAX_INDEX_LISTS => Ok(n),
+        _ => Err(format!(
+            "a number of lists from 0 (no index) to {}",
+            sfpmap::build::MAX_INDEX_LISTS
+        )),
     }
 }
 

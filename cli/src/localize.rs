@@ -145,6 +145,11 @@ pub struct Args {
     /// descriptors, the extractor's global descriptor, or nothing (every point a candidate).
     #[arg(long, value_enum, default_value = "auto")]
     pub retrieval: RetrievalArg,
+    /// Lists of the map's image index (format 1.3, maps of many images) a query scores
+    /// (default: the map's own, calibrated when it was converted); 0 scores every image, as
+    /// on maps without an index.
+    #[arg(long, value_name = "LISTS")]
+    pub retrieval_probe: Option<usize>,
     /// Lowe ratio for coarse matching, in (0, 1] (default: 0.95 on SFP maps, 0.9 on SIFT
     /// maps).
     #[arg(long)]
@@ -223,6 +228,7 @@ struct Flags {
     short: bool,
     top_k: usize,
     retrieval: RetrievalMethod,
+    retrieval_probe: Option<usize>,
     ratio: Option<f32>,
 }
 
@@ -238,6 +244,7 @@ impl Flags {
                 RetrievalArg::Global => RetrievalMethod::Global,
                 RetrievalArg::Off => RetrievalMethod::Off,
             },
+            retrieval_probe: args.retrieval_probe,
             ratio: args.ratio,
         }
     }
@@ -249,6 +256,7 @@ impl Flags {
             short: self.short,
             top_k: self.top_k,
             retrieval: self.retrieval,
+            retrieval_probe: self.retrieval_probe,
             matching: MatchOptions {
                 ratio: self.ratio.unwrap_or(base.matching.ratio),
                 ..base.matching

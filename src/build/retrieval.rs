@@ -1,10 +1,15 @@
 //! Retrieval for every map: the VLAD codebook and per-image VLADs `convert` stores (format
-//! 1.1, [`crate::vlad`]), from the map's own point descriptors in one level's basis.
+//! 1.1, [`crate::vlad`]), from the map's own point descriptors in one level's basis; and
+//! (1.3) the image index over the rows the map retrieves with, on maps of many images.
 
 use super::geometry::Geometry;
-use crate::format::MapWriter;
+use crate::format::{ImageIndexInfo, MapWriter, Retrieval, SectionKind};
+use crate::geometry::SplitMix64;
+use crate::kmeans::KMeans;
 use crate::progress::Reporter;
+use crate::vector::{dot, Nearest};
 use crate::vlad::Codebook;
+use half::f16;
 use serde_json::json;
 
 /// How `convert` builds retrieval data.
@@ -15,6 +20,9 @@ pub struct VladOptions {
     /// Leading dimensions of the level basis (at most the level's `dim_short`); `None`: by
     /// the map's images.
     pub dims: Option<usize>,
+    /// (1.3) Lists of the image index over the rows the map retrieves with; 0 stores none;
+    /// `None`: by the map's images ([`default_index_lists`]).
+    pub index_lists: Option<usize>,
 }
 
 impl VladOptions {
@@ -91,6 +99,205 @@ pub(crate) fn add_vlad(
     }))
 }
 
+/// Lists of the default image index of a map of `images` images: none below
+/// [`crate::vlad::LARGE_MAP_IMAGES`] (ranking every image costs well under a millisecond
+/// there), else about √images, so that a list holds about as many images as there are lists
+/// and a query scores √images centroids plus `probe` lists of √images images.
+pub fn default_index_lists(images: usize) -> usize {
+    if images < crate::vlad::LARGE_MAP_IMAGES {
+        0
+    } else {
+        (images as f64).sqrt().round() as usize
+    }
+}
+
+/// The most lists an image index may have (`--index-lists`).
+pub const MAX_INDEX_LISTS: usize = 65_536;
+
+/// What a converted map's image index is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredIndex {
+    /// The rows it indexes.
+    pub of: Retrieval,
+    /// Its lists.
+    pub lists: usize,
+    /// Lists a query scores by default.
+    pub probe: usize,
+    /// On the calibration images, the share of each one's exhaustive top
+    /// [`DEFAULT_RETRIEVAL_TOP_K`](crate::format::DEFAULT_RETRIEVAL_TOP_K) (itself left out)
+    /// found in its first `probe` lists.
+    pub recall: f64,
+}
+
+/// Rows the index's k-means learns from at most (a seeded sample).
+const INDEX_MAX_TRAIN: usize = 8_192;
+/// Its Lloyd iterations at most.
+const INDEX_ITERATIONS: usize = 10;
+/// Database images whose own rows calibrate `probe`, at most.
+const CALIBRATION_IMAGES: usize = 100;
+/// The recall `probe` must reach on them. Their rows are the map's own, so cleaner than a
+/// query's: the bar is above the 0.99 a query is held to.
+const CALIBRATION_RECALL: f64 = 0.995;
+/// The seed of the index's sample and k-means.
+const INDEX_SEED: u64 = 0x1df_5eed;
+
+/// How the index is built and `probe` chosen, in words (the metadata `image_index.rule`).
+fn index_rule() -> String {
+    format!(
+        "k-means++ then Lloyd ({INDEX_ITERATIONS} iterations at most, seeded) on at most {INDEX_MAX_TRAIN} rows; each image in the list of its nearest centroid; probe: the fewest lists, taken nearest centroid first, that hold {CALIBRATION_RECALL} of the exhaustive top {} (itself left out) of up to {CALIBRATION_IMAGES} of the map's images",
+        crate::format::DEFAULT_RETRIEVAL_TOP_K
+    )
+}
+
+/// One f16 row widened.
+fn widen(row: &[u8], out: &mut [f32]) {
+    for (v, b) in out.iter_mut().zip(row.chunks_exact(2)) {
+        *v = f16::from_le_bytes([b[0], b[1]]).to_f32();
+    }
+}
+
+/// (1.3) Adds the image index over the rows the map retrieves with (its metadata
+/// `retrieval`, already set) to `writer`, read back from the writer: `lists` of them (`None`:
+/// [`default_index_lists`]). `None`: no index (0 lists, no retrieval rows, fewer images
+/// than lists).
+pub(crate) fn add_image_index(
+    writer: &mut MapWriter<'_>,
+    lists: Option<usize>,
+    reporter: &dyn Reporter,
+) -> Result<Option<StoredIndex>, crate::format::Error> {
+    let Some(of) = writer.metadata().retrieval() else {
+        return Ok(None);
+    };
+    let kind = match of {
+        Retrieval::Vlad => SectionKind::ImageVlad,
+        Retrieval::Global => SectionKind::ImageGlobal,
+    };
+    let Some((bytes, width)) = writer.pending_f16(kind) else {
+        return Ok(None);
+    };
+    let row_bytes = width * 2;
+    let images = bytes.len().checked_div(row_bytes).unwrap_or(0);
+    let lists = lists.unwrap_or_else(|| default_index_lists(images));
+    if lists == 0 || width == 0 || images < lists {
+        return Ok(None);
+    }
+    let row = |i: usize| &bytes[i * row_bytes..(i + 1) * row_bytes];
+
+    // A seeded sample learns the centroids; another (the calibration images) measures.
+    let mut rng = SplitMix64::new(INDEX_SEED);
+    let mut order: Vec<usize> = (0..images).collect();
+    let take = images.min(INDEX_MAX_TRAIN.max(CALIBRATION_IMAGES));
+    for i in 0..take {
+        let j = i + (rng.next_u64() % (images - i) as u64) as usize;
+        order.swap(i, j);
+    }
+    let train = &order[..images.min(INDEX_MAX_TRAIN)];
+    let mut sample = vec![0.0f32; train.len() * width];
+    for (&i, out) in train.iter().zip(sample.chunks_exact_mut(width)) {
+        widen(row(i), out);
+    }
+    reporter.start("image index", None);
+    let centroids = KMeans {
+        clusters: lists,
+        max_train: INDEX_MAX_TRAIN,
+        iterations: INDEX_ITERATIONS,
+        seed: INDEX_SEED,
+    }
+    .train(&sample, width);
+    reporter.finish();
+    drop(sample);
+    let Some(centroids) = centroids else {
+        return Ok(None);
+    };
+    let calibration: Vec<usize> = order[..images.min(CALIBRATION_IMAGES)].to_vec();
+    let mut queries = vec![0.0f32; calibration.len() * width];
+    for (&i, out) in calibration.iter().zip(queries.chunks_exact_mut(width)) {
+        widen(row(i), out);
+    }
+
+    // One pass over the rows: each image's list, and its score against each calibration
+    // image (`[calibration × images]`).
+    reporter.start("image index lists", Some(images as u64));
+    let nearest = Nearest::new(&centroids, width);
+    let mut list_of = vec![0u32; images];
+    let mut scores = vec![0.0f32; calibration.len() * images];
+    let mut buffer = vec![0.0f32; width];
+    for (i, list) in list_of.iter_mut().enumerate() {
+        widen(row(i), &mut buffer);
+        *list = nearest.find(&buffer) as u32;
+        for (q, query) in queries.chunks_exact(width).enumerate() {
+            scores[q * images + i] = dot(&buffer, query);
+        }
+        if i % 4096 == 0 {
+            reporter.advance(4096.min(images - i) as u64);
+        }
+    }
+    reporter.finish();
+
+    // Per calibration image: where its exhaustive top k's lists come in its list order
+    // (lists ranked by `x·c − ‖c‖²/2`, as a query ranks them).
+    let k = crate::format::DEFAULT_RETRIEVAL_TOP_K;
+    let minus_half: Vec<f32> = centroids
+        .chunks_exact(width)
+        .map(|c| -0.5 * dot(c, c))
+        .collect();
+    let mut ranks_needed: Vec<usize> = Vec::new();
+    for (q, query) in queries.chunks_exact(width).enumerate() {
+        let own = calibration[q];
+        let row_scores = &mut scores[q * images..(q + 1) * images];
+        row_scores[own] = f32::NEG_INFINITY;
+        let mut best: Vec<usize> = (0..images).collect();
+        let better = |&a: &usize, &b: &usize| row_scores[b].total_cmp(&row_scores[a]).then(a.cmp(&b));
+        let k = k.min(images - 1);
+        if k == 0 {
+            continue;
+        }
+        best.select_nth_unstable_by(k - 1, better);
+        let list_scores: Vec<f32> = centroids
+            .chunks_exact(width)
+            .zip(&minus_half)
+            .map(|(c, h)| dot(c, query) + h)
+            .collect();
+        let mut list_rank = vec![0usize; lists];
+        let mut by_score: Vec<usize> = (0..lists).collect();
+        by_score.sort_by(|&a, &b| list_scores[b].total_cmp(&list_scores[a]).then(a.cmp(&b)));
+        for (r, &l) in by_score.iter().enumerate() {
+            list_rank[l] = r;
+        }
+        ranks_needed.extend(best[..k].iter().map(|&i| list_rank[list_of[i] as usize]));
+    }
+    drop(scores);
+    // The fewest lists that hold the bar's share of the neighbours.
+    ranks_needed.sort_unstable();
+    let (probe, recall) = if ranks_needed.is_empty() {
+        (1, 1.0)
+    } else {
+        let at = ((ranks_needed.len() as f64 * CALIBRATION_RECALL).ceil() as usize)
+            .clamp(1, ranks_needed.len());
+        let probe = (ranks_needed[at - 1] + 1).min(lists);
+        let found = ranks_needed.iter().filter(|&&r| r < probe).count();
+        (probe, found as f64 / ranks_needed.len() as f64)
+    };
+    let mut extra = serde_json::Map::new();
+    extra.insert("rule".into(), json!(index_rule()));
+    extra.insert(
+        "calibration".into(),
+        json!({"images": calibration.len(), "top_k": k, "recall": recall}),
+    );
+    let info = ImageIndexInfo {
+        of: of.name().to_string(),
+        probe: probe as u32,
+        extra,
+    };
+    writer.set_image_index(info, centroids, width, &list_of)?;
+    Ok(Some(StoredIndex {
+        of,
+        lists,
+        probe,
+        recall,
+    }))
+}
+
 #[cfg(test)]
 mod tests {
     use super::VladOptions;
@@ -110,6 +317,7 @@ mod tests {
         let stated = VladOptions {
             clusters: Some(0),
             dims: None,
+            index_lists: None,
         };
         assert_eq!(stated.shape(10_000, own).0, 0);
         assert_eq!(stated.shape(10_000, own).1, crate::vlad::LARGE_DIMS);

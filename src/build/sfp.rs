@@ -556,6 +556,7 @@ fn convert_images_of(
         Some(m) => super::pq::quantise_all(&mut writer, m)?,
         None => Vec::new(),
     };
+    let index = super::retrieval::add_image_index(&mut writer, options.vlad.index_lists, reporter)?;
     let output_bytes = writer.write(output, reporter)?;
     ms.sort_by(f64::total_cmp);
     Ok(SfpMapSummary {
@@ -570,6 +571,7 @@ fn convert_images_of(
             images_without_features: missing.len(),
             points_without_descriptors: 0,
             vlad,
+            index,
             pq,
         },
         model_points: n_points,
@@ -617,6 +619,7 @@ impl SfpMapSummary {
             "missing_images": summary.missing_images,
             "levels": levels,
             "vlad": c.vlad.map(|v| serde_json::json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
+            "image_index": c.index.as_ref().map(|i| serde_json::json!({"of": i.of.name(), "lists": i.lists, "probe": i.probe, "recall": i.recall})),
         })
     }
 }

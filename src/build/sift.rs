@@ -316,6 +316,7 @@ fn convert_geometry(
         // Descriptors trained for retrieval (NetVLAD, …) rank better than a VLAD of local ones.
         writer.metadata_mut().retrieval = Some(crate::format::Retrieval::Global.name().to_string());
     }
+    let index = super::retrieval::add_image_index(&mut writer, options.vlad.index_lists, reporter)?;
     let output_bytes = writer.write(output, reporter)?;
     Ok(ConvertSummary {
         points: geometry.positions.len(),
@@ -328,6 +329,7 @@ fn convert_geometry(
         images_without_features,
         points_without_descriptors,
         vlad,
+        index,
         pq,
     })
 }

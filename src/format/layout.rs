@@ -10,7 +10,7 @@ pub const MAGIC: [u8; 8] = *b"\x89SFPM\r\n\x1a";
 pub const VERSION_MAJOR: u16 = 1;
 /// The highest minor version this crate writes (a file gets the lowest minor that defines all
 /// its sections, see [`SectionKind::since_minor`]). Readers accept any minor of their major.
-pub const VERSION_MINOR: u16 = 2;
+pub const VERSION_MINOR: u16 = 3;
 /// Written as a `u32` LE; a reader that sees other bytes has the wrong byte order.
 pub const ENDIAN_CHECK: u32 = 0x1A2B_3C4D;
 /// Size of the fixed header in bytes.
@@ -193,6 +193,13 @@ pub enum SectionKind {
     ImageGlobal,
     /// f16 [images × clusters·dims] (1.1): each image's VLAD over the level codebook.
     ImageVlad,
+    /// f32 [lists × width] (1.3): the image index's list centroids, in the space of the rows
+    /// it indexes (`ImageVlad` or `ImageGlobal`, as the metadata `image_index` says).
+    ImageIndexCentroids,
+    /// u32 [lists + 1 × 1] (1.3): CSR offsets into `ImageIndexImages`, list by list.
+    ImageIndexLists,
+    /// u32 [images × 1] (1.3): every image once, grouped by the list it belongs to.
+    ImageIndexImages,
     /// u64 [images + 1 × 1]: CSR row offsets into `VisibilityPoints`.
     VisibilityOffsets,
     /// u32 [observations × 1]: point indices seen by each image, image by image.
@@ -216,7 +223,7 @@ pub enum SectionKind {
 }
 
 impl SectionKind {
-    const KNOWN: [(u16, SectionKind, &'static str); 27] = [
+    const KNOWN: [(u16, SectionKind, &'static str); 30] = [
         (1, SectionKind::PointPositions, "point_positions"),
         (4, SectionKind::PointPositionsQ16, "point_positions_q16"),
         (2, SectionKind::PointColors, "point_colors"),
@@ -236,6 +243,9 @@ impl SectionKind {
         (36, SectionKind::ImageNames, "image_names"),
         (37, SectionKind::ImageGlobal, "image_global"),
         (38, SectionKind::ImageVlad, "image_vlad"),
+        (39, SectionKind::ImageIndexCentroids, "image_index_centroids"),
+        (40, SectionKind::ImageIndexLists, "image_index_lists"),
+        (41, SectionKind::ImageIndexImages, "image_index_images"),
         (48, SectionKind::VisibilityOffsets, "visibility_offsets"),
         (49, SectionKind::VisibilityPoints, "visibility_points"),
         (50, SectionKind::VisibilityKeypoints, "visibility_keypoints"),
@@ -290,11 +300,13 @@ impl SectionKind {
             PointIds => (Dtype::U64, Some(1)),
             LevelPoints => (Dtype::U32, Some(1)),
             LevelDescShort | LevelDescRest | ImageGlobal | ImageVlad => (Dtype::F16, None),
-            LevelProjection | LevelVladCentroids | LevelPqCodebook => (Dtype::F32, None),
+            LevelProjection | LevelVladCentroids | LevelPqCodebook | ImageIndexCentroids => {
+                (Dtype::F32, None)
+            }
             LevelPqCodes => (Dtype::U8, None),
             LevelPqOrder => (Dtype::U16, Some(1)),
             ImagePoses => (Dtype::F64, Some(7)),
-            ImageCameras | ImageIds => (Dtype::U32, Some(1)),
+            ImageCameras | ImageIds | ImageIndexLists | ImageIndexImages => (Dtype::U32, Some(1)),
             ImageNameOffsets | VisibilityOffsets | PlaceImages | ChunkChecksums => {
                 (Dtype::U64, Some(1))
             }
@@ -382,6 +394,9 @@ impl SectionKind {
             | SectionKind::CatalogVladCentroids
             | SectionKind::CatalogImageVlad => 1,
             SectionKind::ChunkChecksums => 2,
+            SectionKind::ImageIndexCentroids
+            | SectionKind::ImageIndexLists
+            | SectionKind::ImageIndexImages => 3,
             _ => 0,
         }
     }

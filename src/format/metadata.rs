@@ -46,6 +46,10 @@ pub struct Metadata {
     /// computed the same way.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub global_max_side: Option<u32>,
+    /// 1.3: the image index (sections 39–41): which rows it indexes and how many of its
+    /// lists a query scores; present exactly when those sections are.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image_index: Option<ImageIndexInfo>,
     /// 1.1: the grid of `point_positions_q16`, present exactly when that section is.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub position_grid: Option<PositionGrid>,
@@ -113,9 +117,31 @@ impl Default for Metadata {
             provenance: Provenance::default(),
             retrieval: None,
             global_max_side: None,
+            image_index: None,
             position_grid: None,
             extra: JsonMap::new(),
         }
+    }
+}
+
+/// (1.3) The metadata `image_index`: what the image index (sections 39–41) is over.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ImageIndexInfo {
+    /// The rows it indexes: `"vlad"` (`image_vlad`) or `"global"` (`image_global`). A value
+    /// this version does not know leaves the index unused (retrieval scores every image).
+    pub of: String,
+    /// Lists a query scores by default, 1 to the lists there are: the fewest whose recall
+    /// of exhaustive ranking's top images the writer measured at its bar.
+    pub probe: u32,
+    /// Other keys (how the writer built it and what it measured), kept as they are.
+    #[serde(flatten)]
+    pub extra: JsonMap<String, Value>,
+}
+
+impl ImageIndexInfo {
+    /// The rows it indexes, if this version knows the kind.
+    pub fn of(&self) -> Option<Retrieval> {
+        Retrieval::from_name(&self.of)
     }
 }
 

@@ -18,6 +18,7 @@ mod catalog;
 mod chunks;
 mod delta;
 mod error;
+mod index;
 // Fuzz-target bodies and the raw layout they edit: public at `sfpmap::fuzzing`.
 #[cfg(feature = "fuzzing")]
 pub(crate) mod fuzzing;
@@ -34,6 +35,7 @@ mod writer;
 pub use catalog::{Catalog, Listing, Place};
 pub use chunks::{CheckedByChunk, VisibilityByChunk};
 pub use error::{Error, SectionRef};
+pub use index::ImageIndex;
 pub use layout::{
     Codec, Dtype, SectionKind, MAGIC, MAX_DESCRIPTOR_DIM, VERSION_MAJOR, VERSION_MINOR,
 };
@@ -42,7 +44,7 @@ pub(crate) use metadata::descriptor_names_feature;
 #[cfg(feature = "colmap")]
 pub(crate) use metadata::UNNAMED_FEATURE_PREFIX;
 pub use metadata::{
-    CameraInfo, LevelInfo, Metadata, PositionGrid, Provenance, Retrieval, SourceFile,
+    CameraInfo, ImageIndexInfo, LevelInfo, Metadata, PositionGrid, Provenance, Retrieval, SourceFile,
     DEFAULT_RETRIEVAL_TOP_K,
 };
 pub use pq::Pq;

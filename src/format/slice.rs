@@ -43,6 +43,8 @@ pub struct SliceSummary {
     pub skipped_dropped: usize,
     /// The VLAD retrieval data was dropped with the level its codebook belongs to.
     pub vlad_dropped: bool,
+    /// (1.3) The image index was dropped with the rows it indexes.
+    pub index_dropped: bool,
 }
 
 /// Builds a writer holding the slice of `map`. Points no kept level references are dropped
@@ -86,7 +88,7 @@ pub fn slice<'m>(
     // ... and none when retrieval would select every image anyway.
     let retrieval_useless =
         options.minimal && map.n_images() as usize <= super::metadata::DEFAULT_RETRIEVAL_TOP_K;
-    let keeps = Keep {
+    let mut keeps = Keep {
         options,
         levels: &keep_levels,
         vlad: vlad_kept
@@ -94,6 +96,15 @@ pub fn slice<'m>(
             && !(options.minimal && preference == Some(Retrieval::Global) && has_global),
         global: !(retrieval_useless
             || options.minimal && preference == Some(Retrieval::Vlad) && vlad_kept),
+        index: false,
+    };
+    // (1.3) The image index goes where the rows it indexes go (image indices do not change).
+    let index_of = map.metadata().image_index.as_ref().map(|i| i.of());
+    keeps.index = match index_of {
+        Some(Some(Retrieval::Vlad)) => keeps.vlad,
+        Some(Some(Retrieval::Global)) => keeps.global && has_global,
+        // Over rows this version does not know: their meaning after a slice is unknown.
+        Some(None) | None => false,
     };
     // Checking everything first means a corrupt section is never copied into the new map.
     // Sections this slice reads are kept decoded and the others streamed, so each is decoded
@@ -128,6 +139,10 @@ pub fn slice<'m>(
         .levels
         .retain(|l| keep_levels.binary_search(&l.level).is_ok());
     let vlad_dropped = vlad_level.is_some() && !keeps.vlad;
+    let index_dropped = index_of.is_some() && !keeps.index;
+    if index_dropped {
+        metadata.image_index = None;
+    }
     let global_kept = keeps.global && has_global;
     match metadata.retrieval() {
         Some(Retrieval::Vlad) if vlad_dropped => {
@@ -168,6 +183,7 @@ pub fn slice<'m>(
         points_before: map.n_points(),
         points_after: u64::from(kept),
         vlad_dropped,
+        index_dropped,
         ..SliceSummary::default()
     };
 
@@ -307,6 +323,8 @@ struct Keep<'a> {
     vlad: bool,
     /// Whether `image_global` is kept.
     global: bool,
+    /// (1.3) Whether the image index is kept (with the rows it indexes).
+    index: bool,
 }
 
 impl Keep<'_> {
@@ -324,6 +342,9 @@ impl Keep<'_> {
             SectionKind::ImageVlad => self.vlad,
             SectionKind::LevelVladCentroids if !self.vlad => false,
             SectionKind::ImageGlobal => self.global,
+            SectionKind::ImageIndexCentroids
+            | SectionKind::ImageIndexLists
+            | SectionKind::ImageIndexImages => self.index,
             k if k.is_per_level() => self
                 .levels
                 .binary_search(&section.level.unwrap_or(NO_LEVEL))

@@ -177,6 +177,7 @@ pub(crate) fn check_shapes(
         SectionKind::ImageNames,
         SectionKind::ImageGlobal,
         SectionKind::ImageVlad,
+        SectionKind::ImageIndexImages,
         SectionKind::VisibilityOffsets,
     ];
     let n_images = match find(SectionKind::ImagePoses, None) {
@@ -216,6 +217,7 @@ pub(crate) fn check_shapes(
         )?;
     }
     check_vlad(metadata, sections, find(SectionKind::ImageVlad, None))?;
+    super::index::check_shapes(metadata, |kind| find(kind, None), n_images)?;
     match (
         find(SectionKind::VisibilityOffsets, None),
         find(SectionKind::VisibilityPoints, None),

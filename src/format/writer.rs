@@ -144,6 +144,40 @@ impl<'a> MapWriter<'a> {
         self.sections.insert((kind.code(), level), section);
     }
 
+    /// The rows of a shared (no level) f16 section added as an array, not copied from
+    /// another map: its little-endian bytes and column count. What a builder reads back to
+    /// index them.
+    pub fn pending_f16(&self, kind: SectionKind) -> Option<(&[u8], usize)> {
+        let section = self.sections.get(&(kind.code(), NO_LEVEL))?;
+        match &section.content {
+            Content::Array { bytes, .. } if section.dtype == Dtype::F16 => {
+                Some((bytes.as_ref(), section.cols as usize))
+            }
+            _ => None,
+        }
+    }
+
+    /// A section a reader may skip (not `required`), in the writer's codec.
+    pub(super) fn push_optional(
+        &mut self,
+        kind: SectionKind,
+        level: u16,
+        dtype: Dtype,
+        rows: usize,
+        cols: usize,
+        bytes: Cow<'a, [u8]>,
+    ) {
+        self.push(
+            kind,
+            level,
+            dtype,
+            rows as u64,
+            cols as u64,
+            false,
+            Content::Array { bytes, codec: None },
+        );
+    }
+
     pub(super) fn push_array(
         &mut self,
         kind: SectionKind,

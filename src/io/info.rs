@@ -37,7 +37,8 @@ fn component(kind: SectionKind) -> &'static str {
             "descriptors"
         }
         LevelProjection => "projections",
-        LevelVladCentroids | ImageGlobal | ImageVlad => "retrieval",
+        LevelVladCentroids | ImageGlobal | ImageVlad | ImageIndexCentroids | ImageIndexLists
+        | ImageIndexImages => "retrieval",
         ImagePoses | ImageCameras | ImageIds | ImageNameOffsets | ImageNames => "images",
         VisibilityOffsets | VisibilityPoints | VisibilityKeypoints => "visibility",
         PlaceImages | CatalogProjection | CatalogVladCentroids | CatalogImageVlad => "places",
@@ -101,6 +102,8 @@ pub struct Retrieval<'m> {
     global_dims: Option<u64>,
     /// The image side they were computed at (metadata `global_max_side`).
     global_max_side: Option<u32>,
+    /// (1.3) The image index: `{of, lists, probe}` and what its writer measured.
+    index: Option<serde_json::Value>,
 }
 
 impl<'m> Retrieval<'m> {
@@ -118,11 +121,24 @@ impl<'m> Retrieval<'m> {
             .iter()
             .find(|s| s.kind() == SectionKind::ImageGlobal && s.skipped().is_none())
             .map(|s| s.cols());
+        let lists = map
+            .sections()
+            .iter()
+            .find(|s| s.kind() == SectionKind::ImageIndexCentroids && s.skipped().is_none())
+            .map(|s| s.rows());
+        let index = meta.image_index.as_ref().map(|i| {
+            let mut v = serde_json::json!({"of": i.of, "lists": lists, "probe": i.probe});
+            for (k, x) in &i.extra {
+                v[k] = x.clone();
+            }
+            v
+        });
         Retrieval {
             preference: meta.retrieval.as_deref(),
             vlad,
             global_dims,
             global_max_side: meta.global_side(),
+            index,
         }
     }
 
@@ -143,6 +159,14 @@ impl<'m> Retrieval<'m> {
         }
         if kinds.is_empty() {
             return "retrieval: none (every point is a candidate)".into();
+        }
+        if let Some(i) = &self.index {
+            kinds.push(format!(
+                "an index of {} lists over {} ({} probed)",
+                i["lists"],
+                crate::escape::escape_control_characters(i["of"].as_str().unwrap_or("?")),
+                i["probe"]
+            ));
         }
         let preference = self.preference.map_or(String::new(), |p| {
             format!("; prefers {}", crate::escape::escape_control_characters(p))

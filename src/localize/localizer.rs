@@ -37,6 +37,9 @@ pub struct LocalizeOptions {
     pub top_k: usize,
     /// Which stored descriptor ranks the database images.
     pub retrieval: RetrievalMethod,
+    /// Lists of the map's image index (format 1.3) a query scores: `None`, the map's own
+    /// `probe`; `Some(0)`, no index (every image scored, as maps without one are).
+    pub retrieval_probe: Option<usize>,
     /// Descriptor matching: Lowe's ratio, mutual nearest neighbours.
     pub matching: MatchOptions,
     /// Coarse RANSAC threshold (px).
@@ -60,6 +63,7 @@ impl Default for LocalizeOptions {
             short: false,
             top_k: crate::format::DEFAULT_RETRIEVAL_TOP_K,
             retrieval: RetrievalMethod::Auto,
+            retrieval_probe: None,
             matching: MatchOptions::default(),
             coarse_error_px: 12.0,
             gate_px: 24.0,
@@ -567,7 +571,7 @@ impl<'m> Localizer<'m> {
             return Err(LocalizeError::NoUsableLevel { skipped });
         }
         let positions = map.point_positions()?;
-        let retrieval = RetrievalIndex::new(map, options.retrieval)?;
+        let retrieval = RetrievalIndex::new(map, options.retrieval, options.retrieval_probe)?;
         let viewpoints = map
             .images()?
             .filter(|images| !images.is_empty())

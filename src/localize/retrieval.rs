@@ -6,7 +6,7 @@
 //! a candidate.
 
 use super::features::QueryFeatures;
-use crate::format::{Error as FormatError, Map, Retrieval};
+use crate::format::{Error as FormatError, ImageIndex, Map, Retrieval};
 use crate::vector::{dot, normalise_rows};
 use crate::vlad::Codebook;
 use bitvec::vec::BitVec;
@@ -120,18 +120,82 @@ struct VladIndex<'m> {
     images: Cow<'m, [f16]>,
 }
 
+/// A map's image index (format 1.3), ready to probe.
+struct Lists<'m> {
+    index: ImageIndex<'m>,
+    /// `−‖c‖²/2` per list: lists rank as images were assigned to them, by nearest centroid.
+    minus_half_norms: Vec<f32>,
+    /// Lists a query scores at least (the map's `probe`, or the caller's).
+    probe: usize,
+}
+
+/// Images an indexed ranking scores at least per image asked for: with `top_k` near a list's
+/// size, more lists are scored than `probe` says, so the short list is never the whole of
+/// what was scored.
+const MIN_SCORED_PER_K: usize = 8;
+
+impl Lists<'_> {
+    /// The `top_k` images of the lists nearest to `query` (unit, `width` values) by exact
+    /// score, best first, ties by image index (as [`rank`]): with every list probed, exactly
+    /// [`rank`]'s answer.
+    fn rank(&self, database: Rows<'_>, query: &[f32], top_k: usize) -> Vec<usize> {
+        let index = &self.index;
+        let list_scores: Vec<f32> = index
+            .centroids
+            .chunks_exact(index.width)
+            .zip(&self.minus_half_norms)
+            .map(|(c, h)| {
+                let s = dot(c, query) + h;
+                if s.is_finite() {
+                    s
+                } else {
+                    f32::NEG_INFINITY
+                }
+            })
+            .collect();
+        let order = top_k_indices(&list_scores, index.lists());
+        let want = top_k.max(1).saturating_mul(MIN_SCORED_PER_K);
+        let mut picked: Vec<u32> = Vec::new();
+        for (probed, &l) in order.iter().enumerate() {
+            if probed >= self.probe && picked.len() >= want {
+                break;
+            }
+            picked.extend_from_slice(index.list(l));
+        }
+        // Ascending, so that ties break by image index as the exhaustive ranking's do.
+        picked.sort_unstable();
+        let mut scores = database.dots_picked(index.width, query, &picked);
+        for s in &mut scores {
+            if !s.is_finite() {
+                *s = f32::NEG_INFINITY;
+            }
+        }
+        top_k_indices(&scores, top_k.max(1))
+            .into_iter()
+            .map(|i| picked[i] as usize)
+            .collect()
+    }
+}
+
 /// What a localizer retrieves with: the map's global descriptors (decoded once) and VLAD (read
-/// in place).
+/// in place), and the image index over one of them.
 pub(crate) struct RetrievalIndex<'m> {
     global: Option<(Vec<f32>, usize)>,
     vlad: Option<VladIndex<'m>>,
+    lists: Option<Lists<'m>>,
     /// The map's preference, else VLAD first (the one every converted map has).
     order: [Retrieval; 2],
     method: RetrievalMethod,
 }
 
 impl<'m> RetrievalIndex<'m> {
-    pub(crate) fn new(map: &'m Map<'m>, method: RetrievalMethod) -> Result<Self, FormatError> {
+    /// `probe`: lists of the map's image index a query scores (`None`: the map's `probe`;
+    /// `Some(0)`: the index is not used, every image is scored).
+    pub(crate) fn new(
+        map: &'m Map<'m>,
+        method: RetrievalMethod,
+        probe: Option<usize>,
+    ) -> Result<Self, FormatError> {
         // Only what the method can use is decoded (and checked): `--retrieval off` opens a
         // map whose retrieval sections are damaged, as a 1.0 reader would.
         let (use_global, use_vlad) = match method {
@@ -183,9 +247,30 @@ impl<'m> RetrievalIndex<'m> {
             Some(Retrieval::Global) => [Retrieval::Global, Retrieval::Vlad],
             _ => [Retrieval::Vlad, Retrieval::Global],
         };
+        // The index is read (and checked) only where it can be used.
+        let indexed = |of| match of {
+            Retrieval::Global => use_global,
+            Retrieval::Vlad => use_vlad,
+        };
+        let lists = match map.metadata().image_index.as_ref().and_then(|i| i.of()) {
+            Some(of) if indexed(of) && probe != Some(0) => map.image_index()?.map(|index| {
+                let minus_half_norms = index
+                    .centroids
+                    .chunks_exact(index.width)
+                    .map(|c| -0.5 * dot(c, c))
+                    .collect();
+                Lists {
+                    probe: probe.unwrap_or(index.probe),
+                    index,
+                    minus_half_norms,
+                }
+            }),
+            _ => None,
+        };
         Ok(RetrievalIndex {
             global,
             vlad,
+            lists,
             order,
             method,
         })
@@ -218,7 +303,15 @@ impl<'m> RetrievalIndex<'m> {
             };
             match vectors {
                 Ok((database, q, dim)) if database.len() == n_images * dim => {
-                    return (rank(database, dim, &q, top_k), Ok(method));
+                    let ranked = match &self.lists {
+                        Some(lists) if lists.index.of == method && lists.index.width == dim => {
+                            let mut q = q;
+                            normalise_rows(&mut q, dim);
+                            lists.rank(database, &q, top_k)
+                        }
+                        _ => rank(database, dim, &q, top_k),
+                    };
+                    return (ranked, Ok(method));
                 }
                 Ok(_) => {
                     first_reason.get_or_insert(RetrievalFallback::NoMapDescriptors);
@@ -311,6 +404,18 @@ impl Rows<'_> {
         match self {
             Rows::F32(v) => v.len(),
             Rows::F16(v) => v.len(),
+        }
+    }
+
+    /// [`Rows::dots`] of the rows `picks` names (each below the row count), in that order.
+    fn dots_picked(&self, dim: usize, q: &[f32], picks: &[u32]) -> Vec<f32> {
+        assert_eq!(q.len(), dim, "Rows::dots_picked: the query is not a row");
+        match self {
+            Rows::F32(v) => picks
+                .iter()
+                .map(|&i| dot(&v[i as usize * dim..(i as usize + 1) * dim], q))
+                .collect(),
+            Rows::F16(v) => crate::vector::dots_f16_picked(v, dim, q, picks),
         }
     }
 
@@ -474,6 +579,7 @@ mod tests {
                 d_in: 2,
                 images: Cow::Owned([1.0, 0.0, 0.0, 1.0].map(f16::from_f32).to_vec()),
             }),
+            lists: None,
             order,
             method,
         }

@@ -161,6 +161,7 @@ impl Options {
             strict,
             vlad: VladOptions {
                 clusters: vlad_clusters,
+                index_lists: None,
                 dims: vlad_dims,
             },
             pq,
