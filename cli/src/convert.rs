@@ -230,13 +230,23 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             );
         }
         if let Some(i) = &summary.index {
-            println!(
-                "image index: {} lists over {}, {} probed (calibration recall {:.3})",
-                i.lists,
-                i.of.name(),
-                i.probe,
-                i.recall
-            );
+            if i.stored {
+                println!(
+                    "image index: {} lists over {}, {} probed (calibration recall {:.3})",
+                    i.lists,
+                    i.of.name(),
+                    i.probe,
+                    i.recall
+                );
+            } else {
+                println!(
+                    "image index: none (recall {:.3} of ranking every image took {} of {} lists: the images' {} rows have no neighbours an index could group)",
+                    i.recall,
+                    i.probe,
+                    i.lists,
+                    i.of.name()
+                );
+            }
         }
     }
     Ok(ExitCode::SUCCESS)

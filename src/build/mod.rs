@@ -267,7 +267,7 @@ impl ConvertSummary {
             "images_without_features": s.images_without_features,
             "points_without_descriptors": s.points_without_descriptors,
             "vlad": s.vlad.map(|v| serde_json::json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
-            "image_index": s.index.as_ref().map(|i| serde_json::json!({"of": i.of.name(), "lists": i.lists, "probe": i.probe, "recall": i.recall})),
+            "image_index": s.index.as_ref().map(|i| serde_json::json!({"of": i.of.name(), "lists": i.lists, "probe": i.probe, "recall": i.recall, "stored": i.stored})),
         })
     }
 }

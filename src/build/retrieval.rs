@@ -127,7 +127,14 @@ pub struct StoredIndex {
     /// [`DEFAULT_RETRIEVAL_TOP_K`](crate::format::DEFAULT_RETRIEVAL_TOP_K) (itself left out)
     /// found in its first `probe` lists.
     pub recall: f64,
+    /// Whether the map stores it. A default index (no `index_lists` asked for) is left out
+    /// when reaching the recall takes more than one list in [`MAX_PROBE_SHARE`]: the rows'
+    /// neighbours are not grouped, and probing would cost about what ranking every image does.
+    pub stored: bool,
 }
+
+/// A default index whose calibrated probe exceeds one list in this many is not stored.
+pub const MAX_PROBE_SHARE: usize = 4;
 
 /// Rows the index's k-means learns from at most (a seeded sample).
 const INDEX_MAX_TRAIN: usize = 8_192;
@@ -135,9 +142,8 @@ const INDEX_MAX_TRAIN: usize = 8_192;
 const INDEX_ITERATIONS: usize = 10;
 /// Database images whose own rows calibrate `probe`, at most.
 const CALIBRATION_IMAGES: usize = 100;
-/// The recall `probe` must reach on them. Their rows are the map's own, so cleaner than a
-/// query's: the bar is above the 0.99 a query is held to.
-const CALIBRATION_RECALL: f64 = 0.995;
+/// The share of their exhaustive top k that `probe` lists must hold.
+const CALIBRATION_RECALL: f64 = 0.99;
 /// The seed of the index's sample and k-means.
 const INDEX_SEED: u64 = 0x1df_5eed;
 
@@ -158,8 +164,8 @@ fn widen(row: &[u8], out: &mut [f32]) {
 
 /// (1.3) Adds the image index over the rows the map retrieves with (its metadata
 /// `retrieval`, already set) to `writer`, read back from the writer: `lists` of them (`None`:
-/// [`default_index_lists`]). `None`: no index (0 lists, no retrieval rows, fewer images
-/// than lists).
+/// [`default_index_lists`], and only if it pays, see [`StoredIndex::stored`]). `None`: no
+/// index tried (0 lists, no retrieval rows, fewer images than lists).
 pub(crate) fn add_image_index(
     writer: &mut MapWriter<'_>,
     lists: Option<usize>,
@@ -177,6 +183,7 @@ pub(crate) fn add_image_index(
     };
     let row_bytes = width * 2;
     let images = bytes.len().checked_div(row_bytes).unwrap_or(0);
+    let lists_asked = lists;
     let lists = lists.unwrap_or_else(|| default_index_lists(images));
     if lists == 0 || width == 0 || images < lists {
         return Ok(None);
@@ -267,22 +274,23 @@ pub(crate) fn add_image_index(
         ranks_needed.extend(best[..k].iter().map(|&i| list_rank[list_of[i] as usize]));
     }
     drop(scores);
-    // The fewest lists that hold the bar's share of the neighbours.
-    ranks_needed.sort_unstable();
-    let (probe, recall) = if ranks_needed.is_empty() {
-        (1, 1.0)
-    } else {
-        let at = ((ranks_needed.len() as f64 * CALIBRATION_RECALL).ceil() as usize)
-            .clamp(1, ranks_needed.len());
-        let probe = (ranks_needed[at - 1] + 1).min(lists);
-        let found = ranks_needed.iter().filter(|&&r| r < probe).count();
-        (probe, found as f64 / ranks_needed.len() as f64)
+    let (probe, recall) = calibrated_probe(&mut ranks_needed, lists);
+    let stored = lists_asked.is_some() || probe * MAX_PROBE_SHARE <= lists;
+    let outcome = StoredIndex {
+        of,
+        lists,
+        probe,
+        recall,
+        stored,
     };
+    if !stored {
+        return Ok(Some(outcome));
+    }
     let mut extra = serde_json::Map::new();
     extra.insert("rule".into(), json!(index_rule()));
     extra.insert(
         "calibration".into(),
-        json!({"images": calibration.len(), "top_k": k, "recall": recall}),
+        json!({"images": calibration.len(), "top_k": k, "neighbours": ranks_needed.len(), "recall": recall}),
     );
     let info = ImageIndexInfo {
         of: of.name().to_string(),
@@ -290,12 +298,21 @@ pub(crate) fn add_image_index(
         extra,
     };
     writer.set_image_index(info, centroids, width, &list_of)?;
-    Ok(Some(StoredIndex {
-        of,
-        lists,
-        probe,
-        recall,
-    }))
+    Ok(Some(outcome))
+}
+
+/// The fewest lists that hold [`CALIBRATION_RECALL`] of the neighbours, from the rank of
+/// each neighbour's list in its query's list order (sorted here), and the share they hold.
+fn calibrated_probe(ranks_needed: &mut [usize], lists: usize) -> (usize, f64) {
+    if ranks_needed.is_empty() {
+        return (1, 1.0);
+    }
+    ranks_needed.sort_unstable();
+    let at = ((ranks_needed.len() as f64 * CALIBRATION_RECALL).ceil() as usize)
+        .clamp(1, ranks_needed.len());
+    let probe = (ranks_needed[at - 1] + 1).min(lists);
+    let found = ranks_needed.iter().filter(|&&r| r < probe).count();
+    (probe, found as f64 / ranks_needed.len() as f64)
 }
 
 #[cfg(test)]

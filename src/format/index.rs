@@ -126,10 +126,47 @@ pub(crate) fn check_shapes<'s>(
     Ok(())
 }
 
+/// What an index section's contents must satisfy, for a map of `n_images` images (`Err`:
+/// what is wrong). The list offsets run from 0 to the image count without decreasing; every
+/// image is in exactly one list; the centroids are finite (a NaN would rank lists
+/// arbitrarily).
+pub(crate) fn check_contents(kind: SectionKind, bytes: &[u8], n_images: u64) -> Result<(), String> {
+    match kind {
+        SectionKind::ImageIndexLists => {
+            let offsets = super::reader::cast::<u32>(bytes);
+            let tiles = offsets.first() == Some(&0)
+                && offsets.windows(2).all(|w| w[0] <= w[1])
+                && offsets.last().map(|&o| u64::from(o)) == Some(n_images);
+            if !tiles {
+                return Err(format!(
+                    "the list offsets do not run from 0 to the {n_images} images without decreasing"
+                ));
+            }
+        }
+        SectionKind::ImageIndexImages => {
+            let images = super::reader::cast::<u32>(bytes);
+            let mut seen: BitVec = BitVec::repeat(false, images.len());
+            for &i in images.iter() {
+                if u64::from(i) >= n_images || seen.replace(i as usize, true) {
+                    return Err(format!(
+                        "image {i} is past the {n_images} images or in two lists"
+                    ));
+                }
+            }
+        }
+        SectionKind::ImageIndexCentroids
+            if super::reader::cast::<f32>(bytes).iter().any(|v| !v.is_finite()) =>
+        {
+            return Err("a centroid value is not finite".into());
+        }
+        _ => {}
+    }
+    Ok(())
+}
+
 impl<'a> Map<'a> {
-    /// The image index (format 1.3), if the map has one over rows this version knows: read
-    /// and checked (offsets from 0 to the image count, never decreasing; every image in
-    /// exactly one list).
+    /// The image index (format 1.3), if the map has one over rows this version knows, its
+    /// contents checked ([`check_contents`]).
     pub fn image_index(&self) -> Result<Option<ImageIndex<'_>>, Error> {
         let Some(info) = self.metadata().image_index.as_ref() else {
             return Ok(None);
@@ -140,34 +177,14 @@ impl<'a> Map<'a> {
         let centroids_section = self.required(SectionKind::ImageIndexCentroids)?;
         let lists_section = self.required(SectionKind::ImageIndexLists)?;
         let images_section = self.required(SectionKind::ImageIndexImages)?;
-        let offsets: Cow<'_, [u32]> = self.section_array(lists_section)?;
-        let images: Cow<'_, [u32]> = self.section_array(images_section)?;
-        let n_images = images.len();
-        let tiles = offsets.first() == Some(&0)
-            && offsets.windows(2).all(|w| w[0] <= w[1])
-            && offsets.last().map(|&o| o as usize) == Some(n_images);
-        if !tiles {
-            return Err(Error::inconsistent(format!(
-                "{}: the list offsets do not run from 0 to the {n_images} images without decreasing",
-                lists_section.reference()
-            )));
-        }
-        let mut seen: BitVec = BitVec::repeat(false, n_images);
-        for &i in images.iter() {
-            if i as usize >= n_images || seen.replace(i as usize, true) {
-                return Err(Error::inconsistent(format!(
-                    "{}: image {i} is past the {n_images} images or in two lists",
-                    images_section.reference()
-                )));
-            }
-        }
+        // Their contents are checked on first access ([`check_contents`]).
         Ok(Some(ImageIndex {
             of,
             probe: info.probe as usize,
             width: centroids_section.cols as usize,
             centroids: self.section_array(centroids_section)?,
-            offsets,
-            images,
+            offsets: self.section_array(lists_section)?,
+            images: self.section_array(images_section)?,
         }))
     }
 }

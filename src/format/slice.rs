@@ -463,6 +463,7 @@ mod tests {
                 levels: &[2],
                 vlad: true,
                 global: true,
+                index: true,
             };
             assert!(keep.section(&codebook(2)));
             assert!(keep.section(&image_vlad));
@@ -474,6 +475,7 @@ mod tests {
                 levels: &[2],
                 vlad: false,
                 global: true,
+                index: false,
             };
             assert!(!keep.section(&codebook(0)));
             assert!(!keep.section(&image_vlad));
@@ -492,6 +494,7 @@ mod tests {
             levels: &[2],
             vlad: true,
             global: true,
+            index: true,
         };
         assert!(keep.reads_contents(&codebook(2)));
         assert!(keep.reads_contents(&image_vlad));

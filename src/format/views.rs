@@ -485,6 +485,13 @@ pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> 
                 return bad(what);
             }
         }
+        SectionKind::ImageIndexLists
+        | SectionKind::ImageIndexImages
+        | SectionKind::ImageIndexCentroids => {
+            if let Err(what) = super::index::check_contents(section.kind, bytes, map.n_images()) {
+                return bad(what);
+            }
+        }
         // A NaN centroid would make every VLAD (or PQ reconstruction) it touches NaN, and
         // every ranking (or match) silently arbitrary.
         SectionKind::LevelPqCodebook | SectionKind::LevelVladCentroids

@@ -36,6 +36,22 @@ fn scene_vlad(s: &Scene) -> VladData {
     s.vlad(2, 2, vec![0.6, 0.8, -0.8, 0.6])
 }
 
+/// The image index of the `image_index` vector: 2 lists over the VLAD's 4 values.
+const INDEX_CENTROIDS: [f32; 8] = [0.5, 0.5, 0.5, 0.5, -0.5, 0.5, -0.5, 0.5];
+
+/// The vlad vector's map plus an image index (1.3): images 0 and 2 in list 0, 1 in list 1.
+fn scene_indexed<'s>(s: &'s Scene, vlad: &VladData) -> MapWriter<'s> {
+    let mut w = s.writer_with_vlad(Codec::Raw, vlad);
+    let info = sfpmap::format::ImageIndexInfo {
+        of: "vlad".into(),
+        probe: 1,
+        extra: Default::default(),
+    };
+    w.set_image_index(info, INDEX_CENTROIDS.to_vec(), 4, &[0, 1, 0])
+        .unwrap();
+    w
+}
+
 fn valid_expected(description: &str, bytes: &[u8], content: Value, unknown: Value) -> Value {
     valid_expected_version("1.0", description, bytes, content, unknown)
 }
@@ -263,6 +279,28 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         ),
     ));
 
+    let indexed = scene_indexed(&s, &vlad).to_bytes().unwrap();
+    let mut content = s.expected_json(origin_of(&indexed));
+    content["retrieval"] = json!("vlad");
+    content["vlad"] = vlad.expected_json();
+    content["image_index"] = json!({
+        "of": "vlad",
+        "probe": 1,
+        "centroids": INDEX_CENTROIDS.chunks(4).collect::<Vec<_>>(),
+        "lists": [[0, 2], [1]],
+    });
+    out.push((
+        "image_index",
+        indexed.clone(),
+        valid_expected_version(
+            "1.3",
+            "the vlad vector plus an image index (1.3) of 2 lists over the 3 images' VLADs",
+            &indexed,
+            content,
+            json!([]),
+        ),
+    ));
+
     // A later minor's optional sections in encodings 1.1 does not define: a known kind with
     // an unknown codec (colours) and one with an unknown dtype (ids), an unknown kind with an
     // unknown flag bit. A 1.1 reader skips and lists all three and reads the points.
@@ -303,7 +341,7 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         .unwrap();
     }
     let later = patch(&w.to_bytes().unwrap(), |h, e| {
-        h.minor = 3;
+        h.minor = 4;
         e[1].codec = 3;
         e[2].dtype = 9;
         e[3].flags = 0x02;
@@ -321,7 +359,7 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         "later_minor",
         later.clone(),
         valid_expected_version(
-            "1.3",
+            "1.4",
             "a later minor's optional sections in encodings this version does not know (skipped)",
             &later,
             content,
@@ -730,6 +768,34 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
     .unwrap();
     out.push((
         "vlad_wrong_columns",
+        w.to_bytes().unwrap(),
+        "inconsistent",
+        "open",
+    ));
+
+    // 1.3: image 2 in both lists (and image 1 in none), its section checksum recomputed.
+    let b = patched(
+        &scene_indexed(&s, &vlad).to_bytes().unwrap(),
+        SectionKind::ImageIndexImages,
+        8,
+        &2u32.to_le_bytes(),
+    );
+    out.push(("image_index_image_twice", b, "inconsistent", "verify"));
+    // 1.3: index centroids of 3 values where the VLAD rows have 4.
+    let mut w = scene_indexed(&s, &vlad);
+    w.add_raw_section(
+        SectionKind::ImageIndexCentroids,
+        NO_LEVEL,
+        Dtype::F32,
+        2,
+        3,
+        false,
+        Cow::Owned(bytemuck::cast_slice(&INDEX_CENTROIDS[..6]).to_vec()),
+        None,
+    )
+    .unwrap();
+    out.push((
+        "image_index_wrong_width",
         w.to_bytes().unwrap(),
         "inconsistent",
         "open",

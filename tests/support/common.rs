@@ -397,8 +397,8 @@ impl Scene {
 }
 
 /// What a reader decodes from a map, in the schema of the vectors' `.json` files. The 1.1
-/// keys `retrieval` and `vlad` are there only when the map has them, so 1.0 maps decode as
-/// before.
+/// keys `retrieval` and `vlad`, and 1.3's `image_index`, are there only when the map has
+/// them, so 1.0 maps decode as before.
 pub fn decoded_json(map: &Map<'_>) -> Value {
     let images = map.images().unwrap();
     let levels: Vec<Value> = map
@@ -469,6 +469,14 @@ pub fn decoded_json(map: &Map<'_>) -> Value {
             "dims": v.dims,
             "centroids": v.centroids.chunks(v.dims).collect::<Vec<_>>(),
             "images": v.images.chunks(v.clusters * v.dims).map(|r| r.iter().map(|x| x.to_f32()).collect::<Vec<_>>()).collect::<Vec<_>>(),
+        });
+    }
+    if let Some(i) = map.image_index().unwrap() {
+        content["image_index"] = json!({
+            "of": i.of.name(),
+            "probe": i.probe,
+            "centroids": i.centroids.chunks(i.width).collect::<Vec<_>>(),
+            "lists": (0..i.lists()).map(|l| i.list(l)).collect::<Vec<_>>(),
         });
     }
     content
