@@ -114,7 +114,12 @@ pub(crate) fn dots_f16(rows: &[half::f16], dim: usize, q: &[f32]) -> Vec<f32> {
     "x86_64+avx2+fma",
     "x86_64+avx"
 ))]
-pub(crate) fn dots_f16_picked(rows: &[half::f16], dim: usize, q: &[f32], picks: &[u32]) -> Vec<f32> {
+pub(crate) fn dots_f16_picked(
+    rows: &[half::f16],
+    dim: usize,
+    q: &[f32],
+    picks: &[u32],
+) -> Vec<f32> {
     assert_eq!(q.len(), dim, "dots_f16_picked: the query is not a row");
     let mut buffer = [0.0f32; STRETCH];
     let mut sums = Vec::with_capacity(picks.len());

@@ -3,7 +3,7 @@
 //! (1.3) the image index over the rows the map retrieves with, on maps of many images.
 
 use super::geometry::Geometry;
-use crate::format::{ImageIndexInfo, MapWriter, Retrieval, SectionKind};
+use crate::format::{Dtype, ImageIndexInfo, MapWriter, Retrieval, SectionKind};
 use crate::geometry::SplitMix64;
 use crate::kmeans::KMeans;
 use crate::progress::Reporter;
@@ -178,7 +178,7 @@ pub(crate) fn add_image_index(
         Retrieval::Vlad => SectionKind::ImageVlad,
         Retrieval::Global => SectionKind::ImageGlobal,
     };
-    let Some((bytes, width)) = writer.pending_f16(kind) else {
+    let Some((bytes, width)) = writer.pending_rows(kind, Dtype::F16) else {
         return Ok(None);
     };
     let row_bytes = width * 2;
@@ -254,7 +254,8 @@ pub(crate) fn add_image_index(
         let row_scores = &mut scores[q * images..(q + 1) * images];
         row_scores[own] = f32::NEG_INFINITY;
         let mut best: Vec<usize> = (0..images).collect();
-        let better = |&a: &usize, &b: &usize| row_scores[b].total_cmp(&row_scores[a]).then(a.cmp(&b));
+        let better =
+            |&a: &usize, &b: &usize| row_scores[b].total_cmp(&row_scores[a]).then(a.cmp(&b));
         let k = k.min(images - 1);
         if k == 0 {
             continue;
@@ -317,7 +318,110 @@ fn calibrated_probe(ranks_needed: &mut [usize], lists: usize) -> (usize, f64) {
 
 #[cfg(test)]
 mod tests {
-    use super::VladOptions;
+    use super::*;
+    use crate::progress::Silent;
+
+    /// `n` unit rows of `dims`: `groups` random directions, each row one of them (row `i`,
+    /// group `i % groups`) plus noise of `spread` per value; `groups` 0: noise alone.
+    fn rows(n: usize, dims: usize, groups: usize, spread: f32, seed: u64) -> Vec<f32> {
+        let mut rng = SplitMix64::new(seed);
+        let mut centre =
+            || -> Vec<f32> { (0..dims).map(|_| rng.next_f64() as f32 - 0.5).collect() };
+        let centres: Vec<Vec<f32>> = (0..groups).map(|_| centre()).collect();
+        let mut out = Vec::with_capacity(n * dims);
+        for i in 0..n {
+            let noise = centre();
+            let mut row: Vec<f32> = match centres.get(i % groups.max(1)) {
+                Some(c) if groups > 0 => {
+                    c.iter().zip(&noise).map(|(c, e)| c + spread * e).collect()
+                }
+                _ => noise,
+            };
+            crate::vector::l2_normalise(&mut row);
+            out.extend(row);
+        }
+        out
+    }
+
+    /// A writer whose map retrieves by `rows` (as global descriptors).
+    fn writer_of(rows: &[f32], dims: usize) -> MapWriter<'static> {
+        let mut w = MapWriter::default();
+        w.set_image_global(dims, rows).unwrap();
+        w.metadata_mut().retrieval = Some(Retrieval::Global.name().into());
+        w
+    }
+
+    #[test]
+    fn grouped_rows_get_an_index_that_probes_few_lists() {
+        // 3,000 images in 30 groups: an image's 10 nearest are of its group.
+        let (n, dims) = (3_000, 32);
+        let mut w = writer_of(&rows(n, dims, 30, 0.1, 1), dims);
+        let index = add_image_index(&mut w, None, &Silent).unwrap().unwrap();
+        assert_eq!(index.lists, default_index_lists(n));
+        assert!(
+            index.stored && index.recall >= CALIBRATION_RECALL,
+            "{index:?}"
+        );
+        assert!(index.probe * MAX_PROBE_SHARE <= index.lists, "{index:?}");
+        let info = w.metadata().image_index.clone().unwrap();
+        assert_eq!(
+            (info.of.as_str(), info.probe as usize),
+            ("global", index.probe)
+        );
+        // Every image in one list.
+        let (images, _) = w
+            .pending_rows(SectionKind::ImageIndexImages, Dtype::U32)
+            .unwrap();
+        let mut all: Vec<u32> = images
+            .chunks_exact(4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        all.sort_unstable();
+        assert_eq!(all, (0..n as u32).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn rows_without_neighbours_get_no_index_unless_asked() {
+        // Noise: an image's top 10 is anywhere, so 99 % of it takes most lists.
+        let (n, dims) = (3_000, 32);
+        let noise = rows(n, dims, 0, 1.0, 2);
+        let mut w = writer_of(&noise, dims);
+        let index = add_image_index(&mut w, None, &Silent).unwrap().unwrap();
+        assert!(
+            !index.stored && index.probe * MAX_PROBE_SHARE > index.lists,
+            "{index:?}"
+        );
+        assert!(w.metadata().image_index.is_none());
+        assert!(w.to_bytes().is_ok());
+        // Asked for, it is stored with the probe that reaches the recall.
+        let mut w = writer_of(&noise, dims);
+        let index = add_image_index(&mut w, Some(8), &Silent).unwrap().unwrap();
+        assert!(index.stored && index.lists == 8 && index.recall >= CALIBRATION_RECALL);
+        assert_eq!(
+            w.metadata().image_index.as_ref().unwrap().probe as usize,
+            index.probe
+        );
+        // None below the default's image count, with 0 lists, or without retrieval rows.
+        let mut w = writer_of(&noise[..100 * dims], dims);
+        assert!(add_image_index(&mut w, None, &Silent).unwrap().is_none());
+        let mut w = writer_of(&noise, dims);
+        assert!(add_image_index(&mut w, Some(0), &Silent).unwrap().is_none());
+        w.metadata_mut().retrieval = None;
+        assert!(add_image_index(&mut w, Some(8), &Silent).unwrap().is_none());
+    }
+
+    #[test]
+    fn the_probe_is_the_fewest_lists_holding_the_bar() {
+        // 100 neighbours: 98 in the first list, one in the 3rd, one in the 7th.
+        let mut ranks = vec![0usize; 98];
+        ranks.extend([2, 6]);
+        let (probe, recall) = calibrated_probe(&mut ranks, 10);
+        assert_eq!(probe, 3);
+        assert!((recall - 0.99).abs() < 1e-12);
+        assert_eq!(calibrated_probe(&mut [], 10), (1, 1.0));
+        // Never more lists than there are.
+        assert_eq!(calibrated_probe(&mut [9, 9], 10).0, 10);
+    }
 
     #[test]
     fn a_stated_shape_wins_over_the_images_rule() {

@@ -196,6 +196,12 @@ fn open_and_read_once(data: &[u8]) {
     }
     let _ = map.image_global();
     let _ = map.vlad();
+    if let Ok(Some(index)) = map.image_index() {
+        // Checked on access: every list is a range of the images.
+        for l in 0..index.lists() {
+            let _ = index.list(l);
+        }
+    }
     if let Ok(Some(vis)) = map.visibility() {
         for i in 0..vis.offsets.len().saturating_sub(1) {
             let _ = vis.points_of(i);

@@ -80,8 +80,7 @@ pub(crate) fn check_shapes<'s>(
             )));
         }
     };
-    if centroids.rows == 0 || u64::from(info.probe) == 0 || u64::from(info.probe) > centroids.rows
-    {
+    if centroids.rows == 0 || u64::from(info.probe) == 0 || u64::from(info.probe) > centroids.rows {
         return Err(Error::inconsistent(format!(
             "{} has {} lists and the metadata image_index probes {}: needs 1 to the lists there are",
             centroids.reference(),
@@ -155,7 +154,9 @@ pub(crate) fn check_contents(kind: SectionKind, bytes: &[u8], n_images: u64) -> 
             }
         }
         SectionKind::ImageIndexCentroids
-            if super::reader::cast::<f32>(bytes).iter().any(|v| !v.is_finite()) =>
+            if super::reader::cast::<f32>(bytes)
+                .iter()
+                .any(|v| !v.is_finite()) =>
         {
             return Err("a centroid value is not finite".into());
         }

@@ -243,7 +243,11 @@ impl SectionKind {
         (36, SectionKind::ImageNames, "image_names"),
         (37, SectionKind::ImageGlobal, "image_global"),
         (38, SectionKind::ImageVlad, "image_vlad"),
-        (39, SectionKind::ImageIndexCentroids, "image_index_centroids"),
+        (
+            39,
+            SectionKind::ImageIndexCentroids,
+            "image_index_centroids",
+        ),
         (40, SectionKind::ImageIndexLists, "image_index_lists"),
         (41, SectionKind::ImageIndexImages, "image_index_images"),
         (48, SectionKind::VisibilityOffsets, "visibility_offsets"),

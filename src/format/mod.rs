@@ -44,8 +44,8 @@ pub(crate) use metadata::descriptor_names_feature;
 #[cfg(feature = "colmap")]
 pub(crate) use metadata::UNNAMED_FEATURE_PREFIX;
 pub use metadata::{
-    CameraInfo, ImageIndexInfo, LevelInfo, Metadata, PositionGrid, Provenance, Retrieval, SourceFile,
-    DEFAULT_RETRIEVAL_TOP_K,
+    CameraInfo, ImageIndexInfo, LevelInfo, Metadata, PositionGrid, Provenance, Retrieval,
+    SourceFile, DEFAULT_RETRIEVAL_TOP_K,
 };
 pub use pq::Pq;
 pub use reader::{Map, Section, Skipped};

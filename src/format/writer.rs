@@ -144,13 +144,13 @@ impl<'a> MapWriter<'a> {
         self.sections.insert((kind.code(), level), section);
     }
 
-    /// The rows of a shared (no level) f16 section added as an array, not copied from
-    /// another map: its little-endian bytes and column count. What a builder reads back to
-    /// index them.
-    pub fn pending_f16(&self, kind: SectionKind) -> Option<(&[u8], usize)> {
+    /// The rows of a shared (no level) section of `dtype` added as an array, not copied
+    /// from another map: its little-endian bytes and column count. What a builder reads back
+    /// to index them.
+    pub fn pending_rows(&self, kind: SectionKind, dtype: Dtype) -> Option<(&[u8], usize)> {
         let section = self.sections.get(&(kind.code(), NO_LEVEL))?;
         match &section.content {
-            Content::Array { bytes, .. } if section.dtype == Dtype::F16 => {
+            Content::Array { bytes, .. } if section.dtype == dtype => {
                 Some((bytes.as_ref(), section.cols as usize))
             }
             _ => None,

@@ -657,6 +657,103 @@ mod tests {
         );
     }
 
+    /// `n` unit rows of `dim` and an index of `lists` lists over them (centroids: the first
+    /// `lists` rows; each row in the list of its nearest centroid), probing `probe`.
+    fn indexed(n: usize, dim: usize, lists: usize, probe: usize) -> (Vec<f32>, Lists<'static>) {
+        let mut rng = crate::geometry::SplitMix64::new(5);
+        let mut rows: Vec<f32> = (0..n * dim).map(|_| rng.next_f64() as f32 - 0.5).collect();
+        normalise_rows(&mut rows, dim);
+        let centroids = rows[..lists * dim].to_vec();
+        let nearest = crate::vector::Nearest::new(&centroids, dim);
+        let mut members: Vec<Vec<u32>> = vec![Vec::new(); lists];
+        for (i, row) in rows.chunks_exact(dim).enumerate() {
+            members[nearest.find(row)].push(i as u32);
+        }
+        let mut offsets = vec![0u32];
+        for m in &members {
+            offsets.push(offsets.last().unwrap() + m.len() as u32);
+        }
+        let minus_half_norms = centroids
+            .chunks_exact(dim)
+            .map(|c| -0.5 * dot(c, c))
+            .collect();
+        let index = ImageIndex {
+            of: Retrieval::Global,
+            probe,
+            width: dim,
+            centroids: Cow::Owned(centroids),
+            offsets: Cow::Owned(offsets),
+            images: Cow::Owned(members.concat()),
+        };
+        let lists = Lists {
+            index,
+            minus_half_norms,
+            probe,
+        };
+        (rows, lists)
+    }
+
+    #[test]
+    fn every_list_probed_ranks_as_every_image_scored() {
+        let (rows, lists) = indexed(60, 8, 6, 6);
+        for q in rows.chunks_exact(8).take(10) {
+            for k in [1, 3, 10, 60, 100] {
+                assert_eq!(
+                    lists.rank(Rows::F32(&rows), q, k),
+                    rank(Rows::F32(&rows), 8, q, k),
+                    "k = {k}"
+                );
+            }
+        }
+        // f16 rows score the same way through their kernel.
+        let half: Vec<f16> = rows.iter().map(|&v| f16::from_f32(v)).collect();
+        let q = &rows[8..16];
+        assert_eq!(
+            lists.rank(Rows::F16(&half), q, 5),
+            rank(Rows::F16(&half), 8, q, 5)
+        );
+    }
+
+    #[test]
+    fn a_probe_scores_its_lists_and_enough_images_for_top_k() {
+        let (rows, lists) = indexed(400, 8, 20, 2);
+        let score = |a: &[f32], b: &[f32]| dot(a, b);
+        for (n, q) in rows.chunks_exact(8).enumerate().skip(20).take(20) {
+            // The lists by centroid score, then the first 2 of them, and more until they hold
+            // 8 images a top image: what should be scored.
+            let mut order: Vec<usize> = (0..20).collect();
+            let list_score = |l: usize| {
+                score(&lists.index.centroids[l * 8..(l + 1) * 8], q) + lists.minus_half_norms[l]
+            };
+            order.sort_by(|&a, &b| list_score(b).total_cmp(&list_score(a)));
+            for k in [1, 4] {
+                let mut scored: Vec<u32> = Vec::new();
+                for (probed, &l) in order.iter().enumerate() {
+                    if probed >= 2 && scored.len() >= 8 * k {
+                        break;
+                    }
+                    scored.extend_from_slice(lists.index.list(l));
+                }
+                assert!(
+                    scored.len() < 400,
+                    "query {n}: a probe of 2 lists scored every image"
+                );
+                scored.sort_unstable();
+                scored.sort_by(|&a, &b| {
+                    let (sa, sb) = (
+                        score(&rows[a as usize * 8..][..8], q),
+                        score(&rows[b as usize * 8..][..8], q),
+                    );
+                    sb.total_cmp(&sa).then(a.cmp(&b))
+                });
+                let want: Vec<usize> = scored[..k].iter().map(|&i| i as usize).collect();
+                assert_eq!(lists.rank(Rows::F32(&rows), q, k), want, "query {n}, k {k}");
+            }
+        }
+        // A query's own row is in its nearest list: it ranks first.
+        assert_eq!(lists.rank(Rows::F32(&rows), &rows[..8], 1), [0]);
+    }
+
     fn ok(points: &[u32]) -> Result<&[u32], std::convert::Infallible> {
         Ok(points)
     }

@@ -28,6 +28,7 @@ mod extract_aliked;
 mod extract_reference;
 mod format_chunks;
 mod format_errors;
+mod format_index;
 mod format_roundtrip;
 mod format_source;
 mod fuzz_replay;

@@ -351,3 +351,78 @@ fn convert_sfp(s: &Path, out: &str, model: Option<&str>) {
 fn root() -> PathBuf {
     crate::shared_data::repo_root()
 }
+
+/// (1.3) `convert --index-lists` on a real map: the index is in the report and in `info`, a
+/// query probing every list retrieves what ranking every image retrieves, and the default
+/// probe localizes every query.
+#[test]
+fn an_image_index_asked_for_is_stored_and_every_list_probed_ranks_exhaustively() {
+    let Some(s) = scene() else { return };
+    let t = tempfile::tempdir().unwrap();
+    let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
+    std::fs::copy(s.join("database.db"), t.path().join("db.db")).unwrap();
+    std::fs::copy(s.join("queries.db"), t.path().join("q.db")).unwrap();
+    let report: Value = serde_json::from_str(&run(&[
+        "convert",
+        "--colmap",
+        s.join("sparse-map").to_str().unwrap(),
+        "--database",
+        &p("db.db"),
+        "--index-lists",
+        "3",
+        "-o",
+        &p("m.sfpm"),
+        "--json",
+    ]))
+    .unwrap();
+    let index = &report["image_index"];
+    assert_eq!(
+        (index["of"].as_str(), index["lists"].as_u64()),
+        (Some("vlad"), Some(3)),
+        "{report}"
+    );
+    assert_eq!(index["stored"], true, "{report}");
+    let probe = index["probe"].as_u64().unwrap();
+    assert!((1..=3).contains(&probe), "{report}");
+    let info: Value = serde_json::from_str(&run(&["info", &p("m.sfpm"), "--json"])).unwrap();
+    assert_eq!(info["version"], "1.3");
+    assert_eq!(info["retrieval"]["index"]["lists"], 3, "{info}");
+    assert_eq!(info["retrieval"]["index"]["probe"], probe, "{info}");
+    // Retrieved images per query (2 of the 8, so retrieval narrows), by probe.
+    let retrieved = |probe: &str| -> Vec<Value> {
+        let out = p(&format!("p{probe}.json"));
+        let run_out: Value = serde_json::from_str(&run(&[
+            "localize",
+            "--map",
+            &p("m.sfpm"),
+            "--query-list",
+            s.join("queries.txt").to_str().unwrap(),
+            "--database",
+            &p("q.db"),
+            "--top-k",
+            "2",
+            "--retrieval-probe",
+            probe,
+            "--format",
+            "json",
+            "-o",
+            &out,
+            "--force",
+            "--json",
+        ]))
+        .unwrap();
+        assert_eq!(
+            run_out["localized"], run_out["queries"],
+            "probe {probe}: {run_out}"
+        );
+        let queries: Vec<Value> =
+            serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+        queries.iter().map(|q| q["retrieved"].clone()).collect()
+    };
+    let exhaustive = retrieved("0");
+    assert_eq!(exhaustive.len(), 2);
+    assert!(exhaustive.iter().all(|r| r.as_array().unwrap().len() == 2));
+    assert_eq!(retrieved("3"), exhaustive);
+    // The map's own probe localizes every query (asserted inside).
+    retrieved(&probe.to_string());
+}

@@ -247,6 +247,7 @@ class Localizer:
         fine_error_px: Optional[float] = None,
         min_inliers: Optional[int] = None,
         sequence: bool = False,
+        retrieval_probe: Optional[int] = None,
     ) -> None: ...
     @property
     def level_order(self) -> List[int]: ...

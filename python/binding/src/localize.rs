@@ -422,7 +422,8 @@ impl Localizer {
     #[new]
     #[pyo3(signature = (map, levels=None, short=false, top_k=None, retrieval="auto", ratio=None,
                         mutual=None, min_similarity=None, coarse_error_px=None, gate_px=None,
-                        gate_ratio=None, fine_error_px=None, min_inliers=None, sequence=false))]
+                        gate_ratio=None, fine_error_px=None, min_inliers=None, sequence=false,
+                        retrieval_probe=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -440,6 +441,7 @@ impl Localizer {
         fine_error_px: Option<f64>,
         min_inliers: Option<i64>,
         sequence: bool,
+        retrieval_probe: Option<usize>,
     ) -> PyResult<Self> {
         let opened = map.get().opened(py)?;
         // Each option left out (None) is the map's own default (LocalizeOptions::for_map:
@@ -464,6 +466,7 @@ impl Localizer {
             retrieval: retrieval
                 .parse::<RetrievalMethod>()
                 .map_err(|e| InputError::new_err(e.to_string()))?,
+            retrieval_probe,
             matching: MatchOptions {
                 ratio: ratio.unwrap_or(base.matching.ratio),
                 mutual: mutual.unwrap_or(base.matching.mutual),

@@ -1,0 +1,240 @@
+//! (1.3) The image index: what open and first access refuse, and what a slice keeps. The
+//! conformance vectors (`image_index`, `image_index_image_twice`, `image_index_wrong_width`)
+//! cover the valid layout and one error of each stage; these cover the other rules.
+
+use crate::common::{Scene, VladData};
+use sfpmap::format::{
+    slice, Codec, Dtype, ImageIndexInfo, Map, MapWriter, Retrieval, SectionKind, SliceOptions,
+};
+use sfpmap::fuzzing::NO_LEVEL;
+use std::borrow::Cow;
+
+const CENTROIDS: [f32; 8] = [0.5, 0.5, 0.5, 0.5, -0.5, 0.5, -0.5, 0.5];
+
+fn scene() -> Scene {
+    Scene::new(
+        7,
+        24,
+        3,
+        &[(0, 16.0, 16, 4), (1, 8.0, 8, 4), (2, 4.0, 8, 2)],
+    )
+}
+
+fn info(of: &str, probe: u32) -> ImageIndexInfo {
+    ImageIndexInfo {
+        of: of.into(),
+        probe,
+        extra: Default::default(),
+    }
+}
+
+/// The scene with VLAD on level 2 (4 values an image) and an index of 2 lists over `of`.
+fn indexed<'s>(s: &'s Scene, vlad: &VladData, of: &str) -> MapWriter<'s> {
+    let mut w = s.writer_with_vlad(Codec::Raw, vlad);
+    w.set_image_index(info(of, 1), CENTROIDS.to_vec(), 4, &[0, 1, 0])
+        .unwrap();
+    w
+}
+
+fn vlad(s: &Scene) -> VladData {
+    s.vlad(2, 2, vec![0.6, 0.8, -0.8, 0.6])
+}
+
+/// The error kind `bytes` fail to open with.
+fn open_error(bytes: &[u8]) -> &'static str {
+    Map::from_bytes(bytes).expect_err("refused").kind_name()
+}
+
+#[test]
+fn an_index_opens_and_reads_back_its_lists() {
+    let s = scene();
+    let v = vlad(&s);
+    let bytes = indexed(&s, &v, "vlad").to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    assert_eq!(map.version(), "1.3");
+    map.verify().unwrap();
+    let index = map.image_index().unwrap().unwrap();
+    assert_eq!(
+        (index.of, index.probe, index.width),
+        (Retrieval::Vlad, 1, 4)
+    );
+    assert_eq!((index.list(0), index.list(1)), (&[0, 2][..], &[1][..]));
+    // The same index over the scene's 4-dimensional global descriptors opens too.
+    let bytes = indexed(&s, &v, "global").to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    assert_eq!(map.image_index().unwrap().unwrap().of, Retrieval::Global);
+    // Over rows this version does not know: opened, and not used.
+    let bytes = indexed(&s, &v, "netvlad-pca").to_bytes().unwrap();
+    assert!(Map::from_bytes(&bytes)
+        .unwrap()
+        .image_index()
+        .unwrap()
+        .is_none());
+}
+
+#[test]
+fn an_index_that_disagrees_with_its_images_is_refused_at_open() {
+    let s = scene();
+    let v = vlad(&s);
+    // The metadata without the sections, and the sections without the metadata.
+    let mut w = s.writer_with_vlad(Codec::Raw, &v);
+    w.metadata_mut().image_index = Some(info("vlad", 1));
+    assert_eq!(open_error(&w.to_bytes().unwrap()), "inconsistent");
+    let mut w = indexed(&s, &v, "vlad");
+    w.metadata_mut().image_index = None;
+    assert_eq!(open_error(&w.to_bytes().unwrap()), "inconsistent");
+    // A probe past the 2 lists, and 0.
+    for probe in [0, 3] {
+        let mut w = indexed(&s, &v, "vlad");
+        w.metadata_mut().image_index.as_mut().unwrap().probe = probe;
+        assert_eq!(
+            open_error(&w.to_bytes().unwrap()),
+            "inconsistent",
+            "{probe}"
+        );
+    }
+    // Two images listed for the map's three; list offsets for 3 lists of 2 centroids.
+    let u32s = |v: &[u32]| Cow::Owned(bytemuck::cast_slice(v).to_vec());
+    for (kind, rows, values) in [
+        (SectionKind::ImageIndexImages, 2, vec![0u32, 1]),
+        (SectionKind::ImageIndexLists, 4, vec![0u32, 1, 2, 3]),
+    ] {
+        let mut w = indexed(&s, &v, "vlad");
+        w.add_raw_section(
+            kind,
+            NO_LEVEL,
+            Dtype::U32,
+            rows,
+            1,
+            false,
+            u32s(&values),
+            None,
+        )
+        .unwrap();
+        assert_eq!(open_error(&w.to_bytes().unwrap()), "inconsistent", "{kind}");
+    }
+    // Over global descriptors the map does not have.
+    let mut w = MapWriter::default();
+    w.metadata_mut().provenance.tool = "sfpmap test fixture".into();
+    let plain = s.writer_with_vlad(Codec::Raw, &v).to_bytes().unwrap();
+    let map = Map::from_bytes(&plain).unwrap();
+    for section in map.sections() {
+        if section.kind() != SectionKind::ImageGlobal {
+            w.copy_section(&map, section).unwrap();
+        }
+    }
+    *w.metadata_mut() = map.metadata().clone();
+    w.set_image_index(info("global", 1), CENTROIDS.to_vec(), 4, &[0, 1, 0])
+        .unwrap();
+    assert_eq!(open_error(&w.to_bytes().unwrap()), "inconsistent");
+}
+
+#[test]
+fn index_contents_are_checked_where_they_are_read() {
+    let s = scene();
+    let v = vlad(&s);
+    let u32s = |v: &[u32]| Cow::Owned(bytemuck::cast_slice(v).to_vec());
+    let f32s = |v: &[f32]| Cow::Owned(bytemuck::cast_slice(v).to_vec());
+    let cases: [(SectionKind, Dtype, u64, Cow<'static, [u8]>); 4] = [
+        // Offsets ending at 2 of the 3 images; decreasing.
+        (
+            SectionKind::ImageIndexLists,
+            Dtype::U32,
+            3,
+            u32s(&[0, 2, 2]),
+        ),
+        (
+            SectionKind::ImageIndexLists,
+            Dtype::U32,
+            3,
+            u32s(&[0, 3, 2]),
+        ),
+        // Image 3 of 3.
+        (
+            SectionKind::ImageIndexImages,
+            Dtype::U32,
+            3,
+            u32s(&[0, 3, 1]),
+        ),
+        // A NaN centroid.
+        (
+            SectionKind::ImageIndexCentroids,
+            Dtype::F32,
+            2,
+            f32s(&[f32::NAN, 0.5, 0.5, 0.5, -0.5, 0.5, -0.5, 0.5]),
+        ),
+    ];
+    for (kind, dtype, rows, bytes) in cases {
+        let cols = if dtype == Dtype::F32 { 4 } else { 1 };
+        let mut w = indexed(&s, &v, "vlad");
+        w.add_raw_section(kind, NO_LEVEL, dtype, rows, cols, false, bytes, None)
+            .unwrap();
+        let bytes = w.to_bytes().unwrap();
+        let map = Map::from_bytes(&bytes).unwrap();
+        let err = map.image_index().expect_err("refused on access");
+        assert_eq!(err.kind_name(), "inconsistent", "{kind}: {err}");
+        assert_eq!(map.verify().unwrap_err().kind_name(), "inconsistent");
+    }
+}
+
+fn sliced(bytes: &[u8], levels: &[u16], minimal: bool) -> (Vec<u8>, sfpmap::format::SliceSummary) {
+    let map = Map::from_bytes(bytes).unwrap();
+    let options = SliceOptions {
+        levels: levels.to_vec(),
+        minimal,
+        zstd_level: 3,
+        ..SliceOptions::default()
+    };
+    let (w, summary) = slice(&map, &options).unwrap();
+    (w.to_bytes().unwrap(), summary)
+}
+
+#[test]
+fn a_slice_keeps_the_index_with_the_rows_it_indexes() {
+    let s = scene();
+    let v = vlad(&s);
+    let bytes = indexed(&s, &v, "vlad").to_bytes().unwrap();
+    let before = Map::from_bytes(&bytes).unwrap();
+    let before = before.image_index().unwrap().unwrap();
+    // Level 2 holds the VLAD: kept, and the index with it, unchanged.
+    let (kept, summary) = sliced(&bytes, &[2], false);
+    assert!(!summary.index_dropped);
+    let map = Map::from_bytes(&kept).unwrap();
+    map.verify().unwrap();
+    let after = map.image_index().unwrap().unwrap();
+    assert_eq!(
+        (
+            &*after.centroids,
+            &*after.offsets,
+            &*after.images,
+            after.probe
+        ),
+        (
+            &*before.centroids,
+            &*before.offsets,
+            &*before.images,
+            before.probe
+        )
+    );
+    // Level 0 alone: the VLAD goes, and the index and its metadata with it (a 1.2 file).
+    let (dropped, summary) = sliced(&bytes, &[0], false);
+    assert!(summary.vlad_dropped && summary.index_dropped);
+    let map = Map::from_bytes(&dropped).unwrap();
+    assert!(map.metadata().image_index.is_none());
+    assert!(map.find(SectionKind::ImageIndexImages, None).is_none());
+    assert_ne!(map.version(), "1.3");
+    // An index over global descriptors stays when the VLAD level goes.
+    let global = indexed(&s, &v, "global").to_bytes().unwrap();
+    let (kept, summary) = sliced(&global, &[0], false);
+    assert!(summary.vlad_dropped && !summary.index_dropped);
+    let map = Map::from_bytes(&kept).unwrap();
+    assert_eq!(map.image_index().unwrap().unwrap().of, Retrieval::Global);
+    // --minimal on 3 images keeps no retrieval data, so no index.
+    let (minimal, summary) = sliced(&bytes, &[2], true);
+    assert!(summary.index_dropped);
+    assert!(Map::from_bytes(&minimal)
+        .unwrap()
+        .image_index()
+        .unwrap()
+        .is_none());
+}
