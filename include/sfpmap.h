@@ -199,9 +199,10 @@ typedef struct SfpmLocalization {
 // `SFPM_ERR_ARGUMENT` and the library's message in `sfpm_last_error`, e.g. "ratio 1.5: a
 // ratio in (0, 1]" (the same text the CLI and the Python package give).
 //
-// Versioned by its size: a later library will append fields and take the struct of an
-// earlier header by its `struct_size` (the fields it lacks at their defaults); this one
-// takes only its own size.
+// Versioned by its size: a later library appends fields and takes the struct of an earlier
+// header by its `struct_size`, the fields it lacks at their defaults. This one takes its own
+// size and that of the struct before `retrieval_probe` (`offsetof(SfpmSessionOptions,
+// retrieval_probe)`).
 typedef struct SfpmSessionOptions {
   // `sizeof(SfpmSessionOptions)` of the header the caller was built with, as
   // `sfpm_session_options_default` writes it; `sfpm_session_open` refuses a size it does
@@ -243,6 +244,10 @@ typedef struct SfpmSessionOptions {
   // (`SFPM_RETRIEVAL_AUTO`, the default; `SFPM_RETRIEVAL_VLAD`, `SFPM_RETRIEVAL_GLOBAL`,
   // `SFPM_RETRIEVAL_OFF`: every point a candidate). Another value is `SFPM_ERR_ARGUMENT`.
   uint32_t retrieval;
+  // Lists of the map's image index (format 1.3) a query scores: -1, the map's own probe
+  // (the default); 0, no index (every image scored, as `sfpmap localize
+  // --retrieval-probe 0`); n > 0, n lists. Another negative value is `SFPM_ERR_ARGUMENT`.
+  int64_t retrieval_probe;
 } SfpmSessionOptions;
 
 // An open localization session (`sfpm_session_open`): a map prepared for queries with a

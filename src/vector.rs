@@ -171,6 +171,31 @@ pub(crate) fn dot(a: &[f32], b: &[f32]) -> f32 {
     lanes.iter().sum::<f32>() + tail
 }
 
+/// Indices of the `k` highest scores, best first, ties by index: a partial selection
+/// (O(n) to find them, O(k log k) to order them), never a sort of all `n`.
+#[cfg(any(feature = "colmap-model", feature = "localize"))]
+pub(crate) fn top_k_indices(scores: &[f32], k: usize) -> Vec<usize> {
+    let better = |&a: &usize, &b: &usize| scores[b].total_cmp(&scores[a]).then(a.cmp(&b));
+    let mut order: Vec<usize> = (0..scores.len()).collect();
+    if k < order.len() {
+        order.select_nth_unstable_by(k, better);
+        order.truncate(k);
+    }
+    order.sort_unstable_by(better);
+    order
+}
+
+/// A score that is not a number (a NaN in a stored row, which the format does not check)
+/// made the lowest, so it ranks last, not first.
+#[cfg(any(feature = "colmap-model", feature = "localize"))]
+pub(crate) fn ranked_last_if_not_finite(scores: &mut [f32]) {
+    for s in scores {
+        if !s.is_finite() {
+            *s = f32::NEG_INFINITY;
+        }
+    }
+}
+
 /// The nearest of a set of centroids, by `x·c − ‖c‖²/2` (the order of the squared distance).
 /// The centroids are stored in blocks of [`LANES`] (`[blocks × dims × LANES]`, the last block
 /// padded with centroids that never win), so a block's scores stay in one vector register
@@ -234,6 +259,41 @@ impl Nearest {
             &self.blocks,
             &self.minus_half_norms,
         ))
+    }
+
+    /// Every centroid's `x·c − ‖c‖²/2`, in centroid order (what `find` maximises, summed
+    /// block by block: equal to its scores up to rounding).
+    pub fn scores(&self, x: &[f32]) -> Vec<f32> {
+        let used = x.len().min(self.dims);
+        let mut out = Vec::with_capacity(self.minus_half_norms.len());
+        if self.dims == 0 {
+            out.resize(self.clusters, 0.0);
+            return out;
+        }
+        for (block, halves) in self
+            .blocks
+            .chunks_exact(self.dims * LANES)
+            .zip(self.minus_half_norms.chunks_exact(LANES))
+        {
+            let mut acc = [0.0f32; LANES];
+            for (lanes, &v) in block.chunks_exact(LANES).zip(&x[..used]) {
+                for l in 0..LANES {
+                    acc[l] += v * lanes[l];
+                }
+            }
+            out.extend(acc.iter().zip(halves).map(|(a, h)| a + h));
+        }
+        out.truncate(self.clusters);
+        out
+    }
+
+    /// The centroids nearest to `x` first (by [`Nearest::scores`]; ties: the lower index; a
+    /// score that is not a number last): the order an image index's lists are probed in,
+    /// by the writer's calibration and by the localizer alike.
+    pub fn order(&self, x: &[f32]) -> Vec<usize> {
+        let mut scores = self.scores(x);
+        ranked_last_if_not_finite(&mut scores);
+        top_k_indices(&scores, self.clusters)
     }
 
     /// [`Nearest::find`] of each row in order, `found(row index, centroid)` for each; rows of

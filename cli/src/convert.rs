@@ -134,8 +134,9 @@ pub struct Args {
     #[arg(long, value_parser = vlad_clusters, long_help = vlad_help("centroids of the VLAD codebook stored with the map (0: none); queries are ranked against the map's images by their VLAD of the same level's descriptors", |(c, _)| c))]
     pub vlad_clusters: Option<usize>,
     /// Retrieval: lists of the image index stored over the rows the map ranks its images
-    /// with (format 1.3; 0: none). Default: none below 2000 images, else about the square
-    /// root of the image count; a query then scores a few lists instead of every image.
+    /// with (format 1.3; 0: none; at most one per image). Default: from 2000 images, about
+    /// the square root of the image count, stored only where a query would then score at
+    /// most a quarter of the images; a query scores a few lists instead of every image.
     #[arg(long, value_name = "LISTS", value_parser = index_lists)]
     pub index_lists: Option<usize>,
     /// Product-quantise every level into M one-byte codes per point (M dividing each level's
@@ -232,18 +233,21 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         if let Some(i) = &summary.index {
             if i.stored {
                 println!(
-                    "image index: {} lists over {}, {} probed (calibration recall {:.3})",
+                    "image index: {} lists over {}, {} probed, about {} images scored a query (calibration recall {:.3})",
                     i.lists,
                     i.of.name(),
                     i.probe,
+                    i.scored,
                     i.recall
                 );
             } else {
                 println!(
-                    "image index: none (recall {:.3} of ranking every image took {} of {} lists: the images' {} rows have no neighbours an index could group)",
+                    "image index: none (recall {:.3} of ranking every image took {} of {} lists, {} of the {} images: the images' {} rows have no neighbours an index could group)",
                     i.recall,
                     i.probe,
                     i.lists,
+                    i.scored,
+                    summary.images,
                     i.of.name()
                 );
             }
@@ -284,8 +288,7 @@ fn vlad_options(args: &Args) -> sfpmap::build::VladOptions {
     }
 }
 
-/// At most 65536 lists: more than the images of any map we know, and each list costs its
-/// centroid's bytes.
+/// At most as many lists as the index's k-means learns from rows.
 fn index_lists(s: &str) -> Result<usize, String> {
     match s.parse::<usize>() {
         Ok(n) if n <= sfpmap::build::MAX_INDEX_LISTS => Ok(n),

@@ -47,7 +47,7 @@ pub use error::ConvertError;
 #[cfg(feature = "colmap")]
 pub use kapture::convert_kapture;
 #[cfg(feature = "colmap")]
-pub use retrieval::{default_index_lists, StoredIndex, StoredVlad, VladOptions, MAX_INDEX_LISTS};
+pub use retrieval::{ImageIndexSummary, StoredVlad, VladOptions, MAX_INDEX_LISTS};
 #[cfg(all(feature = "colmap", feature = "onnx"))]
 pub use sfp::{convert_model_with_images, convert_with_images, SfpMapOptions, SfpMapSummary};
 #[cfg(feature = "colmap")]
@@ -107,7 +107,7 @@ pub struct ConvertSummary {
     /// The VLAD stored for retrieval, if one was.
     pub vlad: Option<StoredVlad>,
     /// (1.3) The image index stored over the retrieval rows, if one was.
-    pub index: Option<StoredIndex>,
+    pub index: Option<ImageIndexSummary>,
     /// Each product-quantised level (`--pq`), empty without.
     pub pq: Vec<pq::PqLevelSummary>,
 }
@@ -267,7 +267,7 @@ impl ConvertSummary {
             "images_without_features": s.images_without_features,
             "points_without_descriptors": s.points_without_descriptors,
             "vlad": s.vlad.map(|v| serde_json::json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
-            "image_index": s.index.as_ref().map(|i| serde_json::json!({"of": i.of.name(), "lists": i.lists, "probe": i.probe, "recall": i.recall, "stored": i.stored})),
+            "image_index": s.index.as_ref().map(|i| serde_json::json!({"of": i.of.name(), "lists": i.lists, "probe": i.probe, "recall": i.recall, "scored": i.scored, "stored": i.stored})),
         })
     }
 }

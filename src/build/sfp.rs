@@ -619,7 +619,7 @@ impl SfpMapSummary {
             "missing_images": summary.missing_images,
             "levels": levels,
             "vlad": c.vlad.map(|v| serde_json::json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
-            "image_index": c.index.as_ref().map(|i| serde_json::json!({"of": i.of.name(), "lists": i.lists, "probe": i.probe, "recall": i.recall, "stored": i.stored})),
+            "image_index": c.index.as_ref().map(|i| serde_json::json!({"of": i.of.name(), "lists": i.lists, "probe": i.probe, "recall": i.recall, "scored": i.scored, "stored": i.stored})),
         })
     }
 }

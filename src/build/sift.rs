@@ -17,9 +17,10 @@ use super::features::{DatabaseSource, FeatureSource, ModelImage, MAX_DESCRIPTOR_
 use super::geometry::Geometry;
 use super::{read_geometry_with_sources, source_file, ConvertError, ConvertSummary, LevelSummary};
 use crate::colmap::Reconstruction;
-use crate::format::{Codec, Descriptors, LevelInfo, Metadata, SourceFile};
+use crate::format::{f16, Codec, Descriptors, LevelInfo, Metadata, SourceFile};
 use crate::progress::Reporter;
 use serde_json::json;
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 /// How a point's descriptor is made from its observations'.
@@ -214,7 +215,7 @@ fn convert_geometry(
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<ConvertSummary, ConvertError> {
-    let observations = match source {
+    let mut observations = match source {
         Some(source) => {
             // A folder (kapture) is recorded by its files' own provenance, not hashed whole.
             if source.path().is_file() {
@@ -257,7 +258,7 @@ fn convert_geometry(
     // Retrieval on the deepest level's basis (the level a `level 2, short` slice keeps), over
     // every described point: each point's descriptor projected on the basis' leading rows,
     // made as soon as the levels are, so the full descriptors are dropped before writing.
-    let (built_levels, vlad_rows) = match &observations {
+    let (mut built_levels, vlad_rows) = match observations.as_mut() {
         Some(obs) => {
             images_without_features = obs.images_without_features;
             let n_points = geometry.positions.len();
@@ -284,11 +285,16 @@ fn convert_geometry(
         }
         None => (Vec::new(), None),
     };
-    for l in &built_levels {
+    // Moved in: the writer splits each level's into its blocks and drops them.
+    let level_descriptors: Vec<Vec<f16>> = built_levels
+        .iter_mut()
+        .map(|l| std::mem::take(&mut l.descriptors))
+        .collect();
+    for (l, descriptors) in built_levels.iter().zip(level_descriptors) {
         writer.add_level(
             l.info.clone(),
             &l.points,
-            Some(Descriptors::F32(&l.descriptors)),
+            Some(Descriptors::F16(Cow::Owned(descriptors))),
             true,
         )?;
         writer.set_level_projection(l.info.level, l.basis.dim, l.basis.rows.clone())?;
@@ -529,13 +535,14 @@ fn read_global(
     )))
 }
 
-/// One descriptor per point (`[points × dim]`) and whether the point has one.
-fn aggregate(obs: &Observations, n_points: usize, how: Aggregate) -> (Vec<f32>, Vec<bool>) {
+/// One descriptor per point (`[points × dim]`) and whether the point has one. Takes the
+/// observations' sums (or descriptors): a map's worth of f32 not held twice.
+fn aggregate(obs: &mut Observations, n_points: usize, how: Aggregate) -> (Vec<f32>, Vec<bool>) {
     let dim = obs.dim;
     let has: Vec<bool> = obs.counts.iter().map(|&c| c > 0).collect();
     match how {
         Aggregate::Mean => {
-            let mut out = obs.sums.clone();
+            let mut out = std::mem::take(&mut obs.sums);
             out.resize(n_points * dim, 0.0);
             for row in out.chunks_exact_mut(dim.max(1)) {
                 crate::vector::l2_normalise(row);
@@ -544,7 +551,8 @@ fn aggregate(obs: &Observations, n_points: usize, how: Aggregate) -> (Vec<f32>, 
         }
         Aggregate::Medoid => {
             let mut out = vec![0.0; n_points * dim];
-            let mut by_point: Vec<&(u32, Vec<f32>)> = obs.all.iter().collect();
+            let all = std::mem::take(&mut obs.all);
+            let mut by_point: Vec<&(u32, Vec<f32>)> = all.iter().collect();
             by_point.sort_by_key(|(p, _)| *p);
             for group in by_point.chunk_by(|a, b| a.0 == b.0) {
                 let best = (0..group.len())
@@ -569,7 +577,8 @@ fn aggregate(obs: &Observations, n_points: usize, how: Aggregate) -> (Vec<f32>, 
 struct BuiltLevel {
     info: LevelInfo,
     points: Vec<u32>,
-    descriptors: Vec<f32>,
+    /// In the level's basis, rounded to f16 as the writer stores them (half the f32's bytes).
+    descriptors: Vec<f16>,
     basis: Basis,
     summary: LevelSummary,
 }
@@ -581,7 +590,7 @@ const LEVEL_RULE: &str = "median keypoint scale of the point's observations, spl
 const ONE_LEVEL_RULE: &str = "one level: the features' keypoints have no scale";
 
 fn build_levels(
-    obs: &Observations,
+    obs: &mut Observations,
     descriptors: &[f32],
     has: &[bool],
     short_dims: Option<u32>,
@@ -592,7 +601,8 @@ fn build_levels(
         return Ok(Vec::new());
     }
     // Median scale per point.
-    let mut scales = obs.scales.clone();
+    // Taken: nothing reads them after the levels.
+    let mut scales = std::mem::take(&mut obs.scales);
     scales.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
     let mut median = vec![f32::NAN; has.len()];
     for group in scales.chunk_by(|a, b| a.0 == b.0) {
@@ -636,10 +646,15 @@ fn build_levels(
             raw.extend_from_slice(&descriptors[p as usize * dim..(p as usize + 1) * dim]);
         }
         let basis = Basis::fit(&raw, dim);
-        let mut projected = vec![0.0; raw.len()];
-        for (src, dst) in raw.chunks_exact(dim).zip(projected.chunks_exact_mut(dim)) {
-            basis.project(src, dst);
+        // Row by row into f16 (round to nearest even, as the writer converts f32): no f32
+        // copy of the level.
+        let mut projected = Vec::with_capacity(raw.len());
+        let mut row = vec![0.0f32; dim];
+        for src in raw.chunks_exact(dim) {
+            basis.project(src, &mut row);
+            projected.extend(row.iter().map(|&v| f16::from_f32(v)));
         }
+        drop(raw);
         let level_scales: Vec<f32> = points.iter().map(|&p| median[p as usize]).collect();
         let lo = level_scales.iter().copied().fold(f32::INFINITY, f32::min);
         let hi = level_scales

@@ -43,7 +43,7 @@ pub use session::{
     sfpm_localize, sfpm_session_close, sfpm_session_is_tracking, sfpm_session_localize,
     sfpm_session_localize_global, sfpm_session_open, sfpm_session_options_default,
     sfpm_session_reset_tracking, SfpmCamera, SfpmLocalization, SfpmLocalizeOptions, SfpmRetrieval,
-    SfpmSessionOptions,
+    SfpmSessionOptions, SFPM_SESSION_OPTIONS_SIZE_1,
 };
 
 use crate::format::Error as FormatError;

@@ -107,9 +107,10 @@ impl SfpmRetrieval {
 /// `SFPM_ERR_ARGUMENT` and the library's message in `sfpm_last_error`, e.g. "ratio 1.5: a
 /// ratio in (0, 1]" (the same text the CLI and the Python package give).
 ///
-/// Versioned by its size: a later library will append fields and take the struct of an
-/// earlier header by its `struct_size` (the fields it lacks at their defaults); this one
-/// takes only its own size.
+/// Versioned by its size: a later library appends fields and takes the struct of an earlier
+/// header by its `struct_size`, the fields it lacks at their defaults. This one takes its own
+/// size and that of the struct before `retrieval_probe` (`offsetof(SfpmSessionOptions,
+/// retrieval_probe)`).
 #[repr(C)]
 #[derive(Debug, Clone, Copy)]
 pub struct SfpmSessionOptions {
@@ -153,7 +154,16 @@ pub struct SfpmSessionOptions {
     /// (`SFPM_RETRIEVAL_AUTO`, the default; `SFPM_RETRIEVAL_VLAD`, `SFPM_RETRIEVAL_GLOBAL`,
     /// `SFPM_RETRIEVAL_OFF`: every point a candidate). Another value is `SFPM_ERR_ARGUMENT`.
     pub retrieval: u32,
+    /// Lists of the map's image index (format 1.3) a query scores: -1, the map's own probe
+    /// (the default); 0, no index (every image scored, as `sfpmap localize
+    /// --retrieval-probe 0`); n > 0, n lists. Another negative value is `SFPM_ERR_ARGUMENT`.
+    pub retrieval_probe: i64,
 }
+
+/// `sizeof` the options before `retrieval_probe` was appended: `sfpm_session_open` takes a
+/// struct of this size too, `retrieval_probe` then at its default.
+pub const SFPM_SESSION_OPTIONS_SIZE_1: usize =
+    std::mem::offset_of!(SfpmSessionOptions, retrieval_probe);
 
 /// What `sfpm_localize` found.
 #[repr(C)]
@@ -377,6 +387,7 @@ pub unsafe extern "C" fn sfpm_session_options_default(
             min_inliers: o.min_inliers,
             sequence: 0,
             retrieval: SfpmRetrieval::value(o.retrieval),
+            retrieval_probe: -1,
         };
         // SAFETY: checked non-null above; writable per contract.
         unsafe { put(out, value, "out") }?;
@@ -416,15 +427,44 @@ pub unsafe extern "C" fn sfpm_session_open(
             // aligned for a `usize`, the struct's first field).
             let size = unsafe { options.cast::<usize>().read() };
             let expected = std::mem::size_of::<SfpmSessionOptions>();
-            if size != expected {
+            if size != expected && size != SFPM_SESSION_OPTIONS_SIZE_1 {
                 return Err(FfiError::argument(format!(
-                    "struct_size {size}: {expected}, sizeof(SfpmSessionOptions) of this library \
+                    "struct_size {size}: {expected}, sizeof(SfpmSessionOptions) of this library, \
+                     or {SFPM_SESSION_OPTIONS_SIZE_1} of the header before retrieval_probe \
                      (fill the options with sfpm_session_options_default)"
                 )));
             }
-            // SAFETY: non-null, of this library's size, a valid SfpmSessionOptions per
-            // contract.
-            let o = unsafe { &*options };
+            // An earlier header's struct: its fields over this one's, the rest (appended
+            // since) at their defaults.
+            let mut read = SfpmSessionOptions {
+                struct_size: expected,
+                levels: std::ptr::null(),
+                n_levels: 0,
+                short_only: 0,
+                top_k: 0,
+                ratio: 0.0,
+                min_similarity: 0.0,
+                mutual: 0,
+                coarse_error_px: 0.0,
+                gate_px: 0.0,
+                gate_ratio: 0.0,
+                fine_error_px: 0.0,
+                min_inliers: 0,
+                sequence: 0,
+                retrieval: 0,
+                retrieval_probe: -1,
+            };
+            // SAFETY: per contract the caller's struct is `size` readable bytes, and `size` is
+            // at most this struct's (checked above); the prefix of an earlier header has this
+            // one's layout (fields are only appended).
+            unsafe {
+                std::ptr::copy_nonoverlapping(
+                    options.cast::<u8>(),
+                    (&mut read as *mut SfpmSessionOptions).cast::<u8>(),
+                    size,
+                )
+            };
+            let o = &read;
             // SAFETY: per contract: `n_levels` ids (NULL allowed when 0).
             settings.levels = unsafe { read_levels(o.levels, o.n_levels)? };
             settings.short = o.short_only != 0;
@@ -438,6 +478,15 @@ pub unsafe extern "C" fn sfpm_session_open(
             settings.fine_error_px = o.fine_error_px;
             settings.min_inliers = o.min_inliers;
             settings.retrieval = SfpmRetrieval::method(o.retrieval)?;
+            settings.retrieval_probe = match o.retrieval_probe {
+                -1 => None,
+                n if n >= 0 => Some(usize::try_from(n).unwrap_or(usize::MAX)),
+                n => {
+                    return Err(FfiError::argument(format!(
+                        "retrieval_probe {n}: -1 (the map's own), 0 (no index) or a number of lists"
+                    )))
+                }
+            };
             sequence = o.sequence != 0;
         }
         let session = Session::builder(h.map.clone(), h.path.clone())

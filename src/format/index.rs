@@ -6,13 +6,16 @@
 //!
 //! The shapes are checked at open with the rest of the table; the contents (offsets that
 //! tile the image list, every image exactly once) where [`Map::image_index`] reads them, so
-//! an index that disagrees with its images is an error, never a wrong ranking.
+//! an index that disagrees with its images (count, width, an image missing or twice) is an
+//! error. Which list an image is in, and the probe, are the writer's word: they decide how
+//! many of a query's best images are found (recall), never an image's score, and
+//! `--retrieval-probe 0` ranks without them.
 
 use super::error::Error;
 use super::layout::{Dtype, SectionKind, NO_LEVEL};
 use super::metadata::{ImageIndexInfo, Metadata, Retrieval};
 use super::reader::{Map, Section};
-use super::writer::{owned_bytes, MapWriter};
+use super::writer::{owned_bytes, Content, MapWriter};
 use bitvec::vec::BitVec;
 use std::borrow::Cow;
 
@@ -36,102 +39,125 @@ pub struct ImageIndex<'m> {
 impl ImageIndex<'_> {
     /// Lists in the index.
     pub fn lists(&self) -> usize {
-        self.offsets.len() - 1
+        self.offsets.len().saturating_sub(1)
     }
 
-    /// The images of list `l`.
+    /// The images of list `l` (none past the lists, or where the offsets do not fit the
+    /// images: a map's are checked, a hand-made index's may not be).
     pub fn list(&self, l: usize) -> &[u32] {
-        &self.images[self.offsets[l] as usize..self.offsets[l + 1] as usize]
+        let range = |a: &u32, b: &u32| *a as usize..*b as usize;
+        match (self.offsets.get(l), self.offsets.get(l + 1)) {
+            (Some(a), Some(b)) => self.images.get(range(a, b)).unwrap_or(&[]),
+            _ => &[],
+        }
     }
 }
 
-/// The section the index's rows are in.
-fn indexed_kind(of: Retrieval) -> SectionKind {
+/// The section the rows of an index `of` are in.
+pub(crate) fn indexed_kind(of: Retrieval) -> SectionKind {
     match of {
         Retrieval::Vlad => SectionKind::ImageVlad,
         Retrieval::Global => SectionKind::ImageGlobal,
     }
 }
 
-/// Checks from the table and metadata alone that the three sections and the metadata come
-/// together, and that their shapes fit the images and the rows they index.
+/// The index's parts, when all of them are there: the three sections (not skipped), the
+/// metadata, a kind of rows this version knows, and those rows.
+struct Parts<'s, 'm> {
+    centroids: &'s Section,
+    lists: &'s Section,
+    images: &'s Section,
+    info: &'m ImageIndexInfo,
+    of: Retrieval,
+    rows: &'s Section,
+}
+
+/// The index's [`Parts`], or `None` when any is missing: then the map has no index, which is
+/// no error (as the metadata `retrieval` naming rows a map lacks is none). A reader before
+/// 1.3 slices a map by dropping sections 39-41, unknown to it, and keeping the metadata key;
+/// a later minor may store them in an encoding this version skips.
+fn parts<'s, 'm>(
+    metadata: &'m Metadata,
+    find: impl Fn(SectionKind) -> Option<&'s Section>,
+) -> Option<Parts<'s, 'm>> {
+    let info = metadata.image_index.as_ref()?;
+    let of = info.of()?;
+    Some(Parts {
+        centroids: find(SectionKind::ImageIndexCentroids)?,
+        lists: find(SectionKind::ImageIndexOffsets)?,
+        images: find(SectionKind::ImageIndexImages)?,
+        info,
+        of,
+        rows: find(indexed_kind(of))?,
+    })
+}
+
+/// The rows `map`'s index is over, when all its parts are there (else it has none).
+pub(crate) fn indexed_rows(map: &Map<'_>) -> Option<Retrieval> {
+    parts(map.metadata(), |kind| map.find(kind, None)).map(|p| p.of)
+}
+
+/// Checks from the table and metadata alone that an index whose parts are all there fits the
+/// images and the rows it indexes: at least one list and at most one per image, each as wide
+/// as the rows (at least one value), and a probe of 1 to the lists.
 pub(crate) fn check_shapes<'s>(
     metadata: &Metadata,
     find: impl Fn(SectionKind) -> Option<&'s Section>,
     n_images: u64,
 ) -> Result<(), Error> {
-    let centroids = find(SectionKind::ImageIndexCentroids);
-    let lists = find(SectionKind::ImageIndexLists);
-    let images = find(SectionKind::ImageIndexImages);
-    let info = metadata.image_index.as_ref();
-    let (centroids, lists, images, info) = match (centroids, lists, images, info) {
-        (None, None, None, None) => return Ok(()),
-        (Some(c), Some(l), Some(i), Some(info)) => (c, l, i, info),
-        (c, l, i, info) => {
-            let present = [c, l, i]
-                .iter()
-                .flatten()
-                .map(|s| s.kind.name())
-                .chain(info.map(|_| "the metadata image_index"))
-                .collect::<Vec<_>>();
-            return Err(Error::inconsistent(format!(
-                "the image index is partly there ({}): sections 39-41 and the metadata image_index come together",
-                present.join(", ")
-            )));
-        }
+    let Some(p) = parts(metadata, find) else {
+        return Ok(());
     };
-    if centroids.rows == 0 || u64::from(info.probe) == 0 || u64::from(info.probe) > centroids.rows {
+    let lists = p.centroids.rows;
+    if lists == 0 || lists > n_images.max(1) || p.centroids.cols == 0 {
         return Err(Error::inconsistent(format!(
-            "{} has {} lists and the metadata image_index probes {}: needs 1 to the lists there are",
-            centroids.reference(),
-            centroids.rows,
-            info.probe
+            "{} is {lists} x {}: needs 1 to {} lists (one per image) of at least one value",
+            p.centroids.reference(),
+            p.centroids.cols,
+            n_images.max(1)
         )));
     }
-    if lists.rows != centroids.rows + 1 {
+    if u64::from(p.info.probe) == 0 || u64::from(p.info.probe) > lists {
+        return Err(Error::inconsistent(format!(
+            "the metadata image_index probes {} of the {lists} lists of {}: needs 1 to {lists}",
+            p.info.probe,
+            p.centroids.reference(),
+        )));
+    }
+    if Some(p.lists.rows) != lists.checked_add(1) {
         return Err(Error::inconsistent(format!(
             "{} has {} rows, expected lists + 1 = {}",
-            lists.reference(),
-            lists.rows,
-            centroids.rows + 1
+            p.lists.reference(),
+            p.lists.rows,
+            lists + 1
         )));
     }
-    if images.rows != n_images {
+    if p.images.rows != n_images {
         return Err(Error::inconsistent(format!(
             "{} has {} rows, expected one per image ({n_images})",
-            images.reference(),
-            images.rows
+            p.images.reference(),
+            p.images.rows
         )));
     }
-    // An `of` this version does not know leaves the index unused; a known one must be there,
-    // row for row as wide as the centroids.
-    if let Some(of) = info.of() {
-        let Some(rows) = find(indexed_kind(of)) else {
-            return Err(Error::inconsistent(format!(
-                "the metadata image_index is over {}, which the map does not have",
-                indexed_kind(of).name()
-            )));
-        };
-        if rows.cols != centroids.cols {
-            return Err(Error::inconsistent(format!(
-                "{} has {} columns, the {} it indexes {}",
-                centroids.reference(),
-                centroids.cols,
-                rows.kind.name(),
-                rows.cols
-            )));
-        }
+    if p.rows.cols != p.centroids.cols {
+        return Err(Error::inconsistent(format!(
+            "{} has {} columns, the {} it indexes {}",
+            p.centroids.reference(),
+            p.centroids.cols,
+            p.rows.kind.name(),
+            p.rows.cols
+        )));
     }
     Ok(())
 }
 
 /// What an index section's contents must satisfy, for a map of `n_images` images (`Err`:
 /// what is wrong). The list offsets run from 0 to the image count without decreasing; every
-/// image is in exactly one list; the centroids are finite (a NaN would rank lists
-/// arbitrarily).
+/// image is in exactly one list. (The centroids' finiteness is checked with the other
+/// codebooks', in `views::check_contents`.)
 pub(crate) fn check_contents(kind: SectionKind, bytes: &[u8], n_images: u64) -> Result<(), String> {
     match kind {
-        SectionKind::ImageIndexLists => {
+        SectionKind::ImageIndexOffsets => {
             let offsets = super::reader::cast::<u32>(bytes);
             let tiles = offsets.first() == Some(&0)
                 && offsets.windows(2).all(|w| w[0] <= w[1])
@@ -143,22 +169,14 @@ pub(crate) fn check_contents(kind: SectionKind, bytes: &[u8], n_images: u64) -> 
             }
         }
         SectionKind::ImageIndexImages => {
-            let images = super::reader::cast::<u32>(bytes);
-            let mut seen: BitVec = BitVec::repeat(false, images.len());
-            for &i in images.iter() {
+            let mut seen: BitVec = BitVec::repeat(false, n_images as usize);
+            for &i in super::reader::cast::<u32>(bytes).iter() {
                 if u64::from(i) >= n_images || seen.replace(i as usize, true) {
                     return Err(format!(
                         "image {i} is past the {n_images} images or in two lists"
                     ));
                 }
             }
-        }
-        SectionKind::ImageIndexCentroids
-            if super::reader::cast::<f32>(bytes)
-                .iter()
-                .any(|v| !v.is_finite()) =>
-        {
-            return Err("a centroid value is not finite".into());
         }
         _ => {}
     }
@@ -169,19 +187,15 @@ impl<'a> Map<'a> {
     /// The image index (format 1.3), if the map has one over rows this version knows, its
     /// contents checked ([`check_contents`]).
     pub fn image_index(&self) -> Result<Option<ImageIndex<'_>>, Error> {
-        let Some(info) = self.metadata().image_index.as_ref() else {
+        let Some(p) = parts(self.metadata(), |kind| self.find(kind, None)) else {
             return Ok(None);
         };
-        let Some(of) = info.of() else {
-            return Ok(None);
-        };
-        let centroids_section = self.required(SectionKind::ImageIndexCentroids)?;
-        let lists_section = self.required(SectionKind::ImageIndexLists)?;
-        let images_section = self.required(SectionKind::ImageIndexImages)?;
+        let (of, probe) = (p.of, p.info.probe as usize);
+        let (centroids_section, lists_section, images_section) = (p.centroids, p.lists, p.images);
         // Their contents are checked on first access ([`check_contents`]).
         Ok(Some(ImageIndex {
             of,
-            probe: info.probe as usize,
+            probe,
             width: centroids_section.cols as usize,
             centroids: self.section_array(centroids_section)?,
             offsets: self.section_array(lists_section)?,
@@ -190,7 +204,41 @@ impl<'a> Map<'a> {
     }
 }
 
-impl MapWriter<'_> {
+impl<'a> MapWriter<'a> {
+    /// The rows of a shared (no level) section of `dtype` added as an array, not copied
+    /// from another map: its little-endian bytes and column count. What a builder reads back
+    /// to index them.
+    pub(crate) fn pending_rows(&self, kind: SectionKind, dtype: Dtype) -> Option<(&[u8], usize)> {
+        let section = self.sections.get(&(kind.code(), NO_LEVEL))?;
+        match &section.content {
+            Content::Array { bytes, .. } if section.dtype == dtype => {
+                Some((bytes.as_ref(), section.cols as usize))
+            }
+            _ => None,
+        }
+    }
+
+    /// A section a reader may skip (not `required`), in the writer's codec.
+    fn push_optional(
+        &mut self,
+        kind: SectionKind,
+        level: u16,
+        dtype: Dtype,
+        rows: usize,
+        cols: usize,
+        bytes: Cow<'a, [u8]>,
+    ) {
+        self.push(
+            kind,
+            level,
+            dtype,
+            rows as u64,
+            cols as u64,
+            false,
+            Content::Array { bytes, codec: None },
+        );
+    }
+
     /// (1.3) Adds the image index over the rows of `info.of` (already set, or set later):
     /// `centroids` `[lists × width]` and each image's list (`list_of[i]` < lists). Images are
     /// grouped by list in index order. The sections are optional: a reader before 1.3 skips
@@ -205,6 +253,11 @@ impl MapWriter<'_> {
         if width == 0 || centroids.is_empty() || centroids.len() % width != 0 {
             return Err(Error::invalid(
                 "image index centroids are not a whole number of rows",
+            ));
+        }
+        if centroids.iter().any(|v| !v.is_finite()) {
+            return Err(Error::invalid(
+                "an image index centroid value is not finite",
             ));
         }
         let lists = centroids.len() / width;
@@ -240,7 +293,7 @@ impl MapWriter<'_> {
                 owned_bytes(centroids),
             ),
             (
-                SectionKind::ImageIndexLists,
+                SectionKind::ImageIndexOffsets,
                 Dtype::U32,
                 lists + 1,
                 1,

@@ -197,7 +197,7 @@ pub enum SectionKind {
     /// it indexes (`ImageVlad` or `ImageGlobal`, as the metadata `image_index` says).
     ImageIndexCentroids,
     /// u32 [lists + 1 × 1] (1.3): CSR offsets into `ImageIndexImages`, list by list.
-    ImageIndexLists,
+    ImageIndexOffsets,
     /// u32 [images × 1] (1.3): every image once, grouped by the list it belongs to.
     ImageIndexImages,
     /// u64 [images + 1 × 1]: CSR row offsets into `VisibilityPoints`.
@@ -248,7 +248,7 @@ impl SectionKind {
             SectionKind::ImageIndexCentroids,
             "image_index_centroids",
         ),
-        (40, SectionKind::ImageIndexLists, "image_index_lists"),
+        (40, SectionKind::ImageIndexOffsets, "image_index_offsets"),
         (41, SectionKind::ImageIndexImages, "image_index_images"),
         (48, SectionKind::VisibilityOffsets, "visibility_offsets"),
         (49, SectionKind::VisibilityPoints, "visibility_points"),
@@ -310,7 +310,7 @@ impl SectionKind {
             LevelPqCodes => (Dtype::U8, None),
             LevelPqOrder => (Dtype::U16, Some(1)),
             ImagePoses => (Dtype::F64, Some(7)),
-            ImageCameras | ImageIds | ImageIndexLists | ImageIndexImages => (Dtype::U32, Some(1)),
+            ImageCameras | ImageIds | ImageIndexOffsets | ImageIndexImages => (Dtype::U32, Some(1)),
             ImageNameOffsets | VisibilityOffsets | PlaceImages | ChunkChecksums => {
                 (Dtype::U64, Some(1))
             }
@@ -399,7 +399,7 @@ impl SectionKind {
             | SectionKind::CatalogImageVlad => 1,
             SectionKind::ChunkChecksums => 2,
             SectionKind::ImageIndexCentroids
-            | SectionKind::ImageIndexLists
+            | SectionKind::ImageIndexOffsets
             | SectionKind::ImageIndexImages => 3,
             _ => 0,
         }

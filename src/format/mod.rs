@@ -59,6 +59,8 @@ pub use half::f16;
 
 // The rest of the crate's view of the format's internals (the fuzzing hooks add the raw
 // layout, `sfpmap::fuzzing`).
+#[cfg(feature = "colmap")]
+pub(crate) use index::indexed_kind;
 #[cfg(any(feature = "onnx", feature = "remote"))]
 pub(crate) use layout::checksum;
 #[cfg(feature = "colmap-model")]

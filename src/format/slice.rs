@@ -98,13 +98,12 @@ pub fn slice<'m>(
             || options.minimal && preference == Some(Retrieval::Vlad) && vlad_kept),
         index: false,
     };
-    // (1.3) The image index goes where the rows it indexes go (image indices do not change).
-    let index_of = map.metadata().image_index.as_ref().map(|i| i.of());
-    keeps.index = match index_of {
-        Some(Some(Retrieval::Vlad)) => keeps.vlad,
-        Some(Some(Retrieval::Global)) => keeps.global && has_global,
-        // Over rows this version does not know: their meaning after a slice is unknown.
-        Some(None) | None => false,
+    // (1.3) The image index goes where the rows it indexes go (image indices do not change);
+    // an index with a part missing, or over rows this version does not know, is dropped.
+    keeps.index = match super::index::indexed_rows(map) {
+        Some(Retrieval::Vlad) => keeps.vlad,
+        Some(Retrieval::Global) => keeps.global && has_global,
+        None => false,
     };
     // Checking everything first means a corrupt section is never copied into the new map.
     // Sections this slice reads are kept decoded and the others streamed, so each is decoded
@@ -139,7 +138,7 @@ pub fn slice<'m>(
         .levels
         .retain(|l| keep_levels.binary_search(&l.level).is_ok());
     let vlad_dropped = vlad_level.is_some() && !keeps.vlad;
-    let index_dropped = index_of.is_some() && !keeps.index;
+    let index_dropped = map.metadata().image_index.is_some() && !keeps.index;
     if index_dropped {
         metadata.image_index = None;
     }
@@ -343,7 +342,7 @@ impl Keep<'_> {
             SectionKind::LevelVladCentroids if !self.vlad => false,
             SectionKind::ImageGlobal => self.global,
             SectionKind::ImageIndexCentroids
-            | SectionKind::ImageIndexLists
+            | SectionKind::ImageIndexOffsets
             | SectionKind::ImageIndexImages => self.index,
             k if k.is_per_level() => self
                 .levels

@@ -485,16 +485,16 @@ pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> 
                 return bad(what);
             }
         }
-        SectionKind::ImageIndexLists
-        | SectionKind::ImageIndexImages
-        | SectionKind::ImageIndexCentroids => {
+        SectionKind::ImageIndexOffsets | SectionKind::ImageIndexImages => {
             if let Err(what) = super::index::check_contents(section.kind, bytes, map.n_images()) {
                 return bad(what);
             }
         }
-        // A NaN centroid would make every VLAD (or PQ reconstruction) it touches NaN, and
-        // every ranking (or match) silently arbitrary.
-        SectionKind::LevelPqCodebook | SectionKind::LevelVladCentroids
+        // A NaN centroid would make every VLAD (or PQ reconstruction) it touches NaN, every
+        // ranking (or match) silently arbitrary, and (1.3) an image index's lists.
+        SectionKind::LevelPqCodebook
+        | SectionKind::LevelVladCentroids
+        | SectionKind::ImageIndexCentroids
             if cast::<f32>(bytes).iter().any(|v| !v.is_finite()) =>
         {
             return bad("a centroid value is not finite".into());

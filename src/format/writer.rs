@@ -30,15 +30,15 @@ pub enum Descriptors<'a> {
 pub(super) struct PendingSection<'a> {
     kind: SectionKind,
     level: u16,
-    dtype: Dtype,
+    pub(super) dtype: Dtype,
     pub(super) rows: u64,
-    cols: u64,
+    pub(super) cols: u64,
     required: bool,
-    content: Content<'a>,
+    pub(super) content: Content<'a>,
 }
 
 #[derive(Debug, Clone)]
-enum Content<'a> {
+pub(super) enum Content<'a> {
     /// The array's little-endian bytes, stored with the writer's codec unless `codec` is set.
     Array {
         bytes: Cow<'a, [u8]>,
@@ -122,7 +122,7 @@ impl<'a> MapWriter<'a> {
     }
 
     #[allow(clippy::too_many_arguments)] // one per entry-table field
-    fn push(
+    pub(super) fn push(
         &mut self,
         kind: SectionKind,
         level: u16,
@@ -142,40 +142,6 @@ impl<'a> MapWriter<'a> {
             content,
         };
         self.sections.insert((kind.code(), level), section);
-    }
-
-    /// The rows of a shared (no level) section of `dtype` added as an array, not copied
-    /// from another map: its little-endian bytes and column count. What a builder reads back
-    /// to index them.
-    pub fn pending_rows(&self, kind: SectionKind, dtype: Dtype) -> Option<(&[u8], usize)> {
-        let section = self.sections.get(&(kind.code(), NO_LEVEL))?;
-        match &section.content {
-            Content::Array { bytes, .. } if section.dtype == dtype => {
-                Some((bytes.as_ref(), section.cols as usize))
-            }
-            _ => None,
-        }
-    }
-
-    /// A section a reader may skip (not `required`), in the writer's codec.
-    pub(super) fn push_optional(
-        &mut self,
-        kind: SectionKind,
-        level: u16,
-        dtype: Dtype,
-        rows: usize,
-        cols: usize,
-        bytes: Cow<'a, [u8]>,
-    ) {
-        self.push(
-            kind,
-            level,
-            dtype,
-            rows as u64,
-            cols as u64,
-            false,
-            Content::Array { bytes, codec: None },
-        );
     }
 
     pub(super) fn push_array(

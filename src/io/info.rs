@@ -37,7 +37,7 @@ fn component(kind: SectionKind) -> &'static str {
             "descriptors"
         }
         LevelProjection => "projections",
-        LevelVladCentroids | ImageGlobal | ImageVlad | ImageIndexCentroids | ImageIndexLists
+        LevelVladCentroids | ImageGlobal | ImageVlad | ImageIndexCentroids | ImageIndexOffsets
         | ImageIndexImages => "retrieval",
         ImagePoses | ImageCameras | ImageIds | ImageNameOffsets | ImageNames => "images",
         VisibilityOffsets | VisibilityPoints | VisibilityKeypoints => "visibility",
@@ -126,11 +126,12 @@ impl<'m> Retrieval<'m> {
             .iter()
             .find(|s| s.kind() == SectionKind::ImageIndexCentroids && s.skipped().is_none())
             .map(|s| s.rows());
+        // The writer's other keys first, so that none stands in for a known one.
         let index = meta.image_index.as_ref().map(|i| {
-            let mut v = serde_json::json!({"of": i.of, "lists": lists, "probe": i.probe});
-            for (k, x) in &i.extra {
-                v[k] = x.clone();
-            }
+            let mut v = serde_json::Value::Object(i.extra.clone());
+            v["of"] = serde_json::json!(i.of);
+            v["lists"] = serde_json::json!(lists);
+            v["probe"] = serde_json::json!(i.probe);
             v
         });
         Retrieval {

@@ -550,10 +550,17 @@ impl<'m> Localizer<'m> {
         map.prefetch(|s| match s.level() {
             Some(_) if s.kind() == SectionKind::LevelDescRest && options.short => false,
             Some(level) => ids.contains(&level) || s.kind() == SectionKind::LevelVladCentroids,
-            None => !matches!(
-                s.kind(),
-                SectionKind::PointColors | SectionKind::PointIds | SectionKind::VisibilityKeypoints
-            ),
+            None => match s.kind() {
+                SectionKind::PointColors
+                | SectionKind::PointIds
+                | SectionKind::VisibilityKeypoints => false,
+                SectionKind::ImageIndexCentroids
+                | SectionKind::ImageIndexOffsets
+                | SectionKind::ImageIndexImages => {
+                    options.retrieval != RetrievalMethod::Off && options.retrieval_probe != Some(0)
+                }
+                _ => true,
+            },
         })?;
         let mut levels = Vec::new();
         let mut skipped = Vec::new();

@@ -5,8 +5,8 @@
 //! are matched by reprojection around it (guided matching), so a tracked frame needs no
 //! global descriptor and no coarse matching at all.
 
-use super::retrieval::top_k_indices;
 use crate::geometry::Pose;
+use crate::vector::top_k_indices;
 use nalgebra::Vector3;
 
 /// Each database image's camera centre and viewing direction, in world coordinates.

@@ -7,7 +7,8 @@
 
 use super::features::QueryFeatures;
 use crate::format::{Error as FormatError, ImageIndex, Map, Retrieval};
-use crate::vector::{dot, normalise_rows};
+pub(crate) use crate::vector::top_k_indices;
+use crate::vector::{dot, normalise_rows, ranked_last_if_not_finite, Nearest};
 use crate::vlad::Codebook;
 use bitvec::vec::BitVec;
 use half::f16;
@@ -121,10 +122,10 @@ struct VladIndex<'m> {
 }
 
 /// A map's image index (format 1.3), ready to probe.
-struct Lists<'m> {
+struct ProbedIndex<'m> {
     index: ImageIndex<'m>,
-    /// `−‖c‖²/2` per list: lists rank as images were assigned to them, by nearest centroid.
-    minus_half_norms: Vec<f32>,
+    /// Its centroids: lists rank by distance, as images were assigned to them.
+    centroids: Nearest,
     /// Lists a query scores at least (the map's `probe`, or the caller's).
     probe: usize,
 }
@@ -134,45 +135,33 @@ struct Lists<'m> {
 /// what was scored.
 const MIN_SCORED_PER_K: usize = 8;
 
-impl Lists<'_> {
-    /// The `top_k` images of the lists nearest to `query` (unit, `width` values) by exact
-    /// score, best first, ties by image index (as [`rank`]): with every list probed, exactly
+impl ProbedIndex<'_> {
+    /// The `top_k` images of the lists nearest to `query` (`width` values) by exact score,
+    /// best first, ties by image index (as [`rank`]): with every list probed, exactly
     /// [`rank`]'s answer.
     fn rank(&self, database: Rows<'_>, query: &[f32], top_k: usize) -> Vec<usize> {
         let index = &self.index;
-        let list_scores: Vec<f32> = index
-            .centroids
-            .chunks_exact(index.width)
-            .zip(&self.minus_half_norms)
-            .map(|(c, h)| {
-                let s = dot(c, query) + h;
-                if s.is_finite() {
-                    s
-                } else {
-                    f32::NEG_INFINITY
-                }
-            })
-            .collect();
-        let order = top_k_indices(&list_scores, index.lists());
-        let want = top_k.max(1).saturating_mul(MIN_SCORED_PER_K);
-        let mut picked: Vec<u32> = Vec::new();
-        for (probed, &l) in order.iter().enumerate() {
-            if probed >= self.probe && picked.len() >= want {
+        let min_scored = top_k.max(1).saturating_mul(MIN_SCORED_PER_K);
+        // Asked for half the map or more: scoring every image costs less than probing.
+        if min_scored >= index.images.len() / 2 {
+            return rank(database, index.width, query, top_k);
+        }
+        let mut q = query.to_vec();
+        normalise_rows(&mut q, index.width);
+        let mut candidates: Vec<u32> = Vec::new();
+        for (probed, l) in self.centroids.order(&q).into_iter().enumerate() {
+            if probed >= self.probe && candidates.len() >= min_scored {
                 break;
             }
-            picked.extend_from_slice(index.list(l));
+            candidates.extend_from_slice(index.list(l));
         }
         // Ascending, so that ties break by image index as the exhaustive ranking's do.
-        picked.sort_unstable();
-        let mut scores = database.dots_picked(index.width, query, &picked);
-        for s in &mut scores {
-            if !s.is_finite() {
-                *s = f32::NEG_INFINITY;
-            }
-        }
+        candidates.sort_unstable();
+        let mut scores = database.dots_picked(index.width, &q, &candidates);
+        ranked_last_if_not_finite(&mut scores);
         top_k_indices(&scores, top_k.max(1))
             .into_iter()
-            .map(|i| picked[i] as usize)
+            .map(|i| candidates[i] as usize)
             .collect()
     }
 }
@@ -182,7 +171,7 @@ impl Lists<'_> {
 pub(crate) struct RetrievalIndex<'m> {
     global: Option<(Vec<f32>, usize)>,
     vlad: Option<VladIndex<'m>>,
-    lists: Option<Lists<'m>>,
+    indexed: Option<ProbedIndex<'m>>,
     /// The map's preference, else VLAD first (the one every converted map has).
     order: [Retrieval; 2],
     method: RetrievalMethod,
@@ -252,25 +241,20 @@ impl<'m> RetrievalIndex<'m> {
             Retrieval::Global => use_global,
             Retrieval::Vlad => use_vlad,
         };
-        let lists = match map.metadata().image_index.as_ref().and_then(|i| i.of()) {
-            Some(of) if indexed(of) && probe != Some(0) => map.image_index()?.map(|index| {
-                let minus_half_norms = index
-                    .centroids
-                    .chunks_exact(index.width)
-                    .map(|c| -0.5 * dot(c, c))
-                    .collect();
-                Lists {
+        let indexed = match map.metadata().image_index.as_ref().and_then(|i| i.of()) {
+            Some(of) if indexed(of) && probe != Some(0) => {
+                map.image_index()?.map(|index| ProbedIndex {
                     probe: probe.unwrap_or(index.probe),
+                    centroids: Nearest::new(&index.centroids, index.width),
                     index,
-                    minus_half_norms,
-                }
-            }),
+                })
+            }
             _ => None,
         };
         Ok(RetrievalIndex {
             global,
             vlad,
-            lists,
+            indexed,
             order,
             method,
         })
@@ -303,11 +287,9 @@ impl<'m> RetrievalIndex<'m> {
             };
             match vectors {
                 Ok((database, q, dim)) if database.len() == n_images * dim => {
-                    let ranked = match &self.lists {
-                        Some(lists) if lists.index.of == method && lists.index.width == dim => {
-                            let mut q = q;
-                            normalise_rows(&mut q, dim);
-                            lists.rank(database, &q, top_k)
+                    let ranked = match &self.indexed {
+                        Some(index) if index.index.of == method && index.index.width == dim => {
+                            index.rank(database, &q, top_k)
                         }
                         _ => rank(database, dim, &q, top_k),
                     };
@@ -443,27 +425,8 @@ pub(crate) fn rank(database: Rows<'_>, dim: usize, query: &[f32], top_k: usize) 
     // One query: a dot per image row. (A GEMM of one row packs the whole database first,
     // 16 MB at 8,000 images: most of retrieval's time on the 1 M-point street.)
     let mut scores = database.dots(dim, &q);
-    // A non-finite score (a NaN in a stored VLAD, which the format does not check) ranks
-    // last, not first.
-    for s in &mut scores {
-        if !s.is_finite() {
-            *s = f32::NEG_INFINITY;
-        }
-    }
+    ranked_last_if_not_finite(&mut scores);
     top_k_indices(&scores, top_k.max(1))
-}
-
-/// Indices of the `k` highest scores, best first, ties by index: a partial selection
-/// (O(n) to find them, O(k log k) to order them), never a sort of all `n`.
-pub(crate) fn top_k_indices(scores: &[f32], k: usize) -> Vec<usize> {
-    let better = |&a: &usize, &b: &usize| scores[b].total_cmp(&scores[a]).then(a.cmp(&b));
-    let mut order: Vec<usize> = (0..scores.len()).collect();
-    if k < order.len() {
-        order.select_nth_unstable_by(k, better);
-        order.truncate(k);
-    }
-    order.sort_unstable_by(better);
-    order
 }
 
 /// The map points `images` see, ascending and each once (`points_of(i)` lists image `i`'s
@@ -579,7 +542,7 @@ mod tests {
                 d_in: 2,
                 images: Cow::Owned([1.0, 0.0, 0.0, 1.0].map(f16::from_f32).to_vec()),
             }),
-            lists: None,
+            indexed: None,
             order,
             method,
         }
@@ -657,49 +620,77 @@ mod tests {
         );
     }
 
-    /// `n` unit rows of `dim` and an index of `lists` lists over them (centroids: the first
-    /// `lists` rows; each row in the list of its nearest centroid), probing `probe`.
-    fn indexed(n: usize, dim: usize, lists: usize, probe: usize) -> (Vec<f32>, Lists<'static>) {
+    /// `n` unit rows of `dim` and an index of `lists` lists over them, probing `probe`:
+    /// each row in the list of the nearest of the first `lists` rows, then each centroid
+    /// moved to its members' mean (not unit, so `‖c‖²` differs from list to list).
+    fn indexed(
+        n: usize,
+        dim: usize,
+        lists: usize,
+        probe: usize,
+    ) -> (Vec<f32>, ProbedIndex<'static>) {
         let mut rng = crate::geometry::SplitMix64::new(5);
         let mut rows: Vec<f32> = (0..n * dim).map(|_| rng.next_f64() as f32 - 0.5).collect();
         normalise_rows(&mut rows, dim);
-        let centroids = rows[..lists * dim].to_vec();
-        let nearest = crate::vector::Nearest::new(&centroids, dim);
+        let seeds = Nearest::new(&rows[..lists * dim], dim);
         let mut members: Vec<Vec<u32>> = vec![Vec::new(); lists];
         for (i, row) in rows.chunks_exact(dim).enumerate() {
-            members[nearest.find(row)].push(i as u32);
+            members[seeds.find(row)].push(i as u32);
+        }
+        let mut centroids = vec![0.0f32; lists * dim];
+        for (c, m) in centroids.chunks_exact_mut(dim).zip(&members) {
+            for &i in m {
+                for (v, r) in c.iter_mut().zip(&rows[i as usize * dim..]) {
+                    *v += r / m.len() as f32;
+                }
+            }
         }
         let mut offsets = vec![0u32];
         for m in &members {
             offsets.push(offsets.last().unwrap() + m.len() as u32);
         }
-        let minus_half_norms = centroids
-            .chunks_exact(dim)
-            .map(|c| -0.5 * dot(c, c))
-            .collect();
         let index = ImageIndex {
             of: Retrieval::Global,
             probe,
             width: dim,
-            centroids: Cow::Owned(centroids),
+            centroids: Cow::Owned(centroids.clone()),
             offsets: Cow::Owned(offsets),
             images: Cow::Owned(members.concat()),
         };
-        let lists = Lists {
+        let probed = ProbedIndex {
             index,
-            minus_half_norms,
+            centroids: Nearest::new(&centroids, dim),
             probe,
         };
-        (rows, lists)
+        (rows, probed)
+    }
+
+    #[test]
+    fn lists_are_probed_nearest_centroid_first() {
+        let (rows, probed) = indexed(200, 8, 10, 1);
+        let centroids = &probed.index.centroids;
+        for q in rows.chunks_exact(8).take(20) {
+            // By squared distance, which `x·c − ‖c‖²/2` orders for a unit x.
+            let d2 = |l: usize| -> f32 {
+                centroids[l * 8..(l + 1) * 8]
+                    .iter()
+                    .zip(q)
+                    .map(|(c, x)| (c - x) * (c - x))
+                    .sum()
+            };
+            let mut by_distance: Vec<usize> = (0..10).collect();
+            by_distance.sort_by(|&a, &b| d2(a).total_cmp(&d2(b)));
+            assert_eq!(probed.centroids.order(q), by_distance);
+        }
     }
 
     #[test]
     fn every_list_probed_ranks_as_every_image_scored() {
-        let (rows, lists) = indexed(60, 8, 6, 6);
-        for q in rows.chunks_exact(8).take(10) {
-            for k in [1, 3, 10, 60, 100] {
+        let (rows, probed) = indexed(400, 8, 20, 20);
+        for q in rows.chunks_exact(8).skip(100).take(10) {
+            for k in [1, 3, 10, 60, 400] {
                 assert_eq!(
-                    lists.rank(Rows::F32(&rows), q, k),
+                    probed.rank(Rows::F32(&rows), q, k),
                     rank(Rows::F32(&rows), 8, q, k),
                     "k = {k}"
                 );
@@ -707,51 +698,55 @@ mod tests {
         }
         // f16 rows score the same way through their kernel.
         let half: Vec<f16> = rows.iter().map(|&v| f16::from_f32(v)).collect();
-        let q = &rows[8..16];
+        let q = &rows[800..808];
         assert_eq!(
-            lists.rank(Rows::F16(&half), q, 5),
+            probed.rank(Rows::F16(&half), q, 5),
             rank(Rows::F16(&half), 8, q, 5)
         );
     }
 
     #[test]
-    fn a_probe_scores_its_lists_and_enough_images_for_top_k() {
-        let (rows, lists) = indexed(400, 8, 20, 2);
-        let score = |a: &[f32], b: &[f32]| dot(a, b);
-        for (n, q) in rows.chunks_exact(8).enumerate().skip(20).take(20) {
-            // The lists by centroid score, then the first 2 of them, and more until they hold
-            // 8 images a top image: what should be scored.
-            let mut order: Vec<usize> = (0..20).collect();
-            let list_score = |l: usize| {
-                score(&lists.index.centroids[l * 8..(l + 1) * 8], q) + lists.minus_half_norms[l]
-            };
-            order.sort_by(|&a, &b| list_score(b).total_cmp(&list_score(a)));
+    fn a_probe_ranks_the_images_of_its_lists_only() {
+        let (rows, probed) = indexed(400, 8, 20, 2);
+        let mut narrower = 0;
+        for (n, q) in rows.chunks_exact(8).enumerate().skip(100).take(30) {
+            let order = probed.centroids.order(q);
+            let lists: Vec<&[u32]> = order.iter().map(|&l| probed.index.list(l)).collect();
             for k in [1, 4] {
-                let mut scored: Vec<u32> = Vec::new();
-                for (probed, &l) in order.iter().enumerate() {
-                    if probed >= 2 && scored.len() >= 8 * k {
-                        break;
-                    }
-                    scored.extend_from_slice(lists.index.list(l));
-                }
+                let got = probed.rank(Rows::F32(&rows), q, k);
+                // Every image ranked is in a list at least as near as the `probe`-th, or in
+                // one the minimum scored count added.
+                let first_two: usize = lists[..2].iter().map(|l| l.len()).sum();
+                let needed = if first_two >= MIN_SCORED_PER_K * k {
+                    2
+                } else {
+                    (1..=20)
+                        .find(|&p| {
+                            lists[..p].iter().map(|l| l.len()).sum::<usize>()
+                                >= MIN_SCORED_PER_K * k
+                        })
+                        .unwrap()
+                };
+                let scored: Vec<u32> = lists[..needed].concat();
                 assert!(
-                    scored.len() < 400,
-                    "query {n}: a probe of 2 lists scored every image"
+                    got.iter().all(|i| scored.contains(&(*i as u32))),
+                    "query {n}, k {k}"
                 );
-                scored.sort_unstable();
-                scored.sort_by(|&a, &b| {
-                    let (sa, sb) = (
-                        score(&rows[a as usize * 8..][..8], q),
-                        score(&rows[b as usize * 8..][..8], q),
-                    );
-                    sb.total_cmp(&sa).then(a.cmp(&b))
-                });
-                let want: Vec<usize> = scored[..k].iter().map(|&i| i as usize).collect();
-                assert_eq!(lists.rank(Rows::F32(&rows), q, k), want, "query {n}, k {k}");
+                // ... and they are the best of those, as exhaustive ranking orders them.
+                let exhaustive = rank(Rows::F32(&rows), 8, q, 400);
+                let want: Vec<usize> = exhaustive
+                    .into_iter()
+                    .filter(|&i| scored.contains(&(i as u32)))
+                    .take(k)
+                    .collect();
+                assert_eq!(got, want, "query {n}, k {k}");
+                if scored.len() < 400 && got != rank(Rows::F32(&rows), 8, q, k) {
+                    narrower += 1;
+                }
             }
         }
-        // A query's own row is in its nearest list: it ranks first.
-        assert_eq!(lists.rank(Rows::F32(&rows), &rows[..8], 1), [0]);
+        // Probing 2 of 20 lists misses some query's exhaustive best: it did narrow.
+        assert!(narrower > 0);
     }
 
     fn ok(points: &[u32]) -> Result<&[u32], std::convert::Infallible> {

@@ -340,16 +340,18 @@ fn session_options_out_of_range_are_refused_with_the_library_message() {
 }
 
 /// `struct_size` versions the options: `sfpm_session_options_default` writes this library's
-/// `sizeof(SfpmSessionOptions)`, and `sfpm_session_open` refuses any other size (an older or
-/// newer header's, a struct never filled in) with `SFPM_ERR_ARGUMENT`, naming the size it
-/// expects, before reading anything past the size.
+/// `sizeof(SfpmSessionOptions)`; `sfpm_session_open` takes it and the size before
+/// `retrieval_probe` (that field then at its default), and refuses any other size (a newer
+/// header's, a struct never filled in) with `SFPM_ERR_ARGUMENT`, naming the size it expects,
+/// before reading anything past the size.
 #[test]
 fn session_options_are_versioned_by_their_size() {
     let map = open(&vector_path("levels"));
     let defaults = default_options(map);
     let size = std::mem::size_of::<SfpmSessionOptions>();
     assert_eq!(defaults.struct_size, size);
-    for wrong in [0, size - 8, size + 8, usize::MAX] {
+    assert_eq!(defaults.retrieval_probe, -1);
+    for wrong in [0, SFPM_SESSION_OPTIONS_SIZE_1 - 8, size + 8, usize::MAX] {
         let options = SfpmSessionOptions {
             struct_size: wrong,
             ..defaults
@@ -381,6 +383,37 @@ fn session_options_are_versioned_by_their_size() {
     assert_eq!(session, 0);
     let session = open_session(map, Some(&defaults));
     assert_eq!(sfpm_session_close(session), SfpmStatus::SFPM_OK);
+    // The header before `retrieval_probe`: the fields it has are read, the probe is the
+    // map's own, whatever follows the caller's struct in memory.
+    let old = SfpmSessionOptions {
+        struct_size: SFPM_SESSION_OPTIONS_SIZE_1,
+        top_k: 2,
+        retrieval_probe: -7,
+        ..defaults
+    };
+    let session = open_session(map, Some(&old));
+    assert_eq!(sfpm_session_close(session), SfpmStatus::SFPM_OK);
+    // This header's: a negative probe other than -1 is refused, 0 and a count are taken.
+    let mut session: SfpmSession = 77;
+    let bad = SfpmSessionOptions {
+        retrieval_probe: -7,
+        ..defaults
+    };
+    let status = unsafe { sfpm_session_open(map, &bad, &mut session) };
+    assert_eq!(status, SfpmStatus::SFPM_ERR_ARGUMENT);
+    assert!(
+        last_error().starts_with("retrieval_probe -7:"),
+        "{}",
+        last_error()
+    );
+    for probe in [0, 3, i64::MAX] {
+        let options = SfpmSessionOptions {
+            retrieval_probe: probe,
+            ..defaults
+        };
+        let session = open_session(map, Some(&options));
+        assert_eq!(sfpm_session_close(session), SfpmStatus::SFPM_OK);
+    }
     assert_eq!(sfpm_close(map), SfpmStatus::SFPM_OK);
 }
 

@@ -73,16 +73,52 @@ fn an_index_opens_and_reads_back_its_lists() {
 }
 
 #[test]
+fn an_index_with_a_part_missing_is_no_index() {
+    let s = scene();
+    let v = vlad(&s);
+    // The metadata without the sections (a 1.2 slice of a 1.3 map drops sections it does
+    // not know and keeps the key), the sections without the metadata, an index over global
+    // descriptors the map does not have: each opens, without an index, and slices to a map
+    // without one.
+    let mut key_only = s.writer_with_vlad(Codec::Raw, &v);
+    key_only.metadata_mut().image_index = Some(info("vlad", 1));
+    let mut sections_only = indexed(&s, &v, "vlad");
+    sections_only.metadata_mut().image_index = None;
+    let plain = s.writer_with_vlad(Codec::Raw, &v).to_bytes().unwrap();
+    let map = Map::from_bytes(&plain).unwrap();
+    let mut no_global = MapWriter::default();
+    for section in map.sections() {
+        if section.kind() != SectionKind::ImageGlobal {
+            no_global.copy_section(&map, section).unwrap();
+        }
+    }
+    *no_global.metadata_mut() = map.metadata().clone();
+    no_global
+        .set_image_index(info("global", 1), CENTROIDS.to_vec(), 4, &[0, 1, 0])
+        .unwrap();
+    for (what, w) in [
+        ("key only", key_only),
+        ("sections only", sections_only),
+        ("no global rows", no_global),
+    ] {
+        let bytes = w.to_bytes().unwrap();
+        let map = Map::from_bytes(&bytes).unwrap_or_else(|e| panic!("{what}: {e}"));
+        map.verify().unwrap();
+        assert!(map.image_index().unwrap().is_none(), "{what}");
+        let (sliced, _) = sliced(&bytes, &[2], false);
+        let sliced = Map::from_bytes(&sliced).unwrap();
+        assert!(sliced.metadata().image_index.is_none(), "{what}");
+        assert!(
+            sliced.find(SectionKind::ImageIndexImages, None).is_none(),
+            "{what}"
+        );
+    }
+}
+
+#[test]
 fn an_index_that_disagrees_with_its_images_is_refused_at_open() {
     let s = scene();
     let v = vlad(&s);
-    // The metadata without the sections, and the sections without the metadata.
-    let mut w = s.writer_with_vlad(Codec::Raw, &v);
-    w.metadata_mut().image_index = Some(info("vlad", 1));
-    assert_eq!(open_error(&w.to_bytes().unwrap()), "inconsistent");
-    let mut w = indexed(&s, &v, "vlad");
-    w.metadata_mut().image_index = None;
-    assert_eq!(open_error(&w.to_bytes().unwrap()), "inconsistent");
     // A probe past the 2 lists, and 0.
     for probe in [0, 3] {
         let mut w = indexed(&s, &v, "vlad");
@@ -97,7 +133,7 @@ fn an_index_that_disagrees_with_its_images_is_refused_at_open() {
     let u32s = |v: &[u32]| Cow::Owned(bytemuck::cast_slice(v).to_vec());
     for (kind, rows, values) in [
         (SectionKind::ImageIndexImages, 2, vec![0u32, 1]),
-        (SectionKind::ImageIndexLists, 4, vec![0u32, 1, 2, 3]),
+        (SectionKind::ImageIndexOffsets, 4, vec![0u32, 1, 2, 3]),
     ] {
         let mut w = indexed(&s, &v, "vlad");
         w.add_raw_section(
@@ -113,19 +149,55 @@ fn an_index_that_disagrees_with_its_images_is_refused_at_open() {
         .unwrap();
         assert_eq!(open_error(&w.to_bytes().unwrap()), "inconsistent", "{kind}");
     }
-    // Over global descriptors the map does not have.
-    let mut w = MapWriter::default();
-    w.metadata_mut().provenance.tool = "sfpmap test fixture".into();
-    let plain = s.writer_with_vlad(Codec::Raw, &v).to_bytes().unwrap();
-    let map = Map::from_bytes(&plain).unwrap();
-    for section in map.sections() {
-        if section.kind() != SectionKind::ImageGlobal {
-            w.copy_section(&map, section).unwrap();
-        }
-    }
-    *w.metadata_mut() = map.metadata().clone();
-    w.set_image_index(info("global", 1), CENTROIDS.to_vec(), 4, &[0, 1, 0])
+    // More lists (4) than images (3); centroids of no value over rows of none (a map whose
+    // global descriptors have 0 columns).
+    let mut w = indexed(&s, &v, "vlad");
+    let four: Vec<f32> = CENTROIDS.iter().chain(&CENTROIDS).copied().collect();
+    w.add_raw_section(
+        SectionKind::ImageIndexCentroids,
+        NO_LEVEL,
+        Dtype::F32,
+        4,
+        4,
+        false,
+        Cow::Owned(bytemuck::cast_slice(&four).to_vec()),
+        None,
+    )
+    .unwrap();
+    w.add_raw_section(
+        SectionKind::ImageIndexOffsets,
+        NO_LEVEL,
+        Dtype::U32,
+        5,
+        1,
+        false,
+        u32s(&[0, 1, 2, 3, 3]),
+        None,
+    )
+    .unwrap();
+    assert_eq!(open_error(&w.to_bytes().unwrap()), "inconsistent");
+    let mut w = indexed(&s, &v, "global");
+    for (kind, rows) in [
+        (SectionKind::ImageGlobal, 3),
+        (SectionKind::ImageIndexCentroids, 2),
+    ] {
+        let dtype = if kind == SectionKind::ImageGlobal {
+            Dtype::F16
+        } else {
+            Dtype::F32
+        };
+        w.add_raw_section(
+            kind,
+            NO_LEVEL,
+            dtype,
+            rows,
+            0,
+            false,
+            Cow::Owned(Vec::new()),
+            None,
+        )
         .unwrap();
+    }
     assert_eq!(open_error(&w.to_bytes().unwrap()), "inconsistent");
 }
 
@@ -135,20 +207,12 @@ fn index_contents_are_checked_where_they_are_read() {
     let v = vlad(&s);
     let u32s = |v: &[u32]| Cow::Owned(bytemuck::cast_slice(v).to_vec());
     let f32s = |v: &[f32]| Cow::Owned(bytemuck::cast_slice(v).to_vec());
-    let cases: [(SectionKind, Dtype, u64, Cow<'static, [u8]>); 4] = [
-        // Offsets ending at 2 of the 3 images; decreasing.
-        (
-            SectionKind::ImageIndexLists,
-            Dtype::U32,
-            3,
-            u32s(&[0, 2, 2]),
-        ),
-        (
-            SectionKind::ImageIndexLists,
-            Dtype::U32,
-            3,
-            u32s(&[0, 3, 2]),
-        ),
+    let offsets = |v: &[u32]| (SectionKind::ImageIndexOffsets, Dtype::U32, 3, u32s(v));
+    let cases: [(SectionKind, Dtype, u64, Cow<'static, [u8]>); 5] = [
+        // Offsets ending at 2 of the 3 images; decreasing; not starting at 0.
+        offsets(&[0, 2, 2]),
+        offsets(&[0, 4, 3]),
+        offsets(&[1, 2, 3]),
         // Image 3 of 3.
         (
             SectionKind::ImageIndexImages,
@@ -173,6 +237,14 @@ fn index_contents_are_checked_where_they_are_read() {
         let map = Map::from_bytes(&bytes).unwrap();
         let err = map.image_index().expect_err("refused on access");
         assert_eq!(err.kind_name(), "inconsistent", "{kind}: {err}");
+        // Named by the section and the rule.
+        let rule = match kind {
+            SectionKind::ImageIndexOffsets => "list offsets do not run from 0",
+            SectionKind::ImageIndexImages => "past the 3 images or in two lists",
+            _ => "not finite",
+        };
+        let text = err.to_string();
+        assert!(text.contains(kind.name()) && text.contains(rule), "{text}");
         assert_eq!(map.verify().unwrap_err().kind_name(), "inconsistent");
     }
 }
@@ -216,19 +288,26 @@ fn a_slice_keeps_the_index_with_the_rows_it_indexes() {
             before.probe
         )
     );
-    // Level 0 alone: the VLAD goes, and the index and its metadata with it (a 1.2 file).
+    // Level 0 alone: the VLAD goes, and the index and its metadata with it (a 1.0 file).
     let (dropped, summary) = sliced(&bytes, &[0], false);
     assert!(summary.vlad_dropped && summary.index_dropped);
     let map = Map::from_bytes(&dropped).unwrap();
     assert!(map.metadata().image_index.is_none());
     assert!(map.find(SectionKind::ImageIndexImages, None).is_none());
-    assert_ne!(map.version(), "1.3");
+    assert_eq!(map.version(), "1.0");
     // An index over global descriptors stays when the VLAD level goes.
     let global = indexed(&s, &v, "global").to_bytes().unwrap();
     let (kept, summary) = sliced(&global, &[0], false);
     assert!(summary.vlad_dropped && !summary.index_dropped);
     let map = Map::from_bytes(&kept).unwrap();
     assert_eq!(map.image_index().unwrap().unwrap().of, Retrieval::Global);
+    // Over rows this version does not know: dropped, key and all.
+    let unknown = indexed(&s, &v, "netvlad-pca").to_bytes().unwrap();
+    let (sliced_unknown, summary) = sliced(&unknown, &[2], false);
+    assert!(summary.index_dropped);
+    let map = Map::from_bytes(&sliced_unknown).unwrap();
+    assert!(map.metadata().image_index.is_none());
+    assert!(map.find(SectionKind::ImageIndexCentroids, None).is_none());
     // --minimal on 3 images keeps no retrieval data, so no index.
     let (minimal, summary) = sliced(&bytes, &[2], true);
     assert!(summary.index_dropped);

@@ -135,3 +135,67 @@ fn a_small_street_converts_and_every_query_localizes() {
     assert_eq!(frames.len(), 6);
     assert_eq!(tracked, 5, "every frame after the first is tracked");
 }
+
+/// (1.3) An image index asked for on a small street (96 images, 12 lists): with every list
+/// probed, each query retrieves what ranking every image retrieves, and with the map's own
+/// probe every query still localizes within the bar. (Which images a probe scores is the
+/// unit tests' of `localize::retrieval`.)
+#[test]
+fn an_image_index_probed_whole_ranks_as_every_image_and_its_probe_localizes() {
+    let dir = tempfile::tempdir().unwrap();
+    let options = StreetOptions {
+        points: 12_000,
+        queries: 6,
+        seed: 7,
+        ..StreetOptions::default()
+    };
+    write_street(dir.path(), &options).unwrap();
+    let map_path = dir.path().join("street.sfpm");
+    let mut convert_options = ConvertOptions {
+        database: Some(dir.path().join("database.db")),
+        ..ConvertOptions::default()
+    };
+    convert_options.vlad.index_lists = Some(12);
+    let converted = convert(
+        &dir.path().join("sparse"),
+        &convert_options,
+        &map_path,
+        &sfpmap::progress::Silent,
+    )
+    .unwrap();
+    let index = converted.index.expect("an index asked for");
+    assert!(
+        index.stored && index.lists == 12 && index.of == Retrieval::Vlad,
+        "{index:?}"
+    );
+    let map = Map::open(&map_path).unwrap();
+    let stored = map.image_index().unwrap().unwrap();
+    assert_eq!((stored.lists(), stored.probe), (12, index.probe));
+
+    let queries = read_query_list(&dir.path().join("queries.txt"), None).unwrap();
+    let truth = read_poses(&dir.path().join("gt_poses.txt")).unwrap();
+    let features = DatabaseFeatures::open(&dir.path().join("queries.db")).unwrap();
+    // top_k 2: 16 images scored at least, a sixth of the map, so the lists are probed.
+    let localizer = |probe| {
+        let options = LocalizeOptions {
+            top_k: 2,
+            retrieval_probe: probe,
+            ..LocalizeOptions::default()
+        };
+        Localizer::new(&map, options).unwrap()
+    };
+    let (exhaustive, whole, own) = (localizer(Some(0)), localizer(Some(12)), localizer(None));
+    for (query, (name, gt)) in queries.iter().zip(&truth) {
+        let f = features.features(name).unwrap().unwrap();
+        let every = exhaustive.localize(&f, &query.camera).unwrap();
+        let probed_whole = whole.localize(&f, &query.camera).unwrap();
+        assert_eq!(probed_whole.retrieved, every.retrieved, "{name}");
+        let r = own.localize(&f, &query.camera).unwrap();
+        assert_eq!(r.retrieved.len(), 2, "{name}");
+        let pose = r
+            .pose()
+            .unwrap_or_else(|| panic!("{name}: {:?}", r.failure()));
+        let (t, deg) = (pose.center_distance(gt), pose.rotation_error_deg(gt));
+        assert!(t < 0.5 && deg < 2.0, "{name}: {t} m, {deg}°");
+    }
+}

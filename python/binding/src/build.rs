@@ -78,6 +78,7 @@ impl Options {
         vlad_clusters: Option<usize>,
         vlad_dims: Option<usize>,
         pq: Option<usize>,
+        index_lists: Option<usize>,
     ) -> PyResult<Options> {
         let bad = |m: String| Err(InputError::new_err(m));
         // `sfpmap convert`'s parser: `--images` conflicts with `--database`, `--short-dims`,
@@ -137,6 +138,12 @@ impl Options {
         if vlad_dims.is_some_and(|d| !(1..=256).contains(&d)) {
             return bad("vlad_dims: a number of dimensions from 1 to 256".into());
         }
+        let max_lists = sfpmap::build::MAX_INDEX_LISTS;
+        if index_lists.is_some_and(|n| n > max_lists) {
+            return bad(format!(
+                "index_lists: a number of lists from 0 (no index) to {max_lists}"
+            ));
+        }
         let aggregate = match aggregate.unwrap_or("mean") {
             "mean" => Aggregate::Mean,
             "medoid" => Aggregate::Medoid,
@@ -161,7 +168,7 @@ impl Options {
             strict,
             vlad: VladOptions {
                 clusters: vlad_clusters,
-                index_lists: None,
+                index_lists,
                 dims: vlad_dims,
             },
             pq,
@@ -303,7 +310,8 @@ fn source(
                     allow_missing=false, threads=2, resize_max=None, global_max_side=None,
                     score_threshold=None, short_dims=None, codec="raw", zstd_level=3, aggregate=None, strict=false,
                     vlad_clusters=None, vlad_dims=None, pq=None, features=None, feature_name=None,
-                    global_features=None, kapture=None, keypoints_type=None, descriptors_type=None))]
+                    global_features=None, kapture=None, keypoints_type=None, descriptors_type=None,
+                    index_lists=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn convert(
     py: Python<'_>,
@@ -332,6 +340,7 @@ pub(crate) fn convert(
     kapture: Option<PathBuf>,
     keypoints_type: Option<String>,
     descriptors_type: Option<String>,
+    index_lists: Option<usize>,
 ) -> PyResult<String> {
     let start = Instant::now();
     let source = source(
@@ -376,6 +385,7 @@ pub(crate) fn convert(
         vlad_clusters,
         vlad_dims,
         pq,
+        index_lists,
     )?
     .with_features(
         features,
@@ -703,7 +713,7 @@ fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
                     short_dims=None, codec="raw",
                     zstd_level=3, aggregate=None, strict=false,
                     vlad_clusters=None, vlad_dims=None, pq=None, features=None,
-                    feature_name=None, global_features=None))]
+                    feature_name=None, global_features=None, index_lists=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn from_pycolmap(
     py: Python<'_>,
@@ -730,6 +740,7 @@ pub(crate) fn from_pycolmap(
     features: Option<PathBuf>,
     feature_name: Option<String>,
     global_features: Option<PathBuf>,
+    index_lists: Option<usize>,
 ) -> PyResult<String> {
     let start = Instant::now();
     // As the CLI: 0 is refused, the cap (and its warning) applies where threads are used.
@@ -754,6 +765,7 @@ pub(crate) fn from_pycolmap(
         vlad_clusters,
         vlad_dims,
         pq,
+        index_lists,
     )?
     .with_features(features, feature_name, global_features, false)?;
     o.check_output(&[], &out, force, None)?;

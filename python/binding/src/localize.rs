@@ -441,7 +441,7 @@ impl Localizer {
         fine_error_px: Option<f64>,
         min_inliers: Option<i64>,
         sequence: bool,
-        retrieval_probe: Option<usize>,
+        retrieval_probe: Option<i64>,
     ) -> PyResult<Self> {
         let opened = map.get().opened(py)?;
         // Each option left out (None) is the map's own default (LocalizeOptions::for_map:
@@ -466,7 +466,9 @@ impl Localizer {
             retrieval: retrieval
                 .parse::<RetrievalMethod>()
                 .map_err(|e| InputError::new_err(e.to_string()))?,
-            retrieval_probe,
+            retrieval_probe: retrieval_probe
+                .map(|n| count("retrieval_probe", n, |o, n| o.retrieval_probe = Some(n)))
+                .transpose()?,
             matching: MatchOptions {
                 ratio: ratio.unwrap_or(base.matching.ratio),
                 mutual: mutual.unwrap_or(base.matching.mutual),

@@ -228,3 +228,30 @@ def test_convert_releases_the_gil(shared, tmp_path):
         lambda i: sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=tmp_path / f"a-{i}.sfpm")
         and (tmp_path / f"a-{i}.sfpm").unlink()
     )
+
+
+def test_an_image_index_is_built_as_the_cli_builds_it_and_probed(cli, shared, work):
+    scene = shared / "scenes/sacre-coeur"
+    out, by_cli = work / "py-sacre-index.sfpm", work / "cli-sacre-index.sfpm"
+    s = sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=out, index_lists=3)
+    assert s["image_index"]["lists"] == 3 and s["image_index"]["stored"], s
+    run_cli(cli, "convert", "--colmap", scene / "sparse-map", "--database", scene / "database.db",
+            "--index-lists", "3", "-o", by_cli)
+    assert out.read_bytes() == by_cli.read_bytes()
+    with pytest.raises(sfpmap.InputError, match="index_lists"):
+        sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=work / "never.sfpm",
+                       index_lists=10**6)
+    queries = sfpmap.read_queries(scene / "queries.txt")
+    features = sfpmap.QueryDatabase(scene / "queries.db")
+    with sfpmap.Map(out) as m:
+        retrieved = {}
+        for probe in [None, 0, 3]:
+            loc = sfpmap.Localizer(m, top_k=2, retrieval_probe=probe)
+            for name, camera in queries:
+                r = loc.localize(features.features(name), camera, name=name)
+                assert r.success, (probe, name)
+                retrieved.setdefault(probe, []).append(r.retrieved)
+        # Every list probed ranks as every image scored.
+        assert retrieved[3] == retrieved[0]
+        with pytest.raises(sfpmap.InputError, match="retrieval_probe"):
+            sfpmap.Localizer(m, retrieval_probe=-1)
