@@ -173,7 +173,7 @@ pub(crate) fn dot(a: &[f32], b: &[f32]) -> f32 {
 
 /// Indices of the `k` highest scores, best first, ties by index: a partial selection
 /// (O(n) to find them, O(k log k) to order them), never a sort of all `n`.
-#[cfg(any(feature = "colmap-model", feature = "localize"))]
+#[cfg(any(feature = "colmap", feature = "localize"))]
 pub(crate) fn top_k_indices(scores: &[f32], k: usize) -> Vec<usize> {
     let better = |&a: &usize, &b: &usize| scores[b].total_cmp(&scores[a]).then(a.cmp(&b));
     let mut order: Vec<usize> = (0..scores.len()).collect();
@@ -187,7 +187,7 @@ pub(crate) fn top_k_indices(scores: &[f32], k: usize) -> Vec<usize> {
 
 /// A score that is not a number (a NaN in a stored row, which the format does not check)
 /// made the lowest, so it ranks last, not first.
-#[cfg(any(feature = "colmap-model", feature = "localize"))]
+#[cfg(any(feature = "colmap", feature = "localize"))]
 pub(crate) fn ranked_last_if_not_finite(scores: &mut [f32]) {
     for s in scores {
         if !s.is_finite() {
@@ -261,6 +261,7 @@ impl Nearest {
         ))
     }
 
+    #[cfg(any(feature = "colmap", feature = "localize"))]
     /// Every centroid's `x·c − ‖c‖²/2`, in centroid order (what `find` maximises, summed
     /// block by block: equal to its scores up to rounding).
     pub fn scores(&self, x: &[f32]) -> Vec<f32> {
@@ -287,6 +288,7 @@ impl Nearest {
         out
     }
 
+    #[cfg(any(feature = "colmap", feature = "localize"))]
     /// The centroids nearest to `x` first (by [`Nearest::scores`]; ties: the lower index; a
     /// score that is not a number last): the order an image index's lists are probed in,
     /// by the writer's calibration and by the localizer alike.

@@ -208,6 +208,7 @@ impl<'a> MapWriter<'a> {
     /// The rows of a shared (no level) section of `dtype` added as an array, not copied
     /// from another map: its little-endian bytes and column count. What a builder reads back
     /// to index them.
+    #[cfg(feature = "colmap")]
     pub(crate) fn pending_rows(&self, kind: SectionKind, dtype: Dtype) -> Option<(&[u8], usize)> {
         let section = self.sections.get(&(kind.code(), NO_LEVEL))?;
         match &section.content {
