@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Issue 11's scale table on the generated street (sfpmap::demo::street): per size, generate
-# (cached under target/street/), convert the SIFT map (with its VLAD), slice level 2 short,
+# (cached under target/street/), convert the SIFT map (with its VLAD; a line with convert's
+# time, peak RSS and the image index it stored or why not), slice level 2 short,
 # and localize with both maps (1 thread, after features; medians): the brute-force path
 # (--retrieval off, every point a candidate) side by side with retrieval, and the walk
 # (sequence.txt) with --sequence. Prints ms per query, queries within 0.5 m and 2°, map
@@ -17,7 +18,7 @@ sizes=("${@:-100000}")
 cargo build --release --quiet --all-features --example street
 cargo build --release --quiet --all-features
 bin=target/release/sfpmap
-printf '%-9s %-14s %8s %-38s %10s %12s %12s\n' points map MB path "ms/query" "within bar" "peak RSS MB"
+printf '%-9s %-14s %8s %-38s %10s %16s %12s %12s\n' points map MB path "ms/query" "retr/coarse/fine" "within bar" "peak RSS MB"
 for n in "${sizes[@]}"; do
   dir=target/street/$n
   if [ ! -f "$dir/sequence_gt.txt" ]; then
@@ -26,7 +27,20 @@ for n in "${sizes[@]}"; do
   fi
   work=$(mktemp -d)
   cp "$dir/database.db" "$work/db.db"; cp "$dir/queries.db" "$work/q.db"; cp "$dir/sequence.db" "$work/s.db"
-  "$bin" convert --colmap "$dir/sparse" --database "$work/db.db" -o "$work/sift.sfpm" -q
+  /usr/bin/time -f '%e %M' -o "$work/convert_time" \
+    "$bin" convert --colmap "$dir/sparse" --database "$work/db.db" -o "$work/sift.sfpm" --json >"$work/convert.json"
+  python3 - "$n" "$work" <<'PY'
+import json, sys
+n, work = sys.argv[1:3]
+c = json.load(open(f"{work}/convert.json"))
+seconds, rss = open(f"{work}/convert_time").read().split()
+i = c.get("image_index")
+index = "none tried" if i is None else (
+    f"{i['lists']} lists, {i['probe']} probed, ~{i['scored']} images scored, recall {i['recall']:.3f}"
+    + ("" if i["stored"] else " (not stored: no gain)"))
+print(f"{n:<9} convert: {float(seconds):.1f} s, peak RSS {int(rss) / 1024:.0f} MB, "
+      f"{c['images']} images, {c['observations']} observations, map {c['output_bytes'] / 1e6:.1f} MB; image index: {index}")
+PY
   "$bin" slice "$work/sift.sfpm" --level 2 --short -o "$work/l2.sfpm" -q
   for variant in sift l2; do
     short=(); [ "$variant" = l2 ] && short=(--short)
@@ -49,7 +63,9 @@ mb = os.path.getsize(f"{work}/{variant}.sfpm") / 1e6
 name = {"sift": "SIFT full", "l2": "level 2 short"}[variant]
 paths = ", ".join(f"{k} {v}" for k, v in sorted(r.get("path", {}).items()))
 within = round(e["recall"][0]["recall"] * r["queries"])
-print(f"{n:<9} {name:<14} {mb:8.1f} {path + ' (' + paths + ')':<38} {r['median_ms']['total']:10.1f} {within:>5}/{r['queries']:<6} {rss:12.0f}")
+m = r["median_ms"]
+stages = f"{m['retrieval']:.1f}/{m['coarse_match'] + m['coarse_ransac']:.1f}/{m['fine']:.1f}"
+print(f"{n:<9} {name:<14} {mb:8.1f} {path + ' (' + paths + ')':<38} {m['total']:10.1f} {stages:>16} {within:>5}/{r['queries']:<6} {rss:12.0f}")
 PY
     done
     head -1 "$dir/queries.txt" >"$work/one.txt"
@@ -74,7 +90,7 @@ mb = os.path.getsize(f"{work}/{variant}.sfpm") / 1e6
 name = {"sift": "SIFT full", "l2": "level 2 short"}[variant]
 within = sum(round(e["recall"][0]["recall"]) for e in evals)
 path = f"open to first pose ({parts[0]:.1f}+{parts[1]:.1f}+{first:.1f})"
-print(f"{n:<9} {name:<14} {mb:8.1f} {path:<38} {ms[median]:10.1f} {within:>5}/{len(runs):<6} {rss:12.0f}")
+print(f"{n:<9} {name:<14} {mb:8.1f} {path:<38} {ms[median]:10.1f} {'':>16} {within:>5}/{len(runs):<6} {rss:12.0f}")
 PY
   done
   rm -rf "$work"

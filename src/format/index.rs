@@ -219,27 +219,6 @@ impl<'a> MapWriter<'a> {
         }
     }
 
-    /// A section a reader may skip (not `required`), in the writer's codec.
-    fn push_optional(
-        &mut self,
-        kind: SectionKind,
-        level: u16,
-        dtype: Dtype,
-        rows: usize,
-        cols: usize,
-        bytes: Cow<'a, [u8]>,
-    ) {
-        self.push(
-            kind,
-            level,
-            dtype,
-            rows as u64,
-            cols as u64,
-            false,
-            Content::Array { bytes, codec: None },
-        );
-    }
-
     /// (1.3) Adds the image index over the rows of `info.of` (already set, or set later):
     /// `centroids` `[lists × width]` and each image's list (`list_of[i]` < lists). Images are
     /// grouped by list in index order. The sections are optional: a reader before 1.3 skips
@@ -308,7 +287,7 @@ impl<'a> MapWriter<'a> {
                 owned_bytes(images),
             ),
         ] {
-            self.push_optional(kind, NO_LEVEL, dtype, rows, cols, bytes);
+            self.push_array_flagged(kind, NO_LEVEL, dtype, rows, cols, bytes, false);
         }
         self.metadata_mut().image_index = Some(info);
         Ok(self)

@@ -122,7 +122,7 @@ impl<'a> MapWriter<'a> {
     }
 
     #[allow(clippy::too_many_arguments)] // one per entry-table field
-    pub(super) fn push(
+    fn push(
         &mut self,
         kind: SectionKind,
         level: u16,
@@ -153,13 +153,28 @@ impl<'a> MapWriter<'a> {
         cols: usize,
         bytes: Cow<'a, [u8]>,
     ) {
+        self.push_array_flagged(kind, level, dtype, rows, cols, bytes, true);
+    }
+
+    /// [`MapWriter::push_array`], `required` or not (a section a reader may skip).
+    #[allow(clippy::too_many_arguments)] // one per entry-table field
+    pub(super) fn push_array_flagged(
+        &mut self,
+        kind: SectionKind,
+        level: u16,
+        dtype: Dtype,
+        rows: usize,
+        cols: usize,
+        bytes: Cow<'a, [u8]>,
+        required: bool,
+    ) {
         self.push(
             kind,
             level,
             dtype,
             rows as u64,
             cols as u64,
-            true,
+            required,
             Content::Array { bytes, codec: None },
         );
     }

@@ -14,15 +14,20 @@ use sfpmap::localize::{
 };
 use sfpmap::session::{QuerySource, Session};
 
-#[test]
-fn a_small_street_converts_and_every_query_localizes() {
-    let dir = tempfile::tempdir().unwrap();
-    let options = StreetOptions {
+/// The small street both tests use: 12,000 points, 6 queries, seed 7.
+fn small_street() -> StreetOptions {
+    StreetOptions {
         points: 12_000,
         queries: 6,
         seed: 7,
         ..StreetOptions::default()
-    };
+    }
+}
+
+#[test]
+fn a_small_street_converts_and_every_query_localizes() {
+    let dir = tempfile::tempdir().unwrap();
+    let options = small_street();
     let summary = write_street(dir.path(), &options).unwrap();
     assert_eq!(summary.queries, 6);
     assert!(summary.images >= 80, "{summary:?}");
@@ -143,13 +148,7 @@ fn a_small_street_converts_and_every_query_localizes() {
 #[test]
 fn an_image_index_probed_whole_ranks_as_every_image_and_its_probe_localizes() {
     let dir = tempfile::tempdir().unwrap();
-    let options = StreetOptions {
-        points: 12_000,
-        queries: 6,
-        seed: 7,
-        ..StreetOptions::default()
-    };
-    write_street(dir.path(), &options).unwrap();
+    write_street(dir.path(), &small_street()).unwrap();
     let map_path = dir.path().join("street.sfpm");
     let mut convert_options = ConvertOptions {
         database: Some(dir.path().join("database.db")),
