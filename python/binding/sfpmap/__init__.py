@@ -484,7 +484,8 @@ class Localizer:
 
     Options as the CLI's ``localize``: ``levels`` (default all; coarse matching uses the
     deepest), ``short`` (match the short block only), ``top_k``, ``retrieval`` ("auto",
-    "vlad", "global", "off"), ``ratio`` (default the map's: 0.95 on SFP maps, 0.9 on SIFT
+    "vlad", "global", "off"), ``retrieval_probe`` (lists of the map's image index a query
+    scores; 0: every image), ``ratio`` (default the map's: 0.95 on SFP maps, 0.9 on SIFT
     maps); and the localizer's ``mutual``, ``min_similarity``,
     ``coarse_error_px``, ``gate_px``, ``gate_ratio``, ``fine_error_px``, ``min_inliers``.
     An option left out (``None``) is the library's default for the map, the one the CLI and
@@ -624,7 +625,7 @@ def convert(
     of ``model_dir`` a kapture folder (``convert --kapture``: its model and its own keypoints
     and descriptors, chosen by ``keypoints_type``/``descriptors_type`` where it has several;
     none: a geometry map). ``options`` are the CLI's flags (``force``, ``codec``,
-    ``short_dims``, ``aggregate``, ``vlad_clusters``, ``pq``, ``model``, ``resize_max``,
+    ``short_dims``, ``aggregate``, ``vlad_clusters``, ``index_lists``, ``pq``, ``model``, ``resize_max``,
     ``threads``, ``feature_name``, ...), checked as the CLI checks them: ``images`` with
     ``database``, ``short_dims``, ``aggregate`` or ``strict``, both or neither of
     ``model_dir`` and ``kapture``, ``kapture`` with ``database``, ``images`` or ``features``
