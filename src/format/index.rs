@@ -15,7 +15,7 @@ use super::error::Error;
 use super::layout::{Dtype, SectionKind, NO_LEVEL};
 use super::metadata::{ImageIndexInfo, Metadata, Retrieval};
 use super::reader::{Map, Section};
-use super::writer::{owned_bytes, Content, MapWriter};
+use super::writer::{owned_bytes, MapWriter};
 use bitvec::vec::BitVec;
 use std::borrow::Cow;
 
@@ -212,7 +212,7 @@ impl<'a> MapWriter<'a> {
     pub(crate) fn pending_rows(&self, kind: SectionKind, dtype: Dtype) -> Option<(&[u8], usize)> {
         let section = self.sections.get(&(kind.code(), NO_LEVEL))?;
         match &section.content {
-            Content::Array { bytes, .. } if section.dtype == dtype => {
+            super::writer::Content::Array { bytes, .. } if section.dtype == dtype => {
                 Some((bytes.as_ref(), section.cols as usize))
             }
             _ => None,
