@@ -165,6 +165,11 @@ pub struct SfpmSessionOptions {
 pub const SFPM_SESSION_OPTIONS_SIZE_1: usize =
     std::mem::offset_of!(SfpmSessionOptions, retrieval_probe);
 
+// The earlier header's `sizeof` on 64-bit targets: a field reordered before the appended ones
+// would break old callers, and fails to build here instead.
+#[cfg(target_pointer_width = "64")]
+const _: () = assert!(SFPM_SESSION_OPTIONS_SIZE_1 == 104);
+
 /// What `sfpm_localize` found.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default)]
