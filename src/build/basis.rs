@@ -20,11 +20,17 @@ pub struct Basis {
 impl Basis {
     /// The basis of `descriptors` (`[n × dim]` row-major).
     pub fn fit(descriptors: &[f32], dim: usize) -> Basis {
+        Self::fit_rows(descriptors.chunks_exact(dim.max(1)), dim)
+    }
+
+    /// The basis of the rows `rows` yields (each `dim` values), in that order: a level's
+    /// rows read where they are, not copied together first.
+    pub fn fit_rows<'r>(rows: impl Iterator<Item = &'r [f32]>, dim: usize) -> Basis {
         // Upper triangle of Σ r rᵀ in f64, one row at a time: each element's sum keeps the
         // rows' order (the same bytes on every machine), and the loop over j vectorises.
         let mut m = vec![0.0f64; dim * dim];
         let mut row = vec![0.0f64; dim];
-        for source in descriptors.chunks_exact(dim) {
+        for source in rows {
             for (r, &x) in row.iter_mut().zip(source) {
                 *r = f64::from(x);
             }

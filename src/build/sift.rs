@@ -641,20 +641,20 @@ fn build_levels(
             reporter.advance(1);
             continue;
         }
-        let mut raw = Vec::with_capacity(points.len() * dim);
-        for &p in &points {
-            raw.extend_from_slice(&descriptors[p as usize * dim..(p as usize + 1) * dim]);
-        }
-        let basis = Basis::fit(&raw, dim);
-        // Row by row into f16 (round to nearest even, as the writer converts f32): no f32
-        // copy of the level.
-        let mut projected = Vec::with_capacity(raw.len());
+        // The level's rows read in place, in point order: no f32 copy of the level.
+        let rows = || {
+            points
+                .iter()
+                .map(|&p| &descriptors[p as usize * dim..(p as usize + 1) * dim])
+        };
+        let basis = Basis::fit_rows(rows(), dim);
+        // Row by row into f16 (round to nearest even, as the writer converts f32).
+        let mut projected = Vec::with_capacity(points.len() * dim);
         let mut row = vec![0.0f32; dim];
-        for src in raw.chunks_exact(dim) {
+        for src in rows() {
             basis.project(src, &mut row);
             projected.extend(row.iter().map(|&v| f16::from_f32(v)));
         }
-        drop(raw);
         let level_scales: Vec<f32> = points.iter().map(|&p| median[p as usize]).collect();
         let lo = level_scales.iter().copied().fold(f32::INFINITY, f32::min);
         let hi = level_scales
