@@ -162,7 +162,7 @@ fn index_rule() -> String {
 
 /// One f16 row widened and L2-normalised, as the localizer scores rows; all zeros (no
 /// direction: k-means leaves it out) when a value is not finite, a row the localizer ranks
-/// last.
+/// last. (Not `vector::widen_f16`: the writer's bytes need not be aligned for an f16 cast.)
 fn unit_row(row: &[u8], out: &mut [f32]) {
     for (v, b) in out.iter_mut().zip(row.chunks_exact(2)) {
         *v = f16::from_le_bytes([b[0], b[1]]).to_f32();

@@ -251,7 +251,8 @@ def test_an_image_index_is_built_as_the_cli_builds_it_and_probed(cli, shared, wo
                 r = loc.localize(features.features(name), camera, name=name)
                 assert r.success, (probe, name)
                 retrieved.setdefault(probe, []).append(r.retrieved)
-        # Every list probed ranks as every image scored.
+        # The option reaches the library (on 8 images every probe ranks them all; which images
+        # a probe scores is the Rust tests' part).
         assert retrieved[3] == retrieved[0]
         with pytest.raises(sfpmap.InputError, match="retrieval_probe"):
             sfpmap.Localizer(m, retrieval_probe=-1)
