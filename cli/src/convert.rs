@@ -178,6 +178,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         strict: args.strict,
         vlad: vlad_options(&args),
         pq: args.pq.map(usize::from),
+        job: None,
     };
     #[cfg(feature = "hdf5")]
     {
@@ -377,6 +378,7 @@ fn run_sfp(
         zstd_level: args.zstd_level,
         vlad: vlad_options(args),
         pq: args.pq.map(usize::from),
+        job: None,
     };
     let colmap = args.colmap.as_deref().ok_or_else(|| {
         anyhow::anyhow!("--images builds from a COLMAP model: pass --colmap, not --kapture")

@@ -131,6 +131,18 @@ fn map_writer<'a>(
     Ok(writer)
 }
 
+/// `parameters` with the caller's `job` record added under `job` (`ConvertOptions::job`).
+#[cfg(feature = "colmap")]
+fn with_job(
+    mut parameters: serde_json::Value,
+    job: Option<&serde_json::Value>,
+) -> serde_json::Value {
+    if let (Some(job), Some(object)) = (job, parameters.as_object_mut()) {
+        object.insert("job".into(), job.clone());
+    }
+    parameters
+}
+
 #[cfg(feature = "colmap")]
 /// A file's size and XXH3 for `provenance.sources`, read through a fixed buffer (a features
 /// file or database may be tens of GB: neither mapped nor held); a file over

@@ -66,6 +66,9 @@ pub struct SfpMapOptions {
     pub vlad: super::VladOptions,
     /// Product-quantise every level into this many one-byte codes per point (format 1.1).
     pub pq: Option<usize>,
+    /// The caller's record of the job that made the map (a batch job's place, input
+    /// fingerprint and options), stored as `provenance.parameters.job`; `None`: no such key.
+    pub job: Option<serde_json::Value>,
 }
 
 /// The level whose descriptors SFP maps' VLAD aggregates, when the map has it.
@@ -93,6 +96,7 @@ impl SfpMapOptions {
             zstd_level: 3,
             vlad: super::VladOptions::default(),
             pq: None,
+            job: None,
         }
     }
 }
@@ -393,6 +397,7 @@ fn convert_images_of(
         "codec": options.codec.name(),
     });
     let codec = (options.codec, options.zstd_level);
+    let parameters = super::with_job(parameters, options.job.as_ref());
     let mut writer = super::map_writer(metadata, sources, parameters, codec, &geometry)?;
     if contract.global_dim > 0 {
         writer.set_image_global(contract.global_dim, &global)?;

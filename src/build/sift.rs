@@ -73,6 +73,9 @@ pub struct ConvertOptions {
     pub vlad: super::VladOptions,
     /// Product-quantise every level into this many one-byte codes per point (format 1.1).
     pub pq: Option<usize>,
+    /// The caller's record of the job that made the map (a batch job's place, input
+    /// fingerprint and options), stored as `provenance.parameters.job`; `None`: no such key.
+    pub job: Option<serde_json::Value>,
 }
 
 impl Default for ConvertOptions {
@@ -89,6 +92,7 @@ impl Default for ConvertOptions {
             vlad: super::VladOptions::default(),
             pq: None,
             strict: false,
+            job: None,
         }
     }
 }
@@ -250,6 +254,7 @@ fn convert_geometry(
         "codec": options.codec.name(),
     });
     let codec = (options.codec, options.zstd_level);
+    let parameters = super::with_job(parameters, options.job.as_ref());
     let mut writer = super::map_writer(metadata, sources, parameters, codec, geometry)?;
 
     let mut summaries = Vec::new();

@@ -19,6 +19,7 @@
 //! configuration did not ask for.
 
 mod cache;
+pub mod objects;
 pub(crate) mod policy;
 
 use crate::format::{coalesce, Error, Map, RangeSource, SourceStats, Wanted, HEAD_READ};

@@ -457,7 +457,10 @@ pub(crate) fn build_store(
             let builder = object_store::aws::AmazonS3Builder::from_env().with_url(url.as_str());
             s3_token_file(&builder)?;
             let connector = PolicyConnector::new(s3_configured_hosts(&builder), false, options);
+            // Every PUT carries its SHA-256, which the server checks before storing
+            // (`objects::upload`); reads are unaffected.
             let store = builder
+                .with_checksum_algorithm(object_store::aws::Checksum::SHA256)
                 .with_client_options(client)
                 .with_retry(retry)
                 .with_http_connector(connector)

@@ -630,10 +630,14 @@ def convert(
     ``database``, ``short_dims``, ``aggregate`` or ``strict``, both or neither of
     ``model_dir`` and ``kapture``, ``kapture`` with ``database``, ``images`` or ``features``
     are the CLI's ``InputError``; as the CLI, a file already inside the kapture folder is an
-    input, refused as ``out`` even with ``force``.
+    input, refused as ``out`` even with ``force``. ``job`` (a dict; no CLI flag) is kept in
+    the map's ``provenance.parameters.job``: ``sfpmap.batch`` records a place's input
+    fingerprint there.
     Returns what ``convert --json`` prints."""
     if out is None:
         raise InputError("out: the map to write")
+    if options.get("job") is not None:
+        options["job"] = _json.dumps(options["job"])
     return _json.loads(
         _sfpmap.convert(
             None if model_dir is None else _os.fspath(model_dir),
@@ -656,7 +660,8 @@ def slice(
     """``sfpmap slice``: keep ``levels`` (and with ``short`` only their short blocks) of a
     map, written to ``out``. Options as the CLI's flags: ``minimal`` (only what localization
     reads, positions on a 16-bit grid), ``pq`` (M one-byte codes per point), ``codec``,
-    ``zstd_level``, ``force``. Returns what ``slice --json`` prints."""
+    ``zstd_level``, ``force``; or ``budget`` (bytes: ``slice --budget``, which chooses the rest;
+    ``levels`` may then be empty). Returns what ``slice --json`` prints."""
     if out is None:
         raise InputError("out: the map to write")
     return _json.loads(

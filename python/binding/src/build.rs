@@ -57,6 +57,8 @@ struct Options {
     strict: bool,
     vlad: VladOptions,
     pq: Option<usize>,
+    /// `ConvertOptions::job`: the caller's record, kept in provenance.
+    job: Option<serde_json::Value>,
 }
 
 impl Options {
@@ -172,6 +174,7 @@ impl Options {
                 dims: vlad_dims,
             },
             pq,
+            job: None,
         })
     }
 
@@ -215,6 +218,7 @@ impl Options {
             strict: self.strict,
             vlad: self.vlad,
             pq: self.pq,
+            job: self.job.clone(),
         }
     }
 
@@ -233,6 +237,7 @@ impl Options {
             zstd_level: self.zstd_level,
             vlad: self.vlad,
             pq: self.pq,
+            job: self.job.clone(),
         }
     }
 
@@ -311,7 +316,7 @@ fn source(
                     score_threshold=None, short_dims=None, codec="raw", zstd_level=3, aggregate=None, strict=false,
                     vlad_clusters=None, vlad_dims=None, pq=None, features=None, feature_name=None,
                     global_features=None, kapture=None, keypoints_type=None, descriptors_type=None,
-                    index_lists=None))]
+                    index_lists=None, job=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn convert(
     py: Python<'_>,
@@ -341,6 +346,7 @@ pub(crate) fn convert(
     keypoints_type: Option<String>,
     descriptors_type: Option<String>,
     index_lists: Option<usize>,
+    job: Option<&str>,
 ) -> PyResult<String> {
     let start = Instant::now();
     let source = source(
@@ -368,7 +374,7 @@ pub(crate) fn convert(
         (Some(_), _) | (None, ..=0) => crate::thread_count(py, Some(threads))?,
         (None, n) => n as usize,
     };
-    let o = Options::new(
+    let mut o = Options::new(
         database,
         images,
         model,
@@ -393,6 +399,7 @@ pub(crate) fn convert(
         global_features,
         matches!(source, Source::Kapture(..)),
     )?;
+    o.job = crate::objects::job_record(job)?;
     let files = match &source {
         Source::Colmap(model_dir) => sfpmap::colmap::model_files(model_dir)
             .map(|f| f.paths)
@@ -439,10 +446,12 @@ pub(crate) fn convert(
 
 /// `sfpmap slice`: keep `levels` of the map at `map_path` (and only their short descriptor
 /// blocks with `short`; only what localization reads with `minimal`; product-quantised into
-/// `pq` codes per point), written to `out`. Returns what `slice --json` prints.
+/// `pq` codes per point), written to `out`; or, with `budget` (bytes), the levels, blocks,
+/// `minimal` and `pq` that fit it best (`slice --budget`; `levels`, if any, the only level set
+/// tried). Returns what `slice --json` prints.
 #[pyfunction]
 #[pyo3(signature = (map_path, levels, short=false, *, out, minimal=false, pq=None, codec=None,
-                    zstd_level=3, force=false))]
+                    zstd_level=3, force=false, budget=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn slice(
     py: Python<'_>,
@@ -455,10 +464,16 @@ pub(crate) fn slice(
     codec: Option<&str>,
     zstd_level: i32,
     force: bool,
+    budget: Option<u64>,
 ) -> PyResult<String> {
     use sfpmap::build::pq::slice_quantised;
-    if levels.is_empty() {
+    if levels.is_empty() && budget.is_none() {
         return Err(InputError::new_err("levels: at least one level to keep"));
+    }
+    if budget.is_some() && (short || minimal || pq.is_some()) {
+        return Err(InputError::new_err(
+            "budget chooses short, minimal and pq itself: pass none of them",
+        ));
     }
     if !(1..=22).contains(&zstd_level) {
         return Err(InputError::new_err(format!(
@@ -486,13 +501,29 @@ pub(crate) fn slice(
             .into_iter()
             .collect::<Result<_, String>>()
             .map_err(|bad| no_such_level(&map_path, &bad, &map.level_ids()))?;
-        let sliced = slice_quantised(&map, &options, pq.map(usize::from))
-            .map_err(|e| format_error(&map_path, e))?;
+        let (sliced, budget_report) = match budget {
+            Some(bytes) => {
+                let levels = (!options.levels.is_empty()).then_some(&options.levels[..]);
+                let chosen = sfpmap::build::budget::slice_to_budget(&map, bytes, levels)
+                    .map_err(|e| format_error(&map_path, e))?;
+                let report = chosen.report(bytes);
+                (chosen.sliced, Some(report))
+            }
+            None => (
+                slice_quantised(&map, &options, pq.map(usize::from))
+                    .map_err(|e| format_error(&map_path, e))?,
+                None,
+            ),
+        };
         let written = sliced.writer.write(&out, &Silent).map_err(|e| match e {
             sfpmap::format::Error::Io { .. } => FileError::new_err(chain(&e)),
             e => FileError::new_err(within(&out.display().to_string(), &e)),
         })?;
-        Ok(sliced.report(&map_path, &out, map.file_len(), written))
+        let mut report = sliced.report(&map_path, &out, map.file_len(), written);
+        if let Some(b) = budget_report {
+            report["budget"] = b;
+        }
+        Ok(report)
     })?;
     Ok(value.to_string())
 }

@@ -3,7 +3,8 @@
 //!
 //! What lives where: `map.rs` opens maps and hands out numpy views of their sections (the
 //! one `unsafe` block is there); `localize.rs` holds cameras, query features, the localizer
-//! (a library `Session`) and its results; `build.rs` convert, slice and `from_pycolmap`; `extract.rs`
+//! (a library `Session`) and its results; `build.rs` convert, slice and `from_pycolmap`; `objects.rs` object storage and catalogs for
+//! `sfpmap.batch`; `extract.rs`
 //! the SFP extractor, hloc's `features.h5` and COLMAP query databases; `errors.rs` the
 //! exception classes and the CLI's one-line messages.
 //!
@@ -20,6 +21,7 @@ mod errors;
 mod extract;
 mod localize;
 mod map;
+mod objects;
 
 use pyo3::prelude::*;
 use std::sync::Mutex;
@@ -104,6 +106,13 @@ fn _sfpmap(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(build::from_pycolmap, m)?)?;
     m.add_function(wrap_pyfunction!(build::write_synthetic_map, m)?)?;
     m.add_function(wrap_pyfunction!(localize::read_queries, m)?)?;
+    m.add_function(wrap_pyfunction!(objects::object_list, m)?)?;
+    m.add_function(wrap_pyfunction!(objects::object_head, m)?)?;
+    m.add_function(wrap_pyfunction!(objects::object_download, m)?)?;
+    m.add_function(wrap_pyfunction!(objects::object_upload, m)?)?;
+    m.add_function(wrap_pyfunction!(objects::object_delete, m)?)?;
+    m.add_function(wrap_pyfunction!(objects::map_metadata, m)?)?;
+    m.add_function(wrap_pyfunction!(objects::build_catalog, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }
