@@ -659,8 +659,18 @@ def main(argv: Optional[List[str]] = None) -> int:
             tail = f": {row['error']}" if row["status"] == "failed" else ""
             print(f"[{done}/{total}] {row['place']} {row['status']}{tail}", file=sys.stderr, flush=True)
 
-    report = run(args.manifest, args.out, address=args.address, cpus_per_place=args.cpus_per_place,
-                 retries=args.retries, work_dir=args.work_dir, force=args.force, progress=progress)
+    # Ray prints its own notices (a node lost, a task retried) to standard output: they go to
+    # standard error while the job runs, so standard output holds the table or JSON alone.
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        report = run(args.manifest, args.out, address=args.address, cpus_per_place=args.cpus_per_place,
+                     retries=args.retries, work_dir=args.work_dir, force=args.force, progress=progress)
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
     if args.report:
         _write_report(args.report, report)
     if args.json:
