@@ -184,7 +184,8 @@ impl RemoteSource {
             message,
         };
         let parsed = url::Url::parse(url).map_err(|e| fail(format!("not a URL: {e}")))?;
-        let (store, path) = policy::build_store(&parsed, named, options).map_err(fail)?;
+        let (store, path) =
+            policy::build_store(&parsed, named, options, policy::Traffic::Ranges).map_err(fail)?;
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()

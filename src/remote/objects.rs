@@ -8,7 +8,7 @@
 //! (`x-amz-checksum-sha256`), which the server checks before storing. A file read here is
 //! written through [`AtomicFile`]: complete, or not there.
 
-use super::policy::{build_store, NamedBy};
+use super::policy::{build_store, NamedBy, Traffic};
 use super::RemoteOptions;
 use crate::format::Error;
 use crate::output::AtomicFile;
@@ -17,8 +17,9 @@ use object_store::{ObjectMeta, ObjectStore, ObjectStoreExt, PutPayload, WriteMul
 use std::io::{Read, Write};
 use std::path::Path;
 
-/// An object: its URL, length and ETag (when the server gave one).
+/// An object: its URL, length, ETag (when the server gave one) and modification time.
 #[derive(Debug, Clone, PartialEq, Eq)]
+#[non_exhaustive]
 pub struct ObjectInfo {
     /// `s3://bucket/key` or `http(s)://host/path`.
     pub url: String,
@@ -26,10 +27,13 @@ pub struct ObjectInfo {
     pub size: u64,
     /// Its ETag, as the server gave it.
     pub e_tag: Option<String>,
+    /// Its Last-Modified, in milliseconds since the Unix epoch.
+    pub last_modified_ms: i64,
 }
 
 /// Files up to this size are written in one PUT (held whole, once); larger ones in parts of
-/// [`PART_BYTES`], at most [`PARTS_IN_FLIGHT`] at a time (so about 64 MiB held).
+/// [`PART_BYTES`], at most [`PARTS_IN_FLIGHT`] in flight besides the one being filled and the
+/// read buffer (so about 100 MiB held).
 const SINGLE_PUT_BYTES: u64 = 64 << 20;
 const PART_BYTES: usize = 16 << 20;
 const PARTS_IN_FLIGHT: usize = 4;
@@ -49,8 +53,8 @@ impl Target {
         if !matches!(parsed.scheme(), "s3" | "http" | "https") {
             return Err(fail(url, "not an s3://, http:// or https:// URL".into()));
         }
-        let (store, path) =
-            build_store(&parsed, NamedBy::User, options).map_err(|m| fail(url, m))?;
+        let (store, path) = build_store(&parsed, NamedBy::User, options, Traffic::WholeObjects)
+            .map_err(|m| fail(url, m))?;
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
@@ -68,6 +72,7 @@ impl Target {
             url: format!("{}/{}", self.root, meta.location),
             size: meta.size,
             e_tag: meta.e_tag,
+            last_modified_ms: meta.last_modified.timestamp_millis(),
         }
     }
 }
@@ -84,9 +89,19 @@ fn fail(url: &str, message: String) -> Error {
     }
 }
 
+/// The store's error, cut to [`MAX_ERROR_CHARS`]: a server's error body is in it, and a
+/// hostile one may be large.
 fn store_error(url: &str, e: object_store::Error) -> Error {
-    fail(url, super::describe(&e))
+    let mut message = super::describe(&e);
+    if let Some((cut, _)) = message.char_indices().nth(MAX_ERROR_CHARS) {
+        message.truncate(cut);
+        message.push_str("...");
+    }
+    fail(url, message)
 }
+
+/// The longest error text kept from a store.
+const MAX_ERROR_CHARS: usize = 1000;
 
 /// The objects under the prefix `url` (`s3://bucket/places/a` lists `places/a/…`; a whole
 /// path segment, never `places/ab`), sorted by URL. At most `max_objects`: more is an error,
@@ -115,6 +130,35 @@ pub fn list(
     })?;
     found.sort_by(|a, b| a.url.cmp(&b.url));
     Ok(found)
+}
+
+/// The folders right under the prefix `url` (`s3://bucket/city` gives `s3://bucket/city/a/`,
+/// …: one listing request per thousand, whatever each folder holds), sorted; more than
+/// `max_folders` is an error.
+pub fn list_folders(
+    url: &str,
+    max_folders: usize,
+    options: &RemoteOptions,
+) -> Result<Vec<String>, Error> {
+    let target = Target::connect(url, options)?;
+    let prefix = (!target.path.as_ref().is_empty()).then_some(&target.path);
+    let listed = target
+        .runtime
+        .block_on(target.store.list_with_delimiter(prefix))
+        .map_err(|e| store_error(url, e))?;
+    if listed.common_prefixes.len() > max_folders {
+        return Err(fail(
+            url,
+            format!("more than {max_folders} folders under this prefix"),
+        ));
+    }
+    let mut folders: Vec<String> = listed
+        .common_prefixes
+        .iter()
+        .map(|p| format!("{}/{p}/", target.root))
+        .collect();
+    folders.sort();
+    Ok(folders)
 }
 
 /// The object at `url`, or `None` when there is none.
@@ -202,7 +246,12 @@ pub fn upload(src: &Path, url: &str, options: &RemoteOptions) -> Result<ObjectIn
     target.runtime.block_on(async {
         if size <= SINGLE_PUT_BYTES {
             let mut bytes = Vec::with_capacity(size as usize);
-            file.read_to_end(&mut bytes).map_err(io)?;
+            // At most one byte past the size it had: a file growing meanwhile is refused, not
+            // read on.
+            (&mut file)
+                .take(size + 1)
+                .read_to_end(&mut bytes)
+                .map_err(io)?;
             if bytes.len() as u64 != size {
                 return Err(io(std::io::Error::other("the file changed while read")));
             }

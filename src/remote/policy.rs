@@ -57,6 +57,21 @@ const MAX_REDIRECTS: usize = 10;
 /// How long a connection may take to open, and a request in all.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 const REQUEST_TIMEOUT: Duration = Duration::from_secs(120);
+/// Whole-object transfers (`objects.rs`: a database of tens of GB) have no total deadline,
+/// only this long without a byte, and retry for longer than range reads.
+const TRANSFER_READ_TIMEOUT: Duration = Duration::from_secs(60);
+const TRANSFER_RETRIES: usize = 10;
+const TRANSFER_RETRY_TIMEOUT: Duration = Duration::from_secs(300);
+
+/// What a store is for: its deadlines and retries.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Traffic {
+    /// Range reads of a map: each request small, an unreachable server reported in seconds.
+    Ranges,
+    /// Whole objects of any size (`objects.rs`): no total deadline, a read timeout, patient
+    /// retries.
+    WholeObjects,
+}
 
 /// Who named a URL: decides whether it may reach loopback and private addresses (rule 3).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -434,6 +449,7 @@ pub(crate) fn build_store(
     url: &Url,
     named: NamedBy,
     options: &RemoteOptions,
+    traffic: Traffic,
 ) -> Result<(Box<dyn ObjectStore>, StorePath), String> {
     use object_store::{BackoffConfig, RetryConfig};
     admit(url, named, options).map_err(refused)?;
@@ -441,14 +457,29 @@ pub(crate) fn build_store(
     // Plain http is what the user asked for when the URL (or the S3 endpoint) says so.
     let client = ClientOptions::new()
         .with_allow_http(true)
-        .with_connect_timeout(CONNECT_TIMEOUT)
-        .with_timeout(REQUEST_TIMEOUT);
-    // Bounded time: an unreachable or failing server is reported within seconds, not after
-    // the crate's default of ten retries over three minutes.
-    let retry = RetryConfig {
-        backoff: BackoffConfig::default(),
-        max_retries: 2,
-        retry_timeout: Duration::from_secs(15),
+        .with_connect_timeout(CONNECT_TIMEOUT);
+    let (client, retry) = match traffic {
+        // Bounded time: an unreachable or failing server is reported within seconds, not
+        // after the crate's default of ten retries over three minutes.
+        Traffic::Ranges => (
+            client.with_timeout(REQUEST_TIMEOUT),
+            RetryConfig {
+                backoff: BackoffConfig::default(),
+                max_retries: 2,
+                retry_timeout: Duration::from_secs(15),
+            },
+        ),
+        // A body of many GB takes minutes: a stall is the failure, not the length.
+        Traffic::WholeObjects => (
+            client
+                .with_timeout_disabled()
+                .with_read_timeout(TRANSFER_READ_TIMEOUT),
+            RetryConfig {
+                backoff: BackoffConfig::default(),
+                max_retries: TRANSFER_RETRIES,
+                retry_timeout: TRANSFER_RETRY_TIMEOUT,
+            },
+        ),
     };
     let path = StorePath::from_url_path(url.path()).map_err(|e| describe(e.into()))?;
     match url.scheme() {

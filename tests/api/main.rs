@@ -8,6 +8,8 @@
 mod common;
 #[path = "../support/python.rs"]
 mod python;
+#[path = "../support/servers.rs"]
+mod servers;
 #[path = "../support/shared_data.rs"]
 mod shared_data;
 #[path = "../support/synthetic_scene.rs"]
@@ -37,6 +39,7 @@ mod geometry_pose;
 mod geometry_real;
 mod localize;
 mod mcap_log;
+mod remote_objects;
 mod session;
 mod street_scene;
 mod vectors;

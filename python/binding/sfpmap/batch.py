@@ -1,65 +1,59 @@
 """``python -m sfpmap.batch MANIFEST --out PREFIX``: many places' COLMAP models into sfpmap maps
-and a catalog, on a Ray cluster (``pip install 'sfpmap[ray]'``).
+and a catalog, on a Ray cluster (``pip install 'sfpmap[ray]'``). The guide's page "Building a
+city on Ray" says what it does for a user; this is how.
 
-MANIFEST is JSON lines, one place each (a local file or an ``s3://``/``https://`` URL)::
+MANIFEST is JSON lines, one place each (a local file or an ``s3://``/``http(s)://`` URL)::
 
     {"place": "hall-a", "colmap": "s3://in/hall-a/sparse", "database": "s3://in/hall-a/database.db",
      "variants": ["l2s", "pq8"], "budget": "2MB"}
 
-``place`` (the output folder's name), ``colmap`` (a model folder: cameras, images, points3D as
-``.bin`` or ``.txt``) and ``database`` (a SIFT or other-feature map) or ``images`` (an SFP map
-from the images) are paths or URLs, as the CLI's flags; a relative path is relative to the
-manifest's folder. ``variants`` are slices written beside the map (``l2s``: level 2, short;
-``l2``: level 2; ``pq8``: every level in 8-byte PQ codes; ``l2s-pq8``; ``-min`` appended:
-``--minimal``), ``budget`` one more slice cut to that many bytes (``slice --budget``). Instead
-of a manifest, an ``s3://`` prefix ending in ``/`` lists its places: every ``<prefix><place>/``
-holding ``sparse/`` and ``database.db`` or ``images/``.
+or an ``s3://`` prefix ending in ``/``, whose folders are the places (``<place>/sparse/`` and
+``<place>/database.db`` or ``<place>/images/``).
 
-Each place is one Ray task (one CPU; ``--cpus-per-place``): list and fetch its inputs (objects
-streamed to a work folder, never held whole), convert, slice, then store the outputs under
-``PREFIX/<place>/`` (``map.sfpm``, ``<variant>.sfpm``, ``budget-<size>.sfpm``). PREFIX is a
-folder or an ``s3://`` prefix; ``PREFIX/catalog.sfpc`` then catalogs the places (each by its
-first variant without PQ codes, else its map: a catalog reads f16 descriptors).
-
-Exactly once: every output appears complete or not at all (an S3 PUT or multipart upload
-stored only whole, its SHA-256 checked by the server; in a folder, a rename within the folder)
-and records the place's input fingerprint and options in its provenance
-(``provenance.parameters.job``, or in ``history`` for a slice). A place whose outputs all carry
-the fingerprint it has now is skipped, so a crashed job resumes by running it again. Ray
-retries a task whose worker or node is lost; a place that fails (a missing or damaged model, a
-403) is a row of the report with its one-line error and stops no other. Exit code 1 when any
-place failed.
-
-The driver's ``AWS_*`` and ``SFPMAP_*`` variables are passed to the tasks. One job per PREFIX at
-a time.
+The driver reads the manifest (a bad line is a failed row, never the end of the job), then keeps
+at most a few tasks per CPU of the cluster in flight. Each task (:func:`run_place`) lists its
+place's inputs, fingerprints them with its options, and skips the place when every output already
+carries that fingerprint (``provenance.parameters.job``, or ``provenance.history`` for a slice);
+else it fetches remote inputs into a work folder, converts, slices and stores each output whole
+(an S3 PUT or completed multipart upload; in a folder, a rename from ``PREFIX/.sfpmap-batch-tmp``).
+Ray retries a task whose worker or node is lost; a place's own error is its row's one line. Last,
+``PREFIX/catalog.sfpc`` is rewritten when its places or their fingerprints changed.
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
+import importlib
 import json
+import logging
+import math
 import os
 import re
+import resource
 import shutil
 import sys
 import tempfile
 import time
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from . import Error as _SfpmapError
-from . import _sfpmap
+from . import __version__
 from . import convert as _convert
 from . import slice as _slice
 
-__all__ = ["main", "read_manifest", "parse_variant", "parse_size", "run_place"]
+# The compiled half (object storage, map metadata by URL, catalogs), untyped here.
+_sfpmap: Any = importlib.import_module("sfpmap._sfpmap")
 
-KEYS = ("place", "colmap", "database", "images", "variants", "budget")
-MODEL_STEMS = ("cameras", "images", "points3D", "rigs", "frames")
-REQUIRED_STEMS = ("cameras", "images", "points3D")
+__all__ = ["main", "run", "run_place", "read_manifest", "parse_variant", "parse_size", "job_of"]
+
+MANIFEST_KEYS = ("place", "colmap", "database", "images", "variants", "budget")
+# The model files the library reads (src/colmap: cameras, images, points3D, .bin or .txt).
+MODEL_FILES = tuple(f"{stem}.{ext}" for ext in ("bin", "txt") for stem in ("cameras", "images", "points3D"))
 PLACE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}\Z")
-VARIANT = re.compile(r"(?:l(?P<level>\d{1,5})(?P<short>s?))?(?:-?pq(?P<pq>\d{1,4}))?(?P<min>-?min)?\Z")
-SIZE = re.compile(r"\s*(?P<number>\d+(?:\.\d+)?)\s*(?P<unit>[kKMGT]?i?B?)\s*\Z")
+RESERVED_NAMES = ("catalog.sfpc",)
+VARIANT = re.compile(r"(?:l(?P<level>\d{1,5})(?P<short>s?)(?:-pq(?P<lpq>\d{1,4}))?|pq(?P<pq>\d{1,4}))(?P<min>-min)?\Z")
+SIZE = re.compile(r"(?P<number>\d{1,19}(?:\.\d{1,9})?) ?(?P<unit>[kKMGT]?i?B?)\Z")
 UNITS = {"": 1, "B": 1, "kB": 10**3, "KB": 10**3, "MB": 10**6, "GB": 10**9, "TB": 10**12,
          "KiB": 2**10, "MiB": 2**20, "GiB": 2**30, "TiB": 2**40}
 MAP_NAME = "map.sfpm"
@@ -68,48 +62,52 @@ CATALOG_NAME = "catalog.sfpc"
 TMP_NAME = ".sfpmap-batch-tmp"
 # One input object at most (the work folder holds it; memory holds a piece at a time).
 MAX_OBJECT_BYTES = 1 << 40
-MAX_LISTED = 1_000_000
+MAX_FILES = 100_000
+MAX_MANIFEST_BYTES = 256 << 20
+MAX_ERROR_CHARS = 2000
 STAGES = ("list", "fetch", "convert", "slice", "store")
+# Variables a task gets from the driver: configuration always, secrets on request.
+SECRET = re.compile(r"KEY|SECRET|TOKEN|PASSWORD|CREDENTIAL")
 
 
 def is_url(location: str) -> bool:
-    return location.startswith(("s3://", "http://", "https://"))
+    return bool(_sfpmap.is_url(location))
 
 
 def one_line(e: BaseException) -> str:
-    text = str(e) or type(e).__name__
-    return " ".join(text.split())
+    text = (str(e) or type(e).__name__)[: MAX_ERROR_CHARS * 2]
+    text = " ".join(text.split())
+    return text if len(text) <= MAX_ERROR_CHARS else text[:MAX_ERROR_CHARS] + "..."
 
 
 def parse_size(value: Any) -> int:
-    """A byte count: an int, or text such as ``2MB``, ``500kB``, ``1.5MiB``."""
-    if isinstance(value, bool):
-        raise ValueError(f"{value!r} is not a size such as 2MB, 500kB or 1.5MiB")
-    if isinstance(value, int):
-        if value <= 0:
-            raise ValueError(f"{value} bytes: a budget is at least 1 byte")
-        return value
-    m = SIZE.match(value) if isinstance(value, str) else None
-    if m is None or m["unit"] not in UNITS:
-        raise ValueError(f"{value!r} is not a size such as 2MB, 500kB or 1.5MiB")
-    n = int(float(m["number"]) * UNITS[m["unit"]])
-    if n <= 0:
-        raise ValueError(f"{value!r}: a budget is at least 1 byte")
+    """A byte count: an int, or text such as ``2MB``, ``500kB``, ``1.5MiB`` (1 to 2**63 - 1)."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        n = value
+    else:
+        m = SIZE.match(value) if isinstance(value, str) else None
+        if m is None or m["unit"] not in UNITS:
+            raise ValueError(f"{value!r} is not a size such as 2MB, 500kB or 1.5MiB")
+        x = float(m["number"]) * UNITS[m["unit"]]
+        n = int(x) if math.isfinite(x) and x < 2**63 else -1
+    if not 1 <= n < 2**63:
+        raise ValueError(f"{value!r}: a budget is 1 to 2**63 - 1 bytes")
     return n
 
 
 def parse_variant(name: Any) -> Dict[str, Any]:
-    """What a variant name asks ``slice`` for: ``levels`` (None: every level), ``short``, ``pq``,
-    ``minimal``."""
+    """What a variant name asks ``slice`` for: ``levels`` (None: every level), ``short``, ``pq``
+    (1 to 4096), ``minimal``. Names: ``l<level>[s][-pq<M>][-min]`` or ``pq<M>[-min]``."""
     m = VARIANT.match(name) if isinstance(name, str) else None
-    if m is None or not name or (m["level"] is None and m["pq"] is None and m["min"] is None):
-        raise ValueError(
-            f"variant {name!r}: l<level>[s][-pq<M>][-min] or pq<M>[-min] (e.g. l2s, l2, pq8, l2s-pq8)"
-        )
+    pq = None if m is None else (m["lpq"] or m["pq"])
+    if m is None or (pq is not None and not 1 <= int(pq) <= 4096) or \
+            (m["level"] is not None and int(m["level"]) > 65534):
+        raise ValueError(f"variant {name!r}: l<level>[s][-pq<M>][-min] or pq<M>[-min] "
+                         "(e.g. l2s, l2, pq8, l2s-pq8-min; M 1 to 4096)")
     return {
         "levels": None if m["level"] is None else [int(m["level"])],
         "short": bool(m["short"]),
-        "pq": None if m["pq"] is None else int(m["pq"]),
+        "pq": None if pq is None else int(pq),
         "minimal": m["min"] is not None,
     }
 
@@ -118,25 +116,36 @@ def parse_variant(name: Any) -> Dict[str, Any]:
 # The manifest
 
 
-def _resolve(value: Any, key: str, base: str) -> str:
-    if not isinstance(value, str) or not value:
+def _resolve(value: Any, key: str, manifest_base: str) -> str:
+    """A location of the manifest: a relative one against its folder. A manifest read from a URL
+    may name only objects on its own server or bucket (as a catalog read from a URL may)."""
+    if not isinstance(value, str) or not value or "\0" in value:
         raise ValueError(f"{key}: a path or URL")
-    if is_url(value) or os.path.isabs(value) or is_url(base):
-        if is_url(base) and not is_url(value) and not os.path.isabs(value):
-            return base.rstrip("/") + "/" + value
+    if is_url(manifest_base):
+        origin = manifest_base.split("/", 3)[:3]
+        if not is_url(value):
+            if os.path.isabs(value):
+                raise ValueError(f"{key} {value!r}: a manifest read from a URL names no local file")
+            value = manifest_base.rstrip("/") + "/" + value
+        if value.split("/", 3)[:3] != origin:
+            raise ValueError(f"{key} {value!r}: a manifest read from a URL names only objects beside it "
+                             f"({'/'.join(origin)})")
         return value
-    return os.path.normpath(os.path.join(base, value))
+    if is_url(value) or os.path.isabs(value):
+        return value
+    return os.path.normpath(os.path.join(manifest_base, value))
 
 
-def _place(obj: Any, line: int, base: str) -> Dict[str, Any]:
+def _parse_line(obj: Any, line: int, base: str) -> Dict[str, Any]:
     if not isinstance(obj, dict):
         raise ValueError("not a JSON object")
-    unknown = sorted(set(obj) - set(KEYS))
+    unknown = sorted(set(obj) - set(MANIFEST_KEYS))
     if unknown:
-        raise ValueError(f"unknown key {unknown[0]!r} (known: {', '.join(KEYS)})")
+        raise ValueError(f"unknown key {unknown[0][:100]!r} (known: {', '.join(MANIFEST_KEYS)})")
     name = obj.get("place")
-    if not isinstance(name, str) or not PLACE_NAME.match(name):
-        raise ValueError(f"place {name!r}: 1 to 128 of A-Z a-z 0-9 . _ -, not starting with . _ -")
+    if not isinstance(name, str) or not PLACE_NAME.match(name) or name in RESERVED_NAMES:
+        raise ValueError("place: 1 to 128 of A-Z a-z 0-9 . _ -, starting with a letter or digit, "
+                         f"not {', '.join(RESERVED_NAMES)}")
     if "colmap" not in obj:
         raise ValueError("no colmap: the place's COLMAP model folder")
     if ("database" in obj) == ("images" in obj):
@@ -148,7 +157,6 @@ def _place(obj: Any, line: int, base: str) -> Dict[str, Any]:
         parse_variant(v)
     if len(set(variants)) != len(variants):
         raise ValueError("variants: a variant listed twice")
-    budget = obj.get("budget")
     return {
         "line": line,
         "place": name,
@@ -156,24 +164,32 @@ def _place(obj: Any, line: int, base: str) -> Dict[str, Any]:
         "database": _resolve(obj["database"], "database", base) if "database" in obj else None,
         "images": _resolve(obj["images"], "images", base) if "images" in obj else None,
         "variants": list(variants),
-        "budget": None if budget is None else [parse_size(budget), str(budget).replace(" ", "")],
+        "budget": None if obj.get("budget") is None else parse_size(obj["budget"]),
     }
 
 
-def _fail_row(place: str, error: str, line: Optional[int] = None) -> Dict[str, Any]:
-    return {"place": place, "line": line, "status": "failed", "error": error, "bytes_in": 0,
+def _row(place: str, line: Optional[int] = None) -> Dict[str, Any]:
+    """A report row, failed until the place is done or skipped."""
+    return {"place": place, "line": line, "status": "failed", "error": None, "bytes_in": 0,
             "bytes_out": 0, "seconds": {}, "outputs": []}
+
+
+def _failed(place: str, error: str, line: Optional[int] = None) -> Dict[str, Any]:
+    row = _row(place, line)
+    row["error"] = error
+    return row
 
 
 def read_manifest(manifest: str) -> Tuple[List[Dict[str, Any]], List[Dict[str, Any]]]:
     """The places of ``manifest`` (a JSON lines file or URL, or an ``s3://`` prefix ending in
-    ``/``) and a failed row for each line that is not one."""
+    ``/``) and a failed row for each line that is not one. Raises ``sfpmap.Error`` or
+    ``OSError`` when the manifest itself cannot be read."""
     if manifest.startswith("s3://") and manifest.endswith("/"):
         return _list_places(manifest), []
     if is_url(manifest):
         with tempfile.TemporaryDirectory(prefix="sfpmap-manifest-") as tmp:
             path = os.path.join(tmp, "manifest.jsonl")
-            _sfpmap.object_download(manifest, path, 64 << 20)
+            _sfpmap.object_download(manifest, path, MAX_MANIFEST_BYTES)
             text = _read_text(path, manifest)
         base = manifest.rsplit("/", 1)[0]
     else:
@@ -182,23 +198,30 @@ def read_manifest(manifest: str) -> Tuple[List[Dict[str, Any]], List[Dict[str, A
     places: List[Dict[str, Any]] = []
     failed: List[Dict[str, Any]] = []
     seen = set()
-    for number, line in enumerate(text.splitlines(), 1):
+    # JSON lines end at "\n" only: U+2028 and friends may stand unescaped inside a string.
+    for number, line in enumerate(text.split("\n"), 1):
         if not line.strip():
             continue
         where = f"{manifest}: line {number}"
+        name = f"line {number}"
         try:
             obj = json.loads(line)
-        except json.JSONDecodeError as e:
-            failed.append(_fail_row(f"line {number}", f"{where}: not JSON ({e.msg})", number))
-            continue
-        name = obj.get("place") if isinstance(obj, dict) and isinstance(obj.get("place"), str) else f"line {number}"
-        try:
-            place = _place(obj, number, base)
-        except ValueError as e:
-            failed.append(_fail_row(name, f"{where}: {e}", number))
+            given = obj.get("place") if isinstance(obj, dict) else None
+            # Shown as given only when it is a place name (no control characters, bounded).
+            if isinstance(given, str) and PLACE_NAME.match(given):
+                name = given
+            place = _parse_line(obj, number, base)
+        except Exception as e:  # noqa: BLE001  (any bad line is that line's failure)
+            if isinstance(e, json.JSONDecodeError):
+                message = f"not JSON ({e.msg})"
+            elif isinstance(e, ValueError):
+                message = one_line(e)
+            else:
+                message = f"unreadable ({type(e).__name__})"
+            failed.append(_failed(name, f"{where}: {message}", number))
             continue
         if place["place"] in seen:
-            failed.append(_fail_row(name, f"{where}: place {name!r} is listed twice", number))
+            failed.append(_failed(name, f"{where}: place {name!r} is listed twice", number))
             continue
         seen.add(place["place"])
         places.append(place)
@@ -206,89 +229,80 @@ def read_manifest(manifest: str) -> Tuple[List[Dict[str, Any]], List[Dict[str, A
 
 
 def _read_text(path: str, shown: str) -> str:
-    try:
-        with open(path, "rb") as f:
-            data = f.read((64 << 20) + 1)
-    except OSError as e:
-        raise SystemExit(f"error: {shown}: {e.strerror or e}")
-    if len(data) > 64 << 20:
-        raise SystemExit(f"error: {shown}: a manifest over 64 MiB")
+    with open(path, "rb") as f:
+        data = f.read(MAX_MANIFEST_BYTES + 1)
+    if len(data) > MAX_MANIFEST_BYTES:
+        raise ValueError(f"{shown}: a manifest over {MAX_MANIFEST_BYTES >> 20} MiB: split it")
     try:
         return data.decode("utf-8")
-    except UnicodeDecodeError:
-        raise SystemExit(f"error: {shown}: not UTF-8 text")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{shown}: not UTF-8 text (byte {e.start})") from None
 
 
 def _list_places(prefix: str) -> List[Dict[str, Any]]:
-    places: Dict[str, Dict[str, Any]] = {}
-    for url, _size, _etag in _sfpmap.object_list(prefix, MAX_LISTED):
-        rest = url[len(prefix):]
-        parts = rest.split("/")
-        if len(parts) < 2 or not PLACE_NAME.match(parts[0]):
-            continue
-        p = places.setdefault(parts[0], {"sparse": False, "database": False, "images": False})
-        if parts[1] in ("sparse", "database.db", "images") and (parts[1] == "database.db") == (len(parts) == 2):
-            p[parts[1].split(".")[0]] = True
+    """The places under an ``s3://`` prefix: one per folder, listed by folder (not by object).
+    A folder without a model or inputs fails in its task, naming what is missing."""
     found = []
-    for line, (name, p) in enumerate(sorted(places.items()), 1):
-        if not p["sparse"] or not (p["database"] or p["images"]):
+    for line, folder in enumerate(_sfpmap.object_list_folders(prefix, MAX_FILES), 1):
+        name = folder[len(prefix):].rstrip("/")
+        if not PLACE_NAME.match(name) or name in RESERVED_NAMES:
             continue
-        found.append({
-            "line": line, "place": name, "colmap": f"{prefix}{name}/sparse",
-            "database": f"{prefix}{name}/database.db" if p["database"] else None,
-            "images": None if p["database"] else f"{prefix}{name}/images",
-            "variants": [], "budget": None,
-        })
+        database = f"{folder}database.db"
+        has_database = _sfpmap.object_head(database) is not None
+        found.append({"line": line, "place": name, "colmap": f"{folder}sparse",
+                      "database": database if has_database else None,
+                      "images": None if has_database else f"{folder}images",
+                      "variants": [], "budget": None})
     return found
 
 
 # ---------------------------------------------------------------------------------------------
 # One place (a Ray task)
 
-
-def _listed(prefix: str) -> List[Tuple[str, int, str]]:
-    """The objects under ``prefix`` with their ETags (a HEAD each where the listing gave none:
-    a fingerprint of sizes alone would miss a rewritten object of the same length)."""
-    found = []
-    for url, size, etag in _sfpmap.object_list(prefix, MAX_LISTED):
-        if etag is None:
-            head = _sfpmap.object_head(url)
-            etag = head[2] if head is not None else None
-        found.append((url, size, etag or ""))
-    return found
+Input = Tuple[str, str, int, str]  # (name in the work folder, path or URL, size, version)
 
 
-def _inputs(place: Dict[str, Any]) -> List[Tuple[str, str, int, str]]:
-    """Every input file: (name in the work folder, path or URL, size, version: ETag or mtime)."""
-    out: List[Tuple[str, str, int, str]] = []
+def _checked_key(url: str) -> str:
+    # Listed keys become URLs again: a character a URL reads otherwise would fetch another object.
+    if any(c in url for c in "#?%"):
+        raise ValueError(f"{url[:300]}: an object name with #, ? or %, which this job does not fetch")
+    return url
+
+
+def _objects(prefix: str) -> List[Tuple[str, int, str]]:
+    """The objects under ``prefix``: URL, size and version (ETag, else Last-Modified)."""
+    return [(_checked_key(url), size, etag or f"modified {modified}")
+            for url, size, etag, modified in _sfpmap.object_list(prefix, MAX_FILES)]
+
+
+def _local_version(path: str) -> Tuple[int, str]:
+    st = os.stat(path)
+    return st.st_size, f"modified {st.st_mtime_ns}"
+
+
+def _inputs(place: Dict[str, Any]) -> List[Input]:
+    """Every input file of ``place``."""
+    out: List[Input] = []
     colmap = place["colmap"]
     if is_url(colmap):
         base = colmap.rstrip("/")
         if colmap.startswith("s3://"):
-            listed = _listed(base)
-            model = [(u, s, e) for u, s, e in listed if "/" not in u[len(base) + 1:]
-                     and u.rsplit("/", 1)[1].split(".")[0] in MODEL_STEMS
-                     and u.rsplit(".", 1)[-1] in ("bin", "txt")]
-        else:
-            model = []
+            found = [(u, s, v) for u, s, v in _objects(base) if u[len(base) + 1:] in MODEL_FILES]
+        else:  # a web server: by the model's file names
+            found = []
             for ext in ("bin", "txt"):
-                heads = [_sfpmap.object_head(f"{base}/{stem}.{ext}") for stem in MODEL_STEMS]
-                if all(h is not None for h in heads[:3]):
-                    model = [h for h in heads if h is not None]
+                heads = [_sfpmap.object_head(f"{base}/{name}") for name in MODEL_FILES if name.endswith(ext)]
+                if all(h is not None for h in heads):
+                    found = [(u, s, e or f"modified {m}") for u, s, e, m in heads]
                     break
-        for url, size, etag in model:
-            out.append(("colmap/" + url.rsplit("/", 1)[1], url, size, etag or ""))
-    else:
-        if not os.path.isdir(colmap):
-            raise FileNotFoundError(f"{colmap}: no such folder (the COLMAP model)")
-        for name in sorted(os.listdir(colmap)):
-            stem, _, ext = name.partition(".")
+        out += [("colmap/" + u.rsplit("/", 1)[1], u, s, v) for u, s, v in found]
+    elif os.path.isdir(colmap):
+        for name in MODEL_FILES:
             path = os.path.join(colmap, name)
-            if stem in MODEL_STEMS and ext in ("bin", "txt") and os.path.isfile(path):
-                st = os.stat(path)
-                out.append(("colmap/" + name, path, st.st_size, str(st.st_mtime_ns)))
-    stems = {n.split("/")[1].split(".")[0] for n, *_ in out}
-    if not all(s in stems for s in REQUIRED_STEMS):
+            if os.path.isfile(path):
+                out.append(("colmap/" + name, path, *_local_version(path)))
+    names = {n.split("/", 1)[1] for n, *_ in out}
+    if not any({f"cameras.{e}", f"images.{e}", f"points3D.{e}"} <= names for e in ("bin", "txt")):
         raise FileNotFoundError(f"{colmap}: no COLMAP model (cameras, images and points3D, .bin or .txt)")
     if place["database"] is not None:
         db = place["database"]
@@ -296,49 +310,59 @@ def _inputs(place: Dict[str, Any]) -> List[Tuple[str, str, int, str]]:
             head = _sfpmap.object_head(db)
             if head is None:
                 raise FileNotFoundError(f"{db}: no such object (the database)")
-            out.append(("database.db", db, head[1], head[2] or ""))
+            out.append(("database.db", db, head[1], head[2] or f"modified {head[3]}"))
         else:
-            st = os.stat(db)
-            out.append(("database.db", db, st.st_size, str(st.st_mtime_ns)))
+            out.append(("database.db", db, *_local_version(db)))
     if place["images"] is not None:
-        images = place["images"]
-        if images.startswith(("http://", "https://")):
-            raise ValueError(f"{images}: images from a web server cannot be listed: use s3:// or a folder")
-        if is_url(images):
-            base = images.rstrip("/")
-            for url, size, etag in _listed(base):
-                rel = url[len(base) + 1:]
-                if any(part in ("", ".", "..") for part in rel.split("/")):
-                    raise ValueError(f"{url}: an image name with an empty, . or .. part")
-                out.append(("images/" + rel, url, size, etag or ""))
-        else:
-            if not os.path.isdir(images):
-                raise FileNotFoundError(f"{images}: no such folder (the images)")
-            for root, dirs, files in os.walk(images):
-                dirs.sort()
-                for f in sorted(files):
-                    path = os.path.join(root, f)
-                    st = os.stat(path)
-                    out.append(("images/" + os.path.relpath(path, images), path, st.st_size, str(st.st_mtime_ns)))
+        out += _image_inputs(place["images"])
     return out
 
 
-def _options(place: Dict[str, Any]) -> Dict[str, Any]:
+def _image_inputs(images: str) -> List[Input]:
+    if images.startswith(("http://", "https://")):
+        raise ValueError(f"{images}: images on a web server cannot be listed: use s3:// or a folder")
+    found: List[Input] = []
+    if is_url(images):
+        base = images.rstrip("/")
+        for url, size, version in _objects(base):
+            rel = url[len(base) + 1:]
+            if any(part in ("", ".", "..") for part in rel.split("/")):
+                raise ValueError(f"{url[:300]}: an image name with an empty, . or .. part")
+            found.append(("images/" + rel, url, size, version))
+        return found
+    if not os.path.isdir(images):
+        raise FileNotFoundError(f"{images}: no such folder (the images)")
+
+    def unreadable(e: OSError) -> None:
+        raise e  # a folder skipped silently would make a map of some of the images
+
+    for root, dirs, files in os.walk(images, onerror=unreadable):
+        dirs.sort()
+        for f in sorted(files):
+            path = os.path.join(root, f)
+            found.append(("images/" + os.path.relpath(path, images), path, *_local_version(path)))
+            if len(found) > MAX_FILES:
+                raise ValueError(f"{images}: more than {MAX_FILES} files")
+    return found
+
+
+def _fingerprinted_options(place: Dict[str, Any]) -> Dict[str, Any]:
     return {"kind": "sfp" if place["images"] is not None else "features",
-            "variants": place["variants"],
-            "budget": None if place["budget"] is None else place["budget"][0]}
+            "variants": place["variants"], "budget": place["budget"]}
 
 
-def _fingerprint(inputs: List[Tuple[str, str, int, str]], options: Dict[str, Any]) -> str:
-    text = json.dumps({"inputs": [[n, s, v] for n, _, s, v in inputs], "options": options},
+def _fingerprint(inputs: List[Input], options: Dict[str, Any]) -> str:
+    text = json.dumps({"inputs": [[n, loc, s, v] for n, loc, s, v in inputs], "options": options},
                       sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def _output_names(place: Dict[str, Any]) -> List[str]:
-    names = [MAP_NAME] + [f"{v}.sfpm" for v in place["variants"]]
+def _outputs(place: Dict[str, Any]) -> List[Tuple[str, Optional[str]]]:
+    """(file name, variant) of each output; the map's variant is None, the budget's "budget"."""
+    names: List[Tuple[str, Optional[str]]] = [(MAP_NAME, None)]
+    names += [(f"{v}.sfpm", v) for v in place["variants"]]
     if place["budget"] is not None:
-        names.append(f"budget-{place['budget'][1]}.sfpm")
+        names.append((f"budget-{place['budget']}.sfpm", "budget"))
     return names
 
 
@@ -362,104 +386,118 @@ def job_of(metadata: Dict[str, Any]) -> Optional[Dict[str, Any]]:
     return None
 
 
-def _stored_fingerprint(location: str) -> Optional[str]:
+def _stored_job(location: str) -> Tuple[bool, Optional[Dict[str, Any]]]:
+    """Whether something is at ``location``, and the batch record of the map there."""
     if is_url(location):
         if _sfpmap.object_head(location) is None:
-            return None
-    elif not os.path.isfile(location):
-        return None
+            return False, None
+    elif not os.path.lexists(location):
+        return False, None
     try:
-        job = job_of(json.loads(_sfpmap.map_metadata(location)))
+        return True, job_of(json.loads(_sfpmap.map_metadata(location)))
     except _SfpmapError:
-        return None  # not a readable map: made again
-    return None if job is None else job.get("fingerprint")
+        return True, None  # not a readable map
+
+
+def _check_apart(out: str, place: str, inputs: List[Input], images: Optional[str]) -> None:
+    """A folder PREFIX never holds an input, never lies inside the images, and its place folder
+    is no link: outputs are renamed into it."""
+    root = os.path.realpath(out)
+    folder = os.path.join(out, place)
+    if os.path.islink(folder) or (os.path.exists(folder) and not os.path.isdir(folder)):
+        raise ValueError(f"{folder}: not a folder of its own (a link or a file): outputs are not written through it")
+    for _name, location, _s, _v in inputs:
+        if not is_url(location) and os.path.realpath(location).startswith(root + os.sep):
+            raise ValueError(f"{location}: an input inside the output folder {out}")
+    if images is not None and not is_url(images):
+        real = os.path.realpath(images)
+        if root == real or root.startswith(real + os.sep):
+            raise ValueError(f"{out}: the output folder is inside the images {images}")
 
 
 def _node() -> str:
     try:
         import ray
 
-        return ray.get_runtime_context().get_node_id()
-    except Exception:  # outside Ray (a direct call)
+        return str(ray.get_runtime_context().get_node_id())
+    except Exception:  # noqa: BLE001  (outside Ray: a direct call)
         return ""
 
 
-def run_place(place: Dict[str, Any], out: str, work_root: Optional[str] = None,
+def run_place(place: Dict[str, Any], out: str, work_dir: Optional[str] = None,
               threads: int = 1, force: bool = False) -> Dict[str, Any]:
-    """Converts, slices and stores one place; returns its report row (never raises for the
-    place's own errors: they are the row's ``error``)."""
-    row = _fail_row(place["place"], "", place.get("line"))
+    """Converts, slices and stores one place; returns its report row. The place's own errors
+    (any exception but an interrupt) are the row's one-line ``error``, never raised."""
+    row = _row(str(place.get("place")), place.get("line"))
     row["node"] = _node()
-    seconds: Dict[str, float] = {}
-    row["seconds"] = seconds
+    row["worker_pid"] = os.getpid()
+    seconds: Dict[str, float] = row["seconds"]
     work = None
     try:
         began = time.perf_counter()
         inputs = _inputs(place)
-        options = _options(place)
+        options = _fingerprinted_options(place)
         fingerprint = _fingerprint(inputs, options)
-        names = _output_names(place)
-        finals = [_join(out, place["place"], n) for n in names]
-        row["fingerprint"] = fingerprint
-        row["outputs"] = finals
+        outputs = _outputs(place)
+        finals = [_join(out, place["place"], name) for name, _ in outputs]
+        if not is_url(out):
+            _check_apart(out, place["place"], inputs, place["images"])
+        row.update(fingerprint=fingerprint, outputs=finals, bytes_in=sum(s for _, _, s, _ in inputs))
         # A catalog reads f16 descriptors: the first variant without PQ codes, else the map.
-        plain = [i for i, v in enumerate(place["variants"], 1) if parse_variant(v)["pq"] is None]
+        plain = [i for i, (_, v) in enumerate(outputs) if v not in (None, "budget") and parse_variant(v)["pq"] is None]
         row["catalog_map"] = finals[plain[0] if plain else 0]
-        row["bytes_in"] = sum(s for _, _, s, _ in inputs)
-        if not force and all(_stored_fingerprint(f) == fingerprint for f in finals):
-            seconds["list"] = time.perf_counter() - began
-            row.update(status="skipped", error=None, bytes_in=0)
-            return row
+        stored = [_stored_job(f) for f in finals]
         seconds["list"] = time.perf_counter() - began
+        if not force and all(job is not None and job.get("fingerprint") == fingerprint for _, job in stored):
+            row.update(status="skipped", bytes_in=0)
+            return row
+        for final, (there, job) in zip(finals, stored):
+            if there and not force and (job is None or job.get("place") != place["place"]):
+                raise ValueError(f"{final}: exists and was not made by sfpmap.batch for this place "
+                                 "(--force replaces it)")
 
         if is_url(out):
-            work = tempfile.mkdtemp(prefix=f"sfpmap-batch-{place['place']}-", dir=work_root)
+            work = tempfile.mkdtemp(prefix=f"sfpmap-batch-{place['place']}-", dir=work_dir)
         else:
             tmp = os.path.join(out, TMP_NAME)
             os.makedirs(tmp, exist_ok=True)
             work = tempfile.mkdtemp(prefix=f"{place['place']}-", dir=tmp)
         began = time.perf_counter()
-        local: Dict[str, str] = {}
-        for name, location, size, _version in inputs:
+        fetched = os.path.join(work, "in")
+        for name, location, _size, _version in inputs:
             if is_url(location):
-                dest = os.path.join(work, "in", name)
+                dest = os.path.join(fetched, name)
                 os.makedirs(os.path.dirname(dest), exist_ok=True)
                 _sfpmap.object_download(location, dest, MAX_OBJECT_BYTES)
-                local[name] = dest
-            else:
-                local[name] = location
-        colmap = place["colmap"] if not is_url(place["colmap"]) else os.path.join(work, "in", "colmap")
-        database = None
-        if place["database"] is not None:
-            database = local["database.db"]
+        local = {name: (os.path.join(fetched, name) if is_url(loc) else loc) for name, loc, _, _ in inputs}
+        colmap = os.path.dirname(local[next(n for n, *_ in inputs if n.startswith("colmap/"))])
+        database = local.get("database.db")
         images = None
         if place["images"] is not None:
-            images = place["images"] if not is_url(place["images"]) else os.path.join(work, "in", "images")
+            images = os.path.join(fetched, "images") if is_url(place["images"]) else place["images"]
         seconds["fetch"] = time.perf_counter() - began
 
         began = time.perf_counter()
         job = {"place": place["place"], "fingerprint": fingerprint, "options": options,
+               "sfpmap": __version__,
                "inputs": {"colmap": place["colmap"], "database": place["database"],
-                          "images": place["images"], "files": len(inputs),
-                          "bytes": row["bytes_in"]}}
+                          "images": place["images"], "files": len(inputs), "bytes": row["bytes_in"]}}
         made = os.path.join(work, MAP_NAME)
         _convert(colmap, database=database, images=images, out=made, job=job, threads=threads)
         seconds["convert"] = time.perf_counter() - began
 
         began = time.perf_counter()
         files = [made]
-        all_levels = None
-        for variant in place["variants"]:
-            v = parse_variant(variant)
-            if v["levels"] is None and all_levels is None:
-                meta = json.loads(_sfpmap.map_metadata(made))
-                all_levels = [lv["level"] for lv in meta.get("levels", [])]
-            path = os.path.join(work, f"{variant}.sfpm")
-            _slice(made, v["levels"] or all_levels, v["short"], out=path, minimal=v["minimal"], pq=v["pq"])
-            files.append(path)
-        if place["budget"] is not None:
-            path = os.path.join(work, names[-1])
-            _slice(made, [], out=path, budget=place["budget"][0])
+        every_level = None
+        for name, variant in outputs[1:]:
+            path = os.path.join(work, name)
+            if variant == "budget":
+                _slice(made, [], out=path, budget=place["budget"])
+            else:
+                v = parse_variant(variant)
+                if v["levels"] is None and every_level is None:
+                    every_level = [lv["level"] for lv in json.loads(_sfpmap.map_metadata(made)).get("levels", [])]
+                _slice(made, v["levels"] or every_level or [], v["short"], out=path, minimal=v["minimal"], pq=v["pq"])
             files.append(path)
         seconds["slice"] = time.perf_counter() - began
 
@@ -467,75 +505,82 @@ def run_place(place: Dict[str, Any], out: str, work_root: Optional[str] = None,
         made_bytes = sum(os.path.getsize(f) for f in files)
         _store(files, finals, out, place["place"])
         seconds["store"] = time.perf_counter() - began
-        row["bytes_out"] = made_bytes
-        row.update(status="done", error=None)
-    except (_SfpmapError, OSError, ValueError) as e:
-        row["error"] = one_line(e)
+        row.update(status="done", bytes_out=made_bytes)
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as e:  # noqa: BLE001  (a Rust panic is a BaseException too)
+        known = isinstance(e, (_SfpmapError, OSError, ValueError))
+        row["error"] = one_line(e) if known else f"{type(e).__name__}: {one_line(e)}"
     finally:
         if work is not None:
             shutil.rmtree(work, ignore_errors=True)
+        # The worker's peak so far (Ray reuses workers): bounded by its largest place.
+        row["worker_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return row
 
 
 def _store(files: List[str], finals: List[str], out: str, place: str) -> None:
-    """Puts each output in place, the map last. An object appears whole or not at all; on an
-    error, the objects this call stored are removed again (the place is made again next run)."""
+    """Puts each output in place, the map last. Each appears whole or not at all. Nothing is
+    removed on an error: an attempt's outputs are whole, and a place is skipped only when all of
+    them carry its fingerprint (a rollback could delete what a retried attempt stored)."""
     order = list(range(1, len(files))) + [0]
-    if not is_url(out):
-        folder = os.path.join(out, place)
-        os.makedirs(folder, exist_ok=True)
-        for i in order:
-            os.replace(files[i], finals[i])
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        return
-    stored: List[str] = []
-    try:
+    if is_url(out):
         for i in order:
             _sfpmap.object_upload(files[i], finals[i])
-            stored.append(finals[i])
-    except _SfpmapError:
-        for url in stored:
-            try:
-                _sfpmap.object_delete(url)
-            except _SfpmapError:
-                pass
-        raise
+        return
+    folder = os.path.join(out, place)
+    os.makedirs(folder, exist_ok=True)
+    for i in order:
+        os.replace(files[i], finals[i])
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 # ---------------------------------------------------------------------------------------------
 # The job
 
 
-def _catalog(rows: List[Dict[str, Any]], out: str, work_root: Optional[str]) -> Dict[str, Any]:
-    """``PREFIX/catalog.sfpc`` over the places done or skipped; not written again when the one
-    there lists the same places at the same fingerprints."""
-    ok = sorted((r for r in rows if r["status"] in ("done", "skipped")), key=lambda r: r["place"])
+def _catalog(rows: List[Dict[str, Any]], out: str, work_dir: Optional[str]) -> Dict[str, Any]:
+    """``PREFIX/catalog.sfpc`` over the places done or skipped, and a failed place's entry of the
+    catalog there whose map still carries that entry's fingerprint (a transient failure does
+    not drop a good place). Not written again when its places and fingerprints are the same."""
     target = _join(out, CATALOG_NAME)
-    if not ok:
-        return {"status": "none", "places": 0}
-    locations = [r["catalog_map"] if is_url(out) else os.path.relpath(r["catalog_map"], out) for r in ok]
-    record = {"places": [[r["place"], r["fingerprint"], loc] for r, loc in zip(ok, locations)]}
-    fingerprint = hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
+    entries = {r["place"]: [r["place"], r["fingerprint"],
+                            r["catalog_map"] if is_url(out) else os.path.relpath(r["catalog_map"], out)]
+               for r in rows if r["status"] in ("done", "skipped")}
     began = time.perf_counter()
-    if _stored_fingerprint(target) == fingerprint:
-        return {"status": "unchanged", "places": len(ok), "url": target,
+    there, previous = _stored_job(target)
+    failed = {r["place"] for r in rows if r["status"] == "failed"}
+    for name, fingerprint, location in (previous or {}).get("places", []):
+        if name in failed and name not in entries:
+            kept = _stored_job(location if is_url(location) else os.path.join(out, location))[1]
+            if kept is not None and kept.get("fingerprint") == fingerprint:
+                entries[name] = [name, fingerprint, location]
+    if not entries:
+        return {"status": "none", "places": 0}
+    places = [entries[k] for k in sorted(entries)]
+    fingerprint = hashlib.sha256(json.dumps(places).encode()).hexdigest()
+    if previous is not None and previous.get("fingerprint") == fingerprint:
+        return {"status": "unchanged", "places": len(places), "url": target,
                 "seconds": time.perf_counter() - began}
-    job = json.dumps({"fingerprint": fingerprint, "places": len(ok)})
-    names = [r["place"] for r in ok]
+    if there and not (previous is not None and "places" in previous):
+        raise ValueError(f"{target}: exists and was not made by sfpmap.batch")
+    record = json.dumps({"fingerprint": fingerprint, "places": places})
+    names = [p[0] for p in places]
+    locations = [p[2] for p in places]
     if is_url(out):
-        with tempfile.TemporaryDirectory(prefix="sfpmap-catalog-", dir=work_root) as tmp:
+        with tempfile.TemporaryDirectory(prefix="sfpmap-catalog-", dir=work_dir) as tmp:
             path = os.path.join(tmp, CATALOG_NAME)
-            report = json.loads(_sfpmap.build_catalog(locations, names, out=path, job=job))
+            report = json.loads(_sfpmap.build_catalog(locations, names, out=path, job=record))
             _sfpmap.object_upload(path, target)
     else:
-        maps = [r["catalog_map"] for r in ok]
+        maps = [os.path.join(out, loc) for loc in locations]
         report = json.loads(_sfpmap.build_catalog(maps, names, out=target, locations=locations,
-                                                  job=job, force=True))
-    return {"status": "written", "places": len(ok), "url": target, "bytes": report["bytes"],
+                                                  job=record, force=True))
+    return {"status": "written", "places": len(places), "url": target, "bytes": report["bytes"],
             "seconds": time.perf_counter() - began}
 
 
@@ -557,8 +602,7 @@ def _table(report: Dict[str, Any]) -> str:
 
 
 def _write_report(path: str, report: Dict[str, Any]) -> None:
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".report-", dir=folder)
+    fd, tmp = tempfile.mkstemp(prefix=".report-", dir=os.path.dirname(os.path.abspath(path)))
     try:
         with os.fdopen(fd, "w") as f:
             json.dump(report, f, indent=1)
@@ -571,72 +615,92 @@ def _write_report(path: str, report: Dict[str, Any]) -> None:
         raise
 
 
-def _passed_env() -> Dict[str, str]:
-    return {k: v for k, v in os.environ.items() if k.startswith(("AWS_", "SFPMAP_"))}
+def _passed_env(credentials: bool) -> Dict[str, str]:
+    return {k: v for k, v in os.environ.items()
+            if k.startswith(("AWS_", "SFPMAP_")) and (credentials or not SECRET.search(k))}
 
 
-def run(manifest: str, out: str, *, address: Optional[str] = None, cpus_per_place: int = 1,
-        retries: int = 3, work_dir: Optional[str] = None, force: bool = False,
-        progress: Any = None) -> Dict[str, Any]:
-    """The job: every place of ``manifest`` as a Ray task, then the catalog. Returns the report
-    (``rows`` per place, totals, ``catalog``). ``progress(done, total, row)`` is called as each
-    place ends."""
-    try:
-        import ray
-    except ImportError:
-        raise SystemExit("error: sfpmap.batch runs on Ray: pip install 'sfpmap[ray]'")
-    began = time.perf_counter()
-    places, rows = read_manifest(manifest)
-    if not is_url(out):
-        out = os.path.abspath(out)
-        os.makedirs(out, exist_ok=True)
-        shutil.rmtree(os.path.join(out, TMP_NAME), ignore_errors=True)
-    elif not out.startswith("s3://"):
-        raise SystemExit(f"error: {out}: outputs go to a folder or an s3:// prefix")
-    if not ray.is_initialized():
-        ray.init(address=address, include_dashboard=False, log_to_driver=False,
-                 runtime_env={"env_vars": _passed_env()}, logging_level="ERROR")
-    task = ray.remote(num_cpus=cpus_per_place, max_retries=retries, retry_exceptions=False)(run_place)
-    pending = {task.remote(p, out, work_dir, cpus_per_place, force): p for p in places}
-    total = len(places) + len(rows)
-    for done, row in enumerate(rows, 1):
-        if progress:
-            progress(done, total, row)
-    waiting = list(pending)
-    while waiting:
-        ready, waiting = ray.wait(waiting, num_returns=1)
-        for ref in ready:
-            try:
-                row = ray.get(ref)
-            except ray.exceptions.RayError as e:
-                p = pending[ref]
-                row = _fail_row(p["place"], f"the task failed {retries + 1} times: {one_line(e)}"[:2000], p["line"])
-            rows.append(row)
-            if progress:
-                progress(len(rows), total, row)
-    rows.sort(key=lambda r: (r["line"] or 0, r["place"]))
-    try:
-        catalog = _catalog(rows, out, work_dir)
-    except (_SfpmapError, OSError) as e:
-        catalog = {"status": "failed", "error": one_line(e)}
-    if not is_url(out):
-        shutil.rmtree(os.path.join(out, TMP_NAME), ignore_errors=True)
+def _summary(rows: List[Dict[str, Any]], began: float, catalog: Dict[str, Any], **head: Any) -> Dict[str, Any]:
     wall = time.perf_counter() - began
     counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "skipped", "failed")}
-    stage_sums = {s: round(sum(r["seconds"].get(s, 0.0) for r in rows), 3) for s in STAGES}
     return {
-        "manifest": manifest, "out": out, "address": address,
+        **head,
         "places": {"total": len(rows), **counts},
         "bytes_in": sum(r["bytes_in"] for r in rows),
         "bytes_out": sum(r["bytes_out"] for r in rows),
-        "seconds": {"wall": wall, **stage_sums},
-        "places_per_minute": (counts["done"] * 60.0 / wall) if wall > 0 else 0.0,
+        "seconds": {"wall": wall, **{s: round(sum(r["seconds"].get(s, 0.0) for r in rows), 3) for s in STAGES}},
+        "places_per_minute": counts["done"] * 60.0 / wall if wall > 0 else 0.0,
         "catalog": catalog,
         "rows": rows,
     }
 
 
+def run(manifest: str, out: str, *, address: Optional[str] = None, cpus_per_place: int = 1,
+        retries: int = 3, work_dir: Optional[str] = None, force: bool = False,
+        pass_credentials: bool = False, report_path: Optional[str] = None,
+        progress: Optional[Callable[[int, int, Dict[str, Any]], None]] = None) -> Dict[str, Any]:
+    """The job: every place of ``manifest`` as a Ray task, then the catalog. Returns the report
+    (``rows`` per place, totals, ``catalog``), also written to ``report_path`` once the places
+    are done (the catalog ``pending``) and again at the end. ``progress(done, total, row)`` is
+    called as each place ends. Raises ``sfpmap.Error``, ``OSError``, ``ValueError`` or
+    ``ConnectionError`` when the job cannot start (the manifest, the cluster)."""
+    began = time.perf_counter()
+    if is_url(out) and (not out.startswith("s3://") or any(c in out for c in "#?%")):
+        raise ValueError(f"{out}: outputs go to a folder or an s3:// prefix (no #, ? or %)")
+    places, rows = read_manifest(manifest)
+    import ray
+
+    if not is_url(out):
+        out = os.path.abspath(out)
+        os.makedirs(out, exist_ok=True)
+        shutil.rmtree(os.path.join(out, TMP_NAME), ignore_errors=True)
+    if not ray.is_initialized():
+        ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+    task = ray.remote(num_cpus=cpus_per_place, max_retries=retries, retry_exceptions=False,
+                      runtime_env={"env_vars": _passed_env(pass_credentials)})(run_place)
+    total = len(places) + len(rows)
+    for done, row in enumerate(rows, 1):
+        if progress:
+            progress(done, total, row)
+    # A few tasks per CPU in flight: the driver's bookkeeping stays small at any city size.
+    window = max(8, 4 * int(ray.cluster_resources().get("CPU", 1)))
+    queue = list(reversed(places))
+    pending: Dict[Any, Dict[str, Any]] = {}
+    while queue or pending:
+        while queue and len(pending) < window:
+            p = queue.pop()
+            pending[task.remote(p, out, work_dir, cpus_per_place, force)] = p
+        ready, _ = ray.wait(list(pending), num_returns=min(len(pending), 16), timeout=1.0)
+        for ref in ready:
+            p = pending.pop(ref)
+            try:
+                row = ray.get(ref)
+            except ray.exceptions.RayError as e:
+                lost = isinstance(e, (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError))
+                why = f"its worker or node was lost {retries + 1} times" if lost else "its task failed"
+                row = _failed(p["place"], f"{why}: {one_line(e)}", p["line"])
+            rows.append(row)
+            if progress:
+                progress(len(rows), total, row)
+    rows.sort(key=lambda r: (r["line"] or 0, r["place"]))
+    head = {"manifest": manifest, "out": out, "address": address}
+    if report_path:
+        _write_report(report_path, _summary(rows, began, {"status": "pending"}, **head))
+    try:
+        catalog = _catalog(rows, out, work_dir)
+    except (_SfpmapError, OSError, ValueError) as e:
+        catalog = {"status": "failed", "error": one_line(e)}
+    if not is_url(out):
+        shutil.rmtree(os.path.join(out, TMP_NAME), ignore_errors=True)
+    report = _summary(rows, began, catalog, **head)
+    if report_path:
+        _write_report(report_path, report)
+    return report
+
+
 def main(argv: Optional[List[str]] = None) -> int:
+    """``python -m sfpmap.batch``. Exit 0 when every place is done or skipped, 1 when a place
+    (or the catalog) failed, 2 when the job could not start (one ``error:`` line)."""
     parser = argparse.ArgumentParser(
         prog="python -m sfpmap.batch",
         description="Convert and slice many places' COLMAP models into sfpmap maps and a catalog, on Ray.")
@@ -647,12 +711,18 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--cpus-per-place", type=int, default=1, help="CPUs (and threads) per place (default 1)")
     parser.add_argument("--retries", type=int, default=3, help="retries of a task whose worker is lost (default 3)")
     parser.add_argument("--work-dir", help="where an s3:// job fetches inputs (default: the system's temp folder)")
-    parser.add_argument("--force", action="store_true", help="make every place again, whatever is stored")
+    parser.add_argument("--force", action="store_true", help="make every place again, replacing what is stored")
+    parser.add_argument("--pass-credentials", action="store_true",
+                        help="give the tasks the driver's AWS keys and tokens too (default: only AWS_* and "
+                             "SFPMAP_* settings without KEY, SECRET, TOKEN, PASSWORD or CREDENTIAL in their name)")
     parser.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     args = parser.parse_args(argv)
     if args.cpus_per_place < 1 or args.retries < 0:
         parser.error("--cpus-per-place is at least 1 and --retries at least 0")
+    if args.report and not os.path.isdir(os.path.dirname(os.path.abspath(args.report))):
+        print(f"error: {args.report}: its folder does not exist", file=sys.stderr)
+        return 2
 
     def progress(done: int, total: int, row: Dict[str, Any]) -> None:
         if not args.quiet and not args.json:
@@ -666,17 +736,22 @@ def main(argv: Optional[List[str]] = None) -> int:
     os.dup2(2, 1)
     try:
         report = run(args.manifest, args.out, address=args.address, cpus_per_place=args.cpus_per_place,
-                     retries=args.retries, work_dir=args.work_dir, force=args.force, progress=progress)
+                     retries=args.retries, work_dir=args.work_dir, force=args.force,
+                     pass_credentials=args.pass_credentials, report_path=args.report, progress=progress)
+    except ImportError as e:
+        print(f"error: sfpmap.batch runs on Ray: pip install 'sfpmap[ray]' ({one_line(e)})", file=sys.stderr)
+        return 2
+    except (_SfpmapError, OSError, ValueError, ConnectionError, RuntimeError) as e:
+        print(f"error: {one_line(e)}", file=sys.stderr)
+        return 2
     finally:
         sys.stdout.flush()
         os.dup2(saved, 1)
         os.close(saved)
-    if args.report:
-        _write_report(args.report, report)
     if args.json:
         print(json.dumps(report))
     elif not args.quiet:
-        print(_table(report))
+        print(_table(report).encode("ascii", "backslashreplace").decode())
     failed = report["places"]["failed"] > 0 or report["catalog"]["status"] == "failed"
     return 1 if failed else 0
 

@@ -307,6 +307,18 @@ fn source(
     }
 }
 
+/// A `job` argument (JSON text from the package's Python half): an object, kept in a written
+/// map's `provenance.parameters.job`.
+pub(crate) fn job_record(text: Option<&str>) -> PyResult<Option<serde_json::Value>> {
+    text.map(
+        |text| match serde_json::from_str::<serde_json::Value>(text) {
+            Ok(v) if v.is_object() => Ok(v),
+            _ => Err(InputError::new_err("job: a JSON object")),
+        },
+    )
+    .transpose()
+}
+
 /// `sfpmap convert`: a COLMAP model folder (+ `database` for a SIFT map, or `images` for an
 /// SFP map), or a kapture folder (`kapture`, with its own keypoints and descriptors), into the
 /// map `out`. Returns what `convert --json` prints (as JSON text).
@@ -399,7 +411,7 @@ pub(crate) fn convert(
         global_features,
         matches!(source, Source::Kapture(..)),
     )?;
-    o.job = crate::objects::job_record(job)?;
+    o.job = job_record(job)?;
     let files = match &source {
         Source::Colmap(model_dir) => sfpmap::colmap::model_files(model_dir)
             .map(|f| f.paths)

@@ -111,6 +111,8 @@ fn _sfpmap(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(objects::object_download, m)?)?;
     m.add_function(wrap_pyfunction!(objects::object_upload, m)?)?;
     m.add_function(wrap_pyfunction!(objects::object_delete, m)?)?;
+    m.add_function(wrap_pyfunction!(objects::object_list_folders, m)?)?;
+    m.add_function(wrap_pyfunction!(objects::is_url, m)?)?;
     m.add_function(wrap_pyfunction!(objects::map_metadata, m)?)?;
     m.add_function(wrap_pyfunction!(objects::build_catalog, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;

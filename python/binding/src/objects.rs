@@ -9,11 +9,19 @@ use sfpmap::remote::objects::{self, ObjectInfo};
 use sfpmap::remote::RemoteOptions;
 use std::path::{Path, PathBuf};
 
-/// `(url, size, etag)`: an object as Python sees it.
-type Object = (String, u64, Option<String>);
+/// `(url, size, etag, last_modified_ms)`: an object as Python sees it.
+type Object = (String, u64, Option<String>, i64);
 
 fn object(info: ObjectInfo) -> Object {
-    (info.url, info.size, info.e_tag)
+    (info.url, info.size, info.e_tag, info.last_modified_ms)
+}
+
+/// What batch reads go through: the CLI's remote options but no section cache (a job reads
+/// each map's metadata once; thousands of places would only churn the cache).
+fn uncached() -> RemoteOptions {
+    let mut options = RemoteOptions::from_env();
+    options.cache_dir = None;
+    options
 }
 
 fn failed(e: sfpmap::format::Error) -> PyErr {
@@ -64,6 +72,24 @@ pub(crate) fn object_upload(py: Python<'_>, src: PathBuf, url: String) -> PyResu
         .map_err(failed)
 }
 
+/// The folders right under the prefix `url` (one listing request per thousand), sorted.
+#[pyfunction]
+#[pyo3(signature = (url, max_folders=100_000))]
+pub(crate) fn object_list_folders(
+    py: Python<'_>,
+    url: String,
+    max_folders: usize,
+) -> PyResult<Vec<String>> {
+    py.detach(|| objects::list_folders(&url, max_folders, &RemoteOptions::from_env()))
+        .map_err(failed)
+}
+
+/// Whether `name` is an `http(s)://` or `s3://` URL, as every command decides.
+#[pyfunction]
+pub(crate) fn is_url(name: &str) -> bool {
+    sfpmap::input::is_url(name)
+}
+
 /// Deletes the object at `url` (none there is no error).
 #[pyfunction]
 pub(crate) fn object_delete(py: Python<'_>, url: String) -> PyResult<()> {
@@ -76,22 +102,10 @@ pub(crate) fn object_delete(py: Python<'_>, url: String) -> PyResult<()> {
 #[pyfunction]
 pub(crate) fn map_metadata(py: Python<'_>, location: PathBuf) -> PyResult<String> {
     py.detach(|| {
-        let map = sfpmap::remote::open_location(&location, &RemoteOptions::from_env())
+        let map = sfpmap::remote::open_location(&location, &uncached())
             .map_err(|e| format_error(&location, e))?;
         serde_json::to_string(map.metadata()).map_err(|e| FileError::new_err(e.to_string()))
     })
-}
-
-/// A `job` argument (JSON text from the package's Python half): an object, kept in a written
-/// map's `provenance.parameters.job`.
-pub(crate) fn job_record(text: Option<&str>) -> PyResult<Option<serde_json::Value>> {
-    text.map(
-        |text| match serde_json::from_str::<serde_json::Value>(text) {
-            Ok(v) if v.is_object() => Ok(v),
-            _ => Err(InputError::new_err("job: a JSON object")),
-        },
-    )
-    .transpose()
 }
 
 /// `sfpmap catalog build`: a catalog of the place maps `maps` (files or URLs) named `names`,
@@ -119,12 +133,9 @@ pub(crate) fn build_catalog(
             maps.len()
         )));
     }
-    let job = job_record(job)?;
-    if let Some(twice) = names
-        .iter()
-        .enumerate()
-        .find_map(|(i, n)| names[..i].contains(n).then_some(n))
-    {
+    let job = crate::build::job_record(job)?;
+    let mut seen = std::collections::HashSet::new();
+    if let Some(twice) = names.iter().find(|n| !seen.insert(n.as_str())) {
         return Err(InputError::new_err(format!(
             "two places are named {twice:?}"
         )));
@@ -136,7 +147,7 @@ pub(crate) fn build_catalog(
         .collect();
     sfpmap::output::check_output(&out, &local, force).map_err(output_error)?;
     py.detach(|| {
-        let options = RemoteOptions::from_env();
+        let options = uncached();
         let opened = maps
             .iter()
             .map(|m| {

@@ -119,8 +119,10 @@ def cluster(s3):
     need_module("ray")
     ray_bin = str(Path(sys.executable).parent / "ray")
     token = secrets.token_hex(32)
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
-    env.update(s3["env"], RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=token, RAY_USAGE_STATS_ENABLED="0")
+    # The nodes start without the S3 settings: the tasks get the driver's (--pass-credentials).
+    node_env = {k: v for k, v in os.environ.items() if not k.startswith(("RAY_", "AWS_"))}
+    node_env.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=token, RAY_USAGE_STATS_ENABLED="0")
+    env = {**node_env, **s3["env"]}
     # Short: Ray's socket paths live under it.
     temp = tempfile.mkdtemp(prefix="ray-", dir="/tmp")
     port, manager_port = free_port(), free_port()
@@ -129,13 +131,13 @@ def cluster(s3):
     logs = open(os.path.join(temp, "start.log"), "wb")
     head = subprocess.Popen([ray_bin, "start", "--head", "--port", str(port), "--include-dashboard=false",
                              "--temp-dir", temp, *common],
-                            env=env, stdin=subprocess.DEVNULL, stdout=logs, stderr=logs, start_new_session=True)
+                            env=node_env, stdin=subprocess.DEVNULL, stdout=logs, stderr=logs, start_new_session=True)
     worker = None
     try:
         wait_listening(port, head, "the Ray head")
         worker = subprocess.Popen([ray_bin, "start", "--address", f"127.0.0.1:{port}",
                                    "--node-manager-port", str(manager_port), *common],
-                                  env=env, stdin=subprocess.DEVNULL, stdout=logs, stderr=logs,
+                                  env=node_env, stdin=subprocess.DEVNULL, stdout=logs, stderr=logs,
                                   start_new_session=True)
         wait_listening(manager_port, worker, "the second Ray node")
         yield {"address": f"127.0.0.1:{port}", "env": env, "manager_port": manager_port, "temp": temp}
@@ -155,7 +157,8 @@ def upload_place(src: Path, bucket_prefix: str, model: str = "sparse") -> None:
 
 
 def run_batch(cluster, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "sfpmap.batch", *args, "--address", cluster["address"]],
+    return subprocess.run([sys.executable, "-m", "sfpmap.batch", *args, "--address", cluster["address"],
+                           "--pass-credentials"],
                           env=cluster["env"], capture_output=True, text=True, timeout=timeout)
 
 
@@ -164,17 +167,29 @@ def snapshot(root: Path) -> dict:
             for p in sorted(root.rglob("*")) if p.is_file()}
 
 
-def raylet_of(manager_port: int):
+def processes():
+    """(pid, parent pid, command line parts) of every process."""
     for pid in os.listdir("/proc"):
         if not pid.isdigit():
             continue
         try:
             cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        except OSError:
+            parent = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
             continue
+        yield int(pid), parent, cmdline
+
+
+def raylet_of(manager_port: int):
+    for pid, _, cmdline in processes():
         if cmdline and cmdline[0].endswith(b"/raylet") and f"--node_manager_port={manager_port}".encode() in cmdline:
-            return int(pid)
+            return pid
     return None
+
+
+def running_a_place(raylet: int) -> bool:
+    """Whether a worker of that raylet is running a place now (Ray titles it `ray::run_place`)."""
+    return any(parent == raylet and cmdline[0].startswith(b"ray::run_place") for _, parent, cmdline in processes())
 
 
 def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does_nothing(
@@ -215,7 +230,7 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
     # The job, and the second node's raylet SIGKILLed once a few places are done.
     errors = open(tmp_path / "driver.err", "w+")
     driver = subprocess.Popen([sys.executable, "-m", "sfpmap.batch", str(manifest), "--out", "s3://outputs/city",
-                               "--address", cluster["address"], "--report", str(report_path)],
+                               "--address", cluster["address"], "--report", str(report_path), "--pass-credentials"],
                               env=cluster["env"], stdout=subprocess.PIPE, stderr=errors, text=True)
     raylet = raylet_of(cluster["manager_port"])
     assert raylet is not None, "the second node's raylet is not running"
@@ -224,12 +239,14 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
     while driver.poll() is None and time.monotonic() < deadline:
         errors.seek(0)
         done = sum(1 for line in errors if line.startswith("[") and " done" in line)
-        if done >= 6:
+        # Killed while one of its workers runs a place: that task is lost and must be retried.
+        if done >= 6 and running_a_place(raylet):
             os.kill(raylet, signal.SIGKILL)
             killed_after = done
             break
         time.sleep(0.05)
-    assert killed_after is not None, "the job ended before the node could be killed"
+    assert killed_after is not None, ("the job ended before the node could be killed", done, raylet,
+                                      [(p, c[:1]) for p, parent, c in processes() if parent == raylet])
     out, _ = driver.communicate(timeout=600)
     errors.seek(0)
     stderr = errors.read()
@@ -255,9 +272,9 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
 
     # Exactly once, nothing partial: the bucket holds each output once, and nothing else.
     expected = {f"s3://outputs/city/{p}/{n}" for p in good for n in ("map.sfpm", "l2s.sfpm")}
-    expected |= {"s3://outputs/city/sacre-coeur/pq8.sfpm", "s3://outputs/city/sacre-coeur/budget-300kB.sfpm",
+    expected |= {"s3://outputs/city/sacre-coeur/pq8.sfpm", "s3://outputs/city/sacre-coeur/budget-300000.sfpm",
                  "s3://outputs/city/catalog.sfpc"}
-    listed = [u for u, _, _ in _sfpmap.object_list("s3://outputs/city")]
+    listed = [u for u, *_ in _sfpmap.object_list("s3://outputs/city")]
     assert sorted(listed) == sorted(expected)
     bucket = s3["root"] / "outputs"
     for url in expected:
@@ -266,11 +283,12 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
             m.verify()
             job = batch.job_of(m.metadata)
         if url.endswith("catalog.sfpc"):
-            assert job["places"] == len(good)
+            assert [p[0] for p in job["places"]] == sorted(good)
         else:
             place = url.split("/")[-2]
             assert job["fingerprint"] == rows[place]["fingerprint"] and job["place"] == place
-    assert not [p for p in bucket.rglob("*") if p.is_file() and not str(p.relative_to(bucket)).startswith("city/")]
+    on_disk = sorted(f"s3://outputs/{p.relative_to(bucket)}" for p in bucket.rglob("*") if p.is_file())
+    assert on_disk == sorted(expected)  # no temp, part or stray file either
 
     # A rerun does nothing: every good place skipped, the catalog unchanged, no object written.
     before = snapshot(bucket)
@@ -289,6 +307,15 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
     third = json.loads(run_batch(cluster, str(manifest), "--out", "s3://outputs/city", "--json").stdout)
     assert [r["place"] for r in third["rows"] if r["status"] == "done"] == ["street-03"]
     assert third["catalog"]["status"] == "written"
+
+    # A bucket prefix instead of a manifest: its folders are the places, listed by folder.
+    for name in ("street-00", "street-01"):
+        upload_place(gen / name, f"s3://inputs/few/{name}")
+    _sfpmap.object_upload(str(gen / "street-02/database.db"), "s3://inputs/few/no-model/database.db")
+    listed_run = json.loads(run_batch(cluster, "s3://inputs/few/", "--out", "s3://outputs/few", "--json").stdout)
+    assert [(r["place"], r["status"]) for r in listed_run["rows"]] == [
+        ("no-model", "failed"), ("street-00", "done"), ("street-01", "done")]
+    assert "no COLMAP model" in listed_run["rows"][0]["error"]
 
 
 def test_a_folder_prefix_relative_inputs_variants_and_a_budget(cluster, street_bin, shared, tmp_path):
@@ -313,16 +340,19 @@ def test_a_folder_prefix_relative_inputs_variants_and_a_budget(cluster, street_b
         {k: v for k, v in inputs_before.items() if k.startswith(("s0/", "s1/", "s2/"))}
     assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == sorted([
         "catalog.sfpc", "s0/map.sfpm", "s0/l2s.sfpm", "s0/pq8.sfpm", "s0/l2s-pq8-min.sfpm",
-        "s1/map.sfpm", "s1/budget-200kB.sfpm", "s2/map.sfpm"])
+        "s1/map.sfpm", "s1/budget-200000.sfpm", "s2/map.sfpm"])
     with sfpmap.Map(out / "s0/l2s-pq8-min.sfpm") as m:
         assert [lv.id for lv in m.levels] == [2] and m.levels[2].pq_codes is not None
         assert batch.job_of(m.metadata)["fingerprint"] == report["rows"][0]["fingerprint"]
-    assert (out / "s1/budget-200kB.sfpm").stat().st_size <= 200_000
+    assert (out / "s1/budget-200000.sfpm").stat().st_size <= 200_000
     # The catalog names its places relative to its folder: the folder can move.
     moved = tmp_path / "moved"
     shutil.move(str(out), str(moved))
     with sfpmap.Map(moved / "catalog.sfpc") as c:
-        assert c.metadata["provenance"]["parameters"]["job"]["places"] == 3
+        listed = {p["name"]: p["map"] for p in c.metadata["catalog"]["places"]}
+    assert listed == {"s0": "s0/l2s.sfpm", "s1": "s1/map.sfpm", "s2": "s2/map.sfpm"}
+    with sfpmap.Map(moved / listed["s0"]) as m:
+        m.verify()
     shutil.move(str(moved), str(out))
     # Rerun: skipped. A touched input: that place again.
     assert json.loads(run_batch(cluster, str(manifest), "--out", str(out), "--json").stdout)["places"]["skipped"] == 3
@@ -349,7 +379,7 @@ def test_manifest_lines_variants_and_sizes_are_checked_before_any_work(tmp_path)
     assert places[0]["colmap"] == str(tmp_path / "x") and places[0]["database"] == str(tmp_path / "d.db")
     errors = [f["error"] for f in failed]
     assert [f["line"] for f in failed] == [2, 3, 4, 5, 6, 7, 8, 9]
-    for needle, error in zip(["not JSON", "place '../up'", "database (a feature map) or images",
+    for needle, error in zip(["not JSON", "place: 1 to 128", "database (a feature map) or images",
                               "one of them", "listed twice", "variant 'q9'", "'lots' is not a size",
                               "not a JSON object"], errors):
         assert needle in error and error.startswith(f"{manifest}: line"), error
@@ -364,8 +394,8 @@ def test_manifest_lines_variants_and_sizes_are_checked_before_any_work(tmp_path)
     for bad in ["0", "-1MB", "2 parsecs", True, 0, 1.5]:
         with pytest.raises(ValueError):
             batch.parse_size(bad)
-    # A missing manifest is one line naming it, exit 1 (no Ray started).
+    # A missing manifest is one line naming it, exit 2: the job cannot start (no Ray started).
     gone = subprocess.run([sys.executable, "-m", "sfpmap.batch", str(tmp_path / "nope.jsonl"), "--out", str(tmp_path / "o")],
                           capture_output=True, text=True, timeout=120)
-    assert gone.returncode == 1 and gone.stderr.strip().count("\n") == 0, gone.stderr
+    assert gone.returncode == 2 and gone.stderr.strip().count("\n") == 0, gone.stderr
     assert "nope.jsonl" in gone.stderr
