@@ -140,10 +140,11 @@ t_cli, t_one, t_two = med(cli), med(one), med(two)
 rate = lambda t: n_places * 60 / t
 print(f"{n_places} places of {points} points ({mb_in:.0f} MB of COLMAP model and database), each converted and "
       f"sliced to l2s and pq8; median of {runs} runs; {os.cpu_count()} cores")
-print(f"{'run':<34} {'seconds':>8} {'places/min':>11} {'peak RSS MB':>12}")
-print(f"{'CLI loop (one place at a time)':<34} {t_cli:8.1f} {rate(t_cli):11.1f} {max(c[1] for c in cli):12.0f}")
-print(f"{'Ray, 1 node x 1 CPU':<34} {t_one:8.1f} {rate(t_one):11.1f} {max(o[1] for o in one):12.0f}")
-print(f"{'Ray, 2 nodes x 1 CPU':<34} {t_two:8.1f} {rate(t_two):11.1f} {max(o[1] for o in two):12.0f}")
+spread = lambda xs: f"{min(x[0] for x in xs):.1f}-{max(x[0] for x in xs):.1f}"
+print(f"{'run':<34} {'seconds':>8} {'(min-max)':>11} {'places/min':>11} {'peak RSS MB':>12}")
+for label, xs, t in (("CLI loop (one place at a time)", cli, t_cli), ("Ray, 1 node x 1 CPU", one, t_one),
+                     ("Ray, 2 nodes x 1 CPU", two, t_two)):
+    print(f"{label:<34} {t:8.1f} {spread(xs):>11} {rate(t):11.1f} {max(x[1] for x in xs):12.0f}")
 print(f"2 nodes vs 1: {t_one / t_two:.2f}x places per minute (target >= 1.7x); nodes used: {max(o[2] for o in two)}")
 print(f"a worker's peak RSS grew by at most {max(o[3] for o in one + two):.0f} MB from its first place to its last "
       f"(up to {max(o[4] for o in one + two)} places per worker)")

@@ -66,6 +66,7 @@ MAX_FILES = 100_000
 MAX_MANIFEST_BYTES = 256 << 20
 MAX_ERROR_CHARS = 2000
 STAGES = ("list", "fetch", "convert", "slice", "store")
+PLACES_PER_WORKER = 16
 # Variables a task gets from the driver: configuration always, secrets on request.
 SECRET = re.compile(r"KEY|SECRET|TOKEN|PASSWORD|CREDENTIAL")
 
@@ -416,12 +417,11 @@ def _check_apart(out: str, place: str, inputs: List[Input], images: Optional[str
 
 
 def _node() -> str:
-    try:
-        import ray
-
-        return str(ray.get_runtime_context().get_node_id())
-    except Exception:  # noqa: BLE001  (outside Ray: a direct call)
+    """The Ray node running this task; "" outside Ray (asking there would start a Ray)."""
+    ray = sys.modules.get("ray")
+    if ray is None or not ray.is_initialized():
         return ""
+    return str(ray.get_runtime_context().get_node_id())
 
 
 def run_place(place: Dict[str, Any], out: str, work_dir: Optional[str] = None,
@@ -656,7 +656,11 @@ def run(manifest: str, out: str, *, address: Optional[str] = None, cpus_per_plac
         shutil.rmtree(os.path.join(out, TMP_NAME), ignore_errors=True)
     if not ray.is_initialized():
         ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+    # A worker is replaced after PLACES_PER_WORKER places: Ray's worker grows by about 10 MB
+    # per task of its own (the same calls in a plain loop level off after two places), so
+    # a worker's memory stays that of its largest place, not of how many it ran.
     task = ray.remote(num_cpus=cpus_per_place, max_retries=retries, retry_exceptions=False,
+                      max_calls=PLACES_PER_WORKER,
                       runtime_env={"env_vars": _passed_env(pass_credentials)})(run_place)
     total = len(places) + len(rows)
     for done, row in enumerate(rows, 1):
