@@ -658,9 +658,10 @@ def run(manifest: str, out: str, *, address: Optional[str] = None, cpus_per_plac
         ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
     # A worker is replaced after PLACES_PER_WORKER places: Ray's worker grows by about 10 MB
     # per task of its own (the same calls in a plain loop level off after two places), so
-    # a worker's memory stays that of its largest place, not of how many it ran.
+    # a worker's memory stays that of its largest place, not of how many it ran. SPREAD: places
+    # go to every node from the start, not first to the driver's until it is full.
     task = ray.remote(num_cpus=cpus_per_place, max_retries=retries, retry_exceptions=False,
-                      max_calls=PLACES_PER_WORKER,
+                      max_calls=PLACES_PER_WORKER, scheduling_strategy="SPREAD",
                       runtime_env={"env_vars": _passed_env(pass_credentials)})(run_place)
     total = len(places) + len(rows)
     for done, row in enumerate(rows, 1):

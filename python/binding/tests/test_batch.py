@@ -10,6 +10,7 @@ default target/release/examples/street), s3s-fs on PATH or in ~/.cargo/bin (`.ci
 
 from __future__ import annotations
 
+import http.server
 import json
 import os
 import secrets
@@ -19,6 +20,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -150,6 +152,30 @@ def cluster(s3):
         shutil.rmtree(temp, ignore_errors=True)
 
 
+class Forbidden(http.server.BaseHTTPRequestHandler):
+    """A web server that refuses everything with 403."""
+
+    def do_HEAD(self):
+        self.send_response(403)
+        self.send_header("Content-Length", "0")
+        self.end_headers()
+
+    do_GET = do_HEAD
+
+    def log_message(self, *args):
+        pass
+
+
+@pytest.fixture
+def forbidden():
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Forbidden)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
 def upload_place(src: Path, bucket_prefix: str, model: str = "sparse") -> None:
     for f in sorted((src / model).iterdir()):
         _sfpmap.object_upload(str(f), f"{bucket_prefix}/sparse/{f.name}")
@@ -193,7 +219,7 @@ def running_a_place(raylet: int) -> bool:
 
 
 def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does_nothing(
-        cluster, s3, street_bin, shared, tmp_path):
+        cluster, s3, street_bin, shared, tmp_path, forbidden):
     gen = tmp_path / "streets"
     gen.mkdir()
     lines = []
@@ -209,7 +235,8 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
     lines.append({"place": "sacre-coeur", "colmap": "s3://inputs/city/sacre-coeur/sparse",
                   "database": "s3://inputs/city/sacre-coeur/database.db", "variants": ["l2s", "pq8"],
                   "budget": "300kB"})
-    # Broken places: a damaged model, a missing one, a bucket that does not exist, a bad line.
+    # Broken places: a damaged model, a missing one, a bucket that does not exist, a server that
+    # answers 403, a bad line.
     damaged = gen / "damaged"
     shutil.copytree(gen / "street-00", damaged)
     points = damaged / "sparse/points3D.bin"
@@ -221,6 +248,8 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
                   "database": "s3://inputs/city/street-00/database.db"})
     lines.append({"place": "no-bucket", "colmap": "s3://no-such-bucket/sparse",
                   "database": "s3://inputs/city/street-00/database.db"})
+    lines.append({"place": "refused", "colmap": f"{forbidden}/city/sparse",
+                  "database": f"{forbidden}/city/database.db"})
     lines.append({"place": "typo", "colmap": "s3://inputs/city/street-01/sparse",
                   "database": "s3://inputs/city/street-01/database.db", "varaints": ["l2s"]})
     manifest = tmp_path / "city.jsonl"
@@ -257,16 +286,17 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
     assert len(report["rows"]) == len(lines) == len(rows)
     good = [f"street-{i:02d}" for i in range(STREETS)] + ["sacre-coeur"]
     assert all(rows[p]["status"] == "done" for p in good), [(p, rows[p]["error"]) for p in good if rows[p]["status"] != "done"]
-    assert report["places"] == {"total": len(lines), "done": len(good), "skipped": 0, "failed": 4}
+    assert report["places"] == {"total": len(lines), "done": len(good), "skipped": 0, "failed": 5}
     assert "points3D.bin" in rows["damaged"]["error"], rows["damaged"]["error"]
     assert "no COLMAP model" in rows["missing"]["error"]
     assert "no-such-bucket" in rows["no-bucket"]["error"] and "NoSuchBucket" in rows["no-bucket"]["error"]
+    assert "403" in rows["refused"]["error"] and forbidden in rows["refused"]["error"], rows["refused"]["error"]
     assert "unknown key 'varaints'" in rows["typo"]["error"] and "line" in rows["typo"]["error"]
     assert all("\n" not in r["error"] for r in report["rows"] if r["error"])
     # Both nodes converted places before the kill.
     assert len({r["node"] for r in report["rows"] if r["status"] == "done"}) == 2
     # The table names every place; the report's totals add up.
-    assert all(p in out for p in rows) and "45 places: 41 done, 0 skipped, 4 failed" in out
+    assert all(p in out for p in rows) and "46 places: 41 done, 0 skipped, 5 failed" in out
     assert report["bytes_out"] == sum(r["bytes_out"] for r in report["rows"]) > 0
     assert report["catalog"]["status"] == "written" and report["catalog"]["places"] == len(good)
 
@@ -295,7 +325,7 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
     again = run_batch(cluster, str(manifest), "--out", "s3://outputs/city", "--json")
     assert again.returncode == 1, again.stderr
     second = json.loads(again.stdout)
-    assert second["places"] == {"total": len(lines), "done": 0, "skipped": len(good), "failed": 4}
+    assert second["places"] == {"total": len(lines), "done": 0, "skipped": len(good), "failed": 5}
     assert second["catalog"]["status"] == "unchanged"
     assert snapshot(bucket) == before
 
@@ -316,6 +346,21 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
     assert [(r["place"], r["status"]) for r in listed_run["rows"]] == [
         ("no-model", "failed"), ("street-00", "done"), ("street-01", "done")]
     assert "no COLMAP model" in listed_run["rows"][0]["error"]
+
+    # An SFP place from a bucket: its images listed and fetched, the map made by the SFP model.
+    sacre_images = sorted((sacre / "images").iterdir())
+    for f in sorted((sacre / "sparse-map").iterdir()):
+        _sfpmap.object_upload(str(f), f"s3://inputs/sfp/sacre-coeur/sparse/{f.name}")
+    for f in sacre_images:
+        _sfpmap.object_upload(str(f), f"s3://inputs/sfp/sacre-coeur/images/{f.name}")
+    sfp_run = json.loads(run_batch(cluster, "s3://inputs/sfp/", "--out", "s3://outputs/sfp", "--json").stdout)
+    (sfp_row,) = sfp_run["rows"]
+    assert sfp_row["status"] == "done", sfp_row["error"]
+    model = [sacre / "sparse-map" / n for n in ("cameras.bin", "images.bin", "points3D.bin")]  # not rigs, frames
+    assert sfp_row["bytes_in"] == sum(f.stat().st_size for f in [*sacre_images, *model])
+    with sfpmap.Map(s3["root"] / "outputs/sfp/sacre-coeur/map.sfpm") as m:
+        assert m.levels[2].descriptor.startswith("sfp-")
+        assert batch.job_of(m.metadata)["options"]["kind"] == "sfp"
 
 
 def test_a_folder_prefix_relative_inputs_variants_and_a_budget(cluster, street_bin, shared, tmp_path):
