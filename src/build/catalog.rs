@@ -47,29 +47,27 @@ pub fn build_catalog(places: &[PlaceMap<'_>]) -> Result<MapWriter<'static>, Erro
     if places.is_empty() {
         return Err(Error::invalid("a catalog needs at least one place"));
     }
+    // Two passes over the places, one place's rows held at a time (a city's would not fit):
+    // the first describes each and samples it, the second, once the basis and codebook are
+    // fitted, makes its images' VLADs from its rows made again.
     let mut listed = Vec::with_capacity(places.len());
-    let mut rows = Vec::with_capacity(places.len());
+    let mut sample = Vec::new();
+    let mut first: Option<(usize, String)> = None;
     for p in places {
         listed.push(describe(p)?);
-        rows.push(place_rows(p)?);
-    }
-    let (d_in, descriptor) = (rows[0].d_in, rows[0].descriptor.clone());
-    if let Some((p, r)) = places
-        .iter()
-        .zip(&rows)
-        .find(|(_, r)| r.d_in != d_in || r.descriptor != descriptor)
-    {
-        return Err(Error::invalid(format!(
-            "place {:?} has {} descriptors of {} dimensions, place {:?} {descriptor} of {d_in}: a catalog holds places of one descriptor",
-            p.name, r.descriptor, r.d_in, places[0].name
-        )));
-    }
-    // The basis and the codebook from a sample of every place (every k-th described point).
-    let mut sample = Vec::new();
-    for r in &rows {
+        let r = place_rows(p)?;
+        let (d_in, descriptor) = first.get_or_insert_with(|| (r.d_in, r.descriptor.clone()));
+        if r.d_in != *d_in || r.descriptor != *descriptor {
+            return Err(Error::invalid(format!(
+                "place {:?} has {} descriptors of {} dimensions, place {:?} {descriptor} of {d_in}: a catalog holds places of one descriptor",
+                p.name, r.descriptor, r.d_in, places[0].name
+            )));
+        }
+        // The basis and the codebook from a sample of every place (every k-th described
+        // point).
         let described: Vec<&[f32]> = r
             .rows
-            .chunks_exact(d_in)
+            .chunks_exact(r.d_in)
             .filter(|x| x.iter().any(|&v| v != 0.0))
             .collect();
         let step = described.len().div_ceil(SAMPLE_PER_PLACE).max(1);
@@ -77,6 +75,7 @@ pub fn build_catalog(places: &[PlaceMap<'_>]) -> Result<MapWriter<'static>, Erro
             sample.extend_from_slice(x);
         }
     }
+    let (d_in, descriptor) = first.expect("at least one place");
     let dims = CATALOG_DIMS.min(d_in);
     let basis = Basis::fit(&sample, d_in);
     let projection = basis.rows[..dims * d_in].to_vec();
@@ -85,7 +84,8 @@ pub fn build_catalog(places: &[PlaceMap<'_>]) -> Result<MapWriter<'static>, Erro
         .ok_or_else(|| Error::invalid("too few described points in the places for a codebook"))?;
     let mut place_images = vec![0u64];
     let mut image_vlad = Vec::new();
-    for (p, r) in places.iter().zip(&rows) {
+    for p in places {
+        let r = place_rows(p)?;
         let vis = p.map.visibility_points()?.ok_or_else(|| {
             Error::invalid(format!(
                 "place {:?} has no visibility (image → points): its images cannot be summarised",

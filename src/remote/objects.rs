@@ -48,13 +48,15 @@ struct Target {
 }
 
 impl Target {
-    fn connect(url: &str, options: &RemoteOptions) -> Result<Target, Error> {
+    /// `traffic`: [`Traffic::WholeObjects`] for a body of any size, [`Traffic::Ranges`] for a
+    /// listing, HEAD or DELETE (an unreachable server reported in seconds, not minutes).
+    fn connect(url: &str, options: &RemoteOptions, traffic: Traffic) -> Result<Target, Error> {
         let parsed = url::Url::parse(url).map_err(|e| fail(url, format!("not a URL: {e}")))?;
         if !matches!(parsed.scheme(), "s3" | "http" | "https") {
             return Err(fail(url, "not an s3://, http:// or https:// URL".into()));
         }
-        let (store, path) = build_store(&parsed, NamedBy::User, options, Traffic::WholeObjects)
-            .map_err(|m| fail(url, m))?;
+        let (store, path) =
+            build_store(&parsed, NamedBy::User, options, traffic).map_err(|m| fail(url, m))?;
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
@@ -111,7 +113,7 @@ pub fn list(
     max_objects: usize,
     options: &RemoteOptions,
 ) -> Result<Vec<ObjectInfo>, Error> {
-    let target = Target::connect(url, options)?;
+    let target = Target::connect(url, options, Traffic::Ranges)?;
     let prefix = (!target.path.as_ref().is_empty()).then_some(&target.path);
     let mut found = Vec::new();
     target.runtime.block_on(async {
@@ -140,7 +142,7 @@ pub fn list_folders(
     max_folders: usize,
     options: &RemoteOptions,
 ) -> Result<Vec<String>, Error> {
-    let target = Target::connect(url, options)?;
+    let target = Target::connect(url, options, Traffic::Ranges)?;
     let prefix = (!target.path.as_ref().is_empty()).then_some(&target.path);
     let listed = target
         .runtime
@@ -163,7 +165,7 @@ pub fn list_folders(
 
 /// The object at `url`, or `None` when there is none.
 pub fn head(url: &str, options: &RemoteOptions) -> Result<Option<ObjectInfo>, Error> {
-    let target = Target::connect(url, options)?;
+    let target = Target::connect(url, options, Traffic::Ranges)?;
     match target.runtime.block_on(target.store.head(&target.path)) {
         Ok(meta) => Ok(Some(target.info(meta))),
         Err(object_store::Error::NotFound { .. }) => Ok(None),
@@ -180,7 +182,7 @@ pub fn download(
     max_bytes: u64,
     options: &RemoteOptions,
 ) -> Result<ObjectInfo, Error> {
-    let target = Target::connect(url, options)?;
+    let target = Target::connect(url, options, Traffic::WholeObjects)?;
     let io = |e: std::io::Error| Error::Io {
         path: dest.to_path_buf(),
         message: e.to_string(),
@@ -233,7 +235,7 @@ pub fn download(
 /// only complete (see the module's note); what is returned is the stored object's HEAD, whose
 /// size must be the file's.
 pub fn upload(src: &Path, url: &str, options: &RemoteOptions) -> Result<ObjectInfo, Error> {
-    let target = Target::connect(url, options)?;
+    let target = Target::connect(url, options, Traffic::WholeObjects)?;
     let io = |e: std::io::Error| Error::Io {
         path: src.to_path_buf(),
         message: e.to_string(),
@@ -306,7 +308,7 @@ pub fn upload(src: &Path, url: &str, options: &RemoteOptions) -> Result<ObjectIn
 
 /// Deletes the object at `url`; one that is not there is no error.
 pub fn delete(url: &str, options: &RemoteOptions) -> Result<(), Error> {
-    let target = Target::connect(url, options)?;
+    let target = Target::connect(url, options, Traffic::Ranges)?;
     match target.runtime.block_on(target.store.delete(&target.path)) {
         Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
         Err(e) => Err(store_error(url, e)),

@@ -1,6 +1,7 @@
 //! `remote::objects` (what `python -m sfpmap.batch` stores and fetches with) against s3s-fs on
 //! loopback: a small file in one PUT, a 70 MiB one in parts, listing by whole path segments,
 //! downloads bounded and atomic, deletes, and the errors.
+#![cfg(feature = "remote")]
 
 use crate::servers::S3;
 use sfpmap::remote::objects::{delete, download, head, list, upload};

@@ -29,6 +29,7 @@ import json
 import logging
 import math
 import os
+import posixpath
 import re
 import resource
 import shutil
@@ -38,6 +39,7 @@ import time
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
 from . import Error as _SfpmapError
+from . import MapError as _MapError
 from . import __version__
 from . import convert as _convert
 from . import slice as _slice
@@ -73,6 +75,28 @@ SECRET = re.compile(r"KEY|SECRET|TOKEN|PASSWORD|CREDENTIAL")
 
 def is_url(location: str) -> bool:
     return bool(_sfpmap.is_url(location))
+
+
+def _scheme(location: str) -> str:
+    return location.split("://", 1)[0].lower() if is_url(location) else ""
+
+
+def _normal_url(url: str) -> str:
+    """``url`` with its scheme in lower case and its path without ``.``, ``..`` or empty
+    segments (listed keys come back that way); ``..`` above the bucket is refused."""
+    scheme, rest = url.split("://", 1)
+    origin, _, path = rest.partition("/")
+    parts: List[str] = []
+    for part in path.split("/"):
+        if part in ("", "."):
+            continue
+        if part == "..":
+            if not parts:
+                raise ValueError(f"{url[:300]}: .. above {scheme.lower()}://{origin}")
+            parts.pop()
+        else:
+            parts.append(part)
+    return f"{scheme.lower()}://{origin}/" + "/".join(parts) + ("/" if path.endswith("/") and parts else "")
 
 
 def one_line(e: BaseException) -> str:
@@ -123,16 +147,19 @@ def _resolve(value: Any, key: str, manifest_base: str) -> str:
     if not isinstance(value, str) or not value or "\0" in value:
         raise ValueError(f"{key}: a path or URL")
     if is_url(manifest_base):
-        origin = manifest_base.split("/", 3)[:3]
+        origin = _normal_url(manifest_base).split("/", 3)[:3]
         if not is_url(value):
             if os.path.isabs(value):
-                raise ValueError(f"{key} {value!r}: a manifest read from a URL names no local file")
+                raise ValueError(f"{key} {value[:300]!r}: a manifest read from a URL names no local file")
             value = manifest_base.rstrip("/") + "/" + value
+        value = _normal_url(value)
         if value.split("/", 3)[:3] != origin:
-            raise ValueError(f"{key} {value!r}: a manifest read from a URL names only objects beside it "
+            raise ValueError(f"{key} {value[:300]!r}: a manifest read from a URL names only objects beside it "
                              f"({'/'.join(origin)})")
         return value
-    if is_url(value) or os.path.isabs(value):
+    if is_url(value):
+        return _normal_url(value)
+    if os.path.isabs(value):
         return value
     return os.path.normpath(os.path.join(manifest_base, value))
 
@@ -183,10 +210,10 @@ def _failed(place: str, error: str, line: Optional[int] = None) -> Dict[str, Any
 
 def read_manifest(manifest: str) -> Tuple[List[Dict[str, Any]], List[Dict[str, Any]]]:
     """The places of ``manifest`` (a JSON lines file or URL, or an ``s3://`` prefix ending in
-    ``/``) and a failed row for each line that is not one. Raises ``sfpmap.Error`` or
-    ``OSError`` when the manifest itself cannot be read."""
-    if manifest.startswith("s3://") and manifest.endswith("/"):
-        return _list_places(manifest), []
+    ``/``) and a failed row for each line (or folder) that is not one. Raises ``sfpmap.Error``,
+    ``OSError`` or ``ValueError`` when the manifest itself cannot be read."""
+    if _scheme(manifest) == "s3" and manifest.endswith("/"):
+        return _list_places(_normal_url(manifest))
     if is_url(manifest):
         with tempfile.TemporaryDirectory(prefix="sfpmap-manifest-") as tmp:
             path = os.path.join(tmp, "manifest.jsonl")
@@ -235,18 +262,22 @@ def _read_text(path: str, shown: str) -> str:
     if len(data) > MAX_MANIFEST_BYTES:
         raise ValueError(f"{shown}: a manifest over {MAX_MANIFEST_BYTES >> 20} MiB: split it")
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")  # a byte order mark is not part of line 1
     except UnicodeDecodeError as e:
         raise ValueError(f"{shown}: not UTF-8 text (byte {e.start})") from None
 
 
-def _list_places(prefix: str) -> List[Dict[str, Any]]:
+def _list_places(prefix: str) -> Tuple[List[Dict[str, Any]], List[Dict[str, Any]]]:
     """The places under an ``s3://`` prefix: one per folder, listed by folder (not by object).
-    A folder without a model or inputs fails in its task, naming what is missing."""
-    found = []
+    A folder without a model or inputs fails in its task, naming what is missing; one whose
+    name is no place name is a failed row here."""
+    found: List[Dict[str, Any]] = []
+    failed: List[Dict[str, Any]] = []
     for line, folder in enumerate(_sfpmap.object_list_folders(prefix, MAX_FILES), 1):
         name = folder[len(prefix):].rstrip("/")
         if not PLACE_NAME.match(name) or name in RESERVED_NAMES:
+            failed.append(_failed(f"folder {line}", f"{folder[:300]}: not a place name (1 to 128 of "
+                                  f"A-Z a-z 0-9 . _ -, not {', '.join(RESERVED_NAMES)})", line))
             continue
         database = f"{folder}database.db"
         has_database = _sfpmap.object_head(database) is not None
@@ -254,7 +285,7 @@ def _list_places(prefix: str) -> List[Dict[str, Any]]:
                       "database": database if has_database else None,
                       "images": None if has_database else f"{folder}images",
                       "variants": [], "budget": None})
-    return found
+    return found, failed
 
 
 # ---------------------------------------------------------------------------------------------
@@ -272,7 +303,7 @@ def _checked_key(url: str) -> str:
 
 def _objects(prefix: str) -> List[Tuple[str, int, str]]:
     """The objects under ``prefix``: URL, size and version (ETag, else Last-Modified)."""
-    return [(_checked_key(url), size, etag or f"modified {modified}")
+    return [(url, size, etag or f"modified {modified}")
             for url, size, etag, modified in _sfpmap.object_list(prefix, MAX_FILES)]
 
 
@@ -287,8 +318,8 @@ def _inputs(place: Dict[str, Any]) -> List[Input]:
     colmap = place["colmap"]
     if is_url(colmap):
         base = colmap.rstrip("/")
-        if colmap.startswith("s3://"):
-            found = [(u, s, v) for u, s, v in _objects(base) if u[len(base) + 1:] in MODEL_FILES]
+        if _scheme(colmap) == "s3":
+            found = [(_checked_key(u), s, v) for u, s, v in _objects(base) if u[len(base) + 1:] in MODEL_FILES]
         else:  # a web server: by the model's file names
             found = []
             for ext in ("bin", "txt"):
@@ -320,13 +351,13 @@ def _inputs(place: Dict[str, Any]) -> List[Input]:
 
 
 def _image_inputs(images: str) -> List[Input]:
-    if images.startswith(("http://", "https://")):
+    if _scheme(images) in ("http", "https"):
         raise ValueError(f"{images}: images on a web server cannot be listed: use s3:// or a folder")
     found: List[Input] = []
     if is_url(images):
         base = images.rstrip("/")
         for url, size, version in _objects(base):
-            rel = url[len(base) + 1:]
+            rel = _checked_key(url)[len(base) + 1:]
             if any(part in ("", ".", "..") for part in rel.split("/")):
                 raise ValueError(f"{url[:300]}: an image name with an empty, . or .. part")
             found.append(("images/" + rel, url, size, version))
@@ -396,8 +427,8 @@ def _stored_job(location: str) -> Tuple[bool, Optional[Dict[str, Any]]]:
         return False, None
     try:
         return True, job_of(json.loads(_sfpmap.map_metadata(location)))
-    except _SfpmapError:
-        return True, None  # not a readable map
+    except _MapError:
+        return True, None  # not a map (a network or file error is raised: it says why)
 
 
 def _check_apart(out: str, place: str, inputs: List[Input], images: Optional[str]) -> None:
@@ -448,7 +479,8 @@ def run_place(place: Dict[str, Any], out: str, work_dir: Optional[str] = None,
         row["catalog_map"] = finals[plain[0] if plain else 0]
         stored = [_stored_job(f) for f in finals]
         seconds["list"] = time.perf_counter() - began
-        if not force and all(job is not None and job.get("fingerprint") == fingerprint for _, job in stored):
+        if not force and all(job is not None and job.get("fingerprint") == fingerprint
+                             and job.get("place") == place["place"] for _, job in stored):
             row.update(status="skipped", bytes_in=0)
             return row
         for final, (there, job) in zip(finals, stored):
@@ -543,10 +575,11 @@ def _store(files: List[str], finals: List[str], out: str, place: str) -> None:
 # The job
 
 
-def _catalog(rows: List[Dict[str, Any]], out: str, work_dir: Optional[str]) -> Dict[str, Any]:
+def _catalog(rows: List[Dict[str, Any]], out: str, work_dir: Optional[str], force: bool = False) -> Dict[str, Any]:
     """``PREFIX/catalog.sfpc`` over the places done or skipped, and a failed place's entry of the
     catalog there whose map still carries that entry's fingerprint (a transient failure does
-    not drop a good place). Not written again when its places and fingerprints are the same."""
+    not drop a good place). Not written again when its places and fingerprints are the same,
+    unless ``force``, which also replaces a catalog the job did not make."""
     target = _join(out, CATALOG_NAME)
     entries = {r["place"]: [r["place"], r["fingerprint"],
                             r["catalog_map"] if is_url(out) else os.path.relpath(r["catalog_map"], out)]
@@ -563,10 +596,10 @@ def _catalog(rows: List[Dict[str, Any]], out: str, work_dir: Optional[str]) -> D
         return {"status": "none", "places": 0}
     places = [entries[k] for k in sorted(entries)]
     fingerprint = hashlib.sha256(json.dumps(places).encode()).hexdigest()
-    if previous is not None and previous.get("fingerprint") == fingerprint:
+    if not force and previous is not None and previous.get("fingerprint") == fingerprint:
         return {"status": "unchanged", "places": len(places), "url": target,
                 "seconds": time.perf_counter() - began}
-    if there and not (previous is not None and "places" in previous):
+    if there and not force and not (previous is not None and "places" in previous):
         raise ValueError(f"{target}: exists and was not made by sfpmap.batch")
     record = json.dumps({"fingerprint": fingerprint, "places": places})
     names = [p[0] for p in places]
@@ -645,8 +678,10 @@ def run(manifest: str, out: str, *, address: Optional[str] = None, cpus_per_plac
     called as each place ends. Raises ``sfpmap.Error``, ``OSError``, ``ValueError`` or
     ``ConnectionError`` when the job cannot start (the manifest, the cluster)."""
     began = time.perf_counter()
-    if is_url(out) and (not out.startswith("s3://") or any(c in out for c in "#?%")):
-        raise ValueError(f"{out}: outputs go to a folder or an s3:// prefix (no #, ? or %)")
+    if is_url(out):
+        if _scheme(out) != "s3" or any(c in out for c in "#?%"):
+            raise ValueError(f"{out}: outputs go to a folder or an s3:// prefix (no #, ? or %)")
+        out = _normal_url(out)
     places, rows = read_manifest(manifest)
     import ray
 
@@ -692,7 +727,7 @@ def run(manifest: str, out: str, *, address: Optional[str] = None, cpus_per_plac
     if report_path:
         _write_report(report_path, _summary(rows, began, {"status": "pending"}, **head))
     try:
-        catalog = _catalog(rows, out, work_dir)
+        catalog = _catalog(rows, out, work_dir, force)
     except (_SfpmapError, OSError, ValueError) as e:
         catalog = {"status": "failed", "error": one_line(e)}
     if not is_url(out):
@@ -746,8 +781,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     except ImportError as e:
         print(f"error: sfpmap.batch runs on Ray: pip install 'sfpmap[ray]' ({one_line(e)})", file=sys.stderr)
         return 2
-    except (_SfpmapError, OSError, ValueError, ConnectionError, RuntimeError) as e:
-        print(f"error: {one_line(e)}", file=sys.stderr)
+    except Exception as e:  # noqa: BLE001  (the job could not start or finish: one line)
+        known = isinstance(e, (_SfpmapError, OSError, ValueError, ConnectionError))
+        print(f"error: {one_line(e) if known else f'{type(e).__name__}: {one_line(e)}'}", file=sys.stderr)
         return 2
     finally:
         sys.stdout.flush()

@@ -250,6 +250,9 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
                   "database": "s3://inputs/city/street-00/database.db"})
     lines.append({"place": "refused", "colmap": f"{forbidden}/city/sparse",
                   "database": f"{forbidden}/city/database.db"})
+    closed = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    lines.append({"place": "unreachable", "colmap": f"{closed}/city/sparse",
+                  "database": f"{closed}/city/database.db"})
     lines.append({"place": "typo", "colmap": "s3://inputs/city/street-01/sparse",
                   "database": "s3://inputs/city/street-01/database.db", "varaints": ["l2s"]})
     manifest = tmp_path / "city.jsonl"
@@ -286,17 +289,19 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
     assert len(report["rows"]) == len(lines) == len(rows)
     good = [f"street-{i:02d}" for i in range(STREETS)] + ["sacre-coeur"]
     assert all(rows[p]["status"] == "done" for p in good), [(p, rows[p]["error"]) for p in good if rows[p]["status"] != "done"]
-    assert report["places"] == {"total": len(lines), "done": len(good), "skipped": 0, "failed": 5}
+    assert report["places"] == {"total": len(lines), "done": len(good), "skipped": 0, "failed": 6}
     assert "points3D.bin" in rows["damaged"]["error"], rows["damaged"]["error"]
     assert "no COLMAP model" in rows["missing"]["error"]
     assert "no-such-bucket" in rows["no-bucket"]["error"] and "NoSuchBucket" in rows["no-bucket"]["error"]
     assert "403" in rows["refused"]["error"] and forbidden in rows["refused"]["error"], rows["refused"]["error"]
+    assert closed in rows["unreachable"]["error"], rows["unreachable"]["error"]
+    assert rows["unreachable"]["seconds"] == {} or sum(rows["unreachable"]["seconds"].values()) < 60
     assert "unknown key 'varaints'" in rows["typo"]["error"] and "line" in rows["typo"]["error"]
     assert all("\n" not in r["error"] for r in report["rows"] if r["error"])
     # Both nodes converted places before the kill.
     assert len({r["node"] for r in report["rows"] if r["status"] == "done"}) == 2
     # The table names every place; the report's totals add up.
-    assert all(p in out for p in rows) and "46 places: 41 done, 0 skipped, 5 failed" in out
+    assert all(p in out for p in rows) and "47 places: 41 done, 0 skipped, 6 failed" in out
     assert report["bytes_out"] == sum(r["bytes_out"] for r in report["rows"]) > 0
     assert report["catalog"]["status"] == "written" and report["catalog"]["places"] == len(good)
 
@@ -325,7 +330,7 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
     again = run_batch(cluster, str(manifest), "--out", "s3://outputs/city", "--json")
     assert again.returncode == 1, again.stderr
     second = json.loads(again.stdout)
-    assert second["places"] == {"total": len(lines), "done": 0, "skipped": len(good), "failed": 5}
+    assert second["places"] == {"total": len(lines), "done": 0, "skipped": len(good), "failed": 6}
     assert second["catalog"]["status"] == "unchanged"
     assert snapshot(bucket) == before
 
@@ -336,7 +341,32 @@ def test_a_bucket_of_places_on_two_nodes_survives_a_killed_node_and_a_rerun_does
     upload_place(gen_changed, "s3://inputs/city/street-03")
     third = json.loads(run_batch(cluster, str(manifest), "--out", "s3://outputs/city", "--json").stdout)
     assert [r["place"] for r in third["rows"] if r["status"] == "done"] == ["street-03"]
+    assert third["places"] == {"total": len(lines), "done": 1, "skipped": len(good) - 1, "failed": 6}
     assert third["catalog"]["status"] == "written"
+
+    # A place that fails now (its database gone) keeps its catalog entry while its map is there.
+    _sfpmap.object_delete("s3://inputs/city/street-05/database.db")
+    fourth = json.loads(run_batch(cluster, str(manifest), "--out", "s3://outputs/city", "--json").stdout)
+    assert {r["place"]: r["status"] for r in fourth["rows"]}["street-05"] == "failed"
+    assert fourth["catalog"]["status"] == "unchanged"
+    with sfpmap.Map(bucket / "city/catalog.sfpc") as c:
+        assert "street-05" in {p["name"] for p in c.metadata["catalog"]["places"]}
+
+    # A manifest read from a bucket: relative names beside it; a local file or another bucket
+    # refused.
+    url_manifest = tmp_path / "url.jsonl"
+    url_manifest.write_text("\n".join(json.dumps(line) for line in [
+        {"place": "beside", "colmap": "../city/street-00/sparse", "database": "../city/street-00/database.db"},
+        {"place": "local", "colmap": str(gen / "street-00/sparse"), "database": str(gen / "street-00/database.db")},
+        {"place": "elsewhere", "colmap": "s3://outputs/x/sparse", "database": "s3://outputs/x/database.db"},
+    ]) + "\n")
+    _sfpmap.object_upload(str(url_manifest), "s3://inputs/lists/city.jsonl")
+    from_url = json.loads(run_batch(cluster, "s3://inputs/lists/city.jsonl", "--out", "s3://outputs/url",
+                                    "--json").stdout)
+    by_place = {r["place"]: r for r in from_url["rows"]}
+    assert by_place["beside"]["status"] == "done", by_place["beside"]["error"]
+    assert "names no local file" in by_place["local"]["error"]
+    assert "names only objects beside it" in by_place["elsewhere"]["error"]
 
     # A bucket prefix instead of a manifest: its folders are the places, listed by folder.
     for name in ("street-00", "street-01"):
@@ -399,6 +429,18 @@ def test_a_folder_prefix_relative_inputs_variants_and_a_budget(cluster, street_b
     with sfpmap.Map(moved / listed["s0"]) as m:
         m.verify()
     shutil.move(str(moved), str(out))
+    # An output the job did not make is refused, named; --force replaces it, and the catalog.
+    foreign = out / "s2/l2s.sfpm"
+    lines[2]["variants"] = ["l2s"]
+    manifest.write_text("\n".join(json.dumps(line) for line in lines) + "\n")
+    foreign.write_bytes(b"not a map, a user's file")
+    refused = json.loads(run_batch(cluster, str(manifest), "--out", str(out), "--json").stdout)
+    assert refused["rows"][2]["status"] == "failed" and "not made by sfpmap.batch" in refused["rows"][2]["error"]
+    assert foreign.read_bytes() == b"not a map, a user's file"
+    forced = json.loads(run_batch(cluster, str(manifest), "--out", str(out), "--json", "--force").stdout)
+    assert forced["places"]["done"] == 3 and forced["catalog"]["status"] == "written"
+    with sfpmap.Map(foreign) as m:
+        m.verify()
     # Rerun: skipped. A touched input: that place again.
     assert json.loads(run_batch(cluster, str(manifest), "--out", str(out), "--json").stdout)["places"]["skipped"] == 3
     os.utime(tmp_path / "s2/database.db")
