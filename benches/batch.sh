@@ -2,7 +2,8 @@
 # Issue 33's throughput table for `python -m sfpmap.batch`: the same places (generated streets,
 # cached under target/batch-bench/) converted to a SIFT map and sliced to `l2s` and `pq8` (PQ
 # training: CPU-bound), three ways, each into a fresh folder, medians of RUNS runs:
-#   1. the plain CLI loop (`sfpmap convert` + two `sfpmap slice`, one place after another);
+#   1. the plain CLI loop (`sfpmap convert` + two `sfpmap slice`, one place after another, then
+#      `sfpmap catalog build` of the l2s maps, as the job's last step);
 #   2. the batch job on a Ray cluster of one node with one CPU (a head started here);
 #   3. the same with a second node of one CPU (`ray start --address`) beside it;
 # and prints places per minute, the ratios (2 nodes vs 1: target >= 1.7x; Ray's overhead per
@@ -11,21 +12,20 @@
 # Every run is timed from outside, process start and exit included, as the CLI loop is.
 #
 # Usage: benches/batch.sh [PLACES] [POINTS] [RUNS]   (default 8 places of 60000 points, 3 runs)
-# Needs the sfpmap wheel in the test venv (`.ci/run` installs it; this script builds it when
-# `import sfpmap.batch` fails).
+# The CLI and the wheel are built here the same way (release, no debug assertions: the test
+# venv may hold CI's wheel, built with them) and the wheel installed into the test venv.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 places=${1:-8} points=${2:-60000} runs=${3:-3}
 export ORT_DISABLE_TELEMETRY=1 RAY_USAGE_STATS_ENABLED=0
+unset CARGO_PROFILE_RELEASE_DEBUG_ASSERTIONS CARGO_PROFILE_RELEASE_OVERFLOW_CHECKS
 venv=$(bash .ci/tools | tail -1)
 py=$venv/bin/python
 cargo build --release --quiet --all-features --bin sfpmap --example street
-if ! "$py" -c "import sfpmap.batch" 2>/dev/null; then
-  wheels=$(mktemp -d)
-  "$venv/bin/maturin" build --release --quiet -m python/binding/Cargo.toml -o "$wheels"
-  "$py" -m pip install --quiet --force-reinstall --no-deps "$wheels"/sfpmap-*.whl
-  rm -rf "$wheels"
-fi
+wheels=$(mktemp -d)
+"$venv/bin/maturin" build --release --quiet -m python/binding/Cargo.toml -o "$wheels"
+"$py" -m pip install --quiet --force-reinstall --no-deps "$wheels"/sfpmap-*.whl
+rm -rf "$wheels"
 target=${CARGO_TARGET_DIR:-$PWD/target}
 "$py" - "$target" "$places" "$points" "$runs" <<'PY'
 import json, os, secrets, shutil, signal, socket, statistics, subprocess, sys, tempfile, time
@@ -69,6 +69,10 @@ def cli_loop():
         for step in steps:
             r = subprocess.run(["/usr/bin/time", "-f", "%M", *map(str, step)], capture_output=True, text=True, check=True)
             peak = max(peak, int(r.stderr.strip().splitlines()[-1]) / 1024)
+    # The same job's last step: a catalog of the places (by their l2s maps).
+    subprocess.run([sfpmap, "catalog", "build", *[out / f"p{i}-l2s.sfpm" for i in range(n_places)],
+                    *[a for i in range(n_places) for a in ("--name", f"p{i}")], "-o", out / "catalog.sfpc",
+                    "--quiet"], check=True)
     return time.perf_counter() - began, peak
 
 
