@@ -23,6 +23,7 @@ Ray retries a task whose worker or node is lost; a place's own error is its row'
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import hashlib
 import importlib
 import json
@@ -69,6 +70,7 @@ MAX_MANIFEST_BYTES = 256 << 20
 MAX_ERROR_CHARS = 2000
 STAGES = ("list", "fetch", "convert", "slice", "store")
 PLACES_PER_WORKER = 16
+FETCHES_IN_FLIGHT = 8
 # Variables a task gets from the driver: configuration always, secrets on request.
 SECRET = re.compile(r"KEY|SECRET|TOKEN|PASSWORD|CREDENTIAL")
 
@@ -496,11 +498,7 @@ def run_place(place: Dict[str, Any], out: str, work_dir: Optional[str] = None,
             work = tempfile.mkdtemp(prefix=f"{place['place']}-", dir=tmp)
         began = time.perf_counter()
         fetched = os.path.join(work, "in")
-        for name, location, _size, _version in inputs:
-            if is_url(location):
-                dest = os.path.join(fetched, name)
-                os.makedirs(os.path.dirname(dest), exist_ok=True)
-                _sfpmap.object_download(location, dest, MAX_OBJECT_BYTES)
+        _fetch([(loc, os.path.join(fetched, name)) for name, loc, _, _ in inputs if is_url(loc)])
         local = {name: (os.path.join(fetched, name) if is_url(loc) else loc) for name, loc, _, _ in inputs}
         colmap = os.path.dirname(local[next(n for n, *_ in inputs if n.startswith("colmap/"))])
         database = local.get("database.db")
@@ -549,6 +547,20 @@ def run_place(place: Dict[str, Any], out: str, work_dir: Optional[str] = None,
         # The worker's peak so far (Ray reuses workers): bounded by its largest place.
         row["worker_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return row
+
+
+def _fetch(pairs: List[Tuple[str, str]]) -> None:
+    """Downloads each (URL, file), FETCHES_IN_FLIGHT at a time (the calls release the GIL; a
+    place of thousands of images waits on round trips, not on bandwidth). The first error is
+    raised once those in flight are done; the rest are not started."""
+    for _, dest in pairs:
+        os.makedirs(os.path.dirname(dest), exist_ok=True)
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=FETCHES_IN_FLIGHT)
+    try:
+        for done in [pool.submit(_sfpmap.object_download, url, dest, MAX_OBJECT_BYTES) for url, dest in pairs]:
+            done.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _store(files: List[str], finals: List[str], out: str, place: str) -> None:
