@@ -62,6 +62,15 @@ pub fn recall_threshold(text: &str) -> Result<(f64, f64), String> {
     Ok((t, r))
 }
 
+/// A byte count as people write it: `2MB` (decimal), `1.5MiB` (binary), `500000`
+/// (`slice --budget`, `ros2 --max-message-bytes`).
+pub fn byte_size(s: &str) -> Result<u64, String> {
+    s.trim()
+        .parse::<bytesize::ByteSize>()
+        .map(|b| b.as_u64())
+        .map_err(|e| format!("{s:?} is not a size such as 2MB, 500kB or 1.5MiB ({e})"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -131,29 +131,8 @@ pub struct Args {
     /// asked, with a warning).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Levels to use (repeat); default all. Coarse matching uses the deepest.
-    #[arg(long = "level")]
-    pub levels: Vec<u16>,
-    /// Match with the short descriptor block only.
-    #[arg(long)]
-    pub short: bool,
-    /// Database images retrieved per query (maps with global descriptors or VLAD; 1 to
-    /// 100000).
-    #[arg(long, default_value_t = sfpmap::format::DEFAULT_RETRIEVAL_TOP_K)]
-    pub top_k: usize,
-    /// What ranks the database images: the map's stated preference (auto), its VLAD of local
-    /// descriptors, the extractor's global descriptor, or nothing (every point a candidate).
-    #[arg(long, value_enum, default_value = "auto")]
-    pub retrieval: RetrievalArg,
-    /// Lists of the map's image index (format 1.3, maps of many images) a query scores
-    /// (default: the map's own, calibrated when it was converted); 0 scores every image, as
-    /// on maps without an index.
-    #[arg(long, value_name = "LISTS")]
-    pub retrieval_probe: Option<usize>,
-    /// Lowe ratio for coarse matching, in (0, 1] (default: 0.95 on SFP maps, 0.9 on SIFT
-    /// maps).
-    #[arg(long)]
-    pub ratio: Option<f32>,
+    #[command(flatten)]
+    pub matching: MatchArgs,
     /// Output poses.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -181,6 +160,35 @@ pub struct Args {
     #[cfg(feature = "mcap")]
     #[command(flatten)]
     pub mcap: mcap_input::McapArgs,
+}
+
+/// How queries are matched: `--level`, `--short`, `--top-k`, `--retrieval`,
+/// `--retrieval-probe` and `--ratio` (`sfpmap localize` and `sfpmap ros2`).
+#[derive(Debug, Clone, clap::Args)]
+pub struct MatchArgs {
+    /// Levels to use (repeat); default all. Coarse matching uses the deepest.
+    #[arg(long = "level")]
+    pub levels: Vec<u16>,
+    /// Match with the short descriptor block only.
+    #[arg(long)]
+    pub short: bool,
+    /// Database images retrieved per query (maps with global descriptors or VLAD; 1 to
+    /// 100000).
+    #[arg(long, default_value_t = sfpmap::format::DEFAULT_RETRIEVAL_TOP_K)]
+    pub top_k: usize,
+    /// What ranks the database images: the map's stated preference (auto), its VLAD of local
+    /// descriptors, the extractor's global descriptor, or nothing (every point a candidate).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub retrieval: RetrievalArg,
+    /// Lists of the map's image index (format 1.3, maps of many images) a query scores
+    /// (default: the map's own, calibrated when it was converted); 0 scores every image, as
+    /// on maps without an index.
+    #[arg(long, value_name = "LISTS")]
+    pub retrieval_probe: Option<usize>,
+    /// Lowe ratio for coarse matching, in (0, 1] (default: 0.95 on SFP maps, 0.9 on SIFT
+    /// maps).
+    #[arg(long)]
+    pub ratio: Option<f32>,
 }
 
 impl Args {
@@ -221,41 +229,19 @@ fn shortest_f64(v: f32) -> f64 {
     v.to_string().parse().unwrap_or(f64::from(v))
 }
 
-/// `--level`, `--short`, `--top-k`, `--retrieval` and `--ratio`, as options of the localizer.
-#[derive(Clone)]
-struct Flags {
-    levels: Vec<u16>,
-    short: bool,
-    top_k: usize,
-    retrieval: RetrievalMethod,
-    retrieval_probe: Option<usize>,
-    ratio: Option<f32>,
-}
-
-impl Flags {
-    fn of(args: &Args) -> Flags {
-        Flags {
-            levels: args.levels.clone(),
-            short: args.short,
-            top_k: args.top_k,
-            retrieval: match args.retrieval {
-                RetrievalArg::Auto => RetrievalMethod::Auto,
-                RetrievalArg::Vlad => RetrievalMethod::Vlad,
-                RetrievalArg::Global => RetrievalMethod::Global,
-                RetrievalArg::Off => RetrievalMethod::Off,
-            },
-            retrieval_probe: args.retrieval_probe,
-            ratio: args.ratio,
-        }
-    }
-
+impl MatchArgs {
     /// `base` with these flags.
     fn over(&self, base: LocalizeOptions) -> LocalizeOptions {
         LocalizeOptions {
             levels: self.levels.clone(),
             short: self.short,
             top_k: self.top_k,
-            retrieval: self.retrieval,
+            retrieval: match self.retrieval {
+                RetrievalArg::Auto => RetrievalMethod::Auto,
+                RetrievalArg::Vlad => RetrievalMethod::Vlad,
+                RetrievalArg::Global => RetrievalMethod::Global,
+                RetrievalArg::Off => RetrievalMethod::Off,
+            },
             retrieval_probe: self.retrieval_probe,
             matching: MatchOptions {
                 ratio: self.ratio.unwrap_or(base.matching.ratio),
@@ -264,32 +250,31 @@ impl Flags {
             ..base
         }
     }
-}
 
-/// The localizer's options for a map: its defaults ([`LocalizeOptions::for_map`]) with
-/// `--level`, `--short`, `--top-k`, `--retrieval` and `--ratio`. The session checks them;
-/// [`check_options`] did before any map was opened.
-fn options(args: &Args) -> impl Fn(&Map<'_>) -> LocalizeOptions + Send + Sync + 'static {
-    let flags = Flags::of(args);
-    move |map| flags.over(LocalizeOptions::for_map(map))
-}
+    /// The localizer's options for a map: its defaults ([`LocalizeOptions::for_map`]) with
+    /// these flags. The session checks them; [`MatchArgs::check`] did before any map was
+    /// opened.
+    pub fn options(&self) -> impl Fn(&Map<'_>) -> LocalizeOptions + Send + Sync + 'static {
+        let flags = self.clone();
+        move |map| flags.over(LocalizeOptions::for_map(map))
+    }
 
-/// `--ratio` and `--top-k` checked by the library's rules ([`LocalizeOptions::validate`],
-/// the words Python and C get) before any map, catalog place or query is opened: a value
-/// out of range is a usage error naming the flag (exit status 2), as clap's parsers give,
-/// for one map, a catalog (whose places are opened only as queries reach them) and a log
-/// alike. The map's own defaults are in range, so the default options stand in for them.
-fn check_options(args: &Args) -> Result<(), clap::Error> {
-    Flags::of(args)
-        .over(LocalizeOptions::default())
-        .validate()
-        .map_err(|e| {
-            let flag = format!("--{}", e.option.replace('_', "-"));
-            clap::Error::raw(
-                clap::error::ErrorKind::ValueValidation,
-                format!("invalid value '{}' for '{flag}': {}\n", e.value, e.expected),
-            )
-        })
+    /// `--ratio` and `--top-k` checked by the library's rules ([`LocalizeOptions::validate`],
+    /// the words Python and C get) before any map, catalog place or query is opened: a value
+    /// out of range is a usage error naming the flag (exit status 2), as clap's parsers give,
+    /// for one map, a catalog (whose places are opened only as queries reach them) and a log
+    /// alike. The map's own defaults are in range, so the default options stand in for them.
+    pub fn check(&self) -> Result<(), clap::Error> {
+        self.over(LocalizeOptions::default())
+            .validate()
+            .map_err(|e| {
+                let flag = format!("--{}", e.option.replace('_', "-"));
+                clap::Error::raw(
+                    clap::error::ErrorKind::ValueValidation,
+                    format!("invalid value '{}' for '{flag}': {}\n", e.value, e.expected),
+                )
+            })
+    }
 }
 
 /// The session over `map` (`--map`) with the options `args` give and `source`; a sequence
@@ -303,7 +288,7 @@ fn session(
     not_extractable: &str,
     bars: &super::Bars,
 ) -> anyhow::Result<Session> {
-    let options = options(args)(&map);
+    let options = args.matching.options()(&map);
     let builder = Session::builder(map, args.map_path().display().to_string())
         .options(options)
         .source(source)
@@ -405,7 +390,7 @@ pub fn run(mut args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     // reads its settings from the environment.
     #[cfg(feature = "onnx")]
     sfpmap::extract::runtime::disable_telemetry();
-    if let Err(e) = check_options(&args) {
+    if let Err(e) = args.matching.check() {
         e.print()?;
         return Ok(ExitCode::from(2));
     }

@@ -4,7 +4,7 @@
 //! (`sfpmap::session::catalog`). Poses are in the chosen place's frame; `--json` says which
 //! place each query went to.
 
-use super::{none_read, options, warn_skipped, write_poses, Args};
+use super::{none_read, warn_skipped, write_poses, Args};
 use anyhow::{bail, Context};
 use serde_json::json;
 use sfpmap::escape::escape_control_characters;
@@ -49,7 +49,7 @@ pub(super) fn run(
     let session = CatalogSession::builder(catalog_map, catalog_path.display().to_string())
         .source(source)
         .places_per_query(args.places)
-        .place_options(options(args))
+        .place_options(args.matching.options())
         .remote(super::super::remote_options())
         .build(bars)?;
     // The place maps are inputs too: no output may replace one. Checked before any query

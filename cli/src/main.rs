@@ -28,6 +28,8 @@ mod localize;
 mod plot;
 mod progress;
 mod reference;
+#[cfg(feature = "ros2")]
+mod ros2;
 #[cfg(feature = "onnx")]
 mod setup;
 mod slice;
@@ -84,6 +86,8 @@ pub enum Command {
     Setup(setup::Args),
     #[cfg(feature = "localize")]
     Plot(plot::Args),
+    #[cfg(feature = "ros2")]
+    Ros2(ros2::Args),
     Verify(verify::Args),
     Slice(slice::Args),
 }
@@ -144,6 +148,8 @@ fn run() -> anyhow::Result<ExitCode> {
         Command::Setup(args) => setup::run(args, cli.quiet),
         #[cfg(feature = "localize")]
         Command::Plot(args) => plot::run(args, cli.quiet),
+        #[cfg(feature = "ros2")]
+        Command::Ros2(args) => ros2::run(args, cli.quiet),
         Command::Verify(args) => verify::run(args, cli.quiet),
         Command::Slice(args) => slice::run(args, cli.quiet),
     }
@@ -280,20 +286,45 @@ pub fn write_atomic<T>(
     })
 }
 
+/// Set by [`stop_on_signal`]: a SIGINT or SIGTERM asks the command to stop, not the process
+/// to exit.
+static STOP_ON_SIGNAL: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+/// A SIGINT or SIGTERM arrived while [`STOP_ON_SIGNAL`] was set.
+static STOP_REQUESTED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
 /// On SIGINT or SIGTERM: removes the temp files of unfinished writes and exits 130 (SIGINT)
-/// or 143 (SIGTERM), as a shell reports a process killed by them.
+/// or 143 (SIGTERM), as a shell reports a process killed by them; after [`stop_on_signal`],
+/// the first one only asks the command to stop ([`stop_requested`]) and a second exits.
 pub fn remove_temps_on_signal() {
     use signal_hook::consts::{SIGINT, SIGTERM};
+    use std::sync::atomic::Ordering;
     // Without a handler the default action still ends the process: only temp files stay.
     let Ok(mut signals) = signal_hook::iterator::Signals::new([SIGINT, SIGTERM]) else {
         return;
     };
     std::thread::spawn(move || {
-        if let Some(signal) = signals.forever().next() {
+        for signal in signals.forever() {
+            if STOP_ON_SIGNAL.load(Ordering::SeqCst) && !STOP_REQUESTED.swap(true, Ordering::SeqCst)
+            {
+                continue;
+            }
             sfpmap::output::remove_pending_temps();
             std::process::exit(128 + signal);
         }
     });
+}
+
+/// From now on a SIGINT or SIGTERM asks the running command to stop (`sfpmap ros2` ends its
+/// loop and prints its counts); a second one exits at once.
+#[cfg(feature = "ros2")]
+pub fn stop_on_signal() {
+    STOP_ON_SIGNAL.store(true, std::sync::atomic::Ordering::SeqCst);
+}
+
+/// Whether a signal asked the command to stop.
+#[cfg(feature = "ros2")]
+pub fn stop_requested() -> bool {
+    STOP_REQUESTED.load(std::sync::atomic::Ordering::SeqCst)
 }
 
 /// `--global-max-side N`: 0, or a side of at least `GLOBAL_MIN_SIDE` (`GlobalSize::from_flag`).

@@ -40,7 +40,7 @@ pub struct Args {
     /// Choose levels, short or full, `--minimal` and `--pq` to fit this many bytes with the
     /// best expected accuracy (e.g. 2MB, 500kB, 1.5MiB): the rule is in README, "Byte
     /// budgets", and in `--json`.
-    #[arg(long, value_name = "SIZE", value_parser = parse_size,
+    #[arg(long, value_name = "SIZE", value_parser = super::args::byte_size,
           conflicts_with_all = ["short", "minimal", "pq", "codec", "zstd_level"])]
     pub budget: Option<u64>,
     /// Keep only the short descriptor block of each level.
@@ -70,14 +70,6 @@ pub struct Args {
     /// Print one JSON object with the sizes.
     #[arg(long)]
     pub json: bool,
-}
-
-/// A byte count as people write it: `2MB` (decimal), `1.5MiB` (binary), `500000`.
-fn parse_size(s: &str) -> Result<u64, String> {
-    s.trim()
-        .parse::<bytesize::ByteSize>()
-        .map(|b| b.as_u64())
-        .map_err(|e| format!("{s:?} is not a size such as 2MB, 500kB or 1.5MiB ({e})"))
 }
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {

@@ -49,6 +49,8 @@ pub use camera_model::CameraModel;
 #[cfg(feature = "geometry")]
 mod camera;
 #[cfg(feature = "geometry")]
+mod covariance;
+#[cfg(feature = "geometry")]
 mod error;
 #[cfg(feature = "geometry")]
 mod p3p;
@@ -65,6 +67,8 @@ pub(crate) mod rng;
 
 #[cfg(feature = "geometry")]
 pub use camera::{Camera, SUPPORTED};
+#[cfg(feature = "geometry")]
+pub use covariance::{pose_covariance, PoseCovariance};
 #[cfg(feature = "geometry")]
 pub use error::GeometryError;
 #[cfg(feature = "geometry")]

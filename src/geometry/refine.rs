@@ -354,7 +354,7 @@ pub(crate) fn refine_indexed(
 /// IRLS normal equations `JᵀWJ` and gradient `JᵀWr` at `pose`, accumulated in scalars (the
 /// upper triangle of the symmetric 6×6, mirrored at the end): this runs per point per LM
 /// iteration and matrix temporaries cost more than the arithmetic.
-fn normal_equations(
+pub(super) fn normal_equations(
     pixels: &[Vector2<f64>],
     points: &[Vector3<f64>],
     indices: &[usize],

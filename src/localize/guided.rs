@@ -7,7 +7,9 @@ use super::level::LevelIndex;
 use super::localizer::{ms, Query};
 use super::matching::fails_ratio_test;
 use super::{Localization, LocalizationPath, LocalizeError, Localizer, StageTimes, TrackingLost};
-use crate::geometry::{estimate_absolute_pose_with_prior, Camera, Pose, RansacOptions};
+use crate::geometry::{
+    estimate_absolute_pose_with_prior, pose_covariance, Camera, Pose, RansacOptions,
+};
 use crate::vector::dot;
 use nalgebra::{Vector2, Vector3};
 use std::time::Instant;
@@ -177,7 +179,7 @@ impl Localizer<'_> {
                         && e.num_inliers >= sure
                         && settled(&pose, &e, &points, camera, first_gate / 4.0);
                     pose = e.pose;
-                    result = Some((e, level_of, pixels.len()));
+                    result = Some((e, level_of, pixels, points));
                     if settled {
                         break;
                     }
@@ -190,9 +192,12 @@ impl Localizer<'_> {
                 Err(_) => break,
             }
         }
-        let Some((estimate, level_of, matches)) = result else {
+        let Some((estimate, level_of, pixels, points)) = result else {
             return Ok(None);
         };
+        let matches = pixels.len();
+        let inliers: Vec<usize> = estimate.inlier_indices().collect();
+        let covariance = pose_covariance(&pixels, &points, &inliers, camera, &estimate.pose);
         let mut per_level: Vec<(u16, usize)> = self.levels.iter().map(|l| (l.id, 0)).collect();
         for (&inlier, &i) in estimate.inliers.iter().zip(&level_of) {
             if inlier {
@@ -211,6 +216,7 @@ impl Localizer<'_> {
             path: LocalizationPath::Retrieval,
             tracking_lost: None,
             times: StageTimes::default(),
+            covariance,
         }))
     }
 

@@ -19,7 +19,7 @@ use super::matching::MatchOptions;
 use super::prior::Viewpoints;
 use super::retrieval::{RetrievalFallback, RetrievalIndex, RetrievalMethod};
 use crate::format::{Error as FormatError, Map, Retrieval, SectionKind, VisibilityByChunk};
-use crate::geometry::{Camera, Pose, PoseEstimate};
+use crate::geometry::{Camera, Pose, PoseCovariance, PoseEstimate};
 use crate::vector::{dot, normalise_rows};
 use nalgebra::Vector3;
 use std::borrow::Cow;
@@ -205,6 +205,10 @@ pub struct Localization {
     pub tracking_lost: Option<TrackingLost>,
     /// Where the query's time went.
     pub times: StageTimes,
+    /// How sure the pose is, from the geometry of the final estimate's inliers
+    /// ([`crate::geometry::pose_covariance`]); `None` when the query failed, when only the
+    /// coarse pose stands (guided matching gave none), or with too few inliers for one.
+    pub covariance: Option<PoseCovariance>,
 }
 
 /// How a query was localized.
@@ -298,6 +302,7 @@ impl Localization {
             path: LocalizationPath::Retrieval,
             tracking_lost: None,
             times: StageTimes::default(),
+            covariance: None,
         }
     }
 }
@@ -737,6 +742,7 @@ impl<'m> Localizer<'m> {
             path: LocalizationPath::Retrieval,
             tracking_lost,
             times,
+            covariance: None,
         };
 
         // Fine: guided matching around projections on every selected level, then one final
@@ -834,6 +840,7 @@ impl<'m> Localizer<'m> {
                 path: LocalizationPath::Retrieval,
                 tracking_lost,
                 times,
+                covariance: None,
             });
         };
         Ok(Localization {

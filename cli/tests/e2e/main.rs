@@ -18,4 +18,6 @@ mod shared_data;
 mod hloc_features;
 mod localize_cli;
 mod mcap_localize;
+#[cfg(feature = "ros2")]
+mod ros2_node;
 mod sequence_kitti;

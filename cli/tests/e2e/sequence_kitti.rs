@@ -46,23 +46,23 @@ fn ok(args: &[&str]) -> Value {
     serde_json::from_slice(&out.stdout).unwrap_or(Value::Null)
 }
 
-fn path_str(p: &Path) -> &str {
+pub(crate) fn path_str(p: &Path) -> &str {
     p.to_str().expect("temp paths are UTF-8")
 }
 
-struct Query {
-    name: String,
+pub(crate) struct Query {
+    pub(crate) name: String,
     /// `MODEL W H params...`
-    camera: String,
-    gt_cam_from_world: Pose,
+    pub(crate) camera: String,
+    pub(crate) gt_cam_from_world: Pose,
 }
 
-struct Scene {
-    root: PathBuf,
+pub(crate) struct Scene {
+    pub(crate) root: PathBuf,
     /// Median distance between neighbouring map cameras, metres (stats.json).
-    spacing_m: f64,
+    pub(crate) spacing_m: f64,
     /// In sequence order.
-    queries: Vec<Query>,
+    pub(crate) queries: Vec<Query>,
 }
 
 fn python() -> PathBuf {
@@ -71,7 +71,7 @@ fn python() -> PathBuf {
 
 /// The KITTI 06 scene, built once for all test processes (its folder is named by a hash of
 /// the script and the sequence's poses), or the one `SFPMAP_KITTI06_SCENE` names.
-fn scene() -> &'static Scene {
+pub(crate) fn scene() -> &'static Scene {
     static SCENE: OnceLock<Scene> = OnceLock::new();
     SCENE.get_or_init(|| {
         let root = match std::env::var_os("SFPMAP_KITTI06_SCENE") {
@@ -150,7 +150,7 @@ fn scene() -> &'static Scene {
 }
 
 /// Asserts a localized pose is within a tenth of the camera spacing and 2° of the truth.
-fn check_pose(scene: &Scene, query: &Query, cam_from_world: &Pose, what: &str) {
+pub(crate) fn check_pose(scene: &Scene, query: &Query, cam_from_world: &Pose, what: &str) {
     let dist = cam_from_world.center_distance(&query.gt_cam_from_world);
     let rot = cam_from_world.rotation_error_deg(&query.gt_cam_from_world);
     assert!(
@@ -216,7 +216,7 @@ fn localize_list(map: &Path, extra: &[&str]) -> (Value, Vec<Value>) {
 
 /// `localize --map MAP --query-list queries.txt FEATURES... --format json EXTRA...`: the
 /// `--json` report and the per-query list.
-fn localize_json(map: &Path, features: &[&str], extra: &[&str]) -> (Value, Vec<Value>) {
+pub(crate) fn localize_json(map: &Path, features: &[&str], extra: &[&str]) -> (Value, Vec<Value>) {
     let dir = tempfile::tempdir().unwrap();
     let poses = dir.path().join("poses.json");
     let query_list = scene().root.join("queries.txt");
@@ -319,7 +319,7 @@ fn compressed_image(stamp_ns: u64, format: &str, data: &[u8]) -> Vec<u8> {
 const SEC: u64 = 1_000_000_000;
 
 /// The SFP map of the scene (the built-in model), built once for all test processes.
-fn sfp_map() -> &'static (PathBuf, PathBuf) {
+pub(crate) fn sfp_map() -> &'static (PathBuf, PathBuf) {
     static MAP: OnceLock<(PathBuf, PathBuf)> = OnceLock::new();
     MAP.get_or_init(|| {
         let images = scene().root.join("images");

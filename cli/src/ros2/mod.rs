@@ -1,0 +1,421 @@
+//! `sfpmap ros2`: a ROS 2 localization node. It subscribes to a camera's image topic,
+//! localizes each frame in the map through a [`Session`] (a camera stream is a sequence:
+//! each frame is predicted from the last ones and tracked), and publishes
+//! `geometry_msgs/msg/PoseWithCovarianceStamped`, optionally a TF `map → camera`, and a
+//! status per frame (`diagnostic_msgs/msg/DiagnosticArray`). DDS is RustDDS through
+//! `ros2-client`: nothing of ROS is installed to build, test or run it.
+//!
+//! Threads: this one takes messages off the topics and leaves the newest frame in a
+//! one-frame mailbox ([`frames::Mailbox`]); with `--threads 1` one worker decodes,
+//! extracts, localizes and publishes; with 2, one decodes and extracts while the other
+//! localizes and publishes the frame before. A frame that waits while a newer one arrives is
+//! replaced and counted as dropped: the pose is always of a recent frame, never of a queue.
+
+mod dds;
+mod frames;
+mod worker;
+
+use crate::localize::MatchArgs;
+use crate::Bars;
+use anyhow::{bail, Context as _};
+use dds::{Participant, RawReader};
+use frames::{Counts, Gaps, Latencies, Mailbox};
+use ros2_client::dds::rustdds;
+use ros2_client::QosProfile;
+use sfpmap::geometry::Camera;
+use sfpmap::io::mcap_io::{self, ROS_CAMERA_INFO};
+use sfpmap::session::{QuerySource, Session};
+use std::net::IpAddr;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use worker::{Incoming, Outputs, Shared};
+
+/// Run a ROS 2 localization node: camera frames in, poses out.
+///
+/// Subscribes to --image-topic (sensor_msgs/msg/CompressedImage or Image) with the QoS camera
+/// drivers publish with (best effort, keep last 1: a reliable publisher matches too), takes
+/// the intrinsics from --camera or a sensor_msgs/msg/CameraInfo topic, and publishes each
+/// localized frame's pose as geometry_msgs/msg/PoseWithCovarianceStamped (stamped with the
+/// image's stamp, in --map-frame; the covariance comes from the inliers' geometry: the
+/// refinement's Gauss-Newton covariance, σ²(JᵀJ)⁻¹, σ² the inliers' pixel residual variance,
+/// as the camera centre in the map frame and small rotations about the map frame's axes),
+/// a TF map → camera with --tf, and a status per frame (diagnostic_msgs/msg/DiagnosticArray:
+/// inliers, path, timings, counts) on --status-topic. Frames are tracked as a sequence.
+/// When localizing is slower than the camera, frames are dropped, not queued, and counted.
+/// Malformed messages (truncated CDR, another type, an empty image) are counted and skipped.
+/// Stops on SIGINT/SIGTERM (or after --frames) and prints the counts and latencies. Example:
+/// `sfpmap ros2 --map kitti.sfpm --image-topic /camera/image/compressed --camera-info-topic
+/// /camera/camera_info --tf`.
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// The map: a file, or an `http(s)://` or `s3://` URL. An SFP map (frames are extracted
+    /// with its model).
+    #[arg(long)]
+    pub map: PathBuf,
+    /// The camera's image topic.
+    #[arg(long, default_value = "/camera/image_raw/compressed")]
+    pub image_topic: String,
+    /// The image topic's type; default: compressed when the topic's name ends in
+    /// `/compressed`, else raw.
+    #[arg(long, value_enum)]
+    pub image_type: Option<ImageType>,
+    /// The camera's intrinsics: "MODEL W H params..." (instead of --camera-info-topic).
+    #[arg(long, conflicts_with = "camera_info_topic")]
+    pub camera: Option<String>,
+    /// Intrinsics from the newest sensor_msgs/msg/CameraInfo on this topic; a frame of another
+    /// size waits for a CameraInfo of its size.
+    #[arg(long)]
+    pub camera_info_topic: Option<String>,
+    /// Topic of the poses (geometry_msgs/msg/PoseWithCovarianceStamped).
+    #[arg(long, default_value = "/sfpmap/pose")]
+    pub pose_topic: String,
+    /// Topic of the per-frame status (diagnostic_msgs/msg/DiagnosticArray).
+    #[arg(long, default_value = "/sfpmap/status")]
+    pub status_topic: String,
+    /// The map's frame: the poses' frame_id and the TF's parent.
+    #[arg(long, default_value = "map")]
+    pub map_frame: String,
+    /// Also publish each pose on /tf as map-frame → camera frame.
+    #[arg(long)]
+    pub tf: bool,
+    /// The TF child frame; default: the image's frame_id (or "camera" when it has none).
+    #[arg(long, requires = "tf")]
+    pub camera_frame: Option<String>,
+    /// The image subscription's reliability: best effort (what camera drivers publish; a
+    /// reliable publisher matches it too) or reliable (a best-effort publisher does not match).
+    #[arg(long, value_enum, default_value = "best-effort")]
+    pub reliability: ReliabilityArg,
+    /// 1: one thread decodes, extracts, localizes and publishes; 2: extraction of the next
+    /// frame overlaps localizing this one.
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u8).range(1..=2))]
+    pub threads: u8,
+    /// Localize each frame on its own (no pose prior from the frames before).
+    #[arg(long)]
+    pub no_tracking: bool,
+    /// Image and CameraInfo messages larger than this are dropped undecoded and counted.
+    #[arg(long, default_value = "64MiB", value_parser = crate::args::byte_size)]
+    pub max_message_bytes: u64,
+    /// The DDS domain; default: ROS_DOMAIN_ID, else 0.
+    #[arg(long, value_parser = clap::value_parser!(u16).range(0..=232))]
+    pub domain_id: Option<u16>,
+    /// Only these local addresses carry DDS discovery and multicast (repeat; e.g. 127.0.0.1
+    /// to stay on this machine); default: every interface.
+    #[arg(long = "interface", value_name = "ADDRESS")]
+    pub interfaces: Vec<IpAddr>,
+    /// Stop after this many frames were handled (localized or not).
+    #[arg(long)]
+    pub frames: Option<u64>,
+    /// Model for extraction: a file, or a built-in model's name; default: the map's.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    #[command(flatten)]
+    pub matching: MatchArgs,
+    /// At the end, print the counts and latencies as one JSON line.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ImageType {
+    /// sensor_msgs/msg/CompressedImage (JPEG or PNG).
+    Compressed,
+    /// sensor_msgs/msg/Image (mono8, rgb8, bgr8, rgba8, bgra8, mono16).
+    Raw,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ReliabilityArg {
+    BestEffort,
+    Reliable,
+}
+
+pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    if let Err(e) = args.matching.check() {
+        e.exit();
+    }
+    let bars = Bars::new(quiet, args.json);
+    let image_type = args.image_type.unwrap_or(
+        if args
+            .image_topic
+            .trim_end_matches('/')
+            .ends_with("/compressed")
+        {
+            ImageType::Compressed
+        } else {
+            ImageType::Raw
+        },
+    );
+    let fixed_camera = match (&args.camera, &args.camera_info_topic) {
+        (Some(c), _) => Some(Camera::parse(c).context("--camera")?),
+        (None, Some(_)) => None,
+        (None, None) => bail!(
+            "the node needs the intrinsics: --camera \"MODEL W H params...\" or --camera-info-topic TOPIC"
+        ),
+    };
+    let session = session(&args, &bars)?;
+    let domain = match args.domain_id {
+        Some(d) => d,
+        None => domain_from_env()?,
+    };
+    crate::stop_on_signal();
+
+    let mut participant = Participant::join(domain, &args.interfaces)?;
+    let camera_qos = camera_qos(args.reliability);
+    let (package, ty) = match image_type {
+        ImageType::Compressed => ("sensor_msgs", "CompressedImage"),
+        ImageType::Raw => ("sensor_msgs", "Image"),
+    };
+    let image_topic = participant.topic(&args.image_topic, package, ty, &camera_qos)?;
+    let mut images = participant.raw_reader(&image_topic, &camera_qos)?;
+    let mut camera_info = match &args.camera_info_topic {
+        Some(t) => {
+            let topic = participant.topic(t, "sensor_msgs", "CameraInfo", &camera_qos)?;
+            Some(participant.raw_reader(&topic, &camera_qos)?)
+        }
+        None => None,
+    };
+    let outputs = Outputs::create(&mut participant, &args)?;
+
+    let schema = match image_type {
+        ImageType::Compressed => mcap_io::ROS_COMPRESSED_IMAGE,
+        ImageType::Raw => mcap_io::ROS_IMAGE,
+    };
+    let shared = Shared {
+        session,
+        schema,
+        camera: Mutex::new(fixed_camera),
+        camera_from_topic: args.camera_info_topic.is_some(),
+        counts: Counts::default(),
+        latencies: Mutex::new(Latencies::default()),
+        handled_limit: args.frames,
+        handled: Default::default(),
+        raw: Mailbox::default(),
+        extracted: Mailbox::default(),
+        warned: Default::default(),
+        reporter: &bars,
+    };
+    if !quiet {
+        eprintln!(
+            "sfpmap ros2: node /{} on DDS domain {domain}: {} ({}) → {}{}",
+            dds::NODE_NAME,
+            args.image_topic,
+            schema,
+            args.pose_topic,
+            if args.tf { " and /tf" } else { "" }
+        );
+    }
+    let started = Instant::now();
+    std::thread::scope(|s| -> anyhow::Result<()> {
+        let workers: Vec<_> = if args.threads >= 2 {
+            vec![
+                s.spawn(|| shared.extract_each()),
+                s.spawn(|| shared.localize_each(&outputs)),
+            ]
+        } else {
+            vec![s.spawn(|| shared.decode_and_localize_each(&outputs))]
+        };
+        let received = receive(&shared, &mut images, camera_info.as_mut(), &args, &outputs);
+        shared.raw.close();
+        for w in workers {
+            if w.join().is_err() {
+                shared.extracted.close();
+            }
+        }
+        received
+    })?;
+    report(&args, &shared, started.elapsed(), quiet)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The session over `--map`: frames are extracted with the map's model (or `--model`) and,
+/// unless `--no-tracking`, tracked as a sequence.
+fn session(args: &Args, bars: &Bars) -> anyhow::Result<Session> {
+    let map = Arc::new(crate::open_map(&args.map)?);
+    let options = args.matching.options()(&map);
+    let source = QuerySource::Images {
+        folder: None,
+        model: args.model.clone(),
+    };
+    Session::builder(map, args.map.display().to_string())
+        .options(options)
+        .source(source)
+        .sequence(!args.no_tracking)
+        .build(bars)
+        .map_err(|e| match e {
+            sfpmap::session::SessionError::NotExtractable { .. } => anyhow::anyhow!(
+                "{e}; the node extracts its frames' features, so it needs an SFP map (or one \
+                 made with a built-in model)"
+            ),
+            e => e.into(),
+        })
+}
+
+/// `ROS_DOMAIN_ID` as ROS reads it: unset or empty is domain 0.
+fn domain_from_env() -> anyhow::Result<u16> {
+    match std::env::var("ROS_DOMAIN_ID") {
+        Ok(v) if !v.trim().is_empty() => v
+            .trim()
+            .parse::<u16>()
+            .ok()
+            .filter(|d| *d <= 232)
+            .with_context(|| format!("ROS_DOMAIN_ID={v:?}: not a DDS domain (0 to 232)")),
+        _ => Ok(0),
+    }
+}
+
+/// The camera topics' QoS: keep last 1 (older frames are of no use once a newer one came).
+fn camera_qos(reliability: ReliabilityArg) -> QosProfile {
+    let base = QosProfile::subscription_default();
+    match reliability {
+        ReliabilityArg::BestEffort => base.reliability_best_effort(),
+        ReliabilityArg::Reliable => base.reliability_reliable(ros2_client::qos::WhenFull::DEFAULT),
+    }
+}
+
+/// Poll interval of the receiving loop: how soon a stop is seen and the 1 Hz summary sent.
+const POLL: Duration = Duration::from_millis(100);
+
+/// Takes messages off the image (and CameraInfo) topics until a signal, `--frames` or a
+/// worker's end; sends the 1 Hz summary to `/diagnostics`.
+fn receive(
+    shared: &Shared<'_>,
+    images: &mut RawReader,
+    mut camera_info: Option<&mut RawReader>,
+    args: &Args,
+    outputs: &Outputs,
+) -> anyhow::Result<()> {
+    use rustdds::mio1::{Events, Interest, Poll, Token};
+    let mut poll = Poll::new().context("creating the event poll")?;
+    poll.registry()
+        .register(images, Token(0), Interest::READABLE)
+        .context("watching the image topic")?;
+    if let Some(info) = camera_info.as_deref_mut() {
+        poll.registry()
+            .register(info, Token(1), Interest::READABLE)
+            .context("watching the CameraInfo topic")?;
+    }
+    let mut events = Events::with_capacity(8);
+    let mut gaps = Gaps::default();
+    let mut last_summary = Instant::now();
+    let limit = args.max_message_bytes;
+    loop {
+        if crate::stop_requested() || shared.done() {
+            return Ok(());
+        }
+        if let Err(e) = poll.poll(&mut events, Some(POLL)) {
+            if e.kind() != std::io::ErrorKind::Interrupted {
+                return Err(e).context("waiting for messages");
+            }
+        }
+        if let Some(info) = camera_info.as_deref() {
+            while let Ok(Some(sample)) = info.try_take_one() {
+                shared.camera_info(&sample.sample.bytes, limit);
+            }
+        }
+        loop {
+            let sample = match images.try_take_one() {
+                Ok(Some(s)) => s,
+                Ok(None) => break,
+                Err(e) => {
+                    // RustDDS's own reading failed (not the message's bytes): counted.
+                    Counts::add(&shared.counts.malformed);
+                    shared.warn_once(
+                        "dds",
+                        &format!("{}: a sample could not be read ({e:?})", args.image_topic),
+                    );
+                    continue;
+                }
+            };
+            let received = Instant::now();
+            Counts::add(&shared.counts.received);
+            let writer = sample.writer_guid.to_bytes();
+            let missed = gaps.missed(writer, i64::from(sample.sequence_number));
+            shared.counts.lost.fetch_add(missed, Ordering::Relaxed);
+            let bytes = sample.sample.bytes;
+            if bytes.len() as u64 > limit {
+                Counts::add(&shared.counts.too_large);
+                shared.warn_once(
+                    "too_large",
+                    &format!(
+                        "{}: a message of {} bytes is over --max-message-bytes ({limit}): dropped (counted as too_large)",
+                        args.image_topic,
+                        bytes.len()
+                    ),
+                );
+                continue;
+            }
+            if shared.raw.put(Incoming { bytes, received }) {
+                Counts::add(&shared.counts.dropped);
+            }
+        }
+        if last_summary.elapsed() >= Duration::from_secs(1) {
+            last_summary = Instant::now();
+            outputs.summary(shared);
+        }
+    }
+}
+
+/// The counts and latencies at the end: a line each, or one JSON line with `--json`.
+fn report(args: &Args, shared: &Shared<'_>, elapsed: Duration, quiet: bool) -> anyhow::Result<()> {
+    let counts = shared.counts.all();
+    let latencies = shared.latencies.lock().unwrap_or_else(|p| p.into_inner());
+    let (p50, p99) = (latencies.quantile_ms(0.5), latencies.quantile_ms(0.99));
+    if args.json {
+        let mut value = serde_json::Map::new();
+        for (name, n) in counts {
+            value.insert(name.into(), n.into());
+        }
+        value.insert("seconds".into(), elapsed.as_secs_f64().into());
+        value.insert(
+            "latency_ms".into(),
+            serde_json::json!({"median": p50, "p99": p99, "frames": latencies.count()}),
+        );
+        value.insert("threads".into(), args.threads.into());
+        crate::print_json(&serde_json::Value::Object(value))?;
+    } else if !quiet {
+        let line: Vec<String> = counts
+            .iter()
+            .filter(|(name, n)| *n > 0 || matches!(*name, "received" | "localized"))
+            .map(|(name, n)| format!("{n} {}", name.replace('_', " ")))
+            .collect();
+        eprintln!(
+            "sfpmap ros2: {} in {:.1} s",
+            line.join(", "),
+            elapsed.as_secs_f64()
+        );
+        if let (Some(a), Some(b)) = (p50, p99) {
+            eprintln!(
+                "sfpmap ros2: frame received → pose published: median {a:.1} ms, p99 {b:.1} ms"
+            );
+        }
+    }
+    Ok(())
+}
+
+impl Shared<'_> {
+    /// A CameraInfo message: the camera frames are localized with from now on.
+    fn camera_info(&self, bytes: &[u8], limit: u64) {
+        if bytes.len() as u64 > limit {
+            Counts::add(&self.counts.too_large);
+            return;
+        }
+        match mcap_io::decode_camera_info(ROS_CAMERA_INFO, "cdr", bytes) {
+            Ok(camera) => {
+                let mut current = self.camera.lock().unwrap_or_else(|p| p.into_inner());
+                if current.as_ref() != Some(&camera) {
+                    *current = Some(camera);
+                }
+            }
+            Err(e) => {
+                Counts::add(&self.counts.camera_info_malformed);
+                self.warn_once(
+                    "camera_info",
+                    &format!("a CameraInfo message was skipped: {e}"),
+                );
+            }
+        }
+    }
+}

@@ -1,0 +1,471 @@
+//! The node's workers: a frame's bytes decoded and its features extracted, then localized
+//! and its pose, TF and status published; and what they publish.
+
+use super::dds::{
+    self, Covariance, DiagnosticArray, DiagnosticStatus, Header, KeyValue, Participant, PoseMsg,
+    PoseWithCovariance, PoseWithCovarianceStamped, Quaternion, TfMessage, Transform,
+    TransformStamped, Xyz,
+};
+use super::frames::{Counts, Latencies, Mailbox};
+use super::Args;
+use crate::Bars;
+use ros2_client::{Publisher, QosProfile};
+use sfpmap::geometry::{Camera, Pose};
+use sfpmap::io::mcap_io::{self, Stamp};
+use sfpmap::localize::Localization;
+use sfpmap::progress::Reporter;
+use sfpmap::session::{Frame, Session};
+use std::collections::HashSet;
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Mutex;
+use std::time::Instant;
+
+/// An image message as it was taken off the topic.
+pub struct Incoming {
+    pub bytes: Vec<u8>,
+    pub received: Instant,
+}
+
+/// A frame decoded and extracted (or why its features could not be made), for the
+/// localizing thread.
+pub struct Extracted {
+    features: Result<Frame, String>,
+    camera: Camera,
+    stamp: Option<Stamp>,
+    frame_id: String,
+    received: Instant,
+}
+
+/// What the receiving thread and the workers share.
+pub struct Shared<'a> {
+    pub session: Session,
+    /// The image topic's message type (`sensor_msgs/msg/CompressedImage` or `Image`).
+    pub schema: &'static str,
+    /// `--camera`, or the newest CameraInfo's.
+    pub camera: Mutex<Option<Camera>>,
+    pub camera_from_topic: bool,
+    pub counts: Counts,
+    pub latencies: Mutex<Latencies>,
+    /// `--frames`.
+    pub handled_limit: Option<u64>,
+    /// Frames localized or failed.
+    pub handled: AtomicU64,
+    pub raw: Mailbox<Incoming>,
+    pub extracted: Mailbox<Extracted>,
+    /// The kinds of warning given once already.
+    pub warned: Mutex<HashSet<&'static str>>,
+    pub reporter: &'a Bars,
+}
+
+impl Shared<'_> {
+    /// `--frames` frames were handled.
+    pub fn done(&self) -> bool {
+        self.handled_limit
+            .is_some_and(|n| self.handled.load(Ordering::Relaxed) >= n)
+    }
+
+    /// A warning the first time `kind` happens; the counts say how often it did.
+    pub fn warn_once(&self, kind: &'static str, message: &str) {
+        let first = self
+            .warned
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(kind);
+        if first {
+            self.reporter.warn(message);
+        }
+    }
+
+    /// `--threads 2`, the first worker: decodes and extracts the newest frame, leaves it for
+    /// the localizing one.
+    pub fn extract_each(&self) {
+        while let Some(incoming) = self.raw.take() {
+            if let Some(extracted) = self.guarded(|| self.prepare(incoming)).flatten() {
+                if self.extracted.put(extracted) {
+                    Counts::add(&self.counts.dropped);
+                }
+            }
+        }
+        self.extracted.close();
+    }
+
+    /// `--threads 2`, the second worker: localizes and publishes.
+    pub fn localize_each(&self, outputs: &Outputs) {
+        while let Some(extracted) = self.extracted.take() {
+            self.guarded(|| self.finish(extracted, outputs));
+            if self.done() {
+                break;
+            }
+        }
+    }
+
+    /// `--threads 1`: one worker for it all.
+    pub fn decode_and_localize_each(&self, outputs: &Outputs) {
+        while let Some(incoming) = self.raw.take() {
+            if let Some(extracted) = self.guarded(|| self.prepare(incoming)).flatten() {
+                self.guarded(|| self.finish(extracted, outputs));
+            }
+            if self.done() {
+                break;
+            }
+        }
+    }
+
+    /// `f`, with a panic counted as a failed frame (a bug) instead of ending the node.
+    fn guarded<T>(&self, f: impl FnOnce() -> T) -> Option<T> {
+        match catch_unwind(AssertUnwindSafe(f)) {
+            Ok(v) => Some(v),
+            Err(_) => {
+                Counts::add(&self.counts.failed);
+                self.handled.fetch_add(1, Ordering::Relaxed);
+                self.session.reset_tracking();
+                self.warn_once(
+                    "panic",
+                    "internal error while handling a frame (a bug): the frame is counted as failed",
+                );
+                None
+            }
+        }
+    }
+
+    /// A message's image decoded and its features extracted; `None` (counted) when its bytes
+    /// do not decode or there is no camera of its size.
+    fn prepare(&self, incoming: Incoming) -> Option<Extracted> {
+        let Incoming { bytes, received } = incoming;
+        let decoded = match mcap_io::decode_image(self.schema, "cdr", &bytes) {
+            Ok(d) => d,
+            Err(e) => {
+                Counts::add(&self.counts.malformed);
+                self.warn_once(
+                    "malformed",
+                    &format!(
+                        "a {} message was skipped (counted as malformed): {e}",
+                        self.schema
+                    ),
+                );
+                return None;
+            }
+        };
+        drop(bytes);
+        let (w, h) = (decoded.image.width(), decoded.image.height());
+        let camera = self
+            .camera
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone();
+        let Some(camera) = camera else {
+            Counts::add(&self.counts.no_camera);
+            self.warn_once(
+                "no_camera",
+                "frames arrive before any CameraInfo: skipped until one does",
+            );
+            return None;
+        };
+        if (w, h) != (camera.width(), camera.height()) {
+            Counts::add(&self.counts.camera_mismatch);
+            let then = if self.camera_from_topic {
+                "skipped until a CameraInfo of that size arrives"
+            } else {
+                "skipped (--camera is fixed)"
+            };
+            self.warn_once(
+                "camera_mismatch",
+                &format!(
+                    "frames of {w}x{h} but the camera is {}x{}: {then}",
+                    camera.width(),
+                    camera.height()
+                ),
+            );
+            return None;
+        }
+        let weights = self.session.gray_weights()?;
+        let input = sfpmap::extract::image::from_image(&decoded.image, weights, None);
+        let features = self.session.extract(input).map_err(|e| e.to_string());
+        Some(Extracted {
+            features,
+            camera,
+            stamp: decoded.stamp,
+            frame_id: decoded.frame_id,
+            received,
+        })
+    }
+
+    /// A frame localized; its pose (and TF) and status published.
+    fn finish(&self, extracted: Extracted, outputs: &Outputs) {
+        let Extracted {
+            features,
+            camera,
+            stamp,
+            frame_id,
+            received,
+        } = extracted;
+        let name = match stamp {
+            Some(s) => format!("frame {}.{:09}", s.sec, s.nsec),
+            None => "frame".to_owned(),
+        };
+        let found = match features {
+            Ok(frame) => self
+                .session
+                .localize_frame(frame, &camera, &name)
+                .map_err(|e| e.to_string()),
+            Err(reason) => {
+                self.session.reset_tracking();
+                Err(reason)
+            }
+        };
+        let stamp = stamp.map_or_else(dds::now, |s| dds::ros_time(s.sec, s.nsec));
+        let localized = matches!(&found, Ok(l) if l.pose().is_some());
+        if let Ok(l) = &found {
+            if let Some(pose) = l.pose() {
+                outputs.pose(pose, l, stamp, &frame_id, self);
+            }
+        }
+        let latency = received.elapsed();
+        Counts::add(if localized {
+            &self.counts.localized
+        } else {
+            &self.counts.failed
+        });
+        self.latencies
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .record(latency);
+        self.handled.fetch_add(1, Ordering::Relaxed);
+        outputs.status(&found, stamp, latency.as_secs_f64() * 1e3, self);
+    }
+}
+
+/// The node's publishers.
+pub struct Outputs {
+    pose: Mutex<Publisher<PoseWithCovarianceStamped>>,
+    tf: Option<Mutex<Publisher<TfMessage>>>,
+    status: Mutex<Publisher<DiagnosticArray>>,
+    diagnostics: Mutex<Publisher<DiagnosticArray>>,
+    map_frame: String,
+    camera_frame: Option<String>,
+}
+
+/// The published topics' QoS: reliable, keep last 10 (ROS's default for publishers).
+fn output_qos() -> QosProfile {
+    QosProfile::publisher_default().history(ros2_client::qos::History::KeepLast { depth: 10 })
+}
+
+impl Outputs {
+    pub fn create(participant: &mut Participant, args: &Args) -> anyhow::Result<Outputs> {
+        let qos = output_qos();
+        let publisher = |name: &str, package: &str, ty: &str| -> anyhow::Result<_> {
+            let topic = participant.topic(name, package, ty, &qos)?;
+            Ok(topic)
+        };
+        let pose_topic = publisher(
+            &args.pose_topic,
+            "geometry_msgs",
+            "PoseWithCovarianceStamped",
+        )?;
+        let status_topic = publisher(&args.status_topic, "diagnostic_msgs", "DiagnosticArray")?;
+        let diagnostics_topic = publisher("/diagnostics", "diagnostic_msgs", "DiagnosticArray")?;
+        let tf_topic = match args.tf {
+            true => Some(publisher("/tf", "tf2_msgs", "TFMessage")?),
+            false => None,
+        };
+        Ok(Outputs {
+            pose: Mutex::new(participant.publisher(&pose_topic, qos.clone())?),
+            tf: match tf_topic {
+                Some(t) => Some(Mutex::new(participant.publisher(&t, qos.clone())?)),
+                None => None,
+            },
+            status: Mutex::new(participant.publisher(&status_topic, qos.clone())?),
+            diagnostics: Mutex::new(participant.publisher(&diagnostics_topic, qos)?),
+            map_frame: args.map_frame.clone(),
+            camera_frame: args.camera_frame.clone(),
+        })
+    }
+
+    /// The camera's pose in the map (`cam_from_world` inverted) with its covariance, and the
+    /// TF to the camera's frame.
+    fn pose(
+        &self,
+        cam_from_world: &Pose,
+        l: &Localization,
+        stamp: dds::Time,
+        frame_id: &str,
+        shared: &Shared<'_>,
+    ) {
+        let world_from_cam = cam_from_world.inverse();
+        let t = world_from_cam.translation;
+        let q = world_from_cam.rotation;
+        let position = Xyz {
+            x: t.x,
+            y: t.y,
+            z: t.z,
+        };
+        let orientation = Quaternion {
+            x: q.i,
+            y: q.j,
+            z: q.k,
+            w: q.w,
+        };
+        // Unknown (no covariance): -1 on the diagonal's first entry, as sensor_msgs marks an
+        // unknown covariance.
+        let covariance = l
+            .covariance
+            .map(|c| c.world_from_camera(cam_from_world))
+            .unwrap_or_else(|| {
+                let mut unknown = [0.0; 36];
+                unknown[0] = -1.0;
+                unknown
+            });
+        let header = Header {
+            stamp,
+            frame_id: self.map_frame.clone(),
+        };
+        let message = PoseWithCovarianceStamped {
+            header: header.clone(),
+            pose: PoseWithCovariance {
+                pose: PoseMsg {
+                    position,
+                    orientation,
+                },
+                covariance: Covariance(covariance),
+            },
+        };
+        if let Err(e) = lock(&self.pose).publish(message) {
+            shared.warn_once("publish", &format!("a pose could not be published: {e:?}"));
+        }
+        if let Some(tf) = &self.tf {
+            let child = match (&self.camera_frame, frame_id) {
+                (Some(c), _) => c.clone(),
+                (None, "") => "camera".to_owned(),
+                (None, f) => f.to_owned(),
+            };
+            let message = TfMessage {
+                transforms: vec![TransformStamped {
+                    header,
+                    child_frame_id: child,
+                    transform: Transform {
+                        translation: position,
+                        rotation: orientation,
+                    },
+                }],
+            };
+            if let Err(e) = lock(tf).publish(message) {
+                shared.warn_once("publish_tf", &format!("a TF could not be published: {e:?}"));
+            }
+        }
+    }
+
+    /// The frame's status: localized or why not, inliers, path, timings, latency, counts.
+    fn status(
+        &self,
+        found: &Result<Localization, String>,
+        stamp: dds::Time,
+        latency_ms: f64,
+        shared: &Shared<'_>,
+    ) {
+        let mut values = Vec::new();
+        let mut kv = |k: &str, v: String| {
+            values.push(KeyValue {
+                key: k.into(),
+                value: v,
+            })
+        };
+        let (level, message) = match found {
+            Ok(l) => {
+                kv("inliers", l.inliers.to_string());
+                kv("matches", l.matches.to_string());
+                kv("path", l.path.name().to_owned());
+                kv("retrieval_ms", format!("{:.3}", l.times.retrieval_ms));
+                kv(
+                    "coarse_ms",
+                    format!("{:.3}", l.times.coarse_match_ms + l.times.coarse_ransac_ms),
+                );
+                kv("fine_ms", format!("{:.3}", l.times.fine_ms));
+                kv("localize_ms", format!("{:.3}", l.times.total_ms));
+                if let Some(c) = &l.covariance {
+                    kv("sigma_px", format!("{:.4}", c.sigma_px));
+                }
+                match l.pose() {
+                    Some(_) => (0u8, "localized".to_owned()),
+                    None => (1, l.failure_line()),
+                }
+            }
+            Err(reason) => (1, reason.clone()),
+        };
+        kv("latency_ms", format!("{latency_ms:.3}"));
+        for (name, n) in shared.counts.all() {
+            kv(name, n.to_string());
+        }
+        let message = DiagnosticArray {
+            header: Header {
+                stamp,
+                frame_id: self.map_frame.clone(),
+            },
+            status: vec![DiagnosticStatus {
+                level,
+                name: format!("{}: frame", super::dds::NODE_NAME),
+                message,
+                hardware_id: String::new(),
+                values,
+            }],
+        };
+        if let Err(e) = lock(&self.status).publish(message) {
+            shared.warn_once(
+                "publish_status",
+                &format!("a status could not be published: {e:?}"),
+            );
+        }
+    }
+
+    /// The counts and latencies on `/diagnostics`, once a second (what ROS's diagnostic
+    /// aggregator reads).
+    pub fn summary(&self, shared: &Shared<'_>) {
+        let latencies = lock(&shared.latencies);
+        let mut values: Vec<KeyValue> = shared
+            .counts
+            .all()
+            .iter()
+            .map(|(k, v)| KeyValue {
+                key: (*k).into(),
+                value: v.to_string(),
+            })
+            .collect();
+        for (key, q) in [("latency_median_ms", 0.5), ("latency_p99_ms", 0.99)] {
+            if let Some(ms) = latencies.quantile_ms(q) {
+                values.push(KeyValue {
+                    key: key.into(),
+                    value: format!("{ms:.1}"),
+                });
+            }
+        }
+        drop(latencies);
+        let behind = Counts::get(&shared.counts.dropped) > 0;
+        let message = DiagnosticArray {
+            header: Header {
+                stamp: dds::now(),
+                frame_id: String::new(),
+            },
+            status: vec![DiagnosticStatus {
+                level: u8::from(behind),
+                name: super::dds::NODE_NAME.to_owned(),
+                message: if behind {
+                    "frames dropped: localizing is slower than the camera".into()
+                } else {
+                    "ok".into()
+                },
+                hardware_id: String::new(),
+                values,
+            }],
+        };
+        if let Err(e) = lock(&self.diagnostics).publish(message) {
+            shared.warn_once(
+                "publish_diagnostics",
+                &format!("diagnostics could not be published: {e:?}"),
+            );
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}

@@ -1,0 +1,386 @@
+//! `sfpmap ros2` against a DDS that is not ours: Eclipse Cyclone DDS (PyPI `cyclonedds`, in
+//! the venv `bash .ci/test` makes) publishes the KITTI 06 query frames under ROS 2's topic
+//! and type names and reads the poses back (`ros2_peer.py` beside this file). Everything
+//! stays on loopback: the node joins with `--interface 127.0.0.1`, Cyclone is configured
+//! likewise, and each test has a DDS domain of its own (tests run in parallel).
+
+use crate::sequence_kitti::{check_pose, localize_json, path_str, scene, sfp_map};
+use serde_json::Value;
+use sfpmap::geometry::Pose;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const SEC: u64 = 1_000_000_000;
+
+fn peer_script() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/e2e/ros2_peer.py")
+}
+
+/// The peer in `mode` (`ros2_peer.py`), to the end; its JSON line.
+fn peer(mode: &str, domain: u16, args: &[&str]) -> Value {
+    let out = peer_command(mode, domain, args)
+        .output()
+        .expect("the peer runs");
+    assert!(
+        out.status.success(),
+        "ros2_peer.py {mode} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "ros2_peer.py {mode}: {e}: {}",
+            String::from_utf8_lossy(&out.stdout)
+        )
+    })
+}
+
+fn peer_command(mode: &str, domain: u16, args: &[&str]) -> Command {
+    let mut c = Command::new(crate::python::python_with("cyclonedds"));
+    c.arg(peer_script())
+        .arg(mode)
+        .args(["--domain", &domain.to_string()])
+        .args(args);
+    c
+}
+
+/// `sfpmap ros2 --map MAP --domain-id D --interface 127.0.0.1 --json ARGS...`, running.
+fn node(map: &Path, domain: u16, args: &[&str]) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+        .args([
+            "ros2",
+            "--map",
+            path_str(map),
+            "--domain-id",
+            &domain.to_string(),
+        ])
+        .args(["--interface", "127.0.0.1", "--json"])
+        .args(args)
+        .env("ORT_DISABLE_TELEMETRY", "1")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("sfpmap ros2 starts")
+}
+
+/// Waits for the node (at most `timeout`, then kills it and fails); its `--json` counts.
+fn finished(mut node: Child, timeout: Duration) -> Value {
+    let end = Instant::now() + timeout;
+    while node.try_wait().unwrap().is_none() {
+        if Instant::now() > end {
+            node.kill().ok();
+            let out = node.wait_with_output().unwrap();
+            panic!(
+                "sfpmap ros2 did not stop in {timeout:?}: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let out = node.wait_with_output().unwrap();
+    assert!(
+        out.status.success(),
+        "sfpmap ros2 failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "sfpmap ros2 --json: {e}: {}",
+            String::from_utf8_lossy(&out.stdout)
+        )
+    })
+}
+
+/// The query frames' stamps: KITTI runs at 10 Hz and the file name is the frame number.
+fn stamps() -> Vec<u64> {
+    scene()
+        .queries
+        .iter()
+        .map(|q| {
+            let frame: u64 = q.name.trim_end_matches(".jpg").parse().unwrap();
+            1_317_000_000 * SEC + frame * SEC / 10
+        })
+        .collect()
+}
+
+fn joined<T: ToString>(items: impl IntoIterator<Item = T>) -> String {
+    items
+        .into_iter()
+        .map(|v| v.to_string())
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
+/// The node localizes the frames Cyclone publishes as `localize --sequence` localizes the same
+/// frames (bit for bit); the publisher leaves after 6 frames and another comes back with the
+/// rest, and the node goes on; each pose carries a covariance and the image's stamp.
+#[test]
+fn frames_a_foreign_dds_publishes_are_localized_as_localize_sequence_does() {
+    let s = scene();
+    let map = &sfp_map().1;
+    let images = s.root.join("images");
+    let (_, reference) = localize_json(map, &["--images", path_str(&images)], &["--sequence"]);
+    let domain = 41;
+    let topic = "/kitti/camera_left/image_raw/compressed";
+    let node = node(
+        map,
+        domain,
+        &[
+            "--image-topic",
+            topic,
+            "--camera",
+            &s.queries[0].camera,
+            "--reliability",
+            "reliable",
+            "--frames",
+            &s.queries.len().to_string(),
+        ],
+    );
+    let names: Vec<&str> = s.queries.iter().map(|q| q.name.as_str()).collect();
+    let stamps = stamps();
+    let run = |range: std::ops::Range<usize>| {
+        peer(
+            "lockstep",
+            domain,
+            &[
+                "--image-topic",
+                topic,
+                "--images",
+                path_str(&images),
+                "--names",
+                &joined(&names[range.clone()]),
+                "--stamps",
+                &joined(&stamps[range]),
+            ],
+        )
+    };
+    // Two publishers, one after the other: the first disappears with its participant.
+    let mut frames = run(0..6)["frames"].as_array().unwrap().clone();
+    frames.extend(run(6..names.len())["frames"].as_array().unwrap().clone());
+    let counts = finished(node, Duration::from_secs(60));
+    assert_eq!(counts["received"], 13, "{counts}");
+    assert_eq!(counts["localized"], 13, "{counts}");
+    for key in ["failed", "dropped", "malformed", "lost", "camera_mismatch"] {
+        assert_eq!(counts[key], 0, "{key}: {counts}");
+    }
+    assert!(
+        counts["latency_ms"]["median"].as_f64().unwrap() > 0.0,
+        "{counts}"
+    );
+
+    assert_eq!(frames.len(), reference.len());
+    for ((f, r), q) in frames.iter().zip(&reference).zip(&s.queries) {
+        assert_eq!(f["name"], r["name"]);
+        let pose = &f["pose"];
+        assert!(pose.is_object(), "{} has no pose: {f}", q.name);
+        assert_eq!(pose["frame_id"], "map");
+        let colmap: [f64; 7] = serde_json::from_value(r["cam_from_world"].clone()).unwrap();
+        let expected = Pose::from_colmap_array(colmap).unwrap().inverse();
+        let position: [f64; 3] = serde_json::from_value(pose["position"].clone()).unwrap();
+        let orientation: [f64; 4] = serde_json::from_value(pose["orientation"].clone()).unwrap();
+        let t = expected.translation;
+        let e = expected.rotation;
+        let want = [t.x, t.y, t.z, e.i, e.j, e.k, e.w];
+        let got = [position.as_slice(), orientation.as_slice()].concat();
+        for (g, w) in got.iter().zip(want) {
+            assert!(
+                (g - w).abs() <= 1e-9,
+                "{}: {got:?} against {want:?}",
+                q.name
+            );
+        }
+        // As accurate as the reference (it is the reference).
+        check_pose(s, q, &Pose::new(e, t).inverse(), "ros2 node");
+        // A covariance: symmetric, positive variances, not the "unknown" mark.
+        let cov: Vec<f64> = serde_json::from_value(pose["covariance"].clone()).unwrap();
+        assert_eq!(cov.len(), 36);
+        for i in 0..6 {
+            assert!(cov[i * 7] > 0.0, "{}: {cov:?}", q.name);
+            for j in 0..6 {
+                assert_eq!(cov[i * 6 + j], cov[j * 6 + i]);
+            }
+        }
+        // The status says how.
+        let status = &f["status"];
+        assert_eq!(status["level"], 0, "{status}");
+        assert_eq!(status["message"], "localized");
+        assert_eq!(status["values"]["path"], r["path"], "{}", q.name);
+        assert!(
+            status["values"]["inliers"]
+                .as_str()
+                .unwrap()
+                .parse::<u64>()
+                .unwrap()
+                >= 12
+        );
+    }
+}
+
+/// Malformed messages (a truncated CompressedImage, an empty and an undecodable image,
+/// another type under the topic's name, one over the size limit) and a frame of another size
+/// are counted and skipped; the camera comes from a CameraInfo topic; the node goes on and
+/// localizes the good frames after them.
+#[test]
+fn malformed_messages_are_counted_and_skipped_and_the_node_goes_on() {
+    let s = scene();
+    let map = &sfp_map().1;
+    let images = s.root.join("images");
+    let dir = tempfile::tempdir().unwrap();
+    // A frame of half the size: the camera's does not fit it.
+    let small = dir.path().join("small.jpg");
+    image::open(images.join(&s.queries[0].name))
+        .unwrap()
+        .resize_exact(620, 188, image::imageops::FilterType::Triangle)
+        .save(&small)
+        .unwrap();
+    std::fs::copy(
+        images.join(&s.queries[0].name),
+        dir.path().join(&s.queries[0].name),
+    )
+    .unwrap();
+    std::fs::copy(
+        images.join(&s.queries[1].name),
+        dir.path().join(&s.queries[1].name),
+    )
+    .unwrap();
+    let domain = 42;
+    let topic = "/camera/image_raw/compressed";
+    let node = node(
+        map,
+        domain,
+        &[
+            "--image-topic",
+            topic,
+            "--camera-info-topic",
+            "/camera/camera_info",
+            "--reliability",
+            "reliable",
+            "--max-message-bytes",
+            "1MB",
+            "--frames",
+            "2",
+        ],
+    );
+    let mut info = peer_command(
+        "info",
+        domain,
+        &["--camera", &s.queries[0].camera, "--seconds", "120"],
+    )
+    .stdout(Stdio::null())
+    .spawn()
+    .unwrap();
+    let stamps = stamps();
+    let result = peer(
+        "hostile",
+        domain,
+        &[
+            "--image-topic",
+            topic,
+            "--images",
+            path_str(dir.path()),
+            "--small",
+            path_str(&small),
+            "--oversize",
+            "2000000",
+            "--names",
+            &joined([&s.queries[0].name, &s.queries[1].name]),
+            "--stamps",
+            &joined(&stamps[0..2]),
+        ],
+    );
+    let counts = finished(node, Duration::from_secs(60));
+    info.kill().ok();
+    info.wait().ok();
+    // The good frames after the bad ones were localized.
+    for f in result["frames"].as_array().unwrap() {
+        assert!(f["pose"].is_object(), "{f}\n{counts}");
+    }
+    assert_eq!(counts["localized"], 2, "{counts}");
+    assert_eq!(counts["too_large"], 1, "{counts}");
+    assert_eq!(counts["camera_mismatch"], 1, "{counts}");
+    // A truncated message, an empty image and one that does not decode; another type's
+    // message counts too where DDS delivered it (RustDDS matches by topic name only).
+    let other = u64::from(result["other_type_matched"].as_bool().unwrap());
+    assert_eq!(counts["malformed"], 3 + other, "{counts}\n{result}");
+    assert_eq!(counts["failed"], 0, "{counts}");
+}
+
+/// Frames at KITTI's 10 Hz for 20 s (the 13 query frames looped), best effort as a camera
+/// driver publishes: every frame the node took is handled (localized, failed or dropped for
+/// a newer one), most are localized, and the node's memory stays flat (the soak, shortened;
+/// `benches/ros2_node.sh` runs it for 10 minutes and measures latency).
+#[test]
+fn a_camera_stream_at_its_frame_rate_keeps_memory_flat() {
+    let s = scene();
+    let map = &sfp_map().1;
+    let images = s.root.join("images");
+    let domain = 43;
+    let topic = "/camera/image_raw/compressed";
+    let node = node(
+        map,
+        domain,
+        &["--image-topic", topic, "--camera", &s.queries[0].camera],
+    );
+    let pid = node.id();
+    let names: Vec<&str> = s.queries.iter().map(|q| q.name.as_str()).collect();
+    let mut stream = peer_command(
+        "rate",
+        domain,
+        &[
+            "--image-topic",
+            topic,
+            "--images",
+            path_str(&images),
+            "--names",
+            &joined(&names),
+            "--hz",
+            "10",
+            "--seconds",
+            "20",
+        ],
+    )
+    .stdout(Stdio::piped())
+    .spawn()
+    .unwrap();
+    let rss = || rss_kb(pid);
+    std::thread::sleep(Duration::from_secs(8));
+    let early = rss();
+    let out = loop {
+        if let Some(status) = stream.try_wait().unwrap() {
+            assert!(status.success());
+            break stream.wait_with_output().unwrap();
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let late = rss();
+    let result: Value = serde_json::from_slice(&out.stdout).unwrap();
+    // SIGTERM: the node stops its loop and prints its counts.
+    Command::new("kill")
+        .args(["-TERM", &pid.to_string()])
+        .status()
+        .unwrap();
+    let counts = finished(node, Duration::from_secs(30));
+    let n = |k: &str| counts[k].as_u64().unwrap();
+    assert_eq!(
+        n("received"),
+        n("localized") + n("failed") + n("dropped") + n("malformed") + n("camera_mismatch"),
+        "{counts}"
+    );
+    assert!(n("received") + n("lost") >= 190, "{counts}\n{result}");
+    assert!(n("localized") >= 100, "{counts}\n{result}");
+    assert!(result["poses"].as_u64().unwrap() >= 100, "{result}");
+    assert!(
+        late <= early + 5 * 1024,
+        "RSS grew from {early} kB to {late} kB over 12 s of frames"
+    );
+}
+
+/// A process's resident memory, kB (`/proc/PID/status`).
+fn rss_kb(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .unwrap()
+}

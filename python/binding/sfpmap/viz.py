@@ -1,0 +1,360 @@
+"""Rerun recordings of a map and its queries (extra ``sfpmap[viz]``: ``rerun-sdk``).
+
+    python -m sfpmap.viz MAP -o OUT.rrd [--poses POSES] [--gt GT] [--trajectory TUM]
+                         [--inliers NAME --query-list LIST (--images DIR | --database DB)]
+
+``sfpmap export MAP --rerun OUT.rrd`` runs this module. What the recording holds, under
+``world/`` (COLMAP's world frame, the map's):
+
+- ``map/level_<L>``: the map's points of level L (a point on several levels is drawn in each),
+  one colour per level (``LEVEL_COLORS``);
+- ``map/cameras/<i>``: each database image's camera as a frustum (its pose and intrinsics);
+- ``queries/<name>/estimate`` and ``queries/<name>/truth``: a query's localized pose
+  (``--poses``: ``localize -o`` lines, COLMAP's ``name qw qx qy qz tx ty tz``) and its ground
+  truth (``--gt``, the same lines) as frusta, and ``queries/errors``: a line from each estimated
+  camera centre to its true one;
+- ``queries/<name>/inliers``: for the query ``--inliers`` names, localized here, the 3D points
+  of its final inliers, a line from each to the camera centre, and their keypoints in the
+  camera's image plane (``.../estimate/image/keypoints``);
+- ``trajectory``: a sequence's poses over time (``--trajectory``: TUM lines, world_from_cam, as
+  ``localize --sequence --format tum``, ``localize --mcap --tum`` or ``export --tum`` write them)
+  on the timeline ``frame`` (and ``time``, the TUM stamps in seconds), and its whole path.
+
+A recording is written whole to a temp file beside OUT and renamed into place: OUT is never
+half-written, and nothing else is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+import sfpmap
+
+#: RGB per level id: level 0 (finest) to 3 (coarsest), then around again.
+LEVEL_COLORS = [(230, 159, 0), (86, 180, 233), (0, 158, 115), (204, 121, 167)]
+#: Colours of a query's estimated pose, its ground truth, and the error between them.
+ESTIMATE_COLOR, TRUTH_COLOR, ERROR_COLOR = (255, 64, 64), (64, 200, 64), (255, 255, 0)
+#: Frusta are drawn for at most this many database images (every one below it).
+MAX_CAMERAS = 5000
+
+
+@dataclass
+class Summary:
+    """What a recording holds: counts per entity kind, for tests and ``--json``."""
+
+    points_per_level: Dict[int, int] = field(default_factory=dict)
+    cameras: int = 0
+    estimates: int = 0
+    truths: int = 0
+    errors: int = 0
+    inliers: int = 0
+    trajectory: int = 0
+
+    def as_dict(self) -> Dict[str, Any]:
+        return {
+            "points_per_level": {str(k): v for k, v in self.points_per_level.items()},
+            "cameras": self.cameras,
+            "estimates": self.estimates,
+            "truths": self.truths,
+            "errors": self.errors,
+            "inliers": self.inliers,
+            "trajectory": self.trajectory,
+        }
+
+
+def _rerun() -> Any:
+    try:
+        import rerun
+    except ImportError as e:  # pragma: no cover - the message is the point
+        raise sfpmap.InputError(
+            "Rerun recordings need the rerun-sdk package: pip install 'sfpmap[viz]'"
+        ) from e
+    return rerun
+
+
+def rotation_matrix(qw: float, qx: float, qy: float, qz: float) -> np.ndarray:
+    """The rotation of a unit quaternion (w, x, y, z)."""
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    w, x, y, z = qw / n, qx / n, qy / n, qz / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def world_from_cam(colmap: Sequence[float]) -> Tuple[np.ndarray, np.ndarray]:
+    """(rotation, camera centre) of the camera in the world, from COLMAP's cam_from_world
+    ``[qw, qx, qy, qz, tx, ty, tz]``."""
+    r = rotation_matrix(*colmap[:4])
+    t = np.asarray(colmap[4:7], dtype=np.float64)
+    return r.T, -r.T @ t
+
+
+def read_pose_lines(path: str) -> Dict[str, List[float]]:
+    """``name qw qx qy qz tx ty tz`` lines (``localize -o``, gt_poses.txt); ``#`` lines and
+    failed queries are skipped. A line that is not one is an error naming the file and line."""
+    poses: Dict[str, List[float]] = {}
+    with open(path, encoding="utf-8") as f:
+        for number, line in enumerate(f, 1):
+            fields = line.split()
+            if not fields or fields[0].startswith("#"):
+                continue
+            try:
+                values = [float(v) for v in fields[-7:]]
+                if len(fields) < 8 or not all(math.isfinite(v) for v in values):
+                    raise ValueError
+            except ValueError:
+                raise sfpmap.InputError(
+                    f"{path}:{number}: expected 'name qw qx qy qz tx ty tz'"
+                ) from None
+            poses[" ".join(fields[:-7])] = values
+    return poses
+
+
+def read_tum(path: str) -> List[Tuple[float, np.ndarray, np.ndarray]]:
+    """TUM lines ``t tx ty tz qx qy qz qw`` (world_from_cam): (t, rotation, centre) each."""
+    out = []
+    with open(path, encoding="utf-8") as f:
+        for number, line in enumerate(f, 1):
+            fields = line.split()
+            if not fields or fields[0].startswith("#"):
+                continue
+            try:
+                v = [float(x) for x in fields]
+                if len(v) != 8 or not all(math.isfinite(x) for x in v):
+                    raise ValueError
+            except ValueError:
+                raise sfpmap.InputError(
+                    f"{path}:{number}: expected 'timestamp tx ty tz qx qy qz qw'"
+                ) from None
+            t, tx, ty, tz, qx, qy, qz, qw = v
+            out.append((t, rotation_matrix(qw, qx, qy, qz), np.array([tx, ty, tz])))
+    return out
+
+
+def _intrinsics(camera: Dict[str, Any]) -> Tuple[np.ndarray, Tuple[int, int]]:
+    """A pinhole matrix (the model's focal lengths and principal point, distortion left out:
+    a frustum, not a rectification) and the resolution."""
+    model, params = str(camera["model"]).upper(), list(camera["params"])
+    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"):
+        fx = fy = params[0]
+        cx, cy = params[1], params[2]
+    else:
+        fx, fy, cx, cy = params[0], params[1], params[2], params[3]
+    k = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return k, (int(camera["width"]), int(camera["height"]))
+
+
+def _frustum(rr: Any, rec: Any, path: str, rotation: np.ndarray, centre: np.ndarray,
+             camera: Dict[str, Any], depth: float, color: Optional[Tuple[int, int, int]] = None) -> None:
+    k, resolution = _intrinsics(camera)
+    rec.log(path, rr.Transform3D(translation=centre, mat3x3=rotation), static=True)
+    pinhole = rr.Pinhole(image_from_camera=k, resolution=resolution, image_plane_distance=depth,
+                         camera_xyz=rr.ViewCoordinates.RDF)
+    if color is not None:
+        pinhole = rr.Pinhole(image_from_camera=k, resolution=resolution, image_plane_distance=depth,
+                             camera_xyz=rr.ViewCoordinates.RDF, color=color)
+    rec.log(path, pinhole, static=True)
+
+
+def _camera_dict(camera: sfpmap.Camera) -> Dict[str, Any]:
+    return {"model": camera.model, "width": camera.width, "height": camera.height, "params": camera.params}
+
+
+def _scene_scale(centres: np.ndarray) -> float:
+    """A frustum depth that suits the scene: a tenth of the median spacing of the cameras."""
+    if len(centres) < 2:
+        return 0.1
+    d = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+    d = d[d > 0]
+    return float(np.median(d)) * 0.5 if len(d) else 0.1
+
+
+def record(
+    map_path: str,
+    out: str,
+    *,
+    poses: Optional[str] = None,
+    gt: Optional[str] = None,
+    trajectory: Optional[str] = None,
+    inliers: Optional[Tuple[str, "sfpmap.Localization", sfpmap.Camera]] = None,
+    max_points: Optional[int] = None,
+) -> Summary:
+    """Writes the recording of the map at ``map_path`` (and whatever else is given, as the
+    module says) to ``out``. ``inliers``: (query name, its localization made with
+    ``Localizer(keep_inliers=True)``, its camera). ``max_points``: at most this many points
+    per level (every n-th), for maps too large to look at whole."""
+    rr = _rerun()
+    summary = Summary()
+    folder = os.path.dirname(os.path.abspath(out))
+    fd, temp = tempfile.mkstemp(prefix=".sfpmap-viz-", suffix=".rrd", dir=folder)
+    os.close(fd)
+    try:
+        rec = rr.RecordingStream("sfpmap")
+        rec.save(temp)
+        with sfpmap.Map(map_path) as m:
+            world = m.points.world()
+            for level in m.levels:
+                rows = level.points()
+                if max_points is not None and len(rows) > max_points:
+                    rows = rows[:: math.ceil(len(rows) / max_points)]
+                color = LEVEL_COLORS[level.id % len(LEVEL_COLORS)]
+                rec.log(f"world/map/level_{level.id}", rr.Points3D(world[rows], colors=color, radii=rr.Radius.ui_points(1.5)), static=True)
+                summary.points_per_level[level.id] = int(len(rows))
+            cameras = m.cameras
+            centres = np.zeros((0, 3))
+            images = m.images
+            if images is not None and len(images):
+                image_poses, image_cameras = images.poses(), images.cameras()
+                centres = np.array([world_from_cam(p)[1] for p in image_poses])
+                depth = _scene_scale(centres)
+                for i, (p, c) in enumerate(zip(image_poses, image_cameras)):
+                    if i >= MAX_CAMERAS:
+                        break
+                    rotation, centre = world_from_cam(p)
+                    _frustum(rr, rec, f"world/map/cameras/{i}", rotation, centre, cameras[int(c)], depth)
+                    summary.cameras += 1
+            else:
+                depth = 0.1
+            default_camera = cameras[0] if cameras else None
+            estimated = read_pose_lines(poses) if poses else {}
+            truth = read_pose_lines(gt) if gt else {}
+            errors = []
+            for name, p in estimated.items():
+                rotation, centre = world_from_cam(p)
+                cam = _camera_dict(inliers[2]) if inliers and inliers[0] == name else default_camera
+                if cam is not None:
+                    _frustum(rr, rec, f"world/queries/{rr.escape_entity_path_part(name)}/estimate",
+                             rotation, centre, cam, depth, ESTIMATE_COLOR)
+                summary.estimates += 1
+                if name in truth:
+                    errors.append([centre, world_from_cam(truth[name])[1]])
+            for name, p in truth.items():
+                rotation, centre = world_from_cam(p)
+                if default_camera is not None:
+                    _frustum(rr, rec, f"world/queries/{rr.escape_entity_path_part(name)}/truth",
+                             rotation, centre, default_camera, depth, TRUTH_COLOR)
+                summary.truths += 1
+            if errors:
+                rec.log("world/queries/errors", rr.LineStrips3D(errors, colors=ERROR_COLOR), static=True)
+                summary.errors = len(errors)
+            if inliers is not None:
+                summary.inliers = _inliers(rr, rec, inliers, depth)
+            if trajectory:
+                summary.trajectory = _trajectory(rr, rec, read_tum(trajectory))
+        rec.flush()
+        rec.disconnect()
+        os.replace(temp, out)
+    except BaseException:
+        try:
+            os.unlink(temp)
+        except FileNotFoundError:
+            pass
+        raise
+    return summary
+
+
+def _inliers(rr: Any, rec: Any, inliers: Tuple[str, Any, Any], depth: float) -> int:
+    name, found, camera = inliers
+    if not found.success:
+        raise sfpmap.LocalizeError(f"query {name!r} was not localized: {found.failure}")
+    pixels, points = found.inlier_pixels, found.inlier_points
+    rotation, centre = world_from_cam(found.colmap)
+    base = f"world/queries/{rr.escape_entity_path_part(name)}"
+    _frustum(rr, rec, f"{base}/estimate", rotation, centre, _camera_dict(camera), depth, ESTIMATE_COLOR)
+    rec.log(f"{base}/inliers/points", rr.Points3D(points, colors=ESTIMATE_COLOR), static=True)
+    rec.log(f"{base}/inliers/links", rr.LineStrips3D([[p, centre] for p in points], colors=(255, 160, 160)), static=True)
+    rec.log(f"{base}/estimate/keypoints", rr.Points2D(pixels, colors=ESTIMATE_COLOR), static=True)
+    return int(len(points))
+
+
+def _trajectory(rr: Any, rec: Any, frames: List[Tuple[float, np.ndarray, np.ndarray]]) -> int:
+    if not frames:
+        return 0
+    for i, (t, rotation, centre) in enumerate(frames):
+        rec.set_time("frame", sequence=i)
+        rec.set_time("time", duration=t)
+        rec.log("world/trajectory/camera", rr.Transform3D(translation=centre, mat3x3=rotation, axis_length=0.5))
+    rec.reset_time()
+    rec.log("world/trajectory/path", rr.LineStrips3D([[c for _, _, c in frames]], colors=(255, 255, 255)), static=True)
+    return len(frames)
+
+
+def _query_features(args: argparse.Namespace, name: str) -> Any:
+    if args.database:
+        found = sfpmap.QueryDatabase(args.database).features(name)
+        if found is None:
+            raise sfpmap.InputError(f"{args.database}: no features for query {name!r}")
+        return found
+    if not args.images:
+        raise sfpmap.InputError("--inliers needs the query's features: --images DIR or --database DB")
+    return sfpmap.Extractor().extract(os.path.join(args.images, name))
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m sfpmap.viz", description=__doc__.splitlines()[0])
+    parser.add_argument("map", help="the map: a file or an http(s):// or s3:// URL")
+    parser.add_argument("-o", "--out", required=True, help="the recording (.rrd)")
+    parser.add_argument("--poses", help="localized poses: 'name qw qx qy qz tx ty tz' lines")
+    parser.add_argument("--gt", help="ground-truth poses, the same lines")
+    parser.add_argument("--trajectory", help="a sequence's poses as TUM lines")
+    parser.add_argument("--inliers", metavar="NAME", help="draw this query's inlier links (localized here)")
+    parser.add_argument("--query-list", help="queries with their cameras ('name MODEL W H params...')")
+    parser.add_argument("--camera", help="one camera for every query ('MODEL W H params...')")
+    parser.add_argument("--images", help="query images (SFP maps: features extracted here)")
+    parser.add_argument("--database", help="a COLMAP database with the queries' features (SIFT maps)")
+    parser.add_argument("--max-points", type=int, help="at most this many points per level")
+    parser.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
+    parser.add_argument("--json", action="store_true", help="print what was recorded as JSON")
+    args = parser.parse_args(argv)
+    try:
+        if os.path.exists(args.out) and not args.force:
+            raise sfpmap.InputError(f"{args.out}: exists (--force overwrites it)")
+        inputs = [p for p in (args.map, args.poses, args.gt, args.trajectory, args.query_list, args.database) if p]
+        if any(os.path.exists(p) and os.path.samefile(p, args.out) for p in inputs if os.path.exists(args.out)):
+            raise sfpmap.InputError(f"{args.out}: is one of the inputs")
+        links = None
+        if args.inliers:
+            links = _localize_one(args)
+        summary = record(args.map, args.out, poses=args.poses, gt=args.gt, trajectory=args.trajectory,
+                         inliers=links, max_points=args.max_points)
+    except (sfpmap.Error, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    if args.json:
+        import json
+
+        print(json.dumps({"out": args.out, **summary.as_dict()}))
+    return 0
+
+
+def _localize_one(args: argparse.Namespace) -> Tuple[str, Any, Any]:
+    name = args.inliers
+    camera = None
+    if args.query_list:
+        cameras = dict(sfpmap.read_queries(args.query_list, args.camera))
+        if name not in cameras:
+            raise sfpmap.InputError(f"{args.query_list}: no query {name!r}")
+        camera = cameras[name]
+    elif args.camera:
+        camera = sfpmap.Camera.parse(args.camera)
+    else:
+        raise sfpmap.InputError("--inliers needs the query's camera: --query-list or --camera")
+    with sfpmap.Map(args.map) as m:
+        found = sfpmap.Localizer(m, keep_inliers=True).localize(_query_features(args, name), camera, name=name)
+    return name, found, camera
+
+
+if __name__ == "__main__":
+    sys.exit(main())
