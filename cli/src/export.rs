@@ -16,7 +16,10 @@ use std::process::ExitCode;
 /// folder (sensors, records, trajectories, points3d; the observed keypoints and observations
 /// where the map stores keypoints; no descriptors: a map keeps one per point, not per image). --tum and --images-txt
 /// write the database images' poses as a TUM trajectory (world_from_cam) or a COLMAP
-/// images.txt (cam_from_world, no observations).
+/// images.txt (cam_from_world, no observations). --rerun writes a Rerun recording (points
+/// coloured by level, the database cameras as frusta) through the Python package's
+/// `sfpmap.viz` (`pip install 'sfpmap[viz]'`; the interpreter is SFPMAP_PYTHON, else python3),
+/// which also draws queries, their errors, inliers and trajectories: see the guide.
 ///
 /// Example: `sfpmap export building.sfpm --ply building.ply --tum building-poses.txt`
 #[derive(Debug, clap::Args)]
@@ -38,6 +41,9 @@ pub struct Args {
     /// Database image poses as a COLMAP images.txt without observations.
     #[arg(long, value_name = "OUT.txt")]
     pub images_txt: Option<PathBuf>,
+    /// A Rerun recording of the map (rerun-sdk, through `python -m sfpmap.viz`).
+    #[arg(long, value_name = "OUT.rrd")]
+    pub rerun: Option<PathBuf>,
     /// Overwrite existing outputs.
     #[arg(long)]
     pub force: bool,
@@ -76,15 +82,18 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         && args.tum.is_none()
         && args.images_txt.is_none()
         && args.kapture.is_none()
+        && args.rerun.is_none()
     {
-        bail!("nothing to export: pass --ply, --colmap, --kapture, --tum and/or --images-txt");
+        bail!(
+            "nothing to export: pass --ply, --colmap, --kapture, --tum, --images-txt and/or --rerun"
+        );
     }
     let colmap_files: Vec<PathBuf> = args
         .colmap
         .iter()
         .flat_map(|dir| COLMAP_FILES.map(|f| dir.join(f)))
         .collect();
-    let outputs: Vec<&Path> = [&args.ply, &args.tum, &args.images_txt]
+    let outputs: Vec<&Path> = [&args.ply, &args.tum, &args.images_txt, &args.rerun]
         .into_iter()
         .flatten()
         .chain(&colmap_files)
@@ -180,6 +189,18 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
             sfpmap::escape::path(path)
         ));
     }
+    if let Some(path) = &args.rerun {
+        let summary = rerun(&args.map, path)?;
+        lines.push(format!(
+            "{}: a Rerun recording ({} points, {} cameras)",
+            sfpmap::escape::path(path),
+            summary["points_per_level"]
+                .as_object()
+                .map_or(0, |l| l.values().filter_map(|v| v.as_u64()).sum::<u64>()),
+            summary["cameras"]
+        ));
+        report.insert("rerun".into(), summary);
+    }
     if map.source().is_some() {
         report.insert("transfer".into(), super::transfer_json(&map));
     }
@@ -188,6 +209,46 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         lines,
         colmap,
     })
+}
+
+/// `python -m sfpmap.viz MAP -o OUT --force --json` (the output policy was checked here):
+/// the recording is written by the Python package, through rerun-sdk. Rerun's SDK for Rust
+/// would add a few hundred crates (Arrow, its own protocol) to every build of the CLI for one
+/// export; the Python one is a wheel that users of Rerun already have. Its summary.
+fn rerun(map: &Path, out: &Path) -> anyhow::Result<serde_json::Value> {
+    let python = std::env::var_os("SFPMAP_PYTHON").unwrap_or_else(|| "python3".into());
+    let run = std::process::Command::new(&python)
+        .args(["-m", "sfpmap.viz"])
+        .arg(map)
+        .arg("-o")
+        .arg(out)
+        .args(["--force", "--json"])
+        .stdin(std::process::Stdio::null())
+        .output()
+        .with_context(|| {
+            format!(
+                "{}: running {} for --rerun (set SFPMAP_PYTHON to a Python with the sfpmap package)",
+                sfpmap::escape::path(out),
+                Path::new(&python).display()
+            )
+        })?;
+    if !run.status.success() {
+        let stderr = String::from_utf8_lossy(&run.stderr);
+        let why = stderr
+            .lines()
+            .rev()
+            .find(|l| !l.trim().is_empty())
+            .unwrap_or("it failed")
+            .trim_start_matches("error: ");
+        let hint = if stderr.contains("No module named") {
+            ": --rerun needs the Python package with its viz extra (pip install 'sfpmap[viz]'),              in SFPMAP_PYTHON or python3"
+        } else {
+            ""
+        };
+        bail!("{}: {why}{hint}", sfpmap::escape::path(out));
+    }
+    serde_json::from_slice(&run.stdout)
+        .with_context(|| format!("{}: sfpmap.viz's summary", sfpmap::escape::path(out)))
 }
 
 /// A kapture export's error, named with the map where it is about the map.

@@ -33,6 +33,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         kapture: None,
         tum: None,
         images_txt: None,
+        rerun: None,
         force: args.force,
         json: args.json,
     })?;

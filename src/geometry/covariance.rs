@@ -19,8 +19,13 @@ use super::camera::Camera;
 use super::pose::Pose;
 use super::refine::{normal_equations, RobustLoss};
 
-/// Inliers needed: more residuals (2 each) than the six parameters, so `σ²` is defined.
-const MIN_INLIERS: usize = 4;
+/// Inliers needed: enough residuals (2 each) past the six parameters for `σ²` to mean
+/// something (with 4, it has 2 degrees of freedom and is often far too small).
+const MIN_INLIERS: usize = 6;
+
+/// `σ` is never taken below this many pixels: keypoints are not placed more precisely than
+/// that, and a fit that happens to explain its inliers exactly must not claim certainty.
+pub const SIGMA_FLOOR_PX: f64 = 0.25;
 
 /// The smallest eigenvalue of `JᵀJ` over its largest below which a direction counts as
 /// unconstrained.
@@ -92,7 +97,7 @@ pub fn pose_covariance(
     if used < MIN_INLIERS {
         return None;
     }
-    let sigma2 = sum_sq / (2 * used - 6) as f64;
+    let sigma2 = (sum_sq / (2 * used - 6) as f64).max(SIGMA_FLOOR_PX * SIGMA_FLOOR_PX);
     let (hessian, _) =
         normal_equations(pixels, points, indices, camera, pose, &RobustLoss::Trivial);
     // A direction the inliers do not constrain (rounding keeps the matrix invertible).
@@ -209,12 +214,36 @@ mod tests {
                 "rotation axis {axis}: measured {var_r:.3e}, predicted {pr:.3e}"
             );
         }
-        // Symmetric.
-        for r in 0..6 {
-            for c in 0..6 {
-                assert_eq!(predicted[r * 6 + c], predicted[c * 6 + r]);
+        // The correlations too, every pair: a covariance turned the wrong way (R for Rᵀ, the
+        // camera's frame for the world's) moves them.
+        let samples: Vec<[f64; 6]> = centres
+            .iter()
+            .zip(&angles)
+            .map(|(c, a)| [c.x, c.y, c.z, a.x, a.y, a.z])
+            .collect();
+        let measured =
+            |i: usize, j: usize| samples.iter().map(|v| v[i] * v[j]).sum::<f64>() / trials as f64;
+        for i in 0..6 {
+            for j in 0..i {
+                let rho_m = measured(i, j) / (measured(i, i) * measured(j, j)).sqrt();
+                let rho_p = predicted[i * 6 + j] / (predicted[i * 7] * predicted[j * 7]).sqrt();
+                assert!(
+                    (rho_m - rho_p).abs() < 0.15,
+                    "correlation ({i}, {j}): measured {rho_m:.3}, predicted {rho_p:.3}"
+                );
             }
         }
+    }
+
+    #[test]
+    fn a_perfect_fit_is_not_certainty() {
+        let mut rng = SplitMix64::new(11);
+        let (camera, truth, points) = scene(30, &mut rng);
+        let pixels = noisy_pixels(&camera, &truth, &points, 0.0, &mut rng);
+        let indices: Vec<usize> = (0..points.len()).collect();
+        let c = pose_covariance(&pixels, &points, &indices, &camera, &truth).unwrap();
+        assert_eq!(c.sigma_px, SIGMA_FLOOR_PX);
+        assert!((0..6).all(|k| c.camera_frame[(k, k)] > 0.0));
     }
 
     #[test]
@@ -238,8 +267,8 @@ mod tests {
         let mut rng = SplitMix64::new(5);
         let (camera, truth, points) = scene(10, &mut rng);
         let pixels = noisy_pixels(&camera, &truth, &points, 1.0, &mut rng);
-        assert!(pose_covariance(&pixels, &points, &[0, 1, 2], &camera, &truth).is_none());
-        // Four copies of one correspondence constrain nothing but one ray.
+        assert!(pose_covariance(&pixels, &points, &[0, 1, 2, 3, 4], &camera, &truth).is_none());
+        // Copies of one correspondence constrain nothing but one ray.
         let same = [0, 0, 0, 0, 0];
         assert!(pose_covariance(&pixels, &points, &same, &camera, &truth).is_none());
     }

@@ -6,7 +6,9 @@ use super::coarse::sure_inliers;
 use super::level::LevelIndex;
 use super::localizer::{ms, Query};
 use super::matching::fails_ratio_test;
-use super::{Localization, LocalizationPath, LocalizeError, Localizer, StageTimes, TrackingLost};
+use super::{
+    InlierLink, Localization, LocalizationPath, LocalizeError, Localizer, StageTimes, TrackingLost,
+};
 use crate::geometry::{
     estimate_absolute_pose_with_prior, pose_covariance, Camera, Pose, RansacOptions,
 };
@@ -198,6 +200,17 @@ impl Localizer<'_> {
         let matches = pixels.len();
         let inliers: Vec<usize> = estimate.inlier_indices().collect();
         let covariance = pose_covariance(&pixels, &points, &inliers, camera, &estimate.pose);
+        let inlier_links = match self.options.keep_inliers {
+            true => inliers
+                .iter()
+                .map(|&i| InlierLink {
+                    pixel: [pixels[i].x, pixels[i].y],
+                    point: [points[i].x, points[i].y, points[i].z],
+                    level: self.levels[level_of[i]].id,
+                })
+                .collect(),
+            false => Vec::new(),
+        };
         let mut per_level: Vec<(u16, usize)> = self.levels.iter().map(|l| (l.id, 0)).collect();
         for (&inlier, &i) in estimate.inliers.iter().zip(&level_of) {
             if inlier {
@@ -217,6 +230,7 @@ impl Localizer<'_> {
             tracking_lost: None,
             times: StageTimes::default(),
             covariance,
+            inlier_links,
         }))
     }
 

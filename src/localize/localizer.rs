@@ -52,6 +52,10 @@ pub struct LocalizeOptions {
     pub fine_error_px: f64,
     /// Fewer final inliers is a failure.
     pub min_inliers: usize,
+    /// Keep each localized query's final inliers ([`Localization::inlier_links`]: their
+    /// keypoints and 3D points), to draw them; off, a result holds none (a few kB a query
+    /// otherwise, for every query a batch keeps).
+    pub keep_inliers: bool,
 }
 
 /// The same for every map (Lowe's ratio 0.9); [`LocalizeOptions::for_map`] picks the ratio
@@ -70,6 +74,7 @@ impl Default for LocalizeOptions {
             gate_ratio: 0.95,
             fine_error_px: 6.0,
             min_inliers: 12,
+            keep_inliers: false,
         }
     }
 }
@@ -209,6 +214,20 @@ pub struct Localization {
     /// ([`crate::geometry::pose_covariance`]); `None` when the query failed, when only the
     /// coarse pose stands (guided matching gave none), or with too few inliers for one.
     pub covariance: Option<PoseCovariance>,
+    /// With [`LocalizeOptions::keep_inliers`], the final estimate's inliers; else empty (and
+    /// when only the coarse pose stands).
+    pub inlier_links: Vec<InlierLink>,
+}
+
+/// One inlier of a pose: a query keypoint and the map point it matched.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct InlierLink {
+    /// The keypoint, in pixels (COLMAP's convention: the first pixel's centre at 0.5).
+    pub pixel: [f64; 2],
+    /// The map point, in world coordinates.
+    pub point: [f64; 3],
+    /// The level the match was made on.
+    pub level: u16,
 }
 
 /// How a query was localized.
@@ -303,6 +322,7 @@ impl Localization {
             tracking_lost: None,
             times: StageTimes::default(),
             covariance: None,
+            inlier_links: Vec::new(),
         }
     }
 }
@@ -743,6 +763,7 @@ impl<'m> Localizer<'m> {
             tracking_lost,
             times,
             covariance: None,
+            inlier_links: Vec::new(),
         };
 
         // Fine: guided matching around projections on every selected level, then one final
@@ -841,6 +862,7 @@ impl<'m> Localizer<'m> {
                 tracking_lost,
                 times,
                 covariance: None,
+                inlier_links: Vec::new(),
             });
         };
         Ok(Localization {

@@ -19,8 +19,8 @@ pub use features::{
     check_global_finite, FeatureModel, FeatureSet, NonFinite, NonFiniteValue, QueryFeatures,
 };
 pub use localizer::{
-    describe_skipped, Localization, LocalizationPath, LocalizeError, LocalizeOptions, Localizer,
-    OptionError, QueryFailure, SkippedLevel, StageTimes, TrackingLost,
+    describe_skipped, InlierLink, Localization, LocalizationPath, LocalizeError, LocalizeOptions,
+    Localizer, OptionError, QueryFailure, SkippedLevel, StageTimes, TrackingLost,
 };
 pub use matching::MatchOptions;
 pub(crate) use matching::{default_ratio, is_sfp_descriptor};

@@ -30,6 +30,8 @@ pub mod catalog;
 pub mod mcap_log;
 mod source;
 
+#[cfg(feature = "onnx")]
+pub use source::image_misfits_camera;
 pub(crate) use source::QueryReader;
 pub use source::{check_extractable, QuerySource};
 

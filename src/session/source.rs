@@ -420,7 +420,7 @@ impl QueryReader {
 /// the pixels of an image of the camera's size, so keypoints of another size would give a
 /// wrong pose, not a failed one. `None` when the sizes agree.
 #[cfg(feature = "onnx")]
-pub(crate) fn image_misfits_camera(width: usize, height: usize, camera: &Camera) -> Option<String> {
+pub fn image_misfits_camera(width: usize, height: usize, camera: &Camera) -> Option<String> {
     let fits = u32::try_from(width).ok() == Some(camera.width())
         && u32::try_from(height).ok() == Some(camera.height());
     (!fits).then(|| {

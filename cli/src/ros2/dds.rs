@@ -267,12 +267,13 @@ pub struct DiagnosticArray {
     pub status: Vec<DiagnosticStatus>,
 }
 
-/// A ROS time from seconds and nanoseconds (`builtin_interfaces/msg/Time` holds an `int32`
-/// of seconds: a stamp outside it is clamped).
+/// A ROS time from seconds and nanoseconds, normalised (nanoseconds below 10⁹;
+/// `builtin_interfaces/msg/Time` holds an `int32` of seconds: a stamp outside it is clamped).
 pub fn ros_time(sec: i64, nanosec: u32) -> Time {
+    let sec = sec.saturating_add(i64::from(nanosec / 1_000_000_000));
     Time {
         sec: sec.clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32,
-        nanosec,
+        nanosec: nanosec % 1_000_000_000,
     }
 }
 

@@ -7,6 +7,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Condvar, Mutex};
 use std::time::Duration;
 
+/// How long a wait sleeps before it looks again: a notification is never missed (waits and
+/// changes hold the lock), this only bounds the cost of a bug elsewhere.
+const WAKE: Duration = Duration::from_millis(200);
+
 /// A slot for the newest item: `put` replaces what was not taken yet.
 pub struct Mailbox<T> {
     slot: Mutex<(Option<T>, bool)>,
@@ -27,8 +31,21 @@ impl<T> Mailbox<T> {
     pub fn put(&self, item: T) -> bool {
         let mut slot = self.slot.lock().unwrap_or_else(|p| p.into_inner());
         let replaced = slot.0.replace(item).is_some();
-        self.ready.notify_one();
+        self.ready.notify_all();
         replaced
+    }
+
+    /// Waits until what was put was taken (or the mailbox is closed): the extractor waits
+    /// so, and a frame is dropped before it is decoded, not after its inference.
+    pub fn wait_empty(&self) {
+        let mut slot = self.slot.lock().unwrap_or_else(|p| p.into_inner());
+        while slot.0.is_some() && !slot.1 {
+            slot = self
+                .ready
+                .wait_timeout(slot, WAKE)
+                .unwrap_or_else(|p| p.into_inner())
+                .0;
+        }
     }
 
     /// The next item, waiting for it; `None` once closed and empty.
@@ -36,6 +53,8 @@ impl<T> Mailbox<T> {
         let mut slot = self.slot.lock().unwrap_or_else(|p| p.into_inner());
         loop {
             if let Some(item) = slot.0.take() {
+                // A `wait_empty` may be waiting.
+                self.ready.notify_all();
                 return Some(item);
             }
             if slot.1 {
@@ -43,7 +62,7 @@ impl<T> Mailbox<T> {
             }
             slot = self
                 .ready
-                .wait_timeout(slot, Duration::from_millis(200))
+                .wait_timeout(slot, WAKE)
                 .unwrap_or_else(|p| p.into_inner())
                 .0;
         }
@@ -83,6 +102,8 @@ pub struct Counts {
     pub lost: AtomicU64,
     /// CameraInfo messages that did not decode.
     pub camera_info_malformed: AtomicU64,
+    /// Poses, TFs, statuses and summaries not published: a subscriber's window was full.
+    pub unpublished: AtomicU64,
 }
 
 impl Counts {
@@ -95,7 +116,7 @@ impl Counts {
     }
 
     /// (name, value) of every count, in the order reports list them.
-    pub fn all(&self) -> [(&'static str, u64); 10] {
+    pub fn all(&self) -> [(&'static str, u64); 11] {
         let g = Counts::get;
         [
             ("received", g(&self.received)),
@@ -108,6 +129,7 @@ impl Counts {
             ("no_camera", g(&self.no_camera)),
             ("lost", g(&self.lost)),
             ("camera_info_malformed", g(&self.camera_info_malformed)),
+            ("unpublished", g(&self.unpublished)),
         ]
     }
 }
@@ -174,6 +196,10 @@ pub struct Gaps {
 /// is a new writer each time).
 const MAX_WRITERS: usize = 64;
 
+/// A jump in a writer's sequence numbers past this is not counted as lost samples: a
+/// writer that restarted its numbering, or one that lies about it.
+const MAX_GAP: i64 = 1_000_000;
+
 impl Gaps {
     /// The samples between the last one of `writer` and `sequence` (0 for its first).
     pub fn missed(&mut self, writer: [u8; 16], sequence: i64) -> u64 {
@@ -182,7 +208,7 @@ impl Gaps {
         }
         let before = self.last.insert(writer, sequence);
         match before {
-            Some(b) if sequence > b + 1 => (sequence - b - 1) as u64,
+            Some(b) if sequence > b + 1 && sequence - b - 1 <= MAX_GAP => (sequence - b - 1) as u64,
             _ => 0,
         }
     }
@@ -226,5 +252,7 @@ mod tests {
         assert_eq!(g.missed(b, 7), 0);
         assert_eq!(g.missed(a, 5), 2);
         assert_eq!(g.missed(b, 8), 0);
+        // A jump no camera makes is not a count of lost frames.
+        assert_eq!(g.missed(b, i64::MAX), 0);
     }
 }

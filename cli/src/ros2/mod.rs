@@ -65,8 +65,8 @@ pub struct Args {
     /// The camera's intrinsics: "MODEL W H params..." (instead of --camera-info-topic).
     #[arg(long, conflicts_with = "camera_info_topic")]
     pub camera: Option<String>,
-    /// Intrinsics from the newest sensor_msgs/msg/CameraInfo on this topic; a frame of another
-    /// size waits for a CameraInfo of its size.
+    /// Intrinsics from the newest sensor_msgs/msg/CameraInfo on this topic; frames of another
+    /// size are skipped (counted) until a CameraInfo of their size arrives.
     #[arg(long)]
     pub camera_info_topic: Option<String>,
     /// Topic of the poses (geometry_msgs/msg/PoseWithCovarianceStamped).
@@ -133,8 +133,10 @@ pub enum ReliabilityArg {
 }
 
 pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
+    sfpmap::extract::runtime::disable_telemetry();
     if let Err(e) = args.matching.check() {
-        e.exit();
+        e.print()?;
+        return Ok(ExitCode::from(2));
     }
     let bars = Bars::new(quiet, args.json);
     let image_type = args.image_type.unwrap_or(
@@ -183,9 +185,16 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         ImageType::Compressed => mcap_io::ROS_COMPRESSED_IMAGE,
         ImageType::Raw => mcap_io::ROS_IMAGE,
     };
+    let Some(gray_weights) = session.gray_weights() else {
+        bail!(
+            "{}: the node extracts its frames' features, and this map's session does not",
+            sfpmap::escape::path(&args.map)
+        );
+    };
     let shared = Shared {
         session,
         schema,
+        gray_weights,
         camera: Mutex::new(fixed_camera),
         camera_from_topic: args.camera_info_topic.is_some(),
         counts: Counts::default(),
@@ -209,6 +218,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     }
     let started = Instant::now();
     std::thread::scope(|s| -> anyhow::Result<()> {
+        // However the receiving loop ends (a panic too), the workers are told to finish,
+        // so the scope's join cannot wait on them for ever.
+        let _close = CloseOnDrop(&shared);
         let workers: Vec<_> = if args.threads >= 2 {
             vec![
                 s.spawn(|| shared.extract_each()),
@@ -217,17 +229,28 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         } else {
             vec![s.spawn(|| shared.decode_and_localize_each(&outputs))]
         };
-        let received = receive(&shared, &mut images, camera_info.as_mut(), &args, &outputs);
-        shared.raw.close();
-        for w in workers {
-            if w.join().is_err() {
-                shared.extracted.close();
-            }
-        }
-        received
+        let running = || workers.iter().all(|w| !w.is_finished());
+        receive(
+            &shared,
+            &mut images,
+            camera_info.as_mut(),
+            &args,
+            &outputs,
+            &running,
+        )
     })?;
     report(&args, &shared, started.elapsed(), quiet)?;
     Ok(ExitCode::SUCCESS)
+}
+
+/// Closes both mailboxes when dropped: the workers then take what is left and end.
+struct CloseOnDrop<'a, 'b>(&'a Shared<'b>);
+
+impl Drop for CloseOnDrop<'_, '_> {
+    fn drop(&mut self) {
+        self.0.raw.close();
+        self.0.extracted.close();
+    }
 }
 
 /// The session over `--map`: frames are extracted with the map's model (or `--model`) and,
@@ -279,13 +302,15 @@ fn camera_qos(reliability: ReliabilityArg) -> QosProfile {
 const POLL: Duration = Duration::from_millis(100);
 
 /// Takes messages off the image (and CameraInfo) topics until a signal, `--frames` or a
-/// worker's end; sends the 1 Hz summary to `/diagnostics`.
+/// worker's end (a bug: a worker ends only when told); sends the 1 Hz summary to
+/// `/diagnostics`.
 fn receive(
     shared: &Shared<'_>,
     images: &mut RawReader,
     mut camera_info: Option<&mut RawReader>,
     args: &Args,
     outputs: &Outputs,
+    workers_running: &dyn Fn() -> bool,
 ) -> anyhow::Result<()> {
     use rustdds::mio1::{Events, Interest, Poll, Token};
     let mut poll = Poll::new().context("creating the event poll")?;
@@ -305,14 +330,25 @@ fn receive(
         if crate::stop_requested() || shared.done() {
             return Ok(());
         }
+        if !workers_running() {
+            bail!("a worker thread of the node ended (a bug)");
+        }
         if let Err(e) = poll.poll(&mut events, Some(POLL)) {
             if e.kind() != std::io::ErrorKind::Interrupted {
                 return Err(e).context("waiting for messages");
             }
         }
+        // Each sample leaves a wake-up byte behind; unread, they would fill the socket and
+        // the poll would wake only at its timeout.
+        images.drain_read_notifications();
         if let Some(info) = camera_info.as_deref() {
-            while let Ok(Some(sample)) = info.try_take_one() {
-                shared.camera_info(&sample.sample.bytes, limit);
+            info.drain_read_notifications();
+            loop {
+                match info.try_take_one() {
+                    Ok(Some(sample)) => shared.camera_info(&sample.sample.bytes, limit),
+                    Ok(None) => break,
+                    Err(_) => Counts::add(&shared.counts.camera_info_malformed),
+                }
             }
         }
         loop {

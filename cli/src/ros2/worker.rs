@@ -14,7 +14,7 @@ use sfpmap::geometry::{Camera, Pose};
 use sfpmap::io::mcap_io::{self, Stamp};
 use sfpmap::localize::Localization;
 use sfpmap::progress::Reporter;
-use sfpmap::session::{Frame, Session};
+use sfpmap::session::{image_misfits_camera, Frame, Session};
 use std::collections::HashSet;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -42,6 +42,8 @@ pub struct Shared<'a> {
     pub session: Session,
     /// The image topic's message type (`sensor_msgs/msg/CompressedImage` or `Image`).
     pub schema: &'static str,
+    /// The model's RGB-to-grey weights.
+    pub gray_weights: [f32; 3],
     /// `--camera`, or the newest CameraInfo's.
     pub camera: Mutex<Option<Camera>>,
     pub camera_from_topic: bool,
@@ -77,10 +79,24 @@ impl Shared<'_> {
         }
     }
 
+    /// A message not published (a subscriber too slow to take it): counted, warned once.
+    pub fn unpublished(&self, what: &str, e: &dyn std::fmt::Debug) {
+        Counts::add(&self.counts.unpublished);
+        self.warn_once(
+            "unpublished",
+            &format!("{what} could not be published ({e:?}); counted as unpublished"),
+        );
+    }
+
     /// `--threads 2`, the first worker: decodes and extracts the newest frame, leaves it for
     /// the localizing one.
     pub fn extract_each(&self) {
-        while let Some(incoming) = self.raw.take() {
+        // One frame extracted ahead at most: a newer frame replaces an older one before it
+        // is decoded, never after its inference.
+        while let Some(incoming) = {
+            self.extracted.wait_empty();
+            self.raw.take()
+        } {
             if let Some(extracted) = self.guarded(|| self.prepare(incoming)).flatten() {
                 if self.extracted.put(extracted) {
                     Counts::add(&self.counts.dropped);
@@ -133,22 +149,16 @@ impl Shared<'_> {
     /// do not decode or there is no camera of its size.
     fn prepare(&self, incoming: Incoming) -> Option<Extracted> {
         let Incoming { bytes, received } = incoming;
-        let decoded = match mcap_io::decode_image(self.schema, "cdr", &bytes) {
-            Ok(d) => d,
-            Err(e) => {
-                Counts::add(&self.counts.malformed);
-                self.warn_once(
-                    "malformed",
-                    &format!(
-                        "a {} message was skipped (counted as malformed): {e}",
-                        self.schema
-                    ),
-                );
-                return None;
-            }
+        let malformed = |e: mcap_io::McapIoError| {
+            Counts::add(&self.counts.malformed);
+            self.warn_once(
+                "malformed",
+                &format!(
+                    "a {} message was skipped (counted as malformed): {e}",
+                    self.schema
+                ),
+            );
         };
-        drop(bytes);
-        let (w, h) = (decoded.image.width(), decoded.image.height());
         let camera = self
             .camera
             .lock()
@@ -162,7 +172,16 @@ impl Shared<'_> {
             );
             return None;
         };
-        if (w, h) != (camera.width(), camera.height()) {
+        // The size from the header: a frame not of the camera's size is never decoded, so
+        // a small message that claims a huge image costs nothing.
+        let (w, h) = match mcap_io::image_size(self.schema, "cdr", &bytes) {
+            Ok(size) => size,
+            Err(e) => {
+                malformed(e);
+                return None;
+            }
+        };
+        if let Some(reason) = image_misfits_camera(w as usize, h as usize, &camera) {
             Counts::add(&self.counts.camera_mismatch);
             let then = if self.camera_from_topic {
                 "skipped until a CameraInfo of that size arrives"
@@ -171,16 +190,19 @@ impl Shared<'_> {
             };
             self.warn_once(
                 "camera_mismatch",
-                &format!(
-                    "frames of {w}x{h} but the camera is {}x{}: {then}",
-                    camera.width(),
-                    camera.height()
-                ),
+                &format!("frames skipped: {reason}; {then}"),
             );
             return None;
         }
-        let weights = self.session.gray_weights()?;
-        let input = sfpmap::extract::image::from_image(&decoded.image, weights, None);
+        let decoded = match mcap_io::decode_image(self.schema, "cdr", &bytes) {
+            Ok(d) => d,
+            Err(e) => {
+                malformed(e);
+                return None;
+            }
+        };
+        drop(bytes);
+        let input = sfpmap::extract::image::from_image(&decoded.image, self.gray_weights, None);
         let features = self.session.extract(input).map_err(|e| e.to_string());
         Some(Extracted {
             features,
@@ -215,11 +237,13 @@ impl Shared<'_> {
             }
         };
         let stamp = stamp.map_or_else(dds::now, |s| dds::ros_time(s.sec, s.nsec));
-        let localized = matches!(&found, Ok(l) if l.pose().is_some());
-        if let Ok(l) = &found {
-            if let Some(pose) = l.pose() {
-                outputs.pose(pose, l, stamp, &frame_id, self);
-            }
+        let pose = found
+            .as_ref()
+            .ok()
+            .and_then(|l| l.pose().filter(|p| p.is_finite()));
+        let localized = pose.is_some();
+        if let (Ok(l), Some(pose)) = (&found, pose) {
+            outputs.pose(pose, l, stamp, &frame_id, self);
         }
         let latency = received.elapsed();
         Counts::add(if localized {
@@ -236,6 +260,20 @@ impl Shared<'_> {
     }
 }
 
+/// The variance published when a pose has no covariance.
+pub const UNKNOWN_VARIANCE: f64 = 1e6;
+
+/// A TF child frame from an image's `frame_id`: tf2's characters (letters, digits, `_`, `/`),
+/// at most 256 of them; else `None` (the node uses "camera" and warns once).
+fn frame_name(frame_id: &str) -> Option<&str> {
+    let ok = !frame_id.is_empty()
+        && frame_id.len() <= 256
+        && frame_id
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '/');
+    ok.then_some(frame_id)
+}
+
 /// The node's publishers.
 pub struct Outputs {
     pose: Mutex<Publisher<PoseWithCovarianceStamped>>,
@@ -244,11 +282,17 @@ pub struct Outputs {
     diagnostics: Mutex<Publisher<DiagnosticArray>>,
     map_frame: String,
     camera_frame: Option<String>,
+    /// (dropped, received) at the last `/diagnostics` summary.
+    last_summary: Mutex<(u64, u64)>,
 }
 
-/// The published topics' QoS: reliable, keep last 10 (ROS's default for publishers).
+/// The published topics' QoS: reliable, keep last 10 (ROS's default depth); a publish that
+/// finds the send window full (a slow subscriber) fails at once and is counted, rather than
+/// holding the frame back.
 fn output_qos() -> QosProfile {
-    QosProfile::publisher_default().history(ros2_client::qos::History::KeepLast { depth: 10 })
+    QosProfile::publisher_default()
+        .reliability_reliable(ros2_client::qos::WhenFull::Fail)
+        .history(ros2_client::qos::History::KeepLast { depth: 10 })
 }
 
 impl Outputs {
@@ -279,6 +323,7 @@ impl Outputs {
             diagnostics: Mutex::new(participant.publisher(&diagnostics_topic, qos)?),
             map_frame: args.map_frame.clone(),
             camera_frame: args.camera_frame.clone(),
+            last_summary: Mutex::new((0, 0)),
         })
     }
 
@@ -306,14 +351,18 @@ impl Outputs {
             z: q.k,
             w: q.w,
         };
-        // Unknown (no covariance): -1 on the diagonal's first entry, as sensor_msgs marks an
-        // unknown covariance.
+        // Unknown (only the coarse pose stands): variances no filter trusts; the status says
+        // `covariance: unknown`. (geometry_msgs has no mark for unknown; Imu's -1 is read as a
+        // variance by filters that do not know it.)
         let covariance = l
             .covariance
             .map(|c| c.world_from_camera(cam_from_world))
+            .filter(|c| c.iter().all(|v| v.is_finite()))
             .unwrap_or_else(|| {
                 let mut unknown = [0.0; 36];
-                unknown[0] = -1.0;
+                for i in 0..6 {
+                    unknown[i * 7] = UNKNOWN_VARIANCE;
+                }
                 unknown
             });
         let header = Header {
@@ -331,13 +380,18 @@ impl Outputs {
             },
         };
         if let Err(e) = lock(&self.pose).publish(message) {
-            shared.warn_once("publish", &format!("a pose could not be published: {e:?}"));
+            shared.unpublished("a pose", &e);
         }
         if let Some(tf) = &self.tf {
-            let child = match (&self.camera_frame, frame_id) {
+            let child = match (&self.camera_frame, frame_name(frame_id)) {
                 (Some(c), _) => c.clone(),
-                (None, "") => "camera".to_owned(),
-                (None, f) => f.to_owned(),
+                (None, Some(f)) => f.to_owned(),
+                (None, None) => {
+                    if !frame_id.is_empty() {
+                        shared.warn_once("frame_id", "an image's frame_id is not a tf2 frame name (letters, digits, _ and /, at most 256): the TF's child is \"camera\" (--camera-frame names it)");
+                    }
+                    "camera".to_owned()
+                }
             };
             let message = TfMessage {
                 transforms: vec![TransformStamped {
@@ -350,7 +404,7 @@ impl Outputs {
                 }],
             };
             if let Err(e) = lock(tf).publish(message) {
-                shared.warn_once("publish_tf", &format!("a TF could not be published: {e:?}"));
+                shared.unpublished("a TF", &e);
             }
         }
     }
@@ -382,8 +436,9 @@ impl Outputs {
                 );
                 kv("fine_ms", format!("{:.3}", l.times.fine_ms));
                 kv("localize_ms", format!("{:.3}", l.times.total_ms));
-                if let Some(c) = &l.covariance {
-                    kv("sigma_px", format!("{:.4}", c.sigma_px));
+                match &l.covariance {
+                    Some(c) => kv("sigma_px", format!("{:.4}", c.sigma_px)),
+                    None => kv("covariance", "unknown".to_owned()),
                 }
                 match l.pose() {
                     Some(_) => (0u8, "localized".to_owned()),
@@ -439,20 +494,37 @@ impl Outputs {
             }
         }
         drop(latencies);
-        let behind = Counts::get(&shared.counts.dropped) > 0;
+        // What changed since the last summary: WARN while frames are being dropped, STALE
+        // while none arrive.
+        let (dropped, received) = (
+            Counts::get(&shared.counts.dropped),
+            Counts::get(&shared.counts.received),
+        );
+        let mut last = lock(&self.last_summary);
+        let (level, message) = if received == last.1 {
+            (3u8, "no frames since the last summary".to_owned())
+        } else if dropped > last.0 {
+            (
+                1,
+                format!(
+                    "{} frames dropped: localizing is slower than the camera",
+                    dropped - last.0
+                ),
+            )
+        } else {
+            (0, "ok".to_owned())
+        };
+        *last = (dropped, received);
+        drop(last);
         let message = DiagnosticArray {
             header: Header {
                 stamp: dds::now(),
                 frame_id: String::new(),
             },
             status: vec![DiagnosticStatus {
-                level: u8::from(behind),
+                level,
                 name: super::dds::NODE_NAME.to_owned(),
-                message: if behind {
-                    "frames dropped: localizing is slower than the camera".into()
-                } else {
-                    "ok".into()
-                },
+                message,
                 hardware_id: String::new(),
                 values,
             }],

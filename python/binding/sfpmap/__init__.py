@@ -458,6 +458,29 @@ class Localization:
         keys = ("retrieval", "coarse_match", "coarse_ransac", "fine", "total")
         return dict(zip(keys, self._r._times))
 
+    @property
+    def covariance(self) -> Optional[_np.ndarray]:
+        """How sure the pose is: the 6×6 covariance of the camera's pose in the world (its
+        centre's x, y, z, then small rotations about the world's x, y, z axes; map units and
+        radians), from the geometry of the final inliers; ``None`` without one."""
+        c = self._r._covariance
+        return None if c is None else _np.array(c, dtype=_np.float64).reshape(6, 6)
+
+    @property
+    def inlier_pixels(self) -> _np.ndarray:
+        """N×2 keypoints of the final inliers (``Localizer(keep_inliers=True)``; else 0×2)."""
+        return _np.array(self._r._inlier_links[0], dtype=_np.float64).reshape(-1, 2)
+
+    @property
+    def inlier_points(self) -> _np.ndarray:
+        """N×3 world points the inlier keypoints matched (``keep_inliers=True``)."""
+        return _np.array(self._r._inlier_links[1], dtype=_np.float64).reshape(-1, 3)
+
+    @property
+    def inlier_levels(self) -> _np.ndarray:
+        """N levels the inlier matches were made on (``keep_inliers=True``)."""
+        return _np.array(self._r._inlier_links[2], dtype=_np.uint16)
+
     def to_pycolmap(self) -> Any:
         """``cam_from_world`` as a ``pycolmap.Rigid3d`` (``None`` if not localized)."""
         import pycolmap
@@ -501,6 +524,9 @@ class Localizer:
     order they are made; ``localize_many`` runs its queries on one thread, in order.
     ``is_tracking`` says whether the next query has a prediction; ``reset_tracking()``
     forgets the motion (a cut in the sequence).
+
+    ``keep_inliers=True``: each ``Localization`` keeps its final inliers
+    (``inlier_pixels``, ``inlier_points``, ``inlier_levels``), e.g. for ``sfpmap.viz``.
 
     Features that record their model (``Extractor.extract``'s, those of a ``FeaturesFile``
     made by ``sfpmap extract``) must be of the map's model: others raise ``LocalizeError``,

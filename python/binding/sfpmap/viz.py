@@ -32,11 +32,16 @@ import os
 import sys
 import tempfile
 from dataclasses import dataclass, field
-from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 import sfpmap
+
+__all__ = [
+    "LEVEL_COLORS", "MAX_CAMERAS", "Summary", "main", "read_pose_lines", "read_tum", "record",
+    "rotation_matrix", "world_from_cam",
+]
 
 #: RGB per level id: level 0 (finest) to 3 (coarsest), then around again.
 LEVEL_COLORS = [(230, 159, 0), (86, 180, 233), (0, 158, 115), (204, 121, 167)]
@@ -168,6 +173,11 @@ def _frustum(rr: Any, rec: Any, path: str, rotation: np.ndarray, centre: np.ndar
     rec.log(path, pinhole, static=True)
 
 
+def _entity_part(name: str) -> str:
+    """A query's name as one part of an entity path (``/`` and other specials escaped)."""
+    return str(_rerun().escape_entity_path_part(name))
+
+
 def _camera_dict(camera: sfpmap.Camera) -> Dict[str, Any]:
     return {"model": camera.model, "width": camera.width, "height": camera.height, "params": camera.params}
 
@@ -206,7 +216,7 @@ def record(
         with sfpmap.Map(map_path) as m:
             world = m.points.world()
             for level in m.levels:
-                rows = level.points()
+                rows = level.points
                 if max_points is not None and len(rows) > max_points:
                     rows = rows[:: math.ceil(len(rows) / max_points)]
                 color = LEVEL_COLORS[level.id % len(LEVEL_COLORS)]
@@ -216,7 +226,7 @@ def record(
             centres = np.zeros((0, 3))
             images = m.images
             if images is not None and len(images):
-                image_poses, image_cameras = images.poses(), images.cameras()
+                image_poses, image_cameras = images.poses, images.cameras
                 centres = np.array([world_from_cam(p)[1] for p in image_poses])
                 depth = _scene_scale(centres)
                 for i, (p, c) in enumerate(zip(image_poses, image_cameras)):
@@ -235,7 +245,7 @@ def record(
                 rotation, centre = world_from_cam(p)
                 cam = _camera_dict(inliers[2]) if inliers and inliers[0] == name else default_camera
                 if cam is not None:
-                    _frustum(rr, rec, f"world/queries/{rr.escape_entity_path_part(name)}/estimate",
+                    _frustum(rr, rec, f"world/queries/{_entity_part(name)}/estimate",
                              rotation, centre, cam, depth, ESTIMATE_COLOR)
                 summary.estimates += 1
                 if name in truth:
@@ -243,7 +253,7 @@ def record(
             for name, p in truth.items():
                 rotation, centre = world_from_cam(p)
                 if default_camera is not None:
-                    _frustum(rr, rec, f"world/queries/{rr.escape_entity_path_part(name)}/truth",
+                    _frustum(rr, rec, f"world/queries/{_entity_part(name)}/truth",
                              rotation, centre, default_camera, depth, TRUTH_COLOR)
                 summary.truths += 1
             if errors:
@@ -271,7 +281,7 @@ def _inliers(rr: Any, rec: Any, inliers: Tuple[str, Any, Any], depth: float) -> 
         raise sfpmap.LocalizeError(f"query {name!r} was not localized: {found.failure}")
     pixels, points = found.inlier_pixels, found.inlier_points
     rotation, centre = world_from_cam(found.colmap)
-    base = f"world/queries/{rr.escape_entity_path_part(name)}"
+    base = f"world/queries/{_entity_part(name)}"
     _frustum(rr, rec, f"{base}/estimate", rotation, centre, _camera_dict(camera), depth, ESTIMATE_COLOR)
     rec.log(f"{base}/inliers/points", rr.Points3D(points, colors=ESTIMATE_COLOR), static=True)
     rec.log(f"{base}/inliers/links", rr.LineStrips3D([[p, centre] for p in points], colors=(255, 160, 160)), static=True)
@@ -282,11 +292,13 @@ def _inliers(rr: Any, rec: Any, inliers: Tuple[str, Any, Any], depth: float) -> 
 def _trajectory(rr: Any, rec: Any, frames: List[Tuple[float, np.ndarray, np.ndarray]]) -> int:
     if not frames:
         return 0
+    axis_length = _scene_scale(np.array([c for _, _, c in frames]))
     for i, (t, rotation, centre) in enumerate(frames):
         rec.set_time("frame", sequence=i)
         rec.set_time("time", duration=t)
-        rec.log("world/trajectory/camera", rr.Transform3D(translation=centre, mat3x3=rotation, axis_length=0.5))
+        rec.log("world/trajectory/camera", rr.Transform3D(translation=centre, mat3x3=rotation))
     rec.reset_time()
+    rec.log("world/trajectory/camera", rr.TransformAxes3D(axis_length), static=True)
     rec.log("world/trajectory/path", rr.LineStrips3D([[c for _, _, c in frames]], colors=(255, 255, 255)), static=True)
     return len(frames)
 

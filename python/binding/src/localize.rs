@@ -423,7 +423,7 @@ impl Localizer {
     #[pyo3(signature = (map, levels=None, short=false, top_k=None, retrieval="auto", ratio=None,
                         mutual=None, min_similarity=None, coarse_error_px=None, gate_px=None,
                         gate_ratio=None, fine_error_px=None, min_inliers=None, sequence=false,
-                        retrieval_probe=None))]
+                        retrieval_probe=None, keep_inliers=false))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -442,6 +442,7 @@ impl Localizer {
         min_inliers: Option<i64>,
         sequence: bool,
         retrieval_probe: Option<i64>,
+        keep_inliers: bool,
     ) -> PyResult<Self> {
         let opened = map.get().opened(py)?;
         // Each option left out (None) is the map's own default (LocalizeOptions::for_map:
@@ -479,6 +480,7 @@ impl Localizer {
             gate_ratio: gate_ratio.unwrap_or(base.gate_ratio),
             fine_error_px: fine_error_px.unwrap_or(base.fine_error_px),
             min_inliers,
+            keep_inliers,
         };
         let warnings = Warnings::default();
         let session = py.detach(|| {
@@ -621,6 +623,10 @@ pub(crate) struct Localization {
     retrieval: Option<&'static str>,
     retrieval_fallback: Option<String>,
     times: [f64; 5],
+    /// The pose's covariance, world frame (row-major 6×6: camera centre, then rotations).
+    covariance: Option<[f64; 36]>,
+    /// With `keep_inliers`: (pixel, point, level) of each final inlier.
+    inlier_links: Vec<sfpmap::localize::InlierLink>,
 }
 
 impl Localization {
@@ -658,6 +664,11 @@ impl Localization {
                 o.times.fine_ms,
                 o.times.total_ms,
             ],
+            covariance: match (pose, &o.covariance) {
+                (Some(p), Some(c)) => Some(c.world_from_camera(p)),
+                _ => None,
+            },
+            inlier_links: o.inlier_links.clone(),
         }
     }
 }
@@ -752,6 +763,24 @@ impl Localization {
     #[getter]
     fn _times(&self) -> [f64; 5] {
         self.times
+    }
+
+    /// The covariance of the camera's pose in the world, row-major 6×6, or `None`.
+    #[getter]
+    fn _covariance(&self) -> Option<Vec<f64>> {
+        self.covariance.map(|c| c.to_vec())
+    }
+
+    /// `(pixels [[x, y]…], points [[x, y, z]…], levels […])` of the final inliers
+    /// (`keep_inliers=True`; empty otherwise).
+    #[getter]
+    #[allow(clippy::type_complexity)]
+    fn _inlier_links(&self) -> (Vec<[f64; 2]>, Vec<[f64; 3]>, Vec<u16>) {
+        (
+            self.inlier_links.iter().map(|l| l.pixel).collect(),
+            self.inlier_links.iter().map(|l| l.point).collect(),
+            self.inlier_links.iter().map(|l| l.level).collect(),
+        )
     }
 }
 

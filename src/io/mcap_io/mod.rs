@@ -404,6 +404,44 @@ pub fn decode_image(
     }
 }
 
+/// The width and height of an image message of a ROS 2 image schema (cdr), read from its
+/// header (`sensor_msgs/msg/Image`) or its JPEG or PNG header, without decoding any pixel:
+/// a caller that knows the size it wants (a camera's) refuses another before paying for it.
+pub fn image_size(
+    schema: &str,
+    message_encoding: &str,
+    data: &[u8],
+) -> Result<(u32, u32), McapIoError> {
+    match (schema, message_encoding) {
+        (ROS_COMPRESSED_IMAGE, "cdr") => {
+            let m = ros_compressed_image(data)?;
+            let unknown = || McapIoError::UnsupportedImageEncoding {
+                encoding: if m.format.is_empty() {
+                    "unknown (no JPEG or PNG signature)".to_owned()
+                } else {
+                    m.format.to_owned()
+                },
+            };
+            image::ImageReader::new(std::io::Cursor::new(m.data))
+                .with_guessed_format()
+                .map_err(|_| unknown())?
+                .into_dimensions()
+                .map_err(|e| McapIoError::BadImage {
+                    reason: format!("its {} header does not read: {e}", m.format),
+                })
+        }
+        (ROS_IMAGE, "cdr") => {
+            let m = ros_image(data)?;
+            Ok((m.width, m.height))
+        }
+        _ => Err(McapIoError::UnsupportedSchema {
+            schema: schema.to_owned(),
+            encoding: message_encoding.to_owned(),
+            expected: IMAGE_SCHEMAS,
+        }),
+    }
+}
+
 /// JPEG or PNG bytes (format from the content; the `format` string only names errors),
 /// decoded as query files are ([`decode_complete`](crate::extract::image::decode_complete)):
 /// a cut-off or damaged JPEG is an error, not an image with its lost part grey.

@@ -1,0 +1,178 @@
+"""Rerun recordings (`sfpmap.viz`, `sfpmap export --rerun`), read back with rerun-sdk: the
+entities the module doc lists, with the counts the map and the queries give; and the inlier
+links and covariance a localization keeps."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import sfpmap
+import sfpmap.viz
+from conftest import cli_poses, copy_db, need_module, run_cli
+
+
+def read_back(path: Path) -> dict:
+    """{entity path: [(rows, timelines, {column: values per row})]} of a recording."""
+    rr = need_module("rerun")
+    store = rr.chunk.RrdReader(str(path)).stream().collect()
+    out: dict = {}
+    for chunk in store.stream():
+        batch = chunk.to_record_batch()
+        columns = {n: batch.column(n).to_pylist() for n in batch.schema.names if ":" in n}
+        out.setdefault(chunk.entity_path, []).append((chunk.num_rows, chunk.timeline_names, columns))
+    return out
+
+
+def column(entities: dict, entity: str, name: str) -> list:
+    """Every row's value of column `name` of `entity`, over its chunks."""
+    rows = []
+    for _, _, columns in entities.get(entity, []):
+        rows.extend(columns.get(name, []))
+    return rows
+
+
+@pytest.fixture(scope="module")
+def scene(cli, shared, sacre_sift, tmp_path_factory):
+    """Sacre Coeur: the SIFT map, its localized queries, the ground truth, a TUM trajectory of
+    the truth, and one query localized with its inliers kept."""
+    work = tmp_path_factory.mktemp("viz")
+    s = shared / "scenes/sacre-coeur"
+    db = copy_db(s / "queries.db", work)
+    poses = work / "poses.txt"
+    run_cli(cli, "localize", "--map", sacre_sift, "--query-list", s / "queries.txt", "--database", db, "-o", poses)
+    gt = sfpmap.viz.read_pose_lines(str(s / "gt_poses.txt"))
+    tum = work / "truth.tum"
+    with open(tum, "w") as f:
+        for i, (name, p) in enumerate(sorted(gt.items())):
+            r, c = sfpmap.viz.world_from_cam(p)
+            q = _quaternion_xyzw(r)
+            f.write(f"{i * 0.1:.1f} {c[0]} {c[1]} {c[2]} {q[0]} {q[1]} {q[2]} {q[3]}\n")
+    queries = sfpmap.read_queries(str(s / "queries.txt"))
+    name, camera = queries[0]
+    with sfpmap.Map(str(sacre_sift)) as m:
+        found = sfpmap.Localizer(m, keep_inliers=True).localize(
+            sfpmap.QueryDatabase(str(db)).features(name), camera, name=name
+        )
+    return {"map": sacre_sift, "scene": s, "db": db, "poses": poses, "gt": gt, "tum": tum,
+            "name": name, "camera": camera, "found": found, "work": work}
+
+
+def _quaternion_xyzw(r: np.ndarray) -> list:
+    w = np.sqrt(max(0.0, 1 + r[0, 0] + r[1, 1] + r[2, 2])) / 2
+    x = np.copysign(np.sqrt(max(0.0, 1 + r[0, 0] - r[1, 1] - r[2, 2])) / 2, r[2, 1] - r[1, 2])
+    y = np.copysign(np.sqrt(max(0.0, 1 - r[0, 0] + r[1, 1] - r[2, 2])) / 2, r[0, 2] - r[2, 0])
+    z = np.copysign(np.sqrt(max(0.0, 1 - r[0, 0] - r[1, 1] + r[2, 2])) / 2, r[1, 0] - r[0, 1])
+    return [x, y, z, w]
+
+
+def test_inlier_links_are_the_final_inliers_and_reproject_under_the_pose(scene):
+    found, camera = scene["found"], scene["camera"]
+    assert found.success
+    pixels, points, levels = found.inlier_pixels, found.inlier_points, found.inlier_levels
+    assert pixels.shape == (found.inliers, 2) and points.shape == (found.inliers, 3)
+    assert levels.shape == (found.inliers,)
+    with sfpmap.Map(str(scene["map"])) as m:
+        assert set(levels.tolist()) <= set(m.level_ids)
+        for level, n in found.inliers_per_level.items():
+            assert int((levels == level).sum()) == n
+    # Each point projects within the final RANSAC threshold (6 px) of its keypoint: the
+    # camera's focal length and principal point, through cam_from_world.
+    r, c = sfpmap.viz.world_from_cam(found.colmap)
+    cam = (points - c) @ r  # world -> camera: R_cw (p - c), R_cw = r.T
+    k, _ = sfpmap.viz._intrinsics(sfpmap.viz._camera_dict(camera))
+    projected = (cam @ k.T)[:, :2] / cam[:, 2:3]
+    error = np.linalg.norm(projected - pixels, axis=1)
+    # Radial distortion left out of the pinhole: a few pixels at the image's edge.
+    assert np.median(error) < 6.0, np.median(error)
+    # Without keep_inliers, none are kept.
+    with sfpmap.Map(str(scene["map"])) as m:
+        plain = sfpmap.Localizer(m).localize(
+            sfpmap.QueryDatabase(str(scene["db"])).features(scene["name"]), camera
+        )
+    assert plain.inlier_pixels.shape == (0, 2) and plain.inlier_points.shape == (0, 3)
+
+
+def test_the_covariance_is_symmetric_with_positive_variances(scene):
+    cov = scene["found"].covariance
+    assert cov.shape == (6, 6)
+    assert np.array_equal(cov, cov.T)
+    assert (np.diag(cov) > 0).all()
+    # Positive definite: a covariance, not just a symmetric matrix.
+    assert np.linalg.eigvalsh(cov).min() > 0
+
+
+def test_a_recording_holds_the_map_the_queries_their_inliers_and_a_trajectory(scene):
+    out = scene["work"] / "sacre.rrd"
+    s = scene["scene"]
+    r = subprocess.run(
+        [sys.executable, "-m", "sfpmap.viz", str(scene["map"]), "-o", str(out),
+         "--poses", str(scene["poses"]), "--gt", str(s / "gt_poses.txt"),
+         "--trajectory", str(scene["tum"]), "--inliers", scene["name"],
+         "--query-list", str(s / "queries.txt"), "--database", str(scene["db"]), "--json"],
+        capture_output=True, text=True,
+    )
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    entities = read_back(out)
+    with sfpmap.Map(str(scene["map"])) as m:
+        for level in m.levels:
+            positions = column(entities, f"/world/map/level_{level.id}", "Points3D:positions")
+            assert len(positions) == 1 and len(positions[0]) == len(level.points)
+            assert summary["points_per_level"][str(level.id)] == len(level.points)
+        n_images = m.n_images
+    cameras = [e for e in entities if e.startswith("/world/map/cameras/")]
+    assert len(cameras) == n_images == summary["cameras"]
+    assert all(column(entities, e, "Pinhole:image_from_camera") for e in cameras)
+    localized = [n for n, _ in sfpmap.viz.read_pose_lines(str(scene["poses"])).items()]
+    assert summary["estimates"] == len(localized) >= 1
+    errors = column(entities, "/world/queries/errors", "LineStrips3D:strips")
+    assert len(errors) == 1 and len(errors[0]) == len(set(localized) & set(scene["gt"]))
+    name = sfpmap.viz._entity_part(scene["name"])
+    inlier_points = column(entities, f"/world/queries/{name}/inliers/points", "Points3D:positions")
+    assert len(inlier_points[0]) == scene["found"].inliers == summary["inliers"]
+    keypoints = column(entities, f"/world/queries/{name}/estimate/keypoints", "Points2D:positions")
+    assert len(keypoints[0]) == scene["found"].inliers
+    links = column(entities, f"/world/queries/{name}/inliers/links", "LineStrips3D:strips")
+    assert len(links[0]) == scene["found"].inliers
+    # The trajectory: one pose per frame on the `frame` timeline, and its whole path.
+    frames = sum(n for n, timelines, _ in entities["/world/trajectory/camera"] if "frame" in timelines)
+    assert frames == len(scene["gt"]) == summary["trajectory"]
+    path = column(entities, "/world/trajectory/path", "LineStrips3D:strips")
+    assert len(path[0][0]) == len(scene["gt"])
+
+
+def test_the_cli_exports_the_same_recording_and_refuses_to_overwrite(cli, scene):
+    out = scene["work"] / "cli.rrd"
+    env = {**os.environ, "SFPMAP_PYTHON": sys.executable}
+    def export(*extra):
+        return subprocess.run([str(cli), "export", str(scene["map"]), "--rerun", str(out), *extra],
+                              capture_output=True, text=True, env=env)
+    r = export("--json")
+    assert r.returncode == 0, r.stderr
+    entities = read_back(out)
+    with sfpmap.Map(str(scene["map"])) as m:
+        for level in m.levels:
+            assert len(column(entities, f"/world/map/level_{level.id}", "Points3D:positions")[0]) == len(level.points)
+    before = out.stat().st_mtime_ns
+    r = export()
+    assert r.returncode != 0 and "exists" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert out.stat().st_mtime_ns == before
+    # The map is never the output.
+    r = subprocess.run([str(cli), "export", str(scene["map"]), "--rerun", str(scene["map"]), "--force"],
+                       capture_output=True, text=True, env=env)
+    assert r.returncode != 0, r.stderr
+    assert not list(scene["work"].glob(".sfpmap-viz-*")), "a temp file was left"
+
+
+def test_a_pose_line_that_is_not_one_is_named(scene, tmp_path):
+    bad = tmp_path / "bad.txt"
+    bad.write_text("q.jpg 1 0 0 0 1 2\n")
+    with pytest.raises(sfpmap.InputError, match=r"bad.txt:1: expected"):
+        sfpmap.viz.read_pose_lines(str(bad))
