@@ -13,6 +13,8 @@ Modes (one JSON line of results on stdout):
   hostile   publish malformed messages (a truncated CompressedImage, another type on the
             topic, an empty image), then one good frame that must still be localized
   info      publish a CameraInfo (reliable, transient local) every 0.2 s until stopped
+  raw       sensor_msgs/Image (mono8, decoded here with Pillow): a 0x0 image, the frames in
+            lockstep, then a burst of frames with no wait; reads /tf and /diagnostics back
 """
 
 import argparse
@@ -63,6 +65,24 @@ class CutCompressedImage(IdlStruct, typename="sensor_msgs::msg::dds_::Compressed
 
     header: Header
     format: str
+
+
+@dataclass
+class Image(IdlStruct, typename="sensor_msgs::msg::dds_::Image_"):
+    header: Header
+    height: uint32
+    width: uint32
+    encoding: str
+    is_bigendian: uint8
+    step: uint32
+    data: sequence[uint8]
+
+
+@dataclass
+class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
+    x: float64
+    y: float64
+    z: float64
 
 
 @dataclass
@@ -127,6 +147,24 @@ class PoseWithCovarianceStamped(
 ):
     header: Header
     pose: PoseWithCovariance
+
+
+@dataclass
+class Transform(IdlStruct, typename="geometry_msgs::msg::dds_::Transform_"):
+    translation: Vector3
+    rotation: Quaternion
+
+
+@dataclass
+class TransformStamped(IdlStruct, typename="geometry_msgs::msg::dds_::TransformStamped_"):
+    header: Header
+    child_frame_id: str
+    transform: Transform
+
+
+@dataclass
+class TFMessage(IdlStruct, typename="tf2_msgs::msg::dds_::TFMessage_"):
+    transforms: sequence[TransformStamped]
 
 
 @dataclass
@@ -228,13 +266,15 @@ def status_json(s):
     return {"level": st.level, "message": st.message, "values": {kv.key: kv.value for kv in st.values}}
 
 
-def lockstep(peer, args):
+def lockstep(peer, args, writer=None, make=None):
     """Each frame published, then its pose (or its failed status) awaited."""
-    writer = peer.writer(peer.image_topic, reliable=True)
-    peer.wait_matched(writer)
+    if writer is None:
+        writer = peer.writer(peer.image_topic, reliable=True)
+        peer.wait_matched(writer)
+    make = make or (lambda path, ns: frame(path, ns))
     poses, statuses, out = {}, {}, []
     for name, ns in zip(args.names, args.stamps):
-        writer.write(frame(os.path.join(args.images, name), ns))
+        writer.write(make(os.path.join(args.images, name), ns))
         end = time.monotonic() + args.timeout
         k = key(stamp_of(ns))
         while k not in statuses and time.monotonic() < end:
@@ -326,6 +366,51 @@ def hostile(peer, args):
     return {"sent": sent, "other_type_matched": other_matched, **good}
 
 
+def mono8(path, ns, frame_id="camera_left"):
+    """A frame as sensor_msgs/Image mono8, decoded with Pillow."""
+    from PIL import Image as Pil
+
+    g = Pil.open(path).convert("L")
+    return Image(Header(stamp_of(ns), frame_id), g.height, g.width, "mono8", 0, g.width, g.tobytes())
+
+
+def raw(peer, args):
+    """An empty (0x0) Image, the frames in lockstep, a burst of them with no wait; /tf and
+    /diagnostics read back."""
+    topic = Topic(peer.dp, "rt" + args.image_topic, Image)
+    tf = DataReader(peer.dp, Topic(peer.dp, "rt/tf", TFMessage), qos=qos(True, 100))
+    diagnostics = DataReader(peer.dp, Topic(peer.dp, "rt/diagnostics", DiagnosticArray), qos=qos(True, 100))
+    writer = DataWriter(peer.dp, topic, qos=qos(True, 1000))
+    peer.wait_matched(writer)
+    writer.write(Image(Header(stamp_of(1), "camera_left"), 0, 0, "mono8", 0, 0, []))
+    time.sleep(0.4)
+    result = lockstep(peer, args, writer, lambda path, ns: mono8(path, ns, "kitti/camera_left"))
+    # A burst: every frame at once, several times over; the node keeps the newest.
+    burst = [mono8(os.path.join(args.images, n), 10_000 + i) for i, n in enumerate(args.names * 3)]
+    for m in burst:
+        writer.write(m)
+    time.sleep(3.0)
+    transforms, summaries = [], []
+    end = time.monotonic() + 2.0
+    while time.monotonic() < end:
+        for m in tf.take(N=100):
+            transforms.extend(m.transforms)
+        for m in diagnostics.take(N=100):
+            summaries.extend(m.status)
+        time.sleep(0.05)
+    result["tf"] = [
+        {"parent": t.header.frame_id, "child": t.child_frame_id, "stamp": [t.header.stamp.sec, t.header.stamp.nanosec],
+         "translation": [t.transform.translation.x, t.transform.translation.y, t.transform.translation.z]}
+        for t in transforms
+    ]
+    result["diagnostics"] = [
+        {"level": d.level, "name": d.name, "message": d.message, "values": {kv.key: kv.value for kv in d.values}}
+        for d in summaries
+    ]
+    result["burst"] = len(burst)
+    return result
+
+
 def info(peer, args):
     """A CameraInfo of --camera (PINHOLE W H fx fy cx cy, COLMAP's), every 0.2 s."""
     _, w, h, fx, fy, cx, cy = args.camera.split()
@@ -351,7 +436,7 @@ def info(peer, args):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("mode", choices=["lockstep", "rate", "hostile", "info"])
+    parser.add_argument("mode", choices=["lockstep", "rate", "hostile", "info", "raw"])
     parser.add_argument("--domain", type=int, required=True)
     parser.add_argument("--image-topic", default="/camera/image_raw/compressed")
     parser.add_argument("--pose-topic", default="/sfpmap/pose")
@@ -369,7 +454,8 @@ def main():
     args = parser.parse_args()
     os.environ.setdefault("CYCLONEDDS_URI", LOOPBACK)
     peer = Peer(args)
-    result = {"lockstep": lockstep, "rate": rate, "hostile": hostile, "info": info}[args.mode](peer, args)
+    modes = {"lockstep": lockstep, "rate": rate, "hostile": hostile, "info": info, "raw": raw}
+    result = modes[args.mode](peer, args)
     json.dump(result, sys.stdout)
     sys.stdout.write("\n")
 

@@ -407,7 +407,23 @@ pub fn decode_image(
 /// The width and height of an image message of a ROS 2 image schema (cdr), read from its
 /// header (`sensor_msgs/msg/Image`) or its JPEG or PNG header, without decoding any pixel:
 /// a caller that knows the size it wants (a camera's) refuses another before paying for it.
+/// An image of no pixels (0 wide or high) is an error, as decoding it is.
 pub fn image_size(
+    schema: &str,
+    message_encoding: &str,
+    data: &[u8],
+) -> Result<(u32, u32), McapIoError> {
+    let (w, h) = stated_image_size(schema, message_encoding, data)?;
+    if w == 0 || h == 0 {
+        return Err(McapIoError::BadImage {
+            reason: format!("{w}x{h} pixels"),
+        });
+    }
+    Ok((w, h))
+}
+
+/// The size an image message states, whatever it is.
+fn stated_image_size(
     schema: &str,
     message_encoding: &str,
     data: &[u8],
