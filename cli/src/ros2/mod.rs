@@ -158,6 +158,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         ),
     };
     let session = session(&args, &bars)?;
+    crate::report_transfer(session.map(), quiet);
     let domain = match args.domain_id {
         Some(d) => d,
         None => domain_from_env()?,
