@@ -100,6 +100,9 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         .map(|p| p.as_path())
         .collect();
     check_outputs(&outputs, &[&args.map], args.force)?;
+    if let Some(out) = &args.rerun {
+        check_rerun(out)?;
+    }
     let map = super::open_map(&args.map)?;
     let source = sfpmap::escape::path(&args.map).to_string();
     let mut report = serde_json::Map::new();
@@ -211,12 +214,42 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
     })
 }
 
+/// What a `--rerun` that cannot import the package says.
+const RERUN_HINT: &str = ": --rerun needs the Python package with its viz extra \
+     (pip install 'sfpmap[viz]'), in SFPMAP_PYTHON or python3";
+
+/// The interpreter `--rerun` runs: `SFPMAP_PYTHON`, else `python3`.
+fn rerun_python() -> std::ffi::OsString {
+    std::env::var_os("SFPMAP_PYTHON").unwrap_or_else(|| "python3".into())
+}
+
+/// Before any output is written: the interpreter imports `sfpmap.viz` and rerun-sdk, so a
+/// missing one leaves no other output behind.
+fn check_rerun(out: &Path) -> anyhow::Result<()> {
+    let python = rerun_python();
+    let ok = std::process::Command::new(&python)
+        .args(["-c", "import sfpmap.viz, rerun"])
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if !ok {
+        bail!(
+            "{}: {} cannot import sfpmap.viz and rerun{RERUN_HINT}",
+            sfpmap::escape::path(out),
+            Path::new(&python).display()
+        );
+    }
+    Ok(())
+}
+
 /// `python -m sfpmap.viz MAP -o OUT --force --json` (the output policy was checked here):
 /// the recording is written by the Python package, through rerun-sdk. Rerun's SDK for Rust
 /// would add a few hundred crates (Arrow, its own protocol) to every build of the CLI for one
 /// export; the Python one is a wheel that users of Rerun already have. Its summary.
 fn rerun(map: &Path, out: &Path) -> anyhow::Result<serde_json::Value> {
-    let python = std::env::var_os("SFPMAP_PYTHON").unwrap_or_else(|| "python3".into());
+    let python = rerun_python();
     let run = std::process::Command::new(&python)
         .args(["-m", "sfpmap.viz"])
         .arg(map)
@@ -241,7 +274,7 @@ fn rerun(map: &Path, out: &Path) -> anyhow::Result<serde_json::Value> {
             .unwrap_or("it failed")
             .trim_start_matches("error: ");
         let hint = if stderr.contains("No module named") {
-            ": --rerun needs the Python package with its viz extra (pip install 'sfpmap[viz]'),              in SFPMAP_PYTHON or python3"
+            RERUN_HINT
         } else {
             ""
         };

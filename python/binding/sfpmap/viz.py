@@ -15,7 +15,7 @@
   camera centre to its true one;
 - ``queries/<name>/inliers``: for the query ``--inliers`` names, localized here, the 3D points
   of its final inliers, a line from each to the camera centre, and their keypoints in the
-  camera's image plane (``.../estimate/image/keypoints``);
+  camera's image plane (``.../estimate/keypoints``);
 - ``trajectory``: a sequence's poses over time (``--trajectory``: TUM lines, world_from_cam, as
   ``localize --sequence --format tum``, ``localize --mcap --tum`` or ``export --tum`` write them)
   on the timeline ``frame`` (and ``time``, the TUM stamps in seconds), and its whole path.
@@ -88,6 +88,8 @@ def _rerun() -> Any:
 def rotation_matrix(qw: float, qx: float, qy: float, qz: float) -> np.ndarray:
     """The rotation of a unit quaternion (w, x, y, z)."""
     n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    if not (n > 0 and math.isfinite(n)):
+        raise sfpmap.InputError(f"quaternion ({qw}, {qx}, {qy}, {qz}) is not a rotation")
     w, x, y, z = qw / n, qx / n, qy / n, qz / n
     return np.array(
         [
@@ -183,7 +185,8 @@ def _camera_dict(camera: sfpmap.Camera) -> Dict[str, Any]:
 
 
 def _scene_scale(centres: np.ndarray) -> float:
-    """A frustum depth that suits the scene: a tenth of the median spacing of the cameras."""
+    """A frustum depth that suits the scene: half the median distance between consecutive
+    cameras."""
     if len(centres) < 2:
         return 0.1
     d = np.linalg.norm(np.diff(centres, axis=0), axis=1)
@@ -200,12 +203,22 @@ def record(
     trajectory: Optional[str] = None,
     inliers: Optional[Tuple[str, "sfpmap.Localization", sfpmap.Camera]] = None,
     max_points: Optional[int] = None,
+    force: bool = False,
 ) -> Summary:
     """Writes the recording of the map at ``map_path`` (and whatever else is given, as the
     module says) to ``out``. ``inliers``: (query name, its localization made with
     ``Localizer(keep_inliers=True)``, its camera). ``max_points``: at most this many points
-    per level (every n-th), for maps too large to look at whole."""
+    per level (every n-th), for maps too large to look at whole. An existing ``out`` is
+    refused unless ``force``; one of the inputs, always."""
     rr = _rerun()
+    if max_points is not None and max_points < 1:
+        raise sfpmap.InputError(f"max_points {max_points}: at least 1")
+    if os.path.lexists(out):
+        inputs = [p for p in (map_path, poses, gt, trajectory) if p and os.path.exists(p)]
+        if any(os.path.samefile(p, out) for p in inputs):
+            raise sfpmap.InputError(f"{out}: is one of the inputs")
+        if not force:
+            raise sfpmap.InputError(f"{out}: exists (force=True, --force, overwrites it)")
     summary = Summary()
     folder = os.path.dirname(os.path.abspath(out))
     fd, temp = tempfile.mkstemp(prefix=".sfpmap-viz-", suffix=".rrd", dir=folder)
@@ -265,6 +278,10 @@ def record(
                 summary.trajectory = _trajectory(rr, rec, read_tum(trajectory))
         rec.flush()
         rec.disconnect()
+        # As every file sfpmap writes: the umask's mode, not mkstemp's 0600.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(temp, 0o666 & ~umask)
         os.replace(temp, out)
     except BaseException:
         try:
@@ -326,22 +343,22 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--camera", help="one camera for every query ('MODEL W H params...')")
     parser.add_argument("--images", help="query images (SFP maps: features extracted here)")
     parser.add_argument("--database", help="a COLMAP database with the queries' features (SIFT maps)")
-    parser.add_argument("--max-points", type=int, help="at most this many points per level")
+    parser.add_argument("--max-points", type=int, help="at most this many points per level (1 or more)")
     parser.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
     parser.add_argument("--json", action="store_true", help="print what was recorded as JSON")
     args = parser.parse_args(argv)
     try:
-        if os.path.exists(args.out) and not args.force:
-            raise sfpmap.InputError(f"{args.out}: exists (--force overwrites it)")
-        inputs = [p for p in (args.map, args.poses, args.gt, args.trajectory, args.query_list, args.database) if p]
-        if any(os.path.exists(p) and os.path.samefile(p, args.out) for p in inputs if os.path.exists(args.out)):
+        named = [p for p in (args.query_list, args.database, args.images) if p]
+        if os.path.lexists(args.out) and any(os.path.exists(p) and os.path.samefile(p, args.out) for p in named):
             raise sfpmap.InputError(f"{args.out}: is one of the inputs")
         links = None
         if args.inliers:
             links = _localize_one(args)
         summary = record(args.map, args.out, poses=args.poses, gt=args.gt, trajectory=args.trajectory,
-                         inliers=links, max_points=args.max_points)
-    except (sfpmap.Error, OSError) as e:
+                         inliers=links, max_points=args.max_points, force=args.force)
+    except KeyboardInterrupt:
+        return 130
+    except Exception as e:  # one line, whatever failed (the CLI shows it after OUT's name)
         print(f"error: {e}", file=sys.stderr)
         return 1
     if args.json:

@@ -42,5 +42,6 @@ def record(
     trajectory: Optional[str] = None,
     inliers: Optional[Tuple[str, sfpmap.Localization, sfpmap.Camera]] = None,
     max_points: Optional[int] = None,
+    force: bool = False,
 ) -> Summary: ...
 def main(argv: Optional[Sequence[str]] = None) -> int: ...

@@ -171,6 +171,37 @@ def test_the_cli_exports_the_same_recording_and_refuses_to_overwrite(cli, scene)
     assert not list(scene["work"].glob(".sfpmap-viz-*")), "a temp file was left"
 
 
+def test_a_python_without_the_package_is_refused_before_any_output(cli, scene, tmp_path):
+    ply, rrd = tmp_path / "m.ply", tmp_path / "m.rrd"
+    env = {**os.environ, "SFPMAP_PYTHON": "/bin/false"}
+    r = subprocess.run([str(cli), "export", str(scene["map"]), "--ply", str(ply), "--rerun", str(rrd)],
+                       capture_output=True, text=True, env=env)
+    assert r.returncode == 1
+    assert r.stderr.count("\n") == 1 and "pip install 'sfpmap[viz]'" in r.stderr, r.stderr
+    assert not ply.exists() and not rrd.exists()
+
+
+def test_record_refuses_its_inputs_and_an_existing_output_and_leaves_no_temp(scene, tmp_path):
+    m = str(scene["map"])
+    before = scene["map"].stat().st_mtime_ns
+    with pytest.raises(sfpmap.InputError, match="is one of the inputs"):
+        sfpmap.viz.record(m, m, force=True)
+    assert scene["map"].stat().st_mtime_ns == before
+    out = tmp_path / "x.rrd"
+    out.write_bytes(b"kept")
+    with pytest.raises(sfpmap.InputError, match="exists"):
+        sfpmap.viz.record(m, str(out))
+    assert out.read_bytes() == b"kept"
+    # A bad ground-truth line fails the recording part-way: no output, no temp file.
+    bad = tmp_path / "bad.txt"
+    bad.write_text("q.jpg 0 0 0 0 1 2 3\n")
+    fresh = tmp_path / "fresh.rrd"
+    with pytest.raises(sfpmap.InputError, match="not a rotation"):
+        sfpmap.viz.record(m, str(fresh), gt=str(bad))
+    assert not fresh.exists()
+    assert not list(tmp_path.glob(".sfpmap-viz-*"))
+
+
 def test_a_pose_line_that_is_not_one_is_named(scene, tmp_path):
     bad = tmp_path / "bad.txt"
     bad.write_text("q.jpg 1 0 0 0 1 2\n")
