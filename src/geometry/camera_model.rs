@@ -152,6 +152,28 @@ impl CameraModel {
         MODELS[self as usize].3
     }
 
+    /// `(fx, fy, cx, cy)` of any model's parameters, read by the names in COLMAP's order
+    /// (`f` is both focal lengths), for drawing a camera as a pinhole; `None` for a model
+    /// without them (EQUIRECTANGULAR) or parameters of another count.
+    pub fn pinhole_part(self, params: &[f64]) -> Option<[f64; 4]> {
+        if params.len() != self.num_params() {
+            return None;
+        }
+        let named = |want: &str| {
+            self.param_names()
+                .split(", ")
+                .position(|n| n == want)
+                .map(|i| params[i])
+        };
+        let focal = named("f");
+        Some([
+            named("fx").or(focal)?,
+            named("fy").or(focal)?,
+            named("cx")?,
+            named("cy")?,
+        ])
+    }
+
     /// The model with COLMAP name `name` (exact, upper case as COLMAP writes it).
     pub fn from_name(name: &str) -> Option<Self> {
         MODELS.iter().find(|m| m.1 == name).map(|m| m.0)
@@ -176,6 +198,39 @@ impl std::fmt::Display for CameraModel {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_model_but_equirectangular_has_a_pinhole_part() {
+        for model in CameraModel::ALL {
+            let params: Vec<f64> = (1..=model.num_params()).map(|i| i as f64).collect();
+            let part = model.pinhole_part(&params);
+            let names: Vec<&str> = model.param_names().split(", ").collect();
+            let value = |n: &str| names.iter().position(|x| *x == n).map(|i| params[i]);
+            match model {
+                CameraModel::Equirectangular => assert_eq!(part, None),
+                _ => {
+                    let f = value("f");
+                    let expected = [
+                        value("fx").or(f).unwrap(),
+                        value("fy").or(f).unwrap(),
+                        value("cx").unwrap(),
+                        value("cy").unwrap(),
+                    ];
+                    assert_eq!(part, Some(expected), "{model}");
+                }
+            }
+        }
+        // The positions, spelled out for two models.
+        assert_eq!(
+            CameraModel::SimpleDivision.pinhole_part(&[500.0, 321.0, 241.0, -0.1]),
+            Some([500.0, 500.0, 321.0, 241.0])
+        );
+        assert_eq!(
+            CameraModel::OpenCv.pinhole_part(&[510.0, 520.0, 323.0, 243.0, 0.1, 0.0, 0.0, 0.0]),
+            Some([510.0, 520.0, 323.0, 243.0])
+        );
+        assert_eq!(CameraModel::OpenCv.pinhole_part(&[1.0]), None);
+    }
 
     #[test]
     fn table_is_in_id_order_and_round_trips() {

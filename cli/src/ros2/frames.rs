@@ -186,6 +186,30 @@ impl Latencies {
     }
 }
 
+/// A frame's latencies by stage: the whole (received to pose published), and its parts —
+/// waiting for a worker, decoding and extracting, localizing — to tell where a slow frame
+/// spent its time; and the whole of the frames localized by tracking alone (a sequence's
+/// steady state, without the frames that retrieve after tracking was lost).
+#[derive(Default)]
+pub struct Stages {
+    pub total: Latencies,
+    pub tracked: Latencies,
+    pub queued: Latencies,
+    pub extract: Latencies,
+    pub localize: Latencies,
+}
+
+impl Stages {
+    /// Each stage's name and latencies, in pipeline order.
+    pub fn parts(&self) -> [(&'static str, &Latencies); 3] {
+        [
+            ("queued", &self.queued),
+            ("decode_extract", &self.extract),
+            ("localize", &self.localize),
+        ]
+    }
+}
+
 /// Sequence numbers per writer, to count samples that never arrived.
 #[derive(Default)]
 pub struct Gaps {

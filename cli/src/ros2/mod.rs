@@ -19,7 +19,7 @@ use crate::localize::MatchArgs;
 use crate::Bars;
 use anyhow::{bail, Context as _};
 use dds::{Participant, RawReader};
-use frames::{Counts, Gaps, Latencies, Mailbox};
+use frames::{Counts, Gaps, Mailbox, Stages};
 use ros2_client::dds::rustdds;
 use ros2_client::QosProfile;
 use sfpmap::geometry::Camera;
@@ -88,8 +88,8 @@ pub struct Args {
     /// reliable publisher matches it too) or reliable (a best-effort publisher does not match).
     #[arg(long, value_enum, default_value = "best-effort")]
     pub reliability: ReliabilityArg,
-    /// 1: one thread decodes, extracts, localizes and publishes; 2: extraction of the next
-    /// frame overlaps localizing this one.
+    /// 1: one thread decodes, extracts (one inference thread), localizes and publishes;
+    /// 2: extraction of the next frame (two inference threads) overlaps localizing this one.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u8).range(1..=2))]
     pub threads: u8,
     /// Localize each frame on its own (no pose prior from the frames before).
@@ -199,7 +199,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         camera: Mutex::new(fixed_camera),
         camera_from_topic: args.camera_info_topic.is_some(),
         counts: Counts::default(),
-        latencies: Mutex::new(Latencies::default()),
+        latencies: Mutex::new(Stages::default()),
         handled_limit: args.frames,
         handled: Default::default(),
         raw: Mailbox::default(),
@@ -267,6 +267,7 @@ fn session(args: &Args, bars: &Bars) -> anyhow::Result<Session> {
         .options(options)
         .source(source)
         .sequence(!args.no_tracking)
+        .extractor_threads(args.threads.into())
         .build(bars)
         .map_err(|e| match e {
             sfpmap::session::SessionError::NotExtractable { .. } => anyhow::anyhow!(
@@ -398,7 +399,8 @@ fn receive(
 /// The counts and latencies at the end: a line each, or one JSON line with `--json`.
 fn report(args: &Args, shared: &Shared<'_>, elapsed: Duration, quiet: bool) -> anyhow::Result<()> {
     let counts = shared.counts.all();
-    let latencies = shared.latencies.lock().unwrap_or_else(|p| p.into_inner());
+    let stages = shared.latencies.lock().unwrap_or_else(|p| p.into_inner());
+    let latencies = &stages.total;
     let (p50, p99) = (latencies.quantile_ms(0.5), latencies.quantile_ms(0.99));
     if args.json {
         let mut value = serde_json::Map::new();
@@ -409,6 +411,23 @@ fn report(args: &Args, shared: &Shared<'_>, elapsed: Duration, quiet: bool) -> a
         value.insert(
             "latency_ms".into(),
             serde_json::json!({"median": p50, "p99": p99, "frames": latencies.count()}),
+        );
+        let parts: serde_json::Map<_, _> = stages
+            .parts()
+            .iter()
+            .map(|(name, l)| {
+                let q = |q| l.quantile_ms(q);
+                (
+                    (*name).into(),
+                    serde_json::json!({"median": q(0.5), "p99": q(0.99)}),
+                )
+            })
+            .collect();
+        value.insert("stages_ms".into(), parts.into());
+        let tracked = &stages.tracked;
+        value.insert(
+            "tracked_latency_ms".into(),
+            serde_json::json!({"median": tracked.quantile_ms(0.5), "p99": tracked.quantile_ms(0.99), "frames": tracked.count()}),
         );
         value.insert("threads".into(), args.threads.into());
         crate::print_json(&serde_json::Value::Object(value))?;

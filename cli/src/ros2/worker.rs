@@ -6,20 +6,20 @@ use super::dds::{
     PoseWithCovariance, PoseWithCovarianceStamped, Quaternion, TfMessage, Transform,
     TransformStamped, Xyz,
 };
-use super::frames::{Counts, Latencies, Mailbox};
+use super::frames::{Counts, Mailbox, Stages};
 use super::Args;
 use crate::Bars;
 use ros2_client::{Publisher, QosProfile};
 use sfpmap::geometry::{Camera, Pose};
 use sfpmap::io::mcap_io::{self, Stamp};
-use sfpmap::localize::Localization;
+use sfpmap::localize::{Localization, LocalizationPath};
 use sfpmap::progress::Reporter;
 use sfpmap::session::{image_misfits_camera, Frame, Session};
 use std::collections::HashSet;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 /// An image message as it was taken off the topic.
 pub struct Incoming {
@@ -35,6 +35,9 @@ pub struct Extracted {
     stamp: Option<Stamp>,
     frame_id: String,
     received: Instant,
+    /// Taken off the mailbox by a worker, and decoded and extracted, this long after `received`.
+    queued: Duration,
+    extracted: Duration,
 }
 
 /// What the receiving thread and the workers share.
@@ -48,7 +51,7 @@ pub struct Shared<'a> {
     pub camera: Mutex<Option<Camera>>,
     pub camera_from_topic: bool,
     pub counts: Counts,
-    pub latencies: Mutex<Latencies>,
+    pub latencies: Mutex<Stages>,
     /// `--frames`.
     pub handled_limit: Option<u64>,
     /// Frames localized or failed.
@@ -149,6 +152,7 @@ impl Shared<'_> {
     /// do not decode or there is no camera of its size.
     fn prepare(&self, incoming: Incoming) -> Option<Extracted> {
         let Incoming { bytes, received } = incoming;
+        let queued = received.elapsed();
         let malformed = |e: mcap_io::McapIoError| {
             Counts::add(&self.counts.malformed);
             self.warn_once(
@@ -210,6 +214,8 @@ impl Shared<'_> {
             stamp: decoded.stamp,
             frame_id: decoded.frame_id,
             received,
+            queued,
+            extracted: received.elapsed(),
         })
     }
 
@@ -221,11 +227,14 @@ impl Shared<'_> {
             stamp,
             frame_id,
             received,
+            queued,
+            extracted,
         } = extracted;
         let name = match stamp {
             Some(s) => format!("frame {}.{:09}", s.sec, s.nsec),
             None => "frame".to_owned(),
         };
+        let localizing = Instant::now();
         let found = match features {
             Ok(frame) => self
                 .session
@@ -236,6 +245,7 @@ impl Shared<'_> {
                 Err(reason)
             }
         };
+        let localized_in = localizing.elapsed();
         let stamp = stamp.map_or_else(dds::now, |s| dds::ros_time(s.sec, s.nsec));
         let pose = found
             .as_ref()
@@ -251,10 +261,16 @@ impl Shared<'_> {
         } else {
             &self.counts.failed
         });
-        self.latencies
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .record(latency);
+        {
+            let mut stages = lock(&self.latencies);
+            stages.total.record(latency);
+            if matches!(&found, Ok(l) if localized && l.path == LocalizationPath::Tracking) {
+                stages.tracked.record(latency);
+            }
+            stages.queued.record(queued);
+            stages.extract.record(extracted.saturating_sub(queued));
+            stages.localize.record(localized_in);
+        }
         self.handled.fetch_add(1, Ordering::Relaxed);
         outputs.status(&found, stamp, latency.as_secs_f64() * 1e3, self);
     }
@@ -475,7 +491,8 @@ impl Outputs {
     /// The counts and latencies on `/diagnostics`, once a second (what ROS's diagnostic
     /// aggregator reads).
     pub fn summary(&self, shared: &Shared<'_>) {
-        let latencies = lock(&shared.latencies);
+        let stages = lock(&shared.latencies);
+        let latencies = &stages.total;
         let mut values: Vec<KeyValue> = shared
             .counts
             .all()
@@ -493,7 +510,7 @@ impl Outputs {
                 });
             }
         }
-        drop(latencies);
+        drop(stages);
         // What changed since the last summary: WARN while frames are being dropped, STALE
         // while none arrive.
         let (dropped, received) = (

@@ -63,6 +63,8 @@ from ._sfpmap import (  # noqa: F401  (re-exported)
     NoSuchLevelError,
     QueryDatabase,
     __version__,
+    pinhole_intrinsics,
+    read_poses,
     read_queries,
 )
 
@@ -92,6 +94,8 @@ __all__ = [
     "convert",
     "from_pycolmap",
     "read_features_h5",
+    "pinhole_intrinsics",
+    "read_poses",
     "read_queries",
     "slice",
 ]

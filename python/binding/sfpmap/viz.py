@@ -8,17 +8,22 @@
 
 - ``map/level_<L>``: the map's points of level L (a point on several levels is drawn in each),
   one colour per level (``LEVEL_COLORS``);
-- ``map/cameras/<i>``: each database image's camera as a frustum (its pose and intrinsics);
+- ``map/cameras/<i>``: database image i's camera as a frustum (its pose, and the focal lengths
+  and principal point of its camera model; distortion left out); at most ``MAX_CAMERAS`` of
+  them, spread evenly over the images;
 - ``queries/<name>/estimate`` and ``queries/<name>/truth``: a query's localized pose
   (``--poses``: ``localize -o`` lines, COLMAP's ``name qw qx qy qz tx ty tz``) and its ground
-  truth (``--gt``, the same lines) as frusta, and ``queries/errors``: a line from each estimated
-  camera centre to its true one;
+  truth (``--gt``, the same lines) as frusta;
+- ``errors``: a line from each estimated camera centre to its true one;
 - ``queries/<name>/inliers``: for the query ``--inliers`` names, localized here, the 3D points
   of its final inliers, a line from each to the camera centre, and their keypoints in the
-  camera's image plane (``.../estimate/keypoints``);
+  camera's image plane (``.../estimate/keypoints``); its features are extracted with the map's
+  own model (``--images``, or ``--model FILE``) or read from ``--database``, and it is localized
+  with the library's default options;
 - ``trajectory``: a sequence's poses over time (``--trajectory``: TUM lines, world_from_cam, as
   ``localize --sequence --format tum``, ``localize --mcap --tum`` or ``export --tum`` write them)
-  on the timeline ``frame`` (and ``time``, the TUM stamps in seconds), and its whole path.
+  on the timeline ``frame`` (and ``time``: the TUM stamps, as dates where they are Unix times,
+  else as seconds from zero), and its whole path.
 
 A recording is written whole to a temp file beside OUT and renamed into place: OUT is never
 half-written, and nothing else is written.
@@ -39,7 +44,7 @@ import numpy as np
 import sfpmap
 
 __all__ = [
-    "LEVEL_COLORS", "MAX_CAMERAS", "Summary", "main", "read_pose_lines", "read_tum", "record",
+    "LEVEL_COLORS", "MAX_CAMERAS", "Summary", "main", "read_tum", "record",
     "rotation_matrix", "world_from_cam",
 ]
 
@@ -47,8 +52,11 @@ __all__ = [
 LEVEL_COLORS = [(230, 159, 0), (86, 180, 233), (0, 158, 115), (204, 121, 167)]
 #: Colours of a query's estimated pose, its ground truth, and the error between them.
 ESTIMATE_COLOR, TRUTH_COLOR, ERROR_COLOR = (255, 64, 64), (64, 200, 64), (255, 255, 0)
-#: Frusta are drawn for at most this many database images (every one below it).
+#: Frusta are drawn for at most this many database images (every one below it, else every
+#: n-th).
 MAX_CAMERAS = 5000
+#: TUM stamps from this on (2001-09-09) are read as Unix times.
+UNIX_STAMPS_FROM = 1e9
 
 
 @dataclass
@@ -108,27 +116,6 @@ def world_from_cam(colmap: Sequence[float]) -> Tuple[np.ndarray, np.ndarray]:
     return r.T, -r.T @ t
 
 
-def read_pose_lines(path: str) -> Dict[str, List[float]]:
-    """``name qw qx qy qz tx ty tz`` lines (``localize -o``, gt_poses.txt); ``#`` lines and
-    failed queries are skipped. A line that is not one is an error naming the file and line."""
-    poses: Dict[str, List[float]] = {}
-    with open(path, encoding="utf-8") as f:
-        for number, line in enumerate(f, 1):
-            fields = line.split()
-            if not fields or fields[0].startswith("#"):
-                continue
-            try:
-                values = [float(v) for v in fields[-7:]]
-                if len(fields) < 8 or not all(math.isfinite(v) for v in values):
-                    raise ValueError
-            except ValueError:
-                raise sfpmap.InputError(
-                    f"{path}:{number}: expected 'name qw qx qy qz tx ty tz'"
-                ) from None
-            poses[" ".join(fields[:-7])] = values
-    return poses
-
-
 def read_tum(path: str) -> List[Tuple[float, np.ndarray, np.ndarray]]:
     """TUM lines ``t tx ty tz qx qy qz qw`` (world_from_cam): (t, rotation, centre) each."""
     out = []
@@ -150,38 +137,34 @@ def read_tum(path: str) -> List[Tuple[float, np.ndarray, np.ndarray]]:
     return out
 
 
-def _intrinsics(camera: Dict[str, Any]) -> Tuple[np.ndarray, Tuple[int, int]]:
-    """A pinhole matrix (the model's focal lengths and principal point, distortion left out:
-    a frustum, not a rectification) and the resolution."""
-    model, params = str(camera["model"]).upper(), list(camera["params"])
-    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"):
-        fx = fy = params[0]
-        cx, cy = params[1], params[2]
+def _intrinsics(camera: Any) -> Optional[Tuple[np.ndarray, Tuple[int, int]]]:
+    """A pinhole matrix of a ``sfpmap.Camera`` or a map's camera dict (any COLMAP model's
+    focal lengths and principal point, distortion left out: a frustum, not a rectification)
+    and the resolution; ``None`` for a model without them (EQUIRECTANGULAR)."""
+    if isinstance(camera, sfpmap.Camera):
+        model, params, size = camera.model, camera.params, (camera.width, camera.height)
     else:
-        fx, fy, cx, cy = params[0], params[1], params[2], params[3]
-    k = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return k, (int(camera["width"]), int(camera["height"]))
+        model, params, size = camera["model"], camera["params"], (int(camera["width"]), int(camera["height"]))
+    pinhole = sfpmap.pinhole_intrinsics(model, params)
+    if pinhole is None:
+        return None
+    fx, fy, cx, cy = pinhole
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), size
 
 
 def _frustum(rr: Any, rec: Any, path: str, rotation: np.ndarray, centre: np.ndarray,
-             camera: Dict[str, Any], depth: float, color: Optional[Tuple[int, int, int]] = None) -> None:
-    k, resolution = _intrinsics(camera)
+             camera: Any, depth: float, color: Optional[Tuple[int, int, int]] = None) -> None:
     rec.log(path, rr.Transform3D(translation=centre, mat3x3=rotation), static=True)
-    pinhole = rr.Pinhole(image_from_camera=k, resolution=resolution, image_plane_distance=depth,
-                         camera_xyz=rr.ViewCoordinates.RDF)
-    if color is not None:
-        pinhole = rr.Pinhole(image_from_camera=k, resolution=resolution, image_plane_distance=depth,
-                             camera_xyz=rr.ViewCoordinates.RDF, color=color)
-    rec.log(path, pinhole, static=True)
+    intrinsics = _intrinsics(camera)
+    if intrinsics is not None:  # else the pose alone
+        k, resolution = intrinsics
+        rec.log(path, rr.Pinhole(image_from_camera=k, resolution=resolution, image_plane_distance=depth,
+                                 camera_xyz=rr.ViewCoordinates.RDF, color=color), static=True)
 
 
 def _entity_part(name: str) -> str:
     """A query's name as one part of an entity path (``/`` and other specials escaped)."""
     return str(_rerun().escape_entity_path_part(name))
-
-
-def _camera_dict(camera: sfpmap.Camera) -> Dict[str, Any]:
-    return {"model": camera.model, "width": camera.width, "height": camera.height, "params": camera.params}
 
 
 def _scene_scale(centres: np.ndarray) -> float:
@@ -242,21 +225,20 @@ def record(
                 image_poses, image_cameras = images.poses, images.cameras
                 centres = np.array([world_from_cam(p)[1] for p in image_poses])
                 depth = _scene_scale(centres)
-                for i, (p, c) in enumerate(zip(image_poses, image_cameras)):
-                    if i >= MAX_CAMERAS:
-                        break
+                for i in range(0, len(image_poses), math.ceil(len(image_poses) / MAX_CAMERAS)):
+                    p, c = image_poses[i], image_cameras[i]
                     rotation, centre = world_from_cam(p)
                     _frustum(rr, rec, f"world/map/cameras/{i}", rotation, centre, cameras[int(c)], depth)
                     summary.cameras += 1
             else:
                 depth = 0.1
             default_camera = cameras[0] if cameras else None
-            estimated = read_pose_lines(poses) if poses else {}
-            truth = read_pose_lines(gt) if gt else {}
+            estimated = dict(sfpmap.read_poses(poses)) if poses else {}
+            truth = dict(sfpmap.read_poses(gt)) if gt else {}
             errors = []
             for name, p in estimated.items():
                 rotation, centre = world_from_cam(p)
-                cam = _camera_dict(inliers[2]) if inliers and inliers[0] == name else default_camera
+                cam = inliers[2] if inliers and inliers[0] == name else default_camera
                 if cam is not None:
                     _frustum(rr, rec, f"world/queries/{_entity_part(name)}/estimate",
                              rotation, centre, cam, depth, ESTIMATE_COLOR)
@@ -270,7 +252,7 @@ def record(
                              rotation, centre, default_camera, depth, TRUTH_COLOR)
                 summary.truths += 1
             if errors:
-                rec.log("world/queries/errors", rr.LineStrips3D(errors, colors=ERROR_COLOR), static=True)
+                rec.log("world/errors", rr.LineStrips3D(errors, colors=ERROR_COLOR), static=True)
                 summary.errors = len(errors)
             if inliers is not None:
                 summary.inliers = _inliers(rr, rec, inliers, depth)
@@ -299,7 +281,7 @@ def _inliers(rr: Any, rec: Any, inliers: Tuple[str, Any, Any], depth: float) -> 
     pixels, points = found.inlier_pixels, found.inlier_points
     rotation, centre = world_from_cam(found.colmap)
     base = f"world/queries/{_entity_part(name)}"
-    _frustum(rr, rec, f"{base}/estimate", rotation, centre, _camera_dict(camera), depth, ESTIMATE_COLOR)
+    _frustum(rr, rec, f"{base}/estimate", rotation, centre, camera, depth, ESTIMATE_COLOR)
     rec.log(f"{base}/inliers/points", rr.Points3D(points, colors=ESTIMATE_COLOR), static=True)
     rec.log(f"{base}/inliers/links", rr.LineStrips3D([[p, centre] for p in points], colors=(255, 160, 160)), static=True)
     rec.log(f"{base}/estimate/keypoints", rr.Points2D(pixels, colors=ESTIMATE_COLOR), static=True)
@@ -310,9 +292,15 @@ def _trajectory(rr: Any, rec: Any, frames: List[Tuple[float, np.ndarray, np.ndar
     if not frames:
         return 0
     axis_length = _scene_scale(np.array([c for _, _, c in frames]))
+    # Stamps from a ROS log or a clock are Unix times (shown as dates); a sequence's own
+    # (KITTI's, from 0) are seconds from its start.
+    unix = min(t for t, _, _ in frames) >= UNIX_STAMPS_FROM
     for i, (t, rotation, centre) in enumerate(frames):
         rec.set_time("frame", sequence=i)
-        rec.set_time("time", duration=t)
+        if unix:
+            rec.set_time("time", timestamp=t)
+        else:
+            rec.set_time("time", duration=t)
         rec.log("world/trajectory/camera", rr.Transform3D(translation=centre, mat3x3=rotation))
     rec.reset_time()
     rec.log("world/trajectory/camera", rr.TransformAxes3D(axis_length), static=True)
@@ -320,7 +308,7 @@ def _trajectory(rr: Any, rec: Any, frames: List[Tuple[float, np.ndarray, np.ndar
     return len(frames)
 
 
-def _query_features(args: argparse.Namespace, name: str) -> Any:
+def _query_features(args: argparse.Namespace, m: sfpmap.Map, name: str) -> Any:
     if args.database:
         found = sfpmap.QueryDatabase(args.database).features(name)
         if found is None:
@@ -328,7 +316,11 @@ def _query_features(args: argparse.Namespace, name: str) -> Any:
         return found
     if not args.images:
         raise sfpmap.InputError("--inliers needs the query's features: --images DIR or --database DB")
-    return sfpmap.Extractor().extract(os.path.join(args.images, name))
+    # As `localize --images` extracts: the map's own built-in model (or the file named), the
+    # global descriptor at the side the map's were computed at (absent: the network input).
+    model = args.model or m.levels[0].descriptor
+    side = m.metadata.get("global_max_side") or 0
+    return sfpmap.Extractor(model).extract(os.path.join(args.images, name), global_max_side=side)
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -343,6 +335,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--camera", help="one camera for every query ('MODEL W H params...')")
     parser.add_argument("--images", help="query images (SFP maps: features extracted here)")
     parser.add_argument("--database", help="a COLMAP database with the queries' features (SIFT maps)")
+    parser.add_argument("--model", help="with --images: the model file the map was made with (default: its built-in model)")
     parser.add_argument("--max-points", type=int, help="at most this many points per level (1 or more)")
     parser.add_argument("--force", action="store_true", help="overwrite OUT if it exists")
     parser.add_argument("--json", action="store_true", help="print what was recorded as JSON")
@@ -381,7 +374,7 @@ def _localize_one(args: argparse.Namespace) -> Tuple[str, Any, Any]:
     else:
         raise sfpmap.InputError("--inliers needs the query's camera: --query-list or --camera")
     with sfpmap.Map(args.map) as m:
-        found = sfpmap.Localizer(m, keep_inliers=True).localize(_query_features(args, name), camera, name=name)
+        found = sfpmap.Localizer(m, keep_inliers=True).localize(_query_features(args, m, name), camera, name=name)
     return name, found, camera
 
 

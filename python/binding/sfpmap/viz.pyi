@@ -8,7 +8,7 @@ import numpy.typing as npt
 import sfpmap
 
 __all__ = [
-    "LEVEL_COLORS", "MAX_CAMERAS", "Summary", "main", "read_pose_lines", "read_tum", "record",
+    "LEVEL_COLORS", "MAX_CAMERAS", "Summary", "main", "read_tum", "record",
     "rotation_matrix", "world_from_cam",
 ]
 
@@ -17,6 +17,7 @@ ESTIMATE_COLOR: Tuple[int, int, int]
 TRUTH_COLOR: Tuple[int, int, int]
 ERROR_COLOR: Tuple[int, int, int]
 MAX_CAMERAS: int
+UNIX_STAMPS_FROM: float
 
 @dataclass
 class Summary:
@@ -31,7 +32,6 @@ class Summary:
 
 def rotation_matrix(qw: float, qx: float, qy: float, qz: float) -> npt.NDArray[np.float64]: ...
 def world_from_cam(colmap: Sequence[float]) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
-def read_pose_lines(path: str) -> Dict[str, List[float]]: ...
 def read_tum(path: str) -> List[Tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64]]]: ...
 def record(
     map_path: str,

@@ -106,6 +106,8 @@ fn _sfpmap(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(build::from_pycolmap, m)?)?;
     m.add_function(wrap_pyfunction!(build::write_synthetic_map, m)?)?;
     m.add_function(wrap_pyfunction!(localize::read_queries, m)?)?;
+    m.add_function(wrap_pyfunction!(localize::read_poses, m)?)?;
+    m.add_function(wrap_pyfunction!(localize::pinhole_intrinsics, m)?)?;
     m.add_function(wrap_pyfunction!(objects::object_list, m)?)?;
     m.add_function(wrap_pyfunction!(objects::object_head, m)?)?;
     m.add_function(wrap_pyfunction!(objects::object_download, m)?)?;

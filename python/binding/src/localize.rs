@@ -784,6 +784,36 @@ impl Localization {
     }
 }
 
+/// `(fx, fy, cx, cy)` of a camera of any COLMAP model (`model` its name, `params` in COLMAP's
+/// order), to draw it as a pinhole; `None` for a model without them (EQUIRECTANGULAR).
+/// Unlike `Camera`, every model COLMAP knows is read, not only those localization supports.
+#[pyfunction]
+pub(crate) fn pinhole_intrinsics(model: &str, params: Vec<f64>) -> PyResult<Option<[f64; 4]>> {
+    let kind = sfpmap::geometry::CameraModel::from_name_ignore_case(model).ok_or_else(|| {
+        InputError::new_err(format!("camera model {model:?}: not a COLMAP model"))
+    })?;
+    if params.len() != kind.num_params() {
+        return Err(InputError::new_err(format!(
+            "camera model {kind}: {} parameters ({}), not {}",
+            kind.num_params(),
+            kind.param_names(),
+            params.len()
+        )));
+    }
+    Ok(kind.pinhole_part(&params))
+}
+
+/// A poses file (`name qw qx qy qz tx ty tz` lines, COLMAP cam_from_world: `localize -o`,
+/// a scene's gt_poses.txt; `#` lines skipped): `[(name, [qw, qx, qy, qz, tx, ty, tz])]`.
+#[pyfunction]
+pub(crate) fn read_poses(path: std::path::PathBuf) -> PyResult<Vec<(String, [f64; 7])>> {
+    let poses = sfpmap::io::poses::read_poses(&path).map_err(|e| InputError::new_err(chain(&e)))?;
+    Ok(poses
+        .into_iter()
+        .map(|(name, pose)| (name, pose.to_colmap()))
+        .collect())
+}
+
 /// An hloc query list (`name MODEL W H params...` per line), or names only with `camera`:
 /// `[(name, Camera)]`.
 #[pyfunction]

@@ -47,7 +47,7 @@ def scene(cli, shared, sacre_sift, tmp_path_factory):
     db = copy_db(s / "queries.db", work)
     poses = work / "poses.txt"
     run_cli(cli, "localize", "--map", sacre_sift, "--query-list", s / "queries.txt", "--database", db, "-o", poses)
-    gt = sfpmap.viz.read_pose_lines(str(s / "gt_poses.txt"))
+    gt = dict(sfpmap.read_poses(str(s / "gt_poses.txt")))
     tum = work / "truth.tum"
     with open(tum, "w") as f:
         for i, (name, p) in enumerate(sorted(gt.items())):
@@ -86,7 +86,7 @@ def test_inlier_links_are_the_final_inliers_and_reproject_under_the_pose(scene):
     # camera's focal length and principal point, through cam_from_world.
     r, c = sfpmap.viz.world_from_cam(found.colmap)
     cam = (points - c) @ r  # world -> camera: R_cw (p - c), R_cw = r.T
-    k, _ = sfpmap.viz._intrinsics(sfpmap.viz._camera_dict(camera))
+    k, _ = sfpmap.viz._intrinsics(camera)
     projected = (cam @ k.T)[:, :2] / cam[:, 2:3]
     error = np.linalg.norm(projected - pixels, axis=1)
     # Radial distortion left out of the pinhole: a few pixels at the image's edge.
@@ -127,13 +127,29 @@ def test_a_recording_holds_the_map_the_queries_their_inliers_and_a_trajectory(sc
             assert len(positions) == 1 and len(positions[0]) == len(level.points)
             assert summary["points_per_level"][str(level.id)] == len(level.points)
         n_images = m.n_images
+        image_poses, image_cameras, map_cameras = m.images.poses, m.images.cameras, m.cameras
     cameras = [e for e in entities if e.startswith("/world/map/cameras/")]
     assert len(cameras) == n_images == summary["cameras"]
-    assert all(column(entities, e, "Pinhole:image_from_camera") for e in cameras)
-    localized = [n for n, _ in sfpmap.viz.read_pose_lines(str(scene["poses"])).items()]
-    assert summary["estimates"] == len(localized) >= 1
-    errors = column(entities, "/world/queries/errors", "LineStrips3D:strips")
-    assert len(errors) == 1 and len(errors[0]) == len(set(localized) & set(scene["gt"]))
+    # Each frustum is its image's: the camera centre, and the focal lengths and principal
+    # point of its camera (a 3x3 stored column-major).
+    for i in (0, n_images - 1):
+        rotation, centre = sfpmap.viz.world_from_cam(image_poses[i])
+        translation = column(entities, f"/world/map/cameras/{i}", "Transform3D:translation")
+        assert np.allclose(translation[0], centre, atol=1e-5)
+        cam = map_cameras[int(image_cameras[i])]
+        fx, fy, cx, cy = sfpmap.pinhole_intrinsics(cam["model"], cam["params"])
+        k = np.array(column(entities, f"/world/map/cameras/{i}", "Pinhole:image_from_camera")[0]).reshape(3, 3).T
+        assert np.allclose(k, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], rtol=1e-6), k
+    estimated = dict(sfpmap.read_poses(str(scene["poses"])))
+    assert summary["estimates"] == len(estimated) >= 1
+    # The error lines join each estimated centre to its true one.
+    errors = column(entities, "/world/errors", "LineStrips3D:strips")
+    both = sorted(set(estimated) & set(scene["gt"]))
+    assert len(errors) == 1 and len(errors[0]) == len(both) == summary["errors"]
+    expected = {(tuple(np.round(sfpmap.viz.world_from_cam(estimated[n])[1], 3)),
+                 tuple(np.round(sfpmap.viz.world_from_cam(scene["gt"][n])[1], 3))) for n in both}
+    drawn = {(tuple(np.round(a, 3)), tuple(np.round(b, 3))) for a, b in errors[0]}
+    assert drawn == expected
     name = sfpmap.viz._entity_part(scene["name"])
     inlier_points = column(entities, f"/world/queries/{name}/inliers/points", "Points3D:positions")
     assert len(inlier_points[0]) == scene["found"].inliers == summary["inliers"]
@@ -196,7 +212,7 @@ def test_record_refuses_its_inputs_and_an_existing_output_and_leaves_no_temp(sce
     bad = tmp_path / "bad.txt"
     bad.write_text("q.jpg 0 0 0 0 1 2 3\n")
     fresh = tmp_path / "fresh.rrd"
-    with pytest.raises(sfpmap.InputError, match="not a rotation"):
+    with pytest.raises(sfpmap.InputError, match="bad.txt:1: .*zero quaternion"):
         sfpmap.viz.record(m, str(fresh), gt=str(bad))
     assert not fresh.exists()
     assert not list(tmp_path.glob(".sfpmap-viz-*"))
@@ -204,6 +220,46 @@ def test_record_refuses_its_inputs_and_an_existing_output_and_leaves_no_temp(sce
 
 def test_a_pose_line_that_is_not_one_is_named(scene, tmp_path):
     bad = tmp_path / "bad.txt"
-    bad.write_text("q.jpg 1 0 0 0 1 2\n")
-    with pytest.raises(sfpmap.InputError, match=r"bad.txt:1: expected"):
-        sfpmap.viz.read_pose_lines(str(bad))
+    bad.write_text("# a comment\nq.jpg 1 0 0 0 1 2\n")
+    with pytest.raises(sfpmap.InputError, match=r"bad.txt.*2.*expected `name qw qx qy qz tx ty tz`, found 7"):
+        sfpmap.read_poses(str(bad))
+    with pytest.raises(sfpmap.InputError, match="bad.txt"):
+        sfpmap.viz.record(str(scene["map"]), str(tmp_path / "x.rrd"), poses=str(bad))
+    assert not (tmp_path / "x.rrd").exists()
+
+
+@pytest.mark.parametrize("text, focal, centre", [
+    ("SIMPLE_PINHOLE 640 480 500 320 240", (500, 500), (320, 240)),
+    ("SIMPLE_DIVISION 640 480 500 321 241 -0.1", (500, 500), (321, 241)),
+    ("SIMPLE_FISHEYE 640 480 300 322 242", (300, 300), (322, 242)),
+    ("OPENCV 640 480 510 520 323 243 0.1 0 0 0", (510, 520), (323, 243)),
+    ("FULL_OPENCV 640 480 510 520 324 244 0 0 0 0 0 0 0 0", (510, 520), (324, 244)),
+])
+def test_frusta_read_each_model_s_own_focal_lengths_and_principal_point(text, focal, centre):
+    model, w, h, *params = text.split()
+    k, resolution = sfpmap.viz._intrinsics({"model": model, "width": w, "height": h, "params": [float(p) for p in params]})
+    assert resolution == (640, 480)
+    assert np.array_equal(k, [[focal[0], 0, centre[0]], [0, focal[1], centre[1]], [0, 0, 1]])
+
+
+def test_trajectory_stamps_are_dates_when_unix_times(scene, tmp_path):
+    rr = need_module("rerun")
+    for t0, kind in ((0.0, "duration"), (1.7e9, "timestamp")):
+        tum = tmp_path / f"t{kind}.tum"
+        tum.write_text("".join(f"{t0 + i * 0.1} {i} 0 0 0 0 0 1\n" for i in range(3)))
+        out = tmp_path / f"t{kind}.rrd"
+        sfpmap.viz.record(str(scene["map"]), str(out), trajectory=str(tum), max_points=10)
+        store = rr.chunk.RrdReader(str(out)).stream().collect()
+        times = [c for c in store.stream() if c.entity_path == "/world/trajectory/camera" and "time" in c.timeline_names]
+        assert sum(c.num_rows for c in times) == 3
+        column_type = str(times[0].to_record_batch().schema.field("time").type)
+        assert ("timestamp" in column_type) == (kind == "timestamp"), column_type
+
+
+def test_an_equirectangular_camera_has_no_pinhole_and_a_bad_one_is_named():
+    assert sfpmap.pinhole_intrinsics("EQUIRECTANGULAR", [640, 320]) is None
+    assert sfpmap.viz._intrinsics({"model": "EQUIRECTANGULAR", "width": 640, "height": 320, "params": [640, 320]}) is None
+    with pytest.raises(sfpmap.InputError, match="OPENCV: 8 parameters"):
+        sfpmap.pinhole_intrinsics("OPENCV", [1, 2, 3])
+    with pytest.raises(sfpmap.InputError, match="not a COLMAP model"):
+        sfpmap.pinhole_intrinsics("NOPE", [1])
