@@ -42,6 +42,14 @@ impl Place {
         (0..3)
             .all(|k| world[k] >= self.bbox_min[k] - radius && world[k] <= self.bbox_max[k] + radius)
     }
+
+    /// How far `world` lies outside the place's bounding box, along the axis where it lies
+    /// farthest (0 inside): [`Place::near`] is this at most `radius`.
+    pub fn distance(&self, world: [f64; 3]) -> f64 {
+        (0..3)
+            .map(|k| (self.bbox_min[k] - world[k]).max(world[k] - self.bbox_max[k]))
+            .fold(0.0, f64::max)
+    }
 }
 
 /// The metadata key under which a catalog lists its places.

@@ -329,6 +329,21 @@ impl CatalogSession {
         &self.locations
     }
 
+    /// Place `i`'s map (an index into [`CatalogSession::places`]), opened as the session
+    /// opens it to localize: under the outbound policy, and refused when it is not the map
+    /// the catalog was built from. For a caller that localizes in one place on its own (a
+    /// camera stream tracked in the building it is in).
+    pub fn open_place_map(&self, i: usize) -> Result<Map<'static>, SessionError> {
+        if i >= self.places.len() {
+            return Err(SessionError::Mismatch(format!(
+                "{}: no place {i} (it lists {})",
+                self.name,
+                self.places.len()
+            )));
+        }
+        self.open_place(i).map_err(|e| self.place_error(i, e))
+    }
+
     /// The places open now and their sessions, in the catalog's order.
     pub fn opened(&self) -> Vec<(usize, Arc<Session>)> {
         let open = self.lock_open();

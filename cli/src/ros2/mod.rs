@@ -24,6 +24,7 @@ use ros2_client::dds::rustdds;
 use ros2_client::QosProfile;
 use sfpmap::geometry::Camera;
 use sfpmap::io::mcap_io::{self, ROS_CAMERA_INFO};
+use sfpmap::session::catalog::CatalogSession;
 use sfpmap::session::{QuerySource, Session};
 use std::net::IpAddr;
 use std::path::PathBuf;
@@ -53,8 +54,23 @@ use worker::{Incoming, Outputs, Shared};
 pub struct Args {
     /// The map: a file, or an `http(s)://` or `s3://` URL. An SFP map (frames are extracted
     /// with its model).
-    #[arg(long)]
-    pub map: PathBuf,
+    #[arg(long, required_unless_present = "catalog")]
+    pub map: Option<PathBuf>,
+    /// A catalog of place maps (`sfpmap catalog build`) instead of --map: the node localizes
+    /// in one of its places, --place by name or the one nearest --prior (a place's map is
+    /// refused when it is not the one the catalog was built from).
+    #[arg(long, conflicts_with = "map", value_name = "CATALOG")]
+    pub catalog: Option<PathBuf>,
+    /// With --catalog: the place's name (default: the catalog's only place).
+    #[arg(long, requires = "catalog", conflicts_with = "prior")]
+    pub place: Option<String>,
+    /// With --catalog: the place whose bounding box is nearest this world point ("x,y,z",
+    /// e.g. from GNSS), within --radius.
+    #[arg(long, requires = "catalog", value_name = "X,Y,Z", value_parser = crate::args::point)]
+    pub prior: Option<[f64; 3]>,
+    /// With --prior: how far outside a place's bounding box the prior may be (map units).
+    #[arg(long, default_value_t = 50.0, requires = "prior", value_parser = crate::args::distance)]
+    pub radius: f64,
     /// The camera's image topic.
     #[arg(long, default_value = "/camera/image_raw/compressed")]
     pub image_topic: String,
@@ -189,7 +205,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
     let Some(gray_weights) = session.gray_weights() else {
         bail!(
             "{}: the node extracts its frames' features, and this map's session does not",
-            sfpmap::escape::path(&args.map)
+            sfpmap::escape::escape_control_characters(session.map_name())
         );
     };
     let shared = Shared {
@@ -257,13 +273,18 @@ impl Drop for CloseOnDrop<'_, '_> {
 /// The session over `--map`: frames are extracted with the map's model (or `--model`) and,
 /// unless `--no-tracking`, tracked as a sequence.
 fn session(args: &Args, bars: &Bars) -> anyhow::Result<Session> {
-    let map = Arc::new(crate::open_map(&args.map)?);
+    let (map, name) = match (&args.map, &args.catalog) {
+        (Some(path), _) => (crate::open_map(path)?, path.display().to_string()),
+        (None, Some(catalog)) => place_map(args, catalog, bars)?,
+        (None, None) => bail!("the node needs --map MAP or --catalog CATALOG"),
+    };
+    let map = Arc::new(map);
     let options = args.matching.options()(&map);
     let source = QuerySource::Images {
         folder: None,
         model: args.model.clone(),
     };
-    Session::builder(map, args.map.display().to_string())
+    Session::builder(map, name)
         .options(options)
         .source(source)
         .sequence(!args.no_tracking)
@@ -276,6 +297,71 @@ fn session(args: &Args, bars: &Bars) -> anyhow::Result<Session> {
             ),
             e => e.into(),
         })
+}
+
+/// `--catalog`: the place `--place` names, the one nearest `--prior`, or the only one; its
+/// map opened and checked as the catalog session opens places, and its location.
+fn place_map(
+    args: &Args,
+    catalog: &std::path::Path,
+    bars: &Bars,
+) -> anyhow::Result<(sfpmap::format::Map<'static>, String)> {
+    use sfpmap::escape::{path, quoted_name};
+    let session = CatalogSession::builder(
+        Arc::new(crate::open_map(catalog)?),
+        catalog.display().to_string(),
+    )
+    .remote(crate::remote_options())
+    .build(bars)?;
+    let places = session.places();
+    let names = || {
+        let mut listed: Vec<String> = places
+            .iter()
+            .take(10)
+            .map(|p| quoted_name(&p.name))
+            .collect();
+        if places.len() > 10 {
+            listed.push(format!("and {} more", places.len() - 10));
+        }
+        listed.join(", ")
+    };
+    let chosen = match (&args.place, args.prior) {
+        (Some(name), _) => places
+            .iter()
+            .position(|p| p.name == *name)
+            .with_context(|| {
+                format!(
+                    "{}: no place {} (places: {})",
+                    path(catalog),
+                    quoted_name(name),
+                    names()
+                )
+            })?,
+        (None, Some(prior)) => places
+            .iter()
+            .enumerate()
+            .map(|(i, p)| (p.distance(prior), i))
+            .filter(|(d, _)| *d <= args.radius)
+            .min_by(|a, b| a.0.total_cmp(&b.0))
+            .map(|(_, i)| i)
+            .with_context(|| {
+                format!(
+                    "{}: no place within {} of {prior:?} (places: {})",
+                    path(catalog),
+                    args.radius,
+                    names()
+                )
+            })?,
+        (None, None) if places.len() == 1 => 0,
+        (None, None) => bail!(
+            "{}: {} places; choose one with --place NAME or --prior X,Y,Z (places: {})",
+            path(catalog),
+            places.len(),
+            names()
+        ),
+    };
+    let map = session.open_place_map(chosen)?;
+    Ok((map, session.locations()[chosen].display().to_string()))
 }
 
 /// `ROS_DOMAIN_ID` as ROS reads it: unset or empty is domain 0.

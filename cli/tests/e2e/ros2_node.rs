@@ -46,14 +46,15 @@ fn peer_command(mode: &str, domain: u16, args: &[&str]) -> Command {
 
 /// `sfpmap ros2 --map MAP --domain-id D --interface 127.0.0.1 --json ARGS...`, running.
 fn node(map: &Path, domain: u16, args: &[&str]) -> Child {
+    node_of(&["--map", path_str(map)], domain, args)
+}
+
+/// `sfpmap ros2 MAP_ARGS --domain-id D --interface 127.0.0.1 --json ARGS...`, running.
+fn node_of(map_args: &[&str], domain: u16, args: &[&str]) -> Child {
     Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-        .args([
-            "ros2",
-            "--map",
-            path_str(map),
-            "--domain-id",
-            &domain.to_string(),
-        ])
+        .arg("ros2")
+        .args(map_args)
+        .args(["--domain-id", &domain.to_string()])
         .args(["--interface", "127.0.0.1", "--json"])
         .args(args)
         .env("ORT_DISABLE_TELEMETRY", "1")
@@ -484,4 +485,154 @@ fn rss_kb(pid: u32) -> u64 {
         .find_map(|l| l.strip_prefix("VmRSS:"))
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
         .unwrap()
+}
+
+/// `--catalog` with `--place`: the node localizes in that place's map, frame by frame with
+/// `--no-tracking` (the same poses as `localize` without `--sequence`), its TF child frame
+/// from `--camera-frame`; a publisher killed mid-stream (SIGKILL, no goodbye) is followed by
+/// another, and the node goes on. A place the catalog does not list, or whose map is not the
+/// one the catalog was built from, ends the node at start-up with one line.
+#[test]
+fn a_catalog_place_untracked_survives_a_publisher_killed_mid_stream() {
+    let s = scene();
+    let map = &sfp_map().1;
+    let images = s.root.join("images");
+    let dir = tempfile::tempdir().unwrap();
+    let (street, kitti) = (
+        dir.path().join("street.sfpm"),
+        dir.path().join("kitti.sfpm"),
+    );
+    std::fs::copy(map, &street).unwrap();
+    std::fs::copy(map, &kitti).unwrap();
+    let catalog = dir.path().join("city.sfpc");
+    let built = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+        .args(["catalog", "build", path_str(&street), path_str(&kitti)])
+        .args(["-o", path_str(&catalog), "--quiet"])
+        .output()
+        .unwrap();
+    assert!(
+        built.status.success(),
+        "{}",
+        String::from_utf8_lossy(&built.stderr)
+    );
+    let start_fails = |args: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+            .args([
+                "ros2",
+                "--catalog",
+                path_str(&catalog),
+                "--camera",
+                &s.queries[0].camera,
+            ])
+            .args(["--domain-id", "45", "--interface", "127.0.0.1"])
+            .args(args)
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(1), "{out:?}");
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
+        stderr
+    };
+    let e = start_fails(&["--place", "nowhere"]);
+    assert!(
+        e.contains("no place \"nowhere\"") && e.contains("\"kitti\""),
+        "{e}"
+    );
+    let e = start_fails(&[]);
+    assert!(e.contains("2 places; choose one with --place"), "{e}");
+
+    let domain = 46;
+    let topic = "/camera/image_raw/compressed";
+    let (_, reference) = localize_json(map, &["--images", path_str(&images)], &[]);
+    let node = node_of(
+        &["--catalog", path_str(&catalog), "--place", "kitti"],
+        domain,
+        &[
+            "--image-topic",
+            topic,
+            "--camera",
+            &s.queries[0].camera,
+            "--no-tracking",
+            "--tf",
+            "--camera-frame",
+            "cam0",
+        ],
+    );
+    let names: Vec<&str> = s.queries.iter().map(|q| q.name.as_str()).collect();
+    let mut killed = peer_command(
+        "rate",
+        domain,
+        &["--image-topic", topic, "--images", path_str(&images)],
+    )
+    .args(["--names", &joined(&names), "--hz", "10", "--seconds", "60"])
+    .stdout(Stdio::null())
+    .spawn()
+    .unwrap();
+    std::thread::sleep(Duration::from_secs(6));
+    killed.kill().unwrap(); // SIGKILL: its participant never says goodbye
+    killed.wait().unwrap();
+    let stamps = stamps();
+    let result = peer(
+        "lockstep",
+        domain,
+        &[
+            "--image-topic",
+            topic,
+            "--images",
+            path_str(&images),
+            "--names",
+            &joined(&names),
+            "--stamps",
+            &joined(&stamps),
+            "--read-tf",
+        ],
+    );
+    Command::new("kill")
+        .args(["-TERM", &node.id().to_string()])
+        .status()
+        .unwrap();
+    let counts = finished(node, Duration::from_secs(30));
+    // Frames of the killed publisher were taken too, and then all 13 of the second.
+    assert!(counts["received"].as_u64().unwrap() > 13, "{counts}");
+    assert_eq!(counts["failed"], 0, "{counts}");
+    // Untracked: every frame retrieves, and its pose is localize's without --sequence.
+    assert_eq!(counts["tracked_latency_ms"]["frames"], 0, "{counts}");
+    let frames = result["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), reference.len());
+    let tf = result["tf"].as_array().unwrap();
+    for ((f, r), q) in frames.iter().zip(&reference).zip(&s.queries) {
+        let pose = &f["pose"];
+        assert!(pose.is_object(), "{} has no pose: {f}", q.name);
+        assert_eq!(f["status"]["values"]["path"], "retrieval", "{f}");
+        let colmap: [f64; 7] = serde_json::from_value(r["cam_from_world"].clone()).unwrap();
+        let expected = Pose::from_colmap_array(colmap).unwrap().inverse();
+        let position: [f64; 3] = serde_json::from_value(pose["position"].clone()).unwrap();
+        let t = expected.translation;
+        assert_eq!(position, [t.x, t.y, t.z], "{}", q.name);
+        let stamp = f["stamp"].as_u64().unwrap();
+        let transform = tf
+            .iter()
+            .find(|t| t["stamp"] == serde_json::json!([stamp / SEC, stamp % SEC]))
+            .unwrap_or_else(|| panic!("no TF for {}: {tf:?}", q.name));
+        assert_eq!(transform["parent"], "map");
+        assert_eq!(transform["child"], "cam0");
+        assert_eq!(transform["translation"], pose["position"]);
+    }
+
+    // A place's map replaced since the catalog was built is refused, naming it.
+    let sliced = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+        .args(["slice", path_str(map), "--level", "2", "--short", "--force"])
+        .args(["-o", path_str(&kitti), "--quiet"])
+        .output()
+        .unwrap();
+    assert!(
+        sliced.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sliced.stderr)
+    );
+    let e = start_fails(&["--place", "kitti"]);
+    assert!(
+        e.contains("kitti.sfpm") && e.contains("not the map the catalog was built from"),
+        "{e}"
+    );
 }

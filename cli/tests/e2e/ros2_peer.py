@@ -450,12 +450,21 @@ def main():
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--timeout", type=float, default=60.0)
     parser.add_argument("--small", help="a frame of another size (hostile mode)")
+    parser.add_argument("--read-tf", action="store_true", help="also read /tf back (lockstep mode)")
     parser.add_argument("--oversize", type=int, default=0, help="bytes of an oversized image (hostile mode)")
     args = parser.parse_args()
     os.environ.setdefault("CYCLONEDDS_URI", LOOPBACK)
     peer = Peer(args)
     modes = {"lockstep": lockstep, "rate": rate, "hostile": hostile, "info": info, "raw": raw}
+    tf = DataReader(peer.dp, Topic(peer.dp, "rt/tf", TFMessage), qos=qos(True, 100)) if args.read_tf else None
     result = modes[args.mode](peer, args)
+    if tf is not None:
+        time.sleep(1.0)
+        result["tf"] = [
+            {"parent": t.header.frame_id, "child": t.child_frame_id, "stamp": [t.header.stamp.sec, t.header.stamp.nanosec],
+             "translation": [t.transform.translation.x, t.transform.translation.y, t.transform.translation.z]}
+            for m in tf.take(N=1000) for t in m.transforms
+        ]
     json.dump(result, sys.stdout)
     sys.stdout.write("\n")
 
