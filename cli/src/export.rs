@@ -44,6 +44,10 @@ pub struct Args {
     /// A Rerun recording of the map (rerun-sdk, through `python -m sfpmap.viz`).
     #[arg(long, value_name = "OUT.rrd")]
     pub rerun: Option<PathBuf>,
+    /// With --rerun: at most this many points per level (every n-th), for a map too large to
+    /// look at whole.
+    #[arg(long, requires = "rerun", value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_points: Option<u64>,
     /// Overwrite existing outputs.
     #[arg(long)]
     pub force: bool,
@@ -193,7 +197,7 @@ pub(super) fn export(args: &Args) -> anyhow::Result<Exported> {
         ));
     }
     if let Some(path) = &args.rerun {
-        let summary = rerun(&args.map, path)?;
+        let summary = rerun(&args.map, path, args.max_points)?;
         lines.push(format!(
             "{}: a Rerun recording ({} points, {} cameras)",
             sfpmap::escape::path(path),
@@ -248,7 +252,7 @@ fn check_rerun(out: &Path) -> anyhow::Result<()> {
 /// the recording is written by the Python package, through rerun-sdk. Rerun's SDK for Rust
 /// would add a few hundred crates (Arrow, its own protocol) to every build of the CLI for one
 /// export; the Python one is a wheel that users of Rerun already have. Its summary.
-fn rerun(map: &Path, out: &Path) -> anyhow::Result<serde_json::Value> {
+fn rerun(map: &Path, out: &Path, max_points: Option<u64>) -> anyhow::Result<serde_json::Value> {
     let python = rerun_python();
     let run = std::process::Command::new(&python)
         .args(["-m", "sfpmap.viz"])
@@ -256,6 +260,7 @@ fn rerun(map: &Path, out: &Path) -> anyhow::Result<serde_json::Value> {
         .arg("-o")
         .arg(out)
         .args(["--force", "--json"])
+        .args(max_points.map(|n| format!("--max-points={n}")))
         .stdin(std::process::Stdio::null())
         .output()
         .with_context(|| {

@@ -34,6 +34,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         tum: None,
         images_txt: None,
         rerun: None,
+        max_points: None,
         force: args.force,
         json: args.json,
     })?;

@@ -37,18 +37,24 @@ pub struct Place {
 }
 
 impl Place {
-    /// Whether `world` lies within `radius` of the place's bounding box.
+    /// Whether `world` lies within `radius` of the place's bounding box: its
+    /// [`Place::distance`] is at most `radius`.
     pub fn near(&self, world: [f64; 3], radius: f64) -> bool {
-        (0..3)
-            .all(|k| world[k] >= self.bbox_min[k] - radius && world[k] <= self.bbox_max[k] + radius)
+        self.distance(world) <= radius
     }
 
     /// How far `world` lies outside the place's bounding box, along the axis where it lies
-    /// farthest (0 inside): [`Place::near`] is this at most `radius`.
+    /// farthest (0 inside); infinite for a coordinate that is not a number.
     pub fn distance(&self, world: [f64; 3]) -> f64 {
-        (0..3)
-            .map(|k| (self.bbox_min[k] - world[k]).max(world[k] - self.bbox_max[k]))
-            .fold(0.0, f64::max)
+        let mut far = 0.0f64;
+        for k in 0..3 {
+            let d = (self.bbox_min[k] - world[k]).max(world[k] - self.bbox_max[k]);
+            if d.is_nan() {
+                return f64::INFINITY;
+            }
+            far = far.max(d);
+        }
+        far
     }
 }
 

@@ -189,19 +189,24 @@ fn query_json(
 /// (the localizer lists failed queries as `# failed NAME: reason`).
 pub fn read_poses(path: &Path) -> Result<Vec<(String, Pose)>, InputError> {
     super::parse_lines(path, |line| {
+        // The last seven fields are the numbers; the name is the rest, spaces and all, as
+        // `colmap_pose_line` writes it (COLMAP image names may hold spaces).
         let tokens: Vec<&str> = line.split_whitespace().collect();
-        if tokens.len() != 8 {
+        if tokens.len() < 8 {
             return Err(format!(
                 "expected `name qw qx qy qz tx ty tz`, found {} fields",
                 tokens.len()
             ));
         }
+        let numbers = &tokens[tokens.len() - 7..];
         let mut v = [0.0; 7];
-        for (v, t) in v.iter_mut().zip(&tokens[1..]) {
+        for (v, t) in v.iter_mut().zip(numbers) {
             *v = t.parse().map_err(|_| format!("not a number: {t:?}"))?;
         }
         let pose = Pose::from_colmap_array(v).map_err(|e| e.to_string())?;
-        Ok((tokens[0].to_string(), pose))
+        // Where the first number starts in `line`: the name ends before it.
+        let first = numbers[0].as_ptr() as usize - line.as_ptr() as usize;
+        Ok((line[..first].trim_end().to_string(), pose))
     })
 }
 
@@ -224,6 +229,22 @@ mod tests {
             v.iter().zip(expected).all(|(a, b)| (a - b).abs() < 1e-12),
             "{row}"
         );
+    }
+
+    #[test]
+    fn a_name_with_spaces_reads_back_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("poses.txt");
+        let p = pose([1.0, 0.0, 0.0, 0.0, 1.0, 2.0, 3.0]);
+        let text = colmap_pose_line("day 1/img  7.jpg", &p);
+        std::fs::write(&path, format!("# a comment\n{text}\nshort 1 0 0 0 1 2\n")).unwrap();
+        let e = read_poses(&path).unwrap_err().to_string();
+        assert!(e.contains(":3") && e.contains("found 7 fields"), "{e}");
+        std::fs::write(&path, format!("{text}\n")).unwrap();
+        let read = read_poses(&path).unwrap();
+        assert_eq!(read.len(), 1);
+        assert_eq!(read[0].0, "day 1/img  7.jpg");
+        assert_eq!(read[0].1.to_colmap(), p.to_colmap());
     }
 
     #[test]

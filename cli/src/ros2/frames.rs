@@ -186,26 +186,31 @@ impl Latencies {
     }
 }
 
-/// A frame's latencies by stage: the whole (received to pose published), and its parts —
-/// waiting for a worker, decoding and extracting, localizing — to tell where a slow frame
-/// spent its time; and the whole of the frames localized by tracking alone (a sequence's
-/// steady state, without the frames that retrieve after tracking was lost).
+/// A frame's latencies by stage: the whole (received to pose published), and its parts, which
+/// add up to it — waiting for a worker, decoding and extracting, waiting for the localizing
+/// worker (`--threads 2`), localizing, publishing — to tell where a slow frame spent its
+/// time; and the whole of the frames localized by tracking alone (a sequence's steady state,
+/// without the frames that retrieve after tracking was lost).
 #[derive(Default)]
 pub struct Stages {
     pub total: Latencies,
     pub tracked: Latencies,
     pub queued: Latencies,
     pub extract: Latencies,
+    pub handoff: Latencies,
     pub localize: Latencies,
+    pub publish: Latencies,
 }
 
 impl Stages {
     /// Each stage's name and latencies, in pipeline order.
-    pub fn parts(&self) -> [(&'static str, &Latencies); 3] {
+    pub fn parts(&self) -> [(&'static str, &Latencies); 5] {
         [
             ("queued", &self.queued),
             ("decode_extract", &self.extract),
+            ("handoff", &self.handoff),
             ("localize", &self.localize),
+            ("publish", &self.publish),
         ]
     }
 }
@@ -216,8 +221,8 @@ pub struct Gaps {
     last: std::collections::HashMap<[u8; 16], i64>,
 }
 
-/// Writers remembered; past it the oldest view is dropped (a publisher that comes back
-/// is a new writer each time).
+/// Writers remembered; past it every view is forgotten and counting starts again (a
+/// publisher that comes back is a new writer each time).
 const MAX_WRITERS: usize = 64;
 
 /// A jump in a writer's sequence numbers past this is not counted as lost samples: a
@@ -231,8 +236,9 @@ impl Gaps {
             self.last.clear();
         }
         let before = self.last.insert(writer, sequence);
-        match before {
-            Some(b) if sequence > b + 1 && sequence - b - 1 <= MAX_GAP => (sequence - b - 1) as u64,
+        // In i128: a peer's numbers are anything an i64 holds.
+        match before.map(|b| i128::from(sequence) - i128::from(b) - 1) {
+            Some(gap) if gap > 0 && gap <= i128::from(MAX_GAP) => gap as u64,
             _ => 0,
         }
     }
@@ -278,5 +284,9 @@ mod tests {
         assert_eq!(g.missed(b, 8), 0);
         // A jump no camera makes is not a count of lost frames.
         assert_eq!(g.missed(b, i64::MAX), 0);
+        // Numbers at both ends of i64 neither overflow nor count.
+        assert_eq!(g.missed(b, i64::MIN), 0);
+        assert_eq!(g.missed(b, i64::MAX), 0);
+        assert_eq!(g.missed(b, i64::MAX - 1), 0);
     }
 }

@@ -22,6 +22,7 @@ use dds::{Participant, RawReader};
 use frames::{Counts, Gaps, Mailbox, Stages};
 use ros2_client::dds::rustdds;
 use ros2_client::QosProfile;
+use sfpmap::format::Place;
 use sfpmap::geometry::Camera;
 use sfpmap::io::mcap_io::{self, ROS_CAMERA_INFO};
 use sfpmap::session::catalog::CatalogSession;
@@ -155,6 +156,19 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         return Ok(ExitCode::from(2));
     }
     let bars = Bars::new(quiet, args.json);
+    if worker::frame_name(&args.map_frame, "").is_none() {
+        bail!(
+            "--map-frame {:?}: not a tf2 frame name (letters, digits, _ and /, at most 256, no leading /)",
+            args.map_frame
+        );
+    }
+    if let Some(c) = &args.camera_frame {
+        if worker::frame_name(c, &args.map_frame).is_none() {
+            bail!(
+                "--camera-frame {c:?}: not a tf2 frame name (letters, digits, _ and /, at most 256, no leading /) other than --map-frame"
+            );
+        }
+    }
     let image_type = args.image_type.unwrap_or(
         if args
             .image_topic
@@ -306,14 +320,36 @@ fn place_map(
     catalog: &std::path::Path,
     bars: &Bars,
 ) -> anyhow::Result<(sfpmap::format::Map<'static>, String)> {
-    use sfpmap::escape::{path, quoted_name};
+    use sfpmap::escape::path;
     let session = CatalogSession::builder(
         Arc::new(crate::open_map(catalog)?),
         catalog.display().to_string(),
     )
     .remote(crate::remote_options())
     .build(bars)?;
-    let places = session.places();
+    let chosen = choose_place(
+        session.places(),
+        args.place.as_deref(),
+        args.prior,
+        args.radius,
+    )
+    .map_err(|e| anyhow::anyhow!("{}: {e}", path(catalog)))?;
+    let map = session.open_place_map(chosen)?;
+    Ok((map, session.locations()[chosen].display().to_string()))
+}
+
+/// The place `place` names; else the one whose bounding box is nearest `prior` within
+/// `radius` (of several that hold it, the one whose centre is nearest); else the only one.
+fn choose_place(
+    places: &[Place],
+    place: Option<&str>,
+    prior: Option<[f64; 3]>,
+    radius: f64,
+) -> Result<usize, String> {
+    use sfpmap::escape::quoted_name;
+    if places.is_empty() {
+        return Err("lists no places".into());
+    }
     let names = || {
         let mut listed: Vec<String> = places
             .iter()
@@ -325,43 +361,33 @@ fn place_map(
         }
         listed.join(", ")
     };
-    let chosen = match (&args.place, args.prior) {
+    let centre_distance = |p: &Place, w: [f64; 3]| {
+        (0..3)
+            .map(|k| (w[k] - 0.5 * (p.bbox_min[k] + p.bbox_max[k])).powi(2))
+            .sum::<f64>()
+    };
+    match (place, prior) {
         (Some(name), _) => places
             .iter()
-            .position(|p| p.name == *name)
-            .with_context(|| {
-                format!(
-                    "{}: no place {} (places: {})",
-                    path(catalog),
-                    quoted_name(name),
-                    names()
-                )
-            })?,
-        (None, Some(prior)) => places
+            .position(|p| p.name == name)
+            .ok_or_else(|| format!("no place {} (places: {})", quoted_name(name), names())),
+        (None, Some(w)) => places
             .iter()
             .enumerate()
-            .map(|(i, p)| (p.distance(prior), i))
-            .filter(|(d, _)| *d <= args.radius)
-            .min_by(|a, b| a.0.total_cmp(&b.0))
-            .map(|(_, i)| i)
-            .with_context(|| {
-                format!(
-                    "{}: no place within {} of {prior:?} (places: {})",
-                    path(catalog),
-                    args.radius,
-                    names()
-                )
-            })?,
-        (None, None) if places.len() == 1 => 0,
-        (None, None) => bail!(
-            "{}: {} places; choose one with --place NAME or --prior X,Y,Z (places: {})",
-            path(catalog),
+            .filter(|(_, p)| p.near(w, radius))
+            .min_by(|(_, a), (_, b)| {
+                (a.distance(w).total_cmp(&b.distance(w)))
+                    .then(centre_distance(a, w).total_cmp(&centre_distance(b, w)))
+            })
+            .map(|(i, _)| i)
+            .ok_or_else(|| format!("no place within {radius} of {w:?} (places: {})", names())),
+        (None, None) if places.len() == 1 => Ok(0),
+        (None, None) => Err(format!(
+            "{} places; choose one with --place NAME or --prior X,Y,Z (places: {})",
             places.len(),
             names()
-        ),
-    };
-    let map = session.open_place_map(chosen)?;
-    Ok((map, session.locations()[chosen].display().to_string()))
+        )),
+    }
 }
 
 /// `ROS_DOMAIN_ID` as ROS reads it: unset or empty is domain 0.
@@ -389,6 +415,10 @@ fn camera_qos(reliability: ReliabilityArg) -> QosProfile {
 /// Poll interval of the receiving loop: how soon a stop is seen and the 1 Hz summary sent.
 const POLL: Duration = Duration::from_millis(100);
 
+/// Samples taken off a topic per round of the receiving loop: a flood of them cannot keep it
+/// from seeing a stop or sending the summary (the next round then does not wait).
+const TAKE_PER_ROUND: usize = 64;
+
 /// Takes messages off the image (and CameraInfo) topics until a signal, `--frames` or a
 /// worker's end (a bug: a worker ends only when told); sends the 1 Hz summary to
 /// `/diagnostics`.
@@ -414,6 +444,7 @@ fn receive(
     let mut gaps = Gaps::default();
     let mut last_summary = Instant::now();
     let limit = args.max_message_bytes;
+    let mut more = false;
     loop {
         if crate::stop_requested() || shared.done() {
             return Ok(());
@@ -421,7 +452,9 @@ fn receive(
         if !workers_running() {
             bail!("a worker thread of the node ended (a bug)");
         }
-        if let Err(e) = poll.poll(&mut events, Some(POLL)) {
+        let wait = if more { Duration::ZERO } else { POLL };
+        more = false;
+        if let Err(e) = poll.poll(&mut events, Some(wait)) {
             if e.kind() != std::io::ErrorKind::Interrupted {
                 return Err(e).context("waiting for messages");
             }
@@ -431,7 +464,13 @@ fn receive(
         images.drain_read_notifications();
         if let Some(info) = camera_info.as_deref() {
             info.drain_read_notifications();
+            let mut taken = 0;
             loop {
+                if taken == TAKE_PER_ROUND {
+                    more = true;
+                    break;
+                }
+                taken += 1;
                 match info.try_take_one() {
                     Ok(Some(sample)) => shared.camera_info(&sample.sample.bytes, limit),
                     Ok(None) => break,
@@ -439,7 +478,13 @@ fn receive(
                 }
             }
         }
+        let mut taken = 0;
         loop {
+            if taken == TAKE_PER_ROUND {
+                more = true;
+                break;
+            }
+            taken += 1;
             let sample = match images.try_take_one() {
                 Ok(Some(s)) => s,
                 Ok(None) => break,
@@ -559,5 +604,74 @@ impl Shared<'_> {
                 );
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn place(name: &str, min: [f64; 3], max: [f64; 3]) -> Place {
+        Place {
+            name: name.into(),
+            map: format!("{name}.sfpm"),
+            origin: [0.0; 3],
+            bbox_min: min,
+            bbox_max: max,
+            points: 1,
+            images: 1,
+            file_bytes: 0,
+            index_checksum: String::new(),
+        }
+    }
+
+    #[test]
+    fn a_place_is_chosen_by_name_by_the_nearest_box_or_as_the_only_one() {
+        let city = place("city", [0.0; 3], [100.0; 3]);
+        let library = place("library", [10.0; 3], [20.0; 3]);
+        let harbour = place("harbour", [200.0, 0.0, 0.0], [220.0, 10.0, 10.0]);
+        let places = [city, library, harbour];
+        assert_eq!(choose_place(&places, Some("harbour"), None, 50.0), Ok(2));
+        let e = choose_place(&places, Some("park"), None, 50.0).unwrap_err();
+        assert!(
+            e.contains("no place \"park\"") && e.contains("\"library\""),
+            "{e}"
+        );
+        // Inside two boxes: the one whose centre is nearer (the library, not the city).
+        assert_eq!(choose_place(&places, None, Some([15.0; 3]), 50.0), Ok(1));
+        // Outside every box: the nearest within the radius.
+        assert_eq!(
+            choose_place(&places, None, Some([150.0, 5.0, 5.0]), 60.0),
+            Ok(2)
+        );
+        assert_eq!(
+            choose_place(&places, None, Some([130.0, 5.0, 5.0]), 60.0),
+            Ok(0)
+        );
+        let e = choose_place(&places, None, Some([500.0, 0.0, 0.0]), 60.0).unwrap_err();
+        assert!(e.starts_with("no place within 60"), "{e}");
+        let e = choose_place(&places, None, None, 50.0).unwrap_err();
+        assert!(e.starts_with("3 places; choose one"), "{e}");
+        assert_eq!(choose_place(&places[..1], None, None, 50.0), Ok(0));
+        assert_eq!(
+            choose_place(&[], Some("city"), None, 50.0),
+            Err("lists no places".to_owned())
+        );
+    }
+
+    #[test]
+    fn near_is_a_distance_within_the_radius() {
+        let p = place("p", [0.0, 0.0, 1e16], [1.0, 1.0, 1e16]);
+        for (w, r) in [
+            ([0.5, 0.5, 1e16], 0.0),
+            ([2.0, 0.5, 1e16], 1.0),
+            ([2.0, 0.5, 1e16], 0.999),
+            ([0.5, 0.5, 1.5], 1e16 - 2.0),
+            ([f64::NAN, 0.5, 1e16], 1e300),
+        ] {
+            assert_eq!(p.near(w, r), p.distance(w) <= r, "{w:?} {r}");
+        }
+        assert_eq!(p.distance([2.0, -3.0, 1e16]), 3.0);
+        assert_eq!(p.distance([f64::NAN, 0.0, 0.0]), f64::INFINITY);
     }
 }

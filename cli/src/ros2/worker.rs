@@ -234,6 +234,7 @@ impl Shared<'_> {
             Some(s) => format!("frame {}.{:09}", s.sec, s.nsec),
             None => "frame".to_owned(),
         };
+        let handed = received.elapsed();
         let localizing = Instant::now();
         let found = match features {
             Ok(frame) => self
@@ -269,7 +270,11 @@ impl Shared<'_> {
             }
             stages.queued.record(queued);
             stages.extract.record(extracted.saturating_sub(queued));
+            stages.handoff.record(handed.saturating_sub(extracted));
             stages.localize.record(localized_in);
+            stages
+                .publish
+                .record(latency.saturating_sub(handed + localized_in));
         }
         self.handled.fetch_add(1, Ordering::Relaxed);
         outputs.status(&found, stamp, latency.as_secs_f64() * 1e3, self);
@@ -279,11 +284,13 @@ impl Shared<'_> {
 /// The variance published when a pose has no covariance.
 pub const UNKNOWN_VARIANCE: f64 = 1e6;
 
-/// A TF child frame from an image's `frame_id`: tf2's characters (letters, digits, `_`, `/`),
-/// at most 256 of them; else `None` (the node uses "camera" and warns once).
-fn frame_name(frame_id: &str) -> Option<&str> {
+/// A tf2 frame name: letters, digits, `_` and `/`, at most 256, not starting with `/` (tf2
+/// refuses those) and not `map_frame` (a TF from the map to itself would loop the tree).
+pub fn frame_name<'a>(frame_id: &'a str, map_frame: &str) -> Option<&'a str> {
     let ok = !frame_id.is_empty()
         && frame_id.len() <= 256
+        && !frame_id.starts_with('/')
+        && frame_id != map_frame
         && frame_id
             .chars()
             .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '/');
@@ -399,12 +406,12 @@ impl Outputs {
             shared.unpublished("a pose", &e);
         }
         if let Some(tf) = &self.tf {
-            let child = match (&self.camera_frame, frame_name(frame_id)) {
+            let child = match (&self.camera_frame, frame_name(frame_id, &self.map_frame)) {
                 (Some(c), _) => c.clone(),
                 (None, Some(f)) => f.to_owned(),
                 (None, None) => {
                     if !frame_id.is_empty() {
-                        shared.warn_once("frame_id", "an image's frame_id is not a tf2 frame name (letters, digits, _ and /, at most 256): the TF's child is \"camera\" (--camera-frame names it)");
+                        shared.warn_once("frame_id", "an image's frame_id is not a tf2 frame name of a camera (letters, digits, _ and /, at most 256, no leading /, not the map frame): the TF's child is \"camera\" (--camera-frame names it)");
                     }
                     "camera".to_owned()
                 }
@@ -557,4 +564,28 @@ impl Outputs {
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_tf_child_is_a_tf2_name_other_than_the_map_frame() {
+        assert_eq!(
+            frame_name("kitti/camera_left", "map"),
+            Some("kitti/camera_left")
+        );
+        for bad in [
+            "",
+            "/camera",
+            "map",
+            "camera left",
+            "cam\u{0}",
+            &"c".repeat(257),
+        ] {
+            assert_eq!(frame_name(bad, "map"), None, "{bad:?}");
+        }
+        assert_eq!(frame_name("map", "world"), Some("map"));
+    }
 }

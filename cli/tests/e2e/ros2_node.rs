@@ -165,6 +165,19 @@ fn frames_a_foreign_dds_publishes_are_localized_as_localize_sequence_does() {
         assert_eq!(counts[key], 0, "{key}: {counts}");
     }
     assert_eq!(counts["latency_ms"]["frames"], 13, "{counts}");
+    // The frames tracked are those localize --sequence tracked; every stage was timed.
+    let tracked = reference.iter().filter(|r| r["path"] == "tracking").count();
+    assert_eq!(counts["tracked_latency_ms"]["frames"], tracked, "{counts}");
+    for stage in ["queued", "decode_extract", "handoff", "localize", "publish"] {
+        let median = counts["stages_ms"][stage]["median"].as_f64();
+        assert!(median.is_some_and(|m| m >= 0.0), "{stage}: {counts}");
+    }
+    for stage in ["decode_extract", "localize"] {
+        assert!(
+            counts["stages_ms"][stage]["median"].as_f64().unwrap() > 0.0,
+            "{counts}"
+        );
+    }
 
     assert_eq!(frames.len(), reference.len());
     for ((f, r), q) in frames.iter().zip(&reference).zip(&s.queries) {
@@ -502,7 +515,17 @@ fn a_catalog_place_untracked_survives_a_publisher_killed_mid_stream() {
         dir.path().join("street.sfpm"),
         dir.path().join("kitti.sfpm"),
     );
-    std::fs::copy(map, &street).unwrap();
+    // Another place: the map's level 2 alone, whose poses differ from the whole map's.
+    let sliced = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+        .args(["slice", path_str(map), "--level", "2", "--short", "--quiet"])
+        .args(["-o", path_str(&street)])
+        .output()
+        .unwrap();
+    assert!(
+        sliced.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sliced.stderr)
+    );
     std::fs::copy(map, &kitti).unwrap();
     let catalog = dir.path().join("city.sfpc");
     let built = Command::new(env!("CARGO_BIN_EXE_sfpmap"))

@@ -13,7 +13,8 @@
   them, spread evenly over the images;
 - ``queries/<name>/estimate`` and ``queries/<name>/truth``: a query's localized pose
   (``--poses``: ``localize -o`` lines, COLMAP's ``name qw qx qy qz tx ty tz``) and its ground
-  truth (``--gt``, the same lines) as frusta;
+  truth (``--gt``, the same lines) as frusta, with the query's camera (``--query-list`` or
+  ``--camera``; else the map's first camera); at most ``MAX_CAMERAS`` of each, spread;
 - ``errors``: a line from each estimated camera centre to its true one;
 - ``queries/<name>/inliers``: for the query ``--inliers`` names, localized here, the 3D points
   of its final inliers, a line from each to the camera centre, and their keypoints in the
@@ -37,7 +38,7 @@ import os
 import sys
 import tempfile
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -116,9 +117,38 @@ def world_from_cam(colmap: Sequence[float]) -> Tuple[np.ndarray, np.ndarray]:
     return r.T, -r.T @ t
 
 
-def read_tum(path: str) -> List[Tuple[float, np.ndarray, np.ndarray]]:
-    """TUM lines ``t tx ty tz qx qy qz qw`` (world_from_cam): (t, rotation, centre) each."""
-    out = []
+def _rotations(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices of unit quaternions, rows ``(w, x, y, z)`` (normalised here; every
+    row's norm checked > 0 by the caller): ``[n, 3, 3]``."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
+    ], axis=1)
+
+
+def _worlds_from_cams(colmap: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """:func:`world_from_cam` of many poses at once (rows ``qw qx qy qz tx ty tz``, from the
+    map or the library's readers, so quaternions of norm > 0): rotations ``[n, 3, 3]`` and
+    centres ``[n, 3]``."""
+    colmap = np.asarray(colmap, dtype=np.float64).reshape(-1, 7)
+    r = _rotations(colmap[:, :4])
+    rt = np.transpose(r, (0, 2, 1))
+    return rt, -np.einsum("nij,nj->ni", rt, colmap[:, 4:7])
+
+
+#: The largest TUM stamp read, in seconds (year 2262, where nanoseconds leave an i64): a
+#: larger one is in milliseconds or nanoseconds, which the format does not use.
+MAX_STAMP = 9.2e9
+
+
+def read_tum(path: str) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """TUM lines ``t tx ty tz qx qy qz qw`` (world_from_cam): stamps ``[n]``, rotations
+    ``[n, 3, 3]`` and centres ``[n, 3]``. A line that is not one is an error naming the file
+    and line."""
+    rows: List[List[float]] = []
     with open(path, encoding="utf-8") as f:
         for number, line in enumerate(f, 1):
             fields = line.split()
@@ -132,9 +162,16 @@ def read_tum(path: str) -> List[Tuple[float, np.ndarray, np.ndarray]]:
                 raise sfpmap.InputError(
                     f"{path}:{number}: expected 'timestamp tx ty tz qx qy qz qw'"
                 ) from None
-            t, tx, ty, tz, qx, qy, qz, qw = v
-            out.append((t, rotation_matrix(qw, qx, qy, qz), np.array([tx, ty, tz])))
-    return out
+            if abs(v[0]) > MAX_STAMP:
+                raise sfpmap.InputError(
+                    f"{path}:{number}: stamp {fields[0]} is not in seconds (milliseconds or nanoseconds?)"
+                )
+            if not math.hypot(*v[4:8]) > 0:
+                raise sfpmap.InputError(f"{path}:{number}: quaternion of norm 0 is not a rotation")
+            rows.append(v)
+    a = np.array(rows, dtype=np.float64).reshape(-1, 8)
+    wxyz = a[:, [7, 4, 5, 6]]
+    return a[:, 0], _rotations(wxyz), a[:, 1:4]
 
 
 def _intrinsics(camera: Any) -> Optional[Tuple[np.ndarray, Tuple[int, int]]]:
@@ -152,10 +189,22 @@ def _intrinsics(camera: Any) -> Optional[Tuple[np.ndarray, Tuple[int, int]]]:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), size
 
 
+def _map_intrinsics(cameras: List[Dict[str, Any]]) -> List[Optional[Tuple[np.ndarray, Tuple[int, int]]]]:
+    """Each map camera's :func:`_intrinsics`, once; a camera the library cannot read (a
+    model or parameter count the map's writer did not check) is drawn as its pose alone."""
+    out: List[Optional[Tuple[np.ndarray, Tuple[int, int]]]] = []
+    for c in cameras:
+        try:
+            out.append(_intrinsics(c))
+        except sfpmap.InputError:
+            out.append(None)
+    return out
+
+
 def _frustum(rr: Any, rec: Any, path: str, rotation: np.ndarray, centre: np.ndarray,
-             camera: Any, depth: float, color: Optional[Tuple[int, int, int]] = None) -> None:
+             intrinsics: Optional[Tuple[np.ndarray, Tuple[int, int]]], depth: float,
+             color: Optional[Tuple[int, int, int]] = None) -> None:
     rec.log(path, rr.Transform3D(translation=centre, mat3x3=rotation), static=True)
-    intrinsics = _intrinsics(camera)
     if intrinsics is not None:  # else the pose alone
         k, resolution = intrinsics
         rec.log(path, rr.Pinhole(image_from_camera=k, resolution=resolution, image_plane_distance=depth,
@@ -177,6 +226,11 @@ def _scene_scale(centres: np.ndarray) -> float:
     return float(np.median(d)) * 0.5 if len(d) else 0.1
 
 
+def _spread(n: int, most: int) -> range:
+    """Indices of at most ``most`` of ``n`` items, evenly spread (all of them below it)."""
+    return range(0, n, max(1, math.ceil(n / most)))
+
+
 def record(
     map_path: str,
     out: str,
@@ -185,14 +239,18 @@ def record(
     gt: Optional[str] = None,
     trajectory: Optional[str] = None,
     inliers: Optional[Tuple[str, "sfpmap.Localization", sfpmap.Camera]] = None,
+    query_cameras: Optional[Union[Dict[str, sfpmap.Camera], sfpmap.Camera]] = None,
     max_points: Optional[int] = None,
     force: bool = False,
 ) -> Summary:
     """Writes the recording of the map at ``map_path`` (and whatever else is given, as the
     module says) to ``out``. ``inliers``: (query name, its localization made with
-    ``Localizer(keep_inliers=True)``, its camera). ``max_points``: at most this many points
-    per level (every n-th), for maps too large to look at whole. An existing ``out`` is
-    refused unless ``force``; one of the inputs, always."""
+    ``Localizer(keep_inliers=True)``, its camera). ``query_cameras``: the queries' cameras by
+    name, or one camera for every query, for their frusta (default: the map's first camera). ``max_points``: at most this
+    many points per level (every n-th), for maps too large to look at whole. Frusta are drawn
+    for at most ``MAX_CAMERAS`` database images and as many queries, spread over them; the
+    error lines for every query. An existing ``out`` is refused unless ``force``; one of the
+    inputs, always."""
     rr = _rerun()
     if max_points is not None and max_points < 1:
         raise sfpmap.InputError(f"max_points {max_points}: at least 1")
@@ -210,6 +268,8 @@ def record(
         rec = rr.RecordingStream("sfpmap")
         rec.save(temp)
         with sfpmap.Map(map_path) as m:
+            # A float64 copy of every point (24 bytes each): max_points thins what is drawn,
+            # not this.
             world = m.points.world()
             for level in m.levels:
                 rows = level.points
@@ -218,42 +278,51 @@ def record(
                 color = LEVEL_COLORS[level.id % len(LEVEL_COLORS)]
                 rec.log(f"world/map/level_{level.id}", rr.Points3D(world[rows], colors=color, radii=rr.Radius.ui_points(1.5)), static=True)
                 summary.points_per_level[level.id] = int(len(rows))
-            cameras = m.cameras
-            centres = np.zeros((0, 3))
+            del world
+            map_cameras = m.cameras
+            intrinsics = _map_intrinsics(map_cameras)
             images = m.images
+            depth = 0.1
             if images is not None and len(images):
-                image_poses, image_cameras = images.poses, images.cameras
-                centres = np.array([world_from_cam(p)[1] for p in image_poses])
+                image_cameras = images.cameras
+                rotations, centres = _worlds_from_cams(images.poses)
                 depth = _scene_scale(centres)
-                for i in range(0, len(image_poses), math.ceil(len(image_poses) / MAX_CAMERAS)):
-                    p, c = image_poses[i], image_cameras[i]
-                    rotation, centre = world_from_cam(p)
-                    _frustum(rr, rec, f"world/map/cameras/{i}", rotation, centre, cameras[int(c)], depth)
+                for i in _spread(len(centres), MAX_CAMERAS):
+                    c = int(image_cameras[i])
+                    _frustum(rr, rec, f"world/map/cameras/{i}", rotations[i], centres[i],
+                             intrinsics[c] if c < len(intrinsics) else None, depth)
                     summary.cameras += 1
-            else:
-                depth = 0.1
-            default_camera = cameras[0] if cameras else None
-            estimated = dict(sfpmap.read_poses(poses)) if poses else {}
-            truth = dict(sfpmap.read_poses(gt)) if gt else {}
-            errors = []
-            for name, p in estimated.items():
-                rotation, centre = world_from_cam(p)
-                cam = inliers[2] if inliers and inliers[0] == name else default_camera
-                if cam is not None:
-                    _frustum(rr, rec, f"world/queries/{_entity_part(name)}/estimate",
-                             rotation, centre, cam, depth, ESTIMATE_COLOR)
-                summary.estimates += 1
-                if name in truth:
-                    errors.append([centre, world_from_cam(truth[name])[1]])
-            for name, p in truth.items():
-                rotation, centre = world_from_cam(p)
-                if default_camera is not None:
-                    _frustum(rr, rec, f"world/queries/{_entity_part(name)}/truth",
-                             rotation, centre, default_camera, depth, TRUTH_COLOR)
-                summary.truths += 1
-            if errors:
-                rec.log("world/errors", rr.LineStrips3D(errors, colors=ERROR_COLOR), static=True)
-                summary.errors = len(errors)
+            default = intrinsics[0] if intrinsics else None
+            every = query_cameras if isinstance(query_cameras, sfpmap.Camera) else None
+            by_name = dict(query_cameras) if isinstance(query_cameras, dict) else {}
+            if inliers is not None:
+                by_name.setdefault(inliers[0], inliers[2])
+
+            def query_intrinsics(name: str) -> Any:
+                camera = by_name.get(name, every)
+                return _intrinsics(camera) if camera is not None else default
+
+            for kind, path, colour in (("estimate", poses, ESTIMATE_COLOR), ("truth", gt, TRUTH_COLOR)):
+                if not path:
+                    continue
+                read = sfpmap.read_poses(path)
+                if kind == "estimate":
+                    estimated = dict(read)
+                else:
+                    truth = dict(read)
+                names = [n for n, _ in read]
+                rotations, centres = _worlds_from_cams([p for _, p in read])
+                for i in _spread(len(names), MAX_CAMERAS):
+                    _frustum(rr, rec, f"world/queries/{_entity_part(names[i])}/{kind}",
+                             rotations[i], centres[i], query_intrinsics(names[i]), depth, colour)
+                setattr(summary, "estimates" if kind == "estimate" else "truths", len(names))
+            if poses and gt:
+                both = [n for n in estimated if n in truth]
+                if both:
+                    _, a = _worlds_from_cams([estimated[n] for n in both])
+                    _, b = _worlds_from_cams([truth[n] for n in both])
+                    rec.log("world/errors", rr.LineStrips3D(np.stack([a, b], axis=1), colors=ERROR_COLOR), static=True)
+                    summary.errors = len(both)
             if inliers is not None:
                 summary.inliers = _inliers(rr, rec, inliers, depth)
             if trajectory:
@@ -281,31 +350,31 @@ def _inliers(rr: Any, rec: Any, inliers: Tuple[str, Any, Any], depth: float) -> 
     pixels, points = found.inlier_pixels, found.inlier_points
     rotation, centre = world_from_cam(found.colmap)
     base = f"world/queries/{_entity_part(name)}"
-    _frustum(rr, rec, f"{base}/estimate", rotation, centre, camera, depth, ESTIMATE_COLOR)
+    _frustum(rr, rec, f"{base}/estimate", rotation, centre, _intrinsics(camera), depth, ESTIMATE_COLOR)
     rec.log(f"{base}/inliers/points", rr.Points3D(points, colors=ESTIMATE_COLOR), static=True)
     rec.log(f"{base}/inliers/links", rr.LineStrips3D([[p, centre] for p in points], colors=(255, 160, 160)), static=True)
     rec.log(f"{base}/estimate/keypoints", rr.Points2D(pixels, colors=ESTIMATE_COLOR), static=True)
     return int(len(points))
 
 
-def _trajectory(rr: Any, rec: Any, frames: List[Tuple[float, np.ndarray, np.ndarray]]) -> int:
-    if not frames:
+def _trajectory(rr: Any, rec: Any, frames: Tuple[np.ndarray, np.ndarray, np.ndarray]) -> int:
+    stamps, rotations, centres = frames
+    if not len(stamps):
         return 0
-    axis_length = _scene_scale(np.array([c for _, _, c in frames]))
     # Stamps from a ROS log or a clock are Unix times (shown as dates); a sequence's own
-    # (KITTI's, from 0) are seconds from its start.
-    unix = min(t for t, _, _ in frames) >= UNIX_STAMPS_FROM
-    for i, (t, rotation, centre) in enumerate(frames):
-        rec.set_time("frame", sequence=i)
-        if unix:
-            rec.set_time("time", timestamp=t)
-        else:
-            rec.set_time("time", duration=t)
-        rec.log("world/trajectory/camera", rr.Transform3D(translation=centre, mat3x3=rotation))
-    rec.reset_time()
-    rec.log("world/trajectory/camera", rr.TransformAxes3D(axis_length), static=True)
-    rec.log("world/trajectory/path", rr.LineStrips3D([[c for _, _, c in frames]], colors=(255, 255, 255)), static=True)
-    return len(frames)
+    # (KITTI's, from 0) are seconds from its start. Sent as columns: one chunk, however long.
+    if stamps.min() >= UNIX_STAMPS_FROM:
+        time = rr.TimeColumn("time", timestamp=stamps)
+    else:
+        time = rr.TimeColumn("time", duration=stamps)
+    rec.send_columns(
+        "world/trajectory/camera",
+        indexes=[rr.TimeColumn("frame", sequence=np.arange(len(stamps))), time],
+        columns=rr.Transform3D.columns(translation=centres, mat3x3=rotations),
+    )
+    rec.log("world/trajectory/camera", rr.TransformAxes3D(_scene_scale(centres)), static=True)
+    rec.log("world/trajectory/path", rr.LineStrips3D([centres], colors=(255, 255, 255)), static=True)
+    return int(len(stamps))
 
 
 def _query_features(args: argparse.Namespace, m: sfpmap.Map, name: str) -> Any:
@@ -318,6 +387,8 @@ def _query_features(args: argparse.Namespace, m: sfpmap.Map, name: str) -> Any:
         raise sfpmap.InputError("--inliers needs the query's features: --images DIR or --database DB")
     # As `localize --images` extracts: the map's own built-in model (or the file named), the
     # global descriptor at the side the map's were computed at (absent: the network input).
+    if not m.levels:
+        raise sfpmap.InputError(f"{args.map}: a map without levels has no features to match")
     model = args.model or m.levels[0].descriptor
     side = m.metadata.get("global_max_side") or 0
     return sfpmap.Extractor(model).extract(os.path.join(args.images, name), global_max_side=side)
@@ -331,7 +402,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--gt", help="ground-truth poses, the same lines")
     parser.add_argument("--trajectory", help="a sequence's poses as TUM lines")
     parser.add_argument("--inliers", metavar="NAME", help="draw this query's inlier links (localized here)")
-    parser.add_argument("--query-list", help="queries with their cameras ('name MODEL W H params...')")
+    parser.add_argument("--query-list", help="queries with their cameras ('name MODEL W H params...'): their frusta, and --inliers")
     parser.add_argument("--camera", help="one camera for every query ('MODEL W H params...')")
     parser.add_argument("--images", help="query images (SFP maps: features extracted here)")
     parser.add_argument("--database", help="a COLMAP database with the queries' features (SIFT maps)")
@@ -347,8 +418,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         links = None
         if args.inliers:
             links = _localize_one(args)
+        cameras: Any = None
+        if args.query_list:
+            cameras = dict(sfpmap.read_queries(args.query_list, args.camera))
+        elif args.camera:
+            cameras = sfpmap.Camera.parse(args.camera)
         summary = record(args.map, args.out, poses=args.poses, gt=args.gt, trajectory=args.trajectory,
-                         inliers=links, max_points=args.max_points, force=args.force)
+                         inliers=links, query_cameras=cameras, max_points=args.max_points, force=args.force)
     except KeyboardInterrupt:
         return 130
     except Exception as e:  # one line, whatever failed (the CLI shows it after OUT's name)

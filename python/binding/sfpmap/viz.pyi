@@ -1,6 +1,6 @@
 # Types of sfpmap.viz (python -m sfpmap.viz); the module's docstring says what it does.
 from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -18,6 +18,7 @@ TRUTH_COLOR: Tuple[int, int, int]
 ERROR_COLOR: Tuple[int, int, int]
 MAX_CAMERAS: int
 UNIX_STAMPS_FROM: float
+MAX_STAMP: float
 
 @dataclass
 class Summary:
@@ -32,7 +33,7 @@ class Summary:
 
 def rotation_matrix(qw: float, qx: float, qy: float, qz: float) -> npt.NDArray[np.float64]: ...
 def world_from_cam(colmap: Sequence[float]) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
-def read_tum(path: str) -> List[Tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64]]]: ...
+def read_tum(path: str) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
 def record(
     map_path: str,
     out: str,
@@ -41,6 +42,7 @@ def record(
     gt: Optional[str] = None,
     trajectory: Optional[str] = None,
     inliers: Optional[Tuple[str, sfpmap.Localization, sfpmap.Camera]] = None,
+    query_cameras: Optional[Union[Dict[str, sfpmap.Camera], sfpmap.Camera]] = None,
     max_points: Optional[int] = None,
     force: bool = False,
 ) -> Summary: ...

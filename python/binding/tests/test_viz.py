@@ -157,6 +157,13 @@ def test_a_recording_holds_the_map_the_queries_their_inliers_and_a_trajectory(sc
     assert len(keypoints[0]) == scene["found"].inliers
     links = column(entities, f"/world/queries/{name}/inliers/links", "LineStrips3D:strips")
     assert len(links[0]) == scene["found"].inliers
+    # Each query's frusta have its own camera from --query-list.
+    queries = dict(sfpmap.read_queries(str(s / "queries.txt")))
+    for n in both[:3]:
+        fx, fy, cx, cy = sfpmap.pinhole_intrinsics(queries[n].model, queries[n].params)
+        for kind in ("estimate", "truth"):
+            k = column(entities, f"/world/queries/{sfpmap.viz._entity_part(n)}/{kind}", "Pinhole:image_from_camera")
+            assert np.allclose(np.array(k[0]).reshape(3, 3).T, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), (n, kind)
     # The trajectory: one pose per frame on the `frame` timeline, and its whole path.
     frames = sum(n for n, timelines, _ in entities["/world/trajectory/camera"] if "frame" in timelines)
     assert frames == len(scene["gt"]) == summary["trajectory"]
@@ -176,6 +183,16 @@ def test_the_cli_exports_the_same_recording_and_refuses_to_overwrite(cli, scene)
     with sfpmap.Map(str(scene["map"])) as m:
         for level in m.levels:
             assert len(column(entities, f"/world/map/level_{level.id}", "Points3D:positions")[0]) == len(level.points)
+    # --max-points thins each level to every n-th point.
+    thinned = scene["work"] / "thinned.rrd"
+    r = subprocess.run([str(cli), "export", str(scene["map"]), "--rerun", str(thinned), "--max-points", "50"],
+                       capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    entities = read_back(thinned)
+    with sfpmap.Map(str(scene["map"])) as m:
+        for level in m.levels:
+            drawn = column(entities, f"/world/map/level_{level.id}", "Points3D:positions")[0]
+            assert 0 < len(drawn) <= 50 and len(level.points) > 50, level.id
     before = out.stat().st_mtime_ns
     r = export()
     assert r.returncode != 0 and "exists" in r.stderr and r.stderr.count("\n") == 1, r.stderr
@@ -254,6 +271,34 @@ def test_trajectory_stamps_are_dates_when_unix_times(scene, tmp_path):
         assert sum(c.num_rows for c in times) == 3
         column_type = str(times[0].to_record_batch().schema.field("time").type)
         assert ("timestamp" in column_type) == (kind == "timestamp"), column_type
+
+
+def test_database_frusta_are_spread_over_the_images_past_max_cameras(scene, tmp_path, monkeypatch):
+    monkeypatch.setattr(sfpmap.viz, "MAX_CAMERAS", 7)
+    out = tmp_path / "few.rrd"
+    summary = sfpmap.viz.record(str(scene["map"]), str(out), max_points=10)
+    with sfpmap.Map(str(scene["map"])) as m:
+        n = m.n_images
+    step = -(-n // 7)
+    assert summary.cameras == len(range(0, n, step)) <= 7
+    drawn = sorted(int(e.rsplit("/", 1)[1]) for e in read_back(out) if e.startswith("/world/map/cameras/"))
+    assert drawn == list(range(0, n, step))
+    assert all(v <= 10 for v in summary.points_per_level.values())
+
+
+def test_tum_stamps_not_in_seconds_are_refused_naming_the_line(scene, tmp_path):
+    tum = tmp_path / "ms.tum"
+    tum.write_text("# t x y z qx qy qz qw\n1700000000123 0 0 0 0 0 0 1\n")
+    with pytest.raises(sfpmap.InputError, match=r"ms.tum:2: stamp 1700000000123 is not in seconds"):
+        sfpmap.viz.read_tum(str(tum))
+    tum.write_text("0.5 0 0 0 0 0 0 0\n")
+    with pytest.raises(sfpmap.InputError, match=r"ms.tum:1: quaternion of norm 0"):
+        sfpmap.viz.read_tum(str(tum))
+    # A good file: rotations of world_from_cam, centres as written.
+    tum.write_text("0.1 1 2 3 0 0 0.7071067811865476 0.7071067811865476\n")
+    t, r, c = sfpmap.viz.read_tum(str(tum))
+    assert t.tolist() == [0.1] and c.tolist() == [[1, 2, 3]]
+    assert np.allclose(r[0], [[0, -1, 0], [1, 0, 0], [0, 0, 1]])
 
 
 def test_an_equirectangular_camera_has_no_pinhole_and_a_bad_one_is_named():
