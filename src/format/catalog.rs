@@ -47,8 +47,8 @@ impl Place {
     /// farthest (0 inside); infinite for a coordinate that is not a number.
     pub fn distance(&self, world: [f64; 3]) -> f64 {
         let mut far = 0.0f64;
-        for k in 0..3 {
-            let d = (self.bbox_min[k] - world[k]).max(world[k] - self.bbox_max[k]);
+        for ((w, lo), hi) in world.iter().zip(self.bbox_min).zip(self.bbox_max) {
+            let d = (lo - w).max(w - hi);
             if d.is_nan() {
                 return f64::INFINITY;
             }

@@ -11,7 +11,8 @@ __all__ = [
     "Camera", "ClosedError", "ConvertError", "Error", "ExtractError", "Extractor", "Features",
     "FeaturesFile", "FileError", "Images", "InputError", "Level", "Levels", "Localization",
     "LocalizeError", "Localizer", "Map", "MapError", "NoSuchLevelError", "Points", "QueryDatabase",
-    "Visibility", "convert", "from_pycolmap", "read_features_h5", "read_queries", "slice",
+    "Visibility", "convert", "from_pycolmap", "pinhole_intrinsics", "read_features_h5", "read_poses",
+    "read_queries", "slice",
 ]
 
 PathLike = Union[str, os.PathLike[str]]

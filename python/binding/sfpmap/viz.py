@@ -129,7 +129,7 @@ def _rotations(q: np.ndarray) -> np.ndarray:
     ], axis=1)
 
 
-def _worlds_from_cams(colmap: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def _worlds_from_cams(colmap: Any) -> Tuple[np.ndarray, np.ndarray]:
     """:func:`world_from_cam` of many poses at once (rows ``qw qx qy qz tx ty tz``, from the
     map or the library's readers, so quaternions of norm > 0): rotations ``[n, 3, 3]`` and
     centres ``[n, 3]``."""
