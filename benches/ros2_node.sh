@@ -11,7 +11,8 @@
 # the sfp-v2 network's time on this machine today as a reference.
 #
 # Usage: benches/ros2_node.sh [SECONDS] [THREADS...]   (default 60 s, threads 1 and 2;
-#        `ROS2_BENCH_SCENES=vga benches/ros2_node.sh 600 2` is the 10-minute soak)
+#        `ROS2_BENCH_SCENES=vga benches/ros2_node.sh 600 2` is the 10-minute soak;
+#        ROS2_BENCH_NODE_ARGS=--spin runs the node with more flags)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 seconds=${1:-60}
@@ -80,7 +81,7 @@ for name in ${ROS2_BENCH_SCENES:-full vga}; do
     domain=$((60 + t))
     out=$(mktemp)
     "$sfpmap" ros2 --map "$scene/sfp.sfpm" --image-topic /camera/image_raw/compressed --camera "$camera" \
-      --threads "$t" --domain-id $domain --interface 127.0.0.1 --json --quiet > "$out" &
+      --threads "$t" --domain-id $domain --interface 127.0.0.1 --json --quiet ${ROS2_BENCH_NODE_ARGS:-} > "$out" &
     node=$!
     "$py" cli/tests/e2e/ros2_peer.py rate --domain $domain --images "$scene/images" \
       --names "$names" --hz 10 --seconds "$seconds" > "$out.peer" &

@@ -10,6 +10,14 @@ use crate::progress::Reporter;
 #[cfg(any(feature = "colmap", feature = "onnx"))]
 use std::path::PathBuf;
 
+/// How a session's extractor infers: its threads, and whether they spin between images
+/// ([`super::SessionBuilder::extractor_spinning`]).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Inference {
+    pub threads: usize,
+    pub spin: bool,
+}
+
 /// Where a session's query features come from.
 #[derive(Debug, Clone)]
 #[non_exhaustive]
@@ -103,7 +111,11 @@ impl QueryReader {
             levels: Vec::new(),
         };
         let options = LocalizeOptions::default();
-        Self::open_for(source, fit, None, &options, 1, reporter)
+        let inference = Inference {
+            threads: 1,
+            spin: false,
+        };
+        Self::open_for(source, fit, None, &options, inference, reporter)
     }
 
     pub(super) fn open_for(
@@ -111,10 +123,10 @@ impl QueryReader {
         fit: Fit,
         map: Option<&Map<'_>>,
         options: &LocalizeOptions,
-        extractor_threads: usize,
+        inference: Inference,
         reporter: &dyn Reporter,
     ) -> Result<QueryReader, SessionError> {
-        let source = Source::open(source, &fit, map, options, extractor_threads, reporter)?;
+        let source = Source::open(source, &fit, map, options, inference, reporter)?;
         Ok(QueryReader {
             source,
             #[cfg(feature = "hdf5")]
@@ -156,11 +168,11 @@ impl Source {
         fit: &Fit,
         map: Option<&Map<'_>>,
         options: &LocalizeOptions,
-        extractor_threads: usize,
+        inference: Inference,
         reporter: &dyn Reporter,
     ) -> Result<Source, SessionError> {
         #[cfg(not(feature = "onnx"))]
-        let _ = (fit, map, options, extractor_threads, reporter);
+        let _ = (fit, map, options, inference, reporter);
         Ok(match source {
             QuerySource::Given => Source::Given,
             #[cfg(feature = "colmap")]
@@ -200,8 +212,7 @@ impl Source {
                         fit.map_name
                     )));
                 };
-                let extractor =
-                    extractor(fit, model, &options.levels, extractor_threads, reporter)?;
+                let extractor = extractor(fit, model, &options.levels, inference, reporter)?;
                 Source::Images {
                     extractor,
                     folder,
@@ -477,22 +488,24 @@ fn extractor(
     fit: &Fit,
     model: Option<PathBuf>,
     levels: &[u16],
-    threads: usize,
+    inference: Inference,
     reporter: &dyn Reporter,
 ) -> Result<crate::extract::Extractor, SessionError> {
+    let Inference { threads, spin } = inference;
     use crate::extract::{builtin_model_names, Extractor, ExtractorOptions};
     fit.check_extractable()?;
     let (map, descriptor) = (&fit.map_name, &fit.descriptor);
     let extractor = match model {
-        Some(model) => Extractor::new(
+        Some(model) => Extractor::new_spinning(
             &ExtractorOptions {
                 model: Some(model),
                 threads,
             },
+            spin,
             reporter,
         )?,
         // The built-in model the map was made with (never a file).
-        None => match Extractor::builtin(descriptor, threads, reporter) {
+        None => match Extractor::builtin_spinning(descriptor, threads, spin, reporter) {
             Some(extractor) => extractor?,
             None => {
                 return Err(SessionError::Mismatch(format!(

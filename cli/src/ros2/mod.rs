@@ -109,6 +109,11 @@ pub struct Args {
     /// 2: extraction of the next frame (two inference threads) overlaps localizing this one.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u8).range(1..=2))]
     pub threads: u8,
+    /// Keep the inference threads spinning a while after each frame: a frame that comes at
+    /// the camera's rate is inferred on warm threads (about a third faster at 10 Hz here),
+    /// for about a third of a core more.
+    #[arg(long)]
+    pub spin: bool,
     /// Localize each frame on its own (no pose prior from the frames before).
     #[arg(long)]
     pub no_tracking: bool,
@@ -303,6 +308,7 @@ fn session(args: &Args, bars: &Bars) -> anyhow::Result<Session> {
         .source(source)
         .sequence(!args.no_tracking)
         .extractor_threads(args.threads.into())
+        .extractor_spinning(args.spin)
         .build(bars)
         .map_err(|e| match e {
             sfpmap::session::SessionError::NotExtractable { .. } => anyhow::anyhow!(

@@ -92,6 +92,33 @@ fn finished(mut node: Child, timeout: Duration) -> Value {
     })
 }
 
+/// SIGTERM, as a user's Ctrl-C or a launcher's stop: the node ends its loop and prints its
+/// `--json` counts (at most 30 s).
+fn terminated(node: Child) -> Value {
+    Command::new("kill")
+        .args(["-TERM", &node.id().to_string()])
+        .status()
+        .unwrap();
+    finished(node, Duration::from_secs(30))
+}
+
+/// The peer in `mode` publishing the frames `names` (in `images`) stamped `stamps` on `topic`;
+/// its JSON line.
+fn publish(
+    mode: &str,
+    domain: u16,
+    (topic, images): (&str, &Path),
+    names: &[&str],
+    stamps: &[u64],
+    extra: &[&str],
+) -> Value {
+    let (names, stamps) = (joined(names), joined(stamps));
+    let mut args = vec!["--image-topic", topic, "--images", path_str(images)];
+    args.extend(["--names", &names, "--stamps", &stamps]);
+    args.extend(extra);
+    peer(mode, domain, &args)
+}
+
 /// The query frames' stamps: KITTI runs at 10 Hz and the file name is the frame number.
 fn stamps() -> Vec<u64> {
     scene()
@@ -135,25 +162,15 @@ fn frames_a_foreign_dds_publishes_are_localized_as_localize_sequence_does() {
             "reliable",
             "--frames",
             &s.queries.len().to_string(),
+            // Warm inference threads change the time, never the poses.
+            "--spin",
         ],
     );
     let names: Vec<&str> = s.queries.iter().map(|q| q.name.as_str()).collect();
     let stamps = stamps();
     let run = |range: std::ops::Range<usize>| {
-        peer(
-            "lockstep",
-            domain,
-            &[
-                "--image-topic",
-                topic,
-                "--images",
-                path_str(&images),
-                "--names",
-                &joined(&names[range.clone()]),
-                "--stamps",
-                &joined(&stamps[range]),
-            ],
-        )
+        let (names, stamps) = (&names[range.clone()], &stamps[range]);
+        publish("lockstep", domain, (topic, &images), names, stamps, &[])
     };
     // Two publishers, one after the other: the first disappears with its participant.
     let mut frames = run(0..6)["frames"].as_array().unwrap().clone();
@@ -277,23 +294,15 @@ fn malformed_messages_are_counted_and_skipped_and_the_node_goes_on() {
     .spawn()
     .unwrap();
     let stamps = stamps();
-    let result = peer(
+    let names = [s.queries[0].name.as_str(), &s.queries[1].name];
+    let bad = ["--small", path_str(&small), "--oversize", "2000000"];
+    let result = publish(
         "hostile",
         domain,
-        &[
-            "--image-topic",
-            topic,
-            "--images",
-            path_str(dir.path()),
-            "--small",
-            path_str(&small),
-            "--oversize",
-            "2000000",
-            "--names",
-            &joined([&s.queries[0].name, &s.queries[1].name]),
-            "--stamps",
-            &joined(&stamps[0..2]),
-        ],
+        (topic, dir.path()),
+        &names,
+        &stamps[0..2],
+        &bad,
     );
     let counts = finished(node, Duration::from_secs(60));
     info.kill().ok();
@@ -362,11 +371,7 @@ fn a_camera_stream_at_its_frame_rate_keeps_memory_flat() {
     let late = rss();
     let result: Value = serde_json::from_slice(&out.stdout).unwrap();
     // SIGTERM: the node stops its loop and prints its counts.
-    Command::new("kill")
-        .args(["-TERM", &pid.to_string()])
-        .status()
-        .unwrap();
-    let counts = finished(node, Duration::from_secs(30));
+    let counts = terminated(node);
     let n = |k: &str| counts[k].as_u64().unwrap();
     assert_eq!(
         n("received"),
@@ -409,28 +414,10 @@ fn raw_images_on_one_thread_with_tf_and_a_burst_that_is_dropped() {
             "--tf",
         ],
     );
-    let pid = node.id();
     let names: Vec<&str> = s.queries.iter().take(5).map(|q| q.name.as_str()).collect();
     let stamps = stamps();
-    let result = peer(
-        "raw",
-        domain,
-        &[
-            "--image-topic",
-            topic,
-            "--images",
-            path_str(&images),
-            "--names",
-            &joined(&names),
-            "--stamps",
-            &joined(&stamps[..5]),
-        ],
-    );
-    Command::new("kill")
-        .args(["-TERM", &pid.to_string()])
-        .status()
-        .unwrap();
-    let counts = finished(node, Duration::from_secs(30));
+    let result = publish("raw", domain, (topic, &images), &names, &stamps[..5], &[]);
+    let counts = terminated(node);
     let n = |k: &str| counts[k].as_u64().unwrap();
     assert_eq!(n("malformed"), 1, "the 0x0 image: {counts}");
     let frames = result["frames"].as_array().unwrap();
@@ -595,26 +582,9 @@ fn a_catalog_place_untracked_survives_a_publisher_killed_mid_stream() {
     killed.kill().unwrap(); // SIGKILL: its participant never says goodbye
     killed.wait().unwrap();
     let stamps = stamps();
-    let result = peer(
-        "lockstep",
-        domain,
-        &[
-            "--image-topic",
-            topic,
-            "--images",
-            path_str(&images),
-            "--names",
-            &joined(&names),
-            "--stamps",
-            &joined(&stamps),
-            "--read-tf",
-        ],
-    );
-    Command::new("kill")
-        .args(["-TERM", &node.id().to_string()])
-        .status()
-        .unwrap();
-    let counts = finished(node, Duration::from_secs(30));
+    let tf = ["--read-tf"];
+    let result = publish("lockstep", domain, (topic, &images), &names, &stamps, &tf);
+    let counts = terminated(node);
     // Frames of the killed publisher were taken too, and then all 13 of the second.
     assert!(counts["received"].as_u64().unwrap() > 13, "{counts}");
     assert_eq!(counts["failed"], 0, "{counts}");
