@@ -202,6 +202,7 @@ mod tests {
     #[test]
     fn every_model_but_equirectangular_has_a_pinhole_part() {
         // Against the localizer's own reading of the models it supports.
+        #[cfg(feature = "geometry")]
         for model in crate::geometry::SUPPORTED {
             let params: Vec<f64> = (0..model.num_params()).map(|i| 100.0 + i as f64).collect();
             let camera = crate::geometry::Camera::new(model, 640, 480, params.clone()).unwrap();
@@ -218,7 +219,21 @@ mod tests {
             let has = model.pinhole_part(&params).is_some();
             assert_eq!(has, model != CameraModel::Equirectangular, "{model}");
         }
-        // The positions, spelled out for two models.
+        // The positions, spelled out for models the localizer does not read.
+        assert_eq!(
+            CameraModel::Fov.pinhole_part(&[500.0, 510.0, 320.0, 240.0, 0.9]),
+            Some([500.0, 510.0, 320.0, 240.0])
+        );
+        assert_eq!(
+            CameraModel::SimpleFisheye.pinhole_part(&[300.0, 322.0, 242.0]),
+            Some([300.0, 300.0, 322.0, 242.0])
+        );
+        let mut thin_prism = vec![0.0; 12];
+        thin_prism[..4].copy_from_slice(&[501.0, 502.0, 321.0, 241.0]);
+        assert_eq!(
+            CameraModel::ThinPrismFisheye.pinhole_part(&thin_prism),
+            Some([501.0, 502.0, 321.0, 241.0])
+        );
         assert_eq!(
             CameraModel::SimpleDivision.pinhole_part(&[500.0, 321.0, 241.0, -0.1]),
             Some([500.0, 500.0, 321.0, 241.0])

@@ -186,7 +186,10 @@ fn query_json(
 }
 
 /// Reads `name qw qx qy qz tx ty tz` lines (COLMAP `cam_from_world`); `#` lines are comments
-/// (the localizer lists failed queries as `# failed NAME: reason`).
+/// (the localizer lists failed queries as `# failed NAME: reason`). The last seven fields are
+/// the numbers and the name is everything before them, spaces included (as
+/// [`colmap_pose_line`] writes a name with spaces): a line with an extra column reads its
+/// first number into the name.
 pub fn read_poses(path: &Path) -> Result<Vec<(String, Pose)>, InputError> {
     super::parse_lines(path, |line| {
         // The last seven fields are the numbers; the name is the rest, spaces and all, as

@@ -167,6 +167,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             args.map_frame
         );
     }
+    if args.tf && args.camera_frame.is_none() && args.map_frame == "camera" {
+        bail!("--map-frame camera: \"camera\" is the TF child of a frame without a frame_id; name the camera's frame with --camera-frame");
+    }
     if let Some(c) = &args.camera_frame {
         if worker::frame_name(c, &args.map_frame).is_none() {
             bail!(
@@ -556,7 +559,7 @@ fn report(args: &Args, shared: &Shared<'_>, elapsed: Duration, quiet: bool) -> a
                 let q = |q| l.quantile_ms(q);
                 (
                     (*name).into(),
-                    serde_json::json!({"median": q(0.5), "p99": q(0.99)}),
+                    serde_json::json!({"median": q(0.5), "p99": q(0.99), "frames": l.count()}),
                 )
             })
             .collect();

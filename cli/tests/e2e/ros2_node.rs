@@ -182,18 +182,20 @@ fn frames_a_foreign_dds_publishes_are_localized_as_localize_sequence_does() {
         assert_eq!(counts[key], 0, "{key}: {counts}");
     }
     assert_eq!(counts["latency_ms"]["frames"], 13, "{counts}");
-    // The frames tracked are those localize --sequence tracked; every stage was timed.
+    // The frames tracked are those localize --sequence tracked.
     let tracked = reference.iter().filter(|r| r["path"] == "tracking").count();
     assert_eq!(counts["tracked_latency_ms"]["frames"], tracked, "{counts}");
+    // Every stage of every frame was timed; extraction and localization take milliseconds
+    // (the histogram's bins are 0.1 ms).
     for stage in ["queued", "decode_extract", "handoff", "localize", "publish"] {
-        let median = counts["stages_ms"][stage]["median"].as_f64();
-        assert!(median.is_some_and(|m| m >= 0.0), "{stage}: {counts}");
+        assert_eq!(
+            counts["stages_ms"][stage]["frames"], 13,
+            "{stage}: {counts}"
+        );
     }
     for stage in ["decode_extract", "localize"] {
-        assert!(
-            counts["stages_ms"][stage]["median"].as_f64().unwrap() > 0.0,
-            "{counts}"
-        );
+        let median = counts["stages_ms"][stage]["median"].as_f64().unwrap();
+        assert!(median >= 1.0, "{counts}");
     }
 
     assert_eq!(frames.len(), reference.len());

@@ -118,9 +118,12 @@ def world_from_cam(colmap: Sequence[float]) -> Tuple[np.ndarray, np.ndarray]:
 
 
 def _rotations(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices of unit quaternions, rows ``(w, x, y, z)`` (normalised here; every
-    row's norm checked > 0 by the caller): ``[n, 3, 3]``."""
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    """Rotation matrices of quaternions, rows ``(w, x, y, z)``, normalised here (a norm of 0,
+    or one that overflows, is an ``InputError``): ``[n, 3, 3]``."""
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    if not (np.isfinite(norm) & (norm > 0)).all():
+        raise sfpmap.InputError("a quaternion of norm 0 or too large to normalise is not a rotation")
+    q = q / norm
     w, x, y, z = q.T
     return np.stack([
         np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
@@ -226,6 +229,29 @@ def _scene_scale(centres: np.ndarray) -> float:
     return float(np.median(d)) * 0.5 if len(d) else 0.1
 
 
+def _query_cameras(given: Any) -> Tuple[Optional[sfpmap.Camera], Dict[str, sfpmap.Camera]]:
+    """``record``'s ``query_cameras``: one camera for every query (a ``Camera``, a
+    ``"MODEL W H params..."`` string or a camera dict), or cameras by name (a dict of them, or
+    ``read_queries``'s list of pairs); ``(every, by_name)``."""
+    def camera(c: Any) -> sfpmap.Camera:
+        if isinstance(c, sfpmap.Camera):
+            return c
+        if isinstance(c, str):
+            return sfpmap.Camera.parse(c)
+        if isinstance(c, dict) and "model" in c:
+            return sfpmap.Camera(c["model"], int(c["width"]), int(c["height"]), list(c["params"]))
+        raise sfpmap.InputError(f"query_cameras: {c!r} is not a camera")
+    if given is None:
+        return None, {}
+    if isinstance(given, (sfpmap.Camera, str)) or (isinstance(given, dict) and "model" in given):
+        return camera(given), {}
+    pairs = given.items() if isinstance(given, dict) else given
+    try:
+        return None, {str(name): camera(c) for name, c in pairs}
+    except (TypeError, ValueError):
+        raise sfpmap.InputError("query_cameras: a camera, or cameras by query name") from None
+
+
 def _spread(n: int, most: int) -> range:
     """Indices of at most ``most`` of ``n`` items, evenly spread (all of them below it)."""
     return range(0, n, max(1, math.ceil(n / most)))
@@ -239,14 +265,16 @@ def record(
     gt: Optional[str] = None,
     trajectory: Optional[str] = None,
     inliers: Optional[Tuple[str, "sfpmap.Localization", sfpmap.Camera]] = None,
-    query_cameras: Optional[Union[Dict[str, sfpmap.Camera], sfpmap.Camera]] = None,
+    query_cameras: Any = None,
     max_points: Optional[int] = None,
     force: bool = False,
 ) -> Summary:
     """Writes the recording of the map at ``map_path`` (and whatever else is given, as the
     module says) to ``out``. ``inliers``: (query name, its localization made with
     ``Localizer(keep_inliers=True)``, its camera). ``query_cameras``: the queries' cameras by
-    name, or one camera for every query, for their frusta (default: the map's first camera). ``max_points``: at most this
+    name (a dict, or ``read_queries``'s pairs), or one camera for every query (a ``Camera``, a
+    ``"MODEL W H params..."`` string or a camera dict), for their frusta (default: the map's
+    first camera). ``max_points``: at most this
     many points per level (every n-th), for maps too large to look at whole. Frusta are drawn
     for at most ``MAX_CAMERAS`` database images and as many queries, spread over them; the
     error lines for every query. An existing ``out`` is refused unless ``force``; one of the
@@ -293,8 +321,7 @@ def record(
                              intrinsics[c] if c < len(intrinsics) else None, depth)
                     summary.cameras += 1
             default = intrinsics[0] if intrinsics else None
-            every = query_cameras if isinstance(query_cameras, sfpmap.Camera) else None
-            by_name = dict(query_cameras) if isinstance(query_cameras, dict) else {}
+            every, by_name = _query_cameras(query_cameras)
             if inliers is not None:
                 by_name.setdefault(inliers[0], inliers[2])
 
@@ -302,6 +329,8 @@ def record(
                 camera = by_name.get(name, every)
                 return _intrinsics(camera) if camera is not None else default
 
+            drawn: set = set()
+            thinned = False
             for kind, path, colour in (("estimate", poses, ESTIMATE_COLOR), ("truth", gt, TRUTH_COLOR)):
                 if not path:
                     continue
@@ -312,9 +341,15 @@ def record(
                     truth = dict(read)
                 names = [n for n, _ in read]
                 rotations, centres = _worlds_from_cams([p for _, p in read])
-                for i in _spread(len(names), MAX_CAMERAS):
-                    _frustum(rr, rec, f"world/queries/{_entity_part(names[i])}/{kind}",
-                             rotations[i], centres[i], query_intrinsics(names[i]), depth, colour)
+                # Thinned by name: past MAX_CAMERAS estimates, the truths drawn are those of
+                # the estimates drawn.
+                if kind == "estimate" or not thinned:
+                    drawn = {names[i] for i in _spread(len(names), MAX_CAMERAS)}
+                    thinned = len(drawn) < len(names)
+                for i, name in enumerate(names):
+                    if name in drawn:
+                        _frustum(rr, rec, f"world/queries/{_entity_part(name)}/{kind}",
+                                 rotations[i], centres[i], query_intrinsics(name), depth, colour)
                 setattr(summary, "estimates" if kind == "estimate" else "truths", len(names))
             if poses and gt:
                 both = [n for n in estimated if n in truth]

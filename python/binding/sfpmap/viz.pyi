@@ -42,7 +42,7 @@ def record(
     gt: Optional[str] = None,
     trajectory: Optional[str] = None,
     inliers: Optional[Tuple[str, sfpmap.Localization, sfpmap.Camera]] = None,
-    query_cameras: Optional[Union[Dict[str, sfpmap.Camera], sfpmap.Camera]] = None,
+    query_cameras: Optional[Union[Dict[str, Any], Sequence[Tuple[str, Any]], sfpmap.Camera, str, Dict[str, Any]]] = None,
     max_points: Optional[int] = None,
     force: bool = False,
 ) -> Summary: ...

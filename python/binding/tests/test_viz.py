@@ -301,6 +301,21 @@ def test_tum_stamps_not_in_seconds_are_refused_naming_the_line(scene, tmp_path):
     assert np.allclose(r[0], [[0, -1, 0], [1, 0, 0], [0, 0, 1]])
 
 
+def test_query_cameras_come_by_name_or_one_for_all():
+    text = "SIMPLE_PINHOLE 640 480 500 320 240"
+    cam = sfpmap.Camera.parse(text)
+    for given in (cam, text, {"model": "SIMPLE_PINHOLE", "width": 640, "height": 480, "params": [500, 320, 240]}):
+        every, by_name = sfpmap.viz._query_cameras(given)
+        assert every is not None and every.params == [500, 320, 240] and by_name == {}
+    for given in ({"q.jpg": text}, [("q.jpg", cam)]):
+        every, by_name = sfpmap.viz._query_cameras(given)
+        assert every is None and list(by_name) == ["q.jpg"] and by_name["q.jpg"].width == 640
+    with pytest.raises(sfpmap.InputError, match="query_cameras"):
+        sfpmap.viz._query_cameras({"q.jpg": 3})
+    with pytest.raises(sfpmap.InputError, match="not a rotation"):
+        sfpmap.viz._rotations(np.array([[0.0, 0, 0, 0]]))
+
+
 def test_an_equirectangular_camera_has_no_pinhole_and_a_bad_one_is_named():
     assert sfpmap.pinhole_intrinsics("EQUIRECTANGULAR", [640, 320]) is None
     assert sfpmap.viz._intrinsics({"model": "EQUIRECTANGULAR", "width": 640, "height": 320, "params": [640, 320]}) is None
