@@ -101,9 +101,11 @@ pub fn write_street(dir: &Path, options: &StreetOptions) -> Result<StreetSummary
         let mut thin =
             SplitMix64::new(options.seed ^ 0x7417_0000 ^ (i as u64).wrapping_mul(0x9E37_79B9));
         visible.retain(|_| keep >= 1.0 || thin.next_f64() < keep);
-        // Thinned to a few of the thousands in view: without this every image kept the
-        // capacity of all it saw (3 of the 1 M-point street's 4.9 GB).
-        visible.shrink_to_fit();
+        // Thinned to a few of the thousands in view, into a vector of its own size: keeping
+        // the one that held all it saw kept its capacity (3 of the 1 M-point street's
+        // 4.9 GB), and shrinking it in place kept a memory mapping per image, past the
+        // kernel's 65,530 (vm.max_map_count) at 10 M points' 80,000 images.
+        let visible = visible.to_vec();
         for &(p, _, _) in &visible {
             track_len[p as usize] += 1;
         }
@@ -162,7 +164,8 @@ pub fn write_street(dir: &Path, options: &StreetOptions) -> Result<StreetSummary
     drop(tracks);
     let model = model.build()?;
     // One file's bytes at a time (images.bin alone is 2.6 GB at 10 M points).
-    let files: [(&str, fn(&Reconstruction) -> Vec<u8>); 3] = [
+    type Writer = fn(&Reconstruction) -> Vec<u8>;
+    let files: [(&str, Writer); 3] = [
         ("cameras.bin", bin::write_cameras),
         ("images.bin", bin::write_images),
         ("points3D.bin", bin::write_points3d),
