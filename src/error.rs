@@ -328,7 +328,8 @@ fn convert_kind(e: &crate::build::ConvertError) -> ErrorKind {
         // A features file's contents, like a database's.
         | E::Input(_)
         | E::KeypointOutsideImage { .. } => ErrorKind::Convert,
-        E::Options(_) => ErrorKind::InvalidArgument,
+        // The budget asked for, not the input, is what must change.
+        E::Options(_) | E::MemoryBudget { .. } => ErrorKind::InvalidArgument,
         E::Kapture(e) => kapture_kind(e),
     }
 }

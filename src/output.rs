@@ -724,6 +724,30 @@ pub(crate) fn write_bytes_in(
     out.commit()
 }
 
+/// A scratch file for making `path`: in its folder (the file system that will hold the
+/// output, with room for it), read and written by the caller and gone once closed. It has no
+/// name where the file system allows (`O_TMPFILE`, as [`AtomicFile`]'s temp file); elsewhere
+/// it is a temp file of [`AtomicFile`]'s naming, removed as soon as it is open (unix), so a
+/// crash leaves nothing behind either way. Refuses what [`AtomicFile::create`] refuses.
+pub(crate) fn scratch_file(path: &Path) -> Result<File, OutputError> {
+    let target = Target::open(path)?;
+    if allow_unnamed() {
+        let unnamed = open_unnamed(&target.dir_file, true).map_err(OutputError::io(
+            path,
+            "cannot create a scratch file in its folder",
+        ))?;
+        if let Some(file) = unnamed {
+            return Ok(file);
+        }
+    }
+    let (file, temp) = target.create_named()?;
+    #[cfg(unix)]
+    remove_if_pending(&target, &temp);
+    #[cfg(not(unix))]
+    let _ = temp; // removed with the other pending temp files at exit
+    Ok(file)
+}
+
 /// Whether [`AtomicFile`] may use an unnamed temp file (`SFPMAP_NO_TMPFILE` unset).
 fn allow_unnamed() -> bool {
     std::env::var_os("SFPMAP_NO_TMPFILE").is_none()

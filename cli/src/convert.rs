@@ -77,7 +77,7 @@ pub struct Args {
     /// The model's images: build an SFP map with the extractor instead of SIFT descriptors
     /// (levels chosen by the network's scores; see spec/extractor.md).
     #[cfg(feature = "onnx")]
-    #[arg(long, conflicts_with_all = ["database", "features", "global_features", "short_dims", "aggregate", "strict"])]
+    #[arg(long, conflicts_with_all = ["database", "features", "global_features", "short_dims", "aggregate", "strict", "memory"])]
     pub images: Option<PathBuf>,
     /// With --images: an ONNX model of the sfp-extractor/1 contract or a built-in model's name
     /// (sfp-v2, sfp-v1, sfp-v2s, aliked-n16); default: the built-in sfp-v2.
@@ -147,6 +147,12 @@ pub struct Args {
     /// level's short dimensions).
     #[arg(long, value_parser = vlad_dims, long_help = vlad_help("leading dimensions of the level basis the codebook covers (at most the level's short dimensions)", |(_, d)| d))]
     pub vlad_dims: Option<usize>,
+    /// Memory the conversion may use, such as 4GB (default: half the machine's). Where the
+    /// points seen at once need more, the features are read once per range of points (at
+    /// most 64 times); the map is the same bytes whatever the budget. A budget too small is
+    /// refused before anything is read, naming the smallest that works.
+    #[arg(long, value_name = "SIZE", value_parser = super::args::byte_size)]
+    pub memory: Option<u64>,
     /// Overwrite OUTPUT if it exists.
     #[arg(long)]
     pub force: bool,
@@ -179,6 +185,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         vlad: vlad_options(&args),
         pq: args.pq.map(usize::from),
         job: None,
+        memory: args.memory,
     };
     #[cfg(feature = "hdf5")]
     {

@@ -26,24 +26,86 @@ impl Basis {
     /// The basis of the rows `rows` yields (each `dim` values), in that order: a level's
     /// rows read where they are, not copied together first.
     pub fn fit_rows<'r>(rows: impl Iterator<Item = &'r [f32]>, dim: usize) -> Basis {
-        // Upper triangle of Σ r rᵀ in f64, one row at a time: each element's sum keeps the
-        // rows' order (the same bytes on every machine), and the loop over j vectorises.
-        let mut m = vec![0.0f64; dim * dim];
-        let mut row = vec![0.0f64; dim];
-        for source in rows {
-            for (r, &x) in row.iter_mut().zip(source) {
-                *r = f64::from(x);
-            }
-            for i in 0..dim {
-                let ri = row[i];
-                if ri == 0.0 {
-                    continue;
-                }
-                for (o, &rj) in m[i * dim + i..(i + 1) * dim].iter_mut().zip(&row[i..]) {
-                    *o += ri * rj;
-                }
+        let mut fit = BasisFit::new(dim);
+        rows.for_each(|r| fit.add(r));
+        fit.finish()
+    }
+
+    /// Share of the energy in the first `k` directions.
+    pub fn energy_kept(&self, k: usize) -> f64 {
+        let total: f64 = self.energy.iter().sum();
+        if total <= 0.0 {
+            return 0.0;
+        }
+        self.energy.iter().take(k).sum::<f64>() / total
+    }
+
+    /// `out = P · v`.
+    pub fn project(&self, v: &[f32], out: &mut [f32]) {
+        // Column by column: every out[j] still sums its products in order of k (from -0.0,
+        // as `Iterator::sum` does), but the loop over j vectorises.
+        out.fill(-0.0);
+        for (&vk, column) in v.iter().zip(self.columns.chunks_exact(self.dim)) {
+            for (o, &p) in out.iter_mut().zip(column) {
+                *o += p * vk;
             }
         }
+    }
+}
+
+impl Basis {
+    /// The first `dst.len()` (at most `dim`) coordinates of `src` in this basis,
+    /// renormalised (a map's retrieval rows).
+    pub fn project_leading_row(&self, src: &[f32], dst: &mut [f32]) {
+        for (o, direction) in dst.iter_mut().zip(self.rows.chunks_exact(self.dim)) {
+            *o = crate::vector::dot(direction, src);
+        }
+        crate::vector::l2_normalise(dst);
+    }
+}
+
+/// A [`Basis`] fitted one row at a time ([`Basis::fit_rows`], or rows read from a file).
+pub struct BasisFit {
+    dim: usize,
+    /// Upper triangle of Σ r rᵀ.
+    m: Vec<f64>,
+    row: Vec<f64>,
+}
+
+impl BasisFit {
+    /// No rows yet, of `dim` values each.
+    pub fn new(dim: usize) -> BasisFit {
+        BasisFit {
+            dim,
+            m: vec![0.0; dim * dim],
+            row: vec![0.0; dim],
+        }
+    }
+
+    /// Adds a row (`dim` values). The basis depends on the order rows come in only through
+    /// the rounding of the sums: the same rows in the same order give the same bytes on every
+    /// machine.
+    pub fn add(&mut self, source: &[f32]) {
+        // Upper triangle in f64, one row at a time: each element's sum keeps the rows'
+        // order, and the loop over j vectorises.
+        let (dim, m, row) = (self.dim, &mut self.m, &mut self.row);
+        for (r, &x) in row.iter_mut().zip(source) {
+            *r = f64::from(x);
+        }
+        for i in 0..dim {
+            let ri = row[i];
+            if ri == 0.0 {
+                continue;
+            }
+            for (o, &rj) in m[i * dim + i..(i + 1) * dim].iter_mut().zip(&row[i..]) {
+                *o += ri * rj;
+            }
+        }
+    }
+
+    /// The basis of the rows added.
+    pub fn finish(self) -> Basis {
+        let (dim, mut m) = (self.dim, self.m);
         for i in 0..dim {
             for j in 0..i {
                 m[i * dim + j] = m[j * dim + i];
@@ -73,50 +135,6 @@ impl Basis {
             energy: order.iter().map(|&k| values[k].max(0.0)).collect(),
             columns,
         }
-    }
-
-    /// Share of the energy in the first `k` directions.
-    pub fn energy_kept(&self, k: usize) -> f64 {
-        let total: f64 = self.energy.iter().sum();
-        if total <= 0.0 {
-            return 0.0;
-        }
-        self.energy.iter().take(k).sum::<f64>() / total
-    }
-
-    /// `out = P · v`.
-    pub fn project(&self, v: &[f32], out: &mut [f32]) {
-        // Column by column: every out[j] still sums its products in order of k (from -0.0,
-        // as `Iterator::sum` does), but the loop over j vectorises.
-        out.fill(-0.0);
-        for (&vk, column) in v.iter().zip(self.columns.chunks_exact(self.dim)) {
-            for (o, &p) in out.iter_mut().zip(column) {
-                *o += p * vk;
-            }
-        }
-    }
-}
-
-impl Basis {
-    /// The first `k` coordinates of each row of `rows` (`[n × dim]`) in this basis,
-    /// renormalised: `[n × k]`; rows with `keep[i]` false stay zero.
-    pub fn project_leading(&self, rows: &[f32], dim: usize, k: usize, keep: &[bool]) -> Vec<f32> {
-        let k = k.min(self.dim);
-        let mut out = vec![0.0f32; rows.len() / dim.max(1) * k];
-        for ((src, dst), &keep) in rows
-            .chunks_exact(dim)
-            .zip(out.chunks_exact_mut(k))
-            .zip(keep)
-        {
-            if !keep {
-                continue;
-            }
-            for (o, direction) in dst.iter_mut().zip(self.rows.chunks_exact(self.dim)) {
-                *o = crate::vector::dot(direction, src);
-            }
-            crate::vector::l2_normalise(dst);
-        }
-        out
     }
 }
 

@@ -95,6 +95,19 @@ pub enum ConvertError {
     Extract(crate::extract::ExtractError),
     /// The output is one of the model's images (through `..` in its name, a link, ...).
     Output(crate::output::OutputError),
+    /// The memory budget (`--memory`) is smaller than converting the model needs, even
+    /// reading its features [`MAX_PASSES`](super::stream::MAX_PASSES) times: `needed` is the
+    /// least that works.
+    MemoryBudget {
+        /// The model (its folder, or what stands for a model in memory).
+        model: PathBuf,
+        /// The budget asked for, in bytes.
+        budget: u64,
+        /// The smallest budget that works, in bytes.
+        needed: u64,
+        /// Reads of the features at that budget.
+        passes: usize,
+    },
     /// `convert --images`: model images with no file under the images folder.
     MissingImages {
         /// The images folder.
@@ -157,6 +170,15 @@ impl fmt::Display for ConvertError {
             #[cfg(feature = "onnx")]
             ConvertError::Extract(e) => e.fmt(f),
             ConvertError::Output(e) => e.fmt(f),
+            ConvertError::MemoryBudget { model, budget, needed, passes } => write!(
+                f,
+                "{}: a memory budget of {} MB is too small to convert it: it needs at least {} MB ({} read{} of its features)",
+                crate::escape::path(model),
+                budget / 1_000_000,
+                needed.div_ceil(1_000_000),
+                passes,
+                if *passes == 1 { "" } else { "s" }
+            ),
             ConvertError::MissingImages {
                 images,
                 missing,

@@ -12,7 +12,10 @@
 use std::hash::BuildHasher;
 use std::path::Path;
 
-use crate::colmap::bin::{ImageRecord, ImageRecords, Point3DRecords};
+use crate::colmap::bin::{
+    image_record_len, point3d_record_len, record_runs, triangulated, ImageRecords, ModelBytes,
+    Point3DRecords, MIN_POINT3D, POINT2D, RUN_BYTES,
+};
 #[cfg(any(feature = "colmap", test))]
 use crate::colmap::{files_with, read_file};
 use crate::colmap::{IdIndex, Reconstruction};
@@ -225,16 +228,6 @@ impl Visibility {
     fn end_image(&mut self) {
         self.offsets.push(self.points.len() as u64);
     }
-
-    /// Appends the images of `other`.
-    fn append(&mut self, other: &Visibility) {
-        let base = self.points.len() as u64;
-        self.offsets
-            .extend(other.offsets.iter().skip(1).map(|o| o + base));
-        self.points.extend_from_slice(&other.points);
-        self.keypoints.extend_from_slice(&other.keypoints);
-        self.point2d.extend_from_slice(&other.point2d);
-    }
 }
 
 /// Reads the binary model in `dir` straight into a [`Geometry`] of all its points.
@@ -256,18 +249,55 @@ impl Visibility {
 #[cfg(any(feature = "colmap", test))]
 pub(crate) fn read_bin(dir: &Path) -> Option<Geometry> {
     let [cameras, images, points] = files_with(dir, "bin");
-    let bytes = [&cameras, &images, &points].map(|path| read_file(path).ok());
-    let [Some(c), Some(i), Some(p)] = bytes else {
-        return None;
+    // cameras.bin is small; the other two are read a block at a time, never held whole.
+    let c = read_file(&cameras).ok()?;
+    let open = |path: &Path| -> Option<(std::fs::File, u64)> {
+        let file = crate::colmap::open_regular(path).ok()?;
+        let len = file.metadata().ok()?.len();
+        Some((file, len))
     };
-    from_bin((&c, &cameras), (&i, &images), (&p, &points))
+    let ((i, i_len), (p, p_len)) = (open(&images)?, open(&points)?);
+    from_bytes(
+        (&c, &cameras),
+        (ModelBytes::File(&i, i_len), &images),
+        (ModelBytes::File(&p, p_len), &points),
+        RUN_BYTES,
+    )
 }
 
-/// [`read_bin`] on the three files' bytes (each with the path its errors would name).
+/// [`read_bin`] on the three files' bytes (each with the path its errors would name): the
+/// fuzz body's and the tests' way in.
+#[cfg(any(test, feature = "fuzzing"))]
 pub(crate) fn from_bin(
     cameras: (&[u8], &Path),
     images: (&[u8], &Path),
     points: (&[u8], &Path),
+) -> Option<Geometry> {
+    from_bytes(
+        cameras,
+        (ModelBytes::Memory(images.0), images.1),
+        (ModelBytes::Memory(points.0), points.1),
+        RUN_BYTES,
+    )
+}
+
+/// An image's record without its 2D points: where they lie in `images.bin`.
+struct ImageAt {
+    id: u32,
+    name: String,
+    camera_id: u32,
+    pose: [f64; 7],
+    /// Offset of the 2D points in the file, and their count.
+    points2d: u64,
+    count: u64,
+}
+
+/// The geometry of the model files' bytes, read `block` bytes at a time.
+fn from_bytes(
+    cameras: (&[u8], &Path),
+    images: (ModelBytes<'_>, &Path),
+    points: (ModelBytes<'_>, &Path),
+    block: usize,
 ) -> Option<Geometry> {
     let (cameras_data, cameras_path) = cameras;
     let mut cameras = crate::colmap::bin::parse_cameras(cameras_data, cameras_path).ok()?;
@@ -277,11 +307,23 @@ pub(crate) fn from_bin(
     }
     let camera_ids: Vec<u32> = cameras.iter().map(|c| c.id).collect();
 
-    let mut records = ImageRecords::new(images.0, images.1).ok()?;
-    let mut images = Vec::with_capacity(records.capacity);
-    while let Some(record) = records.next_record().ok()? {
-        images.push(record);
-    }
+    let (image_bytes, image_path) = images;
+    let mut images = Vec::new();
+    record_runs(image_bytes, block, image_record_len, |run, n, at| {
+        let mut records = ImageRecords::run(run, n, image_path);
+        while let Some(r) = records.next_record().ok()? {
+            images.push(ImageAt {
+                id: r.id,
+                pose: r.cam_from_world.to_colmap(),
+                camera_id: r.camera_id,
+                count: r.num_points2d() as u64,
+                // Where the block lies in the run, as a file offset.
+                points2d: at + (r.points2d.as_ptr() as usize - run.as_ptr() as usize) as u64,
+                name: r.name,
+            });
+        }
+        Some(())
+    })?;
     images.sort_by_key(|i| i.id);
     if images.windows(2).any(|w| w[0].id == w[1].id) {
         return None;
@@ -289,22 +331,22 @@ pub(crate) fn from_bin(
 
     let random = std::hash::RandomState::new();
     let key = [random.hash_one(1u8), random.hash_one(2u8)];
-    let points = Points::read(points.0, points.1, key)?;
+    let points = Points::read(points.0, points.1, block, key)?;
     // COLMAP numbers points from 1 and filtering leaves gaps; up to 8 slots a point is a
     // table of at most 32 bytes a point, still far smaller than the points themselves.
     let max_slots = points.ids.len().saturating_mul(8).saturating_add(1 << 20);
     let index = IdIndex::dense(points.ids.iter().copied(), max_slots)?;
 
-    let (visibility, sum) = scan_images(&images, &index, points.observations, key)?;
+    let (visibility, sum) = scan_images(&images, image_bytes, &index, points.observations, key)?;
     if sum != points.track_sum {
         return None;
     }
 
-    let heads = images.into_iter().map(|i: ImageRecord<'_>| ImageHead {
+    let heads = images.into_iter().map(|i| ImageHead {
         id: i.id,
         name: i.name,
         camera_id: i.camera_id,
-        pose: i.cam_from_world.to_colmap(),
+        pose: i.pose,
     });
     let (names, image_cameras, poses, image_ids) = image_columns(&camera_ids, heads)?;
     Some(Geometry {
@@ -348,9 +390,11 @@ struct Points {
 }
 
 impl Points {
-    fn read(data: &[u8], path: &Path, key: [u64; 2]) -> Option<Points> {
-        let mut records = Point3DRecords::new(data, path).ok()?;
-        let n = records.capacity;
+    fn read(bytes: ModelBytes<'_>, path: &Path, block: usize, key: [u64; 2]) -> Option<Points> {
+        // Reserved for the count the file can hold, not the count it claims.
+        let mut count = [0u8; 8];
+        bytes.read_at(&mut count, 0)?;
+        let n = u64::from_le_bytes(count).min(bytes.len() / MIN_POINT3D as u64) as usize;
         let mut points = Points {
             ids: Vec::with_capacity(n),
             positions: Vec::with_capacity(n),
@@ -358,18 +402,22 @@ impl Points {
             track_sum: 0,
             observations: 0,
         };
-        while let Some(record) = records.next_record().ok()? {
-            for e in record.track() {
-                let hash = observation_hash(key, e.image_id, e.point2d_idx, record.id);
-                points.track_sum = points.track_sum.wrapping_add(hash);
+        record_runs(bytes, block, point3d_record_len, |run, n, _| {
+            let mut records = Point3DRecords::run(run, n, path);
+            while let Some(record) = records.next_record().ok()? {
+                for e in record.track() {
+                    let hash = observation_hash(key, e.image_id, e.point2d_idx, record.id);
+                    points.track_sum = points.track_sum.wrapping_add(hash);
+                }
+                // u32 is the builder's limit on track lengths.
+                let len = u32::try_from(record.track_len()).ok()?;
+                points.observations += len as usize;
+                points.ids.push(record.id);
+                points.positions.push(record.xyz);
+                points.colors.push(record.rgb);
             }
-            // u32 is the builder's limit on track lengths.
-            let len = u32::try_from(record.track_len()).ok()?;
-            points.observations += len as usize;
-            points.ids.push(record.id);
-            points.positions.push(record.xyz);
-            points.colors.push(record.rgb);
-        }
+            Some(())
+        })?;
         if !points.ids.is_sorted() {
             points.sort_by_id();
         }
@@ -392,56 +440,36 @@ impl Points {
     }
 }
 
-/// Visibility from the images' 2D points (in image id order), and the wrapping sum of
-/// their observations' hashes. `None` if a 2D point names a missing point or the count
-/// differs from the tracks'. Two threads, each on half of the 2D points.
+/// Visibility from the images' 2D points (in image id order, each image's block read from
+/// the file in turn), and the wrapping sum of their observations' hashes. `None` if a 2D
+/// point names a missing point or the count differs from the tracks'. One pass, straight
+/// into arrays of the tracks' size: nothing of the file is held but one image's block.
 fn scan_images(
-    images: &[ImageRecord<'_>],
+    images: &[ImageAt],
+    bytes: ModelBytes<'_>,
     index: &IdIndex,
     observations: usize,
     key: [u64; 2],
 ) -> Option<(Visibility, u64)> {
-    let total: usize = images.iter().map(|i| i.num_points2d()).sum();
-    let mut seen = 0;
-    let split = images
-        .iter()
-        .position(|i| {
-            seen += i.num_points2d();
-            seen * 2 >= total
-        })
-        .map_or(images.len(), |k| k + 1);
-    let (first, second) = images.split_at(split);
-    let (first, second) = std::thread::scope(|s| {
-        let second = s.spawn(|| scan_part(second, index, observations / 2, key));
-        let first = scan_part(first, index, observations, key);
-        let second = second
-            .join()
-            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-        (first, second)
-    });
-    let ((mut vis, sum), (rest, rest_sum)) = (first?, second?);
-    vis.append(&rest);
-    (vis.points.len() == observations).then_some((vis, sum.wrapping_add(rest_sum)))
-}
-
-fn scan_part(
-    images: &[ImageRecord<'_>],
-    index: &IdIndex,
-    capacity: usize,
-    key: [u64; 2],
-) -> Option<(Visibility, u64)> {
-    let mut vis = Visibility::with_capacity(images.len(), capacity);
+    let mut vis = Visibility::with_capacity(images.len(), observations);
     let mut sum = 0u64;
+    let mut block = Vec::new();
     for image in images {
-        u32::try_from(image.num_points2d()).ok()?;
-        for (idx, xy, id) in image.triangulated() {
+        u32::try_from(image.count).ok()?;
+        // Within the file: the record reader checked the block's length.
+        block.resize(usize::try_from(image.count).ok()? * POINT2D, 0);
+        bytes.read_at(&mut block, image.points2d)?;
+        for (idx, xy, id) in triangulated(&block) {
             let point = index.position(id)?;
+            if vis.points.len() == observations {
+                return None;
+            }
             vis.push(point as u32, xy, idx);
             sum = sum.wrapping_add(observation_hash(key, image.id, idx, id));
         }
         vis.end_image();
     }
-    Some((vis, sum))
+    (vis.points.len() == observations).then_some((vis, sum))
 }
 
 /// Fuzz entry point (`crate::fuzzing`): parses `data` as each binary model file, then as a whole model (so
@@ -756,6 +784,20 @@ mod tests {
         let (mut fast_count, mut declined) = (0, 0);
         for dir in &found {
             let fast = read_bin(dir);
+            // A few bytes read at a time: records straddle every block boundary, and the
+            // buffer grows past records longer than a block.
+            let file = |name: &str| std::fs::read(dir.join(name)).ok();
+            if let (Some(c), Some(i), Some(p)) = (
+                file("cameras.bin"),
+                file("images.bin"),
+                file("points3D.bin"),
+            ) {
+                for block in [1, 13, 4096] {
+                    let (images, points) = (ModelBytes::Memory(&i), ModelBytes::Memory(&p));
+                    let small = from_bytes((&c, dir), (images, dir), (points, dir), block);
+                    assert_eq!(small, fast, "{} in blocks of {block}", dir.display());
+                }
+            }
             match general(dir) {
                 Ok(geometry) => {
                     assert_eq!(fast.as_ref(), Some(&geometry), "{}", dir.display());

@@ -41,6 +41,8 @@ mod retrieval;
 mod sfp;
 #[cfg(feature = "colmap")]
 mod sift;
+#[cfg(feature = "colmap")]
+mod stream;
 
 #[cfg(feature = "colmap")]
 pub use error::ConvertError;
@@ -52,6 +54,8 @@ pub use retrieval::{ImageIndexSummary, StoredVlad, VladOptions, MAX_INDEX_LISTS}
 pub use sfp::{convert_model_with_images, convert_with_images, SfpMapOptions, SfpMapSummary};
 #[cfg(feature = "colmap")]
 pub use sift::{convert, convert_model, Aggregate, ConvertOptions};
+#[cfg(feature = "colmap")]
+pub use stream::{default_memory_budget, MemoryPlan, MAX_PASSES};
 
 #[cfg(feature = "colmap")]
 use crate::colmap::{model_files, read_model, ModelFormat, Reconstruction};
@@ -110,6 +114,8 @@ pub struct ConvertSummary {
     pub index: Option<ImageIndexSummary>,
     /// Each product-quantised level (`--pq`), empty without.
     pub pq: Vec<pq::PqLevelSummary>,
+    /// How the descriptors were made within the memory budget; `None`: no features read.
+    pub memory: Option<MemoryPlan>,
 }
 
 /// The writer of a converted map: provenance (the tool, the input files, the `parameters`
@@ -280,6 +286,7 @@ impl ConvertSummary {
             "points_without_descriptors": s.points_without_descriptors,
             "vlad": s.vlad.map(|v| serde_json::json!({"level": v.level, "clusters": v.clusters, "dims": v.dims})),
             "image_index": s.index.as_ref().map(|i| serde_json::json!({"of": i.of.name(), "lists": i.lists, "probe": i.probe, "recall": i.recall, "scored": i.scored, "stored": i.stored})),
+            "memory": s.memory.map(|m| serde_json::json!({"budget": m.budget, "passes": m.passes, "planned_peak": m.peak})),
         })
     }
 }

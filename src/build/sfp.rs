@@ -578,6 +578,9 @@ fn convert_images_of(
             vlad,
             index,
             pq,
+            // Images through the network are not streamed by a budget (issue 35 is the
+            // database and features-file path).
+            memory: None,
         },
         model_points: n_points,
         missing_images: missing,

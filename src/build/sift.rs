@@ -10,17 +10,19 @@
 //! ids); otherwise all go to level 0. Each level stores its descriptors in its own
 //! uncentred-PCA basis so a prefix (`short`) is meaningful.
 
-use super::basis::Basis;
+use super::basis::{Basis, BasisFit};
 #[cfg(feature = "hdf5")]
 use super::features::H5Source;
-use super::features::{DatabaseSource, FeatureSource, ModelImage, MAX_DESCRIPTOR_DIM};
+use super::features::{DatabaseSource, FeatureSource};
 use super::geometry::Geometry;
+use super::stream::Aggregated;
 use super::{read_geometry_with_sources, source_file, ConvertError, ConvertSummary, LevelSummary};
 use crate::colmap::Reconstruction;
-use crate::format::{f16, Codec, Descriptors, LevelInfo, Metadata, SourceFile};
+use crate::format::{
+    f16, Codec, LevelInfo, Metadata, SourceFile, Spool, SpoolRegion, SpooledBytes,
+};
 use crate::progress::Reporter;
 use serde_json::json;
-use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 /// How a point's descriptor is made from its observations'.
@@ -76,6 +78,12 @@ pub struct ConvertOptions {
     /// The caller's record of the job that made the map (a batch job's place, input
     /// fingerprint and options), stored as `provenance.parameters.job`; `None`: no such key.
     pub job: Option<serde_json::Value>,
+    /// The memory the conversion may use, in bytes (`--memory`); `None`: half the machine's
+    /// ([`default_memory_budget`](super::default_memory_budget)). The points' descriptors are
+    /// made in as many reads of the features as it takes ([`MAX_PASSES`](super::MAX_PASSES)
+    /// at most), and the map is the same bytes whatever the budget; a budget too small is
+    /// refused up front, naming the smallest that works.
+    pub memory: Option<u64>,
 }
 
 impl Default for ConvertOptions {
@@ -93,27 +101,9 @@ impl Default for ConvertOptions {
             pq: None,
             strict: false,
             job: None,
+            memory: None,
         }
     }
-}
-
-/// Per-observation features gathered from the source, flat and sorted by point.
-struct Observations {
-    dim: usize,
-    /// The feature the map records as its levels' `descriptor`.
-    feature: String,
-    /// What `feature_source` records: where the descriptors came from.
-    source_kind: &'static str,
-    /// Whether every image's keypoints had a scale (levels by scale; else one level).
-    scaled: bool,
-    /// (point index, keypoint scale), one per observation with a descriptor.
-    scales: Vec<(u32, f32)>,
-    /// Mean: `[points × dim]` sums of normalised descriptors.
-    sums: Vec<f32>,
-    counts: Vec<u32>,
-    /// Medoid: every observation's normalised descriptor, with its point.
-    all: Vec<(u32, Vec<f32>)>,
-    images_without_features: usize,
 }
 
 /// Converts the model in `model_dir` and writes the map to `output` (temp file + rename).
@@ -219,16 +209,23 @@ fn convert_geometry(
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<ConvertSummary, ConvertError> {
-    let mut observations = match source {
+    let mut memory = None;
+    let aggregated = match source {
         Some(source) => {
+            // Planned first: a budget too small is refused before anything long runs.
+            let prepared = super::stream::prepare(geometry, source, options, Path::new(colmap))?;
             // A folder (kapture) is recorded by its files' own provenance, not hashed whole.
             if source.path().is_file() {
                 sources.push(source_file(source.path(), reporter)?);
             }
-            Some(gather(geometry, source, options, reporter)?)
+            memory = Some(prepared.memory);
+            let aggregated =
+                super::stream::aggregate(geometry, source, options, prepared, output, reporter)?;
+            Some(aggregated)
         }
         None => None,
     };
+    let geometry_only = aggregated.is_none();
     let global = match &options.global_features {
         Some(path) => {
             sources.push(source_file(path, reporter)?);
@@ -239,7 +236,7 @@ fn convert_geometry(
     let input_bytes = sources.iter().map(|s| s.bytes).sum();
 
     let metadata = Metadata {
-        geometry_only: observations.is_none(),
+        geometry_only: aggregated.is_none(),
         ..Default::default()
     };
     let parameters = json!({
@@ -248,7 +245,7 @@ fn convert_geometry(
         "database": options.database.as_ref().map(|p| p.display().to_string()),
         "features": options.features.as_ref().map(|p| p.display().to_string()),
         "global_features": options.global_features.as_ref().map(|p| p.display().to_string()),
-        "feature": observations.as_ref().map(|o| o.feature.clone()),
+        "feature": aggregated.as_ref().map(|o| o.feature.clone()),
         "aggregate": options.aggregate.name(),
         "short_dims": options.short_dims,
         "codec": options.codec.name(),
@@ -262,45 +259,28 @@ fn convert_geometry(
     let mut images_without_features = 0;
     // Retrieval on the deepest level's basis (the level a `level 2, short` slice keeps), over
     // every described point: each point's descriptor projected on the basis' leading rows,
-    // made as soon as the levels are, so the full descriptors are dropped before writing.
-    let (mut built_levels, vlad_rows) = match observations.as_mut() {
-        Some(obs) => {
-            images_without_features = obs.images_without_features;
-            let n_points = geometry.positions.len();
-            reporter.start("aggregating descriptors", Some(n_points as u64));
-            let (descriptors, has) = aggregate(obs, n_points, options.aggregate);
-            reporter.finish();
-            points_without_descriptors = has.iter().filter(|h| !**h).count();
-            let levels = build_levels(obs, &descriptors, &has, options.short_dims, reporter)?;
+    // made as the levels are.
+    let (built_levels, vlad_rows) = match aggregated {
+        Some(agg) => {
+            images_without_features = agg.images_without_features;
+            points_without_descriptors = geometry.positions.len() - agg.has.count_ones();
             let (clusters, dims) = options
                 .vlad
                 .shape(geometry.names.len(), crate::vlad::DescribedAt::OwnKeypoints);
-            let rows = levels.last().and_then(|deepest| {
-                let dims = dims.min(deepest.info.dim_short as usize);
-                (clusters > 0 && dims > 0).then(|| {
-                    reporter.start("projecting for retrieval", None);
-                    let rows = deepest
-                        .basis
-                        .project_leading(&descriptors, obs.dim, dims, &has);
-                    reporter.finish();
-                    (rows, dims, clusters)
-                })
-            });
-            (levels, rows)
+            let dims = if clusters > 0 { dims } else { 0 };
+            let (levels, rows) = build_levels(&agg, options.short_dims, dims, output, reporter)?;
+            // The aggregated descriptors' scratch file goes before the map is written.
+            drop(agg);
+            (levels, rows.map(|(rows, dims)| (rows, dims, clusters)))
         }
         None => (Vec::new(), None),
     };
-    // Moved in: the writer splits each level's into its blocks and drops them.
-    let level_descriptors: Vec<Vec<f16>> = built_levels
-        .iter_mut()
-        .map(|l| std::mem::take(&mut l.descriptors))
-        .collect();
-    for (l, descriptors) in built_levels.iter().zip(level_descriptors) {
-        writer.add_level(
+    for l in &built_levels {
+        writer.add_level_spooled(
             l.info.clone(),
             &l.points,
-            Some(Descriptors::F16(Cow::Owned(descriptors))),
-            true,
+            l.short.clone(),
+            Some(l.rest.clone()),
         )?;
         writer.set_level_projection(l.info.level, l.basis.dim, l.basis.rows.clone())?;
         summaries.push(l.summary.clone());
@@ -335,153 +315,15 @@ fn convert_geometry(
         observations: geometry.vis_points.len(),
         input_bytes,
         output_bytes,
-        geometry_only: observations.is_none(),
+        geometry_only,
         levels: summaries,
         images_without_features,
         points_without_descriptors,
         vlad,
         index,
         pq,
+        memory,
     })
-}
-
-/// Reads every model image's features from `source` and gathers, per observation of a 3D
-/// point, its normalised descriptor and keypoint scale.
-fn gather(
-    geometry: &Geometry,
-    source: &mut dyn FeatureSource,
-    options: &ConvertOptions,
-    reporter: &dyn Reporter,
-) -> Result<Observations, ConvertError> {
-    let path = source.path().to_path_buf();
-    let n_points = geometry.positions.len();
-    let mut obs = Observations {
-        dim: 0,
-        feature: String::new(),
-        source_kind: source.kind(),
-        scaled: true,
-        scales: Vec::with_capacity(geometry.vis_points.len()),
-        sums: Vec::new(),
-        counts: vec![0; n_points],
-        all: Vec::new(),
-        images_without_features: 0,
-    };
-    let n_images = geometry.names.len();
-    reporter.start("reading features", Some(n_images as u64));
-    let mut normalised = Vec::new();
-    for (i, (&image_id, name)) in geometry.image_ids.iter().zip(&geometry.names).enumerate() {
-        let image = ModelImage {
-            id: image_id,
-            name,
-            size: geometry.image_size(i),
-        };
-        let Some(features) = source.image(image)? else {
-            if options.strict {
-                return Err(ConvertError::MissingFeatures {
-                    features: path,
-                    image: name.clone(),
-                });
-            }
-            obs.images_without_features += 1;
-            reporter.warn(&format!(
-                "{}: image {} has no features; its observations get no descriptor",
-                crate::escape::path(&path),
-                crate::escape::quoted_name(name)
-            ));
-            reporter.advance(1);
-            continue;
-        };
-        if features.dim == 0 || features.dim > MAX_DESCRIPTOR_DIM {
-            return Err(ConvertError::Input(crate::io::InputError {
-                path,
-                line: None,
-                message: format!(
-                    "image {}: descriptors of {} dimensions (1 to {MAX_DESCRIPTOR_DIM} are taken)",
-                    crate::escape::quoted_name(name),
-                    features.dim
-                ),
-            }));
-        }
-        if obs.dim == 0 {
-            obs.dim = features.dim;
-            if options.aggregate == Aggregate::Mean {
-                obs.sums = vec![0.0; n_points * obs.dim];
-            }
-        } else if features.dim != obs.dim {
-            return Err(ConvertError::DescriptorDim {
-                features: path,
-                image: name.clone(),
-                expected: obs.dim,
-                found: features.dim,
-            });
-        }
-        obs.scaled &= features.scales.is_some();
-        let dim = obs.dim;
-        let entries = geometry.vis_offsets[i] as usize..geometry.vis_offsets[i + 1] as usize;
-        for (&point, &idx) in geometry.vis_points[entries.clone()]
-            .iter()
-            .zip(&geometry.vis_point2d[entries])
-        {
-            let (point, idx) = (point as usize, idx as usize);
-            if idx >= features.keypoints || !features.values.row_into(dim, idx, &mut normalised) {
-                return Err(ConvertError::KeypointOutOfRange {
-                    features: path,
-                    image: name.clone(),
-                    point2d_idx: idx,
-                    keypoints: features.keypoints,
-                });
-            }
-            // Without scales every observation is alike: one level.
-            let scale = features.scales.as_ref().map_or(1.0, |s| s[idx]);
-            // A NaN scale would drop the point from every level without a word; the level
-            // assignment and the metadata's scale ranges need finite scales.
-            if !scale.is_finite() {
-                return Err(ConvertError::KeypointScaleNotFinite {
-                    features: path,
-                    image: name.clone(),
-                    point2d_idx: idx,
-                });
-            }
-            if let Some(v) = normalised.iter().find(|v| !v.is_finite()) {
-                return Err(ConvertError::Input(crate::io::InputError {
-                    path,
-                    line: None,
-                    message: format!(
-                        "image {}: keypoint {idx}: a descriptor value is {v}",
-                        crate::escape::quoted_name(name)
-                    ),
-                }));
-            }
-            crate::vector::l2_normalise(&mut normalised);
-            obs.scales.push((point as u32, scale));
-            obs.counts[point] += 1;
-            match options.aggregate {
-                Aggregate::Mean => {
-                    for (s, v) in obs.sums[point * dim..(point + 1) * dim]
-                        .iter_mut()
-                        .zip(&normalised)
-                    {
-                        *s += v;
-                    }
-                }
-                Aggregate::Medoid => obs.all.push((point as u32, normalised.clone())),
-            }
-        }
-        reporter.advance(1);
-    }
-    reporter.finish();
-    if obs.images_without_features > 0 {
-        reporter.warn(&format!(
-            "{} of {} images have no features in {}",
-            obs.images_without_features,
-            n_images,
-            crate::escape::path(&path)
-        ));
-    }
-    obs.feature = source
-        .feature_name()
-        .unwrap_or_else(|| format!("{}{}", crate::format::UNNAMED_FEATURE_PREFIX, obs.dim));
-    Ok(obs)
 }
 
 /// Every model image's global descriptor from hloc's `global-feats-*.h5`
@@ -540,50 +382,13 @@ fn read_global(
     )))
 }
 
-/// One descriptor per point (`[points × dim]`) and whether the point has one. Takes the
-/// observations' sums (or descriptors): a map's worth of f32 not held twice.
-fn aggregate(obs: &mut Observations, n_points: usize, how: Aggregate) -> (Vec<f32>, Vec<bool>) {
-    let dim = obs.dim;
-    let has: Vec<bool> = obs.counts.iter().map(|&c| c > 0).collect();
-    match how {
-        Aggregate::Mean => {
-            let mut out = std::mem::take(&mut obs.sums);
-            out.resize(n_points * dim, 0.0);
-            for row in out.chunks_exact_mut(dim.max(1)) {
-                crate::vector::l2_normalise(row);
-            }
-            (out, has)
-        }
-        Aggregate::Medoid => {
-            let mut out = vec![0.0; n_points * dim];
-            let all = std::mem::take(&mut obs.all);
-            let mut by_point: Vec<&(u32, Vec<f32>)> = all.iter().collect();
-            by_point.sort_by_key(|(p, _)| *p);
-            for group in by_point.chunk_by(|a, b| a.0 == b.0) {
-                let best = (0..group.len())
-                    .max_by(|&i, &j| {
-                        let score = |k: usize| -> f32 {
-                            group
-                                .iter()
-                                .map(|(_, d)| crate::vector::dot(&group[k].1, d))
-                                .sum()
-                        };
-                        score(i).total_cmp(&score(j)).then(j.cmp(&i))
-                    })
-                    .unwrap_or(0);
-                let p = group[0].0 as usize;
-                out[p * dim..(p + 1) * dim].copy_from_slice(&group[best].1);
-            }
-            (out, has)
-        }
-    }
-}
-
 struct BuiltLevel {
     info: LevelInfo,
     points: Vec<u32>,
-    /// In the level's basis, rounded to f16 as the writer stores them (half the f32's bytes).
-    descriptors: Vec<f16>,
+    /// The `short` and `rest` blocks: in the level's basis, rounded to f16 as the writer
+    /// stores them, in the scratch file.
+    short: SpooledBytes,
+    rest: SpooledBytes,
     basis: Basis,
     summary: LevelSummary,
 }
@@ -594,25 +399,27 @@ const LEVEL_RULE: &str = "median keypoint scale of the point's observations, spl
 /// The rule when the keypoints have no scale (hloc's learned features, x/y-only keypoints).
 const ONE_LEVEL_RULE: &str = "one level: the features' keypoints have no scale";
 
+/// Each described point's leading coordinates in the deepest level's basis
+/// (`[points × dims]`), and `dims`.
+type RetrievalRows = (Vec<f32>, usize);
+
+/// The map's levels from the aggregated descriptors: points split by median scale, each
+/// level's basis fitted (one read of the descriptors, in point order) and its rows projected
+/// into f16 blocks spooled beside `output` (a second read). With `vlad_dims`, also every
+/// described point's first `vlad_dims` coordinates in the deepest level's basis,
+/// renormalised (`[points × vlad_dims]`), the rows the retrieval codebook learns from.
 fn build_levels(
-    obs: &mut Observations,
-    descriptors: &[f32],
-    has: &[bool],
+    agg: &Aggregated,
     short_dims: Option<u32>,
+    vlad_dims: usize,
+    output: &Path,
     reporter: &dyn Reporter,
-) -> Result<Vec<BuiltLevel>, ConvertError> {
-    let dim = obs.dim;
+) -> Result<(Vec<BuiltLevel>, Option<RetrievalRows>), ConvertError> {
+    let dim = agg.dim;
     if dim == 0 {
-        return Ok(Vec::new());
+        return Ok((Vec::new(), None));
     }
-    // Median scale per point.
-    // Taken: nothing reads them after the levels.
-    let mut scales = std::mem::take(&mut obs.scales);
-    scales.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
-    let mut median = vec![f32::NAN; has.len()];
-    for group in scales.chunk_by(|a, b| a.0 == b.0) {
-        median[group[0].0 as usize] = group[group.len() / 2].1;
-    }
+    let median = &agg.median;
     let mut sorted: Vec<f32> = median.iter().copied().filter(|m| m.is_finite()).collect();
     sorted.sort_by(f32::total_cmp);
     // The value below which a share `q` of the points lies (nearest rank).
@@ -623,8 +430,9 @@ fn build_levels(
     } else {
         (quantile(1.0 / 3.0), quantile(2.0 / 3.0))
     };
-    let level_of = |m: f32| -> u16 {
-        if !obs.scaled || m <= t1 {
+    drop(sorted);
+    let level_of = |m: f32| -> usize {
+        if !agg.scaled || m <= t1 {
             0
         } else if m <= t2 {
             1
@@ -635,58 +443,108 @@ fn build_levels(
     let short = short_dims
         .map_or(dim as u32 / 4, |s| s.min(dim as u32))
         .max(1);
+    let mut points: [Vec<u32>; 3] = Default::default();
+    for p in agg.has.iter_ones() {
+        if median[p].is_finite() {
+            points[level_of(median[p])].push(p as u32);
+        }
+    }
+
+    reporter.start("descriptor bases", None);
+    let mut fits: Vec<Option<BasisFit>> = points
+        .iter()
+        .map(|p| (!p.is_empty()).then(|| BasisFit::new(dim)))
+        .collect();
+    agg.spill.for_each(&agg.has, |p, row| {
+        if median[p].is_finite() {
+            if let Some(fit) = fits[level_of(median[p])].as_mut() {
+                fit.add(row);
+            }
+        }
+        Ok(())
+    })?;
+    let bases: Vec<Option<Basis>> = fits.into_iter().map(|f| f.map(BasisFit::finish)).collect();
+    reporter.finish();
+
+    let deepest = (0..3).rev().find(|&l| bases[l].is_some());
+    let vlad_dims = vlad_dims.min(short as usize);
+    let mut vlad_rows =
+        (vlad_dims > 0 && deepest.is_some()).then(|| vec![0.0f32; median.len() * vlad_dims]);
+    let mut spool = Spool::for_output(output)?;
+    let mut regions: Vec<Option<[SpoolRegion; 2]>> = points
+        .iter()
+        .map(|p| {
+            let n = p.len() as u64;
+            (n > 0).then(|| {
+                [
+                    spool.region(n * u64::from(short) * 2),
+                    spool.region(n * u64::from(dim as u32 - short) * 2),
+                ]
+            })
+        })
+        .collect();
+    reporter.start("projecting descriptors", Some(agg.has.count_ones() as u64));
+    let mut row = vec![0.0f32; dim];
+    let mut bytes: Vec<u8> = Vec::with_capacity(dim * 2);
+    let split = short as usize * 2;
+    let mut done = 0u64;
+    agg.spill.for_each(&agg.has, |p, src| {
+        if median[p].is_finite() {
+            let l = level_of(median[p]);
+            if let (Some(basis), Some([short_block, rest_block])) = (&bases[l], &mut regions[l]) {
+                basis.project(src, &mut row);
+                // Rounded to nearest even, as the writer converts f32.
+                bytes.clear();
+                bytes.extend(row.iter().flat_map(|&v| f16::from_f32(v).to_le_bytes()));
+                short_block.push(&bytes[..split])?;
+                rest_block.push(&bytes[split..])?;
+            }
+        }
+        if let (Some(rows), Some(d)) = (vlad_rows.as_mut(), deepest) {
+            if let Some(basis) = &bases[d] {
+                basis.project_leading_row(src, &mut rows[p * vlad_dims..(p + 1) * vlad_dims]);
+            }
+        }
+        done += 1;
+        if done % 65_536 == 0 {
+            reporter.advance(65_536);
+        }
+        Ok(())
+    })?;
+    reporter.finish();
+
     let mut levels = Vec::new();
-    reporter.start("descriptor bases", Some(3));
-    for level in 0..3u16 {
-        let points: Vec<u32> = (0..has.len())
-            .filter(|&p| has[p] && median[p].is_finite() && level_of(median[p]) == level)
-            .map(|p| p as u32)
-            .collect();
-        if points.is_empty() {
-            reporter.advance(1);
+    for (((level, points), basis), region) in (0..3u16).zip(points).zip(bases).zip(regions) {
+        let (Some(basis), Some([short_block, rest_block])) = (basis, region) else {
             continue;
-        }
-        // The level's rows read in place, in point order: no f32 copy of the level.
-        let rows = || {
-            points
-                .iter()
-                .map(|&p| &descriptors[p as usize * dim..(p as usize + 1) * dim])
         };
-        let basis = Basis::fit_rows(rows(), dim);
-        // Row by row into f16 (round to nearest even, as the writer converts f32).
-        let mut projected = Vec::with_capacity(points.len() * dim);
-        let mut row = vec![0.0f32; dim];
-        for src in rows() {
-            basis.project(src, &mut row);
-            projected.extend(row.iter().map(|&v| f16::from_f32(v)));
-        }
         let level_scales: Vec<f32> = points.iter().map(|&p| median[p as usize]).collect();
         let lo = level_scales.iter().copied().fold(f32::INFINITY, f32::min);
         let hi = level_scales
             .iter()
             .copied()
             .fold(f32::NEG_INFINITY, f32::max);
-        let mut mid = level_scales.clone();
+        let mut mid = level_scales;
         mid.sort_by(f32::total_cmp);
         let variance_short = basis.energy_kept(short as usize);
         let mut info = LevelInfo {
             level,
             stride: f64::from(mid[mid.len() / 2]),
-            descriptor: obs.feature.clone(),
+            descriptor: agg.feature.clone(),
             dim_full: dim as u32,
             dim_short: short,
             normalization: "l2".into(),
             extra: Default::default(),
         };
         info.extra.insert("scale_range".into(), json!([lo, hi]));
-        let rule = if obs.scaled {
+        let rule = if agg.scaled {
             LEVEL_RULE
         } else {
             ONE_LEVEL_RULE
         };
         info.extra.insert("assignment".into(), json!(rule));
         info.extra
-            .insert("feature_source".into(), json!(obs.source_kind));
+            .insert("feature_source".into(), json!(agg.source_kind));
         info.extra.insert("basis".into(), json!("uncentred pca"));
         info.extra
             .insert("variance_short".into(), json!(variance_short));
@@ -701,11 +559,10 @@ fn build_levels(
             },
             info,
             points,
-            descriptors: projected,
+            short: short_block.finish()?,
+            rest: rest_block.finish()?,
             basis,
         });
-        reporter.advance(1);
     }
-    reporter.finish();
-    Ok(levels)
+    Ok((levels, vlad_rows.map(|rows| (rows, vlad_dims))))
 }

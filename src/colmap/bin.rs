@@ -27,9 +27,9 @@ const INVALID_POINT3D_ID: u64 = u64::MAX;
 
 /// Smallest encoded size of a record, used to cap preallocation from an untrusted count.
 const MIN_CAMERA: usize = 4 + 4 + 8 + 8;
-const MIN_IMAGE: usize = 4 + 7 * 8 + 4 + 1 + 8;
-const POINT2D: usize = 8 + 8 + 8;
-const MIN_POINT3D: usize = 8 + 3 * 8 + 3 + 8 + 8;
+pub(crate) const MIN_IMAGE: usize = 4 + 7 * 8 + 4 + 1 + 8;
+pub(crate) const POINT2D: usize = 8 + 8 + 8;
+pub(crate) const MIN_POINT3D: usize = 8 + 3 * 8 + 3 + 8 + 8;
 const TRACK_ELEMENT: usize = 4 + 4;
 
 /// A bounds-checked little-endian reader over a byte slice.
@@ -217,17 +217,19 @@ impl ImageRecord<'_> {
     pub fn num_points2d(&self) -> usize {
         self.points2d.len() / POINT2D
     }
+}
 
-    /// The triangulated 2D points as `(point2D_idx, xy, point3D_id)`, in order. Indices
-    /// stop at `u32::MAX` (a track element cannot name more); check `num_points2d` first.
-    pub fn triangulated(&self) -> impl Iterator<Item = (u32, [f64; 2], u64)> + '_ {
-        (0..=u32::MAX)
-            .zip(self.points2d.chunks_exact(POINT2D))
-            .filter_map(|(idx, c)| {
-                let id = le_u64(&c[16..24]);
-                (id != INVALID_POINT3D_ID).then(|| (idx, [le_f64(&c[0..8]), le_f64(&c[8..16])], id))
-            })
-    }
+/// The triangulated 2D points of an image's `points2D` block (as `images.bin` stores it) as
+/// `(point2D_idx, xy, point3D_id)`, in order. Indices stop at `u32::MAX` (a track element
+/// cannot name more); check the block's count first.
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
+pub(crate) fn triangulated(points2d: &[u8]) -> impl Iterator<Item = (u32, [f64; 2], u64)> + '_ {
+    (0..=u32::MAX)
+        .zip(points2d.chunks_exact(POINT2D))
+        .filter_map(|(idx, c)| {
+            let id = le_u64(&c[16..24]);
+            (id != INVALID_POINT3D_ID).then(|| (idx, [le_f64(&c[0..8]), le_f64(&c[8..16])], id))
+        })
 }
 
 /// Reads `images.bin` one record at a time: the 2D points stay in the file's bytes, so a
@@ -244,6 +246,16 @@ impl<'a> ImageRecords<'a> {
         let mut r = Reader::new(data, path);
         let (left, capacity) = r.count(MIN_IMAGE, "image count")?;
         Ok(ImageRecords { r, left, capacity })
+    }
+
+    /// Exactly `n` records that are all of `data` (a run of [`record_runs`]).
+    #[cfg(any(feature = "colmap", feature = "fuzzing", test))]
+    pub fn run(data: &'a [u8], n: u64, path: &'a Path) -> Self {
+        ImageRecords {
+            r: Reader::new(data, path),
+            left: n,
+            capacity: 0,
+        }
     }
 
     /// The next record; `None` once all are read and the file is checked to end there.
@@ -366,6 +378,17 @@ pub(crate) struct Point3DRecords<'a> {
 }
 
 impl<'a> Point3DRecords<'a> {
+    /// Exactly `n` records that are all of `data` (a run of [`record_runs`]).
+    #[cfg(any(feature = "colmap", feature = "fuzzing", test))]
+    pub fn run(data: &'a [u8], n: u64, path: &'a Path) -> Self {
+        Point3DRecords {
+            r: Reader::new(data, path),
+            left: n,
+            capacity: 0,
+            track_capacity: 0,
+        }
+    }
+
     pub fn new(data: &'a [u8], path: &'a Path) -> Result<Self> {
         let mut r = Reader::new(data, path);
         let (left, capacity) = r.count(MIN_POINT3D, "point3D count")?;
@@ -495,4 +518,123 @@ pub fn write_points3d(model: &Reconstruction) -> Vec<u8> {
         }
     }
     out
+}
+
+/// Bytes of a binary model file: an open file, or bytes in memory (the fuzz body).
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
+#[derive(Clone, Copy)]
+pub(crate) enum ModelBytes<'a> {
+    File(&'a std::fs::File, u64),
+    #[cfg_attr(not(any(test, feature = "fuzzing")), allow(dead_code))]
+    Memory(&'a [u8]),
+}
+
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
+impl ModelBytes<'_> {
+    pub fn len(&self) -> u64 {
+        match self {
+            ModelBytes::File(_, len) => *len,
+            ModelBytes::Memory(b) => b.len() as u64,
+        }
+    }
+
+    /// `out.len()` bytes at `offset`; `None` past the end or on a read error.
+    pub fn read_at(&self, out: &mut [u8], offset: u64) -> Option<()> {
+        match self {
+            ModelBytes::File(file, _) => crate::format::read_at(file, out, offset).ok(),
+            ModelBytes::Memory(b) => {
+                let start = usize::try_from(offset).ok()?;
+                out.copy_from_slice(b.get(start..start.checked_add(out.len())?)?);
+                Some(())
+            }
+        }
+    }
+}
+
+/// Bytes [`record_runs`] reads at once by default (a record longer than this is read whole).
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
+pub(crate) const RUN_BYTES: usize = 16 << 20;
+
+/// The length of the `images.bin` record at the start of `b`, once `b` holds its header.
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
+pub(crate) fn image_record_len(b: &[u8]) -> Option<u64> {
+    const FIXED: usize = 4 + 7 * 8 + 4;
+    let name = b.get(FIXED..)?.iter().position(|&c| c == 0)?;
+    let count = b.get(FIXED + name + 1..FIXED + name + 9)?;
+    let points = le_u64(count).checked_mul(POINT2D as u64)?;
+    points.checked_add((FIXED + name + 9) as u64)
+}
+
+/// The length of the `points3D.bin` record at the start of `b`, once `b` holds its header.
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
+pub(crate) fn point3d_record_len(b: &[u8]) -> Option<u64> {
+    let count = b.get(MIN_POINT3D - 8..MIN_POINT3D)?;
+    let track = le_u64(count).checked_mul(TRACK_ELEMENT as u64)?;
+    track.checked_add(MIN_POINT3D as u64)
+}
+
+/// Reads a binary model file (a u64 record count, then the records) `block` bytes at a time and
+/// calls `f(run, records, offset)` with runs of whole records and where each run starts in
+/// the file, so that no more than a block (or one record) of the file is held at once.
+/// `record_len` says how long the record at the start of its bytes is, or `None` while
+/// they do not hold its header yet. Returns the record count; `None` (a file the general
+/// reader must judge) where a record runs past the end, the file is longer than its
+/// records, or `f` says `None`.
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
+pub(crate) fn record_runs(
+    bytes: ModelBytes<'_>,
+    block: usize,
+    record_len: impl Fn(&[u8]) -> Option<u64>,
+    mut f: impl FnMut(&[u8], u64, u64) -> Option<()>,
+) -> Option<u64> {
+    let file_len = bytes.len();
+    let mut count = [0u8; 8];
+    bytes.read_at(&mut count, 0)?;
+    let count = le_u64(&count);
+    let mut left = count;
+    // `buf[..filled]` holds the file from `at`; `next` is where reading goes on.
+    let mut buf = vec![0u8; block.max(1).min(file_len as usize)];
+    let (mut at, mut filled) = (8u64, 0usize);
+    let mut next = 8u64;
+    while left > 0 {
+        // Whole records from the start of the buffer.
+        let (mut pos, mut n) = (0usize, 0u64);
+        while n < left {
+            let Some(len) = record_len(&buf[pos..filled]) else {
+                break;
+            };
+            if len > file_len - (at + pos as u64) {
+                return None;
+            }
+            if pos as u64 + len > filled as u64 {
+                break;
+            }
+            pos += len as usize;
+            n += 1;
+        }
+        if n > 0 {
+            f(&buf[..pos], n, at)?;
+            left -= n;
+            buf.copy_within(pos..filled, 0);
+            filled -= pos;
+            at += pos as u64;
+            next = at + filled as u64;
+            continue;
+        }
+        // The next record does not fit what is held: read on, the buffer grown to a record
+        // longer than it (bounded by the file's length, checked above).
+        if next >= file_len {
+            return None;
+        }
+        if filled == buf.len() {
+            let want = record_len(&buf[..filled]).map_or(buf.len() * 2, |l| l as usize);
+            buf.resize(want.max(buf.len() * 2).min((file_len - at) as usize), 0);
+        }
+        let n = (buf.len() - filled).min((file_len - next) as usize);
+        bytes.read_at(&mut buf[filled..filled + n], next)?;
+        filled += n;
+        next += n as u64;
+    }
+    // Bytes past the last record: the general reader names them.
+    (filled == 0 && next == file_len).then_some(count)
 }

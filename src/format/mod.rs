@@ -30,6 +30,9 @@ mod reader;
 mod slice;
 mod source;
 mod views;
+// Written to by `convert` (`colmap`); the writer reads what it spooled in every build.
+#[cfg_attr(not(feature = "colmap"), allow(dead_code, unused_imports))]
+mod spool;
 mod writer;
 
 pub use catalog::{Catalog, Listing, Place};
@@ -51,6 +54,12 @@ pub use pq::Pq;
 pub use reader::{Map, Section, Skipped};
 pub use slice::{slice, SliceOptions, SliceSummary};
 pub use source::{RangeSource, SourceStats, Wanted};
+#[cfg(feature = "colmap")]
+pub(crate) use spool::{write_at, Spool, SpoolRegion, SpooledBytes};
+// Also convert's fast model reader, which the fuzz body runs without `colmap`.
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
+#[allow(unused_imports)]
+pub(crate) use spool::read_at;
 pub use views::{GlobalDescriptors, Images, Level, Visibility, Vlad};
 pub use writer::{Descriptors, MapWriter};
 

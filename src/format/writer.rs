@@ -50,6 +50,38 @@ pub(super) enum Content<'a> {
         codec: Codec,
         raw_len: u64,
     },
+    /// The array's little-endian bytes in a scratch file ([`super::spool`]), stored with the
+    /// writer's codec.
+    Spooled(super::spool::SpooledBytes),
+}
+
+/// A section's stored bytes as the file will hold them: in memory, or still in the scratch
+/// file (stored `raw`).
+enum Stored<'w> {
+    Memory(Cow<'w, [u8]>),
+    Spooled(&'w super::spool::SpooledBytes),
+}
+
+impl Stored<'_> {
+    fn len(&self) -> u64 {
+        match self {
+            Stored::Memory(b) => b.len() as u64,
+            Stored::Spooled(s) => s.len(),
+        }
+    }
+
+    /// The section's checksum, and its chunks' appended to `chunks` when asked.
+    fn checksums(&self, chunks: Option<&mut Vec<u64>>) -> Result<u64, Error> {
+        match self {
+            Stored::Memory(b) => {
+                if let Some(out) = chunks {
+                    out.extend(super::chunks::chunk_checksums([&b[..]]));
+                }
+                Ok(checksum(b))
+            }
+            Stored::Spooled(s) => s.checksums(chunks),
+        }
+    }
 }
 
 /// Builds a map. See the crate docs and `spec/format.md` for what each section means.
@@ -122,7 +154,7 @@ impl<'a> MapWriter<'a> {
     }
 
     #[allow(clippy::too_many_arguments)] // one per entry-table field
-    fn push(
+    pub(super) fn push(
         &mut self,
         kind: SectionKind,
         level: u16,
@@ -731,9 +763,7 @@ impl<'a> MapWriter<'a> {
         let encoded = self.encode(reporter)?;
         let mut out = crate::output::AtomicFile::create(path)?;
         reporter.start("writing", Some(encoded.file_len));
-        encoded
-            .write_to(&mut out, reporter)
-            .map_err(|e| Error::io(path, e))?;
+        encoded.write_to(&mut out, path, reporter)?;
         out.commit()?;
         reporter.finish();
         Ok(encoded.file_len)
@@ -749,10 +779,54 @@ impl<'a> MapWriter<'a> {
     pub fn to_bytes(&self) -> Result<Vec<u8>, Error> {
         let encoded = self.encode(&Silent)?;
         let mut out = Vec::with_capacity(encoded.file_len as usize);
-        encoded
-            .write_to(&mut out, &Silent)
-            .map_err(|e| Error::io(Path::new("<memory>"), e))?;
+        encoded.write_to(&mut out, Path::new("<memory>"), &Silent)?;
         Ok(out)
+    }
+
+    /// The codec an array of `dtype` is stored with: `codec`, else the writer's; `delta`
+    /// applies to integer arrays, zstd stands in elsewhere.
+    fn array_codec(&self, dtype: Dtype, codec: Option<Codec>) -> Codec {
+        match codec.unwrap_or(self.codec) {
+            Codec::Delta if super::delta::width(dtype).is_none() => Codec::Zstd,
+            codec => codec,
+        }
+    }
+
+    /// An array's bytes as stored, and the codec they are stored with.
+    fn encode_array<'b>(
+        &self,
+        dtype: Dtype,
+        bytes: Cow<'b, [u8]>,
+        codec: Option<Codec>,
+    ) -> Result<(Cow<'b, [u8]>, Codec), Error> {
+        let raw_len = bytes.len() as u64;
+        Ok(match self.array_codec(dtype, codec) {
+            Codec::Raw => (bytes, Codec::Raw),
+            Codec::Delta => {
+                let stream = super::delta::encode(dtype, &bytes);
+                let z = super::delta::compress(&stream, raw_len, DECODE_RATIO)
+                    .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
+                // Values that are not nearly sorted gain nothing: stored raw.
+                if z.len() as u64 >= raw_len {
+                    (bytes, Codec::Raw)
+                } else {
+                    (Cow::Owned(z), Codec::Delta)
+                }
+            }
+            Codec::Zstd => {
+                let z = zstd::bulk::compress(&bytes, self.zstd_level)
+                    .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
+                // A reader refuses a raw length past decode_cap(file_len) and all of them
+                // together past decode_budget(file_len); the file is at least as long as its
+                // sections, so keeping each section within 256 x its compressed length keeps
+                // every map we write readable.
+                if !within_decode_ratio(raw_len, z.len() as u64) {
+                    (bytes, Codec::Raw)
+                } else {
+                    (Cow::Owned(z), Codec::Zstd)
+                }
+            }
+        })
     }
 
     /// Encodes every section and lays out the file.
@@ -811,48 +885,29 @@ impl<'a> MapWriter<'a> {
                     raw_len,
                 } if !within_decode_ratio(*raw_len, bytes.len() as u64) => {
                     let raw = decode_stored(*codec, s.dtype, bytes, *raw_len)?;
-                    (Cow::Owned(raw), Codec::Raw, *raw_len)
+                    (Stored::Memory(Cow::Owned(raw)), Codec::Raw, *raw_len)
                 }
                 Content::Stored {
                     bytes,
                     codec,
                     raw_len,
-                } => (Cow::Borrowed(&bytes[..]), *codec, *raw_len),
+                } => (Stored::Memory(Cow::Borrowed(&bytes[..])), *codec, *raw_len),
                 Content::Array { bytes, codec } => {
                     let raw_len = bytes.len() as u64;
-                    let codec = match codec.unwrap_or(self.codec) {
-                        // `delta` applies to integer arrays; zstd stands in elsewhere.
-                        Codec::Delta if super::delta::width(s.dtype).is_none() => Codec::Zstd,
-                        codec => codec,
-                    };
-                    match codec {
-                        Codec::Raw => (Cow::Borrowed(&bytes[..]), Codec::Raw, raw_len),
-                        Codec::Delta => {
-                            let stream = super::delta::encode(s.dtype, bytes);
-                            let z = super::delta::compress(&stream, raw_len, DECODE_RATIO)
-                                .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
-                            // Values that are not nearly sorted gain nothing: stored raw.
-                            if z.len() as u64 >= raw_len {
-                                (Cow::Borrowed(&bytes[..]), Codec::Raw, raw_len)
-                            } else {
-                                (Cow::Owned(z), Codec::Delta, raw_len)
-                            }
-                        }
-                        Codec::Zstd => {
-                            let z = zstd::bulk::compress(bytes, self.zstd_level)
-                                .map_err(|e| Error::invalid(format!("zstd: {e}")))?;
-                            // A reader refuses a raw length past decode_cap(file_len) and all
-                            // of them together past decode_budget(file_len); the file is at
-                            // least as long as its sections, so keeping each section within
-                            // 256 x its compressed length keeps every map we write readable.
-                            if !within_decode_ratio(raw_len, z.len() as u64) {
-                                (Cow::Borrowed(&bytes[..]), Codec::Raw, raw_len)
-                            } else {
-                                (Cow::Owned(z), Codec::Zstd, raw_len)
-                            }
-                        }
-                    }
+                    let (bytes, codec) =
+                        self.encode_array(s.dtype, Cow::Borrowed(bytes), *codec)?;
+                    (Stored::Memory(bytes), codec, raw_len)
                 }
+                // Stored raw from where it is; another codec compresses it whole, as it
+                // would the array in memory.
+                Content::Spooled(spooled) => match self.array_codec(s.dtype, None) {
+                    Codec::Raw => (Stored::Spooled(spooled), Codec::Raw, spooled.len()),
+                    _ => {
+                        let bytes = Cow::Owned(spooled.read_all()?);
+                        let (bytes, codec) = self.encode_array(s.dtype, bytes, None)?;
+                        (Stored::Memory(bytes), codec, spooled.len())
+                    }
+                },
             };
             blocks.push((s, bytes, codec, raw_len));
             reporter.advance(1);
@@ -860,9 +915,16 @@ impl<'a> MapWriter<'a> {
         reporter.finish();
         // (1.2) Chunk checksums, last, when a section spans more than one chunk, so a reader
         // checks a large section where it reads it (`format/chunks.rs`).
+        // Each section's checksum, and its chunks' where the map has them: a spooled
+        // section is read once for both.
+        let chunked = super::chunks::writes_chunk_checksums(blocks.iter().map(|b| b.1.len()));
+        let mut sums = Vec::new();
+        let mut checksums = Vec::with_capacity(blocks.len() + 1);
+        for (_, bytes, _, _) in &blocks {
+            checksums.push(bytes.checksums(chunked.then_some(&mut sums))?);
+        }
         let chunk_pending;
-        if super::chunks::writes_chunk_checksums(blocks.iter().map(|b| b.1.len() as u64)) {
-            let sums = super::chunks::chunk_checksums(blocks.iter().map(|b| &b.1[..]));
+        if chunked {
             chunk_pending = PendingSection {
                 kind: SectionKind::ChunkChecksums,
                 level: NO_LEVEL,
@@ -877,7 +939,8 @@ impl<'a> MapWriter<'a> {
             };
             let bytes = owned_bytes(sums);
             let raw_len = bytes.len() as u64;
-            blocks.push((&chunk_pending, bytes, Codec::Raw, raw_len));
+            checksums.push(checksum(&bytes));
+            blocks.push((&chunk_pending, Stored::Memory(bytes), Codec::Raw, raw_len));
         }
         if blocks.len() > MAX_SECTIONS as usize {
             return Err(Error::invalid(format!(
@@ -915,7 +978,7 @@ impl<'a> MapWriter<'a> {
             0
         };
         debug_assert!(minor <= VERSION_MINOR);
-        for (s, bytes, codec, raw_len) in blocks {
+        for ((s, bytes, codec, raw_len), checksum) in blocks.into_iter().zip(checksums) {
             let offset = align_up(cursor).ok_or_else(|| Error::invalid("file too large"))?;
             let entry = RawEntry {
                 kind: s.kind.code(),
@@ -927,13 +990,13 @@ impl<'a> MapWriter<'a> {
                 rows: s.rows,
                 cols: s.cols,
                 offset,
-                stored_len: bytes.len() as u64,
+                stored_len: bytes.len(),
                 raw_len,
-                checksum: checksum(&bytes),
+                checksum,
                 reserved2: 0,
             };
             table.extend_from_slice(&entry.encode());
-            cursor = offset + bytes.len() as u64;
+            cursor = offset + bytes.len();
             sections.push((offset, bytes));
         }
         let mut header = Header {
@@ -962,29 +1025,42 @@ struct Encoded<'w> {
     header: Header,
     table: Vec<u8>,
     metadata: Vec<u8>,
-    sections: Vec<(u64, Cow<'w, [u8]>)>,
+    sections: Vec<(u64, Stored<'w>)>,
     file_len: u64,
 }
 
 impl Encoded<'_> {
-    fn write_to(&self, out: &mut impl Write, reporter: &dyn Reporter) -> std::io::Result<()> {
+    /// Writes the file to `out` (`path` names it in errors).
+    fn write_to(
+        &self,
+        out: &mut impl Write,
+        path: &Path,
+        reporter: &dyn Reporter,
+    ) -> Result<(), Error> {
         const ZEROS: [u8; 64] = [0; 64];
-        out.write_all(&self.header.encode())?;
-        out.write_all(&self.table)?;
-        out.write_all(&self.metadata)?;
+        let io = |e| Error::io(path, e);
+        out.write_all(&self.header.encode()).map_err(io)?;
+        out.write_all(&self.table).map_err(io)?;
+        out.write_all(&self.metadata).map_err(io)?;
         let mut pos = self.header.metadata_offset + self.header.metadata_len;
         reporter.advance(pos);
         for (offset, bytes) in &self.sections {
-            out.write_all(&ZEROS[..(offset - pos) as usize])?;
+            out.write_all(&ZEROS[..(offset - pos) as usize])
+                .map_err(io)?;
             reporter.advance(offset - pos);
-            // Write in chunks so progress moves on large sections.
-            for chunk in bytes.chunks(8 << 20) {
-                out.write_all(chunk)?;
-                reporter.advance(chunk.len() as u64);
+            match bytes {
+                // Written in chunks so progress moves on large sections.
+                Stored::Memory(bytes) => {
+                    for chunk in bytes.chunks(8 << 20) {
+                        out.write_all(chunk).map_err(io)?;
+                        reporter.advance(chunk.len() as u64);
+                    }
+                }
+                Stored::Spooled(spooled) => spooled.copy_to(out, |n| reporter.advance(n))?,
             }
-            pos = offset + bytes.len() as u64;
+            pos = offset + bytes.len();
         }
-        out.flush()
+        out.flush().map_err(io)
     }
 }
 

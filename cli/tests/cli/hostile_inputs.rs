@@ -343,6 +343,78 @@ fn write_database(path: &Path, scale: f32) {
     }
 }
 
+/// Issue 35: `--memory` below what converting the model needs is refused before the
+/// database is read, in one line naming the model and the smallest budget that works; that
+/// budget converts, to the same bytes as the default one.
+#[test]
+fn a_memory_budget_too_small_is_refused_naming_the_smallest_that_works() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("model");
+    std::fs::create_dir_all(&dir).unwrap();
+    for (name, bytes) in model_files(&model(), true) {
+        std::fs::write(dir.join(name), bytes).unwrap();
+    }
+    let db = tmp.path().join("database.db");
+    write_database(&db, 3.0);
+    let convert = |out: &Path, memory: Option<&str>| {
+        let mut args = vec![
+            OsStr::new("convert"),
+            OsStr::new("--colmap"),
+            dir.as_os_str(),
+            OsStr::new("--database"),
+            db.as_os_str(),
+            OsStr::new("--json"),
+            OsStr::new("-o"),
+            out.as_os_str(),
+        ];
+        if let Some(m) = memory {
+            args.extend([OsStr::new("--memory"), OsStr::new(m)]);
+        }
+        sfpmap(&args)
+    };
+    let small = tmp.path().join("small.sfpm");
+    let out = convert(&small, Some("1MB"));
+    let model = dir.display().to_string();
+    assert_refused(
+        &out,
+        &[
+            &model,
+            "a memory budget of 1 MB is too small",
+            "needs at least",
+        ],
+    );
+    assert!(!small.exists());
+    let needed: u64 = out
+        .stderr
+        .split("needs at least ")
+        .nth(1)
+        .and_then(|rest| rest.split(" MB").next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no smallest budget in {:?}", out.stderr));
+    let out = convert(&small, Some(&format!("{needed}MB")));
+    assert_eq!(out.code, Some(0), "{out:?}");
+    let report: serde_json::Value = serde_json::from_str(&out.stdout).unwrap();
+    assert_eq!(report["memory"]["budget"], needed * 1_000_000, "{report}");
+    assert!(report["memory"]["planned_peak"].as_u64().unwrap() <= needed * 1_000_000);
+    let default = tmp.path().join("default.sfpm");
+    assert_eq!(convert(&default, None).code, Some(0));
+    assert_eq!(
+        std::fs::read(&small).unwrap(),
+        std::fs::read(&default).unwrap()
+    );
+    // The scratch files are gone with the process: the folder holds the maps, the model, the
+    // database.
+    let mut names: Vec<_> = std::fs::read_dir(tmp.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        ["database.db", "default.sfpm", "model", "small.sfpm"]
+    );
+}
+
 /// Finding 16: a database keypoint's scale feeds the level assignment; a NaN one silently
 /// dropped the point from every level.
 #[test]

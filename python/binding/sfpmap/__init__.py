@@ -662,7 +662,8 @@ def convert(
     are the CLI's ``InputError``; as the CLI, a file already inside the kapture folder is an
     input, refused as ``out`` even with ``force``. ``job`` (a dict; no CLI flag) is kept in
     the map's ``provenance.parameters.job``: ``sfpmap.batch`` records a place's input
-    fingerprint there.
+    fingerprint there. ``memory`` (bytes, ``--memory``) bounds what a conversion from a
+    database or features file uses; the map is the same bytes whatever it is.
     Returns what ``convert --json`` prints."""
     if out is None:
         raise InputError("out: the map to write")

@@ -59,6 +59,8 @@ struct Options {
     pq: Option<usize>,
     /// `ConvertOptions::job`: the caller's record, kept in provenance.
     job: Option<serde_json::Value>,
+    /// `ConvertOptions::memory`: the budget in bytes (`--memory`).
+    memory: Option<u64>,
 }
 
 impl Options {
@@ -175,6 +177,7 @@ impl Options {
             },
             pq,
             job: None,
+            memory: None,
         })
     }
 
@@ -219,6 +222,7 @@ impl Options {
             vlad: self.vlad,
             pq: self.pq,
             job: self.job.clone(),
+            memory: self.memory,
         }
     }
 
@@ -328,7 +332,7 @@ pub(crate) fn job_record(text: Option<&str>) -> PyResult<Option<serde_json::Valu
                     score_threshold=None, short_dims=None, codec="raw", zstd_level=3, aggregate=None, strict=false,
                     vlad_clusters=None, vlad_dims=None, pq=None, features=None, feature_name=None,
                     global_features=None, kapture=None, keypoints_type=None, descriptors_type=None,
-                    index_lists=None, job=None))]
+                    index_lists=None, job=None, memory=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn convert(
     py: Python<'_>,
@@ -359,6 +363,7 @@ pub(crate) fn convert(
     descriptors_type: Option<String>,
     index_lists: Option<usize>,
     job: Option<&str>,
+    memory: Option<u64>,
 ) -> PyResult<String> {
     let start = Instant::now();
     let source = source(
@@ -412,6 +417,12 @@ pub(crate) fn convert(
         matches!(source, Source::Kapture(..)),
     )?;
     o.job = job_record(job)?;
+    if o.images.is_some() && memory.is_some() {
+        return Err(InputError::new_err(
+            "the argument '--images <IMAGES>' cannot be used with '--memory <SIZE>'",
+        ));
+    }
+    o.memory = memory;
     let files = match &source {
         Source::Colmap(model_dir) => sfpmap::colmap::model_files(model_dir)
             .map(|f| f.paths)

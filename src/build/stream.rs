@@ -1,0 +1,952 @@
+//! Each point's descriptor, made in bounded memory: the source's images are read in model
+//! order and a point's observations summed (or kept, for the medoid) only while its track is
+//! open, from its first image to its last; a closed point's descriptor goes to a scratch file
+//! in point order ([`Spill`]). Where the open tracks would not fit the memory budget, the
+//! points are split into ranges of points and the source is read once per range.
+//!
+//! Each point sees its observations in the order the whole-map aggregation saw them (image
+//! order, then the image's visibility order), so the descriptors, and the map made of them,
+//! are the same bytes whatever the budget.
+
+use super::features::{FeatureSource, ModelImage, MAX_DESCRIPTOR_DIM};
+use super::geometry::Geometry;
+use super::sift::{Aggregate, ConvertOptions};
+use super::ConvertError;
+use crate::format::{read_at, write_at};
+use crate::progress::Reporter;
+use bitvec::vec::BitVec;
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+/// Reads of the features at most (`--memory`): a smaller budget is refused, naming the
+/// smallest that works with this many.
+pub const MAX_PASSES: usize = 64;
+
+/// Memory the program needs besides what the plan counts (its code, the allocator's
+/// slack, one image's features, the scratch files' buffers).
+const BASELINE_BYTES: u64 = 160 << 20;
+
+/// A closed point's row waits here until this many bytes of rows are held.
+const SPILL_BUFFER_BYTES: usize = 16 << 20;
+
+/// The points' descriptors, aggregated: what [`super::sift`] builds the levels from.
+pub(crate) struct Aggregated {
+    /// Dimensions of a descriptor (0: no image had features).
+    pub dim: usize,
+    /// The feature the map records as its levels' `descriptor`.
+    pub feature: String,
+    /// What `feature_source` records: where the descriptors came from.
+    pub source_kind: &'static str,
+    /// Whether every image's keypoints had a scale (levels by scale; else one level).
+    pub scaled: bool,
+    /// Each point's median keypoint scale over its described observations (NaN: none).
+    pub median: Vec<f32>,
+    /// Points with a descriptor.
+    pub has: BitVec,
+    /// Each point's descriptor, `dim` f32, in point order (zeros where `has` is unset).
+    pub spill: Spill,
+    /// Images the source has no features for.
+    pub images_without_features: usize,
+}
+
+/// How a conversion fits its memory budget (`convert --json`'s `memory`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MemoryPlan {
+    /// The budget, in bytes (`--memory`, or half the machine's).
+    pub budget: u64,
+    /// Reads of the features: the points are made in this many ranges, one read each.
+    pub passes: usize,
+    /// The most memory the plan expects the conversion to use, in bytes (an estimate from
+    /// the model's counts).
+    pub peak: u64,
+}
+
+/// What a conversion holds besides the open tracks, estimated from the model's counts:
+/// `during` the reads of the features (the geometry, per-point arrays), and `after` them
+/// (the geometry, the retrieval rows and VLADs, sections the writer holds in memory).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct FixedCost {
+    pub during: u64,
+    pub after: u64,
+}
+
+impl FixedCost {
+    /// The estimate for `geometry` with descriptors of `dim` values.
+    pub(crate) fn of(geometry: &Geometry, options: &ConvertOptions, dim: usize) -> FixedCost {
+        let g = geometry;
+        let (points, images) = (g.positions.len() as u64, g.names.len() as u64);
+        let observations = g.vis_points.len() as u64;
+        let names: u64 = g.names.iter().map(|n| n.len() as u64 + 24).sum();
+        let geometry = points * (24 + 3 + 8)
+            + images * (8 + 4 + 56 + 4)
+            + names
+            + observations * (4 + 8 + 4)
+            + g.cameras.len() as u64 * 256;
+        // Tracks (last image, length), the open slots' index, medians, the levels' points,
+        // the writer's positions: about 36 bytes a point.
+        let per_point = points * 36;
+        let short = options
+            .short_dims
+            .map_or(dim / 4, |s| (s as usize).min(dim))
+            .max(1);
+        let (clusters, dims) = options
+            .vlad
+            .shape(g.names.len(), crate::vlad::DescribedAt::OwnKeypoints);
+        let dims = dims.min(short) as u64;
+        // Retrieval rows (f32 a point), each image's VLAD in f32 and in the writer's f16.
+        let vlad = points * dims * 4 + images * clusters as u64 * dims * 6;
+        // Levels stored raw stay in the scratch file; another codec, or `--pq`, compresses
+        // or reads them whole.
+        let levels_held = if options.codec != crate::format::Codec::Raw || options.pq.is_some() {
+            points * dim as u64 * 2 * 2
+        } else {
+            0
+        };
+        FixedCost {
+            during: geometry + per_point,
+            after: geometry + per_point + vlad + levels_held,
+        }
+    }
+}
+
+/// Half the machine's memory (`/proc/meminfo`'s `MemTotal`; 8 GB where it cannot be read):
+/// the budget of a conversion that names none.
+pub fn default_memory_budget() -> u64 {
+    std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|text| {
+            let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
+            let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+            Some(kb * 1024 / 2)
+        })
+        .unwrap_or(8_000_000_000)
+}
+
+/// The last image (model order) observing each point, and its observations.
+struct Tracks {
+    last: Vec<u32>,
+    lengths: Vec<u32>,
+}
+
+impl Tracks {
+    fn new(geometry: &Geometry) -> Tracks {
+        let n = geometry.positions.len();
+        let mut last = vec![u32::MAX; n];
+        let mut lengths = vec![0u32; n];
+        for i in 0..geometry.names.len() {
+            for &p in image_points(geometry, i) {
+                last[p as usize] = i as u32;
+                lengths[p as usize] = lengths[p as usize].saturating_add(1);
+            }
+        }
+        Tracks { last, lengths }
+    }
+
+    /// Bytes an open point holds: its sum (or every observation's row, for the medoid) and
+    /// its scales.
+    fn weight(&self, p: usize, dim: usize, how: Aggregate) -> u64 {
+        let track = u64::from(self.lengths[p]);
+        let rows = match how {
+            Aggregate::Mean => dim as u64 * 4,
+            Aggregate::Medoid => track * dim as u64 * 4,
+        };
+        rows + track * 4 + 64
+    }
+
+    /// The most bytes open at once in each of `ranges` equal ranges of points.
+    fn peaks(&self, geometry: &Geometry, ranges: usize, dim: usize, how: Aggregate) -> Vec<u64> {
+        let span = range_span(self.last.len(), ranges);
+        let mut open: BitVec = BitVec::repeat(false, self.last.len());
+        let (mut now, mut peak) = (vec![0u64; ranges], vec![0u64; ranges]);
+        for i in 0..geometry.names.len() {
+            let points = image_points(geometry, i);
+            for &p in points {
+                let p = p as usize;
+                if !open[p] {
+                    open.set(p, true);
+                    let r = p / span;
+                    now[r] += self.weight(p, dim, how);
+                    peak[r] = peak[r].max(now[r]);
+                }
+            }
+            for &p in points {
+                let p = p as usize;
+                if self.last[p] == i as u32 && open[p] {
+                    open.set(p, false);
+                    now[p / span] -= self.weight(p, dim, how);
+                }
+            }
+        }
+        peak
+    }
+}
+
+/// Points a range holds when `points` are split into `ranges`.
+fn range_span(points: usize, ranges: usize) -> usize {
+    points.div_ceil(ranges.max(1)).max(1)
+}
+
+fn image_points(geometry: &Geometry, i: usize) -> &[u32] {
+    let range = geometry.vis_offsets[i] as usize..geometry.vis_offsets[i + 1] as usize;
+    &geometry.vis_points[range]
+}
+
+/// The fewest reads of the features whose open tracks fit `budget` beside `fixed`, or the
+/// error naming the smallest budget that works.
+fn plan(
+    tracks: &Tracks,
+    geometry: &Geometry,
+    dim: usize,
+    how: Aggregate,
+    fixed: FixedCost,
+    budget: u64,
+    model: &Path,
+) -> Result<MemoryPlan, ConvertError> {
+    let mut passes = 1;
+    loop {
+        let worst = tracks
+            .peaks(geometry, passes, dim, how)
+            .into_iter()
+            .max()
+            .unwrap_or(0);
+        // The open points' rows and the spill's buffer while reading, the retrieval rows
+        // after.
+        let reading = fixed.during + worst + SPILL_BUFFER_BYTES as u64;
+        let peak = BASELINE_BYTES + reading.max(fixed.after);
+        if peak <= budget {
+            return Ok(MemoryPlan {
+                budget,
+                passes,
+                peak,
+            });
+        }
+        if passes >= MAX_PASSES.min(tracks.last.len().max(1)) {
+            return Err(ConvertError::MemoryBudget {
+                model: model.to_path_buf(),
+                budget,
+                needed: peak,
+                passes,
+            });
+        }
+        passes = (passes * 2).min(MAX_PASSES);
+    }
+}
+
+/// The points' open tracks in one read of the features: slots reused as tracks close.
+struct Open {
+    dim: usize,
+    how: Aggregate,
+    /// Each point's slot while its track is open (`u32::MAX`: not open).
+    slot_of: Vec<u32>,
+    free: Vec<u32>,
+    /// Mean: `[slots × dim]` sums.
+    sums: Vec<f32>,
+    /// Per slot: the keypoint scales of the observations so far.
+    scales: Vec<Vec<f32>>,
+    /// Medoid: per slot, the observations' normalised rows, in order.
+    rows: Vec<Vec<f32>>,
+}
+
+impl Open {
+    fn new(points: usize, dim: usize, how: Aggregate) -> Open {
+        Open {
+            dim,
+            how,
+            slot_of: vec![u32::MAX; points],
+            free: Vec::new(),
+            sums: Vec::new(),
+            scales: Vec::new(),
+            rows: Vec::new(),
+        }
+    }
+
+    fn slot(&mut self, p: usize) -> usize {
+        if self.slot_of[p] != u32::MAX {
+            return self.slot_of[p] as usize;
+        }
+        let slot = match self.free.pop() {
+            Some(s) => s as usize,
+            None => {
+                let s = self.scales.len();
+                self.scales.push(Vec::new());
+                self.rows.push(Vec::new());
+                if self.how == Aggregate::Mean {
+                    self.sums.resize((s + 1) * self.dim, 0.0);
+                }
+                s
+            }
+        };
+        self.slot_of[p] = slot as u32;
+        slot
+    }
+
+    /// One observation of `p`: its normalised row and keypoint scale.
+    fn add(&mut self, p: usize, row: &[f32], scale: f32) {
+        let s = self.slot(p);
+        self.scales[s].push(scale);
+        match self.how {
+            Aggregate::Mean => {
+                for (o, v) in self.sums[s * self.dim..(s + 1) * self.dim]
+                    .iter_mut()
+                    .zip(row)
+                {
+                    *o += v;
+                }
+            }
+            Aggregate::Medoid => self.rows[s].extend_from_slice(row),
+        }
+    }
+
+    /// Closes `p`'s track: its descriptor into `out` and its median scale, or `None` if it
+    /// had no described observation.
+    fn close(&mut self, p: usize, out: &mut [f32]) -> Option<f32> {
+        let s = self.slot_of[p];
+        if s == u32::MAX {
+            return None;
+        }
+        let s = s as usize;
+        self.slot_of[p] = u32::MAX;
+        self.free.push(s as u32);
+        let dim = self.dim;
+        match self.how {
+            Aggregate::Mean => {
+                let sum = &mut self.sums[s * dim..(s + 1) * dim];
+                out.copy_from_slice(sum);
+                sum.fill(0.0);
+                crate::vector::l2_normalise(out);
+            }
+            Aggregate::Medoid => {
+                let rows = std::mem::take(&mut self.rows[s]);
+                let group: Vec<&[f32]> = rows.chunks_exact(dim.max(1)).collect();
+                // The highest summed similarity to the others; ties: the earlier observation.
+                let score = |k: usize| -> f32 {
+                    group.iter().map(|d| crate::vector::dot(group[k], d)).sum()
+                };
+                let best = (0..group.len())
+                    .max_by(|&i, &j| score(i).total_cmp(&score(j)).then(j.cmp(&i)))
+                    .unwrap_or(0);
+                out.copy_from_slice(group[best]);
+            }
+        }
+        let mut scales = std::mem::take(&mut self.scales[s]);
+        scales.sort_by(f32::total_cmp);
+        Some(scales[scales.len() / 2])
+    }
+}
+
+/// A conversion's reads of the features, planned: made before anything long starts, so a
+/// budget too small is refused up front.
+pub(crate) struct Prepared {
+    reader: ImageReader,
+    tracks: Tracks,
+    /// The plan.
+    pub memory: MemoryPlan,
+}
+
+#[cfg(test)]
+impl Prepared {
+    /// The same reads in `passes` ranges of points, whatever the budget.
+    fn with_passes(mut self, passes: usize) -> Prepared {
+        self.memory.passes = passes;
+        self
+    }
+}
+
+/// Reads the first image's features (the descriptors' dimensions), then plans the reads of
+/// the features within `budget` bytes (`options.memory`, else [`default_memory_budget`]).
+pub(crate) fn prepare(
+    geometry: &Geometry,
+    source: &mut dyn FeatureSource,
+    options: &ConvertOptions,
+    model: &Path,
+) -> Result<Prepared, ConvertError> {
+    let mut reader = ImageReader {
+        path: source.path().to_path_buf(),
+        strict: options.strict,
+        dim: 0,
+        scaled: true,
+        missing: 0,
+    };
+    for i in 0..geometry.names.len() {
+        if let Some(features) = reader.read(geometry, source, i, &crate::progress::Silent)? {
+            reader.dim = features.dim;
+            break;
+        }
+    }
+    reader.missing = 0;
+    let dim = reader.dim;
+    let tracks = Tracks::new(geometry);
+    let budget = options.memory.unwrap_or_else(default_memory_budget);
+    let fixed = FixedCost::of(geometry, options, dim);
+    let memory = plan(
+        &tracks,
+        geometry,
+        dim,
+        options.aggregate,
+        fixed,
+        budget,
+        model,
+    )?;
+    Ok(Prepared {
+        reader,
+        tracks,
+        memory,
+    })
+}
+
+/// Reads every model image's features from `source` as `prepared` plans, and makes each
+/// point's descriptor and median scale; the descriptors go to a scratch file beside `output`.
+pub(crate) fn aggregate(
+    geometry: &Geometry,
+    source: &mut dyn FeatureSource,
+    options: &ConvertOptions,
+    prepared: Prepared,
+    output: &Path,
+    reporter: &dyn Reporter,
+) -> Result<Aggregated, ConvertError> {
+    let Prepared {
+        mut reader,
+        tracks,
+        memory,
+    } = prepared;
+    let path = reader.path.clone();
+    let n_points = geometry.positions.len();
+    let dim = reader.dim;
+    let mut out = Aggregated {
+        dim,
+        feature: String::new(),
+        source_kind: source.kind(),
+        scaled: true,
+        median: vec![f32::NAN; n_points],
+        has: BitVec::repeat(false, n_points),
+        spill: Spill::create(output, n_points, dim)?,
+        images_without_features: 0,
+    };
+    let span = range_span(n_points, memory.passes);
+    let mut row = Vec::new();
+    let mut closed = vec![0.0f32; dim];
+    for pass in 0..memory.passes {
+        let points = pass * span..((pass + 1) * span).min(n_points);
+        let stage = match memory.passes {
+            1 => "reading features".to_string(),
+            n => format!("reading features ({} of {n})", pass + 1),
+        };
+        let warn: &dyn Reporter = if pass == 0 {
+            reporter
+        } else {
+            &crate::progress::Silent
+        };
+        reporter.start(&stage, Some(geometry.names.len() as u64));
+        let mut open = Open::new(n_points, dim, options.aggregate);
+        for i in 0..geometry.names.len() {
+            let features = reader.read(geometry, source, i, warn)?;
+            let entries = geometry.vis_offsets[i] as usize..geometry.vis_offsets[i + 1] as usize;
+            if let Some(features) = features {
+                let name = &geometry.names[i];
+                for (&point, &idx) in geometry.vis_points[entries.clone()]
+                    .iter()
+                    .zip(&geometry.vis_point2d[entries.clone()])
+                {
+                    let (point, idx) = (point as usize, idx as usize);
+                    let scale = reader.observation(&features, name, idx, &mut row)?;
+                    if points.contains(&point) {
+                        open.add(point, &row, scale);
+                    }
+                }
+            }
+            for &p in &geometry.vis_points[entries] {
+                let p = p as usize;
+                if points.contains(&p) && tracks.last[p] == i as u32 {
+                    if let Some(median) = open.close(p, &mut closed) {
+                        out.median[p] = median;
+                        out.has.set(p, true);
+                        out.spill.put(p, &closed)?;
+                    }
+                }
+            }
+            reporter.advance(1);
+        }
+        reporter.finish();
+        if pass == 0 {
+            out.images_without_features = reader.missing;
+        }
+    }
+    out.spill.flush()?;
+    out.scaled = reader.scaled;
+    if out.images_without_features > 0 {
+        reporter.warn(&format!(
+            "{} of {} images have no features in {}",
+            out.images_without_features,
+            geometry.names.len(),
+            crate::escape::path(&path)
+        ));
+    }
+    out.feature = source
+        .feature_name()
+        .unwrap_or_else(|| format!("{}{}", crate::format::UNNAMED_FEATURE_PREFIX, dim));
+    Ok(out)
+}
+
+/// One image's features at a time, checked as the map needs them.
+struct ImageReader {
+    path: PathBuf,
+    strict: bool,
+    /// The descriptors' dimensions (0: none read yet).
+    dim: usize,
+    /// Whether every image read had keypoint scales.
+    scaled: bool,
+    /// Images without features, this read.
+    missing: usize,
+}
+
+impl ImageReader {
+    /// Image `i`'s features, `None` (warned of) where the source has none.
+    fn read(
+        &mut self,
+        geometry: &Geometry,
+        source: &mut dyn FeatureSource,
+        i: usize,
+        reporter: &dyn Reporter,
+    ) -> Result<Option<super::features::SourceFeatures>, ConvertError> {
+        let name = &geometry.names[i];
+        let image = ModelImage {
+            id: geometry.image_ids[i],
+            name,
+            size: geometry.image_size(i),
+        };
+        let Some(features) = source.image(image)? else {
+            if self.strict {
+                return Err(ConvertError::MissingFeatures {
+                    features: self.path.clone(),
+                    image: name.clone(),
+                });
+            }
+            self.missing += 1;
+            reporter.warn(&format!(
+                "{}: image {} has no features; its observations get no descriptor",
+                crate::escape::path(&self.path),
+                crate::escape::quoted_name(name)
+            ));
+            return Ok(None);
+        };
+        if features.dim == 0 || features.dim > MAX_DESCRIPTOR_DIM {
+            return Err(ConvertError::Input(crate::io::InputError {
+                path: self.path.clone(),
+                line: None,
+                message: format!(
+                    "image {}: descriptors of {} dimensions (1 to {MAX_DESCRIPTOR_DIM} are taken)",
+                    crate::escape::quoted_name(name),
+                    features.dim
+                ),
+            }));
+        }
+        if self.dim != 0 && features.dim != self.dim {
+            return Err(ConvertError::DescriptorDim {
+                features: self.path.clone(),
+                image: name.clone(),
+                expected: self.dim,
+                found: features.dim,
+            });
+        }
+        self.scaled &= features.scales.is_some();
+        Ok(Some(features))
+    }
+
+    /// Keypoint `idx`'s descriptor, normalised, into `row`, and its scale (1 without
+    /// scales); every observation is checked, whichever range of points is being made.
+    fn observation(
+        &self,
+        features: &super::features::SourceFeatures,
+        name: &str,
+        idx: usize,
+        row: &mut Vec<f32>,
+    ) -> Result<f32, ConvertError> {
+        if idx >= features.keypoints || !features.values.row_into(self.dim, idx, row) {
+            return Err(ConvertError::KeypointOutOfRange {
+                features: self.path.clone(),
+                image: name.to_string(),
+                point2d_idx: idx,
+                keypoints: features.keypoints,
+            });
+        }
+        // Without scales every observation is alike: one level.
+        let scale = features.scales.as_ref().map_or(1.0, |s| s[idx]);
+        // A NaN scale would drop the point from every level without a word; the level
+        // assignment and the metadata's scale ranges need finite scales.
+        if !scale.is_finite() {
+            return Err(ConvertError::KeypointScaleNotFinite {
+                features: self.path.clone(),
+                image: name.to_string(),
+                point2d_idx: idx,
+            });
+        }
+        if let Some(v) = row.iter().find(|v| !v.is_finite()) {
+            return Err(ConvertError::Input(crate::io::InputError {
+                path: self.path.clone(),
+                line: None,
+                message: format!(
+                    "image {}: keypoint {idx}: a descriptor value is {v}",
+                    crate::escape::quoted_name(name)
+                ),
+            }));
+        }
+        crate::vector::l2_normalise(row);
+        Ok(scale)
+    }
+}
+
+/// Each point's descriptor (`dim` f32) at its place in a scratch file in the output's
+/// folder: closed points arrive in the order their tracks end and are written in runs of
+/// consecutive points; read back in point order.
+pub(crate) struct Spill {
+    file: File,
+    output: PathBuf,
+    dim: usize,
+    points: usize,
+    /// Rows waiting, with their points.
+    waiting: Vec<(u32, usize)>,
+    rows: Vec<f32>,
+}
+
+impl Spill {
+    fn create(output: &Path, points: usize, dim: usize) -> Result<Spill, ConvertError> {
+        let file = crate::output::scratch_file(output).map_err(ConvertError::Output)?;
+        let spill = Spill {
+            file,
+            output: output.to_path_buf(),
+            dim,
+            points,
+            waiting: Vec::new(),
+            rows: Vec::new(),
+        };
+        spill
+            .file
+            .set_len(points as u64 * dim as u64 * 4)
+            .map_err(|e| spill.io(e))?;
+        Ok(spill)
+    }
+
+    fn io(&self, source: std::io::Error) -> ConvertError {
+        ConvertError::Io {
+            path: self.output.clone(),
+            source,
+        }
+    }
+
+    fn row_bytes(&self) -> u64 {
+        self.dim as u64 * 4
+    }
+
+    fn put(&mut self, point: usize, row: &[f32]) -> Result<(), ConvertError> {
+        self.waiting.push((point as u32, self.rows.len()));
+        self.rows.extend_from_slice(row);
+        if self.rows.len() * 4 >= SPILL_BUFFER_BYTES {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> Result<(), ConvertError> {
+        let mut waiting = std::mem::take(&mut self.waiting);
+        waiting.sort_unstable_by_key(|w| w.0);
+        let mut bytes: Vec<u8> = Vec::new();
+        let mut run_start = None;
+        for (k, &(point, at)) in waiting.iter().enumerate() {
+            if k > 0 && waiting[k - 1].0 + 1 != point {
+                self.write_run(run_start.take(), &mut bytes)?;
+            }
+            run_start.get_or_insert(point);
+            bytes.extend_from_slice(bytemuck::cast_slice(&self.rows[at..at + self.dim]));
+        }
+        self.write_run(run_start, &mut bytes)?;
+        self.rows.clear();
+        Ok(())
+    }
+
+    fn write_run(&self, start: Option<u32>, bytes: &mut Vec<u8>) -> Result<(), ConvertError> {
+        if let Some(start) = start {
+            write_at(&self.file, bytes, u64::from(start) * self.row_bytes())
+                .map_err(|e| self.io(e))?;
+        }
+        bytes.clear();
+        Ok(())
+    }
+
+    /// Calls `f(point, row)` for every point `has` holds, in point order.
+    pub(crate) fn for_each(
+        &self,
+        has: &BitVec,
+        mut f: impl FnMut(usize, &[f32]) -> Result<(), ConvertError>,
+    ) -> Result<(), ConvertError> {
+        let dim = self.dim.max(1);
+        let block = (SPILL_BUFFER_BYTES / (dim * 4)).max(1);
+        let mut values = vec![0.0f32; block * dim];
+        let mut start = 0;
+        while start < self.points {
+            let n = block.min(self.points - start);
+            if has[start..start + n].any() {
+                let buf: &mut [u8] = bytemuck::cast_slice_mut(&mut values[..n * dim]);
+                read_at(&self.file, buf, start as u64 * self.row_bytes())
+                    .map_err(|e| self.io(e))?;
+                for k in has[start..start + n].iter_ones() {
+                    f(start + k, &values[k * dim..(k + 1) * dim])?;
+                }
+            }
+            start += n;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::features::SourceFeatures;
+    use super::*;
+    use crate::colmap::DescriptorValues;
+    use crate::geometry::rng::SplitMix64;
+
+    const DIM: usize = 6;
+
+    /// A model whose tracks jump between images in no order (most points open at once),
+    /// with repeated observations in one image, points seen by no image or only by the image
+    /// without features, and a last image that has none.
+    fn scene() -> (Geometry, Vec<Option<SourceFeatures>>) {
+        let (points, images) = (300, 23);
+        let mut rng = SplitMix64::new(35);
+        let mut per_image: Vec<Vec<u32>> = vec![Vec::new(); images];
+        for p in 0..points - 10 {
+            let track = 1 + rng.next_u64() as usize % 6;
+            for _ in 0..track {
+                per_image[rng.next_u64() as usize % images].push(p as u32);
+            }
+        }
+        per_image[4].push(points as u32 - 3); // only in the image without features
+        let mut g = Geometry {
+            cameras: Vec::new(),
+            positions: vec![[0.0; 3]; points],
+            colors: vec![[0; 3]; points],
+            ids: (0..points as u64).collect(),
+            names: (0..images).map(|i| format!("{i}.jpg")).collect(),
+            image_cameras: vec![0; images],
+            poses: vec![[1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]; images],
+            image_ids: (1..=images as u32).collect(),
+            vis_offsets: vec![0],
+            vis_points: Vec::new(),
+            vis_keypoints: Vec::new(),
+            vis_point2d: Vec::new(),
+        };
+        let mut features = Vec::new();
+        for (i, seen) in per_image.iter().enumerate() {
+            let keypoints = seen.len() + 2;
+            for (k, &p) in seen.iter().enumerate() {
+                g.vis_points.push(p);
+                g.vis_keypoints.push([0.0; 2]);
+                g.vis_point2d.push(k as u32 + 1);
+            }
+            g.vis_offsets.push(g.vis_points.len() as u64);
+            let values = (0..keypoints * DIM)
+                .map(|_| rng.next_f64() as f32 - 0.3)
+                .collect();
+            let scales = (0..keypoints)
+                .map(|_| 1.0 + rng.next_f64() as f32)
+                .collect();
+            features.push(((i != 4) && (i != images - 1)).then_some(SourceFeatures {
+                keypoints,
+                scales: Some(scales),
+                dim: DIM,
+                values: DescriptorValues::F32(values),
+            }));
+        }
+        (g, features)
+    }
+
+    struct Fake(Vec<Option<SourceFeatures>>, PathBuf);
+
+    impl FeatureSource for Fake {
+        fn path(&self) -> &Path {
+            &self.1
+        }
+        fn kind(&self) -> &'static str {
+            "test"
+        }
+        fn feature_name(&self) -> Option<String> {
+            None
+        }
+        fn image(&mut self, image: ModelImage<'_>) -> Result<Option<SourceFeatures>, ConvertError> {
+            Ok(self.0[image.id as usize - 1].clone())
+        }
+    }
+
+    /// The whole map at once, as `convert` made it before it streamed: every observation's
+    /// normalised row in image order, then each point's mean (or medoid) and median scale.
+    fn whole_map(
+        g: &Geometry,
+        f: &[Option<SourceFeatures>],
+        how: Aggregate,
+    ) -> Vec<(usize, Vec<f32>, f32)> {
+        let mut obs: Vec<Vec<(Vec<f32>, f32)>> = vec![Vec::new(); g.positions.len()];
+        for (i, features) in f.iter().enumerate() {
+            let Some(features) = features else { continue };
+            for k in g.vis_offsets[i] as usize..g.vis_offsets[i + 1] as usize {
+                let mut row = Vec::new();
+                assert!(features
+                    .values
+                    .row_into(DIM, g.vis_point2d[k] as usize, &mut row));
+                crate::vector::l2_normalise(&mut row);
+                let scale = features.scales.as_ref().unwrap()[g.vis_point2d[k] as usize];
+                obs[g.vis_points[k] as usize].push((row, scale));
+            }
+        }
+        let mut out = Vec::new();
+        for (p, o) in obs.iter().enumerate().filter(|(_, o)| !o.is_empty()) {
+            let row = match how {
+                Aggregate::Mean => {
+                    let mut sum = vec![0.0f32; DIM];
+                    for (r, _) in o {
+                        sum.iter_mut().zip(r).for_each(|(s, v)| *s += v);
+                    }
+                    crate::vector::l2_normalise(&mut sum);
+                    sum
+                }
+                Aggregate::Medoid => {
+                    let score = |k: usize| -> f32 {
+                        o.iter().map(|(r, _)| crate::vector::dot(&o[k].0, r)).sum()
+                    };
+                    let best = (0..o.len())
+                        .max_by(|&i, &j| score(i).total_cmp(&score(j)).then(j.cmp(&i)))
+                        .unwrap();
+                    o[best].0.clone()
+                }
+            };
+            let mut scales: Vec<f32> = o.iter().map(|x| x.1).collect();
+            scales.sort_by(f32::total_cmp);
+            out.push((p, row, scales[scales.len() / 2]));
+        }
+        out
+    }
+
+    #[test]
+    fn streamed_descriptors_are_the_whole_map_aggregation_whatever_the_passes() {
+        let (g, features) = scene();
+        let dir = tempfile::tempdir().unwrap();
+        let output = dir.path().join("map.sfpm");
+        for how in [Aggregate::Mean, Aggregate::Medoid] {
+            let expected = whole_map(&g, &features, how);
+            assert!(expected.len() > 250, "{}", expected.len());
+            let options = ConvertOptions {
+                aggregate: how,
+                memory: Some(u64::MAX),
+                ..Default::default()
+            };
+            for passes in [1, 3, 7, 300] {
+                let mut source = Fake(features.clone(), dir.path().join("db"));
+                let prepared = prepare(&g, &mut source, &options, Path::new("model")).unwrap();
+                assert_eq!(prepared.memory.passes, 1);
+                let prepared = prepared.with_passes(passes);
+                let agg = aggregate(
+                    &g,
+                    &mut source,
+                    &options,
+                    prepared,
+                    &output,
+                    &crate::progress::Silent,
+                )
+                .unwrap();
+                assert_eq!(agg.images_without_features, 2);
+                assert_eq!(agg.has.count_ones(), expected.len(), "{how:?} {passes}");
+                let mut got = Vec::new();
+                agg.spill
+                    .for_each(&agg.has, |p, row| {
+                        got.push((p, row.to_vec(), agg.median[p]));
+                        Ok(())
+                    })
+                    .unwrap();
+                let bits = |v: &[(usize, Vec<f32>, f32)]| -> Vec<(usize, Vec<u32>, u32)> {
+                    v.iter()
+                        .map(|(p, r, m)| (*p, r.iter().map(|x| x.to_bits()).collect(), m.to_bits()))
+                        .collect()
+                };
+                assert_eq!(bits(&got), bits(&expected), "{how:?} in {passes} passes");
+                assert!(agg.median[g.positions.len() - 3].is_nan());
+            }
+        }
+        // Nothing is left in the output's folder: the scratch files have no name.
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn a_budget_below_the_smallest_that_works_is_refused_naming_it() {
+        let (g, _) = scene();
+        let tracks = Tracks::new(&g);
+        let fixed = FixedCost {
+            during: 1_000,
+            after: 2_000,
+        };
+        let one = plan(
+            &tracks,
+            &g,
+            DIM,
+            Aggregate::Mean,
+            fixed,
+            u64::MAX,
+            Path::new("m"),
+        )
+        .unwrap();
+        assert_eq!(one.passes, 1);
+        // Just below one read's need: two reads or more, each range's open tracks smaller.
+        let fewer = plan(
+            &tracks,
+            &g,
+            DIM,
+            Aggregate::Medoid,
+            fixed,
+            u64::MAX,
+            Path::new("m"),
+        )
+        .unwrap();
+        let tighter = plan(
+            &tracks,
+            &g,
+            DIM,
+            Aggregate::Medoid,
+            fixed,
+            fewer.peak - 1,
+            Path::new("m"),
+        )
+        .unwrap();
+        assert!(
+            tighter.passes > 1 && tighter.peak < fewer.peak,
+            "{tighter:?}"
+        );
+        let err = plan(
+            &tracks,
+            &g,
+            DIM,
+            Aggregate::Medoid,
+            fixed,
+            1_000_000,
+            Path::new("m"),
+        )
+        .unwrap_err();
+        let ConvertError::MemoryBudget { needed, passes, .. } = err else {
+            panic!("{err}");
+        };
+        assert_eq!(passes, MAX_PASSES);
+        let smallest = plan(
+            &tracks,
+            &g,
+            DIM,
+            Aggregate::Medoid,
+            fixed,
+            needed,
+            Path::new("m"),
+        )
+        .unwrap();
+        assert_eq!((smallest.passes, smallest.peak), (MAX_PASSES, needed));
+        assert!(
+            err.to_string()
+                .starts_with("m: a memory budget of 1 MB is too small"),
+            "{err}"
+        );
+    }
+}
