@@ -9,7 +9,8 @@
 # builds the localizer and localizes the first query, 5 runs, the median of the three times
 # (the map's pages in the page cache, as right after it was written or read).
 # Usage: benches/street.sh [POINTS ...]   (default 100000; generating 1000000 takes about
-# 1.5 min and 1.8 GB of memory, 5000000 about 10 GB of disk)
+# 1.5 min and 1.8 GB of memory, 5000000 about 10 GB of disk). Convert runs with
+# `--memory ${STREET_MEMORY:-4GB}` (issue 35's budget) and says how it planned to keep to it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 work=
@@ -30,7 +31,8 @@ for n in "${sizes[@]}"; do
   # street's would be another 20 GB); the small query databases are copied.
   cp "$dir/queries.db" "$work/q.db"; cp "$dir/sequence.db" "$work/s.db"
   /usr/bin/time -f '%e %M' -o "$work/convert_time" \
-    "$bin" convert --colmap "$dir/sparse" --database "$dir/database.db" -o "$work/sift.sfpm" --json >"$work/convert.json"
+    "$bin" convert --colmap "$dir/sparse" --database "$dir/database.db" -o "$work/sift.sfpm" \
+    --memory "${STREET_MEMORY:-4GB}" --json >"$work/convert.json"
   python3 - "$n" "$work" <<'PY'
 import json, sys
 n, work = sys.argv[1:3]
@@ -40,7 +42,10 @@ i = c.get("image_index")
 index = "none tried" if i is None else (
     f"{i['lists']} lists, {i['probe']} probed, ~{i['scored']} images scored, recall {i['recall']:.3f}"
     + ("" if i["stored"] else " (not stored: no gain)"))
-print(f"{n:<9} convert: {float(seconds):.1f} s, peak RSS {int(rss) / 1024:.0f} MB, "
+m = c.get("memory") or {}
+memory = (f"budget {m['budget'] / 1e6:.0f} MB, {m['passes']} read(s) of the features, planned peak "
+          f"{m['planned_peak'] / 1e6:.0f} MB" if m else "no budget")
+print(f"{n:<9} convert: {float(seconds):.1f} s, peak RSS {int(rss) / 1024:.0f} MB ({memory}), "
       f"{c['images']} images, {c['observations']} observations, map {c['output_bytes'] / 1e6:.1f} MB; image index: {index}")
 PY
   "$bin" slice "$work/sift.sfpm" --level 2 --short -o "$work/l2.sfpm" -q

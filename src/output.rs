@@ -139,6 +139,12 @@ impl OutputError {
         OutputError::io(path, "cannot write")(source)
     }
 
+    /// A read or write of a scratch file made for `path` ([`scratch_file`]) that failed (a
+    /// full disk, most likely: the scratch file is in `path`'s folder).
+    pub(crate) fn scratch(path: &Path, source: io::Error) -> OutputError {
+        OutputError::io(path, "cannot use a scratch file in its folder")(source)
+    }
+
     fn io<'a>(path: &'a Path, action: &'static str) -> impl FnOnce(io::Error) -> OutputError + 'a {
         move |source| OutputError::Io {
             path: path.to_path_buf(),

@@ -147,16 +147,19 @@ pub struct Args {
     /// level's short dimensions).
     #[arg(long, value_parser = vlad_dims, long_help = vlad_help("leading dimensions of the level basis the codebook covers (at most the level's short dimensions)", |(_, d)| d))]
     pub vlad_dims: Option<usize>,
-    /// Memory the conversion may use, such as 4GB (default: half the machine's). Where the
-    /// points seen at once need more, the features are read once per range of points (at
-    /// most 64 times); the map is the same bytes whatever the budget. A budget too small is
-    /// refused before anything is read, naming the smallest that works.
+    /// Memory the conversion may use, such as 4GB (default: half of the machine's or the
+    /// container's). Where the points seen at once need more, the features are read once per
+    /// range of points (at most 64 times); the map is the same bytes whatever the budget. A
+    /// budget too small is refused once the model and one image's features are read, before
+    /// the rest, naming the smallest that works. Scratch files beside OUTPUT take up to
+    /// points x dims x 6 bytes of disk meanwhile.
     #[arg(long, value_name = "SIZE", value_parser = super::args::byte_size)]
     pub memory: Option<u64>,
     /// Overwrite OUTPUT if it exists.
     #[arg(long)]
     pub force: bool,
-    /// Print one JSON object: points, images, input_bytes, output_bytes, ratio, seconds, levels.
+    /// Print one JSON object: points, images, input_bytes, output_bytes, ratio, seconds,
+    /// levels, and memory (budget, passes: reads of the features, planned_peak; bytes).
     #[arg(long)]
     pub json: bool,
 }

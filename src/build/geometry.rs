@@ -59,6 +59,29 @@ pub(crate) fn map_index(keep: &[bool]) -> Vec<u32> {
 }
 
 impl Geometry {
+    /// The bytes its arrays hold (what `convert` plans its memory around).
+    #[cfg(feature = "colmap")]
+    pub(crate) fn heap_bytes(&self) -> u64 {
+        fn bytes<T>(v: &[T]) -> u64 {
+            std::mem::size_of_val(v) as u64
+        }
+        let names: usize = self.names.iter().map(|n| n.len()).sum();
+        let cameras: usize = self.cameras.iter().map(|c| c.params.len() * 8 + 64).sum();
+        bytes(&self.positions)
+            + bytes(&self.colors)
+            + bytes(&self.ids)
+            + bytes(&self.names)
+            + names as u64
+            + bytes(&self.image_cameras)
+            + bytes(&self.poses)
+            + bytes(&self.image_ids)
+            + bytes(&self.vis_offsets)
+            + bytes(&self.vis_points)
+            + bytes(&self.vis_keypoints)
+            + bytes(&self.vis_point2d)
+            + cameras as u64
+    }
+
     /// Image `i`'s camera size in pixels, `[width, height]` (`[0, 0]` for a camera index out
     /// of range, which the builder's checks exclude).
     #[cfg(feature = "colmap")]
@@ -460,6 +483,10 @@ fn scan_images(
         block.resize(usize::try_from(image.count).ok()? * POINT2D, 0);
         bytes.read_at(&mut block, image.points2d)?;
         for (idx, xy, id) in triangulated(&block) {
+            // Checked again: the first read's checks were on bytes read earlier.
+            if !xy.iter().all(|v| v.is_finite()) {
+                return None;
+            }
             let point = index.position(id)?;
             if vis.points.len() == observations {
                 return None;

@@ -114,7 +114,9 @@ pub struct ConvertSummary {
     pub index: Option<ImageIndexSummary>,
     /// Each product-quantised level (`--pq`), empty without.
     pub pq: Vec<pq::PqLevelSummary>,
-    /// How the descriptors were made within the memory budget; `None`: no features read.
+    /// How the descriptors were made within the memory budget; `None`: a geometry-only map,
+    /// or one built from images through the network (`--images`), which the budget does not
+    /// govern.
     pub memory: Option<MemoryPlan>,
 }
 

@@ -209,11 +209,22 @@ fn convert_geometry(
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<ConvertSummary, ConvertError> {
+    // Global descriptors first (the plan counts them), recorded after the features.
+    let global = match &options.global_features {
+        Some(path) => Some((
+            source_file(path, reporter)?,
+            read_global(geometry, path, reporter)?,
+        )),
+        None => None,
+    };
+    // f32 here, f16 in the writer.
+    let global_bytes = global.as_ref().map_or(0, |(_, (_, g))| g.len() as u64 * 6);
     let mut memory = None;
     let aggregated = match source {
         Some(source) => {
             // Planned first: a budget too small is refused before anything long runs.
-            let prepared = super::stream::prepare(geometry, source, options, Path::new(colmap))?;
+            let model = Path::new(colmap);
+            let prepared = super::stream::prepare(geometry, source, options, global_bytes, model)?;
             // A folder (kapture) is recorded by its files' own provenance, not hashed whole.
             if source.path().is_file() {
                 sources.push(source_file(source.path(), reporter)?);
@@ -226,13 +237,10 @@ fn convert_geometry(
         None => None,
     };
     let geometry_only = aggregated.is_none();
-    let global = match &options.global_features {
-        Some(path) => {
-            sources.push(source_file(path, reporter)?);
-            Some(read_global(geometry, path, reporter)?)
-        }
-        None => None,
-    };
+    let global = global.map(|(file, global)| {
+        sources.push(file);
+        global
+    });
     let input_bytes = sources.iter().map(|s| s.bytes).sum();
 
     let metadata = Metadata {
@@ -399,6 +407,12 @@ const LEVEL_RULE: &str = "median keypoint scale of the point's observations, spl
 /// The rule when the keypoints have no scale (hloc's learned features, x/y-only keypoints).
 const ONE_LEVEL_RULE: &str = "one level: the features' keypoints have no scale";
 
+/// Dimensions of each level's `short` block: those asked for (at most `dim`), else a quarter
+/// of `dim`; at least 1.
+pub(crate) fn short_dims(asked: Option<u32>, dim: usize) -> u32 {
+    asked.map_or(dim as u32 / 4, |s| s.min(dim as u32)).max(1)
+}
+
 /// Each described point's leading coordinates in the deepest level's basis
 /// (`[points × dims]`), and `dims`.
 type RetrievalRows = (Vec<f32>, usize);
@@ -410,7 +424,7 @@ type RetrievalRows = (Vec<f32>, usize);
 /// renormalised (`[points × vlad_dims]`), the rows the retrieval codebook learns from.
 fn build_levels(
     agg: &Aggregated,
-    short_dims: Option<u32>,
+    short_dims_asked: Option<u32>,
     vlad_dims: usize,
     output: &Path,
     reporter: &dyn Reporter,
@@ -440,9 +454,7 @@ fn build_levels(
             2
         }
     };
-    let short = short_dims
-        .map_or(dim as u32 / 4, |s| s.min(dim as u32))
-        .max(1);
+    let short = short_dims(short_dims_asked, dim);
     let mut points: [Vec<u32>; 3] = Default::default();
     for p in agg.has.iter_ones() {
         if median[p].is_finite() {

@@ -75,51 +75,63 @@ impl FixedCost {
     pub(crate) fn of(geometry: &Geometry, options: &ConvertOptions, dim: usize) -> FixedCost {
         let g = geometry;
         let (points, images) = (g.positions.len() as u64, g.names.len() as u64);
-        let observations = g.vis_points.len() as u64;
-        let names: u64 = g.names.iter().map(|n| n.len() as u64 + 24).sum();
-        let geometry = points * (24 + 3 + 8)
-            + images * (8 + 4 + 56 + 4)
-            + names
-            + observations * (4 + 8 + 4)
-            + g.cameras.len() as u64 * 256;
+        let geometry_bytes = g.heap_bytes();
         // Tracks (last image, length), the open slots' index, medians, the levels' points,
         // the writer's positions: about 36 bytes a point.
         let per_point = points * 36;
-        let short = options
-            .short_dims
-            .map_or(dim / 4, |s| (s as usize).min(dim))
-            .max(1);
+        let short = super::sift::short_dims(options.short_dims, dim) as u64;
         let (clusters, dims) = options
             .vlad
             .shape(g.names.len(), crate::vlad::DescribedAt::OwnKeypoints);
-        let dims = dims.min(short) as u64;
         // Retrieval rows (f32 a point), each image's VLAD in f32 and in the writer's f16.
-        let vlad = points * dims * 4 + images * clusters as u64 * dims * 6;
-        // Levels stored raw stay in the scratch file; another codec, or `--pq`, compresses
-        // or reads them whole.
-        let levels_held = if options.codec != crate::format::Codec::Raw || options.pq.is_some() {
-            points * dim as u64 * 2 * 2
+        let vlad = if clusters > 0 && dims > 0 {
+            let dims = (dims as u64).min(short);
+            points * dims * 4 + images * clusters as u64 * dims * 6
+        } else {
+            0
+        };
+        // A codec other than raw compresses each section whole beside its bytes; `--pq`
+        // reads the whole map back in memory (`pq::quantise_all`): the levels and the
+        // geometry's sections again.
+        let levels = points * dim as u64 * 2;
+        let held = if options.pq.is_some() {
+            2 * (levels + geometry_bytes)
+        } else if options.codec != crate::format::Codec::Raw {
+            levels + geometry_bytes
         } else {
             0
         };
         FixedCost {
-            during: geometry + per_point,
-            after: geometry + per_point + vlad + levels_held,
+            during: geometry_bytes + per_point,
+            after: geometry_bytes + per_point + vlad + held,
         }
     }
 }
 
-/// Half the machine's memory (`/proc/meminfo`'s `MemTotal`; 8 GB where it cannot be read):
-/// the budget of a conversion that names none.
+/// Half the memory this process may use: the machine's (`/proc/meminfo`'s `MemTotal`), or
+/// the container's where a cgroup limits it to less (`memory.max`, v1
+/// `memory.limit_in_bytes`); 8 GB where neither can be read. The budget of a conversion that
+/// names none.
 pub fn default_memory_budget() -> u64 {
-    std::fs::read_to_string("/proc/meminfo")
-        .ok()
-        .and_then(|text| {
-            let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
-            let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-            Some(kb * 1024 / 2)
-        })
-        .unwrap_or(8_000_000_000)
+    let read = |path: &str| std::fs::read_to_string(path).ok();
+    let total = read("/proc/meminfo").and_then(|text| {
+        let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
+        let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+        kb.checked_mul(1024)
+    });
+    // "max" (no limit) and v1's huge "no limit" value do not parse or exceed the total.
+    let limit = [
+        "/sys/fs/cgroup/memory.max",
+        "/sys/fs/cgroup/memory/memory.limit_in_bytes",
+    ]
+    .iter()
+    .filter_map(|p| read(p)?.trim().parse::<u64>().ok())
+    .min();
+    match (total, limit) {
+        (Some(t), Some(l)) => t.min(l) / 2,
+        (Some(m), None) | (None, Some(m)) => m / 2,
+        (None, None) => 8_000_000_000,
+    }
 }
 
 /// The last image (model order) observing each point, and its observations.
@@ -191,8 +203,8 @@ fn image_points(geometry: &Geometry, i: usize) -> &[u32] {
     &geometry.vis_points[range]
 }
 
-/// The fewest reads of the features whose open tracks fit `budget` beside `fixed`, or the
-/// error naming the smallest budget that works.
+/// The fewest reads of the features (1, 2, 4, … [`MAX_PASSES`]) whose open tracks fit
+/// `budget` beside `fixed`, or the error naming the smallest budget that works.
 fn plan(
     tracks: &Tracks,
     geometry: &Geometry,
@@ -202,6 +214,15 @@ fn plan(
     budget: u64,
     model: &Path,
 ) -> Result<MemoryPlan, ConvertError> {
+    let refuse = |needed: u64, passes: usize| ConvertError::MemoryBudget {
+        model: model.to_path_buf(),
+        budget,
+        needed,
+        passes,
+    };
+    let most = MAX_PASSES.min(tracks.last.len().max(1));
+    // Ranges at 2n reads do not nest in those at n: the least need over every count tried.
+    let mut least = (u64::MAX, 1);
     let mut passes = 1;
     loop {
         let worst = tracks
@@ -220,15 +241,11 @@ fn plan(
                 peak,
             });
         }
-        if passes >= MAX_PASSES.min(tracks.last.len().max(1)) {
-            return Err(ConvertError::MemoryBudget {
-                model: model.to_path_buf(),
-                budget,
-                needed: peak,
-                passes,
-            });
+        least = least.min((peak, passes));
+        if passes >= most {
+            return Err(refuse(least.0, least.1));
         }
-        passes = (passes * 2).min(MAX_PASSES);
+        passes = (passes * 2).min(most);
     }
 }
 
@@ -271,6 +288,11 @@ impl Open {
                 self.scales.push(Vec::new());
                 self.rows.push(Vec::new());
                 if self.how == Aggregate::Mean {
+                    // Grown by an eighth at a time, not doubled: within what the plan counts.
+                    if self.sums.len() + self.dim > self.sums.capacity() {
+                        let more = (self.sums.len() / 8).max(1024 * self.dim);
+                        self.sums.reserve_exact(more);
+                    }
                     self.sums.resize((s + 1) * self.dim, 0.0);
                 }
                 s
@@ -280,9 +302,17 @@ impl Open {
         slot
     }
 
-    /// One observation of `p`: its normalised row and keypoint scale.
-    fn add(&mut self, p: usize, row: &[f32], scale: f32) {
+    /// One observation of `p` (of `track` observations in all): its normalised row and
+    /// keypoint scale. A slot's lists are reserved for its whole track at once, as the plan
+    /// counts them, not grown by doubling.
+    fn add(&mut self, p: usize, row: &[f32], scale: f32, track: u32) {
         let s = self.slot(p);
+        if self.scales[s].capacity() == 0 {
+            self.scales[s].reserve_exact(track as usize);
+            if self.how == Aggregate::Medoid {
+                self.rows[s].reserve_exact(track as usize * self.dim);
+            }
+        }
         self.scales[s].push(scale);
         match self.how {
             Aggregate::Mean => {
@@ -317,15 +347,17 @@ impl Open {
             }
             Aggregate::Medoid => {
                 let rows = std::mem::take(&mut self.rows[s]);
-                let group: Vec<&[f32]> = rows.chunks_exact(dim.max(1)).collect();
+                let row = |k: usize| &rows[k * dim..(k + 1) * dim];
+                let n = rows.len() / dim.max(1);
                 // The highest summed similarity to the others; ties: the earlier observation.
-                let score = |k: usize| -> f32 {
-                    group.iter().map(|d| crate::vector::dot(group[k], d)).sum()
-                };
-                let best = (0..group.len())
-                    .max_by(|&i, &j| score(i).total_cmp(&score(j)).then(j.cmp(&i)))
+                // Each score once (the same sums, in the same order, as scored per comparison).
+                let scores: Vec<f32> = (0..n)
+                    .map(|k| (0..n).map(|o| crate::vector::dot(row(k), row(o))).sum())
+                    .collect();
+                let best = (0..n)
+                    .max_by(|&i, &j| scores[i].total_cmp(&scores[j]).then(j.cmp(&i)))
                     .unwrap_or(0);
-                out.copy_from_slice(group[best]);
+                out.copy_from_slice(row(best));
             }
         }
         let mut scales = std::mem::take(&mut self.scales[s]);
@@ -353,11 +385,13 @@ impl Prepared {
 }
 
 /// Reads the first image's features (the descriptors' dimensions), then plans the reads of
-/// the features within `budget` bytes (`options.memory`, else [`default_memory_budget`]).
+/// the features within `options.memory` bytes (else [`default_memory_budget`]) beside
+/// `global_bytes` of global descriptors.
 pub(crate) fn prepare(
     geometry: &Geometry,
     source: &mut dyn FeatureSource,
     options: &ConvertOptions,
+    global_bytes: u64,
     model: &Path,
 ) -> Result<Prepared, ConvertError> {
     let mut reader = ImageReader {
@@ -377,7 +411,10 @@ pub(crate) fn prepare(
     let dim = reader.dim;
     let tracks = Tracks::new(geometry);
     let budget = options.memory.unwrap_or_else(default_memory_budget);
-    let fixed = FixedCost::of(geometry, options, dim);
+    let mut fixed = FixedCost::of(geometry, options, dim);
+    // Global descriptors (`--global-features`), held from before the reads to the write.
+    fixed.during += global_bytes;
+    fixed.after += global_bytes;
     let memory = plan(
         &tracks,
         geometry,
@@ -448,9 +485,12 @@ pub(crate) fn aggregate(
                     .zip(&geometry.vis_point2d[entries.clone()])
                 {
                     let (point, idx) = (point as usize, idx as usize);
-                    let scale = reader.observation(&features, name, idx, &mut row)?;
-                    if points.contains(&point) {
-                        open.add(point, &row, scale);
+                    // The first read checks every observation; later ones only their range's.
+                    if pass == 0 || points.contains(&point) {
+                        let scale = reader.observation(&features, name, idx, &mut row)?;
+                        if points.contains(&point) {
+                            open.add(point, &row, scale, tracks.lengths[point]);
+                        }
                     }
                 }
             }
@@ -610,6 +650,8 @@ pub(crate) struct Spill {
 
 impl Spill {
     fn create(output: &Path, points: usize, dim: usize) -> Result<Spill, ConvertError> {
+        // Sparse: the disk fills as points close, `points × dim × 4` bytes at most; a full disk
+        // is an error naming the scratch file beside the output.
         let file = crate::output::scratch_file(output).map_err(ConvertError::Output)?;
         let spill = Spill {
             file,
@@ -627,10 +669,7 @@ impl Spill {
     }
 
     fn io(&self, source: std::io::Error) -> ConvertError {
-        ConvertError::Io {
-            path: self.output.clone(),
-            source,
-        }
+        ConvertError::Output(crate::output::OutputError::scratch(&self.output, source))
     }
 
     fn row_bytes(&self) -> u64 {
@@ -640,7 +679,8 @@ impl Spill {
     fn put(&mut self, point: usize, row: &[f32]) -> Result<(), ConvertError> {
         self.waiting.push((point as u32, self.rows.len()));
         self.rows.extend_from_slice(row);
-        if self.rows.len() * 4 >= SPILL_BUFFER_BYTES {
+        // The rows and their (point, place) entries.
+        if self.rows.len() * 4 + self.waiting.len() * 16 >= SPILL_BUFFER_BYTES {
             self.flush()?;
         }
         Ok(())
@@ -840,7 +880,7 @@ mod tests {
             };
             for passes in [1, 3, 7, 300] {
                 let mut source = Fake(features.clone(), dir.path().join("db"));
-                let prepared = prepare(&g, &mut source, &options, Path::new("model")).unwrap();
+                let prepared = prepare(&g, &mut source, &options, 0, Path::new("model")).unwrap();
                 assert_eq!(prepared.memory.passes, 1);
                 let prepared = prepared.with_passes(passes);
                 let agg = aggregate(
@@ -894,7 +934,7 @@ mod tests {
         .unwrap();
         assert_eq!(one.passes, 1);
         // Just below one read's need: two reads or more, each range's open tracks smaller.
-        let fewer = plan(
+        let unbounded = plan(
             &tracks,
             &g,
             DIM,
@@ -910,14 +950,15 @@ mod tests {
             DIM,
             Aggregate::Medoid,
             fixed,
-            fewer.peak - 1,
+            unbounded.peak - 1,
             Path::new("m"),
         )
         .unwrap();
         assert!(
-            tighter.passes > 1 && tighter.peak < fewer.peak,
+            tighter.passes > 1 && tighter.peak < unbounded.peak,
             "{tighter:?}"
         );
+        // Below every count's need: the least of them, with its reads; that budget plans.
         let err = plan(
             &tracks,
             &g,
@@ -931,7 +972,19 @@ mod tests {
         let ConvertError::MemoryBudget { needed, passes, .. } = err else {
             panic!("{err}");
         };
-        assert_eq!(passes, MAX_PASSES);
+        let least = [1, 2, 4, 8, 16, 32, 64]
+            .iter()
+            .map(|&n| {
+                let worst = tracks
+                    .peaks(&g, n, DIM, Aggregate::Medoid)
+                    .into_iter()
+                    .max()
+                    .unwrap();
+                BASELINE_BYTES + fixed.during + worst + SPILL_BUFFER_BYTES as u64
+            })
+            .min()
+            .unwrap();
+        assert_eq!(needed, least);
         let smallest = plan(
             &tracks,
             &g,
@@ -942,7 +995,17 @@ mod tests {
             Path::new("m"),
         )
         .unwrap();
-        assert_eq!((smallest.passes, smallest.peak), (MAX_PASSES, needed));
+        assert_eq!((smallest.passes, smallest.peak), (passes, needed));
+        assert!(plan(
+            &tracks,
+            &g,
+            DIM,
+            Aggregate::Medoid,
+            fixed,
+            needed - 1,
+            Path::new("m")
+        )
+        .is_err());
         assert!(
             err.to_string()
                 .starts_with("m: a memory budget of 1 MB is too small"),

@@ -524,6 +524,7 @@ pub fn write_points3d(model: &Reconstruction) -> Vec<u8> {
 #[cfg(any(feature = "colmap", feature = "fuzzing", test))]
 #[derive(Clone, Copy)]
 pub(crate) enum ModelBytes<'a> {
+    #[cfg_attr(not(feature = "colmap"), allow(dead_code))]
     File(&'a std::fs::File, u64),
     #[cfg_attr(not(any(test, feature = "fuzzing")), allow(dead_code))]
     Memory(&'a [u8]),
@@ -554,6 +555,12 @@ impl ModelBytes<'_> {
 /// Bytes [`record_runs`] reads at once by default (a record longer than this is read whole).
 #[cfg(any(feature = "colmap", feature = "fuzzing", test))]
 pub(crate) const RUN_BYTES: usize = 16 << 20;
+
+/// The longest record [`record_runs`] takes (an image of 2.8 M 2D points, a track of 8 M
+/// elements): past it, or a header not complete within it, it declines, and the general
+/// reader judges the file.
+#[cfg(any(feature = "colmap", feature = "fuzzing", test))]
+const RECORD_MAX_BYTES: u64 = 64 << 20;
 
 /// The length of the `images.bin` record at the start of `b`, once `b` holds its header.
 #[cfg(any(feature = "colmap", feature = "fuzzing", test))]
@@ -603,7 +610,7 @@ pub(crate) fn record_runs(
             let Some(len) = record_len(&buf[pos..filled]) else {
                 break;
             };
-            if len > file_len - (at + pos as u64) {
+            if len > file_len - (at + pos as u64) || len > RECORD_MAX_BYTES {
                 return None;
             }
             if pos as u64 + len > filled as u64 {
@@ -617,6 +624,11 @@ pub(crate) fn record_runs(
             left -= n;
             buf.copy_within(pos..filled, 0);
             filled -= pos;
+            // Back to a block once a long record is through.
+            if buf.len() > block && filled <= block {
+                buf.truncate(block.max(1));
+                buf.shrink_to_fit();
+            }
             at += pos as u64;
             next = at + filled as u64;
             continue;
@@ -627,6 +639,9 @@ pub(crate) fn record_runs(
             return None;
         }
         if filled == buf.len() {
+            if filled as u64 >= RECORD_MAX_BYTES {
+                return None; // a header that never ends
+            }
             let want = record_len(&buf[..filled]).map_or(buf.len() * 2, |l| l as usize);
             buf.resize(want.max(buf.len() * 2).min((file_len - at) as usize), 0);
         }

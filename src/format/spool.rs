@@ -9,6 +9,7 @@ use super::error::Error;
 use super::layout::{checksum, Dtype, SectionKind, CHUNK_LEN};
 use super::writer::Content;
 use super::{LevelInfo, MapWriter};
+use std::borrow::Cow;
 use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -97,7 +98,7 @@ impl SpoolRegion {
 
     fn flush(&mut self) -> Result<(), Error> {
         write_at(&self.file, &self.buffer, self.start + self.written)
-            .map_err(|e| Error::io(&self.output, e))?;
+            .map_err(|e| scratch_error(&self.output, e))?;
         self.written += self.buffer.len() as u64;
         self.buffer.clear();
         Ok(())
@@ -118,6 +119,14 @@ impl SpoolRegion {
             offset: self.start,
             len: self.len,
         })
+    }
+}
+
+/// A failed read or write of the scratch file of `output`'s map.
+fn scratch_error(output: &Path, e: std::io::Error) -> Error {
+    Error::Io {
+        path: output.to_path_buf(),
+        message: crate::output::OutputError::scratch(output, e).reason(),
     }
 }
 
@@ -174,6 +183,35 @@ impl<'a> MapWriter<'a> {
     }
 }
 
+/// A section's stored bytes as the file will hold them: in memory, or still in the scratch
+/// file (stored `raw`).
+pub(super) enum Stored<'w> {
+    Memory(Cow<'w, [u8]>),
+    Spooled(&'w SpooledBytes),
+}
+
+impl Stored<'_> {
+    pub(super) fn len(&self) -> u64 {
+        match self {
+            Stored::Memory(b) => b.len() as u64,
+            Stored::Spooled(s) => s.len(),
+        }
+    }
+
+    /// The section's checksum, and its chunks' appended to `chunks` when asked.
+    pub(super) fn checksums(&self, chunks: Option<&mut Vec<u64>>) -> Result<u64, Error> {
+        match self {
+            Stored::Memory(b) => {
+                if let Some(out) = chunks {
+                    out.extend(super::chunks::chunk_checksums([&b[..]]));
+                }
+                Ok(checksum(b))
+            }
+            Stored::Spooled(s) => s.checksums(chunks),
+        }
+    }
+}
+
 impl SpooledBytes {
     /// Its length in bytes.
     pub fn len(&self) -> u64 {
@@ -190,7 +228,7 @@ impl SpooledBytes {
         while done < self.len {
             let n = BLOCK.min((self.len - done) as usize);
             read_at(&self.file, &mut buffer[..n], self.offset + done)
-                .map_err(|e| Error::io(&self.output, e))?;
+                .map_err(|e| scratch_error(&self.output, e))?;
             f(&buffer[..n])?;
             done += n as u64;
         }

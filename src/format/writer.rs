@@ -9,6 +9,7 @@ use super::layout::{
 };
 use super::metadata::{CameraInfo, LevelInfo, Metadata, PositionGrid};
 use super::reader::{within_decode_ratio, Map, Section, DECODE_RATIO};
+use super::spool::Stored;
 use crate::progress::{Reporter, Silent};
 use half::f16;
 use std::borrow::Cow;
@@ -53,35 +54,6 @@ pub(super) enum Content<'a> {
     /// The array's little-endian bytes in a scratch file ([`super::spool`]), stored with the
     /// writer's codec.
     Spooled(super::spool::SpooledBytes),
-}
-
-/// A section's stored bytes as the file will hold them: in memory, or still in the scratch
-/// file (stored `raw`).
-enum Stored<'w> {
-    Memory(Cow<'w, [u8]>),
-    Spooled(&'w super::spool::SpooledBytes),
-}
-
-impl Stored<'_> {
-    fn len(&self) -> u64 {
-        match self {
-            Stored::Memory(b) => b.len() as u64,
-            Stored::Spooled(s) => s.len(),
-        }
-    }
-
-    /// The section's checksum, and its chunks' appended to `chunks` when asked.
-    fn checksums(&self, chunks: Option<&mut Vec<u64>>) -> Result<u64, Error> {
-        match self {
-            Stored::Memory(b) => {
-                if let Some(out) = chunks {
-                    out.extend(super::chunks::chunk_checksums([&b[..]]));
-                }
-                Ok(checksum(b))
-            }
-            Stored::Spooled(s) => s.checksums(chunks),
-        }
-    }
 }
 
 /// Builds a map. See the crate docs and `spec/format.md` for what each section means.

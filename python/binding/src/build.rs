@@ -181,6 +181,23 @@ impl Options {
         })
     }
 
+    /// `memory` (`--memory`, bytes): not with `images` (the CLI's parser refuses them
+    /// together), not negative.
+    fn with_memory(mut self, memory: Option<i64>) -> PyResult<Options> {
+        if self.images.is_some() && memory.is_some() {
+            return Err(InputError::new_err(
+                "the argument '--images <IMAGES>' cannot be used with '--memory <SIZE>'",
+            ));
+        }
+        self.memory = match memory {
+            Some(m) => Some(u64::try_from(m).map_err(|_| {
+                InputError::new_err(format!("memory: {m} is not a number of bytes"))
+            })?),
+            None => None,
+        };
+        Ok(self)
+    }
+
     /// `features`, `feature_name` and `global_features`, refused where the CLI's parser
     /// refuses them (`--features` with `--database` or `--images`, …).
     fn with_features(
@@ -363,7 +380,7 @@ pub(crate) fn convert(
     descriptors_type: Option<String>,
     index_lists: Option<usize>,
     job: Option<&str>,
-    memory: Option<u64>,
+    memory: Option<i64>,
 ) -> PyResult<String> {
     let start = Instant::now();
     let source = source(
@@ -417,12 +434,7 @@ pub(crate) fn convert(
         matches!(source, Source::Kapture(..)),
     )?;
     o.job = job_record(job)?;
-    if o.images.is_some() && memory.is_some() {
-        return Err(InputError::new_err(
-            "the argument '--images <IMAGES>' cannot be used with '--memory <SIZE>'",
-        ));
-    }
-    o.memory = memory;
+    let o = o.with_memory(memory)?;
     let files = match &source {
         Source::Colmap(model_dir) => sfpmap::colmap::model_files(model_dir)
             .map(|f| f.paths)
@@ -767,7 +779,7 @@ fn reconstruction_of(rec: &Bound<'_, PyAny>) -> PyResult<Reconstruction> {
                     short_dims=None, codec="raw",
                     zstd_level=3, aggregate=None, strict=false,
                     vlad_clusters=None, vlad_dims=None, pq=None, features=None,
-                    feature_name=None, global_features=None, index_lists=None))]
+                    feature_name=None, global_features=None, index_lists=None, memory=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn from_pycolmap(
     py: Python<'_>,
@@ -795,6 +807,7 @@ pub(crate) fn from_pycolmap(
     feature_name: Option<String>,
     global_features: Option<PathBuf>,
     index_lists: Option<usize>,
+    memory: Option<i64>,
 ) -> PyResult<String> {
     let start = Instant::now();
     // As the CLI: 0 is refused, the cap (and its warning) applies where threads are used.
@@ -821,7 +834,8 @@ pub(crate) fn from_pycolmap(
         pq,
         index_lists,
     )?
-    .with_features(features, feature_name, global_features, false)?;
+    .with_features(features, feature_name, global_features, false)?
+    .with_memory(memory)?;
     o.check_output(&[], &out, force, None)?;
     let rec = reconstruction_of(reconstruction)?;
     let warnings = Warnings::default();

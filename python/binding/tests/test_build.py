@@ -187,6 +187,7 @@ def test_from_pycolmap_errors_name_the_camera_image_or_point(tmp_path):
         (["--short-dims", "8"], {"short_dims": 8}),
         (["--aggregate", "mean"], {"aggregate": "mean"}),
         (["--strict"], {"strict": True}),
+        (["--memory", "4GB"], {"memory": 4_000_000_000}),
     ],
 )
 def test_convert_refuses_what_the_cli_refuses(cli, tmp_path, flags, options):
@@ -199,6 +200,29 @@ def test_convert_refuses_what_the_cli_refuses(cli, tmp_path, flags, options):
         capture_output=True, text=True,
     )
     assert r.returncode != 0 and r.stderr.splitlines()[0] == f"error: {e.value}"
+
+
+def test_a_memory_budget_is_the_clis(cli, shared, work, sacre_sift, tmp_path):
+    scene = shared / "scenes/sacre-coeur"
+    out = work / "py-sacre-memory.sfpm"
+    # The same map whatever the budget; the report says how it was kept to.
+    s = sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=out, memory=4_000_000_000)
+    assert s["memory"]["budget"] == 4_000_000_000 and s["memory"]["passes"] == 1, s["memory"]
+    assert 0 < s["memory"]["planned_peak"] <= 4_000_000_000
+    assert without_provenance(out) == without_provenance(sacre_sift)
+    # Too small: the CLI's one line, naming the model and the smallest that works.
+    with pytest.raises(sfpmap.ConvertError) as e:
+        sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=tmp_path / "x.sfpm", memory=1_000_000)
+    r = subprocess.run(
+        [str(cli), "convert", "--colmap", str(scene / "sparse-map"), "--database", str(scene / "database.db"),
+         "--memory", "1MB", "-o", str(tmp_path / "x.sfpm")],
+        capture_output=True, text=True,
+    )
+    assert r.returncode != 0 and r.stderr.strip() == f"error: {e.value}"
+    assert "a memory budget of 1 MB is too small to convert it: it needs at least" in str(e.value)
+    with pytest.raises(sfpmap.InputError, match="memory: -1 is not a number of bytes"):
+        sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=tmp_path / "x.sfpm", memory=-1)
+    assert not list(tmp_path.iterdir())
 
 
 def test_threads_are_checked_and_capped_as_the_cli_does(shared, tmp_path):
