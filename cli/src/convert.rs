@@ -150,8 +150,8 @@ pub struct Args {
     /// Memory the conversion may use, such as 4GB (default: half of the machine's or the
     /// container's). Where the points seen at once need more, the features are read once per
     /// range of points (at most 64 times); the map is the same bytes whatever the budget. A
-    /// budget too small is refused once the model and one image's features are read, before
-    /// the rest, naming the smallest that works. Scratch files beside OUTPUT take up to
+    /// budget too small is refused once the model, one image's features and any global
+    /// features are read, before the rest, naming the smallest that works. Scratch files beside OUTPUT take up to
     /// points x dims x 6 bytes of disk meanwhile.
     #[arg(long, value_name = "SIZE", value_parser = super::args::byte_size)]
     pub memory: Option<u64>,

@@ -209,16 +209,14 @@ fn convert_geometry(
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<ConvertSummary, ConvertError> {
-    // Global descriptors first (the plan counts them), recorded after the features.
+    // Global descriptors first (the plan counts them), hashed for provenance after the plan,
+    // as the features' source is.
     let global = match &options.global_features {
-        Some(path) => Some((
-            source_file(path, reporter)?,
-            read_global(geometry, path, reporter)?,
-        )),
+        Some(path) => Some(read_global(geometry, path, reporter)?),
         None => None,
     };
     // f32 here, f16 in the writer.
-    let global_bytes = global.as_ref().map_or(0, |(_, (_, g))| g.len() as u64 * 6);
+    let global_bytes = global.as_ref().map_or(0, |(_, g)| g.len() as u64 * 6);
     let mut memory = None;
     let aggregated = match source {
         Some(source) => {
@@ -237,10 +235,9 @@ fn convert_geometry(
         None => None,
     };
     let geometry_only = aggregated.is_none();
-    let global = global.map(|(file, global)| {
-        sources.push(file);
-        global
-    });
+    if let Some(path) = &options.global_features {
+        sources.push(source_file(path, reporter)?);
+    }
     let input_bytes = sources.iter().map(|s| s.bytes).sum();
 
     let metadata = Metadata {

@@ -109,9 +109,8 @@ impl FixedCost {
 }
 
 /// Half the memory this process may use: the machine's (`/proc/meminfo`'s `MemTotal`), or
-/// the container's where a cgroup limits it to less (`memory.max`, v1
-/// `memory.limit_in_bytes`); 8 GB where neither can be read. The budget of a conversion that
-/// names none.
+/// less where its cgroup, or one above it, limits it ([`cgroup_limit`]); 8 GB where
+/// neither can be read. The budget of a conversion that names none.
 pub fn default_memory_budget() -> u64 {
     let read = |path: &str| std::fs::read_to_string(path).ok();
     let total = read("/proc/meminfo").and_then(|text| {
@@ -119,19 +118,49 @@ pub fn default_memory_budget() -> u64 {
         let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
         kb.checked_mul(1024)
     });
-    // "max" (no limit) and v1's huge "no limit" value do not parse or exceed the total.
-    let limit = [
-        "/sys/fs/cgroup/memory.max",
-        "/sys/fs/cgroup/memory/memory.limit_in_bytes",
-    ]
-    .iter()
-    .filter_map(|p| read(p)?.trim().parse::<u64>().ok())
-    .min();
+    let limit = read("/proc/self/cgroup").and_then(|own| cgroup_limit(&own, read));
     match (total, limit) {
         (Some(t), Some(l)) => t.min(l) / 2,
         (Some(m), None) | (None, Some(m)) => m / 2,
         (None, None) => 8_000_000_000,
     }
+}
+
+/// The tightest memory limit on the cgroup that `own` (`/proc/self/cgroup`'s text) names and
+/// on those above it, as `read` gives their files: v2's `memory.max` (`0::/path`), v1's
+/// `memory.limit_in_bytes` (`N:memory:/path`). `max` and v1's "no limit" (about 2^63) are no
+/// limit. A job limited without a namespace of its own (Slurm, `systemd-run -p MemoryMax`)
+/// has its limit on its own cgroup, not the root.
+fn cgroup_limit(own: &str, read: impl Fn(&str) -> Option<String>) -> Option<u64> {
+    let mut limits = Vec::new();
+    for line in own.lines() {
+        let mut fields = line.splitn(3, ':');
+        let (Some(_), Some(controllers), Some(path)) =
+            (fields.next(), fields.next(), fields.next())
+        else {
+            continue;
+        };
+        let (root, file) = match controllers {
+            "" => ("/sys/fs/cgroup", "memory.max"),
+            c if c.split(',').any(|c| c == "memory") => {
+                ("/sys/fs/cgroup/memory", "memory.limit_in_bytes")
+            }
+            _ => continue,
+        };
+        // The cgroup and every one above it, up to the root.
+        let mut dir = path.trim_end_matches('/').to_string();
+        loop {
+            let limit = read(&format!("{root}{dir}/{file}"))
+                .and_then(|t| t.trim().parse::<u64>().ok())
+                .filter(|&l| l < 1 << 62);
+            limits.extend(limit);
+            match dir.rfind('/') {
+                Some(k) => dir.truncate(k),
+                None => break,
+            }
+        }
+    }
+    limits.into_iter().min()
 }
 
 /// The last image (model order) observing each point, and its observations.
@@ -167,7 +196,7 @@ impl Tracks {
 
     /// The most bytes open at once in each of `ranges` equal ranges of points.
     fn peaks(&self, geometry: &Geometry, ranges: usize, dim: usize, how: Aggregate) -> Vec<u64> {
-        let span = range_span(self.last.len(), ranges);
+        let n = self.last.len();
         let mut open: BitVec = BitVec::repeat(false, self.last.len());
         let (mut now, mut peak) = (vec![0u64; ranges], vec![0u64; ranges]);
         for i in 0..geometry.names.len() {
@@ -176,7 +205,7 @@ impl Tracks {
                 let p = p as usize;
                 if !open[p] {
                     open.set(p, true);
-                    let r = p / span;
+                    let r = range_of(p, n, ranges);
                     now[r] += self.weight(p, dim, how);
                     peak[r] = peak[r].max(now[r]);
                 }
@@ -185,7 +214,7 @@ impl Tracks {
                 let p = p as usize;
                 if self.last[p] == i as u32 && open[p] {
                     open.set(p, false);
-                    now[p / span] -= self.weight(p, dim, how);
+                    now[range_of(p, n, ranges)] -= self.weight(p, dim, how);
                 }
             }
         }
@@ -193,9 +222,10 @@ impl Tracks {
     }
 }
 
-/// Points a range holds when `points` are split into `ranges`.
-fn range_span(points: usize, ranges: usize) -> usize {
-    points.div_ceil(ranges.max(1)).max(1)
+/// The range of `point` when `points` are split into `ranges` ranges of consecutive points
+/// as even as they go: none is empty while `ranges <= points`.
+fn range_of(point: usize, points: usize, ranges: usize) -> usize {
+    (point as u64 * ranges as u64 / points.max(1) as u64) as usize
 }
 
 fn image_points(geometry: &Geometry, i: usize) -> &[u32] {
@@ -459,11 +489,10 @@ pub(crate) fn aggregate(
         spill: Spill::create(output, n_points, dim)?,
         images_without_features: 0,
     };
-    let span = range_span(n_points, memory.passes);
     let mut row = Vec::new();
     let mut closed = vec![0.0f32; dim];
     for pass in 0..memory.passes {
-        let points = pass * span..((pass + 1) * span).min(n_points);
+        let in_range = |p: usize| range_of(p, n_points, memory.passes) == pass;
         let stage = match memory.passes {
             1 => "reading features".to_string(),
             n => format!("reading features ({} of {n})", pass + 1),
@@ -486,9 +515,9 @@ pub(crate) fn aggregate(
                 {
                     let (point, idx) = (point as usize, idx as usize);
                     // The first read checks every observation; later ones only their range's.
-                    if pass == 0 || points.contains(&point) {
+                    if pass == 0 || in_range(point) {
                         let scale = reader.observation(&features, name, idx, &mut row)?;
-                        if points.contains(&point) {
+                        if in_range(point) {
                             open.add(point, &row, scale, tracks.lengths[point]);
                         }
                     }
@@ -496,7 +525,7 @@ pub(crate) fn aggregate(
             }
             for &p in &geometry.vis_points[entries] {
                 let p = p as usize;
-                if points.contains(&p) && tracks.last[p] == i as u32 {
+                if in_range(p) && tracks.last[p] == i as u32 {
                     if let Some(median) = open.close(p, &mut closed) {
                         out.median[p] = median;
                         out.has.set(p, true);
@@ -915,6 +944,39 @@ mod tests {
     }
 
     #[test]
+    fn the_tightest_cgroup_limit_up_the_tree_bounds_the_default_budget() {
+        fn files(
+            files: &'static [(&'static str, &'static str)],
+        ) -> impl Fn(&str) -> Option<String> {
+            move |path: &str| files.iter().find(|f| f.0 == path).map(|f| f.1.to_string())
+        }
+        // v2: a job's own cgroup and its parent; the root says `max`.
+        let v2 = files(&[
+            ("/sys/fs/cgroup/memory.max", "max\n"),
+            ("/sys/fs/cgroup/slurm/memory.max", "8000000000\n"),
+            ("/sys/fs/cgroup/slurm/job_7/memory.max", "2000000000\n"),
+        ]);
+        assert_eq!(cgroup_limit("0::/slurm/job_7\n", &v2), Some(2_000_000_000));
+        assert_eq!(cgroup_limit("0::/slurm\n", &v2), Some(8_000_000_000));
+        assert_eq!(cgroup_limit("0::/\n", &v2), None);
+        // v1: the memory controller's line; its "no limit" value is none.
+        let v1 = files(&[
+            (
+                "/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                "9223372036854771712",
+            ),
+            (
+                "/sys/fs/cgroup/memory/docker/abc/memory.limit_in_bytes",
+                "4294967296",
+            ),
+        ]);
+        let own = "12:cpu,cpuacct:/docker/abc\n4:memory:/docker/abc\n";
+        assert_eq!(cgroup_limit(own, &v1), Some(4_294_967_296));
+        assert_eq!(cgroup_limit("4:memory:/\n", &v1), None);
+        assert_eq!(cgroup_limit("garbage", &v1), None);
+    }
+
+    #[test]
     fn a_budget_below_the_smallest_that_works_is_refused_naming_it() {
         let (g, _) = scene();
         let tracks = Tracks::new(&g);
@@ -1010,6 +1072,24 @@ mod tests {
             err.to_string()
                 .starts_with("m: a memory budget of 1 MB is too small"),
             "{err}"
-        );
+        ); // What no number of reads lowers (the retrieval rows after the reads): one read.
+        let heavy = FixedCost {
+            during: 1_000,
+            after: 1 << 40,
+        };
+        let err = plan(
+            &tracks,
+            &g,
+            DIM,
+            Aggregate::Medoid,
+            heavy,
+            1 << 39,
+            Path::new("m"),
+        )
+        .unwrap_err();
+        let ConvertError::MemoryBudget { needed, passes, .. } = err else {
+            panic!("{err}");
+        };
+        assert_eq!((needed, passes), (BASELINE_BYTES + (1 << 40), 1));
     }
 }
