@@ -14,7 +14,7 @@ use std::path::Path;
 
 use crate::colmap::bin::{
     image_record_len, point3d_record_len, record_runs, triangulated, ImageRecords, ModelBytes,
-    Point3DRecords, MIN_POINT3D, POINT2D, RUN_BYTES,
+    Point3DRecords, Runs, MIN_POINT3D, POINT2D,
 };
 #[cfg(any(feature = "colmap", test))]
 use crate::colmap::{files_with, read_file};
@@ -284,7 +284,7 @@ pub(crate) fn read_bin(dir: &Path) -> Option<Geometry> {
         (&c, &cameras),
         (ModelBytes::File(&i, i_len), &images),
         (ModelBytes::File(&p, p_len), &points),
-        RUN_BYTES,
+        Runs::DEFAULT,
     )
 }
 
@@ -300,7 +300,7 @@ pub(crate) fn from_bin(
         cameras,
         (ModelBytes::Memory(images.0), images.1),
         (ModelBytes::Memory(points.0), points.1),
-        RUN_BYTES,
+        Runs::DEFAULT,
     )
 }
 
@@ -315,12 +315,12 @@ struct ImageAt {
     count: u64,
 }
 
-/// The geometry of the model files' bytes, read `block` bytes at a time.
+/// The geometry of the model files' bytes, read as `runs` says.
 fn from_bytes(
     cameras: (&[u8], &Path),
     images: (ModelBytes<'_>, &Path),
     points: (ModelBytes<'_>, &Path),
-    block: usize,
+    runs: Runs,
 ) -> Option<Geometry> {
     let (cameras_data, cameras_path) = cameras;
     let mut cameras = crate::colmap::bin::parse_cameras(cameras_data, cameras_path).ok()?;
@@ -332,7 +332,7 @@ fn from_bytes(
 
     let (image_bytes, image_path) = images;
     let mut images = Vec::new();
-    record_runs(image_bytes, block, image_record_len, |run, n, at| {
+    record_runs(image_bytes, runs, image_record_len, |run, n, at| {
         let mut records = ImageRecords::run(run, n, image_path);
         while let Some(r) = records.next_record().ok()? {
             images.push(ImageAt {
@@ -354,7 +354,7 @@ fn from_bytes(
 
     let random = std::hash::RandomState::new();
     let key = [random.hash_one(1u8), random.hash_one(2u8)];
-    let points = Points::read(points.0, points.1, block, key)?;
+    let points = Points::read(points.0, points.1, runs, key)?;
     // COLMAP numbers points from 1 and filtering leaves gaps; up to 8 slots a point is a
     // table of at most 32 bytes a point, still far smaller than the points themselves.
     let max_slots = points.ids.len().saturating_mul(8).saturating_add(1 << 20);
@@ -413,7 +413,7 @@ struct Points {
 }
 
 impl Points {
-    fn read(bytes: ModelBytes<'_>, path: &Path, block: usize, key: [u64; 2]) -> Option<Points> {
+    fn read(bytes: ModelBytes<'_>, path: &Path, runs: Runs, key: [u64; 2]) -> Option<Points> {
         // Reserved for the count the file can hold, not the count it claims.
         let mut count = [0u8; 8];
         bytes.read_at(&mut count, 0)?;
@@ -425,7 +425,7 @@ impl Points {
             track_sum: 0,
             observations: 0,
         };
-        record_runs(bytes, block, point3d_record_len, |run, n, _| {
+        record_runs(bytes, runs, point3d_record_len, |run, n, _| {
             let mut records = Point3DRecords::run(run, n, path);
             while let Some(record) = records.next_record().ok()? {
                 for e in record.track() {
@@ -776,6 +776,57 @@ mod tests {
         );
     }
 
+    /// A record longer than the cap, or a header that does not end within it, makes the
+    /// block reader decline (the general reader then judges the file), however it is read.
+    #[test]
+    fn records_past_the_cap_are_declined() {
+        let tmp = tempfile::tempdir().unwrap();
+        let (images, points) = model();
+        write(tmp.path(), &images, &points);
+        let i = std::fs::read(tmp.path().join("images.bin")).unwrap();
+        let count = |runs: Runs, bytes: &[u8]| {
+            let mut seen = 0;
+            record_runs(
+                ModelBytes::Memory(bytes),
+                runs,
+                image_record_len,
+                |_, n, _| {
+                    seen += n;
+                    Some(())
+                },
+            )
+            .map(|total| (total, seen))
+        };
+        // b.jpg's record: 64 + 6 + 8 + 3 × 24 = 150 bytes; a.jpg's 174.
+        for block in [1, 8, 150, 4096] {
+            let runs = |max_record| Runs { block, max_record };
+            assert_eq!(count(runs(174), &i), Some((2, 2)), "block {block}");
+            assert_eq!(count(runs(173), &i), None, "block {block}");
+        }
+        // A name with no end: declined once the cap is read, not grown into.
+        let mut endless = 1u64.to_le_bytes().to_vec();
+        endless.extend(std::iter::repeat_n(b'x', 4096));
+        let runs = Runs {
+            block: 8,
+            max_record: 256,
+        };
+        assert_eq!(count(runs, &endless), None);
+        assert_eq!(count(Runs::DEFAULT, &endless), None);
+        // The whole model: declined under a cap, read under the default.
+        let file = |name: &str| std::fs::read(tmp.path().join(name)).unwrap();
+        let (c, p) = (file("cameras.bin"), file("points3D.bin"));
+        let read = |runs| {
+            let (i, p) = (ModelBytes::Memory(&i), ModelBytes::Memory(&p));
+            from_bytes((&c, tmp.path()), (i, tmp.path()), (p, tmp.path()), runs)
+        };
+        assert!(read(Runs::DEFAULT).is_some());
+        assert!(read(Runs {
+            block: 8,
+            max_record: 100
+        })
+        .is_none());
+    }
+
     /// Every binary model in the shared data (fixtures, scenes, malformed models): the fast
     /// path gives the general path's geometry, or declines where the general path errors.
     #[test]
@@ -821,7 +872,11 @@ mod tests {
             ) {
                 for block in [1, 13, 4096] {
                     let (images, points) = (ModelBytes::Memory(&i), ModelBytes::Memory(&p));
-                    let small = from_bytes((&c, dir), (images, dir), (points, dir), block);
+                    let runs = Runs {
+                        block,
+                        ..Runs::DEFAULT
+                    };
+                    let small = from_bytes((&c, dir), (images, dir), (points, dir), runs);
                     assert_eq!(small, fast, "{} in blocks of {block}", dir.display());
                 }
             }

@@ -552,15 +552,26 @@ impl ModelBytes<'_> {
     }
 }
 
-/// Bytes [`record_runs`] reads at once by default (a record longer than this is read whole).
+/// How [`record_runs`] reads a file.
 #[cfg(any(feature = "colmap", feature = "fuzzing", test))]
-pub(crate) const RUN_BYTES: usize = 16 << 20;
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Runs {
+    /// Bytes read at once (a record longer than this is read whole).
+    pub block: usize,
+    /// The longest record taken: past it, or a header not complete within it, the reader
+    /// declines, and the general reader judges the file.
+    pub max_record: u64,
+}
 
-/// The longest record [`record_runs`] takes (an image of 2.8 M 2D points, a track of 8 M
-/// elements): past it, or a header not complete within it, it declines, and the general
-/// reader judges the file.
 #[cfg(any(feature = "colmap", feature = "fuzzing", test))]
-const RECORD_MAX_BYTES: u64 = 64 << 20;
+impl Runs {
+    /// 16 MiB blocks; records up to 64 MiB (an image of 2.8 M 2D points, a track of 8 M
+    /// elements).
+    pub const DEFAULT: Runs = Runs {
+        block: 16 << 20,
+        max_record: 64 << 20,
+    };
+}
 
 /// The length of the `images.bin` record at the start of `b`, once `b` holds its header.
 #[cfg(any(feature = "colmap", feature = "fuzzing", test))]
@@ -580,7 +591,8 @@ pub(crate) fn point3d_record_len(b: &[u8]) -> Option<u64> {
     track.checked_add(MIN_POINT3D as u64)
 }
 
-/// Reads a binary model file (a u64 record count, then the records) `block` bytes at a time and
+/// Reads a binary model file (a u64 record count, then the records) `runs.block` bytes at a
+/// time and
 /// calls `f(run, records, offset)` with runs of whole records and where each run starts in
 /// the file, so that no more than a block (or one record) of the file is held at once.
 /// `record_len` says how long the record at the start of its bytes is, or `None` while
@@ -590,10 +602,11 @@ pub(crate) fn point3d_record_len(b: &[u8]) -> Option<u64> {
 #[cfg(any(feature = "colmap", feature = "fuzzing", test))]
 pub(crate) fn record_runs(
     bytes: ModelBytes<'_>,
-    block: usize,
+    runs: Runs,
     record_len: impl Fn(&[u8]) -> Option<u64>,
     mut f: impl FnMut(&[u8], u64, u64) -> Option<()>,
 ) -> Option<u64> {
+    let (block, max_record) = (runs.block.max(1), runs.max_record);
     let file_len = bytes.len();
     let mut count = [0u8; 8];
     bytes.read_at(&mut count, 0)?;
@@ -610,7 +623,7 @@ pub(crate) fn record_runs(
             let Some(len) = record_len(&buf[pos..filled]) else {
                 break;
             };
-            if len > file_len - (at + pos as u64) || len > RECORD_MAX_BYTES {
+            if len > file_len - (at + pos as u64) || len > max_record {
                 return None;
             }
             if pos as u64 + len > filled as u64 {
@@ -639,7 +652,7 @@ pub(crate) fn record_runs(
             return None;
         }
         if filled == buf.len() {
-            if filled as u64 >= RECORD_MAX_BYTES {
+            if filled as u64 >= max_record {
                 return None; // a header that never ends
             }
             let want = record_len(&buf[..filled]).map_or(buf.len() * 2, |l| l as usize);

@@ -104,6 +104,16 @@ fn model() -> Reconstruction {
     model_named(["a.jpg", "b.jpg"])
 }
 
+/// The model's files, binary or text, in a folder `model` under `tmp`.
+fn write_model(tmp: &Path, binary: bool) -> PathBuf {
+    let dir = tmp.join("model");
+    std::fs::create_dir_all(&dir).unwrap();
+    for (name, bytes) in model_files(&model(), binary) {
+        std::fs::write(dir.join(name), bytes).unwrap();
+    }
+    dir
+}
+
 /// The model's three files as (name, bytes), binary or text.
 fn model_files(model: &Reconstruction, binary: bool) -> [(&'static str, Vec<u8>); 3] {
     if binary {
@@ -187,11 +197,7 @@ fn assert_convert_refuses(stem: &str, value: f64, record: &str) {
 fn the_model_converts_as_made() {
     for binary in [true, false] {
         let tmp = tempfile::tempdir().unwrap();
-        let dir = tmp.path().join("model");
-        std::fs::create_dir_all(&dir).unwrap();
-        for (name, bytes) in model_files(&model(), binary) {
-            std::fs::write(dir.join(name), bytes).unwrap();
-        }
+        let dir = write_model(tmp.path(), binary);
         let out_map = tmp.path().join("out.sfpm");
         let out = sfpmap(&[
             OsStr::new("convert"),
@@ -349,11 +355,7 @@ fn write_database(path: &Path, scale: f32) {
 #[test]
 fn a_memory_budget_too_small_is_refused_naming_the_smallest_that_works() {
     let tmp = tempfile::tempdir().unwrap();
-    let dir = tmp.path().join("model");
-    std::fs::create_dir_all(&dir).unwrap();
-    for (name, bytes) in model_files(&model(), true) {
-        std::fs::write(dir.join(name), bytes).unwrap();
-    }
+    let dir = write_model(tmp.path(), true);
     let db = tmp.path().join("database.db");
     write_database(&db, 3.0);
     let convert = |out: &Path, memory: Option<&str>| {
@@ -421,11 +423,7 @@ fn a_memory_budget_too_small_is_refused_naming_the_smallest_that_works() {
 fn convert_refuses_non_finite_keypoint_scales() {
     for scale in [3.0, f32::NAN, f32::INFINITY] {
         let tmp = tempfile::tempdir().unwrap();
-        let dir = tmp.path().join("model");
-        std::fs::create_dir_all(&dir).unwrap();
-        for (name, bytes) in model_files(&model(), true) {
-            std::fs::write(dir.join(name), bytes).unwrap();
-        }
+        let dir = write_model(tmp.path(), true);
         let db = tmp.path().join("database.db");
         write_database(&db, scale);
         let out_map = tmp.path().join("out.sfpm");
@@ -514,11 +512,7 @@ fn a_model_file_that_is_not_a_regular_file_is_refused() {
 fn a_database_that_is_not_a_regular_file_is_refused() {
     for kind in ["FIFO", "folder"] {
         let tmp = tempfile::tempdir().unwrap();
-        let dir = tmp.path().join("model");
-        std::fs::create_dir_all(&dir).unwrap();
-        for (name, bytes) in model_files(&model(), true) {
-            std::fs::write(dir.join(name), bytes).unwrap();
-        }
+        let dir = write_model(tmp.path(), true);
         let db = tmp.path().join("database.db");
         if kind == "FIFO" {
             mkfifo(&db);
