@@ -241,7 +241,7 @@ fn convert_geometry(
     let input_bytes = sources.iter().map(|s| s.bytes).sum();
 
     let metadata = Metadata {
-        geometry_only: aggregated.is_none(),
+        geometry_only,
         ..Default::default()
     };
     let parameters = json!({
@@ -281,12 +281,7 @@ fn convert_geometry(
         None => (Vec::new(), None),
     };
     for l in &built_levels {
-        writer.add_level_spooled(
-            l.info.clone(),
-            &l.points,
-            l.short.clone(),
-            Some(l.rest.clone()),
-        )?;
+        writer.add_level_spooled(l.info.clone(), &l.points, l.short.clone(), l.rest.clone())?;
         writer.set_level_projection(l.info.level, l.basis.dim, l.basis.rows.clone())?;
         summaries.push(l.summary.clone());
     }
@@ -574,4 +569,51 @@ fn build_levels(
         });
     }
     Ok((levels, vlad_rows.map(|rows| (rows, vlad_dims))))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A map made in several reads of the features (ranges of points) is the map made in one,
+    /// byte for byte, mean and medoid alike.
+    #[test]
+    fn a_map_made_in_several_reads_of_the_features_is_the_same_bytes() {
+        // As tests/shared_data: missing data fails unless skipping is asked for.
+        let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes/sacre-coeur");
+        if !scene.is_dir() {
+            let skip = std::env::var_os("SFPMAP_SKIP_SHARED_DATA").is_some_and(|v| v == "1");
+            assert!(
+                skip,
+                "{} is missing (SFPMAP_SKIP_SHARED_DATA=1 skips)",
+                scene.display()
+            );
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("database.db");
+        std::fs::copy(scene.join("database.db"), &db).unwrap();
+        for aggregate in [Aggregate::Mean, Aggregate::Medoid] {
+            let options = ConvertOptions {
+                database: Some(db.clone()),
+                aggregate,
+                ..Default::default()
+            };
+            let mut maps = Vec::new();
+            for passes in [1, 5] {
+                super::super::stream::FORCED_PASSES.set(Some(passes));
+                let out = dir.path().join(format!("{passes}.sfpm"));
+                let made = convert(
+                    &scene.join("sparse-map"),
+                    &options,
+                    &out,
+                    &crate::progress::Silent,
+                );
+                super::super::stream::FORCED_PASSES.set(None);
+                assert_eq!(made.unwrap().memory.unwrap().passes, passes);
+                maps.push(std::fs::read(&out).unwrap());
+            }
+            assert!(maps[0] == maps[1], "{aggregate:?}: the maps differ");
+        }
+    }
 }

@@ -228,6 +228,13 @@ fn range_of(point: usize, points: usize, ranges: usize) -> usize {
     (point as u64 * ranges as u64 / points.max(1) as u64) as usize
 }
 
+/// The points of range `r` of [`range_of`]: `p` with `p × ranges ≥ r × points`, below the
+/// next range's.
+fn range_bounds(r: usize, points: usize, ranges: usize) -> std::ops::Range<usize> {
+    let start = |r: usize| (r as u64 * points as u64).div_ceil(ranges.max(1) as u64) as usize;
+    start(r)..start(r + 1).min(points)
+}
+
 fn image_points(geometry: &Geometry, i: usize) -> &[u32] {
     let range = geometry.vis_offsets[i] as usize..geometry.vis_offsets[i + 1] as usize;
     &geometry.vis_points[range]
@@ -406,6 +413,14 @@ pub(crate) struct Prepared {
 }
 
 #[cfg(test)]
+thread_local! {
+    /// Tests: the reads of the features every conversion on this thread makes, whatever its
+    /// budget (so small maps are made in several).
+    pub(super) static FORCED_PASSES: std::cell::Cell<Option<usize>> =
+        const { std::cell::Cell::new(None) };
+}
+
+#[cfg(test)]
 impl Prepared {
     /// The same reads in `passes` ranges of points, whatever the budget.
     fn with_passes(mut self, passes: usize) -> Prepared {
@@ -454,11 +469,17 @@ pub(crate) fn prepare(
         budget,
         model,
     )?;
-    Ok(Prepared {
+    let prepared = Prepared {
         reader,
         tracks,
         memory,
-    })
+    };
+    #[cfg(test)]
+    let prepared = match FORCED_PASSES.get() {
+        Some(passes) => prepared.with_passes(passes),
+        None => prepared,
+    };
+    Ok(prepared)
 }
 
 /// Reads every model image's features from `source` as `prepared` plans, and makes each
@@ -483,7 +504,7 @@ pub(crate) fn aggregate(
         dim,
         feature: String::new(),
         source_kind: source.kind(),
-        scaled: true,
+        scaled: true, // set once every image was read
         median: vec![f32::NAN; n_points],
         has: BitVec::repeat(false, n_points),
         spill: Spill::create(output, n_points, dim)?,
@@ -492,7 +513,8 @@ pub(crate) fn aggregate(
     let mut row = Vec::new();
     let mut closed = vec![0.0f32; dim];
     for pass in 0..memory.passes {
-        let in_range = |p: usize| range_of(p, n_points, memory.passes) == pass;
+        let points = range_bounds(pass, n_points, memory.passes);
+        let in_range = |p: usize| points.contains(&p);
         let stage = match memory.passes {
             1 => "reading features".to_string(),
             n => format!("reading features ({} of {n})", pass + 1),
@@ -564,7 +586,7 @@ struct ImageReader {
     dim: usize,
     /// Whether every image read had keypoint scales.
     scaled: bool,
-    /// Images without features, this read.
+    /// Images without features, counted in the first read (reset after `prepare`'s look).
     missing: usize,
 }
 
@@ -944,6 +966,25 @@ mod tests {
     }
 
     #[test]
+    fn each_point_is_in_one_non_empty_range_and_its_bounds_hold_it() {
+        for points in [1, 5, 100, 301] {
+            for ranges in (1..=points.min(64)).chain([points]) {
+                let bounds: Vec<_> = (0..ranges)
+                    .map(|r| range_bounds(r, points, ranges))
+                    .collect();
+                assert!(bounds.iter().all(|b| !b.is_empty()), "{points} in {ranges}");
+                assert_eq!(bounds.iter().map(|b| b.len()).sum::<usize>(), points);
+                for p in 0..points {
+                    assert!(
+                        bounds[range_of(p, points, ranges)].contains(&p),
+                        "{p} of {points}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
     fn the_tightest_cgroup_limit_up_the_tree_bounds_the_default_budget() {
         fn files(
             files: &'static [(&'static str, &'static str)],
@@ -1034,19 +1075,6 @@ mod tests {
         let ConvertError::MemoryBudget { needed, passes, .. } = err else {
             panic!("{err}");
         };
-        let least = [1, 2, 4, 8, 16, 32, 64]
-            .iter()
-            .map(|&n| {
-                let worst = tracks
-                    .peaks(&g, n, DIM, Aggregate::Medoid)
-                    .into_iter()
-                    .max()
-                    .unwrap();
-                BASELINE_BYTES + fixed.during + worst + SPILL_BUFFER_BYTES as u64
-            })
-            .min()
-            .unwrap();
-        assert_eq!(needed, least);
         let smallest = plan(
             &tracks,
             &g,

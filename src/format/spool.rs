@@ -53,10 +53,7 @@ impl Spool {
     /// A scratch file in the folder of `output` (the map it serves), with no name where the
     /// file system allows it ([`crate::output::scratch_file`]).
     pub fn for_output(output: &Path) -> Result<Spool, Error> {
-        let file = crate::output::scratch_file(output).map_err(|e| Error::Io {
-            path: output.to_path_buf(),
-            message: e.reason(),
-        })?;
+        let file = crate::output::scratch_file(output)?;
         Ok(Spool {
             file: Arc::new(file),
             output: output.to_path_buf(),
@@ -124,15 +121,12 @@ impl SpoolRegion {
 
 /// A failed read or write of the scratch file of `output`'s map.
 fn scratch_error(output: &Path, e: std::io::Error) -> Error {
-    Error::Io {
-        path: output.to_path_buf(),
-        message: crate::output::OutputError::scratch(output, e).reason(),
-    }
+    crate::output::OutputError::scratch(output, e).into()
 }
 
 impl<'a> MapWriter<'a> {
     /// [`MapWriter::add_level`] with the level's descriptors already spooled: `short`, the
-    /// `[points × dim_short]` f16 little-endian rows, and `rest` (`None`: not kept), the
+    /// `[points × dim_short]` f16 little-endian rows, and `rest`, the
     /// `[points × (dim_full − dim_short)]` rest of each row; the map's bytes are those of
     /// `add_level` with the rows in memory.
     pub(crate) fn add_level_spooled(
@@ -140,24 +134,28 @@ impl<'a> MapWriter<'a> {
         info: LevelInfo,
         points: &'a [u32],
         short: SpooledBytes,
-        rest: Option<SpooledBytes>,
+        rest: SpooledBytes,
     ) -> Result<&mut Self, Error> {
         let (level, n) = (info.level, points.len() as u64);
-        let dims = [
-            u64::from(info.dim_short),
-            u64::from(info.dim_full - info.dim_short.min(info.dim_full)),
-        ];
-        if info.matched_dims(rest.is_some()) == 0 {
+        if info.matched_dims(true) == 0 {
             return Err(Error::invalid(format!(
-                "level {level}: dim_short 0 and no rest block: no descriptor dimension"
+                "level {level}: no descriptor dimension"
             )));
         }
         let blocks = [
-            (SectionKind::LevelDescShort, Some(short), dims[0]),
-            (SectionKind::LevelDescRest, rest, dims[1]),
+            (
+                SectionKind::LevelDescShort,
+                short,
+                u64::from(info.dim_short),
+            ),
+            (
+                SectionKind::LevelDescRest,
+                rest,
+                u64::from(info.dim_full.saturating_sub(info.dim_short)),
+            ),
         ];
         for (_, bytes, cols) in &blocks {
-            if let Some(bytes) = bytes.as_ref().filter(|b| b.len() != n * cols * 2) {
+            if bytes.len() != n * cols * 2 {
                 return Err(Error::invalid(format!(
                     "level {level}: {} spooled bytes for {n} points × {cols} dims",
                     bytes.len()
@@ -167,17 +165,15 @@ impl<'a> MapWriter<'a> {
         // The points, the checks and the metadata.
         self.add_level(info, points, None, false)?;
         for (kind, bytes, cols) in blocks {
-            if let Some(bytes) = bytes {
-                self.push(
-                    kind,
-                    level,
-                    Dtype::F16,
-                    n,
-                    cols,
-                    true,
-                    Content::Spooled(bytes),
-                );
-            }
+            self.push(
+                kind,
+                level,
+                Dtype::F16,
+                n,
+                cols,
+                true,
+                Content::Spooled(bytes),
+            );
         }
         Ok(self)
     }

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 
 import numpy as np
@@ -208,7 +209,14 @@ def test_a_memory_budget_is_the_clis(cli, shared, work, sacre_sift, tmp_path):
     # The same map whatever the budget; the report says how it was kept to.
     s = sfpmap.convert(scene / "sparse-map", database=scene / "database.db", out=out, memory=4_000_000_000)
     assert s["memory"]["budget"] == 4_000_000_000 and s["memory"]["passes"] == 1, s["memory"]
-    assert 0 < s["memory"]["planned_peak"] <= 4_000_000_000
+    r = subprocess.run(
+        [str(cli), "convert", "--colmap", str(scene / "sparse-map"), "--database", str(scene / "database.db"),
+         "--memory", "4GB", "--json", "-o", str(tmp_path / "cli.sfpm")],
+        capture_output=True, text=True, check=True,
+    )
+    # The CLI's plan for the same model and budget.
+    assert s["memory"] == json.loads(r.stdout)["memory"]
+    (tmp_path / "cli.sfpm").unlink()
     assert without_provenance(out) == without_provenance(sacre_sift)
     # Too small: the CLI's one line, naming the model and the smallest that works.
     with pytest.raises(sfpmap.ConvertError) as e:
