@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Issue 16's catalog figure: one catalog of the shared scenes' SIFT maps (South Building,
-# Sacre Coeur, KITTI 06) and the generated street (target/street/N, its SIFT map as
+# Sacre Coeur, KITTI 06) and the generated street (target/street/r2/N, its SIFT map as
 # benches/remote.sh makes it), then each scene's queries localized with --catalog. Prints, per
 # scene, how many queries (with features) rank their own place first, how many are localized
 # in it with --places 1 and with the default --places 2, and the catalog's size.
@@ -15,7 +15,7 @@ cargo build --release --quiet --all-features
 bin=target/release/sfpmap
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
-street=target/street/$n
+street=target/street/r2/$n  # r2: the generator since detection follows the viewpoint (stop 47)
 if [ ! -f "$street/sift.sfpm" ]; then
   [ -f "$street/queries.txt" ] || target/release/examples/street --points "$n" --queries 20 "$street" >&2
   cp "$street/database.db" "$work/db.db"

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 16's figures: localize against a map served over loopback by nginx (range requests),
 # side by side with the same map read locally. The map is the generated street's SIFT map
-# (sfpmap::demo::street, cached under target/street/N), about 100 MB at 250,000 points;
+# (sfpmap::demo::street, cached under target/street/r2/N), about 100 MB at 250,000 points;
 # localize uses level 2 (--level 2 --short), 1 thread, the queries' SIFT features from
 # their database. For each run: bytes and requests that crossed the wire, what the sections
 # it reads add up to (index + level 2's sections + retrieval + the shared geometry the
@@ -23,7 +23,7 @@ trap cleanup EXIT
 cargo build --release --quiet --all-features --example street
 cargo build --release --quiet --all-features
 bin=$PWD/target/release/sfpmap
-dir=target/street/$n
+dir=target/street/r2/$n  # r2: the generator since detection follows the viewpoint (stop 47)
 if [ ! -f "$dir/queries.txt" ]; then
   rm -rf "$dir"
   target/release/examples/street --points "$n" --queries 20 "$dir" >&2

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Issue 11's scale table on the generated street (sfpmap::demo::street): per size, generate
-# (cached under target/street/), convert the SIFT map (with its VLAD; a line with convert's
+# (cached under target/street/r2/), convert the SIFT map (with its VLAD; a line with convert's
 # time, peak RSS and the image index it stored or why not), slice level 2 short,
 # and localize with both maps (1 thread, after features; medians): the brute-force path
 # (--retrieval off, every point a candidate) side by side with retrieval, and the walk
@@ -9,7 +9,8 @@
 # builds the localizer and localizes the first query, 5 runs, the median of the three times
 # (the map's pages in the page cache, as right after it was written or read).
 # Usage: benches/street.sh [POINTS ...]   (default 100000; generating 1000000 takes about
-# 1.5 min and 1.8 GB of memory, 5000000 about 10 GB of disk). Convert runs with
+# 1.5 min and 150 MB of memory, 5000000 about 10 GB of disk; a line gives the generator's
+# time and peak RSS when it runs). Convert runs with
 # `--memory ${STREET_MEMORY:-4GB}` (issue 35's budget) and says how it planned to keep to it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -21,10 +22,13 @@ cargo build --release --quiet --all-features
 bin=target/release/sfpmap
 printf '%-9s %-14s %8s %-38s %10s %16s %12s %12s\n' points map MB path "ms/query" "retr/coarse/fine" "within bar" "peak RSS MB"
 for n in "${sizes[@]}"; do
-  dir=target/street/$n
+  dir=target/street/r2/$n  # r2: the generator since detection follows the viewpoint (stop 47)
+  mkdir -p target/street/r2
   if [ ! -f "$dir/sequence_gt.txt" ]; then
     rm -rf "$dir"
-    target/release/examples/street --points "$n" --queries 20 "$dir" >&2
+    /usr/bin/time -f '%e %M' -o "$dir.generate_time" target/release/examples/street --points "$n" --queries 20 "$dir" >&2
+    read -r seconds rss <"$dir.generate_time"
+    echo "$n generate: $seconds s, peak RSS $((rss / 1024)) MB" >&2
   fi
   work=$(mktemp -d)
   # The map database is read in place (convert never writes its inputs; a copy of the 10 M

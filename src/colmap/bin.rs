@@ -463,15 +463,20 @@ pub fn write_cameras(model: &Reconstruction) -> Vec<u8> {
     let mut out = Vec::new();
     out.extend_from_slice(&(model.cameras().len() as u64).to_le_bytes());
     for c in model.cameras() {
-        out.extend_from_slice(&c.id.to_le_bytes());
-        out.extend_from_slice(&c.model.id().to_le_bytes());
-        out.extend_from_slice(&c.width.to_le_bytes());
-        out.extend_from_slice(&c.height.to_le_bytes());
-        for p in &c.params {
-            out.extend_from_slice(&p.to_le_bytes());
-        }
+        encode_camera(c, &mut out);
     }
     out
+}
+
+/// Appends one `cameras.bin` record (the file is a u64 count, then the records).
+pub fn encode_camera(c: &super::Camera, out: &mut Vec<u8>) {
+    out.extend_from_slice(&c.id.to_le_bytes());
+    out.extend_from_slice(&c.model.id().to_le_bytes());
+    out.extend_from_slice(&c.width.to_le_bytes());
+    out.extend_from_slice(&c.height.to_le_bytes());
+    for p in &c.params {
+        out.extend_from_slice(&p.to_le_bytes());
+    }
 }
 
 /// Encodes `images.bin`.
@@ -479,22 +484,28 @@ pub fn write_images(model: &Reconstruction) -> Vec<u8> {
     let mut out = Vec::new();
     out.extend_from_slice(&(model.images().len() as u64).to_le_bytes());
     for image in model.images() {
-        out.extend_from_slice(&image.id.to_le_bytes());
-        for v in image.cam_from_world.to_colmap() {
-            out.extend_from_slice(&v.to_le_bytes());
-        }
-        out.extend_from_slice(&image.camera_id.to_le_bytes());
-        out.extend_from_slice(image.name.as_bytes());
-        out.push(0);
-        out.extend_from_slice(&(image.points2d.len() as u64).to_le_bytes());
-        for p in &image.points2d {
-            out.extend_from_slice(&p.xy[0].to_le_bytes());
-            out.extend_from_slice(&p.xy[1].to_le_bytes());
-            let id = p.point3d_id.unwrap_or(INVALID_POINT3D_ID);
-            out.extend_from_slice(&id.to_le_bytes());
-        }
+        encode_image(image, &mut out);
     }
     out
+}
+
+/// Appends one `images.bin` record (the file is a u64 count, then the records): what a
+/// writer that streams a model image by image writes.
+pub fn encode_image(image: &super::Image, out: &mut Vec<u8>) {
+    out.extend_from_slice(&image.id.to_le_bytes());
+    for v in image.cam_from_world.to_colmap() {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out.extend_from_slice(&image.camera_id.to_le_bytes());
+    out.extend_from_slice(image.name.as_bytes());
+    out.push(0);
+    out.extend_from_slice(&(image.points2d.len() as u64).to_le_bytes());
+    for p in &image.points2d {
+        out.extend_from_slice(&p.xy[0].to_le_bytes());
+        out.extend_from_slice(&p.xy[1].to_le_bytes());
+        let id = p.point3d_id.unwrap_or(INVALID_POINT3D_ID);
+        out.extend_from_slice(&id.to_le_bytes());
+    }
 }
 
 /// Encodes `points3D.bin`.
@@ -504,20 +515,31 @@ pub fn write_points3d(model: &Reconstruction) -> Vec<u8> {
     );
     out.extend_from_slice(&(model.points3d().len() as u64).to_le_bytes());
     for p in model.points3d() {
-        out.extend_from_slice(&p.id.to_le_bytes());
-        for v in &p.xyz {
-            out.extend_from_slice(&v.to_le_bytes());
-        }
-        out.extend_from_slice(&p.rgb);
-        out.extend_from_slice(&p.error.to_le_bytes());
-        let track = model.track(p);
-        out.extend_from_slice(&(track.len() as u64).to_le_bytes());
-        for e in track {
-            out.extend_from_slice(&e.image_id.to_le_bytes());
-            out.extend_from_slice(&e.point2d_idx.to_le_bytes());
-        }
+        encode_point3d(p.id, p.xyz, p.rgb, p.error, model.track(p), &mut out);
     }
     out
+}
+
+/// Appends one `points3D.bin` record (the file is a u64 count, then the records).
+pub fn encode_point3d(
+    id: u64,
+    xyz: [f64; 3],
+    rgb: [u8; 3],
+    error: f64,
+    track: &[super::TrackElement],
+    out: &mut Vec<u8>,
+) {
+    out.extend_from_slice(&id.to_le_bytes());
+    for v in &xyz {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out.extend_from_slice(&rgb);
+    out.extend_from_slice(&error.to_le_bytes());
+    out.extend_from_slice(&(track.len() as u64).to_le_bytes());
+    for e in track {
+        out.extend_from_slice(&e.image_id.to_le_bytes());
+        out.extend_from_slice(&e.point2d_idx.to_le_bytes());
+    }
 }
 
 /// Bytes of a binary model file: an open file, or bytes in memory (the fuzz body).

@@ -21,16 +21,18 @@
 //!   descriptor of some other point, in `queries.db`; `queries.txt` (hloc list with
 //!   intrinsics) and `gt_poses.txt` (`cam_from_world`).
 
+use std::collections::VecDeque;
+use std::io::Write;
 use std::path::Path;
 
+use bitvec::prelude::{BitSlice, BitVec};
 use nalgebra::Vector3;
 
 use super::look_at;
-use crate::colmap::{
-    bin, Camera, DatabaseWriter, Error, Image, Point2D, Reconstruction, TrackElement,
-};
+use crate::colmap::{bin, Camera, DatabaseWriter, Error, Image, Point2D, TrackElement};
 use crate::format::f16;
 use crate::geometry::{Pose, SplitMix64};
+use crate::output::AtomicFile;
 
 const WIDTH: u32 = 1024;
 const HEIGHT: u32 = 768;
@@ -41,6 +43,9 @@ const EYE: f64 = -1.6;
 const MAX_DEPTH: f64 = 45.0;
 const MAX_OBSERVATIONS: usize = 1_400;
 const DIM: usize = 128;
+/// Metres along the street over which a point's detection comes round again (see
+/// `Street::detected`): about the stretch a point is in view from.
+const DETECTION_CYCLE: f64 = 40.0;
 
 /// What to generate.
 #[derive(Debug, Clone)]
@@ -86,104 +91,215 @@ pub struct StreetSummary {
 
 /// Writes the scene into `dir` (which must exist): `sparse/{cameras,images,points3D}.bin`,
 /// `database.db`, `queries.db`, `queries.txt`, `gt_poses.txt`, each through the atomic writer.
+///
+/// In memory bounded by the points, not the observations: the points' positions (32 bytes
+/// each) and one bit each, plus what the cameras within [`MAX_DEPTH`] of the one being
+/// written see. Every view is made twice: once to count each point's observations (those
+/// seen by fewer than 2 images are dropped), once to write it; the model files and the
+/// database are written an image at a time, and a point's track once no later camera can
+/// see it.
 pub fn write_street(dir: &Path, options: &StreetOptions) -> Result<StreetSummary, Error> {
     let scene = Street::new(options);
     let camera = scene.camera();
-    let mut rng = SplitMix64::new(options.seed ^ 0x5EED_0001);
-
-    // Which points each database image sees (thinned), in image order.
     let poses = scene.database_poses();
-    let mut seen: Vec<Vec<(u32, [f64; 2], f64)>> = Vec::with_capacity(poses.len());
+
     let mut track_len = vec![0u32; scene.positions.len()];
-    for (i, pose) in poses.iter().enumerate() {
-        let mut visible = scene.visible(pose);
-        let keep = MAX_OBSERVATIONS as f64 / visible.len().max(1) as f64;
-        let mut thin =
-            SplitMix64::new(options.seed ^ 0x7417_0000 ^ (i as u64).wrapping_mul(0x9E37_79B9));
-        visible.retain(|_| keep >= 1.0 || thin.next_f64() < keep);
-        // Thinned to a few of the thousands in view, into a vector of its own size: keeping
-        // the one that held all it saw kept its capacity (3 of the 1 M-point street's
-        // 4.9 GB), and shrinking it in place kept a memory mapping per image, past the
-        // kernel's 65,530 (vm.max_map_count) at 10 M points' 80,000 images.
-        let visible = visible.to_vec();
-        for &(p, _, _) in &visible {
+    for pose in &poses {
+        for (p, _, _) in scene.detected(pose, MAX_OBSERVATIONS, |_| true) {
             track_len[p as usize] += 1;
         }
-        seen.push(visible);
     }
-    let kept: Vec<bool> = track_len.iter().map(|&n| n >= 2).collect();
+    let kept: BitVec = track_len.iter().map(|&n| n >= 2).collect();
+    drop(track_len);
+    let points = kept.count_ones();
 
     let sparse = dir.join("sparse");
     std::fs::create_dir_all(&sparse)
         .map_err(|e| crate::output::OutputError::cannot_write(&sparse, e))?;
-    let mut model = Reconstruction::builder();
-    model.add_camera(camera.clone());
-    let mut tracks: Vec<Vec<TrackElement>> = vec![Vec::new(); scene.positions.len()];
+    let mut cameras = 1u64.to_le_bytes().to_vec();
+    bin::encode_camera(&camera, &mut cameras);
+    crate::output::write_bytes(&sparse.join("cameras.bin"), &cameras)?;
+    let mut images_bin = ModelFile::create(&sparse.join("images.bin"), poses.len())?;
+    let mut points_bin = ModelFile::create(&sparse.join("points3D.bin"), points)?;
     let mut db = DatabaseWriter::new(&dir.join("database.db"))?;
     db.add_camera(&camera)?;
+
+    let mut rng = SplitMix64::new(options.seed ^ 0x5EED_0001);
+    let mut bases = BaseWindow::default();
+    let mut tracks = OpenTracks::default();
     let mut observations = 0;
-    // Each image's view is freed once it is in the model and the database: the two never
-    // hold every observation at once (at 10 M points, 107 M observations of 32 bytes each).
-    for (i, (pose, visible)) in poses.iter().zip(seen).enumerate() {
+    let mut write_point = |p: usize, track: &[TrackElement], out: &mut Vec<u8>| {
+        if kept[p] {
+            let xyz = scene.positions[p].into();
+            bin::encode_point3d(p as u64 + 1, xyz, scene.color(p), 0.5, track, out);
+        }
+    };
+    for (i, pose) in poses.iter().enumerate() {
+        // Cameras go along +z and see points within MAX_DEPTH of them in z: the tracks of
+        // points behind that are complete.
+        let first_open = scene
+            .positions
+            .partition_point(|q| q.z < pose.center().z - MAX_DEPTH);
+        tracks.close_before(first_open, &mut points_bin, &mut write_point)?;
+        bases.forget_before(first_open);
+
         let id = i as u32 + 1;
-        let name = format!("db_{i:06}.jpg");
-        let mut points2d = Vec::with_capacity(visible.len());
-        let mut keypoints = Vec::with_capacity(visible.len());
-        let mut descriptors = Vec::with_capacity(visible.len() * DIM);
-        for (p, xy, depth) in visible {
+        let view = scene.detected(pose, MAX_OBSERVATIONS, |_| true);
+        let mut points2d = Vec::with_capacity(view.len());
+        let mut keypoints = Vec::with_capacity(view.len());
+        let mut descriptors = Vec::with_capacity(view.len() * DIM);
+        for (p, xy, depth) in view {
             let point3d_id = kept[p as usize].then_some(u64::from(p) + 1);
             if point3d_id.is_some() {
-                tracks[p as usize].push(TrackElement {
+                let element = TrackElement {
                     image_id: id,
                     point2d_idx: points2d.len() as u32,
-                });
+                };
+                tracks.push(p as usize, element);
                 observations += 1;
             }
             points2d.push(Point2D { xy, point3d_id });
             keypoints.push(scene.keypoint(p, xy, depth, &mut rng));
-            scene.observe(p, 0.25, &mut rng, &mut descriptors);
+            observe(
+                bases.get(&scene, p as usize),
+                0.25,
+                &mut rng,
+                &mut descriptors,
+            );
         }
+        let name = format!("db_{i:06}.jpg");
         db.add_image(id, &name, camera.id, &keypoints, &descriptors, DIM)?;
-        model.add_image(Image {
+        let image = Image {
             id,
             name,
             camera_id: camera.id,
             cam_from_world: *pose,
             points2d,
-        });
+        };
+        images_bin.add(|out| bin::encode_image(&image, out))?;
     }
+    tracks.close_before(scene.positions.len(), &mut points_bin, &mut write_point)?;
     db.write()?;
-    let mut points = 0;
-    for (p, track) in tracks.iter().enumerate() {
-        if kept[p] {
-            points += 1;
-            let xyz = scene.positions[p].into();
-            model.add_point3d(p as u64 + 1, xyz, scene.color(p), 0.5, track)?;
-        }
-    }
-    drop(tracks);
-    let model = model.build()?;
-    // One file's bytes at a time (images.bin alone is 2.6 GB at 10 M points).
-    type Writer = fn(&Reconstruction) -> Vec<u8>;
-    let files: [(&str, Writer); 3] = [
-        ("cameras.bin", bin::write_cameras),
-        ("images.bin", bin::write_images),
-        ("points3D.bin", bin::write_points3d),
-    ];
-    for (name, write) in files {
-        crate::output::write_bytes(&sparse.join(name), &write(&model))?;
-    }
-    let images = model.images().len();
-    drop(model);
+    images_bin.commit()?;
+    points_bin.commit()?;
 
     let queries = scene.write_queries(dir, options, &camera, &kept)?;
     Ok(StreetSummary {
         length_m: scene.length,
         points,
-        images,
+        images: poses.len(),
         observations,
         queries,
     })
+}
+
+/// A binary model file written record by record: its count first, then each record as it
+/// is made.
+struct ModelFile {
+    path: std::path::PathBuf,
+    file: AtomicFile,
+    record: Vec<u8>,
+}
+
+impl ModelFile {
+    fn create(path: &Path, count: usize) -> Result<ModelFile, Error> {
+        let mut file = AtomicFile::create(path)?;
+        file.write_all(&(count as u64).to_le_bytes())
+            .map_err(|e| crate::output::OutputError::cannot_write(path, e))?;
+        Ok(ModelFile {
+            path: path.to_path_buf(),
+            file,
+            record: Vec::new(),
+        })
+    }
+
+    /// Appends what `encode` writes.
+    fn add(&mut self, encode: impl FnOnce(&mut Vec<u8>)) -> Result<(), Error> {
+        self.record.clear();
+        encode(&mut self.record);
+        self.file
+            .write_all(&self.record)
+            .map_err(|e| crate::output::OutputError::cannot_write(&self.path, e).into())
+    }
+
+    fn commit(self) -> Result<(), Error> {
+        Ok(self.file.commit()?)
+    }
+}
+
+/// The tracks of the points from `first` on, while cameras may still see them.
+#[derive(Default)]
+struct OpenTracks {
+    first: usize,
+    tracks: VecDeque<Vec<TrackElement>>,
+}
+
+impl OpenTracks {
+    fn push(&mut self, p: usize, element: TrackElement) {
+        let at = p - self.first;
+        if at >= self.tracks.len() {
+            self.tracks.resize_with(at + 1, Vec::new);
+        }
+        self.tracks[at].push(element);
+    }
+
+    /// Hands every point before `end` to `write` in point order (its track empty if no image
+    /// saw it), and forgets them.
+    fn close_before(
+        &mut self,
+        end: usize,
+        file: &mut ModelFile,
+        write: &mut impl FnMut(usize, &[TrackElement], &mut Vec<u8>),
+    ) -> Result<(), Error> {
+        while self.first < end {
+            let track = self.tracks.pop_front().unwrap_or_default();
+            let p = self.first;
+            file.add(|out| write(p, &track, out))?;
+            self.first += 1;
+        }
+        Ok(())
+    }
+}
+
+/// The base descriptors of a window of consecutive points: those the cameras near the one
+/// being written see, made once each.
+#[derive(Default)]
+struct BaseWindow {
+    first: usize,
+    rows: VecDeque<[f16; DIM]>,
+}
+
+impl BaseWindow {
+    fn get(&mut self, scene: &Street, p: usize) -> &[f16; DIM] {
+        debug_assert!(p >= self.first, "a point before the window");
+        while self.first + self.rows.len() <= p {
+            let next = self.first + self.rows.len();
+            self.rows.push_back(scene.base(next));
+        }
+        &self.rows[p - self.first]
+    }
+
+    fn forget_before(&mut self, first: usize) {
+        while self.first < first {
+            if self.rows.pop_front().is_none() {
+                self.first = first;
+                break;
+            }
+            self.first += 1;
+        }
+    }
+}
+
+/// Appends one observation of a point whose base descriptor is `base`: plus noise of `noise`
+/// times the base's spread, encoded as COLMAP's SIFT (`u8`, L2 norm 512, saturated).
+fn observe(base: &[f16], noise: f64, rng: &mut SplitMix64, out: &mut Vec<u8>) {
+    let mut v: Vec<f64> = base
+        .iter()
+        .map(|b| (b.to_f64() + noise * 40.0 * gaussian(rng)).max(0.0))
+        .collect();
+    let n = v.iter().map(|x| x * x).sum::<f64>().sqrt().max(1e-9);
+    v.iter_mut().for_each(|x| *x *= 512.0 / n);
+    out.extend(v.iter().map(|&x| x.round().min(255.0) as u8));
 }
 
 fn gaussian(rng: &mut SplitMix64) -> f64 {
@@ -200,8 +316,8 @@ struct Street {
     positions: Vec<Vector3<f64>>,
     /// Physical size (m) of each point's feature: its keypoint scale is size × f / depth.
     sizes: Vec<f32>,
-    /// `[points × DIM]` base descriptors (before SIFT's encoding).
-    base: Vec<f16>,
+    /// `[DIM × DIM]` an orthonormal basis: the directions of the descriptors' spectrum.
+    basis: Vec<f64>,
 }
 
 impl Street {
@@ -236,26 +352,30 @@ impl Street {
                 .zip(&v)
                 .for_each(|(b, x)| *b = x / n);
         }
-        let mut base = Vec::with_capacity(options.points * DIM);
-        let mut row = [0.0f64; DIM];
-        for _ in 0..options.points {
-            row.fill(30.0);
-            for k in 0..DIM {
-                let c = 40.0 * (-(k as f64) / 24.0).exp() * gaussian(&mut rng);
-                row.iter_mut()
-                    .zip(&basis[k * DIM..(k + 1) * DIM])
-                    .for_each(|(r, b)| *r += c * b);
-            }
-            // Through f32: `f16::from_f64` rounds once or twice depending on the CPU.
-            base.extend(row.iter().map(|&v| f16::from_f32(v as f32)));
-        }
         Street {
             length,
             seed: options.seed,
             positions,
             sizes,
-            base,
+            basis,
         }
+    }
+
+    /// Point `p`'s base descriptor (before SIFT's encoding): a decaying spectrum on the
+    /// basis, from the point's own seed, so any point's is made alone.
+    fn base(&self, p: usize) -> [f16; DIM] {
+        let mut rng = SplitMix64::new(
+            self.seed ^ 0xBA5E_0000 ^ (p as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        let mut row = [30.0f64; DIM];
+        for k in 0..DIM {
+            let c = 40.0 * (-(k as f64) / 24.0).exp() * gaussian(&mut rng);
+            row.iter_mut()
+                .zip(&self.basis[k * DIM..(k + 1) * DIM])
+                .for_each(|(r, b)| *r += c * b);
+        }
+        // Through f32: `f16::from_f64` rounds once or twice depending on the CPU.
+        row.map(|v| f16::from_f32(v as f32))
     }
 
     fn camera(&self) -> Camera {
@@ -302,24 +422,41 @@ impl Street {
             .collect()
     }
 
+    /// What a camera at `pose` detects: of the points it sees for which `wanted` holds, at
+    /// most about `budget`, as (point, pixel, depth) in point order. A point is detected
+    /// while the camera moves through a stretch of the street `keep × DETECTION_CYCLE`
+    /// metres long (at the point's own phase), `keep` the share of the points in view the
+    /// budget allows. A real detector finds a feature again from nearby viewpoints and loses
+    /// it as the view changes, so a track is a stretch of neighbouring cameras and an image
+    /// shares most of its points with its neighbours, as retrieval relies on (thinning
+    /// each image on its own would share a random 1 in 15).
+    fn detected(
+        &self,
+        pose: &Pose,
+        budget: usize,
+        wanted: impl Fn(u32) -> bool,
+    ) -> Vec<(u32, [f64; 2], f64)> {
+        let mut view = self.visible(pose);
+        view.retain(|&(p, _, _)| wanted(p));
+        let keep = budget as f64 / view.len().max(1) as f64;
+        if keep < 1.0 {
+            let z = pose.center().z;
+            view.retain(|&(p, _, _)| {
+                let phase = SplitMix64::new(
+                    self.seed ^ 0xDE7E_C700 ^ u64::from(p).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+                )
+                .next_f64();
+                (phase + z / DETECTION_CYCLE).fract() < keep
+            });
+        }
+        view
+    }
+
     /// `(x, y, scale, orientation)` of point `p` seen at `xy` from `depth`.
     fn keypoint(&self, p: u32, xy: [f64; 2], depth: f64, rng: &mut SplitMix64) -> [f32; 4] {
         let scale = (f64::from(self.sizes[p as usize]) * FOCAL / depth).max(1.0);
         let angle = (rng.next_f64() - 0.5) * std::f64::consts::TAU;
         [xy[0] as f32, xy[1] as f32, scale as f32, angle as f32]
-    }
-
-    /// Appends one observation of point `p`: its base descriptor plus noise of `noise` times
-    /// the base's spread, encoded as COLMAP's SIFT (`u8`, L2 norm 512, saturated).
-    fn observe(&self, p: u32, noise: f64, rng: &mut SplitMix64, out: &mut Vec<u8>) {
-        let base = &self.base[p as usize * DIM..(p as usize + 1) * DIM];
-        let mut v: Vec<f64> = base
-            .iter()
-            .map(|b| (b.to_f64() + noise * 40.0 * gaussian(rng)).max(0.0))
-            .collect();
-        let n = v.iter().map(|x| x * x).sum::<f64>().sqrt().max(1e-9);
-        v.iter_mut().for_each(|x| *x *= 512.0 / n);
-        out.extend(v.iter().map(|&x| x.round().min(255.0) as u8));
     }
 
     fn color(&self, p: usize) -> [u8; 3] {
@@ -335,7 +472,7 @@ impl Street {
         dir: &Path,
         options: &StreetOptions,
         camera: &Camera,
-        kept: &[bool],
+        kept: &BitSlice,
     ) -> Result<usize, Error> {
         let mut rng = SplitMix64::new(options.seed ^ 0x0051_EE71);
         let random = |_: usize, rng: &mut SplitMix64| {
@@ -347,11 +484,11 @@ impl Street {
                 z,
             );
             let look = if rng.next_f64() < 0.5 { -side } else { side };
-            let target = Vector3::new(
-                look * HALF_WIDTH,
-                -1.0 - 4.0 * rng.next_f64(),
-                z + 2.0 + 18.0 * rng.next_f64(),
-            );
+            let height = -1.0 - 4.0 * rng.next_f64();
+            // Ahead, but not past the street's end (a short street's queries would look at
+            // no façade).
+            let target_z = (z + 2.0 + 18.0 * rng.next_f64()).min(self.length);
+            let target = Vector3::new(look * HALF_WIDTH, height, target_z);
             look_at(centre, target)
         };
         let files = ("queries", "query", "gt_poses");
@@ -381,7 +518,7 @@ impl Street {
         mut pose_of: impl FnMut(usize, &mut SplitMix64) -> Pose,
         options: &StreetOptions,
         camera: &Camera,
-        kept: &[bool],
+        kept: &BitSlice,
         rng: &mut SplitMix64,
     ) -> Result<(), Error> {
         let mut db = DatabaseWriter::new(&dir.join(format!("{stem}.db")))?;
@@ -390,10 +527,7 @@ impl Street {
         let (w, h) = (f64::from(WIDTH), f64::from(HEIGHT));
         for q in 0..options.queries {
             let pose = &pose_of(q, rng);
-            let mut visible = self.visible(pose);
-            visible.retain(|&(p, _, _)| kept[p as usize]);
-            let keep = 1_500.0 / visible.len().max(1) as f64;
-            visible.retain(|_| keep >= 1.0 || rng.next_f64() < keep);
+            let visible = self.detected(pose, 1_500, |p| kept[p as usize]);
             // At most 90 % outliers: a share of 1 would ask for infinitely many.
             let share = options.outlier_share.clamp(0.0, 0.9);
             let outliers = (visible.len() as f64 * share / (1.0 - share)) as usize;
@@ -405,7 +539,7 @@ impl Street {
                     xy[1] + options.pixel_noise * gaussian(rng),
                 ];
                 keypoints.push(self.keypoint(p, noisy, depth, rng));
-                self.observe(p, 0.25, rng, &mut descriptors);
+                observe(&self.base(p as usize), 0.25, rng, &mut descriptors);
             }
             for _ in 0..outliers {
                 let xy = [
@@ -414,7 +548,7 @@ impl Street {
                 ];
                 let other = rng.below(self.positions.len()) as u32;
                 keypoints.push(self.keypoint(other, xy, 10.0, rng));
-                self.observe(other, 0.25, rng, &mut descriptors);
+                observe(&self.base(other as usize), 0.25, rng, &mut descriptors);
             }
             let name = format!("{prefix}_{q:04}.jpg");
             db.add_image(
