@@ -3,7 +3,9 @@
 # (cached under target/street/r2/), convert the SIFT map (with its VLAD; a line with convert's
 # time, peak RSS and the image index it stored or why not), slice level 2 short,
 # and localize with both maps (1 thread, after features; medians): the brute-force path
-# (--retrieval off, every point a candidate) side by side with retrieval, and the walk
+# (--retrieval off, every point a candidate) side by side with retrieval ranking every
+# image (--retrieval-probe 0) and retrieval as the map says (its image index, where it has
+# one; a line gives the share of every image's top k it retrieved, recall@k), and the walk
 # (sequence.txt) with --sequence. Prints ms per query, queries within 0.5 m and 2°, map
 # bytes and localize's peak RSS; then open to first pose: a fresh process that opens the map,
 # builds the localizer and localizes the first query, 5 runs, the median of the three times
@@ -55,15 +57,22 @@ PY
   "$bin" slice "$work/sift.sfpm" --level 2 --short -o "$work/l2.sfpm" -q
   for variant in sift l2; do
     short=(); [ "$variant" = l2 ] && short=(--short)
-    for path in brute-force retrieval sequence; do
+    for path in brute-force every-image retrieval sequence; do
       case $path in
         brute-force) args=(--retrieval off --query-list "$dir/queries.txt" --database "$work/q.db"); gt=$dir/gt_poses.txt ;;
+        every-image) args=(--retrieval-probe 0 --query-list "$dir/queries.txt" --database "$work/q.db"); gt=$dir/gt_poses.txt ;;
         retrieval) args=(--query-list "$dir/queries.txt" --database "$work/q.db"); gt=$dir/gt_poses.txt ;;
         sequence) args=(--sequence --query-list "$dir/sequence.txt" --database "$work/s.db"); gt=$dir/sequence_gt.txt ;;
       esac
       /usr/bin/time -f '%M' -o "$work/rss" "$bin" localize --map "$work/$variant.sfpm" "${short[@]}" \
         "${args[@]}" --threads 1 -o "$work/poses.txt" --force --json >"$work/run.json"
       "$bin" eval --poses "$work/poses.txt" --gt "$gt" --threshold 0.5,2 --json >"$work/eval.json"
+      # Which images each query retrieved: every-image's are the exhaustive top k that
+      # retrieval's (the image index, where the map has one) is measured against.
+      if [ "$path" = every-image ] || [ "$path" = retrieval ]; then
+        "$bin" localize --map "$work/$variant.sfpm" "${short[@]}" "${args[@]}" --threads 1 \
+          -o "$work/$path.json" --format json --force -q
+      fi
       python3 - "$n" "$variant" "$path" "$work" <<'PY'
 import json, os, sys
 n, variant, path, work = sys.argv[1:5]
@@ -77,6 +86,12 @@ within = round(e["recall"][0]["recall"] * r["queries"])
 m = r["median_ms"]
 stages = f"{m['retrieval']:.1f}/{m['coarse_match'] + m['coarse_ransac']:.1f}/{m['fine']:.1f}"
 print(f"{n:<9} {name:<14} {mb:8.1f} {path + ' (' + paths + ')':<38} {m['total']:10.1f} {stages:>16} {within:>5}/{r['queries']:<6} {rss:12.0f}")
+if path == "retrieval":
+    every = {q["name"]: q["retrieved"] for q in json.load(open(f"{work}/every-image.json"))}
+    got = {q["name"]: q["retrieved"] for q in json.load(open(f"{work}/retrieval.json"))}
+    shares = [len(set(got[q]) & set(top)) / len(top) for q, top in every.items() if top]
+    recall = sum(shares) / len(shares) if shares else float("nan")
+    print(f"{n:<9} {name:<14} {'':>8} recall@k of every image's top k: {recall:.3f} (lowest {min(shares, default=float('nan')):.1f}, {len(shares)} queries)")
 PY
     done
     head -1 "$dir/queries.txt" >"$work/one.txt"

@@ -3,14 +3,17 @@
 //! (1.3) the image index over the rows the map retrieves with, on maps of many images.
 
 use super::geometry::Geometry;
-use crate::format::{Dtype, ImageIndexInfo, MapWriter, Retrieval};
+use crate::format::index::{BEAM_PER_K, MIN_SCORED_PER_K};
+use crate::format::{Dtype, ImageIndexInfo, MapWriter, Neighbours, Retrieval, NO_NEIGHBOUR};
 use crate::geometry::SplitMix64;
 use crate::kmeans::KMeans;
 use crate::progress::Reporter;
 use crate::vector::{dot, top_k_indices, Nearest};
 use crate::vlad::Codebook;
+use bitvec::vec::BitVec;
 use half::f16;
 use serde_json::json;
+use std::borrow::Cow;
 
 /// How `convert` builds retrieval data.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -153,11 +156,14 @@ const CALIBRATION_RECALL: f64 = 0.99;
 const INDEX_SEED: u64 = 0x1df_5eed;
 
 /// How the index is built and `probe` chosen, in words (the metadata `image_index.rule`).
-fn index_rule() -> String {
-    format!(
-        "k-means++ then Lloyd ({INDEX_ITERATIONS} iterations at most, seeded) on at most {INDEX_MAX_TRAIN} rows; each image in the list of its nearest centroid; probe: the fewest lists, taken nearest centroid first, that hold {CALIBRATION_RECALL} of the exhaustive top {} (itself left out) of up to {CALIBRATION_IMAGES} of the map's images",
-        crate::format::DEFAULT_RETRIEVAL_TOP_K
-    )
+fn index_rule(neighbours: bool) -> String {
+    let lists = format!("k-means++ then Lloyd ({INDEX_ITERATIONS} iterations at most, seeded) on at most {INDEX_MAX_TRAIN} rows; each image in the list of its nearest centroid");
+    let top = crate::format::DEFAULT_RETRIEVAL_TOP_K;
+    if neighbours {
+        format!("{lists}; neighbours: the {INDEX_NEIGHBOURS} images sharing most points with each; probe: the fewest lists, taken nearest centroid first (and on to {MIN_SCORED_PER_K} images per image asked for), from whose best a search along the neighbours (a beam of {BEAM_PER_K} per image asked for) finds {CALIBRATION_RECALL} of the exhaustive top {top} (itself left out) of up to {CALIBRATION_IMAGES} of the map's images")
+    } else {
+        format!("{lists}; probe: the fewest lists, taken nearest centroid first, that hold {CALIBRATION_RECALL} of the exhaustive top {top} (itself left out) of up to {CALIBRATION_IMAGES} of the map's images")
+    }
 }
 
 /// One f16 row widened and L2-normalised, as the localizer scores rows; all zeros (no
@@ -181,6 +187,7 @@ fn unit_row(row: &[u8], out: &mut [f32]) {
 pub(crate) fn add_image_index(
     writer: &mut MapWriter<'_>,
     lists: Option<usize>,
+    neighbours: Option<Vec<u32>>,
     reporter: &dyn Reporter,
 ) -> Result<Option<ImageIndexSummary>, crate::format::Error> {
     let Some(of) = writer.metadata().retrieval() else {
@@ -254,9 +261,49 @@ pub(crate) fn add_image_index(
     }
     reporter.finish();
 
+    let k = crate::format::DEFAULT_RETRIEVAL_TOP_K.min(images - 1);
+    // A calibration image's own row is left out of its neighbours.
+    for (q, &i) in calibration.iter().enumerate() {
+        scores[q * images + i] = f32::NEG_INFINITY;
+    }
+    // (1.4) With each image's neighbours, queries widen along them: `probe` is calibrated on
+    // that search.
+    let neighbours = neighbours.filter(|rows| rows.len() == images * INDEX_NEIGHBOURS);
+    if let Some(rows) = neighbours {
+        let graph = Neighbours {
+            per_image: INDEX_NEIGHBOURS,
+            rows: Cow::Borrowed(&rows),
+        };
+        let (probe, recall, scored) = calibrated_search(
+            &graph,
+            &scores,
+            &calibration,
+            &nearest,
+            &queries,
+            &list_of,
+            lists,
+            k,
+        );
+        drop(scores);
+        let stored = lists_asked.is_some() || scored * MAX_SCORED_SHARE <= images;
+        let outcome = ImageIndexSummary {
+            of,
+            lists,
+            probe,
+            recall,
+            scored,
+            stored,
+        };
+        if stored {
+            let info = index_info(of, probe, calibration.len(), k, recall, scored, true);
+            writer.set_image_index(info, centroids, width, &list_of)?;
+            writer.set_image_neighbours(rows, INDEX_NEIGHBOURS)?;
+        }
+        return Ok(Some(outcome));
+    }
+
     // Per calibration image: where its exhaustive top k's lists come in its list order (the
     // order a query probes them in), and the images its lists hold in that order.
-    let k = crate::format::DEFAULT_RETRIEVAL_TOP_K.min(images - 1);
     let mut list_sizes = vec![0usize; lists];
     for &l in &list_of {
         list_sizes[l as usize] += 1;
@@ -264,8 +311,7 @@ pub(crate) fn add_image_index(
     let mut ranks_needed: Vec<usize> = Vec::new();
     let mut images_by_rank: Vec<Vec<usize>> = Vec::new();
     for (q, query) in queries.chunks_exact(width).enumerate() {
-        let row_scores = &mut scores[q * images..(q + 1) * images];
-        row_scores[calibration[q]] = f32::NEG_INFINITY;
+        let row_scores = &scores[q * images..(q + 1) * images];
         let order = nearest.order(query);
         let mut list_rank = vec![0usize; lists];
         for (r, &l) in order.iter().enumerate() {
@@ -299,19 +345,192 @@ pub(crate) fn add_image_index(
     if !stored {
         return Ok(Some(outcome));
     }
+    let info = index_info(of, probe, calibration.len(), k, recall, scored, false);
+    writer.set_image_index(info, centroids, width, &list_of)?;
+    Ok(Some(outcome))
+}
+
+/// The metadata `image_index`: `probe`, the rule, and what the calibration measured.
+fn index_info(
+    of: Retrieval,
+    probe: usize,
+    images: usize,
+    k: usize,
+    recall: f64,
+    scored: usize,
+    neighbours: bool,
+) -> ImageIndexInfo {
     let mut extra = serde_json::Map::new();
-    extra.insert("rule".into(), json!(index_rule()));
+    extra.insert("rule".into(), json!(index_rule(neighbours)));
     extra.insert(
         "calibration".into(),
-        json!({"images": calibration.len(), "top_k": k, "recall": recall, "scored": scored}),
+        json!({"images": images, "top_k": k, "recall": recall, "scored": scored}),
     );
-    let info = ImageIndexInfo {
+    ImageIndexInfo {
         of: of.name().to_string(),
         probe: probe as u32,
         extra,
+    }
+}
+
+/// A map's visibility, image → points (CSR), from which images' neighbours are found.
+pub(crate) struct ImageVisibility<'a> {
+    /// `[images + 1]`.
+    pub offsets: &'a [u64],
+    /// Each image's points, each below `n_points`.
+    pub points: &'a [u32],
+    pub n_points: usize,
+}
+
+/// Neighbours each image lists in the index (1.4): the images sharing most points with it.
+pub(crate) const INDEX_NEIGHBOURS: usize = 16;
+
+/// Whether `convert` tries an image index for a map of `images` images, `lists` asked for.
+pub(crate) fn index_wanted(images: usize, lists: Option<usize>) -> bool {
+    lists.unwrap_or_else(|| default_index_lists(images)) > 0
+}
+
+/// (1.4) The index's neighbours of `geometry`'s images ([`covisible_neighbours`]), where an
+/// index will be tried.
+pub(crate) fn index_neighbours(
+    geometry: &Geometry,
+    lists: Option<usize>,
+    reporter: &dyn Reporter,
+) -> Option<Vec<u32>> {
+    if !index_wanted(geometry.names.len(), lists) {
+        return None;
+    }
+    reporter.start("image neighbours", None);
+    let visibility = ImageVisibility {
+        offsets: &geometry.vis_offsets,
+        points: &geometry.vis_points,
+        n_points: geometry.positions.len(),
     };
-    writer.set_image_index(info, centroids, width, &list_of)?;
-    Ok(Some(outcome))
+    let rows = covisible_neighbours(&visibility, INDEX_NEIGHBOURS);
+    reporter.finish();
+    Some(rows)
+}
+
+/// Each image's `per_image` neighbours: the other images that share most points with it,
+/// most first (ties by the lower image), [`NO_NEIGHBOUR`] past the last; `[images ×
+/// per_image]`. Images that share points are what a query near one of them also sees, so
+/// their retrieval rows are each other's nearest. Time: the sum over points of their track
+/// lengths squared; memory: the visibility once more, turned point → images.
+pub(crate) fn covisible_neighbours(v: &ImageVisibility<'_>, per_image: usize) -> Vec<u32> {
+    let images = v.offsets.len().saturating_sub(1);
+    let entry = |i: usize| v.offsets[i] as usize..v.offsets[i + 1] as usize;
+    // Point → images, CSR.
+    let mut starts = vec![0u64; v.n_points + 1];
+    for &p in v.points {
+        starts[p as usize + 1] += 1;
+    }
+    for p in 0..v.n_points {
+        starts[p + 1] += starts[p];
+    }
+    let mut next = starts.clone();
+    let mut seen_by = vec![0u32; v.points.len()];
+    for i in 0..images {
+        for &p in &v.points[entry(i)] {
+            seen_by[next[p as usize] as usize] = i as u32;
+            next[p as usize] += 1;
+        }
+    }
+    drop(next);
+    let mut rows = vec![NO_NEIGHBOUR; images * per_image];
+    let mut shared = vec![0u32; images];
+    let mut touched: Vec<u32> = Vec::new();
+    for (i, row) in rows.chunks_exact_mut(per_image).enumerate() {
+        for &p in &v.points[entry(i)] {
+            let track = starts[p as usize] as usize..starts[p as usize + 1] as usize;
+            for &j in &seen_by[track] {
+                if j as usize != i {
+                    if shared[j as usize] == 0 {
+                        touched.push(j);
+                    }
+                    shared[j as usize] += 1;
+                }
+            }
+        }
+        let most_first =
+            |a: &u32, b: &u32| shared[*b as usize].cmp(&shared[*a as usize]).then(a.cmp(b));
+        let kept = touched.len().min(per_image);
+        if touched.len() > per_image {
+            touched.select_nth_unstable_by(per_image - 1, most_first);
+        }
+        touched[..kept].sort_unstable_by(most_first);
+        row[..kept].copy_from_slice(&touched[..kept]);
+        // Every count back to 0, not only the kept ones'.
+        for &j in &touched {
+            shared[j as usize] = 0;
+        }
+        touched.clear();
+    }
+    rows
+}
+
+/// The fewest lists a query probes (taken nearest centroid first, then on until it scored
+/// [`MIN_SCORED_PER_K`] images per image asked for, as the reference reader does) before it
+/// widens along the neighbours, for the calibration images to find [`CALIBRATION_RECALL`]
+/// of their exhaustive top `k`: (probe, the share found, the images scored on average).
+/// `scores` is `[calibration × images]`, each calibration image's own score −∞.
+#[allow(clippy::too_many_arguments)]
+fn calibrated_search(
+    graph: &Neighbours<'_>,
+    scores: &[f32],
+    calibration: &[usize],
+    nearest: &Nearest,
+    queries: &[f32],
+    list_of: &[u32],
+    lists: usize,
+    k: usize,
+) -> (usize, f64, usize) {
+    let images = list_of.len();
+    let width = queries.len() / calibration.len().max(1);
+    let mut members: Vec<Vec<u32>> = vec![Vec::new(); lists];
+    for (i, &l) in list_of.iter().enumerate() {
+        members[l as usize].push(i as u32);
+    }
+    let per_query: Vec<(Vec<usize>, Vec<usize>)> = (0..calibration.len())
+        .map(|q| {
+            let row = &scores[q * images..(q + 1) * images];
+            let order = nearest.order(&queries[q * width..(q + 1) * width]);
+            (order, top_k_indices(row, k))
+        })
+        .collect();
+    let min_scored = k.max(1) * MIN_SCORED_PER_K;
+    let mut last = (lists, 1.0, images);
+    for probe in 1..=lists {
+        let (mut found, mut scored_total) = (0usize, 0usize);
+        for (q, (order, truth)) in per_query.iter().enumerate() {
+            let row = &scores[q * images..(q + 1) * images];
+            let mut scored: Vec<(u32, f32)> = Vec::new();
+            for (probed, &l) in order.iter().enumerate() {
+                if probed >= probe && scored.len() >= min_scored {
+                    break;
+                }
+                scored.extend(members[l].iter().map(|&i| (i, row[i as usize])));
+            }
+            graph.widen(&mut scored, images, k.max(1) * BEAM_PER_K, |picks| {
+                picks.iter().map(|&i| row[i as usize]).collect()
+            });
+            let mut hit: BitVec = BitVec::repeat(false, images);
+            for &(i, _) in &scored {
+                hit.set(i as usize, true);
+            }
+            found += truth.iter().filter(|&&i| hit[i]).count();
+            scored_total += scored.len();
+        }
+        let asked = (per_query.len() * k).max(1);
+        let recall = found as f64 / asked as f64;
+        let scored = scored_total / per_query.len().max(1);
+        last = (probe, recall, scored);
+        // Past a quarter of the images scored, no index is stored unless asked for: the
+        // probe goes on only to be exact about what was asked.
+        if recall >= CALIBRATION_RECALL {
+            break;
+        }
+    }
+    last
 }
 
 /// The fewest lists that hold [`CALIBRATION_RECALL`] of the neighbours, from the rank of
@@ -370,7 +589,9 @@ mod tests {
         // 3,000 images in 30 groups: an image's 10 nearest are of its group.
         let (n, dims) = (3_000, 32);
         let mut w = writer_of(&rows(n, dims, 30, 0.1, 1), dims);
-        let index = add_image_index(&mut w, None, &Silent).unwrap().unwrap();
+        let index = add_image_index(&mut w, None, None, &Silent)
+            .unwrap()
+            .unwrap();
         assert_eq!(index.lists, default_index_lists(n));
         assert!(index.stored, "{index:?}");
         assert!(index.scored * MAX_SCORED_SHARE <= n, "{index:?}");
@@ -398,7 +619,9 @@ mod tests {
         let (n, dims) = (3_000, 32);
         let noise = rows(n, dims, 0, 1.0, 2);
         let mut w = writer_of(&noise, dims);
-        let index = add_image_index(&mut w, None, &Silent).unwrap().unwrap();
+        let index = add_image_index(&mut w, None, None, &Silent)
+            .unwrap()
+            .unwrap();
         assert!(
             !index.stored && index.scored * MAX_SCORED_SHARE > n,
             "{index:?}"
@@ -407,7 +630,9 @@ mod tests {
         assert!(w.to_bytes().is_ok());
         // Asked for, it is stored with the probe that reaches the recall.
         let mut w = writer_of(&noise, dims);
-        let index = add_image_index(&mut w, Some(8), &Silent).unwrap().unwrap();
+        let index = add_image_index(&mut w, Some(8), None, &Silent)
+            .unwrap()
+            .unwrap();
         assert!(index.stored && index.lists == 8, "{index:?}");
         assert_eq!(
             w.metadata().image_index.as_ref().unwrap().probe as usize,
@@ -415,11 +640,17 @@ mod tests {
         );
         // None below the default's image count, with 0 lists, or without retrieval rows.
         let mut w = writer_of(&noise[..100 * dims], dims);
-        assert!(add_image_index(&mut w, None, &Silent).unwrap().is_none());
+        assert!(add_image_index(&mut w, None, None, &Silent)
+            .unwrap()
+            .is_none());
         let mut w = writer_of(&noise, dims);
-        assert!(add_image_index(&mut w, Some(0), &Silent).unwrap().is_none());
+        assert!(add_image_index(&mut w, Some(0), None, &Silent)
+            .unwrap()
+            .is_none());
         w.metadata_mut().retrieval = None;
-        assert!(add_image_index(&mut w, Some(8), &Silent).unwrap().is_none());
+        assert!(add_image_index(&mut w, Some(8), None, &Silent)
+            .unwrap()
+            .is_none());
     }
 
     #[test]
@@ -454,5 +685,34 @@ mod tests {
         };
         assert_eq!(stated.shape(10_000, own).0, 0);
         assert_eq!(stated.shape(10_000, own).1, crate::vlad::LARGE_DIMS);
+    }
+
+    /// Image neighbours are the images sharing most points, most first, ties by the lower
+    /// image, never the image itself, cut at `per_image`, padded with `NO_NEIGHBOUR`; the
+    /// counts of one image do not leak into the next.
+    #[test]
+    fn neighbours_are_the_images_sharing_most_points() {
+        // Images 0..4 over points 0..6: 0 sees {0,1,2,3}, 1 {0,1,2}, 2 {2,3}, 3 {5}, 4 {0,5}.
+        let offsets = [0u64, 4, 7, 9, 10, 12];
+        let points = [0u32, 1, 2, 3, 0, 1, 2, 2, 3, 5, 0, 5];
+        let v = ImageVisibility {
+            offsets: &offsets,
+            points: &points,
+            n_points: 6,
+        };
+        let rows = covisible_neighbours(&v, 2);
+        let none = NO_NEIGHBOUR;
+        assert_eq!(
+            rows,
+            [
+                1, 2, // 0 shares 3 with 1, 2 with 2, 1 with 4
+                0, 2, // 1: 3 with 0, then 1 with 2 and 1 with 4: the lower
+                0, 1, // 2: 2 with 0, 1 with 1
+                4, none, // 3: 1 with 4 only
+                0, 1, // 4: 1 with 0, 1, 3: the lower two
+            ]
+        );
+        // A wider row keeps the rest in order.
+        assert_eq!(&covisible_neighbours(&v, 3)[..3], &[1, 2, 4]);
     }
 }

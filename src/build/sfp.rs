@@ -561,7 +561,14 @@ fn convert_images_of(
         Some(m) => super::pq::quantise_all(&mut writer, m)?,
         None => Vec::new(),
     };
-    let index = super::retrieval::add_image_index(&mut writer, options.vlad.index_lists, reporter)?;
+    let neighbours =
+        super::retrieval::index_neighbours(&geometry, options.vlad.index_lists, reporter);
+    let index = super::retrieval::add_image_index(
+        &mut writer,
+        options.vlad.index_lists,
+        neighbours,
+        reporter,
+    )?;
     let output_bytes = writer.write(output, reporter)?;
     ms.sort_by(f64::total_cmp);
     Ok(SfpMapSummary {

@@ -218,6 +218,7 @@ fn convert_geometry(
     // f32 here, f16 in the writer.
     let global_bytes = global.as_ref().map_or(0, |(_, g)| g.len() as u64 * 6);
     let mut memory = None;
+    let mut neighbours = None;
     let aggregated = match source {
         Some(source) => {
             // Planned first: a budget too small is refused before anything long runs.
@@ -228,6 +229,10 @@ fn convert_geometry(
                 sources.push(source_file(source.path(), reporter)?);
             }
             memory = Some(prepared.memory);
+            // Before the reads, whose open tracks are the larger part of the peak: its
+            // point → images turn of the visibility is gone by then.
+            neighbours =
+                super::retrieval::index_neighbours(geometry, options.vlad.index_lists, reporter);
             let aggregated =
                 super::stream::aggregate(geometry, source, options, prepared, output, reporter)?;
             Some(aggregated)
@@ -307,7 +312,12 @@ fn convert_geometry(
         // Descriptors trained for retrieval (NetVLAD, …) rank better than a VLAD of local ones.
         writer.metadata_mut().retrieval = Some(crate::format::Retrieval::Global.name().to_string());
     }
-    let index = super::retrieval::add_image_index(&mut writer, options.vlad.index_lists, reporter)?;
+    let index = super::retrieval::add_image_index(
+        &mut writer,
+        options.vlad.index_lists,
+        neighbours,
+        reporter,
+    )?;
     let output_bytes = writer.write(output, reporter)?;
     Ok(ConvertSummary {
         points: geometry.positions.len(),

@@ -62,10 +62,13 @@ pub struct MemoryPlan {
 }
 
 /// What a conversion holds besides the open tracks, estimated from the model's counts:
-/// `during` the reads of the features (the geometry, per-point arrays), and `after` them
-/// (the geometry, the retrieval rows and VLADs, sections the writer holds in memory).
+/// `first`, before the reads (the geometry, and (1.4) the visibility turned point → images
+/// to find the image index's neighbours), `during` the reads of the features (the geometry,
+/// per-point arrays), and `after` them (the geometry, the retrieval rows and VLADs, sections
+/// the writer holds in memory).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct FixedCost {
+    pub first: u64,
     pub during: u64,
     pub after: u64,
 }
@@ -101,9 +104,21 @@ impl FixedCost {
         } else {
             0
         };
+        // (1.4) The image index's neighbours, found before the reads: the visibility turned
+        // point → images (4 bytes an observation, 8 a point), the tracks' 8 bytes a point,
+        // a count an image; kept to the write, 4 bytes a neighbour.
+        let (finding, kept) =
+            if super::retrieval::index_wanted(g.names.len(), options.vlad.index_lists) {
+                let n = super::retrieval::INDEX_NEIGHBOURS as u64;
+                let finding = g.vis_points.len() as u64 * 4 + points * 16 + images * (4 + 4 * n);
+                (finding, images * 4 * n)
+            } else {
+                (0, 0)
+            };
         FixedCost {
-            during: geometry_bytes + per_point,
-            after: geometry_bytes + per_point + vlad + held,
+            first: geometry_bytes + finding,
+            during: geometry_bytes + per_point + kept,
+            after: geometry_bytes + per_point + vlad + held + kept,
         }
     }
 }
@@ -270,7 +285,7 @@ fn plan(
         // The open points' rows and the spill's buffer while reading, the retrieval rows
         // after.
         let reading = fixed.during + worst + SPILL_BUFFER_BYTES as u64;
-        let peak = BASELINE_BYTES + reading.max(fixed.after);
+        let peak = BASELINE_BYTES + reading.max(fixed.after).max(fixed.first);
         if peak <= budget {
             return Ok(MemoryPlan {
                 budget,
@@ -458,6 +473,7 @@ pub(crate) fn prepare(
     let budget = options.memory.unwrap_or_else(default_memory_budget);
     let mut fixed = FixedCost::of(geometry, options, dim);
     // Global descriptors (`--global-features`), held from before the reads to the write.
+    fixed.first += global_bytes;
     fixed.during += global_bytes;
     fixed.after += global_bytes;
     let memory = plan(
@@ -1022,6 +1038,7 @@ mod tests {
         let (g, _) = scene();
         let tracks = Tracks::new(&g);
         let fixed = FixedCost {
+            first: 500,
             during: 1_000,
             after: 2_000,
         };
@@ -1102,6 +1119,7 @@ mod tests {
             "{err}"
         ); // What no number of reads lowers (the retrieval rows after the reads): one read.
         let heavy = FixedCost {
+            first: 500,
             during: 1_000,
             after: 1 << 40,
         };

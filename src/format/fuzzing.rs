@@ -201,6 +201,16 @@ fn open_and_read_once(data: &[u8]) {
         for l in 0..index.lists() {
             let _ = index.list(l);
         }
+        // (1.4) A search along the neighbours from image 0, each image scored by its index
+        // (any order a hostile graph makes): ends, scoring each image at most once.
+        if let Some(neighbours) = &index.neighbours {
+            let n = index.images.len();
+            let mut scored = vec![(0u32, 0.0f32)];
+            neighbours.widen(&mut scored, n, 4, |picks| {
+                picks.iter().map(|&i| (i % 7) as f32).collect()
+            });
+            assert!(scored.len() <= n.max(1), "an image scored twice");
+        }
     }
     if let Ok(Some(vis)) = map.visibility() {
         for i in 0..vis.offsets.len().saturating_sub(1) {

@@ -10,6 +10,12 @@
 //! error. Which list an image is in, and the probe, are the writer's word: they decide how
 //! many of a query's best images are found (recall), never an image's score, and
 //! `--retrieval-probe 0` ranks without them.
+//!
+//! (1.4) An index may also store each image's neighbours (`image_index_neighbours`: the
+//! images sharing most points with it). A query then widens its search from the best
+//! images of the lists it probed along their neighbours, best first, until no neighbour
+//! scores among its best: where images lie along a street, the lists cut neighbourhoods
+//! apart and no few of them hold a query's best images, but their neighbours do.
 
 use super::error::Error;
 use super::layout::{Dtype, SectionKind, NO_LEVEL};
@@ -18,6 +24,8 @@ use super::reader::{Map, Section};
 use super::writer::{owned_bytes, MapWriter};
 use bitvec::vec::BitVec;
 use std::borrow::Cow;
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
 
 /// A map's image index, read and checked.
 #[derive(Debug, Clone)]
@@ -34,6 +42,135 @@ pub struct ImageIndex<'m> {
     pub offsets: Cow<'m, [u32]>,
     /// Every image index once, grouped by list.
     pub images: Cow<'m, [u32]>,
+    /// (1.4) `[images × per_image]`: each image's neighbours, best first, [`NO_NEIGHBOUR`]
+    /// past the last; `None` when the map stores none.
+    pub neighbours: Option<Neighbours<'m>>,
+}
+
+/// Images an indexed ranking scores at least per image asked for: with `top_k` near a list's
+/// size, more lists are scored than `probe` says, so the short list is never the whole of
+/// what was scored. (The reference reader's rule; `convert` calibrates `probe` by it.)
+#[cfg_attr(not(any(feature = "colmap", feature = "localize")), allow(dead_code))]
+pub(crate) const MIN_SCORED_PER_K: usize = 8;
+
+/// (1.4) The beam a search along the image neighbours keeps, per image asked for: the
+/// second-best images' neighbours are where a best one the lists missed is found.
+#[cfg_attr(not(any(feature = "colmap", feature = "localize")), allow(dead_code))]
+pub(crate) const BEAM_PER_K: usize = 2;
+
+/// Marks the end of an image's neighbours in `image_index_neighbours`.
+pub const NO_NEIGHBOUR: u32 = u32::MAX;
+
+/// The most neighbours an image may list (`image_index_neighbours`' columns).
+pub const MAX_NEIGHBOURS: usize = 256;
+
+/// (1.4) Each image's neighbours, as stored in `image_index_neighbours`.
+#[derive(Debug, Clone)]
+pub struct Neighbours<'m> {
+    /// Neighbours each image has room for (the section's columns, 1 to [`MAX_NEIGHBOURS`]).
+    pub per_image: usize,
+    /// `[images × per_image]`, each below the image count or [`NO_NEIGHBOUR`].
+    pub rows: Cow<'m, [u32]>,
+}
+
+impl Neighbours<'_> {
+    /// Image `i`'s neighbours, best first (none past the images).
+    pub fn of(&self, i: usize) -> &[u32] {
+        let row = self
+            .rows
+            .get(i * self.per_image..(i + 1) * self.per_image)
+            .unwrap_or(&[]);
+        let end = row
+            .iter()
+            .position(|&n| n == NO_NEIGHBOUR)
+            .unwrap_or(row.len());
+        &row[..end]
+    }
+
+    /// Widens a search along the neighbours: `scored` holds every image scored so far (image,
+    /// score); the best `beam` of them are expanded best first, each scoring its neighbours
+    /// not scored yet (`score` gives their scores, in order), and a neighbour that comes
+    /// among the best `beam` is expanded in turn, until the best image left to expand scores
+    /// below the `beam`-th best. The images scored are appended to `scored`. A score that
+    /// is not a number is kept but never expanded. Images past `n_images` are not scored.
+    pub fn widen(
+        &self,
+        scored: &mut Vec<(u32, f32)>,
+        n_images: usize,
+        beam: usize,
+        mut score: impl FnMut(&[u32]) -> Vec<f32>,
+    ) {
+        let beam = beam.max(1);
+        let mut seen: BitVec = BitVec::repeat(false, n_images);
+        for &(i, _) in scored.iter() {
+            if (i as usize) < n_images {
+                seen.set(i as usize, true);
+            }
+        }
+        // `best`: the beam, worst on top; `frontier`: the beam's images not expanded yet,
+        // best on top. Ties by the lower image, as rankings break them.
+        let mut best: BinaryHeap<Reverse<Ranked>> = BinaryHeap::new();
+        let mut frontier: BinaryHeap<Ranked> = BinaryHeap::new();
+        let admit = |r: Ranked,
+                     best: &mut BinaryHeap<Reverse<Ranked>>,
+                     frontier: &mut BinaryHeap<Ranked>| {
+            if r.0.is_nan() {
+                return;
+            }
+            if best.len() < beam {
+                best.push(Reverse(r));
+                frontier.push(r);
+            } else if best.peek().is_some_and(|w| r > w.0) {
+                best.pop();
+                best.push(Reverse(r));
+                frontier.push(r);
+            }
+        };
+        for &(i, s) in scored.iter() {
+            admit(Ranked(s, i), &mut best, &mut frontier);
+        }
+        let mut fresh = Vec::new();
+        while let Some(r) = frontier.pop() {
+            // Pushed when among the best, since pushed out of them: then nothing after it
+            // in the frontier is among them either.
+            if best.len() >= beam && best.peek().is_some_and(|w| r < w.0) {
+                break;
+            }
+            fresh.clear();
+            for &j in self.of(r.1 as usize) {
+                if (j as usize) < n_images && !seen.replace(j as usize, true) {
+                    fresh.push(j);
+                }
+            }
+            if fresh.is_empty() {
+                continue;
+            }
+            let scores = score(&fresh);
+            for (&j, &s) in fresh.iter().zip(&scores) {
+                scored.push((j, s));
+                admit(Ranked(s, j), &mut best, &mut frontier);
+            }
+        }
+    }
+}
+
+/// A scored image, ordered by score, then by the lower image index first (as rankings
+/// break ties); scores that are not numbers are never compared (they are not admitted).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Ranked(f32, u32);
+
+impl Eq for Ranked {}
+
+impl PartialOrd for Ranked {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+impl Ord for Ranked {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        self.0.total_cmp(&other.0).then(other.1.cmp(&self.1))
+    }
 }
 
 impl ImageIndex<'_> {
@@ -105,7 +242,7 @@ pub(crate) fn check_shapes<'s>(
     find: impl Fn(SectionKind) -> Option<&'s Section>,
     n_images: u64,
 ) -> Result<(), Error> {
-    let Some(p) = parts(metadata, find) else {
+    let Some(p) = parts(metadata, &find) else {
         return Ok(());
     };
     let lists = p.centroids.rows;
@@ -138,6 +275,16 @@ pub(crate) fn check_shapes<'s>(
             p.images.reference(),
             p.images.rows
         )));
+    }
+    if let Some(n) = find(SectionKind::ImageIndexNeighbours) {
+        if n.rows != n_images || n.cols == 0 || n.cols > MAX_NEIGHBOURS as u64 {
+            return Err(Error::inconsistent(format!(
+                "{} is {} x {}: expected one row per image ({n_images}) of 1 to {MAX_NEIGHBOURS} neighbours",
+                n.reference(),
+                n.rows,
+                n.cols
+            )));
+        }
     }
     if p.rows.cols != p.centroids.cols {
         return Err(Error::inconsistent(format!(
@@ -178,6 +325,15 @@ pub(crate) fn check_contents(kind: SectionKind, bytes: &[u8], n_images: u64) -> 
                 }
             }
         }
+        SectionKind::ImageIndexNeighbours => {
+            let bad = super::reader::cast::<u32>(bytes)
+                .iter()
+                .find(|&&i| i != NO_NEIGHBOUR && u64::from(i) >= n_images)
+                .copied();
+            if let Some(i) = bad {
+                return Err(format!("neighbour {i} is past the {n_images} images"));
+            }
+        }
         _ => {}
     }
     Ok(())
@@ -192,8 +348,16 @@ impl<'a> Map<'a> {
         };
         let (of, probe) = (p.of, p.info.probe as usize);
         let (centroids_section, lists_section, images_section) = (p.centroids, p.lists, p.images);
+        let neighbours = match self.find(SectionKind::ImageIndexNeighbours, None) {
+            Some(s) => Some(Neighbours {
+                per_image: s.cols as usize,
+                rows: self.section_array(s)?,
+            }),
+            None => None,
+        };
         // Their contents are checked on first access ([`check_contents`]).
         Ok(Some(ImageIndex {
+            neighbours,
             of,
             probe,
             width: centroids_section.cols as usize,
@@ -291,5 +455,96 @@ impl<'a> MapWriter<'a> {
         }
         self.metadata_mut().image_index = Some(info);
         Ok(self)
+    }
+
+    /// (1.4) Adds each image's neighbours to the image index (set with
+    /// [`MapWriter::set_image_index`]): `rows` `[images × per_image]`, best first, each below
+    /// the image count or [`NO_NEIGHBOUR`] past the last. Optional, as the index is: a 1.3
+    /// reader skips it and probes lists alone.
+    pub fn set_image_neighbours(
+        &mut self,
+        rows: Vec<u32>,
+        per_image: usize,
+    ) -> Result<&mut Self, Error> {
+        if per_image == 0 || per_image > MAX_NEIGHBOURS || rows.len() % per_image != 0 {
+            return Err(Error::invalid(format!(
+                "image neighbours of {} values are not rows of 1 to {MAX_NEIGHBOURS} ({per_image})",
+                rows.len()
+            )));
+        }
+        let images = rows.len() / per_image;
+        if let Some(&n) = rows
+            .iter()
+            .find(|&&n| n != NO_NEIGHBOUR && n as usize >= images)
+        {
+            return Err(Error::invalid(format!(
+                "image neighbour {n} of {images} images"
+            )));
+        }
+        self.push_array_flagged(
+            SectionKind::ImageIndexNeighbours,
+            NO_LEVEL,
+            Dtype::U32,
+            images,
+            per_image,
+            owned_bytes(rows),
+            false,
+        );
+        Ok(self)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `widen` on a path 0-1-2-…-9 scored by closeness to 7, from image 0: it walks to 7 and
+    /// its neighbours; a neighbour that does not score as a number is kept, not expanded;
+    /// neighbours past the images are skipped.
+    #[test]
+    fn widening_walks_to_the_best_and_stops() {
+        let n = 10u32;
+        let mut rows = Vec::new();
+        for i in 0..n {
+            // 0 lists 1 then the end; 9 lists 8 then 99, past the images.
+            match i {
+                0 => rows.extend([1, NO_NEIGHBOUR]),
+                9 => rows.extend([8, 99]),
+                _ => rows.extend([i - 1, i + 1]),
+            }
+        }
+        let graph = Neighbours {
+            per_image: 2,
+            rows: Cow::Owned(rows),
+        };
+        let score = |i: u32| -((i as f32) - 7.0).abs();
+        let mut scored = vec![(0u32, score(0))];
+        let mut calls = Vec::new();
+        graph.widen(&mut scored, n as usize, 2, |picks| {
+            calls.push(picks.to_vec());
+            picks.iter().map(|&i| score(i)).collect()
+        });
+        let mut images: Vec<u32> = scored.iter().map(|&(i, _)| i).collect();
+        images.sort_unstable();
+        // Up to 7's neighbours, 6 and 8, each scored once; the beam of two is 7 and 6 (the
+        // lower of a tie), so 8 is not expanded and 9 never scored.
+        assert_eq!(images, (0..9).collect::<Vec<_>>());
+        // Toward 9, whose row lists 99: 9 is expanded, and 99 never scored.
+        let mut scored = vec![(0u32, -9.0)];
+        calls.clear();
+        graph.widen(&mut scored, n as usize, 2, |picks| {
+            calls.push(picks.to_vec());
+            picks.iter().map(|&i| i as f32 - 9.0).collect()
+        });
+        assert_eq!(scored.len(), 10);
+        assert!(calls.iter().flatten().all(|&i| i < n), "{calls:?}");
+        // A NaN at 4 stops the walk there: 5 is never reached.
+        let nan = |i: u32| if i == 4 { f32::NAN } else { score(i) };
+        let mut scored = vec![(0u32, nan(0))];
+        graph.widen(&mut scored, n as usize, 2, |picks| {
+            picks.iter().map(|&i| nan(i)).collect()
+        });
+        let images: Vec<u32> = scored.iter().map(|&(i, _)| i).collect();
+        assert_eq!(images, [0, 1, 2, 3, 4]);
     }
 }

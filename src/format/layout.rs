@@ -10,7 +10,7 @@ pub const MAGIC: [u8; 8] = *b"\x89SFPM\r\n\x1a";
 pub const VERSION_MAJOR: u16 = 1;
 /// The highest minor version this crate writes (a file gets the lowest minor that defines all
 /// its sections, see [`SectionKind::since_minor`]). Readers accept any minor of their major.
-pub const VERSION_MINOR: u16 = 3;
+pub const VERSION_MINOR: u16 = 4;
 /// Written as a `u32` LE; a reader that sees other bytes has the wrong byte order.
 pub const ENDIAN_CHECK: u32 = 0x1A2B_3C4D;
 /// Size of the fixed header in bytes.
@@ -200,6 +200,10 @@ pub enum SectionKind {
     ImageIndexOffsets,
     /// u32 [images × 1] (1.3): every image once, grouped by the list it belongs to.
     ImageIndexImages,
+    /// u32 [images × neighbours] (1.4): each image's nearest images in retrieval (the ones
+    /// sharing most points), best first, `u32::MAX` past the last; an image index's
+    /// searches widen along them from the lists they probed.
+    ImageIndexNeighbours,
     /// u64 [images + 1 × 1]: CSR row offsets into `VisibilityPoints`.
     VisibilityOffsets,
     /// u32 [observations × 1]: point indices seen by each image, image by image.
@@ -223,7 +227,7 @@ pub enum SectionKind {
 }
 
 impl SectionKind {
-    const KNOWN: [(u16, SectionKind, &'static str); 30] = [
+    const KNOWN: [(u16, SectionKind, &'static str); 31] = [
         (1, SectionKind::PointPositions, "point_positions"),
         (4, SectionKind::PointPositionsQ16, "point_positions_q16"),
         (2, SectionKind::PointColors, "point_colors"),
@@ -250,6 +254,11 @@ impl SectionKind {
         ),
         (40, SectionKind::ImageIndexOffsets, "image_index_offsets"),
         (41, SectionKind::ImageIndexImages, "image_index_images"),
+        (
+            42,
+            SectionKind::ImageIndexNeighbours,
+            "image_index_neighbours",
+        ),
         (48, SectionKind::VisibilityOffsets, "visibility_offsets"),
         (49, SectionKind::VisibilityPoints, "visibility_points"),
         (50, SectionKind::VisibilityKeypoints, "visibility_keypoints"),
@@ -311,6 +320,7 @@ impl SectionKind {
             LevelPqOrder => (Dtype::U16, Some(1)),
             ImagePoses => (Dtype::F64, Some(7)),
             ImageCameras | ImageIds | ImageIndexOffsets | ImageIndexImages => (Dtype::U32, Some(1)),
+            ImageIndexNeighbours => (Dtype::U32, None),
             ImageNameOffsets | VisibilityOffsets | PlaceImages | ChunkChecksums => {
                 (Dtype::U64, Some(1))
             }
@@ -401,6 +411,7 @@ impl SectionKind {
             SectionKind::ImageIndexCentroids
             | SectionKind::ImageIndexOffsets
             | SectionKind::ImageIndexImages => 3,
+            SectionKind::ImageIndexNeighbours => 4,
             _ => 0,
         }
     }

@@ -18,7 +18,7 @@ mod catalog;
 mod chunks;
 mod delta;
 mod error;
-mod index;
+pub(crate) mod index;
 // Fuzz-target bodies and the raw layout they edit: public at `sfpmap::fuzzing`.
 #[cfg(feature = "fuzzing")]
 pub(crate) mod fuzzing;
@@ -38,7 +38,7 @@ mod writer;
 pub use catalog::{Catalog, Listing, Place};
 pub use chunks::{CheckedByChunk, VisibilityByChunk};
 pub use error::{Error, SectionRef};
-pub use index::ImageIndex;
+pub use index::{ImageIndex, Neighbours, MAX_NEIGHBOURS, NO_NEIGHBOUR};
 pub use layout::{
     Codec, Dtype, SectionKind, MAGIC, MAX_DESCRIPTOR_DIM, VERSION_MAJOR, VERSION_MINOR,
 };

@@ -343,7 +343,8 @@ impl Keep<'_> {
             SectionKind::ImageGlobal => self.global,
             SectionKind::ImageIndexCentroids
             | SectionKind::ImageIndexOffsets
-            | SectionKind::ImageIndexImages => self.index,
+            | SectionKind::ImageIndexImages
+            | SectionKind::ImageIndexNeighbours => self.index,
             k if k.is_per_level() => self
                 .levels
                 .binary_search(&section.level.unwrap_or(NO_LEVEL))

@@ -178,6 +178,7 @@ pub(crate) fn check_shapes(
         SectionKind::ImageGlobal,
         SectionKind::ImageVlad,
         SectionKind::ImageIndexImages,
+        SectionKind::ImageIndexNeighbours,
         SectionKind::VisibilityOffsets,
     ];
     let n_images = match find(SectionKind::ImagePoses, None) {
@@ -485,7 +486,9 @@ pub(crate) fn check_contents(map: &Map<'_>, section: &Section, bytes: &[u8]) -> 
                 return bad(what);
             }
         }
-        SectionKind::ImageIndexOffsets | SectionKind::ImageIndexImages => {
+        SectionKind::ImageIndexOffsets
+        | SectionKind::ImageIndexImages
+        | SectionKind::ImageIndexNeighbours => {
             if let Err(what) = super::index::check_contents(section.kind, bytes, map.n_images()) {
                 return bad(what);
             }

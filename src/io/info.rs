@@ -38,7 +38,7 @@ fn component(kind: SectionKind) -> &'static str {
         }
         LevelProjection => "projections",
         LevelVladCentroids | ImageGlobal | ImageVlad | ImageIndexCentroids | ImageIndexOffsets
-        | ImageIndexImages => "retrieval",
+        | ImageIndexImages | ImageIndexNeighbours => "retrieval",
         ImagePoses | ImageCameras | ImageIds | ImageNameOffsets | ImageNames => "images",
         VisibilityOffsets | VisibilityPoints | VisibilityKeypoints => "visibility",
         PlaceImages | CatalogProjection | CatalogVladCentroids | CatalogImageVlad => "places",
@@ -126,12 +126,18 @@ impl<'m> Retrieval<'m> {
             .iter()
             .find(|s| s.kind() == SectionKind::ImageIndexCentroids && s.skipped().is_none())
             .map(|s| s.rows());
+        let neighbours = map
+            .sections()
+            .iter()
+            .find(|s| s.kind() == SectionKind::ImageIndexNeighbours && s.skipped().is_none())
+            .map(|s| s.cols());
         // The writer's other keys first, so that none stands in for a known one.
         let index = meta.image_index.as_ref().map(|i| {
             let mut v = serde_json::Value::Object(i.extra.clone());
             v["of"] = serde_json::json!(i.of);
             v["lists"] = serde_json::json!(lists);
             v["probe"] = serde_json::json!(i.probe);
+            v["neighbours"] = serde_json::json!(neighbours);
             v
         });
         Retrieval {
@@ -162,8 +168,12 @@ impl<'m> Retrieval<'m> {
             return "retrieval: none (every point is a candidate)".into();
         }
         if let Some(i) = &self.index {
+            let neighbours = match i["neighbours"].as_u64() {
+                Some(n) => format!(", {n} neighbours an image"),
+                None => String::new(),
+            };
             kinds.push(format!(
-                "an index of {} lists over {} ({} probed)",
+                "an index of {} lists over {} ({} probed{neighbours})",
                 i["lists"],
                 crate::escape::escape_control_characters(i["of"].as_str().unwrap_or("?")),
                 i["probe"]

@@ -581,7 +581,8 @@ impl<'m> Localizer<'m> {
                 | SectionKind::VisibilityKeypoints => false,
                 SectionKind::ImageIndexCentroids
                 | SectionKind::ImageIndexOffsets
-                | SectionKind::ImageIndexImages => {
+                | SectionKind::ImageIndexImages
+                | SectionKind::ImageIndexNeighbours => {
                     options.retrieval != RetrievalMethod::Off && options.retrieval_probe != Some(0)
                 }
                 _ => true,

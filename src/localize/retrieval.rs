@@ -130,15 +130,16 @@ struct ProbedIndex<'m> {
     probe: usize,
 }
 
-/// Images an indexed ranking scores at least per image asked for: with `top_k` near a list's
-/// size, more lists are scored than `probe` says, so the short list is never the whole of
-/// what was scored.
-const MIN_SCORED_PER_K: usize = 8;
+use crate::format::index::{BEAM_PER_K, MIN_SCORED_PER_K};
 
 impl ProbedIndex<'_> {
     /// The `top_k` images of the lists nearest to `query` (`width` values) by exact score,
     /// best first, ties by image index (as [`rank`]): with every list probed, exactly
-    /// [`rank`]'s answer.
+    /// [`rank`]'s answer. (1.4) With the map's image neighbours, the search widens from the
+    /// best of those lists along them ([`Neighbours::widen`], a beam of
+    /// [`BEAM_PER_K`] images per image asked for).
+    ///
+    /// [`Neighbours::widen`]: crate::format::Neighbours::widen
     fn rank(&self, database: Rows<'_>, query: &[f32], top_k: usize) -> Vec<usize> {
         let index = &self.index;
         let min_scored = top_k.max(1).saturating_mul(MIN_SCORED_PER_K);
@@ -155,13 +156,22 @@ impl ProbedIndex<'_> {
             }
             candidates.extend_from_slice(index.list(l));
         }
+        let scores = database.dots_picked(index.width, &q, &candidates);
+        let mut scored: Vec<(u32, f32)> = candidates.into_iter().zip(scores).collect();
+        if let Some(neighbours) = &index.neighbours {
+            let n_images = index.images.len();
+            let beam = top_k.max(1).saturating_mul(BEAM_PER_K);
+            neighbours.widen(&mut scored, n_images, beam, |picks| {
+                database.dots_picked(index.width, &q, picks)
+            });
+        }
         // Ascending, so that ties break by image index as the exhaustive ranking's do.
-        candidates.sort_unstable();
-        let mut scores = database.dots_picked(index.width, &q, &candidates);
+        scored.sort_unstable_by_key(|&(i, _)| i);
+        let mut scores: Vec<f32> = scored.iter().map(|&(_, s)| s).collect();
         ranked_last_if_not_finite(&mut scores);
         top_k_indices(&scores, top_k.max(1))
             .into_iter()
-            .map(|i| candidates[i] as usize)
+            .map(|i| scored[i].0 as usize)
             .collect()
     }
 }
@@ -656,6 +666,7 @@ mod tests {
             centroids: Cow::Owned(centroids.clone()),
             offsets: Cow::Owned(offsets),
             images: Cow::Owned(members.concat()),
+            neighbours: None,
         };
         let probed = ProbedIndex {
             index,
@@ -747,6 +758,69 @@ mod tests {
         }
         // Probing 2 of 20 lists misses some query's exhaustive best: it did narrow.
         assert!(narrower > 0);
+    }
+
+    /// (1.4) Images along a half circle (a street's images, as retrieval sees them), in 20
+    /// lists of 20 neighbours each: a query between two lists finds its best two only with
+    /// the neighbours; with them, one list probed ranks as every image scored.
+    #[test]
+    fn neighbours_widen_a_probe_to_the_exhaustive_best() {
+        let (n, dim) = (400usize, 4usize);
+        let angle = |x: f64| x * std::f64::consts::PI / n as f64;
+        let row = |x: f64| [angle(x).cos() as f32, angle(x).sin() as f32, 0.0, 0.0];
+        let rows: Vec<f32> = (0..n).flat_map(|i| row(i as f64)).collect();
+        let mut centroids = vec![0.0f32; 20 * dim];
+        for (l, c) in centroids.chunks_exact_mut(dim).enumerate() {
+            for i in l * 20..(l + 1) * 20 {
+                for (v, r) in c.iter_mut().zip(&rows[i * dim..(i + 1) * dim]) {
+                    *v += r / 20.0;
+                }
+            }
+        }
+        // Each image's 4 nearest along the circle, nearest first.
+        let mut graph = Vec::new();
+        for i in 0..n as i64 {
+            let mut near: Vec<i64> = [-2, -1, 1, 2].iter().map(|d| i + d).collect();
+            near.sort_by_key(|&j| ((j - i).abs(), j));
+            graph.extend(near.iter().map(|&j| {
+                if (0..n as i64).contains(&j) {
+                    j as u32
+                } else {
+                    crate::format::NO_NEIGHBOUR
+                }
+            }));
+        }
+        let index = |neighbours| ProbedIndex {
+            index: ImageIndex {
+                of: Retrieval::Global,
+                probe: 1,
+                width: dim,
+                centroids: Cow::Owned(centroids.clone()),
+                offsets: Cow::Owned((0..=20).map(|l| l * 20).collect()),
+                images: Cow::Owned((0..n as u32).collect()),
+                neighbours,
+            },
+            centroids: Nearest::new(&centroids, dim),
+            probe: 1,
+        };
+        let bare = index(None);
+        let widened = index(Some(crate::format::Neighbours {
+            per_image: 4,
+            rows: Cow::Owned(graph),
+        }));
+        let mut missed = 0;
+        for l in 1..20 {
+            // Just past a list's first image: its best two are in two lists.
+            let q = row((l * 20) as f64 - 0.4);
+            let every = rank(Rows::F32(&rows), dim, &q, 2);
+            assert_eq!(every, [l * 20, l * 20 - 1], "list {l}");
+            assert_eq!(widened.rank(Rows::F32(&rows), &q, 2), every, "list {l}");
+            missed += usize::from(bare.rank(Rows::F32(&rows), &q, 2) != every);
+        }
+        assert!(
+            missed > 0,
+            "the lists alone never missed: the test tests nothing"
+        );
     }
 
     fn ok(points: &[u32]) -> Result<&[u32], std::convert::Infallible> {

@@ -317,3 +317,97 @@ fn a_slice_keeps_the_index_with_the_rows_it_indexes() {
         .unwrap()
         .is_none());
 }
+
+/// (1.4) Each image's neighbours: a map with them is 1.4, reads them back (a row ends at
+/// `NO_NEIGHBOUR`), and a slice keeps them with the index and drops them with it; a shape
+/// that is not one row per image of 1 to `MAX_NEIGHBOURS` is refused at open, a neighbour
+/// past the images where the index is read, and the writer refuses both.
+#[test]
+fn image_neighbours_are_part_of_the_index() {
+    use sfpmap::format::{MAX_NEIGHBOURS, NO_NEIGHBOUR};
+    let s = scene();
+    let v = vlad(&s);
+    let mut w = indexed(&s, &v, "vlad");
+    w.set_image_neighbours(vec![2, 1, 0, NO_NEIGHBOUR, 1, 0], 2)
+        .unwrap();
+    let bytes = w.to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    assert_eq!(map.version(), "1.4");
+    map.verify().unwrap();
+    let index = map.image_index().unwrap().unwrap();
+    let neighbours = index.neighbours.as_ref().expect("stored");
+    assert_eq!(neighbours.per_image, 2);
+    assert_eq!(
+        (
+            neighbours.of(0),
+            neighbours.of(1),
+            neighbours.of(2),
+            neighbours.of(3)
+        ),
+        (&[2, 1][..], &[0][..], &[1, 0][..], &[][..])
+    );
+    let (kept, summary) = sliced(&bytes, &[2], false);
+    assert!(!summary.index_dropped);
+    let kept = Map::from_bytes(&kept).unwrap();
+    let after = kept.image_index().unwrap().unwrap();
+    assert_eq!(after.neighbours.unwrap().rows, neighbours.rows);
+    let (dropped, _) = sliced(&bytes, &[0], false);
+    let dropped = Map::from_bytes(&dropped).unwrap();
+    assert!(dropped
+        .find(SectionKind::ImageIndexNeighbours, None)
+        .is_none());
+    assert_eq!(dropped.version(), "1.0");
+
+    // Two rows for three images; rows of no neighbour; rows past MAX_NEIGHBOURS.
+    for (rows, cols) in [(2u64, 2u64), (3, 0), (3, MAX_NEIGHBOURS as u64 + 1)] {
+        let mut w = indexed(&s, &v, "vlad");
+        let values = vec![0u32; (rows * cols) as usize];
+        w.add_raw_section(
+            SectionKind::ImageIndexNeighbours,
+            NO_LEVEL,
+            Dtype::U32,
+            rows,
+            cols,
+            false,
+            Cow::Owned(bytemuck::cast_slice(&values).to_vec()),
+            None,
+        )
+        .unwrap();
+        assert_eq!(
+            open_error(&w.to_bytes().unwrap()),
+            "inconsistent",
+            "{rows} x {cols}"
+        );
+    }
+    // Image 3 of 3 as a neighbour: opens, refused where the index is read, and by verify.
+    let mut w = indexed(&s, &v, "vlad");
+    w.add_raw_section(
+        SectionKind::ImageIndexNeighbours,
+        NO_LEVEL,
+        Dtype::U32,
+        3,
+        1,
+        false,
+        Cow::Owned(bytemuck::cast_slice(&[1u32, 3, 0]).to_vec()),
+        None,
+    )
+    .unwrap();
+    let bytes = w.to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    let err = map.image_index().expect_err("refused on access");
+    let text = err.to_string();
+    assert_eq!(err.kind_name(), "inconsistent", "{text}");
+    assert!(
+        text.contains("image_index_neighbours")
+            && text.contains("neighbour 3 is past the 3 images"),
+        "{text}"
+    );
+    assert_eq!(map.verify().unwrap_err().kind_name(), "inconsistent");
+    // The writer: a neighbour past the rows' images, rows of 0 or 257.
+    let mut w = indexed(&s, &v, "vlad");
+    assert!(w.set_image_neighbours(vec![1, 3, 0], 1).is_err());
+    assert!(w.set_image_neighbours(vec![], 0).is_err());
+    assert!(w
+        .set_image_neighbours(vec![0; MAX_NEIGHBOURS + 1], MAX_NEIGHBOURS + 1)
+        .is_err());
+}

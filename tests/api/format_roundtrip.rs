@@ -414,9 +414,9 @@ fn slice_drops_vlad_with_its_level_and_retargets_retrieval() {
 #[test]
 fn files_without_1_1_sections_stay_1_0() {
     // 1.2 adds chunk checksums, which the writer stores only with a section over 64 KiB
-    // (`format_chunks`), and 1.3 the image index (`format_index`): none of the maps below
-    // has either.
-    assert_eq!(VERSION_MINOR, 3);
+    // (`format_chunks`), 1.3 the image index and 1.4 its neighbours (`format_index`): none
+    // of the maps below has any.
+    assert_eq!(VERSION_MINOR, 4);
     let (s, vlad) = vlad_scene();
     // Every 1.0 kind, zstd or raw, an unknown optional kind, and the 1.1 metadata key
     // (which a 1.0 reader keeps as an unknown key): still minor 0.

@@ -39,6 +39,9 @@ fn scene_vlad(s: &Scene) -> VladData {
 /// The image index of the `image_index` vector: 2 lists over the VLAD's 4 values.
 const INDEX_CENTROIDS: [f32; 8] = [0.5, 0.5, 0.5, 0.5, -0.5, 0.5, -0.5, 0.5];
 
+/// The `image_index_neighbours` vector's rows (1.4): 2 an image, image 1 listing one.
+const NEIGHBOURS: [u32; 6] = [2, 1, 0, u32::MAX, 1, 0];
+
 /// The vlad vector's map plus an image index (1.3): images 0 and 2 in list 0, 1 in list 1.
 fn scene_indexed<'s>(s: &'s Scene, vlad: &VladData) -> MapWriter<'s> {
     let mut w = s.writer_with_vlad(Codec::Raw, vlad);
@@ -301,6 +304,32 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         ),
     ));
 
+    // 1.4: the image_index vector plus each image's neighbours (image 1 lists one).
+    let mut w = scene_indexed(&s, &vlad);
+    w.set_image_neighbours(NEIGHBOURS.to_vec(), 2).unwrap();
+    let with_neighbours = w.to_bytes().unwrap();
+    let mut content = s.expected_json(origin_of(&with_neighbours));
+    content["retrieval"] = json!("vlad");
+    content["vlad"] = vlad.expected_json();
+    content["image_index"] = json!({
+        "of": "vlad",
+        "probe": 1,
+        "centroids": INDEX_CENTROIDS.chunks(4).collect::<Vec<_>>(),
+        "lists": [[0, 2], [1]],
+        "neighbours": [[2, 1], [0], [1, 0]],
+    });
+    out.push((
+        "image_index_neighbours",
+        with_neighbours.clone(),
+        valid_expected_version(
+            "1.4",
+            "the image_index vector plus each image's neighbours (1.4), 2 columns, image 1 listing one",
+            &with_neighbours,
+            content,
+            json!([]),
+        ),
+    ));
+
     // A later minor's optional sections in encodings 1.1 does not define: a known kind with
     // an unknown codec (colours) and one with an unknown dtype (ids), an unknown kind with an
     // unknown flag bit. A 1.1 reader skips and lists all three and reads the points.
@@ -341,7 +370,7 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         .unwrap();
     }
     let later = patch(&w.to_bytes().unwrap(), |h, e| {
-        h.minor = 4;
+        h.minor = 5;
         e[1].codec = 3;
         e[2].dtype = 9;
         e[3].flags = 0x02;
@@ -359,7 +388,7 @@ fn valid_vectors() -> Vec<(&'static str, Vec<u8>, Value)> {
         "later_minor",
         later.clone(),
         valid_expected_version(
-            "1.4",
+            "1.5",
             "a later minor's optional sections in encodings this version does not know (skipped)",
             &later,
             content,
@@ -781,6 +810,21 @@ fn invalid_vectors() -> Vec<(&'static str, Vec<u8>, &'static str, &'static str)>
         &2u32.to_le_bytes(),
     );
     out.push(("image_index_image_twice", b, "inconsistent", "verify"));
+    // 1.4: neighbour 3 of the 3 images, its section checksum recomputed.
+    let mut w = scene_indexed(&s, &vlad);
+    w.set_image_neighbours(NEIGHBOURS.to_vec(), 2).unwrap();
+    let b = patched(
+        &w.to_bytes().unwrap(),
+        SectionKind::ImageIndexNeighbours,
+        4,
+        &3u32.to_le_bytes(),
+    );
+    out.push((
+        "image_index_neighbour_past_images",
+        b,
+        "inconsistent",
+        "verify",
+    ));
     // 1.3: index centroids of 3 values where the VLAD rows have 4.
     let mut w = scene_indexed(&s, &vlad);
     w.add_raw_section(

@@ -478,6 +478,11 @@ pub fn decoded_json(map: &Map<'_>) -> Value {
             "centroids": i.centroids.chunks(i.width).collect::<Vec<_>>(),
             "lists": (0..i.lists()).map(|l| i.list(l)).collect::<Vec<_>>(),
         });
+        if let Some(n) = &i.neighbours {
+            content["image_index"]["neighbours"] = json!((0..map.n_images())
+                .map(|r| n.of(r as usize))
+                .collect::<Vec<_>>());
+        }
     }
     content
 }

@@ -352,7 +352,7 @@ fn root() -> PathBuf {
     crate::shared_data::repo_root()
 }
 
-/// (1.3) `convert --index-lists` on a real map: the index is in the report and in `info`, and
+/// (1.3) `convert --index-lists` on a real map: the index (1.4: with neighbours) is in the report and in `info`, and
 /// `localize --retrieval-probe` takes 0, every list and the map's own probe, each localizing
 /// every query. (Sacre-Coeur's 8 images are fewer than twice the 8 images scored per image
 /// asked for, so every probe ranks all of them here: which images a probe scores is tested
@@ -387,8 +387,10 @@ fn an_image_index_asked_for_is_reported_and_every_probe_is_taken() {
     let probe = index["probe"].as_u64().unwrap();
     assert!((1..=3).contains(&probe), "{report}");
     let info: Value = serde_json::from_str(&run(&["info", &p("m.sfpm"), "--json"])).unwrap();
-    assert_eq!(info["version"], "1.3");
+    // (1.4) With each image's 16 neighbours (the images sharing most points).
+    assert_eq!(info["version"], "1.4");
     assert_eq!(info["retrieval"]["index"]["lists"], 3, "{info}");
+    assert_eq!(info["retrieval"]["index"]["neighbours"], 16, "{info}");
     assert_eq!(info["retrieval"]["index"]["probe"], probe, "{info}");
     // Retrieved images per query (2 of the 8, so retrieval narrows), by probe.
     let retrieved = |probe: &str| -> Vec<Value> {
