@@ -89,9 +89,9 @@ print(f"{n:<9} {name:<14} {mb:8.1f} {path + ' (' + paths + ')':<38} {m['total']:
 if path == "retrieval":
     every = {q["name"]: q["retrieved"] for q in json.load(open(f"{work}/every-image.json"))}
     got = {q["name"]: q["retrieved"] for q in json.load(open(f"{work}/retrieval.json"))}
-    shares = [len(set(got[q]) & set(top)) / len(top) for q, top in every.items() if top]
+    shares = [len(set(got.get(q, [])) & set(top)) / len(top) for q, top in every.items() if top]
     recall = sum(shares) / len(shares) if shares else float("nan")
-    print(f"{n:<9} {name:<14} {'':>8} recall@k of every image's top k: {recall:.3f} (lowest {min(shares, default=float('nan')):.1f}, {len(shares)} queries)")
+    print(f"{n:<9} {name:<14} {'':>8} recall@k of every image's top k: {recall:.3f} (lowest {min(shares, default=float('nan')):.2f}, {len(shares)} queries)")
 PY
     done
     head -1 "$dir/queries.txt" >"$work/one.txt"

@@ -134,9 +134,11 @@ pub struct Args {
     #[arg(long, value_parser = vlad_clusters, long_help = vlad_help("centroids of the VLAD codebook stored with the map (0: none); queries are ranked against the map's images by their VLAD of the same level's descriptors", |(c, _)| c))]
     pub vlad_clusters: Option<usize>,
     /// Retrieval: lists of the image index stored over the rows the map ranks its images
-    /// with (format 1.3; 0: none; at most one per image). Default: from 2000 images, about
-    /// the square root of the image count, stored only where a query would then score at
-    /// most a quarter of the images; a query scores a few lists instead of every image.
+    /// with (format 1.3; 0: none; at most one per image), with each image's 16 neighbours
+    /// (1.4: the images sharing most points). Default: from 2000 images, about the square
+    /// root of the image count, stored only where a query would then score at most a
+    /// quarter of the images; a query scores a few lists and their best images' neighbours
+    /// instead of every image.
     #[arg(long, value_name = "LISTS", value_parser = index_lists)]
     pub index_lists: Option<usize>,
     /// Product-quantise every level into M one-byte codes per point (M dividing each level's

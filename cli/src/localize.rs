@@ -181,8 +181,9 @@ pub struct MatchArgs {
     #[arg(long, value_enum, default_value = "auto")]
     pub retrieval: RetrievalArg,
     /// Lists of the map's image index (format 1.3, maps of many images) a query scores
-    /// (default: the map's own, calibrated when it was converted); 0 scores every image, as
-    /// on maps without an index.
+    /// before it widens along the images' neighbours (1.4) (default: the map's own,
+    /// calibrated when it was converted); 0 scores every image, as on maps without an
+    /// index.
     #[arg(long, value_name = "LISTS")]
     pub retrieval_probe: Option<usize>,
     /// Lowe ratio for coarse matching, in (0, 1] (default: 0.95 on SFP maps, 0.9 on SIFT

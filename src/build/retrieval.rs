@@ -274,7 +274,11 @@ pub(crate) fn add_image_index(
             per_image: INDEX_NEIGHBOURS,
             rows: Cow::Borrowed(&rows),
         };
-        let (probe, recall, scored) = calibrated_search(
+        let Calibrated {
+            probe,
+            recall,
+            scored,
+        } = calibrated_search(
             &graph,
             &scores,
             &calibration,
@@ -283,6 +287,7 @@ pub(crate) fn add_image_index(
             &list_of,
             lists,
             k,
+            lists_asked.is_some(),
         );
         drop(scores);
         let stored = lists_asked.is_some() || scored * MAX_SCORED_SHARE <= images;
@@ -411,11 +416,16 @@ pub(crate) fn index_neighbours(
     Some(rows)
 }
 
+/// Tracks longer than this are left out of the neighbours' counts.
+const MAX_NEIGHBOUR_TRACK: usize = 128;
+
 /// Each image's `per_image` neighbours: the other images that share most points with it,
 /// most first (ties by the lower image), [`NO_NEIGHBOUR`] past the last; `[images ×
 /// per_image]`. Images that share points are what a query near one of them also sees, so
 /// their retrieval rows are each other's nearest. Time: the sum over points of their track
-/// lengths squared; memory: the visibility once more, turned point → images.
+/// lengths squared, tracks over [`MAX_NEIGHBOUR_TRACK`] left out (so at most that many
+/// steps an observation); memory: the visibility once more, turned point → images (4
+/// bytes an observation, 8 a point).
 pub(crate) fn covisible_neighbours(v: &ImageVisibility<'_>, per_image: usize) -> Vec<u32> {
     let images = v.offsets.len().saturating_sub(1);
     let entry = |i: usize| v.offsets[i] as usize..v.offsets[i + 1] as usize;
@@ -427,27 +437,35 @@ pub(crate) fn covisible_neighbours(v: &ImageVisibility<'_>, per_image: usize) ->
     for p in 0..v.n_points {
         starts[p + 1] += starts[p];
     }
-    let mut next = starts.clone();
+    // Filled from each point's end down, images last to first, so each track ends in image
+    // order and `starts` is left as each track's start (no second array of offsets).
     let mut seen_by = vec![0u32; v.points.len()];
-    for i in 0..images {
-        for &p in &v.points[entry(i)] {
-            seen_by[next[p as usize] as usize] = i as u32;
-            next[p as usize] += 1;
+    for p in 0..v.n_points {
+        starts[p] = starts[p + 1];
+    }
+    for i in (0..images).rev() {
+        for &p in v.points[entry(i)].iter().rev() {
+            starts[p as usize] -= 1;
+            seen_by[starts[p as usize] as usize] = i as u32;
         }
     }
-    drop(next);
     let mut rows = vec![NO_NEIGHBOUR; images * per_image];
     let mut shared = vec![0u32; images];
     let mut touched: Vec<u32> = Vec::new();
     for (i, row) in rows.chunks_exact_mut(per_image).enumerate() {
         for &p in &v.points[entry(i)] {
             let track = starts[p as usize] as usize..starts[p as usize + 1] as usize;
+            // A point every image sees says little about which are neighbours, and its
+            // pairs would cost the square of its track (a hostile model's million).
+            if track.len() > MAX_NEIGHBOUR_TRACK {
+                continue;
+            }
             for &j in &seen_by[track] {
                 if j as usize != i {
                     if shared[j as usize] == 0 {
                         touched.push(j);
                     }
-                    shared[j as usize] += 1;
+                    shared[j as usize] = shared[j as usize].saturating_add(1);
                 }
             }
         }
@@ -468,11 +486,24 @@ pub(crate) fn covisible_neighbours(v: &ImageVisibility<'_>, per_image: usize) ->
     rows
 }
 
+/// What the calibration of a search along the neighbours measured at one `probe`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Calibrated {
+    probe: usize,
+    /// The share of the calibration images' exhaustive top k the search found.
+    recall: f64,
+    /// Images a search scored, on average.
+    scored: usize,
+}
+
 /// The fewest lists a query probes (taken nearest centroid first, then on until it scored
 /// [`MIN_SCORED_PER_K`] images per image asked for, as the reference reader does) before it
 /// widens along the neighbours, for the calibration images to find [`CALIBRATION_RECALL`]
-/// of their exhaustive top `k`: (probe, the share found, the images scored on average).
-/// `scores` is `[calibration × images]`, each calibration image's own score −∞.
+/// of their exhaustive top `k`. `scores` is `[calibration × images]`, each calibration
+/// image's own score −∞. Probes are tried 1, 2, 4, … then bisected (about 2 log₂ lists
+/// searches per calibration image; the share found grows with the probe, near enough);
+/// without `lists_asked`, it stops at a probe that scores more than a quarter of the
+/// images, where no index is stored anyway.
 #[allow(clippy::too_many_arguments)]
 fn calibrated_search(
     graph: &Neighbours<'_>,
@@ -483,7 +514,8 @@ fn calibrated_search(
     list_of: &[u32],
     lists: usize,
     k: usize,
-) -> (usize, f64, usize) {
+    lists_asked: bool,
+) -> Calibrated {
     let images = list_of.len();
     let width = queries.len() / calibration.len().max(1);
     let mut members: Vec<Vec<u32>> = vec![Vec::new(); lists];
@@ -498,12 +530,13 @@ fn calibrated_search(
         })
         .collect();
     let min_scored = k.max(1) * MIN_SCORED_PER_K;
-    let mut last = (lists, 1.0, images);
-    for probe in 1..=lists {
+    let mut truth: BitVec = BitVec::repeat(false, images);
+    let mut scored: Vec<(u32, f32)> = Vec::new();
+    let mut measure = |probe: usize| -> Calibrated {
         let (mut found, mut scored_total) = (0usize, 0usize);
-        for (q, (order, truth)) in per_query.iter().enumerate() {
+        for (q, (order, top)) in per_query.iter().enumerate() {
             let row = &scores[q * images..(q + 1) * images];
-            let mut scored: Vec<(u32, f32)> = Vec::new();
+            scored.clear();
             for (probed, &l) in order.iter().enumerate() {
                 if probed >= probe && scored.len() >= min_scored {
                     break;
@@ -513,24 +546,48 @@ fn calibrated_search(
             graph.widen(&mut scored, images, k.max(1) * BEAM_PER_K, |picks| {
                 picks.iter().map(|&i| row[i as usize]).collect()
             });
-            let mut hit: BitVec = BitVec::repeat(false, images);
-            for &(i, _) in &scored {
-                hit.set(i as usize, true);
+            // Each image is scored once: count the top k among them.
+            for &i in top {
+                truth.set(i, true);
             }
-            found += truth.iter().filter(|&&i| hit[i]).count();
+            found += scored.iter().filter(|&&(i, _)| truth[i as usize]).count();
+            for &i in top {
+                truth.set(i, false);
+            }
             scored_total += scored.len();
         }
-        let asked = (per_query.len() * k).max(1);
-        let recall = found as f64 / asked as f64;
-        let scored = scored_total / per_query.len().max(1);
-        last = (probe, recall, scored);
-        // Past a quarter of the images scored, no index is stored unless asked for: the
-        // probe goes on only to be exact about what was asked.
-        if recall >= CALIBRATION_RECALL {
-            break;
+        Calibrated {
+            probe,
+            recall: found as f64 / (per_query.len() * k).max(1) as f64,
+            scored: scored_total / per_query.len().max(1),
+        }
+    };
+    let enough = |c: &Calibrated| c.recall >= CALIBRATION_RECALL;
+    let too_costly = |c: &Calibrated| !lists_asked && c.scored * MAX_SCORED_SHARE > images;
+    // Doubling: the first probe that holds the bar (or costs too much), and the last below.
+    let mut below = 0;
+    let mut at = measure(1);
+    while !enough(&at) && !too_costly(&at) && at.probe < lists {
+        below = at.probe;
+        at = measure((at.probe * 2).min(lists));
+    }
+    if !enough(&at) {
+        return at;
+    }
+    // Bisection between the last probe below the bar and the first at it.
+    let mut best = at;
+    let (mut lo, mut hi) = (below, best.probe);
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        let c = measure(mid);
+        if enough(&c) {
+            best = c;
+            hi = mid;
+        } else {
+            lo = mid;
         }
     }
-    last
+    best
 }
 
 /// The fewest lists that hold [`CALIBRATION_RECALL`] of the neighbours, from the rank of
@@ -685,6 +742,88 @@ mod tests {
         };
         assert_eq!(stated.shape(10_000, own).0, 0);
         assert_eq!(stated.shape(10_000, own).1, crate::vlad::LARGE_DIMS);
+    }
+
+    /// (1.4) Rows along a half circle (images along a street) in 20 lists of 20 in a row:
+    /// with each image's 4 nearest as neighbours, one list probed finds every calibration
+    /// image's top 10; lists alone need more.
+    #[test]
+    fn the_search_along_neighbours_is_calibrated_to_one_list() {
+        let (n, dim, lists) = (400usize, 4usize, 20usize);
+        let angle = |i: usize| i as f32 * std::f32::consts::PI / n as f32;
+        let rows: Vec<f32> = (0..n)
+            .flat_map(|i| [angle(i).cos(), angle(i).sin(), 0.0, 0.0])
+            .collect();
+        let list_of: Vec<u32> = (0..n).map(|i| (i / 20) as u32).collect();
+        let mut centroids = vec![0.0f32; lists * dim];
+        for (i, row) in rows.chunks_exact(dim).enumerate() {
+            for (c, r) in centroids[(i / 20) * dim..(i / 20 + 1) * dim]
+                .iter_mut()
+                .zip(row)
+            {
+                *c += r / 20.0;
+            }
+        }
+        let nearest = Nearest::new(&centroids, dim);
+        let mut graph = Vec::new();
+        for i in 0..n as i64 {
+            // The ±1 pair then the ±2 pair, those past the ends left out, end marks last.
+            let mut near: Vec<u32> = [-1i64, 1, -2, 2]
+                .iter()
+                .map(|d| i + d)
+                .filter(|j| (0..n as i64).contains(j))
+                .map(|j| j as u32)
+                .collect();
+            near.resize(4, NO_NEIGHBOUR);
+            graph.extend(near);
+        }
+        // The calibration images: every fourth, each one's own score −∞.
+        let calibration: Vec<usize> = (0..n).step_by(4).collect();
+        let queries: Vec<f32> = calibration
+            .iter()
+            .flat_map(|&i| rows[i * dim..(i + 1) * dim].to_vec())
+            .collect();
+        let mut scores = vec![0.0f32; calibration.len() * n];
+        for (q, &c) in calibration.iter().enumerate() {
+            for i in 0..n {
+                scores[q * n + i] =
+                    dot(&rows[c * dim..(c + 1) * dim], &rows[i * dim..(i + 1) * dim]);
+            }
+            scores[q * n + c] = f32::NEG_INFINITY;
+        }
+        let graph = Neighbours {
+            per_image: 4,
+            rows: Cow::Owned(graph),
+        };
+        let c = calibrated_search(
+            &graph,
+            &scores,
+            &calibration,
+            &nearest,
+            &queries,
+            &list_of,
+            lists,
+            10,
+            false,
+        );
+        assert_eq!((c.probe, c.recall), (1, 1.0), "{c:?}");
+        assert!(c.scored < 200, "{c:?}");
+        // Lists alone: a query near a list's end has its top 10 in two lists, and the
+        // second is not always next in its list order.
+        let mut ranks = Vec::new();
+        for (q, _) in calibration.iter().enumerate() {
+            let order = nearest.order(&queries[q * dim..(q + 1) * dim]);
+            let mut rank = vec![0usize; lists];
+            for (r, &l) in order.iter().enumerate() {
+                rank[l] = r;
+            }
+            ranks.extend(
+                top_k_indices(&scores[q * n..(q + 1) * n], 10)
+                    .into_iter()
+                    .map(|i| rank[list_of[i] as usize]),
+            );
+        }
+        assert!(calibrated_probe(&mut ranks, lists).0 > 1);
     }
 
     /// Image neighbours are the images sharing most points, most first, ties by the lower

@@ -239,6 +239,11 @@ fn convert_geometry(
         }
         None => None,
     };
+    // A map without features indexes its global descriptors, if any.
+    if neighbours.is_none() && global.is_some() {
+        neighbours =
+            super::retrieval::index_neighbours(geometry, options.vlad.index_lists, reporter);
+    }
     let geometry_only = aggregated.is_none();
     if let Some(path) = &options.global_features {
         sources.push(source_file(path, reporter)?);

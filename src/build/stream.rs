@@ -62,13 +62,13 @@ pub struct MemoryPlan {
 }
 
 /// What a conversion holds besides the open tracks, estimated from the model's counts:
-/// `first`, before the reads (the geometry, and (1.4) the visibility turned point → images
+/// `before_reads` (the geometry, and (1.4) the visibility turned point → images
 /// to find the image index's neighbours), `during` the reads of the features (the geometry,
 /// per-point arrays), and `after` them (the geometry, the retrieval rows and VLADs, sections
 /// the writer holds in memory).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct FixedCost {
-    pub first: u64,
+    pub before_reads: u64,
     pub during: u64,
     pub after: u64,
 }
@@ -106,19 +106,19 @@ impl FixedCost {
         };
         // (1.4) The image index's neighbours, found before the reads: the visibility turned
         // point → images (4 bytes an observation, 8 a point), the tracks' 8 bytes a point,
-        // a count an image; kept to the write, 4 bytes a neighbour.
-        let (finding, kept) =
+        // a count and a touched slot an image; kept to the write, 4 bytes a neighbour.
+        let (neighbour_search_bytes, neighbour_bytes) =
             if super::retrieval::index_wanted(g.names.len(), options.vlad.index_lists) {
                 let n = super::retrieval::INDEX_NEIGHBOURS as u64;
-                let finding = g.vis_points.len() as u64 * 4 + points * 16 + images * (4 + 4 * n);
-                (finding, images * 4 * n)
+                let search = g.vis_points.len() as u64 * 4 + points * 16 + images * (8 + 4 * n);
+                (search, images * 4 * n)
             } else {
                 (0, 0)
             };
         FixedCost {
-            first: geometry_bytes + finding,
-            during: geometry_bytes + per_point + kept,
-            after: geometry_bytes + per_point + vlad + held + kept,
+            before_reads: geometry_bytes + neighbour_search_bytes,
+            during: geometry_bytes + per_point + neighbour_bytes,
+            after: geometry_bytes + per_point + vlad + held + neighbour_bytes,
         }
     }
 }
@@ -285,7 +285,7 @@ fn plan(
         // The open points' rows and the spill's buffer while reading, the retrieval rows
         // after.
         let reading = fixed.during + worst + SPILL_BUFFER_BYTES as u64;
-        let peak = BASELINE_BYTES + reading.max(fixed.after).max(fixed.first);
+        let peak = BASELINE_BYTES + reading.max(fixed.after).max(fixed.before_reads);
         if peak <= budget {
             return Ok(MemoryPlan {
                 budget,
@@ -473,7 +473,7 @@ pub(crate) fn prepare(
     let budget = options.memory.unwrap_or_else(default_memory_budget);
     let mut fixed = FixedCost::of(geometry, options, dim);
     // Global descriptors (`--global-features`), held from before the reads to the write.
-    fixed.first += global_bytes;
+    fixed.before_reads += global_bytes;
     fixed.during += global_bytes;
     fixed.after += global_bytes;
     let memory = plan(
@@ -1038,7 +1038,7 @@ mod tests {
         let (g, _) = scene();
         let tracks = Tracks::new(&g);
         let fixed = FixedCost {
-            first: 500,
+            before_reads: 500,
             during: 1_000,
             after: 2_000,
         };
@@ -1119,7 +1119,7 @@ mod tests {
             "{err}"
         ); // What no number of reads lowers (the retrieval rows after the reads): one read.
         let heavy = FixedCost {
-            first: 500,
+            before_reads: 500,
             during: 1_000,
             after: 1 << 40,
         };
@@ -1137,5 +1137,24 @@ mod tests {
             panic!("{err}");
         };
         assert_eq!((needed, passes), (BASELINE_BYTES + (1 << 40), 1));
+        // (1.4) What is held before the reads (the neighbours' search) bounds the plan too.
+        let searching = FixedCost {
+            before_reads: 1 << 41,
+            ..fixed
+        };
+        let err = plan(
+            &tracks,
+            &g,
+            DIM,
+            Aggregate::Mean,
+            searching,
+            1 << 40,
+            Path::new("m"),
+        )
+        .unwrap_err();
+        let ConvertError::MemoryBudget { needed, .. } = err else {
+            panic!("{err}");
+        };
+        assert_eq!(needed, BASELINE_BYTES + (1 << 41));
     }
 }

@@ -10,9 +10,11 @@
 //!   kilometre.
 //! - **Database cameras** (PINHOLE 1024 × 768, f = 800) every 0.5 m along the street at eye
 //!   height, 4 views each (both façades, across and ahead): about 8 images a metre. Each sees
-//!   the façade points in front of it within 45 m, thinned to at most 1,400 observations (a
-//!   detector's budget); points seen by fewer than 2 images are dropped, as COLMAP would not
-//!   have triangulated them.
+//!   the façade points in front of it within 45 m and detects at most about 1,400 of them (a
+//!   detector's budget): a point is detected along a stretch of the street at its own phase,
+//!   so neighbouring images detect mostly the same points, as a real detector does (since
+//!   stop 47; before, each image kept a random share); points seen by fewer than 2 images
+//!   are dropped, as COLMAP would not have triangulated them.
 //! - **Descriptors**: 128-d, per point a base vector with a decaying PCA spectrum in a random
 //!   orthonormal basis; each observation adds noise, then SIFT's encoding (clamped at 0, L2 to
 //!   512, saturated to `u8`). Keypoint scales follow depth (a point's size over its depth).
@@ -92,9 +94,9 @@ pub struct StreetSummary {
 /// Writes the scene into `dir` (which must exist): `sparse/{cameras,images,points3D}.bin`,
 /// `database.db`, `queries.db`, `queries.txt`, `gt_poses.txt`, each through the atomic writer.
 ///
-/// In memory bounded by the points, not the observations: the points' positions (32 bytes
-/// each) and one bit each, plus what the cameras within [`MAX_DEPTH`] of the one being
-/// written see. Every view is made twice: once to count each point's observations (those
+/// In memory bounded by the points, not the observations: each point's position and size
+/// (28 bytes) and a bit (a count of 4 bytes while counting), plus what the cameras within
+/// [`MAX_DEPTH`] of the one being written see. Every view is made twice: once to count each point's observations (those
 /// seen by fewer than 2 images are dropped), once to write it; the model files and the
 /// database are written an image at a time, and a point's track once no later camera can
 /// see it.

@@ -209,7 +209,10 @@ fn open_and_read_once(data: &[u8]) {
             neighbours.widen(&mut scored, n, 4, |picks| {
                 picks.iter().map(|&i| (i % 7) as f32).collect()
             });
-            assert!(scored.len() <= n.max(1), "an image scored twice");
+            let mut seen: bitvec::vec::BitVec = bitvec::vec::BitVec::repeat(false, n.max(1));
+            for &(i, _) in &scored {
+                assert!(!seen.replace(i as usize, true), "image {i} scored twice");
+            }
         }
     }
     if let Ok(Some(vis)) = map.visibility() {

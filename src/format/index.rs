@@ -131,8 +131,8 @@ impl Neighbours<'_> {
         }
         let mut fresh = Vec::new();
         while let Some(r) = frontier.pop() {
-            // Pushed when among the best, since pushed out of them: then nothing after it
-            // in the frontier is among them either.
+            // Every frontier entry was in the beam when pushed; if the best left is below
+            // the beam's worst now, nothing after it is in the beam either.
             if best.len() >= beam && best.peek().is_some_and(|w| r < w.0) {
                 break;
             }
@@ -242,6 +242,18 @@ pub(crate) fn check_shapes<'s>(
     find: impl Fn(SectionKind) -> Option<&'s Section>,
     n_images: u64,
 ) -> Result<(), Error> {
+    // (1.4) Neighbours are checked whenever present (a map without the rest of the index
+    // does not use them, but `info` reports them).
+    if let Some(n) = find(SectionKind::ImageIndexNeighbours) {
+        if n.rows != n_images || n.cols == 0 || n.cols > MAX_NEIGHBOURS as u64 {
+            return Err(Error::inconsistent(format!(
+                "{} is {} x {}: expected one row per image ({n_images}) of 1 to {MAX_NEIGHBOURS} neighbours",
+                n.reference(),
+                n.rows,
+                n.cols
+            )));
+        }
+    }
     let Some(p) = parts(metadata, &find) else {
         return Ok(());
     };
@@ -275,16 +287,6 @@ pub(crate) fn check_shapes<'s>(
             p.images.reference(),
             p.images.rows
         )));
-    }
-    if let Some(n) = find(SectionKind::ImageIndexNeighbours) {
-        if n.rows != n_images || n.cols == 0 || n.cols > MAX_NEIGHBOURS as u64 {
-            return Err(Error::inconsistent(format!(
-                "{} is {} x {}: expected one row per image ({n_images}) of 1 to {MAX_NEIGHBOURS} neighbours",
-                n.reference(),
-                n.rows,
-                n.cols
-            )));
-        }
     }
     if p.rows.cols != p.centroids.cols {
         return Err(Error::inconsistent(format!(
@@ -326,12 +328,31 @@ pub(crate) fn check_contents(kind: SectionKind, bytes: &[u8], n_images: u64) -> 
             }
         }
         SectionKind::ImageIndexNeighbours => {
-            let bad = super::reader::cast::<u32>(bytes)
+            let values = super::reader::cast::<u32>(bytes);
+            let bad = values
                 .iter()
                 .find(|&&i| i != NO_NEIGHBOUR && u64::from(i) >= n_images)
                 .copied();
             if let Some(i) = bad {
                 return Err(format!("neighbour {i} is past the {n_images} images"));
+            }
+            // Rows of `rows / n_images` columns (checked at open): end marks only at the end.
+            let cols = values
+                .len()
+                .checked_div(n_images as usize)
+                .unwrap_or(0)
+                .max(1);
+            let gap = values.chunks(cols).position(|row| {
+                let end = row
+                    .iter()
+                    .position(|&n| n == NO_NEIGHBOUR)
+                    .unwrap_or(row.len());
+                row[end..].iter().any(|&n| n != NO_NEIGHBOUR)
+            });
+            if let Some(image) = gap {
+                return Err(format!(
+                    "image {image}'s neighbours go on after their end mark"
+                ));
             }
         }
         _ => {}
@@ -529,6 +550,8 @@ mod tests {
         // Up to 7's neighbours, 6 and 8, each scored once; the beam of two is 7 and 6 (the
         // lower of a tie), so 8 is not expanded and 9 never scored.
         assert_eq!(images, (0..9).collect::<Vec<_>>());
+        // One image's fresh neighbours at a time, in walk order: 1, 2, … 8.
+        assert_eq!(calls, (1..9).map(|i| vec![i]).collect::<Vec<_>>());
         // Toward 9, whose row lists 99: 9 is expanded, and 99 never scored.
         let mut scored = vec![(0u32, -9.0)];
         calls.clear();

@@ -411,3 +411,31 @@ fn image_neighbours_are_part_of_the_index() {
         .set_image_neighbours(vec![0; MAX_NEIGHBOURS + 1], MAX_NEIGHBOURS + 1)
         .is_err());
 }
+
+/// (1.4) A row whose neighbours go on after an end mark is refused where the index is read.
+#[test]
+fn neighbours_after_an_end_mark_are_refused() {
+    use sfpmap::format::NO_NEIGHBOUR;
+    let s = scene();
+    let v = vlad(&s);
+    let mut w = indexed(&s, &v, "vlad");
+    let rows = [1u32, 2, NO_NEIGHBOUR, 0, 0, 1];
+    w.add_raw_section(
+        SectionKind::ImageIndexNeighbours,
+        NO_LEVEL,
+        Dtype::U32,
+        3,
+        2,
+        false,
+        Cow::Owned(bytemuck::cast_slice(&rows).to_vec()),
+        None,
+    )
+    .unwrap();
+    let bytes = w.to_bytes().unwrap();
+    let map = Map::from_bytes(&bytes).unwrap();
+    let text = map.image_index().expect_err("refused").to_string();
+    assert!(
+        text.contains("image 1's neighbours go on after their end mark"),
+        "{text}"
+    );
+}
