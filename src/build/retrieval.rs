@@ -267,55 +267,84 @@ pub(crate) fn add_image_index(
         scores[q * images + i] = f32::NEG_INFINITY;
     }
     // (1.4) With each image's neighbours, queries widen along them: `probe` is calibrated on
-    // that search.
+    // that search; without, on the lists alone.
     let neighbours = neighbours.filter(|rows| rows.len() == images * INDEX_NEIGHBOURS);
-    if let Some(rows) = neighbours {
-        let graph = Neighbours {
-            per_image: INDEX_NEIGHBOURS,
-            rows: Cow::Borrowed(&rows),
-        };
-        let Calibrated {
-            probe,
-            recall,
-            scored,
-        } = calibrated_search(
-            &graph,
-            &scores,
-            &calibration,
-            &nearest,
-            &queries,
-            &list_of,
-            lists,
-            k,
-            lists_asked.is_some(),
-        );
-        drop(scores);
-        let stored = lists_asked.is_some() || scored * MAX_SCORED_SHARE <= images;
-        let outcome = ImageIndexSummary {
+    let calibrated = match &neighbours {
+        Some(rows) => {
+            let graph = Neighbours {
+                per_image: INDEX_NEIGHBOURS,
+                rows: Cow::Borrowed(rows),
+            };
+            calibrated_search(
+                &graph,
+                &scores,
+                &calibration,
+                &nearest,
+                &queries,
+                &list_of,
+                lists,
+                k,
+                lists_asked.is_some(),
+            )
+        }
+        None => calibrated_lists(&scores, &queries, &nearest, &list_of, lists, k),
+    };
+    drop(scores);
+    let Calibrated {
+        probe,
+        recall,
+        scored,
+    } = calibrated;
+    let stored = lists_asked.is_some() || scored * MAX_SCORED_SHARE <= images;
+    let outcome = ImageIndexSummary {
+        of,
+        lists,
+        probe,
+        recall,
+        scored,
+        stored,
+    };
+    if stored {
+        let with_neighbours = neighbours.is_some();
+        let info = index_info(
             of,
-            lists,
             probe,
+            calibration.len(),
+            k,
             recall,
             scored,
-            stored,
-        };
-        if stored {
-            let info = index_info(of, probe, calibration.len(), k, recall, scored, true);
-            writer.set_image_index(info, centroids, width, &list_of)?;
+            with_neighbours,
+        );
+        writer.set_image_index(info, centroids, width, &list_of)?;
+        if let Some(rows) = neighbours {
             writer.set_image_neighbours(rows, INDEX_NEIGHBOURS)?;
         }
-        return Ok(Some(outcome));
     }
+    Ok(Some(outcome))
+}
 
+/// The fewest lists that hold [`CALIBRATION_RECALL`] of the calibration images' exhaustive
+/// top `k` (`scores` `[calibration × images]`, each one's own −∞), taken nearest centroid
+/// first, and the images those lists hold on average.
+fn calibrated_lists(
+    scores: &[f32],
+    queries: &[f32],
+    nearest: &Nearest,
+    list_of: &[u32],
+    lists: usize,
+    k: usize,
+) -> Calibrated {
+    let images = list_of.len();
+    let width = queries.len() / (scores.len() / images.max(1)).max(1);
     // Per calibration image: where its exhaustive top k's lists come in its list order (the
     // order a query probes them in), and the images its lists hold in that order.
     let mut list_sizes = vec![0usize; lists];
-    for &l in &list_of {
+    for &l in list_of {
         list_sizes[l as usize] += 1;
     }
     let mut ranks_needed: Vec<usize> = Vec::new();
     let mut images_by_rank: Vec<Vec<usize>> = Vec::new();
-    for (q, query) in queries.chunks_exact(width).enumerate() {
+    for (q, query) in queries.chunks_exact(width.max(1)).enumerate() {
         let row_scores = &scores[q * images..(q + 1) * images];
         let order = nearest.order(query);
         let mut list_rank = vec![0usize; lists];
@@ -329,7 +358,6 @@ pub(crate) fn add_image_index(
                 .map(|i| list_rank[list_of[i] as usize]),
         );
     }
-    drop(scores);
     let (probe, recall) = calibrated_probe(&mut ranks_needed, lists);
     // What a query of them scores with that probe: lists are uneven, so counted in images.
     let scored = images_by_rank
@@ -338,21 +366,11 @@ pub(crate) fn add_image_index(
         .sum::<usize>()
         .checked_div(images_by_rank.len())
         .unwrap_or(images);
-    let stored = lists_asked.is_some() || scored * MAX_SCORED_SHARE <= images;
-    let outcome = ImageIndexSummary {
-        of,
-        lists,
+    Calibrated {
         probe,
         recall,
         scored,
-        stored,
-    };
-    if !stored {
-        return Ok(Some(outcome));
     }
-    let info = index_info(of, probe, calibration.len(), k, recall, scored, false);
-    writer.set_image_index(info, centroids, width, &list_of)?;
-    Ok(Some(outcome))
 }
 
 /// The metadata `image_index`: `probe`, the rule, and what the calibration measured.
