@@ -5,7 +5,8 @@
 # and localize with both maps (1 thread, after features; medians): the brute-force path
 # (--retrieval off, every point a candidate) side by side with retrieval ranking every
 # image (--retrieval-probe 0) and retrieval as the map says (its image index, where it has
-# one; a line gives the share of every image's top k it retrieved, recall@k), and the walk
+# one; a line gives the share of every image's top k it retrieved, recall@k, from one more
+# untimed run of each with --format json), and the walk
 # (sequence.txt) with --sequence. Prints ms per query, queries within 0.5 m and 2°, map
 # bytes and localize's peak RSS; then open to first pose: a fresh process that opens the map,
 # builds the localizer and localizes the first query, 5 runs, the median of the three times

@@ -107,7 +107,7 @@ pub fn write_street(dir: &Path, options: &StreetOptions) -> Result<StreetSummary
 
     let mut track_len = vec![0u32; scene.positions.len()];
     for pose in &poses {
-        for (p, _, _) in scene.detected(pose, MAX_OBSERVATIONS, |_| true) {
+        for (p, _, _) in scene.database_view(pose) {
             track_len[p as usize] += 1;
         }
     }
@@ -146,7 +146,7 @@ pub fn write_street(dir: &Path, options: &StreetOptions) -> Result<StreetSummary
         bases.forget_before(first_open);
 
         let id = i as u32 + 1;
-        let view = scene.detected(pose, MAX_OBSERVATIONS, |_| true);
+        let view = scene.database_view(pose);
         let mut points2d = Vec::with_capacity(view.len());
         let mut keypoints = Vec::with_capacity(view.len());
         let mut descriptors = Vec::with_capacity(view.len() * DIM);
@@ -201,6 +201,9 @@ struct ModelFile {
     path: std::path::PathBuf,
     file: AtomicFile,
     record: Vec<u8>,
+    /// Records the count at the file's start promised, and those added.
+    promised: usize,
+    added: usize,
 }
 
 impl ModelFile {
@@ -212,6 +215,8 @@ impl ModelFile {
             path: path.to_path_buf(),
             file,
             record: Vec::new(),
+            promised: count,
+            added: 0,
         })
     }
 
@@ -219,12 +224,20 @@ impl ModelFile {
     fn add(&mut self, encode: impl FnOnce(&mut Vec<u8>)) -> Result<(), Error> {
         self.record.clear();
         encode(&mut self.record);
+        self.added += usize::from(!self.record.is_empty());
         self.file
             .write_all(&self.record)
             .map_err(|e| crate::output::OutputError::cannot_write(&self.path, e).into())
     }
 
+    /// Renames the file over its target, if it holds the records its count promised (the
+    /// count comes from the first pass over the views, the records from the second).
     fn commit(self) -> Result<(), Error> {
+        if self.added != self.promised {
+            let why = format!("{} records for a count of {}", self.added, self.promised);
+            let e = std::io::Error::new(std::io::ErrorKind::InvalidData, why);
+            return Err(crate::output::OutputError::cannot_write(&self.path, e).into());
+        }
         Ok(self.file.commit()?)
     }
 }
@@ -422,6 +435,11 @@ impl Street {
                     .then_some((p as u32, xy, c.z))
             })
             .collect()
+    }
+
+    /// What a database camera at `pose` detects (both passes over the views call this one).
+    fn database_view(&self, pose: &Pose) -> Vec<(u32, [f64; 2], f64)> {
+        self.detected(pose, MAX_OBSERVATIONS, |_| true)
     }
 
     /// What a camera at `pose` detects: of the points it sees for which `wanted` holds, at
