@@ -344,6 +344,117 @@ impl Nearest {
     }
 }
 
+/// [`Nearest::scores`] and [`Nearest::order`] over centroids held in f16 (each rounded once,
+/// its `−‖c‖²/2` from the rounded values): half the bytes a query reads. The localizer ranks
+/// an image index's lists with it: 3,348 centroids of 1,024 values are 13.7 MB in f32, and
+/// reading them was most of a query's retrieval on the 10 M-point street. The order of lists
+/// decides which images a query scores (its recall), never a score.
+#[cfg(feature = "localize")]
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct NearestF16 {
+    dims: usize,
+    clusters: usize,
+    /// `[blocks × dims × LANES]` f16 bits, the last block padded with zeros.
+    blocks: Vec<u16>,
+    /// `−‖c‖²/2` per centroid; `−∞` for the padding.
+    minus_half_norms: Vec<f32>,
+}
+
+#[cfg(feature = "localize")]
+impl NearestF16 {
+    /// From centroids `[clusters × dims]` (a partial last row is ignored).
+    pub(crate) fn new(centroids: &[f32], dims: usize) -> NearestF16 {
+        let clusters = centroids.len().checked_div(dims).unwrap_or(0);
+        let padded = clusters.div_ceil(LANES) * LANES;
+        let mut blocks = vec![0u16; padded * dims];
+        let mut minus_half_norms = vec![f32::NEG_INFINITY; padded];
+        for (c, centroid) in centroids.chunks_exact(dims.max(1)).enumerate() {
+            let (block, lane) = (c / LANES, c % LANES);
+            minus_half_norms[c] = 0.0;
+            for (d, &v) in centroid.iter().enumerate() {
+                let h = half::f16::from_f32(v);
+                blocks[(block * dims + d) * LANES + lane] = h.to_bits();
+                let v = h.to_f32();
+                minus_half_norms[c] -= 0.5 * v * v;
+            }
+        }
+        NearestF16 {
+            dims,
+            clusters,
+            blocks,
+            minus_half_norms,
+        }
+    }
+
+    /// Every centroid's `x·c − ‖c‖²/2`, in centroid order (`x`: `dims` values, a shorter one
+    /// scores only its own), summed in four sums over the dimensions (`d mod 4`), each sum
+    /// multiplied and added in order (no FMA), added `(s0 + s1) + (s2 + s3)`: the AVX path
+    /// and the portable one give the same bits.
+    pub(crate) fn scores(&self, x: &[f32]) -> Vec<f32> {
+        let used = x.len().min(self.dims);
+        let mut out = Vec::with_capacity(self.minus_half_norms.len());
+        if self.dims == 0 {
+            out.resize(self.clusters, 0.0);
+            return out;
+        }
+        #[cfg(target_arch = "x86_64")]
+        let done = avx::scores_f16(
+            &self.blocks,
+            &self.minus_half_norms,
+            self.dims,
+            &x[..used],
+            &mut out,
+        );
+        #[cfg(not(target_arch = "x86_64"))]
+        let done = false;
+        if !done {
+            scores_f16_portable(
+                &self.blocks,
+                &self.minus_half_norms,
+                self.dims,
+                &x[..used],
+                &mut out,
+            );
+        }
+        out.truncate(self.clusters);
+        out
+    }
+
+    /// The centroids nearest to `x` first, as [`Nearest::order`].
+    #[cfg(test)]
+    pub(crate) fn order(&self, x: &[f32]) -> Vec<usize> {
+        let mut scores = self.scores(x);
+        ranked_last_if_not_finite(&mut scores);
+        top_k_indices(&scores, self.clusters)
+    }
+}
+
+/// [`NearestF16::scores`] without AVX (and its reference: the same sums in the same order).
+#[cfg(feature = "localize")]
+fn scores_f16_portable(
+    blocks: &[u16],
+    minus_half_norms: &[f32],
+    dims: usize,
+    x: &[f32],
+    out: &mut Vec<f32>,
+) {
+    for (block, halves) in blocks
+        .chunks_exact(dims * LANES)
+        .zip(minus_half_norms.chunks_exact(LANES))
+    {
+        let mut acc = [[0.0f32; LANES]; 4];
+        for (d, &v) in x.iter().enumerate() {
+            let lanes = &block[d * LANES..(d + 1) * LANES];
+            for l in 0..LANES {
+                acc[d % 4][l] += v * half::f16::from_bits(lanes[l]).to_f32();
+            }
+        }
+        for l in 0..LANES {
+            out.push((acc[0][l] + acc[1][l]) + (acc[2][l] + acc[3][l]) + halves[l]);
+        }
+    }
+}
+
 /// Rows [`Nearest::find_each`] scores together: four sums, four running bests and four best
 /// blocks stay in 12 of AVX's 16 registers.
 #[cfg(feature = "colmap-model")]
@@ -404,6 +515,66 @@ fn nearest_in_blocks(x: &[f32], dims: usize, blocks: &[f32], minus_half_norms: &
 mod avx {
     use super::LANES;
     use std::arch::x86_64::*;
+
+    /// [`super::NearestF16::scores`] with AVX and F16C (`x` at most `dims` values); false,
+    /// with nothing pushed, without them. Panics if the blocks do not hold `dims` columns for
+    /// every norm.
+    #[cfg(feature = "localize")]
+    pub(super) fn scores_f16(
+        blocks: &[u16],
+        minus_half_norms: &[f32],
+        dims: usize,
+        x: &[f32],
+        out: &mut Vec<f32>,
+    ) -> bool {
+        if !(std::arch::is_x86_feature_detected!("avx")
+            && std::arch::is_x86_feature_detected!("f16c"))
+        {
+            return false;
+        }
+        assert!(x.len() <= dims && minus_half_norms.len() % LANES == 0);
+        assert!(blocks.len() >= minus_half_norms.len() * dims);
+        // SAFETY: AVX and F16C are present (checked above); the asserts are the bounds the
+        // function's reads rely on.
+        unsafe { scores_f16_avx(blocks, minus_half_norms, dims, x, out) };
+        true
+    }
+
+    /// # Safety
+    /// AVX and F16C must be present; the arguments as [`scores_f16`] asserts.
+    #[cfg(feature = "localize")]
+    #[target_feature(enable = "avx,f16c")]
+    unsafe fn scores_f16_avx(
+        blocks: &[u16],
+        minus_half_norms: &[f32],
+        dims: usize,
+        x: &[f32],
+        out: &mut Vec<f32>,
+    ) {
+        for b in 0..minus_half_norms.len() / LANES {
+            let mut acc = [_mm256_setzero_ps(); 4];
+            for (d, &v) in x.iter().enumerate() {
+                // SAFETY: (b·dims + d)·LANES + LANES ≤ blocks.len(), as d < x.len() ≤ dims and
+                // b < minus_half_norms.len() / LANES (asserted by the caller).
+                let lanes = unsafe {
+                    _mm256_cvtph_ps(_mm_loadu_si128(
+                        blocks.as_ptr().add((b * dims + d) * LANES) as *const __m128i
+                    ))
+                };
+                acc[d % 4] = _mm256_add_ps(acc[d % 4], _mm256_mul_ps(_mm256_set1_ps(v), lanes));
+            }
+            let sum = _mm256_add_ps(_mm256_add_ps(acc[0], acc[1]), _mm256_add_ps(acc[2], acc[3]));
+            let mut lanes = [0.0f32; LANES];
+            // SAFETY: `lanes` holds LANES f32.
+            unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), sum) };
+            for (l, &h) in lanes
+                .iter()
+                .zip(&minus_half_norms[b * LANES..(b + 1) * LANES])
+            {
+                out.push(l + h);
+            }
+        }
+    }
 
     /// The nearest centroid (before clamping) of each of `xs`, scoring their first `used`
     /// values, or `None` without AVX. Panics if an `x` is shorter than `used`, `used`
@@ -494,6 +665,51 @@ mod avx {
 #[cfg(all(test, feature = "colmap-model"))]
 mod tests {
     use super::*;
+
+    /// [`NearestF16::scores`] gives the portable loop's bits on the AVX path (every cluster
+    /// count, full and partial blocks, short rows), each within f16 rounding of the f32
+    /// scores, and orders as [`Nearest`] does where no two centroids are near a tie.
+    #[cfg(feature = "localize")]
+    #[test]
+    fn f16_list_scores_are_the_portable_loop_s_bits() {
+        let mut rng = crate::geometry::SplitMix64::new(9);
+        for (clusters, dims) in [(3348usize, 64usize), (13, 7), (1, 4), (9, 1)] {
+            let centroids: Vec<f32> = (0..clusters * dims)
+                .map(|_| rng.next_f64() as f32 - 0.5)
+                .collect();
+            let half = NearestF16::new(&centroids, dims);
+            let exact = Nearest::new(&centroids, dims);
+            for used in [dims, dims.div_ceil(2)] {
+                let x: Vec<f32> = (0..used).map(|_| rng.next_f64() as f32 - 0.5).collect();
+                let got = half.scores(&x);
+                let mut portable = Vec::new();
+                scores_f16_portable(
+                    &half.blocks,
+                    &half.minus_half_norms,
+                    dims,
+                    &x,
+                    &mut portable,
+                );
+                portable.truncate(clusters);
+                assert_eq!(
+                    got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    portable.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    "{clusters} × {dims}, {used} used"
+                );
+                let f32_scores = exact.scores(&x);
+                for (a, b) in got.iter().zip(&f32_scores) {
+                    assert!((a - b).abs() < 1e-2 * dims as f32, "{a} vs {b}");
+                }
+            }
+        }
+        // Centroids far apart order the same in f16 as in f32.
+        let centroids = [1.0f32, 0.0, 0.0, 1.0, -1.0, 0.0, 0.7, 0.7];
+        let x = [0.9f32, 0.1];
+        assert_eq!(
+            NearestF16::new(&centroids, 2).order(&x),
+            Nearest::new(&centroids, 2).order(&x)
+        );
+    }
 
     /// [`Nearest::find`] is the first maximum of `−‖c‖²/2 + x₀c₀ + x₁c₁ + …` summed in that
     /// order, bit for bit, for cluster counts that do and do not fill the last block, with

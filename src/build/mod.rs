@@ -34,6 +34,8 @@ pub(crate) mod features;
 pub(crate) mod geometry;
 #[cfg(feature = "colmap")]
 mod kapture;
+#[cfg(feature = "colmap")]
+mod places;
 pub mod pq;
 #[cfg(feature = "colmap")]
 mod retrieval;

@@ -3,6 +3,7 @@
 //! (1.3) the image index over the rows the map retrieves with, on maps of many images.
 
 use super::geometry::Geometry;
+use super::places::{merge_undirected, place_centroids, place_lists, PLACE_IMAGES};
 use crate::format::index::{BEAM_PER_K, MIN_SCORED_PER_K};
 use crate::format::{Dtype, ImageIndexInfo, MapWriter, Neighbours, Retrieval, NO_NEIGHBOUR};
 use crate::geometry::SplitMix64;
@@ -155,14 +156,14 @@ const CALIBRATION_RECALL: f64 = 0.99;
 /// The seed of the index's sample and k-means.
 const INDEX_SEED: u64 = 0x1df_5eed;
 
-/// How the index is built and `probe` chosen, in words (the metadata `image_index.rule`).
-fn index_rule(neighbours: bool) -> String {
-    let lists = format!("k-means++ then Lloyd ({INDEX_ITERATIONS} iterations at most, seeded) on at most {INDEX_MAX_TRAIN} rows; each image in the list of its nearest centroid");
+/// How the index is built and `probe` chosen, in words (the metadata `image_index.rule`):
+/// `places`, the images a place was grown to where the lists are places (1.4, with
+/// neighbours), else k-means lists.
+fn index_rule(places: Option<usize>) -> String {
     let top = crate::format::DEFAULT_RETRIEVAL_TOP_K;
-    if neighbours {
-        format!("{lists}; neighbours: the {INDEX_NEIGHBOURS} images sharing most points with each; probe: the fewest lists, taken nearest centroid first (and on to {MIN_SCORED_PER_K} images per image asked for), from whose best a search along the neighbours (a beam of {BEAM_PER_K} per image asked for) finds {CALIBRATION_RECALL} of the exhaustive top {top} (itself left out) of up to {CALIBRATION_IMAGES} of the map's images")
-    } else {
-        format!("{lists}; probe: the fewest lists, taken nearest centroid first, that hold {CALIBRATION_RECALL} of the exhaustive top {top} (itself left out) of up to {CALIBRATION_IMAGES} of the map's images")
+    match places {
+        Some(size) => format!("neighbours: the {INDEX_NEIGHBOURS} images sharing most points with each; lists: places grown breadth first along the neighbours from the first image not placed, up to {size} images, a place under a quarter of that merged into its images' first neighbour's; centroids: each list's mean row, unit length; probe: the fewest lists from {QUERY_MIN_PROBE}, taken nearest centroid first (and on to {MIN_SCORED_PER_K} images per image asked for), from whose best a search along the neighbours (a beam of {BEAM_PER_K} per image asked for) finds {CALIBRATION_RECALL} of the exhaustive top {top} (itself left out) of up to {CALIBRATION_IMAGES} of the map's images"),
+        None => format!("k-means++ then Lloyd ({INDEX_ITERATIONS} iterations at most, seeded) on at most {INDEX_MAX_TRAIN} rows; each image in the list of its nearest centroid; probe: the fewest lists, taken nearest centroid first, that hold {CALIBRATION_RECALL} of the exhaustive top {top} (itself left out) of up to {CALIBRATION_IMAGES} of the map's images"),
     }
 }
 
@@ -208,9 +209,12 @@ pub(crate) fn add_image_index(
         return Ok(None);
     }
     let row = |i: usize| &bytes[i * row_bytes..(i + 1) * row_bytes];
+    let neighbours = neighbours.filter(|rows| rows.len() == images * INDEX_NEIGHBOURS);
+    // The images a place is grown to: a list's share of the images where lists are asked for.
+    let place_size = lists_asked.map_or(PLACE_IMAGES, |l| images.div_ceil(l.max(1)));
 
-    // A seeded sample learns the centroids; the calibration images measure, drawn past the
-    // sample when the map has the images for both.
+    // A seeded sample learns the centroids (k-means lists); the calibration images measure,
+    // drawn past the sample when the map has the images for both.
     let mut rng = SplitMix64::new(INDEX_SEED);
     let mut order: Vec<usize> = (0..images).collect();
     let take = images.min(INDEX_MAX_TRAIN + CALIBRATION_IMAGES);
@@ -218,23 +222,44 @@ pub(crate) fn add_image_index(
         let j = i + (rng.next_u64() % (images - i) as u64) as usize;
         order.swap(i, j);
     }
-    let train = &order[..images.min(INDEX_MAX_TRAIN)];
-    let mut sample = vec![0.0f32; train.len() * width];
-    for (&i, out) in train.iter().zip(sample.chunks_exact_mut(width)) {
-        unit_row(row(i), out);
-    }
-    reporter.start("image index", None);
-    let centroids = KMeans {
-        clusters: lists,
-        max_train: INDEX_MAX_TRAIN,
-        iterations: INDEX_ITERATIONS,
-        seed: INDEX_SEED,
-    }
-    .train(&sample, width);
-    reporter.finish();
-    drop(sample);
-    let Some(centroids) = centroids else {
-        return Ok(None);
+    // (1.4) With each image's neighbours, lists are places grown along them, each image's
+    // list known before its row is read again; without, k-means lists, each image's found
+    // in the pass below.
+    let (centroids, placed, lists) = match &neighbours {
+        Some(rows) => {
+            let graph = Neighbours {
+                per_image: INDEX_NEIGHBOURS,
+                rows: Cow::Borrowed(rows),
+            };
+            reporter.start("image index places", None);
+            let (mut list_of, lists) = place_lists(&graph, images, place_size);
+            let mut centroids =
+                place_centroids(&list_of, lists, width, |i, out| unit_row(row(i), out));
+            let lists = merge_undirected(&mut list_of, &mut centroids, width);
+            reporter.finish();
+            (centroids, Some(list_of), lists)
+        }
+        None => {
+            let train = &order[..images.min(INDEX_MAX_TRAIN)];
+            let mut sample = vec![0.0f32; train.len() * width];
+            for (&i, out) in train.iter().zip(sample.chunks_exact_mut(width)) {
+                unit_row(row(i), out);
+            }
+            reporter.start("image index", None);
+            let centroids = KMeans {
+                clusters: lists,
+                max_train: INDEX_MAX_TRAIN,
+                iterations: INDEX_ITERATIONS,
+                seed: INDEX_SEED,
+            }
+            .train(&sample, width);
+            reporter.finish();
+            drop(sample);
+            let Some(centroids) = centroids else {
+                return Ok(None);
+            };
+            (centroids, None, lists)
+        }
     };
     let calibration: Vec<usize> = order[take - images.min(CALIBRATION_IMAGES)..take].to_vec();
     let mut queries = vec![0.0f32; calibration.len() * width];
@@ -242,16 +267,18 @@ pub(crate) fn add_image_index(
         unit_row(row(i), out);
     }
 
-    // One pass over the rows: each image's list, and its score against each calibration
-    // image (`[calibration × images]`).
+    // One pass over the rows: each image's score against each calibration image
+    // (`[calibration × images]`), and its k-means list.
     reporter.start("image index lists", Some(images as u64));
     let nearest = Nearest::new(&centroids, width);
-    let mut list_of = vec![0u32; images];
+    let mut list_of = placed.unwrap_or_else(|| vec![0u32; images]);
     let mut scores = vec![0.0f32; calibration.len() * images];
     let mut buffer = vec![0.0f32; width];
     for (i, list) in list_of.iter_mut().enumerate() {
         unit_row(row(i), &mut buffer);
-        *list = nearest.find(&buffer) as u32;
+        if neighbours.is_none() {
+            *list = nearest.find(&buffer) as u32;
+        }
         for (q, query) in queries.chunks_exact(width).enumerate() {
             scores[q * images + i] = dot(&buffer, query);
         }
@@ -268,7 +295,6 @@ pub(crate) fn add_image_index(
     }
     // (1.4) With each image's neighbours, queries widen along them: `probe` is calibrated on
     // that search; without, on the lists alone.
-    let neighbours = neighbours.filter(|rows| rows.len() == images * INDEX_NEIGHBOURS);
     let calibrated = match &neighbours {
         Some(rows) => {
             let graph = Neighbours {
@@ -285,6 +311,7 @@ pub(crate) fn add_image_index(
                 lists,
                 k,
                 lists_asked.is_some(),
+                QUERY_MIN_PROBE,
             )
         }
         None => calibrated_lists(&scores, &queries, &nearest, &list_of, lists, k),
@@ -305,16 +332,8 @@ pub(crate) fn add_image_index(
         stored,
     };
     if stored {
-        let with_neighbours = neighbours.is_some();
-        let info = index_info(
-            of,
-            probe,
-            calibration.len(),
-            k,
-            recall,
-            scored,
-            with_neighbours,
-        );
+        let places = neighbours.as_ref().map(|_| place_size);
+        let info = index_info(of, probe, calibration.len(), k, recall, scored, places);
         writer.set_image_index(info, centroids, width, &list_of)?;
         if let Some(rows) = neighbours {
             writer.set_image_neighbours(rows, INDEX_NEIGHBOURS)?;
@@ -381,10 +400,10 @@ fn index_info(
     k: usize,
     recall: f64,
     scored: usize,
-    neighbours: bool,
+    places: Option<usize>,
 ) -> ImageIndexInfo {
     let mut extra = serde_json::Map::new();
-    extra.insert("rule".into(), json!(index_rule(neighbours)));
+    extra.insert("rule".into(), json!(index_rule(places)));
     extra.insert(
         "calibration".into(),
         json!({"images": images, "top_k": k, "recall": recall, "scored": scored}),
@@ -514,7 +533,14 @@ struct Calibrated {
     scored: usize,
 }
 
-/// The fewest lists a query probes (taken nearest centroid first, then on until it scored
+/// The lists a query probes with neighbours at least (all of them where there are fewer): a
+/// map's own rows find their neighbours from the one nearest place, but a query's row is of
+/// a partial view and features the map does not have, and on the 10 M-point street the
+/// queries needed 4 places of 48 images to find every image sharing points with them.
+/// Twice that is about 400 images scored, a tenth of a millisecond.
+const QUERY_MIN_PROBE: usize = 8;
+
+/// The fewest lists, from `least` on (the writer's: [`QUERY_MIN_PROBE`]), a query probes (taken nearest centroid first, then on until it scored
 /// [`MIN_SCORED_PER_K`] images per image asked for, as the reference reader does) before it
 /// widens along the neighbours, for the calibration images to find [`CALIBRATION_RECALL`]
 /// of their exhaustive top `k`. `scores` is `[calibration × images]`, each calibration
@@ -533,6 +559,7 @@ fn calibrated_search(
     lists: usize,
     k: usize,
     lists_asked: bool,
+    least: usize,
 ) -> Calibrated {
     let images = list_of.len();
     let width = queries.len() / calibration.len().max(1);
@@ -582,9 +609,11 @@ fn calibrated_search(
     };
     let enough = |c: &Calibrated| c.recall >= CALIBRATION_RECALL;
     let too_costly = |c: &Calibrated| !lists_asked && c.scored * MAX_SCORED_SHARE > images;
-    // Doubling: the first probe that holds the bar (or costs too much), and the last below.
-    let mut below = 0;
-    let mut at = measure(1);
+    // Doubling from the least probe: the first that holds the bar (or costs too much), and
+    // the last below.
+    let least = least.min(lists).max(1);
+    let mut below = least - 1;
+    let mut at = measure(least);
     while !enough(&at) && !too_costly(&at) && at.probe < lists {
         below = at.probe;
         at = measure((at.probe * 2).min(lists));
@@ -823,9 +852,27 @@ mod tests {
             lists,
             10,
             false,
+            1,
         );
         assert_eq!((c.probe, c.recall), (1, 1.0), "{c:?}");
         assert!(c.scored < 200, "{c:?}");
+        // From a least probe on, that is the probe where it holds the bar.
+        let search = |least| {
+            calibrated_search(
+                &graph,
+                &scores,
+                &calibration,
+                &nearest,
+                &queries,
+                &list_of,
+                lists,
+                10,
+                false,
+                least,
+            )
+        };
+        assert_eq!(search(QUERY_MIN_PROBE).probe, QUERY_MIN_PROBE);
+        assert_eq!(search(lists + 5).probe, lists, "at most every list");
         // Lists alone: a query near a list's end has its top 10 in two lists, and the
         // second is not always next in its list order.
         let mut ranks = Vec::new();

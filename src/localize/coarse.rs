@@ -57,7 +57,8 @@ enum Tier {
     Few,
     /// All retrieved images' points (sampled keypoints).
     Retrieved,
-    /// The points of `WIDER_RETRIEVAL[i] × top_k` images (sampled keypoints).
+    /// The points of the best `WIDER_RETRIEVAL[i] × top_k` images, every image ranked (not
+    /// through the map's image index, which may have missed this query; sampled keypoints).
     Wider(usize),
     /// The widest candidates so far with every keypoint, if a tier sampled them.
     AllKeypoints,

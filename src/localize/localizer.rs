@@ -911,7 +911,8 @@ impl<'m> Localizer<'m> {
         })
     }
 
-    /// The points the `k` best retrieved images see (`None`: no retrieval, or every point).
+    /// The points the `k` best images see, every image ranked (the wider nets, after the
+    /// retrieved images gave no pose; `None`: no retrieval, or every point).
     pub(super) fn retrieved_points(
         &self,
         query: &QueryFeatures,
@@ -920,9 +921,9 @@ impl<'m> Localizer<'m> {
         let Some(visibility) = self.visibility.as_ref() else {
             return Ok(None);
         };
-        let (images, ranked) = self
-            .retrieval
-            .retrieve(query, self.map.n_images() as usize, k);
+        let (images, ranked) =
+            self.retrieval
+                .retrieve_every(query, self.map.n_images() as usize, k);
         if ranked.is_err() {
             return Ok(None);
         }

@@ -141,7 +141,7 @@ fn a_small_street_converts_and_every_query_localizes() {
     assert_eq!(tracked, 5, "every frame after the first is tracked");
 }
 
-/// (1.3) An image index asked for on a small street (96 images, 12 lists): with every list
+/// (1.3) An image index asked for on a small street (96 images, about 12 lists): with every list
 /// probed, each query retrieves what ranking every image retrieves, and with the map's own
 /// probe every query still localizes within the bar. (Which images a probe scores is the
 /// unit tests' of `localize::retrieval`.)
@@ -163,13 +163,16 @@ fn an_image_index_probed_whole_ranks_as_every_image_and_its_probe_localizes() {
     )
     .unwrap();
     let index = converted.index.expect("an index asked for");
+    // Lists are places grown along the image neighbours to 96 / 12 = 8 images: about 12
+    // (a short place left at a street's end joins its neighbour's).
     assert!(
-        index.stored && index.lists == 12 && index.of == Retrieval::Vlad,
+        index.stored && (9..=12).contains(&index.lists) && index.of == Retrieval::Vlad,
         "{index:?}"
     );
     let map = Map::open(&map_path).unwrap();
     let stored = map.image_index().unwrap().unwrap();
-    assert_eq!((stored.lists(), stored.probe), (12, index.probe));
+    assert_eq!((stored.lists(), stored.probe), (index.lists, index.probe));
+    assert!(stored.neighbours.is_some());
 
     let queries = read_query_list(&dir.path().join("queries.txt"), None).unwrap();
     let truth = read_poses(&dir.path().join("gt_poses.txt")).unwrap();
@@ -183,7 +186,11 @@ fn an_image_index_probed_whole_ranks_as_every_image_and_its_probe_localizes() {
         };
         Localizer::new(&map, options).unwrap()
     };
-    let (exhaustive, whole, own) = (localizer(Some(0)), localizer(Some(12)), localizer(None));
+    let (exhaustive, whole, own) = (
+        localizer(Some(0)),
+        localizer(Some(index.lists)),
+        localizer(None),
+    );
     for (query, (name, gt)) in queries.iter().zip(&truth) {
         let f = features.features(name).unwrap().unwrap();
         let every = exhaustive.localize(&f, &query.camera).unwrap();
