@@ -261,7 +261,7 @@ impl Nearest {
         ))
     }
 
-    #[cfg(any(feature = "colmap", feature = "localize"))]
+    #[cfg(feature = "colmap")]
     /// Every centroid's `x·c − ‖c‖²/2`, in centroid order (what `find` maximises, summed
     /// block by block: equal to its scores up to rounding).
     pub fn scores(&self, x: &[f32]) -> Vec<f32> {
@@ -288,10 +288,10 @@ impl Nearest {
         out
     }
 
-    #[cfg(any(feature = "colmap", feature = "localize"))]
+    #[cfg(feature = "colmap")]
     /// The centroids nearest to `x` first (by [`Nearest::scores`]; ties: the lower index; a
-    /// score that is not a number last): the order an image index's lists are probed in,
-    /// by the writer's calibration and by the localizer alike.
+    /// score that is not a number last): the order an image index's lists are probed in, by
+    /// the writer's calibration (the localizer's, from f16 centroids, is [`NearestF16`]'s).
     pub fn order(&self, x: &[f32]) -> Vec<usize> {
         let mut scores = self.scores(x);
         ranked_last_if_not_finite(&mut scores);
@@ -669,7 +669,7 @@ mod tests {
     /// [`NearestF16::scores`] gives the portable loop's bits on the AVX path (every cluster
     /// count, full and partial blocks, short rows), each within f16 rounding of the f32
     /// scores, and orders as [`Nearest`] does where no two centroids are near a tie.
-    #[cfg(feature = "localize")]
+    #[cfg(all(feature = "localize", feature = "colmap"))]
     #[test]
     fn f16_list_scores_are_the_portable_loop_s_bits() {
         let mut rng = crate::geometry::SplitMix64::new(9);

@@ -26,7 +26,9 @@ pub struct VladOptions {
     pub dims: Option<usize>,
     /// (1.3) Lists of the image index over the rows the map retrieves with (VLAD or global
     /// descriptors), at most [`MAX_INDEX_LISTS`] and one per image; 0 stores none; `None`:
-    /// about √images from 2,000 images on, stored only where it pays.
+    /// from 2,000 images on, stored only where it pays: places of 24 images with neighbours
+    /// (1.4; with them the lists are places of about images / lists images), else about
+    /// √images k-means lists.
     pub index_lists: Option<usize>,
 }
 
