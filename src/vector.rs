@@ -389,7 +389,8 @@ impl NearestF16 {
     /// Every centroid's `x·c − ‖c‖²/2`, in centroid order (`x`: `dims` values, a shorter one
     /// scores only its own), summed in four sums over the dimensions (`d mod 4`), each sum
     /// multiplied and added in order (no FMA), added `(s0 + s1) + (s2 + s3)`: the AVX path
-    /// and the portable one give the same bits.
+    /// and the portable one give the same bits for finite scores (a centroid past f16's range
+    /// is infinite, its score not a number on both paths, which ranks last either way).
     pub(crate) fn scores(&self, x: &[f32]) -> Vec<f32> {
         let used = x.len().min(self.dims);
         let mut out = Vec::with_capacity(self.minus_half_norms.len());
@@ -671,7 +672,7 @@ mod tests {
     /// scores, and orders as [`Nearest`] does where no two centroids are near a tie.
     #[cfg(all(feature = "localize", feature = "colmap"))]
     #[test]
-    fn f16_list_scores_are_the_portable_loop_s_bits() {
+    fn f16_list_scores_match_the_portable_loop_bit_for_bit() {
         let mut rng = crate::geometry::SplitMix64::new(9);
         for (clusters, dims) in [(3348usize, 64usize), (13, 7), (1, 4), (9, 1)] {
             let centroids: Vec<f32> = (0..clusters * dims)
@@ -698,7 +699,8 @@ mod tests {
                 );
                 let f32_scores = exact.scores(&x);
                 for (a, b) in got.iter().zip(&f32_scores) {
-                    assert!((a - b).abs() < 1e-2 * dims as f32, "{a} vs {b}");
+                    // Each of the 2 × dims terms within f16's rounding (2⁻¹¹ of values under 0.5).
+                    assert!((a - b).abs() < 1e-3 * dims as f32, "{a} vs {b}");
                 }
             }
         }

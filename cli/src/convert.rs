@@ -136,9 +136,9 @@ pub struct Args {
     /// Retrieval: lists of the image index stored over the rows the map ranks its images
     /// with (format 1.3; 0: none; at most one per image), with each image's 16 neighbours
     /// (1.4: the images sharing most points) and the lists grown along them as places of
-    /// about images / LISTS images. Default: from 2000 images, places of 24 images (about
-    /// the square root of the image count of k-means lists where there are no neighbours),
-    /// stored only where a query would then score at most a quarter of the images; a query
+    /// about images / LISTS images. Default: from 2000 images, places of 24 images (at
+    /// most 8192 lists; without neighbours, about √images k-means lists), stored only where
+    /// a query would then score at most a quarter of the images, centroids included; a query
     /// scores the centroids, a few lists and their best images' neighbours instead of every
     /// image.
     #[arg(long, value_name = "LISTS", value_parser = index_lists)]

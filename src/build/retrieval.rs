@@ -106,10 +106,12 @@ pub(crate) fn add_vlad(
     }))
 }
 
-/// Lists of the default image index of a map of `images` images: none below
+/// Lists of the default k-means image index of a map of `images` images (one without
+/// neighbours; with them, lists are places, see [`PLACE_IMAGES`]): none below
 /// [`crate::vlad::LARGE_MAP_IMAGES`] (ranking every image costs well under a millisecond
 /// there), else about √images, so that a list holds about as many images as there are lists
-/// and a query scores √images centroids plus `probe` lists of √images images.
+/// and a query scores √images centroids plus `probe` lists of √images images. Whether an
+/// index is tried at all goes by it too.
 pub(crate) fn default_index_lists(images: usize) -> usize {
     if !crate::vlad::is_large_map(images) {
         0
@@ -118,8 +120,8 @@ pub(crate) fn default_index_lists(images: usize) -> usize {
     }
 }
 
-/// The most lists an image index may have (`--index-lists`): as many as k-means learns
-/// from rows, one row a list at least.
+/// The most lists an image index may have (`--index-lists`, and the default places): as many
+/// as k-means learns from rows, one row a list at least; every query scores every centroid.
 pub const MAX_INDEX_LISTS: usize = INDEX_MAX_TRAIN;
 
 /// What a converted map's image index is.
@@ -138,8 +140,9 @@ pub struct ImageIndexSummary {
     /// Images the calibration images scored on average with `probe` lists.
     pub scored: usize,
     /// Whether the map stores it. A default index (no `index_lists` asked for) is left out
-    /// when `scored` is more than a quarter of the images: the rows' neighbours are not
-    /// grouped, and probing would cost about what ranking every image does.
+    /// when `scored` plus the lists (a query scores every centroid) is more than a quarter
+    /// of the images: the rows' neighbours are not grouped, or the images share too few
+    /// points to make places, and probing would cost about what ranking every image does.
     pub stored: bool,
 }
 
@@ -164,7 +167,7 @@ const INDEX_SEED: u64 = 0x1df_5eed;
 fn index_rule(places: Option<usize>) -> String {
     let top = crate::format::DEFAULT_RETRIEVAL_TOP_K;
     match places {
-        Some(size) => format!("neighbours: the {INDEX_NEIGHBOURS} images sharing most points with each; lists: places grown breadth first along the neighbours from the first image not placed, up to {size} images, a place under a quarter of that merged into its images' first neighbour's; centroids: each list's mean row, unit length; probe: the fewest lists from {QUERY_MIN_PROBE}, taken nearest centroid first (and on to {MIN_SCORED_PER_K} images per image asked for), from whose best a search along the neighbours (a beam of {BEAM_PER_K} per image asked for) finds {CALIBRATION_RECALL} of the exhaustive top {top} (itself left out) of up to {CALIBRATION_IMAGES} of the map's images"),
+        Some(size) => format!("neighbours: the {INDEX_NEIGHBOURS} images sharing most points with each; lists: places grown breadth first along the neighbours from the first image not placed, up to {size} images, each image of a place under a quarter of that moved to the place of its first neighbour in a larger one, places of zero rows folded into the first other; centroids: each list's mean row, unit length; probe: the fewest lists from {QUERY_MIN_PROBE}, taken nearest centroid first (and on to {MIN_SCORED_PER_K} images per image asked for), from whose best a search along the neighbours (a beam of {BEAM_PER_K} per image asked for) finds {CALIBRATION_RECALL} of the exhaustive top {top} (itself left out) of up to {CALIBRATION_IMAGES} of the map's images"),
         None => format!("k-means++ then Lloyd ({INDEX_ITERATIONS} iterations at most, seeded) on at most {INDEX_MAX_TRAIN} rows; each image in the list of its nearest centroid; probe: the fewest lists, taken nearest centroid first, that hold {CALIBRATION_RECALL} of the exhaustive top {top} (itself left out) of up to {CALIBRATION_IMAGES} of the map's images"),
     }
 }
@@ -212,8 +215,12 @@ pub(crate) fn add_image_index(
     }
     let row = |i: usize| &bytes[i * row_bytes..(i + 1) * row_bytes];
     let neighbours = neighbours.filter(|rows| rows.len() == images * INDEX_NEIGHBOURS);
-    // The images a place is grown to: a list's share of the images where lists are asked for.
-    let place_size = lists_asked.map_or(PLACE_IMAGES, |l| images.div_ceil(l.max(1)));
+    // The images a place is grown to: a list's share of the images where lists are asked
+    // for; by default PLACE_IMAGES, more where that would make over MAX_INDEX_LISTS lists
+    // (every query scores every centroid: 8,192 of 1,024 f16 values are 17 MB a query).
+    let place_size = lists_asked.map_or(PLACE_IMAGES.max(images.div_ceil(MAX_INDEX_LISTS)), |l| {
+        images.div_ceil(l.max(1))
+    });
 
     // A seeded sample learns the centroids (k-means lists); the calibration images measure,
     // drawn past the sample when the map has the images for both.
@@ -324,7 +331,9 @@ pub(crate) fn add_image_index(
         recall,
         scored,
     } = calibrated;
-    let stored = lists_asked.is_some() || scored * MAX_SCORED_SHARE <= images;
+    // A query scores every centroid too (a centroid is as wide as an image's row): a model
+    // of images that share no points grows a place per image.
+    let stored = lists_asked.is_some() || (scored + lists) * MAX_SCORED_SHARE <= images;
     let outcome = ImageIndexSummary {
         of,
         lists,
@@ -538,8 +547,8 @@ struct Calibrated {
 /// The lists a query probes with neighbours at least (all of them where there are fewer): a
 /// map's own rows find their neighbours from the one nearest place, but a query's row is of
 /// a partial view and features the map does not have, and on the 10 M-point street the
-/// queries needed 4 places of 48 images to find every image sharing points with them.
-/// Twice that is about 400 images scored, a tenth of a millisecond.
+/// queries needed 4 to 8 places of 24 to 48 images to find every image sharing points with
+/// them. 8 of 24 is about 200 images scored, a tenth of a millisecond.
 const QUERY_MIN_PROBE: usize = 8;
 
 /// The fewest lists, from `least` on (the writer's: [`QUERY_MIN_PROBE`]), a query probes (taken nearest centroid first, then on until it scored
@@ -610,7 +619,8 @@ fn calibrated_search(
         }
     };
     let enough = |c: &Calibrated| c.recall >= CALIBRATION_RECALL;
-    let too_costly = |c: &Calibrated| !lists_asked && c.scored * MAX_SCORED_SHARE > images;
+    let too_costly =
+        |c: &Calibrated| !lists_asked && (c.scored + lists) * MAX_SCORED_SHARE > images;
     // Doubling from the least probe: the first that holds the bar (or costs too much), and
     // the last below.
     let least = least.min(lists).max(1);
@@ -757,6 +767,47 @@ mod tests {
         assert!(add_image_index(&mut w, Some(8), None, &Silent)
             .unwrap()
             .is_none());
+    }
+
+    /// (1.4) With neighbours, lists are places; where the images share no points each is
+    /// its own place, and a query would score a centroid per image: no index by default.
+    #[test]
+    fn places_are_stored_where_they_pay_and_not_per_image() {
+        let (n, dims) = (3_000, 4);
+        // A path: image i's row at angle i·π/n on a half circle, so its best images are
+        // its nearest along the path; its neighbours the 16 nearest.
+        let angle = |i: usize| i as f32 * std::f32::consts::PI / n as f32;
+        let path: Vec<f32> = (0..n)
+            .flat_map(|i| [angle(i).cos(), angle(i).sin(), 0.0, 0.0])
+            .collect();
+        let mut graph = vec![NO_NEIGHBOUR; n * INDEX_NEIGHBOURS];
+        for i in 0..n {
+            let mut near: Vec<u32> = (1..=8)
+                .flat_map(|d| [i.checked_sub(d), Some(i + d)])
+                .flatten()
+                .filter(|&j| j < n)
+                .map(|j| j as u32)
+                .collect();
+            near.truncate(INDEX_NEIGHBOURS);
+            graph[i * INDEX_NEIGHBOURS..i * INDEX_NEIGHBOURS + near.len()].copy_from_slice(&near);
+        }
+        let mut w = writer_of(&path, dims);
+        let index = add_image_index(&mut w, None, Some(graph), &Silent)
+            .unwrap()
+            .unwrap();
+        assert!(index.stored, "{index:?}");
+        assert_eq!(index.lists, n.div_ceil(PLACE_IMAGES), "{index:?}");
+        assert!(index.probe >= QUERY_MIN_PROBE, "{index:?}");
+        let rule = &w.metadata().image_index.as_ref().unwrap().extra["rule"];
+        assert!(rule.as_str().unwrap().starts_with("neighbours:"), "{rule}");
+        // No image shares a point: 3,000 places of one image, not stored.
+        let mut w = writer_of(&path, dims);
+        let lone = vec![NO_NEIGHBOUR; n * INDEX_NEIGHBOURS];
+        let index = add_image_index(&mut w, None, Some(lone), &Silent)
+            .unwrap()
+            .unwrap();
+        assert!(!index.stored && index.lists == n, "{index:?}");
+        assert!(w.metadata().image_index.is_none());
     }
 
     #[test]

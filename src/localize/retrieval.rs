@@ -124,7 +124,7 @@ struct VladIndex<'m> {
 /// A map's image index (format 1.3), ready to probe.
 struct ProbedIndex<'m> {
     index: ImageIndex<'m>,
-    /// Its centroids, in f16: lists rank by distance, as images were assigned to them.
+    /// Its centroids, in f16: lists rank by distance to them.
     centroids: NearestF16,
     /// Lists a query scores at least (the map's `probe`, or the caller's).
     probe: usize,
@@ -150,8 +150,7 @@ impl ProbedIndex<'_> {
         let mut q = query.to_vec();
         normalise_rows(&mut q, index.width);
         // Lists nearest first, as `NearestF16::order` has them; only the first `probe` are
-        // sorted unless the query needs more (a full sort of 3,348 lists cost as much as
-        // their scores on the 10 M-point street).
+        // sorted unless the query needs more (3,348 lists on the 10 M-point street).
         let mut scores = self.centroids.scores(&q);
         ranked_last_if_not_finite(&mut scores);
         let lists = scores.len();

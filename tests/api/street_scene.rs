@@ -173,6 +173,11 @@ fn an_image_index_probed_whole_ranks_as_every_image_and_its_probe_localizes() {
     let stored = map.image_index().unwrap().unwrap();
     assert_eq!((stored.lists(), stored.probe), (index.lists, index.probe));
     assert!(stored.neighbours.is_some());
+    // The lists are places (k-means would also make 12).
+    let rule = map.metadata().image_index.as_ref().unwrap().extra["rule"]
+        .as_str()
+        .unwrap();
+    assert!(rule.starts_with("neighbours:"), "{rule}");
 
     let queries = read_query_list(&dir.path().join("queries.txt"), None).unwrap();
     let truth = read_poses(&dir.path().join("gt_poses.txt")).unwrap();
