@@ -464,6 +464,22 @@ pub(crate) fn index_neighbours(
     Some(rows)
 }
 
+/// The image index's build memory beyond the rows it reads, for the memory plan: each
+/// calibration image's score of every image (4 bytes), the images' lists, the centroids
+/// twice in f32 (the list and the search's blocks) and each calibration image's list order
+/// (8 bytes a list). Lists as the default makes them: places of [`PLACE_IMAGES`], at most
+/// [`MAX_INDEX_LISTS`] (more than k-means' √images). 0 where no index is tried.
+pub(crate) fn index_build_bytes(images: usize, width: usize, lists: Option<usize>) -> u64 {
+    if !index_wanted(images, lists) {
+        return 0;
+    }
+    let lists = lists
+        .unwrap_or_else(|| images.div_ceil(PLACE_IMAGES).min(MAX_INDEX_LISTS))
+        .max(default_index_lists(images)) as u64;
+    let (images, width, calibration) = (images as u64, width as u64, CALIBRATION_IMAGES as u64);
+    calibration * images * 4 + images * 8 + lists * width * 8 + calibration * lists * 8
+}
+
 /// Tracks longer than this are left out of the neighbours' counts.
 const MAX_NEIGHBOUR_TRACK: usize = 128;
 

@@ -64,8 +64,8 @@ pub struct MemoryPlan {
 /// What a conversion holds besides the open tracks, estimated from the model's counts:
 /// `before_reads` (the geometry, and (1.4) the visibility turned point → images
 /// to find the image index's neighbours), `during` the reads of the features (the geometry,
-/// per-point arrays), and `after` them (the geometry, the retrieval rows and VLADs, sections
-/// the writer holds in memory).
+/// per-point arrays), and `after` them (the geometry, the retrieval rows and VLADs, the
+/// image index's build, sections the writer holds in memory).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct FixedCost {
     pub before_reads: u64,
@@ -115,10 +115,16 @@ impl FixedCost {
             } else {
                 (0, 0)
             };
+        // The image index, built from the VLADs after the reads (its rows are counted above).
+        let index = super::retrieval::index_build_bytes(
+            g.names.len(),
+            clusters * dims.min(short as usize),
+            options.vlad.index_lists,
+        );
         FixedCost {
             before_reads: geometry_bytes + neighbour_search_bytes,
             during: geometry_bytes + per_point + neighbour_bytes,
-            after: geometry_bytes + per_point + vlad + held + neighbour_bytes,
+            after: geometry_bytes + per_point + vlad + held + neighbour_bytes + index,
         }
     }
 }
