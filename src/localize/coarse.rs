@@ -87,6 +87,9 @@ pub(super) struct CoarseSearch<'c> {
     found: bool,
     /// The last tier's failure, reported when no tier gives a pose.
     pub(super) failure: Option<(QueryFailure, usize)>,
+    /// The wider nets' ranking of every image (the widest net's images, best first), once
+    /// the first of them asked: both nets take a prefix of one ranking.
+    every_ranked: Option<Vec<usize>>,
 }
 
 impl<'c> CoarseSearch<'c> {
@@ -101,6 +104,7 @@ impl<'c> CoarseSearch<'c> {
             exhaustive: false,
             found: false,
             failure: None,
+            every_ranked: None,
         }
     }
 }
@@ -181,11 +185,16 @@ impl Localizer<'_> {
         camera: &Camera,
         times: &mut StageTimes,
     ) -> Result<Option<CoarsePose>, LocalizeError> {
-        search.next_pose(
+        // Every image is ranked once for both wider nets, up to the widest.
+        let widest = WIDER_RETRIEVAL[WIDER_RETRIEVAL.len() - 1].saturating_mul(self.options.top_k);
+        let mut ranked = search.every_ranked.take();
+        let pose = search.next_pose(
             self.options.top_k,
-            |k| self.retrieved_points(query, k),
+            |k| self.retrieved_points(query, k, widest, &mut ranked),
             |candidates, keypoints| self.coarse(sets, candidates, keypoints, camera, times),
-        )
+        );
+        search.every_ranked = ranked;
+        pose
     }
 
     /// Matching against `candidates` (`None`: every point) with at most `max_keypoints` query
