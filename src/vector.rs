@@ -180,6 +180,8 @@ pub(crate) fn top_k_indices(scores: &[f32], k: usize) -> Vec<usize> {
     if k < order.len() {
         order.select_nth_unstable_by(k, better);
         order.truncate(k);
+        // Callers keep what they are given (a calibration keeps 100 orders of lists).
+        order.shrink_to_fit();
     }
     order.sort_unstable_by(better);
     order

@@ -242,6 +242,20 @@ pub(crate) fn add_image_index(
             };
             reporter.start("image index places", None);
             let (mut list_of, lists) = place_lists(&graph, images, place_size);
+            // Images that share too few points for places (a place each, or nearly): every
+            // query would score as many centroids as images. A default index is given up
+            // before the centroids are made; scoring every list is ranking every image.
+            if lists_asked.is_none() && lists * MAX_SCORED_SHARE > images {
+                reporter.finish();
+                return Ok(Some(ImageIndexSummary {
+                    of,
+                    lists,
+                    probe: lists,
+                    recall: 1.0,
+                    scored: images,
+                    stored: false,
+                }));
+            }
             let mut centroids =
                 place_centroids(&list_of, lists, width, |i, out| unit_row(row(i), out));
             let lists = merge_undirected(&mut list_of, &mut centroids, width);
@@ -465,19 +479,34 @@ pub(crate) fn index_neighbours(
 }
 
 /// The image index's build memory beyond the rows it reads, for the memory plan: each
-/// calibration image's score of every image (4 bytes), the images' lists, the centroids
-/// twice in f32 (the list and the search's blocks) and each calibration image's list order
-/// (8 bytes a list). Lists as the default makes them: places of [`PLACE_IMAGES`], at most
-/// [`MAX_INDEX_LISTS`] (more than k-means' √images). 0 where no index is tried.
+/// calibration image's score of every image (4 bytes), the images' lists, the order they are
+/// drawn in, each list's members and a search's scored images (8 bytes each an image), the
+/// centroids twice in f32 (the list and the search's blocks), each calibration image's list
+/// order (8 bytes a list) and the calibration rows. Lists as the default makes them: places
+/// of [`PLACE_IMAGES`], at most [`MAX_INDEX_LISTS`] (or k-means' √images); more are given up
+/// before their centroids are made. 0 where no index is tried.
 pub(crate) fn index_build_bytes(images: usize, width: usize, lists: Option<usize>) -> u64 {
     if !index_wanted(images, lists) {
         return 0;
     }
     let lists = lists
-        .unwrap_or_else(|| images.div_ceil(PLACE_IMAGES).min(MAX_INDEX_LISTS))
-        .max(default_index_lists(images)) as u64;
+        .unwrap_or_else(|| {
+            images
+                .div_ceil(PLACE_IMAGES)
+                .min(MAX_INDEX_LISTS)
+                .max(default_index_lists(images))
+        })
+        .min(images) as u64;
     let (images, width, calibration) = (images as u64, width as u64, CALIBRATION_IMAGES as u64);
-    calibration * images * 4 + images * 8 + lists * width * 8 + calibration * lists * 8
+    // Scores and the calibration's orders (`top_k_indices` keeps no more than it returns);
+    // lists, order, members and the search's scored images, 8 bytes each an image; the
+    // centroids twice; the calibration rows.
+    let per_image = calibration * 4 + 4 * 8;
+    let per_list = width.saturating_mul(8).saturating_add(calibration * 8);
+    images
+        .saturating_mul(per_image)
+        .saturating_add(lists.saturating_mul(per_list))
+        .saturating_add(calibration.saturating_mul(width).saturating_mul(4))
 }
 
 /// Tracks longer than this are left out of the neighbours' counts.

@@ -74,8 +74,14 @@ pub(crate) struct FixedCost {
 }
 
 impl FixedCost {
-    /// The estimate for `geometry` with descriptors of `dim` values.
-    pub(crate) fn of(geometry: &Geometry, options: &ConvertOptions, dim: usize) -> FixedCost {
+    /// The estimate for `geometry` with descriptors of `dim` values (and global descriptors
+    /// of `global_width`, 0 without: the image index may be over them).
+    pub(crate) fn of(
+        geometry: &Geometry,
+        options: &ConvertOptions,
+        dim: usize,
+        global_width: usize,
+    ) -> FixedCost {
         let g = geometry;
         let (points, images) = (g.positions.len() as u64, g.names.len() as u64);
         let geometry_bytes = g.heap_bytes();
@@ -115,10 +121,11 @@ impl FixedCost {
             } else {
                 (0, 0)
             };
-        // The image index, built from the VLADs after the reads (its rows are counted above).
+        // The image index, built after the reads from the VLADs or the global descriptors
+        // (its rows are counted with them).
         let index = super::retrieval::index_build_bytes(
             g.names.len(),
-            clusters * dims.min(short as usize),
+            (clusters * dims.min(short as usize)).max(global_width),
             options.vlad.index_lists,
         );
         FixedCost {
@@ -477,7 +484,10 @@ pub(crate) fn prepare(
     let dim = reader.dim;
     let tracks = Tracks::new(geometry);
     let budget = options.memory.unwrap_or_else(default_memory_budget);
-    let mut fixed = FixedCost::of(geometry, options, dim);
+    let global_width = (global_bytes / 6)
+        .checked_div(geometry.names.len() as u64)
+        .unwrap_or(0) as usize;
+    let mut fixed = FixedCost::of(geometry, options, dim, global_width);
     // Global descriptors (`--global-features`), held from before the reads to the write.
     fixed.before_reads += global_bytes;
     fixed.during += global_bytes;

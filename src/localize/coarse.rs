@@ -197,6 +197,41 @@ impl Localizer<'_> {
         pose
     }
 
+    /// The points the `k` best images see, every image ranked (the wider nets, after the
+    /// retrieved images gave no pose; `None`: no retrieval, or every point). `ranked` holds
+    /// the ranking of the `widest` best once made (empty where retrieval cannot rank), so a
+    /// query's nets rank every image once.
+    fn retrieved_points(
+        &self,
+        query: &QueryFeatures,
+        k: usize,
+        widest: usize,
+        ranked: &mut Option<Vec<usize>>,
+    ) -> Result<Option<Vec<u32>>, LocalizeError> {
+        let Some(visibility) = self.visibility.as_ref() else {
+            return Ok(None);
+        };
+        let images = ranked.get_or_insert_with(|| {
+            let n_images = self.map.n_images() as usize;
+            let (images, how) = self
+                .retrieval
+                .retrieve_every(query, n_images, widest.max(k));
+            if how.is_ok() {
+                images
+            } else {
+                Vec::new()
+            }
+        });
+        if images.is_empty() {
+            return Ok(None);
+        }
+        Ok(super::retrieval::points_seen(
+            &images[..k.max(1).min(images.len())],
+            self.n_points(),
+            |i| visibility.points_of(i),
+        )?)
+    }
+
     /// Matching against `candidates` (`None`: every point) with at most `max_keypoints` query
     /// keypoints (a stride), deepest level first, then P3P
     /// LO-RANSAC: the pose estimate (its inlier mask has one entry per match), or the reason
