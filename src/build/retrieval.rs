@@ -234,14 +234,14 @@ pub(crate) fn add_image_index(
     // (1.4) With each image's neighbours, lists are places grown along them, each image's
     // list known before its row is read again; without, k-means lists, each image's found
     // in the pass below.
-    let (centroids, placed, lists) = match &neighbours {
-        Some(rows) => {
-            let graph = Neighbours {
-                per_image: INDEX_NEIGHBOURS,
-                rows: Cow::Borrowed(rows),
-            };
+    let graph = neighbours.as_ref().map(|rows| Neighbours {
+        per_image: INDEX_NEIGHBOURS,
+        rows: Cow::Borrowed(rows),
+    });
+    let (centroids, placed, lists) = match &graph {
+        Some(graph) => {
             reporter.start("image index places", None);
-            let (mut list_of, lists) = place_lists(&graph, images, place_size);
+            let (mut list_of, lists) = place_lists(graph, images, place_size);
             // Images that share too few points for places (a place each, or nearly): every
             // query would score as many centroids as images. A default index is given up
             // before the centroids are made; scoring every list is ranking every image.
@@ -318,25 +318,19 @@ pub(crate) fn add_image_index(
     }
     // (1.4) With each image's neighbours, queries widen along them: `probe` is calibrated on
     // that search; without, on the lists alone.
-    let calibrated = match &neighbours {
-        Some(rows) => {
-            let graph = Neighbours {
-                per_image: INDEX_NEIGHBOURS,
-                rows: Cow::Borrowed(rows),
-            };
-            calibrated_search(
-                &graph,
-                &scores,
-                &calibration,
-                &nearest,
-                &queries,
-                &list_of,
-                lists,
-                k,
-                lists_asked.is_some(),
-                QUERY_MIN_PROBE,
-            )
-        }
+    let calibrated = match &graph {
+        Some(graph) => calibrated_search(
+            graph,
+            &scores,
+            &calibration,
+            &nearest,
+            &queries,
+            &list_of,
+            lists,
+            k,
+            lists_asked.is_some(),
+            QUERY_MIN_PROBE,
+        ),
         None => calibrated_lists(&scores, &queries, &nearest, &list_of, lists, k),
     };
     drop(scores);
