@@ -218,9 +218,7 @@ pub(crate) fn add_image_index(
     // The images a place is grown to: a list's share of the images where lists are asked
     // for; by default PLACE_IMAGES, more where that would make over MAX_INDEX_LISTS lists
     // (every query scores every centroid: 8,192 of 1,024 f16 values are 17 MB a query).
-    let place_size = lists_asked.map_or(PLACE_IMAGES.max(images.div_ceil(MAX_INDEX_LISTS)), |l| {
-        images.div_ceil(l.max(1))
-    });
+    let place_size = lists_asked.map_or(default_place_size(images), |l| images.div_ceil(l.max(1)));
 
     // A seeded sample learns the centroids (k-means lists); the calibration images measure,
     // drawn past the sample when the map has the images for both.
@@ -472,6 +470,12 @@ pub(crate) fn index_neighbours(
     Some(rows)
 }
 
+/// The images a default place is grown to: [`PLACE_IMAGES`], more where that would make over
+/// [`MAX_INDEX_LISTS`] places.
+fn default_place_size(images: usize) -> usize {
+    PLACE_IMAGES.max(images.div_ceil(MAX_INDEX_LISTS))
+}
+
 /// The image index's build memory beyond the rows it reads, for the memory plan: each
 /// calibration image's score of every image (4 bytes), the images' lists, the order they are
 /// drawn in, each list's members and a search's scored images (8 bytes each an image), the
@@ -486,8 +490,7 @@ pub(crate) fn index_build_bytes(images: usize, width: usize, lists: Option<usize
     let lists = lists
         .unwrap_or_else(|| {
             images
-                .div_ceil(PLACE_IMAGES)
-                .min(MAX_INDEX_LISTS)
+                .div_ceil(default_place_size(images))
                 .max(default_index_lists(images))
         })
         .min(images) as u64;
@@ -806,6 +809,17 @@ mod tests {
         assert!(add_image_index(&mut w, Some(8), None, &Silent)
             .unwrap()
             .is_none());
+    }
+
+    /// Default places are 24 images until that would make over 8,192 of them.
+    #[test]
+    fn default_places_stay_under_the_list_cap() {
+        assert_eq!(default_place_size(80_000), PLACE_IMAGES);
+        for images in [196_608usize, 196_609, 1_000_000, 10_000_000] {
+            let lists = images.div_ceil(default_place_size(images));
+            assert!(lists <= MAX_INDEX_LISTS, "{images}: {lists}");
+        }
+        assert!(default_place_size(1_000_000) > PLACE_IMAGES);
     }
 
     /// (1.4) With neighbours, lists are places; where the images share no points each is
