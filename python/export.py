@@ -128,6 +128,9 @@ def main():
     ap.add_argument("--no-verify", action="store_true")
     ap.add_argument("--threshold", type=float, default=0.5, help="default keypoint score threshold (metadata)")
     ap.add_argument("--model-name", default=None, help="sfp.model_name (default: the checkpoint's, else sfp-v1)")
+    ap.add_argument("--refine-to-level", type=int, default=None,
+                    help="sfp.refine_to_level: refine levels 2.. coarse to fine down to this level "
+                         "(default: absent, one level finer)")
     args = ap.parse_args()
     net, ck = load_net(args.ckpt)
     name = args.model_name or ck.get("model_name") or "sfp-v1"
@@ -138,6 +141,8 @@ def main():
              "sfp.train_minutes": round(float(minutes), 1),
              "sfp.train_loss": ck.get("args", {}).get("loss", "")}
     extra.update(ck.get("export_metadata", {}))  # e.g. the distillation's teacher
+    if args.refine_to_level is not None:
+        extra["sfp.refine_to_level"] = args.refine_to_level
     args.out = args.out or os.path.join("models", f"{name}.onnx")  # never a student over sfp-v1.onnx
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     export(net, args.out, contract_metadata(net, extra, args.threshold, name))

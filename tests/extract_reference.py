@@ -111,7 +111,10 @@ def main():
     feats = [outs[f"feat_{i}"][0] for i in range(len(strides))]
     scores = [outs[f"score_{i}"][0, 0] for i in range(len(strides))]
     levels = []
-    for i, (px, short, full, v) in enumerate(level_features(feats, scores, strides, radius, thr, tops)):
+    refine_to = md.get("sfp.refine_to_level")
+    refine_to = None if refine_to is None else int(refine_to)
+    for i, (px, short, full, v) in enumerate(level_features(feats, scores, strides, radius, thr, tops,
+                                                             refine_to=refine_to)):
         levels.append({
             "level": ids[i],
             "stride": strides[i],

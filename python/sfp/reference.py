@@ -98,20 +98,24 @@ def refine_on(finer, finer_stride, radius, px):
     return out
 
 
-def level_features(feats, scores, strides, radius, thr, topk, refine=True):
+def level_features(feats, scores, strides, radius, thr, topk, refine=True, refine_to=None):
     """Per level: (pixels with the pixel-centre origin at 0, short, full, scores).
 
     `feats[i]` is [C_i, h_i, w_i], `scores[i]` [h_i, w_i]; a level's full descriptor joins the
     normalised samples of it and every deeper level at its keypoints, normalised again. Levels
-    from REFINE_FROM_LEVEL on are refined on the next finer level's score map (`refine`).
+    from REFINE_FROM_LEVEL on are refined on the next finer level's score map (`refine`), and
+    on from there one level at a time down to level `refine_to` (the model's
+    `sfp.refine_to_level`; None: one level only).
     """
     out = []
     for i, stride in enumerate(strides):
         cells, v = detect(scores[i], radius, thr, topk[i])
         px = cells * stride
         if refine and i >= max(REFINE_FROM_LEVEL, 1):
-            r = max(1, int(np.floor(stride / strides[i - 1] / 2 + 0.5)))  # half up, as Rust
-            px = refine_on(scores[i - 1], strides[i - 1], r, px)
+            finest = i - 1 if refine_to is None else min(refine_to, i - 1)
+            for j in range(i - 1, finest - 1, -1):
+                r = max(1, int(np.floor(strides[j + 1] / strides[j] / 2 + 0.5)))  # half up, as Rust
+                px = refine_on(scores[j], strides[j], r, px)
             cells = px / stride
         short = l2n(bilinear(feats[i], cells))
         parts = [l2n(bilinear(feats[j], px / strides[j])) for j in range(i, len(strides))]

@@ -48,6 +48,9 @@ pub struct Contract {
     pub max_side: Option<u32>,
     /// The shortest side the network takes (`sfp.min_input_side`, default 1).
     pub min_input_side: usize,
+    /// The finest level coarse-to-fine refinement walks down to (`sfp.refine_to_level`):
+    /// `None`, one level finer than the keypoint's (the SFP rule).
+    pub refine_to_level: Option<usize>,
     /// Every `sfp.*` key, for provenance.
     pub raw: BTreeMap<String, String>,
 }
@@ -244,6 +247,12 @@ impl Contract {
         };
         let max_side = number("sfp.max_side")?.filter(|&s| s > 0);
         let min_input_side = number("sfp.min_input_side")?.unwrap_or(1).max(1) as usize;
+        let refine_to_level = number("sfp.refine_to_level")?.map(|t| t as usize);
+        if let Some(t) = refine_to_level.filter(|&t| t >= levels) {
+            return Err(bad(format!(
+                "sfp.refine_to_level = {t} is no level of sfp.levels = {levels}"
+            )));
+        }
         let raw = keys
             .iter()
             .filter(|k| k.starts_with("sfp."))
@@ -265,6 +274,7 @@ impl Contract {
             descriptor_head,
             max_side,
             min_input_side,
+            refine_to_level,
             raw,
         })
     }
@@ -366,6 +376,8 @@ mod tests {
                 "has 2000000",
             ),
             ("sfp.default_threshold", "NaN", "is not a score in [0, 1]"),
+            ("sfp.refine_to_level", "4", "is no level"),
+            ("sfp.refine_to_level", "-1", "is not a number"),
         ] {
             let mut m = sfp_v1();
             m.insert(key.into(), value.into());
@@ -381,6 +393,10 @@ mod tests {
             (c.detector, c.descriptor_head, c.max_side, c.min_input_side),
             (Detector::Nms, DescriptorHead::Bilinear, None, 1)
         );
+        assert_eq!(c.refine_to_level, None);
+        let mut m = sfp_v1();
+        m.insert("sfp.refine_to_level".into(), "0".into());
+        assert_eq!(parse(&m).unwrap().refine_to_level, Some(0));
         let mut m = sfp_v1();
         for (k, v) in [
             ("sfp.levels", "1"),

@@ -9,7 +9,8 @@
 
 use serde_json::Value;
 use sfpmap::extract::{
-    image, DetectOptions, Extractor, ExtractorOptions, GlobalSize, DEFAULT_MODEL, GLOBAL_MAX_SIDE,
+    image, DetectOptions, Extractor, ExtractorOptions, Features, GlobalSize, DEFAULT_MODEL,
+    GLOBAL_MAX_SIDE,
 };
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -158,6 +159,11 @@ fn matches_the_python_onnxruntime_reference_on_a_real_image() {
     assert!(without.global.is_empty());
     assert_eq!(without.levels, features.levels);
 
+    assert_levels_match(&reference, &features);
+}
+
+/// Every level's keypoints, scores and short/full descriptors against the reference's.
+fn assert_levels_match(reference: &Value, features: &Features) {
     let levels = reference["levels"].as_array().unwrap();
     assert_eq!(levels.len(), features.levels.len());
     let mut total = 0;
@@ -240,6 +246,66 @@ fn matches_the_python_onnxruntime_reference_on_a_real_image() {
         total += matched;
     }
     assert!(total > 100, "too few keypoints to compare: {total}");
+}
+
+/// One more `metadata_props` entry (ModelProto field 14: a StringStringEntryProto of key 1 and
+/// value 2) to append to a model file: a repeated field takes entries wherever they come in
+/// the message, so the file then holds one more key. Keys and values under 100 bytes.
+fn metadata_entry(key: &str, value: &str) -> Vec<u8> {
+    assert!(key.len() < 100 && value.len() < 100);
+    let mut entry = vec![0x0a, key.len() as u8];
+    entry.extend(key.as_bytes());
+    entry.extend([0x12, value.len() as u8]);
+    entry.extend(value.as_bytes());
+    let mut field = vec![(14 << 3) | 2, entry.len() as u8];
+    field.extend(entry);
+    field
+}
+
+/// A model declaring `sfp.refine_to_level = 0` (sfp-v2 with the key appended) refines levels
+/// 2 and 3 on down to level 0's score map, as the Python reference does; levels 0 and 1, and
+/// the keypoints' scores and order, are the default model's.
+#[test]
+fn a_model_refined_down_to_level_0_matches_the_python_reference() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("sfp-v2-refined-to-0.onnx");
+    let mut bytes = DEFAULT_MODEL.to_vec();
+    bytes.extend(metadata_entry("sfp.refine_to_level", "0"));
+    std::fs::write(&model, &bytes).unwrap();
+    let (png, reference) = reference(&model, &scene_image(), dir.path());
+    let open = |model: Option<PathBuf>| {
+        Extractor::new(
+            &ExtractorOptions { model, threads: 2 },
+            &sfpmap::progress::Silent,
+        )
+        .unwrap()
+    };
+    let mut refined = open(Some(model));
+    assert_eq!(refined.contract().refine_to_level, Some(0));
+    let input = image::load(&png, refined.contract().gray_weights, None).unwrap();
+    let own_size = DetectOptions {
+        global: GlobalSize::Input,
+        ..Default::default()
+    };
+    let features = refined.extract(&input, &own_size).unwrap();
+    assert_levels_match(&reference, &features);
+    let default = open(None).extract(&input, &own_size).unwrap();
+    for (ours, theirs) in features.levels.iter().zip(&default.levels) {
+        assert_eq!(ours.scores, theirs.scores, "level {}", ours.level);
+        let moved = (ours.keypoints.iter().zip(&theirs.keypoints))
+            .filter(|(a, b)| a != b)
+            .count();
+        if ours.level < 2 {
+            assert_eq!(moved, 0, "level {} is not refined", ours.level);
+        } else {
+            assert!(
+                moved * 4 > ours.len(),
+                "level {}: {moved} of {} moved",
+                ours.level,
+                ours.len()
+            );
+        }
+    }
 }
 
 #[test]
