@@ -24,14 +24,15 @@ An item:
   mutual-NN matches among the keypoints (hom: kept when within `match_px` of the true homography;
   mv: mutual + distance ratio < `mv_match_ratio`), and sfp-v2's global descriptor of each crop.
 
-Loss (weights `w`, per level `level_w`; weight 0 switches a term off, for the ablation):
-  score       Bernoulli KL(target_i || p_i) per cell: the student's level-i score map learns the
-              teacher's keypoint heat map at that stride. `score_target` "peaks" (default): the heat
-              map's local maxima (NMS radius `peak_radius[i]` px, heat > `peak_min`) drawn as
-              Gaussians (sigma `peak_sigma` cells, height = the teacher's heat) on the level's cells;
-              "maxpool": the heat map max-pooled over each cell; "ref": sfp-v2's own score map (the
-              level keeps v2's detector). One kind for all levels or a list per level (default
-              maxpool for levels 0-2, ref for level 3: python/TRAINING-v3.md has the measurements).
+Loss (weights `w`; per level `level_w` for the score term, `desc_level_w` for the descriptor
+terms; weight 0 switches a term off, for the ablation):
+  score       Bernoulli KL(target_i || p_i) per cell: the student's level-i score map learns a
+              target at that stride. `score_target`, one kind for all levels or a list per level:
+              "peaks": the teacher's heat map's local maxima (NMS radius `peak_radius[i]` px, heat >
+              `peak_min`) drawn as Gaussians (sigma `peak_sigma` cells, height = the teacher's heat);
+              "maxpool": the teacher's heat map max-pooled over each cell; "ref": sfp-v2's own score
+              map (the level keeps v2's detector; the default from the fifth run, on every level:
+              the teacher's targets made keypoints worse in maps, python/TRAINING-v3.md).
               `score_shift`: a per-level logit shift of the target
   desc_proj   per level a learned projection P_i: 128 -> d_i of the teacher's descriptors (training
               only, not exported); InfoNCE (tau_proj) between the student's level-i descriptors at
@@ -42,6 +43,8 @@ Loss (weights `w`, per level `level_w`; weight 0 switches a term off, for the ab
   mv_track    the same InfoNCE on the true SfM track correspondences of mv items (train_v2's mv_desc)
   glob        1 - cos(global, sfp-v2's global) on the same crops: keeps the retrieval descriptor
               (sfp-v2's recall@5 target) while level 3 changes
+  ref_feat    per level of `ref_feat_level_w`, 1 - cos(student's feature, sfp-v2's) per cell: keeps
+              a level's descriptors sfp-v2's (the fourth run's level 3; off by default)
 For the first `head_steps` steps only the projections learn (the network's lr is 0), so fresh random
 projections do not pull the descriptors. BatchNorm is frozen (eval statistics) as in train_v2.
 
@@ -51,8 +54,14 @@ Validation (held out, never trained on; python/curves/<run>-val.csv, every `val_
         and mutual-NN matching of the short descriptors on `val_pairs` viewpoint + `val_pairs`
         illumination pairs per image (python/eval_homography.py's pairs) of 25 held-out images
         (colmap/kapture_maupertuis 4, train/strecha-entry-P10 10, train/strecha-fountain-P11 11;
-        max side `val_side`): repeatability@3 px, MMA@1/@3, matches per level. Selection score:
-        mean MMA@3 of levels 2 and 3 over both splits -> python/runs/v3-best.pt
+        max side `val_side`): repeatability@3 px, MMA@1/@3, matches per level, levels 2-3 refined
+        down to `refine_to_level` as the export asks (null: one level); `hom_score`: mean MMA@
+        `select_mma` of levels 2 and 3 over both splits
+  loc   every `val_loc_every` steps (a multiple of `val_every`), the shared scenes' queries
+        localized with the weights exported to ONNX, through the release binary (sfp/locval.py):
+        per scene (the keys of `val_loc_ref`) and map (full, level-2 short) the medians, recall,
+        bytes, and the excess over SIFT level-2 short's errors. Selection (`select`): "loc", the
+        lowest mean excess; "hom", the highest hom_score -> python/runs/v3-best.pt
   kap   16 fixed kapture crop pairs: the loss terms against the teacher, and the kapture model's
         track accuracy (train_v2.validate_mv)
 
@@ -75,6 +84,7 @@ import json
 import math
 import os
 import signal
+import subprocess
 import sys
 import tempfile
 import time
@@ -491,7 +501,7 @@ def validate_kap(net, heads, val_b, val_mv, cfg, ref):
 def selection_rule(cfg):
     if cfg["select"] == "loc":
         return (f"minus the mean of loc_excess_l2s and loc_excess_full (sfp/locval.py) on "
-                f"{', '.join(cfg['val_loc_scenes'])}, refined to level {cfg['refine_to_level']}")
+                f"{', '.join(cfg['val_loc_ref'])}, refined to level {cfg['refine_to_level']}")
     return (f"mean MMA@{'/'.join(str(t) for t in cfg['select_mma'])} of levels 2-3, viewpoint and "
             f"illumination, refined to level {cfg['refine_to_level']}")
 
@@ -516,15 +526,20 @@ def selection_score(r, cfg):
 
 @torch.no_grad()
 def validate_localization(net, cfg, export_metadata, scenes, binary):
-    """The weights exported to ONNX as `python/export.py` does, localized by `sfp/locval.py`."""
+    """The weights exported to ONNX as `python/export.py` does, localized by `sfp/locval.py`;
+    `{}` (and a line saying why) when that fails: training goes on, this step selects nothing."""
     import export as X  # python/export.py (onnx)
     was = net.training
-    with tempfile.TemporaryDirectory(prefix="sfp-v3-val-") as d:
-        model = os.path.join(d, f"{cfg['model_name']}.onnx")
-        X.export(net, model, X.contract_metadata(net, export_metadata, 0.5, cfg["model_name"]))
-        r = LV.validate_loc(model, binary, scenes, cfg["val_loc_ref"])
-    net.train(was)
-    return r
+    try:
+        with tempfile.TemporaryDirectory(prefix="sfp-v3-val-") as d:
+            model = os.path.join(d, f"{cfg['model_name']}.onnx")
+            X.export(net, model, X.contract_metadata(net, export_metadata, cfg["val_thr"], cfg["model_name"]))
+            return LV.validate_loc(model, binary, scenes, cfg["val_loc_ref"])
+    except (RuntimeError, OSError, subprocess.SubprocessError, KeyError) as e:
+        print(f"localization validation failed, nothing selected at this step: {e}", flush=True)
+        return {}
+    finally:
+        net.train(was)
 
 
 def load_cfg(path, sets):
@@ -631,13 +646,25 @@ def main():
     rule = selection_rule(cfg)
     if meta.get("best_rule") != rule:
         meta["best"], meta["best_rule"] = -math.inf, rule
+        if os.path.exists(args.best):  # chosen by the other rule: export.py must not take it for this one's
+            os.remove(args.best)
     print(f"cache {cache_dir}: {len(cache)} items", flush=True)
 
     # --- validation sets (held out)
-    loc_scenes = LV.scene_dirs(REPO, DATA, cfg["val_loc_scenes"]) if cfg["val_loc_every"] > 0 else {}
+    loc_scenes = LV.scene_dirs(cfg["val_loc_ref"]) if cfg["val_loc_every"] > 0 else {}
+    if cfg["select"] == "loc" and not loc_scenes:
+        raise SystemExit("select = loc needs val_loc_every > 0: nothing would ever be selected")
+    if loc_scenes and cfg["val_loc_every"] % cfg["val_every"]:
+        raise SystemExit(f"val_loc_every = {cfg['val_loc_every']} is no multiple of val_every = "
+                         f"{cfg['val_every']}: the localization would never run")
     binary = os.path.join(REPO, "target", "release", "sfpmap")
-    if loc_scenes and not os.access(binary, os.X_OK):
-        raise SystemExit(f"{binary} missing: the localization validation runs it (cargo build --release)")
+    if loc_scenes:
+        # A binary older than the extractor's sources may not do what the export asks (an older
+        # one ignores sfp.refine_to_level): it would score other keypoints than the model's.
+        sources = glob.glob(os.path.join(REPO, "src", "**", "*.rs"), recursive=True)
+        if not os.access(binary, os.X_OK) or os.path.getmtime(binary) < max(map(os.path.getmtime, sources)):
+            raise SystemExit(f"{binary} is missing or older than src/: the localization validation runs it "
+                             "(cargo build --release)")
     L = len(net.strides)
     vimgs = [D.load_gray(p, cfg["val_side"]) for p in vfiles]
     val_pairs = EH.make_pairs(vimgs, cfg["val_pairs"], seed=0)

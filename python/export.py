@@ -128,9 +128,9 @@ def main():
     ap.add_argument("--no-verify", action="store_true")
     ap.add_argument("--threshold", type=float, default=0.5, help="default keypoint score threshold (metadata)")
     ap.add_argument("--model-name", default=None, help="sfp.model_name (default: the checkpoint's, else sfp-v1)")
-    ap.add_argument("--refine-to-level", type=int, default=None,
-                    help="sfp.refine_to_level: refine levels 2.. coarse to fine down to this level "
-                         "(default: absent, one level finer)")
+    ap.add_argument("--refine-to-level", default=None,
+                    help="sfp.refine_to_level: refine levels 2.. coarse to fine down to this level; "
+                         "'none' leaves the key out (default: the checkpoint's, else none: one level)")
     args = ap.parse_args()
     net, ck = load_net(args.ckpt)
     name = args.model_name or ck.get("model_name") or "sfp-v1"
@@ -141,8 +141,12 @@ def main():
              "sfp.train_minutes": round(float(minutes), 1),
              "sfp.train_loss": ck.get("args", {}).get("loss", "")}
     extra.update(ck.get("export_metadata", {}))  # e.g. the distillation's teacher
-    if args.refine_to_level is not None:
-        extra["sfp.refine_to_level"] = args.refine_to_level
+    if args.refine_to_level == "none":
+        extra.pop("sfp.refine_to_level", None)
+    elif args.refine_to_level is not None:
+        if not args.refine_to_level.isdigit() or int(args.refine_to_level) >= len(net.dims):
+            raise SystemExit(f"--refine-to-level {args.refine_to_level}: a level 0 to {len(net.dims) - 1}, or none")
+        extra["sfp.refine_to_level"] = int(args.refine_to_level)
     args.out = args.out or os.path.join("models", f"{name}.onnx")  # never a student over sfp-v1.onnx
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     export(net, args.out, contract_metadata(net, extra, args.threshold, name))

@@ -1,5 +1,6 @@
-"""Held-out localization for model selection (issue 36): the shared scenes' queries localized
-with a candidate model as the product localizes them.
+"""Query localization for model selection (issue 36): the shared scenes' held-out queries
+localized with a candidate model as the product localizes them (the scenes' map images are
+training images; their queries never are).
 
 Why: held-out homography pairs did not predict localization. At step 25,357 the
 ALIKED-distilled student beat sfp-v2 on the pairs' level-2 MMA@1 (0.47 against 0.31, refined
@@ -26,21 +27,28 @@ UNLOCALIZED_LOG2 = 6.0
 RECALL_LOG2 = 4.0
 
 
-def scene_dirs(repo: str, data: str, names) -> dict[str, str]:
-    """Each scene's folder: the shared scenes under `data`, KITTI 06 as built into `target/`."""
+def scene_dirs(names) -> dict[str, str]:
+    """Each named scene's folder, as train_v2 finds the scenes whose map images are trained on."""
+    import train_v2 as V  # python/train_v2.py: one home for where the scenes are
+
+    known = dict(V.scene_dirs())
     out = {}
     for name in names:
-        path = os.path.join(repo, "target", "scenes", "kitti06") if name == "kitti06" else \
-            os.path.join(data, "scenes", name)
-        for need in ("sparse-map", "images", "queries.txt", "gt_poses.txt"):
-            if not os.path.exists(os.path.join(path, need)):
-                raise SystemExit(f"localization validation: {path} has no {need} (see python/TRAINING-v3.md)")
+        path = known.get(name)
+        if path is None or not os.path.exists(os.path.join(path, "queries.txt")):
+            raise SystemExit(f"query localization: no scene {name!r} with queries (known: {', '.join(known)})")
         out[name] = path
     return out
 
 
+# A step of one scene takes seconds; past this the binary is taken as hung.
+STEP_TIMEOUT_S = 600
+
+
 def _run(cmd: list[str]) -> str:
-    p = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # Its own session: a Ctrl-C meant for training does not kill a localization half-way.
+    p = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                       timeout=STEP_TIMEOUT_S, start_new_session=True)
     if p.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)}: exit {p.returncode}: {p.stderr.strip()[-500:]}")
     return p.stdout
@@ -63,6 +71,8 @@ def localize_scene(binary: str, model: str, scene: str, work: str) -> dict[str, 
         bar = f"{0.1 * first['scale']},2"
         d = json.loads(_run([binary, "eval", "--poses", poses, "--gt", f"{scene}/gt_poses.txt", "--map", path,
                              "--threshold", bar, "--json"]))
+        if not d["queries"] or not d["recall"]:
+            raise RuntimeError(f"{scene}: eval found no queries to score")
         out.update({f"{name}_bytes": os.path.getsize(path), f"{name}_localized": d["localized"] / d["queries"],
                     f"{name}_recall": d["recall"][0]["recall"], f"{name}_t": d["median_translation"],
                     f"{name}_r": d["median_rotation_deg"]})

@@ -25,7 +25,9 @@ def quad(m, c, p):
     """Offset of a 1-D quadratic's peak through (-1, m), (0, c), (1, p), within +-0.5."""
     den = m - 2 * c + p
     safe = np.where(np.abs(den) > 1e-9, den, 1.0)
-    d = np.where(np.abs(den) > 1e-9, 0.5 * (m - p) / safe, 0.0)
+    with np.errstate(invalid="ignore"):
+        d = np.where(np.abs(den) > 1e-9, 0.5 * (m - p) / safe, 0.0)
+    d = np.where(np.isnan(d), 0.0, d)  # an infinite neighbour: inf / inf, no vertex (as Rust)
     return np.clip(d, -0.5, 0.5)
 
 
@@ -107,6 +109,8 @@ def level_features(feats, scores, strides, radius, thr, topk, refine=True, refin
     on from there one level at a time down to level `refine_to` (the model's
     `sfp.refine_to_level`; None: one level only).
     """
+    if refine_to is not None and not 0 <= refine_to < len(strides):
+        raise ValueError(f"refine_to = {refine_to} is no level of {len(strides)}")
     out = []
     for i, stride in enumerate(strides):
         cells, v = detect(scores[i], radius, thr, topk[i])

@@ -87,6 +87,29 @@ pub fn detect(map: ScoreMap<'_>, radius: usize, threshold: f32, max: usize) -> V
         .collect()
 }
 
+/// The finest level a keypoint of level `level` (2 or deeper) is refined down to: the model's
+/// `sfp.refine_to_level` where it is finer than `level − 1`, else `level − 1` (at least one
+/// level, the SFP rule).
+pub(crate) fn finest_refined_level(refine_to: Option<usize>, level: usize) -> usize {
+    refine_to.map_or(level - 1, |t| t.min(level - 1))
+}
+
+/// Moves keypoints at pixels `px` (pixel-index convention) of a level of stride `stride`
+/// coarse to fine (`spec/extractor.md` step 4): onto each of `finer`'s (stride, score map) in
+/// turn, the next finer level first, each within half a cell of the level before (at least
+/// one cell).
+pub(crate) fn refine_down(px: &mut [(f32, f32)], stride: f32, finer: &[(f32, ScoreMap<'_>)]) {
+    let mut coarser = stride;
+    for &(fs, map) in finer {
+        // round half up, as python/sfp/reference.py does
+        let radius = ((coarser / fs / 2.0 + 0.5).floor() as usize).max(1);
+        for p in px.iter_mut() {
+            *p = refine_on(map, fs, radius, p.0, p.1);
+        }
+        coarser = fs;
+    }
+}
+
 /// A keypoint of a coarse level at pixel (x, y) (pixel-index convention) moved to the
 /// strongest cell of the next finer level's score map `finer` (stride `finer_stride`) within
 /// `radius` finer cells of it, refined there like a detection ([`subpixel`]); the first
@@ -174,7 +197,12 @@ pub(crate) fn quadratic_offset(m: f32, c: f32, p: f32) -> f32 {
     if den.is_nan() || den.abs() <= 1e-9 {
         return 0.0;
     }
-    (0.5 * (m - p) / den).clamp(-0.5, 0.5)
+    let d = 0.5 * (m - p) / den;
+    // An infinite neighbour gives inf / inf: no vertex either (clamp keeps a NaN).
+    if d.is_nan() {
+        return 0.0;
+    }
+    d.clamp(-0.5, 0.5)
 }
 
 /// Sub-cell offsets (dx, dy) of an interior cell, one quadratic fit per axis.
@@ -406,6 +434,58 @@ mod tests {
             (x - 34.0).abs() < 1e-4 && (y - 20.0).abs() < 1e-4,
             "{x} {y}"
         );
+    }
+
+    // Peaks placed by hand: a stride-8 keypoint at pixel (16, 16); the stride-4 map's
+    // strongest cell within one cell of (4, 4) is (5, 4), pixel (20, 16); from there the
+    // stride-2 map's within one cell of (10, 8) is (11, 9), pixel (22, 18). The stride-2 map's
+    // strongest cell near (16, 16) itself, (8, 8), is out of that window: the walk goes one
+    // level at a time.
+    #[test]
+    fn refinement_walks_down_one_level_at_a_time() {
+        let level1 = map(16, 16, |r, c| if (r, c) == (4, 5) { 1.0 } else { 0.0 });
+        let level0 = map(32, 32, |r, c| match (r, c) {
+            (9, 11) => 1.0,
+            (8, 8) => 2.0,
+            _ => 0.0,
+        });
+        fn score(values: &[f32], side: usize) -> ScoreMap<'_> {
+            ScoreMap {
+                height: side,
+                width: side,
+                values,
+            }
+        }
+        let finer = [(4.0, score(&level1, 16)), (2.0, score(&level0, 32))];
+        for (n, expected) in [(0, (16.0, 16.0)), (1, (20.0, 16.0)), (2, (22.0, 18.0))] {
+            let mut px = [(16.0, 16.0)];
+            refine_down(&mut px, 8.0, &finer[..n]);
+            assert_eq!(px, [expected], "{n} finer levels");
+        }
+    }
+
+    #[test]
+    fn non_finite_neighbours_leave_the_cell_centre() {
+        for (m, c, p) in [
+            (f32::INFINITY, 1.0, 0.0),
+            (0.0, 1.0, f32::INFINITY),
+            (f32::INFINITY, 1.0, f32::INFINITY),
+            (f32::NEG_INFINITY, 1.0, 0.0),
+            (f32::NAN, 1.0, 0.0),
+        ] {
+            assert_eq!(quadratic_offset(m, c, p), 0.0, "{m} {c} {p}");
+        }
+    }
+
+    #[test]
+    fn the_walk_goes_at_least_one_level_down_and_no_further_than_asked() {
+        assert_eq!(finest_refined_level(None, 2), 1);
+        assert_eq!(finest_refined_level(None, 3), 2);
+        assert_eq!(finest_refined_level(Some(0), 3), 0);
+        assert_eq!(finest_refined_level(Some(1), 3), 1);
+        // A level at or past the keypoint's own still refines one level, as without the key.
+        assert_eq!(finest_refined_level(Some(2), 2), 1);
+        assert_eq!(finest_refined_level(Some(3), 2), 1);
     }
 
     #[test]

@@ -303,20 +303,6 @@ impl DetectOptions {
 /// gains at 1 px but loses repeatability, so it is left as detected.
 pub(crate) const REFINE_FROM_LEVEL: usize = 2;
 
-/// Moves level `i`'s keypoints (input pixels) coarse to fine, `spec/extractor.md` step 4:
-/// onto level `i − 1`'s score map, then onto each finer level's in turn down to `finest`.
-fn refine_down(dense: &Dense, i: usize, finest: usize, px: &mut [(f32, f32)]) {
-    for j in (finest..i).rev() {
-        let (finer, coarser) = (&dense.levels[j], &dense.levels[j + 1]);
-        let fs = finer.stride as f32;
-        // round half up, as python/sfp/reference.py does
-        let radius = ((coarser.stride as f32 / fs / 2.0 + 0.5).floor() as usize).max(1);
-        for p in px.iter_mut() {
-            *p = keypoints::refine_on(finer.score_map(), fs, radius, p.0, p.1);
-        }
-    }
-}
-
 /// The inputs of a descriptor head's branch (`sfp.descriptor_head = sddh`): a `feat_0` and
 /// `[N, 2]` keypoints (input pixels, pixel-index convention).
 const SDDH_INPUTS: [&str; 2] = ["features", "keypoints"];
@@ -964,8 +950,12 @@ impl Extractor {
             return self.described_level(dense, i, &peaks, &px);
         }
         if options.refine.unwrap_or(true) && i >= REFINE_FROM_LEVEL.max(1) {
-            let finest = c.refine_to_level.map_or(i - 1, |t| t.min(i - 1));
-            refine_down(dense, i, finest, &mut px);
+            let finer: Vec<(f32, ScoreMap<'_>)> =
+                (keypoints::finest_refined_level(c.refine_to_level, i)..i)
+                    .rev()
+                    .map(|j| (dense.levels[j].stride as f32, dense.levels[j].score_map()))
+                    .collect();
+            keypoints::refine_down(&mut px, s, &finer);
         }
         // The levels' own channel counts (`run` checks them against the contract; a `Dense`
         // built by hand may differ, and then gets descriptors of its own sizes, not a panic).
@@ -1148,32 +1138,6 @@ mod tests {
         let mut got = Vec::new();
         l[0].descriptor_at(9.0, 16.0, &mut got);
         assert_close(&got, &unit(&mean));
-    }
-
-    // Peaks placed by hand: level 2's keypoint at pixel (16, 16); level 1's strongest cell
-    // within one cell of (4, 4) is (5, 4), pixel (20, 16); from there level 0's within one
-    // cell of (10, 8) is (11, 9), pixel (22, 18). Level 0's strongest cell near (16, 16)
-    // itself, (8, 8), is out of that window: the walk goes one level at a time.
-    #[test]
-    fn refinement_walks_down_one_level_at_a_time_to_the_finest_asked() {
-        let mut levels = vec![level(2, 1, 32, 1), level(4, 1, 16, 2), level(8, 1, 8, 3)];
-        for l in &mut levels {
-            l.score.fill(0.0);
-        }
-        levels[1].score[4 * 16 + 5] = 1.0;
-        levels[0].score[9 * 32 + 11] = 1.0;
-        levels[0].score[8 * 32 + 8] = 2.0;
-        let dense = Dense {
-            input_size: [64, 64],
-            scale: [1.0, 1.0],
-            levels,
-            global: Vec::new(),
-        };
-        for (finest, expected) in [(2, (16.0, 16.0)), (1, (20.0, 16.0)), (0, (22.0, 18.0))] {
-            let mut px = [(16.0, 16.0)];
-            refine_down(&dense, 2, finest, &mut px);
-            assert_eq!(px, [expected], "down to level {finest}");
-        }
     }
 
     #[test]

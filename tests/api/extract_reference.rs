@@ -250,13 +250,14 @@ fn assert_levels_match(reference: &Value, features: &Features) {
 
 /// One more `metadata_props` entry (ModelProto field 14: a StringStringEntryProto of key 1 and
 /// value 2) to append to a model file: a repeated field takes entries wherever they come in
-/// the message, so the file then holds one more key. Keys and values under 100 bytes.
+/// the message, so the file then holds one more key. Lengths are one-byte varints: the entry
+/// stays under 128 bytes.
 fn metadata_entry(key: &str, value: &str) -> Vec<u8> {
-    assert!(key.len() < 100 && value.len() < 100);
     let mut entry = vec![0x0a, key.len() as u8];
     entry.extend(key.as_bytes());
     entry.extend([0x12, value.len() as u8]);
     entry.extend(value.as_bytes());
+    assert!(entry.len() < 128, "{key}: too long for one-byte lengths");
     let mut field = vec![(14 << 3) | 2, entry.len() as u8];
     field.extend(entry);
     field
