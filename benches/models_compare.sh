@@ -6,7 +6,8 @@
 # and retrieval recall@1/5/10 of the ground-truth most co-visible database image over the
 # ranking `localize --format json` reports (python/eval_retrieval.py --localized: the SFP
 # map's global descriptor, the SIFT map's VLAD). The SIFT level-2 short map is the reference
-# row. Maps are rebuilt at every run.
+# row; its `--pq 8 --minimal` slice (issue 36's smallest SIFT map) the next. A model of one level
+# (aliked-n16, the v3 teacher) gets its map only, no level-2 slice. Maps are rebuilt at every run.
 #
 # Usage: bash benches/models_compare.sh MODEL.onnx [MODEL.onnx ...] [-- scene ...]
 set -euo pipefail
@@ -48,12 +49,21 @@ for scene in $scenes; do
     --threads 1 -o "$C/sift-l2s.poses" --force --json >"$C/sift-l2s.json"
   ret=$(retrieval "$scene" "$C/sift.sfpm" --database "$C/queries.db")
   row "$scene" "SIFT level 2 short" "$C/sift-l2s.sfpm" "$C/sift-l2s.poses" "$C/sift-l2s.json" "$ret (VLAD)"
+  "$bin" slice "$C/sift.sfpm" --level 2 --short --minimal --pq 8 -o "$C/sift-l2s-pq8.sfpm" --force -q
+  "$bin" localize --map "$C/sift-l2s-pq8.sfpm" --short --query-list "$S/queries.txt" --database "$C/queries.db" \
+    --threads 1 -o "$C/sift-l2s-pq8.poses" --force --json >"$C/sift-l2s-pq8.json"
+  row "$scene" "SIFT level 2 short --pq 8 --minimal" "$C/sift-l2s-pq8.sfpm" "$C/sift-l2s-pq8.poses" \
+    "$C/sift-l2s-pq8.json" "$ret (VLAD)"
   for model in "${models[@]}"; do
     name=$(basename "$model" .onnx)
     "$bin" convert --colmap "$S/sparse-map" --images "$S/images" --model "$model" -o "$C/$name.sfpm" --force -q
-    "$bin" slice "$C/$name.sfpm" --level 2 --short -o "$C/$name-l2s.sfpm" --force -q
+    variants=("$name")
+    if "$bin" info "$C/$name.sfpm" --json | python3 -c "import json,sys; sys.exit(not any(l['level'] == 2 for l in json.load(sys.stdin)['levels']))"; then
+      "$bin" slice "$C/$name.sfpm" --level 2 --short -o "$C/$name-l2s.sfpm" --force -q
+      variants+=("$name-l2s")
+    fi
     ret=$(retrieval "$scene" "$C/$name.sfpm" --images "$S/images" --model "$model")
-    for v in "$name" "$name-l2s"; do
+    for v in "${variants[@]}"; do
       extra=(); [[ "$v" == *-l2s ]] && extra=(--short)
       "$bin" localize --map "$C/$v.sfpm" "${extra[@]}" --query-list "$S/queries.txt" --images "$S/images" \
         --model "$model" --threads 1 -o "$C/$v.poses" --force --json >"$C/$v.json"
