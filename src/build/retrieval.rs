@@ -316,20 +316,18 @@ pub(crate) fn add_image_index(
     }
     // (1.4) With each image's neighbours, queries widen along them: `probe` is calibrated on
     // that search; without, on the lists alone.
+    let set = CalibrationSet {
+        scores: &scores,
+        calibration: &calibration,
+        queries: &queries,
+        nearest: &nearest,
+        list_of: &list_of,
+        lists,
+        k,
+    };
     let calibrated = match &graph {
-        Some(graph) => calibrated_search(
-            graph,
-            &scores,
-            &calibration,
-            &nearest,
-            &queries,
-            &list_of,
-            lists,
-            k,
-            lists_asked.is_some(),
-            QUERY_MIN_PROBE,
-        ),
-        None => calibrated_lists(&scores, &queries, &nearest, &list_of, lists, k),
+        Some(graph) => calibrated_search(&set, graph, lists_asked.is_some(), QUERY_MIN_PROBE),
+        None => calibrated_lists(&set),
     };
     drop(scores);
     let Calibrated {
@@ -360,16 +358,17 @@ pub(crate) fn add_image_index(
 }
 
 /// The fewest lists that hold [`CALIBRATION_RECALL`] of the calibration images' exhaustive
-/// top `k` (`scores` `[calibration × images]`, each one's own −∞), taken nearest centroid
-/// first, and the images those lists hold on average.
-fn calibrated_lists(
-    scores: &[f32],
-    queries: &[f32],
-    nearest: &Nearest,
-    list_of: &[u32],
-    lists: usize,
-    k: usize,
-) -> Calibrated {
+/// top `k`, taken nearest centroid first, and the images those lists hold on average.
+fn calibrated_lists(set: &CalibrationSet<'_>) -> Calibrated {
+    let CalibrationSet {
+        scores,
+        queries,
+        nearest,
+        list_of,
+        lists,
+        k,
+        ..
+    } = *set;
     let images = list_of.len();
     let width = queries.len() / (scores.len() / images.max(1)).max(1);
     // Per calibration image: where its exhaustive top k's lists come in its list order (the
@@ -586,6 +585,21 @@ struct Calibrated {
     scored: usize,
 }
 
+/// What a probe is calibrated on: the calibration images (`calibration`, indices of the map's
+/// images) with their rows (`queries`, `[calibration × width]`) and their scores against every
+/// image (`scores`, `[calibration × images]`, each one's own −∞), the lists (`list_of` each
+/// image's, `lists` of them, `nearest` their centroids) and the top `k` a query asks for.
+#[derive(Clone, Copy)]
+struct CalibrationSet<'a> {
+    scores: &'a [f32],
+    calibration: &'a [usize],
+    queries: &'a [f32],
+    nearest: &'a Nearest,
+    list_of: &'a [u32],
+    lists: usize,
+    k: usize,
+}
+
 /// The lists a query probes with neighbours at least (all of them where there are fewer): a
 /// map's own rows find their neighbours from the one nearest place, but a query's row is of
 /// a partial view and features the map does not have, and on the 10 M-point street the
@@ -596,24 +610,25 @@ const QUERY_MIN_PROBE: usize = 8;
 /// The fewest lists, from `least` on (the writer's: [`QUERY_MIN_PROBE`]), a query probes (taken nearest centroid first, then on until it scored
 /// [`MIN_SCORED_PER_K`] images per image asked for, as the reference reader does) before it
 /// widens along the neighbours, for the calibration images to find [`CALIBRATION_RECALL`]
-/// of their exhaustive top `k`. `scores` is `[calibration × images]`, each calibration
-/// image's own score −∞. Probes are tried 1, 2, 4, … then bisected (about 2 log₂ lists
+/// of their exhaustive top `k`, widening along `graph`. Probes are tried 1, 2, 4, … then bisected (about 2 log₂ lists
 /// searches per calibration image; the share found grows with the probe, near enough);
 /// without `lists_asked`, it stops at a probe that scores more than a quarter of the
 /// images, where no index is stored anyway.
-#[allow(clippy::too_many_arguments)]
 fn calibrated_search(
+    set: &CalibrationSet<'_>,
     graph: &Neighbours<'_>,
-    scores: &[f32],
-    calibration: &[usize],
-    nearest: &Nearest,
-    queries: &[f32],
-    list_of: &[u32],
-    lists: usize,
-    k: usize,
     lists_asked: bool,
     least: usize,
 ) -> Calibrated {
+    let CalibrationSet {
+        scores,
+        calibration,
+        queries,
+        nearest,
+        list_of,
+        lists,
+        k,
+    } = *set;
     let images = list_of.len();
     let width = queries.len() / calibration.len().max(1);
     let mut members: Vec<Vec<u32>> = vec![Vec::new(); lists];
@@ -948,20 +963,16 @@ mod tests {
             per_image: 4,
             rows: Cow::Owned(graph),
         };
-        let search = |least| {
-            calibrated_search(
-                &graph,
-                &scores,
-                &calibration,
-                &nearest,
-                &queries,
-                &list_of,
-                lists,
-                10,
-                false,
-                least,
-            )
+        let set = CalibrationSet {
+            scores: &scores,
+            calibration: &calibration,
+            queries: &queries,
+            nearest: &nearest,
+            list_of: &list_of,
+            lists,
+            k: 10,
         };
+        let search = |least| calibrated_search(&set, &graph, false, least);
         let c = search(1);
         assert_eq!((c.probe, c.recall), (1, 1.0), "{c:?}");
         assert!(c.scored < 200, "{c:?}");
