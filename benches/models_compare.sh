@@ -58,7 +58,9 @@ for scene in $scenes; do
     name=$(basename "$model" .onnx)
     "$bin" convert --colmap "$S/sparse-map" --images "$S/images" --model "$model" -o "$C/$name.sfpm" --force -q
     variants=("$name")
-    if "$bin" info "$C/$name.sfpm" --json | python3 -c "import json,sys; sys.exit(not any(l['level'] == 2 for l in json.load(sys.stdin)['levels']))"; then
+    info=$("$bin" info "$C/$name.sfpm" --json)
+    has_level_2=$(python3 -c "import json,sys; print(int(any(l['level'] == 2 for l in json.load(sys.stdin)['levels'])))" <<<"$info")
+    if [ "$has_level_2" = 1 ]; then
       "$bin" slice "$C/$name.sfpm" --level 2 --short -o "$C/$name-l2s.sfpm" --force -q
       variants+=("$name-l2s")
     fi

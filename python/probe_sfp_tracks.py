@@ -10,13 +10,13 @@ within E px. Writes a text model (cameras, images with only the kept keypoints, 
 
 On KITTI 06 (R 4, E 2): 763 of 9,802 tracks kept; the sfp-v2 level-2 short map localizes at
 0.0121 m / 0.039° (the SIFT-track map: 0.0236 m / 0.081°; SIFT level 2 short 0.0066 m /
-0.027°), with a tenth of the points; on South Building 2,445 of 37,061 tracks, level 2 short
+0.027°), with 8 % of the points; on South Building 2,445 of 37,061 tracks, level 2 short
 0.0029 / 0.075° (SIFT-track map 0.0043 / 0.123°). Only tracks that happen to have a network keypoint
 nearby survive: matching the network's own keypoints across images and triangulating them
 (hloc's way) would keep far more.
 
-usage: python python/probe_sfp_tracks.py SPARSE_MODEL EXTRACTED.h5 OUT_DIR [R] [E]
-  EXTRACTED.h5: `sfpmap extract MAP_IMAGES -o EXTRACTED.h5`. Needs numpy, scipy, h5py, pycolmap.
+usage: python3 python/probe_sfp_tracks.py SPARSE_MODEL EXTRACTED.h5 OUT_DIR [R] [E]
+  EXTRACTED.h5: `sfpmap extract MAP_IMAGES -o EXTRACTED.h5`. Needs numpy, scipy, h5py and pycolmap 4.2.1 (python/requirements.txt's).
 """
 import os
 import sys

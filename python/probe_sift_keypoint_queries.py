@@ -4,18 +4,19 @@ keypoints (from the scene's queries.db) instead of at the network's keypoints.
 An SFP map's points are the COLMAP model's SIFT points, described where SIFT observed them
 (`convert --images`); a query's keypoints are the network's detections, a few pixels from any
 SIFT keypoint. Described at the query's SIFT keypoints instead, the same sfp-v2 maps localize
-as precisely as SIFT's (stop 49, medians):
+at SIFT's precision on KITTI 06 and within about 2x of it on South Building (stop 49, medians):
 
   | map (sfp-v2)                   | network keypoints | SIFT keypoints    | SIFT level 2 short |
   | KITTI 06 level 2 short         | 0.0236 m / 0.081° | 0.0063 m / 0.028° | 0.0066 m / 0.027°  |
   | KITTI 06 full                  | 0.0075 m / 0.028° | 0.0058 m / 0.028° |                    |
   | South Building level 2 short   | 0.0043 / 0.123°   | 0.00074 / 0.017°  | 0.0004 / 0.008°    |
   | South Building full            | 0.0017 / 0.055°   | 0.00042 / 0.011°  |                    |
+  (South Building in its model's units.)
 
 So the SFP maps' imprecision is the map's points and the query's keypoints not being the same
 image points, not the network's descriptors.
 
-usage: python python/probe_sift_keypoint_queries.py MODEL.onnx EXTRACTED.h5 QUERIES.db OUT.h5 IMAGES_DIR
+usage: python3 python/probe_sift_keypoint_queries.py MODEL.onnx EXTRACTED.h5 QUERIES.db OUT.h5 IMAGES_DIR
   EXTRACTED.h5: `sfpmap extract IMAGES_DIR -o EXTRACTED.h5` (layout and attributes are copied
   from it); then `sfpmap localize --map MAP [--short] --features OUT.h5 --query-list ...`.
   Needs numpy, h5py, pillow, onnxruntime.

@@ -607,10 +607,10 @@ struct CalibrationSet<'a> {
 /// them. 8 of 24 is about 200 images scored, a tenth of a millisecond.
 const QUERY_MIN_PROBE: usize = 8;
 
-/// The fewest lists, from `least` on (the writer's: [`QUERY_MIN_PROBE`]), a query probes (taken nearest centroid first, then on until it scored
-/// [`MIN_SCORED_PER_K`] images per image asked for, as the reference reader does) before it
-/// widens along the neighbours, for the calibration images to find [`CALIBRATION_RECALL`]
-/// of their exhaustive top `k`, widening along `graph`. Probes are tried 1, 2, 4, … then bisected (about 2 log₂ lists
+/// The fewest lists, from `least` on (the writer's: [`QUERY_MIN_PROBE`]), a query probes
+/// (taken nearest centroid first, then on until it scored [`MIN_SCORED_PER_K`] images per
+/// image asked for, as the reference reader does) before it widens along `graph`, for the
+/// calibration images to find [`CALIBRATION_RECALL`] of their exhaustive top `k`. Probes are tried 1, 2, 4, … then bisected (about 2 log₂ lists
 /// searches per calibration image; the share found grows with the probe, near enough);
 /// without `lists_asked`, it stops at a probe that scores more than a quarter of the
 /// images, where no index is stored anyway.
