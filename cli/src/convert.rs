@@ -110,6 +110,14 @@ pub struct Args {
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images", value_parser = super::args::score)]
     pub score_threshold: Option<f32>,
+    /// With --images (a pyramid model): move each observation to the network's keypoint near
+    /// it (level 2's strongest cell within one cell, refined as the extractor refines) and
+    /// triangulate the point again from the moved observations with the model's poses, so the
+    /// map's points are where queries' keypoints are; a point whose moved observations do not
+    /// agree within 2 px keeps its place.
+    #[cfg(feature = "onnx")]
+    #[arg(long, requires = "images")]
+    pub snap: bool,
     /// Output map.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -388,6 +396,7 @@ fn run_sfp(
             .max_side(),
         score_threshold: args.score_threshold,
         allow_missing: args.allow_missing,
+        snap: args.snap,
         codec: Codec::from(args.codec),
         zstd_level: args.zstd_level,
         vlad: vlad_options(args),

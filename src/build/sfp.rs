@@ -58,6 +58,9 @@ pub struct SfpMapOptions {
     pub score_threshold: Option<f32>,
     /// Skip model images whose file is missing (default: error).
     pub allow_missing: bool,
+    /// (issue 36) Move each observation to the network's keypoint near it and triangulate
+    /// the point again from the moved observations ([`super::snap`]); a pyramid model only.
+    pub snap: bool,
     /// How the descriptor sections are stored.
     pub codec: Codec,
     /// zstd's level when `codec` is zstd.
@@ -92,6 +95,7 @@ impl SfpMapOptions {
             global_max_side: Some(GLOBAL_MAX_SIDE),
             score_threshold: None,
             allow_missing: false,
+            snap: false,
             codec: Codec::Raw,
             zstd_level: 3,
             vlad: super::VladOptions::default(),
@@ -121,6 +125,63 @@ pub struct SfpMapSummary {
     pub ms_per_image: f64,
     /// The level threshold used (the option, or the model's default).
     pub score_threshold: f32,
+}
+
+/// The model's camera as the geometry projects with it; `None` for one it cannot build (its
+/// observations then stay where they are).
+fn geometry_camera(c: &crate::colmap::Camera) -> Option<crate::geometry::Camera> {
+    let (w, h) = (u32::try_from(c.width).ok()?, u32::try_from(c.height).ok()?);
+    crate::geometry::Camera::new(c.model, w, h, c.params.clone()).ok()
+}
+
+/// Moves the map's points whose moved observations (`moved`: point, image, pixel) agree to
+/// where they triangulate, with those observations as their visibility keypoints
+/// ([`super::snap::resnapped_position`]); returns how many moved.
+fn resnap(
+    model: &Reconstruction,
+    moved: &[(u32, u32, [f32; 2])],
+    map_index: &[u32],
+    geometry: &mut Geometry,
+) -> usize {
+    use nalgebra::Vector2;
+    let cameras: Vec<Option<crate::geometry::Camera>> = model
+        .images()
+        .iter()
+        .map(|i| model.camera(i.camera_id).and_then(geometry_camera))
+        .collect();
+    let mut by_point: Vec<(u32, u32, [f32; 2])> = moved
+        .iter()
+        .filter(|m| map_index[m.0 as usize] != u32::MAX)
+        .copied()
+        .collect();
+    by_point.sort_unstable_by_key(|m| (m.0, m.1));
+    let mut count = 0;
+    for group in by_point.chunk_by(|a, b| a.0 == b.0) {
+        let observations: Vec<_> = group
+            .iter()
+            .filter_map(|&(_, k, p)| {
+                let camera = cameras[k as usize].as_ref()?;
+                let pose = model.images()[k as usize].cam_from_world;
+                Some((camera, pose, Vector2::new(p[0] as f64, p[1] as f64)))
+            })
+            .collect();
+        let Some(x) = super::snap::resnapped_position(&observations) else {
+            continue;
+        };
+        let id = map_index[group[0].0 as usize];
+        geometry.positions[id as usize] = [x.x, x.y, x.z];
+        for &(_, k, p) in group {
+            let (a, b) = (
+                geometry.vis_offsets[k as usize] as usize,
+                geometry.vis_offsets[k as usize + 1] as usize,
+            );
+            if let Some(e) = (a..b).find(|&e| geometry.vis_points[e] == id) {
+                geometry.vis_keypoints[e] = p;
+            }
+        }
+        count += 1;
+    }
+    count
 }
 
 /// Per-point sums over the track: every level's normalised features, scores, counts.
@@ -258,6 +319,15 @@ fn convert_images_of(
     } else {
         GlobalSize::from_max_side(options.global_max_side).effective(options.resize_max)
     };
+    let snapping = options.snap && !head;
+    let snap_level = super::snap::snap_level(levels);
+    let snap_finest = if snap_level >= crate::extract::REFINE_FROM_LEVEL {
+        crate::extract::keypoints::finest_refined_level(contract.refine_to_level, snap_level)
+    } else {
+        snap_level
+    };
+    // (point, image, moved pixel in the camera, COLMAP convention) of every moved observation.
+    let mut moved: Vec<(u32, u32, [f32; 2])> = Vec::new();
     let mut ms = Vec::new();
     let mut image_bytes = 0;
     let mut buf = Vec::with_capacity(width);
@@ -310,7 +380,7 @@ fn convert_images_of(
                 ));
             }
         }
-        let observed: Vec<(usize, [f32; 2])> = image
+        let mut observed: Vec<(usize, [f32; 2])> = image
             .points2d
             .iter()
             .filter_map(|p| {
@@ -333,6 +403,18 @@ fn convert_images_of(
                 }
                 tracks.scores[point] += level.score_at(x, y);
                 tracks.counts[point] += 1;
+            }
+        }
+        if snapping {
+            for (point, xy) in observed.iter_mut() {
+                let (x, y) = super::snap::snap(&dense, snap_level, snap_finest, xy[0], xy[1]);
+                *xy = [x, y];
+                // Back to the camera's pixels in COLMAP's convention, as the model's are.
+                let colmap = [
+                    (x + 0.5) * dense.scale[0] / to_file[0],
+                    (y + 0.5) * dense.scale[1] / to_file[1],
+                ];
+                moved.push((*point as u32, k as u32, colmap));
             }
         }
         for &(point, [x, y]) in observed.iter().filter(|_| !head) {
@@ -364,8 +446,13 @@ fn convert_images_of(
     let keep: Vec<bool> = (0..n_points)
         .map(|p| (0..levels).any(|j| member(p, j)))
         .collect();
-    let geometry = Geometry::new(model, Some(&keep));
+    let mut geometry = Geometry::new(model, Some(&keep));
     let map_index = map_index(&keep);
+    let resnapped = if snapping {
+        resnap(model, &moved, &map_index, &mut geometry)
+    } else {
+        0
+    };
 
     let model_info = extractor.model().clone();
     let mut metadata = Metadata {
@@ -389,6 +476,12 @@ fn convert_images_of(
         "contract": contract.raw,
         "score_threshold": threshold,
         "level_rule": if head { ONE_LEVEL_RULE } else { LEVEL_RULE },
+        "snap": snapping.then(|| json!({
+            "level": snap_level,
+            "refined_to": snap_finest,
+            "max_reprojection_px": super::snap::MAX_REPROJECTION_PX,
+            "points_moved": resnapped,
+        })),
         "aggregate": "mean of L2-normalised features per level, re-normalised",
         "resize_max": options.resize_max,
         "global_max_side": global_size.max_side(),
