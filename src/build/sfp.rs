@@ -134,28 +134,21 @@ fn geometry_camera(c: &crate::colmap::Camera) -> Option<crate::geometry::Camera>
     crate::geometry::Camera::new(c.model, w, h, c.params.clone()).ok()
 }
 
-/// Moves the map's points whose moved observations (`moved`: point, image, pixel) agree to
-/// where they triangulate, with those observations as their visibility keypoints
-/// ([`super::snap::resnapped_position`]); returns how many moved.
-fn resnap(
+/// Each model point's re-triangulated position from its moved observations (`moved`: point,
+/// image, pixel), where they agree ([`super::snap::resnapped_position`]).
+fn resnap_positions(
     model: &Reconstruction,
     moved: &[(u32, u32, [f32; 2])],
-    map_index: &[u32],
-    geometry: &mut Geometry,
-) -> usize {
+) -> Vec<Option<[f64; 3]>> {
     use nalgebra::Vector2;
     let cameras: Vec<Option<crate::geometry::Camera>> = model
         .images()
         .iter()
         .map(|i| model.camera(i.camera_id).and_then(geometry_camera))
         .collect();
-    let mut by_point: Vec<(u32, u32, [f32; 2])> = moved
-        .iter()
-        .filter(|m| map_index[m.0 as usize] != u32::MAX)
-        .copied()
-        .collect();
+    let mut out = vec![None; model.points3d().len()];
+    let mut by_point = moved.to_vec();
     by_point.sort_unstable_by_key(|m| (m.0, m.1));
-    let mut count = 0;
     for group in by_point.chunk_by(|a, b| a.0 == b.0) {
         let observations: Vec<_> = group
             .iter()
@@ -165,21 +158,41 @@ fn resnap(
                 Some((camera, pose, Vector2::new(p[0] as f64, p[1] as f64)))
             })
             .collect();
-        let Some(x) = super::snap::resnapped_position(&observations) else {
-            continue;
-        };
-        let id = map_index[group[0].0 as usize];
-        geometry.positions[id as usize] = [x.x, x.y, x.z];
-        for &(_, k, p) in group {
-            let (a, b) = (
-                geometry.vis_offsets[k as usize] as usize,
-                geometry.vis_offsets[k as usize + 1] as usize,
-            );
-            if let Some(e) = (a..b).find(|&e| geometry.vis_points[e] == id) {
-                geometry.vis_keypoints[e] = p;
+        out[group[0].0 as usize] =
+            super::snap::resnapped_position(&observations).map(|x| [x.x, x.y, x.z]);
+    }
+    out
+}
+
+/// Moves the kept points with a position to it, their moved observations as their
+/// visibility keypoints; returns how many moved.
+fn apply_positions(
+    positions: &[Option<[f64; 3]>],
+    moved: &[(u32, u32, [f32; 2])],
+    map_index: &[u32],
+    geometry: &mut Geometry,
+) -> usize {
+    let mut count = 0;
+    for (p, x) in positions.iter().enumerate() {
+        if let (Some(x), id) = (x, map_index[p]) {
+            if id != u32::MAX {
+                geometry.positions[id as usize] = *x;
+                count += 1;
             }
         }
-        count += 1;
+    }
+    for &(p, k, px) in moved {
+        let id = map_index[p as usize];
+        if id == u32::MAX || positions[p as usize].is_none() {
+            continue;
+        }
+        let (a, b) = (
+            geometry.vis_offsets[k as usize] as usize,
+            geometry.vis_offsets[k as usize + 1] as usize,
+        );
+        if let Some(e) = (a..b).find(|&e| geometry.vis_points[e] == id) {
+            geometry.vis_keypoints[e] = px;
+        }
     }
     count
 }
@@ -326,6 +339,26 @@ fn convert_images_of(
     } else {
         snap_level
     };
+    let mut snapped = Tracks {
+        offsets: tracks.offsets.clone(),
+        width: tracks.width,
+        levels,
+        features: if snapping {
+            vec![0.0; tracks.features.len()]
+        } else {
+            Vec::new()
+        },
+        scores: if snapping {
+            vec![0.0; tracks.scores.len()]
+        } else {
+            Vec::new()
+        },
+        counts: if snapping {
+            vec![0; n_points]
+        } else {
+            Vec::new()
+        },
+    };
     // (point, image, moved pixel in the camera, COLMAP convention) of every moved observation.
     let mut moved: Vec<(u32, u32, [f32; 2])> = Vec::new();
     let mut ms = Vec::new();
@@ -380,7 +413,7 @@ fn convert_images_of(
                 ));
             }
         }
-        let mut observed: Vec<(usize, [f32; 2])> = image
+        let observed: Vec<(usize, [f32; 2])> = image
             .points2d
             .iter()
             .filter_map(|p| {
@@ -406,15 +439,30 @@ fn convert_images_of(
             }
         }
         if snapping {
-            for (point, xy) in observed.iter_mut() {
-                let (x, y) = super::snap::snap(&dense, snap_level, snap_finest, xy[0], xy[1]);
-                *xy = [x, y];
+            let detected = super::snap::detected(&dense, snap_level, snap_finest, &contract);
+            let srow_width = snapped.width;
+            for &(point, [ox, oy]) in observed.iter() {
+                let Some((x, y)) =
+                    super::snap::nearest(&detected, ox, oy, super::snap::SNAP_RADIUS_PX)
+                else {
+                    continue;
+                };
+                let row = &mut snapped.features[point * srow_width..(point + 1) * srow_width];
+                for (j, level) in dense.levels.iter().enumerate().skip(snap_level) {
+                    buf.clear();
+                    level.descriptor_at(x, y, &mut buf);
+                    for (s, v) in row[snapped.offsets[j]..].iter_mut().zip(&buf) {
+                        *s += v;
+                    }
+                    snapped.scores[point * snapped.levels + j] += level.score_at(x, y);
+                }
+                snapped.counts[point] += 1;
                 // Back to the camera's pixels in COLMAP's convention, as the model's are.
                 let colmap = [
                     (x + 0.5) * dense.scale[0] / to_file[0],
                     (y + 0.5) * dense.scale[1] / to_file[1],
                 ];
-                moved.push((*point as u32, k as u32, colmap));
+                moved.push((point as u32, k as u32, colmap));
             }
         }
         for &(point, [x, y]) in observed.iter().filter(|_| !head) {
@@ -440,16 +488,31 @@ fn convert_images_of(
     }
 
     // Level membership by mean score; points in no level are dropped.
+    let positions = if snapping {
+        resnap_positions(model, &moved)
+    } else {
+        Vec::new()
+    };
     let mean_score =
         |p: usize, j: usize| tracks.scores[p * levels + j] / tracks.counts[p].max(1) as f32;
-    let member = |p: usize, j: usize| tracks.counts[p] > 0 && mean_score(p, j) >= threshold;
+    let snapped_score =
+        |p: usize, j: usize| snapped.scores[p * levels + j] / snapped.counts[p].max(1) as f32;
+    let member = |p: usize, j: usize| {
+        if snapping && j == snap_level && positions[p].is_some() {
+            snapped_score(p, j) >= threshold
+        } else if snapping && j == snap_level && std::env::var_os("SNAP_ONLY").is_some() {
+            false
+        } else {
+            tracks.counts[p] > 0 && mean_score(p, j) >= threshold
+        }
+    };
     let keep: Vec<bool> = (0..n_points)
         .map(|p| (0..levels).any(|j| member(p, j)))
         .collect();
     let mut geometry = Geometry::new(model, Some(&keep));
     let map_index = map_index(&keep);
     let resnapped = if snapping {
-        resnap(model, &moved, &map_index, &mut geometry)
+        apply_positions(&positions, &moved, &map_index, &mut geometry)
     } else {
         0
     };
@@ -508,7 +571,12 @@ fn convert_images_of(
         let mut descriptors = Vec::with_capacity(members.len() * dim_full);
         let mut energy_short = 0.0f64;
         for &p in &members {
-            let row = &tracks.features[p * tracks.width..(p + 1) * tracks.width];
+            let source = if snapping && j == snap_level && positions[p].is_some() {
+                &snapped
+            } else {
+                &tracks
+            };
+            let row = &source.features[p * tracks.width..(p + 1) * tracks.width];
             let start = descriptors.len();
             for (i, &off) in tracks.offsets.iter().enumerate().skip(j) {
                 let part_start = descriptors.len();

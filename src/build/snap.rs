@@ -26,6 +26,44 @@ pub(crate) fn snap_level(levels: usize) -> usize {
     2.min(levels.saturating_sub(1))
 }
 
+/// How far (input pixels) an observation may be from the network's keypoint it moves to.
+pub(crate) const SNAP_RADIUS_PX: f32 = 4.0;
+
+/// The network's keypoints of level `level` as the extractor detects them with the model's
+/// defaults (input pixels), refined down to `finest`.
+pub(crate) fn detected(
+    dense: &Dense,
+    level: usize,
+    finest: usize,
+    contract: &crate::extract::contract::Contract,
+) -> Vec<(f32, f32)> {
+    let l = &dense.levels[level];
+    let s = l.stride as f32;
+    let peaks = keypoints::detect(
+        l.score_map(),
+        contract.default_nms_radius as usize,
+        contract.default_threshold,
+        contract.default_max_keypoints[level],
+    );
+    let mut px: Vec<(f32, f32)> = peaks.iter().map(|p| (p.x * s, p.y * s)).collect();
+    let finer: Vec<(f32, keypoints::ScoreMap<'_>)> = (finest..level)
+        .rev()
+        .map(|j| (dense.levels[j].stride as f32, dense.levels[j].score_map()))
+        .collect();
+    keypoints::refine_down(&mut px, s, &finer);
+    px
+}
+
+/// The keypoint of `detected` nearest (x, y) within `radius`, if any.
+pub(crate) fn nearest(detected: &[(f32, f32)], x: f32, y: f32, radius: f32) -> Option<(f32, f32)> {
+    detected
+        .iter()
+        .map(|&(a, b)| ((a - x).powi(2) + (b - y).powi(2), (a, b)))
+        .filter(|(d, _)| *d <= radius * radius)
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, p)| p)
+}
+
 /// The network's keypoint near input pixel (x, y) (pixel-index convention): the strongest cell
 /// of level `level`'s score map within one cell, with its sub-pixel fit, then refined on the
 /// finer levels down to `finest` as the extractor refines that level's keypoints
