@@ -110,11 +110,10 @@ pub struct Args {
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images", value_parser = super::args::score)]
     pub score_threshold: Option<f32>,
-    /// With --images (a pyramid model): move each observation to the network's keypoint near
-    /// it (level 2's strongest cell within one cell, refined as the extractor refines) and
-    /// triangulate the point again from the moved observations with the model's poses, so the
-    /// map's points are where queries' keypoints are; a point whose moved observations do not
-    /// agree within 2 px keeps its place.
+    /// With --images (a pyramid model): move observations to the level-2 keypoint the network
+    /// detects within 4 px of them, and a point with 2 or more moved observations that
+    /// re-triangulate within 2 px (rays at 2 degrees or more) to there, described there on
+    /// level 2: the map's points where queries' keypoints are. Other points stay.
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images")]
     pub snap: bool,

@@ -58,8 +58,9 @@ pub struct SfpMapOptions {
     pub score_threshold: Option<f32>,
     /// Skip model images whose file is missing (default: error).
     pub allow_missing: bool,
-    /// (issue 36) Move each observation to the network's keypoint near it and triangulate
-    /// the point again from the moved observations ([`super::snap`]); a pyramid model only.
+    /// (issue 36) Move observations to the network's keypoints near them and, where the moved
+    /// observations agree, the point to their triangulation ([`super::snap`]); a pyramid
+    /// model only. Holds a second copy of the points' snap-level descriptor sums meanwhile.
     pub snap: bool,
     /// How the descriptor sections are stored.
     pub codec: Codec,
@@ -134,9 +135,9 @@ fn geometry_camera(c: &crate::colmap::Camera) -> Option<crate::geometry::Camera>
     crate::geometry::Camera::new(c.model, w, h, c.params.clone()).ok()
 }
 
-/// Each model point's re-triangulated position from its moved observations (`moved`: point,
-/// image, pixel), where they agree ([`super::snap::resnapped_position`]).
-fn resnap_positions(
+/// Each model point's position from its moved observations (`moved`: point, image, pixel in
+/// the camera), where they agree ([`super::snap::moved_position`]); `None`: it stays.
+fn moved_positions(
     model: &Reconstruction,
     moved: &[(u32, u32, [f32; 2])],
 ) -> Vec<Option<[f64; 3]>> {
@@ -159,13 +160,14 @@ fn resnap_positions(
             })
             .collect();
         out[group[0].0 as usize] =
-            super::snap::resnapped_position(&observations).map(|x| [x.x, x.y, x.z]);
+            super::snap::moved_position(&observations).map(|x| [x.x, x.y, x.z]);
     }
     out
 }
 
-/// Moves the kept points with a position to it, their moved observations as their
-/// visibility keypoints; returns how many moved.
+/// Moves each kept point that has a position there, with its moved observations as its
+/// visibility keypoints (the others keep the model's); returns how many moved. Time: the
+/// moved observations sorted, then one pass over the visibility.
 fn apply_positions(
     positions: &[Option<[f64; 3]>],
     moved: &[(u32, u32, [f32; 2])],
@@ -181,17 +183,24 @@ fn apply_positions(
             }
         }
     }
-    for &(p, k, px) in moved {
-        let id = map_index[p as usize];
-        if id == u32::MAX || positions[p as usize].is_none() {
-            continue;
-        }
+    // (image, map point, pixel) of the moved points' observations, in image then point order.
+    let mut by_image: Vec<(u32, u32, [f32; 2])> = moved
+        .iter()
+        .filter(|m| positions[m.0 as usize].is_some() && map_index[m.0 as usize] != u32::MAX)
+        .map(|&(p, k, px)| (k, map_index[p as usize], px))
+        .collect();
+    by_image.sort_unstable_by_key(|m| (m.0, m.1));
+    for group in by_image.chunk_by(|a, b| a.0 == b.0) {
+        let k = group[0].0 as usize;
         let (a, b) = (
-            geometry.vis_offsets[k as usize] as usize,
-            geometry.vis_offsets[k as usize + 1] as usize,
+            geometry.vis_offsets[k] as usize,
+            geometry.vis_offsets[k + 1] as usize,
         );
-        if let Some(e) = (a..b).find(|&e| geometry.vis_points[e] == id) {
-            geometry.vis_keypoints[e] = px;
+        for e in a..b {
+            let id = geometry.vis_points[e];
+            if let Ok(i) = group.binary_search_by_key(&id, |m| m.1) {
+                geometry.vis_keypoints[e] = group[i].2;
+            }
         }
     }
     count
@@ -439,12 +448,10 @@ fn convert_images_of(
             }
         }
         if snapping {
-            let detected = super::snap::detected(&dense, snap_level, snap_finest, &contract);
+            let detected = super::snap::detected(&dense, &contract, snap_level, snap_finest);
             let srow_width = snapped.width;
             for &(point, [ox, oy]) in observed.iter() {
-                let Some((x, y)) =
-                    super::snap::nearest(&detected, ox, oy, super::snap::SNAP_RADIUS_PX)
-                else {
+                let Some((x, y)) = super::snap::nearest(&detected, ox, oy) else {
                     continue;
                 };
                 let row = &mut snapped.features[point * srow_width..(point + 1) * srow_width];
@@ -489,7 +496,7 @@ fn convert_images_of(
 
     // Level membership by mean score; points in no level are dropped.
     let positions = if snapping {
-        resnap_positions(model, &moved)
+        moved_positions(model, &moved)
     } else {
         Vec::new()
     };
@@ -500,8 +507,6 @@ fn convert_images_of(
     let member = |p: usize, j: usize| {
         if snapping && j == snap_level && positions[p].is_some() {
             snapped_score(p, j) >= threshold
-        } else if snapping && j == snap_level && std::env::var_os("SNAP_ONLY").is_some() {
-            false
         } else {
             tracks.counts[p] > 0 && mean_score(p, j) >= threshold
         }
@@ -539,12 +544,6 @@ fn convert_images_of(
         "contract": contract.raw,
         "score_threshold": threshold,
         "level_rule": if head { ONE_LEVEL_RULE } else { LEVEL_RULE },
-        "snap": snapping.then(|| json!({
-            "level": snap_level,
-            "refined_to": snap_finest,
-            "max_reprojection_px": super::snap::MAX_REPROJECTION_PX,
-            "points_moved": resnapped,
-        })),
         "aggregate": "mean of L2-normalised features per level, re-normalised",
         "resize_max": options.resize_max,
         "global_max_side": global_size.max_side(),
@@ -552,6 +551,18 @@ fn convert_images_of(
         "missing_images": missing,
         "codec": options.codec.name(),
     });
+    let mut parameters = parameters;
+    if snapping {
+        // Only when asked: a map made without it keeps its bytes.
+        parameters["snap"] = json!({
+            "level": snap_level,
+            "refined_to": snap_finest,
+            "radius_px": super::snap::SNAP_RADIUS_PX,
+            "max_reprojection_px": super::snap::MAX_REPROJECTION_PX,
+            "min_triangulation_deg": super::snap::MIN_TRIANGULATION_DEG,
+            "points_moved": resnapped,
+        });
+    }
     let codec = (options.codec, options.zstd_level);
     let parameters = super::with_job(parameters, options.job.as_ref());
     let mut writer = super::map_writer(metadata, sources, parameters, codec, &geometry)?;
