@@ -110,6 +110,13 @@ pub struct Args {
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images", value_parser = super::args::score)]
     pub score_threshold: Option<f32>,
+    /// With --images (a pyramid model): move observations to the level-2 keypoint the network
+    /// detects within 4 px of them, and a point with 2 or more moved observations that
+    /// re-triangulate within 2 px (rays at 2 degrees or more) to there, described there on
+    /// level 2: the map's points where queries' keypoints are. Other points stay.
+    #[cfg(feature = "onnx")]
+    #[arg(long, requires = "images")]
+    pub snap: bool,
     /// Output map.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -388,6 +395,7 @@ fn run_sfp(
             .max_side(),
         score_threshold: args.score_threshold,
         allow_missing: args.allow_missing,
+        snap: args.snap,
         codec: Codec::from(args.codec),
         zstd_level: args.zstd_level,
         vlad: vlad_options(args),

@@ -43,6 +43,8 @@ mod retrieval;
 mod sfp;
 #[cfg(feature = "colmap")]
 mod sift;
+#[cfg(all(feature = "colmap", feature = "onnx"))]
+mod snap;
 #[cfg(feature = "colmap")]
 mod stream;
 

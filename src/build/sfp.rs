@@ -58,6 +58,10 @@ pub struct SfpMapOptions {
     pub score_threshold: Option<f32>,
     /// Skip model images whose file is missing (default: error).
     pub allow_missing: bool,
+    /// (issue 36) Move observations to the network's keypoints near them and, where the moved
+    /// observations agree, the point to their triangulation ([`super::snap`]); a pyramid
+    /// model only. Holds a second copy of the points' snap-level descriptor sums meanwhile.
+    pub snap: bool,
     /// How the descriptor sections are stored.
     pub codec: Codec,
     /// zstd's level when `codec` is zstd.
@@ -92,6 +96,7 @@ impl SfpMapOptions {
             global_max_side: Some(GLOBAL_MAX_SIDE),
             score_threshold: None,
             allow_missing: false,
+            snap: false,
             codec: Codec::Raw,
             zstd_level: 3,
             vlad: super::VladOptions::default(),
@@ -121,6 +126,84 @@ pub struct SfpMapSummary {
     pub ms_per_image: f64,
     /// The level threshold used (the option, or the model's default).
     pub score_threshold: f32,
+}
+
+/// The model's camera as the geometry projects with it; `None` for one it cannot build (its
+/// observations then stay where they are).
+fn geometry_camera(c: &crate::colmap::Camera) -> Option<crate::geometry::Camera> {
+    let (w, h) = (u32::try_from(c.width).ok()?, u32::try_from(c.height).ok()?);
+    crate::geometry::Camera::new(c.model, w, h, c.params.clone()).ok()
+}
+
+/// Each model point's position from its moved observations (`moved`: point, image, pixel in
+/// the camera), where they agree ([`super::snap::moved_position`]); `None`: it stays.
+fn moved_positions(
+    model: &Reconstruction,
+    moved: &[(u32, u32, [f32; 2])],
+) -> Vec<Option<[f64; 3]>> {
+    use nalgebra::Vector2;
+    let cameras: Vec<Option<crate::geometry::Camera>> = model
+        .images()
+        .iter()
+        .map(|i| model.camera(i.camera_id).and_then(geometry_camera))
+        .collect();
+    let mut out = vec![None; model.points3d().len()];
+    let mut by_point = moved.to_vec();
+    by_point.sort_unstable_by_key(|m| (m.0, m.1));
+    for group in by_point.chunk_by(|a, b| a.0 == b.0) {
+        let observations: Vec<_> = group
+            .iter()
+            .filter_map(|&(_, k, p)| {
+                let camera = cameras[k as usize].as_ref()?;
+                let pose = model.images()[k as usize].cam_from_world;
+                Some((camera, pose, Vector2::new(p[0] as f64, p[1] as f64)))
+            })
+            .collect();
+        out[group[0].0 as usize] =
+            super::snap::moved_position(&observations).map(|x| [x.x, x.y, x.z]);
+    }
+    out
+}
+
+/// Moves each kept point that has a position there, with its moved observations as its
+/// visibility keypoints (the others keep the model's); returns how many moved. Time: the
+/// moved observations sorted, then one pass over the visibility.
+fn apply_positions(
+    positions: &[Option<[f64; 3]>],
+    moved: &[(u32, u32, [f32; 2])],
+    map_index: &[u32],
+    geometry: &mut Geometry,
+) -> usize {
+    let mut count = 0;
+    for (p, x) in positions.iter().enumerate() {
+        if let (Some(x), id) = (x, map_index[p]) {
+            if id != u32::MAX {
+                geometry.positions[id as usize] = *x;
+                count += 1;
+            }
+        }
+    }
+    // (image, map point, pixel) of the moved points' observations, in image then point order.
+    let mut by_image: Vec<(u32, u32, [f32; 2])> = moved
+        .iter()
+        .filter(|m| positions[m.0 as usize].is_some() && map_index[m.0 as usize] != u32::MAX)
+        .map(|&(p, k, px)| (k, map_index[p as usize], px))
+        .collect();
+    by_image.sort_unstable_by_key(|m| (m.0, m.1));
+    for group in by_image.chunk_by(|a, b| a.0 == b.0) {
+        let k = group[0].0 as usize;
+        let (a, b) = (
+            geometry.vis_offsets[k] as usize,
+            geometry.vis_offsets[k + 1] as usize,
+        );
+        for e in a..b {
+            let id = geometry.vis_points[e];
+            if let Ok(i) = group.binary_search_by_key(&id, |m| m.1) {
+                geometry.vis_keypoints[e] = group[i].2;
+            }
+        }
+    }
+    count
 }
 
 /// Per-point sums over the track: every level's normalised features, scores, counts.
@@ -258,6 +341,35 @@ fn convert_images_of(
     } else {
         GlobalSize::from_max_side(options.global_max_side).effective(options.resize_max)
     };
+    let snapping = options.snap && !head;
+    let snap_level = super::snap::snap_level(levels);
+    let snap_finest = if snap_level >= crate::extract::REFINE_FROM_LEVEL {
+        crate::extract::keypoints::finest_refined_level(contract.refine_to_level, snap_level)
+    } else {
+        snap_level
+    };
+    let mut snapped = Tracks {
+        offsets: tracks.offsets.clone(),
+        width: tracks.width,
+        levels,
+        features: if snapping {
+            vec![0.0; tracks.features.len()]
+        } else {
+            Vec::new()
+        },
+        scores: if snapping {
+            vec![0.0; tracks.scores.len()]
+        } else {
+            Vec::new()
+        },
+        counts: if snapping {
+            vec![0; n_points]
+        } else {
+            Vec::new()
+        },
+    };
+    // (point, image, moved pixel in the camera, COLMAP convention) of every moved observation.
+    let mut moved: Vec<(u32, u32, [f32; 2])> = Vec::new();
     let mut ms = Vec::new();
     let mut image_bytes = 0;
     let mut buf = Vec::with_capacity(width);
@@ -335,6 +447,31 @@ fn convert_images_of(
                 tracks.counts[point] += 1;
             }
         }
+        if snapping {
+            let detected = super::snap::detected(&dense, &contract, snap_level, snap_finest);
+            let srow_width = snapped.width;
+            for &(point, [ox, oy]) in observed.iter() {
+                let Some((x, y)) = super::snap::nearest(&detected, ox, oy) else {
+                    continue;
+                };
+                let row = &mut snapped.features[point * srow_width..(point + 1) * srow_width];
+                for (j, level) in dense.levels.iter().enumerate().skip(snap_level) {
+                    buf.clear();
+                    level.descriptor_at(x, y, &mut buf);
+                    for (s, v) in row[snapped.offsets[j]..].iter_mut().zip(&buf) {
+                        *s += v;
+                    }
+                    snapped.scores[point * snapped.levels + j] += level.score_at(x, y);
+                }
+                snapped.counts[point] += 1;
+                // Back to the camera's pixels in COLMAP's convention, as the model's are.
+                let colmap = [
+                    (x + 0.5) * dense.scale[0] / to_file[0],
+                    (y + 0.5) * dense.scale[1] / to_file[1],
+                ];
+                moved.push((point as u32, k as u32, colmap));
+            }
+        }
         for &(point, [x, y]) in observed.iter().filter(|_| !head) {
             let row = &mut tracks.features[point * tracks.width..(point + 1) * tracks.width];
             for (j, level) in dense.levels.iter().enumerate() {
@@ -358,14 +495,32 @@ fn convert_images_of(
     }
 
     // Level membership by mean score; points in no level are dropped.
+    let positions = if snapping {
+        moved_positions(model, &moved)
+    } else {
+        Vec::new()
+    };
     let mean_score =
         |p: usize, j: usize| tracks.scores[p * levels + j] / tracks.counts[p].max(1) as f32;
-    let member = |p: usize, j: usize| tracks.counts[p] > 0 && mean_score(p, j) >= threshold;
+    let snapped_score =
+        |p: usize, j: usize| snapped.scores[p * levels + j] / snapped.counts[p].max(1) as f32;
+    let member = |p: usize, j: usize| {
+        if snapping && j == snap_level && positions[p].is_some() {
+            snapped_score(p, j) >= threshold
+        } else {
+            tracks.counts[p] > 0 && mean_score(p, j) >= threshold
+        }
+    };
     let keep: Vec<bool> = (0..n_points)
         .map(|p| (0..levels).any(|j| member(p, j)))
         .collect();
-    let geometry = Geometry::new(model, Some(&keep));
+    let mut geometry = Geometry::new(model, Some(&keep));
     let map_index = map_index(&keep);
+    let resnapped = if snapping {
+        apply_positions(&positions, &moved, &map_index, &mut geometry)
+    } else {
+        0
+    };
 
     let model_info = extractor.model().clone();
     let mut metadata = Metadata {
@@ -396,6 +551,18 @@ fn convert_images_of(
         "missing_images": missing,
         "codec": options.codec.name(),
     });
+    let mut parameters = parameters;
+    if snapping {
+        // Only when asked: a map made without it keeps its bytes.
+        parameters["snap"] = json!({
+            "level": snap_level,
+            "refined_to": snap_finest,
+            "radius_px": super::snap::SNAP_RADIUS_PX,
+            "max_reprojection_px": super::snap::MAX_REPROJECTION_PX,
+            "min_triangulation_deg": super::snap::MIN_TRIANGULATION_DEG,
+            "points_moved": resnapped,
+        });
+    }
     let codec = (options.codec, options.zstd_level);
     let parameters = super::with_job(parameters, options.job.as_ref());
     let mut writer = super::map_writer(metadata, sources, parameters, codec, &geometry)?;
@@ -415,7 +582,12 @@ fn convert_images_of(
         let mut descriptors = Vec::with_capacity(members.len() * dim_full);
         let mut energy_short = 0.0f64;
         for &p in &members {
-            let row = &tracks.features[p * tracks.width..(p + 1) * tracks.width];
+            let source = if snapping && j == snap_level && positions[p].is_some() {
+                &snapped
+            } else {
+                &tracks
+            };
+            let row = &source.features[p * tracks.width..(p + 1) * tracks.width];
             let start = descriptors.len();
             for (i, &off) in tracks.offsets.iter().enumerate().skip(j) {
                 let part_start = descriptors.len();

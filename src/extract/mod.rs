@@ -25,7 +25,7 @@ pub mod contract;
 mod dkd;
 mod global;
 pub mod image;
-mod keypoints;
+pub(crate) mod keypoints;
 pub mod runtime;
 
 use self::contract::{Contract, DescriptorHead, Detector};

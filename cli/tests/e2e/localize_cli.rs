@@ -329,6 +329,84 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_with_v1_only_o
     assert_eq!(d["localized"], 2, "{d}");
 }
 
+/// (issue 36) `convert --images --snap`: some points move to where the network detects (the
+/// provenance says how many, and their observations are the moved keypoints), the others stay,
+/// and the map still localizes both queries; without it, the map is as before.
+#[test]
+fn a_snapped_sfp_map_moves_points_to_the_networks_keypoints() {
+    let Some(s) = scene() else { return };
+    let t = tempfile::tempdir().unwrap();
+    let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
+    let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
+    convert_sfp(&s, &p("plain.sfpm"), None);
+    run(&[
+        "convert",
+        "--colmap",
+        &sd("sparse-map"),
+        "--images",
+        &sd("images"),
+        "--snap",
+        "-o",
+        &p("snapped.sfpm"),
+        "-q",
+    ]);
+    let info = |m: &str| -> Value { serde_json::from_str(&run(&["info", m, "--json"])).unwrap() };
+    let (plain, snapped) = (info(&p("plain.sfpm")), info(&p("snapped.sfpm")));
+    assert!(plain["provenance"]["parameters"].get("snap").is_none());
+    let snap = &snapped["provenance"]["parameters"]["snap"];
+    let moved = snap["points_moved"].as_u64().unwrap();
+    let points = snapped["points"].as_u64().unwrap();
+    assert!(moved > 0 && moved < points, "{moved} of {points} moved");
+    assert_eq!(snap["level"], 2);
+    // By the files themselves: the same points (ids), as many at other positions as moved,
+    // each by less than the scene's extent, and the other positions unchanged.
+    let (a, b) = (
+        sfpmap::format::Map::open(p("plain.sfpm")).unwrap(),
+        sfpmap::format::Map::open(p("snapped.sfpm")).unwrap(),
+    );
+    let (ids_a, ids_b) = (
+        a.point_ids().unwrap().unwrap(),
+        b.point_ids().unwrap().unwrap(),
+    );
+    let (pos_a, pos_b) = (a.point_positions().unwrap(), b.point_positions().unwrap());
+    let at: std::collections::HashMap<u64, [f64; 3]> = ids_a
+        .iter()
+        .zip(pos_a.iter())
+        .map(|(&id, &x)| (id, a.to_world(x)))
+        .collect();
+    let mut changed = 0;
+    for (id, &x) in ids_b.iter().zip(pos_b.iter()) {
+        if let Some(old) = at.get(id) {
+            let new = b.to_world(x);
+            let d = (0..3)
+                .map(|i| (new[i] - old[i]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            if d > 1e-4 {
+                changed += 1;
+            }
+        }
+    }
+    assert!(
+        changed > 0 && changed as u64 <= moved,
+        "{changed} changed, {moved} moved"
+    );
+    let o: Value = serde_json::from_str(&run(&[
+        "localize",
+        "--map",
+        &p("snapped.sfpm"),
+        "--query-list",
+        &sd("queries.txt"),
+        "--images",
+        &sd("images"),
+        "-o",
+        &p("poses.txt"),
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(o["localized"], 2, "{o}");
+}
+
 /// `convert --colmap sparse-map --images images [--model M] -o out` on the scene `s`.
 fn convert_sfp(s: &Path, out: &str, model: Option<&str>) {
     let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
