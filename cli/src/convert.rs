@@ -111,9 +111,10 @@ pub struct Args {
     #[arg(long, requires = "images", value_parser = super::args::score)]
     pub score_threshold: Option<f32>,
     /// With --images (a pyramid model): move observations to the level-2 keypoint the network
-    /// detects within 4 px of them, and a point with 2 or more moved observations that
-    /// re-triangulate within 2 px (rays at 2 degrees or more) to there, described there on
-    /// level 2: the map's points where queries' keypoints are. Other points stay.
+    /// detects within 4 px of them (one observation a keypoint), and a point with 2 or more
+    /// moved observations that re-triangulate within 2 px (rays at 2 degrees or more) to
+    /// there, described there on level 2: the map's points where queries' keypoints are.
+    /// Other points stay. Twice the memory of the descriptor sums while converting.
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images")]
     pub snap: bool,

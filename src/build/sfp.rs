@@ -139,7 +139,7 @@ fn geometry_camera(c: &crate::colmap::Camera) -> Option<crate::geometry::Camera>
 /// the camera), where they agree ([`super::snap::moved_position`]); `None`: it stays.
 fn moved_positions(
     model: &Reconstruction,
-    moved: &[(u32, u32, [f32; 2])],
+    moved: &mut [(u32, u32, [f32; 2])],
 ) -> Vec<Option<[f64; 3]>> {
     use nalgebra::Vector2;
     let cameras: Vec<Option<crate::geometry::Camera>> = model
@@ -148,9 +148,8 @@ fn moved_positions(
         .map(|i| model.camera(i.camera_id).and_then(geometry_camera))
         .collect();
     let mut out = vec![None; model.points3d().len()];
-    let mut by_point = moved.to_vec();
-    by_point.sort_unstable_by_key(|m| (m.0, m.1));
-    for group in by_point.chunk_by(|a, b| a.0 == b.0) {
+    moved.sort_unstable_by_key(|m| (m.0, m.1));
+    for group in moved.chunk_by(|a, b| a.0 == b.0) {
         let observations: Vec<_> = group
             .iter()
             .filter_map(|&(_, k, p)| {
@@ -159,8 +158,10 @@ fn moved_positions(
                 Some((camera, pose, Vector2::new(p[0] as f64, p[1] as f64)))
             })
             .collect();
+        let was = model.points3d()[group[0].0 as usize].xyz;
+        let around = nalgebra::Vector3::new(was[0], was[1], was[2]);
         out[group[0].0 as usize] =
-            super::snap::moved_position(&observations).map(|x| [x.x, x.y, x.z]);
+            super::snap::moved_position(&observations, around).map(|x| [x.x, x.y, x.z]);
     }
     out
 }
@@ -341,8 +342,16 @@ fn convert_images_of(
     } else {
         GlobalSize::from_max_side(options.global_max_side).effective(options.resize_max)
     };
-    let snapping = options.snap && !head;
+    if options.snap && head {
+        return Err(ConvertError::Options(format!(
+            "--snap: {} describes one level with its descriptor head; there are no pyramid \
+             keypoints to move observations to",
+            contract.model_name
+        )));
+    }
+    let snapping = options.snap;
     let snap_level = super::snap::snap_level(levels);
+    // The level the snap level's keypoints are refined down to (the provenance says).
     let snap_finest = if snap_level >= crate::extract::REFINE_FROM_LEVEL {
         crate::extract::keypoints::finest_refined_level(contract.refine_to_level, snap_level)
     } else {
@@ -448,10 +457,19 @@ fn convert_images_of(
             }
         }
         if snapping {
-            let detected = super::snap::detected(&dense, &contract, snap_level, snap_finest);
+            // Where a query's keypoints would be: the extractor's own detection, with the
+            // model's defaults.
+            let (_, detected) = crate::extract::level_keypoints(
+                &contract,
+                &dense,
+                snap_level,
+                contract.default_max_keypoints[snap_level],
+                &crate::extract::DetectOptions::default(),
+            );
+            let at: Vec<(f32, f32)> = observed.iter().map(|o| (o.1[0], o.1[1])).collect();
             let srow_width = snapped.width;
-            for &(point, [ox, oy]) in observed.iter() {
-                let Some((x, y)) = super::snap::nearest(&detected, ox, oy) else {
+            for (&(point, _), to) in observed.iter().zip(super::snap::assign(&detected, &at)) {
+                let Some((x, y)) = to.map(|i| detected[i]) else {
                     continue;
                 };
                 let row = &mut snapped.features[point * srow_width..(point + 1) * srow_width];
@@ -496,21 +514,16 @@ fn convert_images_of(
 
     // Level membership by mean score; points in no level are dropped.
     let positions = if snapping {
-        moved_positions(model, &moved)
+        moved_positions(model, &mut moved)
     } else {
         Vec::new()
     };
+    // A moved point's snap level is its moved observations' (features and score).
+    let moved_on = |p: usize, j: usize| snapping && j == snap_level && positions[p].is_some();
+    let sums = |p: usize, j: usize| if moved_on(p, j) { &snapped } else { &tracks };
     let mean_score =
-        |p: usize, j: usize| tracks.scores[p * levels + j] / tracks.counts[p].max(1) as f32;
-    let snapped_score =
-        |p: usize, j: usize| snapped.scores[p * levels + j] / snapped.counts[p].max(1) as f32;
-    let member = |p: usize, j: usize| {
-        if snapping && j == snap_level && positions[p].is_some() {
-            snapped_score(p, j) >= threshold
-        } else {
-            tracks.counts[p] > 0 && mean_score(p, j) >= threshold
-        }
-    };
+        |p: usize, j: usize| sums(p, j).scores[p * levels + j] / sums(p, j).counts[p].max(1) as f32;
+    let member = |p: usize, j: usize| sums(p, j).counts[p] > 0 && mean_score(p, j) >= threshold;
     let keep: Vec<bool> = (0..n_points)
         .map(|p| (0..levels).any(|j| member(p, j)))
         .collect();
@@ -582,11 +595,7 @@ fn convert_images_of(
         let mut descriptors = Vec::with_capacity(members.len() * dim_full);
         let mut energy_short = 0.0f64;
         for &p in &members {
-            let source = if snapping && j == snap_level && positions[p].is_some() {
-                &snapped
-            } else {
-                &tracks
-            };
+            let source = sums(p, j);
             let row = &source.features[p * tracks.width..(p + 1) * tracks.width];
             let start = descriptors.len();
             for (i, &off) in tracks.offsets.iter().enumerate().skip(j) {

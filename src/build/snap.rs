@@ -7,19 +7,17 @@
 //! localized KITTI 06 at SIFT's precision (`python/probe_sift_keypoint_queries.py`).
 //!
 //! With `--snap`, an observation moves to the snap level's keypoint that the extractor detects
-//! within [`SNAP_RADIUS_PX`] of it, if there is one (the model's threshold, NMS and refinement:
-//! where a query's keypoint would be). A point with two or more moved observations is
-//! triangulated again from them with the model's poses and moves there when every one
-//! reprojects within [`MAX_REPROJECTION_PX`] and its rays meet at
+//! within [`SNAP_RADIUS_PX`] of it, if there is one and no nearer observation takes it (the
+//! model's defaults: where a query's keypoint would be). A point with two or more moved
+//! observations is triangulated again from them with the model's poses and moves there when
+//! every one reprojects within [`MAX_REPROJECTION_PX`] and its rays meet at
 //! [`MIN_TRIANGULATION_DEG`] or more; the snap level then describes it at the moved
 //! observations, the other levels as before. Points that do not move stay as they were.
-//! Measured on sfp-v2 (stop 49, `python/TRAINING-v3.md`): full maps gain on all three shared
-//! scenes (KITTI 06 0.0075 → 0.0067 m, South Building 0.0017 → 0.0012, Sacre-Coeur 0.0036 →
-//! 0.0031); level-2 short maps on KITTI 06 and South Building (0.0236 → 0.0162 m, 0.0043 →
-//! 0.0031) but Sacre-Coeur's localizes one of its two queries instead of both.
+//! Measured on sfp-v2 (stop 49, `python/TRAINING-v3.md`): median errors fall on all three
+//! shared scenes, full maps (KITTI 06 0.0075 → 0.0070 m, South Building 0.0017 → 0.0013,
+//! Sacre-Coeur 0.0036 → 0.0032) and level-2 short maps (0.0236 → 0.0163 m, 0.0043 → 0.0037,
+//! 0.045 → 0.036), for 1–8 % more bytes.
 
-use crate::extract::contract::Contract;
-use crate::extract::{keypoints, Dense};
 use crate::geometry::{Camera, Pose};
 use nalgebra::{Matrix4, Vector2, Vector3, Vector4};
 
@@ -43,44 +41,65 @@ pub(crate) fn snap_level(levels: usize) -> usize {
     2.min(levels.saturating_sub(1))
 }
 
-/// Level `level`'s keypoints as the extractor detects them with the model's defaults (NMS
-/// radius, threshold, cap), in input pixels, refined down to level `finest` (`finest ==
-/// level`: not refined).
-pub(crate) fn detected(
-    dense: &Dense,
-    contract: &Contract,
-    level: usize,
-    finest: usize,
-) -> Vec<(f32, f32)> {
-    let l = &dense.levels[level];
-    let stride = l.stride as f32;
-    let peaks = keypoints::detect(
-        l.score_map(),
-        contract.default_nms_radius as usize,
-        contract.default_threshold,
-        contract.default_max_keypoints[level],
-    );
-    let mut px: Vec<(f32, f32)> = peaks.iter().map(|p| (p.x * stride, p.y * stride)).collect();
-    let finer: Vec<(f32, keypoints::ScoreMap<'_>)> = (finest..level)
-        .rev()
-        .map(|j| (dense.levels[j].stride as f32, dense.levels[j].score_map()))
-        .collect();
-    keypoints::refine_down(&mut px, stride, &finer);
-    px
-}
-
-/// The keypoint of `detected` nearest (x, y) within [`SNAP_RADIUS_PX`] (the first of equals).
-/// A scan: an image has at most a few thousand keypoints on the snap level and an
-/// observation is looked up once.
-pub(crate) fn nearest(detected: &[(f32, f32)], x: f32, y: f32) -> Option<(f32, f32)> {
-    let mut best: Option<(f32, (f32, f32))> = None;
-    for &(a, b) in detected {
-        let d = (a - x).powi(2) + (b - y).powi(2);
-        if d <= SNAP_RADIUS_PX * SNAP_RADIUS_PX && best.is_none_or(|(bd, _)| d < bd) {
-            best = Some((d, (a, b)));
+/// Where each observation moves: the index in `detected` of the keypoint nearest it within
+/// [`SNAP_RADIUS_PX`], if any, and no keypoint taken by two observations: the nearer keeps it
+/// (the first of equals), the other stays. Two points moved onto one keypoint would be one
+/// image point twice. Time: linear in both, by a grid of cells the radius wide.
+pub(crate) fn assign(detected: &[(f32, f32)], observations: &[(f32, f32)]) -> Vec<Option<usize>> {
+    use std::collections::HashMap;
+    let cell = |x: f32, y: f32| {
+        (
+            (x / SNAP_RADIUS_PX).floor() as i64,
+            (y / SNAP_RADIUS_PX).floor() as i64,
+        )
+    };
+    let mut grid: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+    for (i, &(x, y)) in detected.iter().enumerate() {
+        if x.is_finite() && y.is_finite() {
+            grid.entry(cell(x, y)).or_default().push(i);
         }
     }
-    best.map(|(_, p)| p)
+    let mut nearest: Vec<Option<(usize, f32)>> = observations
+        .iter()
+        .map(|&(x, y)| {
+            if !(x.is_finite() && y.is_finite()) {
+                return None;
+            }
+            let (cx, cy) = cell(x, y);
+            let mut best: Option<(usize, f32)> = None;
+            for gx in cx - 1..=cx + 1 {
+                for gy in cy - 1..=cy + 1 {
+                    for &i in grid.get(&(gx, gy)).into_iter().flatten() {
+                        let (a, b) = detected[i];
+                        let d = (a - x).powi(2) + (b - y).powi(2);
+                        let closer = best.is_none_or(|(bi, bd)| d < bd || (d == bd && i < bi));
+                        if d <= SNAP_RADIUS_PX * SNAP_RADIUS_PX && closer {
+                            best = Some((i, d));
+                        }
+                    }
+                }
+            }
+            best
+        })
+        .collect();
+    // Each keypoint to its nearest observation (the first of equals).
+    let mut taken: HashMap<usize, (usize, f32)> = HashMap::new();
+    for (o, n) in nearest.iter().enumerate() {
+        if let Some((i, d)) = *n {
+            let e = taken.entry(i).or_insert((o, d));
+            if d < e.1 {
+                *e = (o, d);
+            }
+        }
+    }
+    for (o, n) in nearest.iter_mut().enumerate() {
+        if let Some((i, _)) = *n {
+            if taken[&i].0 != o {
+                *n = None;
+            }
+        }
+    }
+    nearest.into_iter().map(|n| n.map(|(i, _)| i)).collect()
 }
 
 /// The point whose projections are `views` (each a camera's pose and the point's normalised,
@@ -114,27 +133,56 @@ pub(crate) fn triangulate(views: &[(Pose, Vector2<f64>)]) -> Option<Vector3<f64>
     (h[3].abs() > 1e-12 && x.iter().all(|v| v.is_finite())).then_some(x)
 }
 
-/// Where a point moves from its moved observations (each a camera, its pose, and the moved
-/// pixel in COLMAP's convention, in the camera's pixels): their triangulation, when it is in
-/// front of every camera, every one reprojects within [`MAX_REPROJECTION_PX`] and the rays'
-/// widest angle is at least [`MIN_TRIANGULATION_DEG`]; `None` otherwise (the point stays).
+/// Whether the widest angle between `rays` (unit) is at least [`MIN_TRIANGULATION_DEG`], in
+/// time linear in the rays: every angle is at most twice the widest from the first ray, so
+/// the pairs are compared only when that is between half the bar and the bar, and then among
+/// the first [`ANGLE_PAIRS_VIEWS`] (a track may have thousands of views).
+fn rays_meet_widely(rays: impl Iterator<Item = Vector3<f64>>) -> bool {
+    let rays: Vec<Vector3<f64>> = rays.collect();
+    let angle = |a: &Vector3<f64>, b: &Vector3<f64>| a.dot(b).clamp(-1.0, 1.0).acos().to_degrees();
+    let Some(first) = rays.first() else {
+        return false;
+    };
+    let from_first = rays.iter().map(|r| angle(first, r)).fold(0.0f64, f64::max);
+    if from_first >= MIN_TRIANGULATION_DEG {
+        return true;
+    }
+    if from_first < MIN_TRIANGULATION_DEG / 2.0 {
+        return false;
+    }
+    let few = &rays[..rays.len().min(ANGLE_PAIRS_VIEWS)];
+    few.iter()
+        .flat_map(|a| few.iter().map(move |b| angle(a, b)))
+        .any(|d| d >= MIN_TRIANGULATION_DEG)
+}
+
+/// The views whose rays are compared pairwise when the first ray does not settle it.
+const ANGLE_PAIRS_VIEWS: usize = 64;
+
+/// Where a point now at `around` moves from its moved observations (each a camera, its pose,
+/// and the moved pixel in COLMAP's convention, in the camera's pixels): their triangulation,
+/// when it is in front of every camera, every one reprojects within [`MAX_REPROJECTION_PX`]
+/// and the rays' widest angle is at least [`MIN_TRIANGULATION_DEG`]; `None` otherwise (the
+/// point stays). Solved about `around`: georeferenced coordinates (1e5 to 1e6) would leave the
+/// linear system too poorly conditioned to place a point to a pixel.
 pub(crate) fn moved_position(
     observations: &[(&Camera, Pose, Vector2<f64>)],
+    around: Vector3<f64>,
 ) -> Option<Vector3<f64>> {
     let views: Vec<(Pose, Vector2<f64>)> = observations
         .iter()
-        .map(|(camera, pose, px)| (*pose, camera.unproject(px)))
+        .map(|(camera, pose, px)| {
+            // The same camera with the world's origin at `around`.
+            let shifted = Pose::new(pose.rotation, pose.translation + pose.rotation * around);
+            (shifted, camera.unproject(px))
+        })
         .collect();
-    let x = triangulate(&views)?;
-    let rays: Vec<Vector3<f64>> = observations
-        .iter()
-        .map(|(_, pose, _)| (x - pose.center()).normalize())
-        .collect();
-    let widest = rays
-        .iter()
-        .flat_map(|a| rays.iter().map(move |b| a.dot(b).clamp(-1.0, 1.0).acos()))
-        .fold(0.0f64, f64::max);
-    if widest.to_degrees() < MIN_TRIANGULATION_DEG {
+    let x = triangulate(&views)? + around;
+    if !rays_meet_widely(
+        observations
+            .iter()
+            .map(|(_, pose, _)| (x - pose.center()).normalize()),
+    ) {
         return None;
     }
     observations
@@ -192,7 +240,24 @@ mod tests {
     fn a_point_seen_exactly_is_found_again() {
         let x = Vector3::new(0.3, -0.2, 5.0);
         let cam = camera();
-        let found = moved_position(&seen(&cam, &x, 0.5)).unwrap();
+        let found = moved_position(&seen(&cam, &x, 0.5), Vector3::new(0.2, -0.1, 4.0)).unwrap();
+        assert!((found - x).norm() < 1e-6, "{found} vs {x}");
+    }
+
+    #[test]
+    fn far_from_the_origin_a_point_is_found_to_a_fraction_of_a_pixel() {
+        // A georeferenced scene: everything 500 km from the origin.
+        let far = Vector3::new(5e5, 4e5, 0.0);
+        let x = far + Vector3::new(0.3, -0.2, 5.0);
+        let cam = camera();
+        let obs: Vec<_> = poses(0.5)
+            .into_iter()
+            .map(|pose| {
+                let pose = Pose::new(pose.rotation, pose.translation - pose.rotation * far);
+                (&cam, pose, cam.project(&pose.transform(&x)).unwrap())
+            })
+            .collect();
+        let found = moved_position(&obs, far + Vector3::new(0.25, -0.25, 5.1)).unwrap();
         assert!((found - x).norm() < 1e-6, "{found} vs {x}");
     }
 
@@ -203,9 +268,9 @@ mod tests {
         let mut obs = seen(&cam, &x, 0.5);
         // One observation 10 px off: no point reprojects within 2 px in all three views.
         obs[1].2.x += 10.0;
-        assert_eq!(moved_position(&obs), None);
+        assert_eq!(moved_position(&obs, x), None);
         // One view fixes no point.
-        assert_eq!(moved_position(&obs[..1]), None);
+        assert_eq!(moved_position(&obs[..1], x), None);
         assert_eq!(triangulate(&[]), None);
         // Cameras 5 cm apart see the point at 5 m under about 1 degree: exact, still refused.
         let narrow = seen(&cam, &x, 0.05);
@@ -216,20 +281,37 @@ mod tests {
                 .collect::<Vec<_>>()
         )
         .is_some());
-        assert_eq!(moved_position(&narrow), None);
+        assert_eq!(moved_position(&narrow, x), None);
     }
 
     #[test]
-    fn an_observation_moves_to_the_nearest_keypoint_within_the_radius() {
-        let detected = [(10.0, 10.0), (13.0, 10.0), (30.0, 30.0)];
-        assert_eq!(nearest(&detected, 12.0, 10.0), Some((13.0, 10.0)));
+    fn an_observation_moves_to_the_nearest_keypoint_within_the_radius_and_only_one_takes_it() {
+        let detected = [(10.0, 10.0), (13.0, 10.0), (30.0, 30.0), (-3.0, -3.0)];
+        // (12, 10): (13, 10) is nearer; (11.5, 10): equally far from both, the first;
+        // (20, 20): none within 4 px; (-1, -2): across a cell border, (-3, -3).
+        let obs = [(12.0, 10.0), (20.0, 20.0), (-1.0, -2.0), (f32::NAN, 0.0)];
+        assert_eq!(assign(&detected, &obs), [Some(1), None, Some(3), None]);
+        assert_eq!(assign(&detected, &[(11.5, 10.0)]), [Some(0)]);
+        // Two observations nearest to (13, 10): the nearer keeps it, the other stays.
         assert_eq!(
-            nearest(&detected, 11.5, 10.0),
-            Some((10.0, 10.0)),
-            "equals: the first"
+            assign(&detected, &[(14.5, 10.0), (13.5, 10.0)]),
+            [None, Some(1)]
         );
-        assert_eq!(nearest(&detected, 20.0, 20.0), None, "none within 4 px");
-        assert_eq!(nearest(&[], 0.0, 0.0), None);
+        assert_eq!(assign(&[], &obs), [None, None, None, None]);
+    }
+
+    #[test]
+    fn rays_meet_widely_at_two_degrees_or_more_however_many() {
+        let ray = |deg: f64| Vector3::new(deg.to_radians().sin(), 0.0, deg.to_radians().cos());
+        assert!(rays_meet_widely([ray(0.0), ray(2.5)].into_iter()));
+        assert!(!rays_meet_widely([ray(0.0), ray(0.5)].into_iter()));
+        // The first ray in the middle: 1.5 degrees each way, 3 between the others.
+        assert!(rays_meet_widely(
+            [ray(0.0), ray(-1.5), ray(1.5)].into_iter()
+        ));
+        assert!(!rays_meet_widely(std::iter::empty()));
+        // Ten thousand views in a narrow cone: decided without the pairs.
+        assert!(!rays_meet_widely((0..10_000).map(|i| ray(i as f64 * 1e-5))));
     }
 
     #[test]

@@ -303,6 +303,40 @@ impl DetectOptions {
 /// gains at 1 px but loses repeatability, so it is left as detected.
 pub(crate) const REFINE_FROM_LEVEL: usize = 2;
 
+/// Level `i`'s keypoints as the extractor finds them (`spec/extractor.md` steps 1–4): the
+/// detector's peaks (at most `max`) and their pixel positions (pixel-index convention),
+/// refined coarse to fine where it applies (not for a descriptor head, whose head takes the
+/// detected positions). `convert --images --snap` moves observations to these.
+pub(crate) fn level_keypoints(
+    c: &Contract,
+    dense: &Dense,
+    i: usize,
+    max: usize,
+    options: &DetectOptions,
+) -> (Vec<keypoints::Peak>, Vec<(f32, f32)>) {
+    let threshold = options.threshold.unwrap_or(c.default_threshold);
+    let radius = options.nms_radius.unwrap_or(c.default_nms_radius) as usize;
+    let level = &dense.levels[i];
+    let peaks = match c.detector {
+        Detector::Nms => keypoints::detect(level.score_map(), radius, threshold, max),
+        Detector::Dkd => dkd::detect(level.score_map(), radius, threshold, max),
+    };
+    let s = level.stride as f32;
+    let mut px: Vec<(f32, f32)> = peaks.iter().map(|p| (p.x * s, p.y * s)).collect();
+    if c.descriptor_head != DescriptorHead::Sddh
+        && options.refine.unwrap_or(true)
+        && i >= REFINE_FROM_LEVEL.max(1)
+    {
+        let finer: Vec<(f32, ScoreMap<'_>)> =
+            (keypoints::finest_refined_level(c.refine_to_level, i)..i)
+                .rev()
+                .map(|j| (dense.levels[j].stride as f32, dense.levels[j].score_map()))
+                .collect();
+        keypoints::refine_down(&mut px, s, &finer);
+    }
+    (peaks, px)
+}
+
 /// The inputs of a descriptor head's branch (`sfp.descriptor_head = sddh`): a `feat_0` and
 /// `[N, 2]` keypoints (input pixels, pixel-index convention).
 const SDDH_INPUTS: [&str; 2] = ["features", "keypoints"];
@@ -936,26 +970,10 @@ impl Extractor {
         options: &DetectOptions,
     ) -> Result<LevelFeatures, ExtractError> {
         let c = &self.contract;
-        let threshold = options.threshold.unwrap_or(c.default_threshold);
-        let radius = options.nms_radius.unwrap_or(c.default_nms_radius) as usize;
         let level = &dense.levels[i];
-        let peaks = match c.detector {
-            Detector::Nms => keypoints::detect(level.score_map(), radius, threshold, max),
-            Detector::Dkd => dkd::detect(level.score_map(), radius, threshold, max),
-        };
-        let s = level.stride as f32;
-        // Pixel positions (pixel-index convention), refined coarse to fine where it applies.
-        let mut px: Vec<(f32, f32)> = peaks.iter().map(|p| (p.x * s, p.y * s)).collect();
+        let (peaks, px) = level_keypoints(c, dense, i, max, options);
         if c.descriptor_head == DescriptorHead::Sddh {
             return self.described_level(dense, i, &peaks, &px);
-        }
-        if options.refine.unwrap_or(true) && i >= REFINE_FROM_LEVEL.max(1) {
-            let finer: Vec<(f32, ScoreMap<'_>)> =
-                (keypoints::finest_refined_level(c.refine_to_level, i)..i)
-                    .rev()
-                    .map(|j| (dense.levels[j].stride as f32, dense.levels[j].score_map()))
-                    .collect();
-            keypoints::refine_down(&mut px, s, &finer);
         }
         // The levels' own channel counts (`run` checks them against the contract; a `Dense`
         // built by hand may differ, and then gets descriptors of its own sizes, not a panic).

@@ -330,8 +330,8 @@ fn a_map_of_the_built_in_student_localizes_with_it_by_default_and_with_v1_only_o
 }
 
 /// (issue 36) `convert --images --snap`: some points move to where the network detects (the
-/// provenance says how many, and their observations are the moved keypoints), the others stay,
-/// and the map still localizes both queries; without it, the map is as before.
+/// provenance says how many; the files agree), the others stay, and the map still localizes
+/// both queries; without it, the map is as before; a descriptor head's model is refused.
 #[test]
 fn a_snapped_sfp_map_moves_points_to_the_networks_keypoints() {
     let Some(s) = scene() else { return };
@@ -339,17 +339,26 @@ fn a_snapped_sfp_map_moves_points_to_the_networks_keypoints() {
     let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
     let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
     convert_sfp(&s, &p("plain.sfpm"), None);
-    run(&[
-        "convert",
-        "--colmap",
-        &sd("sparse-map"),
-        "--images",
-        &sd("images"),
-        "--snap",
-        "-o",
-        &p("snapped.sfpm"),
-        "-q",
-    ]);
+    let convert = |extra: &[&str], out: &str, code: i32| {
+        let (sparse, images) = (sd("sparse-map"), sd("images"));
+        let mut args = vec![
+            "convert", "--colmap", &sparse, "--images", &images, "--snap", "-o",
+        ];
+        args.extend([out, "-q"]);
+        args.extend(extra);
+        let o = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+            .args(&args)
+            .output()
+            .unwrap();
+        assert_eq!(
+            o.status.code(),
+            Some(code),
+            "{}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    convert(&[], &p("snapped.sfpm"), 0);
     let info = |m: &str| -> Value { serde_json::from_str(&run(&["info", m, "--json"])).unwrap() };
     let (plain, snapped) = (info(&p("plain.sfpm")), info(&p("snapped.sfpm")));
     assert!(plain["provenance"]["parameters"].get("snap").is_none());
@@ -358,33 +367,42 @@ fn a_snapped_sfp_map_moves_points_to_the_networks_keypoints() {
     let points = snapped["points"].as_u64().unwrap();
     assert!(moved > 0 && moved < points, "{moved} of {points} moved");
     assert_eq!(snap["level"], 2);
-    // By the files themselves: the same points (ids), as many at other positions as moved,
-    // each by less than the scene's extent, and the other positions unchanged.
+    // By the files themselves: of the points both maps keep (by id), some are elsewhere,
+    // no more than moved, and none by more than the scene is wide.
     let (a, b) = (
         sfpmap::format::Map::open(p("plain.sfpm")).unwrap(),
         sfpmap::format::Map::open(p("snapped.sfpm")).unwrap(),
     );
-    let (ids_a, ids_b) = (
-        a.point_ids().unwrap().unwrap(),
-        b.point_ids().unwrap().unwrap(),
-    );
-    let (pos_a, pos_b) = (a.point_positions().unwrap(), b.point_positions().unwrap());
-    let at: std::collections::HashMap<u64, [f64; 3]> = ids_a
-        .iter()
-        .zip(pos_a.iter())
-        .map(|(&id, &x)| (id, a.to_world(x)))
-        .collect();
+    let world = |m: &sfpmap::format::Map<'_>| -> std::collections::HashMap<u64, [f64; 3]> {
+        let ids = m.point_ids().unwrap().expect("SFP maps keep point ids");
+        let positions = m.point_positions().unwrap();
+        ids.iter()
+            .zip(positions.iter())
+            .map(|(&id, &x)| (id, m.to_world(x)))
+            .collect()
+    };
+    let (before, after) = (world(&a), world(&b));
+    let extent = before
+        .values()
+        .flat_map(|x| {
+            before
+                .values()
+                .map(move |y| (0..3).map(|i| (x[i] - y[i]).powi(2)).sum::<f64>())
+        })
+        .fold(0.0f64, f64::max)
+        .sqrt();
     let mut changed = 0;
-    for (id, &x) in ids_b.iter().zip(pos_b.iter()) {
-        if let Some(old) = at.get(id) {
-            let new = b.to_world(x);
+    for (id, new) in &after {
+        if let Some(old) = before.get(id) {
             let d = (0..3)
                 .map(|i| (new[i] - old[i]).powi(2))
                 .sum::<f64>()
                 .sqrt();
-            if d > 1e-4 {
-                changed += 1;
-            }
+            assert!(
+                d < extent,
+                "point {id} moved {d}, the scene is {extent} wide"
+            );
+            changed += usize::from(d > 1e-4);
         }
     }
     assert!(
@@ -405,6 +423,13 @@ fn a_snapped_sfp_map_moves_points_to_the_networks_keypoints() {
     ]))
     .unwrap();
     assert_eq!(o["localized"], 2, "{o}");
+    // ALIKED describes one level with its head: nothing to snap to, said so.
+    let err = convert(&["--model", "aliked-n16"], &p("aliked.sfpm"), 1);
+    assert!(
+        err.contains("--snap") && err.contains("aliked-n16"),
+        "{err}"
+    );
+    assert!(!t.path().join("aliked.sfpm").exists());
 }
 
 /// `convert --colmap sparse-map --images images [--model M] -o out` on the scene `s`.
