@@ -218,6 +218,51 @@ struct Tracks {
     counts: Vec<u32>,
 }
 
+impl Tracks {
+    /// Zero sums for `points` points of levels of `dims` features each.
+    fn new(dims: &[usize], points: usize) -> Tracks {
+        let offsets: Vec<usize> = dims
+            .iter()
+            .scan(0, |at, &d| {
+                let start = *at;
+                *at += d;
+                Some(start)
+            })
+            .collect();
+        let width = dims.iter().sum();
+        Tracks {
+            offsets,
+            width,
+            levels: dims.len(),
+            features: vec![0.0; points * width],
+            scores: vec![0.0; points * dims.len()],
+            counts: vec![0; points],
+        }
+    }
+
+    /// Adds one observation of `point` at input pixel (x, y): levels `from..` of `dense`, each
+    /// level's features (L2-normalised, `buf` as scratch) and score.
+    fn add(
+        &mut self,
+        dense: &crate::extract::Dense,
+        point: usize,
+        (x, y): (f32, f32),
+        from: usize,
+        buf: &mut Vec<f32>,
+    ) {
+        let row = &mut self.features[point * self.width..(point + 1) * self.width];
+        for (j, level) in dense.levels.iter().enumerate().skip(from) {
+            buf.clear();
+            level.descriptor_at(x, y, buf);
+            for (s, v) in row[self.offsets[j]..].iter_mut().zip(buf.iter()) {
+                *s += v;
+            }
+            self.scores[point * self.levels + j] += level.score_at(x, y);
+        }
+        self.counts[point] += 1;
+    }
+}
+
 /// Converts the COLMAP model in `model_dir` with the images in `options.images` into an SFP
 /// map at `output` (temp file + rename).
 pub fn convert_with_images(
@@ -321,20 +366,8 @@ fn convert_images_of(
         contract.default_threshold
     });
     let n_points = model.points3d().len();
-    let mut offsets = Vec::with_capacity(levels);
-    let mut width = 0;
-    for &d in &contract.dims {
-        offsets.push(width);
-        width += d;
-    }
-    let mut tracks = Tracks {
-        offsets,
-        width,
-        levels,
-        features: vec![0.0; n_points * width],
-        scores: vec![0.0; n_points * levels],
-        counts: vec![0; n_points],
-    };
+    let mut tracks = Tracks::new(&contract.dims, n_points);
+    let width = tracks.width;
     let mut global = vec![0.0f32; model.images().len() * contract.global_dim];
     // As the map records it: a `resize_max` input is already no larger than that side.
     let global_size = if contract.global_dim == 0 {
@@ -352,31 +385,9 @@ fn convert_images_of(
     let snapping = options.snap;
     let snap_level = super::snap::snap_level(levels);
     // The level the snap level's keypoints are refined down to (the provenance says).
-    let snap_finest = if snap_level >= crate::extract::REFINE_FROM_LEVEL {
-        crate::extract::keypoints::finest_refined_level(contract.refine_to_level, snap_level)
-    } else {
-        snap_level
-    };
-    let mut snapped = Tracks {
-        offsets: tracks.offsets.clone(),
-        width: tracks.width,
-        levels,
-        features: if snapping {
-            vec![0.0; tracks.features.len()]
-        } else {
-            Vec::new()
-        },
-        scores: if snapping {
-            vec![0.0; tracks.scores.len()]
-        } else {
-            Vec::new()
-        },
-        counts: if snapping {
-            vec![0; n_points]
-        } else {
-            Vec::new()
-        },
-    };
+    let snap_finest = crate::extract::refined_to(&contract, snap_level, true);
+    // The snap level's sums over moved observations (none kept without `--snap`).
+    let mut snapped = Tracks::new(&contract.dims, if snapping { n_points } else { 0 });
     // (point, image, moved pixel in the camera, COLMAP convention) of every moved observation.
     let mut moved: Vec<(u32, u32, [f32; 2])> = Vec::new();
     let mut ms = Vec::new();
@@ -467,21 +478,11 @@ fn convert_images_of(
                 &crate::extract::DetectOptions::default(),
             );
             let at: Vec<(f32, f32)> = observed.iter().map(|o| (o.1[0], o.1[1])).collect();
-            let srow_width = snapped.width;
             for (&(point, _), to) in observed.iter().zip(super::snap::assign(&detected, &at)) {
                 let Some((x, y)) = to.map(|i| detected[i]) else {
                     continue;
                 };
-                let row = &mut snapped.features[point * srow_width..(point + 1) * srow_width];
-                for (j, level) in dense.levels.iter().enumerate().skip(snap_level) {
-                    buf.clear();
-                    level.descriptor_at(x, y, &mut buf);
-                    for (s, v) in row[snapped.offsets[j]..].iter_mut().zip(&buf) {
-                        *s += v;
-                    }
-                    snapped.scores[point * snapped.levels + j] += level.score_at(x, y);
-                }
-                snapped.counts[point] += 1;
+                snapped.add(&dense, point, (x, y), snap_level, &mut buf);
                 // Back to the camera's pixels in COLMAP's convention, as the model's are.
                 let colmap = [
                     (x + 0.5) * dense.scale[0] / to_file[0],
@@ -491,16 +492,7 @@ fn convert_images_of(
             }
         }
         for &(point, [x, y]) in observed.iter().filter(|_| !head) {
-            let row = &mut tracks.features[point * tracks.width..(point + 1) * tracks.width];
-            for (j, level) in dense.levels.iter().enumerate() {
-                buf.clear();
-                level.descriptor_at(x, y, &mut buf);
-                for (s, v) in row[tracks.offsets[j]..].iter_mut().zip(&buf) {
-                    *s += v;
-                }
-                tracks.scores[point * tracks.levels + j] += level.score_at(x, y);
-            }
-            tracks.counts[point] += 1;
+            tracks.add(&dense, point, (x, y), 0, &mut buf);
         }
         ms.push(t.elapsed().as_secs_f64() * 1e3);
         reporter.advance(1);

@@ -303,6 +303,17 @@ impl DetectOptions {
 /// gains at 1 px but loses repeatability, so it is left as detected.
 pub(crate) const REFINE_FROM_LEVEL: usize = 2;
 
+/// The finest level level `i`'s keypoints are refined down to (`i` itself: not refined):
+/// with `refine` (the extractors' option, on by default), levels from [`REFINE_FROM_LEVEL`]
+/// on, walking down to the model's `sfp.refine_to_level`; never a descriptor head's.
+pub(crate) fn refined_to(c: &Contract, i: usize, refine: bool) -> usize {
+    if refine && c.descriptor_head != DescriptorHead::Sddh && i >= REFINE_FROM_LEVEL.max(1) {
+        keypoints::finest_refined_level(c.refine_to_level, i)
+    } else {
+        i
+    }
+}
+
 /// Level `i`'s keypoints as the extractor finds them (`spec/extractor.md` steps 1–4): the
 /// detector's peaks (at most `max`) and their pixel positions (pixel-index convention),
 /// refined coarse to fine where it applies (not for a descriptor head, whose head takes the
@@ -323,17 +334,12 @@ pub(crate) fn level_keypoints(
     };
     let s = level.stride as f32;
     let mut px: Vec<(f32, f32)> = peaks.iter().map(|p| (p.x * s, p.y * s)).collect();
-    if c.descriptor_head != DescriptorHead::Sddh
-        && options.refine.unwrap_or(true)
-        && i >= REFINE_FROM_LEVEL.max(1)
-    {
-        let finer: Vec<(f32, ScoreMap<'_>)> =
-            (keypoints::finest_refined_level(c.refine_to_level, i)..i)
-                .rev()
-                .map(|j| (dense.levels[j].stride as f32, dense.levels[j].score_map()))
-                .collect();
-        keypoints::refine_down(&mut px, s, &finer);
-    }
+    let finest = refined_to(c, i, options.refine.unwrap_or(true));
+    let finer: Vec<(f32, ScoreMap<'_>)> = (finest..i)
+        .rev()
+        .map(|j| (dense.levels[j].stride as f32, dense.levels[j].score_map()))
+        .collect();
+    keypoints::refine_down(&mut px, s, &finer);
     (peaks, px)
 }
 
