@@ -9,7 +9,9 @@
 # row; its `--pq 8 --minimal` slice (issue 36's smallest SIFT map) the next. A model of one level
 # (aliked-n16, the v3 teacher) gets its map only, no level-2 slice. Maps are rebuilt at every run.
 #
-# Usage: bash benches/models_compare.sh MODEL.onnx [MODEL.onnx ...] [-- scene ...]
+# A model given as MODEL.onnx+snap is converted with `--snap` (its rows: NAME-snap).
+#
+# Usage: bash benches/models_compare.sh MODEL.onnx[+snap] [MODEL.onnx[+snap] ...] [-- scene ...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 models=()
@@ -54,9 +56,13 @@ for scene in $scenes; do
     --threads 1 -o "$C/sift-l2s-pq8.poses" --force --json >"$C/sift-l2s-pq8.json"
   row "$scene" "SIFT level 2 short --pq 8 --minimal" "$C/sift-l2s-pq8.sfpm" "$C/sift-l2s-pq8.poses" \
     "$C/sift-l2s-pq8.json" "$ret (VLAD)"
-  for model in "${models[@]}"; do
+  for given in "${models[@]}"; do
+    model=${given%+snap}
     name=$(basename "$model" .onnx)
-    "$bin" convert --colmap "$S/sparse-map" --images "$S/images" --model "$model" -o "$C/$name.sfpm" --force -q
+    snap=()
+    if [ "$model" != "$given" ]; then snap=(--snap); name=$name-snap; fi
+    "$bin" convert --colmap "$S/sparse-map" --images "$S/images" --model "$model" "${snap[@]}" \
+      -o "$C/$name.sfpm" --force -q
     variants=("$name")
     info=$("$bin" info "$C/$name.sfpm" --json)
     has_level_2=$(python3 -c "import json,sys; print(int(any(l['level'] == 2 for l in json.load(sys.stdin)['levels'])))" <<<"$info")
