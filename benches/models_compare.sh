@@ -9,9 +9,10 @@
 # row; its `--pq 8 --minimal` slice (issue 36's smallest SIFT map) the next. A model of one level
 # (aliked-n16, the v3 teacher) gets its map only, no level-2 slice. Maps are rebuilt at every run.
 #
-# A model given as MODEL.onnx+snap is converted with `--snap` (its rows: NAME-snap).
+# A model given as MODEL.onnx+snap is converted with `--snap` (its rows: NAME-snap), as
+# MODEL.onnx+triangulate with `--triangulate` (NAME-triangulate).
 #
-# Usage: bash benches/models_compare.sh MODEL.onnx[+snap] [MODEL.onnx[+snap] ...] [-- scene ...]
+# Usage: bash benches/models_compare.sh MODEL.onnx[+snap|+triangulate] [...] [-- scene ...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 models=()
@@ -57,11 +58,11 @@ for scene in $scenes; do
   row "$scene" "SIFT level 2 short --pq 8 --minimal" "$C/sift-l2s-pq8.sfpm" "$C/sift-l2s-pq8.poses" \
     "$C/sift-l2s-pq8.json" "$ret (VLAD)"
   for given in "${models[@]}"; do
-    model=${given%+snap}
+    model=${given%+*}
     name=$(basename "$model" .onnx)
-    snap=()
-    if [ "$model" != "$given" ]; then snap=(--snap); name=$name-snap; fi
-    "$bin" convert --colmap "$S/sparse-map" --images "$S/images" --model "$model" "${snap[@]}" \
+    how=()
+    if [ "$model" != "$given" ]; then how=(--"${given##*+}"); name=$name-${given##*+}; fi
+    "$bin" convert --colmap "$S/sparse-map" --images "$S/images" --model "$model" "${how[@]}" \
       -o "$C/$name.sfpm" --force -q
     variants=("$name")
     info=$("$bin" info "$C/$name.sfpm" --json)

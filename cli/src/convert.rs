@@ -118,6 +118,15 @@ pub struct Args {
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images")]
     pub snap: bool,
+    /// With --images (a pyramid model): the map's points are the network's own level-2
+    /// keypoints, matched between each image and the 20 it shares the most model points with
+    /// (mutual nearest neighbours within 4 px of the epipolar line) and triangulated with the
+    /// model's poses where 3 or more views agree within 2 px (rays at 2 degrees or more), as
+    /// hloc triangulates from a reference model. The model's own points are not used. Runs
+    /// the network twice per image.
+    #[cfg(feature = "onnx")]
+    #[arg(long, requires = "images", conflicts_with = "snap")]
+    pub triangulate: bool,
     /// Output map.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -397,6 +406,7 @@ fn run_sfp(
         score_threshold: args.score_threshold,
         allow_missing: args.allow_missing,
         snap: args.snap,
+        triangulate: args.triangulate,
         codec: Codec::from(args.codec),
         zstd_level: args.zstd_level,
         vlad: vlad_options(args),

@@ -47,6 +47,8 @@ mod sift;
 mod snap;
 #[cfg(feature = "colmap")]
 mod stream;
+#[cfg(all(feature = "colmap", feature = "onnx"))]
+mod triangulate;
 
 #[cfg(feature = "colmap")]
 pub use error::ConvertError;

@@ -62,6 +62,10 @@ pub struct SfpMapOptions {
     /// observations agree, the point to their triangulation ([`super::snap`]); a pyramid
     /// model only. Holds a second copy of the points' snap-level descriptor sums meanwhile.
     pub snap: bool,
+    /// (issue 36) Replace the model's points by the network's own keypoints matched across the
+    /// model's covisible images and triangulated with its poses ([`super::triangulate`]); a
+    /// pyramid model only, not with `snap`. Runs the network twice per image.
+    pub triangulate: bool,
     /// How the descriptor sections are stored.
     pub codec: Codec,
     /// zstd's level when `codec` is zstd.
@@ -97,6 +101,7 @@ impl SfpMapOptions {
             score_threshold: None,
             allow_missing: false,
             snap: false,
+            triangulate: false,
             codec: Codec::Raw,
             zstd_level: 3,
             vlad: super::VladOptions::default(),
@@ -130,7 +135,7 @@ pub struct SfpMapSummary {
 
 /// The model's camera as the geometry projects with it; `None` for one it cannot build (its
 /// observations then stay where they are).
-fn geometry_camera(c: &crate::colmap::Camera) -> Option<crate::geometry::Camera> {
+pub(super) fn geometry_camera(c: &crate::colmap::Camera) -> Option<crate::geometry::Camera> {
     let (w, h) = (u32::try_from(c.width).ok()?, u32::try_from(c.height).ok()?);
     crate::geometry::Camera::new(c.model, w, h, c.params.clone()).ok()
 }
@@ -205,6 +210,77 @@ fn apply_positions(
         }
     }
     count
+}
+
+/// (`--triangulate`) Each present image's `level` keypoints as the extractor detects them (the
+/// model's defaults), in the camera's pixels, each described by levels `level..` (normalised,
+/// concatenated, normalised: a map point's `full`); a missing image has none.
+fn image_keypoints(
+    model: &Reconstruction,
+    paths: &[PathBuf],
+    present: &[bool],
+    level: usize,
+    extractor: &mut Extractor,
+    options: &SfpMapOptions,
+    reporter: &dyn Reporter,
+) -> Result<Vec<super::triangulate::ImageKeypoints>, ConvertError> {
+    let contract = extractor.contract().clone();
+    let mut out = Vec::with_capacity(paths.len());
+    let mut buf = Vec::new();
+    reporter.start("detecting", Some(paths.len() as u64));
+    for ((image, path), &here) in model.images().iter().zip(paths).zip(present) {
+        reporter.advance(1);
+        let mut found = super::triangulate::ImageKeypoints::default();
+        if here {
+            let bytes = crate::input::read_regular(path).map_err(|e| ExtractError::Io {
+                path: path.clone(),
+                source: e.into(),
+            })?;
+            let input = image::decode(&bytes, path, contract.gray_weights, options.resize_max)?;
+            let dense = extractor.run(&input).map_err(|e| e.on_image(path))?;
+            let to_file = camera_to_file(model, image, input.original_size);
+            let (_, detected) = crate::extract::level_keypoints(
+                &contract,
+                &dense,
+                level,
+                contract.default_max_keypoints[level],
+                &crate::extract::DetectOptions::default(),
+            );
+            for (x, y) in detected {
+                let start = found.descriptors.len();
+                for l in &dense.levels[level..] {
+                    buf.clear();
+                    l.descriptor_at(x, y, &mut buf);
+                    found.descriptors.extend_from_slice(&buf);
+                }
+                crate::vector::l2_normalise(&mut found.descriptors[start..]);
+                // Back to the camera's pixels in COLMAP's convention, as the model's are.
+                found.xy.push([
+                    f64::from((x + 0.5) * dense.scale[0] / to_file[0]),
+                    f64::from((y + 0.5) * dense.scale[1] / to_file[1]),
+                ]);
+            }
+        }
+        out.push(found);
+    }
+    reporter.finish();
+    Ok(out)
+}
+
+/// How an image file of `size` pixels scales its camera's pixels: observations are in the
+/// camera's pixels, and a file of another size (a downscaled copy) is the same view scaled.
+fn camera_to_file(
+    model: &Reconstruction,
+    image: &crate::colmap::Image,
+    size: [u32; 2],
+) -> [f32; 2] {
+    match model.camera(image.camera_id) {
+        Some(c) if c.width > 0 && c.height > 0 => [
+            size[0] as f32 / c.width as f32,
+            size[1] as f32 / c.height as f32,
+        ],
+        _ => [1.0, 1.0],
+    }
 }
 
 /// Per-point sums over the track: every level's normalised features, scores, counts.
@@ -365,6 +441,40 @@ fn convert_images_of(
     } else {
         contract.default_threshold
     });
+    if options.triangulate && (head || options.snap) {
+        return Err(ConvertError::Options(if head {
+            format!(
+                "--triangulate: {} describes one level with its descriptor head; there are no \
+                 pyramid keypoints to triangulate",
+                contract.model_name
+            )
+        } else {
+            "--triangulate and --snap: the points are the network's keypoints already, there \
+             is nothing to snap"
+                .to_string()
+        }));
+    }
+    let triangulated;
+    let (model, triangulation) = if options.triangulate {
+        let level = super::snap::snap_level(levels);
+        let keypoints = image_keypoints(
+            model,
+            &paths,
+            &present,
+            level,
+            &mut extractor,
+            options,
+            reporter,
+        )?;
+        let dims = contract.dims[level..].iter().sum();
+        let (points, summary) =
+            super::triangulate::network_points(model, &keypoints, dims, reporter)
+                .map_err(|e| ConvertError::Options(format!("--triangulate: {e}")))?;
+        triangulated = points;
+        (&triangulated, Some((level, summary)))
+    } else {
+        (model, None)
+    };
     let n_points = model.points3d().len();
     let mut tracks = Tracks::new(&contract.dims, n_points);
     let width = tracks.width;
@@ -420,15 +530,7 @@ fn convert_images_of(
             .map_err(|e| e.on_image(path))?;
         global[k * contract.global_dim..(k + 1) * contract.global_dim]
             .copy_from_slice(&image_global);
-        // Observations are in the camera's pixels; an image file of another size (e.g. a
-        // downscaled copy) is the same view scaled, so they are scaled to the file.
-        let to_file = match model.camera(image.camera_id) {
-            Some(c) if c.width > 0 && c.height > 0 => [
-                input.original_size[0] as f32 / c.width as f32,
-                input.original_size[1] as f32 / c.height as f32,
-            ],
-            _ => [1.0, 1.0],
-        };
+        let to_file = camera_to_file(model, image, input.original_size);
         if to_file != [1.0, 1.0] {
             scaled += 1;
             if scaled == 1 {
@@ -566,6 +668,21 @@ fn convert_images_of(
             "max_reprojection_px": super::snap::MAX_REPROJECTION_PX,
             "min_triangulation_deg": super::snap::MIN_TRIANGULATION_DEG,
             "points_moved": resnapped,
+        });
+    }
+    if let Some((level, t)) = &triangulation {
+        parameters["triangulate"] = json!({
+            "level": level,
+            "refined_to": crate::extract::refined_to(&contract, *level, true),
+            "pairs_per_image": super::triangulate::PAIRS_PER_IMAGE,
+            "max_epipolar_px": super::triangulate::MAX_EPIPOLAR_PX,
+            "max_reprojection_px": super::snap::MAX_REPROJECTION_PX,
+            "min_triangulation_deg": super::snap::MIN_TRIANGULATION_DEG,
+            "min_track_views": super::triangulate::MIN_TRACK_VIEWS,
+            "pairs": t.pairs,
+            "matches": t.matches,
+            "points": t.points,
+            "observations": t.observations,
         });
     }
     let codec = (options.codec, options.zstd_level);

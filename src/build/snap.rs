@@ -137,7 +137,7 @@ pub(crate) fn triangulate(views: &[(Pose, Vector2<f64>)]) -> Option<Vector3<f64>
 /// time linear in the rays: every angle is at most twice the widest from the first ray, so
 /// the pairs are compared only when that is between half the bar and the bar, and then among
 /// the first [`ANGLE_PAIRS_VIEWS`] (a track may have thousands of views).
-fn rays_meet_widely(rays: impl Iterator<Item = Vector3<f64>>) -> bool {
+pub(crate) fn rays_meet_widely(rays: impl Iterator<Item = Vector3<f64>>) -> bool {
     let rays: Vec<Vector3<f64>> = rays.collect();
     let angle = |a: &Vector3<f64>, b: &Vector3<f64>| a.dot(b).clamp(-1.0, 1.0).acos().to_degrees();
     let Some(first) = rays.first() else {
@@ -169,15 +169,7 @@ pub(crate) fn moved_position(
     observations: &[(&Camera, Pose, Vector2<f64>)],
     around: Vector3<f64>,
 ) -> Option<Vector3<f64>> {
-    let views: Vec<(Pose, Vector2<f64>)> = observations
-        .iter()
-        .map(|(camera, pose, px)| {
-            // The same camera with the world's origin at `around`.
-            let shifted = Pose::new(pose.rotation, pose.translation + pose.rotation * around);
-            (shifted, camera.unproject(px))
-        })
-        .collect();
-    let x = triangulate(&views)? + around;
+    let x = triangulate_about(observations, around)?;
     if !rays_meet_widely(
         observations
             .iter()
@@ -187,14 +179,41 @@ pub(crate) fn moved_position(
     }
     observations
         .iter()
-        .all(|(camera, pose, px)| {
-            let c = pose.transform(&x);
-            c.z > 0.0
-                && camera
-                    .project(&c)
-                    .is_some_and(|p| (p - px).norm() <= MAX_REPROJECTION_PX)
-        })
+        .all(|(camera, pose, px)| reprojection_px(camera, pose, &x, px) <= MAX_REPROJECTION_PX)
         .then_some(x)
+}
+
+/// The DLT triangulation of `observations` (camera, pose, pixel in COLMAP's convention),
+/// solved about `around`: georeferenced coordinates (1e5 to 1e6) would leave the linear
+/// system too poorly conditioned to place a point to a pixel.
+pub(crate) fn triangulate_about(
+    observations: &[(&Camera, Pose, Vector2<f64>)],
+    around: Vector3<f64>,
+) -> Option<Vector3<f64>> {
+    let views: Vec<(Pose, Vector2<f64>)> = observations
+        .iter()
+        .map(|(camera, pose, px)| {
+            // The same camera with the world's origin at `around`.
+            let shifted = Pose::new(pose.rotation, pose.translation + pose.rotation * around);
+            (shifted, camera.unproject(px))
+        })
+        .collect();
+    Some(triangulate(&views)? + around)
+}
+
+/// How far (pixels) `x` projects from `px` in the camera at `pose`; infinite when it is behind
+/// the camera or does not project.
+pub(crate) fn reprojection_px(
+    camera: &Camera,
+    pose: &Pose,
+    x: &Vector3<f64>,
+    px: &Vector2<f64>,
+) -> f64 {
+    let c = pose.transform(x);
+    match camera.project(&c) {
+        Some(p) if c.z > 0.0 => (p - px).norm(),
+        _ => f64::INFINITY,
+    }
 }
 
 #[cfg(test)]

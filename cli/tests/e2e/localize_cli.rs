@@ -432,6 +432,82 @@ fn a_snapped_sfp_map_moves_points_to_the_networks_keypoints() {
     assert!(!t.path().join("aliked.sfpm").exists());
 }
 
+/// (issue 36) `convert --images --triangulate`: the map's points are the network's keypoints
+/// triangulated with the model's poses (the provenance counts them; every map point is one of
+/// them, seen 3 or more times), the map localizes both queries, and `--snap` with it or a
+/// descriptor head's model is refused.
+#[test]
+fn a_triangulated_sfp_map_has_the_networks_keypoints_as_points() {
+    let Some(s) = scene() else { return };
+    let t = tempfile::tempdir().unwrap();
+    let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
+    let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
+    let convert = |extra: &[&str], out: &str, code: i32| {
+        let (sparse, images) = (sd("sparse-map"), sd("images"));
+        let mut args = vec![
+            "convert",
+            "--colmap",
+            &sparse,
+            "--images",
+            &images,
+            "--triangulate",
+            "-o",
+        ];
+        args.extend([out, "-q"]);
+        args.extend(extra);
+        let o = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+            .args(&args)
+            .output()
+            .unwrap();
+        assert_eq!(
+            o.status.code(),
+            Some(code),
+            "{}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        String::from_utf8_lossy(&o.stderr).into_owned()
+    };
+    convert(&[], &p("tri.sfpm"), 0);
+    let info: Value = serde_json::from_str(&run(&["info", &p("tri.sfpm"), "--json"])).unwrap();
+    let tri = &info["provenance"]["parameters"]["triangulate"];
+    let (made, seen) = (
+        tri["points"].as_u64().unwrap(),
+        tri["observations"].as_u64().unwrap(),
+    );
+    let points = info["points"].as_u64().unwrap();
+    assert!(points > 100 && points <= made, "{points} of {made} {tri}");
+    assert!(seen >= 3 * made, "{seen} observations of {made} points");
+    assert!(tri["matches"].as_u64().unwrap() >= seen - made, "{tri}");
+    assert_eq!(tri["level"], 2);
+    let o: Value = serde_json::from_str(&run(&[
+        "localize",
+        "--map",
+        &p("tri.sfpm"),
+        "--query-list",
+        &sd("queries.txt"),
+        "--images",
+        &sd("images"),
+        "-o",
+        &p("poses.txt"),
+        "--json",
+    ]))
+    .unwrap();
+    assert_eq!(o["localized"], 2, "{o}");
+    let err = convert(&["--snap"], &p("both.sfpm"), 2);
+    assert!(
+        err.contains("--snap") && err.contains("--triangulate"),
+        "{err}"
+    );
+    let err = convert(&["--model", "aliked-n16"], &p("aliked.sfpm"), 1);
+    assert!(
+        err.contains("--triangulate") && err.contains("aliked-n16"),
+        "{err}"
+    );
+    for refused in ["both.sfpm", "aliked.sfpm"] {
+        assert!(!t.path().join(refused).exists());
+    }
+}
+
 /// `convert --colmap sparse-map --images images [--model M] -o out` on the scene `s`.
 fn convert_sfp(s: &Path, out: &str, model: Option<&str>) {
     let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
