@@ -58,10 +58,12 @@ for scene in $scenes; do
   row "$scene" "SIFT level 2 short --pq 8 --minimal" "$C/sift-l2s-pq8.sfpm" "$C/sift-l2s-pq8.poses" \
     "$C/sift-l2s-pq8.json" "$ret (VLAD)"
   for given in "${models[@]}"; do
-    model=${given%+*}
+    model=$given how=()
+    case "$given" in
+      *+snap | *+triangulate) model=${given%+*} how=(--"${given##*+}") ;;
+    esac
     name=$(basename "$model" .onnx)
-    how=()
-    if [ "$model" != "$given" ]; then how=(--"${given##*+}"); name=$name-${given##*+}; fi
+    [ ${#how[@]} -eq 0 ] || name=$name-${given##*+}
     "$bin" convert --colmap "$S/sparse-map" --images "$S/images" --model "$model" "${how[@]}" \
       -o "$C/$name.sfpm" --force -q
     variants=("$name")

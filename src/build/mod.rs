@@ -34,6 +34,8 @@ pub(crate) mod features;
 pub(crate) mod geometry;
 #[cfg(feature = "colmap")]
 mod kapture;
+#[cfg(all(feature = "colmap", feature = "onnx"))]
+mod network_tracks;
 #[cfg(feature = "colmap")]
 mod places;
 pub mod pq;
@@ -48,7 +50,7 @@ mod snap;
 #[cfg(feature = "colmap")]
 mod stream;
 #[cfg(all(feature = "colmap", feature = "onnx"))]
-mod triangulate;
+mod triangulation;
 
 #[cfg(feature = "colmap")]
 pub use error::ConvertError;

@@ -20,6 +20,12 @@
 //! every described point is kept (unless `score_threshold` is given), the level is stored in
 //! its uncentred PCA basis (`level_projection`, as SIFT maps; `short` = the leading quarter)
 //! and retrieval is the VLAD of those leading dimensions.
+//!
+//! Two options (issue 36) put a pyramid model's points where a query's keypoints are:
+//! `--snap` moves the model's observations onto the network's nearby keypoints
+//! ([`super::snap`]); `--triangulate` replaces the model's points by the network's own
+//! keypoints matched across the model's images and triangulated with its poses
+//! ([`super::network_tracks`]: the network runs once more per image, before the pass above).
 
 use super::basis::Basis;
 use super::geometry::{map_index, Geometry};
@@ -133,40 +139,34 @@ pub struct SfpMapSummary {
     pub score_threshold: f32,
 }
 
-/// The model's camera as the geometry projects with it; `None` for one it cannot build (its
-/// observations then stay where they are).
-pub(super) fn geometry_camera(c: &crate::colmap::Camera) -> Option<crate::geometry::Camera> {
-    let (w, h) = (u32::try_from(c.width).ok()?, u32::try_from(c.height).ok()?);
-    crate::geometry::Camera::new(c.model, w, h, c.params.clone()).ok()
-}
-
 /// Each model point's position from its moved observations (`moved`: point, image, pixel in
-/// the camera), where they agree ([`super::snap::moved_position`]); `None`: it stays.
+/// the camera), where they agree ([`super::snap::moved_position`]; `px_per_input[k]`: image
+/// k's camera pixels per network input pixel); `None`: it stays.
 fn moved_positions(
     model: &Reconstruction,
+    px_per_input: &[f64],
     moved: &mut [(u32, u32, [f32; 2])],
 ) -> Vec<Option<[f64; 3]>> {
     use nalgebra::Vector2;
-    let cameras: Vec<Option<crate::geometry::Camera>> = model
-        .images()
-        .iter()
-        .map(|i| model.camera(i.camera_id).and_then(geometry_camera))
-        .collect();
+    let cameras = super::triangulation::image_cameras(model);
     let mut out = vec![None; model.points3d().len()];
     moved.sort_unstable_by_key(|m| (m.0, m.1));
     for group in moved.chunk_by(|a, b| a.0 == b.0) {
+        let mut scales = Vec::with_capacity(group.len());
         let observations: Vec<_> = group
             .iter()
             .filter_map(|&(_, k, p)| {
                 let camera = cameras[k as usize].as_ref()?;
                 let pose = model.images()[k as usize].cam_from_world;
+                scales.push(px_per_input[k as usize]);
                 Some((camera, pose, Vector2::new(p[0] as f64, p[1] as f64)))
             })
             .collect();
         let was = model.points3d()[group[0].0 as usize].xyz;
         let around = nalgebra::Vector3::new(was[0], was[1], was[2]);
         out[group[0].0 as usize] =
-            super::snap::moved_position(&observations, around).map(|x| [x.x, x.y, x.z]);
+            super::snap::moved_position(&observations, |o| scales[o], around)
+                .map(|x| [x.x, x.y, x.z]);
     }
     out
 }
@@ -212,64 +212,58 @@ fn apply_positions(
     count
 }
 
-/// (`--triangulate`) Each present image's `level` keypoints as the extractor detects them (the
-/// model's defaults), in the camera's pixels, each described by levels `level..` (normalised,
-/// concatenated, normalised: a map point's `full`); a missing image has none.
-fn image_keypoints(
-    model: &Reconstruction,
-    paths: &[PathBuf],
-    present: &[bool],
+/// Reads and decodes a model image: its provenance record (hashed from the bytes decoded) and
+/// the network's input.
+pub(super) fn read_image(
+    path: &Path,
+    contract: &contract::Contract,
+    resize_max: Option<u32>,
+) -> Result<(SourceFile, image::GrayInput), ConvertError> {
+    let bytes = crate::input::read_regular(path).map_err(|e| ExtractError::Io {
+        path: path.to_path_buf(),
+        source: e.into(),
+    })?;
+    let source = SourceFile {
+        path: path.display().to_string(),
+        bytes: bytes.len() as u64,
+        xxh3: format::file_hash(&bytes),
+    };
+    let input = image::decode(&bytes, path, contract.gray_weights, resize_max)?;
+    Ok((source, input))
+}
+
+/// Level `level`'s keypoints where a query's would be: the extractor's own detection with the
+/// model's defaults (input pixels, pixel-index convention).
+pub(super) fn query_keypoints(
+    contract: &contract::Contract,
+    dense: &crate::extract::Dense,
     level: usize,
-    extractor: &mut Extractor,
-    options: &SfpMapOptions,
-    reporter: &dyn Reporter,
-) -> Result<Vec<super::triangulate::ImageKeypoints>, ConvertError> {
-    let contract = extractor.contract().clone();
-    let mut out = Vec::with_capacity(paths.len());
-    let mut buf = Vec::new();
-    reporter.start("detecting", Some(paths.len() as u64));
-    for ((image, path), &here) in model.images().iter().zip(paths).zip(present) {
-        reporter.advance(1);
-        let mut found = super::triangulate::ImageKeypoints::default();
-        if here {
-            let bytes = crate::input::read_regular(path).map_err(|e| ExtractError::Io {
-                path: path.clone(),
-                source: e.into(),
-            })?;
-            let input = image::decode(&bytes, path, contract.gray_weights, options.resize_max)?;
-            let dense = extractor.run(&input).map_err(|e| e.on_image(path))?;
-            let to_file = camera_to_file(model, image, input.original_size);
-            let (_, detected) = crate::extract::level_keypoints(
-                &contract,
-                &dense,
-                level,
-                contract.default_max_keypoints[level],
-                &crate::extract::DetectOptions::default(),
-            );
-            for (x, y) in detected {
-                let start = found.descriptors.len();
-                for l in &dense.levels[level..] {
-                    buf.clear();
-                    l.descriptor_at(x, y, &mut buf);
-                    found.descriptors.extend_from_slice(&buf);
-                }
-                crate::vector::l2_normalise(&mut found.descriptors[start..]);
-                // Back to the camera's pixels in COLMAP's convention, as the model's are.
-                found.xy.push([
-                    f64::from((x + 0.5) * dense.scale[0] / to_file[0]),
-                    f64::from((y + 0.5) * dense.scale[1] / to_file[1]),
-                ]);
-            }
-        }
-        out.push(found);
-    }
-    reporter.finish();
-    Ok(out)
+) -> Vec<(f32, f32)> {
+    let max = contract.default_max_keypoints[level];
+    let defaults = crate::extract::DetectOptions::default();
+    crate::extract::level_keypoints(contract, dense, level, max, &defaults).1
+}
+
+/// Input pixel (x, y) of `dense` in the camera's pixels, COLMAP's convention (the model's
+/// observations'), `to_file` the file's pixels per camera pixel.
+pub(super) fn camera_pixel(
+    dense: &crate::extract::Dense,
+    (x, y): (f32, f32),
+    to_file: [f32; 2],
+) -> [f32; 2] {
+    let [u, v] = dense.colmap_pixel(x, y);
+    [u / to_file[0], v / to_file[1]]
+}
+
+/// Camera pixels per network input pixel (the mean of the two axes): pixel bars set in input
+/// pixels, where the keypoints' precision is, are this many camera pixels.
+pub(super) fn camera_px_per_input(dense: &crate::extract::Dense, to_file: [f32; 2]) -> f64 {
+    f64::from(dense.scale[0] / to_file[0] + dense.scale[1] / to_file[1]) / 2.0
 }
 
 /// How an image file of `size` pixels scales its camera's pixels: observations are in the
 /// camera's pixels, and a file of another size (a downscaled copy) is the same view scaled.
-fn camera_to_file(
+pub(super) fn camera_to_file(
     model: &Reconstruction,
     image: &crate::colmap::Image,
     size: [u32; 2],
@@ -455,21 +449,41 @@ fn convert_images_of(
         }));
     }
     let triangulated;
+    let mut first_pass: Vec<Option<String>> = Vec::new();
     let (model, triangulation) = if options.triangulate {
         let level = super::snap::snap_level(levels);
-        let keypoints = image_keypoints(
+        let (keypoints, hashes) = super::network_tracks::image_keypoints(
             model,
             &paths,
             &present,
             level,
             &mut extractor,
-            options,
+            options.resize_max,
             reporter,
         )?;
-        let dims = contract.dims[level..].iter().sum();
-        let (points, summary) =
-            super::triangulate::network_points(model, &keypoints, dims, reporter)
-                .map_err(|e| ConvertError::Options(format!("--triangulate: {e}")))?;
+        first_pass = hashes;
+        let dims = contract.full_dims[level];
+        let found = super::network_tracks::triangulated_model(model, &keypoints, dims, reporter);
+        let (points, summary) = found.map_err(|why| {
+            use super::network_tracks::NoPoints;
+            ConvertError::Input(crate::io::InputError {
+                path: PathBuf::from(colmap),
+                line: None,
+                message: match why {
+                    NoPoints::TooManyKeypoints(n) => format!(
+                        "--triangulate: {n} keypoints in its images, more than 2^32 - 1 tracks count"
+                    ),
+                    NoPoints::NoneAgreed(t) => format!(
+                        "--triangulate: no keypoints seen in {} or more images agreed ({} image pairs \
+                         share points, {} matches); its images share too few points, or its poses \
+                         do not fit them",
+                        super::network_tracks::MIN_TRACK_VIEWS,
+                        t.pairs,
+                        t.matches
+                    ),
+                },
+            })
+        })?;
         triangulated = points;
         (&triangulated, Some((level, summary)))
     } else {
@@ -504,6 +518,8 @@ fn convert_images_of(
     let mut image_bytes = 0;
     let mut buf = Vec::with_capacity(width);
     let mut scaled = 0usize;
+    // Each image's camera pixels per network input pixel (`--snap`'s pixel bars).
+    let mut px_per_input = vec![1.0f64; model.images().len()];
     reporter.start("extracting", Some(model.images().len() as u64));
     for (k, (image, path)) in model.images().iter().zip(&paths).enumerate() {
         if !present[k] {
@@ -511,18 +527,22 @@ fn convert_images_of(
             continue;
         }
         // Read once: hashed for provenance and decoded from the same bytes.
-        let bytes = crate::input::read_regular(path).map_err(|e| ExtractError::Io {
-            path: path.clone(),
-            source: e.into(),
-        })?;
-        image_bytes += bytes.len() as u64;
-        sources.push(SourceFile {
-            path: path.display().to_string(),
-            bytes: bytes.len() as u64,
-            xxh3: format::file_hash(&bytes),
-        });
-        let input = image::decode(&bytes, path, contract.gray_weights, options.resize_max)?;
-        drop(bytes);
+        let (source, input) = read_image(path, &contract, options.resize_max)?;
+        // `--triangulate` read it before: its keypoints must be this file's.
+        if first_pass
+            .get(k)
+            .is_some_and(|h| h.as_deref() != Some(source.xxh3.as_str()))
+        {
+            return Err(ConvertError::Input(crate::io::InputError {
+                path: path.clone(),
+                line: None,
+                message: "changed while it was converted (its keypoints were found in another \
+                          version of the file)"
+                    .into(),
+            }));
+        }
+        image_bytes += source.bytes;
+        sources.push(source);
         let t = Instant::now();
         let dense = extractor.run(&input).map_err(|e| e.on_image(path))?;
         let image_global = extractor
@@ -531,6 +551,7 @@ fn convert_images_of(
         global[k * contract.global_dim..(k + 1) * contract.global_dim]
             .copy_from_slice(&image_global);
         let to_file = camera_to_file(model, image, input.original_size);
+        px_per_input[k] = camera_px_per_input(&dense, to_file);
         if to_file != [1.0, 1.0] {
             scaled += 1;
             if scaled == 1 {
@@ -570,27 +591,19 @@ fn convert_images_of(
             }
         }
         if snapping {
-            // Where a query's keypoints would be: the extractor's own detection, with the
-            // model's defaults.
-            let (_, detected) = crate::extract::level_keypoints(
-                &contract,
-                &dense,
-                snap_level,
-                contract.default_max_keypoints[snap_level],
-                &crate::extract::DetectOptions::default(),
-            );
+            let detected = query_keypoints(&contract, &dense, snap_level);
             let at: Vec<(f32, f32)> = observed.iter().map(|o| (o.1[0], o.1[1])).collect();
             for (&(point, _), to) in observed.iter().zip(super::snap::assign(&detected, &at)) {
                 let Some((x, y)) = to.map(|i| detected[i]) else {
                     continue;
                 };
                 snapped.add(&dense, point, (x, y), snap_level, &mut buf);
-                // Back to the camera's pixels in COLMAP's convention, as the model's are.
-                let colmap = [
-                    (x + 0.5) * dense.scale[0] / to_file[0],
-                    (y + 0.5) * dense.scale[1] / to_file[1],
-                ];
-                moved.push((point as u32, k as u32, colmap));
+                // Back to the camera's pixels, as the model's are.
+                moved.push((
+                    point as u32,
+                    k as u32,
+                    camera_pixel(&dense, (x, y), to_file),
+                ));
             }
         }
         for &(point, [x, y]) in observed.iter().filter(|_| !head) {
@@ -608,7 +621,7 @@ fn convert_images_of(
 
     // Level membership by mean score; points in no level are dropped.
     let positions = if snapping {
-        moved_positions(model, &mut moved)
+        moved_positions(model, &px_per_input, &mut moved)
     } else {
         Vec::new()
     };
@@ -665,8 +678,8 @@ fn convert_images_of(
             "level": snap_level,
             "refined_to": snap_finest,
             "radius_px": super::snap::SNAP_RADIUS_PX,
-            "max_reprojection_px": super::snap::MAX_REPROJECTION_PX,
-            "min_triangulation_deg": super::snap::MIN_TRIANGULATION_DEG,
+            "max_reprojection_px": super::triangulation::MAX_REPROJECTION_PX,
+            "min_triangulation_deg": super::triangulation::MIN_TRIANGULATION_DEG,
             "points_moved": resnapped,
         });
     }
@@ -674,11 +687,11 @@ fn convert_images_of(
         parameters["triangulate"] = json!({
             "level": level,
             "refined_to": crate::extract::refined_to(&contract, *level, true),
-            "pairs_per_image": super::triangulate::PAIRS_PER_IMAGE,
-            "max_epipolar_px": super::triangulate::MAX_EPIPOLAR_PX,
-            "max_reprojection_px": super::snap::MAX_REPROJECTION_PX,
-            "min_triangulation_deg": super::snap::MIN_TRIANGULATION_DEG,
-            "min_track_views": super::triangulate::MIN_TRACK_VIEWS,
+            "pairs_per_image": super::network_tracks::PAIRS_PER_IMAGE,
+            "max_sampson_px": super::network_tracks::MAX_SAMPSON_PX,
+            "max_reprojection_px": super::triangulation::MAX_REPROJECTION_PX,
+            "min_triangulation_deg": super::triangulation::MIN_TRIANGULATION_DEG,
+            "min_track_views": super::network_tracks::MIN_TRACK_VIEWS,
             "pairs": t.pairs,
             "matches": t.matches,
             "points": t.points,

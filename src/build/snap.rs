@@ -10,30 +10,20 @@
 //! within [`SNAP_RADIUS_PX`] of it, if there is one and no nearer observation takes it (the
 //! model's defaults: where a query's keypoint would be). A point with two or more moved
 //! observations is triangulated again from them with the model's poses and moves there when
-//! every one reprojects within [`MAX_REPROJECTION_PX`] and its rays meet at
-//! [`MIN_TRIANGULATION_DEG`] or more; the snap level then describes it at the moved
+//! every one reprojects within [`super::triangulation::MAX_REPROJECTION_PX`] and its rays
+//! meet at [`super::triangulation::MIN_TRIANGULATION_DEG`] or more; the snap level then describes it at the moved
 //! observations, the other levels as before. Points that do not move stay as they were.
 //! Measured on sfp-v2 (stop 49, `python/TRAINING-v3.md`): median errors fall on all three
 //! shared scenes, full maps (KITTI 06 0.0075 → 0.0070 m, South Building 0.0017 → 0.0013,
 //! Sacre-Coeur 0.0036 → 0.0032) and level-2 short maps (0.0236 → 0.0163 m, 0.0043 → 0.0037,
 //! 0.045 → 0.036), for 1–8 % more bytes.
 
-use crate::geometry::{Camera, Pose};
-use nalgebra::{Matrix4, Vector2, Vector3, Vector4};
-
-/// How far (pixels, in the model's camera) a moved observation may lie from its re-triangulated
-/// point's projection: the network's keypoints sit within a pixel or two of one image point
-/// (its level-2 MMA@3 on held-out pairs is 0.74).
-pub(crate) const MAX_REPROJECTION_PX: f64 = 2.0;
+use super::triangulation::{accepted, triangulate_about, Observation};
+use nalgebra::Vector3;
 
 /// How far (network input pixels) an observation may be from the keypoint it moves to: half a
 /// stride-8 cell, so it moves to a keypoint of its own cell's neighbourhood, not a neighbour's.
 pub(crate) const SNAP_RADIUS_PX: f32 = 4.0;
-
-/// The widest angle (degrees) between a moved point's rays must be at least this: rays
-/// meeting at a small angle fix the depth poorly, and a pixel moves the point far along them
-/// (Sacre-Coeur's narrow baselines; COLMAP's triangulator asks 1.5).
-pub(crate) const MIN_TRIANGULATION_DEG: f64 = 2.0;
 
 /// The level observations snap to: the one level-2 short maps keep (the stride-8 level), or
 /// the deepest of a shallower model.
@@ -102,125 +92,26 @@ pub(crate) fn assign(detected: &[(f32, f32)], observations: &[(f32, f32)]) -> Ve
     nearest.into_iter().map(|n| n.map(|(i, _)| i)).collect()
 }
 
-/// The point whose projections are `views` (each a camera's pose and the point's normalised,
-/// undistorted image coordinates there): the linear (DLT) solution, `None` when the views do
-/// not fix it (fewer than two, at infinity, non-finite).
-pub(crate) fn triangulate(views: &[(Pose, Vector2<f64>)]) -> Option<Vector3<f64>> {
-    if views.len() < 2 {
-        return None;
-    }
-    // The sum of each row's outer product: the normal equations of the 2n × 4 system.
-    let mut ata = Matrix4::<f64>::zeros();
-    for (pose, u) in views {
-        let r = pose.rotation_matrix();
-        let t = pose.translation;
-        let row = |i: usize| Vector4::new(r[(i, 0)], r[(i, 1)], r[(i, 2)], t[i]);
-        for a in [row(2) * u.x - row(0), row(2) * u.y - row(1)] {
-            ata += a * a.transpose();
-        }
-    }
-    if !ata.iter().all(|v| v.is_finite()) {
-        return None;
-    }
-    let eigen = ata.symmetric_eigen();
-    let (smallest, _) = eigen
-        .eigenvalues
-        .iter()
-        .enumerate()
-        .min_by(|a, b| a.1.total_cmp(b.1))?;
-    let h = eigen.eigenvectors.column(smallest);
-    let x = Vector3::new(h[0] / h[3], h[1] / h[3], h[2] / h[3]);
-    (h[3].abs() > 1e-12 && x.iter().all(|v| v.is_finite())).then_some(x)
-}
-
-/// Whether the widest angle between `rays` (unit) is at least [`MIN_TRIANGULATION_DEG`], in
-/// time linear in the rays: every angle is at most twice the widest from the first ray, so
-/// the pairs are compared only when that is between half the bar and the bar, and then among
-/// the first [`ANGLE_PAIRS_VIEWS`] (a track may have thousands of views).
-pub(crate) fn rays_meet_widely(rays: impl Iterator<Item = Vector3<f64>>) -> bool {
-    let rays: Vec<Vector3<f64>> = rays.collect();
-    let angle = |a: &Vector3<f64>, b: &Vector3<f64>| a.dot(b).clamp(-1.0, 1.0).acos().to_degrees();
-    let Some(first) = rays.first() else {
-        return false;
-    };
-    let from_first = rays.iter().map(|r| angle(first, r)).fold(0.0f64, f64::max);
-    if from_first >= MIN_TRIANGULATION_DEG {
-        return true;
-    }
-    if from_first < MIN_TRIANGULATION_DEG / 2.0 {
-        return false;
-    }
-    let few = &rays[..rays.len().min(ANGLE_PAIRS_VIEWS)];
-    few.iter()
-        .flat_map(|a| few.iter().map(move |b| angle(a, b)))
-        .any(|d| d >= MIN_TRIANGULATION_DEG)
-}
-
-/// The views whose rays are compared pairwise when the first ray does not settle it.
-const ANGLE_PAIRS_VIEWS: usize = 64;
-
-/// Where a point now at `around` moves from its moved observations (each a camera, its pose,
-/// and the moved pixel in COLMAP's convention, in the camera's pixels): their triangulation,
-/// when it is in front of every camera, every one reprojects within [`MAX_REPROJECTION_PX`]
-/// and the rays' widest angle is at least [`MIN_TRIANGULATION_DEG`]; `None` otherwise (the
-/// point stays). Solved about `around`: georeferenced coordinates (1e5 to 1e6) would leave the
-/// linear system too poorly conditioned to place a point to a pixel.
+/// Where a point now at `around` moves from its moved observations (camera, pose, moved pixel
+/// in COLMAP's convention), `px_per_input(k)` the camera pixels per network input pixel of
+/// observation `k`: their triangulation when it is [`accepted`]; `None` otherwise (the point
+/// stays).
 pub(crate) fn moved_position(
-    observations: &[(&Camera, Pose, Vector2<f64>)],
+    observations: &[Observation<'_>],
+    px_per_input: impl Fn(usize) -> f64,
     around: Vector3<f64>,
 ) -> Option<Vector3<f64>> {
     let x = triangulate_about(observations, around)?;
-    if !rays_meet_widely(
-        observations
-            .iter()
-            .map(|(_, pose, _)| (x - pose.center()).normalize()),
-    ) {
-        return None;
-    }
-    observations
-        .iter()
-        .all(|(camera, pose, px)| reprojection_px(camera, pose, &x, px) <= MAX_REPROJECTION_PX)
-        .then_some(x)
-}
-
-/// The DLT triangulation of `observations` (camera, pose, pixel in COLMAP's convention),
-/// solved about `around`: georeferenced coordinates (1e5 to 1e6) would leave the linear
-/// system too poorly conditioned to place a point to a pixel.
-pub(crate) fn triangulate_about(
-    observations: &[(&Camera, Pose, Vector2<f64>)],
-    around: Vector3<f64>,
-) -> Option<Vector3<f64>> {
-    let views: Vec<(Pose, Vector2<f64>)> = observations
-        .iter()
-        .map(|(camera, pose, px)| {
-            // The same camera with the world's origin at `around`.
-            let shifted = Pose::new(pose.rotation, pose.translation + pose.rotation * around);
-            (shifted, camera.unproject(px))
-        })
-        .collect();
-    Some(triangulate(&views)? + around)
-}
-
-/// How far (pixels) `x` projects from `px` in the camera at `pose`; infinite when it is behind
-/// the camera or does not project.
-pub(crate) fn reprojection_px(
-    camera: &Camera,
-    pose: &Pose,
-    x: &Vector3<f64>,
-    px: &Vector2<f64>,
-) -> f64 {
-    let c = pose.transform(x);
-    match camera.project(&c) {
-        Some(p) if c.z > 0.0 => (p - px).norm(),
-        _ => f64::INFINITY,
-    }
+    accepted(observations, px_per_input, &x).then_some(x)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::CameraModel;
+    use crate::build::triangulation::triangulate;
+    use crate::geometry::{Camera, CameraModel, Pose};
     use nalgebra::UnitQuaternion;
+    use nalgebra::Vector2;
 
     fn camera() -> Camera {
         Camera::new(
@@ -259,7 +150,8 @@ mod tests {
     fn a_point_seen_exactly_is_found_again() {
         let x = Vector3::new(0.3, -0.2, 5.0);
         let cam = camera();
-        let found = moved_position(&seen(&cam, &x, 0.5), Vector3::new(0.2, -0.1, 4.0)).unwrap();
+        let found =
+            moved_position(&seen(&cam, &x, 0.5), |_| 1.0, Vector3::new(0.2, -0.1, 4.0)).unwrap();
         assert!((found - x).norm() < 1e-6, "{found} vs {x}");
     }
 
@@ -276,7 +168,7 @@ mod tests {
                 (&cam, pose, cam.project(&pose.transform(&x)).unwrap())
             })
             .collect();
-        let found = moved_position(&obs, far + Vector3::new(0.25, -0.25, 5.1)).unwrap();
+        let found = moved_position(&obs, |_| 1.0, far + Vector3::new(0.25, -0.25, 5.1)).unwrap();
         assert!((found - x).norm() < 1e-6, "{found} vs {x}");
     }
 
@@ -287,9 +179,9 @@ mod tests {
         let mut obs = seen(&cam, &x, 0.5);
         // One observation 10 px off: no point reprojects within 2 px in all three views.
         obs[1].2.x += 10.0;
-        assert_eq!(moved_position(&obs, x), None);
+        assert_eq!(moved_position(&obs, |_| 1.0, x), None);
         // One view fixes no point.
-        assert_eq!(moved_position(&obs[..1], x), None);
+        assert_eq!(moved_position(&obs[..1], |_| 1.0, x), None);
         assert_eq!(triangulate(&[]), None);
         // Cameras 5 cm apart see the point at 5 m under about 1 degree: exact, still refused.
         let narrow = seen(&cam, &x, 0.05);
@@ -300,7 +192,7 @@ mod tests {
                 .collect::<Vec<_>>()
         )
         .is_some());
-        assert_eq!(moved_position(&narrow, x), None);
+        assert_eq!(moved_position(&narrow, |_| 1.0, x), None);
     }
 
     #[test]
@@ -317,20 +209,6 @@ mod tests {
             [None, Some(1)]
         );
         assert_eq!(assign(&[], &obs), [None, None, None, None]);
-    }
-
-    #[test]
-    fn rays_meet_widely_at_two_degrees_or_more_however_many() {
-        let ray = |deg: f64| Vector3::new(deg.to_radians().sin(), 0.0, deg.to_radians().cos());
-        assert!(rays_meet_widely([ray(0.0), ray(2.5)].into_iter()));
-        assert!(!rays_meet_widely([ray(0.0), ray(0.5)].into_iter()));
-        // The first ray in the middle: 1.5 degrees each way, 3 between the others.
-        assert!(rays_meet_widely(
-            [ray(0.0), ray(-1.5), ray(1.5)].into_iter()
-        ));
-        assert!(!rays_meet_widely(std::iter::empty()));
-        // Ten thousand views in a narrow cone: decided without the pairs.
-        assert!(!rays_meet_widely((0..10_000).map(|i| ray(i as f64 * 1e-5))));
     }
 
     #[test]

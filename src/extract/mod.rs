@@ -451,6 +451,12 @@ impl Dense {
         ]
     }
 
+    /// Pixel-index coordinates (x, y) of the input → a COLMAP-convention pixel of the original
+    /// image: [`Dense::input_pixel`]'s inverse.
+    pub fn colmap_pixel(&self, x: f32, y: f32) -> [f32; 2] {
+        [(x + 0.5) * self.scale[0], (y + 0.5) * self.scale[1]]
+    }
+
     /// The `full` descriptor of level `i` at input pixel (x, y): levels i.. sampled, each part
     /// L2-normalised, concatenated and normalised again (`spec/extractor.md`).
     pub fn full_descriptor_at(&self, i: usize, x: f32, y: f32, out: &mut Vec<f32>) {
@@ -1009,10 +1015,7 @@ impl Extractor {
         Ok(LevelFeatures {
             level: c.level_ids[i],
             stride: c.strides[i],
-            keypoints: px
-                .iter()
-                .map(|&(x, y)| [(x + 0.5) * dense.scale[0], (y + 0.5) * dense.scale[1]])
-                .collect(),
+            keypoints: px.iter().map(|&(x, y)| dense.colmap_pixel(x, y)).collect(),
             scores: peaks.iter().map(|p| p.score).collect(),
             dim_short: ds,
             dim_full: df,
@@ -1039,10 +1042,7 @@ impl Extractor {
         Ok(LevelFeatures {
             level: c.level_ids[i],
             stride: c.strides[i],
-            keypoints: px
-                .iter()
-                .map(|&(x, y)| [(x + 0.5) * dense.scale[0], (y + 0.5) * dense.scale[1]])
-                .collect(),
+            keypoints: px.iter().map(|&(x, y)| dense.colmap_pixel(x, y)).collect(),
             scores: peaks.iter().map(|p| p.score).collect(),
             dim_short: dim,
             dim_full: dim,

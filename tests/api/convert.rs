@@ -421,3 +421,26 @@ fn real_fixtures_convert_verify_and_slice() {
         }
     }
 }
+
+/// (issue 36) `--snap` and `--triangulate` together are refused by the library too (the CLI's
+/// parser refuses them first), naming both, before any image is read; nothing is written.
+#[test]
+fn an_sfp_map_is_not_both_snapped_and_triangulated() {
+    let Some(scene) = shared_data::shared_data("scenes/sacre-coeur") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("m.sfpm");
+    let mut options = sfpmap::build::SfpMapOptions::new(scene.join("images"));
+    options.snap = true;
+    options.triangulate = true;
+    let e = sfpmap::build::convert_with_images(&scene.join("sparse-map"), &options, &out, &Silent)
+        .unwrap_err();
+    assert!(matches!(e, ConvertError::Options(_)), "{e:?}");
+    let message = e.to_string();
+    assert!(
+        message.contains("--snap") && message.contains("--triangulate"),
+        "{message}"
+    );
+    assert!(!out.exists());
+}

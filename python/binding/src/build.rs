@@ -254,7 +254,8 @@ impl Options {
             global_max_side: self.global_max_side,
             score_threshold: self.score_threshold,
             allow_missing: self.allow_missing,
-            // `convert --images --snap` and `--triangulate` are the CLI's for now (issue 36: measured on three scenes).
+            // `convert --images --snap` and `--triangulate` are the CLI's for now (issue 36: off by
+            // default while they are measured).
             snap: false,
             triangulate: false,
             codec: self.codec,
