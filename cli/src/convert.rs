@@ -121,8 +121,8 @@ pub struct Args {
     /// With --images (a pyramid model): the map's points are the network's own level-2
     /// keypoints (the deepest level of a shallower model), matched between each image and the
     /// 20 it shares the most model points with (mutual nearest neighbours, Sampson distance
-    /// to the poses' epipolar geometry at most 4 px) and triangulated with the model's poses
-    /// where 2 or more views agree within 2 px (rays at 2 degrees or more), as hloc
+    /// to the poses' epipolar geometry at most 4 network input px) and triangulated with the
+    /// model's poses where 2 or more views agree within 2 px (rays at 2 degrees or more), as hloc
     /// triangulates from a reference model. The model's points only pick the image pairs.
     /// Runs the network twice per image.
     #[cfg(feature = "onnx")]

@@ -18,7 +18,7 @@
 //!
 //! Cost: every image's keypoints and their descriptors are held at once (f16: sfp-v2 holds up
 //! to 500 keypoints × 192 dims × 2 B ≈ 190 kB an image); matching is |a| · |b| · dims per pair,
-//! for at most [`PAIRS_PER_IMAGE`] pairs an image.
+//! on one thread, for at most [`PAIRS_PER_IMAGE`] × images pairs.
 
 use super::triangulation::{self, Observation};
 use crate::colmap::{Image, Point2D, Reconstruction, TrackElement};
@@ -26,15 +26,16 @@ use crate::geometry::Pose;
 use half::f16;
 use nalgebra::{Matrix3, Vector2, Vector3};
 
-/// Each image is matched to at most this many others, those it shares the most model points
-/// with (hloc's `pairs_from_covisibility` for triangulation takes 20).
+/// Each image picks this many others to be matched with, those it shares the most model
+/// observations with (hloc's `pairs_from_covisibility` for triangulation takes 20); an image
+/// many others pick is in more pairs, at most 20 × images in all.
 pub(crate) const PAIRS_PER_IMAGE: usize = 20;
 
 /// A match is kept when its Sampson distance to the pair's epipolar geometry is at most this
 /// (network input pixels): the keypoints sit within a pixel or two of one image point and the
 /// poses are the model's, so a wrong match is far more often far off. Sampson's distance is the
-/// smallest total move of both keypoints onto a consistent pair, so this allows each up to
-/// about 4 / √2 px from the other's epipolar line.
+/// smallest total move of both keypoints onto a consistent pair: a keypoint alone may lie up to
+/// about 4 · √2 px off the other's epipolar line.
 pub(crate) const MAX_SAMPSON_PX: f64 = 4.0;
 
 /// Views a track needs to become a point (after the views that disagree are dropped). Two
@@ -49,7 +50,7 @@ pub(crate) const MIN_TRACK_VIEWS: usize = 2;
 const MAX_COVISIBILITY_TRACK: usize = 1000;
 
 /// One model image's keypoints, as matched.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(crate) struct ImageKeypoints {
     /// Pixels in the model's camera, COLMAP's convention.
     pub xy: Vec<[f64; 2]>,
@@ -58,6 +59,17 @@ pub(crate) struct ImageKeypoints {
     /// Camera pixels per network input pixel (a downscaled image file, `--resize-max`): the
     /// pixel bars are in input pixels.
     pub px_per_input: f64,
+}
+
+impl Default for ImageKeypoints {
+    /// None, at one camera pixel per input pixel (a scale is never 0: the pixel bars divide by it).
+    fn default() -> Self {
+        ImageKeypoints {
+            xy: Vec::new(),
+            descriptors: Vec::new(),
+            px_per_input: 1.0,
+        }
+    }
 }
 
 /// What the triangulation did (provenance `parameters.triangulate`).
@@ -154,13 +166,15 @@ fn essential(a: &Pose, b: &Pose) -> Option<Matrix3<f64>> {
     Some(t.normalize().cross_matrix() * b_from_a.rotation_matrix().matrix())
 }
 
-/// The Sampson distance of normalised image points `xa`, `xb` to `e` (normalised units): the
-/// first-order distance of (xa, xb) to the nearest pair that satisfies it.
-fn sampson(e: &Matrix3<f64>, xa: &Vector2<f64>, xb: &Vector2<f64>) -> f64 {
+/// The Sampson distance (pixels) of normalised image points `xa`, `xb` to `e`, the cameras'
+/// focal lengths `fa`, `fb` (pixels): the first-order distance of (xa, xb) to the nearest pair
+/// that satisfies it, each image's move in its own pixels.
+fn sampson_px(e: &Matrix3<f64>, xa: &Vector2<f64>, xb: &Vector2<f64>, fa: f64, fb: f64) -> f64 {
     let (ha, hb) = (Vector3::new(xa.x, xa.y, 1.0), Vector3::new(xb.x, xb.y, 1.0));
+    // r = hbᵀ E ha; its gradient in a's normalised coordinates is Eᵀ hb, in b's E ha.
     let (ea, eb) = (e * ha, e.transpose() * hb);
     let r = hb.dot(&ea);
-    let d = ea.x * ea.x + ea.y * ea.y + eb.x * eb.x + eb.y * eb.y;
+    let d = (eb.x * eb.x + eb.y * eb.y) / (fa * fa) + (ea.x * ea.x + ea.y * ea.y) / (fb * fb);
     if d > 0.0 {
         (r * r / d).sqrt()
     } else {
@@ -169,19 +183,22 @@ fn sampson(e: &Matrix3<f64>, xa: &Vector2<f64>, xb: &Vector2<f64>) -> f64 {
 }
 
 /// Union–find over every image's keypoints whose sets never hold two keypoints of one image:
-/// each root keeps its images (sorted), and a join that would repeat one is refused.
-/// Hand-written: no crate in the tree has one, and the image rule is ours.
-struct Tracks {
+/// each root of a set of two or more keeps its images (sorted; a single keypoint's is its
+/// own, not stored), and a join that would repeat one is refused. Hand-written: no crate in
+/// the tree has one, and the image rule is ours.
+struct Tracks<'a> {
     parent: Vec<u32>,
-    images: Vec<Vec<u32>>,
+    image_of: &'a [u32],
+    images: std::collections::HashMap<u32, Vec<u32>>,
 }
 
-impl Tracks {
+impl<'a> Tracks<'a> {
     /// Every keypoint alone; `image_of[g]` is keypoint `g`'s image.
-    fn new(image_of: &[u32]) -> Tracks {
+    fn new(image_of: &'a [u32]) -> Tracks<'a> {
         Tracks {
             parent: (0..image_of.len() as u32).collect(),
-            images: image_of.iter().map(|&k| vec![k]).collect(),
+            image_of,
+            images: std::collections::HashMap::new(),
         }
     }
 
@@ -194,38 +211,38 @@ impl Tracks {
         x
     }
 
+    /// Root `r`'s images, sorted.
+    fn images_of(&self, r: u32) -> &[u32] {
+        match self.images.get(&r) {
+            Some(list) => list,
+            None => std::slice::from_ref(&self.image_of[r as usize]),
+        }
+    }
+
     /// Joins the tracks of `a` and `b` unless they share an image; whether they are one now.
-    /// Time: the two image lists' lengths (merged, the smaller into the larger's place).
+    /// Time: the two image lists' lengths (checked before anything is allocated).
     fn join(&mut self, a: u32, b: u32) -> bool {
         let (ra, rb) = (self.root(a), self.root(b));
         if ra == rb {
             return true;
         }
-        let (x, y) = (&self.images[ra as usize], &self.images[rb as usize]);
-        let mut merged = Vec::with_capacity(x.len() + y.len());
+        let (x, y) = (self.images_of(ra), self.images_of(rb));
         let (mut i, mut j) = (0, 0);
-        while i < x.len() || j < y.len() {
-            match (x.get(i), y.get(j)) {
-                (Some(p), Some(q)) if p == q => return false,
-                (Some(p), Some(q)) if p < q => {
-                    merged.push(*p);
-                    i += 1;
-                }
-                (Some(_), Some(q)) | (None, Some(q)) => {
-                    merged.push(*q);
-                    j += 1;
-                }
-                (Some(p), None) => {
-                    merged.push(*p);
-                    i += 1;
-                }
-                (None, None) => unreachable!("the loop runs while one has more"),
+        while i < x.len() && j < y.len() {
+            match x[i].cmp(&y[j]) {
+                std::cmp::Ordering::Equal => return false,
+                std::cmp::Ordering::Less => i += 1,
+                std::cmp::Ordering::Greater => j += 1,
             }
         }
+        let mut merged = Vec::with_capacity(x.len() + y.len());
+        merged.extend_from_slice(x);
+        merged.extend_from_slice(y);
+        merged.sort_unstable();
         let (keep, gone) = (ra.min(rb), ra.max(rb));
         self.parent[gone as usize] = keep;
-        self.images[keep as usize] = merged;
-        self.images[gone as usize] = Vec::new();
+        self.images.remove(&gone);
+        self.images.insert(keep, merged);
         true
     }
 }
@@ -385,10 +402,10 @@ pub(crate) fn triangulated_model(
             widened = (i, widen(i));
         }
         let bar = MAX_SAMPSON_PX * 0.5 * (keypoints[i].px_per_input + keypoints[j].px_per_input);
-        let focal = 0.5 * (ci.mean_focal() + cj.mean_focal());
         for (a, b) in mutual_nearest(&widened.1, &widen(j), dims) {
             let (xa, xb) = (&normalised[i][a as usize], &normalised[j][b as usize]);
-            if sampson(&e, xa, xb) * focal <= bar && tracks.join(offsets[i] + a, offsets[j] + b) {
+            let d = sampson_px(&e, xa, xb, ci.mean_focal(), cj.mean_focal());
+            if d <= bar && tracks.join(offsets[i] + a, offsets[j] + b) {
                 summary.matches += 1;
             }
         }
@@ -509,11 +526,15 @@ mod tests {
         let x = Vector3::new(0.3, -0.2, 4.0);
         let (pa, pb) = (a.transform(&x), b.transform(&x));
         let (xa, xb) = (pa.xy() / pa.z, pb.xy() / pb.z);
-        assert!(sampson(&e, &xa, &xb) < 1e-12);
+        assert!(sampson_px(&e, &xa, &xb, 1.0, 1.0) < 1e-12);
         // Sideways motion: epipolar lines are rows, and a 0.01 move off one is shared by both
         // keypoints, 0.01 / √2 each.
         let off = xb + Vector2::new(0.0, 0.01);
-        assert!((sampson(&e, &xa, &off) - 0.01 / 2f64.sqrt()).abs() < 1e-9);
+        assert!((sampson_px(&e, &xa, &off, 1.0, 1.0) - 0.01 / 2f64.sqrt()).abs() < 1e-9);
+        // In pixels of focal lengths 500 and 1000: b's 0.01 is 10 px there, a's share is in
+        // its own pixels.
+        let px = sampson_px(&e, &xa, &off, 500.0, 1000.0);
+        assert!((px - 0.01 / (1.0 / 500f64.powi(2) + 1.0 / 1000f64.powi(2)).sqrt()).abs() < 1e-9);
         assert!(essential(&a, &a).is_none());
     }
 
@@ -535,7 +556,7 @@ mod tests {
     /// has the same poses and each point seen by all cameras, for covisibility.
     fn scene(
         points: &[Vector3<f64>],
-        off: Option<usize>,
+        off: Option<(usize, Vector2<f64>)>,
     ) -> (Reconstruction, Vec<ImageKeypoints>, usize) {
         let camera = Camera::new(
             CameraModel::Pinhole,
@@ -566,8 +587,8 @@ mod tests {
             let mut points2d = Vec::new();
             for (p, x) in points.iter().enumerate() {
                 let mut px = camera.project(&pose.transform(x)).unwrap();
-                if off == Some(k as usize) {
-                    px.y += 12.0;
+                if let Some((_, by)) = off.filter(|o| o.0 == k as usize) {
+                    px += by;
                 }
                 kp.xy.push([px.x, px.y]);
                 let mut d = vec![f16::ZERO; dims];
@@ -618,17 +639,20 @@ mod tests {
             assert_eq!(built.track(point).len(), 5);
         }
         assert_eq!(built.images()[0].points2d[2].point3d_id, Some(3));
-        // Camera 2 sees every point 12 px off: its matches fail the epipolar bar, so the
-        // points are the other four views'.
-        let (model, keypoints, dims) = scene(&points, Some(2));
-        let (built, summary) = triangulated_model(&model, &keypoints, dims, &silent).unwrap();
-        assert_eq!((summary.points, summary.observations), (3, 12));
-        assert!(built.images()[2]
-            .points2d
-            .iter()
-            .all(|p| p.point3d_id.is_none()));
-        for (found, want) in built.points3d().iter().zip(&points) {
-            assert!((Vector3::from(found.xyz) - want).norm() < 1e-6);
+        // Camera 2 sees every point 12 px across the epipolar lines (rows): its matches fail
+        // the Sampson bar. 10 px along them: its matches pass, its views reproject 10 px off
+        // and are the ones dropped. Either way the points are the other four views'.
+        for by in [Vector2::new(0.0, 12.0), Vector2::new(10.0, 0.0)] {
+            let (model, keypoints, dims) = scene(&points, Some((2, by)));
+            let (built, summary) = triangulated_model(&model, &keypoints, dims, &silent).unwrap();
+            assert_eq!((summary.points, summary.observations), (3, 12), "{by}");
+            assert!(built.images()[2]
+                .points2d
+                .iter()
+                .all(|p| p.point3d_id.is_none()));
+            for (found, want) in built.points3d().iter().zip(&points) {
+                assert!((Vector3::from(found.xyz) - want).norm() < 1e-6, "{by}");
+            }
         }
         // One view only (the other images have no keypoints): no track, said so.
         let (model, mut keypoints, _) = scene(&points, None);

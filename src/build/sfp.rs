@@ -69,7 +69,7 @@ pub struct SfpMapOptions {
     /// model only. Holds a second copy of the points' snap-level descriptor sums meanwhile.
     pub snap: bool,
     /// (issue 36) Replace the model's points by the network's own keypoints matched across the
-    /// model's covisible images and triangulated with its poses ([`super::triangulate`]); a
+    /// model's covisible images and triangulated with its poses ([`super::network_tracks`]); a
     /// pyramid model only, not with `snap`. Runs the network twice per image.
     pub triangulate: bool,
     /// How the descriptor sections are stored.
@@ -369,6 +369,13 @@ fn convert_images_of(
     output: &Path,
     reporter: &dyn Reporter,
 ) -> Result<SfpMapSummary, ConvertError> {
+    if options.triangulate && options.snap {
+        return Err(ConvertError::Options(
+            "--triangulate and --snap: the points are the network's keypoints already, there is \
+             nothing to snap"
+                .into(),
+        ));
+    }
     let input_bytes = sources.iter().map(|s| s.bytes).sum();
 
     // The model (a file) names the images: each stays inside the folder the user named.
@@ -435,18 +442,12 @@ fn convert_images_of(
     } else {
         contract.default_threshold
     });
-    if options.triangulate && (head || options.snap) {
-        return Err(ConvertError::Options(if head {
-            format!(
-                "--triangulate: {} describes one level with its descriptor head; there are no \
-                 pyramid keypoints to triangulate",
-                contract.model_name
-            )
-        } else {
-            "--triangulate and --snap: the points are the network's keypoints already, there \
-             is nothing to snap"
-                .to_string()
-        }));
+    if options.triangulate && head {
+        return Err(ConvertError::Options(format!(
+            "--triangulate: {} describes one level with its descriptor head; there are no \
+             pyramid keypoints to triangulate",
+            contract.model_name
+        )));
     }
     let triangulated;
     let mut first_pass: Vec<Option<String>> = Vec::new();

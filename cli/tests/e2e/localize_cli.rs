@@ -434,7 +434,8 @@ fn a_snapped_sfp_map_moves_points_to_the_networks_keypoints() {
 
 /// (issue 36) `convert --images --triangulate`: the map's points are the network's keypoints
 /// triangulated with the model's poses (the provenance counts them; by the file, every map
-/// point is seen by 2 or more images, once in each), the map localizes both queries within 2°,
+/// point is seen by 2 or more images, once in each), the map localizes both queries (median
+/// rotation error under 2°),
 /// and `--snap` with it or a descriptor head's model is refused.
 #[test]
 fn a_triangulated_sfp_map_has_the_networks_keypoints_as_points() {
