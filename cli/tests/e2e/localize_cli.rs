@@ -339,25 +339,8 @@ fn a_snapped_sfp_map_moves_points_to_the_networks_keypoints() {
     let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
     let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
     convert_sfp(&s, &p("plain.sfpm"), None);
-    let convert = |extra: &[&str], out: &str, code: i32| {
-        let (sparse, images) = (sd("sparse-map"), sd("images"));
-        let mut args = vec![
-            "convert", "--colmap", &sparse, "--images", &images, "--snap", "-o",
-        ];
-        args.extend([out, "-q"]);
-        args.extend(extra);
-        let o = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-            .args(&args)
-            .output()
-            .unwrap();
-        assert_eq!(
-            o.status.code(),
-            Some(code),
-            "{}",
-            String::from_utf8_lossy(&o.stderr)
-        );
-        String::from_utf8_lossy(&o.stderr).into_owned()
-    };
+    let convert =
+        |extra: &[&str], out: &str, code: i32| convert_images_with(&s, "--snap", extra, out, code);
     convert(&[], &p("snapped.sfpm"), 0);
     let info = |m: &str| -> Value { serde_json::from_str(&run(&["info", m, "--json"])).unwrap() };
     let (plain, snapped) = (info(&p("plain.sfpm")), info(&p("snapped.sfpm")));
@@ -444,29 +427,7 @@ fn a_triangulated_sfp_map_has_the_networks_keypoints_as_points() {
     let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
     let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
     let convert = |extra: &[&str], out: &str, code: i32| {
-        let (sparse, images) = (sd("sparse-map"), sd("images"));
-        let mut args = vec![
-            "convert",
-            "--colmap",
-            &sparse,
-            "--images",
-            &images,
-            "--triangulate",
-            "-o",
-        ];
-        args.extend([out, "-q"]);
-        args.extend(extra);
-        let o = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
-            .args(&args)
-            .output()
-            .unwrap();
-        assert_eq!(
-            o.status.code(),
-            Some(code),
-            "{}",
-            String::from_utf8_lossy(&o.stderr)
-        );
-        String::from_utf8_lossy(&o.stderr).into_owned()
+        convert_images_with(&s, "--triangulate", extra, out, code)
     };
     convert(&[], &p("tri.sfpm"), 0);
     let info: Value = serde_json::from_str(&run(&["info", &p("tri.sfpm"), "--json"])).unwrap();
@@ -534,6 +495,28 @@ fn a_triangulated_sfp_map_has_the_networks_keypoints_as_points() {
     for refused in ["both.sfpm", "aliked.sfpm"] {
         assert!(!t.path().join(refused).exists());
     }
+}
+
+/// `convert --colmap sparse-map --images images FLAG -o out -q EXTRA..` on the scene `s`,
+/// which exits with `code`; its stderr.
+fn convert_images_with(s: &Path, flag: &str, extra: &[&str], out: &str, code: i32) -> String {
+    let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
+    let (sparse, images) = (sd("sparse-map"), sd("images"));
+    let mut args = vec![
+        "convert", "--colmap", &sparse, "--images", &images, flag, "-o", out, "-q",
+    ];
+    args.extend(extra);
+    let o = Command::new(env!("CARGO_BIN_EXE_sfpmap"))
+        .args(&args)
+        .output()
+        .unwrap();
+    assert_eq!(
+        o.status.code(),
+        Some(code),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
 /// `convert --colmap sparse-map --images images [--model M] -o out` on the scene `s`.
