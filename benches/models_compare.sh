@@ -12,6 +12,9 @@
 # A model given as MODEL.onnx+snap is converted with `--snap` (its rows: NAME-snap), as
 # MODEL.onnx+triangulate with `--triangulate` (NAME-triangulate).
 #
+# python3 must have numpy, pillow and pycolmap (the KITTI 06 scene, South Building's databases,
+# the retrieval scores): the tests' venv has them, PATH="$(bash .ci/tools | tail -1)/bin:$PATH".
+#
 # Usage: bash benches/models_compare.sh MODEL.onnx[+snap|+triangulate] [...] [-- scene ...]
 set -euo pipefail
 cd "$(dirname "$0")/.."

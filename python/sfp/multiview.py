@@ -12,13 +12,21 @@ train/kitti01 and the KITTI 06 scene share file names such as 000002.jpg).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 
-import cv2
 import numpy as np
 
-cv2.setNumThreads(1)
+
+@functools.cache
+def _cv2():
+    """OpenCV, imported where an image is read or resized (one thread): the scene readers here
+    (`read_queries`, the COLMAP helpers) serve scripts run in CI's venv, which has no OpenCV."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    return cv2
 
 
 def read_queries(path: str) -> list[str]:
@@ -39,6 +47,7 @@ def file_md5(path: str) -> str:
 
 
 def imread_gray(path: str) -> np.ndarray:
+    cv2 = _cv2()
     im = cv2.imread(path, cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
     if im is None:
         raise IOError(path)
@@ -49,6 +58,7 @@ def resize_max(im, max_side):
     h, w = im.shape[:2]
     s = max_side / max(h, w)
     if s < 1:
+        cv2 = _cv2()
         im = cv2.resize(im, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
     return im
 
@@ -127,6 +137,7 @@ def assert_disjoint(train_paths, query_paths):
 def _scaled(im, s):
     h, w = im.shape
     nw, nh = max(1, round(w * s)), max(1, round(h * s))
+    cv2 = _cv2()
     out = cv2.resize(im, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
     return out, nw / w, nh / h
 
