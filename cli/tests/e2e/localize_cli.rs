@@ -337,7 +337,6 @@ fn a_snapped_sfp_map_moves_points_to_the_networks_keypoints() {
     let Some(s) = scene() else { return };
     let t = tempfile::tempdir().unwrap();
     let p = |n: &str| t.path().join(n).to_str().unwrap().to_string();
-    let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
     convert_sfp(&s, &p("plain.sfpm"), None);
     let convert =
         |extra: &[&str], out: &str, code: i32| convert_images_with(&s, "--snap", extra, out, code);
@@ -392,19 +391,7 @@ fn a_snapped_sfp_map_moves_points_to_the_networks_keypoints() {
         changed > 0 && changed as u64 <= moved,
         "{changed} changed, {moved} moved"
     );
-    let o: Value = serde_json::from_str(&run(&[
-        "localize",
-        "--map",
-        &p("snapped.sfpm"),
-        "--query-list",
-        &sd("queries.txt"),
-        "--images",
-        &sd("images"),
-        "-o",
-        &p("poses.txt"),
-        "--json",
-    ]))
-    .unwrap();
+    let o = localize_images(&s, &p("snapped.sfpm"), &p("poses.txt"));
     assert_eq!(o["localized"], 2, "{o}");
     // ALIKED describes one level with its head: nothing to snap to, said so.
     let err = convert(&["--model", "aliked-n16"], &p("aliked.sfpm"), 1);
@@ -456,19 +443,7 @@ fn a_triangulated_sfp_map_has_the_networks_keypoints_as_points() {
         }
     }
     assert!(views.iter().all(|&v| v >= 2), "{:?}", views.iter().min());
-    let o: Value = serde_json::from_str(&run(&[
-        "localize",
-        "--map",
-        &p("tri.sfpm"),
-        "--query-list",
-        &sd("queries.txt"),
-        "--images",
-        &sd("images"),
-        "-o",
-        &p("poses.txt"),
-        "--json",
-    ]))
-    .unwrap();
+    let o = localize_images(&s, &p("tri.sfpm"), &p("poses.txt"));
     assert_eq!(o["localized"], 2, "{o}");
     let ev: Value = serde_json::from_str(&run(&[
         "eval",
@@ -495,6 +470,26 @@ fn a_triangulated_sfp_map_has_the_networks_keypoints_as_points() {
     for refused in ["both.sfpm", "aliked.sfpm"] {
         assert!(!t.path().join(refused).exists());
     }
+}
+
+/// `localize --map MAP` of the scene `s`'s queries (its images, the map's own model) into
+/// `out`: the `--json` report.
+fn localize_images(s: &Path, map: &str, out: &str) -> Value {
+    let sd = |n: &str| s.join(n).to_str().unwrap().to_string();
+    let (queries, images) = (sd("queries.txt"), sd("images"));
+    let args = [
+        "localize",
+        "--map",
+        map,
+        "--query-list",
+        &queries,
+        "--images",
+        &images,
+        "-o",
+        out,
+        "--json",
+    ];
+    serde_json::from_str(&run(&args)).unwrap()
 }
 
 /// `convert --colmap sparse-map --images images FLAG -o out -q EXTRA..` on the scene `s`,
