@@ -7,6 +7,12 @@ The student of python/distill_v2.py (strided stem, same contract):
   python3 python/export.py python/checkpoints/sfp-v2s-state.pt -o models/sfp-v2s.onnx
 The model name (sfp.model_name: a map built with one model is localized only with that model) comes
 from --model-name, else the checkpoint's `model_name`, else sfp-v1.
+
+--image-refine SIGMAS/RADII writes a model of sfp-extractor/2 (keypoints refined on the image,
+spec/extractor.md step 5). Given an .onnx file instead of a checkpoint, the network is kept as it
+is and only the metadata is rewritten (needs onnx, not torch); sfp-v3 is sfp-v2's network so:
+  python3 python/export.py models/sfp-v2.onnx --model-name sfp-v3 -o models/sfp-v3.onnx \
+      --image-refine 1.5,2.5,3,4/2,3,4,5
 """
 from __future__ import annotations
 
@@ -16,17 +22,18 @@ import os
 import sys
 
 import numpy as np
-import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from sfp.model import SFP, SFPExtractor, output_names  # noqa: E402
 
 CONTRACT = "sfp-extractor/1"
+CONTRACT_IMAGE_REFINE = "sfp-extractor/2"  # /1 plus step 5, the image refinement
 OPSET = 17
 
 
-def contract_metadata(net: SFP, extra: dict | None = None, threshold: float = 0.5,
+def contract_metadata(net, extra: dict | None = None, threshold: float = 0.5,
                       model_name: str = "sfp-v1") -> dict[str, str]:
+    from sfp.model import output_names
+
     dims = list(net.dims)
     full = [sum(dims[i:]) for i in range(len(dims))]
     md = {
@@ -64,15 +71,20 @@ def contract_metadata(net: SFP, extra: dict | None = None, threshold: float = 0.
     return md
 
 
-def load_net(ckpt_path: str) -> tuple[SFP, dict]:
+def load_net(ckpt_path: str):
+    import torch
+    from sfp.model import SFP
+
     ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     net = SFP.for_state_dict(ck["model"])  # full or strided stem, from the weight names
     net.eval()
     return net, ck
 
 
-def export(net: SFP, out: str, metadata: dict[str, str]):
+def export(net, out: str, metadata: dict[str, str]):
     import onnx
+    import torch
+    from sfp.model import SFPExtractor, output_names
 
     ext = SFPExtractor(net).eval()
     x = torch.rand(1, 1, 97, 131)
@@ -91,20 +103,72 @@ def export(net: SFP, out: str, metadata: dict[str, str]):
     for k, v in metadata.items():
         e = m.metadata_props.add()
         e.key, e.value = k, v
-    m.producer_name = "sfpmap/python/export.py"
-    m.doc_string = "Sparse Feature Pyramid extractor; contract in spec/extractor.md"
-    onnx.checker.check_model(m)
-    onnx.save(m, out)
+    save_with_metadata(m, out)
     os.remove(tmp)
     if os.path.exists(tmp + ".data"):
         os.remove(tmp + ".data")
     return out
 
 
-def verify(net: SFP, path: str, sizes=((481, 641), (480, 640), (33, 47))):
+def save_with_metadata(m, out: str):
+    import onnx
+
+    m.producer_name = "sfpmap/python/export.py"
+    m.doc_string = "Sparse Feature Pyramid extractor; contract in spec/extractor.md"
+    onnx.checker.check_model(m)
+    tmp = out + ".part"
+    onnx.save(m, tmp)
+    os.replace(tmp, out)  # never a half-written model under the final name
+
+
+def image_refine_metadata(spec: str, levels: int) -> dict[str, str]:
+    """`--image-refine 1.5,2.5,3,4/2,3,4,5` -> the sfp-extractor/2 keys (sigmas / radii per level)."""
+    try:
+        sig, rad = spec.split("/")
+        sigmas = [float(v) for v in sig.split(",")]
+        radii = [int(v) for v in rad.split(",")]
+    except ValueError:
+        raise SystemExit(f"--image-refine {spec!r}: SIGMAS/RADII, e.g. 1.5,2.5,3,4/2,3,4,5")
+    if len(sigmas) != levels or len(radii) != levels:
+        raise SystemExit(f"--image-refine {spec!r}: {levels} sigmas and {levels} radii (one a level)")
+    if not all(0 <= s <= 16 for s in sigmas) or not all(0 <= r <= 16 for r in radii):
+        raise SystemExit(f"--image-refine {spec!r}: sigmas and radii 0 to 16 pixels")
+    return {"sfp.contract": CONTRACT_IMAGE_REFINE,
+            "sfp.image_refine_sigma": ",".join(f"{s:g}" for s in sigmas),
+            "sfp.image_refine_radius": ",".join(str(r) for r in radii)}
+
+
+def retag(src: str, out: str, name: str, refine: str | None):
+    """An exported model's network under new metadata: its name, where the network came from and,
+    with `refine`, contract /2."""
+    import onnx
+
+    data = open(src, "rb").read()
+    m = onnx.load_from_string(data)
+    md = {p.key: p.value for p in m.metadata_props}
+    if not md.get("sfp.contract", "").startswith("sfp-extractor/"):
+        raise SystemExit(f"{src}: not an SFP model (no sfp.contract)")
+    for k in ("sfp.image_refine_sigma", "sfp.image_refine_radius"):
+        md.pop(k, None)
+    md["sfp.contract"] = CONTRACT
+    md["sfp.model_name"] = name
+    md["sfp.network_from"] = f"{os.path.basename(src)} sha256 {hashlib.sha256(data).hexdigest()}"
+    if refine:
+        md.update(image_refine_metadata(refine, int(md["sfp.levels"])))
+    del m.metadata_props[:]
+    for k, v in md.items():
+        e = m.metadata_props.add()
+        e.key, e.value = k, v
+    save_with_metadata(m, out)
+
+
+def verify(net, path: str, sizes=((481, 641), (480, 640), (33, 47))):
     import onnxruntime as ort
 
     s = ort.InferenceSession(path, providers=["CPUExecutionProvider"])
+    import torch
+    from sfp.model import SFPExtractor
+
     ext = SFPExtractor(net).eval()
     for (h, w) in sizes:
         x = np.random.default_rng(0).random((2, 1, h, w), dtype=np.float32)
@@ -131,7 +195,19 @@ def main():
     ap.add_argument("--refine-to-level", default=None,
                     help="sfp.refine_to_level: refine levels 2.. coarse to fine down to this level; "
                          "'none' leaves the key out (default: the checkpoint's, else none: one level)")
+    ap.add_argument("--image-refine", default=None, metavar="SIGMAS/RADII",
+                    help="sfp-extractor/2: refine each level's keypoints on the image (step 5), e.g. "
+                         "1.5,2.5,3,4/2,3,4,5 (sigma and radius per level, input pixels; 0: not refined)")
     args = ap.parse_args()
+    if args.ckpt.endswith(".onnx"):
+        if not args.model_name or not args.out:
+            raise SystemExit("an .onnx input needs --model-name and -o")
+        if os.path.abspath(args.out) == os.path.abspath(args.ckpt):
+            raise SystemExit(f"-o {args.out}: the input itself (write another file)")
+        retag(args.ckpt, args.out, args.model_name, args.image_refine)
+        h = hashlib.sha256(open(args.out, "rb").read()).hexdigest()
+        print(f"wrote {args.out}: {os.path.getsize(args.out)} bytes, sha256 {h}")
+        return
     net, ck = load_net(args.ckpt)
     name = args.model_name or ck.get("model_name") or "sfp-v1"
     if net.stem_mode != "full" and name == "sfp-v1":
@@ -149,6 +225,8 @@ def main():
         extra["sfp.refine_to_level"] = int(args.refine_to_level)
     args.out = args.out or os.path.join("models", f"{name}.onnx")  # never a student over sfp-v1.onnx
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    if args.image_refine:
+        extra.update(image_refine_metadata(args.image_refine, len(net.dims)))
     export(net, args.out, contract_metadata(net, extra, args.threshold, name))
     if not args.no_verify:
         verify(net, args.out)

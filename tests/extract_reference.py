@@ -23,13 +23,16 @@ import onnxruntime as ort
 from PIL import Image
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
-from sfp.reference import level_features  # noqa: E402  (numpy only)
+from sfp.reference import image_refine_levels, level_features  # noqa: E402  (numpy only)
+
+CONTRACTS = ("sfp-extractor/1", "sfp-extractor/2")
 
 
 def check_h5(path, reference=None, name=None):
     import h5py
     with h5py.File(path, "r") as f:
-        assert f.attrs["sfp.contract"] in (b"sfp-extractor/1", "sfp-extractor/1"), dict(f.attrs)
+        contract = f.attrs["sfp.contract"]
+        assert (contract.decode() if isinstance(contract, bytes) else contract) in CONTRACTS, dict(f.attrs)
         main_level = int(f.attrs["sfp.main_level"])
         groups = []
         f.visititems(lambda n, o: groups.append(n) if isinstance(o, h5py.Group) and "keypoints" in o and "image_size" in o else None)
@@ -100,7 +103,7 @@ def main():
     so.inter_op_num_threads = 1
     s = ort.InferenceSession(a.model, so, providers=["CPUExecutionProvider"])
     md = s.get_modelmeta().custom_metadata_map
-    assert md["sfp.contract"] == "sfp-extractor/1", md.get("sfp.contract")
+    assert md["sfp.contract"] in CONTRACTS, md.get("sfp.contract")
     strides = [int(v) for v in md["sfp.strides"].split(",")]
     ids = [int(v) for v in md["sfp.level_ids"].split(",")]
     tops = [int(v) for v in md["sfp.default_max_keypoints"].split(",")]
@@ -113,8 +116,10 @@ def main():
     levels = []
     refine_to = md.get("sfp.refine_to_level")
     refine_to = None if refine_to is None else int(refine_to)
+    image_refines = image_refine_levels(md, len(strides))
     for i, (px, short, full, v) in enumerate(level_features(feats, scores, strides, radius, thr, tops,
-                                                             refine_to=refine_to)):
+                                                             refine_to=refine_to, image=gray,
+                                                             image_refines=image_refines)):
         levels.append({
             "level": ids[i],
             "stride": strides[i],

@@ -24,8 +24,8 @@ pub struct Args {
     /// Output features.h5.
     #[arg(short, long)]
     pub output: PathBuf,
-    /// An ONNX model of the sfp-extractor/1 contract or a built-in model's name
-    /// (sfp-v2, sfp-v1, sfp-v2s, aliked-n16); default: the built-in sfp-v2.
+    /// An ONNX model of the sfp-extractor/1 or /2 contract or a built-in model's name
+    /// (sfp-v2, sfp-v1, sfp-v2s, sfp-v3, aliked-n16); default: the built-in sfp-v2.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// ONNX Runtime intra-op threads (capped at 4 per core, at most 256, with a warning).
@@ -202,7 +202,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         ("sfp.model_name".to_string(), contract.model_name.clone()),
         (
             "sfp.contract".to_string(),
-            sfpmap::extract::contract::CONTRACT.to_string(),
+            contract.version.to_string(),
         ),
         (
             "sfp.tool".to_string(),

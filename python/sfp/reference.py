@@ -100,14 +100,90 @@ def refine_on(finer, finer_stride, radius, px):
     return out
 
 
-def level_features(feats, scores, strides, radius, thr, topk, refine=True, refine_to=None):
+SIGMA_RATIO = 1.6  # src/extract/image_refine.rs: SIGMA_RATIO
+
+
+def gaussian_kernel(sigma):
+    """Normalised 1-D Gaussian truncated at ceil(3 sigma): weights in float64, then float32."""
+    k = int(np.ceil(3.0 * np.float64(np.float32(sigma))))
+    t = np.arange(-k, k + 1, dtype=np.float64)
+    s = np.float64(np.float32(sigma))
+    w = np.exp(-(t * t) / (2.0 * s * s))
+    return (w / w.sum()).astype(np.float32)
+
+
+def _blur_patch(img, u0, v0, pw, ph, kernel):
+    """Gaussian blur of img on the pw x ph pixels from (u0, v0): rows first, edge pixels repeated,
+    summed tap by tap in float32 (the Rust extractor's order)."""
+    h, w = img.shape
+    k = len(kernel) // 2
+    rows = np.clip(np.arange(v0 - k, v0 + ph + k), 0, h - 1)
+    acc = np.zeros((len(rows), pw), np.float32)
+    for t, g in enumerate(kernel):
+        cols = np.clip(np.arange(u0, u0 + pw) + t - k, 0, w - 1)
+        acc += g * img[rows][:, cols]
+    out = np.zeros((ph, pw), np.float32)
+    for t, g in enumerate(kernel):
+        out += g * acc[t:t + ph]
+    return out
+
+
+def image_refine(img, px, sigma, radius):
+    """Step 5 (sfp-extractor/2): each pixel position moves to the strongest pixel of
+    |G_sigma * I - G_1.6sigma * I| within `radius` pixels of its rounded position (clipped to the
+    image interior, first strongest in row order) when that pixel is greater than its 8
+    neighbours, refined there by the quadratic fit; else it stays."""
+    img = np.asarray(img, np.float32)
+    h, w = img.shape
+    out = px.astype(np.float32).copy()
+    if h < 3 or w < 3:
+        return out
+    small, large = gaussian_kernel(sigma), gaussian_kernel(np.float32(sigma) * np.float32(SIGMA_RATIO))
+    r = np.float32(radius)
+    for n, (x, y) in enumerate(out.copy()):
+        if not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        cx, cy = np.floor(x + np.float32(0.5)), np.floor(y + np.float32(0.5))
+        x0, x1 = max(cx - r, 1), min(cx + r, w - 2)
+        y0, y1 = max(cy - r, 1), min(cy + r, h - 2)
+        if x0 > x1 or y0 > y1:
+            continue
+        u0, v0 = int(x0) - 1, int(y0) - 1
+        pw, ph = int(x1) + 2 - u0, int(y1) + 2 - v0
+        resp = np.abs(_blur_patch(img, u0, v0, pw, ph, small) - _blur_patch(img, u0, v0, pw, ph, large))
+        inner = resp[1:ph - 1, 1:pw - 1]
+        a = np.unravel_index(np.argmax(inner), inner.shape)  # first strongest in row order
+        rr, cc = a[0] + 1, a[1] + 1
+        v = resp[rr, cc]
+        nb = resp[rr - 1:rr + 2, cc - 1:cc + 2].copy()
+        nb[1, 1] = -np.inf
+        if not (nb < v).all():
+            continue
+        dx = quad(resp[rr, cc - 1], v, resp[rr, cc + 1])
+        dy = quad(resp[rr - 1, cc], v, resp[rr + 1, cc])
+        out[n] = [np.float32(u0 + cc) + np.float32(dx), np.float32(v0 + rr) + np.float32(dy)]
+    return out
+
+
+def image_refine_levels(metadata, levels):
+    """Per level (sigma, radius) or None, from an sfp-extractor/2 model's metadata (else all None)."""
+    if metadata.get("sfp.contract") != "sfp-extractor/2":
+        return [None] * levels
+    sig = [float(v) for v in metadata["sfp.image_refine_sigma"].split(",")]
+    rad = [int(v) for v in metadata["sfp.image_refine_radius"].split(",")]
+    return [(s, r) if s >= 0.5 and r > 0 else None for s, r in zip(sig, rad)]
+
+
+def level_features(feats, scores, strides, radius, thr, topk, refine=True, refine_to=None,
+                   image=None, image_refines=None):
     """Per level: (pixels with the pixel-centre origin at 0, short, full, scores).
 
     `feats[i]` is [C_i, h_i, w_i], `scores[i]` [h_i, w_i]; a level's full descriptor joins the
     normalised samples of it and every deeper level at its keypoints, normalised again. Levels
     from REFINE_FROM_LEVEL on are refined on the next finer level's score map (`refine`), and
     on from there one level at a time down to level `refine_to` (the model's
-    `sfp.refine_to_level`; None: one level only).
+    `sfp.refine_to_level`; None: one level only). With `refine`, a level whose entry of
+    `image_refines` is (sigma, radius) then moves onto the grey input `image` (step 5).
     """
     if refine_to is not None and not 0 <= refine_to < len(strides):
         raise ValueError(f"refine_to = {refine_to} is no level of {len(strides)}")
@@ -120,6 +196,9 @@ def level_features(feats, scores, strides, radius, thr, topk, refine=True, refin
             for j in range(i - 1, finest - 1, -1):
                 r = max(1, int(np.floor(strides[j + 1] / strides[j] / 2 + 0.5)))  # half up, as Rust
                 px = refine_on(scores[j], strides[j], r, px)
+            cells = px / stride
+        if refine and image is not None and image_refines is not None and image_refines[i] is not None:
+            px = image_refine(image, px, *image_refines[i])
             cells = px / stride
         short = l2n(bilinear(feats[i], cells))
         parts = [l2n(bilinear(feats[j], px / strides[j])) for j in range(i, len(strides))]

@@ -785,7 +785,7 @@ fn convert_images_of(
             );
         }
         info.extra
-            .insert("contract".into(), json!(contract::CONTRACT));
+            .insert("contract".into(), json!(contract.version));
         info.extra
             .insert("variance_short".into(), json!(variance_short));
         built.push((info, points, descriptors, variance_short, basis));

@@ -1,11 +1,17 @@
-//! The model contract `sfp-extractor/1` (`spec/extractor.md`), read from the model's ONNX
-//! `metadata_props`. Every number the extractor uses comes from here, never from constants.
+//! The model contracts `sfp-extractor/1` and `/2` (`spec/extractor.md`), read from the model's
+//! ONNX `metadata_props`. Every number the extractor uses comes from here, never from constants.
 
+use super::image_refine::{self, ImageRefine};
 use super::ExtractError;
 use std::collections::BTreeMap;
 
-/// The only contract this extractor implements.
-pub const CONTRACT: &str = "sfp-extractor/1";
+/// The contracts this extractor implements, oldest first. `/2` is `/1` plus step 5, the image
+/// refinement (`sfp.image_refine_sigma`, `sfp.image_refine_radius`): an extractor of `/1`
+/// would place such a model's keypoints pixels away from where its maps expect them.
+pub const CONTRACTS: [&str; 2] = ["sfp-extractor/1", "sfp-extractor/2"];
+
+/// The newest contract this extractor implements.
+pub const CONTRACT: &str = CONTRACTS[1];
 
 /// The largest NMS radius, in cells, a model's default or `--nms-radius` may ask for: the
 /// suppression (and DKD's window) costs its square per keypoint.
@@ -17,6 +23,8 @@ pub const MAX_KEYPOINTS: usize = 1_000_000;
 /// What a model promises, parsed and checked for consistency.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Contract {
+    /// `sfp.contract`: one of [`CONTRACTS`].
+    pub version: &'static str,
     /// `sfp.model_name`: the descriptor kind maps record (`sfp-v2`).
     pub model_name: String,
     /// Level ids as maps and the CLI use them, finest first (`sfp.level_ids`).
@@ -51,6 +59,9 @@ pub struct Contract {
     /// The finest level coarse-to-fine refinement walks down to (`sfp.refine_to_level`):
     /// `None`, one level finer than the keypoint's (the SFP rule).
     pub refine_to_level: Option<usize>,
+    /// Per level, the image refinement of step 5 (`sfp-extractor/2`); `None` for a level
+    /// without it, and for every level of a `/1` model.
+    pub image_refine: Vec<Option<ImageRefine>>,
     /// Every `sfp.*` key, for provenance.
     pub raw: BTreeMap<String, String>,
 }
@@ -96,19 +107,22 @@ impl Contract {
             reason,
         };
         let req = |key: &str| get(key).ok_or_else(|| bad(format!("metadata key {key:?} missing")));
-        match get("sfp.contract") {
-            Some(c) if c == CONTRACT => {}
-            Some(c) => {
-                return Err(bad(format!(
-                    "contract {c:?} is not {CONTRACT:?}; this sfpmap cannot run it"
-                )))
-            }
+        let version = match get("sfp.contract") {
+            Some(c) => match CONTRACTS.iter().find(|&&k| k == c.trim()) {
+                Some(&k) => k,
+                None => {
+                    return Err(bad(format!(
+                        "contract {c:?} is not {}; this sfpmap cannot run it",
+                        CONTRACTS.map(|k| format!("{k:?}")).join(" or ")
+                    )))
+                }
+            },
             None => {
                 return Err(bad(format!(
                     "no sfp.contract in its metadata (not an SFP model for {CONTRACT:?})"
                 )))
             }
-        }
+        };
         fn parse<T: std::str::FromStr>(
             key: &str,
             value: &str,
@@ -253,12 +267,19 @@ impl Contract {
                 "sfp.refine_to_level = {t} is no level of sfp.levels = {levels}"
             )));
         }
+        let image_refine = image_refine_levels(version, levels, &get, &bad)?;
+        if descriptor_head == DescriptorHead::Sddh && image_refine.iter().any(Option::is_some) {
+            return Err(bad(
+                "sfp.image_refine_sigma: a descriptor head takes the detected positions".into(),
+            ));
+        }
         let raw = keys
             .iter()
             .filter(|k| k.starts_with("sfp."))
             .filter_map(|k| get(k).map(|v| (k.clone(), v)))
             .collect();
         Ok(Contract {
+            version,
             model_name: get("sfp.model_name").unwrap_or_else(|| "unnamed".into()),
             level_ids,
             strides,
@@ -275,6 +296,7 @@ impl Contract {
             max_side,
             min_input_side,
             refine_to_level,
+            image_refine,
             raw,
         })
     }
@@ -293,6 +315,65 @@ impl Contract {
     pub fn level_side(&self, i: usize, n: usize) -> usize {
         n.div_ceil(self.strides[i] as usize)
     }
+}
+
+/// Step 5's parameters: `sfp.image_refine_sigma` (per level, input pixels, 0: not refined)
+/// and `sfp.image_refine_radius` (per level, input pixels), both required by `/2` and refused
+/// in a `/1` model (whose extractors would ignore them).
+fn image_refine_levels(
+    version: &str,
+    levels: usize,
+    get: &impl Fn(&str) -> Option<String>,
+    bad: &dyn Fn(String) -> ExtractError,
+) -> Result<Vec<Option<ImageRefine>>, ExtractError> {
+    const SIGMA: &str = "sfp.image_refine_sigma";
+    const RADIUS: &str = "sfp.image_refine_radius";
+    let (sigma, radius) = (get(SIGMA), get(RADIUS));
+    if version == CONTRACTS[0] {
+        return match sigma.and(Some(SIGMA)).or(radius.and(Some(RADIUS))) {
+            Some(key) => Err(bad(format!(
+                "{key} needs sfp.contract = {:?}, not {version:?}",
+                CONTRACTS[1]
+            ))),
+            None => Ok(vec![None; levels]),
+        };
+    }
+    let need = |key: &str, v: Option<String>| {
+        v.ok_or_else(|| bad(format!("metadata key {key:?} missing ({version} needs it)")))
+    };
+    let sigma = need(SIGMA, sigma)?;
+    let radius = need(RADIUS, radius)?;
+    let sigmas: Vec<f32> =
+        list(&sigma).ok_or_else(|| bad(format!("{SIGMA} = {sigma:?} is not a number list")))?;
+    let radii: Vec<u32> =
+        list(&radius).ok_or_else(|| bad(format!("{RADIUS} = {radius:?} is not a number list")))?;
+    for (key, n) in [(SIGMA, sigmas.len()), (RADIUS, radii.len())] {
+        if n != levels {
+            return Err(bad(format!(
+                "{key} has {n} values for sfp.levels = {levels}"
+            )));
+        }
+    }
+    sigmas
+        .iter()
+        .zip(&radii)
+        .map(|(&sigma, &radius)| {
+            if !(0.0..=image_refine::MAX_SIGMA).contains(&sigma) {
+                return Err(bad(format!(
+                    "{SIGMA} has {sigma}: 0 to {} pixels",
+                    image_refine::MAX_SIGMA
+                )));
+            }
+            if radius > image_refine::MAX_RADIUS {
+                return Err(bad(format!(
+                    "{RADIUS} has {radius}: 0 to {} pixels",
+                    image_refine::MAX_RADIUS
+                )));
+            }
+            // A sigma under half a pixel samples its Gaussian at one tap: no blur, no blob.
+            Ok((sigma >= 0.5 && radius > 0).then_some(ImageRefine { sigma, radius }))
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -342,9 +423,9 @@ mod tests {
     #[test]
     fn refuses_other_contracts_and_inconsistent_metadata() {
         let mut m = sfp_v1();
-        m.insert("sfp.contract".into(), "sfp-extractor/2".into());
+        m.insert("sfp.contract".into(), "sfp-extractor/3".into());
         let e = parse(&m).unwrap_err().to_string();
-        assert!(e.contains("m.onnx") && e.contains("sfp-extractor/2"), "{e}");
+        assert!(e.contains("m.onnx") && e.contains("sfp-extractor/3"), "{e}");
         let mut m = sfp_v1();
         m.remove("sfp.contract");
         assert!(parse(&m)
@@ -420,5 +501,42 @@ mod tests {
             (Detector::Dkd, DescriptorHead::Sddh, Some(1024), 4)
         );
         assert_eq!((c.levels(), c.global_dim, c.full_dims[0]), (1, 0, 128));
+    }
+
+    fn sfp_v2_contract(sigma: &str, radius: &str) -> BTreeMap<String, String> {
+        let mut m = sfp_v1();
+        m.insert("sfp.contract".into(), "sfp-extractor/2".into());
+        m.insert("sfp.image_refine_sigma".into(), sigma.into());
+        m.insert("sfp.image_refine_radius".into(), radius.into());
+        m
+    }
+
+    #[test]
+    fn contract_2_reads_the_image_refinement_per_level() {
+        let c = parse(&sfp_v2_contract("0,2.5,3,4", "0,3,4,5")).unwrap();
+        assert_eq!(c.version, "sfp-extractor/2");
+        let r = |sigma, radius| Some(ImageRefine { sigma, radius });
+        assert_eq!(c.image_refine, [None, r(2.5, 3), r(3.0, 4), r(4.0, 5)]);
+        let c = parse(&sfp_v1()).unwrap();
+        assert_eq!((c.version, c.image_refine), ("sfp-extractor/1", vec![None; 4]));
+        for (m, words) in [
+            (sfp_v2_contract("0,2.5,3", "0,3,4,5"), "3 values"),
+            (sfp_v2_contract("0,2.5,3,40", "0,3,4,5"), "has 40"),
+            (sfp_v2_contract("0,2.5,3,NaN", "0,3,4,5"), "has NaN"),
+            (sfp_v2_contract("0,2.5,3,4", "0,3,4,100"), "has 100"),
+            (sfp_v2_contract("0,2.5,3,4", "0,3,-4,5"), "not a number list"),
+        ] {
+            let e = parse(&m).unwrap_err().to_string();
+            assert!(e.contains("m.onnx") && e.contains(words), "{words}: {e}");
+        }
+        let mut m = sfp_v2_contract("0,2.5,3,4", "0,3,4,5");
+        m.remove("sfp.image_refine_radius");
+        let e = parse(&m).unwrap_err().to_string();
+        assert!(e.contains("sfp.image_refine_radius") && e.contains("missing"), "{e}");
+        // A /1 model with the keys would be refined by this extractor and not by older ones.
+        let mut m = sfp_v1();
+        m.insert("sfp.image_refine_sigma".into(), "0,2.5,3,4".into());
+        let e = parse(&m).unwrap_err().to_string();
+        assert!(e.contains("needs sfp.contract = \"sfp-extractor/2\""), "{e}");
     }
 }

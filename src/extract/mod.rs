@@ -25,6 +25,7 @@ pub mod contract;
 mod dkd;
 mod global;
 pub mod image;
+pub mod image_refine;
 pub(crate) mod keypoints;
 pub mod runtime;
 
@@ -55,12 +56,14 @@ const BUILTIN_SUFFIX: &str = " (embedded)";
 /// [`DEFAULT_MODEL`]. `sfp-v1` was the default until sfp-v2 (`models/sfp-v1.md`), `sfp-v2s`
 /// is sfp-v1 distilled into a two-convolution strided stem (`models/sfp-v2s.md`), `aliked-n16`
 /// is ALIKED-N16 (BSD-3-Clause; `models/aliked-n16.md`: one level of 128-d descriptors from
-/// its SDDH head, no global descriptor). A map records its model's name, so `localize` finds
+/// its SDDH head, no global descriptor), `sfp-v3` is sfp-v2's network with its keypoints
+/// refined on the image (`sfp-extractor/2`, `models/sfp-v3.md`). A map records its model's name, so `localize` finds
 /// the model a map was made with here; `--model NAME` picks one by name.
 pub static BUILTIN_MODELS: &[(&str, &[u8])] = &[
     ("sfp-v2", DEFAULT_MODEL),
     ("sfp-v1", include_bytes!("../../models/sfp-v1.onnx")),
     ("sfp-v2s", include_bytes!("../../models/sfp-v2s.onnx")),
+    ("sfp-v3", include_bytes!("../../models/sfp-v3.onnx")),
     ("aliked-n16", include_bytes!("../../models/aliked-n16.onnx")),
 ];
 
@@ -77,7 +80,7 @@ pub(crate) fn builtin_model(name: &str) -> Option<&'static [u8]> {
         .map(|(_, bytes)| *bytes)
 }
 
-/// The built-in models' names, for messages: "sfp-v2, sfp-v1, sfp-v2s, aliked-n16".
+/// The built-in models' names, for messages: "sfp-v2, sfp-v1, sfp-v2s, sfp-v3, aliked-n16".
 #[cfg(feature = "localize")]
 pub(crate) fn builtin_model_names() -> String {
     BUILTIN_MODELS
@@ -340,6 +343,14 @@ pub(crate) fn level_keypoints(
         .map(|j| (dense.levels[j].stride as f32, dense.levels[j].score_map()))
         .collect();
     keypoints::refine_down(&mut px, s, &finer);
+    if options.refine.unwrap_or(true) {
+        if let (Some(r), Some(image)) = (c.image_refine.get(i).copied().flatten(), dense.image()) {
+            let mut refiner = image_refine::Refiner::new(r);
+            for p in px.iter_mut() {
+                *p = refiner.refine(image, p.0, p.1);
+            }
+        }
+    }
     (peaks, px)
 }
 
@@ -440,9 +451,24 @@ pub struct Dense {
     pub levels: Vec<DenseLevel>,
     /// L2-normalised global descriptor.
     pub global: Vec<f32>,
+    /// The grey input the network ran on (`input_size`), kept only for a model whose
+    /// keypoints are refined on the image (`sfp-extractor/2`, step 5); else empty.
+    pub image: Vec<f32>,
 }
 
 impl Dense {
+    /// The input the network ran on, where it was kept ([`Dense::image`]).
+    pub fn image(&self) -> Option<image_refine::Plane<'_>> {
+        let [width, height] = self.input_size;
+        (!self.image.is_empty() && self.image.len() == width * height).then_some(
+            image_refine::Plane {
+                width,
+                height,
+                values: &self.image,
+            },
+        )
+    }
+
     /// A COLMAP-convention pixel of the original image → pixel-index coordinates of the input.
     pub fn input_pixel(&self, colmap_xy: [f32; 2]) -> [f32; 2] {
         [
@@ -846,11 +872,17 @@ impl Extractor {
             }
             data.to_vec()
         };
+        let image = if c.image_refine.iter().any(Option::is_some) {
+            input.values.clone()
+        } else {
+            Vec::new()
+        };
         Ok(Dense {
             input_size: [w, h],
             scale: input.scale(),
             levels,
             global,
+            image,
         })
     }
 
@@ -1129,6 +1161,7 @@ mod tests {
             scale: [1.0, 1.0],
             levels: vec![level(2, 4, 16, 1), level(4, 6, 8, 2), level(8, 8, 4, 3)],
             global: vec![1.0],
+            image: Vec::new(),
         };
         let l = &dense.levels;
         // Pixel (8, 16) is a cell centre on every level: cells (4, 8), (2, 4), (1, 2).

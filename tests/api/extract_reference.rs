@@ -309,6 +309,84 @@ fn a_model_refined_down_to_level_0_matches_the_python_reference() {
     }
 }
 
+/// sfp-v2's bytes as a model of `sfp-extractor/2` whose levels 1–3 are refined on the image
+/// (step 5): the contract's value rewritten in place (same length) and the two keys appended.
+fn sfp_v2_refined_on_the_image() -> Vec<u8> {
+    let mut bytes = DEFAULT_MODEL.to_vec();
+    let at = bytes
+        .windows(15)
+        .position(|w| w == b"sfp-extractor/1")
+        .expect("the model states its contract");
+    bytes[at + 14] = b'2';
+    bytes.extend(metadata_entry("sfp.image_refine_sigma", "0,2.5,3,4"));
+    bytes.extend(metadata_entry("sfp.image_refine_radius", "0,3,4,5"));
+    bytes
+}
+
+/// A model of `sfp-extractor/2` moves levels 1–3's keypoints onto the image's blobs as the
+/// Python reference does (`python/sfp/reference.py`, `image_refine`); level 0, and every
+/// keypoint's score and order, stay the default model's; `refine: false` turns it off.
+#[test]
+fn a_model_refined_on_the_image_matches_the_python_reference() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("sfp-v2-image-refined.onnx");
+    std::fs::write(&model, sfp_v2_refined_on_the_image()).unwrap();
+    let (png, reference) = reference(&model, &scene_image(), dir.path());
+    let open = |model: Option<PathBuf>| {
+        Extractor::new(
+            &ExtractorOptions { model, threads: 2 },
+            &sfpmap::progress::Silent,
+        )
+        .unwrap()
+    };
+    let mut refined = open(Some(model));
+    assert_eq!(refined.contract().version, "sfp-extractor/2");
+    let input = image::load(&png, refined.contract().gray_weights, None).unwrap();
+    let own_size = DetectOptions {
+        global: GlobalSize::Input,
+        ..Default::default()
+    };
+    let features = refined.extract(&input, &own_size).unwrap();
+    assert_levels_match(&reference, &features);
+    let default = open(None).extract(&input, &own_size).unwrap();
+    for (ours, theirs) in features.levels.iter().zip(&default.levels) {
+        assert_eq!(ours.scores, theirs.scores, "level {}", ours.level);
+        let moved = (ours.keypoints.iter().zip(&theirs.keypoints))
+            .filter(|(a, b)| a != b)
+            .count();
+        if ours.level == 0 {
+            assert_eq!(moved, 0, "level 0 is not refined on the image");
+        } else {
+            // Most keypoints have a blob within their radius; an edge or a flat patch has none.
+            assert!(
+                moved * 2 > ours.len(),
+                "level {}: {moved} of {} moved",
+                ours.level,
+                ours.len()
+            );
+        }
+    }
+    let unrefined = refined
+        .extract(
+            &input,
+            &DetectOptions {
+                refine: Some(false),
+                ..own_size.clone()
+            },
+        )
+        .unwrap();
+    let plain = open(None)
+        .extract(
+            &input,
+            &DetectOptions {
+                refine: Some(false),
+                ..own_size
+            },
+        )
+        .unwrap();
+    assert_eq!(unrefined.levels, plain.levels);
+}
+
 #[test]
 fn bad_models_are_refused_with_the_file_named() {
     let dir = tempfile::tempdir().unwrap();
