@@ -113,18 +113,19 @@ def gaussian_kernel(sigma):
 
 
 def _blur_patch(img, u0, v0, pw, ph, kernel):
-    """Gaussian blur of img on the pw x ph pixels from (u0, v0): rows first, edge pixels repeated,
-    summed tap by tap in float32 (the Rust extractor's order)."""
+    """Gaussian blur of img on the pw x ph pixels from (u0, v0): along columns first, then along
+    rows, edge pixels repeated, summed tap by tap in float32 (the Rust extractor's order)."""
     h, w = img.shape
     k = len(kernel) // 2
     rows = np.clip(np.arange(v0 - k, v0 + ph + k), 0, h - 1)
-    acc = np.zeros((len(rows), pw), np.float32)
+    cols = np.clip(np.arange(u0 - k, u0 + pw + k), 0, w - 1)
+    block = img[rows][:, cols]
+    vert = np.zeros((ph, pw + 2 * k), np.float32)
     for t, g in enumerate(kernel):
-        cols = np.clip(np.arange(u0, u0 + pw) + t - k, 0, w - 1)
-        acc += g * img[rows][:, cols]
+        vert += g * block[t:t + ph]
     out = np.zeros((ph, pw), np.float32)
     for t, g in enumerate(kernel):
-        out += g * acc[t:t + ph]
+        out += g * vert[:, t:t + pw]
     return out
 
 

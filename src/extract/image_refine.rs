@@ -58,7 +58,8 @@ pub struct Refiner {
     refine: ImageRefine,
     small: Vec<f32>,
     large: Vec<f32>,
-    rows: Vec<f32>,
+    block: Vec<f32>,
+    columns: Vec<f32>,
     blur: [Vec<f32>; 2],
     response: Vec<f32>,
 }
@@ -70,7 +71,8 @@ impl Refiner {
             refine,
             small: gaussian_kernel(refine.sigma),
             large: gaussian_kernel(refine.sigma * SIGMA_RATIO),
-            rows: Vec::new(),
+            block: Vec::new(),
+            columns: Vec::new(),
             blur: [Vec::new(), Vec::new()],
             response: Vec::new(),
         }
@@ -129,47 +131,57 @@ impl Refiner {
     }
 
     /// `self.response` = the DoG magnitude on the pw × ph pixels from (u0, v0), each Gaussian
-    /// separable, rows first, edge pixels repeated beyond the border. Each output sums its taps
-    /// in order; the loops run over outputs innermost, so they vectorise without reordering a
-    /// sum (python/sfp/reference.py adds in the same order, bit for bit).
+    /// separable, along columns first, then along rows, edge pixels repeated beyond the
+    /// border; each output sums its taps in order (python/sfp/reference.py adds in the same
+    /// order, bit for bit). Both passes run over one flat block per tap, so the loops are long
+    /// and vectorise: the row pass also fills the 2k columns past each row's end, which it
+    /// reads from the next row and never uses (cheaper than short loops).
     fn response_on(&mut self, image: Plane<'_>, u0: usize, v0: usize, pw: usize, ph: usize) {
         for (which, kernel) in [(0, &self.small), (1, &self.large)] {
             let k = kernel.len() / 2;
-            // Rows v0 − k … v0 + ph − 1 + k, columns u0 … u0 + pw − 1, blurred along the row.
+            // The image's pixels v0 − k … v0 + ph − 1 + k by u0 − k … u0 + pw − 1 + k.
+            let seg = pw + 2 * k;
             let nrows = ph + 2 * k;
-            let seg_len = pw + 2 * k;
-            self.rows.clear();
-            self.rows.resize(nrows * pw + seg_len, 0.0);
-            let (rows, seg) = self.rows.split_at_mut(nrows * pw);
+            self.block.clear();
+            self.block.reserve(nrows * seg);
             for i in 0..nrows {
                 let y = clamp(v0 as i64 + i as i64 - k as i64, image.height);
                 let row = &image.values[y * image.width..(y + 1) * image.width];
-                for (j, s) in seg.iter_mut().enumerate() {
-                    *s = row[clamp(u0 as i64 + j as i64 - k as i64, image.width)];
-                }
-                let out = &mut rows[i * pw..(i + 1) * pw];
-                for (t, &g) in kernel.iter().enumerate() {
-                    for (o, &v) in out.iter_mut().zip(&seg[t..t + pw]) {
-                        *o += g * v;
-                    }
+                self.block.extend(
+                    (0..seg).map(|j| row[clamp(u0 as i64 + j as i64 - k as i64, image.width)]),
+                );
+            }
+            // Along columns: ph rows of seg values.
+            self.columns.clear();
+            self.columns.resize(ph * seg, 0.0);
+            for (t, &g) in kernel.iter().enumerate() {
+                let src = &self.block[t * seg..(t + ph) * seg];
+                for (o, &v) in self.columns.iter_mut().zip(src) {
+                    *o += g * v;
                 }
             }
+            // Along rows: output (i, j) at i·seg + j, j < pw.
+            let n = ph * seg - 2 * k;
             let out = &mut self.blur[which];
             out.clear();
-            out.resize(ph * pw, 0.0);
+            out.resize(n, 0.0);
             for (t, &g) in kernel.iter().enumerate() {
-                for (o, &v) in out.iter_mut().zip(&rows[t * pw..(t + ph) * pw]) {
+                for (o, &v) in out.iter_mut().zip(&self.columns[t..t + n]) {
                     *o += g * v;
                 }
             }
         }
-        self.response.clear();
-        self.response.extend(
-            self.blur[0]
-                .iter()
-                .zip(&self.blur[1])
-                .map(|(a, b)| (a - b).abs()),
+        let (s0, s1) = (
+            self.small.len() / 2 * 2 + pw,
+            self.large.len() / 2 * 2 + pw,
         );
+        self.response.clear();
+        for i in 0..ph {
+            let a = &self.blur[0][i * s0..i * s0 + pw];
+            let b = &self.blur[1][i * s1..i * s1 + pw];
+            self.response
+                .extend(a.iter().zip(b).map(|(a, b)| (a - b).abs()));
+        }
     }
 }
 
@@ -248,6 +260,50 @@ mod tests {
             values: &tiny,
         };
         assert_eq!(r.refine(small, 0.0, 1.0), (0.0, 1.0));
+    }
+
+    /// The blocked, vectorised passes against the definition evaluated pixel by pixel (columns,
+    /// then rows, edge pixels repeated, taps in order): equal to the bit, at the border too.
+    #[test]
+    fn the_response_is_the_separable_difference_of_gaussians_pixel_by_pixel() {
+        let (w, h) = (23usize, 17usize);
+        let img: Vec<f32> = (0..w * h)
+            .map(|i| ((i * 7919 % 251) as f32) / 251.0)
+            .collect();
+        let plane = Plane {
+            width: w,
+            height: h,
+            values: &img,
+        };
+        let blur_at = |kernel: &[f32], x: usize, y: usize| -> f32 {
+            let k = kernel.len() as i64 / 2;
+            let column = |xx: usize| {
+                let mut acc = 0.0f32;
+                for (t, &g) in kernel.iter().enumerate() {
+                    acc += g * img[clamp(y as i64 + t as i64 - k, h) * w + xx];
+                }
+                acc
+            };
+            let mut acc = 0.0f32;
+            for (t, &g) in kernel.iter().enumerate() {
+                acc += g * column(clamp(x as i64 + t as i64 - k, w));
+            }
+            acc
+        };
+        let mut r = Refiner::new(ImageRefine {
+            sigma: 1.5,
+            radius: 3,
+        });
+        for (u0, v0, pw, ph) in [(0, 0, 9, 9), (14, 8, 9, 9), (5, 3, 4, 7)] {
+            r.response_on(plane, u0, v0, pw, ph);
+            for i in 0..ph {
+                for j in 0..pw {
+                    let (x, y) = (u0 + j, v0 + i);
+                    let want = (blur_at(&r.small, x, y) - blur_at(&r.large, x, y)).abs();
+                    assert_eq!(r.response[i * pw + j], want, "({x}, {y})");
+                }
+            }
+        }
     }
 
     #[test]
