@@ -24,9 +24,10 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from sfp.reference import CONTRACTS, image_refine_levels  # noqa: E402  (numpy only)
 
-CONTRACT = "sfp-extractor/1"
-CONTRACT_IMAGE_REFINE = "sfp-extractor/2"  # /1 plus step 5, the image refinement
+CONTRACT, CONTRACT_IMAGE_REFINE = CONTRACTS  # /2 is /1 plus step 5, the image refinement
+
 OPSET = 17
 
 
@@ -113,12 +114,22 @@ def export(net, out: str, metadata: dict[str, str]):
 def save_with_metadata(m, out: str):
     import onnx
 
+    import tempfile
+
     m.producer_name = "sfpmap/python/export.py"
     m.doc_string = "Sparse Feature Pyramid extractor; contract in spec/extractor.md"
     onnx.checker.check_model(m)
-    tmp = out + ".part"
-    onnx.save(m, tmp)
-    os.replace(tmp, out)  # never a half-written model under the final name
+    # Atomic: a temporary file in the same folder, flushed to disk, renamed over `out`.
+    fd, tmp = tempfile.mkstemp(prefix=".export-", suffix=".onnx", dir=os.path.dirname(os.path.abspath(out)))
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(m.SerializeToString())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, out)
+    except BaseException:
+        os.unlink(tmp)
+        raise
 
 
 def image_refine_metadata(spec: str, levels: int) -> dict[str, str]:
@@ -129,13 +140,14 @@ def image_refine_metadata(spec: str, levels: int) -> dict[str, str]:
         radii = [int(v) for v in rad.split(",")]
     except ValueError:
         raise SystemExit(f"--image-refine {spec!r}: SIGMAS/RADII, e.g. 1.5,2.5,3,4/2,3,4,5")
-    if len(sigmas) != levels or len(radii) != levels:
-        raise SystemExit(f"--image-refine {spec!r}: {levels} sigmas and {levels} radii (one a level)")
-    if not all(0 <= s <= 16 for s in sigmas) or not all(0 <= r <= 16 for r in radii):
-        raise SystemExit(f"--image-refine {spec!r}: sigmas and radii 0 to 16 pixels")
-    return {"sfp.contract": CONTRACT_IMAGE_REFINE,
-            "sfp.image_refine_sigma": ",".join(f"{s:g}" for s in sigmas),
-            "sfp.image_refine_radius": ",".join(str(r) for r in radii)}
+    md = {"sfp.contract": CONTRACT_IMAGE_REFINE,
+          "sfp.image_refine_sigma": ",".join(f"{s:g}" for s in sigmas),
+          "sfp.image_refine_radius": ",".join(str(r) for r in radii)}
+    try:
+        image_refine_levels(md, levels)  # the extractor's rules
+    except ValueError as e:
+        raise SystemExit(f"--image-refine {spec!r}: {e}")
+    return md
 
 
 def retag(src: str, out: str, name: str, refine: str | None):
@@ -202,7 +214,7 @@ def main():
     if args.ckpt.endswith(".onnx"):
         if not args.model_name or not args.out:
             raise SystemExit("an .onnx input needs --model-name and -o")
-        if os.path.abspath(args.out) == os.path.abspath(args.ckpt):
+        if os.path.exists(args.out) and os.path.samefile(args.out, args.ckpt):
             raise SystemExit(f"-o {args.out}: the input itself (write another file)")
         retag(args.ckpt, args.out, args.model_name, args.image_refine)
         h = hashlib.sha256(open(args.out, "rb").read()).hexdigest()

@@ -23,9 +23,7 @@ import onnxruntime as ort
 from PIL import Image
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
-from sfp.reference import image_refine_levels, level_features  # noqa: E402  (numpy only)
-
-CONTRACTS = ("sfp-extractor/1", "sfp-extractor/2")
+from sfp.reference import CONTRACTS, image_refine_levels, level_features  # noqa: E402  (numpy only)
 
 
 def check_h5(path, reference=None, name=None):

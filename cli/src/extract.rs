@@ -58,8 +58,9 @@ pub struct Args {
     #[arg(long, default_value_t = sfpmap::extract::GLOBAL_MAX_SIDE,
           value_parser = super::global_max_side)]
     pub global_max_side: u32,
-    /// Keep levels 2 and deeper where the quadratic fit on their own score map puts them
-    /// (no coarse-to-fine refinement on the next finer level; spec/extractor.md).
+    /// Keep keypoints where the quadratic fit on their own score map puts them: no
+    /// coarse-to-fine refinement of levels 2 and deeper, and no refinement on the image of an
+    /// sfp-extractor/2 model (spec/extractor.md steps 4 and 5).
     #[arg(long)]
     pub no_refine: bool,
     /// Print one JSON object: images, keypoints per level, ms per image, output bytes.
@@ -209,7 +210,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
             sfpmap::format::Metadata::tool_string(),
         ),
     ];
-    // Whether levels 2+ were refined coarse to fine (spec/extractor.md step 4).
+    // Whether keypoints were refined (spec/extractor.md steps 4 and 5).
     attributes.push(("sfp.refine".to_string(), (!args.no_refine).to_string()));
     // The size `global_descriptor` was computed at; 0: the network input (metadata
     // `global_max_side` of a map; spec/extractor.md). A model without a global head (ALIKED)

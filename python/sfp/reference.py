@@ -100,16 +100,24 @@ def refine_on(finer, finer_stride, radius, px):
     return out
 
 
-SIGMA_RATIO = 1.6  # src/extract/image_refine.rs: SIGMA_RATIO
+# The contracts (spec/extractor.md; src/extract/contract.rs: CONTRACTS): /2 is /1 plus step 5.
+CONTRACTS = ("sfp-extractor/1", "sfp-extractor/2")
+# Step 5's ranges and ratio (src/extract/image_refine.rs: MIN_SIGMA, MAX_SIGMA, MAX_RADIUS, SIGMA_RATIO).
+MIN_SIGMA, MAX_SIGMA, MAX_RADIUS = 0.5, 6.0, 8
+SIGMA_RATIO = 1.6
 
 
 def gaussian_kernel(sigma):
-    """Normalised 1-D Gaussian truncated at ceil(3 sigma): weights in float64, then float32."""
-    k = int(np.ceil(3.0 * np.float64(np.float32(sigma))))
-    t = np.arange(-k, k + 1, dtype=np.float64)
+    """Normalised 1-D Gaussian truncated at ceil(3 sigma): weights in float64 summed in order (as
+    Rust's iter().sum(); numpy's sum is pairwise), then divided and cast to float32."""
     s = np.float64(np.float32(sigma))
+    k = int(np.ceil(3.0 * s))
+    t = np.arange(-k, k + 1, dtype=np.float64)
     w = np.exp(-(t * t) / (2.0 * s * s))
-    return (w / w.sum()).astype(np.float32)
+    total = 0.0
+    for v in w:
+        total += float(v)
+    return (w / total).astype(np.float32)
 
 
 def _blur_patch(img, u0, v0, pw, ph, kernel):
@@ -167,12 +175,28 @@ def image_refine(img, px, sigma, radius):
 
 
 def image_refine_levels(metadata, levels):
-    """Per level (sigma, radius) or None, from an sfp-extractor/2 model's metadata (else all None)."""
-    if metadata.get("sfp.contract") != "sfp-extractor/2":
+    """Per level (sigma, radius) or None, from a model's metadata as src/extract/contract.rs reads
+    it (a ValueError where it refuses the model)."""
+    keys = ("sfp.image_refine_sigma", "sfp.image_refine_radius")
+    contract = metadata.get("sfp.contract")
+    if contract not in CONTRACTS:
+        raise ValueError(f"contract {contract!r} is not one of {CONTRACTS}")
+    if contract == CONTRACTS[0]:
+        if any(k in metadata for k in keys):
+            raise ValueError(f"{keys} need sfp.contract = {CONTRACTS[1]}")
         return [None] * levels
-    sig = [float(v) for v in metadata["sfp.image_refine_sigma"].split(",")]
-    rad = [int(v) for v in metadata["sfp.image_refine_radius"].split(",")]
-    return [(s, r) if s >= 0.5 and r > 0 else None for s, r in zip(sig, rad)]
+    sig = [np.float32(v) for v in metadata[keys[0]].split(",")]
+    rad = [int(v) for v in metadata[keys[1]].split(",")]
+    if len(sig) != levels or len(rad) != levels or min(rad) < 0:
+        raise ValueError(f"{keys}: one value a level, radii from 0")
+    out = []
+    for s, r in zip(sig, rad):
+        if s != 0 and not MIN_SIGMA <= s <= MAX_SIGMA or r > MAX_RADIUS:
+            raise ValueError(f"sigma {s}, radius {r}: out of range")
+        out.append((s, r) if s != 0 and r > 0 else None)
+    if all(v is None for v in out):
+        raise ValueError("an sfp-extractor/2 model refines some level")
+    return out
 
 
 def level_features(feats, scores, strides, radius, thr, topk, refine=True, refine_to=None,

@@ -108,7 +108,7 @@ impl Contract {
         };
         let req = |key: &str| get(key).ok_or_else(|| bad(format!("metadata key {key:?} missing")));
         let version = match get("sfp.contract") {
-            Some(c) => match CONTRACTS.iter().find(|&&k| k == c.trim()) {
+            Some(c) => match CONTRACTS.iter().find(|&&k| k == c) {
                 Some(&k) => k,
                 None => {
                     return Err(bad(format!(
@@ -270,7 +270,9 @@ impl Contract {
         let image_refine = image_refine_levels(version, levels, &get, &bad)?;
         if descriptor_head == DescriptorHead::Sddh && image_refine.iter().any(Option::is_some) {
             return Err(bad(
-                "sfp.image_refine_sigma: a descriptor head takes the detected positions".into(),
+                "sfp.image_refine_sigma refines keypoints that sfp.descriptor_head = sddh \
+                 describes where they were detected: a model has one or the other"
+                    .into(),
             ));
         }
         let raw = keys
@@ -318,8 +320,9 @@ impl Contract {
 }
 
 /// Step 5's parameters: `sfp.image_refine_sigma` (per level, input pixels, 0: not refined)
-/// and `sfp.image_refine_radius` (per level, input pixels), both required by `/2` and refused
-/// in a `/1` model (whose extractors would ignore them).
+/// and `sfp.image_refine_radius` (per level, input pixels, 0: not refined), both required by
+/// `/2` (which refines at least one level) and refused in a `/1` model (whose extractors would
+/// ignore them).
 fn image_refine_levels(
     version: &str,
     levels: usize,
@@ -354,13 +357,15 @@ fn image_refine_levels(
             )));
         }
     }
-    sigmas
+    let levels: Vec<Option<ImageRefine>> = sigmas
         .iter()
         .zip(&radii)
         .map(|(&sigma, &radius)| {
-            if !(0.0..=image_refine::MAX_SIGMA).contains(&sigma) {
+            let off = sigma == 0.0;
+            if !off && !(image_refine::MIN_SIGMA..=image_refine::MAX_SIGMA).contains(&sigma) {
                 return Err(bad(format!(
-                    "{SIGMA} has {sigma}: 0 to {} pixels",
+                    "{SIGMA} has {sigma}: 0 (not refined) or {} to {} pixels",
+                    image_refine::MIN_SIGMA,
                     image_refine::MAX_SIGMA
                 )));
             }
@@ -370,10 +375,16 @@ fn image_refine_levels(
                     image_refine::MAX_RADIUS
                 )));
             }
-            // A sigma under half a pixel samples its Gaussian at one tap: no blur, no blob.
-            Ok((sigma >= 0.5 && radius > 0).then_some(ImageRefine { sigma, radius }))
+            Ok((!off && radius > 0).then_some(ImageRefine { sigma, radius }))
         })
-        .collect()
+        .collect::<Result<_, _>>()?;
+    if levels.iter().all(Option::is_none) {
+        return Err(bad(format!(
+            "{version} refines some level, and {SIGMA} = {sigma:?} with {RADIUS} = {radius:?} \
+             refines none"
+        )));
+    }
+    Ok(levels)
 }
 
 #[cfg(test)]
@@ -522,6 +533,9 @@ mod tests {
         for (m, words) in [
             (sfp_v2_contract("0,2.5,3", "0,3,4,5"), "3 values"),
             (sfp_v2_contract("0,2.5,3,40", "0,3,4,5"), "has 40"),
+            (sfp_v2_contract("0,2.5,3,0.3", "0,3,4,5"), "has 0.3"),
+            (sfp_v2_contract("0,0,0,0", "0,3,4,5"), "refines none"),
+            (sfp_v2_contract("0,2.5,3,4", "0,0,0,0"), "refines none"),
             (sfp_v2_contract("0,2.5,3,NaN", "0,3,4,5"), "has NaN"),
             (sfp_v2_contract("0,2.5,3,4", "0,3,4,100"), "has 100"),
             (sfp_v2_contract("0,2.5,3,4", "0,3,-4,5"), "not a number list"),
@@ -533,6 +547,30 @@ mod tests {
         m.remove("sfp.image_refine_radius");
         let e = parse(&m).unwrap_err().to_string();
         assert!(e.contains("sfp.image_refine_radius") && e.contains("missing"), "{e}");
+        // A level with radius 0 stays; the others refine.
+        let c = parse(&sfp_v2_contract("1.5,2.5,3,4", "2,0,4,5")).unwrap();
+        assert_eq!(c.image_refine[1], None);
+        assert_eq!(c.image_refine[0], r(1.5, 2));
+        // A contract value is the exact string.
+        let mut m = sfp_v2_contract("0,2.5,3,4", "0,3,4,5");
+        m.insert("sfp.contract".into(), "sfp-extractor/2 ".into());
+        assert!(parse(&m).is_err());
+        // A descriptor head describes where DKD detected: refining moves keypoints it does not see.
+        let mut m = sfp_v2_contract("2", "2");
+        for (k, v) in [
+            ("sfp.levels", "1"),
+            ("sfp.level_ids", "0"),
+            ("sfp.strides", "1"),
+            ("sfp.dims", "128"),
+            ("sfp.short_dims", "128"),
+            ("sfp.full_dims", "128"),
+            ("sfp.default_max_keypoints", "2000"),
+            ("sfp.descriptor_head", "sddh"),
+        ] {
+            m.insert(k.into(), v.into());
+        }
+        let e = parse(&m).unwrap_err().to_string();
+        assert!(e.contains("one or the other"), "{e}");
         // A /1 model with the keys would be refined by this extractor and not by older ones.
         let mut m = sfp_v1();
         m.insert("sfp.image_refine_sigma".into(), "0,2.5,3,4".into());

@@ -2,7 +2,7 @@
 //! nearest sharp blob of the input image itself, the peak of a difference of Gaussians at the
 //! level's scale, fitted to sub-pixel precision.
 //!
-//! Why: a level's score map has one cell per 4–16 pixels, and its quadratic fit places a
+//! Why: a level's score map has one cell per 2–16 pixels, and its quadratic fit places a
 //! keypoint to about a pixel or two; the image's own blobs are as sharp as SIFT's. On 200
 //! held-out homography pairs sfp-v2's level-2 viewpoint MMA@1 goes from 0.31 to 0.51.
 //!
@@ -12,14 +12,22 @@
 use super::keypoints::{subpixel, ScoreMap};
 
 /// The ratio of the two Gaussians' sigmas (SIFT's DoG uses 2^(1/3) to 2; 1.6 approximates the
-/// Laplacian of Gaussian best, Marr–Hildreth).
+/// Laplacian of Gaussian best, Marr–Hildreth). python/sfp/reference.py: SIGMA_RATIO.
 pub const SIGMA_RATIO: f32 = 1.6;
 
-/// The largest sigma (input pixels) a model may ask for: the window's blur costs its square.
-pub const MAX_SIGMA: f32 = 16.0;
+/// The smallest sigma (input pixels) a refined level may ask for: under half a pixel the
+/// Gaussian is hardly a blur and its "blobs" are single noisy pixels.
+pub const MIN_SIGMA: f32 = 0.5;
 
-/// The largest search radius (input pixels) a model may ask for.
-pub const MAX_RADIUS: u32 = 16;
+/// The largest sigma (input pixels) a model may ask for. A keypoint's blur costs about
+/// (2r + 3 + 10σ)² · 10σ multiply-adds: at 6 and [`MAX_RADIUS`] some 0.3 M, so a level of a
+/// million keypoints (the most a model may ask for) stays within minutes, not hours.
+/// sfp-v3 uses at most 4. python/sfp/reference.py: MAX_SIGMA.
+pub const MAX_SIGMA: f32 = 6.0;
+
+/// The largest search radius (input pixels) a model may ask for. python/sfp/reference.py:
+/// MAX_RADIUS.
+pub const MAX_RADIUS: u32 = 8;
 
 /// A level's image refinement: the DoG's smaller sigma and the search radius, in input pixels.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -30,9 +38,24 @@ pub struct ImageRefine {
     pub radius: u32,
 }
 
+impl ImageRefine {
+    /// About how many multiply-adds refining one keypoint takes (both blurs' two passes over
+    /// its window): what the extractor's threads share levels by.
+    pub fn work_per_keypoint(&self) -> usize {
+        let side = 2 * self.radius as usize + 3;
+        [self.sigma, self.sigma * SIGMA_RATIO]
+            .iter()
+            .map(|&s| {
+                let taps = 2 * (3.0 * s).ceil() as usize + 1;
+                2 * side * (side + taps - 1) * taps
+            })
+            .sum()
+    }
+}
+
 /// A grey input plane, row-major, as the network saw it.
 #[derive(Debug, Clone, Copy)]
-pub struct Plane<'a> {
+pub(crate) struct Plane<'a> {
     /// Pixels per row.
     pub width: usize,
     /// Rows.
@@ -54,7 +77,7 @@ pub(crate) fn gaussian_kernel(sigma: f32) -> Vec<f32> {
 }
 
 /// Reusable buffers and the two kernels of one level's refinement.
-pub struct Refiner {
+pub(crate) struct Refiner {
     refine: ImageRefine,
     small: Vec<f32>,
     large: Vec<f32>,
@@ -65,8 +88,13 @@ pub struct Refiner {
 }
 
 impl Refiner {
-    /// A refiner for one level's parameters.
-    pub fn new(refine: ImageRefine) -> Refiner {
+    /// A refiner for one level's parameters, which the contract has held to
+    /// [`MIN_SIGMA`]…[`MAX_SIGMA`] and [`MAX_RADIUS`].
+    pub(crate) fn new(refine: ImageRefine) -> Refiner {
+        assert!(
+            (MIN_SIGMA..=MAX_SIGMA).contains(&refine.sigma) && refine.radius <= MAX_RADIUS,
+            "{refine:?} is outside the contract's ranges"
+        );
         Refiner {
             refine,
             small: gaussian_kernel(refine.sigma),
@@ -83,7 +111,7 @@ impl Refiner {
     /// window clipped to the image's interior; first strongest in row order), when that pixel
     /// is greater than its 8 neighbours, fitted there as score maps are ([`subpixel`]).
     /// Unchanged otherwise (no peak in the window: an edge or a flat patch).
-    pub fn refine(&mut self, image: Plane<'_>, x: f32, y: f32) -> (f32, f32) {
+    pub(crate) fn refine(&mut self, image: Plane<'_>, x: f32, y: f32) -> (f32, f32) {
         let (w, h) = (image.width, image.height);
         if w < 3 || h < 3 || !x.is_finite() || !y.is_finite() {
             return (x, y);
@@ -147,9 +175,12 @@ impl Refiner {
             for i in 0..nrows {
                 let y = clamp(v0 as i64 + i as i64 - k as i64, image.height);
                 let row = &image.values[y * image.width..(y + 1) * image.width];
-                self.block.extend(
-                    (0..seg).map(|j| row[clamp(u0 as i64 + j as i64 - k as i64, image.width)]),
-                );
+                match u0.checked_sub(k).and_then(|a| row.get(a..a + seg)) {
+                    Some(inside) => self.block.extend_from_slice(inside),
+                    None => self.block.extend(
+                        (0..seg).map(|j| row[clamp(u0 as i64 + j as i64 - k as i64, image.width)]),
+                    ),
+                }
             }
             // Along columns: ph rows of seg values.
             self.columns.clear();

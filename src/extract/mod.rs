@@ -1,4 +1,4 @@
-//! The SFP extractor (feature `onnx`): an ONNX model of the `sfp-extractor/1` contract
+//! The SFP extractor (feature `onnx`): an ONNX model of the `sfp-extractor/1` or `/2` contract
 //! (`spec/extractor.md`) run with ONNX Runtime, turned into per-level keypoints, `short` and
 //! `full` descriptors and a global descriptor.
 //!
@@ -25,9 +25,11 @@ pub mod contract;
 mod dkd;
 mod global;
 pub mod image;
-pub mod image_refine;
+mod image_refine;
 pub(crate) mod keypoints;
 pub mod runtime;
+
+pub use self::image_refine::ImageRefine;
 
 use self::contract::{Contract, DescriptorHead, Detector};
 pub use self::global::{GlobalSize, GLOBAL_MAX_SIDE, GLOBAL_MIN_SIDE};
@@ -260,8 +262,8 @@ pub struct DetectOptions {
     pub nms_radius: Option<u32>,
     /// Cap per level, in level order; one value applies to every level.
     pub max_keypoints: Option<Vec<usize>>,
-    /// Coarse-to-fine refinement of the keypoints of levels from 2 on
-    /// (`spec/extractor.md`); `None` = on.
+    /// The keypoints' refinement (`spec/extractor.md`): coarse to fine for levels from 2 on
+    /// (step 4) and, for a model of `sfp-extractor/2`, on the image (step 5); `None` = on.
     pub refine: Option<bool>,
     /// The image size the global descriptor is computed at; the default is
     /// [`GLOBAL_MAX_SIDE`]. A query's must be its map's ([`GlobalSize::of_map`]).
@@ -317,9 +319,9 @@ pub(crate) fn refined_to(c: &Contract, i: usize, refine: bool) -> usize {
     }
 }
 
-/// Level `i`'s keypoints as the extractor finds them (`spec/extractor.md` steps 1–4): the
+/// Level `i`'s keypoints as the extractor finds them (`spec/extractor.md` steps 1–5): the
 /// detector's peaks (at most `max`) and their pixel positions (pixel-index convention),
-/// refined coarse to fine where it applies (not for a descriptor head, whose head takes the
+/// refined coarse to fine and on the image where the model asks for it (not for a descriptor head, whose head takes the
 /// detected positions). `convert --images --snap` moves observations to these.
 pub(crate) fn level_keypoints(
     c: &Contract,
@@ -344,7 +346,12 @@ pub(crate) fn level_keypoints(
         .collect();
     keypoints::refine_down(&mut px, s, &finer);
     if options.refine.unwrap_or(true) {
-        if let (Some(r), Some(image)) = (c.image_refine.get(i).copied().flatten(), dense.image()) {
+        let refine = c.image_refine.get(i).copied().flatten();
+        debug_assert!(
+            refine.is_none() || dense.image().is_some(),
+            "Extractor::run keeps the image of a model that refines on it"
+        );
+        if let (Some(r), Some(image)) = (refine, dense.image()) {
             let mut refiner = image_refine::Refiner::new(r);
             for p in px.iter_mut() {
                 *p = refiner.refine(image, p.0, p.1);
@@ -453,12 +460,12 @@ pub struct Dense {
     pub global: Vec<f32>,
     /// The grey input the network ran on (`input_size`), kept only for a model whose
     /// keypoints are refined on the image (`sfp-extractor/2`, step 5); else empty.
-    pub image: Vec<f32>,
+    pub(crate) image: Vec<f32>,
 }
 
 impl Dense {
-    /// The input the network ran on, where it was kept ([`Dense::image`]).
-    pub fn image(&self) -> Option<image_refine::Plane<'_>> {
+    /// The input the network ran on, where it was kept (a model that refines on the image).
+    pub(crate) fn image(&self) -> Option<image_refine::Plane<'_>> {
         let [width, height] = self.input_size;
         (!self.image.is_empty() && self.image.len() == width * height).then_some(
             image_refine::Plane {
@@ -810,7 +817,8 @@ impl Extractor {
         if let Some(reason) = too_large_for_the_network(w, h) {
             return Err(infer(reason));
         }
-        let tensor = Tensor::from_array(([1usize, 1, h, w], input.values.clone()))
+        // A view, not a copy: a 12-megapixel input is 48 MB.
+        let tensor = TensorRef::from_array_view(([1usize, 1, h, w], &input.values[..]))
             .map_err(|e| infer(e.to_string()))?;
         let input_name = self.contract.input_name.clone();
         let c = &self.contract;
@@ -944,8 +952,9 @@ impl Extractor {
     /// Keypoints and descriptors of every level from the network's outputs, and the global
     /// descriptor of this inference (`dense.global`, [`GlobalSize::Input`]; [`Extractor::extract`]
     /// takes it at [`DetectOptions::global`]'s size). With more than
-    /// one thread the levels are shared out by their expected work (keypoints × full
-    /// dimensions: level 0 alone is about half of it); the result does not depend on it.
+    /// one thread the levels are shared out by their expected work (keypoints × (the full
+    /// descriptor's sampling + the refinement on the image): level 0 alone is about half of
+    /// it); the result does not depend on it.
     pub fn features(
         &self,
         dense: &Dense,
@@ -969,7 +978,12 @@ impl Extractor {
             // Longest job first onto the least loaded thread.
             let mut jobs: Vec<usize> = (0..n).collect();
             let cells = |i: usize| dense.levels[i].height.saturating_mul(dense.levels[i].width);
-            let cost = |i: usize| max_of(i).min(cells(i)).saturating_mul(c.full_dims[i]);
+            // Multiply-adds a keypoint: a bilinear sample per full dimension, and the image
+            // refinement's blurs.
+            let per_keypoint = |i: usize| {
+                4 * c.full_dims[i] + c.image_refine[i].map_or(0, |r| r.work_per_keypoint())
+            };
+            let cost = |i: usize| max_of(i).min(cells(i)).saturating_mul(per_keypoint(i));
             jobs.sort_by_key(|&i| std::cmp::Reverse(cost(i)));
             let mut load = vec![0usize; threads];
             let mut share: Vec<Vec<usize>> = vec![Vec::new(); threads];

@@ -9,8 +9,8 @@
 
 use serde_json::Value;
 use sfpmap::extract::{
-    image, DetectOptions, Extractor, ExtractorOptions, Features, GlobalSize, DEFAULT_MODEL,
-    GLOBAL_MAX_SIDE,
+    image, DetectOptions, Extractor, ExtractorOptions, Features, GlobalSize, BUILTIN_MODELS,
+    DEFAULT_MODEL, GLOBAL_MAX_SIDE,
 };
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -309,28 +309,19 @@ fn a_model_refined_down_to_level_0_matches_the_python_reference() {
     }
 }
 
-/// sfp-v2's bytes as a model of `sfp-extractor/2` whose levels 1–3 are refined on the image
-/// (step 5): the contract's value rewritten in place (same length) and the two keys appended.
-fn sfp_v2_refined_on_the_image() -> Vec<u8> {
-    let mut bytes = DEFAULT_MODEL.to_vec();
-    let at = bytes
-        .windows(15)
-        .position(|w| w == b"sfp-extractor/1")
-        .expect("the model states its contract");
-    bytes[at + 14] = b'2';
-    bytes.extend(metadata_entry("sfp.image_refine_sigma", "0,2.5,3,4"));
-    bytes.extend(metadata_entry("sfp.image_refine_radius", "0,3,4,5"));
-    bytes
-}
-
-/// A model of `sfp-extractor/2` moves levels 1–3's keypoints onto the image's blobs as the
-/// Python reference does (`python/sfp/reference.py`, `image_refine`); level 0, and every
-/// keypoint's score and order, stay the default model's; `refine: false` turns it off.
+/// The built-in sfp-v3 (`sfp-extractor/2`: sfp-v2's network, keypoints refined on the image)
+/// moves every level's keypoints onto the image's blobs as the Python reference does
+/// (`python/sfp/reference.py`, `image_refine`); every keypoint's score and order stay sfp-v2's,
+/// and `refine: false` gives sfp-v2's keypoints exactly.
 #[test]
-fn a_model_refined_on_the_image_matches_the_python_reference() {
+fn sfp_v3_refined_on_the_image_matches_the_python_reference() {
     let dir = tempfile::tempdir().unwrap();
-    let model = dir.path().join("sfp-v2-image-refined.onnx");
-    std::fs::write(&model, sfp_v2_refined_on_the_image()).unwrap();
+    let model = dir.path().join("sfp-v3.onnx");
+    let (_, bytes) = BUILTIN_MODELS
+        .iter()
+        .find(|(name, _)| *name == "sfp-v3")
+        .expect("sfp-v3 is built in");
+    std::fs::write(&model, bytes).unwrap();
     let (png, reference) = reference(&model, &scene_image(), dir.path());
     let open = |model: Option<PathBuf>| {
         Extractor::new(
@@ -354,17 +345,13 @@ fn a_model_refined_on_the_image_matches_the_python_reference() {
         let moved = (ours.keypoints.iter().zip(&theirs.keypoints))
             .filter(|(a, b)| a != b)
             .count();
-        if ours.level == 0 {
-            assert_eq!(moved, 0, "level 0 is not refined on the image");
-        } else {
-            // Most keypoints have a blob within their radius; an edge or a flat patch has none.
-            assert!(
-                moved * 2 > ours.len(),
-                "level {}: {moved} of {} moved",
-                ours.level,
-                ours.len()
-            );
-        }
+        // Most keypoints have a blob within their radius; an edge or a flat patch has none.
+        assert!(
+            moved * 2 > ours.len(),
+            "level {}: {moved} of {} moved",
+            ours.level,
+            ours.len()
+        );
     }
     let unrefined = refined
         .extract(
@@ -385,6 +372,23 @@ fn a_model_refined_on_the_image_matches_the_python_reference() {
         )
         .unwrap();
     assert_eq!(unrefined.levels, plain.levels);
+}
+
+/// Every built-in model opens under its own name, with a contract this extractor runs.
+#[test]
+fn every_built_in_model_opens_under_its_name() {
+    for (name, _) in BUILTIN_MODELS {
+        let extractor = Extractor::builtin(name, 1, &sfpmap::progress::Silent)
+            .expect("a built-in name")
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        let c = extractor.contract();
+        assert_eq!(c.model_name, *name);
+        assert!(
+            sfpmap::extract::contract::CONTRACTS.contains(&c.version),
+            "{name}: {}",
+            c.version
+        );
+    }
 }
 
 #[test]

@@ -617,8 +617,9 @@ class Extractor:
         global_max_side: Optional[int] = None,
     ) -> Features:
         """Per-level keypoints and descriptors (and the global descriptor) of an image file
-        or a uint8 / [0, 1] float array (H×W grey or H×W×3 RGB). ``refine``: coarse-to-fine
-        keypoint refinement of levels 2+ (``extract --no-refine`` is ``False``).
+        or a uint8 / [0, 1] float array (H×W grey or H×W×3 RGB). ``refine``: the keypoints'
+        refinement, coarse to fine for levels 2+ and on the image for an sfp-extractor/2 model
+        (``extract --no-refine`` is ``False``).
         ``global_max_side``: the global descriptor is computed on a copy at most this large
         (``None``: 512; 0: the network input; else at least 16); a map's queries need the
         map's (``Map.metadata.get("global_max_side", 0)``)."""
