@@ -14,6 +14,8 @@ scene_dir() { # the scene's folder (KITTI 06 built once: map every frame but eac
         "$CACHE/kitti06" --every 4 >"$CACHE/kitti06.log" 2>&1
     fi
     echo "$CACHE/kitti06"
+  elif [ -f "$CACHE/$1/queries.txt" ]; then
+    echo "$CACHE/$1" # a held-out scene built here with make_scene.py (models/sfp-v3.md)
   else
     echo "$DATA/scenes/$1"
   fi

@@ -42,6 +42,10 @@ DATA = os.path.normpath(os.path.join(REPO, "..", "shared", "data"))
 SCENES = [("south-building", os.path.join(DATA, "scenes", "south-building")),
           ("sacre-coeur", os.path.join(DATA, "scenes", "sacre-coeur")),
           ("kitti06", os.path.join(REPO, "target", "scenes", "kitti06"))]
+# Held-out scenes built here with make_scene.py (benches/scenes.sh, models/sfp-v3.md).
+_BUILT = os.path.join(REPO, "target", "scenes")
+SCENES += [(n, os.path.join(_BUILT, n)) for n in sorted(os.listdir(_BUILT) if os.path.isdir(_BUILT) else [])
+           if n not in dict(SCENES) and os.path.isfile(os.path.join(_BUILT, n, "queries.txt"))]
 
 
 def qvec_to_R(q):

@@ -201,10 +201,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
         ("sfp.model".to_string(), model.name.clone()),
         ("sfp.model_xxh3".to_string(), model.xxh3.clone()),
         ("sfp.model_name".to_string(), contract.model_name.clone()),
-        (
-            "sfp.contract".to_string(),
-            contract.version.to_string(),
-        ),
+        ("sfp.contract".to_string(), contract.version.to_string()),
         (
             "sfp.tool".to_string(),
             sfpmap::format::Metadata::tool_string(),

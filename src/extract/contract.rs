@@ -529,7 +529,10 @@ mod tests {
         let r = |sigma, radius| Some(ImageRefine { sigma, radius });
         assert_eq!(c.image_refine, [None, r(2.5, 3), r(3.0, 4), r(4.0, 5)]);
         let c = parse(&sfp_v1()).unwrap();
-        assert_eq!((c.version, c.image_refine), ("sfp-extractor/1", vec![None; 4]));
+        assert_eq!(
+            (c.version, c.image_refine),
+            ("sfp-extractor/1", vec![None; 4])
+        );
         for (m, words) in [
             (sfp_v2_contract("0,2.5,3", "0,3,4,5"), "3 values"),
             (sfp_v2_contract("0,2.5,3,40", "0,3,4,5"), "has 40"),
@@ -538,7 +541,10 @@ mod tests {
             (sfp_v2_contract("0,2.5,3,4", "0,0,0,0"), "refines none"),
             (sfp_v2_contract("0,2.5,3,NaN", "0,3,4,5"), "has NaN"),
             (sfp_v2_contract("0,2.5,3,4", "0,3,4,100"), "has 100"),
-            (sfp_v2_contract("0,2.5,3,4", "0,3,-4,5"), "not a number list"),
+            (
+                sfp_v2_contract("0,2.5,3,4", "0,3,-4,5"),
+                "not a number list",
+            ),
         ] {
             let e = parse(&m).unwrap_err().to_string();
             assert!(e.contains("m.onnx") && e.contains(words), "{words}: {e}");
@@ -546,7 +552,10 @@ mod tests {
         let mut m = sfp_v2_contract("0,2.5,3,4", "0,3,4,5");
         m.remove("sfp.image_refine_radius");
         let e = parse(&m).unwrap_err().to_string();
-        assert!(e.contains("sfp.image_refine_radius") && e.contains("missing"), "{e}");
+        assert!(
+            e.contains("sfp.image_refine_radius") && e.contains("missing"),
+            "{e}"
+        );
         // A level with radius 0 stays; the others refine.
         let c = parse(&sfp_v2_contract("1.5,2.5,3,4", "2,0,4,5")).unwrap();
         assert_eq!(c.image_refine[1], None);
@@ -575,6 +584,9 @@ mod tests {
         let mut m = sfp_v1();
         m.insert("sfp.image_refine_sigma".into(), "0,2.5,3,4".into());
         let e = parse(&m).unwrap_err().to_string();
-        assert!(e.contains("needs sfp.contract = \"sfp-extractor/2\""), "{e}");
+        assert!(
+            e.contains("needs sfp.contract = \"sfp-extractor/2\""),
+            "{e}"
+        );
     }
 }

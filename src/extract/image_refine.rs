@@ -202,10 +202,7 @@ impl Refiner {
                 }
             }
         }
-        let (s0, s1) = (
-            self.small.len() / 2 * 2 + pw,
-            self.large.len() / 2 * 2 + pw,
-        );
+        let (s0, s1) = (self.small.len() / 2 * 2 + pw, self.large.len() / 2 * 2 + pw);
         self.response.clear();
         for i in 0..ph {
             let a = &self.blur[0][i * s0..i * s0 + pw];
@@ -352,6 +349,9 @@ mod tests {
             radius: 3,
         });
         let (x, y) = r.refine(plane, 2.0, 12.0);
-        assert!((x - 1.2).abs() < 0.5 && (y - 11.0).abs() < 0.2, "({x}, {y})");
+        assert!(
+            (x - 1.2).abs() < 0.5 && (y - 11.0).abs() < 0.2,
+            "({x}, {y})"
+        );
     }
 }
