@@ -489,18 +489,11 @@ mod tests {
         let mut m = sfp_v1();
         m.insert("sfp.refine_to_level".into(), "0".into());
         assert_eq!(parse(&m).unwrap().refine_to_level, Some(0));
-        let mut m = sfp_v1();
+        let mut m = aliked_like(sfp_v1());
         for (k, v) in [
-            ("sfp.levels", "1"),
-            ("sfp.level_ids", "0"),
-            ("sfp.strides", "1"),
-            ("sfp.dims", "128"),
-            ("sfp.short_dims", "128"),
-            ("sfp.full_dims", "128"),
             ("sfp.global_dim", "0"),
             ("sfp.default_max_keypoints", "20000"),
             ("sfp.detector", "dkd"),
-            ("sfp.descriptor_head", "sddh"),
             ("sfp.max_side", "1024"),
             ("sfp.min_input_side", "4"),
         ] {
@@ -512,6 +505,23 @@ mod tests {
             (Detector::Dkd, DescriptorHead::Sddh, Some(1024), 4)
         );
         assert_eq!((c.levels(), c.global_dim, c.full_dims[0]), (1, 0, 128));
+    }
+
+    /// `m` made a model of one level of 128 dimensions with a descriptor head (ALIKED's shape).
+    fn aliked_like(mut m: BTreeMap<String, String>) -> BTreeMap<String, String> {
+        for (k, v) in [
+            ("sfp.levels", "1"),
+            ("sfp.level_ids", "0"),
+            ("sfp.strides", "1"),
+            ("sfp.dims", "128"),
+            ("sfp.short_dims", "128"),
+            ("sfp.full_dims", "128"),
+            ("sfp.default_max_keypoints", "2000"),
+            ("sfp.descriptor_head", "sddh"),
+        ] {
+            m.insert(k.into(), v.into());
+        }
+        m
     }
 
     fn sfp_v2_contract(sigma: &str, radius: &str) -> BTreeMap<String, String> {
@@ -565,19 +575,7 @@ mod tests {
         m.insert("sfp.contract".into(), "sfp-extractor/2 ".into());
         assert!(parse(&m).is_err());
         // A descriptor head describes where DKD detected: refining moves keypoints it does not see.
-        let mut m = sfp_v2_contract("2", "2");
-        for (k, v) in [
-            ("sfp.levels", "1"),
-            ("sfp.level_ids", "0"),
-            ("sfp.strides", "1"),
-            ("sfp.dims", "128"),
-            ("sfp.short_dims", "128"),
-            ("sfp.full_dims", "128"),
-            ("sfp.default_max_keypoints", "2000"),
-            ("sfp.descriptor_head", "sddh"),
-        ] {
-            m.insert(k.into(), v.into());
-        }
+        let m = aliked_like(sfp_v2_contract("2", "2"));
         let e = parse(&m).unwrap_err().to_string();
         assert!(e.contains("one or the other"), "{e}");
         // A /1 model with the keys would be refined by this extractor and not by older ones.

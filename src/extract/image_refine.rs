@@ -9,7 +9,7 @@
 //! The response is computed only in each keypoint's window (a few hundred pixels), never over
 //! the whole image: a 640×480 blur per scale would cost more than the network.
 
-use super::keypoints::{subpixel, ScoreMap};
+use super::keypoints::{interior_window, subpixel, ScoreMap};
 
 /// The ratio of the two Gaussians' sigmas (SIFT's DoG uses 2^(1/3) to 2; 1.6 approximates the
 /// Laplacian of Gaussian best, Marr–Hildreth). python/sfp/reference.py: SIGMA_RATIO.
@@ -116,19 +116,13 @@ impl Refiner {
         if w < 3 || h < 3 || !x.is_finite() || !y.is_finite() {
             return (x, y);
         }
-        let r = self.refine.radius as f32;
-        let (cx, cy) = ((x + 0.5).floor(), (y + 0.5).floor());
-        // As floats first, so that a position far outside the image cannot wrap.
-        let x0 = (cx - r).max(1.0);
-        let x1 = (cx + r).min((w - 2) as f32);
-        let y0 = (cy - r).max(1.0);
-        let y1 = (cy + r).min((h - 2) as f32);
-        if x0 > x1 || y0 > y1 {
+        let Some((x0, x1, y0, y1)) = interior_window(x, y, self.refine.radius as usize, w, h)
+        else {
             return (x, y);
-        }
+        };
         // The response on the window and a ring of one pixel (the peak test and the fit).
-        let (u0, v0) = (x0 as usize - 1, y0 as usize - 1);
-        let (pw, ph) = (x1 as usize + 2 - u0, y1 as usize + 2 - v0);
+        let (u0, v0) = (x0 - 1, y0 - 1);
+        let (pw, ph) = (x1 + 2 - u0, y1 + 2 - v0);
         self.response_on(image, u0, v0, pw, ph);
         let patch = ScoreMap {
             height: ph,

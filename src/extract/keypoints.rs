@@ -126,21 +126,10 @@ pub(crate) fn refine_on(
     if h < 3 || w < 3 || !x.is_finite() || !y.is_finite() {
         return (x, y);
     }
-    let r = radius as f32;
-    let (cx, cy) = (
-        (x / finer_stride + 0.5).floor(),
-        (y / finer_stride + 0.5).floor(),
-    );
-    // Clipped to the interior (the quadratic fit needs both neighbours); as floats first, so
-    // that a position far outside the map cannot wrap.
-    let x0 = (cx - r).max(1.0);
-    let x1 = (cx + r).min((w - 2) as f32);
-    let y0 = (cy - r).max(1.0);
-    let y1 = (cy + r).min((h - 2) as f32);
-    if x0 > x1 || y0 > y1 {
+    let Some((x0, x1, y0, y1)) = interior_window(x / finer_stride, y / finer_stride, radius, w, h)
+    else {
         return (x, y);
-    }
-    let (x0, x1, y0, y1) = (x0 as usize, x1 as usize, y0 as usize, y1 as usize);
+    };
     let mut best: Option<(f32, usize, usize)> = None;
     for rr in y0..=y1 {
         for (cc, &v) in finer.values[rr * w..(rr + 1) * w]
@@ -162,6 +151,26 @@ pub(crate) fn refine_on(
         (cc as f32 + dx) * finer_stride,
         (rr as f32 + dy) * finer_stride,
     )
+}
+
+/// The cells (x0..=x1, y0..=y1) within `radius` of the cell nearest (x, y) (cell
+/// coordinates, `floor(x + 0.5)`) of a w × h map, clipped to its interior (a quadratic fit
+/// needs both neighbours); `None` when no interior cell is that near. As floats first, so that
+/// a position far outside the map cannot wrap.
+pub(crate) fn interior_window(
+    x: f32,
+    y: f32,
+    radius: usize,
+    w: usize,
+    h: usize,
+) -> Option<(usize, usize, usize, usize)> {
+    let r = radius as f32;
+    let (cx, cy) = ((x + 0.5).floor(), (y + 0.5).floor());
+    let x0 = (cx - r).max(1.0);
+    let x1 = (cx + r).min(w.saturating_sub(2) as f32);
+    let y0 = (cy - r).max(1.0);
+    let y1 = (cy + r).min(h.saturating_sub(2) as f32);
+    (x0 <= x1 && y0 <= y1).then(|| (x0 as usize, x1 as usize, y0 as usize, y1 as usize))
 }
 
 /// The maximum over each cell's horizontal window of half-width `radius` (clipped; NaN

@@ -90,11 +90,7 @@ fn matches_the_python_onnxruntime_reference_on_a_real_image() {
     .expect("runtime found or fetched, model loaded");
     let contract = extractor.contract().clone();
     let input = image::load(&png, contract.gray_weights, None).unwrap();
-    // The reference's global is the input's own inference's.
-    let own_size = DetectOptions {
-        global: GlobalSize::Input,
-        ..Default::default()
-    };
+    let own_size = own_size();
     let features = extractor.extract(&input, &own_size).unwrap();
     // Deterministic: a second run gives the same bytes.
     assert_eq!(features, extractor.extract(&input, &own_size).unwrap());
@@ -263,6 +259,47 @@ fn metadata_entry(key: &str, value: &str) -> Vec<u8> {
     field
 }
 
+/// A refining model's features of the scene image, checked against the Python reference, the
+/// default model's features of the same pixels, and, for each level, how many keypoints the
+/// refinement moved (the scores and their order are the default model's). Returns the
+/// refining extractor and its input too, for more extractions.
+fn refined_against_the_default(
+    model: &Path,
+    dir: &Path,
+) -> (Extractor, image::GrayInput, Vec<(u16, usize, usize)>) {
+    let (png, reference) = reference(model, &scene_image(), dir);
+    let open = |model: Option<PathBuf>| {
+        Extractor::new(
+            &ExtractorOptions { model, threads: 2 },
+            &sfpmap::progress::Silent,
+        )
+        .unwrap()
+    };
+    let mut refined = open(Some(model.to_path_buf()));
+    let input = image::load(&png, refined.contract().gray_weights, None).unwrap();
+    let features = refined.extract(&input, &own_size()).unwrap();
+    assert_levels_match(&reference, &features);
+    let default = open(None).extract(&input, &own_size()).unwrap();
+    let moved = (features.levels.iter().zip(&default.levels))
+        .map(|(ours, theirs)| {
+            assert_eq!(ours.scores, theirs.scores, "level {}", ours.level);
+            let moved = (ours.keypoints.iter().zip(&theirs.keypoints))
+                .filter(|(a, b)| a != b)
+                .count();
+            (ours.level, moved, ours.len())
+        })
+        .collect();
+    (refined, input, moved)
+}
+
+/// The global descriptor at the input's own size: the reference computes it there.
+fn own_size() -> DetectOptions {
+    DetectOptions {
+        global: GlobalSize::Input,
+        ..Default::default()
+    }
+}
+
 /// A model declaring `sfp.refine_to_level = 0` (sfp-v2 with the key appended) refines levels
 /// 2 and 3 on down to level 0's score map, as the Python reference does; levels 0 and 1, and
 /// the keypoints' scores and order, are the default model's.
@@ -273,38 +310,13 @@ fn a_model_refined_down_to_level_0_matches_the_python_reference() {
     let mut bytes = DEFAULT_MODEL.to_vec();
     bytes.extend(metadata_entry("sfp.refine_to_level", "0"));
     std::fs::write(&model, &bytes).unwrap();
-    let (png, reference) = reference(&model, &scene_image(), dir.path());
-    let open = |model: Option<PathBuf>| {
-        Extractor::new(
-            &ExtractorOptions { model, threads: 2 },
-            &sfpmap::progress::Silent,
-        )
-        .unwrap()
-    };
-    let mut refined = open(Some(model));
+    let (refined, _, moved) = refined_against_the_default(&model, dir.path());
     assert_eq!(refined.contract().refine_to_level, Some(0));
-    let input = image::load(&png, refined.contract().gray_weights, None).unwrap();
-    let own_size = DetectOptions {
-        global: GlobalSize::Input,
-        ..Default::default()
-    };
-    let features = refined.extract(&input, &own_size).unwrap();
-    assert_levels_match(&reference, &features);
-    let default = open(None).extract(&input, &own_size).unwrap();
-    for (ours, theirs) in features.levels.iter().zip(&default.levels) {
-        assert_eq!(ours.scores, theirs.scores, "level {}", ours.level);
-        let moved = (ours.keypoints.iter().zip(&theirs.keypoints))
-            .filter(|(a, b)| a != b)
-            .count();
-        if ours.level < 2 {
-            assert_eq!(moved, 0, "level {} is not refined", ours.level);
+    for (level, moved, n) in moved {
+        if level < 2 {
+            assert_eq!(moved, 0, "level {level} is not refined");
         } else {
-            assert!(
-                moved * 4 > ours.len(),
-                "level {}: {moved} of {} moved",
-                ours.level,
-                ours.len()
-            );
+            assert!(moved * 4 > n, "level {level}: {moved} of {n} moved");
         }
     }
 }
@@ -322,56 +334,30 @@ fn sfp_v3_refined_on_the_image_matches_the_python_reference() {
         .find(|(name, _)| *name == "sfp-v3")
         .expect("sfp-v3 is built in");
     std::fs::write(&model, bytes).unwrap();
-    let (png, reference) = reference(&model, &scene_image(), dir.path());
-    let open = |model: Option<PathBuf>| {
-        Extractor::new(
-            &ExtractorOptions { model, threads: 2 },
-            &sfpmap::progress::Silent,
-        )
-        .unwrap()
-    };
-    let mut refined = open(Some(model));
+    let (mut refined, input, moved) = refined_against_the_default(&model, dir.path());
     assert_eq!(refined.contract().version, "sfp-extractor/2");
-    let input = image::load(&png, refined.contract().gray_weights, None).unwrap();
-    let own_size = DetectOptions {
-        global: GlobalSize::Input,
-        ..Default::default()
-    };
-    let features = refined.extract(&input, &own_size).unwrap();
-    assert_levels_match(&reference, &features);
-    let default = open(None).extract(&input, &own_size).unwrap();
-    for (ours, theirs) in features.levels.iter().zip(&default.levels) {
-        assert_eq!(ours.scores, theirs.scores, "level {}", ours.level);
-        let moved = (ours.keypoints.iter().zip(&theirs.keypoints))
-            .filter(|(a, b)| a != b)
-            .count();
+    for (level, moved, n) in moved {
         // Most keypoints have a blob within their radius; an edge or a flat patch has none.
-        assert!(
-            moved * 2 > ours.len(),
-            "level {}: {moved} of {} moved",
-            ours.level,
-            ours.len()
-        );
+        assert!(moved * 2 > n, "level {level}: {moved} of {n} moved");
     }
-    let unrefined = refined
-        .extract(
-            &input,
-            &DetectOptions {
-                refine: Some(false),
-                ..own_size.clone()
-            },
-        )
-        .unwrap();
-    let plain = open(None)
-        .extract(
-            &input,
-            &DetectOptions {
-                refine: Some(false),
-                ..own_size
-            },
-        )
-        .unwrap();
-    assert_eq!(unrefined.levels, plain.levels);
+    let unrefined = DetectOptions {
+        refine: Some(false),
+        ..own_size()
+    };
+    let plain = Extractor::new(
+        &ExtractorOptions {
+            model: None,
+            threads: 2,
+        },
+        &sfpmap::progress::Silent,
+    )
+    .unwrap()
+    .extract(&input, &unrefined)
+    .unwrap();
+    assert_eq!(
+        refined.extract(&input, &unrefined).unwrap().levels,
+        plain.levels
+    );
 }
 
 /// Every built-in model opens under its own name, with a contract this extractor runs.
