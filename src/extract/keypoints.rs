@@ -170,7 +170,7 @@ pub(crate) fn interior_window(
     let x1 = (cx + r).min(w.saturating_sub(2) as f32);
     let y0 = (cy - r).max(1.0);
     let y1 = (cy + r).min(h.saturating_sub(2) as f32);
-    (x0 <= x1 && y0 <= y1).then(|| (x0 as usize, x1 as usize, y0 as usize, y1 as usize))
+    (x0 <= x1 && y0 <= y1).then_some((x0 as usize, x1 as usize, y0 as usize, y1 as usize))
 }
 
 /// The maximum over each cell's horizontal window of half-width `radius` (clipped; NaN
