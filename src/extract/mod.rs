@@ -59,8 +59,9 @@ const BUILTIN_SUFFIX: &str = " (embedded)";
 /// is sfp-v1 distilled into a two-convolution strided stem (`models/sfp-v2s.md`), `aliked-n16`
 /// is ALIKED-N16 (BSD-3-Clause; `models/aliked-n16.md`: one level of 128-d descriptors from
 /// its SDDH head, no global descriptor), `sfp-v3` is sfp-v2's network with its keypoints
-/// refined on the image (`sfp-extractor/2`, `models/sfp-v3.md`). A map records its model's name, so `localize` finds
-/// the model a map was made with here; `--model NAME` picks one by name.
+/// refined on the image (`sfp-extractor/2`, `models/sfp-v3.md`). A map records its model's
+/// name, so `localize` finds the model a map was made with here; `--model NAME` picks one by
+/// name.
 pub static BUILTIN_MODELS: &[(&str, &[u8])] = &[
     ("sfp-v2", DEFAULT_MODEL),
     ("sfp-v1", include_bytes!("../../models/sfp-v1.onnx")),
@@ -321,8 +322,8 @@ pub(crate) fn refined_to(c: &Contract, i: usize, refine: bool) -> usize {
 
 /// Level `i`'s keypoints as the extractor finds them (`spec/extractor.md` steps 1–5): the
 /// detector's peaks (at most `max`) and their pixel positions (pixel-index convention),
-/// refined coarse to fine and on the image where the model asks for it (not for a descriptor head, whose head takes the
-/// detected positions). `convert --images --snap` moves observations to these.
+/// refined coarse to fine and on the image where the model asks for it (not for a descriptor
+/// head, whose head takes the detected positions). `convert --images --snap` moves observations to these.
 pub(crate) fn level_keypoints(
     c: &Contract,
     dense: &Dense,
