@@ -7,7 +7,7 @@
 # ranking `localize --format json` reports (python/eval_retrieval.py --localized: the SFP
 # map's global descriptor, the SIFT map's VLAD). The SIFT level-2 short map is the reference
 # row; the SIFT map of all levels and its level-2 short `--pq 8 --minimal` slice (issue 36's
-# smallest SIFT map) the next. A model of one level
+# smallest SIFT map) the next; each SFP model's level-2 short map is also sliced so. A model of one level
 # (aliked-n16, the v3 teacher) gets its map only, no level-2 slice. Maps are rebuilt at every run.
 #
 # A model given as MODEL.onnx+snap is converted with `--snap` (its rows: NAME-snap), as
@@ -79,14 +79,19 @@ for scene in $scenes; do
     has_level_2=$(python3 -c "import json,sys; print(int(any(l['level'] == 2 for l in json.load(sys.stdin)['levels'])))" <<<"$info")
     if [ "$has_level_2" = 1 ]; then
       "$bin" slice "$C/$name.sfpm" --level 2 --short -o "$C/$name-l2s.sfpm" --force -q
-      variants+=("$name-l2s")
+      "$bin" slice "$C/$name.sfpm" --level 2 --short --minimal --pq 8 -o "$C/$name-l2s-pq8.sfpm" --force -q
+      variants+=("$name-l2s" "$name-l2s-pq8")
     fi
     ret=$(retrieval "$scene" "$C/$name.sfpm" --images "$S/images" --model "$model")
     for v in "${variants[@]}"; do
-      extra=(); [[ "$v" == *-l2s ]] && extra=(--short)
+      extra=(); [[ "$v" == *-l2s* ]] && extra=(--short)
       "$bin" localize --map "$C/$v.sfpm" "${extra[@]}" --query-list "$S/queries.txt" --images "$S/images" \
         --model "$model" --threads 1 -o "$C/$v.poses" --force --json >"$C/$v.json"
-      label="$name"; [[ "$v" == *-l2s ]] && label="$name level 2 short"
+      case "$v" in
+        *-l2s) label="$name level 2 short" ;;
+        *-l2s-pq8) label="$name level 2 short --pq 8 --minimal" ;;
+        *) label="$name" ;;
+      esac
       row "$scene" "$label" "$C/$v.sfpm" "$C/$v.poses" "$C/$v.json" "$ret"
     done
   done

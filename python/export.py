@@ -24,14 +24,14 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from sfp.reference import CONTRACTS, image_refine_levels  # noqa: E402  (numpy only)
+from sfp.reference import CONTRACTS, default_thresholds, image_refine_levels  # noqa: E402  (numpy only)
 
 CONTRACT, CONTRACT_IMAGE_REFINE = CONTRACTS  # /2 is /1 plus step 5, the image refinement
 
 OPSET = 17
 
 
-def contract_metadata(net, extra: dict | None = None, threshold: float = 0.5,
+def contract_metadata(net, extra: dict | None = None, threshold: str = "0.5",
                       model_name: str = "sfp-v1") -> dict[str, str]:
     from sfp.model import output_names
 
@@ -150,9 +150,9 @@ def image_refine_metadata(spec: str, levels: int) -> dict[str, str]:
     return md
 
 
-def retag(src: str, out: str, name: str, refine: str | None):
-    """An exported model's network under new metadata: its name, where the network came from and,
-    with `refine`, contract /2."""
+def retag(src: str, out: str, name: str, refine: str | None, detection: dict[str, str]):
+    """An exported model's network under new metadata: its name, where the network came from,
+    with `refine` contract /2, and the detection defaults in `detection` (metadata key: value)."""
     import onnx
 
     data = open(src, "rb").read()
@@ -167,6 +167,14 @@ def retag(src: str, out: str, name: str, refine: str | None):
     md["sfp.network_from"] = f"{os.path.basename(src)} sha256 {hashlib.sha256(data).hexdigest()}"
     if refine:
         md.update(image_refine_metadata(refine, int(md["sfp.levels"])))
+    md.update(detection)
+    caps = md["sfp.default_max_keypoints"].split(",")
+    if len(caps) != int(md["sfp.levels"]) or not all(c.strip().isdigit() and 1 <= int(c) <= 1_000_000 for c in caps):
+        raise SystemExit(f"--max-keypoints {md['sfp.default_max_keypoints']!r}: one cap a level, 1 to 1000000")
+    try:
+        default_thresholds(md, int(md["sfp.levels"]))  # the extractor's rules
+    except ValueError as e:
+        raise SystemExit(f"--threshold: {e}")
     del m.metadata_props[:]
     for k, v in md.items():
         e = m.metadata_props.add()
@@ -202,7 +210,11 @@ def main():
     ap.add_argument("ckpt")
     ap.add_argument("-o", "--out", default=None, help="default models/<model name>.onnx")
     ap.add_argument("--no-verify", action="store_true")
-    ap.add_argument("--threshold", type=float, default=0.5, help="default keypoint score threshold (metadata)")
+    ap.add_argument("--threshold", default=None,
+                    help="default keypoint score threshold (metadata): one, or one a level (sfp-extractor/2 "
+                         "only); a checkpoint's default 0.5, an .onnx input's kept")
+    ap.add_argument("--max-keypoints", default=None,
+                    help="an .onnx input's default keypoint cap per level, finest first (metadata)")
     ap.add_argument("--model-name", default=None, help="sfp.model_name (default: the checkpoint's, else sfp-v1)")
     ap.add_argument("--refine-to-level", default=None,
                     help="sfp.refine_to_level: refine levels 2.. coarse to fine down to this level; "
@@ -216,10 +228,14 @@ def main():
             raise SystemExit("an .onnx input needs --model-name and -o")
         if os.path.exists(args.out) and os.path.samefile(args.out, args.ckpt):
             raise SystemExit(f"-o {args.out}: the input itself (write another file)")
-        retag(args.ckpt, args.out, args.model_name, args.image_refine)
+        detection = {k: v for k, v in (("sfp.default_threshold", args.threshold),
+                                       ("sfp.default_max_keypoints", args.max_keypoints)) if v is not None}
+        retag(args.ckpt, args.out, args.model_name, args.image_refine, detection)
         h = hashlib.sha256(open(args.out, "rb").read()).hexdigest()
         print(f"wrote {args.out}: {os.path.getsize(args.out)} bytes, sha256 {h}")
         return
+    if args.max_keypoints is not None:
+        raise SystemExit("--max-keypoints retags an .onnx input")
     net, ck = load_net(args.ckpt)
     name = args.model_name or ck.get("model_name") or "sfp-v1"
     if net.stem_mode != "full" and name == "sfp-v1":
@@ -239,7 +255,12 @@ def main():
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     if args.image_refine:
         extra.update(image_refine_metadata(args.image_refine, len(net.dims)))
-    export(net, args.out, contract_metadata(net, extra, args.threshold, name))
+    md = contract_metadata(net, extra, args.threshold or "0.5", name)
+    try:
+        default_thresholds(md, len(net.dims))
+    except ValueError as e:
+        raise SystemExit(f"--threshold: {e}")
+    export(net, args.out, md)
     if not args.no_verify:
         verify(net, args.out)
     h = hashlib.sha256(open(args.out, "rb").read()).hexdigest()

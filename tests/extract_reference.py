@@ -23,7 +23,7 @@ import onnxruntime as ort
 from PIL import Image
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
-from sfp.reference import CONTRACTS, image_refine_levels, level_features  # noqa: E402  (numpy only)
+from sfp.reference import CONTRACTS, default_thresholds, image_refine_levels, level_features  # noqa: E402  (numpy only)
 
 
 def check_h5(path, reference=None, name=None):
@@ -105,7 +105,7 @@ def main():
     strides = [int(v) for v in md["sfp.strides"].split(",")]
     ids = [int(v) for v in md["sfp.level_ids"].split(",")]
     tops = [int(v) for v in md["sfp.default_max_keypoints"].split(",")]
-    thr = float(md["sfp.default_threshold"])
+    thr = default_thresholds(md, len(strides))
     radius = int(md["sfp.default_nms_radius"])
     names = [o.name for o in s.get_outputs()]
     outs = dict(zip(names, s.run(None, {md.get("sfp.input_name", "image"): gray[None, None]})))

@@ -105,8 +105,8 @@ pub struct Args {
           value_parser = super::global_max_side)]
     pub global_max_side: u32,
     /// With --images: a point joins level i when its track's mean level-i score is at least
-    /// this (a score in [0, 1]; default: the model's keypoint threshold,
-    /// sfp.default_threshold).
+    /// this, on every level (a score in [0, 1]; default: the model's keypoint threshold of
+    /// each level, sfp.default_threshold).
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images", value_parser = super::args::score)]
     pub score_threshold: Option<f32>,

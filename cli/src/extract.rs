@@ -34,8 +34,8 @@ pub struct Args {
     /// Resize images so the longer side is at most this (keypoints are scaled back).
     #[arg(long, value_parser = clap::value_parser!(u32).range(16..))]
     pub resize_max: Option<u32>,
-    /// Score threshold after NMS (a score in [0, 1]; default: the model's
-    /// sfp.default_threshold).
+    /// Score threshold after NMS, on every level (a score in [0, 1]; default: the model's
+    /// sfp.default_threshold of each level).
     #[arg(long, value_parser = super::args::score)]
     pub threshold: Option<f32>,
     /// NMS radius in cells, 0 to 64 (0: no suppression; default: the model's).

@@ -199,11 +199,26 @@ def image_refine_levels(metadata, levels):
     return out
 
 
+def default_thresholds(metadata, levels):
+    """Per level, the model's `sfp.default_threshold` as src/extract/contract.rs reads it: one
+    score for every level or, in an sfp-extractor/2 model, one a level (a ValueError where it
+    refuses the model)."""
+    values = [float(v) for v in metadata["sfp.default_threshold"].split(",")]
+    if len(values) == 1:
+        values = values * levels
+    elif len(values) != levels or metadata.get("sfp.contract") == CONTRACTS[0]:
+        raise ValueError(f"sfp.default_threshold: one value, or one a level in {CONTRACTS[1]}")
+    if not all(0.0 <= v <= 1.0 for v in values):
+        raise ValueError(f"sfp.default_threshold: {values} not scores in [0, 1]")
+    return values
+
+
 def level_features(feats, scores, strides, radius, thr, topk, refine=True, refine_to=None,
                    image=None, image_refines=None):
     """Per level: (pixels with the pixel-centre origin at 0, short, full, scores).
 
-    `feats[i]` is [C_i, h_i, w_i], `scores[i]` [h_i, w_i]; a level's full descriptor joins the
+    `feats[i]` is [C_i, h_i, w_i], `scores[i]` [h_i, w_i]; `thr` is one threshold or one a level.
+    A level's full descriptor joins the
     normalised samples of it and every deeper level at its keypoints, normalised again. Levels
     from REFINE_FROM_LEVEL on are refined on the next finer level's score map (`refine`), and
     on from there one level at a time down to level `refine_to` (the model's
@@ -212,9 +227,10 @@ def level_features(feats, scores, strides, radius, thr, topk, refine=True, refin
     """
     if refine_to is not None and not 0 <= refine_to < len(strides):
         raise ValueError(f"refine_to = {refine_to} is no level of {len(strides)}")
+    thresholds = list(thr) if np.ndim(thr) else [thr] * len(strides)
     out = []
     for i, stride in enumerate(strides):
-        cells, v = detect(scores[i], radius, thr, topk[i])
+        cells, v = detect(scores[i], radius, thresholds[i], topk[i])
         px = cells * stride
         if refine and i >= max(REFINE_FROM_LEVEL, 1):
             finest = i - 1 if refine_to is None else min(refine_to, i - 1)

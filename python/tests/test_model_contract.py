@@ -18,7 +18,7 @@ from PIL import Image
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, os.path.join(REPO, "python"))
-from sfp.reference import CONTRACTS, image_refine_levels  # noqa: E402  (numpy only)
+from sfp.reference import CONTRACTS, default_thresholds, image_refine_levels  # noqa: E402  (numpy only)
 MODEL = os.environ.get("SFP_MODEL", os.path.join(REPO, "models", "sfp-v2.onnx"))
 SHARED = os.environ.get("SFP_SHARED", os.path.normpath(os.path.join(REPO, "..", "shared")))
 SCENE_IMAGES = os.path.join(SHARED, "data", "scenes", "south-building", "images")
@@ -89,6 +89,16 @@ def test_image_refinement_only_in_contract_2():
         assert any(levels), "a /2 model refines some level"
 
 
+def test_default_thresholds_one_or_one_a_level_in_contract_2():
+    """sfp.default_threshold: one score, or one a level in an sfp-extractor/2 model (a /1 reader
+    reads one number)."""
+    md = meta()
+    values = default_thresholds(md, int(md["sfp.levels"]))  # raises where the extractor refuses
+    if md["sfp.contract"] == CONTRACTS[0]:
+        assert "," not in md["sfp.default_threshold"]
+    assert len(values) == int(md["sfp.levels"])
+
+
 def test_io_names_and_types():
     s = session()
     ins = s.get_inputs()
@@ -132,7 +142,7 @@ def test_every_level_alive_on_real_image():
         pad = np.pad(p, 1, constant_values=-1)
         nb = np.max(np.stack([pad[1 + dy:1 + dy + p.shape[0], 1 + dx:1 + dx + p.shape[1]]
                               for dy in (-1, 0, 1) for dx in (-1, 0, 1)]), 0)
-        kp = int(((p >= nb) & (p > float(meta()["sfp.default_threshold"]))).sum())
+        kp = int(((p >= nb) & (p > default_thresholds(meta(), n)[i])).sum())
         assert kp >= 10, f"level {i}: only {kp} keypoints"
 
 

@@ -5,7 +5,7 @@
 //! sampled too. Per point and level, the track's features are aggregated by normalised mean
 //! and the scores by mean. **Level assignment**: a point belongs to level i when its mean
 //! level-i score is at least the threshold — by default the model's own keypoint threshold
-//! `sfp.default_threshold` (0.5 for sfp-v1: the score is the probability of the network's
+//! of that level, `sfp.default_threshold` (0.5 for sfp-v1: the score is the probability of the network's
 //! sparsity mask keeping that pixel, so ≥ 0.5 is the mask's more likely value), so a map keeps
 //! a point on a level where the network would, on average, detect it there.
 //! Points no level selects are dropped — the network's learned map compression.
@@ -43,7 +43,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The level rule, as recorded in each level's metadata.
-pub(crate) const LEVEL_RULE: &str = "a point is in level i when the mean of score_i (bilinear at its observations) over its track is >= score_threshold; points in no level are dropped";
+pub(crate) const LEVEL_RULE: &str = "a point is in level i when the mean of score_i (bilinear at its observations) over its track is >= score_threshold[i]; points in no level are dropped";
 
 /// How [`convert_with_images`](super::convert_with_images) makes an SFP map from a model's images
 /// (`sfpmap convert --images`).
@@ -59,8 +59,8 @@ pub struct SfpMapOptions {
     /// ([`GLOBAL_MAX_SIDE`] by default; `None`: the network input itself). The map records it
     /// (metadata `global_max_side`) and `localize` computes its queries' the same way.
     pub global_max_side: Option<u32>,
-    /// Level assignment threshold on the mean score (`None` = the model's
-    /// `sfp.default_threshold`).
+    /// Level assignment threshold on the mean score, for every level (`None` = the model's
+    /// `sfp.default_threshold` of each level).
     pub score_threshold: Option<f32>,
     /// Skip model images whose file is missing (default: error).
     pub allow_missing: bool,
@@ -135,8 +135,8 @@ pub struct SfpMapSummary {
     pub descriptors: String,
     /// Median network + sampling time per image, ms.
     pub ms_per_image: f64,
-    /// The level threshold used (the option, or the model's default).
-    pub score_threshold: f32,
+    /// The threshold of each level used, finest first (the option, or the model's defaults).
+    pub score_thresholds: Vec<f32>,
 }
 
 /// Each model point's position from its moved observations (`moved`: point, image, pixel in
@@ -437,11 +437,11 @@ fn convert_images_of(
     } else {
         "sfp".to_string()
     };
-    let threshold = options.score_threshold.unwrap_or(if head {
-        0.0
-    } else {
-        contract.default_threshold
-    });
+    let thresholds: Vec<f32> = match options.score_threshold {
+        Some(t) => vec![t; levels],
+        None if head => vec![0.0; levels],
+        None => contract.default_thresholds.clone(),
+    };
     if options.triangulate && head {
         return Err(ConvertError::Options(format!(
             "--triangulate: {} describes one level with its descriptor head; there are no \
@@ -631,7 +631,7 @@ fn convert_images_of(
     let sums = |p: usize, j: usize| if moved_on(p, j) { &snapped } else { &tracks };
     let mean_score =
         |p: usize, j: usize| sums(p, j).scores[p * levels + j] / sums(p, j).counts[p].max(1) as f32;
-    let member = |p: usize, j: usize| sums(p, j).counts[p] > 0 && mean_score(p, j) >= threshold;
+    let member = |p: usize, j: usize| sums(p, j).counts[p] > 0 && mean_score(p, j) >= thresholds[j];
     let keep: Vec<bool> = (0..n_points)
         .map(|p| (0..levels).any(|j| member(p, j)))
         .collect();
@@ -663,7 +663,7 @@ fn convert_images_of(
         "model": model_info.name,
         "model_xxh3": model_info.xxh3,
         "contract": contract.raw,
-        "score_threshold": threshold,
+        "score_threshold": thresholds,
         "level_rule": if head { ONE_LEVEL_RULE } else { LEVEL_RULE },
         "aggregate": "mean of L2-normalised features per level, re-normalised",
         "resize_max": options.resize_max,
@@ -766,7 +766,7 @@ fn convert_images_of(
         let rule = if head { ONE_LEVEL_RULE } else { LEVEL_RULE };
         info.extra.insert("assignment".into(), json!(rule));
         info.extra
-            .insert("score_threshold".into(), json!(threshold));
+            .insert("score_threshold".into(), json!(thresholds[j]));
         info.extra.insert("mean_score".into(), json!(mean));
         if head {
             info.extra.insert("basis".into(), json!("uncentred pca"));
@@ -899,7 +899,7 @@ fn convert_images_of(
         model: model_info,
         descriptors,
         ms_per_image: ms.get(ms.len() / 2).copied().unwrap_or(0.0),
-        score_threshold: threshold,
+        score_thresholds: thresholds,
     })
 }
 impl SfpMapSummary {
@@ -932,7 +932,7 @@ impl SfpMapSummary {
             "ratio": c.input_bytes as f64 / c.output_bytes.max(1) as f64,
             "seconds": seconds,
             "ms_per_image": summary.ms_per_image,
-            "score_threshold": summary.score_threshold,
+            "score_threshold": summary.score_thresholds,
             "model": summary.model.name,
             "model_xxh3": summary.model.xxh3,
             "missing_images": summary.missing_images,

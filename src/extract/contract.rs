@@ -41,8 +41,9 @@ pub struct Contract {
     pub input_name: String,
     /// RGB → grey weights.
     pub gray_weights: [f32; 3],
-    /// Detection threshold when the caller gives none (`sfp.default_threshold`).
-    pub default_threshold: f32,
+    /// Detection threshold per level when the caller gives none (`sfp.default_threshold`:
+    /// one score for every level, or, in a `/2` model, one a level).
+    pub default_thresholds: Vec<f32>,
     /// NMS radius when the caller gives none, in cells.
     pub default_nms_radius: u32,
     /// Keypoint cap per level when the caller gives none.
@@ -206,10 +207,8 @@ impl Contract {
             .trim()
             .parse()
             .map_err(|_| bad("sfp.global_dim is not a number".into()))?;
-        let default_threshold: f32 = req("sfp.default_threshold")?
-            .trim()
-            .parse()
-            .map_err(|_| bad("sfp.default_threshold is not a number".into()))?;
+        let default_thresholds =
+            default_thresholds(version, levels, &req("sfp.default_threshold")?, &bad)?;
         let default_nms_radius: u32 = req("sfp.default_nms_radius")?
             .trim()
             .parse()
@@ -224,11 +223,6 @@ impl Contract {
         if let Some(&n) = max_kp.iter().find(|&&n| !(1..=MAX_KEYPOINTS).contains(&n)) {
             return Err(bad(format!(
                 "sfp.default_max_keypoints has {n}: 1 to {MAX_KEYPOINTS} a level"
-            )));
-        }
-        if let Err(expected) = crate::ranges::SCORE.check(default_threshold.into()) {
-            return Err(bad(format!(
-                "sfp.default_threshold = {default_threshold} is not {expected}"
             )));
         }
         let detector = match get("sfp.detector").as_deref().map(str::trim) {
@@ -290,7 +284,7 @@ impl Contract {
             global_dim,
             input_name: get("sfp.input_name").unwrap_or_else(|| "image".into()),
             gray_weights,
-            default_threshold,
+            default_thresholds,
             default_nms_radius,
             default_max_keypoints: max_kp,
             detector,
@@ -317,6 +311,40 @@ impl Contract {
     pub fn level_side(&self, i: usize, n: usize) -> usize {
         n.div_ceil(self.strides[i] as usize)
     }
+}
+
+/// `sfp.default_threshold`: one score for every level, or (`/2`) one a level, finest first,
+/// each in [0, 1]. A `/1` model has one: its extractors read one number.
+fn default_thresholds(
+    version: &str,
+    levels: usize,
+    value: &str,
+    bad: &dyn Fn(String) -> ExtractError,
+) -> Result<Vec<f32>, ExtractError> {
+    let key = "sfp.default_threshold";
+    let values: Vec<f32> =
+        list(value).ok_or_else(|| bad(format!("{key} = {value:?} is not a number list")))?;
+    let values = match values.len() {
+        1 => vec![values[0]; levels],
+        n if n == levels && version != CONTRACTS[0] => values,
+        n if version == CONTRACTS[0] => {
+            return Err(bad(format!(
+                "{key} has {n} values: a {version:?} model has one (one a level needs {:?})",
+                CONTRACTS[1]
+            )))
+        }
+        n => {
+            return Err(bad(format!(
+                "{key} has {n} values: one, or one a level of sfp.levels = {levels}"
+            )))
+        }
+    };
+    for &t in &values {
+        if let Err(expected) = crate::ranges::SCORE.check(t.into()) {
+            return Err(bad(format!("{key} = {value:?}: {t} is not {expected}")));
+        }
+    }
+    Ok(values)
 }
 
 /// Step 5's parameters: `sfp.image_refine_sigma` (per level, input pixels, 0: not refined)
@@ -505,6 +533,34 @@ mod tests {
             (Detector::Dkd, DescriptorHead::Sddh, Some(1024), 4)
         );
         assert_eq!((c.levels(), c.global_dim, c.full_dims[0]), (1, 0, 128));
+    }
+
+    #[test]
+    fn a_contract_2_model_may_give_each_level_its_threshold() {
+        // One value is every level's, in either contract.
+        assert_eq!(parse(&sfp_v1()).unwrap().default_thresholds, [0.5; 4]);
+        let mut m = sfp_v2_contract("0,2.5,3,4", "0,3,4,5");
+        m.insert("sfp.default_threshold".into(), "0.5,0.5,0.1,0.5".into());
+        assert_eq!(parse(&m).unwrap().default_thresholds, [0.5, 0.5, 0.1, 0.5]);
+        // A /1 extractor reads one number: a list there needs /2.
+        let mut v1 = sfp_v1();
+        v1.insert("sfp.default_threshold".into(), "0.5,0.5,0.1,0.5".into());
+        for (m, threshold, words) in [
+            (v1, "", "needs \"sfp-extractor/2\""),
+            (m.clone(), "0.5,0.1,0.5", "has 3 values"),
+            (m.clone(), "0.5,0.5,1.5,0.5", "1.5 is not a score in [0, 1]"),
+            (m, "0.5,0.5,,0.5", "not a number list"),
+        ] {
+            let mut m = m;
+            if !threshold.is_empty() {
+                m.insert("sfp.default_threshold".into(), threshold.into());
+            }
+            let e = parse(&m).unwrap_err().to_string();
+            assert!(
+                e.contains("sfp.default_threshold") && e.contains(words),
+                "{words}: {e}"
+            );
+        }
     }
 
     /// `m` made a model of one level of 128 dimensions with a descriptor head (ALIKED's shape).

@@ -331,7 +331,7 @@ pub(crate) fn level_keypoints(
     max: usize,
     options: &DetectOptions,
 ) -> (Vec<keypoints::Peak>, Vec<(f32, f32)>) {
-    let threshold = options.threshold.unwrap_or(c.default_threshold);
+    let threshold = options.threshold.unwrap_or(c.default_thresholds[i]);
     let radius = options.nms_radius.unwrap_or(c.default_nms_radius) as usize;
     let level = &dense.levels[i];
     let peaks = match c.detector {

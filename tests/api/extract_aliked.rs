@@ -188,10 +188,10 @@ fn aliked_n16_matches_the_pytorch_reference_on_real_images() {
         (
             c.levels(),
             c.global_dim,
-            c.default_threshold,
+            c.default_thresholds.as_slice(),
             c.default_nms_radius
         ),
-        (1, 0, 0.2, 2)
+        (1, 0, [0.2].as_slice(), 2)
     );
     for name in ["south-building", "sacre-coeur"] {
         compare(name, &mut extractor);

@@ -268,19 +268,19 @@ fn refined_against_the_default(
     dir: &Path,
 ) -> (Extractor, image::GrayInput, Vec<(u16, usize, usize)>) {
     let (png, reference) = reference(model, &scene_image(), dir);
-    let open = |model: Option<PathBuf>| {
-        Extractor::new(
-            &ExtractorOptions { model, threads: 2 },
-            &sfpmap::progress::Silent,
-        )
-        .unwrap()
-    };
-    let mut refined = open(Some(model.to_path_buf()));
+    let mut refined = Extractor::new(
+        &ExtractorOptions {
+            model: Some(model.to_path_buf()),
+            threads: 2,
+        },
+        &sfpmap::progress::Silent,
+    )
+    .unwrap();
     let input = image::load(&png, refined.contract().gray_weights, None).unwrap();
     let features = refined.extract(&input, &own_size()).unwrap();
     assert_levels_match(&reference, &features);
-    let default = open(None).extract(&input, &own_size()).unwrap();
-    let moved = (features.levels.iter().zip(&default.levels))
+    let default = default_detecting_as(refined.contract(), &input, true);
+    let moved = (features.levels.iter().zip(&default))
         .map(|(ours, theirs)| {
             assert_eq!(ours.scores, theirs.scores, "level {}", ours.level);
             let moved = (ours.keypoints.iter().zip(&theirs.keypoints))
@@ -290,6 +290,35 @@ fn refined_against_the_default(
         })
         .collect();
     (refined, input, moved)
+}
+
+/// The default model's (sfp-v2's) levels of `input`, each detected with `contract`'s
+/// threshold and cap of that level (a model of sfp-v2's network may set its own), and refined
+/// (step 4) or not.
+fn default_detecting_as(
+    contract: &sfpmap::extract::contract::Contract,
+    input: &image::GrayInput,
+    refine: bool,
+) -> Vec<sfpmap::extract::LevelFeatures> {
+    let mut default = Extractor::new(
+        &ExtractorOptions {
+            model: None,
+            threads: 2,
+        },
+        &sfpmap::progress::Silent,
+    )
+    .unwrap();
+    (contract.default_thresholds.iter().enumerate())
+        .map(|(i, &threshold)| {
+            let options = DetectOptions {
+                threshold: Some(threshold),
+                max_keypoints: Some(contract.default_max_keypoints.clone()),
+                refine: Some(refine),
+                ..own_size()
+            };
+            default.extract(input, &options).unwrap().levels.swap_remove(i)
+        })
+        .collect()
 }
 
 /// The global descriptor at the input's own size: the reference computes it there.
@@ -323,8 +352,9 @@ fn a_model_refined_down_to_level_0_matches_the_python_reference() {
 
 /// The built-in sfp-v3 (`sfp-extractor/2`: sfp-v2's network, keypoints refined on the image)
 /// moves every level's keypoints onto the image's blobs as the Python reference does
-/// (`python/sfp/reference.py`, `image_refine`); every keypoint's score and order stay sfp-v2's,
-/// and `refine: false` gives sfp-v2's keypoints exactly.
+/// (`python/sfp/reference.py`, `image_refine`); every keypoint's score and order stay sfp-v2's
+/// detected with sfp-v3's per-level thresholds and caps, and `refine: false` gives those
+/// keypoints exactly.
 #[test]
 fn sfp_v3_refined_on_the_image_matches_the_python_reference() {
     let dir = tempfile::tempdir().unwrap();
@@ -340,23 +370,18 @@ fn sfp_v3_refined_on_the_image_matches_the_python_reference() {
         // Most keypoints have a blob within their radius; an edge or a flat patch has none.
         assert!(moved * 2 > n, "level {level}: {moved} of {n} moved");
     }
+    // Its level 2 keeps more keypoints than sfp-v2's (threshold 0.1, at most 2000): the
+    // level-2 maps' points and the queries' matches (models/sfp-v3.md).
+    let c = refined.contract().clone();
+    assert_eq!(c.default_thresholds, [0.5, 0.5, 0.1, 0.5]);
+    assert_eq!(c.default_max_keypoints, [2000, 1000, 2000, 250]);
     let unrefined = DetectOptions {
         refine: Some(false),
         ..own_size()
     };
-    let plain = Extractor::new(
-        &ExtractorOptions {
-            model: None,
-            threads: 2,
-        },
-        &sfpmap::progress::Silent,
-    )
-    .unwrap()
-    .extract(&input, &unrefined)
-    .unwrap();
     assert_eq!(
         refined.extract(&input, &unrefined).unwrap().levels,
-        plain.levels
+        default_detecting_as(&c, &input, false)
     );
 }
 
