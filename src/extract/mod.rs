@@ -331,14 +331,39 @@ pub(crate) fn level_keypoints(
     max: usize,
     options: &DetectOptions,
 ) -> (Vec<keypoints::Peak>, Vec<(f32, f32)>) {
+    let peaks = level_peaks(c, dense, i, max, options);
+    let px = placed(c, dense, i, &peaks, options);
+    (peaks, px)
+}
+
+/// Level `i`'s detector peaks (steps 1–2: NMS, the level's threshold, at most `max`), in
+/// cells; cheap next to placing and describing them.
+fn level_peaks(
+    c: &Contract,
+    dense: &Dense,
+    i: usize,
+    max: usize,
+    options: &DetectOptions,
+) -> Vec<keypoints::Peak> {
     let threshold = options.threshold.unwrap_or(c.default_thresholds[i]);
     let radius = options.nms_radius.unwrap_or(c.default_nms_radius) as usize;
     let level = &dense.levels[i];
-    let peaks = match c.detector {
+    match c.detector {
         Detector::Nms => keypoints::detect(level.score_map(), radius, threshold, max),
         Detector::Dkd => dkd::detect(level.score_map(), radius, threshold, max),
-    };
-    let s = level.stride as f32;
+    }
+}
+
+/// Level `i`'s `peaks` in input pixels, refined coarse to fine (step 4) and on the image
+/// (step 5) where the model and `options` ask for it.
+fn placed(
+    c: &Contract,
+    dense: &Dense,
+    i: usize,
+    peaks: &[keypoints::Peak],
+    options: &DetectOptions,
+) -> Vec<(f32, f32)> {
+    let s = dense.levels[i].stride as f32;
     let mut px: Vec<(f32, f32)> = peaks.iter().map(|p| (p.x * s, p.y * s)).collect();
     let finest = refined_to(c, i, options.refine.unwrap_or(true));
     let finer: Vec<(f32, ScoreMap<'_>)> = (finest..i)
@@ -359,7 +384,7 @@ pub(crate) fn level_keypoints(
             }
         }
     }
-    (peaks, px)
+    px
 }
 
 /// The inputs of a descriptor head's branch (`sfp.descriptor_head = sddh`): a `feat_0` and
@@ -953,9 +978,9 @@ impl Extractor {
     /// Keypoints and descriptors of every level from the network's outputs, and the global
     /// descriptor of this inference (`dense.global`, [`GlobalSize::Input`]; [`Extractor::extract`]
     /// takes it at [`DetectOptions::global`]'s size). With more than
-    /// one thread the levels are shared out by their expected work (keypoints × (the full
-    /// descriptor's sampling + the refinement on the image): level 0 alone is about half of
-    /// it); the result does not depend on it.
+    /// one thread every level's peaks are found first, and the levels then shared out by
+    /// their work (peaks × (the full descriptor's sampling + the refinement on the image));
+    /// the result does not depend on it.
     pub fn features(
         &self,
         dense: &Dense,
@@ -973,35 +998,43 @@ impl Extractor {
         let mut levels: Vec<Option<LevelFeatures>> = vec![None; n];
         if threads == 1 {
             for (i, out) in levels.iter_mut().enumerate() {
-                *out = Some(self.level_features(dense, i, max_of(i), options)?);
+                let peaks = level_peaks(c, dense, i, max_of(i), options);
+                *out = Some(self.level_features(dense, i, peaks, options)?);
             }
         } else {
-            // Longest job first onto the least loaded thread.
-            let mut jobs: Vec<usize> = (0..n).collect();
-            let cells = |i: usize| dense.levels[i].height.saturating_mul(dense.levels[i].width);
-            // Multiply-adds a keypoint: a bilinear sample per full dimension, and the image
-            // refinement's blurs.
+            // The peaks first (cheap), then the levels shared out by their work: longest job
+            // first onto the least loaded thread.
+            let mut peaks: Vec<Vec<keypoints::Peak>> = (0..n)
+                .map(|i| level_peaks(c, dense, i, max_of(i), options))
+                .collect();
+            // Work a keypoint, in the image refinement's multiply-adds: a bilinear sample per
+            // full dimension (four reads from another channel plane each, mostly cache misses:
+            // about 100 multiply-adds' time, measured on sfp-v3's four levels), and the blurs.
             let per_keypoint = |i: usize| {
-                4 * c.full_dims[i] + c.image_refine[i].map_or(0, |r| r.work_per_keypoint())
+                100 * c.full_dims[i] + c.image_refine[i].map_or(0, |r| r.work_per_keypoint())
             };
-            let cost = |i: usize| max_of(i).min(cells(i)).saturating_mul(per_keypoint(i));
-            jobs.sort_by_key(|&i| std::cmp::Reverse(cost(i)));
+            let cost: Vec<usize> = (0..n)
+                .map(|i| peaks[i].len().saturating_mul(per_keypoint(i)))
+                .collect();
+            let mut jobs: Vec<usize> = (0..n).collect();
+            jobs.sort_by_key(|&i| std::cmp::Reverse(cost[i]));
             let mut load = vec![0usize; threads];
-            let mut share: Vec<Vec<usize>> = vec![Vec::new(); threads];
+            let mut share: Vec<Vec<(usize, Vec<keypoints::Peak>)>> = vec![Vec::new(); threads];
             for i in jobs {
                 let t = (0..threads).min_by_key(|&t| load[t]).unwrap_or(0);
-                load[t] = load[t].saturating_add(cost(i));
-                share[t].push(i);
+                load[t] = load[t].saturating_add(cost[i]);
+                share[t].push((i, std::mem::take(&mut peaks[i])));
             }
             let done: Vec<Vec<(usize, Result<LevelFeatures, ExtractError>)>> =
                 std::thread::scope(|s| {
-                    let work = |mine: &Vec<usize>| {
-                        mine.iter()
-                            .map(|&i| (i, self.level_features(dense, i, max_of(i), options)))
+                    let work = |mine: Vec<(usize, Vec<keypoints::Peak>)>| {
+                        mine.into_iter()
+                            .map(|(i, peaks)| (i, self.level_features(dense, i, peaks, options)))
                             .collect::<Vec<_>>()
                     };
-                    let (first, rest) = share.split_first().expect("threads >= 1");
-                    let handles: Vec<_> = rest.iter().map(|m| s.spawn(move || work(m))).collect();
+                    let mut share = share.into_iter();
+                    let first = share.next().expect("threads >= 1");
+                    let handles: Vec<_> = share.map(|m| s.spawn(move || work(m))).collect();
                     let mut done = vec![work(first)];
                     for h in handles {
                         // A panic in a worker is a bug here; re-raise it on the caller's thread.
@@ -1020,17 +1053,18 @@ impl Extractor {
         })
     }
 
-    /// Level `i`'s keypoints (at most `max`) and their short and full descriptors.
+    /// Level `i`'s keypoints (its detector's `peaks`, placed) and their short and full
+    /// descriptors.
     fn level_features(
         &self,
         dense: &Dense,
         i: usize,
-        max: usize,
+        peaks: Vec<keypoints::Peak>,
         options: &DetectOptions,
     ) -> Result<LevelFeatures, ExtractError> {
         let c = &self.contract;
         let level = &dense.levels[i];
-        let (peaks, px) = level_keypoints(c, dense, i, max, options);
+        let px = placed(c, dense, i, &peaks, options);
         if c.descriptor_head == DescriptorHead::Sddh {
             return self.described_level(dense, i, &peaks, &px);
         }

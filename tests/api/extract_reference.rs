@@ -316,7 +316,11 @@ fn default_detecting_as(
                 refine: Some(refine),
                 ..own_size()
             };
-            default.extract(input, &options).unwrap().levels.swap_remove(i)
+            default
+                .extract(input, &options)
+                .unwrap()
+                .levels
+                .swap_remove(i)
         })
         .collect()
 }
