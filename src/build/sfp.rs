@@ -708,7 +708,7 @@ fn convert_images_of(
 
     reporter.start("levels", Some(levels as u64));
     let mut built = Vec::new();
-    for j in 0..levels {
+    for (j, &threshold) in thresholds.iter().enumerate() {
         let members: Vec<usize> = (0..n_points).filter(|&p| member(p, j)).collect();
         if members.is_empty() {
             reporter.advance(1);
@@ -766,7 +766,7 @@ fn convert_images_of(
         let rule = if head { ONE_LEVEL_RULE } else { LEVEL_RULE };
         info.extra.insert("assignment".into(), json!(rule));
         info.extra
-            .insert("score_threshold".into(), json!(thresholds[j]));
+            .insert("score_threshold".into(), json!(threshold));
         info.extra.insert("mean_score".into(), json!(mean));
         if head {
             info.extra.insert("basis".into(), json!("uncentred pca"));

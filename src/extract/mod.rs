@@ -324,6 +324,7 @@ pub(crate) fn refined_to(c: &Contract, i: usize, refine: bool) -> usize {
 /// detector's peaks (at most `max`) and their pixel positions (pixel-index convention),
 /// refined coarse to fine and on the image where the model asks for it (not for a descriptor
 /// head, whose head takes the detected positions). `convert --images --snap` moves observations to these.
+#[cfg(feature = "colmap")]
 pub(crate) fn level_keypoints(
     c: &Contract,
     dense: &Dense,
