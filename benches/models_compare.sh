@@ -7,7 +7,8 @@
 # ranking `localize --format json` reports (python/eval_retrieval.py --localized: the SFP
 # map's global descriptor, the SIFT map's VLAD). The SIFT level-2 short map is the reference
 # row; the SIFT map of all levels and its level-2 short `--pq 8 --minimal` slice (issue 36's
-# smallest SIFT map) the next; each SFP model's level-2 short map is also sliced so. A model of one level
+# smallest SIFT map) the next; each SFP model's level-2 short map is also sliced `--pq 8 --minimal`.
+# A model of one level
 # (aliked-n16, the v3 teacher) gets its map only, no level-2 slice. Maps are rebuilt at every run.
 #
 # A model given as MODEL.onnx+snap is converted with `--snap` (its rows: NAME-snap), as

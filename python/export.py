@@ -24,14 +24,15 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from sfp.reference import CONTRACTS, default_thresholds, image_refine_levels  # noqa: E402  (numpy only)
+from sfp.reference import (CONTRACTS, default_max_keypoints, default_thresholds,  # noqa: E402  (numpy only)
+                           image_refine_levels)
 
 CONTRACT, CONTRACT_IMAGE_REFINE = CONTRACTS  # /2 is /1 plus step 5, the image refinement
 
 OPSET = 17
 
 
-def contract_metadata(net, extra: dict | None = None, threshold: str = "0.5",
+def contract_metadata(net, extra: dict | None = None, default_threshold: str = "0.5",
                       model_name: str = "sfp-v1") -> dict[str, str]:
     from sfp.model import output_names
 
@@ -63,7 +64,7 @@ def contract_metadata(net, extra: dict | None = None, threshold: str = "0.5",
         "sfp.descriptor_norm": "l2",
         "sfp.descriptor_sampling": "bilinear, align_corners=true in cell coordinates (x / stride)",
         "sfp.outputs": ",".join(output_names(len(dims))),
-        "sfp.default_threshold": str(threshold),
+        "sfp.default_threshold": default_threshold,
         "sfp.default_nms_radius": "1",
         "sfp.default_max_keypoints": "2000,1000,500,250",
     }
@@ -150,6 +151,23 @@ def image_refine_metadata(spec: str, levels: int) -> dict[str, str]:
     return md
 
 
+def checked_detection(md: dict[str, str], origin) -> None:
+    """Holds `md`'s detection defaults to the extractor's rules (python/sfp/reference.py, as
+    src/extract/contract.rs), naming `origin(key)` where they fail, and writes them back as the
+    extractor reads them (Python's float() and int() take more forms than Rust's parsers)."""
+    levels = int(md["sfp.levels"])
+    for key, rule in (("sfp.default_max_keypoints", default_max_keypoints),
+                      ("sfp.default_threshold", default_thresholds)):
+        try:
+            values = rule(md, levels)
+        except ValueError as e:
+            raise SystemExit(f"{origin(key)}: {e}")
+        if key == "sfp.default_max_keypoints":
+            md[key] = ",".join(str(v) for v in values)
+        else:  # one value stays one
+            md[key] = ",".join(repr(float(v)) for v in md[key].split(","))
+
+
 def retag(src: str, out: str, name: str, refine: str | None, detection: dict[str, str]):
     """An exported model's network under new metadata: its name, where the network came from,
     with `refine` contract /2, and the detection defaults in `detection` (metadata key: value)."""
@@ -168,13 +186,9 @@ def retag(src: str, out: str, name: str, refine: str | None, detection: dict[str
     if refine:
         md.update(image_refine_metadata(refine, int(md["sfp.levels"])))
     md.update(detection)
-    caps = md["sfp.default_max_keypoints"].split(",")
-    if len(caps) != int(md["sfp.levels"]) or not all(c.strip().isdigit() and 1 <= int(c) <= 1_000_000 for c in caps):
-        raise SystemExit(f"--max-keypoints {md['sfp.default_max_keypoints']!r}: one cap a level, 1 to 1000000")
-    try:
-        default_thresholds(md, int(md["sfp.levels"]))  # the extractor's rules
-    except ValueError as e:
-        raise SystemExit(f"--threshold: {e}")
+    passed = {"sfp.default_threshold": "--threshold", "sfp.default_max_keypoints": "--max-keypoints"}
+    checked_detection(md, lambda key: passed[key] if key in detection else (
+        f"{src}'s {key} (one a level needs --image-refine, contract /2)"))
     del m.metadata_props[:]
     for k, v in md.items():
         e = m.metadata_props.add()
@@ -252,14 +266,11 @@ def main():
             raise SystemExit(f"--refine-to-level {args.refine_to_level}: a level 0 to {len(net.dims) - 1}, or none")
         extra["sfp.refine_to_level"] = int(args.refine_to_level)
     args.out = args.out or os.path.join("models", f"{name}.onnx")  # never a student over sfp-v1.onnx
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     if args.image_refine:
         extra.update(image_refine_metadata(args.image_refine, len(net.dims)))
-    md = contract_metadata(net, extra, args.threshold or "0.5", name)
-    try:
-        default_thresholds(md, len(net.dims))
-    except ValueError as e:
-        raise SystemExit(f"--threshold: {e}")
+    md = contract_metadata(net, extra, "0.5" if args.threshold is None else args.threshold, name)
+    checked_detection(md, lambda key: "--threshold")
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     export(net, args.out, md)
     if not args.no_verify:
         verify(net, args.out)

@@ -23,7 +23,8 @@ import onnxruntime as ort
 from PIL import Image
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
-from sfp.reference import CONTRACTS, default_thresholds, image_refine_levels, level_features  # noqa: E402  (numpy only)
+from sfp.reference import (CONTRACTS, default_max_keypoints, default_thresholds,  # noqa: E402  (numpy only)
+                           image_refine_levels, level_features)
 
 
 def check_h5(path, reference=None, name=None):
@@ -104,7 +105,7 @@ def main():
     assert md["sfp.contract"] in CONTRACTS, md.get("sfp.contract")
     strides = [int(v) for v in md["sfp.strides"].split(",")]
     ids = [int(v) for v in md["sfp.level_ids"].split(",")]
-    tops = [int(v) for v in md["sfp.default_max_keypoints"].split(",")]
+    tops = default_max_keypoints(md, len(strides))
     thr = default_thresholds(md, len(strides))
     radius = int(md["sfp.default_nms_radius"])
     names = [o.name for o in s.get_outputs()]

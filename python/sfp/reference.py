@@ -6,6 +6,8 @@ The one Python reference of what `sfpmap extract` does after the network; used b
 Needs only numpy (no torch, no OpenCV).
 """
 
+import re
+
 import numpy as np
 
 
@@ -199,11 +201,34 @@ def image_refine_levels(metadata, levels):
     return out
 
 
+# The most keypoints a level may keep (src/extract/contract.rs: MAX_KEYPOINTS).
+MAX_KEYPOINTS = 1_000_000
+
+# A number as Rust's `str::parse::<f32>` reads one (ASCII digits, no `_`): what a model may hold.
+NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?|[+-]?(inf|infinity|nan)", re.IGNORECASE)
+
+
+def default_max_keypoints(metadata, levels):
+    """Per level, the model's `sfp.default_max_keypoints` as src/extract/contract.rs reads it: one
+    cap a level, each 1 to MAX_KEYPOINTS (a ValueError where it refuses the model)."""
+    items = [v.strip() for v in metadata["sfp.default_max_keypoints"].split(",")]
+    if len(items) != levels or not all(re.fullmatch(r"[+]?[0-9]+", v) for v in items):
+        raise ValueError(f"sfp.default_max_keypoints = {metadata['sfp.default_max_keypoints'][:80]!r}: "
+                         f"one whole number a level")
+    caps = [int(v) for v in items]
+    if not all(1 <= c <= MAX_KEYPOINTS for c in caps):
+        raise ValueError(f"sfp.default_max_keypoints: {caps}: 1 to {MAX_KEYPOINTS} a level")
+    return caps
+
+
 def default_thresholds(metadata, levels):
     """Per level, the model's `sfp.default_threshold` as src/extract/contract.rs reads it: one
-    score for every level or, in an sfp-extractor/2 model, one a level (a ValueError where it
-    refuses the model)."""
-    values = [float(v) for v in metadata["sfp.default_threshold"].split(",")]
+    score for every level or, in an sfp-extractor/2 model, one a level, each in [0, 1] once
+    read as float32 (a ValueError where it refuses the model)."""
+    items = [v.strip() for v in metadata["sfp.default_threshold"].split(",")]
+    if not all(NUMBER.fullmatch(v) for v in items):
+        raise ValueError(f"sfp.default_threshold = {metadata['sfp.default_threshold'][:80]!r} is not a number list")
+    values = [float(np.float32(float(v))) for v in items]
     if len(values) == 1:
         values = values * levels
     elif len(values) != levels or metadata.get("sfp.contract") == CONTRACTS[0]:
@@ -217,9 +242,9 @@ def level_features(feats, scores, strides, radius, thr, topk, refine=True, refin
                    image=None, image_refines=None):
     """Per level: (pixels with the pixel-centre origin at 0, short, full, scores).
 
-    `feats[i]` is [C_i, h_i, w_i], `scores[i]` [h_i, w_i]; `thr` is one threshold or one a level.
-    A level's full descriptor joins the
-    normalised samples of it and every deeper level at its keypoints, normalised again. Levels
+    `feats[i]` is [C_i, h_i, w_i], `scores[i]` [h_i, w_i]; `thr` is one threshold or one a
+    level. A level's full descriptor joins the normalised samples of it and every deeper level
+    at its keypoints, normalised again. Levels
     from REFINE_FROM_LEVEL on are refined on the next finer level's score map (`refine`), and
     on from there one level at a time down to level `refine_to` (the model's
     `sfp.refine_to_level`; None: one level only). With `refine`, a level whose entry of

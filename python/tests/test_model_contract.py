@@ -91,12 +91,22 @@ def test_image_refinement_only_in_contract_2():
 
 def test_default_thresholds_one_or_one_a_level_in_contract_2():
     """sfp.default_threshold: one score, or one a level in an sfp-extractor/2 model (a /1 reader
-    reads one number)."""
+    reads one number); the shipped model's, and the cases src/extract/contract.rs refuses."""
     md = meta()
-    values = default_thresholds(md, int(md["sfp.levels"]))  # raises where the extractor refuses
-    if md["sfp.contract"] == CONTRACTS[0]:
-        assert "," not in md["sfp.default_threshold"]
-    assert len(values) == int(md["sfp.levels"])
+    n = int(md["sfp.levels"])
+    assert len(default_thresholds(md, n)) == n  # raises where the extractor refuses
+    if md["sfp.model_name"] == "sfp-v3":
+        assert default_thresholds(md, n) == [0.5, 0.5, np.float32(0.1), 0.5]
+    v1, v2 = {"sfp.contract": CONTRACTS[0]}, {"sfp.contract": CONTRACTS[1]}
+    assert default_thresholds({**v1, "sfp.default_threshold": "0.5"}, 4) == [0.5] * 4
+    assert default_thresholds({**v2, "sfp.default_threshold": " 0.5, 0.5,0.1 ,0.5"}, 4)[2] == np.float32(0.1)
+    for contract, value in [(v1, "0.5,0.5,0.1,0.5"), (v2, "0.5,0.1,0.5"), (v2, "0.5,0.5,1.5,0.5"),
+                            (v2, "0.5,0.5,,0.5"), (v2, "NaN"), (v2, "0.2_5"), (v2, "inf")]:
+        try:
+            default_thresholds({**contract, "sfp.default_threshold": value}, 4)
+        except ValueError:
+            continue
+        raise AssertionError(f"{contract} {value!r} accepted")
 
 
 def test_io_names_and_types():

@@ -16,15 +16,22 @@
 //! points are those tracks; the SFP conversion describes and assigns levels to them as to any
 //! model's points.
 //!
-//! Cost: every image's keypoints and their descriptors are held at once (f16: sfp-v2 holds up
-//! to 500 keypoints × 192 dims × 2 B ≈ 190 kB an image); matching is |a| · |b| · dims per pair,
-//! on one thread, for at most [`PAIRS_PER_IMAGE`] × images pairs.
+//! Cost: every image's keypoints and their descriptors are held at once (f16: at most
+//! [`MAX_TRIANGULATED_KEYPOINTS`] keypoints × 192 dims × 2 B ≈ 190 kB an image); matching
+//! is |a| · |b| · dims per pair, on one thread, for at most [`PAIRS_PER_IMAGE`] × images
+//! pairs.
 
 use super::triangulation::{self, Observation};
 use crate::colmap::{Image, Point2D, Reconstruction, TrackElement};
 use crate::geometry::Pose;
 use half::f16;
 use nalgebra::{Matrix3, Vector2, Vector3};
+
+/// The most keypoints of an image that are matched: the model's cap where it is lower, else
+/// the best this many by score (sfp-v2's level-2 cap). sfp-v3 keeps up to 2,000 a query; all
+/// of them here would make every pair's matching 16× the work, for points the level's
+/// threshold then assigns anyway.
+pub(crate) const MAX_TRIANGULATED_KEYPOINTS: usize = 500;
 
 /// Each image picks this many others to be matched with, those it shares the most model
 /// observations with (hloc's `pairs_from_covisibility` for triangulation takes 20); an image
@@ -283,7 +290,8 @@ fn track_position(views: &mut Vec<(Observation<'_>, f64, usize)>) -> Option<Vect
 }
 
 /// Each present image's `level` keypoints where a query's would be
-/// ([`super::sfp::query_keypoints`]) in the camera's pixels, each described by its `full`
+/// ([`super::sfp::query_keypoints`]; the best [`MAX_TRIANGULATED_KEYPOINTS`]) in the camera's
+/// pixels, each described by its `full`
 /// descriptor, and the hash of the file they were found in (`None`: a missing image, which has
 /// none).
 pub(crate) fn image_keypoints(
@@ -311,7 +319,8 @@ pub(crate) fn image_keypoints(
         let dense = extractor.run(&input).map_err(|e| e.on_image(path))?;
         let to_file = super::sfp::camera_to_file(model, image, input.original_size);
         found.px_per_input = super::sfp::camera_px_per_input(&dense, to_file);
-        for at in super::sfp::query_keypoints(&contract, &dense, level) {
+        let max = contract.default_max_keypoints[level].min(MAX_TRIANGULATED_KEYPOINTS);
+        for at in super::sfp::query_keypoints(&contract, &dense, level, max) {
             row.clear();
             dense.full_descriptor_at(level, at.0, at.1, &mut row);
             found

@@ -43,7 +43,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The level rule, as recorded in each level's metadata.
-pub(crate) const LEVEL_RULE: &str = "a point is in level i when the mean of score_i (bilinear at its observations) over its track is >= score_threshold[i]; points in no level are dropped";
+pub(crate) const LEVEL_RULE: &str = "a point is in level i when the mean of score_i (bilinear at its observations) over its track is >= the level's score_threshold; points in no level are dropped";
 
 /// How [`convert_with_images`](super::convert_with_images) makes an SFP map from a model's images
 /// (`sfpmap convert --images`).
@@ -233,15 +233,16 @@ pub(super) fn read_image(
 }
 
 /// Level `level`'s keypoints where a query's would be: the extractor's own detection with the
-/// model's defaults (input pixels, pixel-index convention).
+/// model's defaults, at most `max` (input pixels, pixel-index convention).
 pub(super) fn query_keypoints(
     contract: &contract::Contract,
     dense: &crate::extract::Dense,
     level: usize,
+    max: usize,
 ) -> Vec<(f32, f32)> {
-    let max = contract.default_max_keypoints[level];
     let defaults = crate::extract::DetectOptions::default();
-    crate::extract::level_keypoints(contract, dense, level, max, &defaults).1
+    let peaks = crate::extract::level_peaks(contract, dense, level, max, &defaults);
+    crate::extract::placed(contract, dense, level, &peaks, &defaults)
 }
 
 /// Input pixel (x, y) of `dense` in the camera's pixels, COLMAP's convention (the model's
@@ -592,7 +593,8 @@ fn convert_images_of(
             }
         }
         if snapping {
-            let detected = query_keypoints(&contract, &dense, snap_level);
+            let max = contract.default_max_keypoints[snap_level];
+            let detected = query_keypoints(&contract, &dense, snap_level, max);
             let at: Vec<(f32, f32)> = observed.iter().map(|o| (o.1[0], o.1[1])).collect();
             for (&(point, _), to) in observed.iter().zip(super::snap::assign(&detected, &at)) {
                 let Some((x, y)) = to.map(|i| detected[i]) else {
@@ -663,7 +665,7 @@ fn convert_images_of(
         "model": model_info.name,
         "model_xxh3": model_info.xxh3,
         "contract": contract.raw,
-        "score_threshold": thresholds,
+        "score_thresholds": thresholds,
         "level_rule": if head { ONE_LEVEL_RULE } else { LEVEL_RULE },
         "aggregate": "mean of L2-normalised features per level, re-normalised",
         "resize_max": options.resize_max,
@@ -689,6 +691,8 @@ fn convert_images_of(
             "level": level,
             "refined_to": crate::extract::refined_to(&contract, *level, true),
             "pairs_per_image": super::network_tracks::PAIRS_PER_IMAGE,
+            "max_keypoints": contract.default_max_keypoints[*level]
+                .min(super::network_tracks::MAX_TRIANGULATED_KEYPOINTS),
             "max_sampson_px": super::network_tracks::MAX_SAMPSON_PX,
             "max_reprojection_px": super::triangulation::MAX_REPROJECTION_PX,
             "min_triangulation_deg": super::triangulation::MIN_TRIANGULATION_DEG,
@@ -932,7 +936,7 @@ impl SfpMapSummary {
             "ratio": c.input_bytes as f64 / c.output_bytes.max(1) as f64,
             "seconds": seconds,
             "ms_per_image": summary.ms_per_image,
-            "score_threshold": summary.score_thresholds,
+            "score_thresholds": summary.score_thresholds,
             "model": summary.model.name,
             "model_xxh3": summary.model.xxh3,
             "missing_images": summary.missing_images,

@@ -322,8 +322,10 @@ fn default_thresholds(
     bad: &dyn Fn(String) -> ExtractError,
 ) -> Result<Vec<f32>, ExtractError> {
     let key = "sfp.default_threshold";
+    // A model file may hold anything: a message quotes the start of the value.
+    let quoted = || format!("{:?}", value.chars().take(80).collect::<String>());
     let values: Vec<f32> =
-        list(value).ok_or_else(|| bad(format!("{key} = {value:?} is not a number list")))?;
+        list(value).ok_or_else(|| bad(format!("{key} = {} is not a number list", quoted())))?;
     let values = match values.len() {
         1 => vec![values[0]; levels],
         n if n == levels && version != CONTRACTS[0] => values,
@@ -341,7 +343,7 @@ fn default_thresholds(
     };
     for &t in &values {
         if let Err(expected) = crate::ranges::SCORE.check(t.into()) {
-            return Err(bad(format!("{key} = {value:?}: {t} is not {expected}")));
+            return Err(bad(format!("{key} = {}: {t} is not {expected}", quoted())));
         }
     }
     Ok(values)
@@ -546,13 +548,17 @@ mod tests {
         let mut v1 = sfp_v1();
         v1.insert("sfp.default_threshold".into(), "0.5,0.5,0.1,0.5".into());
         for (m, threshold, words) in [
-            (v1, "", "needs \"sfp-extractor/2\""),
-            (m.clone(), "0.5,0.1,0.5", "has 3 values"),
-            (m.clone(), "0.5,0.5,1.5,0.5", "1.5 is not a score in [0, 1]"),
-            (m, "0.5,0.5,,0.5", "not a number list"),
+            (v1, None, "needs \"sfp-extractor/2\""),
+            (m.clone(), Some("0.5,0.1,0.5"), "has 3 values"),
+            (
+                m.clone(),
+                Some("0.5,0.5,1.5,0.5"),
+                "1.5 is not a score in [0, 1]",
+            ),
+            (m, Some("0.5,0.5,,0.5"), "not a number list"),
         ] {
             let mut m = m;
-            if !threshold.is_empty() {
+            if let Some(threshold) = threshold {
                 m.insert("sfp.default_threshold".into(), threshold.into());
             }
             let e = parse(&m).unwrap_err().to_string();

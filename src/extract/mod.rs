@@ -257,7 +257,8 @@ impl Default for ExtractorOptions {
 /// Keypoint selection; `None` fields take the model's defaults (`sfp.default_*`).
 #[derive(Debug, Clone, Default)]
 pub struct DetectOptions {
-    /// Minimum detection score.
+    /// Minimum detection score, on every level (`None`: each level's
+    /// `sfp.default_threshold`).
     pub threshold: Option<f32>,
     /// Non-maximum suppression radius, in cells of the level's score map.
     pub nms_radius: Option<u32>,
@@ -320,26 +321,16 @@ pub(crate) fn refined_to(c: &Contract, i: usize, refine: bool) -> usize {
     }
 }
 
-/// Level `i`'s keypoints as the extractor finds them (`spec/extractor.md` steps 1–5): the
-/// detector's peaks (at most `max`) and their pixel positions (pixel-index convention),
-/// refined coarse to fine and on the image where the model asks for it (not for a descriptor
-/// head, whose head takes the detected positions). `convert --images --snap` moves observations to these.
-#[cfg(feature = "colmap")]
-pub(crate) fn level_keypoints(
-    c: &Contract,
-    dense: &Dense,
-    i: usize,
-    max: usize,
-    options: &DetectOptions,
-) -> (Vec<keypoints::Peak>, Vec<(f32, f32)>) {
-    let peaks = level_peaks(c, dense, i, max, options);
-    let px = placed(c, dense, i, &peaks, options);
-    (peaks, px)
-}
+/// A bilinear sample of one full dimension at a keypoint, in the image refinement's
+/// multiply-adds: four reads from another channel plane, mostly cache misses, about 100
+/// (measured on sfp-v3's four levels at 640×480). [`Extractor::features`] shares levels out
+/// among threads by it.
+const SAMPLE_WORK: usize = 100;
 
 /// Level `i`'s detector peaks (steps 1–2: NMS, the level's threshold, at most `max`), in
-/// cells; cheap next to placing and describing them.
-fn level_peaks(
+/// cells; cheap next to placing and describing them. `convert --images --snap` and
+/// `--triangulate` place them too ([`placed`]).
+pub(crate) fn level_peaks(
     c: &Contract,
     dense: &Dense,
     i: usize,
@@ -355,9 +346,10 @@ fn level_peaks(
     }
 }
 
-/// Level `i`'s `peaks` in input pixels, refined coarse to fine (step 4) and on the image
-/// (step 5) where the model and `options` ask for it.
-fn placed(
+/// Level `i`'s `peaks` in input pixels (pixel-index convention), refined coarse to fine
+/// (step 4) and on the image (step 5) where the model and `options` ask for it (not for a
+/// descriptor head, whose head takes the detected positions).
+pub(crate) fn placed(
     c: &Contract,
     dense: &Dense,
     i: usize,
@@ -989,6 +981,15 @@ impl Extractor {
         options: &DetectOptions,
     ) -> Result<Features, ExtractError> {
         let c = &self.contract;
+        // Another model's outputs (a `Dense` is public): every per-level rule below is this
+        // contract's.
+        if dense.levels.len() != c.levels() {
+            return Err(self.inference_error(format!(
+                "{} levels of outputs for a model of {}",
+                dense.levels.len(),
+                c.levels()
+            )));
+        }
         let max_of = |i: usize| match options.max_keypoints.as_deref() {
             Some([one]) => *one,
             Some(list) => list.get(i).copied().unwrap_or(c.default_max_keypoints[i]),
@@ -1009,10 +1010,10 @@ impl Extractor {
                 .map(|i| level_peaks(c, dense, i, max_of(i), options))
                 .collect();
             // Work a keypoint, in the image refinement's multiply-adds: a bilinear sample per
-            // full dimension (four reads from another channel plane each, mostly cache misses:
-            // about 100 multiply-adds' time, measured on sfp-v3's four levels), and the blurs.
+            // full dimension, and the blurs.
             let per_keypoint = |i: usize| {
-                100 * c.full_dims[i] + c.image_refine[i].map_or(0, |r| r.work_per_keypoint())
+                SAMPLE_WORK * c.full_dims[i]
+                    + c.image_refine[i].map_or(0, |r| r.work_per_keypoint())
             };
             let cost: Vec<usize> = (0..n)
                 .map(|i| peaks[i].len().saturating_mul(per_keypoint(i)))

@@ -279,7 +279,7 @@ fn refined_against_the_default(
     let input = image::load(&png, refined.contract().gray_weights, None).unwrap();
     let features = refined.extract(&input, &own_size()).unwrap();
     assert_levels_match(&reference, &features);
-    let default = default_detecting_as(refined.contract(), &input, true);
+    let default = sfp_v2_levels_detected_as(refined.contract(), &input, true);
     let moved = (features.levels.iter().zip(&default))
         .map(|(ours, theirs)| {
             assert_eq!(ours.scores, theirs.scores, "level {}", ours.level);
@@ -292,22 +292,18 @@ fn refined_against_the_default(
     (refined, input, moved)
 }
 
-/// The default model's (sfp-v2's) levels of `input`, each detected with `contract`'s
-/// threshold and cap of that level (a model of sfp-v2's network may set its own), and refined
-/// (step 4) or not.
-fn default_detecting_as(
+/// sfp-v2's levels of `input`, each detected with `contract`'s threshold and cap of that
+/// level, and refined (step 4) or not: what a model of sfp-v2's network with detection
+/// defaults of its own gives before any refinement of its own.
+fn sfp_v2_levels_detected_as(
     contract: &sfpmap::extract::contract::Contract,
     input: &image::GrayInput,
     refine: bool,
 ) -> Vec<sfpmap::extract::LevelFeatures> {
-    let mut default = Extractor::new(
-        &ExtractorOptions {
-            model: None,
-            threads: 2,
-        },
-        &sfpmap::progress::Silent,
-    )
-    .unwrap();
+    let mut sfp_v2 = Extractor::builtin("sfp-v2", 2, &sfpmap::progress::Silent)
+        .expect("sfp-v2 is built in")
+        .unwrap();
+    let dense = sfp_v2.run(input).unwrap();
     (contract.default_thresholds.iter().enumerate())
         .map(|(i, &threshold)| {
             let options = DetectOptions {
@@ -316,13 +312,30 @@ fn default_detecting_as(
                 refine: Some(refine),
                 ..own_size()
             };
-            default
-                .extract(input, &options)
-                .unwrap()
-                .levels
-                .swap_remove(i)
+            let features = sfp_v2.features(&dense, input.original_size, &options);
+            features.unwrap().levels.swap_remove(i)
         })
         .collect()
+}
+
+/// How the levels are shared out among threads changes nothing: sfp-v3 (refined on the image,
+/// level 2 at a threshold of its own) gives the same features on 1 thread and on 3.
+#[test]
+fn features_do_not_depend_on_the_threads() {
+    let features = |threads| {
+        let mut extractor = Extractor::builtin("sfp-v3", threads, &sfpmap::progress::Silent)
+            .expect("sfp-v3 is built in")
+            .unwrap();
+        let weights = extractor.contract().gray_weights;
+        let input = image::load(&scene_image(), weights, None).unwrap();
+        extractor
+            .extract(&input, &DetectOptions::default())
+            .unwrap()
+    };
+    let (one, three) = (features(1), features(3));
+    assert!(one.levels.iter().all(|l| l.len() > 10));
+    assert_eq!(one.levels, three.levels);
+    assert_eq!(one.global, three.global);
 }
 
 /// The global descriptor at the input's own size: the reference computes it there.
@@ -385,7 +398,7 @@ fn sfp_v3_refined_on_the_image_matches_the_python_reference() {
     };
     assert_eq!(
         refined.extract(&input, &unrefined).unwrap().levels,
-        default_detecting_as(&c, &input, false)
+        sfp_v2_levels_detected_as(&c, &input, false)
     );
 }
 
