@@ -5,9 +5,9 @@
 //! sampled too. Per point and level, the track's features are aggregated by normalised mean
 //! and the scores by mean. **Level assignment**: a point belongs to level i when its mean
 //! level-i score is at least the threshold — by default the model's own keypoint threshold
-//! of that level, `sfp.default_threshold` (0.5 for sfp-v1: the score is the probability of the network's
-//! sparsity mask keeping that pixel, so ≥ 0.5 is the mask's more likely value), so a map keeps
-//! a point on a level where the network would, on average, detect it there.
+//! of that level, `sfp.default_threshold` (0.5 for sfp-v1: the score is the probability of
+//! the network's sparsity mask keeping that pixel, so ≥ 0.5 is the mask's more likely value),
+//! so a map keeps a point on a level where the network would, on average, detect it there.
 //! Points no level selects are dropped — the network's learned map compression.
 //!
 //! Each level stores the contract's `full` descriptor of its points (levels i.. parts, each
