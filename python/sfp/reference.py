@@ -244,9 +244,9 @@ def level_features(feats, scores, strides, radius, thr, topk, refine=True, refin
 
     `feats[i]` is [C_i, h_i, w_i], `scores[i]` [h_i, w_i]; `thr` is one threshold or one a
     level. A level's full descriptor joins the normalised samples of it and every deeper level
-    at its keypoints, normalised again. Levels
-    from REFINE_FROM_LEVEL on are refined on the next finer level's score map (`refine`), and
-    on from there one level at a time down to level `refine_to` (the model's
+    at its keypoints, normalised again. Levels from REFINE_FROM_LEVEL on are refined on the
+    next finer level's score map (`refine`), and on from there one level at a time down to
+    level `refine_to` (the model's
     `sfp.refine_to_level`; None: one level only). With `refine`, a level whose entry of
     `image_refines` is (sigma, radius) then moves onto the grey input `image` (step 5).
     """
