@@ -126,6 +126,10 @@ def save_with_metadata(m, out: str):
         with os.fdopen(fd, "wb") as f:
             f.write(m.SerializeToString())
             f.flush()
+            # mkstemp's file is private (0600); the model gets the mode any new file gets.
+            umask = os.umask(0)
+            os.umask(umask)
+            os.fchmod(f.fileno(), 0o666 & ~umask)
             os.fsync(f.fileno())
         os.replace(tmp, out)
     except BaseException:
