@@ -1,5 +1,6 @@
-# Shared by the scene scripts (scenes_compare.sh, size_accuracy.sh): where the shared scenes
-# are, the KITTI 06 scene built once, and copies of their databases. Source it.
+# Shared by the scene scripts (scenes_compare.sh, size_accuracy.sh, models_compare.sh,
+# budget.sh, catalog.sh, heldout_scenes.sh): where the shared scenes are, the KITTI 06 scene
+# built once, and copies of their databases. Source it.
 DATA=../shared/data
 CACHE=target/scenes
 mkdir -p "$CACHE"
@@ -14,8 +15,10 @@ scene_dir() { # the scene's folder (KITTI 06 built once: map every frame but eac
         "$CACHE/kitti06" --every 4 >"$CACHE/kitti06.log" 2>&1
     fi
     echo "$CACHE/kitti06"
-  elif [ -f "$CACHE/$1/queries.txt" ]; then
-    echo "$CACHE/$1" # a held-out scene built here with make_scene.py (models/sfp-v3.md)
+  elif [ -f "$CACHE/$1/verify.txt" ]; then
+    # A held-out scene built here (benches/heldout_scenes.sh): verify.txt is make_scene.py's
+    # last step, so a build that failed or was stopped is not taken for one.
+    echo "$CACHE/$1"
   else
     echo "$DATA/scenes/$1"
   fi

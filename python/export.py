@@ -112,6 +112,16 @@ def export(net, out: str, metadata: dict[str, str]):
     return out
 
 
+def _umask() -> int:
+    # Read once, at import, before any thread: os.umask can only be read by setting it.
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+UMASK = _umask()
+
+
 def save_with_metadata(m, out: str):
     import onnx
 
@@ -127,9 +137,7 @@ def save_with_metadata(m, out: str):
             f.write(m.SerializeToString())
             f.flush()
             # mkstemp's file is private (0600); the model gets the mode any new file gets.
-            umask = os.umask(0)
-            os.umask(umask)
-            os.fchmod(f.fileno(), 0o666 & ~umask)
+            os.fchmod(f.fileno(), 0o666 & ~UMASK)
             os.fsync(f.fileno())
         os.replace(tmp, out)
     except BaseException:

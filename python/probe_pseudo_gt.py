@@ -36,10 +36,13 @@ import numpy as np
 import pycolmap
 
 
-# Pairs matched per image. Exhaustive matching of ALIKED on South Building (mutual nearest
-# neighbours, no ratio test) registered every image into a folded model: repeated windows of
-# facades far apart verified as pairs.
-PAIRS = 20
+# Images each image is matched with. Exhaustive matching of ALIKED on South Building (mutual
+# nearest neighbours, no ratio test) registered every image into a folded model: repeated
+# windows of facades far apart verified as pairs.
+NEIGHBOURS = 20
+# Keypoints matched against the other image's per block of rows: bounds the similarity matrix
+# at BLOCK × (the other image's keypoints) floats whatever the features file holds.
+BLOCK = 2048
 
 
 def log(*a):
@@ -76,9 +79,20 @@ def rot_deg(Ra, Rb):
 
 
 def mutual_nn(da, db):
-    sim = da @ db.T
-    ab = sim.argmax(1)
-    ba = sim.argmax(0)
+    """Mutual nearest neighbours of two images' unit descriptors, as index pairs."""
+    if len(da) == 0 or len(db) == 0:
+        return np.zeros((0, 2), np.uint32)
+    ab = np.empty(len(da), np.int64)
+    best_b = np.full(len(db), -np.inf, np.float32)
+    ba = np.zeros(len(db), np.int64)
+    for i in range(0, len(da), BLOCK):
+        scores = da[i:i + BLOCK] @ db.T
+        ab[i:i + BLOCK] = scores.argmax(1)
+        rows = scores.argmax(0)
+        top = scores[rows, np.arange(len(db))]
+        better = top > best_b
+        best_b[better] = top[better]
+        ba[better] = rows[better] + i
     keep = ba[ab] == np.arange(len(ab))
     return np.stack([np.nonzero(keep)[0], ab[keep]], 1).astype(np.uint32)
 
@@ -98,13 +112,13 @@ def covisible_pairs(rec, n):
     return sorted(pairs)
 
 
-def reconstruct(scene, features, work, pairs):
+def reconstruct(scene, h5, work, pairs):
     images = os.path.join(scene, "images")
     db_path = os.path.join(work, "database.db")
     pycolmap.Database.open(db_path).close()  # creates the file and its tables
     pycolmap.import_images(db_path, images, pycolmap.CameraMode.SINGLE)
     descs = {}
-    with pycolmap.Database.open(db_path) as db, h5py.File(features, "r") as h5:
+    with pycolmap.Database.open(db_path) as db:
         ids = {im.name: im.image_id for im in db.read_all_images()}
         for name, image_id in ids.items():
             g = h5[name]
@@ -125,31 +139,66 @@ def reconstruct(scene, features, work, pairs):
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = 2
     recs = pycolmap.incremental_mapping(db_path, images, out, opts)
+    if not recs:
+        sys.exit(f"{work}: the mapper registered no model from these features")
     best = max(recs.values(), key=lambda r: r.num_reg_images())
     log(f"reconstruction: {best.num_reg_images()} images, {best.num_points3D()} points, "
         f"reprojection error {best.compute_mean_reprojection_error():.3f} px")
     return best
 
 
+def fail(why):
+    sys.exit(f"probe_pseudo_gt.py: {why}")
+
+
 def main():
     if len(sys.argv) < 4:
         sys.exit(__doc__)
     scene, features, work = sys.argv[1:4]
-    runs = [a.split("=", 1) for a in sys.argv[4:]]
-    os.makedirs(work, exist_ok=False)
+    # Everything checked before the minutes of matching and mapping.
+    runs = []
+    for arg in sys.argv[4:]:
+        name, _, path = arg.partition("=")
+        if not name or not path:
+            fail(f"{arg!r}: a run is NAME=POSES")
+        if not os.path.isfile(path):
+            fail(f"{path}: no such poses file")
+        runs.append((name, read_poses(path)))
     full = pycolmap.Reconstruction(os.path.join(scene, "sparse-full"))
+    if full.num_cameras() != 1:
+        fail(f"{scene}: {full.num_cameras()} cameras; the rebuild models one (a scene of one camera)")
+    h5 = h5py.File(features, "r")
+    images = sorted(os.listdir(os.path.join(scene, "images")))
+    missing = [n for n in images if n not in h5]
+    if missing:
+        fail(f"{features}: no features for {len(missing)} of the scene's images (first: {missing[0]})")
     sift = rec_poses(full)
     gt = read_poses(os.path.join(scene, "gt_poses.txt"))
-    other = rec_poses(reconstruct(scene, features, work, covisible_pairs(full, PAIRS)))
-    map_names = sorted(n for n in other if n in sift and n not in gt)
-    sim = pycolmap.estimate_sim3d(np.array([other[n][1] for n in map_names]),
-                                  np.array([sift[n][1] for n in map_names]))
-    R_s = sim.rotation.matrix()
-    aligned = {n: (R @ R_s.T, sim.scale * R_s @ c + sim.translation) for n, (R, c) in other.items()}
-    resid = [np.linalg.norm(aligned[n][1] - sift[n][1]) for n in map_names]
+    os.makedirs(work, exist_ok=False)
+    rebuilt = rec_poses(reconstruct(scene, h5, work, covisible_pairs(full, NEIGHBOURS)))
+    map_names = sorted(n for n in rebuilt if n in sift and n not in gt)
+    if len(map_names) < 3:
+        fail(f"{len(map_names)} map images in both reconstructions: nothing to align on")
+    centres = np.array([sift[n][1] for n in map_names])
+    spacing = np.median([np.sort(np.linalg.norm(centres - c, axis=1))[1] for c in centres])
+    ransac = pycolmap.RANSACOptions()
+    ransac.max_error = 0.25 * spacing
+    # Robust: a few misregistered images must not pull the similarity.
+    found = pycolmap.estimate_sim3d_robust(np.array([rebuilt[n][1] for n in map_names]), centres, ransac)
+    if not found:
+        fail("no similarity aligns the two reconstructions' map images")
+    sim3 = found["tgt_from_src"]
+    R_s = sim3.rotation.matrix()
+    aligned = {n: (R @ R_s.T, sim3.scale * R_s @ c + sim3.translation) for n, (R, c) in rebuilt.items()}
+    resid = np.array([np.linalg.norm(aligned[n][1] - sift[n][1]) for n in map_names])
     queries = sorted(n for n in gt if n in aligned)
-    log(f"{len(map_names)} map images aligned (median centre residual {np.median(resid):.5f}); "
-        f"{len(queries)} of {len(gt)} queries in both")
+    log(f"{len(map_names)} map images aligned: centre residual median {np.median(resid):.5f}, "
+        f"max {resid.max():.5f} (camera spacing {spacing:.4f}); {len(queries)} of {len(gt)} queries in both")
+    if np.median(resid) > 0.25 * spacing:
+        fail(f"the reconstructions disagree by a median {np.median(resid):.4f} on the map images "
+             f"(a quarter of the camera spacing is {0.25 * spacing:.4f}): the rebuilt one is folded or broken")
+    if not queries:
+        fail("no query is in both reconstructions")
     dc = [np.linalg.norm(aligned[n][1] - gt[n][1]) for n in queries]
     dr = [rot_deg(aligned[n][0], gt[n][0]) for n in queries]
     print("| | median transl. | max transl. | median rot. (°) | max rot. (°) |")
@@ -158,14 +207,19 @@ def main():
           f"| {np.median(dr):.4f} | {max(dr):.4f} |")
     if runs:
         print()
-        print("| run | against SIFT's ground truth: transl. / rot. (°) | against the other: transl. / rot. (°) |")
+        print("| run | against SIFT's ground truth: transl. / rot. (°) | against the rebuilt one: transl. / rot. (°) |")
         print("|---|---|---|")
-    for name, path in runs:
-        est = read_poses(path)
+    for name, est in runs:
         both = [n for n in queries if n in est]
-        e = lambda ref: (np.median([np.linalg.norm(est[n][1] - ref[n][1]) for n in both]),  # noqa: E731
-                         np.median([rot_deg(est[n][0], ref[n][0]) for n in both]))
-        (ts, rs), (to, ro) = e(gt), e(aligned)
+        if not both:
+            print(f"| {name} (no query localized) | - | - |")
+            continue
+
+        def errors(ref):
+            return (np.median([np.linalg.norm(est[n][1] - ref[n][1]) for n in both]),
+                    np.median([rot_deg(est[n][0], ref[n][0]) for n in both]))
+
+        (ts, rs), (to, ro) = errors(gt), errors(aligned)
         print(f"| {name} ({len(both)} queries) | {ts:.5f} / {rs:.4f} | {to:.5f} / {ro:.4f} |")
 
 
