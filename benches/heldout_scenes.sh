@@ -85,7 +85,8 @@ for p in sys.argv[2:]: Image.open(p).save(os.path.join(sys.argv[1], os.path.base
   # scene counts as built once make_scene.py's last step wrote verify.txt (benches/scenes.sh).
   local try registered
   for try in 1 2 3; do
-    rm -rf "$CACHE/$name" "$work/$name"
+    # The maps other scripts built once from the old build (scene_maps) go with it.
+    rm -rf "$CACHE/$name" "$CACHE/$name"-size "$CACHE/$name"-compare "$work/$name"
     if python3 "$DATA/tools/make_scene.py" "$images" "$CACHE/$name" "$work/$name" --camera-mode "$3" \
       --every "$4" >"$CACHE/$name.log" 2>&1; then
       registered=$(jget "$CACHE/$name/stats.json" "f\"{d['split']['sparse_full']['reg_images']} of {d['prep']['num_images']}\"")

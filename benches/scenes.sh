@@ -19,8 +19,11 @@ scene_dir() { # the scene's folder (KITTI 06 built once: map every frame but eac
     # A held-out scene built here (benches/heldout_scenes.sh): verify.txt is make_scene.py's
     # last step, so a build that failed or was stopped is not taken for one.
     echo "$CACHE/$1"
-  else
+  elif [ -f "$DATA/scenes/$1/queries.txt" ]; then
     echo "$DATA/scenes/$1"
+  else
+    echo "scene_dir: no scene $1 (a held-out one is built by benches/heldout_scenes.sh)" >&2
+    return 1
   fi
 }
 

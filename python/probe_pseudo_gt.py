@@ -26,10 +26,14 @@ usage: python3 python/probe_pseudo_gt.py SCENE_DIR FEATURES.h5 WORK_DIR [NAME=PO
   SCENE_DIR: a scene of make_scene.py (images/, sparse-full/, gt_poses.txt)
   POSES: `sfpmap localize -o` output (`name qw qx qy qz tx ty tz`, cam_from_world)
   WORK_DIR: a new folder (database and reconstruction); nothing in SCENE_DIR is written.
-Needs numpy, h5py and pycolmap (the tests' venv).
+Needs numpy, h5py and pycolmap (the tests' venv). Made for scenes of make_scene.py's size
+(up to a few hundred images): it holds every image's descriptors in memory and matches on the
+CPU, with no resume.
 """
 import os
 import sys
+import time
+from collections import Counter
 
 import h5py
 import numpy as np
@@ -99,16 +103,17 @@ def mutual_nn(da, db):
 
 def covisible_pairs(rec, n):
     """Each registered image with the `n` images that see most of its points (hloc's
-    pairs_from_covisibility): which images overlap, from the SIFT model; not their poses."""
-    seen = {}
-    for pid, p in rec.points3D.items():
-        for el in p.track.elements:
-            seen.setdefault(el.image_id, set()).add(pid)
-    names = {i: rec.images[i].name for i in seen}
+    pairs_from_covisibility): which images overlap, from the SIFT model; not their poses.
+    Counted along the tracks, so the cost is the observations', not images squared."""
+    observed = {}
+    for p in rec.points3D.values():
+        ids = {el.image_id for el in p.track.elements}
+        for i in ids:
+            observed.setdefault(i, Counter()).update(ids - {i})
     pairs = set()
-    for i, pts in seen.items():
-        shared = sorted(((len(pts & seen[j]), j) for j in seen if j != i), reverse=True)[:n]
-        pairs.update(tuple(sorted((names[i], names[j]))) for c, j in shared if c > 0)
+    for i, counts in observed.items():
+        pairs.update(tuple(sorted((rec.images[i].name, rec.images[j].name)))
+                     for j, _ in counts.most_common(n))
     return sorted(pairs)
 
 
@@ -127,8 +132,12 @@ def reconstruct(scene, h5, work, pairs):
             db.write_keypoints(image_id, np.asarray(g["keypoints"], np.float32) + 0.5)
             d = np.asarray(g["descriptors"], np.float32).T
             descs[name] = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-        for a, b in pairs:
+        shown = time.monotonic()
+        for k, (a, b) in enumerate(pairs):
             db.write_matches(ids[a], ids[b], mutual_nn(descs[a], descs[b]))
+            if time.monotonic() - shown > 30:
+                log(f"matched {k + 1} of {len(pairs)} pairs")
+                shown = time.monotonic()
     pairs_path = os.path.join(work, "pairs.txt")
     with open(pairs_path, "w") as f:
         f.write("".join(f"{a} {b}\n" for a, b in pairs))
@@ -181,6 +190,11 @@ def main():
         fail(f"{len(map_names)} map images in both reconstructions: nothing to align on")
     centres = np.array([sift[n][1] for n in map_names])
     spacing = np.median([np.sort(np.linalg.norm(centres - c, axis=1))[1] for c in centres])
+    # A video that stands still has centres on top of each other: the spread bounds it below.
+    spread = np.median(np.linalg.norm(centres - np.median(centres, axis=0), axis=1))
+    spacing = max(spacing, 1e-3 * spread)
+    if not spacing > 0:
+        fail("the map images' centres coincide: nothing to align on")
     ransac = pycolmap.RANSACOptions()
     ransac.max_error = 0.25 * spacing
     # Robust: a few misregistered images must not pull the similarity.
