@@ -4,13 +4,13 @@
 # by the shared make_scene.py (SIFT SfM pseudo ground truth, every 5th registered image a query;
 # british-museum-3: every 3rd, so that its other photos are queries too).
 #
-# | scene          | images                      | source                                                       |
-# |----------------|-----------------------------|--------------------------------------------------------------|
-# | visp-castel    | 30 video frames, 640x480    | Debian visp-images-data 3.5.0-1, mbt-depth/castel/castel     |
-# | british-museum | 10 internet photos          | facebookresearch/vggsfm @ e1d9d2e, examples/british_museum   |
-# | british-museum-3 | the same 10 photos, every 3rd one a query | the same                                    |
-# | kitchen        | 25 photos, 1558x1039        | facebookresearch/vggsfm @ e1d9d2e, examples/kitchen          |
-# | lund-street    | 29 phone photos, 1024x768   | mapillary/OpenSfM @ 238744c, data/lund                       |
+# | scene            | images                          | source                                                     |
+# |------------------|---------------------------------|------------------------------------------------------------|
+# | visp-castel      | 30 video frames, 640x480        | Debian visp-images-data 3.5.0-1, mbt-depth/castel/castel   |
+# | british-museum   | 10 internet photos              | facebookresearch/vggsfm @ e1d9d2e, examples/british_museum |
+# | british-museum-3 | the same, every 3rd one a query | the same                                                   |
+# | kitchen          | 25 photos, 1558x1039            | facebookresearch/vggsfm @ e1d9d2e, examples/kitchen        |
+# | lund-street      | 29 phone photos, 1024x768       | mapillary/OpenSfM @ 238744c, data/lund                     |
 #
 # The Debian package is downloaded here (apt-get download); the two repositories are checkouts
 # the caller gives (git clone https://github.com/facebookresearch/vggsfm and
@@ -19,7 +19,7 @@
 # scene already built (its verify.txt, make_scene.py's last step) is kept. The prepared images
 # are the same bytes on every run, the SfM is not (COLMAP on 2 threads): a rebuilt scene's
 # ground truth differs a little (visp-castel's sparse-full: 3,396 or 3,318 points; lund-street:
-# 21 or 27 images registered), so compare models on one build.
+# 21, 27 or 28 images registered), so compare models on one build.
 #
 # python3 must have pillow and pycolmap (the tests' venv: PATH="$(bash .ci/tools | tail -1)/bin:$PATH").
 #

@@ -19,8 +19,8 @@ may be measured on its agreement with SIFT more than on its precision (Brachmann
 "On the limits of pseudo ground truth in visual camera re-localisation").
 
 South Building, ALIKED-N16 (stop 53): the two ground truths place the 26 queries a median
-0.0053 units / 0.12° apart; SIFT's level-2 short map is at 0.00038 against SIFT's and 0.0052
-against ALIKED's, sfp-v3's at 0.0021 and 0.0061 (`models/sfp-v3.md`, "Pseudo ground truth").
+0.0051 units / 0.11° apart; SIFT's level-2 short map is at 0.00038 against SIFT's and 0.0049
+against ALIKED's, sfp-v3's at 0.0021 and 0.0059 (`models/sfp-v3.md`, "Pseudo ground truth").
 
 usage: python3 python/probe_pseudo_gt.py SCENE_DIR FEATURES.h5 WORK_DIR [NAME=POSES ...]
   SCENE_DIR: a scene of make_scene.py (images/, sparse-full/, gt_poses.txt)
