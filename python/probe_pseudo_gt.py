@@ -7,7 +7,9 @@ images, one camera (so scenes of one camera: South Building, kitchen, lund-stree
 nearest-neighbour matching of each image with the 20 images that share most points with it
 in the SIFT model (which images overlap, not where they are), COLMAP's geometric verification
 and incremental mapping. That reconstruction is aligned to the SIFT one by a similarity
-fitted on the map images' centres (never the queries'), and then it prints
+fitted robustly (LO-RANSAC) on the map images' centres (never the queries'); a rebuild that
+disagrees with SIFT's by more than a quarter of the camera spacing there is refused as folded.
+Then it prints
 
 - how far the two pseudo ground truths place each query (median / max centre distance in
   the scene's units, rotation in degrees): below that, an error measures how closely a
@@ -51,6 +53,10 @@ BLOCK = 2048
 
 def log(*a):
     print(*a, file=sys.stderr, flush=True)
+
+
+def fail(why):
+    sys.exit(f"probe_pseudo_gt.py: {why}")
 
 
 def read_poses(path):
@@ -149,15 +155,11 @@ def reconstruct(scene, h5, work, pairs):
     opts.num_threads = 2
     recs = pycolmap.incremental_mapping(db_path, images, out, opts)
     if not recs:
-        sys.exit(f"{work}: the mapper registered no model from these features")
+        fail(f"{work}: the mapper registered no model from these features")
     best = max(recs.values(), key=lambda r: r.num_reg_images())
     log(f"reconstruction: {best.num_reg_images()} images, {best.num_points3D()} points, "
         f"reprojection error {best.compute_mean_reprojection_error():.3f} px")
     return best
-
-
-def fail(why):
-    sys.exit(f"probe_pseudo_gt.py: {why}")
 
 
 def main():
