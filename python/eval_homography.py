@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from sfp import data as D  # noqa: E402
-from sfp.reference import image_refine_levels, level_features  # noqa: E402
+from sfp.reference import detect_levels, image_refine_levels, level_features  # noqa: E402
 
 cv2.setNumThreads(1)
 
@@ -78,6 +78,7 @@ class SFPRunner:
         self.names = [o.name for o in self.s.get_outputs()]
         self.input_name = md.get("sfp.input_name", "image")
         self.image_refines = image_refine_levels(md, len(self.strides))  # step 5 (sfp-extractor/2)
+        self.detect_on = detect_levels(md, len(self.strides))  # sfp-extractor/3
 
     def run(self, img01):
         outs = dict(zip(self.names, self.s.run(None, {self.input_name: img01[None, None].astype(np.float32)})))
@@ -92,7 +93,7 @@ def sfp_features(runner, img01, topk, thr, refine=True):
     refinement on the image, unless `refine` is False)."""
     feats, scores, _ = runner.run(img01)
     return level_features(feats, scores, runner.strides, 1, thr, topk, refine=refine, image=img01,
-                          image_refines=runner.image_refines)
+                          image_refines=runner.image_refines, detect_on=runner.detect_on)
 
 
 # --- matching / metrics ---------------------------------------------------------------------------

@@ -9,7 +9,8 @@ The model name (sfp.model_name: a map built with one model is localized only wit
 from --model-name, else the checkpoint's `model_name`, else sfp-v1.
 
 --image-refine SIGMAS/RADII writes a model of sfp-extractor/2 (keypoints refined on the image,
-spec/extractor.md step 5). Given an .onnx file instead of a checkpoint, the network is kept as it
+spec/extractor.md step 5); with --detect-level LEVELS, of sfp-extractor/3 (a level's keypoints
+detected on a finer level's score map). Given an .onnx file instead of a checkpoint, the network is kept as it
 is and only the metadata is rewritten (needs onnx, not torch); sfp-v3 is sfp-v2's network so:
   python3 python/export.py models/sfp-v2.onnx --model-name sfp-v3 -o models/sfp-v3.onnx \
       --image-refine 1.5,2.5,3,4/2,3,4,5
@@ -25,9 +26,10 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from sfp.reference import (CONTRACTS, default_max_keypoints, default_thresholds,  # noqa: E402  (numpy only)
-                           image_refine_levels)
+                           detect_levels, image_refine_levels)
 
-CONTRACT, CONTRACT_IMAGE_REFINE = CONTRACTS  # /2 is /1 plus step 5, the image refinement
+# /2 is /1 plus step 5, the image refinement; /3 is /2 plus a level detected on a finer one's map.
+CONTRACT, CONTRACT_IMAGE_REFINE, CONTRACT_DETECT_LEVEL = CONTRACTS
 
 OPSET = 17
 
@@ -163,6 +165,19 @@ def image_refine_metadata(spec: str, levels: int) -> dict[str, str]:
     return md
 
 
+def detect_level_metadata(spec: str, md: dict[str, str]) -> dict[str, str]:
+    """`--detect-level 0,1,0,3` -> the sfp-extractor/3 keys (the level whose score map finds each
+    level's keypoints); `md` must already be of contract /2 (/3 is /2 plus this key)."""
+    if md.get("sfp.contract") != CONTRACT_IMAGE_REFINE:
+        raise SystemExit(f"--detect-level {spec!r} needs --image-refine (contract /3 is /2 plus the key)")
+    out = {"sfp.contract": CONTRACT_DETECT_LEVEL, "sfp.detect_level": spec}
+    try:
+        detect_levels(out, int(md["sfp.levels"]))  # the extractor's rules
+    except ValueError as e:
+        raise SystemExit(f"--detect-level {spec!r}: {e}")
+    return out
+
+
 def checked_detection(md: dict[str, str], origin) -> None:
     """Holds `md`'s detection defaults to the extractor's rules (python/sfp/reference.py, as
     src/extract/contract.rs), naming `origin(key)` where they fail, and writes them back as the
@@ -180,9 +195,11 @@ def checked_detection(md: dict[str, str], origin) -> None:
             md[key] = ",".join(repr(float(v)) for v in md[key].split(","))
 
 
-def retag(src: str, out: str, name: str, refine: str | None, detection: dict[str, str]):
+def retag(src: str, out: str, name: str, refine: str | None, detection: dict[str, str],
+          detect_level: str | None = None):
     """An exported model's network under new metadata: its name, where the network came from,
-    with `refine` contract /2, and the detection defaults in `detection` (metadata key: value)."""
+    with `refine` contract /2 (and `detect_level` /3), and the detection defaults in `detection`
+    (metadata key: value)."""
     import onnx
 
     data = open(src, "rb").read()
@@ -190,13 +207,15 @@ def retag(src: str, out: str, name: str, refine: str | None, detection: dict[str
     md = {p.key: p.value for p in m.metadata_props}
     if not md.get("sfp.contract", "").startswith("sfp-extractor/"):
         raise SystemExit(f"{src}: not an SFP model (no sfp.contract)")
-    for k in ("sfp.image_refine_sigma", "sfp.image_refine_radius"):
+    for k in ("sfp.image_refine_sigma", "sfp.image_refine_radius", "sfp.detect_level"):
         md.pop(k, None)
     md["sfp.contract"] = CONTRACT
     md["sfp.model_name"] = name
     md["sfp.network_from"] = f"{os.path.basename(src)} sha256 {hashlib.sha256(data).hexdigest()}"
     if refine:
         md.update(image_refine_metadata(refine, int(md["sfp.levels"])))
+    if detect_level:
+        md.update(detect_level_metadata(detect_level, md))
     md.update(detection)
     passed = {"sfp.default_threshold": "--threshold", "sfp.default_max_keypoints": "--max-keypoints"}
     checked_detection(md, lambda key: passed[key] if key in detection else (
@@ -248,6 +267,9 @@ def main():
     ap.add_argument("--image-refine", default=None, metavar="SIGMAS/RADII",
                     help="sfp-extractor/2: refine each level's keypoints on the image (step 5), e.g. "
                          "1.5,2.5,3,4/2,3,4,5 (sigma and radius per level, input pixels; 0: not refined)")
+    ap.add_argument("--detect-level", default=None, metavar="LEVELS",
+                    help="sfp-extractor/3 (with --image-refine): per level, the level whose score map its "
+                         "keypoints are detected on, itself or a finer one, e.g. 0,1,0,3")
     args = ap.parse_args()
     if args.ckpt.endswith(".onnx"):
         if not args.model_name or not args.out:
@@ -256,7 +278,7 @@ def main():
             raise SystemExit(f"-o {args.out}: the input itself (write another file)")
         detection = {k: v for k, v in (("sfp.default_threshold", args.threshold),
                                        ("sfp.default_max_keypoints", args.max_keypoints)) if v is not None}
-        retag(args.ckpt, args.out, args.model_name, args.image_refine, detection)
+        retag(args.ckpt, args.out, args.model_name, args.image_refine, detection, args.detect_level)
         h = hashlib.sha256(open(args.out, "rb").read()).hexdigest()
         print(f"wrote {args.out}: {os.path.getsize(args.out)} bytes, sha256 {h}")
         return
@@ -280,6 +302,8 @@ def main():
     args.out = args.out or os.path.join("models", f"{name}.onnx")  # never a student over sfp-v1.onnx
     if args.image_refine:
         extra.update(image_refine_metadata(args.image_refine, len(net.dims)))
+    if args.detect_level:
+        extra.update(detect_level_metadata(args.detect_level, {**extra, "sfp.levels": str(len(net.dims))}))
     md = contract_metadata(net, extra, "0.5" if args.threshold is None else args.threshold, name)
     checked_detection(md, lambda key: "--threshold")
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)

@@ -24,7 +24,7 @@ from PIL import Image
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
 from sfp.reference import (CONTRACTS, default_max_keypoints, default_thresholds,  # noqa: E402  (numpy only)
-                           image_refine_levels, level_features)
+                           detect_levels, image_refine_levels, level_features)
 
 
 def check_h5(path, reference=None, name=None):
@@ -118,7 +118,8 @@ def main():
     image_refines = image_refine_levels(md, len(strides))
     for i, (px, short, full, v) in enumerate(level_features(feats, scores, strides, radius, thr, tops,
                                                              refine_to=refine_to, image=gray,
-                                                             image_refines=image_refines)):
+                                                             image_refines=image_refines,
+                                                             detect_on=detect_levels(md, len(strides)))):
         levels.append({
             "level": ids[i],
             "stride": strides[i],

@@ -103,7 +103,7 @@ def refine_on(finer, finer_stride, radius, px):
 
 
 # The contracts (spec/extractor.md; src/extract/contract.rs: CONTRACTS): /2 is /1 plus step 5.
-CONTRACTS = ("sfp-extractor/1", "sfp-extractor/2")
+CONTRACTS = ("sfp-extractor/1", "sfp-extractor/2", "sfp-extractor/3")
 # Step 5's ranges and ratio (src/extract/image_refine.rs: MIN_SIGMA, MAX_SIGMA, MAX_RADIUS, SIGMA_RATIO).
 MIN_SIGMA, MAX_SIGMA, MAX_RADIUS = 0.5, 6.0, 8
 SIGMA_RATIO = 1.6
@@ -201,6 +201,27 @@ def image_refine_levels(metadata, levels):
     return out
 
 
+def detect_levels(metadata, levels):
+    """Per level, the level index whose score map its keypoints are detected on
+    (`sfp.detect_level`, sfp-extractor/3, which requires it; each level itself before), as
+    src/extract/contract.rs reads it (a ValueError where it refuses the model)."""
+    key = "sfp.detect_level"
+    contract = metadata.get("sfp.contract")
+    if contract != CONTRACTS[2]:
+        if key in metadata:
+            raise ValueError(f"{key} needs sfp.contract = {CONTRACTS[2]}")
+        return list(range(levels))
+    if key not in metadata:
+        raise ValueError(f"{key} missing ({contract} needs it)")
+    items = [v.strip() for v in metadata[key].split(",")]
+    if len(items) != levels or not all(re.fullmatch(r"[+]?[0-9]+", v) for v in items):
+        raise ValueError(f"{key} = {metadata[key][:80]!r}: one level index a level")
+    values = [int(v) for v in items]
+    if any(d > i for i, d in enumerate(values)):
+        raise ValueError(f"{key} = {values}: a level is detected on itself or a finer level")
+    return values
+
+
 # The most keypoints a level may keep (src/extract/contract.rs: MAX_KEYPOINTS).
 MAX_KEYPOINTS = 1_000_000
 
@@ -239,7 +260,7 @@ def default_thresholds(metadata, levels):
 
 
 def level_features(feats, scores, strides, radius, thr, topk, refine=True, refine_to=None,
-                   image=None, image_refines=None):
+                   image=None, image_refines=None, detect_on=None):
     """Per level: (pixels with the pixel-centre origin at 0, short, full, scores).
 
     `feats[i]` is [C_i, h_i, w_i], `scores[i]` [h_i, w_i]; `thr` is one threshold or one a
@@ -249,20 +270,24 @@ def level_features(feats, scores, strides, radius, thr, topk, refine=True, refin
     level `refine_to` (the model's
     `sfp.refine_to_level`; None: one level only). With `refine`, a level whose entry of
     `image_refines` is (sigma, radius) then moves onto the grey input `image` (step 5).
+    `detect_on[i]` (sfp-extractor/3's `sfp.detect_level`; None: each level itself) is the level
+    whose score map level i's keypoints are detected on, and refined down from.
     """
     if refine_to is not None and not 0 <= refine_to < len(strides):
         raise ValueError(f"refine_to = {refine_to} is no level of {len(strides)}")
     thresholds = list(thr) if np.ndim(thr) else [thr] * len(strides)
     out = []
+    on = list(range(len(strides))) if detect_on is None else list(detect_on)
     for i, stride in enumerate(strides):
-        cells, v = detect(scores[i], radius, thresholds[i], topk[i])
-        px = cells * stride
-        if refine and i >= max(REFINE_FROM_LEVEL, 1):
-            finest = i - 1 if refine_to is None else min(refine_to, i - 1)
-            for j in range(i - 1, finest - 1, -1):
+        d = on[i]
+        cells, v = detect(scores[d], radius, thresholds[i], topk[i])
+        px = cells * strides[d]
+        if refine and d >= max(REFINE_FROM_LEVEL, 1):
+            finest = d - 1 if refine_to is None else min(refine_to, d - 1)
+            for j in range(d - 1, finest - 1, -1):
                 r = max(1, int(np.floor(strides[j + 1] / strides[j] / 2 + 0.5)))  # half up, as Rust
                 px = refine_on(scores[j], strides[j], r, px)
-            cells = px / stride
+        cells = px / stride
         if refine and image is not None and image_refines is not None and image_refines[i] is not None:
             px = image_refine(image, px, *image_refines[i])
             cells = px / stride

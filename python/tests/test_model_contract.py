@@ -18,7 +18,7 @@ from PIL import Image
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, os.path.join(REPO, "python"))
-from sfp.reference import CONTRACTS, default_thresholds, image_refine_levels  # noqa: E402  (numpy only)
+from sfp.reference import CONTRACTS, default_thresholds, detect_levels, image_refine_levels  # noqa: E402  (numpy only)
 MODEL = os.environ.get("SFP_MODEL", os.path.join(REPO, "models", "sfp-v2.onnx"))
 SHARED = os.environ.get("SFP_SHARED", os.path.normpath(os.path.join(REPO, "..", "shared")))
 SCENE_IMAGES = os.path.join(SHARED, "data", "scenes", "south-building", "images")
@@ -95,8 +95,6 @@ def test_default_thresholds_one_or_one_a_level_in_contract_2():
     md = meta()
     n = int(md["sfp.levels"])
     assert len(default_thresholds(md, n)) == n  # raises where the extractor refuses
-    if md["sfp.model_name"] == "sfp-v3":
-        assert default_thresholds(md, n) == [0.5, 0.5, np.float32(0.1), 0.5]
     v1, v2 = {"sfp.contract": CONTRACTS[0]}, {"sfp.contract": CONTRACTS[1]}
     assert default_thresholds({**v1, "sfp.default_threshold": "0.5"}, 4) == [0.5] * 4
     assert default_thresholds({**v2, "sfp.default_threshold": " 0.5, 0.5,0.1 ,0.5"}, 4)[2] == np.float32(0.1)
@@ -169,3 +167,25 @@ if __name__ == "__main__":
             print(f"FAIL {t.__name__}: {e!r}")
     print(f"{passed} passed, {failed} failed")
     sys.exit(1 if failed else 0)
+
+
+def test_detect_level_only_in_contract_3():
+    """sfp-extractor/3 is /2 plus `sfp.detect_level` (a level's keypoints found on a finer level's
+    score map); an older reader would detect each level on its own map, so /1 and /2 refuse it."""
+    md = meta()
+    n = int(md["sfp.levels"])
+    on = detect_levels(md, n)  # raises where the extractor refuses
+    assert all(d <= i for i, d in enumerate(on))
+    if md["sfp.model_name"] == "sfp-v3":
+        assert md["sfp.contract"] == CONTRACTS[2] and on == [0, 1, 0, 3]
+    v2, v3 = {"sfp.contract": CONTRACTS[1]}, {"sfp.contract": CONTRACTS[2]}
+    assert detect_levels(v2, 4) == [0, 1, 2, 3]
+    assert detect_levels({**v3, "sfp.detect_level": " 0,1, 0,3"}, 4) == [0, 1, 0, 3]
+    for contract, value in [(v2, "0,1,0,3"), (v3, None), (v3, "0,1,0"), (v3, "0,2,2,3"), (v3, "0,1,-1,3"),
+                            (v3, "0,1,0.5,3")]:
+        md = dict(contract) if value is None else {**contract, "sfp.detect_level": value}
+        try:
+            detect_levels(md, 4)
+        except ValueError:
+            continue
+        raise AssertionError(f"{contract} {value!r} accepted")

@@ -282,6 +282,9 @@ pub(super) fn camera_to_file(
 struct Tracks {
     /// Offsets of each level's features within a point's row.
     offsets: Vec<usize>,
+    /// Per level, the level whose score map finds its keypoints (`Contract::detect_levels`):
+    /// a level's score at an observation is that map's, as a query's detector would see it.
+    score_from: Vec<usize>,
     width: usize,
     levels: usize,
     features: Vec<f32>,
@@ -290,8 +293,9 @@ struct Tracks {
 }
 
 impl Tracks {
-    /// Zero sums for `points` points of levels of `dims` features each.
-    fn new(dims: &[usize], points: usize) -> Tracks {
+    /// Zero sums for `points` points of the contract's levels.
+    fn new(contract: &contract::Contract, points: usize) -> Tracks {
+        let dims = &contract.dims;
         let offsets: Vec<usize> = dims
             .iter()
             .scan(0, |at, &d| {
@@ -303,6 +307,7 @@ impl Tracks {
         let width = dims.iter().sum();
         Tracks {
             offsets,
+            score_from: contract.detect_levels.clone(),
             width,
             levels: dims.len(),
             features: vec![0.0; points * width],
@@ -328,7 +333,7 @@ impl Tracks {
             for (s, v) in row[self.offsets[j]..].iter_mut().zip(buf.iter()) {
                 *s += v;
             }
-            self.scores[point * self.levels + j] += level.score_at(x, y);
+            self.scores[point * self.levels + j] += dense.levels[self.score_from[j]].score_at(x, y);
         }
         self.counts[point] += 1;
     }
@@ -492,7 +497,7 @@ fn convert_images_of(
         (model, None)
     };
     let n_points = model.points3d().len();
-    let mut tracks = Tracks::new(&contract.dims, n_points);
+    let mut tracks = Tracks::new(&contract, n_points);
     let width = tracks.width;
     let mut global = vec![0.0f32; model.images().len() * contract.global_dim];
     // As the map records it: a `resize_max` input is already no larger than that side.
@@ -513,7 +518,7 @@ fn convert_images_of(
     // The level the snap level's keypoints are refined down to (the provenance says).
     let snap_finest = crate::extract::refined_to(&contract, snap_level, true);
     // The snap level's sums over moved observations (none kept without `--snap`).
-    let mut snapped = Tracks::new(&contract.dims, if snapping { n_points } else { 0 });
+    let mut snapped = Tracks::new(&contract, if snapping { n_points } else { 0 });
     // (point, image, moved pixel in the camera, COLMAP convention) of every moved observation.
     let mut moved: Vec<(u32, u32, [f32; 2])> = Vec::new();
     let mut ms = Vec::new();

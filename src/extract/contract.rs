@@ -1,4 +1,4 @@
-//! The model contracts `sfp-extractor/1` and `/2` (`spec/extractor.md`), read from the model's
+//! The model contracts `sfp-extractor/1`, `/2` and `/3` (`spec/extractor.md`), read from the model's
 //! ONNX `metadata_props`. Every number the extractor uses comes from here, never from constants.
 
 use super::image_refine::{self, ImageRefine};
@@ -7,11 +7,13 @@ use std::collections::BTreeMap;
 
 /// The contracts this extractor implements, oldest first. `/2` is `/1` plus step 5, the image
 /// refinement (`sfp.image_refine_sigma`, `sfp.image_refine_radius`): an extractor of `/1`
-/// would place such a model's keypoints pixels away from where its maps expect them.
-pub const CONTRACTS: [&str; 2] = ["sfp-extractor/1", "sfp-extractor/2"];
+/// would place such a model's keypoints pixels away from where its maps expect them. `/3` is
+/// `/2` plus `sfp.detect_level`: a level may find its keypoints on a finer level's score map,
+/// which an extractor of `/2` would not do.
+pub const CONTRACTS: [&str; 3] = ["sfp-extractor/1", "sfp-extractor/2", "sfp-extractor/3"];
 
 /// The newest contract this extractor implements.
-pub const CONTRACT: &str = CONTRACTS[1];
+pub const CONTRACT: &str = CONTRACTS[2];
 
 /// The largest NMS radius, in cells, a model's default or `--nms-radius` may ask for: the
 /// suppression (and DKD's window) costs its square per keypoint.
@@ -63,6 +65,11 @@ pub struct Contract {
     /// Per level, the image refinement of step 5 (`sfp-extractor/2`); `None` for a level
     /// without it, and for every level of a `/1` model.
     pub image_refine: Vec<Option<ImageRefine>>,
+    /// Per level, the index of the level whose score map its keypoints are detected on
+    /// (`sfp.detect_level`, `/3`): the level itself, or a finer one. A level detected on
+    /// another keeps its own threshold, cap and image refinement, and its own descriptors.
+    /// `[0, 1, …]` (each level its own) for `/1` and `/2` models.
+    pub detect_levels: Vec<usize>,
     /// Every `sfp.*` key, for provenance.
     pub raw: BTreeMap<String, String>,
 }
@@ -269,6 +276,16 @@ impl Contract {
                     .into(),
             ));
         }
+        let detect_levels = detect_levels(version, levels, &get, &bad)?;
+        if descriptor_head == DescriptorHead::Sddh
+            && detect_levels.iter().enumerate().any(|(i, &d)| d != i)
+        {
+            return Err(bad(
+                "sfp.detect_level moves a level onto another's score map, and \
+                 sfp.descriptor_head = sddh has one level"
+                    .into(),
+            ));
+        }
         let raw = keys
             .iter()
             .filter(|k| k.starts_with("sfp."))
@@ -293,6 +310,7 @@ impl Contract {
             min_input_side,
             refine_to_level,
             image_refine,
+            detect_levels,
             raw,
         })
     }
@@ -415,6 +433,46 @@ fn image_refine_levels(
         )));
     }
     Ok(levels)
+}
+
+/// `sfp.detect_level`: per level, finest first, the level index whose score map its keypoints
+/// are detected on, that level or a finer one (`/3`, which requires it); refused in a `/1` or
+/// `/2` model, whose extractors would ignore it.
+fn detect_levels(
+    version: &str,
+    levels: usize,
+    get: &impl Fn(&str) -> Option<String>,
+    bad: &dyn Fn(String) -> ExtractError,
+) -> Result<Vec<usize>, ExtractError> {
+    const KEY: &str = "sfp.detect_level";
+    let value = get(KEY);
+    if version != CONTRACTS[2] {
+        return match value {
+            Some(_) => Err(bad(format!(
+                "{KEY} needs sfp.contract = {:?}, not {version:?}",
+                CONTRACTS[2]
+            ))),
+            None => Ok((0..levels).collect()),
+        };
+    }
+    let value =
+        value.ok_or_else(|| bad(format!("metadata key {KEY:?} missing ({version} needs it)")))?;
+    let quoted = || format!("{:?}", value.chars().take(80).collect::<String>());
+    let values: Vec<usize> =
+        list(&value).ok_or_else(|| bad(format!("{KEY} = {} is not a number list", quoted())))?;
+    if values.len() != levels {
+        return Err(bad(format!(
+            "{KEY} has {} values for sfp.levels = {levels}",
+            values.len()
+        )));
+    }
+    if let Some((i, &d)) = values.iter().enumerate().find(|&(i, &d)| d > i) {
+        return Err(bad(format!(
+            "{KEY} = {}: level {i} is detected on level {d}, which is not it or a finer one",
+            quoted()
+        )));
+    }
+    Ok(values)
 }
 
 #[cfg(test)]
@@ -646,6 +704,45 @@ mod tests {
         let e = parse(&m).unwrap_err().to_string();
         assert!(
             e.contains("needs sfp.contract = \"sfp-extractor/2\""),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn contract_3_detects_a_level_on_a_finer_ones_score_map() {
+        let v3 = |detect: Option<&str>| {
+            let mut m = sfp_v2_contract("1.5,2.5,1.5,4", "2,3,2,5");
+            m.insert("sfp.contract".into(), "sfp-extractor/3".into());
+            if let Some(d) = detect {
+                m.insert("sfp.detect_level".into(), d.into());
+            }
+            m
+        };
+        let c = parse(&v3(Some("0,1,0,3"))).unwrap();
+        assert_eq!(
+            (c.version, c.detect_levels),
+            ("sfp-extractor/3", vec![0, 1, 0, 3])
+        );
+        // /1 and /2 models detect every level on its own map.
+        assert_eq!(parse(&sfp_v1()).unwrap().detect_levels, [0, 1, 2, 3]);
+        for (m, words) in [
+            (v3(None), "missing"),
+            (v3(Some("0,1,0")), "has 3 values"),
+            (v3(Some("0,2,2,3")), "level 1 is detected on level 2"),
+            (v3(Some("0,1,-1,3")), "not a number list"),
+        ] {
+            let e = parse(&m).unwrap_err().to_string();
+            assert!(
+                e.contains("sfp.detect_level") && e.contains(words),
+                "{words}: {e}"
+            );
+        }
+        // Older extractors would detect each level on its own map: the key needs /3.
+        let mut m = sfp_v2_contract("1.5,2.5,1.5,4", "2,3,2,5");
+        m.insert("sfp.detect_level".into(), "0,1,0,3".into());
+        let e = parse(&m).unwrap_err().to_string();
+        assert!(
+            e.contains("needs sfp.contract = \"sfp-extractor/3\""),
             "{e}"
         );
     }

@@ -310,14 +310,16 @@ impl DetectOptions {
 /// gains at 1 px but loses repeatability, so it is left as detected.
 pub(crate) const REFINE_FROM_LEVEL: usize = 2;
 
-/// The finest level level `i`'s keypoints are refined down to (`i` itself: not refined):
-/// with `refine` (the extractors' option, on by default), levels from [`REFINE_FROM_LEVEL`]
-/// on, walking down to the model's `sfp.refine_to_level`; never a descriptor head's.
+/// The finest level level `i`'s keypoints are refined down to (the level they are detected
+/// on, `Contract::detect_levels`, itself: not refined): with `refine` (the extractors'
+/// option, on by default), keypoints detected on levels from [`REFINE_FROM_LEVEL`] on,
+/// walking down to the model's `sfp.refine_to_level`; never a descriptor head's.
 pub(crate) fn refined_to(c: &Contract, i: usize, refine: bool) -> usize {
-    if refine && c.descriptor_head != DescriptorHead::Sddh && i >= REFINE_FROM_LEVEL.max(1) {
-        keypoints::finest_refined_level(c.refine_to_level, i)
+    let d = c.detect_levels[i];
+    if refine && c.descriptor_head != DescriptorHead::Sddh && d >= REFINE_FROM_LEVEL.max(1) {
+        keypoints::finest_refined_level(c.refine_to_level, d)
     } else {
-        i
+        d
     }
 }
 
@@ -328,7 +330,8 @@ pub(crate) fn refined_to(c: &Contract, i: usize, refine: bool) -> usize {
 const SAMPLE_WORK: usize = 100;
 
 /// Level `i`'s detector peaks (steps 1–2: NMS, the level's threshold, at most `max`), in
-/// cells; cheap next to placing and describing them. `convert --images --snap` and
+/// cells of the level it is detected on (`Contract::detect_levels`); cheap next to placing
+/// and describing them. `convert --images --snap` and
 /// `--triangulate` place them too ([`placed`]).
 pub(crate) fn level_peaks(
     c: &Contract,
@@ -339,7 +342,8 @@ pub(crate) fn level_peaks(
 ) -> Vec<keypoints::Peak> {
     let threshold = options.threshold.unwrap_or(c.default_thresholds[i]);
     let radius = options.nms_radius.unwrap_or(c.default_nms_radius) as usize;
-    let level = &dense.levels[i];
+    // `sfp.detect_level` (`/3`): the score map this level's keypoints are found on.
+    let level = &dense.levels[c.detect_levels[i]];
     match c.detector {
         Detector::Nms => keypoints::detect(level.score_map(), radius, threshold, max),
         Detector::Dkd => dkd::detect(level.score_map(), radius, threshold, max),
@@ -356,10 +360,13 @@ pub(crate) fn placed(
     peaks: &[keypoints::Peak],
     options: &DetectOptions,
 ) -> Vec<(f32, f32)> {
-    let s = dense.levels[i].stride as f32;
+    // The peaks are cells of the level they were detected on; coarse-to-fine refinement
+    // walks down from there, the image refinement is level `i`'s own.
+    let d = c.detect_levels[i];
+    let s = dense.levels[d].stride as f32;
     let mut px: Vec<(f32, f32)> = peaks.iter().map(|p| (p.x * s, p.y * s)).collect();
     let finest = refined_to(c, i, options.refine.unwrap_or(true));
-    let finer: Vec<(f32, ScoreMap<'_>)> = (finest..i)
+    let finer: Vec<(f32, ScoreMap<'_>)> = (finest..d)
         .rev()
         .map(|j| (dense.levels[j].stride as f32, dense.levels[j].score_map()))
         .collect();

@@ -445,20 +445,21 @@ fn an_sfp_map_is_not_both_snapped_and_triangulated() {
     assert!(!out.exists());
 }
 
-/// (issue 36) A model may give each level its own threshold: sfp-v3's level 2 keeps points
-/// from a mean score of 0.1, its other levels from 0.5, and each level records its own;
-/// `score_threshold` holds every level to one.
+/// (issue 36) A level is a member where the query's detector would find it: sfp-v3's level 2
+/// is detected on level 0's score map (`sfp.detect_level`), so its points are scored there and
+/// are level 0's points; each level records its threshold, and `score_threshold` holds every
+/// level to one.
 #[cfg(feature = "onnx")]
 #[test]
-fn an_sfp_map_assigns_each_level_by_its_own_threshold() {
+fn an_sfp_map_scores_each_level_on_the_map_it_is_detected_on() {
     let Some(scene) = shared_data::shared_data("scenes/sacre-coeur") else {
         return;
     };
     let tmp = tempfile::tempdir().unwrap();
-    let convert = |threshold: Option<f32>| {
+    let convert = |model: &str, threshold: Option<f32>| {
         let out = tmp.path().join("m.sfpm");
         let mut options = sfpmap::build::SfpMapOptions::new(scene.join("images"));
-        options.extractor.model = Some("sfp-v3".into());
+        options.extractor.model = Some(model.into());
         options.score_threshold = threshold;
         let summary =
             sfpmap::build::convert_with_images(&scene.join("sparse-map"), &options, &out, &Silent)
@@ -470,15 +471,14 @@ fn an_sfp_map_assigns_each_level_by_its_own_threshold() {
         let points: Vec<usize> = summary.convert.levels.iter().map(|l| l.points).collect();
         (summary.score_thresholds, recorded, points)
     };
-    let (own, recorded, points) = convert(None);
-    assert_eq!(own, [0.5, 0.5, 0.1, 0.5]);
-    assert_eq!(recorded, [0.5, 0.5, f64::from(0.1f32), 0.5]);
-    let (one, recorded, at_half) = convert(Some(0.5));
-    assert_eq!((one, recorded), (vec![0.5; 4], vec![0.5; 4]));
-    // Level 2 alone gains points; the others are the same.
-    assert!(points[2] > at_half[2] * 3 / 2, "{points:?} {at_half:?}");
-    assert_eq!(
-        (points[0], points[1], points[3]),
-        (at_half[0], at_half[1], at_half[3])
-    );
+    let (own, recorded, points) = convert("sfp-v3", None);
+    assert_eq!((own, recorded), (vec![0.5; 4], vec![0.5; 4]));
+    assert_eq!(points[2], points[0], "{points:?}");
+    // sfp-v2 (same network) scores level 2 on its own, coarser map: other points.
+    let (_, _, v2) = convert("sfp-v2", None);
+    assert_ne!(v2[2], points[2], "{v2:?} {points:?}");
+    assert_eq!((v2[0], v2[1], v2[3]), (points[0], points[1], points[3]));
+    let (one, recorded, low) = convert("sfp-v3", Some(0.2));
+    assert_eq!((one, recorded), (vec![0.2; 4], vec![f64::from(0.2f32); 4]));
+    assert!(low[2] > points[2] && low[2] == low[0], "{low:?} {points:?}");
 }

@@ -292,9 +292,11 @@ fn refined_against_the_default(
     (refined, input, moved)
 }
 
-/// sfp-v2's levels of `input`, each detected with `contract`'s threshold and cap of that
-/// level, and refined (step 4) or not: what a model of sfp-v2's network with detection
-/// defaults of its own gives before any refinement of its own.
+/// sfp-v2's levels of `input` as `contract` detects them: level i's keypoints found on the
+/// score map of level `detect_levels[i]` with level i's threshold and cap, and refined (step 4)
+/// or not. What a model of sfp-v2's network with detection rules of its own gives before any
+/// refinement on the image; the descriptors are the detecting level's (compare positions and
+/// scores only where a level is detected on another).
 fn sfp_v2_levels_detected_as(
     contract: &sfpmap::extract::contract::Contract,
     input: &image::GrayInput,
@@ -306,14 +308,17 @@ fn sfp_v2_levels_detected_as(
     let dense = sfp_v2.run(input).unwrap();
     (contract.default_thresholds.iter().enumerate())
         .map(|(i, &threshold)| {
+            let d = contract.detect_levels[i];
+            let mut max_keypoints = contract.default_max_keypoints.clone();
+            max_keypoints[d] = contract.default_max_keypoints[i];
             let options = DetectOptions {
                 threshold: Some(threshold),
-                max_keypoints: Some(contract.default_max_keypoints.clone()),
+                max_keypoints: Some(max_keypoints),
                 refine: Some(refine),
                 ..own_size()
             };
             let features = sfp_v2.features(&dense, input.original_size, &options);
-            features.unwrap().levels.swap_remove(i)
+            features.unwrap().levels.swap_remove(d)
         })
         .collect()
 }
@@ -367,11 +372,11 @@ fn a_model_refined_down_to_level_0_matches_the_python_reference() {
     }
 }
 
-/// The built-in sfp-v3 (`sfp-extractor/2`: sfp-v2's network, keypoints refined on the image)
-/// moves every level's keypoints onto the image's blobs as the Python reference does
-/// (`python/sfp/reference.py`, `image_refine`); every keypoint's score and order stay sfp-v2's
-/// detected with sfp-v3's per-level thresholds and caps, and `refine: false` gives those
-/// keypoints exactly.
+/// The built-in sfp-v3 (`sfp-extractor/3`: sfp-v2's network, level 2 detected on level 0's
+/// score map, keypoints refined on the image) gives what the Python reference does
+/// (`python/sfp/reference.py`) and moves every level's keypoints onto the image's blobs; every
+/// keypoint's score and order stay sfp-v2's detected on the detecting level's map with sfp-v3's
+/// per-level thresholds and caps, and `refine: false` gives those keypoints exactly.
 #[test]
 fn sfp_v3_refined_on_the_image_matches_the_python_reference() {
     let dir = tempfile::tempdir().unwrap();
@@ -382,24 +387,41 @@ fn sfp_v3_refined_on_the_image_matches_the_python_reference() {
         .expect("sfp-v3 is built in");
     std::fs::write(&model, bytes).unwrap();
     let (mut refined, input, moved) = refined_against_the_default(&model, dir.path());
-    assert_eq!(refined.contract().version, "sfp-extractor/2");
+    assert_eq!(refined.contract().version, "sfp-extractor/3");
     for (level, moved, n) in moved {
         // Most keypoints have a blob within their radius; an edge or a flat patch has none.
         assert!(moved * 2 > n, "level {level}: {moved} of {n} moved");
     }
-    // Its level 2 keeps more keypoints than sfp-v2's (threshold 0.1, at most 2000): the
-    // level-2 maps' points and the queries' matches (models/sfp-v3.md).
+    // Its level 2 is found on level 0's score map, at most 2000 keypoints, refined as level
+    // 0's: the level-2 maps' points and the queries' matches (models/sfp-v3.md).
     let c = refined.contract().clone();
-    assert_eq!(c.default_thresholds, [0.5, 0.5, 0.1, 0.5]);
+    assert_eq!(c.detect_levels, [0, 1, 0, 3]);
     assert_eq!(c.default_max_keypoints, [2000, 1000, 2000, 250]);
+    assert_eq!(c.image_refine[2], c.image_refine[0]);
     let unrefined = DetectOptions {
         refine: Some(false),
         ..own_size()
     };
-    assert_eq!(
-        refined.extract(&input, &unrefined).unwrap().levels,
-        sfp_v2_levels_detected_as(&c, &input, false)
-    );
+    let ours = refined.extract(&input, &unrefined).unwrap().levels;
+    let theirs = sfp_v2_levels_detected_as(&c, &input, false);
+    for (i, (ours, theirs)) in ours.iter().zip(&theirs).enumerate() {
+        if c.detect_levels[i] == i {
+            assert_eq!(ours, theirs);
+        } else {
+            assert_eq!(
+                (&ours.keypoints, &ours.scores),
+                (&theirs.keypoints, &theirs.scores)
+            );
+            assert_eq!(
+                (ours.level, ours.dim_short),
+                (2, 64),
+                "level 2's own descriptors"
+            );
+        }
+    }
+    // Level 2 and level 0 share the map, the threshold, the cap and the refinement: the same
+    // keypoints, described by each level's own features.
+    assert_eq!(ours[2].keypoints, ours[0].keypoints);
 }
 
 /// Every built-in model opens under its own name, with a contract this extractor runs.
