@@ -80,7 +80,7 @@ pub struct Args {
     #[arg(long, conflicts_with_all = ["database", "features", "global_features", "short_dims", "aggregate", "strict", "memory"])]
     pub images: Option<PathBuf>,
     /// With --images: an ONNX model of the sfp-extractor/1 or /2 contract or a built-in
-    /// model's name (sfp-v2, sfp-v1, sfp-v2s, sfp-v3, aliked-n16); default: the built-in sfp-v2.
+    /// model's name (sfp-v3, sfp-v2, sfp-v1, sfp-v2s, aliked-n16); default: the built-in sfp-v3.
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images")]
     pub model: Option<PathBuf>,

@@ -14,7 +14,7 @@ use std::time::Instant;
 /// Writes hloc's `features.h5` layout: one group per image name (relative to the folder given)
 /// with `keypoints` [N×2], `descriptors` [D×N] (f16), `scores`, `image_size` of the `--level`
 /// level, and `level<id>_…` datasets for every level (spec/extractor.md, "features.h5 layout"). The
-/// model is the embedded sfp-v2 unless `--model` is given; ONNX Runtime is fetched on first
+/// model is the embedded sfp-v3 unless `--model` is given; ONNX Runtime is fetched on first
 /// use (see `sfpmap setup`). Example: `sfpmap extract images/ -o features.h5`
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -25,7 +25,7 @@ pub struct Args {
     #[arg(short, long)]
     pub output: PathBuf,
     /// An ONNX model of the sfp-extractor/1 or /2 contract or a built-in model's name
-    /// (sfp-v2, sfp-v1, sfp-v2s, sfp-v3, aliked-n16); default: the built-in sfp-v2.
+    /// (sfp-v3, sfp-v2, sfp-v1, sfp-v2s, aliked-n16); default: the built-in sfp-v3.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// ONNX Runtime intra-op threads (capped at 4 per core, at most 256, with a warning).
@@ -60,7 +60,7 @@ pub struct Args {
     pub global_max_side: u32,
     /// Keep keypoints where the quadratic fit on their own score map puts them: no
     /// coarse-to-fine refinement of levels 2 and deeper, and no refinement on the image of an
-    /// sfp-extractor/2 model (spec/extractor.md steps 4 and 5).
+    /// sfp-extractor/2 or /3 model (spec/extractor.md steps 4 and 5).
     #[arg(long)]
     pub no_refine: bool,
     /// Print one JSON object: images, keypoints per level, ms per image, output bytes.

@@ -126,8 +126,8 @@ pub struct Args {
     #[cfg(feature = "hdf5")]
     #[arg(long, conflicts_with = "catalog")]
     pub global_features: Option<PathBuf>,
-    /// Model for query extraction: a file, or a built-in model's name (sfp-v2, sfp-v1, sfp-v2s,
-    /// sfp-v3, aliked-n16); default: the built-in model the map was made with (another model
+    /// Model for query extraction: a file, or a built-in model's name (sfp-v3, sfp-v2, sfp-v1, sfp-v2s,
+    /// aliked-n16); default: the built-in model the map was made with (another model
     /// runs as asked, with a warning).
     #[arg(long)]
     pub model: Option<PathBuf>,

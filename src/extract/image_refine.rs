@@ -1,4 +1,4 @@
-//! Image refinement (`spec/extractor.md` step 5, `sfp-extractor/2`): a keypoint moves to the
+//! Image refinement (`spec/extractor.md` step 5, `sfp-extractor/2` and `/3`): a keypoint moves to the
 //! nearest sharp blob of the input image itself, the peak of a difference of Gaussians at the
 //! level's scale, fitted to sub-pixel precision.
 //!

@@ -45,28 +45,31 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, MutexGuard};
 
-/// The default model, embedded so the CLI works from any folder without `--model`: sfp-v2,
-/// sfp-v1 distilled into a stem of one stride-2 convolution (`models/sfp-v2.md`: the same
-/// localization and retrieval recall@5 on the shared scenes at 0.57x sfp-v1's network time).
-pub static DEFAULT_MODEL: &[u8] = include_bytes!("../../models/sfp-v2.onnx");
+/// The default model, embedded so the CLI works from any folder without `--model`: sfp-v3,
+/// sfp-v2's network with its keypoints refined on the image and level 2's found on level 0's
+/// score map (`models/sfp-v3.md`: more precise than sfp-v2 on every shared and held-out scene
+/// at about its bytes, with its recall and retrieval).
+pub static DEFAULT_MODEL: &[u8] = include_bytes!("../../models/sfp-v3.onnx");
 /// How the embedded model is named in errors and provenance.
-pub(crate) const DEFAULT_MODEL_NAME: &str = "models/sfp-v2.onnx (embedded)";
+pub(crate) const DEFAULT_MODEL_NAME: &str = "models/sfp-v3.onnx (embedded)";
 /// How a built-in model's name ends ([`builtin_name`]).
 const BUILTIN_SUFFIX: &str = " (embedded)";
 
 /// The models built into the library, by their `sfp.model_name`; the first is
-/// [`DEFAULT_MODEL`]. `sfp-v1` was the default until sfp-v2 (`models/sfp-v1.md`), `sfp-v2s`
+/// [`DEFAULT_MODEL`]. `sfp-v1` was the default until sfp-v2 (`models/sfp-v1.md`), `sfp-v2`
+/// until sfp-v3 (`models/sfp-v2.md`: sfp-v1 distilled into a one-convolution stem), `sfp-v2s`
 /// is sfp-v1 distilled into a two-convolution strided stem (`models/sfp-v2s.md`), `aliked-n16`
 /// is ALIKED-N16 (BSD-3-Clause; `models/aliked-n16.md`: one level of 128-d descriptors from
 /// its SDDH head, no global descriptor), `sfp-v3` is sfp-v2's network with its keypoints
-/// refined on the image (`sfp-extractor/2`, `models/sfp-v3.md`). A map records its model's
+/// refined on the image and level 2's found on level 0's score map (`sfp-extractor/3`,
+/// `models/sfp-v3.md`). A map records its model's
 /// name, so `localize` finds the model a map was made with here; `--model NAME` picks one by
 /// name.
 pub static BUILTIN_MODELS: &[(&str, &[u8])] = &[
-    ("sfp-v2", DEFAULT_MODEL),
+    ("sfp-v3", DEFAULT_MODEL),
+    ("sfp-v2", include_bytes!("../../models/sfp-v2.onnx")),
     ("sfp-v1", include_bytes!("../../models/sfp-v1.onnx")),
     ("sfp-v2s", include_bytes!("../../models/sfp-v2s.onnx")),
-    ("sfp-v3", include_bytes!("../../models/sfp-v3.onnx")),
     ("aliked-n16", include_bytes!("../../models/aliked-n16.onnx")),
 ];
 
@@ -83,7 +86,7 @@ pub(crate) fn builtin_model(name: &str) -> Option<&'static [u8]> {
         .map(|(_, bytes)| *bytes)
 }
 
-/// The built-in models' names, for messages: "sfp-v2, sfp-v1, sfp-v2s, sfp-v3, aliked-n16".
+/// The built-in models' names, for messages: "sfp-v3, sfp-v2, sfp-v1, sfp-v2s, aliked-n16".
 #[cfg(feature = "localize")]
 pub(crate) fn builtin_model_names() -> String {
     BUILTIN_MODELS
@@ -265,7 +268,7 @@ pub struct DetectOptions {
     /// Cap per level, in level order; one value applies to every level.
     pub max_keypoints: Option<Vec<usize>>,
     /// The keypoints' refinement (`spec/extractor.md`): coarse to fine for levels from 2 on
-    /// (step 4) and, for a model of `sfp-extractor/2`, on the image (step 5); `None` = on.
+    /// (step 4) and, for a model of `sfp-extractor/2` or `/3`, on the image (step 5); `None` = on.
     pub refine: Option<bool>,
     /// The image size the global descriptor is computed at; the default is
     /// [`GLOBAL_MAX_SIDE`]. A query's must be its map's ([`GlobalSize::of_map`]).
@@ -485,7 +488,7 @@ pub struct Dense {
     /// L2-normalised global descriptor.
     pub global: Vec<f32>,
     /// The grey input the network ran on (`input_size`), kept only for a model whose
-    /// keypoints are refined on the image (`sfp-extractor/2`, step 5); else empty.
+    /// keypoints are refined on the image (`sfp-extractor/2` and `/3`, step 5); else empty.
     pub(crate) image: Vec<f32>,
 }
 
@@ -977,10 +980,10 @@ impl Extractor {
 
     /// Keypoints and descriptors of every level from the network's outputs, and the global
     /// descriptor of this inference (`dense.global`, [`GlobalSize::Input`]; [`Extractor::extract`]
-    /// takes it at [`DetectOptions::global`]'s size). With more than
-    /// one thread every level's peaks are found first, and the levels then shared out by
-    /// their work (peaks × (the full descriptor's sampling + the refinement on the image));
-    /// the result does not depend on it.
+    /// takes it at [`DetectOptions::global`]'s size). Levels detected alike share one
+    /// detection and placement. With more than one thread every placement's peaks are found
+    /// first, and the placements then shared out by their work (peaks × (the refinement on
+    /// the image + the full descriptors' sampling)); the result does not depend on it.
     pub fn features(
         &self,
         dense: &Dense,
@@ -1003,42 +1006,62 @@ impl Extractor {
             None => c.default_max_keypoints[i],
         };
         let n = dense.levels.len();
-        let threads = self.threads.min(n).max(1);
+        // Levels detected alike (the same score map, threshold, cap and image refinement:
+        // sfp-v3's levels 0 and 2) share one detection and placement; each is described by
+        // its own features. `groups[g]` = the levels of one placement, its first the lead.
+        let threshold_of = |i: usize| options.threshold.unwrap_or(c.default_thresholds[i]);
+        let alike = |i: usize, j: usize| {
+            c.detect_levels[i] == c.detect_levels[j]
+                && threshold_of(i).to_bits() == threshold_of(j).to_bits()
+                && max_of(i) == max_of(j)
+                && c.image_refine[i] == c.image_refine[j]
+        };
+        let mut groups: Vec<Vec<usize>> = Vec::new();
+        for i in 0..n {
+            match groups.iter_mut().find(|g| alike(g[0], i)) {
+                Some(g) => g.push(i),
+                None => groups.push(vec![i]),
+            }
+        }
+        let threads = self.threads.min(groups.len()).max(1);
         let mut levels: Vec<Option<LevelFeatures>> = vec![None; n];
+        let mut peaks: Vec<Vec<keypoints::Peak>> = (groups.iter())
+            .map(|g| level_peaks(c, dense, g[0], max_of(g[0]), options))
+            .collect();
         if threads == 1 {
-            for (i, out) in levels.iter_mut().enumerate() {
-                let peaks = level_peaks(c, dense, i, max_of(i), options);
-                *out = Some(self.level_features(dense, i, peaks, options)?);
+            for (g, peaks) in groups.iter().zip(peaks) {
+                for (i, f) in self.group_features(dense, g, peaks, options) {
+                    levels[i] = Some(f?);
+                }
             }
         } else {
-            // The peaks first (cheap), then the levels shared out by their work: longest job
-            // first onto the least loaded thread.
-            let mut peaks: Vec<Vec<keypoints::Peak>> = (0..n)
-                .map(|i| level_peaks(c, dense, i, max_of(i), options))
+            // The peaks first (cheap), then the groups shared out by their work: longest job
+            // first onto the least loaded thread. Work a keypoint, in the image refinement's
+            // multiply-adds: the blurs once, a bilinear sample per full dimension of each level.
+            let cost: Vec<usize> = (groups.iter().zip(&peaks))
+                .map(|(g, p)| {
+                    let refine = c.image_refine[g[0]].map_or(0, |r| r.work_per_keypoint());
+                    let sample: usize = g.iter().map(|&i| SAMPLE_WORK * c.full_dims[i]).sum();
+                    p.len().saturating_mul(refine + sample)
+                })
                 .collect();
-            // Work a keypoint, in the image refinement's multiply-adds: a bilinear sample per
-            // full dimension, and the blurs.
-            let per_keypoint = |i: usize| {
-                SAMPLE_WORK * c.full_dims[i]
-                    + c.image_refine[i].map_or(0, |r| r.work_per_keypoint())
-            };
-            let cost: Vec<usize> = (0..n)
-                .map(|i| peaks[i].len().saturating_mul(per_keypoint(i)))
-                .collect();
-            let mut jobs: Vec<usize> = (0..n).collect();
-            jobs.sort_by_key(|&i| std::cmp::Reverse(cost[i]));
+            let mut jobs: Vec<usize> = (0..groups.len()).collect();
+            jobs.sort_by_key(|&g| std::cmp::Reverse(cost[g]));
             let mut load = vec![0usize; threads];
             let mut share: Vec<Vec<(usize, Vec<keypoints::Peak>)>> = vec![Vec::new(); threads];
-            for i in jobs {
+            for g in jobs {
                 let t = (0..threads).min_by_key(|&t| load[t]).unwrap_or(0);
-                load[t] = load[t].saturating_add(cost[i]);
-                share[t].push((i, std::mem::take(&mut peaks[i])));
+                load[t] = load[t].saturating_add(cost[g]);
+                share[t].push((g, std::mem::take(&mut peaks[g])));
             }
+            let groups = &groups;
             let done: Vec<Vec<(usize, Result<LevelFeatures, ExtractError>)>> =
                 std::thread::scope(|s| {
                     let work = |mine: Vec<(usize, Vec<keypoints::Peak>)>| {
                         mine.into_iter()
-                            .map(|(i, peaks)| (i, self.level_features(dense, i, peaks, options)))
+                            .flat_map(|(g, peaks)| {
+                                self.group_features(dense, &groups[g], peaks, options)
+                            })
                             .collect::<Vec<_>>()
                     };
                     let mut share = share.into_iter();
@@ -1062,20 +1085,34 @@ impl Extractor {
         })
     }
 
-    /// Level `i`'s keypoints (its detector's `peaks`, placed) and their short and full
-    /// descriptors.
+    /// The levels of `group` (detected alike, the first the lead): the lead's `peaks` placed
+    /// once, then each level's short and full descriptors there.
+    fn group_features(
+        &self,
+        dense: &Dense,
+        group: &[usize],
+        peaks: Vec<keypoints::Peak>,
+        options: &DetectOptions,
+    ) -> Vec<(usize, Result<LevelFeatures, ExtractError>)> {
+        let px = placed(&self.contract, dense, group[0], &peaks, options);
+        (group.iter())
+            .map(|&i| (i, self.level_features(dense, i, &peaks, &px)))
+            .collect()
+    }
+
+    /// Level `i`'s keypoints (its detector's `peaks`, placed at `px`) and their short and
+    /// full descriptors.
     fn level_features(
         &self,
         dense: &Dense,
         i: usize,
-        peaks: Vec<keypoints::Peak>,
-        options: &DetectOptions,
+        peaks: &[keypoints::Peak],
+        px: &[(f32, f32)],
     ) -> Result<LevelFeatures, ExtractError> {
         let c = &self.contract;
         let level = &dense.levels[i];
-        let px = placed(c, dense, i, &peaks, options);
         if c.descriptor_head == DescriptorHead::Sddh {
-            return self.described_level(dense, i, &peaks, &px);
+            return self.described_level(dense, i, peaks, px);
         }
         // The levels' own channel counts (`run` checks them against the contract; a `Dense`
         // built by hand may differ, and then gets descriptors of its own sizes, not a panic).

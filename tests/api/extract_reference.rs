@@ -10,7 +10,7 @@
 use serde_json::Value;
 use sfpmap::extract::{
     image, DetectOptions, Extractor, ExtractorOptions, Features, GlobalSize, BUILTIN_MODELS,
-    DEFAULT_MODEL, GLOBAL_MAX_SIDE,
+    GLOBAL_MAX_SIDE,
 };
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -61,6 +61,15 @@ fn reference(model: &Path, image: &Path, dir: &Path) -> (PathBuf, Value) {
     (png, value)
 }
 
+/// The built-in sfp-v2 (the default before sfp-v3): a model of `sfp-extractor/1`.
+fn sfp_v2_bytes() -> &'static [u8] {
+    let (_, bytes) = BUILTIN_MODELS
+        .iter()
+        .find(|(name, _)| *name == "sfp-v2")
+        .expect("sfp-v2 is built in");
+    bytes
+}
+
 fn floats(v: &Value) -> Vec<f32> {
     v.as_array()
         .unwrap()
@@ -77,7 +86,7 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
 fn matches_the_python_onnxruntime_reference_on_a_real_image() {
     let dir = tempfile::tempdir().unwrap();
     // The Python side reads the file the embedded DEFAULT_MODEL is include_bytes! of.
-    let model = root().join("models/sfp-v2.onnx");
+    let model = root().join("models/sfp-v3.onnx");
     let (png, reference) = reference(&model, &scene_image(), dir.path());
 
     let mut extractor = Extractor::new(
@@ -358,7 +367,7 @@ fn own_size() -> DetectOptions {
 fn a_model_refined_down_to_level_0_matches_the_python_reference() {
     let dir = tempfile::tempdir().unwrap();
     let model = dir.path().join("sfp-v2-refined-to-0.onnx");
-    let mut bytes = DEFAULT_MODEL.to_vec();
+    let mut bytes = sfp_v2_bytes().to_vec();
     bytes.extend(metadata_entry("sfp.refine_to_level", "0"));
     std::fs::write(&model, &bytes).unwrap();
     let (refined, _, moved) = refined_against_the_default(&model, dir.path());
@@ -445,7 +454,7 @@ fn every_built_in_model_opens_under_its_name() {
 fn bad_models_are_refused_with_the_file_named() {
     let dir = tempfile::tempdir().unwrap();
     let corrupt = dir.path().join("corrupt.onnx");
-    let mut bytes = DEFAULT_MODEL.to_vec();
+    let mut bytes = sfp_v2_bytes().to_vec();
     bytes.truncate(bytes.len() / 3);
     std::fs::write(&corrupt, &bytes).unwrap();
     let garbage = dir.path().join("garbage.onnx");
@@ -453,11 +462,11 @@ fn bad_models_are_refused_with_the_file_named() {
     let missing = dir.path().join("missing.onnx");
     // Same length, so the protobuf stays valid: only the contract's value changes.
     let other = dir.path().join("other-contract.onnx");
-    let at = DEFAULT_MODEL
+    let at = sfp_v2_bytes()
         .windows(15)
         .position(|w| w == b"sfp-extractor/1")
         .expect("the model states its contract");
-    let mut bytes = DEFAULT_MODEL.to_vec();
+    let mut bytes = sfp_v2_bytes().to_vec();
     bytes[at + 14] = b'9';
     std::fs::write(&other, &bytes).unwrap();
     let err = Extractor::new(

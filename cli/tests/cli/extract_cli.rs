@@ -89,7 +89,7 @@ fn convert_images_builds_a_multilevel_map_that_slices_to_level_2_short() {
     assert_eq!(model.bytes, sfpmap::extract::DEFAULT_MODEL.len() as u64);
     assert_eq!(
         meta.provenance.parameters["contract"]["sfp.contract"],
-        "sfp-extractor/1"
+        "sfp-extractor/3"
     );
     let c = contract();
     assert!(map.level_ids().iter().all(|l| c.level_ids.contains(l)));
@@ -427,7 +427,7 @@ fn another_model_of_other_dimensions_is_refused_up_front() {
         (
             &sfp,
             os("aliked-n16"),
-            "\"sfp-v2\" (level 0: 240 dimensions)",
+            "\"sfp-v3\" (level 0: 240 dimensions)",
             "\"aliked-n16\"",
         ),
     ] {

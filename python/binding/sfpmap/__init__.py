@@ -594,7 +594,7 @@ class Localizer:
 
 
 class Extractor:
-    """The SFP extractor (``model=None``: the embedded sfp-v2). ONNX Runtime is found or
+    """The SFP extractor (``model=None``: the embedded sfp-v3). ONNX Runtime is found or
     fetched as the CLI does (``ORT_DYLIB_PATH``, the cache, ``sfpmap setup``). ``threads``
     as the CLI's ``--threads``: at least 1, capped at 4 per core (at most 256) with a
     ``RuntimeWarning``."""

@@ -30,7 +30,7 @@ def test_extract_equals_the_cli_features_h5(cli, shared, work, extractor):
     run_cli(cli, "extract", scene / "images" / name, "-o", h5, "--force")
     from_cli = sfpmap.read_features_h5(h5).features(name)
     mine = extractor.extract(scene / "images" / name)
-    assert extractor.descriptor == "sfp-v2"
+    assert extractor.descriptor == "sfp-v3"
     assert from_cli.levels == mine.levels == [0, 1, 2, 3]
     for level in mine.levels:
         assert np.array_equal(from_cli.keypoints(level), mine.keypoints(level))

@@ -362,13 +362,13 @@ def test_features_of_another_model_are_refused(cli, south_sfp, south_queries, so
     other = sfpmap.Extractor("sfp-v1").extract(scene / "images" / name)
     with sfpmap.Map(south_sfp) as m:
         descriptor = m.metadata["levels"][0]["descriptor"]
-        assert ours.model == descriptor == "sfp-v2" and other.model == "sfp-v1"
+        assert ours.model == descriptor == "sfp-v3" and other.model == "sfp-v1"
         loc = sfpmap.Localizer(m)
         with pytest.raises(sfpmap.LocalizeError) as e:
             loc.localize(other, camera, name=name)
         message = str(e.value)
         assert f'query "{name}": features of model "sfp-v1"' in message, message
-        assert f'the map {south_sfp} holds "sfp-v2" descriptors' in message, message
+        assert f'the map {south_sfp} holds "sfp-v3" descriptors' in message, message
         with pytest.raises(sfpmap.LocalizeError, match='features of model "sfp-v1"'):
             loc.localize_many([(other, camera, name)])
         # A sequence refuses them too, and goes on.
@@ -383,7 +383,7 @@ def test_features_of_another_model_are_refused(cli, south_sfp, south_queries, so
         assert as_arrays.model is None
         assert loc.localize(as_arrays, camera).colmap == loc.localize(ours, camera).colmap
         # The other model's features as arrays: no model to refuse, so they are matched (sfp-v1
-        # and sfp-v2 share their dimensions; these localize, as v1's student's would).
+        # and sfp-v3 share their dimensions; these localize, as v1's student's would).
         foreign = {l: (other.keypoints(l), other.descriptors(l)) for l in other.levels}
         assert loc.localize(foreign, camera).success
 
