@@ -68,7 +68,7 @@ fn bench(c: &mut Criterion) {
         ..Default::default()
     };
     let with_global = DetectOptions::default();
-    let name = model.as_deref().map_or("sfp-v2 (embedded)".into(), |m| {
+    let name = model.as_deref().map_or("sfp-v3 (embedded)".into(), |m| {
         m.file_stem()
             .unwrap_or_default()
             .to_string_lossy()

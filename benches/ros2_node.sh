@@ -8,7 +8,8 @@
 # and over the frames localized by tracking (each loop's first frame jumps back to the start and
 # retrieves), its stages, the peer's latency (published -> pose received), the counts, the
 # node's RSS after warm-up and at the end (the soak: growth target <= 5 MB over 10 minutes), and
-# the sfp-v2 network's time on this machine today as a reference.
+# the default model's extraction time on this machine today as a reference (sfp-v3 since stop
+# 54: sfp-v2's network, 1.14-1.25x its time a frame).
 #
 # Usage: benches/ros2_node.sh [SECONDS] [THREADS...]   (default 60 s, threads 1 and 2;
 #        `ROS2_BENCH_SCENES=vga benches/ros2_node.sh 600 2` is the 10-minute soak;
@@ -114,7 +115,7 @@ frames=$(ls "$root"/vga/images/*.jpg 2>/dev/null | head -8)
 if [ -n "$frames" ]; then
   for t in 1 2; do
     ms=$("$sfpmap" extract $frames -o "$root/speed.h5" --force --threads $t --json --quiet | f_ms)
-    echo "reference: the sfp-v2 network on a 1005x303 frame, $t thread(s): median $ms ms"
+    echo "reference: the default model (sfp-v3) on a 1005x303 frame, $t thread(s): median $ms ms"
   done
   rm -f "$root/speed.h5"
 fi

@@ -13,7 +13,8 @@ spec/extractor.md step 5); with --detect-level LEVELS, of sfp-extractor/3 (a lev
 detected on a finer level's score map). Given an .onnx file instead of a checkpoint, the network is kept as it
 is and only the metadata is rewritten (needs onnx, not torch); sfp-v3 is sfp-v2's network so:
   python3 python/export.py models/sfp-v2.onnx --model-name sfp-v3 -o models/sfp-v3.onnx \
-      --image-refine 1.5,2.5,3,4/2,3,4,5
+      --image-refine 1.5,2.5,1.5,4/2,3,2,5 --detect-level 0,1,0,3 \
+      --threshold 0.5,0.5,0.5,0.5 --max-keypoints 2000,1000,2000,250
 """
 from __future__ import annotations
 
@@ -172,9 +173,10 @@ def detect_level_metadata(spec: str, md: dict[str, str]) -> dict[str, str]:
         raise SystemExit(f"--detect-level {spec!r} needs --image-refine (contract /3 is /2 plus the key)")
     out = {"sfp.contract": CONTRACT_DETECT_LEVEL, "sfp.detect_level": spec}
     try:
-        detect_levels(out, int(md["sfp.levels"]))  # the extractor's rules
+        values = detect_levels(out, int(md["sfp.levels"]))  # the extractor's rules
     except ValueError as e:
         raise SystemExit(f"--detect-level {spec!r}: {e}")
+    out["sfp.detect_level"] = ",".join(str(v) for v in values)  # as the extractor reads it
     return out
 
 

@@ -79,7 +79,7 @@ pub struct Args {
     #[cfg(feature = "onnx")]
     #[arg(long, conflicts_with_all = ["database", "features", "global_features", "short_dims", "aggregate", "strict", "memory"])]
     pub images: Option<PathBuf>,
-    /// With --images: an ONNX model of the sfp-extractor/1 or /2 contract or a built-in
+    /// With --images: an ONNX model of the sfp-extractor/1, /2 or /3 contract or a built-in
     /// model's name (sfp-v3, sfp-v2, sfp-v1, sfp-v2s, aliked-n16); default: the built-in sfp-v3.
     #[cfg(feature = "onnx")]
     #[arg(long, requires = "images")]

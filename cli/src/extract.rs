@@ -24,7 +24,7 @@ pub struct Args {
     /// Output features.h5.
     #[arg(short, long)]
     pub output: PathBuf,
-    /// An ONNX model of the sfp-extractor/1 or /2 contract or a built-in model's name
+    /// An ONNX model of the sfp-extractor/1, /2 or /3 contract or a built-in model's name
     /// (sfp-v3, sfp-v2, sfp-v1, sfp-v2s, aliked-n16); default: the built-in sfp-v3.
     #[arg(long)]
     pub model: Option<PathBuf>,

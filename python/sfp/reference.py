@@ -102,7 +102,8 @@ def refine_on(finer, finer_stride, radius, px):
     return out
 
 
-# The contracts (spec/extractor.md; src/extract/contract.rs: CONTRACTS): /2 is /1 plus step 5.
+# The contracts (spec/extractor.md; src/extract/contract.rs: CONTRACTS): /2 is /1 plus step 5, /3 is
+# /2 plus sfp.detect_level.
 CONTRACTS = ("sfp-extractor/1", "sfp-extractor/2", "sfp-extractor/3")
 # Step 5's ranges and ratio (src/extract/image_refine.rs: MIN_SIGMA, MAX_SIGMA, MAX_RADIUS, SIGMA_RATIO).
 MIN_SIGMA, MAX_SIGMA, MAX_RADIUS = 0.5, 6.0, 8
@@ -218,7 +219,7 @@ def detect_levels(metadata, levels):
         raise ValueError(f"{key} = {metadata[key][:80]!r}: one level index a level")
     values = [int(v) for v in items]
     if any(d > i for i, d in enumerate(values)):
-        raise ValueError(f"{key} = {values}: a level is detected on itself or a finer level")
+        raise ValueError(f"{key} = {metadata[key][:80]!r}: a level is detected on itself or a finer level")
     return values
 
 

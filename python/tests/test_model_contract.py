@@ -1,4 +1,4 @@
-"""Contract test for a shipped model (spec/extractor.md): `SFP_MODEL`, default models/sfp-v2.onnx
+"""Contract test for a shipped model (spec/extractor.md): `SFP_MODEL`, default models/sfp-v3.onnx
 (the embedded default; CI runs it on every file of models/). Needs only onnxruntime, numpy, pillow.
 
     python3 -m pytest -q python/tests          # or, without pytest:
@@ -19,7 +19,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.normpath(os.path.join(HERE, "..", ".."))
 sys.path.insert(0, os.path.join(REPO, "python"))
 from sfp.reference import CONTRACTS, default_thresholds, detect_levels, image_refine_levels  # noqa: E402  (numpy only)
-MODEL = os.environ.get("SFP_MODEL", os.path.join(REPO, "models", "sfp-v2.onnx"))
+MODEL = os.environ.get("SFP_MODEL", os.path.join(REPO, "models", "sfp-v3.onnx"))
 SHARED = os.environ.get("SFP_SHARED", os.path.normpath(os.path.join(REPO, "..", "shared")))
 SCENE_IMAGES = os.path.join(SHARED, "data", "scenes", "south-building", "images")
 
@@ -85,8 +85,8 @@ def test_image_refinement_only_in_contract_2():
     has neither (its older readers would ignore them and place keypoints elsewhere)."""
     md = meta()
     levels = image_refine_levels(md, int(md["sfp.levels"]))  # raises where the extractor refuses
-    if md["sfp.contract"] == CONTRACTS[1]:
-        assert any(levels), "a /2 model refines some level"
+    if md["sfp.contract"] != CONTRACTS[0]:
+        assert any(levels), "a /2 or /3 model refines some level"
 
 
 def test_default_thresholds_one_or_one_a_level_in_contract_2():
@@ -154,21 +154,6 @@ def test_every_level_alive_on_real_image():
         assert kp >= 10, f"level {i}: only {kp} keypoints"
 
 
-if __name__ == "__main__":
-    tests = [v for k, v in sorted(globals().items()) if k.startswith("test_") and callable(v)]
-    passed = failed = 0
-    for t in tests:
-        try:
-            t()
-            passed += 1
-            print(f"PASS {t.__name__}")
-        except Exception as e:  # noqa: BLE001
-            failed += 1
-            print(f"FAIL {t.__name__}: {e!r}")
-    print(f"{passed} passed, {failed} failed")
-    sys.exit(1 if failed else 0)
-
-
 def test_detect_level_only_in_contract_3():
     """sfp-extractor/3 is /2 plus `sfp.detect_level` (a level's keypoints found on a finer level's
     score map); an older reader would detect each level on its own map, so /1 and /2 refuse it."""
@@ -189,3 +174,18 @@ def test_detect_level_only_in_contract_3():
         except ValueError:
             continue
         raise AssertionError(f"{contract} {value!r} accepted")
+
+
+if __name__ == "__main__":
+    tests = [v for k, v in sorted(globals().items()) if k.startswith("test_") and callable(v)]
+    passed = failed = 0
+    for t in tests:
+        try:
+            t()
+            passed += 1
+            print(f"PASS {t.__name__}")
+        except Exception as e:  # noqa: BLE001
+            failed += 1
+            print(f"FAIL {t.__name__}: {e!r}")
+    print(f"{passed} passed, {failed} failed")
+    sys.exit(1 if failed else 0)

@@ -43,7 +43,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// The level rule, as recorded in each level's metadata.
-pub(crate) const LEVEL_RULE: &str = "a point is in level i when the mean of score_i (bilinear at its observations) over its track is >= the level's score_threshold; points in no level are dropped";
+pub(crate) const LEVEL_RULE: &str = "a point is in level i when the mean of score_d (bilinear at its observations; d = sfp.detect_level[i], the level whose map detects level i's keypoints, i itself unless the model says) over its track is >= the level's score_threshold; points in no level are dropped";
 
 /// How [`convert_with_images`](super::convert_with_images) makes an SFP map from a model's images
 /// (`sfpmap convert --images`).

@@ -433,6 +433,33 @@ fn sfp_v3_refined_on_the_image_matches_the_python_reference() {
     assert_eq!(ours[2].keypoints, ours[0].keypoints);
 }
 
+/// sfp-v3's level 2 shares level 0's detection and placement; capped otherwise it is detected
+/// and placed on its own (not grouped) and gives the same keypoints, scores and descriptors,
+/// up to its cap, and the other levels do not change.
+#[test]
+fn a_level_placed_alone_matches_the_level_it_shares_a_placement_with() {
+    let mut extractor = Extractor::builtin("sfp-v3", 2, &sfpmap::progress::Silent)
+        .expect("sfp-v3 is built in")
+        .unwrap();
+    let input = image::load(&scene_image(), extractor.contract().gray_weights, None).unwrap();
+    let grouped = extractor.extract(&input, &own_size()).unwrap();
+    let capped = DetectOptions {
+        max_keypoints: Some(vec![2000, 1000, 1999, 250]),
+        ..own_size()
+    };
+    let alone = extractor.extract(&input, &capped).unwrap();
+    let (g, a) = (&grouped.levels[2], &alone.levels[2]);
+    let n = a.len();
+    assert!(n > 100 && n == g.len().min(1999), "{n} of {}", g.len());
+    assert_eq!(a.keypoints[..], g.keypoints[..n]);
+    assert_eq!(a.scores[..], g.scores[..n]);
+    assert_eq!(a.short[..], g.short[..n * g.dim_short]);
+    assert_eq!(a.full[..], g.full[..n * g.dim_full]);
+    for i in [0, 1, 3] {
+        assert_eq!(alone.levels[i], grouped.levels[i], "level {i}");
+    }
+}
+
 /// Every built-in model opens under its own name, with a contract this extractor runs.
 #[test]
 fn every_built_in_model_opens_under_its_name() {

@@ -103,7 +103,7 @@ fn convert_images_builds_a_multilevel_map_that_slices_to_level_2_short() {
     assert!(level2.info().extra["assignment"]
         .as_str()
         .unwrap()
-        .contains("mean of score_i"));
+        .contains("mean of score_d"));
     // Every point is in some level; every observation of the map refers to a kept point.
     let mut in_level = vec![false; map.n_points() as usize];
     for level in map.levels() {
