@@ -55,7 +55,9 @@ Validation (held out, never trained on; python/curves/<run>-val.csv, every `val_
         illumination pairs per image (python/eval_homography.py's pairs) of 25 held-out images
         (colmap/kapture_maupertuis 4, train/strecha-entry-P10 10, train/strecha-fountain-P11 11;
         max side `val_side`): repeatability@3 px, MMA@1/@3, matches per level, levels 2-3 refined
-        down to `refine_to_level` as the export asks (null: one level); `hom_score`: mean MMA@
+        down to `refine_to_level` as the export asks (null: one level), each level detected on
+        level `val_detect_level[i]`'s map as an sfp-extractor/3 export would (null: its own;
+        sfp-v3's is [0, 1, 0, 3]; runs before stop 54 had none); `hom_score`: mean MMA@
         `select_mma` of levels 2 and 3 over both splits
   loc   every `val_loc_every` steps (a multiple of `val_every`), the shared scenes' queries
         localized with the weights exported to ONNX, through the release binary (sfp/locval.py):
@@ -439,9 +441,9 @@ def validate_hom(net, pairs, cfg):
         for (_, a, bimg, H) in ps:
             h, w = a.shape
             fa = level_features(*run_student(net, a), net.strides, 1, cfg["val_thr"], cfg["val_topk"],
-                                refine_to=cfg["refine_to_level"])
+                                refine_to=cfg["refine_to_level"], detect_on=cfg["val_detect_level"])
             fb = level_features(*run_student(net, bimg), net.strides, 1, cfg["val_thr"], cfg["val_topk"],
-                                refine_to=cfg["refine_to_level"])
+                                refine_to=cfg["refine_to_level"], detect_on=cfg["val_detect_level"])
             for i in range(L):
                 m = EH.mutual_nn_float(fa[i][1], fb[i][1])
                 acc[i].append(EH.pair_metrics(fa[i][0], fb[i][0], m, H, w, h))
