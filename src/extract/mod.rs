@@ -1009,6 +1009,10 @@ impl Extractor {
         // Levels detected alike (the same score map, threshold, cap and image refinement:
         // sfp-v3's levels 0 and 2) share one detection and placement; each is described by
         // its own features. `groups[g]` = the levels of one placement, its first the lead.
+        // `alike` must cover every per-level input of `level_peaks` and `placed` (the rest,
+        // radius, detector and refinement switches, is one for all levels), or a grouped
+        // level would be placed as another is; tests/api/extract_reference.rs checks a level
+        // placed alone against its group.
         let threshold_of = |i: usize| options.threshold.unwrap_or(c.default_thresholds[i]);
         let alike = |i: usize, j: usize| {
             c.detect_levels[i] == c.detect_levels[j]
