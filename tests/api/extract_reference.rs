@@ -401,12 +401,14 @@ fn sfp_v3_refined_on_the_image_matches_the_python_reference() {
         // Most keypoints have a blob within their radius; an edge or a flat patch has none.
         assert!(moved * 2 > n, "level {level}: {moved} of {n} moved");
     }
-    // Its level 2 is found on level 0's score map, at most 2000 keypoints, refined as level
-    // 0's: the level-2 maps' points and the queries' matches (models/sfp-v3.md).
+    // Its level 2 is found on level 0's score map, at most 4000 keypoints, refined as level
+    // 0's: the level-2 maps' points and the queries' matches (models/sfp-v3.md); its level 3
+    // on level 1's, refined as level 1's.
     let c = refined.contract().clone();
-    assert_eq!(c.detect_levels, [0, 1, 0, 3]);
-    assert_eq!(c.default_max_keypoints, [2000, 1000, 2000, 250]);
+    assert_eq!(c.detect_levels, [0, 1, 0, 1]);
+    assert_eq!(c.default_max_keypoints, [4000, 1000, 4000, 250]);
     assert_eq!(c.image_refine[2], c.image_refine[0]);
+    assert_eq!(c.image_refine[3], c.image_refine[1]);
     let unrefined = DetectOptions {
         refine: Some(false),
         ..own_size()
@@ -422,15 +424,19 @@ fn sfp_v3_refined_on_the_image_matches_the_python_reference() {
                 (&theirs.keypoints, &theirs.scores)
             );
             assert_eq!(
-                (ours.level, ours.dim_short),
-                (2, 64),
-                "level 2's own descriptors"
+                (usize::from(ours.level), ours.dim_short),
+                (i, c.dims[i]),
+                "level {i}'s own descriptors"
             );
         }
     }
     // Level 2 and level 0 share the map, the threshold, the cap and the refinement: the same
-    // keypoints, described by each level's own features.
+    // keypoints, described by each level's own features. Level 3 shares level 1's map,
+    // threshold and refinement under a lower cap: level 1's strongest keypoints.
     assert_eq!(ours[2].keypoints, ours[0].keypoints);
+    let n = ours[3].keypoints.len();
+    assert!(n > 0 && n <= 250, "{n}");
+    assert_eq!(ours[3].keypoints[..], ours[1].keypoints[..n]);
 }
 
 /// sfp-v3's level 2 shares level 0's detection and placement; capped otherwise it is detected
@@ -444,13 +450,13 @@ fn a_level_placed_alone_matches_the_level_it_shares_a_placement_with() {
     let input = image::load(&scene_image(), extractor.contract().gray_weights, None).unwrap();
     let grouped = extractor.extract(&input, &own_size()).unwrap();
     let capped = DetectOptions {
-        max_keypoints: Some(vec![2000, 1000, 1999, 250]),
+        max_keypoints: Some(vec![4000, 1000, 3999, 250]),
         ..own_size()
     };
     let alone = extractor.extract(&input, &capped).unwrap();
     let (g, a) = (&grouped.levels[2], &alone.levels[2]);
     let n = a.len();
-    assert!(n > 100 && n == g.len().min(1999), "{n} of {}", g.len());
+    assert!(n > 100 && n == g.len().min(3999), "{n} of {}", g.len());
     assert_eq!(a.keypoints[..], g.keypoints[..n]);
     assert_eq!(a.scores[..], g.scores[..n]);
     assert_eq!(a.short[..], g.short[..n * g.dim_short]);
