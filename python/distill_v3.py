@@ -57,8 +57,8 @@ Validation (held out, never trained on; python/curves/<run>-val.csv, every `val_
         max side `val_side`): repeatability@3 px, MMA@1/@3, matches per level, levels 2-3 refined
         down to `refine_to_level` as the export asks (null: one level), each level detected on
         level `val_detect_level[i]`'s map as an sfp-extractor/3 export would (null: its own;
-        sfp-v3's is [0, 1, 0, 1], stop 54's export [0, 1, 0, 3]; runs before stop 54 had
-        none); `hom_score`: mean MMA@`select_mma` of levels 2 and 3 over both splits
+        sfp-v3's is [0, 1, 0, 3]; runs before stop 54 had none); `hom_score`: mean MMA@
+        `select_mma` of levels 2 and 3 over both splits
   loc   every `val_loc_every` steps (a multiple of `val_every`), the shared scenes' queries
         localized with the weights exported to ONNX, through the release binary (sfp/locval.py):
         per scene (the keys of `val_loc_ref`) and map (full, level-2 short) the medians, recall,

@@ -13,7 +13,7 @@ spec/extractor.md step 5); with --detect-level LEVELS, of sfp-extractor/3 (a lev
 detected on a finer level's score map). Given an .onnx file instead of a checkpoint, the network is kept as it
 is and only the metadata is rewritten (needs onnx, not torch); sfp-v3 is sfp-v2's network so:
   python3 python/export.py models/sfp-v2.onnx --model-name sfp-v3 -o models/sfp-v3.onnx \
-      --image-refine 1.5,2.5,1.5,2.5/2,3,2,3 --detect-level 0,1,0,1 \
+      --image-refine 1.5,2.5,1.5,4/2,3,2,5 --detect-level 0,1,0,3 \
       --threshold 0.5,0.5,0.5,0.5 --max-keypoints 4000,1000,4000,250
 """
 from __future__ import annotations

@@ -162,7 +162,7 @@ def test_detect_level_only_in_contract_3():
     on = detect_levels(md, n)  # raises where the extractor refuses
     assert all(d <= i for i, d in enumerate(on))
     if md["sfp.model_name"] == "sfp-v3":
-        assert md["sfp.contract"] == CONTRACTS[2] and on == [0, 1, 0, 1]
+        assert md["sfp.contract"] == CONTRACTS[2] and on == [0, 1, 0, 3]
     v2, v3 = {"sfp.contract": CONTRACTS[1]}, {"sfp.contract": CONTRACTS[2]}
     assert detect_levels(v2, 4) == [0, 1, 2, 3]
     assert detect_levels({**v3, "sfp.detect_level": " 0,1, 0,3"}, 4) == [0, 1, 0, 3]

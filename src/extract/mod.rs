@@ -1089,8 +1089,11 @@ impl Extractor {
         })
     }
 
-    /// The levels of `group` (detected alike, the first the lead): the lead's `peaks` placed
-    /// once, then each level's short and full descriptors there.
+    /// The levels of `group` (detected alike, the first the lead and the finest): the lead's
+    /// `peaks` placed once, then each level's short and full descriptors there. A level's
+    /// descriptor is its own part and every deeper level's, so the lead's parts hold every
+    /// level's of the group: sampled once (sfp-v3's levels 0 and 2: 240 samples a keypoint
+    /// instead of 240 + 192), the same values as a level sampled alone.
     fn group_features(
         &self,
         dense: &Dense,
@@ -1099,32 +1102,17 @@ impl Extractor {
         options: &DetectOptions,
     ) -> Vec<(usize, Result<LevelFeatures, ExtractError>)> {
         let px = placed(&self.contract, dense, group[0], &peaks, options);
-        (group.iter())
-            .map(|&i| (i, self.level_features(dense, i, &peaks, &px)))
-            .collect()
-    }
-
-    /// Level `i`'s keypoints (its detector's `peaks`, placed at `px`) and their short and
-    /// full descriptors.
-    fn level_features(
-        &self,
-        dense: &Dense,
-        i: usize,
-        peaks: &[keypoints::Peak],
-        px: &[(f32, f32)],
-    ) -> Result<LevelFeatures, ExtractError> {
-        let c = &self.contract;
-        let level = &dense.levels[i];
-        if c.descriptor_head == DescriptorHead::Sddh {
-            return self.described_level(dense, i, peaks, px);
+        if self.contract.descriptor_head == DescriptorHead::Sddh {
+            return (group.iter())
+                .map(|&i| (i, self.described_level(dense, i, &peaks, &px)))
+                .collect();
         }
+        let lead = group[0];
         // The levels' own channel counts (`run` checks them against the contract; a `Dense`
         // built by hand may differ, and then gets descriptors of its own sizes, not a panic).
-        let ds = level.channels;
-        let df: usize = dense.levels[i..].iter().map(|l| l.channels).sum();
+        let width: usize = dense.levels[lead..].iter().map(|l| l.channels).sum();
         let n = peaks.len();
-        let mut short32 = vec![0.0f32; n * ds];
-        let mut full32 = vec![0.0f32; n * df];
+        let mut parts = vec![0.0f32; n * width];
         // Sampled in raster order, not score order: consecutive keypoints then read the same
         // rows of every channel plane, from cache (score order missed it at every channel:
         // a quarter of this stage's time).
@@ -1133,17 +1121,57 @@ impl Extractor {
             (px[a].1.total_cmp(&px[b].1)).then(px[a].0.total_cmp(&px[b].0))
         });
         for k in order {
-            let row = &mut full32[k * df..(k + 1) * df];
-            dense.parts_into(i, px[k].0, px[k].1, row);
+            dense.parts_into(
+                lead,
+                px[k].0,
+                px[k].1,
+                &mut parts[k * width..(k + 1) * width],
+            );
+        }
+        (group.iter())
+            .map(|&i| {
+                let skip: usize = dense.levels[lead..i].iter().map(|l| l.channels).sum();
+                (
+                    i,
+                    Ok(self.level_features(dense, i, &peaks, &px, &parts, width, skip)),
+                )
+            })
+            .collect()
+    }
+
+    /// Level `i`'s keypoints (its detector's `peaks`, placed at `px`) and their short and
+    /// full descriptors from `parts` (`[keypoints × width]`, each keypoint's normalised
+    /// parts of the group's lead level and deeper; level `i`'s start `skip` values in).
+    #[allow(clippy::too_many_arguments)]
+    fn level_features(
+        &self,
+        dense: &Dense,
+        i: usize,
+        peaks: &[keypoints::Peak],
+        px: &[(f32, f32)],
+        parts: &[f32],
+        width: usize,
+        skip: usize,
+    ) -> LevelFeatures {
+        let c = &self.contract;
+        let ds = dense.levels[i].channels;
+        let df = width - skip;
+        let n = peaks.len();
+        let mut short32 = Vec::with_capacity(n * ds);
+        let mut full32 = Vec::with_capacity(n * df);
+        for row in parts.chunks_exact(width.max(1)).take(n) {
+            let row = &row[skip..];
             // Level i's own part is `short`; normalised with the rest it is `full`.
-            short32[k * ds..(k + 1) * ds].copy_from_slice(&row[..ds]);
-            crate::vector::l2_normalise(row);
+            short32.extend_from_slice(&row[..ds]);
+            let start = full32.len();
+            full32.extend_from_slice(row);
+            crate::vector::l2_normalise(&mut full32[start..]);
         }
         let mut short = vec![f16::ZERO; n * ds];
         short.convert_from_f32_slice(&short32);
         let mut full = vec![f16::ZERO; n * df];
         full.convert_from_f32_slice(&full32);
-        Ok(LevelFeatures {
+        LevelFeatures {
             level: c.level_ids[i],
             stride: c.strides[i],
             keypoints: px.iter().map(|&(x, y)| dense.colmap_pixel(x, y)).collect(),
@@ -1152,7 +1180,7 @@ impl Extractor {
             dim_full: df,
             short,
             full,
-        })
+        }
     }
 
     /// Level `i` of a model with a descriptor head: its descriptors at the keypoints `px`
