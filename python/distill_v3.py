@@ -56,9 +56,11 @@ Validation (held out, never trained on; python/curves/<run>-val.csv, every `val_
         (colmap/kapture_maupertuis 4, train/strecha-entry-P10 10, train/strecha-fountain-P11 11;
         max side `val_side`): repeatability@3 px, MMA@1/@3, matches per level, levels 2-3 refined
         down to `refine_to_level` as the export asks (null: one level), each level detected on
-        level `val_detect_level[i]`'s map as an sfp-extractor/3 export would (null: its own;
-        sfp-v3's is [0, 1, 0, 3]; runs before stop 54 had none); `hom_score`: mean MMA@
-        `select_mma` of levels 2 and 3 over both splits
+        the level its export would detect it on and refined on the image as it would
+        (`val_export`: python/export.py's options `image_refine`, `detect_level`, `threshold`,
+        `max_keypoints`, sfp-v3's in train_v3.json; null: an sfp-extractor/1 export, each
+        level on its own map, not refined on the image, as every run before stop 55);
+        `hom_score`: mean MMA@`select_mma` of levels 2 and 3 over both splits
   loc   every `val_loc_every` steps (a multiple of `val_every`), the shared scenes' queries
         localized with the weights exported to ONNX, through the release binary (sfp/locval.py):
         per scene (the keys of `val_loc_ref`) and map (full, level-2 short) the medians, recall,
@@ -106,7 +108,7 @@ from sfp import locval as LV  # noqa: E402
 from sfp import multiview as MV  # noqa: E402
 from sfp.config import apply_sets  # noqa: E402
 from sfp.model import SFP  # noqa: E402
-from sfp.reference import level_features  # noqa: E402
+from sfp.reference import detect_levels, image_refine_levels, level_features  # noqa: E402
 
 REPO = V.REPO
 DATA = V.DATA
@@ -429,21 +431,40 @@ def run_student(net, img01):
     return ([f[0].numpy() for f in feats], [torch.sigmoid(l)[0, 0].numpy() for l in logits])
 
 
+def val_metadata(net, cfg, export_metadata):
+    """The contract metadata the validation exports and detects with: `val_export`'s options
+    as python/export.py applies them (None: an sfp-extractor/1 export)."""
+    import export as X  # python/export.py (onnx)
+    o = cfg["val_export"] or {}
+    return X.product_metadata(net, export_metadata, cfg["model_name"], o.get("image_refine"),
+                              o.get("detect_level"), o.get("threshold", cfg["val_thr"]),
+                              o.get("max_keypoints"))
+
+
+def val_detection(net, cfg):
+    """Per level, the level it is detected on and its image refinement (sigma, radius) or None,
+    as an export with `val_export`'s options detects (python/sfp/reference.py reads them)."""
+    md = val_metadata(net, cfg, {})
+    L = len(net.strides)
+    return detect_levels(md, L), image_refine_levels(md, L)
+
+
 @torch.no_grad()
 def validate_hom(net, pairs, cfg):
     """The product's keypoints + mutual-NN short descriptors on the held-out homography pairs."""
     was = net.training
     net.eval()
     L = len(net.strides)
+    detect_on, refines = val_detection(net, cfg)
     out = {}
     for split, ps in pairs.items():
         acc = {i: [] for i in range(L)}
         for (_, a, bimg, H) in ps:
             h, w = a.shape
-            fa = level_features(*run_student(net, a), net.strides, 1, cfg["val_thr"], cfg["val_topk"],
-                                refine_to=cfg["refine_to_level"], detect_on=cfg["val_detect_level"])
-            fb = level_features(*run_student(net, bimg), net.strides, 1, cfg["val_thr"], cfg["val_topk"],
-                                refine_to=cfg["refine_to_level"], detect_on=cfg["val_detect_level"])
+            fa, fb = (level_features(*run_student(net, img), net.strides, 1, cfg["val_thr"], cfg["val_topk"],
+                                     refine_to=cfg["refine_to_level"], detect_on=detect_on,
+                                     image=img, image_refines=refines)
+                      for img in (a, bimg))
             for i in range(L):
                 m = EH.mutual_nn_float(fa[i][1], fb[i][1])
                 acc[i].append(EH.pair_metrics(fa[i][0], fb[i][0], m, H, w, h))
@@ -535,7 +556,7 @@ def validate_localization(net, cfg, export_metadata, scenes, binary):
     try:
         with tempfile.TemporaryDirectory(prefix="sfp-v3-val-") as d:
             model = os.path.join(d, f"{cfg['model_name']}.onnx")
-            X.export(net, model, X.contract_metadata(net, export_metadata, cfg["val_thr"], cfg["model_name"]))
+            X.export(net, model, val_metadata(net, cfg, export_metadata))
             return LV.validate_loc(model, binary, scenes, cfg["val_loc_ref"])
     except (RuntimeError, OSError, subprocess.SubprocessError, KeyError) as e:
         print(f"localization validation failed, nothing selected at this step: {e}", flush=True)
@@ -735,7 +756,8 @@ def main():
         r.update(step=step, total_minutes=round(total0 + (time.time() - t_loop) / 60, 2))
         vw.writerow({k: (round(v, 5) if isinstance(v, float) else v) for k, v in r.items()})
         vf.flush()
-        f3 = lambda k: ",".join(f"{r[f'{k}{i}']:.3f}" for i in range(L))  # noqa: E731
+        # A term switched off (weight 0, an ablation) logs no accuracy: nan.
+        f3 = lambda k: ",".join(f"{r.get(f'{k}{i}', float('nan')):.3f}" for i in range(L))  # noqa: E731
         print(f"VAL step {step} ({time.time() - t0:.0f} s): held-out viewpoint rep={f3('v_rep')} "
               f"MMA@1={f3('v_mma1')} MMA@3={f3('v_mma3')} matches={f3('v_matches')} | illumination "
               f"rep={f3('i_rep')} MMA@1={f3('i_mma1')} MMA@3={f3('i_mma3')} | kapture kl={f3('kap_kl')} "

@@ -67,7 +67,7 @@ def contract_metadata(net, extra: dict | None = None, default_threshold: str = "
         "sfp.descriptor_norm": "l2",
         "sfp.descriptor_sampling": "bilinear, align_corners=true in cell coordinates (x / stride)",
         "sfp.outputs": ",".join(output_names(len(dims))),
-        "sfp.default_threshold": default_threshold,
+        "sfp.default_threshold": str(default_threshold),
         "sfp.default_nms_radius": "1",
         "sfp.default_max_keypoints": "2000,1000,500,250",
     }
@@ -180,6 +180,25 @@ def detect_level_metadata(spec: str, md: dict[str, str]) -> dict[str, str]:
     return out
 
 
+def product_metadata(net, extra: dict, model_name: str, image_refine: str | None = None,
+                     detect_level: str | None = None, threshold: str | None = None,
+                     max_keypoints: str | None = None) -> dict[str, str]:
+    """A checkpoint's contract metadata with the export options of `main` (`--image-refine`,
+    `--detect-level`, `--threshold`, `--max-keypoints`; None: the contract /1 defaults), held to
+    the extractor's rules: what `main` writes and what the distillation's validation exports."""
+    extra = dict(extra)
+    if image_refine:
+        extra.update(image_refine_metadata(image_refine, len(net.dims)))
+    if detect_level:
+        extra.update(detect_level_metadata(detect_level, {**extra, "sfp.levels": str(len(net.dims))}))
+    md = contract_metadata(net, extra, "0.5" if threshold is None else str(threshold), model_name)
+    if max_keypoints is not None:
+        md["sfp.default_max_keypoints"] = str(max_keypoints)
+    passed = {"sfp.default_threshold": "--threshold", "sfp.default_max_keypoints": "--max-keypoints"}
+    checked_detection(md, lambda key: passed[key])
+    return md
+
+
 def checked_detection(md: dict[str, str], origin) -> None:
     """Holds `md`'s detection defaults to the extractor's rules (python/sfp/reference.py, as
     src/extract/contract.rs), naming `origin(key)` where they fail, and writes them back as the
@@ -261,7 +280,8 @@ def main():
                     help="default keypoint score threshold (metadata): one, or one a level (sfp-extractor/2 "
                          "only); a checkpoint's default 0.5, an .onnx input's kept")
     ap.add_argument("--max-keypoints", default=None,
-                    help="an .onnx input's default keypoint cap per level, finest first (metadata)")
+                    help="default keypoint cap per level, finest first (metadata); a checkpoint's default "
+                         "2000,1000,500,250, an .onnx input's kept")
     ap.add_argument("--model-name", default=None, help="sfp.model_name (default: the checkpoint's, else sfp-v1)")
     ap.add_argument("--refine-to-level", default=None,
                     help="sfp.refine_to_level: refine levels 2.. coarse to fine down to this level; "
@@ -284,8 +304,6 @@ def main():
         h = hashlib.sha256(open(args.out, "rb").read()).hexdigest()
         print(f"wrote {args.out}: {os.path.getsize(args.out)} bytes, sha256 {h}")
         return
-    if args.max_keypoints is not None:
-        raise SystemExit("--max-keypoints retags an .onnx input")
     net, ck = load_net(args.ckpt)
     name = args.model_name or ck.get("model_name") or "sfp-v1"
     if net.stem_mode != "full" and name == "sfp-v1":
@@ -302,12 +320,8 @@ def main():
             raise SystemExit(f"--refine-to-level {args.refine_to_level}: a level 0 to {len(net.dims) - 1}, or none")
         extra["sfp.refine_to_level"] = int(args.refine_to_level)
     args.out = args.out or os.path.join("models", f"{name}.onnx")  # never a student over sfp-v1.onnx
-    if args.image_refine:
-        extra.update(image_refine_metadata(args.image_refine, len(net.dims)))
-    if args.detect_level:
-        extra.update(detect_level_metadata(args.detect_level, {**extra, "sfp.levels": str(len(net.dims))}))
-    md = contract_metadata(net, extra, "0.5" if args.threshold is None else args.threshold, name)
-    checked_detection(md, lambda key: "--threshold")
+    md = product_metadata(net, extra, name, args.image_refine, args.detect_level, args.threshold,
+                          args.max_keypoints)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     export(net, args.out, md)
     if not args.no_verify:

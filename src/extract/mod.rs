@@ -1041,11 +1041,12 @@ impl Extractor {
         } else {
             // The peaks first (cheap), then the groups shared out by their work: longest job
             // first onto the least loaded thread. Work a keypoint, in the image refinement's
-            // multiply-adds: the blurs once, a bilinear sample per full dimension of each level.
+            // multiply-adds: the blurs once, a bilinear sample per full dimension of the lead
+            // (its group's levels share the samples: `group_features`).
             let cost: Vec<usize> = (groups.iter().zip(&peaks))
                 .map(|(g, p)| {
                     let refine = c.image_refine[g[0]].map_or(0, |r| r.work_per_keypoint());
-                    let sample: usize = g.iter().map(|&i| SAMPLE_WORK * c.full_dims[i]).sum();
+                    let sample = SAMPLE_WORK * c.full_dims[g[0]];
                     p.len().saturating_mul(refine + sample)
                 })
                 .collect();
@@ -1107,9 +1108,12 @@ impl Extractor {
                 .map(|&i| (i, self.described_level(dense, i, &peaks, &px)))
                 .collect();
         }
+        // Groups are built in level order: the lead is the finest, its parts hold the others'.
+        debug_assert!(group.windows(2).all(|w| w[0] < w[1]), "{group:?}");
         let lead = group[0];
         // The levels' own channel counts (`run` checks them against the contract; a `Dense`
-        // built by hand may differ, and then gets descriptors of its own sizes, not a panic).
+        // built by hand may differ, and then gets descriptors of its own sizes, as long as each
+        // level's maps hold channels × h × w values).
         let width: usize = dense.levels[lead..].iter().map(|l| l.channels).sum();
         let n = peaks.len();
         let mut parts = vec![0.0f32; n * width];
@@ -1157,20 +1161,18 @@ impl Extractor {
         let ds = dense.levels[i].channels;
         let df = width - skip;
         let n = peaks.len();
-        let mut short32 = Vec::with_capacity(n * ds);
-        let mut full32 = Vec::with_capacity(n * df);
-        for row in parts.chunks_exact(width.max(1)).take(n) {
+        let mut short = vec![f16::ZERO; n * ds];
+        let mut full = vec![f16::ZERO; n * df];
+        // One keypoint's full descriptor at a time: no second copy of the group's samples.
+        let mut full32 = vec![0.0f32; df];
+        for (k, row) in parts.chunks_exact(width.max(1)).take(n).enumerate() {
             let row = &row[skip..];
             // Level i's own part is `short`; normalised with the rest it is `full`.
-            short32.extend_from_slice(&row[..ds]);
-            let start = full32.len();
-            full32.extend_from_slice(row);
-            crate::vector::l2_normalise(&mut full32[start..]);
+            short[k * ds..(k + 1) * ds].convert_from_f32_slice(&row[..ds]);
+            full32.copy_from_slice(row);
+            crate::vector::l2_normalise(&mut full32);
+            full[k * df..(k + 1) * df].convert_from_f32_slice(&full32);
         }
-        let mut short = vec![f16::ZERO; n * ds];
-        short.convert_from_f32_slice(&short32);
-        let mut full = vec![f16::ZERO; n * df];
-        full.convert_from_f32_slice(&full32);
         LevelFeatures {
             level: c.level_ids[i],
             stride: c.strides[i],
