@@ -180,6 +180,10 @@ def detect_level_metadata(spec: str, md: dict[str, str]) -> dict[str, str]:
     return out
 
 
+# The detection defaults' metadata keys and the flags that set them (named in refusals).
+FLAG_OF = {"sfp.default_threshold": "--threshold", "sfp.default_max_keypoints": "--max-keypoints"}
+
+
 def product_metadata(net, extra: dict, model_name: str, image_refine: str | None = None,
                      detect_level: str | None = None, threshold: str | None = None,
                      max_keypoints: str | None = None) -> dict[str, str]:
@@ -194,8 +198,7 @@ def product_metadata(net, extra: dict, model_name: str, image_refine: str | None
     md = contract_metadata(net, extra, "0.5" if threshold is None else str(threshold), model_name)
     if max_keypoints is not None:
         md["sfp.default_max_keypoints"] = str(max_keypoints)
-    passed = {"sfp.default_threshold": "--threshold", "sfp.default_max_keypoints": "--max-keypoints"}
-    checked_detection(md, lambda key: passed[key])
+    checked_detection(md, lambda key: FLAG_OF[key])
     return md
 
 
@@ -238,8 +241,7 @@ def retag(src: str, out: str, name: str, refine: str | None, detection: dict[str
     if detect_level:
         md.update(detect_level_metadata(detect_level, md))
     md.update(detection)
-    passed = {"sfp.default_threshold": "--threshold", "sfp.default_max_keypoints": "--max-keypoints"}
-    checked_detection(md, lambda key: passed[key] if key in detection else (
+    checked_detection(md, lambda key: FLAG_OF[key] if key in detection else (
         f"{src}'s {key} (one a level needs --image-refine, contract /2)"))
     del m.metadata_props[:]
     for k, v in md.items():
