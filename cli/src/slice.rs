@@ -41,7 +41,7 @@ pub struct Args {
     /// best expected accuracy (e.g. 2MB, 500kB, 1.5MiB): the rule is in README, "Byte
     /// budgets", and in `--json`.
     #[arg(long, value_name = "SIZE", value_parser = super::args::byte_size,
-          conflicts_with_all = ["short", "minimal", "pq", "codec", "zstd_level"])]
+          conflicts_with_all = ["short", "short_dims", "minimal", "pq", "codec", "zstd_level"])]
     pub budget: Option<u64>,
     /// Keep only the short descriptor block of each level.
     #[arg(long)]
@@ -51,6 +51,13 @@ pub struct Args {
     /// sorted, compressed visibility.
     #[arg(long)]
     pub minimal: bool,
+    /// With `--short`: keep N dimensions of each kept level's short block, the leading ones of
+    /// an uncentred PCA of the level's own short descriptors (as SIFT maps store theirs); the
+    /// level stores the projection a query's descriptors take, and a VLAD on it is learned
+    /// again. E.g. `--level 2 --short --short-dims 32` halves an SFP level 2's 64 dimensions.
+    #[arg(long, value_name = "N", requires = "short", conflicts_with = "pq",
+          value_parser = clap::value_parser!(u16).range(1..=4096))]
+    pub short_dims: Option<u16>,
     /// Product-quantise the kept levels' descriptors (all their dims, or with `--short` the
     /// short block's) into M one-byte codes per point, M dividing the dims (format 1.1).
     #[arg(long, value_name = "M", value_parser = clap::value_parser!(u16).range(1..=4096))]
@@ -100,8 +107,13 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 zstd_level: args.zstd_level,
                 minimal: args.minimal,
             };
-            slice_quantised(&map, &options, args.pq.map(usize::from))
-                .with_context(|| sfpmap::escape::path(input).to_string())?
+            slice_quantised(
+                &map,
+                &options,
+                args.short_dims.map(usize::from),
+                args.pq.map(usize::from),
+            )
+            .with_context(|| sfpmap::escape::path(input).to_string())?
         }
     };
     let bars = super::Bars::new(quiet, args.json);
@@ -139,6 +151,21 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 // The file's text: control characters escaped, so a map cannot drive the
                 // terminal.
                 sfpmap::escape::escape_control_characters(&map.metadata().units)
+            );
+        }
+        for l in &sliced.short_basis {
+            println!(
+                "  level {}: short {} -> {} dims of its PCA basis ({:.1} % of the energy){}",
+                l.level,
+                l.dims_before,
+                l.dims,
+                100.0 * l.energy_kept,
+                match (l.vlad_relearned, l.vlad_dropped, l.index_dropped) {
+                    (true, _, false) => ", VLAD learned again",
+                    (true, _, true) => ", VLAD learned again, its image index dropped",
+                    (_, true, _) => ", VLAD dropped (too few points to learn it again)",
+                    _ => "",
+                }
             );
         }
         for l in pq {

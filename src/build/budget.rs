@@ -71,7 +71,7 @@ impl Candidate {
 
     /// The slice, quantised as the candidate says.
     pub fn slice<'m>(&self, map: &'m Map<'_>) -> Result<SlicedMap<'m>, Error> {
-        let mut sliced = slice_quantised(map, &self.options(), None)?;
+        let mut sliced = slice_quantised(map, &self.options(), None, None)?;
         if let Some(per) = self.dims_per_code {
             sliced
                 .writer

@@ -19,7 +19,6 @@
 //! only runs the network; both are inputs here. Every map is written by
 //! [`crate::format::MapWriter`].
 
-#[cfg(feature = "colmap")]
 mod basis;
 pub mod budget;
 #[cfg(feature = "colmap")]
@@ -43,6 +42,8 @@ pub mod pq;
 mod retrieval;
 #[cfg(all(feature = "colmap", feature = "onnx"))]
 mod sfp;
+/// `slice --short-dims`: a level's short block cut to fewer dimensions of its own PCA basis.
+pub mod short_basis;
 #[cfg(feature = "colmap")]
 mod sift;
 #[cfg(all(feature = "colmap", feature = "onnx"))]

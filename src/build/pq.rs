@@ -430,25 +430,51 @@ pub(crate) fn centroids_for(n: usize) -> usize {
     1 << most.ilog2()
 }
 
-/// A slice of a map (`format::slice`) with its kept levels optionally product-quantised:
-/// what `sfpmap slice` and the Python package's `slice` write and report.
+/// A slice of a map (`format::slice`) with its kept levels optionally cut to fewer short
+/// dimensions or product-quantised: what `sfpmap slice` and the Python package's `slice` write
+/// and report.
 pub struct SlicedMap<'m> {
     /// The slice, ready to write.
     pub writer: MapWriter<'m>,
     /// What the slice kept.
     pub summary: crate::format::SliceSummary,
+    /// Each level cut to fewer short dimensions, empty without `--short-dims`.
+    pub short_basis: Vec<super::short_basis::ShortBasisSummary>,
     /// Each quantised level, empty without `--pq`.
     pub pq: Vec<PqLevelSummary>,
 }
 
-/// [`crate::format::slice`], then, with `pq = Some(M)`, every kept level quantised into `M`
-/// codes per point over what the slice keeps (`options.short`), recorded in the provenance.
+/// [`crate::format::slice`], then, with `short_dims = Some(N)` (and `options.short`), every
+/// kept level's short block cut to `N` dimensions of its own PCA basis
+/// ([`super::short_basis`]), or, with `pq = Some(M)`, every kept level quantised into `M`
+/// codes per point over what the slice keeps (`options.short`); recorded in the provenance.
+/// The two do not combine (PQ codes are learned from the map's rows, not the cut ones).
 pub fn slice_quantised<'m>(
     map: &'m Map<'_>,
     options: &crate::format::SliceOptions,
+    short_dims: Option<usize>,
     pq: Option<usize>,
 ) -> Result<SlicedMap<'m>, Error> {
+    if short_dims.is_some() && (pq.is_some() || !options.short) {
+        return Err(Error::invalid(
+            "--short-dims needs --short and does not combine with --pq",
+        ));
+    }
     let (mut writer, summary) = crate::format::slice(map, options)?;
+    let mut levels = options.levels.clone();
+    levels.sort_unstable();
+    levels.dedup();
+    let short_basis = match short_dims {
+        Some(dims) => {
+            writer
+                .metadata_mut()
+                .provenance
+                .parameters
+                .insert("short_dims".into(), serde_json::json!(dims));
+            super::short_basis::cut_short(map, &mut writer, &levels, dims)?
+        }
+        None => Vec::new(),
+    };
     let pq = match pq {
         Some(m) => {
             writer
@@ -456,9 +482,6 @@ pub fn slice_quantised<'m>(
                 .provenance
                 .parameters
                 .insert("pq".into(), serde_json::json!(m));
-            let mut levels = options.levels.clone();
-            levels.sort_unstable();
-            levels.dedup();
             let pq_options = PqOptions {
                 subspaces: m,
                 short: options.short,
@@ -470,6 +493,7 @@ pub fn slice_quantised<'m>(
     Ok(SlicedMap {
         writer,
         summary,
+        short_basis,
         pq,
     })
 }
@@ -497,6 +521,16 @@ impl SlicedMap<'_> {
             "sections_rebuilt": s.sections_rebuilt,
             "skipped_sections_dropped": s.skipped_dropped,
             "position_max_error": self.writer.metadata().position_grid.map(|g| g.max_error()),
+            "short_dims": self.short_basis.iter().map(|l| serde_json::json!({
+                "level": l.level,
+                "points": l.points,
+                "dims_before": l.dims_before,
+                "dims": l.dims,
+                "energy_kept": l.energy_kept,
+                "vlad_relearned": l.vlad_relearned,
+                "vlad_dropped": l.vlad_dropped,
+                "index_dropped": l.index_dropped,
+            })).collect::<Vec<_>>(),
             "pq": self.pq.iter().map(|l| serde_json::json!({
                 "level": l.level,
                 "points": l.points,

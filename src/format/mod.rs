@@ -27,6 +27,7 @@ mod metadata;
 mod mmap;
 mod pq;
 mod reader;
+mod short_basis;
 mod slice;
 mod source;
 mod views;

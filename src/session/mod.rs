@@ -241,8 +241,9 @@ pub(crate) struct Fit {
     /// Whether the map's descriptors came from a features source, not an extractor.
     pub(crate) from_feature_source: bool,
     pub(crate) model_xxh3: Option<String>,
-    /// The map's levels with points as (level id, full dimensions): what a model must make
-    /// to be matched against it.
+    /// The map's levels with points as (level id, the dimensions a query's descriptor of it
+    /// has: its projection's input, else its full dimensions): what a model must make to be
+    /// matched against it.
     #[cfg(feature = "onnx")]
     pub(crate) levels: Vec<(u16, u32)>,
 }
@@ -274,7 +275,13 @@ impl Fit {
                     map.find(crate::format::SectionKind::LevelPoints, Some(l.level))
                         .is_some_and(|s| s.rows() > 0)
                 })
-                .map(|l| (l.level, l.dim_full))
+                .map(|l| {
+                    let projection =
+                        map.find(crate::format::SectionKind::LevelProjection, Some(l.level));
+                    let d_in = projection
+                        .map_or(l.dim_full, |p| u32::try_from(p.cols()).unwrap_or(u32::MAX));
+                    (l.level, d_in)
+                })
                 .collect(),
         }
     }

@@ -288,6 +288,61 @@ fn slice_pq_replaces_descriptor_blocks_by_codes() {
     }
 }
 
+/// `slice --short --short-dims N`: the kept level's short block in N dims of its own PCA
+/// basis, with the projection queries take; the report says what was kept; a cut that
+/// cannot be made fails in one line naming the map and writes nothing.
+#[test]
+fn slice_short_dims_cuts_the_short_block_to_a_basis_of_its_own() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("cut.sfpm");
+    let levels = vector("valid", "levels");
+    let cut = |dims: &str, to: &std::path::Path| {
+        sfpmap(&[
+            "slice",
+            levels.to_str().unwrap(),
+            "--level",
+            "0",
+            "--short",
+            "--short-dims",
+            dims,
+            "-o",
+            to.to_str().unwrap(),
+            "--json",
+        ])
+    };
+    let o = cut("4", &out);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(report["short_dims"][0]["dims"], 4, "{report}");
+    let kept = report["short_dims"][0]["energy_kept"].as_f64().unwrap();
+    assert!(kept > 0.0 && kept <= 1.0, "{report}");
+    assert!(sfpmap(&["verify", out.to_str().unwrap()]).status.success());
+    let info = info_json(&out);
+    let level = &info["levels"][0];
+    assert_eq!(
+        (&level["dim_short"], &level["dim_full"]),
+        (&4.into(), &4.into()),
+        "{info}"
+    );
+    let kinds: Vec<&str> = info["sections"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["kind"].as_str().unwrap())
+        .collect();
+    assert!(kinds.contains(&"level_projection"), "{kinds:?}");
+    let bad = dir.path().join("bad.sfpm");
+    let o = cut("4096", &bad);
+    assert_eq!(o.status.code(), Some(1));
+    let err = stderr(&o);
+    assert!(
+        err.contains("short dimensions: keep 1 to") && err.contains(levels.to_str().unwrap()),
+        "{err}"
+    );
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(!bad.exists());
+}
+
 /// (1.1) `slice --budget`: the report says what was chosen, the map fits, and a budget below
 /// every cut fails in one line naming the map and the smallest cut, writing nothing.
 #[test]
@@ -347,6 +402,11 @@ fn slice_budget_fits_or_names_the_smallest_cut() {
     for (args, why) in [
         (vec!["--budget", "2XB"], "is not a size"),
         (vec!["--budget", "1MB", "--pq", "4"], "cannot be used with"),
+        (vec!["--level", "0", "--short-dims", "8"], "--short"),
+        (
+            vec!["--level", "0", "--short", "--short-dims", "8", "--pq", "4"],
+            "cannot be used with",
+        ),
     ] {
         let mut all = vec!["slice", levels.to_str().unwrap(), "-o", "never.sfpm"];
         all.extend(args);

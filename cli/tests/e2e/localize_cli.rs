@@ -85,9 +85,37 @@ fn sfp_queries_from_images_and_from_features_h5_agree_and_eval_reports() {
         "--json",
     ]))
     .unwrap();
+    // Level 2 cut to 32 of its 64 short dims (`slice --short-dims`): the map stores a
+    // projection from the extractor's descriptor, so the same queries match it unchanged.
+    run(&[
+        "slice",
+        &p("m.sfpm"),
+        "--level",
+        "2",
+        "--short",
+        "--short-dims",
+        "32",
+        "-o",
+        &p("m32.sfpm"),
+    ]);
+    let c: Value = serde_json::from_str(&run(&[
+        "localize",
+        "--map",
+        &p("m32.sfpm"),
+        "--short",
+        "--query-list",
+        &sd("queries.txt"),
+        "--features",
+        &p("q.h5"),
+        "-o",
+        &p("c.txt"),
+        "--json",
+    ]))
+    .unwrap();
     assert_eq!(a["localized"], 2, "{a}");
     assert_eq!(b["localized"], 2, "{b}");
-    for pose_file in ["a.txt", "b.txt"] {
+    assert_eq!(c["localized"], 2, "{c}");
+    for pose_file in ["a.txt", "b.txt", "c.txt"] {
         let ev: Value = serde_json::from_str(&run(&[
             "eval",
             "--poses",

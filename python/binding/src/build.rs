@@ -549,7 +549,7 @@ pub(crate) fn slice(
                 (chosen.sliced, Some(report))
             }
             None => (
-                slice_quantised(&map, &options, pq.map(usize::from))
+                slice_quantised(&map, &options, None, pq.map(usize::from))
                     .map_err(|e| format_error(&map_path, e))?,
                 None,
             ),
