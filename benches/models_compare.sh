@@ -77,11 +77,17 @@ for scene in $scenes; do
       -o "$C/$name.sfpm" --force -q
     variants=("$name")
     info=$("$bin" info "$C/$name.sfpm" --json)
-    has_level_2=$(python3 -c "import json,sys; print(int(any(l['level'] == 2 for l in json.load(sys.stdin)['levels'])))" <<<"$info")
-    if [ "$has_level_2" = 1 ]; then
+    # Level 2's short dims (0: no level 2).
+    short_2=$(python3 -c "import json,sys; print(next((l['dim_short'] for l in json.load(sys.stdin)['levels'] if l['level'] == 2), 0))" <<<"$info")
+    if [ "$short_2" -gt 0 ]; then
       "$bin" slice "$C/$name.sfpm" --level 2 --short -o "$C/$name-l2s.sfpm" --force -q
       "$bin" slice "$C/$name.sfpm" --level 2 --short --minimal --pq 8 -o "$C/$name-l2s-pq8.sfpm" --force -q
       variants+=("$name-l2s" "$name-l2s-pq8")
+      # As many short dims as SIFT's level-2 short map keeps (32), where level 2 has more.
+      if [ "$short_2" -gt 32 ]; then
+        "$bin" slice "$C/$name.sfpm" --level 2 --short --short-dims 32 -o "$C/$name-l2s32.sfpm" --force -q
+        variants+=("$name-l2s32")
+      fi
     fi
     ret=$(retrieval "$scene" "$C/$name.sfpm" --images "$S/images" --model "$model")
     for v in "${variants[@]}"; do
@@ -91,6 +97,7 @@ for scene in $scenes; do
       case "$v" in
         *-l2s) label="$name level 2 short" ;;
         *-l2s-pq8) label="$name level 2 short --pq 8 --minimal" ;;
+        *-l2s32) label="$name level 2 short --short-dims 32" ;;
         *) label="$name" ;;
       esac
       row "$scene" "$label" "$C/$v.sfpm" "$C/$v.poses" "$C/$v.json" "$ret"

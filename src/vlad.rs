@@ -58,6 +58,11 @@ pub enum DescribedAt {
 /// all 26, and kept Sacre Coeur and KITTI at 100 %.
 pub const MODEL_OBSERVATION_CLUSTERS: usize = 64;
 
+/// Centroids a codebook may have at most (`convert --vlad-clusters`, and a codebook learned
+/// again by `slice --short-dims`): more would not rank a map's images better, and k-means time
+/// grows with them.
+pub const MAX_CLUSTERS: usize = 1024;
+
 /// The default codebook's (clusters, dims) for a map of `images` images whose descriptors
 /// were computed `at`.
 pub fn default_shape(images: usize, at: DescribedAt) -> (usize, usize) {

@@ -332,12 +332,12 @@ fn index_lists(s: &str) -> Result<usize, String> {
     }
 }
 
-/// At most 1024 centroids: more would not rank a map's images better and k-means time
-/// grows with them.
+/// At most [`sfpmap::vlad::MAX_CLUSTERS`] centroids.
 fn vlad_clusters(s: &str) -> Result<usize, String> {
+    let most = sfpmap::vlad::MAX_CLUSTERS;
     match s.parse::<usize>() {
-        Ok(n) if n <= 1024 => Ok(n),
-        _ => Err("a number of centroids from 0 (no VLAD) to 1024".into()),
+        Ok(n) if n <= most => Ok(n),
+        _ => Err(format!("a number of centroids from 0 (no VLAD) to {most}")),
     }
 }
 

@@ -2,7 +2,7 @@
 
 use anyhow::Context;
 use sfpmap::build::budget::slice_to_budget;
-use sfpmap::build::pq::slice_quantised;
+use sfpmap::build::pq::slice_encoded;
 use sfpmap::format::{Codec, SliceOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -51,10 +51,11 @@ pub struct Args {
     /// sorted, compressed visibility.
     #[arg(long)]
     pub minimal: bool,
-    /// With `--short`: keep N dimensions of each kept level's short block, the leading ones of
-    /// an uncentred PCA of the level's own short descriptors (as SIFT maps store theirs); the
-    /// level stores the projection a query's descriptors take, and a VLAD on it is learned
-    /// again. E.g. `--level 2 --short --short-dims 32` halves an SFP level 2's 64 dimensions.
+    /// With `--short`: keep N dimensions of the short block of each kept level that has more,
+    /// the leading ones of an uncentred PCA of the level's own short descriptors (as SIFT maps
+    /// store theirs); the level stores the projection a query's descriptors take, and a VLAD on
+    /// it (and an image index over that) is learned again. E.g. `--level 2 --short
+    /// --short-dims 32` halves an SFP level 2's 64 dimensions.
     #[arg(long, value_name = "N", requires = "short", conflicts_with = "pq",
           value_parser = clap::value_parser!(u16).range(1..=4096))]
     pub short_dims: Option<u16>,
@@ -107,7 +108,7 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 zstd_level: args.zstd_level,
                 minimal: args.minimal,
             };
-            slice_quantised(
+            slice_encoded(
                 &map,
                 &options,
                 args.short_dims.map(usize::from),
@@ -162,8 +163,9 @@ pub fn run(args: Args, quiet: bool) -> anyhow::Result<ExitCode> {
                 100.0 * l.energy_kept,
                 match (l.vlad_relearned, l.vlad_dropped, l.index_dropped) {
                     (true, _, false) => ", VLAD learned again",
-                    (true, _, true) => ", VLAD learned again, its image index dropped",
-                    (_, true, _) => ", VLAD dropped (too few points to learn it again)",
+                    (true, _, true) => ", VLAD learned again; its image index could not be built again and was dropped",
+                    (_, true, false) => ", VLAD dropped (fewer points than its centroids, or no visibility)",
+                    (_, true, true) => ", VLAD and its image index dropped (fewer points than its centroids, or no visibility)",
                     _ => "",
                 }
             );

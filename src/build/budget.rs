@@ -17,7 +17,7 @@
 //! bound from their set's short minimal size and are confirmed by encoding when it fits.
 //! Empty levels are not tried alone, nor more than 16 single levels.
 
-use super::pq::{centroids_for, quantise_levels, slice_quantised, PqOptions, SlicedMap};
+use super::pq::{centroids_for, quantise_levels, slice_encoded, PqOptions, SlicedMap};
 use crate::format::{Error, Map, SliceOptions};
 
 /// One point of the ladder.
@@ -71,7 +71,7 @@ impl Candidate {
 
     /// The slice, quantised as the candidate says.
     pub fn slice<'m>(&self, map: &'m Map<'_>) -> Result<SlicedMap<'m>, Error> {
-        let mut sliced = slice_quantised(map, &self.options(), None, None)?;
+        let mut sliced = slice_encoded(map, &self.options(), None, None)?;
         if let Some(per) = self.dims_per_code {
             sliced
                 .writer

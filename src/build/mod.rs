@@ -19,6 +19,7 @@
 //! only runs the network; both are inputs here. Every map is written by
 //! [`crate::format::MapWriter`].
 
+#[cfg(feature = "colmap")]
 mod basis;
 pub mod budget;
 #[cfg(feature = "colmap")]

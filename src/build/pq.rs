@@ -438,7 +438,8 @@ pub struct SlicedMap<'m> {
     pub writer: MapWriter<'m>,
     /// What the slice kept.
     pub summary: crate::format::SliceSummary,
-    /// Each level cut to fewer short dimensions, empty without `--short-dims`.
+    /// Each level cut to fewer short dimensions, empty without `--short-dims` (which needs the
+    /// `colmap` feature).
     pub short_basis: Vec<super::short_basis::ShortBasisSummary>,
     /// Each quantised level, empty without `--pq`.
     pub pq: Vec<PqLevelSummary>,
@@ -449,7 +450,7 @@ pub struct SlicedMap<'m> {
 /// ([`super::short_basis`]), or, with `pq = Some(M)`, every kept level quantised into `M`
 /// codes per point over what the slice keeps (`options.short`); recorded in the provenance.
 /// The two do not combine (PQ codes are learned from the map's rows, not the cut ones).
-pub fn slice_quantised<'m>(
+pub fn slice_encoded<'m>(
     map: &'m Map<'_>,
     options: &crate::format::SliceOptions,
     short_dims: Option<usize>,
@@ -464,6 +465,7 @@ pub fn slice_quantised<'m>(
     let mut levels = options.levels.clone();
     levels.sort_unstable();
     levels.dedup();
+    #[cfg(feature = "colmap")]
     let short_basis = match short_dims {
         Some(dims) => {
             writer
@@ -472,6 +474,15 @@ pub fn slice_quantised<'m>(
                 .parameters
                 .insert("short_dims".into(), serde_json::json!(dims));
             super::short_basis::cut_short(map, &mut writer, &levels, dims)?
+        }
+        None => Vec::new(),
+    };
+    #[cfg(not(feature = "colmap"))]
+    let short_basis = match short_dims {
+        Some(_) => {
+            return Err(Error::invalid(
+                "--short-dims needs sfpmap built with the colmap feature",
+            ))
         }
         None => Vec::new(),
     };

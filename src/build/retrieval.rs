@@ -54,11 +54,13 @@ pub struct StoredVlad {
 /// The seed of the codebook's k-means: fixed, so a map converts to the same bytes.
 const SEED: u64 = 0x5f9_1a0;
 
-/// Learns the codebook from `rows` (one per map point: its descriptor's first `dims`
-/// dimensions in `level`'s basis, renormalised; a zero row for a point without one; `points`
-/// says which points those are, in words) and adds it, each image's VLAD over the points it
-/// sees, and the rule to the level's metadata to `writer` (after the level). `None`: a map
-/// with fewer described points than centroids, or without images, gets no VLAD.
+/// Learns the codebook from `rows` (its descriptor's first `dims` dimensions in `level`'s
+/// basis, renormalised, a row per map point, a zero row for a point without one; or a row per
+/// described point, with `visibility` naming rows; `points` says which points those are, in
+/// words) and adds it, each image's VLAD over the rows it sees (`visibility`: offsets per image
+/// and row indices; an index past the rows is skipped), and the rule to the level's metadata
+/// to `writer` (after the level). `None`: a map with fewer described points than centroids,
+/// or without images, gets no VLAD.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn add_vlad(
     writer: &mut MapWriter<'_>,
@@ -67,10 +69,10 @@ pub(crate) fn add_vlad(
     dims: usize,
     clusters: usize,
     points: &str,
-    geometry: &Geometry,
+    (vis_offsets, vis_points): (&[u64], &[u32]),
     reporter: &dyn Reporter,
 ) -> Result<Option<StoredVlad>, crate::format::Error> {
-    if clusters == 0 || dims == 0 || geometry.vis_offsets.len() < 2 {
+    if clusters == 0 || dims == 0 || vis_offsets.len() < 2 {
         return Ok(None);
     }
     reporter.start("retrieval codebook", None);
@@ -80,7 +82,7 @@ pub(crate) fn add_vlad(
         return Ok(None);
     };
     reporter.start("image VLADs", None);
-    let images = codebook.image_vlads(rows, &geometry.vis_offsets, &geometry.vis_points);
+    let images = codebook.image_vlads(rows, vis_offsets, vis_points);
     reporter.finish();
     let info = writer
         .metadata_mut()

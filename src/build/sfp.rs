@@ -855,7 +855,7 @@ fn convert_images_of(
                     dims,
                     clusters,
                     "this level's points",
-                    &geometry,
+                    (&geometry.vis_offsets, &geometry.vis_points),
                     reporter,
                 )?)
             },

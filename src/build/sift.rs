@@ -304,7 +304,7 @@ fn convert_geometry(
             dims,
             clusters,
             "every point with a descriptor (all levels), projected on this level's basis",
-            geometry,
+            (&geometry.vis_offsets, &geometry.vis_points),
             reporter,
         )?;
     }

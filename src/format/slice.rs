@@ -118,19 +118,17 @@ pub fn slice<'m>(
 
     // Old point index → new index, u32::MAX for dropped points.
     let n_points = map.n_points() as usize;
-    let mut keep = vec![false; n_points];
+    let mut keep: bitvec::vec::BitVec = bitvec::vec::BitVec::repeat(false, n_points);
     for &l in &keep_levels {
         for &p in map.level(l)?.points()?.iter() {
-            keep[p as usize] = true;
+            keep.set(p as usize, true);
         }
     }
     let mut remap = vec![u32::MAX; n_points];
     let mut kept = 0u32;
-    for (old, k) in keep.iter().enumerate() {
-        if *k {
-            remap[old] = kept;
-            kept += 1;
-        }
+    for old in keep.iter_ones() {
+        remap[old] = kept;
+        kept += 1;
     }
 
     let mut metadata: Metadata = map.metadata().clone();
@@ -237,8 +235,8 @@ pub fn slice<'m>(
         let positions = map.point_positions()?;
         let kept: Vec<[f32; 3]> = positions
             .iter()
-            .zip(&keep)
-            .filter(|(_, &k)| k)
+            .zip(keep.iter().by_vals())
+            .filter(|&(_, k)| k)
             .map(|(&p, _)| p)
             .collect();
         writer.set_points_q16(&kept)?;
@@ -372,11 +370,18 @@ impl Keep<'_> {
 }
 
 /// Keeps the rows of a per-point section whose point is kept.
-fn gather_rows<'m>(bytes: &[u8], section: &Section, keep: &[bool]) -> Cow<'m, [u8]> {
+fn gather_rows<'m>(
+    bytes: &[u8],
+    section: &Section,
+    keep: &bitvec::slice::BitSlice,
+) -> Cow<'m, [u8]> {
     let row_len = (section.cols * section.dtype.size()) as usize;
     let mut out = Vec::with_capacity(bytes.len());
-    for (row, k) in bytes.chunks_exact(row_len.max(1)).zip(keep) {
-        if *k {
+    for (row, k) in bytes
+        .chunks_exact(row_len.max(1))
+        .zip(keep.iter().by_vals())
+    {
+        if k {
             out.extend_from_slice(row);
         }
     }

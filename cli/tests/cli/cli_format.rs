@@ -289,19 +289,19 @@ fn slice_pq_replaces_descriptor_blocks_by_codes() {
 }
 
 /// `slice --short --short-dims N`: the kept level's short block in N dims of its own PCA
-/// basis, with the projection queries take; the report says what was kept; a cut that
-/// cannot be made fails in one line naming the map and writes nothing.
+/// basis, with the projection queries take (`[N × d_in]`, the level's input unchanged); a VLAD
+/// on it is learned again and the report says so; a cut that cannot be made fails in one line
+/// naming the map and writes nothing.
 #[test]
 fn slice_short_dims_cuts_the_short_block_to_a_basis_of_its_own() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("cut.sfpm");
-    let levels = vector("valid", "levels");
-    let cut = |dims: &str, to: &std::path::Path| {
+    let cut = |map: &std::path::Path, level: &str, dims: &str, to: &std::path::Path| {
         sfpmap(&[
             "slice",
-            levels.to_str().unwrap(),
+            map.to_str().unwrap(),
             "--level",
-            "0",
+            level,
             "--short",
             "--short-dims",
             dims,
@@ -310,33 +310,57 @@ fn slice_short_dims_cuts_the_short_block_to_a_basis_of_its_own() {
             "--json",
         ])
     };
-    let o = cut("4", &out);
+    // Level 0 of `levels`: 4 short dims behind a 16 x 16 projection.
+    let levels = vector("valid", "levels");
+    let o = cut(&levels, "0", "2", &out);
     assert!(o.status.success(), "{}", stderr(&o));
     let report: Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(report["short_dims"][0]["dims"], 4, "{report}");
-    let kept = report["short_dims"][0]["energy_kept"].as_f64().unwrap();
-    assert!(kept > 0.0 && kept <= 1.0, "{report}");
+    let cut_level = &report["short_dims"][0];
+    assert_eq!(
+        (&cut_level["dims_before"], &cut_level["dims"]),
+        (&4.into(), &2.into()),
+        "{report}"
+    );
     assert!(sfpmap(&["verify", out.to_str().unwrap()]).status.success());
     let info = info_json(&out);
     let level = &info["levels"][0];
     assert_eq!(
         (&level["dim_short"], &level["dim_full"]),
-        (&4.into(), &4.into()),
+        (&2.into(), &2.into()),
         "{info}"
     );
-    let kinds: Vec<&str> = info["sections"]
+    let projection = info["sections"]
         .as_array()
         .unwrap()
         .iter()
-        .map(|s| s["kind"].as_str().unwrap())
-        .collect();
-    assert!(kinds.contains(&"level_projection"), "{kinds:?}");
+        .find(|s| s["kind"] == "level_projection")
+        .unwrap();
+    assert_eq!(
+        (&projection["rows"], &projection["cols"]),
+        (&2.into(), &16.into()),
+        "{projection}"
+    );
+    // The VLAD on level 2 of `image_index` is learned again over 1 dim; its index of 2 lists
+    // over 3 images cannot be (1-dim VLADs of 2 centroids: fewer distinct rows than lists).
+    let out = dir.path().join("cut-index.sfpm");
+    let o = cut(&vector("valid", "image_index"), "2", "1", &out);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+    let cut_level = &report["short_dims"][0];
+    assert_eq!(cut_level["vlad_relearned"], true, "{report}");
+    assert_eq!(cut_level["index_dropped"], true, "{report}");
+    assert!(sfpmap(&["verify", out.to_str().unwrap()]).status.success());
+    let info = info_json(&out);
+    assert_eq!(info["retrieval"]["preference"], "vlad", "{info}");
+    assert_eq!(info["retrieval"]["vlad"]["dims"], 1, "{info}");
+    // No level with more short dims than asked for: refused, nothing written.
     let bad = dir.path().join("bad.sfpm");
-    let o = cut("4096", &bad);
+    let o = cut(&levels, "0", "4", &bad);
     assert_eq!(o.status.code(), Some(1));
     let err = stderr(&o);
     assert!(
-        err.contains("short dimensions: keep 1 to") && err.contains(levels.to_str().unwrap()),
+        err.contains("no kept level has more than 4 short dimensions")
+            && err.contains(levels.to_str().unwrap()),
         "{err}"
     );
     assert_eq!(err.lines().count(), 1, "{err}");

@@ -98,24 +98,23 @@ fn sfp_queries_from_images_and_from_features_h5_agree_and_eval_reports() {
         "-o",
         &p("m32.sfpm"),
     ]);
-    let c: Value = serde_json::from_str(&run(&[
-        "localize",
-        "--map",
-        &p("m32.sfpm"),
-        "--short",
-        "--query-list",
-        &sd("queries.txt"),
-        "--features",
-        &p("q.h5"),
-        "-o",
-        &p("c.txt"),
-        "--json",
-    ]))
-    .unwrap();
+    // From the features file and from the images (the map's model is checked against the
+    // level's input dims, 192, not its stored 32).
+    let localize_cut = |from: &[&str], poses: &str| -> Value {
+        let mut args = vec!["localize", "--map"];
+        let (map, list, out) = (p("m32.sfpm"), sd("queries.txt"), p(poses));
+        args.extend([map.as_str(), "--short", "--query-list", list.as_str()]);
+        args.extend(from);
+        args.extend(["-o", out.as_str(), "--json"]);
+        serde_json::from_str(&run(&args)).unwrap()
+    };
+    let c = localize_cut(&["--features", &p("q.h5")], "c.txt");
+    let d = localize_cut(&["--images", &sd("images")], "d.txt");
+    assert_eq!(d["localized"], 2, "{d}");
     assert_eq!(a["localized"], 2, "{a}");
     assert_eq!(b["localized"], 2, "{b}");
     assert_eq!(c["localized"], 2, "{c}");
-    for pose_file in ["a.txt", "b.txt", "c.txt"] {
+    for pose_file in ["a.txt", "b.txt", "c.txt", "d.txt"] {
         let ev: Value = serde_json::from_str(&run(&[
             "eval",
             "--poses",

@@ -691,7 +691,8 @@ def slice(
 ) -> Dict[str, Any]:
     """``sfpmap slice``: keep ``levels`` (and with ``short`` only their short blocks) of a
     map, written to ``out``. Options as the CLI's flags: ``minimal`` (only what localization
-    reads, positions on a 16-bit grid), ``pq`` (M one-byte codes per point), ``codec``,
+    reads, positions on a 16-bit grid), ``pq`` (M one-byte codes per point), ``short_dims``
+    (with ``short``: N dimensions of each level's own PCA basis), ``codec``,
     ``zstd_level``, ``force``; or ``budget`` (bytes: ``slice --budget``, which chooses the rest;
     ``levels`` may then be empty). Returns what ``slice --json`` prints."""
     if out is None:

@@ -133,8 +133,11 @@ impl Options {
         if !(1..=22).contains(&zstd_level) {
             return bad(format!("zstd_level {zstd_level}: 1 to 22"));
         }
-        if vlad_clusters.is_some_and(|k| k > 1024) {
-            return bad("vlad_clusters: a number of centroids from 0 (no VLAD) to 1024".into());
+        let most = sfpmap::vlad::MAX_CLUSTERS;
+        if vlad_clusters.is_some_and(|k| k > most) {
+            return bad(format!(
+                "vlad_clusters: a number of centroids from 0 (no VLAD) to {most}"
+            ));
         }
         if pq.is_some_and(|m| !(1..=4096).contains(&m)) {
             return bad("pq: 1 to 4096 one-byte codes per point".into());
@@ -485,12 +488,13 @@ pub(crate) fn convert(
 
 /// `sfpmap slice`: keep `levels` of the map at `map_path` (and only their short descriptor
 /// blocks with `short`; only what localization reads with `minimal`; product-quantised into
-/// `pq` codes per point), written to `out`; or, with `budget` (bytes), the levels, blocks,
+/// `pq` codes per point; with `short`, cut to `short_dims` dimensions of each level's own PCA
+/// basis), written to `out`; or, with `budget` (bytes), the levels, blocks,
 /// `minimal` and `pq` that fit it best (`slice --budget`; `levels`, if any, the only level set
 /// tried). Returns what `slice --json` prints.
 #[pyfunction]
 #[pyo3(signature = (map_path, levels, short=false, *, out, minimal=false, pq=None, codec=None,
-                    zstd_level=3, force=false, budget=None))]
+                    zstd_level=3, force=false, budget=None, short_dims=None))]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn slice(
     py: Python<'_>,
@@ -504,15 +508,24 @@ pub(crate) fn slice(
     zstd_level: i32,
     force: bool,
     budget: Option<u64>,
+    short_dims: Option<u16>,
 ) -> PyResult<String> {
-    use sfpmap::build::pq::slice_quantised;
+    use sfpmap::build::pq::slice_encoded;
     if levels.is_empty() && budget.is_none() {
         return Err(InputError::new_err("levels: at least one level to keep"));
     }
-    if budget.is_some() && (short || minimal || pq.is_some()) {
+    if budget.is_some() && (short || minimal || pq.is_some() || short_dims.is_some()) {
         return Err(InputError::new_err(
-            "budget chooses short, minimal and pq itself: pass none of them",
+            "budget chooses short, minimal and pq itself: pass none of them (nor short_dims)",
         ));
+    }
+    if short_dims.is_some() && (!short || pq.is_some()) {
+        return Err(InputError::new_err(
+            "short_dims: needs short=True and no pq",
+        ));
+    }
+    if short_dims == Some(0) {
+        return Err(InputError::new_err("short_dims: at least 1 dimension"));
     }
     if !(1..=22).contains(&zstd_level) {
         return Err(InputError::new_err(format!(
@@ -549,8 +562,13 @@ pub(crate) fn slice(
                 (chosen.sliced, Some(report))
             }
             None => (
-                slice_quantised(&map, &options, None, pq.map(usize::from))
-                    .map_err(|e| format_error(&map_path, e))?,
+                slice_encoded(
+                    &map,
+                    &options,
+                    short_dims.map(usize::from),
+                    pq.map(usize::from),
+                )
+                .map_err(|e| format_error(&map_path, e))?,
                 None,
             ),
         };

@@ -72,7 +72,11 @@ def test_slice_equals_the_cli(cli, sacre_sift, work):
 
 @pytest.mark.parametrize(
     "flags, options",
-    [(["--minimal"], {"minimal": True}), (["--short", "--pq", "8"], {"short": True, "pq": 8})],
+    [
+        (["--minimal"], {"minimal": True}),
+        (["--short", "--pq", "8"], {"short": True, "pq": 8}),
+        (["--short", "--short-dims", "16"], {"short": True, "short_dims": 16}),
+    ],
 )
 def test_slice_options_equal_the_cli(cli, sacre_sift, work, flags, options):
     tag = "-".join(f.strip("-") for f in flags)
@@ -84,6 +88,12 @@ def test_slice_options_equal_the_cli(cli, sacre_sift, work, flags, options):
         if options.get("minimal"):
             assert m.points.positions is None and m.points.positions_q16.dtype == np.uint16
             assert s["position_max_error"] is not None
+        elif options.get("short_dims"):
+            # SIFT's level: 32 short dims of its PCA basis, cut to its leading 16.
+            level = m.levels[2]
+            assert (level.dim_short, level.dim_full, level.rest) == (16, 16, None)
+            assert s["short_dims"][0]["dims_before"] == 32 and s["short_dims"][0]["dims"] == 16
+            assert 0.5 < s["short_dims"][0]["energy_kept"] <= 1.0
         else:
             level = m.levels[2]
             assert level.pq_codes.shape == (len(level), 8)
@@ -250,6 +260,9 @@ def test_slice_levels_are_required_and_checked(sacre_sift, work, tmp_path):
     for level in (-1, 70000):
         with pytest.raises(sfpmap.NoSuchLevelError, match=f"no level {level} in this map"):
             sfpmap.slice(sacre_sift, levels=[level], out=tmp_path / "x.sfpm")
+    for options in ({"short_dims": 16}, {"short": True, "short_dims": 16, "pq": 4}, {"short": True, "short_dims": 0}):
+        with pytest.raises(sfpmap.InputError, match="short_dims"):
+            sfpmap.slice(sacre_sift, levels=[2], out=tmp_path / "x.sfpm", **options)
     assert not list(tmp_path.iterdir())
 
 
