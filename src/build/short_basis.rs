@@ -165,7 +165,7 @@ pub fn cut_short(
         info.extra.remove("full_layout");
         writer.set_level_short(id, dims, &cut, d_in, projection)?;
         if map.vlad_level() == Some(id) && writer.has_vlad() {
-            relearn = Some((summaries.len(), cut.clone()));
+            relearn = Some((summaries.len(), cut));
         }
         summaries.push(ShortBasisSummary {
             level: id,
@@ -226,15 +226,30 @@ fn relearn_vlad(
     let (clusters, old_dims) = map
         .find(SectionKind::LevelVladCentroids, Some(id))
         .map_or((0, 0), |s| (s.rows() as usize, s.cols() as usize));
-    let index_lists = map
-        .image_index()?
-        .filter(|index| index.of == Retrieval::Vlad)
-        .map(|index| {
-            (
-                index.offsets.len().saturating_sub(1),
-                index.neighbours.map(|n| n.rows.into_owned()),
-            )
-        });
+    // An index over the VLAD in the slice: its lists (from the section table) and each
+    // image's neighbours, when they are as wide as the builder makes them (else the index is
+    // built again without them, as k-means lists).
+    let index_lists = match writer.metadata().image_index.as_ref().and_then(|i| i.of()) {
+        Some(Retrieval::Vlad) => {
+            let lists = map
+                .find(SectionKind::ImageIndexCentroids, None)
+                .map_or(0, |s| s.rows() as usize);
+            let neighbours = match map.find(SectionKind::ImageIndexNeighbours, None) {
+                Some(s) if s.cols() as usize == super::retrieval::INDEX_NEIGHBOURS => {
+                    Some(map.section_array::<u32>(s)?.into_owned())
+                }
+                _ => None,
+            };
+            // Read as they are stored: one naming no image of the map is not followed.
+            let images = map.n_images();
+            let neighbours = neighbours.filter(|rows| {
+                rows.iter()
+                    .all(|&n| n == crate::format::NO_NEIGHBOUR || u64::from(n) < images)
+            });
+            Some((lists, neighbours))
+        }
+        _ => None,
+    };
     // The old VLAD (and an index over it) goes first; the preference stays if it is relearned.
     let preference = writer.metadata().retrieval.clone();
     writer.drop_vlad();
@@ -268,7 +283,9 @@ fn relearn_vlad(
         return Ok((false, index_lists.is_some()));
     }
     writer.metadata_mut().retrieval = preference;
+    // The index is over what the map retrieves with: built again only where that is the VLAD.
     let index_dropped = match index_lists {
+        Some(_) if writer.metadata().retrieval() != Some(Retrieval::Vlad) => true,
         Some((lists, neighbours)) => {
             let index =
                 super::retrieval::add_image_index(writer, Some(lists), neighbours, &Silent)?;
@@ -328,10 +345,20 @@ mod tests {
         p
     }
 
+    /// The points of level 0 (`p % 3 != 0`) and of level 1 (`p % 5 != 0`); level 2 holds
+    /// every point, so a slice of levels 0 and 1 drops those with `p % 15 == 0`.
+    fn level_points(level: u32) -> Vec<u32> {
+        let modulus = [3, 5, 1][level as usize];
+        (0..POINTS as u32)
+            .filter(|p| modulus == 1 || p % modulus != 0)
+            .collect()
+    }
+
     /// Level 0: 24 dims (8 short) in the extractor's basis, with the VLAD (`clusters` × 8),
     /// with an image index of 3 lists over it (`index`), and global descriptors, retrieval
-    /// preferring the VLAD; level 1: 16 dims (8 short) behind [`signed_permutation`]; 12
-    /// images, each seeing 200 of the 300 points.
+    /// preferring the VLAD; level 1: 16 dims (8 short) behind [`signed_permutation`]; level
+    /// 2: 8 dims (4 short); 12 images, each seeing 200 of the 300 points. Returns the map and
+    /// level 0's rows.
     fn map_bytes(clusters: usize, index: bool) -> (Vec<u8>, Vec<f32>) {
         let mut w = MapWriter::default();
         w.add_camera(CameraInfo {
@@ -352,13 +379,31 @@ mod tests {
             .flat_map(|i| (0..200).map(move |k| (i * 25 + k) % POINTS as u32))
             .collect();
         w.set_visibility(&offsets, &vis, None).unwrap();
-        let all: Vec<u32> = (0..POINTS as u32).collect();
-        let level0 = rows(POINTS, 24, 1, true);
-        w.add_level(info(0, 24, 8), &all, Some(Descriptors::F32(&level0)), true)
-            .unwrap();
-        let level1 = rows(POINTS, 16, 2, false);
-        w.add_level(info(1, 16, 8), &all, Some(Descriptors::F32(&level1)), true)
-            .unwrap();
+        let points: Vec<Vec<u32>> = (0..3).map(level_points).collect();
+        let level0 = rows(points[0].len(), 24, 1, true);
+        w.add_level(
+            info(0, 24, 8),
+            &points[0],
+            Some(Descriptors::F32(&level0)),
+            true,
+        )
+        .unwrap();
+        let level1 = rows(points[1].len(), 16, 2, false);
+        w.add_level(
+            info(1, 16, 8),
+            &points[1],
+            Some(Descriptors::F32(&level1)),
+            true,
+        )
+        .unwrap();
+        let level2 = rows(POINTS, 8, 7, false);
+        w.add_level(
+            info(2, 8, 4),
+            &points[2],
+            Some(Descriptors::F32(&level2)),
+            true,
+        )
+        .unwrap();
         w.set_level_projection(1, 20, signed_permutation()).unwrap();
         let codebook = rows(clusters, 8, 4, false);
         w.set_vlad(0, 8, codebook, &rows(IMAGES, clusters * 8, 5, false))
@@ -444,7 +489,7 @@ mod tests {
         // Level 1: a query whose projection (a signed permutation) gives the old short row.
         let (old1, p1) = (map.level(1).unwrap(), l1.projection().unwrap().unwrap());
         let before = signed_permutation();
-        for r in [0, 7, 299] {
+        for r in [0, 7, level_points(0).len() - 1] {
             let mut query1 = [0.0f32; 20];
             for (k, &v) in stored_row(&old1, r).iter().enumerate() {
                 let row = &before[k * 20..(k + 1) * 20];
@@ -468,6 +513,23 @@ mod tests {
         assert!(summaries[0].vlad_relearned && !summaries[0].index_dropped);
         let vlad = sliced.vlad().unwrap().unwrap();
         assert_eq!((vlad.level, vlad.clusters, vlad.dims), (0, 4, 4));
+        // Each image's VLAD is its own over the slice's remapped points and cut rows (the
+        // relearning read the map's: the same described points, by row).
+        assert_eq!(sliced.n_points(), POINTS as u64 - POINTS as u64 / 15);
+        let mut by_point = vec![0.0f32; sliced.n_points() as usize * 4];
+        for (r, &p) in l0.points().unwrap().iter().enumerate() {
+            let out = &mut by_point[p as usize * 4..(p as usize + 1) * 4];
+            out.copy_from_slice(&stored_row(&l0, r));
+            l2_normalise(out);
+        }
+        let codebook = crate::vlad::Codebook::new(vlad.centroids.to_vec(), 4).unwrap();
+        let visibility = sliced.visibility_points().unwrap().unwrap();
+        let expected = codebook.image_vlads(&by_point, &visibility.offsets, &visibility.points);
+        assert_eq!(expected.len(), vlad.images.len());
+        for (a, b) in expected.iter().zip(vlad.images.iter()) {
+            assert!((a - b.to_f32()).abs() < 2e-3, "{a} vs {b}");
+        }
+        assert!(expected.iter().any(|&v| v != 0.0));
         assert_eq!(sliced.metadata().retrieval(), Some(Retrieval::Vlad));
         let index = sliced.image_index().unwrap().unwrap();
         assert_eq!(
@@ -493,6 +555,13 @@ mod tests {
         sliced.verify().unwrap();
         assert!(sliced.vlad().unwrap().is_none());
         assert!(sliced.image_index().unwrap().is_none());
+        assert!(sliced
+            .metadata()
+            .level(0)
+            .unwrap()
+            .extra
+            .get("vlad")
+            .is_none());
         assert_eq!(sliced.metadata().retrieval(), Some(Retrieval::Global));
     }
 

@@ -1,5 +1,5 @@
 //! A level's `short` block replaced by fewer dimensions in another basis, with the projection
-//! that takes a query's descriptor there (`slice --short-dims`, [`crate::build::short_basis`]).
+//! that takes a query's descriptor there (`slice --short-dims`; the basis is the builder's).
 
 use super::error::Error;
 use super::layout::{Dtype, SectionKind};
@@ -57,8 +57,8 @@ impl MapWriter<'_> {
     }
 
     /// (1.3) Drops the image index over `of`'s rows, if the writer holds one: its lists were
-    /// learned from rows that changed. Each image's neighbours (1.4) stay. Returns whether
-    /// one was dropped.
+    /// learned from rows that changed. (1.4) Each image's neighbours go with it, as a slice
+    /// that drops the index drops them. Returns whether one was dropped.
     pub fn drop_image_index_of(&mut self, of: super::metadata::Retrieval) -> bool {
         if self.metadata.image_index.as_ref().and_then(|i| i.of()) != Some(of) {
             return false;
@@ -68,6 +68,7 @@ impl MapWriter<'_> {
             SectionKind::ImageIndexCentroids,
             SectionKind::ImageIndexOffsets,
             SectionKind::ImageIndexImages,
+            SectionKind::ImageIndexNeighbours,
         ] {
             self.sections
                 .remove(&(kind.code(), super::layout::NO_LEVEL));

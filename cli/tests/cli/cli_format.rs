@@ -341,18 +341,31 @@ fn slice_short_dims_cuts_the_short_block_to_a_basis_of_its_own() {
         "{projection}"
     );
     // The VLAD on level 2 of `image_index` is learned again over 1 dim; its index of 2 lists
-    // over 3 images cannot be (1-dim VLADs of 2 centroids: fewer distinct rows than lists).
-    let out = dir.path().join("cut-index.sfpm");
-    let o = cut(&vector("valid", "image_index"), "2", "1", &out);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let report: Value = serde_json::from_slice(&o.stdout).unwrap();
-    let cut_level = &report["short_dims"][0];
-    assert_eq!(cut_level["vlad_relearned"], true, "{report}");
-    assert_eq!(cut_level["index_dropped"], true, "{report}");
-    assert!(sfpmap(&["verify", out.to_str().unwrap()]).status.success());
-    let info = info_json(&out);
-    assert_eq!(info["retrieval"]["preference"], "vlad", "{info}");
-    assert_eq!(info["retrieval"]["vlad"]["dims"], 1, "{info}");
+    // over 3 images cannot be (1-dim VLADs of 2 centroids: fewer distinct rows than lists),
+    // and goes with its neighbours (1.4).
+    for name in ["image_index", "image_index_neighbours"] {
+        let out = dir.path().join(format!("cut-{name}.sfpm"));
+        let o = cut(&vector("valid", name), "2", "1", &out);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let report: Value = serde_json::from_slice(&o.stdout).unwrap();
+        let cut_level = &report["short_dims"][0];
+        assert_eq!(cut_level["vlad_relearned"], true, "{report}");
+        assert_eq!(cut_level["index_dropped"], true, "{report}");
+        assert!(sfpmap(&["verify", out.to_str().unwrap()]).status.success());
+        let info = info_json(&out);
+        assert_eq!(info["retrieval"]["preference"], "vlad", "{info}");
+        assert_eq!(info["retrieval"]["vlad"]["dims"], 1, "{info}");
+        let kinds: Vec<&str> = info["sections"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s["kind"].as_str().unwrap())
+            .collect();
+        assert!(
+            !kinds.iter().any(|k| k.starts_with("image_index")),
+            "{kinds:?}"
+        );
+    }
     // No level with more short dims than asked for: refused, nothing written.
     let bad = dir.path().join("bad.sfpm");
     let o = cut(&levels, "0", "4", &bad);
