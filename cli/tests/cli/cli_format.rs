@@ -19,6 +19,16 @@ fn info_json(path: &Path) -> Value {
     serde_json::from_slice(&o.stdout).unwrap()
 }
 
+/// The kinds of the sections `info --json` lists, in its order.
+fn section_kinds(info: &Value) -> Vec<&str> {
+    info["sections"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["kind"].as_str().unwrap())
+        .collect()
+}
+
 #[test]
 fn info_json_has_the_documented_keys() {
     let info = info_json(&vector("valid", "levels"));
@@ -252,12 +262,7 @@ fn slice_pq_replaces_descriptor_blocks_by_codes() {
     assert!(sfpmap(&["verify", out.to_str().unwrap()]).status.success());
     let info = info_json(&out);
     assert_eq!(info["version"], "1.1");
-    let kinds: Vec<&str> = info["sections"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|s| s["kind"].as_str().unwrap())
-        .collect();
+    let kinds = section_kinds(&info);
     assert!(kinds.contains(&"level_pq_codes") && kinds.contains(&"level_pq_codebook"));
     assert!(!kinds.contains(&"level_desc_short"), "{kinds:?}");
 
@@ -355,12 +360,7 @@ fn slice_short_dims_cuts_the_short_block_to_a_basis_of_its_own() {
         let info = info_json(&out);
         assert_eq!(info["retrieval"]["preference"], "vlad", "{info}");
         assert_eq!(info["retrieval"]["vlad"]["dims"], 1, "{info}");
-        let kinds: Vec<&str> = info["sections"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|s| s["kind"].as_str().unwrap())
-            .collect();
+        let kinds = section_kinds(&info);
         assert!(
             !kinds.iter().any(|k| k.starts_with("image_index")),
             "{kinds:?}"
