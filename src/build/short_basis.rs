@@ -63,8 +63,9 @@ fn rule(dims_before: usize, dims: usize, composed: bool) -> String {
 #[cfg(feature = "colmap")]
 /// Moves the `short` block of each level of `levels` in `writer` (a `--short` slice of
 /// `map`) with more than `dims` short dimensions into its own PCA basis, cut to `dims`.
-/// Memory: a cut level's new rows (`points × dims` f32) and a `dim_short²` moment matrix; with
-/// a VLAD on a cut level, its rows again and one index per visibility entry.
+/// Memory: a cut level's new rows (`points × dims` f16) and a `dim_short²` moment matrix; with
+/// a VLAD on a cut level, its rows again (f16, and f32 over the VLAD's dims) and one index per
+/// visibility entry.
 pub fn cut_short(
     map: &Map<'_>,
     writer: &mut MapWriter<'_>,
@@ -113,10 +114,15 @@ pub fn cut_short(
             fit.add(&row);
         }
         let basis: Basis = fit.finish();
-        let mut cut = vec![0.0f32; n * dims];
+        // Straight to the stored f16 rows: no f32 copy of the level.
+        let mut cut = vec![half::f16::ZERO; n * dims];
+        let mut projected = vec![0.0f32; dims];
         for (r, out) in cut.chunks_exact_mut(dims).enumerate() {
             unit_row(r, &mut row);
-            basis.project_leading_row(&row, out);
+            basis.project_leading_row(&row, &mut projected);
+            for (o, &v) in out.iter_mut().zip(&projected) {
+                *o = half::f16::from_f32(v);
+            }
         }
         // What the level took from a query's descriptor before: the first `ds` rows of its
         // projection, or the first `ds` values (the extractor's basis).
@@ -163,9 +169,12 @@ pub fn cut_short(
         // now that `short` is the whole descriptor (`short_basis.energy_kept` says the cut's).
         info.extra.insert("variance_short".into(), json!(1.0));
         info.extra.remove("full_layout");
-        writer.set_level_short(id, dims, &cut, d_in, projection)?;
-        if map.vlad_level() == Some(id) && writer.has_vlad() {
-            relearn = Some((summaries.len(), cut));
+        let vlad_here = map.vlad_level() == Some(id) && writer.has_vlad();
+        // The VLAD is learned from the rows as stored (f16), so they are kept for it.
+        let vlad_rows = vlad_here.then(|| cut.clone());
+        writer.set_level_short(id, dims, cut, d_in, projection)?;
+        if let Some(rows) = vlad_rows {
+            relearn = Some((summaries.len(), rows));
         }
         summaries.push(ShortBasisSummary {
             level: id,
@@ -208,7 +217,7 @@ fn compose(b: &[f32], p: &[f32], dims: usize, ds: usize, d_in: usize) -> Vec<f32
 }
 
 #[cfg(feature = "colmap")]
-/// The VLAD of level `id` learned again over its cut rows (`cut`, `[points × dims]`, unit),
+/// The VLAD of level `id` learned again over its cut rows (`cut`, `[points × dims]`, as stored),
 /// with the old codebook's centroids (at most [`crate::vlad::MAX_CLUSTERS`]) and as many of
 /// its dims as the level keeps, over the map's visibility (a slice keeps every image and the
 /// points of every kept level, so each image sees the same described points); then the image
@@ -219,7 +228,7 @@ fn relearn_vlad(
     map: &Map<'_>,
     writer: &mut MapWriter<'_>,
     id: u16,
-    cut: &[f32],
+    cut: &[half::f16],
     dims: usize,
 ) -> Result<(bool, bool), Error> {
     // The old codebook's shape from the section table: nothing of it is decoded.
@@ -266,7 +275,7 @@ fn relearn_vlad(
         .collect();
     let mut rows = vec![0.0f32; points.len() * vlad_dims];
     for (out, src) in rows.chunks_exact_mut(vlad_dims).zip(cut.chunks_exact(dims)) {
-        out.copy_from_slice(&src[..vlad_dims]);
+        widen_f16(&src[..vlad_dims], out);
         l2_normalise(out);
     }
     let stored = super::retrieval::add_vlad(

@@ -7,14 +7,14 @@ use super::writer::{owned_bytes, MapWriter};
 use half::f16;
 
 impl MapWriter<'_> {
-    /// Replaces level `level`'s descriptors by `rows` (`[points × dims]`, stored as f16) and
-    /// its projection by `projection` (`[dims × d_in]`): the level becomes `dim_short =
-    /// dim_full = dims` with no `rest` block.
+    /// Replaces level `level`'s descriptors by `rows` (`[points × dims]`) and its projection
+    /// by `projection` (`[dims × d_in]`): the level becomes `dim_short = dim_full = dims` with
+    /// no `rest` block.
     pub fn set_level_short(
         &mut self,
         level: u16,
         dims: usize,
-        rows: &[f32],
+        rows: Vec<f16>,
         d_in: usize,
         projection: Vec<f32>,
     ) -> Result<&mut Self, Error> {
@@ -43,14 +43,13 @@ impl MapWriter<'_> {
         for kind in [SectionKind::LevelDescShort, SectionKind::LevelDescRest] {
             self.sections.remove(&(kind.code(), level));
         }
-        let values: Vec<f16> = rows.iter().map(|&v| f16::from_f32(v)).collect();
         self.push_array(
             SectionKind::LevelDescShort,
             level,
             Dtype::F16,
             points,
             dims,
-            owned_bytes(values),
+            owned_bytes(rows),
         );
         self.set_level_projection(level, d_in, projection)?;
         Ok(self)
