@@ -64,8 +64,7 @@ fn rule(dims_before: usize, dims: usize, composed: bool) -> String {
 /// Moves the `short` block of each level of `levels` in `writer` (a `--short` slice of
 /// `map`) with more than `dims` short dimensions into its own PCA basis, cut to `dims`.
 /// Memory: a cut level's new rows (`points × dims` f16) and a `dim_short²` moment matrix; with
-/// a VLAD on a cut level, its rows again (f16, and f32 over the VLAD's dims) and one index per
-/// visibility entry.
+/// a VLAD on a cut level, its leading dims again (f32) and one index per visibility entry.
 pub fn cut_short(
     map: &Map<'_>,
     writer: &mut MapWriter<'_>,
@@ -169,12 +168,23 @@ pub fn cut_short(
         // now that `short` is the whole descriptor (`short_basis.energy_kept` says the cut's).
         info.extra.insert("variance_short".into(), json!(1.0));
         info.extra.remove("full_layout");
-        let vlad_here = map.vlad_level() == Some(id) && writer.has_vlad();
-        // The VLAD is learned from the rows as stored (f16), so they are kept for it.
-        let vlad_rows = vlad_here.then(|| cut.clone());
+        // A VLAD on the level is learned again from the rows as stored (f16): their leading
+        // dims, as many as the old codebook's (from the section table) and at most `dims`.
+        let vlad = map
+            .find(SectionKind::LevelVladCentroids, Some(id))
+            .filter(|_| writer.has_vlad())
+            .map(|s| {
+                let vlad_dims = (s.cols() as usize).clamp(1, dims);
+                let mut rows = vec![0.0f32; n * vlad_dims];
+                for (out, src) in rows.chunks_exact_mut(vlad_dims).zip(cut.chunks_exact(dims)) {
+                    widen_f16(&src[..vlad_dims], out);
+                    l2_normalise(out);
+                }
+                (s.rows() as usize, vlad_dims, rows)
+            });
         writer.set_level_short(id, dims, cut, d_in, projection)?;
-        if let Some(rows) = vlad_rows {
-            relearn = Some((summaries.len(), rows));
+        if let Some(vlad) = vlad {
+            relearn = Some((summaries.len(), vlad));
         }
         summaries.push(ShortBasisSummary {
             level: id,
@@ -192,9 +202,9 @@ pub fn cut_short(
             "--short-dims {dims}: no kept level has more than {dims} short dimensions"
         )));
     }
-    if let Some((at, rows)) = relearn {
+    if let Some((at, vlad)) = relearn {
         let summary = &mut summaries[at];
-        let (relearned, index_dropped) = relearn_vlad(map, writer, summary.level, &rows, dims)?;
+        let (relearned, index_dropped) = relearn_vlad(map, writer, summary.level, vlad)?;
         summary.vlad_relearned = relearned;
         summary.vlad_dropped = !relearned;
         summary.index_dropped = index_dropped;
@@ -217,9 +227,9 @@ fn compose(b: &[f32], p: &[f32], dims: usize, ds: usize, d_in: usize) -> Vec<f32
 }
 
 #[cfg(feature = "colmap")]
-/// The VLAD of level `id` learned again over its cut rows (`cut`, `[points × dims]`, as stored),
-/// with the old codebook's centroids (at most [`crate::vlad::MAX_CLUSTERS`]) and as many of
-/// its dims as the level keeps, over the map's visibility (a slice keeps every image and the
+/// The VLAD of level `id` learned again with `clusters` centroids (the old codebook's, at most
+/// [`crate::vlad::MAX_CLUSTERS`]) over `rows` (`[points × vlad_dims]`: the cut rows' leading
+/// dims, unit), over the map's visibility (a slice keeps every image and the
 /// points of every kept level, so each image sees the same described points); then the image
 /// index over it, if the slice had one, built again with as many lists. Returns (relearned,
 /// index dropped); not relearned, the VLAD is dropped and retrieval falls back to the global
@@ -228,13 +238,8 @@ fn relearn_vlad(
     map: &Map<'_>,
     writer: &mut MapWriter<'_>,
     id: u16,
-    cut: &[half::f16],
-    dims: usize,
+    (clusters, vlad_dims, rows): (usize, usize, Vec<f32>),
 ) -> Result<(bool, bool), Error> {
-    // The old codebook's shape from the section table: nothing of it is decoded.
-    let (clusters, old_dims) = map
-        .find(SectionKind::LevelVladCentroids, Some(id))
-        .map_or((0, 0), |s| (s.rows() as usize, s.cols() as usize));
     // An index over the VLAD in the slice: its lists (from the section table) and each
     // image's neighbours, when they are as wide as the builder makes them (else the index is
     // built again without them, as k-means lists).
@@ -262,7 +267,6 @@ fn relearn_vlad(
     // The old VLAD (and an index over it) goes first; the preference stays if it is relearned.
     let preference = writer.metadata().retrieval.clone();
     writer.drop_vlad();
-    let vlad_dims = old_dims.min(dims);
     let Some(visibility) = map.visibility_points()? else {
         return Ok((false, index_lists.is_some()));
     };
@@ -273,11 +277,6 @@ fn relearn_vlad(
         .iter()
         .map(|p| points.binary_search(p).map_or(u32::MAX, |r| r as u32))
         .collect();
-    let mut rows = vec![0.0f32; points.len() * vlad_dims];
-    for (out, src) in rows.chunks_exact_mut(vlad_dims).zip(cut.chunks_exact(dims)) {
-        widen_f16(&src[..vlad_dims], out);
-        l2_normalise(out);
-    }
     let stored = super::retrieval::add_vlad(
         writer,
         id,
